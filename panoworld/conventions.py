@@ -1,0 +1,202 @@
+"""The project's one implementation of axes, ERP pixel mapping, poses and frame conversions (docs/conventions.md)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+# World frame: right-handed, metres, gravity along +Y (up = -Y). The canonical frame of a scene is the
+# frame of its first camera (pose 0 = identity), so world axes equal OpenCV camera axes of view 0.
+WORLD_UP = np.array([0.0, -1.0, 0.0])
+
+# Camera frame (OpenCV / COLMAP): x right, y down, z forward.
+# OpenGL / nerfstudio / Blender camera: x right, y up, z backward.
+GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+CV_FROM_GL = GL_FROM_CV
+# glTF / Blender-import world (Y up): rotate our world 180 degrees about x.
+GLTF_FROM_WORLD = np.diag([1.0, -1.0, -1.0, 1.0])
+# ROS / Foxglove world (REP 103): x forward, y left, z up.
+ROS_FROM_WORLD = np.array(
+    [[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+)
+
+
+def check_erp_shape(height: int, width: int, what: str = "panorama") -> None:
+    """Raise ValueError unless (height, width) is a 2:1 equirectangular size."""
+    if height <= 0 or width != 2 * height:
+        raise ValueError(
+            f"{what} is {width}x{height} (WxH) but an equirectangular image must be exactly 2:1 (W = 2H)"
+        )
+
+
+def erp_lonlat_from_pixel(u: np.ndarray, v: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Continuous pixel coords (centre of pixel (i, j) is (j + 0.5, i + 0.5)) -> (lon, lat) in radians.
+
+    lon in [-pi, pi), 0 at the image centre column, increasing to the right (towards +x).
+    lat in [-pi/2, pi/2], +pi/2 at the top row (up, -y).
+    """
+    lon = (np.asarray(u, dtype=np.float64) / width - 0.5) * 2.0 * np.pi
+    lat = (0.5 - np.asarray(v, dtype=np.float64) / height) * np.pi
+    return lon, lat
+
+
+def erp_pixel_from_lonlat(lon: np.ndarray, lat: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of erp_lonlat_from_pixel; u is wrapped into [0, width)."""
+    u = (np.asarray(lon, dtype=np.float64) / (2.0 * np.pi) + 0.5) * width
+    v = (0.5 - np.asarray(lat, dtype=np.float64) / np.pi) * height
+    return np.mod(u, width), v
+
+
+def dir_from_lonlat(lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
+    """(lon, lat) -> unit ray direction in the camera frame, shape (..., 3)."""
+    lon, lat = np.broadcast_arrays(lon, lat)
+    cl = np.cos(lat)
+    return np.stack([cl * np.sin(lon), -np.sin(lat), cl * np.cos(lon)], axis=-1)
+
+
+def lonlat_from_dir(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ray direction(s) (..., 3) in the camera frame (need not be unit) -> (lon, lat)."""
+    d = np.asarray(d, dtype=np.float64)
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    lon = np.arctan2(x, z)
+    lat = np.arctan2(-y, np.hypot(x, z))
+    return lon, lat
+
+
+def erp_pixel_from_dir(d: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame direction(s) (..., 3) -> continuous ERP pixel coords (u, v)."""
+    return erp_pixel_from_lonlat(*lonlat_from_dir(d), height, width)
+
+
+def erp_dirs(height: int, width: int, dtype=np.float32) -> np.ndarray:
+    """Unit ray directions of every pixel centre, shape (H, W, 3), camera frame."""
+    check_erp_shape(height, width, "requested ERP grid")
+    u = np.arange(width, dtype=np.float64) + 0.5
+    v = np.arange(height, dtype=np.float64) + 0.5
+    lon, lat = erp_lonlat_from_pixel(u[None, :], v[:, None], height, width)
+    return dir_from_lonlat(lon, lat).astype(dtype)
+
+
+def erp_pixel_solid_angle(height: int, width: int) -> np.ndarray:
+    """Solid angle of each pixel row, shape (H, 1) (for WS-PSNR and area-weighted statistics)."""
+    lat_top = (0.5 - np.arange(height) / height) * np.pi
+    lat_bot = (0.5 - (np.arange(height) + 1) / height) * np.pi
+    return ((np.sin(lat_top) - np.sin(lat_bot)) * (2.0 * np.pi / width))[:, None]
+
+
+def points_from_depth(depth: np.ndarray, world_from_cam: np.ndarray | None = None) -> np.ndarray:
+    """ERP ray-distance depth (H, W) in metres -> 3D points (H, W, 3), in world frame if a pose is given."""
+    if depth.ndim != 2:
+        raise ValueError(f"{depth.shape=} but expected (H, W)")
+    pts = erp_dirs(*depth.shape, dtype=np.float64) * depth[..., None]
+    if world_from_cam is not None:
+        pts = transform_points(world_from_cam, pts)
+    return pts
+
+
+def transform_points(a_from_b: np.ndarray, pts_b: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 rigid/similarity transform to points (..., 3)."""
+    check_pose(a_from_b)
+    return pts_b @ a_from_b[:3, :3].T + a_from_b[:3, 3]
+
+
+def check_pose(T: np.ndarray, what: str = "pose") -> None:
+    if np.shape(T) != (4, 4):
+        raise ValueError(f"{what} has shape {np.shape(T)} but expected (4, 4)")
+
+
+def invert_pose(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform (a_from_b -> b_from_a)."""
+    check_pose(T)
+    R, t = T[:3, :3], T[:3, 3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ t
+    return out
+
+
+def pose_from_rt(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def quat_wxyz_from_rotmat(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix (..., 3, 3) -> unit quaternion (..., 4) in (w, x, y, z) order with w >= 0."""
+    R = np.asarray(R, dtype=np.float64)
+    m = R.reshape(-1, 3, 3)
+    q = np.empty((m.shape[0], 4))
+    tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
+    # Shepperd's method: pick the numerically largest of w, x, y, z.
+    cands = np.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], axis=1)
+    k = np.argmax(cands, axis=1)
+    for i in range(m.shape[0]):
+        r = m[i]
+        if k[i] == 0:
+            s = 2.0 * np.sqrt(max(1.0 + tr[i], 1e-300))
+            q[i] = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
+        elif k[i] == 1:
+            s = 2.0 * np.sqrt(max(1.0 + r[0, 0] - r[1, 1] - r[2, 2], 1e-300))
+            q[i] = [(r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
+        elif k[i] == 2:
+            s = 2.0 * np.sqrt(max(1.0 + r[1, 1] - r[0, 0] - r[2, 2], 1e-300))
+            q[i] = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s]
+        else:
+            s = 2.0 * np.sqrt(max(1.0 + r[2, 2] - r[0, 0] - r[1, 1], 1e-300))
+            q[i] = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s]
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q[q[:, 0] < 0] *= -1.0
+    return q.reshape(R.shape[:-2] + (4,))
+
+
+def rotmat_from_quat_wxyz(q: np.ndarray) -> np.ndarray:
+    """Quaternion(s) (..., 4) in (w, x, y, z) order (normalised here) -> rotation matrices (..., 3, 3)."""
+    q = np.asarray(q, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    R = np.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        axis=-1,
+    )
+    return R.reshape(q.shape[:-1] + (3, 3))
+
+
+def quat_xyzw_from_wxyz(q: np.ndarray) -> np.ndarray:
+    """(w, x, y, z) -> (x, y, z, w), the order of TUM files, ROS and Foxglove messages."""
+    return np.roll(np.asarray(q), -1, axis=-1)
+
+
+def quat_wxyz_from_xyzw(q: np.ndarray) -> np.ndarray:
+    return np.roll(np.asarray(q), 1, axis=-1)
+
+
+def colmap_cam_from_world(world_from_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """world_from_cam -> (qvec wxyz, tvec) of COLMAP's cam_from_world (camera axes are already OpenCV)."""
+    T = invert_pose(world_from_cam)
+    return quat_wxyz_from_rotmat(T[:3, :3]), T[:3, 3].copy()
+
+
+def world_from_cam_from_colmap(qvec_wxyz: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    return invert_pose(pose_from_rt(rotmat_from_quat_wxyz(qvec_wxyz), tvec))
+
+
+def gl_world_from_cam(world_from_cam: np.ndarray) -> np.ndarray:
+    """Our world_from_cam -> nerfstudio/OpenGL transform_matrix (same world, OpenGL camera axes)."""
+    return world_from_cam @ CV_FROM_GL
+
+
+def cv_world_from_cam_from_gl(gl_world_from_cam_: np.ndarray) -> np.ndarray:
+    return gl_world_from_cam_ @ GL_FROM_CV
+
+
+def ros_world_from_cam(world_from_cam: np.ndarray) -> np.ndarray:
+    """Our world_from_cam -> ROS/Foxglove world (z up) from the camera optical frame (OpenCV axes, REP 103)."""
+    return ROS_FROM_WORLD @ world_from_cam
+
+
+def world_from_ros_world() -> np.ndarray:
+    return ROS_FROM_WORLD.T.copy()

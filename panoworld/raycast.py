@@ -1,0 +1,92 @@
+"""Exact ray casting against triangle meshes with Embree (embreex): the ground-truth and reference renderer."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from panoworld.conventions import check_erp_shape, check_pose, erp_dirs
+
+
+@dataclass
+class Hits:
+    """Per-ray results. distance is inf and face is -1 where nothing was hit."""
+
+    distance: np.ndarray  # (N,) float32, metres along the unit ray
+    face: np.ndarray  # (N,) int64
+    bary: np.ndarray  # (N, 3) float32 barycentric weights of the face's three vertices
+
+
+class Raycaster:
+    """Embree BVH over a triangle mesh (vertices (V, 3), faces (F, 3)); the BVH is built once, lazily."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        vertices = np.asarray(vertices)
+        faces = np.asarray(faces)
+        if vertices.ndim != 2 or vertices.shape[1] != 3:
+            raise ValueError(f"{vertices.shape=} but expected (V, 3)")
+        if faces.ndim != 2 or faces.shape[1] != 3:
+            raise ValueError(f"{faces.shape=} but expected (F, 3)")
+        if len(faces) == 0:
+            raise ValueError("cannot ray cast an empty mesh (0 faces)")
+        self.vertices = vertices.astype(np.float32)
+        self.faces = faces.astype(np.int32)
+        self._scene = None
+
+    def _ensure(self):
+        if self._scene is None:
+            try:
+                from embreex import rtcore_scene
+                from embreex.mesh_construction import TriangleMesh
+            except ImportError as e:  # pragma: no cover - embreex is a core dependency
+                raise ImportError("embreex is required for ray casting: pip install embreex") from e
+            self._scene = rtcore_scene.EmbreeScene()
+            TriangleMesh(self._scene, self.vertices[self.faces])
+        return self._scene
+
+    def cast(self, origins: np.ndarray, dirs: np.ndarray, chunk: int = 1 << 20) -> Hits:
+        """Cast rays origins (N, 3) + t * dirs (N, 3); dirs must be unit length for metric distances."""
+        origins = np.ascontiguousarray(np.broadcast_to(origins, dirs.shape), dtype=np.float32)
+        dirs = np.ascontiguousarray(dirs, dtype=np.float32)
+        scene = self._ensure()
+        n = len(dirs)
+        dist = np.full(n, np.inf, np.float32)
+        face = np.full(n, -1, np.int64)
+        bary = np.zeros((n, 3), np.float32)
+        for s in range(0, n, chunk):
+            e = min(n, s + chunk)
+            res = scene.run(origins[s:e], dirs[s:e], output=1)
+            pid = np.asarray(res["primID"]).astype(np.int64)
+            hit = pid >= 0
+            t = np.asarray(res["tfar"], np.float32)
+            dist[s:e][hit] = t[hit]
+            face[s:e][hit] = pid[hit]
+            u = np.asarray(res["u"], np.float32)
+            v = np.asarray(res["v"], np.float32)
+            # Embree's (u, v) weight vertices 1 and 2; vertex 0 gets 1 - u - v.
+            bary[s:e, 0] = np.where(hit, 1.0 - u - v, 0.0)
+            bary[s:e, 1] = np.where(hit, u, 0.0)
+            bary[s:e, 2] = np.where(hit, v, 0.0)
+        return Hits(dist, face, bary)
+
+    def render_erp(self, world_from_cam: np.ndarray, height: int, width: int) -> Hits:
+        """Cast one ray through every ERP pixel centre from the camera; results reshaped to (H, W[, 3])."""
+        check_pose(world_from_cam, "world_from_cam")
+        check_erp_shape(height, width)
+        d_cam = erp_dirs(height, width, dtype=np.float64).reshape(-1, 3)
+        d_world = d_cam @ np.asarray(world_from_cam)[:3, :3].T
+        hits = self.cast(np.asarray(world_from_cam)[:3, 3][None, :], d_world)
+        return Hits(
+            hits.distance.reshape(height, width),
+            hits.face.reshape(height, width),
+            hits.bary.reshape(height, width, 3),
+        )
+
+    def interpolate(self, hits: Hits, vertex_attr: np.ndarray, fill: float = 0.0) -> np.ndarray:
+        """Barycentric interpolation of per-vertex attributes (V, C) at the hits -> (..., C)."""
+        face = hits.face
+        valid = face >= 0
+        idx = self.faces[np.where(valid, face, 0)]  # (..., 3)
+        vals = (vertex_attr[idx] * hits.bary[..., None]).sum(axis=-2)
+        return np.where(valid[..., None], vals, fill)
