@@ -1,0 +1,200 @@
+"""Triangle mesh of an ERP depth map (seam closed, pole fans, depth discontinuities flagged) and its PLY/glTF I/O."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from panoworld.conventions import GLTF_FROM_WORLD, check_erp_shape, erp_dirs, transform_points
+
+MESH_FILE = "mesh.ply"
+
+
+@dataclass
+class ErpMesh:
+    """Grid mesh of an ERP depth map in the canonical frame (view 0), metres.
+
+    Vertex layout: vertex i * w + j is grid pixel (i, j) of the (possibly strided) h x w grid, vertex h * w is the
+    top pole (up, -Y) and h * w + 1 the bottom pole. Vertices of invalid pixels sit at the origin, unreferenced.
+    Faces face the camera (counter-clockwise seen from the origin).
+    """
+
+    vertices: np.ndarray  # (V, 3) float32, canonical frame (view 0), metres
+    faces: np.ndarray  # (F, 3) int32
+    colors: np.ndarray  # (V, 3) uint8 RGB
+    face_valid: np.ndarray  # (F,) bool: False = stretched triangle across a depth discontinuity (kept only as an occluder)
+
+    def __post_init__(self):
+        if self.vertices.ndim != 2 or self.vertices.shape[1] != 3:
+            raise ValueError(f"{self.vertices.shape=} but expected (V, 3)")
+        if self.faces.ndim != 2 or self.faces.shape[1] != 3:
+            raise ValueError(f"{self.faces.shape=} but expected (F, 3)")
+        if self.colors.shape != self.vertices.shape:
+            raise ValueError(f"{self.colors.shape=} but expected {self.vertices.shape} (V, 3)")
+        if self.face_valid.shape != (len(self.faces),):
+            raise ValueError(f"{self.face_valid.shape=} but expected ({len(self.faces)},) (F,)")
+
+    def valid_only(self) -> ErpMesh:
+        """The same vertices with only the valid (non-stretched) faces."""
+        keep = self.face_valid
+        return ErpMesh(self.vertices, self.faces[keep], self.colors, np.ones(int(keep.sum()), bool))
+
+
+def _grid_faces(h: int, w: int) -> np.ndarray:
+    """Two triangles per grid quad, the last column joined to the first, shape (2 * (h - 1) * w, 3)."""
+    i, j = np.meshgrid(np.arange(h - 1), np.arange(w), indexing="ij")
+    j1 = (j + 1) % w
+    a, b, c, d = i * w + j, (i + 1) * w + j, (i + 1) * w + j1, i * w + j1
+    # (a, b, c) and (a, c, d) run counter-clockwise as seen from the camera (image x right, y down).
+    return np.stack([np.stack([a, b, c], -1), np.stack([a, c, d], -1)], axis=2).reshape(-1, 3)
+
+
+def _pole_faces(h: int, w: int) -> np.ndarray:
+    """Fans joining the first row to the top pole and the last row to the bottom pole, shape (2 * w, 3)."""
+    j = np.arange(w)
+    j1 = (j + 1) % w
+    top = np.stack([np.full(w, h * w), j, j1], -1)
+    last = (h - 1) * w
+    bottom = np.stack([np.full(w, h * w + 1), last + j1, last + j], -1)
+    return np.concatenate([top, bottom])
+
+
+def erp_mesh_from_depth(
+    depth: np.ndarray,
+    rgb: np.ndarray,
+    valid: np.ndarray | None = None,
+    *,
+    max_edge_ratio: float = 12.0,
+    stride: int = 1,
+) -> ErpMesh:
+    """ERP depth (H, W) float32 metres + rgb (H, W, 3) uint8 [+ valid (H, W) bool] -> ErpMesh.
+
+    Vertices are exactly `points_from_depth(depth)` at the grid pixels; with `stride` s > 1 only pixels
+    (s * i + s // 2, s * j + s // 2) become vertices (exact points, a coarser grid) and their colour is the mean
+    of their s x s block. Pixels with depth <= 0, NaN or inf (or valid False) make no faces.
+    A face is flagged invalid (a stretched occluder across a depth discontinuity) when one of its edges is longer
+    than `max_edge_ratio` times that edge's pixel footprint at its nearer end (nearer depth x angle between the
+    two rays): a surface seen at grazing angle alpha stretches by about 1 / sin(alpha), so 12 flags surfaces
+    seen at under ~5 degrees, whatever the resolution.
+    """
+    depth = np.asarray(depth)
+    if depth.ndim != 2:
+        raise ValueError(f"{depth.shape=} but expected (H, W)")
+    H, W = depth.shape
+    check_erp_shape(H, W, "depth")
+    if rgb.shape != (H, W, 3):
+        raise ValueError(f"{rgb.shape=} but expected {(H, W, 3)} (H, W, 3) like depth")
+    if valid is not None and valid.shape != (H, W):
+        raise ValueError(f"{valid.shape=} but expected {(H, W)} (H, W) like depth")
+    if stride < 1 or H // stride < 2:
+        raise ValueError(f"{stride=} must be >= 1 and leave at least 2 grid rows of {H}")
+
+    rows = np.arange(stride // 2, H, stride)
+    cols = np.arange(stride // 2, W, stride)
+    h, w = len(rows), len(cols)
+    d = depth[np.ix_(rows, cols)].astype(np.float32)
+    ok = np.isfinite(d) & (d > 0)
+    if valid is not None:
+        ok &= valid[np.ix_(rows, cols)].astype(bool)
+    d = np.where(ok, d, 0.0).astype(np.float32)
+    dirs = erp_dirs(H, W, dtype=np.float32)[np.ix_(rows, cols)]
+    pts = dirs * d[..., None]
+    if stride == 1:
+        col = rgb
+    else:
+        hb, wb = H // stride, W // stride
+        col = rgb[: hb * stride, : wb * stride].reshape(hb, stride, wb, stride, 3).mean(axis=(1, 3))
+        col = np.pad(col, ((0, h - hb), (0, w - wb), (0, 0)), mode="edge")
+    col = np.asarray(np.rint(col), dtype=np.uint8).reshape(-1, 3)
+
+    # Pole vertices: straight up / down at the median height of the first / last row (exact for a flat ceiling).
+    poles = np.zeros((2, 3), np.float32)
+    pole_ok = np.zeros(2, bool)
+    pole_col = np.zeros((2, 3), np.uint8)
+    for k, r in enumerate((0, h - 1)):
+        m = ok[r]
+        if m.any():
+            poles[k, 1] = np.median(pts[r, m, 1])
+            pole_ok[k] = True
+            pole_col[k] = np.rint(col.reshape(h, w, 3)[r, m].mean(axis=0))
+    pole_ok &= np.sign(poles[:, 1]) == np.array([-1.0, 1.0])
+    vertices = np.concatenate([pts.reshape(-1, 3), np.where(pole_ok[:, None], poles, 0.0)]).astype(np.float32)
+    v_dirs = np.concatenate([dirs.reshape(-1, 3), np.array([[0, -1, 0], [0, 1, 0]], np.float32)])
+    v_depth = np.concatenate([d.reshape(-1), np.abs(poles[:, 1]) * pole_ok]).astype(np.float32)
+    v_ok = np.concatenate([ok.reshape(-1), pole_ok])
+    colors = np.concatenate([col, pole_col])
+
+    faces = np.concatenate([_grid_faces(h, w), _pole_faces(h, w)]).astype(np.int32)
+    faces = faces[v_ok[faces].all(axis=1)]
+    stretch = np.zeros(len(faces), np.float32)
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        va, vb = faces[:, a], faces[:, b]
+        length = np.linalg.norm(vertices[va] - vertices[vb], axis=1)
+        chord = np.linalg.norm(v_dirs[va] - v_dirs[vb], axis=1)
+        near = np.minimum(v_depth[va], v_depth[vb])
+        np.maximum(stretch, length / np.maximum(near * chord, 1e-12), out=stretch)
+    return ErpMesh(vertices, faces, colors, stretch <= max_edge_ratio)
+
+
+def save_erp_mesh(mesh: ErpMesh, path: Path) -> None:
+    """Binary little-endian PLY: vertex x, y, z float32 + red, green, blue uint8; face vertex_indices + uint8 valid."""
+    from plyfile import PlyData, PlyElement
+
+    v = np.empty(len(mesh.vertices), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                            ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    for k, name in enumerate("xyz"):
+        v[name] = mesh.vertices[:, k]
+    for k, name in enumerate(("red", "green", "blue")):
+        v[name] = mesh.colors[:, k]
+    f = np.empty(len(mesh.faces), dtype=[("vertex_indices", "i4", (3,)), ("valid", "u1")])
+    f["vertex_indices"] = mesh.faces
+    f["valid"] = mesh.face_valid
+    PlyData(
+        [PlyElement.describe(v, "vertex"), PlyElement.describe(f, "face", len_types={"vertex_indices": "u1"})],
+        text=False, byte_order="<",
+        comments=["PanoWorld ERP mesh: canonical frame (view 0, OpenCV axes, up = -Y), metres",
+                  "face valid = 0: stretched across a depth discontinuity, an occluder only"],
+    ).write(str(path))
+
+
+def load_erp_mesh(path_or_artifact_dir: Path) -> ErpMesh:
+    """Read a mesh artifact directory (its mesh.ply) or a .ply path written by save_erp_mesh.
+
+    A PLY without the face property `valid` (any triangle mesh) loads with every face valid; no colours -> grey.
+    """
+    from plyfile import PlyData
+
+    path = Path(path_or_artifact_dir)
+    if path.is_dir():
+        path = path / MESH_FILE
+    ply = PlyData.read(str(path))
+    v = ply["vertex"].data
+    vertices = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32)
+    names = v.dtype.names
+    if all(c in names for c in ("red", "green", "blue")):
+        colors = np.stack([v["red"], v["green"], v["blue"]], axis=1).astype(np.uint8)
+    else:
+        colors = np.full((len(vertices), 3), 128, np.uint8)
+    f = ply["face"].data
+    idx = f["vertex_indices"]
+    faces = np.stack(idx).astype(np.int32) if idx.dtype == object else np.asarray(idx, np.int32)
+    faces = faces.reshape(-1, 3)
+    face_valid = f["valid"].astype(bool) if "valid" in f.dtype.names else np.ones(len(faces), bool)
+    return ErpMesh(vertices, faces, colors, face_valid)
+
+
+def save_erp_mesh_glb(mesh: ErpMesh, path: Path) -> None:
+    """glTF binary of the valid faces with vertex colours, in glTF's Y-up frame (conventions.GLTF_FROM_WORLD)."""
+    import trimesh
+
+    valid = mesh.valid_only()
+    tm = trimesh.Trimesh(
+        transform_points(GLTF_FROM_WORLD, valid.vertices.astype(np.float64)),
+        valid.faces,
+        vertex_colors=np.concatenate([valid.colors, np.full((len(valid.colors), 1), 255, np.uint8)], axis=1),
+        process=False,
+    )
+    tm.remove_unreferenced_vertices()
+    tm.export(str(path), file_type="glb")

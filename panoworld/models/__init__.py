@@ -1,0 +1,1 @@
+"""Learned models, each loaded from a local weights directory."""
