@@ -1,0 +1,113 @@
+"""Image quality metrics on CPU: PSNR (optionally masked), SSIM (Gaussian window) and WS-PSNR for ERP images."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+from panoworld.conventions import erp_pixel_solid_angle
+
+
+def _pair(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a = np.asarray(a)
+    b = np.asarray(b)
+    if a.shape != b.shape:
+        raise ValueError(f"{a.shape=} but expected {b.shape} (the shape of b)")
+    if a.ndim not in (2, 3):
+        raise ValueError(f"{a.shape=} but expected (H, W) or (H, W, C)")
+    return a, b
+
+
+def default_data_range(a: np.ndarray) -> float:
+    """255 for uint8 images, 65535 for uint16, 1.0 for float images."""
+    if a.dtype == np.uint8:
+        return 255.0
+    if a.dtype == np.uint16:
+        return 65535.0
+    return 1.0
+
+
+def _weighted_psnr(err2: np.ndarray, weight: np.ndarray, data_range: float) -> float:
+    """err2 (H, W, C) squared error, weight (H, W) >= 0 -> PSNR of the weighted mean squared error."""
+    wsum = float(weight.sum()) * err2.shape[2]
+    if wsum <= 0:
+        return float("nan")
+    mse = float((err2 * weight[..., None]).sum()) / wsum
+    if mse == 0.0:
+        return float("inf")
+    return float(10.0 * np.log10(data_range**2 / mse))
+
+
+def _sq_err(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    err2 = (a.astype(np.float64) - b.astype(np.float64)) ** 2
+    return err2 if err2.ndim == 3 else err2[..., None]
+
+
+def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None, *, data_range: float | None = None) -> float:
+    """PSNR in dB of images a, b (H, W[, C]) over all pixels or those where mask (H, W) is True.
+
+    inf for identical images, nan for an empty mask. data_range defaults to 255 for uint8 and 1.0 for floats.
+    """
+    a, b = _pair(a, b)
+    weight = np.ones(a.shape[:2]) if mask is None else _mask(mask, a.shape[:2]).astype(np.float64)
+    return _weighted_psnr(_sq_err(a, b), weight, data_range or default_data_range(a))
+
+
+def ws_psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None, *, data_range: float | None = None) -> float:
+    """Weighted-to-spherically-uniform PSNR of ERP images (H, W[, C]) with W = 2H: each pixel weighs its solid angle
+    (proportional to cos(latitude)), optionally restricted to mask (H, W)."""
+    a, b = _pair(a, b)
+    H, W = a.shape[:2]
+    weight = np.broadcast_to(erp_pixel_solid_angle(H, W), (H, W)).astype(np.float64)
+    if mask is not None:
+        weight = weight * _mask(mask, (H, W))
+    return _weighted_psnr(_sq_err(a, b), weight, data_range or default_data_range(a))
+
+
+def _mask(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    mask = np.asarray(mask)
+    if mask.shape != shape:
+        raise ValueError(f"{mask.shape=} but expected {shape} (H, W)")
+    return mask.astype(bool)
+
+
+def ssim_map(
+    a: np.ndarray, b: np.ndarray, *, data_range: float | None = None, sigma: float = 1.5, k1: float = 0.01,
+    k2: float = 0.03,
+) -> np.ndarray:
+    """Per-pixel SSIM (H, W) of Wang et al. 2004 (11x11 Gaussian window, sigma 1.5), averaged over channels.
+
+    Local statistics use the Gaussian-weighted (population) moments with reflected borders.
+    """
+    a, b = _pair(a, b)
+    L = data_range or default_data_range(a)
+    c1, c2 = (k1 * L) ** 2, (k2 * L) ** 2
+    x = a.astype(np.float64)
+    y = b.astype(np.float64)
+    if x.ndim == 2:
+        x, y = x[..., None], y[..., None]
+    out = np.zeros(x.shape[:2])
+    for c in range(x.shape[2]):
+
+        def blur(img):
+            return gaussian_filter(img, sigma, truncate=3.5, mode="reflect")
+
+        xc, yc = x[..., c], y[..., c]
+        mx, my = blur(xc), blur(yc)
+        vx = blur(xc * xc) - mx * mx
+        vy = blur(yc * yc) - my * my
+        cxy = blur(xc * yc) - mx * my
+        out += ((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
+    return out / x.shape[2]
+
+
+def ssim(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None, *, data_range: float | None = None) -> float:
+    """Mean SSIM of images a, b (H, W[, C]) (see ssim_map); over pixels where mask (H, W) is True if given,
+    otherwise over all pixels at least 5 pixels (the window radius) from the border, like scikit-image."""
+    m = ssim_map(a, b, data_range=data_range)
+    if mask is not None:
+        sel = _mask(mask, m.shape)
+        return float(m[sel].mean()) if sel.any() else float("nan")
+    r = 5
+    inner = m[r:-r, r:-r] if min(m.shape) > 2 * r else m
+    return float(inner.mean())
