@@ -43,12 +43,24 @@ def files_digest(files: dict[str, dict]) -> str:
     return json_digest(sorted((rel, meta["sha256"]) for rel, meta in files.items()))
 
 
+def schema_dirs() -> list[Path]:
+    """artifacts_schema/ plus any directories in $PANOWORLD_SCHEMA_PATH (schemas of your own stages)."""
+    extra = [Path(p) for p in os.environ.get("PANOWORLD_SCHEMA_PATH", "").split(os.pathsep) if p]
+    return [SCHEMA_DIR, *extra]
+
+
 @lru_cache(maxsize=None)
 def load_schema(kind: str) -> dict:
-    path = SCHEMA_DIR / f"{kind}.schema.json"
-    if not path.is_file():
-        raise ArtifactError(f"no JSON Schema for artifact kind {kind!r}: expected {path}")
-    return json.loads(path.read_text())
+    for d in schema_dirs():
+        path = d / f"{kind}.schema.json"
+        if path.is_file():
+            return json.loads(path.read_text())
+    raise ArtifactError(f"no JSON Schema for artifact kind {kind!r} in {', '.join(map(str, schema_dirs()))}")
+
+
+def manifest_checksum(manifest: dict) -> str:
+    """Digest of the whole manifest except its own checksum field: any edit to it is detected."""
+    return json_digest({k: v for k, v in manifest.items() if k != "checksum"})
 
 
 @lru_cache(maxsize=None)
@@ -103,8 +115,8 @@ def read_manifest(artifact_dir: Path, kind: str | None = None) -> dict:
     if not isinstance(manifest, dict):
         raise ArtifactError(f"{path}: not a JSON object")
     validate_manifest(manifest, kind or str(manifest.get("schema")), path)
-    if files_digest(manifest["files"]) != manifest["digest"]:
-        raise ArtifactError(f"{path}: digest does not match its file list (manifest tampered with)")
+    if manifest_checksum(manifest) != manifest["checksum"] or files_digest(manifest["files"]) != manifest["digest"]:
+        raise ArtifactError(f"{path}: checksum mismatch (manifest edited after it was written)")
     return manifest
 
 
@@ -143,7 +155,8 @@ def tmp_dir_for(out_dir: Path) -> Path:
 
 
 def write_manifest(tmp_dir: Path, manifest: dict, kind: str) -> None:
-    """Validate and write the manifest last, atomically (write + fsync + rename)."""
+    """Add the checksum, validate and write the manifest last, atomically (write + fsync + rename)."""
+    manifest = dict(manifest, checksum=manifest_checksum(manifest))
     validate_manifest(manifest, kind, Path(tmp_dir) / MANIFEST)
     path = Path(tmp_dir) / MANIFEST
     part = path.with_suffix(".json.part")

@@ -1,0 +1,570 @@
+"""The pipeline runner: DAG from pipeline.yaml, param resolution, cache decisions with reasons, locked transactional runs."""
+
+from __future__ import annotations
+
+import dataclasses
+import fcntl
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import yaml
+
+from panoworld import artifacts as art
+from panoworld.stage import (
+    StageInputError,
+    StageSpec,
+    cache_key,
+    input_digest,
+    load_stage,
+    params_from_dict,
+    params_hash,
+    params_to_dict,
+)
+
+PIPELINE_FILE = art.REPO_ROOT / "pipeline.yaml"
+ARTIFACTS_DIRNAME = "artifacts"
+SCENE_CONFIG = "scene.yaml"
+DEFAULT_PRESET = "default"
+
+
+class PipelineError(Exception):
+    """A bad request to the runner (unknown stage/param, bad scene, locked scene): exit code 2."""
+
+
+@dataclass(frozen=True)
+class InputRef:
+    name: str
+    source: str
+    """'scene' or 'stage'."""
+    target: str
+    """Scene file key (e.g. 'panorama') or upstream stage name."""
+    optional: bool
+
+
+@dataclass
+class StageNode:
+    name: str
+    module: str
+    inputs: list[InputRef]
+    resources: dict[str, float]
+    params: dict[str, Any]
+    presets: dict[str, dict[str, Any]]
+    _spec: StageSpec | None = None
+
+    @property
+    def spec(self) -> StageSpec:
+        if self._spec is None:
+            self._spec = load_stage(self.module)
+        return self._spec
+
+
+@dataclass
+class Pipeline:
+    path: Path
+    stages: dict[str, StageNode]
+    order: list[str]
+    scene_files: dict[str, list[str]]
+    presets: list[str]
+
+    @classmethod
+    def load(cls, path: Path | str | None = None) -> "Pipeline":
+        path = Path(path) if path else PIPELINE_FILE
+        try:
+            doc = yaml.safe_load(path.read_text())
+        except (OSError, yaml.YAMLError) as e:
+            raise PipelineError(f"{path}: cannot read pipeline ({e})") from None
+        stages: dict[str, StageNode] = {}
+        for name, s in (doc.get("stages") or {}).items():
+            refs = []
+            for in_name, src in (s.get("inputs") or {}).items():
+                optional = src.endswith("?")
+                src = src.rstrip("?")
+                if src.startswith("scene."):
+                    refs.append(InputRef(in_name, "scene", src.split(".", 1)[1], optional))
+                else:
+                    refs.append(InputRef(in_name, "stage", src, optional))
+            stages[name] = StageNode(
+                name=name,
+                module=s.get("module", f"stages.{name}"),
+                inputs=refs,
+                resources=dict(s.get("resources") or {}),
+                params=dict(s.get("params") or {}),
+                presets={k: dict(v or {}) for k, v in (s.get("presets") or {}).items()},
+            )
+        pipe = cls(path, stages, [], dict(doc.get("scene_files") or {}), list(doc.get("presets") or [DEFAULT_PRESET]))
+        pipe.order = pipe._toposort()
+        return pipe
+
+    def _toposort(self) -> list[str]:
+        order: list[str] = []
+        state: dict[str, int] = {}
+
+        def visit(n: str, trail: tuple[str, ...]):
+            if state.get(n) == 2:
+                return
+            if state.get(n) == 1:
+                raise PipelineError(f"{self.path}: cycle in the DAG: {' -> '.join(trail + (n,))}")
+            state[n] = 1
+            for ref in self.stages[n].inputs:
+                if ref.source == "stage":
+                    if ref.target not in self.stages:
+                        raise PipelineError(f"{self.path}: stage {n} input {ref.name} names unknown stage {ref.target!r}")
+                    visit(ref.target, trail + (n,))
+            state[n] = 2
+            order.append(n)
+
+        for n in self.stages:  # declaration order breaks ties
+            visit(n, ())
+        return order
+
+    def upstream(self, name: str) -> list[str]:
+        return [r.target for r in self.stages[name].inputs if r.source == "stage"]
+
+    def ancestors(self, name: str) -> set[str]:
+        out: set[str] = set()
+        todo = [name]
+        while todo:
+            for u in self.upstream(todo.pop()):
+                if u not in out:
+                    out.add(u)
+                    todo.append(u)
+        return out
+
+    def descendants(self, name: str) -> set[str]:
+        return {n for n in self.stages if name in self.ancestors(n)}
+
+    def check_stage(self, name: str, flag: str) -> None:
+        if name not in self.stages:
+            raise PipelineError(f"{flag} {name}: unknown stage; stages are {', '.join(self.order)}")
+
+    def text(self) -> str:
+        lines = []
+        for n in self.order:
+            node = self.stages[n]
+            ins = ", ".join(f"{r.name}<-{r.source + '.' if r.source == 'scene' else ''}{r.target}{'?' if r.optional else ''}" for r in node.inputs)
+            res = ", ".join(f"{k}={v}" for k, v in node.resources.items())
+            lines.append(f"{n:<11} [{res}]  inputs: {ins}")
+        return "\n".join(lines)
+
+    def mermaid(self) -> str:
+        lines = ["graph TD"]
+        scene_nodes = sorted({r.target for n in self.stages.values() for r in n.inputs if r.source == "scene"})
+        for s in scene_nodes:
+            lines.append(f"  scene_{s}[/{s}/]")
+        for n in self.order:
+            gpu = " (gpu)" if self.stages[n].resources.get("gpu") else ""
+            lines.append(f"  {n}[{n}{gpu}]")
+        for n in self.order:
+            for r in self.stages[n].inputs:
+                src = f"scene_{r.target}" if r.source == "scene" else r.target
+                arrow = "-.->" if r.optional else "-->"
+                lines.append(f"  {src} {arrow} {n}")
+        return "\n".join(lines)
+
+
+# ---------------------------------------------------------------- scene
+
+
+@dataclass
+class Scene:
+    root: Path
+    files: dict[str, Path | None]
+    config: dict[str, Any]
+
+    @property
+    def artifacts(self) -> Path:
+        return self.root / ARTIFACTS_DIRNAME
+
+    def artifact_dir(self, stage: str) -> Path:
+        return self.artifacts / stage
+
+    def log_file(self, stage: str) -> Path:
+        return self.artifacts / "logs" / f"{stage}.log"
+
+
+def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
+    """Find the scene files and check the panorama (exists, readable, 2:1) without writing anything."""
+    root = Path(scene_dir)
+    if not root.is_dir():
+        raise PipelineError(f"{root}: scene directory not found")
+    files: dict[str, Path | None] = {}
+    for key, names in pipeline.scene_files.items():
+        files[key] = next((root / n for n in names if (root / n).is_file()), None)
+    pano = files.get("panorama")
+    if pano is None:
+        names = pipeline.scene_files.get("panorama", [])
+        raise PipelineError(f"{root}: no panorama; expected one of {', '.join(names)}")
+    try:
+        from PIL import Image
+
+        with Image.open(pano) as im:
+            w, h = im.size
+    except Exception as e:  # PIL raises many types for corrupt files
+        raise PipelineError(f"{pano}: unreadable image ({type(e).__name__}: {e})") from None
+    if w != 2 * h:
+        raise PipelineError(f"{pano}: {w}x{h} is not an equirectangular panorama (width must be exactly 2x height)")
+    config: dict[str, Any] = {}
+    cfg_path = root / SCENE_CONFIG
+    if cfg_path.is_file():
+        try:
+            config = yaml.safe_load(cfg_path.read_text()) or {}
+        except yaml.YAMLError as e:
+            raise PipelineError(f"{cfg_path}: invalid YAML ({e})") from None
+        if not isinstance(config, dict):
+            raise PipelineError(f"{cfg_path}: expected a mapping with keys 'preset' and/or 'params'")
+    return Scene(root, files, config)
+
+
+# ---------------------------------------------------------------- params
+
+
+def parse_sets(sets: list[str], pipeline: Pipeline) -> dict[str, dict[str, str]]:
+    out: dict[str, dict[str, str]] = {}
+    for s in sets:
+        lhs, eq, value = s.partition("=")
+        stage, dot, param = lhs.partition(".")
+        if not eq or not dot or not param:
+            raise PipelineError(f"--set {s}: expected STAGE.PARAM=VALUE")
+        pipeline.check_stage(stage, "--set")
+        out.setdefault(stage, {})[param] = value
+    return out
+
+
+def resolve_params(
+    pipeline: Pipeline, preset: str | None, scene: Scene | None, sets: dict[str, dict[str, str]], stages: list[str]
+) -> dict[str, Any]:
+    """Params objects per stage: dataclass defaults < pipeline params < preset < scene.yaml < --set."""
+    preset = preset or (scene.config.get("preset") if scene else None) or DEFAULT_PRESET
+    if preset not in pipeline.presets:
+        raise PipelineError(f"--preset {preset}: unknown preset; known: {', '.join(pipeline.presets)}")
+    scene_params = (scene.config.get("params") or {}) if scene else {}
+    out = {}
+    for name in stages:
+        node = pipeline.stages[name]
+        layers = [
+            (node.params, f"{pipeline.path.name} stages.{name}.params"),
+            (node.presets.get(preset, {}), f"preset {preset} for {name}"),
+            (scene_params.get(name) or {}, f"{SCENE_CONFIG} params.{name}"),
+            (sets.get(name, {}), "--set"),
+        ]
+        values: dict[str, Any] = {}
+        for layer, where in layers:
+            try:
+                params_from_dict(node.spec.params_cls, layer, where=f"{where}: {name}")
+            except ValueError as e:
+                raise PipelineError(str(e)) from None
+            values.update(layer)
+        out[name] = params_from_dict(node.spec.params_cls, values, where=name)
+    return out
+
+
+# ---------------------------------------------------------------- locking
+
+
+class SceneLock:
+    """One runner per scene: an exclusive, non-blocking flock that dies with the process."""
+
+    def __init__(self, scene: Scene):
+        self.path = scene.artifacts / ".lock"
+        self.fd: int | None = None
+
+    def __enter__(self) -> "SceneLock":
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 200, 0).decode(errors="replace").strip()
+            os.close(fd)
+            raise PipelineError(
+                f"{self.path.parent.parent}: another runner is working on this scene ({holder or 'unknown holder'}); "
+                "wait for it to finish"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"pid {os.getpid()} since {time.strftime('%Y-%m-%d %H:%M:%S')}".encode(), 0)
+        self.fd = fd
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.fd is not None:
+            fcntl.flock(self.fd, fcntl.LOCK_UN)
+            os.close(self.fd)
+            self.fd = None
+
+
+# ---------------------------------------------------------------- state
+
+
+@dataclass
+class StageResult:
+    stage: str
+    action: str
+    """'ran' | 'cached' | 'failed' | 'skipped' (and 'would-run' in a dry run)."""
+    reason: str
+    seconds: float = 0.0
+    peak_rss_mb: float | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class Report:
+    scene: Path
+    results: list[StageResult] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return all(r.action != "failed" for r in self.results)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"scene": str(self.scene), "stages": [r.as_dict() for r in self.results]}
+
+    def table(self) -> str:
+        rows = [("stage", "action", "reason", "seconds", "peak MB")]
+        for r in self.results:
+            mem = f"{r.peak_rss_mb:.0f}" if r.peak_rss_mb is not None else "-"
+            rows.append((r.stage, r.action, r.reason, f"{r.seconds:.2f}", mem))
+        widths = [min(max(len(row[i]) for row in rows), 70) for i in range(5)]
+        fmt = lambda row: "  ".join(c[:70].ljust(w) if i < 3 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
+        return "\n".join([fmt(rows[0]), "  ".join("-" * w for w in widths)] + [fmt(r) for r in rows[1:]])
+
+
+def _input_paths(node: StageNode, scene: Scene) -> dict[str, Path | None]:
+    out = {}
+    for ref in node.inputs:
+        if ref.source == "scene":
+            out[ref.name] = scene.files.get(ref.target)
+        else:
+            d = scene.artifact_dir(ref.target)
+            out[ref.name] = d if (d / art.MANIFEST).is_file() else None
+    return out
+
+
+def _diff_params(stage: str, old: dict, new: dict) -> str:
+    keys = sorted(set(old) | set(new))
+    diffs = [f"{stage}.{k} {json.dumps(old.get(k))} -> {json.dumps(new.get(k))}" for k in keys if old.get(k) != new.get(k)]
+    return "params changed: " + ", ".join(diffs)
+
+
+def stage_state(node: StageNode, scene: Scene, params: Any) -> tuple[bool, str]:
+    """(up_to_date, reason) for one stage given the artifacts on disk now."""
+    out_dir = scene.artifact_dir(node.name)
+    if not out_dir.exists():
+        return False, "no artifact yet"
+    try:
+        manifest = art.read_manifest(out_dir, node.spec.artifact)
+    except art.ArtifactError as e:
+        return False, f"invalid artifact: {e}"
+    problem = art.verify_files(out_dir, manifest)
+    if problem:
+        return False, problem
+    try:
+        digests = {r.name: input_digest(r.name, node.spec.inputs[r.name], p) for r, p in zip(node.inputs, _input_paths(node, scene).values())}
+    except StageInputError as e:
+        return False, f"input not ready: {e}"
+    pdict = params_to_dict(params)
+    key = cache_key(node.spec.version, params_hash(pdict), digests)
+    if key == manifest["key"]:
+        return True, "up to date"
+    if manifest["stage_version"] != node.spec.version:
+        return False, f"code version changed: {manifest['stage_version']} -> {node.spec.version}"
+    if manifest["params_hash"] != params_hash(pdict):
+        return False, _diff_params(node.name, manifest["params"], pdict)
+    changed = [n for n, d in digests.items() if manifest["inputs"].get(n, {}).get("digest") != d]
+    return False, f"input changed: {', '.join(changed) or 'unknown'}"
+
+
+# ---------------------------------------------------------------- running
+
+
+def _select(pipeline: Pipeline, only: list[str], from_: str | None, until: str | None) -> tuple[set[str], set[str]]:
+    """(selected stages, stages forced to rerun by the selection itself)."""
+    for s in only:
+        pipeline.check_stage(s, "--only")
+    if from_:
+        pipeline.check_stage(from_, "--from")
+    if until:
+        pipeline.check_stage(until, "--until")
+    if only and (from_ or until):
+        raise PipelineError("--only cannot be combined with --from/--until")
+    if only:
+        return set(only), set()
+    selected = set(pipeline.order)
+    forced: set[str] = set()
+    if from_:
+        selected = {from_} | pipeline.descendants(from_)
+        forced = set(selected)
+    if until:
+        selected &= {until} | pipeline.ancestors(until)
+        forced &= selected
+    return selected, forced
+
+
+def _run_subprocess(node: StageNode, scene: Scene, params: Any, echo: bool) -> tuple[int, float, float]:
+    """Run `python -m <stage module>` with explicit inputs; returns (exit code, seconds, peak RSS MB)."""
+    inputs = _input_paths(node, scene)
+    with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as f:
+        json.dump(params_to_dict(params), f)
+        params_file = f.name
+    cmd = [sys.executable, "-m", node.module, "--out", str(scene.artifact_dir(node.name)), "--params-file", params_file]
+    for name, p in inputs.items():
+        if p is not None:
+            cmd += [f"--{name.replace('_', '-')}", str(p)]
+    log = scene.log_file(node.name)
+    log.parent.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(art.REPO_ROOT)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+    t0 = time.perf_counter()
+    try:
+        with open(log, "wb") as logf:
+            logf.write(f"$ {' '.join(cmd)}\n".encode())
+            logf.flush()
+            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, cwd=art.REPO_ROOT)
+
+            def pump():
+                assert proc.stdout is not None
+                for chunk in iter(lambda: proc.stdout.read1(4096), b""):
+                    logf.write(chunk)
+                    logf.flush()
+                    if echo:
+                        sys.stderr.buffer.write(chunk)
+                        sys.stderr.flush()
+
+            t = threading.Thread(target=pump, daemon=True)
+            t.start()
+            _, status, usage = os.wait4(proc.pid, 0)
+            proc.returncode = os.waitstatus_to_exitcode(status)
+            t.join()
+    finally:
+        os.unlink(params_file)
+    return proc.returncode, time.perf_counter() - t0, usage.ru_maxrss / 1024.0
+
+
+def run(
+    scene_dir: Path | str,
+    *,
+    only: list[str] = (),
+    from_: str | None = None,
+    until: str | None = None,
+    force: bool = False,
+    sets: list[str] = (),
+    preset: str | None = None,
+    dry_run: bool = False,
+    keep_going: bool = False,
+    echo: bool = False,
+    pipeline: Pipeline | None = None,
+    on_result: Callable[[StageResult], None] | None = None,
+) -> Report:
+    """Bring the scene's artifacts up to date; the library API behind `runner.py run`."""
+    pipeline = pipeline or Pipeline.load()
+    selected, forced = _select(pipeline, list(only), from_, until)
+    set_map = parse_sets(list(sets), pipeline)
+    scene = open_scene(scene_dir, pipeline)
+    params = resolve_params(pipeline, preset, scene, set_map, pipeline.order)
+    if force:
+        forced |= selected
+    report = Report(scene.root)
+
+    def emit(r: StageResult):
+        report.results.append(r)
+        if on_result:
+            on_result(r)
+
+    if dry_run:
+        for name in pipeline.order:
+            node = pipeline.stages[name]
+            if name not in selected:
+                emit(StageResult(name, "skipped", "not selected"))
+                continue
+            up, why = stage_state(node, scene, params[name])
+            stale_up = [u for u in pipeline.upstream(name) if any(r.stage == u and r.action == "would-run" for r in report.results)]
+            if name in forced:
+                emit(StageResult(name, "would-run", "forced (--force/--from)" if up else why))
+            elif stale_up and not only:
+                emit(StageResult(name, "would-run", f"upstream will rerun: {', '.join(stale_up)}"))
+            else:
+                emit(StageResult(name, "would-run" if not up else "cached", why))
+        return report
+
+    blocked: dict[str, str] = {}
+    with SceneLock(scene):
+        for name in pipeline.order:
+            node = pipeline.stages[name]
+            art.recover_dir(scene.artifact_dir(name))
+            if name not in selected:
+                emit(StageResult(name, "skipped", "not selected"))
+                continue
+            bad_up = [u for u in pipeline.upstream(name) if u in blocked]
+            if bad_up:
+                blocked[name] = "upstream"
+                emit(StageResult(name, "skipped", f"upstream {', '.join(bad_up)} failed"))
+                continue
+            missing = [
+                f"{r.name} ({r.source + '.' if r.source == 'scene' else 'stage '}{r.target})"
+                for r, p in zip(node.inputs, _input_paths(node, scene).values())
+                if p is None and not r.optional
+            ]
+            if missing:
+                blocked[name] = "input"
+                emit(StageResult(name, "failed", f"missing input: {', '.join(missing)}; run the upstream stage first"))
+                if not keep_going:
+                    break
+                continue
+            up, why = stage_state(node, scene, params[name])
+            if up and name not in forced:
+                emit(StageResult(name, "cached", why))
+                continue
+            reason = "forced" if up else why
+            code, secs, rss = _run_subprocess(node, scene, params[name], echo)
+            if code == 0:
+                emit(StageResult(name, "ran", reason, secs, rss))
+            else:
+                blocked[name] = "failed"
+                what = "bad input" if code == 2 else f"exit code {code}"
+                emit(StageResult(name, "failed", f"{what}; log: {scene.log_file(name)}", secs, rss))
+                if not keep_going:
+                    break
+        done = {r.stage for r in report.results}
+        for name in pipeline.order:
+            if name not in done:
+                emit(StageResult(name, "skipped", "not run: an earlier stage failed (use --keep-going)"))
+    return report
+
+
+def status(scene_dir: Path | str, *, preset: str | None = None, sets: list[str] = (), pipeline: Pipeline | None = None) -> list[dict]:
+    """Each stage's state and reason, and its artifact's path and schema version (reads manifests, hashes nothing big)."""
+    pipeline = pipeline or Pipeline.load()
+    scene = open_scene(scene_dir, pipeline)
+    params = resolve_params(pipeline, preset, scene, parse_sets(list(sets), pipeline), pipeline.order)
+    rows = []
+    for name in pipeline.order:
+        node = pipeline.stages[name]
+        up, why = stage_state(node, scene, params[name])
+        d = scene.artifact_dir(name)
+        sv = None
+        if (d / art.MANIFEST).is_file():
+            try:
+                sv = json.loads((d / art.MANIFEST).read_text()).get("schema_version")
+            except (OSError, json.JSONDecodeError):
+                sv = None
+        rows.append(
+            {
+                "stage": name,
+                "state": "up-to-date" if up else "stale",
+                "reason": why,
+                "artifact": str(d),
+                "schema": node.spec.artifact,
+                "schema_version": sv,
+                "accepted_schema_versions": art.accepted_schema_versions(node.spec.artifact),
+            }
+        )
+    return rows

@@ -1,0 +1,147 @@
+"""Command-line runner for the PanoWorld pipeline (a thin CLI over panoworld.pipeline)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from panoworld import pipeline as pl
+
+
+def _add_run_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--only", action="append", default=[], metavar="STAGE", help="run exactly this stage from cached inputs (repeatable)")
+    p.add_argument("--from", dest="from_", metavar="STAGE", help="rerun this stage and everything downstream")
+    p.add_argument("--until", metavar="STAGE", help="stop after this stage (runs only it and its upstream)")
+    p.add_argument("--force", action="store_true", help="ignore the cache for the selected stages")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="STAGE.PARAM=VALUE", help="override one param (repeatable)")
+    p.add_argument("--preset", help="param preset from pipeline.yaml (default, ci-tiny, ...)")
+    p.add_argument("--dry-run", action="store_true", help="print what would run and why; run nothing")
+    p.add_argument("--keep-going", action="store_true", help="keep running independent stages after a failure")
+    p.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
+    _add_pipeline_arg(p)
+
+
+def _add_pipeline_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--pipeline", type=Path, default=None, help="pipeline file (default: the repository's pipeline.yaml)")
+
+
+def _print_report(report: pl.Report, as_json: bool) -> int:
+    if as_json:
+        print(json.dumps(report.as_dict(), indent=2))
+    else:
+        print(report.table())
+    for r in report.results:
+        if r.action == "failed":
+            print(f"error: stage {r.stage} failed: {r.reason}", file=sys.stderr)
+    return 0 if report.ok else 1
+
+
+def cmd_run(args) -> int:
+    def live(r: pl.StageResult) -> None:
+        if not args.json:
+            print(f"[{r.stage}] {r.action}: {r.reason}", file=sys.stderr, flush=True)
+
+    report = pl.run(
+        args.scene, only=args.only, from_=args.from_, until=args.until, force=args.force, sets=args.sets,
+        preset=args.preset, dry_run=args.dry_run, keep_going=args.keep_going, echo=not args.json, on_result=live,
+        pipeline=pl.Pipeline.load(args.pipeline),
+    )
+    return _print_report(report, args.json)
+
+
+def cmd_status(args) -> int:
+    rows = pl.status(args.scene, preset=args.preset, sets=args.sets, pipeline=pl.Pipeline.load(args.pipeline))
+    if args.json:
+        print(json.dumps({"scene": str(args.scene), "stages": rows}, indent=2))
+        return 0
+    for r in rows:
+        sv = r["schema_version"] if r["schema_version"] is not None else "-"
+        print(f"{r['stage']:<11} {r['state']:<10} {r['reason']}\n{'':<11} {r['artifact']} (schema {r['schema']} v{sv})")
+    return 0
+
+
+def cmd_dag(args) -> int:
+    pipe = pl.Pipeline.load(args.pipeline)
+    print(pipe.mermaid() if args.mermaid else pipe.text())
+    return 0
+
+
+def cmd_synth(argv: list[str]) -> int:
+    from panoworld.synth.cli import main
+
+    return main(argv)
+
+
+def cmd_demo(args) -> int:
+    from panoworld.synth.cli import main as synth_main
+
+    out = Path(args.out_dir)
+    scene = out / "scene"
+    if not (scene / "panorama.png").is_file():
+        code = synth_main([str(scene), "--seed", str(args.seed), "--preset", args.preset])
+        if code:
+            return code
+    report = pl.run(scene, preset=args.preset, echo=True, on_result=lambda r: print(f"[{r.stage}] {r.action}: {r.reason}", file=sys.stderr, flush=True))
+    code = _print_report(report, False)
+    if code == 0:
+        print(f"\ndemo scene: {scene}\nartifacts:  {scene / pl.ARTIFACTS_DIRNAME}\n"
+              f"open {scene / pl.ARTIFACTS_DIRNAME / 'gaussians' / 'gaussians.ply'} in a 3DGS viewer (e.g. SuperSplat)")
+    return code
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python runner.py", description=__doc__)
+    sub = parser.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("run", help="bring a scene's artifacts up to date")
+    p.add_argument("scene", type=Path, help="scene directory (panorama.png|jpg, optional depth.npy|exr|png, scene.yaml)")
+    _add_run_args(p)
+    p.set_defaults(func=cmd_run)
+    p = sub.add_parser("status", help="each stage's state and reason, and its artifact")
+    p.add_argument("scene", type=Path)
+    p.add_argument("--preset")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="STAGE.PARAM=VALUE")
+    p.add_argument("--json", action="store_true")
+    _add_pipeline_arg(p)
+    p.set_defaults(func=cmd_status)
+    p = sub.add_parser("dag", help="print the DAG")
+    p.add_argument("--mermaid", action="store_true", help="as a Mermaid graph")
+    _add_pipeline_arg(p)
+    p.set_defaults(func=cmd_dag)
+    p = sub.add_parser("demo", help="build the bundled synthetic example scene and run the whole pipeline on it")
+    p.add_argument("out_dir", nargs="?", default="demo_out", type=Path)
+    p.add_argument("--preset", default="ci-tiny", help="param preset (ci-tiny: about a minute on 2 cores; default: the paper's sizes)")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_demo)
+    sub.add_parser("synth", help="generate synthetic scenes with ground truth (python runner.py synth --help)", add_help=False)
+    sub.add_parser("eval", help="evaluate a scene's artifacts against its ground truth (python runner.py eval --help)", add_help=False)
+    sub.add_parser("precompute", help="precompute training conditions for a dataset (python runner.py precompute --help)", add_help=False)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        if argv and argv[0] == "synth":
+            return cmd_synth(argv[1:])
+        if argv and argv[0] == "eval":
+            from panoworld.evaluate import main as eval_main
+
+            return eval_main(argv[1:])
+        if argv and argv[0] == "precompute":
+            from panoworld.precompute import main as pre_main
+
+            return pre_main(argv[1:])
+        args = build_parser().parse_args(argv)
+        return args.func(args)
+    except pl.PipelineError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Toy stages and pipeline used to test the runner's DAG, cache and crash behaviour."""

@@ -1,0 +1,49 @@
+"""Shared implementation of the toy stages (each toy module only names itself and its inputs)."""
+
+from __future__ import annotations
+
+import hashlib
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from panoworld.stage import Input, stage_main
+
+
+@dataclass(kw_only=True)
+class Params:
+    n: int = 1
+    """A number written into the output."""
+    sleep: float = 0.0
+    """Seconds to sleep after writing a partial file (lets a test kill the stage mid-write)."""
+    fail: bool = False
+    """Raise an error instead of finishing."""
+
+
+def make_stage(name: str, inputs: dict[str, Input]) -> dict:
+    """Module globals of a toy stage following the stage contract."""
+
+    def run(inp: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
+        parts = [name, str(params.n)]
+        for k, p in sorted(inp.items()):
+            if p is not None:
+                parts.append((p / "out.txt").read_text() if p.is_dir() else hashlib.sha256(p.read_bytes()).hexdigest()[:8])
+        (out_dir / "partial.txt").write_text("partial")
+        if params.sleep:
+            print(f"toy {name}: sleeping", flush=True)
+            time.sleep(params.sleep)
+        if params.fail:
+            raise RuntimeError(f"toy stage {name} failed on purpose")
+        (out_dir / "out.txt").write_text("|".join(parts))
+        return {"n": params.n}
+
+    return {"NAME": name, "VERSION": "1", "ARTIFACT": "toy", "INPUTS": inputs, "Params": Params, "run": run}
+
+
+def main_of(module_name: str):
+    return lambda argv=None: stage_main(module_name, argv)
+
+
+def entry(module_name: str) -> None:
+    sys.exit(stage_main(module_name))

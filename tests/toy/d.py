@@ -1,0 +1,10 @@
+"""Toy stage d."""
+
+from panoworld.stage import Input
+from tests.toy.common import entry, main_of, make_stage
+
+globals().update(make_stage("d", {"a": Input("toy"), "extra": Input("file", optional=True)}))
+main = main_of(__name__)
+
+if __name__ == "__main__":
+    entry(__name__)
