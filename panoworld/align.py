@@ -1,0 +1,179 @@
+"""Umeyama Sim(3)/SE(3) alignment of camera trajectories and trajectory error metrics (ATE, RPE, RRE, RTE)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _check_points(src: np.ndarray, dst: np.ndarray) -> None:
+    if src.ndim != 2 or src.shape[1] != 3 or dst.shape != src.shape:
+        raise ValueError(f"{src.shape=} and {dst.shape=} but expected both (N, 3)")
+    if len(src) < 1:
+        raise ValueError("cannot align empty point sets")
+
+
+def check_trajectory(poses: np.ndarray, what: str = "poses") -> np.ndarray:
+    """Return poses as float64 (N, 4, 4); raise ValueError naming `what` on a wrong shape or non-finite values."""
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise ValueError(f"{what}.shape={poses.shape} but expected (N, 4, 4)")
+    if not np.isfinite(poses).all():
+        raise ValueError(f"{what} contains NaN or inf")
+    return poses
+
+
+def _rotation_from_correlation(M: np.ndarray) -> np.ndarray:
+    """The rotation R maximising trace(R^T M) (closest proper rotation, det = +1)."""
+    U, _, Vt = np.linalg.svd(M)
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U @ Vt)) or 1.0
+    return U @ D @ Vt
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity (Umeyama 1991): (s, R (3, 3), t (3,)) minimising sum |dst - (s R src + t)|^2.
+
+    src, dst: corresponding points (N, 3). with_scale=False fixes s = 1 (SE(3)). For fewer than three
+    non-collinear points the rotation about their common line is not determined (SVD picks one).
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    _check_points(src, dst)
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    cov = xd.T @ xs / len(src)
+    U, S, Vt = np.linalg.svd(cov)
+    D = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        D[2, 2] = -1.0
+    R = U @ D @ Vt
+    var_s = (xs**2).sum() / len(src)
+    s = float(np.trace(np.diag(S) @ D) / var_s) if with_scale and var_s > 0 else 1.0
+    t = mu_d - s * R @ mu_s
+    return s, R, t
+
+
+def sim3_matrix(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4x4 matrix of x -> s R x + t."""
+    T = np.eye(4)
+    T[:3, :3] = s * np.asarray(R)
+    T[:3, 3] = t
+    return T
+
+
+def apply_sim3(s: float, R: np.ndarray, t: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """Move world_from_cam poses (N, 4, 4) by the similarity new_from_old = (s, R, t); results stay rigid.
+
+    Rotations become R R_i and camera centres s R c_i + t (the camera frame itself is not scaled).
+    """
+    poses = check_trajectory(poses)
+    out = np.repeat(np.eye(4)[None], len(poses), axis=0)
+    out[:, :3, :3] = np.asarray(R)[None] @ poses[:, :3, :3]
+    out[:, :3, 3] = s * poses[:, :3, 3] @ np.asarray(R).T + t
+    return out
+
+
+def _spans_a_plane(points: np.ndarray, rel_tol: float = 1e-3) -> bool:
+    """Whether centred points (N, 3) are far from collinear (their 2nd singular value is not negligible)."""
+    if len(points) < 3:
+        return False
+    sv = np.linalg.svd(points - points.mean(0), compute_uv=False)
+    return bool(sv[0] > 0 and sv[1] > rel_tol * sv[0])
+
+
+def align_trajectory(
+    est: np.ndarray, gt: np.ndarray, sim3: bool = True, rotation_weight: float = 0.0
+) -> tuple[np.ndarray, tuple[float, np.ndarray, np.ndarray]]:
+    """Align estimated world_from_cam poses est (N, 4, 4) to gt (N, 4, 4): -> (aligned (N, 4, 4), (s, R, t)).
+
+    rotation_weight = 0: Umeyama on camera centres (the evaluation protocol of the paper). If the gt centres are
+    collinear the rotation about their line is unobservable from positions, so the camera orientations are used
+    as well (as with rotation_weight = 1). rotation_weight > 0: R maximises
+    trace(R^T (C_pos / (sigma_est sigma_gt) + w mean_i(R_gt_i R_est_i^T))), the normalised Umeyama
+    correlation plus w times the orientation correlation, then s and t are Umeyama's given R. Exact data
+    is recovered exactly either way. sim3=False fixes s = 1.
+    """
+    est = check_trajectory(est, "est")
+    gt = check_trajectory(gt, "gt")
+    if est.shape != gt.shape:
+        raise ValueError(f"{est.shape=} but gt.shape={gt.shape}; both must be (N, 4, 4)")
+    c_est, c_gt = est[:, :3, 3], gt[:, :3, 3]
+    if rotation_weight <= 0 and _spans_a_plane(c_gt):
+        s, R, t = umeyama(c_est, c_gt, with_scale=sim3)
+        return apply_sim3(s, R, t, est), (s, R, t)
+    w = rotation_weight if rotation_weight > 0 else 1.0
+    xs, xd = c_est - c_est.mean(0), c_gt - c_gt.mean(0)
+    sig_s, sig_d = np.sqrt((xs**2).sum(1).mean()), np.sqrt((xd**2).sum(1).mean())
+    M = w * np.einsum("nij,nkj->ik", gt[:, :3, :3], est[:, :3, :3]) / len(est)
+    if sig_s > 0 and sig_d > 0:
+        M = M + xd.T @ xs / len(est) / (sig_s * sig_d)
+    R = _rotation_from_correlation(M)
+    s = 1.0
+    if sim3 and sig_s > 0:
+        s = float(np.einsum("ni,ni->", xd, xs @ R.T) / (xs**2).sum())
+    t = c_gt.mean(0) - s * R @ c_est.mean(0)
+    return apply_sim3(s, R, t, est), (s, R, t)
+
+
+def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
+    """Geodesic angle in degrees of rotation matrices (..., 3, 3)."""
+    R = np.asarray(R)
+    cos = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def path_length(poses: np.ndarray) -> float:
+    """Sum of distances between consecutive camera centres of poses (N, 4, 4), in the poses' units."""
+    c = check_trajectory(poses)[:, :3, 3]
+    return float(np.linalg.norm(np.diff(c, axis=0), axis=1).sum())
+
+
+def relative_pose_errors(est: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per consecutive pair i -> i+1: E_i = (gt_i^-1 gt_{i+1})^-1 (est_i^-1 est_{i+1}) -> (|t(E_i)| (N-1,), angle(E_i) deg (N-1,)).
+
+    Both inputs are world_from_cam (N, 4, 4) in the same units (align est first for metric RPE_t).
+    """
+    est, gt = check_trajectory(est, "est"), check_trajectory(gt, "gt")
+    if len(est) < 2:
+        return np.zeros(0), np.zeros(0)
+    rel_e = np.linalg.inv(est[:-1]) @ est[1:]
+    rel_g = np.linalg.inv(gt[:-1]) @ gt[1:]
+    err = np.linalg.inv(rel_g) @ rel_e
+    return np.linalg.norm(err[:, :3, 3], axis=1), rotation_angle_deg(err[:, :3, :3])
+
+
+def trajectory_metrics(est: np.ndarray, gt: np.ndarray, sim3: bool = True) -> dict[str, float]:
+    """Pose-error metrics of est against gt (both world_from_cam (N, 4, 4), gt in metres) after Umeyama alignment.
+
+    est is first aligned to gt with align_trajectory (Sim(3) Umeyama on camera centres, or SE(3) when
+    sim3=False). With e_i = |c_i(aligned est) - c_i(gt)| the camera-centre errors in metres:
+      ate        mean_i e_i                                   (Absolute Trajectory Error, metres)
+      ate_rmse   sqrt(mean_i e_i^2)                           (metres)
+      rpe_t      mean over consecutive pairs of |t(E_i)|      (metres; E_i as in relative_pose_errors)
+      rpe_r      mean over consecutive pairs of angle(E_i)    (degrees)
+      rre        mean_i angle(R_gt_i^T R_aligned_i)           (absolute orientation error after alignment, degrees)
+      rte        ate / path_length(gt)                        (translation error relative to the gt path length,
+                                                               dimensionless; nan when gt does not move)
+    plus scale (the Sim(3) scale s), path_length (metres) and num_frames. The paper names RRE and RTE
+    without defining them; these are our definitions.
+    """
+    est, gt = check_trajectory(est, "est"), check_trajectory(gt, "gt")
+    if est.shape != gt.shape:
+        raise ValueError(f"{est.shape=} but gt.shape={gt.shape}; both must be (N, 4, 4)")
+    aligned, (s, _, _) = align_trajectory(est, gt, sim3=sim3)
+    e = np.linalg.norm(aligned[:, :3, 3] - gt[:, :3, 3], axis=1)
+    rpe_t, rpe_r = relative_pose_errors(aligned, gt)
+    rre = rotation_angle_deg(np.swapaxes(gt[:, :3, :3], 1, 2) @ aligned[:, :3, :3])
+    length = path_length(gt)
+    ate = float(e.mean())
+    return {
+        "ate": ate,
+        "ate_rmse": float(np.sqrt((e**2).mean())),
+        "rpe_t": float(rpe_t.mean()) if len(rpe_t) else 0.0,
+        "rpe_r": float(rpe_r.mean()) if len(rpe_r) else 0.0,
+        "rre": float(rre.mean()),
+        "rte": ate / length if length > 0 else float("nan"),
+        "scale": float(s),
+        "path_length": length,
+        "num_frames": int(len(est)),
+    }

@@ -1,0 +1,151 @@
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from panoworld.models.panovggt import (
+    PanoVGGT,
+    PanoVGGTConfig,
+    erp_coordinate_features,
+    erp_resize,
+    quat_wxyz_to_rotmat,
+)
+from panoworld.models.weights import MissingWeightsError
+
+torch.set_num_threads(1)
+
+
+@pytest.fixture(autouse=True)
+def no_grad():
+    with torch.no_grad():
+        yield
+
+
+def tiny_config(**kw) -> PanoVGGTConfig:
+    base = dict(
+        patch_size=8, embed_dim=32, depth=4, num_heads=2, num_register_tokens=2, coord_frequencies=4,
+        camera_trunk_depth=1, camera_iterations=2, dpt_layers=(0, 1, 2, 3), dpt_features=16,
+        dpt_out_channels=(8, 16, 32, 32), image_height=32,
+    )
+    base.update(kw)
+    return PanoVGGTConfig(**base)
+
+
+def tiny_model(seed: int = 0) -> PanoVGGT:
+    torch.manual_seed(seed)
+    return PanoVGGT(tiny_config()).eval()
+
+
+def frames(s: int = 3, seed: int = 1) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(1, s, 3, 32, 64, generator=g)
+
+
+def test_output_shapes_and_ranges():
+    out = tiny_model()(frames(3))
+    assert out["world_from_cam"].shape == (1, 3, 4, 4) and out["world_from_cam"].dtype == torch.float64
+    assert out["pose_enc"].shape == (1, 3, 7)
+    assert out["depth"].shape == (1, 3, 32, 64) and out["depth_conf"].shape == (1, 3, 32, 64)
+    assert (out["depth"] > 0).all() and (out["depth_conf"] >= 1).all()
+    R = out["world_from_cam"][0, :, :3, :3]
+    np.testing.assert_allclose((R.transpose(1, 2) @ R).numpy(), np.broadcast_to(np.eye(3), (3, 3, 3)), atol=1e-9)
+    np.testing.assert_allclose(out["world_from_cam"][0, :, 3].numpy(), [[0, 0, 0, 1]] * 3)
+
+
+def test_frame0_is_identity_by_construction_and_others_are_relative_to_it():
+    out = tiny_model()(frames(4))
+    T = out["world_from_cam"][0]
+    assert torch.equal(T[0], torch.eye(4, dtype=torch.float64))
+    assert not torch.allclose(T[1], torch.eye(4, dtype=torch.float64), atol=1e-4)  # random weights: a real pose
+    # world_from_cam_i = P_0^-1 P_i with P_i the raw per-frame poses of the camera head.
+    enc = out["pose_enc"][0].double()
+    P = torch.eye(4, dtype=torch.float64).repeat(4, 1, 1)
+    P[:, :3, :3] = quat_wxyz_to_rotmat(enc[:, 3:])
+    P[:, :3, 3] = enc[:, :3]
+    np.testing.assert_allclose(T[1:].numpy(), (torch.linalg.inv(P[0]) @ P[1:]).numpy(), atol=1e-12)
+
+
+def test_deterministic_and_batch_consistent():
+    m = tiny_model()
+    x = frames(3)
+    a, b = m(x), m(x)
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    assert torch.equal(tiny_model(0).state_dict()["coord_embed.weight"], tiny_model(0).state_dict()["coord_embed.weight"])
+    both = m(torch.cat([x, frames(3, seed=5)]))
+    torch.testing.assert_close(both["depth"][:1], a["depth"], rtol=1e-4, atol=1e-5)
+
+
+def test_non_reference_frames_are_permutation_equivariant():
+    # Swapping frames 1 and 2 swaps their outputs; frame 0 is special (its own camera/register tokens).
+    m = tiny_model()
+    x = frames(3)
+    out = m(x)
+    out_sw = m(x[:, [0, 2, 1]])
+    torch.testing.assert_close(out_sw["world_from_cam"][0, 1], out["world_from_cam"][0, 2], rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(out_sw["depth"][0, 2], out["depth"][0, 1], rtol=1e-4, atol=1e-5)
+
+
+def test_save_load_round_trip(tmp_path):
+    m = tiny_model(3)
+    m.save_pretrained(tmp_path / "w")
+    assert json.loads((tmp_path / "w" / "config.json").read_text())["embed_dim"] == 32
+    m2 = PanoVGGT.from_pretrained(tmp_path / "w")
+    x = frames(2)
+    a, b = m(x), m2(x)
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    pred = m2.predict((x[0].permute(0, 2, 3, 1).numpy() * 255).astype(np.uint8))
+    assert pred["world_from_cam"].shape == (2, 4, 4) and pred["depth"].shape == (2, 32, 64)
+
+
+def test_missing_or_mismatched_weights_name_the_flag(tmp_path):
+    with pytest.raises(MissingWeightsError, match="pass --weights DIR holding config.json, model.safetensors"):
+        PanoVGGT.from_pretrained(None)
+    (tmp_path / "w").mkdir()
+    with pytest.raises(MissingWeightsError, match="--weights .* lacks config.json, model.safetensors"):
+        PanoVGGT.from_pretrained(tmp_path / "w")
+    tiny_model().save_pretrained(tmp_path / "w")
+    cfg = json.loads((tmp_path / "w" / "config.json").read_text())
+    cfg["depth"] = 5
+    (tmp_path / "w" / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(MissingWeightsError, match="does not match config.json: missing"):
+        PanoVGGT.from_pretrained(tmp_path / "w")
+
+
+def test_coordinate_encoding_wraps_across_the_erp_seam():
+    hp, wp, f = 4, 16, 5
+    enc = erp_coordinate_features(hp, wp, f)
+    assert enc.shape == (hp, wp, 4 * f)
+    # Shifting longitude by whole patches equals rolling the grid (horizontal-wrap equivariance).
+    for m in (1, 3, wp - 1, wp):
+        shifted = erp_coordinate_features(hp, wp, f, lon_offset=2 * np.pi * m / wp)
+        np.testing.assert_allclose(shifted, np.roll(enc, -m, axis=1), atol=1e-5)
+    # Continuous at the seam: the last and first columns are as close as any two neighbours.
+    step = np.linalg.norm(enc[:, 1] - enc[:, 0], axis=-1)
+    seam = np.linalg.norm(enc[:, 0] - enc[:, -1], axis=-1)
+    np.testing.assert_allclose(seam, step, rtol=1e-5)
+    # Distinct patches get distinct codes.
+    flat = enc.reshape(-1, 4 * f)
+    d = np.linalg.norm(flat[:, None] - flat[None], axis=-1) + np.eye(len(flat))
+    assert d.min() > 1e-3
+
+
+def test_erp_resize_wraps_and_matches_plain_interpolation_inside():
+    x = torch.rand(1, 2, 4, 8)
+    up = erp_resize(x, (16, 32))
+    plain = torch.nn.functional.interpolate(x, size=(16, 32), mode="bilinear", align_corners=False)
+    torch.testing.assert_close(up[..., 4:-4], plain[..., 4:-4])
+    rolled = erp_resize(torch.roll(x, 1, dims=-1), (16, 32))
+    torch.testing.assert_close(rolled, torch.roll(up, 4, dims=-1))
+
+
+def test_rejects_non_erp_or_misaligned_input():
+    m = tiny_model()
+    with pytest.raises(ValueError, match="expected \\(B, S, 3, H, W\\)"):
+        m(torch.rand(3, 3, 32, 64))
+    with pytest.raises(ValueError, match="W = 2H with H a multiple of 8"):
+        m(torch.rand(1, 2, 3, 36, 72))
+    with pytest.raises(ValueError, match="dpt_layers"):
+        tiny_config(dpt_layers=(0, 1, 2, 9))
