@@ -1,0 +1,69 @@
+"""Triangle mesh of the ERP depth (seam closed, pole fans, vertex colours) with stretched faces flagged: mesh.ply + mesh.glb."""
+
+from __future__ import annotations
+
+import enum
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from panoworld.depth import load_depth_artifact
+from panoworld.mesh import ErpMesh, erp_mesh_from_depth, save_erp_mesh, save_erp_mesh_glb
+from panoworld.stage import Input, stage_main
+
+NAME = "mesh"
+VERSION = "1"
+ARTIFACT = "mesh"
+INPUTS = {"depth": Input("depth", help="depth artifact (depth.npy, valid.png, panorama.png)")}
+
+
+class Discontinuity(enum.StrEnum):
+    FLAG = "flag"
+    """Keep stretched faces with valid = 0: occluders that mark what novel views must generate."""
+    DROP = "drop"
+    """Delete stretched faces: novel views see through the gaps to the background."""
+
+
+@dataclass(kw_only=True)
+class Params:
+    max_edge_ratio: float = 12.0
+    """A face is stretched when an edge exceeds this many pixel footprints at its nearer end (12 ~ surfaces seen
+    at under ~5 degrees)."""
+    discontinuity: Discontinuity = Discontinuity.FLAG
+    """How stretched triangles across depth edges are handled."""
+    stride: int = 1
+    """Use every stride-th ERP pixel per axis as a vertex (exact points, colours averaged per block) to bound memory."""
+    glb: bool = True
+    """Also write mesh.glb (valid faces, vertex colours, glTF Y-up) for glTF viewers."""
+
+
+def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
+    depth, valid, rgb = load_depth_artifact(inputs["depth"])
+    t0 = time.perf_counter()
+    mesh = erp_mesh_from_depth(depth, rgb, valid, max_edge_ratio=params.max_edge_ratio, stride=params.stride)
+    build_s = time.perf_counter() - t0
+    n_stretched = int((~mesh.face_valid).sum())
+    if params.discontinuity == Discontinuity.DROP:
+        mesh = ErpMesh(mesh.vertices, mesh.faces[mesh.face_valid], mesh.colors, np.ones(len(mesh.faces) - n_stretched, bool))
+    save_erp_mesh(mesh, out_dir / "mesh.ply")
+    if params.glb:
+        save_erp_mesh_glb(mesh, out_dir / "mesh.glb")
+    return {
+        "num_vertices": len(mesh.vertices),
+        "num_faces": len(mesh.faces),
+        "num_faces_stretched": n_stretched,
+        "stretched_kept_as_occluders": params.discontinuity == Discontinuity.FLAG,
+        "grid": [len(range(params.stride // 2, n, params.stride)) for n in depth.shape],
+        "build_s": build_s,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    return stage_main(__name__, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
