@@ -10,7 +10,9 @@ from typing import Callable
 
 import cv2
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, sparse
+from scipy.sparse import csgraph
+from scipy.sparse import linalg as sparse_linalg
 
 from panoworld.conventions import erp_dirs, erp_pixel_from_dir, erp_pixel_solid_angle, points_from_depth
 from panoworld.stage import StageInputError
@@ -146,7 +148,7 @@ def conform_depth(depth: np.ndarray, height: int, width: int, what: str = "depth
 
 
 def fill_small_holes(depth: np.ndarray, valid: np.ndarray, max_hole_px: int) -> tuple[np.ndarray, np.ndarray, int]:
-    """Inpaint (Telea, in log depth) invalid components of at most max_hole_px pixels; larger ones stay invalid.
+    """Fill invalid components of at most max_hole_px pixels harmonically in inverse depth; larger ones stay invalid.
 
     depth (H, W), valid (H, W) bool -> (depth with 0 where still invalid, valid, number of pixels filled).
     Components are found with the seam wrapped, so a hole across the left/right border is one hole.
@@ -156,36 +158,49 @@ def fill_small_holes(depth: np.ndarray, valid: np.ndarray, max_hole_px: int) -> 
     labels, n = ndimage.label(holes)
     if n == 0 or max_hole_px <= 0 or not valid.any():
         return np.where(valid, depth, 0).astype(np.float32), valid, 0
-    # Join labels of components touching both borders of the seam.
-    left, right = labels[:, 0], labels[:, -1]
-    both = (left > 0) & (right > 0)
-    if both.any():
-        parent = np.arange(n + 1)
-
-        def find(a):
-            while parent[a] != a:
-                parent[a] = parent[parent[a]]
-                a = parent[a]
-            return a
-
-        for a, b in zip(left[both], right[both]):
-            ra, rb = find(a), find(b)
-            if ra != rb:
-                parent[max(ra, rb)] = min(ra, rb)
-        labels = np.array([find(a) for a in range(n + 1)])[labels]
-    sizes = np.bincount(labels.ravel(), minlength=n + 1)
-    small = (sizes <= max_hole_px) & (np.arange(n + 1) > 0)
-    fill = small[labels]
+    # Merge components that meet across the seam (left and right border pixels of the same row).
+    both = (labels[:, 0] > 0) & (labels[:, -1] > 0)
+    seam = sparse.coo_matrix((np.ones(int(both.sum())), (labels[both, 0], labels[both, -1])), shape=(n + 1, n + 1))
+    _, comp = csgraph.connected_components(seam, directed=False)
+    labels = comp[labels]
+    sizes = np.bincount(labels[holes], minlength=labels.max() + 1)
+    fill = holes & (sizes[labels] <= max_hole_px)
     if not fill.any():
         return np.where(valid, depth, 0).astype(np.float32), valid, 0
-    pad = min(W // 2, 16)
-    log_d = np.log(np.where(valid, depth, 1.0)).astype(np.float32)
-    wrap = lambda a: np.concatenate([a[:, -pad:], a, a[:, :pad]], axis=1)  # noqa: E731
-    # Large holes are masked too (but not filled) so that they do not leak into the inpainted values.
-    filled = cv2.inpaint(wrap(log_d), wrap(holes).astype(np.uint8), 3, cv2.INPAINT_TELEA)[:, pad:-pad]
+    inv = np.where(valid, 1.0 / np.where(valid, depth, 1.0), 0.0)
+    filled = _harmonic_fill(inv, fill)
     out_valid = valid | fill
-    out = np.where(valid, depth, np.where(fill, np.exp(filled), 0.0)).astype(np.float32)
+    out = np.where(valid, depth, np.where(fill, 1.0 / np.maximum(filled, 1e-12), 0.0)).astype(np.float32)
     return out, out_valid, int(fill.sum())
+
+
+def _harmonic_fill(values: np.ndarray, fill: np.ndarray) -> np.ndarray:
+    """Solve Laplace's equation on the pixels fill (H, W) with the other 4-neighbours of values (H, W) as boundary
+    values (seam wrapped, rows clamped); each fill component must touch a known pixel. Returns values filled in."""
+    H, W = values.shape
+    n = int(fill.sum())
+    idx = np.full((H, W), -1, np.int64)
+    idx[fill] = np.arange(n)
+    ii, jj = np.nonzero(fill)
+    rows, cols, diag = [], [], np.zeros(n)
+    rhs = np.zeros(n)
+    for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        ni, nj = ii + di, (jj + dj) % W
+        inside = (ni >= 0) & (ni < H)
+        p, ni, nj = np.nonzero(inside)[0], ni[inside], nj[inside]
+        diag[p] += 1.0
+        q = idx[ni, nj]
+        unknown = q >= 0
+        rows.append(p[unknown])
+        cols.append(q[unknown])
+        np.add.at(rhs, p[~unknown], values[ni[~unknown], nj[~unknown]])
+    r = np.concatenate(rows + [np.arange(n)])
+    c = np.concatenate(cols + [np.arange(n)])
+    v = np.concatenate([-np.ones(len(r) - n), diag])
+    A = sparse.csr_matrix((v, (r, c)), shape=(n, n))
+    out = values.astype(np.float64).copy()
+    out[fill] = sparse_linalg.spsolve(A, rhs)
+    return out
 
 
 # ---------------------------------------------------------------- metric scale

@@ -1,0 +1,278 @@
+"""Tests of the depth stage: depth files, hole filling, floor-based metric scale, seamless cube-view merging, models."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from panoworld import depth as dep
+from panoworld.depth import DepthKind, Rescale
+from panoworld.stage import StageInputError, execute_stage, load_stage, params_from_dict
+from tests.test_mesh import CAMERA_HEIGHT, BoxRoom
+
+
+@pytest.fixture(scope="module")
+def room():
+    scene = BoxRoom()
+    rgb, depth = scene.render(np.eye(4), 64, 128)
+    return scene, rgb, depth
+
+
+def run_depth_stage(tmp_path, panorama, depth=None, **params):
+    spec = load_stage("depth")
+    out = tmp_path / "out"
+    manifest = execute_stage(spec, {"panorama": panorama, "depth": depth}, params_from_dict(spec.params_cls, params), out)
+    return manifest, out
+
+
+def write_png(path, rgb):
+    cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    return path
+
+
+# ---------------------------------------------------------------- files
+
+
+def test_read_depth_formats(room, tmp_path):
+    _, _, depth = room
+    np.save(tmp_path / "d.npy", depth)
+    np.testing.assert_array_equal(dep.read_depth(tmp_path / "d.npy"), depth)
+    cv2.imwrite(str(tmp_path / "d.png"), np.rint(depth / 0.00025).astype(np.uint16))
+    np.testing.assert_allclose(dep.read_depth(tmp_path / "d.png", png_scale=0.00025), depth, atol=0.000126)
+    cv2.imwrite(str(tmp_path / "d8.png"), np.rint(depth * 10).astype(np.uint8))
+    with pytest.raises(StageInputError, match="8-bit PNG cannot hold depth"):
+        dep.read_depth(tmp_path / "d8.png")
+    (tmp_path / "bad.npy").write_bytes(b"not numpy at all")
+    with pytest.raises(StageInputError, match="bad.npy: cannot read"):
+        dep.read_depth(tmp_path / "bad.npy")
+    (tmp_path / "bad.png").write_bytes(b"\x89PNG garbage")
+    with pytest.raises(StageInputError, match="bad.png: cannot read"):
+        dep.read_depth(tmp_path / "bad.png")
+    depth.tofile(tmp_path / "d.raw")
+    with pytest.raises(StageInputError, match="unsupported depth format"):
+        dep.read_depth(tmp_path / "d.raw")
+
+
+def test_read_exr(room, tmp_path):
+    OpenEXR = pytest.importorskip("OpenEXR", reason="OpenCV here lacks OpenEXR; EXR needs the OpenEXR package")
+    _, _, depth = room
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                      {"Z": depth.astype(np.float32)}) as f:
+        f.write(str(tmp_path / "d.exr"))
+    np.testing.assert_array_equal(dep.read_depth(tmp_path / "d.exr"), depth)
+
+
+def test_panorama_checks(room, tmp_path):
+    _, rgb, _ = room
+    write_png(tmp_path / "wide.png", np.zeros((64, 100, 3), np.uint8))
+    with pytest.raises(StageInputError, match=r"wide.png: panorama is 100x64 .* must be 2:1"):
+        dep.read_panorama(tmp_path / "wide.png")
+    (tmp_path / "broken.jpg").write_bytes(b"\xff\xd8\xff garbage")
+    with pytest.raises(StageInputError, match="broken.jpg: cannot read the panorama"):
+        dep.read_panorama(tmp_path / "broken.jpg")
+    np.testing.assert_array_equal(dep.read_panorama(write_png(tmp_path / "p.png", rgb)), rgb)
+
+
+def test_conform_depth(room):
+    _, _, depth = room
+    half = depth[::2, ::2]
+    up, note = dep.conform_depth(half, 64, 128)
+    assert note == "depth resized from 64x32 to 128x64 (nearest)"
+    np.testing.assert_array_equal(up[::2, ::2], half)
+    with pytest.raises(StageInputError, match="different aspect"):
+        dep.conform_depth(depth[:, :100], 64, 128)
+
+
+def test_fill_small_holes(room):
+    _, _, depth = room
+    valid = np.ones_like(depth, bool)
+    valid[27:30, 40:43] = False  # 9 px on a wall
+    valid[30:32, 0] = valid[30:32, -1] = False  # 4 px across the seam: one hole
+    valid[40:60, 60:80] = False  # 400 px: a dropout
+    filled, out_valid, n = dep.fill_small_holes(np.where(valid, depth, np.nan), valid, max_hole_px=16)
+    assert n == 13
+    assert out_valid[27:30, 40:43].all() and out_valid[30:32, [0, -1]].all() and not out_valid[40:60, 60:80].any()
+    np.testing.assert_allclose(filled[27:30, 40:43], depth[27:30, 40:43], rtol=0.01)
+    np.testing.assert_allclose(filled[30:32, [0, -1]], depth[30:32, [0, -1]], rtol=0.03)
+    assert np.all(filled[40:60, 60:80] == 0) and np.array_equal(filled[valid], depth[valid])
+
+
+# ---------------------------------------------------------------- metric scale
+
+
+def test_floor_recovers_camera_height():
+    rgb, depth = BoxRoom().render(np.eye(4), 96, 192)
+    fit = dep.estimate_floor(depth, np.ones_like(depth, bool))
+    assert fit.camera_height == pytest.approx(CAMERA_HEIGHT, rel=1e-3)
+    assert fit.support > 0.3
+    raw = depth * 3.7  # unknown units
+    scaled, info = dep.metric_rescale(raw, np.ones_like(depth, bool), relative=False, rescale=Rescale.ALWAYS,
+                                      camera_height=CAMERA_HEIGHT)
+    assert info["camera_height_estimated_before"] == pytest.approx(3.7 * CAMERA_HEIGHT, rel=1e-3)
+    assert info["camera_height_estimated_after"] == pytest.approx(CAMERA_HEIGHT, rel=1e-6)
+    np.testing.assert_allclose(scaled, depth, rtol=2e-3)
+    kept, info = dep.metric_rescale(raw, np.ones_like(depth, bool), relative=False, rescale=Rescale.RELATIVE_ONLY,
+                                    camera_height=CAMERA_HEIGHT)
+    assert np.array_equal(kept, raw) and info["scale_factor"] == 1.0 and not info["rescaled"]
+
+
+def test_no_floor_is_an_input_error(room):
+    _, _, depth = room
+    upper = np.zeros_like(depth, bool)
+    upper[:30] = True
+    assert dep.estimate_floor(depth, upper) is None
+    with pytest.raises(StageInputError, match="no horizontal floor"):
+        dep.metric_rescale(depth, upper, relative=True, rescale=Rescale.RELATIVE_ONLY, camera_height=1.6)
+
+
+# ---------------------------------------------------------------- cube views
+
+
+def _view_truth(scene, views):
+    """True perspective z-depth of each view (size, size)."""
+    out = []
+    for v in views:
+        rays = v.rays()
+        dist = scene.rc.cast(np.zeros((1, 3)), rays.reshape(-1, 3)).distance.reshape(rays.shape[:2])
+        out.append(dist * (rays @ v.cam_from_view[:, 2]))
+    return out
+
+
+@pytest.mark.parametrize("kind", [DepthKind.RELATIVE, DepthKind.METRIC])
+def test_merge_is_seamless(kind):
+    scene = BoxRoom()
+    _, gt = scene.render(np.eye(4), 96, 192)
+    views = dep.cube_views(110.0, 96)
+    rng = np.random.default_rng(7)
+    preds = []
+    for z in _view_truth(scene, views):
+        if kind == DepthKind.RELATIVE:
+            preds.append(rng.uniform(0.3, 3.0) / z + rng.uniform(-0.3, 0.5))  # affine-invariant inverse depth
+        else:
+            preds.append(z * rng.uniform(0.8, 1.25))
+    res = dep.merge_view_predictions(preds, views, 96, 192, kind)
+    assert res.valid.all()
+    scale = np.median(gt / res.depth)
+    rel = np.abs(res.depth * scale - gt) / gt
+    assert np.median(rel) < 1e-3 and np.percentile(rel, 99) < 0.02  # the rest: bilinear resampling at depth edges
+    # No seams: the error along view borders is no larger than inside the views.
+    dirs = dep.erp_dirs(96, 192, dtype=np.float64)
+    n_cover = sum(np.isfinite(v.project(dirs)[0]) & (np.abs(v.project(dirs)[0] - 47.5) <= 47.5)
+                  & (np.abs(v.project(dirs)[1] - 47.5) <= 47.5) for v in views)
+    assert np.median(rel[n_cover > 1]) < 2e-3
+    assert res.overlap_rel_rmse < 0.02
+    if kind == DepthKind.METRIC:
+        assert scale == pytest.approx(1.0, rel=0.25)
+
+
+def test_render_view_matches_panorama():
+    scene = BoxRoom()
+    rgb, _ = scene.render(np.eye(4), 256, 512)
+    view = dep.cube_views(110.0, 64)[1]
+    rays = view.rays()
+    hit = scene.rc.cast(np.zeros((1, 3)), rays.reshape(-1, 3)).distance.reshape(64, 64)
+    truth = scene.texture(rays * hit[..., None])
+    assert np.abs(dep.render_view(rgb, view).astype(float) - truth).mean() < 3.0
+
+
+# ---------------------------------------------------------------- Depth Anything
+
+
+def tiny_depth_anything(path):
+    import torch
+    from transformers import DepthAnythingConfig, DepthAnythingForDepthEstimation, Dinov2Config
+
+    torch.manual_seed(0)
+    backbone = Dinov2Config(hidden_size=32, num_hidden_layers=4, num_attention_heads=2, intermediate_size=64,
+                            patch_size=14, image_size=56, out_features=["stage1", "stage2", "stage3", "stage4"],
+                            reshape_hidden_states=False)
+    config = DepthAnythingConfig(backbone_config=backbone, fusion_hidden_size=16, neck_hidden_sizes=[8, 16, 32, 32],
+                                 reassemble_hidden_size=32, head_hidden_size=8, depth_estimation_type="relative")
+    model = DepthAnythingForDepthEstimation(config)
+    with torch.no_grad():  # a positive bias so the random head predicts positive inverse depth everywhere
+        model.head.conv3.bias.fill_(1.0)
+    model.save_pretrained(path)
+    return path
+
+
+def test_depth_anything_loads_from_local_weights(tmp_path, room):
+    from panoworld.models.depth_anything import DepthAnything
+
+    _, rgb, _ = room
+    model = DepthAnything.from_pretrained(tiny_depth_anything(tmp_path / "w"), input_size=56)
+    assert model.kind == DepthKind.RELATIVE
+    view = dep.render_view(rgb, dep.cube_views(110.0, 70)[0])
+    pred = model(view)
+    assert pred.shape == (70, 70) and pred.dtype == np.float32 and np.isfinite(pred).all()
+    with pytest.raises(StageInputError, match=r"--weights .*expected config.json \+ model.safetensors"):
+        DepthAnything.from_pretrained(tmp_path / "missing")
+    with pytest.raises(StageInputError, match="needs --weights DIR"):
+        DepthAnything.from_pretrained(None)
+
+
+def test_depth_stage_depth_anything(tmp_path, room):
+    _, rgb, _ = room
+    weights = tiny_depth_anything(tmp_path / "w")
+    pano = write_png(tmp_path / "panorama.png", rgb)
+    manifest, out = run_depth_stage(tmp_path, pano, weights=str(weights), view_size=56, rescale="never")
+    info = manifest["info"]
+    assert info["backend"] == "depth-anything" and info["model_kind"] == "relative"
+    depth = np.load(out / "depth.npy")
+    valid = cv2.imread(str(out / "valid.png"), cv2.IMREAD_GRAYSCALE) == 255
+    assert depth.shape == (64, 128) and valid.any() and np.all(depth[valid] > 0) and np.all(depth[~valid] == 0)
+    with pytest.raises(StageInputError, match="needs --weights DIR"):
+        run_depth_stage(tmp_path, pano)
+
+
+# ---------------------------------------------------------------- provided depth through the stage
+
+
+def test_depth_stage_provided_masks_bad_values(tmp_path, room):
+    _, rgb, depth = room
+    pano = write_png(tmp_path / "panorama.png", rgb)
+    bad = (depth * 1000).astype(np.float32)  # millimetres in a PNG
+    bad[5:7, 10:12] = 0  # small dropout: filled
+    bad[40:60, 60:90] = 0  # sensor dropout: masked
+    cv2.imwrite(str(tmp_path / "depth.png"), bad[::2, ::2].astype(np.uint16))  # half resolution
+    manifest, out = run_depth_stage(tmp_path, pano, tmp_path / "depth.png", max_hole_px=8)
+    info = manifest["info"]
+    assert info["backend"] == "provided" and "resized from 64x32 to 128x64" in info["resized"]
+    assert info["camera_height_estimated_before"] == pytest.approx(CAMERA_HEIGHT, rel=0.02)
+    assert not info["rescaled"]
+    depth_out = np.load(out / "depth.npy")
+    valid = cv2.imread(str(out / "valid.png"), cv2.IMREAD_GRAYSCALE) == 255
+    assert not valid[40:60, 60:90].any() and np.all(depth_out[40:60, 60:90] == 0)
+    assert valid[4:8, 10:12].all()
+    assert valid.mean() == pytest.approx(1 - 600 / depth.size, abs=0.01)
+    np.testing.assert_array_equal(cv2.cvtColor(cv2.imread(str(out / "panorama.png")), cv2.COLOR_BGR2RGB), rgb)
+    assert json.loads((out / "manifest.json").read_text())["schema"] == "depth"
+
+
+def test_depth_stage_rescales_unknown_units(tmp_path, room):
+    _, rgb, depth = room
+    pano = write_png(tmp_path / "panorama.png", rgb)
+    np.save(tmp_path / "depth.npy", depth * 450.0)  # raw sensor units
+    manifest, out = run_depth_stage(tmp_path, pano, tmp_path / "depth.npy", rescale="always", camera_height=1.5)
+    assert manifest["info"]["camera_height_estimated_before"] == pytest.approx(450 * CAMERA_HEIGHT, rel=0.01)
+    np.testing.assert_allclose(np.load(out / "depth.npy"), depth * 1.5 / CAMERA_HEIGHT, rtol=0.01)
+
+
+@pytest.mark.parametrize("what", ["nan", "aspect", "no_depth"])
+def test_depth_stage_bad_input(tmp_path, room, what):
+    _, rgb, depth = room
+    pano = write_png(tmp_path / "panorama.png", rgb)
+    if what == "nan":
+        np.save(tmp_path / "depth.npy", np.full_like(depth, np.nan))
+        match = "no valid depth"
+    elif what == "aspect":
+        np.save(tmp_path / "depth.npy", depth[:, :100])
+        match = "different aspect"
+    else:
+        match = "needs --depth FILE"
+    with pytest.raises(StageInputError, match=match):
+        run_depth_stage(tmp_path, pano, tmp_path / "depth.npy" if what != "no_depth" else None,
+                        backend="provided")
+    assert not (tmp_path / "out").exists()
