@@ -27,7 +27,7 @@ class LayoutParams:
     """Range of the ceiling height in metres (one value per scene)."""
     door_height_m: tuple[float, float] = (2.15, 2.3)
     """Range of the doorway height in metres (one value per scene)."""
-    door_width_m: tuple[float, float] = (0.9, 1.3)
+    door_width_m: tuple[float, float] = (1.05, 1.4)
     """Range of doorway widths in metres."""
     wall_thickness_m: float = 0.15
     """Thickness of interior walls in metres (a multiple of cell_m)."""
@@ -43,7 +43,7 @@ class FurnitureParams:
     """Inclusive range of the number of furniture placement attempts per room."""
     pictures_per_room: tuple[int, int] = (1, 3)
     """Inclusive range of wall pictures per room."""
-    walk_margin_m: float = 0.15
+    walk_margin_m: float = 0.1
     """Extra free margin kept around furniture footprints beyond the track clearance."""
 
 

@@ -1,0 +1,12 @@
+"""Procedural indoor scenes with exact ground truth: meshes, ERP RGB/depth renders and camera tracks (issue #3)."""
+
+from panoworld.synth.appearance import Light, Material, MaterialKind
+from panoworld.synth.params import FurnitureParams, LayoutParams, Preset, RenderParams, SynthParams, TrackParams, params_for
+from panoworld.synth.scene import SceneGenerationError, SynthScene, derive_seed, generate_scene, write_scene
+from panoworld.synth.tracks import Track
+
+__all__ = [
+    "FurnitureParams", "LayoutParams", "Light", "Material", "MaterialKind", "Preset", "RenderParams",
+    "SceneGenerationError", "SynthParams", "SynthScene", "Track", "TrackParams", "derive_seed", "generate_scene",
+    "params_for", "write_scene",
+]
