@@ -63,6 +63,9 @@ def test_read_exr(room, tmp_path):
                       {"Z": depth.astype(np.float32)}) as f:
         f.write(str(tmp_path / "d.exr"))
     np.testing.assert_array_equal(dep.read_depth(tmp_path / "d.exr"), depth)
+    (tmp_path / "bad.exr").write_bytes(b"v/1\x01 not an exr")
+    with pytest.raises(StageInputError, match="bad.exr: cannot read"):
+        dep.read_depth(tmp_path / "bad.exr")
 
 
 def test_panorama_checks(room, tmp_path):
