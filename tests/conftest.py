@@ -13,3 +13,22 @@ def pytest_configure(config):
     except ImportError:
         return
     torch.set_num_threads(1)
+
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def synth_dataset(tmp_path_factory):
+    """Three ci-tiny synthetic scenes (seeded), generated once per test session."""
+    from panoworld.synth.cli import main as synth_main
+
+    root = tmp_path_factory.mktemp("synth") / "dataset"
+    assert synth_main([str(root), "--seed", "11", "--scenes", "3", "--preset", "ci-tiny"]) == 0
+    return root
+
+
+@pytest.fixture(scope="session")
+def synth_scene(synth_dataset):
+    """One ci-tiny synthetic scene directory (pipeline input layout + gt/)."""
+    return sorted(p for p in synth_dataset.iterdir() if p.is_dir())[0]

@@ -1,0 +1,101 @@
+"""Dataset precomputation: clip sampling distribution, caching, resume, failures, local vs Ray equality."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from panoworld import artifacts as art
+from panoworld.precompute import INDEX, PrecomputeParams, main, precompute, sample_clips
+
+ARGS = ["--clips-per-scene", "2", "--frames", "4", "--min-frames", "2", "--height", "32", "--strides", "1,2"]
+
+
+def test_clip_lengths_and_strides_follow_the_documented_distribution():
+    p = PrecomputeParams(clips_per_scene=3000, strides=(1, 2, 4), frames=81, min_frames=5)
+    clips = sample_clips("scene_x", [800, 800], p)
+    lengths = np.array([c.length for c in clips])
+    assert lengths.min() >= 5 and lengths.max() <= 81
+    hist = np.bincount(lengths - 5, minlength=77)
+    expected = len(clips) / 77
+    # each length bin within 5 sigma of a uniform distribution
+    assert np.all(np.abs(hist - expected) < 5 * np.sqrt(expected)), hist
+    strides = Counter(c.stride for c in clips)
+    assert set(strides) == {1, 2, 4}
+    assert all(abs(v - len(clips) / 3) < 5 * np.sqrt(len(clips) / 3) for v in strides.values())
+    tracks = Counter(c.track for c in clips)
+    assert abs(tracks[0] - tracks[1]) < 5 * np.sqrt(len(clips) / 2)
+    for c in clips:
+        assert 0 <= c.start and c.start + (c.length - 1) * c.stride < 800
+
+
+def test_sampling_is_stable_when_adding_clips_and_short_tracks_are_capped():
+    few = sample_clips("s", [50], PrecomputeParams(clips_per_scene=3, frames=81))
+    more = sample_clips("s", [50], PrecomputeParams(clips_per_scene=6, frames=81))
+    assert more[:3] == few
+    assert all(c.start + (c.length - 1) * c.stride < 50 for c in more)
+
+
+def _index(out: Path) -> list[dict]:
+    return [json.loads(line) for line in (out / INDEX).read_text().splitlines()]
+
+
+def _digests(out: Path) -> dict[str, str]:
+    return {p.relative_to(out).as_posix(): art.file_digest(p) for p in sorted(out.rglob("*"))
+            if p.is_file() and p.name not in ("manifest.json", "summary.json")}
+
+
+@pytest.mark.slow
+def test_precompute_cache_resume_failures(synth_dataset, tmp_path):
+    data = tmp_path / "data"
+    shutil.copytree(synth_dataset, data)
+    (data / "zz_corrupt" / "gt").mkdir(parents=True)
+    (data / "zz_corrupt" / "gt" / "gt.json").write_text("{not json")
+    out = tmp_path / "out"
+    assert main([str(data), "--out", str(out), *ARGS, "--workers", "2", "--json"]) == 1  # the corrupt scene fails
+    index = _index(out)
+    assert len(index) == 6 and {r["scene"] for r in index} == {p.name for p in synth_dataset.iterdir()}
+    failures = [json.loads(x) for x in (out / "failures.jsonl").read_text().splitlines()]
+    assert [f["scene"] for f in failures] == ["zz_corrupt"] and "gt.json" in failures[0]["error"]
+    for row in index:
+        clip = json.loads((out / row["clip_json"]).read_text())
+        cond = json.loads((out / row["conditions"]).read_text())
+        assert cond["num_frames"] == clip["length"] == row["length"]
+        np.testing.assert_allclose(clip["poses"][0], np.eye(4), atol=1e-9)
+        assert art.read_manifest(out / row["path"], "clip")["digest"] == row["digest"]
+
+    params = PrecomputeParams(clips_per_scene=2, frames=4, min_frames=2, height=32, strides=(1, 2))
+    again = precompute(data, out, params, workers=2, progress=False)
+    assert again["rendered"] == 0 and again["cached"] == 6
+
+    victim = out / index[3]["path"]
+    shutil.rmtree(victim)
+    third = precompute(data, out, params, workers=1, progress=False)
+    assert third["rendered"] == 1 and third["cached"] == 5
+    assert _index(out) == index
+
+    changed = precompute(data, out, PrecomputeParams(**{**params.__dict__, "write_depth": False}), workers=2, progress=False)
+    assert changed["rendered"] == 6
+
+
+@pytest.mark.slow
+def test_local_and_ray_give_identical_outputs(synth_dataset, tmp_path):
+    pytest.importorskip("ray")
+    local, ray_out = tmp_path / "local", tmp_path / "ray"
+    assert main([str(synth_dataset), "--out", str(local), *ARGS, "--workers", "2", "--json"]) == 0
+    assert main([str(synth_dataset), "--out", str(ray_out), *ARGS, "--workers", "2", "--executor", "ray", "--json"]) == 0
+    assert (local / INDEX).read_bytes() == (ray_out / INDEX).read_bytes()
+    assert _digests(local) == _digests(ray_out)
+
+
+def test_bad_arguments_are_one_line_errors(tmp_path, capsys):
+    assert main([str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 2
+    assert "dataset directory not found" in capsys.readouterr().err
+    assert main([str(tmp_path), "--out", str(tmp_path / "o"), "--height", "32", "--width", "48"]) == 2
+    assert "must be 2:1" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
