@@ -47,7 +47,7 @@ def test_official_architecture_layout():
     assert sum(p.numel() for p in model.parameters()) == 16_703_171  # RealESRGAN_x2plus
     assert state["conv_first.weight"].shape == (64, 12, 3, 3)
     assert state["body.22.rdb3.conv5.weight"].shape == (64, 64 + 4 * 32, 3, 3)
-    assert {"conv_body.weight", "conv_up1.weight", "conv_up2.weight", "conv_hr.weight", "conv_last.weight"} <= set(state)
+    assert {f"{n}.weight" for n in ("conv_body", "conv_up1", "conv_up2", "conv_hr", "conv_last")} <= set(state)
 
 
 def test_load_round_trip_shape_and_determinism(tiny_weights, tmp_path):

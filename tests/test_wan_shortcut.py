@@ -1,4 +1,4 @@
-"""wan-shortcut generator on tiny random Wan2.2-like components: conditioning, zero-init, samplers, NFE, weight IO, losses."""
+"""wan-shortcut on tiny random Wan2.2-like components: conditioning, zero-init, samplers, NFE, weight IO, losses."""
 
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ from diffusers import AutoencoderKLWan, WanTransformer3DModel  # noqa: E402
 from panoworld.models import wan_layers as wl  # noqa: E402
 from panoworld.models import wan_training as wt  # noqa: E402
 from panoworld.models.wan_shortcut import (  # noqa: E402
+    DEFAULT_PROMPT,
     Sampler,
     WanShortcutConfig,
     WanShortcutGenerator,
@@ -224,8 +225,9 @@ def test_trained_weights_round_trip(wan_dir):
         cfg(weights=root, lora=lora, extra_weights=wan_dir["extra"], prompt_embeds=wan_dir["prompt"], seed=4)
     )
     assert loaded.transformer.peft_config[wl.ADAPTER_NAME].lora_alpha == 8
-    video, _ = loaded.generate(rgb, mask)
+    video, info = loaded.generate(rgb, mask)
     np.testing.assert_array_equal(video, expected)
+    assert info["prompt"] == "embeddings prompt.safetensors"
     # the trained weights matter: without the LoRA, or without both, the video differs
     extra_only = WanShortcutGenerator.from_components(
         WanTransformer3DModel.from_pretrained(root, subfolder="transformer", local_files_only=True),
@@ -248,9 +250,8 @@ def test_prompt_through_local_text_encoder(wan_dir):
     vocab = {"<pad>": 0, "</s>": 1, "<unk>": 2, **{w: i + 3 for i, w in enumerate(words)}}
     tok = Tokenizer(models.WordLevel(vocab, unk_token="<unk>"))
     tok.pre_tokenizer = pre_tokenizers.Whitespace()
-    PreTrainedTokenizerFast(tokenizer_object=tok, pad_token="<pad>", eos_token="</s>", unk_token="<unk>").save_pretrained(
-        root / "tokenizer"
-    )
+    fast = PreTrainedTokenizerFast(tokenizer_object=tok, pad_token="<pad>", eos_token="</s>", unk_token="<unk>")
+    fast.save_pretrained(root / "tokenizer")
     torch.manual_seed(0)
     config = UMT5Config(vocab_size=len(vocab), d_model=TEXT_DIM, d_kv=4, d_ff=32, num_layers=1, num_heads=2)
     UMT5EncoderModel(config).save_pretrained(root / "text_encoder")
@@ -262,7 +263,9 @@ def test_prompt_through_local_text_encoder(wan_dir):
     other = WanShortcutGenerator.from_pretrained(dataclasses.replace(base, prompt="a kitchen"))
     assert not torch.equal(other.prompt_embeds, pos)
     rgb, mask = inputs()
-    assert not np.array_equal(gen.generate(rgb, mask)[0], other.generate(rgb, mask)[0])
+    video, info = gen.generate(rgb, mask)
+    assert info["prompt"] == DEFAULT_PROMPT
+    assert not np.array_equal(video, other.generate(rgb, mask)[0])
 
 
 def test_cpu_offload_hooks_give_the_same_video():

@@ -1,4 +1,4 @@
-"""Real-ESRGAN RRDBNet (x2 via pixel-unshuffle) loading the official RealESRGAN_x2plus.pth, with ERP-seam-aware tiling."""
+"""Real-ESRGAN RRDBNet (x2 via pixel-unshuffle) loading the official RealESRGAN_x2plus.pth; ERP-seam-aware tiling."""
 
 from __future__ import annotations
 
@@ -95,7 +95,7 @@ def rrdbnet_from_state_dict(state: dict[str, torch.Tensor]) -> RRDBNet:
         num_out_ch = int(state["conv_last.weight"].shape[0])
         num_grow_ch = int(state["body.0.rdb1.conv1.weight"].shape[0])
     except KeyError as e:
-        raise ValueError(f"not an RRDBNet state dict: key {e} missing (expected the official Real-ESRGAN layout)") from None
+        raise ValueError(f"not an RRDBNet state dict: key {e} missing (expected the Real-ESRGAN layout)") from None
     num_block = 1 + max(int(m.group(1)) for k in state if (m := re.match(r"body\.(\d+)\.", k)))
     num_in_ch = num_out_ch
     scale = {1: 4, 4: 2, 16: 1}.get(in_folded // num_in_ch)

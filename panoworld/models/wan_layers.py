@@ -1,4 +1,4 @@
-"""Wan2.2 pieces of the shortcut generator: widened patch embedding, step-size embedding, condition latents, trained-weight IO."""
+"""Wan2.2 parts of the shortcut generator: widened patch embedding, step-size embedding, condition latents, IO."""
 
 from __future__ import annotations
 
@@ -169,6 +169,8 @@ def velocity(
     anchor (B, z, 1, h, w): a clean first latent frame (Wan2.2 TI2V image conditioning) that replaces
     x_t's first frame, whose tokens get timestep 0; the returned velocity of that frame is meaningless.
     """
+    if not hasattr(transformer, "step_embedder"):
+        raise ValueError("the transformer has no step-size embedding: call prepare_transformer() first")
     dtype = transformer.patch_embedding.weight.dtype
     timestep = sigma.float() * 1000.0
     if anchor is not None:
@@ -231,8 +233,8 @@ def load_extra_weights(transformer: nn.Module, path: Path) -> None:
         )
     prepare_transformer(transformer, int(state["patch_embedding.weight"].shape[1]) - transformer.config.out_channels)
     own = extra_state_dict(transformer)
-    if set(own) != set(state) or any(own[k].shape != state[k].shape for k in own):
-        bad = sorted(k for k in set(own) ^ set(state)) or [k for k in own if own[k].shape != state[k].shape]
+    bad = sorted(set(own) ^ set(state)) + sorted(k for k in own.keys() & state.keys() if own[k].shape != state[k].shape)
+    if bad:
         raise ValueError(f"{path}: extra weights do not fit this transformer (mismatched keys {bad[:6]})")
     transformer.load_state_dict(state, strict=False)
 

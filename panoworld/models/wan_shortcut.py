@@ -1,4 +1,4 @@
-"""The paper's video generator: Wan2.2-TI2V-5B + LoRA conditioned on warped ERP video and masks, 4-step shortcut sampling."""
+"""The paper's generator: Wan2.2-TI2V-5B + LoRA conditioned on warped ERP video + masks, 4-step shortcut sampling."""
 
 from __future__ import annotations
 
@@ -73,7 +73,7 @@ class WanShortcutConfig:
 def shortcut_schedule(steps: int) -> tuple[list[float], list[float]]:
     """Uniform sigmas 1 -> 0 in `steps` steps and the step size given to the model (1/steps) at each."""
     if steps < 1 or steps & (steps - 1) or steps > 128:
-        raise ValueError(f"{steps=} but the shortcut sampler takes a power of two <= 128 (it is trained on dyadic steps)")
+        raise ValueError(f"{steps=} but the shortcut sampler takes a power of two <= 128 (trained on dyadic steps)")
     return [1.0 - i / steps for i in range(steps + 1)], [1.0 / steps] * steps
 
 
@@ -172,13 +172,14 @@ def _fit(n: int, q: int) -> int:
 class WanShortcutGenerator:
     """Warped ERP video + valid mask -> generated ERP video, with the paper's conditioning and samplers."""
 
-    def __init__(self, transformer, vae, cfg: WanShortcutConfig, embeds: dict[str, torch.Tensor], pipe=None):
+    def __init__(self, transformer, vae, cfg: WanShortcutConfig, embeds: dict, pipe=None):
         self.transformer, self.vae, self.cfg, self._pipe = transformer, vae, cfg, pipe
         self.device = torch.device(cfg.device)
         pos = embeds["prompt_embeds"]
         neg = embeds.get("negative_prompt_embeds")
         self.prompt_embeds = pos.to(self.device)
         self.negative_prompt_embeds = (torch.zeros_like(pos) if neg is None else neg).to(self.device)
+        self.prompt_source = str(embeds.get("source", "given embeddings"))
         self.temporal = vae.config.scale_factor_temporal
         self.spatial = vae.config.scale_factor_spatial
         self.multiple = self.spatial * transformer.config.patch_size[1]
@@ -201,8 +202,9 @@ class WanShortcutGenerator:
             if cfg.prompt_embeds is None:
                 raise MissingWeightsError(f"wan-shortcut: no prompt embeddings; pass --prompt-embeds FILE ({FLAGS})")
             embeds = load_prompt_embeds(cfg.prompt_embeds)
+            embeds["source"] = f"embeddings {Path(cfg.prompt_embeds).name}"
         else:
-            embeds = prompt_embeds if isinstance(prompt_embeds, dict) else {"prompt_embeds": prompt_embeds}
+            embeds = dict(prompt_embeds) if isinstance(prompt_embeds, dict) else {"prompt_embeds": prompt_embeds}
         text_dim = transformer.config.text_dim
         if embeds["prompt_embeds"].shape[-1] != text_dim:
             raise ValueError(f"{embeds['prompt_embeds'].shape=} but the transformer expects (1, L, {text_dim})")
@@ -231,21 +233,25 @@ class WanShortcutGenerator:
         wl.import_diffusers()
         from diffusers import AutoencoderKLWan, WanTransformer3DModel
 
-        root = require_weights_dir(cfg.weights, BASE_FILES, model="wan-shortcut (Wan2.2-TI2V-5B-Diffusers)", flag="--weights")
+        model = "wan-shortcut (Wan2.2-TI2V-5B-Diffusers)"
+        root = require_weights_dir(cfg.weights, BASE_FILES, model=model, flag="--weights")
         require_weights_file(cfg.lora, model="wan-shortcut", flag="--lora", expected="the trained LoRA safetensors")
         require_weights_file(
             cfg.extra_weights, model="wan-shortcut", flag="--extra-weights",
             expected="the trained patch/step-size embedding safetensors",
         )
-        if cfg.prompt_embeds is not None:
-            embeds = load_prompt_embeds(cfg.prompt_embeds)
-        elif all(any(root.glob(p)) for p in TEXT_FILES):
-            device = "cpu" if cfg.cpu_offload else cfg.device
-            embeds = encode_prompts(root, cfg.prompt, cfg.negative_prompt, dtype=cfg.dtype, device=device)
-        else:
-            raise MissingWeightsError(
-                f"wan-shortcut: {root} has no text encoder ({', '.join(TEXT_FILES)}); add it or pass --prompt-embeds FILE"
-            )
+        embeds = None  # from_components reads cfg.prompt_embeds
+        if cfg.prompt_embeds is None:
+            if not all(any(root.glob(p)) for p in TEXT_FILES):
+                raise MissingWeightsError(
+                    f"wan-shortcut: {root} has no text encoder ({', '.join(TEXT_FILES)}); "
+                    "add it or pass --prompt-embeds FILE"
+                )
+            # before the transformer is loaded, so the 11 GB UMT5-XXL has the device to itself
+            embeds = encode_prompts(root, cfg.prompt, cfg.negative_prompt, dtype=cfg.dtype, device=cfg.device)
+            embeds["source"] = cfg.prompt
+            if torch.cuda.is_available():
+                torch.cuda.empty_cache()
         dtype = getattr(torch, cfg.dtype)
         transformer = WanTransformer3DModel.from_pretrained(
             root, subfolder="transformer", torch_dtype=dtype, local_files_only=True
@@ -255,7 +261,8 @@ class WanShortcutGenerator:
 
     def model_shape(self, t: int, h: int, w: int) -> tuple[int, int, int]:
         """The (T, H, W) the model runs at for an input of (t, h, w): T = 4k+1 >= t, H, W rounded to multiples of 32."""
-        return (t - 1 + self.temporal - 1) // self.temporal * self.temporal + 1, _fit(h, self.multiple), _fit(w, self.multiple)
+        frames = (t - 1 + self.temporal - 1) // self.temporal * self.temporal + 1
+        return frames, _fit(h, self.multiple), _fit(w, self.multiple)
 
     def _velocity_fn(self, condition, anchor):
         def fn(x, sigma, dt, positive):
@@ -286,7 +293,8 @@ class WanShortcutGenerator:
         frames, valid = cond_rgb, mask
         if (hm, wm) != (h, w):
             frames = np.stack([cv2.resize(f, (wm, hm), interpolation=cv2.INTER_AREA) for f in frames])
-            valid = np.stack([cv2.resize(m.astype(np.uint8), (wm, hm), interpolation=cv2.INTER_NEAREST) for m in valid]) > 0
+            small = [cv2.resize(m.astype(np.uint8), (wm, hm), interpolation=cv2.INTER_NEAREST) for m in valid]
+            valid = np.stack(small) > 0
         if tm != t:
             frames = np.concatenate([frames, np.repeat(frames[-1:], tm - t, axis=0)])
             valid = np.concatenate([valid, np.repeat(valid[-1:], tm - t, axis=0)])
@@ -323,6 +331,7 @@ class WanShortcutGenerator:
             "model_shape": [tm, hm, wm],
             "latent_shape": list(latents.shape[1:]),
             "anchored_first_frame": anchor is not None,
+            "prompt": self.prompt_source,
         }
         return out, info
 

@@ -1,4 +1,4 @@
-"""The paper's generator objective: flow matching mixed (rho = 0.75) with the shortcut self-consistency loss, LoRA setup."""
+"""The paper's generator objective: flow matching mixed (rho = 0.75) with shortcut self-consistency; LoRA setup."""
 
 from __future__ import annotations
 
