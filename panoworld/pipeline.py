@@ -62,7 +62,10 @@ class StageNode:
     @property
     def spec(self) -> StageSpec:
         if self._spec is None:
-            self._spec = load_stage(self.module)
+            try:
+                self._spec = load_stage(self.module)
+            except ImportError as e:
+                raise PipelineError(f"stage {self.name}: cannot import {self.module} ({e})") from None
         return self._spec
 
 
@@ -469,7 +472,7 @@ def run(
     selected, forced = _select(pipeline, list(only), from_, until)
     set_map = parse_sets(list(sets), pipeline)
     scene = open_scene(scene_dir, pipeline)
-    params = resolve_params(pipeline, preset, scene, set_map, pipeline.order)
+    params = resolve_params(pipeline, preset, scene, set_map, [n for n in pipeline.order if n in selected or n in set_map])
     if force:
         forced |= selected
     report = Report(scene.root)
@@ -544,11 +547,19 @@ def status(scene_dir: Path | str, *, preset: str | None = None, sets: list[str] 
     """Each stage's state and reason, and its artifact's path and schema version (reads manifests, hashes nothing big)."""
     pipeline = pipeline or Pipeline.load()
     scene = open_scene(scene_dir, pipeline)
-    params = resolve_params(pipeline, preset, scene, parse_sets(list(sets), pipeline), pipeline.order)
+    set_map = parse_sets(list(sets), pipeline)
     rows = []
     for name in pipeline.order:
         node = pipeline.stages[name]
-        up, why = stage_state(node, scene, params[name])
+        try:
+            params = resolve_params(pipeline, preset, scene, set_map, [name])[name]
+        except PipelineError as e:
+            if name in set_map:
+                raise
+            rows.append({"stage": name, "state": "unavailable", "reason": str(e), "artifact": str(scene.artifact_dir(name)),
+                         "schema": None, "schema_version": None, "accepted_schema_versions": []})
+            continue
+        up, why = stage_state(node, scene, params)
         d = scene.artifact_dir(name)
         sv = None
         if (d / art.MANIFEST).is_file():
