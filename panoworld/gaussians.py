@@ -1,0 +1,561 @@
+"""Voxel-aligned 3D Gaussians: the container, the paper's confidence-weighted voxel fusion and the `voxel-fusion` backend."""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+
+from panoworld.conventions import check_pose, erp_dirs
+
+SH_C0 = 0.28209479177387814
+"""Degree-0 real spherical harmonic: rgb = 0.5 + SH_C0 * f_dc (the INRIA 3DGS convention)."""
+FUSION_EPS = 1e-6
+"""The paper's epsilon in the denominators of the voxel fusion equations."""
+_KEY_BITS = 21
+_KEY_HALF = 1 << (_KEY_BITS - 1)
+
+
+@dataclass
+class Gaussians:
+    """A set of N 3D Gaussians in the world (canonical scene) frame.
+
+    Fields are numpy float32 arrays, or torch tensors when they come straight from GSDecoder (kept differentiable).
+    """
+
+    means: np.ndarray
+    """(N, 3) centres in metres."""
+    scales: np.ndarray
+    """(N, 3) standard deviations along the rotated axes, metres (linear, not log)."""
+    quats: np.ndarray
+    """(N, 4) rotations (w, x, y, z), normalised when used; columns of the rotation matrix are the Gaussian's axes."""
+    opacities: np.ndarray
+    """(N,) opacity in (0, 1) (not logit)."""
+    sh_dc: np.ndarray
+    """(N, 3) degree-0 SH colour coefficients: rgb = 0.5 + SH_C0 * sh_dc."""
+    sh_rest: np.ndarray | None = None
+    """(N, K, 3) higher-order SH coefficients, K in {0, 3, 8, 15} (coefficient-major like INRIA's in-memory layout)."""
+
+    def __post_init__(self):
+        n = self.means.shape[0]
+        if self.sh_rest is None:
+            self.sh_rest = np.zeros((n, 0, 3), np.float32)
+        expect = {
+            "means": (n, 3), "scales": (n, 3), "quats": (n, 4), "opacities": (n,), "sh_dc": (n, 3),
+        }
+        for name, shape in expect.items():
+            got = tuple(getattr(self, name).shape)
+            if got != shape:
+                raise ValueError(f"Gaussians.{name}.shape={got} but expected {shape} (N={n})")
+        k = tuple(self.sh_rest.shape)
+        if len(k) != 3 or k[0] != n or k[2] != 3 or k[1] not in (0, 3, 8, 15):
+            raise ValueError(f"Gaussians.sh_rest.shape={k} but expected ({n}, K, 3) with K in (0, 3, 8, 15)")
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def sh_degree(self) -> int:
+        return {0: 0, 3: 1, 8: 2, 15: 3}[int(self.sh_rest.shape[1])]
+
+    def base_colors(self) -> np.ndarray:
+        """(N, 3) view-independent colour 0.5 + SH_C0 * sh_dc clipped to [0, 1]."""
+        return np.clip(0.5 + SH_C0 * np.asarray(self.sh_dc, np.float32), 0.0, 1.0)
+
+    def subset(self, index) -> Gaussians:
+        """Gaussians selected by a boolean mask or an index array."""
+        return Gaussians(
+            means=self.means[index], scales=self.scales[index], quats=self.quats[index],
+            opacities=self.opacities[index], sh_dc=self.sh_dc[index], sh_rest=self.sh_rest[index],
+        )
+
+    def numpy(self) -> Gaussians:
+        """A detached float32 numpy copy (from torch tensors or numpy arrays)."""
+
+        def conv(a):
+            if isinstance(a, torch.Tensor):
+                a = a.detach().cpu().numpy()
+            return np.ascontiguousarray(a, dtype=np.float32)
+
+        return Gaussians(
+            means=conv(self.means), scales=conv(self.scales), quats=conv(self.quats),
+            opacities=conv(self.opacities), sh_dc=conv(self.sh_dc), sh_rest=conv(self.sh_rest),
+        )
+
+
+def rgb_to_sh_dc(rgb: np.ndarray) -> np.ndarray:
+    """Colour in [0, 1] (..., 3) -> degree-0 SH coefficient."""
+    return (rgb - 0.5) / SH_C0
+
+
+# ---------------------------------------------------------------- fusion core (shared with GSDecoder)
+
+
+def voxel_keys(points: torch.Tensor, voxel_size: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """World points (M, 3) -> (packed int64 voxel keys (M,), integer voxel coords (M, 3)) of cells of size voxel_size."""
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"{points.shape=} but expected (M, 3)")
+    if not voxel_size > 0:
+        raise ValueError(f"voxel_size={voxel_size} but expected > 0")
+    ijk = torch.floor(points.detach().double() / voxel_size).long()
+    if ijk.numel() and int(ijk.abs().max()) >= _KEY_HALF:
+        raise ValueError(
+            f"points reach {float(points.detach().abs().max()):.1f} m, beyond {_KEY_HALF} voxels of {voxel_size} m "
+            "from the origin; increase voxel_size or drop far depth"
+        )
+    shifted = ijk + _KEY_HALF
+    keys = (shifted[:, 0] << (2 * _KEY_BITS)) | (shifted[:, 1] << _KEY_BITS) | shifted[:, 2]
+    return keys, ijk
+
+
+def voxel_coords_from_keys(keys: torch.Tensor) -> torch.Tensor:
+    """Inverse of voxel_keys' packing: keys (V,) -> integer voxel coords (V, 3)."""
+    mask = (1 << _KEY_BITS) - 1
+    return torch.stack([(keys >> (2 * _KEY_BITS)) & mask, (keys >> _KEY_BITS) & mask, keys & mask], 1) - _KEY_HALF
+
+
+@dataclass
+class VoxelSums:
+    """Per-voxel sums of one or more batches of observations (linear, so batches reduce exactly in any order)."""
+
+    keys: torch.Tensor
+    """(V,) sorted unique voxel keys."""
+    weight: torch.Tensor
+    """(V,) sum of confidence weights w."""
+    weighted: torch.Tensor
+    """(V, C) sum of w * value."""
+    count: torch.Tensor
+    """(V,) number of observations."""
+
+    def fused(self, eps: float = FUSION_EPS) -> torch.Tensor:
+        """(V, C) the paper's fused values sum(w f) / (sum(w) + eps)."""
+        return self.weighted / (self.weight[:, None] + eps)
+
+
+def voxel_sums(keys: torch.Tensor, weights: torch.Tensor, values: torch.Tensor) -> tuple[VoxelSums, torch.Tensor]:
+    """Scatter-add weights (M,) and weighted values (M, C) into the unique keys (M,); also returns inverse (M,)."""
+    if keys.ndim != 1 or weights.shape != keys.shape or values.ndim != 2 or values.shape[0] != keys.shape[0]:
+        raise ValueError(f"{keys.shape=} {weights.shape=} {values.shape=} but expected (M,), (M,), (M, C)")
+    ukeys, inverse = torch.unique(keys, return_inverse=True)
+    v = ukeys.shape[0]
+    wsum = torch.zeros(v, dtype=weights.dtype, device=weights.device).index_add(0, inverse, weights)
+    wval = torch.zeros(v, values.shape[1], dtype=values.dtype, device=values.device).index_add(
+        0, inverse, values * weights[:, None]
+    )
+    count = torch.bincount(inverse, minlength=v)
+    return VoxelSums(ukeys, wsum, wval, count), inverse
+
+
+def merge_voxel_sums(parts: Sequence[VoxelSums]) -> VoxelSums:
+    """Reduce several VoxelSums (e.g. one per frame) into one; exact since sums are linear."""
+    if not parts:
+        raise ValueError("no observations to fuse")
+    keys = torch.cat([p.keys for p in parts])
+    ukeys, inverse = torch.unique(keys, return_inverse=True)
+    v = ukeys.shape[0]
+    weight = torch.zeros(v, dtype=parts[0].weight.dtype).index_add(0, inverse, torch.cat([p.weight for p in parts]))
+    weighted = torch.zeros(v, parts[0].weighted.shape[1], dtype=parts[0].weighted.dtype).index_add(
+        0, inverse, torch.cat([p.weighted for p in parts])
+    )
+    count = torch.zeros(v, dtype=torch.long).index_add(0, inverse, torch.cat([p.count for p in parts]))
+    return VoxelSums(ukeys, weight, weighted, count)
+
+
+def fuse_voxels(
+    points: torch.Tensor, weights: torch.Tensor, features: torch.Tensor, voxel_size: float, eps: float = FUSION_EPS
+) -> tuple[torch.Tensor, torch.Tensor, VoxelSums, torch.Tensor]:
+    """The paper's voxel fusion of observations x (M, 3) with confidences w (M,) and features f (M, C).
+
+    Returns (p (V, 3), f_vox (V, C), sums, inverse (M,)) with f_vox = sum(w f) / (sum(w) + eps) and
+    p = sum(w x) / (sum(w) + eps) over the observations falling in each occupied voxel of size voxel_size.
+    Differentiable with respect to weights, points and features.
+    """
+    keys, _ = voxel_keys(points, voxel_size)
+    sums, inverse = voxel_sums(keys, weights, torch.cat([points, features], 1))
+    fused = sums.fused(eps)
+    return fused[:, :3], fused[:, 3:], sums, inverse
+
+
+# ---------------------------------------------------------------- per-pixel observations
+
+
+class Confidence(enum.StrEnum):
+    """Non-learned per-pixel confidence w of the voxel-fusion backend."""
+
+    UNIFORM = "uniform"
+    """w = 1: every pixel one vote (views closer to a surface sample it more densely and so dominate)."""
+    AREA = "area"
+    """w = footprint area of the pixel on the surface: surface-area-weighted moments, every view counts equally."""
+    RESOLUTION = "resolution"
+    """w = cos(grazing angle) / depth^2: frontal, close (sharper) observations dominate."""
+
+
+@dataclass(kw_only=True)
+class FusionParams:
+    """Settings of the non-learned voxel-fusion backend."""
+
+    voxel_size: float = 0.02
+    """Voxel edge length in metres (the paper's epsilon)."""
+    per_voxel: int = 1
+    """Gaussians per occupied voxel, K in {1, 2, 4, 8}: the voxel's samples are split in two along each of its
+    log2(K) principal axes and every non-empty part becomes one Gaussian."""
+    confidence: Confidence = Confidence.RESOLUTION
+    """Per-pixel confidence weight used in the fusion."""
+    min_points: int = 1
+    """Prune voxels (and sub-voxel parts) observed by fewer pixels than this."""
+    scale_factor: float = 1.6
+    """Gaussian standard deviation = scale_factor * sqrt(eigenvalue of the fused covariance)."""
+    min_scale: float = 0.05
+    """Lower clamp of every Gaussian scale, as a fraction of voxel_size (keeps surfels from being degenerate)."""
+    max_scale: float = 1.0
+    """Upper clamp of every Gaussian scale, as a multiple of voxel_size."""
+    opacity: float = 0.98
+    """Opacity of every emitted Gaussian."""
+    min_cos: float = 0.08
+    """Drop pixels seen at grazing angles with |cos| below this (depth discontinuities, flying pixels)."""
+    max_depth: float = 0.0
+    """Drop pixels with depth beyond this many metres (0 = keep all)."""
+
+    def check(self) -> None:
+        if not self.voxel_size > 0:
+            raise ValueError(f"voxel_size={self.voxel_size} but expected > 0")
+        if self.per_voxel not in (1, 2, 4, 8):
+            raise ValueError(f"per_voxel={self.per_voxel} but expected one of 1, 2, 4, 8")
+        if self.min_points < 1:
+            raise ValueError(f"min_points={self.min_points} but expected >= 1")
+        if not 0 < self.min_scale <= self.max_scale:
+            raise ValueError(f"min_scale={self.min_scale}, max_scale={self.max_scale} but expected 0 < min <= max")
+        if not 0 < self.opacity < 1:
+            raise ValueError(f"opacity={self.opacity} but expected in (0, 1)")
+
+
+@dataclass
+class Observations:
+    """Per-pixel observations of one ERP frame, in the world frame (float64)."""
+
+    points: torch.Tensor
+    """(M, 3) back-projected pixel centres."""
+    colors: torch.Tensor
+    """(M, 3) RGB in [0, 1]."""
+    footprint: torch.Tensor
+    """(M, 3, 3) covariance of the pixel's footprint on the surface (uniform over the parallelogram of its steps)."""
+    weights: torch.Tensor
+    """(M,) confidence w."""
+
+
+def _min_step(fwd: np.ndarray, bwd: np.ndarray) -> np.ndarray:
+    """Pick per pixel the shorter of the forward/backward neighbour steps (..., 3): the side on the same surface."""
+    nf = np.linalg.norm(fwd, axis=-1)
+    nb = np.linalg.norm(bwd, axis=-1)
+    nf = np.where(np.isfinite(nf), nf, np.inf)
+    nb = np.where(np.isfinite(nb), nb, np.inf)
+    return np.where((nf <= nb)[..., None], fwd, bwd)
+
+
+def frame_observations(
+    rgb: np.ndarray, depth: np.ndarray, world_from_cam: np.ndarray, params: FusionParams
+) -> Observations:
+    """One ERP frame rgb (H, W, 3) uint8 or float in [0, 1], depth (H, W) metres (0/inf/nan = none), pose (4, 4).
+
+    Each valid pixel becomes a world point with a footprint covariance from its neighbour steps (the shorter step on
+    each axis, so pixels on a depth edge borrow the geometry of their own surface) and a confidence (params.confidence).
+    Pixels at grazing angles (|cos| < params.min_cos) are dropped.
+    """
+    depth = np.asarray(depth)
+    if depth.ndim != 2:
+        raise ValueError(f"{depth.shape=} but expected (H, W)")
+    h, w = depth.shape
+    if rgb.shape != (h, w, 3):
+        raise ValueError(f"{rgb.shape=} but expected {(h, w, 3)} (the depth map's size)")
+    check_pose(world_from_cam, "world_from_cam")
+    colors = rgb.astype(np.float32) / 255.0 if rgb.dtype == np.uint8 else rgb.astype(np.float32)
+    d = depth.astype(np.float64)
+    valid = np.isfinite(d) & (d > 0)
+    if params.max_depth > 0:
+        valid &= d <= params.max_depth
+    dirs = erp_dirs(h, w, dtype=np.float64)
+    pts = np.where(valid[..., None], dirs * np.where(valid, d, 0.0)[..., None], np.nan)
+    # Longitude wraps around the seam; latitude steps are one-sided at the poles.
+    a = _min_step(np.roll(pts, -1, axis=1) - pts, pts - np.roll(pts, 1, axis=1))
+    up = np.full_like(pts, np.nan)
+    down = np.full_like(pts, np.nan)
+    down[:-1] = pts[1:] - pts[:-1]
+    up[1:] = pts[1:] - pts[:-1]
+    b = _min_step(down, up)
+    normal = np.cross(a, b)
+    area = np.linalg.norm(normal, axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos = np.abs(np.einsum("hwc,hwc->hw", normal, dirs)) / area
+    keep = valid & np.isfinite(area) & (area > 0) & (cos >= params.min_cos)
+    a, b, pts, cos, area, d = a[keep], b[keep], pts[keep], cos[keep], area[keep], d[keep]
+    R = world_from_cam[:3, :3]
+    pts_w = pts @ R.T + world_from_cam[:3, 3]
+    foot_cam = (a[:, :, None] * a[:, None, :] + b[:, :, None] * b[:, None, :]) / 12.0
+    foot = R @ foot_cam @ R.T
+    if params.confidence == Confidence.UNIFORM:
+        wts = np.ones(len(pts))
+    elif params.confidence == Confidence.AREA:
+        wts = area
+    else:
+        wts = cos / d**2
+    return Observations(
+        torch.from_numpy(pts_w), torch.from_numpy(colors[keep].astype(np.float64)), torch.from_numpy(foot),
+        torch.from_numpy(wts),
+    )
+
+
+_TRIU = (torch.tensor([0, 0, 0, 1, 1, 2]), torch.tensor([0, 1, 2, 1, 2, 2]))
+
+
+def _sym_from6(v: torch.Tensor) -> torch.Tensor:
+    m = torch.zeros(v.shape[0], 3, 3, dtype=v.dtype)
+    m[:, _TRIU[0], _TRIU[1]] = v
+    m[:, _TRIU[1], _TRIU[0]] = v
+    return m
+
+
+def _moment_values(obs: Observations, centre: torch.Tensor) -> torch.Tensor:
+    """(M, 12) values fused per voxel: x - c, rgb, and the 6 unique entries of (x - c)(x - c)^T + footprint."""
+    rel = obs.points - centre
+    second = rel[:, :, None] * rel[:, None, :] + obs.footprint
+    return torch.cat([rel, obs.colors, second[:, _TRIU[0], _TRIU[1]]], 1)
+
+
+@dataclass
+class FusionResult:
+    """Gaussians from voxel fusion plus statistics for reports."""
+
+    gaussians: Gaussians
+    num_observations: int
+    """Pixels fused."""
+    num_voxels: int
+    """Occupied voxels (before pruning)."""
+    num_pruned: int
+    """Voxels (or voxel parts) dropped as empty or degenerate."""
+    extent_m: list[float]
+    """Size of the Gaussians' bounding box (x, y, z) in metres."""
+    voxel_size: float
+    backend: str = "voxel-fusion"
+
+
+def voxel_fusion(
+    frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], params: FusionParams, *, progress: bool = False
+) -> FusionResult:
+    """Fuse ERP frames (rgb (H, W, 3), depth (H, W) metres, world_from_cam (4, 4)) into voxel-aligned Gaussians.
+
+    Per voxel j: p_j = sum(w x) / (sum(w) + eps) and colour c_j = sum(w rgb) / (sum(w) + eps) (the paper's fusion,
+    computed relative to the voxel's grid centre for float precision); the covariance is the fused second moment of
+    the pixel footprints minus p p^T (a moment-matched mixture of the pixels' surface patches). Its eigenvectors give
+    the rotation and scale_factor * sqrt(eigenvalues), clamped to [min_scale, max_scale] * voxel_size, the scales.
+    Frames are reduced one by one, so memory is bounded by one frame plus the occupied voxels.
+    """
+    from tqdm import tqdm
+
+    params.check()
+    frames = list(frames)
+    eps_v = params.voxel_size
+
+    def observations():
+        for rgb, depth, pose in tqdm(frames, desc="voxel fusion", disable=None if progress else True, leave=False):
+            obs = frame_observations(rgb, depth, pose, params)
+            if len(obs.points):
+                yield obs
+
+    parts, n_obs = [], 0
+    for obs in observations():
+        keys, ijk = voxel_keys(obs.points, eps_v)
+        centre = (ijk.double() + 0.5) * eps_v
+        parts.append(voxel_sums(keys, obs.weights, _moment_values(obs, centre))[0])
+        n_obs += len(obs.points)
+    if not parts:
+        raise ValueError("no valid depth pixel in any frame: every depth is 0, inf or NaN (or beyond max_depth)")
+    sums = merge_voxel_sums(parts)
+    centres = (voxel_coords_from_keys(sums.keys).double() + 0.5) * eps_v
+    num_voxels = int(sums.keys.shape[0])
+
+    if params.per_voxel > 1:
+        # Second pass: split each voxel's samples by the sign along its top log2(K) principal axes.
+        mean, _, axes = _mean_cov_axes(sums, centres)
+        n_split = int(np.log2(params.per_voxel))
+        child_parts = []
+        for obs in observations():
+            keys, _ = voxel_keys(obs.points, eps_v)
+            vid = torch.searchsorted(sums.keys, keys)
+            rel = obs.points - mean[vid]
+            top = axes[vid][:, :, 3 - n_split :]  # eigenvectors sorted ascending: the last are the principal ones
+            bits = (torch.einsum("mc,mck->mk", rel, top) >= 0).long()
+            child = (bits * (1 << torch.arange(n_split))).sum(1)
+            child_parts.append(voxel_sums(vid * params.per_voxel + child, obs.weights, _moment_values(obs, centres[vid]))[0])
+        sums = merge_voxel_sums(child_parts)
+        centres = centres[sums.keys // params.per_voxel]
+
+    mean, evals, axes = _mean_cov_axes(sums, centres)
+    evals = evals.clamp(min=0.0)
+    colors = sums.fused()[:, 3:6]
+    keep = (sums.count >= params.min_points) & (sums.weight > 0) & torch.isfinite(evals).all(1)
+    keep &= torch.isfinite(mean).all(1)
+    num_pruned = int((~keep).sum())
+    if not bool(keep.any()):
+        raise ValueError(
+            f"all {num_voxels} voxels were pruned (fewer than min_points={params.min_points} observations or "
+            "degenerate); lower min_points or voxel_size"
+        )
+    mean, evals, axes, colors = mean[keep], evals[keep], axes[keep], colors[keep]
+    scales = (params.scale_factor * evals.sqrt()).clamp(params.min_scale * eps_v, params.max_scale * eps_v)
+    axes = axes * torch.where(torch.det(axes) < 0, -1.0, 1.0).to(axes.dtype)[:, None, None]
+    quat = np.roll(Rotation.from_matrix(axes.numpy()).as_quat(), 1, axis=-1)  # scipy is xyzw
+    n = len(mean)
+    g = Gaussians(
+        means=mean.float().numpy(), scales=scales.float().numpy(), quats=quat.astype(np.float32),
+        opacities=np.full(n, params.opacity, np.float32),
+        sh_dc=rgb_to_sh_dc(colors.clamp(0.0, 1.0).numpy()).astype(np.float32),
+    )
+    return FusionResult(g, n_obs, num_voxels, num_pruned, bbox_extent(g.means), eps_v)
+
+
+def bbox_extent(points: np.ndarray) -> list[float]:
+    """(N, 3) points -> [dx, dy, dz] of their bounding box (zeros when empty)."""
+    return (points.max(0) - points.min(0)).astype(float).tolist() if len(points) else [0.0, 0.0, 0.0]
+
+
+def _mean_cov_axes(sums: VoxelSums, centres: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Fused (V, 12) moments -> world means (V, 3), covariance eigenvalues (V, 3) ascending, eigenvectors (V, 3, 3)."""
+    fused = sums.fused()
+    rel = fused[:, :3]
+    cov = _sym_from6(fused[:, 6:12]) - rel[:, :, None] * rel[:, None, :]
+    cov = 0.5 * (cov + cov.transpose(1, 2))
+    cov = torch.nan_to_num(cov)
+    evals, axes = torch.linalg.eigh(cov)
+    return centres + rel, evals, axes
+
+
+# ---------------------------------------------------------------- stage I/O
+
+
+@dataclass
+class ContextFrames:
+    """The frames a gaussians run fuses: colour, depth and pose of each, in the canonical world frame."""
+
+    rgb: np.ndarray
+    """(V, H, W, 3) uint8 ERP frames."""
+    depth: np.ndarray
+    """(V, H, W) float32 ray-distance depth in metres, NaN where unknown."""
+    world_from_cam: np.ndarray
+    """(V, 4, 4) float64 poses."""
+    indices: list[int]
+    """Frame numbers in the video."""
+    depth_source: str
+    """'poses' or 'video': which artifact's depth/NNNNNN.png was used."""
+
+
+def uniform_subset(candidates: Sequence[int], k: int) -> list[int]:
+    """k entries of candidates, uniformly spaced and including both ends (all of them when k <= 0 or k >= len)."""
+    candidates = list(candidates)
+    if k <= 0 or k >= len(candidates):
+        return candidates
+    pick = np.unique(np.round(np.linspace(0, len(candidates) - 1, k)).astype(int))
+    return [candidates[i] for i in pick]
+
+
+def read_context_frames(video_dir: Path, poses_dir: Path, *, context_views: int = 0, height: int = 0) -> ContextFrames:
+    """Frames, depth and poses of the registered frames (uniformly subsampled to context_views when > 0).
+
+    Depth comes from the poses artifact when it has some (its estimator's, or the video's copied), else from the
+    video artifact; without either it is a StageInputError. height > 0 resizes frames (area) and depth (nearest).
+    """
+    import json
+
+    import cv2
+
+    from panoworld.poses import load_frames, read_depth_png, read_video_frames
+    from panoworld.stage import StageInputError
+
+    video = read_video_frames(Path(video_dir))
+    poses_path = Path(poses_dir) / "poses.json"
+    try:
+        doc = json.loads(poses_path.read_text())
+        poses = np.asarray(doc["poses"], np.float64)
+        registered = np.asarray(doc.get("registered", [True] * len(poses)), bool)
+        pose_depth = [f.get("depth") for f in doc.get("frames", [])]
+        pose_scale = float(doc.get("depth_scale", 0.001))
+    except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+        raise StageInputError(f"{poses_path}: cannot read poses ({e}); rerun the poses stage") from None
+    if poses.shape != (video.num_frames, 4, 4) or registered.shape != (video.num_frames,):
+        raise StageInputError(
+            f"{poses_path}: {poses.shape} poses / {registered.shape} registered flags but video.json lists "
+            f"{video.num_frames} frames; rerun the poses stage on this video"
+        )
+    if len(pose_depth) == video.num_frames and all(pose_depth):
+        depth_paths, scale, source = [Path(poses_dir) / d for d in pose_depth], pose_scale, "poses"
+    elif video.has_depth:
+        depth_paths, scale, source = video.depth, video.depth_scale, "video"
+    else:
+        raise StageInputError(
+            "voxel-fusion needs per-frame depth: use video backend warp-inpaint or poses backend vggt "
+            f"(neither {poses_path} nor {Path(video_dir) / 'video.json'} lists depth maps)"
+        )
+    idx = uniform_subset(np.flatnonzero(registered).tolist(), context_views)
+    if not idx:
+        raise StageInputError(f"{poses_path}: no registered frame; rerun the poses stage")
+    rgb = load_frames([video.rgb[i] for i in idx], height or None)
+    depth = []
+    for i in idx:
+        d = read_depth_png(depth_paths[i], scale)
+        if d.shape != (video.height, video.width):
+            raise StageInputError(f"{depth_paths[i]}: depth is {d.shape[1]}x{d.shape[0]} but frames are "
+                                  f"{video.width}x{video.height}; rerun the stage that wrote it")
+        if height and d.shape[0] != height:
+            d = cv2.resize(d, (2 * height, height), interpolation=cv2.INTER_NEAREST)
+        depth.append(d)
+    return ContextFrames(rgb, np.stack(depth), poses[idx], idx, source)
+
+
+def write_artifact(out_dir: Path, result: FusionResult, frames: ContextFrames, *, eval_views: int = 1,
+                   eval_height: int = 128) -> dict:
+    """Write gaussians.ply, points.ply and preview.png (the first context view rendered back); return manifest info
+    with PSNR/SSIM/WS-PSNR of eval_views context views re-rendered as ERP at eval_height."""
+    import cv2
+
+    from panoworld.metrics import psnr, ssim, ws_psnr
+    from panoworld.render_gs import render_erp
+    from panoworld.splat_ply import write_gaussians_ply, write_points_ply
+
+    g = result.gaussians.numpy()
+    out_dir = Path(out_dir)
+    write_gaussians_ply(out_dir / "gaussians.ply", g)
+    write_points_ply(out_dir / "points.ply", g.means, g.base_colors())
+    evals = []
+    for k in uniform_subset(range(len(frames.indices)), eval_views) if eval_views > 0 else []:
+        out = render_erp(g, frames.world_from_cam[k], eval_height, 2 * eval_height)
+        img = (out.rgb.clamp(0, 1).numpy() * 255.0).round().astype(np.uint8)
+        ref = frames.rgb[k]
+        if ref.shape[0] != eval_height:
+            ref = cv2.resize(ref, (2 * eval_height, eval_height), interpolation=cv2.INTER_AREA)
+        if not evals:
+            cv2.imwrite(str(out_dir / "preview.png"), img[..., ::-1])
+        evals.append({"frame": frames.indices[k], "psnr": psnr(img, ref), "ws_psnr": ws_psnr(img, ref),
+                      "ssim": ssim(img, ref), "coverage": float(out.alpha.mean())})
+    warnings = []
+    if max(result.extent_m) < 2 * result.voxel_size:
+        warnings.append(f"the scene spans {max(result.extent_m):.3f} m, under two voxels of {result.voxel_size} m; "
+                        "lower voxel_size")
+    return {
+        "backend": result.backend,
+        "num_gaussians": len(g),
+        "num_voxels": result.num_voxels,
+        "num_pruned_voxels": result.num_pruned,
+        "num_observations": result.num_observations,
+        "voxel_size": result.voxel_size,
+        "frames": frames.indices,
+        "depth_source": frames.depth_source,
+        "extent_m": result.extent_m,
+        "eval": evals,
+        "context_psnr": float(np.mean([e["psnr"] for e in evals])) if evals else None,
+        "warnings": warnings,
+        "frame": "canonical world: metres, camera 0 = identity, OpenCV axes, y down = gravity",
+    }

@@ -1,0 +1,71 @@
+"""Voxel-aligned 3D Gaussians (INRIA gaussians.ply + points.ply) fused from the video's frames, depth and poses."""
+
+from __future__ import annotations
+
+import enum
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from panoworld.gaussians import FusionParams, read_context_frames, voxel_fusion, write_artifact
+from panoworld.stage import Input, StageInputError, stage_main
+
+NAME = "gaussians"
+VERSION = "1"
+ARTIFACT = "gaussians"
+INPUTS = {
+    "video": Input("video", help="video artifact (video.json, frames/, depth/)"),
+    "poses": Input("poses", help="poses artifact (poses.json, depth/)"),
+}
+
+
+class Backend(enum.StrEnum):
+    VOXEL_FUSION = "voxel-fusion"
+    """Non-learned: confidence-weighted voxel fusion of back-projected pixels, one Gaussian per voxel part."""
+    DECODER = "decoder"
+    """The learned voxel-aligned GSDecoder (needs --weights)."""
+
+
+@dataclass(kw_only=True)
+class Params(FusionParams):
+    backend: Backend = Backend.VOXEL_FUSION
+    """Gaussian head."""
+    context_views: int = 0
+    """Number of registered frames used, uniformly spaced (0 = all)."""
+    height: int = 0
+    """Process frames resized to this ERP height (0 = as stored; decoder: a multiple of its patch size)."""
+    weights: str | None = None
+    """decoder: directory holding config.json and model.safetensors of GSDecoder (its voxel size wins)."""
+    device: str = "cpu"
+    """decoder: torch device (cpu, cuda)."""
+    eval_views: int = 1
+    """Context views rendered back from the Gaussians to report PSNR/SSIM/WS-PSNR in the manifest (0 = none)."""
+    eval_height: int = 128
+    """ERP height of those renders (and of preview.png)."""
+
+
+def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
+    frames = read_context_frames(
+        inputs["video"], inputs["poses"], context_views=params.context_views, height=params.height
+    )
+    try:
+        if params.backend == Backend.DECODER:
+            from panoworld.models.gs_decoder import GSDecoder
+
+            model = GSDecoder.from_pretrained(params.weights, flag="--weights", device=params.device)
+            result = model.decode(frames)
+        else:
+            result = voxel_fusion(zip(frames.rgb, frames.depth, frames.world_from_cam), params, progress=True)
+    except StageInputError:
+        raise
+    except ValueError as e:  # empty depth, nothing left after pruning, bad params
+        raise StageInputError(str(e)) from None
+    return write_artifact(out_dir, result, frames, eval_views=params.eval_views, eval_height=params.eval_height)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return stage_main(__name__, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,236 @@
+"""Voxel fusion: the paper's equations, surface-accurate Gaussians on ray-cast ground truth, pruning and errors, the stage."""
+
+from __future__ import annotations
+
+import json
+from collections import defaultdict
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from panoworld.conventions import erp_dirs
+from panoworld.gaussians import (
+    FUSION_EPS,
+    SH_C0,
+    FusionParams,
+    fuse_voxels,
+    merge_voxel_sums,
+    uniform_subset,
+    voxel_fusion,
+    voxel_keys,
+    voxel_sums,
+)
+from panoworld.metrics import psnr
+from panoworld.raycast import Raycaster
+from panoworld.render_gs import render_erp
+
+torch.set_num_threads(1)
+
+ROOM = np.array([4.0, 2.6, 5.0])  # box room extents (x, y, z) centred on the origin
+
+
+def room_color(p: np.ndarray) -> np.ndarray:
+    """Smooth albedo as a function of the world point (N..., 3) -> rgb in [0, 1]."""
+    s = np.sin(p @ np.array([[2.0, 0.5, 0.3], [0.4, 2.5, 0.7], [1.1, 0.2, 1.9]]))
+    return np.clip(0.5 + 0.3 * s, 0, 1)
+
+
+@pytest.fixture(scope="module")
+def room():
+    box = trimesh.creation.box(extents=ROOM)
+    block = trimesh.creation.box(extents=[0.6, 0.8, 0.6])
+    block.apply_translation([0.9, 0.9, 1.2])
+    mesh = trimesh.util.concatenate([box, block])
+    rc = Raycaster(mesh.vertices, mesh.faces)
+
+    def render(pose, H=64, W=128):
+        d = rc.render_erp(pose, H, W).distance.astype(np.float32)
+        pts = erp_dirs(H, W, np.float64) * d[..., None] @ pose[:3, :3].T + pose[:3, 3]
+        return (room_color(pts) * 255).round().astype(np.uint8), d
+
+    return render
+
+
+def pose_at(x, y, z):
+    T = np.eye(4)
+    T[:3, 3] = [x, y, z]
+    return T
+
+
+def test_fuse_voxels_is_the_papers_weighted_mean():
+    rng = np.random.default_rng(0)
+    x = torch.from_numpy(rng.uniform(0, 0.5, (300, 3)))
+    w = torch.from_numpy(rng.uniform(0, 1, 300))
+    f = torch.from_numpy(rng.normal(size=(300, 4)))
+    p, fv, sums, inverse = fuse_voxels(x, w, f, 0.1)
+    groups = defaultdict(list)
+    for i, key in enumerate(np.floor(x.numpy() / 0.1).astype(int)):
+        groups[tuple(key)].append(i)
+    assert len(groups) == len(p)
+    for members in groups.values():
+        j = int(inverse[members[0]])
+        assert all(int(inverse[m]) == j for m in members)
+        wm = w[members]
+        assert torch.allclose(p[j], (wm[:, None] * x[members]).sum(0) / (wm.sum() + FUSION_EPS))
+        assert torch.allclose(fv[j], (wm[:, None] * f[members]).sum(0) / (wm.sum() + FUSION_EPS))
+        assert int(sums.count[j]) == len(members)
+
+
+def test_fusion_is_differentiable_in_confidence():
+    x = torch.tensor([[0.01, 0.01, 0.01], [0.05, 0.02, 0.03]], dtype=torch.float64)
+    w = torch.tensor([1.0, 3.0], dtype=torch.float64, requires_grad=True)
+    p, _, _, _ = fuse_voxels(x, w, torch.zeros(2, 1, dtype=torch.float64), 0.1)
+    p[0, 0].backward()
+    assert w.grad is not None and abs(float(w.grad[1])) > 0
+
+
+def test_merging_per_frame_sums_equals_one_pass():
+    rng = np.random.default_rng(1)
+    x = torch.from_numpy(rng.uniform(-1, 1, (500, 3)))
+    keys, _ = voxel_keys(x, 0.25)
+    w = torch.from_numpy(rng.uniform(0.1, 1, 500))
+    v = torch.from_numpy(rng.normal(size=(500, 2)))
+    whole, _ = voxel_sums(keys, w, v)
+    parts = [voxel_sums(keys[s : s + 120], w[s : s + 120], v[s : s + 120])[0] for s in range(0, 500, 120)]
+    merged = merge_voxel_sums(parts[::-1])
+    assert torch.equal(merged.keys, whole.keys) and torch.equal(merged.count, whole.count)
+    assert torch.allclose(merged.fused(), whole.fused())
+
+
+def test_voxel_keys_reject_far_points():
+    with pytest.raises(ValueError, match="increase voxel_size"):
+        voxel_keys(torch.tensor([[1e6, 0.0, 0.0]]), 0.01)
+
+
+def test_gaussians_lie_on_the_ground_truth_surfaces_with_their_colour(room):
+    frames = [(*room(pose_at(*t)), pose_at(*t)) for t in [(0, 0, 0), (0.5, 0.1, -0.6), (-0.6, -0.1, 0.4)]]
+    res = voxel_fusion(frames, FusionParams(voxel_size=0.05))
+    g = res.gaussians
+    assert res.num_observations > 0.9 * 3 * 64 * 128
+    # Distance of every mean to the nearest box face (room walls or the block).
+    half = ROOM / 2
+    d_room = np.min(half - np.abs(g.means), axis=1)
+    lo, hi = np.array([0.6, 0.5, 0.9]), np.array([1.2, 1.3, 1.5])
+    outside = np.maximum(np.maximum(lo - g.means, g.means - hi), 0)
+    d_block = np.where(np.all(outside == 0, 1), 0, np.linalg.norm(outside, axis=1))
+    inside_block = np.all((g.means > lo) & (g.means < hi), 1)
+    d_block[inside_block] = np.min(np.minimum(g.means - lo, hi - g.means)[inside_block], axis=1)
+    dist = np.minimum(np.abs(d_room), d_block)
+    assert np.median(dist) < 0.005 and np.quantile(dist, 0.99) < 0.03
+    # Colours: the fused mean colour of each voxel is close to the albedo at its mean (smooth texture).
+    err = np.abs(g.base_colors() - room_color(g.means.astype(np.float64)))
+    assert np.median(err) < 0.02
+    # Flat surfels: the thinnest axis is the clamp, the in-plane ones are a fraction of a voxel.
+    s = np.sort(g.scales, 1)
+    assert np.median(s[:, 0]) == pytest.approx(0.05 * 0.05, rel=0.01)
+    assert 0.01 < np.median(s[:, 2]) <= 0.05
+    assert np.allclose(g.opacities, 0.98) and np.allclose(g.sh_dc, (g.base_colors() - 0.5) / SH_C0, atol=1e-5)
+
+
+def test_renders_match_ground_truth_at_context_and_novel_views(room):
+    ctx = [pose_at(*t) for t in [(0, 0, 0), (0.6, 0.1, 0.5), (-0.5, -0.1, -0.6)]]
+    frames = [(*room(p), p) for p in ctx]
+    g = voxel_fusion(frames, FusionParams(voxel_size=0.04)).gaussians
+    for pose, floor in [(ctx[0], 27.0), (pose_at(0.3, 0.05, -0.2), 25.0)]:
+        gt, _ = room(pose)
+        out = render_erp(g, pose, 64, 128)
+        img = (out.rgb.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+        assert psnr(img, gt) > floor
+        assert float(out.alpha.mean()) > 0.98
+
+
+def test_per_voxel_parts_split_each_voxel(room):
+    frames = [(*room(pose_at(0, 0, 0)), pose_at(0, 0, 0))]
+    one = voxel_fusion(frames, FusionParams(voxel_size=0.1))
+    four = voxel_fusion(frames, FusionParams(voxel_size=0.1, per_voxel=4))
+    assert one.num_voxels == four.num_voxels
+    assert len(one.gaussians) < len(four.gaussians) <= 4 * len(one.gaussians)
+    # Parts of a voxel are smaller than the whole voxel's Gaussian.
+    assert np.median(four.gaussians.scales.max(1)) < np.median(one.gaussians.scales.max(1))
+
+
+def test_empty_depth_and_over_pruning_raise():
+    rgb = np.zeros((8, 16, 3), np.uint8)
+    with pytest.raises(ValueError, match="no valid depth"):
+        voxel_fusion([(rgb, np.full((8, 16), np.nan, np.float32), np.eye(4))], FusionParams())
+    with pytest.raises(ValueError, match="all .* voxels were pruned"):
+        voxel_fusion([(rgb, np.full((8, 16), 2.0, np.float32), np.eye(4))], FusionParams(min_points=10**6))
+    with pytest.raises(ValueError, match="per_voxel"):
+        FusionParams(per_voxel=3).check()
+    with pytest.raises(ValueError, match="expected \\(8, 16, 3\\)"):
+        voxel_fusion([(rgb[:, :8], np.ones((8, 16), np.float32), np.eye(4))], FusionParams())
+
+
+def test_uniform_subset():
+    assert uniform_subset(range(10), 4) == [0, 3, 6, 9]
+    assert uniform_subset([2, 5], 0) == [2, 5]
+
+
+# ---------------------------------------------------------------- stage
+
+
+def write_inputs(tmp: Path, room, *, with_depth: bool = True) -> tuple[Path, Path]:
+    video, poses = tmp / "video", tmp / "poses"
+    (video / "frames").mkdir(parents=True)
+    (video / "depth").mkdir()
+    (poses / "depth").mkdir(parents=True)
+    ts = [(0, 0, 0), (0.4, 0.0, 0.3), (-0.3, 0.05, -0.4)]
+    frames, pose_list = [], []
+    for i, t in enumerate(ts):
+        rgb, d = room(pose_at(*t))
+        cv2.imwrite(str(video / "frames" / f"{i:06d}.png"), rgb[..., ::-1])
+        cv2.imwrite(str(video / "depth" / f"{i:06d}.png"), np.round(d * 1000).astype(np.uint16))
+        frames.append({"rgb": f"frames/{i:06d}.png", "depth": f"depth/{i:06d}.png" if with_depth else None})
+        pose_list.append(pose_at(*t).tolist())
+    (video / "video.json").write_text(json.dumps({
+        "height": 64, "width": 128, "num_frames": 3, "has_depth": with_depth, "depth_scale": 0.001,
+        "frames": frames, "poses": pose_list,
+    }))
+    (poses / "poses.json").write_text(json.dumps({
+        "poses": pose_list, "registered": [True, True, False],
+        "frames": [{"rgb": f["rgb"], "depth": None} for f in frames], "depth_scale": 0.001,
+    }))
+    return video, poses
+
+
+def test_stage_writes_a_valid_artifact(tmp_path, room):
+    from panoworld.splat_ply import read_gaussians_ply
+    from panoworld.stage import execute_stage, load_stage
+    from stages.gaussians import Params
+
+    video, poses = write_inputs(tmp_path, room)
+    spec = load_stage("gaussians")
+    out = tmp_path / "out"
+    manifest = execute_stage(spec, {"video": video, "poses": poses}, Params(voxel_size=0.05, eval_views=2),
+                             out, input_digests={"video": "0" * 64, "poses": "1" * 64})
+    info = manifest["info"]
+    assert {"gaussians.ply", "points.ply", "preview.png"} <= set(manifest["files"])
+    assert info["frames"] == [0, 1] and info["depth_source"] == "video"  # frame 2 is unregistered
+    assert info["num_gaussians"] == len(read_gaussians_ply(out / "gaussians.ply")) > 1000
+    assert len(info["eval"]) == 2 and info["context_psnr"] > 25
+
+
+def test_stage_input_errors(tmp_path, room):
+    from panoworld.stage import StageInputError, execute_stage, load_stage
+    from stages.gaussians import Backend, Params
+
+    spec = load_stage("gaussians")
+    digests = {"video": "0" * 64, "poses": "1" * 64}
+    video, poses = write_inputs(tmp_path / "a", room, with_depth=False)
+    with pytest.raises(StageInputError, match="needs per-frame depth: use video backend warp-inpaint or poses backend vggt"):
+        execute_stage(spec, {"video": video, "poses": poses}, Params(), tmp_path / "o1", input_digests=digests)
+    video, poses = write_inputs(tmp_path / "b", room)
+    with pytest.raises(StageInputError, match="pass --weights"):
+        execute_stage(spec, {"video": video, "poses": poses}, Params(backend=Backend.DECODER), tmp_path / "o2",
+                      input_digests=digests)
+    for p in (video / "depth").iterdir():
+        cv2.imwrite(str(p), np.zeros((64, 128), np.uint16))
+    with pytest.raises(StageInputError, match="no valid depth"):
+        execute_stage(spec, {"video": video, "poses": poses}, Params(), tmp_path / "o3", input_digests=digests)
+    with pytest.raises(StageInputError, match="per_voxel"):
+        execute_stage(spec, {"video": video, "poses": poses}, Params(per_voxel=3), tmp_path / "o4", input_digests=digests)
+    assert not any((tmp_path / f"o{i}").exists() for i in range(1, 5))
