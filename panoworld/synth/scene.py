@@ -420,7 +420,7 @@ def _build(scene_seed: int, params: SynthParams) -> tuple[SynthScene, FloorPlan]
             ceiling = obj.kind == FurnitureKind.CEILING_LIGHT
             tint = np.array([1.0, 0.93, 0.82]) if ceiling else np.array([1.0, 0.8, 0.55])
             lights.append(Light(position=tuple(float(v) for v in obj.light_at),
-                                intensity=tuple(float(v) for v in tint * (0.85 if ceiling else 0.35)),
+                                intensity=tuple(float(v) for v in tint * (1.0 if ceiling else 0.4)),
                                 falloff=2.5 if ceiling else 1.5))
 
     meta = {
@@ -429,7 +429,7 @@ def _build(scene_seed: int, params: SynthParams) -> tuple[SynthScene, FloorPlan]
         "fps": params.tracks.fps, "step_m": params.tracks.step_m,
     }
     floorplan = {"label": plan.label, "top": plan.top, "door": plan.door, "occupied": placer.occ}
-    scene = SynthScene(nodes=nodes, materials=materials, lights=lights, ambient=0.3, tracks=[],
+    scene = SynthScene(nodes=nodes, materials=materials, lights=lights, ambient=0.26, tracks=[],
                        clearance=params.tracks.clearance_m, meta=meta, floorplan=floorplan)
     planner = TrackPlanner(plan, placer.occ, scene.triangles, params.tracks, margin=params.furniture.walk_margin_m)
     scene.tracks = [planner.plan_track(rng_track, params.tracks.frames) for _ in range(params.tracks.n_tracks)]
@@ -441,9 +441,9 @@ def generate_scene(
 ) -> SynthScene:
     """Generate a scene deterministically from seed; failed draws retry with derived seeds, then SceneGenerationError."""
     _check_seed(seed)
-    preset = Preset(preset) if params is None else preset
     if params is None:
         params = params_for(preset, frames=frames)
+        preset = Preset(preset)
     if params.tracks.n_tracks < 1 or params.tracks.frames < 1:
         raise ValueError(f"{params.tracks.n_tracks=} and {params.tracks.frames=} must both be >= 1")
     errors = []

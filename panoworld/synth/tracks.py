@@ -109,7 +109,7 @@ class TrackPlanner:
     def _polyline(self, rng: np.random.Generator, length: float) -> np.ndarray:
         """World (x, z) polyline (M, 2) through random waypoints with at least the given length."""
         c = self.plan.cell
-        weight = np.clip(self.dist[tuple(self.cells.T)], 0, None) ** 2
+        weight = np.clip(self.dist[tuple(self.cells.T)], 0, None) ** 4
         cur = int(rng.choice(len(self.cells), p=weight / weight.sum()))
         pts = [self.plan.cell_centers(self.cells[cur : cur + 1])]
         total, heading = 0.0, None
