@@ -111,3 +111,49 @@ def ssim(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None, *, data_r
     r = 5
     inner = m[r:-r, r:-r] if min(m.shape) > 2 * r else m
     return float(inner.mean())
+
+
+def reprojection_error(
+    img_t: np.ndarray,
+    img_t1: np.ndarray,
+    depth_t: np.ndarray,
+    depth_t1: np.ndarray,
+    world_from_cam_t: np.ndarray,
+    world_from_cam_t1: np.ndarray,
+    *,
+    occlusion_tol: float = 0.03,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Temporal consistency of ERP frames t and t+1 through known geometry (e.g. ground-truth depth).
+
+    Every pixel of frame t+1 is lifted with depth_t1 (H, W), moved into camera t and sampled bilinearly (columns
+    wrapped) from img_t (H, W, C). Returns (err (H, W) float64 RMS over channels of img_t1 - sampled img_t,
+    valid (H, W) bool): valid where the depth is finite and the point is visible in frame t (its distance agrees
+    with depth_t at the landing pixel within occlusion_tol relative).
+    """
+    from panoworld.conventions import erp_pixel_from_dir, invert_pose, points_from_depth, transform_points
+
+    img_t, img_t1 = _pair(img_t, img_t1)
+    H, W = img_t.shape[:2]
+    if depth_t.shape != (H, W) or depth_t1.shape != (H, W):
+        raise ValueError(f"{depth_t.shape=} {depth_t1.shape=} but expected {(H, W)} (H, W)")
+    ok = np.isfinite(depth_t1) & (depth_t1 > 0)
+    d1 = np.where(ok, depth_t1, 1.0).astype(np.float64)
+    pts = transform_points(invert_pose(world_from_cam_t) @ world_from_cam_t1, points_from_depth(d1))
+    u, v = erp_pixel_from_dir(pts, H, W)
+    map_x = (u - 0.5).astype(np.float32)
+    map_y = np.clip(v - 0.5, 0, H - 1).astype(np.float32)
+    sampled = cv2_remap(img_t.astype(np.float32), map_x, map_y)
+    landing_depth = cv2_remap(np.where(np.isfinite(depth_t), depth_t, 0).astype(np.float32), map_x, map_y, nearest=True)
+    dist = np.linalg.norm(pts, axis=-1)
+    ok &= np.abs(landing_depth - dist) <= occlusion_tol * dist
+    diff = img_t1.astype(np.float64) - sampled
+    err = np.sqrt((diff**2).mean(axis=-1)) if diff.ndim == 3 else np.abs(diff)
+    return err, ok
+
+
+def cv2_remap(img: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, *, nearest: bool = False) -> np.ndarray:
+    """cv2.remap with columns wrapped around (ERP seam); bilinear unless nearest."""
+    import cv2
+
+    interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+    return cv2.remap(img, map_x, map_y, interp, borderMode=cv2.BORDER_WRAP)

@@ -1,0 +1,345 @@
+"""Weight-free disocclusion filling: a 3D background layer behind depth edges (warp-inpaint) and a per-frame 2D baseline."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from panoworld.conventions import check_pose, erp_dirs
+from panoworld.mesh import ErpMesh, _grid_faces
+from panoworld.raycast import Raycaster
+
+
+# ---------------------------------------------------------------- seam-aware 2D helpers
+
+
+def erp_pad(img: np.ndarray, pad_x: int, pad_y: int = 0) -> np.ndarray:
+    """Pad an ERP image (H, W[, C]) so that it continues over the sphere: columns wrap around (pad_x each side),
+    rows mirror across the poles rotated by 180 degrees of longitude (pad_y each side; needs an even W)."""
+    H, W = img.shape[:2]
+    if pad_x > W or pad_y > H or (pad_y and W % 2):
+        raise ValueError(f"{img.shape=}: cannot pad by {pad_x=}, {pad_y=} (need pad_x <= W, pad_y <= H, even W)")
+    if pad_y:
+        top = np.roll(img[:pad_y][::-1], W // 2, axis=1)
+        bottom = np.roll(img[H - pad_y :][::-1], W // 2, axis=1)
+        img = np.concatenate([top, img, bottom], axis=0)
+    if pad_x:
+        img = np.concatenate([img[:, W - pad_x :], img, img[:, :pad_x]], axis=1)
+    return img
+
+
+def erp_inpaint(img: np.ndarray, mask: np.ndarray, *, radius: float = 3.0, pad_frac: float = 0.25) -> np.ndarray:
+    """cv2.inpaint (Telea) of an ERP image (H, W, 3) uint8 or (H, W) uint16/float where mask (H, W) is True,
+    seam-aware: the image is padded by pad_frac * W wrapped columns and mirrored polar rows, so fills continue
+    across the left/right border and the poles. Pixels outside the mask are returned unchanged.
+
+    Float images are quantised to 16 bits over the range of their unmasked values (OpenCV's Telea gives garbage
+    on float32 input).
+    """
+    mask = np.asarray(mask, bool)
+    if mask.shape != img.shape[:2]:
+        raise ValueError(f"{mask.shape=} but expected {img.shape[:2]} (H, W) like the image")
+    if not mask.any():
+        return img.copy()
+    if mask.all():
+        raise ValueError("erp_inpaint: the mask covers the whole image; nothing to fill from")
+    if img.dtype.kind == "f":
+        if img.ndim != 2:
+            raise ValueError(f"{img.shape=} {img.dtype=}: float images must be single-channel (H, W)")
+        lo, hi = float(img[~mask].min()), float(img[~mask].max())
+        scale = 65535.0 / (hi - lo) if hi > lo else 1.0
+        q = np.rint((np.clip(img, lo, hi) - lo) * scale).astype(np.uint16)
+        out = erp_inpaint(q, mask, radius=radius, pad_frac=pad_frac).astype(np.float64) / scale + lo
+        return np.where(mask, out, img).astype(img.dtype)
+    if not (img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3) and not (
+        img.dtype in (np.uint8, np.uint16) and img.ndim == 2
+    ):
+        raise ValueError(f"{img.shape=} {img.dtype=} but expected (H, W, 3) uint8 or (H, W) uint8/uint16/float")
+    H, W = mask.shape
+    px = max(1, min(W, int(round(pad_frac * W))))
+    py = min(H, max(2, int(np.ceil(radius)) + 1)) if W % 2 == 0 else 0
+    src = erp_pad(img, px, py)
+    m = erp_pad(mask.astype(np.uint8), px, py)
+    out = cv2.inpaint(np.ascontiguousarray(src), m, radius, cv2.INPAINT_TELEA)[py : py + H, px : px + W]
+    return np.where(mask[..., None] if img.ndim == 3 else mask, out, img)
+
+
+# ---------------------------------------------------------------- background layer
+
+
+@dataclass
+class BackgroundLayer:
+    """Surface synthesized behind foreground occluders of the source view, plus the source mesh's valid faces.
+
+    `vertices`/`faces`/`colors` form the fill mesh (canonical frame): the valid faces of the source mesh followed by
+    the layer faces; `layer_faces` counts the latter. `synthesized` marks the source grid pixels (h, w) that got a
+    background vertex.
+    """
+
+    vertices: np.ndarray  # (V, 3) float32
+    faces: np.ndarray  # (F, 3) int32
+    colors: np.ndarray  # (V, 3) uint8
+    layer_faces: int
+    synthesized: np.ndarray  # (h, w) bool
+    layer_depth: np.ndarray  # (h, w) float32, background depth at synthesized pixels, 0 elsewhere
+
+    def raycaster(self) -> Raycaster:
+        return Raycaster(self.vertices, self.faces)
+
+
+def erp_grid_shape(mesh: ErpMesh) -> tuple[int, int]:
+    """(h, w) of the ERP vertex grid of a mesh built by mesh.erp_mesh_from_depth (h * w grid vertices + 2 poles)."""
+    n = len(mesh.vertices) - 2
+    h = int(round(np.sqrt(max(n, 0) / 2)))
+    if h < 2 or 2 * h * h != n:
+        raise ValueError(
+            f"mesh has {len(mesh.vertices)} vertices: not an ERP grid mesh (h * 2h grid vertices + 2 poles) as written "
+            "by the mesh stage"
+        )
+    return h, 2 * h
+
+
+def _stretch(p: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Max over edges of edge length / (nearer depth x angle between the rays), faces (F, 3) into points p (V, 3)."""
+    depth = np.linalg.norm(p, axis=1)
+    dirs = p / np.maximum(depth, 1e-12)[:, None]
+    out = np.zeros(len(faces), np.float32)
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        va, vb = faces[:, a], faces[:, b]
+        length = np.linalg.norm(p[va] - p[vb], axis=1)
+        chord = np.linalg.norm(dirs[va] - dirs[vb], axis=1)
+        np.maximum(out, length / np.maximum(np.minimum(depth[va], depth[vb]) * chord, 1e-12), out=out)
+    return out
+
+
+def _grow_into_foreground(
+    depth: np.ndarray, seeds: np.ndarray, seed_mid: np.ndarray, seed_band: np.ndarray, margin: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Breadth-first growth (8-neighbours, columns wrapped) from background edge pixels seeds (h, w) into the pixels
+    in front of them: a pixel joins when its depth is below the mean `mid` depth of the pixels reaching it.
+
+    Returns steps (h, w) (inf where never reached) and reach (h, w), the band of the seeds that reached the pixel;
+    growth stops after 2 * band + margin + 2 steps.
+    """
+    h, w = depth.shape
+    d = depth.reshape(-1)
+    steps = np.full(h * w, np.inf)
+    reach = np.zeros(h * w)
+    mid = seed_mid.reshape(-1).copy()
+    front = np.flatnonzero(seeds.reshape(-1))
+    steps[front] = 0
+    reach[front] = seed_band.reshape(-1)[front]
+    offsets = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj]
+    k = 0
+    while len(front):
+        k += 1
+        fi, fj = np.divmod(front, w)
+        src, cand = [], []
+        for di, dj in offsets:
+            ni = fi + di
+            ok = (ni >= 0) & (ni < h)
+            src.append(front[ok])
+            cand.append(ni[ok] * w + (fj[ok] + dj) % w)
+        src = np.concatenate(src)
+        cand = np.concatenate(cand)
+        ok = ~np.isfinite(steps[cand]) & (d[cand] > 0) & (d[cand] < mid[src]) & (k <= 2 * reach[src] + margin + 2)
+        src, cand = src[ok], cand[ok]
+        if not len(cand):
+            break
+        front, inv = np.unique(cand, return_inverse=True)
+        count = np.bincount(inv)
+        mid[front] = np.bincount(inv, mid[src]) / count
+        reach[front] = np.zeros(len(front))
+        np.maximum.at(reach, front[inv], reach[src])
+        steps[front] = k
+    return steps.reshape(h, w), reach.reshape(h, w)
+
+
+def build_background_layer(
+    mesh: ErpMesh,
+    max_translation: float,
+    *,
+    max_band_deg: float = 45.0,
+    inpaint_radius: float = 3.0,
+    max_edge_ratio: float = 12.0,
+) -> BackgroundLayer:
+    """Extend the far side of every depth discontinuity of the source view behind its foreground occluder.
+
+    The discontinuities are the mesh's invalid (stretched) grid faces: their far vertices are background edge pixels.
+    Each foreground pixel (nearer than the midpoint of the edge's near and far depth) within the parallax band of its
+    nearest background edge pixel gets a background vertex: depth and colour are inpainted (Telea, seam-aware) with
+    every foreground pixel masked, so they continue the background only. The band of an edge is the largest angle
+    by which a camera moving at most `max_translation` metres from the source can uncover it,
+    max_translation * (1 / d_near - 1 / d_far), capped at `max_band_deg`.
+    """
+    h, w = erp_grid_shape(mesh)
+    n = h * w
+    p = mesh.vertices[:n].astype(np.float64)
+    depth = np.linalg.norm(p, axis=1).reshape(h, w)
+    valid = depth > 0
+    empty = np.zeros((h, w), bool)
+    main_faces = mesh.faces[mesh.face_valid]
+    if max_translation <= 0 or mesh.face_valid.all():
+        return BackgroundLayer(mesh.vertices, main_faces, mesh.colors, 0, empty, np.zeros((h, w), np.float32))
+
+    # Background edge pixels: far vertices of stretched grid faces, with the nearest foreground depth across the edge.
+    bad = mesh.faces[~mesh.face_valid]
+    bad = bad[(bad < n).all(axis=1)]
+    d = depth.reshape(-1)
+    fd = d[bad]
+    dmin, dmax = fd.min(axis=1), fd.max(axis=1)
+    far = fd >= 0.5 * (dmin + dmax)[:, None]
+    near_of = np.full(n, np.inf)
+    np.minimum.at(near_of, bad[far], np.repeat(dmin, 3).reshape(-1, 3)[far])
+    edge = (near_of < d * 0.95).reshape(h, w)
+    if not edge.any():
+        return BackgroundLayer(mesh.vertices, main_faces, mesh.colors, 0, empty, np.zeros((h, w), np.float32))
+    near_of = near_of.reshape(h, w)
+
+    px_angle = 2 * np.pi / w
+    lat = (0.5 - (np.arange(h) + 0.5) / h) * np.pi
+    cos_lat = np.maximum(np.cos(lat), 0.2)[:, None]
+    with np.errstate(divide="ignore"):
+        parallax = max_translation * (1.0 / near_of - 1.0 / depth)
+    band = np.minimum(parallax, np.deg2rad(max_band_deg)) / px_angle / cos_lat * 1.2 + 2
+    steps, reach = _grow_into_foreground(depth, edge, 0.5 * (depth + near_of), np.where(edge, band, 0.0), inpaint_radius)
+    synth = steps <= reach
+    hide = (steps <= 2 * reach + inpaint_radius + 2) | ~valid  # foreground masked for the inpainting
+
+    log_d = np.log(np.where(valid, depth, 1.0)).astype(np.float32)
+    bg_depth = np.exp(erp_inpaint(log_d, hide, radius=inpaint_radius)).astype(np.float32)
+    synth &= bg_depth > depth * 1.02
+    colors = mesh.colors[:n].reshape(h, w, 3)
+    bg_color = erp_inpaint(colors, hide, radius=inpaint_radius)
+
+    # Layer mesh: grid faces over synthesized pixels and the real background pixels next to them.
+    dirs = p / np.maximum(d, 1e-12)[:, None]
+    idx_new = np.full(n, -1, np.int64)
+    s_flat = synth.reshape(-1)
+    idx_new[s_flat] = len(mesh.vertices) + np.arange(int(s_flat.sum()))
+    usable = s_flat | valid.reshape(-1)
+    grid = _grid_faces(h, w)
+    grid = grid[usable[grid].all(axis=1) & s_flat[grid].any(axis=1)]
+    layer_pts = (dirs[s_flat] * bg_depth.reshape(-1)[s_flat, None]).astype(np.float32)
+    vertices = np.concatenate([mesh.vertices, layer_pts])
+    faces = np.where(s_flat[grid], idx_new[grid], grid).astype(np.int32)
+    faces = faces[_stretch(vertices.astype(np.float64), faces) <= max_edge_ratio]
+    colors_all = np.concatenate([mesh.colors, bg_color.reshape(-1, 3)[s_flat]])
+    return BackgroundLayer(
+        vertices.astype(np.float32),
+        np.concatenate([main_faces, faces]).astype(np.int32),
+        colors_all.astype(np.uint8),
+        len(faces),
+        synth,
+        np.where(synth, bg_depth, 0.0).astype(np.float32),
+    )
+
+
+# ---------------------------------------------------------------- per-frame filling
+
+
+@dataclass
+class FilledFrame:
+    rgb: np.ndarray  # (H, W, 3) uint8
+    depth: np.ndarray  # (H, W) float32 metres, 0 where unknown
+    filled_3d: np.ndarray  # (H, W) bool: hole pixels filled from the fill mesh
+    filled_2d: np.ndarray  # (H, W) bool: hole pixels filled by the 2D last resort
+
+
+def _check_frame(rgb: np.ndarray, mask: np.ndarray, depth: np.ndarray | None) -> None:
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"{rgb.shape=} {rgb.dtype=} but expected (H, W, 3) uint8")
+    if mask.shape != rgb.shape[:2]:
+        raise ValueError(f"{mask.shape=} but expected {rgb.shape[:2]} (H, W)")
+    if depth is not None and depth.shape != rgb.shape[:2]:
+        raise ValueError(f"{depth.shape=} but expected {rgb.shape[:2]} (H, W)")
+
+
+class WarpInpainter:
+    """Fills the holes of conditions frames by casting their rays against a BackgroundLayer (same surface, same
+    colour in every frame); rays that hit nothing get the seam-aware 2D fill."""
+
+    def __init__(self, layer: BackgroundLayer, *, inpaint_radius: float = 3.0):
+        self.layer = layer
+        self.inpaint_radius = inpaint_radius
+        self._rc = layer.raycaster() if len(layer.faces) else None
+        self._dirs: dict[tuple[int, int], np.ndarray] = {}
+
+    def fill(self, rgb: np.ndarray, mask: np.ndarray, depth: np.ndarray | None, world_from_cam: np.ndarray) -> FilledFrame:
+        """rgb (H, W, 3) uint8, mask (H, W) bool (True = valid condition), depth (H, W) metres or None, pose 4x4."""
+        _check_frame(rgb, mask, depth)
+        check_pose(world_from_cam, "world_from_cam")
+        H, W = mask.shape
+        hole = ~mask.astype(bool)
+        out = rgb.copy()
+        out_d = np.where(mask, depth, 0.0).astype(np.float32) if depth is not None else np.zeros((H, W), np.float32)
+        filled = np.zeros((H, W), bool)
+        if hole.any() and self._rc is not None:
+            if (H, W) not in self._dirs:
+                self._dirs[(H, W)] = erp_dirs(H, W, dtype=np.float64)
+            dirs = self._dirs[(H, W)][hole] @ np.asarray(world_from_cam)[:3, :3].T
+            hits = self._rc.cast(np.asarray(world_from_cam)[:3, 3][None], dirs)
+            ok = hits.face >= 0
+            col = self._rc.interpolate(hits, self.layer.colors.astype(np.float32))
+            hi, hj = np.nonzero(hole)
+            out[hi[ok], hj[ok]] = np.clip(np.rint(col[ok]), 0, 255).astype(np.uint8)
+            out_d[hi[ok], hj[ok]] = hits.distance[ok]
+            filled[hi[ok], hj[ok]] = True
+        rest = hole & ~filled
+        if rest.any() and not rest.all():
+            out = erp_inpaint(out, rest, radius=self.inpaint_radius)
+        return FilledFrame(out, out_d, filled, rest)
+
+
+def frame_inpaint(
+    rgb: np.ndarray, mask: np.ndarray, depth: np.ndarray | None = None, *, radius: float = 3.0
+) -> FilledFrame:
+    """Per-frame baseline: seam-aware Telea inpainting of the holes (mask False) of one frame, colour and depth."""
+    _check_frame(rgb, mask, depth)
+    hole = ~mask.astype(bool)
+    if hole.all():
+        raise ValueError("frame_inpaint: the frame has no valid pixel to fill from")
+    out = erp_inpaint(rgb, hole, radius=radius)
+    if depth is not None:
+        d = np.where(hole, 0.0, depth).astype(np.float32)
+        out_d = erp_inpaint(d, hole, radius=radius)
+    else:
+        out_d = np.zeros(mask.shape, np.float32)
+    return FilledFrame(out, out_d.astype(np.float32), np.zeros(mask.shape, bool), hole)
+
+
+def max_translation(poses: np.ndarray) -> float:
+    """Largest distance (metres) of any camera centre of poses (N, 4, 4) from the source camera (the origin)."""
+    poses = np.asarray(poses)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise ValueError(f"{poses.shape=} but expected (N, 4, 4)")
+    return float(np.linalg.norm(poses[:, :3, 3], axis=1).max()) if len(poses) else 0.0
+
+
+def warp_inpaint_video(
+    rgb: np.ndarray,
+    mask: np.ndarray,
+    depth: np.ndarray | None,
+    poses: np.ndarray,
+    mesh: ErpMesh,
+    *,
+    max_band_deg: float = 45.0,
+    inpaint_radius: float = 3.0,
+    progress: bool = True,
+) -> tuple[list[FilledFrame], BackgroundLayer]:
+    """Fill conditions rgb (T, H, W, 3) uint8 / mask (T, H, W) bool / depth (T, H, W) at poses (T, 4, 4) from
+    one background layer built from the source mesh (see build_background_layer)."""
+    if rgb.ndim != 4 or mask.shape != rgb.shape[:3] or len(poses) != len(rgb):
+        raise ValueError(f"{rgb.shape=} {mask.shape=} {np.shape(poses)=} but expected (T, H, W, 3), (T, H, W), (T, 4, 4)")
+    layer = build_background_layer(
+        mesh, max_translation(poses), max_band_deg=max_band_deg, inpaint_radius=inpaint_radius
+    )
+    filler = WarpInpainter(layer, inpaint_radius=inpaint_radius)
+    frames = [
+        filler.fill(rgb[t], mask[t], None if depth is None else depth[t], poses[t])
+        for t in tqdm(range(len(rgb)), desc="warp-inpaint", leave=False, disable=None if progress else True)
+    ]
+    return frames, layer

@@ -1,0 +1,303 @@
+"""The video artifact: lossless PNG frames, uint16 depth, video.json, an H.264 preview and a Foxglove MCAP; and its reader."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from panoworld.conventions import (
+    check_erp_shape,
+    check_pose,
+    quat_wxyz_from_rotmat,
+    quat_xyzw_from_wxyz,
+    ros_world_from_cam,
+    rotmat_from_quat_wxyz,
+    quat_wxyz_from_xyzw,
+    world_from_ros_world,
+)
+
+VIDEO_FILE = "video.json"
+PREVIEW_FILE = "preview.mp4"
+MCAP_FILE = "video.mcap"
+DEPTH_SCALE = 0.001  # metres per depth PNG unit (millimetres); 0 = unknown
+
+# MCAP topics (Foxglove protobuf schemas). Depth is a foxglove.RawImage '16UC1' in millimetres (0 = unknown), which
+# Foxglove's Image panel shows with a colour map; RGB frames and conditions are PNG foxglove.CompressedImage.
+TOPIC_RGB = "/camera/rgb"
+TOPIC_DEPTH = "/camera/depth"
+TOPIC_COND_RGB = "/conditions/rgb"
+TOPIC_COND_MASK = "/conditions/mask"
+TOPIC_TF = "/tf"
+TOPIC_POSE = "/camera/pose"
+WORLD_FRAME = "world"
+CAMERA_FRAME = "camera"
+
+
+@dataclass
+class Video:
+    """A loaded video artifact."""
+
+    frames: np.ndarray  # (T, H, W, 3) uint8 RGB
+    depth: np.ndarray | None  # (T, H, W) float32 metres along the ray, 0 = unknown; None when the backend has none
+    poses: np.ndarray  # (T, 4, 4) float64 world_from_cam (canonical frame, OpenCV camera axes)
+    fps: float
+    meta: dict = field(default_factory=dict)  # the parsed video.json
+
+
+def encode_png(image: np.ndarray, *, compression: int = 1) -> bytes:
+    """PNG bytes of an RGB (H, W, 3) uint8, grey (H, W) uint8 or 16-bit (H, W) uint16 image."""
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, compression])
+    if not ok:
+        raise RuntimeError(f"PNG encoding failed for an image of shape {image.shape}")
+    return buf.tobytes()
+
+
+def decode_png(data: bytes, *, what: str = "PNG") -> np.ndarray:
+    """Inverse of encode_png: RGB (H, W, 3) uint8, or (H, W) uint8/uint16 as stored."""
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"{what}: not a decodable PNG")
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+    return img
+
+
+def depth_to_mm(depth: np.ndarray) -> np.ndarray:
+    """Depth (H, W) metres (0/NaN/inf = unknown) -> uint16 millimetres (0 = unknown, clipped at 65.535 m)."""
+    d = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0)
+    return np.clip(np.rint(d / DEPTH_SCALE), 0, 65535).astype(np.uint16)
+
+
+def _ns(index: int, fps: float) -> int:
+    return int(round(index * 1e9 / fps))
+
+
+class VideoWriter:
+    """Streams frames into a video artifact directory: frames/%06d.png, depth/%06d.png, preview.mp4, video.mcap;
+    close() writes video.json. Memory stays at one frame whatever the length."""
+
+    def __init__(
+        self,
+        out_dir: Path,
+        *,
+        height: int,
+        width: int,
+        fps: float,
+        has_depth: bool,
+        preview: bool = True,
+        preview_max_width: int = 1920,
+        mcap: bool = True,
+        png_compression: int = 1,
+    ):
+        check_erp_shape(height, width, "video frame")
+        if fps <= 0:
+            raise ValueError(f"{fps=} must be > 0")
+        self.out_dir = Path(out_dir)
+        self.height, self.width, self.fps, self.has_depth = height, width, float(fps), has_depth
+        self.png_compression = png_compression
+        (self.out_dir / "frames").mkdir(parents=True, exist_ok=True)
+        if has_depth:
+            (self.out_dir / "depth").mkdir(exist_ok=True)
+        self.entries: list[dict] = []
+        self.poses: list[np.ndarray] = []
+        self._mp4 = None
+        if preview:
+            import imageio_ffmpeg
+
+            s = min(1.0, preview_max_width / width)
+            self._preview_size = (max(2, int(round(width * s / 2)) * 2), max(2, int(round(height * s / 2)) * 2))
+            self._mp4 = imageio_ffmpeg.write_frames(
+                str(self.out_dir / PREVIEW_FILE), self._preview_size, fps=self.fps, codec="libx264",
+                pix_fmt_out="yuv420p", quality=None, macro_block_size=2,
+                output_params=["-preset", "veryfast", "-crf", "18"], ffmpeg_log_level="error",
+            )
+            self._mp4.send(None)
+        self._mcap = None
+        if mcap:
+            from mcap_protobuf.writer import Writer
+
+            self._mcap_file = open(self.out_dir / MCAP_FILE, "wb")
+            self._mcap = Writer(self._mcap_file)
+
+    def add(
+        self,
+        rgb: np.ndarray,
+        depth: np.ndarray | None,
+        world_from_cam: np.ndarray,
+        *,
+        cond_rgb_png: bytes | None = None,
+        cond_mask_png: bytes | None = None,
+    ) -> None:
+        """Append frame rgb (H, W, 3) uint8 with depth (H, W) metres (0 = unknown; required iff has_depth) at pose 4x4;
+        the conditions' PNG bytes (any size) go into the MCAP only."""
+        H, W = self.height, self.width
+        if rgb.shape != (H, W, 3) or rgb.dtype != np.uint8:
+            raise ValueError(f"{rgb.shape=} {rgb.dtype=} but expected {(H, W, 3)} uint8")
+        if self.has_depth != (depth is not None):
+            raise ValueError(f"depth given: {depth is not None} but the writer has has_depth={self.has_depth}")
+        if depth is not None and depth.shape != (H, W):
+            raise ValueError(f"{depth.shape=} but expected {(H, W)} (H, W)")
+        check_pose(world_from_cam, "world_from_cam")
+        i = len(self.entries)
+        name = f"{i:06d}.png"
+        png = encode_png(rgb, compression=self.png_compression)
+        (self.out_dir / "frames" / name).write_bytes(png)
+        entry = {"rgb": f"frames/{name}", "depth": None}
+        mm = None
+        if depth is not None:
+            mm = depth_to_mm(depth)
+            (self.out_dir / "depth" / name).write_bytes(encode_png(mm, compression=self.png_compression))
+            entry["depth"] = f"depth/{name}"
+        self.entries.append(entry)
+        self.poses.append(np.asarray(world_from_cam, np.float64))
+        if self._mp4 is not None:
+            small = rgb
+            if self._preview_size != (W, H):
+                small = cv2.resize(rgb, self._preview_size, interpolation=cv2.INTER_AREA)
+            self._mp4.send(np.ascontiguousarray(small))
+        if self._mcap is not None:
+            self._write_mcap(i, png, mm, np.asarray(world_from_cam, np.float64), cond_rgb_png, cond_mask_png)
+
+    def _write_mcap(self, i, png, mm, world_from_cam, cond_rgb_png, cond_mask_png) -> None:
+        from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+        from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+        from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+        from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+        from google.protobuf.timestamp_pb2 import Timestamp
+
+        t = _ns(i, self.fps)
+        stamp = Timestamp(seconds=t // 1_000_000_000, nanos=t % 1_000_000_000)
+
+        def put(topic, msg):
+            self._mcap.write_message(topic, msg, log_time=t, publish_time=t, sequence=i)
+
+        put(TOPIC_RGB, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=png, format="png"))
+        if mm is not None:
+            put(TOPIC_DEPTH, RawImage(timestamp=stamp, frame_id=CAMERA_FRAME, width=mm.shape[1], height=mm.shape[0],
+                                      encoding="16UC1", step=2 * mm.shape[1], data=mm.astype("<u2").tobytes()))
+        if cond_rgb_png is not None:
+            put(TOPIC_COND_RGB, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=cond_rgb_png, format="png"))
+        if cond_mask_png is not None:
+            put(TOPIC_COND_MASK, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=cond_mask_png, format="png"))
+        ros = ros_world_from_cam(world_from_cam)
+        x, y, z, w = quat_xyzw_from_wxyz(quat_wxyz_from_rotmat(ros[:3, :3]))
+        tx, ty, tz = ros[:3, 3]
+        tf = FrameTransform(timestamp=stamp, parent_frame_id=WORLD_FRAME, child_frame_id=CAMERA_FRAME)
+        tf.translation.x, tf.translation.y, tf.translation.z = tx, ty, tz
+        tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = x, y, z, w
+        put(TOPIC_TF, tf)
+        pose = PoseInFrame(timestamp=stamp, frame_id=WORLD_FRAME)
+        pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = tx, ty, tz
+        pose.pose.orientation.x, pose.pose.orientation.y, pose.pose.orientation.z, pose.pose.orientation.w = x, y, z, w
+        put(TOPIC_POSE, pose)
+
+    def close(self, meta: dict | None = None) -> dict:
+        """Finish the preview and MCAP and write video.json (meta adds keys such as backend/upscale); returns it."""
+        if self._mp4 is not None:
+            self._mp4.close()
+            self._mp4 = None
+        if self._mcap is not None:
+            self._mcap.finish()
+            self._mcap_file.close()
+            self._mcap = None
+        doc = {
+            "height": self.height,
+            "width": self.width,
+            "num_frames": len(self.entries),
+            "fps": self.fps,
+            **(meta or {}),
+            "has_depth": self.has_depth,
+            "depth_scale": DEPTH_SCALE,
+            "frames": self.entries,
+            "poses": [p.tolist() for p in self.poses],
+        }
+        (self.out_dir / VIDEO_FILE).write_text(json.dumps(doc, indent=1))
+        return doc
+
+
+def write_video(
+    out_dir: Path, frames: np.ndarray, depth: np.ndarray | None, poses: np.ndarray, *, fps: float,
+    meta: dict | None = None, **writer_kw,
+) -> dict:
+    """Write frames (T, H, W, 3) uint8, depth (T, H, W) metres or None and poses (T, 4, 4) as a video artifact."""
+    if frames.ndim != 4 or len(poses) != len(frames) or (depth is not None and depth.shape != frames.shape[:3]):
+        raise ValueError(f"{frames.shape=} {np.shape(poses)=} {np.shape(depth)=} but expected (T, H, W, 3), (T, 4, 4), "
+                         "(T, H, W)")
+    T, H, W = frames.shape[:3]
+    w = VideoWriter(Path(out_dir), height=H, width=W, fps=fps, has_depth=depth is not None, **writer_kw)
+    for t in range(T):
+        w.add(frames[t], None if depth is None else depth[t], poses[t])
+    return w.close(meta)
+
+
+def load_video(artifact_dir: Path, *, with_depth: bool = True) -> Video:
+    """Read a video artifact directory (video.json, frames/, depth/) into memory."""
+    root = Path(artifact_dir)
+    try:
+        meta = json.loads((root / VIDEO_FILE).read_text())
+        entries = meta["frames"]
+        H, W = int(meta["height"]), int(meta["width"])
+        poses = np.asarray(meta["poses"], np.float64).reshape(len(entries), 4, 4)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"{root / VIDEO_FILE}: unreadable video description ({e}); rerun the video stage") from None
+    frames = np.empty((len(entries), H, W, 3), np.uint8)
+    has_depth = bool(meta.get("has_depth")) and with_depth
+    depth = np.zeros((len(entries), H, W), np.float32) if has_depth else None
+    scale = float(meta.get("depth_scale", DEPTH_SCALE))
+    for t, e in enumerate(entries):
+        path = root / e["rgb"]
+        img = decode_png(path.read_bytes(), what=str(path))
+        if img.shape != (H, W, 3):
+            raise ValueError(f"{path}: {img.shape=} but video.json says {(H, W, 3)}")
+        frames[t] = img
+        if depth is not None and e.get("depth"):
+            dpath = root / e["depth"]
+            d = decode_png(dpath.read_bytes(), what=str(dpath))
+            if d.shape != (H, W) or d.dtype != np.uint16:
+                raise ValueError(f"{dpath}: {d.shape=} {d.dtype=} but expected {(H, W)} uint16 millimetres")
+            depth[t] = d.astype(np.float32) * scale
+    return Video(frames, depth, poses, float(meta.get("fps", 0.0)), meta)
+
+
+def read_mcap(path: Path) -> dict[str, list]:
+    """Decode a video.mcap: {topic: [decoded message, ...]} in log-time order (foxglove protobuf messages)."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    out: dict[str, list] = {}
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _schema, channel, _message, proto in reader.iter_decoded_messages(log_time_order=True):
+            out.setdefault(channel.topic, []).append(proto)
+    return out
+
+
+def world_from_cam_from_mcap(tf) -> np.ndarray:
+    """A foxglove FrameTransform / Pose of the camera in the ROS world -> our world_from_cam (4, 4)."""
+    if "translation" in tf.DESCRIPTOR.fields_by_name:
+        t, q = tf.translation, tf.rotation
+    else:
+        pose = tf.pose if "pose" in tf.DESCRIPTOR.fields_by_name else tf
+        t, q = pose.position, pose.orientation
+    ros = np.eye(4)
+    ros[:3, :3] = rotmat_from_quat_wxyz(quat_wxyz_from_xyzw(np.array([q.x, q.y, q.z, q.w])))
+    ros[:3, 3] = [t.x, t.y, t.z]
+    return world_from_ros_world() @ ros
+
+
+def raw_image_array(msg) -> np.ndarray:
+    """A foxglove RawImage ('16UC1', 'mono8', 'rgb8' or '32FC1') -> numpy array (H, W[, C])."""
+    dtypes = {"16UC1": ("<u2", 1), "mono8": ("u1", 1), "8UC1": ("u1", 1), "rgb8": ("u1", 3), "32FC1": ("<f4", 1)}
+    if msg.encoding not in dtypes:
+        raise ValueError(f"RawImage encoding {msg.encoding!r} not one of {sorted(dtypes)}")
+    dt, c = dtypes[msg.encoding]
+    item = np.dtype(dt).itemsize
+    rows = np.frombuffer(msg.data, np.uint8).reshape(msg.height, msg.step)[:, : msg.width * c * item]
+    arr = np.ascontiguousarray(rows).view(dt).reshape(msg.height, msg.width, c)
+    return arr[..., 0] if c == 1 else arr
