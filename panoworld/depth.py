@@ -147,24 +147,34 @@ def conform_depth(depth: np.ndarray, height: int, width: int, what: str = "depth
     return out, f"depth resized from {w}x{h} to {width}x{height} (nearest)"
 
 
-def fill_small_holes(depth: np.ndarray, valid: np.ndarray, max_hole_px: int) -> tuple[np.ndarray, np.ndarray, int]:
-    """Fill invalid components of at most max_hole_px pixels harmonically in inverse depth; larger ones stay invalid.
+def fill_small_holes(
+    depth: np.ndarray, valid: np.ndarray, max_hole_px: int, max_gap_px: int = 0
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Fill small holes harmonically in inverse depth; larger invalid regions stay invalid.
 
+    Filled: invalid components of at most max_hole_px pixels (found with the seam wrapped), and invalid pixels in
+    a run of at most max_gap_px pixels between valid ones along a row or a column (the gaps between the scan lines
+    of sparse LiDAR; interpolation only, never extrapolation past the rim of a dropout).
     depth (H, W), valid (H, W) bool -> (depth with 0 where still invalid, valid, number of pixels filled).
-    Components are found with the seam wrapped, so a hole across the left/right border is one hole.
     """
-    H, W = depth.shape
     holes = ~valid
-    labels, n = ndimage.label(holes)
-    if n == 0 or max_hole_px <= 0 or not valid.any():
+    if not holes.any() or not valid.any() or (max_hole_px <= 0 and max_gap_px <= 0):
         return np.where(valid, depth, 0).astype(np.float32), valid, 0
-    # Merge components that meet across the seam (left and right border pixels of the same row).
-    both = (labels[:, 0] > 0) & (labels[:, -1] > 0)
-    seam = sparse.coo_matrix((np.ones(int(both.sum())), (labels[both, 0], labels[both, -1])), shape=(n + 1, n + 1))
-    _, comp = csgraph.connected_components(seam, directed=False)
-    labels = comp[labels]
-    sizes = np.bincount(labels[holes], minlength=labels.max() + 1)
-    fill = holes & (sizes[labels] <= max_hole_px)
+    fill = np.zeros_like(holes)
+    if max_hole_px > 0:
+        labels, n = ndimage.label(holes)
+        # Merge components that meet across the seam (left and right border pixels of the same row).
+        both = (labels[:, 0] > 0) & (labels[:, -1] > 0)
+        seam = sparse.coo_matrix((np.ones(int(both.sum())), (labels[both, 0], labels[both, -1])), shape=(n + 1, n + 1))
+        _, comp = csgraph.connected_components(seam, directed=False)
+        labels = comp[labels]
+        sizes = np.bincount(labels[holes], minlength=labels.max() + 1)
+        fill |= holes & (sizes[labels] <= max_hole_px)
+    if max_gap_px > 0:
+        W = depth.shape[1]
+        row_gap = _gap_lengths(np.concatenate([valid[:, -W // 2:], valid, valid[:, : W // 2]], axis=1))
+        row_gap = row_gap[:, W // 2: W // 2 + W]
+        fill |= holes & ((row_gap <= max_gap_px) | (_gap_lengths(valid.T).T <= max_gap_px))
     if not fill.any():
         return np.where(valid, depth, 0).astype(np.float32), valid, 0
     inv = np.where(valid, 1.0 / np.where(valid, depth, 1.0), 0.0)
@@ -172,6 +182,16 @@ def fill_small_holes(depth: np.ndarray, valid: np.ndarray, max_hole_px: int) -> 
     out_valid = valid | fill
     out = np.where(valid, depth, np.where(fill, 1.0 / np.maximum(filled, 1e-12), 0.0)).astype(np.float32)
     return out, out_valid, int(fill.sum())
+
+
+def _gap_lengths(valid: np.ndarray) -> np.ndarray:
+    """Length of the run of invalid pixels each pixel lies in along axis 1, bounded by valid pixels on both sides;
+    a huge number where a run reaches the array's border or the pixel is valid."""
+    n = valid.shape[1]
+    j = np.arange(n)
+    left = np.maximum.accumulate(np.where(valid, j, -(10 * n)), axis=1)
+    right = np.minimum.accumulate(np.where(valid, j, 11 * n)[:, ::-1], axis=1)[:, ::-1]
+    return np.where(valid, 10 * n, right - left - 1)
 
 
 def _harmonic_fill(values: np.ndarray, fill: np.ndarray) -> np.ndarray:
@@ -199,7 +219,9 @@ def _harmonic_fill(values: np.ndarray, fill: np.ndarray) -> np.ndarray:
     v = np.concatenate([-np.ones(len(r) - n), diag])
     A = sparse.csr_matrix((v, (r, c)), shape=(n, n))
     out = values.astype(np.float64).copy()
-    out[fill] = sparse_linalg.spsolve(A, rhs)
+    # Every unknown is near known pixels, so Jacobi-preconditioned CG converges in few iterations.
+    x, info = sparse_linalg.cg(A, rhs, rtol=1e-9, maxiter=5000, M=sparse.diags(1.0 / diag))
+    out[fill] = x if info == 0 else sparse_linalg.spsolve(A.tocsc(), rhs)
     return out
 
 

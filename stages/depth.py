@@ -38,6 +38,9 @@ class Params:
     """Metres per unit of a 16-bit depth PNG (0.001 = millimetres; Matterport-style PNGs use 0.00025)."""
     max_hole_px: int = 64
     """Invalid regions (NaN, inf, <= 0) of at most this many pixels are inpainted; larger ones stay masked invalid."""
+    max_gap_px: int = 0
+    """Invalid runs of at most this many pixels between valid ones along a row or column are interpolated (the
+    scan-line gaps of sparse LiDAR depth, e.g. 6); 0 = off."""
     weights: Path | None = None
     """depth-anything: local folder with config.json + model.safetensors (e.g. Depth-Anything-V2-Small-hf)."""
     view_size: int = 518
@@ -71,7 +74,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         info["valid_fraction_input"] = float(valid.mean())
         if not valid.any():
             raise StageInputError(f"{path}: no valid depth (all NaN, inf or <= 0); give a depth map with values in metres")
-        depth, valid, n_filled = dep.fill_small_holes(raw, valid, params.max_hole_px)
+        depth, valid, n_filled = dep.fill_small_holes(raw, valid, params.max_hole_px, params.max_gap_px)
         info["filled_pixels"] = n_filled
         relative = False
     else:

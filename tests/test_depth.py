@@ -103,6 +103,19 @@ def test_fill_small_holes(room):
     assert np.all(filled[40:60, 60:80] == 0) and np.array_equal(filled[valid], depth[valid])
 
 
+def test_fill_scan_line_gaps():
+    _, depth = BoxRoom().render(np.eye(4), 128, 256)
+    valid = np.zeros_like(depth, bool)
+    valid[:, 1::4] = True  # sparse LiDAR: every 4th column
+    valid[:, 2::4] |= np.random.default_rng(0).random(valid[:, 2::4].shape) < 0.3
+    valid[60:100, 20:80] = False  # a dropout wider than the gaps
+    filled, out_valid, n = dep.fill_small_holes(np.where(valid, depth, 0), valid, max_hole_px=0, max_gap_px=3)
+    assert out_valid[:, 0].all()  # the gap across the seam (columns 254, 255, 0) is interpolated too
+    assert not out_valid[60:100, 24:76].any() and n == out_valid.sum() - valid.sum()
+    rel = np.abs(filled[out_valid] - depth[out_valid]) / depth[out_valid]
+    assert np.median(rel) < 2e-3 and np.percentile(rel, 90) < 0.01  # the tail: interpolation across depth edges
+
+
 # ---------------------------------------------------------------- metric scale
 
 
