@@ -158,7 +158,7 @@ def erp_grid_shape(vertices: np.ndarray) -> tuple[int, int] | None:
     if len(idx) == 0:
         return None
     d = dir_from_lonlat(*erp_lonlat_from_pixel(idx % (2 * h) + 0.5, idx // (2 * h) + 0.5, h, 2 * h))
-    if np.max(np.linalg.norm(v[idx] / r[idx, None] - d, axis=1)) > 1e-3:
+    if np.max(np.linalg.norm(v[idx] / r[idx, None] - d, axis=1)) > 0.5 * np.pi / h:  # half a grid pixel
         return None
     return h, 2 * h
 
@@ -565,7 +565,17 @@ class NavMesh:
         corridor = self._astar(int(ta), int(tb), b)
         if corridor is None:
             raise ValueError(f"no path on the NavMesh from {a.round(3).tolist()} to {b.round(3).tolist()}")
-        return self._funnel(corridor, a, b)
+        return self._shortcut(self._funnel(corridor, a, b))
+
+    def _shortcut(self, pts: np.ndarray) -> np.ndarray:
+        """Drop polyline vertices while the direct segment stays inside (A* corridors need not be the shortest)."""
+        out = [0]
+        while out[-1] < len(pts) - 1:
+            i = out[-1]
+            js = np.arange(i + 1, len(pts))
+            ok = ~self.crossings(np.repeat(pts[i][None], len(js), 0), pts[js])
+            out.append(int(js[np.flatnonzero(ok)].max()) if ok.any() else i + 1)
+        return pts[out]
 
     def _astar(self, start: int, goal: int, goal_xz: np.ndarray) -> list[int] | None:
         c = self._centroids

@@ -71,6 +71,8 @@ class Plan:
     step_m: float
     """Actual spacing (smaller than requested when the room is too small)."""
     info: dict = field(default_factory=dict)
+    exempt: list[int] = field(default_factory=lambda: [0])
+    """Poses not held to the NavMesh: the start, and the straight way to the NavMesh when the start is off it."""
 
 
 # ---------------------------------------------------------------- polylines
@@ -391,6 +393,10 @@ def plan_path(nav: NavMesh, params: TrajectoryParams, start: np.ndarray | None =
     if params.step_m <= 0:
         raise ValueError(f"step_m={params.step_m} must be positive")
     plan = plan_sector(nav, start, params) if params.kind == PathKind.SECTOR else plan_ring(nav, start, params)
+    off = plan.info.get("start_off_navmesh_m", 0.0)
+    if off > 0:
+        near = np.linalg.norm(plan.positions - start, axis=1) <= off + 1e-6
+        plan.exempt = sorted({0, *np.flatnonzero(near & ~nav.contains(plan.positions)).tolist()})
     plan.info["requested_length_m"] = (params.frames - (0 if params.kind == PathKind.RING else 1)) * params.step_m * params.stride
     return plan
 
@@ -433,37 +439,59 @@ def step_lengths(poses: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------- clearance against a mesh
 
 
-def mesh_clearance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Exact distance (N,) from points (N, 3) to the nearest triangle of a mesh (V, 3) / (F, 3).
+CLEARANCE_CAP_M = 1.0
+"""Clearances are measured exactly up to max(this, 2 x agent radius) and reported as that cap beyond it."""
 
-    The nearest referenced vertex bounds the answer from above; triangles are bucketed by bounding-sphere
-    radius (powers of two) with a KD-tree on their centroids per bucket, so only triangles whose sphere can
-    be nearer are tested exactly (trimesh.triangles.closest_point).
+
+def clearance_cap(agent_radius: float) -> float:
+    return max(CLEARANCE_CAP_M, 2.0 * agent_radius)
+
+
+def mesh_clearance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, cap: float = np.inf) -> np.ndarray:
+    """Exact distance (N,) from points (N, 3) to the nearest triangle of a mesh (V, 3) / (F, 3), at most cap.
+
+    Triangles whose bounding box is farther than cap from the points' bounding box are dropped first (a finite
+    cap makes dense ERP meshes fast). The nearest vertex bounds each answer from above; the rest are bucketed
+    by bounding-sphere radius (powers of two) with a KD-tree on their centroids per bucket, so only triangles
+    whose sphere can be nearer are tested exactly (trimesh.triangles.closest_point).
     """
     import trimesh
     from scipy.spatial import cKDTree
 
     points = np.asarray(points, np.float64).reshape(-1, 3)
-    if len(faces) == 0:
-        return np.full(len(points), np.inf)
-    tri = np.asarray(vertices, np.float64)[np.asarray(faces)]
+    vertices = np.asarray(vertices)
+    faces = np.asarray(faces).reshape(-1, 3)
+    best = np.full(len(points), float(cap))
+    if len(faces) == 0 or len(points) == 0:
+        return best
+    if np.isfinite(cap):
+        lo, hi = points.min(axis=0) - cap, points.max(axis=0) + cap
+        # Outcodes: a face's bounding box misses the box iff its three vertices share an outside bit.
+        code = np.zeros(len(vertices), np.uint8)
+        for k in range(3):
+            code |= (vertices[:, k] < lo[k]).astype(np.uint8) << (2 * k)
+            code |= (vertices[:, k] > hi[k]).astype(np.uint8) << (2 * k + 1)
+        fc = code[faces]
+        faces = faces[(fc[:, 0] & fc[:, 1] & fc[:, 2]) == 0]
+        if len(faces) == 0:
+            return best
+    tri = vertices[faces].astype(np.float64)
     cen = tri.mean(axis=1)
     rad = np.sqrt(((tri - cen[:, None]) ** 2).sum(-1).max(axis=1))
-    used = np.unique(faces)
-    best = cKDTree(np.asarray(vertices, np.float64)[used]).query(points)[0]
+    used = np.zeros(len(vertices), bool)
+    used[faces.reshape(-1)] = True
+    d_vertex = cKDTree(vertices[used].astype(np.float64)).query(points, distance_upper_bound=cap)[0]
+    best = np.minimum(best, d_vertex)
     bucket = np.floor(np.log2(np.maximum(rad, 1e-6))).astype(int)
     for b in np.unique(bucket):
         idx = np.flatnonzero(bucket == b)
-        tree = cKDTree(cen[idx])
-        r_max = rad[idx].max()
-        cands = tree.query_ball_point(points, best + r_max)
+        cands = cKDTree(cen[idx]).query_ball_point(points, best + rad[idx].max())
         pi = np.repeat(np.arange(len(points)), [len(c) for c in cands])
         if len(pi) == 0:
             continue
         fi = idx[np.concatenate([np.asarray(c, int) for c in cands])]
         q = trimesh.triangles.closest_point(tri[fi], points[pi])
-        d = np.linalg.norm(q - points[pi], axis=1)
-        np.minimum.at(best, pi, d)
+        np.minimum.at(best, pi, np.linalg.norm(q - points[pi], axis=1))
     return best
 
 

@@ -1,0 +1,63 @@
+"""Walkable floor of the scene mesh as a NavMesh: navmesh.json (polygons, triangles, adjacency), navmesh.obj, navmesh.glb."""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from panoworld.mesh import load_erp_mesh
+from panoworld.navmesh import NavMeshParams, NoFloorError, build_navmesh
+from panoworld.stage import Input, StageInputError, stage_main
+
+NAME = "navmesh"
+VERSION = "1"
+ARTIFACT = "navmesh"
+INPUTS = {"mesh": Input("mesh", help="mesh artifact (mesh.ply, canonical frame, face property valid)")}
+
+
+@dataclass(kw_only=True)
+class Params(NavMeshParams):
+    glb: bool = True
+    """Also write navmesh.glb (glTF, Y up) for glTF viewers."""
+
+
+def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
+    path = Path(inputs["mesh"]) / "mesh.ply"
+    try:
+        mesh = load_erp_mesh(inputs["mesh"])
+    except Exception as e:  # plyfile raises many types on corrupt files
+        raise StageInputError(f"{path}: unreadable mesh ({type(e).__name__}: {e}); rerun the mesh stage") from None
+    t0 = time.perf_counter()
+    try:
+        nav = build_navmesh(mesh.vertices, mesh.faces, mesh.face_valid, params=params)
+    except NoFloorError as e:
+        raise StageInputError(
+            f"{path}: no walkable floor: {e}; the panorama must show floor around the camera (check the depth), "
+            "or lower --agent-radius-m / --min-floor-area-m2"
+        ) from None
+    build_s = time.perf_counter() - t0
+    files = nav.save(out_dir, glb=params.glb)
+    return {
+        "floor_y": nav.floor_y,
+        "camera_height_m": nav.info["camera_height_m"],
+        "area_m2": nav.area,
+        "num_triangles": len(nav.triangles),
+        "num_holes": sum(len(p["holes"]) for p in nav.polygons()),
+        "camera_on_navmesh": nav.info["camera_on_navmesh"],
+        "camera_distance_to_navmesh_m": nav.info["camera_distance_to_navmesh_m"],
+        "erp_downsample": nav.info["erp_downsample"],
+        "faces_used": nav.info["faces_used"],
+        "build_s": build_s,
+        "timings_s": nav.info["timings_s"],
+        "files": files,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    return stage_main(__name__, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,158 @@
+"""Collision-free SE(3) camera trajectory on the NavMesh (sector or ring; or a validated user file): trajectory.json + .tum."""
+
+from __future__ import annotations
+
+import enum
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from panoworld.conventions import invert_pose
+from panoworld.mesh import load_erp_mesh
+from panoworld.navmesh import load_navmesh
+from panoworld.stage import Input, StageInputError, stage_main
+from panoworld.trajectory import (
+    PathKind,
+    TrajectoryFileError,
+    TrajectoryParams,
+    YawMode,
+    clearance_cap,
+    format_issues,
+    mesh_clearance,
+    plan_path,
+    poses_from_positions,
+    read_trajectory_file,
+    sector_coverage,
+    step_lengths,
+    validate_poses,
+    write_trajectory,
+    yaw_of_path,
+)
+
+NAME = "trajectory"
+VERSION = "1"
+ARTIFACT = "trajectory"
+INPUTS = {
+    "navmesh": Input("navmesh", help="navmesh artifact (navmesh.json)"),
+    "mesh": Input("mesh", help="mesh artifact (mesh.ply): poses are checked for clearance against it"),
+    "user_trajectory": Input(
+        "file", optional=True,
+        help="user poses instead of planning: JSON {\"poses\": [4x4 world_from_cam, ...]} or a list, or TUM text "
+        "'t tx ty tz qx qy qz qw'; canonical frame (pose 0 = identity = the panorama camera)",
+    ),
+}
+
+
+class OnInvalid(enum.StrEnum):
+    ERROR = "error"
+    """Fail (exit code 2) naming every pose that collides or leaves the walkable area."""
+    REPORT = "report"
+    """Write the trajectory anyway and list the invalid poses under info.invalid_poses."""
+
+
+@dataclass(kw_only=True)
+class Params(TrajectoryParams):
+    on_invalid: OnInvalid = OnInvalid.ERROR
+    """What to do with poses closer than the agent radius to the mesh or outside the NavMesh (pose 0 is exempt)."""
+    fps: float = 16.0
+    """Frame rate for the TUM timestamps (t = i / fps)."""
+    reanchor: bool = False
+    """Re-express a user trajectory whose pose 0 is not the identity relative to pose 0 (else that is an error)."""
+
+
+def _user_poses(path: Path, params: Params) -> np.ndarray:
+    try:
+        poses = read_trajectory_file(path)
+    except TrajectoryFileError as e:
+        raise StageInputError(f"{e}; see docs for the JSON/TUM trajectory formats") from None
+    dt = float(np.linalg.norm(poses[0, :3, 3]))
+    dr = float(np.abs(poses[0, :3, :3] - np.eye(3)).max())
+    if dt > 1e-3 or dr > 1e-3:
+        if not params.reanchor:
+            raise StageInputError(
+                f"{path}: pose 0 is not the identity (|t| = {dt:.4f} m, max |R - I| = {dr:.4f}) but poses must be in the "
+                "canonical frame of the panorama camera; pass --reanchor true to express them relative to pose 0"
+            )
+        poses = invert_pose(poses[0]) @ poses
+    poses[0] = np.eye(4)
+    return poses
+
+
+def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
+    try:
+        nav = load_navmesh(inputs["navmesh"])
+    except ValueError as e:
+        raise StageInputError(f"{e}; rerun the navmesh stage") from None
+    mesh_path = Path(inputs["mesh"]) / "mesh.ply"
+    try:
+        mesh = load_erp_mesh(inputs["mesh"])
+    except Exception as e:  # plyfile raises many types on corrupt files
+        raise StageInputError(f"{mesh_path}: unreadable mesh ({type(e).__name__}: {e}); rerun the mesh stage") from None
+    radius = float(nav.agent["agent_radius_m"])
+    t0 = time.perf_counter()
+    user = inputs.get("user_trajectory")
+    meta: dict = {}
+    skip: tuple[int, ...] = (0,)
+    if user is not None:
+        poses = _user_poses(Path(user), params)
+        source = f"user: {Path(user).name}"
+        kind, stride, step_m = "user", None, float(np.median(step_lengths(poses))) if len(poses) > 1 else 0.0
+    else:
+        try:
+            plan = plan_path(nav, params)
+        except ValueError as e:
+            raise StageInputError(f"{Path(inputs['navmesh']) / 'navmesh.json'}: {e}") from None
+        yaw = None if params.yaw == YawMode.FIXED else yaw_of_path(plan.positions, closed=params.kind == PathKind.RING)
+        poses = poses_from_positions(plan.positions, yaw)
+        source = "planned"
+        kind, stride, step_m = str(params.kind), params.stride, plan.step_m
+        meta = plan.info
+        skip = tuple(plan.exempt)
+    plan_s = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    cap = clearance_cap(radius)
+    clearance = mesh_clearance(mesh.vertices, mesh.faces[mesh.face_valid], poses[:, :3, 3], cap)
+    issues = validate_poses(poses, nav, clearance, agent_radius=radius, skip=skip)
+    check_s = time.perf_counter() - t1
+    where = Path(user) if user is not None else Path(inputs["navmesh"]) / "navmesh.json"
+    if issues and params.on_invalid == OnInvalid.ERROR:
+        hint = "move those poses" if user is not None else "the NavMesh disagrees with the mesh; rebuild the navmesh"
+        raise StageInputError(f"{where}: {format_issues(issues, len(poses))}; {hint} or pass --on-invalid report")
+    steps = step_lengths(poses)
+    xz = poses[:, [0, 2], 3]
+    info = {
+        "source": source,
+        "kind": kind,
+        "frames": len(poses),
+        "stride": stride,
+        "step_m": step_m,
+        "length_m": float(steps.sum()),
+        "step_cv": float(steps.std() / steps.mean()) if len(steps) and steps.mean() > 0 else 0.0,
+        "closure_m": float(np.linalg.norm(xz[-1] - xz[0])),
+        "sectors_covered": int(sector_coverage(xz, np.zeros(2), 8, 0.1).sum()),
+        "min_clearance_m": float(clearance.min()),
+        "clearance_cap_m": cap,
+        "agent_radius_m": radius,
+        "invalid_poses": [{"index": it.index, "reasons": it.reasons} for it in issues],
+        "exempt_poses": list(skip),
+        "plan": meta,
+        "plan_s": plan_s,
+        "check_s": check_s,
+    }
+    write_trajectory(
+        out_dir, poses, clearance, fps=params.fps, kind=kind, stride=stride, step_m=step_m, source=source,
+        yaw=str(params.yaw) if user is None else None, agent_radius_m=radius, clearance_cap_m=cap,
+        floor_y=nav.floor_y, camera_height_m=nav.floor_y, invalid_poses=info["invalid_poses"],
+    )
+    return info
+
+
+def main(argv: list[str] | None = None) -> int:
+    return stage_main(__name__, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
