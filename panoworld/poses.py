@@ -19,9 +19,9 @@ import numpy as np
 from panoworld.align import align_trajectory, apply_sim3, check_trajectory, trajectory_metrics
 from panoworld.conventions import cv_world_from_cam_from_gl, gl_world_from_cam, invert_pose
 from panoworld.stage import StageInputError
+from panoworld.video_io import DEPTH_SCALE, VIDEO_FILE, depth_to_mm, encode_png
 
 MIN_REGISTERED = 3
-DEPTH_SCALE = 0.001  # metres per unit of the uint16 depth PNGs
 
 
 class RenderType(enum.StrEnum):
@@ -81,8 +81,9 @@ class VideoFrames:
 
 
 def read_video_frames(video_dir: Path) -> VideoFrames:
-    """Read video.json of a video artifact; StageInputError naming the file on anything missing or malformed."""
-    path = Path(video_dir) / "video.json"
+    """Read video.json of a video artifact without loading frames (COLMAP reads them from disk; see
+    panoworld.video_io.load_video for the in-memory reader); StageInputError naming the file on any problem."""
+    path = Path(video_dir) / VIDEO_FILE
     try:
         meta = json.loads(path.read_text())
         h, w = int(meta["height"]), int(meta["width"])
@@ -106,13 +107,13 @@ def read_video_frames(video_dir: Path) -> VideoFrames:
 
 
 def read_planned_trajectory(trajectory_dir: Path) -> np.ndarray:
-    """world_from_cam (N, 4, 4) of trajectory.json in a trajectory artifact."""
-    path = Path(trajectory_dir) / "trajectory.json"
+    """world_from_cam (N, 4, 4) of trajectory.json in a trajectory artifact (panoworld.trajectory.load_trajectory)."""
+    from panoworld.trajectory import TrajectoryFileError, load_trajectory
+
     try:
-        poses = check_trajectory(json.loads(path.read_text())["poses"], "trajectory.json poses")
-    except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-        raise StageInputError(f"{path}: cannot read planned poses ({e}); rerun the trajectory stage") from None
-    return poses
+        return load_trajectory(trajectory_dir)
+    except TrajectoryFileError as e:
+        raise StageInputError(f"{e}; rerun the trajectory stage") from None
 
 
 def load_frames(paths: list[Path], height: int | None = None) -> np.ndarray:
@@ -139,13 +140,11 @@ def read_depth_png(path: Path, scale: float = DEPTH_SCALE) -> np.ndarray:
 
 
 def write_depth_png(path: Path, depth_m: np.ndarray) -> None:
-    """Depth (H, W) metres -> uint16 PNG in millimetres; non-finite or non-positive -> 0, beyond 65.535 m clipped."""
+    """Depth (H, W) metres -> uint16 PNG in millimetres (video_io.depth_to_mm: unknown -> 0, clipped at 65.535 m)."""
     if depth_m.ndim != 2:
         raise ValueError(f"{depth_m.shape=} but expected (H, W)")
-    mm = np.where(np.isfinite(depth_m) & (depth_m > 0), np.round(depth_m / DEPTH_SCALE), 0)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), np.clip(mm, 0, 65535).astype(np.uint16)):
-        raise OSError(f"cannot write {path}")
+    path.write_bytes(encode_png(depth_to_mm(depth_m)))
 
 
 # ---------------------------------------------------------------- estimates
@@ -160,6 +159,8 @@ class PoseEstimate:
     registered: np.ndarray
     """(N,) bool: the backend recovered this frame's pose."""
     backend: str
+    alignment: str = "none"
+    """How the estimate was put into the canonical frame (an Alignment value, or 'none')."""
     sim3: tuple[float, np.ndarray, np.ndarray] | None = None
     """canonical_from_estimate (s, R, t) applied to the raw estimate, if aligned."""
     raw: np.ndarray | None = None
@@ -313,7 +314,7 @@ def colmap_estimate(
         "num_points3D": rec.num_points3D(),
         "mean_reprojection_error_px": rec.compute_mean_reprojection_error(),
     }
-    return PoseEstimate(poses, reg, "colmap", sim3=sim, raw=raw, reconstruction=rec, info=info)
+    return PoseEstimate(poses, reg, "colmap", str(alignment), sim3=sim, raw=raw, reconstruction=rec, info=info)
 
 
 def vggt_estimate(
@@ -348,7 +349,7 @@ def vggt_estimate(
     if out_hw is not None and depth.shape[1:] != tuple(out_hw):
         depth = np.stack([cv2.resize(d, (out_hw[1], out_hw[0]), interpolation=cv2.INTER_LINEAR) for d in depth])
     info = {"infer_s": infer_s, "input_height": model.cfg.image_height}
-    return PoseEstimate(_apply(sim, raw), reg, "vggt", sim3=sim, raw=raw, depth=depth, info=info)
+    return PoseEstimate(_apply(sim, raw), reg, "vggt", str(alignment), sim3=sim, raw=raw, depth=depth, info=info)
 
 
 # ---------------------------------------------------------------- exports
@@ -496,6 +497,7 @@ def write_poses_artifact(
         "poses": est.world_from_cam.tolist(),
         "registered": reg.tolist(),
         "unregistered": np.flatnonzero(~reg).tolist(),
+        "alignment": est.alignment,
         "sim3": None if est.sim3 is None else {
             "scale": est.sim3[0], "R": np.asarray(est.sim3[1]).tolist(), "t": np.asarray(est.sim3[2]).tolist(),
         },

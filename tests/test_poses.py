@@ -1,12 +1,12 @@
 import json
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from panoworld import video_io
 from panoworld.conventions import erp_dirs, erp_pixel_from_dir, pose_from_rt, transform_points, invert_pose
 from panoworld.poses import (
     colmap_estimate,
@@ -58,25 +58,11 @@ def curved_track(n: int, step: float = 0.12) -> np.ndarray:
 
 
 def write_video(root: Path, room: TexturedRoom, poses: np.ndarray, h: int, *, depth: bool = True, blank=()) -> Path:
-    """A video artifact directory as the video stage writes it (video.json, frames/, depth/)."""
-    (root / "frames").mkdir(parents=True)
-    (root / "depth").mkdir()
-    frames = []
-    for i, T in enumerate(poses):
-        rgb, dist = room.render(T, h)
-        if i in blank:
-            rgb[:] = 128
-        cv2.imwrite(str(root / f"frames/{i:06d}.png"), rgb[..., ::-1])
-        entry = {"rgb": f"frames/{i:06d}.png", "depth": None}
-        if depth:
-            write_depth_png(root / f"depth/{i:06d}.png", dist)
-            entry["depth"] = f"depth/{i:06d}.png"
-        frames.append(entry)
-    meta = {
-        "height": h, "width": 2 * h, "num_frames": len(poses), "fps": 10, "backend": "test-render",
-        "has_depth": depth, "depth_scale": 0.001, "frames": frames, "poses": poses.tolist(),
-    }
-    (root / "video.json").write_text(json.dumps(meta))
+    """A video artifact directory written by the video stage's writer (video.json, frames/, depth/)."""
+    rgb, dist = zip(*(room.render(T, h) for T in poses))
+    rgb = np.stack(rgb)
+    rgb[list(blank)] = 128
+    video_io.write_video(root, rgb, np.stack(dist) if depth else None, poses, fps=10.0, preview=False, mcap=False)
     return root
 
 
