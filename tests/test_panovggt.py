@@ -112,6 +112,10 @@ def test_missing_or_mismatched_weights_name_the_flag(tmp_path):
     (tmp_path / "w" / "config.json").write_text(json.dumps(cfg))
     with pytest.raises(MissingWeightsError, match="does not match config.json: missing"):
         PanoVGGT.from_pretrained(tmp_path / "w")
+    cfg["depth"], cfg["embed_dim"] = 4, 48
+    (tmp_path / "w" / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(MissingWeightsError, match="does not match config.json: .*size mismatch"):
+        PanoVGGT.from_pretrained(tmp_path / "w")
 
 
 def test_coordinate_encoding_wraps_across_the_erp_seam():

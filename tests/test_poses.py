@@ -237,6 +237,12 @@ def test_vggt_backend_needs_weights_and_runs_a_real_model_when_given_them(tmp_pa
     assert np.array_equal(art.world_from_cam[0], np.eye(4))
     d = read_depth_png(art.depth[1])
     assert d.shape == (32, 64) and np.isfinite(d).all() and (d > 0).all()
+    # Aligned to the plan (video.json poses): poses move by the Sim(3), depth scales with it.
+    manifest = run_stage(tmp_path, video, None, "aligned", backend="vggt", weights=str(tmp_path / "w"))
+    s = manifest["info"]["sim3_scale"]
+    aligned = json.loads((tmp_path / "aligned" / "poses.json").read_text())
+    assert aligned["alignment"] == "sim3" and aligned["sim3"]["scale"] == s
+    np.testing.assert_allclose(read_depth_png(tmp_path / "aligned" / "depth/000001.png"), s * d, atol=1e-3 + 1e-3 * s)
 
 
 def test_input_errors_are_one_line_and_actionable(tmp_path, room):

@@ -390,7 +390,11 @@ class PanoVGGT(nn.Module):
             raise MissingWeightsError(f"PanoVGGT: {root / CONFIG_FILE} is not a valid config: {e}") from None
         model = cls(cfg)
         state = load_file(str(root / WEIGHTS_FILE), device=device)
-        missing, unexpected = model.load_state_dict(state, strict=False)
+        try:
+            missing, unexpected = model.load_state_dict(state, strict=False)
+        except RuntimeError as e:  # tensor shapes that differ from the config's
+            shapes = " ".join(str(e).split())[:300]
+            raise MissingWeightsError(f"PanoVGGT: {root / WEIGHTS_FILE} does not match {CONFIG_FILE}: {shapes}") from None
         if missing or unexpected:
             raise MissingWeightsError(
                 f"PanoVGGT: {root / WEIGHTS_FILE} does not match {CONFIG_FILE}: missing {missing[:3]}"
