@@ -178,7 +178,7 @@ def fill_small_holes(
     if not fill.any():
         return np.where(valid, depth, 0).astype(np.float32), valid, 0
     inv = np.where(valid, 1.0 / np.where(valid, depth, 1.0), 0.0)
-    filled = _harmonic_fill(inv, fill)
+    filled = _harmonic_fill(inv, fill, valid)
     out_valid = valid | fill
     out = np.where(valid, depth, np.where(fill, 1.0 / np.maximum(filled, 1e-12), 0.0)).astype(np.float32)
     return out, out_valid, int(fill.sum())
@@ -194,9 +194,10 @@ def _gap_lengths(valid: np.ndarray) -> np.ndarray:
     return np.where(valid, 10 * n, right - left - 1)
 
 
-def _harmonic_fill(values: np.ndarray, fill: np.ndarray) -> np.ndarray:
-    """Solve Laplace's equation on the pixels fill (H, W) with the other 4-neighbours of values (H, W) as boundary
-    values (seam wrapped, rows clamped); each fill component must touch a known pixel. Returns values filled in."""
+def _harmonic_fill(values: np.ndarray, fill: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """Solve Laplace's equation on the pixels fill (H, W) with their known (H, W) 4-neighbours' values (H, W) as
+    boundary values; other neighbours are left out (a free boundary). Seam wrapped, rows clamped; each fill
+    component must touch a known pixel. Returns values with the fill pixels solved."""
     H, W = values.shape
     n = int(fill.sum())
     idx = np.full((H, W), -1, np.int64)
@@ -208,12 +209,13 @@ def _harmonic_fill(values: np.ndarray, fill: np.ndarray) -> np.ndarray:
         ni, nj = ii + di, (jj + dj) % W
         inside = (ni >= 0) & (ni < H)
         p, ni, nj = np.nonzero(inside)[0], ni[inside], nj[inside]
-        diag[p] += 1.0
         q = idx[ni, nj]
         unknown = q >= 0
+        fixed = known[ni, nj]
+        np.add.at(diag, p[unknown | fixed], 1.0)
         rows.append(p[unknown])
         cols.append(q[unknown])
-        np.add.at(rhs, p[~unknown], values[ni[~unknown], nj[~unknown]])
+        np.add.at(rhs, p[fixed], values[ni[fixed], nj[fixed]])
     r = np.concatenate(rows + [np.arange(n)])
     c = np.concatenate(cols + [np.arange(n)])
     v = np.concatenate([-np.ones(len(r) - n), diag])
@@ -507,13 +509,18 @@ class Rescale(enum.StrEnum):
     """Also provided depth (unknown units, e.g. raw sensor values) and metric models."""
 
 
+PLAUSIBLE_CAMERA_HEIGHT = (0.2, 5.0)
+"""Floor distances (m) accepted for depth that is taken as metric without rescaling."""
+
+
 def metric_rescale(
     depth: np.ndarray, valid: np.ndarray, *, relative: bool, rescale: Rescale, camera_height: float
 ) -> tuple[np.ndarray, dict]:
     """Rescale depth (H, W) by camera_height / estimated floor distance when the policy asks for it.
 
     Returns (depth, info) with the estimated camera height before and after (None when no floor is found) and the
-    factor applied. StageInputError if a rescale is required but no floor is visible.
+    factor applied. StageInputError if a rescale is required but no floor is visible, or if depth taken as metric
+    puts the floor outside PLAUSIBLE_CAMERA_HEIGHT (wrong units) unless the policy is never.
     """
     fit = estimate_floor(depth, valid)
     do = rescale == Rescale.ALWAYS or (rescale == Rescale.RELATIVE_ONLY and relative)
@@ -527,6 +534,12 @@ def metric_rescale(
         if not camera_height > 0:
             raise StageInputError(f"--camera-height {camera_height} must be > 0 metres")
         factor = camera_height / fit.camera_height
+    elif rescale != Rescale.NEVER and fit is not None and not PLAUSIBLE_CAMERA_HEIGHT[0] <= fit.camera_height <= PLAUSIBLE_CAMERA_HEIGHT[1]:
+        raise StageInputError(
+            f"depth units look wrong: the floor is {fit.camera_height:.4g} units below the camera, not "
+            f"{PLAUSIBLE_CAMERA_HEIGHT[0]}-{PLAUSIBLE_CAMERA_HEIGHT[1]} m; if the depth is not in metres pass "
+            "--rescale always --camera-height H (or the right --png-scale), or --rescale never to keep it as is"
+        )
     info = {
         "camera_height_estimated_before": fit.camera_height if fit else None,
         "camera_height_estimated_after": fit.camera_height * factor if fit else None,

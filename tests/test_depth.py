@@ -112,6 +112,8 @@ def test_fill_scan_line_gaps():
     filled, out_valid, n = dep.fill_small_holes(np.where(valid, depth, 0), valid, max_hole_px=0, max_gap_px=3)
     assert out_valid[:, 0].all()  # the gap across the seam (columns 254, 255, 0) is interpolated too
     assert not out_valid[60:100, 24:76].any() and n == out_valid.sum() - valid.sum()
+    # Maximum principle: invalid neighbours (the dropout's rim) are no boundary values, they must not pull depth.
+    assert depth[valid].min() <= filled[out_valid].min() and filled[out_valid].max() <= depth[valid].max()
     rel = np.abs(filled[out_valid] - depth[out_valid]) / depth[out_valid]
     assert np.median(rel) < 2e-3 and np.percentile(rel, 90) < 0.01  # the tail: interpolation across depth edges
 
@@ -130,9 +132,15 @@ def test_floor_recovers_camera_height():
     assert info["camera_height_estimated_before"] == pytest.approx(3.7 * CAMERA_HEIGHT, rel=1e-3)
     assert info["camera_height_estimated_after"] == pytest.approx(CAMERA_HEIGHT, rel=1e-6)
     np.testing.assert_allclose(scaled, depth, rtol=2e-3)
-    kept, info = dep.metric_rescale(raw, np.ones_like(depth, bool), relative=False, rescale=Rescale.RELATIVE_ONLY,
+    with pytest.raises(StageInputError, match="depth units look wrong: the floor is 5.365 units below"):
+        dep.metric_rescale(raw, np.ones_like(depth, bool), relative=False, rescale=Rescale.RELATIVE_ONLY,
+                           camera_height=CAMERA_HEIGHT)
+    kept, info = dep.metric_rescale(raw, np.ones_like(depth, bool), relative=False, rescale=Rescale.NEVER,
                                     camera_height=CAMERA_HEIGHT)
     assert np.array_equal(kept, raw) and info["scale_factor"] == 1.0 and not info["rescaled"]
+    kept, info = dep.metric_rescale(depth, np.ones_like(depth, bool), relative=False, rescale=Rescale.RELATIVE_ONLY,
+                                    camera_height=1.6)
+    assert np.array_equal(kept, depth) and info["camera_height_estimated_after"] == pytest.approx(CAMERA_HEIGHT, 1e-3)
 
 
 def test_no_floor_is_an_input_error(room):
