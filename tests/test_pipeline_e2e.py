@@ -14,7 +14,7 @@ from panoworld import artifacts as art
 from panoworld import pipeline as pl
 
 REPO = Path(__file__).resolve().parent.parent
-HEAVY = ("torch", "numba", "cv2", "trimesh", "pycolmap", "diffusers", "transformers", "scipy", "embreex")
+HEAVY = ("torch", "numba", "trimesh", "pycolmap", "diffusers", "transformers", "embreex", "ray")
 
 
 @pytest.mark.parametrize("stage", pl.Pipeline.load().order)
