@@ -150,6 +150,11 @@ def test_ply_roundtrip_and_glb(room_64, tmp_path):
     # Any viewer's PLY reader sees the same triangles.
     tm = trimesh.load(tmp_path / "mesh.ply", process=False)
     np.testing.assert_array_equal(tm.faces, mesh.faces)
+    box = trimesh.creation.box()
+    box.export(tmp_path / "box.ply")  # any triangle PLY: no colours, no valid property
+    other = load_erp_mesh(tmp_path / "box.ply")
+    np.testing.assert_array_equal(other.faces, box.faces)
+    assert other.face_valid.all() and other.colors.shape == (8, 3)
     save_erp_mesh_glb(mesh, tmp_path / "mesh.glb")
     glb = trimesh.load(tmp_path / "mesh.glb", force="mesh")
     assert len(glb.faces) == int(mesh.face_valid.sum())
