@@ -1,0 +1,572 @@
+"""Exact ERP triangle rasteriser (numba, z-buffered, seam- and pole-exact) with the Embree ray caster as its reference."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from numba import njit, prange
+
+from panoworld.conventions import check_erp_shape, check_pose, erp_lonlat_from_pixel, invert_pose
+from panoworld.raycast import Hits, Raycaster
+
+_NO_HIT = np.uint64(0xFFFFFFFFFFFFFFFF)
+# z-buffer key = quantised ray distance (2^-20 m steps) << 32 | face id: the nearest surface wins, ties go to the
+# lower face id, so the result does not depend on the thread count.
+_DEPTH_SCALE = float(1 << 20)
+_DEPTH_MAX_Q = float((1 << 32) - 2)
+# A vertex closer to a pole than this fraction of the top pixel row's angular distance to the pole has no usable
+# longitude; its triangles take their longitude range from the other vertices plus a conservative pad.
+_POLAR_FRACTION = 0.02
+_ATAN2_ERR = 2e-5
+_ACOS_ERR = 1e-4
+# Bounding boxes are padded by this many pixels beyond the approximation errors above (float32 storage of u, v).
+_EPS_PX = 1e-2
+# Triangles whose bounding box holds more pixels than this get exact per-row longitude spans.
+_SPAN_MIN_PIXELS = 48
+
+
+@dataclass
+class WarpedFrame:
+    """One pose rendered from the mesh: what the generator is conditioned on."""
+
+    rgb: np.ndarray
+    """(H, W, 3) uint8 interpolated vertex colour; 0 where mask is False."""
+    depth: np.ndarray
+    """(H, W) float32 ray distance in metres; 0 where mask is False."""
+    mask: np.ndarray
+    """(H, W) bool: True = the pixel sees a valid face; False = no geometry or a stretched face (to be generated)."""
+
+
+# ---------------------------------------------------------------------------------------------- numba kernels
+
+
+@njit(inline="always")
+def _atan2_approx(y, x):
+    """atan2(y, x) to within _ATAN2_ERR radians (a degree-11 minimax polynomial); only used for bounding boxes."""
+    ax = abs(x)
+    ay = abs(y)
+    mx = max(ax, ay)
+    if mx == 0.0:
+        return 0.0
+    a = min(ax, ay) / mx
+    s = a * a
+    r = a * (0.99997726 + s * (-0.33262347 + s * (0.19354346 + s * (-0.11643287 + s * (0.05265332 + s * -0.01172120)))))
+    if ay > ax:
+        r = 0.5 * math.pi - r
+    if x < 0.0:
+        r = math.pi - r
+    return -r if y < 0.0 else r
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _vertex_pass(verts, cam_from_world, height, width, polar_sin, vdata):
+    """Per vertex: unit ray direction (camera frame), ray distance and ERP (u, v); u = NaN near a pole."""
+    two_pi = 2.0 * math.pi
+    for k in prange(verts.shape[0]):
+        x0 = np.float64(verts[k, 0])
+        y0 = np.float64(verts[k, 1])
+        z0 = np.float64(verts[k, 2])
+        x = cam_from_world[0, 0] * x0 + cam_from_world[0, 1] * y0 + cam_from_world[0, 2] * z0 + cam_from_world[0, 3]
+        y = cam_from_world[1, 0] * x0 + cam_from_world[1, 1] * y0 + cam_from_world[1, 2] * z0 + cam_from_world[1, 3]
+        z = cam_from_world[2, 0] * x0 + cam_from_world[2, 1] * y0 + cam_from_world[2, 2] * z0 + cam_from_world[2, 3]
+        rxz = math.sqrt(x * x + z * z)
+        r = math.sqrt(rxz * rxz + y * y)
+        inv_r = 1.0 / r if r > 0.0 else 0.0
+        vdata[k, 0] = x * inv_r
+        vdata[k, 1] = y * inv_r
+        vdata[k, 2] = z * inv_r
+        vdata[k, 3] = r
+        if rxz <= polar_sin * r:
+            vdata[k, 4] = np.nan
+        else:
+            vdata[k, 4] = (_atan2_approx(x, z) / two_pi + 0.5) * width
+        vdata[k, 5] = (0.5 - _atan2_approx(-y, rxz) / math.pi) * height
+
+
+@njit(inline="always")
+def _wrap(d, width):
+    """d (|d| < 1.5 width) wrapped into [-width / 2, width / 2]."""
+    if d > 0.5 * width:
+        return d - width
+    if d < -0.5 * width:
+        return d + width
+    return d
+
+
+@njit(inline="always")
+def _acos_approx(x):
+    """acos(x) for x in [-1, 1] to within _ACOS_ERR radians (Abramowitz & Stegun 4.4.45)."""
+    ax = abs(x)
+    r = math.sqrt(1.0 - ax) * (1.5707288 + ax * (-0.2121144 + ax * (0.0742610 + ax * -0.0187293)))
+    return math.pi - r if x < 0.0 else r
+
+
+@njit(inline="always")
+def _raster_face(f, ia, ib, ic, vdata, height, width, sin_lat, cos_lat, sin_lon, cos_lon, pad_polar, zbuf):
+    """Z-buffer one triangle into zbuf (H * W,) uint64: conservative ERP bounding box, exact per-pixel cone test."""
+    ra = np.float64(vdata[ia, 3])
+    rb = np.float64(vdata[ib, 3])
+    rc = np.float64(vdata[ic, 3])
+    if ra <= 0.0 or rb <= 0.0 or rc <= 0.0:
+        return
+    ua = np.float64(vdata[ia, 4])
+    ub = np.float64(vdata[ib, 4])
+    uc = np.float64(vdata[ic, 4])
+    eps = _EPS_PX + _ATAN2_ERR * width / (2.0 * math.pi)
+    half = 0.5 * width
+    full_width = False
+    npolar = (1 if ua != ua else 0) + (1 if ub != ub else 0) + (1 if uc != uc else 0)
+    ulo = 0.0
+    uhi = 0.0
+    if npolar == 0:
+        dab = _wrap(ub - ua, width)
+        dac = _wrap(uc - ua, width)
+        dbc = _wrap(uc - ub, width)
+        # A triangle around a pole winds once in longitude; a very wide one is just scanned over all columns.
+        if abs(dab + dbc - dac) > half or max(abs(dab), abs(dac), abs(dbc)) > 0.45 * width:
+            full_width = True
+        else:
+            ulo = ua + min(0.0, dab, dac) - eps
+            uhi = ua + max(0.0, dab, dac) + eps
+    elif npolar == 3:
+        return
+    elif npolar == 2:
+        u1 = ua if ua == ua else (ub if ub == ub else uc)
+        ulo = u1 - 2.0 * pad_polar - eps
+        uhi = u1 + 2.0 * pad_polar + eps
+    else:
+        if ua != ua:
+            u1, u2 = ub, uc
+        elif ub != ub:
+            u1, u2 = ua, uc
+        else:
+            u1, u2 = ua, ub
+        d12 = _wrap(u2 - u1, width)
+        if abs(d12) > 0.45 * width:
+            full_width = True
+        else:
+            ulo = u1 + min(0.0, d12) - pad_polar - eps
+            uhi = u1 + max(0.0, d12) + pad_polar + eps
+    if full_width:
+        j0 = 0
+        j1 = width - 1
+    else:
+        j0 = int(math.ceil(ulo - 0.5))
+        j1 = int(math.floor(uhi - 0.5))
+        if j0 > j1:
+            return
+
+    va = np.float64(vdata[ia, 5])
+    vb = np.float64(vdata[ib, 5])
+    vc = np.float64(vdata[ic, 5])
+    i0 = max(int(math.ceil(min(va, vb, vc) - 0.5 - eps)), 0)
+    i1 = min(int(math.floor(max(va, vb, vc) - 0.5 + eps)), height - 1)
+    # Unit directions first: great-circle edges bulge in latitude beyond their end points, sin(lat) by at most
+    # theta^2 / 8 for an arc of angle theta, and theta^2 / 8 <= 0.31 chord^2 (<= 0.126 chord^2 for chords < 0.1).
+    dax = np.float64(vdata[ia, 0])
+    day = np.float64(vdata[ia, 1])
+    daz = np.float64(vdata[ia, 2])
+    dbx = np.float64(vdata[ib, 0])
+    dby = np.float64(vdata[ib, 1])
+    dbz = np.float64(vdata[ib, 2])
+    dcx = np.float64(vdata[ic, 0])
+    dcy = np.float64(vdata[ic, 1])
+    dcz = np.float64(vdata[ic, 2])
+    c2 = max(
+        (dax - dbx) ** 2 + (day - dby) ** 2 + (daz - dbz) ** 2,
+        (dbx - dcx) ** 2 + (dby - dcy) ** 2 + (dbz - dcz) ** 2,
+        (dcx - dax) ** 2 + (dcy - day) ** 2 + (dcz - daz) ** 2,
+    )
+    bulge = c2 * (0.126 if c2 < 0.01 else 0.31) + 1e-9
+    s_hi = -min(day, dby, dcy) + bulge
+    s_lo = -max(day, dby, dcy) - bulge
+    if i0 > i1:
+        i0 = i1 + 1  # no row centre between the vertices: look only at the two neighbouring rows
+    while i0 > 0 and sin_lat[i0 - 1] <= s_hi:
+        i0 -= 1
+    while i1 < height - 1 and sin_lat[i1 + 1] >= s_lo:
+        i1 += 1
+    if i0 > i1:
+        return
+    ax = dax * ra
+    ay = day * ra
+    az = daz * ra
+    bx = dbx * rb
+    by = dby * rb
+    bz = dbz * rb
+    cx = dcx * rc
+    cy = dcy * rc
+    cz = dcz * rc
+
+    # Edge normals of the cone spanned by the three vertex rays; d is inside iff d . n_k >= 0 for all k.
+    n0x = by * cz - bz * cy
+    n0y = bz * cx - bx * cz
+    n0z = bx * cy - by * cx
+    n1x = cy * az - cz * ay
+    n1y = cz * ax - cx * az
+    n1z = cx * ay - cy * ax
+    n2x = ay * bz - az * by
+    n2y = az * bx - ax * bz
+    n2z = ax * by - ay * bx
+    det = ax * n0x + ay * n0y + az * n0z
+    if det == 0.0:
+        return
+    if det < 0.0:
+        n0x, n0y, n0z, n1x, n1y, n1z, n2x, n2y, n2z = -n0x, -n0y, -n0z, -n1x, -n1y, -n1z, -n2x, -n2y, -n2z
+        det = -det
+    if full_width:
+        # Pole directions (0, -1, 0) / (0, 1, 0) inside the cone: the triangle reaches the first / last row.
+        if n0y <= 0.0 and n1y <= 0.0 and n2y <= 0.0:
+            i0 = 0
+        if n0y >= 0.0 and n1y >= 0.0 and n2y >= 0.0:
+            i1 = height - 1
+    fid = np.uint64(f)
+    spans = (i1 - i0 + 1) * (j1 - j0 + 1) > _SPAN_MIN_PIXELS
+    a0 = a1 = a2 = c0 = c1 = c2c = 0.0
+    lo_box = j0 + 0.5 - eps if not full_width else -1e300
+    hi_box = j1 + 0.5 + eps if not full_width else 1e300
+    px_per_rad = width / (2.0 * math.pi)
+    if spans:
+        # Large triangles: per row, edge k admits the arc of longitudes where
+        # cos(lat) A_k cos(lon - lon_k) >= n_ky sin(lat), with A_k = |(n_kx, n_kz)| and lon_k = atan2(n_kx, n_kz).
+        a0 = math.hypot(n0x, n0z)
+        a1 = math.hypot(n1x, n1z)
+        a2 = math.hypot(n2x, n2z)
+        c0 = _arc_centre(n0x, n0z, width)
+        c1 = _arc_centre(n1x, n1z, width)
+        c2c = _arc_centre(n2x, n2z, width)
+    for i in range(i0, i1 + 1):
+        cl = cos_lat[i]
+        ny_term0 = -n0y * sin_lat[i]
+        ny_term1 = -n1y * sin_lat[i]
+        ny_term2 = -n2y * sin_lat[i]
+        row = i * width
+        ja = j0
+        jb = j1
+        if spans:
+            lo = lo_box
+            hi = hi_box
+            ok = True
+            for a_k, c_k, t_k in ((a0, c0, ny_term0), (a1, c1, ny_term1), (a2, c2c, ny_term2)):
+                ok, lo, hi = _clip_arc(a_k * cl, c_k, t_k, px_per_rad, width, lo, hi, eps)
+                if not ok:
+                    break
+            if not ok:
+                continue
+            if hi - lo < width:
+                ja = max(j0, int(math.ceil(lo - 0.5))) if not full_width else int(math.ceil(lo - 0.5))
+                jb = min(j1, int(math.floor(hi - 0.5))) if not full_width else min(int(math.floor(hi - 0.5)), ja + width - 1)
+        for jj in range(ja, jb + 1):
+            j = jj
+            if j < 0:
+                j += width
+            elif j >= width:
+                j -= width
+            sl = sin_lon[j]
+            co = cos_lon[j]
+            w0 = cl * (n0x * sl + n0z * co) + ny_term0
+            if w0 < 0.0:
+                continue
+            w1 = cl * (n1x * sl + n1z * co) + ny_term1
+            if w1 < 0.0:
+                continue
+            w2 = cl * (n2x * sl + n2z * co) + ny_term2
+            if w2 < 0.0:
+                continue
+            s = w0 + w1 + w2
+            if s <= 0.0:
+                continue
+            q = det / s * _DEPTH_SCALE
+            if q > _DEPTH_MAX_Q:
+                q = _DEPTH_MAX_Q
+            key = (np.uint64(q) << np.uint64(32)) | fid
+            if key < zbuf[row + j]:
+                zbuf[row + j] = key
+
+
+@njit(inline="always")
+def _arc_centre(nx, nz, width):
+    """Column (u) where nx sin(lon) + nz cos(lon) peaks: lon = atan2(nx, nz)."""
+    return (math.atan2(nx, nz) / (2.0 * math.pi) + 0.5) * width
+
+
+@njit(inline="always")
+def _clip_arc(amp, centre, offset, px_per_rad, width, lo, hi, eps):
+    """Intersect [lo, hi] (u) with the set amp * cos(lon - lon_c) + offset >= 0 (an arc around centre) -> (ok, lo, hi).
+
+    Conservative: where the arc meets [lo, hi] in two pieces their hull is kept.
+    """
+    if amp <= 1e-300:
+        return offset >= 0.0, lo, hi
+    kappa = -offset / amp
+    if kappa > 1.0 + 1e-12:
+        return False, lo, hi
+    if kappa <= -1.0:
+        return True, lo, hi
+    h = (_acos_approx(min(kappa, 1.0)) + _ACOS_ERR) * px_per_rad + eps
+    if h >= 0.5 * width:
+        return True, lo, hi
+    if hi - lo >= width:  # unbounded so far (a full-width triangle): the arc itself
+        return True, centre - h, centre + h
+    mid = 0.5 * (lo + hi)
+    c = mid + _wrap(centre - mid, width)
+    c_other = c - width if c > mid else c + width
+    new_lo = 1e300
+    new_hi = -1e300
+    for cc in (c, c_other):
+        a = max(lo, cc - h)
+        b = min(hi, cc + h)
+        if a <= b:
+            new_lo = min(new_lo, a)
+            new_hi = max(new_hi, b)
+    if new_lo > new_hi:
+        return False, lo, hi
+    return True, new_lo, new_hi
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _raster_pass(faces, vdata, height, width, sin_lat, cos_lat, sin_lon, cos_lon, pad_polar, chunk_starts, zbufs):
+    """Rasterise all faces; chunk k of faces goes into the z-buffer of the thread that runs it."""
+    for k in prange(len(chunk_starts) - 1):
+        zbuf = zbufs[numba.get_thread_id()]
+        for f in range(chunk_starts[k], chunk_starts[k + 1]):
+            _raster_face(
+                f, faces[f, 0], faces[f, 1], faces[f, 2], vdata, height, width,
+                sin_lat, cos_lat, sin_lon, cos_lon, pad_polar, zbuf,
+            )
+
+
+@njit(inline="always")
+def _pixel_hit(f, faces, vdata, dx, dy, dz):
+    """Exact barycentrics and ray distance of the pixel ray d on face f (d inside the face's cone)."""
+    ia = faces[f, 0]
+    ib = faces[f, 1]
+    ic = faces[f, 2]
+    ra = np.float64(vdata[ia, 3])
+    rb = np.float64(vdata[ib, 3])
+    rc = np.float64(vdata[ic, 3])
+    ax = np.float64(vdata[ia, 0]) * ra
+    ay = np.float64(vdata[ia, 1]) * ra
+    az = np.float64(vdata[ia, 2]) * ra
+    bx = np.float64(vdata[ib, 0]) * rb
+    by = np.float64(vdata[ib, 1]) * rb
+    bz = np.float64(vdata[ib, 2]) * rb
+    cx = np.float64(vdata[ic, 0]) * rc
+    cy = np.float64(vdata[ic, 1]) * rc
+    cz = np.float64(vdata[ic, 2]) * rc
+    w0 = dx * (by * cz - bz * cy) + dy * (bz * cx - bx * cz) + dz * (bx * cy - by * cx)
+    w1 = dx * (cy * az - cz * ay) + dy * (cz * ax - cx * az) + dz * (cx * ay - cy * ax)
+    w2 = dx * (ay * bz - az * by) + dy * (az * bx - ax * bz) + dz * (ax * by - ay * bx)
+    s = w0 + w1 + w2
+    det = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+    return w0 / s, w1 / s, w2 / s, det / s
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _resolve_hits(zbufs, faces, vdata, width, sin_lat, cos_lat, sin_lon, cos_lon, dist, face, bary):
+    """Merge the per-thread z-buffers (and reset them) -> distance (inf), face (-1), barycentrics per pixel."""
+    height = dist.shape[0]
+    for i in prange(height):
+        for j in range(width):
+            p = i * width + j
+            key = zbufs[0, p]
+            zbufs[0, p] = _NO_HIT
+            for t in range(1, zbufs.shape[0]):
+                if zbufs[t, p] < key:
+                    key = zbufs[t, p]
+                zbufs[t, p] = _NO_HIT
+            if key == _NO_HIT:
+                dist[i, j] = np.inf
+                face[i, j] = -1
+                bary[i, j, 0] = 0.0
+                bary[i, j, 1] = 0.0
+                bary[i, j, 2] = 0.0
+                continue
+            f = np.int64(key & np.uint64(0xFFFFFFFF))
+            b0, b1, b2, t_hit = _pixel_hit(
+                f, faces, vdata, cos_lat[i] * sin_lon[j], -sin_lat[i], cos_lat[i] * cos_lon[j]
+            )
+            dist[i, j] = t_hit
+            face[i, j] = f
+            bary[i, j, 0] = b0
+            bary[i, j, 1] = b1
+            bary[i, j, 2] = b2
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _resolve_shaded(zbufs, faces, vdata, colors, face_valid, width, sin_lat, cos_lat, sin_lon, cos_lon, rgb, depth, mask):
+    """Merge the per-thread z-buffers (and reset them) -> interpolated colour, depth and validity per pixel."""
+    height = depth.shape[0]
+    for i in prange(height):
+        for j in range(width):
+            p = i * width + j
+            key = zbufs[0, p]
+            zbufs[0, p] = _NO_HIT
+            for t in range(1, zbufs.shape[0]):
+                if zbufs[t, p] < key:
+                    key = zbufs[t, p]
+                zbufs[t, p] = _NO_HIT
+            f = np.int64(key & np.uint64(0xFFFFFFFF))
+            if key == _NO_HIT or not face_valid[f]:
+                rgb[i, j, 0] = 0
+                rgb[i, j, 1] = 0
+                rgb[i, j, 2] = 0
+                depth[i, j] = 0.0
+                mask[i, j] = False
+                continue
+            b0, b1, b2, t_hit = _pixel_hit(
+                f, faces, vdata, cos_lat[i] * sin_lon[j], -sin_lat[i], cos_lat[i] * cos_lon[j]
+            )
+            ia = faces[f, 0]
+            ib = faces[f, 1]
+            ic = faces[f, 2]
+            for ch in range(3):
+                c = b0 * colors[ia, ch] + b1 * colors[ib, ch] + b2 * colors[ic, ch] + 0.5
+                rgb[i, j, ch] = np.uint8(min(max(c, 0.0), 255.0))
+            depth[i, j] = t_hit
+            mask[i, j] = True
+
+
+# ---------------------------------------------------------------------------------------------- public API
+
+
+def shade_hits(hits: Hits, faces: np.ndarray, colors: np.ndarray, face_valid: np.ndarray) -> WarpedFrame:
+    """Hits (H, W) of a mesh -> WarpedFrame: barycentric vertex colours (V, 3) uint8, depth, mask = valid face hit.
+
+    The CPU reference for the numba path's fused shading (used with Embree hits by the `raycast` backend).
+    """
+    face = hits.face
+    hit = face >= 0
+    safe = np.where(hit, face, 0)
+    mask = hit & face_valid[safe]
+    idx = faces[safe]  # (H, W, 3)
+    col = (colors[idx].astype(np.float64) * hits.bary[..., None].astype(np.float64)).sum(axis=-2)
+    rgb = np.clip(np.floor(col + 0.5), 0, 255).astype(np.uint8)
+    rgb[~mask] = 0
+    depth = np.where(mask, hits.distance, 0.0).astype(np.float32)
+    return WarpedFrame(rgb, depth, mask)
+
+
+def _check_mesh_arrays(vertices, faces, colors, face_valid):
+    vertices = np.ascontiguousarray(vertices, dtype=np.float32)
+    faces = np.ascontiguousarray(faces, dtype=np.int32)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise ValueError(f"{vertices.shape=} but expected (V, 3)")
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"{faces.shape=} but expected (F, 3)")
+    if len(faces) == 0:
+        raise ValueError("cannot render an empty mesh (0 faces)")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise ValueError(f"faces index vertices in [{faces.min()}, {faces.max()}] but there are {len(vertices)}")
+    if colors is None:
+        colors = np.full((len(vertices), 3), 128, np.uint8)
+    colors = np.ascontiguousarray(colors, dtype=np.uint8)
+    if colors.shape != vertices.shape:
+        raise ValueError(f"{colors.shape=} but expected {vertices.shape} (V, 3)")
+    if face_valid is None:
+        face_valid = np.ones(len(faces), bool)
+    face_valid = np.ascontiguousarray(face_valid, dtype=np.bool_)
+    if face_valid.shape != (len(faces),):
+        raise ValueError(f"{face_valid.shape=} but expected ({len(faces)},) (F,)")
+    return vertices, faces, colors, face_valid
+
+
+def check_poses(poses: np.ndarray, what: str = "poses") -> np.ndarray:
+    """Validate world_from_cam poses (N, 4, 4) (a single (4, 4) pose is promoted): finite, rigid, last row 0 0 0 1."""
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.shape == (4, 4):
+        poses = poses[None]
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise ValueError(f"{what}.shape={poses.shape} but expected (N, 4, 4) world_from_cam matrices")
+    if not np.isfinite(poses).all():
+        raise ValueError(f"{what}: contains NaN or inf")
+    bad = np.abs(poses[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1) > 1e-6
+    R = poses[:, :3, :3]
+    bad |= np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2)) > 1e-4
+    bad |= np.linalg.det(R) < 0
+    if bad.any():
+        raise ValueError(f"{what}[{int(np.argmax(bad))}] is not a rigid world_from_cam transform (rotation + translation)")
+    return poses
+
+
+class ErpRasterizer:
+    """Numba ERP rasteriser of one triangle mesh; per-mesh buffers are shared by every pose it renders.
+
+    vertices (V, 3) and faces (F, 3) as for Raycaster; colors (V, 3) uint8 and face_valid (F,) bool are needed only
+    for shaded renders (defaults: grey, all valid). Results equal Raycaster.render_erp's up to float rounding.
+    """
+
+    def __init__(self, vertices, faces, colors=None, face_valid=None, *, num_threads: int | None = None):
+        self.vertices, self.faces, self.colors, self.face_valid = _check_mesh_arrays(vertices, faces, colors, face_valid)
+        self.num_threads = num_threads or numba.get_num_threads()
+        self._vdata = np.empty((len(self.vertices), 8), np.float32)
+        n_chunks = min(len(self.faces), 16 * self.num_threads)
+        self._chunks = np.linspace(0, len(self.faces), n_chunks + 1).astype(np.int64)
+        self._size: tuple[int, int] | None = None
+
+    def _prepare(self, world_from_cam, height, width):
+        check_pose(world_from_cam, "world_from_cam")
+        check_erp_shape(height, width, "requested ERP render")
+        if self._size != (height, width):
+            lon, lat = erp_lonlat_from_pixel(np.arange(width) + 0.5, np.arange(height) + 0.5, height, width)
+            self._tables = (np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon))
+            rho_top = 0.5 * np.pi / height  # angular distance of the first row's centres from the pole
+            delta = _POLAR_FRACTION * rho_top
+            self._polar_sin = float(np.sin(delta))
+            self._pad_polar = float(1.1 * 2.0 * np.arcsin(np.tan(delta) / np.tan(rho_top)) * width / (2 * np.pi))
+            self._zbufs = np.full((self.num_threads, height * width), _NO_HIT, np.uint64)
+            self._size = (height, width)
+        cam_from_world = np.ascontiguousarray(invert_pose(np.asarray(world_from_cam, np.float64))[:3])
+        _vertex_pass(self.vertices, cam_from_world, height, width, self._polar_sin, self._vdata)
+        prev = numba.get_num_threads()
+        numba.set_num_threads(self.num_threads)
+        try:
+            _raster_pass(self.faces, self._vdata, height, width, *self._tables, self._pad_polar, self._chunks, self._zbufs)
+        finally:
+            numba.set_num_threads(prev)
+
+    def render_erp(self, world_from_cam: np.ndarray, height: int, width: int) -> Hits:
+        """Nearest face per ERP pixel centre: Hits(distance (H, W) inf = none, face (H, W) -1 = none, bary (H, W, 3))."""
+        self._prepare(world_from_cam, height, width)
+        dist = np.empty((height, width), np.float32)
+        face = np.empty((height, width), np.int64)
+        bary = np.empty((height, width, 3), np.float32)
+        _resolve_hits(self._zbufs, self.faces, self._vdata, width, *self._tables, dist, face, bary)
+        return Hits(dist, face, bary)
+
+    def render(self, world_from_cam: np.ndarray, height: int, width: int, out: WarpedFrame | None = None) -> WarpedFrame:
+        """Warped colour, depth and validity mask at one pose (written into `out` if given)."""
+        self._prepare(world_from_cam, height, width)
+        if out is None:
+            out = WarpedFrame(
+                np.empty((height, width, 3), np.uint8), np.empty((height, width), np.float32),
+                np.empty((height, width), bool),
+            )
+        _resolve_shaded(
+            self._zbufs, self.faces, self._vdata, self.colors, self.face_valid, width, *self._tables,
+            out.rgb, out.depth, out.mask,
+        )
+        return out
+
+
+class RaycastRenderer:
+    """The Embree reference with ErpRasterizer's interface (exact, several times slower)."""
+
+    def __init__(self, vertices, faces, colors=None, face_valid=None):
+        self.vertices, self.faces, self.colors, self.face_valid = _check_mesh_arrays(vertices, faces, colors, face_valid)
+        self.raycaster = Raycaster(self.vertices, self.faces)
+
+    def render_erp(self, world_from_cam: np.ndarray, height: int, width: int) -> Hits:
+        return self.raycaster.render_erp(world_from_cam, height, width)
+
+    def render(self, world_from_cam: np.ndarray, height: int, width: int, out: WarpedFrame | None = None) -> WarpedFrame:
+        frame = shade_hits(self.render_erp(world_from_cam, height, width), self.faces, self.colors, self.face_valid)
+        if out is None:
+            return frame
+        out.rgb[...] = frame.rgb
+        out.depth[...] = frame.depth
+        out.mask[...] = frame.mask
+        return out
