@@ -121,21 +121,59 @@ def erp_mesh_from_depth(
             pole_col[k] = np.rint(col.reshape(h, w, 3)[r, m].mean(axis=0))
     pole_ok &= np.sign(poles[:, 1]) == np.array([-1.0, 1.0])
     vertices = np.concatenate([pts.reshape(-1, 3), np.where(pole_ok[:, None], poles, 0.0)]).astype(np.float32)
-    v_dirs = np.concatenate([dirs.reshape(-1, 3), np.array([[0, -1, 0], [0, 1, 0]], np.float32)])
     v_depth = np.concatenate([d.reshape(-1), np.abs(poles[:, 1]) * pole_ok]).astype(np.float32)
     v_ok = np.concatenate([ok.reshape(-1), pole_ok])
     colors = np.concatenate([col, pole_col])
 
     faces = np.concatenate([_grid_faces(h, w), _pole_faces(h, w)]).astype(np.int32)
-    faces = faces[v_ok[faces].all(axis=1)]
+    keep = v_ok[faces].all(axis=1)
+    stretch = _grid_face_stretch(pts, dirs, d, vertices[-2:], v_depth[-2:])[keep]
+    faces = faces[keep]
+    return ErpMesh(vertices, faces, colors, stretch <= max_edge_ratio)
+
+
+def face_stretch(vertices: np.ndarray, dirs: np.ndarray, depth: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Reference stretch of faces (F, 3): the largest ratio over their edges of edge length to the edge's pixel
+    footprint at its nearer end (nearer depth x chord between the two unit rays). vertices (V, 3), their unit ray
+    directions dirs (V, 3) and depths (V,) -> (F,) float32."""
     stretch = np.zeros(len(faces), np.float32)
     for a, b in ((0, 1), (1, 2), (2, 0)):
         va, vb = faces[:, a], faces[:, b]
         length = np.linalg.norm(vertices[va] - vertices[vb], axis=1)
-        chord = np.linalg.norm(v_dirs[va] - v_dirs[vb], axis=1)
-        near = np.minimum(v_depth[va], v_depth[vb])
+        chord = np.linalg.norm(dirs[va] - dirs[vb], axis=1)
+        near = np.minimum(depth[va], depth[vb])
         np.maximum(stretch, length / np.maximum(near * chord, 1e-12), out=stretch)
-    return ErpMesh(vertices, faces, colors, stretch <= max_edge_ratio)
+    return stretch
+
+
+def _edge_stretch(pa, pb, chord, da, db) -> np.ndarray:
+    diff = pa - pb
+    length = np.sqrt(np.einsum("...k,...k->...", diff, diff))
+    return length / np.maximum(np.minimum(da, db) * chord, 1e-12)
+
+
+def _grid_face_stretch(pts: np.ndarray, dirs: np.ndarray, d: np.ndarray, poles: np.ndarray, pole_d: np.ndarray) -> np.ndarray:
+    """face_stretch of all grid and pole faces in _grid_faces/_pole_faces order, computed once per grid edge.
+
+    pts, dirs (h, w, 3), d (h, w); poles (2, 3) and their depths pole_d (2,) -> (2 * (h - 1) * w + 2 * w,)."""
+    h, w = d.shape
+    nxt = lambda a: np.roll(a, -1, axis=1)  # noqa: E731  (column j + 1, seam wrapped)
+    # Chords between rays depend on the rows only (the grid is symmetric in longitude): take them from column 0.
+    c0, c1 = dirs[:, 0], dirs[:, 1 % w]
+    chord_h = np.linalg.norm(c0 - c1, axis=-1)[:, None]
+    chord_v = np.linalg.norm(c0[:-1] - c0[1:], axis=-1)[:, None]
+    chord_d = np.linalg.norm(c0[:-1] - c1[1:], axis=-1)[:, None]
+    horiz = _edge_stretch(pts, nxt(pts), chord_h, d, nxt(d))  # (i, j)-(i, j+1)
+    vert = _edge_stretch(pts[:-1], pts[1:], chord_v, d[:-1], d[1:])  # (i, j)-(i+1, j)
+    diag = _edge_stretch(pts[:-1], nxt(pts[1:]), chord_d, d[:-1], nxt(d[1:]))  # (i, j)-(i+1, j+1)
+    tri_a = np.maximum(np.maximum(vert, horiz[1:]), diag)
+    tri_b = np.maximum(np.maximum(diag, nxt(vert)), horiz[:-1])
+    pole_dirs = np.array([[0.0, -1.0, 0.0], [0.0, 1.0, 0.0]], np.float32)
+    fans = []
+    for k, r in enumerate((0, h - 1)):
+        spoke = _edge_stretch(poles[k], pts[r], np.linalg.norm(pole_dirs[k] - c0[r]), pole_d[k], d[r])
+        fans.append(np.maximum(np.maximum(spoke, nxt(spoke[None])[0]), horiz[r]))
+    return np.concatenate([np.stack([tri_a, tri_b], axis=-1).reshape(-1), *fans]).astype(np.float32)
 
 
 def save_erp_mesh(mesh: ErpMesh, path: Path) -> None:

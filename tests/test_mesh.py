@@ -12,7 +12,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from panoworld.conventions import erp_dirs, points_from_depth
-from panoworld.mesh import ErpMesh, erp_mesh_from_depth, load_erp_mesh, save_erp_mesh, save_erp_mesh_glb
+from panoworld.mesh import ErpMesh, erp_mesh_from_depth, face_stretch, load_erp_mesh, save_erp_mesh, save_erp_mesh_glb
 from panoworld.metrics import psnr
 from panoworld.raycast import Raycaster
 
@@ -109,6 +109,18 @@ def test_discontinuities_flagged_only_at_depth_edges():
     assert len(stretched) > 0
     d = np.linalg.norm(mesh.vertices[stretched], axis=-1)
     assert np.all(d.max(axis=1) / d.min(axis=1) > 1.3)  # each joins the box to the wall behind it
+
+
+@pytest.mark.parametrize("ratio", [1.5, 3.0, 12.0])
+def test_grid_stretch_matches_reference(room_64, ratio):
+    _, rgb, depth = room_64
+    mesh = erp_mesh_from_depth(depth, rgb, max_edge_ratio=ratio, stride=2)
+    dist = np.linalg.norm(mesh.vertices.astype(np.float64), axis=1)
+    dirs = mesh.vertices / np.maximum(dist, 1e-30)[:, None]
+    ref = face_stretch(mesh.vertices, dirs.astype(np.float32), dist.astype(np.float32), mesh.faces)
+    assert 0 < (ref > ratio).sum() < len(ref)
+    tie = np.abs(ref - ratio) < 1e-4 * ratio
+    np.testing.assert_array_equal(mesh.face_valid[~tie], ref[~tie] <= ratio)
 
 
 def test_invalid_depth_is_not_meshed(room_64):
