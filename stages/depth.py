@@ -37,7 +37,7 @@ class Params:
     png_scale: float = 0.001
     """Metres per unit of a 16-bit depth PNG (0.001 = millimetres; Matterport-style PNGs use 0.00025)."""
     max_hole_px: int = 64
-    """Invalid regions (NaN, inf, <= 0) of at most this many pixels are inpainted; larger ones stay masked invalid."""
+    """Invalid regions (NaN, inf, <= 0) of at most this many pixels are filled (harmonic); larger ones stay invalid."""
     max_gap_px: int = 0
     """Invalid runs of at most this many pixels between valid ones along a row or column are interpolated (the
     scan-line gaps of sparse LiDAR depth, e.g. 6); 0 = off."""
@@ -80,11 +80,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     else:
         from panoworld.models.depth_anything import DepthAnything
 
-        import torch
-
         model = DepthAnything.from_pretrained(params.weights, input_size=params.view_size, device=params.device)
-        with torch.inference_mode():
-            res = dep.erp_depth_from_model(rgb, model, model.kind, fov_deg=params.fov_deg, view_size=params.view_size)
+        res = dep.erp_depth_from_model(rgb, model, model.kind, fov_deg=params.fov_deg, view_size=params.view_size)
         depth, valid = res.depth, res.valid
         relative = model.kind == dep.DepthKind.RELATIVE
         info.update(model_kind=model.kind.value, view_overlap_rel_rmse=res.overlap_rel_rmse,
