@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from panoworld.conventions import check_pose, erp_dirs
+from panoworld.conventions import check_pose, dir_from_lonlat, erp_lonlat_from_pixel
 from panoworld.mesh import ErpMesh, _grid_faces
 from panoworld.raycast import Raycaster
 
@@ -115,20 +115,47 @@ def _stretch(p: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return out
 
 
-def _grow_into_foreground(
-    depth: np.ndarray, seeds: np.ndarray, seed_mid: np.ndarray, seed_band: np.ndarray, margin: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Breadth-first growth (8-neighbours, columns wrapped) from background edge pixels seeds (h, w) into the pixels
-    in front of them: a pixel joins when its depth is below the mean `mid` depth of the pixels reaching it.
+def _surface_normals(points: np.ndarray) -> np.ndarray:
+    """Unit normals (h, w, 3) of an ERP grid of points (h, w, 3) from one-sided differences, each taken towards the
+    neighbour (per axis, columns wrapped) whose depth is closer, so normals at depth edges follow their own surface."""
+    depth = np.linalg.norm(points, axis=-1)
 
-    Returns steps (h, w) (inf where never reached) and reach (h, w), the band of the seeds that reached the pixel;
-    growth stops after 2 * band + margin + 2 steps.
+    def tangent(axis: int) -> np.ndarray:
+        if axis == 1:
+            nxt, prv = np.roll(points, -1, axis=1), np.roll(points, 1, axis=1)
+            dn, dp = np.roll(depth, -1, axis=1), np.roll(depth, 1, axis=1)
+        else:
+            nxt = np.concatenate([points[1:], points[-1:]])
+            prv = np.concatenate([points[:1], points[:-1]])
+            dn = np.concatenate([depth[1:], depth[-1:] + np.inf])
+            dp = np.concatenate([depth[:1] + np.inf, depth[:-1]])
+        use_next = np.abs(dn - depth) <= np.abs(dp - depth)
+        return np.where(use_next[..., None], nxt - points, points - prv)
+
+    n = np.cross(tangent(0), tangent(1))
+    return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+
+
+def _grow_into_foreground(
+    points: np.ndarray, seeds: np.ndarray, seed_mid: np.ndarray, seed_band: np.ndarray, margin: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Breadth-first growth (8-neighbours, columns wrapped) from background edge pixels seeds (h, w) of the ERP grid
+    of points (h, w, 3) into the pixels in front of them: a pixel joins when its depth is below the mean `mid` depth
+    of the pixels reaching it.
+
+    Returns steps (h, w) (inf where never reached), reach (h, w), the band of the seeds that reached the pixel
+    (growth stops after 2 * band + margin + 2 steps), and the background depth (h, w): the pixel's ray cut with the
+    tangent plane of the seed it came from, or, where that ray grazes the plane, the seeds' geometric mean depth.
     """
-    h, w = depth.shape
-    d = depth.reshape(-1)
+    h, w = points.shape[:2]
+    pts = points.reshape(-1, 3)
+    d = np.linalg.norm(pts, axis=1)
     steps = np.full(h * w, np.inf)
     reach = np.zeros(h * w)
     mid = seed_mid.reshape(-1).copy()
+    log_bg = np.log(np.where(d > 0, d, 1.0))
+    normal = _surface_normals(points).reshape(-1, 3)
+    plane = np.concatenate([normal, (normal * pts).sum(axis=1, keepdims=True)], axis=1)  # n . x = c
     front = np.flatnonzero(seeds.reshape(-1))
     steps[front] = 0
     reach[front] = seed_band.reshape(-1)[front]
@@ -149,13 +176,22 @@ def _grow_into_foreground(
         src, cand = src[ok], cand[ok]
         if not len(cand):
             break
-        front, inv = np.unique(cand, return_inverse=True)
+        front, first, inv = np.unique(cand, return_index=True, return_inverse=True)
         count = np.bincount(inv)
         mid[front] = np.bincount(inv, mid[src]) / count
+        log_bg[front] = np.bincount(inv, log_bg[src]) / count
+        plane[front] = plane[src[first]]
         reach[front] = np.zeros(len(front))
         np.maximum.at(reach, front[inv], reach[src])
         steps[front] = k
-    return steps.reshape(h, w), reach.reshape(h, w)
+    bg = np.exp(log_bg)
+    dirs = pts / np.maximum(d, 1e-12)[:, None]
+    cos = (plane[:, :3] * dirs).sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = plane[:, 3] / cos
+    on_plane = (np.abs(cos) > 0.1) & (t > 0.5 * bg) & (t < 2.0 * bg)
+    bg = np.where(on_plane, t, bg)
+    return steps.reshape(h, w), reach.reshape(h, w), bg.reshape(h, w).astype(np.float32)
 
 
 def build_background_layer(
@@ -168,7 +204,8 @@ def build_background_layer(
 ) -> BackgroundLayer:
     """Extend the far side of every depth discontinuity of the source view behind its foreground occluder.
 
-    The discontinuities are the mesh's invalid (stretched) grid faces: their far vertices are background edge pixels.
+    The discontinuities are the grid faces stretched by more than max_edge_ratio pixel footprints (the mesh stage's
+    rule, whatever it did with them): their far vertices are background edge pixels.
     Each foreground pixel (nearer than the midpoint of the edge's near and far depth) within the parallax band of its
     nearest background edge pixel gets a background vertex: depth and colour are inpainted (Telea, seam-aware) with
     every foreground pixel masked, so they continue the background only. The band of an edge is the largest angle
@@ -182,12 +219,16 @@ def build_background_layer(
     valid = depth > 0
     empty = np.zeros((h, w), bool)
     main_faces = mesh.faces[mesh.face_valid]
-    if max_translation <= 0 or mesh.face_valid.all():
-        return BackgroundLayer(mesh.vertices, main_faces, mesh.colors, 0, empty, np.zeros((h, w), np.float32))
+    none = BackgroundLayer(mesh.vertices, main_faces, mesh.colors, 0, empty, np.zeros((h, w), np.float32))
+    if max_translation <= 0:
+        return none
 
     # Background edge pixels: far vertices of stretched grid faces, with the nearest foreground depth across the edge.
-    bad = mesh.faces[~mesh.face_valid]
-    bad = bad[(bad < n).all(axis=1)]
+    grid = _grid_faces(h, w)
+    grid = grid[valid.reshape(-1)[grid].all(axis=1)]
+    bad = grid[_stretch(p, grid) > max_edge_ratio]
+    if not len(bad):
+        return none
     d = depth.reshape(-1)
     fd = d[bad]
     dmin, dmax = fd.min(axis=1), fd.max(axis=1)
@@ -196,7 +237,7 @@ def build_background_layer(
     np.minimum.at(near_of, bad[far], np.repeat(dmin, 3).reshape(-1, 3)[far])
     edge = (near_of < d * 0.95).reshape(h, w)
     if not edge.any():
-        return BackgroundLayer(mesh.vertices, main_faces, mesh.colors, 0, empty, np.zeros((h, w), np.float32))
+        return none
     near_of = near_of.reshape(h, w)
 
     px_angle = 2 * np.pi / w
@@ -205,12 +246,10 @@ def build_background_layer(
     with np.errstate(divide="ignore"):
         parallax = max_translation * (1.0 / near_of - 1.0 / depth)
     band = np.minimum(parallax, np.deg2rad(max_band_deg)) / px_angle / cos_lat * 1.2 + 2
-    steps, reach = _grow_into_foreground(depth, edge, 0.5 * (depth + near_of), np.where(edge, band, 0.0), inpaint_radius)
+    steps, reach, bg_depth = _grow_into_foreground(p.reshape(h, w, 3), edge, 0.5 * (depth + near_of), np.where(edge, band, 0.0), inpaint_radius)
     synth = steps <= reach
     hide = (steps <= 2 * reach + inpaint_radius + 2) | ~valid  # foreground masked for the inpainting
 
-    log_d = np.log(np.where(valid, depth, 1.0)).astype(np.float32)
-    bg_depth = np.exp(erp_inpaint(log_d, hide, radius=inpaint_radius)).astype(np.float32)
     synth &= bg_depth > depth * 1.02
     colors = mesh.colors[:n].reshape(h, w, 3)
     bg_color = erp_inpaint(colors, hide, radius=inpaint_radius)
@@ -258,6 +297,11 @@ def _check_frame(rgb: np.ndarray, mask: np.ndarray, depth: np.ndarray | None) ->
         raise ValueError(f"{depth.shape=} but expected {rgb.shape[:2]} (H, W)")
 
 
+def erp_dir_at(u: np.ndarray, v: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Camera-frame unit directions (N, 3) of continuous ERP pixel coordinates u, v (N,)."""
+    return dir_from_lonlat(*erp_lonlat_from_pixel(u, v, height, width))
+
+
 class WarpInpainter:
     """Fills the holes of conditions frames by casting their rays against a BackgroundLayer (same surface, same
     colour in every frame); rays that hit nothing get the seam-aware 2D fill."""
@@ -266,7 +310,7 @@ class WarpInpainter:
         self.layer = layer
         self.inpaint_radius = inpaint_radius
         self._rc = layer.raycaster() if len(layer.faces) else None
-        self._dirs: dict[tuple[int, int], np.ndarray] = {}
+        self._colors = layer.colors.astype(np.float32)
 
     def fill(self, rgb: np.ndarray, mask: np.ndarray, depth: np.ndarray | None, world_from_cam: np.ndarray) -> FilledFrame:
         """rgb (H, W, 3) uint8, mask (H, W) bool (True = valid condition), depth (H, W) metres or None, pose 4x4."""
@@ -278,16 +322,22 @@ class WarpInpainter:
         out_d = np.where(mask, depth, 0.0).astype(np.float32) if depth is not None else np.zeros((H, W), np.float32)
         filled = np.zeros((H, W), bool)
         if hole.any() and self._rc is not None:
-            if (H, W) not in self._dirs:
-                self._dirs[(H, W)] = erp_dirs(H, W, dtype=np.float64)
-            dirs = self._dirs[(H, W)][hole] @ np.asarray(world_from_cam)[:3, :3].T
-            hits = self._rc.cast(np.asarray(world_from_cam)[:3, 3][None], dirs)
-            ok = hits.face >= 0
-            col = self._rc.interpolate(hits, self.layer.colors.astype(np.float32))
             hi, hj = np.nonzero(hole)
-            out[hi[ok], hj[ok]] = np.clip(np.rint(col[ok]), 0, 255).astype(np.uint8)
-            out_d[hi[ok], hj[ok]] = hits.distance[ok]
-            filled[hi[ok], hj[ok]] = True
+            origin = np.asarray(world_from_cam)[:3, 3][None]
+            R = np.asarray(world_from_cam)[:3, :3]
+            # Rays through a vertex or edge can slip between triangles: retry those at sub-pixel offsets.
+            for du, dv in ((0.0, 0.0), (0.25, 0.25), (-0.25, -0.25), (0.25, -0.25), (-0.25, 0.25)):
+                todo = ~filled[hi, hj]
+                if not todo.any():
+                    break
+                ti, tj = hi[todo], hj[todo]
+                dirs = erp_dir_at(tj + 0.5 + du, ti + 0.5 + dv, H, W) @ R.T
+                hits = self._rc.cast(origin, dirs)
+                ok = hits.face >= 0
+                col = self._rc.interpolate(hits, self._colors)
+                out[ti[ok], tj[ok]] = np.clip(np.rint(col[ok]), 0, 255).astype(np.uint8)
+                out_d[ti[ok], tj[ok]] = hits.distance[ok]
+                filled[ti[ok], tj[ok]] = True
         rest = hole & ~filled
         if rest.any() and not rest.all():
             out = erp_inpaint(out, rest, radius=self.inpaint_radius)

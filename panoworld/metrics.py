@@ -121,6 +121,7 @@ def reprojection_error(
     world_from_cam_t: np.ndarray,
     world_from_cam_t1: np.ndarray,
     *,
+    mask_t: np.ndarray | None = None,
     occlusion_tol: float = 0.03,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Temporal consistency of ERP frames t and t+1 through known geometry (e.g. ground-truth depth).
@@ -128,7 +129,8 @@ def reprojection_error(
     Every pixel of frame t+1 is lifted with depth_t1 (H, W), moved into camera t and sampled bilinearly (columns
     wrapped) from img_t (H, W, C). Returns (err (H, W) float64 RMS over channels of img_t1 - sampled img_t,
     valid (H, W) bool): valid where the depth is finite and the point is visible in frame t (its distance agrees
-    with depth_t at the landing pixel within occlusion_tol relative).
+    within occlusion_tol relative with depth_t at all four pixels the bilinear sample reads) and, if mask_t (H, W)
+    is given, all four of those pixels are True in mask_t (e.g. only pixels that were filled in frame t).
     """
     from panoworld.conventions import erp_pixel_from_dir, invert_pose, points_from_depth, transform_points
 
@@ -136,6 +138,8 @@ def reprojection_error(
     H, W = img_t.shape[:2]
     if depth_t.shape != (H, W) or depth_t1.shape != (H, W):
         raise ValueError(f"{depth_t.shape=} {depth_t1.shape=} but expected {(H, W)} (H, W)")
+    if mask_t is not None:
+        mask_t = _mask(mask_t, (H, W))
     ok = np.isfinite(depth_t1) & (depth_t1 > 0)
     d1 = np.where(ok, depth_t1, 1.0).astype(np.float64)
     pts = transform_points(invert_pose(world_from_cam_t) @ world_from_cam_t1, points_from_depth(d1))
@@ -143,9 +147,17 @@ def reprojection_error(
     map_x = (u - 0.5).astype(np.float32)
     map_y = np.clip(v - 0.5, 0, H - 1).astype(np.float32)
     sampled = cv2_remap(img_t.astype(np.float32), map_x, map_y)
-    landing_depth = cv2_remap(np.where(np.isfinite(depth_t), depth_t, 0).astype(np.float32), map_x, map_y, nearest=True)
+    # Visible only if all four bilinear taps see the point: no colour is mixed across an occlusion edge.
     dist = np.linalg.norm(pts, axis=-1)
-    ok &= np.abs(landing_depth - dist) <= occlusion_tol * dist
+    d_t = np.where(np.isfinite(depth_t), depth_t, 0.0)
+    i0 = np.floor(map_y).astype(np.int64)
+    j0 = np.floor(map_x).astype(np.int64)
+    for di in (0, 1):
+        for dj in (0, 1):
+            ti, tj = np.clip(i0 + di, 0, H - 1), (j0 + dj) % W
+            ok &= np.abs(d_t[ti, tj] - dist) <= occlusion_tol * dist
+            if mask_t is not None:
+                ok &= mask_t[ti, tj]
     diff = img_t1.astype(np.float64) - sampled
     err = np.sqrt((diff**2).mean(axis=-1)) if diff.ndim == 3 else np.abs(diff)
     return err, ok
