@@ -1,0 +1,241 @@
+"""Video artifact: layout, load_video and MCAP round trips, upscaling seams, the stage CLI and its input errors."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import imageio_ffmpeg
+import numpy as np
+import pytest
+
+from panoworld.conventions import rotmat_from_quat_wxyz
+from panoworld.stage import StageSpec, execute_stage
+from panoworld.upscale import lanczos_x2, nearest_x2
+from panoworld.video_io import (
+    MCAP_FILE,
+    PREVIEW_FILE,
+    TOPIC_COND_MASK,
+    TOPIC_COND_RGB,
+    TOPIC_DEPTH,
+    TOPIC_POSE,
+    TOPIC_RGB,
+    TOPIC_TF,
+    VIDEO_FILE,
+    decode_png,
+    depth_to_mm,
+    load_video,
+    raw_image_array,
+    read_mcap,
+    world_from_cam_from_mcap,
+    write_video,
+)
+from stages import video as video_stage
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def random_video(t=4, h=16, w=32, seed=0):
+    rng = np.random.default_rng(seed)
+    frames = rng.integers(0, 256, (t, h, w, 3), dtype=np.uint8)
+    depth = rng.uniform(0.3, 8.0, (t, h, w)).astype(np.float32)
+    depth[:, 0, :3] = 0.0  # unknown
+    poses = np.tile(np.eye(4), (t, 1, 1))
+    poses[:, :3, :3] = rotmat_from_quat_wxyz(rng.normal(size=(t, 4)))
+    poses[:, :3, 3] = rng.normal(size=(t, 3))
+    return frames, depth, poses
+
+
+def test_write_and_load_video_round_trip(tmp_path):
+    frames, depth, poses = random_video()
+    doc = write_video(tmp_path, frames, depth, poses, fps=12.0, meta={"backend": "test", "upscale": "none"})
+    for name in (VIDEO_FILE, PREVIEW_FILE, MCAP_FILE, "frames/000000.png", "frames/000003.png", "depth/000003.png"):
+        assert (tmp_path / name).is_file(), name
+    on_disk = json.loads((tmp_path / VIDEO_FILE).read_text())
+    assert on_disk == doc
+    assert {k: on_disk[k] for k in ("height", "width", "num_frames", "fps", "has_depth", "depth_scale")} == {
+        "height": 16, "width": 32, "num_frames": 4, "fps": 12.0, "has_depth": True, "depth_scale": 0.001}
+    assert on_disk["frames"][2] == {"rgb": "frames/000002.png", "depth": "depth/000002.png"}
+    v = load_video(tmp_path)
+    np.testing.assert_array_equal(v.frames, frames)
+    np.testing.assert_array_equal(v.poses, poses)
+    assert v.depth.dtype == np.float32 and v.fps == 12.0
+    assert np.abs(v.depth - depth).max() <= 0.0005 + 1e-6  # millimetre PNGs
+    assert (v.depth[:, 0, :3] == 0).all()
+    assert load_video(tmp_path, with_depth=False).depth is None
+
+
+def test_video_without_depth(tmp_path):
+    frames, _, poses = random_video(t=2)
+    doc = write_video(tmp_path, frames, None, poses, fps=16.0, preview=False, mcap=False)
+    assert doc["has_depth"] is False and doc["frames"][0]["depth"] is None
+    assert not (tmp_path / "depth").exists() and not (tmp_path / PREVIEW_FILE).exists()
+    assert load_video(tmp_path).depth is None
+
+
+def test_mcap_decodes_back_exactly(tmp_path):
+    from panoworld.video_io import VideoWriter, encode_png
+
+    frames, depth, poses = random_video(t=3)
+    writer = VideoWriter(tmp_path, height=16, width=32, fps=10.0, has_depth=True, preview=False)
+    cond_pngs = [encode_png(f[::2, ::2]) for f in frames]
+    mask_pngs = [encode_png(((f[::2, ::2, 0] > 127) * 255).astype(np.uint8)) for f in frames]
+    for k in range(3):
+        writer.add(frames[k], depth[k], poses[k], cond_rgb_png=cond_pngs[k], cond_mask_png=mask_pngs[k])
+    writer.close()
+    msgs = read_mcap(tmp_path / MCAP_FILE)
+    assert {t: len(m) for t, m in msgs.items()} == {t: 3 for t in (TOPIC_RGB, TOPIC_DEPTH, TOPIC_COND_RGB,
+                                                                     TOPIC_COND_MASK, TOPIC_TF, TOPIC_POSE)}
+    for k in range(3):
+        rgb = msgs[TOPIC_RGB][k]
+        assert rgb.format == "png" and rgb.frame_id == "camera"
+        np.testing.assert_array_equal(decode_png(rgb.data), frames[k])
+        assert msgs[TOPIC_COND_RGB][k].data == cond_pngs[k] and msgs[TOPIC_COND_MASK][k].data == mask_pngs[k]
+        d = msgs[TOPIC_DEPTH][k]
+        assert (d.encoding, d.width, d.height) == ("16UC1", 32, 16)
+        np.testing.assert_array_equal(raw_image_array(d), depth_to_mm(depth[k]))
+        tf = msgs[TOPIC_TF][k]
+        assert (tf.parent_frame_id, tf.child_frame_id) == ("world", "camera")
+        np.testing.assert_allclose(world_from_cam_from_mcap(tf), poses[k], atol=1e-12)
+        np.testing.assert_allclose(world_from_cam_from_mcap(msgs[TOPIC_POSE][k]), poses[k], atol=1e-12)
+        assert rgb.timestamp.ToNanoseconds() == round(k * 1e9 / 10.0)
+    # The ROS world is z up: our up (-Y) must come out as +z.
+    from panoworld.conventions import ros_world_from_cam
+
+    np.testing.assert_allclose(ros_world_from_cam(np.eye(4))[:3, :3] @ np.array([0.0, -1.0, 0.0]), [0, 0, 1])
+
+
+def test_preview_is_h264_yuv420p_with_even_size(tmp_path):
+    frames, _, poses = random_video(t=3, h=18, w=36)
+    write_video(tmp_path, frames, None, poses, fps=8.0, mcap=False, preview_max_width=30)
+    meta = next(imageio_ffmpeg.read_frames(str(tmp_path / PREVIEW_FILE)))
+    assert meta["codec"] == "h264" and meta["pix_fmt"].startswith("yuv420p")
+    assert all(s % 2 == 0 for s in meta["size"]) and meta["size"][0] <= 30
+
+
+def test_lanczos_upscale_is_seam_equivariant():
+    rng = np.random.default_rng(3)
+    img = rng.integers(0, 256, (16, 32, 3), dtype=np.uint8)
+    up = lanczos_x2(img)
+    assert up.shape == (32, 64, 3)
+    # Upscaling commutes with a rotation in longitude exactly: the seam is treated like any other column.
+    np.testing.assert_array_equal(lanczos_x2(np.roll(img, 5, axis=1)), np.roll(up, 10, axis=1))
+    d = rng.uniform(1, 2, (4, 8)).astype(np.float32)
+    np.testing.assert_array_equal(nearest_x2(d)[::2, ::2], d)
+    np.testing.assert_array_equal(nearest_x2(d)[1::2, 1::2], d)
+
+
+# ---------------------------------------------------------------- the stage
+
+
+@dataclasses.dataclass(kw_only=True)
+class _NoParams:
+    pass
+
+
+def _artifact(kind: str, out: Path, write) -> Path:
+    """A real upstream artifact (manifest, digests) whose files are written by `write(out_dir) -> info`."""
+    spec = StageSpec(f"stub-{kind}", "0", kind, {}, _NoParams, types.SimpleNamespace(run=lambda i, p, o: write(o)))
+    execute_stage(spec, {}, _NoParams(), out)
+    return out
+
+
+@pytest.fixture(scope="module")
+def upstream(tmp_path_factory):
+    """mesh, trajectory and conditions artifacts of the box scene of test_inpaint (64x128, 5 poses)."""
+    from panoworld.conditions import render_conditions, write_conditions
+    from panoworld.mesh import erp_mesh_from_depth, save_erp_mesh
+    from panoworld.trajectory import write_trajectory
+    from tests.test_inpaint import BoxScene, sideways_poses
+
+    root = tmp_path_factory.mktemp("upstream")
+    rgb0, d0 = BoxScene().render(np.eye(4), 64, 128)
+    mesh = erp_mesh_from_depth(d0, rgb0)
+    poses = sideways_poses(5, 0.6)
+
+    def write_mesh(o):
+        save_erp_mesh(mesh, o / "mesh.ply")
+        return {"num_vertices": len(mesh.vertices), "num_faces": len(mesh.faces),
+                "num_faces_stretched": int((~mesh.face_valid).sum()), "stretched_kept_as_occluders": True,
+                "grid": [64, 128]}
+
+    def write_traj(o):
+        write_trajectory(o, poses, np.full(len(poses), 1.0), fps=10.0)
+        return {"source": "planned", "kind": "sector", "frames": len(poses), "step_m": 0.15, "min_clearance_m": 1.0,
+                "agent_radius_m": 0.2, "invalid_poses": []}
+
+    def write_cond(o):
+        info = write_conditions(o, render_conditions(mesh, poses, 64, 128, backend="raycast"), poses)
+        return {**info, "backend": "raycast"}
+
+    return {"mesh": _artifact("mesh", root / "mesh", write_mesh),
+            "trajectory": _artifact("trajectory", root / "trajectory", write_traj),
+            "conditions": _artifact("conditions", root / "conditions", write_cond), "poses": poses}
+
+
+def _cli(upstream, out: Path, *flags: str) -> list[str]:
+    return ["--conditions", str(upstream["conditions"]), "--trajectory", str(upstream["trajectory"]),
+            "--mesh", str(upstream["mesh"]), "--out", str(out), *flags]
+
+
+def test_stage_warp_inpaint_end_to_end(upstream, tmp_path):
+    out = tmp_path / "video"
+    assert video_stage.main(_cli(upstream, out)) == 0
+    manifest = json.loads((out / "manifest.json").read_text())
+    info = manifest["info"]
+    assert info["backend"] == "warp-inpaint" and info["upscale"] == "lanczos" and info["fps"] == 10.0
+    assert info["layer_faces"] > 0 and info["filled_3d_fraction"] > 0.9
+    v = load_video(out)
+    assert v.frames.shape == (5, 128, 256, 3) and v.depth.shape == (5, 128, 256)
+    np.testing.assert_allclose(v.poses, upstream["poses"])
+    assert (v.depth > 0).mean() > 0.99  # conditions depth + layer depth
+    msgs = read_mcap(out / MCAP_FILE)
+    assert len(msgs[TOPIC_COND_RGB]) == 5 and decode_png(msgs[TOPIC_COND_RGB][0].data).shape == (64, 128, 3)
+    assert len(msgs[TOPIC_RGB]) == 5 and len(msgs[TOPIC_DEPTH]) == 5
+
+
+def test_stage_frame_inpaint_without_upscale(upstream, tmp_path):
+    out = tmp_path / "video"
+    assert video_stage.main(_cli(upstream, out, "--backend", "frame-inpaint", "--upscale", "none",
+                                 "--mcap", "false", "--preview", "false")) == 0
+    v = load_video(out)
+    assert v.frames.shape == (5, 64, 128, 3) and v.meta["backend"] == "frame-inpaint"
+    assert not (out / MCAP_FILE).exists()
+
+
+def test_stage_input_errors(upstream, tmp_path, capsys):
+    out = tmp_path / "video"
+    assert video_stage.main(_cli(upstream, out, "--backend", "wan-shortcut")) == 2
+    assert "--weights DIR" in capsys.readouterr().err
+    assert video_stage.main(_cli(upstream, out, "--upscale", "realesrgan")) == 2
+    assert "--upscale-weights FILE" in capsys.readouterr().err
+    # Conditions rendered for another trajectory.
+    from panoworld.trajectory import write_trajectory
+
+    other = _artifact("trajectory", tmp_path / "traj2", lambda o: (
+        write_trajectory(o, upstream["poses"][:3], np.ones(3), fps=10.0),
+        {"source": "planned", "kind": "sector", "frames": 3, "step_m": 0.1, "min_clearance_m": 1.0,
+         "agent_radius_m": 0.2, "invalid_poses": []})[1])
+    argv = _cli(upstream, out)
+    argv[argv.index("--trajectory") + 1] = str(other)
+    assert video_stage.main(argv) == 2
+    assert "rerun the conditions stage" in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_stage_wan_shortcut_names_missing_weight_files(upstream, tmp_path, capsys):
+    assert video_stage.main(_cli(upstream, tmp_path / "v", "--backend", "wan-shortcut", "--weights", str(tmp_path))) == 2
+    err = capsys.readouterr().err
+    assert "--weights" in err and "transformer/config.json" in err
+
+
+def test_cli_help():
+    out = subprocess.run([sys.executable, "-m", "stages.video", "--help"], capture_output=True, text=True, cwd=REPO)
+    assert out.returncode == 0, out.stderr
+    for flag in ("--backend", "--upscale", "--upscale-weights", "--weights", "--lora", "--extra-weights", "--steps"):
+        assert flag in out.stdout
