@@ -143,6 +143,12 @@ def test_floor_recovers_camera_height():
     assert np.array_equal(kept, depth) and info["camera_height_estimated_after"] == pytest.approx(CAMERA_HEIGHT, 1e-3)
 
 
+def test_floor_on_synth_scene(synth_scene, tmp_path):
+    gt = json.loads((synth_scene / "gt" / "gt.json").read_text())
+    manifest, _ = run_depth_stage(tmp_path, synth_scene / "panorama.png", synth_scene / "depth.npy")
+    assert manifest["info"]["camera_height_estimated_before"] == pytest.approx(gt["camera_height_m"], rel=1e-3)
+
+
 def test_no_floor_is_an_input_error(room):
     _, _, depth = room
     upper = np.zeros_like(depth, bool)
