@@ -81,7 +81,11 @@ def main(argv: list[str] | None = None) -> int:
         nav_times.append(time.perf_counter() - t)
         for kind in PathKind:
             for stride in strides:
-                r = evaluate(nav, gt_v, gt_f, TrajectoryParams(kind=kind, stride=stride), args.min_dist)
+                try:
+                    r = evaluate(nav, gt_v, gt_f, TrajectoryParams(kind=kind, stride=stride), args.min_dist)
+                except ValueError as e:
+                    failures.append(f"seed {seed} {kind} stride {stride}: {e}")
+                    continue
                 r.update(seed=seed, kind=str(kind), stride=stride)
                 rows.append(r)
                 print(f"{seed:>4} {kind:>6} {stride:>2} {r['min_clearance']:9.3f} {r['inside']!s:>6} {r['step_cv']:7.4f} "

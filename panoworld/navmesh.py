@@ -46,6 +46,9 @@ class NavMeshParams:
     """Polygon simplification tolerance (approxPolyDP) in metres; 0 = one cell. Compensated by extra erosion."""
     max_triangle_area_m2: float = 0.25
     """Largest NavMesh triangle ('triangle' quality meshing), so A* over triangles gives short corridors."""
+    camera_footprint_m: float = 0.0
+    """Unseen floor within this horizontal radius of the camera counts as walkable (tripod / nadir blind spot of
+    real captures: the camera stood there); obstacles are never overridden. 0 = trust only what was seen."""
     max_erp_height: int = 192
     """ERP grid meshes (panoworld.mesh layout) with more rows are re-meshed from every s-th pixel first (speed)."""
 
@@ -234,6 +237,11 @@ def floor_grid(
     grid.obstacle = ok_face & (h > step)
     grid.walkable = ok_face & (np.abs(h) <= step)
     grid.unseen = ~(grid.obstacle | grid.walkable)
+    if params.camera_footprint_m > 0:
+        xz = grid.xz_of(np.argwhere(np.ones((nz, nx), bool)))
+        under = (np.hypot(xz[:, 0], xz[:, 1]) <= params.camera_footprint_m).reshape(nz, nx) & grid.unseen
+        grid.walkable |= under
+        grid.unseen &= ~under
 
     # Vertices, and samples along edges longer than half a cell, of valid faces in the band: thin legs and
     # walls seen edge-on that rays through cell centres can miss.
@@ -314,13 +322,14 @@ def _pick_component(cs, xz: np.ndarray) -> tuple[list[np.ndarray], bool, float]:
     for piece in cs.decompose():
         rings = [np.asarray(r, np.float64) for r in piece.to_polygons()]
         segs = _ring_segments(rings)
-        inside = bool(_even_odd(xz[None], segs)[0])
-        d = 0.0 if inside else float(_segment_distance(xz[None], segs)[0])
-        if best is None or d < best[2] or (inside and piece.area() > best[3]):
-            best = (rings, inside, d, piece.area())
+        if _even_odd(xz[None], segs)[0]:
+            return rings, True, 0.0
+        d = float(_segment_distance(xz[None], segs)[0])
+        if best is None or d < best[1]:
+            best = (rings, d)
     if best is None:
         raise NoFloorError("no walkable floor is left after eroding by the agent radius")
-    return best[0], best[1], best[2]
+    return best[0], False, best[1]
 
 
 def _ring_segments(rings: list[np.ndarray]) -> np.ndarray:
@@ -369,12 +378,12 @@ def triangulate_rings(rings: list[np.ndarray], max_area_m2: float) -> tuple[np.n
         verts.append(r)
         segs.append(np.stack([np.arange(n), (np.arange(n) + 1) % n], 1) + base)
         base += n
-        if _ring_area(r) < 0:  # a hole: a point strictly inside it
-            tri = np.asarray(triangulate([r[::-1].copy()]))
-            t = tri[np.argmax([abs(_ring_area(r[::-1][k])) for k in tri])] if len(tri) else None
-            if t is None:
-                continue
-            holes.append(r[::-1][t].mean(axis=0))
+        if _ring_area(r) < 0:  # a hole: Triangle needs a point strictly inside it (a zero-area hole needs none)
+            ccw = r[::-1].copy()
+            tris = np.asarray(triangulate([ccw])).reshape(-1, 3)
+            if len(tris):
+                biggest = max(tris, key=lambda k: abs(_ring_area(ccw[k])))
+                holes.append(ccw[biggest].mean(axis=0))
     data = {"vertices": np.concatenate(verts), "segments": np.concatenate(segs)}
     if holes:
         data["holes"] = np.asarray(holes)
@@ -485,8 +494,12 @@ class NavMesh:
             out[outside] = q + 1e-3 * _unit(self._centroids[tri] - q)
         return out
 
-    def crossings(self, a: np.ndarray, b: np.ndarray, eps: float = 1e-12, chunk: int = 512) -> np.ndarray:
-        """Whether each segment a[k] -> b[k] (N, 2) properly crosses the NavMesh boundary -> (N,) bool."""
+    def blocked(self, a: np.ndarray, b: np.ndarray, chunk: int = 512) -> np.ndarray:
+        """Whether each segment a[k] -> b[k] (N, 2) leaves the NavMesh -> (N,) bool.
+
+        Blocked when the boundary meets the segment anywhere but at its end points (crossing or touching a
+        boundary vertex) or its midpoint lies outside; ends may lie on the boundary, and segments may run along it.
+        """
         a, b = _check_xz(a), _check_xz(b)
         out = np.zeros(len(a), bool)
         s0, s1 = self._segs[None, :, 0], self._segs[None, :, 1]
@@ -494,13 +507,15 @@ class NavMesh:
             p, q = a[s : s + chunk, None], b[s : s + chunk, None]
             d1, d2 = _cross(p, q, s0), _cross(p, q, s1)
             d3, d4 = _cross(s0, s1, p), _cross(s0, s1, q)
-            out[s : s + chunk] = ((d1 * d2 < -eps) & (d3 * d4 < -eps)).any(axis=1)
+            out[s : s + chunk] = ((d1 * d2 <= 0) & (d3 * d4 < 0)).any(axis=1)
+        mid = 0.5 * (a[~out] + b[~out])
+        out[~out] = self.clearance(mid) < -1e-9  # on the boundary counts as inside
         return out
 
     def segment_inside(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """Whether each segment a[k] -> b[k] (N, 2) lies inside the NavMesh (ends inside, no boundary crossing)."""
+        """Whether each segment a[k] -> b[k] (N, 2) lies inside the NavMesh (ends inside, never leaving it)."""
         a, b = _check_xz(a), _check_xz(b)
-        return self.contains(a) & self.contains(b) & ~self.crossings(a, b)
+        return self.contains(a) & self.contains(b) & ~self.blocked(a, b)
 
     def polyline_inside(self, pts: np.ndarray) -> np.ndarray:
         """(K - 1,) bool per segment of a polyline (K, 2)."""
@@ -538,14 +553,20 @@ class NavMesh:
                 return out[:n]
         raise ValueError(f"could not sample {n} points with clearance >= {min_clearance} m (NavMesh too narrow)")
 
-    def offset(self, delta_m: float) -> NavMesh:
-        """A new NavMesh grown (delta > 0) or shrunk (delta < 0) exactly (manifold3d offset, round joins)."""
+    def offset(self, delta_m: float, keep_xz: np.ndarray | None = None) -> NavMesh:
+        """A new NavMesh grown (delta > 0) or shrunk (delta < 0) exactly (manifold3d offset, round joins).
+
+        Shrinking can split it; keep_xz (2,) keeps only the piece containing (or nearest to) that point.
+        """
         from manifold3d import JoinType
 
         cs = cross_section(self.rings).offset(delta_m, JoinType.Round, circular_segments=16)
-        rings = [np.asarray(r, np.float64) for r in cs.to_polygons()]
-        if not rings or cs.area() <= 0:
+        if cs.is_empty() or cs.area() <= 0:
             raise NoFloorError(f"nothing is left of the NavMesh after offsetting by {delta_m} m")
+        if keep_xz is None:
+            rings = [np.asarray(r, np.float64) for r in cs.to_polygons()]
+        else:
+            rings = _pick_component(cs, np.asarray(keep_xz, np.float64).reshape(2))[0]
         v, t, adj = triangulate_rings(rings, self.info.get("max_triangle_area_m2", 0.25))
         return NavMesh(v, t, adj, rings, self.floor_y, dict(self.agent), {**self.info, "offset_m": delta_m})
 
@@ -573,7 +594,7 @@ class NavMesh:
         while out[-1] < len(pts) - 1:
             i = out[-1]
             js = np.arange(i + 1, len(pts))
-            ok = ~self.crossings(np.repeat(pts[i][None], len(js), 0), pts[js])
+            ok = ~self.blocked(np.repeat(pts[i][None], len(js), 0), pts[js])
             out.append(int(js[np.flatnonzero(ok)].max()) if ok.any() else i + 1)
         return pts[out]
 

@@ -99,15 +99,30 @@ def resample_polyline(pts: np.ndarray, n: int, *, closed: bool = False, spacing:
     return np.stack([np.interp(t, s, p[:, k]) for k in range(p.shape[1])], axis=1)
 
 
-def smooth_polyline(nav: NavMesh, pts: np.ndarray, *, closed: bool, iterations: int, pinned: int | None = 0) -> np.ndarray:
+def subdivide_polyline(pts: np.ndarray, max_segment: float, closed: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Insert points so no segment is longer than max_segment -> (points (K, 2), (K,) index of the source vertex or -1)."""
+    p = np.concatenate([pts, pts[:1]]) if closed else pts
+    n = np.maximum(np.ceil(np.linalg.norm(np.diff(p, axis=0), axis=1) / max_segment).astype(int), 1)
+    out = [p[i] + (p[i + 1] - p[i]) * (np.arange(n[i])[:, None] / n[i]) for i in range(len(n))]
+    src = [np.concatenate([[i], np.full(n[i] - 1, -1)]) for i in range(len(n))]
+    if not closed:
+        out.append(p[-1:])
+        src.append(np.array([len(p) - 1]))
+    return np.concatenate(out), np.concatenate(src).astype(int)
+
+
+def smooth_polyline(
+    nav: NavMesh, pts: np.ndarray, *, closed: bool, iterations: int, pinned: int | None = 0, max_segment: float = 0.3
+) -> np.ndarray:
     """Constrained Chaikin corner cutting: a corner is cut only when the new chord stays inside the NavMesh.
 
-    Open polylines keep both ends; `pinned` (an index) is never cut (the start of a closed loop).
+    Segments are first split to at most max_segment so cuts stay local. Open polylines keep both ends;
+    `pinned` (a vertex index of pts) is never cut (the start of a closed loop).
     """
-    pts = np.asarray(pts, np.float64)
+    pts, src = subdivide_polyline(np.asarray(pts, np.float64), max_segment, closed)
     keep = np.zeros(len(pts), bool)
     if pinned is not None:
-        keep[pinned] = True
+        keep[src == pinned] = True
     for _ in range(iterations):
         n = len(pts)
         if n < 3:
@@ -119,7 +134,7 @@ def smooth_polyline(nav: NavMesh, pts: np.ndarray, *, closed: bool, iterations: 
         cut = ~keep.copy()
         if not closed:
             cut[[0, -1]] = False
-        cut[cut] &= ~nav.crossings(a[cut], b[cut])
+        cut[cut] &= ~nav.blocked(a[cut], b[cut])
         out, out_keep = [], []
         for i in range(n):
             if cut[i]:
@@ -151,14 +166,13 @@ def truncate_polyline(pts: np.ndarray, length: float) -> np.ndarray:
 
 
 def _planning_mesh(nav: NavMesh, start: np.ndarray, margin: float) -> NavMesh:
-    """The NavMesh shrunk by margin when the start stays inside it, else the NavMesh itself."""
+    """The NavMesh shrunk by margin (its piece containing or nearest to the start), or itself if nothing is left."""
     if margin <= 0:
         return nav
     try:
-        inner = nav.offset(-margin)
+        return nav.offset(-margin, keep_xz=start)
     except ValueError:
         return nav
-    return inner if inner.contains(start)[0] else nav
 
 
 def _hub(nav: NavMesh, start: np.ndarray) -> tuple[np.ndarray, float]:
@@ -299,6 +313,7 @@ def plan_sector(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> Pl
             "leg_steps": [int(x) for x in m],
             "step_adapted": bool(s_used < step * (1 - 1e-6)),
             "start_off_navmesh_m": off,
+            "hub": hub.tolist(),
         },
     )
 
@@ -357,7 +372,7 @@ def plan_ring(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> Plan
     loop, roundness, radius, center = best
     pieces = []
     for a, b in zip(loop, np.roll(loop, -1, axis=0)):
-        if plan_nav.crossings(a[None], b[None])[0] or not plan_nav.contains(b)[0]:
+        if plan_nav.blocked(a[None], b[None])[0] or not plan_nav.contains(b)[0]:
             pieces.append(plan_nav.path(a, plan_nav.closest_point(b)[0])[:-1])
         else:
             pieces.append(a[None])
@@ -379,6 +394,7 @@ def plan_ring(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> Plan
             "loop_length_m": length,
             "step_adapted": bool(spacing < 0.98 * step),
             "start_off_navmesh_m": off,
+            "hub": hub.tolist(),
         },
     )
 
@@ -393,10 +409,12 @@ def plan_path(nav: NavMesh, params: TrajectoryParams, start: np.ndarray | None =
     if params.step_m <= 0:
         raise ValueError(f"step_m={params.step_m} must be positive")
     plan = plan_sector(nav, start, params) if params.kind == PathKind.SECTOR else plan_ring(nav, start, params)
-    off = plan.info.get("start_off_navmesh_m", 0.0)
-    if off > 0:
-        near = np.linalg.norm(plan.positions - start, axis=1) <= off + 1e-6
-        plan.exempt = sorted({0, *np.flatnonzero(near & ~nav.contains(plan.positions)).tolist()})
+    if plan.info.get("start_off_navmesh_m", 0.0) > 0:  # poses on the straight way from the camera to the hub
+        hub = np.asarray(plan.info["hub"])
+        ab = hub - start
+        t = np.clip((plan.positions - start) @ ab / (ab @ ab), 0.0, 1.0)
+        on_way = np.linalg.norm(start + t[:, None] * ab - plan.positions, axis=1) < 1e-6
+        plan.exempt = sorted({0, *np.flatnonzero(on_way & ~nav.contains(plan.positions)).tolist()})
     plan.info["requested_length_m"] = (params.frames - (0 if params.kind == PathKind.RING else 1)) * params.step_m * params.stride
     return plan
 
@@ -439,7 +457,7 @@ def step_lengths(poses: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------- clearance against a mesh
 
 
-CLEARANCE_CAP_M = 1.0
+CLEARANCE_CAP_M = 0.5
 """Clearances are measured exactly up to max(this, 2 x agent radius) and reported as that cap beyond it."""
 
 

@@ -106,7 +106,10 @@ def test_path_is_the_exact_shortest_path():
     a, b = np.array([0.5, 1.5]), np.array([3.5, 1.5])
     p = nav.path(a, b)
     assert np.allclose(p, [a, [1.5, 0.5], [2.5, 0.5], b], atol=1e-9)
-    assert not nav.crossings(p[:-1], p[1:]).any()
+    assert not nav.blocked(p[:-1], p[1:]).any()
+    # A chord between boundary vertices across the notch (outside) is blocked; one along the boundary is not.
+    assert nav.blocked(np.array([[1.5, 2.0], [0.0, 0.0]]), np.array([[2.5, 2.0], [4.0, 0.0]])).tolist() == [True, False]
+    assert nav.blocked(np.array([[1.0, 1.0]]), np.array([[3.0, 1.0]]))[0]  # through the notch
     for i, nbs in enumerate(adj):  # adjacency is symmetric
         for nb in nbs[nbs >= 0]:
             assert i in adj[nb]
@@ -156,6 +159,19 @@ def test_camera_eroded_away_keeps_the_nearest_walkable_component():
     assert not nav.info["camera_on_navmesh"]
     assert 0.15 < nav.info["camera_distance_to_navmesh_m"] < 0.35
     assert nav.area > 5.0
+
+
+def test_blind_nadir_is_walkable_only_when_asked():
+    # A real capture's blind spot: no depth within 45 degrees of straight down (floor within 1.5 m unseen).
+    d = erp_depth(box_room(), 128)
+    d[-32:] = np.nan
+    em = erp_mesh_from_depth(d, np.zeros(d.shape + (3,), np.uint8))
+    strict = build_navmesh(em.vertices, em.faces, em.face_valid)
+    assert not strict.info["camera_on_navmesh"] and not strict.contains(np.zeros((1, 2)))[0]
+    trusting = build_navmesh(em.vertices, em.faces, em.face_valid, params=NavMeshParams(camera_footprint_m=1.6))
+    assert trusting.info["camera_on_navmesh"] and trusting.area > strict.area
+    # The obstacle box at (1.2, 0.8) lies within the footprint but stays out.
+    assert not trusting.contains(np.array([[1.2, 0.8], [0.9, 0.6]])).any()
 
 
 def test_downsampled_erp_mesh_gives_the_same_navmesh(room):

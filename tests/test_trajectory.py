@@ -1,0 +1,246 @@
+"""Trajectories: GT-checked planning on synthetic scenes, resampling/smoothing, exact clearance, file I/O and the stage."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from panoworld.conventions import invert_pose, pose_from_rt, rotmat_from_quat_wxyz, transform_points
+from panoworld.mesh import erp_mesh_from_depth
+from panoworld.navmesh import NavMesh, build_navmesh, triangulate_rings
+from panoworld.trajectory import (
+    PathKind,
+    TrajectoryFileError,
+    TrajectoryParams,
+    YawMode,
+    load_trajectory,
+    mesh_clearance,
+    plan_path,
+    poses_from_positions,
+    read_trajectory_file,
+    resample_polyline,
+    sector_coverage,
+    sector_reach,
+    smooth_polyline,
+    step_lengths,
+    write_trajectory,
+    yaw_of_path,
+)
+from tests.test_navmesh import _make_mesh_artifact, box_room, erp_depth
+
+
+def _synth(seed: int, height: int = 128):
+    from panoworld.synth import generate_scene
+
+    scene = generate_scene(seed, "ci-tiny")
+    w_from_c = scene.world_from_canonical
+    depth = scene.raycaster.render_erp(w_from_c, height, 2 * height).distance.astype(np.float32)
+    mesh = erp_mesh_from_depth(depth, np.zeros(depth.shape + (3,), np.uint8))
+    return mesh, transform_points(invert_pose(w_from_c), scene.vertices.astype(np.float64)), scene.faces
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_planned_paths_are_safe_against_ground_truth(seed):
+    # NavMesh from the ERP mesh of the GT depth (what the pipeline sees); clearance against the full GT mesh.
+    mesh, gt_v, gt_f = _synth(seed)
+    nav = build_navmesh(mesh.vertices, mesh.faces, mesh.face_valid)
+    radius = nav.agent["agent_radius_m"]
+    _, reach = sector_reach(nav, np.zeros(2), 8)
+    for kind in PathKind:
+        for stride in (1, 4):
+            plan = plan_path(nav, TrajectoryParams(kind=kind, stride=stride))
+            poses = poses_from_positions(plan.positions)
+            assert poses.shape == (81, 4, 4) and np.array_equal(poses[0], np.eye(4))
+            assert mesh_clearance(gt_v, gt_f, poses[:, :3, 3]).min() >= radius
+            assert nav.contains(plan.positions).all()
+            steps = step_lengths(poses)
+            assert steps.std() / steps.mean() <= 0.1
+            assert steps.max() <= 0.05 * stride + 1e-9
+            if kind == PathKind.RING:
+                assert np.linalg.norm(plan.positions[-1] - plan.positions[0]) <= steps.max() + 1e-9
+            else:
+                covered = sector_coverage(plan.positions, np.zeros(2), 8, 0.1).sum()
+                assert covered >= min(6, int((reach >= 0.1).sum()))
+
+
+def test_camera_off_the_navmesh_walks_straight_onto_it():
+    # The camera stands 0.1 m from a wall: only the poses on the straight way to the NavMesh are off it.
+    from tests.test_navmesh import nav_of
+
+    nav = nav_of(box_room(cam_xz=(2.4, 0.0)), 128)
+    assert not nav.info["camera_on_navmesh"]
+    for kind in PathKind:
+        plan = plan_path(nav, TrajectoryParams(kind=kind, stride=2))
+        hub = np.asarray(plan.info["hub"])
+        assert plan.info["start_off_navmesh_m"] > 0.15 and len(plan.exempt) >= 2
+        rest = np.setdiff1d(np.arange(len(plan.positions)), plan.exempt)
+        assert nav.contains(plan.positions[rest]).all()
+        off = plan.positions[plan.exempt]
+        assert np.allclose(off[:, 0] * hub[1] - off[:, 1] * hub[0], 0, atol=1e-9)  # on the line camera -> hub
+
+
+def test_resample_gives_uniform_steps_and_closes_loops():
+    square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    closed = resample_polyline(square, 40, closed=True)
+    d = np.linalg.norm(np.diff(np.concatenate([closed, closed[:1]]), axis=0), axis=1)
+    assert np.allclose(d, 0.1) and np.allclose(closed[0], [0, 0])
+    open_ = resample_polyline(square, 31)
+    assert np.allclose(open_[[0, -1]], square[[0, -1]])
+    assert np.allclose(np.linalg.norm(np.diff(open_, axis=0), axis=1), 0.1)
+
+
+def test_smoothing_cuts_corners_only_inside_the_navmesh():
+    # An L-shaped corridor 0.4 m wide; a path hugging its inner corner cannot be cut there.
+    ring = np.array([[0, 0], [2, 0], [2, 2], [1.6, 2], [1.6, 0.4], [0, 0.4]], np.float64)
+    v, t, adj = triangulate_rings([ring], 0.05)
+    nav = NavMesh(v, t, adj, [ring], floor_y=1.0)
+    path = np.array([[0.1, 0.2], [1.6, 0.4 - 1e-6], [1.8, 1.9]])  # through the inner corner
+    sm = smooth_polyline(nav, path, closed=False, iterations=4)
+    assert np.allclose(sm[[0, -1]], path[[0, -1]])
+    assert not nav.blocked(sm[:-1], sm[1:]).any()
+    wide = np.array([[0.1, 0.2], [1.8, 0.2], [1.8, 1.9]])  # a corner with room: it is rounded
+    sw = smooth_polyline(nav, wide, closed=False, iterations=4)
+    assert len(sw) > 3 and not nav.blocked(sw[:-1], sw[1:]).any()
+    assert np.linalg.norm(sw - [1.8, 0.2], axis=1).min() > 0.05
+
+
+def test_yaw_follows_the_path_and_stays_upright():
+    pos = np.array([[0, 0], [0, 0.1], [0, 0.2], [0.1, 0.2], [0.2, 0.2]], np.float64)
+    yaw = yaw_of_path(pos, closed=False, sigma_frames=0)
+    assert yaw[0] == 0 and np.isclose(yaw[-1], np.pi / 2)  # heading +z turned to +x
+    poses = poses_from_positions(pos, yaw)
+    assert np.array_equal(poses[0], np.eye(4))
+    assert np.allclose(poses[:, :3, 1], [0, 1, 0]) and np.allclose(poses[:, 1, :3], [0, 1, 0])
+    assert np.allclose(poses[-1, :3, 2], [1, 0, 0])  # camera forward (+z) points along +x
+    assert np.allclose(np.linalg.det(poses[:, :3, :3]), 1)
+
+
+def test_mesh_clearance_is_exact():
+    box = trimesh.creation.box(extents=(1.0, 2.0, 0.5))
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-2, 2, (200, 3))
+    _, ref, _ = trimesh.proximity.closest_point_naive(box, pts)
+    assert np.allclose(mesh_clearance(box.vertices, box.faces, pts), ref, atol=1e-9)
+    assert np.allclose(mesh_clearance(box.vertices, box.faces, pts, cap=0.5), np.minimum(ref, 0.5), atol=1e-9)
+
+
+def _wobbly_poses(n=7):
+    rng = np.random.default_rng(3)
+    out = [np.eye(4)]
+    for _ in range(n - 1):
+        q = rng.normal(size=4)
+        out.append(pose_from_rt(rotmat_from_quat_wxyz(q), rng.normal(size=3)))
+    return np.stack(out)
+
+
+def test_trajectory_files_round_trip(tmp_path):
+    poses = _wobbly_poses()
+    write_trajectory(tmp_path, poses, np.ones(len(poses)), fps=16.0, kind="user")
+    assert np.allclose(load_trajectory(tmp_path), poses, atol=1e-12)
+    assert np.allclose(load_trajectory(tmp_path / "trajectory.tum"), poses, atol=1e-8)
+    lines = (tmp_path / "trajectory.tum").read_text().splitlines()
+    assert lines[2].split()[0] == f"{1 / 16:.6f}" and len(lines) == len(poses) + 1
+    (tmp_path / "plain.json").write_text(json.dumps(poses.tolist()))
+    assert np.allclose(read_trajectory_file(tmp_path / "plain.json"), poses)
+
+
+@pytest.mark.parametrize(
+    "name, text, match",
+    [
+        ("a.json", '{"frames": []}', "without a 'poses' list"),
+        ("b.json", "[[1, 0], [0, 1]]", "expected \\(N, 4, 4\\)"),
+        ("c.json", json.dumps([np.eye(4).tolist(), (2 * np.eye(4)).tolist()]), "pose 1 is not a rigid"),
+        ("d.tum", "0 0 0 0 0 0 0 1\n1 0 0 0 0 0 1\n", "d.tum:2: 7 values"),
+        ("e.tum", "0 0 0 0 0 0 0 2\n", "norm 2.0000"),
+        ("f.json", "{oops", "invalid JSON"),
+    ],
+)
+def test_bad_trajectory_files_are_named(tmp_path, name, text, match):
+    (tmp_path / name).write_text(text)
+    with pytest.raises(TrajectoryFileError, match=match):
+        read_trajectory_file(tmp_path / name)
+
+
+@pytest.fixture(scope="module")
+def artifacts(tmp_path_factory):
+    from stages import navmesh
+
+    root = tmp_path_factory.mktemp("traj")
+    mesh_dir = _make_mesh_artifact(root, erp_depth(box_room(), 128))
+    assert navmesh.main(["--mesh", str(mesh_dir), "--out", str(root / "nav")]) == 0
+    return root, mesh_dir, root / "nav"
+
+
+def test_stage_plans_a_valid_trajectory(artifacts):
+    from stages import trajectory as stage
+
+    root, mesh_dir, nav_dir = artifacts
+    out = root / "ring"
+    args = ["--navmesh", str(nav_dir), "--mesh", str(mesh_dir), "--out", str(out), "--kind", "ring", "--yaw", "forward"]
+    assert stage.main(args) == 0
+    poses = load_trajectory(out)
+    assert poses.shape == (81, 4, 4) and np.array_equal(poses[0], np.eye(4))
+    assert np.allclose(load_trajectory(out / "trajectory.tum"), poses, atol=1e-8)
+    doc = json.loads((out / "trajectory.json").read_text())
+    assert doc["kind"] == "ring" and doc["frame"] == "canonical (pose 0 = identity)" and len(doc["clearance_m"]) == 81
+    info = json.loads((out / "manifest.json").read_text())["info"]
+    assert info["invalid_poses"] == [] and info["min_clearance_m"] >= 0.25 and info["step_cv"] <= 0.1
+    assert info["closure_m"] <= max(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)) + 1e-9
+
+
+def _through_wall(n=12, step=0.3):
+    # Along +x from the camera: the wall is at x = 2.5 (the NavMesh ends about 0.3 m before it).
+    return poses_from_positions(np.stack([np.arange(n) * step, np.zeros(n)], 1))
+
+
+def test_stage_rejects_a_user_trajectory_through_a_wall(artifacts, capsys):
+    from stages import trajectory as stage
+
+    root, mesh_dir, nav_dir = artifacts
+    user = root / "through_wall.json"
+    user.write_text(json.dumps({"poses": _through_wall().tolist()}))
+    base = ["--navmesh", str(nav_dir), "--mesh", str(mesh_dir), "--user-trajectory", str(user)]
+    assert stage.main([*base, "--out", str(root / "bad")]) == 2
+    err = capsys.readouterr().err
+    assert "4 of 12 poses are invalid" in err
+    assert "outside the walkable NavMesh: poses 8-11" in err and "too close to the mesh: poses 8-9" in err
+    assert not (root / "bad").exists()
+
+    # The same poses as TUM text, reported instead of rejected.
+    from panoworld.trajectory import write_tum
+
+    write_tum(root / "through_wall.tum", _through_wall(), 16.0)
+    out = root / "reported"
+    tum = ["--navmesh", str(nav_dir), "--mesh", str(mesh_dir), "--user-trajectory", str(root / "through_wall.tum")]
+    assert stage.main([*tum, "--out", str(out), "--on-invalid", "report"]) == 0
+    info = json.loads((out / "manifest.json").read_text())["info"]
+    assert [p["index"] for p in info["invalid_poses"]] == [8, 9, 10, 11] and info["kind"] == "user"
+    assert np.allclose(load_trajectory(out), _through_wall(), atol=1e-8)
+
+
+def test_stage_requires_pose_zero_at_the_camera(artifacts, capsys):
+    from stages import trajectory as stage
+
+    root, mesh_dir, nav_dir = artifacts
+    shifted = _through_wall(5)
+    shifted[:, 0, 3] -= 0.5
+    user = root / "shifted.json"
+    user.write_text(json.dumps({"poses": shifted.tolist()}))
+    base = ["--navmesh", str(nav_dir), "--mesh", str(mesh_dir), "--user-trajectory", str(user)]
+    assert stage.main([*base, "--out", str(root / "s1")]) == 2
+    assert "pose 0 is not the identity" in capsys.readouterr().err
+    assert stage.main([*base, "--out", str(root / "s2"), "--reanchor", "true"]) == 0
+    assert np.allclose(load_trajectory(root / "s2"), _through_wall(5))
+
+
+def test_bad_params_are_clear_errors(artifacts, capsys):
+    from stages import trajectory as stage
+
+    root, mesh_dir, nav_dir = artifacts
+    base = ["--navmesh", str(nav_dir), "--mesh", str(mesh_dir), "--out", str(root / "p")]
+    assert stage.main([*base, "--stride", "3"]) == 2
+    assert "stride=3" in capsys.readouterr().err
+    assert TrajectoryParams().yaw == YawMode.FIXED
