@@ -13,6 +13,7 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 from scipy.sparse import linalg as sparse_linalg
+from scipy.spatial.transform import Rotation
 
 from panoworld.conventions import erp_dirs, erp_pixel_from_dir, erp_pixel_solid_angle, points_from_depth
 from panoworld.stage import StageInputError
@@ -324,21 +325,12 @@ class PerspectiveView:
         return px, py, z / np.linalg.norm(d, axis=-1)
 
 
-def _rot_y(deg: float) -> np.ndarray:
-    a = np.deg2rad(deg)
-    return np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
-
-
-def _rot_x(deg: float) -> np.ndarray:
-    a = np.deg2rad(deg)
-    return np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
-
-
 def cube_views(fov_deg: float = 110.0, size: int = 518) -> list[PerspectiveView]:
     """Six cube-face views (front, right, back, left, up, down) widened to fov_deg (> 90) so neighbours overlap."""
     if not 90.0 < fov_deg < 170.0:
         raise ValueError(f"{fov_deg=} must be in (90, 170) so that neighbouring cube faces overlap")
-    rots = [_rot_y(a) for a in (0, 90, 180, 270)] + [_rot_x(90), _rot_x(-90)]
+    rots = [Rotation.from_euler("y", a, degrees=True).as_matrix() for a in (0, 90, 180, 270)]
+    rots += [Rotation.from_euler("x", a, degrees=True).as_matrix() for a in (90, -90)]  # up, down
     return [PerspectiveView(r, fov_deg, size) for r in rots]
 
 
@@ -376,10 +368,11 @@ def merge_view_predictions(
     Every view k gets unknowns (scale s_k, shift t_k) for relative (inverse-depth) predictions, or s_k alone for
     metric z-depth, such that the inverse ray distance 1/r = cos(theta) * (s_k * o_k + t_k) (relative) or
     cos(theta) * s_k / o_k (metric) agrees between overlapping views; theta is the angle to the view's axis. The
-    homogeneous least-squares system over overlap samples of an align_height x 2*align_height ERP grid is solved
-    for its null vector (two reweighted passes make residuals relative), up to one global scale: relative results
-    are normalised to median depth 1, metric ones to a geometric-mean scale of 1. The ERP map blends the aligned
-    views in inverse depth with weights falling to 0 at each view's border, so it has no seams.
+    least-squares system over overlap samples of an align_height x 2*align_height ERP grid is solved with the
+    gauge "mean inverse distance on the overlaps = 1" (two reweighted passes make residuals relative), so the
+    result is defined up to one global scale: relative results are normalised to median depth 1, metric ones
+    to a geometric-mean view scale of 1. The ERP map blends the aligned views in inverse depth with weights
+    falling to 0 at each view's border, so it has no seams.
     """
     if len(preds) != len(views):
         raise ValueError(f"{len(preds)=} predictions but {len(views)=} views")
