@@ -165,20 +165,21 @@ class SynthScene:
             emissive[sel] = spec.kind == MaterialKind.LIGHT
         key = np.array([0.48, -0.6, 0.64])
         light = np.repeat((self.ambient * (0.75 + 0.15 * -n[:, 1] + 0.1 * (n @ key)))[:, None], 3, 1)
-        origin = p + 2e-3 * n
+        # Lighting runs in float32 (it only feeds 8-bit colour); shadow rays start 2 mm off the surface.
+        p32, n32 = p.astype(np.float32), n.astype(np.float32)
+        origin = p32 + np.float32(2e-3) * n32
+        not_emissive = ~emissive
         for L in self.lights:
-            to_l = np.asarray(L.position) - p
-            dl = np.linalg.norm(to_l, axis=1)
-            wl = to_l / dl[:, None]
-            ndl = np.einsum("ij,ij->i", n, wl)
-            lit = np.flatnonzero((ndl > 0) & ~emissive)
+            to_l = np.asarray(L.position, np.float32) - p32
+            dl = np.sqrt(np.einsum("ij,ij->i", to_l, to_l))
+            ndl = np.einsum("ij,ij->i", n32, to_l) / dl
+            lit = np.flatnonzero((ndl > 0) & not_emissive)
             if len(lit) == 0:
                 continue
-            hit = self.raycaster.cast(origin[lit], wl[lit])
-            vis = hit.distance >= dl[lit] - 5e-3
-            lit = lit[vis]
+            hit = self.raycaster.cast(origin[lit], to_l[lit] / dl[lit, None])
+            lit = lit[hit.distance >= dl[lit] - 5e-3]
             gain = ndl[lit] / (1.0 + (dl[lit] / L.falloff) ** 2)
-            light[lit] += gain[:, None] * np.asarray(L.intensity)[None, :]
+            light[lit] += gain[:, None] * np.asarray(L.intensity, np.float32)[None, :]
         rgb = base * light
         rgb[emissive] = base[emissive]
         out = np.zeros((h * w, 3))
