@@ -205,12 +205,12 @@ def build_background_layer(
     """Extend the far side of every depth discontinuity of the source view behind its foreground occluder.
 
     The discontinuities are the grid faces stretched by more than max_edge_ratio pixel footprints (the mesh stage's
-    rule, whatever it did with them): their far vertices are background edge pixels.
-    Each foreground pixel (nearer than the midpoint of the edge's near and far depth) within the parallax band of its
-    nearest background edge pixel gets a background vertex: depth and colour are inpainted (Telea, seam-aware) with
-    every foreground pixel masked, so they continue the background only. The band of an edge is the largest angle
-    by which a camera moving at most `max_translation` metres from the source can uncover it,
-    max_translation * (1 / d_near - 1 / d_far), capped at `max_band_deg`.
+    rule, whatever it did with them): their far vertices are background edge pixels. From them a breadth-first
+    growth enters the occluder (pixels nearer than the midpoint of the edge's near and far depth) for as many pixels
+    as a camera moving at most `max_translation` metres from the source can uncover, max_translation *
+    (1 / d_near - 1 / d_far) radians (capped at max_band_deg). Each pixel reached gets a background vertex on its
+    ray: depth from the tangent plane of the background at the edge pixel it came from, colour inpainted (Telea,
+    seam-aware) with the occluder masked, so both continue the background only.
     """
     h, w = erp_grid_shape(mesh)
     n = h * w
@@ -224,8 +224,8 @@ def build_background_layer(
         return none
 
     # Background edge pixels: far vertices of stretched grid faces, with the nearest foreground depth across the edge.
-    grid = _grid_faces(h, w)
-    grid = grid[valid.reshape(-1)[grid].all(axis=1)]
+    all_grid = _grid_faces(h, w)
+    grid = all_grid[valid.reshape(-1)[all_grid].all(axis=1)]
     bad = grid[_stretch(p, grid) > max_edge_ratio]
     if not len(bad):
         return none
@@ -242,35 +242,32 @@ def build_background_layer(
 
     px_angle = 2 * np.pi / w
     lat = (0.5 - (np.arange(h) + 0.5) / h) * np.pi
-    cos_lat = np.maximum(np.cos(lat), 0.2)[:, None]
+    cos_lat = np.maximum(np.cos(lat), 0.2)[:, None]  # a longitude step spans cos(lat) of a pixel's angle
     with np.errstate(divide="ignore"):
         parallax = max_translation * (1.0 / near_of - 1.0 / depth)
-    band = np.minimum(parallax, np.deg2rad(max_band_deg)) / px_angle / cos_lat * 1.2 + 2
-    steps, reach, bg_depth = _grow_into_foreground(p.reshape(h, w, 3), edge, 0.5 * (depth + near_of), np.where(edge, band, 0.0), inpaint_radius)
-    synth = steps <= reach
-    hide = (steps <= 2 * reach + inpaint_radius + 2) | ~valid  # foreground masked for the inpainting
-
-    synth &= bg_depth > depth * 1.02
-    colors = mesh.colors[:n].reshape(h, w, 3)
-    bg_color = erp_inpaint(colors, hide, radius=inpaint_radius)
+    band = np.where(edge, np.minimum(parallax, np.deg2rad(max_band_deg)) / px_angle / cos_lat * 1.2 + 2, 0.0)
+    steps, reach, bg_depth = _grow_into_foreground(
+        p.reshape(h, w, 3), edge, 0.5 * (depth + near_of), band, inpaint_radius
+    )
+    synth = (steps <= reach) & (bg_depth > depth * 1.02)
+    hide = (steps <= 2 * reach + inpaint_radius + 2) | ~valid  # the occluder, masked for the colour inpainting
+    bg_color = erp_inpaint(mesh.colors[:n].reshape(h, w, 3), hide, radius=inpaint_radius)
 
     # Layer mesh: grid faces over synthesized pixels and the real background pixels next to them.
-    dirs = p / np.maximum(d, 1e-12)[:, None]
-    idx_new = np.full(n, -1, np.int64)
     s_flat = synth.reshape(-1)
+    idx_new = np.full(n, -1, np.int64)
     idx_new[s_flat] = len(mesh.vertices) + np.arange(int(s_flat.sum()))
     usable = s_flat | valid.reshape(-1)
-    grid = _grid_faces(h, w)
-    grid = grid[usable[grid].all(axis=1) & s_flat[grid].any(axis=1)]
-    layer_pts = (dirs[s_flat] * bg_depth.reshape(-1)[s_flat, None]).astype(np.float32)
-    vertices = np.concatenate([mesh.vertices, layer_pts])
+    grid = all_grid[usable[all_grid].all(axis=1) & s_flat[all_grid].any(axis=1)]
+    dirs = p[s_flat] / d[s_flat, None]
+    vertices = np.concatenate([mesh.vertices, (dirs * bg_depth.reshape(-1)[s_flat, None]).astype(np.float32)])
     faces = np.where(s_flat[grid], idx_new[grid], grid).astype(np.int32)
     faces = faces[_stretch(vertices.astype(np.float64), faces) <= max_edge_ratio]
-    colors_all = np.concatenate([mesh.colors, bg_color.reshape(-1, 3)[s_flat]])
+    colors = np.concatenate([mesh.colors, bg_color.reshape(-1, 3)[s_flat]])
     return BackgroundLayer(
         vertices.astype(np.float32),
         np.concatenate([main_faces, faces]).astype(np.int32),
-        colors_all.astype(np.uint8),
+        colors.astype(np.uint8),
         len(faces),
         synth,
         np.where(synth, bg_depth, 0.0).astype(np.float32),

@@ -167,3 +167,22 @@ def test_shape_errors(box_case):
         frame_inpaint(cond[0].rgb, cond[0].mask[:10])
     with pytest.raises(ValueError, match="N, 4, 4"):
         max_translation(np.eye(4))
+
+
+def test_warp_inpaint_across_the_seam_equals_the_centred_case(box_case):
+    """Turn the source camera by 180 degrees: the panel now straddles the left/right border, and every filled frame
+    must be the unturned one shifted by W/2 columns."""
+    scene, mesh, poses, cond, _ = box_case
+    world_from_src = np.diag([-1.0, 1.0, -1.0, 1.0])  # yaw by pi
+    rgb0, d0 = scene.render(world_from_src)
+    mesh_t = erp_mesh_from_depth(d0, rgb0)
+    poses_t = np.stack([np.linalg.inv(world_from_src) @ T @ world_from_src for T in poses])  # cameras turned too
+    cond_t = render_conditions(mesh_t, poses_t, H, W, backend="raycast")
+    i, j = np.nonzero(~cond_t[-1].mask)
+    assert j.min() < 5 and j.max() > W - 5  # the holes sit at both borders
+    stack = [np.stack([getattr(c, k) for c in cs]) for cs in (cond, cond_t) for k in ("rgb", "mask", "depth")]
+    warp, _ = warp_inpaint_video(*stack[:3], poses, mesh, progress=False)
+    warp_t, _ = warp_inpaint_video(*stack[3:], poses_t, mesh_t, progress=False)
+    for a, b, m in zip(warp, warp_t, stack[1]):
+        diff = np.abs(np.roll(b.rgb, W // 2, axis=1).astype(int) - a.rgb.astype(int)).max(axis=-1)
+        assert np.mean(diff[~m] <= 2) > 0.99
