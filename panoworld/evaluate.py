@@ -45,6 +45,9 @@ class EvalParams:
     """Frames evaluated per sequence (conditions, video), uniformly spaced over frames 1..N-1; 0 = all of them."""
     views: int = 4
     """N of the N@N protocol for Gaussians: N context views and N novel views are rendered."""
+    video_height: int = 0
+    """ERP height at which video frames are compared (frames resized with INTER_AREA, ground truth rendered at that
+    size; the paper compares at 720 and at 480); 0 = the video's own size."""
     gs_height: int = 128
     """ERP height of the Gaussian renders and of their ground truth (width = 2 x height)."""
     disocclusion_tol: float = 0.015
@@ -319,9 +322,10 @@ class Evaluation:
 
     @cached_property
     def video(self):
-        from panoworld.video_io import load_video
+        """The video artifact's description (frame and depth paths, poses); frames are read when evaluated."""
+        from panoworld.poses import read_video_frames
 
-        return load_video(self._need("video"))
+        return read_video_frames(self._need("video"))
 
     @cached_property
     def conditions(self):
@@ -331,7 +335,7 @@ class Evaluation:
 
     def reference_poses(self) -> tuple[np.ndarray, str]:
         """The poses the video was generated along (the ground truth for recovered poses): video.json, else the trajectory."""
-        if self.artifact("video") is not None:
+        if self.artifact("video") is not None and self.video.poses is not None:
             return self.video.poses, "video.json poses"
         return self.trajectory_poses, "trajectory.json poses"
 
@@ -459,11 +463,20 @@ class Evaluation:
         }
 
     def video_stage(self) -> dict:
+        import cv2
+
+        from panoworld.poses import load_frames, read_depth_png
+
         video = self.video
-        T, H, W = video.frames.shape[:3]
+        poses, _ = self.reference_poses()
+        T = video.num_frames
+        if len(poses) != T:
+            raise ValueError(f"the video has {T} frames but {len(poses)} poses")
         idx = self._frames(T)
         if not idx:
             return unavailable("the video holds only frame 0 (the input panorama); nothing to evaluate")
+        H = self.params.video_height or video.height
+        W = 2 * H
         holes = None
         holes_reason = "conditions not run: the disoccluded pixels are the conditions' mask = 0"
         if self.artifact("conditions") is not None:
@@ -474,25 +487,22 @@ class Evaluation:
         acc: dict[str, list[float]] = {k: [] for k in ("psnr", "ssim", "ws_psnr", "psnr_dis", "ssim_dis",
                                                         "ws_psnr_dis", "lpips", "depth")}
         for i in self._bar(idx, "eval video"):
-            gt_rgb, gt_depth = self.gt.render(video.poses[i], H, W)
-            f = video.frames[i]
+            gt_rgb, gt_depth = self.gt.render(poses[i], H, W)
+            f = load_frames([video.rgb[i]], H)[0]
             acc["psnr"].append(psnr(f, gt_rgb))
             acc["ssim"].append(ssim(f, gt_rgb))
             acc["ws_psnr"].append(ws_psnr(f, gt_rgb))
             if holes is not None:
-                import cv2
-
-                m = ~holes[i]
-                if m.shape != (H, W):
-                    m = cv2.resize(m.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
+                m = cv2.resize((~holes[i]).astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST).astype(bool)
                 if m.any():
                     acc["psnr_dis"].append(psnr(f, gt_rgb, m))
                     acc["ssim_dis"].append(ssim(f, gt_rgb, m))
                     acc["ws_psnr_dis"].append(ws_psnr(f, gt_rgb, m))
             if self.lpips.enabled:
                 acc["lpips"].append(self.lpips.distance(f, gt_rgb))
-            if video.depth is not None:
-                acc["depth"].append(depth_errors(video.depth[i], gt_depth)["abs_rel"])
+            if video.has_depth:
+                d = cv2.resize(read_depth_png(video.depth[i], video.depth_scale), (W, H), interpolation=cv2.INTER_NEAREST)
+                acc["depth"].append(depth_errors(d, gt_depth)["abs_rel"])
 
         def dis(key: str):
             if holes is None:
@@ -508,7 +518,8 @@ class Evaluation:
             "ssim_disoccluded": dis("ssim_dis"),
             "ws_psnr_disoccluded": dis("ws_psnr_dis"),
             "lpips": _mean(acc["lpips"]) if self.lpips.enabled else self.lpips.reason(),
-            "depth_abs_rel": _mean(acc["depth"]) if video.depth is not None else unavailable("the video has no depth"),
+            "depth_abs_rel": _mean(acc["depth"]) if video.has_depth else unavailable("the video has no depth"),
+            "resolution": f"{H}x{W}",
             **_fid_fvd(),
         }
 

@@ -380,10 +380,11 @@ def test_lpips_weights_errors_name_the_flag(tmp_path):
 
 def test_eval_reports_lpips_with_weights(scene, tmp_path, capsys):
     bb, lin = _save_official_layout(_random_lpips("alex"), tmp_path)
-    args = [str(scene["root"]), "--json", "--only", "video", "--max-frames", "2"]
+    args = [str(scene["root"]), "--json", "--only", "video", "--max-frames", "2", "--video-height", "32"]
     assert main(args + ["--lpips-weights", str(bb), "--lpips-lin-weights", str(lin)]) == 0
     v = json.loads(capsys.readouterr().out)["stages"]["video"]
     assert isinstance(v["lpips"], float) and v["lpips"] > 0
+    assert v["resolution"] == "32x64" and v["frames_evaluated"] == 2 and v["psnr"] > 15
     assert main(args + ["--lpips-weights", str(bb)]) == 2
     assert main(args + ["--lpips-weights", str(tmp_path / "x.pth"), "--lpips-lin-weights", str(lin)]) == 2
     assert "--lpips-weights" in capsys.readouterr().err
