@@ -15,6 +15,7 @@ from panoworld.synth import generate_scene
 from panoworld.trajectory import (
     PathKind,
     TrajectoryParams,
+    clearance_cap,
     mesh_clearance,
     plan_path,
     poses_from_positions,
@@ -54,6 +55,7 @@ def evaluate(nav, gt_vertices, gt_faces, params: TrajectoryParams, min_dist: flo
         "covered": int(sector_coverage(plan.positions, np.zeros(2), 8, min_dist).sum()),
         "reachable": int((reach >= min_dist).sum()),
         "adapted": bool(plan.info.get("step_adapted")),
+        "laps": int(plan.info.get("ring_laps", 0)),
     }
 
 
@@ -64,12 +66,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--height", type=int, default=256, help="ERP height of the GT depth the NavMesh is built from")
     ap.add_argument("--strides", default="1,2,4")
     ap.add_argument("--min-dist", type=float, default=0.1, help="a sector counts as covered beyond this distance")
+    ap.add_argument("--timing-height", type=int, default=720, help="ERP height of the full-size timing runs (0 = skip)")
+    ap.add_argument("--timing-seeds", type=int, default=3)
     args = ap.parse_args(argv)
     strides = [int(s) for s in args.strides.split(",")]
     radius = NavMeshParams().agent_radius_m
     rows, nav_times, failures = [], [], []
     print(f"{'seed':>4} {'kind':>6} {'r':>2} {'min_clear':>9} {'inside':>6} {'step_cv':>7} {'step_m':>6} "
-          f"{'close':>6} {'cov':>5} {'adapt':>5} {'plan_s':>6}")
+          f"{'close':>6} {'cov':>5} {'adapt':>5} {'laps':>4} {'plan_s':>6}")
     for seed in range(args.seeds):
         mesh, gt_v, gt_f = synth_case(seed, args.preset, args.height)
         t = time.perf_counter()
@@ -90,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append(r)
                 print(f"{seed:>4} {kind:>6} {stride:>2} {r['min_clearance']:9.3f} {r['inside']!s:>6} {r['step_cv']:7.4f} "
                       f"{r['step_m']:6.3f} {r['closure_m']:6.3f} {r['covered']:>2}/{r['reachable']:<2} "
-                      f"{r['adapted']!s:>5} {r['plan_s']:6.3f}", flush=True)
+                      f"{r['adapted']!s:>5} {r['laps']:>4} {r['plan_s']:6.3f}", flush=True)
     print()
     print(f"NavMesh build (ERP {args.height}x{2 * args.height}, {len(nav_times)} scenes): "
           f"median {np.median(nav_times):.3f} s, max {np.max(nav_times):.3f} s")
@@ -104,14 +108,34 @@ def main(argv: list[str] | None = None) -> int:
                 f"step adapted (room too small): {sum(r['adapted'] for r in rs)}")
         if kind == PathKind.RING:
             line += f"; closed within one step: {sum(r['closure_ok'] for r in rs)}/{len(rs)}"
+            line += f"; laps 1/2/3/4: {'/'.join(str(sum(r['laps'] == k for r in rs)) for k in (1, 2, 3, 4))}"
         else:
             ok_cov = sum(r["covered"] >= min(6, r["reachable"]) for r in rs)
             line += f"; >= min(6, reachable) of 8 sectors: {ok_cov}/{len(rs)}"
         line += f"; plan median {np.median([r['plan_s'] for r in rs]):.3f} s"
         print(line)
+    if args.timing_height:
+        timing(args.preset, args.timing_height, args.timing_seeds, radius)
     for f in failures:
         print("FAILED", f)
     return 1 if failures else 0
+
+
+def timing(preset: str, height: int, n_seeds: int, radius: float) -> None:
+    """NavMesh build from a full-size ERP mesh and the trajectory stage's clearance check against it."""
+    print(f"\nFull size: ERP {height}x{2 * height} mesh (stage defaults: re-meshed to <= 192 rows for the NavMesh)")
+    for seed in range(n_seeds):
+        mesh, _, _ = synth_case(seed, preset, height)
+        t = time.perf_counter()
+        nav = build_navmesh(mesh.vertices, mesh.faces, mesh.face_valid)
+        total = time.perf_counter() - t
+        steps = {k: round(v, 3) for k, v in nav.info["timings_s"].items() if k != "total_s"}
+        poses = poses_from_positions(plan_path(nav, TrajectoryParams(stride=4)).positions)
+        t = time.perf_counter()
+        mesh_clearance(mesh.vertices, mesh.faces[mesh.face_valid], poses[:, :3, 3], clearance_cap(radius))
+        check = time.perf_counter() - t
+        print(f"seed {seed}: {len(mesh.faces)} faces, downsample {nav.info['erp_downsample']}: NavMesh {total:.3f} s {steps}; "
+              f"clearance of 81 poses vs full mesh {check:.3f} s")
 
 
 if __name__ == "__main__":

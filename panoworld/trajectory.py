@@ -83,11 +83,15 @@ def polyline_length(pts: np.ndarray, closed: bool = False) -> float:
     return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
 
 
-def resample_polyline(pts: np.ndarray, n: int, *, closed: bool = False, spacing: float | None = None) -> np.ndarray:
+def resample_polyline(
+    pts: np.ndarray, n: int, *, closed: bool = False, spacing: float | None = None, equalize: int = 5
+) -> np.ndarray:
     """n points (n, D) at equal arc length along a polyline (K, D), starting at pts[0].
 
     Open: the last point is the end (or at (n - 1) * spacing when given). Closed: the loop back to pts[0] is
-    included and the spacing is length / n, so the last point is one step before the start.
+    included and the spacing is length / n, so the last point is one step before the start. `equalize`
+    iterations then move the points along the curve so the straight steps between them (chords, shorter
+    than arcs at bends) become equal, keeping the first and (open) the last point.
     """
     pts = np.asarray(pts, np.float64)
     p = np.concatenate([pts, pts[:1]]) if closed else pts
@@ -96,7 +100,19 @@ def resample_polyline(pts: np.ndarray, n: int, *, closed: bool = False, spacing:
     if spacing is None:
         spacing = s[-1] / n if closed else s[-1] / max(n - 1, 1)
     t = np.minimum(np.arange(n) * spacing, s[-1])
-    return np.stack([np.interp(t, s, p[:, k]) for k in range(p.shape[1])], axis=1)
+
+    def at(t):
+        return np.stack([np.interp(t, s, p[:, k]) for k in range(p.shape[1])], axis=1)
+
+    total = s[-1] if closed else t[-1]
+    for _ in range(equalize if n > 2 and total > 0 else 0):
+        q = at(t)
+        chord = np.linalg.norm((np.concatenate([q[1:], q[:1]]) - q) if closed else np.diff(q, axis=0), axis=1)
+        arc = np.diff(np.concatenate([t, [s[-1]]])) if closed else np.diff(t)
+        w = arc / np.maximum(chord, 1e-9 * max(total, 1e-9))
+        arc = w / w.sum() * total
+        t = np.concatenate([[0.0], np.cumsum(arc)[:-1]]) if closed else np.concatenate([[0.0], np.cumsum(arc)])
+    return at(t)
 
 
 def subdivide_polyline(pts: np.ndarray, max_segment: float, closed: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -335,13 +351,48 @@ def _ring_candidate(nav: NavMesh, hub: np.ndarray, center: np.ndarray, radius: f
     return loop, float(np.mean(rho / radius))
 
 
-def plan_ring(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> Plan:
-    """A closed loop through the start around a nearby centre, as round and as long (N * step) as the room allows.
+def _ring_loop(plan_nav: NavMesh, hub: np.ndarray, loop_target: float, step: float, margin: float):
+    """The best star-shaped loop through hub of length <= loop_target: (loop (K, 2), roundness, radius, centre, length)."""
 
-    Centres on 16 bearings at distances R (from N * step / (2 pi) down) from the start are tried; each loop has
-    radius R, pulled in where the NavMesh is nearer; the longest loop (capped at the target length; rounder on
-    ties) wins. Chords that would leave the NavMesh follow its shortest path instead; the loop is smoothed (the
-    start stays a vertex) and resampled to N poses with the last pose one step before the first.
+    def candidate(radius: float, phi: float):
+        c = hub + radius * np.array([np.cos(phi), np.sin(phi)])
+        cand = _ring_candidate(plan_nav, hub, c, radius, 48, margin)
+        return None if cand is None else (cand[0], cand[1], radius, c, polyline_length(cand[0], closed=True))
+
+    r0 = loop_target / (2 * np.pi)
+    cands = []
+    for scale in (1.6, 1.3, 1.0, 0.85, 0.7, 0.55, 0.4, 0.3, 0.2, 0.12):
+        if r0 * scale < 1.5 * step:
+            break
+        for phi in np.arange(16) * 2 * np.pi / 16:
+            cand = candidate(r0 * scale, phi)
+            if cand is not None:
+                cands.append((phi, cand))
+    if not cands:
+        return None
+    fits = [pc for pc in cands if pc[1][4] <= loop_target] or [min(cands, key=lambda pc: pc[1][4])]
+    phi, best = max(fits, key=lambda pc: (round(pc[1][4] / loop_target, 2), pc[1][1]))
+    longer = [c[2] for p_, c in cands if p_ == phi and c[4] > loop_target and c[2] > best[2]]
+    if longer and best[4] <= loop_target:  # bisect the radius towards the target length on this bearing
+        lo, hi = best[2], min(longer)
+        for _ in range(12):
+            cand = candidate(0.5 * (lo + hi), phi)
+            if cand is not None and cand[4] <= loop_target:
+                best, lo = cand, cand[2]
+            else:
+                hi = 0.5 * (lo + hi)
+    return best
+
+
+def plan_ring(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> Plan:
+    """A closed loop through the start around a nearby centre, run for 1-4 laps so the step stays as requested.
+
+    For each lap count k the loop should be N * step / k long: centres on 16 bearings at distances R (around
+    that length / 2 pi) from the start are tried; each loop has radius R, pulled in where the NavMesh is nearer;
+    the longest loop not longer than the target (rounder on ties) wins and its radius is bisected towards the
+    target. The fewest laps whose loop reaches 97 % of its target win (else the longest steps). Chords that would
+    leave the NavMesh follow its shortest path instead; the loop is smoothed (the start stays a vertex) and the
+    laps are resampled to N poses, the last one step before the first.
     """
     start = np.asarray(start, np.float64).reshape(2)
     step = params.step_m * params.stride
@@ -349,40 +400,34 @@ def plan_ring(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> Plan
     plan_nav = _planning_mesh(nav, start, params.plan_margin_m)
     hub, off = _hub(plan_nav, start)
     margin = max(params.plan_margin_m, 0.5 * step)
-    bearings = np.arange(16) * 2 * np.pi / 16
-    best, best_key = None, None
-    r0 = (target_len - 2 * off) / (2 * np.pi)
-    for scale in (1.0, 0.85, 0.7, 0.55, 0.4, 0.3, 0.2, 0.12):
-        radius = r0 * scale
-        if radius < 1.5 * step:
-            break
-        for phi in bearings:
-            c = hub + radius * np.array([np.cos(phi), np.sin(phi)])
-            cand = _ring_candidate(plan_nav, hub, c, radius, 48, margin)
-            if cand is None:
-                continue
-            key = (round(min(polyline_length(cand[0], closed=True), target_len), 2), cand[1])
-            if best_key is None or key > best_key:
-                best, best_key = (cand[0], cand[1], radius, c), key
-    if best is None:
+    options = []
+    for laps in (1, 2, 3, 4):
+        loop_target = (target_len - 2 * off) / laps
+        best = _ring_loop(plan_nav, hub, loop_target, step, margin) if loop_target > 0 else None
+        if best is not None:
+            options.append((laps, best, best[4] / loop_target))
+            if best[4] >= 0.97 * loop_target:
+                break
+    if not options:
         raise ValueError(
             f"no loop of radius >= {1.5 * step:.3f} m fits around the start in the walkable area ({nav.area:.2f} m^2); "
             "reduce step_m/stride or the agent radius, or use kind=sector"
         )
-    loop, roundness, radius, center = best
+    laps, (loop, roundness, radius, center, _), _ = next((o for o in options if o[2] >= 0.97), max(options, key=lambda o: o[2]))
     pieces = []
     for a, b in zip(loop, np.roll(loop, -1, axis=0)):
         if plan_nav.blocked(a[None], b[None])[0] or not plan_nav.contains(b)[0]:
             pieces.append(plan_nav.path(a, plan_nav.closest_point(b)[0])[:-1])
         else:
             pieces.append(a[None])
-    loop = np.concatenate(pieces)
-    loop = smooth_polyline(plan_nav, loop, closed=True, iterations=params.smooth_iterations, pinned=0)
+    loop = smooth_polyline(plan_nav, np.concatenate(pieces), closed=True, iterations=params.smooth_iterations, pinned=0)
+    loop_length = polyline_length(loop, closed=True)
+    tour = np.concatenate([loop] * laps)
     if off > 0:  # leave the camera to the NavMesh and come back the same way
-        loop = np.concatenate([start[None], loop, hub[None]])
-    length = polyline_length(loop, closed=True)
+        tour = np.concatenate([start[None], tour, hub[None]])
+    length = polyline_length(tour, closed=True)
     spacing = length / params.frames
-    positions = resample_polyline(loop, params.frames, closed=True)
+    positions = resample_polyline(tour, params.frames, closed=True)
     positions[0] = start
     return Plan(
         positions,
@@ -391,7 +436,8 @@ def plan_ring(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> Plan
             "ring_center": center.round(4).tolist(),
             "ring_radius_m": radius,
             "ring_roundness": roundness,
-            "loop_length_m": length,
+            "ring_laps": laps,
+            "loop_length_m": loop_length,
             "step_adapted": bool(spacing < 0.98 * step),
             "start_off_navmesh_m": off,
             "hub": hub.tolist(),

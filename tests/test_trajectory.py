@@ -82,6 +82,17 @@ def test_camera_off_the_navmesh_walks_straight_onto_it():
         assert np.allclose(off[:, 0] * hub[1] - off[:, 1] * hub[0], 0, atol=1e-9)  # on the line camera -> hub
 
 
+def test_ring_runs_laps_in_a_small_room_to_keep_the_step():
+    from tests.test_navmesh import nav_of
+
+    nav = nav_of(box_room(size=(2.6, 2.8, 2.6), obstacles=()), 96)
+    plan = plan_path(nav, TrajectoryParams(kind=PathKind.RING, stride=4))  # 16 m of loop in a 2.6 m room
+    steps = np.linalg.norm(np.diff(np.concatenate([plan.positions, plan.positions[:1]]), axis=0), axis=1)
+    assert plan.info["ring_laps"] >= 2 and not plan.info["step_adapted"]
+    assert np.all(np.abs(steps - 0.2) < 0.02) and nav.contains(plan.positions).all()
+    assert plan.info["loop_length_m"] * plan.info["ring_laps"] <= 81 * 0.2 + 1e-6
+
+
 def test_resample_gives_uniform_steps_and_closes_loops():
     square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
     closed = resample_polyline(square, 40, closed=True)
@@ -90,6 +101,10 @@ def test_resample_gives_uniform_steps_and_closes_loops():
     open_ = resample_polyline(square, 31)
     assert np.allclose(open_[[0, -1]], square[[0, -1]])
     assert np.allclose(np.linalg.norm(np.diff(open_, axis=0), axis=1), 0.1)
+    # Off-corner samples: chords would be shorter than arcs at the corners; equalisation evens them out.
+    raw = np.linalg.norm(np.diff(resample_polyline(square, 26, equalize=0), axis=0), axis=1)
+    even = np.linalg.norm(np.diff(resample_polyline(square, 26), axis=0), axis=1)
+    assert raw.std() / raw.mean() > 0.03 and even.std() / even.mean() < 0.01
 
 
 def test_smoothing_cuts_corners_only_inside_the_navmesh():
