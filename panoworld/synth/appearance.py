@@ -5,6 +5,7 @@ from __future__ import annotations
 import enum
 from dataclasses import asdict, dataclass
 
+import cv2
 import numpy as np
 
 _U64 = np.uint64
@@ -107,15 +108,8 @@ def _mix(c1, c2, t: np.ndarray) -> np.ndarray:
 def _palette(seed: int, n: int) -> np.ndarray:
     """n saturated colours (n, 3) derived from seed."""
     rng = np.random.default_rng(seed)
-    hsv = np.stack([rng.uniform(0, 1, n), rng.uniform(0.4, 0.9, n), rng.uniform(0.35, 0.95, n)], 1)
-    h6 = hsv[:, 0] * 6.0
-    c = hsv[:, 2] * hsv[:, 1]
-    x = c * (1 - np.abs(np.mod(h6, 2) - 1))
-    sector = np.floor(h6).astype(int) % 6
-    zeros = np.zeros(n)
-    table = [(c, x, zeros), (x, c, zeros), (zeros, c, x), (zeros, x, c), (x, zeros, c), (c, zeros, x)]
-    rgb = np.stack([np.choose(sector, [t[i] for t in table]) for i in range(3)], 1)
-    return rgb + (hsv[:, 2] - c)[:, None]
+    hsv = np.stack([rng.uniform(0, 360, n), rng.uniform(0.4, 0.9, n), rng.uniform(0.35, 0.95, n)], 1)
+    return cv2.cvtColor(hsv.astype(np.float32)[None], cv2.COLOR_HSV2RGB)[0].astype(np.float64)
 
 
 def albedo(mat: Material, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
