@@ -239,3 +239,56 @@ def test_cli_help():
     assert out.returncode == 0, out.stderr
     for flag in ("--backend", "--upscale", "--upscale-weights", "--weights", "--lora", "--extra-weights", "--steps"):
         assert flag in out.stdout
+
+
+def test_stage_realesrgan_upscale_with_local_weights(upstream, tmp_path):
+    """--upscale realesrgan loads an official-layout RRDBNet state dict (a tiny random one here) and doubles the size."""
+    import torch
+
+    from panoworld.models.rrdbnet import RRDBNet
+
+    torch.manual_seed(0)
+    weights = tmp_path / "RealESRGAN_x2plus.pth"
+    torch.save({"params_ema": RRDBNet(scale=2, num_feat=8, num_block=1, num_grow_ch=4).state_dict()}, weights)
+    out = tmp_path / "video"
+    assert video_stage.main(_cli(upstream, out, "--upscale", "realesrgan", "--upscale-weights", str(weights),
+                                 "--device", "cpu", "--preview", "false", "--mcap", "false")) == 0
+    v = load_video(out)
+    assert v.frames.shape == (5, 128, 256, 3) and v.depth.shape == (5, 128, 256)
+    assert v.meta["upscale"] == "realesrgan"
+
+
+@pytest.mark.slow
+def test_stage_wan_shortcut_on_tiny_local_weights(upstream, tmp_path):
+    """The real loading path of the generator (tiny random Wan2.2-like weights saved to disk): NFE in the manifest,
+    no depth, one frame per pose."""
+    pytest.importorskip("diffusers")
+    pytest.importorskip("peft")
+    import torch
+
+    from panoworld.models import wan_training as wt
+    from panoworld.models import wan_layers as wl
+    from panoworld.models.wan_shortcut import save_prompt_embeds
+    from tests.test_wan_shortcut import TEXT_DIM, Z, embeds, tiny_transformer, tiny_vae
+
+    torch.set_num_threads(1)
+    root = tmp_path / "wan"
+    tiny_transformer(seed=5).save_pretrained(root / "transformer")
+    tiny_vae().save_pretrained(root / "vae")
+    save_prompt_embeds(tmp_path / "prompt.safetensors", embeds(), torch.zeros(1, 7, TEXT_DIM))
+    from diffusers import WanTransformer3DModel
+
+    trained = WanTransformer3DModel.from_pretrained(root, subfolder="transformer", local_files_only=True)
+    wt.prepare_for_training(trained, Z + 4, rank=4, alpha=8)
+    wl.save_trained_weights(trained, tmp_path / "lora.safetensors", tmp_path / "extra.safetensors")
+    out = tmp_path / "video"
+    assert video_stage.main(_cli(
+        upstream, out, "--backend", "wan-shortcut", "--weights", str(root), "--lora", str(tmp_path / "lora.safetensors"),
+        "--extra-weights", str(tmp_path / "extra.safetensors"), "--prompt-embeds", str(tmp_path / "prompt.safetensors"),
+        "--device", "cpu", "--dtype", "float32", "--vae-tiling", "false", "--upscale", "none", "--preview", "false",
+    )) == 0
+    info = json.loads((out / "manifest.json").read_text())["info"]
+    assert info["nfe"] == 4 and info["sampler"] == "shortcut" and info["has_depth"] is False
+    v = load_video(out)
+    assert v.frames.shape == (5, 64, 128, 3) and v.depth is None
+    assert TOPIC_DEPTH not in read_mcap(out / MCAP_FILE)
