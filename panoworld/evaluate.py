@@ -210,13 +210,6 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.logical_and(a, b).sum() / union) if union else float("nan")
 
 
-def spread(candidates: list[int], k: int) -> list[int]:
-    """k entries of candidates uniformly spaced with both ends (all of them when k <= 0 or k >= len)."""
-    if k <= 0 or k >= len(candidates):
-        return list(candidates)
-    return [candidates[i] for i in np.unique(np.round(np.linspace(0, len(candidates) - 1, k)).astype(int))]
-
-
 def interpolate_pose(a: np.ndarray, b: np.ndarray, t: float) -> np.ndarray:
     """Pose (4, 4) at fraction t from a to b: linear camera centre, slerp rotation."""
     from scipy.spatial.transform import Rotation, Slerp
@@ -265,15 +258,6 @@ def _fid_fvd() -> dict[str, dict]:
 
 
 # ---------------------------------------------------------------- artifact readers
-
-
-def _read_rgb(path: Path) -> np.ndarray:
-    import cv2
-
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise ValueError(f"{path}: missing or not a readable image")
-    return np.ascontiguousarray(bgr[..., ::-1])
 
 
 def _read_gray(path: Path) -> np.ndarray:
@@ -340,7 +324,9 @@ class Evaluation:
         return self.trajectory_poses, "trajectory.json poses"
 
     def _frames(self, n: int) -> list[int]:
-        return spread(list(range(1, n)), self.params.max_frames)
+        from panoworld.gaussians import uniform_subset
+
+        return uniform_subset(range(1, n), self.params.max_frames)
 
     def _bar(self, items, desc: str):
         return tqdm(items, desc=desc, leave=False, disable=not self.progress, file=sys.stderr)
@@ -359,10 +345,11 @@ class Evaluation:
 
     def mesh(self) -> dict:
         from panoworld.mesh import load_erp_mesh
+        from panoworld.poses import load_frames
         from panoworld.raycast import Raycaster
 
         mesh = load_erp_mesh(self._need("mesh"))
-        pano = _read_rgb(self.scene_dir / "panorama.png")
+        pano = load_frames([self.scene_dir / "panorama.png"])[0]
         H, W = pano.shape[:2]
         rc = Raycaster(mesh.vertices, mesh.faces)
         hits = rc.render_erp(np.eye(4), H, W)
@@ -541,6 +528,7 @@ class Evaluation:
         return {**out, **{k: m[k] for k in ("ate", "ate_rmse", "rpe_t", "rpe_r", "rre", "rte", "scale")}}
 
     def gaussians(self) -> dict:
+        from panoworld.gaussians import uniform_subset
         from panoworld.render_gs import render_erp
         from panoworld.splat_ply import read_gaussians_ply
 
@@ -550,15 +538,14 @@ class Evaluation:
         used = self.manifest("gaussians").get("info", {}).get("frames") or list(range(len(poses)))
         used = [int(i) for i in used if 0 <= int(i) < len(poses)]
         N = self.params.views
-        context = spread(used, N)
-        held_out = [i for i in range(len(poses)) if i not in set(used)]
+        context = uniform_subset(used, N)
+        held_out = uniform_subset(sorted(set(range(len(poses))) - set(used)), N)
         if held_out:
-            novel = [poses[i] for i in spread(held_out, N)]
-            protocol = f"held-out frames of the {source}: {spread(held_out, N)}"
+            novel = [poses[i] for i in held_out]
+            protocol = f"held-out frames of the {source}: {held_out}"
         else:
-            mids = [interpolate_pose(poses[a], poses[b], 0.5) for a, b in zip(used, used[1:])]
-            pick = spread(list(range(len(mids))), N)
-            novel = [mids[k] for k in pick]
+            pick = uniform_subset(range(len(used) - 1), N)
+            novel = [interpolate_pose(poses[used[k]], poses[used[k + 1]], 0.5) for k in pick]
             protocol = (f"every frame is context, so novel views are midpoints between consecutive context frames "
                         f"{[(used[k], used[k + 1]) for k in pick]} of the {source}")
         H = self.params.gs_height
@@ -620,7 +607,9 @@ def target_report(stages: dict[str, dict]) -> dict[str, dict]:
     """{stage: {metric: {"target": text, "met": bool | None}}} for every metric with a target."""
     out: dict[str, dict] = {}
     for stage, targets in TARGETS.items():
-        metrics = stages.get(stage, {})
+        if stage not in stages:
+            continue
+        metrics = stages[stage]
         for name, t in targets.items():
             value = metrics.get(name) if not is_unavailable(metrics) else None
             out.setdefault(stage, {})[name] = {"target": t.text(), "met": t.met(value)}
@@ -678,6 +667,8 @@ def evaluate(scene_dir: Path, params: EvalParams | None = None, *, stages: list[
 
     Raises EvalInputError when scene_dir has no gt/gt.json or LPIPS weights were passed but cannot be loaded.
     """
+    from panoworld.stage import params_to_dict
+
     scene_dir = Path(scene_dir)
     if not (scene_dir / GT_DIRNAME / "gt.json").is_file():
         raise EvalInputError(NO_GT_MESSAGE.format(scene=scene_dir))
@@ -691,8 +682,7 @@ def evaluate(scene_dir: Path, params: EvalParams | None = None, *, stages: list[
     results, errors = ev.run(stages)
     report = {
         "scene": str(scene_dir),
-        "params": {f.name: (getattr(params, f.name).value if isinstance(getattr(params, f.name), enum.Enum)
-                            else getattr(params, f.name)) for f in dataclasses.fields(params)},
+        "params": params_to_dict(params),
         "stages": results,
         "targets": target_report(results),
     }
@@ -703,7 +693,7 @@ def evaluate(scene_dir: Path, params: EvalParams | None = None, *, stages: list[
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from panoworld.stage import _unwrap_optional, field_docs
+    from panoworld.stage import field_docs
 
     ap = argparse.ArgumentParser(prog="python runner.py eval", description=__doc__)
     ap.add_argument("scene", type=Path, help="scene directory with gt/ (from `runner.py synth`) and artifacts/")
@@ -714,19 +704,25 @@ def build_parser() -> argparse.ArgumentParser:
     docs = field_docs(EvalParams)
     hints = typing.get_type_hints(EvalParams)
     for f in dataclasses.fields(EvalParams):
-        tp, _ = _unwrap_optional(hints[f.name])
-        is_enum = isinstance(tp, type) and issubclass(tp, enum.Enum)
+        tp = hints[f.name]
+        choices = [m.value for m in tp] if isinstance(tp, type) and issubclass(tp, enum.Enum) else None
         default = f.default.value if isinstance(f.default, enum.Enum) else f.default
-        ap.add_argument(f"--{f.name.replace('_', '-')}", dest=f.name, type=str if is_enum else tp, default=f.default,
-                        choices=[m.value for m in tp] if is_enum else None,
+        ap.add_argument(f"--{f.name.replace('_', '-')}", dest=f"p_{f.name}", default=None, choices=choices,
+                        metavar=None if choices else getattr(tp, "__name__", "path").upper(),
                         help=f"{docs.get(f.name, '')} (default: {default})")
     return ap
 
 
 def main(argv: list[str] | None = None) -> int:
+    from panoworld.stage import params_from_dict
+
     args = build_parser().parse_args(argv)
-    params = EvalParams(**{f.name: getattr(args, f.name) for f in dataclasses.fields(EvalParams)})
-    params.lpips_net = LpipsNet(params.lpips_net)
+    values = {f.name: getattr(args, f"p_{f.name}") for f in dataclasses.fields(EvalParams)}
+    try:
+        params = params_from_dict(EvalParams, {k: v for k, v in values.items() if v is not None}, where="eval")
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     if bool(params.lpips_weights) != bool(params.lpips_lin_weights):
         print("error: LPIPS needs both --lpips-weights (backbone) and --lpips-lin-weights (linear heads)", file=sys.stderr)
         return 2
