@@ -131,22 +131,24 @@ def time_full_size(scene, scene_dir: Path, height: int, frames: int) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--seed", type=int, default=3, help="synthetic scene seed")
+    ap.add_argument("--seeds", default="3", help="synthetic scene seeds, comma separated (one table set per scene)")
     ap.add_argument("--height", type=int, default=256, help="ERP height of the quality runs (width = 2x)")
     ap.add_argument("--frames", type=int, default=81)
     ap.add_argument("--strides", default="1,2,4")
     ap.add_argument("--time-height", type=int, default=720, help="ERP height of the timing run; 0 skips it")
     ap.add_argument("--keep", type=Path, help="keep the scene directories here instead of a temporary directory")
     args = ap.parse_args(argv)
-    scene = generate_scene(args.seed, "default")
     root = args.keep or Path(tempfile.mkdtemp(prefix="bench_video_"))
     try:
-        scene_dir = make_scene_dir(scene, root / f"scene_{args.height}", args.height)
-        for r in (int(s) for s in args.strides.split(",") if s):
-            evaluate_stride(scene, scene_dir, args.height, r, args.frames)
-        if args.time_height:
-            time_full_size(scene, make_scene_dir(scene, root / f"scene_{args.time_height}", args.time_height),
-                           args.time_height, args.frames)
+        for seed in (int(s) for s in args.seeds.split(",") if s):
+            scene = generate_scene(seed, "default")
+            print(f"\n=== synthetic scene seed {seed} (default preset) ===")
+            scene_dir = make_scene_dir(scene, root / f"scene{seed}_{args.height}", args.height)
+            for r in (int(s) for s in args.strides.split(",") if s):
+                evaluate_stride(scene, scene_dir, args.height, r, args.frames)
+            if args.time_height:
+                big = make_scene_dir(scene, root / f"scene{seed}_{args.time_height}", args.time_height)
+                time_full_size(scene, big, args.time_height, args.frames)
     finally:
         if args.keep is None:
             shutil.rmtree(root, ignore_errors=True)

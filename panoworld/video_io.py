@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -80,7 +82,8 @@ def _ns(index: int, fps: float) -> int:
 
 class VideoWriter:
     """Streams frames into a video artifact directory: frames/%06d.png, depth/%06d.png, preview.mp4, video.mcap;
-    close() writes video.json. Memory stays at one frame whatever the length."""
+    close() writes video.json. PNGs are encoded by `workers` threads; memory stays at a few frames whatever the
+    length."""
 
     def __init__(
         self,
@@ -94,6 +97,7 @@ class VideoWriter:
         preview_max_width: int = 1920,
         mcap: bool = True,
         png_compression: int = 1,
+        workers: int = 2,
     ):
         check_erp_shape(height, width, "video frame")
         if fps <= 0:
@@ -106,6 +110,8 @@ class VideoWriter:
             (self.out_dir / "depth").mkdir(exist_ok=True)
         self.entries: list[dict] = []
         self.poses: list[np.ndarray] = []
+        self._pool = ThreadPoolExecutor(max_workers=workers)
+        self._pending: deque = deque()
         self._mp4 = None
         if preview:
             import imageio_ffmpeg
@@ -146,13 +152,10 @@ class VideoWriter:
         check_pose(world_from_cam, "world_from_cam")
         i = len(self.entries)
         name = f"{i:06d}.png"
-        png = encode_png(rgb, compression=self.png_compression)
-        (self.out_dir / "frames" / name).write_bytes(png)
         entry = {"rgb": f"frames/{name}", "depth": None}
         mm = None
         if depth is not None:
             mm = depth_to_mm(depth)
-            (self.out_dir / "depth" / name).write_bytes(encode_png(mm, compression=self.png_compression))
             entry["depth"] = f"depth/{name}"
         self.entries.append(entry)
         self.poses.append(np.asarray(world_from_cam, np.float64))
@@ -161,8 +164,25 @@ class VideoWriter:
             if self._preview_size != (W, H):
                 small = cv2.resize(rgb, self._preview_size, interpolation=cv2.INTER_AREA)
             self._mp4.send(np.ascontiguousarray(small))
+        # PNG encoding (OpenCV releases the GIL) overlaps with the caller's next frame; MCAP messages stay in order.
+        rgb_job = self._pool.submit(self._encode_write, rgb.copy(), self.out_dir / entry["rgb"])
+        depth_job = self._pool.submit(self._encode_write, mm, self.out_dir / entry["depth"]) if mm is not None else None
+        self._pending.append((i, rgb_job, depth_job, mm, self.poses[-1], cond_rgb_png, cond_mask_png))
+        while len(self._pending) > 2:
+            self._finish_oldest()
+
+    def _encode_write(self, image: np.ndarray, path: Path) -> bytes:
+        png = encode_png(image, compression=self.png_compression)
+        path.write_bytes(png)
+        return png
+
+    def _finish_oldest(self) -> None:
+        i, rgb_job, depth_job, mm, pose, cond_rgb_png, cond_mask_png = self._pending.popleft()
+        png = rgb_job.result()
+        if depth_job is not None:
+            depth_job.result()
         if self._mcap is not None:
-            self._write_mcap(i, png, mm, np.asarray(world_from_cam, np.float64), cond_rgb_png, cond_mask_png)
+            self._write_mcap(i, png, mm, pose, cond_rgb_png, cond_mask_png)
 
     def _write_mcap(self, i, png, mm, world_from_cam, cond_rgb_png, cond_mask_png) -> None:
         from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
@@ -198,7 +218,10 @@ class VideoWriter:
         put(TOPIC_POSE, pose)
 
     def close(self, meta: dict | None = None) -> dict:
-        """Finish the preview and MCAP and write video.json (meta adds keys such as backend/upscale); returns it."""
+        """Finish the frames, preview and MCAP and write video.json (meta adds keys such as backend/upscale); returns it."""
+        while self._pending:
+            self._finish_oldest()
+        self._pool.shutdown()
         if self._mp4 is not None:
             self._mp4.close()
             self._mp4 = None
