@@ -234,3 +234,16 @@ def test_stage_input_errors(tmp_path, room):
     with pytest.raises(StageInputError, match="per_voxel"):
         execute_stage(spec, {"video": video, "poses": poses}, Params(per_voxel=3), tmp_path / "o4", input_digests=digests)
     assert not any((tmp_path / f"o{i}").exists() for i in range(1, 5))
+
+
+def test_a_scene_smaller_than_a_voxel_is_reported(tmp_path):
+    from panoworld.gaussians import ContextFrames, write_artifact
+
+    rgb = np.full((16, 32, 3), 200, np.uint8)
+    depth = np.full((16, 32), 0.004, np.float32)  # a 4 mm sphere around the camera
+    res = voxel_fusion([(rgb, depth, np.eye(4))], FusionParams(voxel_size=0.05))
+    assert len(res.gaussians) <= 8
+    frames = ContextFrames(rgb[None], depth[None], np.eye(4)[None], [0], "video")
+    info = write_artifact(tmp_path, res, frames, eval_views=1, eval_height=16)
+    assert info["warnings"] and "under two voxels" in info["warnings"][0]
+    assert (tmp_path / "gaussians.ply").is_file() and (tmp_path / "preview.png").is_file()
