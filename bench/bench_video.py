@@ -18,7 +18,7 @@ from panoworld import inpaint  # noqa: E402
 from panoworld import pipeline as pl  # noqa: E402
 from panoworld.conditions import load_conditions  # noqa: E402
 from panoworld.mesh import load_erp_mesh  # noqa: E402
-from panoworld.metrics import psnr, reprojection_error, ssim_map, ws_psnr  # noqa: E402
+from panoworld.metrics import reprojection_error, ssim_map, video_psnr  # noqa: E402
 from panoworld.synth import generate_scene  # noqa: E402
 from panoworld.trajectory import load_trajectory  # noqa: E402
 
@@ -62,12 +62,15 @@ def temporal_rmse(frames, masks, gt_depth, poses) -> tuple[float, int]:
     return (float(np.sqrt((e**2).mean())) if len(e) else float("nan")), len(e)
 
 
-def frame_metrics(out: np.ndarray, gt: np.ndarray, hole: np.ndarray) -> dict[str, float]:
-    smap = ssim_map(out, gt)
-    m = {"psnr": psnr(out, gt), "ssim": float(smap.mean()), "ws_psnr": ws_psnr(out, gt)}
-    if hole.any():
-        m.update(psnr_hole=psnr(out, gt, hole), ssim_hole=float(smap[hole].mean()), ws_psnr_hole=ws_psnr(out, gt, hole))
-    return m
+def video_metrics(outs: np.ndarray, gts: np.ndarray, holes: np.ndarray) -> dict[str, float]:
+    """PSNR / WS-PSNR of the error pooled over frames (T, H, W, 3) and SSIM averaged over pixels, on all pixels and on
+    the disoccluded ones (holes (T, H, W))."""
+    smaps = np.stack([ssim_map(o, g) for o, g in zip(outs, gts)])
+    return {
+        "psnr": video_psnr(outs, gts), "ssim": float(smaps.mean()), "ws_psnr": video_psnr(outs, gts, spherical=True),
+        "psnr_hole": video_psnr(outs, gts, holes), "ssim_hole": float(smaps[holes].mean()) if holes.any() else np.nan,
+        "ws_psnr_hole": video_psnr(outs, gts, holes, spherical=True),
+    }
 
 
 def evaluate_stride(scene, scene_dir: Path, height: int, stride: int, frames: int) -> None:
@@ -79,24 +82,24 @@ def evaluate_stride(scene, scene_dir: Path, height: int, stride: int, frames: in
     masks = np.asarray(cond.mask)
     gt = [scene.render(scene.world_from_canonical @ T, height, 2 * height) for T in poses]
     gt_depth = [np.where(np.isfinite(d), d, 0).astype(np.float32) for _, d in gt]
+    gt_rgb = np.stack([g[0] for g in gt])
     length = float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
     print(f"\nstride r={stride}: {len(poses)} frames, path {length:.2f} m, {height}x{2 * height}, "
-          f"hole fraction {1 - masks.mean():.4f}")
+          f"hole fraction {1 - masks.mean():.4f} (metrics over frames 1..{len(poses) - 1}, error pooled over frames)")
     rows = []
     for backend in ("warp-inpaint", "frame-inpaint"):
         filled, cpu_s, wall_s = fill_all(cond, poses, mesh, backend)
-        outs = [f.rgb for f in filled]
-        per = [frame_metrics(o, g[0], ~m) for o, g, m in zip(outs, gt, masks)]
-        mean = {k: float(np.mean([p[k] for p in per if k in p])) for k in per[0] | per[-1]}
+        outs = np.stack([f.rgb for f in filled])
+        mean = video_metrics(outs[1:], gt_rgb[1:], ~masks[1:])  # frame 0 is the input panorama
         tc, n = temporal_rmse(outs, masks, gt_depth, poses)
         f2d = sum(int(f.filled_2d.sum()) for f in filled) / max(int((~masks).sum()), 1)
         rows.append((backend, mean, tc, n, f2d, cpu_s))
-    gt_tc, _ = temporal_rmse([g[0] for g in gt], masks, gt_depth, poses)
+    gt_tc, _ = temporal_rmse(gt_rgb, masks, gt_depth, poses)
     print(f"  {'backend':14s} {'PSNR':>6s} {'SSIM':>6s} {'WS-PSNR':>7s} | {'PSNR':>6s} {'SSIM':>6s} {'WS-PSNR':>7s} (holes)"
           f" | {'temporal RMSE':>13s} {'2D fill':>7s} {'CPU s':>6s}")
     for backend, m, tc, n, f2d, cpu_s in rows:
-        print(f"  {backend:14s} {m['psnr']:6.2f} {m['ssim']:6.4f} {m['ws_psnr']:7.2f} | {m.get('psnr_hole', np.nan):6.2f} "
-              f"{m.get('ssim_hole', np.nan):6.4f} {m.get('ws_psnr_hole', np.nan):7.2f}         | {tc:13.2f} "
+        print(f"  {backend:14s} {m['psnr']:6.2f} {m['ssim']:6.4f} {m['ws_psnr']:7.2f} | {m['psnr_hole']:6.2f} "
+              f"{m['ssim_hole']:6.4f} {m['ws_psnr_hole']:7.2f}         | {tc:13.2f} "
               f"{f2d:7.3f} {cpu_s:6.2f}")
     print(f"  temporal RMSE of the GT frames themselves on the same pixels (resampling floor): {gt_tc:.2f} "
           f"({rows[0][3]} pixel pairs; 8-bit RGB units)")

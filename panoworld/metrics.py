@@ -64,7 +64,27 @@ def ws_psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None, *, dat
     return _weighted_psnr(_sq_err(a, b), weight, data_range or default_data_range(a))
 
 
-def _mask(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+def video_psnr(
+    a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None, *, spherical: bool = False,
+    data_range: float | None = None,
+) -> float:
+    """PSNR of the mean squared error pooled over all frames of videos a, b (T, H, W, C) (frames with no masked
+    pixel simply contribute nothing), optionally where mask (T, H, W) is True; spherical weighs ERP pixels by solid
+    angle as ws_psnr does."""
+    a, b = np.asarray(a), np.asarray(b)
+    if a.shape != b.shape or a.ndim != 4:
+        raise ValueError(f"{a.shape=} {b.shape=} but expected equal (T, H, W, C)")
+    T, H, W, C = a.shape
+    weight = np.ones((T, H, W))
+    if spherical:
+        weight = weight * erp_pixel_solid_angle(H, W)[None]
+    if mask is not None:
+        weight = weight * _mask(mask, (T, H, W))
+    err2 = (a.astype(np.float64) - b.astype(np.float64)) ** 2
+    return _weighted_psnr(err2.reshape(T * H, W, C), weight.reshape(T * H, W), data_range or default_data_range(a))
+
+
+def _mask(mask: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     mask = np.asarray(mask)
     if mask.shape != shape:
         raise ValueError(f"{mask.shape=} but expected {shape} (H, W)")

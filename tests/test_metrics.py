@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from panoworld.conventions import erp_pixel_solid_angle
-from panoworld.metrics import psnr, ssim, ssim_map, ws_psnr
+from panoworld.metrics import psnr, ssim, ssim_map, video_psnr, ws_psnr
 
 
 def _rand(shape, seed=0):
@@ -76,3 +76,19 @@ def test_ssim_structure_and_contrast_terms():
     s = ssim(a, a + 0.05, data_range=1.0)
     assert 0.95 < s < 1.0
     assert ssim(a, b) == pytest.approx(ssim(b, a))
+
+
+def test_video_psnr_pools_frames():
+    a = np.zeros((3, 8, 16, 3), np.uint8)
+    b = a.copy()
+    b[0] = 10  # only frame 0 differs: pooled MSE = 100 / 3
+    assert video_psnr(a, b) == pytest.approx(10 * np.log10(255**2 / (100 / 3)))
+    mask = np.zeros((3, 8, 16), bool)
+    mask[0, :2] = True
+    assert video_psnr(a, b, mask) == pytest.approx(20 * np.log10(255 / 10))
+    assert video_psnr(a, b, mask, spherical=True) == pytest.approx(20 * np.log10(255 / 10))
+    assert video_psnr(a, a, mask) == float("inf")
+    # Spherical pooling equals ws_psnr for a single frame.
+    rng = np.random.default_rng(0)
+    x, y = rng.integers(0, 256, (2, 1, 8, 16, 3), dtype=np.uint8)
+    assert video_psnr(x, y, spherical=True) == pytest.approx(ws_psnr(x[0], y[0]))
