@@ -345,7 +345,7 @@ def render_erp(
     check_erp_shape(H, W, "requested ERP render")
     check_pose(world_from_cam, "world_from_cam")
     world_from_cam = np.asarray(world_from_cam, dtype=np.float64)
-    S = face_size or int(math.ceil(W / math.pi))
+    S = face_size or math.ceil(W / math.pi)
     n = S + 2 * margin
     f = S / 2.0
     c = n / 2.0

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from plyfile import PlyData, PlyElement
+from plyfile import PlyData, PlyElement, PlyParseError
 
 from panoworld.conventions import rotmat_from_quat_wxyz
 from panoworld.gaussians import Gaussians
@@ -25,9 +25,13 @@ def _logit(p: np.ndarray) -> np.ndarray:
 
 
 def write_gaussians_ply(path: str | Path, gaussians: Gaussians) -> None:
-    """Binary little-endian INRIA layout in our world frame (metres, y down = gravity, camera 0 = identity):
-    x y z, nx ny nz (the axis of the smallest scale), f_dc_0..2, f_rest_0..44 (channel-major, zero-padded to degree 3),
-    opacity (logit), scale_0..2 (log), rot_0..3 (w, x, y, z)."""
+    """Binary little-endian INRIA layout: x y z, nx ny nz (the axis of the smallest scale), f_dc_0..2, f_rest_0..44
+    (channel-major, zero-padded to degree 3), opacity (logit), scale_0..2 (log), rot_0..3 (w, x, y, z).
+
+    Coordinates are our canonical world frame: metres, camera 0 = identity with OpenCV axes, so y points down
+    (gravity), like COLMAP-trained INRIA scenes. Viewers that assume y up (SuperSplat, three.js-based ones) show it
+    upside down until rotated 180 degrees about x.
+    """
     g = gaussians.numpy()
     n = len(g)
     rest = np.zeros((n, 15, 3), np.float32)
@@ -49,7 +53,7 @@ def read_gaussians_ply(path: str | Path) -> Gaussians:
     """Read an INRIA-layout .ply (any SH degree 0-3) back into Gaussians; ValueError names a missing property."""
     try:
         ply = PlyData.read(str(path))
-    except Exception as e:  # plyfile raises several types for corrupt files
+    except (OSError, ValueError, UnicodeDecodeError, PlyParseError) as e:
         raise ValueError(f"{path}: not a readable .ply file ({e})") from None
     if "vertex" not in ply:
         raise ValueError(f"{path}: no 'vertex' element; expected an INRIA 3DGS .ply")

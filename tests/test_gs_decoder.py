@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -12,10 +14,11 @@ from panoworld.models.weights import MissingWeightsError
 
 torch.set_num_threads(1)
 
-TINY = dict(
-    patch_size=8, embed_dim=32, num_heads=2, global_layers=1, feature_dim=8, voxel_size=0.25, knn_k=4, knn_layers=1,
-    knn_heads=2, token_dim=16, pe_freqs=2, mlp_hidden=32, gaussians_per_voxel=2, sh_degree=1,
-)
+TINY = {
+    "patch_size": 8, "embed_dim": 32, "num_heads": 2, "global_layers": 1, "feature_dim": 8, "voxel_size": 0.25,
+    "knn_k": 4, "knn_layers": 1, "knn_heads": 2, "token_dim": 16, "pe_freqs": 2, "mlp_hidden": 32,
+    "gaussians_per_voxel": 2, "sh_degree": 1,
+}
 
 
 def inputs(V=2, H=16, W=32, seed=0):
@@ -122,8 +125,7 @@ def test_missing_or_mismatched_weights_name_the_flag(model, tmp_path):
         (tmp_path / "cfg" / "config.json").write_text("{}")
         GSDecoder.from_pretrained(tmp_path / "cfg")
     model.save_pretrained(tmp_path / "w")
-    cfg = dict(TINY, token_dim=32)
-    (tmp_path / "w" / "config.json").write_text(__import__("json").dumps(cfg))
+    (tmp_path / "w" / "config.json").write_text(json.dumps({**TINY, "token_dim": 32}))
     with pytest.raises(MissingWeightsError, match="does not match"):
         GSDecoder.from_pretrained(tmp_path / "w")
 

@@ -92,7 +92,7 @@ class GSDecoderConfig:
 def plucker_features(images: torch.Tensor, depths: torch.Tensor, world_from_cam: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """images (V, 3, H, W) in [0, 1], depths (V, H, W) ray distance, poses (V, 4, 4) ->
     (features f = [I, z, d, o x d] (V, 10, H, W), world points o + z d (V, H, W, 3))."""
-    V, _, H, W = images.shape
+    H, W = images.shape[-2:]
     dirs_cam = torch.from_numpy(erp_dirs(H, W)).to(images)
     R = world_from_cam[:, :3, :3].to(images)
     o = world_from_cam[:, :3, 3].to(images)
