@@ -63,7 +63,7 @@ def _atan2_approx(y, x):
 
 @njit(parallel=True, cache=True, nogil=True)
 def _vertex_pass(verts, cam_from_world, height, width, polar_sin, vdata):
-    """Per vertex: unit ray direction (camera frame), ray distance and ERP (u, v); u = NaN near a pole."""
+    """Per vertex: camera-frame position, ERP (u, v) (u = NaN near a pole), sin(latitude) and ray distance."""
     two_pi = 2.0 * math.pi
     for k in prange(verts.shape[0]):
         x0 = np.float64(verts[k, 0])
@@ -74,16 +74,21 @@ def _vertex_pass(verts, cam_from_world, height, width, polar_sin, vdata):
         z = cam_from_world[2, 0] * x0 + cam_from_world[2, 1] * y0 + cam_from_world[2, 2] * z0 + cam_from_world[2, 3]
         rxz = math.sqrt(x * x + z * z)
         r = math.sqrt(rxz * rxz + y * y)
-        inv_r = 1.0 / r if r > 0.0 else 0.0
-        vdata[k, 0] = x * inv_r
-        vdata[k, 1] = y * inv_r
-        vdata[k, 2] = z * inv_r
-        vdata[k, 3] = r
+        vdata[k, 0] = x
+        vdata[k, 1] = y
+        vdata[k, 2] = z
         if rxz <= polar_sin * r:
-            vdata[k, 4] = np.nan
+            vdata[k, 3] = np.nan
         else:
-            vdata[k, 4] = (_atan2_approx(x, z) / two_pi + 0.5) * width
-        vdata[k, 5] = (0.5 - _atan2_approx(-y, rxz) / math.pi) * height
+            vdata[k, 3] = (_atan2_approx(x, z) / two_pi + 0.5) * width
+        vdata[k, 4] = (0.5 - _atan2_approx(-y, rxz) / math.pi) * height
+        vdata[k, 5] = -y / r if r > 0.0 else 0.0
+        vdata[k, 6] = r
+
+
+@njit(inline="always")
+def _xyz(vdata, k):
+    return np.float64(vdata[k, 0]), np.float64(vdata[k, 1]), np.float64(vdata[k, 2])
 
 
 @njit(inline="always")
@@ -107,14 +112,11 @@ def _acos_approx(x):
 @njit(inline="always")
 def _raster_face(f, ia, ib, ic, vdata, height, width, sin_lat, cos_lat, sin_lon, cos_lon, pad_polar, zbuf):
     """Z-buffer one triangle into zbuf (H * W,) uint64: conservative ERP bounding box, exact per-pixel cone test."""
-    ra = np.float64(vdata[ia, 3])
-    rb = np.float64(vdata[ib, 3])
-    rc = np.float64(vdata[ic, 3])
-    if ra <= 0.0 or rb <= 0.0 or rc <= 0.0:
+    if vdata[ia, 6] <= 0.0 or vdata[ib, 6] <= 0.0 or vdata[ic, 6] <= 0.0:
         return
-    ua = np.float64(vdata[ia, 4])
-    ub = np.float64(vdata[ib, 4])
-    uc = np.float64(vdata[ic, 4])
+    ua = np.float64(vdata[ia, 3])
+    ub = np.float64(vdata[ib, 3])
+    uc = np.float64(vdata[ic, 3])
     eps = _EPS_PX + _ATAN2_ERR * width / (2.0 * math.pi)
     half = 0.5 * width
     full_width = False
@@ -159,30 +161,37 @@ def _raster_face(f, ia, ib, ic, vdata, height, width, sin_lat, cos_lat, sin_lon,
         if j0 > j1:
             return
 
-    va = np.float64(vdata[ia, 5])
-    vb = np.float64(vdata[ib, 5])
-    vc = np.float64(vdata[ic, 5])
-    i0 = max(int(math.ceil(min(va, vb, vc) - 0.5 - eps)), 0)
-    i1 = min(int(math.floor(max(va, vb, vc) - 0.5 + eps)), height - 1)
-    # Unit directions first: great-circle edges bulge in latitude beyond their end points, sin(lat) by at most
-    # theta^2 / 8 for an arc of angle theta, and theta^2 / 8 <= 0.31 chord^2 (<= 0.126 chord^2 for chords < 0.1).
-    dax = np.float64(vdata[ia, 0])
-    day = np.float64(vdata[ia, 1])
-    daz = np.float64(vdata[ia, 2])
-    dbx = np.float64(vdata[ib, 0])
-    dby = np.float64(vdata[ib, 1])
-    dbz = np.float64(vdata[ib, 2])
-    dcx = np.float64(vdata[ic, 0])
-    dcy = np.float64(vdata[ic, 1])
-    dcz = np.float64(vdata[ic, 2])
-    c2 = max(
-        (dax - dbx) ** 2 + (day - dby) ** 2 + (daz - dbz) ** 2,
-        (dbx - dcx) ** 2 + (dby - dcy) ** 2 + (dbz - dcz) ** 2,
-        (dcx - dax) ** 2 + (dcy - day) ** 2 + (dcz - daz) ** 2,
-    )
-    bulge = c2 * (0.126 if c2 < 0.01 else 0.31) + 1e-9
-    s_hi = -min(day, dby, dcy) + bulge
-    s_lo = -max(day, dby, dcy) - bulge
+    va = np.float64(vdata[ia, 4])
+    vb = np.float64(vdata[ib, 4])
+    vc = np.float64(vdata[ic, 4])
+    vmin = min(va, vb, vc)
+    vmax = max(va, vb, vc)
+    i0 = max(int(math.ceil(vmin - 0.5 - eps)), 0)
+    i1 = min(int(math.floor(vmax - 0.5 + eps)), height - 1)
+    ax, ay, az = _xyz(vdata, ia)
+    bx, by, bz = _xyz(vdata, ib)
+    cx, cy, cz = _xyz(vdata, ic)
+    # Great-circle edges bulge in latitude beyond their end points: sin(lat) by at most theta^2 / 8 for an arc of
+    # angle theta. theta <= |d lat| + |d lon| bounds it from the bounding box; without a usable longitude range
+    # theta^2 / 8 <= 0.31 chord^2 (unit directions) does.
+    if npolar == 0 and not full_width:
+        theta = (vmax - vmin + 2.0 * eps) * (math.pi / height) + (uhi - ulo) * (2.0 * math.pi / width)
+        bulge = 0.125 * theta * theta + 1e-9
+    else:
+        ra = np.float64(vdata[ia, 6])
+        rb = np.float64(vdata[ib, 6])
+        rc = np.float64(vdata[ic, 6])
+        c2 = max(
+            (ax / ra - bx / rb) ** 2 + (ay / ra - by / rb) ** 2 + (az / ra - bz / rb) ** 2,
+            (bx / rb - cx / rc) ** 2 + (by / rb - cy / rc) ** 2 + (bz / rb - cz / rc) ** 2,
+            (cx / rc - ax / ra) ** 2 + (cy / rc - ay / ra) ** 2 + (cz / rc - az / ra) ** 2,
+        )
+        bulge = 0.31 * c2 + 1e-9
+    sa = np.float64(vdata[ia, 5])
+    sb = np.float64(vdata[ib, 5])
+    sc = np.float64(vdata[ic, 5])
+    s_hi = max(sa, sb, sc) + bulge
+    s_lo = min(sa, sb, sc) - bulge
     if i0 > i1:
         i0 = i1 + 1  # no row centre between the vertices: look only at the two neighbouring rows
     while i0 > 0 and sin_lat[i0 - 1] <= s_hi:
@@ -191,15 +200,6 @@ def _raster_face(f, ia, ib, ic, vdata, height, width, sin_lat, cos_lat, sin_lon,
         i1 += 1
     if i0 > i1:
         return
-    ax = dax * ra
-    ay = day * ra
-    az = daz * ra
-    bx = dbx * rb
-    by = dby * rb
-    bz = dbz * rb
-    cx = dcx * rc
-    cy = dcy * rc
-    cz = dcz * rc
 
     # Edge normals of the cone spanned by the three vertex rays; d is inside iff d . n_k >= 0 for all k.
     n0x = by * cz - bz * cy
@@ -345,24 +345,17 @@ def _pixel_hit(f, faces, vdata, dx, dy, dz):
     ia = faces[f, 0]
     ib = faces[f, 1]
     ic = faces[f, 2]
-    ra = np.float64(vdata[ia, 3])
-    rb = np.float64(vdata[ib, 3])
-    rc = np.float64(vdata[ic, 3])
-    ax = np.float64(vdata[ia, 0]) * ra
-    ay = np.float64(vdata[ia, 1]) * ra
-    az = np.float64(vdata[ia, 2]) * ra
-    bx = np.float64(vdata[ib, 0]) * rb
-    by = np.float64(vdata[ib, 1]) * rb
-    bz = np.float64(vdata[ib, 2]) * rb
-    cx = np.float64(vdata[ic, 0]) * rc
-    cy = np.float64(vdata[ic, 1]) * rc
-    cz = np.float64(vdata[ic, 2]) * rc
-    w0 = dx * (by * cz - bz * cy) + dy * (bz * cx - bx * cz) + dz * (bx * cy - by * cx)
+    ax, ay, az = _xyz(vdata, ia)
+    bx, by, bz = _xyz(vdata, ib)
+    cx, cy, cz = _xyz(vdata, ic)
+    n0x = by * cz - bz * cy
+    n0y = bz * cx - bx * cz
+    n0z = bx * cy - by * cx
+    w0 = dx * n0x + dy * n0y + dz * n0z
     w1 = dx * (cy * az - cz * ay) + dy * (cz * ax - cx * az) + dz * (cx * ay - cy * ax)
     w2 = dx * (ay * bz - az * by) + dy * (az * bx - ax * bz) + dz * (ax * by - ay * bx)
-    s = w0 + w1 + w2
-    det = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
-    return w0 / s, w1 / s, w2 / s, det / s
+    inv_s = 1.0 / (w0 + w1 + w2)
+    return w0 * inv_s, w1 * inv_s, w2 * inv_s, (ax * n0x + ay * n0y + az * n0z) * inv_s
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -425,7 +418,7 @@ def _resolve_shaded(zbufs, faces, vdata, colors, face_valid, width, sin_lat, cos
             ic = faces[f, 2]
             for ch in range(3):
                 c = b0 * colors[ia, ch] + b1 * colors[ib, ch] + b2 * colors[ic, ch] + 0.5
-                rgb[i, j, ch] = np.uint8(min(max(c, 0.0), 255.0))
+                rgb[i, j, ch] = np.uint8(np.int32(c)) if c < 255.0 else np.uint8(255)
             depth[i, j] = t_hit
             mask[i, j] = True
 

@@ -1,0 +1,455 @@
+"""Geometry-warped ERP conditions along a trajectory: render every pose from the scene mesh, write PNGs, load them back."""
+
+from __future__ import annotations
+
+import enum
+import json
+import sys
+import time
+from collections import deque
+from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from panoworld.conventions import check_erp_shape
+from panoworld.mesh import ErpMesh
+from panoworld.rasterize import ErpRasterizer, RaycastRenderer, WarpedFrame, check_poses
+
+CONDITIONS_JSON = "conditions.json"
+PREVIEW_MP4 = "preview.mp4"
+DEPTH_SCALE = 0.001
+"""Metres per unit of the uint16 depth PNGs (millimetres; 0 = nothing, saturates at 65.535 m)."""
+
+
+class Backend(enum.StrEnum):
+    """How condition frames are rendered."""
+
+    RASTER = "raster"
+    """Numba ERP triangle rasteriser (exact per-pixel coverage, fast)."""
+    RAYCAST = "raycast"
+    """Embree ray cast per pixel (the reference; several times slower)."""
+
+
+SPLIT_MIN_JUMP = 0.05
+"""Relative depth jump above which split_stretched_faces cuts an edge between two stretched faces."""
+
+
+def split_stretched_faces(mesh: ErpMesh, min_jump: float = SPLIT_MIN_JUMP) -> ErpMesh:
+    """Split the stretched faces of a depth mesh at their silhouettes: fore- and background extend half a pixel.
+
+    mesh (an ErpMesh in the frame of the camera whose depth built it) has stretched faces (face_valid False)
+    spanning depth discontinuities from the last foreground to the first background pixel centre; the true
+    silhouette lies between them. Every edge shared by two stretched faces whose end depths differ by more than
+    min_jump (relative) is cut at its angular midpoint into a copy at each end's depth; each face becomes valid
+    pieces on both sides plus an invalid 'curtain' along the source rays through the midpoints. Seen from the
+    source nothing changes; from a novel pose the predicted hole shrinks to the true shadow of the silhouette.
+    Both faces at a cut edge cut it identically, so the result stays watertight.
+    """
+    V = mesh.vertices.astype(np.float64)
+    r = np.linalg.norm(V, axis=1)
+    inv = np.flatnonzero(~mesh.face_valid)
+    if len(inv) == 0:
+        return mesh
+    F = mesh.faces[inv].astype(np.int64)
+    a = F
+    b = np.roll(F, -1, axis=1)
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    key = lo * len(V) + hi
+    uniq, inverse, counts = np.unique(key.ravel(), return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1, 3)
+    ra, rb = r[a], r[b]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        jump = (np.maximum(ra, rb) / np.minimum(ra, rb) - 1.0) > min_jump
+    J = jump & (counts[inverse] == 2) & (np.minimum(ra, rb) > 0)  # cut edges, shape (n, 3)
+    eid_all = np.full(len(uniq), -1, np.int64)
+    used = np.unique(inverse[J])
+    eid_all[used] = np.arange(len(used))
+    ue_lo, ue_hi = uniq[used] // len(V), uniq[used] % len(V)
+    m = V[ue_lo] / r[ue_lo, None] + V[ue_hi] / r[ue_hi, None]
+    m /= np.linalg.norm(m, axis=1, keepdims=True)
+    new_v = np.concatenate([m * r[ue_lo, None], m * r[ue_hi, None]])  # copies at the lower / higher end's depth
+    new_c = np.concatenate([mesh.colors[ue_lo], mesh.colors[ue_hi]])
+    base, ne = len(V), len(used)
+    eid = eid_all[inverse]
+    Cs = np.where(a == lo, base + eid, base + ne + eid)  # copy on edge k (F[:, k] -> F[:, k + 1]) at its start's depth
+    Ce = np.where(b == lo, base + eid, base + ne + eid)  # ... at its end's depth
+    nj = J.sum(1)
+    # Triangulate each face by its number of cut edges, in rim order (vertex, its cut copies, next vertex...).
+    valid_out, invalid_out = [], []
+    for k in range(3):
+        k1, k2 = (k + 1) % 3, (k + 2) % 3
+        V0, V1, V2 = F[:, k], F[:, k1], F[:, k2]
+        s = (nj == 1) & J[:, k]
+        valid_out += [np.stack([V0, Cs[:, k], V2], 1)[s], np.stack([Ce[:, k], V1, V2], 1)[s]]
+        invalid_out += [np.stack([Cs[:, k], Ce[:, k], V2], 1)[s]]
+        s = (nj == 2) & J[:, k] & J[:, k2]  # lone vertex V0 between edges k2 (V2 -> V0) and k (V0 -> V1)
+        valid_out += [np.stack([Ce[:, k2], V0, Cs[:, k]], 1)[s], np.stack([Ce[:, k], V1, V2], 1)[s],
+                      np.stack([Ce[:, k], V2, Cs[:, k2]], 1)[s]]
+        invalid_out += [np.stack([Cs[:, k], Ce[:, k], Cs[:, k2]], 1)[s],
+                        np.stack([Cs[:, k], Cs[:, k2], Ce[:, k2]], 1)[s]]
+    s = nj == 3
+    for k in range(3):
+        valid_out.append(np.stack([Ce[:, (k + 2) % 3], F[:, k], Cs[:, k]], 1)[s])
+    h = [Cs[:, 0], Ce[:, 0], Cs[:, 1], Ce[:, 1], Cs[:, 2], Ce[:, 2]]
+    for k in range(1, 5):
+        invalid_out.append(np.stack([h[0], h[k], h[k + 1]], 1)[s])
+    keep = np.ones(len(mesh.faces), bool)
+    keep[inv[nj > 0]] = False
+    vo, io = np.concatenate(valid_out), np.concatenate(invalid_out)
+    faces = np.concatenate([mesh.faces[keep], vo, io]).astype(np.int32)
+    valid = np.concatenate([mesh.face_valid[keep], np.ones(len(vo), bool), np.zeros(len(io), bool)])
+    return ErpMesh(np.concatenate([mesh.vertices, new_v.astype(np.float32)]), faces,
+                   np.concatenate([mesh.colors, new_c]), valid)
+
+
+def make_renderer(mesh, backend: Backend | str = Backend.RASTER) -> ErpRasterizer | RaycastRenderer:
+    """Renderer of an ErpMesh-like object (vertices, faces, colors, face_valid) for the given backend."""
+    cls = {Backend.RASTER: ErpRasterizer, Backend.RAYCAST: RaycastRenderer}[Backend(backend)]
+    return cls(mesh.vertices, mesh.faces, mesh.colors, mesh.face_valid)
+
+
+def iter_conditions(
+    mesh: ErpMesh,
+    poses: np.ndarray,
+    height: int,
+    width: int,
+    *,
+    backend: Backend | str = Backend.RASTER,
+    split_silhouettes: bool = True,
+    progress: bool = False,
+) -> Iterator[WarpedFrame]:
+    """Render poses (N, 4, 4) world_from_cam (mesh frame) one by one -> WarpedFrame per pose (fresh arrays each).
+
+    split_silhouettes: render split_stretched_faces(mesh) (tighter disocclusion masks) instead of mesh itself.
+    Arguments are checked before the first frame is rendered (ValueError), so a bad call produces nothing.
+    """
+    poses = check_poses(poses)
+    check_erp_shape(height, width, "conditions size")
+    renderer = make_renderer(split_stretched_faces(mesh) if split_silhouettes else mesh, backend)
+    return _iter_frames(renderer, poses, height, width, progress)
+
+
+def _iter_frames(renderer, poses, height, width, progress) -> Iterator[WarpedFrame]:
+    from tqdm import tqdm
+
+    for pose in tqdm(poses, desc="conditions", unit="frame", disable=not progress or not sys.stderr.isatty()):
+        yield renderer.render(pose, height, width)
+
+
+def render_conditions(mesh: ErpMesh, poses: np.ndarray, height: int, width: int, **options) -> list[WarpedFrame]:
+    """All condition frames of poses (N, 4, 4) world_from_cam in the mesh's frame (options as iter_conditions)."""
+    return list(iter_conditions(mesh, poses, height, width, **options))
+
+
+# ---------------------------------------------------------------------------------------------- ground truth
+
+
+def true_disocclusion(
+    depth_src: np.ndarray, depth_tgt: np.ndarray, src_from_tgt: np.ndarray, rel_tol: float = 0.02
+) -> np.ndarray:
+    """Pixels of the target view whose surface the source view does not see, from exact depths -> (H, W) bool.
+
+    depth_src (Hs, Ws) and depth_tgt (H, W) are ground-truth ERP ray distances (inf / <= 0 = nothing) of the
+    source and target cameras; src_from_tgt (4, 4) maps target-camera to source-camera coordinates. A target
+    pixel's surface point is seen from the source unless it lies more than rel_tol (relative) behind the source
+    depth at the source pixel it projects into (the standard shadow-map test). Pixels without a surface, or
+    projecting onto source pixels without one, count as disoccluded (nothing to warp there).
+    """
+    from panoworld.conventions import erp_pixel_from_dir, points_from_depth, transform_points
+
+    hs, ws = depth_src.shape
+    check_erp_shape(hs, ws, "depth_src")
+    check_erp_shape(*depth_tgt.shape, "depth_tgt")
+    has = np.isfinite(depth_tgt) & (depth_tgt > 0)
+    pts = transform_points(src_from_tgt, points_from_depth(np.where(has, depth_tgt, 1.0).astype(np.float64)))
+    dist = np.linalg.norm(pts, axis=-1)
+    u, v = erp_pixel_from_dir(pts, hs, ws)
+    i = np.clip(np.floor(v).astype(np.int64), 0, hs - 1)
+    j = np.floor(u).astype(np.int64) % ws
+    src = np.where(np.isfinite(depth_src) & (depth_src > 0), depth_src, 0.0).astype(np.float64)
+    seen = has & (dist <= src[i, j] * (1 + rel_tol))
+    return ~seen
+
+
+@dataclass
+class WarpQuality:
+    """A warped frame scored against the exact render at its pose."""
+
+    psnr: float
+    """PSNR (dB, uint8 range) of warped vs true RGB on pixels the mask marks valid and that are truly visible."""
+    iou: float
+    """IoU of the 'must be generated' sets: mask == 0 vs true_disocclusion."""
+    valid_fraction: float
+    """Fraction of pixels with mask == 1."""
+    true_hole_fraction: float
+    """Fraction of pixels truly disoccluded."""
+
+
+def warp_quality(frame: WarpedFrame, rgb_true: np.ndarray, disoccluded: np.ndarray) -> WarpQuality:
+    """Score a WarpedFrame against the true rgb (H, W, 3) uint8 and true_disocclusion (H, W) at its pose."""
+    from panoworld.metrics import psnr
+
+    if rgb_true.shape != frame.rgb.shape or disoccluded.shape != frame.mask.shape:
+        raise ValueError(f"{rgb_true.shape=}, {disoccluded.shape=} but expected {frame.rgb.shape}, {frame.mask.shape}")
+    hole = ~frame.mask
+    union = (hole | disoccluded).sum()
+    iou = float((hole & disoccluded).sum() / union) if union else 1.0
+    score = psnr(frame.rgb, rgb_true, mask=frame.mask & ~disoccluded)
+    return WarpQuality(score, iou, float(frame.mask.mean()), float(disoccluded.mean()))
+
+
+# ---------------------------------------------------------------------------------------------- storage
+
+
+def frame_files(k: int, write_depth: bool = True) -> dict[str, str]:
+    """Relative file names of frame k inside a conditions directory."""
+    files = {"rgb": f"rgb/{k:06d}.png", "mask": f"mask/{k:06d}.png"}
+    if write_depth:
+        files["depth"] = f"depth/{k:06d}.png"
+    return files
+
+
+def depth_to_png16(depth: np.ndarray) -> np.ndarray:
+    """Depth (H, W) metres (0 / non-finite = nothing) -> uint16 millimetres, saturating at 65535."""
+    mm = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0) / DEPTH_SCALE
+    return np.clip(np.rint(mm), 0, 65535).astype(np.uint16)
+
+
+def _write_frame(out_dir: Path, files: dict[str, str], frame: WarpedFrame, compression: int) -> None:
+    import cv2
+
+    opts = [cv2.IMWRITE_PNG_COMPRESSION, compression]
+    ok = cv2.imwrite(str(out_dir / files["rgb"]), np.ascontiguousarray(frame.rgb[..., ::-1]), opts)
+    ok &= cv2.imwrite(str(out_dir / files["mask"]), frame.mask.astype(np.uint8) * 255, opts)
+    if "depth" in files:
+        ok &= cv2.imwrite(str(out_dir / files["depth"]), depth_to_png16(frame.depth), opts)
+    if not ok:
+        raise OSError(f"{out_dir}: could not write the PNGs of {files['rgb']}")
+
+
+def _preview_frame(frame: WarpedFrame, max_height: int) -> np.ndarray:
+    """Side-by-side rgb | mask (H', 2W', 3) uint8 at most max_height rows, sizes multiples of 16."""
+    import cv2
+
+    h, w = frame.mask.shape
+    scale = min(1.0, max_height / h)
+    ph = max(16, int(round(h * scale / 16)) * 16)
+    pw = 2 * ph
+    rgb = cv2.resize(frame.rgb, (pw, ph), interpolation=cv2.INTER_AREA)
+    mask = cv2.resize(frame.mask.astype(np.uint8) * 255, (pw, ph), interpolation=cv2.INTER_AREA)
+    return np.concatenate([rgb, np.repeat(mask[..., None], 3, axis=2)], axis=1)
+
+
+def write_conditions(
+    out_dir: Path,
+    frames: Iterable[WarpedFrame],
+    poses: np.ndarray,
+    *,
+    write_depth: bool = True,
+    preview_mp4: bool = False,
+    preview_fps: float = 16.0,
+    preview_height: int = 512,
+    workers: int = 2,
+    compression: int = 1,
+) -> dict:
+    """Write frames (one per pose of poses (N, 4, 4)) into out_dir; conditions.json is written last.
+
+    Layout: conditions.json {"height", "width", "num_frames", "depth_scale", "frames": [{"rgb", "mask"[, "depth"]}],
+    "poses"}; rgb/%06d.png uint8 RGB (0 where mask is 0), mask/%06d.png uint8 0/255 (255 = valid geometry seen),
+    depth/%06d.png uint16 millimetres (0 = nothing); optional preview.mp4 (rgb | mask side by side, H.264).
+    frames may be a lazy iterator: PNG encoding overlaps with rendering in a pool of `workers` threads.
+    Returns facts for the manifest: sizes, frame count, valid fractions, seconds spent.
+    """
+    poses = check_poses(poses)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for sub in ("rgb", "mask") + (("depth",) if write_depth else ()):
+        (out_dir / sub).mkdir(exist_ok=True)
+    writer = None
+    if preview_mp4:
+        import imageio.v2 as imageio
+
+        writer = imageio.get_writer(
+            str(out_dir / PREVIEW_MP4), fps=preview_fps, codec="libx264", quality=7, macro_block_size=16,
+            ffmpeg_log_level="error",
+        )
+    entries: list[dict[str, str]] = []
+    valid: list[float] = []
+    size = None
+    t_render = 0.0
+    t0 = time.perf_counter()
+    pending: deque = deque()
+    try:
+        with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+            it = iter(frames)
+            while True:
+                t1 = time.perf_counter()
+                frame = next(it, None)
+                t_render += time.perf_counter() - t1
+                if frame is None:
+                    break
+                k = len(entries)
+                if size is None:
+                    size = frame.mask.shape
+                    check_erp_shape(*size, "condition frame")
+                if frame.mask.shape != size or frame.rgb.shape != (*size, 3) or frame.depth.shape != size:
+                    raise ValueError(
+                        f"frame {k}: {frame.rgb.shape=}, {frame.mask.shape=}, {frame.depth.shape=} but expected "
+                        f"{(*size, 3)}, {size}, {size} like frame 0"
+                    )
+                files = frame_files(k, write_depth)
+                entries.append(files)
+                valid.append(float(frame.mask.mean()))
+                pending.append(pool.submit(_write_frame, out_dir, files, frame, compression))
+                while len(pending) > 2 * max(1, workers):
+                    pending.popleft().result()
+                if writer is not None:
+                    writer.append_data(_preview_frame(frame, preview_height))
+            while pending:
+                pending.popleft().result()
+    finally:
+        if writer is not None:
+            writer.close()
+    if len(entries) != len(poses):
+        raise ValueError(f"got {len(entries)} frames for {len(poses)} poses; expected one frame per pose")
+    if not entries:
+        raise ValueError("no frames to write (empty trajectory)")
+    height, width = size
+    doc = {
+        "height": height,
+        "width": width,
+        "num_frames": len(entries),
+        "depth_scale": DEPTH_SCALE,
+        "frames": entries,
+        "poses": poses.tolist(),
+        "mask": "255 = pixel sees valid mesh geometry; 0 = no geometry or a stretched occluder face (to be generated)",
+        "convention": "ERP, world_from_cam 4x4 in the mesh's canonical frame, OpenCV camera axes, depth = ray distance",
+    }
+    (out_dir / CONDITIONS_JSON).write_text(json.dumps(doc))
+    return {
+        "height": height,
+        "width": width,
+        "num_frames": len(entries),
+        "valid_fraction_mean": float(np.mean(valid)),
+        "valid_fraction_min": float(np.min(valid)),
+        "render_s": round(t_render, 3),
+        "total_s": round(time.perf_counter() - t0, 3),
+        "preview": PREVIEW_MP4 if preview_mp4 else None,
+    }
+
+
+class FrameStack:
+    """Lazy (N, ...) stack of per-frame PNGs: index it for one frame, slice it or np.asarray it for many."""
+
+    def __init__(self, root: Path, paths: list[str], shape: tuple[int, ...], dtype, decode):
+        self.root = root
+        self.paths = paths
+        self.shape = (len(paths), *shape)
+        self.dtype = np.dtype(dtype)
+        self._decode = decode
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def _read(self, k: int) -> np.ndarray:
+        import cv2
+
+        path = self.root / self.paths[k]
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise ValueError(f"{path}: missing or not a readable PNG; rerun the conditions stage")
+        out = self._decode(img)
+        if out.shape != self.shape[1:]:
+            raise ValueError(f"{path}: {out.shape=} but expected {self.shape[1:]} from conditions.json")
+        return out
+
+    def __getitem__(self, idx):
+        if isinstance(idx, (int, np.integer)):
+            k = int(idx)
+            if not -len(self) <= k < len(self):
+                raise IndexError(f"frame {k} out of range for {len(self)} frames")
+            return self._read(k % len(self))
+        ks = range(len(self))[idx] if isinstance(idx, slice) else np.arange(len(self))[idx]
+        out = np.empty((len(ks), *self.shape[1:]), self.dtype)
+        for i, k in enumerate(ks):
+            out[i] = self._read(int(k))
+        return out
+
+    def __iter__(self):
+        return (self._read(k) for k in range(len(self)))
+
+    def __array__(self, dtype=None, copy=None):
+        arr = self[:]
+        return arr if dtype is None else arr.astype(dtype)
+
+
+def _decode_rgb(img: np.ndarray) -> np.ndarray:
+    if img.ndim != 3 or img.dtype != np.uint8:
+        return np.empty((0,))
+    return np.ascontiguousarray(img[..., ::-1])
+
+
+def _decode_mask(img: np.ndarray) -> np.ndarray:
+    return img > 127 if img.dtype == np.uint8 and img.ndim == 2 else np.empty((0,))
+
+
+def _decode_depth(img: np.ndarray) -> np.ndarray:
+    if img.dtype != np.uint16 or img.ndim != 2:
+        return np.empty((0,))
+    return img.astype(np.float32) * np.float32(DEPTH_SCALE)
+
+
+@dataclass
+class LoadedConditions:
+    """A conditions directory: lazy frame stacks plus the poses they were rendered at."""
+
+    root: Path
+    height: int
+    width: int
+    poses: np.ndarray
+    """(N, 4, 4) world_from_cam in the mesh's canonical frame."""
+    rgb: FrameStack
+    """(N, H, W, 3) uint8."""
+    mask: FrameStack
+    """(N, H, W) bool, True = valid warped geometry."""
+    depth: FrameStack | None
+    """(N, H, W) float32 metres (0 = nothing), or None when the stage ran with write_depth off."""
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    def frame(self, k: int) -> WarpedFrame:
+        depth = self.depth[k] if self.depth is not None else np.zeros((self.height, self.width), np.float32)
+        return WarpedFrame(self.rgb[k], depth, self.mask[k])
+
+
+def load_conditions(path: Path | str) -> LoadedConditions:
+    """Open a conditions directory (or its conditions.json); frames are read lazily when indexed."""
+    path = Path(path)
+    root = path.parent if path.is_file() else path
+    doc_path = root / CONDITIONS_JSON
+    try:
+        doc = json.loads(doc_path.read_text())
+        height, width, n = int(doc["height"]), int(doc["width"]), int(doc["num_frames"])
+        entries = doc["frames"]
+        poses = check_poses(np.asarray(doc["poses"], np.float64), f"{doc_path} poses")
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"{doc_path}: not a readable conditions index ({e}); rerun the conditions stage") from None
+    if len(entries) != n or len(poses) != n:
+        raise ValueError(f"{doc_path}: num_frames={n} but {len(entries)} frames and {len(poses)} poses listed")
+    if float(doc.get("depth_scale", DEPTH_SCALE)) != DEPTH_SCALE:
+        raise ValueError(f"{doc_path}: depth_scale {doc['depth_scale']} but this reader expects {DEPTH_SCALE}")
+    has_depth = n > 0 and all("depth" in e for e in entries)
+    return LoadedConditions(
+        root=root,
+        height=height,
+        width=width,
+        poses=poses,
+        rgb=FrameStack(root, [e["rgb"] for e in entries], (height, width, 3), np.uint8, _decode_rgb),
+        mask=FrameStack(root, [e["mask"] for e in entries], (height, width), bool, _decode_mask),
+        depth=FrameStack(root, [e["depth"] for e in entries], (height, width), np.float32, _decode_depth)
+        if has_depth else None,
+    )
