@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -14,10 +13,8 @@ from torch import nn
 
 from panoworld.conventions import erp_dirs
 from panoworld.gaussians import SH_C0, ContextFrames, FusionResult, Gaussians, bbox_extent, fuse_voxels
-from panoworld.models.weights import MissingWeightsError, require_weights_dir
+from panoworld.models.weights import load_config_and_weights, save_config_and_weights
 
-CONFIG_FILE = "config.json"
-WEIGHTS_FILE = "model.safetensors"
 IN_CHANNELS = 10
 """Per-pixel input features: RGB (3), depth (1), ray direction d (3), moment o x d (3)."""
 
@@ -266,13 +263,7 @@ class GSDecoder(nn.Module):
 
     def save_pretrained(self, root: Path | str) -> Path:
         """Write config.json and model.safetensors into the directory root."""
-        from safetensors.torch import save_file
-
-        root = Path(root)
-        root.mkdir(parents=True, exist_ok=True)
-        (root / CONFIG_FILE).write_text(json.dumps(self.cfg.to_json(), indent=2))
-        save_file({k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}, str(root / WEIGHTS_FILE))
-        return root
+        return save_config_and_weights(self, self.cfg.to_json(), root)
 
     @classmethod
     def from_pretrained(cls, root: Path | str | None, *, flag: str = "--weights", device: str = "cpu") -> GSDecoder:
@@ -280,25 +271,6 @@ class GSDecoder(nn.Module):
 
         Missing or mismatching files raise MissingWeightsError (a StageInputError) naming `flag`.
         """
-        try:
-            from safetensors.torch import load_file
-        except ImportError as e:  # pragma: no cover - safetensors ships with the models extra
-            raise ImportError("GSDecoder needs safetensors: pip install '.[models]'") from e
-        root = require_weights_dir(root, [CONFIG_FILE, WEIGHTS_FILE], model="GSDecoder", flag=flag)
-        try:
-            cfg = GSDecoderConfig.from_json(json.loads((root / CONFIG_FILE).read_text()))
-        except (json.JSONDecodeError, TypeError, ValueError) as e:
-            raise MissingWeightsError(f"GSDecoder: {root / CONFIG_FILE} is not a valid config: {e}") from None
-        model = cls(cfg)
-        state = load_file(str(root / WEIGHTS_FILE), device=device)
-        try:
-            missing, unexpected = model.load_state_dict(state, strict=False)
-        except RuntimeError as e:  # tensor shapes that differ from the config's
-            shapes = " ".join(str(e).split())[:300]
-            raise MissingWeightsError(f"GSDecoder: {root / WEIGHTS_FILE} does not match {CONFIG_FILE}: {shapes}") from None
-        if missing or unexpected:
-            raise MissingWeightsError(
-                f"GSDecoder: {root / WEIGHTS_FILE} does not match {CONFIG_FILE}: missing {missing[:3]}"
-                f"{'...' if len(missing) > 3 else ''}, unexpected {unexpected[:3]}{'...' if len(unexpected) > 3 else ''}"
-            )
-        return model.to(device).eval()
+        return load_config_and_weights(
+            lambda c: cls(GSDecoderConfig.from_json(c)), root, model="GSDecoder", flag=flag, device=device
+        )

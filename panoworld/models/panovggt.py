@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
@@ -12,10 +11,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from panoworld.conventions import erp_lonlat_from_pixel
-from panoworld.models.weights import MissingWeightsError, require_weights_dir
+from panoworld.models.weights import load_config_and_weights, save_config_and_weights
 
-CONFIG_FILE = "config.json"
-WEIGHTS_FILE = "model.safetensors"
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
@@ -364,41 +361,15 @@ class PanoVGGT(nn.Module):
 
     def save_pretrained(self, root: Path | str) -> Path:
         """Write config.json and model.safetensors into the directory root."""
-        from safetensors.torch import save_file
-
-        root = Path(root)
-        root.mkdir(parents=True, exist_ok=True)
-        (root / CONFIG_FILE).write_text(json.dumps(self.cfg.to_json(), indent=2))
-        save_file({k: v.detach().contiguous().cpu() for k, v in self.state_dict().items()}, str(root / WEIGHTS_FILE))
-        return root
+        return save_config_and_weights(self, self.cfg.to_json(), root)
 
     @classmethod
     def from_pretrained(cls, root: Path | str | None, *, flag: str = "--weights", device: str = "cpu") -> PanoVGGT:
         """Load from a local directory holding config.json and model.safetensors (never downloads).
 
-        Missing files raise MissingWeightsError (a StageInputError) naming `flag`; a state dict that does not match
-        the config raises it too, listing the first missing/unexpected keys.
+        Missing or mismatching files raise MissingWeightsError (a StageInputError) naming `flag`.
         """
-        try:
-            from safetensors.torch import load_file
-        except ImportError as e:  # pragma: no cover - safetensors ships with the models extra
-            raise ImportError("PanoVGGT needs safetensors: pip install '.[models]'") from e
-        root = require_weights_dir(root, [CONFIG_FILE, WEIGHTS_FILE], model="PanoVGGT", flag=flag)
-        try:
-            cfg = PanoVGGTConfig.from_json(json.loads((root / CONFIG_FILE).read_text()))
-        except (json.JSONDecodeError, TypeError, ValueError) as e:
-            raise MissingWeightsError(f"PanoVGGT: {root / CONFIG_FILE} is not a valid config: {e}") from None
-        model = cls(cfg)
-        state = load_file(str(root / WEIGHTS_FILE), device=device)
-        try:
-            missing, unexpected = model.load_state_dict(state, strict=False)
-        except RuntimeError as e:  # tensor shapes that differ from the config's
-            shapes = " ".join(str(e).split())[:300]
-            raise MissingWeightsError(f"PanoVGGT: {root / WEIGHTS_FILE} does not match {CONFIG_FILE}: {shapes}") from None
-        if missing or unexpected:
-            raise MissingWeightsError(
-                f"PanoVGGT: {root / WEIGHTS_FILE} does not match {CONFIG_FILE}: missing {missing[:3]}"
-                f"{'...' if len(missing) > 3 else ''}, unexpected {unexpected[:3]}{'...' if len(unexpected) > 3 else ''}"
-            )
-        return model.to(device).eval()
+        return load_config_and_weights(
+            lambda c: cls(PanoVGGTConfig.from_json(c)), root, model="PanoVGGT", flag=flag, device=device
+        )
 

@@ -45,3 +45,51 @@ def require_weights_file(path: Path | str | None, *, model: str, flag: str, expe
     if not path.is_file():
         raise MissingWeightsError(f"{model}: {flag} {path} does not exist; it must be {expected}")
     return path
+
+
+CONFIG_FILE = "config.json"
+WEIGHTS_FILE = "model.safetensors"
+
+
+def save_config_and_weights(model, config: dict, root: Path | str) -> Path:
+    """Write `config` as config.json and the model's state dict as model.safetensors into the directory root."""
+    import json
+
+    from safetensors.torch import save_file
+
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    (root / CONFIG_FILE).write_text(json.dumps(config, indent=2))
+    save_file({k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}, str(root / WEIGHTS_FILE))
+    return root
+
+
+def load_config_and_weights(build, root: Path | str | None, *, model: str, flag: str, device: str = "cpu"):
+    """Build a model from root/config.json with `build(config_dict)` and load root/model.safetensors into it.
+
+    Never downloads. Missing files, an invalid config, or a state dict that does not match the config (missing or
+    unexpected keys, other tensor shapes) raise MissingWeightsError naming the file and `flag`.
+    """
+    import json
+
+    try:
+        from safetensors.torch import load_file
+    except ImportError as e:  # pragma: no cover - safetensors ships with the models extra
+        raise ImportError(f"{model} needs safetensors: pip install '.[models]'") from e
+    root = require_weights_dir(root, [CONFIG_FILE, WEIGHTS_FILE], model=model, flag=flag)
+    try:
+        net = build(json.loads((root / CONFIG_FILE).read_text()))
+    except (json.JSONDecodeError, TypeError, ValueError) as e:
+        raise MissingWeightsError(f"{model}: {root / CONFIG_FILE} is not a valid config: {e}") from None
+    state = load_file(str(root / WEIGHTS_FILE), device=device)
+    try:
+        missing, unexpected = net.load_state_dict(state, strict=False)
+    except RuntimeError as e:  # tensor shapes that differ from the config's
+        shapes = " ".join(str(e).split())[:300]
+        raise MissingWeightsError(f"{model}: {root / WEIGHTS_FILE} does not match {CONFIG_FILE}: {shapes}") from None
+    if missing or unexpected:
+        raise MissingWeightsError(
+            f"{model}: {root / WEIGHTS_FILE} does not match {CONFIG_FILE}: missing {missing[:3]}"
+            f"{'...' if len(missing) > 3 else ''}, unexpected {unexpected[:3]}{'...' if len(unexpected) > 3 else ''}"
+        )
+    return net.to(device).eval()
