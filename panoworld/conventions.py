@@ -125,25 +125,19 @@ def quat_wxyz_from_rotmat(R: np.ndarray) -> np.ndarray:
     """Rotation matrix (..., 3, 3) -> unit quaternion (..., 4) in (w, x, y, z) order with w >= 0."""
     R = np.asarray(R, dtype=np.float64)
     m = R.reshape(-1, 3, 3)
-    q = np.empty((m.shape[0], 4))
-    tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
-    # Shepperd's method: pick the numerically largest of w, x, y, z.
-    cands = np.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], axis=1)
-    k = np.argmax(cands, axis=1)
-    for i in range(m.shape[0]):
-        r = m[i]
-        if k[i] == 0:
-            s = 2.0 * np.sqrt(max(1.0 + tr[i], 1e-300))
-            q[i] = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
-        elif k[i] == 1:
-            s = 2.0 * np.sqrt(max(1.0 + r[0, 0] - r[1, 1] - r[2, 2], 1e-300))
-            q[i] = [(r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
-        elif k[i] == 2:
-            s = 2.0 * np.sqrt(max(1.0 + r[1, 1] - r[0, 0] - r[2, 2], 1e-300))
-            q[i] = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s]
-        else:
-            s = 2.0 * np.sqrt(max(1.0 + r[2, 2] - r[0, 0] - r[1, 1], 1e-300))
-            q[i] = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s]
+    r = {(i, j): m[:, i, j] for i in range(3) for j in range(3)}
+    tr = r[0, 0] + r[1, 1] + r[2, 2]
+    # Shepperd's method: each row builds q from its largest component (w, x, y or z), all rows at once.
+    cands = np.stack(
+        [
+            [1.0 + tr, r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]],
+            [r[2, 1] - r[1, 2], 1.0 + r[0, 0] - r[1, 1] - r[2, 2], r[0, 1] + r[1, 0], r[0, 2] + r[2, 0]],
+            [r[0, 2] - r[2, 0], r[0, 1] + r[1, 0], 1.0 + r[1, 1] - r[0, 0] - r[2, 2], r[1, 2] + r[2, 1]],
+            [r[1, 0] - r[0, 1], r[0, 2] + r[2, 0], r[1, 2] + r[2, 1], 1.0 + r[2, 2] - r[0, 0] - r[1, 1]],
+        ]
+    )  # (4 choices, 4 components, N)
+    k = np.argmax(np.stack([tr, r[0, 0], r[1, 1], r[2, 2]]), axis=0)
+    q = cands[k, :, np.arange(len(k))]
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     q[q[:, 0] < 0] *= -1.0
     return q.reshape(R.shape[:-2] + (4,))

@@ -77,6 +77,8 @@ def test_quaternion_round_trip_and_order():
     # 90 degrees about z: (w, x, y, z) = (cos 45, 0, 0, sin 45)
     Rz = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
     np.testing.assert_allclose(cv.quat_wxyz_from_rotmat(Rz), [np.sqrt(0.5), 0, 0, np.sqrt(0.5)], atol=1e-12)
+    half_turns = np.stack([np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]), np.diag([-1.0, -1, 1])])  # w = 0 cases
+    np.testing.assert_allclose(cv.rotmat_from_quat_wxyz(cv.quat_wxyz_from_rotmat(half_turns)), half_turns, atol=1e-12)
     np.testing.assert_allclose(cv.quat_wxyz_from_xyzw(cv.quat_xyzw_from_wxyz(q)), q)
     assert cv.quat_xyzw_from_wxyz(np.array([1.0, 2, 3, 4])).tolist() == [2, 3, 4, 1]
 
