@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import enum
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,6 +11,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from panoworld.conventions import check_pose, erp_dirs
+from panoworld.fusion_params import Confidence, FusionParams
 
 SH_C0 = 0.28209479177387814
 """Degree-0 real spherical harmonic: rgb = 0.5 + SH_C0 * f_dc (the INRIA 3DGS convention)."""
@@ -182,56 +182,6 @@ def fuse_voxels(
 
 
 # ---------------------------------------------------------------- per-pixel observations
-
-
-class Confidence(enum.StrEnum):
-    """Non-learned per-pixel confidence w of the voxel-fusion backend."""
-
-    UNIFORM = "uniform"
-    """w = 1: every pixel one vote (views closer to a surface sample it more densely and so dominate)."""
-    AREA = "area"
-    """w = footprint area of the pixel on the surface: surface-area-weighted moments, every view counts equally."""
-    RESOLUTION = "resolution"
-    """w = cos(grazing angle) / depth^2: frontal, close (sharper) observations dominate."""
-
-
-@dataclass(kw_only=True)
-class FusionParams:
-    """Settings of the non-learned voxel-fusion backend."""
-
-    voxel_size: float = 0.02
-    """Voxel edge length in metres (the paper's epsilon)."""
-    per_voxel: int = 1
-    """Gaussians per occupied voxel, K in {1, 2, 4, 8}: the voxel's samples are split in two along each of its
-    log2(K) principal axes and every non-empty part becomes one Gaussian."""
-    confidence: Confidence = Confidence.RESOLUTION
-    """Per-pixel confidence weight used in the fusion."""
-    min_points: int = 1
-    """Prune voxels (and sub-voxel parts) observed by fewer pixels than this."""
-    scale_factor: float = 1.6
-    """Gaussian standard deviation = scale_factor * sqrt(eigenvalue of the fused covariance)."""
-    min_scale: float = 0.05
-    """Lower clamp of every Gaussian scale, as a fraction of voxel_size (keeps surfels from being degenerate)."""
-    max_scale: float = 1.0
-    """Upper clamp of every Gaussian scale, as a multiple of voxel_size."""
-    opacity: float = 0.98
-    """Opacity of every emitted Gaussian."""
-    min_cos: float = 0.08
-    """Drop pixels seen at grazing angles with |cos| below this (depth discontinuities, flying pixels)."""
-    max_depth: float = 0.0
-    """Drop pixels with depth beyond this many metres (0 = keep all)."""
-
-    def check(self) -> None:
-        if not self.voxel_size > 0:
-            raise ValueError(f"voxel_size={self.voxel_size} but expected > 0")
-        if self.per_voxel not in (1, 2, 4, 8):
-            raise ValueError(f"per_voxel={self.per_voxel} but expected one of 1, 2, 4, 8")
-        if self.min_points < 1:
-            raise ValueError(f"min_points={self.min_points} but expected >= 1")
-        if not 0 < self.min_scale <= self.max_scale:
-            raise ValueError(f"min_scale={self.min_scale}, max_scale={self.max_scale} but expected 0 < min <= max")
-        if not 0 < self.opacity < 1:
-            raise ValueError(f"opacity={self.opacity} but expected in (0, 1)")
 
 
 @dataclass

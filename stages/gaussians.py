@@ -7,7 +7,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from panoworld.gaussians import FusionParams, read_context_frames, voxel_fusion, write_artifact
+from panoworld.fusion_params import FusionParams
 from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "gaussians"
@@ -45,6 +45,8 @@ class Params(FusionParams):
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
+    from panoworld.gaussians import read_context_frames, voxel_fusion, write_artifact
+
     frames = read_context_frames(
         inputs["video"], inputs["poses"], context_views=params.context_views, height=params.height
     )
