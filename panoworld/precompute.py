@@ -200,7 +200,7 @@ def _clip_params(spec: ClipSpec, p: PrecomputeParams) -> clip_mod.Params:
 def run_clip(task: ClipTask) -> dict:
     """Render one clip unless its cached artifact is up to date; never raises (errors are returned)."""
     spec = task.spec
-    row: dict[str, Any] = {"scene": spec.scene, "clip": spec.clip_id, **asdict(spec)}
+    row: dict[str, Any] = {**asdict(spec), "clip": spec.clip_id}
     t0 = time.perf_counter()
     try:
         stage = load_stage(clip_mod)

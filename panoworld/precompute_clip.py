@@ -45,7 +45,7 @@ def frame_indices(params: Params) -> np.ndarray:
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
-    from panoworld.conditions import render_conditions, write_conditions
+    from panoworld.conditions import iter_conditions, write_conditions
     from panoworld.dataset import DatasetScene
     from panoworld.mesh import erp_mesh_from_depth
 
@@ -61,8 +61,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     poses = scene.poses(params.track)[idx]
     canonical_from_world = np.linalg.inv(poses[0])
     rel = canonical_from_world[None] @ poses
-    frames = render_conditions(mesh, rel, h, w)
-    info = write_conditions(out_dir / "cond", frames, rel, write_depth=params.write_depth)
+    frames = iter_conditions(mesh, rel, h, w)  # the conditions stage's renderer and defaults
+    info = write_conditions(out_dir / "cond", frames, rel, write_depth=params.write_depth, workers=1)
     targets = []
     if params.write_targets:
         import cv2
@@ -89,7 +89,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         "targets": targets,
     }
     (out_dir / "clip.json").write_text(json.dumps(clip, indent=1))
-    return {"valid_fraction": float(np.mean([f.mask.mean() for f in frames])), **(info or {})}
+    return info
 
 
 def main(argv: list[str] | None = None) -> int:
