@@ -197,6 +197,18 @@ def input_digest(name: str, spec: Input, path: Path | None) -> str | None:
 
 
 def peak_rss_mb() -> float:
+    """Peak resident memory of this process in MB.
+
+    Linux's VmHWM belongs to the address space created at exec, unlike ru_maxrss, which inherits the parent's
+    high-water mark across fork and exec (every stage started by the runner would report the runner's peak).
+    """
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
