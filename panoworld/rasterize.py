@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numba
@@ -13,10 +14,8 @@ from panoworld.conventions import check_erp_shape, check_pose, erp_lonlat_from_p
 from panoworld.raycast import Hits, Raycaster
 
 _NO_HIT = np.uint64(0xFFFFFFFFFFFFFFFF)
-# z-buffer key = quantised ray distance (2^-20 m steps) << 32 | face id: the nearest surface wins, ties go to the
-# lower face id, so the result does not depend on the thread count.
-_DEPTH_SCALE = float(1 << 20)
-_DEPTH_MAX_Q = float((1 << 32) - 2)
+# z-buffer key = float32 bits of the ray distance << 32 | face id (positive floats order like their bits): the
+# nearest surface wins, ties go to the lower face id, so the result does not depend on the thread count.
 # A vertex closer to a pole than this fraction of the top pixel row's angular distance to the pole has no usable
 # longitude; its triangles take their longitude range from the other vertices plus a conservative pad.
 _POLAR_FRACTION = 0.02
@@ -110,8 +109,12 @@ def _acos_approx(x):
 
 
 @njit(inline="always")
-def _raster_face(f, ia, ib, ic, vdata, height, width, sin_lat, cos_lat, sin_lon, cos_lon, pad_polar, zbuf):
-    """Z-buffer one triangle into zbuf (H * W,) uint64: conservative ERP bounding box, exact per-pixel cone test."""
+def _raster_face(f, ia, ib, ic, vdata, height, width, sin_lat, cos_lat, sin_lon, cos_lon, pad_polar, zbuf, bbuf, t32, t_bits):
+    """Z-buffer one triangle into zbuf (H * W,) uint64 and its barycentrics 1, 2 into bbuf (H * W, 2) float32.
+
+    Candidates: a conservative ERP bounding box (exact per-row longitude arcs for large faces); each candidate pixel
+    gets the exact cone test of its ray. t32 / t_bits: a float32 scratch cell and its uint32 view.
+    """
     if vdata[ia, 6] <= 0.0 or vdata[ib, 6] <= 0.0 or vdata[ic, 6] <= 0.0:
         return
     ua = np.float64(vdata[ia, 3])
@@ -279,12 +282,13 @@ def _raster_face(f, ia, ib, ic, vdata, height, width, sin_lat, cos_lat, sin_lon,
             s = w0 + w1 + w2
             if s <= 0.0:
                 continue
-            q = det / s * _DEPTH_SCALE
-            if q > _DEPTH_MAX_Q:
-                q = _DEPTH_MAX_Q
-            key = (np.uint64(q) << np.uint64(32)) | fid
+            inv_s = 1.0 / s
+            t32[0] = det * inv_s
+            key = (np.uint64(t_bits[0]) << np.uint64(32)) | fid
             if key < zbuf[row + j]:
                 zbuf[row + j] = key
+                bbuf[row + j, 0] = w1 * inv_s
+                bbuf[row + j, 1] = w2 * inv_s
 
 
 @njit(inline="always")
@@ -328,49 +332,45 @@ def _clip_arc(amp, centre, offset, px_per_rad, width, lo, hi, eps):
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _raster_pass(faces, vdata, height, width, sin_lat, cos_lat, sin_lon, cos_lon, pad_polar, chunk_starts, zbufs):
-    """Rasterise all faces; chunk k of faces goes into the z-buffer of the thread that runs it."""
+def _raster_pass(faces, vdata, height, width, sin_lat, cos_lat, sin_lon, cos_lon, pad_polar, chunk_starts, zbufs, bbufs):
+    """Rasterise all faces; chunk k of faces goes into the buffers of the thread that runs it."""
     for k in prange(len(chunk_starts) - 1):
-        zbuf = zbufs[numba.get_thread_id()]
+        tid = numba.get_thread_id()
+        zbuf = zbufs[tid]
+        bbuf = bbufs[tid]
+        t32 = np.empty(1, np.float32)
+        t_bits = t32.view(np.uint32)
         for f in range(chunk_starts[k], chunk_starts[k + 1]):
             _raster_face(
                 f, faces[f, 0], faces[f, 1], faces[f, 2], vdata, height, width,
-                sin_lat, cos_lat, sin_lon, cos_lon, pad_polar, zbuf,
+                sin_lat, cos_lat, sin_lon, cos_lon, pad_polar, zbuf, bbuf, t32, t_bits,
             )
 
 
 @njit(inline="always")
-def _pixel_hit(f, faces, vdata, dx, dy, dz):
-    """Exact barycentrics and ray distance of the pixel ray d on face f (d inside the face's cone)."""
-    ia = faces[f, 0]
-    ib = faces[f, 1]
-    ic = faces[f, 2]
-    ax, ay, az = _xyz(vdata, ia)
-    bx, by, bz = _xyz(vdata, ib)
-    cx, cy, cz = _xyz(vdata, ic)
-    n0x = by * cz - bz * cy
-    n0y = bz * cx - bx * cz
-    n0z = bx * cy - by * cx
-    w0 = dx * n0x + dy * n0y + dz * n0z
-    w1 = dx * (cy * az - cz * ay) + dy * (cz * ax - cx * az) + dz * (cx * ay - cy * ax)
-    w2 = dx * (ay * bz - az * by) + dy * (az * bx - ax * bz) + dz * (ax * by - ay * bx)
-    inv_s = 1.0 / (w0 + w1 + w2)
-    return w0 * inv_s, w1 * inv_s, w2 * inv_s, (ax * n0x + ay * n0y + az * n0z) * inv_s
+def _nearest(zbufs, bbufs, p, t_bits, t32):
+    """Merge pixel p of the per-thread buffers (resetting them) -> (key, distance, b1, b2) of the nearest hit."""
+    key = zbufs[0, p]
+    best = 0
+    zbufs[0, p] = _NO_HIT
+    for t in range(1, zbufs.shape[0]):
+        if zbufs[t, p] < key:
+            key = zbufs[t, p]
+            best = t
+        zbufs[t, p] = _NO_HIT
+    t_bits[0] = np.uint32(key >> np.uint64(32))
+    return key, t32[0], bbufs[best, p, 0], bbufs[best, p, 1]
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _resolve_hits(zbufs, faces, vdata, width, sin_lat, cos_lat, sin_lon, cos_lon, dist, face, bary):
-    """Merge the per-thread z-buffers (and reset them) -> distance (inf), face (-1), barycentrics per pixel."""
+def _resolve_hits(zbufs, bbufs, width, dist, face, bary):
+    """Merge the per-thread buffers (and reset them) -> distance (inf), face (-1), barycentrics per pixel."""
     height = dist.shape[0]
     for i in prange(height):
+        t32 = np.empty(1, np.float32)
+        t_bits = t32.view(np.uint32)
         for j in range(width):
-            p = i * width + j
-            key = zbufs[0, p]
-            zbufs[0, p] = _NO_HIT
-            for t in range(1, zbufs.shape[0]):
-                if zbufs[t, p] < key:
-                    key = zbufs[t, p]
-                zbufs[t, p] = _NO_HIT
+            key, t_hit, b1, b2 = _nearest(zbufs, bbufs, i * width + j, t_bits, t32)
             if key == _NO_HIT:
                 dist[i, j] = np.inf
                 face[i, j] = -1
@@ -378,30 +378,22 @@ def _resolve_hits(zbufs, faces, vdata, width, sin_lat, cos_lat, sin_lon, cos_lon
                 bary[i, j, 1] = 0.0
                 bary[i, j, 2] = 0.0
                 continue
-            f = np.int64(key & np.uint64(0xFFFFFFFF))
-            b0, b1, b2, t_hit = _pixel_hit(
-                f, faces, vdata, cos_lat[i] * sin_lon[j], -sin_lat[i], cos_lat[i] * cos_lon[j]
-            )
             dist[i, j] = t_hit
-            face[i, j] = f
-            bary[i, j, 0] = b0
+            face[i, j] = np.int64(key & np.uint64(0xFFFFFFFF))
+            bary[i, j, 0] = 1.0 - b1 - b2
             bary[i, j, 1] = b1
             bary[i, j, 2] = b2
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _resolve_shaded(zbufs, faces, vdata, colors, face_valid, width, sin_lat, cos_lat, sin_lon, cos_lon, rgb, depth, mask):
-    """Merge the per-thread z-buffers (and reset them) -> interpolated colour, depth and validity per pixel."""
+def _resolve_shaded(zbufs, bbufs, faces, colors, face_valid, width, rgb, depth, mask):
+    """Merge the per-thread buffers (and reset them) -> interpolated colour, depth and validity per pixel."""
     height = depth.shape[0]
     for i in prange(height):
+        t32 = np.empty(1, np.float32)
+        t_bits = t32.view(np.uint32)
         for j in range(width):
-            p = i * width + j
-            key = zbufs[0, p]
-            zbufs[0, p] = _NO_HIT
-            for t in range(1, zbufs.shape[0]):
-                if zbufs[t, p] < key:
-                    key = zbufs[t, p]
-                zbufs[t, p] = _NO_HIT
+            key, t_hit, b1, b2 = _nearest(zbufs, bbufs, i * width + j, t_bits, t32)
             f = np.int64(key & np.uint64(0xFFFFFFFF))
             if key == _NO_HIT or not face_valid[f]:
                 rgb[i, j, 0] = 0
@@ -410,9 +402,7 @@ def _resolve_shaded(zbufs, faces, vdata, colors, face_valid, width, sin_lat, cos
                 depth[i, j] = 0.0
                 mask[i, j] = False
                 continue
-            b0, b1, b2, t_hit = _pixel_hit(
-                f, faces, vdata, cos_lat[i] * sin_lon[j], -sin_lat[i], cos_lat[i] * cos_lon[j]
-            )
+            b0 = 1.0 - b1 - b2
             ia = faces[f, 0]
             ib = faces[f, 1]
             ic = faces[f, 2]
@@ -496,7 +486,7 @@ class ErpRasterizer:
         self.vertices, self.faces, self.colors, self.face_valid = _check_mesh_arrays(vertices, faces, colors, face_valid)
         self.num_threads = num_threads or numba.get_num_threads()
         self._vdata = np.empty((len(self.vertices), 8), np.float32)
-        n_chunks = min(len(self.faces), 16 * self.num_threads)
+        n_chunks = min(len(self.faces), 32 * self.num_threads)
         self._chunks = np.linspace(0, len(self.faces), n_chunks + 1).astype(np.int64)
         self._size: tuple[int, int] | None = None
 
@@ -511,15 +501,29 @@ class ErpRasterizer:
             self._polar_sin = float(np.sin(delta))
             self._pad_polar = float(1.1 * 2.0 * np.arcsin(np.tan(delta) / np.tan(rho_top)) * width / (2 * np.pi))
             self._zbufs = np.full((self.num_threads, height * width), _NO_HIT, np.uint64)
+            self._bbufs = np.zeros((self.num_threads, height * width, 2), np.float32)
             self._size = (height, width)
         cam_from_world = np.ascontiguousarray(invert_pose(np.asarray(world_from_cam, np.float64))[:3])
-        _vertex_pass(self.vertices, cam_from_world, height, width, self._polar_sin, self._vdata)
-        prev = numba.get_num_threads()
+        with self._parallel(max(1, len(self.vertices) // (8 * self.num_threads))):
+            _vertex_pass(self.vertices, cam_from_world, height, width, self._polar_sin, self._vdata)
+        with self._parallel(1):
+            _raster_pass(
+                self.faces, self._vdata, height, width, *self._tables, self._pad_polar, self._chunks, self._zbufs,
+                self._bbufs,
+            )
+
+    @contextmanager
+    def _parallel(self, chunksize: int):
+        """Run numba kernels on self.num_threads threads handing out `chunksize` iterations at a time (dynamic
+        scheduling: a thread that loses its core to another process does not hold up the others)."""
+        prev_threads = numba.get_num_threads()
         numba.set_num_threads(self.num_threads)
+        prev_chunk = numba.set_parallel_chunksize(chunksize)
         try:
-            _raster_pass(self.faces, self._vdata, height, width, *self._tables, self._pad_polar, self._chunks, self._zbufs)
+            yield
         finally:
-            numba.set_num_threads(prev)
+            numba.set_parallel_chunksize(prev_chunk)
+            numba.set_num_threads(prev_threads)
 
     def render_erp(self, world_from_cam: np.ndarray, height: int, width: int) -> Hits:
         """Nearest face per ERP pixel centre: Hits(distance (H, W) inf = none, face (H, W) -1 = none, bary (H, W, 3))."""
@@ -527,7 +531,8 @@ class ErpRasterizer:
         dist = np.empty((height, width), np.float32)
         face = np.empty((height, width), np.int64)
         bary = np.empty((height, width, 3), np.float32)
-        _resolve_hits(self._zbufs, self.faces, self._vdata, width, *self._tables, dist, face, bary)
+        with self._parallel(8):
+            _resolve_hits(self._zbufs, self._bbufs, width, dist, face, bary)
         return Hits(dist, face, bary)
 
     def render(self, world_from_cam: np.ndarray, height: int, width: int, out: WarpedFrame | None = None) -> WarpedFrame:
@@ -538,10 +543,10 @@ class ErpRasterizer:
                 np.empty((height, width, 3), np.uint8), np.empty((height, width), np.float32),
                 np.empty((height, width), bool),
             )
-        _resolve_shaded(
-            self._zbufs, self.faces, self._vdata, self.colors, self.face_valid, width, *self._tables,
-            out.rgb, out.depth, out.mask,
-        )
+        with self._parallel(8):
+            _resolve_shaded(
+                self._zbufs, self._bbufs, self.faces, self.colors, self.face_valid, width, out.rgb, out.depth, out.mask
+            )
         return out
 
 
