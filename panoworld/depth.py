@@ -15,6 +15,7 @@ from scipy.sparse import csgraph
 from scipy.sparse import linalg as sparse_linalg
 from scipy.spatial.transform import Rotation
 
+from panoworld.choices import Rescale
 from panoworld.conventions import erp_dirs, erp_pixel_from_dir, erp_pixel_solid_angle, points_from_depth
 from panoworld.stage import StageInputError
 
@@ -490,16 +491,6 @@ def erp_depth_from_model(
 
 
 # ---------------------------------------------------------------- metric scale policy
-
-
-class Rescale(enum.StrEnum):
-    """When to rescale depth so that the floor lies camera_height below the camera."""
-
-    NEVER = "never"
-    RELATIVE_ONLY = "relative-only"
-    """Only depth without a metric scale (relative monocular models); provided depth is trusted as metric."""
-    ALWAYS = "always"
-    """Also provided depth (unknown units, e.g. raw sensor values) and metric models."""
 
 
 PLAUSIBLE_CAMERA_HEIGHT = (0.2, 5.0)

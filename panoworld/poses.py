@@ -17,42 +17,12 @@ import cv2
 import numpy as np
 
 from panoworld.align import align_trajectory, apply_sim3, check_trajectory, trajectory_metrics
+from panoworld.choices import Alignment, Matcher, RenderType
 from panoworld.conventions import cv_world_from_cam_from_gl, gl_world_from_cam, invert_pose
 from panoworld.stage import StageInputError
 from panoworld.video_io import DEPTH_SCALE, VIDEO_FILE, depth_to_mm, encode_png
 
 MIN_REGISTERED = 3
-
-
-class RenderType(enum.StrEnum):
-    """How COLMAP sees the panoramas (pycolmap.panorama.PanoRenderType)."""
-
-    SPHERICAL = "spherical"
-    """Native EQUIRECTANGULAR camera model on the full panoramas (fastest)."""
-    PERSPECTIVE_OVERLAPPING = "perspective_overlapping"
-    """A rig of 12 overlapping 90-degree pinhole views per panorama, converted back to one ERP camera."""
-    PERSPECTIVE_NON_OVERLAPPING = "perspective_non_overlapping"
-    """A rig of 4 horizontal cube faces per panorama, converted back to one ERP camera."""
-
-
-class Matcher(enum.StrEnum):
-    """Which image pairs COLMAP matches."""
-
-    SEQUENTIAL = "sequential"
-    """Each frame with its 10 successors (and quadratic overlap): for videos."""
-    EXHAUSTIVE = "exhaustive"
-    """All pairs: slow for long videos, robust for short or shuffled ones."""
-
-
-class Alignment(enum.StrEnum):
-    """How estimated poses are brought into the canonical frame of the planned trajectory."""
-
-    SIM3 = "sim3"
-    """Similarity (scale, rotation, translation) fitted to the planned trajectory: metric scale and canonical frame."""
-    SE3 = "se3"
-    """Rigid fit to the planned trajectory, keeping the estimator's own (metric) scale."""
-    NONE = "none"
-    """Keep the estimator's frame (PanoVGGT: camera 0 at the origin, its own metric scale)."""
 
 
 # ---------------------------------------------------------------- inputs

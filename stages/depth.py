@@ -7,11 +7,9 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from panoworld import depth as dep
-from panoworld.depth import Rescale
+from panoworld.choices import Rescale
 from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "depth"
@@ -56,6 +54,10 @@ class Params:
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
+    import cv2
+
+    from panoworld import depth as dep
+
     rgb = dep.read_panorama(inputs["panorama"])
     H, W = rgb.shape[:2]
     backend = params.backend

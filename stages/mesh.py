@@ -10,8 +10,6 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.depth import load_depth_artifact
-from panoworld.mesh import ErpMesh, erp_mesh_from_depth, save_erp_mesh, save_erp_mesh_glb
 from panoworld.stage import Input, stage_main
 
 NAME = "mesh"
@@ -41,6 +39,9 @@ class Params:
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
+    from panoworld.depth import load_depth_artifact
+    from panoworld.mesh import ErpMesh, erp_mesh_from_depth, save_erp_mesh, save_erp_mesh_glb
+
     depth, valid, rgb = load_depth_artifact(inputs["depth"])
     t0 = time.perf_counter()
     mesh = erp_mesh_from_depth(depth, rgb, valid, max_edge_ratio=params.max_edge_ratio, stride=params.stride)

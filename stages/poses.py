@@ -7,19 +7,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from panoworld.poses import (
-    DEPTH_SCALE,
-    Alignment,
-    Matcher,
-    RenderType,
-    colmap_estimate,
-    planned_estimate,
-    read_depth_png,
-    read_planned_trajectory,
-    read_video_frames,
-    vggt_estimate,
-    write_poses_artifact,
-)
+from panoworld.choices import Alignment, Matcher, RenderType
 from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "poses"
@@ -80,6 +68,15 @@ class Params:
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
+    from panoworld.poses import (
+        colmap_estimate,
+        planned_estimate,
+        read_planned_trajectory,
+        read_video_frames,
+        vggt_estimate,
+        write_poses_artifact,
+    )
+
     video = read_video_frames(inputs["video"])
     planned = read_planned_trajectory(inputs["trajectory"]) if inputs.get("trajectory") else video.poses
     if planned is not None and len(planned) != video.num_frames:
@@ -112,6 +109,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
 
 def _choose_depth(src: DepthSource, video, est) -> tuple[list | None, str]:
     """Per-frame depth to write (PNG paths to copy or arrays in metres) and where it came from."""
+    from panoworld.poses import DEPTH_SCALE, read_depth_png
+
     if src == DepthSource.VIDEO and not video.has_depth:
         raise StageInputError("depth_source=video but video.json has no depth; use --depth-source auto or none")
     if src in (DepthSource.AUTO, DepthSource.VIDEO) and video.has_depth:

@@ -14,7 +14,7 @@ from panoworld import artifacts as art
 from panoworld import pipeline as pl
 
 REPO = Path(__file__).resolve().parent.parent
-HEAVY = ("torch", "numba", "trimesh", "pycolmap", "diffusers", "transformers", "embreex", "ray")
+HEAVY = ("torch", "numba", "trimesh", "pycolmap", "diffusers", "transformers", "embreex", "ray", "cv2", "scipy")
 
 
 @pytest.mark.parametrize("stage", pl.Pipeline.load().order)

@@ -1,0 +1,46 @@
+"""Choices (StrEnums) of stage params whose library modules are heavy to import: the runner imports them cheaply."""
+
+from __future__ import annotations
+
+import enum
+
+
+class Rescale(enum.StrEnum):
+    """When to rescale depth so that the floor lies camera_height below the camera."""
+
+    NEVER = "never"
+    RELATIVE_ONLY = "relative-only"
+    """Only depth without a metric scale (relative monocular models); provided depth is trusted as metric."""
+    ALWAYS = "always"
+    """Also provided depth (unknown units, e.g. raw sensor values) and metric models."""
+
+
+class RenderType(enum.StrEnum):
+    """How COLMAP sees the panoramas (pycolmap.panorama.PanoRenderType)."""
+
+    SPHERICAL = "spherical"
+    """Native EQUIRECTANGULAR camera model on the full panoramas (fastest)."""
+    PERSPECTIVE_OVERLAPPING = "perspective_overlapping"
+    """A rig of 12 overlapping 90-degree pinhole views per panorama, converted back to one ERP camera."""
+    PERSPECTIVE_NON_OVERLAPPING = "perspective_non_overlapping"
+    """A rig of 4 horizontal cube faces per panorama, converted back to one ERP camera."""
+
+
+class Matcher(enum.StrEnum):
+    """Which image pairs COLMAP matches."""
+
+    SEQUENTIAL = "sequential"
+    """Each frame with its 10 successors (and quadratic overlap): for videos."""
+    EXHAUSTIVE = "exhaustive"
+    """All pairs: slow for long videos, robust for short or shuffled ones."""
+
+
+class Alignment(enum.StrEnum):
+    """How estimated poses are brought into the canonical frame of the planned trajectory."""
+
+    SIM3 = "sim3"
+    """Similarity (scale, rotation, translation) fitted to the planned trajectory: metric scale and canonical frame."""
+    SE3 = "se3"
+    """Rigid fit to the planned trajectory, keeping the estimator's own (metric) scale."""
+    NONE = "none"
+    """Keep the estimator's frame (PanoVGGT: camera 0 at the origin, its own metric scale)."""
