@@ -16,12 +16,30 @@ import numpy as np
 
 from panoworld.conventions import check_erp_shape
 from panoworld.mesh import ErpMesh
-from panoworld.rasterize import ErpRasterizer, RaycastRenderer, WarpedFrame, check_poses
 
 CONDITIONS_JSON = "conditions.json"
 PREVIEW_MP4 = "preview.mp4"
 DEPTH_SCALE = 0.001
 """Metres per unit of the uint16 depth PNGs (millimetres; 0 = nothing, saturates at 65.535 m)."""
+
+
+@dataclass
+class WarpedFrame:
+    """One pose rendered from the mesh: what the generator is conditioned on."""
+
+    rgb: np.ndarray
+    """(H, W, 3) uint8 interpolated vertex colour; 0 where mask is False."""
+    depth: np.ndarray
+    """(H, W) float32 ray distance in metres; 0 where mask is False."""
+    mask: np.ndarray
+    """(H, W) bool: True = the pixel sees a valid face; False = no geometry or a stretched face (to be generated)."""
+
+
+def check_poses(poses: np.ndarray, what: str = "poses") -> np.ndarray:
+    """world_from_cam poses (N, 4, 4), N >= 1, finite and rigid, as float64; ValueError naming the first bad pose."""
+    from panoworld.trajectory import check_poses as check_trajectory_poses
+
+    return check_trajectory_poses(poses, what)
 
 
 class Backend(enum.StrEnum):
@@ -105,8 +123,10 @@ def split_stretched_faces(mesh: ErpMesh, min_jump: float = SPLIT_MIN_JUMP) -> Er
                    np.concatenate([mesh.colors, new_c]), valid)
 
 
-def make_renderer(mesh, backend: Backend | str = Backend.RASTER) -> ErpRasterizer | RaycastRenderer:
-    """Renderer of an ErpMesh-like object (vertices, faces, colors, face_valid) for the given backend."""
+def make_renderer(mesh, backend: Backend | str = Backend.RASTER):
+    """ErpRasterizer or RaycastRenderer of an ErpMesh-like object (vertices, faces, colors, face_valid)."""
+    from panoworld.rasterize import ErpRasterizer, RaycastRenderer
+
     cls = {Backend.RASTER: ErpRasterizer, Backend.RAYCAST: RaycastRenderer}[Backend(backend)]
     return cls(mesh.vertices, mesh.faces, mesh.colors, mesh.face_valid)
 

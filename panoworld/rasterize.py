@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import math
 from contextlib import contextmanager
-from dataclasses import dataclass
 
 import numba
 import numpy as np
 from numba import njit, prange
 
+from panoworld.conditions import WarpedFrame
 from panoworld.conventions import check_erp_shape, check_pose, erp_lonlat_from_pixel, invert_pose
 from panoworld.raycast import Hits, Raycaster
 
@@ -25,18 +25,6 @@ _ACOS_ERR = 1e-4
 _EPS_PX = 1e-2
 # Triangles whose bounding box holds more pixels than this get exact per-row longitude spans.
 _SPAN_MIN_PIXELS = 48
-
-
-@dataclass
-class WarpedFrame:
-    """One pose rendered from the mesh: what the generator is conditioned on."""
-
-    rgb: np.ndarray
-    """(H, W, 3) uint8 interpolated vertex colour; 0 where mask is False."""
-    depth: np.ndarray
-    """(H, W) float32 ray distance in metres; 0 where mask is False."""
-    mask: np.ndarray
-    """(H, W) bool: True = the pixel sees a valid face; False = no geometry or a stretched face (to be generated)."""
 
 
 # ---------------------------------------------------------------------------------------------- numba kernels
@@ -455,24 +443,6 @@ def _check_mesh_arrays(vertices, faces, colors, face_valid):
     if face_valid.shape != (len(faces),):
         raise ValueError(f"{face_valid.shape=} but expected ({len(faces)},) (F,)")
     return vertices, faces, colors, face_valid
-
-
-def check_poses(poses: np.ndarray, what: str = "poses") -> np.ndarray:
-    """Validate world_from_cam poses (N, 4, 4) (a single (4, 4) pose is promoted): finite, rigid, last row 0 0 0 1."""
-    poses = np.asarray(poses, dtype=np.float64)
-    if poses.shape == (4, 4):
-        poses = poses[None]
-    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
-        raise ValueError(f"{what}.shape={poses.shape} but expected (N, 4, 4) world_from_cam matrices")
-    if not np.isfinite(poses).all():
-        raise ValueError(f"{what}: contains NaN or inf")
-    bad = np.abs(poses[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1) > 1e-6
-    R = poses[:, :3, :3]
-    bad |= np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2)) > 1e-4
-    bad |= np.linalg.det(R) < 0
-    if bad.any():
-        raise ValueError(f"{what}[{int(np.argmax(bad))}] is not a rigid world_from_cam transform (rotation + translation)")
-    return poses
 
 
 class ErpRasterizer:

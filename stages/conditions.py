@@ -6,9 +6,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from panoworld.conditions import Backend, iter_conditions, write_conditions
-from panoworld.conventions import check_erp_shape
-from panoworld.rasterize import check_poses
+from panoworld.conditions import Backend
 from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "conditions"
@@ -39,6 +37,8 @@ class Params:
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     from plyfile import PlyParseError
 
+    from panoworld.conditions import check_poses, iter_conditions, write_conditions
+    from panoworld.conventions import check_erp_shape
     from panoworld.mesh import load_erp_mesh
     from panoworld.trajectory import load_trajectory
 
