@@ -9,7 +9,7 @@ import numpy as np
 from tqdm import tqdm
 
 from panoworld.conventions import check_pose, dir_from_lonlat, erp_lonlat_from_pixel
-from panoworld.mesh import ErpMesh, _grid_faces
+from panoworld.mesh import ErpMesh, grid_faces
 from panoworld.raycast import Raycaster
 
 
@@ -224,7 +224,7 @@ def build_background_layer(
         return none
 
     # Background edge pixels: far vertices of stretched grid faces, with the nearest foreground depth across the edge.
-    all_grid = _grid_faces(h, w)
+    all_grid = grid_faces(h, w)
     grid = all_grid[valid.reshape(-1)[all_grid].all(axis=1)]
     bad = grid[_stretch(p, grid) > max_edge_ratio]
     if not len(bad):

@@ -42,7 +42,7 @@ class ErpMesh:
         return ErpMesh(self.vertices, self.faces[keep], self.colors, np.ones(int(keep.sum()), bool))
 
 
-def _grid_faces(h: int, w: int) -> np.ndarray:
+def grid_faces(h: int, w: int) -> np.ndarray:
     """Two triangles per grid quad, the last column joined to the first, shape (2 * (h - 1) * w, 3)."""
     i, j = np.meshgrid(np.arange(h - 1), np.arange(w), indexing="ij")
     j1 = (j + 1) % w
@@ -125,7 +125,7 @@ def erp_mesh_from_depth(
     v_ok = np.concatenate([ok.reshape(-1), pole_ok])
     colors = np.concatenate([col, pole_col])
 
-    faces = np.concatenate([_grid_faces(h, w), _pole_faces(h, w)]).astype(np.int32)
+    faces = np.concatenate([grid_faces(h, w), _pole_faces(h, w)]).astype(np.int32)
     keep = v_ok[faces].all(axis=1)
     stretch = _grid_face_stretch(pts, dirs, d, vertices[-2:], v_depth[-2:])[keep]
     faces = faces[keep]
@@ -153,7 +153,7 @@ def _edge_stretch(pa, pb, chord, da, db) -> np.ndarray:
 
 
 def _grid_face_stretch(pts: np.ndarray, dirs: np.ndarray, d: np.ndarray, poles: np.ndarray, pole_d: np.ndarray) -> np.ndarray:
-    """face_stretch of all grid and pole faces in _grid_faces/_pole_faces order, computed once per grid edge.
+    """face_stretch of all grid and pole faces in grid_faces/_pole_faces order, computed once per grid edge.
 
     pts, dirs (h, w, 3), d (h, w); poles (2, 3) and their depths pole_d (2,) -> (2 * (h - 1) * w + 2 * w,)."""
     h, w = d.shape

@@ -100,7 +100,7 @@ def test_pad_erp_continues_the_sphere():
 def test_missing_or_bad_weights(tmp_path):
     with pytest.raises(MissingWeightsError, match="RealESRGAN_x2plus.pth"):
         upscale_realesrgan(frames(1), tmp_path / "nope.pth")
-    with pytest.raises(MissingWeightsError, match="--upscaler-weights"):
+    with pytest.raises(MissingWeightsError, match="--upscale-weights"):
         upscale_realesrgan(frames(1), None)
     (tmp_path / "junk.pth").write_bytes(b"not a checkpoint")
     with pytest.raises(MissingWeightsError, match="cannot read"):

@@ -108,7 +108,7 @@ def rrdbnet_from_state_dict(state: dict[str, torch.Tensor]) -> RRDBNet:
 
 def load_rrdbnet(weights: Path | str | None) -> RRDBNet:
     """Load an official Real-ESRGAN .pth (keys under 'params_ema' or 'params', or a bare state dict) or .safetensors."""
-    path = require_weights_file(weights, model="RealESRGAN x2", flag="--upscaler-weights", expected=EXPECTED_FILE)
+    path = require_weights_file(weights, model="RealESRGAN x2", flag="--upscale-weights", expected=EXPECTED_FILE)
     try:
         if path.suffix == ".safetensors":
             from safetensors.torch import load_file
