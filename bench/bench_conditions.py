@@ -17,16 +17,23 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld.conditions import (  # noqa: E402
-    Backend, iter_conditions, make_renderer, split_stretched_faces, true_disocclusion, warp_quality, write_conditions,
+from panoworld.conditions import (
+    Backend,
+    iter_conditions,
+    make_renderer,
+    split_stretched_faces,
+    true_disocclusion,
+    warp_quality,
+    write_conditions,
 )
-from panoworld.conventions import invert_pose  # noqa: E402
-from panoworld.mesh import ErpMesh, erp_mesh_from_depth  # noqa: E402
-from panoworld.synth import generate_scene  # noqa: E402
+from panoworld.conventions import invert_pose
+from panoworld.mesh import ErpMesh, erp_mesh_from_depth
+from panoworld.synth import generate_scene
 
 
 def load_line() -> str:
-    return "load average %.2f %.2f %.2f on %d cores" % (*os.getloadavg(), os.cpu_count())
+    one, five, fifteen = os.getloadavg()
+    return f"load average {one:.2f} {five:.2f} {fifteen:.2f} on {os.cpu_count()} cores"
 
 
 def novel_pose(scene, distance: float) -> tuple[np.ndarray, np.ndarray, float]:

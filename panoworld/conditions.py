@@ -178,7 +178,11 @@ def true_disocclusion(
     depth at the source pixel it projects into (the standard shadow-map test). Pixels without a surface, or
     projecting onto source pixels without one, count as disoccluded (nothing to warp there).
     """
-    from panoworld.conventions import erp_pixel_from_dir, points_from_depth, transform_points
+    from panoworld.conventions import (
+        erp_pixel_from_dir,
+        points_from_depth,
+        transform_points,
+    )
 
     hs, ws = depth_src.shape
     check_erp_shape(hs, ws, "depth_src")
@@ -256,9 +260,9 @@ def _preview_frame(frame: WarpedFrame, max_height: int) -> np.ndarray:
     """Side-by-side rgb | mask (H', 2W', 3) uint8 at most max_height rows, sizes multiples of 16."""
     import cv2
 
-    h, w = frame.mask.shape
+    h = frame.mask.shape[0]
     scale = min(1.0, max_height / h)
-    ph = max(16, int(round(h * scale / 16)) * 16)
+    ph = max(16, round(h * scale / 16) * 16)
     pw = 2 * ph
     rgb = cv2.resize(frame.rgb, (pw, ph), interpolation=cv2.INTER_AREA)
     mask = cv2.resize(frame.mask.astype(np.uint8) * 255, (pw, ph), interpolation=cv2.INTER_AREA)

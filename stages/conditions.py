@@ -64,7 +64,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     )
     info = write_conditions(out_dir, frames, poses, write_depth=params.write_depth, preview_mp4=params.preview_mp4)
     info["backend"] = str(params.backend)
-    info["num_faces"] = int(len(mesh.faces))
+    info["num_faces"] = len(mesh.faces)
     info["ms_per_frame_render"] = round(1000.0 * info["render_s"] / info["num_frames"], 2)
     return info
 

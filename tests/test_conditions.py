@@ -9,12 +9,22 @@ import pytest
 import trimesh
 
 from panoworld.conditions import (
-    load_conditions, render_conditions, split_stretched_faces, true_disocclusion, warp_quality, write_conditions,
+    load_conditions,
+    render_conditions,
+    split_stretched_faces,
+    true_disocclusion,
+    warp_quality,
+    write_conditions,
 )
-from panoworld.conventions import invert_pose, points_from_depth, pose_from_rt, transform_points
+from panoworld.conventions import (
+    invert_pose,
+    points_from_depth,
+    pose_from_rt,
+    transform_points,
+)
 from panoworld.mesh import erp_mesh_from_depth, save_erp_mesh
-from panoworld.raycast import Raycaster
 from panoworld.rasterize import ErpRasterizer
+from panoworld.raycast import Raycaster
 from panoworld.stage import StageInputError, execute_stage, load_stage, params_from_dict
 from panoworld.trajectory import write_trajectory
 
@@ -183,7 +193,7 @@ def test_stage_writes_a_valid_artifact(room_mesh, tmp_path):
     assert {"conditions.json", "rgb/000003.png", "mask/000003.png", "depth/000003.png", "preview.mp4"} <= set(
         manifest["files"]
     )
-    ref = _run(inputs, tmp_path / "ref", backend="raycast")
+    _run(inputs, tmp_path / "ref", backend="raycast")
     a, b = load_conditions(tmp_path / "out"), load_conditions(tmp_path / "ref")
     assert (np.asarray(a.mask) == np.asarray(b.mask)).mean() > 0.995
 
