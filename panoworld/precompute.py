@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import multiprocessing
 import os
 import sys
 import time
@@ -98,13 +99,17 @@ def sample_clips(scene: str, track_lengths: list[int], params: PrecomputeParams)
 
 
 class LocalExecutor:
-    """A process pool (one single-threaded worker per core by default)."""
+    """A process pool (one single-threaded worker per core by default).
+
+    Workers are spawned, not forked: forking a process whose numba/OpenMP thread pools are running deadlocks.
+    """
 
     def __init__(self, workers: int):
         self.workers = workers
 
     def imap_unordered(self, fn: Callable, tasks: list) -> Iterator:
-        with ProcessPoolExecutor(self.workers, initializer=_worker_init) as pool:
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_worker_init) as pool:
             pending = {pool.submit(fn, t) for t in tasks}
             while pending:
                 done, pending = wait(pending, return_when=FIRST_COMPLETED)

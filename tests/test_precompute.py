@@ -99,3 +99,16 @@ def test_bad_arguments_are_one_line_errors(tmp_path, capsys):
     assert main([str(tmp_path), "--out", str(tmp_path / "o"), "--height", "32", "--width", "48"]) == 2
     assert "must be 2:1" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.timeout(120)
+def test_local_pool_survives_a_busy_opencv_thread_pool_in_the_parent():
+    """A child forked after OpenCV's thread pool ran hangs in cv2.setNumThreads; the pool must spawn instead."""
+    import cv2
+
+    from panoworld.precompute import LocalExecutor
+
+    img = np.random.default_rng(0).random((1500, 1500), dtype=np.float32)
+    for _ in range(3):
+        cv2.GaussianBlur(img, (31, 31), 5)
+    assert sorted(LocalExecutor(2).imap_unordered(abs, [-1, -2, -3])) == [1, 2, 3]
