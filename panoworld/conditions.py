@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import json
 import sys
@@ -286,7 +287,8 @@ def write_conditions(
     Layout: conditions.json {"height", "width", "num_frames", "depth_scale", "frames": [{"rgb", "mask"[, "depth"]}],
     "poses"}; rgb/%06d.png uint8 RGB (0 where mask is 0), mask/%06d.png uint8 0/255 (255 = valid geometry seen),
     depth/%06d.png uint16 millimetres (0 = nothing); optional preview.mp4 (rgb | mask side by side, H.264).
-    frames may be a lazy iterator: PNG encoding overlaps with rendering in a pool of `workers` threads.
+    frames may be a lazy iterator: PNG encoding overlaps with rendering in a pool of `workers` threads (0 = encode in
+    the calling thread, for callers that parallelise over processes).
     Returns facts for the manifest: sizes, frame count, valid fractions, seconds spent.
     """
     poses = check_poses(poses)
@@ -309,7 +311,7 @@ def write_conditions(
     t0 = time.perf_counter()
     pending: deque = deque()
     try:
-        with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        with ThreadPoolExecutor(max_workers=workers) if workers > 0 else contextlib.nullcontext() as pool:
             it = iter(frames)
             while True:
                 t1 = time.perf_counter()
@@ -329,7 +331,10 @@ def write_conditions(
                 files = frame_files(k, write_depth)
                 entries.append(files)
                 valid.append(float(frame.mask.mean()))
-                pending.append(pool.submit(_write_frame, out_dir, files, frame, compression))
+                if pool is None:
+                    _write_frame(out_dir, files, frame, compression)
+                else:
+                    pending.append(pool.submit(_write_frame, out_dir, files, frame, compression))
                 while len(pending) > 2 * max(1, workers):
                     pending.popleft().result()
                 if writer is not None:

@@ -62,7 +62,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     canonical_from_world = np.linalg.inv(poses[0])
     rel = canonical_from_world[None] @ poses
     frames = iter_conditions(mesh, rel, h, w)  # the conditions stage's renderer and defaults
-    info = write_conditions(out_dir / "cond", frames, rel, write_depth=params.write_depth, workers=1)
+    # workers=0: one thread per process, so precompute scales with its process count
+    info = write_conditions(out_dir / "cond", frames, rel, write_depth=params.write_depth, workers=0)
     targets = []
     if params.write_targets:
         import cv2
