@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from panoworld.models.weights import MissingWeightsError, require_weights_file
+from panoworld.models.weights import MissingWeightsError, read_state_file, require_weights_file
 
 # Input normalisation of the lpips package (ScalingLayer), applied to images in [-1, 1].
 SHIFT = (-0.030, -0.088, -0.188)
@@ -55,18 +55,7 @@ def vgg16_features() -> nn.Sequential:
 
 
 def _load_state(path: Path, what: str) -> dict[str, torch.Tensor]:
-    try:
-        if path.suffix == ".safetensors":
-            from safetensors.torch import load_file
-
-            state = load_file(str(path))
-        else:
-            state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # noqa: BLE001 - every unreadable file gets the same actionable message
-        raise MissingWeightsError(f"LPIPS: cannot read {path}: {e}; it must be the {what}") from None
-    if not isinstance(state, dict):
-        raise MissingWeightsError(f"LPIPS: {path} holds a {type(state).__name__}, not a state dict; it must be the {what}")
-    return state
+    return read_state_file(path, model="LPIPS", expected=f"the {what}")
 
 
 class LPIPS(nn.Module):

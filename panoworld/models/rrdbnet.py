@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from torch import nn
 from tqdm import tqdm
 
-from panoworld.models.weights import MissingWeightsError, require_weights_file
+from panoworld.models.weights import read_state_file, require_weights_file
 
 EXPECTED_FILE = "RealESRGAN_x2plus.pth (official Real-ESRGAN release; state dict under 'params_ema' or 'params')"
 
@@ -109,15 +109,7 @@ def rrdbnet_from_state_dict(state: dict[str, torch.Tensor]) -> RRDBNet:
 def load_rrdbnet(weights: Path | str | None) -> RRDBNet:
     """Load an official Real-ESRGAN .pth (keys under 'params_ema' or 'params', or a bare state dict) or .safetensors."""
     path = require_weights_file(weights, model="RealESRGAN x2", flag="--upscale-weights", expected=EXPECTED_FILE)
-    try:
-        if path.suffix == ".safetensors":
-            from safetensors.torch import load_file
-
-            state = load_file(str(path))
-        else:
-            state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # noqa: BLE001 - any unreadable file gets the same actionable message
-        raise MissingWeightsError(f"RealESRGAN x2: cannot read {path}: {e}; it must be {EXPECTED_FILE}") from None
+    state = read_state_file(path, model="RealESRGAN x2", expected=EXPECTED_FILE)
     for key in ("params_ema", "params"):
         if isinstance(state, dict) and key in state:
             state = state[key]

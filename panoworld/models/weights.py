@@ -93,3 +93,22 @@ def load_config_and_weights(build, root: Path | str | None, *, model: str, flag:
             f"{'...' if len(missing) > 3 else ''}, unexpected {unexpected[:3]}{'...' if len(unexpected) > 3 else ''}"
         )
     return net.to(device).eval()
+
+
+def read_state_file(path: Path, *, model: str, expected: str) -> dict:
+    """Read a .safetensors or torch .pth/.pt file into a dict; an unreadable file or a non-dict raises
+    MissingWeightsError naming `expected` (what the file must be)."""
+    import torch
+
+    try:
+        if Path(path).suffix == ".safetensors":
+            from safetensors.torch import load_file
+
+            state = load_file(str(path))
+        else:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - every unreadable file gets the same actionable message
+        raise MissingWeightsError(f"{model}: cannot read {path}: {e}; it must be {expected}") from None
+    if not isinstance(state, dict):
+        raise MissingWeightsError(f"{model}: {path} holds a {type(state).__name__}, not a state dict; it must be {expected}")
+    return state
