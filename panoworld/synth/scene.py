@@ -18,14 +18,13 @@ from panoworld.conventions import (
     check_erp_shape,
     check_pose,
     erp_dirs,
-    invert_pose,
     quat_wxyz_from_rotmat,
     quat_xyzw_from_wxyz,
 )
 from panoworld.raycast import Raycaster
 from panoworld.synth.appearance import Light, Material, MaterialKind, albedo, srgb_uint8
 from panoworld.synth.furniture import FurnitureKind, Placer, PlacementError, Role
-from panoworld.synth.layout import SOLID, FloorPlan, LayoutError, architecture_quads, generate_floor_plan, quads_to_mesh
+from panoworld.synth.layout import FloorPlan, LayoutError, architecture_quads, generate_floor_plan, quads_to_mesh
 from panoworld.synth.params import Preset, SynthParams, params_for
 from panoworld.synth.tracks import Track, TrackError, TrackPlanner
 
