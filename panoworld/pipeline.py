@@ -498,7 +498,7 @@ def run(
                 emit(StageResult(name, "would-run" if not up else "cached", why))
         return report
 
-    blocked: dict[str, str] = {}
+    blocked: set[str] = set()  # stages that failed or were skipped because of a failure
     with SceneLock(scene):
         for name in pipeline.order:
             node = pipeline.stages[name]
@@ -508,7 +508,7 @@ def run(
                 continue
             bad_up = [u for u in pipeline.upstream(name) if u in blocked]
             if bad_up:
-                blocked[name] = "upstream"
+                blocked.add(name)
                 emit(StageResult(name, "skipped", f"upstream {', '.join(bad_up)} failed"))
                 continue
             missing = [
@@ -517,7 +517,7 @@ def run(
                 if p is None and not r.optional
             ]
             if missing:
-                blocked[name] = "input"
+                blocked.add(name)
                 emit(StageResult(name, "failed", f"missing input: {', '.join(missing)}; run the upstream stage first"))
                 if not keep_going:
                     break
@@ -535,7 +535,7 @@ def run(
                     pass  # keep the (upper-bound) figure of wait4
                 emit(StageResult(name, "ran", reason, secs, rss))
             else:
-                blocked[name] = "failed"
+                blocked.add(name)
                 what = "bad input" if code == 2 else f"exit code {code}"
                 emit(StageResult(name, "failed", f"{what}; log: {scene.log_file(name)}", secs, rss))
                 if not keep_going:
