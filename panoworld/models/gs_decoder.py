@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -13,14 +13,14 @@ from torch import nn
 
 from panoworld.conventions import erp_dirs
 from panoworld.gaussians import SH_C0, ContextFrames, FusionResult, Gaussians, bbox_extent, fuse_voxels
-from panoworld.models.weights import load_config_and_weights, save_config_and_weights
+from panoworld.models.weights import JsonConfig, load_config_and_weights, save_config_and_weights
 
 IN_CHANNELS = 10
 """Per-pixel input features: RGB (3), depth (1), ray direction d (3), moment o x d (3)."""
 
 
 @dataclass(kw_only=True)
-class GSDecoderConfig:
+class GSDecoderConfig(JsonConfig):
     """Architecture of GSDecoder."""
 
     patch_size: int = 16
@@ -69,17 +69,6 @@ class GSDecoderConfig:
             raise ValueError(f"{self.sh_degree=} but expected 0..3")
         if not 0 < self.min_scale < self.max_scale:
             raise ValueError(f"{self.min_scale=}, {self.max_scale=} but expected 0 < min < max")
-
-    def to_json(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_json(cls, d: dict) -> GSDecoderConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"GSDecoder config has unknown keys {unknown}; known: {sorted(known)}")
-        return cls(**d)
 
     @property
     def sh_coeffs(self) -> int:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -11,14 +11,14 @@ import torch.nn.functional as F
 from torch import nn
 
 from panoworld.conventions import erp_lonlat_from_pixel
-from panoworld.models.weights import load_config_and_weights, save_config_and_weights
+from panoworld.models.weights import JsonConfig, load_config_and_weights, save_config_and_weights
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 @dataclass(kw_only=True)
-class PanoVGGTConfig:
+class PanoVGGTConfig(JsonConfig):
     """Architecture of PanoVGGT; the defaults follow VGGT-1B (ViT-L width, 24 frame/global block pairs)."""
 
     patch_size: int = 14
@@ -61,18 +61,6 @@ class PanoVGGTConfig:
             raise ValueError(f"{self.embed_dim=} is not divisible by {self.num_heads=}")
         if self.image_height % self.patch_size:
             raise ValueError(f"{self.image_height=} is not a multiple of {self.patch_size=}")
-
-    def to_json(self) -> dict:
-        d = asdict(self)
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
-
-    @classmethod
-    def from_json(cls, d: dict) -> PanoVGGTConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"PanoVGGT config has unknown keys {unknown}; known: {sorted(known)}")
-        return cls(**d)
 
 
 def erp_coordinate_features(

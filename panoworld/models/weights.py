@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -45,6 +46,21 @@ def require_weights_file(path: Path | str | None, *, model: str, flag: str, expe
     if not path.is_file():
         raise MissingWeightsError(f"{model}: {flag} {path} does not exist; it must be {expected}")
     return path
+
+
+class JsonConfig:
+    """Mixin for model config dataclasses: to_json / from_json, rejecting unknown keys with a clear error."""
+
+    def to_json(self) -> dict:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+
+    @classmethod
+    def from_json(cls, d: dict):
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"{cls.__name__} has unknown keys {unknown}; known: {sorted(known)}")
+        return cls(**d)
 
 
 CONFIG_FILE = "config.json"
