@@ -1,4 +1,4 @@
-"""Checks that local model weights exist, with one-line errors naming the expected files and the flag to pass."""
+"""Local model weights: existence checks with one-line errors, config + safetensors save/load, state-dict files."""
 
 from __future__ import annotations
 
