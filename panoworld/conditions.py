@@ -15,12 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.conventions import check_erp_shape
+from panoworld.conventions import DEPTH_PNG_SCALE, check_erp_shape, depth_to_mm
 from panoworld.mesh import ErpMesh
 
 CONDITIONS_JSON = "conditions.json"
 PREVIEW_MP4 = "preview.mp4"
-DEPTH_SCALE = 0.001
+DEPTH_SCALE = DEPTH_PNG_SCALE
 """Metres per unit of the uint16 depth PNGs (millimetres; 0 = nothing, saturates at 65.535 m)."""
 
 
@@ -237,12 +237,6 @@ def frame_files(k: int, write_depth: bool = True) -> dict[str, str]:
     return files
 
 
-def depth_to_png16(depth: np.ndarray) -> np.ndarray:
-    """Depth (H, W) metres (0 / non-finite = nothing) -> uint16 millimetres, saturating at 65535."""
-    mm = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0) / DEPTH_SCALE
-    return np.clip(np.rint(mm), 0, 65535).astype(np.uint16)
-
-
 def _write_frame(out_dir: Path, files: dict[str, str], frame: WarpedFrame, compression: int) -> None:
     import cv2
 
@@ -252,7 +246,7 @@ def _write_frame(out_dir: Path, files: dict[str, str], frame: WarpedFrame, compr
     ok &= cv2.imwrite(str(out_dir / files["mask"]), frame.mask.astype(np.uint8) * 255, rle)
     if "depth" in files:
         opts = [cv2.IMWRITE_PNG_COMPRESSION, compression]
-        ok &= cv2.imwrite(str(out_dir / files["depth"]), depth_to_png16(frame.depth), opts)
+        ok &= cv2.imwrite(str(out_dir / files["depth"]), depth_to_mm(frame.depth), opts)
     if not ok:
         raise OSError(f"{out_dir}: could not write the PNGs of {files['rgb']}")
 

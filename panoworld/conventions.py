@@ -20,6 +20,16 @@ ROS_FROM_WORLD = np.array(
 )
 
 
+DEPTH_PNG_SCALE = 0.001
+"""Metres per unit of a 16-bit depth PNG (millimetres); 0 = no depth."""
+
+
+def depth_to_mm(depth: np.ndarray) -> np.ndarray:
+    """Depth (H, W) metres (0/NaN/inf = unknown) -> uint16 millimetres (0 = unknown, clipped at 65.535 m)."""
+    d = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0)
+    return np.clip(np.rint(d / DEPTH_PNG_SCALE), 0, 65535).astype(np.uint16)
+
+
 def check_erp_shape(height: int, width: int, what: str = "panorama") -> None:
     """Raise ValueError unless (height, width) is a 2:1 equirectangular size."""
     if height <= 0 or width != 2 * height:

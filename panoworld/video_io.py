@@ -12,8 +12,10 @@ import cv2
 import numpy as np
 
 from panoworld.conventions import (
+    DEPTH_PNG_SCALE,
     check_erp_shape,
     check_pose,
+    depth_to_mm,
     quat_wxyz_from_rotmat,
     quat_xyzw_from_wxyz,
     ros_world_from_cam,
@@ -25,7 +27,7 @@ from panoworld.conventions import (
 VIDEO_FILE = "video.json"
 PREVIEW_FILE = "preview.mp4"
 MCAP_FILE = "video.mcap"
-DEPTH_SCALE = 0.001  # metres per depth PNG unit (millimetres); 0 = unknown
+DEPTH_SCALE = DEPTH_PNG_SCALE  # metres per depth PNG unit (millimetres); 0 = unknown
 
 # MCAP topics (Foxglove protobuf schemas). Depth is a foxglove.RawImage '16UC1' in millimetres (0 = unknown), which
 # Foxglove's Image panel shows with a colour map; RGB frames and conditions are PNG foxglove.CompressedImage.
@@ -68,12 +70,6 @@ def decode_png(data: bytes, *, what: str = "PNG") -> np.ndarray:
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
     return img
-
-
-def depth_to_mm(depth: np.ndarray) -> np.ndarray:
-    """Depth (H, W) metres (0/NaN/inf = unknown) -> uint16 millimetres (0 = unknown, clipped at 65.535 m)."""
-    d = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0)
-    return np.clip(np.rint(d / DEPTH_SCALE), 0, 65535).astype(np.uint16)
 
 
 def _ns(index: int, fps: float) -> int:

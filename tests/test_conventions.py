@@ -131,3 +131,11 @@ def test_solid_angles_sum_to_sphere():
 def test_check_erp_shape_message():
     with pytest.raises(ValueError, match="must be exactly 2:1"):
         cv.check_erp_shape(10, 30)
+
+
+def test_depth_png_millimetres():
+    depth = np.array([[0.0, np.nan, np.inf, -1.0], [0.0004, 1.2345, 65.535, 70.0]])
+    mm = cv.depth_to_mm(depth)
+    assert mm.dtype == np.uint16
+    assert mm.tolist() == [[0, 0, 0, 0], [0, 1234, 65535, 65535]]
+    np.testing.assert_allclose(mm[1, 1] * cv.DEPTH_PNG_SCALE, 1.234)
