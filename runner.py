@@ -68,12 +68,6 @@ def cmd_dag(args) -> int:
     return 0
 
 
-def cmd_synth(argv: list[str]) -> int:
-    from panoworld.synth.cli import main
-
-    return main(argv)
-
-
 def cmd_demo(args) -> int:
     from panoworld.synth.cli import main as synth_main
 
@@ -89,6 +83,14 @@ def cmd_demo(args) -> int:
         print(f"\ndemo scene: {scene}\nartifacts:  {scene / pl.ARTIFACTS_DIRNAME}\n"
               f"open {scene / pl.ARTIFACTS_DIRNAME / 'gaussians' / 'gaussians.ply'} in a 3DGS viewer (e.g. SuperSplat)")
     return code
+
+
+# Verbs whose CLI lives in a library module: verb -> ("module:function" called with the remaining argv, help).
+DELEGATED = {
+    "synth": ("panoworld.synth.cli:main", "generate synthetic scenes with ground truth"),
+    "eval": ("panoworld.evaluate:main", "evaluate a scene's artifacts against its ground truth"),
+    "precompute": ("panoworld.precompute:main", "precompute training conditions for a dataset"),
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -114,25 +116,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default="ci-tiny", help="param preset (ci-tiny: about a minute on 2 cores; default: the paper's sizes)")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_demo)
-    sub.add_parser("synth", help="generate synthetic scenes with ground truth (python runner.py synth --help)", add_help=False)
-    sub.add_parser("eval", help="evaluate a scene's artifacts against its ground truth (python runner.py eval --help)", add_help=False)
-    sub.add_parser("precompute", help="precompute training conditions for a dataset (python runner.py precompute --help)", add_help=False)
+    for verb, (_, text) in DELEGATED.items():
+        sub.add_parser(verb, help=f"{text} (python runner.py {verb} --help)", add_help=False)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
-        if argv and argv[0] == "synth":
-            return cmd_synth(argv[1:])
-        if argv and argv[0] == "eval":
-            from panoworld.evaluate import main as eval_main
+        if argv and argv[0] in DELEGATED:
+            import importlib
 
-            return eval_main(argv[1:])
-        if argv and argv[0] == "precompute":
-            from panoworld.precompute import main as pre_main
-
-            return pre_main(argv[1:])
+            module, func = DELEGATED[argv[0]][0].split(":")
+            return getattr(importlib.import_module(module), func)(argv[1:])
         args = build_parser().parse_args(argv)
         return args.func(args)
     except pl.PipelineError as e:
