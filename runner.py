@@ -90,6 +90,7 @@ DELEGATED = {
     "synth": ("panoworld.synth.cli:main", "generate synthetic scenes with ground truth"),
     "eval": ("panoworld.evaluate:main", "evaluate a scene's artifacts against its ground truth"),
     "precompute": ("panoworld.precompute:main", "precompute training conditions for a dataset"),
+    "train": ("panoworld.train.cli:main", "train the video generator or the reconstruction model (train video|recon)"),
 }
 
 

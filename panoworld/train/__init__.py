@@ -1,0 +1,1 @@
+"""Training: shared infrastructure (common), the video generator (video) and reconstruction (recon)."""
