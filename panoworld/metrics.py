@@ -1,4 +1,4 @@
-"""Image quality metrics on CPU: PSNR (optionally masked), SSIM (Gaussian window) and WS-PSNR for ERP images."""
+"""Image and video metrics on CPU: PSNR, SSIM, WS-PSNR of ERP images, loop closure of ERP videos, Frechet distance."""
 
 from __future__ import annotations
 
@@ -189,3 +189,64 @@ def cv2_remap(img: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, *, nearest:
 
     interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
     return cv2.remap(img, map_x, map_y, interp, borderMode=cv2.BORDER_WRAP)
+
+
+def loop_closure_flow_deg(first: np.ndarray, last: np.ndarray) -> float:
+    """Loop-closure error of a closed path: how far the last ERP frame's content lies from the first's, in degrees.
+
+    Dense optical flow (OpenCV DIS, medium preset) from first to last on grey ERP frames (H, W[, 3]) with W = 2H,
+    columns wrapped by W/8 at the seam; the solid-angle-weighted median of the flow magnitude, times 360 / W.
+    0 for identical frames (DIS returns exactly zero flow there); a yaw of k columns reads k * 360 / W degrees.
+    Lower is better.
+    """
+    import cv2
+
+    a, b = _pair(first, last)
+    H, W = a.shape[:2]
+    if W != 2 * H:
+        raise ValueError(f"{a.shape=} but expected an ERP frame (H, 2H[, C])")
+
+    def grey(x: np.ndarray) -> np.ndarray:
+        x = x if x.dtype == np.uint8 else np.clip(np.rint(x.astype(np.float64) * 255.0), 0, 255).astype(np.uint8)
+        return cv2.cvtColor(x, cv2.COLOR_RGB2GRAY) if x.ndim == 3 else x
+
+    pad = max(W // 8, 1)
+    ga, gb = (np.ascontiguousarray(np.concatenate([g[:, -pad:], g, g[:, :pad]], 1)) for g in (grey(a), grey(b)))
+    flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(ga, gb, None)[:, pad:-pad]
+    mag = np.hypot(flow[..., 0], flow[..., 1]).astype(np.float64).ravel()
+    w = np.broadcast_to(erp_pixel_solid_angle(H, W), (H, W)).ravel()
+    order = np.argsort(mag, kind="stable")
+    cum = np.cumsum(w[order])
+    return float(mag[order][np.searchsorted(cum, 0.5 * cum[-1])] * 360.0 / W)
+
+
+def feature_statistics(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(mean (D,), covariance (D, D)) of features (N, D), N >= 2 (unbiased covariance, as pytorch-fid)."""
+    f = np.asarray(features, dtype=np.float64)
+    if f.ndim != 2 or len(f) < 2:
+        raise ValueError(f"{f.shape=} but expected (N, D) with N >= 2")
+    return f.mean(0), np.cov(f, rowvar=False)
+
+
+def frechet_distance(mu1: np.ndarray, sigma1: np.ndarray, mu2: np.ndarray, sigma2: np.ndarray, eps: float = 1e-6) -> float:
+    """Frechet distance of two Gaussians: |mu1 - mu2|^2 + tr(S1 + S2 - 2 (S1 S2)^(1/2)) (Heusel et al. 2017, FID;
+    Unterthiner et al. 2018, FVD). As pytorch-fid: eps on the diagonals when the product is singular, the real part
+    of the matrix square root."""
+    from scipy import linalg
+
+    mu1, mu2 = np.atleast_1d(mu1).astype(np.float64), np.atleast_1d(mu2).astype(np.float64)
+    s1, s2 = np.atleast_2d(sigma1).astype(np.float64), np.atleast_2d(sigma2).astype(np.float64)
+    if mu1.shape != mu2.shape or s1.shape != s2.shape or s1.shape != (len(mu1), len(mu1)):
+        raise ValueError(f"{mu1.shape=} {mu2.shape=} {s1.shape=} {s2.shape=} but expected (D,), (D,), (D, D), (D, D)")
+    covmean, _ = linalg.sqrtm(s1 @ s2, disp=False)
+    if not np.isfinite(covmean).all():
+        offset = np.eye(len(s1)) * eps
+        covmean = linalg.sqrtm((s1 + offset) @ (s2 + offset))
+    covmean = np.real(covmean)
+    diff = mu1 - mu2
+    return float(diff @ diff + np.trace(s1) + np.trace(s2) - 2.0 * np.trace(covmean))
+
+
+def frechet_feature_distance(feats_a: np.ndarray, feats_b: np.ndarray) -> float:
+    """Frechet distance between the Gaussian fits of two feature sets (N, D) and (M, D)."""
+    return frechet_distance(*feature_statistics(feats_a), *feature_statistics(feats_b))

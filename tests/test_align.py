@@ -120,7 +120,7 @@ def test_metrics_known_values_for_a_translation_perturbation():
     rpe_t, rpe_r = relative_pose_errors(est, gt)
     np.testing.assert_allclose(rpe_t, [0.0, d, d, 0.0], atol=1e-12)
     np.testing.assert_allclose(rpe_r, 0.0, atol=1e-6)
-    assert m["rte"] == pytest.approx(m["ate"] / path_length(gt))
+    assert m["ate_over_path"] == pytest.approx(m["ate"] / path_length(gt))
 
 
 def test_metrics_known_values_for_a_rotation_perturbation():
@@ -140,7 +140,38 @@ def test_metrics_known_values_for_a_rotation_perturbation():
     est[3, :3, :3] = est[3, :3, :3] @ Rotation.from_euler("x", 2.0, degrees=True).as_matrix()
     m = trajectory_metrics(est, gt)
     assert m["ate"] == pytest.approx(0.0, abs=1e-12)
-    assert m["rre"] == pytest.approx(2.0 / n, rel=1e-9)
+    assert m["rot_error_abs"] == pytest.approx(2.0 / n, rel=1e-9)
+    assert m["rre"] == pytest.approx(2 * 2.0 / (n - 1), rel=1e-9)  # pairs (2, 3) and (3, 4) each see 2 degrees
+
+
+@pytest.mark.parametrize("scale", [1.0, 2.5])
+def test_rre_rte_match_hand_computed_values(scale):
+    # gt: 7 upright cameras on a zig-zag (centres span a plane, so Umeyama on centres is exact), steps d_i.
+    # est: the same centres (times `scale`, moved and turned by a similarity) with camera k yawed by theta in place.
+    # Relative errors of consecutive pairs, by hand: pair (k-1, k) rotation theta, translation 0 (the step is seen
+    # from the unrotated camera k-1); pair (k, k+1) rotation theta, translation |R_y(theta)^T d_k - d_k| =
+    # 2 |d_k| sin(theta / 2) (d_k horizontal, perpendicular to the yaw axis); every other pair 0.
+    n, k, theta = 7, 3, 5.0
+    gt = np.repeat(np.eye(4)[None], n, axis=0)
+    gt[:, 0, 3] = np.arange(n) * 0.3
+    gt[:, 2, 3] = [0.0, 0.1, 0.0, 0.2, 0.0, 0.1, 0.0]
+    est = gt.copy()
+    est[k, :3, :3] = Rotation.from_euler("y", theta, degrees=True).as_matrix()
+    est = apply_sim3(scale, Rotation.from_euler("xyz", [10, 40, -20], degrees=True).as_matrix(), np.array([1, 2, 3.0]), est)
+    m = trajectory_metrics(est, gt)
+    d_k = np.linalg.norm(gt[k + 1, :3, 3] - gt[k, :3, 3])
+    assert m["ate"] == pytest.approx(0.0, abs=1e-12)
+    assert m["rre"] == pytest.approx(2 * theta / (n - 1), rel=1e-9)
+    assert m["rte"] == pytest.approx(2 * d_k * np.sin(np.radians(theta / 2)) / (n - 1), rel=1e-9)
+    assert m["scale"] == pytest.approx(1 / scale, rel=1e-12)
+    # The same local error on every step scaled 4x (stride 4): RRE is unchanged and RTE scales with the step
+    # (metres), so it stays comparable with ATE across strides, unlike ATE / path length.
+    long_gt, long_est = gt.copy(), est.copy()
+    long_gt[:, :3, 3] *= 4
+    long_est[:, :3, 3] *= 4
+    m4 = trajectory_metrics(long_est, long_gt)
+    assert m4["rre"] == pytest.approx(m["rre"], rel=1e-9)
+    assert m4["rte"] == pytest.approx(4 * m["rte"], rel=1e-9)  # metres: the steps are 4x longer
 
 
 def test_trajectory_shape_errors_are_self_describing():

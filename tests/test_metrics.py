@@ -92,3 +92,94 @@ def test_video_psnr_pools_frames():
     rng = np.random.default_rng(0)
     x, y = rng.integers(0, 256, (2, 1, 8, 16, 3), dtype=np.uint8)
     assert video_psnr(x, y, spherical=True) == pytest.approx(ws_psnr(x[0], y[0]))
+
+
+def _smooth_erp(h=64, seed=0):
+    from scipy.ndimage import gaussian_filter
+
+    x = gaussian_filter(np.random.default_rng(seed).random((h, 2 * h, 3)), (2, 2, 0), mode="wrap")
+    return ((x - x.min()) / (x.max() - x.min()) * 255).astype(np.uint8)
+
+
+def test_loop_closure_is_zero_for_a_closed_loop_and_grows_with_the_shift():
+    from panoworld.metrics import loop_closure_flow_deg
+
+    a = _smooth_erp()
+    assert loop_closure_flow_deg(a, a.copy()) == 0.0
+    scores = [loop_closure_flow_deg(a, np.roll(a, k, axis=1)) for k in (1, 2, 4, 8)]
+    # A yaw of k columns moves every pixel by k columns = k * 360 / W degrees, across the seam too.
+    np.testing.assert_allclose(scores, [k * 360 / 128 for k in (1, 2, 4, 8)], rtol=0.01)
+    assert np.all(np.diff(scores) > 0)
+    with pytest.raises(ValueError, match="ERP"):
+        loop_closure_flow_deg(a[:, :100], a[:, :100])
+
+
+def test_frechet_distance_matches_the_closed_form_for_gaussians():
+    from panoworld.metrics import frechet_distance, frechet_feature_distance
+
+    # Commuting (diagonal) covariances: tr(S1 + S2 - 2 sqrt(S1 S2)) = sum (s1 - s2)^2 over the standard deviations.
+    mu1, mu2 = np.array([0.0, 1.0, 2.0]), np.array([1.0, 1.0, 0.0])
+    s1, s2 = np.diag([1.0, 4.0, 9.0]), np.diag([4.0, 4.0, 1.0])
+    assert frechet_distance(mu1, s1, mu2, s2) == pytest.approx(5.0 + 1.0 + 0.0 + 4.0, rel=1e-9)
+    assert frechet_distance(mu1, s1, mu1, s1) == pytest.approx(0.0, abs=1e-9)
+    f = np.random.default_rng(0).normal(size=(400, 3))
+    assert frechet_feature_distance(f, f) == pytest.approx(0.0, abs=1e-9)
+    assert frechet_feature_distance(f, f + [2.0, 0, 0]) == pytest.approx(4.0, rel=1e-9)
+    with pytest.raises(ValueError, match="N >= 2"):
+        frechet_feature_distance(f[:1], f)
+
+
+def test_fid_inception_loads_a_pytorch_fid_layout_file(tmp_path):
+    import torch
+
+    from panoworld.models.inception import FIDInceptionV3
+    from panoworld.models.weights import MissingWeightsError
+
+    torch.manual_seed(0)
+    net = FIDInceptionV3().eval()
+    state = net.state_dict()
+    # Parameter names and shapes of pytorch-fid's pt_inception-2015-12-05 file.
+    assert state["Conv2d_1a_3x3.conv.weight"].shape == (32, 3, 3, 3)
+    assert state["Mixed_6e.branch7x7dbl_5.conv.weight"].shape == (192, 192, 1, 7)
+    assert state["Mixed_7c.branch3x3dbl_3b.bn.running_var"].shape == (384,)
+    assert state["fc.weight"].shape == (1008, 2048)
+    path = tmp_path / "pt_inception.pth"
+    torch.save({k: v for k, v in state.items() if not k.endswith("num_batches_tracked")}, path)
+    loaded = FIDInceptionV3.from_file(path)
+    imgs = _rand((2, 40, 80, 3))
+    f1, f2 = net.features_uint8(imgs), loaded.features_uint8(imgs)
+    assert f1.shape == (2, 2048) and np.isfinite(f1).all()
+    np.testing.assert_allclose(f1, f2, rtol=1e-6, atol=1e-7)
+    torch.save({"features.0.weight": torch.zeros(1)}, tmp_path / "alexnet.pth")
+    with pytest.raises(MissingWeightsError, match="pt_inception-2015-12-05"):
+        FIDInceptionV3.from_file(tmp_path / "alexnet.pth")
+    with pytest.raises(MissingWeightsError, match="--fid-weights"):
+        FIDInceptionV3.from_file(None)
+
+
+def test_fvd_i3d_loads_a_torchscript_file_with_the_reference_call(tmp_path):
+    import torch
+
+    from panoworld.models.i3d import I3DFeatures
+    from panoworld.models.weights import MissingWeightsError
+
+    class TinyI3D(torch.nn.Module):  # stands in for the exported I3D: same call signature
+        def __init__(self):
+            super().__init__()
+            self.proj = torch.nn.Linear(3, 5)
+
+        def forward(self, x: torch.Tensor, rescale: bool = True, resize: bool = True, return_features: bool = False):
+            assert x.shape[-2:] == (224, 224) and not rescale and not resize and return_features
+            return self.proj(x.mean(dim=(2, 3, 4)))
+
+    torch.jit.script(TinyI3D()).save(str(tmp_path / "i3d_torchscript.pt"))
+    i3d = I3DFeatures.from_file(tmp_path / "i3d_torchscript.pt")
+    clips = _rand((3, 4, 16, 32, 3))
+    f = i3d.features_uint8(clips)
+    assert f.shape == (3, 5)
+    mean = torch.from_numpy(clips.astype(np.float32) / 127.5 - 1).mean(dim=(1, 2, 3))
+    expected = i3d.module.proj(mean).detach().double().numpy()
+    np.testing.assert_allclose(f, expected, atol=2e-3)  # INTER_AREA resizing keeps the means up to rounding
+    (tmp_path / "bad.pt").write_bytes(b"not torchscript")
+    with pytest.raises(MissingWeightsError, match="i3d_torchscript.pt"):
+        I3DFeatures.from_file(tmp_path / "bad.pt")
