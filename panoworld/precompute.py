@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import enum
 import hashlib
 import json
 import multiprocessing
@@ -33,16 +34,28 @@ FAILURES = "failures.jsonl"
 SUMMARY = "summary.json"
 
 
+class ClipSampling(enum.StrEnum):
+    TRAVERSAL = "traversal"
+    """The paper: every clip has `frames` frames; the traversal scale (track frames between clip frames) is uniform."""
+    LENGTH = "length"
+    """Legacy: the frame count is uniform over [min_frames, frames] at a uniform stride (long clips are rare)."""
+
+
 @dataclass(kw_only=True)
 class PrecomputeParams:
     clips_per_scene: int = 4
     """Clips sampled per scene (clip j of a scene never changes when K grows)."""
     strides: tuple[int, ...] = (1, 2, 4)
-    """Strides r to sample uniformly from."""
+    """Traversal scales (strides r, track frames between clip frames) to sample uniformly from."""
     frames: int = 81
-    """Longest clip, in frames; lengths are uniform over [min_frames, frames]."""
+    """traversal: frames per clip; length: the longest clip."""
     min_frames: int = 5
-    """Shortest clip, in frames."""
+    """length sampling only: shortest clip, in frames."""
+    sampling: ClipSampling = ClipSampling.TRAVERSAL
+    """traversal (the paper: fixed frame count, uniform traversal scale) or length (legacy: uniform frame count)."""
+    continuous_scale: bool = False
+    """traversal: draw the scale uniformly from [min(strides), max(strides)] (frame k = start + round(s k))
+    instead of from the stride set."""
     height: int = 480
     """Output ERP height; width is 2 x height."""
     seed: int = 0
@@ -60,7 +73,8 @@ class ClipSpec:
     track: int
     start: int
     length: int
-    stride: int
+    stride: float
+    """Traversal scale: track frames between consecutive clip frames (an integer unless continuous_scale)."""
 
     @property
     def clip_id(self) -> str:
@@ -71,13 +85,25 @@ def _scene_hash(name: str) -> int:
     return int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "little")
 
 
+def clip_span(length: int, stride: float) -> int:
+    """Track frames covered by a clip of `length` frames at traversal scale `stride` (frame k = start + round(s k))."""
+    return int(round(stride * (length - 1))) + 1
+
+
 def sample_clips(scene: str, track_lengths: list[int], params: PrecomputeParams) -> list[ClipSpec]:
-    """Clip j of a scene: track ~ U{tracks}, stride ~ U(strides), length ~ U{min_frames..frames} (capped by the
-    track: a clip of L frames at stride r spans (L - 1) r + 1 track frames), start ~ U over the valid starts.
+    """Clip j of a scene (docs/precompute.md).
+
+    traversal (the paper): scale s ~ U(strides) (or U[min, max] with continuous_scale), `frames` frames, track ~ U
+    over the tracks long enough for that span, start ~ U over the valid starts; a scene none of whose tracks fits a
+    drawn scale is a ValueError (it goes to failures.jsonl) rather than a biased scale distribution.
+    length (legacy): track ~ U{tracks}, stride ~ U(strides), length ~ U{min_frames..frames} capped by the track
+    (a clip of L frames at stride r spans (L - 1) r + 1 track frames), start ~ U over the valid starts.
 
     Each clip draws from its own generator seeded by (seed, scene name, j), so clips are stable under
     adding scenes or raising clips_per_scene.
     """
+    if params.sampling == ClipSampling.TRAVERSAL:
+        return [_sample_traversal(scene, track_lengths, params, j) for j in range(params.clips_per_scene)]
     out = []
     for j in range(params.clips_per_scene):
         rng = np.random.default_rng([params.seed, _scene_hash(scene), j])
@@ -93,6 +119,25 @@ def sample_clips(scene: str, track_lengths: list[int], params: PrecomputeParams)
         start = int(rng.integers(0, n - (length - 1) * stride))
         out.append(ClipSpec(scene, j, track, start, length, stride))
     return out
+
+
+def _sample_traversal(scene: str, track_lengths: list[int], params: PrecomputeParams, j: int) -> ClipSpec:
+    rng = np.random.default_rng([params.seed, _scene_hash(scene), j])
+    if params.continuous_scale:
+        stride: float = float(rng.uniform(min(params.strides), max(params.strides)))
+    else:
+        stride = int(rng.choice(params.strides))
+    span = clip_span(params.frames, stride)
+    fits = [t for t, n in enumerate(track_lengths) if n >= span]
+    if not fits:
+        raise ValueError(
+            f"scene {scene}: tracks of {max(track_lengths)} frames are too short for {params.frames} frames at "
+            f"traversal scale {stride:g} ({span} track frames); use longer tracks (runner.py synth --frames "
+            f"{clip_span(params.frames, max(params.strides))}), fewer --frames or --sampling length"
+        )
+    track = fits[int(rng.integers(len(fits)))]
+    start = int(rng.integers(0, track_lengths[track] - span + 1))
+    return ClipSpec(scene, j, track, start, params.frames, stride)
 
 
 # ---------------------------------------------------------------- executors
@@ -318,8 +363,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, required=True, help="output directory (index.jsonl, failures.jsonl, clips)")
     ap.add_argument("--clips-per-scene", type=int, default=PrecomputeParams.clips_per_scene)
     ap.add_argument("--strides", default="1,2,4", help="comma-separated strides to sample from")
-    ap.add_argument("--frames", type=int, default=PrecomputeParams.frames, help="longest clip in frames")
-    ap.add_argument("--min-frames", type=int, default=PrecomputeParams.min_frames, help="shortest clip in frames")
+    ap.add_argument("--frames", type=int, default=PrecomputeParams.frames,
+                    help="frames per clip (traversal sampling) or the longest clip (length sampling)")
+    ap.add_argument("--min-frames", type=int, default=PrecomputeParams.min_frames,
+                    help="shortest clip in frames (length sampling only)")
+    ap.add_argument("--sampling", choices=[c.value for c in ClipSampling], default=ClipSampling.TRAVERSAL.value,
+                    help="traversal (the paper: fixed frame count, uniform traversal scale) or length (legacy)")
+    ap.add_argument("--continuous-scale", action="store_true",
+                    help="traversal: scale ~ U[min(strides), max(strides)] instead of the stride set")
     ap.add_argument("--height", type=int, default=PrecomputeParams.height)
     ap.add_argument("--width", type=int, default=None, help="must be 2 x height (ERP)")
     ap.add_argument("--seed", type=int, default=0)
@@ -341,6 +392,7 @@ def main(argv: list[str] | None = None) -> int:
         params = PrecomputeParams(
             clips_per_scene=a.clips_per_scene, strides=strides, frames=a.frames, min_frames=a.min_frames, height=a.height,
             seed=a.seed, write_depth=not a.no_depth, write_targets=not a.no_targets,
+            sampling=ClipSampling(a.sampling), continuous_scale=a.continuous_scale,
         )
         summary = precompute(a.dataset, a.out, params, executor=a.executor, workers=a.workers, ray_address=a.ray_address,
                              progress=not a.json)

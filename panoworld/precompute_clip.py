@@ -12,7 +12,7 @@ import numpy as np
 from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "clip"
-VERSION = "1"
+VERSION = "2"
 ARTIFACT = "clip"
 INPUTS = {
     "gt_index": Input("file", help="the scene's gt/gt.json (tracks, frame files)"),
@@ -30,8 +30,8 @@ class Params:
     """Track frame of the clip's first pose, whose panorama and depth are the warp source."""
     length: int = 81
     """Number of frames in the clip."""
-    stride: int = 1
-    """Track frames between consecutive clip frames."""
+    stride: float = 1
+    """Traversal scale: track frames between consecutive clip frames (clip frame k = start + round(stride k))."""
     height: int = 480
     """Output ERP height (width = 2 x height)."""
     write_depth: bool = True
@@ -41,7 +41,7 @@ class Params:
 
 
 def frame_indices(params: Params) -> np.ndarray:
-    return params.start + params.stride * np.arange(params.length)
+    return params.start + np.round(params.stride * np.arange(params.length)).astype(np.int64)
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
@@ -52,7 +52,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     scene = DatasetScene.from_gt_index(inputs["gt_index"])
     idx = frame_indices(params)
     n = scene.n_frames(params.track)
-    if params.length < 1 or params.stride < 1 or idx[-1] >= n or params.start < 0:
+    if params.length < 1 or params.stride <= 0 or idx[-1] >= n or params.start < 0:
         raise StageInputError(f"{inputs['gt_index']}: clip frames {idx[0]}..{idx[-1]} outside track {params.track} (0..{n - 1})")
     h, w = params.height, 2 * params.height
     rgb, depth = scene.frame(params.track, params.start, h)

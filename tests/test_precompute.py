@@ -11,13 +11,39 @@ import numpy as np
 import pytest
 
 from panoworld import artifacts as art
-from panoworld.precompute import INDEX, PrecomputeParams, main, precompute, sample_clips
+from panoworld.precompute import INDEX, ClipSampling, PrecomputeParams, clip_span, main, precompute, sample_clips
 
 ARGS = ["--clips-per-scene", "2", "--frames", "4", "--min-frames", "2", "--height", "32", "--strides", "1,2"]
 
 
+def _uniform_within_5_sigma(counts: np.ndarray) -> bool:
+    expected = counts.sum() / len(counts)
+    return bool(np.all(np.abs(counts - expected) < 5 * np.sqrt(expected)))
+
+
+def test_traversal_sampling_has_fixed_frames_and_uniform_scale():
+    """The paper: every clip has the configured frame count; the traversal scale is uniform (stride set or continuous)."""
+    p = PrecomputeParams(clips_per_scene=3000, strides=(1, 2, 4), frames=81)
+    assert p.sampling == ClipSampling.TRAVERSAL  # the default
+    tracks = [200, 321, 400]  # the 200-frame track only fits scales 1 and 2
+    clips = sample_clips("scene_x", tracks, p)
+    assert {c.length for c in clips} == {81}
+    counts = Counter(c.stride for c in clips)
+    assert set(counts) == {1, 2, 4} and _uniform_within_5_sigma(np.array(list(counts.values()))), counts
+    for c in clips:
+        assert 0 <= c.start and c.start + clip_span(c.length, c.stride) <= tracks[c.track]
+        assert c.stride < 4 or c.track != 0
+    cont = sample_clips("scene_x", tracks, PrecomputeParams(clips_per_scene=3000, frames=81, continuous_scale=True))
+    scales = np.array([c.stride for c in cont])
+    assert {c.length for c in cont} == {81} and scales.min() >= 1 and scales.max() <= 4
+    hist, _ = np.histogram(scales, bins=12, range=(1, 4))
+    assert _uniform_within_5_sigma(hist), hist
+    with pytest.raises(ValueError, match=r"too short for 81 frames at traversal scale .*synth --frames 321"):
+        sample_clips("short", [121], PrecomputeParams(clips_per_scene=50, frames=81))
+
+
 def test_clip_lengths_and_strides_follow_the_documented_distribution():
-    p = PrecomputeParams(clips_per_scene=3000, strides=(1, 2, 4), frames=81, min_frames=5)
+    p = PrecomputeParams(clips_per_scene=3000, strides=(1, 2, 4), frames=81, min_frames=5, sampling=ClipSampling.LENGTH)
     clips = sample_clips("scene_x", [800, 800], p)
     lengths = np.array([c.length for c in clips])
     assert lengths.min() >= 5 and lengths.max() <= 81
@@ -35,8 +61,8 @@ def test_clip_lengths_and_strides_follow_the_documented_distribution():
 
 
 def test_sampling_is_stable_when_adding_clips_and_short_tracks_are_capped():
-    few = sample_clips("s", [50], PrecomputeParams(clips_per_scene=3, frames=81))
-    more = sample_clips("s", [50], PrecomputeParams(clips_per_scene=6, frames=81))
+    few = sample_clips("s", [50], PrecomputeParams(clips_per_scene=3, frames=81, sampling=ClipSampling.LENGTH))
+    more = sample_clips("s", [50], PrecomputeParams(clips_per_scene=6, frames=81, sampling=ClipSampling.LENGTH))
     assert more[:3] == few
     assert all(c.start + (c.length - 1) * c.stride < 50 for c in more)
 
@@ -65,7 +91,7 @@ def test_precompute_cache_resume_failures(synth_dataset, tmp_path):
     for row in index:
         clip = json.loads((out / row["clip_json"]).read_text())
         cond = json.loads((out / row["conditions"]).read_text())
-        assert cond["num_frames"] == clip["length"] == row["length"]
+        assert cond["num_frames"] == clip["length"] == row["length"] == 4  # traversal sampling: fixed frame count
         np.testing.assert_allclose(clip["poses"][0], np.eye(4), atol=1e-9)
         assert art.read_manifest(out / row["path"], "clip")["digest"] == row["digest"]
 

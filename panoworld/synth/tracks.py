@@ -113,7 +113,9 @@ class TrackPlanner:
         cur = int(rng.choice(len(self.cells), p=weight / weight.sum()))
         pts = [self.plan.cell_centers(self.cells[cur : cur + 1])]
         total, heading = 0.0, None
-        for _ in range(12):
+        # 12 waypoints suffice up to ~8 m; long tracks (e.g. 81-frame clips at stride 4) get more, looping the rooms
+        long_track = length > 8.0
+        for _ in range(max(12, 2 * int(length) + 4) if long_track else 12):
             d = (self.cells - self.cells[cur]) * c
             dn = np.linalg.norm(d, axis=1)
             ok = (dn > 1.2) & (dn < 6.0)
@@ -125,6 +127,10 @@ class TrackPlanner:
                 cand = np.flatnonzero(dn > 0.6)
                 if len(cand) == 0:
                     break
+                if long_track and heading is not None:
+                    # the most forward quarter of the goals: a turn at a wall rather than a hairpin back
+                    cos = (d[cand, ::-1] @ heading) / dn[cand]
+                    cand = cand[cos >= np.quantile(cos, 0.75)]
             nxt = int(cand[rng.integers(len(cand))])
             seg = self.plan.cell_centers(self.cells[self._grid_path(cur, nxt)])
             pts.append(seg[1:])
@@ -148,16 +154,19 @@ class TrackPlanner:
         height = float(rng.uniform(p.camera_height_m[0], min(p.camera_height_m[1], h_max)))
         length = (frames - 1) * p.step_m
         max_turn = p.step_m / 0.4
+        rejected = {"short": 0, "turn": 0, "clearance": 0}
         for _ in range(p.max_attempts):
             if frames == 1:
                 xz = self._polyline(rng, 0.0)[:1]
                 a = float(rng.uniform(-np.pi, np.pi))
                 heading = np.array([[np.sin(a), np.cos(a)]])
             else:
-                poly = self._polyline(rng, length + 1.0)
+                # splines cut the corners of a long looping path: ask long tracks for 30 % more
+                poly = self._polyline(rng, (1.3 * length if length > 8.0 else length) + 1.0)
                 seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
                 arc = np.concatenate([[0.0], np.cumsum(seg)])
                 if arc[-1] < length + 0.5:
+                    rejected["short"] += 1
                     continue
                 # Thin the grid path to ~0.3 m knots and fit a smoothing spline through them.
                 s_knots = np.linspace(0.0, arc[-1], max(6, int(arc[-1] / 0.3)))
@@ -167,25 +176,34 @@ class TrackPlanner:
                 dense = np.stack(interpolate.splev(u, tck), 1)
                 darc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense, axis=0), axis=1))])
                 if darc[-1] < length:
+                    rejected["short"] += 1
                     continue
                 start = float(rng.uniform(0.0, min(0.5, darc[-1] - length)))
                 uu = np.interp(start + np.arange(frames) * p.step_m, darc, u)
                 xz = np.stack(interpolate.splev(uu, tck), 1)
                 tangent = np.stack(interpolate.splev(uu, tck, der=1), 1)
                 # Yaw follows the path direction, low-passed over ~0.3 m so it turns slowly.
-                yaw = np.unwrap(np.arctan2(tangent[:, 0], tangent[:, 1]))
-                yaw = ndimage.gaussian_filter1d(yaw, sigma=0.3 / p.step_m, mode="nearest")
+                raw = np.unwrap(np.arctan2(tangent[:, 0], tangent[:, 1]))
+                yaw = ndimage.gaussian_filter1d(raw, sigma=0.3 / p.step_m, mode="nearest")
+                for k in range(1, 7 if length > 8.0 else 1):
+                    # long looping tracks: the (360-degree) camera turns more slowly than the path at tight bends
+                    if np.abs(np.diff(yaw)).max(initial=0.0) <= max_turn:
+                        break
+                    yaw = ndimage.gaussian_filter1d(raw, sigma=0.3 * 1.5**k / p.step_m, mode="nearest")
                 heading = np.stack([np.sin(yaw), np.cos(yaw)], 1)
                 if np.abs(np.diff(yaw)).max(initial=0.0) > max_turn:
+                    rejected["turn"] += 1
                     continue
             grid = self.plan.to_grid(xz)
             d2 = ndimage.map_coordinates(self.dist, grid.T, order=1, mode="constant", cval=-1.0)
             if (d2 < p.clearance_m + 0.5 * c).any():
+                rejected["clearance"] += 1
                 continue
             poses = pose_from_xz_heading(xz, heading, height)
             d3 = distance_to_mesh(poses[:, :3, 3], self.triangles, 2 * p.clearance_m)
             if (d3 < p.clearance_m).any():
+                rejected["clearance"] += 1
                 continue
             return Track(world_from_cam=poses, camera_height=height)
         raise TrackError(f"no track of {frames} frames x {p.step_m} m with {p.clearance_m} m clearance after "
-                         f"{p.max_attempts} attempts")
+                         f"{p.max_attempts} attempts (rejected: {rejected})")
