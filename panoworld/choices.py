@@ -8,6 +8,8 @@ import enum
 class Rescale(enum.StrEnum):
     """When to rescale depth so that the floor lies camera_height below the camera."""
 
+    AUTO = "auto"
+    """Relative depth, and provided depth whose floor distance is no plausible capture height (unknown units)."""
     NEVER = "never"
     RELATIVE_ONLY = "relative-only"
     """Only depth without a metric scale (relative monocular models); provided depth is trusted as metric."""

@@ -32,20 +32,35 @@ class DepthKind(enum.StrEnum):
 # ---------------------------------------------------------------- files
 
 
-def read_panorama(path: Path) -> np.ndarray:
-    """Read an ERP panorama -> RGB uint8 (H, W, 3); StageInputError if unreadable or not 2:1."""
+def read_panorama(path: Path, notes: list[str] | None = None) -> np.ndarray:
+    """Read an ERP panorama -> RGB uint8 (H, W, 3); StageInputError if unreadable or not 2:1.
+
+    Grayscale, RGBA (alpha dropped), 16-bit (scaled to 8 bit) and EXIF-rotated JPEGs (orientation applied) are
+    accepted; what was converted is appended to notes.
+    """
     path = Path(path)
+    notes = [] if notes is None else notes
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise StageInputError(f"{path}: cannot read the panorama (missing, corrupt or not an image); give a PNG/JPEG")
+    if path.suffix.lower() in (".jpg", ".jpeg") and img.dtype == np.uint8:
+        # IMREAD_UNCHANGED ignores the EXIF orientation; IMREAD_COLOR applies it (same decoder otherwise).
+        oriented = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        plain = img if img.ndim == 3 else cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+        if oriented is not None and (oriented.shape != plain.shape or not np.array_equal(oriented, plain)):
+            img = oriented
+            notes.append("EXIF orientation applied")
     if img.dtype == np.uint16:
         img = (img.astype(np.float32) / 257.0 + 0.5).astype(np.uint8)
+        notes.append("16-bit panorama scaled to 8 bit")
     if img.dtype != np.uint8:
         raise StageInputError(f"{path}: panorama has dtype {img.dtype}; give an 8- or 16-bit PNG/JPEG")
-    if img.ndim == 2:
-        img = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+    if img.ndim == 2 or img.shape[2] == 1:
+        img = cv2.cvtColor(img.reshape(img.shape[:2]), cv2.COLOR_GRAY2RGB)
+        notes.append("grayscale panorama expanded to RGB")
     elif img.shape[2] == 4:
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+        notes.append("alpha channel dropped")
     else:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
     H, W = img.shape[:2]
@@ -54,6 +69,20 @@ def read_panorama(path: Path) -> np.ndarray:
             f"{path}: panorama is {W}x{H} (WxH) but an equirectangular panorama must be 2:1; give a full 360x180 ERP image"
         )
     return img
+
+
+def working_size(height: int, max_height: int) -> tuple[int, int]:
+    """(H, W) the pipeline works at: the panorama's, or max_height x 2 max_height when it is taller (0 = no limit)."""
+    if max_height <= 0 or height <= max_height:
+        return height, 2 * height
+    return max_height, 2 * max_height
+
+
+def resize_panorama(rgb: np.ndarray, height: int) -> np.ndarray:
+    """Area-average an ERP panorama (H, W, 3) down to (height, 2 height, 3)."""
+    if rgb.shape[0] == height:
+        return rgb
+    return cv2.resize(rgb, (2 * height, height), interpolation=cv2.INTER_AREA)
 
 
 def read_depth(path: Path, *, png_scale: float = 0.001) -> np.ndarray:
@@ -173,10 +202,7 @@ def fill_small_holes(
         sizes = np.bincount(labels[holes], minlength=labels.max() + 1)
         fill |= holes & (sizes[labels] <= max_hole_px)
     if max_gap_px > 0:
-        W = depth.shape[1]
-        row_gap = _gap_lengths(np.concatenate([valid[:, -W // 2:], valid, valid[:, : W // 2]], axis=1))
-        row_gap = row_gap[:, W // 2: W // 2 + W]
-        fill |= holes & ((row_gap <= max_gap_px) | (_gap_lengths(valid.T).T <= max_gap_px))
+        fill |= holes & (wrapped_gap_lengths(valid) <= max_gap_px)
     if not fill.any():
         return np.where(valid, depth, 0).astype(np.float32), valid, 0
     inv = np.where(valid, 1.0 / np.where(valid, depth, 1.0), 0.0)
@@ -184,6 +210,37 @@ def fill_small_holes(
     out_valid = valid | fill
     out = np.where(valid, depth, np.where(fill, 1.0 / np.maximum(filled, 1e-12), 0.0)).astype(np.float32)
     return out, out_valid, int(fill.sum())
+
+
+def wrapped_gap_lengths(valid: np.ndarray) -> np.ndarray:
+    """Per pixel of valid (H, W): the shorter of the invalid runs it lies in along its row (seam wrapped) and its
+    column, each bounded by valid pixels on both sides (see _gap_lengths; huge where unbounded or valid)."""
+    W = valid.shape[1]
+    row_gap = _gap_lengths(np.concatenate([valid[:, -W // 2:], valid, valid[:, : W // 2]], axis=1))
+    return np.minimum(row_gap[:, W // 2: W // 2 + W], _gap_lengths(valid.T).T)
+
+
+def auto_gap_px(
+    valid: np.ndarray, *, max_px: int = 8, min_share: float = 0.3, cover: float = 0.9, min_invalid: float = 0.05
+) -> tuple[int, float]:
+    """Scan-line gap width to interpolate for depth validity valid (H, W): (max_gap_px, share of short gaps).
+
+    Sparse LiDAR leaves most invalid pixels in short runs between valid ones; dense depth with dropouts or
+    blind bands does not. When at least min_share of the invalid pixels lie in runs of <= max_px pixels (along a
+    row or a column), returns the smallest width whose runs hold `cover` of those pixels, else 0 (no filling).
+    Depth with less than min_invalid of its pixels invalid is dense: 0.
+    """
+    holes = ~valid
+    if holes.mean() < min_invalid or not valid.any():
+        return 0, 0.0
+    g = wrapped_gap_lengths(valid)[holes]
+    short = g <= max_px
+    share = float(short.mean())
+    if share < min_share:
+        return 0, share
+    counts = np.bincount(g[short], minlength=max_px + 1)
+    width = int(np.searchsorted(np.cumsum(counts), cover * short.sum()))
+    return max(width, 1), share
 
 
 def _gap_lengths(valid: np.ndarray) -> np.ndarray:
@@ -279,7 +336,8 @@ def estimate_floor(
     lo, hi = ly.min(), ly.max()
     nb = max(1, int(np.ceil((hi - lo) / bin_rel)) + 1)
     hist, edges = np.histogram(ly, bins=nb, range=(lo, lo + nb * bin_rel), weights=area)
-    hist = np.convolve(hist, [0.25, 0.5, 0.25], mode="same")
+    # Smooth with the ends padded ('same' mode would return 3 bins for a 1- or 2-bin histogram: planar layouts).
+    hist = np.convolve(np.pad(hist, 1), [0.25, 0.5, 0.25], mode="valid")
     strong = np.nonzero(hist >= 0.5 * hist.max())[0]
     peak = strong.max()
     ly_peak = 0.5 * (edges[peak] + edges[peak + 1])
@@ -494,7 +552,10 @@ def erp_depth_from_model(
 
 
 PLAUSIBLE_CAMERA_HEIGHT = (0.2, 5.0)
-"""Floor distances (m) accepted for depth that is taken as metric without rescaling."""
+"""Floor distances (m) accepted for depth taken as metric (rescale relative-only): outside it is an error."""
+CAPTURE_CAMERA_HEIGHT = (0.9, 2.4)
+"""Floor distances (m) of handheld and tripod indoor captures: rescale auto takes provided depth whose floor lies
+outside this range as being in unknown units (raw sensor values, a wrong PNG scale) and rescales it."""
 
 
 def metric_rescale(
@@ -502,12 +563,30 @@ def metric_rescale(
 ) -> tuple[np.ndarray, dict]:
     """Rescale depth (H, W) by camera_height / estimated floor distance when the policy asks for it.
 
-    Returns (depth, info) with the estimated camera height before and after (None when no floor is found) and the
-    factor applied. StageInputError if a rescale is required but no floor is visible, or if depth taken as metric
-    puts the floor outside PLAUSIBLE_CAMERA_HEIGHT (wrong units) unless the policy is never.
+    auto: relative depth always; provided or metric depth when its floor lies outside CAPTURE_CAMERA_HEIGHT
+    (unknown units); depth without a visible floor is kept as given (relative depth then has an arbitrary scale,
+    said in info["scale_note"]). Returns (depth, info) with the estimated camera height before and after (None
+    when no floor is found), the factor applied and why. StageInputError if a rescale is required (always,
+    relative-only on relative depth) but no floor is visible, or if relative-only takes depth as metric whose
+    floor lies outside PLAUSIBLE_CAMERA_HEIGHT (wrong units).
     """
     fit = estimate_floor(depth, valid)
-    do = rescale == Rescale.ALWAYS or (rescale == Rescale.RELATIVE_ONLY and relative)
+    if not camera_height > 0:
+        raise StageInputError(f"--camera-height {camera_height} must be > 0 metres")
+    note = None
+    if rescale == Rescale.AUTO:
+        if fit is None:
+            do = False
+            note = "no floor visible: depth kept as given" + (" (relative: arbitrary scale)" if relative else "")
+        elif relative:
+            do, note = True, "relative depth: floor put at camera_height"
+        else:
+            lo, hi = CAPTURE_CAMERA_HEIGHT
+            do = not lo <= fit.camera_height <= hi
+            note = (f"floor {fit.camera_height:.4g} units below the camera, outside {lo}-{hi} m: unknown units, "
+                    "floor put at camera_height" if do else f"floor {fit.camera_height:.3f} m below the camera: metric")
+    else:
+        do = rescale == Rescale.ALWAYS or (rescale == Rescale.RELATIVE_ONLY and relative)
     factor = 1.0
     if do:
         if fit is None:
@@ -515,10 +594,8 @@ def metric_rescale(
                 "no horizontal floor found below the camera, so depth cannot be put to metric scale; "
                 "pass --rescale never (and metric depth) or a panorama that shows the floor"
             )
-        if not camera_height > 0:
-            raise StageInputError(f"--camera-height {camera_height} must be > 0 metres")
         factor = camera_height / fit.camera_height
-    elif rescale != Rescale.NEVER and fit is not None and not PLAUSIBLE_CAMERA_HEIGHT[0] <= fit.camera_height <= PLAUSIBLE_CAMERA_HEIGHT[1]:
+    elif rescale == Rescale.RELATIVE_ONLY and fit is not None and not PLAUSIBLE_CAMERA_HEIGHT[0] <= fit.camera_height <= PLAUSIBLE_CAMERA_HEIGHT[1]:
         raise StageInputError(
             f"depth units look wrong: the floor is {fit.camera_height:.4g} units below the camera, not "
             f"{PLAUSIBLE_CAMERA_HEIGHT[0]}-{PLAUSIBLE_CAMERA_HEIGHT[1]} m; if the depth is not in metres pass "
@@ -531,4 +608,6 @@ def metric_rescale(
         "rescaled": do,
         "scale_factor": factor,
     }
+    if note:
+        info["scale_note"] = note
     return (depth * np.float32(factor)).astype(np.float32), info

@@ -210,6 +210,8 @@ def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
 
         with Image.open(pano) as im:
             w, h = im.size
+            if im.getexif().get(0x0112) in (5, 6, 7, 8):  # EXIF orientation with a quarter turn: the depth stage applies it
+                w, h = h, w
     except Exception as e:  # PIL raises many types for corrupt files
         raise PipelineError(f"{pano}: unreadable image ({type(e).__name__}: {e})") from None
     if w != 2 * h:
@@ -452,6 +454,19 @@ def _run_subprocess(node: StageNode, scene: Scene, params: Any, echo: bool) -> t
     return proc.returncode, time.perf_counter() - t0, usage.ru_maxrss / 1024.0
 
 
+def _failure_line(log: Path, stage: str) -> str:
+    """The one-line reason a failed stage gave: its `error: stage NAME: ...` line, else the last line of its log."""
+    try:
+        lines = [ln.strip() for ln in log.read_text(errors="replace").splitlines()[-200:] if ln.strip()]
+    except OSError:
+        return ""
+    prefix = f"error: stage {stage}: "
+    for ln in reversed(lines):
+        if ln.startswith(prefix):
+            return ln[len(prefix):]
+    return lines[-1] if lines and not lines[-1].startswith("$ ") else ""
+
+
 def run(
     scene_dir: Path | str,
     *,
@@ -537,7 +552,9 @@ def run(
             else:
                 blocked.add(name)
                 what = "bad input" if code == 2 else f"exit code {code}"
-                emit(StageResult(name, "failed", f"{what}; log: {scene.log_file(name)}", secs, rss))
+                why = _failure_line(scene.log_file(name), name)
+                emit(StageResult(name, "failed", f"{what}: {why}; log: {scene.log_file(name)}" if why else
+                                 f"{what}; log: {scene.log_file(name)}", secs, rss))
                 if not keep_going:
                     break
         done = {r.stage for r in report.results}

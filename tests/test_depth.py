@@ -253,8 +253,10 @@ def test_depth_stage_depth_anything(tmp_path, room):
     depth = np.load(out / "depth.npy")
     valid = cv2.imread(str(out / "valid.png"), cv2.IMREAD_GRAYSCALE) == 255
     assert depth.shape == (64, 128) and valid.any() and np.all(depth[valid] > 0) and np.all(depth[~valid] == 0)
-    with pytest.raises(StageInputError, match="needs --weights DIR"):
+    # RGB only, no weights: one line naming both fixes.
+    with pytest.raises(StageInputError, match=r"runner.py weights fetch depth-anything-v2-small` and pass --set depth.weights=DIR") as e:
         run_depth_stage(tmp_path, pano)
+    assert "\n" not in str(e.value)
 
 
 # ---------------------------------------------------------------- provided depth through the stage

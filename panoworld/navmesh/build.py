@@ -1,0 +1,91 @@
+"""Build a NavMesh from a scene mesh: floor, heightfield, erosion, the component under the camera, triangulation."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from panoworld.navmesh.heightfield import (
+    NavMeshParams,
+    NoFloorError,
+    band_top,
+    check_mesh,
+    downsample_erp_mesh,
+    erosion_m,
+    estimate_floor_y,
+    floor_grid,
+    simplify_tolerance_m,
+)
+from panoworld.navmesh.navmesh import NavMesh
+from panoworld.navmesh.polygons import pick_component, cross_section, polygons_from_mask, triangulate_rings
+
+
+def build_navmesh(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    face_valid: np.ndarray | None = None,
+    *,
+    params: NavMeshParams | None = None,
+    camera_xz: tuple[float, float] = (0.0, 0.0),
+) -> NavMesh:
+    """NavMesh of the walkable floor of a mesh (V, 3) / (F, 3) in the canonical frame (camera at the origin).
+
+    face_valid (F,) False marks stretched triangles (treated as unseen, never floor). Keeps the connected
+    walkable region under the camera, or the nearest one (info["camera_on_navmesh"] = False, with the distance).
+    Raises NoFloorError when no walkable floor exists.
+    """
+    params = params or NavMeshParams()
+    t0 = time.perf_counter()
+    vertices = np.asarray(vertices, np.float32)
+    faces = np.asarray(faces, np.int64)
+    face_valid = check_mesh(vertices, faces, face_valid)
+    timings = {}
+    mesh_faces = len(faces)
+    vertices, faces, face_valid, stride = downsample_erp_mesh(vertices, faces, face_valid, params.max_erp_height)
+    timings["downsample_s"] = time.perf_counter() - t0
+    t = time.perf_counter()
+    floor_y, floor_area = estimate_floor_y(vertices, faces, face_valid, params=params)
+    timings["floor_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    grid = floor_grid(vertices, faces, face_valid, floor_y, params=params)
+    timings["heightfield_s"] = time.perf_counter() - t
+    if not grid.free.any():
+        raise NoFloorError(
+            f"no floor cell is at least {params.agent_radius_m} m (agent radius) away from obstacles and unseen areas"
+        )
+    t = time.perf_counter()
+    tol = simplify_tolerance_m(params)
+    rings = polygons_from_mask(grid.free, grid, tol)
+    if not rings:
+        raise NoFloorError("the eroded walkable floor has no polygon")
+    cam = np.asarray(camera_xz, np.float64)
+    comp_rings, on_mesh, cam_dist = pick_component(cross_section(rings), cam)
+    timings["polygons_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    v, tri, adj = triangulate_rings(comp_rings, params.max_triangle_area_m2)
+    timings["triangulate_s"] = time.perf_counter() - t
+    agent = {
+        "agent_radius_m": params.agent_radius_m,
+        "agent_height_m": params.agent_height_m,
+        "step_height_m": params.step_height_m,
+        "band_top_m": band_top(floor_y, params),
+    }
+    info = {
+        "cell_m": params.cell_m,
+        "camera_height_m": floor_y,
+        "floor_area_seen_m2": float(grid.walkable.sum() * params.cell_m**2),
+        "floor_histogram_peak_m2": floor_area,
+        "erosion_m": erosion_m(params),
+        "simplify_m": tol,
+        "max_triangle_area_m2": params.max_triangle_area_m2,
+        "grid_shape": list(grid.free.shape),
+        "camera_on_navmesh": on_mesh,
+        "camera_distance_to_navmesh_m": cam_dist,
+        "mesh_faces": int(mesh_faces),
+        "erp_downsample": stride,
+        "faces_used": int(len(faces)),
+        "timings_s": {**timings, "total_s": time.perf_counter() - t0},
+    }
+    return NavMesh(v, tri, adj, comp_rings, floor_y, agent, info, grid)
+

@@ -1,0 +1,91 @@
+"""Trajectory params, path kinds, the Plan record and the planning start shared by the planners."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from panoworld.navmesh import NavMesh
+
+
+TRAJECTORY_JSON = "trajectory.json"
+TRAJECTORY_TUM = "trajectory.tum"
+FRAME = "canonical (pose 0 = identity)"
+
+
+class PathKind(enum.StrEnum):
+    """Planned path families of the paper."""
+
+    SECTOR = "sector"
+    """Out-and-back petals to the farthest reachable point of each directional sector (covers 360 degrees)."""
+    RING = "ring"
+    """A closed loop through free space that starts and ends at the camera."""
+
+
+class YawMode(enum.StrEnum):
+    """Camera orientation along the path (always upright: rotation about the gravity axis only)."""
+
+    FIXED = "fixed"
+    """Identity rotation for every pose (the panorama's orientation; ERP covers every direction)."""
+    FORWARD = "forward"
+    """Yaw follows the (smoothed) direction of travel, relative to the initial heading so pose 0 = identity."""
+
+
+class TrajectoryFileError(ValueError):
+    """A trajectory file cannot be read or holds no valid SE(3) poses."""
+
+
+@dataclass(kw_only=True)
+class TrajectoryParams:
+    """How a trajectory is planned on a NavMesh (canonical frame, metres)."""
+
+    kind: PathKind = PathKind.SECTOR
+    """Path family: sector (exploration petals, 360 degree coverage) or ring (closed loop)."""
+    frames: int = 81
+    """Number of poses N (pose 0 is the source camera)."""
+    step_m: float = 0.05
+    """Distance between consecutive poses at stride 1, in metres."""
+    stride: int = 1
+    """Step multiplier r in {1, 2, 4}: the planned path length is (N - 1) * step_m * stride (ring: N * step)."""
+    yaw: YawMode = YawMode.FIXED
+    """Camera orientation: fixed (identity) or forward (turns with the path; pose 0 stays identity)."""
+    sectors: int = 8
+    """Number of directional sectors visited by sector paths."""
+    smooth_iterations: int = 4
+    """Chaikin corner-cutting iterations; a cut that would leave the NavMesh keeps its corner."""
+    plan_margin_m: float = 0.03
+    """Paths are planned on the NavMesh shrunk by this margin so smoothing and rounding stay inside it."""
+    seed: int = 0
+    """Seed of the candidate points used to find each sector's farthest reachable point."""
+
+
+@dataclass
+class Plan:
+    """A planned path: positions (N, 2) x,z with position 0 at the start, and facts about it."""
+
+    positions: np.ndarray
+    step_m: float
+    """Actual spacing (smaller than requested when the room is too small)."""
+    info: dict = field(default_factory=dict)
+    exempt: list[int] = field(default_factory=lambda: [0])
+    """Poses not held to the NavMesh: the start, and the straight way to the NavMesh when the start is off it."""
+
+
+def planning_mesh(nav: NavMesh, start: np.ndarray, margin: float) -> NavMesh:
+    """The NavMesh shrunk by margin (its piece containing or nearest to the start), or itself if nothing is left."""
+    if margin <= 0:
+        return nav
+    try:
+        return nav.offset(-margin, keep_xz=start)
+    except ValueError:
+        return nav
+
+
+def planning_hub(nav: NavMesh, start: np.ndarray) -> tuple[np.ndarray, float]:
+    """Where planning starts: the start itself, or the nearest NavMesh point (and its distance)."""
+    if nav.contains(start)[0]:
+        return start.copy(), 0.0
+    hub = nav.closest_point(start)[0]
+    return hub, float(np.linalg.norm(hub - start))

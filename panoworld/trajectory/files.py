@@ -1,0 +1,117 @@
+"""Trajectory files: trajectory.json, TUM text, user trajectories and their checks."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from panoworld.conventions import quat_wxyz_from_rotmat, quat_wxyz_from_xyzw, quat_xyzw_from_wxyz, rotmat_from_quat_wxyz
+from panoworld.trajectory.common import FRAME, TRAJECTORY_JSON, TRAJECTORY_TUM, TrajectoryFileError
+
+
+def check_poses(poses: np.ndarray, where: str = "poses", tol: float = 1e-4) -> np.ndarray:
+    """(N, 4, 4) float64 rigid transforms or TrajectoryFileError naming the first bad pose."""
+    try:
+        poses = np.asarray(poses, np.float64)
+    except (TypeError, ValueError):
+        raise TrajectoryFileError(f"{where}: poses are not a numeric array of 4x4 matrices") from None
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) == 0:
+        raise TrajectoryFileError(f"{where}: {poses.shape=} but expected (N, 4, 4) with N >= 1")
+    if not np.isfinite(poses).all():
+        bad = int(np.flatnonzero(~np.isfinite(poses).reshape(len(poses), -1).all(1))[0])
+        raise TrajectoryFileError(f"{where}: pose {bad} has NaN or inf entries")
+    R = poses[:, :3, :3]
+    err = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+    det = np.linalg.det(R)
+    row = np.abs(poses[:, 3] - [0, 0, 0, 1]).max(axis=1)
+    bad = np.flatnonzero((err > tol) | (det < 0) | (row > tol))
+    if len(bad):
+        i = int(bad[0])
+        raise TrajectoryFileError(
+            f"{where}: pose {i} is not a rigid world_from_cam transform (|R R^T - I| = {err[i]:.2e}, det = {det[i]:.3f}, "
+            f"last row {poses[i, 3].tolist()}); {len(bad)} such poses"
+        )
+    return poses
+
+
+def read_tum(path: Path) -> np.ndarray:
+    """TUM text `timestamp tx ty tz qx qy qz qw` (one pose a line, # comments) -> world_from_cam (N, 4, 4)."""
+    rows = []
+    for k, line in enumerate(Path(path).read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.replace(",", " ").split()
+        if len(parts) != 8:
+            raise TrajectoryFileError(f"{path}:{k}: {len(parts)} values but TUM lines are 'timestamp tx ty tz qx qy qz qw'")
+        try:
+            rows.append([float(x) for x in parts])
+        except ValueError:
+            raise TrajectoryFileError(f"{path}:{k}: not numbers: {line[:60]!r}") from None
+    if not rows:
+        raise TrajectoryFileError(f"{path}: no poses")
+    a = np.asarray(rows)
+    q = quat_wxyz_from_xyzw(a[:, 4:8])
+    norm = np.linalg.norm(q, axis=1)
+    if (np.abs(norm - 1) > 1e-3).any():
+        k = int(np.flatnonzero(np.abs(norm - 1) > 1e-3)[0])
+        raise TrajectoryFileError(f"{path}: pose {k} has a quaternion of norm {norm[k]:.4f}, not 1")
+    T = np.tile(np.eye(4), (len(a), 1, 1))
+    T[:, :3, :3] = rotmat_from_quat_wxyz(q)
+    T[:, :3, 3] = a[:, 1:4]
+    return T
+
+
+def write_tum(path: Path, poses: np.ndarray, fps: float) -> None:
+    q = quat_xyzw_from_wxyz(quat_wxyz_from_rotmat(poses[:, :3, :3]))
+    lines = ["# timestamp tx ty tz qx qy qz qw  (world_from_cam, canonical frame: pose 0 = identity; OpenCV camera axes)"]
+    for i, (T, qi) in enumerate(zip(poses, q)):
+        t = T[:3, 3]
+        lines.append(f"{i / fps:.6f} {t[0]:.9f} {t[1]:.9f} {t[2]:.9f} {qi[0]:.9f} {qi[1]:.9f} {qi[2]:.9f} {qi[3]:.9f}")
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
+def read_trajectory_file(path: Path) -> np.ndarray:
+    """A user trajectory: JSON ({"poses": [4x4, ...]} or a plain list of 4x4) or TUM text -> (N, 4, 4)."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise TrajectoryFileError(f"{path}: unreadable ({e})") from None
+    if path.suffix.lower() == ".json" or text.lstrip().startswith(("{", "[")):
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise TrajectoryFileError(f"{path}: invalid JSON ({e})") from None
+        if isinstance(data, dict):
+            if "poses" not in data:
+                raise TrajectoryFileError(f"{path}: JSON object without a 'poses' list of 4x4 world_from_cam matrices")
+            data = data["poses"]
+        return check_poses(data, str(path))
+    return check_poses(read_tum(path), str(path))
+
+
+def load_trajectory(path: Path | str) -> np.ndarray:
+    """world_from_cam poses (N, 4, 4) from a trajectory artifact directory, trajectory.json or a TUM file."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / TRAJECTORY_JSON
+    return read_trajectory_file(path)
+
+
+def write_trajectory(out_dir: Path, poses: np.ndarray, clearance: np.ndarray, *, fps: float, **meta) -> list[str]:
+    """Write trajectory.json ({"poses", "clearance_m", "frame", "fps", **meta}) and trajectory.tum."""
+    out_dir = Path(out_dir)
+    doc = {
+        "poses": np.asarray(poses, np.float64).tolist(),
+        "clearance_m": np.asarray(clearance, np.float64).round(6).tolist(),
+        "frame": FRAME,
+        "convention": "world_from_cam 4x4, OpenCV camera axes (x right, y down, z forward), world up = -Y, metres",
+        "fps": fps,
+        **meta,
+    }
+    (out_dir / TRAJECTORY_JSON).write_text(json.dumps(doc))
+    write_tum(out_dir / TRAJECTORY_TUM, poses, fps)
+    return [TRAJECTORY_JSON, TRAJECTORY_TUM]
