@@ -337,3 +337,45 @@ def test_training_step_lowers_the_mixed_objective():
     assert eval_loss() < 0.8 * before
     frozen = [n for n, p in tr.named_parameters() if p.requires_grad and "lora_" not in n]
     assert frozen and all(n.startswith(("patch_embedding.", "step_embedder.")) for n in frozen)
+
+
+def test_frozen_teacher_is_unchanged_by_a_training_step_and_gives_the_targets():
+    vae, tr = tiny_vae(), tiny_transformer()
+    params = wt.prepare_for_training(tr, wl.condition_channels(vae), rank=4, alpha=4)
+    perturb(tr, 3, ("lora_B", "step_embedder.embedder.linear_2"))
+    teacher = wt.EmaTeacher(tr, decay=0.99)
+    before = {n: t.clone() for n, t in teacher.shadow.items()}
+    g = torch.Generator().manual_seed(0)
+    x0 = torch.randn(2, Z, 2, 4, 8, generator=g)
+    cond = torch.randn(2, Z + 4, 2, 4, 8, generator=g)
+    text = torch.randn(2, 7, TEXT_DIM, generator=g)
+    opt = torch.optim.AdamW(params, lr=1e-2)
+    student_before = [p.detach().clone() for p in params]
+    loss = wt.self_consistency_loss(tr, x0, cond, text, generator=torch.Generator().manual_seed(1), teacher=teacher)
+    opt.zero_grad()
+    loss.backward()
+    opt.step()
+    assert all(not t.requires_grad for t in teacher.shadow.values())
+    for n, t in teacher.shadow.items():  # the optimiser step moved the student, not the teacher
+        torch.testing.assert_close(t, before[n], rtol=0, atol=0)
+    assert any((p - q).abs().max() > 0 for p, q in zip(params, student_before))
+    # the teacher's targets are its own weights': equal to a student holding the shadow weights
+    with teacher.swapped():
+        v_t = wl.velocity(tr, x0, torch.full((2,), 0.5), torch.full((2,), 0.25), cond, text)
+    v_s = wl.velocity(tr, x0, torch.full((2,), 0.5), torch.full((2,), 0.25), cond, text)
+    assert (v_t - v_s).abs().max() > 0 and all(p.requires_grad for p in params)
+    teacher.update()  # only update() moves it: shadow <- 0.99 shadow + 0.01 student
+    n0, p0 = next(iter(teacher.params.items()))
+    torch.testing.assert_close(teacher.shadow[n0], 0.99 * before[n0] + 0.01 * p0.detach())
+    state = teacher.state_dict()
+    other = wt.EmaTeacher(tr, decay=0.5)
+    other.load_state_dict(state)
+    assert other.decay == 0.99 and all(torch.equal(other.shadow[n], teacher.shadow[n]) for n in state["shadow"])
+
+
+def test_discrete_sigma_is_t_over_n():
+    s = wt.sample_sigma(4000, 8, torch.Generator().manual_seed(0))
+    assert set((s * 8).round().int().tolist()) == set(range(1, 9))
+    torch.testing.assert_close(s * 8, (s * 8).round())
+    c = wt.sample_sigma(1000, 0, torch.Generator().manual_seed(0))
+    assert len(set(c.tolist())) == 1000 and 0 <= c.min() and c.max() < 1

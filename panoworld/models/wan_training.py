@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import torch
@@ -33,6 +34,66 @@ def prepare_for_training(
     return [p for p in transformer.parameters() if p.requires_grad]
 
 
+class EmaTeacher:
+    """The frozen teacher of the self-consistency loss: an exponential moving average of the student's *trainable*
+    tensors (LoRA, patch and step-size embeddings), swapped into the student for the teacher's forwards.
+
+    Only the trainable tensors are copied (the frozen 5B backbone is shared), the teacher is never an optimiser
+    parameter and gets no gradient; `update()` (after the optimiser step) is the only thing that changes it.
+    decay 0 = a stop-gradient snapshot of the current student (Frans et al.'s default bootstrap target); decay
+    0.99 = an EMA just slow enough to smooth the targets (a toy study found slower EMAs lag the student and
+    hurt the 4-step sampler: /work/shared/notes/facts.md).
+    """
+
+    def __init__(self, model: nn.Module, decay: float = 0.99):
+        if not 0.0 <= decay < 1.0:
+            raise ValueError(f"{decay=} but expected 0 <= decay < 1")
+        self.decay = decay
+        self.params = {n: p for n, p in model.named_parameters() if p.requires_grad}
+        if not self.params:
+            raise ValueError("the model has no trainable parameters to build a teacher from")
+        self.shadow = {n: p.detach().clone() for n, p in self.params.items()}
+
+    @torch.no_grad()
+    def update(self) -> None:
+        """shadow <- decay * shadow + (1 - decay) * student (call after each optimiser step)."""
+        for n, p in self.params.items():
+            self.shadow[n].lerp_(p.detach().to(self.shadow[n].dtype), 1.0 - self.decay)
+
+    @contextlib.contextmanager
+    def swapped(self):
+        """Within the block the model computes with the teacher's weights (no grad); the student's come back after."""
+        saved = {n: p.data for n, p in self.params.items()}
+        try:
+            for n, p in self.params.items():
+                p.data = self.shadow[n].to(p.dtype)
+            with torch.no_grad():
+                yield
+        finally:
+            for n, p in self.params.items():
+                p.data = saved[n]
+
+    def state_dict(self) -> dict:
+        return {"decay": self.decay, "shadow": {n: t.clone() for n, t in self.shadow.items()}}
+
+    def load_state_dict(self, state: dict) -> None:
+        if set(state["shadow"]) != set(self.shadow):
+            raise ValueError("teacher state does not match the model's trainable parameters")
+        self.decay = float(state["decay"])
+        for n, t in state["shadow"].items():
+            self.shadow[n].copy_(t)
+
+
+def sample_sigma(b: int, levels: int = 0, generator: torch.Generator | None = None) -> torch.Tensor:
+    """(b,) noise levels: sigma ~ U(0, 1) when levels == 0, else the paper's discrete sigma = t / N_t with
+    t ~ U{1..N_t} (N_t = levels, e.g. 1000 as Wan's num_train_timesteps)."""
+    if levels < 0:
+        raise ValueError(f"{levels=} but expected 0 (continuous) or N_t >= 1")
+    if levels == 0:
+        return torch.rand(b, generator=generator)
+    return torch.randint(1, levels + 1, (b,), generator=generator).float() / levels
+
+
 def _noised(x0: torch.Tensor, sigma: torch.Tensor, generator: torch.Generator | None):
     noise = torch.randn(x0.shape, generator=generator, device="cpu").to(x0)
     s = sigma.view(-1, *([1] * (x0.ndim - 1)))
@@ -53,13 +114,15 @@ def flow_matching_loss(
     *,
     anchor: torch.Tensor | None = None,
     generator: torch.Generator | None = None,
+    sigma_levels: int = 0,
 ) -> torch.Tensor:
-    """L_FM = || s(x_t, sigma, dt=0) - (eps - x0) ||^2 with x_t = (1 - sigma) x0 + sigma eps, sigma ~ U(0, 1).
+    """L_FM = || s(x_t, sigma, dt=0) - (eps - x0) ||^2 with x_t = (1 - sigma) x0 + sigma eps, sigma ~ U(0, 1)
+    (or sigma = t / N_t with sigma_levels = N_t, the paper's discrete noise level; see sample_sigma).
 
     x0 (B, z, T_lat, h, w) clean normalised latents; condition, prompt_embeds, anchor as in wan_layers.velocity.
     """
     b = x0.shape[0]
-    sigma = torch.rand(b, generator=generator).to(x0.device)
+    sigma = sample_sigma(b, sigma_levels, generator).to(x0.device)
     x_t, target = _noised(x0, sigma, generator)
     v = wl.velocity(transformer, x_t, sigma, torch.zeros_like(sigma), condition, prompt_embeds, anchor)
     return _mse(v, target, anchor is not None)
@@ -74,11 +137,13 @@ def self_consistency_loss(
     anchor: torch.Tensor | None = None,
     generator: torch.Generator | None = None,
     max_steps: int = 128,
+    teacher: EmaTeacher | None = None,
 ) -> torch.Tensor:
-    """L_SC = || s(x_t, sigma, dt) - (v1 + v2) / 2 ||^2: the model itself (no grad) takes two half steps of dt / 2.
+    """L_SC = || s(x_t, sigma, dt) - (v1 + v2) / 2 ||^2: the frozen teacher takes two half steps of dt / 2.
 
-    dt ~ {1, 1/2, ..., 2/max_steps}, sigma on the grid of dt; the finest half step (1/max_steps) is the plain flow
-    (step size 0), which is what L_FM trains.
+    teacher: the EmaTeacher whose weights give v1, v2 (the paper); None = the student itself under no_grad.
+    dt ~ {1, 1/2, ..., 2/max_steps}, sigma = j dt on the grid of dt (a discrete sigma = t / N_t with N_t = max_steps,
+    as the paper); the finest half step (1/max_steps) is the plain flow (step size 0), which is what L_FM trains.
     """
     b = x0.shape[0]
     levels = int(math.log2(max_steps))
@@ -90,7 +155,7 @@ def self_consistency_loss(
     half = dt / 2
     teacher_dt = torch.where(half <= 1.0 / max_steps, torch.zeros_like(half), half)
     x_t, _ = _noised(x0, sigma, generator)
-    with torch.no_grad():
+    with teacher.swapped() if teacher is not None else torch.no_grad():
         v1 = wl.velocity(transformer, x_t, sigma, teacher_dt, condition, prompt_embeds, anchor)
         x_mid = x_t - half.view(-1, 1, 1, 1, 1) * v1
         v2 = wl.velocity(transformer, x_mid, sigma - half, teacher_dt, condition, prompt_embeds, anchor)
@@ -109,12 +174,16 @@ def shortcut_objective(
     anchor: torch.Tensor | None = None,
     generator: torch.Generator | None = None,
     max_steps: int = 128,
+    teacher: EmaTeacher | None = None,
+    sigma_levels: int = 0,
 ) -> tuple[torch.Tensor, str]:
-    """L_video = b L_FM + (1 - b) L_SC with b ~ Bernoulli(rho); returns (loss, 'fm' or 'sc')."""
+    """L_video = b L_FM + (1 - b) L_SC with b ~ Bernoulli(rho); returns (loss, 'fm' or 'sc'). rho = 1 is the paper's
+    "+Mixed Training, FM only" ablation (no self-consistency, no teacher forwards)."""
     if torch.rand((), generator=generator).item() < rho:
         return flow_matching_loss(
-            transformer, x0, condition, prompt_embeds, anchor=anchor, generator=generator
+            transformer, x0, condition, prompt_embeds, anchor=anchor, generator=generator, sigma_levels=sigma_levels
         ), "fm"
     return self_consistency_loss(
-        transformer, x0, condition, prompt_embeds, anchor=anchor, generator=generator, max_steps=max_steps
+        transformer, x0, condition, prompt_embeds, anchor=anchor, generator=generator, max_steps=max_steps,
+        teacher=teacher,
     ), "sc"
