@@ -91,6 +91,7 @@ DELEGATED = {
     "eval": ("panoworld.evaluate:main", "evaluate a scene's artifacts against its ground truth"),
     "precompute": ("panoworld.precompute:main", "precompute training conditions for a dataset"),
     "train": ("panoworld.train.cli:main", "train the video generator or the reconstruction model (train video|recon)"),
+    "weights": ("panoworld.hub.cli:main", "list, fetch and resolve the learned backends' weights (weights list|fetch|resolve)"),
 }
 
 

@@ -27,7 +27,9 @@ from panoworld.stage import (
     params_from_dict,
     params_hash,
     params_to_dict,
+    resolve_stage_weights,
 )
+from panoworld.hub import resolve as hub
 
 PIPELINE_FILE = art.REPO_ROOT / "pipeline.yaml"
 ARTIFACTS_DIRNAME = "artifacts"
@@ -376,14 +378,21 @@ def stage_state(node: StageNode, scene: Scene, params: Any) -> tuple[bool, str]:
         digests = {r.name: input_digest(r.name, node.spec.inputs[r.name], p) for r, p in zip(node.inputs, _input_paths(node, scene).values())}
     except StageInputError as e:
         return False, f"input not ready: {e}"
+    try:
+        weights = resolve_stage_weights(params, manifest.get("weights"), stage=node.name)
+    except StageInputError as e:
+        return False, f"weights missing: {e}"
     pdict = params_to_dict(params)
-    key = cache_key(node.spec.version, params_hash(pdict), digests)
+    key = cache_key(node.spec.version, params_hash(pdict), digests, hub.weights_key(weights))
     if key == manifest["key"]:
         return True, "up to date"
     if manifest["stage_version"] != node.spec.version:
         return False, f"code version changed: {manifest['stage_version']} -> {node.spec.version}"
     if manifest["params_hash"] != params_hash(pdict):
         return False, _diff_params(node.name, manifest["params"], pdict)
+    changed_weights = hub.describe_change(node.name, manifest.get("weights") or {}, weights)
+    if changed_weights:
+        return False, changed_weights
     changed = [n for n, d in digests.items() if manifest["inputs"].get(n, {}).get("digest") != d]
     return False, f"input changed: {', '.join(changed) or 'unknown'}"
 
@@ -490,6 +499,12 @@ def run(
     params = resolve_params(pipeline, preset, scene, set_map, [n for n in pipeline.order if n in selected or n in set_map])
     if force:
         forced |= selected
+    if not dry_run:  # an `hf:` weights id missing from the local cache: one line naming `weights fetch`, nothing run
+        for name in (n for n in pipeline.order if n in selected):
+            try:
+                hub.check_params_weights(params[name], where=f"{name}.")
+            except hub.WeightsNotFound as e:
+                raise PipelineError(str(e)) from None
     report = Report(scene.root)
 
     def emit(r: StageResult):

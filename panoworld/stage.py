@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from panoworld import artifacts as art
+from panoworld.hub import resolve as hub
 
 
 class StageInputError(ValueError):
@@ -168,8 +169,29 @@ def params_hash(params_dict: dict[str, Any]) -> str:
     return art.json_digest(params_dict)
 
 
-def cache_key(version: str, p_hash: str, input_digests: dict[str, str | None]) -> str:
-    return art.json_digest({"version": version, "params": p_hash, "inputs": input_digests})
+def cache_key(version: str, p_hash: str, input_digests: dict[str, str | None], weights: dict | None = None) -> str:
+    """Stage version + params hash + input digests (+ the content digest of each weights param that is set)."""
+    doc = {"version": version, "params": p_hash, "inputs": input_digests}
+    if weights:
+        doc["weights"] = weights
+    return art.json_digest(doc)
+
+
+def resolve_stage_weights(params: Any, hints: dict | None = None, *, stage: str = "") -> dict[str, dict]:
+    """{param: record} of every weights-like param that is set (a local path or an `hf:` id, resolved offline);
+    StageInputError naming the `weights fetch` command when an id is not in the local cache."""
+    try:
+        return hub.resolve_params_weights(params, hints, where=f"{stage}." if stage else "")
+    except hub.WeightsNotFound as e:
+        raise StageInputError(str(e)) from None
+
+
+def previous_weights(out_dir: Path) -> dict | None:
+    """The `weights` records of the artifact already in out_dir (digest hints: unchanged files are not re-hashed)."""
+    try:
+        return json.loads((Path(out_dir) / art.MANIFEST).read_text()).get("weights")
+    except (OSError, ValueError, AttributeError):
+        return None
 
 
 # ---------------------------------------------------------------- inputs
@@ -230,7 +252,8 @@ def execute_stage(
         input_digests = {name: input_digest(name, s, full_inputs[name]) for name, s in spec.inputs.items()}
     pdict = params_to_dict(params)
     phash = params_hash(pdict)
-    key = cache_key(spec.version, phash, input_digests)
+    weights = resolve_stage_weights(params, previous_weights(out_dir), stage=spec.name)
+    key = cache_key(spec.version, phash, input_digests, hub.weights_key(weights))
 
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     art.recover_dir(out_dir)
@@ -239,7 +262,7 @@ def execute_stage(
     started = datetime.now(timezone.utc).isoformat()
     t0 = time.perf_counter()
     try:
-        info = spec.module.run(full_inputs, params, tmp) or {}
+        info = spec.module.run(full_inputs, hub.with_resolved_paths(params, weights), tmp) or {}
         files = art.list_files(tmp)
         if not files:
             raise RuntimeError(f"stage {spec.name} wrote no files")
@@ -254,6 +277,7 @@ def execute_stage(
                 name: {"path": str(full_inputs[name]) if full_inputs[name] else None, "digest": d}
                 for name, d in input_digests.items()
             },
+            **({"weights": weights} if weights else {}),
             "key": key,
             "files": files,
             "digest": art.files_digest(files),
