@@ -39,6 +39,13 @@ def _print_report(report: pl.Report, as_json: bool) -> int:
 
 
 def cmd_run(args) -> int:
+    if args.all:
+        from panoworld.batch.run import cmd_run_all
+
+        return cmd_run_all(args)
+    if args.sweep or args.executor != "local" or args.workers != 1 or args.ray_address:
+        raise pl.PipelineError("--sweep, --executor, --workers and --ray-address need --all (SCENE = a dataset directory)")
+
     def live(r: pl.StageResult) -> None:
         if not args.json:
             print(f"[{r.stage}] {r.action}: {r.reason}", file=sys.stderr, flush=True)
@@ -92,6 +99,8 @@ DELEGATED = {
     "precompute": ("panoworld.precompute:main", "precompute training conditions for a dataset"),
     "train": ("panoworld.train.cli:main", "train the video generator or the reconstruction model (train video|recon)"),
     "weights": ("panoworld.hub.cli:main", "list, fetch and resolve the learned backends' weights (weights list|fetch|resolve)"),
+    "report": ("panoworld.report.cli:main", "write a scene's (or a precompute dataset's) self-contained HTML report"),
+    "view": ("panoworld.viewer.app:main", "interactive 3D viewer of a scene in the browser (viser)"),
 }
 
 
@@ -101,6 +110,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="bring a scene's artifacts up to date")
     p.add_argument("scene", type=Path, help="scene directory (panorama.png|jpg, optional depth.npy|exr|png, scene.yaml)")
     _add_run_args(p)
+    g = p.add_argument_group("datasets (--all: SCENE is a directory of scene directories; docs/scale.md)")
+    g.add_argument("--all", action="store_true", help="run every scene directory under SCENE; failures never stop the others")
+    g.add_argument("--executor", choices=["local", "ray"], default="local", help="run stages locally or as Ray tasks")
+    g.add_argument("--workers", type=int, default=1, help="scenes in flight at once")
+    g.add_argument("--ray-address", default=None, help="Ray cluster address (default: start a local instance)")
+    g.add_argument("--sweep", action="append", default=[], metavar="STAGE.PARAM=V1,V2",
+                   help="named variants of the DAG's tail, e.g. trajectory.stride=1,2,4 (repeatable: cross product)")
     p.set_defaults(func=cmd_run)
     p = sub.add_parser("status", help="each stage's state and reason, and its artifact")
     p.add_argument("scene", type=Path)

@@ -33,6 +33,7 @@ from panoworld.hub import resolve as hub
 
 PIPELINE_FILE = art.REPO_ROOT / "pipeline.yaml"
 ARTIFACTS_DIRNAME = "artifacts"
+VARIANTS_DIRNAME = "variants"
 SCENE_CONFIG = "scene.yaml"
 DEFAULT_PRESET = "default"
 
@@ -183,16 +184,23 @@ class Scene:
     root: Path
     files: dict[str, Path | None]
     config: dict[str, Any]
+    variant: str | None = None
+    """A named variant of the DAG's tail (panoworld.batch.variants): its `tail` stages live in
+    artifacts/variants/NAME/, the shared upstream stages stay in artifacts/."""
+    tail: frozenset[str] = frozenset()
 
     @property
     def artifacts(self) -> Path:
         return self.root / ARTIFACTS_DIRNAME
 
+    def _home(self, stage: str) -> Path:
+        return self.artifacts / VARIANTS_DIRNAME / self.variant if self.variant and stage in self.tail else self.artifacts
+
     def artifact_dir(self, stage: str) -> Path:
-        return self.artifacts / stage
+        return self._home(stage) / stage
 
     def log_file(self, stage: str) -> Path:
-        return self.artifacts / "logs" / f"{stage}.log"
+        return self._home(stage) / "logs" / f"{stage}.log"
 
 
 def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
@@ -423,44 +431,58 @@ def _select(pipeline: Pipeline, only: list[str], from_: str | None, until: str |
     return selected, forced
 
 
-def _run_subprocess(node: StageNode, scene: Scene, params: Any, echo: bool) -> tuple[int, float, float]:
-    """Run `python -m <stage module>` with explicit inputs; returns (exit code, seconds, peak RSS MB)."""
-    inputs = _input_paths(node, scene)
-    with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as f:
-        json.dump(params_to_dict(params), f)
-        params_file = f.name
-    cmd = [sys.executable, "-m", node.module, "--out", str(scene.artifact_dir(node.name)), "--params-file", params_file]
-    for name, p in inputs.items():
+def stage_command(node: StageNode, scene: Scene, params_file: str, python: str = sys.executable) -> list[str]:
+    """`python -m <stage module> --out ... --params-file ... --<input> PATH...` for one stage of a scene."""
+    cmd = [python, "-m", node.module, "--out", str(scene.artifact_dir(node.name)), "--params-file", params_file]
+    for name, p in _input_paths(node, scene).items():
         if p is not None:
             cmd += [f"--{name.replace('_', '-')}", str(p)]
-    log = scene.log_file(node.name)
+    return cmd
+
+
+def run_logged(cmd: list[str], log: Path, echo: bool = False, env_extra: dict[str, str] | None = None) -> tuple[int, float, float]:
+    """Run cmd from the repository root with its output in `log`; returns (exit code, seconds, peak RSS MB)."""
     log.parent.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(art.REPO_ROOT)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+    env.update(env_extra or {})
     t0 = time.perf_counter()
+    with open(log, "wb") as logf:
+        logf.write(f"$ {' '.join(cmd)}\n".encode())
+        logf.flush()
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, cwd=art.REPO_ROOT)
+
+        def pump():
+            assert proc.stdout is not None
+            for chunk in iter(lambda: proc.stdout.read1(4096), b""):
+                logf.write(chunk)
+                logf.flush()
+                if echo:
+                    sys.stderr.buffer.write(chunk)
+                    sys.stderr.flush()
+
+        t = threading.Thread(target=pump, daemon=True)
+        t.start()
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        t.join()
+    return proc.returncode, time.perf_counter() - t0, usage.ru_maxrss / 1024.0
+
+
+def _run_subprocess(node: StageNode, scene: Scene, params: Any, echo: bool) -> tuple[int, float, float]:
+    """Run `python -m <stage module>` with explicit inputs; returns (exit code, seconds, peak RSS MB)."""
+    with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as f:
+        json.dump(params_to_dict(params), f)
+        params_file = f.name
     try:
-        with open(log, "wb") as logf:
-            logf.write(f"$ {' '.join(cmd)}\n".encode())
-            logf.flush()
-            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, cwd=art.REPO_ROOT)
-
-            def pump():
-                assert proc.stdout is not None
-                for chunk in iter(lambda: proc.stdout.read1(4096), b""):
-                    logf.write(chunk)
-                    logf.flush()
-                    if echo:
-                        sys.stderr.buffer.write(chunk)
-                        sys.stderr.flush()
-
-            t = threading.Thread(target=pump, daemon=True)
-            t.start()
-            _, status, usage = os.wait4(proc.pid, 0)
-            proc.returncode = os.waitstatus_to_exitcode(status)
-            t.join()
+        return run_logged(stage_command(node, scene, params_file), scene.log_file(node.name), echo)
     finally:
         os.unlink(params_file)
-    return proc.returncode, time.perf_counter() - t0, usage.ru_maxrss / 1024.0
+
+
+StageExecutor = Callable[[StageNode, Scene, Any, bool], tuple[int, float, float]]
+"""Runs one stage whose cache decision was taken (pipeline.run's `execute` hook): (node, scene, params, echo) ->
+(exit code, seconds, peak RSS MB). The default runs a local subprocess; panoworld.batch submits Ray tasks."""
 
 
 def _failure_line(log: Path, stage: str) -> str:
@@ -490,12 +512,21 @@ def run(
     echo: bool = False,
     pipeline: Pipeline | None = None,
     on_result: Callable[[StageResult], None] | None = None,
+    variant: tuple[str, list[str]] | None = None,
+    execute: StageExecutor | None = None,
 ) -> Report:
     """Bring the scene's artifacts up to date; the library API behind `runner.py run`."""
     pipeline = pipeline or Pipeline.load()
     selected, forced = _select(pipeline, list(only), from_, until)
     set_map = parse_sets(list(sets), pipeline)
     scene = open_scene(scene_dir, pipeline)
+    if variant is not None:  # the variant's --set values override the run's; their stages and descendants are its tail
+        name, vsets = variant
+        vmap = parse_sets(list(vsets), pipeline)
+        for stage, values in vmap.items():
+            set_map.setdefault(stage, {}).update(values)
+        tail = set(vmap).union(*(pipeline.descendants(st) for st in vmap))
+        scene = dataclasses.replace(scene, variant=name, tail=frozenset(tail))
     params = resolve_params(pipeline, preset, scene, set_map, [n for n in pipeline.order if n in selected or n in set_map])
     if force:
         forced |= selected
@@ -557,7 +588,7 @@ def run(
                 emit(StageResult(name, "cached", why))
                 continue
             reason = "forced" if up else why
-            code, secs, rss = _run_subprocess(node, scene, params[name], echo)
+            code, secs, rss = (execute or _run_subprocess)(node, scene, params[name], echo)
             if code == 0:
                 try:
                     rss = art.read_manifest(scene.artifact_dir(name), node.spec.artifact)["peak_rss_mb"]

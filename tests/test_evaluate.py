@@ -235,7 +235,7 @@ def test_identical_poses_give_zero_ate(report):
     for k in ("rpe_r", "rre"):  # degrees through arccos: float noise near 0 is ~1e-6
         assert p[k] == pytest.approx(0.0, abs=1e-4), k
     assert p["registered_fraction"] == 1.0 and p["ground_truth"] == "video.json poses"
-    assert report["targets"]["poses"]["rte"]["met"] is True
+    assert report["targets"]["poses"]["ate_over_path"]["met"] is True
 
 
 def test_sim3_moved_poses_still_give_zero_ate_and_too_few_registered_is_unavailable(scene, tmp_path):
@@ -303,16 +303,17 @@ def test_missing_artifacts_are_reported_not_run(synth_scene, capsys):
     assert rep["targets"]["gaussians"]["novel_psnr"]["met"] is None
 
 
-def test_scene_without_gt_exits_2(tmp_path, capsys):
+def test_scene_without_gt_or_artifacts_exits_2(tmp_path, capsys):
     (tmp_path / "panorama.png").write_bytes(b"")
     assert main([str(tmp_path)]) == 2
-    assert "has no gt/ (ground truth); eval needs a synthetic scene from `runner.py synth`" in capsys.readouterr().err
+    assert "has no gt/gt.json and no artifacts/: nothing to evaluate" in capsys.readouterr().err
 
 
 def test_json_structure_and_unavailable_never_zero(report, scene, capsys):
     assert set(report) >= {"scene", "stages", "targets"}
-    assert list(report["stages"]) == ["depth", "mesh", "navmesh", "trajectory", "conditions", "video", "poses",
-                                      "gaussians"]
+    assert list(report["stages"]) == ["depth", "mesh", "navmesh", "trajectory", "conditions", "video", "loop",
+                                      "poses", "gaussians"]
+    assert report["reference"] == "synthetic"
     assert is_unavailable(report["stages"]["navmesh"]) and is_unavailable(report["stages"]["gaussians"])
     for v in ("lpips", "fid", "fvd"):
         assert is_unavailable(report["stages"]["video"][v]) and report["stages"]["video"][v]["reason"]
@@ -324,7 +325,7 @@ def test_json_structure_and_unavailable_never_zero(report, scene, capsys):
     assert list(out["stages"]) == ["poses"] and out["stages"]["poses"]["ate"] < 1e-6
     assert main([str(scene["root"]), "--only", "poses"]) == 0
     table = capsys.readouterr().out
-    assert "poses" in table and "rte" in table and "<= 0.005" in table
+    assert "poses" in table and "ate_over_path" in table and "<= 0.005" in table
 
 
 def test_corrupt_artifact_is_an_error_entry_and_exit_1(scene, tmp_path, capsys):

@@ -1,0 +1,108 @@
+"""Stage executors for dataset runs: a local subprocess with a thread budget, or one Ray task per stage.
+
+The runner (panoworld.pipeline.run) takes every cache decision; an executor only runs a stage it was handed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from panoworld.pipeline import PipelineError, Scene, StageNode, run_logged, stage_command
+from panoworld.stage import params_to_dict
+
+THREAD_VARS = ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+
+
+def thread_env(threads: int) -> dict[str, str]:
+    return {k: str(max(1, int(threads))) for k in THREAD_VARS}
+
+
+def needs_gpu(node: StageNode, params: Any) -> bool:
+    """Whether the stage asks for a GPU with these params: `resources.gpu` > 0 and, when `resources.gpu_when` maps
+    params to values ({backend: [wan-shortcut]}), one of those params has one of its values."""
+    res = node.resources
+    if not res.get("gpu"):
+        return False
+    when = res.get("gpu_when")
+    if not when:
+        return True
+    values = params_to_dict(params)
+    return any(str(values.get(k)) in {str(v) for v in vs} for k, vs in when.items())
+
+
+def _run_with_params(template: list[str], params: dict, log: str, env_extra: dict[str, str]) -> tuple[int, float, float]:
+    """Write the params file here (the machine that runs the stage) and run the stage command template."""
+    with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as f:
+        json.dump(params, f)
+        params_file = f.name
+    try:
+        cmd = [c.replace("{params_file}", params_file).replace("{python}", sys.executable) for c in template]
+        return run_logged(cmd, Path(log), False, env_extra)
+    finally:
+        os.unlink(params_file)
+
+
+class LocalStageExecutor:
+    """Each stage as a local subprocess limited to `threads` threads (cores / concurrent scenes)."""
+
+    kind = "local"
+
+    def __init__(self, workers: int):
+        self.workers = workers
+        self.threads = max(1, (os.cpu_count() or 1) // max(workers, 1))
+
+    def __call__(self, node: StageNode, scene: Scene, params: Any, echo: bool) -> tuple[int, float, float]:
+        threads = min(self.threads, int(node.resources.get("cpu", 1)) or 1)
+        template = stage_command(node, scene, "{params_file}", python="{python}")
+        return _run_with_params(template, params_to_dict(params), str(scene.log_file(node.name)), thread_env(threads))
+
+    def close(self) -> None:
+        pass
+
+
+class RayStageExecutor:
+    """Each stage as a Ray task with pipeline.yaml `resources`: num_cpus = cpu (capped at the cluster's CPUs),
+    num_gpus = gpu when the stage's params need a GPU (needs_gpu). Paths must be visible to every node (a shared
+    file system) and the nodes must have this repository and its environment at the same paths."""
+
+    kind = "ray"
+
+    def __init__(self, workers: int, address: str | None = None):
+        from panoworld.precompute import RayExecutor
+
+        self.ray = RayExecutor(workers, address).ray  # connects, or starts a local instance with `workers` CPUs
+        res = self.ray.cluster_resources()
+        self.cpus, self.gpus = float(res.get("CPU", 1)), float(res.get("GPU", 0))
+        self.remote = self.ray.remote(max_retries=0)(_run_with_params)
+
+    def __call__(self, node: StageNode, scene: Scene, params: Any, echo: bool) -> tuple[int, float, float]:
+        cpus = min(float(node.resources.get("cpu", 1)) or 1.0, self.cpus)
+        gpus = float(node.resources.get("gpu", 1)) if needs_gpu(node, params) else 0.0
+        if gpus > self.gpus:
+            raise PipelineError(f"stage {node.name} needs {gpus:g} GPU(s) with these params but the Ray cluster has "
+                                f"{self.gpus:g}; connect to a cluster with GPUs (--ray-address) or pick a CPU backend")
+        template = stage_command(node, scene, "{params_file}", python="{python}")
+        ref = self.remote.options(num_cpus=cpus, num_gpus=gpus).remote(
+            template, params_to_dict(params), str(scene.log_file(node.name)), thread_env(int(cpus)))
+        return tuple(self.ray.get(ref))
+
+    def close(self) -> None:
+        pass
+
+
+def make_stage_executor(kind: str, workers: int, address: str | None = None):
+    if kind == "local":
+        if address:
+            raise PipelineError("--ray-address needs --executor ray")
+        return LocalStageExecutor(workers)
+    if kind == "ray":
+        try:
+            return RayStageExecutor(workers, address)
+        except RuntimeError as e:  # Ray missing
+            raise PipelineError(str(e)) from None
+    raise PipelineError(f"--executor {kind}: expected local or ray")

@@ -1,0 +1,218 @@
+"""Ground-truth references of `runner.py eval`: a synthetic mesh, ground-truth frames + poses, or none (plan only)."""
+
+from __future__ import annotations
+
+import json
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from panoworld.conventions import invert_pose, points_from_depth, transform_points
+from panoworld.eval.common import GT_DIRNAME
+
+
+class NoReference(Exception):
+    """The scene's ground truth cannot give what a metric needs (a mesh, a frame at some pose); the message says why."""
+
+
+NO_MESH = "needs a ground-truth mesh; this scene has {what}"
+
+
+class GroundTruth:
+    """The synthetic scene of SCENE/gt/ seen in the pipeline's canonical frame (camera 0 of track 0 = identity).
+
+    Every pose argument is canonical world_from_cam; renders are exact (SynthScene.render) and cached per pose and size.
+    """
+
+    kind = "synthetic"
+
+    def __init__(self, gt_dir: Path):
+        self.dir = Path(gt_dir)
+        self.index = json.loads((self.dir / "gt.json").read_text())
+        self.world_from_canonical = np.asarray(self.index["world_from_canonical"], np.float64)
+        self.supersample = int((self.index.get("panorama") or {}).get("supersample", 1))
+        self._renders: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+
+    @cached_property
+    def scene(self):
+        from panoworld.synth import SynthScene
+
+        return SynthScene.load(self.dir)
+
+    @cached_property
+    def vertices(self) -> np.ndarray:
+        """(V, 3) float64 ground-truth vertices in the canonical frame (gt/scene.glb via world_from_canonical)."""
+        return transform_points(invert_pose(self.world_from_canonical), self.scene.vertices.astype(np.float64))
+
+    @property
+    def faces(self) -> np.ndarray:
+        return self.scene.faces
+
+    def _world(self, pose: np.ndarray) -> np.ndarray:
+        return self.world_from_canonical @ np.asarray(pose, np.float64)
+
+    def render(self, pose: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+        """(rgb (H, W, 3) uint8, depth (H, W) float32 metres, inf = no surface) at a canonical pose (4, 4)."""
+        key = (np.asarray(pose, np.float64).tobytes(), height, width)
+        if key not in self._renders:
+            self._renders[key] = self.scene.render(self._world(pose), height, width, supersample=self.supersample)
+        return self._renders[key]
+
+    def depth(self, pose: np.ndarray, height: int, width: int) -> np.ndarray:
+        """Exact ray distance (H, W) float32 at a canonical pose, without shading."""
+        return self.scene.raycaster.render_erp(self._world(pose), height, width).distance
+
+    def cast(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """Distance (N,) along canonical unit rays origins (N | 1, 3) + t dirs (N, 3) to the first surface (inf = none)."""
+        R, t = self.world_from_canonical[:3, :3], self.world_from_canonical[:3, 3]
+        return self.scene.raycaster.cast(np.asarray(origins, np.float64) @ R.T + t, np.asarray(dirs, np.float64) @ R.T).distance
+
+    def clearance(self, points: np.ndarray) -> np.ndarray:
+        """Exact distance (N,) from canonical points (N, 3) to the ground-truth surface."""
+        from panoworld.trajectory import mesh_clearance
+
+        return mesh_clearance(self.vertices, self.faces, points)
+
+
+class FramesGroundTruth:
+    """Ground-truth frames and poses without a mesh (InteriorGS-like scenes converted to the gt/ layout).
+
+    gt/gt.json lists tracks, each with `poses` (a JSON {"world_from_cam": N x 4 x 4}) and `frames` patterns {"rgb",
+    "depth" (optional)}; `world_from_canonical` defaults to pose 0 of track 0. render(pose) returns the track frame
+    whose pose matches (centre within pose_tol_m, orientation within 0.1 degree), resized to the asked height.
+    """
+
+    kind = "frames"
+
+    def __init__(self, gt_dir: Path, pose_tol_m: float = 1e-3):
+        from panoworld.dataset import DatasetScene
+
+        self.dir = Path(gt_dir)
+        self.dataset = DatasetScene(self.dir.parent)
+        self.index = self.dataset.index
+        first = self.dataset.poses(0)[0]
+        self.world_from_canonical = np.asarray(self.index.get("world_from_canonical", first), np.float64)
+        self.pose_tol_m = pose_tol_m
+        self._cache: dict[tuple, tuple[np.ndarray, np.ndarray | None]] = {}
+
+    @cached_property
+    def tracks(self) -> list[np.ndarray]:
+        """Canonical world_from_cam (N, 4, 4) of every track."""
+        to_canonical = invert_pose(self.world_from_canonical)
+        return [to_canonical[None] @ self.dataset.poses(t) for t in range(self.dataset.n_tracks)]
+
+    def match(self, pose: np.ndarray) -> tuple[int, int]:
+        """(track, frame) whose canonical pose equals `pose` within the tolerances, else NoReference."""
+        from panoworld.align import rotation_angle_deg
+
+        pose = np.asarray(pose, np.float64)
+        best = (np.inf, -1, -1)
+        for t, poses in enumerate(self.tracks):
+            d = np.linalg.norm(poses[:, :3, 3] - pose[:3, 3], axis=1)
+            i = int(np.argmin(d))
+            if d[i] < best[0]:
+                best = (float(d[i]), t, i)
+        dist, t, i = best
+        if t < 0 or dist > self.pose_tol_m or rotation_angle_deg(self.tracks[t][i][:3, :3].T @ pose[:3, :3]) > 0.1:
+            raise NoReference(f"no ground-truth frame at the pose with centre {np.round(pose[:3, 3], 4).tolist()} "
+                              f"(nearest track frame {dist:.4f} m away; tolerance {self.pose_tol_m} m, 0.1 deg): "
+                              "this scene has frames + poses only, so only poses on its tracks can be scored")
+        return t, i
+
+    def _frame(self, pose: np.ndarray, height: int) -> tuple[np.ndarray, np.ndarray | None]:
+        import cv2
+
+        t, i = self.match(pose)
+        key = (t, i, height)
+        if key not in self._cache:
+            frames = self.index["tracks"][t].get("frames") or {}
+            rgb_path = self.dir / frames["rgb"].format(i)
+            bgr = cv2.imread(str(rgb_path), cv2.IMREAD_COLOR)
+            if bgr is None:
+                raise ValueError(f"{rgb_path}: missing or unreadable ground-truth frame")
+            rgb = np.ascontiguousarray(bgr[..., ::-1])
+            if rgb.shape[0] != height:
+                rgb = cv2.resize(rgb, (2 * height, height), interpolation=cv2.INTER_AREA)
+            depth = None
+            if frames.get("depth"):
+                depth = np.load(self.dir / frames["depth"].format(i)).astype(np.float32)
+                if depth.shape[0] != height:
+                    depth = cv2.resize(depth, (2 * height, height), interpolation=cv2.INTER_NEAREST)
+            self._cache[key] = (rgb, depth)
+        return self._cache[key]
+
+    def render(self, pose: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+        rgb, depth = self._frame(pose, height)
+        return rgb, depth if depth is not None else np.full((height, width), np.inf, np.float32)
+
+    def depth(self, pose: np.ndarray, height: int, width: int) -> np.ndarray:
+        depth = self._frame(pose, height)[1]
+        if depth is None:
+            raise NoReference("the ground-truth track lists no depth frames")
+        return depth
+
+    def _no_mesh(self, *_, **__):
+        raise NoReference(NO_MESH.format(what="ground-truth frames + poses only"))
+
+    cast = clearance = _no_mesh
+
+    @property
+    def vertices(self):
+        self._no_mesh()
+
+
+class PlanOnly:
+    """No ground truth at all (RealSee3D-like scenes): poses are scored against the plan, loops by their ends."""
+
+    kind = "plan-only"
+    world_from_canonical = np.eye(4)
+    index: dict = {}
+
+    def _none(self, *_, **__):
+        raise NoReference("no ground truth in this scene (plan-only: no gt/ frames or mesh); pose metrics use the "
+                          "planned trajectory and ring paths get loop metrics")
+
+    render = depth = cast = clearance = _none
+
+    @property
+    def vertices(self):
+        self._none()
+
+
+def open_ground_truth(scene_dir: Path, pose_tol_m: float = 1e-3):
+    """The scene's reference: GroundTruth (synthetic gt/ with a mesh), FramesGroundTruth (gt/ tracks with frame
+    files, no mesh) or PlanOnly (no gt/gt.json)."""
+    gt_dir = Path(scene_dir) / GT_DIRNAME
+    index_path = gt_dir / "gt.json"
+    if not index_path.is_file():
+        return PlanOnly()
+    index = json.loads(index_path.read_text())
+    mesh = gt_dir / index.get("glb", "scene.glb")
+    if str(index.get("format", "")).startswith("panoworld-synth") and mesh.is_file():
+        return GroundTruth(gt_dir)
+    tracks = index.get("tracks") or []
+    if tracks and all((t.get("frames") or {}).get("rgb") for t in tracks):
+        return FramesGroundTruth(gt_dir, pose_tol_m)
+    return PlanOnly()
+
+
+def true_disocclusion(gt: GroundTruth, source_pose: np.ndarray, pose: np.ndarray, height: int, width: int,
+                      tol: float) -> np.ndarray:
+    """(H, W) bool: pixels of the view at `pose` whose ground-truth surface point the camera at `source_pose` does not
+    see (something lies nearer than (1 - tol) x its distance along the source ray), or where there is no surface.
+
+    This is the projection test 'project the point into the source ERP, compare with the source depth' with the
+    source depth taken exactly along the point's own ray (a ray cast), so it has no source-resolution error.
+    """
+    depth = gt.depth(pose, height, width)
+    hole = ~np.isfinite(depth)
+    pts = points_from_depth(np.where(hole, 1.0, depth), np.asarray(pose, np.float64))[~hole]
+    centre = np.asarray(source_pose, np.float64)[:3, 3]
+    ray = pts - centre
+    dist = np.linalg.norm(ray, axis=1)
+    seen = gt.cast(centre[None], ray / np.maximum(dist, 1e-12)[:, None]) >= (1.0 - tol) * dist
+    out = hole.copy()
+    out[~hole] = ~seen
+    return out
+
