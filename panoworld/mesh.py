@@ -17,7 +17,8 @@ class ErpMesh:
     """Grid mesh of an ERP depth map in the canonical frame (view 0), metres.
 
     Vertex layout: vertex i * w + j is grid pixel (i, j) of the (possibly strided) h x w grid, vertex h * w is the
-    top pole (up, -Y) and h * w + 1 the bottom pole. Vertices of invalid pixels sit at the origin, unreferenced.
+    top pole (up, -Y) and h * w + 1 the bottom pole. Vertices of invalid pixels sit at the origin, unreferenced
+    (in memory only: save_erp_mesh writes the referenced vertices alone).
     Faces face the camera (counter-clockwise seen from the origin).
     """
 
@@ -176,23 +177,34 @@ def _grid_face_stretch(pts: np.ndarray, dirs: np.ndarray, d: np.ndarray, poles: 
     return np.concatenate([np.stack([tri_a, tri_b], axis=-1).reshape(-1), *fans]).astype(np.float32)
 
 
-def save_erp_mesh(mesh: ErpMesh, path: Path) -> None:
-    """Binary little-endian PLY: vertex x, y, z float32 + red, green, blue uint8; face vertex_indices + uint8 valid.
+GRID_COMMENT = "erp_vertices"
+"""PLY header comment `erp_vertices N`: the vertices written are a subset of an N-vertex ErpMesh, each with its
+index in the property `pixel`."""
 
+
+def save_erp_mesh(mesh: ErpMesh, path: Path) -> None:
+    """Binary little-endian PLY: vertex x, y, z float32 + red, green, blue uint8 + pixel int32; face vertex_indices +
+    uint8 valid.
+
+    Only vertices that a face references are written (invalid pixels never reach the file); `pixel` is each one's
+    index in the ErpMesh layout (grid pixel i * w + j, then the two poles), so load_erp_mesh restores the layout.
     plyfile writes the header; the bodies go out as numpy records (plyfile writes list properties row by row,
     about 15 s for 2M faces).
     """
     from plyfile import PlyData, PlyElement
 
-    v = np.empty(len(mesh.vertices), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                            ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    used, faces = np.unique(mesh.faces, return_inverse=True)
+    faces = faces.reshape(-1, 3)
+    v = np.empty(len(used), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                   ("red", "u1"), ("green", "u1"), ("blue", "u1"), ("pixel", "<i4")])
     for k, name in enumerate("xyz"):
-        v[name] = mesh.vertices[:, k]
+        v[name] = mesh.vertices[used, k]
     for k, name in enumerate(("red", "green", "blue")):
-        v[name] = mesh.colors[:, k]
-    f = np.empty(len(mesh.faces), dtype=[("n", "u1"), ("vertex_indices", "<i4", (3,)), ("valid", "u1")])
+        v[name] = mesh.colors[used, k]
+    v["pixel"] = used
+    f = np.empty(len(faces), dtype=[("n", "u1"), ("vertex_indices", "<i4", (3,)), ("valid", "u1")])
     f["n"] = 3
-    f["vertex_indices"] = mesh.faces
+    f["vertex_indices"] = faces
     f["valid"] = mesh.face_valid
     face_desc = np.empty(0, dtype=[("vertex_indices", "O"), ("valid", "u1")])
     header = PlyData(
@@ -200,7 +212,8 @@ def save_erp_mesh(mesh: ErpMesh, path: Path) -> None:
          PlyElement.describe(face_desc, "face", len_types={"vertex_indices": "u1"}, val_types={"vertex_indices": "i4"})],
         text=False, byte_order="<",
         comments=["PanoWorld ERP mesh: canonical frame (view 0, OpenCV axes, up = -Y), metres",
-                  "face valid = 0: stretched across a depth discontinuity, an occluder only"],
+                  "face valid = 0: stretched across a depth discontinuity, an occluder only",
+                  f"{GRID_COMMENT} {len(mesh.vertices)}"],
     ).header.replace("element face 0", f"element face {len(f)}")
     with open(path, "wb") as fh:
         fh.write((header + "\n").encode("ascii"))
@@ -211,7 +224,9 @@ def save_erp_mesh(mesh: ErpMesh, path: Path) -> None:
 def load_erp_mesh(path_or_artifact_dir: Path) -> ErpMesh:
     """Read a mesh artifact directory (its mesh.ply) or a .ply path written by save_erp_mesh.
 
-    Any triangle-mesh PLY loads too: without the face property `valid` every face is valid; no colours -> grey.
+    A file with the `erp_vertices N` comment and vertex property `pixel` is expanded back to the N-vertex ErpMesh
+    layout (unwritten vertices at the origin, unreferenced). Any triangle-mesh PLY loads too: without the face
+    property `valid` every face is valid; no colours -> grey.
     """
     from plyfile import PlyData, PlyParseError
 
@@ -234,6 +249,15 @@ def load_erp_mesh(path_or_artifact_dir: Path) -> ErpMesh:
         colors = np.stack([v["red"], v["green"], v["blue"]], axis=1).astype(np.uint8)
     else:
         colors = np.full((len(vertices), 3), 128, np.uint8)
+    n_layout = next((int(c.split()[1]) for c in ply.comments if c.startswith(GRID_COMMENT + " ")), None)
+    if n_layout is not None and "pixel" in names:
+        pixel = np.asarray(v["pixel"], np.int64)
+        if len(pixel) and (pixel.min() < 0 or pixel.max() >= n_layout):
+            raise ValueError(f"{path}: vertex property pixel outside 0..{n_layout - 1}")
+        full_v = np.zeros((n_layout, 3), np.float32)
+        full_c = np.zeros((n_layout, 3), np.uint8)
+        full_v[pixel], full_c[pixel] = vertices, colors
+        vertices, colors, faces = full_v, full_c, pixel[faces].astype(np.int32)
     f = ply["face"].data
     face_valid = np.asarray(f["valid"]).astype(bool) if "valid" in f.dtype.names else np.ones(len(faces), bool)
     return ErpMesh(vertices, faces, colors, face_valid)

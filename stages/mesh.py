@@ -13,7 +13,7 @@ import numpy as np
 from panoworld.stage import Input, stage_main
 
 NAME = "mesh"
-VERSION = "1"
+VERSION = "2"
 ARTIFACT = "mesh"
 INPUTS = {"depth": Input("depth", help="depth artifact (depth.npy, valid.png, panorama.png)")}
 
@@ -54,6 +54,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         save_erp_mesh_glb(mesh, out_dir / "mesh.glb")
     return {
         "num_vertices": len(mesh.vertices),
+        "vertices_written": int(len(np.unique(mesh.faces))),
+        "invalid_pixels_dropped": int(len(mesh.vertices) - len(np.unique(mesh.faces))),
         "num_faces": len(mesh.faces),
         "num_faces_stretched": n_stretched,
         "stretched_kept_as_occluders": params.discontinuity == Discontinuity.FLAG,

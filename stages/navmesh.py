@@ -12,7 +12,7 @@ from panoworld.navmesh import NavMeshParams, NoFloorError, build_navmesh
 from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "navmesh"
-VERSION = "1"
+VERSION = "2"
 ARTIFACT = "navmesh"
 INPUTS = {"mesh": Input("mesh", help="mesh artifact (mesh.ply, canonical frame, face property valid)")}
 
@@ -45,6 +45,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         "area_m2": nav.area,
         "num_triangles": len(nav.triangles),
         "num_holes": sum(len(p["holes"]) for p in nav.polygons()),
+        "assumed_walkable": nav.info["assumed_walkable"],
         "camera_on_navmesh": nav.info["camera_on_navmesh"],
         "camera_distance_to_navmesh_m": nav.info["camera_distance_to_navmesh_m"],
         "erp_downsample": nav.info["erp_downsample"],

@@ -15,6 +15,7 @@ from panoworld.mesh import load_erp_mesh
 from panoworld.navmesh import load_navmesh
 from panoworld.stage import Input, StageInputError, stage_main
 from panoworld.trajectory import (
+    MIN_SECTOR_DIST_M,
     PathKind,
     TrajectoryFileError,
     TrajectoryParams,
@@ -23,9 +24,11 @@ from panoworld.trajectory import (
     format_issues,
     mesh_clearance,
     plan_path,
+    planning_hub,
     poses_from_positions,
     read_trajectory_file,
     sector_coverage,
+    sector_reachability,
     step_lengths,
     validate_poses,
     write_trajectory,
@@ -33,7 +36,7 @@ from panoworld.trajectory import (
 )
 
 NAME = "trajectory"
-VERSION = "1"
+VERSION = "2"
 ARTIFACT = "trajectory"
 INPUTS = {
     "navmesh": Input("navmesh", help="navmesh artifact (navmesh.json)"),
@@ -123,6 +126,11 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         raise StageInputError(f"{where}: {format_issues(issues, len(poses))}; {hint} or pass --on-invalid report")
     steps = step_lengths(poses)
     xz = poses[:, [0, 2], 3]
+    if "sectors_reachable" in meta:
+        reachable = int(meta["sectors_reachable"])
+    else:  # ring and user paths: the same measure with their own length as the budget
+        hub, _ = planning_hub(nav, np.zeros(2))
+        reachable = int(sector_reachability(nav, np.zeros(2), hub, params.sectors, float(steps.sum()))["reachable"].sum())
     info = {
         "source": source,
         "kind": kind,
@@ -132,7 +140,10 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         "length_m": float(steps.sum()),
         "step_cv": float(steps.std() / steps.mean()) if len(steps) and steps.mean() > 0 else 0.0,
         "closure_m": float(np.linalg.norm(xz[-1] - xz[0])),
-        "sectors_covered": int(sector_coverage(xz, np.zeros(2), 8, 0.1).sum()),
+        "sectors": params.sectors,
+        "sectors_covered": int(sector_coverage(xz, np.zeros(2), params.sectors, MIN_SECTOR_DIST_M).sum()),
+        "sectors_reachable": reachable,
+        "start_off_navmesh_m": float(meta.get("start_off_navmesh_m", 0.0)),
         "min_clearance_m": float(clearance.min()),
         "clearance_cap_m": cap,
         "agent_radius_m": radius,

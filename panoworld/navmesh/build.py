@@ -80,6 +80,7 @@ def build_navmesh(
         "simplify_m": tol,
         "max_triangle_area_m2": params.max_triangle_area_m2,
         "grid_shape": list(grid.free.shape),
+        "assumed_walkable": grid.assumptions,
         "camera_on_navmesh": on_mesh,
         "camera_distance_to_navmesh_m": cam_dist,
         "mesh_faces": int(mesh_faces),

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 
 MIN_CAMERA_HEIGHT_M = 0.3
 """Horizontal triangles closer than this below the camera are never taken as the floor."""
+RIM_WALKABLE_FRACTION = 0.8
+"""An unseen region is assumed to be floor only when at least this share of the cells around it is walkable floor."""
 
 
 class NoFloorError(ValueError):
@@ -39,7 +41,14 @@ class NavMeshParams:
     """Largest NavMesh triangle ('triangle' quality meshing), so A* over triangles gives short corridors."""
     camera_footprint_m: float = 0.0
     """Unseen floor within this horizontal radius of the camera counts as walkable (tripod / nadir blind spot of
-    real captures: the camera stood there); obstacles are never overridden. 0 = trust only what was seen."""
+    real captures: the camera stood there); obstacles are never overridden. 0 = only what blind_spot_m decides."""
+    blind_spot_m: float = 1.5
+    """Automatic rig blind spot: the unseen region under the camera counts as walkable when it lies within this
+    horizontal radius and at least RIM_WALKABLE_FRACTION of the cells around it are walkable floor (the floor is
+    seen all around the capture rig). 0 = off."""
+    fill_holes_m2: float = 0.25
+    """Unseen holes of at most this area surrounded by walkable floor (sensor dropouts, LiDAR gaps) count as
+    walkable; a region where rays hit something below the floor (a stairwell) never does. 0 = off."""
     max_erp_height: int = 192
     """ERP grid meshes (panoworld.mesh layout) with more rows are re-meshed from every s-th pixel first (speed)."""
 
@@ -59,6 +68,10 @@ class FloorGrid:
     """(Hz, Wx) bool: the downward ray hit nothing, an invalid (stretched) face, or a hole below the floor."""
     free: np.ndarray
     """(Hz, Wx) bool: walkable cells eroded by the agent radius (all components)."""
+    assumed: np.ndarray | None = None
+    """(Hz, Wx) bool: unseen cells assumed walkable (the rig's blind spot, small dropouts), included in walkable."""
+    assumptions: dict = field(default_factory=dict)
+    """What was assumed: blind spot area and radius, holes filled (see fill_blind_spots)."""
 
     def cell_of(self, xz: np.ndarray) -> np.ndarray:
         """World (N, 2) x,z -> integer cells (N, 2) as (i, j)."""
@@ -228,11 +241,7 @@ def floor_grid(
     grid.obstacle = ok_face & (h > step)
     grid.walkable = ok_face & (np.abs(h) <= step)
     grid.unseen = ~(grid.obstacle | grid.walkable)
-    if params.camera_footprint_m > 0:
-        xz = grid.xz_of(np.argwhere(np.ones((nz, nx), bool)))
-        under = (np.hypot(xz[:, 0], xz[:, 1]) <= params.camera_footprint_m).reshape(nz, nx) & grid.unseen
-        grid.walkable |= under
-        grid.unseen &= ~under
+    drop = ok_face & (h < -step)
 
     # Vertices, and samples along edges longer than half a cell, of valid faces in the band: thin legs and
     # walls seen edge-on that rays through cell centres can miss.
@@ -256,6 +265,7 @@ def floor_grid(
         grid.obstacle[ij[:, 0], ij[:, 1]] = True
         grid.walkable[ij[:, 0], ij[:, 1]] = False
 
+    fill_blind_spots(grid, drop, params)
     walk = grid.walkable.copy()
     walk[[0, -1], :] = False
     walk[:, [0, -1]] = False
@@ -264,6 +274,59 @@ def floor_grid(
     free = cv2.morphologyEx(free.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)).astype(bool)
     grid.free = free
     return grid
+
+
+def fill_blind_spots(grid: FloorGrid, drop: np.ndarray, params: NavMeshParams, camera_xz=(0.0, 0.0)) -> dict:
+    """Mark unseen regions walkable that can only be floor nobody saw: in place on grid, returns grid.assumptions.
+
+    Candidates are 8-connected components of unseen cells that are no obstacle and no drop (drop (Hz, Wx): rays
+    hit below the floor), do not touch the grid border, and whose rim (cells next to them) is at least
+    RIM_WALKABLE_FRACTION walkable. Filled: the component under the camera when it lies within blind_spot_m of
+    it (the capture rig hides the floor it stands on), and components of at most fill_holes_m2.
+    """
+    import cv2
+
+    nz, nx = grid.walkable.shape
+    assumed = np.zeros((nz, nx), bool)
+    info = {"blind_spot_m2": 0.0, "blind_spot_radius_m": 0.0, "blind_spot_rim_walkable": None,
+            "holes_filled": 0, "holes_filled_m2": 0.0}
+    cand = grid.unseen & ~grid.obstacle & ~drop
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(cand.astype(np.uint8), connectivity=8)
+    if n > 1:
+        # Rim cells take the largest neighbouring label (exact in float32 below 2^24 labels).
+        near = cv2.dilate(labels.astype(np.float32), np.ones((3, 3), np.uint8)).astype(np.int64)
+        rim = (labels == 0) & (near > 0)
+        rim_total = np.bincount(near[rim], minlength=n)
+        rim_walk = np.bincount(near[rim], weights=grid.walkable[rim].astype(np.float64), minlength=n)
+        frac = rim_walk / np.maximum(rim_total, 1)
+        x, y, w, h = (stats[:, k] for k in (cv2.CC_STAT_LEFT, cv2.CC_STAT_TOP, cv2.CC_STAT_WIDTH, cv2.CC_STAT_HEIGHT))
+        inner = (x > 0) & (y > 0) & (x + w < nx) & (y + h < nz)
+        ok = inner & (frac >= RIM_WALKABLE_FRACTION)
+        ok[0] = False
+        area = stats[:, cv2.CC_STAT_AREA] * grid.cell**2
+        holes = ok & (area <= params.fill_holes_m2)
+        cam = grid.cell_of(np.asarray(camera_xz, np.float64))[0]
+        k = int(labels[cam[0], cam[1]]) if 0 <= cam[0] < nz and 0 <= cam[1] < nx else 0
+        if k > 0 and params.blind_spot_m > 0:
+            ij = np.argwhere(labels == k)
+            radius = float(np.max(np.linalg.norm(grid.xz_of(ij) - np.asarray(camera_xz), axis=1)) + 0.5 * grid.cell)
+            info["blind_spot_rim_walkable"] = float(frac[k])
+            if ok[k] and radius <= params.blind_spot_m:
+                assumed |= labels == k
+                info.update(blind_spot_m2=float(area[k]), blind_spot_radius_m=radius)
+            holes[k] = False
+        assumed |= holes[labels]
+        info.update(holes_filled=int(holes.sum()), holes_filled_m2=float(area[holes].sum()))
+    if params.camera_footprint_m > 0:
+        xz = grid.xz_of(np.argwhere(np.ones((nz, nx), bool)))
+        d = np.hypot(xz[:, 0] - camera_xz[0], xz[:, 1] - camera_xz[1]).reshape(nz, nx)
+        assumed |= (d <= params.camera_footprint_m) & grid.unseen & ~grid.obstacle
+    info["assumed_m2"] = float(assumed.sum() * grid.cell**2)
+    grid.walkable |= assumed
+    grid.unseen &= ~assumed
+    grid.assumed = assumed
+    grid.assumptions = info
+    return info
 
 
 def simplify_tolerance_m(params: NavMeshParams) -> float:

@@ -40,13 +40,21 @@ from panoworld.trajectory.poses import (
     yaw_of_path,
 )
 from panoworld.trajectory.ring import plan_ring
-from panoworld.trajectory.sectors import plan_sector, sector_coverage, sector_of, sector_reach
+from panoworld.trajectory.sectors import (
+    MIN_SECTOR_DIST_M,
+    GeodesicField,
+    plan_sector,
+    sector_coverage,
+    sector_of,
+    sector_reach,
+    sector_reachability,
+)
 
 __all__ = [
-    "CLEARANCE_CAP_M", "FRAME", "TRAJECTORY_JSON", "TRAJECTORY_TUM", "PathKind", "Plan", "PoseIssue",
+    "CLEARANCE_CAP_M", "FRAME", "GeodesicField", "MIN_SECTOR_DIST_M", "TRAJECTORY_JSON", "TRAJECTORY_TUM", "PathKind", "Plan", "PoseIssue",
     "TrajectoryFileError", "TrajectoryParams", "YawMode", "check_poses", "clearance_cap", "format_issues",
     "load_trajectory", "mesh_clearance", "plan_path", "plan_ring", "plan_sector", "planning_hub", "planning_mesh",
     "polyline_length", "poses_from_positions", "read_trajectory_file", "read_tum", "resample_polyline",
-    "sector_coverage", "sector_of", "sector_reach", "smooth_polyline", "step_lengths", "subdivide_polyline",
+    "sector_coverage", "sector_of", "sector_reach", "sector_reachability", "smooth_polyline", "step_lengths", "subdivide_polyline",
     "truncate_polyline", "validate_poses", "write_trajectory", "write_tum", "yaw_of_path",
 ]
