@@ -106,7 +106,7 @@ class TrackPlanner:
                 raise TrackError("waypoints are not connected")
         return np.array(path[::-1])
 
-    def _polyline(self, rng: np.random.Generator, length: float) -> np.ndarray:
+    def _polyline(self, rng: np.random.Generator, length: float, long_track: bool = False) -> np.ndarray:
         """World (x, z) polyline (M, 2) through random waypoints with at least the given length."""
         c = self.plan.cell
         weight = np.clip(self.dist[tuple(self.cells.T)], 0, None) ** 4
@@ -114,7 +114,6 @@ class TrackPlanner:
         pts = [self.plan.cell_centers(self.cells[cur : cur + 1])]
         total, heading = 0.0, None
         # 12 waypoints suffice up to ~8 m; long tracks (e.g. 81-frame clips at stride 4) get more, looping the rooms
-        long_track = length > 8.0
         for _ in range(max(12, 2 * int(length) + 4) if long_track else 12):
             d = (self.cells - self.cells[cur]) * c
             dn = np.linalg.norm(d, axis=1)
@@ -155,14 +154,18 @@ class TrackPlanner:
         length = (frames - 1) * p.step_m
         max_turn = p.step_m / 0.4
         rejected = {"short": 0, "turn": 0, "clearance": 0}
-        for _ in range(p.max_attempts):
+        # Tracks up to 8 m first try the plain planner (unchanged outputs for every scene it could already make);
+        # longer ones, and shorter ones it failed on, use the long-track mode: more waypoints that keep going
+        # forwards, 30 % spare path length for the spline's cut corners, and a camera yaw that may turn slower than
+        # the path at tight bends.
+        modes = (True,) if length > 8.0 else (False, True)
+        for long_track in (m for m in modes for _ in range(p.max_attempts)):
             if frames == 1:
-                xz = self._polyline(rng, 0.0)[:1]
+                xz = self._polyline(rng, 0.0, long_track)[:1]
                 a = float(rng.uniform(-np.pi, np.pi))
                 heading = np.array([[np.sin(a), np.cos(a)]])
             else:
-                # splines cut the corners of a long looping path: ask long tracks for 30 % more
-                poly = self._polyline(rng, (1.3 * length if length > 8.0 else length) + 1.0)
+                poly = self._polyline(rng, (1.3 * length if long_track else length) + 1.0, long_track)
                 seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
                 arc = np.concatenate([[0.0], np.cumsum(seg)])
                 if arc[-1] < length + 0.5:
@@ -185,7 +188,7 @@ class TrackPlanner:
                 # Yaw follows the path direction, low-passed over ~0.3 m so it turns slowly.
                 raw = np.unwrap(np.arctan2(tangent[:, 0], tangent[:, 1]))
                 yaw = ndimage.gaussian_filter1d(raw, sigma=0.3 / p.step_m, mode="nearest")
-                for k in range(1, 7 if length > 8.0 else 1):
+                for k in range(1, 7 if long_track else 1):
                     # long looping tracks: the (360-degree) camera turns more slowly than the path at tight bends
                     if np.abs(np.diff(yaw)).max(initial=0.0) <= max_turn:
                         break
@@ -206,4 +209,4 @@ class TrackPlanner:
                 continue
             return Track(world_from_cam=poses, camera_height=height)
         raise TrackError(f"no track of {frames} frames x {p.step_m} m with {p.clearance_m} m clearance after "
-                         f"{p.max_attempts} attempts (rejected: {rejected})")
+                         f"{p.max_attempts * len(modes)} attempts (rejected: {rejected})")
