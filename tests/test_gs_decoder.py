@@ -1,24 +1,26 @@
-"""GSDecoder on a tiny random config: shapes, bounded outputs, shared confidence fusion, determinism, weights I/O."""
+"""The Gaussian head of PanoVGGT on a tiny random config: shapes, bounded outputs, shared confidence fusion, gradients."""
 
 from __future__ import annotations
 
-import json
-
-import numpy as np
 import pytest
 import torch
 
-from panoworld.gaussians import SH_C0, ContextFrames, fuse_voxels
-from panoworld.models.gs_decoder import GSDecoder, GSDecoderConfig, plucker_features, sinusoidal_encoding
-from panoworld.models.weights import MissingWeightsError
+from panoworld.gaussians import SH_C0, fuse_voxels
+from panoworld.models.gs_decoder import (
+    GaussianHead,
+    GaussianHeadConfig,
+    plucker_features,
+    sinusoidal_encoding,
+)
 
 torch.set_num_threads(1)
 
 TINY = {
-    "patch_size": 8, "embed_dim": 32, "num_heads": 2, "global_layers": 1, "feature_dim": 8, "voxel_size": 0.25,
+    "embed_dim": 32, "num_heads": 2, "global_layers": 1, "feature_dim": 8, "voxel_size": 0.25,
     "knn_k": 4, "knn_layers": 1, "knn_heads": 2, "token_dim": 16, "pe_freqs": 2, "mlp_hidden": 32,
     "gaussians_per_voxel": 2, "sh_degree": 1,
 }
+PATCH, BACKBONE_DIM = 8, 24
 
 
 def inputs(V=2, H=16, W=32, seed=0):
@@ -28,20 +30,21 @@ def inputs(V=2, H=16, W=32, seed=0):
     depth[0, 0, :4] = 0.0  # no depth there
     poses = torch.eye(4).repeat(V, 1, 1)
     poses[1, :3, 3] = torch.tensor([0.3, 0.0, -0.2])
-    return img, depth, poses
+    tokens = torch.randn(V, (H // PATCH) * (W // PATCH), BACKBONE_DIM, generator=g)
+    return img, depth, poses, tokens
 
 
 @pytest.fixture(scope="module")
-def model():
+def head():
     torch.manual_seed(0)
-    return GSDecoder(GSDecoderConfig(**TINY)).eval()
+    return GaussianHead(GaussianHeadConfig(**TINY), PATCH, BACKBONE_DIM).eval()
 
 
-def test_shapes_and_bounded_outputs(model):
-    cfg = model.cfg
-    img, depth, poses = inputs()
+def test_shapes_and_bounded_outputs(head):
+    cfg = head.cfg
+    img, depth, poses, tokens = inputs()
     with torch.no_grad():
-        out = model(img, depth, poses)
+        out = head(img, depth, poses, tokens)
     g = out["gaussians"]
     nv = out["centres"].shape[0]
     assert len(g) == cfg.gaussians_per_voxel * nv
@@ -58,15 +61,15 @@ def test_shapes_and_bounded_outputs(model):
     assert float(g.sh_rest.abs().max()) <= cfg.max_sh_rest
 
 
-def test_centres_are_the_confidence_weighted_fusion(model):
-    img, depth, poses = inputs()
+def test_centres_are_the_confidence_weighted_fusion(head):
+    img, depth, poses, tokens = inputs()
     with torch.no_grad():
-        out = model(img, depth, poses)
+        out = head(img, depth, poses, tokens)
         _, points = plucker_features(img, depth, poses)
     valid = (depth > 0).reshape(-1)
     x = points.reshape(-1, 3)[valid]
     w = out["confidence"].reshape(-1)[valid]
-    p, _, _, inv = fuse_voxels(x, w, torch.zeros(len(x), 1), model.cfg.voxel_size)
+    p, _, _, inv = fuse_voxels(x, w, torch.zeros(len(x), 1), head.cfg.voxel_size)
     assert torch.allclose(out["centres"], p, atol=1e-6) and torch.equal(out["inverse"], inv)
     # p_j = sum w x / (sum w + eps) for one voxel, written out.
     j = int(inv[0])
@@ -74,8 +77,18 @@ def test_centres_are_the_confidence_weighted_fusion(model):
     assert torch.allclose(p[j], (w[m, None] * x[m]).sum(0) / (w[m].sum() + 1e-6), atol=1e-6)
 
 
+def test_backbone_tokens_change_the_gaussians(head):
+    img, depth, poses, tokens = inputs()
+    with torch.no_grad():
+        a = head(img, depth, poses, tokens)["gaussians"]
+        b = head(img, depth, poses, tokens + 1.0)["gaussians"]
+    assert a.means.shape == b.means.shape and not torch.allclose(a.sh_dc, b.sh_dc)
+    with pytest.raises(ValueError, match="backbone's patch grid"):
+        head(img, depth, poses, tokens[:, :-1])
+
+
 def test_plucker_features_and_encoding():
-    img, depth, poses = inputs()
+    img, depth, poses, _ = inputs()
     f, pts = plucker_features(img, depth, poses)
     assert f.shape == (2, 10, 16, 32)
     d, m = f[:, 4:7], f[:, 7:10]
@@ -87,52 +100,26 @@ def test_plucker_features_and_encoding():
     assert pe.shape == (1, 15) and torch.equal(pe[0, 3:9], torch.zeros(6)) and torch.equal(pe[0, 9:], torch.ones(6))
 
 
-def test_deterministic_and_trainable(model):
-    img, depth, poses = inputs()
+def test_deterministic_and_trainable(head):
+    img, depth, poses, tokens = inputs()
     with torch.no_grad():
-        a = model(img, depth, poses)["gaussians"]
-        b = model(img, depth, poses)["gaussians"]
+        a = head(img, depth, poses, tokens)["gaussians"]
+        b = head(img, depth, poses, tokens)["gaussians"]
     assert torch.equal(a.means, b.means) and torch.equal(a.sh_dc, b.sh_dc)
-    out = model(img, depth, poses)
+    out = head(img, depth, poses, tokens)
     loss = out["gaussians"].means.sum() + out["gaussians"].sh_dc.square().mean()
     loss.backward()
-    assert model.confidence.weight.grad.abs().sum() > 0  # through the fused centres
-    assert model.patch_embed.weight.grad.abs().sum() > 0  # through global attention
-    model.zero_grad()
+    assert head.confidence.weight.grad.abs().sum() > 0  # through the fused centres
+    assert head.patch_embed.weight.grad.abs().sum() > 0  # through global attention
+    assert head.backbone_proj.weight.grad.abs().sum() > 0  # the shared backbone features are used
+    head.zero_grad()
 
 
-def test_save_load_round_trip(model, tmp_path):
-    model.save_pretrained(tmp_path / "w")
-    loaded = GSDecoder.from_pretrained(tmp_path / "w")
-    assert loaded.cfg == model.cfg
-    img, depth, poses = inputs(seed=3)
-    frames = ContextFrames(
-        (img.permute(0, 2, 3, 1).numpy() * 255).astype(np.uint8), depth.numpy(), poses.double().numpy(), [0, 1],
-        "video",
-    )
-    a = model.decode(frames).gaussians
-    b = loaded.decode(frames).gaussians
-    assert np.array_equal(a.means, b.means) and np.array_equal(a.scales, b.scales)
-    with pytest.raises(ValueError, match="multiple of 8"):
-        model.decode(ContextFrames(frames.rgb[:, :12, :24], frames.depth[:, :12, :24], frames.world_from_cam, [0, 1], "v"))
-
-
-def test_missing_or_mismatched_weights_name_the_flag(model, tmp_path):
-    with pytest.raises(MissingWeightsError, match="pass --weights"):
-        GSDecoder.from_pretrained(None)
-    with pytest.raises(MissingWeightsError, match="--weights .* lacks model.safetensors"):
-        (tmp_path / "cfg").mkdir()
-        (tmp_path / "cfg" / "config.json").write_text("{}")
-        GSDecoder.from_pretrained(tmp_path / "cfg")
-    model.save_pretrained(tmp_path / "w")
-    (tmp_path / "w" / "config.json").write_text(json.dumps({**TINY, "token_dim": 32}))
-    with pytest.raises(MissingWeightsError, match="does not match"):
-        GSDecoder.from_pretrained(tmp_path / "w")
-
-
-def test_bad_shapes_raise(model):
-    img, depth, poses = inputs()
+def test_bad_inputs_raise(head):
+    img, depth, poses, tokens = inputs()
     with pytest.raises(ValueError, match="W = 2H"):
-        model(img[..., :24], depth[..., :24], poses)
+        head(img[..., :24], depth[..., :24], poses, tokens)
     with pytest.raises(ValueError, match="every depth"):
-        model(img, torch.zeros_like(depth), poses)
+        head(img, torch.zeros_like(depth), poses, tokens)
+    with pytest.raises(ValueError, match="must divide"):
+        GaussianHeadConfig(**{**TINY, "num_heads": 3})

@@ -153,3 +153,75 @@ def test_rejects_non_erp_or_misaligned_input():
         m(torch.rand(1, 2, 3, 36, 72))
     with pytest.raises(ValueError, match="dpt_layers"):
         tiny_config(dpt_layers=(0, 1, 2, 9))
+
+
+HEAD = {
+    "embed_dim": 16, "num_heads": 2, "global_layers": 1, "feature_dim": 8, "voxel_size": 0.2, "knn_k": 4,
+    "knn_layers": 1, "knn_heads": 2, "token_dim": 16, "pe_freqs": 2, "mlp_hidden": 16,
+}
+
+
+def head_model(seed: int = 0, **head) -> PanoVGGT:
+    torch.manual_seed(seed)
+    return PanoVGGT(tiny_config(gaussian_head={**HEAD, **head})).eval()
+
+
+def test_paper_sizes_fit_392x784():
+    cfg = PanoVGGTConfig(gaussian_head={})
+    assert cfg.image_height % cfg.patch_size == 0 and (2 * cfg.image_height) % cfg.patch_size == 0
+    assert cfg.to_json()["gaussian_head"]["voxel_size"] == 0.02
+    with pytest.raises(ValueError, match="backbone_layer"):
+        tiny_config(gaussian_head={**HEAD, "backbone_layer": 4})
+
+
+def test_gaussian_head_shares_the_backbone_tokens():
+    m = head_model()
+    x = frames(2)
+    out = m(x, with_tokens=True)
+    assert out["tokens"].shape == (1, 2, 4 * 8, 64)  # (B, S, patches, 2 * embed_dim)
+    plain = tiny_model()(x)  # the same seed builds the same backbone, camera and depth heads
+    gauss_free = {k: v for k, v in out.items() if k != "tokens"}
+    for k in plain:
+        torch.testing.assert_close(gauss_free[k], plain[k], msg=k)
+    with torch.enable_grad():
+        g = m.gaussians(x[0])
+        g["gaussians"].sh_dc.square().mean().backward()
+    grads = {k: [p.grad for p in v] for k, v in m.heads().items()}
+    assert all(gr is None for k in ("backbone", "camera", "depth") for gr in grads[k])  # frozen in stage 2
+    assert any(gr is not None and gr.abs().sum() > 0 for gr in grads["gaussian"])
+    # Geometry given (a poses artifact's) replaces the predicted one; the centres follow the given depth.
+    depth = torch.full((2, 32, 64), 2.0)
+    poses = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+    centres = m.gaussians(x[0], depth, poses)["centres"]
+    r = centres.norm(dim=1)
+    assert float(r.min()) > 2.0 - 0.2 * 1.8 and float(r.max()) < 2.0 + 0.2 * 1.8
+
+
+def test_decode_context_frames_and_round_trip(tmp_path):
+    from panoworld.gaussians import ContextFrames
+
+    m = head_model(2)
+    m.save_pretrained(tmp_path / "w")
+    m2 = PanoVGGT.from_pretrained(tmp_path / "w")
+    assert m2.cfg == m.cfg and m2.gaussian_head is not None
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (2, 64, 128, 3), dtype=np.uint8)  # stored at twice the model's size: resized
+    depth = np.full((2, 64, 128), 1.5, np.float32)
+    depth[0, :4] = np.nan
+    cf = ContextFrames(rgb, depth, np.eye(4)[None].repeat(2, 0), [0, 5], "video")
+    a, b = m.decode(cf), m2.decode(cf)
+    assert a.backend == "decoder" and a.voxel_size == 0.2 and len(a.gaussians) == 2 * a.num_voxels
+    assert np.array_equal(a.gaussians.means, b.gaussians.means) and np.array_equal(a.gaussians.sh_dc, b.gaussians.sh_dc)
+    assert isinstance(a.gaussians.means, np.ndarray)
+
+
+def test_weights_without_a_gaussian_head_name_stage_2(tmp_path):
+    from panoworld.gaussians import ContextFrames
+
+    tiny_model().save_pretrained(tmp_path / "w")
+    m = PanoVGGT.from_pretrained(tmp_path / "w")
+    cf = ContextFrames(np.zeros((1, 32, 64, 3), np.uint8), np.ones((1, 32, 64), np.float32), np.eye(4)[None], [0], "v")
+    with pytest.raises(MissingWeightsError, match="no Gaussian head.*--stage 2"):
+        m.decode(cf)
+    with pytest.raises(ValueError, match="needs a model with a Gaussian head"):
+        m(frames(1), with_tokens=True)

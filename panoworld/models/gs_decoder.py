@@ -1,10 +1,9 @@
-"""GSDecoder: the paper's voxel-aligned feed-forward 3D Gaussian head (global attention, confidence fusion, KNN attention)."""
+"""The paper's voxel-aligned Gaussian head of PanoVGGT: global attention, confidence-weighted voxel fusion, KNN attention."""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -12,19 +11,19 @@ import torch.nn.functional as F
 from torch import nn
 
 from panoworld.conventions import erp_dirs
-from panoworld.gaussians import SH_C0, ContextFrames, FusionResult, Gaussians, bbox_extent, fuse_voxels
-from panoworld.models.weights import JsonConfig, load_config_and_weights, save_config_and_weights
+from panoworld.gaussians import SH_C0, Gaussians, fuse_voxels
+from panoworld.models.weights import JsonConfig
 
 IN_CHANNELS = 10
 """Per-pixel input features: RGB (3), depth (1), ray direction d (3), moment o x d (3)."""
 
 
 @dataclass(kw_only=True)
-class GSDecoderConfig(JsonConfig):
-    """Architecture of GSDecoder."""
+class GaussianHeadConfig(JsonConfig):
+    """Architecture of the Gaussian head; its patch grid is the backbone's (PanoVGGTConfig.patch_size)."""
 
-    patch_size: int = 16
-    """Side of the square patches tokenised for global attention; frame H and W must be multiples of it."""
+    backbone_layer: int = -1
+    """Aggregator block pair whose (frame, global) patch tokens the head shares (-1 = the last)."""
     embed_dim: int = 384
     """Token width of the global multi-view attention."""
     num_heads: int = 6
@@ -69,6 +68,8 @@ class GSDecoderConfig(JsonConfig):
             raise ValueError(f"{self.sh_degree=} but expected 0..3")
         if not 0 < self.min_scale < self.max_scale:
             raise ValueError(f"{self.min_scale=}, {self.max_scale=} but expected 0 < min < max")
+        if not self.voxel_size > 0:
+            raise ValueError(f"{self.voxel_size=} but expected > 0")
 
     @property
     def sh_coeffs(self) -> int:
@@ -137,20 +138,30 @@ class KNNAttention(nn.Module):
         return self.proj(att.reshape(n, -1))
 
 
-class GSDecoder(nn.Module):
-    """Multi-view ERP frames with depth and poses -> voxel-aligned 3D Gaussians (the paper's feed-forward 3DGS head)."""
+class GaussianHead(nn.Module):
+    """Context views (images, depth, poses) + the backbone's patch tokens -> voxel-aligned 3D Gaussians.
 
-    def __init__(self, cfg: GSDecoderConfig):
+    The paper's head: f = [I, z, d, o x d] per pixel, patchified on the backbone's patch grid and summed with a
+    projection of the shared backbone tokens; joint self-attention over all patches of all views; unpatchify to
+    full resolution; per-pixel confidence w; the confidence-weighted voxel fusion of gaussians.fuse_voxels (p_j and
+    f_vox_j); KNN attention over the voxel tokens; phi_gs([f_vox, gamma(p)]) -> K Gaussians per voxel with bounded
+    activations.
+    """
+
+    def __init__(self, cfg: GaussianHeadConfig, patch_size: int, backbone_dim: int):
         super().__init__()
         self.cfg = cfg
+        self.patch_size = patch_size
         c = cfg
-        self.patch_embed = nn.Conv2d(IN_CHANNELS, c.embed_dim, c.patch_size, stride=c.patch_size)
+        self.patch_embed = nn.Conv2d(IN_CHANNELS, c.embed_dim, patch_size, stride=patch_size)
+        self.backbone_norm = nn.LayerNorm(backbone_dim)
+        self.backbone_proj = nn.Linear(backbone_dim, c.embed_dim)
         layer = nn.TransformerEncoderLayer(
             c.embed_dim, c.num_heads, 4 * c.embed_dim, dropout=0.0, activation="gelu", batch_first=True, norm_first=True
         )
         self.global_attn = nn.TransformerEncoder(layer, c.global_layers, enable_nested_tensor=False)
         self.norm = nn.LayerNorm(c.embed_dim)
-        self.unpatch = nn.Linear(c.embed_dim, c.patch_size * c.patch_size * c.feature_dim)
+        self.unpatch = nn.Linear(c.embed_dim, patch_size * patch_size * c.feature_dim)
         self.skip = nn.Conv2d(IN_CHANNELS, c.feature_dim, 1)
         self.refine = nn.Sequential(nn.GELU(), nn.Conv2d(c.feature_dim, c.feature_dim, 1))
         self.confidence = nn.Conv2d(c.feature_dim, 1, 1)
@@ -163,22 +174,26 @@ class GSDecoder(nn.Module):
             nn.Linear(c.mlp_hidden, c.mlp_hidden), nn.GELU(), nn.Linear(c.mlp_hidden, c.gaussians_per_voxel * self.per_gaussian),
         )
 
-    def pixel_features(self, feats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(V, 10, H, W) inputs -> (per-pixel features (V, C, H, W), confidence (V, H, W) in (0, 1))."""
+    def pixel_features(self, feats: torch.Tensor, tokens: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(V, 10, H, W) inputs + backbone patch tokens (V, h*w, Db) -> (features (V, C, H, W), confidence (V, H, W))."""
         V, _, H, W = feats.shape
-        p = self.cfg.patch_size
-        tok = self.patch_embed(feats)  # (V, D, h, w)
+        p = self.patch_size
+        tok = self.patch_embed(feats)  # (V, E, h, w)
         h, w = tok.shape[-2:]
-        tok = tok.flatten(2).transpose(1, 2).reshape(1, V * h * w, -1)  # all patches of all views jointly
-        tok = self.norm(self.global_attn(tok)).reshape(V, h, w, -1)
+        if tokens.shape[:2] != (V, h * w):
+            raise ValueError(f"{tuple(tokens.shape)=} but expected ({V}, {h * w}, D): the backbone's patch grid")
+        tok = tok.flatten(2).transpose(1, 2) + self.backbone_proj(self.backbone_norm(tokens))
+        tok = self.norm(self.global_attn(tok.reshape(1, V * h * w, -1))).reshape(V, h, w, -1)  # all views jointly
         up = self.unpatch(tok).reshape(V, h, w, self.cfg.feature_dim, p, p)
         up = up.permute(0, 3, 1, 4, 2, 5).reshape(V, self.cfg.feature_dim, H, W)
         x = up + self.skip(feats)
         x = x + self.refine(x)
         return x, torch.sigmoid(self.confidence(x))[:, 0]
 
-    def forward(self, images: torch.Tensor, depths: torch.Tensor, world_from_cam: torch.Tensor) -> dict:
-        """images (V, 3, H, W) in [0, 1], depths (V, H, W) metres (0 = none), world_from_cam (V, 4, 4).
+    def forward(self, images: torch.Tensor, depths: torch.Tensor, world_from_cam: torch.Tensor,
+                tokens: torch.Tensor) -> dict:
+        """images (V, 3, H, W) in [0, 1], depths (V, H, W) metres (0 = none), world_from_cam (V, 4, 4), backbone
+        patch tokens (V, (H/p)*(W/p), Db).
 
         Returns {"gaussians": Gaussians of torch tensors (N = K * voxels), "confidence": (V, H, W),
         "centres": (Nv, 3) fused voxel centres p_j, "inverse": (M,) voxel of each valid pixel}.
@@ -189,14 +204,14 @@ class GSDecoder(nn.Module):
         V, _, H, W = images.shape
         if depths.shape != (V, H, W) or world_from_cam.shape != (V, 4, 4):
             raise ValueError(f"{tuple(depths.shape)=} {tuple(world_from_cam.shape)=} but expected {(V, H, W)}, {(V, 4, 4)}")
-        if W != 2 * H or H % c.patch_size:
-            raise ValueError(f"frames are {W}x{H} (WxH) but GSDecoder needs W = 2H with H a multiple of {c.patch_size}")
-        depths = torch.nan_to_num(depths, nan=0.0, posinf=0.0)
-        feats, points = plucker_features(images, depths, world_from_cam)
-        pix, conf = self.pixel_features(feats)
+        if W != 2 * H or H % self.patch_size:
+            raise ValueError(f"frames are {W}x{H} (WxH) but the Gaussian head needs W = 2H with H a multiple of {self.patch_size}")
+        depths = torch.nan_to_num(depths.float(), nan=0.0, posinf=0.0).clamp(min=0.0)
+        feats, points = plucker_features(images.float(), depths, world_from_cam.float())
+        pix, conf = self.pixel_features(feats, tokens.float())
         valid = (depths > 0).reshape(-1)
         if not bool(valid.any()):
-            raise ValueError("GSDecoder: every depth is 0, inf or NaN")
+            raise ValueError("Gaussian head: every depth is 0, inf or NaN")
         x = points.reshape(-1, 3)[valid]
         f = pix.permute(0, 2, 3, 1).reshape(-1, c.feature_dim)[valid]
         centres, f_vox, _, inverse = fuse_voxels(x, conf.reshape(-1)[valid], f, c.voxel_size)
@@ -221,45 +236,5 @@ class GSDecoder(nn.Module):
         return Gaussians(
             means=means.reshape(-1, 3), scales=scales.reshape(-1, 3), quats=quats.reshape(-1, 4),
             opacities=torch.sigmoid(o).reshape(-1), sh_dc=dc.reshape(-1, 3),
-            sh_rest=rest.reshape(-1, c.sh_coeffs - 1, 3),
-        )
-
-    @torch.no_grad()
-    def predict(self, frames: np.ndarray, depths: np.ndarray, world_from_cam: np.ndarray) -> Gaussians:
-        """frames (V, H, W, 3) uint8, depths (V, H, W) metres, poses (V, 4, 4) -> numpy Gaussians (eval mode)."""
-        if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
-            raise ValueError(f"{frames.shape=} {frames.dtype=} but expected (V, H, W, 3) uint8")
-        dev = next(self.parameters()).device
-        x = torch.from_numpy(frames).to(dev).permute(0, 3, 1, 2).float().div(255.0)
-        out = self.eval()(x, torch.from_numpy(np.asarray(depths, np.float32)).to(dev),
-                          torch.from_numpy(np.asarray(world_from_cam, np.float32)).to(dev))
-        return out["gaussians"].numpy()
-
-    @torch.no_grad()
-    def decode(self, frames: ContextFrames) -> FusionResult:
-        """Gaussians from a stage's context frames (the decoder counterpart of gaussians.voxel_fusion)."""
-        c = self.cfg
-        h = frames.rgb.shape[1]
-        if frames.rgb.shape[2] != 2 * h or h % c.patch_size:
-            raise ValueError(
-                f"frames are {frames.rgb.shape[2]}x{h} (WxH) but GSDecoder needs a height that is a multiple of "
-                f"{c.patch_size}; pass --height"
-            )
-        g = self.predict(frames.rgb, np.nan_to_num(frames.depth, nan=0.0), frames.world_from_cam)
-        n_obs = int(np.isfinite(frames.depth).sum())
-        n_vox = len(g) // c.gaussians_per_voxel
-        return FusionResult(g, n_obs, n_vox, 0, bbox_extent(g.means), c.voxel_size, backend="decoder")
-
-    def save_pretrained(self, root: Path | str) -> Path:
-        """Write config.json and model.safetensors into the directory root."""
-        return save_config_and_weights(self, self.cfg.to_json(), root)
-
-    @classmethod
-    def from_pretrained(cls, root: Path | str | None, *, flag: str = "--weights", device: str = "cpu") -> GSDecoder:
-        """Load from a local directory holding config.json and model.safetensors (never downloads).
-
-        Missing or mismatching files raise MissingWeightsError (a StageInputError) naming `flag`.
-        """
-        return load_config_and_weights(
-            lambda c: cls(GSDecoderConfig.from_json(c)), root, model="GSDecoder", flag=flag, device=device
+            sh_rest=rest.reshape(len(centres) * c.gaussians_per_voxel, c.sh_coeffs - 1, 3),
         )

@@ -1,9 +1,10 @@
-"""PanoVGGT: a VGGT-style network on ERP frames with ERP-aligned coordinate encoding, predicting poses and depth."""
+"""PanoVGGT: a VGGT-style network on ERP frames with ERP-aligned coordinate encoding: camera, depth and Gaussian heads."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -11,7 +12,16 @@ import torch.nn.functional as F
 from torch import nn
 
 from panoworld.conventions import erp_lonlat_from_pixel
-from panoworld.models.weights import JsonConfig, load_config_and_weights, save_config_and_weights
+from panoworld.models.gs_decoder import GaussianHead, GaussianHeadConfig
+from panoworld.models.weights import (
+    JsonConfig,
+    MissingWeightsError,
+    load_config_and_weights,
+    save_config_and_weights,
+)
+
+if TYPE_CHECKING:
+    from panoworld.gaussians import ContextFrames, FusionResult
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -49,8 +59,15 @@ class PanoVGGTConfig(JsonConfig):
     """Channels of the four reassembled feature maps of the depth head."""
     image_height: int = 392
     """Input ERP height the weights were trained at (width = 2 * height); frames are resized to it."""
+    gaussian_head: GaussianHeadConfig | None = None
+    """The voxel-aligned Gaussian head sharing the aggregator's tokens (None = camera and depth heads only)."""
 
     def __post_init__(self):
+        if isinstance(self.gaussian_head, dict):
+            self.gaussian_head = GaussianHeadConfig.from_json(self.gaussian_head)
+        if self.gaussian_head is not None and not -self.depth <= self.gaussian_head.backbone_layer < self.depth:
+            raise ValueError(f"gaussian_head.backbone_layer={self.gaussian_head.backbone_layer} must index the "
+                             f"{self.depth} aggregator block pairs")
         self.dpt_layers = tuple(int(i) for i in self.dpt_layers)
         self.dpt_out_channels = tuple(int(c) for c in self.dpt_out_channels)
         if len(self.dpt_layers) != 4 or len(self.dpt_out_channels) != 4:
@@ -285,6 +302,8 @@ class PanoVGGT(nn.Module):
         )
         self.camera_head = CameraHead(cfg)
         self.depth_head = DepthHead(cfg)
+        gh = cfg.gaussian_head
+        self.gaussian_head = GaussianHead(gh, p, 2 * d) if gh is not None else None
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
 
@@ -292,11 +311,26 @@ class PanoVGGT(nn.Module):
     def num_special_tokens(self) -> int:
         return 1 + self.cfg.num_register_tokens
 
-    def forward(self, images: torch.Tensor) -> dict[str, torch.Tensor]:
+    @property
+    def gaussian_layer(self) -> int | None:
+        """Aggregator block pair whose patch tokens the Gaussian head shares (None without the head)."""
+        gh = self.cfg.gaussian_head
+        return None if gh is None else gh.backbone_layer % self.cfg.depth
+
+    def heads(self) -> dict[str, list[nn.Parameter]]:
+        """Trainable parameter groups: backbone (aggregator), camera, depth, gaussian (empty without the head)."""
+        groups = {"backbone": [], "camera": [], "depth": [], "gaussian": []}
+        for name, prm in self.named_parameters():
+            key = name.split(".")[0]
+            groups[{"camera_head": "camera", "depth_head": "depth", "gaussian_head": "gaussian"}.get(key, "backbone")].append(prm)
+        return groups
+
+    def forward(self, images: torch.Tensor, *, with_tokens: bool = False) -> dict[str, torch.Tensor]:
         """images (B, S, 3, H, W) RGB in [0, 1], ERP 2:1 with H, W multiples of patch_size ->
 
         world_from_cam (B, S, 4, 4) float64 (frame 0 = identity), pose_enc (B, S, 7), depth (B, S, H, W) metres,
-        depth_conf (B, S, H, W) >= 1.
+        depth_conf (B, S, H, W) >= 1; with_tokens adds "tokens" (B, S, P, 2D): the patch tokens the Gaussian head
+        shares.
         """
         if images.ndim != 5 or images.shape[2] != 3:
             raise ValueError(f"{tuple(images.shape)=} but expected (B, S, 3, H, W)")
@@ -315,6 +349,8 @@ class PanoVGGT(nn.Module):
         x = torch.cat([special.repeat(b, 1, 1), x], dim=1)  # (B*S, T, D)
         t, d = x.shape[1], x.shape[2]
         keep = set(self.cfg.dpt_layers) | {self.cfg.depth - 1}
+        if self.gaussian_layer is not None:
+            keep.add(self.gaussian_layer)
         outputs: dict[int, torch.Tensor] = {}
         for i in range(self.cfg.depth):
             x = self.frame_blocks[i](x)
@@ -326,12 +362,62 @@ class PanoVGGT(nn.Module):
         world_from_cam, pose_enc = self.camera_head(last[:, 0].reshape(b, s, 2 * d))
         ns = self.num_special_tokens
         depth, conf = self.depth_head([outputs[i][:, ns:] for i in self.cfg.dpt_layers], (hp, wp), (h, w))
-        return {
+        out = {
             "world_from_cam": world_from_cam,
             "pose_enc": pose_enc,
             "depth": depth.reshape(b, s, h, w),
             "depth_conf": conf.reshape(b, s, h, w),
         }
+        if with_tokens:
+            if self.gaussian_head is None:
+                raise ValueError("with_tokens=True needs a model with a Gaussian head (config gaussian_head)")
+            out["tokens"] = outputs[self.gaussian_layer][:, ns:].reshape(b, s, hp * wp, 2 * d)
+        return out
+
+    def require_gaussian_head(self, flag: str = "--weights") -> GaussianHead:
+        if self.gaussian_head is None:
+            raise MissingWeightsError(
+                f"PanoVGGT: these weights have no Gaussian head (config.json gaussian_head is null); pass {flag} the "
+                "export of a stage-2 run (python runner.py train recon --stage 2)"
+            )
+        return self.gaussian_head
+
+    def gaussians(self, images: torch.Tensor, depth: torch.Tensor | None = None,
+                  world_from_cam: torch.Tensor | None = None) -> dict:
+        """One scene's context views images (S, 3, H, W) in [0, 1] -> the Gaussian head's output (see GaussianHead).
+
+        Geometry: depth (S, H, W) metres and world_from_cam (S, 4, 4) when given (e.g. a poses artifact's), else the
+        camera and depth heads' predictions. The backbone, camera and depth heads run without gradients (the paper's
+        stage 2 trains the Gaussian head alone).
+        """
+        head = self.require_gaussian_head()
+        with torch.no_grad():
+            out = self(images[None], with_tokens=True)
+        depth = out["depth"][0] if depth is None else depth
+        world_from_cam = out["world_from_cam"][0] if world_from_cam is None else world_from_cam
+        return head(images, depth, world_from_cam, out["tokens"][0])
+
+    @torch.no_grad()
+    def decode(self, frames: ContextFrames) -> FusionResult:
+        """Gaussians from a gaussians stage's ContextFrames (their depth and poses), at the model's input size."""
+        import cv2
+
+        from panoworld.gaussians import FusionResult, bbox_extent
+
+        head = self.require_gaussian_head()
+        h = self.cfg.image_height
+        rgb, depth = frames.rgb, np.nan_to_num(np.asarray(frames.depth, np.float32), nan=0.0, posinf=0.0)
+        if rgb.shape[1] != h:
+            rgb = np.stack([cv2.resize(f, (2 * h, h), interpolation=cv2.INTER_AREA) for f in rgb])
+            depth = np.stack([cv2.resize(d, (2 * h, h), interpolation=cv2.INTER_NEAREST) for d in depth])
+        dev = next(self.parameters()).device
+        x = torch.from_numpy(np.ascontiguousarray(rgb)).to(dev).permute(0, 3, 1, 2).float().div(255.0)
+        out = self.eval().gaussians(x, torch.from_numpy(depth).to(dev),
+                                    torch.from_numpy(np.asarray(frames.world_from_cam, np.float64)).to(dev))
+        g = out["gaussians"].numpy()
+        c = head.cfg
+        n_vox = len(g) // c.gaussians_per_voxel
+        return FusionResult(g, int((depth > 0).sum()), n_vox, 0, bbox_extent(g.means), c.voxel_size, backend="decoder")
 
     @torch.inference_mode()
     def predict(self, frames: np.ndarray) -> dict[str, np.ndarray]:
