@@ -185,9 +185,12 @@ def test_depth_stage_runs_from_id_and_reruns_when_snapshot_changes(hub_env, tiny
     assert json.loads((scene / "artifacts" / "depth" / "manifest.json").read_text())["weights"]["weights"]["commit"] == C2
     pinned = [s.replace(f"hf:{TINY}", f"hf:{TINY}@{C2}") for s in DEPTH_SETS]  # the same files pinned: params changed
     assert {r["stage"]: r for r in pl.status(scene, sets=pinned)}["depth"]["reason"].startswith("params changed: depth.weights")
+    (hub_env / f"models--{TINY.replace('/', '--')}" / "refs" / "main").unlink()  # the id no longer resolves
+    reason = {r["stage"]: r for r in pl.status(scene, sets=DEPTH_SETS)}["depth"]["reason"]
+    assert reason.startswith(f"weights missing: depth.weights hf:{TINY}: not in the local Hugging Face cache")
 
 
-def test_runner_with_a_missing_id_fails_in_one_line_and_writes_nothing(hub_env, tmp_path):
+def test_runner_with_a_missing_id_fails_in_one_line_and_writes_nothing(hub_env, tmp_path, capsys):
     scene = tmp_path / "scene"
     scene.mkdir()
     Image.fromarray(np.zeros((16, 32, 3), np.uint8)).save(scene / "panorama.png")
@@ -200,6 +203,13 @@ def test_runner_with_a_missing_id_fails_in_one_line_and_writes_nothing(hub_env, 
     assert len(lines) == 1 and "depth.weights hf:depth-anything/Depth-Anything-V2-Small-hf" in lines[0]
     assert "run `python runner.py weights fetch depth-anything-v2-small`" in lines[0]
     assert not (scene / "artifacts").exists()
+    # a stage run alone says the same (exit 2) and writes nothing
+    from stages import depth
+
+    assert depth.main(["--panorama", str(scene / "panorama.png"), "--out", str(tmp_path / "alone"),
+                       "--weights", "hf:nobody/nothing"]) == 2
+    assert "depth.weights hf:nobody/nothing: not in the local Hugging Face cache" in capsys.readouterr().err
+    assert not (tmp_path / "alone").exists()
 
 
 # ---------------------------------------------------------------- fetching

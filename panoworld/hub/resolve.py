@@ -196,7 +196,8 @@ def weights_fields(params_cls: type) -> list[str]:
 
 
 def _set_weights(params: Any) -> list[tuple[str, str]]:
-    return [(n, str(getattr(params, n))) for n in weights_fields(type(params)) if getattr(params, n) not in (None, "")]
+    values = ((n, getattr(params, n)) for n in weights_fields(type(params)))
+    return [(n, str(v)) for n, v in values if isinstance(v, (str, os.PathLike)) and str(v) != ""]
 
 
 def resolve_params_weights(params: Any, hints: dict | None = None, *, where: str = "") -> dict[str, dict]:
