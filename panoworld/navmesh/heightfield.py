@@ -279,10 +279,11 @@ def floor_grid(
 def fill_blind_spots(grid: FloorGrid, drop: np.ndarray, params: NavMeshParams, camera_xz=(0.0, 0.0)) -> dict:
     """Mark unseen regions walkable that can only be floor nobody saw: in place on grid, returns grid.assumptions.
 
-    Candidates are 8-connected components of unseen cells that are no obstacle and no drop (drop (Hz, Wx): rays
-    hit below the floor), do not touch the grid border, and whose rim (cells next to them) is at least
-    RIM_WALKABLE_FRACTION walkable. Filled: the component under the camera when it lies within blind_spot_m of
-    it (the capture rig hides the floor it stands on), and components of at most fill_holes_m2.
+    Candidates are unseen cells that are no obstacle and no drop (drop (Hz, Wx): rays hit below the floor).
+    Filled: the 8-connected region of candidates within blind_spot_m of the camera that holds the camera (the
+    capture rig hides the floor it stands on), and components of candidates of at most fill_holes_m2 that do not
+    touch the grid border; each only when its rim (the cells next to it) is at least RIM_WALKABLE_FRACTION
+    walkable floor.
     """
     import cv2
 
@@ -306,15 +307,21 @@ def fill_blind_spots(grid: FloorGrid, drop: np.ndarray, params: NavMeshParams, c
         area = stats[:, cv2.CC_STAT_AREA] * grid.cell**2
         holes = ok & (area <= params.fill_holes_m2)
         cam = grid.cell_of(np.asarray(camera_xz, np.float64))[0]
-        k = int(labels[cam[0], cam[1]]) if 0 <= cam[0] < nz and 0 <= cam[1] < nx else 0
-        if k > 0 and params.blind_spot_m > 0:
-            ij = np.argwhere(labels == k)
-            radius = float(np.max(np.linalg.norm(grid.xz_of(ij) - np.asarray(camera_xz), axis=1)) + 0.5 * grid.cell)
-            info["blind_spot_rim_walkable"] = float(frac[k])
-            if ok[k] and radius <= params.blind_spot_m:
-                assumed |= labels == k
-                info.update(blind_spot_m2=float(area[k]), blind_spot_radius_m=radius)
-            holes[k] = False
+        if params.blind_spot_m > 0 and 0 <= cam[0] < nz and 0 <= cam[1] < nx and cand[cam[0], cam[1]]:
+            holes[labels[cam[0], cam[1]]] = False
+            # The camera's unseen region cut at blind_spot_m (where it leaks past a wall the rim shows it).
+            xz = grid.xz_of(np.argwhere(np.ones((nz, nx), bool)))
+            near_cam = (np.hypot(xz[:, 0] - camera_xz[0], xz[:, 1] - camera_xz[1]) <= params.blind_spot_m).reshape(nz, nx)
+            _, spot = cv2.connectedComponents((cand & near_cam).astype(np.uint8), connectivity=8)
+            spot = spot == spot[cam[0], cam[1]]
+            ring = cv2.dilate(spot.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & ~spot
+            share = float(grid.walkable[ring].mean()) if ring.any() else 0.0
+            info["blind_spot_rim_walkable"] = share
+            if share >= RIM_WALKABLE_FRACTION:
+                assumed |= spot
+                ij = np.argwhere(spot)
+                info.update(blind_spot_m2=float(spot.sum() * grid.cell**2), blind_spot_radius_m=float(
+                    np.max(np.linalg.norm(grid.xz_of(ij) - np.asarray(camera_xz), axis=1)) + 0.5 * grid.cell))
         assumed |= holes[labels]
         info.update(holes_filled=int(holes.sum()), holes_filled_m2=float(area[holes].sum()))
     if params.camera_footprint_m > 0:

@@ -129,8 +129,9 @@ def sector_reachability(
 
 
 def _allocate(caps: np.ndarray, mins: np.ndarray, total: int) -> np.ndarray:
-    """Integer steps m_k <= caps_k summing to min(total, sum(caps)): first each sector's minimum (cheapest sectors
-    first while the total allows), then the rest as equally as possible (_water_fill)."""
+    """Integer steps m_k <= caps_k: first each sector's minimum (cheapest sectors first while the total allows),
+    then the rest of total to the shortest shares first (equal totals where caps allow) among the sectors that
+    got their minimum (a share below it would not reach into its sector)."""
     m = np.zeros(len(caps), int)
     left = min(int(total), int(caps.sum()))
     for k in np.argsort(mins, kind="stable"):
@@ -138,8 +139,13 @@ def _allocate(caps: np.ndarray, mins: np.ndarray, total: int) -> np.ndarray:
         if 0 < need <= left:
             m[k] = need
             left -= need
-    extra = _water_fill(caps - m, left)
-    return m + extra
+    open_ = (m > 0) & (m < caps)
+    while left > 0 and open_.any():  # one step at a time to the shortest open share: equal totals
+        k = int(np.flatnonzero(open_)[np.argmin(m[open_])])
+        m[k] += 1
+        left -= 1
+        open_[k] = m[k] < caps[k]
+    return m
 
 
 def plan_sector(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> Plan:
@@ -149,9 +155,9 @@ def plan_sector(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> Pl
     to the NavMesh (when the camera stands off it) comes first; the remaining step budget goes first to entering
     every reachable sector (sector_reachability, cheapest first), then is shared as equally as each sector's
     depth allows. Each leg is the smoothed NavMesh shortest path (A* + funnel) from the hub to the sector point
-    farthest from the camera that its share reaches (points within the central half of a sector count double),
-    truncated to a whole number of steps so the tip and the return fall on poses. When even full legs cannot fill
-    the budget, the step shrinks (info["step_adapted"]).
+    farthest from the camera that its share reaches (points within the central half of a sector count double;
+    farther targets when the shares cannot be spent), truncated to a whole number of steps so the tip and the
+    return fall on poses. When even full legs cannot fill the budget, the step shrinks (info["step_adapted"]).
     """
     start = np.asarray(start, np.float64).reshape(2)
     n_steps = params.frames - 1
@@ -180,19 +186,22 @@ def plan_sector(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> Pl
     mins = np.where(ok, np.ceil(np.where(ok, reach["entry_m"], 0) / step + 0.5), 0).astype(int)
     caps = np.where(ok, np.floor(reach["deepest_m"] / step), 0).astype(int)
     share = _allocate(caps, np.maximum(mins, 1), total_legs)
-    legs, lengths, sectors, entry_steps = [], [], [], []
-    for k in np.flatnonzero(share > 0):
-        cand = np.flatnonzero(usable & (sec == k) & (field.dist <= 1.1 * share[k] * step + step))
-        if len(cand) == 0:
-            continue
-        target = field.xz[cand[np.argmax(score[cand])]]
-        leg = smooth_polyline(plan_nav, plan_nav.path(hub, target), closed=False, iterations=params.smooth_iterations)
-        if polyline_length(leg) < step:
-            continue
-        legs.append(leg)
-        lengths.append(polyline_length(leg))
-        sectors.append(int(k))
-        entry_steps.append(int(min(mins[k], share[k])))
+    for reach_factor in (1.1, 1.6, 2.5, np.inf):  # longer legs until their whole steps can hold the budget
+        legs, lengths, sectors, entry_steps = [], [], [], []
+        for k in np.flatnonzero(share > 0):
+            cand = np.flatnonzero(usable & (sec == k) & (field.dist <= reach_factor * share[k] * step + step))
+            if len(cand) == 0:
+                continue
+            target = field.xz[cand[np.argmax(score[cand])]]
+            leg = smooth_polyline(plan_nav, plan_nav.path(hub, target), closed=False, iterations=params.smooth_iterations)
+            if polyline_length(leg) < step:
+                continue
+            legs.append(leg)
+            lengths.append(polyline_length(leg))
+            sectors.append(int(k))
+            entry_steps.append(int(min(mins[k], share[k])))
+        if sum(int(x / step + 1e-9) for x in lengths) >= total_legs:
+            break
     if not legs:
         raise ValueError(
             f"no sector reaches {step:.3f} m (one step) from the start: the walkable area is too small "
