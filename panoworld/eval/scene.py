@@ -184,6 +184,9 @@ class Evaluation:
             "loop_closure_m": float(np.linalg.norm(centres[-1] - centres[0])),
             "step_cv": float(steps.std() / steps.mean()) if len(steps) and steps.mean() > 0 else float("nan"),
         }
+        if self.artifact("trajectory") is not None:  # sector exploration as the trajectory stage measured it
+            info = self.manifest("trajectory").get("info") or {}
+            plan.update({k: info[k] for k in ("sectors_covered", "sectors_reachable") if k in info})
         try:
             clearance = self.gt.clearance(centres)
         except NoReference as e:
