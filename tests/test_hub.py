@@ -18,7 +18,7 @@ from PIL import Image
 from panoworld import pipeline as pl
 from panoworld.hub import cli, registry
 from panoworld.hub import fetch as hf_fetch
-from panoworld.hub.resolve import HfId, WeightsNotFound, parse_hf, resolve_weights
+from panoworld.hub.resolve import HfId, WeightsNotFound, describe_change, parse_hf, resolve_weights
 
 REPO = Path(__file__).resolve().parent.parent
 TINY = "test-org/tiny-depth-anything"
@@ -98,10 +98,17 @@ def test_id_resolves_offline_to_cached_files(hub_env, tiny_files, monkeypatch):
     assert resolve_weights(f"hf:{TINY}@{C1[:8]}")["commit"] == C1  # a short commit hash
     one = resolve_weights(f"hf:{TINY}/config.json")
     assert Path(one["path"]) == snap / "config.json" and list(one["files"]) == ["config.json"]
+    # a new commit with the same files: recorded, keyed, and named as the reason
+    put_snapshot(hub_env, TINY, v1, C2)
+    rec2 = resolve_weights(f"hf:{TINY}")
+    assert rec2["commit"] == C2 and rec2["files"] == rec["files"] and rec2["digest"] != rec["digest"]
+    assert describe_change("depth", {"weights": rec}, {"weights": rec2}) == \
+        f"weights changed: depth.weights hf:{TINY} commit {C1[:7]} -> {C2[:7]}"
+    assert describe_change("depth", {"weights": rec}, {"weights": rec}) is None
     # HF_HOME is respected when HF_HUB_CACHE is unset
     monkeypatch.delenv("HF_HUB_CACHE")
     monkeypatch.setenv("HF_HOME", str(hub_env.parent))
-    assert resolve_weights(f"hf:{TINY}")["commit"] == C1
+    assert resolve_weights(f"hf:{TINY}")["commit"] == C2
     # the model loads from the resolved snapshot
     from panoworld.models.depth_anything import DepthAnything
 

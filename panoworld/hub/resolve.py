@@ -152,7 +152,7 @@ def file_records(path: Path, hint: dict | None = None) -> dict[str, dict]:
     hint (the same record from the last run) has the same size and mtime for them.
     """
     hint = hint or {}
-    out = {}
+    out, todo = {}, []
     for rel, p in _files_under(path):
         st = p.stat()
         blob = hf_blob_id(p)
@@ -160,13 +160,25 @@ def file_records(path: Path, hint: dict | None = None) -> dict[str, dict]:
             out[rel] = {"size": st.st_size, "digest": blob}
             continue
         old = hint.get(rel) or {}
-        same = old.get("size") == st.st_size and old.get("mtime_ns") == st.st_mtime_ns and old.get("digest")
-        out[rel] = {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "digest": old["digest"] if same else sha256_file(p)}
-    return out
+        out[rel] = {"size": st.st_size, "mtime_ns": st.st_mtime_ns}
+        if old.get("size") == st.st_size and old.get("mtime_ns") == st.st_mtime_ns and old.get("digest"):
+            out[rel]["digest"] = old["digest"]
+        else:
+            todo.append((rel, p))
+    if todo:
+        from tqdm import tqdm
+
+        total = sum(out[rel]["size"] for rel, _ in todo)
+        with tqdm(total=total, unit="B", unit_scale=True, desc=f"hashing {path.name}", disable=total < (1 << 28) or None) as bar:
+            for rel, p in todo:
+                out[rel]["digest"] = sha256_file(p)
+                bar.update(out[rel]["size"])
+    return {rel: out[rel] for rel in sorted(out)}
 
 
 def resolve_weights(spec: str, hint: dict | None = None) -> dict[str, Any]:
-    """Resolve one weights value to a manifest record: spec, local path, (repo, revision, commit), file digests.
+    """Resolve one weights value to a manifest record: spec, local path, (repo, revision, commit), file digests, and
+    `digest` (what the cache key holds): the file digests, with the commit for `hf:` ids.
 
     A local path that does not exist resolves to itself with `missing: true` (the stage then says what it expects);
     an `hf:` id that is not cached raises WeightsNotFound naming the fetch command.
@@ -183,7 +195,8 @@ def resolve_weights(spec: str, hint: dict | None = None) -> dict[str, Any]:
         if not path.exists():
             return {**rec, "missing": True, "files": {}, "digest": None}
     files = file_records(path, hint_files)
-    return {**rec, "files": files, "digest": json_digest(sorted((k, v["digest"]) for k, v in files.items()))}
+    content = sorted((k, v["digest"]) for k, v in files.items())
+    return {**rec, "files": files, "digest": json_digest({"commit": rec["commit"], "files": content} if hid else content)}
 
 
 def is_weights_field(f: dataclasses.Field) -> bool:
