@@ -115,6 +115,24 @@ def test_id_resolves_offline_to_cached_files(hub_env, tiny_files, monkeypatch):
     assert DepthAnything.from_pretrained(rec["path"], input_size=56).model.config.backbone_config.hidden_size == 32
 
 
+def test_partial_snapshot_resolves(hub_env, tiny_files):
+    """A download with allow_patterns leaves a snapshot huggingface_hub calls incomplete (its cached tree listing
+    names more files); it still resolves, to the files that are there."""
+    tree_cache = pytest.importorskip("huggingface_hub._tree_cache")
+    v1, _ = tiny_files
+    snap = put_snapshot(hub_env, TINY, v1, C1)
+    listing = {rel: tree_cache.TreeCacheEntry(size=len(d), blob_id="0" * 40) for rel, d in v1.items()}
+    listing["assets/teaser.gif"] = tree_cache.TreeCacheEntry(size=10, blob_id="0" * 40)
+    tree_cache.write_tree_cache(str(hub_env / f"models--{TINY.replace('/', '--')}"), C1, listing)
+    from huggingface_hub import snapshot_download
+    from huggingface_hub.errors import IncompleteSnapshotError
+
+    with pytest.raises(IncompleteSnapshotError):  # what huggingface_hub itself says of it
+        snapshot_download(TINY, cache_dir=hub_env, local_files_only=True)
+    rec = resolve_weights(f"hf:{TINY}")
+    assert Path(rec["path"]) == snap and set(rec["files"]) == set(v1) and rec["commit"] == C1
+
+
 def test_missing_id_is_one_line_naming_weights_fetch(hub_env, tiny_files):
     with pytest.raises(WeightsNotFound) as e:
         resolve_weights("hf:nobody/nothing")

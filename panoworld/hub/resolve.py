@@ -97,16 +97,15 @@ def resolve_hf(hid: HfId) -> tuple[Path, str]:
     except ImportError as e:
         raise ImportError(f"hf: weights ids need huggingface_hub ({e}); pip install '.[models]'") from e
     cache = hub_cache_dir()
-    where = f"not in the local Hugging Face cache {cache}"
     try:
         snapshot = Path(snapshot_download(hid.repo, revision=hid.revision or "main", cache_dir=cache, local_files_only=True))
     except LocalEntryNotFoundError as e:
-        storage = cache / f"models--{hid.repo.replace('/', '--')}"
-        snapshot = _snapshot_by_prefix(storage, hid.revision or "")
+        # A snapshot holding part of the repo (a download with allow_patterns, e.g. Wan without its assets) is
+        # "incomplete" to huggingface_hub; the backend checks the files it needs itself.
+        partial = getattr(e, "snapshot_path", None)
+        snapshot = Path(partial) if partial else _snapshot_by_prefix(cache / f"models--{hid.repo.replace('/', '--')}", hid.revision or "")
         if snapshot is None:
-            if type(e).__name__ == "IncompleteSnapshotError":
-                where = f"its cached snapshot in {cache} is incomplete"
-            raise WeightsNotFound(f"{hid}: {where}; run `{fetch_command(hid)}`") from None
+            raise WeightsNotFound(f"{hid}: not in the local Hugging Face cache {cache}; run `{fetch_command(hid)}`") from None
     commit = snapshot.name
     if hid.path is None:
         return snapshot, commit
