@@ -117,20 +117,25 @@ def _local_dir_etag(root: Path, rel: str) -> str | None:
 def verify_hub_files(root: Path, rels: list[str]) -> list[str]:
     """Verify the given files of a snapshot (cache symlinks) or local_dir download against their etags; a file that
     fails is deleted (with its blob) so it can never be loaded, and listed in the returned problems."""
+    from tqdm import tqdm
+
     problems = []
-    for rel in rels:
+    present = [rel for rel in rels if (root / rel).is_file()]
+    total = sum((root / rel).stat().st_size for rel in present)
+    bar = tqdm(total=total, unit="B", unit_scale=True, desc="verifying", disable=total < (1 << 28) or None)
+    for rel in present:
         p = root / rel
-        if not p.is_file():
-            continue
         blob = hf_blob_id(p)
         etag = blob or _local_dir_etag(root, rel)
         problem = etag_problem(p, etag) if etag else None
+        bar.update(p.stat().st_size)
         if problem:
             target = p.resolve()
             p.unlink()
             if blob:
                 target.unlink(missing_ok=True)
             problems.append(f"{rel}: {problem}")
+    bar.close()
     return problems
 
 
