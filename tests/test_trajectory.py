@@ -259,3 +259,30 @@ def test_bad_params_are_clear_errors(artifacts, capsys):
     assert stage.main([*base, "--stride", "3"]) == 2
     assert "stride=3" in capsys.readouterr().err
     assert TrajectoryParams().yaw == YawMode.FIXED
+
+
+def test_sector_decisions_reachable_covered_and_ring_closure():
+    # docs/real_inputs.md: sectors are centred on the camera; reachable = floor in the sector that one out-and-back
+    # leg reaches within the budget; a plan from a camera on the NavMesh covers every reachable sector.
+    from panoworld.trajectory import MIN_SECTOR_DIST_M, planning_hub, sector_of, sector_reachability
+    from tests.test_navmesh import nav_of
+
+    nav = nav_of(box_room(cam_xz=(1.5, 0.0), obstacles=()), 96)  # the camera 1 m from the +x wall
+    start = np.zeros(2)
+    hub, off = planning_hub(nav, start)
+    pts = nav.sample_points(4000, 0)
+    pts = pts[np.linalg.norm(pts, axis=1) >= MIN_SECTOR_DIST_M + 0.05]
+    has_floor = np.zeros(8, bool)
+    has_floor[np.unique(sector_of(pts, start, 8))] = True
+    assert np.array_equal(sector_reachability(nav, start, hub, 8, 100.0)["reachable"], has_floor)
+    tight = sector_reachability(nav, start, hub, 8, 0.5)  # legs of 0.25 m: every sector still has floor that near
+    assert tight["reachable"].all() and np.all(tight["entry_m"] <= 0.25)
+    none = sector_reachability(nav, start, hub, 8, 0.1)  # a 5 cm leg cannot get 0.1 m from the camera
+    assert not none["reachable"].any()
+    plan = plan_path(nav, TrajectoryParams())
+    covered = sector_coverage(plan.positions, start, 8, MIN_SECTOR_DIST_M)
+    assert plan.info["sectors_reachable"] == 8 and covered.all() and plan.info["sectors_covered"] == 8
+    for s in (1, 4):  # ring paths close: the last pose is one step before the first
+        ring = plan_path(nav, TrajectoryParams(kind=PathKind.RING, stride=s))
+        gap = np.linalg.norm(ring.positions[-1] - ring.positions[0])
+        assert gap == pytest.approx(ring.step_m, rel=0.05)

@@ -1,0 +1,151 @@
+"""Real panoramas and their synthetic failure classes through the whole pipeline at default settings, no flags.
+
+    python bench/bench_real.py [SCENE_DIR ...] [--until STAGE] [--work DIR] [--no-synthetic] [--no-huge]
+
+A SCENE_DIR is a scene directory (panorama.png|jpg [+ depth.npy|exr|png]) or a folder holding an RGB-D pair the
+way the Realsee3D README assets come (panoImage_*.jpg + depth_image*.png: each pair becomes a scene under
+--work). Default: the Realsee pair under ../shared/data/real/realsee3d_assets (real LiDAR and synthesis), the
+synthetic failure classes of panoworld.synth.failure_cases at 256x512, and an 8192x4096 panorama (the synthetic
+scene upsampled: checks the depth stage's resolution policy keeps every stage under 8 GiB). Prints per scene:
+stages ok, seconds, peak MB (largest stage), NavMesh area, start-off-NavMesh distance, exempt poses, min
+clearance (against the scene mesh), sectors covered/reachable, the Gaussians' context PSNR.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from panoworld import pipeline as pl  # noqa: E402
+
+REAL = REPO.parent / "shared" / "data" / "real" / "realsee3d_assets"
+PAIRS = {"realsee_real": ("panoImage_real.jpg", "depth_image.png"),
+         "realsee_synthesis": ("panoImage_synthesis.jpg", "depth_image_synthesis.png")}
+
+
+def scenes_from(path: Path, work: Path) -> list[Path]:
+    """A scene directory as it is, or the Realsee-style pairs of an asset folder copied into scene directories."""
+    if any((path / n).is_file() for n in ("panorama.png", "panorama.jpg", "panorama.jpeg")):
+        return [path]
+    out = []
+    for name, (pano, depth) in PAIRS.items():
+        if (path / pano).is_file():
+            d = work / name
+            d.mkdir(parents=True, exist_ok=True)
+            shutil.copy(path / pano, d / "panorama.jpg")
+            if (path / depth).is_file():
+                shutil.copy(path / depth, d / "depth.png")
+            out.append(d)
+    if not out:
+        raise SystemExit(f"{path}: neither a scene directory nor a folder of Realsee-style RGB-D pairs")
+    return out
+
+
+def huge_scene(work: Path) -> Path:
+    """An 8192x4096 panorama with depth: the synthetic scene rendered at 1024 rows and upsampled (nearest depth)."""
+    import cv2
+    import numpy as np
+
+    from panoworld.synth.failure_cases import failure_scene
+
+    d = work / "huge-8192x4096"
+    if (d / "depth.npy").is_file():
+        return d
+    d.mkdir(parents=True, exist_ok=True)
+    scene = failure_scene(0)
+    rgb, depth = scene.render(scene.world_from_canonical, 1024, 2048)
+    cv2.imwrite(str(d / "panorama.jpg"), cv2.resize(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), (8192, 4096), interpolation=cv2.INTER_CUBIC))
+    np.save(d / "depth.npy", cv2.resize(np.where(np.isfinite(depth), depth, 0).astype(np.float32), (8192, 4096),
+                                        interpolation=cv2.INTER_NEAREST))
+    return d
+
+
+def measure(scene: Path, until: str) -> dict:
+    t0 = time.perf_counter()
+    report = pl.run(scene, until=until)
+    wall = time.perf_counter() - t0
+    ran = [r for r in report.results if r.action in ("ran", "cached")]
+    failed = [r for r in report.results if r.action == "failed"]
+    selected = [r for r in report.results if r.reason != "not selected"]
+    row = {"scene": scene.name, "ok": f"{len(ran)}/{len(selected)}",
+           "seconds": wall, "peak_mb": max([r.peak_rss_mb or 0 for r in ran] + [0]),
+           "failed": f"{failed[0].stage}: {failed[0].reason[:160]}" if failed else ""}
+
+    def info(stage):
+        try:
+            return json.loads((scene / "artifacts" / stage / "manifest.json").read_text())["info"]
+        except (OSError, KeyError, ValueError):
+            return {}
+
+    nav, traj, gs = info("navmesh"), info("trajectory"), info("gaussians")
+    min_clear = None
+    if traj:  # over the poses held to the NavMesh (pose 0 and the way onto the NavMesh are exempt)
+        clear = json.loads((scene / "artifacts" / "trajectory" / "trajectory.json").read_text())["clearance_m"]
+        held = [c for i, c in enumerate(clear) if i not in set(traj["exempt_poses"])]
+        min_clear = min(held) if held else None
+    row.update(area=nav.get("area_m2"), off=traj.get("start_off_navmesh_m"),
+               exempt=len(traj.get("exempt_poses", [])) - 1 if traj else None,
+               min_clear=min_clear, radius=traj.get("agent_radius_m"),
+               sectors=f"{traj['sectors_covered']}/{traj['sectors_reachable']}" if "sectors_reachable" in traj else "-",
+               psnr=gs.get("context_psnr"), assumed=(nav.get("assumed_walkable") or {}).get("assumed_m2"),
+               decisions="; ".join(info("depth").get("decisions", [])))
+    return row
+
+
+def fmt(v, spec=".2f"):
+    return "-" if v is None else format(v, spec) if isinstance(v, float) else str(v)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("scenes", nargs="*", type=Path)
+    ap.add_argument("--until", default="gaussians", help="last stage to run (default: gaussians)")
+    ap.add_argument("--work", type=Path, default=Path("/tmp/panoworld_bench_real"), help="where generated scenes go")
+    ap.add_argument("--no-synthetic", action="store_true", help="skip the synthetic failure-class scenes")
+    ap.add_argument("--no-huge", action="store_true", help="skip the 8192x4096 panorama")
+    ap.add_argument("--height", type=int, default=256, help="panorama height of the synthetic failure-class scenes")
+    args = ap.parse_args(argv)
+    args.work.mkdir(parents=True, exist_ok=True)
+    scenes: list[Path] = []
+    for s in args.scenes or ([REAL] if REAL.is_dir() else []):
+        scenes += scenes_from(s, args.work)
+    if not args.scenes and not args.no_synthetic:
+        from panoworld.synth.failure_cases import FailureCase, write_failure_scene
+
+        for case in FailureCase:
+            if case in (FailureCase.HUGE,):
+                continue
+            d = args.work / f"synth-{case}"
+            if not (d / "gt_scene.json").is_file():
+                write_failure_scene(case, d, height=args.height)
+            scenes.append(d)
+    if not args.scenes and not args.no_huge:
+        scenes.append(huge_scene(args.work))
+    print(f"{len(scenes)} scenes, default settings, no flags, through {args.until} "
+          "(times and memory on a shared machine: measured under load)", flush=True)
+    head = ("scene", "stages ok", "s", "peak MB", "NavMesh m2", "assumed m2", "start off m", "exempt", "min clear m (held)",
+            "sectors", "ctx PSNR")
+    rows = []
+    for s in scenes:
+        r = measure(s, args.until)
+        rows.append(r)
+        print(f"{r['scene']}: {r['ok']} stages ok, {r['seconds']:.0f} s, peak {r['peak_mb']:.0f} MB "
+              f"{'FAILED ' + r['failed'] if r['failed'] else ''}\n  depth decisions: {r['decisions']}", flush=True)
+    print("\n| " + " | ".join(head) + " |\n|" + "---|" * len(head))
+    for r in rows:
+        cells = (r["scene"], r["ok"], fmt(r["seconds"], ".0f"), fmt(r["peak_mb"], ".0f"), fmt(r["area"]),
+                 fmt(r["assumed"]), fmt(r["off"]), fmt(r["exempt"]), fmt(r["min_clear"]), r["sectors"], fmt(r["psnr"]))
+        print("| " + " | ".join(cells) + " |")
+    bad = [r for r in rows if r["failed"] or (r["min_clear"] is not None and r["min_clear"] < r["radius"] - 1e-9)]
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
