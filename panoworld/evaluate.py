@@ -70,6 +70,7 @@ def evaluate_scene(scene_dir: Path, params: EvalParams | None = None, *, stages:
         "scene": str(scene_dir),
         "variant": variant,
         "reference": ev.gt.kind,
+        "setting": ev.setting(),
         "params": params_to_dict(params),
         "stages": results,
         "targets": target_report(results),

@@ -389,3 +389,111 @@ def test_eval_reports_lpips_with_weights(scene, tmp_path, capsys):
     assert main(args + ["--lpips-weights", str(bb)]) == 2
     assert main(args + ["--lpips-weights", str(tmp_path / "x.pth"), "--lpips-lin-weights", str(lin)]) == 2
     assert "--lpips-weights" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- real-dataset modes: frames + poses, plan only
+
+
+def _planned_poses_artifact(art: Path, poses: np.ndarray, height: int) -> None:
+    (art / "poses").mkdir(parents=True)
+    frames = [{"rgb": f"../video/frames/{k:06d}.png", "depth": None} for k in range(len(poses))]
+    (art / "poses" / "poses.json").write_text(json.dumps({
+        "backend": "planned", "height": height, "width": 2 * height, "poses": poses.tolist(),
+        "registered": [True] * len(poses), "frames": frames}))
+    _manifest(art / "poses")
+
+
+def test_frames_and_poses_scene_without_a_mesh(synth_scene, tmp_path):
+    """An InteriorGS-like scene (ground-truth frames + poses, no mesh) made with the converter from a synthetic
+    track: the video is scored against the ground-truth frame at each pose; mesh metrics say why they are missing."""
+    from panoworld.eval.convert import convert_frames_scene
+    from panoworld.trajectory import write_trajectory
+    from panoworld.video_io import write_video
+
+    root = convert_frames_scene(synth_scene / "gt" / "tracks" / "track_00.json", tmp_path / "frames_scene",
+                                "../frames/track_00/rgb/{:06d}.png", "../frames/track_00/depth/{:06d}.npy", stride=2)
+    assert not (root / "gt" / "scene.glb").exists()
+    poses = np.asarray(json.loads((root / "trajectory.json").read_text())["poses"])
+    track_frames = json.loads((root / "trajectory.json").read_text())["track_frames"]
+    assert track_frames == list(range(0, 8, 2)) and np.allclose(poses[0], np.eye(4))
+    art = root / "artifacts"
+    (art / "trajectory").mkdir(parents=True)
+    write_trajectory(art / "trajectory", poses, np.zeros(len(poses)), fps=16.0)
+    _manifest(art / "trajectory")
+    gt_frames = [cv2.imread(str(root / "gt" / "frames" / "track_00" / "rgb" / f"{i:06d}.png"))[..., ::-1]
+                 for i in track_frames]
+    write_video(art / "video", np.stack([_offset(f, VIDEO_OFFSET) for f in gt_frames]), None, poses, fps=16.0,
+                preview=False, mcap=False)
+    _manifest(art / "video")
+    _planned_poses_artifact(art, poses, gt_frames[0].shape[0])
+    rep, errors = evaluate(root, EvalParams(max_frames=0))
+    assert errors == [] and rep["reference"] == "frames"
+    v = rep["stages"]["video"]
+    assert v["frames_evaluated"] == len(poses) - 1
+    assert v["psnr"] == pytest.approx(20 * math.log10(255 / VIDEO_OFFSET), abs=1e-9)
+    assert rep["stages"]["poses"]["ate"] == pytest.approx(0.0, abs=1e-9)
+    traj = rep["stages"]["trajectory"]
+    assert traj["num_poses"] == len(poses) and "ground-truth mesh" in traj["min_clearance_m"]["reason"]
+    assert rep["stages"]["loop"]["reason"].startswith("not a closed path")
+    # A pose off the ground-truth track has no reference frame: named, never scored against a wrong frame.
+    shifted = poses.copy()
+    shifted[:, 0, 3] += 0.05
+    (art / "video" / "video.json").write_text(json.dumps(
+        {**json.loads((art / "video" / "video.json").read_text()), "poses": shifted.tolist()}))
+    rep, _ = evaluate(root, EvalParams(max_frames=0), stages=["video"])
+    assert "no ground-truth frame at the pose" in rep["stages"]["video"]["reason"]
+
+
+def _ring(n: int, radius: float = 0.5) -> np.ndarray:
+    """n upright poses on a circle through the origin, the last one step before the first (a ring trajectory)."""
+    a = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    poses = np.repeat(np.eye(4)[None], n, axis=0)
+    poses[:, 0, 3] = radius * np.sin(a)
+    poses[:, 2, 3] = radius * (1 - np.cos(a))
+    return poses
+
+
+def test_plan_only_scene_scores_poses_against_the_plan_and_the_loop(tmp_path, capsys):
+    """A RealSee3D-like scene: a panorama, no ground truth; a ring trajectory, a video whose last frame is the first
+    yawed by k columns, recovered poses with one camera turned in place."""
+    from scipy.ndimage import gaussian_filter
+    from scipy.spatial.transform import Rotation
+
+    from panoworld.trajectory import write_trajectory
+    from panoworld.video_io import write_video
+
+    root = tmp_path / "plan_scene"
+    art = root / "artifacts"
+    rng = np.random.default_rng(0)
+    x = gaussian_filter(rng.random((32, 64, 3)), (2, 2, 0), mode="wrap")
+    pano = ((x - x.min()) / (x.max() - x.min()) * 255).astype(np.uint8)
+    art.mkdir(parents=True)
+    cv2.imwrite(str(root / "panorama.png"), pano[..., ::-1])
+    n, theta = 12, 4.0
+    plan = _ring(n)
+    (art / "trajectory").mkdir()
+    write_trajectory(art / "trajectory", plan, np.zeros(n), fps=16.0)
+    _manifest(art / "trajectory")
+    results = {}
+    for k in (0, 2):
+        frames = np.stack([np.roll(pano, k * t // (n - 1), axis=1) for t in range(n)])
+        shutil.rmtree(art / "video", ignore_errors=True)
+        write_video(art / "video", frames, None, plan, fps=16.0, preview=False, mcap=False)
+        _manifest(art / "video")
+        shutil.rmtree(art / "poses", ignore_errors=True)
+        est = plan.copy()
+        est[5, :3, :3] = Rotation.from_euler("y", theta, degrees=True).as_matrix()
+        _planned_poses_artifact(art, est, 32)
+        assert main([str(root), "--json"]) == 0
+        results[k] = json.loads(capsys.readouterr().out)
+    rep = results[0]
+    assert rep["reference"] == "plan-only"
+    assert rep["stages"]["loop"]["loop_flow_deg"] == 0.0 and rep["stages"]["loop"]["loop_psnr"] == "inf"
+    assert results[2]["stages"]["loop"]["loop_flow_deg"] == pytest.approx(2 * 360 / 64, rel=0.02)
+    assert rep["stages"]["loop"]["loop_gap_m"] < 1.5 * np.linalg.norm(plan[1, :3, 3] - plan[0, :3, 3])
+    assert "plan-only" in rep["stages"]["loop"]["loop_flow_deg_reference"]["reason"]
+    p = rep["stages"]["poses"]
+    assert p["ground_truth"] == "video.json poses" and p["ate"] == pytest.approx(0.0, abs=1e-12)
+    assert p["rre"] == pytest.approx(2 * theta / (n - 1), rel=1e-9)  # pairs (4, 5) and (5, 6)
+    assert rep["stages"]["video"]["reason"].startswith("no ground truth in this scene")
+    assert rep["stages"]["depth"]["reason"].startswith("not run")

@@ -421,6 +421,17 @@ class Evaluation:
     ARTIFACT = {"loop": "video"}
     """Report sections that are not stage names: the artifact they read."""
 
+    def setting(self) -> dict[str, Any]:
+        """What the evaluated artifacts were made with: trajectory kind/stride/frames and the video backend (the
+        columns that group a dataset's results into the paper's rows); empty entries for stages not run."""
+        out: dict[str, Any] = {}
+        for stage, keys in (("trajectory", ("kind", "stride", "frames")), ("video", ("backend", "steps")),
+                            ("poses", ("backend",))):
+            if self.artifact(stage) is not None:
+                params = self.manifest(stage).get("params") or {}
+                out.update({(f"{stage}_{k}" if k == "backend" else k): params.get(k) for k in keys})
+        return out
+
     def run(self, stages: list[str] | None = None) -> tuple[dict[str, dict], list[str]]:
         """({stage: metrics or unavailable(reason)}, [stages whose existing artifact could not be evaluated])."""
         results, errors = {}, []
