@@ -1,0 +1,472 @@
+"""The scene report's sections, each built from one or a few stage artifacts (missing ones shown as missing)."""
+
+from __future__ import annotations
+
+import html
+import json
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from panoworld.report import encode as enc
+from panoworld.report.page import Page, Section, figure, fmt, missing, slider, svg_figure, table
+from panoworld.report.topdown import PlanView, clearance_colors, mesh_from_above
+
+ARTIFACTS = "artifacts"
+EVAL_JSON_CANDIDATES = ("artifacts/report/eval.json", "artifacts/eval.json", "eval.json")
+
+
+@dataclass(kw_only=True)
+class ReportParams:
+    """What the scene report embeds and how much it may cost."""
+
+    max_frames: int = 24
+    """Frames shown on the frame slider (uniformly subsampled, first and last kept)."""
+    image_width: int = 512
+    """Width in pixels of every embedded frame (panorama and depth: 2x this)."""
+    gs_views: int = 3
+    """Gaussian renders (a context pose and novel poses between frames); 0 = only the stage's preview.png."""
+    gs_height: int = 128
+    """ERP height of those renders."""
+    gs_budget_s: float = 5.0
+    """Stop rendering Gaussians once this many seconds are spent (the page says how many were rendered)."""
+    eval_json: Path | None = None
+    """A saved `runner.py eval --out FILE` report; default: the first of artifacts/report/eval.json,
+    artifacts/eval.json, eval.json in the scene."""
+    preset: str | None = None
+    """Preset for the stage states (up to date / stale); default: the preset under which most stages are up to date."""
+
+
+class SceneData:
+    """Reads a scene's artifacts defensively: a missing or unreadable file gives None, never an exception."""
+
+    def __init__(self, root: Path):
+        self.root = Path(root)
+        self.art = self.root / ARTIFACTS
+        self._json: dict[Path, dict | None] = {}
+
+    def dir(self, stage: str) -> Path:
+        return self.art / stage
+
+    def has(self, stage: str) -> bool:
+        return (self.dir(stage) / "manifest.json").is_file()
+
+    def json(self, rel: str) -> dict | None:
+        path = self.art / rel
+        if path not in self._json:
+            try:
+                self._json[path] = json.loads(path.read_text())
+            except (OSError, ValueError):
+                self._json[path] = None
+        return self._json[path]
+
+    def manifest(self, stage: str) -> dict | None:
+        return self.json(f"{stage}/manifest.json")
+
+    def info(self, stage: str) -> dict:
+        m = self.manifest(stage)
+        return (m or {}).get("info") or {}
+
+    def poses(self, rel: str) -> np.ndarray | None:
+        doc = self.json(rel)
+        try:
+            p = np.asarray(doc["poses"], np.float64)
+        except (TypeError, KeyError, ValueError):
+            return None
+        return p if p.ndim == 3 and p.shape[1:] == (4, 4) else None
+
+
+def subsample(n: int, k: int) -> list[int]:
+    """k indices of range(n) spread uniformly, first and last included."""
+    if n <= k:
+        return list(range(n))
+    return sorted({int(round(x)) for x in np.linspace(0, n - 1, k)})
+
+
+def _pmap(fn, items, workers: int = 4) -> list:
+    with ThreadPoolExecutor(workers) as ex:  # OpenCV decodes and encodes without the GIL
+        return list(ex.map(fn, items))
+
+
+# ---------------------------------------------------------------- stages
+
+
+def stage_rows(scene: SceneData, out_dir: Path, preset: str | None, run_results: list[dict] | None) -> tuple[list, str]:
+    from panoworld import pipeline as pl
+
+    pipe = pl.Pipeline.load()
+    note = ""
+    states: dict[str, dict] = {}
+    try:
+        if preset is None:
+            best = -1
+            for cand in [None, *[p for p in getattr(pipe, "presets", []) or []]]:
+                rows = pl.status(scene.root, preset=cand, pipeline=pipe)
+                n_up = sum(r["state"] == "up-to-date" for r in rows)
+                if n_up > best:
+                    best, states, preset = n_up, {r["stage"]: r for r in rows}, cand
+            note = f"states for preset {preset or 'default'} (the preset under which most stages are up to date; --preset to choose)"
+        else:
+            states = {r["stage"]: r for r in pl.status(scene.root, preset=preset, pipeline=pipe)}
+            note = f"states for preset {preset}"
+    except Exception as e:  # a scene the runner rejects still gets a report
+        note = f"stage states unavailable: {e}"
+    ran = {r["stage"]: r for r in run_results or []}
+    rows = []
+    for name in pipe.order:
+        m = scene.manifest(name)
+        d = scene.dir(name)
+        links = []
+        if m is not None:
+            links.append(f'<a href="{html.escape(_rel(d / "manifest.json", out_dir))}">manifest</a>')
+        log = scene.art / "logs" / f"{name}.log"
+        if log.is_file():
+            links.append(f'<a href="{html.escape(_rel(log, out_dir))}">log</a>')
+        st = states.get(name, {})
+        if name in ran:
+            action, reason = ran[name]["action"], ran[name]["reason"]
+        elif m is None:
+            action, reason = "missing", st.get("reason", "no artifact yet")
+        else:
+            action, reason = st.get("state", "present"), st.get("reason", "")
+        secs = m.get("wall_s") if m else None
+        mem = m.get("peak_rss_mb") if m else None
+        cls = "bad" if action in ("failed", "stale") else "na" if action in ("missing", "skipped") else "ok"
+        rows.append([name, f'<span class="{cls}">{html.escape(action)}</span>', reason,
+                     f"{secs:.2f}" if isinstance(secs, (int, float)) else "-",
+                     f"{mem:.0f}" if isinstance(mem, (int, float)) else "-",
+                     (m or {}).get("finished", "-"), " ".join(links) or "-"])
+    return rows, note
+
+
+def _rel(path: Path, out_dir: Path) -> str:
+    try:
+        return Path(os.path.relpath(path, out_dir)).as_posix()
+    except ValueError:
+        return path.resolve().as_uri()
+
+
+def section_stages(scene: SceneData, out_dir: Path, params: ReportParams, run_results) -> Section:
+    rows, note = stage_rows(scene, out_dir, params.preset, run_results)
+    t = table(["stage", "action", "reason", "seconds", "peak MB", "finished", "files"], rows, {3, 4}, {1, 6})
+    src = "action and reason of the run that wrote this report" if run_results else note
+    return Section("stages", "Stages", f'<p class="note">{html.escape(src)}; seconds and peak memory from each '
+                   f"manifest.</p>{t}")
+
+
+# ---------------------------------------------------------------- depth
+
+
+def section_depth(scene: SceneData, params: ReportParams) -> Section:
+    title = "Panorama and depth"
+    if not scene.has("depth"):
+        pano = next((scene.root / n for n in ("panorama.png", "panorama.jpg", "panorama.jpeg")
+                     if (scene.root / n).is_file()), None)
+        img = enc.read_rgb(pano, 2 * params.image_width) if pano else None
+        if img is None:
+            return missing("depth", title, "the depth stage has not run and the scene has no readable panorama")
+        body = figure(enc.data_uri(img), "input panorama") + '<p class="note">depth: stage not run yet</p>'
+        return Section("depth", title, body, missing=True)
+    d = scene.dir("depth")
+    w = 2 * params.image_width
+    figs = []
+    pano = enc.read_rgb(d / "panorama.png", w)
+    if pano is not None:
+        figs.append(figure(enc.data_uri(pano), "panorama (as used by the pipeline)"))
+    info = scene.info("depth")
+    try:
+        depth = np.load(d / "depth.npy", mmap_mode="r")
+        step = max(1, int(np.ceil(depth.shape[1] / w)))
+        depth = np.asarray(depth[::step, ::step], np.float32)
+        valid = np.isfinite(depth) & (depth > 0)
+        lo, hi = (np.percentile(depth[valid], [2, 98]) if valid.any() else (0.0, 1.0))
+        img = enc.colormap(depth, float(lo), float(hi), valid)
+        figs.append(figure(enc.data_uri(img), "depth (ray distance; black = invalid)", extra=enc.scale_bar(lo, hi, "m")))
+    except (OSError, ValueError) as e:
+        figs.append(f'<p class="note">depth.npy unreadable: {html.escape(str(e))}</p>')
+    mask = enc.read_gray(d / "valid.png", w)
+    if mask is not None:
+        frac = float((mask > 0).mean())
+        figs.append(figure(enc.data_uri(mask.astype(np.uint8), "png"), f"validity mask (white = valid, {100 * frac:.1f} %)"))
+    keys = ("backend", "depth_range_m", "valid_fraction", "filled_pixels", "scale_factor", "camera_height_estimated_after")
+    facts = table(["fact", "value"], [[k, fmt(info.get(k))] for k in keys if k in info])
+    return Section("depth", title, f'<div class="row">{"".join(figs)}</div>{facts}')
+
+
+# ---------------------------------------------------------------- plan view
+
+
+def _plan_extent(scene: SceneData, traj: np.ndarray | None, nav: dict | None) -> np.ndarray:
+    pts = [np.zeros((1, 2))]
+    if traj is not None:
+        pts.append(traj[:, [0, 2], 3])
+    if nav and nav.get("vertices"):
+        pts.append(np.asarray(nav["vertices"], np.float64).reshape(-1, 2))
+    return np.concatenate(pts)
+
+
+def _mesh_background(scene: SceneData, view: PlanView, floor_y: float | None) -> str:
+    if not scene.has("mesh"):
+        return "mesh: not run"
+    from panoworld.mesh import load_erp_mesh
+
+    try:
+        mesh = load_erp_mesh(scene.dir("mesh"))
+    except (OSError, ValueError, KeyError) as e:
+        return f"mesh unreadable: {e}"
+    cut = -0.2 if floor_y is None else floor_y - 1.9  # drop the ceiling: everything above ~1.9 m over the floor
+    mesh = mesh.valid_only()
+    view.background(mesh_from_above(mesh.vertices, mesh.faces, mesh.colors, view, cut))
+    return ""
+
+
+def section_plan(scene: SceneData, params: ReportParams) -> Section:
+    title = "Top-down: mesh, NavMesh and trajectory"
+    nav = scene.json("navmesh/navmesh.json") if scene.has("navmesh") else None
+    traj = scene.poses("trajectory/trajectory.json") if scene.has("trajectory") else None
+    if nav is None and traj is None and not scene.has("mesh"):
+        return missing("plan", title, "mesh, navmesh and trajectory have not run yet")
+    tdoc = scene.json("trajectory/trajectory.json") or {}
+    tinfo = scene.info("trajectory")
+    ext = _plan_extent(scene, traj, nav)
+    view = PlanView(ext, margin_m=0.6)
+    floor_y = (nav or {}).get("floor_y", tdoc.get("floor_y"))
+    notes = [n for n in [_mesh_background(scene, view, floor_y)] if n]
+    legend = []
+    if nav is not None:
+        rings = []
+        for poly in nav.get("polygons", []):
+            rings.append(np.asarray(poly["outer"], np.float64))
+            rings += [np.asarray(h, np.float64) for h in poly.get("holes", [])]
+        if nav.get("vertices") and nav.get("triangles"):
+            view.triangles(np.asarray(nav["vertices"]), np.asarray(nav["triangles"]), "rgba(80,255,160,0.35)")
+        view.polygon_rings(rings, "rgba(40,200,120,0.28)", "#3ee08f", "NavMesh (walkable, eroded by the agent radius)")
+        legend.append('<span><i class="sw" style="background:#3ee08f"></i>NavMesh</span>')
+    else:
+        notes.append("navmesh: not run")
+    if traj is not None:
+        xz = traj[:, [0, 2], 3]
+        plan = tinfo.get("plan") or {}
+        start = np.asarray(plan.get("hub", xz[0]), np.float64).reshape(2)
+        if tinfo.get("kind", tdoc.get("kind")) == "sector":
+            n_sec = int((scene.manifest("trajectory") or {}).get("params", {}).get("sectors", 8))
+            reach = float(np.max(np.linalg.norm(ext - start, axis=1)))
+            view.sector_rays(start, n_sec, reach)
+            legend.append('<span><i class="sw" style="background:#ffd400"></i>sector boundaries (numbered)</span>')
+        view.polyline(xz, "#ffffff", 2.0)
+        view.headings(traj, 0.15, "#ffffff")
+        clearance = np.asarray(tdoc.get("clearance_m", [np.nan] * len(xz)), np.float64)
+        cap = float(tdoc.get("clearance_cap_m", tinfo.get("clearance_cap_m", 0.5)) or 0.5)
+        titles = [f"pose {i}: clearance {c:.3f} m" for i, c in enumerate(clearance)]
+        view.dots(xz, clearance_colors(np.nan_to_num(clearance), cap), 4.0, titles)
+        exempt = [i for i in tinfo.get("exempt_poses", []) if 0 <= i < len(xz)]
+        if exempt:
+            view.rings(xz[exempt], "#ff66ff", 9.0, "exempt from the clearance check")
+            legend.append('<span><i class="sw" style="border-color:#ff66ff;border-width:2px"></i>exempt poses</span>')
+        invalid = [p["index"] for p in tdoc.get("invalid_poses", tinfo.get("invalid_poses", [])) if p.get("index", -1) < len(xz)]
+        if invalid:
+            view.crosses(xz[invalid], "#ff2222", titles=[f"invalid pose {i}" for i in invalid])
+            legend.append('<span><i class="sw" style="background:#ff2222"></i>invalid poses</span>')
+        view.star(xz[0], "#ffffff", title="start (pose 0, the source panorama)")
+        legend.append("<span>&#9734; start (pose 0)</span>")
+        legend.append(f'<span>pose colour = clearance 0 .. {cap:.2f} m</span>{enc.scale_bar(0.0, cap, "m")}')
+    else:
+        notes.append("trajectory: not run")
+    keys = ("kind", "source", "frames", "stride", "step_m", "length_m", "step_cv", "closure_m", "min_clearance_m",
+            "sectors_covered", "sectors_reachable", "agent_radius_m")
+    facts = table(["trajectory", "value"], [[k, fmt(tinfo.get(k))] for k in keys if k in tinfo])
+    ninfo = scene.info("navmesh")
+    nfacts = table(["navmesh", "value"], [[k, fmt(ninfo.get(k))] for k in
+                                          ("area_m2", "num_triangles", "num_holes", "floor_y", "camera_on_navmesh") if k in ninfo])
+    body = (f'<div class="row">{svg_figure(view.svg(), "seen from above: x right, z (panorama centre) up", "")}'
+            f'<div><div class="legend">{"".join(legend)}</div>{facts}{nfacts}'
+            + "".join(f'<p class="note">{html.escape(n)}</p>' for n in notes) + "</div></div>")
+    return Section("plan", title, body, missing=traj is None and nav is None)
+
+
+# ---------------------------------------------------------------- frames
+
+
+def _fill_fractions(cond_dir: Path, frames: list[dict]) -> list[float | None]:
+    def one(f):
+        m = enc.read_gray(cond_dir / f["mask"]) if "mask" in f else None
+        return None if m is None else float((m == 0).mean())
+
+    return _pmap(one, frames)
+
+
+def _bar_chart(values: list[float | None], key: str, marker_index: list[int] | None, label: str,
+               scale: float = 100.0, unit: str = "%") -> str:
+    """SVG bars of values (fractions) per frame with a marker the slider moves."""
+    n = max(len(values), 1)
+    W, H, bw = 600, 90, 600 / n
+    vmax = max([v for v in values if v is not None] + [1e-6])
+    bars = "".join(
+        f'<rect x="{i * bw:.1f}" y="{H - 70 * (v / vmax):.1f}" width="{max(bw - 1, 0.5):.1f}" height="{70 * (v / vmax):.1f}" '
+        f'fill="#4a7bd0"><title>frame {i}: {scale * v:.2f} {unit}</title></rect>'
+        for i, v in enumerate(values) if v is not None)
+    xs = json.dumps([round(i * bw, 1) for i in marker_index or []])
+    marker = (f'<rect data-marker="{key}" data-xs=\'{xs}\' x="0" y="0" width="{max(bw, 2):.1f}" height="{H}" '
+              'fill="rgba(255,120,0,0.35)"/>') if marker_index else ""
+    return (f'<svg viewBox="0 0 {W} {H + 14}" width="{W}" height="{H + 14}" xmlns="http://www.w3.org/2000/svg">'
+            f'<rect x="0" y="0" width="{W}" height="{H}" fill="#fff"/>{bars}{marker}'
+            f'<text x="2" y="{H + 12}" font-size="11">{html.escape(label)} '
+            f"(max {scale * vmax:.2f} {unit})</text></svg>")
+
+
+def section_frames(scene: SceneData, page: Page, params: ReportParams) -> Section:
+    title = "Conditions, masks and video frames"
+    cdoc = scene.json("conditions/conditions.json") if scene.has("conditions") else None
+    vdoc = scene.json("video/video.json") if scene.has("video") else None
+    if cdoc is None and vdoc is None:
+        return missing("frames", title, "conditions and video have not run yet")
+    cframes = (cdoc or {}).get("frames", [])
+    vframes = (vdoc or {}).get("frames", [])
+    n = max(len(cframes), len(vframes))
+    idx = subsample(n, params.max_frames)
+    w = params.image_width
+    cols: dict[str, list] = {}
+    jobs = []
+    if cframes:
+        jobs += [("condition", scene.dir("conditions") / cframes[i]["rgb"], "rgb") for i in idx if i < len(cframes)]
+        jobs += [("mask", scene.dir("conditions") / cframes[i]["mask"], "mask") for i in idx if i < len(cframes)]
+    if vframes:
+        jobs += [("video", scene.dir("video") / vframes[i]["rgb"], "rgb") for i in idx if i < len(vframes)]
+
+    def load(job):
+        col, path, kind = job
+        if kind == "mask":
+            m = enc.read_gray(path, w)
+            return col, None if m is None else enc.data_uri((m > 0).astype(np.uint8) * 255, "png")
+        img = enc.read_rgb(path, w)
+        return col, None if img is None else enc.data_uri(img)
+
+    for col, uri in _pmap(load, jobs):
+        cols.setdefault(col, []).append(uri)
+    fills = _fill_fractions(scene.dir("conditions"), cframes) if cframes else []
+    text = [f"frame {i} of {n}" + (f" · fill {100 * fills[i]:.2f} % (mask = 0: to be generated)"
+                                    if i < len(fills) and fills[i] is not None else "") for i in idx]
+    page.data["frames"] = {"images": cols, "text": {"label": text}}
+    captions = {"condition": "warped condition (conditions/rgb)", "mask": "mask (white = seen from the source)",
+                "video": "generated video frame (video/frames)"}
+    figs = "".join(figure(uris[0] or "", captions[col], slot=f"frames:{col}") for col, uris in cols.items() if uris)
+    notes = []
+    if cdoc is None:
+        notes.append("conditions: not run")
+    if vdoc is None:
+        notes.append("video: not run")
+    if len(idx) < n:
+        notes.append(f"{len(idx)} of {n} frames embedded (every ~{n / len(idx):.1f}th; --max-frames to change)")
+    chart = _bar_chart(fills, "frames", idx, "fill fraction per frame") if fills else ""
+    vinfo = scene.info("video")
+    facts = table(["video", "value"], [[k, fmt(vinfo.get(k))] for k in
+                                       ("backend", "upscale", "num_frames", "height", "width", "fps", "hole_fraction") if k in vinfo])
+    body = (slider("frames", len(idx), "label") + f'<div class="row">{figs}</div>{chart}'
+            + "".join(f'<p class="note">{html.escape(x)}</p>' for x in notes) + facts)
+    return Section("frames", title, body)
+
+
+# ---------------------------------------------------------------- poses
+
+
+def section_poses(scene: SceneData, params: ReportParams) -> Section:
+    title = "Poses: recovered vs planned"
+    if not scene.has("poses"):
+        return missing("poses", title, "the poses stage has not run yet")
+    pdoc = scene.json("poses/poses.json") or {}
+    est = scene.poses("poses/poses.json")
+    ref = scene.poses("video/video.json")
+    ref_name = "video.json (the poses the video was generated along)"
+    if ref is None:
+        ref, ref_name = scene.poses("trajectory/trajectory.json"), "trajectory.json"
+    if est is None:
+        return missing("poses", title, "poses.json is unreadable")
+    reg = np.asarray(pdoc.get("registered", [True] * len(est)), bool)
+    unreg = [i for i in range(len(est)) if i >= len(reg) or not reg[i]]
+    pts = [est[:, [0, 2], 3]] + ([ref[:, [0, 2], 3]] if ref is not None else [])
+    view = PlanView(np.concatenate(pts), margin_m=0.25, max_px=480)
+    view.items.append(f'<rect x="0" y="0" width="{view.w}" height="{view.h}" fill="#fff"/>')
+    if ref is not None:
+        view.polyline(ref[:, [0, 2], 3], "#888888", 3.0, dash="5 3")
+    view.polyline(est[:, [0, 2], 3], "#1f6fd1", 1.8)
+    ok = [i for i in range(len(est)) if i not in set(unreg)]
+    view.dots(est[ok][:, [0, 2], 3], "#1f6fd1", 3.0, stroke="#1f6fd1")
+    if unreg:
+        view.crosses(est[unreg][:, [0, 2], 3], "#d11f1f", titles=[f"frame {i}: not registered (pose from the plan)" for i in unreg])
+    view.star(est[0, [0, 2], 3], "#ffd400", title="frame 0")
+    legend = ('<div class="legend"><span><i class="sw" style="background:#888"></i>planned (' + html.escape(ref_name)
+              + ')</span><span><i class="sw" style="background:#1f6fd1"></i>recovered</span>'
+              '<span><i class="sw" style="background:#d11f1f"></i>unregistered</span></div>')
+    figs = svg_figure(view.svg(), "seen from above: x right, z up", legend)
+    err_chart = ""
+    if ref is not None and len(ref) == len(est):
+        err = np.linalg.norm(est[:, :3, 3] - ref[:, :3, 3], axis=1)
+        err_chart = _bar_chart([float(e) for e in err], "poses-err", None, "position error per frame vs plan", 1000.0, "mm")
+    info = scene.info("poses")
+    metrics = info.get("metrics_vs_planned") or pdoc.get("metrics_vs_planned") or {}
+    rows = [[k, fmt(info.get(k))] for k in ("backend", "num_frames", "num_registered", "sim3_scale", "depth_source") if k in info]
+    rows.append(["unregistered frames", ", ".join(map(str, unreg)) or "none"])
+    rows += [[f"{k} (vs plan)", fmt(v)] for k, v in metrics.items()]
+    body = f'<div class="row">{figs}<div>{table(["poses", "value"], rows)}{err_chart}</div></div>'
+    return Section("poses", title, body)
+
+
+# ---------------------------------------------------------------- eval
+
+
+def find_eval_json(scene: SceneData, given: Path | None) -> Path | None:
+    if given is not None:
+        return Path(given) if Path(given).is_file() else None
+    return next((scene.root / c for c in EVAL_JSON_CANDIDATES if (scene.root / c).is_file()), None)
+
+
+def section_eval(scene: SceneData, params: ReportParams) -> Section:
+    title = "Evaluation against ground truth"
+    has_gt = (scene.root / "gt" / "gt.json").is_file()
+    path = find_eval_json(scene, params.eval_json)
+    if path is None:
+        why = ("no saved evaluation: run `python runner.py report SCENE --eval` (or `runner.py eval SCENE --out "
+               "SCENE/artifacts/report/eval.json`)" if has_gt else "no ground truth (gt/gt.json): nothing to evaluate against")
+        return missing("eval", title, why)
+    try:
+        rep = json.loads(path.read_text())
+        stages = rep["stages"]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        return missing("eval", title, f"{path}: unreadable evaluation ({e})")
+    targets = rep.get("targets", {})
+    rows = []
+    for stage, metrics in stages.items():
+        if not isinstance(metrics, dict) or "reason" in metrics and len(metrics) <= 2:
+            rows.append([stage, "-", fmt(metrics), "", ""])
+            continue
+        for k, (name, value) in enumerate(metrics.items()):
+            t = (targets.get(stage) or {}).get(name)
+            ok = "" if t is None or t.get("met") is None else ('<span class="ok">yes</span>' if t["met"] else '<span class="bad">no</span>')
+            val = fmt(value) if not isinstance(value, list) else ", ".join(map(str, value))[:80]
+            rows.append([stage if k == 0 else "", name, val[:200], t["target"] if t else "", ok])
+    newest = max((m.get("finished", "") for m in (scene.manifest(s) for s in _stage_names()) if m), default="")
+    stale = ""
+    mtime = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(path.stat().st_mtime))
+    if newest and newest[:19] > mtime:
+        stale = f'<p class="note bad">artifacts changed after this evaluation ({mtime} UTC): rerun with --eval</p>'
+    return Section("eval", title, f'<p class="note">from {html.escape(str(path))} (written {mtime} UTC)</p>{stale}'
+                   + table(["stage", "metric", "value", "target", "met"], rows, {2}, {4}))
+
+
+def _stage_names() -> list[str]:
+    return ["depth", "mesh", "navmesh", "trajectory", "conditions", "video", "poses", "gaussians"]
+
+
+def run_eval(scene_root: Path) -> Path:
+    """Run `runner.py eval` on the scene and save its JSON as artifacts/report/eval.json; return the path."""
+    from panoworld.evaluate import evaluate
+
+    report, _ = evaluate(scene_root, progress=True)
+    out = Path(scene_root) / ARTIFACTS / "report" / "eval.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(report, indent=2) + "\n")
+    return out

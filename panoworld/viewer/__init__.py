@@ -1,0 +1,1 @@
+"""Interactive 3D viewer of a scene (viser): `runner.py view`."""

@@ -1,0 +1,146 @@
+"""Scene and dataset reports: built from a real ci-tiny pipeline run, opened in headless Chromium."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+
+import numpy as np
+import pytest
+
+from panoworld.report.cli import build_scene_report, main
+from panoworld.report.scene import ReportParams
+from panoworld.report.topdown import PlanView
+
+SCENE_SECTIONS = ["stages", "depth", "plan", "frames", "poses", "gaussians", "eval"]
+
+
+@pytest.fixture(scope="session")
+def pipeline_scene(synth_scene, tmp_path_factory):
+    """A ci-tiny synthetic scene with every stage run (built once per session; the viewer tests share it)."""
+    from panoworld import pipeline as pl
+
+    scene = tmp_path_factory.mktemp("report") / "scene"
+    shutil.copytree(synth_scene, scene)
+    report = pl.run(scene, preset="ci-tiny", echo=False)
+    assert report.ok, report.table()
+    return scene
+
+
+@pytest.fixture(scope="module")
+def scene_report(pipeline_scene):
+    from panoworld.evaluate import evaluate
+
+    rep, errors = evaluate(pipeline_scene, stages=["trajectory", "poses"])  # cheap stages; the page shows any saved eval
+    assert not errors
+    (pipeline_scene / "artifacts" / "report").mkdir(parents=True, exist_ok=True)
+    (pipeline_scene / "artifacts" / "report" / "eval.json").write_text(json.dumps(rep))
+    timings: dict = {}
+    out = build_scene_report(pipeline_scene, params=ReportParams(gs_views=2, preset="ci-tiny"), timings=timings)
+    return out, timings
+
+
+def _sections(text: str) -> dict[str, str]:
+    return dict(re.findall(r'<section id="(\w+)" class="(\w+)"', text))
+
+
+@pytest.mark.slow
+def test_scene_report_has_every_section_and_is_self_contained(scene_report, pipeline_scene):
+    out, _ = scene_report
+    assert out == pipeline_scene / "artifacts" / "report" / "index.html"
+    text = out.read_text()
+    assert _sections(text) == {s: "present" for s in SCENE_SECTIONS}
+    assert "could not draw" not in text
+    # nothing is fetched: every image is a data: URI and no script or style comes from elsewhere
+    assert re.findall(r'<img[^>]+src="(?!data:image/)', text) == []
+    assert not re.search(r'<(script|link)[^>]+(src|href)="(?!data:)', text)
+    assert out.stat().st_size < 5e6
+    # the stage table names every stage with its manifest's seconds, and links manifests and logs that exist
+    for stage in ["depth", "mesh", "navmesh", "trajectory", "conditions", "video", "poses", "gaussians"]:
+        m = json.loads((pipeline_scene / "artifacts" / stage / "manifest.json").read_text())
+        assert f"<td>{stage}</td>" in text and f"{m['wall_s']:.2f}" in text
+        assert f'href="../{stage}/manifest.json"' in text and f'href="../logs/{stage}.log"' in text
+    # eval targets from the saved evaluation are shown with their verdicts
+    assert "clear_fraction" in text and "rte" in text
+
+
+@pytest.mark.slow
+def test_scene_report_in_chromium(scene_report, tmp_path):
+    from panoworld.report.browser import browser_page, screenshot_array
+
+    out, _ = scene_report
+    with browser_page(1280, 900) as (page, console):
+        page.goto(out.resolve().as_uri())
+        page.wait_for_load_state("load")
+        for sec in SCENE_SECTIONS:
+            assert page.locator(f"section#{sec}").is_visible()
+        img = screenshot_array(page, tmp_path / "report.png", full_page=True)
+        label = page.locator('[data-text="frames:label"]')
+        first_label = label.text_content()
+        video = page.locator('img[data-slot="frames:video"]')
+        first_src = video.get_attribute("src")
+        slider = page.locator('input[data-slider="frames"]')
+        data = json.loads(page.locator("#report-data").text_content())["frames"]["images"]["video"]
+        assert data[0] == first_src and int(slider.get_attribute("max")) == len(data) - 1
+        # a frame that looks different from frame 0 (a sector path keeps coming back to its start)
+        i = next(k for k in range(len(data) - 1, 0, -1) if data[k] != data[0])
+        slider.fill(str(i))  # dispatches input: the page swaps every frame column
+        assert label.text_content() != first_label
+        assert video.get_attribute("src") == data[i]
+        assert console.errors == []
+    assert img.shape[0] > 2000  # the whole page, every section
+    assert img.std() > 30  # not blank
+    # the top-down plan really shows the mesh from above (not a flat background)
+    assert len(np.unique(img.reshape(-1, 3), axis=0)) > 2000
+
+
+def test_plan_view_puts_forward_up_and_right_right():
+    v = PlanView(np.array([[-1.0, -1.0], [1.0, 1.0]]), margin_m=0.0, max_px=200)
+    c, fwd, right = v.px(np.array([[0.0, 0.0], [0.0, 1.0], [1.0, 0.0]]))
+    assert fwd[1] < c[1] and abs(fwd[0] - c[0]) < 1e-9  # +Z (the panorama's centre) is up the page
+    assert right[0] > c[0] and abs(right[1] - c[1]) < 1e-9  # +X is to the right
+    np.testing.assert_allclose(c, [100, 100])
+
+
+def test_partial_scene_shows_missing_stages(synth_scene, tmp_path):
+    from panoworld import pipeline as pl
+
+    scene = tmp_path / "scene"
+    shutil.copytree(synth_scene, scene, ignore=shutil.ignore_patterns("artifacts"))
+    assert pl.run(scene, preset="ci-tiny", until="depth", echo=False).ok
+    out = build_scene_report(scene, tmp_path / "r.html")
+    text = out.read_text()
+    sections = _sections(text)
+    assert sections["depth"] == "present" and sections["stages"] == "present"
+    assert all(sections[s] == "missing" for s in ["plan", "frames", "poses", "gaussians", "eval"])
+    assert "could not draw" not in text and "runner.py report SCENE --eval" in text
+    assert text.count('<span class="na">missing</span>') == 7
+
+
+@pytest.mark.slow
+def test_dataset_report(synth_dataset, tmp_path):
+    from panoworld.precompute import main as precompute_main
+    from panoworld.report.browser import browser_page
+
+    cond = tmp_path / "cond"
+    assert precompute_main([str(synth_dataset), "--out", str(cond), "--clips-per-scene", "2", "--frames", "4",
+                            "--min-frames", "2", "--height", "32", "--strides", "1,2", "--workers", "1"]) == 0
+    assert main([str(cond), "--clips", "3"]) == 0
+    out = cond / "report.html"
+    text = out.read_text()
+    assert _sections(text) == {"summary": "present", "histograms": "present", "clips": "present"}
+    rows = [json.loads(x) for x in (cond / "index.jsonl").read_text().splitlines()]
+    assert f"<td>clips</td><td>{len(rows)}</td>" in text
+    assert text.count("<figcaption>target</figcaption>") == 3
+    with browser_page(1200, 800) as (page, console):
+        page.goto(out.resolve().as_uri())
+        assert page.locator("section#histograms svg").count() == 4
+        assert console.errors == []
+
+
+def test_cli_rejects_what_is_not_a_scene(tmp_path, capsys):
+    assert main([str(tmp_path / "nope")]) == 2
+    assert "not a directory" in capsys.readouterr().err
+    assert main([str(tmp_path)]) == 2
+    assert "neither a scene" in capsys.readouterr().err

@@ -1,0 +1,102 @@
+"""The viser viewer: loads a real ci-tiny pipeline run, renders the splats in headless Chromium (software WebGL)."""
+
+from __future__ import annotations
+
+import json
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from panoworld.viewer.app import SceneViewer, ViewerParams, main, splat_arrays
+from tests.test_report import pipeline_scene  # noqa: F401 - the shared session fixture
+
+# three.js logs this for viser's own splat geometry (a 2-component quad "position" attribute, viser 1.x
+# client/src/Splatting/GaussianSplatsHelpers.ts) when it computes a bounding sphere; nothing of ours.
+KNOWN_VISER_ERRORS = ("computeBoundingSphere(): Computed radius is NaN",)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def viewer(pipeline_scene):  # noqa: F811
+    v = SceneViewer(pipeline_scene, ViewerParams(port=_free_port()))
+    yield v
+    v.stop()
+
+
+@pytest.mark.slow
+def test_viewer_loads_every_layer_and_binds_localhost(viewer, pipeline_scene):  # noqa: F811
+    assert viewer.server.get_host() == "127.0.0.1"
+    assert set(viewer.loaded) == {"mesh", "navmesh", "trajectory", "points", "splats"}
+    assert not any(v.startswith(("unreadable", "missing")) for k, v in viewer.loaded.items() if k != "points"), viewer.loaded
+    info = json.loads((pipeline_scene / "artifacts" / "gaussians" / "manifest.json").read_text())["info"]
+    assert viewer.loaded["splats"] == f"{info['num_gaussians']} Gaussians"
+    # the frame slider moves the highlighted frustum onto that pose
+    poses = np.asarray(json.loads((pipeline_scene / "artifacts" / "poses" / "poses.json").read_text())["poses"])
+    k = len(poses) // 2 + 1
+    viewer.select_frame(k)
+    np.testing.assert_allclose(viewer.handles["current"].position, poses[k][:3, 3], atol=1e-6)
+
+
+def test_splat_covariances_match_scales_and_rotations():
+    from panoworld.gaussians import Gaussians
+
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(5, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    g = Gaussians(rng.normal(size=(5, 3)).astype(np.float32), rng.uniform(0.01, 0.2, (5, 3)).astype(np.float32),
+                  q.astype(np.float32), rng.uniform(0.1, 1, 5).astype(np.float32), rng.normal(size=(5, 3)).astype(np.float32))
+    a = splat_arrays(g, 3)
+    assert a["centers"].shape == (3, 3) and a["opacities"].shape == (3, 1)
+    kept = np.sort(np.argsort(-g.opacities)[:3])
+    for n, i in enumerate(kept):
+        ev = np.sort(np.linalg.eigvalsh(a["covariances"][n].astype(np.float64)))
+        np.testing.assert_allclose(ev, np.sort(g.scales[i].astype(np.float64) ** 2), rtol=1e-4, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_viewer_canvas_shows_the_splats_in_chromium(viewer, tmp_path):
+    from panoworld.report.browser import browser_page, screenshot_array
+
+    with browser_page(1000, 700) as (page, console):
+        page.goto(viewer.url)
+        canvas = page.wait_for_selector("canvas", timeout=60_000)
+        box = canvas.bounding_box()
+        for name in ("mesh", "navmesh", "planned", "frustums", "current", "points"):
+            if name in viewer.handles:
+                viewer.handles[name].visible = False
+        # the middle of the canvas: clear of viser's GUI panel, its notifications and its axes gizmo
+        clip = {"x": box["x"] + 0.33 * box["width"], "y": box["y"] + 0.25 * box["height"],
+                "width": 0.3 * box["width"], "height": 0.6 * box["height"]}
+
+        def settled(visible: bool) -> np.ndarray:
+            viewer.handles["splats"].visible = visible
+            prev, img = None, None
+            for _ in range(30):  # software WebGL: wait until two screenshots agree
+                time.sleep(1.0)
+                img = screenshot_array(page, clip=clip).astype(np.int16)
+                if prev is not None and np.abs(img - prev).mean() < 0.5:
+                    break
+                prev = img
+            return img
+
+        with_splats = settled(True)
+        empty = settled(False)
+        screenshot_array(page, tmp_path / "viewer.png")
+        errors = [e for e in console.errors if not any(k in e for k in KNOWN_VISER_ERRORS)]
+        assert errors == []
+    assert empty.std() < 3  # the empty scene is a plain background
+    changed = (np.abs(with_splats - empty).max(-1) > 30).mean()
+    assert changed > 0.5, changed  # the splats cover most of the view from inside the room
+    assert with_splats.std() > 15  # and they are textured, not one flat colour
+
+
+def test_view_cli_rejects_a_directory_without_artifacts(tmp_path, capsys):
+    assert main([str(tmp_path)]) == 2
+    assert "no artifacts/" in capsys.readouterr().err
