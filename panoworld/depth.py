@@ -43,6 +43,7 @@ def read_panorama(path: Path, notes: list[str] | None = None) -> np.ndarray:
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise StageInputError(f"{path}: cannot read the panorama (missing, corrupt or not an image); give a PNG/JPEG")
+    gray = img.ndim == 2 or img.shape[2] == 1
     if path.suffix.lower() in (".jpg", ".jpeg") and img.dtype == np.uint8:
         # IMREAD_UNCHANGED ignores the EXIF orientation; IMREAD_COLOR applies it (same decoder otherwise).
         oriented = cv2.imread(str(path), cv2.IMREAD_COLOR)
@@ -55,9 +56,10 @@ def read_panorama(path: Path, notes: list[str] | None = None) -> np.ndarray:
         notes.append("16-bit panorama scaled to 8 bit")
     if img.dtype != np.uint8:
         raise StageInputError(f"{path}: panorama has dtype {img.dtype}; give an 8- or 16-bit PNG/JPEG")
+    if gray:
+        notes.append("grayscale panorama expanded to RGB")
     if img.ndim == 2 or img.shape[2] == 1:
         img = cv2.cvtColor(img.reshape(img.shape[:2]), cv2.COLOR_GRAY2RGB)
-        notes.append("grayscale panorama expanded to RGB")
     elif img.shape[2] == 4:
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
         notes.append("alpha channel dropped")
