@@ -158,18 +158,19 @@ def velocity(
     transformer: nn.Module,
     x_t: torch.Tensor,
     sigma: torch.Tensor,
-    dt: torch.Tensor,
-    condition: torch.Tensor,
+    dt: torch.Tensor | None,
+    condition: torch.Tensor | None,
     prompt_embeds: torch.Tensor,
     anchor: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """One transformer forward: s_theta(x_t, sigma, dt | condition, prompt) -> velocity (eps - x0), float32.
 
     x_t (B, z, T_lat, h, w); sigma, dt (B,) in [0, 1]; condition (B, Cc, T_lat, h, w); prompt_embeds (B, L, D).
+    dt = None and condition = None: the plain base model (no step-size embedding, no widened input).
     anchor (B, z, 1, h, w): a clean first latent frame (Wan2.2 TI2V image conditioning) that replaces
     x_t's first frame, whose tokens get timestep 0; the returned velocity of that frame is meaningless.
     """
-    if not hasattr(transformer, "step_embedder"):
+    if dt is not None and not hasattr(transformer, "step_embedder"):
         raise ValueError("the transformer has no step-size embedding: call prepare_transformer() first")
     dtype = transformer.patch_embedding.weight.dtype
     timestep = sigma.float() * 1000.0
@@ -180,8 +181,9 @@ def velocity(
         per_frame = (h // p_h) * (w // p_w)
         timestep = timestep[:, None].repeat(1, (t // p_t) * per_frame)
         timestep[:, :per_frame] = 0.0
-    hidden = torch.cat([x_t, condition.to(x_t)], dim=1).to(dtype)
-    with transformer.step_embedder.step_size(dt):
+    hidden = (x_t if condition is None else torch.cat([x_t, condition.to(x_t)], dim=1)).to(dtype)
+    step = transformer.step_embedder.step_size(dt) if dt is not None else contextlib.nullcontext()
+    with step:
         out = transformer(
             hidden_states=hidden, timestep=timestep, encoder_hidden_states=prompt_embeds.to(dtype), return_dict=False
         )[0]
