@@ -166,6 +166,27 @@ def format_summary(summary: dict) -> str:
     return "\n".join(lines)
 
 
+def cost_table(summary: dict) -> str:
+    """Per-stage mean seconds and peak memory over the runs of a summary that ran the stage (the sizing table of
+    docs/scale.md)."""
+    acc: dict[str, list[tuple[float, float | None]]] = {}
+    for res in summary["results"]:
+        for run in res["runs"]:
+            for st in run["stages"]:
+                if st["action"] == "ran":
+                    acc.setdefault(st["stage"], []).append((st["seconds"], st.get("peak_rss_mb")))
+    rows = ["| stage | runs | mean s | max s | peak MB |", "|---|---|---|---|---|"]
+    total = 0.0
+    for stage, vals in acc.items():
+        secs = [v[0] for v in vals]
+        mem = [v[1] for v in vals if v[1] is not None]
+        total += sum(secs) / len(secs)
+        rows.append(f"| {stage} | {len(vals)} | {sum(secs) / len(secs):.1f} | {max(secs):.1f} | "
+                    f"{max(mem) if mem else float('nan'):.0f} |")
+    rows.append(f"| **per scene** | | {total:.1f} | | |")
+    return "\n".join(rows)
+
+
 def cmd_run_all(args) -> int:
     """`runner.py run DATASET --all ...`: exit 0 when every scene ran, 1 when any failed, 2 for a bad request."""
     summary = run_dataset(
