@@ -167,3 +167,16 @@ def test_dataset_items_and_kill_resume_reproduces_the_loss_curve(cond_dir, tmp_p
     cond = ((item["cond"].permute(1, 2, 3, 0) + 1) * 127.5).round().to(torch.uint8).numpy()
     out, info = gen.generate(cond, item["mask"][0].numpy() > 0)
     assert out.shape == (5, 32, 64, 3) and info["nfe"] == 4
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys):
+    from panoworld.train.cli import main as train_main
+
+    assert train_main(["video", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--preset", "tiny"]) == 2
+    assert "index.jsonl: missing; run `python runner.py precompute" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()  # nothing written
+    assert train_main(["video", "--data", str(tmp_path), "--out", str(tmp_path / "run2")]) == 2
+    assert "needs --weights WAN_DIR" in capsys.readouterr().err
+    assert train_main(["video", "--data", str(tmp_path), "--out", str(tmp_path / "r3"), "--set", "rho"]) == 2
+    assert "--set rho: expected KEY=VALUE" in capsys.readouterr().err
+    assert train_main([]) == 2 and "train {video,recon}" in capsys.readouterr().err

@@ -96,10 +96,10 @@ class VideoTrainer:
             raise common.TrainConfigError(f"frames={cfg.frames}: the Wan VAE needs 4k + 1 frames (e.g. 13, 17, 81)")
         if cfg.threads > 0:
             torch.set_num_threads(cfg.threads)
+        rows = vdata.read_index(self.cond_dir)  # bad data is an error before anything is written
         self.rd = common.RunDir(run_dir)
         self.rd.start(cfg, resume)
         self.rt = common.Runtime.create(cfg.device, cfg.mixed_precision, cfg.use_accelerate)
-        rows = vdata.read_index(self.cond_dir)
         train_s, val_s = vdata.split_scenes([r.scene for r in rows], cfg.val_fraction, cfg.split_seed)
         self.train_ds = vdata.ClipDataset([r for r in rows if r.scene in train_s], cfg.frames, cfg.height)
         self.val_ds = vdata.ClipDataset([r for r in rows if r.scene in val_s], cfg.frames, cfg.height)
@@ -135,11 +135,11 @@ class VideoTrainer:
             s = step + 1
             self.bar.update()
             self._bar_postfix(self.bar, loss, name)
-            if s % cfg.log_every == 0 or s == last:
+            if self.rt.is_main and (s % cfg.log_every == 0 or s == last):
                 self.metrics.log(s, "train", phase=self._phase_id(name), loss=loss, **extra)
-            if s % cfg.checkpoint_every == 0 or s == last:
+            if self.rt.is_main and (s % cfg.checkpoint_every == 0 or s == last):
                 self.ckpt.save(s, objects, {"phase": name})
-            if eval_fn is not None and (s % cfg.val_every == 0 or s == last):
+            if eval_fn is not None and self.rt.is_main and (s % cfg.val_every == 0 or s == last):
                 eval_fn(s)
             if self.stop_at is not None and s >= self.stop_at:
                 raise StopRequested(s)
@@ -298,6 +298,8 @@ class VideoTrainer:
         tr = self.transformer.to(self.device)
         torch.manual_seed(cfg.seed + 3)  # LoRA init: the same whether this phase starts fresh or after a resume
         params = wt.prepare_for_training(tr, wl.condition_channels(self.vae), rank=cfg.lora_rank, alpha=cfg.lora_alpha)
+        for p in params:  # fp32 master weights for AdamW even when the frozen backbone is bf16
+            p.data = p.data.float()
         if cfg.grad_checkpointing and self.device.type == "cuda":
             tr.enable_gradient_checkpointing()
         teacher = wt.EmaTeacher(tr, cfg.teacher_decay) if cfg.rho < 1 else None
