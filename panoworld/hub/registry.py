@@ -132,6 +132,22 @@ register(WeightsEntry(
     uses=(Use("eval --lpips-weights", file="vgg16-397923af.pth", also=("--lpips-net vgg",)),
           Use("eval --lpips-lin-weights", file="vgg.pth")),
 ))
+register(WeightsEntry(
+    name="fid-inception", model="InceptionV3 of FID (TF 2015-12-05 graph ported by pytorch-fid)",
+    licence="Apache-2.0", size="about 90 MB",
+    files=(WeightsFile("pt_inception-2015-12-05-6726825d.pth",
+                       url="https://github.com/mseitzer/pytorch-fid/releases/download/fid_weights/"
+                           "pt_inception-2015-12-05-6726825d.pth"),),
+    uses=(Use("eval --fid-weights"),),
+    notes="FID of `eval DATASET --all` (panoworld/models/inception.py defines the network in torch)",
+))
+register(WeightsEntry(
+    name="fvd-i3d", model="I3D (Kinetics-400) of FVD as TorchScript, as exported by StyleGAN-V",
+    licence="Apache-2.0 (DeepMind kinetics-i3d)", size="tens of MB",
+    files=(WeightsFile("i3d_torchscript.pt", url="https://www.dropbox.com/s/ge9e5ujwgetktms/i3d_torchscript.pt?dl=1"),),
+    uses=(Use("eval --fvd-weights"),),
+    notes="FVD of `eval DATASET --all` (panoworld/models/i3d.py loads it with torch.jit)",
+))
 
 register(WeightsEntry(
     name="wan-shortcut-lora", model="PanoWorld shortcut LoRA + widened patch/step-size embeddings for Wan2.2-TI2V-5B",
