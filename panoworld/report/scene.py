@@ -104,12 +104,16 @@ def stage_rows(scene: SceneData, out_dir: Path, preset: str | None, run_results:
     try:
         if preset is None:
             best = -1
+            present = sum(scene.has(n) for n in pipe.order)
             for cand in [None, *[p for p in getattr(pipe, "presets", []) or []]]:
                 rows = pl.status(scene.root, preset=cand, pipeline=pipe)
                 n_up = sum(r["state"] == "up-to-date" for r in rows)
                 if n_up > best:
                     best, states, preset = n_up, {r["stage"]: r for r in rows}, cand
-            note = f"states for preset {preset or 'default'} (the preset under which most stages are up to date; --preset to choose)"
+                if n_up == present:  # the scene's own preset (scene.yaml) already explains every artifact
+                    break
+            note = (f"states for preset {preset or 'of scene.yaml, else default'} (the preset under which most stages are "
+                    "up to date; --preset to choose)")
         else:
             states = {r["stage"]: r for r in pl.status(scene.root, preset=preset, pipeline=pipe)}
             note = f"states for preset {preset}"

@@ -119,33 +119,44 @@ class PlanView:
 
 
 def mesh_from_above(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray, view: PlanView, ceiling_cut_y: float,
-                    max_samples: int = 4_000_000, seed: int = 0) -> np.ndarray:
+                    max_samples: int = 3_000_000, seed: int = 0) -> np.ndarray:
     """(h, w, 3) RGB of the mesh seen from above, ignoring faces with a vertex higher than ceiling_cut_y.
 
-    Faces are sampled (at least one point each, about four per plan pixel they cover) and each plan cell shows its
-    highest sample (smallest y: up = -Y) with the barycentric vertex colour; empty cells stay dark grey.
+    Faces are sampled (at least one point each, about two per plan pixel they cover) and each plan cell shows its
+    highest sample (smallest y: up = -Y) with the barycentric vertex colour; isolated empty cells take a
+    neighbour's colour, the rest stays dark grey.
     """
     v = np.asarray(vertices, np.float32)
     f = np.asarray(faces, np.int64)
     f = f[(v[f, 1] > ceiling_cut_y).all(1) & (np.abs(v[f]).sum(2) > 1e-6).all(1)]
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
     area_px = 0.5 * np.abs((b[:, 0] - a[:, 0]) * (c[:, 2] - a[:, 2]) - (b[:, 2] - a[:, 2]) * (c[:, 0] - a[:, 0])) / view.cell**2
-    k = np.clip(np.ceil(4 * area_px), 1, 4000).astype(np.int64)
+    k = np.clip(np.ceil(2 * area_px), 1, 4000).astype(np.int64)
     if k.sum() > max_samples:
         k = np.maximum(1, (k * max_samples / k.sum()).astype(np.int64))
-    fi = np.repeat(np.arange(len(f)), k)
+    idx = np.repeat(f, k, axis=0)  # (N, 3) vertex ids of each sample's face
     rng = np.random.default_rng(seed)
-    r1, r2 = np.sqrt(rng.random(len(fi), np.float32)), rng.random(len(fi), np.float32)
-    w = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], 1)  # uniform barycentric samples
-    pts = (w[:, :, None] * v[f[fi]]).sum(1)
-    col = (w[:, :, None] * np.asarray(colors, np.float32)[f[fi]]).sum(1)
-    p = view.px(pts[:, [0, 2]])
-    i, j = np.floor(p[:, 1]).astype(int), np.floor(p[:, 0]).astype(int)
+    r1, r2 = np.sqrt(rng.random(len(idx), np.float32)), rng.random(len(idx), np.float32)
+    w = (1 - r1, r1 * (1 - r2), r1 * r2)  # uniform barycentric samples
+
+    def interp(values: np.ndarray) -> np.ndarray:
+        return w[0] * values[idx[:, 0]] + w[1] * values[idx[:, 1]] + w[2] * values[idx[:, 2]]
+
+    x, y, z = interp(v[:, 0]), interp(v[:, 1]), interp(v[:, 2])
+    j = np.floor((x - view.x0) / view.cell).astype(np.int64)
+    i = np.floor((view.z1 - z) / view.cell).astype(np.int64)
     inside = (i >= 0) & (i < view.h) & (j >= 0) & (j < view.w)
-    i, j, y, col = i[inside], j[inside], pts[inside, 1], col[inside]
-    order = np.argsort(-y)  # the smallest y (highest point) is written last and wins
+    order = np.flatnonzero(inside)[np.argsort(-y[inside])]  # the smallest y (highest point) is written last and wins
+    cols = np.asarray(colors, np.float32)
     img = np.full((view.h, view.w, 3), 40, np.uint8)
-    img[i[order], j[order]] = col[order].astype(np.uint8)
+    filled = np.zeros((view.h, view.w), np.uint8)
+    idx = idx[order]
+    w = tuple(t[order] for t in w)
+    for ch in range(3):
+        img[i[order], j[order], ch] = interp(cols[:, ch]).astype(np.uint8)
+    filled[i[order], j[order]] = 255
+    hole = (filled == 0) & (cv2.dilate(filled, np.ones((3, 3), np.uint8)) > 0)
+    img[hole] = cv2.dilate(img * (filled > 0)[..., None], np.ones((3, 3), np.uint8))[hole]
     return (img.astype(np.float32) * 0.8).astype(np.uint8)  # dimmed so overlays stand out
 
 
