@@ -97,6 +97,24 @@ def test_viewer_canvas_shows_the_splats_in_chromium(viewer, tmp_path):
     assert with_splats.std() > 15  # and they are textured, not one flat colour
 
 
+def test_viewer_skips_missing_stages_and_shows_colmap_points(tmp_path):
+    import pycolmap
+
+    sparse = tmp_path / "artifacts" / "poses" / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    rec = pycolmap.Reconstruction()
+    for i in range(3):
+        rec.add_point3D(np.array([i, 0.5, 2.0]), pycolmap.Track(), np.array([255, 40 * i, 0], np.uint8))
+    rec.write(str(sparse))
+    v = SceneViewer(tmp_path, ViewerParams(port=_free_port()))
+    try:
+        assert v.loaded == {"mesh": "missing (depth and mesh not run)", "navmesh": "missing", "trajectory": "missing",
+                            "points": "3 points", "splats": "missing"}
+        assert set(v.handles) == {"points"}
+    finally:
+        v.stop()
+
+
 def test_view_cli_rejects_a_directory_without_artifacts(tmp_path, capsys):
     assert main([str(tmp_path)]) == 2
     assert "no artifacts/" in capsys.readouterr().err
