@@ -225,3 +225,16 @@ def test_weights_without_a_gaussian_head_name_stage_2(tmp_path):
         m.decode(cf)
     with pytest.raises(ValueError, match="needs a model with a Gaussian head"):
         m(frames(1), with_tokens=True)
+
+
+def test_gradient_checkpointing_gives_the_same_gradients():
+    x = frames(2)
+    grads = []
+    for ckpt in (False, True):
+        m = tiny_model().train()
+        m.gradient_checkpointing = ckpt
+        with torch.enable_grad():
+            out = m(x)
+            (out["depth"].mean() + out["pose_enc"].square().sum()).backward()
+        grads.append(m.frame_blocks[0].attn.qkv.weight.grad.clone())
+    torch.testing.assert_close(grads[0], grads[1])

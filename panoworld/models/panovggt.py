@@ -277,6 +277,14 @@ class CameraHead(nn.Module):
         return world_from_cam, pose
 
 
+def _run(block: nn.Module, x: torch.Tensor, checkpointed: bool) -> torch.Tensor:
+    if checkpointed:
+        from torch.utils.checkpoint import checkpoint
+
+        return checkpoint(block, x, use_reentrant=False)
+    return block(x)
+
+
 class PanoVGGT(nn.Module):
     """Feed-forward panoramic reconstructor (paper Sec. "Feed-Forward Pose and Depth Estimation").
 
@@ -304,6 +312,8 @@ class PanoVGGT(nn.Module):
         self.depth_head = DepthHead(cfg)
         gh = cfg.gaussian_head
         self.gaussian_head = GaussianHead(gh, p, 2 * d) if gh is not None else None
+        self.gradient_checkpointing = False
+        """Recompute each aggregator block in the backward pass instead of storing its activations (training)."""
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
 
@@ -352,10 +362,11 @@ class PanoVGGT(nn.Module):
         if self.gaussian_layer is not None:
             keep.add(self.gaussian_layer)
         outputs: dict[int, torch.Tensor] = {}
+        ckpt = self.gradient_checkpointing and self.training and torch.is_grad_enabled()
         for i in range(self.cfg.depth):
-            x = self.frame_blocks[i](x)
+            x = _run(self.frame_blocks[i], x, ckpt)
             x_frame = x
-            x = self.global_blocks[i](x.reshape(b, s * t, d)).reshape(b * s, t, d)
+            x = _run(self.global_blocks[i], x.reshape(b, s * t, d), ckpt).reshape(b * s, t, d)
             if i in keep:
                 outputs[i] = torch.cat([x_frame, x], dim=-1)
         last = outputs[self.cfg.depth - 1]

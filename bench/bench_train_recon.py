@@ -1,0 +1,195 @@
+"""Trained PanoVGGT vs its random init (vs COLMAP, vs voxel-fusion) on held-out synthetic scenes (issue #14).
+
+    python bench/bench_train_recon.py --data DATASET_DIR --held-out 4 --stage1 RUN1/export/weights \
+        [--stage2 RUN2/export/weights] [--colmap-scenes 2] [--frames 8] [--views 3]
+
+Held-out scenes are the last --held-out scenes of DATASET_DIR (a training run's val split never trains). Stage 1: per
+scene and track, --frames frames evenly spaced along the track -> ATE, RPE_t (m), RPE_r (deg) after Sim(3)
+alignment (align.trajectory_metrics) and depth AbsRel (evaluate.depth_errors), for the trained model, the same
+architecture at its random init (the training seed) and COLMAP (first --colmap-scenes scenes, the same frames rendered
+exactly at --colmap-height: COLMAP registers nothing at the models' 32x64). Stage 2: N@N = --views context frames evenly spaced and the --views frames midway between them as
+novel views; PSNR/SSIM of ERP renders at the model's input size, for the trained Gaussian head, the same head at its
+random init (on the trained backbone) and voxel-fusion at the same voxel size, all given the same geometry (the ground
+truth's, and the frozen heads' predictions for the decoders).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from panoworld.align import trajectory_metrics
+from panoworld.dataset import DatasetScene
+from panoworld.evaluate import depth_errors
+from panoworld.metrics import psnr, ssim
+from panoworld.models.panovggt import PanoVGGT, PanoVGGTConfig
+from panoworld.render_gs import render_erp
+from panoworld.train.recon.data import SceneFrames, list_scenes
+
+
+def random_init(trained: PanoVGGT, seed: int, keep_trained_backbone: bool) -> PanoVGGT:
+    torch.manual_seed(seed)
+    model = PanoVGGT(PanoVGGTConfig.from_json(trained.cfg.to_json()))
+    if keep_trained_backbone:  # stage 2's init: the trained stage-1 model plus a fresh head
+        state = {k: v for k, v in trained.state_dict().items() if not k.startswith("gaussian_head.")}
+        model.load_state_dict(state, strict=False)
+    return model.eval()
+
+
+def evenly(n: int, k: int) -> np.ndarray:
+    return np.unique(np.round(np.linspace(0, n - 1, min(n, k))).astype(int))
+
+
+def stage1_rows(models: dict[str, PanoVGGT], data: SceneFrames, frames: int, colmap_scenes: int,
+                colmap_height: int) -> list[dict]:
+    rows = []
+    for s, scene in enumerate(data.scenes):
+        for track in range(scene.n_tracks):
+            idx = evenly(scene.n_frames(track), frames)
+            poses = data.poses(s, track)[idx]
+            gt = np.linalg.inv(poses[0]) @ poses
+            rgb, depth = map(np.stack, zip(*(data.frame(s, track, int(i)) for i in idx)))
+            for name, model in models.items():
+                t0 = time.process_time()
+                pred = model.predict(rgb)
+                tm = trajectory_metrics(pred["world_from_cam"], gt)
+                absrel = float(np.mean([depth_errors(p, g)["abs_rel"] for p, g in zip(pred["depth"], depth)]))
+                rows.append({"method": name, "scene": scene.name, "track": track, "ate": tm["ate"],
+                             "rpe_t": tm["rpe_t"], "rpe_r": tm["rpe_r"], "abs_rel": absrel,
+                             "cpu_s": time.process_time() - t0})
+            if s < colmap_scenes:
+                rows.append({"method": "colmap", "scene": scene.name, "track": track,
+                             **colmap_row(scene, track, idx, gt, colmap_height)})
+    return rows
+
+
+def colmap_row(scene: DatasetScene, track: int, idx: np.ndarray, gt: np.ndarray, height: int) -> dict:
+    """COLMAP (poses.colmap_estimate, spherical) on the track's frames rendered exactly at `height`."""
+    import tempfile
+
+    import cv2
+
+    from panoworld.poses import colmap_estimate
+    from panoworld.synth import SynthScene
+
+    synth = SynthScene.load(scene.gt_dir)
+    poses = scene.poses(track)
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="bench-colmap-") as tmp:
+        paths = []
+        for i in idx:
+            rgb, _ = synth.render(poses[int(i)], height, 2 * height)
+            paths.append(Path(tmp) / f"{int(i):06d}.png")
+            cv2.imwrite(str(paths[-1]), rgb[..., ::-1])
+        try:
+            est = colmap_estimate(paths, gt)
+        except Exception as e:  # noqa: BLE001 - report, do not hide, a failed baseline
+            return {"error": f"{type(e).__name__}: {e}"[:200]}
+    reg = np.asarray(est.registered, bool)
+    tm = trajectory_metrics(est.raw[reg], gt[reg]) if reg.sum() >= 3 else {"ate": np.nan, "rpe_t": np.nan, "rpe_r": np.nan}
+    return {"ate": tm["ate"], "rpe_t": tm["rpe_t"], "rpe_r": tm["rpe_r"], "registered": f"{int(reg.sum())}/{len(reg)}",
+            "wall_s": time.perf_counter() - t0}
+
+
+def _scores(g, poses: np.ndarray, rgb: np.ndarray, h: int) -> tuple[float, float]:
+    p, s = [], []
+    for pose, ref in zip(poses, rgb):
+        img = (render_erp(g, pose, h, 2 * h).rgb.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+        p.append(psnr(img, ref))
+        s.append(ssim(img, ref))
+    return float(np.mean(p)), float(np.mean(s))
+
+
+@torch.no_grad()
+def stage2_rows(models: dict[str, PanoVGGT], data: SceneFrames, views: int, voxel_size: float) -> list[dict]:
+    from panoworld.fusion_params import FusionParams
+    from panoworld.gaussians import voxel_fusion
+
+    rows = []
+    for s, scene in enumerate(data.scenes):
+        for track in range(scene.n_tracks):
+            n = scene.n_frames(track)
+            ctx = evenly(n, views)
+            nov = np.unique((ctx[:-1] + ctx[1:]) // 2)
+            nov = np.setdiff1d(nov, ctx)
+            poses_all = data.poses(s, track)
+            rel = np.linalg.inv(poses_all[ctx[0]]) @ poses_all
+            rgb = {int(i): data.frame(s, track, int(i))[0] for i in np.concatenate([ctx, nov])}
+            dep = {int(i): data.frame(s, track, int(i))[1] for i in ctx}
+            c_rgb = np.stack([rgb[int(i)] for i in ctx])
+            n_rgb = np.stack([rgb[int(i)] for i in nov])
+            h = c_rgb.shape[1]
+            img = torch.from_numpy(c_rgb).permute(0, 3, 1, 2).float() / 255
+            gt_geo = (torch.from_numpy(np.stack([dep[int(i)] for i in ctx])), torch.from_numpy(rel[ctx]))
+            methods = {}
+            for name, model in models.items():
+                methods[f"{name} (gt geometry)"] = lambda m=model: m.gaussians(img, *gt_geo)["gaussians"].numpy()
+                methods[f"{name} (predicted geometry)"] = lambda m=model: m.gaussians(img)["gaussians"].numpy()
+            methods["voxel-fusion (gt geometry)"] = lambda: voxel_fusion(
+                zip(c_rgb, gt_geo[0].numpy(), rel[ctx]), FusionParams(voxel_size=voxel_size)).gaussians
+            for name, make in methods.items():
+                t0 = time.process_time()
+                g = make()
+                pc, sc = _scores(g, rel[ctx], c_rgb, h)
+                pn, sn = _scores(g, rel[nov], n_rgb, h)
+                rows.append({"method": name, "scene": scene.name, "track": track, "psnr_context": pc,
+                             "ssim_context": sc, "psnr_novel": pn, "ssim_novel": sn, "gaussians": len(g),
+                             "cpu_s": time.process_time() - t0})
+    return rows
+
+
+def table(rows: list[dict], keys: list[str]) -> str:
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    out = ["| method | n | " + " | ".join(keys) + " |", "|---" * (len(keys) + 2) + "|"]
+    for m in methods:
+        sel = [r for r in rows if r["method"] == m and "error" not in r]
+        vals = [np.nanmean([r[k] for r in sel]) if sel else np.nan for k in keys]
+        out.append(f"| {m} | {len(sel)} | " + " | ".join(f"{v:.4g}" for v in vals) + " |")
+    errors = [r for r in rows if "error" in r]
+    out += [f"  {r['method']} {r['scene']} track {r['track']}: {r['error']}" for r in errors]
+    return "\n".join(out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--data", type=Path, required=True)
+    p.add_argument("--held-out", type=int, default=4, help="the last K scenes of --data (a run's val split)")
+    p.add_argument("--stage1", type=Path, required=True, help="stage-1 export (weights dir)")
+    p.add_argument("--stage2", type=Path, help="stage-2 export (weights dir)")
+    p.add_argument("--seed", type=int, default=0, help="the training runs' seed (their random init)")
+    p.add_argument("--frames", type=int, default=8)
+    p.add_argument("--views", type=int, default=3, help="N of N@N")
+    p.add_argument("--colmap-scenes", type=int, default=2)
+    p.add_argument("--colmap-height", type=int, default=256, help="ERP height COLMAP gets (rendered exactly)")
+    p.add_argument("--json", type=Path, help="also write every row here")
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    trained1 = PanoVGGT.from_pretrained(args.stage1, flag="--stage1")
+    data = SceneFrames(list_scenes(args.data)[-args.held_out:], trained1.cfg.image_height)
+    print(f"held-out scenes: {[s.name for s in data.scenes]} at {trained1.cfg.image_height}x{2 * trained1.cfg.image_height}")
+    r1 = stage1_rows({"trained": trained1, "random init": random_init(trained1, args.seed, False)}, data,
+                     args.frames, args.colmap_scenes, args.colmap_height)
+    print(f"\nstage 1: {args.frames} frames per track, ATE / RPE_t in metres, RPE_r in degrees (Sim(3)-aligned)")
+    print(table(r1, ["ate", "rpe_t", "rpe_r", "abs_rel"]))
+    rows = {"stage1": r1}
+    if args.stage2:
+        trained2 = PanoVGGT.from_pretrained(args.stage2, flag="--stage2")
+        vs = trained2.require_gaussian_head("--stage2").cfg.voxel_size
+        r2 = stage2_rows({"decoder": trained2, "decoder init": random_init(trained2, args.seed, True)}, data,
+                         args.views, vs)
+        print(f"\nstage 2: {args.views}@{args.views} (context @ novel views), voxel size {vs} m, "
+              f"renders at {trained2.cfg.image_height}x{2 * trained2.cfg.image_height}")
+        print(table(r2, ["psnr_context", "ssim_context", "psnr_novel", "ssim_novel", "gaussians"]))
+        rows["stage2"] = r2
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
