@@ -76,19 +76,58 @@ def cmd_dag(args) -> int:
 
 
 def cmd_demo(args) -> int:
+    import resource
+    import time
+
+    import yaml
+
     from panoworld.synth.cli import main as synth_main
 
     out = Path(args.out_dir)
     scene = out / "scene"
-    if not (scene / "panorama.png").is_file():
-        code = synth_main([str(scene), "--seed", str(args.seed), "--preset", args.preset])
+    cfg = scene / pl.SCENE_CONFIG
+    t_start = time.perf_counter()
+    if (scene / "panorama.png").is_file():
+        made = (yaml.safe_load(cfg.read_text()) or {}).get("preset") if cfg.is_file() else None
+        if made is not None and made != args.preset:
+            print(f"error: {scene} is the demo of preset {made}; rerun with --preset {made} or give another OUT_DIR",
+                  file=sys.stderr)
+            return 2
+    else:
+        # The synthetic scene's size follows the preset: ci-tiny is one small room, the rest a furnished flat.
+        synth_preset = "ci-tiny" if args.preset == "ci-tiny" else "default"
+        code = synth_main([str(scene), "--seed", str(args.seed), "--preset", synth_preset])
         if code:
             return code
-    report = pl.run(scene, preset=args.preset, echo=True, on_result=lambda r: print(f"[{r.stage}] {r.action}: {r.reason}", file=sys.stderr, flush=True))
+    if not cfg.is_file():  # status, run and eval on the scene later resolve the same params
+        cfg.write_text(yaml.safe_dump({"preset": args.preset}))
+    t_synth = time.perf_counter() - t_start
+
+    def cpu() -> float:
+        r = resource.getrusage(resource.RUSAGE_CHILDREN)
+        return r.ru_utime + r.ru_stime
+
+    cpu_s: dict[str, float] = {}
+    last = [cpu()]
+
+    def live(r: pl.StageResult) -> None:
+        now = cpu()
+        cpu_s[r.stage], last[0] = now - last[0], now
+        extra = f" ({r.seconds:.1f} s, CPU {cpu_s[r.stage]:.1f} s)" if r.action == "ran" else ""
+        print(f"[{r.stage}] {r.action}: {r.reason}{extra}", file=sys.stderr, flush=True)
+
+    report = pl.run(scene, echo=True, on_result=live)
     code = _print_report(report, False)
+    ran = [r for r in report.results if r.action == "ran"]
+    print(f"\nscene synthesis {t_synth:.1f} s; stages {sum(r.seconds for r in ran):.1f} s wall, "
+          f"{sum(cpu_s.get(r.stage, 0.0) for r in ran):.1f} s CPU (user+sys); demo total "
+          f"{time.perf_counter() - t_start:.1f} s")
     if code == 0:
-        print(f"\ndemo scene: {scene}\nartifacts:  {scene / pl.ARTIFACTS_DIRNAME}\n"
-              f"open {scene / pl.ARTIFACTS_DIRNAME / 'gaussians' / 'gaussians.ply'} in a 3DGS viewer (e.g. SuperSplat)")
+        print(f"\ndemo scene: {scene} (preset {args.preset}, remembered in {cfg.name})\n"
+              f"artifacts:  {scene / pl.ARTIFACTS_DIRNAME}\n"
+              f"open {scene / pl.ARTIFACTS_DIRNAME / 'gaussians' / 'gaussians.ply'} in a 3DGS viewer (e.g. SuperSplat), "
+              f"{scene / pl.ARTIFACTS_DIRNAME / 'video' / 'preview.mp4'} in any player; "
+              f"score it: python runner.py eval {scene}")
     return code
 
 
@@ -131,7 +170,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_dag)
     p = sub.add_parser("demo", help="build the bundled synthetic example scene and run the whole pipeline on it")
     p.add_argument("out_dir", nargs="?", default="demo_out", type=Path)
-    p.add_argument("--preset", default="ci-tiny", help="param preset (ci-tiny: about a minute on 2 cores; default: the paper's sizes)")
+    p.add_argument("--preset", default="default",
+                   help="param preset (default: a furnished multi-room scene, 81 frames of 720x1440, COLMAP poses, "
+                        "a few minutes on 2 cores; ci-tiny: one small room in well under a minute)")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_demo)
     for verb, (_, text) in DELEGATED.items():

@@ -1,53 +1,150 @@
-"""Prints end-to-end quality of the weight-free pipeline on synthetic scenes: `runner.py eval` after a full run."""
+"""Prints per-stage wall/CPU seconds and peak MB of the whole pipeline at a preset (default: `default`) on synthetic
+scenes and the real Realsee3D samples, with fidelity (poses ATE vs the plan / ground truth, Gaussian context and novel
+PSNR), and optionally the same scene at full size (features and fusion at the stored frame size) for comparison."""
 
 from __future__ import annotations
 
 import argparse
+import json
+import resource
+import shutil
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from panoworld import pipeline as pl
-from panoworld.evaluate import EvalParams, evaluate, is_unavailable
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from panoworld import pipeline as pl  # noqa: E402
+from panoworld.evaluate import EvalParams, evaluate, is_unavailable  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
-# Paper-like chain at a CPU-friendly size: 256x512 frames, no upscaling, the planned poses (COLMAP has its own bench).
-SETS = ["conditions.height=256", "conditions.width=512", "video.upscale=none", "video.mcap=false",
-        "poses.backend=planned", "gaussians.height=256"]
-SHOW = {
-    "conditions": ["psnr_valid", "mask_iou"],
-    "video": ["psnr", "ssim", "ws_psnr", "psnr_disoccluded"],
-    "trajectory": ["min_clearance_m", "path_collisions", "step_cv"],
-    "gaussians": ["context_psnr", "novel_psnr", "context_ssim", "novel_ssim"],
-}
+REAL = REPO.parent / "shared" / "data" / "real" / "realsee3d_assets"
+REAL_SCENES = {"realsee-real": ("panoImage_real.jpg", "depth_real_raw_units_float32.npy"),
+               "realsee-synthetic": ("panoImage_synthesis.jpg", "depth_synthetic_raw_units_float32.npy")}
+# Full size: COLMAP's defaults (SIFT on the frames as stored, upsampled first octave, 8192 features, incremental
+# mapper) and Gaussians fused from the frames as stored.
+FULL_SETS = ["poses.max_image_size=0", "poses.max_features=8192", "poses.upsample_features=true", "poses.mapper=incremental",
+             "gaussians.max_height=0"]
 
 
-def main() -> None:
+def _cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def run_scene(scene: Path, preset: str, sets: list[str] = (), from_: str | None = None) -> tuple[list[dict], float]:
+    """Run the pipeline; rows of (stage, action, wall s, CPU s, peak MB) and the total wall seconds."""
+    rows, last = [], [_cpu()]
+
+    def on_result(r: pl.StageResult) -> None:
+        now = _cpu()
+        rows.append({"stage": r.stage, "action": r.action, "wall_s": r.seconds, "cpu_s": now - last[0],
+                     "peak_mb": r.peak_rss_mb, "reason": r.reason})
+        last[0] = now
+        print(f"    [{r.stage}] {r.action} {r.seconds:.1f} s", file=sys.stderr, flush=True)
+
+    t0 = time.perf_counter()
+    report = pl.run(scene, preset=preset, sets=list(sets), from_=from_, on_result=on_result)
+    total = time.perf_counter() - t0
+    if not report.ok:
+        failed = [r for r in report.results if r.action == "failed"]
+        print(f"  FAILED: {failed[0].stage}: {failed[0].reason}")
+    return rows, total
+
+
+def fidelity(scene: Path) -> dict:
+    """ATE vs the plan (poses.json), ATE vs ground truth and Gaussian PSNRs (runner.py eval) when the scene has gt/."""
+    out: dict = {}
+    art = scene / pl.ARTIFACTS_DIRNAME
+    try:
+        info = json.loads((art / "poses" / "manifest.json").read_text())["info"]
+        m = info.get("metrics_vs_planned") or {}
+        out.update(registered=f"{info['num_registered']}/{info['num_frames']}", ate_plan_mm=1000 * m["ate"]
+                   if m.get("ate") is not None else None)
+    except (OSError, KeyError, ValueError):
+        pass
+    try:
+        info = json.loads((art / "gaussians" / "manifest.json").read_text())["info"]
+        out.update(num_gaussians=info["num_gaussians"], self_psnr=info.get("context_psnr"))
+    except (OSError, KeyError, ValueError):
+        pass
+    if (scene / "gt" / "gt.json").is_file():
+        res, _ = evaluate(scene, EvalParams(), stages=["poses", "gaussians"])
+        p, g = res["stages"]["poses"], res["stages"]["gaussians"]
+        val = lambda d, k: None if d.get(k) is None or is_unavailable(d.get(k)) else d[k]  # noqa: E731
+        out.update(ate_gt_mm=None if val(p, "ate") is None else 1000 * p["ate"], context_psnr=val(g, "context_psnr"),
+                   novel_psnr=val(g, "novel_psnr"), gs_setting=g.get("setting"))
+    return out
+
+
+def print_rows(name: str, rows: list[dict], total: float) -> None:
+    ran = [r for r in rows if r["action"] == "ran"]
+    print(f"  {'stage':<11} {'action':<8} {'wall s':>8} {'CPU s':>8} {'peak MB':>8}")
+    for r in rows:
+        mb = f"{r['peak_mb']:.0f}" if r["peak_mb"] is not None else "-"
+        print(f"  {r['stage']:<11} {r['action']:<8} {r['wall_s']:8.1f} {r['cpu_s']:8.1f} {mb:>8}")
+    peak = max((r["peak_mb"] or 0) for r in ran) if ran else 0
+    print(f"  {name}: pipeline {total:.1f} s wall, {sum(r['cpu_s'] for r in ran):.1f} s CPU, peak {peak:.0f} MB "
+          f"(stages ran: {len(ran)})")
+
+
+def print_fidelity(f: dict) -> None:
+    fmt = lambda v, p=2: "n/a" if v is None else f"{v:.{p}f}" if isinstance(v, float) else str(v)  # noqa: E731
+    print(f"  fidelity: registered {fmt(f.get('registered'))}, ATE vs plan {fmt(f.get('ate_plan_mm'), 3)} mm, "
+          f"ATE vs GT {fmt(f.get('ate_gt_mm'), 3)} mm, Gaussians {fmt(f.get('num_gaussians'))}, context PSNR "
+          f"{fmt(f.get('context_psnr'))} dB, novel PSNR {fmt(f.get('novel_psnr'))} dB ({fmt(f.get('gs_setting'))}), "
+          f"self-render PSNR {fmt(f.get('self_psnr'))} dB")
+
+
+def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--seeds", type=int, nargs="+", default=[3, 5])
-    ap.add_argument("--preset", default="default", help="synth preset of the scenes (the pipeline runs at SETS sizes)")
+    ap.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2], help="synthetic scenes (synth preset default)")
+    ap.add_argument("--preset", default="default", help="pipeline preset")
+    ap.add_argument("--real", choices=["auto", "none"], default="auto",
+                    help=f"auto: also the Realsee3D samples under {REAL} when present")
+    ap.add_argument("--full", type=int, default=None, metavar="SEED",
+                    help="also rerun poses and gaussians of this seed's scene at full size (" + " ".join(FULL_SETS) + ")")
+    ap.add_argument("--out", type=Path, help="keep the scenes here (default: a temporary directory)")
     a = ap.parse_args()
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory(prefix="bench-pipeline-") as tmp:
+        root = a.out or Path(tmp)
+        root.mkdir(parents=True, exist_ok=True)
+        scenes: list[tuple[str, Path]] = []
         for seed in a.seeds:
-            scene = Path(tmp) / f"scene_{seed}"
-            subprocess.run([sys.executable, "runner.py", "synth", str(scene), "--seed", str(seed), "--preset", a.preset],
-                           cwd=REPO, check=True, capture_output=True)
-            t0 = time.perf_counter()
-            report = pl.run(scene, sets=SETS)
-            assert report.ok, report.table()
-            secs = time.perf_counter() - t0
-            result, errors = evaluate(scene, EvalParams(), stages=list(SHOW))
-            print(f"seed {seed}: pipeline {secs:.0f} s" + (f"  (eval errors: {errors})" if errors else ""))
-            for stage, keys in SHOW.items():
-                vals = result["stages"].get(stage, {})
-                shown = []
-                for k in keys:
-                    v = vals.get(k)
-                    shown.append(f"{k}={'n/a' if v is None or is_unavailable(v) else f'{v:.3f}' if isinstance(v, float) else v}")
-                print(f"  {stage:<11} " + "  ".join(shown))
+            scene = root / f"synth_{seed}"
+            if not (scene / "panorama.png").is_file():
+                subprocess.run([sys.executable, "runner.py", "synth", str(scene), "--seed", str(seed)], cwd=REPO,
+                               check=True, capture_output=True)
+            scenes.append((f"synth seed {seed}", scene))
+        if a.real == "auto" and REAL.is_dir():
+            for name, (pano, depth) in REAL_SCENES.items():
+                scene = root / name
+                if (REAL / pano).is_file() and (REAL / depth).is_file():
+                    scene.mkdir(exist_ok=True)
+                    shutil.copyfile(REAL / pano, scene / "panorama.jpg")
+                    shutil.copyfile(REAL / depth, scene / "depth.npy")
+                    scenes.append((name, scene))
+        print(f"preset {a.preset}; machine: {subprocess.run(['nproc'], capture_output=True, text=True).stdout.strip()} "
+              f"cores, load average {open('/proc/loadavg').read().split()[0]} at start (shared: wall times inflate, "
+              "CPU times much less)")
+        for name, scene in scenes:
+            print(f"\n{name}: {scene}")
+            rows, total = run_scene(scene, a.preset)
+            print_rows(name, rows, total)
+            print_fidelity(fidelity(scene))
+        if a.full is not None:
+            src = root / f"synth_{a.full}"
+            full = root / f"synth_{a.full}_full"
+            if not full.exists():
+                shutil.copytree(src, full)
+            print(f"\nsynth seed {a.full} at full size ({' '.join(FULL_SETS)}): poses and gaussians rerun")
+            rows, total = run_scene(full, a.preset, FULL_SETS, from_="poses")
+            print_rows("full size", rows, total)
+            print_fidelity(fidelity(full))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

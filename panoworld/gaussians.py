@@ -25,7 +25,7 @@ _KEY_HALF = 1 << (_KEY_BITS - 1)
 class Gaussians:
     """A set of N 3D Gaussians in the world (canonical scene) frame.
 
-    Fields are numpy float32 arrays, or torch tensors when they come straight from GSDecoder (kept differentiable).
+    Fields are numpy float32 arrays, or torch tensors when they come straight from the Gaussian head (kept differentiable).
     """
 
     means: np.ndarray
@@ -93,7 +93,7 @@ def rgb_to_sh_dc(rgb: np.ndarray) -> np.ndarray:
     return (rgb - 0.5) / SH_C0
 
 
-# ---------------------------------------------------------------- fusion core (shared with GSDecoder)
+# ---------------------------------------------------------------- fusion core (shared with the Gaussian head)
 
 
 def voxel_keys(points: torch.Tensor, voxel_size: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -296,6 +296,15 @@ class FusionResult:
     backend: str = "voxel-fusion"
 
 
+MERGE_EVERY = 8
+"""voxel_fusion reduces its per-frame voxel sums into the running total every this many frames (bounds memory)."""
+
+
+def _reduce(parts: list[VoxelSums], part: VoxelSums) -> list[VoxelSums]:
+    parts.append(part)
+    return [merge_voxel_sums(parts)] if len(parts) > MERGE_EVERY else parts
+
+
 def voxel_fusion(
     frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], params: FusionParams, *, progress: bool = False
 ) -> FusionResult:
@@ -305,25 +314,31 @@ def voxel_fusion(
     computed relative to the voxel's grid centre for float precision); the covariance is the fused second moment of
     the pixel footprints minus p p^T (a moment-matched mixture of the pixels' surface patches). Its eigenvectors give
     the rotation and scale_factor * sqrt(eigenvalues), clamped to [min_scale, max_scale] * voxel_size, the scales.
-    Frames are reduced one by one, so memory is bounded by one frame plus the occupied voxels.
+    Frames are consumed one at a time and their voxel sums reduced into a running total every MERGE_EVERY frames, so
+    memory is bounded by one frame's observations plus the occupied voxels, whatever the number of frames (pass a
+    re-iterable such as ContextSource that reads frames lazily; per_voxel > 1 iterates twice).
     """
     from tqdm import tqdm
 
     params.check()
-    frames = list(frames)
+    if params.per_voxel > 1 and iter(frames) is frames:
+        frames = list(frames)  # a one-shot iterator cannot feed the second pass
+    total = len(frames) if hasattr(frames, "__len__") else None
     eps_v = params.voxel_size
 
     def observations():
-        for rgb, depth, pose in tqdm(frames, desc="voxel fusion", disable=None if progress else True, leave=False):
+        for rgb, depth, pose in tqdm(frames, total=total, desc="voxel fusion", disable=None if progress else True,
+                                     leave=False):
             obs = frame_observations(rgb, depth, pose, params)
             if len(obs.points):
                 yield obs
 
-    parts, n_obs = [], 0
+    parts: list[VoxelSums] = []
+    n_obs = 0
     for obs in observations():
         keys, ijk = voxel_keys(obs.points, eps_v)
         centre = (ijk.double() + 0.5) * eps_v
-        parts.append(voxel_sums(keys, obs.weights, _moment_values(obs, centre))[0])
+        parts = _reduce(parts, voxel_sums(keys, obs.weights, _moment_values(obs, centre))[0])
         n_obs += len(obs.points)
     if not parts:
         raise ValueError("no valid depth pixel in any frame: every depth is 0, inf or NaN (or beyond max_depth)")
@@ -335,7 +350,7 @@ def voxel_fusion(
         # Second pass: split each voxel's samples by the sign along its top log2(K) principal axes.
         mean, _, axes = _mean_cov_axes(sums, centres)
         n_split = int(np.log2(params.per_voxel))
-        child_parts = []
+        child_parts: list[VoxelSums] = []
         for obs in observations():
             keys, _ = voxel_keys(obs.points, eps_v)
             vid = torch.searchsorted(sums.keys, keys)
@@ -343,7 +358,10 @@ def voxel_fusion(
             top = axes[vid][:, :, 3 - n_split :]  # eigenvectors sorted ascending: the last are the principal ones
             bits = (torch.einsum("mc,mck->mk", rel, top) >= 0).long()
             child = (bits * (1 << torch.arange(n_split))).sum(1)
-            child_parts.append(voxel_sums(vid * params.per_voxel + child, obs.weights, _moment_values(obs, centres[vid]))[0])
+            child_parts = _reduce(
+                child_parts,
+                voxel_sums(vid * params.per_voxel + child, obs.weights, _moment_values(obs, centres[vid]))[0],
+            )
         sums = merge_voxel_sums(child_parts)
         centres = centres[sums.keys // params.per_voxel]
 
@@ -405,6 +423,9 @@ class ContextFrames:
     depth_source: str
     """'poses' or 'video': which artifact's depth/NNNNNN.png was used."""
 
+    def rgb_at(self, k: int) -> np.ndarray:
+        return self.rgb[k]
+
 
 def uniform_subset(candidates: Sequence[int], k: int) -> list[int]:
     """k entries of candidates, uniformly spaced and including both ends (all of them when k <= 0 or k >= len)."""
@@ -415,17 +436,70 @@ def uniform_subset(candidates: Sequence[int], k: int) -> list[int]:
     return [candidates[i] for i in pick]
 
 
-def read_context_frames(video_dir: Path, poses_dir: Path, *, context_views: int = 0, height: int = 0) -> ContextFrames:
-    """Frames, depth and poses of the registered frames (uniformly subsampled to context_views when > 0).
+@dataclass
+class ContextSource:
+    """The frames a gaussians run fuses, read from disk one at a time when iterated (re-iterable; memory: one frame
+    whatever their number and size). Yields (rgb (H, W, 3) uint8, depth (H, W) float32 metres NaN = unknown,
+    world_from_cam (4, 4)) at ERP height `height`."""
+
+    rgb_paths: list[Path]
+    depth_paths: list[Path]
+    depth_scale: float
+    world_from_cam: np.ndarray
+    """(V, 4, 4) float64 poses."""
+    indices: list[int]
+    """Frame numbers in the video."""
+    depth_source: str
+    """'poses' or 'video': which artifact's depth/NNNNNN.png is used."""
+    height: int
+    """ERP height the frames are delivered at (frames: area resize, depth: nearest)."""
+    stored_height: int
+    """ERP height of the frames on disk."""
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def frame(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        import cv2
+
+        from panoworld.poses import load_frames, read_depth_png
+        from panoworld.stage import StageInputError
+
+        rgb = load_frames([self.rgb_paths[k]], self.height)[0]
+        d = read_depth_png(self.depth_paths[k], self.depth_scale)
+        if d.shape != (self.stored_height, 2 * self.stored_height):
+            raise StageInputError(f"{self.depth_paths[k]}: depth is {d.shape[1]}x{d.shape[0]} but frames are "
+                                  f"{2 * self.stored_height}x{self.stored_height}; rerun the stage that wrote it")
+        if d.shape[0] != self.height:
+            d = cv2.resize(d, (2 * self.height, self.height), interpolation=cv2.INTER_NEAREST)
+        return rgb, d, self.world_from_cam[k]
+
+    def __iter__(self):
+        return (self.frame(k) for k in range(len(self)))
+
+    def rgb_at(self, k: int) -> np.ndarray:
+        return self.frame(k)[0]
+
+    def load(self) -> ContextFrames:
+        """All frames in memory (for the learned decoder)."""
+        rgb, depth = [], []
+        for r, d, _ in self:
+            rgb.append(r)
+            depth.append(d)
+        return ContextFrames(np.stack(rgb), np.stack(depth), self.world_from_cam, self.indices, self.depth_source)
+
+
+def context_source(video_dir: Path, poses_dir: Path, *, context_views: int = 0, height: int = 0,
+                   max_height: int = 0) -> ContextSource:
+    """The registered frames (uniformly subsampled to context_views when > 0), their depth and poses, read lazily.
 
     Depth comes from the poses artifact when it has some (its estimator's, or the video's copied), else from the
-    video artifact; without either it is a StageInputError. height > 0 resizes frames (area) and depth (nearest).
+    video artifact; without either it is a StageInputError. Frames are delivered at ERP height `height` when > 0,
+    else at the stored height capped at max_height when > 0.
     """
     import json
 
-    import cv2
-
-    from panoworld.poses import load_frames, read_depth_png, read_video_frames
+    from panoworld.poses import read_video_frames
     from panoworld.stage import StageInputError
 
     video = read_video_frames(Path(video_dir))
@@ -455,20 +529,21 @@ def read_context_frames(video_dir: Path, poses_dir: Path, *, context_views: int 
     idx = uniform_subset(np.flatnonzero(registered).tolist(), context_views)
     if not idx:
         raise StageInputError(f"{poses_path}: no registered frame; rerun the poses stage")
-    rgb = load_frames([video.rgb[i] for i in idx], height or None)
-    depth = []
-    for i in idx:
-        d = read_depth_png(depth_paths[i], scale)
-        if d.shape != (video.height, video.width):
-            raise StageInputError(f"{depth_paths[i]}: depth is {d.shape[1]}x{d.shape[0]} but frames are "
-                                  f"{video.width}x{video.height}; rerun the stage that wrote it")
-        if height and d.shape[0] != height:
-            d = cv2.resize(d, (2 * height, height), interpolation=cv2.INTER_NEAREST)
-        depth.append(d)
-    return ContextFrames(rgb, np.stack(depth), poses[idx], idx, source)
+    out_h = height or (min(video.height, max_height) if max_height > 0 else video.height)
+    return ContextSource([video.rgb[i] for i in idx], [depth_paths[i] for i in idx], scale, poses[idx], idx, source,
+                         out_h, video.height)
 
 
-def write_artifact(out_dir: Path, result: FusionResult, frames: ContextFrames, *, eval_views: int = 1,
+def read_context_frames(video_dir: Path, poses_dir: Path, *, context_views: int = 0, height: int = 0) -> ContextFrames:
+    """Frames, depth and poses of the registered frames (uniformly subsampled to context_views when > 0), in memory.
+
+    Depth comes from the poses artifact when it has some (its estimator's, or the video's copied), else from the
+    video artifact; without either it is a StageInputError. height > 0 resizes frames (area) and depth (nearest).
+    """
+    return context_source(video_dir, poses_dir, context_views=context_views, height=height).load()
+
+
+def write_artifact(out_dir: Path, result: FusionResult, frames: ContextFrames | ContextSource, *, eval_views: int = 1,
                    eval_height: int = 128) -> dict:
     """Write gaussians.ply, points.ply and preview.png (the first context view rendered back); return manifest info
     with PSNR/SSIM/WS-PSNR of eval_views context views re-rendered as ERP at eval_height."""
@@ -486,7 +561,7 @@ def write_artifact(out_dir: Path, result: FusionResult, frames: ContextFrames, *
     for k in uniform_subset(range(len(frames.indices)), eval_views) if eval_views > 0 else []:
         out = render_erp(g, frames.world_from_cam[k], eval_height, 2 * eval_height)
         img = (out.rgb.clamp(0, 1).numpy() * 255.0).round().astype(np.uint8)
-        ref = frames.rgb[k]
+        ref = frames.rgb_at(k)
         if ref.shape[0] != eval_height:
             ref = cv2.resize(ref, (2 * eval_height, eval_height), interpolation=cv2.INTER_AREA)
         if not evals:
@@ -505,6 +580,7 @@ def write_artifact(out_dir: Path, result: FusionResult, frames: ContextFrames, *
         "num_observations": result.num_observations,
         "voxel_size": result.voxel_size,
         "frames": frames.indices,
+        "fusion_height": int(frames.height) if isinstance(frames, ContextSource) else int(frames.rgb.shape[1]),
         "depth_source": frames.depth_source,
         "extent_m": result.extent_m,
         "eval": evals,

@@ -178,23 +178,86 @@ def _link_or_copy(src: Path, dst: Path) -> None:
         shutil.copyfile(src, dst)
 
 
+@dataclass(kw_only=True)
+class SfmOptions:
+    """COLMAP settings of the spherical path, sized for a sequential panoramic video on a few CPU cores."""
+
+    max_image_size: int = 1024
+    """Features are extracted on frames downscaled so their width is at most this (0 = as stored); COLMAP scales the
+    keypoints back, so the model stays in the video's pixel coordinates."""
+    max_features: int = 2048
+    """SIFT features per frame."""
+    upsample: bool = False
+    """SIFT's first octave on the 2x upsampled image (COLMAP's default; about 3x the extraction time for the small
+    features of the upsampled octave)."""
+    mapper: str = "global"
+    """global (GLOMAP: rotation averaging + global positioning + bundle adjustment) or incremental."""
+    overlap: int = 10
+    """sequential: each frame is matched with this many successors (plus successors 2^k further: quadratic overlap)."""
+    num_threads: int = -1
+    seed: int = 0
+
+
+def _spherical_sfm(img_dir: Path, out: Path, matcher: Matcher, sfm: SfmOptions, timings: dict) -> dict:
+    """pycolmap.panorama's spherical pipeline (EQUIRECTANGULAR camera, SIFT, matching, incremental mapping) with
+    bounded feature extraction and a sequential window; returns {index: Reconstruction}, seconds per step in timings."""
+    import pycolmap
+
+    t0 = time.perf_counter()
+    db = out / "database.db"
+    rec_path = out / "sparse"
+    rec_path.mkdir(parents=True, exist_ok=True)
+    pycolmap.set_random_seed(sfm.seed)
+    extraction = pycolmap.FeatureExtractionOptions(use_gpu=False, num_threads=sfm.num_threads)
+    if sfm.max_image_size > 0:
+        extraction.max_image_size = sfm.max_image_size
+    extraction.sift.max_num_features = sfm.max_features
+    extraction.sift.first_octave = -1 if sfm.upsample else 0
+    pycolmap.extract_features(
+        db, img_dir, reader_options=pycolmap.ImageReaderOptions(camera_model="EQUIRECTANGULAR"),
+        camera_mode=pycolmap.CameraMode.SINGLE, extraction_options=extraction,
+    )
+    timings["extract_s"] = round(time.perf_counter() - t0, 3)
+    t0 = time.perf_counter()
+    matching = pycolmap.FeatureMatchingOptions(use_gpu=False, num_threads=sfm.num_threads)
+    if matcher == Matcher.SEQUENTIAL:
+        pairing = pycolmap.SequentialPairingOptions(overlap=sfm.overlap, quadratic_overlap=True)
+        pycolmap.match_sequential(db, pairing_options=pairing, matching_options=matching)
+    else:
+        pycolmap.match_exhaustive(db, matching_options=matching)
+    timings["match_s"] = round(time.perf_counter() - t0, 3)
+    t0 = time.perf_counter()
+    if sfm.mapper == "global":
+        mapping = pycolmap.GlobalPipelineOptions(num_threads=sfm.num_threads, random_seed=sfm.seed)
+        recs = pycolmap.global_mapping(db, img_dir, rec_path, mapping)
+    elif sfm.mapper == "incremental":
+        mapping = pycolmap.IncrementalPipelineOptions(num_threads=sfm.num_threads, random_seed=sfm.seed)
+        recs = pycolmap.incremental_mapping(db, img_dir, rec_path, mapping)
+    else:
+        raise ValueError(f"mapper {sfm.mapper!r} not one of global, incremental")
+    timings["map_s"] = round(time.perf_counter() - t0, 3)
+    return recs
+
+
 def run_colmap(
     image_paths: list[Path],
     work_dir: Path,
     *,
     render_type: RenderType = RenderType.SPHERICAL,
     matcher: Matcher = Matcher.SEQUENTIAL,
-    num_threads: int = -1,
-    seed: int = 0,
+    sfm: SfmOptions | None = None,
     verbose: bool = False,
+    timings: dict | None = None,
 ):
-    """pycolmap.panorama.reconstruct on the frames -> (largest reconstruction with EQUIRECTANGULAR camera, all models).
+    """COLMAP panorama SfM on the frames -> (largest reconstruction with EQUIRECTANGULAR camera, all models).
 
+    spherical: our bounded pipeline (_spherical_sfm); the perspective rigs: pycolmap.panorama.reconstruct at full size.
     Frames are linked into work_dir/images under their file names (which must be unique).
     """
     import pycolmap
     from pycolmap import panorama
 
+    sfm = sfm or SfmOptions()
     names = [p.name for p in image_paths]
     if len(set(names)) != len(names):
         raise StageInputError("video frames must have unique file names for COLMAP")
@@ -202,21 +265,20 @@ def run_colmap(
     img_dir.mkdir(parents=True, exist_ok=True)
     for p in image_paths:
         _link_or_copy(p, img_dir / p.name)
-    opts = panorama.PanoramaReconstructionOptions(
-        render_type=panorama.PanoRenderType(str(render_type)),
-        matcher=panorama.Matcher(str(matcher)),
-        use_gpu=False,
-        num_threads=num_threads,
-        random_seed=seed,
-        show_progress=verbose and sys.stderr.isatty(),
-    )
     out = work_dir / "colmap"
     out.mkdir(parents=True, exist_ok=True)
     with _quiet_colmap(0 if verbose else 2):
-        recs = panorama.reconstruct(img_dir, out, opts)
-    if render_type != RenderType.SPHERICAL:
-        # The rig models were converted back to one EQUIRECTANGULAR image per panorama on disk.
-        recs = {i: pycolmap.Reconstruction(out / "sparse_equirectangular" / str(i)) for i in recs}
+        if render_type == RenderType.SPHERICAL:
+            recs = _spherical_sfm(img_dir, out, matcher, sfm, {} if timings is None else timings)
+        else:
+            opts = panorama.PanoramaReconstructionOptions(
+                render_type=panorama.PanoRenderType(str(render_type)), matcher=panorama.Matcher(str(matcher)),
+                use_gpu=False, num_threads=sfm.num_threads, random_seed=sfm.seed,
+                show_progress=verbose and sys.stderr.isatty(),
+            )
+            recs = panorama.reconstruct(img_dir, out, opts)
+            # The rig models were converted back to one EQUIRECTANGULAR image per panorama on disk.
+            recs = {i: pycolmap.Reconstruction(out / "sparse_equirectangular" / str(i)) for i in recs}
     if not recs:
         return None, {}
     best = max(recs, key=lambda i: recs[i].num_reg_images())
@@ -229,8 +291,7 @@ def colmap_estimate(
     *,
     render_type: RenderType = RenderType.SPHERICAL,
     matcher: Matcher = Matcher.SEQUENTIAL,
-    num_threads: int = -1,
-    seed: int = 0,
+    sfm: SfmOptions | None = None,
     alignment: Alignment = Alignment.SIM3,
     verbose: bool = False,
 ) -> PoseEstimate:
@@ -248,11 +309,10 @@ def colmap_estimate(
     if alignment != Alignment.SIM3:
         raise StageInputError(f"align={alignment}: COLMAP's frame and scale are arbitrary; use --align sim3")
     t0 = time.perf_counter()
+    timings: dict = {}
     with tempfile.TemporaryDirectory(prefix="panoworld-colmap-") as tmp:
-        rec, recs = run_colmap(
-            image_paths, Path(tmp), render_type=render_type, matcher=matcher, num_threads=num_threads,
-            seed=seed, verbose=verbose,
-        )
+        rec, recs = run_colmap(image_paths, Path(tmp), render_type=render_type, matcher=matcher, sfm=sfm,
+                               verbose=verbose, timings=timings)
     sfm_s = time.perf_counter() - t0
     index = {p.name: i for i, p in enumerate(image_paths)}
     raw = np.repeat(np.eye(4)[None], n, axis=0)
@@ -278,6 +338,8 @@ def colmap_estimate(
     rec.transform(pycolmap.Sim3d(s, pycolmap.Rotation3d(R), t.reshape(3, 1)))
     info = {
         "sfm_s": sfm_s,
+        **timings,
+        "feature_image_size": None if render_type != RenderType.SPHERICAL else (sfm or SfmOptions()).max_image_size,
         "num_models": len(recs),
         "model_sizes": sorted((m.num_reg_images() for m in recs.values()), reverse=True),
         "num_points3D": rec.num_points3D(),

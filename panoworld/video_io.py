@@ -77,9 +77,10 @@ def _ns(index: int, fps: float) -> int:
 
 
 class VideoWriter:
-    """Streams frames into a video artifact directory: frames/%06d.png, depth/%06d.png, preview.mp4, video.mcap;
-    close() writes video.json. PNGs are encoded by `workers` threads; memory stays at a few frames whatever the
-    length."""
+    """Streams frames into a video artifact directory: frames/%06d.png, depth/%06d.png, preview.mp4, video.mcap and,
+    with upscale > 1, upscaled/%06d.png (an output only: later stages read frames/); close() writes video.json.
+    PNGs are encoded by `workers` threads; memory stays at a few frames whatever the length. The MCAP reuses the
+    frames' PNG bytes (no second encoding) and holds the frames once, at the generation size."""
 
     def __init__(
         self,
@@ -94,14 +95,20 @@ class VideoWriter:
         mcap: bool = True,
         png_compression: int = 1,
         workers: int = 2,
+        upscale: int = 1,
     ):
         check_erp_shape(height, width, "video frame")
+        if upscale < 1:
+            raise ValueError(f"{upscale=} must be >= 1")
         if fps <= 0:
             raise ValueError(f"{fps=} must be > 0")
         self.out_dir = Path(out_dir)
         self.height, self.width, self.fps, self.has_depth = height, width, float(fps), has_depth
         self.png_compression = png_compression
+        self.upscale = upscale
         (self.out_dir / "frames").mkdir(parents=True, exist_ok=True)
+        if upscale > 1:
+            (self.out_dir / "upscaled").mkdir(exist_ok=True)
         if has_depth:
             (self.out_dir / "depth").mkdir(exist_ok=True)
         self.entries: list[dict] = []
@@ -135,12 +142,18 @@ class VideoWriter:
         *,
         cond_rgb_png: bytes | None = None,
         cond_mask_png: bytes | None = None,
+        upscaled: np.ndarray | None = None,
     ) -> None:
         """Append frame rgb (H, W, 3) uint8 with depth (H, W) metres (0 = unknown; required iff has_depth) at pose 4x4;
-        the conditions' PNG bytes (any size) go into the MCAP only."""
+        the conditions' PNG bytes (any size) go into the MCAP only; upscaled (sH, sW, 3) uint8 (required iff the
+        writer's upscale s > 1) goes to upscaled/ only."""
         H, W = self.height, self.width
         if rgb.shape != (H, W, 3) or rgb.dtype != np.uint8:
             raise ValueError(f"{rgb.shape=} {rgb.dtype=} but expected {(H, W, 3)} uint8")
+        s = self.upscale
+        if (upscaled is not None) != (s > 1) or (upscaled is not None and upscaled.shape != (s * H, s * W, 3)):
+            raise ValueError(f"upscaled {None if upscaled is None else upscaled.shape} but expected "
+                             f"{(s * H, s * W, 3) if s > 1 else None} (writer upscale {s})")
         if self.has_depth != (depth is not None):
             raise ValueError(f"depth given: {depth is not None} but the writer has has_depth={self.has_depth}")
         if depth is not None and depth.shape != (H, W):
@@ -149,6 +162,8 @@ class VideoWriter:
         i = len(self.entries)
         name = f"{i:06d}.png"
         entry = {"rgb": f"frames/{name}", "depth": None}
+        if upscaled is not None:
+            entry["upscaled"] = f"upscaled/{name}"
         mm = None
         if depth is not None:
             mm = depth_to_mm(depth)
@@ -163,7 +178,10 @@ class VideoWriter:
         # PNG encoding (OpenCV releases the GIL) overlaps with the caller's next frame; MCAP messages stay in order.
         rgb_job = self._pool.submit(self._encode_write, rgb.copy(), self.out_dir / entry["rgb"])
         depth_job = self._pool.submit(self._encode_write, mm, self.out_dir / entry["depth"]) if mm is not None else None
-        self._pending.append((i, rgb_job, depth_job, mm, self.poses[-1], cond_rgb_png, cond_mask_png))
+        up_job = None
+        if upscaled is not None:
+            up_job = self._pool.submit(self._encode_write, np.ascontiguousarray(upscaled), self.out_dir / entry["upscaled"])
+        self._pending.append((i, rgb_job, depth_job, up_job, mm, self.poses[-1], cond_rgb_png, cond_mask_png))
         while len(self._pending) > 2:
             self._finish_oldest()
 
@@ -173,10 +191,11 @@ class VideoWriter:
         return png
 
     def _finish_oldest(self) -> None:
-        i, rgb_job, depth_job, mm, pose, cond_rgb_png, cond_mask_png = self._pending.popleft()
+        i, rgb_job, depth_job, up_job, mm, pose, cond_rgb_png, cond_mask_png = self._pending.popleft()
         png = rgb_job.result()
-        if depth_job is not None:
-            depth_job.result()
+        for job in (depth_job, up_job):
+            if job is not None:
+                job.result()
         if self._mcap is not None:
             self._write_mcap(i, png, mm, pose, cond_rgb_png, cond_mask_png)
 
@@ -228,6 +247,8 @@ class VideoWriter:
         doc = {
             "height": self.height,
             "width": self.width,
+            "upscaled_height": self.height * self.upscale if self.upscale > 1 else None,
+            "upscaled_width": self.width * self.upscale if self.upscale > 1 else None,
             "num_frames": len(self.entries),
             "fps": self.fps,
             **(meta or {}),

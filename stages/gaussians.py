@@ -11,7 +11,7 @@ from panoworld.fusion_params import FusionParams
 from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "gaussians"
-VERSION = "1"
+VERSION = "2"
 ARTIFACT = "gaussians"
 INPUTS = {
     "video": Input("video", help="video artifact (video.json, frames/, depth/)"),
@@ -33,7 +33,12 @@ class Params(FusionParams):
     context_views: int = 0
     """Number of registered frames used, uniformly spaced (0 = all)."""
     height: int = 0
-    """Process frames resized to this ERP height (0 = as stored; decoder: a multiple of its patch size)."""
+    """Process frames resized to this ERP height (0 = as stored, capped at max_height; decoder: a multiple of its
+    patch size)."""
+    max_height: int = 512
+    """With height 0: frames taller than this are downscaled to it before fusion (0 = no cap). Frames are streamed
+    from disk, so memory stays bounded by one frame of this size plus the occupied voxels; 512 rows sample 2 cm voxels
+    at least once per pixel row up to about 3 m away."""
     weights: str | None = None
     """decoder: directory holding config.json and model.safetensors of GSDecoder (its voxel size wins)."""
     device: str = "cpu"
@@ -45,19 +50,18 @@ class Params(FusionParams):
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
-    from panoworld.gaussians import read_context_frames, voxel_fusion, write_artifact
+    from panoworld.gaussians import context_source, voxel_fusion, write_artifact
 
-    frames = read_context_frames(
-        inputs["video"], inputs["poses"], context_views=params.context_views, height=params.height
-    )
+    frames = context_source(inputs["video"], inputs["poses"], context_views=params.context_views,
+                            height=params.height, max_height=params.max_height)
     try:
         if params.backend == Backend.DECODER:
             from panoworld.models.gs_decoder import GSDecoder
 
             model = GSDecoder.from_pretrained(params.weights, flag="--weights", device=params.device)
-            result = model.decode(frames)
+            result = model.decode(frames.load())
         else:
-            result = voxel_fusion(zip(frames.rgb, frames.depth, frames.world_from_cam), params, progress=True)
+            result = voxel_fusion(frames, params, progress=True)
     except StageInputError:
         raise
     except ValueError as e:  # empty depth, nothing left after pruning, bad params

@@ -11,7 +11,7 @@ from panoworld.choices import Alignment, Matcher, RenderType
 from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "poses"
-VERSION = "1"
+VERSION = "2"
 ARTIFACT = "poses"
 INPUTS = {
     "video": Input("video", help="video artifact (video.json, frames/, depth/)"),
@@ -29,6 +29,13 @@ class Backend(enum.StrEnum):
     """The planned trajectory as it is (for generators that follow it exactly)."""
     VGGT = "vggt"
     """The feed-forward PanoVGGT (needs --weights): poses and dense depth."""
+
+
+class Mapper(enum.StrEnum):
+    GLOBAL = "global"
+    """COLMAP's global mapper (GLOMAP): rotation averaging, global positioning, one bundle adjustment."""
+    INCREMENTAL = "incremental"
+    """COLMAP's incremental mapper: registers frames one by one with repeated bundle adjustment (slower)."""
 
 
 class DepthSource(enum.StrEnum):
@@ -50,6 +57,17 @@ class Params:
     """colmap: native equirectangular camera (spherical) or rigs of perspective views (fallback for hard cases)."""
     matcher: Matcher = Matcher.SEQUENTIAL
     """colmap: which frame pairs are matched."""
+    overlap: int = 10
+    """colmap sequential: each frame is matched with this many successors (and quadratic overlap beyond)."""
+    mapper: Mapper = Mapper.GLOBAL
+    """colmap spherical: how the matched frames become a model."""
+    max_image_size: int = 1024
+    """colmap spherical: SIFT runs on frames downscaled to at most this width (0 = as stored); keypoints are scaled
+    back, so the model stays in the video's pixel coordinates."""
+    max_features: int = 2048
+    """colmap spherical: SIFT features per frame."""
+    upsample_features: bool = False
+    """colmap spherical: start SIFT's pyramid at the 2x upsampled frame (COLMAP's default; ~3x the extraction time)."""
     num_threads: int = -1
     """colmap: CPU threads (-1 = all)."""
     seed: int = 0
@@ -90,10 +108,13 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
             "(or a video.json with poses)"
         )
     if params.backend == Backend.COLMAP:
-        est = colmap_estimate(
-            video.rgb, planned, render_type=params.render_type, matcher=params.matcher,
-            num_threads=params.num_threads, seed=params.seed, alignment=params.align,
-        )
+        from panoworld.poses import SfmOptions
+
+        sfm = SfmOptions(max_image_size=params.max_image_size, max_features=params.max_features,
+                         upsample=params.upsample_features, mapper=str(params.mapper), overlap=params.overlap,
+                         num_threads=params.num_threads, seed=params.seed)
+        est = colmap_estimate(video.rgb, planned, render_type=params.render_type, matcher=params.matcher, sfm=sfm,
+                              alignment=params.align)
     elif params.backend == Backend.PLANNED:
         est = planned_estimate(planned)
     else:

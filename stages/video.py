@@ -1,4 +1,5 @@
-"""Panoramic video from the warped conditions: holes filled (warp-inpaint, frame-inpaint or wan-shortcut), x2 upscaled."""
+"""Panoramic video from the warped conditions: holes filled (warp-inpaint, frame-inpaint or wan-shortcut), optionally
+also written x2 upscaled (an output; later stages read the frames at the generation size)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import numpy as np
 from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "video"
-VERSION = "1"
+VERSION = "2"
 ARTIFACT = "video"
 INPUTS = {
     "conditions": Input("conditions", help="conditions artifact (warped rgb, mask, depth per pose)"),
@@ -49,8 +50,9 @@ class Sampler(enum.StrEnum):
 class Params:
     backend: Backend = Backend.WARP_INPAINT
     """How disoccluded pixels are filled: warp-inpaint, frame-inpaint or wan-shortcut."""
-    upscale: Upscale = Upscale.LANCZOS
-    """x2 upscaling after generation: none, lanczos (seam-aware) or realesrgan (needs --upscale-weights)."""
+    upscale: Upscale = Upscale.NONE
+    """Also write the frames x2 upscaled into upscaled/ (an output for viewing; frames/, which later stages read, stay
+    at the generation size): none, lanczos (seam-aware) or realesrgan (needs --upscale-weights, the paper's)."""
     upscale_weights: str | None = None
     """RealESRGAN_x2plus.pth for --upscale realesrgan (weights are never downloaded)."""
     upscale_tile: int = 0
@@ -205,31 +207,40 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     up = FrameUpscaler(params.upscale.value, weights=params.upscale_weights, tile=params.upscale_tile,
                        device=_device(params.device) if params.upscale == Upscale.REALESRGAN else "cpu")
     has_depth = params.backend != Backend.WAN_SHORTCUT
-    writer = VideoWriter(out_dir, height=cond.height * up.scale, width=cond.width * up.scale, fps=fps,
-                         has_depth=has_depth, preview=params.preview, preview_max_width=params.preview_max_width,
-                         mcap=params.mcap)
+    writer = VideoWriter(out_dir, height=cond.height, width=cond.width, fps=fps, has_depth=has_depth,
+                         preview=params.preview, preview_max_width=params.preview_max_width, mcap=params.mcap,
+                         upscale=up.scale)
     holes = filled_3d = filled_2d = 0
-    t_up = 0.0
+    t_fill = t_up = t_write = 0.0
+    t1 = time.perf_counter()
     for k, (rgb, depth, filled) in enumerate(tqdm(produce, total=len(cond), desc="video", unit="frame", disable=None)):
+        t2 = time.perf_counter()
+        t_fill += t2 - t1
         if filled is not None:
             holes += int(filled.filled_3d.sum() + filled.filled_2d.sum())
             filled_3d += int(filled.filled_3d.sum())
             filled_2d += int(filled.filled_2d.sum())
-        t1 = time.perf_counter()
-        rgb = up.rgb(rgb)
-        depth = up.depth(depth) if has_depth else None
-        t_up += time.perf_counter() - t1
-        writer.add(rgb, depth, poses[k], cond_rgb_png=(cond.root / cond.rgb.paths[k]).read_bytes(),
+        big = up.rgb(rgb) if up.scale > 1 else None
+        t3 = time.perf_counter()
+        t_up += t3 - t2
+        writer.add(rgb, depth if has_depth else None, poses[k], upscaled=big,
+                   cond_rgb_png=(cond.root / cond.rgb.paths[k]).read_bytes(),
                    cond_mask_png=(cond.root / cond.mask.paths[k]).read_bytes())
-    writer.close({"backend": str(params.backend), "upscale": str(params.upscale),
-                  "source_height": cond.height, "source_width": cond.width})
+        t1 = time.perf_counter()
+        t_write += t1 - t3
+    t3 = time.perf_counter()
+    writer.close({"backend": str(params.backend), "upscale": str(params.upscale)})
+    t_write += time.perf_counter() - t3
     n_px = len(cond) * cond.height * cond.width
     info.update(
-        num_frames=len(cond), height=cond.height * up.scale, width=cond.width * up.scale, fps=fps, has_depth=has_depth,
+        num_frames=len(cond), height=cond.height, width=cond.width, fps=fps, has_depth=has_depth,
+        upscaled_height=cond.height * up.scale if up.scale > 1 else None,
+        upscaled_width=cond.width * up.scale if up.scale > 1 else None,
         hole_fraction=holes / n_px if params.backend != Backend.WAN_SHORTCUT else None,
         filled_3d_fraction=filled_3d / holes if holes else None,
         filled_2d_fraction=filled_2d / holes if holes else None,
-        upscale_s=round(t_up, 3), total_s=round(time.perf_counter() - t0, 3),
+        fill_s=round(t_fill, 3), upscale_s=round(t_up, 3), write_s=round(t_write, 3),
+        total_s=round(time.perf_counter() - t0, 3),
     )
     return info
 

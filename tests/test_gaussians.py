@@ -101,6 +101,40 @@ def test_merging_per_frame_sums_equals_one_pass():
     assert torch.allclose(merged.fused(), whole.fused())
 
 
+def test_fusion_streams_frames_and_bounds_its_accumulators(room, monkeypatch):
+    """Frames are consumed one at a time (a lazy source never has two alive) and the per-frame voxel sums are reduced
+    every MERGE_EVERY frames, with the same result as fusing the frames held in a list."""
+    import weakref
+
+    from panoworld import gaussians as gs
+
+    poses = [pose_at(0.05 * k, 0.0, -0.04 * k) for k in range(12)]
+    cache = {i: room(p, 32, 64) for i, p in enumerate(poses)}
+    alive, most = set(), [0]
+
+    class Lazy:
+        def __len__(self):
+            return len(poses)
+
+        def __iter__(self):
+            for i, pose in enumerate(poses):
+                rgb, d = (a.copy() for a in cache[i])
+                alive.add(i)
+                weakref.finalize(rgb, alive.discard, i)
+                most[0] = max(most[0], len(alive))
+                yield rgb, d, pose
+
+    sizes = []
+    merge = gs.merge_voxel_sums
+    monkeypatch.setattr(gs, "merge_voxel_sums", lambda parts: sizes.append(len(parts)) or merge(parts))
+    monkeypatch.setattr(gs, "MERGE_EVERY", 3)
+    lazy = gs.voxel_fusion(Lazy(), FusionParams(voxel_size=0.1, per_voxel=2))
+    assert most[0] <= 2 and max(sizes) <= 4  # at most the frame in use (and the one being dropped)
+    whole = gs.voxel_fusion([(*cache[i], p) for i, p in enumerate(poses)], FusionParams(voxel_size=0.1, per_voxel=2))
+    assert lazy.num_observations == whole.num_observations and len(lazy.gaussians) == len(whole.gaussians)
+    np.testing.assert_allclose(lazy.gaussians.means, whole.gaussians.means, atol=1e-5)
+
+
 def test_voxel_keys_reject_far_points():
     with pytest.raises(ValueError, match="increase voxel_size"):
         voxel_keys(torch.tensor([[1e6, 0.0, 0.0]]), 0.01)
@@ -212,6 +246,10 @@ def test_stage_writes_a_valid_artifact(tmp_path, room):
     assert info["frames"] == [0, 1] and info["depth_source"] == "video"  # frame 2 is unregistered
     assert info["num_gaussians"] == len(read_gaussians_ply(out / "gaussians.ply")) > 1000
     assert len(info["eval"]) == 2 and info["context_psnr"] > 25
+    assert info["fusion_height"] == 64
+    capped = execute_stage(spec, {"video": video, "poses": poses}, Params(voxel_size=0.05, eval_views=0, max_height=32),
+                           tmp_path / "capped", input_digests={"video": "0" * 64, "poses": "1" * 64})["info"]
+    assert capped["fusion_height"] == 32 and capped["num_observations"] < 0.3 * info["num_observations"]
 
 
 def test_stage_input_errors(tmp_path, room):

@@ -183,6 +183,23 @@ def test_planned_backend_writes_a_colmap_model_that_opens(tmp_path, room):
     assert "depth_file_path" not in tf["frames"][0]
 
 
+def test_features_at_a_bounded_size_keep_the_model_in_the_video_pixel_coordinates(tmp_path, room):
+    import pycolmap
+
+    gt = curved_track(8)
+    video = write_video(tmp_path / "video", room, gt, 256, depth=False)
+    manifest = run_stage(tmp_path, video, write_trajectory(tmp_path / "trajectory", gt), backend="colmap",
+                         max_image_size=256, max_features=1024)  # SIFT on 128x256 copies of 256x512 frames
+    assert manifest["info"]["num_registered"] == len(gt)
+    assert manifest["info"]["metrics_vs_planned"]["rte"] < 0.005
+    rec = pycolmap.Reconstruction(tmp_path / "poses" / "sparse" / "0")
+    cam = next(iter(rec.cameras.values()))
+    assert (cam.width, cam.height) == (512, 256)
+    xy = np.array([p.xy for img in rec.images.values() for p in img.points2D])
+    assert xy[:, 0].max() > 400 and xy[:, 1].max() > 200  # keypoints span the stored frame, not the 256-wide copy
+    assert rec.compute_mean_reprojection_error() < 2.0  # pixels of the stored frames
+
+
 def test_blank_frames_give_a_clear_error_not_a_crash(tmp_path, room):
     gt = curved_track(6)
     video = write_video(tmp_path / "video", room, gt, 64, depth=False, blank=range(6))

@@ -187,15 +187,29 @@ def test_stage_warp_inpaint_end_to_end(upstream, tmp_path):
     assert video_stage.main(_cli(upstream, out)) == 0
     manifest = json.loads((out / "manifest.json").read_text())
     info = manifest["info"]
-    assert info["backend"] == "warp-inpaint" and info["upscale"] == "lanczos" and info["fps"] == 10.0
+    assert info["backend"] == "warp-inpaint" and info["upscale"] == "none" and info["fps"] == 10.0
     assert info["layer_faces"] > 0 and info["filled_3d_fraction"] > 0.9
+    assert min(info["fill_s"], info["write_s"]) > 0 and info["upscaled_height"] is None
     v = load_video(out)
-    assert v.frames.shape == (5, 128, 256, 3) and v.depth.shape == (5, 128, 256)
+    assert v.frames.shape == (5, 64, 128, 3) and v.depth.shape == (5, 64, 128)
+    assert not (out / "upscaled").exists()
     np.testing.assert_allclose(v.poses, upstream["poses"])
     assert (v.depth > 0).mean() > 0.99  # conditions depth + layer depth
     msgs = read_mcap(out / MCAP_FILE)
     assert len(msgs[TOPIC_COND_RGB]) == 5 and decode_png(msgs[TOPIC_COND_RGB][0].data).shape == (64, 128, 3)
     assert len(msgs[TOPIC_RGB]) == 5 and len(msgs[TOPIC_DEPTH]) == 5
+    # The MCAP holds each frame once, the very bytes of frames/ (no second encoding).
+    assert msgs[TOPIC_RGB][2].data == (out / "frames" / "000002.png").read_bytes()
+
+
+def test_stage_lanczos_upscale_is_an_output_not_an_input_to_later_stages(upstream, tmp_path):
+    out = tmp_path / "video"
+    assert video_stage.main(_cli(upstream, out, "--upscale", "lanczos", "--preview", "false")) == 0
+    v = load_video(out)
+    assert v.frames.shape == (5, 64, 128, 3) and v.meta["upscaled_height"] == 128
+    up = [decode_png((out / e["upscaled"]).read_bytes()) for e in v.meta["frames"]]
+    np.testing.assert_array_equal(up[3], lanczos_x2(v.frames[3]))
+    assert len(read_mcap(out / MCAP_FILE)[TOPIC_RGB]) == 5  # not stored twice
 
 
 def test_stage_frame_inpaint_without_upscale(upstream, tmp_path):
@@ -254,8 +268,9 @@ def test_stage_realesrgan_upscale_with_local_weights(upstream, tmp_path):
     assert video_stage.main(_cli(upstream, out, "--upscale", "realesrgan", "--upscale-weights", str(weights),
                                  "--device", "cpu", "--preview", "false", "--mcap", "false")) == 0
     v = load_video(out)
-    assert v.frames.shape == (5, 128, 256, 3) and v.depth.shape == (5, 128, 256)
+    assert v.frames.shape == (5, 64, 128, 3) and v.depth.shape == (5, 64, 128)
     assert v.meta["upscale"] == "realesrgan"
+    assert decode_png((out / v.meta["frames"][0]["upscaled"]).read_bytes()).shape == (128, 256, 3)
 
 
 @pytest.mark.slow
