@@ -91,6 +91,16 @@ def add_step_size_embedding(transformer: nn.Module) -> StepSizeEmbedding:
     return step
 
 
+ANCHOR_MIN_VALID = 0.99
+"""Frame 0's condition is the input panorama when at least this fraction of it is valid (a few pixels of invalid
+source depth, e.g. at a pole, must not switch the first-frame anchoring off)."""
+
+
+def anchors_first_frame(valid0) -> bool:
+    """Whether the first frame's valid mask (H, W) (numpy or torch, bool or {0, 1}) counts as the given panorama."""
+    return float(valid0.float().mean() if hasattr(valid0, "float") else valid0.mean()) >= ANCHOR_MIN_VALID
+
+
 def condition_channels(vae: nn.Module) -> int:
     """Channels of the condition concatenated to the noisy latent: VAE latents + one mask channel per frame folded
     into a latent frame."""

@@ -67,7 +67,7 @@ class WanShortcutConfig:
     negative_prompt: str = ""
     """Negative prompt for guidance != 1 (an all-zero embedding when only prompt_embeds without a negative is given)."""
     anchor_first_frame: bool = True
-    """When frame 0's condition is fully valid (the input panorama), keep its latent clean (Wan2.2 TI2V rule)."""
+    """When frame 0's condition is the input panorama (>= 99 % valid), keep its latent clean (Wan2.2 TI2V rule)."""
 
 
 def shortcut_schedule(steps: int) -> tuple[list[float], list[float]]:
@@ -303,7 +303,7 @@ class WanShortcutGenerator:
 
         condition = wl.encode_condition(self.vae, cond, m)
         z = self.vae.config.z_dim
-        anchor = condition[:, :z, :1] if cfg.anchor_first_frame and bool(valid[0].all()) else None
+        anchor = condition[:, :z, :1] if cfg.anchor_first_frame and wl.anchors_first_frame(valid[0]) else None
         generator = torch.Generator("cpu").manual_seed(cfg.seed)
         noise = torch.randn((1, z, *condition.shape[2:]), generator=generator).to(self.device)
         if cfg.sampler == Sampler.SHORTCUT:

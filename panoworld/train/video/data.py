@@ -172,7 +172,7 @@ def encode_item(vae, item: dict, device, anchor_first_frame: bool) -> tuple[torc
     cond, mask = item["cond"][None].to(device), item["mask"][None].to(device)
     x0 = wl.encode_video(vae, target)[0]
     c = wl.encode_condition(vae, cond, mask)[0]
-    return x0.float(), c.float(), bool(anchor_first_frame and bool(mask[0, 0, 0].all()))
+    return x0.float(), c.float(), bool(anchor_first_frame and wl.anchors_first_frame(mask[0, 0, 0]))
 
 
 def build_latent_cache(dataset: ClipDataset, cache: LatentCache, vae, device, *, anchor_first_frame: bool,
