@@ -168,7 +168,8 @@ class SceneViewer:
         self.handles["frustums"] = self.server.scene.add_frame("/trajectory/frames", show_axes=False)
         self.handles["current"] = self.server.scene.add_camera_frustum(
             "/trajectory/current", fov=np.deg2rad(90.0), aspect=2.0, scale=0.15, thickness=3.0, thickness_units="screen", color=(255, 120, 0),
-            wxyz=quat_wxyz_from_rotmat(poses[0][:3, :3]), position=poses[0][:3, 3])
+            wxyz=quat_wxyz_from_rotmat(poses[0][:3, :3]), position=poses[0][:3, 3],
+            image=self._frame_image(0, 256), format="jpeg")
         src = "recovered (poses.json)" if recovered is not None else "planned (trajectory.json)"
         return f"{len(poses)} {src} poses"
 
@@ -222,13 +223,13 @@ class SceneViewer:
         def _(event) -> None:
             self.select_frame(int(slider.value))
 
-    def _frame_image(self, i: int) -> np.ndarray:
+    def _frame_image(self, i: int, width: int | None = None) -> np.ndarray:
         import cv2
 
+        w = width or self.params.frame_width
         img = cv2.imread(str(self._frames[i]), cv2.IMREAD_COLOR) if i < len(self._frames) else None
         if img is None:
-            return np.zeros((self.params.frame_width // 2, self.params.frame_width, 3), np.uint8)
-        w = self.params.frame_width
+            return np.zeros((w // 2, w, 3), np.uint8)
         img = cv2.resize(img, (w, max(1, img.shape[0] * w // img.shape[1])), interpolation=cv2.INTER_AREA)
         return np.ascontiguousarray(img[..., ::-1])
 
@@ -237,6 +238,7 @@ class SceneViewer:
         T = self._poses[i]
         cur = self.handles["current"]
         cur.position, cur.wxyz = T[:3, 3], quat_wxyz_from_rotmat(T[:3, :3])
+        cur.image = self._frame_image(i, 256)  # the ERP frame drawn flat in the frustum, as a thumbnail
         self.handles["frame_image"].image = self._frame_image(i)
 
 
