@@ -128,6 +128,10 @@ def cmd_demo(args) -> int:
               f"open {scene / pl.ARTIFACTS_DIRNAME / 'gaussians' / 'gaussians.ply'} in a 3DGS viewer (e.g. SuperSplat), "
               f"{scene / pl.ARTIFACTS_DIRNAME / 'video' / 'preview.mp4'} in any player; "
               f"score it: python runner.py eval {scene}")
+    from panoworld.report.cli import build_scene_report
+
+    page = build_scene_report(scene, run_results=[r.as_dict() for r in report.results])
+    print(f"report: {page} (open it in a browser; 3D viewer: python runner.py view {scene})")
     return code
 
 
