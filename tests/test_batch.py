@@ -61,7 +61,7 @@ def dataset(synth_dataset, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def first_run(dataset, capsys_module=None):
+def first_run(dataset):
     import contextlib
     import io
 

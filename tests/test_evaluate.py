@@ -497,3 +497,36 @@ def test_plan_only_scene_scores_poses_against_the_plan_and_the_loop(tmp_path, ca
     assert p["rre"] == pytest.approx(2 * theta / (n - 1), rel=1e-9)  # pairs (4, 5) and (5, 6)
     assert rep["stages"]["video"]["reason"].startswith("no ground truth in this scene")
     assert rep["stages"]["depth"]["reason"].startswith("not run")
+
+
+@pytest.mark.slow
+def test_dataset_fid_and_fvd_with_local_feature_networks(scene, tmp_path):
+    """FID/FVD over scenes with randomly initialised networks saved in the reference file layouts: the whole path
+    from artifacts to a table cell runs; without weights each says which file to pass."""
+    from panoworld.eval.distribution import distribution_metrics
+    from panoworld.eval.tables import build_tables, group_key
+    from panoworld.models.inception import FIDInceptionV3
+
+    units = [(scene["root"], None), (scene["root"], None)]  # FVD needs two clips; FID runs on the first unit only
+    none = distribution_metrics(units, EvalParams())
+    assert "pt_inception-2015-12-05" in none["fid"]["reason"] and "i3d_torchscript" in none["fvd"]["reason"]
+    torch.manual_seed(0)
+    torch.save(FIDInceptionV3().state_dict(), tmp_path / "pt_inception.pth")
+
+    class MeanI3D(torch.nn.Module):  # stands in for the exported I3D: same call, 3 features per clip
+        def forward(self, x: torch.Tensor, rescale: bool = False, resize: bool = False, return_features: bool = True):
+            return x.mean(dim=(3, 4))[:, :, :3].reshape(x.shape[0], -1)
+
+    torch.jit.script(MeanI3D()).save(str(tmp_path / "i3d_torchscript.pt"))
+    fid = distribution_metrics(units[:1], EvalParams(fid_weights=str(tmp_path / "pt_inception.pth")), height=32)
+    n = len(scene["poses"])
+    assert fid["fid_frames"] == [n, n] and fid["fid_reference"] == ["ground truth at the video's poses"]
+    assert math.isfinite(fid["fid"]) and fid["fid"] > -1e-6 and "i3d_torchscript" in fid["fvd"]["reason"]
+    fvd = distribution_metrics(units, EvalParams(fvd_weights=str(tmp_path / "i3d_torchscript.pt")), height=32)
+    assert fvd["fvd"] > 0  # the video is the ground truth off by 20 grey levels: the mean features differ
+    d = {**fid, "fvd": fvd["fvd"]}
+    rep, _ = evaluate(scene["root"], EvalParams(max_frames=2), stages=["video", "poses", "trajectory"])
+    table = build_tables([{**rep, "unit": "scene"}], {"gt": {group_key(rep): d}})[0]
+    row = next(cells for label, cells in table.rows if label.startswith("ours"))
+    fid = row[table.columns.index("FID")]
+    assert fid.mean == pytest.approx(d["fid"]) and fid.n == 1
