@@ -138,7 +138,7 @@ def cmd_demo(args) -> int:
 # Verbs whose CLI lives in a library module: verb -> ("module:function" called with the remaining argv, help).
 DELEGATED = {
     "synth": ("panoworld.synth.cli:main", "generate synthetic scenes with ground truth"),
-    "eval": ("panoworld.evaluate:main", "evaluate a scene's artifacts against its ground truth"),
+    "eval": ("panoworld.evaluate:main", "evaluate a scene's artifacts against its reference, or a dataset in the paper's tables (--all)"),
     "precompute": ("panoworld.precompute:main", "precompute training conditions for a dataset"),
     "train": ("panoworld.train.cli:main", "train the video generator or the reconstruction model (train video|recon)"),
     "weights": ("panoworld.hub.cli:main", "list, fetch and resolve the learned backends' weights (weights list|fetch|resolve)"),
