@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import sys
 import tempfile
@@ -128,8 +129,11 @@ def time_full_size(scene, scene_dir: Path, height: int, frames: int) -> None:
         t0 = time.perf_counter()
         report = pl.run(scene_dir, preset="default", only=["video"], sets=[f"video.upscale={upscale}"], force=True)
         result = next(r for r in report.results if r.stage == "video")
-        print(f"  whole video stage, upscale={upscale} (PNG frames + depth, preview.mp4, video.mcap): "
-              f"{time.perf_counter() - t0:.1f} s wall ({result.action})")
+        info = json.loads((art / "video" / "manifest.json").read_text())["info"]
+        print(f"  whole video stage, upscale={upscale} (PNG frames + depth, preview.mp4, video.mcap"
+              f"{', upscaled/ x2 output' if upscale != 'none' else ''}): {time.perf_counter() - t0:.1f} s wall "
+              f"({result.action}); fill {info['fill_s']:.1f} s, upscale {info['upscale_s']:.1f} s, "
+              f"write {info['write_s']:.1f} s")
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -28,18 +28,29 @@ def test_stage_modules_import_light(stage):
 
 @pytest.mark.slow
 def test_full_pipeline_runs_caches_and_reruns_one_stage(synth_scene, tmp_path):
+    import yaml
+
+    from panoworld.stage import params_to_dict
+
     scene = tmp_path / "scene"
     shutil.copytree(synth_scene, scene, ignore=shutil.ignore_patterns("artifacts"))
     order = pl.Pipeline.load().order
 
-    first = pl.run(scene, preset="ci-tiny")
-    assert [r.action for r in first.results] == ["ran"] * len(order), first.table()
+    # The demo on an existing scene runs it at its preset and remembers the preset in scene.yaml ...
+    import runner
+
+    assert runner.main(["demo", str(tmp_path), "--preset", "ci-tiny"]) == 0
+    assert yaml.safe_load((scene / "scene.yaml").read_text()) == {"preset": "ci-tiny"}
     for name in order:
         m = art.read_manifest(scene / "artifacts" / name)
-        assert m["stage"] == name and m["peak_rss_mb"] > 0
+        assert m["stage"] == name and m["peak_rss_mb"] > 0 and m["params"] == params_to_dict(
+            pl.resolve_params(pl.Pipeline.load(), "ci-tiny", None, {}, [name])[name])
 
-    second = pl.run(scene, preset="ci-tiny")
+    # ... so that status and run without --preset agree with it, and a demo of another preset is refused.
+    assert {r["state"] for r in pl.status(scene)} == {"up-to-date"}, pl.status(scene)
+    second = pl.run(scene)
     assert [r.action for r in second.results] == ["cached"] * len(order), second.table()
+    assert runner.main(["demo", str(tmp_path), "--preset", "default"]) == 2
 
     out = subprocess.run([sys.executable, "runner.py", "run", str(scene), "--preset", "ci-tiny", "--only", "video",
                           "--force", "--json"], capture_output=True, text=True, cwd=REPO)
