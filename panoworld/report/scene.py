@@ -213,19 +213,68 @@ def _plan_extent(scene: SceneData, traj: np.ndarray | None, nav: dict | None) ->
     return np.concatenate(pts)
 
 
-def _mesh_background(scene: SceneData, view: PlanView, floor_y: float | None) -> str:
+def _load_mesh(scene: SceneData):
+    """(valid-faces mesh or None, note)."""
     if not scene.has("mesh"):
-        return "mesh: not run"
+        return None, "mesh: not run"
     from panoworld.mesh import load_erp_mesh
 
     try:
-        mesh = load_erp_mesh(scene.dir("mesh"))
+        return load_erp_mesh(scene.dir("mesh")).valid_only(), ""
     except (OSError, ValueError, KeyError) as e:
-        return f"mesh unreadable: {e}"
-    cut = -0.2 if floor_y is None else floor_y - 1.9  # drop the ceiling: everything above ~1.9 m over the floor
-    mesh = mesh.valid_only()
-    view.background(mesh_from_above(mesh.vertices, mesh.faces, mesh.colors, view, cut))
-    return ""
+        return None, f"mesh unreadable: {e}"
+
+
+@dataclass
+class _PlanLayers:
+    mesh: object
+    nav: dict | None
+    traj: np.ndarray | None
+    tdoc: dict
+    tinfo: dict
+    n_sectors: int
+
+
+def _draw_plan(view: PlanView, L: _PlanLayers, floor_y: float | None, reach_m: float, dot_r: float) -> list[str]:
+    """Draw mesh, NavMesh and trajectory layers into view; return the legend entries."""
+    legend = []
+    if L.mesh is not None:
+        cut = -0.2 if floor_y is None else floor_y - 1.9  # drop the ceiling: everything above ~1.9 m over the floor
+        view.background(mesh_from_above(L.mesh.vertices, L.mesh.faces, L.mesh.colors, view, cut, max_samples=2_000_000))
+    if L.nav is not None:
+        rings = []
+        for poly in L.nav.get("polygons", []):
+            rings.append(np.asarray(poly["outer"], np.float64))
+            rings += [np.asarray(h, np.float64) for h in poly.get("holes", [])]
+        if L.nav.get("vertices") and L.nav.get("triangles"):
+            view.triangles(np.asarray(L.nav["vertices"]), np.asarray(L.nav["triangles"]), "rgba(80,255,160,0.35)")
+        view.polygon_rings(rings, "rgba(40,200,120,0.28)", "#3ee08f", "NavMesh (walkable, eroded by the agent radius)")
+        legend.append('<span><i class="sw" style="background:#3ee08f"></i>NavMesh</span>')
+    if L.traj is None:
+        return legend
+    xz = L.traj[:, [0, 2], 3]
+    start = np.asarray((L.tinfo.get("plan") or {}).get("hub", xz[0]), np.float64).reshape(2)
+    if L.tinfo.get("kind", L.tdoc.get("kind")) == "sector":
+        view.sector_rays(start, L.n_sectors, reach_m)
+        legend.append('<span><i class="sw" style="background:#ffd400"></i>sector boundaries (numbered)</span>')
+    view.polyline(xz, "#ffffff", 2.0)
+    view.headings(L.traj, 3 * dot_r * view.cell, "#ffffff")
+    clearance = np.asarray(L.tdoc.get("clearance_m", [np.nan] * len(xz)), np.float64)
+    cap = float(L.tdoc.get("clearance_cap_m", L.tinfo.get("clearance_cap_m", 0.5)) or 0.5)
+    titles = [f"pose {i}: clearance {c:.3f} m" for i, c in enumerate(clearance)]
+    view.dots(xz, clearance_colors(np.nan_to_num(clearance), cap), dot_r, titles)
+    exempt = [i for i in L.tinfo.get("exempt_poses", []) if 0 <= i < len(xz)]
+    if exempt:
+        view.rings(xz[exempt], "#ff66ff", 2.2 * dot_r, "exempt from the clearance check")
+        legend.append('<span><i class="sw" style="border-color:#ff66ff;border-width:2px"></i>exempt poses</span>')
+    invalid = [p["index"] for p in L.tdoc.get("invalid_poses", L.tinfo.get("invalid_poses", [])) if p.get("index", -1) < len(xz)]
+    if invalid:
+        view.crosses(xz[invalid], "#ff2222", titles=[f"invalid pose {i}" for i in invalid])
+        legend.append('<span><i class="sw" style="background:#ff2222"></i>invalid poses</span>')
+    view.star(xz[0], "#ffffff", title="start (pose 0, the source panorama)")
+    legend.append("<span>&#9734; start (pose 0)</span>")
+    legend.append(f'<span>pose colour = clearance 0 .. {cap:.2f} m</span>{enc.scale_bar(0.0, cap, "m")}')
+    return legend
 
 
 def section_plan(scene: SceneData, params: ReportParams) -> Section:
@@ -235,60 +284,33 @@ def section_plan(scene: SceneData, params: ReportParams) -> Section:
     if nav is None and traj is None and not scene.has("mesh"):
         return missing("plan", title, "mesh, navmesh and trajectory have not run yet")
     tdoc = scene.json("trajectory/trajectory.json") or {}
-    tinfo = scene.info("trajectory")
+    mesh, note = _load_mesh(scene)
+    notes = [note] if note else []
+    notes += [f"{name}: not run" for name, x in (("navmesh", nav), ("trajectory", traj)) if x is None]
+    n_sec = int((scene.manifest("trajectory") or {}).get("params", {}).get("sectors", 8))
+    layers = _PlanLayers(mesh, nav, traj, tdoc, scene.info("trajectory"), n_sec)
+    floor_y = (nav or {}).get("floor_y", tdoc.get("floor_y"))
     ext = _plan_extent(scene, traj, nav)
     view = PlanView(ext, margin_m=0.6)
-    floor_y = (nav or {}).get("floor_y", tdoc.get("floor_y"))
-    notes = [n for n in [_mesh_background(scene, view, floor_y)] if n]
-    legend = []
-    if nav is not None:
-        rings = []
-        for poly in nav.get("polygons", []):
-            rings.append(np.asarray(poly["outer"], np.float64))
-            rings += [np.asarray(h, np.float64) for h in poly.get("holes", [])]
-        if nav.get("vertices") and nav.get("triangles"):
-            view.triangles(np.asarray(nav["vertices"]), np.asarray(nav["triangles"]), "rgba(80,255,160,0.35)")
-        view.polygon_rings(rings, "rgba(40,200,120,0.28)", "#3ee08f", "NavMesh (walkable, eroded by the agent radius)")
-        legend.append('<span><i class="sw" style="background:#3ee08f"></i>NavMesh</span>')
-    else:
-        notes.append("navmesh: not run")
+    reach = float(np.max(np.linalg.norm(ext - (traj[0, [0, 2], 3] if traj is not None else 0), axis=1)))
+    legend = _draw_plan(view, layers, floor_y, reach, 4.0)
+    figs = svg_figure(view.svg(), "seen from above: x right, z (panorama centre) up")
     if traj is not None:
         xz = traj[:, [0, 2], 3]
-        plan = tinfo.get("plan") or {}
-        start = np.asarray(plan.get("hub", xz[0]), np.float64).reshape(2)
-        if tinfo.get("kind", tdoc.get("kind")) == "sector":
-            n_sec = int((scene.manifest("trajectory") or {}).get("params", {}).get("sectors", 8))
-            reach = float(np.max(np.linalg.norm(ext - start, axis=1)))
-            view.sector_rays(start, n_sec, reach)
-            legend.append('<span><i class="sw" style="background:#ffd400"></i>sector boundaries (numbered)</span>')
-        view.polyline(xz, "#ffffff", 2.0)
-        view.headings(traj, 0.15, "#ffffff")
-        clearance = np.asarray(tdoc.get("clearance_m", [np.nan] * len(xz)), np.float64)
-        cap = float(tdoc.get("clearance_cap_m", tinfo.get("clearance_cap_m", 0.5)) or 0.5)
-        titles = [f"pose {i}: clearance {c:.3f} m" for i, c in enumerate(clearance)]
-        view.dots(xz, clearance_colors(np.nan_to_num(clearance), cap), 4.0, titles)
-        exempt = [i for i in tinfo.get("exempt_poses", []) if 0 <= i < len(xz)]
-        if exempt:
-            view.rings(xz[exempt], "#ff66ff", 9.0, "exempt from the clearance check")
-            legend.append('<span><i class="sw" style="border-color:#ff66ff;border-width:2px"></i>exempt poses</span>')
-        invalid = [p["index"] for p in tdoc.get("invalid_poses", tinfo.get("invalid_poses", [])) if p.get("index", -1) < len(xz)]
-        if invalid:
-            view.crosses(xz[invalid], "#ff2222", titles=[f"invalid pose {i}" for i in invalid])
-            legend.append('<span><i class="sw" style="background:#ff2222"></i>invalid poses</span>')
-        view.star(xz[0], "#ffffff", title="start (pose 0, the source panorama)")
-        legend.append("<span>&#9734; start (pose 0)</span>")
-        legend.append(f'<span>pose colour = clearance 0 .. {cap:.2f} m</span>{enc.scale_bar(0.0, cap, "m")}')
-    else:
-        notes.append("trajectory: not run")
+        span = float(np.max(xz.max(0) - xz.min(0)))
+        if span < 0.3 * view.cell * max(view.w, view.h):  # a short path: add a close-up of it
+            zoom = PlanView(xz, margin_m=max(0.25, 0.2 * span), max_px=480)
+            _draw_plan(zoom, layers, floor_y, reach, 5.0)
+            figs += svg_figure(zoom.svg(), f"close-up of the trajectory ({span:.2f} m across)")
+    tinfo = layers.tinfo
     keys = ("kind", "source", "frames", "stride", "step_m", "length_m", "step_cv", "closure_m", "min_clearance_m",
             "sectors_covered", "sectors_reachable", "agent_radius_m")
     facts = table(["trajectory", "value"], [[k, fmt(tinfo.get(k))] for k in keys if k in tinfo])
     ninfo = scene.info("navmesh")
     nfacts = table(["navmesh", "value"], [[k, fmt(ninfo.get(k))] for k in
                                           ("area_m2", "num_triangles", "num_holes", "floor_y", "camera_on_navmesh") if k in ninfo])
-    body = (f'<div class="row">{svg_figure(view.svg(), "seen from above: x right, z (panorama centre) up", "")}'
-            f'<div><div class="legend">{"".join(legend)}</div>{facts}{nfacts}'
-            + "".join(f'<p class="note">{html.escape(n)}</p>' for n in notes) + "</div></div>")
+    body = (f'<div class="legend">{"".join(legend)}</div><div class="row">{figs}</div><div class="row">{facts}{nfacts}</div>'
+            + "".join(f'<p class="note">{html.escape(n)}</p>' for n in notes))
     return Section("plan", title, body, missing=traj is None and nav is None)
 
 

@@ -122,20 +122,26 @@ def mesh_from_above(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray,
                     max_samples: int = 3_000_000, seed: int = 0) -> np.ndarray:
     """(h, w, 3) RGB of the mesh seen from above, ignoring faces with a vertex higher than ceiling_cut_y.
 
-    Faces are sampled (at least one point each, about two per plan pixel they cover) and each plan cell shows its
+    Faces inside the view are sampled (about two points per plan pixel they cover) and each plan cell shows its
     highest sample (smallest y: up = -Y) with the barycentric vertex colour; isolated empty cells take a
     neighbour's colour, the rest stays dark grey.
     """
     v = np.asarray(vertices, np.float32)
     f = np.asarray(faces, np.int64)
-    f = f[(v[f, 1] > ceiling_cut_y).all(1) & (np.abs(v[f]).sum(2) > 1e-6).all(1)]
+    m = 0.5  # faces with a vertex within 0.5 m of the view count as inside it
+    x, z = v[:, 0], v[:, 2]
+    v_ok = (v[:, 1] > ceiling_cut_y) & (np.abs(v).sum(1) > 1e-6)
+    v_in = (x >= view.x0 - m) & (x <= view.x0 + view.w * view.cell + m) & (z <= view.z1 + m) & (z >= view.z1 - view.h * view.cell - m)
+    keep = v_ok[f].all(1) & v_in[f].any(1)
+    f = f[keep]
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
     area_px = 0.5 * np.abs((b[:, 0] - a[:, 0]) * (c[:, 2] - a[:, 2]) - (b[:, 2] - a[:, 2]) * (c[:, 0] - a[:, 0])) / view.cell**2
-    k = np.clip(np.ceil(2 * area_px), 1, 4000).astype(np.int64)
-    if k.sum() > max_samples:
-        k = np.maximum(1, (k * max_samples / k.sum()).astype(np.int64))
-    idx = np.repeat(f, k, axis=0)  # (N, 3) vertex ids of each sample's face
     rng = np.random.default_rng(seed)
+    # about two samples per covered plan pixel; a face smaller than half a pixel gets one with that probability
+    k = np.minimum(np.floor(2 * area_px + rng.random(len(f), np.float32)), 4000).astype(np.int64)
+    if k.sum() > max_samples:
+        k = np.floor(k * (max_samples / k.sum()) + rng.random(len(f), np.float32)).astype(np.int64)
+    idx = np.repeat(f, k, axis=0)  # (N, 3) vertex ids of each sample's face
     r1, r2 = np.sqrt(rng.random(len(idx), np.float32)), rng.random(len(idx), np.float32)
     w = (1 - r1, r1 * (1 - r2), r1 * r2)  # uniform barycentric samples
 
