@@ -52,7 +52,7 @@ def _run_job(job: Job, pipeline: pl.Pipeline, execute, options: dict, on_stage) 
         t0 = time.perf_counter()
         entry: dict[str, Any] = {"variant": name, "ok": False, "stages": []}
         try:
-            if variant is not None:
+            if variant is not None and not options.get("dry_run"):
                 pl.open_scene(job.scene, pipeline)  # a bad scene fails here, before anything is written
                 write_variant(job.scene, variant, pipeline)
             report = pl.run(job.scene, pipeline=pipeline, execute=execute, variant=variant.as_run_arg() if variant else None,
