@@ -89,6 +89,17 @@ def test_viewer_canvas_shows_the_splats_in_chromium(viewer, tmp_path):
 
         with_splats = settled(True)
         empty = settled(False)
+        # "look from this frame" puts the browser's camera on the selected pose
+        k = len(viewer._poses) // 2 + 1
+        viewer.handles["frame_slider"].value = k
+        time.sleep(0.5)
+        page.get_by_role("button", name="look from this frame").dispatch_event("click")
+        (client,) = viewer.server.get_clients().values()
+        for _ in range(40):
+            time.sleep(0.25)
+            if np.allclose(client.camera.position, viewer._poses[k][:3, 3], atol=1e-4):
+                break
+        np.testing.assert_allclose(client.camera.position, viewer._poses[k][:3, 3], atol=1e-4)
         errors = [e for e in console.errors if not any(k in e for k in KNOWN_VISER_ERRORS)]
         assert errors == []
     assert empty.std() < 3  # the empty scene is a plain background

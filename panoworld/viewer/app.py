@@ -223,6 +223,16 @@ class SceneViewer:
         def _(event) -> None:
             self.select_frame(int(slider.value))
 
+        button = gui.add_button("look from this frame")
+
+        @button.on_click
+        def _(event) -> None:
+            T = self._poses[int(slider.value)]
+            for client in self.server.get_clients().values():
+                client.camera.position = T[:3, 3]
+                client.camera.look_at = T[:3, 3] + T[:3, 2]  # the camera's +z (forward) axis
+                client.camera.up_direction = -T[:3, 1]  # OpenCV y is down
+
     def _frame_image(self, i: int, width: int | None = None) -> np.ndarray:
         import cv2
 
