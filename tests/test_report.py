@@ -16,16 +16,22 @@ from panoworld.report.topdown import PlanView
 SCENE_SECTIONS = ["stages", "depth", "plan", "frames", "poses", "gaussians", "eval"]
 
 
+_BUILT: dict[str, object] = {}
+
+
 @pytest.fixture(scope="session")
 def pipeline_scene(synth_scene, tmp_path_factory):
-    """A ci-tiny synthetic scene with every stage run (built once per session; the viewer tests share it)."""
+    """A ci-tiny synthetic scene with every stage run, built once per session: test_viewer imports this fixture,
+    which gives it a second session fixture definition, so the scene itself is cached in this module."""
     from panoworld import pipeline as pl
 
-    scene = tmp_path_factory.mktemp("report") / "scene"
-    shutil.copytree(synth_scene, scene)
-    report = pl.run(scene, preset="ci-tiny", echo=False)
-    assert report.ok, report.table()
-    return scene
+    if "scene" not in _BUILT:
+        scene = tmp_path_factory.mktemp("report") / "scene"
+        shutil.copytree(synth_scene, scene)
+        report = pl.run(scene, preset="ci-tiny", echo=False)
+        assert report.ok, report.table()
+        _BUILT["scene"] = scene
+    return _BUILT["scene"]
 
 
 @pytest.fixture(scope="module")
