@@ -106,6 +106,16 @@ def main() -> None:
         ("shortcut (rho = 0.75), flow 20 steps", _generator(run_a / "export", base, "flow", 20)),
     ]
     table = []
+    vae = rows_out[0][1].vae
+    rec = []
+    with torch.no_grad():  # the ceiling every row shares: the frozen tiny VAE's reconstruction of the targets
+        from panoworld.models import wan_layers as wl
+        from panoworld.train.video.trainer import _uint8, psnr
+
+        for it in items:
+            video = wl.decode_latents(vae, wl.encode_video(vae, it["target"][None]))[0]
+            rec.append(psnr(_uint8(video)[1:], _uint8(it["target"])[1:]))
+    print(f"\nVAE reconstruction of the held-out targets (ceiling): {np.mean(rec):.2f} dB")
     print("\n| model, sampler | PSNR all (dB) | PSNR disoccluded (dB) | CPU s / clip |\n| --- | --- | --- | --- |")
     for name, gen in rows_out:
         p_all, p_hole, cpu = _score(gen, items)
