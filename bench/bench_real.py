@@ -69,7 +69,11 @@ def huge_scene(work: Path) -> Path:
 
 def measure(scene: Path, until: str) -> dict:
     t0 = time.perf_counter()
-    report = pl.run(scene, until=until)
+    try:
+        report = pl.run(scene, until=until)
+    except pl.PipelineError as e:  # bad input or a broken pipeline file: a failed row, the other scenes still run
+        report = pl.Report(scene)
+        report.results.append(pl.StageResult("-", "failed", str(e)))
     wall = time.perf_counter() - t0
     ran = [r for r in report.results if r.action in ("ran", "cached")]
     failed = [r for r in report.results if r.action == "failed"]
