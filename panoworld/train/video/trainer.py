@@ -212,6 +212,10 @@ class VideoTrainer:
         self.val_cache = vdata.LatentCache(root / "val", key)
         t0 = time.perf_counter()
         info = {}
+        if not cfg.cache_latents:  # encode every batch with the frozen VAE instead (_batch)
+            self.train_cache = self.val_cache = None
+            self.cache_info = {"cached": False}
+            return
         for name, ds, cache in (("train", self.train_ds, self.train_cache), ("val", self.val_ds, self.val_cache)):
             info[name] = vdata.build_latent_cache(ds, cache, self.vae, self.device, anchor_first_frame=cfg.anchor_first_frame,
                                                   workers=cfg.workers, rank=self.rt.rank, world=self.rt.world,
@@ -219,7 +223,13 @@ class VideoTrainer:
         self.cache_info = {**info, "seconds": round(time.perf_counter() - t0, 2)}
 
     def _batch(self, idx: list[int], ds, cache):
-        items = [cache.get(i, ds.rows[i]) for i in idx]
+        if cache is None:
+            items = []
+            for i in idx:
+                x0, c, anchor = vdata.encode_item(self.vae, ds[i], self.device, self.cfg.anchor_first_frame)
+                items.append({"x0": x0, "cond": c, "anchor": anchor})
+        else:
+            items = [cache.get(i, ds.rows[i]) for i in idx]
         x0 = torch.stack([it["x0"] for it in items]).to(self.device)
         cond = torch.stack([it["cond"] for it in items]).to(self.device)
         anchored = all(it["anchor"] for it in items)
