@@ -149,6 +149,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         "agent_radius_m": radius,
         "invalid_poses": [{"index": it.index, "reasons": it.reasons} for it in issues],
         "exempt_poses": list(skip),
+        "exempt_min_clearance_m": float(clearance[list(skip[1:])].min()) if len(skip) > 1 else None,
         "plan": meta,
         "plan_s": plan_s,
         "check_s": check_s,

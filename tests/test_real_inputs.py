@@ -78,6 +78,7 @@ def test_failure_class_runs_at_default_settings(tmp_path, case):
         # A seen obstacle is never assumed away: start off the NavMesh, the way there is exempt and reported.
         assert not nav["camera_on_navmesh"] and traj["start_off_navmesh_m"] > 0.2
         assert nav["assumed_walkable"]["blind_spot_m2"] == 0 and len(exempt) > 1
+        assert traj["exempt_min_clearance_m"] >= radius  # the way onto the NavMesh passes over the table top
     elif case == FailureCase.SPARSE_LIDAR:
         cam_h = json.loads((scene_dir / "gt_scene.json").read_text())["camera_height_m"]
         assert depth_info["rescaled"] and depth_info["max_gap_px"] >= 2
