@@ -154,8 +154,8 @@ class VideoTrainer:
             if self.resume:
                 raise common.TrainConfigError(f"{self.ckpt.dir}: no checkpoint to resume from (drop --resume)")
             return 0, None
-        return int(torch.load(latest, map_location="cpu", weights_only=False)["step"]), torch.load(
-            latest, map_location="cpu", weights_only=False)
+        state = torch.load(latest, map_location="cpu", weights_only=False)
+        return int(state["step"]), state
 
     def _restore_or_rng(self, name: str, objects: dict) -> None:
         """Restore this phase's objects when the resume checkpoint was taken in it (also at its end, when the phase's
@@ -350,7 +350,9 @@ class VideoTrainer:
         def evaluate(s: int) -> None:
             self.metrics.log(s, "val", phase=2, fm_loss=self._val_loss(tr, True))
             if (cfg.val_sample_every and s % cfg.val_sample_every == 0) or s == last:
-                self.metrics.log(s, "val_sample", phase=2, **self.sampling_scores(self.rt.unwrap(tr)))
+                with self.rt.autocast():  # a bf16 backbone on CUDA
+                    scores = self.sampling_scores(self.rt.unwrap(tr))
+                self.metrics.log(s, "val_sample", phase=2, **scores)
                 tr.train()
 
         self._loop("lora", self.start, objects, step, eval_fn=evaluate)
