@@ -148,7 +148,7 @@ def table(rows: list[dict], keys: list[str]) -> str:
     out = ["| method | n | " + " | ".join(keys) + " |", "|---" * (len(keys) + 2) + "|"]
     for m in methods:
         sel = [r for r in rows if r["method"] == m and "error" not in r]
-        vals = [np.nanmean([r[k] for r in sel]) if sel else np.nan for k in keys]
+        vals = [np.nanmean([r.get(k, np.nan) for r in sel]) if sel else np.nan for k in keys]
         out.append(f"| {m} | {len(sel)} | " + " | ".join(f"{v:.4g}" for v in vals) + " |")
     errors = [r for r in rows if "error" in r]
     out += [f"  {r['method']} {r['scene']} track {r['track']}: {r['error']}" for r in errors]
@@ -166,20 +166,26 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--views", type=int, default=3, help="N of N@N")
     p.add_argument("--colmap-scenes", type=int, default=2)
     p.add_argument("--colmap-height", type=int, default=256, help="ERP height COLMAP gets (rendered exactly)")
+    p.add_argument("--stage2-scenes", type=int, default=0, help="stage 2 on the first K held-out scenes only (0 = all)")
+    p.add_argument("--skip-stage1", action="store_true", help="stage 2 only (stage 1 still loads --stage1)")
     p.add_argument("--json", type=Path, help="also write every row here")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     trained1 = PanoVGGT.from_pretrained(args.stage1, flag="--stage1")
     data = SceneFrames(list_scenes(args.data)[-args.held_out:], trained1.cfg.image_height)
     print(f"held-out scenes: {[s.name for s in data.scenes]} at {trained1.cfg.image_height}x{2 * trained1.cfg.image_height}")
-    r1 = stage1_rows({"trained": trained1, "random init": random_init(trained1, args.seed, False)}, data,
-                     args.frames, args.colmap_scenes, args.colmap_height)
-    print(f"\nstage 1: {args.frames} frames per track, ATE / RPE_t in metres, RPE_r in degrees (Sim(3)-aligned)")
-    print(table(r1, ["ate", "rpe_t", "rpe_r", "abs_rel"]))
-    rows = {"stage1": r1}
+    rows = {}
+    if not args.skip_stage1:
+        r1 = stage1_rows({"trained": trained1, "random init": random_init(trained1, args.seed, False)}, data,
+                         args.frames, args.colmap_scenes, args.colmap_height)
+        print(f"\nstage 1: {args.frames} frames per track, ATE / RPE_t in metres, RPE_r in degrees (Sim(3)-aligned)")
+        print(table(r1, ["ate", "rpe_t", "rpe_r", "abs_rel"]))
+        rows["stage1"] = r1
     if args.stage2:
         trained2 = PanoVGGT.from_pretrained(args.stage2, flag="--stage2")
         vs = trained2.require_gaussian_head("--stage2").cfg.voxel_size
+        if args.stage2_scenes:
+            data.scenes = data.scenes[: args.stage2_scenes]
         r2 = stage2_rows({"decoder": trained2, "decoder init": random_init(trained2, args.seed, True)}, data,
                          args.views, vs)
         print(f"\nstage 2: {args.views}@{args.views} (context @ novel views), voxel size {vs} m, "

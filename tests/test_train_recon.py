@@ -105,7 +105,7 @@ def test_stage1_resume_after_a_kill_reproduces_the_loss_curve(synth_dataset, tmp
     loaded = PanoVGGT.from_pretrained(weights)
     assert torch.equal(loaded.state_dict()["patch_embed.weight"], sa["patch_embed.weight"])
     doc = yaml.safe_load((tmp_path / "cut" / "export" / "scene.yaml").read_text())
-    assert doc["params"] == {"poses": {"backend": "vggt", "weights": str(weights.resolve())}}
+    assert doc["params"] == {"poses": {"backend": "vggt", "weights": str(weights.resolve()), "align": "se3"}}
     with pytest.raises(ValueError, match="different config"):
         Trainer(ReconConfig(**{**TINY, **kw, "lr": 0.1}), synth_dataset, tmp_path / "cut", resume=True, progress=False)
 

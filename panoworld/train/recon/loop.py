@@ -257,7 +257,8 @@ class Trainer:
         """RUN_DIR/export/weights (config.json + model.safetensors) and RUN_DIR/export/scene.yaml."""
         weights = self.run_dir.export / WEIGHTS
         self.rt.unwrap(self.model).save_pretrained(weights)
-        params = {"poses": {"backend": "vggt", "weights": str(weights.resolve())}}
+        # The model is trained in metres: keep its scale (se3) rather than fitting one to the plan (sim3).
+        params = {"poses": {"backend": "vggt", "weights": str(weights.resolve()), "align": "se3"}}
         if self.cfg.stage == 2:
             params["gaussians"] = {"backend": "decoder", "weights": str(weights.resolve())}
         common.write_export_scene_yaml(
