@@ -23,7 +23,7 @@ class Backend(enum.StrEnum):
     VOXEL_FUSION = "voxel-fusion"
     """Non-learned: confidence-weighted voxel fusion of back-projected pixels, one Gaussian per voxel part."""
     DECODER = "decoder"
-    """The learned voxel-aligned GSDecoder (needs --weights)."""
+    """The learned voxel-aligned Gaussian head of PanoVGGT (needs --weights: a stage-2 export)."""
 
 
 @dataclass(kw_only=True)
@@ -40,7 +40,8 @@ class Params(FusionParams):
     from disk, so memory stays bounded by one frame of this size plus the occupied voxels; 512 rows sample 2 cm voxels
     at least once per pixel row up to about 3 m away."""
     weights: str | None = None
-    """decoder: directory holding config.json and model.safetensors of GSDecoder (its voxel size wins)."""
+    """decoder: directory holding config.json and model.safetensors of PanoVGGT with a Gaussian head (runner.py train
+    recon --stage 2 exports it; its voxel size and input height win)."""
     device: str = "cpu"
     """decoder: torch device (cpu, cuda)."""
     eval_views: int = 1
@@ -56,9 +57,10 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
                             height=params.height, max_height=params.max_height)
     try:
         if params.backend == Backend.DECODER:
-            from panoworld.models.gs_decoder import GSDecoder
+            from panoworld.models.panovggt import PanoVGGT
 
-            model = GSDecoder.from_pretrained(params.weights, flag="--weights", device=params.device)
+            model = PanoVGGT.from_pretrained(params.weights, flag="--weights", device=params.device)
+            model.require_gaussian_head("--weights")
             result = model.decode(frames.load())
         else:
             result = voxel_fusion(frames, params, progress=True)
