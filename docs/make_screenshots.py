@@ -7,6 +7,8 @@ is under 300 KB. Needs Chromium (Debian: apt-get install chromium) and the dev e
 from __future__ import annotations
 
 import argparse
+import json
+import re
 import socket
 import sys
 import time
@@ -42,6 +44,10 @@ def report_shots(scene: Path, out: Path) -> None:
     with browser_page(1280, 900) as (page, console):
         page.goto(html.resolve().as_uri())
         page.wait_for_load_state("load")
+        labels = json.loads(page.locator("#report-data").text_content()).get("frames", {}).get("text", {}).get("label", [])
+        fills = [float(m.group(1)) if (m := re.search(r"fill ([0-9.]+) %", t)) else 0.0 for t in labels]
+        if fills:  # show the frame with the most to generate
+            page.locator('input[data-slider="frames"]').fill(str(int(np.argmax(fills))))
         for sec in ("plan", "frames", "gaussians"):
             el = page.locator(f"section#{sec}")
             el.scroll_into_view_if_needed()
@@ -62,7 +68,7 @@ def viewer_shot(scene: Path, out: Path) -> None:
         port = s.getsockname()[1]
     viewer = SceneViewer(scene, ViewerParams(port=port))
     try:
-        with browser_page(1280, 760) as (page, _):
+        with browser_page(1000, 600) as (page, _):
             page.goto(viewer.url)
             page.wait_for_selector("canvas", timeout=60_000)
             time.sleep(3)
@@ -73,7 +79,7 @@ def viewer_shot(scene: Path, out: Path) -> None:
             if viewer._poses is not None and len(viewer._poses) > 2:
                 viewer.handles["frame_slider"].value = len(viewer._poses) // 3
             prev = None
-            for _ in range(30):  # software WebGL: wait for two equal frames
+            for _ in range(10):  # software WebGL: wait for two equal frames
                 time.sleep(1.0)
                 img = screenshot_array(page)
                 if prev is not None and np.abs(img.astype(int) - prev).mean() < 0.5:
@@ -88,13 +94,16 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scene", type=Path, nargs="?", default=Path("demo_out/scene"))
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "img")
+    ap.add_argument("--only", choices=["report", "viewer"], help="make only these screenshots")
     args = ap.parse_args(argv)
     if not (args.scene / "artifacts").is_dir():
         print(f"error: {args.scene}: no artifacts/ (run `python runner.py demo` first)", file=sys.stderr)
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
-    report_shots(args.scene, args.out)
-    viewer_shot(args.scene, args.out)
+    if args.only != "viewer":
+        report_shots(args.scene, args.out)
+    if args.only != "report":
+        viewer_shot(args.scene, args.out)
     return 0
 
 

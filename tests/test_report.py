@@ -151,3 +151,16 @@ def test_cli_rejects_what_is_not_a_scene(tmp_path, capsys):
     assert "not a directory" in capsys.readouterr().err
     assert main([str(tmp_path)]) == 2
     assert "neither a scene" in capsys.readouterr().err
+
+
+def test_pinhole_cut_from_erp_looks_along_plus_z():
+    from panoworld.report.splats import pinhole_from_erp
+
+    erp = np.zeros((64, 128, 3), np.uint8)
+    erp[..., 0] = np.arange(128)[None, :] * 2  # red encodes the column (longitude)
+    erp[..., 1] = np.arange(64)[:, None] * 4  # green encodes the row (latitude)
+    view = pinhole_from_erp(erp, 32, 90.0)
+    # centre of the view = the ERP centre (lon 0, lat 0): column 64, row 32
+    assert abs(int(view[16, 16, 0]) - 128) <= 3 and abs(int(view[16, 16, 1]) - 128) <= 6
+    # the left edge looks 45 degrees left (lon -pi/4 -> column 48); rows go down in both images
+    assert abs(int(view[16, 0, 0]) - 97) <= 3 and view[0, 16, 1] < view[31, 16, 1]

@@ -63,12 +63,13 @@ def browser_page(width: int = 1400, height: int = 900):
         shutil.rmtree(profile, ignore_errors=True)
 
 
-def screenshot_array(page, path: Path | None = None, full_page: bool = False, clip: dict | None = None):
-    """(H, W, 3) uint8 RGB of the page (optionally also written to path as PNG)."""
+def screenshot_array(page, path: Path | None = None, full_page: bool = False, clip: dict | None = None,
+                     timeout_s: float = 120.0):
+    """(H, W, 3) uint8 RGB of the page (optionally also written to path as PNG); software WebGL can be slow."""
     import cv2
     import numpy as np
 
-    png = page.screenshot(full_page=full_page, clip=clip)
+    png = page.screenshot(full_page=full_page, clip=clip, timeout=timeout_s * 1000)
     if path is not None:
         Path(path).write_bytes(png)
     img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)

@@ -19,7 +19,7 @@ section.missing{background:#fafafa;color:#666}section.missing h2:after{content:"
 .row{display:flex;flex-wrap:wrap;gap:12px;align-items:flex-start}
 figure{margin:0;flex:1 1 300px;min-width:220px;max-width:720px}figure img,figure svg{width:100%;height:auto;display:block;
 border:1px solid #ddd;background:#111}figcaption{font-size:12px;color:#444;margin-top:3px}
-figure.plot img,figure.plot svg{background:#fff}
+figure.plot img,figure.plot svg{background:#fff}figure.small{max-width:380px}
 table{border-collapse:collapse;font-size:13px;margin:6px 0}td,th{border-bottom:1px solid #e3e5e8;padding:3px 9px;
 text-align:left;vertical-align:top}th{background:#f0f2f5}td.num{text-align:right;font-variant-numeric:tabular-nums}
 .ok{color:#137333;font-weight:600}.bad{color:#c5221f;font-weight:600}.na{color:#888}
@@ -99,10 +99,12 @@ def missing(id: str, title: str, reason: str) -> Section:
     return Section(id, title, f'<p class="note">{html.escape(reason)}</p>', missing=True)
 
 
-def figure(src: str, caption: str, *, slot: str | None = None, plot: bool = False, extra: str = "") -> str:
-    """<figure> with an <img>; slot="KEY:COLUMN" lets a slider swap its frames."""
+def figure(src: str, caption: str, *, slot: str | None = None, plot: bool = False, extra: str = "",
+           small: bool = False) -> str:
+    """<figure> with an <img>; slot="KEY:COLUMN" lets a slider swap its frames; small: at most 380 px wide."""
     attr = f' data-slot="{slot}"' if slot else ""
-    cls = ' class="plot"' if plot else ""
+    names = " ".join(n for n, on in (("plot", plot), ("small", small)) if on)
+    cls = f' class="{names}"' if names else ""
     return (f'<figure{cls}><img src="{src}" alt="{html.escape(caption)}"{attr}>'
             f"<figcaption>{html.escape(caption)}</figcaption>{extra}</figure>")
 

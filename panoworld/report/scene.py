@@ -30,8 +30,8 @@ class ReportParams:
     """Width in pixels of every embedded frame (panorama and depth: 2x this)."""
     gs_views: int = 3
     """Gaussian renders (a context pose and novel poses between frames); 0 = only the stage's preview.png."""
-    gs_height: int = 128
-    """ERP height of those renders."""
+    gs_height: int = 192
+    """Size in pixels of those renders (square forward views, 90 degree field of view)."""
     gs_budget_s: float = 5.0
     """Stop rendering Gaussians once this many seconds are spent (the page says how many were rendered)."""
     eval_json: Path | None = None

@@ -29,6 +29,64 @@ def render_poses(poses: np.ndarray, context: list[int], k: int) -> list[tuple[st
     return out[:k]
 
 
+def pinhole_from_erp(erp: np.ndarray, size: int, fov_deg: float) -> np.ndarray:
+    """The forward (+z) pinhole view (size, size) with fov_deg horizontal field of view resampled from an ERP image."""
+    import cv2
+
+    from panoworld.conventions import erp_pixel_from_dir
+
+    f = size / 2 / np.tan(np.deg2rad(fov_deg) / 2)
+    jj, ii = np.meshgrid(np.arange(size) + 0.5, np.arange(size) + 0.5)
+    d = np.stack([(jj - size / 2) / f, (ii - size / 2) / f, np.ones_like(jj)], -1)
+    u, v = erp_pixel_from_dir(d, erp.shape[0], erp.shape[1])
+    return cv2.remap(erp, (u - 0.5).astype(np.float32), (v - 0.5).astype(np.float32), cv2.INTER_AREA
+                     if erp.shape[0] > 2 * size else cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+
+
+def _renders(scene: SceneData, d, info: dict, poses: np.ndarray, vframes: list, params: ReportParams):
+    """Forward pinhole renders of the Gaussians (one cube face: a sixth of an ERP render's cost) at a context pose and
+    novel poses, each beside the same view cut out of the nearest video frame (from that frame's own pose)."""
+    import torch
+
+    from panoworld.render_gs import render_perspective
+    from panoworld.splat_ply import read_gaussians_ply
+
+    pairs, notes = [], []
+    size, fov = params.gs_height, 90.0
+    f = size / 2 / np.tan(np.deg2rad(fov) / 2)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # multi-threaded CPU torch was up to 10x slower on a shared 2-core machine
+    t0 = time.perf_counter()
+    try:
+        g = read_gaussians_ply(d / "gaussians.ply")
+    except (OSError, ValueError, KeyError) as e:
+        torch.set_num_threads(threads)
+        return pairs, [f"gaussians.ply unreadable: {e}"]
+    views = render_poses(poses, [int(i) for i in info.get("frames", [])], params.gs_views)
+    done = 0
+    try:
+        for label, near, pose in views:
+            if done and time.perf_counter() - t0 > params.gs_budget_s:
+                break
+            out = render_perspective(g, pose, f, f, size / 2, size / 2, size, size, background=(0.0, 0.0, 0.0))
+            img = (out.rgb.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+            cov = float((out.alpha.numpy() > 0.5).mean())
+            fig = figure(enc.data_uri(img), f"Gaussians: {label}, forward {fov:.0f} deg view, coverage {100 * cov:.1f} %",
+                         small=True)
+            frame = enc.read_rgb(scene.dir("video") / vframes[near]["rgb"]) if 0 <= near < len(vframes) else None
+            if frame is not None:
+                fig += figure(enc.data_uri(pinhole_from_erp(frame, size, fov)), f"video frame {near}, same view from its own pose",
+                              small=True)
+            pairs.append(fig)
+            done += 1
+    finally:
+        torch.set_num_threads(threads)
+    notes.append(f"{done} of {len(views)} renders ({size}x{size}, {len(g.means)} Gaussians) in "
+                 f"{time.perf_counter() - t0:.1f} s with panoworld.render_gs on the CPU (reading the .ply included; "
+                 f"budget {params.gs_budget_s:.0f} s: --gs-views, --gs-height, --gs-budget-s)")
+    return pairs, notes
+
+
 def section_gaussians(scene: SceneData, params: ReportParams) -> Section:
     title = "Gaussians: renders beside video frames"
     if not scene.has("gaussians"):
@@ -58,34 +116,9 @@ def section_gaussians(scene: SceneData, params: ReportParams) -> Section:
     if poses is None:
         poses = scene.poses("video/video.json")
     if params.gs_views > 0 and poses is not None:
-        from panoworld.render_gs import render_erp
-        from panoworld.splat_ply import read_gaussians_ply
-
-        import torch
-
-        threads = torch.get_num_threads()
-        torch.set_num_threads(1)  # multi-threaded CPU torch is up to 10x slower on a shared 2-core machine
-        t0 = time.perf_counter()
-        try:
-            g = read_gaussians_ply(d / "gaussians.ply")
-        except (OSError, ValueError, KeyError) as e:
-            g = None
-            notes.append(f"gaussians.ply unreadable: {e}")
-        views = render_poses(poses, [int(i) for i in info.get("frames", [])], params.gs_views) if g is not None else []
-        done = 0
-        for label, near, pose in views:
-            if time.perf_counter() - t0 > params.gs_budget_s:
-                break
-            out = render_erp(g, pose, params.gs_height, 2 * params.gs_height, background=(0.0, 0.0, 0.0))
-            img = (out.rgb.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
-            cov = float((out.alpha.numpy() > 0.5).mean())
-            pairs.append(figure(enc.data_uri(img), f"render: {label}, {params.gs_height} rows, coverage {100 * cov:.1f} %")
-                         + video_frame(near))
-            done += 1
-        torch.set_num_threads(threads)
-        if views:
-            notes.append(f"{done} of {len(views)} renders in {time.perf_counter() - t0:.1f} s "
-                         f"(panoworld.render_gs.render_erp on the CPU; budget {params.gs_budget_s:.0f} s, --gs-views/--gs-budget)")
+        r_pairs, r_notes = _renders(scene, d, info, poses, vframes, params)
+        pairs += r_pairs
+        notes += r_notes
     rows = [[k, fmt(info.get(k))] for k in ("backend", "num_gaussians", "voxel_size", "context_psnr", "depth_source") if k in info]
     if info.get("frames"):
         rows.append(["context frames", ", ".join(map(str, info["frames"]))[:200]])
