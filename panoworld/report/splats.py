@@ -44,7 +44,7 @@ def pinhole_from_erp(erp: np.ndarray, size: int, fov_deg: float) -> np.ndarray:
 
 
 def _renders(scene: SceneData, d, info: dict, poses: np.ndarray, vframes: list, params: ReportParams):
-    """Forward pinhole renders of the Gaussians (one cube face: a sixth of an ERP render's cost) at a context pose and
+    """Forward pinhole renders of the Gaussians (one cube face: about a quarter of an ERP render's CPU time) at a context pose and
     novel poses, each beside the same view cut out of the nearest video frame (from that frame's own pose)."""
     import torch
 
