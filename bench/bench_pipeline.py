@@ -138,7 +138,7 @@ def main() -> int:
             src = root / f"synth_{a.full}"
             full = root / f"synth_{a.full}_full"
             if not full.exists():
-                shutil.copytree(src, full)
+                shutil.copytree(src, full, ignore=shutil.ignore_patterns(".tmp-*", ".lock"))
             print(f"\nsynth seed {a.full} at full size ({' '.join(FULL_SETS)}): poses and gaussians rerun")
             rows, total = run_scene(full, a.preset, FULL_SETS, from_="poses")
             print_rows("full size", rows, total)
