@@ -52,8 +52,9 @@ def report_shots(scene: Path, out: Path) -> None:
             el = page.locator(f"section#{sec}")
             el.scroll_into_view_if_needed()
             box = el.bounding_box()
-            clip = {"x": box["x"], "y": box["y"], "width": box["width"], "height": min(box["height"], 900)}
-            img = screenshot_array(page, clip=clip) if sec != "gaussians" else screenshot_array(page, clip={**clip, "height": min(box["height"], 620)})
+            tallest = 620 if sec == "gaussians" else 900
+            clip = {"x": box["x"], "y": box["y"], "width": box["width"], "height": min(box["height"], tallest)}
+            img = screenshot_array(page, clip=clip)
             save_small(img, out / f"report_{sec}.png")
         if console.errors:
             print("console errors:", console.errors, file=sys.stderr)

@@ -58,7 +58,8 @@ def clip_strip(cond_dir: Path, row: dict, width: int) -> str:
     rgb = enc.read_rgb(cond_root / frames[i]["rgb"], width)
     mask = enc.read_gray(cond_root / frames[i]["mask"], width)
     target = enc.read_rgb(cdir / "target" / f"{i:06d}.png", width)
-    name = f"{row['scene']}/{row['clip']} · track {row.get('track')} · frames {row.get('length')} · stride {row.get('stride')} · shown: frame {i}"
+    name = (f"{row['scene']}/{row['clip']} · track {row.get('track')} · frames {row.get('length')} · "
+            f"stride {row.get('stride')} · shown: frame {i}")
     figs = []
     if rgb is not None:
         figs.append(figure(enc.data_uri(rgb), "condition"))

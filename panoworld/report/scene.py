@@ -466,12 +466,13 @@ def section_eval(scene: SceneData, params: ReportParams) -> Section:
     targets = rep.get("targets", {})
     rows = []
     for stage, metrics in stages.items():
-        if not isinstance(metrics, dict) or "reason" in metrics and len(metrics) <= 2:
+        if not isinstance(metrics, dict) or metrics.get("available") is False:  # a stage eval could not score
             rows.append([stage, "-", fmt(metrics), "", ""])
             continue
         for k, (name, value) in enumerate(metrics.items()):
             t = (targets.get(stage) or {}).get(name)
-            ok = "" if t is None or t.get("met") is None else ('<span class="ok">yes</span>' if t["met"] else '<span class="bad">no</span>')
+            met = None if t is None else t.get("met")
+            ok = "" if met is None else '<span class="ok">yes</span>' if met else '<span class="bad">no</span>'
             val = fmt(value) if not isinstance(value, list) else ", ".join(map(str, value))[:80]
             rows.append([stage if k == 0 else "", name, val[:200], t["target"] if t else "", ok])
     newest = max((m.get("finished", "") for m in (scene.manifest(s) for s in _stage_names()) if m), default="")

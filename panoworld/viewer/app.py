@@ -167,7 +167,8 @@ class SceneViewer:
                 color=(40, 110, 220) if ok else (220, 40, 40), wxyz=quat_wxyz_from_rotmat(T[:3, :3]), position=T[:3, 3])
         self.handles["frustums"] = self.server.scene.add_frame("/trajectory/frames", show_axes=False)
         self.handles["current"] = self.server.scene.add_camera_frustum(
-            "/trajectory/current", fov=np.deg2rad(90.0), aspect=2.0, scale=0.15, thickness=3.0, thickness_units="screen", color=(255, 120, 0),
+            "/trajectory/current", fov=np.deg2rad(90.0), aspect=2.0, scale=0.15, thickness=3.0, thickness_units="screen",
+            color=(255, 120, 0),
             wxyz=quat_wxyz_from_rotmat(poses[0][:3, :3]), position=poses[0][:3, 3],
             image=self._frame_image(0, 256), format="jpeg")
         src = "recovered (poses.json)" if recovered is not None else "planned (trajectory.json)"
