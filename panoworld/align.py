@@ -111,6 +111,11 @@ def align_trajectory(
     s = 1.0
     if sim3 and sig_s > 0:
         s = float(np.einsum("ni,ni->", xd, xs @ R.T) / (xs**2).sum())
+        if s <= 0:
+            # The orientations outvoted the centres so far that they point the other way: no similarity with
+            # this R maps one path onto the other; fall back to Umeyama on the centres, whose scale is >= 0.
+            s, R, t = umeyama(c_est, c_gt)
+            return apply_sim3(s, R, t, est), (s, R, t)
     t = c_gt.mean(0) - s * R @ c_est.mean(0)
     return apply_sim3(s, R, t, est), (s, R, t)
 

@@ -90,6 +90,18 @@ def test_rotation_weighted_alignment_is_exact_on_exact_data():
     assert s == pytest.approx(0.25)
 
 
+def test_rotation_weighted_alignment_never_gives_a_negative_scale():
+    # Orientations agree exactly while the centres run the other way (a pose model that got the path backwards):
+    # the joint fit's rotation would need a negative scale; the fit falls back to Umeyama on the centres.
+    gt = random_trajectory(12, 3)
+    est = gt.copy()
+    est[:, :3, 3] = 2.0 * gt[:, :3, 3].mean(0) - gt[:, :3, 3]
+    _, (s, R, t) = align_trajectory(est, gt, rotation_weight=1.0)
+    assert s > 0
+    s_u, R_u, t_u = umeyama(est[:, :3, 3], gt[:, :3, 3])
+    assert s == pytest.approx(s_u) and np.allclose(R, R_u) and np.allclose(t, t_u)
+
+
 def test_metrics_zero_on_identical_and_similar_trajectories():
     gt = random_trajectory(25, 8)
     m = trajectory_metrics(gt, gt)
