@@ -189,13 +189,17 @@ class SfmOptions:
     """SIFT features per frame."""
     upsample: bool = False
     """SIFT's first octave on the 2x upsampled image (COLMAP's default; about 3x the extraction time for the small
-    features of the upsampled octave)."""
+    features of the upsampled octave). Always on for frames narrower than SMALL_FRAME_WIDTH px, where it is cheap
+    and the plain pyramid finds too few features."""
     mapper: str = "global"
     """global (GLOMAP: rotation averaging + global positioning + bundle adjustment) or incremental."""
     overlap: int = 10
     """sequential: each frame is matched with this many successors (plus successors 2^k further: quadratic overlap)."""
     num_threads: int = -1
     seed: int = 0
+
+
+SMALL_FRAME_WIDTH = 640
 
 
 def _spherical_sfm(img_dir: Path, out: Path, matcher: Matcher, sfm: SfmOptions, timings: dict) -> dict:
@@ -212,7 +216,13 @@ def _spherical_sfm(img_dir: Path, out: Path, matcher: Matcher, sfm: SfmOptions, 
     if sfm.max_image_size > 0:
         extraction.max_image_size = sfm.max_image_size
     extraction.sift.max_num_features = sfm.max_features
-    extraction.sift.first_octave = -1 if sfm.upsample else 0
+    from PIL import Image
+
+    with Image.open(next(iter(sorted(img_dir.iterdir())))) as im:
+        width = im.width if sfm.max_image_size <= 0 else min(im.width, sfm.max_image_size)
+    upsample = sfm.upsample or width < SMALL_FRAME_WIDTH
+    extraction.sift.first_octave = -1 if upsample else 0
+    timings["features_upsampled"] = upsample
     pycolmap.extract_features(
         db, img_dir, reader_options=pycolmap.ImageReaderOptions(camera_model="EQUIRECTANGULAR"),
         camera_mode=pycolmap.CameraMode.SINGLE, extraction_options=extraction,

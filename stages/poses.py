@@ -67,7 +67,8 @@ class Params:
     max_features: int = 2048
     """colmap spherical: SIFT features per frame."""
     upsample_features: bool = False
-    """colmap spherical: start SIFT's pyramid at the 2x upsampled frame (COLMAP's default; ~3x the extraction time)."""
+    """colmap spherical: start SIFT's pyramid at the 2x upsampled frame (COLMAP's default; ~3x the extraction time).
+    Always on for frames narrower than 640 px, where the plain pyramid finds too few features."""
     num_threads: int = -1
     """colmap: CPU threads (-1 = all)."""
     seed: int = 0

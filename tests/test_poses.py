@@ -103,7 +103,7 @@ def test_colmap_registers_every_frame_and_recovers_metric_canonical_poses(colmap
     info = manifest["info"]
     assert info["num_registered"] == len(gt) and info["unregistered"] == []
     m = info["metrics_vs_planned"]
-    assert m["rte"] < 0.005, m  # ATE under 0.5 % of the path length
+    assert m["ate_over_path"] < 0.005, m  # ATE under 0.5 % of the path length
     art = load_poses(tmp / "poses")
     assert art.registered.all() and art.backend == "colmap"
     np.testing.assert_allclose(art.world_from_cam[:, :3, 3], gt[:, :3, 3], atol=0.01)
@@ -191,7 +191,7 @@ def test_features_at_a_bounded_size_keep_the_model_in_the_video_pixel_coordinate
     manifest = run_stage(tmp_path, video, write_trajectory(tmp_path / "trajectory", gt), backend="colmap",
                          max_image_size=256, max_features=1024)  # SIFT on 128x256 copies of 256x512 frames
     assert manifest["info"]["num_registered"] == len(gt)
-    assert manifest["info"]["metrics_vs_planned"]["rte"] < 0.005
+    assert manifest["info"]["metrics_vs_planned"]["ate_over_path"] < 0.005
     rec = pycolmap.Reconstruction(tmp_path / "poses" / "sparse" / "0")
     cam = next(iter(rec.cameras.values()))
     assert (cam.width, cam.height) == (512, 256)
