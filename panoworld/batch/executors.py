@@ -66,7 +66,7 @@ class LocalStageExecutor:
 
 
 class RayStageExecutor:
-    """Each stage as a Ray task with pipeline.yaml `resources`: num_cpus = cpu (capped at the cluster's CPUs),
+    """Each stage as a Ray task with pipeline.yaml `resources`: num_cpus = cpu (capped at the cluster's CPUs / workers),
     num_gpus = gpu when the stage's params need a GPU (needs_gpu). Paths must be visible to every node (a shared
     file system) and the nodes must have this repository and its environment at the same paths."""
 
@@ -78,10 +78,13 @@ class RayStageExecutor:
         self.ray = RayExecutor(workers, address).ray  # connects, or starts a local instance with `workers` CPUs
         res = self.ray.cluster_resources()
         self.cpus, self.gpus = float(res.get("CPU", 1)), float(res.get("GPU", 0))
+        # Each of the `workers` scenes in flight may ask for at most its share of the cluster's CPUs (as the local
+        # executor's cores / workers threads): a 2-CPU stage must not hold the whole of a small cluster.
+        self.cpu_share = max(1.0, self.cpus / max(1, workers))
         self.remote = self.ray.remote(max_retries=0)(_run_with_params)
 
     def __call__(self, node: StageNode, scene: Scene, params: Any, echo: bool) -> tuple[int, float, float]:
-        cpus = min(float(node.resources.get("cpu", 1)) or 1.0, self.cpus)
+        cpus = min(float(node.resources.get("cpu", 1)) or 1.0, self.cpu_share)
         gpus = float(node.resources.get("gpu", 1)) if needs_gpu(node, params) else 0.0
         if gpus > self.gpus:
             raise PipelineError(f"stage {node.name} needs {gpus:g} GPU(s) with these params but the Ray cluster has "
