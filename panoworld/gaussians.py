@@ -566,8 +566,10 @@ def write_artifact(out_dir: Path, result: FusionResult, frames: ContextFrames | 
             ref = cv2.resize(ref, (2 * eval_height, eval_height), interpolation=cv2.INTER_AREA)
         if not evals:
             cv2.imwrite(str(out_dir / "preview.png"), img[..., ::-1])
+        covered = out.alpha.numpy() > 0.5
         evals.append({"frame": frames.indices[k], "psnr": psnr(img, ref), "ws_psnr": ws_psnr(img, ref),
-                      "ssim": ssim(img, ref), "coverage": float(out.alpha.mean())})
+                      "ssim": ssim(img, ref), "coverage": float(out.alpha.mean()),
+                      "psnr_covered": psnr(img, ref, covered) if covered.any() else None})
     warnings = []
     if max(result.extent_m) < 2 * result.voxel_size:
         warnings.append(f"the scene spans {max(result.extent_m):.3f} m, under two voxels of {result.voxel_size} m; "
@@ -585,6 +587,9 @@ def write_artifact(out_dir: Path, result: FusionResult, frames: ContextFrames | 
         "extent_m": result.extent_m,
         "eval": evals,
         "context_psnr": float(np.mean([e["psnr"] for e in evals])) if evals else None,
+        # Where the frame has no depth (a LiDAR's zenith/nadir) there are no Gaussians, while the video is filled.
+        "context_psnr_covered": float(np.mean([e["psnr_covered"] for e in evals])) if evals and all(
+            e["psnr_covered"] is not None for e in evals) else None,
         "warnings": warnings,
         "frame": "canonical world: metres, camera 0 = identity, OpenCV axes, y down = gravity",
     }

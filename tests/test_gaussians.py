@@ -246,6 +246,7 @@ def test_stage_writes_a_valid_artifact(tmp_path, room):
     assert info["frames"] == [0, 1] and info["depth_source"] == "video"  # frame 2 is unregistered
     assert info["num_gaussians"] == len(read_gaussians_ply(out / "gaussians.ply")) > 1000
     assert len(info["eval"]) == 2 and info["context_psnr"] > 25
+    assert info["context_psnr_covered"] >= info["context_psnr"] - 0.5  # the room is covered: about the same score
     assert info["fusion_height"] == 64
     capped = execute_stage(spec, {"video": video, "poses": poses}, Params(voxel_size=0.05, eval_views=0, max_height=32),
                            tmp_path / "capped", input_digests={"video": "0" * 64, "poses": "1" * 64})["info"]

@@ -119,7 +119,7 @@ def section_gaussians(scene: SceneData, params: ReportParams) -> Section:
         r_pairs, r_notes = _renders(scene, d, info, poses, vframes, params)
         pairs += r_pairs
         notes += r_notes
-    rows = [[k, fmt(info.get(k))] for k in ("backend", "num_gaussians", "voxel_size", "context_psnr", "depth_source") if k in info]
+    rows = [[k, fmt(info.get(k))] for k in ("backend", "num_gaussians", "voxel_size", "context_psnr", "context_psnr_covered", "depth_source") if k in info]
     if info.get("frames"):
         rows.append(["context frames", ", ".join(map(str, info["frames"]))[:200]])
     rows += [["warning", w_] for w_ in info.get("warnings", [])]
