@@ -154,6 +154,14 @@ def tmp_dir_for(out_dir: Path) -> Path:
     return out_dir.parent / f"{TMP_PREFIX}{out_dir.name}-{os.getpid()}-{time.time_ns()}"
 
 
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write text to path through a hidden sibling and a rename: readers see the old file or the new, never a part."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.part")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
 def write_manifest(tmp_dir: Path, manifest: dict, kind: str) -> None:
     """Add the checksum, validate and write the manifest last, atomically (write + fsync + rename)."""
     manifest = dict(manifest, checksum=manifest_checksum(manifest))

@@ -173,7 +173,7 @@ class RayExecutor:
         self.ray = ray
         if not ray.is_initialized():
             kw: dict[str, Any] = {"address": address} if address else {"num_cpus": workers, "include_dashboard": False}
-            ray.init(log_to_driver=False, runtime_env={"env_vars": _single_thread_env()}, **kw)
+            ray.init(log_to_driver=False, runtime_env={"env_vars": thread_env(1)}, **kw)
         self.workers = workers
 
     def imap_unordered(self, fn: Callable, tasks: list) -> Iterator:
@@ -190,12 +190,16 @@ def _ray_call(fn, task):
     return fn(task)
 
 
-def _single_thread_env() -> dict[str, str]:
-    return {"OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+THREAD_VARS = ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+
+
+def thread_env(threads: int = 1) -> dict[str, str]:
+    """Environment variables that cap a worker process's native thread pools at `threads`."""
+    return {k: str(max(1, int(threads))) for k in THREAD_VARS}
 
 
 def _worker_init() -> None:
-    os.environ.update(_single_thread_env())
+    os.environ.update(thread_env(1))
     try:
         import numba
 
@@ -352,9 +356,7 @@ def _write_index(out_dir: Path, rows: list[dict], params: PrecomputeParams) -> N
 
 
 def _write_lines(path: Path, rows: Iterable[dict]) -> None:
-    tmp = path.with_suffix(path.suffix + ".part")
-    tmp.write_text("".join(json.dumps(r, sort_keys=True) + "\n" for r in rows))
-    os.replace(tmp, path)
+    art.write_text_atomic(path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in rows))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -12,15 +12,9 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from panoworld.precompute import thread_env
 from panoworld.pipeline import PipelineError, Scene, StageNode, run_logged, stage_command
 from panoworld.stage import params_to_dict
-
-THREAD_VARS = ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
-
-
-def thread_env(threads: int) -> dict[str, str]:
-    return {k: str(max(1, int(threads))) for k in THREAD_VARS}
-
 
 def needs_gpu(node: StageNode, params: Any) -> bool:
     """Whether the stage asks for a GPU with these params: `resources.gpu` > 0 and, when `resources.gpu_when` maps

@@ -4,7 +4,6 @@ the others; a summary and a failures file at the dataset root."""
 from __future__ import annotations
 
 import json
-import os
 import sys
 import threading
 import time
@@ -14,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from panoworld import pipeline as pl
+from panoworld.artifacts import write_text_atomic
 from panoworld.batch.executors import make_stage_executor
 from panoworld.batch.variants import Variant, parse_sweeps, write_variant
 
@@ -139,15 +139,9 @@ def run_dataset(
         "workers": workers,
         "results": [{"scene": r.scene, "runs": r.runs} for r in results],
     }
-    _write(dataset_dir / SUMMARY, json.dumps(summary, indent=2) + "\n")
-    _write(dataset_dir / FAILURES, "".join(json.dumps(f, sort_keys=True) + "\n" for f in failures))
+    write_text_atomic(dataset_dir / SUMMARY, json.dumps(summary, indent=2) + "\n")
+    write_text_atomic(dataset_dir / FAILURES, "".join(json.dumps(f, sort_keys=True) + "\n" for f in failures))
     return summary
-
-
-def _write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.part")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def format_summary(summary: dict) -> str:

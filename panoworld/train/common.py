@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from panoworld.artifacts import write_text_atomic
 from panoworld.stage import params_from_dict, params_to_dict
 
 CONFIG = "config.yaml"
@@ -107,13 +108,7 @@ class RunDir:
         if self.checkpoints.is_dir() and any(self.checkpoints.iterdir()):
             raise TrainConfigError(f"{self.path}: already holds checkpoints; pass --resume or choose another --out")
         self.path.mkdir(parents=True, exist_ok=True)
-        _atomic_write(conf, yaml.safe_dump(want, sort_keys=True))
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".part")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+        write_text_atomic(conf, yaml.safe_dump(want, sort_keys=True))
 
 
 # ---------------------------------------------------------------- randomness and data position
@@ -251,7 +246,7 @@ class MetricsLog:
             self.path.unlink(missing_ok=True)
         elif self.path.is_file():  # drop rows logged after the checkpoint we resume from
             keep = [ln for ln in self.path.read_text().splitlines() if ln and json.loads(ln)["step"] <= resume_step]
-            _atomic_write(self.path, "".join(ln + "\n" for ln in keep))
+            write_text_atomic(self.path, "".join(ln + "\n" for ln in keep))
         self.tb = None
         if tensorboard:
             try:
@@ -356,7 +351,7 @@ def write_export_scene_yaml(run_dir: RunDir | Path | str, params: dict[str, dict
     plain = {stage: {k: str(v) if isinstance(v, Path) else v for k, v in p.items()} for stage, p in params.items()}
     head = f"# {note}\n" if note else ""
     path = export / "scene.yaml"
-    _atomic_write(path, head + yaml.safe_dump({"params": plain}, sort_keys=False))
+    write_text_atomic(path, head + yaml.safe_dump({"params": plain}, sort_keys=False))
     return path
 
 
