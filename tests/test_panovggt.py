@@ -7,6 +7,7 @@ import torch
 from panoworld.models.panovggt import (
     PanoVGGT,
     PanoVGGTConfig,
+    ErpCorrelation,
     erp_coordinate_features,
     erp_resize,
     quat_wxyz_to_rotmat,
@@ -258,3 +259,57 @@ def test_gaussians_stage_decoder_backend_loads_the_export(tmp_path):
         execute_stage(load_stage("gaussians"), {"video": video, "poses": poses},
                       Params(backend=Backend.DECODER, weights=str(tmp_path / "nohead")), tmp_path / "out2",
                       input_digests=digests)
+
+
+def test_pose_correlation_finds_a_whole_patch_turn_and_runs_at_any_grid():
+    torch.manual_seed(0)
+    yaw = ErpCorrelation(16, 8, 8)
+    with torch.no_grad():
+        yaw.log_temperature.fill_(5.0)  # a sharp softmax: the expected roll angle is the peak's
+    hp, wp = 3, 8
+    f0 = torch.randn(1, 1, hp, wp, 16)
+    for m in range(wp):
+        # Frame 1 = frame 0 turned by m patches (its columns rolled by m): the cue reads angle 2 pi m / wp.
+        tokens = torch.cat([f0, f0.roll(m, dims=3)], 1).reshape(1, 2, hp * wp, 16)
+        cue = yaw.cue(tokens, (hp, wp), torch.ones(1, 2, 6, 16))[0]
+        a = 2 * np.pi * m / wp
+        # A pure turn moves every column alike and matches each perfectly: no translation cue (entries 4-7).
+        np.testing.assert_allclose(cue[1, [0, 1, 2, 4, 5, 6, 7]].numpy(), [np.cos(a), np.sin(a), 1, 0, 0, 0, 0],
+                                   atol=1e-3)
+        np.testing.assert_allclose(cue[0, [0, 1, 2, 4, 5, 6, 7]].numpy(), [1, 0, 1, 0, 0, 0, 0], atol=1e-3)
+    # Columns that move differently (a translation's parallax) give a first-harmonic shift cue.
+    moved = f0.clone()
+    moved[..., 1:4, :] = f0[..., 0:3, :]  # columns 1-3 show what column 0-2 showed: shifted by one patch
+    cue = yaw.cue(torch.cat([f0, moved], 1).reshape(1, 2, hp * wp, 16), (hp, wp), torch.ones(1, 2, 6, 16))[0, 1]
+    assert float(cue[4:6].norm()) > 0.05
+    # Depth. A turn by m pixel columns: the depth-aligned roll reads it and the depth differences are zero.
+    with torch.no_grad():
+        yaw.log_depth_temperature.fill_(6.0)
+    lon = (torch.arange(16) + 0.5) * 2 * np.pi / 16
+    d0 = (3.0 + 0.8 * torch.cos(lon) + 0.6 * torch.sin(2 * lon + 0.5)).expand(6, 16)
+    tokens = torch.cat([f0, f0], 1).reshape(1, 2, hp * wp, 16)
+    cue = yaw.cue(tokens, (hp, wp), torch.stack([d0, d0.roll(5, dims=-1)])[None])[0, 1]
+    a = 2 * np.pi * 5 / 16
+    np.testing.assert_allclose(cue[8:].numpy(), [np.cos(a), np.sin(a)] + [0.0] * 6, atol=1e-3)
+    # Frame 1 nearer by 0.2 m towards longitude phi0 (d0 - d1 = 0.2 cos(lon - phi0)): the harmonics read it.
+    phi0 = 1.0
+    d1 = d0 - 0.2 * torch.cos(lon - phi0)
+    cue = yaw.cue(tokens, (hp, wp), torch.stack([d0, d1])[None])[0, 1]
+    want = [0.0, 0.2 * np.cos(phi0), 0.2 * np.sin(phi0)]
+    np.testing.assert_allclose(cue[8:].numpy(), [1.0, 0.0] + want + want, atol=2e-3)
+    # (B, S, out_dim) for any grid: the same weights run at another input size.
+    assert yaw(torch.randn(2, 3, 4 * 16, 16), (4, 16), torch.ones(2, 3, 32, 64)).shape == (2, 3, 8)
+
+
+def test_camera_head_with_the_correlation_cues_runs_saves_and_loads(tmp_path):
+    torch.manual_seed(0)
+    m = PanoVGGT(tiny_config(pose_correlation=8)).eval()
+    x = frames(3)
+    out = m(x)
+    assert out["world_from_cam"].shape == (1, 3, 4, 4)
+    m.save_pretrained(tmp_path / "w")
+    m2 = PanoVGGT.from_pretrained(tmp_path / "w")
+    assert m2.camera_head.correlation is not None and torch.equal(m2(x)["world_from_cam"], out["world_from_cam"])
+    # A config written before the cue existed (no key) loads as VGGT's head.
+    assert PanoVGGTConfig.from_json({k: v for k, v in tiny_config().to_json().items() if k != "pose_correlation"}
+                                    ).pose_correlation == 0

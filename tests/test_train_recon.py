@@ -152,3 +152,24 @@ def test_yaw_augmentation_is_exact_for_erp(synth_dataset):
         r2, d2, p2 = roll_yaw(rgb, depth, pose, k)
         rgb_t, depth_t = scene._synth.render(p2, 16, 32)  # the camera really turned: the renderer agrees
         assert np.array_equal(r2, rgb_t) and np.allclose(d2, depth_t, atol=1e-5)
+
+
+def test_yaw_augment_modes_keep_or_randomise_relative_rotations(synth_dataset):
+    from panoworld.train.recon.data import SceneFrames
+
+    data = SceneFrames(list_scenes(synth_dataset)[:1], 16)
+    batches = {m: data.sample(np.random.default_rng(3), 4, 4, yaw_augment=m) for m in ("none", "shared", "per-frame")}
+    none, shared, per_frame = batches["none"], batches["shared"], batches["per-frame"]
+    assert none.frames == shared.frames == per_frame.frames
+    # shared: one turn for the whole batch. Relative rotations are those of the track, the direction of travel in the
+    # first camera is turned, and every frame's pixels are rolled by the same number of columns.
+    assert np.allclose(shared.world_from_cam[:, :3, :3], none.world_from_cam[:, :3, :3], atol=1e-9)
+    assert not np.allclose(shared.world_from_cam[-1, :3, 3], none.world_from_cam[-1, :3, 3], atol=1e-3)
+    assert np.allclose(np.linalg.norm(shared.world_from_cam[:, :3, 3], axis=1),
+                       np.linalg.norm(none.world_from_cam[:, :3, 3], axis=1))
+    k = next(k for k in range(32) if np.array_equal(np.roll(none.rgb[0], k, axis=1), shared.rgb[0]))
+    assert all(np.array_equal(np.roll(a, k, axis=1), b) for a, b in zip(none.rgb, shared.rgb))
+    # per-frame: the frames are turned independently, so relative rotations change.
+    assert not np.allclose(per_frame.world_from_cam[1:, :3, :3], none.world_from_cam[1:, :3, :3], atol=1e-3)
+    with pytest.raises(ValueError, match="expected none, shared or per-frame"):
+        data.sample(np.random.default_rng(3), 4, 4, yaw_augment="sometimes")

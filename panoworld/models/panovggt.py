@@ -51,6 +51,10 @@ class PanoVGGTConfig(JsonConfig):
     """Transformer blocks of the camera head (attending across frames)."""
     camera_iterations: int = 4
     """Iterative refinement steps of the camera head."""
+    pose_correlation: int = 0
+    """Channels of the camera head's panoramic correlation cues (0 = off, VGGT's head): each frame's patch features
+    correlated with the first frame's at every whole-patch turn about the vertical axis (ErpCorrelation). Not in the
+    paper; a from-scratch tiny model does not learn to find the turn between two frames without it."""
     dpt_layers: tuple[int, ...] = (4, 11, 17, 23)
     """Aggregator block pairs whose tokens feed the depth head (four, shallow to deep)."""
     dpt_features: int = 256
@@ -240,6 +244,77 @@ def quat_wxyz_to_rotmat(q: torch.Tensor) -> torch.Tensor:
     return torch.stack(rows, -1).reshape(q.shape[:-1] + (3, 3))
 
 
+class ErpCorrelation(nn.Module):
+    """Pose cues per frame from correlating its patch features with the first frame's at every whole-patch turn.
+
+    A turn about the vertical axis rolls ERP columns, so corr[delta] = mean over patches of <f_0(r, c), f_i(r, c +
+    delta)> (features projected and unit-normalised) peaks at the turn; a softmax over delta reads it as the expected
+    (cos, sin) of the roll angle (with the peak and mean correlation: 4 numbers). A translation moves the columns of
+    frame 0 by different amounts (away from the direction of travel, towards the opposite one; most at 90 degrees from
+    it): the per-column expected shift relative to the turn, and how well each column matches, over the column's
+    longitude, read by their first and second circular harmonics (4 more numbers). With the depth head's depth (given,
+    not differentiated): the roll at pixel resolution that best aligns the horizon bands' log depth (softmin over every
+    column shift: expected cos, sin), and the depth of frame 0 minus frame i turned back by it, in the horizon band and
+    the floor band, each read by its mean and first harmonic (metres: moving by t towards a wall at longitude phi
+    shortens its depth by about t cos(phi - heading)). The 16 are embedded to the camera head's width. Independent of
+    the grid and image size, so the same weights run at any input resolution.
+    """
+
+    CUES = 16
+
+    def __init__(self, in_dim: int, out_dim: int, channels: int):
+        super().__init__()
+        self.norm = nn.LayerNorm(in_dim)
+        self.proj = nn.Linear(in_dim, channels)
+        self.log_temperature = nn.Parameter(torch.tensor(2.3))
+        self.log_depth_temperature = nn.Parameter(torch.tensor(3.0))
+        self.embed = nn.Linear(self.CUES, out_dim)
+
+    def forward(self, patch_tokens: torch.Tensor, grid: tuple[int, int], depth: torch.Tensor) -> torch.Tensor:
+        """patch_tokens (B, S, hp * wp, C), depth (B, S, H, W) metres -> (B, S, out_dim)."""
+        return self.embed(self.cue(patch_tokens, grid, depth))
+
+    def cue(self, patch_tokens: torch.Tensor, grid: tuple[int, int], depth: torch.Tensor) -> torch.Tensor:
+        """patch_tokens (B, S, hp * wp, C), depth (B, S, H, W) -> (B, S, 16): expected cos and sin of the roll angle,
+        peak and mean correlation; first harmonic (cos, sin) of the per-column shift; second harmonic of the
+        per-column match; cos and sin of the depth-aligned roll; mean and first harmonic of the horizon and floor
+        depth differences."""
+        b, s, _, _ = patch_tokens.shape
+        hp, wp = grid
+        f = F.normalize(self.proj(self.norm(patch_tokens)), dim=-1).reshape(b, s, hp, wp, -1)
+        cols = torch.stack([(f[:, :1] * f.roll(-d, dims=3)).sum(-1).mean(2) for d in range(wp)], 2)  # (B, S, D, wp)
+        corr = cols.mean(-1)  # (B, S, D)
+        temp = self.log_temperature.exp()
+        prob = torch.softmax(corr * temp, dim=-1)
+        angle = torch.arange(wp, device=f.device, dtype=f.dtype) * (2 * np.pi / wp)
+        cos_g, sin_g = (prob * angle.cos()).sum(-1), (prob * angle.sin()).sum(-1)
+        prob_col = torch.softmax(cols * temp, dim=2)
+        cos_c, sin_c = (prob_col * angle.cos()[:, None]).sum(2), (prob_col * angle.sin()[:, None]).sum(2)  # (B, S, wp)
+        shift = sin_c * cos_g[..., None] - cos_c * sin_g[..., None]  # sin(column's shift - the turn)
+        match = (prob[..., None] * cols).sum(2)  # (B, S, wp)
+        lon = (torch.arange(wp, device=f.device, dtype=f.dtype) + 0.5) * (2 * np.pi / wp)
+        h, w = depth.shape[-2:]
+        d = depth.detach().to(f.dtype)
+        horizon, floor = d[..., h // 3: h - h // 3, :].mean(-2), d[..., h - h // 3:, :].mean(-2)  # (B, S, W)
+        log_h = horizon.clamp_min(1e-3).log()
+        shifts = torch.stack([log_h.roll(-k, dims=-1) for k in range(w)], 2)  # (B, S, W shifts, W)
+        cost = (log_h[:, :1, None] - shifts).abs().mean(-1)  # (B, S, W shifts)
+        p_px = torch.softmax(-cost * self.log_depth_temperature.exp(), dim=-1)
+        lon_px = (torch.arange(w, device=f.device, dtype=f.dtype) + 0.5) * (2 * np.pi / w)
+        angle_px = torch.arange(w, device=f.device, dtype=f.dtype) * (2 * np.pi / w)
+
+        def harmonics(band: torch.Tensor) -> list[torch.Tensor]:
+            back = torch.stack([band.roll(-k, dims=-1) for k in range(w)], 2)
+            diff = band[:, :1] - (p_px[..., None] * back).sum(2)  # (B, S, W)
+            return [diff.mean(-1), 2 * (diff * lon_px.cos()).mean(-1), 2 * (diff * lon_px.sin()).mean(-1)]
+
+        return torch.stack([cos_g, sin_g, corr.amax(-1), corr.mean(-1),
+                            (shift * lon.cos()).mean(-1), (shift * lon.sin()).mean(-1),
+                            (match * (2 * lon).cos()).mean(-1), (match * (2 * lon).sin()).mean(-1),
+                            (p_px * angle_px.cos()).sum(-1), (p_px * angle_px.sin()).sum(-1),
+                            *harmonics(horizon), *harmonics(floor)], -1)
+
+
 class CameraHead(nn.Module):
     """Per-frame pose (translation, quaternion wxyz) from the camera tokens, refined iteratively across frames.
 
@@ -258,11 +333,17 @@ class CameraHead(nn.Module):
         )
         self.trunk_norm = nn.LayerNorm(d)
         self.delta = nn.Linear(d, 7)
+        self.correlation = ErpCorrelation(d, d, cfg.pose_correlation) if cfg.pose_correlation else None
 
-    def forward(self, cam_tokens: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """cam_tokens (B, S, 2D) -> (world_from_cam (B, S, 4, 4), pose encoding (B, S, 7) = [t, q_wxyz] of P_i)."""
+    def forward(self, cam_tokens: torch.Tensor, patch_tokens: torch.Tensor | None = None,
+                grid: tuple[int, int] | None = None, depth: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """cam_tokens (B, S, 2D) [, patch_tokens (B, S, P, 2D) on a grid (hp, wp) and depth (B, S, H, W), for the
+        correlation cues] ->
+        (world_from_cam (B, S, 4, 4), pose encoding (B, S, 7) = [t, q_wxyz] of P_i)."""
         b, s, _ = cam_tokens.shape
         tokens = self.norm(cam_tokens)
+        if self.correlation is not None:
+            tokens = tokens + self.correlation(patch_tokens, grid, depth)
         pose = torch.zeros(b, s, 7, dtype=tokens.dtype, device=tokens.device)
         pose[..., 3] = 1.0
         for _ in range(self.iterations):
@@ -370,9 +451,11 @@ class PanoVGGT(nn.Module):
             if i in keep:
                 outputs[i] = torch.cat([x_frame, x], dim=-1)
         last = outputs[self.cfg.depth - 1]
-        world_from_cam, pose_enc = self.camera_head(last[:, 0].reshape(b, s, 2 * d))
         ns = self.num_special_tokens
         depth, conf = self.depth_head([outputs[i][:, ns:] for i in self.cfg.dpt_layers], (hp, wp), (h, w))
+        world_from_cam, pose_enc = self.camera_head(last[:, 0].reshape(b, s, 2 * d),
+                                                    last[:, ns:].reshape(b, s, hp * wp, 2 * d), (hp, wp),
+                                                    depth.reshape(b, s, h, w))
         out = {
             "world_from_cam": world_from_cam,
             "pose_enc": pose_enc,

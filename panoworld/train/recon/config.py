@@ -6,6 +6,18 @@ import enum
 from dataclasses import dataclass
 
 
+class YawAugment(enum.StrEnum):
+    """Exact ERP yaw augmentation of a training batch (columns rolled, poses turned about the camera's vertical axis)."""
+
+    NONE = "none"
+    """Frames as rendered (the synthetic tracks' cameras start looking along the path)."""
+    SHARED = "shared"
+    """One random turn for all frames of a batch: relative rotations unchanged, the direction of travel in the first
+    camera's frame uniform (the model must see it in the images, not assume 'forward')."""
+    PER_FRAME = "per-frame"
+    """An independent random turn per frame: relative rotations uniform in yaw too."""
+
+
 class Geometry(enum.StrEnum):
     """Depth and poses the Gaussian head is given in stage 2."""
 
@@ -41,9 +53,9 @@ class ReconConfig:
     """Fewest frames of a batch (the paper: 2)."""
     max_frames: int = 8
     """Most frames of a batch (the paper: 32)."""
-    yaw_augment: bool = True
-    """Turn each training frame's camera about its vertical axis by a random whole number of pixel columns (an exact
-    ERP augmentation: the image rolls, the pose rotates)."""
+    yaw_augment: YawAugment = YawAugment.SHARED
+    """Turn training cameras about their vertical axis by random whole numbers of pixel columns (exact for ERP: the
+    image rolls, the pose rotates): none, shared (one turn per batch) or per-frame."""
     val_scenes: int = 4
     """The last val_scenes scenes of DATASET_DIR (by name) validate and never train."""
     val_every: int = 100
@@ -71,6 +83,8 @@ class ReconConfig:
     """Camera head transformer blocks."""
     camera_iterations: int = 2
     """Camera head refinement steps."""
+    pose_correlation: int = 32
+    """Channels of the camera head's panoramic correlation cues (0 = VGGT's head; PanoVGGTConfig.pose_correlation)."""
     dpt_features: int = 32
     """Depth head fusion channels."""
     # stage 1 losses
@@ -155,7 +169,7 @@ PRESETS: dict[str, dict] = {
         "steps": 160_000, "lr": 2e-4, "warmup_steps": 2000, "image_height": 392, "min_frames": 2, "max_frames": 32,
         "val_every": 2000, "val_batches": 32, "ckpt_every": 2000, "log_every": 50, "val_scenes": 50,
         "patch_size": 14, "embed_dim": 1024, "depth": 24, "num_heads": 16, "num_register_tokens": 4,
-        "camera_trunk_depth": 4, "camera_iterations": 4, "dpt_features": 256,
+        "camera_trunk_depth": 4, "camera_iterations": 4, "pose_correlation": 0, "dpt_features": 256,
         "context_views": 8, "target_views": 4, "render_context": 4, "render_height": 392,
         "gs_embed_dim": 384, "gs_layers": 6, "gs_heads": 6, "gs_feature_dim": 64, "gs_token_dim": 128,
         "gs_knn_k": 16, "gs_knn_layers": 2, "gs_mlp_hidden": 256, "gs_per_voxel": 2, "gs_sh_degree": 1,
@@ -174,7 +188,7 @@ def model_config(cfg: ReconConfig, with_head: bool):
     return PanoVGGTConfig(
         patch_size=cfg.patch_size, embed_dim=cfg.embed_dim, depth=d, num_heads=cfg.num_heads,
         num_register_tokens=cfg.num_register_tokens, coord_frequencies=8, camera_trunk_depth=cfg.camera_trunk_depth,
-        camera_iterations=cfg.camera_iterations, dpt_layers=dpt, dpt_features=w,
+        camera_iterations=cfg.camera_iterations, pose_correlation=cfg.pose_correlation, dpt_layers=dpt, dpt_features=w,
         dpt_out_channels=(w, 2 * w, 4 * w, 4 * w),
         image_height=cfg.image_height, gaussian_head=head_config(cfg) if with_head else None,
     )

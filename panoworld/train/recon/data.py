@@ -72,10 +72,11 @@ class SceneFrames:
         return self._cache[key]
 
     def sample(self, rng: np.random.Generator, min_frames: int, max_frames: int, scene: int | None = None,
-               yaw_augment: bool = False) -> Batch:
+               yaw_augment: str = "none") -> Batch:
         """One scene (uniform, or `scene`), one track, S ~ U{min_frames..max_frames} distinct frames (capped at the
-        track length), sorted; poses made relative to the first of them. yaw_augment turns every frame's camera about
-        its vertical axis by a random whole number of pixel columns (exact for ERP: roll_yaw)."""
+        track length), sorted; poses made relative to the first of them. yaw_augment ("none", "shared", "per-frame",
+        config.YawAugment) turns the cameras about their vertical axes by random whole numbers of pixel columns, one
+        turn for the whole batch or one per frame (exact for ERP: roll_yaw)."""
         s = int(rng.integers(len(self.scenes))) if scene is None else scene
         sc = self.scenes[s]
         track = int(rng.integers(sc.n_tracks))
@@ -84,8 +85,11 @@ class SceneFrames:
         idx = np.sort(rng.choice(n, size=k, replace=False))
         poses = self.poses(s, track)[idx]
         rgb, depth = map(np.stack, zip(*(self.frame(s, track, int(i)) for i in idx)))
-        if yaw_augment:
-            shifts = rng.integers(0, rgb.shape[2], size=len(idx))
+        if yaw_augment not in ("none", "shared", "per-frame"):
+            raise ValueError(f"{yaw_augment=} but expected none, shared or per-frame")
+        if yaw_augment != "none":
+            shifts = rng.integers(0, rgb.shape[2], size=1 if yaw_augment == "shared" else len(idx))
+            shifts = np.broadcast_to(shifts, len(idx))
             rgb, depth, poses = map(np.stack, zip(*(roll_yaw(*f, int(k)) for *f, k in zip(rgb, depth, poses, shifts))))
         rel = np.linalg.inv(poses[0]) @ poses
         rel[0] = np.eye(4)
