@@ -282,21 +282,18 @@ def test_pose_correlation_finds_a_whole_patch_turn_and_runs_at_any_grid():
     moved[..., 1:4, :] = f0[..., 0:3, :]  # columns 1-3 show what column 0-2 showed: shifted by one patch
     cue = yaw.cue(torch.cat([f0, moved], 1).reshape(1, 2, hp * wp, 16), (hp, wp), torch.ones(1, 2, 6, 16))[0, 1]
     assert float(cue[4:6].norm()) > 0.05
-    # Depth. A turn by m pixel columns: the depth-aligned roll reads it and the depth differences are zero.
-    with torch.no_grad():
-        yaw.log_depth_temperature.fill_(6.0)
+    # Depth: frame 1 nearer by 0.5 m towards longitude phi0 (d0 - d1 = 0.5 cos(lon - phi0)): the harmonic reads it.
     lon = (torch.arange(16) + 0.5) * 2 * np.pi / 16
-    d0 = (3.0 + 0.8 * torch.cos(lon) + 0.6 * torch.sin(2 * lon + 0.5)).expand(6, 16)
-    tokens = torch.cat([f0, f0], 1).reshape(1, 2, hp * wp, 16)
-    cue = yaw.cue(tokens, (hp, wp), torch.stack([d0, d0.roll(5, dims=-1)])[None])[0, 1]
-    a = 2 * np.pi * 5 / 16
-    np.testing.assert_allclose(cue[8:].numpy(), [np.cos(a), np.sin(a)] + [0.0] * 6, atol=1e-3)
-    # Frame 1 nearer by 0.2 m towards longitude phi0 (d0 - d1 = 0.2 cos(lon - phi0)): the harmonics read it.
     phi0 = 1.0
-    d1 = d0 - 0.2 * torch.cos(lon - phi0)
+    d0 = torch.full((6, 16), 3.0)
+    d1 = d0 - 0.5 * torch.cos(lon - phi0)
+    tokens = torch.cat([f0, f0], 1).reshape(1, 2, hp * wp, 16)
     cue = yaw.cue(tokens, (hp, wp), torch.stack([d0, d1])[None])[0, 1]
-    want = [0.0, 0.2 * np.cos(phi0), 0.2 * np.sin(phi0)]
-    np.testing.assert_allclose(cue[8:].numpy(), [1.0, 0.0] + want + want, atol=2e-3)
+    np.testing.assert_allclose(cue[8:].numpy(), [0.0, 0.5 * np.cos(phi0), 0.5 * np.sin(phi0)], atol=1e-3)
+    # ... and turned back by the roll: frame 1 also turned by 2 patches (its depth columns rolled by 4 pixels).
+    tokens = torch.cat([f0, f0.roll(2, dims=3)], 1).reshape(1, 2, hp * wp, 16)
+    cue = yaw.cue(tokens, (hp, wp), torch.stack([d0, d1.roll(4, dims=-1)])[None])[0, 1]
+    np.testing.assert_allclose(cue[8:].numpy(), [0.0, 0.5 * np.cos(phi0), 0.5 * np.sin(phi0)], atol=1e-3)
     # (B, S, out_dim) for any grid: the same weights run at another input size.
     assert yaw(torch.randn(2, 3, 4 * 16, 16), (4, 16), torch.ones(2, 3, 32, 64)).shape == (2, 3, 8)
 

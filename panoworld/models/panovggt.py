@@ -253,21 +253,19 @@ class ErpCorrelation(nn.Module):
     frame 0 by different amounts (away from the direction of travel, towards the opposite one; most at 90 degrees from
     it): the per-column expected shift relative to the turn, and how well each column matches, over the column's
     longitude, read by their first and second circular harmonics (4 more numbers). With the depth head's depth (given,
-    not differentiated): the roll at pixel resolution that best aligns the horizon bands' log depth (softmin over every
-    column shift: expected cos, sin), and the depth of frame 0 minus frame i turned back by it, in the horizon band and
-    the floor band, each read by its mean and first harmonic (metres: moving by t towards a wall at longitude phi
-    shortens its depth by about t cos(phi - heading)). The 16 are embedded to the camera head's width. Independent of
-    the grid and image size, so the same weights run at any input resolution.
+    not differentiated), the horizon band's depth of frame 0 minus frame i's (turned back by the expected roll) is
+    read by its mean and first harmonic (3 more, in metres: moving by t towards a wall at longitude phi shortens its
+    depth by about t cos(phi - heading)). The 11 are embedded to the camera head's width. Independent of the grid and
+    image size, so the same weights run at any input resolution.
     """
 
-    CUES = 16
+    CUES = 11
 
     def __init__(self, in_dim: int, out_dim: int, channels: int):
         super().__init__()
         self.norm = nn.LayerNorm(in_dim)
         self.proj = nn.Linear(in_dim, channels)
         self.log_temperature = nn.Parameter(torch.tensor(2.3))
-        self.log_depth_temperature = nn.Parameter(torch.tensor(3.0))
         self.embed = nn.Linear(self.CUES, out_dim)
 
     def forward(self, patch_tokens: torch.Tensor, grid: tuple[int, int], depth: torch.Tensor) -> torch.Tensor:
@@ -275,10 +273,9 @@ class ErpCorrelation(nn.Module):
         return self.embed(self.cue(patch_tokens, grid, depth))
 
     def cue(self, patch_tokens: torch.Tensor, grid: tuple[int, int], depth: torch.Tensor) -> torch.Tensor:
-        """patch_tokens (B, S, hp * wp, C), depth (B, S, H, W) -> (B, S, 16): expected cos and sin of the roll angle,
+        """patch_tokens (B, S, hp * wp, C), depth (B, S, H, W) -> (B, S, 11): expected cos and sin of the roll angle,
         peak and mean correlation; first harmonic (cos, sin) of the per-column shift; second harmonic of the
-        per-column match; cos and sin of the depth-aligned roll; mean and first harmonic of the horizon and floor
-        depth differences."""
+        per-column match; mean and first harmonic of the horizon depth difference."""
         b, s, _, _ = patch_tokens.shape
         hp, wp = grid
         f = F.normalize(self.proj(self.norm(patch_tokens)), dim=-1).reshape(b, s, hp, wp, -1)
@@ -294,25 +291,15 @@ class ErpCorrelation(nn.Module):
         match = (prob[..., None] * cols).sum(2)  # (B, S, wp)
         lon = (torch.arange(wp, device=f.device, dtype=f.dtype) + 0.5) * (2 * np.pi / wp)
         h, w = depth.shape[-2:]
-        d = depth.detach().to(f.dtype)
-        horizon, floor = d[..., h // 3: h - h // 3, :].mean(-2), d[..., h - h // 3:, :].mean(-2)  # (B, S, W)
-        log_h = horizon.clamp_min(1e-3).log()
-        shifts = torch.stack([log_h.roll(-k, dims=-1) for k in range(w)], 2)  # (B, S, W shifts, W)
-        cost = (log_h[:, :1, None] - shifts).abs().mean(-1)  # (B, S, W shifts)
-        p_px = torch.softmax(-cost * self.log_depth_temperature.exp(), dim=-1)
+        band = depth.detach()[..., h // 3: h - h // 3, :].mean(-2).to(f.dtype)  # (B, S, W): |latitude| < 30 deg
+        step = w // wp
+        back = torch.stack([band.roll(-d * step, dims=-1) for d in range(wp)], 2)  # (B, S, D, W)
+        diff = band[:, :1] - (prob[..., None] * back).sum(2)  # (B, S, W)
         lon_px = (torch.arange(w, device=f.device, dtype=f.dtype) + 0.5) * (2 * np.pi / w)
-        angle_px = torch.arange(w, device=f.device, dtype=f.dtype) * (2 * np.pi / w)
-
-        def harmonics(band: torch.Tensor) -> list[torch.Tensor]:
-            back = torch.stack([band.roll(-k, dims=-1) for k in range(w)], 2)
-            diff = band[:, :1] - (p_px[..., None] * back).sum(2)  # (B, S, W)
-            return [diff.mean(-1), 2 * (diff * lon_px.cos()).mean(-1), 2 * (diff * lon_px.sin()).mean(-1)]
-
         return torch.stack([cos_g, sin_g, corr.amax(-1), corr.mean(-1),
                             (shift * lon.cos()).mean(-1), (shift * lon.sin()).mean(-1),
                             (match * (2 * lon).cos()).mean(-1), (match * (2 * lon).sin()).mean(-1),
-                            (p_px * angle_px.cos()).sum(-1), (p_px * angle_px.sin()).sum(-1),
-                            *harmonics(horizon), *harmonics(floor)], -1)
+                            diff.mean(-1), 2 * (diff * lon_px.cos()).mean(-1), 2 * (diff * lon_px.sin()).mean(-1)], -1)
 
 
 class CameraHead(nn.Module):
