@@ -244,7 +244,7 @@ def test_vggt_backend_needs_weights_and_runs_a_real_model_when_given_them(tmp_pa
     torch.manual_seed(0)
     cfg = PanoVGGTConfig(
         patch_size=8, embed_dim=32, depth=2, num_heads=2, num_register_tokens=1, coord_frequencies=2,
-        camera_trunk_depth=1, camera_iterations=1, dpt_layers=(0, 0, 1, 1), dpt_features=8,
+        camera_trunk_depth=1, camera_iterations=1, pose_correlation=4, dpt_layers=(0, 0, 1, 1), dpt_features=8,
         dpt_out_channels=(8, 8, 16, 16), image_height=16,
     )
     PanoVGGT(cfg).save_pretrained(tmp_path / "w")
