@@ -165,8 +165,8 @@ def table(rows: list[dict], keys: list[str]) -> str:
     out = ["| method | n | " + " | ".join(keys) + " |", "|---" * (len(keys) + 2) + "|"]
     for m in methods:
         sel = [r for r in rows if r["method"] == m and "error" not in r]
-        vals = [np.nanmean([r.get(k, np.nan) for r in sel]) if sel else np.nan for k in keys]
-        out.append(f"| {m} | {len(sel)} | " + " | ".join(f"{v:.4g}" for v in vals) + " |")
+        cols = [[r[k] for r in sel if np.isfinite(r.get(k, np.nan))] for k in keys]
+        out.append(f"| {m} | {len(sel)} | " + " | ".join(f"{np.mean(c):.4g}" if c else "–" for c in cols) + " |")
     errors = [r for r in rows if "error" in r]
     out += [f"  {r['method']} {r['scene']} track {r['track']}: {r['error']}" for r in errors]
     return "\n".join(out)
