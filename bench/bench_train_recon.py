@@ -6,8 +6,10 @@
 Held-out scenes are the last --held-out scenes of DATASET_DIR (a training run's val split never trains). Stage 1: per
 scene and track, --frames frames evenly spaced along the track -> ATE, RPE_t (m), RPE_r (deg) after Sim(3)
 alignment (align.trajectory_metrics) and depth AbsRel (evaluate.depth_errors), for the trained model, the same
-architecture at its random init (the training seed) and COLMAP (first --colmap-scenes scenes, the same frames rendered
-exactly at --colmap-height: COLMAP registers nothing at the models' 32x64). Stage 2: N@N = --views context frames evenly spaced and the --views frames midway between them as
+architecture at its random init (the training seed), an image-blind straight-ahead prior (equal steps along the first
+camera's axis: what "the track starts looking ahead" alone gives) and COLMAP (first --colmap-scenes scenes, the same
+frames rendered exactly at --colmap-height: COLMAP registers nothing at the models' 32x64); then again with every
+track's cameras turned by one random yaw, so the direction of travel must be read from the images. Stage 2: N@N = --views context frames evenly spaced and the --views frames midway between them as
 novel views; PSNR/SSIM of ERP renders at the model's input size, for the trained Gaussian head, the same head at its
 random init (on the trained backbone) and voxel-fusion at the same voxel size, all given the same geometry (the ground
 truth's, and the frozen heads' predictions for the decoders).
