@@ -4,12 +4,15 @@
         [--stage2 RUN2/export/weights] [--colmap-scenes 2] [--frames 8] [--views 3]
 
 Held-out scenes are the last --held-out scenes of DATASET_DIR (a training run's val split never trains). Stage 1: per
-scene and track, --frames frames evenly spaced along the track -> ATE, RPE_t (m), RPE_r (deg) after Sim(3)
-alignment (align.trajectory_metrics) and depth AbsRel (evaluate.depth_errors), for the trained model, the same
-architecture at its random init (the training seed), an image-blind straight-ahead prior (equal steps along the first
-camera's axis: what "the track starts looking ahead" alone gives) and COLMAP (first --colmap-scenes scenes, the same
-frames rendered exactly at --colmap-height: COLMAP registers nothing at the models' 32x64); then again with every
-track's cameras turned by one random yaw, so the direction of travel must be read from the images. Stage 2: N@N = --views context frames evenly spaced and the --views frames midway between them as
+scene and track, --frames frames evenly spaced along the track -> ATE, RPE_t (m), RPE_r (deg) after Sim(3) alignment
+(align.trajectory_metrics) and depth AbsRel (evaluate.depth_errors), for the trained model and the same architecture
+at its random init (the training seed), each with the camera head's poses alone and with --refine-iters steps of
+depth-consistency refinement on the model's own depth (PanoVGGTConfig.pose_refine_iters), an image-blind straight-
+ahead prior (equal steps along the first camera's axis: what "the track starts looking ahead" alone gives) and COLMAP
+(first --colmap-scenes scenes, the same frames rendered exactly at --colmap-height: COLMAP registers nothing at the
+models' 32x64); then again with every track's cameras turned by one random yaw, so the direction of travel must be
+read from the images.
+Stage 2: N@N = --views context frames evenly spaced and the --views frames midway between them as
 novel views; PSNR/SSIM of ERP renders at the model's input size, for the trained Gaussian head, the same head at its
 random init (on the trained backbone) and voxel-fusion at the same voxel size, all given the same geometry (the ground
 truth's, and the frozen heads' predictions for the decoders).
@@ -18,6 +21,7 @@ truth's, and the frozen heads' predictions for the decoders).
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import time
 from pathlib import Path
@@ -41,6 +45,13 @@ def random_init(trained: PanoVGGT, seed: int, keep_trained_backbone: bool) -> Pa
         state = {k: v for k, v in trained.state_dict().items() if not k.startswith("gaussian_head.")}
         model.load_state_dict(state, strict=False)
     return model.eval()
+
+
+def with_refinement(model: PanoVGGT, iterations: int) -> PanoVGGT:
+    """The same weights with PanoVGGTConfig.pose_refine_iters set (0 = the camera head's poses alone)."""
+    out = copy.deepcopy(model)
+    out.cfg.pose_refine_iters = iterations
+    return out
 
 
 def evenly(n: int, k: int) -> np.ndarray:
@@ -187,6 +198,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--colmap-height", type=int, default=256, help="ERP height COLMAP gets (rendered exactly)")
     p.add_argument("--stage2-scenes", type=int, default=0, help="stage 2 on the first K held-out scenes only (0 = all)")
     p.add_argument("--skip-stage1", action="store_true", help="stage 2 only (stage 1 still loads --stage1)")
+    p.add_argument("--refine-iters", type=int, default=20,
+                   help="depth-consistency pose refinement steps of the '+ refinement' rows (0 = no such rows)")
     p.add_argument("--json", type=Path, help="also write every row here")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -195,7 +208,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"held-out scenes: {[s.name for s in data.scenes]} at {trained1.cfg.image_height}x{2 * trained1.cfg.image_height}")
     rows = {}
     if not args.skip_stage1:
-        models = {"trained": trained1, "random init": random_init(trained1, args.seed, False)}
+        init = random_init(trained1, args.seed, False)
+        models = {"trained, camera head": with_refinement(trained1, 0), "random init": with_refinement(init, 0)}
+        if args.refine_iters:
+            models[f"trained + refinement ({args.refine_iters} steps)"] = with_refinement(trained1, args.refine_iters)
+            models[f"random init + refinement ({args.refine_iters} steps)"] = with_refinement(init, args.refine_iters)
         for turned in (False, True):
             r1 = stage1_rows(models, data, args.frames, args.colmap_scenes, args.colmap_height, turned, args.seed)
             how = "each track turned by a random yaw" if turned else "tracks as rendered (cameras start looking ahead)"

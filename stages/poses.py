@@ -80,6 +80,9 @@ class Params:
     """vggt: directory holding config.json and model.safetensors of PanoVGGT."""
     device: str = "cpu"
     """vggt: torch device (cpu, cuda, cuda:1)."""
+    refine_iters: int | None = None
+    """vggt: steps of depth-consistency pose refinement on the model's own depth (None = the weights' config.json
+    pose_refine_iters; 0 = the camera head's poses alone)."""
     depth_source: DepthSource = DepthSource.AUTO
     """Where depth/NNNNNN.png (uint16 millimetres) comes from."""
     copy_frames: bool = False
@@ -122,6 +125,10 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         from panoworld.models.panovggt import PanoVGGT
 
         model = PanoVGGT.from_pretrained(params.weights, flag="--weights", device=params.device)
+        if params.refine_iters is not None:
+            if params.refine_iters < 0:
+                raise StageInputError(f"refine_iters={params.refine_iters} but expected >= 0 (0 = off)")
+            model.cfg.pose_refine_iters = params.refine_iters
         est = vggt_estimate(video.rgb, model, planned, alignment=params.align, out_hw=(video.height, video.width))
 
     depth, depth_from = _choose_depth(params.depth_source, video, est)

@@ -310,3 +310,27 @@ def test_camera_head_with_the_correlation_cues_runs_saves_and_loads(tmp_path):
     # A config written before the cue existed (no key) loads as VGGT's head.
     assert PanoVGGTConfig.from_json({k: v for k, v in tiny_config().to_json().items() if k != "pose_correlation"}
                                     ).pose_correlation == 0
+
+
+def test_predict_refines_the_head_poses_on_its_own_depth_when_configured(tmp_path):
+    from panoworld.models.pose_refine import refine_sequence
+
+    m = tiny_model()
+    x = frames(3)
+    rgb = (x[0].permute(0, 2, 3, 1) * 255).round().to(torch.uint8).numpy()
+    head = m.predict(rgb)
+    np.testing.assert_array_equal(head["world_from_cam"], m(torch.from_numpy(rgb).permute(0, 3, 1, 2)[None].float()
+                                                            .div(255.0))["world_from_cam"][0].numpy())
+    m.cfg.pose_refine_iters = 3
+    refined = m.predict(rgb)
+    expect = refine_sequence(torch.from_numpy(head["world_from_cam"]), torch.from_numpy(head["depth"]), iterations=3)
+    np.testing.assert_allclose(refined["world_from_cam"], expect.numpy(), atol=1e-9)
+    assert not np.allclose(refined["world_from_cam"][1:], head["world_from_cam"][1:], atol=1e-4)
+    np.testing.assert_array_equal(refined["depth"], head["depth"])
+    # saved with the model; configs written before the option load with it off
+    m.save_pretrained(tmp_path / "w")
+    assert PanoVGGT.from_pretrained(tmp_path / "w").cfg.pose_refine_iters == 3
+    assert PanoVGGTConfig.from_json({k: v for k, v in tiny_config().to_json().items() if k != "pose_refine_iters"}
+                                    ).pose_refine_iters == 0
+    with pytest.raises(ValueError, match="pose_refine_iters=-1"):
+        tiny_config(pose_refine_iters=-1)

@@ -104,6 +104,7 @@ def test_stage1_resume_after_a_kill_reproduces_the_loss_curve(synth_dataset, tmp
     weights = tmp_path / "cut" / "export" / "weights"
     loaded = PanoVGGT.from_pretrained(weights)
     assert torch.equal(loaded.state_dict()["patch_embed.weight"], sa["patch_embed.weight"])
+    assert loaded.cfg.pose_refine_iters == ReconConfig().pose_refine_iters > 0  # tiny exports refine by default
     doc = yaml.safe_load((tmp_path / "cut" / "export" / "scene.yaml").read_text())
     assert doc["params"] == {"poses": {"backend": "vggt", "weights": str(weights.resolve()), "align": "se3"}}
     with pytest.raises(ValueError, match="different config"):
@@ -113,8 +114,8 @@ def test_stage1_resume_after_a_kill_reproduces_the_loss_curve(synth_dataset, tmp
 def test_stage2_trains_only_the_gaussian_head_and_exports_both_backends(synth_dataset, tmp_path):
     s1 = Trainer(ReconConfig(**TINY, stage=1, steps=1), synth_dataset, tmp_path / "s1", progress=False)
     init = s1.run() and tmp_path / "s1" / "export" / "weights"
-    t = Trainer(ReconConfig(**TINY, stage=2, steps=2, val_every=2), synth_dataset, tmp_path / "s2", init=init,
-                progress=False)
+    t = Trainer(ReconConfig(**TINY, stage=2, steps=2, val_every=2, pose_refine_iters=0), synth_dataset,
+                tmp_path / "s2", init=init, progress=False)
     before = {k: v.clone() for k, v in t.model.state_dict().items()}
     result = t.run()
     after = t.model.state_dict()
@@ -125,6 +126,7 @@ def test_stage2_trains_only_the_gaussian_head_and_exports_both_backends(synth_da
     assert doc["params"]["gaussians"]["backend"] == "decoder" and doc["params"]["poses"]["backend"] == "vggt"
     cfg = json.loads((tmp_path / "s2" / "export" / "weights" / "config.json").read_text())
     assert cfg["gaussian_head"]["voxel_size"] == TINY["voxel_size"]
+    assert cfg["pose_refine_iters"] == 0  # the run's value, not the --init export's
 
 
 def test_cli_errors_name_the_fix(synth_dataset, tmp_path, capsys):

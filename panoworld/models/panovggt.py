@@ -13,6 +13,7 @@ from torch import nn
 
 from panoworld.conventions import erp_lonlat_from_pixel
 from panoworld.models.gs_decoder import GaussianHead, GaussianHeadConfig
+from panoworld.models.pose_refine import refine_sequence
 from panoworld.models.weights import (
     JsonConfig,
     MissingWeightsError,
@@ -63,6 +64,11 @@ class PanoVGGTConfig(JsonConfig):
     """Channels of the four reassembled feature maps of the depth head."""
     image_height: int = 392
     """Input ERP height the weights were trained at (width = 2 * height); frames are resized to it."""
+    pose_refine_iters: int = 0
+    """Depth-consistency pose refinement in predict(): Gauss-Newton steps of every frame against frame 0, then two
+    sweeps over neighbouring frames (pose_refine.refine_sequence), so that the predicted depth maps agree; 0 = off,
+    the camera head's poses as VGGT. Not in the paper; no learned parameters; training losses always see the head's
+    own poses."""
     gaussian_head: GaussianHeadConfig | None = None
     """The voxel-aligned Gaussian head sharing the aggregator's tokens (None = camera and depth heads only)."""
 
@@ -82,6 +88,8 @@ class PanoVGGTConfig(JsonConfig):
             raise ValueError(f"{self.embed_dim=} is not divisible by {self.num_heads=}")
         if self.image_height % self.patch_size:
             raise ValueError(f"{self.image_height=} is not a multiple of {self.patch_size=}")
+        if self.pose_refine_iters < 0:
+            raise ValueError(f"{self.pose_refine_iters=} but expected >= 0 (0 = off)")
 
 
 def erp_coordinate_features(
@@ -508,8 +516,12 @@ class PanoVGGT(nn.Module):
         dev = next(self.parameters()).device
         x = torch.from_numpy(frames).to(dev).permute(0, 3, 1, 2).float().div(255.0)[None]
         out = self.eval()(x)
+        world_from_cam = out["world_from_cam"][0]
+        if self.cfg.pose_refine_iters > 0:
+            world_from_cam = refine_sequence(world_from_cam, out["depth"][0].float(),
+                                             iterations=self.cfg.pose_refine_iters)
         return {
-            "world_from_cam": out["world_from_cam"][0].cpu().numpy(),
+            "world_from_cam": world_from_cam.cpu().numpy(),
             "depth": out["depth"][0].float().cpu().numpy(),
             "depth_conf": out["depth_conf"][0].float().cpu().numpy(),
         }

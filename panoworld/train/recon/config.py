@@ -87,6 +87,10 @@ class ReconConfig:
     """Channels of the camera head's panoramic correlation cues (0 = VGGT's head; PanoVGGTConfig.pose_correlation)."""
     dpt_features: int = 32
     """Depth head fusion channels."""
+    pose_refine_iters: int = 20
+    """Depth-consistency pose refinement steps the export runs at inference (PanoVGGTConfig.pose_refine_iters; 0 =
+    the camera head's poses as VGGT). Written into the export's config.json, also for an --init model; never
+    trained through."""
     # stage 1 losses
     camera_weight: float = 1.0
     """Weight of the camera loss."""
@@ -170,6 +174,7 @@ PRESETS: dict[str, dict] = {
         "val_every": 2000, "val_batches": 32, "ckpt_every": 2000, "log_every": 50, "val_scenes": 50,
         "patch_size": 14, "embed_dim": 1024, "depth": 24, "num_heads": 16, "num_register_tokens": 4,
         "camera_trunk_depth": 4, "camera_iterations": 4, "pose_correlation": 0, "dpt_features": 256,
+        "pose_refine_iters": 0,
         "context_views": 8, "target_views": 4, "render_context": 4, "render_height": 392,
         "gs_embed_dim": 384, "gs_layers": 6, "gs_heads": 6, "gs_feature_dim": 64, "gs_token_dim": 128,
         "gs_knn_k": 16, "gs_knn_layers": 2, "gs_mlp_hidden": 256, "gs_per_voxel": 2, "gs_sh_degree": 1,
@@ -188,7 +193,8 @@ def model_config(cfg: ReconConfig, with_head: bool):
     return PanoVGGTConfig(
         patch_size=cfg.patch_size, embed_dim=cfg.embed_dim, depth=d, num_heads=cfg.num_heads,
         num_register_tokens=cfg.num_register_tokens, coord_frequencies=8, camera_trunk_depth=cfg.camera_trunk_depth,
-        camera_iterations=cfg.camera_iterations, pose_correlation=cfg.pose_correlation, dpt_layers=dpt, dpt_features=w,
+        camera_iterations=cfg.camera_iterations, pose_correlation=cfg.pose_correlation,
+        pose_refine_iters=cfg.pose_refine_iters, dpt_layers=dpt, dpt_features=w,
         dpt_out_channels=(w, 2 * w, 4 * w, 4 * w),
         image_height=cfg.image_height, gaussian_head=head_config(cfg) if with_head else None,
     )

@@ -256,7 +256,9 @@ class Trainer:
     def export(self) -> Path:
         """RUN_DIR/export/weights (config.json + model.safetensors) and RUN_DIR/export/scene.yaml."""
         weights = self.run_dir.export / WEIGHTS
-        self.rt.unwrap(self.model).save_pretrained(weights)
+        model = self.rt.unwrap(self.model)
+        model.cfg.pose_refine_iters = self.cfg.pose_refine_iters  # inference-only: the run decides, --init or not
+        model.save_pretrained(weights)
         # The model is trained in metres: keep its scale (se3) rather than fitting one to the plan (sim3).
         params = {"poses": {"backend": "vggt", "weights": str(weights.resolve()), "align": "se3"}}
         if self.cfg.stage == 2:
