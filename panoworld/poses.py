@@ -389,7 +389,8 @@ def vggt_estimate(
     depth = pred["depth"] * np.float32(scale)
     if out_hw is not None and depth.shape[1:] != tuple(out_hw):
         depth = np.stack([cv2.resize(d, (out_hw[1], out_hw[0]), interpolation=cv2.INTER_LINEAR) for d in depth])
-    info = {"infer_s": infer_s, "input_height": model.cfg.image_height}
+    info = {"infer_s": infer_s, "input_height": model.cfg.image_height,
+            "pose_refine_iters": model.cfg.pose_refine_iters}
     return PoseEstimate(_apply(sim, raw), reg, "vggt", str(alignment), sim3=sim, raw=raw, depth=depth, info=info)
 
 

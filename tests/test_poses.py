@@ -261,8 +261,9 @@ def test_vggt_backend_needs_weights_and_runs_a_real_model_when_given_them(tmp_pa
     assert aligned["alignment"] == "sim3" and aligned["sim3"]["scale"] == s
     np.testing.assert_allclose(read_depth_png(tmp_path / "aligned" / "depth/000001.png"), s * d, atol=1e-3 + 1e-3 * s)
     # --refine-iters overrides the weights' pose_refine_iters (0 in this config): other poses, the same depth
-    run_stage(tmp_path, video, None, "refined", backend="vggt", weights=str(tmp_path / "w"), align="none",
-              refine_iters=3)
+    manifest = run_stage(tmp_path, video, None, "refined", backend="vggt", weights=str(tmp_path / "w"), align="none",
+                         refine_iters=3)
+    assert manifest["info"]["pose_refine_iters"] == 3
     refined = load_poses(tmp_path / "refined")
     assert not np.allclose(refined.world_from_cam[1:], art.world_from_cam[1:], atol=1e-4)
     np.testing.assert_array_equal(read_depth_png(refined.depth[1]), d)
