@@ -90,6 +90,21 @@ def test_refine_absorbs_a_depth_scale_error_of_the_other_frame(track):
     assert dt < 0.005 and dr < 0.3, (dt, dr)
 
 
+def test_invalid_depth_pixels_are_ignored_at_any_resolution(track):
+    depth, gt = track
+    holes = depth.clone()
+    holes[1:, :4] = float("inf")  # nothing hit (a renderer's sky), a sensor's zero band, NaN
+    holes[1:, -3:] = 0.0
+    holes[2, 10:12, 20:30] = float("nan")
+    start = gt[1:].clone()
+    start[:, :3, 3] += 0.1
+    for d in (holes, torch.nn.functional.interpolate(holes[:, None], scale_factor=4, mode="nearest")[:, 0]):
+        out = refine_relative_poses(start, d[:1].expand(3, -1, -1), d[1:], edge=0.1, max_height=32)
+        assert torch.isfinite(out).all()
+        dt, dr = errors(out, gt[1:])
+        assert dt < 0.01 and dr < 0.3, (d.shape, dt, dr)
+
+
 def test_depth_edges_flag_discontinuities_across_the_seam_only():
     d = torch.full((1, 8, 16), 2.0, dtype=torch.float64)
     d[..., 0] = 4.0  # a step between column 0 and its neighbours 1 and 15 (across the seam)

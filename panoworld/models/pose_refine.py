@@ -72,10 +72,16 @@ def _pose_residuals(xi: torch.Tensor, R: torch.Tensor, t: torch.Tensor, dirs: to
 
 
 def _downsample(depth: torch.Tensor, max_height: int) -> torch.Tensor:
-    """(B, H, W) -> float64, area-downsampled to (max_height, 2 max_height) when taller."""
+    """(B, H, W) -> float64 with invalid pixels (non-finite or <= 0) set to 0, area-downsampled over the valid pixels
+    to (max_height, 2 max_height) when taller."""
     depth = depth.to(torch.float64)
+    valid = torch.isfinite(depth) & (depth > 0)
+    depth = torch.where(valid, depth, torch.zeros_like(depth))
     if depth.shape[-2] > max_height:
-        depth = F.adaptive_avg_pool2d(depth[:, None], (max_height, 2 * max_height))[:, 0]
+        size = (max_height, 2 * max_height)
+        total = F.adaptive_avg_pool2d(depth[:, None], size)[:, 0]
+        frac = F.adaptive_avg_pool2d(valid[:, None].to(depth.dtype), size)[:, 0]
+        depth = torch.where(frac > 0.5, total / frac.clamp(min=1e-12), torch.zeros_like(total))
     return depth
 
 
@@ -120,7 +126,8 @@ def refine_relative_poses(ref_from_cam: torch.Tensor, depth_ref: torch.Tensor, d
                           damping: float = 1e-3, max_height: int = 64) -> torch.Tensor:
     """Refine poses of cameras relative to a reference camera so that their ERP depth maps agree.
 
-    ref_from_cam (B, 4, 4), depth_ref and depth (B, H, W) metres (ray distance; <= 0 invalid) -> refined (B, 4, 4).
+    ref_from_cam (B, 4, 4), depth_ref and depth (B, H, W) metres (ray distance; <= 0 or non-finite: invalid) ->
+    refined (B, 4, 4).
     Minimises, over a rotation, a translation and a per-frame log depth scale (7 parameters per camera), the robust
     log-range residuals log|X| - log D(dir X) of each camera's points seen from the other camera, both directions;
     Huber weights (threshold `huber`), residuals of points farther than the other view's surface by more than
