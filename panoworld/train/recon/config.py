@@ -36,7 +36,7 @@ class ReconConfig:
     seed: int = 0
     """Seeds the model initialisation and every batch (batch k uses the generator seeded by (seed, k))."""
     steps: int = 0
-    """Optimiser steps (0 = the stage's default: 8000 in stage 1, 500 in stage 2, whose steps render and cost ~10x)."""
+    """Optimiser steps (0 = the stage's default: 12000 in stage 1, 500 in stage 2, whose steps render and cost ~10x)."""
     lr: float = 1e-3
     """Peak AdamW learning rate (linear warm-up, then cosine decay to lr_min_ratio * lr)."""
     lr_min_ratio: float = 0.05
@@ -153,7 +153,7 @@ class ReconConfig:
 
     def __post_init__(self):
         if self.steps == 0:
-            self.steps = 8000 if self.stage == 1 else 500
+            self.steps = 12000 if self.stage == 1 else 500
 
     def check(self) -> None:
         if self.stage not in (1, 2):
