@@ -105,7 +105,7 @@ def test_invalid_depth_pixels_are_ignored_at_any_resolution(track):
         assert dt < 0.01 and dr < 0.3, (d.shape, dt, dr)
 
 
-def test_depth_edges_flag_discontinuities_across_the_seam_only():
+def test_depth_edges_flag_discontinuities_and_wrap_across_the_seam():
     d = torch.full((1, 8, 16), 2.0, dtype=torch.float64)
     d[..., 0] = 4.0  # a step between column 0 and its neighbours 1 and 15 (across the seam)
     e = depth_edges(d)
