@@ -1,4 +1,4 @@
-"""Gauss-Newton refinement of relative ERP camera poses by the consistency of their depth maps (no learned parameters)."""
+"""Gauss-Newton refinement of relative ERP camera poses by the consistency of their depth maps (no learned weights)."""
 
 from __future__ import annotations
 
@@ -51,22 +51,30 @@ def sample_range(depth: torch.Tensor, pts: torch.Tensor, *extra: torch.Tensor) -
 
 
 def _pose_residuals(xi: torch.Tensor, R: torch.Tensor, t: torch.Tensor, dirs: torch.Tensor, d_ref: torch.Tensor,
-                    d_i: torch.Tensor, near: float, e_ref: torch.Tensor, e_i: torch.Tensor, edge: float) -> torch.Tensor:
+                    d_i: torch.Tensor, near: float,
+                    edges: tuple[torch.Tensor, torch.Tensor, float] | None) -> torch.Tensor:
     """xi (B, 7) updates of ref_from_cam_i = [R | t] (B, 3, 3), (B, 3) (right-multiplied: in camera i's frame) and of
     the log scale of its depth; dirs (h, w, 3); depth maps (B, h, w) -> (B, 2 h w) log-range residuals, both
-    directions (camera i's points seen from the reference, and back). e_ref, e_i: depth_edges of the maps; lookups
-    where they exceed `edge` (bilinear across a depth discontinuity) do not count."""
+    directions (camera i's points seen from the reference, and back). edges: None, or (depth_edges of d_ref, of d_i,
+    threshold): lookups where the looked-up map's exceeds the threshold (bilinear across a depth discontinuity) do not
+    count."""
     b = xi.shape[0]
     Rn = R @ so3_exp(xi[:, :3])
     tn = t + (R @ xi[:, 3:6, None])[..., 0]
     di = d_i * torch.exp(xi[:, 6])[:, None, None]
     rays = dirs.reshape(1, -1, 3)
     p_i = rays * di.reshape(b, -1, 1)
-    r, d, e = sample_range(d_ref, p_i @ Rn.transpose(1, 2) + tn[:, None], e_ref)
     p_ref = rays * d_ref.reshape(b, -1, 1)
-    rb, db, eb = sample_range(di, (p_ref - tn[:, None]) @ Rn, e_i)
-    valid = torch.cat([(di.reshape(b, -1) > near) & (d > near) & (e < edge),
-                       (d_ref.reshape(b, -1) > near) & (db > near) & (eb < edge)], 1)
+    if edges is None:
+        r, d = sample_range(d_ref, p_i @ Rn.transpose(1, 2) + tn[:, None])
+        rb, db = sample_range(di, (p_ref - tn[:, None]) @ Rn)
+        fwd, bwd = d > near, db > near
+    else:
+        e_ref, e_i, edge = edges
+        r, d, e = sample_range(d_ref, p_i @ Rn.transpose(1, 2) + tn[:, None], e_ref)
+        rb, db, eb = sample_range(di, (p_ref - tn[:, None]) @ Rn, e_i)
+        fwd, bwd = (d > near) & (e < edge), (db > near) & (eb < edge)
+    valid = torch.cat([(di.reshape(b, -1) > near) & fwd, (d_ref.reshape(b, -1) > near) & bwd], 1)
     res = torch.cat([torch.log(r) - torch.log(d.clamp(min=near)), torch.log(rb) - torch.log(db.clamp(min=near))], 1)
     return torch.where(valid, res, torch.zeros_like(res))
 
@@ -86,12 +94,12 @@ def _downsample(depth: torch.Tensor, max_height: int) -> torch.Tensor:
 
 
 def _gauss_newton(R: torch.Tensor, t: torch.Tensor, d_ref: torch.Tensor, d_i: torch.Tensor, *, shared: bool,
-                  iterations: int, huber: float, occlusion: float, damping: float, edge: float
+                  iterations: int, huber: float, occlusion: float, damping: float, edge: float | None
                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Damped, reweighted Gauss-Newton on _pose_residuals; float64 inputs (B, 3, 3), (B, 3), (B, h, w), (B, h, w).
 
     shared: the B pairs are one camera against B references and get one update (their normal equations summed).
-    -> R, t, log depth scale (B,) of d_i."""
+    edge: None = no depth-edge mask (nothing computed for it). -> R, t, log depth scale (B,) of d_i."""
     b, h, w = d_ref.shape
     dirs = torch.from_numpy(erp_dirs(h, w, dtype=np.float64)).to(d_ref.device)
     eps, near = 1e-5, 1e-3
@@ -99,11 +107,11 @@ def _gauss_newton(R: torch.Tensor, t: torch.Tensor, d_ref: torch.Tensor, d_i: to
     eye = torch.eye(PARAMS, dtype=R.dtype, device=R.device)
     log_scale = torch.zeros(b, dtype=R.dtype, device=R.device)
     zero = torch.zeros(b, PARAMS, dtype=R.dtype, device=R.device)
-    edges = depth_edges(d_ref), depth_edges(d_i), edge
+    edges = None if edge is None else (depth_edges(d_ref), depth_edges(d_i), edge)
     for _ in range(iterations):
         d_s = d_i * torch.exp(log_scale)[:, None, None]
-        r0 = _pose_residuals(zero, R, t, dirs, d_ref, d_s, near, *edges)
-        J = torch.stack([(_pose_residuals(zero + e, R, t, dirs, d_ref, d_s, near, *edges) - r0) / eps for e in basis],
+        r0 = _pose_residuals(zero, R, t, dirs, d_ref, d_s, near, edges)
+        J = torch.stack([(_pose_residuals(zero + e, R, t, dirs, d_ref, d_s, near, edges) - r0) / eps for e in basis],
                         -1)
         a = r0.abs()
         wgt = torch.where(a < huber, torch.ones_like(a), huber / a.clamp(min=1e-12))
@@ -132,10 +140,11 @@ def refine_relative_poses(ref_from_cam: torch.Tensor, depth_ref: torch.Tensor, d
     log-range residuals log|X| - log D(dir X) of each camera's points seen from the other camera, both directions;
     Huber weights (threshold `huber`), residuals of points farther than the other view's surface by more than
     `occlusion` (in log range: possibly hidden there) down-weighted 10x; with `edge`, lookups across a depth edge
-    (depth_edges above it: the bilinear value blends two surfaces) are dropped, which removes the bias of exact depth
-    maps (about 0.1 suits rendered or sensor depth; smooth predicted maps do better without: a wider basin); damped Gauss-Newton with a forward-difference
-    Jacobian. Depth maps taller than max_height rows are area-downsampled first. The depth scale absorbs a scale error
-    of one map against the other; the translation keeps the reference map's units.
+    (depth_edges above it: the bilinear value blends two surfaces) are dropped, which removes the bias of exact
+    depth maps (about 0.1 suits rendered or sensor depth; smooth predicted maps do better without: a wider basin);
+    damped Gauss-Newton with a forward-difference Jacobian. Depth maps taller than max_height rows are
+    area-downsampled first. The depth scale absorbs a scale error of one map against the other; the translation
+    keeps the reference map's units.
     """
     if ref_from_cam.ndim != 3 or ref_from_cam.shape[-2:] != (4, 4):
         raise ValueError(f"{tuple(ref_from_cam.shape)=} but expected (B, 4, 4)")
@@ -145,7 +154,7 @@ def refine_relative_poses(ref_from_cam: torch.Tensor, depth_ref: torch.Tensor, d
     pose = ref_from_cam.to(torch.float64)
     R, t, _ = _gauss_newton(pose[:, :3, :3].clone(), pose[:, :3, 3].clone(), _downsample(depth_ref, max_height),
                             _downsample(depth, max_height), shared=False, iterations=iterations, huber=huber,
-                            occlusion=occlusion, damping=damping, edge=np.inf if edge is None else edge)
+                            occlusion=occlusion, damping=damping, edge=edge)
     out = pose.clone()
     out[:, :3, :3], out[:, :3, 3] = R, t
     return out.to(ref_from_cam.dtype)
@@ -177,7 +186,7 @@ def refine_sequence(world_from_cam: torch.Tensor, depth: torch.Tensor, *, iterat
     if iterations > 0:
         rel = torch.linalg.inv(T[:1]) @ T[1:]
         R, t, log_scale[1:] = _gauss_newton(rel[:, :3, :3].clone(), rel[:, :3, 3].clone(), d[:1].expand(s - 1, -1, -1),
-                                            d[1:], shared=False, iterations=iterations, edge=np.inf, **kw)
+                                            d[1:], shared=False, iterations=iterations, edge=None, **kw)
         rel[:, :3, :3], rel[:, :3, 3] = R, t
         T[1:] = T[:1] @ rel
     for _ in range(sweeps if sweep_iterations > 0 else 0):
@@ -187,7 +196,7 @@ def refine_sequence(world_from_cam: torch.Tensor, depth: torch.Tensor, *, iterat
             d_refs = d[refs] * torch.exp(log_scale[refs])[:, None, None]
             d_k = (d[k] * torch.exp(log_scale[k])).expand(len(refs), -1, -1)
             R, t, dls = _gauss_newton(rel[:, :3, :3].clone(), rel[:, :3, 3].clone(), d_refs, d_k, shared=True,
-                                      iterations=sweep_iterations, edge=np.inf if edge is None else edge, **kw)
+                                      iterations=sweep_iterations, edge=edge, **kw)
             rel[0, :3, :3], rel[0, :3, 3] = R[0], t[0]  # refs[0] is frame 0
             T[k] = T[0] @ rel[0]
             log_scale[k] += dls[0]
