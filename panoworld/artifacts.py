@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from panoworld.errors import ArtifactError  # noqa: F401  (re-exported)
 import hashlib
 import json
 import os
@@ -16,10 +17,6 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 SCHEMA_DIR = REPO_ROOT / "artifacts_schema"
 TMP_PREFIX = ".tmp-"
 OLD_PREFIX = ".old-"
-
-
-class ArtifactError(Exception):
-    """An artifact is missing, invalid, tampered with, or of a schema version the code no longer accepts."""
 
 
 def file_digest(path: Path, chunk: int = 1 << 22) -> str:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from panoworld.errors import DataError
 import json
 from functools import cached_property
 from pathlib import Path
@@ -9,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 
-class DatasetError(ValueError):
+class DatasetError(DataError):
     """A dataset scene is missing files or has an unreadable gt.json."""
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from panoworld.errors import PipelineError  # noqa: F401  (re-exported)
 import dataclasses
 import fcntl
 import json
@@ -36,10 +37,6 @@ ARTIFACTS_DIRNAME = "artifacts"
 VARIANTS_DIRNAME = "variants"
 SCENE_CONFIG = "scene.yaml"
 DEFAULT_PRESET = "default"
-
-
-class PipelineError(Exception):
-    """A bad request to the runner (unknown stage/param, bad scene, locked scene): exit code 2."""
 
 
 @dataclass(frozen=True)

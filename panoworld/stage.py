@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from panoworld.errors import InputError
 import argparse
 import ast
 import dataclasses
@@ -25,8 +26,8 @@ from panoworld import artifacts as art
 from panoworld.hub import resolve as hub
 
 
-class StageInputError(ValueError):
-    """Bad input to a stage (missing/unreadable file, wrong size, ...): exit code 2, one-line message."""
+StageInputError = InputError
+"""Bad input to a stage (missing/unreadable file, wrong size, ...): exit code 2, one-line message."""
 
 
 @dataclass(frozen=True)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from panoworld.errors import InputError
 import enum
 import math
 from dataclasses import dataclass
@@ -14,7 +15,7 @@ import numpy as np
 GT_DIRNAME = "gt"
 
 
-class EvalInputError(ValueError):
+class EvalInputError(InputError):
     """The scene or an option cannot be evaluated at all (no ground truth, unusable weights): exit code 2."""
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from panoworld.errors import PanoWorldError
 import hashlib
 import os
 import re
@@ -14,7 +15,7 @@ from panoworld.hub.registry import REGISTRY, WeightsEntry
 from panoworld.hub.resolve import HfId, WeightsNotFound, hf_blob_id, hf_offline, hub_cache_dir, parse_hf, resolve_hf, sha256_file, weights_dir
 
 
-class FetchError(RuntimeError):
+class FetchError(PanoWorldError, RuntimeError):
     """A download that failed or did not verify; one line naming the file and what to do."""
 
 

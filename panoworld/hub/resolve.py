@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from panoworld.errors import WeightsError
 import dataclasses
 import os
 import re
@@ -17,7 +18,7 @@ WEIGHTS_PARAMS = frozenset({"weights", "lora", "extra_weights", "upscale_weights
 _REPO = re.compile(r"^[A-Za-z0-9][\w.-]*/[A-Za-z0-9][\w.-]*$")
 
 
-class WeightsNotFound(ValueError):
+class WeightsNotFound(WeightsError):
     """A weights id that does not resolve locally; the message is one line naming the command that fetches it."""
 
 

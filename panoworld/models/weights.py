@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from panoworld.errors import WeightsError
 import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
@@ -9,7 +10,7 @@ from pathlib import Path
 from panoworld.stage import StageInputError
 
 
-class MissingWeightsError(StageInputError):
+class MissingWeightsError(WeightsError):
     """Weights absent or incomplete; a stage that lets it propagate exits with code 2 and this message."""
 
 

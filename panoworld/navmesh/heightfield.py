@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from panoworld.errors import InputError
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -13,7 +14,7 @@ RIM_WALKABLE_FRACTION = 0.8
 """An unseen region is assumed to be floor only when at least this share of the cells around it is walkable floor."""
 
 
-class NoFloorError(ValueError):
+class NoFloorError(InputError):
     """The mesh has no walkable floor (no up-facing area below the camera, or nothing left after erosion)."""
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from panoworld.errors import PanoWorldError
 import enum
 from dataclasses import dataclass
 
@@ -438,5 +439,5 @@ class Placer:
                 n -= 1
 
 
-class PlacementError(RuntimeError):
+class PlacementError(PanoWorldError, RuntimeError):
     """Furniture placement cannot keep walkable floor (the caller retries with another seed)."""

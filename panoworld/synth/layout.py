@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from panoworld.errors import PanoWorldError
 from dataclasses import dataclass
 
 import numpy as np
@@ -12,7 +13,7 @@ SOLID = -1
 """Label of grid cells that are inside walls or outside the building."""
 
 
-class LayoutError(RuntimeError):
+class LayoutError(PanoWorldError, RuntimeError):
     """The random floor plan could not be built (the caller retries with another seed)."""
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from panoworld.errors import PanoWorldError
 import json
 import os
 import shutil
@@ -32,7 +33,7 @@ GT_FORMAT = "panoworld-synth-gt"
 GT_VERSION = 1
 
 
-class SceneGenerationError(RuntimeError):
+class SceneGenerationError(PanoWorldError, RuntimeError):
     """No walkable scene could be generated for the requested seed and parameters."""
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from panoworld.errors import PanoWorldError
 from dataclasses import dataclass
 
 import numpy as np
@@ -13,7 +14,7 @@ from panoworld.synth.layout import SOLID, FloorPlan
 from panoworld.synth.params import TrackParams
 
 
-class TrackError(RuntimeError):
+class TrackError(PanoWorldError, RuntimeError):
     """No track satisfying the clearance, smoothness and length constraints was found."""
 
 

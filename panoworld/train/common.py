@@ -18,6 +18,7 @@ The API (used by `panoworld.train.video` and `panoworld.train.recon`):
 
 from __future__ import annotations
 
+from panoworld.errors import InputError
 import contextlib
 import dataclasses
 import json
@@ -39,7 +40,7 @@ CHECKPOINTS = "checkpoints"
 EXPORT = "export"
 
 
-class TrainConfigError(ValueError):
+class TrainConfigError(InputError):
     """A bad preset, --set or run directory (the message names the flag or file and the fix)."""
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from panoworld.errors import InputError
 import enum
 from dataclasses import dataclass, field
 
@@ -33,7 +34,7 @@ class YawMode(enum.StrEnum):
     """Yaw follows the (smoothed) direction of travel, relative to the initial heading so pose 0 = identity."""
 
 
-class TrajectoryFileError(ValueError):
+class TrajectoryFileError(InputError):
     """A trajectory file cannot be read or holds no valid SE(3) poses."""
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from panoworld.errors import DataError
 import hashlib
 import json
 import math
@@ -16,7 +17,7 @@ from torch.utils.data import Dataset
 from panoworld.precompute import INDEX
 
 
-class ClipDataError(ValueError):
+class ClipDataError(DataError):
     """A precompute output that cannot be trained on (the message names the file)."""
 
 
