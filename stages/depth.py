@@ -11,6 +11,7 @@ import numpy as np
 
 from panoworld.choices import Rescale
 from panoworld.stage import Input, StageInputError, stage_main
+from panoworld.params import param
 
 NAME = "depth"
 VERSION = "2"
@@ -32,31 +33,31 @@ class Backend(enum.StrEnum):
 class Params:
     backend: Backend = Backend.AUTO
     """Where depth comes from: the scene's depth file (provided), a Depth Anything V2 model on cube views, or auto."""
-    png_scale: float = 0.001
+    png_scale: float = param(0.001, gt=0)
     """Metres per unit of a 16-bit depth PNG (0.001 = millimetres; Matterport-style PNGs use 0.00025)."""
-    max_hole_px: int = 64
+    max_hole_px: int = param(64, ge=0)
     """Invalid regions (NaN, inf, <= 0) of at most this many pixels are filled (harmonic); larger ones stay invalid."""
-    max_gap_px: int = -1
+    max_gap_px: int = param(-1, ge=-1)
     """Invalid runs of at most this many pixels between valid ones along a row or column are interpolated (the
     scan-line gaps of sparse LiDAR depth, e.g. 6); 0 = off; -1 = auto: a width found from the depth when most
     invalid pixels lie in such short runs (sparse LiDAR), else off (panoworld.depth.auto_gap_px)."""
     weights: Path | None = None
     """depth-anything: local folder with config.json + model.safetensors (e.g. Depth-Anything-V2-Small-hf)."""
-    view_size: int = 518
+    view_size: int = param(518, ge=14)
     """depth-anything: side of each perspective cube view fed to the model (a multiple of 14)."""
-    fov_deg: float = 110.0
+    fov_deg: float = param(110.0, gt=90, lt=180)
     """depth-anything: field of view of each of the 6 cube views (> 90 so neighbours overlap for alignment)."""
     device: str = "cpu"
     """depth-anything: torch device."""
     rescale: Rescale = Rescale.AUTO
     """When to rescale depth so the floor lies camera_height below the camera: auto = relative depth, and provided
     depth whose floor is no plausible capture height (0.9-2.4 m: unknown units); always: e.g. raw sensor units."""
-    camera_height: float = 1.6
+    camera_height: float = param(1.6, gt=0)
     """Camera height above the floor in metres, used when rescaling."""
-    max_height: int = 1024
+    max_height: int = param(1024, ge=0)
     """Resolution policy: panoramas taller than this are area-averaged (depth: nearest) to max_height x 2 max_height
     before anything else, so memory stays bounded downstream (8192x4096 -> 2048x1024); 0 = never."""
-    min_depth_m: float = 0.1
+    min_depth_m: float = param(0.1, ge=0)
     """Metric depths nearer than this (sensor noise, the capture rig) are invalid: they never become geometry."""
 
 
