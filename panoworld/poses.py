@@ -18,6 +18,7 @@ import numpy as np
 from panoworld.align import align_trajectory, apply_sim3, check_trajectory, trajectory_metrics
 from panoworld.choices import Alignment, Matcher, RenderType
 from panoworld.conventions import cv_world_from_cam_from_gl, gl_world_from_cam, invert_pose
+from panoworld.io import to_jsonable, write_json
 from panoworld.stage import StageInputError
 from panoworld.video_io import DEPTH_SCALE, VIDEO_FILE, depth_to_mm, encode_png
 
@@ -455,16 +456,6 @@ def poses_from_transforms(d: dict) -> np.ndarray:
     return np.stack([cv_world_from_cam_from_gl(np.asarray(f["transform_matrix"], np.float64)) for f in d["frames"]])
 
 
-def _jsonable(x):
-    if isinstance(x, float) and not np.isfinite(x):
-        return None
-    if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    return x
-
-
 def write_poses_artifact(
     out_dir: Path,
     est: PoseEstimate,
@@ -549,14 +540,14 @@ def write_poses_artifact(
         "colmap_model": "sparse/0",
         "image_dir": image_dir,
     }
-    (out_dir / "poses.json").write_text(json.dumps(_jsonable(doc), indent=1))
+    write_json(out_dir / "poses.json", doc)
     return {
         "backend": est.backend,
         "num_frames": n,
         "num_registered": int(reg.sum()),
         "unregistered": doc["unregistered"],
         "sim3_scale": None if est.sim3 is None else float(est.sim3[0]),
-        "metrics_vs_planned": _jsonable(metrics),
+        "metrics_vs_planned": to_jsonable(metrics),
         "has_depth": depth_rel is not None,
         "num_points3D": int(rec.num_points3D()),
         **est.info,

@@ -24,6 +24,7 @@ from typing import Any
 
 from panoworld import artifacts as art
 from panoworld import params as P
+from panoworld.io import to_jsonable
 from panoworld.hub import resolve as hub
 
 
@@ -319,7 +320,7 @@ def execute_stage(
             "finished": datetime.now(timezone.utc).isoformat(),
             "wall_s": time.perf_counter() - t0,
             "peak_rss_mb": peak_rss_mb(),
-            "info": _jsonable(info),
+            "info": to_jsonable(info),
         }
         art.write_manifest(tmp, manifest, spec.artifact)
         art.commit_dir(tmp, out_dir)
@@ -327,10 +328,6 @@ def execute_stage(
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return manifest
-
-
-def _jsonable(obj: Any) -> Any:
-    return json.loads(json.dumps(obj, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
 
 
 # ---------------------------------------------------------------- CLI
@@ -376,7 +373,7 @@ def _add_param_flags(parser: argparse.ArgumentParser, group, cls: type, prefix: 
         group.add_argument(
             "--" + name.replace(".", "-").replace("_", "-"), dest="p_" + name.replace(".", "__"), default=None,
             metavar=("{" + ",".join(map(str, choices)) + "}") if choices else tp.__name__.upper() if hasattr(tp, "__name__") else "VALUE",
-            help=f"{docs.get(f.name, '')} (default: {default}{'; ' + allowed if allowed and not choices else ''})",
+            help=f"{docs.get(f.name, '')} (default: {default}{'; ' + allowed if allowed and not choices else ''})".replace("%", "%%"),
         )
 
 

@@ -101,8 +101,8 @@ register(WeightsEntry(
     files=(WeightsFile("model_index.json"), WeightsFile("transformer/config.json"), WeightsFile("vae/config.json"),
            WeightsFile("text_encoder/config.json"), WeightsFile("tokenizer/tokenizer_config.json")),
     patterns=("model_index.json", "transformer/*", "vae/*", "text_encoder/*", "tokenizer/*", "scheduler/*"),
-    uses=(Use("video.weights", also=("video.backend=wan-shortcut",)),),
-    notes="the base model only: the LoRA and extra weights (video.lora, video.extra_weights) are trained by this "
+    uses=(Use("video.wan.weights", also=("video.backend=wan-shortcut",)),),
+    notes="the base model only: the LoRA and extra weights (video.wan.lora, video.wan.extra_weights) are trained by this "
           "project, see wan-shortcut-lora",
 ))
 
@@ -152,7 +152,7 @@ register(WeightsEntry(
 register(WeightsEntry(
     name="wan-shortcut-lora", model="PanoWorld shortcut LoRA + widened patch/step-size embeddings for Wan2.2-TI2V-5B",
     licence="this project's", size="about 0.5 GB", trained="python runner.py train video",
-    uses=(Use("video.lora"), Use("video.extra_weights")),
+    uses=(Use("video.wan.lora"), Use("video.wan.extra_weights")),
     notes="no public release: trained by this project on precomputed conditions",
 ))
 register(WeightsEntry(
