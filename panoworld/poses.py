@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from panoworld.align import align_trajectory, apply_sim3, check_trajectory, trajectory_metrics
+from panoworld.backends.poses.colmap import ColmapOptions
 from panoworld.choices import Alignment, Matcher, RenderType
 from panoworld.conventions import cv_world_from_cam_from_gl, gl_world_from_cam, invert_pose
 from panoworld.io import to_jsonable, write_json
@@ -179,31 +180,10 @@ def _link_or_copy(src: Path, dst: Path) -> None:
         shutil.copyfile(src, dst)
 
 
-@dataclass(kw_only=True)
-class SfmOptions:
-    """COLMAP settings of the spherical path, sized for a sequential panoramic video on a few CPU cores."""
-
-    max_image_size: int = 1024
-    """Features are extracted on frames downscaled so their width is at most this (0 = as stored); COLMAP scales the
-    keypoints back, so the model stays in the video's pixel coordinates."""
-    max_features: int = 2048
-    """SIFT features per frame."""
-    upsample: bool = False
-    """SIFT's first octave on the 2x upsampled image (COLMAP's default; about 3x the extraction time for the small
-    features of the upsampled octave). Always on for frames narrower than SMALL_FRAME_WIDTH px, where it is cheap
-    and the plain pyramid finds too few features."""
-    mapper: str = "global"
-    """global (GLOMAP: rotation averaging + global positioning + bundle adjustment) or incremental."""
-    overlap: int = 10
-    """sequential: each frame is matched with this many successors (plus successors 2^k further: quadratic overlap)."""
-    num_threads: int = -1
-    seed: int = 0
-
-
 SMALL_FRAME_WIDTH = 640
 
 
-def _spherical_sfm(img_dir: Path, out: Path, matcher: Matcher, sfm: SfmOptions, timings: dict) -> dict:
+def _spherical_sfm(img_dir: Path, out: Path, matcher: Matcher, sfm: ColmapOptions, timings: dict) -> dict:
     """pycolmap.panorama's spherical pipeline (EQUIRECTANGULAR camera, SIFT, matching, incremental mapping) with
     bounded feature extraction and a sequential window; returns {index: Reconstruction}, seconds per step in timings."""
     import pycolmap
@@ -221,7 +201,7 @@ def _spherical_sfm(img_dir: Path, out: Path, matcher: Matcher, sfm: SfmOptions, 
 
     with Image.open(next(iter(sorted(img_dir.iterdir())))) as im:
         width = im.width if sfm.max_image_size <= 0 else min(im.width, sfm.max_image_size)
-    upsample = sfm.upsample or width < SMALL_FRAME_WIDTH
+    upsample = sfm.upsample_features or width < SMALL_FRAME_WIDTH
     extraction.sift.first_octave = -1 if upsample else 0
     timings["features_upsampled"] = upsample
     pycolmap.extract_features(
@@ -256,7 +236,7 @@ def run_colmap(
     *,
     render_type: RenderType = RenderType.SPHERICAL,
     matcher: Matcher = Matcher.SEQUENTIAL,
-    sfm: SfmOptions | None = None,
+    sfm: ColmapOptions | None = None,
     verbose: bool = False,
     timings: dict | None = None,
 ):
@@ -268,7 +248,7 @@ def run_colmap(
     import pycolmap
     from pycolmap import panorama
 
-    sfm = sfm or SfmOptions()
+    sfm = sfm or ColmapOptions()
     names = [p.name for p in image_paths]
     if len(set(names)) != len(names):
         raise StageInputError("video frames must have unique file names for COLMAP")
@@ -302,7 +282,7 @@ def colmap_estimate(
     *,
     render_type: RenderType = RenderType.SPHERICAL,
     matcher: Matcher = Matcher.SEQUENTIAL,
-    sfm: SfmOptions | None = None,
+    sfm: ColmapOptions | None = None,
     alignment: Alignment = Alignment.SIM3,
     verbose: bool = False,
 ) -> PoseEstimate:
@@ -350,7 +330,7 @@ def colmap_estimate(
     info = {
         "sfm_s": sfm_s,
         **timings,
-        "feature_image_size": None if render_type != RenderType.SPHERICAL else (sfm or SfmOptions()).max_image_size,
+        "feature_image_size": None if render_type != RenderType.SPHERICAL else (sfm or ColmapOptions()).max_image_size,
         "num_models": len(recs),
         "model_sizes": sorted((m.num_reg_images() for m in recs.values()), reverse=True),
         "num_points3D": rec.num_points3D(),

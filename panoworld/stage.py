@@ -357,6 +357,8 @@ def _add_param_flags(parser: argparse.ArgumentParser, group, cls: type, prefix: 
     and its declared rule."""
     docs = field_docs(cls)
     hints = typing.get_type_hints(cls)
+    for old, new in P.renamed(cls).items():  # old flags keep working, unlisted
+        group.add_argument("--" + old.replace("_", "-"), dest="p_" + new.replace(".", "__"), help=argparse.SUPPRESS)
     for f in dataclasses.fields(cls):
         if P.is_options(f):
             sub = parser.add_argument_group(f"{prefix}{f.name} options (--set STAGE.{prefix}{f.name}.PARAM=VALUE)")

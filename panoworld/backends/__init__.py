@@ -50,6 +50,14 @@ def names(stage: str) -> tuple[str, ...]:
     return tuple(backends(stage))
 
 
+def pick(stage: str, name: str, given: dict[str, Any]) -> Backend:
+    """The backend `name`, or for name auto the one that uses the most of the inputs given (trait needs_inputs)."""
+    if name != "auto":
+        return get(stage, name)
+    usable = [b for b in backends(stage).values() if all(given.get(i) is not None for i in b.traits.get("needs_inputs", ()))]
+    return max(usable, key=lambda b: len(b.traits.get("needs_inputs", ())))
+
+
 def get(stage: str, name: str) -> Backend:
     try:
         return backends(stage)[str(name)]

@@ -24,7 +24,7 @@ class Use:
     """One place the weights go: a pipeline param (`STAGE.PARAM`) or a flag of another verb (`eval --lpips-weights`)."""
 
     param: str
-    """`depth.weights` (set with `--set` / scene.yaml) or `VERB --flag` (a flag of `python runner.py VERB`)."""
+    """`depth.depth_anything.weights` (set with `--set` / scene.yaml) or `VERB --flag` (a flag of `python runner.py VERB`)."""
     file: str | None = None
     """Which file of the entry it takes; None = the entry's directory (hub entries) or its only file."""
     also: tuple[str, ...] = ()
@@ -84,7 +84,7 @@ def find_by_repo(repo: str) -> WeightsEntry | None:
 
 
 _DA_FILES = (WeightsFile("config.json"), WeightsFile("model.safetensors"), WeightsFile("preprocessor_config.json"))
-_DA_USE = Use("depth.weights", also=("depth.backend=depth-anything",))
+_DA_USE = Use("depth.depth_anything.weights", also=("depth.backend=depth-anything",))
 for _size, _mb, _lic in (("small", "99 MB (24.8M params, fp32)", "Apache-2.0"),
                          ("base", "390 MB (97.5M params, fp32)", "CC-BY-NC-4.0 (non-commercial)"),
                          ("large", "1.3 GB (335M params, fp32)", "CC-BY-NC-4.0 (non-commercial)")):
@@ -157,7 +157,7 @@ register(WeightsEntry(
 ))
 register(WeightsEntry(
     name="panovggt", model="panoramic VGGT (feed-forward poses and depth)", licence="this project's", size="-",
-    trained="python runner.py train recon", uses=(Use("poses.weights", also=("poses.backend=vggt",)),),
+    trained="python runner.py train recon", uses=(Use("poses.vggt.weights", also=("poses.backend=vggt",)),),
     notes="no public panoramic VGGT checkpoint exists; trained by this project",
 ))
 register(WeightsEntry(

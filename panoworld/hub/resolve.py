@@ -266,7 +266,7 @@ def weights_key(records: dict[str, dict]) -> dict[str, str | None]:
 
 
 def describe_change(stage: str, old: dict[str, dict], new: dict[str, dict]) -> str | None:
-    """`weights changed: depth.weights hf:ORG/NAME commit 1a2b3c4 -> 5d6e7f8 (model.safetensors)`, or None."""
+    """`weights changed: depth.depth_anything.weights hf:ORG/NAME commit 1a2b3c4 -> 5d6e7f8 (model.safetensors)`, or None."""
     parts = []
     for name in sorted(set(old) | set(new)):
         a, b = old.get(name) or {}, new.get(name) or {}

@@ -38,7 +38,7 @@ class WanShortcutConfig:
     dtype: str = "bfloat16"
     """Transformer (and text encoder) dtype; the VAE runs in float32."""
     device: str = "auto"
-    """Execution device (auto = cuda when available, else cpu)."""
+    """Execution device (the video stage's wan-shortcut backend also takes auto = cuda when available, else cpu)."""
     cpu_offload: bool = False
     """Keep models on the CPU and move each to the device only while it runs (fits a 24 GB GPU)."""
     vae_tiling: bool = True

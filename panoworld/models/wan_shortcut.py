@@ -130,7 +130,7 @@ class WanShortcutGenerator:
 
     def __init__(self, transformer, vae, cfg: WanShortcutConfig, embeds: dict, pipe=None):
         self.transformer, self.vae, self.cfg, self._pipe = transformer, vae, cfg, pipe
-        self.device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device)
+        self.device = torch.device(cfg.device)
         pos = embeds["prompt_embeds"]
         neg = embeds.get("negative_prompt_embeds")
         self.prompt_embeds = pos.to(self.device)
