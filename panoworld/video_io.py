@@ -23,6 +23,7 @@ from panoworld.conventions import (
     quat_wxyz_from_xyzw,
     world_from_ros_world,
 )
+from panoworld.shapes import check_shape
 
 VIDEO_FILE = "video.json"
 PREVIEW_FILE = "preview.mp4"
@@ -148,16 +149,15 @@ class VideoWriter:
         the conditions' PNG bytes (any size) go into the MCAP only; upscaled (sH, sW, 3) uint8 (required iff the
         writer's upscale s > 1) goes to upscaled/ only."""
         H, W = self.height, self.width
-        if rgb.shape != (H, W, 3) or rgb.dtype != np.uint8:
-            raise ValueError(f"{rgb.shape=} {rgb.dtype=} but expected {(H, W, 3)} uint8")
+        dims = check_shape("rgb", rgb, "H W 3", dtype=np.uint8, dims={"H": H, "W": W})
         s = self.upscale
         if (upscaled is not None) != (s > 1) or (upscaled is not None and upscaled.shape != (s * H, s * W, 3)):
             raise ValueError(f"upscaled {None if upscaled is None else upscaled.shape} but expected "
                              f"{(s * H, s * W, 3) if s > 1 else None} (writer upscale {s})")
         if self.has_depth != (depth is not None):
             raise ValueError(f"depth given: {depth is not None} but the writer has has_depth={self.has_depth}")
-        if depth is not None and depth.shape != (H, W):
-            raise ValueError(f"{depth.shape=} but expected {(H, W)} (H, W)")
+        if depth is not None:
+            check_shape("depth", depth, "H W", dims=dims)
         check_pose(world_from_cam, "world_from_cam")
         i = len(self.entries)
         name = f"{i:06d}.png"
@@ -266,9 +266,10 @@ def write_video(
     meta: dict | None = None, **writer_kw,
 ) -> dict:
     """Write frames (T, H, W, 3) uint8, depth (T, H, W) metres or None and poses (T, 4, 4) as a video artifact."""
-    if frames.ndim != 4 or len(poses) != len(frames) or (depth is not None and depth.shape != frames.shape[:3]):
-        raise ValueError(f"{frames.shape=} {np.shape(poses)=} {np.shape(depth)=} but expected (T, H, W, 3), (T, 4, 4), "
-                         "(T, H, W)")
+    dims = check_shape("frames", frames, "T H W 3")
+    check_shape("poses", poses, "T 4 4", dims=dims)
+    if depth is not None:
+        check_shape("depth", depth, "T H W", dims=dims)
     T, H, W = frames.shape[:3]
     w = VideoWriter(Path(out_dir), height=H, width=W, fps=fps, has_depth=depth is not None, **writer_kw)
     for t in range(T):

@@ -102,7 +102,7 @@ def test_id_resolves_offline_to_cached_files(hub_env, tiny_files, monkeypatch):
     put_snapshot(hub_env, TINY, v1, C2)
     rec2 = resolve_weights(f"hf:{TINY}")
     assert rec2["commit"] == C2 and rec2["files"] == rec["files"] and rec2["digest"] != rec["digest"]
-    assert describe_change("depth", {"weights": rec}, {"weights": rec2}) == \
+    assert describe_change("depth", {"depth_anything.weights": rec}, {"depth_anything.weights": rec2}) == \
         f"weights changed: depth.depth_anything.weights hf:{TINY} commit {C1[:7]} -> {C2[:7]}"
     assert describe_change("depth", {"weights": rec}, {"weights": rec}) is None
     # HF_HOME is respected when HF_HUB_CACHE is unset

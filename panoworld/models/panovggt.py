@@ -20,6 +20,7 @@ from panoworld.models.weights import (
     load_config_and_weights,
     save_config_and_weights,
 )
+from panoworld.shapes import check_shape
 
 if TYPE_CHECKING:
     from panoworld.gaussians import ContextFrames, FusionResult
@@ -511,8 +512,7 @@ class PanoVGGT(nn.Module):
     @torch.inference_mode()
     def predict(self, frames: np.ndarray) -> dict[str, np.ndarray]:
         """frames (S, H, W, 3) uint8 at the model's input size -> world_from_cam (S, 4, 4), depth (S, H, W), conf."""
-        if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
-            raise ValueError(f"{frames.shape=} {frames.dtype=} but expected (S, H, W, 3) uint8")
+        check_shape("frames", frames, "S H W 3", dtype=np.uint8)
         dev = next(self.parameters()).device
         x = torch.from_numpy(frames).to(dev).permute(0, 3, 1, 2).float().div(255.0)[None]
         out = self.eval()(x)

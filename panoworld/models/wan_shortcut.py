@@ -14,6 +14,7 @@ from tqdm import tqdm
 from panoworld.models import wan_layers as wl
 from panoworld.models.wan_config import DEFAULT_PROMPT, Sampler, WanShortcutConfig  # noqa: F401  (re-exported)
 from panoworld.models.weights import MissingWeightsError, require_weights_dir, require_weights_file
+from panoworld.shapes import check_shape
 
 MAX_SEQUENCE_LENGTH = 512  # Wan2.2 pads/truncates UMT5 prompts to 512 tokens
 BASE_FILES = (
@@ -238,10 +239,8 @@ class WanShortcutGenerator:
         Frames are padded to 4k+1 (repeating the last) and resized to multiples of 32 when needed, then cropped
         and resized back.
         """
-        if cond_rgb.ndim != 4 or cond_rgb.shape[-1] != 3 or cond_rgb.dtype != np.uint8:
-            raise ValueError(f"{cond_rgb.shape=} {cond_rgb.dtype=} but expected (T, H, W, 3) uint8")
-        if mask.shape != cond_rgb.shape[:3] or mask.dtype != bool:
-            raise ValueError(f"{mask.shape=} {mask.dtype=} but expected {cond_rgb.shape[:3]} bool")
+        dims = check_shape("cond_rgb", cond_rgb, "T H W 3", dtype=np.uint8)
+        check_shape("mask", mask, "T H W", dtype=np.bool_, dims=dims)
         start = time.perf_counter()
         cfg = self.cfg
         t, h, w, _ = cond_rgb.shape

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from panoworld.params import param
+from panoworld.shapes import check_shape
 
 
 MIN_CAMERA_HEIGHT_M = 0.3
@@ -100,15 +101,12 @@ def _face_geometry(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
 
 def check_mesh(vertices: np.ndarray, faces: np.ndarray, face_valid: np.ndarray | None) -> np.ndarray:
     """Check shapes of vertices (V, 3), faces (F, 3), face_valid (F,) and return face_valid (all True if None)."""
-    if vertices.ndim != 2 or vertices.shape[1] != 3:
-        raise ValueError(f"{vertices.shape=} but expected (V, 3)")
-    if faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(f"{faces.shape=} but expected (F, 3)")
+    check_shape("vertices", vertices, "V 3")
+    dims = check_shape("faces", faces, "F 3")
     if face_valid is None:
         return np.ones(len(faces), bool)
     face_valid = np.asarray(face_valid, bool)
-    if face_valid.shape != (len(faces),):
-        raise ValueError(f"{face_valid.shape=} but expected ({len(faces)},) like faces")
+    check_shape("face_valid", face_valid, "F", dims=dims)
     return face_valid
 
 
