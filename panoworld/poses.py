@@ -20,8 +20,10 @@ from panoworld.backends.poses.colmap import ColmapOptions
 from panoworld.choices import Alignment, Matcher, RenderType
 from panoworld.conventions import cv_world_from_cam_from_gl, gl_world_from_cam, invert_pose
 from panoworld.io import to_jsonable, write_json
+from panoworld.io.depth_png import read_depth_png, write_depth_png  # noqa: F401  (re-exported)
+from panoworld.io.video import VideoDoc, read_video_doc
 from panoworld.stage import StageInputError
-from panoworld.video_io import DEPTH_SCALE, VIDEO_FILE, depth_to_mm, encode_png
+from panoworld.video_io import DEPTH_SCALE, VIDEO_FILE
 
 MIN_REGISTERED = 3
 
@@ -29,52 +31,21 @@ MIN_REGISTERED = 3
 # ---------------------------------------------------------------- inputs
 
 
-@dataclass
-class VideoFrames:
-    """The frames of a video artifact (video.json), with paths resolved against its directory."""
-
-    root: Path
-    height: int
-    width: int
-    rgb: list[Path]
-    depth: list[Path | None]
-    depth_scale: float
-    poses: np.ndarray | None
-    """(N, 4, 4) world_from_cam the video was generated along (canonical frame), when recorded."""
-
-    @property
-    def num_frames(self) -> int:
-        return len(self.rgb)
-
-    @property
-    def has_depth(self) -> bool:
-        return bool(self.rgb) and all(d is not None for d in self.depth)
+VideoFrames = VideoDoc
+"""The frames of a video artifact (video.json), with paths resolved against its directory."""
 
 
 def read_video_frames(video_dir: Path) -> VideoFrames:
-    """Read video.json of a video artifact without loading frames (COLMAP reads them from disk; see
-    panoworld.video_io.load_video for the in-memory reader); StageInputError naming the file on any problem."""
-    path = Path(video_dir) / VIDEO_FILE
-    try:
-        meta = json.loads(path.read_text())
-        h, w = int(meta["height"]), int(meta["width"])
-        frames = meta["frames"]
-        rgb = [Path(video_dir) / f["rgb"] for f in frames]
-        depth = [Path(video_dir) / f["depth"] if f.get("depth") else None for f in frames]
-        scale = float(meta.get("depth_scale", DEPTH_SCALE))
-        poses = np.asarray(meta["poses"], np.float64) if meta.get("poses") is not None else None
-    except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-        raise StageInputError(f"{path}: cannot read the video description ({e}); rerun the video stage") from None
-    if w != 2 * h:
-        raise StageInputError(f"{path}: frames are {w}x{h} (WxH) but ERP frames must be 2:1; rerun the video stage")
-    if not rgb:
-        raise StageInputError(f"{path}: lists no frames; rerun the video stage")
-    missing = [str(p) for p in rgb if not p.is_file()]
+    """video.json of a video artifact without loading frames (COLMAP reads them from disk; see
+    panoworld.video_io.load_video for the in-memory reader); InputError naming the file on any problem."""
+    video = read_video_doc(video_dir)
+    if not video.rgb:
+        raise StageInputError(f"{video.root / VIDEO_FILE}: lists no frames; rerun the video stage")
+    missing = [str(p) for p in video.rgb if not p.is_file()]
     if missing:
-        raise StageInputError(f"{path}: {len(missing)} frame files are missing (first {missing[0]}); rerun the video stage")
-    if poses is not None and poses.shape != (len(rgb), 4, 4):
-        raise StageInputError(f"{path}: poses have shape {poses.shape} but expected ({len(rgb)}, 4, 4)")
-    return VideoFrames(Path(video_dir), h, w, rgb, depth, scale, poses)
+        raise StageInputError(f"{video.root / VIDEO_FILE}: {len(missing)} frame files are missing (first {missing[0]}); "
+                              "rerun the video stage")
+    return video
 
 
 def read_planned_trajectory(trajectory_dir: Path) -> np.ndarray:
@@ -98,24 +69,6 @@ def load_frames(paths: list[Path], height: int | None = None) -> np.ndarray:
             bgr = cv2.resize(bgr, (2 * height, height), interpolation=cv2.INTER_AREA)
         out.append(bgr[..., ::-1])
     return np.stack(out)
-
-
-def read_depth_png(path: Path, scale: float = DEPTH_SCALE) -> np.ndarray:
-    """uint16 depth PNG -> float32 metres (H, W); 0 (no depth) becomes NaN."""
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
-        raise StageInputError(f"{path}: not a single-channel uint16 depth PNG")
-    d = raw.astype(np.float32) * np.float32(scale)
-    d[raw == 0] = np.nan
-    return d
-
-
-def write_depth_png(path: Path, depth_m: np.ndarray) -> None:
-    """Depth (H, W) metres -> uint16 PNG in millimetres (video_io.depth_to_mm: unknown -> 0, clipped at 65.535 m)."""
-    if depth_m.ndim != 2:
-        raise ValueError(f"{depth_m.shape=} but expected (H, W)")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(encode_png(depth_to_mm(depth_m)))
 
 
 # ---------------------------------------------------------------- estimates

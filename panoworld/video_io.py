@@ -23,9 +23,11 @@ from panoworld.conventions import (
     quat_wxyz_from_xyzw,
     world_from_ros_world,
 )
+from panoworld.errors import InputError
+from panoworld.io.depth_png import read_depth_png
+from panoworld.io.video import VIDEO_FILE, read_video_doc
 from panoworld.shapes import check_shape
 
-VIDEO_FILE = "video.json"
 PREVIEW_FILE = "preview.mp4"
 MCAP_FILE = "video.mcap"
 DEPTH_SCALE = DEPTH_PNG_SCALE  # metres per depth PNG unit (millimetres); 0 = unknown
@@ -279,31 +281,22 @@ def write_video(
 
 def load_video(artifact_dir: Path, *, with_depth: bool = True) -> Video:
     """Read a video artifact directory (video.json, frames/, depth/) into memory."""
-    root = Path(artifact_dir)
-    try:
-        meta = json.loads((root / VIDEO_FILE).read_text())
-        entries = meta["frames"]
-        H, W = int(meta["height"]), int(meta["width"])
-        poses = np.asarray(meta["poses"], np.float64).reshape(len(entries), 4, 4)
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise ValueError(f"{root / VIDEO_FILE}: unreadable video description ({e}); rerun the video stage") from None
-    frames = np.empty((len(entries), H, W, 3), np.uint8)
-    has_depth = bool(meta.get("has_depth")) and with_depth
-    depth = np.zeros((len(entries), H, W), np.float32) if has_depth else None
-    scale = float(meta.get("depth_scale", DEPTH_SCALE))
-    for t, e in enumerate(entries):
-        path = root / e["rgb"]
+    doc = read_video_doc(artifact_dir)
+    H, W = doc.height, doc.width
+    if doc.poses is None:
+        raise InputError(f"{doc.root / VIDEO_FILE}: records no poses; rerun the video stage")
+    poses = doc.poses
+    frames = np.empty((doc.num_frames, H, W, 3), np.uint8)
+    depth = np.zeros((doc.num_frames, H, W), np.float32) if doc.meta.get("has_depth") and with_depth else None
+    for t, path in enumerate(doc.rgb):
         img = decode_png(path.read_bytes(), what=str(path))
-        if img.shape != (H, W, 3):
-            raise ValueError(f"{path}: {img.shape=} but video.json says {(H, W, 3)}")
+        check_shape(str(path), img, "H W 3", dims={"H": H, "W": W})
         frames[t] = img
-        if depth is not None and e.get("depth"):
-            dpath = root / e["depth"]
-            d = decode_png(dpath.read_bytes(), what=str(dpath))
-            if d.shape != (H, W) or d.dtype != np.uint16:
-                raise ValueError(f"{dpath}: {d.shape=} {d.dtype=} but expected {(H, W)} uint16 millimetres")
-            depth[t] = d.astype(np.float32) * scale
-    return Video(frames, depth, poses, float(meta.get("fps", 0.0)), meta)
+        if depth is not None and doc.depth[t] is not None:
+            d = read_depth_png(doc.depth[t], doc.depth_scale)
+            check_shape(str(doc.depth[t]), d, "H W", dims={"H": H, "W": W})
+            depth[t] = d
+    return Video(frames, depth, poses, doc.fps or 0.0, doc.meta)
 
 
 def read_mcap(path: Path) -> dict[str, list]:

@@ -195,8 +195,8 @@ def test_depth_stage_runs_from_id_and_reruns_when_snapshot_changes(hub_env, tiny
     first = run()
     assert first.action == "ran", first.reason
     manifest = json.loads((scene / "artifacts" / "depth" / "manifest.json").read_text())
-    rec = manifest["weights"]["weights"]
-    assert manifest["params"]["weights"] == f"hf:{TINY}"  # the id is the param; its resolution is recorded apart
+    rec = manifest["weights"]["depth_anything.weights"]
+    assert manifest["params"]["depth_anything"]["weights"] == f"hf:{TINY}"  # the id is the param; its resolution is recorded apart
     assert rec["commit"] == C1 and rec["files"]["model.safetensors"]["digest"] == hashlib.sha256(v1["model.safetensors"]).hexdigest()
     assert manifest["info"]["backend"] == "depth-anything"
     assert run().action == "cached"
@@ -207,7 +207,7 @@ def test_depth_stage_runs_from_id_and_reruns_when_snapshot_changes(hub_env, tiny
     assert row["reason"] == f"weights changed: depth.depth_anything.weights hf:{TINY} commit {C1[:7]} -> {C2[:7]} (model.safetensors)"
     again = run()
     assert again.action == "ran" and again.reason == row["reason"]
-    assert json.loads((scene / "artifacts" / "depth" / "manifest.json").read_text())["weights"]["weights"]["commit"] == C2
+    assert json.loads((scene / "artifacts" / "depth" / "manifest.json").read_text())["weights"]["depth_anything.weights"]["commit"] == C2
     pinned = [s.replace(f"hf:{TINY}", f"hf:{TINY}@{C2}") for s in DEPTH_SETS]  # the same files pinned: params changed
     assert {r["stage"]: r for r in pl.status(scene, sets=pinned)}["depth"]["reason"].startswith("params changed: depth.depth_anything.weights")
     (hub_env / f"models--{TINY.replace('/', '--')}" / "refs" / "main").unlink()  # the id no longer resolves
