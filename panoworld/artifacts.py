@@ -17,6 +17,11 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 SCHEMA_DIR = REPO_ROOT / "artifacts_schema"
 TMP_PREFIX = ".tmp-"
 OLD_PREFIX = ".old-"
+ARTIFACTS_DIRNAME = "artifacts"
+"""A scene's artifacts live in SCENE/artifacts/<stage>/ (the scene layout is docs/architecture.md's)."""
+VARIANTS_DIRNAME = "variants"
+"""Sweep variants of the DAG's tail: SCENE/artifacts/variants/NAME/<stage>/."""
+SCENE_CONFIG = "scene.yaml"
 
 
 def file_digest(path: Path, chunk: int = 1 << 22) -> str:

@@ -18,7 +18,7 @@ def dataset_units(dataset_dir: Path) -> list[tuple[Path, str | None]]:
     tail ran there (a trajectory artifact under artifacts/) or it has no variant at all."""
     from panoworld.batch.run import dataset_scenes
     from panoworld.batch.variants import scene_variants
-    from panoworld.pipeline import ARTIFACTS_DIRNAME
+    from panoworld.artifacts import ARTIFACTS_DIRNAME
 
     units: list[tuple[Path, str | None]] = []
     for scene in dataset_scenes(dataset_dir):
@@ -31,7 +31,7 @@ def dataset_units(dataset_dir: Path) -> list[tuple[Path, str | None]]:
 
 def _eval_unit(task: tuple[str, str | None, dict]) -> dict:
     """One (scene, variant) report; never raises (an error becomes the report's "error")."""
-    from panoworld.evaluate import evaluate_scene
+    from panoworld.eval.report import evaluate_scene
     from panoworld.stage import params_from_dict
 
     scene, variant, pdict = task
@@ -50,7 +50,7 @@ def evaluate_dataset(dataset_dir: Path, params: EvalParams | None = None, *, wor
     from tqdm import tqdm
 
     from panoworld.eval.distribution import distribution_metrics
-    from panoworld.pipeline import PipelineError
+    from panoworld.errors import PipelineError
     from panoworld.stage import params_to_dict
 
     params = params or EvalParams()

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-from panoworld.errors import WeightsError
 import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
 
-from panoworld.stage import StageInputError
+from panoworld.errors import WeightsError
 
 
 class MissingWeightsError(WeightsError):
