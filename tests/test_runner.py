@@ -205,7 +205,7 @@ def test_json_report_and_status(scene):
     assert out.returncode == 0, out.stderr
     doc = json.loads(out.stdout)
     assert [s["stage"] for s in doc["stages"]] == list("abcd")
-    assert set(doc["stages"][0]) == {"stage", "action", "reason", "seconds", "peak_rss_mb"}
+    assert set(doc["stages"][0]) == {"stage", "action", "reason", "seconds", "peak_rss_mb", "bad_input"}
     assert all(s["action"] == "ran" and s["peak_rss_mb"] > 0 for s in doc["stages"])
     st = cli("status", str(scene), "--pipeline", str(TOY / "pipeline.yaml"), "--json")
     rows = json.loads(st.stdout)["stages"]

@@ -8,6 +8,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from panoworld.errors import InputError
 from panoworld.stage import Input, stage_main
 
 
@@ -19,6 +20,8 @@ class Params:
     """Seconds to sleep after writing a partial file (lets a test kill the stage mid-write)."""
     fail: bool = False
     """Raise an error instead of finishing."""
+    refuse: bool = False
+    """Refuse the input (InputError: exit code 2) after writing a partial file."""
 
 
 def make_stage(name: str, inputs: dict[str, Input]) -> dict:
@@ -33,6 +36,8 @@ def make_stage(name: str, inputs: dict[str, Input]) -> dict:
         if params.sleep:
             print(f"toy {name}: sleeping", flush=True)
             time.sleep(params.sleep)
+        if params.refuse:
+            raise InputError(f"toy stage {name} refuses its input on purpose; unset {name}.refuse")
         if params.fail:
             raise RuntimeError(f"toy stage {name} failed on purpose")
         (out_dir / "out.txt").write_text("|".join(parts))
