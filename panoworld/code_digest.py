@@ -86,20 +86,33 @@ def file_digest(path: Path, module: str) -> tuple[str, list[str]]:
     return digest, imports
 
 
-def _find(module: str, roots: list[Path]) -> tuple[Path, Path] | None:
+_found: dict[tuple[str, tuple[str, ...]], tuple[Path, Path] | None] = {}
+
+
+def _find(module: str, roots: tuple[str, ...]) -> tuple[Path, Path] | None:
     """(root, file) of a project module (package __init__ or .py file under one of roots), None outside them."""
-    rel = Path(*module.split("."))
-    for root in roots:
-        for cand in (root / rel / "__init__.py", root / rel.with_suffix(".py")):
-            if cand.is_file():
-                return root, cand
-    return None
+    key = (module, roots)
+    if key not in _found:
+        hit = None
+        top = module.partition(".")[0]
+        rel = module.replace(".", os.sep)
+        for root in roots:
+            if not os.path.exists(os.path.join(root, top)) and not os.path.isfile(os.path.join(root, top + ".py")):
+                continue  # numpy, torch, ...: not a project module
+            for cand in (os.path.join(root, rel, "__init__.py"), os.path.join(root, rel + ".py")):
+                if os.path.isfile(cand):
+                    hit = (Path(root), Path(cand))
+                    break
+            if hit:
+                break
+        _found[key] = hit
+    return _found[key]
 
 
 def code_digests(module: str, roots: list[Path] | None = None) -> dict[str, str]:
     """{path relative to its root: digest} of `module`, its parent packages and every project module it imports,
     transitively (imports inside functions included; dynamic `importlib` imports are not followed)."""
-    roots = [Path(r) for r in (roots or [REPO_ROOT])]
+    root_names = tuple(str(r) for r in (roots or [REPO_ROOT]))
     _load_disk_cache()
     n_before = len(_memo)
     stale = False
@@ -113,7 +126,7 @@ def code_digests(module: str, roots: list[Path] | None = None) -> dict[str, str]
         seen.add(name)
         parts = name.split(".")
         todo += [".".join(parts[:i]) for i in range(1, len(parts))]  # parent packages run on import
-        found = _find(name, roots)
+        found = _find(name, root_names)
         if found is None:
             continue
         root, path = found
