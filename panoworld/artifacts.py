@@ -2,15 +2,16 @@
 
 from __future__ import annotations
 
-from panoworld.errors import ArtifactError  # noqa: F401  (re-exported)
 import hashlib
 import json
 import os
 import shutil
 import time
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 from typing import Any
+
+from panoworld.errors import ArtifactError
 
 MANIFEST = "manifest.json"
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -51,7 +52,7 @@ def schema_dirs() -> list[Path]:
     return [SCHEMA_DIR, *extra]
 
 
-@lru_cache(maxsize=None)
+@cache
 def load_schema(kind: str) -> dict:
     for d in schema_dirs():
         path = d / f"{kind}.schema.json"
@@ -65,7 +66,7 @@ def manifest_checksum(manifest: dict) -> str:
     return json_digest({k: v for k, v in manifest.items() if k != "checksum"})
 
 
-@lru_cache(maxsize=None)
+@cache
 def _validator(kind: str):
     import jsonschema
     from referencing import Registry, Resource

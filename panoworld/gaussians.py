@@ -462,8 +462,8 @@ class ContextSource:
     def frame(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         import cv2
 
-        from panoworld.poses import load_frames, read_depth_png
         from panoworld.errors import InputError
+        from panoworld.poses import load_frames, read_depth_png
 
         rgb = load_frames([self.rgb_paths[k]], self.height)[0]
         d = read_depth_png(self.depth_paths[k], self.depth_scale)
@@ -499,8 +499,8 @@ def context_source(video_dir: Path, poses_dir: Path, *, context_views: int = 0, 
     """
     import json
 
-    from panoworld.poses import read_video_frames
     from panoworld.errors import InputError
+    from panoworld.poses import read_video_frames
 
     video = read_video_frames(Path(video_dir))
     poses_path = Path(poses_dir) / "poses.json"

@@ -11,15 +11,17 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import yaml
 
 from panoworld import artifacts as art
 from panoworld import code_digest
 from panoworld.errors import InputError, PipelineError
+from panoworld.hub import resolve as hub
 from panoworld.stage import (
     LOCK_ENV,
     LOCK_FILE,
@@ -34,7 +36,6 @@ from panoworld.stage import (
     resolve_stage_weights,
     stage_code,
 )
-from panoworld.hub import resolve as hub
 
 PIPELINE_FILE = art.REPO_ROOT / "pipeline.yaml"
 ARTIFACTS_DIRNAME = art.ARTIFACTS_DIRNAME
@@ -82,7 +83,7 @@ class Pipeline:
     presets: list[str]
 
     @classmethod
-    def load(cls, path: Path | str | None = None) -> "Pipeline":
+    def load(cls, path: Path | str | None = None) -> Pipeline:
         path = Path(path) if path else PIPELINE_FILE
         try:
             doc = yaml.safe_load(path.read_text())
@@ -292,7 +293,7 @@ class SceneLock:
         self.path = scene.artifacts / LOCK_FILE
         self.fd: int | None = None
 
-    def __enter__(self) -> "SceneLock":
+    def __enter__(self) -> SceneLock:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         try:

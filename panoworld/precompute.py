@@ -10,10 +10,11 @@ import multiprocessing
 import os
 import sys
 import time
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -284,8 +285,9 @@ def precompute(
     ray_address: str | None = None, progress: bool = True,
 ) -> dict:
     """Sample and render every clip of every scene; write index.jsonl, failures.jsonl and summary.json."""
-    from panoworld.dataset import DatasetError, DatasetScene
     from tqdm import tqdm
+
+    from panoworld.dataset import DatasetError, DatasetScene
 
     dataset_dir, out_dir = Path(dataset_dir), Path(out_dir)
     if not dataset_dir.is_dir():

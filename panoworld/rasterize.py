@@ -18,6 +18,7 @@ from panoworld.conventions import (
 )
 from panoworld.raycast import Hits, Raycaster
 
+
 @dataclass
 class WarpedFrame:
     """One pose rendered from the mesh: what the generator is conditioned on."""

@@ -19,7 +19,7 @@ import time
 import types
 import typing
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +27,6 @@ from panoworld import artifacts as art
 from panoworld import code_digest
 from panoworld.errors import InputError, PanoWorldError, PipelineError
 from panoworld.hub import resolve as hub
-
 
 LOCK_FILE = ".lock"
 """The scene lock, SCENE/artifacts/.lock: held (flock) by the runner working on the scene, naming its pid."""
@@ -310,7 +309,7 @@ def execute_stage(
     art.recover_dir(out_dir)
     tmp = art.tmp_dir_for(out_dir)
     tmp.mkdir(parents=True)
-    started = datetime.now(timezone.utc).isoformat()
+    started = datetime.now(UTC).isoformat()
     t0 = time.perf_counter()
     try:
         info = spec.module.run(full_inputs, hub.with_resolved_paths(params, weights), tmp) or {}
@@ -334,7 +333,7 @@ def execute_stage(
             "files": files,
             "digest": art.files_digest(files),
             "started": started,
-            "finished": datetime.now(timezone.utc).isoformat(),
+            "finished": datetime.now(UTC).isoformat(),
             "wall_s": time.perf_counter() - t0,
             "peak_rss_mb": peak_rss_mb(),
             "info": _jsonable(info),

@@ -16,6 +16,7 @@ from PIL import Image
 
 from panoworld import artifacts as art
 from panoworld import pipeline as pl
+from tests.toy.common import toy_scene, use_toy_schemas
 
 TOY = Path(__file__).parent / "toy"
 REPO = Path(__file__).resolve().parent.parent
@@ -23,17 +24,12 @@ REPO = Path(__file__).resolve().parent.parent
 
 @pytest.fixture(autouse=True)
 def toy_schemas(monkeypatch):
-    monkeypatch.setenv("PANOWORLD_SCHEMA_PATH", str(TOY / "schemas"))
-    art.load_schema.cache_clear()
-    art._validator.cache_clear()
+    use_toy_schemas(monkeypatch)
 
 
 @pytest.fixture
 def scene(tmp_path) -> Path:
-    d = tmp_path / "scene"
-    d.mkdir()
-    Image.fromarray(np.random.default_rng(0).integers(0, 255, (8, 16, 3), dtype=np.uint8)).save(d / "panorama.png")
-    return d
+    return toy_scene(tmp_path)
 
 
 def toy_pipe() -> pl.Pipeline:

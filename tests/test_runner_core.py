@@ -6,17 +6,15 @@ import os
 import signal
 import subprocess
 import sys
-import textwrap
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
-from PIL import Image
 
 from panoworld import artifacts as art
 from panoworld import code_digest
 from panoworld import pipeline as pl
+from tests.toy.common import toy_scene, use_toy_schemas
 
 TOY = Path(__file__).parent / "toy"
 REPO = Path(__file__).resolve().parent.parent
@@ -57,19 +55,8 @@ def word():
 '''
 
 
-@pytest.fixture(autouse=True)
-def toy_schemas(monkeypatch):
-    monkeypatch.setenv("PANOWORLD_SCHEMA_PATH", str(TOY / "schemas"))
-    art.load_schema.cache_clear()
-    art._validator.cache_clear()
-
-
-@pytest.fixture
-def scene(tmp_path) -> Path:
-    d = tmp_path / "scene"
-    d.mkdir()
-    Image.fromarray(np.random.default_rng(0).integers(0, 255, (8, 16, 3), dtype=np.uint8)).save(d / "panorama.png")
-    return d
+toy_schemas = pytest.fixture(autouse=True, name="toy_schemas")(use_toy_schemas)
+scene = pytest.fixture(name="scene")(toy_scene)
 
 
 def _touch_later(path: Path, text: str) -> None:

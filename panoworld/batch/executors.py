@@ -9,10 +9,11 @@ import os
 from pathlib import Path
 from typing import Any
 
-from panoworld.precompute import thread_env
 from panoworld.errors import PipelineError
 from panoworld.pipeline import Scene, StageNode, run_with_params_file, runner_env, stage_command
+from panoworld.precompute import thread_env
 from panoworld.stage import params_to_dict
+
 
 def needs_gpu(node: StageNode, params: Any) -> bool:
     """Whether the stage asks for a GPU with these params: `resources.gpu` > 0 and, when `resources.gpu_when` maps

@@ -93,7 +93,7 @@ def evaluate_scene(scene_dir: Path, params: EvalParams | None = None, *, stages:
     ev = Evaluation(scene_dir, params, progress=progress, variant=variant)
     if ev.lpips.enabled:
         try:
-            ev.lpips.model
+            _ = ev.lpips.model  # loads the weights now: a bad file is one input error, not a failed stage
         except (OSError, ValueError, KeyError, RuntimeError) as e:
             raise EvalInputError(f"LPIPS weights: {e}") from None
     results, errors = ev.run(stages)

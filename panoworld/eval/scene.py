@@ -28,7 +28,6 @@ from panoworld.eval.common import (
 from panoworld.eval.groundtruth import NoReference, open_ground_truth, true_disocclusion
 from panoworld.metrics import psnr, ssim, ws_psnr
 
-
 POSE_METRICS = ("ate", "ate_rmse", "rpe_t", "rpe_r", "rre", "rte", "ate_over_path", "rot_error_abs")
 
 

@@ -12,12 +12,12 @@ import numpy as np
 from panoworld.conventions import GLTF_FROM_WORLD, transform_points
 from panoworld.navmesh.heightfield import FloorGrid, NoFloorError
 from panoworld.navmesh.polygons import (
+    cross_section,
     even_odd,
     pick_component,
     ring_area,
     ring_segments,
     segment_distance,
-    cross_section,
     triangulate_rings,
 )
 
