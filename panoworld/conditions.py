@@ -17,7 +17,7 @@ import numpy as np
 
 from panoworld.conventions import DEPTH_PNG_SCALE, check_erp_shape, depth_to_mm
 from panoworld.mesh import ErpMesh
-from panoworld.rasterize import ErpRasterizer, RaycastRenderer, WarpedFrame
+from panoworld.warped_frame import WarpedFrame
 
 CONDITIONS_JSON = "conditions.json"
 PREVIEW_MP4 = "preview.mp4"
@@ -115,6 +115,8 @@ def split_stretched_faces(mesh: ErpMesh, min_jump: float = SPLIT_MIN_JUMP) -> Er
 
 def make_renderer(mesh, backend: Backend | str = Backend.RASTER):
     """ErpRasterizer or RaycastRenderer of an ErpMesh-like object (vertices, faces, colors, face_valid)."""
+    from panoworld.rasterize import ErpRasterizer, RaycastRenderer  # numba: imported when a renderer is made
+
     cls = {Backend.RASTER: ErpRasterizer, Backend.RAYCAST: RaycastRenderer}[Backend(backend)]
     return cls(mesh.vertices, mesh.faces, mesh.colors, mesh.face_valid)
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 from contextlib import contextmanager
-from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -17,19 +16,7 @@ from panoworld.conventions import (
     invert_pose,
 )
 from panoworld.raycast import Hits, Raycaster
-
-
-@dataclass
-class WarpedFrame:
-    """One pose rendered from the mesh: what the generator is conditioned on."""
-
-    rgb: np.ndarray
-    """(H, W, 3) uint8 interpolated vertex colour; 0 where mask is False."""
-    depth: np.ndarray
-    """(H, W) float32 ray distance in metres; 0 where mask is False."""
-    mask: np.ndarray
-    """(H, W) bool: True = the pixel sees a valid face; False = no geometry or a stretched face (to be generated)."""
-
+from panoworld.warped_frame import WarpedFrame
 
 _NO_HIT = np.uint64(0xFFFFFFFFFFFFFFFF)
 # z-buffer key = float32 bits of the ray distance << 32 | face id (positive floats order like their bits): the
