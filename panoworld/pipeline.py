@@ -417,7 +417,8 @@ def stage_state(node: StageNode, scene: Scene, params: Any) -> tuple[bool, str]:
         return False, "code changed: no code digest recorded (an artifact of an older runner)"
     changed_code = code_digest.changed_files(old_code, code)
     if changed_code:
-        return False, f"code changed: {', '.join(changed_code)}"
+        more = f" (+{len(changed_code) - 5} more)" if len(changed_code) > 5 else ""
+        return False, f"code changed: {', '.join(changed_code[:5])}{more}"
     if manifest["params_hash"] != params_hash(pdict):
         return False, _diff_params(node.name, manifest["params"], pdict)
     changed_weights = hub.describe_change(node.name, manifest.get("weights") or {}, weights)
