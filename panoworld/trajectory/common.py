@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
-from panoworld.errors import InputError
 import enum
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from panoworld.errors import InputError
 from panoworld.navmesh import NavMesh
 from panoworld.params import param
-
 
 TRAJECTORY_JSON = "trajectory.json"
 TRAJECTORY_TUM = "trajectory.tum"
