@@ -230,7 +230,7 @@ def test_presets_apply_and_set_overrides(scene):
         ("square", [], "is not an equirectangular panorama"),
         ("corrupt", [], "unreadable image"),
         ("ok", ["--only", "nope"], "--only nope: unknown stage"),
-        ("ok", ["--set", "b.bogus=1"], "b.bogus: unknown param; known: fail, n, sleep (from --set)"),
+        ("ok", ["--set", "b.bogus=1"], "b.bogus: unknown param; known: fail, n, refuse, sleep (from --set)"),
         ("ok", ["--set", "b.sleeep=1"], "b.sleeep: unknown param; did you mean sleep? (from --set)"),
         ("ok", ["--set", "b.n=101"], "b.n=101: must be <= 100 (from --set)"),
         ("ok", ["--dry-run", "--set", "a.sleep=nan"], "a.sleep=nan: must be a finite number (from --set)"),
