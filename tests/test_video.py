@@ -139,7 +139,7 @@ class _NoParams:
 
 def _artifact(kind: str, out: Path, write) -> Path:
     """A real upstream artifact (manifest, digests) whose files are written by `write(out_dir) -> info`."""
-    spec = StageSpec(f"stub-{kind}", "0", kind, {}, _NoParams, types.SimpleNamespace(run=lambda i, p, o: write(o)))
+    spec = StageSpec(f"stub-{kind}", "0", kind, {}, _NoParams, types.SimpleNamespace(run=lambda i, p, o: write(o), __name__=__name__, __file__=__file__))
     execute_stage(spec, {}, _NoParams(), out)
     return out
 
