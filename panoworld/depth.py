@@ -16,6 +16,7 @@ from scipy.sparse import linalg as sparse_linalg
 from scipy.spatial.transform import Rotation
 
 from panoworld.choices import Rescale
+from panoworld.image_io import read_image
 from panoworld.conventions import erp_dirs, erp_pixel_from_dir, erp_pixel_solid_angle, points_from_depth
 from panoworld.stage import StageInputError
 
@@ -40,9 +41,7 @@ def read_panorama(path: Path, notes: list[str] | None = None) -> np.ndarray:
     """
     path = Path(path)
     notes = [] if notes is None else notes
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise StageInputError(f"{path}: cannot read the panorama (missing, corrupt or not an image); give a PNG/JPEG")
+    img = read_image(path, cv2.IMREAD_UNCHANGED, what="panorama")
     gray = img.ndim == 2 or img.shape[2] == 1
     if path.suffix.lower() in (".jpg", ".jpeg") and img.dtype == np.uint8:
         # IMREAD_UNCHANGED ignores the EXIF orientation; IMREAD_COLOR applies it (same decoder otherwise).
@@ -108,9 +107,7 @@ def read_depth(path: Path, *, png_scale: float = 0.001) -> np.ndarray:
     elif suffix == ".exr":
         depth = _read_exr(path)
     elif suffix == ".png":
-        depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if depth is None:
-            raise StageInputError(f"{path}: cannot read the depth PNG (corrupt or not a PNG)")
+        depth = read_image(path, cv2.IMREAD_UNCHANGED, what="depth PNG")
         if depth.dtype != np.uint16:
             raise StageInputError(
                 f"{path}: depth PNG is {depth.dtype}; an 8-bit PNG cannot hold depth, save 16-bit (value * png_scale = metres)"

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from panoworld.errors import PipelineError  # noqa: F401  (re-exported)
+from panoworld.errors import InputError, PipelineError  # noqa: F401  (PipelineError re-exported)
 import dataclasses
 import fcntl
 import json
@@ -31,6 +31,7 @@ from panoworld.stage import (
     resolve_stage_weights,
 )
 from panoworld.hub import resolve as hub
+from panoworld.image_io import check_image
 
 PIPELINE_FILE = art.REPO_ROOT / "pipeline.yaml"
 ARTIFACTS_DIRNAME = "artifacts"
@@ -212,15 +213,10 @@ def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
     if pano is None:
         names = pipeline.scene_files.get("panorama", [])
         raise PipelineError(f"{root}: no panorama; expected one of {', '.join(names)}")
-    try:
-        from PIL import Image
-
-        with Image.open(pano) as im:
-            w, h = im.size
-            if im.getexif().get(0x0112) in (5, 6, 7, 8):  # EXIF orientation with a quarter turn: the depth stage applies it
-                w, h = h, w
-    except Exception as e:  # PIL raises many types for corrupt files
-        raise PipelineError(f"{pano}: unreadable image ({type(e).__name__}: {e})") from None
+    try:  # fully decoded here, so a truncated or corrupt panorama is refused before anything is written
+        w, h = check_image(pano, "panorama").oriented  # the depth stage applies the EXIF orientation too
+    except InputError as e:
+        raise PipelineError(str(e)) from None
     if w != 2 * h:
         raise PipelineError(f"{pano}: {w}x{h} is not an equirectangular panorama (width must be exactly 2x height)")
     config: dict[str, Any] = {}

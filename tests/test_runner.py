@@ -232,7 +232,7 @@ def test_presets_apply_and_set_overrides(scene):
     [
         ("missing", [], "no panorama; expected one of panorama.png, panorama.jpg"),
         ("square", [], "is not an equirectangular panorama"),
-        ("corrupt", [], "unreadable image"),
+        ("corrupt", [], "panorama is corrupt or not an image"),
         ("ok", ["--only", "nope"], "--only nope: unknown stage"),
         ("ok", ["--set", "b.bogus=1"], "unknown param(s) ['bogus']"),
         ("ok", ["--set", "zz.n=1"], "--set zz: unknown stage"),
