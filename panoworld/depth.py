@@ -17,6 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from panoworld.choices import Rescale
 from panoworld.image_io import read_image
+from panoworld.limits import depth_plane, load_npy
 from panoworld.conventions import erp_dirs, erp_pixel_from_dir, erp_pixel_solid_angle, points_from_depth
 from panoworld.stage import StageInputError
 
@@ -98,12 +99,7 @@ def read_depth(path: Path, *, png_scale: float = 0.001) -> np.ndarray:
     if not path.is_file():
         raise StageInputError(f"{path}: depth file not found")
     if suffix == ".npy":
-        try:
-            depth = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as e:
-            raise StageInputError(f"{path}: cannot read the depth array ({e}); save it with numpy.save") from None
-        if depth.dtype.kind not in "fiu":
-            raise StageInputError(f"{path}: depth has dtype {depth.dtype}; save a float32 (H, W) array in metres")
+        depth = load_npy(path, "depth array", kinds="fiu")
     elif suffix == ".exr":
         depth = _read_exr(path)
     elif suffix == ".png":
@@ -115,10 +111,7 @@ def read_depth(path: Path, *, png_scale: float = 0.001) -> np.ndarray:
         depth = depth.astype(np.float32) * np.float32(png_scale)
     else:
         raise StageInputError(f"{path}: unsupported depth format {suffix!r}; give depth.npy, depth.exr or a 16-bit depth.png")
-    if depth.ndim == 3:
-        depth = depth[..., 0]
-    if depth.ndim != 2:
-        raise StageInputError(f"{path}: depth has shape {depth.shape} but expected (H, W)")
+    depth = depth_plane(depth, path)
     return np.asarray(depth, dtype=np.float32)
 
 

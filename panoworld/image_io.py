@@ -10,9 +10,8 @@ import cv2
 import numpy as np
 
 from panoworld.errors import InputError
+from panoworld.limits import MAX_PIXELS
 
-MAX_PIXELS = 16384 * 8192
-"""Largest image accepted (width x height): a 16K panorama; larger ones are refused as pixel bombs before decoding."""
 MAX_SIDE = 65535
 JPEG_SUFFIXES = (".jpg", ".jpeg")
 

@@ -30,6 +30,7 @@ from panoworld.stage import (
     params_to_dict,
     resolve_stage_weights,
 )
+from panoworld import limits
 from panoworld.hub import resolve as hub
 from panoworld.image_io import check_image
 
@@ -221,14 +222,33 @@ def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
         raise PipelineError(f"{pano}: {w}x{h} is not an equirectangular panorama (width must be exactly 2x height)")
     config: dict[str, Any] = {}
     cfg_path = root / SCENE_CONFIG
-    if cfg_path.is_file():
-        try:
-            config = yaml.safe_load(cfg_path.read_text()) or {}
-        except yaml.YAMLError as e:
-            raise PipelineError(f"{cfg_path}: invalid YAML ({e})") from None
-        if not isinstance(config, dict):
-            raise PipelineError(f"{cfg_path}: expected a mapping with keys 'preset' and/or 'params'")
+    try:
+        check_scene_inputs(root, files)
+        if cfg_path.is_file():
+            limits.check_size(cfg_path, limits.MAX_CONFIG_BYTES, SCENE_CONFIG)
+            config = limits.parse_yaml(cfg_path.read_text(errors="replace"), str(cfg_path)) or {}
+    except InputError as e:
+        raise PipelineError(str(e)) from None
+    if not isinstance(config, dict):
+        raise PipelineError(f"{cfg_path}: expected a mapping with keys 'preset' and/or 'params'")
     return Scene(root, files, config)
+
+
+def check_scene_inputs(root: Path, files: dict[str, Path | None]) -> None:
+    """The cheap checks of the scene's other user files, before anything is written: artifacts/ usable, the depth
+    .npy header within limits, a user trajectory readable and within limits. InputError (one line) otherwise."""
+    arts = root / ARTIFACTS_DIRNAME
+    if arts.is_symlink() and not arts.exists():
+        raise InputError(f"{arts}: a dangling symbolic link; remove it (or point it at a directory)")
+    if arts.exists() and not arts.is_dir():
+        raise InputError(f"{arts}: exists but is not a directory; move it away, the runner keeps its artifacts there")
+    depth = files.get("depth")
+    if depth is not None and depth.suffix.lower() == ".npy":
+        limits.npy_header(depth, "depth array", kinds="fiu")
+    if files.get("trajectory") is not None:
+        from panoworld.trajectory.files import read_trajectory_file
+
+        read_trajectory_file(files["trajectory"])
 
 
 # ---------------------------------------------------------------- params

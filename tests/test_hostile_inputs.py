@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import os
+import re
 import struct
 import subprocess
 import sys
@@ -14,9 +16,11 @@ import numpy as np
 import pytest
 
 from panoworld import artifacts as art
-from panoworld.depth import read_panorama
+from panoworld.depth import read_depth, read_panorama
 from panoworld.errors import InputError
-from panoworld.image_io import MAX_PIXELS, ImageInputError, check_image
+from panoworld.image_io import ImageInputError, check_image
+from panoworld.limits import MAX_PIXELS, MAX_POSES, MAX_TRAJECTORY_BYTES, LimitError, parse_json, parse_yaml
+from panoworld.trajectory import TrajectoryFileError, read_trajectory_file
 
 TOY = Path(__file__).parent / "toy"
 REPO = Path(__file__).resolve().parent.parent
@@ -107,3 +111,112 @@ def test_runner_refuses_bad_panorama_in_one_line_writing_nothing(tmp_path, kind)
     assert out.returncode == 2, out.stderr
     assert len(out.stderr.strip().splitlines()) == 1 and "panorama" in out.stderr and str(d) in out.stderr
     assert sorted(p.name for p in d.iterdir()) == before  # no artifacts/, no lock, no logs
+
+
+# ---------------------------------------------------------------- limits (group 2)
+
+
+def npy_claiming(path: Path, shape, dtype="<f4") -> None:
+    """A .npy whose header claims `shape` but which holds 16 bytes of data."""
+    with open(path, "wb") as f:
+        np.lib.format.write_array_header_1_0(f, {"descr": dtype, "fortran_order": False, "shape": shape})
+        f.write(bytes(16))
+
+
+def test_deep_json_and_yaml_are_one_line_refusals():
+    deep = "[" * 200_000 + "]" * 200_000
+    with pytest.raises(LimitError, match="t.json: JSON nested too deep"):
+        parse_json(deep, "t.json")
+    with pytest.raises(LimitError, match="nested deeper than 4"):
+        parse_json("[[[[[1]]]]]", "t.json", max_nesting=4)
+    assert parse_json('{"poses": [[[1, 0], [0, 1]]]}', "t.json", max_nesting=4) == {"poses": [[[1, 0], [0, 1]]]}
+    with pytest.raises(LimitError, match="s.yaml: YAML nested"):
+        parse_yaml("a: " + "[" * 5000 + "]" * 5000, "s.yaml")
+
+
+def test_npy_header_is_checked_before_allocation(tmp_path):
+    npy_claiming(tmp_path / "bomb.npy", (100_000, 200_000))
+    with pytest.raises(LimitError, match=r"bomb.npy: depth array header claims shape \(100000, 200000\) = 2e\+10 values"):
+        read_depth(tmp_path / "bomb.npy")
+    npy_claiming(tmp_path / "short.npy", (64, 128))
+    with pytest.raises(InputError, match="short.npy: depth array is truncated"):
+        read_depth(tmp_path / "short.npy")
+    np.save(tmp_path / "obj.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    with pytest.raises(InputError, match="obj.npy: depth array has dtype object"):
+        read_depth(tmp_path / "obj.npy")
+    d = np.random.default_rng(0).uniform(1, 5, (32, 64)).astype(np.float32)
+    np.save(tmp_path / "chw.npy", np.stack([d, d * 0, d * 0]))  # channel-first (3, H, W): the first plane
+    np.testing.assert_array_equal(read_depth(tmp_path / "chw.npy"), d)
+    np.save(tmp_path / "odd.npy", np.zeros((8, 16, 32), np.float32))
+    with pytest.raises(InputError, match=r"depth has shape \(8, 16, 32\) but expected \(H, W\)"):
+        read_depth(tmp_path / "odd.npy")
+
+
+def write_traj(path: Path, poses) -> Path:
+    path.write_text(json.dumps({"poses": np.asarray(poses).tolist()}))
+    return path
+
+
+@pytest.mark.parametrize("case, expect", [
+    ("many", f"{MAX_POSES + 1} poses, over the limit of {MAX_POSES}"),
+    ("far", "pose 1 is 1e+300 m from the camera, beyond the 1000 m limit"),
+    ("deep", "JSON nested too deep"),
+    ("nan", "pose 1 has NaN or inf entries"),
+    ("huge-file", "over the limit of 16 MiB"),
+    ("tum-many", f"{MAX_POSES + 1} poses, over the limit of {MAX_POSES}"),
+])
+def test_user_trajectory_limits(tmp_path, case, expect):
+    path = tmp_path / ("trajectory.tum" if case == "tum-many" else "trajectory.json")
+    eye = np.tile(np.eye(4), (2, 1, 1))
+    if case == "many":
+        write_traj(path, np.tile(np.eye(4), (MAX_POSES + 1, 1, 1)))
+    elif case == "far":
+        eye[1, 0, 3] = 1e300
+        write_traj(path, eye)
+    elif case == "deep":
+        path.write_text('{"poses": ' + "[" * 200_000 + "]" * 200_000 + "}")
+    elif case == "nan":
+        eye[1, 2, 3] = np.nan
+        write_traj(path, eye)
+    elif case == "huge-file":
+        path.write_text(" " * (MAX_TRAJECTORY_BYTES + 1))
+    else:
+        path.write_text("".join(f"{i} 0 0 0 0 0 0 1\n" for i in range(MAX_POSES + 1)))
+    with pytest.raises(TrajectoryFileError, match=re.escape(expect)) as e:
+        read_trajectory_file(path)
+    assert str(path) in str(e.value) and "\n" not in str(e.value)
+
+
+def tiny_scene(d: Path) -> Path:
+    d.mkdir()
+    cv2.imwrite(str(d / "panorama.png"), photo(16))
+    return d
+
+
+@pytest.mark.parametrize("case, expect", [
+    ("artifacts-file", "artifacts: exists but is not a directory"),
+    ("artifacts-dangling", "artifacts: a dangling symbolic link"),
+    ("trajectory-many", "poses, over the limit of 10000"),
+    ("trajectory-deep", "JSON nested too deep"),
+    ("depth-header", "depth array header claims shape (100000, 200000)"),
+    ("yaml-deep", "scene.yaml: YAML nested"),
+])
+def test_runner_refuses_scene_inputs_in_one_line_writing_nothing(tmp_path, case, expect):
+    d = tiny_scene(tmp_path / "s")
+    if case == "artifacts-file":
+        (d / "artifacts").write_text("oops")
+    elif case == "artifacts-dangling":
+        (d / "artifacts").symlink_to(tmp_path / "gone")
+    elif case == "trajectory-many":
+        write_traj(d / "trajectory.json", np.tile(np.eye(4), (MAX_POSES + 1, 1, 1)))
+    elif case == "trajectory-deep":
+        (d / "trajectory.json").write_text("[" * 200_000 + "]" * 200_000)
+    elif case == "depth-header":
+        npy_claiming(d / "depth.npy", (100_000, 200_000))
+    else:
+        (d / "scene.yaml").write_text("params: " + "[" * 100_000 + "]" * 100_000)
+    before = sorted(p.name for p in d.iterdir())
+    out = cli("run", str(d))
+    assert out.returncode == 2, out.stderr
+    assert expect in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
+    assert sorted(p.name for p in d.iterdir()) == before
