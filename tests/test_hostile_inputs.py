@@ -220,3 +220,68 @@ def test_runner_refuses_scene_inputs_in_one_line_writing_nothing(tmp_path, case,
     assert out.returncode == 2, out.stderr
     assert expect in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
     assert sorted(p.name for p in d.iterdir()) == before
+
+
+# ---------------------------------------------------------------- checkpoints and hub ids (group 3)
+
+
+class _Planted:
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (os.mkdir, (str(self.marker),))
+
+
+def test_resume_never_unpickles_code(tmp_path):
+    import torch
+
+    from panoworld.train.common import Checkpointer, TrainConfigError
+
+    ckpt = Checkpointer(tmp_path / "run")
+    ckpt.dir.mkdir(parents=True)
+    marker = tmp_path / "pwned"
+    torch.save({"step": 1, "rng": _Planted(marker), "extra": {}, "objects": {}}, ckpt.dir / "step_00000001.pt")
+    with pytest.raises(TrainConfigError, match="step_00000001.pt: not a checkpoint of tensors and plain state"):
+        ckpt.restore({})
+    assert not marker.exists()
+
+
+def test_rng_state_round_trips_through_a_weights_only_checkpoint(tmp_path):
+    import random
+
+    import torch
+
+    from panoworld.train.common import Checkpointer
+
+    class Box:  # an object with state, as the trainers checkpoint them
+        def __init__(self):
+            self.w = torch.zeros(3)
+
+        def state_dict(self):
+            return {"w": self.w}
+
+        def load_state_dict(self, s):
+            self.w = s["w"]
+
+    ckpt = Checkpointer(tmp_path / "run")
+    box = Box()
+    box.w = torch.arange(3.0)
+    random.gauss(0, 1)  # a cached gaussian in the python state
+    np.random.normal()
+    ckpt.save(7, {"box": box}, {"phase": "x"})
+    want = (random.random(), random.gauss(0, 1), np.random.random(), np.random.normal(), torch.rand(2))
+    fresh = Box()
+    step, extra = ckpt.restore({"box": fresh})
+    got = (random.random(), random.gauss(0, 1), np.random.random(), np.random.normal(), torch.rand(2))
+    assert step == 7 and extra == {"phase": "x"} and torch.equal(fresh.w, torch.arange(3.0))
+    assert got[:4] == want[:4] and torch.equal(got[4], want[4])
+
+
+@pytest.mark.parametrize("spec", ["hf:a/b@..", "hf:org/name//abs"])
+def test_runner_refuses_bad_hf_ids_in_one_line(tmp_path, spec):
+    d = tiny_scene(tmp_path / "s")
+    out = cli("run", str(d), "--set", f"depth.weights={spec}")
+    assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1, out.stderr
+    assert f"{spec}: expected hf:ORG/NAME[@REVISION][/PATH]" in out.stderr
+    assert sorted(p.name for p in d.iterdir()) == ["panorama.png"]
