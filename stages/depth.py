@@ -10,10 +10,11 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.choices import Rescale
+from panoworld.depth_outliers import mask_and_record
 from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "depth"
-VERSION = "2"
+VERSION = "3"
 ARTIFACT = "depth"
 INPUTS = {
     "panorama": Input("file", help="equirectangular RGB panorama (2:1)"),
@@ -88,6 +89,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         info["valid_fraction_input"] = float(valid.mean())
         if not valid.any():
             raise StageInputError(f"{path}: no valid depth (all NaN, inf or <= 0); give a depth map with values in metres")
+        valid = mask_and_record(raw, valid, info, notes)  # before hole filling (lone spikes get filled) and the rescale
         gap = params.max_gap_px
         if gap < 0:
             gap, share = dep.auto_gap_px(valid)
@@ -115,6 +117,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         model = DepthAnything.from_pretrained(params.weights, input_size=params.view_size, device=params.device)
         res = dep.erp_depth_from_model(rgb, model, model.kind, fov_deg=params.fov_deg, view_size=params.view_size)
         depth, valid = res.depth, res.valid
+        valid = mask_and_record(depth, valid, info, notes)
         relative = model.kind == dep.DepthKind.RELATIVE
         info.update(model_kind=model.kind.value, view_overlap_rel_rmse=res.overlap_rel_rmse,
                     view_scales=res.scale.tolist(), view_shifts=res.shift.tolist())

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from panoworld.navmesh import NavMesh
+from panoworld.trajectory.polyline import resample_polyline
 
 
 TRAJECTORY_JSON = "trajectory.json"
@@ -90,3 +91,17 @@ def planning_hub(nav: NavMesh, start: np.ndarray) -> tuple[np.ndarray, float]:
         return start.copy(), 0.0
     hub = nav.closest_point(start)[0]
     return hub, float(np.linalg.norm(hub - start))
+
+
+MAX_APPROACH_SHARE = 0.1
+"""At most this share of a path's steps walks a camera that stands off the NavMesh onto it (in longer steps)."""
+
+
+def approach_path(start: np.ndarray, hub: np.ndarray, step: float, n_steps: int) -> np.ndarray:
+    """The straight way from the start to the hub, (k + 1, 2) with k steps of `step`, but never more than
+    MAX_APPROACH_SHARE of n_steps (the steps are longer then: a rig hiding 1 m of floor costs 8 of 81 poses)."""
+    off = float(np.linalg.norm(np.asarray(hub) - np.asarray(start)))
+    if off <= 0:
+        return np.asarray(start, np.float64)[None]
+    k = max(1, min(int(np.ceil(off / step)), int(MAX_APPROACH_SHARE * n_steps)))
+    return resample_polyline(np.stack([start, hub]), k + 1)
