@@ -132,7 +132,7 @@ def depth_plane(depth: np.ndarray, path: Path | str) -> np.ndarray:
             return depth[..., 0]
         if first and not last:
             return depth[0]
-    if depth.ndim != 2:
+    if depth.ndim != 2 or depth.size == 0:
         raise InputError(f"{path}: depth has shape {depth.shape} but expected (H, W) (or (H, W, C) / (C, H, W) with "
                          "C <= 4 channels, the first one used); save the depth plane alone")
     return depth

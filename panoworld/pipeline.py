@@ -231,6 +231,12 @@ def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
         raise PipelineError(str(e)) from None
     if not isinstance(config, dict):
         raise PipelineError(f"{cfg_path}: expected a mapping with keys 'preset' and/or 'params'")
+    if config.get("preset") is not None and not isinstance(config["preset"], str):
+        raise PipelineError(f"{cfg_path}: preset must be a name (e.g. preset: ci-tiny), not {config['preset']!r:.40}")
+    sp = config.get("params")
+    if sp is not None and not (isinstance(sp, dict) and all(isinstance(v, dict) or v is None for v in sp.values())):
+        raise PipelineError(f"{cfg_path}: params must map stage names to mappings of param: value "
+                            "(e.g. params: {{mesh: {{stride: 2}}}})")
     return Scene(root, files, config)
 
 
