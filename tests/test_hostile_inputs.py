@@ -285,3 +285,17 @@ def test_runner_refuses_bad_hf_ids_in_one_line(tmp_path, spec):
     assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1, out.stderr
     assert f"{spec}: expected hf:ORG/NAME[@REVISION][/PATH]" in out.stderr
     assert sorted(p.name for p in d.iterdir()) == ["panorama.png"]
+
+
+@pytest.mark.parametrize("setting, expect", [
+    ("mesh.stride=0", "mesh.stride"), ("mesh.stride=-1", "mesh.stride"), ("navmesh.cell_m=0", "navmesh.cell_m"),
+    ("navmesh.cell_m=1e-6", "navmesh.cell_m"), ("mesh.max_edge_ratio=nan", "mesh.max_edge_ratio"),
+    ("navmesh.agent_radius_m=-1", "navmesh.agent_radius_m"), ("trajectory.frames=1000000", "trajectory.frames"),
+    ("conditions.height=100000", "conditions.height"),
+])
+def test_runner_refuses_out_of_range_params_in_one_line(tmp_path, setting, expect):
+    d = tiny_scene(tmp_path / "s")
+    out = cli("run", str(d), "--set", setting)
+    assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1, out.stderr
+    assert expect in out.stderr and "must be" in out.stderr, out.stderr
+    assert sorted(p.name for p in d.iterdir()) == ["panorama.png"]
