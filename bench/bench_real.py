@@ -120,7 +120,7 @@ def hostile_decisions(scene: Path) -> dict:
         "no_room": f"{nr['decision']} (r {nr['requested_agent_radius_m']} -> {nr['agent_radius_m']} m)" if nr else "-",
         "rotation_only": traj.get("rotation_only"),
         "outliers": f"{out.get('far_px', 0)} far + {out.get('spike_px', 0)} spikes" if out else "-",
-        "max_depth": f"{out['max_depth_before']:.0f} -> {out['max_depth_after']:.1f}" if out.get("max_depth_after") else "-",
+        "max_depth": f"{out['max_depth_before']:.4g} -> {out['max_depth_after']:.4g}" if out.get("max_depth_after") else "-",
         "area": nav.get("area_m2"),
         "off": traj.get("start_off_navmesh_m"),
         "approach": (traj.get("plan") or {}).get("approach_steps"),
