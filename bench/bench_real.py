@@ -68,6 +68,14 @@ def huge_scene(work: Path) -> Path:
     return d
 
 
+def stage_info(scene: Path, stage: str) -> dict:
+    """A stage's manifest `info` ({} when it has not run)."""
+    try:
+        return json.loads((scene / "artifacts" / stage / "manifest.json").read_text())["info"]
+    except (OSError, KeyError, ValueError):
+        return {}
+
+
 def measure(scene: Path, until: str) -> dict:
     t0 = time.perf_counter()
     try:
@@ -84,10 +92,7 @@ def measure(scene: Path, until: str) -> dict:
            "failed": f"{failed[0].stage}: {failed[0].reason[:160]}" if failed else ""}
 
     def info(stage):
-        try:
-            return json.loads((scene / "artifacts" / stage / "manifest.json").read_text())["info"]
-        except (OSError, KeyError, ValueError):
-            return {}
+        return stage_info(scene, stage)
 
     nav, traj, gs = info("navmesh"), info("trajectory"), info("gaussians")
     min_clear = None
@@ -106,13 +111,7 @@ def measure(scene: Path, until: str) -> dict:
 
 def hostile_decisions(scene: Path) -> dict:
     """What the pipeline decided for the issue #24 classes (closet, depth outliers, a start off the NavMesh)."""
-    def info(stage):
-        try:
-            return json.loads((scene / "artifacts" / stage / "manifest.json").read_text())["info"]
-        except (OSError, KeyError, ValueError):
-            return {}
-
-    dep, nav, traj = info("depth"), info("navmesh"), info("trajectory")
+    dep, nav, traj = (stage_info(scene, s) for s in ("depth", "navmesh", "trajectory"))
     out = dep.get("outliers") or {}
     nr = nav.get("no_room") or {}
     return {

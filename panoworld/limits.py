@@ -51,32 +51,29 @@ def check_size(path: Path, limit: int, what: str) -> int:
     return size
 
 
-def parse_json(text: str, where: str, max_nesting: int = MAX_NESTING) -> Any:
-    """json.loads that refuses deep nesting in one line (the C parser's RecursionError is caught, never shown)."""
+def _parse(text: str, where: str, max_nesting: int, kind: str, loads, syntax_errors) -> Any:
+    """loads(text) refusing deep nesting in one line (the parser's RecursionError is caught, never shown)."""
     try:
-        doc = json.loads(text)
+        doc = loads(text)
     except RecursionError:
-        raise LimitError(f"{where}: JSON nested too deep (limit {max_nesting} levels); give a flat document") from None
-    except json.JSONDecodeError as e:
-        raise InputError(f"{where}: invalid JSON ({e})") from None
+        raise LimitError(f"{where}: {kind} nested too deep (limit {max_nesting} levels); give a flat document") from None
+    except syntax_errors as e:
+        raise InputError(f"{where}: invalid {kind} ({' '.join(str(e).split())})") from None
     if _depth(doc, max_nesting) > max_nesting:
-        raise LimitError(f"{where}: JSON nested deeper than {max_nesting} levels; give a flat document")
+        raise LimitError(f"{where}: {kind} nested deeper than {max_nesting} levels; give a flat document")
     return doc
+
+
+def parse_json(text: str, where: str, max_nesting: int = MAX_NESTING) -> Any:
+    """json.loads within the nesting limit; InputError (one line) otherwise."""
+    return _parse(text, where, max_nesting, "JSON", json.loads, json.JSONDecodeError)
 
 
 def parse_yaml(text: str, where: str, max_nesting: int = MAX_NESTING) -> Any:
-    """yaml.safe_load that refuses deep nesting and invalid YAML in one line."""
+    """yaml.safe_load within the nesting limit; InputError (one line) otherwise."""
     import yaml
 
-    try:
-        doc = yaml.safe_load(text)
-    except RecursionError:
-        raise LimitError(f"{where}: YAML nested too deep (limit {max_nesting} levels)") from None
-    except yaml.YAMLError as e:
-        raise InputError(f"{where}: invalid YAML ({' '.join(str(e).split())})") from None
-    if _depth(doc, max_nesting) > max_nesting:
-        raise LimitError(f"{where}: YAML nested deeper than {max_nesting} levels")
-    return doc
+    return _parse(text, where, max_nesting, "YAML", yaml.safe_load, yaml.YAMLError)
 
 
 def npy_header(path: Path | str, what: str = "array", max_elements: int = MAX_PIXELS * 4,

@@ -6,8 +6,6 @@ import json
 import os
 import re
 import struct
-import subprocess
-import sys
 import zlib
 from pathlib import Path
 
@@ -15,27 +13,12 @@ import cv2
 import numpy as np
 import pytest
 
-from panoworld import artifacts as art
 from panoworld.depth import read_depth, read_panorama
 from panoworld.errors import InputError
 from panoworld.image_io import ImageInputError, check_image
 from panoworld.limits import MAX_PIXELS, MAX_POSES, MAX_TRAJECTORY_BYTES, LimitError, parse_json, parse_yaml
 from panoworld.trajectory import TrajectoryFileError, read_trajectory_file
-
-TOY = Path(__file__).parent / "toy"
-REPO = Path(__file__).resolve().parent.parent
-
-
-@pytest.fixture(autouse=True)
-def toy_schemas(monkeypatch):
-    monkeypatch.setenv("PANOWORLD_SCHEMA_PATH", str(TOY / "schemas"))
-    art.load_schema.cache_clear()
-    art._validator.cache_clear()
-
-
-def cli(*args) -> subprocess.CompletedProcess:
-    env = dict(os.environ, PANOWORLD_SCHEMA_PATH=str(TOY / "schemas"))
-    return subprocess.run([sys.executable, str(REPO / "runner.py"), *args], capture_output=True, text=True, env=env, cwd=REPO)
+from tests.test_runner import TOY, cli, toy_schemas  # noqa: F401 - toy_schemas: the shared autouse fixture
 
 
 def photo(h: int = 64) -> np.ndarray:
