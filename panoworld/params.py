@@ -59,9 +59,10 @@ def param(default: Any = dataclasses.MISSING, *, default_factory: Any = dataclas
     return dataclasses.field(default=default, default_factory=default_factory, metadata={_KEY: rule})
 
 
-def options(cls: type) -> Any:
-    """A nested options field (a backend's own dataclass): `wan: WanOptions = options(WanOptions)`."""
-    return dataclasses.field(default_factory=cls, metadata={_KEY: "options"})
+def options(cls: type, backend: str | None = None) -> Any:
+    """A nested options field, the dataclass of backend `backend`: `wan: WanOptions = options(WanOptions,
+    "wan-shortcut")`; only the chosen backend's options enter the manifest and cache key (active_dict)."""
+    return dataclasses.field(default_factory=cls, metadata={_KEY: "options", "backend": backend})
 
 
 def rule_of(f: dataclasses.Field) -> Rule:
@@ -95,6 +96,17 @@ def plain(v: Any) -> Any:
     if hasattr(v, "__fspath__"):
         return str(v)
     return v
+
+
+def active_dict(params: Any) -> dict[str, Any]:
+    """plain(params) without the options of backends other than `params.backend` (all kept for backend auto)."""
+    out = plain(params)
+    chosen = plain(getattr(params, "backend", None))
+    for f in dataclasses.fields(params):
+        owner = f.metadata.get("backend") if is_options(f) else None
+        if owner is not None and chosen not in (owner, "auto"):
+            out.pop(f.name)
+    return out
 
 
 def validate(params: Any, where: str) -> None:

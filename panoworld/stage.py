@@ -196,8 +196,9 @@ def params_from_dict(cls: type, values: Any, where: str = "params") -> Any:
 
 
 def params_to_dict(params: Any) -> dict[str, Any]:
-    """JSON-ready dict of a params dataclass (enums as values, tuples as lists, backend options nested)."""
-    return P.plain(params)
+    """JSON-ready dict of a params dataclass (enums as values, tuples as lists, the chosen backend's options nested;
+    the options of the other backends are left out, so they neither enter the cache key nor rerun the stage)."""
+    return P.active_dict(params)
 
 
 def params_hash(params_dict: dict[str, Any]) -> str:

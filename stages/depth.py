@@ -41,9 +41,9 @@ class Params:
     before anything else, so memory stays bounded downstream (8192x4096 -> 2048x1024); 0 = never."""
     min_depth_m: float = param(0.1, ge=0)
     """Metric depths nearer than this (sensor noise, the capture rig) are invalid: they never become geometry."""
-    provided: ProvidedOptions = options(ProvidedOptions)
+    provided: ProvidedOptions = options(ProvidedOptions, "provided")
     """provided's options."""
-    depth_anything: DepthAnythingOptions = options(DepthAnythingOptions)
+    depth_anything: DepthAnythingOptions = options(DepthAnythingOptions, "depth-anything")
     """depth-anything's options."""
 
     RENAMED: ClassVar[dict[str, str]] = {

@@ -50,9 +50,9 @@ class Params:
     """Where depth/NNNNNN.png (uint16 millimetres) comes from."""
     copy_frames: bool = False
     """Copy the frames into images/ (a self-contained dataset) instead of referencing ../video/frames."""
-    colmap: ColmapOptions = options(ColmapOptions)
+    colmap: ColmapOptions = options(ColmapOptions, "colmap")
     """colmap's options."""
-    vggt: VggtOptions = options(VggtOptions)
+    vggt: VggtOptions = options(VggtOptions, "vggt")
     """vggt's options."""
 
     RENAMED: ClassVar[dict[str, str]] = {

@@ -60,9 +60,9 @@ class Params:
     """Write video.mcap (Foxglove: frames, conditions, depth, camera poses)."""
     device: str = "auto"
     """Device of realesrgan: auto = cuda when available, else cpu (wan-shortcut: wan.device)."""
-    warp: WarpOptions = options(WarpOptions)
+    warp: WarpOptions = options(WarpOptions, "warp-inpaint")
     """warp-inpaint's options."""
-    wan: WanShortcutConfig = options(WanShortcutConfig)
+    wan: WanShortcutConfig = options(WanShortcutConfig, "wan-shortcut")
     """wan-shortcut's options."""
 
     RENAMED: ClassVar[dict[str, str]] = {

@@ -345,7 +345,7 @@ def test_hub_fetch_verifies_blobs_and_prints_the_id(hub_env, tiny_files, monkeyp
     out = capsys.readouterr().out
     assert f"commit {C1[:12]}" in out
     assert f"--set depth.backend=depth-anything --set depth.depth_anything.weights=hf:{repo}" in out
-    assert f"depth: {{backend: depth-anything, weights: hf:{repo}}}" in out
+    assert f"depth: {{backend: depth-anything, depth_anything.weights: hf:{repo}}}" in out
     assert resolve_weights(f"hf:{repo}")["commit"] == C1
 
     to = tmp_path / "da-small"

@@ -78,12 +78,14 @@ def test_old_flat_names_still_work():
     assert p == params_from_dict(video, {"wan": {"steps": 2, "weights": "/w"}, "warp.max_band_deg": 10}, "video")
 
 
-def test_no_stage_branches_on_backend_names():
-    for path in (REPO / "stages").glob("*.py"):
-        text = path.read_text()
-        for bad in ("backend ==", "backend !=", "Backend.WAN", "Backend.WARP"):
-            if path.stem in ("video",):
-                assert bad not in text, f"{path.name}: {bad}"
+@pytest.mark.parametrize("stage", ["video", "poses", "depth"])
+def test_registry_stages_do_not_branch_on_backend_names(stage):
+    text = (REPO / "stages" / f"{stage}.py").read_text()
+    code = "\n".join(ln for ln in text.splitlines() if " = param(" not in ln and " = options(" not in ln)
+    for name in backends.names(stage):  # only the Params declarations name backends (default, options' owner)
+        assert f'"{name}"' not in code, f"stages/{stage}.py names backend {name} outside its Params"
+    for bad in ("backend ==", "backend !=", "Backend."):
+        assert bad not in text, f"stages/{stage}.py: {bad}"
 
 
 def test_stage_help_shows_rules_and_nested_options():
@@ -92,3 +94,12 @@ def test_stage_help_shows_rules_and_nested_options():
     assert "--wan-steps" in out.stdout and "--warp-max-band-deg" in out.stdout and ">= 1" in out.stdout
     assert "{frame-inpaint,wan-shortcut,warp-inpaint}" in out.stdout
     assert dataclasses.is_dataclass(load_stage("video").params_cls().wan)
+
+
+def test_only_the_chosen_backends_options_enter_the_cache_key():
+    video = load_stage("video").params_cls
+    warp = params_from_dict(video, {"wan.steps": 8}, "video")
+    assert "wan" not in params_to_dict(warp) and params_to_dict(warp)["warp"] == {"max_band_deg": 45.0}
+    assert params_to_dict(warp) == params_to_dict(params_from_dict(video, {}, "video"))  # no rerun for wan.steps
+    depth = load_stage("depth").params_cls
+    assert {"provided", "depth_anything"} <= set(params_to_dict(depth()))  # auto: decided by the inputs at run time
