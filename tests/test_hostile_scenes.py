@@ -104,3 +104,18 @@ def test_start_off_the_navmesh_costs_at_most_a_tenth_of_the_poses(tmp_path):
     steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
     assert steps[:approach].max() == pytest.approx(traj["start_off_navmesh_m"] / approach, rel=1e-6)
     assert traj["sectors_covered"] >= 2
+
+
+@pytest.mark.slow
+def test_no_visible_floor_still_delivers_gaussians_end_to_end(tmp_path):
+    from panoworld import pipeline as pl
+
+    d = write_failure_scene(FailureCase.CLOSET, tmp_path / "blind", height=64)
+    depth = np.load(d / "depth.npy")
+    depth[depth.shape[0] // 2 + 2:] = 0.0
+    np.save(d / "depth.npy", depth)
+    report = pl.run(d, preset="ci-tiny", sets=["poses.backend=colmap"])  # COLMAP, as the default preset
+    assert report.ok, report.table()
+    poses = json.loads((d / "artifacts" / "poses" / "manifest.json").read_text())["info"]
+    assert any("planned poses used" in x for x in poses["decisions"])
+    assert (d / "artifacts" / "gaussians" / "gaussians.ply").stat().st_size > 0
