@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from panoworld.errors import DataError, InputError
 import json
 from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 
+from panoworld.errors import DataError, InputError
 from panoworld.image_io import read_image
 
 
@@ -38,7 +38,7 @@ class DatasetScene:
         self.name = self.root.name
 
     @classmethod
-    def from_gt_index(cls, gt_json: Path) -> "DatasetScene":
+    def from_gt_index(cls, gt_json: Path) -> DatasetScene:
         return cls(Path(gt_json).resolve().parent.parent)
 
     @property

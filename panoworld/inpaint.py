@@ -13,7 +13,6 @@ from panoworld.mesh import ErpMesh, grid_faces
 from panoworld.raycast import Raycaster
 from panoworld.shapes import check_shape
 
-
 # ---------------------------------------------------------------- seam-aware 2D helpers
 
 

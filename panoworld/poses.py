@@ -16,13 +16,12 @@ import cv2
 import numpy as np
 
 from panoworld.align import align_trajectory, apply_sim3, check_trajectory, trajectory_metrics
-from panoworld.backends.poses.colmap import ColmapOptions
-from panoworld.choices import Alignment, Matcher, RenderType
+from panoworld.choices import Alignment, ColmapOptions, Matcher, RenderType
 from panoworld.conventions import cv_world_from_cam_from_gl, gl_world_from_cam, invert_pose
+from panoworld.errors import InputError
 from panoworld.io import to_jsonable, write_json
 from panoworld.io.depth_png import read_depth_png, write_depth_png  # noqa: F401  (re-exported)
 from panoworld.io.video import VideoDoc, read_video_doc
-from panoworld.stage import StageInputError
 from panoworld.video_io import DEPTH_SCALE, VIDEO_FILE
 
 MIN_REGISTERED = 3
@@ -40,10 +39,10 @@ def read_video_frames(video_dir: Path) -> VideoFrames:
     panoworld.video_io.load_video for the in-memory reader); InputError naming the file on any problem."""
     video = read_video_doc(video_dir)
     if not video.rgb:
-        raise StageInputError(f"{video.root / VIDEO_FILE}: lists no frames; rerun the video stage")
+        raise InputError(f"{video.root / VIDEO_FILE}: lists no frames; rerun the video stage")
     missing = [str(p) for p in video.rgb if not p.is_file()]
     if missing:
-        raise StageInputError(f"{video.root / VIDEO_FILE}: {len(missing)} frame files are missing (first {missing[0]}); "
+        raise InputError(f"{video.root / VIDEO_FILE}: {len(missing)} frame files are missing (first {missing[0]}); "
                               "rerun the video stage")
     return video
 
@@ -55,7 +54,7 @@ def read_planned_trajectory(trajectory_dir: Path) -> np.ndarray:
     try:
         return load_trajectory(trajectory_dir)
     except TrajectoryFileError as e:
-        raise StageInputError(f"{e}; rerun the trajectory stage") from None
+        raise InputError(f"{e}; rerun the trajectory stage") from None
 
 
 def load_frames(paths: list[Path], height: int | None = None) -> np.ndarray:
@@ -64,7 +63,7 @@ def load_frames(paths: list[Path], height: int | None = None) -> np.ndarray:
     for p in paths:
         bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
         if bgr is None:
-            raise StageInputError(f"{p}: not a readable image; rerun the video stage")
+            raise InputError(f"{p}: not a readable image; rerun the video stage")
         if height is not None and bgr.shape[0] != height:
             bgr = cv2.resize(bgr, (2 * height, height), interpolation=cv2.INTER_AREA)
         out.append(bgr[..., ::-1])
@@ -204,7 +203,7 @@ def run_colmap(
     sfm = sfm or ColmapOptions()
     names = [p.name for p in image_paths]
     if len(set(names)) != len(names):
-        raise StageInputError("video frames must have unique file names for COLMAP")
+        raise InputError("video frames must have unique file names for COLMAP")
     img_dir = work_dir / "images"
     img_dir.mkdir(parents=True, exist_ok=True)
     for p in image_paths:
@@ -242,16 +241,16 @@ def colmap_estimate(
     """COLMAP panorama SfM on the frames, Sim(3)-aligned to the planned trajectory (N, 4, 4).
 
     The largest model is kept; frames it lacks are unregistered: flagged, with the planned pose filled in.
-    Fewer than 3 registered frames (no alignment possible) -> StageInputError.
+    Fewer than 3 registered frames (no alignment possible) -> InputError.
     """
     import pycolmap
 
     planned = check_trajectory(planned, "planned")
     n = len(image_paths)
     if len(planned) != n:
-        raise StageInputError(f"the planned trajectory has {len(planned)} poses but the video has {n} frames")
+        raise InputError(f"the planned trajectory has {len(planned)} poses but the video has {n} frames")
     if alignment != Alignment.SIM3:
-        raise StageInputError(f"align={alignment}: COLMAP's frame and scale are arbitrary; use --align sim3")
+        raise InputError(f"align={alignment}: COLMAP's frame and scale are arbitrary; use --align sim3")
     t0 = time.perf_counter()
     timings: dict = {}
     with tempfile.TemporaryDirectory(prefix="panoworld-colmap-") as tmp:
@@ -268,14 +267,14 @@ def colmap_estimate(
                 raw[i] = invert_pose(np.vstack([img.cam_from_world().matrix(), [0, 0, 0, 1]]))
                 reg[i] = True
     if reg.sum() < MIN_REGISTERED:
-        raise StageInputError(
+        raise InputError(
             f"COLMAP registered {int(reg.sum())} of {n} frames (at least {MIN_REGISTERED} are needed to align them to "
             "the planned trajectory): the frames lack matchable texture or overlap; try --render-type "
             "perspective_overlapping or --matcher exhaustive, or use --backend planned"
         )
     moving = np.linalg.norm(planned[reg, :3, 3] - planned[reg, :3, 3].mean(0), axis=1).max()
     if moving < 1e-6:
-        raise StageInputError("the planned trajectory does not move, so COLMAP's scale cannot be fixed; use --backend planned")
+        raise InputError("the planned trajectory does not move, so COLMAP's scale cannot be fixed; use --backend planned")
     sim = _alignment(raw, planned, reg, alignment)
     poses = np.where(reg[:, None, None], _apply(sim, raw), planned)
     s, R, t = sim
@@ -314,10 +313,10 @@ def vggt_estimate(
     sim = None
     if alignment != Alignment.NONE:
         if planned is None:
-            raise StageInputError(f"align={alignment} needs the planned trajectory; give --trajectory or use --align none")
+            raise InputError(f"align={alignment} needs the planned trajectory; give --trajectory or use --align none")
         planned = check_trajectory(planned, "planned")
         if len(planned) != n:
-            raise StageInputError(f"the planned trajectory has {len(planned)} poses but the video has {n} frames")
+            raise InputError(f"the planned trajectory has {len(planned)} poses but the video has {n} frames")
         sim = _alignment(raw, planned, reg, alignment)
     scale = 1.0 if sim is None else sim[0]
     depth = pred["depth"] * np.float32(scale)
@@ -417,7 +416,7 @@ def write_poses_artifact(
         # The stage writes into a temporary sibling of the final directory, so paths relative to out_dir hold.
         dirs = {p.parent.resolve() for p in video.rgb}
         if len(dirs) != 1:
-            raise StageInputError("video frames must lie in one directory to be referenced by COLMAP and nerfstudio")
+            raise InputError("video frames must lie in one directory to be referenced by COLMAP and nerfstudio")
         image_dir = os.path.relpath(dirs.pop(), out_dir.resolve())
     frame_paths = [f"{image_dir}/{name}" for name in names]
 
@@ -516,5 +515,5 @@ def load_poses(poses_dir: Path) -> PosesArtifact:
         depth = [poses_dir / f["depth"] for f in frames] if all(f["depth"] for f in frames) else None
         return PosesArtifact(T, np.asarray(d["registered"], bool), rgb, depth, int(d["height"]), int(d["width"]), d["backend"])
     except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-        raise StageInputError(f"{path}: cannot read poses ({e}); rerun the poses stage") from None
+        raise InputError(f"{path}: cannot read poses ({e}); rerun the poses stage") from None
 

@@ -9,7 +9,6 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from panoworld.conditions import WarpedFrame
 from panoworld.conventions import (
     check_erp_shape,
     check_pose,
@@ -18,6 +17,7 @@ from panoworld.conventions import (
 )
 from panoworld.raycast import Hits, Raycaster
 from panoworld.shapes import check_shape
+from panoworld.warped_frame import WarpedFrame
 
 _NO_HIT = np.uint64(0xFFFFFFFFFFFFFFFF)
 # z-buffer key = float32 bits of the ray distance << 32 | face id (positive floats order like their bits): the

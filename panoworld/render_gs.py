@@ -20,7 +20,7 @@ import torch.nn.functional as F
 
 from panoworld.conventions import check_erp_shape, check_pose, erp_dirs, invert_pose
 from panoworld.gaussians import SH_C0, Gaussians
-from panoworld.rotations import rotmat_from_quat  # noqa: F401  (re-exported)
+from panoworld.rotations import rotmat_from_quat
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99

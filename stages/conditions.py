@@ -7,8 +7,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from panoworld.conditions import Backend
-from panoworld.stage import Input, StageInputError, stage_main
 from panoworld.params import param
+from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "conditions"
 VERSION = "1"

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.stage import Input, stage_main
 from panoworld.params import param
+from panoworld.stage import Input, stage_main
 
 NAME = "mesh"
 VERSION = "2"

@@ -5,16 +5,15 @@ from __future__ import annotations
 import enum
 import sys
 from dataclasses import dataclass
-from typing import ClassVar
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
 from panoworld import backends
 from panoworld.backends.poses import Job
-from panoworld.backends.poses.colmap import ColmapOptions
 from panoworld.backends.poses.vggt import VggtOptions
-from panoworld.choices import Alignment
+from panoworld.choices import Alignment, ColmapOptions
 from panoworld.params import options, param
 from panoworld.stage import Input, StageInputError, stage_main
 

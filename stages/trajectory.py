@@ -13,9 +13,8 @@ import numpy as np
 from panoworld.conventions import invert_pose
 from panoworld.mesh import load_erp_mesh
 from panoworld.navmesh import load_navmesh
-from panoworld.stage import Input, StageInputError, stage_main
 from panoworld.params import param
-from panoworld.trajectory.stationary import stationary_plan
+from panoworld.stage import Input, StageInputError, stage_main
 from panoworld.trajectory import (
     MIN_SECTOR_DIST_M,
     PathKind,
@@ -36,6 +35,7 @@ from panoworld.trajectory import (
     write_trajectory,
     yaw_of_path,
 )
+from panoworld.trajectory.stationary import stationary_plan
 
 NAME = "trajectory"
 VERSION = "3"

@@ -7,8 +7,8 @@ import enum
 import sys
 import time
 from dataclasses import dataclass
-from typing import ClassVar
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -81,11 +81,12 @@ def _device(name: str) -> str:
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
+    from tqdm import tqdm
+
     from panoworld.conditions import load_conditions
     from panoworld.trajectory import load_trajectory
     from panoworld.upscale import FrameUpscaler
     from panoworld.video_io import VideoWriter
-    from tqdm import tqdm
 
     if params.upscale == Upscale.REALESRGAN and not (params.upscale_weights and Path(params.upscale_weights).is_file()):
         raise StageInputError(

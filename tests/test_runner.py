@@ -16,6 +16,7 @@ from PIL import Image
 
 from panoworld import artifacts as art
 from panoworld import pipeline as pl
+from tests.toy.common import toy_scene, use_toy_schemas
 
 TOY = Path(__file__).parent / "toy"
 REPO = Path(__file__).resolve().parent.parent
@@ -23,17 +24,12 @@ REPO = Path(__file__).resolve().parent.parent
 
 @pytest.fixture(autouse=True)
 def toy_schemas(monkeypatch):
-    monkeypatch.setenv("PANOWORLD_SCHEMA_PATH", str(TOY / "schemas"))
-    art.load_schema.cache_clear()
-    art._validator.cache_clear()
+    use_toy_schemas(monkeypatch)
 
 
 @pytest.fixture
 def scene(tmp_path) -> Path:
-    d = tmp_path / "scene"
-    d.mkdir()
-    Image.fromarray(np.random.default_rng(0).integers(0, 255, (8, 16, 3), dtype=np.uint8)).save(d / "panorama.png")
-    return d
+    return toy_scene(tmp_path)
 
 
 def toy_pipe() -> pl.Pipeline:
@@ -205,7 +201,7 @@ def test_json_report_and_status(scene):
     assert out.returncode == 0, out.stderr
     doc = json.loads(out.stdout)
     assert [s["stage"] for s in doc["stages"]] == list("abcd")
-    assert set(doc["stages"][0]) == {"stage", "action", "reason", "seconds", "peak_rss_mb"}
+    assert set(doc["stages"][0]) == {"stage", "action", "reason", "seconds", "peak_rss_mb", "bad_input"}
     assert all(s["action"] == "ran" and s["peak_rss_mb"] > 0 for s in doc["stages"])
     st = cli("status", str(scene), "--pipeline", str(TOY / "pipeline.yaml"), "--json")
     rows = json.loads(st.stdout)["stages"]
@@ -234,7 +230,7 @@ def test_presets_apply_and_set_overrides(scene):
         ("square", [], "is not an equirectangular panorama"),
         ("corrupt", [], "panorama is corrupt or not an image"),
         ("ok", ["--only", "nope"], "--only nope: unknown stage"),
-        ("ok", ["--set", "b.bogus=1"], "b.bogus: unknown param; known: fail, n, sleep (from --set)"),
+        ("ok", ["--set", "b.bogus=1"], "b.bogus: unknown param; known: fail, n, refuse, sleep (from --set)"),
         ("ok", ["--set", "b.sleeep=1"], "b.sleeep: unknown param; did you mean sleep? (from --set)"),
         ("ok", ["--set", "b.n=101"], "b.n=101: must be <= 100 (from --set)"),
         ("ok", ["--dry-run", "--set", "a.sleep=nan"], "a.sleep=nan: must be a finite number (from --set)"),

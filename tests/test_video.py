@@ -139,7 +139,7 @@ class _NoParams:
 
 def _artifact(kind: str, out: Path, write) -> Path:
     """A real upstream artifact (manifest, digests) whose files are written by `write(out_dir) -> info`."""
-    spec = StageSpec(f"stub-{kind}", "0", kind, {}, _NoParams, types.SimpleNamespace(run=lambda i, p, o: write(o)))
+    spec = StageSpec(f"stub-{kind}", "0", kind, {}, _NoParams, types.SimpleNamespace(run=lambda i, p, o: write(o), __name__=__name__, __file__=__file__))
     execute_stage(spec, {}, _NoParams(), out)
     return out
 
@@ -282,8 +282,8 @@ def test_stage_wan_shortcut_on_tiny_local_weights(upstream, tmp_path):
     pytest.importorskip("peft")
     import torch
 
-    from panoworld.models import wan_training as wt
     from panoworld.models import wan_layers as wl
+    from panoworld.models import wan_training as wt
     from panoworld.models.wan_shortcut import save_prompt_embeds
     from tests.test_wan_shortcut import TEXT_DIM, Z, embeds, tiny_transformer, tiny_vae
 

@@ -14,13 +14,13 @@ from torch import nn
 from panoworld.conventions import erp_lonlat_from_pixel
 from panoworld.models.gs_decoder import GaussianHead, GaussianHeadConfig
 from panoworld.models.pose_refine import refine_sequence
-from panoworld.rotations import rotmat_from_quat
 from panoworld.models.weights import (
     JsonConfig,
     MissingWeightsError,
     load_config_and_weights,
     save_config_and_weights,
 )
+from panoworld.rotations import rotmat_from_quat
 from panoworld.shapes import check_shape
 
 if TYPE_CHECKING:

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from panoworld.errors import InputError
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from panoworld.errors import InputError
 from panoworld.params import param
 from panoworld.shapes import check_shape
-
 
 MIN_CAMERA_HEIGHT_M = 0.3
 """Horizontal triangles closer than this below the camera are never taken as the floor."""

@@ -18,7 +18,6 @@ The API (used by `panoworld.train.video` and `panoworld.train.recon`):
 
 from __future__ import annotations
 
-from panoworld.errors import InputError
 import contextlib
 import dataclasses
 import json
@@ -32,6 +31,7 @@ import numpy as np
 import yaml
 
 from panoworld.artifacts import write_text_atomic
+from panoworld.errors import InputError
 from panoworld.stage import params_from_dict, params_to_dict
 
 CONFIG = "config.yaml"
@@ -242,7 +242,6 @@ class Checkpointer:
 
     def restore(self, objects: dict[str, Any], path: Path | None = None) -> tuple[int, dict[str, Any]]:
         """Load the latest checkpoint (or `path`) into `objects` and restore the RNGs; returns (step, extra)."""
-        import torch
 
         path = path or self.latest()
         if path is None:

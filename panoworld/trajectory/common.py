@@ -2,17 +2,16 @@
 
 from __future__ import annotations
 
-from panoworld.errors import InputError
 import enum
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from panoworld.navmesh import NavMesh
-from panoworld.trajectory.polyline import resample_polyline
+from panoworld.errors import InputError
 from panoworld.limits import MAX_POSES
+from panoworld.navmesh import NavMesh
 from panoworld.params import param
-
+from panoworld.trajectory.polyline import resample_polyline
 
 TRAJECTORY_JSON = "trajectory.json"
 TRAJECTORY_TUM = "trajectory.tum"

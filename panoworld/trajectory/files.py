@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from panoworld import limits
-from panoworld.errors import InputError
 from panoworld.conventions import quat_wxyz_from_rotmat, quat_wxyz_from_xyzw, quat_xyzw_from_wxyz, rotmat_from_quat_wxyz
+from panoworld.errors import InputError
 from panoworld.trajectory.common import FRAME, TRAJECTORY_JSON, TRAJECTORY_TUM, TrajectoryFileError
 
 
