@@ -1,4 +1,4 @@
-"""Collision-free SE(3) camera trajectory on the NavMesh (sector or ring; or a validated user file): trajectory.json + .tum."""
+"""Collision-free SE(3) camera trajectory on the NavMesh (explore, sector or ring; or a user file): trajectory.json + .tum."""
 
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ from panoworld.trajectory import (
     clearance_cap,
     format_issues,
     mesh_clearance,
+    path_yaw,
     plan_path,
     planning_hub,
     poses_from_positions,
@@ -36,7 +37,7 @@ from panoworld.trajectory import (
 )
 
 NAME = "trajectory"
-VERSION = "2"
+VERSION = "3"
 ARTIFACT = "trajectory"
 INPUTS = {
     "navmesh": Input("navmesh", help="navmesh artifact (navmesh.json)"),
@@ -108,7 +109,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
             plan = plan_path(nav, params)
         except ValueError as e:
             raise StageInputError(f"{Path(inputs['navmesh']) / 'navmesh.json'}: {e}") from None
-        yaw = None if params.yaw == YawMode.FIXED else yaw_of_path(plan.positions, closed=params.kind == PathKind.RING)
+        paths = plan.info.get("paths") or [{"start": 0, "stop": len(plan.positions)}]
+        yaw = None if params.yaw == YawMode.FIXED else path_yaw(plan.positions, paths, closed=params.kind == PathKind.RING)
         poses = poses_from_positions(plan.positions, yaw)
         source = "planned"
         kind, stride, step_m = str(params.kind), params.stride, plan.step_m
@@ -124,7 +126,9 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     if issues and params.on_invalid == OnInvalid.ERROR:
         hint = "move those poses" if user is not None else "the NavMesh disagrees with the mesh; rebuild the navmesh"
         raise StageInputError(f"{where}: {format_issues(issues, len(poses))}; {hint} or pass --on-invalid report")
-    steps = step_lengths(poses)
+    paths = meta.get("paths")
+    steps = np.concatenate([step_lengths(poses[[0] * (p["start"] > 0) + list(range(p["start"], p["stop"]))])
+                            for p in paths]) if paths else step_lengths(poses)
     xz = poses[:, [0, 2], 3]
     if "sectors_reachable" in meta:
         reachable = int(meta["sectors_reachable"])
@@ -138,6 +142,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         "stride": stride,
         "step_m": step_m,
         "length_m": float(steps.sum()),
+        "paths": len(paths) if paths else 1,
+        "max_reach_m": float(np.linalg.norm(xz, axis=1).max()),
         "step_cv": float(steps.std() / steps.mean()) if len(steps) and steps.mean() > 0 else 0.0,
         "closure_m": float(np.linalg.norm(xz[-1] - xz[0])),
         "sectors": params.sectors,
@@ -158,6 +164,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         out_dir, poses, clearance, fps=params.fps, kind=kind, stride=stride, step_m=step_m, source=source,
         yaw=str(params.yaw) if user is None else None, agent_radius_m=radius, clearance_cap_m=cap,
         floor_y=nav.floor_y, camera_height_m=nav.floor_y, invalid_poses=info["invalid_poses"],
+        **({"paths": paths} if paths else {}),
     )
     return info
 
