@@ -7,7 +7,12 @@ import numpy as np
 from panoworld.navmesh import NavMesh
 from panoworld.trajectory.common import Plan, TrajectoryParams, planning_hub, planning_mesh
 from panoworld.trajectory.polyline import polyline_length, resample_polyline, smooth_polyline
-from panoworld.trajectory.sectors import MIN_SECTOR_DIST_M, GeodesicField, sector_of
+from panoworld.trajectory.sectors import MIN_SECTOR_DIST_M, GeodesicField, sector_coverage, sector_of
+
+
+OFF_CENTRE_WEIGHT = 0.75
+"""A target outside the central half of its sector must be this much farther to win: paths spread evenly, and every
+tip reaches at least this fraction of its sector's extent."""
 
 
 def sector_extent(field: GeodesicField, start: np.ndarray, n_sectors: int, max_walk_m: float) -> np.ndarray:
@@ -38,7 +43,7 @@ def plan_explore(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> P
     """Sector exploration paths: pose 0 at the camera, then one path per sector walking away from it.
 
     Each sector's target is its NavMesh point farthest from the camera within params.reach_m of walking (points
-    within the central half of the sector count double); its path is the smoothed NavMesh shortest path (A* +
+    outside the central half of the sector count OFF_CENTRE_WEIGHT of their distance); its path is the smoothed NavMesh shortest path (A* +
     funnel) from the camera's walkable hub to that target. Sectors whose path is shorter than one step are skipped.
     The N - 1 poses after pose 0 are shared between the paths in proportion to their lengths and each path is
     resampled uniformly (its first pose one step out from the camera, its last on the target), so every path has
@@ -56,7 +61,7 @@ def plan_explore(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> P
     width = 2 * np.pi / params.sectors
     lon = np.arctan2(field.xz[:, 0] - start[0], field.xz[:, 1] - start[1])
     central = np.abs(np.angle(np.exp(1j * (lon - sec * width)))) <= 0.25 * width
-    score = r * np.where(central, 1.0, 0.5)
+    score = r * np.where(central, 1.0, OFF_CENTRE_WEIGHT)
     usable = (r >= MIN_SECTOR_DIST_M) & np.isfinite(field.dist) & (off + field.dist <= params.reach_m)
     extent = sector_extent(field, start, params.sectors, params.reach_m - off)
     legs, sectors = [], []
@@ -99,6 +104,7 @@ def plan_explore(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> P
             "paths": paths,
             "sectors_visited": sectors,
             "sectors_reachable": int((extent >= MIN_SECTOR_DIST_M).sum()),
+            "sectors_covered": int(sector_coverage(positions, start, params.sectors, MIN_SECTOR_DIST_M).sum()),
             "sector_extent_m": extent.round(4).tolist(),
             "sector_tip_m": tip_by_sector.round(4).tolist(),
             "reach_fraction_min": float(np.nanmin(frac)) if np.isfinite(frac).any() else None,
