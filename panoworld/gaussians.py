@@ -301,6 +301,8 @@ class FusionResult:
     """Size of the Gaussians' bounding box (x, y, z) in metres."""
     voxel_size: float
     backend: str = "voxel-fusion"
+    num_source: int = 0
+    """Per-pixel Gaussians of the source view among them (source_anchored_fusion)."""
 
 
 MERGE_EVERY = 8
@@ -604,6 +606,7 @@ def write_artifact(out_dir: Path, result: FusionResult, frames: ContextFrames | 
         "num_voxels": result.num_voxels,
         "num_pruned_voxels": result.num_pruned,
         "num_observations": result.num_observations,
+        "num_source_gaussians": result.num_source,
         "voxel_size": result.voxel_size,
         "frames": frames.indices,
         "fusion_height": int(frames.height) if isinstance(frames, ContextSource) else int(frames.rgb.shape[1]),

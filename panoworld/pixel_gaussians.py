@@ -2,12 +2,23 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import torch
 
 from panoworld.conventions import erp_pixel_from_dir, invert_pose
 from panoworld.fusion_params import FusionParams
-from panoworld.gaussians import Gaussians, Observations, frame_observations, gaussians_from_cov
+from panoworld.gaussians import (
+    ContextSource,
+    FusionResult,
+    Gaussians,
+    Observations,
+    bbox_extent,
+    frame_observations,
+    gaussians_from_cov,
+    voxel_fusion,
+)
 
 
 def pole_thinning(height: int, width: int) -> np.ndarray:
@@ -73,3 +84,24 @@ def merge_gaussians(parts: list[Gaussians]) -> Gaussians:
     """One Gaussians set from several (same SH degree)."""
     return Gaussians(*(np.concatenate([getattr(g, f) for g in parts]) for f in
                        ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")))
+
+
+def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, source_height: int = 0, tol: float = 0.03,
+                           thin_poles: bool = True, progress: bool = False) -> FusionResult:
+    """Per-pixel Gaussians of the source view (video frame 0, at source_height rows; 0 = as the other frames) plus
+    voxel fusion of what the other frames see that the source does not (SourceVisibility with tolerance tol): the
+    capture point keeps the input's full detail, the rest of the room is fused as before. Without frame 0 among the
+    frames it is plain voxel fusion."""
+    if not frames.indices or frames.indices[0] != 0:
+        return voxel_fusion(frames, params, progress=progress)
+    src = replace(frames, height=min(source_height or frames.height, frames.stored_height))
+    rgb, depth, pose = src.frame(0)
+    pix = pixel_gaussians(rgb, depth, pose, params, thin_poles=thin_poles)
+    rest = replace(frames, rgb_paths=frames.rgb_paths[1:], depth_paths=frames.depth_paths[1:],
+                   world_from_cam=frames.world_from_cam[1:], indices=frames.indices[1:])
+    if not len(rest):
+        return FusionResult(pix, len(pix), 0, 0, bbox_extent(pix.means), params.voxel_size)
+    fused = voxel_fusion(rest, params, progress=progress, select=SourceVisibility(depth, pose, tol).keep_unexplained)
+    g = merge_gaussians([pix, fused.gaussians])
+    return FusionResult(g, fused.num_observations + len(pix), fused.num_voxels, fused.num_pruned, bbox_extent(g.means),
+                        params.voxel_size, num_source=len(pix))
