@@ -163,3 +163,51 @@ def evaluate_roam(gaussians, nav, gt, settings: RoamSettings, lpips: Lpips, *, p
     if not lpips.enabled:
         out["lpips"] = lpips.reason()
     return out
+
+
+def save_view(out_dir, bucket: str, k: int, images: dict[str, np.ndarray]) -> None:
+    """Save the first view of a bucket as OUT_DIR/{bucket}_{kind}.png (kinds: erp, erp_ref, pinhole, pinhole_ref)."""
+    import cv2
+    from pathlib import Path
+
+    if k:
+        return
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for kind, img in images.items():
+        cv2.imwrite(str(out_dir / f"{bucket}_{kind}.png"), np.ascontiguousarray(img[..., ::-1]))
+
+
+def sector_reachable(nav, n_sectors: int = 8, step_m: float = 0.02) -> np.ndarray:
+    """(n_sectors,) distance (m) walkable from the capture point (x, z = 0) straight along each sector's centre
+    direction (sector k at lon = k 2 pi / n, lon 0 = +z): marching in step_m steps until leaving the NavMesh. A capture
+    point off the NavMesh (the rig's blind spot) starts at the first inside point within 0.5 m."""
+    far = float(np.linalg.norm(nav.vertices, axis=1).max()) + step_m
+    ts = np.arange(0.0, far, step_m)
+    out = np.zeros(n_sectors)
+    for k in range(n_sectors):
+        lon = 2 * math.pi * k / n_sectors
+        inside = nav.contains(ts[:, None] * np.array([math.sin(lon), math.cos(lon)]))
+        first = np.flatnonzero(inside[ts <= 0.5])
+        if not len(first):
+            continue
+        out_ = np.flatnonzero(~inside[first[0]:])
+        out[k] = ts[first[0] + out_[0]] if len(out_) else ts[-1]
+    return out
+
+
+def trajectory_reach(nav, poses: np.ndarray, n_sectors: int = 8) -> dict[str, Any]:
+    """How far the planned camera centres (N, 4, 4) get from the capture point: the farthest (m), and per sector the
+    farthest pose in it against the sector's straight walkable distance (sector_reachable)."""
+    from panoworld.trajectory.sectors import MIN_SECTOR_DIST_M, sector_of
+
+    xz = np.asarray(poses, np.float64).reshape(-1, 4, 4)[:, :3, 3][:, [0, 2]]
+    dist = np.linalg.norm(xz, axis=1)
+    sec = sector_of(xz, np.zeros(2), n_sectors)
+    reached = np.array([dist[(sec == k) & (dist >= MIN_SECTOR_DIST_M)].max(initial=0.0) for k in range(n_sectors)])
+    reachable = sector_reachable(nav, n_sectors)
+    open_ = reachable >= MIN_SECTOR_DIST_M
+    frac = np.minimum(reached[open_] / reachable[open_], 1.0)
+    return {"reach_max_m": float(dist.max(initial=0.0)), "sector_reached_m": reached.round(3).tolist(),
+            "sector_reachable_m": reachable.round(3).tolist(),
+            "sector_reach_fraction_min": float(frac.min()) if len(frac) else float("nan")}

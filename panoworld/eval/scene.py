@@ -41,8 +41,10 @@ class Evaluation:
     """
 
     def __init__(self, scene_dir: Path, params: EvalParams | None = None, *, progress: bool = True,
-                 variant: str | None = None):
+                 variant: str | None = None, roam_images: Path | None = None):
         self.scene_dir = Path(scene_dir)
+        self.roam_images = roam_images
+        """Where the roam protocol saves the first view of every bucket (PNGs for the report), or None."""
         self.params = params or EvalParams()
         self.progress = progress
         self.gt = open_ground_truth(self.scene_dir, self.params.pose_tol_m, supersample=self.params.reference_supersample,
@@ -188,6 +190,11 @@ class Evaluation:
         if self.artifact("trajectory") is not None:  # sector exploration as the trajectory stage measured it
             info = self.manifest("trajectory").get("info") or {}
             plan.update({k: info[k] for k in ("sectors_covered", "sectors_reachable") if k in info})
+        if self.artifact("navmesh") is not None:  # how far the plan gets from the capture point (roam protocol)
+            from panoworld.eval.roam import trajectory_reach
+            from panoworld.navmesh import load_navmesh
+
+            plan.update(trajectory_reach(load_navmesh(self.artifact("navmesh")), poses))
         try:
             clearance = self.gt.clearance(centres)
         except NoReference as e:
@@ -406,7 +413,7 @@ class Evaluation:
         return RoamSettings(views=p.roam_views or (1 if tiny else 2), height=p.roam_height or (64 if tiny else 256),
                             pinhole=p.roam_pinhole or (64 if tiny else 256), fov_deg=p.roam_fov_deg, seed=p.seed)
 
-    def roam(self, on_view=None) -> dict:
+    def roam(self) -> dict:
         """The roam protocol (panoworld/eval/roam.py) on the gaussians and navmesh artifacts."""
         from panoworld.eval.roam import evaluate_roam
         from panoworld.navmesh import load_navmesh
@@ -418,6 +425,11 @@ class Evaluation:
         pano_path = next((p for p in (self.scene_dir / f"panorama.{e}" for e in ("png", "jpg", "jpeg")) if p.is_file()),
                          None)
         pano = load_frames([pano_path])[0] if pano_path else None
+        on_view = None
+        if self.roam_images is not None:
+            from panoworld.eval.roam import save_view
+
+            on_view = lambda bucket, k, images: save_view(self.roam_images, bucket, k, images)  # noqa: E731
         return evaluate_roam(g, nav, self.gt, self.roam_settings(), self.lpips, panorama=pano, on_view=on_view,
                              bar=self._bar)
 

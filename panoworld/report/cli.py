@@ -34,6 +34,7 @@ def build_scene_report(scene_dir: Path, out: Path | None = None, params=None, *,
     without them the stage table shows each stage's current state (up to date / stale) instead.
     """
     from panoworld.report import scene as sc
+    from panoworld.report.roam import section_roam
     from panoworld.report.splats import section_gaussians
 
     params = params or sc.ReportParams()
@@ -51,6 +52,7 @@ def build_scene_report(scene_dir: Path, out: Path | None = None, params=None, *,
         ("poses", "Poses: recovered vs planned", sc.section_poses, (data, params)),
         ("gaussians", "Gaussians: renders beside video frames", section_gaussians, (data, params)),
         ("eval", "Evaluation against ground truth", sc.section_eval, (data, params)),
+        ("roam", "Roam: the scene away from the capture point", section_roam, (data, params)),
     ]
     def timed(id, title, fn, args):
         t0 = time.perf_counter()

@@ -492,7 +492,9 @@ def run_eval(scene_root: Path) -> Path:
     """Run `runner.py eval` on the scene and save its JSON as artifacts/report/eval.json; return the path."""
     from panoworld.evaluate import evaluate
 
-    report, _ = evaluate(scene_root, progress=True)
+    from panoworld.report.roam import ROAM_IMAGES
+
+    report, _ = evaluate(scene_root, progress=True, roam_images=Path(scene_root) / ARTIFACTS / ROAM_IMAGES)
     out = Path(scene_root) / ARTIFACTS / "report" / "eval.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=2) + "\n")
