@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -167,8 +168,9 @@ def evaluate_roam(gaussians, nav, gt, settings: RoamSettings, lpips: Lpips, *, p
 
 def save_view(out_dir, bucket: str, k: int, images: dict[str, np.ndarray]) -> None:
     """Save the first view of a bucket as OUT_DIR/{bucket}_{kind}.png (kinds: erp, erp_ref, pinhole, pinhole_ref)."""
-    import cv2
     from pathlib import Path
+
+    import cv2
 
     if k:
         return

@@ -427,9 +427,11 @@ class Evaluation:
         pano = load_frames([pano_path])[0] if pano_path else None
         on_view = None
         if self.roam_images is not None:
+            from functools import partial
+
             from panoworld.eval.roam import save_view
 
-            on_view = lambda bucket, k, images: save_view(self.roam_images, bucket, k, images)  # noqa: E731
+            on_view = partial(save_view, self.roam_images)
         return evaluate_roam(g, nav, self.gt, self.roam_settings(), self.lpips, panorama=pano, on_view=on_view,
                              bar=self._bar)
 

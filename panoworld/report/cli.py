@@ -64,7 +64,7 @@ def build_scene_report(scene_dir: Path, out: Path | None = None, params=None, *,
     # The Gaussian renders (torch) overlap with the image work of the other sections (OpenCV, no GIL).
     with ThreadPoolExecutor(1) as pool:
         splats = pool.submit(timed, *builders[5])
-        sections = [timed(*b) for b in builders[:5]] + [splats.result()] + [timed(*builders[6])]
+        sections = [timed(*b) for b in builders[:5]] + [splats.result()] + [timed(*b) for b in builders[6:]]
     for section in sections:
         page.add(section)
     tmp = out.with_name(out.name + ".tmp")
