@@ -134,6 +134,13 @@ def print_mean(results: dict[str, dict]) -> dict:
     fr = [v for r in results.values() if (v := _num(r["trajectory"].get("sector_reach_fraction_min"))) is not None]
     print(f"  pipeline wall {sum(walls) / len(walls):.1f} s mean (max {max(walls):.1f}), peak {max(peaks):.0f} MB; "
           f"min sector reach fraction {min(fr) if fr else float('nan'):.2f}")
+    checks = [("capture point ERP PSNR >= 32 dB", summary["d0"]["erp_psnr"], 32.0),
+              ("~1 m ERP PSNR >= 28 dB", summary["d1"]["erp_psnr"], 28.0),
+              ("~2 m ERP PSNR >= 25 dB", summary["d2"]["erp_psnr"], 25.0),
+              ("~2 m coverage >= 0.995", summary["d2"]["erp_coverage"], 0.995),
+              ("every sector reached >= 70 %", min(fr) if fr else None, 0.7)]
+    print("  issue 28 targets (on the mean): " + "; ".join(
+        f"{name}: {'n/a' if v is None else ('met' if v >= bound else 'NOT met')}" for name, v, bound in checks))
     return summary
 
 
