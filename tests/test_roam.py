@@ -146,3 +146,14 @@ def test_sector_reach_matches_the_navmesh_boundary(scene):
     r = trajectory_reach(nav, poses)
     assert r["reach_max_m"] == pytest.approx(0.6 * reach[0]) and r["sector_reached_m"][0] == pytest.approx(0.6 * reach[0], abs=1e-3)
     assert r["sector_reach_fraction_min"] == 0.0 or sum(x > 0 for x in r["sector_reachable_m"]) == 1
+
+
+def test_buckets_beyond_the_floor_say_so():
+    from panoworld.navmesh.navmesh import NavMesh
+
+    square = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]])
+    nav = NavMesh(square, np.array([[0, 1, 2], [0, 2, 3]]), np.array([[-1, 1, -1], [-1, -1, 0]]), [square], 1.5)
+    roam = sample_roam_poses(nav, 2, seed=0)
+    assert roam.farthest_m == pytest.approx(math.sqrt(0.5))
+    assert set(roam.missing) == {"d1", "d2"} and "farthest point is 0.71 m" in roam.missing["d2"]
+    assert len(roam.poses["d0.5"]) == 2 and roam.ranges["far"][0] == pytest.approx(0.85 * math.sqrt(0.5))
