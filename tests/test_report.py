@@ -36,10 +36,8 @@ def pipeline_scene(synth_scene, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def scene_report(pipeline_scene):
-    from panoworld.evaluate import evaluate
-
-    from panoworld.evaluate import EvalParams
-    from panoworld.report.roam import ROAM_IMAGES
+    from panoworld.evaluate import EvalParams, evaluate
+    from panoworld.report.scene import ROAM_IMAGES
 
     # cheap stages (the page shows any saved eval) and the roam protocol at small sizes, with its pictures
     rep, errors = evaluate(pipeline_scene, EvalParams(roam_height=32, roam_pinhole=16),

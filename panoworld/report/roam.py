@@ -6,10 +6,8 @@ import json
 
 from panoworld.report import encode as enc
 from panoworld.report.page import Section, figure, fmt, missing, table
-from panoworld.report.scene import ReportParams, SceneData, find_eval_json
+from panoworld.report.scene import ROAM_IMAGES, ReportParams, SceneData, find_eval_json
 
-ROAM_IMAGES = "report/roam"
-"""Where `report --eval` has the roam protocol save its first view per bucket (under artifacts/)."""
 LABELS = {"d0": "capture point", "d0.5": "~0.5 m", "d1": "~1 m", "d2": "~2 m", "far": "farthest"}
 KINDS = (("erp", "Gaussians, ERP"), ("erp_ref", "reference, ERP"), ("pinhole", "Gaussians, pinhole"),
          ("pinhole_ref", "reference, pinhole"))
