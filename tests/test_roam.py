@@ -75,7 +75,6 @@ def test_roam_poses_are_seeded_upright_on_the_navmesh_and_in_their_buckets(scene
     assert not np.array_equal(c.poses["d0.5"], a.poses["d0.5"]) if "d0.5" in a.poses else True
 
 
-@pytest.mark.slow
 def test_roam_metrics_per_bucket_on_a_ci_tiny_scene(scene):
     report, errors = evaluate(scene, PARAMS, stages=["roam"])
     assert errors == []
@@ -99,7 +98,6 @@ def test_roam_metrics_per_bucket_on_a_ci_tiny_scene(scene):
     assert table.rows[0][1][0].mean == pytest.approx(roam["d0_erp_psnr"])
 
 
-@pytest.mark.slow
 def test_scene_without_ground_truth_gets_coverage_only(scene, tmp_path):
     real = tmp_path / "real"
     shutil.copytree(scene, real, ignore=shutil.ignore_patterns("gt"))
