@@ -312,9 +312,10 @@ def test_scene_without_gt_or_artifacts_exits_2(tmp_path, capsys):
 def test_json_structure_and_unavailable_never_zero(report, scene, capsys):
     assert set(report) >= {"scene", "stages", "targets"}
     assert list(report["stages"]) == ["depth", "mesh", "navmesh", "trajectory", "conditions", "video", "loop",
-                                      "poses", "gaussians"]
+                                      "poses", "gaussians", "roam"]
     assert report["reference"] == "synthetic"
     assert is_unavailable(report["stages"]["navmesh"]) and is_unavailable(report["stages"]["gaussians"])
+    assert is_unavailable(report["stages"]["roam"]) and "gaussians" in report["stages"]["roam"]["reason"]
     for v in ("lpips", "fid", "fvd"):
         assert is_unavailable(report["stages"]["video"][v]) and report["stages"]["video"][v]["reason"]
     for value in _metric_values(report["stages"]):
@@ -354,7 +355,7 @@ def _save_official_layout(m: LPIPS, tmp_path: Path) -> tuple[Path, Path]:
     state = {f"features.{k}": v for k, v in m.features.state_dict().items()}
     state["classifier.1.weight"] = torch.zeros(4, 4)  # torchvision files carry the classifier too
     torch.save(state, bb)
-    torch.save({f"lin{k}.model.1.weight": l.weight.data.clone() for k, l in enumerate(m.lins)}, lin)
+    torch.save({f"lin{k}.model.1.weight": lin.weight.data.clone() for k, lin in enumerate(m.lins)}, lin)
     return bb, lin
 
 
