@@ -258,7 +258,7 @@ def test_stage_writes_a_valid_artifact(tmp_path, room):
     assert len(info["eval"]) == 2 and info["context_psnr"] > 25
     assert info["context_psnr_covered"] >= info["context_psnr"] - 0.5  # the room is covered: about the same score
     assert info["fusion_height"] == 64
-    capped = execute_stage(spec, {"video": video, "poses": poses}, Params(voxel_size=0.05, eval_views=0, max_height=32),
+    capped = execute_stage(spec, {"video": video, "poses": poses}, Params(voxel_size=0.05, eval_views=0, max_height=32, source_height=32),
                            tmp_path / "capped", input_digests={"video": "0" * 64, "poses": "1" * 64})["info"]
     assert capped["fusion_height"] == 32 and capped["num_observations"] < 0.3 * info["num_observations"]
 
