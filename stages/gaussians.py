@@ -47,7 +47,7 @@ class Params(FusionParams):
     source_pixels: bool = True
     """voxel-fusion: the source view (video frame 0) becomes one Gaussian per pixel (its full detail at the capture
     point); the other frames are voxel-fused only where they see what the source does not."""
-    source_height: int = 512
+    source_height: int = 256
     """ERP height of the source view's per-pixel Gaussians (0 = that of the other frames); rows near the poles keep
     every k-th pixel so kept pixels are about square on the sphere."""
     source_tol: float = 0.03
