@@ -88,6 +88,16 @@ def erp_dirs(height: int, width: int, dtype=np.float32) -> np.ndarray:
     return dir_from_lonlat(lon, lat).astype(dtype)
 
 
+def pinhole_dirs(fx: float, fy: float, cx: float, cy: float, height: int, width: int, dtype=np.float32) -> np.ndarray:
+    """Unit ray directions (H, W, 3) of every pixel centre (u + 0.5, v + 0.5) of an OpenCV pinhole camera, camera frame."""
+    if height <= 0 or width <= 0:
+        raise ValueError(f"pinhole image {width}x{height} (WxH) must be positive")
+    x = (np.arange(width, dtype=np.float64) + 0.5 - cx) / fx
+    y = (np.arange(height, dtype=np.float64) + 0.5 - cy) / fy
+    d = np.stack(np.broadcast_arrays(x[None, :], y[:, None], np.ones((1, 1))), -1)
+    return (d / np.linalg.norm(d, axis=-1, keepdims=True)).astype(dtype)
+
+
 def erp_pixel_solid_angle(height: int, width: int) -> np.ndarray:
     """Solid angle of each pixel row, shape (H, 1) (for WS-PSNR and area-weighted statistics)."""
     lat_top = (0.5 - np.arange(height) / height) * np.pi

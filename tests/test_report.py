@@ -13,7 +13,7 @@ from panoworld.report.cli import build_scene_report, main
 from panoworld.report.scene import ReportParams
 from panoworld.report.topdown import PlanView
 
-SCENE_SECTIONS = ["stages", "depth", "plan", "frames", "poses", "gaussians", "eval"]
+SCENE_SECTIONS = ["stages", "depth", "plan", "frames", "poses", "gaussians", "eval", "roam"]
 
 
 _BUILT: dict[str, object] = {}
@@ -36,9 +36,12 @@ def pipeline_scene(synth_scene, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def scene_report(pipeline_scene):
-    from panoworld.evaluate import evaluate
+    from panoworld.evaluate import EvalParams, evaluate
+    from panoworld.report.scene import ROAM_IMAGES
 
-    rep, errors = evaluate(pipeline_scene, stages=["trajectory", "poses"])  # cheap stages; the page shows any saved eval
+    # cheap stages (the page shows any saved eval) and the roam protocol at small sizes, with its pictures
+    rep, errors = evaluate(pipeline_scene, EvalParams(roam_height=32, roam_pinhole=16),
+                           stages=["trajectory", "poses", "roam"], roam_images=pipeline_scene / "artifacts" / ROAM_IMAGES)
     assert not errors
     (pipeline_scene / "artifacts" / "report").mkdir(parents=True, exist_ok=True)
     (pipeline_scene / "artifacts" / "report" / "eval.json").write_text(json.dumps(rep))
@@ -58,6 +61,7 @@ def test_scene_report_has_every_section_and_is_self_contained(scene_report, pipe
     text = out.read_text()
     assert _sections(text) == {s: "present" for s in SCENE_SECTIONS}
     assert "could not draw" not in text
+    assert "capture point: Gaussians, ERP" in text and "capture point: reference, pinhole" in text
     # nothing is fetched: every image is a data: URI and no script or style comes from elsewhere
     assert re.findall(r'<img[^>]+src="(?!data:image/)', text) == []
     assert not re.search(r'<(script|link)[^>]+(src|href)="(?!data:)', text)
@@ -120,7 +124,7 @@ def test_partial_scene_shows_missing_stages(synth_scene, tmp_path):
     text = out.read_text()
     sections = _sections(text)
     assert sections["depth"] == "present" and sections["stages"] == "present"
-    assert all(sections[s] == "missing" for s in ["plan", "frames", "poses", "gaussians", "eval"])
+    assert all(sections[s] == "missing" for s in ["plan", "frames", "poses", "gaussians", "eval", "roam"])
     assert "could not draw" not in text and "runner.py report SCENE --eval" in text
     assert text.count('<span class="na">missing</span>') == 7
 

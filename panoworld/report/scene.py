@@ -18,6 +18,8 @@ from panoworld.report.page import Page, Section, figure, fmt, missing, slider, s
 from panoworld.report.topdown import PlanView, clearance_colors, mesh_from_above
 
 ARTIFACTS = "artifacts"
+ROAM_IMAGES = "report/roam"
+"""Where `report --eval` has the roam protocol save its first view per bucket (under artifacts/)."""
 EVAL_JSON_CANDIDATES = ("artifacts/report/eval.json", "artifacts/eval.json", "eval.json")
 
 
@@ -496,8 +498,7 @@ def _stage_names() -> list[str]:
 def run_eval(scene_root: Path) -> Path:
     """Run `runner.py eval` on the scene and save its JSON as artifacts/report/eval.json; return the path."""
     from panoworld.evaluate import evaluate
-
-    report, _ = evaluate(scene_root, progress=True)
+    report, _ = evaluate(scene_root, progress=True, roam_images=Path(scene_root) / ARTIFACTS / ROAM_IMAGES)
     out = Path(scene_root) / ARTIFACTS / "report" / "eval.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=2) + "\n")
