@@ -46,3 +46,12 @@ class Alignment(enum.StrEnum):
     """Rigid fit to the planned trajectory, keeping the estimator's own (metric) scale."""
     NONE = "none"
     """Keep the estimator's frame (PanoVGGT: camera 0 at the origin, its own metric scale)."""
+
+
+class RigMode(enum.StrEnum):
+    """What the depth stage does with a capture rig (tripod, mount, nadir mask) at the panorama's nadir."""
+
+    AUTO = "auto"
+    """Detect it (no weights: panoworld.rig) and remove it: floor inpainted, depth from the floor plane."""
+    KEEP = "keep"
+    """Leave the panorama and depth as given (a user rig_mask file is ignored too)."""

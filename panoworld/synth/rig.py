@@ -35,7 +35,7 @@ def _segment(a: np.ndarray, b: np.ndarray, radius: float) -> trimesh.Trimesh:
     return trimesh.creation.cylinder(radius=radius, segment=np.stack([a, b]), sections=10)
 
 
-def rig_meshes(world_from_cam: np.ndarray, camera_height: float, *, yaw: float = 0.3) -> list[trimesh.Trimesh]:
+def rig_meshes(world_from_cam: np.ndarray, camera_height: float, *, yaw: float = 0.0) -> list[trimesh.Trimesh]:
     """Tripod meshes (world frame, up = -Y, floor at y = 0) under a camera at world_from_cam: a mount box 0.22 m
     below the lens, a column down to 0.6 m below it, and three legs from there to feet LEG_FOOT_RADIUS_M out."""
     c = np.asarray(world_from_cam, np.float64)[:3, 3]
@@ -55,9 +55,27 @@ def rig_meshes(world_from_cam: np.ndarray, camera_height: float, *, yaw: float =
     return parts
 
 
+def free_yaw(scene, n: int = 24) -> float:
+    """The tripod yaw (radians) whose three legs stay farthest from the scene geometry (legs never cut walls)."""
+    T = scene.world_from_canonical
+    h = scene.tracks[0].camera_height
+    hub = T[:3, 3] + np.array([0.0, 0.6, 0.0])
+    best, best_margin = 0.0, -np.inf
+    for yaw in np.arange(n) * 2.0 * np.pi / (3 * n):
+        feet = [T[:3, 3] + np.array([LEG_FOOT_RADIUS_M * np.sin(yaw + 2 * np.pi * k / 3), h - 0.01,
+                                     LEG_FOOT_RADIUS_M * np.cos(yaw + 2 * np.pi * k / 3)]) for k in range(3)]
+        d = np.array([f - hub for f in feet])
+        length = np.linalg.norm(d, axis=1)
+        hit = scene.raycaster.cast(np.repeat(hub[None], 3, 0), d / length[:, None])
+        margin = float(np.min(np.where(np.isfinite(hit.distance), hit.distance, 1e9) - length))
+        if margin > best_margin:
+            best, best_margin = float(yaw), margin
+    return best
+
+
 def with_rig(scene):
     """A copy of a SynthScene with the tripod under its canonical camera (node 'rig.metal', material 'rig_0')."""
-    meshes = rig_meshes(scene.world_from_canonical, scene.tracks[0].camera_height)
+    meshes = rig_meshes(scene.world_from_canonical, scene.tracks[0].camera_height, yaw=free_yaw(scene))
     mesh = trimesh.util.concatenate(meshes)
     materials = dict(scene.materials)
     materials["rig_0"] = Material(kind=MaterialKind.PAINT, color=(0.035, 0.035, 0.04), color2=(0.035, 0.035, 0.04),
