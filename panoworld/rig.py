@@ -20,7 +20,7 @@ CAP_DEG = 30.0
 """Largest rig: candidates must lie within this angle of the nadir (a tripod's feet reach 15-25 degrees)."""
 RING_DEG = (30.0, 42.0)
 """The floor ring whose colours define 'floor' for the cap inside it."""
-MOUNT_MAX_DEG = 12.0
+MOUNT_MAX_DEG = 20.0
 """A solid blob at the nadir (a camera mount without visible legs) is a rig only up to this angle."""
 TABLE_MIN_GAP_M = 0.3
 """A horizontal surface at least this far below the camera (and above the floor) is a seen object, not the mount."""
@@ -43,6 +43,8 @@ class RigDetection:
     """Shape measurements behind the decision (cap_deg, azimuth occupancy, arms, darkness, ...)."""
     shadow_gain: np.ndarray | None = None
     """(size, size) light factor on the downward face that divides the shadow out (1 outside it)."""
+    source: np.ndarray | None = None
+    """(size, size) face pixels the inpainting may copy floor texture from (floor-coloured, on the floor)."""
 
 
 def nadir_view(height: int) -> PerspectiveView:
@@ -87,6 +89,14 @@ def detect_rig(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndarr
     if stats["ring_floor_share"] < 0.3:
         return RigDetection(False, f"the floor ring {RING_DEG[0]:.0f}-{RING_DEG[1]:.0f} deg from the nadir is mostly "
                             "not floor: nothing to compare the nadir with", stats=stats)
+    source = floor_coloured(cv2.cvtColor(cv2.medianBlur(face, 3), cv2.COLOR_RGB2LAB), ring_floor) & on_floor
+    black = _black_mask(face, theta, view)
+    if black is not None:
+        extent = float(np.percentile(theta[black], 98))
+        stats.update(cap_deg=extent, face_pixels=int(black.sum()))
+        mask = face_to_erp_mask(_dilate(black, view), view, H, W)
+        return RigDetection(True, f"a uniform black patch centred on the nadir, {extent:.1f} deg (a nadir mask)",
+                            "mask", mask, np.zeros_like(mask), stats, source=source)
     comp = _nadir_component(face, theta, ring_floor, view)
     if comp is None:
         return RigDetection(False, "nothing at the nadir differs in colour from the floor ring around it", stats=stats)
@@ -128,24 +138,62 @@ def detect_rig(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndarr
     elif occ_in >= 0.9 and off < 0.35 and extent >= max(2.0, 3 * px_deg):
         if extent <= MOUNT_MAX_DEG:
             kind, reason = "mount", f"a solid blob centred on the nadir, {extent:.1f} deg, unlike the floor (camera mount)"
-        elif stats["darkness"] > 0.7 and stats["lum_std"] < 6.0:
-            kind, reason = "mask", f"a uniform black patch centred on the nadir, {extent:.1f} deg (a nadir mask)"
     if kind is None:
-        return RigDetection(False, f"a {extent:.1f} deg region at the nadir that is neither tripod legs, a small centred "
-                            f"mount nor a black nadir mask (occupancy {occ_in:.2f}/{occ_out:.2f}, {arms_out} arms, "
+        return RigDetection(False, f"a {extent:.1f} deg region at the nadir that is neither tripod legs nor a centred "
+                            f"mount (occupancy {occ_in:.2f}/{occ_out:.2f}, {arms_out} arms, "
                             f"offset {off:.2f}): a seen object, kept", stats=stats)
     obj = comp.astype(np.uint8)
     if kind == "legs":  # the hub between the legs' roots, floor-coloured parts of the mount included
         hub = np.argwhere(comp & (theta < 0.4 * extent))[:, ::-1].astype(np.int32)
         if len(hub) >= 3:
             cv2.fillConvexPoly(obj, cv2.convexHull(hub), 1)
-    obj = cv2.dilate(obj, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))) > 0
+    obj = _dilate(obj, view)
     stats["shadow_deg"] = sh_deg
     mask = face_to_erp_mask(obj, view, H, W)
     sh = face_to_erp_mask(gain > 1.0, view, H, W) & ~mask
     if sh.any():
         reason += f" with its shadow ({sh_deg:.0f} deg, up to {1 - 1 / gain.max():.0%} darker)"
-    return RigDetection(True, reason, kind, mask, sh, stats, shadow_gain=gain)
+    return RigDetection(True, reason, kind, mask, sh, stats, shadow_gain=gain, source=source)
+
+
+def _dilate(mask: np.ndarray, view: PerspectiveView) -> np.ndarray:
+    """Grow a face mask over the rig's anti-aliased rim and highlights."""
+    k = 2 * max(2, view.size // 100) + 1
+    return cv2.dilate(mask.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
+
+
+def _black_mask(face: np.ndarray, theta: np.ndarray, view: PerspectiveView) -> np.ndarray | None:
+    """The near-black (every channel <= 12) region holding the nadir when it is a centred, convex-ish patch of 3 to
+    CAP_DEG degrees (a capture system's nadir mask: a black disc or hexagon), else None."""
+    black = (face.max(-1) <= 12).astype(np.uint8)
+    _, labels = cv2.connectedComponents(black, connectivity=4)
+    c = view.size // 2
+    lab = labels[c, c]
+    if lab == 0:
+        return None
+    comp = labels == lab
+    t = theta[comp]
+    extent = float(np.percentile(t, 98))
+    if not 3.0 <= extent < CAP_DEG - 1.0:
+        return None
+    yy, xx = np.nonzero(comp)
+    r = np.hypot(xx + 0.5 - 0.5 * view.size, yy + 0.5 - 0.5 * view.size)
+    off = float(np.hypot(xx.mean() + 0.5 - 0.5 * view.size, yy.mean() + 0.5 - 0.5 * view.size)) / (r.mean() + 1e-9)
+    hull = cv2.convexHull(np.stack([xx, yy], 1).astype(np.int32))
+    solidity = comp.sum() / max(cv2.contourArea(hull), 1.0)
+    return comp if off < 0.2 and solidity > 0.9 else None
+
+
+def floor_coloured(lab: np.ndarray, ring_floor: np.ndarray) -> np.ndarray:
+    """Pixels (size, size) whose Lab colour the floor ring shows: a smoothed 16x32x32 histogram of the ring's
+    colours, thresholded so that 98 % of the ring's own pixels pass."""
+    bins = (16, 32, 32)
+    idx = tuple((lab[..., k].astype(np.int32) * bins[k]) >> 8 for k in range(3))
+    hist = np.zeros(bins)
+    np.add.at(hist, tuple(i[ring_floor] for i in idx), 1.0)
+    hist = ndimage.gaussian_filter(hist, 1.0, mode="constant")
+    dens = hist[idx]
+    return dens >= np.percentile(dens[ring_floor], 2.0)
 
 
 def _nadir_component(face: np.ndarray, theta: np.ndarray, ring_floor: np.ndarray,
@@ -153,19 +201,12 @@ def _nadir_component(face: np.ndarray, theta: np.ndarray, ring_floor: np.ndarray
     """Face pixels within CAP_DEG, connected to the nadir, whose colour the floor ring (almost) never shows or that
     are far darker than the floor around them; None when the nadir itself looks like floor."""
     lab = cv2.cvtColor(cv2.medianBlur(face, 3), cv2.COLOR_RGB2LAB)
-    # A smoothed Lab histogram of the ring; the threshold keeps 98 % of the ring's own pixels floor-like.
-    bins = (16, 32, 32)
-    idx = tuple((lab[..., k].astype(np.int32) * bins[k]) >> 8 for k in range(3))
-    hist = np.zeros(bins)
-    np.add.at(hist, tuple(i[ring_floor] for i in idx), 1.0)
-    hist = ndimage.gaussian_filter(hist, 1.0, mode="constant")
-    dens = hist[idx]
-    tau = np.percentile(dens[ring_floor], 2.0)
+    floor_like = floor_coloured(lab, ring_floor)
     # Much darker than the floor around it: thin dark legs on a floor whose grout lines are dark too.
     win = 2 * max(5, view.size // 24) + 1
     local = cv2.medianBlur(lab[..., 0], min(win, 255)).astype(np.float32)
     floor_l = float(np.median(lab[..., 0][ring_floor]))
-    anom = (theta < CAP_DEG) & ((dens < tau) | (lab[..., 0] < 0.55 * np.maximum(local, floor_l)))
+    anom = (theta < CAP_DEG) & (~floor_like | (lab[..., 0] < 0.55 * np.maximum(local, floor_l)))
     anom = cv2.morphologyEx(anom.astype(np.uint8), cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3)))
     _, labels = cv2.connectedComponents(anom, connectivity=8)
     seed = theta < max(2.0, 1.5 * np.rad2deg(1.0 / view.focal))
@@ -291,7 +332,8 @@ def remove_rig(rgb: np.ndarray, det: RigDetection) -> np.ndarray:
     lin = (face / 255.0) ** 2.2
     if det.shadow_gain is not None:
         lin = lin * det.shadow_gain[..., None]
-    clean = _inpaint(np.clip(lin, 0, 1) ** (1 / 2.2) * 255.0, obj, theta < RING_DEG[1])
+    source = det.source if det.source is not None and det.source.shape == obj.shape else np.ones_like(obj)
+    clean = _inpaint(np.clip(lin, 0, 1) ** (1 / 2.2) * 255.0, obj, source)
     rows = _cap_rows(H, view)
     px, py, cos = view.project(erp_dirs(H, W, np.float64)[rows])
     mx = np.nan_to_num(px, nan=-10).astype(np.float32)
@@ -320,7 +362,8 @@ def _inpaint(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, n_secto
     sector = ((np.arctan2(*np.meshgrid(c, c)[::-1]) + np.pi) / (2 * np.pi) * n_sectors).astype(int) % n_sectors
     sig = max(1.5, S / 100)
     known = (~hole).astype(np.float32)
-    wsum = cv2.GaussianBlur(known, (0, 0), 3 * sig)[..., None]
+    scales = [3 * sig, 12 * sig]  # the wider one reaches the middle of a large hole
+    wsums = [cv2.GaussianBlur(known, (0, 0), g)[..., None] for g in scales]
     for k in range(n_sectors):  # one patch per sector of the hole: each leg gets floor that fits its own border
         part = hole & (sector == k)
         d = _best_offset(face, part, floor_area & ~hole)
@@ -328,8 +371,11 @@ def _inpaint(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, n_secto
             continue
         src = np.roll(face, (-d[0], -d[1]), axis=(0, 1))
         # The shifted patch, corrected by its smooth mismatch on the known pixels around the hole.
-        resid = cv2.GaussianBlur((face - src) * known[..., None], (0, 0), 3 * sig)
-        fill = np.where(wsum > 0.05, src + resid / np.maximum(wsum, 1e-3), out)
+        diff = (face - src) * known[..., None]
+        fill = src + float(np.mean((face - src)[~hole & floor_area])) if (~hole & floor_area).any() else out
+        for g, wsum in zip(scales[::-1], wsums[::-1]):
+            resid = cv2.GaussianBlur(diff, (0, 0), g)
+            fill = np.where(wsum > 0.02, src + resid / np.maximum(wsum, 1e-3), fill)
         out[part] = fill[part]
     return out
 
@@ -373,3 +419,43 @@ def area_stats(mask: np.ndarray) -> dict:
     rows = np.nonzero(mask.any(1))[0]
     cap = float(180.0 - (rows.min() + 0.5) / H * 180.0) if len(rows) else 0.0
     return {"sphere_fraction": frac, "cap_deg": cap, "pixels": int(mask.sum())}
+
+
+# ---------------------------------------------------------------- the depth stage's step
+
+
+def nadir_crop(rgb: np.ndarray, size: int = 192, fov_deg: float = 70.0) -> np.ndarray:
+    """A small downward view (size, size, 3) of an ERP panorama: the nadir before/after picture of the report."""
+    return render_view(rgb, PerspectiveView(nadir_view(rgb.shape[0]).cam_from_view, fov_deg, size))
+
+
+def rig_step(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, floor_m: float | None, *,
+             user_mask: Path | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, RigDetection]:
+    """Detect (or take the user's mask) and remove the rig: (rgb, depth, valid, info, detection). Inside the rig
+    mask depth comes from the floor plane floor_m below the camera (invalid when no floor was found); outside the
+    masks nothing changes (no rig: the very same arrays)."""
+    H, W = rgb.shape[:2]
+    if user_mask is not None:
+        m = read_user_mask(user_mask, H, W)
+        det = RigDetection(bool(m.any()), f"user mask {Path(user_mask).name}", "user", m, np.zeros_like(m))
+    else:
+        det = detect_rig(rgb, depth, valid, floor_m)
+    info = {"found": det.found, "reason": det.reason, "kind": det.kind,
+            "stats": {k: (round(v, 4) if isinstance(v, float) else v) for k, v in det.stats.items()}}
+    if not det.found:
+        return rgb, depth, valid, info, det
+    rgb = remove_rig(rgb, det)
+    info["mask"] = area_stats(det.mask)
+    info["shadow"] = area_stats(det.shadow)
+    depth, valid = depth.copy(), valid.copy()
+    if floor_m:
+        plane = floor_depth(H, W, floor_m)
+        put = det.mask & (plane > 0)
+        depth[put], valid[put] = plane[put], True
+        valid[det.mask & ~put] = False
+        info["depth"] = f"floor plane {floor_m:.3f} m below the camera"
+    else:
+        valid[det.mask] = False
+        info["depth"] = "no floor found: depth under the rig made invalid"
+    depth = np.where(valid, depth, 0.0).astype(np.float32)
+    return rgb, depth, valid, info, det
