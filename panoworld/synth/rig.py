@@ -114,3 +114,33 @@ def render_with_rig(scene, kind: RigKind | str, height: int, *, supersample: int
         rgb = np.clip(np.rint(255.0 * lin ** (1 / 2.2)), 0, 255).astype(np.uint8)
     mask = (np.abs(rgb.astype(np.int16) - clean_rgb).max(-1) > 8) | (depth < clean_depth - 1e-3)
     return rgb, depth, mask
+
+
+class FloorObject(enum.StrEnum):
+    """A seen object under the camera that rig removal must keep (tests and bench/bench_rig.py)."""
+
+    RUG = "rug"
+    """A dark 1.6 x 1.1 m rug, 8 mm thick, lying on the floor under the camera, off-centre."""
+    STOOL = "stool"
+    """A dark round stool top 0.5 m across, 0.45 m above the floor, right under the camera."""
+
+
+def with_floor_object(scene, kind: FloorObject | str):
+    """A copy of a SynthScene with a rug or a stool top under its canonical camera (node 'seen.<kind>')."""
+    kind = FloorObject(kind)
+    c = scene.world_from_canonical[:3, 3]
+    floor_y = c[1] + scene.tracks[0].camera_height
+    if kind == FloorObject.RUG:
+        mesh = trimesh.creation.box(extents=(1.6, 0.008, 1.1))
+        mesh.apply_translation([c[0] + 0.25, floor_y - 0.004, c[2] - 0.15])
+        mat = Material(kind=MaterialKind.FABRIC, color=(0.05, 0.03, 0.06), color2=(0.12, 0.05, 0.04), scale=0.08, seed=5)
+    else:
+        mesh = trimesh.creation.cylinder(radius=0.25, height=0.03, sections=32)
+        mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+        mesh.apply_translation([c[0], floor_y - 0.45, c[2]])
+        mat = Material(kind=MaterialKind.PAINT, color=(0.04, 0.04, 0.05), color2=(0.04, 0.04, 0.05), scale=0.05, seed=6)
+    materials = dict(scene.materials)
+    materials[f"seen_{kind}"] = mat
+    node = replace(scene.nodes[0], name=f"seen.{kind}", object="seen", kind=str(kind), room=0, material=f"seen_{kind}",
+                   vertices=np.asarray(mesh.vertices, np.float32), faces=np.asarray(mesh.faces, np.int64))
+    return replace(scene, nodes=[*scene.nodes, node], materials=materials)
