@@ -459,3 +459,18 @@ def rig_step(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, floor_m: flo
         info["depth"] = "no floor found: depth under the rig made invalid"
     depth = np.where(valid, depth, 0.0).astype(np.float32)
     return rgb, depth, valid, info, det
+
+
+def nadir_luminance_gap(rgb: np.ndarray, cap_deg: float = 15.0) -> float:
+    """Relative difference of the mean luminance (solid-angle weighted) of the cap within cap_deg of the nadir and
+    of the floor ring RING_DEG around it: (cap - ring) / ring, e.g. -0.5 for a cap half as bright (a dark mount)."""
+    H, W = rgb.shape[:2]
+    theta = (np.arange(H) + 0.5) / H * 180.0  # degrees from the zenith
+    from_nadir = 180.0 - theta
+    lum = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float64).mean(1)
+    w = erp_pixel_solid_angle(H, W)[:, 0]
+    cap = from_nadir < cap_deg
+    ring = (from_nadir >= RING_DEG[0]) & (from_nadir < RING_DEG[1])
+    lc = float((lum * w)[cap].sum() / w[cap].sum())
+    lr = float((lum * w)[ring].sum() / w[ring].sum())
+    return (lc - lr) / max(lr, 1e-6)
