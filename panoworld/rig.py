@@ -22,6 +22,8 @@ RING_DEG = (30.0, 42.0)
 """The floor ring whose colours define 'floor' for the cap inside it."""
 MOUNT_MAX_DEG = 20.0
 """A solid blob at the nadir (a camera mount without visible legs) is a rig only up to this angle."""
+HUB_DEG = 6.0
+"""Anomalous regions reaching this close to the nadir are candidates (the mount and the roots of the legs)."""
 TABLE_MIN_GAP_M = 0.3
 """A horizontal surface at least this far below the camera (and above the floor) is a seen object, not the mount."""
 
@@ -133,7 +135,7 @@ def detect_rig(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndarr
     off = float(np.hypot(xx.mean() + 0.5 - 0.5 * view.size, yy.mean() + 0.5 - 0.5 * view.size)) / r_mean
     stats["centroid_offset"] = off
     kind = reason = None
-    if 2 <= arms_out <= 6 and occ_out <= 0.5 and extent >= 6.0:
+    if 3 <= arms_out <= 6 and occ_out <= 0.5 and extent >= 6.0:
         kind, reason = "legs", f"{arms_out} thin arms from a hub at the nadir out to {extent:.1f} deg (tripod legs)"
     elif occ_in >= 0.9 and off < 0.35 and extent >= max(2.0, 3 * px_deg):
         if extent <= MOUNT_MAX_DEG:
@@ -209,7 +211,7 @@ def _nadir_component(face: np.ndarray, theta: np.ndarray, ring_floor: np.ndarray
     anom = (theta < CAP_DEG) & (~floor_like | (lab[..., 0] < 0.55 * np.maximum(local, floor_l)))
     anom = cv2.morphologyEx(anom.astype(np.uint8), cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3)))
     _, labels = cv2.connectedComponents(anom, connectivity=8)
-    seed = theta < max(2.0, 1.5 * np.rad2deg(1.0 / view.focal))
+    seed = theta < HUB_DEG  # the mount may be floor-coloured; its legs start within a few degrees of the nadir
     hit = np.unique(labels[seed & (labels > 0)])
     if len(hit) == 0:
         return None
