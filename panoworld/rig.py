@@ -22,6 +22,8 @@ RING_DEG = (30.0, 42.0)
 """The floor ring whose colours define 'floor' for the cap inside it."""
 MOUNT_MAX_DEG = 20.0
 """A solid blob at the nadir (a camera mount without visible legs) is a rig only up to this angle."""
+FLOOR_SIGMAS = (1.0, 0.6)
+"""Smoothing (histogram bins) of the floor ring's colours: broad first, narrow when the broad pass finds no rig."""
 HUB_DEG = 6.0
 """Anomalous regions reaching this close to the nadir are candidates (the mount and the roots of the legs)."""
 TABLE_MIN_GAP_M = 0.3
@@ -73,7 +75,18 @@ def detect_rig(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndarr
                floor_m: float | None = None) -> RigDetection:
     """Find a capture rig at the nadir of rgb (H, W, 3) uint8; depth/valid (H, W) and the camera's height above the
     floor floor_m (depth units) are optional evidence. Never takes a region reaching CAP_DEG, a solid blob larger
-    than MOUNT_MAX_DEG that is not a uniform black mask, or a horizontal surface above the floor (a table)."""
+    than MOUNT_MAX_DEG that is not a uniform black mask, or a horizontal surface above the floor (a table).
+
+    Floor colours are first taken broadly (a blotchy concrete floor stays floor); when that finds no rig, once more
+    narrowly (a grey mount on a brown floor in shade); the shape tests decide either way."""
+    first = _detect_once(rgb, depth, valid, floor_m, FLOOR_SIGMAS[0])
+    if first.found:
+        return first
+    second = _detect_once(rgb, depth, valid, floor_m, FLOOR_SIGMAS[1])
+    return second if second.found else first
+
+
+def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     H, W = rgb.shape[:2]
     view = nadir_view(H)
     face = render_view(rgb, view)
@@ -99,7 +112,7 @@ def detect_rig(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndarr
         mask = face_to_erp_mask(_dilate(black, view), view, H, W)
         return RigDetection(True, f"a uniform black patch centred on the nadir, {extent:.1f} deg (a nadir mask)",
                             "mask", mask, np.zeros_like(mask), stats, source=source)
-    comp = _nadir_component(face, theta, ring_floor, view)
+    comp = _nadir_component(face, theta, ring_floor, view, sigma)
     if comp is None:
         return RigDetection(False, "nothing at the nadir differs in colour from the floor ring around it", stats=stats)
     # A soft shadow around the rig is divided out first, so that only the rig itself is measured below.
@@ -107,7 +120,7 @@ def detect_rig(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndarr
     gain, sh_deg = _shadow(face, dil, ring_floor, theta, phi, on_floor)
     if sh_deg > 0:
         face = _apply_gain(face, gain)
-        comp = _nadir_component(face, theta, ring_floor, view)
+        comp = _nadir_component(face, theta, ring_floor, view, sigma)
         if comp is None:
             return RigDetection(False, f"a soft shadow at the nadir ({sh_deg:.0f} deg) but nothing under it that "
                                 "differs from the floor: kept", stats=stats)
@@ -186,29 +199,29 @@ def _black_mask(face: np.ndarray, theta: np.ndarray, view: PerspectiveView) -> n
     return comp if off < 0.2 and solidity > 0.9 else None
 
 
-def floor_coloured(lab: np.ndarray, ring_floor: np.ndarray) -> np.ndarray:
-    """Pixels (size, size) whose Lab colour the floor ring shows: a smoothed 16x32x32 histogram of the ring's
-    colours, thresholded so that 98 % of the ring's own pixels pass."""
+def floor_coloured(lab: np.ndarray, ring_floor: np.ndarray, sigma: float = 1.0) -> np.ndarray:
+    """Pixels (size, size) whose Lab colour the floor ring shows: a 16x32x32 histogram of the ring's colours
+    smoothed by sigma bins, thresholded so that 98 % of the ring's own pixels pass."""
     bins = (16, 32, 32)
     idx = tuple((lab[..., k].astype(np.int32) * bins[k]) >> 8 for k in range(3))
     hist = np.zeros(bins)
     np.add.at(hist, tuple(i[ring_floor] for i in idx), 1.0)
-    hist = ndimage.gaussian_filter(hist, 1.0, mode="constant")
+    hist = ndimage.gaussian_filter(hist, sigma, mode="constant")
     dens = hist[idx]
     return dens >= np.percentile(dens[ring_floor], 2.0)
 
 
-def _nadir_component(face: np.ndarray, theta: np.ndarray, ring_floor: np.ndarray,
-                     view: PerspectiveView) -> np.ndarray | None:
+def _nadir_component(face: np.ndarray, theta: np.ndarray, ring_floor: np.ndarray, view: PerspectiveView,
+                     sigma: float = 1.0) -> np.ndarray | None:
     """Face pixels within CAP_DEG, connected to the nadir, whose colour the floor ring (almost) never shows or that
     are far darker than the floor around them; None when the nadir itself looks like floor."""
     lab = cv2.cvtColor(cv2.medianBlur(face, 3), cv2.COLOR_RGB2LAB)
-    floor_like = floor_coloured(lab, ring_floor)
+    floor_like = floor_coloured(lab, ring_floor, sigma)
     # Much darker than the floor around it: thin dark legs on a floor whose grout lines are dark too.
     win = 2 * max(5, view.size // 24) + 1
     local = cv2.medianBlur(lab[..., 0], min(win, 255)).astype(np.float32)
     floor_l = float(np.median(lab[..., 0][ring_floor]))
-    anom = (theta < CAP_DEG) & (~floor_like | (lab[..., 0] < 0.55 * np.maximum(local, floor_l)))
+    anom = (theta < CAP_DEG) & (~floor_like | (lab[..., 0] < 0.6 * np.maximum(local, floor_l)))
     anom = cv2.morphologyEx(anom.astype(np.uint8), cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3)))
     _, labels = cv2.connectedComponents(anom, connectivity=8)
     seed = theta < HUB_DEG  # the mount may be floor-coloured; its legs start within a few degrees of the nadir
