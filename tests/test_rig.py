@@ -152,3 +152,12 @@ def test_pole_completion_recovers_floor_and_ceiling(scene):
     rel = np.abs(out[filled] - truth[filled]) / truth[filled]
     assert np.median(rel) < 0.02
     assert np.array_equal(out[valid], depth[valid])
+
+
+def test_report_shows_the_nadir_before_and_after(tmp_path, tripod_dir):
+    from panoworld.report.scene import ReportParams, SceneData, section_depth
+
+    run_depth(tmp_path, tripod_dir, name="scene/artifacts/depth")
+    section = section_depth(SceneData(tmp_path / "scene"), ReportParams())
+    assert "nadir before / after capture-rig removal (legs" in section.body
+    assert "tripod legs" in section.body
