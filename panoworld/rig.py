@@ -148,7 +148,8 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     off = float(np.hypot(xx.mean() + 0.5 - 0.5 * view.size, yy.mean() + 0.5 - 0.5 * view.size)) / r_mean
     stats["centroid_offset"] = off
     kind = reason = None
-    if 3 <= arms_out <= 6 and occ_out <= 0.5 and extent >= 6.0:
+    hub_seen = bool((t < HUB_DEG / 2).any())
+    if 3 <= arms_out <= 6 and occ_out <= 0.5 and extent >= 6.0 and hub_seen and off < 0.5 and stats["darkness"] > 0.2:
         kind, reason = "legs", f"{arms_out} thin arms from a hub at the nadir out to {extent:.1f} deg (tripod legs)"
     elif occ_in >= 0.9 and off < 0.35 and extent >= max(2.0, 3 * px_deg):
         if extent <= MOUNT_MAX_DEG:
