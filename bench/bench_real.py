@@ -26,9 +26,9 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from panoworld import pipeline as pl  # noqa: E402
+from panoworld import pipeline as pl
 
 REAL = REPO.parent / "shared" / "data" / "real" / "realsee3d_assets"
 ZIND = REPO.parent / "shared" / "data" / "real" / "zind_garage"

@@ -12,7 +12,6 @@ from panoworld.conventions import check_pose, dir_from_lonlat, erp_lonlat_from_p
 from panoworld.mesh import ErpMesh, grid_faces
 from panoworld.raycast import Raycaster
 
-
 # ---------------------------------------------------------------- seam-aware 2D helpers
 
 

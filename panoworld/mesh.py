@@ -158,7 +158,7 @@ def _grid_face_stretch(pts: np.ndarray, dirs: np.ndarray, d: np.ndarray, poles: 
 
     pts, dirs (h, w, 3), d (h, w); poles (2, 3) and their depths pole_d (2,) -> (2 * (h - 1) * w + 2 * w,)."""
     h, w = d.shape
-    nxt = lambda a: np.roll(a, -1, axis=1)  # noqa: E731  (column j + 1, seam wrapped)
+    nxt = lambda a: np.roll(a, -1, axis=1)  # (column j + 1, seam wrapped)
     # Chords between rays depend on the rows only (the grid is symmetric in longitude): take them from column 0.
     c0, c1 = dirs[:, 0], dirs[:, 1 % w]
     chord_h = np.linalg.norm(c0 - c1, axis=-1)[:, None]

@@ -18,7 +18,7 @@ import numpy as np
 from panoworld.align import align_trajectory, apply_sim3, check_trajectory, trajectory_metrics
 from panoworld.choices import Alignment, Matcher, RenderType
 from panoworld.conventions import cv_world_from_cam_from_gl, gl_world_from_cam, invert_pose
-from panoworld.stage import StageInputError
+from panoworld.errors import InputError
 from panoworld.video_io import DEPTH_SCALE, VIDEO_FILE, depth_to_mm, encode_png
 
 MIN_REGISTERED = 3
@@ -51,7 +51,7 @@ class VideoFrames:
 
 def read_video_frames(video_dir: Path) -> VideoFrames:
     """Read video.json of a video artifact without loading frames (COLMAP reads them from disk; see
-    panoworld.video_io.load_video for the in-memory reader); StageInputError naming the file on any problem."""
+    panoworld.video_io.load_video for the in-memory reader); InputError naming the file on any problem."""
     path = Path(video_dir) / VIDEO_FILE
     try:
         meta = json.loads(path.read_text())
@@ -62,16 +62,16 @@ def read_video_frames(video_dir: Path) -> VideoFrames:
         scale = float(meta.get("depth_scale", DEPTH_SCALE))
         poses = np.asarray(meta["poses"], np.float64) if meta.get("poses") is not None else None
     except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-        raise StageInputError(f"{path}: cannot read the video description ({e}); rerun the video stage") from None
+        raise InputError(f"{path}: cannot read the video description ({e}); rerun the video stage") from None
     if w != 2 * h:
-        raise StageInputError(f"{path}: frames are {w}x{h} (WxH) but ERP frames must be 2:1; rerun the video stage")
+        raise InputError(f"{path}: frames are {w}x{h} (WxH) but ERP frames must be 2:1; rerun the video stage")
     if not rgb:
-        raise StageInputError(f"{path}: lists no frames; rerun the video stage")
+        raise InputError(f"{path}: lists no frames; rerun the video stage")
     missing = [str(p) for p in rgb if not p.is_file()]
     if missing:
-        raise StageInputError(f"{path}: {len(missing)} frame files are missing (first {missing[0]}); rerun the video stage")
+        raise InputError(f"{path}: {len(missing)} frame files are missing (first {missing[0]}); rerun the video stage")
     if poses is not None and poses.shape != (len(rgb), 4, 4):
-        raise StageInputError(f"{path}: poses have shape {poses.shape} but expected ({len(rgb)}, 4, 4)")
+        raise InputError(f"{path}: poses have shape {poses.shape} but expected ({len(rgb)}, 4, 4)")
     return VideoFrames(Path(video_dir), h, w, rgb, depth, scale, poses)
 
 
@@ -82,7 +82,7 @@ def read_planned_trajectory(trajectory_dir: Path) -> np.ndarray:
     try:
         return load_trajectory(trajectory_dir)
     except TrajectoryFileError as e:
-        raise StageInputError(f"{e}; rerun the trajectory stage") from None
+        raise InputError(f"{e}; rerun the trajectory stage") from None
 
 
 def load_frames(paths: list[Path], height: int | None = None) -> np.ndarray:
@@ -91,7 +91,7 @@ def load_frames(paths: list[Path], height: int | None = None) -> np.ndarray:
     for p in paths:
         bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
         if bgr is None:
-            raise StageInputError(f"{p}: not a readable image; rerun the video stage")
+            raise InputError(f"{p}: not a readable image; rerun the video stage")
         if height is not None and bgr.shape[0] != height:
             bgr = cv2.resize(bgr, (2 * height, height), interpolation=cv2.INTER_AREA)
         out.append(bgr[..., ::-1])
@@ -102,7 +102,7 @@ def read_depth_png(path: Path, scale: float = DEPTH_SCALE) -> np.ndarray:
     """uint16 depth PNG -> float32 metres (H, W); 0 (no depth) becomes NaN."""
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
-        raise StageInputError(f"{path}: not a single-channel uint16 depth PNG")
+        raise InputError(f"{path}: not a single-channel uint16 depth PNG")
     d = raw.astype(np.float32) * np.float32(scale)
     d[raw == 0] = np.nan
     return d
@@ -270,7 +270,7 @@ def run_colmap(
     sfm = sfm or SfmOptions()
     names = [p.name for p in image_paths]
     if len(set(names)) != len(names):
-        raise StageInputError("video frames must have unique file names for COLMAP")
+        raise InputError("video frames must have unique file names for COLMAP")
     img_dir = work_dir / "images"
     img_dir.mkdir(parents=True, exist_ok=True)
     for p in image_paths:
@@ -308,16 +308,16 @@ def colmap_estimate(
     """COLMAP panorama SfM on the frames, Sim(3)-aligned to the planned trajectory (N, 4, 4).
 
     The largest model is kept; frames it lacks are unregistered: flagged, with the planned pose filled in.
-    Fewer than 3 registered frames (no alignment possible) -> StageInputError.
+    Fewer than 3 registered frames (no alignment possible) -> InputError.
     """
     import pycolmap
 
     planned = check_trajectory(planned, "planned")
     n = len(image_paths)
     if len(planned) != n:
-        raise StageInputError(f"the planned trajectory has {len(planned)} poses but the video has {n} frames")
+        raise InputError(f"the planned trajectory has {len(planned)} poses but the video has {n} frames")
     if alignment != Alignment.SIM3:
-        raise StageInputError(f"align={alignment}: COLMAP's frame and scale are arbitrary; use --align sim3")
+        raise InputError(f"align={alignment}: COLMAP's frame and scale are arbitrary; use --align sim3")
     t0 = time.perf_counter()
     timings: dict = {}
     with tempfile.TemporaryDirectory(prefix="panoworld-colmap-") as tmp:
@@ -334,14 +334,14 @@ def colmap_estimate(
                 raw[i] = invert_pose(np.vstack([img.cam_from_world().matrix(), [0, 0, 0, 1]]))
                 reg[i] = True
     if reg.sum() < MIN_REGISTERED:
-        raise StageInputError(
+        raise InputError(
             f"COLMAP registered {int(reg.sum())} of {n} frames (at least {MIN_REGISTERED} are needed to align them to "
             "the planned trajectory): the frames lack matchable texture or overlap; try --render-type "
             "perspective_overlapping or --matcher exhaustive, or use --backend planned"
         )
     moving = np.linalg.norm(planned[reg, :3, 3] - planned[reg, :3, 3].mean(0), axis=1).max()
     if moving < 1e-6:
-        raise StageInputError("the planned trajectory does not move, so COLMAP's scale cannot be fixed; use --backend planned")
+        raise InputError("the planned trajectory does not move, so COLMAP's scale cannot be fixed; use --backend planned")
     sim = _alignment(raw, planned, reg, alignment)
     poses = np.where(reg[:, None, None], _apply(sim, raw), planned)
     s, R, t = sim
@@ -380,10 +380,10 @@ def vggt_estimate(
     sim = None
     if alignment != Alignment.NONE:
         if planned is None:
-            raise StageInputError(f"align={alignment} needs the planned trajectory; give --trajectory or use --align none")
+            raise InputError(f"align={alignment} needs the planned trajectory; give --trajectory or use --align none")
         planned = check_trajectory(planned, "planned")
         if len(planned) != n:
-            raise StageInputError(f"the planned trajectory has {len(planned)} poses but the video has {n} frames")
+            raise InputError(f"the planned trajectory has {len(planned)} poses but the video has {n} frames")
         sim = _alignment(raw, planned, reg, alignment)
     scale = 1.0 if sim is None else sim[0]
     depth = pred["depth"] * np.float32(scale)
@@ -493,7 +493,7 @@ def write_poses_artifact(
         # The stage writes into a temporary sibling of the final directory, so paths relative to out_dir hold.
         dirs = {p.parent.resolve() for p in video.rgb}
         if len(dirs) != 1:
-            raise StageInputError("video frames must lie in one directory to be referenced by COLMAP and nerfstudio")
+            raise InputError("video frames must lie in one directory to be referenced by COLMAP and nerfstudio")
         image_dir = os.path.relpath(dirs.pop(), out_dir.resolve())
     frame_paths = [f"{image_dir}/{name}" for name in names]
 
@@ -592,5 +592,5 @@ def load_poses(poses_dir: Path) -> PosesArtifact:
         depth = [poses_dir / f["depth"] for f in frames] if all(f["depth"] for f in frames) else None
         return PosesArtifact(T, np.asarray(d["registered"], bool), rgb, depth, int(d["height"]), int(d["width"]), d["backend"])
     except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-        raise StageInputError(f"{path}: cannot read poses ({e}); rerun the poses stage") from None
+        raise InputError(f"{path}: cannot read poses ({e}); rerun the poses stage") from None
 

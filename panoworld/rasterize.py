@@ -9,7 +9,6 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from panoworld.conditions import WarpedFrame
 from panoworld.conventions import (
     check_erp_shape,
     check_pose,
@@ -17,6 +16,7 @@ from panoworld.conventions import (
     invert_pose,
 )
 from panoworld.raycast import Hits, Raycaster
+from panoworld.warped_frame import WarpedFrame
 
 _NO_HIT = np.uint64(0xFFFFFFFFFFFFFFFF)
 # z-buffer key = float32 bits of the ray distance << 32 | face id (positive floats order like their bits): the

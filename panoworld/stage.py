@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from panoworld.errors import InputError
 import argparse
 import ast
 import dataclasses
@@ -10,21 +9,30 @@ import enum
 import importlib
 import inspect
 import json
+import os
 import resource
 import shutil
+import signal
 import sys
 import textwrap
 import time
 import types
 import typing
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from panoworld import artifacts as art
+from panoworld import code_digest
+from panoworld.errors import InputError, PanoWorldError, PipelineError
 from panoworld.hub import resolve as hub
 
+LOCK_FILE = ".lock"
+"""The scene lock, SCENE/artifacts/.lock: held (flock) by the runner working on the scene, naming its pid."""
+LOCK_ENV = "PANOWORLD_SCENE_LOCK"
+RUNNER_PID_ENV = "PANOWORLD_RUNNER_PID"
+"""Set by a local runner for the stages it starts: the lock it holds and its pid (see check_runner)."""
 
 StageInputError = InputError
 """Bad input to a stage (missing/unreadable file, wrong size, ...): exit code 2, one-line message."""
@@ -50,6 +58,13 @@ class StageSpec:
     inputs: dict[str, Input]
     params_cls: type
     module: types.ModuleType
+
+
+def stage_code(spec: StageSpec) -> dict[str, str]:
+    """{file: digest} of the stage module and the project modules it imports (panoworld.code_digest)."""
+    mod = spec.module
+    name = getattr(getattr(mod, "__spec__", None), "name", None) or mod.__name__  # `python -m` runs it as __main__
+    return code_digest.code_digests(name, code_digest.stage_roots(mod.__file__, name))
 
 
 def load_stage(name_or_module: str | types.ModuleType) -> StageSpec:
@@ -170,11 +185,15 @@ def params_hash(params_dict: dict[str, Any]) -> str:
     return art.json_digest(params_dict)
 
 
-def cache_key(version: str, p_hash: str, input_digests: dict[str, str | None], weights: dict | None = None) -> str:
-    """Stage version + params hash + input digests (+ the content digest of each weights param that is set)."""
+def cache_key(version: str, p_hash: str, input_digests: dict[str, str | None], weights: dict | None = None,
+              code: str | None = None) -> str:
+    """Stage version + params hash + input digests (+ the content digest of each weights param that is set, + the
+    stage's code digest)."""
     doc = {"version": version, "params": p_hash, "inputs": input_digests}
     if weights:
         doc["weights"] = weights
+    if code is not None:
+        doc["code"] = code
     return art.json_digest(doc)
 
 
@@ -235,6 +254,35 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def die_with_runner() -> None:
+    """In a stage started by a local runner: be killed when the runner dies (Linux PR_SET_PDEATHSIG), and exit at once
+    if it is already gone."""
+    pid = os.environ.get(RUNNER_PID_ENV)
+    if not pid:
+        return
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1 = PR_SET_PDEATHSIG
+    if os.getppid() != int(pid):
+        raise PipelineError(f"the runner (pid {pid}) that started this stage is gone; not running")
+
+
+def check_runner() -> None:
+    """Refuse to commit unless the runner that started this stage is still its parent and still holds the scene lock
+    (a no-op for a stage run by hand or by a Ray worker)."""
+    lock, pid = os.environ.get(LOCK_ENV), os.environ.get(RUNNER_PID_ENV)
+    if not lock or not pid:
+        return
+    try:
+        holder = Path(lock).read_text()
+    except OSError:
+        holder = ""
+    if os.getppid() != int(pid) or not holder.startswith(f"pid {pid} "):
+        raise PipelineError(f"the runner (pid {pid}) that started this stage is gone or no longer holds {lock}; "
+                            "not committing")
+
+
 def execute_stage(
     spec: StageSpec, inputs: dict[str, Path | None], params: Any, out_dir: Path, *, input_digests: dict | None = None
 ) -> dict:
@@ -254,13 +302,14 @@ def execute_stage(
     pdict = params_to_dict(params)
     phash = params_hash(pdict)
     weights = resolve_stage_weights(params, previous_weights(out_dir), stage=spec.name)
-    key = cache_key(spec.version, phash, input_digests, hub.weights_key(weights))
+    code = stage_code(spec)
+    key = cache_key(spec.version, phash, input_digests, hub.weights_key(weights), code_digest.combined(code))
 
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     art.recover_dir(out_dir)
     tmp = art.tmp_dir_for(out_dir)
     tmp.mkdir(parents=True)
-    started = datetime.now(timezone.utc).isoformat()
+    started = datetime.now(UTC).isoformat()
     t0 = time.perf_counter()
     try:
         info = spec.module.run(full_inputs, hub.with_resolved_paths(params, weights), tmp) or {}
@@ -279,16 +328,18 @@ def execute_stage(
                 for name, d in input_digests.items()
             },
             **({"weights": weights} if weights else {}),
+            "code": {"digest": code_digest.combined(code), "files": code},
             "key": key,
             "files": files,
             "digest": art.files_digest(files),
             "started": started,
-            "finished": datetime.now(timezone.utc).isoformat(),
+            "finished": datetime.now(UTC).isoformat(),
             "wall_s": time.perf_counter() - t0,
             "peak_rss_mb": peak_rss_mb(),
             "info": _jsonable(info),
         }
         art.write_manifest(tmp, manifest, spec.artifact)
+        check_runner()
         art.commit_dir(tmp, out_dir)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -340,6 +391,7 @@ def stage_main(module_name: str, argv: list[str] | None = None) -> int:
     spec = load_stage(sys.modules[module_name])
     args = build_parser(spec).parse_args(argv)
     try:
+        die_with_runner()
         values: dict[str, Any] = {}
         if args.params_file:
             try:
@@ -356,9 +408,9 @@ def stage_main(module_name: str, argv: list[str] | None = None) -> int:
             raise StageInputError(str(e)) from None
         inputs = {name: getattr(args, f"in_{name}") for name in spec.inputs}
         manifest = execute_stage(spec, inputs, params, args.out)
-    except StageInputError as e:
+    except PanoWorldError as e:
         print(f"error: stage {spec.name}: {e}", file=sys.stderr)
-        return 2
+        return e.exit_code
     print(
         f"{spec.name}: wrote {args.out} ({len(manifest['files'])} files, {manifest['wall_s']:.2f} s, "
         f"peak {manifest['peak_rss_mb']:.0f} MB)",

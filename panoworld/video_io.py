@@ -17,10 +17,10 @@ from panoworld.conventions import (
     check_pose,
     depth_to_mm,
     quat_wxyz_from_rotmat,
+    quat_wxyz_from_xyzw,
     quat_xyzw_from_wxyz,
     ros_world_from_cam,
     rotmat_from_quat_wxyz,
-    quat_wxyz_from_xyzw,
     world_from_ros_world,
 )
 

@@ -51,7 +51,8 @@ class Params(FusionParams):
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
-    from panoworld.gaussians import context_source, voxel_fusion, write_artifact
+    from panoworld.gaussians import context_source, voxel_fusion
+    from panoworld.gaussians_artifact import write_artifact
 
     frames = context_source(inputs["video"], inputs["poses"], context_views=params.context_views,
                             height=params.height, max_height=params.max_height)

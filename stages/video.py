@@ -129,12 +129,13 @@ def _generate_wan(params: Params, cond) -> tuple[np.ndarray, dict]:
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
+    from tqdm import tqdm
+
     from panoworld import inpaint
     from panoworld.conditions import load_conditions
     from panoworld.trajectory import load_trajectory
     from panoworld.upscale import FrameUpscaler
     from panoworld.video_io import VideoWriter
-    from tqdm import tqdm
 
     if params.upscale == Upscale.REALESRGAN and not (params.upscale_weights and Path(params.upscale_weights).is_file()):
         raise StageInputError(

@@ -7,7 +7,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from panoworld import video_io
-from panoworld.conventions import erp_dirs, erp_pixel_from_dir, pose_from_rt, transform_points, invert_pose
+from panoworld.conventions import erp_dirs, erp_pixel_from_dir, invert_pose, pose_from_rt, transform_points
 from panoworld.poses import (
     colmap_estimate,
     load_poses,

@@ -47,7 +47,7 @@ def soup(rng, n, dist, size):
 
 def test_random_soup_matches_embree():
     rng = np.random.default_rng(0)
-    for k in range(4):
+    for _ in range(4):
         v, f = soup(rng, 300, dist=2.0, size=rng.choice([0.01, 0.1, 0.6]))
         compare(v, f, random_pose(rng), 48, 96)
 

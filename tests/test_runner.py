@@ -16,6 +16,7 @@ from PIL import Image
 
 from panoworld import artifacts as art
 from panoworld import pipeline as pl
+from tests.toy.common import toy_scene, use_toy_schemas
 
 TOY = Path(__file__).parent / "toy"
 REPO = Path(__file__).resolve().parent.parent
@@ -23,17 +24,12 @@ REPO = Path(__file__).resolve().parent.parent
 
 @pytest.fixture(autouse=True)
 def toy_schemas(monkeypatch):
-    monkeypatch.setenv("PANOWORLD_SCHEMA_PATH", str(TOY / "schemas"))
-    art.load_schema.cache_clear()
-    art._validator.cache_clear()
+    use_toy_schemas(monkeypatch)
 
 
 @pytest.fixture
 def scene(tmp_path) -> Path:
-    d = tmp_path / "scene"
-    d.mkdir()
-    Image.fromarray(np.random.default_rng(0).integers(0, 255, (8, 16, 3), dtype=np.uint8)).save(d / "panorama.png")
-    return d
+    return toy_scene(tmp_path)
 
 
 def toy_pipe() -> pl.Pipeline:
@@ -205,7 +201,7 @@ def test_json_report_and_status(scene):
     assert out.returncode == 0, out.stderr
     doc = json.loads(out.stdout)
     assert [s["stage"] for s in doc["stages"]] == list("abcd")
-    assert set(doc["stages"][0]) == {"stage", "action", "reason", "seconds", "peak_rss_mb"}
+    assert set(doc["stages"][0]) == {"stage", "action", "reason", "seconds", "peak_rss_mb", "bad_input"}
     assert all(s["action"] == "ran" and s["peak_rss_mb"] > 0 for s in doc["stages"])
     st = cli("status", str(scene), "--pipeline", str(TOY / "pipeline.yaml"), "--json")
     rows = json.loads(st.stdout)["stages"]

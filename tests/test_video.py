@@ -281,8 +281,8 @@ def test_stage_wan_shortcut_on_tiny_local_weights(upstream, tmp_path):
     pytest.importorskip("peft")
     import torch
 
-    from panoworld.models import wan_training as wt
     from panoworld.models import wan_layers as wl
+    from panoworld.models import wan_training as wt
     from panoworld.models.wan_shortcut import save_prompt_embeds
     from tests.test_wan_shortcut import TEXT_DIM, Z, embeds, tiny_transformer, tiny_vae
 

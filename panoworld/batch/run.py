@@ -59,7 +59,7 @@ def _run_job(job: Job, pipeline: pl.Pipeline, execute, options: dict, on_stage) 
                             on_result=lambda r, n=name: on_stage(job.scene.name, n, r), **options)
             entry["stages"] = [r.as_dict() for r in report.results]
             entry["ok"] = report.ok
-        except Exception as e:  # noqa: BLE001 - one failing scene never stops the others
+        except Exception as e:  # one failing scene never stops the others
             entry["error"] = f"{type(e).__name__}: {e}" if not isinstance(e, pl.PipelineError) else str(e)
         entry["seconds"] = time.perf_counter() - t0
         out.runs.append(entry)

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from panoworld.artifacts import MANIFEST
+from panoworld.artifacts import ARTIFACTS_DIRNAME, MANIFEST, VARIANTS_DIRNAME
 from panoworld.eval.common import (
     EvalParams,
     Lpips,
@@ -27,8 +27,6 @@ from panoworld.eval.common import (
 )
 from panoworld.eval.groundtruth import NoReference, open_ground_truth, true_disocclusion
 from panoworld.metrics import psnr, ssim, ws_psnr
-from panoworld.pipeline import ARTIFACTS_DIRNAME
-
 
 POSE_METRICS = ("ate", "ate_rmse", "rpe_t", "rpe_r", "rre", "rte", "ate_over_path", "rot_error_abs")
 
@@ -63,7 +61,6 @@ class Evaluation:
 
     def artifact_dir(self, stage: str) -> Path:
         """artifacts/STAGE, or artifacts/variants/NAME/STAGE for a stage in the evaluated variant's tail."""
-        from panoworld.pipeline import VARIANTS_DIRNAME
 
         root = self.scene_dir / ARTIFACTS_DIRNAME
         return (root / VARIANTS_DIRNAME / self.variant if stage in self.tail else root) / stage

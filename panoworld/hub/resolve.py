@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from panoworld.errors import WeightsError
 import dataclasses
 import os
 import re
@@ -11,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from panoworld.artifacts import file_digest, json_digest
+from panoworld.errors import WeightsError
 
 HF_PREFIX = "hf:"
 WEIGHTS_PARAMS = frozenset({"weights", "lora", "extra_weights", "upscale_weights", "prompt_embeds"})

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from panoworld.depth import DepthKind
-from panoworld.stage import StageInputError
+from panoworld.errors import InputError
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -51,12 +51,12 @@ class DepthAnything:
 
     @classmethod
     def from_pretrained(cls, weights: Path | str | None, *, input_size: int = 518, device: str = "cpu") -> DepthAnything:
-        """Load from a local directory (never a hub download); StageInputError naming --weights if it is unusable."""
+        """Load from a local directory (never a hub download); InputError naming --weights if it is unusable."""
         if weights is None or str(weights) == "":
-            raise StageInputError(f"depth-anything backend needs --weights DIR: a local folder with {EXPECTED}")
+            raise InputError(f"depth-anything backend needs --weights DIR: a local folder with {EXPECTED}")
         path = Path(weights)
         if not (path / "config.json").is_file() or not any((path / f).is_file() for f in WEIGHT_FILES):
-            raise StageInputError(f"--weights {path}: expected {EXPECTED} in that folder; found none")
+            raise InputError(f"--weights {path}: expected {EXPECTED} in that folder; found none")
         _, model_cls = _transformers()
         model = model_cls.from_pretrained(str(path), local_files_only=True)
         mean, std = IMAGENET_MEAN, IMAGENET_STD

@@ -23,13 +23,13 @@ class I3DFeatures:
         self.module = module
 
     @classmethod
-    def from_file(cls, path: Path | str | None, flag: str = "--fvd-weights") -> "I3DFeatures":
+    def from_file(cls, path: Path | str | None, flag: str = "--fvd-weights") -> I3DFeatures:
         import torch
 
         path = require_weights_file(path, model="FVD I3D", flag=flag, expected=I3D_WEIGHTS_TEXT)
         try:
             module = torch.jit.load(str(path), map_location="cpu")
-        except Exception as e:  # noqa: BLE001 - any unreadable file gets the same actionable message
+        except Exception as e:  # any unreadable file gets the same actionable message
             raise MissingWeightsError(f"FVD I3D: cannot load {path} as TorchScript ({e}); it must be {I3D_WEIGHTS_TEXT}") from None
         return cls(module.eval())
 

@@ -161,7 +161,7 @@ class FIDInceptionV3(nn.Module):
         return x.mean(dim=(2, 3))
 
     @classmethod
-    def from_file(cls, path: Path | str | None, flag: str = "--fid-weights") -> "FIDInceptionV3":
+    def from_file(cls, path: Path | str | None, flag: str = "--fid-weights") -> FIDInceptionV3:
         path = require_weights_file(path, model="FID InceptionV3", flag=flag, expected=FID_WEIGHTS_TEXT)
         state = read_state_file(path, model="FID InceptionV3", expected=FID_WEIGHTS_TEXT)
         net = cls()

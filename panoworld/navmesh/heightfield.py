@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from panoworld.errors import InputError
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from panoworld.errors import InputError
 
 MIN_CAMERA_HEIGHT_M = 0.3
 """Horizontal triangles closer than this below the camera are never taken as the floor."""

@@ -12,16 +12,18 @@ import numpy as np
 from panoworld.conventions import GLTF_FROM_WORLD, transform_points
 from panoworld.navmesh.heightfield import FloorGrid, NoFloorError
 from panoworld.navmesh.polygons import (
+    cross_section,
     even_odd,
     pick_component,
     ring_area,
     ring_segments,
     segment_distance,
-    cross_section,
     triangulate_rings,
 )
 
 NAVMESH_JSON = "navmesh.json"
+RUN_ONLY_INFO = ("timings_s",)
+"""Build facts that differ from run to run: reported in the stage manifest, never in navmesh.json (deterministic)."""
 NAVMESH_OBJ = "navmesh.obj"
 NAVMESH_GLB = "navmesh.glb"
 FORMAT_VERSION = 1
@@ -322,7 +324,7 @@ class NavMesh:
             "vertices": self.vertices.tolist(),
             "triangles": self.triangles.tolist(),
             "adjacency": self.adjacency.tolist(),
-            "info": self.info,
+            "info": {k: v for k, v in self.info.items() if k not in RUN_ONLY_INFO},
         }
 
     def mesh3d(self) -> tuple[np.ndarray, np.ndarray]:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from panoworld.errors import PanoWorldError
 from dataclasses import dataclass
 
 import numpy as np
@@ -10,6 +9,7 @@ import trimesh
 from scipy import interpolate, ndimage, sparse
 from scipy.sparse import csgraph
 
+from panoworld.errors import PanoWorldError
 from panoworld.synth.layout import SOLID, FloorPlan
 from panoworld.synth.params import TrackParams
 

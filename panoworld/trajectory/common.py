@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-from panoworld.errors import InputError
 import enum
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from panoworld.errors import InputError
 from panoworld.navmesh import NavMesh
-
 
 TRAJECTORY_JSON = "trajectory.json"
 TRAJECTORY_TUM = "trajectory.tum"

@@ -108,7 +108,7 @@ class SceneViewer:
                          ("points", self._add_points), ("splats", self._add_splats)]:
             try:
                 self.loaded[name] = fn()
-            except Exception as e:  # noqa: BLE001 - one unreadable artifact must not stop the viewer
+            except Exception as e:  # one unreadable artifact must not stop the viewer
                 self.loaded[name] = f"unreadable: {type(e).__name__}: {e}"
         self._add_gui()
         cam = self.server.initial_camera
