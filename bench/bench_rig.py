@@ -25,10 +25,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from panoworld import rig  # noqa: E402
-from panoworld.conventions import erp_pixel_solid_angle  # noqa: E402
-from panoworld.synth import generate_scene  # noqa: E402
-from panoworld.synth.rig import FloorObject, RigKind, render_with_rig, with_floor_object  # noqa: E402
+from panoworld import rig
+from panoworld.conventions import erp_pixel_solid_angle
+from panoworld.synth import generate_scene
+from panoworld.synth.rig import FloorObject, RigKind, render_with_rig, with_floor_object
 
 
 def cap_psnr(a: np.ndarray, b: np.ndarray, deg: float = 15.0) -> float:

@@ -13,7 +13,7 @@ from panoworld.depth_complete import complete_poles
 from panoworld.errors import InputError
 from panoworld.stage import execute_stage, load_stage, params_from_dict
 from panoworld.synth import generate_scene, params_for, write_scene
-from panoworld.synth.rig import FloorObject, render_with_rig, with_floor_object
+from panoworld.synth.rig import FloorObject, with_floor_object
 
 SEED = 8  # a development seed; bench/bench_rig.py reports held-out seeds
 H = 256
