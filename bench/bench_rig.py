@@ -26,17 +26,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from panoworld import rig
-from panoworld.conventions import erp_pixel_solid_angle
+from panoworld.rig import nadir_cap_psnr
 from panoworld.synth import generate_scene
 from panoworld.synth.rig import FloorObject, RigKind, render_with_rig, with_floor_object
-
-
-def cap_psnr(a: np.ndarray, b: np.ndarray, deg: float = 15.0) -> float:
-    h, w = a.shape[:2]
-    r0 = int(h * (1.0 - deg / 180.0))
-    wt = np.broadcast_to(erp_pixel_solid_angle(h, w)[r0:], (h - r0, w))[..., None]
-    mse = float((wt * (a[r0:].astype(np.float64) - b[r0:]) ** 2).sum() / (3 * wt.sum()))
-    return 10 * np.log10(255.0**2 / max(mse, 1e-12))
 
 
 def one(scene, kind, height: int) -> dict:
@@ -62,8 +54,8 @@ def one(scene, kind, height: int) -> dict:
     if true_mask.any():
         m = det.mask if det.found else np.zeros_like(true_mask)
         row["iou"] = float((m & true_mask).sum() / max((m | true_mask).sum(), 1))
-        row["psnr_before"] = cap_psnr(rgb, clean)
-        row["psnr_after"] = cap_psnr(out, clean)
+        row["psnr_before"] = nadir_cap_psnr(rgb, clean)
+        row["psnr_after"] = nadir_cap_psnr(out, clean)
     return row
 
 

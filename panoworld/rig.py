@@ -490,3 +490,12 @@ def nadir_luminance_gap(rgb: np.ndarray, cap_deg: float = 15.0) -> float:
     lc = float((lum * w)[cap].sum() / w[cap].sum())
     lr = float((lum * w)[ring].sum() / w[ring].sum())
     return (lc - lr) / max(lr, 1e-6)
+
+
+def nadir_cap_psnr(a: np.ndarray, b: np.ndarray, deg: float = 15.0) -> float:
+    """Solid-angle weighted PSNR (dB) of two ERP images (H, W, 3) uint8 over the cap within deg of the nadir."""
+    h, w = a.shape[:2]
+    r0 = int(h * (1.0 - deg / 180.0))
+    wt = np.broadcast_to(erp_pixel_solid_angle(h, w)[r0:], (h - r0, w))[..., None]
+    mse = float((wt * (a[r0:].astype(np.float64) - b[r0:]) ** 2).sum() / (3 * wt.sum()))
+    return 10 * np.log10(255.0**2 / max(mse, 1e-12))

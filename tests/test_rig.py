@@ -8,24 +8,15 @@ import cv2
 import numpy as np
 import pytest
 
-from panoworld.conventions import erp_pixel_solid_angle
 from panoworld.depth_complete import complete_poles
 from panoworld.errors import InputError
+from panoworld.rig import nadir_cap_psnr
 from panoworld.stage import execute_stage, load_stage, params_from_dict
 from panoworld.synth import generate_scene, params_for, write_scene
 from panoworld.synth.rig import FloorObject, with_floor_object
 
 SEED = 8  # a development seed; bench/bench_rig.py reports held-out seeds
 H = 256
-
-
-def cap_psnr(a: np.ndarray, b: np.ndarray, deg: float = 15.0) -> float:
-    """Solid-angle weighted PSNR of two ERP images (H, W, 3) uint8 over the cap within deg of the nadir."""
-    h, w = a.shape[:2]
-    r0 = int(h * (1.0 - deg / 180.0))
-    wt = np.broadcast_to(erp_pixel_solid_angle(h, w)[r0:], (h - r0, w))[..., None]
-    mse = float((wt * (a[r0:].astype(np.float64) - b[r0:]) ** 2).sum() / (3 * wt.sum()))
-    return 10 * np.log10(255.0**2 / max(mse, 1e-12))
 
 
 def read_rgb(path):
@@ -65,7 +56,7 @@ def test_synth_rig_ground_truth(tripod_dir):
     assert mask.any() and np.abs(rigged[~mask].astype(int) - clean[~mask]).max() <= 8  # faint leg shadows aside
     rows = np.nonzero(mask.any(1))[0]
     assert 150.0 < (rows.min() + 0.5) / H * 180.0 < 168.0  # the legs reach 12-30 degrees from the nadir
-    assert cap_psnr(rigged, clean) < 22.0
+    assert nadir_cap_psnr(rigged, clean) < 22.0
 
 
 def test_tripod_removed_against_rig_free_truth(tmp_path, tripod_dir, scene):
@@ -75,8 +66,8 @@ def test_tripod_removed_against_rig_free_truth(tmp_path, tripod_dir, scene):
     assert 10.0 < rig["mask"]["cap_deg"] < 30.0 and 0 < rig["mask"]["sphere_fraction"] < 0.03
     clean = read_rgb(tripod_dir / "gt" / "panorama_clean.png")
     cleaned = read_rgb(out / "panorama.png")
-    assert cap_psnr(cleaned, clean) >= 25.0
-    assert cap_psnr(read_rgb(tripod_dir / "panorama.png"), clean) < 22.0
+    assert nadir_cap_psnr(cleaned, clean) >= 25.0
+    assert nadir_cap_psnr(read_rgb(tripod_dir / "panorama.png"), clean) < 22.0
     # Depth under the rig is the floor plane: the rig-free depth within 2 %.
     mask = cv2.imread(str(out / "rig_mask.png"), cv2.IMREAD_GRAYSCALE) > 0
     truth = np.load(tripod_dir / "gt" / "depth_clean.npy")
@@ -124,7 +115,7 @@ def test_user_mask_overrides_detection(tmp_path, plain_dir, tripod_dir):
     # The generator's own rig mask on the tripod scene removes the tripod.
     info, out = run_depth(tmp_path, tripod_dir, name="out2", rig_mask=tripod_dir / "gt" / "rig_mask.png")
     assert info["rig"]["kind"] == "user"
-    assert cap_psnr(read_rgb(out / "panorama.png"), read_rgb(tripod_dir / "gt" / "panorama_clean.png")) >= 25.0
+    assert nadir_cap_psnr(read_rgb(out / "panorama.png"), read_rgb(tripod_dir / "gt" / "panorama_clean.png")) >= 25.0
 
 
 def test_bad_user_mask_is_an_input_error(tmp_path, plain_dir):
