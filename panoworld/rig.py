@@ -164,13 +164,25 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
         hub = np.argwhere(comp & (theta < 0.4 * extent))[:, ::-1].astype(np.int32)
         if len(hub) >= 3:
             cv2.fillConvexPoly(obj, cv2.convexHull(hub), 1)
-    obj = _dilate(obj, view)
+    obj = _dilate(obj, view) | _cast_shadows(lab, obj > 0, theta, view)
     stats["shadow_deg"] = sh_deg
     mask = face_to_erp_mask(obj, view, H, W)
     sh = face_to_erp_mask(gain > 1.0, view, H, W) & ~mask
     if sh.any():
         reason += f" with its shadow ({sh_deg:.0f} deg, up to {1 - 1 / gain.max():.0%} darker)"
     return RigDetection(True, reason, kind, mask, sh, stats, shadow_gain=gain, source=source)
+
+
+def _cast_shadows(lab: np.ndarray, obj: np.ndarray, theta: np.ndarray, view: PerspectiveView) -> np.ndarray:
+    """Floor pixels within CAP_DEG at least 15 % darker than the floor around them and connected to the rig: the
+    legs' own cast shadows from the room's lights (inpainted with the rig)."""
+    win = 2 * max(7, view.size // 16) + 1
+    L = lab[..., 0]
+    local = cv2.medianBlur(L, min(win, 255)).astype(np.float32)
+    dark = ((L < 0.85 * local) & (theta < CAP_DEG)).astype(np.uint8)
+    _, labels = cv2.connectedComponents(dark | obj.astype(np.uint8), connectivity=8)
+    keep = np.unique(labels[obj])
+    return np.isin(labels, keep[keep > 0]) & (dark > 0)
 
 
 def _dilate(mask: np.ndarray, view: PerspectiveView) -> np.ndarray:
