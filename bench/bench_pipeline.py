@@ -25,7 +25,7 @@ REAL_SCENES = {"realsee-real": ("panoImage_real.jpg", "depth_real_raw_units_floa
                "realsee-synthetic": ("panoImage_synthesis.jpg", "depth_synthetic_raw_units_float32.npy")}
 # Full size: COLMAP's defaults (SIFT on the frames as stored, upsampled first octave, 8192 features, incremental
 # mapper) and Gaussians fused from the frames as stored.
-FULL_SETS = ["poses.max_image_size=0", "poses.max_features=8192", "poses.upsample_features=true", "poses.mapper=incremental",
+FULL_SETS = ["poses.colmap.max_image_size=0", "poses.colmap.max_features=8192", "poses.colmap.upsample_features=true", "poses.colmap.mapper=incremental",
              "gaussians.max_height=0"]
 
 

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.conventions import DEPTH_PNG_SCALE, check_erp_shape, depth_to_mm
+from panoworld.io.depth_png import metres_from_png
 from panoworld.mesh import ErpMesh
 from panoworld.warped_frame import WarpedFrame
 
@@ -413,7 +414,7 @@ def _decode_mask(img: np.ndarray) -> np.ndarray:
 def _decode_depth(img: np.ndarray) -> np.ndarray:
     if img.dtype != np.uint16 or img.ndim != 2:
         return np.empty((0,))
-    return img.astype(np.float32) * np.float32(DEPTH_SCALE)
+    return metres_from_png(img, DEPTH_SCALE)
 
 
 @dataclass

@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from panoworld.conventions import check_pose, erp_dirs
 from panoworld.fusion_params import Confidence, FusionParams
+from panoworld.shapes import check_shape
 
 SH_C0 = 0.28209479177387814
 """Degree-0 real spherical harmonic: rgb = 0.5 + SH_C0 * f_dc (the INRIA 3DGS convention)."""
@@ -218,11 +219,8 @@ def frame_observations(
     Pixels at grazing angles (|cos| < params.min_cos) are dropped.
     """
     depth = np.asarray(depth)
-    if depth.ndim != 2:
-        raise ValueError(f"{depth.shape=} but expected (H, W)")
+    check_shape("rgb", rgb, "H W 3", dims=check_shape("depth", depth, "H W"))
     h, w = depth.shape
-    if rgb.shape != (h, w, 3):
-        raise ValueError(f"{rgb.shape=} but expected {(h, w, 3)} (the depth map's size)")
     check_pose(world_from_cam, "world_from_cam")
     colors = rgb.astype(np.float32) / 255.0 if rgb.dtype == np.uint8 else rgb.astype(np.float32)
     d = depth.astype(np.float64)

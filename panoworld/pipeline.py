@@ -22,6 +22,7 @@ from panoworld import artifacts as art
 from panoworld import code_digest
 from panoworld.errors import InputError, PipelineError
 from panoworld.hub import resolve as hub
+from panoworld.params import flatten, suggest
 from panoworld.stage import (
     LOCK_ENV,
     LOCK_FILE,
@@ -30,6 +31,8 @@ from panoworld.stage import (
     cache_key,
     input_digest,
     load_stage,
+    merge,
+    normalize,
     params_from_dict,
     params_hash,
     params_to_dict,
@@ -151,7 +154,7 @@ class Pipeline:
 
     def check_stage(self, name: str, flag: str) -> None:
         if name not in self.stages:
-            raise PipelineError(f"{flag} {name}: unknown stage; stages are {', '.join(self.order)}")
+            raise PipelineError(f"{flag} {name}: unknown stage{suggest(name, self.order)}")
 
     def text(self) -> str:
         lines = []
@@ -235,9 +238,37 @@ def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
             config = yaml.safe_load(cfg_path.read_text()) or {}
         except yaml.YAMLError as e:
             raise PipelineError(f"{cfg_path}: invalid YAML ({e})") from None
-        if not isinstance(config, dict):
-            raise PipelineError(f"{cfg_path}: expected a mapping with keys 'preset' and/or 'params'")
+        check_scene_config(config, cfg_path, pipeline)
     return Scene(root, files, config)
+
+
+SCENE_CONFIG_KEYS = ("preset", "params")
+
+
+def check_scene_config(config: Any, path: Path, pipeline: Pipeline) -> None:
+    """scene.yaml's schema: {preset: NAME, params: {STAGE: {PARAM: VALUE}}}; PipelineError (one line, with a
+    "did you mean") for unknown keys, stages and params and for wrong shapes. Values are checked at resolve time."""
+    if not isinstance(config, dict):
+        raise PipelineError(f"{path}: expected a mapping with keys 'preset' and/or 'params', got {config!r}")
+    for key in config:
+        if key not in SCENE_CONFIG_KEYS:
+            raise PipelineError(f"{path}: unknown key {key!r}{suggest(str(key), SCENE_CONFIG_KEYS)}")
+    if config.get("preset") is not None and not isinstance(config["preset"], str):
+        raise PipelineError(f"{path}: preset: expected a preset name ({', '.join(pipeline.presets)}), got {config['preset']!r}")
+    params = config.get("params")
+    if params is None:
+        return
+    if not isinstance(params, dict):
+        raise PipelineError(f"{path}: params: expected a mapping of stage: {{param: value}}, got {params!r}")
+    for stage, values in params.items():
+        if stage not in pipeline.stages:
+            raise PipelineError(f"{path}: params.{stage}: unknown stage{suggest(str(stage), pipeline.order)}")
+        if values is None:
+            continue
+        try:
+            normalize(pipeline.stages[stage].spec.params_cls, values, stage)
+        except ValueError as e:
+            raise PipelineError(f"{path}: {e}") from None
 
 
 # ---------------------------------------------------------------- params
@@ -258,7 +289,8 @@ def parse_sets(sets: list[str], pipeline: Pipeline) -> dict[str, dict[str, str]]
 def resolve_params(
     pipeline: Pipeline, preset: str | None, scene: Scene | None, sets: dict[str, dict[str, str]], stages: list[str]
 ) -> dict[str, Any]:
-    """Params objects per stage: dataclass defaults < pipeline params < preset < scene.yaml < --set."""
+    """Params objects per stage: dataclass defaults < pipeline params < preset < scene.yaml < --set, each value
+    checked against its declared type, range and choices (PipelineError naming the param and where it was set)."""
     preset = preset or (scene.config.get("preset") if scene else None) or DEFAULT_PRESET
     if preset not in pipeline.presets:
         raise PipelineError(f"--preset {preset}: unknown preset; known: {', '.join(pipeline.presets)}")
@@ -268,18 +300,21 @@ def resolve_params(
         node = pipeline.stages[name]
         layers = [
             (node.params, f"{pipeline.path.name} stages.{name}.params"),
-            (node.presets.get(preset, {}), f"preset {preset} for {name}"),
+            (node.presets.get(preset, {}), f"{pipeline.path.name} preset {preset}"),
             (scene_params.get(name) or {}, f"{SCENE_CONFIG} params.{name}"),
             (sets.get(name, {}), "--set"),
         ]
         values: dict[str, Any] = {}
         for layer, where in layers:
             try:
-                params_from_dict(node.spec.params_cls, layer, where=f"{where}: {name}")
+                params_from_dict(node.spec.params_cls, layer, where=name)  # names the layer that brings a bad value
+                values = merge(values, normalize(node.spec.params_cls, layer, name))
             except ValueError as e:
-                raise PipelineError(str(e)) from None
-            values.update(layer)
-        out[name] = params_from_dict(node.spec.params_cls, values, where=name)
+                raise PipelineError(f"{e} (from {where})") from None
+        try:
+            out[name] = params_from_dict(node.spec.params_cls, values, where=name)
+        except ValueError as e:
+            raise PipelineError(str(e)) from None
     return out
 
 
@@ -380,6 +415,7 @@ def _input_paths(node: StageNode, scene: Scene) -> dict[str, Path | None]:
 
 
 def _diff_params(stage: str, old: dict, new: dict) -> str:
+    old, new = flatten(old), flatten(new)
     keys = sorted(set(old) | set(new))
     diffs = [f"{stage}.{k} {json.dumps(old.get(k))} -> {json.dumps(new.get(k))}" for k in keys if old.get(k) != new.get(k)]
     return "params changed: " + ", ".join(diffs)
@@ -678,17 +714,11 @@ def status(scene_dir: Path | str, *, preset: str | None = None, sets: list[str] 
     pipeline = pipeline or Pipeline.load()
     scene = open_scene(scene_dir, pipeline)
     set_map = parse_sets(list(sets), pipeline)
+    all_params = resolve_params(pipeline, preset, scene, set_map, pipeline.order)  # bad params: exit 2 before any row
     rows = []
     for name in pipeline.order:
         node = pipeline.stages[name]
-        try:
-            params = resolve_params(pipeline, preset, scene, set_map, [name])[name]
-        except PipelineError as e:
-            if name in set_map:
-                raise
-            rows.append({"stage": name, "state": "unavailable", "reason": str(e), "artifact": str(scene.artifact_dir(name)),
-                         "schema": None, "schema_version": None, "accepted_schema_versions": []})
-            continue
+        params = all_params[name]
         up, why = stage_state(node, scene, params)
         d = scene.artifact_dir(name)
         sv = None

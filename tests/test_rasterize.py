@@ -180,5 +180,5 @@ def test_bad_inputs_raise_clear_errors():
         ErpRasterizer(v, f[:, :2])
     with pytest.raises(ValueError, match="index vertices"):
         ErpRasterizer(v, f + 100)
-    with pytest.raises(ValueError, match=r"\(V, 3\)"):
+    with pytest.raises(ValueError, match=rf"colors.shape=\(3, 3\) but expected \({len(v)}, 3\)"):  # V bound by vertices
         ErpRasterizer(v, f, colors=np.zeros((3, 3), np.uint8))

@@ -78,13 +78,15 @@ def test_viewer_canvas_shows_the_splats_in_chromium(viewer, tmp_path):
         def settled(visible: bool) -> np.ndarray:
             viewer.handles["splats"].visible = visible
             prev, img = None, None
+            shots = 0
             for _ in range(40):  # software WebGL: wait until two screenshots agree
+                shots += 1
                 time.sleep(0.5)
                 img = screenshot_array(page, clip=clip).astype(np.int16)
                 if prev is not None and np.abs(img - prev).mean() < 0.5:
                     break
                 prev = img
-            print(f"splats {'shown' if visible else 'hidden'}: settled after {k + 1} screenshots")
+            print(f"splats {'shown' if visible else 'hidden'}: settled after {shots} screenshots")
             return img
 
         with_splats = settled(True)

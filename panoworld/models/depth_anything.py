@@ -10,6 +10,7 @@ import numpy as np
 
 from panoworld.depth import DepthKind
 from panoworld.errors import InputError
+from panoworld.shapes import check_shape
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -69,8 +70,7 @@ class DepthAnything:
     def __call__(self, image: np.ndarray) -> np.ndarray:
         """image (h, w, 3) uint8 RGB -> prediction (h, w) float32 (bicubic resize to input_size and back)."""
         torch, _ = _transformers()
-        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-            raise ValueError(f"{image.shape=} {image.dtype=} but expected (h, w, 3) uint8")
+        check_shape("image", image, "h w 3", dtype=np.uint8)
         h, w = image.shape[:2]
         x = cv2.resize(image, (self.input_size, self.input_size), interpolation=cv2.INTER_CUBIC)
         t = torch.from_numpy(x).permute(2, 0, 1)[None].float() / 255.0

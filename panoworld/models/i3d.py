@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.models.weights import MissingWeightsError, require_weights_file
+from panoworld.shapes import check_shape
 
 I3D_WEIGHTS = "i3d_torchscript.pt"
 I3D_WEIGHTS_TEXT = (f"{I3D_WEIGHTS}, the TF-Hub Kinetics-400 I3D of Unterthiner et al.'s FVD exported to TorchScript "
@@ -39,8 +40,7 @@ class I3DFeatures:
         import torch
 
         videos = np.asarray(videos)
-        if videos.ndim != 5 or videos.shape[-1] != 3 or videos.dtype != np.uint8:
-            raise ValueError(f"{videos.shape=} {videos.dtype=} but expected uint8 (N, T, H, W, 3)")
+        check_shape("videos", videos, "N T H W 3", dtype=np.uint8)
         out = []
         with torch.no_grad():
             for clip in videos:

@@ -20,6 +20,7 @@ from panoworld.navmesh.polygons import (
     segment_distance,
     triangulate_rings,
 )
+from panoworld.shapes import check_shape
 
 NAVMESH_JSON = "navmesh.json"
 RUN_ONLY_INFO = ("timings_s",)
@@ -360,8 +361,7 @@ def _check_xz(xz: np.ndarray) -> np.ndarray:
     xz = np.asarray(xz, np.float64)
     if xz.ndim == 1 and xz.shape == (2,):
         xz = xz[None]
-    if xz.ndim != 2 or xz.shape[1] != 2:
-        raise ValueError(f"{xz.shape=} but expected (N, 2) x,z points")
+    check_shape("xz", xz, "N 2")
     return xz
 
 

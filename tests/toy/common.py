@@ -9,14 +9,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from panoworld.errors import InputError
+from panoworld.params import param
 from panoworld.stage import Input, stage_main
 
 
 @dataclass(kw_only=True)
 class Params:
-    n: int = 1
+    n: int = param(1, ge=0, le=100)
     """A number written into the output."""
-    sleep: float = 0.0
+    sleep: float = param(0.0, ge=0)
     """Seconds to sleep after writing a partial file (lets a test kill the stage mid-write)."""
     fail: bool = False
     """Raise an error instead of finishing."""
