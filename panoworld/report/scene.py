@@ -196,8 +196,21 @@ def section_depth(scene: SceneData, params: ReportParams) -> Section:
     if mask is not None:
         frac = float((mask > 0).mean())
         figs.append(figure(enc.data_uri(mask.astype(np.uint8), "png"), f"validity mask (white = valid, {100 * frac:.1f} %)"))
+    rig = info.get("rig") or {}
+    nadir = enc.read_rgb(d / "nadir_before_after.jpg")
+    if nadir is not None:
+        area = (rig.get("mask") or {}).get("sphere_fraction", 0.0)
+        figs.append(figure(enc.data_uri(nadir), f"nadir before / after capture-rig removal ({rig.get('kind')}, "
+                           f"{100 * area:.2f} % of the sphere)", small=True))
     keys = ("backend", "depth_range_m", "valid_fraction", "filled_pixels", "scale_factor", "camera_height_estimated_after")
-    facts = table(["fact", "value"], [[k, fmt(info.get(k))] for k in keys if k in info])
+    rows = [[k, fmt(info.get(k))] for k in keys if k in info]
+    if rig:
+        rows.append(["capture rig", rig.get("reason", "")])
+    poles = info.get("pole_completion") or {}
+    if poles.get("completed_fraction"):
+        rows.append(["completed from planes", f"{100 * poles['completed_fraction']:.1f} % of pixels (floor "
+                     f"{fmt(poles.get('floor_m'))} m below, ceiling {fmt(poles.get('ceiling_m'))} m above the camera)"])
+    facts = table(["fact", "value"], rows)
     return Section("depth", title, f'<div class="row">{"".join(figs)}</div>{facts}')
 
 

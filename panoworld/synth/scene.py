@@ -28,6 +28,7 @@ from panoworld.synth.appearance import Light, Material, MaterialKind, albedo, sr
 from panoworld.synth.furniture import FurnitureKind, PlacementError, Placer, Role
 from panoworld.synth.layout import FloorPlan, LayoutError, architecture_quads, generate_floor_plan, quads_to_mesh
 from panoworld.synth.params import Preset, SynthParams, params_for
+from panoworld.synth.rig import RigKind, render_with_rig
 from panoworld.synth.tracks import Track, TrackError, TrackPlanner
 
 GT_FORMAT = "panoworld-synth-gt"
@@ -507,11 +508,17 @@ def write_scene(scene: SynthScene, out_dir: str | os.PathLike, params: SynthPara
         (tmp / "gt").mkdir(parents=True)
         rp = params.render
         h = rp.pano_height
-        rgb, depth = scene.render(scene.world_from_canonical, h, 2 * h, supersample=rp.supersample)
+        rgb, depth, rig_mask = render_with_rig(scene, rp.rig, h, supersample=rp.supersample)
         cv2.imwrite(str(tmp / "panorama.png"), rgb[..., ::-1])
         np.save(tmp / "depth.npy", depth)
         pano_rel = {"rgb": "../panorama.png", "depth": "../depth.npy", "height": h, "width": 2 * h,
-                    "track": 0, "frame": 0, "supersample": rp.supersample}
+                    "track": 0, "frame": 0, "supersample": rp.supersample, "rig": str(rp.rig)}
+        if rp.rig != RigKind.NONE:
+            clean_rgb, clean_depth = scene.render(scene.world_from_canonical, h, 2 * h, supersample=rp.supersample)
+            cv2.imwrite(str(tmp / "gt" / "panorama_clean.png"), clean_rgb[..., ::-1])
+            np.save(tmp / "gt" / "depth_clean.npy", clean_depth)
+            cv2.imwrite(str(tmp / "gt" / "rig_mask.png"), rig_mask.astype(np.uint8) * 255)
+            pano_rel.update(rgb_clean="panorama_clean.png", depth_clean="depth_clean.npy", rig_mask="rig_mask.png")
         frames_rel = None
         if rp.write_frames:
             frames_rel = []
