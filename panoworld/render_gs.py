@@ -319,38 +319,50 @@ def render_perspective(
     return rasterize_tiles(proj, H, W, bg)
 
 
+ERP_SUPERSAMPLE = 2
+"""render_erp's default supersampling: the ERP is sampled at 2x its size in each axis from cube faces at 2x resolution
+and area-downsampled (2x2 box), so splats finer than a pixel (per-pixel Gaussians at the input's resolution) average
+instead of aliasing. docs/evaluation.md, "Anti-aliased ERP renders", has the quality/time measurements behind it."""
+
+
 def render_erp(
     gaussians: Gaussians, world_from_cam: np.ndarray, H: int, W: int, *, face_size: int | None = None,
-    margin: int = 2, near: float = 0.01, background=None,
+    margin: int = 2, near: float = 0.01, background=None, supersample: int = ERP_SUPERSAMPLE,
 ) -> RenderOutput:
     """Render an equirectangular view (W = 2H) from 6 perspective cube faces resampled bilinearly with grid_sample.
 
-    Each face has a 90 degree field of view plus `margin` pixels on every side; face_size defaults to ceil(W / pi),
-    which matches the ERP's angular resolution at the face centres. depth is the expected Euclidean distance of the
-    Gaussian centres (composited in each face's z order).
+    Each face has a 90 degree field of view plus `margin` pixels on every side; face_size defaults to
+    ceil(supersample W / pi), which matches the supersampled ERP's angular resolution at the face centres. With
+    supersample s > 1 the ERP is sampled at (s H, s W) and area-downsampled by s (colour, alpha and alpha-weighted
+    depth averaged over each s x s block). depth is the expected Euclidean distance of the Gaussian centres (composited
+    in each face's z order).
     """
     check_erp_shape(H, W, "requested ERP render")
     check_pose(world_from_cam, "world_from_cam")
+    if int(supersample) != supersample or supersample < 1:
+        raise ValueError(f"supersample={supersample!r} but expected a positive integer")
+    s = int(supersample)
     world_from_cam = np.asarray(world_from_cam, dtype=np.float64)
-    S = face_size or math.ceil(W / math.pi)
+    Hs, Ws = s * H, s * W
+    S = face_size or math.ceil(Ws / math.pi)
     n = S + 2 * margin
     f = S / 2.0
     c = n / 2.0
     prep = _prepare(gaussians, world_from_cam[:3, 3])
     bg = _background(background)
-    dirs = torch.from_numpy(erp_dirs(H, W))
-    out = torch.zeros(5, H, W)
-    best = torch.full((H, W), -2.0)
+    dirs = torch.from_numpy(erp_dirs(Hs, Ws))
+    out = torch.zeros(5, Hs, Ws)
+    best = torch.full((Hs, Ws), -2.0)
     for R_face in CUBE_FACES.values():
         world_from_face = world_from_cam.copy()
         world_from_face[:3, :3] = world_from_cam[:3, :3] @ R_face
-        proj = project(prep, invert_pose(world_from_face), f, f, c, c, n, n, near)
-        face = rasterize_tiles(proj, n, n, bg, raw=True, distance=True)
-        img = torch.cat([face.rgb, face.depth[..., None], face.alpha[..., None]], -1)
-        d = dirs @ torch.as_tensor(R_face, dtype=torch.float32)  # face-frame directions (H, W, 3)
+        d = dirs @ torch.as_tensor(R_face, dtype=torch.float32)  # face-frame directions (Hs, Ws, 3)
         sel = d[..., 2] > best
         if not bool(sel.any()):
             continue
+        proj = project(prep, invert_pose(world_from_face), f, f, c, c, n, n, near)
+        face = rasterize_tiles(proj, n, n, bg, raw=True, distance=True)
+        img = torch.cat([face.rgb, face.depth[..., None], face.alpha[..., None]], -1)
         best = torch.where(sel, d[..., 2], best)
         z = d[..., 2].clamp(min=1e-6)
         grid = torch.stack([(f * d[..., 0] / z + c) / n * 2 - 1, (f * d[..., 1] / z + c) / n * 2 - 1], -1)
@@ -358,6 +370,8 @@ def render_erp(
             img.permute(2, 0, 1)[None], grid[None], mode="bilinear", padding_mode="border", align_corners=False
         )[0]
         out = torch.where(sel[None], sampled, out)
+    if s > 1:
+        out = F.avg_pool2d(out[None], s)[0]
     alpha = out[4]
     depth = torch.where(alpha > 0, out[3] / alpha.clamp(min=1e-12), torch.zeros_like(alpha))
     return RenderOutput(out[:3].permute(1, 2, 0).contiguous(), depth, alpha)
