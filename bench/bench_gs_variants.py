@@ -1,0 +1,133 @@
+"""Prints roam PSNR/coverage per distance bucket, Gaussian count, .ply size and times for Gaussian-stage variants and
+ERP supersampling factors on scenes already run to `poses` (e.g. kept by `bench_roam.py --out DIR`).
+
+Each variant is a list of gaussians-stage params (KEY=VALUE, as `--set gaussians.KEY=VALUE`), fused from the scene's
+video and poses artifacts into a temporary directory; `artifact` is the scene's own gaussians.ply. Tune on the
+VALIDATION seeds of bench_roam.py (1 2 3), never on its test seeds.
+
+  python bench/bench_gs_variants.py /tmp/roam/seed_1 --variant artifact --supersample 1 2 3
+  python bench/bench_gs_variants.py /tmp/roam/seed_1 --variant source_height=256 --variant source_height=512
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from dataclasses import fields, replace
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import numpy as np
+
+from panoworld.eval.groundtruth import open_ground_truth
+from panoworld.eval.roam import BUCKETS, sample_roam_poses
+
+ARTIFACTS = "artifacts"
+
+
+def build(scene: Path, variant: str, out: Path) -> tuple[Path, float]:
+    """The variant's gaussians.ply (fused into `out` unless 'artifact') and its fusion seconds (0 for 'artifact')."""
+    if variant == "artifact":
+        return scene / ARTIFACTS / "gaussians" / "gaussians.ply", 0.0
+    import yaml
+
+    from stages.gaussians import Params, run
+
+    names = {f.name for f in fields(Params)}
+    kv = dict(item.split("=", 1) for item in variant.split(",") if item)
+    bad = sorted(set(kv) - names)
+    if bad:
+        raise SystemExit(f"unknown gaussians params {bad}")
+    params = replace(Params(), **{k: yaml.safe_load(v) for k, v in kv.items()}, eval_views=0)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    run({"video": scene / ARTIFACTS / "video", "poses": scene / ARTIFACTS / "poses"}, params, out)
+    return out / "gaussians.ply", time.perf_counter() - t0
+
+
+def measure(scene: Path, ply: Path, supersample: int, views: int, height: int, refs: dict) -> dict:
+    import cv2
+
+    from panoworld.metrics import psnr
+    from panoworld.navmesh import load_navmesh
+    from panoworld.poses import load_frames
+    from panoworld.render_gs import render_erp
+    from panoworld.splat_ply import read_gaussians_ply
+
+    g = read_gaussians_ply(ply)
+    nav = load_navmesh(scene / ARTIFACTS / "navmesh")
+    gt = open_ground_truth(scene)
+    roam = sample_roam_poses(nav, views, seed=0)
+    row: dict = {"gaussians": len(g.means), "ply_mb": ply.stat().st_size / 2**20}
+    times = []
+    for b in BUCKETS:
+        if b.key not in roam.poses:
+            continue
+        ps, cov = [], []
+        for k, pose in enumerate(roam.poses[b.key]):
+            t0 = time.perf_counter()
+            r = render_erp(g, pose, height, 2 * height, supersample=supersample)
+            times.append(time.perf_counter() - t0)
+            img = (r.rgb.clamp(0, 1).numpy() * 255.0).round().astype(np.uint8)
+            cov.append(float((r.alpha > 0.5).float().mean()))
+            if gt.kind == "synthetic":
+                key = (b.key, k)
+                if key not in refs:
+                    refs[key] = gt.render(pose, height, 2 * height)[0]
+                ps.append(psnr(img, refs[key]))
+            if b.key == "d0" and k == 0:
+                pano = next(p for p in (scene / f"panorama.{e}" for e in ("png", "jpg", "jpeg")) if p.is_file())
+                ref = cv2.resize(load_frames([pano])[0], (2 * height, height), interpolation=cv2.INTER_AREA)
+                row["d0_vs_input"] = psnr(img, ref)
+        row[f"{b.key}_psnr"] = float(np.mean(ps)) if ps else None
+        row[f"{b.key}_cov"] = float(np.mean(cov))
+    row["render_s"] = float(np.median(times))
+    return row
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("scenes", type=Path, nargs="+")
+    ap.add_argument("--variant", action="append", help="comma-separated KEY=VALUE gaussians params, or 'artifact' "
+                    "(default: artifact)")
+    ap.add_argument("--supersample", type=int, nargs="+", default=[2])
+    ap.add_argument("--views", type=int, default=2, help="roam views per bucket")
+    ap.add_argument("--height", type=int, default=256)
+    ap.add_argument("--json", type=Path)
+    a = ap.parse_args()
+    import torch
+
+    torch.set_num_threads(1)
+    variants = a.variant or ["artifact"]
+    rows = []
+    keys = [b.key for b in BUCKETS]
+    print(f"{'scene':<10} {'variant':<34} {'ss':>2} {'N':>8} {'MB':>6} {'fuse s':>6} {'rend s':>6} "
+          + " ".join(f"{k + ' dB':>8} {'cov':>6}" for k in keys) + f" {'vs in':>6}")
+    with tempfile.TemporaryDirectory(prefix="gs-variants-") as tmp:
+        for scene in a.scenes:
+            refs: dict = {}
+            for vi, variant in enumerate(variants):
+                ply, fuse_s = build(scene, variant, Path(tmp) / scene.name / str(vi))
+                for s in a.supersample:
+                    r = measure(scene, ply, s, a.views, a.height, refs)
+                    r.update(scene=scene.name, variant=variant, supersample=s, fuse_s=fuse_s)
+                    rows.append(r)
+
+                    def f(v, p=2):
+                        return "n/a" if v is None else f"{v:.{p}f}"
+
+                    print(f"{scene.name:<10} {variant:<34} {s:>2} {r['gaussians']:>8} {r['ply_mb']:6.1f} "
+                          f"{fuse_s:6.1f} {r['render_s']:6.2f} "
+                          + " ".join(f"{f(r.get(k + '_psnr')):>8} {f(r.get(k + '_cov'), 4):>6}" for k in keys)
+                          + f" {f(r.get('d0_vs_input')):>6}", flush=True)
+    if a.json:
+        a.json.write_text(json.dumps(rows, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
