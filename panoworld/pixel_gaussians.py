@@ -87,16 +87,18 @@ def merge_gaussians(parts: list[Gaussians]) -> Gaussians:
 
 
 def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, source_height: int = 0, tol: float = 0.03,
-                           thin_poles: bool = True, progress: bool = False) -> FusionResult:
+                           source_scale: float | None = None, thin_poles: bool = True,
+                           progress: bool = False) -> FusionResult:
     """Per-pixel Gaussians of the source view (video frame 0, at source_height rows; 0 = as the other frames) plus
     voxel fusion of what the other frames see that the source does not (SourceVisibility with tolerance tol): the
-    capture point keeps the input's full detail, the rest of the room is fused as before. Without frame 0 among the
-    frames it is plain voxel fusion."""
+    capture point keeps the input's full detail, the rest of the room is fused as before. source_scale: the per-pixel
+    Gaussians' scale_factor (None = params.scale_factor). Without frame 0 among the frames it is plain voxel fusion."""
     if not frames.indices or frames.indices[0] != 0:
         return voxel_fusion(frames, params, progress=progress)
     src = replace(frames, height=min(source_height or frames.height, frames.stored_height))
     rgb, depth, pose = src.frame(0)
-    pix = pixel_gaussians(rgb, depth, pose, params, thin_poles=thin_poles)
+    pix_params = params if source_scale is None else replace(params, scale_factor=source_scale)
+    pix = pixel_gaussians(rgb, depth, pose, pix_params, thin_poles=thin_poles)
     rest = replace(frames, rgb_paths=frames.rgb_paths[1:], depth_paths=frames.depth_paths[1:],
                    world_from_cam=frames.world_from_cam[1:], indices=frames.indices[1:])
     if not len(rest):

@@ -261,6 +261,15 @@ def test_stage_writes_a_valid_artifact(tmp_path, room):
     capped = execute_stage(spec, {"video": video, "poses": poses}, Params(voxel_size=0.05, eval_views=0, max_height=32, source_height=32),
                            tmp_path / "capped", input_digests={"video": "0" * 64, "poses": "1" * 64})["info"]
     assert capped["fusion_height"] == 32 and capped["num_observations"] < 0.3 * info["num_observations"]
+    # source_scale sizes the per-pixel Gaussians of the source only (they come first in the .ply)
+    wide = execute_stage(spec, {"video": video, "poses": poses}, Params(voxel_size=0.05, eval_views=0, source_scale=3.8),
+                         tmp_path / "wide", input_digests={"video": "0" * 64, "poses": "1" * 64})["info"]
+    g0, g1 = read_gaussians_ply(out / "gaussians.ply"), read_gaussians_ply(tmp_path / "wide" / "gaussians.ply")
+    n = info["num_source_gaussians"]
+    assert wide["num_source_gaussians"] == n and 0 < n < len(g0)
+    ratio = np.median(g1.scales[:n].max(1)) / np.median(g0.scales[:n].max(1))
+    assert ratio == pytest.approx(2.0, rel=0.05)
+    assert len(g1) == len(g0) and np.allclose(g1.scales[n:], g0.scales[n:])  # the voxel Gaussians are unchanged
 
 
 def test_stage_input_errors(tmp_path, room):
