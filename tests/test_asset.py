@@ -196,6 +196,9 @@ def test_several_paths_become_several_cameras(pipeline_scene, tmp_path):  # noqa
 
 
 def test_unreadable_gaussians_is_one_line_exit_2_nothing_written(pipeline_scene, tmp_path):  # noqa: F811
+    import stages.asset as stage
+    from panoworld.errors import InputError
+
     arts = pipeline_scene / "artifacts"
     bad = tmp_path / "gaussians"
     bad.mkdir()
@@ -206,5 +209,10 @@ def test_unreadable_gaussians_is_one_line_exit_2_nothing_written(pipeline_scene,
     res = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
     assert res.returncode == 2
     lines = [ln for ln in res.stderr.strip().splitlines() if ln]
-    assert len(lines) == 1 and str(bad / "gaussians.ply") in lines[0] and "rerun the gaussians stage" in lines[0]
+    assert len(lines) == 1 and str(bad) in lines[0], res.stderr
     assert not out.exists()
+    inputs = {"gaussians": bad, "mesh": arts / "mesh", "navmesh": arts / "navmesh", "trajectory": arts / "trajectory"}
+    out.mkdir()
+    with pytest.raises(InputError, match="gaussians.ply.*rerun the gaussians stage"):
+        stage.run(inputs, stage.Params(), out)
+    assert list(out.iterdir()) == []
