@@ -63,7 +63,7 @@ def measure(name: str, scene: Path, preset: str | None) -> dict:
     cpu0, t0 = _children_cpu(), time.perf_counter()
     res = subprocess.run([sys.executable, "runner.py", "run", str(scene), "--only", "asset", "--force"]
                          + (["--preset", preset] if preset else []), cwd=REPO, capture_output=True, text=True)
-    wall, cpu = time.perf_counter() - t0, _children_cpu() - cpu0
+    wall_s, cpu = time.perf_counter() - t0, _children_cpu() - cpu0
     if res.returncode != 0:
         raise SystemExit(f"{scene}: asset stage failed\n{res.stderr}")
     a = scene / "artifacts" / "asset"
@@ -85,7 +85,7 @@ def measure(name: str, scene: Path, preset: str | None) -> dict:
     return {
         "scene": name, "particles": info["particles"], "sh_degree": info["sh_degree"],
         "collider_triangles": info["collider_triangles"], "mesh_faces_valid": info["collider"]["faces_valid"],
-        "sizes_mb": info["sizes_mb"], "export_wall_s": wall, "export_cpu_s": cpu, "stage_export_s": info["export_s"],
+        "sizes_mb": info["sizes_mb"], "export_wall_s": wall_s, "export_cpu_s": cpu, "stage_export_s": info["export_s"],
         "timings_s": info["timings_s"], "compliance_errors": len(problems), "spawn_source": info["spawn_source"],
         "drop": drop, "drop_ok": drop["speed_m_s"] < 0.01 and abs(drop["rest_height_m"]) < 0.02,
         "walk": walks, "walk_ok": all(w["min_clearance_m"] > 0 for w in walks),

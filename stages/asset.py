@@ -1,4 +1,4 @@
-"""Simulation-ready asset: scene.usdc (3DGS particle field, collider, NavMesh, spawn, cameras, physics), collider.obj, asset.json."""
+"""Simulation-ready asset: scene.usdc (3DGS particles, collider, NavMesh, spawn, cameras), collider.obj, asset.json."""
 
 from __future__ import annotations
 
@@ -31,10 +31,11 @@ class Params:
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     try:
-        import pxr  # noqa: F401  (usd-core)
         import fast_simplification  # noqa: F401
+        import pxr  # noqa: F401  (usd-core)
     except ImportError as e:
-        raise StageInputError(f"the asset stage needs the sim extra ({e.name} is missing): pip install -e '.[sim]'") from None
+        raise StageInputError(f"the asset stage needs the sim extra ({e.name} is missing): "
+                              "pip install -e '.[sim]'") from None
     from panoworld.asset import build_asset
     from panoworld.mesh import load_erp_mesh
     from panoworld.navmesh import load_navmesh

@@ -1,4 +1,4 @@
-"""The simulation-ready asset: the scene in OpenUSD (Gaussians, collider, NavMesh, spawn, cameras) and a collider.obj."""
+"""The simulation-ready asset: the scene in OpenUSD (Gaussians, collider, NavMesh, spawn, cameras) + collider.obj."""
 
 from panoworld.asset.build import ASSET_JSON, COLLIDER_OBJ, SCENE_USD, build_asset, spawn_point, trajectory_paths
 from panoworld.asset.collider import Collider, collision_mesh, write_obj

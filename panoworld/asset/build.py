@@ -1,4 +1,4 @@
-"""Assemble the simulation asset from the stage artifacts: scene.usdc, collider.obj and asset.json in the asset frame."""
+"""Assemble the simulation asset from the stage artifacts: scene.usdc, collider.obj, asset.json in the asset frame."""
 
 from __future__ import annotations
 
@@ -65,7 +65,7 @@ def build_asset(out_dir: Path, *, mesh: ErpMesh, nav: NavMesh, trajectory_dir: P
     spawn = transform_points(a_from_c, spawn_c[None])[0]
     col_v = transform_points(a_from_c, col.vertices)
     write_obj(out_dir / COLLIDER_OBJ, col_v, col.faces,
-              "PanoWorld collider: asset frame (z up, x forward, y left, floor below the capture point at z = 0), metres")
+              "PanoWorld collider: asset frame (z up, x forward, y left, floor below the capture at z = 0), metres")
     nav_v, nav_f = nav.mesh3d()
     paths, fps = trajectory_paths(trajectory_dir)
     timings["collider_io"] = time.perf_counter() - t

@@ -1,4 +1,4 @@
-"""The collision mesh: the scene mesh's valid (non-stretched) faces, compacted and quadric-decimated to a triangle budget."""
+"""The collision mesh: the scene mesh's valid (non-stretched) faces, compacted, quadric-decimated to a budget."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The scene as one OpenUSD stage: Gaussians (UsdVol 3DGS particle field), collider, NavMesh, spawn, cameras, physics."""
+"""The scene as one OpenUSD stage: Gaussians (UsdVol 3DGS particle field), collider, NavMesh, spawn, cameras."""
 
 from __future__ import annotations
 

@@ -170,7 +170,8 @@ def clearance_colors(clearance: np.ndarray, cap: float) -> list[str]:
     return colors_for(np.asarray(clearance, np.float64), 0.0, max(cap, 1e-6))
 
 
-def footprint_rings(vertices: np.ndarray, faces: np.ndarray, view: PlanView, y_min: float, y_max: float) -> list[np.ndarray]:
+def footprint_rings(vertices: np.ndarray, faces: np.ndarray, view: PlanView, y_min: float,
+                    y_max: float) -> list[np.ndarray]:
     """Outlines (world XZ rings) of the faces that reach into the height band y_min <= y <= y_max, rasterised on the
     view's grid: what an agent of that height collides with, seen from above."""
     v = np.asarray(vertices, np.float64)
