@@ -26,11 +26,11 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from panoworld import pipeline as pl  # noqa: E402
-from panoworld.asset import trajectory_paths  # noqa: E402
-from panoworld.asset.physics import Agent, BulletScene, drop_test, walk_test, wall_test  # noqa: E402
-from panoworld.asset.usd import compliance_errors  # noqa: E402
-from panoworld.conventions import transform_points  # noqa: E402
+from panoworld import pipeline as pl
+from panoworld.asset import trajectory_paths
+from panoworld.asset.physics import Agent, BulletScene, drop_test, walk_test, wall_test
+from panoworld.asset.usd import compliance_errors
+from panoworld.conventions import transform_points
 
 REAL = REPO.parent / "shared" / "data" / "real" / "realsee3d_assets"
 

@@ -23,7 +23,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from panoworld import pipeline as pl  # noqa: E402
+from panoworld import pipeline as pl
 
 REAL = REPO.parent / "shared" / "data" / "real" / "realsee3d_assets"
 PAIRS = {"realsee_real": ("panoImage_real.jpg", "depth_image.png"),

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from panoworld.errors import DataError
 import json
 from functools import cached_property
 from pathlib import Path
 
 import numpy as np
+
+from panoworld.errors import DataError
 
 
 class DatasetError(DataError):
@@ -36,7 +37,7 @@ class DatasetScene:
         self.name = self.root.name
 
     @classmethod
-    def from_gt_index(cls, gt_json: Path) -> "DatasetScene":
+    def from_gt_index(cls, gt_json: Path) -> DatasetScene:
         return cls(Path(gt_json).resolve().parent.parent)
 
     @property

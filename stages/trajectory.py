@@ -13,6 +13,7 @@ import numpy as np
 from panoworld.conventions import invert_pose
 from panoworld.mesh import load_erp_mesh
 from panoworld.navmesh import load_navmesh
+from panoworld.params import param
 from panoworld.stage import Input, StageInputError, stage_main
 from panoworld.trajectory import (
     MIN_SECTOR_DIST_M,
@@ -60,7 +61,7 @@ class OnInvalid(enum.StrEnum):
 class Params(TrajectoryParams):
     on_invalid: OnInvalid = OnInvalid.ERROR
     """What to do with poses closer than the agent radius to the mesh or outside the NavMesh (pose 0 is exempt)."""
-    fps: float = 16.0
+    fps: float = param(16.0, gt=0)
     """Frame rate for the TUM timestamps (t = i / fps)."""
     reanchor: bool = False
     """Re-express a user trajectory whose pose 0 is not the identity relative to pose 0 (else that is an error)."""

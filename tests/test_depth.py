@@ -254,7 +254,7 @@ def test_depth_stage_depth_anything(tmp_path, room):
     valid = cv2.imread(str(out / "valid.png"), cv2.IMREAD_GRAYSCALE) == 255
     assert depth.shape == (64, 128) and valid.any() and np.all(depth[valid] > 0) and np.all(depth[~valid] == 0)
     # RGB only, no weights: one line naming both fixes.
-    with pytest.raises(StageInputError, match=r"runner.py weights fetch depth-anything-v2-small` and pass --set depth.weights=DIR") as e:
+    with pytest.raises(StageInputError, match=r"runner.py weights fetch depth-anything-v2-small` and pass --set depth.depth_anything.weights=DIR") as e:
         run_depth_stage(tmp_path, pano)
     assert "\n" not in str(e.value)
 

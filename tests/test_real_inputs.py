@@ -136,7 +136,7 @@ def test_rgb_only_error_names_the_fix(tmp_path):
         run_default(scene_dir)
     msg = str(e.value)
     assert "\n" not in msg and "python runner.py weights fetch depth-anything-v2-small" in msg
-    assert "--set depth.weights=DIR" in msg
+    assert "--set depth.depth_anything.weights=DIR" in msg
 
 
 def test_runner_prints_the_failing_stage_reason(tmp_path):

@@ -159,7 +159,9 @@ def test_dataset_items_and_kill_resume_reproduces_the_loss_curve(cond_dir, tmp_p
     from panoworld.models.wan_shortcut import WanShortcutConfig, WanShortcutGenerator
 
     video = yaml.safe_load((full / "export" / "scene.yaml").read_text())["params"]["video"]
-    assert video["backend"] == "wan-shortcut" and video["steps"] == 4
+    assert video["backend"] == "wan-shortcut"
+    video = video["wan"]
+    assert video["steps"] == 4
     gen = WanShortcutGenerator.from_pretrained(WanShortcutConfig(
         weights=video["weights"], lora=video["lora"], extra_weights=video["extra_weights"],
         prompt_embeds=video["prompt_embeds"], device="cpu", dtype="float32", vae_tiling=False))

@@ -78,7 +78,7 @@ def test_viewer_canvas_shows_the_splats_in_chromium(viewer, tmp_path):
         def settled(visible: bool) -> np.ndarray:
             viewer.handles["splats"].visible = visible
             prev, img = None, None
-            for k in range(40):  # software WebGL: wait until two screenshots agree
+            for _ in range(40):  # software WebGL: wait until two screenshots agree
                 time.sleep(0.5)
                 img = screenshot_array(page, clip=clip).astype(np.int16)
                 if prev is not None and np.abs(img - prev).mean() < 0.5:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from panoworld.errors import WeightsError
 import dataclasses
 import os
 import re
@@ -11,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from panoworld.artifacts import file_digest, json_digest
+from panoworld.errors import WeightsError
 
 HF_PREFIX = "hf:"
 WEIGHTS_PARAMS = frozenset({"weights", "lora", "extra_weights", "upscale_weights", "prompt_embeds"})
@@ -204,12 +204,25 @@ def is_weights_field(f: dataclasses.Field) -> bool:
 
 
 def weights_fields(params_cls: type) -> list[str]:
-    """Names of the weights-like params of a params dataclass."""
-    return [f.name for f in dataclasses.fields(params_cls) if is_weights_field(f)]
+    """Names of the weights-like params of a params dataclass (nested backend options as `wan.weights`)."""
+    out = []
+    for f in dataclasses.fields(params_cls):
+        sub = f.default_factory() if f.default_factory is not dataclasses.MISSING else None
+        if dataclasses.is_dataclass(sub):
+            out += [f"{f.name}.{n}" for n in weights_fields(type(sub))]
+        elif is_weights_field(f):
+            out.append(f.name)
+    return out
+
+
+def _get(params: Any, dotted: str) -> Any:
+    for part in dotted.split("."):
+        params = getattr(params, part)
+    return params
 
 
 def _set_weights(params: Any) -> list[tuple[str, str]]:
-    values = ((n, getattr(params, n)) for n in weights_fields(type(params)))
+    values = ((n, _get(params, n)) for n in weights_fields(type(params)))
     return [(n, str(v)) for n, v in values if isinstance(v, (str, os.PathLike)) and str(v) != ""]
 
 
@@ -240,7 +253,11 @@ def check_params_weights(params: Any, *, where: str = "") -> None:
 
 def with_resolved_paths(params: Any, records: dict[str, dict]) -> Any:
     """A copy of params whose weights-like values are the resolved local paths."""
-    return dataclasses.replace(params, **{k: r["path"] for k, r in records.items()}) if records else params
+    for name, r in records.items():
+        head, _, rest = name.partition(".")
+        value = with_resolved_paths(getattr(params, head), {rest: r}) if rest else r["path"]
+        params = dataclasses.replace(params, **{head: value})
+    return params
 
 
 def weights_key(records: dict[str, dict]) -> dict[str, str | None]:
@@ -249,7 +266,7 @@ def weights_key(records: dict[str, dict]) -> dict[str, str | None]:
 
 
 def describe_change(stage: str, old: dict[str, dict], new: dict[str, dict]) -> str | None:
-    """`weights changed: depth.weights hf:ORG/NAME commit 1a2b3c4 -> 5d6e7f8 (model.safetensors)`, or None."""
+    """`weights changed: depth.depth_anything.weights hf:ORG/NAME commit 1a2b3c4 -> 5d6e7f8 (model.safetensors)`, or None."""
     parts = []
     for name in sorted(set(old) | set(new)):
         a, b = old.get(name) or {}, new.get(name) or {}

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from panoworld.io import read_json
 from panoworld.report import encode as enc
 from panoworld.report.page import Page, Section, figure, fmt, missing, slider, svg_figure, table
 from panoworld.report.topdown import PlanView, clearance_colors, footprint_rings, mesh_from_above
@@ -58,10 +59,7 @@ class SceneData:
     def json(self, rel: str) -> dict | None:
         path = self.art / rel
         if path not in self._json:
-            try:
-                self._json[path] = json.loads(path.read_text())
-            except (OSError, ValueError):
-                self._json[path] = None
+            self._json[path] = read_json(path, default=None)
         return self._json[path]
 
     def manifest(self, stage: str) -> dict | None:

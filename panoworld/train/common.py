@@ -18,7 +18,6 @@ The API (used by `panoworld.train.video` and `panoworld.train.recon`):
 
 from __future__ import annotations
 
-from panoworld.errors import InputError
 import contextlib
 import dataclasses
 import json
@@ -32,6 +31,7 @@ import numpy as np
 import yaml
 
 from panoworld.artifacts import write_text_atomic
+from panoworld.errors import InputError
 from panoworld.stage import params_from_dict, params_to_dict
 
 CONFIG = "config.yaml"

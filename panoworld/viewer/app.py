@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from dataclasses import dataclass
@@ -12,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.conventions import quat_wxyz_from_rotmat
+from panoworld.io import read_json
 
 ARTIFACTS = "artifacts"
 
@@ -33,10 +33,7 @@ class ViewerParams:
 
 
 def _read_json(path: Path) -> dict | None:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
+    return read_json(path, default=None)
 
 
 def _poses(doc: dict | None) -> np.ndarray | None:
@@ -108,7 +105,7 @@ class SceneViewer:
                          ("points", self._add_points), ("splats", self._add_splats)]:
             try:
                 self.loaded[name] = fn()
-            except Exception as e:  # noqa: BLE001 - one unreadable artifact must not stop the viewer
+            except Exception as e:  # one unreadable artifact must not stop the viewer
                 self.loaded[name] = f"unreadable: {type(e).__name__}: {e}"
         self._add_gui()
         cam = self.server.initial_camera
