@@ -1,6 +1,6 @@
 """The simulation asset on the demo scene and the Realsee3D capture: sizes, export time and the consumer checks.
 
-    python bench/bench_asset.py [--scene DIR ...] [--work DIR] [--real DIR] [--preset default] [--json]
+    python bench/bench_asset.py [--scene DIR ...] [--work DIR] [--real DIR] [--preset default] [--as-is] [--json]
 
 Without --scene: the demo scene (`runner.py demo` into --work) and the Realsee3D real LiDAR pair under --real (the
 panorama + depth_image.png copied into a scene directory under --work). Each scene runs the pipeline up to `asset`
@@ -56,13 +56,19 @@ def scenes_default(work: Path, real: Path, preset: str) -> list[tuple[str, Path]
     return out
 
 
-def measure(name: str, scene: Path, preset: str | None) -> dict:
-    rep = pl.run(scene, preset=preset, until="asset", echo=False)
-    if not rep.ok:
-        raise SystemExit(f"{scene}: pipeline failed\n{rep.table()}")
+def measure(name: str, scene: Path, preset: str | None, as_is: bool = False) -> dict:
+    arts = scene / "artifacts"
+    if as_is:  # the stage alone on the artifacts as they are (no cache check: upstream code may have changed since)
+        cmd = [sys.executable, "-m", "stages.asset", "--out", str(arts / "asset")]
+        cmd += [a for k in ("gaussians", "mesh", "navmesh", "trajectory") for a in (f"--{k}", str(arts / k))]
+    else:
+        rep = pl.run(scene, preset=preset, until="asset", echo=False)
+        if not rep.ok:
+            raise SystemExit(f"{scene}: pipeline failed\n{rep.table()}")
+        cmd = [sys.executable, "runner.py", "run", str(scene), "--only", "asset", "--force"]
+        cmd += ["--preset", preset] if preset else []
     cpu0, t0 = _children_cpu(), time.perf_counter()
-    res = subprocess.run([sys.executable, "runner.py", "run", str(scene), "--only", "asset", "--force"]
-                         + (["--preset", preset] if preset else []), cwd=REPO, capture_output=True, text=True)
+    res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, check=False)
     wall_s, cpu = time.perf_counter() - t0, _children_cpu() - cpu0
     if res.returncode != 0:
         raise SystemExit(f"{scene}: asset stage failed\n{res.stderr}")
@@ -116,12 +122,14 @@ def main() -> int:
     ap.add_argument("--work", type=Path, default=REPO / "bench_out" / "asset", help="where the default scenes go")
     ap.add_argument("--real", type=Path, default=REAL, help="the Realsee3D asset folder")
     ap.add_argument("--preset", default=None, help="pipeline preset (default: the scene's own, else default)")
+    ap.add_argument("--as-is", action="store_true",
+                    help="run the asset stage alone on the scenes' artifacts as they are (no pipeline run)")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
     a = ap.parse_args()
     scenes = ([(s.name, s) for s in a.scene] if a.scene
               else scenes_default(a.work, a.real, a.preset or "default"))
     load = open("/proc/loadavg").read().split()[0]
-    rows = [measure(name, scene, a.preset) for name, scene in scenes]
+    rows = [measure(name, scene, a.preset, a.as_is) for name, scene in scenes]
     if a.json:
         print(json.dumps(rows, indent=1))
         return 0
