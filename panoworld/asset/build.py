@@ -36,6 +36,17 @@ def trajectory_paths(trajectory_dir: Path) -> tuple[list[np.ndarray], float]:
     return [load_trajectory(path)], fps
 
 
+def with_walkable_floor(col: Collider, nav: NavMesh) -> Collider:
+    """The collider plus the NavMesh's triangles at floor height: where the NavMesh lets the agent walk, the floor is
+    solid, also where the mesh has no floor (the capture rig's blind spot under the camera, small depth dropouts)."""
+    nav_v, nav_f = nav.mesh3d()
+    v = np.concatenate([col.vertices, nav_v])
+    f = np.concatenate([col.faces, nav_f + len(col.vertices)])  # both face up (-Y), towards the camera
+    info = {**col.info, "faces_decimated": col.info["faces_out"], "walkable_floor_triangles": int(len(nav_f)),
+            "faces_out": int(len(f))}
+    return Collider(v, f, info)
+
+
 def spawn_point(collider_canonical: Collider, floor_y: float) -> tuple[np.ndarray, str]:
     """The floor below the capture point (canonical frame): where a ray straight down from the camera meets the
     collider, or the NavMesh floor height when it meets nothing within 1 m of that floor (a hole under the rig)."""
@@ -57,7 +68,7 @@ def build_asset(out_dir: Path, *, mesh: ErpMesh, nav: NavMesh, trajectory_dir: P
     out_dir = Path(out_dir)
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
-    col = collision_mesh(mesh, max_triangles)
+    col = with_walkable_floor(collision_mesh(mesh, max_triangles), nav)
     timings["collider"] = time.perf_counter() - t0
     t = time.perf_counter()
     spawn_c, spawn_source = spawn_point(col, nav.floor_y)
