@@ -18,6 +18,9 @@ from panoworld.trajectory import check_poses, load_trajectory
 SCENE_USD = "scene.usdc"
 COLLIDER_OBJ = "collider.obj"
 ASSET_JSON = "asset.json"
+FLOOR_PATCH_BELOW_M = 0.01
+"""The NavMesh floor joins the collider this far below the floor height: coplanar duplicates of the seen floor would
+make resting contacts jitter."""
 
 
 def trajectory_paths(trajectory_dir: Path) -> tuple[list[np.ndarray], float]:
@@ -40,6 +43,7 @@ def with_walkable_floor(col: Collider, nav: NavMesh) -> Collider:
     """The collider plus the NavMesh's triangles at floor height: where the NavMesh lets the agent walk, the floor is
     solid, also where the mesh has no floor (the capture rig's blind spot under the camera, small depth dropouts)."""
     nav_v, nav_f = nav.mesh3d()
+    nav_v[:, 1] += FLOOR_PATCH_BELOW_M  # y is down: just below the seen floor, so it only catches what falls through
     v = np.concatenate([col.vertices, nav_v])
     f = np.concatenate([col.faces, nav_f + len(col.vertices)])  # both face up (-Y), towards the camera
     info = {**col.info, "faces_decimated": col.info["faces_out"], "walkable_floor_triangles": int(len(nav_f)),

@@ -140,7 +140,8 @@ def nearest_wall(scene: BulletScene, spawn: np.ndarray, directions: int = 36, re
 
 def wall_test(scene: BulletScene, spawn: np.ndarray, speed_m_s: float = 0.5, extra_s: float = 2.0) -> dict:
     """Rest the capsule at the spawn, then drive it horizontally at speed_m_s towards the nearest wall for longer
-    than it needs to get there: it must stop at the wall (travel = wall distance - radius), not pass through it."""
+    than it needs to get there: it must stop at the wall (or at an obstacle beside the way there), not pass through
+    it (see wall_ok)."""
     spawn = np.asarray(spawn, np.float64)
     wall = nearest_wall(scene, spawn)
     if wall is None:
@@ -154,6 +155,14 @@ def wall_test(scene: BulletScene, spawn: np.ndarray, speed_m_s: float = 0.5, ext
     end = scene.feet()
     travel = float(np.dot(end - start, d))
     stop_at = dist - scene.agent.radius
+    scene.place(end + [0, 0, 0.03])  # lifted off the floor: what is left in contact is the obstacle that stopped it
+    contact = scene.clearance()
     return {"wall_distance_m": dist, "expected_travel_m": stop_at, "travel_m": travel,
-            "gap_m": stop_at - travel, "fell_m": float(start[2] - end[2]), "clearance_m": scene.clearance(),
+            "gap_m": stop_at - travel, "fell_m": float(start[2] - end[2]), "obstacle_contact_m": contact,
             "direction": d.tolist()}
+
+
+def wall_ok(r: dict, tol_m: float = 0.05) -> bool:
+    """Stopped by an obstacle (in contact with something other than the floor), never beyond the wall the centre line
+    meets (an obstacle beside that line may stop the capsule's body earlier), not sunk into the floor."""
+    return r["obstacle_contact_m"] < 0.02 and r["gap_m"] > -tol_m and r["fell_m"] < tol_m
