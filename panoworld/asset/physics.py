@@ -91,14 +91,19 @@ class BulletScene:
         return frac, normal
 
 
-def drop_test(scene: BulletScene, spawn: np.ndarray, drop_m: float = 0.3, seconds: float = 2.0) -> dict:
+def drop_test(scene: BulletScene, spawn: np.ndarray, drop_m: float = 0.3, seconds: float = 2.5) -> dict:
     """Drop the capsule from drop_m above the spawn; it must come to rest with its feet on the floor."""
     spawn = np.asarray(spawn, np.float64)
     scene.place(spawn + [0, 0, drop_m])
-    for _ in range(int(seconds * HZ)):
+    n, window = int(seconds * HZ), min(0.5, seconds / 2)
+    before = scene.feet()
+    for i in range(n):
         scene.step(np.zeros(2))
-    feet, v = scene.feet(), scene.velocity()
-    return {"rest_height_m": float(feet[2] - spawn[2]), "speed_m_s": float(np.linalg.norm(v)),
+        if i == n - int(window * HZ) - 1:
+            before = scene.feet()
+    feet = scene.feet()
+    # mean speed over the last 0.5 s: contacts on a triangle mesh jitter by a few mm/s from step to step
+    return {"rest_height_m": float(feet[2] - spawn[2]), "speed_m_s": float(np.linalg.norm(feet - before) / window),
             "drift_m": float(np.linalg.norm(feet[:2] - spawn[:2])), "clearance_m": scene.clearance()}
 
 
