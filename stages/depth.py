@@ -18,7 +18,7 @@ from panoworld.params import options, param
 from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "depth"
-VERSION = "2"
+VERSION = "3"
 ARTIFACT = "depth"
 INPUTS = {
     "panorama": Input("file", help="equirectangular RGB panorama (2:1)"),
