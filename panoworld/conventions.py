@@ -215,3 +215,11 @@ def ros_world_from_cam(world_from_cam: np.ndarray) -> np.ndarray:
 
 def world_from_ros_world() -> np.ndarray:
     return ROS_FROM_WORLD.T.copy()
+
+
+def asset_from_canonical(floor_y: float) -> np.ndarray:
+    """The simulation asset frame (USD, collider.obj): REP 103 axes (x forward = the panorama's centre column, y left,
+    z up) with the origin on the floor below the capture point (canonical (0, floor_y, 0))."""
+    t = np.eye(4)
+    t[2, 3] = float(floor_y)
+    return t @ ROS_FROM_WORLD

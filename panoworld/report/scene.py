@@ -15,7 +15,7 @@ import numpy as np
 from panoworld.io import read_json
 from panoworld.report import encode as enc
 from panoworld.report.page import Page, Section, figure, fmt, missing, slider, svg_figure, table
-from panoworld.report.topdown import PlanView, clearance_colors, mesh_from_above
+from panoworld.report.topdown import PlanView, clearance_colors, footprint_rings, mesh_from_above
 
 ARTIFACTS = "artifacts"
 ROAM_IMAGES = "report/roam"
@@ -238,6 +238,23 @@ def _load_mesh(scene: SceneData):
         return None, f"mesh unreadable: {e}"
 
 
+def _load_collider(scene: SceneData) -> tuple | None:
+    """The asset's collider.obj mapped back to the canonical frame, with the agent it was checked for."""
+    doc = scene.json("asset/asset.json") if scene.has("asset") else None
+    if not doc:
+        return None
+    import trimesh
+
+    from panoworld.conventions import invert_pose, transform_points
+
+    try:
+        m = trimesh.load(scene.dir("asset") / doc["collider"], process=False, force="mesh")
+    except (OSError, ValueError, KeyError):
+        return None
+    c_from_a = invert_pose(np.asarray(doc["asset_from_canonical"], np.float64))
+    return transform_points(c_from_a, np.asarray(m.vertices)), np.asarray(m.faces), doc.get("agent", {})
+
+
 @dataclass
 class _PlanLayers:
     mesh: object
@@ -246,6 +263,8 @@ class _PlanLayers:
     tdoc: dict
     tinfo: dict
     n_sectors: int
+    collider: tuple | None = None
+    """(vertices canonical, faces, agent dict) of the asset's collider.obj, when the asset stage ran."""
 
 
 def _draw_plan(view: PlanView, L: _PlanLayers, floor_y: float | None, reach_m: float, dot_r: float) -> list[str]:
@@ -263,6 +282,12 @@ def _draw_plan(view: PlanView, L: _PlanLayers, floor_y: float | None, reach_m: f
             view.triangles(np.asarray(L.nav["vertices"]), np.asarray(L.nav["triangles"]), "rgba(80,255,160,0.35)")
         view.polygon_rings(rings, "rgba(40,200,120,0.28)", "#3ee08f", "NavMesh (walkable, eroded by the agent radius)")
         legend.append('<span><i class="sw" style="background:#3ee08f"></i>NavMesh</span>')
+    if L.collider is not None and floor_y is not None:
+        v, f, agent = L.collider
+        band = (floor_y - float(agent.get("agent_height_m", 1.8)), floor_y - float(agent.get("step_height_m", 0.2)))
+        view.polygon_rings(footprint_rings(v, f, view, *band), "rgba(255,80,60,0.18)", "#ff5a3c",
+                           "collider (asset stage) in the agent's height band")
+        legend.append('<span><i class="sw" style="background:#ff5a3c"></i>collider (agent height band)</span>')
     if L.traj is None:
         return legend
     xz = L.traj[:, [0, 2], 3]
@@ -301,7 +326,7 @@ def section_plan(scene: SceneData, params: ReportParams) -> Section:
     notes = [note] if note else []
     notes += [f"{name}: not run" for name, x in (("navmesh", nav), ("trajectory", traj)) if x is None]
     n_sec = int((scene.manifest("trajectory") or {}).get("params", {}).get("sectors", 8))
-    layers = _PlanLayers(mesh, nav, traj, tdoc, scene.info("trajectory"), n_sec)
+    layers = _PlanLayers(mesh, nav, traj, tdoc, scene.info("trajectory"), n_sec, _load_collider(scene))
     floor_y = (nav or {}).get("floor_y", tdoc.get("floor_y"))
     ext = _plan_extent(scene, traj, nav)
     view = PlanView(ext, margin_m=0.6)
