@@ -1,4 +1,4 @@
-"""Issue #13 table: held-out video PSNR (all / disoccluded) of the untrained init, FM-only (rho = 1) in 4 and 20 steps
+"""End-to-end (historical issue #13 table): held-out video PSNR (all / disoccluded) of the untrained init, FM-only (rho = 1)
 and shortcut (rho = 0.75) in 4 steps, same training budget, on the tiny preset; plus data-loader throughput.
 
     python bench/bench_train_video.py --data COND_DIR --out BENCH_DIR [--clips 16] [--set KEY=VALUE]...

@@ -179,3 +179,17 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert train_main(["video", "--data", str(tmp_path), "--out", str(tmp_path / "r3"), "--set", "rho"]) == 2
     assert "--set rho: expected KEY=VALUE" in capsys.readouterr().err
     assert train_main([]) == 2 and "train {video,recon}" in capsys.readouterr().err
+
+
+def test_every_paper_preset_value_names_its_source():
+    from panoworld.train.video.config import MATRIX3D_LORA, PRESETS, SOURCES
+
+    for preset in ("paper", "tiny"):
+        missing = sorted(set(PRESETS[preset]) - set(SOURCES[preset]))
+        assert not missing, f"{preset} preset values without a source: {missing}"
+    # the defaults the paper preset inherits and that shape the weights carry a source too
+    for key in ("weight_decay", "warmup_steps", "grad_clip", "shortcut_levels", "teacher_decay"):
+        assert key not in PRESETS["paper"] and SOURCES["paper"][key]
+    assert all(s.startswith(("paper", "ours", "VGGT", "Wan", "torch", "Frans")) for s in SOURCES["paper"].values()
+               if s is not MATRIX3D_LORA)
+    assert "Wan2.1-I2V-14B" in SOURCES["paper"]["lora_init"]

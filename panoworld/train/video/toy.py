@@ -196,12 +196,19 @@ def train_stage(cfg: ToyConfig, base, data: ToyScenes, *, rho: float, seed: int)
     return tr.eval()
 
 
+def uniform_flow_schedule(steps: int, shift: float = 1.0) -> tuple[list[float], list[float]]:
+    """N equal steps 1 -> 0 (time-shifted like Wan's s' = shift s / (1 + (shift - 1) s)), step size 0 (plain flow).
+    Not diffusers' schedule: that one ends its linspace at sigma 1/1000, so its 2 steps are 1 -> 0.001 -> 0, one step."""
+    grid = [1.0 - i / steps for i in range(steps + 1)]
+    return [shift * s / (1 + (shift - 1) * s) for s in grid], [0.0] * steps
+
+
 @torch.no_grad()
 def sample(cfg: ToyConfig, tr, bt: dict, *, sampler: str, steps: int, seed: int) -> torch.Tensor:
     """Generated x (B, z, 2, H, W) for a batch's conditions with the video stage's samplers (frame 0 = anchor)."""
-    from panoworld.models.wan_shortcut import euler_sample, flow_schedule, shortcut_schedule
+    from panoworld.models.wan_shortcut import euler_sample, shortcut_schedule
 
-    sigmas, dts = shortcut_schedule(steps) if sampler == "shortcut" else flow_schedule(steps, cfg.flow_shift)
+    sigmas, dts = shortcut_schedule(steps) if sampler == "shortcut" else uniform_flow_schedule(steps, cfg.flow_shift)
     b = bt["x0"].shape[0]
     emb = prompt().expand(b, -1, -1)
 

@@ -1,0 +1,118 @@
+"""Few-step video generation on a multimodal disocclusion toy: FM-only vs shortcut training at 1, 2, 4 and 20 steps.
+
+    python bench/bench_train_video.py --quick [--json video.json]       # 2 seeds, <= 15 min on 2 idle cores
+    python bench/bench_train_video.py --full [--json video.json]        # 3 seeds, longer training, more clips
+    python bench/bench_train_video.py --quick --split val               # what tuning may look at (never test)
+
+The toy (panoworld/train/video/toy.py): frame 0 is a scene's panorama in latent space, frame 1 the same scene turned
+by a random yaw with a square disocclusion filled with one of `modes` plausible fills at random; the condition is frame
+1 with the hole masked out. Per seed: a tiny Wan transformer pre-trained with flow matching (the frozen base), then
+the paper's stage (LoRA + widened patch embedding + step-size embedding) trained twice on it with the same steps:
+FM only (rho = 1) and shortcut (rho = 0.75, EMA teacher), through panoworld.models.wan_training. Scenes: train, val
+and test from disjoint seed ranges. Metric: sliced Wasserstein distance between the generated hole contents and a
+fresh draw of the true fills on the same test conditions (lower is better; the blurry mean of the fills is far from
+every fill), plus PSNR of frame 1 against the drawn target (which rewards that mean) and the RMS distance to the
+nearest fill. FM-only samples with plain Euler steps on a uniform grid; the shortcut model with the shortcut sampler at
+1, 2 and 4 steps and, at 20 (not a power of two), with 20 plain flow steps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+MODES = {
+    "quick": {"seeds": (0, 1), "base_steps": 600, "steps": 600, "train": 256, "eval_scenes": 64, "clips": 256},
+    "full": {"seeds": (0, 1, 2), "base_steps": 2000, "steps": 2000, "train": 1024, "eval_scenes": 128, "clips": 512},
+}
+STEPS = (1, 2, 4, 20)
+
+
+def sampler_for(model: str, steps: int) -> str:
+    return "shortcut" if model == "shortcut" and steps & (steps - 1) == 0 else "flow"
+
+
+def run(mode_name: str, split: str) -> dict:
+    from panoworld.train.video import toy
+
+    mode = MODES[mode_name]
+    cfg = toy.ToyConfig(base_steps=mode["base_steps"], steps=mode["steps"])
+    rows, times = [], {}
+    train_seeds = toy.scene_seeds("train", mode["train"])
+    eval_seeds = toy.scene_seeds(split, mode["eval_scenes"])
+    assert not set(train_seeds) & set(eval_seeds)
+    train, held = toy.ToyScenes(cfg, train_seeds), toy.ToyScenes(cfg, eval_seeds)
+    for seed in mode["seeds"]:
+        c0 = time.process_time()
+        base = toy.train_base(cfg, train, seed)
+        models = {"fm-only": toy.train_stage(cfg, base, train, rho=1.0, seed=seed),
+                  "shortcut": toy.train_stage(cfg, base, train, rho=0.75, seed=seed)}
+        times[seed] = {"train_cpu_s": round(time.process_time() - c0, 1)}
+        for name, model in models.items():
+            for steps in STEPS:
+                sampler = sampler_for(name, steps)
+                r = toy.evaluate(cfg, model, held, sampler=sampler, steps=steps, clips=mode["clips"], seed=seed)
+                rows.append({"model": name, "steps": steps, "sampler": sampler, "value": r["swd"], "psnr": r["psnr"],
+                             "mode_error": r["mode_error"], "seed": seed, "split": split})
+                print(f"seed {seed} {name} {steps} steps ({sampler}): SWD {r['swd']:.4f}, PSNR {r['psnr']:.2f} dB, "
+                      f"distance to the nearest fill {r['mode_error']:.3f}", flush=True)
+        times[seed]["cpu_s"] = round(time.process_time() - c0, 1)
+    return {"metric": "sliced Wasserstein distance of disoccluded content to the true fills", "higher_is_better": False,
+            "mode": mode_name, "split": split, "rows": rows, "train_scenes": train_seeds,
+            f"{split}_scenes": eval_seeds, "clips": mode["clips"], "config": vars(cfg), "times": times}
+
+
+def summary(result: dict) -> str:
+    rows = result["rows"]
+    out = ["| model | steps | sampler | SWD (lower = better) | PSNR (dB) | distance to nearest fill | seeds |",
+           "| --- | --- | --- | --- | --- | --- | --- |"]
+    for model in ("fm-only", "shortcut"):
+        for steps in STEPS:
+            sel = [r for r in rows if r["model"] == model and r["steps"] == steps]
+            v = np.array([r["value"] for r in sel])
+            out.append(f"| {model} | {steps} | {sel[0]['sampler']} | {v.mean():.4f} ± {v.std():.4f} | "
+                       f"{np.mean([r['psnr'] for r in sel]):.2f} | {np.mean([r['mode_error'] for r in sel]):.3f} | "
+                       f"{len(sel)} |")
+    return "\n".join(out)
+
+
+def targets(result: dict) -> dict[str, bool]:
+    """The issue's 'done when', per seed: FM-20 beats FM-4; shortcut beats FM-only at 1 and 2 steps."""
+    v = {(r["model"], r["steps"], r["seed"]): r["value"] for r in result["rows"]}
+    seeds = sorted({r["seed"] for r in result["rows"]})
+    return {
+        "fm20_beats_fm4": all(v["fm-only", 20, s] < v["fm-only", 4, s] for s in seeds),
+        "shortcut_beats_fm_at_1": all(v["shortcut", 1, s] < v["fm-only", 1, s] for s in seeds),
+        "shortcut_beats_fm_at_2": all(v["shortcut", 2, s] < v["fm-only", 2, s] for s in seeds),
+        "shortcut_beats_fm_at_4": all(v["shortcut", 4, s] < v["fm-only", 4, s] for s in seeds),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    g = ap.add_mutually_exclusive_group(required=True)
+    g.add_argument("--quick", action="store_true")
+    g.add_argument("--full", action="store_true")
+    ap.add_argument("--split", choices=("test", "val"), default="test", help="held-out scenes scored")
+    ap.add_argument("--json", type=Path, help="write the rows here")
+    a = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    t0, c0 = time.perf_counter(), time.process_time()
+    result = run("quick" if a.quick else "full", a.split)
+    result.update(wall_s=round(time.perf_counter() - t0, 1), cpu_s=round(time.process_time() - c0, 1))
+    result["targets"] = targets(result)
+    print(f"\n{result['mode']}, {a.split} split: {result['wall_s']:.0f} s wall, {result['cpu_s']:.0f} s CPU\n")
+    print(summary(result))
+    print("\n" + ", ".join(f"{k}: {'met' if ok else 'NOT met'}" for k, ok in result["targets"].items()))
+    if a.json:
+        a.json.write_text(json.dumps(result, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
