@@ -1,0 +1,100 @@
+"""Rewrite the marked tables of docs/training.md from the --json outputs of the two training benches.
+
+    python bench/training_tables.py [--video video.json] [--recon recon.json] [--doc docs/training.md] [--check]
+
+Each JSON replaces the text between `<!-- BEGIN <name> -->` and `<!-- END <name> -->` where <name> is video-<mode> or
+recon-<mode> (mode: quick or full, from the JSON); --check exits 1 instead of writing when the file would change.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+
+DOC = Path(__file__).resolve().parent.parent / "docs" / "training.md"
+
+
+def video_table(d: dict) -> str:
+    rows = d["rows"]
+    split = d.get("split", "test")
+    seeds = sorted({r["seed"] for r in rows})
+    out = [f"`python bench/bench_train_video.py --{d['mode']} --json video.json` — {len(d['train_scenes'])} train "
+           f"scenes, {len(d[f'{split}_scenes'])} {split} scenes, {d['clips']} {split} clips per seed, seeds {seeds}; "
+           f"metric: {d['metric']} ({'higher' if d['higher_is_better'] else 'lower'} is better), mean ± std over "
+           f"seeds; {d['wall_s']:.0f} s wall, {d['cpu_s']:.0f} s CPU.", "",
+           "| model | steps | sampler | SWD | PSNR (dB) | distance to nearest fill |", "| --- | --- | --- | --- | --- | --- |"]
+    for model in ("fm-only", "shortcut"):
+        for steps in sorted({r["steps"] for r in rows}):
+            sel = [r for r in rows if r["model"] == model and r["steps"] == steps]
+            if not sel:
+                continue
+            v = np.array([r["value"] for r in sel])
+            out.append(f"| {model} | {steps} | {sel[0]['sampler']} | {v.mean():.4f} ± {v.std():.4f} | "
+                       f"{np.mean([r['psnr'] for r in sel]):.2f} | {np.mean([r['mode_error'] for r in sel]):.3f} |")
+    t = d.get("targets", {})
+    if t:
+        out += ["", "Per seed: " + "; ".join(f"{k.replace('_', ' ')}: {'met' if ok else '**not met**'}"
+                                            for k, ok in t.items()) + "."]
+    return "\n".join(out)
+
+
+def recon_table(d: dict) -> str:
+    disjoint = not (set(d["test_scenes"]) & (set(d["train_scenes"]) | set(d["val_scenes"])))
+    seeds = ", ".join(f"{k} {v}" for k, v in d["split_seeds"].items())
+    out = [f"`python bench/bench_train_recon.py --{d['mode']} --out WORK --json recon.json` — scenes by split "
+           f"(synth seeds {seeds}): {len(d['train_scenes'])} train / {len(d['val_scenes'])} val / "
+           f"{len(d['test_scenes'])} test, test disjoint from train and val: {'yes' if disjoint else '**no**'}; "
+           f"stage 1 {d['steps']['stage1']} steps, stage 2 {d['steps']['stage2']}; {d['wall_s']:.0f} s wall, "
+           f"{d['cpu_s']:.0f} s CPU.", "",
+           "| split | model | refine_iters | ATE (m) | RPE_t (m) | RPE_r (°) | depth AbsRel | novel PSNR (dB) |",
+           "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in sorted(d["rows"], key=lambda r: (r["split"] != "test", r["refine_iters"], r["model"] != "trained")):
+        label = "0 (paper)" if r["refine_iters"] == 0 else f"{r['refine_iters']} (not in the paper)"
+        nv = "–" if r["novel_psnr"] is None else f"{r['novel_psnr']:.2f}"
+        out.append(f"| {r['split']} | {r['model']} | {label} | {r['ate']:.4f} | {r['rpe_t']:.4f} | {r['rpe_r']:.2f} | "
+                   f"{r['abs_rel']:.3f} | {nv} |")
+    by = {(r["split"], r["model"], r["refine_iters"]): r for r in d["rows"]}
+    ratios = []
+    for split in ("test", "val"):
+        t, i = by.get((split, "trained", 0)), by.get((split, "init", 0))
+        if t and i:
+            ratios.append(f"{split}: init / trained ATE = {i['ate'] / t['ate']:.2f}x "
+                          f"({'meets' if t['ate'] <= i['ate'] / 3 else '**misses**'} the 3x target)")
+    return "\n".join(out + ["", "Feed-forward (refine_iters 0): " + "; ".join(ratios) + "."])
+
+
+def replace(doc: str, name: str, body: str) -> str:
+    pattern = re.compile(rf"(<!-- BEGIN {re.escape(name)} -->\n).*?(\n<!-- END {re.escape(name)} -->)", re.S)
+    if not pattern.search(doc):
+        raise SystemExit(f"{DOC}: no <!-- BEGIN {name} --> ... <!-- END {name} --> section; add the markers")
+    return pattern.sub(lambda m: m.group(1) + body + m.group(2), doc)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--video", type=Path, action="append", default=[], help="bench_train_video.py --json output")
+    ap.add_argument("--recon", type=Path, action="append", default=[], help="bench_train_recon.py --json output")
+    ap.add_argument("--doc", type=Path, default=DOC)
+    ap.add_argument("--check", action="store_true", help="exit 1 if the document is not up to date")
+    a = ap.parse_args(argv)
+    doc = old = a.doc.read_text()
+    for path in a.video:
+        d = json.loads(path.read_text())
+        doc = replace(doc, f"video-{d['mode']}", video_table(d))
+    for path in a.recon:
+        d = json.loads(path.read_text())
+        doc = replace(doc, f"recon-{d['mode']}", recon_table(d))
+    if a.check:
+        return int(doc != old)
+    a.doc.write_text(doc)
+    print(f"{a.doc}: {'updated' if doc != old else 'unchanged'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
