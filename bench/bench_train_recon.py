@@ -190,7 +190,8 @@ def table(rows: list[dict], keys: list[str]) -> str:
 MODES = {
     # scenes per split, the synth seed of each split (test: a seed no earlier run has seen), stage steps
     "quick": {"train": 40, "val": 6, "test": 8, "seeds": (7, 8, 2026), "steps1": 3000, "steps2": 100, "s2_scenes": 4},
-    "full": {"train": 168, "val": 12, "test": 24, "seeds": (7, 8, 2026), "steps1": 12000, "steps2": 500, "s2_scenes": 8},
+    "full": {"train": 168, "val": 12, "test": 24, "seeds": (7, 8, 2026), "steps1": 12000, "steps2": 500,
+             "s2_scenes": 8},
 }
 SYNTH_FRAMES = 24
 REFINE = 20
@@ -212,10 +213,11 @@ def build_split(work: Path, mode: dict, resume: bool) -> dict[str, list[int]]:
             raise SystemExit(f"scene seeds of {a} and {b} overlap; pick other split seeds")
     for split, s in zip(("train", "val", "test"), mode["seeds"]):
         d = work / split
-        if not (resume and len(list_scenes_or_none(d)) == mode[split]):
-            if synth([str(d), "--seed", str(s), "--scenes", str(mode[split]), "--preset", "ci-tiny",
-                      "--frames", str(SYNTH_FRAMES)]) != 0:
-                raise SystemExit(f"synth {d} failed")
+        done = resume and len(list_scenes_or_none(d)) == mode[split]
+        args = [str(d), "--seed", str(s), "--scenes", str(mode[split]), "--preset", "ci-tiny",
+                "--frames", str(SYNTH_FRAMES)]
+        if not done and synth(args) != 0:
+            raise SystemExit(f"synth {d} failed")
     tv = work / "trainval"
     tv.mkdir(parents=True, exist_ok=True)
     for split in ("train", "val"):
@@ -273,8 +275,8 @@ def novel_psnr(model: PanoVGGT, data: SceneFrames, views: int) -> float:
 def split_rows(models: dict[str, PanoVGGT], heads: dict[str, PanoVGGT | None], data: SceneFrames, split: str,
                frames: int, s2_scenes: int, views: int) -> list[dict]:
     """One row per (model, refine_iters) on one split: metrics averaged over every track."""
-    per_track = stage1_rows({f"{m}|{r}": with_refinement(model, r) for m, model in models.items() for r in (0, REFINE)},
-                            data, frames, colmap_scenes=0, colmap_height=0)
+    variants = {f"{m}|{r}": with_refinement(model, r) for m, model in models.items() for r in (0, REFINE)}
+    per_track = stage1_rows(variants, data, frames, colmap_scenes=0, colmap_height=0)
     sub = SceneFrames([sc.root for sc in data.scenes[:s2_scenes]], data.height)
     rows = []
     for m in models:

@@ -23,11 +23,13 @@ def video_table(d: dict) -> str:
     rows = d["rows"]
     split = d.get("split", "test")
     seeds = sorted({r["seed"] for r in rows})
-    out = [f"`python bench/bench_train_video.py --{d['mode']} --json video.json` — {len(d['train_scenes'])} train "
-           f"scenes, {len(d[f'{split}_scenes'])} {split} scenes, {d['clips']} {split} clips per seed, seeds {seeds}; "
-           f"metric: {d['metric']} ({'higher' if d['higher_is_better'] else 'lower'} is better), mean ± std over "
-           f"seeds; {d['wall_s']:.0f} s wall, {d['cpu_s']:.0f} s CPU.", "",
-           "| model | steps | sampler | SWD | PSNR (dB) | distance to nearest fill |", "| --- | --- | --- | --- | --- | --- |"]
+    better = "higher" if d["higher_is_better"] else "lower"
+    head = (f"`python bench/bench_train_video.py --{d['mode']} --json video.json` — {len(d['train_scenes'])} train "
+            f"scenes, {len(d[f'{split}_scenes'])} {split} scenes, {d['clips']} {split} clips per seed, seeds {seeds}; "
+            f"metric: {d['metric']} ({better} is better), mean ± std over seeds; {d['wall_s']:.0f} s wall, "
+            f"{d['cpu_s']:.0f} s CPU.")
+    out = [head, "", "| model | steps | sampler | SWD | PSNR (dB) | distance to nearest fill |",
+           "| --- | --- | --- | --- | --- | --- |"]
     for model in ("fm-only", "shortcut"):
         for steps in sorted({r["steps"] for r in rows}):
             sel = [r for r in rows if r["model"] == model and r["steps"] == steps]
@@ -46,11 +48,12 @@ def video_table(d: dict) -> str:
 def recon_table(d: dict) -> str:
     disjoint = not (set(d["test_scenes"]) & (set(d["train_scenes"]) | set(d["val_scenes"])))
     seeds = ", ".join(f"{k} {v}" for k, v in d["split_seeds"].items())
-    out = [f"`python bench/bench_train_recon.py --{d['mode']} --out WORK --json recon.json` — scenes by split "
-           f"(synth seeds {seeds}): {len(d['train_scenes'])} train / {len(d['val_scenes'])} val / "
-           f"{len(d['test_scenes'])} test, test disjoint from train and val: {'yes' if disjoint else '**no**'}; "
-           f"stage 1 {d['steps']['stage1']} steps, stage 2 {d['steps']['stage2']}; {d['wall_s']:.0f} s wall, "
-           f"{d['cpu_s']:.0f} s CPU.", "",
+    head = (f"`python bench/bench_train_recon.py --{d['mode']} --out WORK --json recon.json` — scenes by split "
+            f"(synth seeds {seeds}): {len(d['train_scenes'])} train / {len(d['val_scenes'])} val / "
+            f"{len(d['test_scenes'])} test, test disjoint from train and val: {'yes' if disjoint else '**no**'}; "
+            f"stage 1 {d['steps']['stage1']} steps, stage 2 {d['steps']['stage2']}; {d['wall_s']:.0f} s wall, "
+            f"{d['cpu_s']:.0f} s CPU.")
+    out = [head, "",
            "| split | model | refine_iters | ATE (m) | RPE_t (m) | RPE_r (°) | depth AbsRel | novel PSNR (dB) |",
            "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in sorted(d["rows"], key=lambda r: (r["split"] != "test", r["refine_iters"], r["model"] != "trained")):
@@ -69,7 +72,7 @@ def recon_table(d: dict) -> str:
 
 
 def replace(doc: str, name: str, body: str) -> str:
-    pattern = re.compile(rf"(<!-- BEGIN {re.escape(name)} -->\n).*?(\n<!-- END {re.escape(name)} -->)", re.S)
+    pattern = re.compile(rf"(<!-- BEGIN {re.escape(name)} -->\n).*?(\n<!-- END {re.escape(name)} -->)", re.DOTALL)
     if not pattern.search(doc):
         raise SystemExit(f"{DOC}: no <!-- BEGIN {name} --> ... <!-- END {name} --> section; add the markers")
     return pattern.sub(lambda m: m.group(1) + body + m.group(2), doc)

@@ -199,7 +199,7 @@ def train_stage(cfg: ToyConfig, base, data: ToyScenes, *, rho: float, seed: int)
 
 def uniform_flow_schedule(steps: int, shift: float = 1.0) -> tuple[list[float], list[float]]:
     """N equal steps 1 -> 0 (time-shifted like Wan's s' = shift s / (1 + (shift - 1) s)), step size 0 (plain flow).
-    Not diffusers' schedule: that one ends its linspace at sigma 1/1000, so its 2 steps are 1 -> 0.001 -> 0, one step."""
+    Not diffusers' schedule: its linspace ends at sigma 1/1000, so its 2 steps are 1 -> 0.001 -> 0, one step."""
     grid = [1.0 - i / steps for i in range(steps + 1)]
     return [shift * s / (1 + (shift - 1) * s) for s in grid], [0.0] * steps
 
