@@ -1,7 +1,7 @@
 """End-to-end (historical issue #13 table): held-out video PSNR (all / disoccluded) of the untrained init, FM-only (rho = 1)
 and shortcut (rho = 0.75) in 4 steps, same training budget, on the tiny preset; plus data-loader throughput.
 
-    python bench/bench_train_video.py --data COND_DIR --out BENCH_DIR [--clips 16] [--set KEY=VALUE]...
+    python bench/bench_train_video_e2e.py --data COND_DIR --out BENCH_DIR [--clips 16] [--set KEY=VALUE]...
 
 COND_DIR: a precompute output, e.g.
     python runner.py synth data --seed 100 --scenes 40 --preset ci-tiny --frames 49
