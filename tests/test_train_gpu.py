@@ -10,20 +10,11 @@ import torch
 pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]
 
 
-@pytest.fixture(scope="module")
-def cond_dir(synth_dataset, tmp_path_factory):
-    from panoworld.precompute import main as precompute_main
+def _video_sets(accelerate: bool) -> list[str]:
+    from tests.test_train_video import TINY_SETS
 
-    out = tmp_path_factory.mktemp("cond") / "cond"
-    assert precompute_main([str(synth_dataset), "--out", str(out), "--clips-per-scene", "2", "--frames", "5",
-                            "--strides", "1", "--height", "32", "--workers", "1", "--json"]) == 0
-    return out
-
-
-VIDEO_SETS = ["frames=5", "height=32", "vae_steps=2", "base_steps=2", "steps=4", "checkpoint_every=2", "log_every=1",
-              "val_every=2", "val_clips=1", "val_sample_clips=1", "batch_size=1", "tiny_layers=1", "tiny_heads=2",
-              "tiny_z=4", "lora_rank=2", "lora_alpha=2", "val_fraction=0.34", "device=cuda", "mixed_precision=bf16",
-              "grad_checkpointing=true"]
+    return [*TINY_SETS, "device=cuda", "mixed_precision=bf16", "grad_checkpointing=true",
+            f"use_accelerate={str(accelerate).lower()}"]
 
 
 @pytest.mark.parametrize("accelerate", [False, True])
@@ -37,8 +28,7 @@ def test_video_trainer_bf16_on_cuda(cond_dir, tmp_path, accelerate):
     from panoworld.train.video.config import PRESETS, VideoTrainConfig
     from panoworld.train.video.trainer import VideoTrainer
 
-    sets = [*VIDEO_SETS, f"use_accelerate={str(accelerate).lower()}"]
-    cfg = resolve_config(VideoTrainConfig, PRESETS, "tiny", sets)
+    cfg = resolve_config(VideoTrainConfig, PRESETS, "tiny", _video_sets(accelerate))
     trainer = VideoTrainer(cond_dir, tmp_path / "run", cfg, progress=False)
     summary = trainer.run()
     assert trainer.device.type == "cuda"

@@ -99,16 +99,6 @@ def test_scene_split_is_by_scene_and_stable():
     assert split_scenes(["a", "b"], 0.01)[1] != []  # at least one held-out scene
 
 
-@pytest.fixture(scope="module")
-def cond_dir(synth_dataset, tmp_path_factory):
-    from panoworld.precompute import main as precompute_main
-
-    out = tmp_path_factory.mktemp("cond") / "cond"
-    assert precompute_main([str(synth_dataset), "--out", str(out), "--clips-per-scene", "2", "--frames", "5",
-                            "--strides", "1", "--height", "32", "--workers", "1", "--json"]) == 0
-    return out
-
-
 TINY_SETS = ["frames=5", "height=32", "vae_steps=2", "base_steps=2", "steps=4", "checkpoint_every=2", "log_every=1",
              "val_every=2", "val_clips=1", "val_sample_clips=1", "batch_size=1", "tiny_layers=1", "tiny_heads=2",
              "tiny_z=4", "lora_rank=2", "lora_alpha=2", "val_fraction=0.34"]
