@@ -38,6 +38,9 @@ def video_table(d: dict) -> str:
             v = np.array([r["value"] for r in sel])
             out.append(f"| {model} | {steps} | {sel[0]['sampler']} | {v.mean():.4f} ± {v.std():.4f} | "
                        f"{np.mean([r['psnr'] for r in sel]):.2f} | {np.mean([r['mode_error'] for r in sel]):.3f} |")
+    if "floor" in d:
+        out += ["", f"SWD between two independent draws of the true fills ({d['clips']} each): {d['floor']:.4f} "
+                    "(what a perfect sampler scores)."]
     t = d.get("targets", {})
     if t:
         out += ["", "Per seed: " + "; ".join(f"{k.replace('_', ' ')}: {'met' if ok else '**not met**'}"

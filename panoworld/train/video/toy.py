@@ -242,6 +242,18 @@ def evaluate(cfg: ToyConfig, tr, data: ToyScenes, *, sampler: str, steps: int, c
             "mode_error": float(np.mean(_nearest_mode_distance(gen, data.fills.flatten(1))))}
 
 
+def swd_floor(cfg: ToyConfig, clips: int, seed: int = 0) -> float:
+    """SWD between two independent draws of `clips` true fills: what a perfect sampler scores at this sample size."""
+    g = torch.Generator().manual_seed(seed + 555)
+    f = fills(cfg)
+
+    def draw() -> torch.Tensor:
+        ref = f[torch.randint(0, cfg.modes, (clips,), generator=g)]
+        return (ref + cfg.jitter * torch.randn(ref.shape, generator=g)).flatten(1)
+
+    return sliced_wasserstein(draw(), draw())
+
+
 def _nearest_mode_distance(gen: torch.Tensor, modes: torch.Tensor) -> np.ndarray:
     """RMS distance of each generated hole to its nearest plausible fill (0 = on a mode; the mean of modes is far)."""
     d = torch.cdist(gen.double(), modes.double()) / math.sqrt(gen.shape[1])
