@@ -48,6 +48,39 @@ def video_table(d: dict) -> str:
     return "\n".join(out)
 
 
+def merge_video(results: list[dict]) -> dict[str, dict]:
+    """One result per mode: the rows of every file of that mode (e.g. one seed per process); wall = the longest run,
+    CPU = the sum, targets recomputed over all seeds."""
+    merged: dict[str, dict] = {}
+    for d in results:
+        m = merged.get(d["mode"])
+        if m is None:
+            merged[d["mode"]] = dict(d, rows=list(d["rows"]))
+            continue
+        if m["train_scenes"] != d["train_scenes"] or m.get("split") != d.get("split"):
+            raise SystemExit(f"video JSON files of mode {d['mode']} differ in their scenes or split; not merged")
+        seen = {r["seed"] for r in m["rows"]}
+        m["rows"] += [r for r in d["rows"] if r["seed"] not in seen]
+        m["wall_s"], m["cpu_s"] = max(m["wall_s"], d["wall_s"]), m["cpu_s"] + d["cpu_s"]
+    for m in merged.values():
+        m["targets"] = targets(m["rows"])
+    return merged
+
+
+def targets(rows: list[dict]) -> dict[str, bool]:
+    """The issue's 'done when', for every seed: FM-20 beats FM-4; shortcut beats FM-only at 1 and 2 (and 4) steps."""
+    v = {(r["model"], r["steps"], r["seed"]): r["value"] for r in rows}
+    seeds = sorted({r["seed"] for r in rows})
+
+    def beats(a: tuple, b: tuple) -> bool:
+        return all((*a, s) in v and (*b, s) in v and v[(*a, s)] < v[(*b, s)] for s in seeds)
+
+    return {"fm20_beats_fm4": beats(("fm-only", 20), ("fm-only", 4)),
+            "shortcut_beats_fm_at_1": beats(("shortcut", 1), ("fm-only", 1)),
+            "shortcut_beats_fm_at_2": beats(("shortcut", 2), ("fm-only", 2)),
+            "shortcut_beats_fm_at_4": beats(("shortcut", 4), ("fm-only", 4))}
+
+
 def recon_table(d: dict) -> str:
     disjoint = not (set(d["test_scenes"]) & (set(d["train_scenes"]) | set(d["val_scenes"])))
     seeds = ", ".join(f"{k} {v}" for k, v in d["split_seeds"].items())
@@ -89,9 +122,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--check", action="store_true", help="exit 1 if the document is not up to date")
     a = ap.parse_args(argv)
     doc = old = a.doc.read_text()
-    for path in a.video:
-        d = json.loads(path.read_text())
-        doc = replace(doc, f"video-{d['mode']}", video_table(d))
+    for mode, d in merge_video([json.loads(path.read_text()) for path in a.video]).items():
+        doc = replace(doc, f"video-{mode}", video_table(d))
     for path in a.recon:
         d = json.loads(path.read_text())
         doc = replace(doc, f"recon-{d['mode']}", recon_table(d))
