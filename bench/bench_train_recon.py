@@ -289,8 +289,9 @@ def split_rows(models: dict[str, PanoVGGT], heads: dict[str, PanoVGGT | None], d
     return rows
 
 
-def bench(mode_name: str, work: Path, resume: bool, seed: int, frames: int, views: int) -> dict:
-    mode = MODES[mode_name]
+def bench(mode_name: str, work: Path, resume: bool, seed: int, frames: int, views: int,
+          stage2: bool = True) -> dict:
+    mode = dict(MODES[mode_name], **({} if stage2 else {"steps2": 0}))
     t0, c0 = time.perf_counter(), time.process_time()
     seeds = build_split(work, mode, resume)
     w1, w2 = train(work, mode, resume)
@@ -327,6 +328,7 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--data", type=Path, help="evaluate given exports on the last --held-out scenes of this dataset")
     p.add_argument("--out", type=Path, help="--quick/--full: the work directory (data, runs)")
     p.add_argument("--resume", action="store_true", help="--quick/--full: reuse finished data and runs in --out")
+    p.add_argument("--no-stage2", action="store_true", help="--quick/--full: stage 1 only (novel PSNR not scored)")
     p.add_argument("--held-out", type=int, default=4, help="the last K scenes of --data (a run's val split)")
     p.add_argument("--stage1", type=Path, help="stage-1 export (weights dir)")
     p.add_argument("--stage2", type=Path, help="stage-2 export (weights dir)")
@@ -345,7 +347,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick or args.full:
         if args.out is None:
             p.error("--quick/--full need --out WORK_DIR")
-        result = bench("quick" if args.quick else "full", args.out, args.resume, args.seed, args.frames, args.views)
+        result = bench("quick" if args.quick else "full", args.out, args.resume, args.seed, args.frames, args.views,
+                       stage2=not args.no_stage2)
         print_rows(result)
         if args.json:
             args.json.write_text(json.dumps(result, indent=1))
