@@ -27,7 +27,9 @@ def video_table(d: dict) -> str:
     head = (f"`python bench/bench_train_video.py --{d['mode']} --json video.json` — {len(d['train_scenes'])} train "
             f"scenes, {len(d[f'{split}_scenes'])} {split} scenes, {d['clips']} {split} clips per seed, seeds {seeds}; "
             f"metric: {d['metric']} ({better} is better), mean ± std over seeds; {d['wall_s']:.0f} s wall, "
-            f"{d['cpu_s']:.0f} s CPU.")
+            f"{d['cpu_s']:.0f} s CPU")
+    n = d.get("processes", 1)
+    head += f" (run as {n} processes side by side, one `--seeds` each, merged)." if n > 1 else "."
     out = [head, "", "| model | steps | sampler | SWD | PSNR (dB) | distance to nearest fill |",
            "| --- | --- | --- | --- | --- | --- |"]
     for model in ("fm-only", "shortcut"):
@@ -55,13 +57,14 @@ def merge_video(results: list[dict]) -> dict[str, dict]:
     for d in results:
         m = merged.get(d["mode"])
         if m is None:
-            merged[d["mode"]] = dict(d, rows=list(d["rows"]))
+            merged[d["mode"]] = dict(d, rows=list(d["rows"]), processes=1)
             continue
         if m["train_scenes"] != d["train_scenes"] or m.get("split") != d.get("split"):
             raise SystemExit(f"video JSON files of mode {d['mode']} differ in their scenes or split; not merged")
         seen = {r["seed"] for r in m["rows"]}
         m["rows"] += [r for r in d["rows"] if r["seed"] not in seen]
         m["wall_s"], m["cpu_s"] = max(m["wall_s"], d["wall_s"]), m["cpu_s"] + d["cpu_s"]
+        m["processes"] += 1
     for m in merged.values():
         m["targets"] = targets(m["rows"])
     return merged
