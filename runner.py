@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from panoworld import pipeline as pl
+from panoworld.errors import PanoWorldError
 
 
 def _add_run_args(p: argparse.ArgumentParser) -> None:
@@ -32,10 +33,12 @@ def _print_report(report: pl.Report, as_json: bool) -> int:
         print(json.dumps(report.as_dict(), indent=2))
     else:
         print(report.table())
-    for r in report.results:
-        if r.action == "failed":
-            print(f"error: stage {r.stage} failed: {r.reason}", file=sys.stderr)
-    return 0 if report.ok else 1
+    failed = [r for r in report.results if r.action == "failed"]
+    for r in failed:
+        print(f"error: stage {r.stage} failed: {r.reason}", file=sys.stderr)
+    if not failed:
+        return 0
+    return 2 if all(r.bad_input for r in failed) else 1
 
 
 def cmd_run(args) -> int:
@@ -194,9 +197,9 @@ def main(argv: list[str] | None = None) -> int:
             return getattr(importlib.import_module(module), func)(argv[1:])
         args = build_parser().parse_args(argv)
         return args.func(args)
-    except pl.PipelineError as e:
+    except PanoWorldError as e:
         print(f"error: {e}", file=sys.stderr)
-        return 2
+        return e.exit_code
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

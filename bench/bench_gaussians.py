@@ -20,11 +20,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld.gaussians import FusionParams, uniform_subset, voxel_fusion  # noqa: E402
-from panoworld.metrics import psnr, ssim, ws_psnr  # noqa: E402
-from panoworld.render_gs import render_erp  # noqa: E402
-from panoworld.stage import params_from_dict  # noqa: E402
-from panoworld.synth import generate_scene  # noqa: E402
+from panoworld.gaussians import FusionParams, uniform_subset, voxel_fusion
+from panoworld.metrics import psnr, ssim, ws_psnr
+from panoworld.render_gs import render_erp
+from panoworld.stage import params_from_dict
+from panoworld.synth import generate_scene
 
 
 def evaluate(gaussians, poses, frames, H):

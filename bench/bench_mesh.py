@@ -12,11 +12,11 @@ from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld.conventions import erp_dirs, erp_pixel_from_dir, invert_pose, transform_points  # noqa: E402
-from panoworld.mesh import ErpMesh, erp_mesh_from_depth  # noqa: E402
-from panoworld.metrics import psnr  # noqa: E402
-from panoworld.raycast import Raycaster  # noqa: E402
-from panoworld.synth import generate_scene  # noqa: E402
+from panoworld.conventions import erp_dirs, erp_pixel_from_dir, invert_pose, transform_points
+from panoworld.mesh import ErpMesh, erp_mesh_from_depth
+from panoworld.metrics import psnr
+from panoworld.raycast import Raycaster
+from panoworld.synth import generate_scene
 
 
 def true_disocclusion(points_ref: np.ndarray, depth_ref: np.ndarray, rel_tol: float = 0.02, abs_tol: float = 0.02):

@@ -16,8 +16,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld import pipeline as pl  # noqa: E402
-from panoworld.evaluate import EvalParams, evaluate, is_unavailable  # noqa: E402
+from panoworld import pipeline as pl
+from panoworld.evaluate import EvalParams, evaluate, is_unavailable
 
 REPO = Path(__file__).resolve().parent.parent
 REAL = REPO.parent / "shared" / "data" / "real" / "realsee3d_assets"
@@ -25,7 +25,7 @@ REAL_SCENES = {"realsee-real": ("panoImage_real.jpg", "depth_real_raw_units_floa
                "realsee-synthetic": ("panoImage_synthesis.jpg", "depth_synthetic_raw_units_float32.npy")}
 # Full size: COLMAP's defaults (SIFT on the frames as stored, upsampled first octave, 8192 features, incremental
 # mapper) and Gaussians fused from the frames as stored.
-FULL_SETS = ["poses.max_image_size=0", "poses.max_features=8192", "poses.upsample_features=true", "poses.mapper=incremental",
+FULL_SETS = ["poses.colmap.max_image_size=0", "poses.colmap.max_features=8192", "poses.colmap.upsample_features=true", "poses.colmap.mapper=incremental",
              "gaussians.max_height=0"]
 
 
@@ -73,7 +73,7 @@ def fidelity(scene: Path) -> dict:
     if (scene / "gt" / "gt.json").is_file():
         res, _ = evaluate(scene, EvalParams(), stages=["poses", "gaussians"])
         p, g = res["stages"]["poses"], res["stages"]["gaussians"]
-        val = lambda d, k: None if d.get(k) is None or is_unavailable(d.get(k)) else d[k]  # noqa: E731
+        val = lambda d, k: None if d.get(k) is None or is_unavailable(d.get(k)) else d[k]
         out.update(ate_gt_mm=None if val(p, "ate") is None else 1000 * p["ate"], context_psnr=val(g, "context_psnr"),
                    novel_psnr=val(g, "novel_psnr"), gs_setting=g.get("setting"))
     return out
@@ -91,7 +91,7 @@ def print_rows(name: str, rows: list[dict], total: float) -> None:
 
 
 def print_fidelity(f: dict) -> None:
-    fmt = lambda v, p=2: "n/a" if v is None else f"{v:.{p}f}" if isinstance(v, float) else str(v)  # noqa: E731
+    fmt = lambda v, p=2: "n/a" if v is None else f"{v:.{p}f}" if isinstance(v, float) else str(v)
     print(f"  fidelity: registered {fmt(f.get('registered'))}, ATE vs plan {fmt(f.get('ate_plan_mm'), 3)} mm, "
           f"ATE vs GT {fmt(f.get('ate_gt_mm'), 3)} mm, Gaussians {fmt(f.get('num_gaussians'))}, context PSNR "
           f"{fmt(f.get('context_psnr'))} dB, novel PSNR {fmt(f.get('novel_psnr'))} dB ({fmt(f.get('gs_setting'))}), "

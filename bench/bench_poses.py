@@ -15,9 +15,9 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld.conventions import invert_pose  # noqa: E402
-from panoworld.poses import write_depth_png  # noqa: E402
-from panoworld.stage import execute_stage, load_stage, params_from_dict  # noqa: E402
+from panoworld.conventions import invert_pose
+from panoworld.poses import write_depth_png
+from panoworld.stage import execute_stage, load_stage, params_from_dict
 
 
 def generate(seed: int, frames: int):

@@ -8,7 +8,8 @@ way the Realsee3D README assets come (panoImage_*.jpg + depth_image*.png: each p
 synthetic failure classes of panoworld.synth.failure_cases at 256x512, and an 8192x4096 panorama (the synthetic
 scene upsampled: checks the depth stage's resolution policy keeps every stage under 8 GiB). Prints per scene:
 stages ok, seconds, peak MB (largest stage), NavMesh area, start-off-NavMesh distance, exempt poses, min
-clearance (against the scene mesh), sectors covered/reachable, the Gaussians' context PSNR.
+clearance (against the scene mesh), sectors covered/reachable, the Gaussians' context PSNR; then what was decided
+for no room to move, depth outliers and a start off the NavMesh (issue #24).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from panoworld import pipeline as pl  # noqa: E402
+from panoworld import pipeline as pl
 
 REAL = REPO.parent / "shared" / "data" / "real" / "realsee3d_assets"
 PAIRS = {"realsee_real": ("panoImage_real.jpg", "depth_image.png"),
@@ -67,6 +68,14 @@ def huge_scene(work: Path) -> Path:
     return d
 
 
+def stage_info(scene: Path, stage: str) -> dict:
+    """A stage's manifest `info` ({} when it has not run)."""
+    try:
+        return json.loads((scene / "artifacts" / stage / "manifest.json").read_text())["info"]
+    except (OSError, KeyError, ValueError):
+        return {}
+
+
 def measure(scene: Path, until: str) -> dict:
     t0 = time.perf_counter()
     try:
@@ -83,10 +92,7 @@ def measure(scene: Path, until: str) -> dict:
            "failed": f"{failed[0].stage}: {failed[0].reason[:160]}" if failed else ""}
 
     def info(stage):
-        try:
-            return json.loads((scene / "artifacts" / stage / "manifest.json").read_text())["info"]
-        except (OSError, KeyError, ValueError):
-            return {}
+        return stage_info(scene, stage)
 
     nav, traj, gs = info("navmesh"), info("trajectory"), info("gaussians")
     min_clear = None
@@ -101,6 +107,35 @@ def measure(scene: Path, until: str) -> dict:
                psnr=gs.get("context_psnr"), assumed=(nav.get("assumed_walkable") or {}).get("assumed_m2"),
                decisions="; ".join(info("depth").get("decisions", [])))
     return row
+
+
+def hostile_decisions(scene: Path) -> dict:
+    """What the pipeline decided for the issue #24 classes (closet, depth outliers, a start off the NavMesh)."""
+    dep, nav, traj = (stage_info(scene, s) for s in ("depth", "navmesh", "trajectory"))
+    out = dep.get("outliers") or {}
+    nr = nav.get("no_room") or {}
+    return {
+        "scene": scene.name,
+        "no_room": f"{nr['decision']} (r {nr['requested_agent_radius_m']} -> {nr['agent_radius_m']} m)" if nr else "-",
+        "rotation_only": traj.get("rotation_only"),
+        "outliers": f"{out.get('far_px', 0)} far + {out.get('spike_px', 0)} spikes" if out else "-",
+        "max_depth": f"{out['max_depth_before']:.4g} -> {out['max_depth_after']:.4g}" if out.get("max_depth_after") else "-",
+        "area": nav.get("area_m2"),
+        "off": traj.get("start_off_navmesh_m"),
+        "approach": (traj.get("plan") or {}).get("approach_steps"),
+        "frames": traj.get("frames"),
+    }
+
+
+def print_hostile_table(scenes: list[Path]) -> None:
+    """The issue #24 table: per scene, what was decided for no room to move, depth outliers and the approach."""
+    head = ("scene", "no room to move: decision", "rotation only", "depth outliers masked", "max depth before -> after",
+            "NavMesh m2", "start off m", "approach steps / frames")
+    print("\n| " + " | ".join(head) + " |\n|" + "---|" * len(head))
+    for s in scenes:
+        r = hostile_decisions(s)
+        print("| " + " | ".join([r["scene"], r["no_room"], fmt(r["rotation_only"]), r["outliers"], r["max_depth"],
+                                 fmt(r["area"]), fmt(r["off"]), f"{fmt(r['approach'])} / {fmt(r['frames'])}"]) + " |")
 
 
 def fmt(v, spec=".2f"):
@@ -147,6 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         cells = (r["scene"], r["ok"], fmt(r["seconds"], ".0f"), fmt(r["peak_mb"], ".0f"), fmt(r["area"]),
                  fmt(r["assumed"]), fmt(r["off"]), fmt(r["exempt"]), fmt(r["min_clear"]), r["sectors"], fmt(r["psnr"]))
         print("| " + " | ".join(cells) + " |")
+    print_hostile_table(scenes)
     bad = [r for r in rows if r["failed"] or (r["min_clear"] is not None and r["min_clear"] < r["radius"] - 1e-9)]
     return 1 if bad else 0
 

@@ -19,8 +19,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld.gaussians import Gaussians  # noqa: E402
-from panoworld.render_gs import render_erp, render_perspective  # noqa: E402
+from panoworld.gaussians import Gaussians
+from panoworld.render_gs import render_erp, render_perspective
 
 
 def room_surfels(n: int, seed: int = 0) -> Gaussians:

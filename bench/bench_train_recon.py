@@ -120,7 +120,7 @@ def colmap_row(scene: DatasetScene, track: int, idx: np.ndarray, gt: np.ndarray,
             cv2.imwrite(str(paths[-1]), rgb[..., ::-1])
         try:
             est = colmap_estimate(paths, gt)
-        except Exception as e:  # noqa: BLE001 - report, do not hide, a failed baseline
+        except Exception as e:  # report, do not hide, a failed baseline
             return {"error": f"{type(e).__name__}: {e}"[:200]}
     reg = np.asarray(est.registered, bool)
     tm = trajectory_metrics(est.raw[reg], gt[reg]) if reg.sum() >= 3 else {"ate": np.nan, "rpe_t": np.nan, "rpe_r": np.nan}
@@ -160,9 +160,9 @@ def stage2_rows(models: dict[str, PanoVGGT], data: SceneFrames, views: int, voxe
             gt_geo = (torch.from_numpy(np.stack([dep[int(i)] for i in ctx])), torch.from_numpy(rel[ctx]))
             methods = {}
             for name, model in models.items():
-                methods[f"{name} (gt geometry)"] = lambda m=model: m.gaussians(img, *gt_geo)["gaussians"].numpy()
-                methods[f"{name} (predicted geometry)"] = lambda m=model: m.gaussians(img)["gaussians"].numpy()
-            methods["voxel-fusion (gt geometry)"] = lambda: voxel_fusion(
+                methods[f"{name} (gt geometry)"] = lambda m=model, img=img, gt_geo=gt_geo: m.gaussians(img, *gt_geo)["gaussians"].numpy()
+                methods[f"{name} (predicted geometry)"] = lambda m=model, img=img: m.gaussians(img)["gaussians"].numpy()
+            methods["voxel-fusion (gt geometry)"] = lambda c_rgb=c_rgb, gt_geo=gt_geo, rel=rel, ctx=ctx: voxel_fusion(
                 zip(c_rgb, gt_geo[0].numpy(), rel[ctx]), FusionParams(voxel_size=voxel_size)).gaussians
             for name, make in methods.items():
                 t0 = time.process_time()

@@ -15,13 +15,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld import inpaint  # noqa: E402
-from panoworld import pipeline as pl  # noqa: E402
-from panoworld.conditions import load_conditions  # noqa: E402
-from panoworld.mesh import load_erp_mesh  # noqa: E402
-from panoworld.metrics import reprojection_error, ssim_map, video_psnr  # noqa: E402
-from panoworld.synth import generate_scene  # noqa: E402
-from panoworld.trajectory import load_trajectory  # noqa: E402
+from panoworld import inpaint
+from panoworld import pipeline as pl
+from panoworld.conditions import load_conditions
+from panoworld.mesh import load_erp_mesh
+from panoworld.metrics import reprojection_error, ssim_map, video_psnr
+from panoworld.synth import generate_scene
+from panoworld.trajectory import load_trajectory
 
 
 def make_scene_dir(scene, root: Path, height: int) -> Path:
@@ -98,7 +98,7 @@ def evaluate_stride(scene, scene_dir: Path, height: int, stride: int, frames: in
     gt_tc, _ = temporal_rmse(gt_rgb, masks, gt_depth, poses)
     print(f"  {'backend':14s} {'PSNR':>6s} {'SSIM':>6s} {'WS-PSNR':>7s} | {'PSNR':>6s} {'SSIM':>6s} {'WS-PSNR':>7s} (holes)"
           f" | {'temporal RMSE':>13s} {'2D fill':>7s} {'CPU s':>6s}")
-    for backend, m, tc, n, f2d, cpu_s in rows:
+    for backend, m, tc, _n, f2d, cpu_s in rows:
         print(f"  {backend:14s} {m['psnr']:6.2f} {m['ssim']:6.4f} {m['ws_psnr']:7.2f} | {m['psnr_hole']:6.2f} "
               f"{m['ssim_hole']:6.4f} {m['ws_psnr_hole']:7.2f}         | {tc:13.2f} "
               f"{f2d:7.3f} {cpu_s:6.2f}")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from panoworld.shapes import check_shape
+
 
 def _check_points(src: np.ndarray, dst: np.ndarray) -> None:
     if src.ndim != 2 or src.shape[1] != 3 or dst.shape != src.shape:
@@ -15,8 +17,7 @@ def _check_points(src: np.ndarray, dst: np.ndarray) -> None:
 def check_trajectory(poses: np.ndarray, what: str = "poses") -> np.ndarray:
     """Return poses as float64 (N, 4, 4); raise ValueError naming `what` on a wrong shape or non-finite values."""
     poses = np.asarray(poses, dtype=np.float64)
-    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
-        raise ValueError(f"{what}.shape={poses.shape} but expected (N, 4, 4)")
+    check_shape(what, poses, "N 4 4")
     if not np.isfinite(poses).all():
         raise ValueError(f"{what} contains NaN or inf")
     return poses
@@ -95,8 +96,7 @@ def align_trajectory(
     """
     est = check_trajectory(est, "est")
     gt = check_trajectory(gt, "gt")
-    if est.shape != gt.shape:
-        raise ValueError(f"{est.shape=} but gt.shape={gt.shape}; both must be (N, 4, 4)")
+    check_shape("gt", gt, "N 4 4", dims={"N": len(est)})
     c_est, c_gt = est[:, :3, 3], gt[:, :3, 3]
     if rotation_weight <= 0 and _spans_a_plane(c_gt):
         s, R, t = umeyama(c_est, c_gt, with_scale=sim3)
@@ -170,8 +170,7 @@ def trajectory_metrics(est: np.ndarray, gt: np.ndarray, sim3: bool = True) -> di
     grow with the path length the way an absolute error does (docs/evaluation.md).
     """
     est, gt = check_trajectory(est, "est"), check_trajectory(gt, "gt")
-    if est.shape != gt.shape:
-        raise ValueError(f"{est.shape=} but gt.shape={gt.shape}; both must be (N, 4, 4)")
+    check_shape("gt", gt, "N 4 4", dims={"N": len(est)})
     aligned, (s, _, _) = align_trajectory(est, gt, sim3=sim3)
     e = np.linalg.norm(aligned[:, :3, 3] - gt[:, :3, 3], axis=1)
     rpe_t, rpe_r = relative_pose_errors(aligned, gt)

@@ -2,21 +2,27 @@
 
 from __future__ import annotations
 
-from panoworld.errors import ArtifactError  # noqa: F401  (re-exported)
 import hashlib
 import json
 import os
 import shutil
 import time
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 from typing import Any
+
+from panoworld.errors import ArtifactError
 
 MANIFEST = "manifest.json"
 REPO_ROOT = Path(__file__).resolve().parent.parent
 SCHEMA_DIR = REPO_ROOT / "artifacts_schema"
 TMP_PREFIX = ".tmp-"
 OLD_PREFIX = ".old-"
+ARTIFACTS_DIRNAME = "artifacts"
+"""A scene's artifacts live in SCENE/artifacts/<stage>/ (the scene layout is docs/architecture.md's)."""
+VARIANTS_DIRNAME = "variants"
+"""Sweep variants of the DAG's tail: SCENE/artifacts/variants/NAME/<stage>/."""
+SCENE_CONFIG = "scene.yaml"
 
 
 def file_digest(path: Path, chunk: int = 1 << 22) -> str:
@@ -46,7 +52,7 @@ def schema_dirs() -> list[Path]:
     return [SCHEMA_DIR, *extra]
 
 
-@lru_cache(maxsize=None)
+@cache
 def load_schema(kind: str) -> dict:
     for d in schema_dirs():
         path = d / f"{kind}.schema.json"
@@ -60,7 +66,7 @@ def manifest_checksum(manifest: dict) -> str:
     return json_digest({k: v for k, v in manifest.items() if k != "checksum"})
 
 
-@lru_cache(maxsize=None)
+@cache
 def _validator(kind: str):
     import jsonschema
     from referencing import Registry, Resource

@@ -16,24 +16,14 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.conventions import DEPTH_PNG_SCALE, check_erp_shape, depth_to_mm
+from panoworld.io.depth_png import metres_from_png
 from panoworld.mesh import ErpMesh
+from panoworld.warped_frame import WarpedFrame
 
 CONDITIONS_JSON = "conditions.json"
 PREVIEW_MP4 = "preview.mp4"
 DEPTH_SCALE = DEPTH_PNG_SCALE
 """Metres per unit of the uint16 depth PNGs (millimetres; 0 = nothing, saturates at 65.535 m)."""
-
-
-@dataclass
-class WarpedFrame:
-    """One pose rendered from the mesh: what the generator is conditioned on."""
-
-    rgb: np.ndarray
-    """(H, W, 3) uint8 interpolated vertex colour; 0 where mask is False."""
-    depth: np.ndarray
-    """(H, W) float32 ray distance in metres; 0 where mask is False."""
-    mask: np.ndarray
-    """(H, W) bool: True = the pixel sees a valid face; False = no geometry or a stretched face (to be generated)."""
 
 
 def check_poses(poses: np.ndarray, what: str = "poses") -> np.ndarray:
@@ -126,7 +116,7 @@ def split_stretched_faces(mesh: ErpMesh, min_jump: float = SPLIT_MIN_JUMP) -> Er
 
 def make_renderer(mesh, backend: Backend | str = Backend.RASTER):
     """ErpRasterizer or RaycastRenderer of an ErpMesh-like object (vertices, faces, colors, face_valid)."""
-    from panoworld.rasterize import ErpRasterizer, RaycastRenderer
+    from panoworld.rasterize import ErpRasterizer, RaycastRenderer  # numba: imported when a renderer is made
 
     cls = {Backend.RASTER: ErpRasterizer, Backend.RAYCAST: RaycastRenderer}[Backend(backend)]
     return cls(mesh.vertices, mesh.faces, mesh.colors, mesh.face_valid)
@@ -424,7 +414,7 @@ def _decode_mask(img: np.ndarray) -> np.ndarray:
 def _decode_depth(img: np.ndarray) -> np.ndarray:
     if img.dtype != np.uint16 or img.ndim != 2:
         return np.empty((0,))
-    return img.astype(np.float32) * np.float32(DEPTH_SCALE)
+    return metres_from_png(img, DEPTH_SCALE)
 
 
 @dataclass

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from panoworld.shapes import check_shape
+
 # World frame: right-handed, metres, gravity along +Y (up = -Y). The canonical frame of a scene is the
 # frame of its first camera (pose 0 = identity), so world axes equal OpenCV camera axes of view 0.
 WORLD_UP = np.array([0.0, -1.0, 0.0])
@@ -95,8 +97,7 @@ def erp_pixel_solid_angle(height: int, width: int) -> np.ndarray:
 
 def points_from_depth(depth: np.ndarray, world_from_cam: np.ndarray | None = None) -> np.ndarray:
     """ERP ray-distance depth (H, W) in metres -> 3D points (H, W, 3), in world frame if a pose is given."""
-    if depth.ndim != 2:
-        raise ValueError(f"{depth.shape=} but expected (H, W)")
+    check_shape("depth", depth, "H W")
     pts = erp_dirs(*depth.shape, dtype=np.float64) * depth[..., None]
     if world_from_cam is not None:
         pts = transform_points(world_from_cam, pts)

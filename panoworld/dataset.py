@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
-from panoworld.errors import DataError
 import json
 from functools import cached_property
 from pathlib import Path
 
 import numpy as np
+
+from panoworld.errors import DataError, InputError
+from panoworld.image_io import read_image
 
 
 class DatasetError(DataError):
@@ -36,7 +38,7 @@ class DatasetScene:
         self.name = self.root.name
 
     @classmethod
-    def from_gt_index(cls, gt_json: Path) -> "DatasetScene":
+    def from_gt_index(cls, gt_json: Path) -> DatasetScene:
         return cls(Path(gt_json).resolve().parent.parent)
 
     @property
@@ -81,9 +83,10 @@ class DatasetScene:
                 return self._synth.render(self.poses(track)[i], height, 2 * height)
             raise DatasetError(f"{self.gt_dir / 'gt.json'}: track {track} lists no frame files and the scene is not synthetic")
         rgb_path, depth_path = files
-        bgr = cv2.imread(str(rgb_path), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise DatasetError(f"{rgb_path}: missing or unreadable frame")
+        try:
+            bgr = read_image(rgb_path, cv2.IMREAD_COLOR, what="frame")
+        except InputError as e:
+            raise DatasetError(str(e)) from None
         try:
             depth = np.load(depth_path).astype(np.float32)
         except (OSError, ValueError) as e:

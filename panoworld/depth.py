@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import enum
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
@@ -17,7 +17,9 @@ from scipy.spatial.transform import Rotation
 
 from panoworld.choices import Rescale
 from panoworld.conventions import erp_dirs, erp_pixel_from_dir, erp_pixel_solid_angle, points_from_depth
-from panoworld.stage import StageInputError
+from panoworld.errors import InputError
+from panoworld.image_io import read_image
+from panoworld.limits import depth_plane, load_npy
 
 
 class DepthKind(enum.StrEnum):
@@ -33,16 +35,14 @@ class DepthKind(enum.StrEnum):
 
 
 def read_panorama(path: Path, notes: list[str] | None = None) -> np.ndarray:
-    """Read an ERP panorama -> RGB uint8 (H, W, 3); StageInputError if unreadable or not 2:1.
+    """Read an ERP panorama -> RGB uint8 (H, W, 3); InputError if unreadable or not 2:1.
 
     Grayscale, RGBA (alpha dropped), 16-bit (scaled to 8 bit) and EXIF-rotated JPEGs (orientation applied) are
     accepted; what was converted is appended to notes.
     """
     path = Path(path)
     notes = [] if notes is None else notes
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise StageInputError(f"{path}: cannot read the panorama (missing, corrupt or not an image); give a PNG/JPEG")
+    img = read_image(path, cv2.IMREAD_UNCHANGED, what="panorama")
     gray = img.ndim == 2 or img.shape[2] == 1
     if path.suffix.lower() in (".jpg", ".jpeg") and img.dtype == np.uint8:
         # IMREAD_UNCHANGED ignores the EXIF orientation; IMREAD_COLOR applies it (same decoder otherwise).
@@ -55,7 +55,7 @@ def read_panorama(path: Path, notes: list[str] | None = None) -> np.ndarray:
         img = (img.astype(np.float32) / 257.0 + 0.5).astype(np.uint8)
         notes.append("16-bit panorama scaled to 8 bit")
     if img.dtype != np.uint8:
-        raise StageInputError(f"{path}: panorama has dtype {img.dtype}; give an 8- or 16-bit PNG/JPEG")
+        raise InputError(f"{path}: panorama has dtype {img.dtype}; give an 8- or 16-bit PNG/JPEG")
     if gray:
         notes.append("grayscale panorama expanded to RGB")
     if img.ndim == 2 or img.shape[2] == 1:
@@ -67,7 +67,7 @@ def read_panorama(path: Path, notes: list[str] | None = None) -> np.ndarray:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
     H, W = img.shape[:2]
     if W != 2 * H:
-        raise StageInputError(
+        raise InputError(
             f"{path}: panorama is {W}x{H} (WxH) but an equirectangular panorama must be 2:1; give a full 360x180 ERP image"
         )
     return img
@@ -97,31 +97,21 @@ def read_depth(path: Path, *, png_scale: float = 0.001) -> np.ndarray:
     path = Path(path)
     suffix = path.suffix.lower()
     if not path.is_file():
-        raise StageInputError(f"{path}: depth file not found")
+        raise InputError(f"{path}: depth file not found")
     if suffix == ".npy":
-        try:
-            depth = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as e:
-            raise StageInputError(f"{path}: cannot read the depth array ({e}); save it with numpy.save") from None
-        if depth.dtype.kind not in "fiu":
-            raise StageInputError(f"{path}: depth has dtype {depth.dtype}; save a float32 (H, W) array in metres")
+        depth = load_npy(path, "depth array", kinds="fiu")
     elif suffix == ".exr":
         depth = _read_exr(path)
     elif suffix == ".png":
-        depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if depth is None:
-            raise StageInputError(f"{path}: cannot read the depth PNG (corrupt or not a PNG)")
+        depth = read_image(path, cv2.IMREAD_UNCHANGED, what="depth PNG")
         if depth.dtype != np.uint16:
-            raise StageInputError(
+            raise InputError(
                 f"{path}: depth PNG is {depth.dtype}; an 8-bit PNG cannot hold depth, save 16-bit (value * png_scale = metres)"
             )
         depth = depth.astype(np.float32) * np.float32(png_scale)
     else:
-        raise StageInputError(f"{path}: unsupported depth format {suffix!r}; give depth.npy, depth.exr or a 16-bit depth.png")
-    if depth.ndim == 3:
-        depth = depth[..., 0]
-    if depth.ndim != 2:
-        raise StageInputError(f"{path}: depth has shape {depth.shape} but expected (H, W)")
+        raise InputError(f"{path}: unsupported depth format {suffix!r}; give depth.npy, depth.exr or a 16-bit depth.png")
+    depth = depth_plane(depth, path)
     return np.asarray(depth, dtype=np.float32)
 
 
@@ -136,7 +126,7 @@ def _read_exr(path: Path) -> np.ndarray:
     try:
         import OpenEXR
     except ImportError:
-        raise StageInputError(
+        raise InputError(
             f"{path}: cannot read EXR (this OpenCV has no OpenEXR and the OpenEXR package is missing); "
             "pip install OpenEXR, or save depth.npy"
         ) from None
@@ -148,7 +138,7 @@ def _read_exr(path: Path) -> np.ndarray:
                 name = next(iter(channels))
             return np.asarray(channels[name].pixels, dtype=np.float32)
     except Exception as e:  # OpenEXR raises plain exceptions for corrupt files
-        raise StageInputError(f"{path}: cannot read the EXR depth ({e})") from None
+        raise InputError(f"{path}: cannot read the EXR depth ({e})") from None
 
 
 def load_depth_artifact(artifact_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -172,7 +162,7 @@ def conform_depth(depth: np.ndarray, height: int, width: int, what: str = "depth
     if (h, w) == (height, width):
         return depth, None
     if w * height != h * width:
-        raise StageInputError(
+        raise InputError(
             f"{what}: depth is {w}x{h} but the panorama is {width}x{height} (WxH), a different aspect; "
             "give a 2:1 ERP depth map aligned with the panorama"
         )
@@ -568,13 +558,13 @@ def metric_rescale(
     auto: relative depth always; provided or metric depth when its floor lies outside CAPTURE_CAMERA_HEIGHT
     (unknown units); depth without a visible floor is kept as given (relative depth then has an arbitrary scale,
     said in info["scale_note"]). Returns (depth, info) with the estimated camera height before and after (None
-    when no floor is found), the factor applied and why. StageInputError if a rescale is required (always,
+    when no floor is found), the factor applied and why. InputError if a rescale is required (always,
     relative-only on relative depth) but no floor is visible, or if relative-only takes depth as metric whose
     floor lies outside PLAUSIBLE_CAMERA_HEIGHT (wrong units).
     """
     fit = estimate_floor(depth, valid)
     if not camera_height > 0:
-        raise StageInputError(f"--camera-height {camera_height} must be > 0 metres")
+        raise InputError(f"--camera-height {camera_height} must be > 0 metres")
     note = None
     if rescale == Rescale.AUTO:
         if fit is None:
@@ -592,13 +582,13 @@ def metric_rescale(
     factor = 1.0
     if do:
         if fit is None:
-            raise StageInputError(
+            raise InputError(
                 "no horizontal floor found below the camera, so depth cannot be put to metric scale; "
                 "pass --rescale never (and metric depth) or a panorama that shows the floor"
             )
         factor = camera_height / fit.camera_height
     elif rescale == Rescale.RELATIVE_ONLY and fit is not None and not PLAUSIBLE_CAMERA_HEIGHT[0] <= fit.camera_height <= PLAUSIBLE_CAMERA_HEIGHT[1]:
-        raise StageInputError(
+        raise InputError(
             f"depth units look wrong: the floor is {fit.camera_height:.4g} units below the camera, not "
             f"{PLAUSIBLE_CAMERA_HEIGHT[0]}-{PLAUSIBLE_CAMERA_HEIGHT[1]} m; if the depth is not in metres pass "
             "--rescale always --camera-height H (or the right --png-scale), or --rescale never to keep it as is"

@@ -1,7 +1,7 @@
 """Evaluate a scene's artifacts against its reference, or a whole dataset in the paper's tables (`runner.py eval`).
 
 The library lives in panoworld/eval/ (common params and results, ground-truth references, the per-scene evaluation,
-reports, dataset tables); this module keeps the CLI and the stable entry points `evaluate` / `evaluate_scene`.
+reports, dataset tables); this module keeps the CLI and re-exports the stable entry points `evaluate` / `evaluate_scene`.
 """
 
 from __future__ import annotations
@@ -36,47 +36,14 @@ from panoworld.eval.groundtruth import (  # noqa: F401 - re-exported API
     open_ground_truth,
     true_disocclusion,
 )
-from panoworld.eval.report import format_table, jsonable, target_report  # noqa: F401 - re-exported API
+from panoworld.eval.report import (  # noqa: F401 - re-exported API
+    NOTHING_MESSAGE,
+    evaluate_scene,
+    format_table,
+    jsonable,
+    target_report,
+)
 from panoworld.eval.scene import Evaluation
-from panoworld.pipeline import ARTIFACTS_DIRNAME
-
-NOTHING_MESSAGE = ("{scene} has no gt/gt.json and no {artifacts}/: nothing to evaluate; run the pipeline first "
-                   "(`python runner.py run SCENE`)")
-
-
-def evaluate_scene(scene_dir: Path, params: EvalParams | None = None, *, stages: list[str] | None = None,
-                   progress: bool = False, variant: str | None = None) -> tuple[dict, list[str]]:
-    """The full report {"scene", "reference", "params", "stages", "targets"} of one scene and the stages that errored.
-
-    The reference is the scene's synthetic ground truth, its ground-truth frames + poses, or its plan alone
-    (panoworld.eval.groundtruth.open_ground_truth). variant: a named variant of the DAG's tail
-    (artifacts/variants/NAME, `runner.py run DATASET --all --sweep`). Raises EvalInputError when the scene has
-    neither ground truth nor artifacts, or LPIPS weights were passed but cannot be loaded.
-    """
-    from panoworld.stage import params_to_dict
-
-    scene_dir = Path(scene_dir)
-    if not (scene_dir / GT_DIRNAME / "gt.json").is_file() and not (scene_dir / ARTIFACTS_DIRNAME).is_dir():
-        raise EvalInputError(NOTHING_MESSAGE.format(scene=scene_dir, artifacts=ARTIFACTS_DIRNAME))
-    params = params or EvalParams()
-    ev = Evaluation(scene_dir, params, progress=progress, variant=variant)
-    if ev.lpips.enabled:
-        try:
-            ev.lpips.model
-        except (OSError, ValueError, KeyError, RuntimeError) as e:
-            raise EvalInputError(f"LPIPS weights: {e}") from None
-    results, errors = ev.run(stages)
-    report = {
-        "scene": str(scene_dir),
-        "variant": variant,
-        "reference": ev.gt.kind,
-        "setting": ev.setting(),
-        "params": params_to_dict(params),
-        "stages": results,
-        "targets": target_report(results),
-    }
-    return jsonable(report), errors
-
 
 evaluate = evaluate_scene
 """The name of evaluate_scene before dataset evaluation existed."""

@@ -5,6 +5,8 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
+from panoworld.params import param
+
 
 class Confidence(enum.StrEnum):
     """Non-learned per-pixel confidence w of the voxel-fusion backend."""
@@ -21,26 +23,26 @@ class Confidence(enum.StrEnum):
 class FusionParams:
     """Settings of the non-learned voxel-fusion backend."""
 
-    voxel_size: float = 0.02
+    voxel_size: float = param(0.02, gt=0)
     """Voxel edge length in metres (the paper's epsilon)."""
-    per_voxel: int = 1
+    per_voxel: int = param(1, ge=1)
     """Gaussians per occupied voxel, K in {1, 2, 4, 8}: the voxel's samples are split in two along each of its
     log2(K) principal axes and every non-empty part becomes one Gaussian."""
     confidence: Confidence = Confidence.RESOLUTION
     """Per-pixel confidence weight used in the fusion."""
-    min_points: int = 1
+    min_points: int = param(1, ge=1)
     """Prune voxels (and sub-voxel parts) observed by fewer pixels than this."""
-    scale_factor: float = 1.6
+    scale_factor: float = param(1.6, gt=0)
     """Gaussian standard deviation = scale_factor * sqrt(eigenvalue of the fused covariance)."""
-    min_scale: float = 0.05
+    min_scale: float = param(0.05, gt=0)
     """Lower clamp of every Gaussian scale, as a fraction of voxel_size (keeps surfels from being degenerate)."""
-    max_scale: float = 1.0
+    max_scale: float = param(1.0, gt=0)
     """Upper clamp of every Gaussian scale, as a multiple of voxel_size."""
-    opacity: float = 0.98
+    opacity: float = param(0.98, gt=0, le=1)
     """Opacity of every emitted Gaussian."""
-    min_cos: float = 0.08
+    min_cos: float = param(0.08, ge=0, le=1)
     """Drop pixels seen at grazing angles with |cos| below this (depth discontinuities, flying pixels)."""
-    max_depth: float = 0.0
+    max_depth: float = param(0.0, ge=0)
     """Drop pixels with depth beyond this many metres (0 = keep all)."""
 
     def check(self) -> None:

@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from panoworld.conventions import check_pose, erp_dirs
 from panoworld.fusion_params import Confidence, FusionParams
+from panoworld.shapes import check_shape
 
 SH_C0 = 0.28209479177387814
 """Degree-0 real spherical harmonic: rgb = 0.5 + SH_C0 * f_dc (the INRIA 3DGS convention)."""
@@ -218,11 +219,8 @@ def frame_observations(
     Pixels at grazing angles (|cos| < params.min_cos) are dropped.
     """
     depth = np.asarray(depth)
-    if depth.ndim != 2:
-        raise ValueError(f"{depth.shape=} but expected (H, W)")
+    check_shape("rgb", rgb, "H W 3", dims=check_shape("depth", depth, "H W"))
     h, w = depth.shape
-    if rgb.shape != (h, w, 3):
-        raise ValueError(f"{rgb.shape=} but expected {(h, w, 3)} (the depth map's size)")
     check_pose(world_from_cam, "world_from_cam")
     colors = rgb.astype(np.float32) / 255.0 if rgb.dtype == np.uint8 else rgb.astype(np.float32)
     d = depth.astype(np.float64)
@@ -462,13 +460,13 @@ class ContextSource:
     def frame(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         import cv2
 
+        from panoworld.errors import InputError
         from panoworld.poses import load_frames, read_depth_png
-        from panoworld.stage import StageInputError
 
         rgb = load_frames([self.rgb_paths[k]], self.height)[0]
         d = read_depth_png(self.depth_paths[k], self.depth_scale)
         if d.shape != (self.stored_height, 2 * self.stored_height):
-            raise StageInputError(f"{self.depth_paths[k]}: depth is {d.shape[1]}x{d.shape[0]} but frames are "
+            raise InputError(f"{self.depth_paths[k]}: depth is {d.shape[1]}x{d.shape[0]} but frames are "
                                   f"{2 * self.stored_height}x{self.stored_height}; rerun the stage that wrote it")
         if d.shape[0] != self.height:
             d = cv2.resize(d, (2 * self.height, self.height), interpolation=cv2.INTER_NEAREST)
@@ -494,13 +492,13 @@ def context_source(video_dir: Path, poses_dir: Path, *, context_views: int = 0, 
     """The registered frames (uniformly subsampled to context_views when > 0), their depth and poses, read lazily.
 
     Depth comes from the poses artifact when it has some (its estimator's, or the video's copied), else from the
-    video artifact; without either it is a StageInputError. Frames are delivered at ERP height `height` when > 0,
+    video artifact; without either it is a InputError. Frames are delivered at ERP height `height` when > 0,
     else at the stored height capped at max_height when > 0.
     """
     import json
 
+    from panoworld.errors import InputError
     from panoworld.poses import read_video_frames
-    from panoworld.stage import StageInputError
 
     video = read_video_frames(Path(video_dir))
     poses_path = Path(poses_dir) / "poses.json"
@@ -511,9 +509,9 @@ def context_source(video_dir: Path, poses_dir: Path, *, context_views: int = 0, 
         pose_depth = [f.get("depth") for f in doc.get("frames", [])]
         pose_scale = float(doc.get("depth_scale", 0.001))
     except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-        raise StageInputError(f"{poses_path}: cannot read poses ({e}); rerun the poses stage") from None
+        raise InputError(f"{poses_path}: cannot read poses ({e}); rerun the poses stage") from None
     if poses.shape != (video.num_frames, 4, 4) or registered.shape != (video.num_frames,):
-        raise StageInputError(
+        raise InputError(
             f"{poses_path}: {poses.shape} poses / {registered.shape} registered flags but video.json lists "
             f"{video.num_frames} frames; rerun the poses stage on this video"
         )
@@ -522,13 +520,13 @@ def context_source(video_dir: Path, poses_dir: Path, *, context_views: int = 0, 
     elif video.has_depth:
         depth_paths, scale, source = video.depth, video.depth_scale, "video"
     else:
-        raise StageInputError(
+        raise InputError(
             "voxel-fusion needs per-frame depth: use video backend warp-inpaint or poses backend vggt "
             f"(neither {poses_path} nor {Path(video_dir) / 'video.json'} lists depth maps)"
         )
     idx = uniform_subset(np.flatnonzero(registered).tolist(), context_views)
     if not idx:
-        raise StageInputError(f"{poses_path}: no registered frame; rerun the poses stage")
+        raise InputError(f"{poses_path}: no registered frame; rerun the poses stage")
     out_h = height or (min(video.height, max_height) if max_height > 0 else video.height)
     return ContextSource([video.rgb[i] for i in idx], [depth_paths[i] for i in idx], scale, poses[idx], idx, source,
                          out_h, video.height)
@@ -538,58 +536,6 @@ def read_context_frames(video_dir: Path, poses_dir: Path, *, context_views: int 
     """Frames, depth and poses of the registered frames (uniformly subsampled to context_views when > 0), in memory.
 
     Depth comes from the poses artifact when it has some (its estimator's, or the video's copied), else from the
-    video artifact; without either it is a StageInputError. height > 0 resizes frames (area) and depth (nearest).
+    video artifact; without either it is a InputError. height > 0 resizes frames (area) and depth (nearest).
     """
     return context_source(video_dir, poses_dir, context_views=context_views, height=height).load()
-
-
-def write_artifact(out_dir: Path, result: FusionResult, frames: ContextFrames | ContextSource, *, eval_views: int = 1,
-                   eval_height: int = 128) -> dict:
-    """Write gaussians.ply, points.ply and preview.png (the first context view rendered back); return manifest info
-    with PSNR/SSIM/WS-PSNR of eval_views context views re-rendered as ERP at eval_height."""
-    import cv2
-
-    from panoworld.metrics import psnr, ssim, ws_psnr
-    from panoworld.render_gs import render_erp
-    from panoworld.splat_ply import write_gaussians_ply, write_points_ply
-
-    g = result.gaussians.numpy()
-    out_dir = Path(out_dir)
-    write_gaussians_ply(out_dir / "gaussians.ply", g)
-    write_points_ply(out_dir / "points.ply", g.means, g.base_colors())
-    evals = []
-    for k in uniform_subset(range(len(frames.indices)), eval_views) if eval_views > 0 else []:
-        out = render_erp(g, frames.world_from_cam[k], eval_height, 2 * eval_height)
-        img = (out.rgb.clamp(0, 1).numpy() * 255.0).round().astype(np.uint8)
-        ref = frames.rgb_at(k)
-        if ref.shape[0] != eval_height:
-            ref = cv2.resize(ref, (2 * eval_height, eval_height), interpolation=cv2.INTER_AREA)
-        if not evals:
-            cv2.imwrite(str(out_dir / "preview.png"), img[..., ::-1])
-        covered = out.alpha.numpy() > 0.5
-        evals.append({"frame": frames.indices[k], "psnr": psnr(img, ref), "ws_psnr": ws_psnr(img, ref),
-                      "ssim": ssim(img, ref), "coverage": float(out.alpha.mean()),
-                      "psnr_covered": psnr(img, ref, covered) if covered.any() else None})
-    warnings = []
-    if max(result.extent_m) < 2 * result.voxel_size:
-        warnings.append(f"the scene spans {max(result.extent_m):.3f} m, under two voxels of {result.voxel_size} m; "
-                        "lower voxel_size")
-    return {
-        "backend": result.backend,
-        "num_gaussians": len(g),
-        "num_voxels": result.num_voxels,
-        "num_pruned_voxels": result.num_pruned,
-        "num_observations": result.num_observations,
-        "voxel_size": result.voxel_size,
-        "frames": frames.indices,
-        "fusion_height": int(frames.height) if isinstance(frames, ContextSource) else int(frames.rgb.shape[1]),
-        "depth_source": frames.depth_source,
-        "extent_m": result.extent_m,
-        "eval": evals,
-        "context_psnr": float(np.mean([e["psnr"] for e in evals])) if evals else None,
-        # Where the frame has no depth (a LiDAR's zenith/nadir) there are no Gaussians, while the video is filled.
-        "context_psnr_covered": float(np.mean([e["psnr_covered"] for e in evals])) if evals and all(
-            e["psnr_covered"] is not None for e in evals) else None,
-        "warnings": warnings,
-        "frame": "canonical world: metres, camera 0 = identity, OpenCV axes, y down = gravity",
-    }

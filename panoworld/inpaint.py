@@ -11,7 +11,7 @@ from tqdm import tqdm
 from panoworld.conventions import check_pose, dir_from_lonlat, erp_lonlat_from_pixel
 from panoworld.mesh import ErpMesh, grid_faces
 from panoworld.raycast import Raycaster
-
+from panoworld.shapes import check_shape
 
 # ---------------------------------------------------------------- seam-aware 2D helpers
 
@@ -40,8 +40,7 @@ def erp_inpaint(img: np.ndarray, mask: np.ndarray, *, radius: float = 3.0, pad_f
     on float32 input).
     """
     mask = np.asarray(mask, bool)
-    if mask.shape != img.shape[:2]:
-        raise ValueError(f"{mask.shape=} but expected {img.shape[:2]} (H, W) like the image")
+    check_shape("mask", mask, "H W", dims=check_shape("img", img, "H W" if img.ndim == 2 else "H W *"))
     if not mask.any():
         return img.copy()
     if mask.all():
@@ -286,12 +285,10 @@ class FilledFrame:
 
 
 def _check_frame(rgb: np.ndarray, mask: np.ndarray, depth: np.ndarray | None) -> None:
-    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
-        raise ValueError(f"{rgb.shape=} {rgb.dtype=} but expected (H, W, 3) uint8")
-    if mask.shape != rgb.shape[:2]:
-        raise ValueError(f"{mask.shape=} but expected {rgb.shape[:2]} (H, W)")
-    if depth is not None and depth.shape != rgb.shape[:2]:
-        raise ValueError(f"{depth.shape=} but expected {rgb.shape[:2]} (H, W)")
+    dims = check_shape("rgb", rgb, "H W 3", dtype=np.uint8)
+    check_shape("mask", mask, "H W", dims=dims)
+    if depth is not None:
+        check_shape("depth", depth, "H W", dims=dims)
 
 
 def erp_dir_at(u: np.ndarray, v: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -361,8 +358,7 @@ def frame_inpaint(
 def max_translation(poses: np.ndarray) -> float:
     """Largest distance (metres) of any camera centre of poses (N, 4, 4) from the source camera (the origin)."""
     poses = np.asarray(poses)
-    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
-        raise ValueError(f"{poses.shape=} but expected (N, 4, 4)")
+    check_shape("poses", poses, "N 4 4")
     return float(np.linalg.norm(poses[:, :3, 3], axis=1).max()) if len(poses) else 0.0
 
 

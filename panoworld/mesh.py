@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.conventions import GLTF_FROM_WORLD, check_erp_shape, erp_dirs, transform_points
+from panoworld.shapes import check_shape
 
 MESH_FILE = "mesh.ply"
 
@@ -28,14 +29,10 @@ class ErpMesh:
     face_valid: np.ndarray  # (F,) bool: False = stretched triangle across a depth discontinuity (kept only as an occluder)
 
     def __post_init__(self):
-        if self.vertices.ndim != 2 or self.vertices.shape[1] != 3:
-            raise ValueError(f"{self.vertices.shape=} but expected (V, 3)")
-        if self.faces.ndim != 2 or self.faces.shape[1] != 3:
-            raise ValueError(f"{self.faces.shape=} but expected (F, 3)")
-        if self.colors.shape != self.vertices.shape:
-            raise ValueError(f"{self.colors.shape=} but expected {self.vertices.shape} (V, 3)")
-        if self.face_valid.shape != (len(self.faces),):
-            raise ValueError(f"{self.face_valid.shape=} but expected ({len(self.faces)},) (F,)")
+        dims = check_shape("vertices", self.vertices, "V 3")
+        check_shape("faces", self.faces, "F 3", dims=dims)
+        check_shape("colors", self.colors, "V 3", dims=dims)
+        check_shape("face_valid", self.face_valid, "F", dims=dims)
 
     def valid_only(self) -> ErpMesh:
         """The same vertices with only the valid (non-stretched) faces."""
@@ -81,14 +78,12 @@ def erp_mesh_from_depth(
     seen at under ~5 degrees, whatever the resolution.
     """
     depth = np.asarray(depth)
-    if depth.ndim != 2:
-        raise ValueError(f"{depth.shape=} but expected (H, W)")
+    dims = check_shape("depth", depth, "H W")
     H, W = depth.shape
     check_erp_shape(H, W, "depth")
-    if rgb.shape != (H, W, 3):
-        raise ValueError(f"{rgb.shape=} but expected {(H, W, 3)} (H, W, 3) like depth")
-    if valid is not None and valid.shape != (H, W):
-        raise ValueError(f"{valid.shape=} but expected {(H, W)} (H, W) like depth")
+    check_shape("rgb", rgb, "H W 3", dims=dims)
+    if valid is not None:
+        check_shape("valid", valid, "H W", dims=dims)
     if stride < 1 or H // stride < 2:
         raise ValueError(f"{stride=} must be >= 1 and leave at least 2 grid rows of {H}")
 
@@ -158,7 +153,7 @@ def _grid_face_stretch(pts: np.ndarray, dirs: np.ndarray, d: np.ndarray, poles: 
 
     pts, dirs (h, w, 3), d (h, w); poles (2, 3) and their depths pole_d (2,) -> (2 * (h - 1) * w + 2 * w,)."""
     h, w = d.shape
-    nxt = lambda a: np.roll(a, -1, axis=1)  # noqa: E731  (column j + 1, seam wrapped)
+    nxt = lambda a: np.roll(a, -1, axis=1)  # (column j + 1, seam wrapped)
     # Chords between rays depend on the rows only (the grid is symmetric in longitude): take them from column 0.
     c0, c1 = dirs[:, 0], dirs[:, 1 % w]
     chord_h = np.linalg.norm(c0 - c1, axis=-1)[:, None]

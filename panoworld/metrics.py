@@ -6,15 +6,14 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from panoworld.conventions import erp_pixel_solid_angle
+from panoworld.shapes import check_shape
 
 
 def _pair(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     a = np.asarray(a)
     b = np.asarray(b)
-    if a.shape != b.shape:
-        raise ValueError(f"{a.shape=} but expected {b.shape} (the shape of b)")
-    if a.ndim not in (2, 3):
-        raise ValueError(f"{a.shape=} but expected (H, W) or (H, W, C)")
+    dims = check_shape("a", a, "H W" if a.ndim == 2 else "H W C")
+    check_shape("b", b, "H W" if a.ndim == 2 else "H W C", dims=dims)
     return a, b
 
 
@@ -72,8 +71,7 @@ def video_psnr(
     pixel simply contribute nothing), optionally where mask (T, H, W) is True; spherical weighs ERP pixels by solid
     angle as ws_psnr does."""
     a, b = np.asarray(a), np.asarray(b)
-    if a.shape != b.shape or a.ndim != 4:
-        raise ValueError(f"{a.shape=} {b.shape=} but expected equal (T, H, W, C)")
+    check_shape("b", b, "T H W C", dims=check_shape("a", a, "T H W C"))
     T, H, W, C = a.shape
     weight = np.ones((T, H, W))
     if spherical:
@@ -86,8 +84,7 @@ def video_psnr(
 
 def _mask(mask: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     mask = np.asarray(mask)
-    if mask.shape != shape:
-        raise ValueError(f"{mask.shape=} but expected {shape} (H, W)")
+    check_shape("mask", mask, " ".join(map(str, shape)))
     return mask.astype(bool)
 
 

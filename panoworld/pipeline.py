@@ -2,40 +2,49 @@
 
 from __future__ import annotations
 
-from panoworld.errors import PipelineError  # noqa: F401  (re-exported)
+import contextlib
 import dataclasses
 import fcntl
 import json
 import os
 import subprocess
 import sys
-import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import yaml
 
 from panoworld import artifacts as art
+from panoworld import code_digest, limits
+from panoworld.errors import InputError, PipelineError
+from panoworld.hub import resolve as hub
+from panoworld.image_io import check_image
+from panoworld.params import flatten, suggest
 from panoworld.stage import (
-    StageInputError,
+    LOCK_ENV,
+    LOCK_FILE,
+    RUNNER_PID_ENV,
     StageSpec,
     cache_key,
     input_digest,
     load_stage,
+    merge,
+    normalize,
     params_from_dict,
     params_hash,
     params_to_dict,
     resolve_stage_weights,
+    stage_code,
 )
-from panoworld.hub import resolve as hub
 
 PIPELINE_FILE = art.REPO_ROOT / "pipeline.yaml"
-ARTIFACTS_DIRNAME = "artifacts"
-VARIANTS_DIRNAME = "variants"
-SCENE_CONFIG = "scene.yaml"
+ARTIFACTS_DIRNAME = art.ARTIFACTS_DIRNAME
+VARIANTS_DIRNAME = art.VARIANTS_DIRNAME
+SCENE_CONFIG = art.SCENE_CONFIG
 DEFAULT_PRESET = "default"
 
 
@@ -78,7 +87,7 @@ class Pipeline:
     presets: list[str]
 
     @classmethod
-    def load(cls, path: Path | str | None = None) -> "Pipeline":
+    def load(cls, path: Path | str | None = None) -> Pipeline:
         path = Path(path) if path else PIPELINE_FILE
         try:
             doc = yaml.safe_load(path.read_text())
@@ -146,7 +155,7 @@ class Pipeline:
 
     def check_stage(self, name: str, flag: str) -> None:
         if name not in self.stages:
-            raise PipelineError(f"{flag} {name}: unknown stage; stages are {', '.join(self.order)}")
+            raise PipelineError(f"{flag} {name}: unknown stage{suggest(name, self.order)}")
 
     def text(self) -> str:
         lines = []
@@ -212,27 +221,69 @@ def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
     if pano is None:
         names = pipeline.scene_files.get("panorama", [])
         raise PipelineError(f"{root}: no panorama; expected one of {', '.join(names)}")
-    try:
-        from PIL import Image
-
-        with Image.open(pano) as im:
-            w, h = im.size
-            if im.getexif().get(0x0112) in (5, 6, 7, 8):  # EXIF orientation with a quarter turn: the depth stage applies it
-                w, h = h, w
-    except Exception as e:  # PIL raises many types for corrupt files
-        raise PipelineError(f"{pano}: unreadable image ({type(e).__name__}: {e})") from None
+    try:  # fully decoded here, so a truncated or corrupt panorama is refused before anything is written
+        w, h = check_image(pano, "panorama").oriented  # the depth stage applies the EXIF orientation too
+    except InputError as e:
+        raise PipelineError(str(e)) from None
     if w != 2 * h:
         raise PipelineError(f"{pano}: {w}x{h} is not an equirectangular panorama (width must be exactly 2x height)")
     config: dict[str, Any] = {}
     cfg_path = root / SCENE_CONFIG
-    if cfg_path.is_file():
-        try:
-            config = yaml.safe_load(cfg_path.read_text()) or {}
-        except yaml.YAMLError as e:
-            raise PipelineError(f"{cfg_path}: invalid YAML ({e})") from None
-        if not isinstance(config, dict):
-            raise PipelineError(f"{cfg_path}: expected a mapping with keys 'preset' and/or 'params'")
+    try:
+        check_scene_inputs(root, files)
+        if cfg_path.is_file():
+            limits.check_size(cfg_path, limits.MAX_CONFIG_BYTES, SCENE_CONFIG)
+            config = limits.parse_yaml(cfg_path.read_text(errors="replace"), str(cfg_path)) or {}
+    except InputError as e:
+        raise PipelineError(str(e)) from None
+    check_scene_config(config, cfg_path, pipeline)
     return Scene(root, files, config)
+
+
+def check_scene_inputs(root: Path, files: dict[str, Path | None]) -> None:
+    """The cheap checks of the scene's other user files, before anything is written: artifacts/ usable, the depth
+    .npy header within limits, a user trajectory readable and within limits. InputError (one line) otherwise."""
+    arts = root / ARTIFACTS_DIRNAME
+    if arts.is_symlink() and not arts.exists():
+        raise InputError(f"{arts}: a dangling symbolic link; remove it (or point it at a directory)")
+    if arts.exists() and not arts.is_dir():
+        raise InputError(f"{arts}: exists but is not a directory; move it away, the runner keeps its artifacts there")
+    depth = files.get("depth")
+    if depth is not None and depth.suffix.lower() == ".npy":
+        limits.npy_header(depth, "depth array", kinds="fiu")
+    if files.get("trajectory") is not None:
+        from panoworld.trajectory.files import read_trajectory_file
+
+        read_trajectory_file(files["trajectory"])
+
+
+SCENE_CONFIG_KEYS = ("preset", "params")
+
+
+def check_scene_config(config: Any, path: Path, pipeline: Pipeline) -> None:
+    """scene.yaml's schema: {preset: NAME, params: {STAGE: {PARAM: VALUE}}}; PipelineError (one line, with a
+    "did you mean") for unknown keys, stages and params and for wrong shapes. Values are checked at resolve time."""
+    if not isinstance(config, dict):
+        raise PipelineError(f"{path}: expected a mapping with keys 'preset' and/or 'params', got {config!r}")
+    for key in config:
+        if key not in SCENE_CONFIG_KEYS:
+            raise PipelineError(f"{path}: unknown key {key!r}{suggest(str(key), SCENE_CONFIG_KEYS)}")
+    if config.get("preset") is not None and not isinstance(config["preset"], str):
+        raise PipelineError(f"{path}: preset: expected a preset name ({', '.join(pipeline.presets)}), got {config['preset']!r}")
+    params = config.get("params")
+    if params is None:
+        return
+    if not isinstance(params, dict):
+        raise PipelineError(f"{path}: params: expected a mapping of stage: {{param: value}}, got {params!r}")
+    for stage, values in params.items():
+        if stage not in pipeline.stages:
+            raise PipelineError(f"{path}: params.{stage}: unknown stage{suggest(str(stage), pipeline.order)}")
+        if values is None:
+            continue
+        try:
+            normalize(pipeline.stages[stage].spec.params_cls, values, stage)
+        except ValueError as e:
+            raise PipelineError(f"{path}: {e}") from None
 
 
 # ---------------------------------------------------------------- params
@@ -253,7 +304,8 @@ def parse_sets(sets: list[str], pipeline: Pipeline) -> dict[str, dict[str, str]]
 def resolve_params(
     pipeline: Pipeline, preset: str | None, scene: Scene | None, sets: dict[str, dict[str, str]], stages: list[str]
 ) -> dict[str, Any]:
-    """Params objects per stage: dataclass defaults < pipeline params < preset < scene.yaml < --set."""
+    """Params objects per stage: dataclass defaults < pipeline params < preset < scene.yaml < --set, each value
+    checked against its declared type, range and choices (PipelineError naming the param and where it was set)."""
     preset = preset or (scene.config.get("preset") if scene else None) or DEFAULT_PRESET
     if preset not in pipeline.presets:
         raise PipelineError(f"--preset {preset}: unknown preset; known: {', '.join(pipeline.presets)}")
@@ -263,18 +315,21 @@ def resolve_params(
         node = pipeline.stages[name]
         layers = [
             (node.params, f"{pipeline.path.name} stages.{name}.params"),
-            (node.presets.get(preset, {}), f"preset {preset} for {name}"),
+            (node.presets.get(preset, {}), f"{pipeline.path.name} preset {preset}"),
             (scene_params.get(name) or {}, f"{SCENE_CONFIG} params.{name}"),
             (sets.get(name, {}), "--set"),
         ]
         values: dict[str, Any] = {}
         for layer, where in layers:
             try:
-                params_from_dict(node.spec.params_cls, layer, where=f"{where}: {name}")
+                params_from_dict(node.spec.params_cls, layer, where=name)  # names the layer that brings a bad value
+                values = merge(values, normalize(node.spec.params_cls, layer, name))
             except ValueError as e:
-                raise PipelineError(str(e)) from None
-            values.update(layer)
-        out[name] = params_from_dict(node.spec.params_cls, values, where=name)
+                raise PipelineError(f"{e} (from {where})") from None
+        try:
+            out[name] = params_from_dict(node.spec.params_cls, values, where=name)
+        except ValueError as e:
+            raise PipelineError(str(e)) from None
     return out
 
 
@@ -285,10 +340,10 @@ class SceneLock:
     """One runner per scene: an exclusive, non-blocking flock that dies with the process."""
 
     def __init__(self, scene: Scene):
-        self.path = scene.artifacts / ".lock"
+        self.path = scene.artifacts / LOCK_FILE
         self.fd: int | None = None
 
-    def __enter__(self) -> "SceneLock":
+    def __enter__(self) -> SceneLock:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
@@ -303,7 +358,18 @@ class SceneLock:
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"pid {os.getpid()} since {time.strftime('%Y-%m-%d %H:%M:%S')}".encode(), 0)
         self.fd = fd
+        for leftover in self.path.parent.glob(f"**/logs/{PARAMS_FILE_PREFIX}*.json"):  # of a killed runner
+            leftover.unlink(missing_ok=True)
         return self
+
+    def remove_bookkeeping(self) -> None:
+        """While held: delete the lock file and the empty directories under artifacts/ (logs/ of refused stages)."""
+        self.path.unlink(missing_ok=True)
+        for d in sorted((p for p in self.path.parent.rglob("*") if p.is_dir()), key=lambda p: -len(p.parts)):
+            with contextlib.suppress(OSError):
+                d.rmdir()
+        with contextlib.suppress(OSError):
+            self.path.parent.rmdir()
 
     def __exit__(self, *exc) -> None:
         if self.fd is not None:
@@ -323,6 +389,8 @@ class StageResult:
     reason: str
     seconds: float = 0.0
     peak_rss_mb: float | None = None
+    bad_input: bool = False
+    """A failure because the stage refused its input (its exit code 2): the runner exits 2."""
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -362,6 +430,7 @@ def _input_paths(node: StageNode, scene: Scene) -> dict[str, Path | None]:
 
 
 def _diff_params(stage: str, old: dict, new: dict) -> str:
+    old, new = flatten(old), flatten(new)
     keys = sorted(set(old) | set(new))
     diffs = [f"{stage}.{k} {json.dumps(old.get(k))} -> {json.dumps(new.get(k))}" for k in keys if old.get(k) != new.get(k)]
     return "params changed: " + ", ".join(diffs)
@@ -381,18 +450,26 @@ def stage_state(node: StageNode, scene: Scene, params: Any) -> tuple[bool, str]:
         return False, problem
     try:
         digests = {r.name: input_digest(r.name, node.spec.inputs[r.name], p) for r, p in zip(node.inputs, _input_paths(node, scene).values())}
-    except StageInputError as e:
+    except InputError as e:
         return False, f"input not ready: {e}"
     try:
         weights = resolve_stage_weights(params, manifest.get("weights"), stage=node.name)
-    except StageInputError as e:
+    except InputError as e:
         return False, f"weights missing: {e}"
     pdict = params_to_dict(params)
-    key = cache_key(node.spec.version, params_hash(pdict), digests, hub.weights_key(weights))
+    code = stage_code(node.spec)
+    key = cache_key(node.spec.version, params_hash(pdict), digests, hub.weights_key(weights), code_digest.combined(code))
     if key == manifest["key"]:
         return True, "up to date"
     if manifest["stage_version"] != node.spec.version:
         return False, f"code version changed: {manifest['stage_version']} -> {node.spec.version}"
+    old_code = (manifest.get("code") or {}).get("files")
+    if old_code is None:
+        return False, "code changed: no code digest recorded (an artifact of an older runner)"
+    changed_code = code_digest.changed_files(old_code, code)
+    if changed_code:
+        more = f" (+{len(changed_code) - 5} more)" if len(changed_code) > 5 else ""
+        return False, f"code changed: {', '.join(changed_code[:5])}{more}"
     if manifest["params_hash"] != params_hash(pdict):
         return False, _diff_params(node.name, manifest["params"], pdict)
     changed_weights = hub.describe_change(node.name, manifest.get("weights") or {}, weights)
@@ -437,14 +514,24 @@ def stage_command(node: StageNode, scene: Scene, params_file: str, python: str =
     return cmd
 
 
+def pending_log(log: Path) -> Path:
+    """Where a stage's log is written while it runs; it becomes `log` unless the stage refused its input (exit 2)."""
+    return log.with_name(f".{log.name}.part")
+
+
 def run_logged(cmd: list[str], log: Path, echo: bool = False, env_extra: dict[str, str] | None = None) -> tuple[int, float, float]:
-    """Run cmd from the repository root with its output in `log`; returns (exit code, seconds, peak RSS MB)."""
+    """Run cmd from the repository root with its output in `log`; returns (exit code, seconds, peak RSS MB).
+
+    On exit code 2 (bad input) the output stays in pending_log(log), for the runner to read and delete: a refused
+    input leaves no log behind, and the previous run's log stays."""
+    log = Path(log)
     log.parent.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(art.REPO_ROOT)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
     env.update(env_extra or {})
     t0 = time.perf_counter()
-    with open(log, "wb") as logf:
+    part = pending_log(log)
+    with open(part, "wb") as logf:
         logf.write(f"$ {' '.join(cmd)}\n".encode())
         logf.flush()
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, cwd=art.REPO_ROOT)
@@ -463,18 +550,39 @@ def run_logged(cmd: list[str], log: Path, echo: bool = False, env_extra: dict[st
         _, status, usage = os.wait4(proc.pid, 0)
         proc.returncode = os.waitstatus_to_exitcode(status)
         t.join()
+    if proc.returncode != 2:
+        os.replace(part, log)
     return proc.returncode, time.perf_counter() - t0, usage.ru_maxrss / 1024.0
+
+
+PARAMS_FILE_PREFIX = ".params-"
+"""Params files live beside the stage's log (never in /tmp) and are deleted after the stage; a run that holds the
+scene lock deletes those a killed runner left."""
+
+
+def run_with_params_file(template: list[str], params: dict, log: Path, echo: bool = False,
+                         env_extra: dict[str, str] | None = None) -> tuple[int, float, float]:
+    """Write the params file beside the log, run the stage command template ({params_file}, {python}), delete it."""
+    log = Path(log)
+    log.parent.mkdir(parents=True, exist_ok=True)
+    params_file = log.parent / f"{PARAMS_FILE_PREFIX}{log.stem}-{os.getpid()}-{threading.get_ident()}.json"
+    params_file.write_text(json.dumps(params))
+    try:
+        cmd = [c.replace("{params_file}", str(params_file)).replace("{python}", sys.executable) for c in template]
+        return run_logged(cmd, log, echo, env_extra)
+    finally:
+        params_file.unlink(missing_ok=True)
+
+
+def runner_env(scene: Scene) -> dict[str, str]:
+    """What a stage started by this process needs to check, before it commits, that its runner still holds the lock."""
+    return {LOCK_ENV: str(scene.artifacts / LOCK_FILE), RUNNER_PID_ENV: str(os.getpid())}
 
 
 def _run_subprocess(node: StageNode, scene: Scene, params: Any, echo: bool) -> tuple[int, float, float]:
     """Run `python -m <stage module>` with explicit inputs; returns (exit code, seconds, peak RSS MB)."""
-    with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as f:
-        json.dump(params_to_dict(params), f)
-        params_file = f.name
-    try:
-        return run_logged(stage_command(node, scene, params_file), scene.log_file(node.name), echo)
-    finally:
-        os.unlink(params_file)
+    template = stage_command(node, scene, "{params_file}", python="{python}")
+    return run_with_params_file(template, params_to_dict(params), scene.log_file(node.name), echo, runner_env(scene))
 
 
 StageExecutor = Callable[[StageNode, Scene, Any, bool], tuple[int, float, float]]
@@ -557,7 +665,8 @@ def run(
         return report
 
     blocked: set[str] = set()  # stages that failed or were skipped because of a failure
-    with SceneLock(scene):
+    fresh = not scene.artifacts.exists()
+    with SceneLock(scene) as lock:
         for name in pipeline.order:
             node = pipeline.stages[name]
             art.recover_dir(scene.artifact_dir(name))
@@ -592,18 +701,26 @@ def run(
                 except art.ArtifactError:
                     pass  # keep the (upper-bound) figure of wait4
                 emit(StageResult(name, "ran", reason, secs, rss))
+            elif code == 2:  # the stage refused its input: one line, its log not kept
+                blocked.add(name)
+                part = pending_log(scene.log_file(name))
+                why = _failure_line(part, name)
+                part.unlink(missing_ok=True)
+                emit(StageResult(name, "failed", f"bad input: {why or 'see the stage output above'}", secs, rss,
+                                 bad_input=True))
             else:
                 blocked.add(name)
-                what = "bad input" if code == 2 else f"exit code {code}"
                 why = _failure_line(scene.log_file(name), name)
-                emit(StageResult(name, "failed", f"{what}: {why}; log: {scene.log_file(name)}" if why else
-                                 f"{what}; log: {scene.log_file(name)}", secs, rss))
+                emit(StageResult(name, "failed", f"exit code {code}: {why}; log: {scene.log_file(name)}" if why else
+                                 f"exit code {code}; log: {scene.log_file(name)}", secs, rss))
                 if not keep_going:
                     break
         done = {r.stage for r in report.results}
         for name in pipeline.order:
             if name not in done:
                 emit(StageResult(name, "skipped", "not run: an earlier stage failed (use --keep-going)"))
+        if fresh and not any(r.action == "ran" for r in report.results):
+            lock.remove_bookkeeping()  # nothing committed into a new artifacts/: leave the scene as it was
     return report
 
 
@@ -612,17 +729,11 @@ def status(scene_dir: Path | str, *, preset: str | None = None, sets: list[str] 
     pipeline = pipeline or Pipeline.load()
     scene = open_scene(scene_dir, pipeline)
     set_map = parse_sets(list(sets), pipeline)
+    all_params = resolve_params(pipeline, preset, scene, set_map, pipeline.order)  # bad params: exit 2 before any row
     rows = []
     for name in pipeline.order:
         node = pipeline.stages[name]
-        try:
-            params = resolve_params(pipeline, preset, scene, set_map, [name])[name]
-        except PipelineError as e:
-            if name in set_map:
-                raise
-            rows.append({"stage": name, "state": "unavailable", "reason": str(e), "artifact": str(scene.artifact_dir(name)),
-                         "schema": None, "schema_version": None, "accepted_schema_versions": []})
-            continue
+        params = all_params[name]
         up, why = stage_state(node, scene, params)
         d = scene.artifact_dir(name)
         sv = None

@@ -16,10 +16,13 @@ import cv2
 import numpy as np
 
 from panoworld.align import align_trajectory, apply_sim3, check_trajectory, trajectory_metrics
-from panoworld.choices import Alignment, Matcher, RenderType
+from panoworld.choices import Alignment, ColmapOptions, Matcher, RenderType
 from panoworld.conventions import cv_world_from_cam_from_gl, gl_world_from_cam, invert_pose
-from panoworld.stage import StageInputError
-from panoworld.video_io import DEPTH_SCALE, VIDEO_FILE, depth_to_mm, encode_png
+from panoworld.errors import InputError
+from panoworld.io import to_jsonable, write_json
+from panoworld.io.depth_png import read_depth_png, write_depth_png  # noqa: F401  (re-exported)
+from panoworld.io.video import VideoDoc, read_video_doc
+from panoworld.video_io import DEPTH_SCALE, VIDEO_FILE
 
 MIN_REGISTERED = 3
 
@@ -27,52 +30,21 @@ MIN_REGISTERED = 3
 # ---------------------------------------------------------------- inputs
 
 
-@dataclass
-class VideoFrames:
-    """The frames of a video artifact (video.json), with paths resolved against its directory."""
-
-    root: Path
-    height: int
-    width: int
-    rgb: list[Path]
-    depth: list[Path | None]
-    depth_scale: float
-    poses: np.ndarray | None
-    """(N, 4, 4) world_from_cam the video was generated along (canonical frame), when recorded."""
-
-    @property
-    def num_frames(self) -> int:
-        return len(self.rgb)
-
-    @property
-    def has_depth(self) -> bool:
-        return bool(self.rgb) and all(d is not None for d in self.depth)
+VideoFrames = VideoDoc
+"""The frames of a video artifact (video.json), with paths resolved against its directory."""
 
 
 def read_video_frames(video_dir: Path) -> VideoFrames:
-    """Read video.json of a video artifact without loading frames (COLMAP reads them from disk; see
-    panoworld.video_io.load_video for the in-memory reader); StageInputError naming the file on any problem."""
-    path = Path(video_dir) / VIDEO_FILE
-    try:
-        meta = json.loads(path.read_text())
-        h, w = int(meta["height"]), int(meta["width"])
-        frames = meta["frames"]
-        rgb = [Path(video_dir) / f["rgb"] for f in frames]
-        depth = [Path(video_dir) / f["depth"] if f.get("depth") else None for f in frames]
-        scale = float(meta.get("depth_scale", DEPTH_SCALE))
-        poses = np.asarray(meta["poses"], np.float64) if meta.get("poses") is not None else None
-    except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-        raise StageInputError(f"{path}: cannot read the video description ({e}); rerun the video stage") from None
-    if w != 2 * h:
-        raise StageInputError(f"{path}: frames are {w}x{h} (WxH) but ERP frames must be 2:1; rerun the video stage")
-    if not rgb:
-        raise StageInputError(f"{path}: lists no frames; rerun the video stage")
-    missing = [str(p) for p in rgb if not p.is_file()]
+    """video.json of a video artifact without loading frames (COLMAP reads them from disk; see
+    panoworld.video_io.load_video for the in-memory reader); InputError naming the file on any problem."""
+    video = read_video_doc(video_dir)
+    if not video.rgb:
+        raise InputError(f"{video.root / VIDEO_FILE}: lists no frames; rerun the video stage")
+    missing = [str(p) for p in video.rgb if not p.is_file()]
     if missing:
-        raise StageInputError(f"{path}: {len(missing)} frame files are missing (first {missing[0]}); rerun the video stage")
-    if poses is not None and poses.shape != (len(rgb), 4, 4):
-        raise StageInputError(f"{path}: poses have shape {poses.shape} but expected ({len(rgb)}, 4, 4)")
-    return VideoFrames(Path(video_dir), h, w, rgb, depth, scale, poses)
+        raise InputError(f"{video.root / VIDEO_FILE}: {len(missing)} frame files are missing (first {missing[0]}); "
+                              "rerun the video stage")
+    return video
 
 
 def read_planned_trajectory(trajectory_dir: Path) -> np.ndarray:
@@ -82,7 +54,7 @@ def read_planned_trajectory(trajectory_dir: Path) -> np.ndarray:
     try:
         return load_trajectory(trajectory_dir)
     except TrajectoryFileError as e:
-        raise StageInputError(f"{e}; rerun the trajectory stage") from None
+        raise InputError(f"{e}; rerun the trajectory stage") from None
 
 
 def load_frames(paths: list[Path], height: int | None = None) -> np.ndarray:
@@ -91,29 +63,11 @@ def load_frames(paths: list[Path], height: int | None = None) -> np.ndarray:
     for p in paths:
         bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
         if bgr is None:
-            raise StageInputError(f"{p}: not a readable image; rerun the video stage")
+            raise InputError(f"{p}: not a readable image; rerun the video stage")
         if height is not None and bgr.shape[0] != height:
             bgr = cv2.resize(bgr, (2 * height, height), interpolation=cv2.INTER_AREA)
         out.append(bgr[..., ::-1])
     return np.stack(out)
-
-
-def read_depth_png(path: Path, scale: float = DEPTH_SCALE) -> np.ndarray:
-    """uint16 depth PNG -> float32 metres (H, W); 0 (no depth) becomes NaN."""
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
-        raise StageInputError(f"{path}: not a single-channel uint16 depth PNG")
-    d = raw.astype(np.float32) * np.float32(scale)
-    d[raw == 0] = np.nan
-    return d
-
-
-def write_depth_png(path: Path, depth_m: np.ndarray) -> None:
-    """Depth (H, W) metres -> uint16 PNG in millimetres (video_io.depth_to_mm: unknown -> 0, clipped at 65.535 m)."""
-    if depth_m.ndim != 2:
-        raise ValueError(f"{depth_m.shape=} but expected (H, W)")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(encode_png(depth_to_mm(depth_m)))
 
 
 # ---------------------------------------------------------------- estimates
@@ -178,31 +132,10 @@ def _link_or_copy(src: Path, dst: Path) -> None:
         shutil.copyfile(src, dst)
 
 
-@dataclass(kw_only=True)
-class SfmOptions:
-    """COLMAP settings of the spherical path, sized for a sequential panoramic video on a few CPU cores."""
-
-    max_image_size: int = 1024
-    """Features are extracted on frames downscaled so their width is at most this (0 = as stored); COLMAP scales the
-    keypoints back, so the model stays in the video's pixel coordinates."""
-    max_features: int = 2048
-    """SIFT features per frame."""
-    upsample: bool = False
-    """SIFT's first octave on the 2x upsampled image (COLMAP's default; about 3x the extraction time for the small
-    features of the upsampled octave). Always on for frames narrower than SMALL_FRAME_WIDTH px, where it is cheap
-    and the plain pyramid finds too few features."""
-    mapper: str = "global"
-    """global (GLOMAP: rotation averaging + global positioning + bundle adjustment) or incremental."""
-    overlap: int = 10
-    """sequential: each frame is matched with this many successors (plus successors 2^k further: quadratic overlap)."""
-    num_threads: int = -1
-    seed: int = 0
-
-
 SMALL_FRAME_WIDTH = 640
 
 
-def _spherical_sfm(img_dir: Path, out: Path, matcher: Matcher, sfm: SfmOptions, timings: dict) -> dict:
+def _spherical_sfm(img_dir: Path, out: Path, matcher: Matcher, sfm: ColmapOptions, timings: dict) -> dict:
     """pycolmap.panorama's spherical pipeline (EQUIRECTANGULAR camera, SIFT, matching, incremental mapping) with
     bounded feature extraction and a sequential window; returns {index: Reconstruction}, seconds per step in timings."""
     import pycolmap
@@ -220,7 +153,7 @@ def _spherical_sfm(img_dir: Path, out: Path, matcher: Matcher, sfm: SfmOptions, 
 
     with Image.open(next(iter(sorted(img_dir.iterdir())))) as im:
         width = im.width if sfm.max_image_size <= 0 else min(im.width, sfm.max_image_size)
-    upsample = sfm.upsample or width < SMALL_FRAME_WIDTH
+    upsample = sfm.upsample_features or width < SMALL_FRAME_WIDTH
     extraction.sift.first_octave = -1 if upsample else 0
     timings["features_upsampled"] = upsample
     pycolmap.extract_features(
@@ -255,7 +188,7 @@ def run_colmap(
     *,
     render_type: RenderType = RenderType.SPHERICAL,
     matcher: Matcher = Matcher.SEQUENTIAL,
-    sfm: SfmOptions | None = None,
+    sfm: ColmapOptions | None = None,
     verbose: bool = False,
     timings: dict | None = None,
 ):
@@ -267,10 +200,10 @@ def run_colmap(
     import pycolmap
     from pycolmap import panorama
 
-    sfm = sfm or SfmOptions()
+    sfm = sfm or ColmapOptions()
     names = [p.name for p in image_paths]
     if len(set(names)) != len(names):
-        raise StageInputError("video frames must have unique file names for COLMAP")
+        raise InputError("video frames must have unique file names for COLMAP")
     img_dir = work_dir / "images"
     img_dir.mkdir(parents=True, exist_ok=True)
     for p in image_paths:
@@ -301,23 +234,23 @@ def colmap_estimate(
     *,
     render_type: RenderType = RenderType.SPHERICAL,
     matcher: Matcher = Matcher.SEQUENTIAL,
-    sfm: SfmOptions | None = None,
+    sfm: ColmapOptions | None = None,
     alignment: Alignment = Alignment.SIM3,
     verbose: bool = False,
 ) -> PoseEstimate:
     """COLMAP panorama SfM on the frames, Sim(3)-aligned to the planned trajectory (N, 4, 4).
 
     The largest model is kept; frames it lacks are unregistered: flagged, with the planned pose filled in.
-    Fewer than 3 registered frames (no alignment possible) -> StageInputError.
+    Fewer than 3 registered frames (no alignment possible) -> InputError.
     """
     import pycolmap
 
     planned = check_trajectory(planned, "planned")
     n = len(image_paths)
     if len(planned) != n:
-        raise StageInputError(f"the planned trajectory has {len(planned)} poses but the video has {n} frames")
+        raise InputError(f"the planned trajectory has {len(planned)} poses but the video has {n} frames")
     if alignment != Alignment.SIM3:
-        raise StageInputError(f"align={alignment}: COLMAP's frame and scale are arbitrary; use --align sim3")
+        raise InputError(f"align={alignment}: COLMAP's frame and scale are arbitrary; use --align sim3")
     t0 = time.perf_counter()
     timings: dict = {}
     with tempfile.TemporaryDirectory(prefix="panoworld-colmap-") as tmp:
@@ -334,14 +267,14 @@ def colmap_estimate(
                 raw[i] = invert_pose(np.vstack([img.cam_from_world().matrix(), [0, 0, 0, 1]]))
                 reg[i] = True
     if reg.sum() < MIN_REGISTERED:
-        raise StageInputError(
+        raise InputError(
             f"COLMAP registered {int(reg.sum())} of {n} frames (at least {MIN_REGISTERED} are needed to align them to "
             "the planned trajectory): the frames lack matchable texture or overlap; try --render-type "
             "perspective_overlapping or --matcher exhaustive, or use --backend planned"
         )
     moving = np.linalg.norm(planned[reg, :3, 3] - planned[reg, :3, 3].mean(0), axis=1).max()
     if moving < 1e-6:
-        raise StageInputError("the planned trajectory does not move, so COLMAP's scale cannot be fixed; use --backend planned")
+        raise InputError("the planned trajectory does not move, so COLMAP's scale cannot be fixed; use --backend planned")
     sim = _alignment(raw, planned, reg, alignment)
     poses = np.where(reg[:, None, None], _apply(sim, raw), planned)
     s, R, t = sim
@@ -349,7 +282,7 @@ def colmap_estimate(
     info = {
         "sfm_s": sfm_s,
         **timings,
-        "feature_image_size": None if render_type != RenderType.SPHERICAL else (sfm or SfmOptions()).max_image_size,
+        "feature_image_size": None if render_type != RenderType.SPHERICAL else (sfm or ColmapOptions()).max_image_size,
         "num_models": len(recs),
         "model_sizes": sorted((m.num_reg_images() for m in recs.values()), reverse=True),
         "num_points3D": rec.num_points3D(),
@@ -380,10 +313,10 @@ def vggt_estimate(
     sim = None
     if alignment != Alignment.NONE:
         if planned is None:
-            raise StageInputError(f"align={alignment} needs the planned trajectory; give --trajectory or use --align none")
+            raise InputError(f"align={alignment} needs the planned trajectory; give --trajectory or use --align none")
         planned = check_trajectory(planned, "planned")
         if len(planned) != n:
-            raise StageInputError(f"the planned trajectory has {len(planned)} poses but the video has {n} frames")
+            raise InputError(f"the planned trajectory has {len(planned)} poses but the video has {n} frames")
         sim = _alignment(raw, planned, reg, alignment)
     scale = 1.0 if sim is None else sim[0]
     depth = pred["depth"] * np.float32(scale)
@@ -455,16 +388,6 @@ def poses_from_transforms(d: dict) -> np.ndarray:
     return np.stack([cv_world_from_cam_from_gl(np.asarray(f["transform_matrix"], np.float64)) for f in d["frames"]])
 
 
-def _jsonable(x):
-    if isinstance(x, float) and not np.isfinite(x):
-        return None
-    if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    return x
-
-
 def write_poses_artifact(
     out_dir: Path,
     est: PoseEstimate,
@@ -493,7 +416,7 @@ def write_poses_artifact(
         # The stage writes into a temporary sibling of the final directory, so paths relative to out_dir hold.
         dirs = {p.parent.resolve() for p in video.rgb}
         if len(dirs) != 1:
-            raise StageInputError("video frames must lie in one directory to be referenced by COLMAP and nerfstudio")
+            raise InputError("video frames must lie in one directory to be referenced by COLMAP and nerfstudio")
         image_dir = os.path.relpath(dirs.pop(), out_dir.resolve())
     frame_paths = [f"{image_dir}/{name}" for name in names]
 
@@ -549,14 +472,14 @@ def write_poses_artifact(
         "colmap_model": "sparse/0",
         "image_dir": image_dir,
     }
-    (out_dir / "poses.json").write_text(json.dumps(_jsonable(doc), indent=1))
+    write_json(out_dir / "poses.json", doc)
     return {
         "backend": est.backend,
         "num_frames": n,
         "num_registered": int(reg.sum()),
         "unregistered": doc["unregistered"],
         "sim3_scale": None if est.sim3 is None else float(est.sim3[0]),
-        "metrics_vs_planned": _jsonable(metrics),
+        "metrics_vs_planned": to_jsonable(metrics),
         "has_depth": depth_rel is not None,
         "num_points3D": int(rec.num_points3D()),
         **est.info,
@@ -592,5 +515,5 @@ def load_poses(poses_dir: Path) -> PosesArtifact:
         depth = [poses_dir / f["depth"] for f in frames] if all(f["depth"] for f in frames) else None
         return PosesArtifact(T, np.asarray(d["registered"], bool), rgb, depth, int(d["height"]), int(d["width"]), d["backend"])
     except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
-        raise StageInputError(f"{path}: cannot read poses ({e}); rerun the poses stage") from None
+        raise InputError(f"{path}: cannot read poses ({e}); rerun the poses stage") from None
 

@@ -10,17 +10,18 @@ import multiprocessing
 import os
 import sys
 import time
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator
+from typing import Any
 
 import numpy as np
 
 from panoworld import artifacts as art
 from panoworld import precompute_clip as clip_mod
+from panoworld.errors import InputError
 from panoworld.stage import (
-    StageInputError,
     cache_key,
     execute_stage,
     input_digest,
@@ -284,15 +285,16 @@ def precompute(
     ray_address: str | None = None, progress: bool = True,
 ) -> dict:
     """Sample and render every clip of every scene; write index.jsonl, failures.jsonl and summary.json."""
-    from panoworld.dataset import DatasetError, DatasetScene
     from tqdm import tqdm
+
+    from panoworld.dataset import DatasetError, DatasetScene
 
     dataset_dir, out_dir = Path(dataset_dir), Path(out_dir)
     if not dataset_dir.is_dir():
-        raise StageInputError(f"{dataset_dir}: dataset directory not found")
+        raise InputError(f"{dataset_dir}: dataset directory not found")
     scene_dirs = sorted(p for p in dataset_dir.iterdir() if p.is_dir() and not p.name.startswith("."))
     if not scene_dirs:
-        raise StageInputError(f"{dataset_dir}: no scene directories inside")
+        raise InputError(f"{dataset_dir}: no scene directories inside")
     failures: list[dict] = []
     tasks: list[ClipTask] = []
     for sd in scene_dirs:
@@ -385,12 +387,12 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     try:
         if a.width is not None and a.width != 2 * a.height:
-            raise StageInputError(f"--width {a.width} with --height {a.height}: ERP frames must be 2:1")
+            raise InputError(f"--width {a.width} with --height {a.height}: ERP frames must be 2:1")
         strides = tuple(int(s) for s in a.strides.split(",") if s.strip())
         if not strides or min(strides) < 1:
-            raise StageInputError(f"--strides {a.strides}: expected positive integers like 1,2,4")
+            raise InputError(f"--strides {a.strides}: expected positive integers like 1,2,4")
         if not 1 <= a.min_frames <= a.frames:
-            raise StageInputError(f"--min-frames {a.min_frames} / --frames {a.frames}: need 1 <= min <= frames")
+            raise InputError(f"--min-frames {a.min_frames} / --frames {a.frames}: need 1 <= min <= frames")
         params = PrecomputeParams(
             clips_per_scene=a.clips_per_scene, strides=strides, frames=a.frames, min_frames=a.min_frames, height=a.height,
             seed=a.seed, write_depth=not a.no_depth, write_targets=not a.no_targets,
@@ -398,7 +400,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         summary = precompute(a.dataset, a.out, params, executor=a.executor, workers=a.workers, ray_address=a.ray_address,
                              progress=not a.json)
-    except (StageInputError, ValueError) as e:
+    except (InputError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     if a.json:

@@ -9,7 +9,6 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from panoworld.conditions import WarpedFrame
 from panoworld.conventions import (
     check_erp_shape,
     check_pose,
@@ -17,6 +16,8 @@ from panoworld.conventions import (
     invert_pose,
 )
 from panoworld.raycast import Hits, Raycaster
+from panoworld.shapes import check_shape
+from panoworld.warped_frame import WarpedFrame
 
 _NO_HIT = np.uint64(0xFFFFFFFFFFFFFFFF)
 # z-buffer key = float32 bits of the ray distance << 32 | face id (positive floats order like their bits): the
@@ -433,10 +434,8 @@ def shade_hits(hits: Hits, faces: np.ndarray, colors: np.ndarray, face_valid: np
 def _check_mesh_arrays(vertices, faces, colors, face_valid):
     vertices = np.ascontiguousarray(vertices, dtype=np.float32)
     faces = np.ascontiguousarray(faces, dtype=np.int32)
-    if vertices.ndim != 2 or vertices.shape[1] != 3:
-        raise ValueError(f"{vertices.shape=} but expected (V, 3)")
-    if faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(f"{faces.shape=} but expected (F, 3)")
+    dims = check_shape("vertices", vertices, "V 3")
+    check_shape("faces", faces, "F 3", dims=dims)
     if len(faces) == 0:
         raise ValueError("cannot render an empty mesh (0 faces)")
     if faces.min() < 0 or faces.max() >= len(vertices):
@@ -444,13 +443,11 @@ def _check_mesh_arrays(vertices, faces, colors, face_valid):
     if colors is None:
         colors = np.full((len(vertices), 3), 128, np.uint8)
     colors = np.ascontiguousarray(colors, dtype=np.uint8)
-    if colors.shape != vertices.shape:
-        raise ValueError(f"{colors.shape=} but expected {vertices.shape} (V, 3)")
+    check_shape("colors", colors, "V 3", dims=dims)
     if face_valid is None:
         face_valid = np.ones(len(faces), bool)
     face_valid = np.ascontiguousarray(face_valid, dtype=np.bool_)
-    if face_valid.shape != (len(faces),):
-        raise ValueError(f"{face_valid.shape=} but expected ({len(faces)},) (F,)")
+    check_shape("face_valid", face_valid, "F", dims=dims)
     return vertices, faces, colors, face_valid
 
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from panoworld.conventions import check_erp_shape, check_pose, erp_dirs
+from panoworld.shapes import check_shape
 
 
 @dataclass
@@ -24,10 +25,8 @@ class Raycaster:
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
         vertices = np.asarray(vertices)
         faces = np.asarray(faces)
-        if vertices.ndim != 2 or vertices.shape[1] != 3:
-            raise ValueError(f"{vertices.shape=} but expected (V, 3)")
-        if faces.ndim != 2 or faces.shape[1] != 3:
-            raise ValueError(f"{faces.shape=} but expected (F, 3)")
+        check_shape("vertices", vertices, "V 3")
+        check_shape("faces", faces, "F 3")
         if len(faces) == 0:
             raise ValueError("cannot ray cast an empty mesh (0 faces)")
         self.vertices = vertices.astype(np.float32)

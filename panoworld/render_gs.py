@@ -20,6 +20,7 @@ import torch.nn.functional as F
 
 from panoworld.conventions import check_erp_shape, check_pose, erp_dirs, invert_pose
 from panoworld.gaussians import SH_C0, Gaussians
+from panoworld.rotations import rotmat_from_quat
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
@@ -83,20 +84,6 @@ class _Prepared:
     cov: torch.Tensor
     opacity: torch.Tensor
     color: torch.Tensor
-
-
-def rotmat_from_quat(q: torch.Tensor) -> torch.Tensor:
-    """Quaternions (N, 4) (w, x, y, z), normalised here -> rotation matrices (N, 3, 3); differentiable."""
-    q = q / q.norm(dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        -1,
-    ).reshape(q.shape[:-1] + (3, 3))
 
 
 def covariance_3d(scales: torch.Tensor, quats: torch.Tensor) -> torch.Tensor:

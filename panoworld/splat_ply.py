@@ -9,6 +9,7 @@ from plyfile import PlyData, PlyElement, PlyParseError
 
 from panoworld.conventions import rotmat_from_quat_wxyz
 from panoworld.gaussians import Gaussians
+from panoworld.shapes import check_shape
 
 NUM_REST = 45
 """f_rest_* properties always written (degree-3 SH) so that viewers expecting the full INRIA layout load the file."""
@@ -87,8 +88,7 @@ def write_points_ply(path: str | Path, xyz: np.ndarray, rgb: np.ndarray) -> None
     """Binary point cloud: xyz (N, 3) float32 and rgb (N, 3) uint8 (or floats in [0, 1]) as red, green, blue."""
     xyz = np.asarray(xyz)
     rgb = np.asarray(rgb)
-    if xyz.ndim != 2 or xyz.shape[1] != 3 or rgb.shape != xyz.shape:
-        raise ValueError(f"{xyz.shape=} {rgb.shape=} but expected (N, 3) and (N, 3)")
+    check_shape("rgb", rgb, "N 3", dims=check_shape("xyz", xyz, "N 3"))
     if rgb.dtype != np.uint8:
         rgb = np.clip(np.round(rgb.astype(np.float64) * 255.0), 0, 255).astype(np.uint8)
     vertex = np.empty(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])

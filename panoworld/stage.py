@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from panoworld.errors import InputError
 import argparse
 import ast
 import dataclasses
@@ -10,21 +9,32 @@ import enum
 import importlib
 import inspect
 import json
+import os
 import resource
 import shutil
+import signal
 import sys
 import textwrap
 import time
 import types
 import typing
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from panoworld import artifacts as art
+from panoworld import code_digest
+from panoworld import params as P
+from panoworld.errors import InputError, PanoWorldError, PipelineError
 from panoworld.hub import resolve as hub
+from panoworld.io import to_jsonable
 
+LOCK_FILE = ".lock"
+"""The scene lock, SCENE/artifacts/.lock: held (flock) by the runner working on the scene, naming its pid."""
+LOCK_ENV = "PANOWORLD_SCENE_LOCK"
+RUNNER_PID_ENV = "PANOWORLD_RUNNER_PID"
+"""Set by a local runner for the stages it starts: the lock it holds and its pid (see check_runner)."""
 
 StageInputError = InputError
 """Bad input to a stage (missing/unreadable file, wrong size, ...): exit code 2, one-line message."""
@@ -50,6 +60,13 @@ class StageSpec:
     inputs: dict[str, Input]
     params_cls: type
     module: types.ModuleType
+
+
+def stage_code(spec: StageSpec) -> dict[str, str]:
+    """{file: digest} of the stage module and the project modules it imports (panoworld.code_digest)."""
+    mod = spec.module
+    name = getattr(getattr(mod, "__spec__", None), "name", None) or mod.__name__  # `python -m` runs it as __main__
+    return code_digest.code_digests(name, code_digest.stage_roots(mod.__file__, name))
 
 
 def load_stage(name_or_module: str | types.ModuleType) -> StageSpec:
@@ -140,41 +157,78 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
     return value
 
 
-def params_from_dict(cls: type, values: dict[str, Any], where: str = "params") -> Any:
-    """Build a params dataclass from plain values; unknown names are a ValueError naming them."""
+def normalize(cls: type, values: Any, where: str) -> dict[str, Any]:
+    """A nested {param: value} dict from a layer of values (dotted keys and old names resolved, options nested);
+    ValueError naming the param (with a "did you mean") for unknown names and wrong shapes."""
+    if not isinstance(values, dict):
+        raise ValueError(f"{where}: expected a mapping of param: value, got {type(values).__name__} {values!r}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
     hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - names)
-    if unknown:
-        raise ValueError(f"{where}: unknown param(s) {unknown}; known: {sorted(names)}")
-    kwargs = {k: coerce(v, hints[k], f"{where}.{k}") for k, v in values.items()}
+    old = P.renamed(cls)
+    out: dict[str, Any] = {}
+    for key, v in values.items():
+        key = old.get(str(key), str(key))
+        head, dot, rest = key.partition(".")
+        f = fields.get(head)
+        if f is None:
+            raise ValueError(f"{where}.{head}: unknown param{P.suggest(head, list(fields) + list(old))}")
+        if P.is_options(f):
+            if dot:
+                v = {rest: v}
+            if not isinstance(v, dict):
+                raise ValueError(f"{where}.{head}: expected a mapping of {head} options, got {v!r}")
+            sub = normalize(hints[head], v, f"{where}.{head}")
+            out[head] = merge(out.get(head) or {}, sub)
+        elif dot:
+            raise ValueError(f"{where}.{head}: {head} has no sub-params (got {key})")
+        else:
+            out[head] = v
+    return out
+
+
+def merge(a: dict, b: dict) -> dict:
+    """Deep merge of nested param dicts: b wins."""
+    out = dict(a)
+    for k, v in b.items():
+        out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _build(cls: type, values: dict[str, Any], where: str) -> Any:
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs = {k: _build(hints[k], v, f"{where}.{k}") if P.is_options(fields[k]) else coerce(v, hints[k], f"{where}.{k}")
+              for k, v in values.items()}
     return cls(**kwargs)
 
 
+def params_from_dict(cls: type, values: Any, where: str = "params") -> Any:
+    """Build and validate a params dataclass from plain values (nested or dotted `wan.steps`); ValueError
+    `where.param=value: what is allowed` naming the first bad param."""
+    params = _build(cls, normalize(cls, values, where), where)
+    P.validate(params, where)
+    return params
+
+
 def params_to_dict(params: Any) -> dict[str, Any]:
-    """JSON-ready dict of a params dataclass (enums as values, tuples as lists)."""
-
-    def plain(v):
-        if isinstance(v, enum.Enum):
-            return v.value
-        if isinstance(v, (tuple, list)):
-            return [plain(x) for x in v]
-        if isinstance(v, Path):
-            return str(v)
-        return v
-
-    return {f.name: plain(getattr(params, f.name)) for f in dataclasses.fields(params)}
+    """JSON-ready dict of a params dataclass (enums as values, tuples as lists, the chosen backend's options nested;
+    the options of the other backends are left out, so they neither enter the cache key nor rerun the stage)."""
+    return P.active_dict(params)
 
 
 def params_hash(params_dict: dict[str, Any]) -> str:
     return art.json_digest(params_dict)
 
 
-def cache_key(version: str, p_hash: str, input_digests: dict[str, str | None], weights: dict | None = None) -> str:
-    """Stage version + params hash + input digests (+ the content digest of each weights param that is set)."""
+def cache_key(version: str, p_hash: str, input_digests: dict[str, str | None], weights: dict | None = None,
+              code: str | None = None) -> str:
+    """Stage version + params hash + input digests (+ the content digest of each weights param that is set, + the
+    stage's code digest)."""
     doc = {"version": version, "params": p_hash, "inputs": input_digests}
     if weights:
         doc["weights"] = weights
+    if code is not None:
+        doc["code"] = code
     return art.json_digest(doc)
 
 
@@ -235,6 +289,35 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def die_with_runner() -> None:
+    """In a stage started by a local runner: be killed when the runner dies (Linux PR_SET_PDEATHSIG), and exit at once
+    if it is already gone."""
+    pid = os.environ.get(RUNNER_PID_ENV)
+    if not pid:
+        return
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1 = PR_SET_PDEATHSIG
+    if os.getppid() != int(pid):
+        raise PipelineError(f"the runner (pid {pid}) that started this stage is gone; not running")
+
+
+def check_runner() -> None:
+    """Refuse to commit unless the runner that started this stage is still its parent and still holds the scene lock
+    (a no-op for a stage run by hand or by a Ray worker)."""
+    lock, pid = os.environ.get(LOCK_ENV), os.environ.get(RUNNER_PID_ENV)
+    if not lock or not pid:
+        return
+    try:
+        holder = Path(lock).read_text()
+    except OSError:
+        holder = ""
+    if os.getppid() != int(pid) or not holder.startswith(f"pid {pid} "):
+        raise PipelineError(f"the runner (pid {pid}) that started this stage is gone or no longer holds {lock}; "
+                            "not committing")
+
+
 def execute_stage(
     spec: StageSpec, inputs: dict[str, Path | None], params: Any, out_dir: Path, *, input_digests: dict | None = None
 ) -> dict:
@@ -254,13 +337,14 @@ def execute_stage(
     pdict = params_to_dict(params)
     phash = params_hash(pdict)
     weights = resolve_stage_weights(params, previous_weights(out_dir), stage=spec.name)
-    key = cache_key(spec.version, phash, input_digests, hub.weights_key(weights))
+    code = stage_code(spec)
+    key = cache_key(spec.version, phash, input_digests, hub.weights_key(weights), code_digest.combined(code))
 
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     art.recover_dir(out_dir)
     tmp = art.tmp_dir_for(out_dir)
     tmp.mkdir(parents=True)
-    started = datetime.now(timezone.utc).isoformat()
+    started = datetime.now(UTC).isoformat()
     t0 = time.perf_counter()
     try:
         info = spec.module.run(full_inputs, hub.with_resolved_paths(params, weights), tmp) or {}
@@ -279,25 +363,23 @@ def execute_stage(
                 for name, d in input_digests.items()
             },
             **({"weights": weights} if weights else {}),
+            "code": {"digest": code_digest.combined(code), "files": code},
             "key": key,
             "files": files,
             "digest": art.files_digest(files),
             "started": started,
-            "finished": datetime.now(timezone.utc).isoformat(),
+            "finished": datetime.now(UTC).isoformat(),
             "wall_s": time.perf_counter() - t0,
             "peak_rss_mb": peak_rss_mb(),
-            "info": _jsonable(info),
+            "info": to_jsonable(info),
         }
         art.write_manifest(tmp, manifest, spec.artifact)
+        check_runner()
         art.commit_dir(tmp, out_dir)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return manifest
-
-
-def _jsonable(obj: Any) -> Any:
-    return json.loads(json.dumps(obj, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
 
 
 # ---------------------------------------------------------------- CLI
@@ -318,21 +400,40 @@ def build_parser(spec: StageSpec) -> argparse.ArgumentParser:
         )
     parser.add_argument("--out", type=Path, required=True, help=f"output {spec.artifact} artifact directory")
     parser.add_argument("--params-file", type=Path, help="JSON file of params (flags below override it)")
-    g_p = parser.add_argument_group("params")
-    docs = field_docs(spec.params_cls)
-    hints = typing.get_type_hints(spec.params_cls)
-    for f in dataclasses.fields(spec.params_cls):
-        tp, _ = _unwrap_optional(hints[f.name])
-        default = f.default if f.default is not dataclasses.MISSING else None
-        if isinstance(default, enum.Enum):
-            default = default.value
-        choices = [m.value for m in tp] if inspect.isclass(tp) and issubclass(tp, enum.Enum) else None
-        g_p.add_argument(
-            f"--{f.name.replace('_', '-')}", dest=f"p_{f.name}", default=None, choices=choices,
-            metavar=None if choices else tp.__name__.upper() if hasattr(tp, "__name__") else "VALUE",
-            help=f"{docs.get(f.name, '')} (default: {default})",
-        )
+    _add_param_flags(parser, parser.add_argument_group("params"), spec.params_cls, "")
     return parser
+
+
+def _add_param_flags(parser: argparse.ArgumentParser, group, cls: type, prefix: str) -> None:
+    """One flag per param (`--max-features`), nested backend options as `--wan-steps`; help from the field docstring
+    and its declared rule."""
+    docs = field_docs(cls)
+    hints = typing.get_type_hints(cls)
+    for old, new in P.renamed(cls).items():  # old flags keep working, unlisted
+        group.add_argument("--" + old.replace("_", "-"), dest="p_" + new.replace(".", "__"), help=argparse.SUPPRESS)
+    for f in dataclasses.fields(cls):
+        if P.is_options(f):
+            sub = parser.add_argument_group(f"{prefix}{f.name} options (--set STAGE.{prefix}{f.name}.PARAM=VALUE)")
+            _add_param_flags(parser, sub, hints[f.name], f"{prefix}{f.name}.")
+            continue
+        tp, _ = _unwrap_optional(hints[f.name])
+        default = P.plain(f.default) if f.default is not dataclasses.MISSING else None
+        rule = P.rule_of(f)
+        choices = [m.value for m in tp] if inspect.isclass(tp) and issubclass(tp, enum.Enum) else None
+        if rule.choices is not None:
+            choices = [P.plain(c) for c in rule.choices]
+        allowed = rule.describe()
+        name = f"{prefix}{f.name}"
+        group.add_argument(
+            "--" + name.replace(".", "-").replace("_", "-"), dest="p_" + name.replace(".", "__"), default=None,
+            metavar=("{" + ",".join(map(str, choices)) + "}") if choices else tp.__name__.upper() if hasattr(tp, "__name__") else "VALUE",
+            help=f"{docs.get(f.name, '')} (default: {default}{'; ' + allowed if allowed and not choices else ''})".replace("%", "%%"),
+        )
+
+
+def _param_flag_values(args: argparse.Namespace) -> dict[str, Any]:
+    """{dotted param: value} of the param flags given on the command line."""
+    return {k[2:].replace("__", "."): v for k, v in vars(args).items() if k.startswith("p_") and v is not None}
 
 
 def stage_main(module_name: str, argv: list[str] | None = None) -> int:
@@ -340,25 +441,24 @@ def stage_main(module_name: str, argv: list[str] | None = None) -> int:
     spec = load_stage(sys.modules[module_name])
     args = build_parser(spec).parse_args(argv)
     try:
+        die_with_runner()
         values: dict[str, Any] = {}
         if args.params_file:
             try:
                 values.update(json.loads(args.params_file.read_text()))
             except (OSError, json.JSONDecodeError) as e:
                 raise StageInputError(f"--params-file {args.params_file}: {e}") from None
-        for f in dataclasses.fields(spec.params_cls):
-            v = getattr(args, f"p_{f.name}")
-            if v is not None:
-                values[f.name] = v
         try:
+            flags = normalize(spec.params_cls, _param_flag_values(args), spec.name)
+            values = merge(normalize(spec.params_cls, values, spec.name), flags)
             params = params_from_dict(spec.params_cls, values, where=spec.name)
         except ValueError as e:
             raise StageInputError(str(e)) from None
         inputs = {name: getattr(args, f"in_{name}") for name in spec.inputs}
         manifest = execute_stage(spec, inputs, params, args.out)
-    except StageInputError as e:
+    except PanoWorldError as e:
         print(f"error: stage {spec.name}: {e}", file=sys.stderr)
-        return 2
+        return e.exit_code
     print(
         f"{spec.name}: wrote {args.out} ({len(manifest['files'])} files, {manifest['wall_s']:.2f} s, "
         f"peak {manifest['peak_rss_mb']:.0f} MB)",

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from panoworld.inpaint import erp_pad
+from panoworld.shapes import check_shape
 
 SCALE = 2
 
@@ -18,8 +19,7 @@ METHODS = ("none", "lanczos", "realesrgan")
 def lanczos_x2(rgb: np.ndarray, *, pad: int = 8) -> np.ndarray:
     """ERP frame (H, W, 3) uint8 -> (2H, 2W, 3) with cv2.INTER_LANCZOS4 on a sphere-padded copy (wrapped columns,
     mirrored polar rows), so the left/right borders stay continuous."""
-    if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
-        raise ValueError(f"{rgb.shape=} {rgb.dtype=} but expected (H, W, 3) uint8")
+    check_shape("rgb", rgb, "H W 3", dtype=np.uint8)
     H, W = rgb.shape[:2]
     pad = min(pad, H, W)
     big = cv2.resize(erp_pad(rgb, pad, pad if W % 2 == 0 else 0), None, fx=SCALE, fy=SCALE,
@@ -30,8 +30,7 @@ def lanczos_x2(rgb: np.ndarray, *, pad: int = 8) -> np.ndarray:
 
 def nearest_x2(depth: np.ndarray) -> np.ndarray:
     """Depth (H, W) -> (2H, 2W), each pixel repeated 2x2 (0 = unknown stays unknown, no mixed depths at edges)."""
-    if depth.ndim != 2:
-        raise ValueError(f"{depth.shape=} but expected (H, W)")
+    check_shape("depth", depth, "H W")
     return np.repeat(np.repeat(depth, SCALE, axis=0), SCALE, axis=1)
 
 

@@ -17,14 +17,17 @@ from panoworld.conventions import (
     check_pose,
     depth_to_mm,
     quat_wxyz_from_rotmat,
+    quat_wxyz_from_xyzw,
     quat_xyzw_from_wxyz,
     ros_world_from_cam,
     rotmat_from_quat_wxyz,
-    quat_wxyz_from_xyzw,
     world_from_ros_world,
 )
+from panoworld.errors import InputError
+from panoworld.io.depth_png import read_depth_png
+from panoworld.io.video import VIDEO_FILE, read_video_doc
+from panoworld.shapes import check_shape
 
-VIDEO_FILE = "video.json"
 PREVIEW_FILE = "preview.mp4"
 MCAP_FILE = "video.mcap"
 DEPTH_SCALE = DEPTH_PNG_SCALE  # metres per depth PNG unit (millimetres); 0 = unknown
@@ -148,16 +151,15 @@ class VideoWriter:
         the conditions' PNG bytes (any size) go into the MCAP only; upscaled (sH, sW, 3) uint8 (required iff the
         writer's upscale s > 1) goes to upscaled/ only."""
         H, W = self.height, self.width
-        if rgb.shape != (H, W, 3) or rgb.dtype != np.uint8:
-            raise ValueError(f"{rgb.shape=} {rgb.dtype=} but expected {(H, W, 3)} uint8")
+        dims = check_shape("rgb", rgb, "H W 3", dtype=np.uint8, dims={"H": H, "W": W})
         s = self.upscale
         if (upscaled is not None) != (s > 1) or (upscaled is not None and upscaled.shape != (s * H, s * W, 3)):
             raise ValueError(f"upscaled {None if upscaled is None else upscaled.shape} but expected "
                              f"{(s * H, s * W, 3) if s > 1 else None} (writer upscale {s})")
         if self.has_depth != (depth is not None):
             raise ValueError(f"depth given: {depth is not None} but the writer has has_depth={self.has_depth}")
-        if depth is not None and depth.shape != (H, W):
-            raise ValueError(f"{depth.shape=} but expected {(H, W)} (H, W)")
+        if depth is not None:
+            check_shape("depth", depth, "H W", dims=dims)
         check_pose(world_from_cam, "world_from_cam")
         i = len(self.entries)
         name = f"{i:06d}.png"
@@ -266,9 +268,10 @@ def write_video(
     meta: dict | None = None, **writer_kw,
 ) -> dict:
     """Write frames (T, H, W, 3) uint8, depth (T, H, W) metres or None and poses (T, 4, 4) as a video artifact."""
-    if frames.ndim != 4 or len(poses) != len(frames) or (depth is not None and depth.shape != frames.shape[:3]):
-        raise ValueError(f"{frames.shape=} {np.shape(poses)=} {np.shape(depth)=} but expected (T, H, W, 3), (T, 4, 4), "
-                         "(T, H, W)")
+    dims = check_shape("frames", frames, "T H W 3")
+    check_shape("poses", poses, "T 4 4", dims=dims)
+    if depth is not None:
+        check_shape("depth", depth, "T H W", dims=dims)
     T, H, W = frames.shape[:3]
     w = VideoWriter(Path(out_dir), height=H, width=W, fps=fps, has_depth=depth is not None, **writer_kw)
     for t in range(T):
@@ -278,31 +281,22 @@ def write_video(
 
 def load_video(artifact_dir: Path, *, with_depth: bool = True) -> Video:
     """Read a video artifact directory (video.json, frames/, depth/) into memory."""
-    root = Path(artifact_dir)
-    try:
-        meta = json.loads((root / VIDEO_FILE).read_text())
-        entries = meta["frames"]
-        H, W = int(meta["height"]), int(meta["width"])
-        poses = np.asarray(meta["poses"], np.float64).reshape(len(entries), 4, 4)
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise ValueError(f"{root / VIDEO_FILE}: unreadable video description ({e}); rerun the video stage") from None
-    frames = np.empty((len(entries), H, W, 3), np.uint8)
-    has_depth = bool(meta.get("has_depth")) and with_depth
-    depth = np.zeros((len(entries), H, W), np.float32) if has_depth else None
-    scale = float(meta.get("depth_scale", DEPTH_SCALE))
-    for t, e in enumerate(entries):
-        path = root / e["rgb"]
+    doc = read_video_doc(artifact_dir)
+    H, W = doc.height, doc.width
+    if doc.poses is None:
+        raise InputError(f"{doc.root / VIDEO_FILE}: records no poses; rerun the video stage")
+    poses = doc.poses
+    frames = np.empty((doc.num_frames, H, W, 3), np.uint8)
+    depth = np.zeros((doc.num_frames, H, W), np.float32) if doc.meta.get("has_depth") and with_depth else None
+    for t, path in enumerate(doc.rgb):
         img = decode_png(path.read_bytes(), what=str(path))
-        if img.shape != (H, W, 3):
-            raise ValueError(f"{path}: {img.shape=} but video.json says {(H, W, 3)}")
+        check_shape(str(path), img, "H W 3", dims={"H": H, "W": W})
         frames[t] = img
-        if depth is not None and e.get("depth"):
-            dpath = root / e["depth"]
-            d = decode_png(dpath.read_bytes(), what=str(dpath))
-            if d.shape != (H, W) or d.dtype != np.uint16:
-                raise ValueError(f"{dpath}: {d.shape=} {d.dtype=} but expected {(H, W)} uint16 millimetres")
-            depth[t] = d.astype(np.float32) * scale
-    return Video(frames, depth, poses, float(meta.get("fps", 0.0)), meta)
+        if depth is not None and doc.depth[t] is not None:
+            d = read_depth_png(doc.depth[t], doc.depth_scale)
+            check_shape(str(doc.depth[t]), d, "H W", dims={"H": H, "W": W})
+            depth[t] = d
+    return Video(frames, depth, poses, doc.fps or 0.0, doc.meta)
 
 
 def read_mcap(path: Path) -> dict[str, list]:

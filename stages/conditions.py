@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from panoworld.conditions import Backend
+from panoworld.params import param
 from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "conditions"
@@ -20,9 +21,9 @@ INPUTS = {
 
 @dataclass(kw_only=True)
 class Params:
-    height: int = 720
+    height: int = param(720, ge=2, le=8192)
     """Height of the condition frames in pixels (ERP, so width must be 2 x height)."""
-    width: int = 1440
+    width: int = param(1440, ge=4, le=16384)
     """Width of the condition frames in pixels (2 x height)."""
     backend: Backend = Backend.RASTER
     """raster: numba ERP triangle rasteriser; raycast: Embree per-pixel rays (the slower exact reference)."""

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from panoworld.fusion_params import FusionParams
+from panoworld.params import param
 from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "gaussians"
@@ -30,12 +31,12 @@ class Backend(enum.StrEnum):
 class Params(FusionParams):
     backend: Backend = Backend.VOXEL_FUSION
     """Gaussian head."""
-    context_views: int = 0
+    context_views: int = param(0, ge=0)
     """Number of registered frames used, uniformly spaced (0 = all)."""
-    height: int = 0
+    height: int = param(0, ge=0)
     """Process frames resized to this ERP height (0 = as stored, capped at max_height; decoder: a multiple of its
     patch size)."""
-    max_height: int = 512
+    max_height: int = param(512, ge=0)
     """With height 0: frames taller than this are downscaled to it before fusion (0 = no cap). Frames are streamed
     from disk, so memory stays bounded by one frame of this size plus the occupied voxels; 512 rows sample 2 cm voxels
     at least once per pixel row up to about 3 m away."""
@@ -44,14 +45,15 @@ class Params(FusionParams):
     recon --stage 2 exports it; its voxel size and input height win)."""
     device: str = "cpu"
     """decoder: torch device (cpu, cuda)."""
-    eval_views: int = 1
+    eval_views: int = param(1, ge=0)
     """Context views rendered back from the Gaussians to report PSNR/SSIM/WS-PSNR in the manifest (0 = none)."""
-    eval_height: int = 128
+    eval_height: int = param(128, ge=8)
     """ERP height of those renders (and of preview.png)."""
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
-    from panoworld.gaussians import context_source, voxel_fusion, write_artifact
+    from panoworld.gaussians import context_source, voxel_fusion
+    from panoworld.gaussians_artifact import write_artifact
 
     frames = context_source(inputs["video"], inputs["poses"], context_views=params.context_views,
                             height=params.height, max_height=params.max_height)

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from panoworld.params import param
 from panoworld.stage import Input, stage_main
 
 NAME = "mesh"
@@ -27,12 +28,12 @@ class Discontinuity(enum.StrEnum):
 
 @dataclass(kw_only=True)
 class Params:
-    max_edge_ratio: float = 12.0
+    max_edge_ratio: float = param(12.0, gt=1)
     """A face is stretched when an edge exceeds this many pixel footprints at its nearer end (12 ~ surfaces seen
     at under ~5 degrees)."""
     discontinuity: Discontinuity = Discontinuity.FLAG
     """How stretched triangles across depth edges are handled."""
-    stride: int = 1
+    stride: int = param(1, ge=1, le=64)
     """Use every stride-th ERP pixel per axis as a vertex (exact points, colours averaged per block) to bound memory."""
     glb: bool = True
     """Also write mesh.glb (valid faces, vertex colours, glTF Y-up) for glTF viewers."""

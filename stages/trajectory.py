@@ -13,6 +13,7 @@ import numpy as np
 from panoworld.conventions import invert_pose
 from panoworld.mesh import load_erp_mesh
 from panoworld.navmesh import load_navmesh
+from panoworld.params import param
 from panoworld.stage import Input, StageInputError, stage_main
 from panoworld.trajectory import (
     MIN_SECTOR_DIST_M,
@@ -34,9 +35,10 @@ from panoworld.trajectory import (
     write_trajectory,
     yaw_of_path,
 )
+from panoworld.trajectory.stationary import stationary_plan
 
 NAME = "trajectory"
-VERSION = "2"
+VERSION = "3"
 ARTIFACT = "trajectory"
 INPUTS = {
     "navmesh": Input("navmesh", help="navmesh artifact (navmesh.json)"),
@@ -60,7 +62,7 @@ class OnInvalid(enum.StrEnum):
 class Params(TrajectoryParams):
     on_invalid: OnInvalid = OnInvalid.ERROR
     """What to do with poses closer than the agent radius to the mesh or outside the NavMesh (pose 0 is exempt)."""
-    fps: float = 16.0
+    fps: float = param(16.0, gt=0)
     """Frame rate for the TUM timestamps (t = i / fps)."""
     reanchor: bool = False
     """Re-express a user trajectory whose pose 0 is not the identity relative to pose 0 (else that is an error)."""
@@ -84,6 +86,19 @@ def _user_poses(path: Path, params: Params) -> np.ndarray:
     return poses
 
 
+def _plan_or_stay(nav, params: Params, where: Path):
+    """plan_path, or a stationary rotation-only path when the NavMesh records no room to move (issue #24)."""
+    no_room = nav.info.get("no_room")
+    if no_room and no_room.get("decision") == "stationary":
+        return stationary_plan(params, no_room["reason"])
+    try:
+        return plan_path(nav, params)
+    except ValueError as e:
+        if no_room:
+            return stationary_plan(params, f"{no_room['reason']}; with a smaller agent still: {e}")
+        raise StageInputError(f"{where}: {e}") from None
+
+
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     try:
         nav = load_navmesh(inputs["navmesh"])
@@ -104,11 +119,10 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         source = f"user: {Path(user).name}"
         kind, stride, step_m = "user", None, float(np.median(step_lengths(poses))) if len(poses) > 1 else 0.0
     else:
-        try:
-            plan = plan_path(nav, params)
-        except ValueError as e:
-            raise StageInputError(f"{Path(inputs['navmesh']) / 'navmesh.json'}: {e}") from None
+        plan = _plan_or_stay(nav, params, Path(inputs["navmesh"]) / "navmesh.json")
         yaw = None if params.yaw == YawMode.FIXED else yaw_of_path(plan.positions, closed=params.kind == PathKind.RING)
+        if plan.info.get("rotation_only"):
+            yaw = np.asarray(plan.info.pop("yaw_rad"))
         poses = poses_from_positions(plan.positions, yaw)
         source = "planned"
         kind, stride, step_m = str(params.kind), params.stride, plan.step_m
@@ -144,6 +158,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         "sectors_covered": int(sector_coverage(xz, np.zeros(2), params.sectors, MIN_SECTOR_DIST_M).sum()),
         "sectors_reachable": reachable,
         "start_off_navmesh_m": float(meta.get("start_off_navmesh_m", 0.0)),
+        "no_room": (nav.info.get("no_room") or {}).get("reason"),
+        "rotation_only": bool(meta.get("rotation_only", False)),
         "min_clearance_m": float(clearance.min()),
         "clearance_cap_m": cap,
         "agent_radius_m": radius,

@@ -4,14 +4,20 @@ also written x2 upscaled (an output; later stages read the frames at the generat
 from __future__ import annotations
 
 import enum
-import json
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
+from panoworld import backends
+from panoworld.backends.video import Job
+from panoworld.backends.video.warp_inpaint import WarpOptions
+from panoworld.io import read_json
+from panoworld.models.wan_config import WanShortcutConfig
+from panoworld.params import options, param
 from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "video"
@@ -25,76 +31,45 @@ INPUTS = {
 DEFAULT_FPS = 16.0
 
 
-class Backend(enum.StrEnum):
-    WARP_INPAINT = "warp-inpaint"
-    """No weights: a background layer behind every depth edge of the source view, meshed once and ray cast at each
-    pose, so a surface gets the same colour in every frame; per-frame depth included."""
-    FRAME_INPAINT = "frame-inpaint"
-    """Baseline: seam-aware Telea inpainting of each frame on its own (no temporal consistency)."""
-    WAN_SHORTCUT = "wan-shortcut"
-    """The paper's generator (Wan2.2-TI2V-5B + LoRA, 4-step shortcut sampling); needs local weights, no depth."""
-
-
 class Upscale(enum.StrEnum):
     NONE = "none"
     LANCZOS = "lanczos"
     REALESRGAN = "realesrgan"
 
 
-class Sampler(enum.StrEnum):
-    SHORTCUT = "shortcut"
-    FLOW = "flow"
-
-
 @dataclass(kw_only=True)
 class Params:
-    backend: Backend = Backend.WARP_INPAINT
-    """How disoccluded pixels are filled: warp-inpaint, frame-inpaint or wan-shortcut."""
+    backend: str = param("warp-inpaint", choices=backends.names(NAME))
+    """How disoccluded pixels are filled: warp-inpaint, frame-inpaint or wan-shortcut (panoworld/backends/video/)."""
     upscale: Upscale = Upscale.NONE
     """Also write the frames x2 upscaled into upscaled/ (an output for viewing; frames/, which later stages read, stay
     at the generation size): none, lanczos (seam-aware) or realesrgan (needs --upscale-weights, the paper's)."""
     upscale_weights: str | None = None
     """RealESRGAN_x2plus.pth for --upscale realesrgan (weights are never downloaded)."""
-    upscale_tile: int = 0
+    upscale_tile: int = param(0, ge=0)
     """Real-ESRGAN tile size in source pixels (0 = whole frames); bounds memory on big frames."""
-    fps: float | None = None
+    fps: float | None = param(None, gt=0)
     """Frame rate of the preview and MCAP timestamps; None = the trajectory's fps (16 if it has none)."""
-    max_band_deg: float = 45.0
-    """warp-inpaint: widest background band (degrees) synthesized behind a foreground edge."""
-    inpaint_radius: float = 3.0
+    inpaint_radius: float = param(3.0, ge=0)
     """Telea inpainting radius in pixels (background layer colours, 2D fills)."""
     preview: bool = True
     """Write preview.mp4 (H.264, yuv420p)."""
-    preview_max_width: int = 1920
+    preview_max_width: int = param(1920, ge=16)
     """Width cap of preview.mp4 (frames are downscaled to fit)."""
     mcap: bool = True
     """Write video.mcap (Foxglove: frames, conditions, depth, camera poses)."""
-    weights: str | None = None
-    """wan-shortcut: local Wan2.2-TI2V-5B-Diffusers directory."""
-    lora: str | None = None
-    """wan-shortcut: trained LoRA safetensors."""
-    extra_weights: str | None = None
-    """wan-shortcut: trained patch/step-size embedding safetensors."""
-    prompt_embeds: str | None = None
-    """wan-shortcut: precomputed UMT5 prompt embeddings (needed when the weights have no text encoder)."""
-    prompt: str = "a panoramic video walking through an indoor scene"
-    """wan-shortcut: text prompt (ignored with --prompt-embeds)."""
-    sampler: Sampler = Sampler.SHORTCUT
-    """wan-shortcut: shortcut (few steps told their size, the paper) or flow (plain flow-matching Euler)."""
-    steps: int = 4
-    """wan-shortcut: denoising steps."""
-    guidance: float = 1.0
-    """wan-shortcut: classifier-free guidance scale (1 = guidance-free)."""
     device: str = "auto"
-    """Device of the learned models (wan-shortcut, realesrgan): auto = cuda when available, else cpu."""
-    dtype: str = "bfloat16"
-    """wan-shortcut transformer dtype."""
-    cpu_offload: bool = False
-    """wan-shortcut: keep models on the CPU, move each to the device only while it runs."""
-    vae_tiling: bool = True
-    """wan-shortcut: VAE in spatial tiles (lower memory)."""
-    seed: int = 0
-    """wan-shortcut: seed of the initial noise."""
+    """Device of realesrgan: auto = cuda when available, else cpu (wan-shortcut: wan.device)."""
+    warp: WarpOptions = options(WarpOptions, "warp-inpaint")
+    """warp-inpaint's options."""
+    wan: WanShortcutConfig = options(WanShortcutConfig, "wan-shortcut")
+    """wan-shortcut's options."""
+
+    RENAMED: ClassVar[dict[str, str]] = {
+        "max_band_deg": "warp.max_band_deg",
+        **{k: f"wan.{k}" for k in ("weights", "lora", "extra_weights", "prompt_embeds", "prompt", "sampler", "steps",
+                                   "guidance", "dtype", "cpu_offload", "vae_tiling", "seed")},
+    }
 
 
 def _device(name: str) -> str:
@@ -105,46 +80,18 @@ def _device(name: str) -> str:
     return "cuda" if torch.cuda.is_available() else "cpu"
 
 
-def _read_json(path: Path) -> dict:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
-
-
-def _generate_wan(params: Params, cond) -> tuple[np.ndarray, dict]:
-    from panoworld.models.wan_shortcut import Sampler as WanSampler
-    from panoworld.models.wan_shortcut import WanShortcutConfig, WanShortcutGenerator
-
-    cfg = WanShortcutConfig(
-        weights=params.weights and Path(params.weights), lora=params.lora and Path(params.lora),
-        extra_weights=params.extra_weights and Path(params.extra_weights),
-        prompt_embeds=params.prompt_embeds and Path(params.prompt_embeds), prompt=params.prompt,
-        sampler=WanSampler(params.sampler.value), steps=params.steps, guidance=params.guidance,
-        device=_device(params.device), dtype=params.dtype, cpu_offload=params.cpu_offload,
-        vae_tiling=params.vae_tiling, seed=params.seed,
-    )
-    generator = WanShortcutGenerator.from_pretrained(cfg)
-    return generator.generate(np.asarray(cond.rgb), np.asarray(cond.mask))
-
-
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
-    from panoworld import inpaint
+    from tqdm import tqdm
+
     from panoworld.conditions import load_conditions
     from panoworld.trajectory import load_trajectory
     from panoworld.upscale import FrameUpscaler
     from panoworld.video_io import VideoWriter
-    from tqdm import tqdm
 
     if params.upscale == Upscale.REALESRGAN and not (params.upscale_weights and Path(params.upscale_weights).is_file()):
         raise StageInputError(
             f"--upscale realesrgan needs --upscale-weights FILE (RealESRGAN_x2plus.pth; got {params.upscale_weights}); "
             "or pass --upscale lanczos"
-        )
-    if params.backend == Backend.WAN_SHORTCUT and not params.weights:
-        raise StageInputError(
-            "wan-shortcut: no weights directory given; pass --weights DIR (Wan2.2-TI2V-5B-Diffusers), --lora FILE and "
-            "--extra-weights FILE (weights are never downloaded), or use --backend warp-inpaint"
         )
     cond_dir = Path(inputs["conditions"])
     try:
@@ -161,52 +108,19 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
             f"{cond_dir}/conditions.json: {len(cond.poses)} poses that differ from the {len(poses)} of "
             f"{traj_dir}/trajectory.json; rerun the conditions stage on this trajectory"
         )
-    fps = params.fps or float(_read_json(traj_dir / "trajectory.json").get("fps") or DEFAULT_FPS)
+    fps = params.fps or float(read_json(traj_dir / "trajectory.json", default={}).get("fps") or DEFAULT_FPS)
 
     info: dict = {"backend": str(params.backend), "upscale": str(params.upscale)}
     t0 = time.perf_counter()
-    if params.backend == Backend.WAN_SHORTCUT:
-        generated, gen_info = _generate_wan(params, cond)
-        info.update({k: v for k, v in gen_info.items() if isinstance(v, (int, float, str, bool))})
-        produce = ((generated[k], None, None) for k in range(len(cond)))
-    elif params.backend == Backend.WARP_INPAINT:
-        if inputs.get("mesh") is None:
-            raise StageInputError("warp-inpaint needs --mesh DIR (the mesh artifact the conditions were rendered from)")
-        from panoworld.mesh import load_erp_mesh
-
-        mesh_dir = Path(inputs["mesh"])
-        try:
-            mesh = load_erp_mesh(mesh_dir)
-            ratio = float(_read_json(mesh_dir / "manifest.json").get("params", {}).get("max_edge_ratio", 12.0))
-            layer = inpaint.build_background_layer(
-                mesh, inpaint.max_translation(poses), max_band_deg=params.max_band_deg,
-                inpaint_radius=params.inpaint_radius, max_edge_ratio=ratio,
-            )
-        except (OSError, ValueError, KeyError) as e:
-            raise StageInputError(f"{mesh_dir}/mesh.ply: {e}; rerun the mesh stage") from None
-        info.update(layer_faces=int(layer.layer_faces), layer_pixels=int(layer.synthesized.sum()),
-                    layer_s=round(time.perf_counter() - t0, 3))
-        filler = inpaint.WarpInpainter(layer, inpaint_radius=params.inpaint_radius)
-
-        def produce_warp():
-            for k in range(len(cond)):
-                f = filler.fill(cond.rgb[k], cond.mask[k], None if cond.depth is None else cond.depth[k], poses[k])
-                yield f.rgb, f.depth, f
-
-        produce = produce_warp()
-    else:
-
-        def produce_frame():
-            for k in range(len(cond)):
-                f = inpaint.frame_inpaint(cond.rgb[k], cond.mask[k], None if cond.depth is None else cond.depth[k],
-                                          radius=params.inpaint_radius)
-                yield f.rgb, f.depth, f
-
-        produce = produce_frame()
+    backend = backends.get(NAME, params.backend)
+    job = Job(cond=cond, poses=poses, mesh_dir=inputs.get("mesh"), options=backend.options_of(params),
+              inpaint_radius=params.inpaint_radius)
+    produce, backend_info = backend.impl(job)
+    info.update(backend_info)
 
     up = FrameUpscaler(params.upscale.value, weights=params.upscale_weights, tile=params.upscale_tile,
                        device=_device(params.device) if params.upscale == Upscale.REALESRGAN else "cpu")
-    has_depth = params.backend != Backend.WAN_SHORTCUT
+    has_depth = backend.traits["has_depth"]
     writer = VideoWriter(out_dir, height=cond.height, width=cond.width, fps=fps, has_depth=has_depth,
                          preview=params.preview, preview_max_width=params.preview_max_width, mcap=params.mcap,
                          upscale=up.scale)
@@ -236,7 +150,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         num_frames=len(cond), height=cond.height, width=cond.width, fps=fps, has_depth=has_depth,
         upscaled_height=cond.height * up.scale if up.scale > 1 else None,
         upscaled_width=cond.width * up.scale if up.scale > 1 else None,
-        hole_fraction=holes / n_px if params.backend != Backend.WAN_SHORTCUT else None,
+        hole_fraction=holes / n_px if has_depth else None,
         filled_3d_fraction=filled_3d / holes if holes else None,
         filled_2d_fraction=filled_2d / holes if holes else None,
         fill_s=round(t_fill, 3), upscale_s=round(t_up, 3), write_s=round(t_write, 3),

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 
+import pytest
+
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
@@ -13,9 +15,6 @@ def pytest_configure(config):
     except ImportError:
         return
     torch.set_num_threads(1)
-
-
-import pytest  # noqa: E402
 
 
 @pytest.fixture(scope="session")

@@ -18,7 +18,8 @@ RUN = ["--preset", "ci-tiny", "--until", "poses", "--sweep", "trajectory.stride=
 
 
 def _files(scene: Path, variant: str | None = None) -> dict[str, dict[str, str]]:
-    """{stage: {file: sha256}} of every artifact of a scene (a variant's tail from its directory)."""
+    """{stage: {file: sha256}} of every artifact of a scene (a variant's tail from its directory): the bytes, which
+    must not depend on the executor (timings live only in manifests)."""
     root = scene / "artifacts"
     out = {}
     for stage in ("depth", "mesh", "navmesh", "trajectory", "conditions", "video", "poses"):
@@ -26,18 +27,8 @@ def _files(scene: Path, variant: str | None = None) -> dict[str, dict[str, str]]
         if variant and stage not in SHARED:
             d = root / "variants" / variant / stage
         m = json.loads((d / "manifest.json").read_text())
-        out[stage] = {k: _content(d / k) if k.endswith(".json") else v["sha256"] for k, v in m["files"].items()}
+        out[stage] = {k: v["sha256"] for k, v in m["files"].items()}
     return out
-
-
-def _content(path: Path) -> str:
-    """A JSON file without its wall-clock timings (navmesh.json records how long each step took)."""
-    def strip(x):
-        if isinstance(x, dict):
-            return {k: strip(v) for k, v in x.items() if k != "timings_s"}
-        return [strip(v) for v in x] if isinstance(x, list) else x
-
-    return json.dumps(strip(json.loads(path.read_text())), sort_keys=True)
 
 
 def _actions(summary: dict, scene: str, variant: str) -> dict[str, str]:

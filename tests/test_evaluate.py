@@ -354,7 +354,7 @@ def _save_official_layout(m: LPIPS, tmp_path: Path) -> tuple[Path, Path]:
     state = {f"features.{k}": v for k, v in m.features.state_dict().items()}
     state["classifier.1.weight"] = torch.zeros(4, 4)  # torchvision files carry the classifier too
     torch.save(state, bb)
-    torch.save({f"lin{k}.model.1.weight": l.weight.data.clone() for k, l in enumerate(m.lins)}, lin)
+    torch.save({f"lin{k}.model.1.weight": lin.weight.data.clone() for k, lin in enumerate(m.lins)}, lin)
     return bb, lin
 
 

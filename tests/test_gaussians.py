@@ -276,7 +276,8 @@ def test_stage_input_errors(tmp_path, room):
 
 
 def test_a_scene_smaller_than_a_voxel_is_reported(tmp_path):
-    from panoworld.gaussians import ContextFrames, write_artifact
+    from panoworld.gaussians import ContextFrames
+    from panoworld.gaussians_artifact import write_artifact
 
     rgb = np.full((16, 32, 3), 200, np.uint8)
     depth = np.full((16, 32), 0.004, np.float32)  # a 4 mm sphere around the camera

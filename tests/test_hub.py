@@ -81,7 +81,8 @@ def test_parse_hf_ids():
     assert parse_hf("hf:org/name@v1.0") == HfId("org/name", "v1.0")
     assert parse_hf("hf:org/name@abc1234/sub/file.pth") == HfId("org/name", "abc1234", "sub/file.pth")
     assert str(parse_hf("hf:org/name@abc1234/sub/file.pth")) == "hf:org/name@abc1234/sub/file.pth"
-    for bad in ("hf:name-only", "hf:org/na me", "hf:org/name@", "hf:org/name/../x"):
+    for bad in ("hf:name-only", "hf:org/na me", "hf:org/name@", "hf:org/name/../x", "hf:a/b@..", "hf:org/name//abs",
+                "hf:/etc/passwd", "hf:org/name/./x", "hf:org/name@a/../../x", "hf:org/name/sub/", "hf:org/n\\x"):
         with pytest.raises(WeightsNotFound, match=r"expected hf:ORG/NAME\[@REVISION\]\[/PATH\]"):
             parse_hf(bad)
 
@@ -102,8 +103,8 @@ def test_id_resolves_offline_to_cached_files(hub_env, tiny_files, monkeypatch):
     put_snapshot(hub_env, TINY, v1, C2)
     rec2 = resolve_weights(f"hf:{TINY}")
     assert rec2["commit"] == C2 and rec2["files"] == rec["files"] and rec2["digest"] != rec["digest"]
-    assert describe_change("depth", {"weights": rec}, {"weights": rec2}) == \
-        f"weights changed: depth.weights hf:{TINY} commit {C1[:7]} -> {C2[:7]}"
+    assert describe_change("depth", {"depth_anything.weights": rec}, {"depth_anything.weights": rec2}) == \
+        f"weights changed: depth.depth_anything.weights hf:{TINY} commit {C1[:7]} -> {C2[:7]}"
     assert describe_change("depth", {"weights": rec}, {"weights": rec}) is None
     # HF_HOME is respected when HF_HUB_CACHE is unset
     monkeypatch.delenv("HF_HUB_CACHE")
@@ -180,7 +181,7 @@ def _scene(tmp_path) -> Path:
     return scene
 
 
-DEPTH_SETS = [f"depth.weights=hf:{TINY}", "depth.backend=depth-anything", "depth.view_size=56", "depth.rescale=never"]
+DEPTH_SETS = [f"depth.depth_anything.weights=hf:{TINY}", "depth.backend=depth-anything", "depth.depth_anything.view_size=56", "depth.rescale=never"]
 
 
 @pytest.mark.slow
@@ -195,8 +196,8 @@ def test_depth_stage_runs_from_id_and_reruns_when_snapshot_changes(hub_env, tiny
     first = run()
     assert first.action == "ran", first.reason
     manifest = json.loads((scene / "artifacts" / "depth" / "manifest.json").read_text())
-    rec = manifest["weights"]["weights"]
-    assert manifest["params"]["weights"] == f"hf:{TINY}"  # the id is the param; its resolution is recorded apart
+    rec = manifest["weights"]["depth_anything.weights"]
+    assert manifest["params"]["depth_anything"]["weights"] == f"hf:{TINY}"  # the id is the param; its resolution is recorded apart
     assert rec["commit"] == C1 and rec["files"]["model.safetensors"]["digest"] == hashlib.sha256(v1["model.safetensors"]).hexdigest()
     assert manifest["info"]["backend"] == "depth-anything"
     assert run().action == "cached"
@@ -204,15 +205,15 @@ def test_depth_stage_runs_from_id_and_reruns_when_snapshot_changes(hub_env, tiny
     put_snapshot(hub_env, TINY, v2, C2)  # a new revision lands in the cache: refs/main -> C2
     row = {r["stage"]: r for r in pl.status(scene, sets=DEPTH_SETS)}["depth"]
     assert row["state"] == "stale"
-    assert row["reason"] == f"weights changed: depth.weights hf:{TINY} commit {C1[:7]} -> {C2[:7]} (model.safetensors)"
+    assert row["reason"] == f"weights changed: depth.depth_anything.weights hf:{TINY} commit {C1[:7]} -> {C2[:7]} (model.safetensors)"
     again = run()
     assert again.action == "ran" and again.reason == row["reason"]
-    assert json.loads((scene / "artifacts" / "depth" / "manifest.json").read_text())["weights"]["weights"]["commit"] == C2
+    assert json.loads((scene / "artifacts" / "depth" / "manifest.json").read_text())["weights"]["depth_anything.weights"]["commit"] == C2
     pinned = [s.replace(f"hf:{TINY}", f"hf:{TINY}@{C2}") for s in DEPTH_SETS]  # the same files pinned: params changed
-    assert {r["stage"]: r for r in pl.status(scene, sets=pinned)}["depth"]["reason"].startswith("params changed: depth.weights")
+    assert {r["stage"]: r for r in pl.status(scene, sets=pinned)}["depth"]["reason"].startswith("params changed: depth.depth_anything.weights")
     (hub_env / f"models--{TINY.replace('/', '--')}" / "refs" / "main").unlink()  # the id no longer resolves
     reason = {r["stage"]: r for r in pl.status(scene, sets=DEPTH_SETS)}["depth"]["reason"]
-    assert reason.startswith(f"weights missing: depth.weights hf:{TINY}: not in the local Hugging Face cache")
+    assert reason.startswith(f"weights missing: depth.depth_anything.weights hf:{TINY}: not in the local Hugging Face cache")
 
 
 def test_runner_with_a_missing_id_fails_in_one_line_and_writes_nothing(hub_env, tmp_path, capsys):
@@ -220,12 +221,12 @@ def test_runner_with_a_missing_id_fails_in_one_line_and_writes_nothing(hub_env, 
     scene.mkdir()
     Image.fromarray(np.zeros((16, 32, 3), np.uint8)).save(scene / "panorama.png")
     proc = subprocess.run(
-        [sys.executable, str(REPO / "runner.py"), "run", str(scene), "--set", "depth.weights=hf:depth-anything/Depth-Anything-V2-Small-hf"],
+        [sys.executable, str(REPO / "runner.py"), "run", str(scene), "--set", "depth.depth_anything.weights=hf:depth-anything/Depth-Anything-V2-Small-hf"],
         capture_output=True, text=True, cwd=REPO, env=dict(os.environ),
     )
     assert proc.returncode == 2, proc.stderr
     lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and "depth.weights hf:depth-anything/Depth-Anything-V2-Small-hf" in lines[0]
+    assert len(lines) == 1 and "depth.depth_anything.weights hf:depth-anything/Depth-Anything-V2-Small-hf" in lines[0]
     assert "run `python runner.py weights fetch depth-anything-v2-small`" in lines[0]
     assert not (scene / "artifacts").exists()
     # a stage run alone says the same (exit 2) and writes nothing
@@ -233,7 +234,7 @@ def test_runner_with_a_missing_id_fails_in_one_line_and_writes_nothing(hub_env, 
 
     assert depth.main(["--panorama", str(scene / "panorama.png"), "--out", str(tmp_path / "alone"),
                        "--weights", "hf:nobody/nothing"]) == 2
-    assert "depth.weights hf:nobody/nothing: not in the local Hugging Face cache" in capsys.readouterr().err
+    assert "depth.depth_anything.weights hf:nobody/nothing: not in the local Hugging Face cache" in capsys.readouterr().err
     assert not (tmp_path / "alone").exists()
 
 
@@ -244,7 +245,7 @@ class _Server:
     """A local HTTP server over a folder (the release-URL transport without a network)."""
 
     def __init__(self, root: Path):
-        handler = lambda *a, **kw: http.server.SimpleHTTPRequestHandler(*a, directory=str(root), **kw)  # noqa: E731
+        handler = lambda *a, **kw: http.server.SimpleHTTPRequestHandler(*a, directory=str(root), **kw)
         http.server.SimpleHTTPRequestHandler.log_message = lambda *a: None
         self.httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
         self.thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
@@ -343,14 +344,14 @@ def test_hub_fetch_verifies_blobs_and_prints_the_id(hub_env, tiny_files, monkeyp
     assert cli.main(["fetch", "depth-anything-v2-small"]) == 0
     out = capsys.readouterr().out
     assert f"commit {C1[:12]}" in out
-    assert f"--set depth.backend=depth-anything --set depth.weights=hf:{repo}" in out
-    assert f"depth: {{backend: depth-anything, weights: hf:{repo}}}" in out
+    assert f"--set depth.backend=depth-anything --set depth.depth_anything.weights=hf:{repo}" in out
+    assert f"depth: {{backend: depth-anything, depth_anything.weights: hf:{repo}}}" in out
     assert resolve_weights(f"hf:{repo}")["commit"] == C1
 
     to = tmp_path / "da-small"
     to.mkdir()
     assert cli.main(["fetch", "depth-anything-v2-small", "--to", str(to)]) == 0
-    assert f"--set depth.weights={to}" in capsys.readouterr().out
+    assert f"--set depth.depth_anything.weights={to}" in capsys.readouterr().out
     monkeypatch.setattr(huggingface_hub, "snapshot_download", _fake_snapshot_download(hub_env, v1, C1, corrupt="config.json"))
     assert cli.main(["fetch", "depth-anything-v2-small", "--to", str(to)]) == 1
     assert "config.json: content hash" in capsys.readouterr().err and not (to / "config.json").exists()
@@ -365,7 +366,7 @@ def test_weights_list(hub_env, tiny_files, capsys):
         assert name in rows
     small = rows["depth-anything-v2-small"]
     assert small["status"]["state"] == "present" and small["status"]["commit"] == C1 and small["status"]["on_disk"] > 0
-    assert small["params"] == ["depth.weights"] and small["licence"] == "Apache-2.0"
+    assert small["params"] == ["depth.depth_anything.weights"] and small["licence"] == "Apache-2.0"
     assert rows["depth-anything-v2-base"]["status"]["state"] == "missing"
     assert rows["wan2.2-ti2v-5b"]["repo"] == "Wan-AI/Wan2.2-TI2V-5B-Diffusers"
     assert rows["realesrgan-x2plus"]["files"][0]["url"].startswith("https://github.com/xinntao/Real-ESRGAN/releases/")

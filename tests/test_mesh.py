@@ -206,7 +206,7 @@ def _write_scene(tmp_path, rgb, depth):
 def test_mesh_stage_cli(room_64, tmp_path):
     _, rgb, depth = room_64
     _write_scene(tmp_path, rgb, depth)
-    run = lambda *a: subprocess.run([sys.executable, "-m", *a], capture_output=True, text=True)  # noqa: E731
+    run = lambda *a: subprocess.run([sys.executable, "-m", *a], capture_output=True, text=True)
     r = run("stages.depth", "--panorama", str(tmp_path / "panorama.png"), "--depth", str(tmp_path / "depth.npy"),
             "--out", str(tmp_path / "depth"))
     assert r.returncode == 0, r.stderr

@@ -5,9 +5,9 @@ import pytest
 import torch
 
 from panoworld.models.panovggt import (
+    ErpCorrelation,
     PanoVGGT,
     PanoVGGTConfig,
-    ErpCorrelation,
     erp_coordinate_features,
     erp_resize,
     quat_wxyz_to_rotmat,

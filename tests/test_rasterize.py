@@ -47,7 +47,7 @@ def soup(rng, n, dist, size):
 
 def test_random_soup_matches_embree():
     rng = np.random.default_rng(0)
-    for k in range(4):
+    for _ in range(4):
         v, f = soup(rng, 300, dist=2.0, size=rng.choice([0.01, 0.1, 0.6]))
         compare(v, f, random_pose(rng), 48, 96)
 
@@ -180,5 +180,5 @@ def test_bad_inputs_raise_clear_errors():
         ErpRasterizer(v, f[:, :2])
     with pytest.raises(ValueError, match="index vertices"):
         ErpRasterizer(v, f + 100)
-    with pytest.raises(ValueError, match=r"\(V, 3\)"):
+    with pytest.raises(ValueError, match=rf"colors.shape=\(3, 3\) but expected \({len(v)}, 3\)"):  # V bound by vertices
         ErpRasterizer(v, f, colors=np.zeros((3, 3), np.uint8))

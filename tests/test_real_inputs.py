@@ -136,7 +136,7 @@ def test_rgb_only_error_names_the_fix(tmp_path):
         run_default(scene_dir)
     msg = str(e.value)
     assert "\n" not in msg and "python runner.py weights fetch depth-anything-v2-small" in msg
-    assert "--set depth.weights=DIR" in msg
+    assert "--set depth.depth_anything.weights=DIR" in msg
 
 
 def test_runner_prints_the_failing_stage_reason(tmp_path):
@@ -146,4 +146,5 @@ def test_runner_prints_the_failing_stage_reason(tmp_path):
     report = pl.run(scene_dir, until="depth")
     (failed,) = [r for r in report.results if r.action == "failed"]
     assert failed.stage == "depth" and "weights fetch depth-anything-v2-small" in failed.reason
-    assert "log: " in failed.reason
+    # bad input: exit 2 and nothing written (no artifacts/, no lock, no log)
+    assert failed.bad_input and not (scene_dir / "artifacts").exists()

@@ -16,6 +16,7 @@ from PIL import Image
 
 from panoworld import artifacts as art
 from panoworld import pipeline as pl
+from tests.toy.common import toy_scene, use_toy_schemas
 
 TOY = Path(__file__).parent / "toy"
 REPO = Path(__file__).resolve().parent.parent
@@ -23,17 +24,12 @@ REPO = Path(__file__).resolve().parent.parent
 
 @pytest.fixture(autouse=True)
 def toy_schemas(monkeypatch):
-    monkeypatch.setenv("PANOWORLD_SCHEMA_PATH", str(TOY / "schemas"))
-    art.load_schema.cache_clear()
-    art._validator.cache_clear()
+    use_toy_schemas(monkeypatch)
 
 
 @pytest.fixture
 def scene(tmp_path) -> Path:
-    d = tmp_path / "scene"
-    d.mkdir()
-    Image.fromarray(np.random.default_rng(0).integers(0, 255, (8, 16, 3), dtype=np.uint8)).save(d / "panorama.png")
-    return d
+    return toy_scene(tmp_path)
 
 
 def toy_pipe() -> pl.Pipeline:
@@ -205,7 +201,7 @@ def test_json_report_and_status(scene):
     assert out.returncode == 0, out.stderr
     doc = json.loads(out.stdout)
     assert [s["stage"] for s in doc["stages"]] == list("abcd")
-    assert set(doc["stages"][0]) == {"stage", "action", "reason", "seconds", "peak_rss_mb"}
+    assert set(doc["stages"][0]) == {"stage", "action", "reason", "seconds", "peak_rss_mb", "bad_input"}
     assert all(s["action"] == "ran" and s["peak_rss_mb"] > 0 for s in doc["stages"])
     st = cli("status", str(scene), "--pipeline", str(TOY / "pipeline.yaml"), "--json")
     rows = json.loads(st.stdout)["stages"]
@@ -232,9 +228,21 @@ def test_presets_apply_and_set_overrides(scene):
     [
         ("missing", [], "no panorama; expected one of panorama.png, panorama.jpg"),
         ("square", [], "is not an equirectangular panorama"),
-        ("corrupt", [], "unreadable image"),
+        ("corrupt", [], "panorama is corrupt or not an image"),
         ("ok", ["--only", "nope"], "--only nope: unknown stage"),
-        ("ok", ["--set", "b.bogus=1"], "unknown param(s) ['bogus']"),
+        ("ok", ["--set", "b.bogus=1"], "b.bogus: unknown param; known: fail, n, refuse, sleep (from --set)"),
+        ("ok", ["--set", "b.sleeep=1"], "b.sleeep: unknown param; did you mean sleep? (from --set)"),
+        ("ok", ["--set", "b.n=101"], "b.n=101: must be <= 100 (from --set)"),
+        ("ok", ["--dry-run", "--set", "a.sleep=nan"], "a.sleep=nan: must be a finite number (from --set)"),
+        ("ok", ["--dry-run", "--set", "a.sleep=-1"], "a.sleep=-1.0: must be >= 0 (from --set)"),
+        ("ok", ["--set", "zzz.n=1"], "--set zzz: unknown stage; known: a, b, c, d"),
+        ("yaml:params: [1, 2]", [], "scene.yaml: params: expected a mapping of stage: {param: value}, got [1, 2]"),
+        ("yaml:params: {bb: {n: 1}}", ["--dry-run"], "scene.yaml: params.bb: unknown stage; did you mean b?"),
+        ("yaml:params: {b: {nn: 1}}", ["--dry-run"], "scene.yaml: b.nn: unknown param; did you mean n?"),
+        ("yaml:params: {b: [1]}", ["--dry-run"], "scene.yaml: b: expected a mapping of param: value, got list [1]"),
+        ("yaml:parms: {}", ["--dry-run"], "scene.yaml: unknown key 'parms'; did you mean params?"),
+        ("yaml:params: {b: {n: 1000}}", ["--dry-run"], "b.n=1000: must be <= 100 (from scene.yaml params.b)"),
+        ("yaml:params: {b: {n: 1000}}", ["status"], "b.n=1000: must be <= 100 (from scene.yaml params.b)"),
         ("ok", ["--set", "zz.n=1"], "--set zz: unknown stage"),
         ("ok", ["--set", "b.n=abc"], "b.n: cannot read 'abc' as int"),
         ("ok", ["--preset", "huge"], "--preset huge: unknown preset"),
@@ -247,10 +255,13 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(tmp_path, setup, args, 
         Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(d / "panorama.png")
     elif setup == "corrupt":
         (d / "panorama.png").write_bytes(b"not a png at all")
-    elif setup == "ok":
+    elif setup == "ok" or setup.startswith("yaml:"):
         Image.fromarray(np.zeros((8, 16, 3), np.uint8)).save(d / "panorama.png")
+    if setup.startswith("yaml:"):
+        (d / "scene.yaml").write_text(setup[5:])
     before = sorted(p.name for p in d.iterdir())
-    out = cli("run", str(d), "--pipeline", str(TOY / "pipeline.yaml"), *args)
+    verb = "status" if args[:1] == ["status"] else "run"
+    out = cli(verb, str(d), "--pipeline", str(TOY / "pipeline.yaml"), *args[1 if verb == "status" else 0:])
     assert out.returncode == 2, out.stderr
     assert expect in out.stderr
     assert len(out.stderr.strip().splitlines()) == 1

@@ -27,7 +27,7 @@ class _Cfg:
 def test_config_resolution_and_run_dir(tmp_path):
     cfg = common.resolve_config(_Cfg, {"tiny": {"steps": 3, "name": "t"}}, "tiny", ["lr=2e-4", "name=hello world"])
     assert (cfg.lr, cfg.steps, cfg.name) == (2e-4, 3, "hello world")
-    with pytest.raises(common.TrainConfigError, match=r"unknown param\(s\) \['foo'\]"):
+    with pytest.raises(common.TrainConfigError, match=r"foo: unknown param"):
         common.resolve_config(_Cfg, {}, None, ["foo=1"])
     with pytest.raises(common.TrainConfigError, match="--preset big: unknown"):
         common.resolve_config(_Cfg, {"tiny": {}}, "big")
@@ -149,7 +149,9 @@ def test_dataset_items_and_kill_resume_reproduces_the_loss_curve(cond_dir, tmp_p
     from panoworld.models.wan_shortcut import WanShortcutConfig, WanShortcutGenerator
 
     video = yaml.safe_load((full / "export" / "scene.yaml").read_text())["params"]["video"]
-    assert video["backend"] == "wan-shortcut" and video["steps"] == 4
+    assert video["backend"] == "wan-shortcut"
+    video = video["wan"]
+    assert video["steps"] == 4
     gen = WanShortcutGenerator.from_pretrained(WanShortcutConfig(
         weights=video["weights"], lora=video["lora"], extra_weights=video["extra_weights"],
         prompt_embeds=video["prompt_embeds"], device="cpu", dtype="float32", vae_tiling=False))

@@ -139,7 +139,7 @@ class _NoParams:
 
 def _artifact(kind: str, out: Path, write) -> Path:
     """A real upstream artifact (manifest, digests) whose files are written by `write(out_dir) -> info`."""
-    spec = StageSpec(f"stub-{kind}", "0", kind, {}, _NoParams, types.SimpleNamespace(run=lambda i, p, o: write(o)))
+    spec = StageSpec(f"stub-{kind}", "0", kind, {}, _NoParams, types.SimpleNamespace(run=lambda i, p, o: write(o), __name__=__name__, __file__=__file__))
     execute_stage(spec, {}, _NoParams(), out)
     return out
 
@@ -224,7 +224,7 @@ def test_stage_frame_inpaint_without_upscale(upstream, tmp_path):
 def test_stage_input_errors(upstream, tmp_path, capsys):
     out = tmp_path / "video"
     assert video_stage.main(_cli(upstream, out, "--backend", "wan-shortcut")) == 2
-    assert "--weights DIR" in capsys.readouterr().err
+    assert "--wan-weights DIR" in capsys.readouterr().err
     assert video_stage.main(_cli(upstream, out, "--upscale", "realesrgan")) == 2
     assert "--upscale-weights FILE" in capsys.readouterr().err
     # Conditions rendered for another trajectory.
@@ -251,7 +251,8 @@ def test_stage_wan_shortcut_names_missing_weight_files(upstream, tmp_path, capsy
 def test_cli_help():
     out = subprocess.run([sys.executable, "-m", "stages.video", "--help"], capture_output=True, text=True, cwd=REPO)
     assert out.returncode == 0, out.stderr
-    for flag in ("--backend", "--upscale", "--upscale-weights", "--weights", "--lora", "--extra-weights", "--steps"):
+    for flag in ("--backend", "--upscale", "--upscale-weights", "--wan-weights", "--wan-lora", "--wan-extra-weights",
+                 "--wan-steps", "--warp-max-band-deg"):
         assert flag in out.stdout
 
 
@@ -281,8 +282,8 @@ def test_stage_wan_shortcut_on_tiny_local_weights(upstream, tmp_path):
     pytest.importorskip("peft")
     import torch
 
-    from panoworld.models import wan_training as wt
     from panoworld.models import wan_layers as wl
+    from panoworld.models import wan_training as wt
     from panoworld.models.wan_shortcut import save_prompt_embeds
     from tests.test_wan_shortcut import TEXT_DIM, Z, embeds, tiny_transformer, tiny_vae
 

@@ -12,11 +12,11 @@ import torch
 pytest.importorskip("diffusers")
 pytest.importorskip("peft")
 
-from diffusers import AutoencoderKLWan, WanTransformer3DModel  # noqa: E402
+from diffusers import AutoencoderKLWan, WanTransformer3DModel
 
-from panoworld.models import wan_layers as wl  # noqa: E402
-from panoworld.models import wan_training as wt  # noqa: E402
-from panoworld.models.wan_shortcut import (  # noqa: E402
+from panoworld.models import wan_layers as wl
+from panoworld.models import wan_training as wt
+from panoworld.models.wan_shortcut import (
     DEFAULT_PROMPT,
     Sampler,
     WanShortcutConfig,
@@ -25,7 +25,7 @@ from panoworld.models.wan_shortcut import (  # noqa: E402
     save_prompt_embeds,
     shortcut_schedule,
 )
-from panoworld.models.weights import MissingWeightsError  # noqa: E402
+from panoworld.models.weights import MissingWeightsError
 
 Z = 4
 TEXT_DIM = 16

@@ -5,16 +5,15 @@ The runner (panoworld.pipeline.run) takes every cache decision; an executor only
 
 from __future__ import annotations
 
-import json
 import os
-import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
+from panoworld.errors import PipelineError
+from panoworld.pipeline import Scene, StageNode, run_with_params_file, runner_env, stage_command
 from panoworld.precompute import thread_env
-from panoworld.pipeline import PipelineError, Scene, StageNode, run_logged, stage_command
 from panoworld.stage import params_to_dict
+
 
 def needs_gpu(node: StageNode, params: Any) -> bool:
     """Whether the stage asks for a GPU with these params: `resources.gpu` > 0 and, when `resources.gpu_when` maps
@@ -30,15 +29,8 @@ def needs_gpu(node: StageNode, params: Any) -> bool:
 
 
 def _run_with_params(template: list[str], params: dict, log: str, env_extra: dict[str, str]) -> tuple[int, float, float]:
-    """Write the params file here (the machine that runs the stage) and run the stage command template."""
-    with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as f:
-        json.dump(params, f)
-        params_file = f.name
-    try:
-        cmd = [c.replace("{params_file}", params_file).replace("{python}", sys.executable) for c in template]
-        return run_logged(cmd, Path(log), False, env_extra)
-    finally:
-        os.unlink(params_file)
+    """Write the params file here (the machine that runs the stage, beside the log) and run the stage command."""
+    return run_with_params_file(template, params, Path(log), False, env_extra)
 
 
 class LocalStageExecutor:
@@ -53,7 +45,8 @@ class LocalStageExecutor:
     def __call__(self, node: StageNode, scene: Scene, params: Any, echo: bool) -> tuple[int, float, float]:
         threads = min(self.threads, int(node.resources.get("cpu", 1)) or 1)
         template = stage_command(node, scene, "{params_file}", python="{python}")
-        return _run_with_params(template, params_to_dict(params), str(scene.log_file(node.name)), thread_env(threads))
+        return _run_with_params(template, params_to_dict(params), str(scene.log_file(node.name)),
+                                {**thread_env(threads), **runner_env(scene)})
 
     def close(self) -> None:
         pass

@@ -59,7 +59,7 @@ def _run_job(job: Job, pipeline: pl.Pipeline, execute, options: dict, on_stage) 
                             on_result=lambda r, n=name: on_stage(job.scene.name, n, r), **options)
             entry["stages"] = [r.as_dict() for r in report.results]
             entry["ok"] = report.ok
-        except Exception as e:  # noqa: BLE001 - one failing scene never stops the others
+        except Exception as e:  # one failing scene never stops the others
             entry["error"] = f"{type(e).__name__}: {e}" if not isinstance(e, pl.PipelineError) else str(e)
         entry["seconds"] = time.perf_counter() - t0
         out.runs.append(entry)
@@ -83,7 +83,9 @@ def run_dataset(
     dataset_dir = Path(dataset_dir)
     scenes = dataset_scenes(dataset_dir)
     variants: list[Variant | None] = list(parse_sweeps(list(sweeps), pipeline)) or [None]
-    pl.parse_sets(list(sets), pipeline)  # bad --set: one error before anything runs
+    for v in variants:  # bad --set / --sweep values (type, range, choices): one error before anything runs
+        sets_v = pl.parse_sets(list(sets) + list(v.sets if v else ()), pipeline)
+        pl.resolve_params(pipeline, preset, None, sets_v, [n for n in pipeline.order if n in sets_v])
     if workers < 1:
         raise pl.PipelineError(f"--workers {workers}: must be >= 1")
     execute = make_stage_executor(executor, workers, ray_address)

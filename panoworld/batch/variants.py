@@ -7,7 +7,9 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from panoworld.pipeline import ARTIFACTS_DIRNAME, VARIANTS_DIRNAME, Pipeline, PipelineError
+from panoworld.artifacts import ARTIFACTS_DIRNAME, VARIANTS_DIRNAME
+from panoworld.errors import PipelineError
+from panoworld.pipeline import Pipeline
 
 VARIANT_JSON = "variant.json"
 

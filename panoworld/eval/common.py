@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from panoworld.errors import InputError
 import enum
 import math
 from dataclasses import dataclass
@@ -11,6 +10,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from panoworld.errors import InputError
 
 GT_DIRNAME = "gt"
 

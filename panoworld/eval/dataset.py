@@ -16,9 +16,9 @@ RESULTS = "eval_results.json"
 def dataset_units(dataset_dir: Path) -> list[tuple[Path, str | None]]:
     """(scene, variant) pairs to evaluate: each sweep variant of a scene, and the scene's own artifacts when its
     tail ran there (a trajectory artifact under artifacts/) or it has no variant at all."""
+    from panoworld.artifacts import ARTIFACTS_DIRNAME
     from panoworld.batch.run import dataset_scenes
     from panoworld.batch.variants import scene_variants
-    from panoworld.pipeline import ARTIFACTS_DIRNAME
 
     units: list[tuple[Path, str | None]] = []
     for scene in dataset_scenes(dataset_dir):
@@ -31,7 +31,7 @@ def dataset_units(dataset_dir: Path) -> list[tuple[Path, str | None]]:
 
 def _eval_unit(task: tuple[str, str | None, dict]) -> dict:
     """One (scene, variant) report; never raises (an error becomes the report's "error")."""
-    from panoworld.evaluate import evaluate_scene
+    from panoworld.eval.report import evaluate_scene
     from panoworld.stage import params_from_dict
 
     scene, variant, pdict = task
@@ -39,7 +39,7 @@ def _eval_unit(task: tuple[str, str | None, dict]) -> dict:
     try:
         report, errors = evaluate_scene(Path(scene), params_from_dict(EvalParams, pdict, where="eval"), variant=variant)
         return {**report, "unit": unit, "errors": errors}
-    except Exception as e:  # noqa: BLE001 - one bad scene never stops the others
+    except Exception as e:  # one bad scene never stops the others
         return {"unit": unit, "scene": str(scene), "variant": variant, "error": f"{type(e).__name__}: {e}",
                 "stages": {}, "reference": None, "setting": {}}
 
@@ -49,8 +49,8 @@ def evaluate_dataset(dataset_dir: Path, params: EvalParams | None = None, *, wor
     """{"dataset", "units": [report per scene/variant], "distribution": {...}, "tables": [Table.as_dict()]}."""
     from tqdm import tqdm
 
+    from panoworld.errors import PipelineError
     from panoworld.eval.distribution import distribution_metrics
-    from panoworld.pipeline import PipelineError
     from panoworld.stage import params_to_dict
 
     params = params or EvalParams()

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from panoworld.eval.common import TARGETS, is_unavailable
+from panoworld.artifacts import ARTIFACTS_DIRNAME
+from panoworld.eval.common import GT_DIRNAME, TARGETS, EvalInputError, EvalParams, is_unavailable
+from panoworld.eval.scene import Evaluation
 
 
 def target_report(stages: dict[str, dict]) -> dict[str, dict]:
@@ -66,3 +69,41 @@ def format_table(report: dict) -> str:
     for r in rows:
         lines.append("  ".join(r[c].ljust(widths[c]) for c in range(4)) + "  " + r[4])
     return "\n".join(line.rstrip() for line in lines)
+
+
+NOTHING_MESSAGE = ("{scene} has no gt/gt.json and no {artifacts}/: nothing to evaluate; run the pipeline first "
+                   "(`python runner.py run SCENE`)")
+
+
+def evaluate_scene(scene_dir: Path, params: EvalParams | None = None, *, stages: list[str] | None = None,
+                   progress: bool = False, variant: str | None = None) -> tuple[dict, list[str]]:
+    """The full report {"scene", "reference", "params", "stages", "targets"} of one scene and the stages that errored.
+
+    The reference is the scene's synthetic ground truth, its ground-truth frames + poses, or its plan alone
+    (panoworld.eval.groundtruth.open_ground_truth). variant: a named variant of the DAG's tail
+    (artifacts/variants/NAME, `runner.py run DATASET --all --sweep`). Raises EvalInputError when the scene has
+    neither ground truth nor artifacts, or LPIPS weights were passed but cannot be loaded.
+    """
+    from panoworld.stage import params_to_dict
+
+    scene_dir = Path(scene_dir)
+    if not (scene_dir / GT_DIRNAME / "gt.json").is_file() and not (scene_dir / ARTIFACTS_DIRNAME).is_dir():
+        raise EvalInputError(NOTHING_MESSAGE.format(scene=scene_dir, artifacts=ARTIFACTS_DIRNAME))
+    params = params or EvalParams()
+    ev = Evaluation(scene_dir, params, progress=progress, variant=variant)
+    if ev.lpips.enabled:
+        try:
+            _ = ev.lpips.model  # loads the weights now: a bad file is one input error, not a failed stage
+        except (OSError, ValueError, KeyError, RuntimeError) as e:
+            raise EvalInputError(f"LPIPS weights: {e}") from None
+    results, errors = ev.run(stages)
+    report = {
+        "scene": str(scene_dir),
+        "variant": variant,
+        "reference": ev.gt.kind,
+        "setting": ev.setting(),
+        "params": params_to_dict(params),
+        "stages": results,
+        "targets": target_report(results),
+    }
+    return jsonable(report), errors

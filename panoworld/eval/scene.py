@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from panoworld.artifacts import MANIFEST
+from panoworld.artifacts import ARTIFACTS_DIRNAME, MANIFEST, VARIANTS_DIRNAME
 from panoworld.eval.common import (
     EvalParams,
     Lpips,
@@ -27,8 +27,7 @@ from panoworld.eval.common import (
 )
 from panoworld.eval.groundtruth import NoReference, open_ground_truth, true_disocclusion
 from panoworld.metrics import psnr, ssim, ws_psnr
-from panoworld.pipeline import ARTIFACTS_DIRNAME
-
+from panoworld.params import flatten
 
 POSE_METRICS = ("ate", "ate_rmse", "rpe_t", "rpe_r", "rre", "rte", "ate_over_path", "rot_error_abs")
 
@@ -63,7 +62,6 @@ class Evaluation:
 
     def artifact_dir(self, stage: str) -> Path:
         """artifacts/STAGE, or artifacts/variants/NAME/STAGE for a stage in the evaluated variant's tail."""
-        from panoworld.pipeline import VARIANTS_DIRNAME
 
         root = self.scene_dir / ARTIFACTS_DIRNAME
         return (root / VARIANTS_DIRNAME / self.variant if stage in self.tail else root) / stage
@@ -425,11 +423,11 @@ class Evaluation:
         """What the evaluated artifacts were made with: trajectory kind/stride/frames and the video backend (the
         columns that group a dataset's results into the paper's rows); empty entries for stages not run."""
         out: dict[str, Any] = {}
-        for stage, keys in (("trajectory", ("kind", "stride", "frames")), ("video", ("backend", "steps")),
+        for stage, keys in (("trajectory", ("kind", "stride", "frames")), ("video", ("backend", "wan.steps")),
                             ("poses", ("backend",))):
             if self.artifact(stage) is not None:
-                params = self.manifest(stage).get("params") or {}
-                out.update({(f"{stage}_{k}" if k == "backend" else k): params.get(k) for k in keys})
+                params = flatten(self.manifest(stage).get("params") or {})
+                out.update({(f"{stage}_{k}" if k == "backend" else k.rpartition(".")[2]): params.get(k) for k in keys})
         return out
 
     def run(self, stages: list[str] | None = None) -> tuple[dict[str, dict], list[str]]:

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from panoworld.hub.fetch import FetchError, Fetched, fetch
+from panoworld.hub.fetch import Fetched, FetchError, fetch
 from panoworld.hub.registry import REGISTRY, WeightsEntry
 from panoworld.hub.resolve import HfId, WeightsNotFound, hub_cache_dir, resolve_hf, resolve_weights, weights_dir
 
@@ -18,7 +18,7 @@ def _cached_sizes() -> dict[str, int]:
         from huggingface_hub import scan_cache_dir
 
         return {r.repo_id.lower(): r.size_on_disk for r in scan_cache_dir(hub_cache_dir()).repos}
-    except Exception:  # noqa: BLE001 - no cache directory yet, or huggingface_hub absent: nothing cached
+    except Exception:  # no cache directory yet, or huggingface_hub absent: nothing cached
         return {}
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from panoworld.errors import PanoWorldError
 import hashlib
 import os
 import re
@@ -11,8 +10,19 @@ import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from panoworld.errors import PanoWorldError
 from panoworld.hub.registry import REGISTRY, WeightsEntry
-from panoworld.hub.resolve import HfId, WeightsNotFound, hf_blob_id, hf_offline, hub_cache_dir, parse_hf, resolve_hf, sha256_file, weights_dir
+from panoworld.hub.resolve import (
+    HfId,
+    WeightsNotFound,
+    hf_blob_id,
+    hf_offline,
+    hub_cache_dir,
+    parse_hf,
+    resolve_hf,
+    sha256_file,
+    weights_dir,
+)
 
 
 class FetchError(PanoWorldError, RuntimeError):
@@ -165,7 +175,7 @@ def fetch_hf(hid: HfId, *, to: Path | None = None, patterns: tuple[str, ...] = (
                 hid.repo, revision=hid.revision or "main", cache_dir=hub_cache_dir(), local_dir=to,
                 allow_patterns=list(patterns) or None, local_files_only=offline,
             ))
-        except Exception as e:  # noqa: BLE001 - network, auth and not-found errors all get one actionable line
+        except Exception as e:  # network, auth and not-found errors all get one actionable line
             msg = " ".join(str(e).split())[:300]
             raise FetchError(f"{hid}: download failed ({type(e).__name__}: {msg})") from None
         commit = root.name if to is None else None

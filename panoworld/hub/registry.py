@@ -24,7 +24,7 @@ class Use:
     """One place the weights go: a pipeline param (`STAGE.PARAM`) or a flag of another verb (`eval --lpips-weights`)."""
 
     param: str
-    """`depth.weights` (set with `--set` / scene.yaml) or `VERB --flag` (a flag of `python runner.py VERB`)."""
+    """`depth.depth_anything.weights` (set with `--set` / scene.yaml) or `VERB --flag` (a flag of `python runner.py VERB`)."""
     file: str | None = None
     """Which file of the entry it takes; None = the entry's directory (hub entries) or its only file."""
     also: tuple[str, ...] = ()
@@ -84,7 +84,7 @@ def find_by_repo(repo: str) -> WeightsEntry | None:
 
 
 _DA_FILES = (WeightsFile("config.json"), WeightsFile("model.safetensors"), WeightsFile("preprocessor_config.json"))
-_DA_USE = Use("depth.weights", also=("depth.backend=depth-anything",))
+_DA_USE = Use("depth.depth_anything.weights", also=("depth.backend=depth-anything",))
 for _size, _mb, _lic in (("small", "99 MB (24.8M params, fp32)", "Apache-2.0"),
                          ("base", "390 MB (97.5M params, fp32)", "CC-BY-NC-4.0 (non-commercial)"),
                          ("large", "1.3 GB (335M params, fp32)", "CC-BY-NC-4.0 (non-commercial)")):
@@ -101,8 +101,8 @@ register(WeightsEntry(
     files=(WeightsFile("model_index.json"), WeightsFile("transformer/config.json"), WeightsFile("vae/config.json"),
            WeightsFile("text_encoder/config.json"), WeightsFile("tokenizer/tokenizer_config.json")),
     patterns=("model_index.json", "transformer/*", "vae/*", "text_encoder/*", "tokenizer/*", "scheduler/*"),
-    uses=(Use("video.weights", also=("video.backend=wan-shortcut",)),),
-    notes="the base model only: the LoRA and extra weights (video.lora, video.extra_weights) are trained by this "
+    uses=(Use("video.wan.weights", also=("video.backend=wan-shortcut",)),),
+    notes="the base model only: the LoRA and extra weights (video.wan.lora, video.wan.extra_weights) are trained by this "
           "project, see wan-shortcut-lora",
 ))
 
@@ -152,12 +152,12 @@ register(WeightsEntry(
 register(WeightsEntry(
     name="wan-shortcut-lora", model="PanoWorld shortcut LoRA + widened patch/step-size embeddings for Wan2.2-TI2V-5B",
     licence="this project's", size="about 0.5 GB", trained="python runner.py train video",
-    uses=(Use("video.lora"), Use("video.extra_weights")),
+    uses=(Use("video.wan.lora"), Use("video.wan.extra_weights")),
     notes="no public release: trained by this project on precomputed conditions",
 ))
 register(WeightsEntry(
     name="panovggt", model="panoramic VGGT (feed-forward poses and depth)", licence="this project's", size="-",
-    trained="python runner.py train recon", uses=(Use("poses.weights", also=("poses.backend=vggt",)),),
+    trained="python runner.py train recon", uses=(Use("poses.vggt.weights", also=("poses.backend=vggt",)),),
     notes="no public panoramic VGGT checkpoint exists; trained by this project",
 ))
 register(WeightsEntry(

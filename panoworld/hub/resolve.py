@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from panoworld.errors import WeightsError
 import dataclasses
 import os
 import re
@@ -11,11 +10,13 @@ from pathlib import Path
 from typing import Any
 
 from panoworld.artifacts import file_digest, json_digest
+from panoworld.errors import WeightsError
 
 HF_PREFIX = "hf:"
 WEIGHTS_PARAMS = frozenset({"weights", "lora", "extra_weights", "upscale_weights", "prompt_embeds"})
 """Params that name weights in every stage (plus any `*_weights` field, or one with metadata {"weights": True})."""
-_REPO = re.compile(r"^[A-Za-z0-9][\w.-]*/[A-Za-z0-9][\w.-]*$")
+_NAME = r"[A-Za-z0-9][\w.-]{0,95}"
+_HF_ID = re.compile(rf"(?P<repo>{_NAME}/{_NAME})(?:@(?P<rev>[A-Za-z0-9][\w.-]{{0,127}}))?(?:/(?P<path>[\w.+-]+(?:/[\w.+-]+)*))?")
 
 
 class WeightsNotFound(WeightsError):
@@ -57,19 +58,18 @@ class HfId:
 
 
 def parse_hf(spec: str) -> HfId | None:
-    """Parse an `hf:` id; None when spec is not one. A malformed id is a WeightsNotFound naming the syntax."""
+    """Parse an `hf:` id; None when spec is not one. A malformed id is a WeightsNotFound naming the syntax.
+
+    Strict grammar (_HF_ID): ORG and NAME as on the Hub; REVISION a branch, tag or commit without `/` or `..`; PATH
+    relative `/`-separated segments, none empty, `.` or `..` (never absolute, never leaving the snapshot)."""
     if not spec.startswith(HF_PREFIX):
         return None
-    body = spec[len(HF_PREFIX):].strip().strip("/")
-    parts = body.split("/")
-    if len(parts) < 2:
-        raise WeightsNotFound(f"{spec}: expected hf:ORG/NAME[@REVISION][/PATH], e.g. hf:depth-anything/Depth-Anything-V2-Small-hf")
-    org, name, rest = parts[0], parts[1], "/".join(parts[2:]) or None
-    name, _, revision = name.partition("@")
-    repo = f"{org}/{name}"
-    if not _REPO.match(repo) or (revision == "" and "@" in parts[1]) or (rest and ".." in rest.split("/")):
-        raise WeightsNotFound(f"{spec}: expected hf:ORG/NAME[@REVISION][/PATH], e.g. hf:depth-anything/Depth-Anything-V2-Small-hf")
-    return HfId(repo, revision or None, rest)
+    m = _HF_ID.fullmatch(spec[len(HF_PREFIX):].strip())
+    path = m and m["path"]
+    if m is None or ".." in m["repo"] or ".." in (m["rev"] or "") or (path and {".", ".."} & set(path.split("/"))):
+        raise WeightsNotFound(f"{spec}: expected hf:ORG/NAME[@REVISION][/PATH] (PATH relative, no '..'), "
+                              "e.g. hf:depth-anything/Depth-Anything-V2-Small-hf")
+    return HfId(m["repo"], m["rev"], path)
 
 
 def fetch_command(hid: HfId) -> str:
@@ -204,12 +204,25 @@ def is_weights_field(f: dataclasses.Field) -> bool:
 
 
 def weights_fields(params_cls: type) -> list[str]:
-    """Names of the weights-like params of a params dataclass."""
-    return [f.name for f in dataclasses.fields(params_cls) if is_weights_field(f)]
+    """Names of the weights-like params of a params dataclass (nested backend options as `wan.weights`)."""
+    out = []
+    for f in dataclasses.fields(params_cls):
+        sub = f.default_factory() if f.default_factory is not dataclasses.MISSING else None
+        if dataclasses.is_dataclass(sub):
+            out += [f"{f.name}.{n}" for n in weights_fields(type(sub))]
+        elif is_weights_field(f):
+            out.append(f.name)
+    return out
+
+
+def _get(params: Any, dotted: str) -> Any:
+    for part in dotted.split("."):
+        params = getattr(params, part)
+    return params
 
 
 def _set_weights(params: Any) -> list[tuple[str, str]]:
-    values = ((n, getattr(params, n)) for n in weights_fields(type(params)))
+    values = ((n, _get(params, n)) for n in weights_fields(type(params)))
     return [(n, str(v)) for n, v in values if isinstance(v, (str, os.PathLike)) and str(v) != ""]
 
 
@@ -240,7 +253,11 @@ def check_params_weights(params: Any, *, where: str = "") -> None:
 
 def with_resolved_paths(params: Any, records: dict[str, dict]) -> Any:
     """A copy of params whose weights-like values are the resolved local paths."""
-    return dataclasses.replace(params, **{k: r["path"] for k, r in records.items()}) if records else params
+    for name, r in records.items():
+        head, _, rest = name.partition(".")
+        value = with_resolved_paths(getattr(params, head), {rest: r}) if rest else r["path"]
+        params = dataclasses.replace(params, **{head: value})
+    return params
 
 
 def weights_key(records: dict[str, dict]) -> dict[str, str | None]:
@@ -249,7 +266,7 @@ def weights_key(records: dict[str, dict]) -> dict[str, str | None]:
 
 
 def describe_change(stage: str, old: dict[str, dict], new: dict[str, dict]) -> str | None:
-    """`weights changed: depth.weights hf:ORG/NAME commit 1a2b3c4 -> 5d6e7f8 (model.safetensors)`, or None."""
+    """`weights changed: depth.depth_anything.weights hf:ORG/NAME commit 1a2b3c4 -> 5d6e7f8 (model.safetensors)`, or None."""
     parts = []
     for name in sorted(set(old) | set(new)):
         a, b = old.get(name) or {}, new.get(name) or {}

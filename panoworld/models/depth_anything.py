@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 
 from panoworld.depth import DepthKind
-from panoworld.stage import StageInputError
+from panoworld.errors import InputError
+from panoworld.shapes import check_shape
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -51,12 +52,12 @@ class DepthAnything:
 
     @classmethod
     def from_pretrained(cls, weights: Path | str | None, *, input_size: int = 518, device: str = "cpu") -> DepthAnything:
-        """Load from a local directory (never a hub download); StageInputError naming --weights if it is unusable."""
+        """Load from a local directory (never a hub download); InputError naming --weights if it is unusable."""
         if weights is None or str(weights) == "":
-            raise StageInputError(f"depth-anything backend needs --weights DIR: a local folder with {EXPECTED}")
+            raise InputError(f"depth-anything backend needs --weights DIR: a local folder with {EXPECTED}")
         path = Path(weights)
         if not (path / "config.json").is_file() or not any((path / f).is_file() for f in WEIGHT_FILES):
-            raise StageInputError(f"--weights {path}: expected {EXPECTED} in that folder; found none")
+            raise InputError(f"--weights {path}: expected {EXPECTED} in that folder; found none")
         _, model_cls = _transformers()
         model = model_cls.from_pretrained(str(path), local_files_only=True)
         mean, std = IMAGENET_MEAN, IMAGENET_STD
@@ -69,8 +70,7 @@ class DepthAnything:
     def __call__(self, image: np.ndarray) -> np.ndarray:
         """image (h, w, 3) uint8 RGB -> prediction (h, w) float32 (bicubic resize to input_size and back)."""
         torch, _ = _transformers()
-        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-            raise ValueError(f"{image.shape=} {image.dtype=} but expected (h, w, 3) uint8")
+        check_shape("image", image, "h w 3", dtype=np.uint8)
         h, w = image.shape[:2]
         x = cv2.resize(image, (self.input_size, self.input_size), interpolation=cv2.INTER_CUBIC)
         t = torch.from_numpy(x).permute(2, 0, 1)[None].float() / 255.0

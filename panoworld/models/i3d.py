@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.models.weights import MissingWeightsError, require_weights_file
+from panoworld.shapes import check_shape
 
 I3D_WEIGHTS = "i3d_torchscript.pt"
 I3D_WEIGHTS_TEXT = (f"{I3D_WEIGHTS}, the TF-Hub Kinetics-400 I3D of Unterthiner et al.'s FVD exported to TorchScript "
@@ -23,13 +24,13 @@ class I3DFeatures:
         self.module = module
 
     @classmethod
-    def from_file(cls, path: Path | str | None, flag: str = "--fvd-weights") -> "I3DFeatures":
+    def from_file(cls, path: Path | str | None, flag: str = "--fvd-weights") -> I3DFeatures:
         import torch
 
         path = require_weights_file(path, model="FVD I3D", flag=flag, expected=I3D_WEIGHTS_TEXT)
         try:
             module = torch.jit.load(str(path), map_location="cpu")
-        except Exception as e:  # noqa: BLE001 - any unreadable file gets the same actionable message
+        except Exception as e:  # any unreadable file gets the same actionable message
             raise MissingWeightsError(f"FVD I3D: cannot load {path} as TorchScript ({e}); it must be {I3D_WEIGHTS_TEXT}") from None
         return cls(module.eval())
 
@@ -39,8 +40,7 @@ class I3DFeatures:
         import torch
 
         videos = np.asarray(videos)
-        if videos.ndim != 5 or videos.shape[-1] != 3 or videos.dtype != np.uint8:
-            raise ValueError(f"{videos.shape=} {videos.dtype=} but expected uint8 (N, T, H, W, 3)")
+        check_shape("videos", videos, "N T H W 3", dtype=np.uint8)
         out = []
         with torch.no_grad():
             for clip in videos:

@@ -10,6 +10,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from panoworld.models.weights import MissingWeightsError, read_state_file, require_weights_file
+from panoworld.shapes import check_shape
 
 FID_WEIGHTS = "pt_inception-2015-12-05-6726825d.pth"
 FID_WEIGHTS_TEXT = f"pytorch-fid's {FID_WEIGHTS} (the TF FID Inception ported to torch)"
@@ -161,7 +162,7 @@ class FIDInceptionV3(nn.Module):
         return x.mean(dim=(2, 3))
 
     @classmethod
-    def from_file(cls, path: Path | str | None, flag: str = "--fid-weights") -> "FIDInceptionV3":
+    def from_file(cls, path: Path | str | None, flag: str = "--fid-weights") -> FIDInceptionV3:
         path = require_weights_file(path, model="FID InceptionV3", flag=flag, expected=FID_WEIGHTS_TEXT)
         state = read_state_file(path, model="FID InceptionV3", expected=FID_WEIGHTS_TEXT)
         net = cls()
@@ -176,8 +177,7 @@ class FIDInceptionV3(nn.Module):
     def features_uint8(self, images: np.ndarray, batch: int = 8) -> np.ndarray:
         """(N, 2048) float64 features of uint8 RGB images (N, H, W, 3)."""
         images = np.asarray(images)
-        if images.ndim != 4 or images.shape[-1] != 3 or images.dtype != np.uint8:
-            raise ValueError(f"{images.shape=} {images.dtype=} but expected uint8 (N, H, W, 3)")
+        check_shape("images", images, "N H W 3", dtype=np.uint8)
         out = []
         for i in range(0, len(images), batch):
             x = torch.from_numpy(np.ascontiguousarray(images[i:i + batch])).permute(0, 3, 1, 2).float() / 255.0

@@ -20,6 +20,8 @@ from panoworld.models.weights import (
     load_config_and_weights,
     save_config_and_weights,
 )
+from panoworld.rotations import rotmat_from_quat
+from panoworld.shapes import check_shape
 
 if TYPE_CHECKING:
     from panoworld.gaussians import ContextFrames, FusionResult
@@ -240,16 +242,7 @@ class DepthHead(nn.Module):
         return depth, conf
 
 
-def quat_wxyz_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    """Quaternions (..., 4) in (w, x, y, z) order (normalised here) -> rotation matrices (..., 3, 3)."""
-    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    rows = [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ]
-    return torch.stack(rows, -1).reshape(q.shape[:-1] + (3, 3))
+quat_wxyz_to_rotmat = rotmat_from_quat
 
 
 class ErpCorrelation(nn.Module):
@@ -511,8 +504,7 @@ class PanoVGGT(nn.Module):
     @torch.inference_mode()
     def predict(self, frames: np.ndarray) -> dict[str, np.ndarray]:
         """frames (S, H, W, 3) uint8 at the model's input size -> world_from_cam (S, 4, 4), depth (S, H, W), conf."""
-        if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
-            raise ValueError(f"{frames.shape=} {frames.dtype=} but expected (S, H, W, 3) uint8")
+        check_shape("frames", frames, "S H W 3", dtype=np.uint8)
         dev = next(self.parameters()).device
         x = torch.from_numpy(frames).to(dev).permute(0, 3, 1, 2).float().div(255.0)[None]
         out = self.eval()(x)

@@ -12,6 +12,7 @@ from torch import nn
 from tqdm import tqdm
 
 from panoworld.models.weights import read_state_file, require_weights_file
+from panoworld.shapes import check_shape
 
 EXPECTED_FILE = "RealESRGAN_x2plus.pth (official Real-ESRGAN release; state dict under 'params_ema' or 'params')"
 
@@ -160,8 +161,7 @@ def upscale_frames(
     model: RRDBNet, frames: np.ndarray, *, tile: int = 0, pad: int = 16, device: str = "cpu", dtype: str = "float32"
 ) -> np.ndarray:
     """(T, H, W, 3) uint8 RGB ERP frames -> (T, s*H, s*W, 3) uint8 with s = model.scale, one frame at a time."""
-    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
-        raise ValueError(f"{frames.shape=} {frames.dtype=} but expected (T, H, W, 3) uint8")
+    check_shape("frames", frames, "T H W 3", dtype=np.uint8)
     model = model.to(device=device, dtype=getattr(torch, dtype))
     t, h, w, _ = frames.shape
     out = np.empty((t, model.scale * h, model.scale * w, 3), np.uint8)

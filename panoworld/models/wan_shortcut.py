@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import enum
+import dataclasses
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -14,9 +13,15 @@ import torch
 from tqdm import tqdm
 
 from panoworld.models import wan_layers as wl
+from panoworld.models.wan_config import (  # noqa: F401  (re-exported)
+    DEFAULT_PROMPT,
+    Sampler,
+    WanShortcutConfig,
+    resolve_device,
+)
 from panoworld.models.weights import MissingWeightsError, require_weights_dir, require_weights_file
+from panoworld.shapes import check_shape
 
-DEFAULT_PROMPT = "a panoramic video walking through an indoor scene"
 MAX_SEQUENCE_LENGTH = 512  # Wan2.2 pads/truncates UMT5 prompts to 512 tokens
 BASE_FILES = (
     "transformer/config.json",
@@ -26,48 +31,6 @@ BASE_FILES = (
 )
 TEXT_FILES = ("text_encoder/config.json", "text_encoder/model*.safetensors", "tokenizer/tokenizer_config.json")
 FLAGS = "--weights DIR --lora FILE --extra-weights FILE [--prompt-embeds FILE]"
-
-
-class Sampler(enum.StrEnum):
-    SHORTCUT = "shortcut"
-    FLOW = "flow"
-
-
-@dataclass(kw_only=True)
-class WanShortcutConfig:
-    weights: Path | None = None
-    """Local Wan2.2-TI2V-5B-Diffusers directory (transformer/, vae/, optionally text_encoder/ + tokenizer/)."""
-    lora: Path | None = None
-    """LoRA safetensors of the trained generator (rank 48, alpha 48; diffusers Wan LoRA layout)."""
-    extra_weights: Path | None = None
-    """Safetensors of the other trained weights: widened patch_embedding.* and step_embedder.*."""
-    prompt_embeds: Path | None = None
-    """Precomputed UMT5 prompt embeddings (.safetensors/.pt with 'prompt_embeds' (1, L, 4096) and optionally
-    'negative_prompt_embeds'); needed when the weights directory has no text_encoder/."""
-    sampler: Sampler = Sampler.SHORTCUT
-    """shortcut: few large Euler steps told their step size (the paper); flow: plain flow-matching Euler."""
-    steps: int = 4
-    """Denoising steps (a power of two for the shortcut sampler)."""
-    guidance: float = 1.0
-    """Classifier-free guidance scale; 1 = guidance-free (one forward per step), otherwise two."""
-    shift: float = 5.0
-    """Timestep shift of the flow sampler's schedule (Wan's flow_shift); the shortcut sampler uses uniform steps."""
-    dtype: str = "bfloat16"
-    """Transformer (and text encoder) dtype; the VAE runs in float32."""
-    device: str = "cuda"
-    """Execution device."""
-    cpu_offload: bool = False
-    """Keep models on the CPU and move each to the device only while it runs (fits a 24 GB GPU)."""
-    vae_tiling: bool = True
-    """Encode/decode with the VAE in spatial tiles (lower memory for 704x1408 ERP)."""
-    seed: int = 0
-    """Seed of the initial noise (drawn on the CPU, so equal across devices)."""
-    prompt: str = DEFAULT_PROMPT
-    """Text prompt; ignored when prompt_embeds is given."""
-    negative_prompt: str = ""
-    """Negative prompt for guidance != 1 (an all-zero embedding when only prompt_embeds without a negative is given)."""
-    anchor_first_frame: bool = True
-    """When frame 0's condition is the input panorama (>= 99 % valid), keep its latent clean (Wan2.2 TI2V rule)."""
 
 
 def shortcut_schedule(steps: int) -> tuple[list[float], list[float]]:
@@ -173,6 +136,7 @@ class WanShortcutGenerator:
     """Warped ERP video + valid mask -> generated ERP video, with the paper's conditioning and samplers."""
 
     def __init__(self, transformer, vae, cfg: WanShortcutConfig, embeds: dict, pipe=None):
+        cfg = dataclasses.replace(cfg, device=resolve_device(cfg.device))
         self.transformer, self.vae, self.cfg, self._pipe = transformer, vae, cfg, pipe
         self.device = torch.device(cfg.device)
         pos = embeds["prompt_embeds"]
@@ -191,6 +155,7 @@ class WanShortcutGenerator:
         """Wrap loaded diffusers models: widen/extend the transformer (zero-init) unless done, load cfg.extra_weights
         and cfg.lora when given, and place the models (CPU offload or on cfg.device)."""
         wl.import_diffusers()
+        cfg = dataclasses.replace(cfg, device=resolve_device(cfg.device))
         if cfg.sampler == Sampler.SHORTCUT:
             shortcut_schedule(cfg.steps)
         if cfg.extra_weights is not None:
@@ -282,10 +247,8 @@ class WanShortcutGenerator:
         Frames are padded to 4k+1 (repeating the last) and resized to multiples of 32 when needed, then cropped
         and resized back.
         """
-        if cond_rgb.ndim != 4 or cond_rgb.shape[-1] != 3 or cond_rgb.dtype != np.uint8:
-            raise ValueError(f"{cond_rgb.shape=} {cond_rgb.dtype=} but expected (T, H, W, 3) uint8")
-        if mask.shape != cond_rgb.shape[:3] or mask.dtype != bool:
-            raise ValueError(f"{mask.shape=} {mask.dtype=} but expected {cond_rgb.shape[:3]} bool")
+        dims = check_shape("cond_rgb", cond_rgb, "T H W 3", dtype=np.uint8)
+        check_shape("mask", mask, "T H W", dtype=np.bool_, dims=dims)
         start = time.perf_counter()
         cfg = self.cfg
         t, h, w, _ = cond_rgb.shape

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-from panoworld.errors import WeightsError
 import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
 
-from panoworld.stage import StageInputError
+from panoworld.errors import WeightsError
 
 
 class MissingWeightsError(WeightsError):
@@ -124,7 +123,7 @@ def read_state_file(path: Path, *, model: str, expected: str) -> dict:
             state = load_file(str(path))
         else:
             state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # noqa: BLE001 - every unreadable file gets the same actionable message
+    except Exception as e:  # every unreadable file gets the same actionable message
         raise MissingWeightsError(f"{model}: cannot read {path}: {e}; it must be {expected}") from None
     if not isinstance(state, dict):
         raise MissingWeightsError(f"{model}: {path} holds a {type(state).__name__}, not a state dict; it must be {expected}")

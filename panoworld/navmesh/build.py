@@ -18,7 +18,7 @@ from panoworld.navmesh.heightfield import (
     simplify_tolerance_m,
 )
 from panoworld.navmesh.navmesh import NavMesh
-from panoworld.navmesh.polygons import pick_component, cross_section, polygons_from_mask, triangulate_rings
+from panoworld.navmesh.polygons import cross_section, pick_component, polygons_from_mask, triangulate_rings
 
 
 def build_navmesh(

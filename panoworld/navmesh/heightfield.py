@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-from panoworld.errors import InputError
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from panoworld.errors import InputError
+from panoworld.params import param
+from panoworld.shapes import check_shape
 
 MIN_CAMERA_HEIGHT_M = 0.3
 """Horizontal triangles closer than this below the camera are never taken as the floor."""
@@ -22,35 +24,35 @@ class NoFloorError(InputError):
 class NavMeshParams:
     """How the walkable floor is extracted from a scene mesh (world frame, metres, up = -Y)."""
 
-    cell_m: float = 0.03
+    cell_m: float = param(0.03, ge=0.005, le=0.5)
     """Heightfield cell size in metres (rays are cast down at cell centres)."""
-    agent_radius_m: float = 0.25
+    agent_radius_m: float = param(0.25, ge=0, le=2.0)
     """Agent (camera) radius: the floor is eroded by this distance from every obstacle and unseen cell."""
-    agent_height_m: float = 1.8
+    agent_height_m: float = param(1.8, gt=0)
     """Top of the obstacle band above the floor; raised to camera height + agent radius when the camera is higher."""
-    step_height_m: float = 0.2
+    step_height_m: float = param(0.2, ge=0)
     """Geometry up to this height above the floor is walkable (rugs, thresholds); above it is an obstacle."""
-    max_slope_deg: float = 15.0
+    max_slope_deg: float = param(15.0, ge=0, lt=90)
     """Triangles tilted at most this much from horizontal vote for the floor height."""
-    max_range_m: float = 12.0
+    max_range_m: float = param(12.0, gt=0, le=100.0)
     """Only geometry within this horizontal distance from the camera is considered."""
     min_floor_area_m2: float = 0.25
     """Minimum visible floor area (in the winning histogram bin) to accept a floor height."""
-    simplify_m: float = 0.0
+    simplify_m: float = param(0.0, ge=0)
     """Polygon simplification tolerance (approxPolyDP) in metres; 0 = one cell. Compensated by extra erosion."""
     max_triangle_area_m2: float = 0.25
     """Largest NavMesh triangle ('triangle' quality meshing), so A* over triangles gives short corridors."""
-    camera_footprint_m: float = 0.0
+    camera_footprint_m: float = param(0.0, ge=0)
     """Unseen floor within this horizontal radius of the camera counts as walkable (tripod / nadir blind spot of
     real captures: the camera stood there); obstacles are never overridden. 0 = only what blind_spot_m decides."""
-    blind_spot_m: float = 1.5
+    blind_spot_m: float = param(1.5, ge=0)
     """Automatic rig blind spot: the unseen region under the camera counts as walkable when it lies within this
     horizontal radius and at least RIM_WALKABLE_FRACTION of the cells around it are walkable floor (the floor is
     seen all around the capture rig). 0 = off."""
     fill_holes_m2: float = 0.25
     """Unseen holes of at most this area surrounded by walkable floor (sensor dropouts, LiDAR gaps) count as
     walkable; a region where rays hit something below the floor (a stairwell) never does. 0 = off."""
-    max_erp_height: int = 192
+    max_erp_height: int = param(192, ge=0)
     """ERP grid meshes (panoworld.mesh layout) with more rows are re-meshed from every s-th pixel first (speed)."""
 
 
@@ -99,15 +101,12 @@ def _face_geometry(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
 
 def check_mesh(vertices: np.ndarray, faces: np.ndarray, face_valid: np.ndarray | None) -> np.ndarray:
     """Check shapes of vertices (V, 3), faces (F, 3), face_valid (F,) and return face_valid (all True if None)."""
-    if vertices.ndim != 2 or vertices.shape[1] != 3:
-        raise ValueError(f"{vertices.shape=} but expected (V, 3)")
-    if faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(f"{faces.shape=} but expected (F, 3)")
+    check_shape("vertices", vertices, "V 3")
+    dims = check_shape("faces", faces, "F 3")
     if face_valid is None:
         return np.ones(len(faces), bool)
     face_valid = np.asarray(face_valid, bool)
-    if face_valid.shape != (len(faces),):
-        raise ValueError(f"{face_valid.shape=} but expected ({len(faces)},) like faces")
+    check_shape("face_valid", face_valid, "F", dims=dims)
     return face_valid
 
 

@@ -12,16 +12,19 @@ import numpy as np
 from panoworld.conventions import GLTF_FROM_WORLD, transform_points
 from panoworld.navmesh.heightfield import FloorGrid, NoFloorError
 from panoworld.navmesh.polygons import (
+    cross_section,
     even_odd,
     pick_component,
     ring_area,
     ring_segments,
     segment_distance,
-    cross_section,
     triangulate_rings,
 )
+from panoworld.shapes import check_shape
 
 NAVMESH_JSON = "navmesh.json"
+RUN_ONLY_INFO = ("timings_s",)
+"""Build facts that differ from run to run: reported in the stage manifest, never in navmesh.json (deterministic)."""
 NAVMESH_OBJ = "navmesh.obj"
 NAVMESH_GLB = "navmesh.glb"
 FORMAT_VERSION = 1
@@ -322,7 +325,7 @@ class NavMesh:
             "vertices": self.vertices.tolist(),
             "triangles": self.triangles.tolist(),
             "adjacency": self.adjacency.tolist(),
-            "info": self.info,
+            "info": {k: v for k, v in self.info.items() if k not in RUN_ONLY_INFO},
         }
 
     def mesh3d(self) -> tuple[np.ndarray, np.ndarray]:
@@ -358,8 +361,7 @@ def _check_xz(xz: np.ndarray) -> np.ndarray:
     xz = np.asarray(xz, np.float64)
     if xz.ndim == 1 and xz.shape == (2,):
         xz = xz[None]
-    if xz.ndim != 2 or xz.shape[1] != 2:
-        raise ValueError(f"{xz.shape=} but expected (N, 2) x,z points")
+    check_shape("xz", xz, "N 2")
     return xz
 
 

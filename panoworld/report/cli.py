@@ -20,7 +20,7 @@ def _guarded(fn, id: str, title: str, *args) -> Section:
     """fn(*args), or a section naming the error: one broken artifact never costs the rest of the report."""
     try:
         return fn(*args)
-    except Exception as e:  # noqa: BLE001 - shown on the page, the report still gets written
+    except Exception as e:  # shown on the page, the report still gets written
         tb = traceback.format_exc(limit=3)
         return Section(id, title, f'<p class="note bad">could not draw this section: {html.escape(repr(e))}</p>'
                        f"<pre>{html.escape(tb)}</pre>", missing=True)

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from panoworld.io import read_json
 from panoworld.report import encode as enc
 from panoworld.report.page import Page, Section, figure, fmt, missing, slider, svg_figure, table
 from panoworld.report.topdown import PlanView, clearance_colors, mesh_from_above
@@ -58,10 +59,7 @@ class SceneData:
     def json(self, rel: str) -> dict | None:
         path = self.art / rel
         if path not in self._json:
-            try:
-                self._json[path] = json.loads(path.read_text())
-            except (OSError, ValueError):
-                self._json[path] = None
+            self._json[path] = read_json(path, default=None)
         return self._json[path]
 
     def manifest(self, stage: str) -> dict | None:
@@ -307,6 +305,13 @@ def section_plan(scene: SceneData, params: ReportParams) -> Section:
             "sectors_covered", "sectors_reachable", "agent_radius_m")
     facts = table(["trajectory", "value"], [[k, fmt(tinfo.get(k))] for k in keys if k in tinfo])
     ninfo = scene.info("navmesh")
+    if ninfo.get("no_room"):
+        nr = ninfo["no_room"]
+        notes.append(f"no room to move: {nr.get('reason')}; decided: {nr.get('decision')} (agent radius "
+                     f"{nr.get('agent_radius_m')} m instead of {nr.get('requested_agent_radius_m')} m)")
+    if tinfo.get("plan", {}).get("approach_steps"):
+        notes.append(f"the camera stands {fmt(tinfo.get('start_off_navmesh_m'))} m off the NavMesh: the first "
+                     f"{tinfo['plan']['approach_steps']} steps walk onto it (exempt from the clearance check)")
     nfacts = table(["navmesh", "value"], [[k, fmt(ninfo.get(k))] for k in
                                           ("area_m2", "num_triangles", "num_holes", "floor_y", "camera_on_navmesh") if k in ninfo])
     body = (f'<div class="legend">{"".join(legend)}</div><div class="row">{figs}</div><div class="row">{facts}{nfacts}</div>'

@@ -1,7 +1,15 @@
 """Procedural indoor scenes with exact ground truth: meshes, ERP RGB/depth renders and camera tracks (issue #3)."""
 
 from panoworld.synth.appearance import Light, Material, MaterialKind
-from panoworld.synth.params import FurnitureParams, LayoutParams, Preset, RenderParams, SynthParams, TrackParams, params_for
+from panoworld.synth.params import (
+    FurnitureParams,
+    LayoutParams,
+    Preset,
+    RenderParams,
+    SynthParams,
+    TrackParams,
+    params_for,
+)
 from panoworld.synth.scene import SceneGenerationError, SynthScene, derive_seed, generate_scene, write_scene
 from panoworld.synth.tracks import Track
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from panoworld.errors import PanoWorldError
 import enum
 from dataclasses import dataclass
 
@@ -11,6 +10,7 @@ import numpy as np
 import trimesh
 from scipy import ndimage
 
+from panoworld.errors import PanoWorldError
 from panoworld.synth.layout import SOLID, FloorPlan
 from panoworld.synth.params import FurnitureParams
 

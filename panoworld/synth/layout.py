@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from panoworld.errors import PanoWorldError
 from dataclasses import dataclass
 
 import numpy as np
 
+from panoworld.errors import PanoWorldError
 from panoworld.synth.params import LayoutParams
 
 SOLID = -1

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from panoworld.errors import PanoWorldError
 import json
 import os
 import shutil
@@ -22,9 +21,10 @@ from panoworld.conventions import (
     quat_wxyz_from_rotmat,
     quat_xyzw_from_wxyz,
 )
+from panoworld.errors import PanoWorldError
 from panoworld.raycast import Raycaster
 from panoworld.synth.appearance import Light, Material, MaterialKind, albedo, srgb_uint8
-from panoworld.synth.furniture import FurnitureKind, Placer, PlacementError, Role
+from panoworld.synth.furniture import FurnitureKind, PlacementError, Placer, Role
 from panoworld.synth.layout import FloorPlan, LayoutError, architecture_quads, generate_floor_plan, quads_to_mesh
 from panoworld.synth.params import Preset, SynthParams, params_for
 from panoworld.synth.tracks import Track, TrackError, TrackPlanner

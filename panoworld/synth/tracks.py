@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from panoworld.errors import PanoWorldError
 from dataclasses import dataclass
 
 import numpy as np
@@ -10,6 +9,8 @@ import trimesh
 from scipy import interpolate, ndimage, sparse
 from scipy.sparse import csgraph
 
+from panoworld.errors import PanoWorldError
+from panoworld.shapes import check_shape
 from panoworld.synth.layout import SOLID, FloorPlan
 from panoworld.synth.params import TrackParams
 
@@ -30,10 +31,8 @@ class Track:
 
 def distance_to_mesh(points: np.ndarray, triangles: np.ndarray, radius: float) -> np.ndarray:
     """Exact distance (N,) from points (N, 3) to the nearest of triangles (F, 3, 3), capped at radius."""
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"{points.shape=} but expected (N, 3)")
-    if triangles.ndim != 3 or triangles.shape[1:] != (3, 3):
-        raise ValueError(f"{triangles.shape=} but expected (F, 3, 3)")
+    check_shape("points", points, "N 3")
+    check_shape("triangles", triangles, "F 3 3")
     lo, hi = triangles.min(1), triangles.max(1)
     out = np.full(len(points), float(radius))
     for k, p in enumerate(points):

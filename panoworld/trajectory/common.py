@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
-from panoworld.errors import InputError
 import enum
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from panoworld.errors import InputError
+from panoworld.limits import MAX_POSES
 from panoworld.navmesh import NavMesh
-
+from panoworld.params import param
+from panoworld.trajectory.polyline import resample_polyline
 
 TRAJECTORY_JSON = "trajectory.json"
 TRAJECTORY_TUM = "trajectory.tum"
@@ -44,19 +46,19 @@ class TrajectoryParams:
 
     kind: PathKind = PathKind.SECTOR
     """Path family: sector (exploration petals, 360 degree coverage) or ring (closed loop)."""
-    frames: int = 81
+    frames: int = param(81, ge=2, le=MAX_POSES)
     """Number of poses N (pose 0 is the source camera)."""
-    step_m: float = 0.05
+    step_m: float = param(0.05, gt=0, le=5.0)
     """Distance between consecutive poses at stride 1, in metres."""
-    stride: int = 1
+    stride: int = param(1, choices=(1, 2, 4))
     """Step multiplier r in {1, 2, 4}: the planned path length is (N - 1) * step_m * stride (ring: N * step)."""
     yaw: YawMode = YawMode.FIXED
     """Camera orientation: fixed (identity) or forward (turns with the path; pose 0 stays identity)."""
-    sectors: int = 8
+    sectors: int = param(8, ge=1)
     """Number of directional sectors visited by sector paths."""
-    smooth_iterations: int = 4
+    smooth_iterations: int = param(4, ge=0)
     """Chaikin corner-cutting iterations; a cut that would leave the NavMesh keeps its corner."""
-    plan_margin_m: float = 0.03
+    plan_margin_m: float = param(0.03, ge=0)
     """Paths are planned on the NavMesh shrunk by this margin so smoothing and rounding stay inside it."""
     seed: int = 0
     """Seed of the candidate points used to find each sector's farthest reachable point."""
@@ -90,3 +92,17 @@ def planning_hub(nav: NavMesh, start: np.ndarray) -> tuple[np.ndarray, float]:
         return start.copy(), 0.0
     hub = nav.closest_point(start)[0]
     return hub, float(np.linalg.norm(hub - start))
+
+
+MAX_APPROACH_SHARE = 0.1
+"""At most this share of a path's steps walks a camera that stands off the NavMesh onto it (in longer steps)."""
+
+
+def approach_path(start: np.ndarray, hub: np.ndarray, step: float, n_steps: int) -> np.ndarray:
+    """The straight way from the start to the hub, (k + 1, 2) with k steps of `step`, but never more than
+    MAX_APPROACH_SHARE of n_steps (the steps are longer then: a rig hiding 1 m of floor costs 8 of 81 poses)."""
+    off = float(np.linalg.norm(np.asarray(hub) - np.asarray(start)))
+    if off <= 0:
+        return np.asarray(start, np.float64)[None]
+    k = max(1, min(int(np.ceil(off / step)), int(MAX_APPROACH_SHARE * n_steps)))
+    return resample_polyline(np.stack([start, hub]), k + 1)

@@ -9,6 +9,7 @@ from panoworld.trajectory.common import PathKind, Plan, TrajectoryParams
 from panoworld.trajectory.ring import plan_ring
 from panoworld.trajectory.sectors import plan_sector
 
+
 def plan_path(nav: NavMesh, params: TrajectoryParams, start: np.ndarray | None = None) -> Plan:
     """Plan params.frames positions of params.kind on the NavMesh from start (x, z; default the camera, 0, 0)."""
     start = np.zeros(2) if start is None else np.asarray(start, np.float64).reshape(2)

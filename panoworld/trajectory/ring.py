@@ -8,6 +8,7 @@ from panoworld.navmesh import NavMesh
 from panoworld.trajectory.common import Plan, TrajectoryParams, planning_hub, planning_mesh
 from panoworld.trajectory.polyline import polyline_length, resample_polyline, smooth_polyline
 
+
 def _ring_candidate(nav: NavMesh, hub: np.ndarray, center: np.ndarray, radius: float, n_dirs: int, margin: float):
     """Star-shaped loop around center through hub: (loop points (n_dirs, 2) with loop[0] = hub, roundness) or None."""
     if not nav.contains(center)[0]:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from dataclasses import dataclass
@@ -12,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.conventions import quat_wxyz_from_rotmat
+from panoworld.io import read_json
 
 ARTIFACTS = "artifacts"
 
@@ -33,10 +33,7 @@ class ViewerParams:
 
 
 def _read_json(path: Path) -> dict | None:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
+    return read_json(path, default=None)
 
 
 def _poses(doc: dict | None) -> np.ndarray | None:
@@ -108,7 +105,7 @@ class SceneViewer:
                          ("points", self._add_points), ("splats", self._add_splats)]:
             try:
                 self.loaded[name] = fn()
-            except Exception as e:  # noqa: BLE001 - one unreadable artifact must not stop the viewer
+            except Exception as e:  # one unreadable artifact must not stop the viewer
                 self.loaded[name] = f"unreadable: {type(e).__name__}: {e}"
         self._add_gui()
         cam = self.server.initial_camera
@@ -253,6 +250,29 @@ class SceneViewer:
         self.handles["frame_image"].image = self._frame_image(i)
 
 
+def is_loopback(host: str) -> bool:
+    """True for an address (or `localhost`) only this machine can reach."""
+    import ipaddress
+
+    if host.strip().lower() in ("localhost", "localhost."):
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False  # a host name: it resolves to whatever interface it names
+
+
+def serve_warnings(host: str, requested_port: int, served_port: int) -> list[str]:
+    """Loud lines for what the user may not expect: a non-loopback host, a requested port that was taken."""
+    out = []
+    if not is_loopback(host):
+        out.append(f"WARNING: --host {host} is not a loopback address: this scene (mesh, frames, Gaussians) is served "
+                   "without authentication to every machine that can reach this one; use --host 127.0.0.1 to keep it local")
+    if served_port != requested_port:
+        out.append(f"WARNING: port {requested_port} is taken; serving on port {served_port} instead (the URL below)")
+    return out
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python runner.py view", description=__doc__)
     ap.add_argument("scene", type=Path, help="scene directory (its artifacts/ are shown; missing stages are skipped)")
@@ -278,6 +298,8 @@ def main(argv: list[str] | None = None) -> int:
     viewer = SceneViewer(args.scene, params)
     for k, v in viewer.loaded.items():
         print(f"{k:<11} {v}")
+    for line in serve_warnings(params.host, params.port, viewer.server.get_port()):
+        print(line, file=sys.stderr, flush=True)
     print(f"viewer: {viewer.url}  (Ctrl-C to stop)", flush=True)
     try:
         while True:

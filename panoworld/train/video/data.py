@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from panoworld.errors import DataError
 import hashlib
 import json
 import math
@@ -14,6 +13,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from panoworld.errors import DataError
 from panoworld.precompute import INDEX
 
 

@@ -154,7 +154,7 @@ class VideoTrainer:
             if self.resume:
                 raise common.TrainConfigError(f"{self.ckpt.dir}: no checkpoint to resume from (drop --resume)")
             return 0, None
-        state = torch.load(latest, map_location="cpu", weights_only=False)
+        state = common.load_checkpoint(latest)
         return int(state["step"]), state
 
     def _restore_or_rng(self, name: str, objects: dict) -> None:
@@ -429,11 +429,11 @@ class VideoTrainer:
         common.replace_dir(tmp, out)
         out = out.resolve()
         tiny = self.cfg.base == BaseModel.TINY
-        common.write_export_scene_yaml(self.rd, {"video": {
-            "backend": "wan-shortcut", "weights": str(weights.resolve() if not tiny else out / "weights"),
+        common.write_export_scene_yaml(self.rd, {"video": {"backend": "wan-shortcut", "wan": {
+            "weights": str(weights.resolve() if not tiny else out / "weights"),
             "lora": str(out / "lora.safetensors"), "extra_weights": str(out / "extra.safetensors"),
             "prompt_embeds": str(out / "prompt_embeds.safetensors"), "sampler": "shortcut", "steps": 4,
             "guidance": 1.0, "dtype": "bfloat16" if self.device.type == "cuda" else "float32",
             "vae_tiling": self.cfg.height >= 256,
-        }}, note=f"trained by `runner.py train video` in {self.rd.path.resolve()}; copy into a scene directory")
+        }}}, note=f"trained by `runner.py train video` in {self.rd.path.resolve()}; copy into a scene directory")
         return out

@@ -1,0 +1,14 @@
+"""planned: the planned trajectory as it is (for generators that follow it exactly)."""
+
+from __future__ import annotations
+
+from panoworld.backends import register
+
+
+def estimate(job):
+    from panoworld.poses import planned_estimate
+
+    return planned_estimate(job.planned)
+
+
+register("poses", "planned", estimate, needs_plan=True)

@@ -1,0 +1,52 @@
+"""warp-inpaint: a background layer behind every depth edge of the source view, meshed once and ray cast at each pose,
+so a surface gets the same colour in every frame (no weights); per-frame depth included."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from panoworld.backends import register
+from panoworld.errors import InputError
+from panoworld.params import param
+
+
+@dataclass(kw_only=True)
+class WarpOptions:
+    max_band_deg: float = param(45.0, gt=0, le=180)
+    """Widest background band (degrees) synthesized behind a foreground edge."""
+
+
+def fill(job) -> tuple:
+    from panoworld import inpaint
+    from panoworld.io import read_json
+    from panoworld.mesh import load_erp_mesh
+
+    if job.mesh_dir is None:
+        raise InputError("warp-inpaint needs --mesh DIR (the mesh artifact the conditions were rendered from)")
+    t0 = time.perf_counter()
+    mesh_dir = Path(job.mesh_dir)
+    try:
+        mesh = load_erp_mesh(mesh_dir)
+        ratio = float(read_json(mesh_dir / "manifest.json", default={}).get("params", {}).get("max_edge_ratio", 12.0))
+        layer = inpaint.build_background_layer(
+            mesh, inpaint.max_translation(job.poses), max_band_deg=job.options.max_band_deg,
+            inpaint_radius=job.inpaint_radius, max_edge_ratio=ratio,
+        )
+    except (OSError, ValueError, KeyError) as e:
+        raise InputError(f"{mesh_dir}/mesh.ply: {e}; rerun the mesh stage") from None
+    info = dict(layer_faces=int(layer.layer_faces), layer_pixels=int(layer.synthesized.sum()),
+                layer_s=round(time.perf_counter() - t0, 3))
+    filler = inpaint.WarpInpainter(layer, inpaint_radius=job.inpaint_radius)
+    cond = job.cond
+
+    def frames():
+        for k in range(len(cond)):
+            f = filler.fill(cond.rgb[k], cond.mask[k], None if cond.depth is None else cond.depth[k], job.poses[k])
+            yield f.rgb, f.depth, f
+
+    return frames(), info
+
+
+register("video", "warp-inpaint", fill, options=WarpOptions, key="warp", has_depth=True)

@@ -1,0 +1,3 @@
+"""One reader and one writer per artifact kind (panoworld/io/<kind>.py); JSON with one policy for non-finite numbers."""
+
+from panoworld.io.jsonio import read_json, to_jsonable, write_json  # noqa: F401  (the package's API)

@@ -1,0 +1,43 @@
+"""Depth PNGs (uint16 millimetres) of the conditions, video and poses artifacts: one decoder, one policy.
+
+Policy: 0 in the PNG is "unknown" and stays 0.0 in the float32 metres it decodes to (as in depth.npy and everywhere
+else in memory: a depth <= 0 or non-finite is no depth)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from panoworld.conventions import DEPTH_PNG_SCALE, depth_to_mm
+from panoworld.errors import InputError
+
+
+def metres_from_png(raw: np.ndarray, scale: float = DEPTH_PNG_SCALE, *, what: str = "depth PNG") -> np.ndarray:
+    """Decoded uint16 (H, W) PNG values -> float32 metres (0 = unknown); InputError naming `what` otherwise."""
+    if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
+        shape = None if raw is None else f"{raw.shape} {raw.dtype}"
+        raise InputError(f"{what}: not a single-channel uint16 depth PNG (got {shape})")
+    return raw.astype(np.float32) * np.float32(scale)
+
+
+def read_depth_png(path: Path | str, scale: float = DEPTH_PNG_SCALE) -> np.ndarray:
+    """A uint16 depth PNG file -> float32 metres (H, W), 0 = unknown."""
+    import cv2
+
+    return metres_from_png(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), scale, what=str(path))
+
+
+def write_depth_png(path: Path | str, depth_m: np.ndarray) -> None:
+    """Depth (H, W) metres -> uint16 PNG in millimetres (unknown (0, NaN, inf) -> 0, clipped at 65.535 m)."""
+    import cv2
+
+    from panoworld.shapes import check_shape
+
+    check_shape("depth_m", depth_m, "H W")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    ok, buf = cv2.imencode(".png", depth_to_mm(depth_m), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise RuntimeError(f"PNG encoding failed for {path}")
+    path.write_bytes(buf.tobytes())

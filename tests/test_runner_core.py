@@ -1,0 +1,214 @@
+"""Runner core: code digests in the cache key, no orphan stage processes, nothing written on bad input."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from panoworld import artifacts as art
+from panoworld import code_digest
+from panoworld import pipeline as pl
+from tests.toy.common import toy_scene, use_toy_schemas
+
+TOY = Path(__file__).parent / "toy"
+REPO = Path(__file__).resolve().parent.parent
+
+STAGE = '''
+"""Toy stage whose output comes from a helper module."""
+import sys
+from dataclasses import dataclass
+
+from panoworld.stage import Input, stage_main
+from cdtoy.helper import word
+
+NAME, VERSION, ARTIFACT = "x", "1", "toy"
+INPUTS = {"panorama": Input("file")}
+
+
+@dataclass(kw_only=True)
+class Params:
+    n: int = 1
+    """A number."""
+
+
+def run(inputs, params, out_dir):
+    (out_dir / "out.txt").write_text(word())
+    return {}
+
+
+if __name__ == "__main__":
+    sys.exit(stage_main(__name__))
+'''
+HELPER = '''
+"""Helper the toy stage imports."""
+
+
+def word():
+    """The word."""
+    return "one"  # a comment
+'''
+
+
+toy_schemas = pytest.fixture(autouse=True, name="toy_schemas")(use_toy_schemas)
+scene = pytest.fixture(name="scene")(toy_scene)
+
+
+def _touch_later(path: Path, text: str) -> None:
+    """Rewrite a file so that its mtime moves even on coarse-clock file systems."""
+    st = path.stat()
+    path.write_text(text)
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
+
+
+def test_library_edit_reruns_the_stage_naming_the_file_and_comment_edit_does_not(scene, tmp_path, monkeypatch):
+    pkg = tmp_path / "code" / "cdtoy"
+    pkg.mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "stage_x.py").write_text(STAGE)
+    (pkg / "helper.py").write_text(HELPER)
+    (tmp_path / "pipeline.yaml").write_text(
+        "version: 1\nscene_files: {panorama: [panorama.png]}\npresets: [default]\n"
+        "stages:\n  x: {module: cdtoy.stage_x, inputs: {panorama: scene.panorama}}\n")
+    monkeypatch.syspath_prepend(str(tmp_path / "code"))
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path / "code"), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+
+    def run():
+        r = pl.run(scene, pipeline=pl.Pipeline.load(tmp_path / "pipeline.yaml")).results[0]
+        return r.action, r.reason
+
+    assert run() == ("ran", "no artifact yet")
+    files = art.read_manifest(scene / "artifacts/x")["code"]["files"]
+    assert {"cdtoy/stage_x.py", "cdtoy/helper.py", "cdtoy/__init__.py", "panoworld/stage.py"} <= set(files)
+    assert run() == ("cached", "up to date")
+    _touch_later(pkg / "helper.py", HELPER.replace("# a comment", "# another comment")
+                 .replace('"""The word."""', '"""The word, documented again."""'))
+    assert run() == ("cached", "up to date")
+    _touch_later(pkg / "helper.py", HELPER.replace('return "one"', 'return "two"'))
+    assert pl.status(scene, pipeline=pl.Pipeline.load(tmp_path / "pipeline.yaml"))[0]["reason"] == \
+        "code changed: cdtoy/helper.py"
+    assert run() == ("ran", "code changed: cdtoy/helper.py")
+    assert (scene / "artifacts/x/out.txt").read_text() == "two"
+    assert run() == ("cached", "up to date")
+
+
+def test_code_digest_ignores_docstrings_and_comments_only():
+    src = 'def f(x):\n    """Doc."""\n    return x + 1  # c\n'
+    trees = [src, src.replace('"""Doc."""', '"""Other doc."""').replace("# c", "# d"), src.replace("x + 1", "x + 2")]
+    digests = []
+    for i, text in enumerate(trees):
+        p = Path(f"/tmp/_cd_{os.getpid()}_{i}.py")
+        p.write_text(text)
+        digests.append(code_digest.file_digest(p, "m")[0])
+        p.unlink()
+    assert digests[0] == digests[1] != digests[2]
+
+
+def toy_cli(*args) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PANOWORLD_SCHEMA_PATH=str(TOY / "schemas"))
+    return subprocess.run([sys.executable, str(REPO / "runner.py"), *args, "--pipeline", str(TOY / "pipeline.yaml")],
+                          capture_output=True, text=True, env=env, cwd=REPO)
+
+
+def test_bad_input_found_by_a_stage_exits_2_and_leaves_nothing_behind(scene):
+    before = sorted(p.name for p in scene.iterdir())
+    out = toy_cli("run", str(scene), "--set", "a.refuse=true")
+    assert out.returncode == 2, out.stderr
+    assert out.stderr.strip().splitlines()[-1] == (
+        "error: stage a failed: bad input: toy stage a refuses its input on purpose; unset a.refuse")
+    assert sorted(p.name for p in scene.iterdir()) == before  # no artifacts/, no lock, no log
+    # On a scene with artifacts: the refusing stage's previous artifact and log stay, no new log is written.
+    assert toy_cli("run", str(scene)).returncode == 0
+    log = scene / "artifacts/logs/b.log"
+    old_log, old_out = log.read_text(), (scene / "artifacts/b/out.txt").read_text()
+    out = toy_cli("run", str(scene), "--set", "b.refuse=true", "--set", "b.n=3")
+    assert out.returncode == 2, out.stderr
+    assert log.read_text() == old_log and (scene / "artifacts/b/out.txt").read_text() == old_out
+    assert not list((scene / "artifacts").rglob(".*.part")) and not list((scene / "artifacts").rglob(".params-*"))
+
+
+def _children(pid: int) -> list[int]:
+    import psutil
+
+    return [c.pid for c in psutil.Process(pid).children(recursive=True)]
+
+
+def test_sigkill_of_the_runner_alone_leaves_no_stage_process_and_commits_nothing(scene, tmp_path):
+    import psutil
+
+    env = dict(os.environ, PANOWORLD_SCHEMA_PATH=str(TOY / "schemas"), TMPDIR=str(tmp_path / "tmp"))
+    (tmp_path / "tmp").mkdir()
+    runner = subprocess.Popen(
+        [sys.executable, str(REPO / "runner.py"), "run", str(scene), "--pipeline", str(TOY / "pipeline.yaml"),
+         "--set", "a.sleep=3"], env=env, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    log = scene / "artifacts/logs/.a.log.part"
+    deadline = time.time() + 60
+    while time.time() < deadline and not (log.is_file() and "sleeping" in log.read_text()):
+        time.sleep(0.05)
+    stage_pids = _children(runner.pid)
+    assert stage_pids, "the stage should be running"
+    assert list((scene / "artifacts/logs").glob(".params-*.json")), "the params file lives beside the log"
+    os.kill(runner.pid, signal.SIGKILL)  # the runner alone, not its process group
+    runner.wait()
+    deadline = time.time() + 10
+    while time.time() < deadline and any(psutil.pid_exists(p) and psutil.Process(p).status() != "zombie"
+                                         for p in stage_pids):
+        time.sleep(0.05)
+    assert not any(psutil.pid_exists(p) and psutil.Process(p).status() != "zombie" for p in stage_pids)
+    time.sleep(3.5)  # past the stage's sleep: an orphan would have committed by now
+    assert not (scene / "artifacts/a").exists()
+    assert not list((tmp_path / "tmp").iterdir()), "nothing leaks into the temp directory"
+    # The next run cleans up after the killed one and runs normally.
+    assert toy_cli("run", str(scene)).returncode == 0
+    assert not list((scene / "artifacts").rglob(".params-*")) and not list((scene / "artifacts").glob(".tmp-*"))
+
+
+def test_a_stage_does_not_commit_for_a_runner_that_no_longer_holds_the_lock(scene, monkeypatch):
+    from panoworld.errors import PipelineError
+    from panoworld.stage import LOCK_ENV, RUNNER_PID_ENV, execute_stage, load_stage, params_from_dict
+
+    spec = load_stage("tests.toy.a")
+    (scene / "artifacts").mkdir()
+    (scene / "artifacts/.lock").write_text("pid 999999 since 2026-01-01 00:00:00")
+    monkeypatch.setenv(LOCK_ENV, str(scene / "artifacts/.lock"))
+    monkeypatch.setenv(RUNNER_PID_ENV, str(os.getppid()))  # our parent, but the lock names another runner
+    with pytest.raises(PipelineError, match="no longer holds"):
+        execute_stage(spec, {"panorama": scene / "panorama.png"}, params_from_dict(spec.params_cls, {}),
+                      scene / "artifacts/a")
+    assert not (scene / "artifacts/a").exists() and not list((scene / "artifacts").glob(".tmp-*"))
+    (scene / "artifacts/.lock").write_text(f"pid {os.getppid()} since 2026-01-01 00:00:00")
+    execute_stage(spec, {"panorama": scene / "panorama.png"}, params_from_dict(spec.params_cls, {}), scene / "artifacts/a")
+    assert (scene / "artifacts/a/out.txt").is_file()
+
+
+def _artifact_bytes(scene: Path) -> dict[str, str]:
+    """{path: sha256} of every artifact file (manifests, logs and the lock excepted: timings live there)."""
+    root = scene / "artifacts"
+    return {p.relative_to(root).as_posix(): art.file_digest(p) for p in sorted(root.rglob("*"))
+            if p.is_file() and p.name not in (art.MANIFEST, ".lock") and "logs" not in p.relative_to(root).parts}
+
+
+@pytest.mark.slow
+def test_two_runs_of_the_pipeline_give_byte_identical_artifacts(synth_scene, tmp_path, monkeypatch):
+    import shutil
+
+    monkeypatch.delenv("PANOWORLD_SCHEMA_PATH")
+    art.load_schema.cache_clear()
+    art._validator.cache_clear()
+    scenes = []
+    for name in ("one", "two"):
+        d = tmp_path / name
+        shutil.copytree(synth_scene, d, ignore=shutil.ignore_patterns("artifacts"))
+        report = pl.run(d, preset="ci-tiny")
+        assert report.ok, [r.reason for r in report.results if r.action == "failed"]
+        scenes.append(d)
+    one, two = (_artifact_bytes(s) for s in scenes)
+    assert {"navmesh/navmesh.json", "gaussians/gaussians.ply"} <= set(one)
+    assert one.keys() == two.keys()
+    assert [k for k in one if one[k] != two[k]] == []
