@@ -22,12 +22,11 @@ from panoworld import artifacts as art
 from panoworld import precompute_clip as clip_mod
 from panoworld.errors import InputError
 from panoworld.stage import (
-    cache_key,
     execute_stage,
     input_digest,
     load_stage,
-    params_hash,
     params_to_dict,
+    stage_key,
 )
 
 INDEX = "index.jsonl"
@@ -262,7 +261,7 @@ def run_clip(task: ClipTask) -> dict:
         params = clip_mod.Params(**task.params)
         inputs = _clip_inputs(Path(task.scene_root), spec)
         digests = {n: input_digest(n, stage.inputs[n], p) for n, p in inputs.items()}
-        key = cache_key(stage.version, params_hash(params_to_dict(params)), digests)
+        key = stage_key(stage, params, digests)
         out = Path(task.out_dir)
         try:
             manifest = art.read_manifest(out, stage.artifact)
