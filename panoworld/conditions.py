@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.conventions import DEPTH_PNG_SCALE, check_erp_shape, depth_to_mm
+from panoworld.conventions import DEPTH_PNG_SCALE, check_erp_shape, check_poses, depth_to_mm
 from panoworld.io.depth_png import metres_from_png
 from panoworld.mesh import ErpMesh
 from panoworld.warped_frame import WarpedFrame
@@ -24,13 +24,6 @@ CONDITIONS_JSON = "conditions.json"
 PREVIEW_MP4 = "preview.mp4"
 DEPTH_SCALE = DEPTH_PNG_SCALE
 """Metres per unit of the uint16 depth PNGs (millimetres; 0 = nothing, saturates at 65.535 m)."""
-
-
-def check_poses(poses: np.ndarray, what: str = "poses") -> np.ndarray:
-    """world_from_cam poses (N, 4, 4), N >= 1, finite and rigid, as float64; ValueError naming the first bad pose."""
-    from panoworld.trajectory import check_poses as check_trajectory_poses
-
-    return check_trajectory_poses(poses, what)
 
 
 class Backend(enum.StrEnum):
