@@ -464,7 +464,7 @@ def section_eval(scene: SceneData, params: ReportParams) -> Section:
                "SCENE/artifacts/report/eval.json`)" if has_gt else "no ground truth (gt/gt.json): nothing to evaluate against")
         return missing("eval", title, why)
     try:
-        rep = json.loads(path.read_text())
+        rep = read_json(path)
         stages = rep["stages"]
     except (OSError, ValueError, KeyError, TypeError) as e:
         return missing("eval", title, f"{path}: unreadable evaluation ({e})")
