@@ -9,8 +9,7 @@ from panoworld.shapes import check_shape
 
 
 def _check_points(src: np.ndarray, dst: np.ndarray) -> None:
-    if src.ndim != 2 or src.shape[1] != 3 or dst.shape != src.shape:
-        raise ValueError(f"{src.shape=} and {dst.shape=} but expected both (N, 3)")
+    check_shape("dst", dst, "N 3", dims=check_shape("src", src, "N 3"))
     if len(src) < 1:
         raise ValueError("cannot align empty point sets")
 

@@ -18,6 +18,7 @@ import numpy as np
 from panoworld.conventions import DEPTH_PNG_SCALE, check_erp_shape, check_poses, depth_to_mm
 from panoworld.io.depth_png import metres_from_png
 from panoworld.mesh import ErpMesh
+from panoworld.shapes import check_shape
 from panoworld.warped_frame import WarpedFrame
 
 CONDITIONS_JSON = "conditions.json"
@@ -212,8 +213,9 @@ def warp_quality(frame: WarpedFrame, rgb_true: np.ndarray, disoccluded: np.ndarr
     """Score a WarpedFrame against the true rgb (H, W, 3) uint8 and true_disocclusion (H, W) at its pose."""
     from panoworld.metrics import psnr
 
-    if rgb_true.shape != frame.rgb.shape or disoccluded.shape != frame.mask.shape:
-        raise ValueError(f"{rgb_true.shape=}, {disoccluded.shape=} but expected {frame.rgb.shape}, {frame.mask.shape}")
+    dims = {"H": frame.mask.shape[0], "W": frame.mask.shape[1]}
+    check_shape("rgb_true", rgb_true, "H W 3", dims=dims)
+    check_shape("disoccluded", disoccluded, "H W", dims=dims)
     hole = ~frame.mask
     union = (hole | disoccluded).sum()
     iou = float((hole & disoccluded).sum() / union) if union else 1.0

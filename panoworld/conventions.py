@@ -111,8 +111,7 @@ def transform_points(a_from_b: np.ndarray, pts_b: np.ndarray) -> np.ndarray:
 
 
 def check_pose(T: np.ndarray, what: str = "pose") -> None:
-    if np.shape(T) != (4, 4):
-        raise ValueError(f"{what} has shape {np.shape(T)} but expected (4, 4)")
+    check_shape(what, T, "4 4")
 
 
 POSE_RIGID_TOL = 1e-4

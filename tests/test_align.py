@@ -59,8 +59,10 @@ def test_umeyama_without_scale_is_rigid_and_handles_reflection_case():
 
 
 def test_umeyama_rejects_bad_shapes():
-    with pytest.raises(ValueError, match=r"expected both \(N, 3\)"):
+    with pytest.raises(ValueError, match=r"src.shape=\(4, 2\) but expected \(N, 3\)"):
         umeyama(np.zeros((4, 2)), np.zeros((4, 2)))
+    with pytest.raises(ValueError, match=r"dst.shape=\(5, 3\) but expected \(4, 3\)"):
+        umeyama(np.zeros((4, 3)), np.zeros((5, 3)))
 
 
 @pytest.mark.parametrize("make", [lambda: random_trajectory(30, 4), lambda: straight_line(12)])
