@@ -25,6 +25,8 @@ class PathKind(enum.StrEnum):
     """Out-and-back petals to the farthest reachable point of each directional sector (covers 360 degrees)."""
     RING = "ring"
     """A closed loop through free space that starts and ends at the camera."""
+    EXPLORE = "explore"
+    """Sector exploration paths: one path per sector from the camera out towards the room's extent (several paths)."""
 
 
 class YawMode(enum.StrEnum):
@@ -44,8 +46,9 @@ class TrajectoryFileError(InputError):
 class TrajectoryParams:
     """How a trajectory is planned on a NavMesh (canonical frame, metres)."""
 
-    kind: PathKind = PathKind.SECTOR
-    """Path family: sector (exploration petals, 360 degree coverage) or ring (closed loop)."""
+    kind: PathKind = PathKind.EXPLORE
+    """Path family: explore (one path per sector out to the room's extent), sector (one path of short out-and-back
+    petals, 360 degree coverage) or ring (closed loop)."""
     frames: int = param(81, ge=2, le=MAX_POSES)
     """Number of poses N (pose 0 is the source camera)."""
     step_m: float = param(0.05, gt=0, le=5.0)
@@ -60,6 +63,8 @@ class TrajectoryParams:
     """Chaikin corner-cutting iterations; a cut that would leave the NavMesh keeps its corner."""
     plan_margin_m: float = param(0.03, ge=0)
     """Paths are planned on the NavMesh shrunk by this margin so smoothing and rounding stay inside it."""
+    reach_m: float = param(3.0, gt=0)
+    """explore: each sector's path walks at most this far from the camera (its target is the farthest floor within)."""
     seed: int = 0
     """Seed of the candidate points used to find each sector's farthest reachable point."""
 
