@@ -108,16 +108,19 @@ def test_collider_mesh_has_physics_apis_and_equals_collider_obj(stage, asset):
 def test_camera_animation_follows_the_planned_poses(stage, asset, pipeline_scene):  # noqa: F811
     from pxr import Usd, UsdGeom
 
-    poses = np.array(json.loads((pipeline_scene / "artifacts/trajectory/trajectory.json").read_text())["poses"])
-    cam = UsdGeom.Camera(stage.GetPrimAtPath("/World/Trajectory/Camera"))
-    xf = UsdGeom.Xformable(cam)
-    assert xf.GetTimeSamples() == list(map(float, range(len(poses))))
-    assert stage.GetEndTimeCode() == len(poses) - 1
+    from panoworld.asset import trajectory_paths
+
+    paths, _ = trajectory_paths(pipeline_scene / "artifacts" / "trajectory")  # one camera per planned path
     a_from_c = np.array(asset[1]["asset_from_canonical"])
-    for i in (0, len(poses) // 2, len(poses) - 1):
-        m = np.array(xf.ComputeLocalToWorldTransform(Usd.TimeCode(i))).T
-        np.testing.assert_allclose(m[:3, 3], (a_from_c @ poses[i])[:3, 3], atol=1e-5)
-        np.testing.assert_allclose(-m[:3, 2], (a_from_c @ poses[i])[:3, 2], atol=1e-5)  # USD cameras look along -z
+    for k, poses in enumerate(paths):
+        cam = UsdGeom.Camera(stage.GetPrimAtPath("/World/Trajectory/Camera" + (f"_{k}" if k else "")))
+        xf = UsdGeom.Xformable(cam)
+        assert xf.GetTimeSamples() == list(map(float, range(len(poses))))
+        for i in (0, len(poses) // 2, len(poses) - 1):
+            m = np.array(xf.ComputeLocalToWorldTransform(Usd.TimeCode(i))).T
+            np.testing.assert_allclose(m[:3, 3], (a_from_c @ poses[i])[:3, 3], atol=1e-5)
+            np.testing.assert_allclose(-m[:3, 2], (a_from_c @ poses[i])[:3, 2], atol=1e-5)  # USD cameras look along -z
+    assert stage.GetEndTimeCode() == max(len(p) for p in paths) - 1
 
 
 def test_asset_frame_and_spawn_match_ground_truth(asset, pipeline_scene):  # noqa: F811
