@@ -66,7 +66,7 @@ def test_sweep_names_and_tails():
     pipe = Pipeline.load()
     vs = parse_sweeps(["trajectory.stride=1,2,4", "trajectory.kind=ring,sector"], pipe)
     assert [v.name for v in vs][:2] == ["stride-1_kind-ring", "stride-1_kind-sector"] and len(vs) == 6
-    assert vs[0].tail(pipe) == ["trajectory", "conditions", "video", "poses", "gaussians"]
+    assert vs[0].tail(pipe) == ["trajectory", "conditions", "video", "poses", "gaussians", "asset"]
     with pytest.raises(PipelineError, match="expected STAGE.PARAM=V1,V2"):
         parse_sweeps(["trajectory.stride"], pipe)
 
@@ -78,7 +78,7 @@ def test_corrupt_scene_fails_alone_and_the_sweep_shares_upstream_stages(dataset,
     assert code == 1 and summary["scenes_failed"] == ["zz_corrupt"]
     assert summary["scenes_ok"] == 2 and summary["runs"] == 6 and summary["runs_ok"] == 4
     failures = [json.loads(line) for line in (root / FAILURES).read_text().splitlines()]
-    assert {f["scene"] for f in failures} == {"zz_corrupt"} and "unreadable image" in failures[0]["error"]
+    assert {f["scene"] for f in failures} == {"zz_corrupt"} and "corrupt or not an image" in failures[0]["error"]
     assert json.loads((root / SUMMARY).read_text())["scenes_failed"] == ["zz_corrupt"]
     for scene in dataset["scenes"]:
         # Variants of a scene run one after the other: the first computes depth/mesh/navmesh, the second reuses them.
@@ -102,7 +102,7 @@ def test_rerun_is_all_cached_and_eval_aggregates_the_strides(dataset, first_run,
     assert runner.main(["eval", str(root), "--all", "--max-frames", "2", "--only", "video", "--only", "poses",
                         "--only", "trajectory"]) == 1  # the corrupt scene has nothing to evaluate
     out = capsys.readouterr().out
-    assert "ours (warp-inpaint) r=1 [2 scenes]" in out and "ours (warp-inpaint) r=2 [2 scenes]" in out
+    assert "ours (warp-inpaint) r=1 explore [2 scenes]" in out and "ours (warp-inpaint) r=2 explore [2 scenes]" in out
     assert "GT track (ref.) r=2" in out and "FID: lacking in 2 scene(s)" in out
     results = json.loads((root / "eval_results.json").read_text())
     units = {u["unit"]: u for u in results["units"]}
@@ -138,4 +138,4 @@ def test_ray_executor_gives_the_same_artifacts_and_tables(dataset, first_run, tm
         rep, errors = evaluate_scene(root / scene, params, variant="stride-2", stages=["video", "poses", "trajectory"])
         assert errors == []
         tables.append("\n".join(t.text() for t in build_tables([{**rep, "unit": f"{scene}/stride-2"}])))
-    assert tables[0] == tables[1] and "r=2 [1 scenes]" in tables[0]
+    assert tables[0] == tables[1] and "r=2 explore [1 scenes]" in tables[0]

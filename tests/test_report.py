@@ -126,7 +126,7 @@ def test_partial_scene_shows_missing_stages(synth_scene, tmp_path):
     assert sections["depth"] == "present" and sections["stages"] == "present"
     assert all(sections[s] == "missing" for s in ["plan", "frames", "poses", "gaussians", "eval", "roam"])
     assert "could not draw" not in text and "runner.py report SCENE --eval" in text
-    assert text.count('<span class="na">missing</span>') == 7
+    assert text.count('<span class="na">missing</span>') == len(pl.Pipeline.load().order) - 1  # every stage but depth
 
 
 @pytest.mark.slow
@@ -168,3 +168,18 @@ def test_pinhole_cut_from_erp_looks_along_plus_z():
     assert abs(int(view[16, 16, 0]) - 128) <= 3 and abs(int(view[16, 16, 1]) - 128) <= 6
     # the left edge looks 45 degrees left (lon -pi/4 -> column 48); rows go down in both images
     assert abs(int(view[16, 0, 0]) - 97) <= 3 and view[0, 16, 1] < view[31, 16, 1]
+
+
+def test_footprint_rings_outline_only_what_reaches_into_the_band():
+    from panoworld.report.topdown import footprint_rings
+
+    wall = np.array([[1.0, 0.0, -1.0], [1.0, 0.0, 1.0], [1.0, 2.0, 1.0], [1.0, 2.0, -1.0]])  # vertical, y 0..2
+    floor = np.array([[-2.0, 2.5, -2.0], [2.0, 2.5, -2.0], [2.0, 2.5, 2.0], [-2.0, 2.5, 2.0]])  # below the band
+    v = np.concatenate([wall, floor])
+    f = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    view = PlanView(np.array([[-2.0, -2.0], [2.0, 2.0]]), margin_m=0.2, max_px=200)
+    rings = footprint_rings(v, f, view, 0.5, 2.3)
+    pts = np.concatenate(rings)
+    assert len(rings) == 1 and np.abs(pts[:, 0] - 1.0).max() < 3 * view.cell  # the wall's line at x = 1 ...
+    assert pts[:, 1].min() < -0.9 and pts[:, 1].max() > 0.9  # ... along its whole length; the floor is not drawn
+    assert footprint_rings(v, f, view, 3.0, 4.0) == []

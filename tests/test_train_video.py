@@ -99,16 +99,6 @@ def test_scene_split_is_by_scene_and_stable():
     assert split_scenes(["a", "b"], 0.01)[1] != []  # at least one held-out scene
 
 
-@pytest.fixture(scope="module")
-def cond_dir(synth_dataset, tmp_path_factory):
-    from panoworld.precompute import main as precompute_main
-
-    out = tmp_path_factory.mktemp("cond") / "cond"
-    assert precompute_main([str(synth_dataset), "--out", str(out), "--clips-per-scene", "2", "--frames", "5",
-                            "--strides", "1", "--height", "32", "--workers", "1", "--json"]) == 0
-    return out
-
-
 TINY_SETS = ["frames=5", "height=32", "vae_steps=2", "base_steps=2", "steps=4", "checkpoint_every=2", "log_every=1",
              "val_every=2", "val_clips=1", "val_sample_clips=1", "batch_size=1", "tiny_layers=1", "tiny_heads=2",
              "tiny_z=4", "lora_rank=2", "lora_alpha=2", "val_fraction=0.34"]
@@ -181,3 +171,17 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert train_main(["video", "--data", str(tmp_path), "--out", str(tmp_path / "r3"), "--set", "rho"]) == 2
     assert "--set rho: expected KEY=VALUE" in capsys.readouterr().err
     assert train_main([]) == 2 and "train {video,recon}" in capsys.readouterr().err
+
+
+def test_every_paper_preset_value_names_its_source():
+    from panoworld.train.video.config import MATRIX3D_LORA, PRESETS, SOURCES
+
+    for preset in ("paper", "tiny"):
+        missing = sorted(set(PRESETS[preset]) - set(SOURCES[preset]))
+        assert not missing, f"{preset} preset values without a source: {missing}"
+    # the defaults the paper preset inherits and that shape the weights carry a source too
+    for key in ("weight_decay", "warmup_steps", "grad_clip", "shortcut_levels", "teacher_decay"):
+        assert key not in PRESETS["paper"] and SOURCES["paper"][key]
+    assert all(s.startswith(("paper", "ours", "VGGT", "Wan", "torch", "Frans")) for s in SOURCES["paper"].values()
+               if s is not MATRIX3D_LORA)
+    assert "Wan2.1-I2V-14B" in SOURCES["paper"]["lora_init"]
