@@ -4,12 +4,13 @@ The Gaussians are surfels (scales 1-4 cm, random rotations, opacity 0.5-1) on th
 6 x 3 x 6 m room around the camera, the density of a voxel-fused indoor scene. Also checks the tile rasteriser
 against the brute-force oracle on a crop of the same scene.
 
-    python bench/bench_render_gs.py [--n 200000] [--threads 1] [--repeats 3]
+    python bench/bench_render_gs.py [--n 200000] [--threads 1] [--repeats 3] [--supersample 1 2]
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -50,6 +51,7 @@ def main() -> int:
     ap.add_argument("--n", type=int, default=200_000)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--supersample", type=int, nargs="+", default=[1, 2], help="render_erp supersampling factors")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     g = room_surfels(args.n)
@@ -59,9 +61,10 @@ def main() -> int:
     first, best, out = timed(lambda: render_perspective(g, pose, f, f, W / 2, H / 2, H, W), args.repeats)
     print(f"perspective {W}x{H}, {args.n} Gaussians, {args.threads} thread(s): first {first:.2f} s, best {best:.2f} s "
           f"(target <= 2 s), coverage {float(out.alpha.mean()):.3f}")
-    first, best, out = timed(lambda: render_erp(g, pose, 256, 512), args.repeats)
-    print(f"ERP 512x256 (6 cube faces + grid_sample): first {first:.2f} s, best {best:.2f} s (target <= 5 s), "
-          f"coverage {float(out.alpha.mean()):.3f}")
+    for s in args.supersample:
+        first, best, out = timed(lambda s=s: render_erp(g, pose, 256, 512, supersample=s), args.repeats)
+        print(f"ERP 512x256 supersample {s} (6 cube faces of {math.ceil(s * 512 / math.pi)} px + grid_sample + {s}x{s} "
+              f"area): first {first:.2f} s, best {best:.2f} s (target <= 5 s), coverage {float(out.alpha.mean()):.3f}")
     sub = g.subset(np.linalg.norm(g.means - [0, 0, 3.0], axis=1) < 1.2)
     a = render_perspective(sub, pose, 60.0, 60.0, 40.0, 24.0, 48, 80)
     b = render_perspective(sub, pose, 60.0, 60.0, 40.0, 24.0, 48, 80, reference=True)
