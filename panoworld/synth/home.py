@@ -18,6 +18,8 @@ from panoworld.synth.tracks import Track, TrackPlanner, distance_to_mesh, pose_f
 
 MIN_ROOMS = 3
 MAX_PANORAMAS = 8
+MAX_SPACING_M = 3.5
+"""A capture point is at most this far from an earlier one it sees (real-estate tours: every few metres)."""
 
 
 @dataclass(kw_only=True)
@@ -53,7 +55,7 @@ def _floor_plan(scene: SynthScene) -> FloorPlan:
 
 def _place_captures(scene: SynthScene, params: SynthParams, k: int, rng: np.random.Generator
                     ) -> tuple[np.ndarray, list[int]]:
-    """k upright capture poses, each in line of sight of an earlier one 1.5-4.5 m away, preferring rooms not yet
+    """k upright capture poses, each in line of sight of an earlier one 1.5 m to MAX_SPACING_M away, preferring rooms not yet
     captured (a tour through the doorways); raises SceneGenerationError when the home has no room for them."""
     plan = _floor_plan(scene)
     tp = params.tracks
@@ -70,17 +72,17 @@ def _place_captures(scene: SynthScene, params: SynthParams, k: int, rng: np.rand
     while len(chosen) < k:
         pts = xz_all[chosen]
         d = np.linalg.norm(xz_all[:, None] - pts[None], axis=2)
-        ok = (d.min(1) >= 1.2) & ((d >= 1.5) & (d <= 4.5)).any(1)
+        ok = (d.min(1) >= 1.2) & ((d >= 1.5) & (d <= MAX_SPACING_M)).any(1)
         cand = np.flatnonzero(ok)
         if len(cand) == 0:
-            raise SceneGenerationError(f"no capture point {len(chosen)} of {k} fits 1.2-4.5 m from the others")
+            raise SceneGenerationError(f"no capture point {len(chosen)} of {k} fits 1.2-{MAX_SPACING_M} m from the others")
         covered = {int(room_all[c]) for c in chosen}
         new_room = cand[~np.isin(room_all[cand], list(covered))]
         order = rng.permutation(new_room) if len(new_room) else np.array([], int)
         order = np.concatenate([order, rng.permutation(np.setdiff1d(cand, new_room))]).astype(int)
         for c in order[:600]:
-            # Line of sight at camera height to an earlier capture point 1.5-4.5 m away.
-            near = [j for j in chosen if 1.5 <= d[c, chosen.index(j)] <= 4.5]
+            # Line of sight at camera height to an earlier capture point 1.5 m to MAX_SPACING_M away.
+            near = [j for j in chosen if 1.5 <= d[c, chosen.index(j)] <= MAX_SPACING_M]
             a = np.array([xz_all[c][0], -height, xz_all[c][1]])
             seen = False
             for j in near:
