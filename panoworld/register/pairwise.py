@@ -1,5 +1,5 @@
-"""One pair of panoramas: SIFT on the ERP images, depth-backed 3D points, rigid LO-RANSAC (pycolmap), depth-consistency
-refinement (models/pose_refine.py) and a free-space consistency check."""
+"""One pair of panoramas: SIFT on cube-face views, depth-backed 3D points, rigid LO-RANSAC (pycolmap), point-to-plane
+ICP on the dense depth maps and a free-space consistency check."""
 
 from __future__ import annotations
 
@@ -10,10 +10,11 @@ import numpy as np
 import pycolmap
 import torch
 from scipy import ndimage
+from scipy.spatial.transform import Rotation
 
 from panoworld.conventions import erp_dirs, erp_pixel_from_dir
 from panoworld.depth import cube_views, render_view
-from panoworld.models.pose_refine import depth_edges, refine_relative_poses, sample_range
+from panoworld.models.pose_refine import depth_edges, sample_range
 
 
 @dataclass(kw_only=True)
@@ -95,9 +96,15 @@ def match(a: Features, b: Features, *, ratio: float = 0.8) -> np.ndarray:
 
 
 def _small(depth: np.ndarray, height: int) -> np.ndarray:
-    d = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float64)
+    """Depth (H, W) -> float64 at most `height` rows, 0 where invalid; downsampled by a valid-weighted area average
+    (pixel centres stay where the ERP convention puts them, which nearest-neighbour resizing breaks)."""
+    valid = np.isfinite(depth) & (depth > 0)
+    d = np.where(valid, depth, 0).astype(np.float64)
     if d.shape[0] > height:
-        d = cv2.resize(d, (2 * height, height), interpolation=cv2.INTER_NEAREST)
+        size = (2 * height, height)
+        total = cv2.resize(d, size, interpolation=cv2.INTER_AREA)
+        frac = cv2.resize(valid.astype(np.float64), size, interpolation=cv2.INTER_AREA)
+        d = np.where(frac > 0.99, total / np.maximum(frac, 1e-12), 0.0)
     return d
 
 
@@ -127,6 +134,54 @@ def consistency(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.ndarray, 
     return overlap, agree / max(agree + front, 1), float(np.median(res)) if len(res) else float("nan")
 
 
+def _erp_normals(pts: np.ndarray) -> np.ndarray:
+    """Unit normals (H, W, 3) of an ERP point grid (H, W, 3) from central differences (columns wrap), facing the
+    camera; zero where a neighbour is missing."""
+    du = np.roll(pts, -1, axis=1) - np.roll(pts, 1, axis=1)
+    dv = np.zeros_like(pts)
+    dv[1:-1] = pts[2:] - pts[:-2]
+    n = np.cross(du, dv)
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    n = np.where(norm > 1e-12, n / np.maximum(norm, 1e-12), 0.0)
+    return np.where((np.einsum("hwk,hwk->hw", n, pts) > 0)[..., None], -n, n)
+
+
+def icp_refine(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.ndarray, *, height: int = 256,
+               iterations: int = 15, max_dist: float = 0.1, min_dist: float = 0.01) -> np.ndarray:
+    """Rigid point-to-plane ICP of depth_j's points onto depth_i's surface with projective association (each point
+    paired with depth_i's point on its ray); pairs farther apart than a threshold shrinking from max_dist to min_dist
+    (occluded or unseen surfaces) are dropped. -> refined i_from_j (4, 4)."""
+    di, dj = _small(depth_i, height), _small(depth_j, height)
+    h, w = di.shape
+    dirs = erp_dirs(h, w, np.float64)
+    pi = dirs * di[..., None]
+    ni = _erp_normals(pi)
+    edge_i = depth_edges(torch.from_numpy(np.where(di > 0, di, 1e-6))[None])[0].numpy()
+    good_i = (di > 0) & (np.abs(ni).sum(-1) > 0) & (edge_i < 0.1)
+    pj = (dirs * dj[..., None])[dj > 0]
+    R, t = i_from_j[:3, :3].copy(), i_from_j[:3, 3].copy()
+    for it in range(iterations):
+        thresh = max(min_dist, max_dist * 0.75**it)
+        q = pj @ R.T + t
+        u, v = erp_pixel_from_dir(q, h, w)
+        iu, iv = np.floor(u).astype(int) % w, np.clip(np.floor(v).astype(int), 0, h - 1)
+        P, N = pi[iv, iu], ni[iv, iu]
+        keep = good_i[iv, iu] & (np.linalg.norm(q - P, axis=1) < thresh)
+        if keep.sum() < 100:
+            break
+        q, P, N = q[keep], P[keep], N[keep]
+        e = np.einsum("nk,nk->n", q - P, N)
+        A = np.concatenate([np.cross(q, N), N], 1)
+        x = np.linalg.lstsq(A, -e, rcond=None)[0]
+        dR = Rotation.from_rotvec(x[:3]).as_matrix()
+        R, t = dR @ R, dR @ t + x[3:]
+        if np.linalg.norm(x) < 1e-7:
+            break
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = R, t
+    return out
+
+
 def register_pair(fi: Features, fj: Features, depth_i: np.ndarray, depth_j: np.ndarray, *, max_error_m: float,
                   min_inliers: int, refine_height: int, refine_iterations: int, seed: int = 0) -> PairResult:
     """Estimate i_from_j from matched 3D points (LO-RANSAC), then refine it on the dense depth maps."""
@@ -144,9 +199,7 @@ def register_pair(fi: Features, fj: Features, depth_i: np.ndarray, depth_j: np.n
     T = np.eye(4)
     T[:3] = est["tgt_from_src"].matrix()
     if refine_iterations > 0:
-        T = refine_relative_poses(torch.from_numpy(T)[None], torch.from_numpy(depth_i.astype(np.float64))[None],
-                                  torch.from_numpy(depth_j.astype(np.float64))[None], iterations=refine_iterations,
-                                  edge=0.1, max_height=refine_height)[0].numpy()
+        T = icp_refine(T, depth_i, depth_j, height=refine_height, iterations=refine_iterations, max_dist=2 * max_error_m)
     overlap, cons, res = consistency(T, depth_i, depth_j)
     return PairResult(matches=len(m), inliers=int(est["num_inliers"]), i_from_j=T, overlap=overlap, consistency=cons,
                       residual=res)
