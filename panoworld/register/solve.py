@@ -67,12 +67,12 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     refined pose has >= min_consistency free-space consistency and >= min_overlap overlap."""
     o = options or RegisterOptions()
     given = dict(given or {})
-    small = {n: _resize_pair(rgbs[n], depths[n], o.height) for n in names}
     need = [n for n in names if n not in given]
     feats: dict[str, Features] = {}
     pairs: dict[tuple[int, int], PairResult] = {}
     k = len(names)
     if need:
+        small = {n: _resize_pair(rgbs[n], depths[n], o.height) for n in names}
         feats = {n: erp_features(*small[n], max_features=o.max_features) for n in names}
         for a in range(k):
             for b in range(a + 1, k):
