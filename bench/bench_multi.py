@@ -1,5 +1,6 @@
 """Benchmark of multi-panorama registration (issue #27): synthetic homes of >= 3 rooms with 2, 4 and 8 panoramas ->
-registration error against ground truth (translation cm, rotation deg), registered fraction, time and peak memory."""
+registration error against ground truth (translation cm, rotation deg), registered fraction, time and peak memory,
+and whether one NavMesh over the fused mesh holds every registered capture point."""
 
 from __future__ import annotations
 
@@ -17,6 +18,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from panoworld.conventions import invert_pose
+from panoworld.depth import read_depth, read_panorama
+from panoworld.errors import InputError
+from panoworld.register.fuse import fuse_meshes, home_navmesh
 from panoworld.synth.home import generate_home, home_params, write_home
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -41,7 +45,7 @@ def pose_errors(est: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> dict[s
     return out
 
 
-def run_one(seed: int, k: int, height: int, work: Path) -> dict:
+def run_one(seed: int, k: int, height: int, work: Path, with_navmesh: bool) -> dict:
     params = home_params("default")
     params = replace(params, render=replace(params.render, pano_height=height))
     t0 = time.perf_counter()
@@ -58,6 +62,7 @@ def run_one(seed: int, k: int, height: int, work: Path) -> dict:
     est = {n: np.asarray(T) for n, T in json.loads((out / "panoramas.json").read_text()).items()}
     gt = {n: np.asarray(T) for n, T in json.loads((scene / "gt" / "poses.json").read_text()).items()}
     errs = pose_errors(est, gt)
+    nav = navmesh_figures(scene, est) if with_navmesh else {}
     others = [v for n, v in errs.items() if n != sorted(est)[0]]
     t = np.array([e[0] for e in others]) if others else np.zeros(1)
     r = np.array([e[1] for e in others]) if others else np.zeros(1)
@@ -67,7 +72,26 @@ def run_one(seed: int, k: int, height: int, work: Path) -> dict:
         "trans_cm_mean": float(t.mean()), "trans_cm_max": float(t.max()),
         "rot_deg_mean": float(r.mean()), "rot_deg_max": float(r.max()),
         "register_s": float(manifest["wall_s"]), "peak_rss_mb": float(manifest["peak_rss_mb"]), "synth_s": synth_s,
+        **nav,
     }
+
+
+def navmesh_figures(scene: Path, est: dict[str, np.ndarray]) -> dict:
+    """Fuse the registered panoramas at their estimated poses, build the NavMesh around the first capture point and
+    count the capture points standing on it (one connected NavMesh holds them all when the count is complete)."""
+    names = sorted(est)
+    rgbs = {n: read_panorama(scene / "panoramas" / f"{n}.png") for n in names}
+    depths = {n: read_depth(scene / "depths" / f"{n}.npy") for n in names}
+    t0 = time.perf_counter()
+    mesh, _ = fuse_meshes(names, rgbs, depths, est)
+    t1 = time.perf_counter()
+    try:
+        _, on = home_navmesh(mesh, est)
+    except InputError as e:
+        on = {n: False for n in names}
+        print(f"navmesh failed on {scene.name}: {e}", file=sys.stderr)
+    return {"fused_faces": len(mesh.faces), "fuse_s": t1 - t0, "navmesh_s": time.perf_counter() - t1,
+            "on_navmesh": int(sum(on.values()))}
 
 
 def main() -> int:
@@ -76,6 +100,7 @@ def main() -> int:
     ap.add_argument("--split", choices=["test", "val"], default="test", help="held-out test seeds or validation seeds")
     ap.add_argument("--seeds", type=int, nargs="+", default=None, help="override the split's seeds")
     ap.add_argument("--height", type=int, default=720, help="panorama rows (the default preset renders 720)")
+    ap.add_argument("--no-navmesh", action="store_true", help="skip the fused mesh and NavMesh figures")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
     args = ap.parse_args()
     seeds = args.seeds or (TEST_SEEDS if args.split == "test" else VALIDATION_SEEDS)
@@ -83,7 +108,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="bench_multi_") as tmp:
         for k in args.panoramas:
             for seed in seeds:
-                rows.append(run_one(seed, k, args.height, Path(tmp)))
+                rows.append(run_one(seed, k, args.height, Path(tmp), not args.no_navmesh))
                 print(json.dumps(rows[-1]), file=sys.stderr)
     summary = []
     for k in args.panoramas:
@@ -97,17 +122,22 @@ def main() -> int:
             "rot_deg_max": max(r["rot_deg_max"] for r in sel),
             "register_s_mean": float(np.mean([r["register_s"] for r in sel])),
             "peak_rss_mb_max": max(r["peak_rss_mb"] for r in sel),
+            "navmesh_connected": sum(r.get("on_navmesh", 0) == r["registered"] for r in sel) if not args.no_navmesh
+            else None,
+            "fuse_navmesh_s_mean": float(np.mean([r["fuse_s"] + r["navmesh_s"] for r in sel])) if not args.no_navmesh
+            else None,
         })
     if args.json:
         print(json.dumps({"height": args.height, "seeds": list(seeds), "rows": rows, "summary": summary}, indent=1))
         return 0
     print(f"| panoramas | scenes | registered | misplaced | trans cm mean / max | rot deg mean / max | register s "
-          f"| peak MB |  (height {args.height}, seeds {list(seeds)})")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+          f"| peak MB | NavMesh holds all registered | fuse + NavMesh s |  (height {args.height}, seeds {list(seeds)})")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for s in summary:
         print(f"| {s['panoramas']} | {s['scenes']} | {s['registered_frac']:.0%} | {s['misplaced']} | "
               f"{s['trans_cm_mean']:.2f} / {s['trans_cm_max']:.2f} | {s['rot_deg_mean']:.3f} / {s['rot_deg_max']:.3f} "
-              f"| {s['register_s_mean']:.1f} | {s['peak_rss_mb_max']:.0f} |")
+              f"| {s['register_s_mean']:.1f} | {s['peak_rss_mb_max']:.0f} | {s['navmesh_connected']} of {s['scenes']} "
+              f"| {s['fuse_navmesh_s_mean'] or 0:.1f} |")
     return 0
 
 
