@@ -155,3 +155,38 @@ def test_synth_cli_panoramas_refuses_bad_counts(tmp_path):
     with pytest.raises(SystemExit) as e:
         main([str(tmp_path / "x"), "--seed", "1", "--panoramas", "9"])
     assert e.value.code == 2 and not (tmp_path / "x").exists()
+
+
+def test_fused_mesh_reproduces_every_view_and_navmesh_joins_the_rooms(home_dir):
+    from panoworld.raycast import Raycaster
+    from panoworld.register.fuse import fuse_meshes, home_navmesh
+
+    gt = _gt(home_dir)
+    names = sorted(gt)
+    poses = {n: invert_pose(gt[names[0]]) @ gt[n] for n in names}
+    rgbs = {n: read_panorama(home_dir / "panoramas" / f"{n}.png") for n in names}
+    depths = {n: np.load(home_dir / "depths" / f"{n}.npy") for n in names}
+    mesh, source = fuse_meshes(names, rgbs, depths, poses)
+    assert set(np.unique(source)) == {0, 1, 2}
+    alone = [fuse_meshes([n], rgbs, depths, {n: poses[n]})[0] for n in names]
+
+    def doubled(parts, n):
+        """Fraction of panorama n's pixels whose surface two or more of the parts reproduce (a doubled wall)."""
+        ref = depths[n][2::4, 2::4]
+        hits = [np.abs(np.log(Raycaster(v, f).render_erp(poses[n], HEIGHT // 4, HEIGHT // 2).distance / ref)) < 0.02
+                for v, f in parts]
+        return float((np.sum(hits, axis=0) >= 2).mean())
+
+    fused_parts = [(mesh.vertices, mesh.faces[source == k]) for k in range(3)]
+    naive_parts = [(m.vertices, m.faces) for m in alone]
+    for n in names:
+        # Naively concatenated meshes double every surface two panoramas see; the fused one only its seams.
+        assert doubled(fused_parts, n) < 0.25 * doubled(naive_parts, n), n
+    rc = Raycaster(mesh.vertices, mesh.faces)
+    for n in names:
+        d = rc.render_erp(poses[n], HEIGHT // 4, HEIGHT // 2).distance
+        ref = depths[n][2::4, 2::4]
+        assert (np.abs(np.log(d / ref)) < 0.02).mean() > 0.97  # nothing missing ...
+        assert (d < 0.98 * ref).mean() < 0.02  # ... and nothing in front of what the panorama saw
+    _, on = home_navmesh(mesh, poses)
+    assert all(on.values()), on

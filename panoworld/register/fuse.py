@@ -23,7 +23,7 @@ def fuse_meshes(names: list[str], rgbs: dict[str, np.ndarray], depths: dict[str,
                 world_from_cam: dict[str, np.ndarray], *, stride: int = 4, tol: float = 0.03) -> tuple[ErpMesh, np.ndarray]:
     """(fused mesh in the world frame, source panorama index of each face). A vertex of panorama k is dropped when
     another panorama j sees the same surface (its depth along the ray agrees within tol in log range) from nearer
-    (ties: the lower index keeps it); a face survives when its three vertices do."""
+    (ties: the lower index keeps it); a non-stretched face survives when one of its vertices does."""
     names = [n for n in names if n in world_from_cam]
     meshes = {n: erp_mesh_from_depth(np.asarray(depths[n], np.float32), rgbs[n], stride=stride) for n in names}
     verts, faces, colors, valid, source = [], [], [], [], []
@@ -42,8 +42,10 @@ def fuse_meshes(names: list[str], rgbs: dict[str, np.ndarray], depths: dict[str,
             seen = np.isfinite(d_j) & (d_j > 0) & (np.abs(np.log(np.maximum(r_j, 1e-6) / np.maximum(d_j, 1e-6))) < tol)
             nearer = (r_j < r_k) | ((r_j == r_k) & (j < k))
             keep &= ~(seen & nearer)
-        f = m.faces[keep[m.faces].all(1)]
-        fv = m.face_valid[keep[m.faces].all(1)]
+        # Faces with any kept vertex survive: neighbouring sources overlap by one face instead of leaving a crack.
+        # Stretched faces (across one view's depth edges) are dropped: another view sees what they hide.
+        kept = keep[m.faces].any(1) & m.face_valid
+        f, fv = m.faces[kept], m.face_valid[kept]
         verts.append(pts_world.astype(np.float32))
         faces.append(f + offset)
         colors.append(m.colors)
