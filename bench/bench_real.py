@@ -1,6 +1,6 @@
 """Real panoramas and their synthetic failure classes through the whole pipeline at default settings, no flags.
 
-    python bench/bench_real.py [SCENE_DIR ...] [--until STAGE] [--work DIR] [--no-synthetic] [--no-huge]
+    python bench/bench_real.py [SCENE_DIR ...] [--until STAGE] [--work DIR] [--no-synthetic] [--no-huge] [--rgb-only PANO ...]
 
 A SCENE_DIR is a scene directory (panorama.png|jpg [+ depth.npy|exr|png]) or a folder holding an RGB-D pair the
 way the Realsee3D README assets come (panoImage_*.jpg + depth_image*.png: each pair becomes a scene under
@@ -8,7 +8,11 @@ way the Realsee3D README assets come (panoImage_*.jpg + depth_image*.png: each p
 synthetic failure classes of panoworld.synth.failure_cases at 256x512, and an 8192x4096 panorama (the synthetic
 scene upsampled: checks the depth stage's resolution policy keeps every stage under 8 GiB). Prints per scene:
 stages ok, seconds, peak MB (largest stage), NavMesh area, start-off-NavMesh distance, exempt poses, min
-clearance (against the scene mesh), sectors covered/reachable, the Gaussians' context PSNR.
+clearance (against the scene mesh), sectors covered/reachable, the Gaussians' context PSNR; then what was decided
+for no room to move, depth outliers and a start off the NavMesh (issue #24); then the nadir table:
+capture rig found and removed (kind, cap, sphere share), the nadir-cap vs floor-ring luminance gap before/after
+and the share of pixels completed from floor/ceiling planes, for these scenes, ../shared/data/real/zind_garage
+and (rig detection on colour alone) the RGB-only panoramas of ../shared/data/real/rgb_only.
 """
 
 from __future__ import annotations
@@ -23,15 +27,27 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+import numpy as np
+
 from panoworld import pipeline as pl
 
 REAL = REPO.parent / "shared" / "data" / "real" / "realsee3d_assets"
+ZIND = REPO.parent / "shared" / "data" / "real" / "zind_garage"
+RGB_ONLY = REPO.parent / "shared" / "data" / "real" / "rgb_only"
 PAIRS = {"realsee_real": ("panoImage_real.jpg", "depth_image.png"),
          "realsee_synthesis": ("panoImage_synthesis.jpg", "depth_image_synthesis.png")}
 
 
 def scenes_from(path: Path, work: Path) -> list[Path]:
-    """A scene directory as it is, or the Realsee-style pairs of an asset folder copied into scene directories."""
+    """A scene directory as it is, or the Realsee-style pairs of an asset folder copied into scene directories
+    (a ZInD-style folder, panorama.jpg + layout_depth_m.npy, becomes a scene with that depth as depth.npy)."""
+    if (path / "layout_depth_m.npy").is_file() and not (path / "depth.npy").is_file():
+        d = work / path.name
+        d.mkdir(parents=True, exist_ok=True)
+        pano = next(p for p in path.glob("panorama.*"))
+        shutil.copy(pano, d / pano.name)
+        shutil.copy(path / "layout_depth_m.npy", d / "depth.npy")
+        return [d]
     if any((path / n).is_file() for n in ("panorama.png", "panorama.jpg", "panorama.jpeg")):
         return [path]
     out = []
@@ -67,6 +83,14 @@ def huge_scene(work: Path) -> Path:
     return d
 
 
+def stage_info(scene: Path, stage: str) -> dict:
+    """A stage's manifest `info` ({} when it has not run)."""
+    try:
+        return json.loads((scene / "artifacts" / stage / "manifest.json").read_text())["info"]
+    except (OSError, KeyError, ValueError):
+        return {}
+
+
 def measure(scene: Path, until: str) -> dict:
     t0 = time.perf_counter()
     try:
@@ -83,12 +107,10 @@ def measure(scene: Path, until: str) -> dict:
            "failed": f"{failed[0].stage}: {failed[0].reason[:160]}" if failed else ""}
 
     def info(stage):
-        try:
-            return json.loads((scene / "artifacts" / stage / "manifest.json").read_text())["info"]
-        except (OSError, KeyError, ValueError):
-            return {}
+        return stage_info(scene, stage)
 
     nav, traj, gs = info("navmesh"), info("trajectory"), info("gaussians")
+    row.update(nadir_row(scene, info("depth")))
     min_clear = None
     if traj:  # over the poses held to the NavMesh (pose 0 and the way onto the NavMesh are exempt)
         clear = json.loads((scene / "artifacts" / "trajectory" / "trajectory.json").read_text())["clearance_m"]
@@ -103,6 +125,91 @@ def measure(scene: Path, until: str) -> dict:
     return row
 
 
+def hostile_decisions(scene: Path) -> dict:
+    """What the pipeline decided for the issue #24 classes (closet, depth outliers, a start off the NavMesh)."""
+    dep, nav, traj = (stage_info(scene, s) for s in ("depth", "navmesh", "trajectory"))
+    out = dep.get("outliers") or {}
+    nr = nav.get("no_room") or {}
+    return {
+        "scene": scene.name,
+        "no_room": f"{nr['decision']} (r {nr['requested_agent_radius_m']} -> {nr['agent_radius_m']} m)" if nr else "-",
+        "rotation_only": traj.get("rotation_only"),
+        "outliers": f"{out.get('far_px', 0)} far + {out.get('spike_px', 0)} spikes" if out else "-",
+        "max_depth": f"{out['max_depth_before']:.4g} -> {out['max_depth_after']:.4g}" if out.get("max_depth_after") else "-",
+        "area": nav.get("area_m2"),
+        "off": traj.get("start_off_navmesh_m"),
+        "approach": (traj.get("plan") or {}).get("approach_steps"),
+        "frames": traj.get("frames"),
+    }
+
+
+def print_hostile_table(scenes: list[Path]) -> None:
+    """The issue #24 table: per scene, what was decided for no room to move, depth outliers and the approach."""
+    head = ("scene", "no room to move: decision", "rotation only", "depth outliers masked", "max depth before -> after",
+            "NavMesh m2", "start off m", "approach steps / frames")
+    print("\n| " + " | ".join(head) + " |\n|" + "---|" * len(head))
+    for s in scenes:
+        r = hostile_decisions(s)
+        print("| " + " | ".join([r["scene"], r["no_room"], fmt(r["rotation_only"]), r["outliers"], r["max_depth"],
+                                 fmt(r["area"]), fmt(r["off"]), f"{fmt(r['approach'])} / {fmt(r['frames'])}"]) + " |")
+
+
+def nadir_row(scene: Path, depth_info: dict) -> dict:
+    """Rig found/removed, its area, the nadir-cap vs floor-ring luminance gap of the input and of the cleaned
+    panorama (artifacts/depth/panorama.png), and the share of pixels completed from floor/ceiling planes."""
+    import cv2
+
+    from panoworld.depth import read_panorama, resize_panorama
+    from panoworld.rig import nadir_luminance_gap
+
+    rig = depth_info.get("rig") or {}
+    out = {"rig": rig.get("kind") if rig.get("found") else ("none" if rig else "-"),
+           "rig_reason": rig.get("reason", ""), "rig_cap": (rig.get("mask") or {}).get("cap_deg"),
+           "rig_area": (rig.get("mask") or {}).get("sphere_fraction"),
+           "completed": (depth_info.get("pole_completion") or {}).get("completed_fraction"),
+           "gap_before": None, "gap_after": None}
+    cleaned = scene / "artifacts" / "depth" / "panorama.png"
+    pano = next((p for p in sorted(scene.glob("panorama.*"))), None)
+    if cleaned.is_file() and pano is not None:
+        after = cv2.cvtColor(cv2.imread(str(cleaned), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        before = resize_panorama(read_panorama(pano), after.shape[0])
+        out.update(gap_before=nadir_luminance_gap(before), gap_after=nadir_luminance_gap(after),
+                   unchanged=bool(np.array_equal(before, after)))
+    return out
+
+
+def nadir_only(paths: list[Path]) -> list[dict]:
+    """RGB-only panoramas (no depth, so no pipeline without weights): rig detection and removal on the colour alone."""
+    from panoworld.depth import read_panorama, resize_panorama
+    from panoworld.rig import area_stats, detect_rig, nadir_luminance_gap, remove_rig
+
+    rows = []
+    for p in paths:
+        rgb = read_panorama(p)
+        rgb = resize_panorama(rgb, min(rgb.shape[0], 1024))
+        det = detect_rig(rgb)
+        out = remove_rig(rgb, det) if det.found else rgb
+        a = area_stats(det.mask) if det.found else {}
+        rows.append({"scene": p.name, "rig": det.kind or "none", "rig_reason": det.reason, "rig_cap": a.get("cap_deg"),
+                     "rig_area": a.get("sphere_fraction"), "gap_before": nadir_luminance_gap(rgb),
+                     "gap_after": nadir_luminance_gap(out), "unchanged": bool(np.array_equal(out, rgb)),
+                     "completed": None})
+    return rows
+
+
+def print_nadir_table(rows: list[dict]) -> None:
+    head = ("scene", "rig", "cap deg", "sphere %", "lum gap before", "lum gap after", "unchanged", "completed %")
+    print("\n| " + " | ".join(head) + " |\n|" + "---|" * len(head))
+    for r in rows:
+        pct = (lambda v: "-" if v is None else f"{v:+.1%}")
+        cells = (r["scene"], r["rig"], fmt(r["rig_cap"], ".1f"), fmt(None if r["rig_area"] is None else 100 * r["rig_area"]),
+                 pct(r["gap_before"]), pct(r["gap_after"]), str(r.get("unchanged", "-")),
+                 fmt(None if r["completed"] is None else 100 * r["completed"], ".1f"))
+        print("| " + " | ".join(cells) + " |")
+    for r in rows:
+        print(f"  {r['scene']}: {r['rig_reason']}")
+
+
 def fmt(v, spec=".2f"):
     return "-" if v is None else format(v, spec) if isinstance(v, float) else str(v)
 
@@ -115,10 +222,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-synthetic", action="store_true", help="skip the synthetic failure-class scenes")
     ap.add_argument("--no-huge", action="store_true", help="skip the 8192x4096 panorama")
     ap.add_argument("--height", type=int, default=256, help="panorama height of the synthetic failure-class scenes")
+    ap.add_argument("--rgb-only", nargs="*", type=Path, default=None,
+                    help="RGB-only panoramas (default: ../shared/data/real/rgb_only/*) for the nadir table alone")
     args = ap.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
     scenes: list[Path] = []
-    for s in args.scenes or ([REAL] if REAL.is_dir() else []):
+    for s in args.scenes or [p for p in (REAL, ZIND) if p.is_dir()]:
         scenes += scenes_from(s, args.work)
     if not args.scenes and not args.no_synthetic:
         from panoworld.synth.failure_cases import FailureCase, write_failure_scene
@@ -147,6 +256,13 @@ def main(argv: list[str] | None = None) -> int:
         cells = (r["scene"], r["ok"], fmt(r["seconds"], ".0f"), fmt(r["peak_mb"], ".0f"), fmt(r["area"]),
                  fmt(r["assumed"]), fmt(r["off"]), fmt(r["exempt"]), fmt(r["min_clear"]), r["sectors"], fmt(r["psnr"]))
         print("| " + " | ".join(cells) + " |")
+    print_hostile_table(scenes)
+    nadir = rows + (nadir_only(sorted(p for p in RGB_ONLY.glob("*") if p.suffix in (".png", ".jpg")))
+                    if args.rgb_only is None and not args.scenes and RGB_ONLY.is_dir() else nadir_only(args.rgb_only or []))
+    print("\nNadir: capture rig found/removed (depth.rig auto) and floor/ceiling completion (depth.complete_poles);"
+          " lum gap = mean luminance of the 15 deg nadir cap vs the 30-42 deg floor ring (target |after| <= 15 % where"
+          " a rig was found; captures without one unchanged)")
+    print_nadir_table(nadir)
     bad = [r for r in rows if r["failed"] or (r["min_clear"] is not None and r["min_clear"] < r["radius"] - 1e-9)]
     return 1 if bad else 0
 

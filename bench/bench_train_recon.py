@@ -1,21 +1,23 @@
-"""Trained PanoVGGT vs its random init (vs COLMAP, vs voxel-fusion) on held-out synthetic scenes (issue #14).
+"""Trained PanoVGGT vs its random init on a train / val / test split by scene that the bench builds from seeds.
 
+    python bench/bench_train_recon.py --quick --out WORK [--json recon.json] [--resume]     # <= 15 min on 2 cores
+    python bench/bench_train_recon.py --full --out WORK [--json recon.json] [--resume]
     python bench/bench_train_recon.py --data DATASET_DIR --held-out 4 --stage1 RUN1/export/weights \
-        [--stage2 RUN2/export/weights] [--colmap-scenes 2] [--frames 8] [--views 3]
+        [--stage2 RUN2/export/weights] [--colmap-scenes 2]                                 # evaluate given exports
 
-Held-out scenes are the last --held-out scenes of DATASET_DIR (a training run's val split never trains). Stage 1: per
-scene and track, --frames frames evenly spaced along the track -> ATE, RPE_t (m), RPE_r (deg) after Sim(3) alignment
-(align.trajectory_metrics) and depth AbsRel (evaluate.depth_errors), for the trained model and the same architecture
-at its random init (the training seed), each with the camera head's poses alone and with --refine-iters steps of
-depth-consistency refinement on the model's own depth (PanoVGGTConfig.pose_refine_iters), an image-blind straight-
-ahead prior (equal steps along the first camera's axis: what "the track starts looking ahead" alone gives) and COLMAP
-(first --colmap-scenes scenes, the same frames rendered exactly at --colmap-height: COLMAP registers nothing at the
-models' 32x64); then again with every track's cameras turned by one random yaw, so the direction of travel must be
-read from the images.
-Stage 2: N@N = --views context frames evenly spaced and the --views frames midway between them as
-novel views; PSNR/SSIM of ERP renders at the model's input size, for the trained Gaussian head, the same head at its
-random init (on the trained backbone) and voxel-fusion at the same voxel size, all given the same geometry (the ground
-truth's, and the frozen heads' predictions for the decoders).
+--quick / --full: `synth` writes WORK/train, WORK/val and WORK/test from three seeds (the scene seeds are checked to be
+disjoint), WORK/trainval links train then val (the trainer's val split = the last val_scenes by name), `train recon`
+runs stage 1 and stage 2 on it, and both exports and their random init are scored on the val and the test split.
+Tuning happens on val only; the headline is the paper's feed-forward model (refine_iters 0) on test; the
+depth-consistency refinement (refine_iters > 0) is an option that is not in the paper. Rows: model trained | init,
+refine_iters, split -> ATE, RPE_t (m), RPE_r (deg) after Sim(3) alignment, depth AbsRel, novel-view PSNR (stage 2's
+head on predicted geometry; the refinement does not change it).
+
+Given exports (--data/--stage1): stage 1 per scene and track on --frames frames evenly spaced -> the metrics above for
+the trained model and its random init, with and without refinement, an image-blind straight-ahead prior and COLMAP
+(first --colmap-scenes scenes rendered exactly at --colmap-height), also with every track turned by a random yaw;
+stage 2: N@N = --views context frames and the frames midway as novel views, PSNR/SSIM of ERP renders for the trained
+head, its init and voxel-fusion, on ground-truth and predicted geometry.
 """
 
 from __future__ import annotations
@@ -185,11 +187,150 @@ def table(rows: list[dict], keys: list[str]) -> str:
     return "\n".join(out)
 
 
+MODES = {
+    # scenes per split, the synth seed of each split (test: a seed no earlier run has seen), stage steps
+    "quick": {"train": 40, "val": 6, "test": 8, "seeds": (7, 8, 2026), "steps1": 1000, "steps2": 50, "s2_scenes": 4},
+    "full": {"train": 168, "val": 12, "test": 24, "seeds": (7, 8, 2026), "steps1": 12000, "steps2": 500,
+             "s2_scenes": 8},
+}
+SYNTH_FRAMES = 24
+REFINE = 20
+
+
+def scene_seeds(seed: int, n: int) -> list[int]:
+    from panoworld.synth.scene import derive_seed
+
+    return [derive_seed(seed, 1, k) for k in range(n)]
+
+
+def build_split(work: Path, mode: dict, resume: bool) -> dict[str, list[int]]:
+    """WORK/{train,val,test} from seeds and WORK/trainval (train, then val, by name); the scene seeds per split."""
+    from panoworld.synth.cli import main as synth
+
+    seeds = {split: scene_seeds(s, mode[split]) for split, s in zip(("train", "val", "test"), mode["seeds"])}
+    for a, b in (("train", "val"), ("train", "test"), ("val", "test")):
+        if set(seeds[a]) & set(seeds[b]):
+            raise SystemExit(f"scene seeds of {a} and {b} overlap; pick other split seeds")
+    for split, s in zip(("train", "val", "test"), mode["seeds"]):
+        d = work / split
+        done = resume and len(list_scenes_or_none(d)) == mode[split]
+        args = [str(d), "--seed", str(s), "--scenes", str(mode[split]), "--preset", "ci-tiny",
+                "--frames", str(SYNTH_FRAMES)]
+        if not done and synth(args) != 0:
+            raise SystemExit(f"synth {d} failed")
+    tv = work / "trainval"
+    tv.mkdir(parents=True, exist_ok=True)
+    for split in ("train", "val"):
+        for k, scene in enumerate(sorted((work / split).glob("scene_*"))):
+            link = tv / f"{split}_{k:04d}"  # "train_" sorts before "val_": the val scenes are the last by name
+            if not link.exists():
+                link.symlink_to(scene.resolve(), target_is_directory=True)
+    return seeds
+
+
+def list_scenes_or_none(d: Path) -> list[Path]:
+    return sorted(p for p in d.glob("scene_*") if (p / "gt" / "gt.json").is_file()) if d.is_dir() else []
+
+
+def train(work: Path, mode: dict, resume: bool) -> tuple[Path, Path]:
+    from panoworld.train.recon.cli import main as train_recon
+    from panoworld.train.recon.data import split_scenes
+
+    tv = work / "trainval"
+    _, val = split_scenes(list_scenes(tv), mode["val"])
+    assert all(p.name.startswith("val_") for p in val), "the trainer's validation scenes must be the val split"
+    sets = ["--set", f"val_scenes={mode['val']}", "--set", "num_threads=1"]
+    run1, run2 = work / "run1", work / "run2"
+    if not (resume and (run1 / "export" / "weights").is_dir()):
+        args = ["--stage", "1", "--data", str(tv), "--out", str(run1), "--no-progress", *sets,
+                "--set", f"steps={mode['steps1']}"]
+        if train_recon(args + (["--resume"] if (run1 / "config.yaml").is_file() else [])) != 0:
+            raise SystemExit("train recon --stage 1 failed")
+    if mode["steps2"] and not (resume and (run2 / "export" / "weights").is_dir()):
+        args = ["--stage", "2", "--data", str(tv), "--out", str(run2), "--init", str(run1 / "export" / "weights"),
+                "--no-progress", *sets, "--set", f"steps={mode['steps2']}"]
+        if train_recon(args + (["--resume"] if (run2 / "config.yaml").is_file() else [])) != 0:
+            raise SystemExit("train recon --stage 2 failed")
+    return run1 / "export" / "weights", run2 / "export" / "weights"
+
+
+@torch.no_grad()
+def novel_psnr(model: PanoVGGT, data: SceneFrames, views: int) -> float:
+    """Mean PSNR of the head's Gaussians (predicted geometry, as trained) rendered at the views midway between
+    `views` evenly spaced context frames, against the ground-truth frames."""
+    out = []
+    for s, scene in enumerate(data.scenes):
+        for track in range(scene.n_tracks):
+            ctx = evenly(scene.n_frames(track), views)
+            nov = np.setdiff1d(np.unique((ctx[:-1] + ctx[1:]) // 2), ctx)
+            poses = data.poses(s, track)
+            rel = np.linalg.inv(poses[ctx[0]]) @ poses
+            c_rgb = np.stack([data.frame(s, track, int(i))[0] for i in ctx])
+            n_rgb = np.stack([data.frame(s, track, int(i))[0] for i in nov])
+            g = model.gaussians(torch.from_numpy(c_rgb).permute(0, 3, 1, 2).float() / 255)["gaussians"].numpy()
+            out.append(_scores(g, rel[nov], n_rgb, c_rgb.shape[1])[0])
+    return float(np.mean(out))
+
+
+def split_rows(models: dict[str, PanoVGGT], heads: dict[str, PanoVGGT | None], data: SceneFrames, split: str,
+               frames: int, s2_scenes: int, views: int) -> list[dict]:
+    """One row per (model, refine_iters) on one split: metrics averaged over every track."""
+    variants = {f"{m}|{r}": with_refinement(model, r) for m, model in models.items() for r in (0, REFINE)}
+    per_track = stage1_rows(variants, data, frames, colmap_scenes=0, colmap_height=0)
+    sub = SceneFrames([sc.root for sc in data.scenes[:s2_scenes]], data.height)
+    rows = []
+    for m in models:
+        nv = novel_psnr(heads[m], sub, views) if heads.get(m) is not None else None
+        for r in (0, REFINE):
+            sel = [x for x in per_track if x["method"] == f"{m}|{r}"]
+            rows.append({"model": m, "refine_iters": r, "split": split, "in_paper": r == 0,
+                         **{k: float(np.mean([x[k] for x in sel])) for k in ("ate", "rpe_t", "rpe_r", "abs_rel")},
+                         "novel_psnr": nv, "tracks": len(sel)})
+    return rows
+
+
+def bench(mode_name: str, work: Path, resume: bool, seed: int, frames: int, views: int,
+          stage2: bool = True) -> dict:
+    mode = dict(MODES[mode_name], **({} if stage2 else {"steps2": 0}))
+    t0, c0 = time.perf_counter(), time.process_time()
+    seeds = build_split(work, mode, resume)
+    w1, w2 = train(work, mode, resume)
+    trained1 = PanoVGGT.from_pretrained(w1, flag="--stage1")
+    trained2 = PanoVGGT.from_pretrained(w2, flag="--stage2") if mode["steps2"] else None
+    models = {"trained": trained1, "init": random_init(trained1, seed, False)}
+    heads = {"trained": trained2, "init": random_init(trained2, seed, False) if trained2 is not None else None}
+    rows = []
+    for split in ("val", "test"):
+        data = SceneFrames(list_scenes(work / split), trained1.cfg.image_height)
+        rows += split_rows(models, heads, data, split, frames, mode["s2_scenes"], views)
+    return {"mode": mode_name, "rows": rows, "train_scenes": seeds["train"], "val_scenes": seeds["val"],
+            "test_scenes": seeds["test"], "split_seeds": dict(zip(("train", "val", "test"), mode["seeds"])),
+            "steps": {"stage1": mode["steps1"], "stage2": mode["steps2"]},
+            "wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(time.process_time() - c0, 1)}
+
+
+def print_rows(result: dict) -> None:
+    print(f"\n{result['mode']}: {len(result['train_scenes'])} train / {len(result['val_scenes'])} val / "
+          f"{len(result['test_scenes'])} test scenes; {result['wall_s']:.0f} s wall, {result['cpu_s']:.0f} s CPU")
+    print("| split | model | refine_iters | ATE (m) | RPE_t (m) | RPE_r (deg) | AbsRel | novel PSNR (dB) |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    for r in result["rows"]:
+        nv = "-" if r["novel_psnr"] is None else f"{r['novel_psnr']:.2f}"
+        print(f"| {r['split']} | {r['model']} | {r['refine_iters']} | {r['ate']:.4f} | {r['rpe_t']:.4f} | "
+              f"{r['rpe_r']:.2f} | {r['abs_rel']:.3f} | {nv} |")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--data", type=Path, required=True)
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--quick", action="store_true", help="build, train and score the quick split (<= 15 min)")
+    g.add_argument("--full", action="store_true", help="build, train and score the full split")
+    g.add_argument("--data", type=Path, help="evaluate given exports on the last --held-out scenes of this dataset")
+    p.add_argument("--out", type=Path, help="--quick/--full: the work directory (data, runs)")
+    p.add_argument("--resume", action="store_true", help="--quick/--full: reuse finished data and runs in --out")
+    p.add_argument("--no-stage2", action="store_true", help="--quick/--full: stage 1 only (novel PSNR not scored)")
     p.add_argument("--held-out", type=int, default=4, help="the last K scenes of --data (a run's val split)")
-    p.add_argument("--stage1", type=Path, required=True, help="stage-1 export (weights dir)")
+    p.add_argument("--stage1", type=Path, help="stage-1 export (weights dir)")
     p.add_argument("--stage2", type=Path, help="stage-2 export (weights dir)")
     p.add_argument("--seed", type=int, default=0, help="the training runs' seed (their random init)")
     p.add_argument("--frames", type=int, default=8)
@@ -198,11 +339,26 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--colmap-height", type=int, default=256, help="ERP height COLMAP gets (rendered exactly)")
     p.add_argument("--stage2-scenes", type=int, default=0, help="stage 2 on the first K held-out scenes only (0 = all)")
     p.add_argument("--skip-stage1", action="store_true", help="stage 2 only (stage 1 still loads --stage1)")
-    p.add_argument("--refine-iters", type=int, default=20,
+    p.add_argument("--refine-iters", type=int, default=REFINE,
                    help="depth-consistency pose refinement steps of the '+ refinement' rows (0 = no such rows)")
     p.add_argument("--json", type=Path, help="also write every row here")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
+    if args.quick or args.full:
+        if args.out is None:
+            p.error("--quick/--full need --out WORK_DIR")
+        result = bench("quick" if args.quick else "full", args.out, args.resume, args.seed, args.frames, args.views,
+                       stage2=not args.no_stage2)
+        print_rows(result)
+        if args.json:
+            args.json.write_text(json.dumps(result, indent=1))
+        return 0
+    if args.stage1 is None:
+        p.error("--data needs --stage1 RUN1/export/weights")
+    return evaluate_exports(args)
+
+
+def evaluate_exports(args) -> int:
     trained1 = PanoVGGT.from_pretrained(args.stage1, flag="--stage1")
     data = SceneFrames(list_scenes(args.data)[-args.held_out:], trained1.cfg.image_height)
     print(f"held-out scenes: {[s.name for s in data.scenes]} at {trained1.cfg.image_height}x{2 * trained1.cfg.image_height}")

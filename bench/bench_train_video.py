@@ -1,14 +1,19 @@
-"""Issue #13 table: held-out video PSNR (all / disoccluded) of the untrained init, FM-only (rho = 1) in 4 and 20 steps
-and shortcut (rho = 0.75) in 4 steps, same training budget, on the tiny preset; plus data-loader throughput.
+"""Few-step video generation on a multimodal disocclusion toy: FM-only vs shortcut training at 1, 2, 4 and 20 steps.
 
-    python bench/bench_train_video.py --data COND_DIR --out BENCH_DIR [--clips 16] [--set KEY=VALUE]...
+    python bench/bench_train_video.py --quick [--json video.json]       # 2 seeds, <= 15 min on 2 idle cores
+    python bench/bench_train_video.py --full [--json video.json]        # 3 seeds, longer training, more clips
+    python bench/bench_train_video.py --quick --split val               # what tuning may look at (never test)
 
-COND_DIR: a precompute output, e.g.
-    python runner.py synth data --seed 100 --scenes 40 --preset ci-tiny --frames 49
-    python runner.py precompute data --out cond --clips-per-scene 4 --frames 13 --height 64 --workers 1
-Run A (`train video --preset tiny`, rho = 0.75) pre-trains the tiny base; run B trains the FM-only ablation (rho = 1)
-on the same base (`--weights A/base --set base=wan`) with the same steps. Both are scored through their exports, i.e.
-the files the video stage's wan-shortcut backend loads.
+The toy (panoworld/train/video/toy.py): frame 0 is a scene's panorama in latent space, frame 1 the same scene turned
+by a random yaw with a square disocclusion filled with one of `modes` plausible fills at random; the condition is frame
+1 with the hole masked out. Per seed: a tiny Wan transformer pre-trained with flow matching (the frozen base), then
+the paper's stage (LoRA + widened patch embedding + step-size embedding) trained twice on it with the same steps:
+FM only (rho = 1) and shortcut (rho = 0.75, EMA teacher), through panoworld.models.wan_training. Scenes: train, val
+and test from disjoint seed ranges. Metric: sliced Wasserstein distance between the generated hole contents and a
+fresh draw of the true fills on the same test conditions (lower is better; the blurry mean of the fills is far from
+every fill), plus PSNR of frame 1 against the drawn target (which rewards that mean) and the RMS distance to the
+nearest fill. FM-only samples with plain Euler steps on a uniform grid; the shortcut model with the shortcut sampler at
+1, 2 and 4 steps and, at 20 (not a power of two), with 20 plain flow steps.
 """
 
 from __future__ import annotations
@@ -20,109 +25,87 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from training_tables import targets  # bench/ is on sys.path when this file runs as a script
+
+MODES = {
+    "quick": {"seeds": (0, 1), "base_steps": 600, "steps": 600, "train": 256, "eval_scenes": 64, "clips": 256},
+    "full": {"seeds": (0, 1, 2), "base_steps": 2000, "steps": 2000, "train": 1024, "eval_scenes": 128, "clips": 512},
+}
+STEPS = (1, 2, 4, 20)
 
 
-def _run(args: list[str]) -> dict:
-    from panoworld.train.video.cli import main
-
-    t0, c0 = time.perf_counter(), time.process_time()
-    code = main([*args, "--json"])
-    assert code == 0, f"train video {args} failed ({code})"
-    return {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
+def sampler_for(model: str, steps: int) -> str:
+    return "shortcut" if model == "shortcut" and steps & (steps - 1) == 0 else "flow"
 
 
-def _generator(export: Path | None, base: Path, sampler: str, steps: int, shift: float = 5.0):
-    from panoworld.models.wan_shortcut import Sampler, WanShortcutConfig, WanShortcutGenerator
+def run(mode_name: str, split: str, seeds: list[int] | None = None) -> dict:
+    from panoworld.train.video import toy
 
-    cfg = WanShortcutConfig(
-        weights=base, lora=export and export / "lora.safetensors", extra_weights=export and export / "extra.safetensors",
-        prompt_embeds=base / "prompt_embeds.safetensors" if export is None else export / "prompt_embeds.safetensors",
-        sampler=Sampler(sampler), steps=steps, shift=shift, device="cpu", dtype="float32", vae_tiling=False,
-    )
-    if export is not None:
-        return WanShortcutGenerator.from_pretrained(cfg)
-    from diffusers import AutoencoderKLWan, WanTransformer3DModel  # the untrained init: base + zero-init widening
+    mode = MODES[mode_name]
+    cfg = toy.ToyConfig(base_steps=mode["base_steps"], steps=mode["steps"])
+    rows, times = [], {}
+    train_seeds = toy.scene_seeds("train", mode["train"])
+    eval_seeds = toy.scene_seeds(split, mode["eval_scenes"])
+    assert not set(train_seeds) & set(eval_seeds)
+    train, held = toy.ToyScenes(cfg, train_seeds), toy.ToyScenes(cfg, eval_seeds)
+    for seed in seeds or mode["seeds"]:
+        c0 = time.process_time()
+        base = toy.train_base(cfg, train, seed)
+        models = {"fm-only": toy.train_stage(cfg, base, train, rho=1.0, seed=seed),
+                  "shortcut": toy.train_stage(cfg, base, train, rho=0.75, seed=seed)}
+        times[seed] = {"train_cpu_s": round(time.process_time() - c0, 1)}
+        for name, model in models.items():
+            for steps in STEPS:
+                sampler = sampler_for(name, steps)
+                r = toy.evaluate(cfg, model, held, sampler=sampler, steps=steps, clips=mode["clips"], seed=seed)
+                rows.append({"model": name, "steps": steps, "sampler": sampler, "value": r["swd"], "psnr": r["psnr"],
+                             "mode_error": r["mode_error"], "seed": seed, "split": split})
+                print(f"seed {seed} {name} {steps} steps ({sampler}): SWD {r['swd']:.4f}, PSNR {r['psnr']:.2f} dB, "
+                      f"distance to the nearest fill {r['mode_error']:.3f}", flush=True)
+        times[seed]["cpu_s"] = round(time.process_time() - c0, 1)
+    return {"metric": "sliced Wasserstein distance of disoccluded content to the true fills", "higher_is_better": False,
+            "mode": mode_name, "split": split, "rows": rows, "train_scenes": train_seeds,
+            f"{split}_scenes": eval_seeds, "clips": mode["clips"], "config": vars(cfg), "times": times,
+            "floor": toy.swd_floor(cfg, mode["clips"])}
 
-    tr = WanTransformer3DModel.from_pretrained(base, subfolder="transformer", local_files_only=True)
-    vae = AutoencoderKLWan.from_pretrained(base, subfolder="vae", local_files_only=True)
-    return WanShortcutGenerator.from_components(tr, vae, cfg)
+
+def summary(result: dict) -> str:
+    rows = result["rows"]
+    out = ["| model | steps | sampler | SWD (lower = better) | PSNR (dB) | distance to nearest fill | seeds |",
+           "| --- | --- | --- | --- | --- | --- | --- |"]
+    for model in ("fm-only", "shortcut"):
+        for steps in STEPS:
+            sel = [r for r in rows if r["model"] == model and r["steps"] == steps]
+            v = np.array([r["value"] for r in sel])
+            out.append(f"| {model} | {steps} | {sel[0]['sampler']} | {v.mean():.4f} ± {v.std():.4f} | "
+                       f"{np.mean([r['psnr'] for r in sel]):.2f} | {np.mean([r['mode_error'] for r in sel]):.3f} | "
+                       f"{len(sel)} |")
+    return "\n".join(out)
 
 
-def _score(gen, items: list[dict]) -> tuple[float, float, float]:
-    from panoworld.train.video.trainer import _uint8, psnr
-
-    alls, holes, t0 = [], [], time.process_time()
-    for k, it in enumerate(items):
-        gen.cfg.seed = k
-        cond, mask, target = _uint8(it["cond"]), it["mask"][0].numpy() > 0, _uint8(it["target"])
-        video, _ = gen.generate(cond, mask)
-        alls.append(psnr(video[1:], target[1:]))
-        holes.append(psnr(video[1:], target[1:], ~mask[1:]))
-    return float(np.mean(alls)), float(np.nanmean(holes)), (time.process_time() - t0) / len(items)
-
-
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", type=Path, required=True)
-    ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--clips", type=int, default=16, help="held-out clips scored")
-    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
-    ap.add_argument("--resume", action="store_true", help="reuse finished runs in --out")
-    a = ap.parse_args()
+    g = ap.add_mutually_exclusive_group(required=True)
+    g.add_argument("--quick", action="store_true")
+    g.add_argument("--full", action="store_true")
+    ap.add_argument("--split", choices=("test", "val"), default="test", help="held-out scenes scored")
+    ap.add_argument("--seeds", type=int, nargs="+", help="these training seeds instead of the mode's (e.g. one per "
+                    "process; bench/training_tables.py merges the JSON files of one mode)")
+    ap.add_argument("--json", type=Path, help="write the rows here")
+    a = ap.parse_args(argv)
     torch.set_num_threads(1)
-    from panoworld.train.common import resolve_config
-    from panoworld.train.video.config import PRESETS, VideoTrainConfig
-    from panoworld.train.video.data import ClipDataset, read_index, split_scenes
-
-    cfg = resolve_config(VideoTrainConfig, PRESETS, "tiny", a.sets)
-    rows = read_index(a.data)
-    _, val_scenes = split_scenes([r.scene for r in rows], cfg.val_fraction, cfg.split_seed)
-    val = ClipDataset([r for r in rows if r.scene in val_scenes], cfg.frames, cfg.height)
     t0, c0 = time.perf_counter(), time.process_time()
-    items = [val[i] for i in range(min(a.clips, len(val)))]
-    load_s, load_cpu = time.perf_counter() - t0, time.process_time() - c0
-    print(f"held-out: {len(val_scenes)} scenes, {len(val)} clips ({len(items)} scored); ClipDataset: "
-          f"{len(items) / load_s:.1f} clips/s wall, {len(items) / max(load_cpu, 1e-9):.1f} clips/s per CPU second "
-          f"({cfg.frames} frames x {cfg.height}x{2 * cfg.height})")
-
-    run_a, run_b = a.out / "shortcut_rho075", a.out / "fm_only_rho1"
-    times = {}
-    if not (a.resume and (run_a / "export" / "scene.yaml").is_file()):
-        times["A"] = _run(["--data", str(a.data), "--out", str(run_a), "--preset", "tiny", *sum((["--set", s] for s in a.sets), [])])
-    if not (a.resume and (run_b / "export" / "scene.yaml").is_file()):
-        times["B"] = _run(["--data", str(a.data), "--out", str(run_b), "--preset", "tiny", "--weights", str(run_a / "base"),
-                           "--set", "base=wan", "--set", "rho=1", *sum((["--set", s] for s in a.sets), [])])
-    for k, v in times.items():
-        print(f"run {k}: {v['wall_s']:.0f} s wall, {v['cpu_s']:.0f} s CPU")
-    base = run_a / "base"
-    rows_out = [
-        ("untrained init (base + zero-init condition), flow 4 steps", _generator(None, base, "flow", 4)),
-        ("untrained init, shortcut 4 steps", _generator(None, base, "shortcut", 4)),
-        ("FM only (rho = 1), flow 4 steps", _generator(run_b / "export", base, "flow", 4)),
-        ("FM only (rho = 1), flow 4 steps, shift 1", _generator(run_b / "export", base, "flow", 4, 1.0)),
-        ("shortcut (rho = 0.75), shortcut 4 steps", _generator(run_a / "export", base, "shortcut", 4)),
-        ("shortcut (rho = 0.75), flow 4 steps", _generator(run_a / "export", base, "flow", 4)),
-        ("FM only (rho = 1), flow 20 steps", _generator(run_b / "export", base, "flow", 20)),
-        ("shortcut (rho = 0.75), flow 20 steps", _generator(run_a / "export", base, "flow", 20)),
-    ]
-    table = []
-    vae = rows_out[0][1].vae
-    rec = []
-    with torch.no_grad():  # the ceiling every row shares: the frozen tiny VAE's reconstruction of the targets
-        from panoworld.models import wan_layers as wl
-        from panoworld.train.video.trainer import _uint8, psnr
-
-        for it in items:
-            video = wl.decode_latents(vae, wl.encode_video(vae, it["target"][None]))[0]
-            rec.append(psnr(_uint8(video)[1:], _uint8(it["target"])[1:]))
-    print(f"\nVAE reconstruction of the held-out targets (ceiling): {np.mean(rec):.2f} dB")
-    print("\n| model, sampler | PSNR all (dB) | PSNR disoccluded (dB) | CPU s / clip |\n| --- | --- | --- | --- |")
-    for name, gen in rows_out:
-        p_all, p_hole, cpu = _score(gen, items)
-        table.append({"row": name, "psnr": p_all, "psnr_disoccluded": p_hole, "cpu_s_per_clip": cpu})
-        print(f"| {name} | {p_all:.2f} | {p_hole:.2f} | {cpu:.2f} |", flush=True)
-    (a.out / "bench.json").write_text(json.dumps({"rows": table, "times": times, "clips": len(items)}, indent=2))
+    result = run("quick" if a.quick else "full", a.split, a.seeds)
+    result.update(wall_s=round(time.perf_counter() - t0, 1), cpu_s=round(time.process_time() - c0, 1))
+    result["targets"] = targets(result["rows"])
+    print(f"\n{result['mode']}, {a.split} split: {result['wall_s']:.0f} s wall, {result['cpu_s']:.0f} s CPU; SWD of "
+          f"two draws of the true fills (a perfect sampler): {result['floor']:.4f}\n")
+    print(summary(result))
+    print("\n" + ", ".join(f"{k}: {'met' if ok else 'NOT met'}" for k, ok in result["targets"].items()))
+    if a.json:
+        a.json.write_text(json.dumps(result, indent=1))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

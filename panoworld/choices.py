@@ -82,3 +82,12 @@ class ColmapOptions:
     """CPU threads (-1 = all)."""
     seed: int = 0
     """Random seed of RANSAC and the mapper."""
+
+
+class RigMode(enum.StrEnum):
+    """What the depth stage does with a capture rig (tripod, mount, nadir mask) at the panorama's nadir."""
+
+    AUTO = "auto"
+    """Detect it (no weights: panoworld.rig) and remove it: floor inpainted, depth from the floor plane."""
+    KEEP = "keep"
+    """Leave the panorama and depth as given (a user rig_mask file is ignored too)."""

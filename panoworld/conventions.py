@@ -88,6 +88,16 @@ def erp_dirs(height: int, width: int, dtype=np.float32) -> np.ndarray:
     return dir_from_lonlat(lon, lat).astype(dtype)
 
 
+def pinhole_dirs(fx: float, fy: float, cx: float, cy: float, height: int, width: int, dtype=np.float32) -> np.ndarray:
+    """Unit ray directions (H, W, 3) of every pixel centre (u + 0.5, v + 0.5) of an OpenCV pinhole camera, camera frame."""
+    if height <= 0 or width <= 0:
+        raise ValueError(f"pinhole image {width}x{height} (WxH) must be positive")
+    x = (np.arange(width, dtype=np.float64) + 0.5 - cx) / fx
+    y = (np.arange(height, dtype=np.float64) + 0.5 - cy) / fy
+    d = np.stack(np.broadcast_arrays(x[None, :], y[:, None], np.ones((1, 1))), -1)
+    return (d / np.linalg.norm(d, axis=-1, keepdims=True)).astype(dtype)
+
+
 def erp_pixel_solid_angle(height: int, width: int) -> np.ndarray:
     """Solid angle of each pixel row, shape (H, 1) (for WS-PSNR and area-weighted statistics)."""
     lat_top = (0.5 - np.arange(height) / height) * np.pi
@@ -205,3 +215,11 @@ def ros_world_from_cam(world_from_cam: np.ndarray) -> np.ndarray:
 
 def world_from_ros_world() -> np.ndarray:
     return ROS_FROM_WORLD.T.copy()
+
+
+def asset_from_canonical(floor_y: float) -> np.ndarray:
+    """The simulation asset frame (USD, collider.obj): REP 103 axes (x forward = the panorama's centre column, y left,
+    z up) with the origin on the floor below the capture point (canonical (0, floor_y, 0))."""
+    t = np.eye(4)
+    t[2, 3] = float(floor_y)
+    return t @ ROS_FROM_WORLD

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.errors import DataError
+from panoworld.errors import DataError, InputError
+from panoworld.image_io import read_image
 
 
 class DatasetError(DataError):
@@ -82,9 +83,10 @@ class DatasetScene:
                 return self._synth.render(self.poses(track)[i], height, 2 * height)
             raise DatasetError(f"{self.gt_dir / 'gt.json'}: track {track} lists no frame files and the scene is not synthetic")
         rgb_path, depth_path = files
-        bgr = cv2.imread(str(rgb_path), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise DatasetError(f"{rgb_path}: missing or unreadable frame")
+        try:
+            bgr = read_image(rgb_path, cv2.IMREAD_COLOR, what="frame")
+        except InputError as e:
+            raise DatasetError(str(e)) from None
         try:
             depth = np.load(depth_path).astype(np.float32)
         except (OSError, ValueError) as e:

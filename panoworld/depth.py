@@ -18,6 +18,8 @@ from scipy.spatial.transform import Rotation
 from panoworld.choices import Rescale
 from panoworld.conventions import erp_dirs, erp_pixel_from_dir, erp_pixel_solid_angle, points_from_depth
 from panoworld.errors import InputError
+from panoworld.image_io import read_image
+from panoworld.limits import depth_plane, load_npy
 
 
 class DepthKind(enum.StrEnum):
@@ -40,9 +42,7 @@ def read_panorama(path: Path, notes: list[str] | None = None) -> np.ndarray:
     """
     path = Path(path)
     notes = [] if notes is None else notes
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise InputError(f"{path}: cannot read the panorama (missing, corrupt or not an image); give a PNG/JPEG")
+    img = read_image(path, cv2.IMREAD_UNCHANGED, what="panorama")
     gray = img.ndim == 2 or img.shape[2] == 1
     if path.suffix.lower() in (".jpg", ".jpeg") and img.dtype == np.uint8:
         # IMREAD_UNCHANGED ignores the EXIF orientation; IMREAD_COLOR applies it (same decoder otherwise).
@@ -99,18 +99,11 @@ def read_depth(path: Path, *, png_scale: float = 0.001) -> np.ndarray:
     if not path.is_file():
         raise InputError(f"{path}: depth file not found")
     if suffix == ".npy":
-        try:
-            depth = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as e:
-            raise InputError(f"{path}: cannot read the depth array ({e}); save it with numpy.save") from None
-        if depth.dtype.kind not in "fiu":
-            raise InputError(f"{path}: depth has dtype {depth.dtype}; save a float32 (H, W) array in metres")
+        depth = load_npy(path, "depth array", kinds="fiu")
     elif suffix == ".exr":
         depth = _read_exr(path)
     elif suffix == ".png":
-        depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if depth is None:
-            raise InputError(f"{path}: cannot read the depth PNG (corrupt or not a PNG)")
+        depth = read_image(path, cv2.IMREAD_UNCHANGED, what="depth PNG")
         if depth.dtype != np.uint16:
             raise InputError(
                 f"{path}: depth PNG is {depth.dtype}; an 8-bit PNG cannot hold depth, save 16-bit (value * png_scale = metres)"
@@ -118,10 +111,7 @@ def read_depth(path: Path, *, png_scale: float = 0.001) -> np.ndarray:
         depth = depth.astype(np.float32) * np.float32(png_scale)
     else:
         raise InputError(f"{path}: unsupported depth format {suffix!r}; give depth.npy, depth.exr or a 16-bit depth.png")
-    if depth.ndim == 3:
-        depth = depth[..., 0]
-    if depth.ndim != 2:
-        raise InputError(f"{path}: depth has shape {depth.shape} but expected (H, W)")
+    depth = depth_plane(depth, path)
     return np.asarray(depth, dtype=np.float32)
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -198,6 +198,13 @@ class Observations:
     they span, has covariance (a a^T + b b^T) / 12."""
     weights: torch.Tensor
     """(M,) confidence w."""
+    pixels: torch.Tensor | None = None
+    """(M,) flat ERP pixel index (row * W + col) of each observation in its frame."""
+
+    def subset(self, keep: torch.Tensor) -> Observations:
+        """The observations selected by a boolean mask (M,)."""
+        return Observations(self.points[keep], self.colors[keep], self.steps[keep], self.weights[keep],
+                            None if self.pixels is None else self.pixels[keep])
 
 
 def _min_step(fwd: np.ndarray, bwd: np.ndarray) -> np.ndarray:
@@ -254,7 +261,7 @@ def frame_observations(
         wts = cos / d**2
     return Observations(
         torch.from_numpy(pts_w), torch.from_numpy(colors[keep].astype(np.float64)), torch.from_numpy(steps),
-        torch.from_numpy(wts),
+        torch.from_numpy(wts), torch.from_numpy(np.flatnonzero(keep)),
     )
 
 
@@ -292,6 +299,8 @@ class FusionResult:
     """Size of the Gaussians' bounding box (x, y, z) in metres."""
     voxel_size: float
     backend: str = "voxel-fusion"
+    num_source: int = 0
+    """Per-pixel Gaussians of the source view among them (source_anchored_fusion)."""
 
 
 MERGE_EVERY = 8
@@ -304,7 +313,8 @@ def _reduce(parts: list[VoxelSums], part: VoxelSums) -> list[VoxelSums]:
 
 
 def voxel_fusion(
-    frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], params: FusionParams, *, progress: bool = False
+    frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], params: FusionParams, *, progress: bool = False,
+    select: Callable[[Observations], Observations] | None = None,
 ) -> FusionResult:
     """Fuse ERP frames (rgb (H, W, 3), depth (H, W) metres, world_from_cam (4, 4)) into voxel-aligned Gaussians.
 
@@ -314,7 +324,8 @@ def voxel_fusion(
     the rotation and scale_factor * sqrt(eigenvalues), clamped to [min_scale, max_scale] * voxel_size, the scales.
     Frames are consumed one at a time and their voxel sums reduced into a running total every MERGE_EVERY frames, so
     memory is bounded by one frame's observations plus the occupied voxels, whatever the number of frames (pass a
-    re-iterable such as ContextSource that reads frames lazily; per_voxel > 1 iterates twice).
+    re-iterable such as ContextSource that reads frames lazily; per_voxel > 1 iterates twice). select, when given,
+    keeps a subset of each frame's observations (e.g. those the source panorama's own Gaussians do not explain).
     """
     from tqdm import tqdm
 
@@ -328,6 +339,8 @@ def voxel_fusion(
         for rgb, depth, pose in tqdm(frames, total=total, desc="voxel fusion", disable=None if progress else True,
                                      leave=False):
             obs = frame_observations(rgb, depth, pose, params)
+            if select is not None:
+                obs = select(obs)
             if len(obs.points):
                 yield obs
 
@@ -374,17 +387,30 @@ def voxel_fusion(
             f"all {num_voxels} voxels were pruned (fewer than min_points={params.min_points} observations or "
             "degenerate); lower min_points or voxel_size"
         )
-    mean, evals, axes, colors = mean[keep], evals[keep], axes[keep], colors[keep]
-    scales = (params.scale_factor * evals.sqrt()).clamp(params.min_scale * eps_v, params.max_scale * eps_v)
+    g = _gaussians_from_eig(mean[keep], evals[keep], axes[keep], colors[keep], params, params.max_scale * eps_v)
+    return FusionResult(g, n_obs, num_voxels, num_pruned, bbox_extent(g.means), eps_v)
+
+
+def _gaussians_from_eig(mean: torch.Tensor, evals: torch.Tensor, axes: torch.Tensor, colors: torch.Tensor,
+                        params: FusionParams, max_scale_m: float) -> Gaussians:
+    """Gaussians at mean (N, 3) with axes (N, 3, 3) and std scale_factor * sqrt(evals) (N, 3), clamped to
+    [min_scale * voxel_size, max_scale_m]; colours (N, 3) in [0, 1]."""
+    scales = (params.scale_factor * evals.clamp(min=0.0).sqrt()).clamp(params.min_scale * params.voxel_size, max_scale_m)
     axes = axes * torch.where(torch.det(axes) < 0, -1.0, 1.0).to(axes.dtype)[:, None, None]
     quat = np.roll(Rotation.from_matrix(axes.numpy()).as_quat(), 1, axis=-1)  # scipy is xyzw
     n = len(mean)
-    g = Gaussians(
+    return Gaussians(
         means=mean.float().numpy(), scales=scales.float().numpy(), quats=quat.astype(np.float32),
         opacities=np.full(n, params.opacity, np.float32),
         sh_dc=rgb_to_sh_dc(colors.clamp(0.0, 1.0).numpy()).astype(np.float32),
     )
-    return FusionResult(g, n_obs, num_voxels, num_pruned, bbox_extent(g.means), eps_v)
+
+
+def gaussians_from_cov(mean: torch.Tensor, cov: torch.Tensor, colors: torch.Tensor, params: FusionParams,
+                       max_scale_m: float) -> Gaussians:
+    """Gaussians of covariance cov (N, 3, 3) (scaled by scale_factor as in voxel fusion) at mean (N, 3)."""
+    evals, axes = torch.linalg.eigh(0.5 * (cov + cov.transpose(1, 2)))
+    return _gaussians_from_eig(mean, evals, axes, colors, params, max_scale_m)
 
 
 def bbox_extent(points: np.ndarray) -> list[float]:

@@ -19,9 +19,10 @@ from typing import Any
 import yaml
 
 from panoworld import artifacts as art
-from panoworld import code_digest
+from panoworld import code_digest, limits
 from panoworld.errors import InputError, PipelineError
 from panoworld.hub import resolve as hub
+from panoworld.image_io import check_image
 from panoworld.params import flatten, suggest
 from panoworld.stage import (
     LOCK_ENV,
@@ -220,26 +221,40 @@ def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
     if pano is None:
         names = pipeline.scene_files.get("panorama", [])
         raise PipelineError(f"{root}: no panorama; expected one of {', '.join(names)}")
-    try:
-        from PIL import Image
-
-        with Image.open(pano) as im:
-            w, h = im.size
-            if im.getexif().get(0x0112) in (5, 6, 7, 8):  # EXIF orientation with a quarter turn: the depth stage applies it
-                w, h = h, w
-    except Exception as e:  # PIL raises many types for corrupt files
-        raise PipelineError(f"{pano}: unreadable image ({type(e).__name__}: {e})") from None
+    try:  # fully decoded here, so a truncated or corrupt panorama is refused before anything is written
+        w, h = check_image(pano, "panorama").oriented  # the depth stage applies the EXIF orientation too
+    except InputError as e:
+        raise PipelineError(str(e)) from None
     if w != 2 * h:
         raise PipelineError(f"{pano}: {w}x{h} is not an equirectangular panorama (width must be exactly 2x height)")
     config: dict[str, Any] = {}
     cfg_path = root / SCENE_CONFIG
-    if cfg_path.is_file():
-        try:
-            config = yaml.safe_load(cfg_path.read_text()) or {}
-        except yaml.YAMLError as e:
-            raise PipelineError(f"{cfg_path}: invalid YAML ({e})") from None
-        check_scene_config(config, cfg_path, pipeline)
+    try:
+        check_scene_inputs(root, files)
+        if cfg_path.is_file():
+            limits.check_size(cfg_path, limits.MAX_CONFIG_BYTES, SCENE_CONFIG)
+            config = limits.parse_yaml(cfg_path.read_text(errors="replace"), str(cfg_path)) or {}
+    except InputError as e:
+        raise PipelineError(str(e)) from None
+    check_scene_config(config, cfg_path, pipeline)
     return Scene(root, files, config)
+
+
+def check_scene_inputs(root: Path, files: dict[str, Path | None]) -> None:
+    """The cheap checks of the scene's other user files, before anything is written: artifacts/ usable, the depth
+    .npy header within limits, a user trajectory readable and within limits. InputError (one line) otherwise."""
+    arts = root / ARTIFACTS_DIRNAME
+    if arts.is_symlink() and not arts.exists():
+        raise InputError(f"{arts}: a dangling symbolic link; remove it (or point it at a directory)")
+    if arts.exists() and not arts.is_dir():
+        raise InputError(f"{arts}: exists but is not a directory; move it away, the runner keeps its artifacts there")
+    depth = files.get("depth")
+    if depth is not None and depth.suffix.lower() == ".npy":
+        limits.npy_header(depth, "depth array", kinds="fiu")
+    if files.get("trajectory") is not None:
+        from panoworld.trajectory.files import read_trajectory_file
+
+        read_trajectory_file(files["trajectory"])
 
 
 SCENE_CONFIG_KEYS = ("preset", "params")

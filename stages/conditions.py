@@ -21,9 +21,9 @@ INPUTS = {
 
 @dataclass(kw_only=True)
 class Params:
-    height: int = param(720, ge=2)
+    height: int = param(720, ge=2, le=8192)
     """Height of the condition frames in pixels (ERP, so width must be 2 x height)."""
-    width: int = param(1440, ge=4)
+    width: int = param(1440, ge=4, le=16384)
     """Width of the condition frames in pixels (2 x height)."""
     backend: Backend = Backend.RASTER
     """raster: numba ERP triangle rasteriser; raycast: Embree per-pixel rays (the slower exact reference)."""

@@ -13,16 +13,17 @@ from panoworld import backends
 from panoworld.backends.depth import Job
 from panoworld.backends.depth.depth_anything import DepthAnythingOptions
 from panoworld.backends.depth.provided import ProvidedOptions
-from panoworld.choices import Rescale
+from panoworld.choices import Rescale, RigMode
 from panoworld.params import options, param
 from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "depth"
-VERSION = "2"
+VERSION = "3"
 ARTIFACT = "depth"
 INPUTS = {
     "panorama": Input("file", help="equirectangular RGB panorama (2:1)"),
     "depth": Input("file", optional=True, help="measured ERP depth: .npy (metres), .exr (metres) or 16-bit .png"),
+    "rig_mask": Input("file", optional=True, help="2:1 grayscale mask, white where the capture rig is (overrides detection)"),
 }
 
 
@@ -41,6 +42,12 @@ class Params:
     before anything else, so memory stays bounded downstream (8192x4096 -> 2048x1024); 0 = never."""
     min_depth_m: float = param(0.1, ge=0)
     """Metric depths nearer than this (sensor noise, the capture rig) are invalid: they never become geometry."""
+    rig: RigMode = RigMode.AUTO
+    """Capture rig at the nadir (tripod, mount, nadir mask): auto = detect it without weights and remove it (floor
+    inpainted, depth from the floor plane; a scene rig_mask.png overrides detection); keep = leave it (docs/rig.md)."""
+    complete_poles: bool = True
+    """Depth missing at the poles or in bands (LiDAR blind zones) is completed from the fitted floor and ceiling
+    planes, within the room's extent (panoworld.depth_complete)."""
     provided: ProvidedOptions = options(ProvidedOptions, "provided")
     """provided's options."""
     depth_anything: DepthAnythingOptions = options(DepthAnythingOptions, "depth-anything")
@@ -83,6 +90,24 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     if not valid.any():
         raise StageInputError(f"{inputs.get('depth') or inputs['panorama']}: no depth left beyond min_depth_m {params.min_depth_m} m")
     depth = np.where(valid, depth, 0.0).astype(np.float32)
+    if params.rig != RigMode.KEEP:
+        from panoworld.rig import nadir_crop, rig_step
+
+        before = rgb
+        rgb, depth, valid, info["rig"], det = rig_step(rgb, depth, valid, info.get("camera_height_estimated_after"),
+                                                         user_mask=inputs.get("rig_mask"))
+        notes.append(f"capture rig {'removed' if det.found else 'not found'}: {det.reason}")
+        if det.found:
+            cv2.imwrite(str(out_dir / "rig_mask.png"), det.mask.astype(np.uint8) * 255)
+            crops = np.concatenate([nadir_crop(before), nadir_crop(rgb)], axis=1)
+            cv2.imwrite(str(out_dir / "nadir_before_after.jpg"), cv2.cvtColor(crops, cv2.COLOR_RGB2BGR))
+    if params.complete_poles:
+        from panoworld.depth_complete import complete_poles
+
+        depth, valid, info["pole_completion"] = complete_poles(depth, valid)
+        if info["pole_completion"]["completed_fraction"] > 0:
+            notes.append(f"{info['pole_completion']['completed_fraction']:.1%} of the pixels (poles, bands) completed "
+                         "from the floor/ceiling planes")
     info["valid_fraction"] = float(valid.mean())
     info["depth_range_m"] = [float(depth[valid].min()), float(depth[valid].max())]
     info["decisions"] = notes

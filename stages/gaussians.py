@@ -12,7 +12,7 @@ from panoworld.params import param
 from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "gaussians"
-VERSION = "2"
+VERSION = "3"
 ARTIFACT = "gaussians"
 INPUTS = {
     "video": Input("video", help="video artifact (video.json, frames/, depth/)"),
@@ -45,6 +45,15 @@ class Params(FusionParams):
     recon --stage 2 exports it; its voxel size and input height win)."""
     device: str = "cpu"
     """decoder: torch device (cpu, cuda)."""
+    source_pixels: bool = True
+    """voxel-fusion: the source view (video frame 0) becomes one Gaussian per pixel (its full detail at the capture
+    point); the other frames are voxel-fused only where they see what the source does not."""
+    source_height: int = param(256, ge=0)
+    """ERP height of the source view's per-pixel Gaussians (0 = that of the other frames); rows near the poles keep
+    every k-th pixel so kept pixels are about square on the sphere."""
+    source_tol: float = param(0.03, gt=0)
+    """Observations of the other frames within this relative depth of the source's surface (or in front of it) count
+    as seen by the source and are not fused."""
     eval_views: int = param(1, ge=0)
     """Context views rendered back from the Gaussians to report PSNR/SSIM/WS-PSNR in the manifest (0 = none)."""
     eval_height: int = param(128, ge=8)
@@ -54,6 +63,7 @@ class Params(FusionParams):
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     from panoworld.gaussians import context_source, voxel_fusion
     from panoworld.gaussians_artifact import write_artifact
+    from panoworld.pixel_gaussians import source_anchored_fusion
 
     frames = context_source(inputs["video"], inputs["poses"], context_views=params.context_views,
                             height=params.height, max_height=params.max_height)
@@ -64,6 +74,9 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
             model = PanoVGGT.from_pretrained(params.weights, flag="--weights", device=params.device)
             model.require_gaussian_head("--weights")
             result = model.decode(frames.load())
+        elif params.source_pixels:
+            result = source_anchored_fusion(frames, params, source_height=params.source_height, tol=params.source_tol,
+                                            progress=True)
         else:
             result = voxel_fusion(frames, params, progress=True)
     except StageInputError:

@@ -33,7 +33,7 @@ class Params:
     at under ~5 degrees)."""
     discontinuity: Discontinuity = Discontinuity.FLAG
     """How stretched triangles across depth edges are handled."""
-    stride: int = param(1, ge=1)
+    stride: int = param(1, ge=1, le=64)
     """Use every stride-th ERP pixel per axis as a vertex (exact points, colours averaged per block) to bound memory."""
     glb: bool = True
     """Also write mesh.glb (valid faces, vertex colours, glTF Y-up) for glTF viewers."""

@@ -8,11 +8,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from panoworld.mesh import load_erp_mesh
-from panoworld.navmesh import NavMeshParams, NoFloorError, build_navmesh
+from panoworld.navmesh import NavMeshParams
+from panoworld.navmesh.no_room import build_navmesh_with_room
 from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "navmesh"
-VERSION = "2"
+VERSION = "3"
 ARTIFACT = "navmesh"
 INPUTS = {"mesh": Input("mesh", help="mesh artifact (mesh.ply, canonical frame, face property valid)")}
 
@@ -30,13 +31,11 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     except Exception as e:  # plyfile raises many types on corrupt files
         raise StageInputError(f"{path}: unreadable mesh ({type(e).__name__}: {e}); rerun the mesh stage") from None
     t0 = time.perf_counter()
-    try:
-        nav = build_navmesh(mesh.vertices, mesh.faces, mesh.face_valid, params=params)
-    except NoFloorError as e:
-        raise StageInputError(
-            f"{path}: no walkable floor: {e}; the panorama must show floor around the camera (check the depth), "
-            "or lower --agent-radius-m / --min-floor-area-m2"
-        ) from None
+    nav = build_navmesh_with_room(mesh.vertices, mesh.faces, mesh.face_valid, params)  # no room: smaller agent / stationary
+    no_room = nav.info.get("no_room")
+    if no_room:
+        print(f"no room to move: {no_room['reason']}; decided: {no_room['decision']} (agent radius "
+              f"{no_room['agent_radius_m']} m)", flush=True)
     build_s = time.perf_counter() - t0
     files = nav.save(out_dir, glb=params.glb)
     return {
@@ -47,6 +46,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         "num_holes": sum(len(p["holes"]) for p in nav.polygons()),
         "assumed_walkable": nav.info["assumed_walkable"],
         "camera_on_navmesh": nav.info["camera_on_navmesh"],
+        "agent_radius_m": nav.agent["agent_radius_m"],
+        "no_room": no_room,
         "camera_distance_to_navmesh_m": nav.info["camera_distance_to_navmesh_m"],
         "erp_downsample": nav.info["erp_downsample"],
         "faces_used": nav.info["faces_used"],

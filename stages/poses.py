@@ -8,6 +8,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
+import numpy as np
+
 from panoworld import backends
 from panoworld.backends.poses import Job
 from panoworld.backends.poses.vggt import VggtOptions
@@ -76,6 +78,11 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
             "rerun the video stage on this trajectory"
         )
     backend = backends.get(NAME, params.backend)
+    decisions = []
+    if planned is not None and str(params.backend) == "colmap" and np.ptp(planned[:, :3, 3], axis=0).max() < 1e-6:
+        backend = backends.get(NAME, "planned")  # no room to move (a rotation-only path): SfM has no baseline
+        decisions.append("the trajectory does not move (rotation only: no room to move), so COLMAP has no baseline; "
+                         "planned poses used")
     if planned is None and (backend.traits["needs_plan"] or params.align != Alignment.NONE):
         raise StageInputError(
             f"backend {params.backend} with align {params.align} needs planned poses: give --trajectory "
@@ -85,7 +92,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
 
     depth, depth_from = _choose_depth(params.depth_source, video, est)
     info = write_poses_artifact(out_dir, est, video, planned, depth=depth, copy_frames=params.copy_frames)
-    return {**info, "depth_source": depth_from}
+    return {**info, "depth_source": depth_from, "decisions": decisions}
 
 
 def _choose_depth(src: DepthSource, video, est) -> tuple[list | None, str]:

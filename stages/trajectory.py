@@ -1,4 +1,4 @@
-"""Collision-free SE(3) camera trajectory on the NavMesh (sector or ring; or a validated user file): trajectory.json + .tum."""
+"""Collision-free SE(3) camera trajectory on the NavMesh (explore, sector or ring; or a user file): trajectory.json + .tum."""
 
 from __future__ import annotations
 
@@ -24,6 +24,8 @@ from panoworld.trajectory import (
     clearance_cap,
     format_issues,
     mesh_clearance,
+    path_indices,
+    path_yaw,
     plan_path,
     planning_hub,
     poses_from_positions,
@@ -33,11 +35,11 @@ from panoworld.trajectory import (
     step_lengths,
     validate_poses,
     write_trajectory,
-    yaw_of_path,
 )
+from panoworld.trajectory.stationary import stationary_plan
 
 NAME = "trajectory"
-VERSION = "2"
+VERSION = "3"
 ARTIFACT = "trajectory"
 INPUTS = {
     "navmesh": Input("navmesh", help="navmesh artifact (navmesh.json)"),
@@ -85,6 +87,19 @@ def _user_poses(path: Path, params: Params) -> np.ndarray:
     return poses
 
 
+def _plan_or_stay(nav, params: Params, where: Path):
+    """plan_path, or a stationary rotation-only path when the NavMesh records no room to move (issue #24)."""
+    no_room = nav.info.get("no_room")
+    if no_room and no_room.get("decision") == "stationary":
+        return stationary_plan(params, no_room["reason"])
+    try:
+        return plan_path(nav, params)
+    except ValueError as e:
+        if no_room:
+            return stationary_plan(params, f"{no_room['reason']}; with a smaller agent still: {e}")
+        raise StageInputError(f"{where}: {e}") from None
+
+
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     try:
         nav = load_navmesh(inputs["navmesh"])
@@ -105,11 +120,11 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         source = f"user: {Path(user).name}"
         kind, stride, step_m = "user", None, float(np.median(step_lengths(poses))) if len(poses) > 1 else 0.0
     else:
-        try:
-            plan = plan_path(nav, params)
-        except ValueError as e:
-            raise StageInputError(f"{Path(inputs['navmesh']) / 'navmesh.json'}: {e}") from None
-        yaw = None if params.yaw == YawMode.FIXED else yaw_of_path(plan.positions, closed=params.kind == PathKind.RING)
+        plan = _plan_or_stay(nav, params, Path(inputs["navmesh"]) / "navmesh.json")
+        paths = plan.info.get("paths") or [{"start": 0, "stop": len(plan.positions)}]
+        yaw = None if params.yaw == YawMode.FIXED else path_yaw(plan.positions, paths, closed=params.kind == PathKind.RING)
+        if plan.info.get("rotation_only"):
+            yaw = np.asarray(plan.info.pop("yaw_rad"))
         poses = poses_from_positions(plan.positions, yaw)
         source = "planned"
         kind, stride, step_m = str(params.kind), params.stride, plan.step_m
@@ -125,7 +140,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     if issues and params.on_invalid == OnInvalid.ERROR:
         hint = "move those poses" if user is not None else "the NavMesh disagrees with the mesh; rebuild the navmesh"
         raise StageInputError(f"{where}: {format_issues(issues, len(poses))}; {hint} or pass --on-invalid report")
-    steps = step_lengths(poses)
+    paths = meta.get("paths")
+    steps = np.concatenate([step_lengths(poses[path_indices(p)]) for p in paths]) if paths else step_lengths(poses)
     xz = poses[:, [0, 2], 3]
     if "sectors_reachable" in meta:
         reachable = int(meta["sectors_reachable"])
@@ -139,12 +155,16 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         "stride": stride,
         "step_m": step_m,
         "length_m": float(steps.sum()),
+        "paths": len(paths) if paths else 1,
+        "max_reach_m": float(np.linalg.norm(xz, axis=1).max()),
         "step_cv": float(steps.std() / steps.mean()) if len(steps) and steps.mean() > 0 else 0.0,
         "closure_m": float(np.linalg.norm(xz[-1] - xz[0])),
         "sectors": params.sectors,
         "sectors_covered": int(sector_coverage(xz, np.zeros(2), params.sectors, MIN_SECTOR_DIST_M).sum()),
         "sectors_reachable": reachable,
         "start_off_navmesh_m": float(meta.get("start_off_navmesh_m", 0.0)),
+        "no_room": (nav.info.get("no_room") or {}).get("reason"),
+        "rotation_only": bool(meta.get("rotation_only", False)),
         "min_clearance_m": float(clearance.min()),
         "clearance_cap_m": cap,
         "agent_radius_m": radius,
@@ -159,6 +179,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         out_dir, poses, clearance, fps=params.fps, kind=kind, stride=stride, step_m=step_m, source=source,
         yaw=str(params.yaw) if user is None else None, agent_radius_m=radius, clearance_cap_m=cap,
         floor_y=nav.floor_y, camera_height_m=nav.floor_y, invalid_poses=info["invalid_poses"],
+        **({"paths": paths} if paths else {}),
     )
     return info
 

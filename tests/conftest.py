@@ -31,3 +31,14 @@ def synth_dataset(tmp_path_factory):
 def synth_scene(synth_dataset):
     """One ci-tiny synthetic scene directory (pipeline input layout + gt/)."""
     return sorted(p for p in synth_dataset.iterdir() if p.is_dir())[0]
+
+
+@pytest.fixture(scope="session")
+def cond_dir(synth_dataset, tmp_path_factory):
+    """A precompute output of synth_dataset: 2 clips per scene, 5 frames, 32 x 64 (the video trainer's tests)."""
+    from panoworld.precompute import main as precompute_main
+
+    out = tmp_path_factory.mktemp("cond") / "cond"
+    assert precompute_main([str(synth_dataset), "--out", str(out), "--clips-per-scene", "2", "--frames", "5",
+                            "--strides", "1", "--height", "32", "--workers", "1", "--json"]) == 0
+    return out

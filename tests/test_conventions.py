@@ -139,3 +139,11 @@ def test_depth_png_millimetres():
     assert mm.dtype == np.uint16
     assert mm.tolist() == [[0, 0, 0, 0], [0, 1234, 65535, 65535]]
     np.testing.assert_allclose(mm[1, 1] * cv.DEPTH_PNG_SCALE, 1.234)
+
+
+def test_asset_frame_is_z_up_with_the_floor_at_zero():
+    T = cv.asset_from_canonical(1.6)
+    assert np.isclose(np.linalg.det(T[:3, :3]), 1.0)
+    np.testing.assert_allclose(T[:3, :3] @ cv.WORLD_UP, [0, 0, 1], atol=1e-12)  # up -> +Z
+    np.testing.assert_allclose(cv.transform_points(T, np.array([[0.0, 1.6, 0.0]])), [[0, 0, 0]], atol=1e-12)  # floor
+    np.testing.assert_allclose(cv.transform_points(T, np.array([[0.0, 0.0, 2.0]])), [[2, 0, 1.6]], atol=1e-12)  # forward

@@ -49,7 +49,7 @@ def test_read_depth_formats(room, tmp_path):
     with pytest.raises(StageInputError, match="bad.npy: cannot read"):
         dep.read_depth(tmp_path / "bad.npy")
     (tmp_path / "bad.png").write_bytes(b"\x89PNG garbage")
-    with pytest.raises(StageInputError, match="bad.png: cannot read"):
+    with pytest.raises(StageInputError, match="bad.png: depth PNG is corrupt or not an image"):
         dep.read_depth(tmp_path / "bad.png")
     depth.tofile(tmp_path / "d.raw")
     with pytest.raises(StageInputError, match="unsupported depth format"):
@@ -74,7 +74,7 @@ def test_panorama_checks(room, tmp_path):
     with pytest.raises(StageInputError, match=r"wide.png: panorama is 100x64 .* must be 2:1"):
         dep.read_panorama(tmp_path / "wide.png")
     (tmp_path / "broken.jpg").write_bytes(b"\xff\xd8\xff garbage")
-    with pytest.raises(StageInputError, match="broken.jpg: cannot read the panorama"):
+    with pytest.raises(StageInputError, match="broken.jpg: panorama is corrupt or not an image"):
         dep.read_panorama(tmp_path / "broken.jpg")
     np.testing.assert_array_equal(dep.read_panorama(write_png(tmp_path / "p.png", rgb)), rgb)
 

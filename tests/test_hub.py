@@ -81,7 +81,8 @@ def test_parse_hf_ids():
     assert parse_hf("hf:org/name@v1.0") == HfId("org/name", "v1.0")
     assert parse_hf("hf:org/name@abc1234/sub/file.pth") == HfId("org/name", "abc1234", "sub/file.pth")
     assert str(parse_hf("hf:org/name@abc1234/sub/file.pth")) == "hf:org/name@abc1234/sub/file.pth"
-    for bad in ("hf:name-only", "hf:org/na me", "hf:org/name@", "hf:org/name/../x"):
+    for bad in ("hf:name-only", "hf:org/na me", "hf:org/name@", "hf:org/name/../x", "hf:a/b@..", "hf:org/name//abs",
+                "hf:/etc/passwd", "hf:org/name/./x", "hf:org/name@a/../../x", "hf:org/name/sub/", "hf:org/n\\x"):
         with pytest.raises(WeightsNotFound, match=r"expected hf:ORG/NAME\[@REVISION\]\[/PATH\]"):
             parse_hf(bad)
 

@@ -183,3 +183,97 @@ def test_fvd_i3d_loads_a_torchscript_file_with_the_reference_call(tmp_path):
     (tmp_path / "bad.pt").write_bytes(b"not torchscript")
     with pytest.raises(MissingWeightsError, match="i3d_torchscript.pt"):
         I3DFeatures.from_file(tmp_path / "bad.pt")
+
+
+def _torch_fidelity_inception():
+    """torch-fidelity's InceptionV3 (a separate port of the TF FID graph), imported without its package __init__,
+    which pulls torchvision in; `pip install --no-deps torch-fidelity` (its torchvision requirement breaks here)."""
+    import importlib.util
+    import sys
+    import types
+
+    spec = importlib.util.find_spec("torch_fidelity")
+    if spec is None:
+        pytest.skip("torch-fidelity is not installed (pip install --no-deps torch-fidelity)")
+    if "torch_fidelity" not in sys.modules:
+        pkg = types.ModuleType("torch_fidelity")
+        pkg.__path__ = list(spec.submodule_search_locations)
+        sys.modules["torch_fidelity"] = pkg
+    from torch_fidelity.feature_extractor_inceptionv3 import FeatureExtractorInceptionV3
+
+    return FeatureExtractorInceptionV3
+
+
+def test_fid_features_match_torch_fidelitys_inception_on_the_same_random_weights(tmp_path):
+    import torch
+
+    from panoworld.models.inception import FIDInceptionV3
+
+    reference_cls = _torch_fidelity_inception()
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    net = FIDInceptionV3().eval()
+    with torch.no_grad():  # random BatchNorm statistics too, so every layer's eval path is exercised
+        for m in net.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.1, 0.1)
+                m.running_var.uniform_(0.5, 1.5)
+                m.weight.uniform_(0.5, 1.5)
+                m.bias.uniform_(-0.1, 0.1)
+    path = tmp_path / "inception.pth"
+    torch.save({k: v for k, v in net.state_dict().items() if not k.endswith("num_batches_tracked")}, path)
+    ref = reference_cls("inception-v3-compat", ["2048"], feature_extractor_weights_path=str(path)).eval()
+    u8 = torch.from_numpy(_rand((2, 299, 299, 3))).permute(0, 3, 1, 2).contiguous()
+    with torch.no_grad():
+        expected = ref(u8)[0].double()
+        # the same network input: torch-fidelity scales as the TF graph, (u - 128) / 128; ours (pytorch-fid) as
+        # 2 x - 1 of x in [0, 1], so x = ((u - 128) / 128 + 1) / 2; at 299 x 299 neither resizes
+        ours = net(((u8.float() - 128) / 128 + 1) / 2).double()
+    assert expected.shape == ours.shape == (2, 2048)
+    assert expected.abs().mean() > 1e-3
+    torch.testing.assert_close(ours, expected, rtol=1e-4, atol=1e-5 * float(expected.abs().max()))
+    # and the 'uint8' path of ours differs from the TF graph only by that scaling (pytorch-fid's convention)
+    f = net.features_uint8(u8.permute(0, 2, 3, 1).numpy())
+    assert np.abs(f - expected.numpy()).max() < 0.05 * np.abs(expected.numpy()).max()
+
+
+def test_fvd_features_match_the_styleganv_preprocessing_on_the_same_random_i3d(tmp_path):
+    import torch
+    import torch.nn.functional as F
+
+    from panoworld.models.i3d import I3DFeatures
+
+    class RandomI3D(torch.nn.Module):  # random 3D-conv features behind the reference call signature
+        def __init__(self):
+            super().__init__()
+            self.conv = torch.nn.Conv3d(3, 8, kernel_size=(3, 7, 7), stride=(1, 2, 2), padding=(1, 3, 3))
+            self.head = torch.nn.Linear(8 * 4, 400)
+
+        def forward(self, x: torch.Tensor, rescale: bool = False, resize: bool = False,
+                    return_features: bool = True):
+            h = torch.relu(self.conv(x))
+            h = F.adaptive_avg_pool3d(h, (1, 2, 2)).flatten(1)
+            return self.head(h)
+
+    torch.manual_seed(0)
+    torch.jit.script(RandomI3D()).save(str(tmp_path / "i3d_torchscript.pt"))
+    i3d = I3DFeatures.from_file(tmp_path / "i3d_torchscript.pt")
+    clips = _rand((2, 8, 224, 224, 3), seed=5)
+
+    def styleganv_preprocess(video: np.ndarray) -> torch.Tensor:
+        # StyleGAN-V's FVD: [0, 1] video (C, T, H, W), short side resized to 224 (bilinear), centre crop, -> [-1, 1]
+        v = torch.from_numpy(video).permute(3, 0, 1, 2).float() / 255.0
+        c, t, h, w = v.shape
+        s = 224 / min(h, w)
+        if (h, w) != (224, 224):
+            v = F.interpolate(v, size=(int(np.ceil(h * s)), int(np.ceil(w * s))), mode="bilinear", align_corners=False)
+        h, w = v.shape[-2:]
+        v = v[:, :, (h - 224) // 2:(h - 224) // 2 + 224, (w - 224) // 2:(w - 224) // 2 + 224]
+        return (v - 0.5) * 2
+
+    with torch.no_grad():
+        x = torch.stack([styleganv_preprocess(c) for c in clips])
+        expected = i3d.module(x, rescale=False, resize=False, return_features=True).double().numpy()
+    ours = i3d.features_uint8(clips)
+    assert ours.shape == expected.shape == (2, 400)
+    np.testing.assert_allclose(ours, expected, rtol=1e-5, atol=1e-6 * np.abs(expected).max())

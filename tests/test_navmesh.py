@@ -216,7 +216,7 @@ def _make_mesh_artifact(root, depth):
     return root / "mesh"
 
 
-def test_stage_writes_navmesh_and_rejects_a_panorama_without_floor(tmp_path, capsys):
+def test_stage_writes_navmesh_and_a_stationary_one_without_floor(tmp_path):
     from stages import navmesh as stage
 
     mesh_dir = _make_mesh_artifact(tmp_path, erp_depth(box_room(), 64))
@@ -230,7 +230,8 @@ def test_stage_writes_navmesh_and_rejects_a_panorama_without_floor(tmp_path, cap
     bad = tmp_path / "bad"
     bad.mkdir()
     bad_mesh = _make_mesh_artifact(bad, d)
-    assert stage.main(["--mesh", str(bad_mesh), "--out", str(tmp_path / "nav_bad")]) == 2
-    err = capsys.readouterr().err
-    assert "no walkable floor" in err and "mesh.ply" in err
-    assert not (tmp_path / "nav_bad").exists()
+    # No floor is no room to move (issue #24): a stationary NavMesh at the camera, the reason in the manifest.
+    assert stage.main(["--mesh", str(bad_mesh), "--out", str(tmp_path / "nav_bad")]) == 0
+    info = json.loads((tmp_path / "nav_bad" / "manifest.json").read_text())["info"]
+    assert info["no_room"]["decision"] == "stationary" and "no walkable floor" in info["no_room"]["reason"]
+    assert info["camera_on_navmesh"] and info["area_m2"] < 0.01

@@ -41,6 +41,10 @@ def test_full_pipeline_runs_caches_and_reruns_one_stage(synth_scene, tmp_path):
 
     assert runner.main(["demo", str(tmp_path), "--preset", "ci-tiny"]) == 0
     assert yaml.safe_load((scene / "scene.yaml").read_text()) == {"preset": "ci-tiny"}
+    # The default trajectory holds several paths (one per sector); every downstream stage consumed all its poses.
+    traj = art.read_manifest(scene / "artifacts" / "trajectory")["info"]
+    assert traj["kind"] == "explore" and traj["paths"] > 1
+    assert len(json.loads((scene / "artifacts" / "poses" / "poses.json").read_text())["poses"]) == traj["frames"]
     for name in order:
         m = art.read_manifest(scene / "artifacts" / name)
         assert m["stage"] == name and m["peak_rss_mb"] > 0 and m["params"] == params_to_dict(

@@ -71,8 +71,9 @@ def test_failure_class_runs_at_default_settings(tmp_path, case):
     assert traj["sectors_covered"] >= want
     depth_info = m["depth"]["info"]
     if case == FailureCase.RIG_BLIND_SPOT:
-        # The floor under the rig is unseen but seen all around: assumed walkable, the camera starts on the NavMesh.
-        assert nav["assumed_walkable"]["blind_spot_m2"] > 0.5 and nav["camera_on_navmesh"]
+        # The floor under the rig is unseen: the depth stage completes it from the floor plane (complete_poles), so
+        # the camera starts on the NavMesh (with complete_poles=false the NavMesh's blind-spot rule assumes it).
+        assert depth_info["pole_completion"]["floor_fraction"] > 0.1 and nav["camera_on_navmesh"]
         assert exempt == {0}
     elif case == FailureCase.OBJECT_UNDER_CAMERA:
         # A seen obstacle is never assumed away: start off the NavMesh, the way there is exempt and reported.
@@ -146,4 +147,5 @@ def test_runner_prints_the_failing_stage_reason(tmp_path):
     report = pl.run(scene_dir, until="depth")
     (failed,) = [r for r in report.results if r.action == "failed"]
     assert failed.stage == "depth" and "weights fetch depth-anything-v2-small" in failed.reason
-    assert "log: " in failed.reason
+    # bad input: exit 2 and nothing written (no artifacts/, no lock, no log)
+    assert failed.bad_input and not (scene_dir / "artifacts").exists()

@@ -13,7 +13,7 @@ from panoworld.report.cli import build_scene_report, main
 from panoworld.report.scene import ReportParams
 from panoworld.report.topdown import PlanView
 
-SCENE_SECTIONS = ["stages", "depth", "plan", "frames", "poses", "gaussians", "eval"]
+SCENE_SECTIONS = ["stages", "depth", "plan", "frames", "poses", "gaussians", "eval", "roam"]
 
 
 _BUILT: dict[str, object] = {}
@@ -36,9 +36,12 @@ def pipeline_scene(synth_scene, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def scene_report(pipeline_scene):
-    from panoworld.evaluate import evaluate
+    from panoworld.evaluate import EvalParams, evaluate
+    from panoworld.report.scene import ROAM_IMAGES
 
-    rep, errors = evaluate(pipeline_scene, stages=["trajectory", "poses"])  # cheap stages; the page shows any saved eval
+    # cheap stages (the page shows any saved eval) and the roam protocol at small sizes, with its pictures
+    rep, errors = evaluate(pipeline_scene, EvalParams(roam_height=32, roam_pinhole=16),
+                           stages=["trajectory", "poses", "roam"], roam_images=pipeline_scene / "artifacts" / ROAM_IMAGES)
     assert not errors
     (pipeline_scene / "artifacts" / "report").mkdir(parents=True, exist_ok=True)
     (pipeline_scene / "artifacts" / "report" / "eval.json").write_text(json.dumps(rep))
@@ -58,6 +61,7 @@ def test_scene_report_has_every_section_and_is_self_contained(scene_report, pipe
     text = out.read_text()
     assert _sections(text) == {s: "present" for s in SCENE_SECTIONS}
     assert "could not draw" not in text
+    assert "capture point: Gaussians, ERP" in text and "capture point: reference, pinhole" in text
     # nothing is fetched: every image is a data: URI and no script or style comes from elsewhere
     assert re.findall(r'<img[^>]+src="(?!data:image/)', text) == []
     assert not re.search(r'<(script|link)[^>]+(src|href)="(?!data:)', text)
@@ -120,9 +124,9 @@ def test_partial_scene_shows_missing_stages(synth_scene, tmp_path):
     text = out.read_text()
     sections = _sections(text)
     assert sections["depth"] == "present" and sections["stages"] == "present"
-    assert all(sections[s] == "missing" for s in ["plan", "frames", "poses", "gaussians", "eval"])
+    assert all(sections[s] == "missing" for s in ["plan", "frames", "poses", "gaussians", "eval", "roam"])
     assert "could not draw" not in text and "runner.py report SCENE --eval" in text
-    assert text.count('<span class="na">missing</span>') == 7
+    assert text.count('<span class="na">missing</span>') == len(pl.Pipeline.load().order) - 1  # every stage but depth
 
 
 @pytest.mark.slow
@@ -164,3 +168,18 @@ def test_pinhole_cut_from_erp_looks_along_plus_z():
     assert abs(int(view[16, 16, 0]) - 128) <= 3 and abs(int(view[16, 16, 1]) - 128) <= 6
     # the left edge looks 45 degrees left (lon -pi/4 -> column 48); rows go down in both images
     assert abs(int(view[16, 0, 0]) - 97) <= 3 and view[0, 16, 1] < view[31, 16, 1]
+
+
+def test_footprint_rings_outline_only_what_reaches_into_the_band():
+    from panoworld.report.topdown import footprint_rings
+
+    wall = np.array([[1.0, 0.0, -1.0], [1.0, 0.0, 1.0], [1.0, 2.0, 1.0], [1.0, 2.0, -1.0]])  # vertical, y 0..2
+    floor = np.array([[-2.0, 2.5, -2.0], [2.0, 2.5, -2.0], [2.0, 2.5, 2.0], [-2.0, 2.5, 2.0]])  # below the band
+    v = np.concatenate([wall, floor])
+    f = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    view = PlanView(np.array([[-2.0, -2.0], [2.0, 2.0]]), margin_m=0.2, max_px=200)
+    rings = footprint_rings(v, f, view, 0.5, 2.3)
+    pts = np.concatenate(rings)
+    assert len(rings) == 1 and np.abs(pts[:, 0] - 1.0).max() < 3 * view.cell  # the wall's line at x = 1 ...
+    assert pts[:, 1].min() < -0.9 and pts[:, 1].max() > 0.9  # ... along its whole length; the floor is not drawn
+    assert footprint_rings(v, f, view, 3.0, 4.0) == []

@@ -228,7 +228,7 @@ def test_presets_apply_and_set_overrides(scene):
     [
         ("missing", [], "no panorama; expected one of panorama.png, panorama.jpg"),
         ("square", [], "is not an equirectangular panorama"),
-        ("corrupt", [], "unreadable image"),
+        ("corrupt", [], "panorama is corrupt or not an image"),
         ("ok", ["--only", "nope"], "--only nope: unknown stage"),
         ("ok", ["--set", "b.bogus=1"], "b.bogus: unknown param; known: fail, n, refuse, sleep (from --set)"),
         ("ok", ["--set", "b.sleeep=1"], "b.sleeep: unknown param; did you mean sleep? (from --set)"),

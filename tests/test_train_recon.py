@@ -175,3 +175,15 @@ def test_yaw_augment_modes_keep_or_randomise_relative_rotations(synth_dataset):
     assert not np.allclose(per_frame.world_from_cam[1:, :3, :3], none.world_from_cam[1:, :3, :3], atol=1e-3)
     with pytest.raises(ValueError, match="expected none, shared or per-frame"):
         data.sample(np.random.default_rng(3), 4, 4, yaw_augment="sometimes")
+
+
+def test_paper_preset_values_name_their_source_and_follow_vggt():
+    from panoworld.train.recon.config import PRESETS, SOURCES, ReconConfig, dpt_layers, model_config
+
+    missing = sorted(set(PRESETS["paper"]) - set(SOURCES["paper"]))
+    assert not missing, f"paper preset values without a source: {missing}"
+    assert dpt_layers(24) == (4, 11, 17, 23)  # VGGT's DPT head
+    assert dpt_layers(4) == (0, 1, 2, 3)  # the tiny model's, unchanged
+    assert PRESETS["paper"]["warmup_steps"] == 8000 and PRESETS["paper"]["lr"] == 2e-4  # VGGT's schedule
+    cfg = ReconConfig(**{k: v for k, v in PRESETS["paper"].items()})
+    assert tuple(model_config(cfg, with_head=False).dpt_layers) == (4, 11, 17, 23)

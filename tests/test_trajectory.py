@@ -19,10 +19,12 @@ from panoworld.trajectory import (
     load_trajectory,
     mesh_clearance,
     plan_path,
+    polyline_length,
     poses_from_positions,
     read_trajectory_file,
     resample_polyline,
     sector_coverage,
+    sector_of,
     sector_reach,
     smooth_polyline,
     step_lengths,
@@ -49,7 +51,7 @@ def test_planned_paths_are_safe_against_ground_truth(seed):
     nav = build_navmesh(mesh.vertices, mesh.faces, mesh.face_valid)
     radius = nav.agent["agent_radius_m"]
     _, reach = sector_reach(nav, np.zeros(2), 8)
-    for kind in PathKind:
+    for kind in (PathKind.SECTOR, PathKind.RING):
         for stride in (1, 4):
             plan = plan_path(nav, TrajectoryParams(kind=kind, stride=stride))
             poses = poses_from_positions(plan.positions)
@@ -64,6 +66,46 @@ def test_planned_paths_are_safe_against_ground_truth(seed):
             else:
                 covered = sector_coverage(plan.positions, np.zeros(2), 8, 0.1).sum()
                 assert covered >= min(6, int((reach >= 0.1).sum()))
+
+
+def _walk_extent(nav, sector: int, reach_m: float, n: int = 4000) -> float:
+    """Farthest NavMesh sample of a sector (8 around the camera) whose shortest walk from the camera is <= reach_m."""
+    pts = nav.sample_points(n, 1)
+    pts = pts[sector_of(pts, np.zeros(2), 8) == sector]
+    for q in pts[np.argsort(-np.linalg.norm(pts, axis=1))]:
+        try:
+            if polyline_length(nav.path(np.zeros(2), q)) <= reach_m:
+                return float(np.linalg.norm(q))
+        except ValueError:  # not connected to the camera's piece of floor
+            continue
+    return 0.0
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_explore_paths_leave_the_camera_into_every_sector_and_reach_the_room(seed):
+    # One path per sector from the camera: safe against the GT mesh, on the NavMesh, uniform steps within each path,
+    # each leaving from pose 0, and each tip >= 70 % of the sector's extent (independently: A* walks to samples).
+    mesh, gt_v, gt_f = _synth(seed)
+    nav = build_navmesh(mesh.vertices, mesh.faces, mesh.face_valid)
+    radius = nav.agent["agent_radius_m"]
+    params = TrajectoryParams(kind=PathKind.EXPLORE)
+    plan = plan_path(nav, params)
+    poses = poses_from_positions(plan.positions)
+    assert poses.shape == (81, 4, 4) and np.array_equal(poses[0], np.eye(4))
+    assert mesh_clearance(gt_v, gt_f, poses[:, :3, 3]).min() >= radius
+    assert nav.contains(plan.positions).all()
+    paths = plan.info["paths"]
+    assert [p["start"] for p in paths] == [1] + [p["stop"] for p in paths[:-1]] and paths[-1]["stop"] == 81
+    assert len(paths) >= 6
+    for p in paths:
+        walk = plan.positions[[0, *range(p["start"], p["stop"])]]
+        steps = np.linalg.norm(np.diff(walk, axis=0), axis=1)
+        assert steps.max() <= 1.35 * steps.mean()  # smoothing and corners: chords a little shorter than arcs
+        extent = _walk_extent(nav, p["sector"], params.reach_m)
+        tip = float(np.linalg.norm(walk[-1]))
+        assert tip >= 0.7 * extent - 0.05, (p, extent)
+        if extent >= 1.5:
+            assert tip >= 1.0
 
 
 def test_camera_off_the_navmesh_walks_straight_onto_it():

@@ -78,13 +78,15 @@ def test_viewer_canvas_shows_the_splats_in_chromium(viewer, tmp_path):
         def settled(visible: bool) -> np.ndarray:
             viewer.handles["splats"].visible = visible
             prev, img = None, None
+            shots = 0
             for _ in range(40):  # software WebGL: wait until two screenshots agree
+                shots += 1
                 time.sleep(0.5)
                 img = screenshot_array(page, clip=clip).astype(np.int16)
                 if prev is not None and np.abs(img - prev).mean() < 0.5:
                     break
                 prev = img
-            print(f"splats {'shown' if visible else 'hidden'}: settled after {k + 1} screenshots")
+            print(f"splats {'shown' if visible else 'hidden'}: settled after {shots} screenshots")
             return img
 
         with_splats = settled(True)
@@ -129,3 +131,27 @@ def test_viewer_skips_missing_stages_and_shows_colmap_points(tmp_path):
 def test_view_cli_rejects_a_directory_without_artifacts(tmp_path, capsys):
     assert main([str(tmp_path)]) == 2
     assert "no artifacts/" in capsys.readouterr().err
+
+
+def test_non_loopback_host_and_taken_port_are_announced(tmp_path):
+    from panoworld.viewer.app import is_loopback, serve_warnings
+
+    assert is_loopback("127.0.0.1") and is_loopback("localhost") and is_loopback("::1") and is_loopback("127.5.0.1")
+    assert not any(is_loopback(h) for h in ("0.0.0.0", "::", "192.168.1.10", "my-host.lan"))
+    assert serve_warnings("127.0.0.1", 8080, 8080) == []
+    (tmp_path / "artifacts").mkdir()
+    with socket.socket() as taken:  # a port someone else holds: the viewer moves, and says so with the real URL
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        v = SceneViewer(tmp_path, ViewerParams(port=port))
+        try:
+            served = v.server.get_port()
+            assert served != port and v.url == f"http://127.0.0.1:{served}"
+            with socket.create_connection(("127.0.0.1", served), timeout=5):
+                pass  # the printed URL is the one actually served
+            lines = serve_warnings("0.0.0.0", port, served)
+            assert "WARNING: --host 0.0.0.0 is not a loopback address" in lines[0]
+            assert f"port {port} is taken; serving on port {served}" in lines[1]
+        finally:
+            v.stop()

@@ -379,3 +379,56 @@ def test_discrete_sigma_is_t_over_n():
     torch.testing.assert_close(s * 8, (s * 8).round())
     c = wt.sample_sigma(1000, 0, torch.Generator().manual_seed(0))
     assert len(set(c.tolist())) == 1000 and 0 <= c.min() and c.max() < 1
+
+
+def test_self_consistency_target_is_the_mean_of_the_teachers_two_half_steps_on_the_grid(monkeypatch):
+    vae, tr = tiny_vae(), tiny_transformer()
+    wt.prepare_for_training(tr, wl.condition_channels(vae), rank=4, alpha=4)
+    perturb(tr, 3, ("lora_B", "step_embedder.embedder.linear_2"))
+    teacher = wt.EmaTeacher(tr, decay=0.99)
+    perturb(tr, 4, ("lora_B", "step_embedder.embedder.linear_2"))  # the student now differs from its teacher
+    name, param = next(iter(teacher.params.items()))
+    calls, real = [], wl.velocity
+
+    def spy(model, x_t, sigma, dt, condition, prompt_embeds, anchor=None):
+        out = real(model, x_t, sigma, dt, condition, prompt_embeds, anchor)
+        calls.append({"x": x_t.detach().clone(), "sigma": sigma.clone(), "dt": dt.clone(), "v": out.detach().clone(),
+                      "teacher": param.data.data_ptr() == teacher.shadow[name].data_ptr()})
+        return out
+
+    monkeypatch.setattr(wl, "velocity", spy)
+    b, max_steps = 48, 8
+    g = torch.Generator().manual_seed(0)
+    x0 = torch.randn(b, Z, 2, 4, 8, generator=g)
+    cond = torch.randn(b, Z + 4, 2, 4, 8, generator=g)
+    text = torch.randn(b, 7, TEXT_DIM, generator=g)
+    loss = wt.self_consistency_loss(tr, x0, cond, text, generator=torch.Generator().manual_seed(1),
+                                    max_steps=max_steps, teacher=teacher)
+    assert [c["teacher"] for c in calls] == [True, True, False]
+    first, second, student = calls
+    dt, sigma = student["dt"].double(), student["sigma"].double()
+    # the grid: dt in {1, 1/2, ..., 2/max_steps}, sigma = j dt with j in 1..1/dt; every level is drawn
+    assert set(dt.tolist()) == {1.0, 0.5, 0.25}
+    j = sigma / dt
+    torch.testing.assert_close(j, j.round(), rtol=0, atol=1e-6)
+    assert bool((j >= 1).all()) and bool((j <= 1 / dt + 1e-9).all())
+    # the teacher: two half steps of dt/2 from (x_t, sigma), the finest half step is the plain flow (dt 0)
+    half = dt / 2
+    teacher_dt = torch.where(half <= 1 / max_steps, torch.zeros_like(half), half)
+    torch.testing.assert_close(first["dt"].double(), teacher_dt)
+    torch.testing.assert_close(second["dt"].double(), teacher_dt)
+    torch.testing.assert_close(first["sigma"], student["sigma"])
+    torch.testing.assert_close(second["sigma"].double(), sigma - half)
+    torch.testing.assert_close(first["x"], student["x"])
+    torch.testing.assert_close(second["x"], first["x"] - half.float().view(-1, 1, 1, 1, 1) * first["v"])
+    # recomputed independently with the teacher's weights, the target is the mean of its two velocities
+    monkeypatch.setattr(wl, "velocity", real)
+    with teacher.swapped():
+        v1 = real(tr, first["x"], first["sigma"], first["dt"], cond, text)
+        v2 = real(tr, first["x"] - half.float().view(-1, 1, 1, 1, 1) * v1, second["sigma"], second["dt"], cond, text)
+    torch.testing.assert_close(v1, first["v"])
+    target = (v1 + v2) / 2
+    torch.testing.assert_close(loss.detach(), ((student["v"] - target) ** 2).mean())
+    # and it is not the student's own two half steps (the teacher's weights differ)
+    s1 = real(tr, first["x"], first["sigma"], first["dt"], cond, text).detach()
+    assert (s1 - v1).abs().max() > 1e-4

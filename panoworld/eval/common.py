@@ -62,6 +62,23 @@ class EvalParams:
     pose_tol_m: float = 1e-3
     """Frames + poses scenes: a pipeline pose matches a ground-truth track frame when their camera centres lie within
     this distance (metres) and their orientations within 0.1 degree."""
+    reference_supersample: int = 4
+    """Synthetic references are anti-aliased: ray cast at this factor x the scored rows and columns and
+    area-downsampled in linear RGB (1 = one ray per pixel, the aliased reference of earlier rounds)."""
+    reference_max_rows: int = 1536
+    """The supersampling factor is lowered so that a supersampled reference has at most this many rows (a 720-row
+    reference is cast at 2x, a 256-row one at 4x)."""
+    reference_cache_mb: float = 512.0
+    """Memory bound of the cache of reference renders (least recently used renders are dropped)."""
+    roam_views: int = 0
+    """Roam protocol: random upright poses per distance bucket (0 = 2, or 1 on a ci-tiny scene)."""
+    roam_height: int = 0
+    """Roam protocol: ERP height of the renders (width 2 x; 0 = 256, or 64 on a ci-tiny scene)."""
+    roam_pinhole: int = 0
+    """Roam protocol: side in pixels of the square pinhole view rendered at every roam pose (horizontal, facing the
+    pose's random yaw); 0 = 256, or 64 on a ci-tiny scene; -1 = no pinhole views."""
+    roam_fov_deg: float = 90.0
+    """Roam protocol: field of view of the pinhole views in degrees."""
 
 
 # ---------------------------------------------------------------- results and targets
@@ -99,6 +116,8 @@ TARGETS: dict[str, dict[str, Target]] = {
     "conditions": {"psnr_valid": Target(">=", 28.0, " dB"), "mask_iou": Target(">=", 0.75)},
     "poses": {"ate_over_path": Target("<=", 0.005)},
     "gaussians": {"context_psnr": Target(">=", 26.0, " dB"), "novel_psnr": Target(">=", 22.0, " dB")},
+    "roam": {"d0_erp_psnr": Target(">=", 32.0, " dB"), "d1_erp_psnr": Target(">=", 28.0, " dB"),
+             "d2_erp_psnr": Target(">=", 25.0, " dB"), "d2_erp_coverage": Target(">=", 0.995)},
 }
 
 

@@ -21,6 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
+from panoworld.image_io import read_image
+from panoworld.limits import load_npy
+
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
@@ -68,12 +71,10 @@ def convert_frames_scene(poses_file: Path, out: Path, rgb: str, depth: str | Non
         src = base / rgb.format(i)
         if not src.is_file():
             raise ValueError(f"{src}: missing frame {i} of the track ({n} poses); check --rgb")
-        if cv2.imread(str(src), cv2.IMREAD_COLOR) is None:
-            raise ValueError(f"{src}: unreadable image")
-        cv2.imwrite(str(rgb_dir / f"{i:06d}.png"), cv2.imread(str(src), cv2.IMREAD_COLOR))
+        cv2.imwrite(str(rgb_dir / f"{i:06d}.png"), read_image(src, cv2.IMREAD_COLOR, what="frame"))
         if depth:
             depth_dir.mkdir(parents=True, exist_ok=True)
-            d = np.load(base / depth.format(i)).astype(np.float32)
+            d = load_npy(base / depth.format(i), "depth frame").astype(np.float32)
             np.save(depth_dir / f"{i:06d}.npy", d)
     world_from_canonical = poses[start]
     (gt / "tracks" / "track_00.json").write_text(json.dumps({"world_from_cam": poses.tolist()}))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections import OrderedDict
 from functools import cached_property
 from pathlib import Path
 
@@ -19,20 +20,60 @@ class NoReference(Exception):
 NO_MESH = "needs a ground-truth mesh; this scene has {what}"
 
 
+class RenderCache:
+    """Least-recently-used renders keyed by (pose bytes, size, ...), bounded by their total bytes."""
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes = max_bytes
+        self._items: OrderedDict[tuple, tuple] = OrderedDict()
+        self._bytes = 0
+
+    def get(self, key: tuple, make):
+        if key in self._items:
+            self._items.move_to_end(key)
+            return self._items[key]
+        value = make()
+        size = sum(a.nbytes for a in value)
+        if size <= self.max_bytes:
+            self._items[key] = value
+            self._bytes += size
+            while self._bytes > self.max_bytes:
+                self._bytes -= sum(a.nbytes for a in self._items.popitem(last=False)[1])
+        return value
+
+
+def aa_factor(height: int, supersample: int, max_rows: int) -> int:
+    """Supersampling factor of an anti-aliased reference `height` rows tall: `supersample`, lowered so that the
+    supersampled image has at most max_rows rows (never below 1)."""
+    return max(1, min(int(supersample), int(max_rows) // max(int(height), 1)))
+
+
 class GroundTruth:
     """The synthetic scene of SCENE/gt/ seen in the pipeline's canonical frame (camera 0 of track 0 = identity).
 
-    Every pose argument is canonical world_from_cam; renders are exact (SynthScene.render) and cached per pose and size.
+    Every pose argument is canonical world_from_cam. Renders are anti-aliased references: ray cast exactly at
+    s x the asked size and area-downsampled in linear RGB (s = aa_factor(H, supersample, max_rows), at least the
+    scene panorama's own supersampling); they are cached per pose and size (cache_mb bounds the cache).
     """
 
     kind = "synthetic"
 
-    def __init__(self, gt_dir: Path):
+    def __init__(self, gt_dir: Path, *, supersample: int = 4, max_rows: int = 1536, cache_mb: float = 512.0):
         self.dir = Path(gt_dir)
         self.index = json.loads((self.dir / "gt.json").read_text())
         self.world_from_canonical = np.asarray(self.index["world_from_canonical"], np.float64)
-        self.supersample = int((self.index.get("panorama") or {}).get("supersample", 1))
-        self._renders: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+        self.pano_supersample = int((self.index.get("panorama") or {}).get("supersample", 1))
+        self.aa_supersample, self.aa_max_rows = int(supersample), int(max_rows)
+        self._renders = RenderCache(int(cache_mb * 2**20))
+
+    def factor(self, height: int) -> int:
+        """The supersampling factor of the reference at this height."""
+        return max(self.pano_supersample, aa_factor(height, self.aa_supersample, self.aa_max_rows))
+
+    def describe(self, height: int) -> str:
+        s = self.factor(height)
+        return (f"exact ray cast at {s}x the rows and columns ({s * height} rows), area-downsampled in linear RGB"
+                if s > 1 else "exact ray cast at the scored size, not anti-aliased (one ray per pixel)")
 
     @cached_property
     def scene(self):
@@ -54,10 +95,16 @@ class GroundTruth:
 
     def render(self, pose: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
         """(rgb (H, W, 3) uint8, depth (H, W) float32 metres, inf = no surface) at a canonical pose (4, 4)."""
-        key = (np.asarray(pose, np.float64).tobytes(), height, width)
-        if key not in self._renders:
-            self._renders[key] = self.scene.render(self._world(pose), height, width, supersample=self.supersample)
-        return self._renders[key]
+        key = ("erp", np.asarray(pose, np.float64).tobytes(), height, width)
+        return self._renders.get(key, lambda: self.scene.render(self._world(pose), height, width,
+                                                                 supersample=self.factor(height)))
+
+    def render_pinhole(self, pose: np.ndarray, fx: float, fy: float, cx: float, cy: float, height: int,
+                       width: int) -> tuple[np.ndarray, np.ndarray]:
+        """A pinhole (OpenCV) view at a canonical pose: (rgb (H, W, 3) uint8, ray depth (H, W) float32), anti-aliased."""
+        key = ("pinhole", np.asarray(pose, np.float64).tobytes(), fx, fy, cx, cy, height, width)
+        return self._renders.get(key, lambda: self.scene.render_pinhole(
+            self._world(pose), fx, fy, cx, cy, height, width, supersample=self.factor(height)))
 
     def depth(self, pose: np.ndarray, height: int, width: int) -> np.ndarray:
         """Exact ray distance (H, W) float32 at a canonical pose, without shading."""
@@ -155,7 +202,10 @@ class FramesGroundTruth:
     def _no_mesh(self, *_, **__):
         raise NoReference(NO_MESH.format(what="ground-truth frames + poses only"))
 
-    cast = clearance = _no_mesh
+    cast = clearance = render_pinhole = _no_mesh
+
+    def describe(self, height: int) -> str:
+        return "the ground-truth track frame at the pose, area-downsampled to the scored size"
 
     @property
     def vertices(self):
@@ -173,16 +223,20 @@ class PlanOnly:
         raise NoReference("no ground truth in this scene (plan-only: no gt/ frames or mesh); pose metrics use the "
                           "planned trajectory and ring paths get loop metrics")
 
-    render = depth = cast = clearance = _none
+    render = depth = cast = clearance = render_pinhole = _none
+
+    def describe(self, height: int) -> str:
+        return "none (no ground truth)"
 
     @property
     def vertices(self):
         self._none()
 
 
-def open_ground_truth(scene_dir: Path, pose_tol_m: float = 1e-3):
-    """The scene's reference: GroundTruth (synthetic gt/ with a mesh), FramesGroundTruth (gt/ tracks with frame
-    files, no mesh) or PlanOnly (no gt/gt.json)."""
+def open_ground_truth(scene_dir: Path, pose_tol_m: float = 1e-3, *, supersample: int = 4, max_rows: int = 1536,
+                      cache_mb: float = 512.0):
+    """The scene's reference: GroundTruth (synthetic gt/ with a mesh; supersample, max_rows, cache_mb: its
+    anti-aliased renders), FramesGroundTruth (gt/ tracks with frame files, no mesh) or PlanOnly (no gt/gt.json)."""
     gt_dir = Path(scene_dir) / GT_DIRNAME
     index_path = gt_dir / "gt.json"
     if not index_path.is_file():
@@ -190,7 +244,7 @@ def open_ground_truth(scene_dir: Path, pose_tol_m: float = 1e-3):
     index = json.loads(index_path.read_text())
     mesh = gt_dir / index.get("glb", "scene.glb")
     if str(index.get("format", "")).startswith("panoworld-synth") and mesh.is_file():
-        return GroundTruth(gt_dir)
+        return GroundTruth(gt_dir, supersample=supersample, max_rows=max_rows, cache_mb=cache_mb)
     tracks = index.get("tracks") or []
     if tracks and all((t.get("frames") or {}).get("rgb") for t in tracks):
         return FramesGroundTruth(gt_dir, pose_tol_m)

@@ -76,12 +76,14 @@ NOTHING_MESSAGE = ("{scene} has no gt/gt.json and no {artifacts}/: nothing to ev
 
 
 def evaluate_scene(scene_dir: Path, params: EvalParams | None = None, *, stages: list[str] | None = None,
-                   progress: bool = False, variant: str | None = None) -> tuple[dict, list[str]]:
+                   progress: bool = False, variant: str | None = None,
+                   roam_images: Path | None = None) -> tuple[dict, list[str]]:
     """The full report {"scene", "reference", "params", "stages", "targets"} of one scene and the stages that errored.
 
     The reference is the scene's synthetic ground truth, its ground-truth frames + poses, or its plan alone
     (panoworld.eval.groundtruth.open_ground_truth). variant: a named variant of the DAG's tail
-    (artifacts/variants/NAME, `runner.py run DATASET --all --sweep`). Raises EvalInputError when the scene has
+    (artifacts/variants/NAME, `runner.py run DATASET --all --sweep`). roam_images: a directory where the roam
+    protocol saves its renders and references (the report's pictures). Raises EvalInputError when the scene has
     neither ground truth nor artifacts, or LPIPS weights were passed but cannot be loaded.
     """
     from panoworld.stage import params_to_dict
@@ -90,7 +92,7 @@ def evaluate_scene(scene_dir: Path, params: EvalParams | None = None, *, stages:
     if not (scene_dir / GT_DIRNAME / "gt.json").is_file() and not (scene_dir / ARTIFACTS_DIRNAME).is_dir():
         raise EvalInputError(NOTHING_MESSAGE.format(scene=scene_dir, artifacts=ARTIFACTS_DIRNAME))
     params = params or EvalParams()
-    ev = Evaluation(scene_dir, params, progress=progress, variant=variant)
+    ev = Evaluation(scene_dir, params, progress=progress, variant=variant, roam_images=roam_images)
     if ev.lpips.enabled:
         try:
             _ = ev.lpips.model  # loads the weights now: a bad file is one input error, not a failed stage

@@ -40,11 +40,14 @@ class Evaluation:
     """
 
     def __init__(self, scene_dir: Path, params: EvalParams | None = None, *, progress: bool = True,
-                 variant: str | None = None):
+                 variant: str | None = None, roam_images: Path | None = None):
         self.scene_dir = Path(scene_dir)
+        self.roam_images = roam_images
+        """Where the roam protocol saves the first view of every bucket (PNGs for the report), or None."""
         self.params = params or EvalParams()
         self.progress = progress
-        self.gt = open_ground_truth(self.scene_dir, self.params.pose_tol_m)
+        self.gt = open_ground_truth(self.scene_dir, self.params.pose_tol_m, supersample=self.params.reference_supersample,
+                                    max_rows=self.params.reference_max_rows, cache_mb=self.params.reference_cache_mb)
         self.lpips = Lpips(self.params)
         self.variant = variant
         self.tail: set[str] = set()
@@ -185,6 +188,11 @@ class Evaluation:
         if self.artifact("trajectory") is not None:  # sector exploration as the trajectory stage measured it
             info = self.manifest("trajectory").get("info") or {}
             plan.update({k: info[k] for k in ("sectors_covered", "sectors_reachable") if k in info})
+        if self.artifact("navmesh") is not None:  # how far the plan gets from the capture point (roam protocol)
+            from panoworld.eval.roam import trajectory_reach
+            from panoworld.navmesh import load_navmesh
+
+            plan.update(trajectory_reach(load_navmesh(self.artifact("navmesh")), poses))
         try:
             clearance = self.gt.clearance(centres)
         except NoReference as e:
@@ -384,6 +392,49 @@ class Evaluation:
         return [c[2] for c in picked], (f"ground-truth track frames not fused, nearest to midpoints between context "
                                         f"frames: (track, frame) {[c[:2] for c in picked]}")
 
+    @cached_property
+    def preset(self) -> str | None:
+        """The preset remembered in SCENE/scene.yaml (None when absent)."""
+        import yaml
+
+        from panoworld.artifacts import SCENE_CONFIG
+
+        cfg = self.scene_dir / SCENE_CONFIG
+        try:
+            return (yaml.safe_load(cfg.read_text()) or {}).get("preset") if cfg.is_file() else None
+        except (OSError, yaml.YAMLError, AttributeError):
+            return None
+
+    def roam_settings(self):
+        """The roam protocol's sizes: EvalParams where set, else 2 views, 256 rows, 256 px pinhole (ci-tiny: 1, 64, 64)."""
+        from panoworld.eval.roam import RoamSettings
+
+        p, tiny = self.params, self.preset == "ci-tiny"
+        return RoamSettings(views=p.roam_views or (1 if tiny else 2), height=p.roam_height or (64 if tiny else 256),
+                            pinhole=p.roam_pinhole or (64 if tiny else 256), fov_deg=p.roam_fov_deg, seed=p.seed)
+
+    def roam(self) -> dict:
+        """The roam protocol (panoworld/eval/roam.py) on the gaussians and navmesh artifacts."""
+        from panoworld.eval.roam import evaluate_roam
+        from panoworld.navmesh import load_navmesh
+        from panoworld.poses import load_frames
+        from panoworld.splat_ply import read_gaussians_ply
+
+        g = read_gaussians_ply(self._need("gaussians") / "gaussians.ply")
+        nav = load_navmesh(self._need("navmesh"))
+        pano_path = next((p for p in (self.scene_dir / f"panorama.{e}" for e in ("png", "jpg", "jpeg")) if p.is_file()),
+                         None)
+        pano = load_frames([pano_path])[0] if pano_path else None
+        on_view = None
+        if self.roam_images is not None:
+            from functools import partial
+
+            from panoworld.eval.roam import save_view
+
+            on_view = partial(save_view, self.roam_images)
+        return evaluate_roam(g, nav, self.gt, self.roam_settings(), self.lpips, panorama=pano, on_view=on_view,
+                             bar=self._bar)
+
     def loop(self) -> dict:
         """First/last-frame loop metrics of a closed trajectory (the paper's Loop and LPIPS-Loop on ring paths)."""
         from panoworld.metrics import loop_closure_flow_deg
@@ -414,9 +465,9 @@ class Evaluation:
     STAGES: dict[str, str] = {
         "depth": "depth", "mesh": "mesh", "navmesh": "navmesh", "trajectory": "trajectory",
         "conditions": "conditions_stage", "video": "video_stage", "loop": "loop", "poses": "poses",
-        "gaussians": "gaussians",
+        "gaussians": "gaussians", "roam": "roam",
     }
-    ARTIFACT = {"loop": "video"}
+    ARTIFACT = {"loop": "video", "roam": "gaussians"}
     """Report sections that are not stage names: the artifact they read."""
 
     def setting(self) -> dict[str, Any]:

@@ -20,6 +20,15 @@ POSE_COLUMNS = [("ATE", "poses", "ate"), ("ATE-RMSE", "poses", "ate_rmse"), ("RP
 GS_COLUMNS = [("PSNR ctx", "gaussians", "context_psnr"), ("PSNR nov", "gaussians", "novel_psnr"),
               ("SSIM ctx", "gaussians", "context_ssim"), ("SSIM nov", "gaussians", "novel_ssim"),
               ("LPIPS ctx", "gaussians", "context_lpips"), ("LPIPS nov", "gaussians", "novel_lpips")]
+ROAM_COLUMNS = [("PSNR 0 m", "roam", "d0_erp_psnr"), ("PSNR ~0.5 m", "roam", "d0.5_erp_psnr"),
+                ("PSNR ~1 m", "roam", "d1_erp_psnr"), ("PSNR ~2 m", "roam", "d2_erp_psnr"),
+                ("PSNR far", "roam", "far_erp_psnr"), ("SSIM ~1 m", "roam", "d1_erp_ssim"),
+                ("SSIM ~2 m", "roam", "d2_erp_ssim"), ("cov ~1 m", "roam", "d1_erp_coverage"),
+                ("cov ~2 m", "roam", "d2_erp_coverage"), ("cov far", "roam", "far_erp_coverage"),
+                ("pinhole PSNR ~1 m", "roam", "d1_pinhole_psnr"), ("pinhole PSNR ~2 m", "roam", "d2_pinhole_psnr")]
+ROAM_COVERAGE_COLUMNS = [("PSNR 0 m vs input", "roam", "d0_erp_psnr_vs_input"), ("cov 0 m", "roam", "d0_erp_coverage"),
+                         ("cov ~0.5 m", "roam", "d0.5_erp_coverage"), ("cov ~1 m", "roam", "d1_erp_coverage"),
+                         ("cov ~2 m", "roam", "d2_erp_coverage"), ("cov far", "roam", "far_erp_coverage")]
 
 GT_TRACK_REASON = ("GT track (ref.) needs COLMAP on the ground-truth frames of each scene: run the poses stage on a "
                    "video of ground-truth frames (not automated yet)")
@@ -172,6 +181,21 @@ def build_tables(reports: list[dict], dists: dict[str, dict[str, dict]] | None =
         settings = sorted({str(r["stages"]["gaussians"].get("setting")) for r in gt_reports
                            if isinstance(r["stages"].get("gaussians"), dict) and "setting" in r["stages"]["gaussians"]})
         t.notes = ([f"setting: {', '.join(settings)}"] if settings else []) + _notes(t)
+        tables.append(t)
+    synthetic = [r for r in reports if r.get("reference") == "synthetic"]
+    if synthetic:
+        t = Table("Roam: Gaussians at random NavMesh poses by distance from the capture point, ERP vs the anti-aliased "
+                  "ground truth (docs/evaluation.md)", [c for c, _, _ in ROAM_COLUMNS])
+        t.rows = _rows(groups(synthetic), {}, ROAM_COLUMNS, label)
+        t.notes = _notes(t)
+        tables.append(t)
+    no_mesh = [r for r in reports if r.get("reference") != "synthetic"]
+    if no_mesh and any(isinstance(r.get("stages", {}).get("roam"), dict) and "d0_erp_coverage" in r["stages"]["roam"]
+                       for r in no_mesh):
+        t = Table("Roam coverage, scenes without a ground-truth mesh (alpha > 0.5; distance 0 also vs the input)",
+                  [c for c, _, _ in ROAM_COVERAGE_COLUMNS])
+        t.rows = _rows(groups(no_mesh), {}, ROAM_COVERAGE_COLUMNS, label)
+        t.notes = _notes(t)
         tables.append(t)
     if plan_reports:
         t = Table("Zero-shot, plan-only scenes (the paper's Table: video_realsee)", [c for c, _, _ in ZERO_SHOT_COLUMNS])

@@ -15,7 +15,8 @@ from panoworld.errors import WeightsError
 HF_PREFIX = "hf:"
 WEIGHTS_PARAMS = frozenset({"weights", "lora", "extra_weights", "upscale_weights", "prompt_embeds"})
 """Params that name weights in every stage (plus any `*_weights` field, or one with metadata {"weights": True})."""
-_REPO = re.compile(r"^[A-Za-z0-9][\w.-]*/[A-Za-z0-9][\w.-]*$")
+_NAME = r"[A-Za-z0-9][\w.-]{0,95}"
+_HF_ID = re.compile(rf"(?P<repo>{_NAME}/{_NAME})(?:@(?P<rev>[A-Za-z0-9][\w.-]{{0,127}}))?(?:/(?P<path>[\w.+-]+(?:/[\w.+-]+)*))?")
 
 
 class WeightsNotFound(WeightsError):
@@ -57,19 +58,18 @@ class HfId:
 
 
 def parse_hf(spec: str) -> HfId | None:
-    """Parse an `hf:` id; None when spec is not one. A malformed id is a WeightsNotFound naming the syntax."""
+    """Parse an `hf:` id; None when spec is not one. A malformed id is a WeightsNotFound naming the syntax.
+
+    Strict grammar (_HF_ID): ORG and NAME as on the Hub; REVISION a branch, tag or commit without `/` or `..`; PATH
+    relative `/`-separated segments, none empty, `.` or `..` (never absolute, never leaving the snapshot)."""
     if not spec.startswith(HF_PREFIX):
         return None
-    body = spec[len(HF_PREFIX):].strip().strip("/")
-    parts = body.split("/")
-    if len(parts) < 2:
-        raise WeightsNotFound(f"{spec}: expected hf:ORG/NAME[@REVISION][/PATH], e.g. hf:depth-anything/Depth-Anything-V2-Small-hf")
-    org, name, rest = parts[0], parts[1], "/".join(parts[2:]) or None
-    name, _, revision = name.partition("@")
-    repo = f"{org}/{name}"
-    if not _REPO.match(repo) or (revision == "" and "@" in parts[1]) or (rest and ".." in rest.split("/")):
-        raise WeightsNotFound(f"{spec}: expected hf:ORG/NAME[@REVISION][/PATH], e.g. hf:depth-anything/Depth-Anything-V2-Small-hf")
-    return HfId(repo, revision or None, rest)
+    m = _HF_ID.fullmatch(spec[len(HF_PREFIX):].strip())
+    path = m and m["path"]
+    if m is None or ".." in m["repo"] or ".." in (m["rev"] or "") or (path and {".", ".."} & set(path.split("/"))):
+        raise WeightsNotFound(f"{spec}: expected hf:ORG/NAME[@REVISION][/PATH] (PATH relative, no '..'), "
+                              "e.g. hf:depth-anything/Depth-Anything-V2-Small-hf")
+    return HfId(m["repo"], m["rev"], path)
 
 
 def fetch_command(hid: HfId) -> str:

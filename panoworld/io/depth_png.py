@@ -7,7 +7,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from panoworld.conventions import DEPTH_PNG_SCALE, depth_to_mm
@@ -24,11 +23,15 @@ def metres_from_png(raw: np.ndarray, scale: float = DEPTH_PNG_SCALE, *, what: st
 
 def read_depth_png(path: Path | str, scale: float = DEPTH_PNG_SCALE) -> np.ndarray:
     """A uint16 depth PNG file -> float32 metres (H, W), 0 = unknown."""
+    import cv2
+
     return metres_from_png(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), scale, what=str(path))
 
 
 def write_depth_png(path: Path | str, depth_m: np.ndarray) -> None:
     """Depth (H, W) metres -> uint16 PNG in millimetres (unknown (0, NaN, inf) -> 0, clipped at 65.535 m)."""
+    import cv2
+
     from panoworld.shapes import check_shape
 
     check_shape("depth_m", depth_m, "H W")

@@ -11,6 +11,15 @@ from panoworld.params import param
 DEFAULT_PROMPT = "a panoramic video walking through an indoor scene"
 
 
+def resolve_device(name: str) -> str:
+    """`auto` -> "cuda" when CUDA is available, else "cpu"; any other device name unchanged."""
+    if name != "auto":
+        return name
+    import torch
+
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
 class Sampler(enum.StrEnum):
     SHORTCUT = "shortcut"
     FLOW = "flow"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -12,7 +13,12 @@ import torch
 from tqdm import tqdm
 
 from panoworld.models import wan_layers as wl
-from panoworld.models.wan_config import DEFAULT_PROMPT, Sampler, WanShortcutConfig  # noqa: F401  (re-exported)
+from panoworld.models.wan_config import (  # noqa: F401  (re-exported)
+    DEFAULT_PROMPT,
+    Sampler,
+    WanShortcutConfig,
+    resolve_device,
+)
 from panoworld.models.weights import MissingWeightsError, require_weights_dir, require_weights_file
 from panoworld.shapes import check_shape
 
@@ -130,6 +136,7 @@ class WanShortcutGenerator:
     """Warped ERP video + valid mask -> generated ERP video, with the paper's conditioning and samplers."""
 
     def __init__(self, transformer, vae, cfg: WanShortcutConfig, embeds: dict, pipe=None):
+        cfg = dataclasses.replace(cfg, device=resolve_device(cfg.device))
         self.transformer, self.vae, self.cfg, self._pipe = transformer, vae, cfg, pipe
         self.device = torch.device(cfg.device)
         pos = embeds["prompt_embeds"]
@@ -148,6 +155,7 @@ class WanShortcutGenerator:
         """Wrap loaded diffusers models: widen/extend the transformer (zero-init) unless done, load cfg.extra_weights
         and cfg.lora when given, and place the models (CPU offload or on cfg.device)."""
         wl.import_diffusers()
+        cfg = dataclasses.replace(cfg, device=resolve_device(cfg.device))
         if cfg.sampler == Sampler.SHORTCUT:
             shortcut_schedule(cfg.steps)
         if cfg.extra_weights is not None:

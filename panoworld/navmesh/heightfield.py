@@ -24,9 +24,9 @@ class NoFloorError(InputError):
 class NavMeshParams:
     """How the walkable floor is extracted from a scene mesh (world frame, metres, up = -Y)."""
 
-    cell_m: float = param(0.03, gt=0)
+    cell_m: float = param(0.03, ge=0.005, le=0.5)
     """Heightfield cell size in metres (rays are cast down at cell centres)."""
-    agent_radius_m: float = param(0.25, ge=0)
+    agent_radius_m: float = param(0.25, ge=0, le=2.0)
     """Agent (camera) radius: the floor is eroded by this distance from every obstacle and unseen cell."""
     agent_height_m: float = param(1.8, gt=0)
     """Top of the obstacle band above the floor; raised to camera height + agent radius when the camera is higher."""
@@ -34,7 +34,7 @@ class NavMeshParams:
     """Geometry up to this height above the floor is walkable (rugs, thresholds); above it is an obstacle."""
     max_slope_deg: float = param(15.0, ge=0, lt=90)
     """Triangles tilted at most this much from horizontal vote for the floor height."""
-    max_range_m: float = param(12.0, gt=0)
+    max_range_m: float = param(12.0, gt=0, le=100.0)
     """Only geometry within this horizontal distance from the camera is considered."""
     min_floor_area_m2: float = 0.25
     """Minimum visible floor area (in the winning histogram bin) to accept a floor height."""

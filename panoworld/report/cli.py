@@ -34,6 +34,7 @@ def build_scene_report(scene_dir: Path, out: Path | None = None, params=None, *,
     without them the stage table shows each stage's current state (up to date / stale) instead.
     """
     from panoworld.report import scene as sc
+    from panoworld.report.roam import section_roam
     from panoworld.report.splats import section_gaussians
 
     params = params or sc.ReportParams()
@@ -51,6 +52,7 @@ def build_scene_report(scene_dir: Path, out: Path | None = None, params=None, *,
         ("poses", "Poses: recovered vs planned", sc.section_poses, (data, params)),
         ("gaussians", "Gaussians: renders beside video frames", section_gaussians, (data, params)),
         ("eval", "Evaluation against ground truth", sc.section_eval, (data, params)),
+        ("roam", "Roam: the scene away from the capture point", section_roam, (data, params)),
     ]
     def timed(id, title, fn, args):
         t0 = time.perf_counter()
@@ -62,7 +64,7 @@ def build_scene_report(scene_dir: Path, out: Path | None = None, params=None, *,
     # The Gaussian renders (torch) overlap with the image work of the other sections (OpenCV, no GIL).
     with ThreadPoolExecutor(1) as pool:
         splats = pool.submit(timed, *builders[5])
-        sections = [timed(*b) for b in builders[:5]] + [splats.result()] + [timed(*builders[6])]
+        sections = [timed(*b) for b in builders[:5]] + [splats.result()] + [timed(*b) for b in builders[6:]]
     for section in sections:
         page.add(section)
     tmp = out.with_name(out.name + ".tmp")

@@ -15,9 +15,11 @@ import numpy as np
 from panoworld.io import read_json
 from panoworld.report import encode as enc
 from panoworld.report.page import Page, Section, figure, fmt, missing, slider, svg_figure, table
-from panoworld.report.topdown import PlanView, clearance_colors, mesh_from_above
+from panoworld.report.topdown import PlanView, clearance_colors, footprint_rings, mesh_from_above
 
 ARTIFACTS = "artifacts"
+ROAM_IMAGES = "report/roam"
+"""Where `report --eval` has the roam protocol save its first view per bucket (under artifacts/)."""
 EVAL_JSON_CANDIDATES = ("artifacts/report/eval.json", "artifacts/eval.json", "eval.json")
 
 
@@ -194,8 +196,21 @@ def section_depth(scene: SceneData, params: ReportParams) -> Section:
     if mask is not None:
         frac = float((mask > 0).mean())
         figs.append(figure(enc.data_uri(mask.astype(np.uint8), "png"), f"validity mask (white = valid, {100 * frac:.1f} %)"))
+    rig = info.get("rig") or {}
+    nadir = enc.read_rgb(d / "nadir_before_after.jpg")
+    if nadir is not None:
+        area = (rig.get("mask") or {}).get("sphere_fraction", 0.0)
+        figs.append(figure(enc.data_uri(nadir), f"nadir before / after capture-rig removal ({rig.get('kind')}, "
+                           f"{100 * area:.2f} % of the sphere)", small=True))
     keys = ("backend", "depth_range_m", "valid_fraction", "filled_pixels", "scale_factor", "camera_height_estimated_after")
-    facts = table(["fact", "value"], [[k, fmt(info.get(k))] for k in keys if k in info])
+    rows = [[k, fmt(info.get(k))] for k in keys if k in info]
+    if rig:
+        rows.append(["capture rig", rig.get("reason", "")])
+    poles = info.get("pole_completion") or {}
+    if poles.get("completed_fraction"):
+        rows.append(["completed from planes", f"{100 * poles['completed_fraction']:.1f} % of pixels (floor "
+                     f"{fmt(poles.get('floor_m'))} m below, ceiling {fmt(poles.get('ceiling_m'))} m above the camera)"])
+    facts = table(["fact", "value"], rows)
     return Section("depth", title, f'<div class="row">{"".join(figs)}</div>{facts}')
 
 
@@ -223,6 +238,23 @@ def _load_mesh(scene: SceneData):
         return None, f"mesh unreadable: {e}"
 
 
+def _load_collider(scene: SceneData) -> tuple | None:
+    """The asset's collider.obj mapped back to the canonical frame, with the agent it was checked for."""
+    doc = scene.json("asset/asset.json") if scene.has("asset") else None
+    if not doc:
+        return None
+    import trimesh
+
+    from panoworld.conventions import invert_pose, transform_points
+
+    try:
+        m = trimesh.load(scene.dir("asset") / doc["collider"], process=False, force="mesh")
+    except (OSError, ValueError, KeyError):
+        return None
+    c_from_a = invert_pose(np.asarray(doc["asset_from_canonical"], np.float64))
+    return transform_points(c_from_a, np.asarray(m.vertices)), np.asarray(m.faces), doc.get("agent", {})
+
+
 @dataclass
 class _PlanLayers:
     mesh: object
@@ -231,6 +263,8 @@ class _PlanLayers:
     tdoc: dict
     tinfo: dict
     n_sectors: int
+    collider: tuple | None = None
+    """(vertices canonical, faces, agent dict) of the asset's collider.obj, when the asset stage ran."""
 
 
 def _draw_plan(view: PlanView, L: _PlanLayers, floor_y: float | None, reach_m: float, dot_r: float) -> list[str]:
@@ -248,6 +282,12 @@ def _draw_plan(view: PlanView, L: _PlanLayers, floor_y: float | None, reach_m: f
             view.triangles(np.asarray(L.nav["vertices"]), np.asarray(L.nav["triangles"]), "rgba(80,255,160,0.35)")
         view.polygon_rings(rings, "rgba(40,200,120,0.28)", "#3ee08f", "NavMesh (walkable, eroded by the agent radius)")
         legend.append('<span><i class="sw" style="background:#3ee08f"></i>NavMesh</span>')
+    if L.collider is not None and floor_y is not None:
+        v, f, agent = L.collider
+        band = (floor_y - float(agent.get("agent_height_m", 1.8)), floor_y - float(agent.get("step_height_m", 0.2)))
+        view.polygon_rings(footprint_rings(v, f, view, *band), "rgba(255,80,60,0.18)", "#ff5a3c",
+                           "collider (asset stage) in the agent's height band")
+        legend.append('<span><i class="sw" style="background:#ff5a3c"></i>collider (agent height band)</span>')
     if L.traj is None:
         return legend
     xz = L.traj[:, [0, 2], 3]
@@ -286,7 +326,7 @@ def section_plan(scene: SceneData, params: ReportParams) -> Section:
     notes = [note] if note else []
     notes += [f"{name}: not run" for name, x in (("navmesh", nav), ("trajectory", traj)) if x is None]
     n_sec = int((scene.manifest("trajectory") or {}).get("params", {}).get("sectors", 8))
-    layers = _PlanLayers(mesh, nav, traj, tdoc, scene.info("trajectory"), n_sec)
+    layers = _PlanLayers(mesh, nav, traj, tdoc, scene.info("trajectory"), n_sec, _load_collider(scene))
     floor_y = (nav or {}).get("floor_y", tdoc.get("floor_y"))
     ext = _plan_extent(scene, traj, nav)
     view = PlanView(ext, margin_m=0.6)
@@ -305,6 +345,13 @@ def section_plan(scene: SceneData, params: ReportParams) -> Section:
             "sectors_covered", "sectors_reachable", "agent_radius_m")
     facts = table(["trajectory", "value"], [[k, fmt(tinfo.get(k))] for k in keys if k in tinfo])
     ninfo = scene.info("navmesh")
+    if ninfo.get("no_room"):
+        nr = ninfo["no_room"]
+        notes.append(f"no room to move: {nr.get('reason')}; decided: {nr.get('decision')} (agent radius "
+                     f"{nr.get('agent_radius_m')} m instead of {nr.get('requested_agent_radius_m')} m)")
+    if tinfo.get("plan", {}).get("approach_steps"):
+        notes.append(f"the camera stands {fmt(tinfo.get('start_off_navmesh_m'))} m off the NavMesh: the first "
+                     f"{tinfo['plan']['approach_steps']} steps walk onto it (exempt from the clearance check)")
     nfacts = table(["navmesh", "value"], [[k, fmt(ninfo.get(k))] for k in
                                           ("area_m2", "num_triangles", "num_holes", "floor_y", "camera_on_navmesh") if k in ninfo])
     body = (f'<div class="legend">{"".join(legend)}</div><div class="row">{figs}</div><div class="row">{facts}{nfacts}</div>'
@@ -489,8 +536,7 @@ def _stage_names() -> list[str]:
 def run_eval(scene_root: Path) -> Path:
     """Run `runner.py eval` on the scene and save its JSON as artifacts/report/eval.json; return the path."""
     from panoworld.evaluate import evaluate
-
-    report, _ = evaluate(scene_root, progress=True)
+    report, _ = evaluate(scene_root, progress=True, roam_images=Path(scene_root) / ARTIFACTS / ROAM_IMAGES)
     out = Path(scene_root) / ARTIFACTS / "report" / "eval.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=2) + "\n")

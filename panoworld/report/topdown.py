@@ -168,3 +168,22 @@ def mesh_from_above(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray,
 
 def clearance_colors(clearance: np.ndarray, cap: float) -> list[str]:
     return colors_for(np.asarray(clearance, np.float64), 0.0, max(cap, 1e-6))
+
+
+def footprint_rings(vertices: np.ndarray, faces: np.ndarray, view: PlanView, y_min: float,
+                    y_max: float) -> list[np.ndarray]:
+    """Outlines (world XZ rings) of the faces that reach into the height band y_min <= y <= y_max, rasterised on the
+    view's grid: what an agent of that height collides with, seen from above."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    y = v[f, 1]
+    f = f[(y.max(1) >= y_min) & (y.min(1) <= y_max)]
+    mask = np.zeros((view.h, view.w), np.uint8)
+    if len(f):
+        tris = np.round(view.px(v[:, [0, 2]])[f]).astype(np.int32)  # (F, 3, 2) pixel corners
+        cv2.fillPoly(mask, list(tris), 255)
+        cv2.polylines(mask, list(tris), True, 255)  # faces seen edge-on (walls) still mark their line ...
+        mask = cv2.dilate(mask, np.ones((3, 3), np.uint8))  # ... as an area, so that it has an outline
+    contours, _ = cv2.findContours(mask, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
+    return [np.stack([view.x0 + c[:, 0, 0] * view.cell, view.z1 - c[:, 0, 1] * view.cell], 1)
+            for c in contours if len(c) >= 3]

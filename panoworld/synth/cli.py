@@ -1,15 +1,17 @@
-"""Command line: `synth OUT_DIR --seed N [--preset P] [--frames F | --panoramas K]` or `synth DATASET_DIR --seed N --scenes K`."""
+"""Command line: `synth OUT_DIR --seed N [--preset P] [--frames F] [--rig tripod | --panoramas K]` or `synth DATASET_DIR --seed N --scenes K`."""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 from tqdm import tqdm
 
 from panoworld.synth.home import MAX_PANORAMAS, generate_home, home_params, write_home
 from panoworld.synth.params import Preset, params_for
+from panoworld.synth.rig import RigKind
 from panoworld.synth.scene import SceneGenerationError, derive_seed, generate_scene, write_scene
 
 
@@ -22,6 +24,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--seed", type=int, required=True, help="non-negative integer seed")
     ap.add_argument("--preset", choices=[p.value for p in Preset], default=Preset.DEFAULT.value)
     ap.add_argument("--frames", type=int, default=None, help="frames per track (overrides the preset)")
+    ap.add_argument("--rig", choices=[k.value for k in RigKind], default=RigKind.NONE.value,
+                    help="a capture rig under the panorama camera (gt/panorama_clean.png keeps the rig-free truth)")
     ap.add_argument("--scenes", type=int, default=None,
                     help="write this many scenes DATASET_DIR/scene_0000 ... with seeds derived from --seed")
     ap.add_argument("--panoramas", type=int, default=None,
@@ -41,9 +45,10 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--scenes {args.scenes} but expected >= 1")
     if args.panoramas is not None and not 2 <= args.panoramas <= MAX_PANORAMAS:
         ap.error(f"--panoramas {args.panoramas} but expected 2..{MAX_PANORAMAS}")
-    if args.panoramas is not None and (args.scenes is not None or args.frames is not None):
-        ap.error("--panoramas cannot be combined with --scenes or --frames")
+    if args.panoramas is not None and (args.scenes is not None or args.frames is not None or args.rig != "none"):
+        ap.error("--panoramas cannot be combined with --scenes, --frames or --rig")
     params = params_for(args.preset, frames=args.frames)
+    params = replace(params, render=replace(params.render, rig=args.rig))
     try:
         if args.panoramas is not None:
             if args.out_dir.exists() and (not args.out_dir.is_dir() or any(args.out_dir.iterdir())):

@@ -34,6 +34,13 @@ class FailureCase(enum.StrEnum):
     """Grayscale JPEG stored rotated a quarter turn with EXIF orientation 6; depth at twice the resolution."""
     HUGE = "huge"
     """A panorama taller than the depth stage's max_height (its resolution policy; the test lowers max_height)."""
+    CLOSET = "closet"
+    """The camera stands in a shallow closet (0.8 m wide, 0.65 m deep) looking out through its 0.6 m door: no floor
+    fits the agent (issue #24)."""
+    FAR_OUTLIERS = "far-outliers"
+    """0.2 % isolated depth spikes and one degenerate wall patch at hundreds of metres (a broken layout / sensor)."""
+    RIG_HIDES_FLOOR = "rig-hides-floor"
+    """A low rig footprint (a 1 m disk, 0.3 m high) seen under the camera: the start is 1 m off the walkable floor."""
 
 
 LIDAR_UNITS_PER_M = 450.0
@@ -82,11 +89,25 @@ def write_failure_scene(case: FailureCase | str, out_dir: Path | str, *, seed: i
         facts["invalid_pixels"] = int((lat_deg < -60).sum())
     elif case == FailureCase.OBJECT_UNDER_CAMERA:
         top = 0.8 * cam_h  # table top 0.2 camera heights above the floor (camera at the origin, y down)
-        t = top / np.maximum(dirs[..., 1], 1e-9)
-        x, z = t * dirs[..., 0], t * dirs[..., 2]
-        on_top = (dirs[..., 1] > 0) & (np.hypot(x, z) <= 0.45) & (t < depth)
-        depth[on_top] = t[on_top]
+        depth = _with_disk(depth, dirs, top=top, radius=0.45)
         facts.update(object_radius_m=0.45, object_top_above_floor_m=cam_h - top)
+    elif case == FailureCase.RIG_HIDES_FLOOR:
+        depth = _with_disk(depth, dirs, top=cam_h - 0.3, radius=1.0)
+        facts.update(object_radius_m=1.0, object_top_above_floor_m=0.3)
+    elif case == FailureCase.CLOSET:
+        walls = closet_depth(dirs, cam_h)
+        rgb = np.where((walls < depth)[..., None], np.uint8([150, 120, 90]), rgb)  # painted closet walls
+        depth = np.minimum(depth, walls).astype(np.float32)
+        facts.update(closet_half_width_m=CLOSET["half_width"], closet_back_m=CLOSET["back"],
+                     closet_front_m=CLOSET["front"], door_half_width_m=CLOSET["door_half_width"])
+    elif case == FailureCase.FAR_OUTLIERS:
+        rng = np.random.default_rng(seed + 1)
+        spikes = rng.random(depth.shape) < 0.002
+        depth[spikes] = rng.uniform(200.0, 900.0, int(spikes.sum()))
+        lon = np.rad2deg(np.arctan2(dirs[..., 0], dirs[..., 2]))
+        wall = (np.abs(lon - 90) < 12) & (lat_deg > -10) & (lat_deg < 35)
+        depth[wall] *= 150.0
+        facts.update(spike_pixels=int(spikes.sum()), wall_pixels=int(wall.sum()), outlier_pixels=int((spikes | wall).sum()))
 
     if case == FailureCase.SPARSE_LIDAR:
         rng = np.random.default_rng(seed)
@@ -114,6 +135,37 @@ def write_failure_scene(case: FailureCase | str, out_dir: Path | str, *, seed: i
         cv2.imwrite(str(out / "panorama.png"), bgr)
     (out / "gt_scene.json").write_text(json.dumps(facts, indent=1))
     return out
+
+
+CLOSET = {"half_width": 0.4, "back": -0.3, "front": 0.35, "door_half_width": 0.25, "door_height": 2.0}
+"""Closet box around the camera (canonical frame, metres): side walls x = +-half_width, back wall z = back, front wall
+z = front with a door |x| < door_half_width up to door_height above the floor."""
+
+
+def closet_depth(dirs: np.ndarray, cam_h: float) -> np.ndarray:
+    """Ray distance (H, W) to the closet's walls (inf where a ray leaves through the door)."""
+    c = CLOSET
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.full(dirs.shape[:2], np.inf)
+        for axis, plane in ((0, c["half_width"]), (0, -c["half_width"]), (2, c["back"]), (2, c["front"])):
+            t = plane / dirs[..., axis]
+            p = t[..., None] * dirs
+            ok = (t > 0) & (p[..., 1] <= cam_h)
+            if axis == 0:
+                ok &= (p[..., 2] >= c["back"]) & (p[..., 2] <= c["front"])
+            else:
+                ok &= np.abs(p[..., 0]) <= c["half_width"]
+                if plane == c["front"]:
+                    ok &= ~((np.abs(p[..., 0]) < c["door_half_width"]) & (p[..., 1] > cam_h - c["door_height"]))
+            out = np.where(ok, np.minimum(out, t), out)
+    return out
+
+
+def _with_disk(depth: np.ndarray, dirs: np.ndarray, *, top: float, radius: float) -> np.ndarray:
+    """depth with a horizontal disk (radius, `top` metres below the camera) under the camera in front of it."""
+    t = top / np.maximum(dirs[..., 1], 1e-9)
+    on = (dirs[..., 1] > 0) & (np.hypot(t * dirs[..., 0], t * dirs[..., 2]) <= radius) & (t < depth)
+    return np.where(on, t, depth).astype(np.float32)
 
 
 def _write_exif_rotated_gray_jpeg(gray: np.ndarray, path: Path) -> None:

@@ -79,6 +79,10 @@ class RenderParams:
     """RGB supersampling factor per axis (1 = off); depth is always the exact centre-ray distance."""
     write_frames: bool = False
     """Write RGB/depth of every track frame into gt/frames (otherwise render on demand with SynthScene.render)."""
+    rig: str = "none"
+    """Capture rig under the panorama camera: none | tripod | tripod-shadow (panoworld.synth.rig.RigKind). With a
+    rig, panorama.png and depth.npy show it; gt/panorama_clean.png, gt/depth_clean.npy and gt/rig_mask.png hold
+    the rig-free truth and where the rig is (the scene geometry in gt/ never has it)."""
 
 
 @dataclass(kw_only=True)

@@ -18,6 +18,7 @@ from panoworld.conventions import (
     check_erp_shape,
     check_pose,
     erp_dirs,
+    pinhole_dirs,
     quat_wxyz_from_rotmat,
     quat_xyzw_from_wxyz,
 )
@@ -27,6 +28,7 @@ from panoworld.synth.appearance import Light, Material, MaterialKind, albedo, sr
 from panoworld.synth.furniture import FurnitureKind, PlacementError, Placer, Role
 from panoworld.synth.layout import FloorPlan, LayoutError, architecture_quads, generate_floor_plan, quads_to_mesh
 from panoworld.synth.params import Preset, SynthParams, params_for
+from panoworld.synth.rig import RigKind, render_with_rig
 from panoworld.synth.tracks import Track, TrackError, TrackPlanner
 
 GT_FORMAT = "panoworld-synth-gt"
@@ -139,15 +141,44 @@ class SynthScene:
             linear = cv2.resize(linear.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
         return srgb_uint8(linear), depth
 
+    def render_pinhole(
+        self, world_from_cam: np.ndarray, fx: float, fy: float, cx: float, cy: float, height: int, width: int, *,
+        supersample: int = 1,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Pinhole (OpenCV) render -> (rgb (H, W, 3) uint8, depth (H, W) float32 ray distance, inf = nothing hit);
+        supersample as in render(): an (sH, sW) image of the same camera box-filtered down in linear RGB."""
+        check_pose(world_from_cam, "world_from_cam")
+        if supersample < 1:
+            raise ValueError(f"{supersample=} but expected an integer >= 1")
+        pose = np.asarray(world_from_cam, np.float64)
+
+        def cast(s: int):
+            dirs = pinhole_dirs(fx * s, fy * s, cx * s, cy * s, height * s, width * s, np.float64)
+            hits = self.raycaster.cast(pose[:3, 3][None], dirs.reshape(-1, 3) @ pose[:3, :3].T)
+            return dirs, hits.distance.reshape(dirs.shape[:2]), hits.face.reshape(dirs.shape[:2])
+
+        dirs, dist, face = cast(1)
+        depth = dist.astype(np.float32)
+        if supersample > 1:
+            dirs, dist, face = cast(supersample)
+        linear = self._shade(pose, dist, face, dirs)
+        if supersample > 1:
+            linear = cv2.resize(linear.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
+        return srgb_uint8(linear), depth
+
     def render_frame(self, track: int, frame: int, height: int, *, supersample: int = 1):
         """Render frame `frame` of track `track` at (height, 2 * height) -> (rgb, depth) as in render()."""
         return self.render(self.tracks[track].world_from_cam[frame], height, 2 * height, supersample=supersample)
 
-    def _shade(self, world_from_cam: np.ndarray, distance: np.ndarray, face: np.ndarray) -> np.ndarray:
-        """Baked shading (H, W, 3) linear RGB: albedo * (ambient + shadowed lambert point lights); emitters unlit."""
+    def _shade(self, world_from_cam: np.ndarray, distance: np.ndarray, face: np.ndarray,
+               dirs_cam: np.ndarray | None = None) -> np.ndarray:
+        """Baked shading (H, W, 3) linear RGB: albedo * (ambient + shadowed lambert point lights); emitters unlit.
+        dirs_cam (H, W, 3): the pixels' unit rays in the camera frame (default: the ERP grid's)."""
         h, w = distance.shape
         pose = np.asarray(world_from_cam, np.float64)
-        dirs = erp_dirs(h, w, np.float64).reshape(-1, 3) @ pose[:3, :3].T
+        if dirs_cam is None:
+            dirs_cam = erp_dirs(h, w, np.float64)
+        dirs = dirs_cam.reshape(-1, 3) @ pose[:3, :3].T
         face = face.reshape(-1)
         valid = np.flatnonzero(face >= 0)
         f = face[valid]
@@ -477,11 +508,17 @@ def write_scene(scene: SynthScene, out_dir: str | os.PathLike, params: SynthPara
         (tmp / "gt").mkdir(parents=True)
         rp = params.render
         h = rp.pano_height
-        rgb, depth = scene.render(scene.world_from_canonical, h, 2 * h, supersample=rp.supersample)
+        rgb, depth, rig_mask = render_with_rig(scene, rp.rig, h, supersample=rp.supersample)
         cv2.imwrite(str(tmp / "panorama.png"), rgb[..., ::-1])
         np.save(tmp / "depth.npy", depth)
         pano_rel = {"rgb": "../panorama.png", "depth": "../depth.npy", "height": h, "width": 2 * h,
-                    "track": 0, "frame": 0, "supersample": rp.supersample}
+                    "track": 0, "frame": 0, "supersample": rp.supersample, "rig": str(rp.rig)}
+        if rp.rig != RigKind.NONE:
+            clean_rgb, clean_depth = scene.render(scene.world_from_canonical, h, 2 * h, supersample=rp.supersample)
+            cv2.imwrite(str(tmp / "gt" / "panorama_clean.png"), clean_rgb[..., ::-1])
+            np.save(tmp / "gt" / "depth_clean.npy", clean_depth)
+            cv2.imwrite(str(tmp / "gt" / "rig_mask.png"), rig_mask.astype(np.uint8) * 255)
+            pano_rel.update(rgb_clean="panorama_clean.png", depth_clean="depth_clean.npy", rig_mask="rig_mask.png")
         frames_rel = None
         if rp.write_frames:
             frames_rel = []

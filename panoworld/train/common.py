@@ -124,9 +124,17 @@ def seed_everything(seed: int) -> None:
 
 
 def rng_state() -> dict[str, Any]:
+    """Python, numpy and torch RNG states as tensors and plain numbers (loadable with torch.load(weights_only=True))."""
     import torch
 
-    state = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}
+    version, mt, gauss = random.getstate()
+    name, keys, pos, has_gauss, cached = np.random.get_state()
+    state = {
+        "python": {"version": version, "state": torch.tensor(mt, dtype=torch.int64), "gauss_next": gauss},
+        "numpy": {"name": name, "keys": torch.from_numpy(keys.astype(np.int64)), "pos": int(pos),
+                  "has_gauss": int(has_gauss), "cached_gaussian": float(cached)},
+        "torch": torch.get_rng_state(),
+    }
     if torch.cuda.is_available():
         state["cuda"] = torch.cuda.get_rng_state_all()
     return state
@@ -135,11 +143,26 @@ def rng_state() -> dict[str, Any]:
 def set_rng_state(state: dict[str, Any]) -> None:
     import torch
 
-    random.setstate(state["python"])
-    np.random.set_state(state["numpy"])
+    py, npy = state["python"], state["numpy"]
+    random.setstate((py["version"], tuple(int(x) for x in py["state"].tolist()), py["gauss_next"]))
+    np.random.set_state((npy["name"], npy["keys"].numpy().astype(np.uint32), npy["pos"], npy["has_gauss"],
+                         npy["cached_gaussian"]))
     torch.set_rng_state(state["torch"])
     if "cuda" in state and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def load_checkpoint(path: Path) -> dict[str, Any]:
+    """torch.load with weights_only=True (tensors and plain state only: a planted checkpoint cannot run code)."""
+    import pickle
+
+    import torch
+
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError, OSError) as e:
+        raise TrainConfigError(f"{path}: not a checkpoint of tensors and plain state ({' '.join(str(e).split())[:200]}); "
+                               "delete it (or resume from an older step_*.pt)") from None
 
 
 class EpochSampler:
@@ -219,12 +242,11 @@ class Checkpointer:
 
     def restore(self, objects: dict[str, Any], path: Path | None = None) -> tuple[int, dict[str, Any]]:
         """Load the latest checkpoint (or `path`) into `objects` and restore the RNGs; returns (step, extra)."""
-        import torch
 
         path = path or self.latest()
         if path is None:
             raise TrainConfigError(f"{self.dir}: no checkpoint to resume from")
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        state = load_checkpoint(path)
         missing = sorted(set(objects) - set(state["objects"]))
         if missing:
             raise TrainConfigError(f"{path}: checkpoint lacks {missing}")

@@ -8,8 +8,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from panoworld.errors import InputError
+from panoworld.limits import MAX_POSES
 from panoworld.navmesh import NavMesh
 from panoworld.params import param
+from panoworld.trajectory.polyline import resample_polyline
 
 TRAJECTORY_JSON = "trajectory.json"
 TRAJECTORY_TUM = "trajectory.tum"
@@ -23,6 +25,8 @@ class PathKind(enum.StrEnum):
     """Out-and-back petals to the farthest reachable point of each directional sector (covers 360 degrees)."""
     RING = "ring"
     """A closed loop through free space that starts and ends at the camera."""
+    EXPLORE = "explore"
+    """Sector exploration paths: one path per sector from the camera out towards the room's extent (several paths)."""
 
 
 class YawMode(enum.StrEnum):
@@ -42,11 +46,12 @@ class TrajectoryFileError(InputError):
 class TrajectoryParams:
     """How a trajectory is planned on a NavMesh (canonical frame, metres)."""
 
-    kind: PathKind = PathKind.SECTOR
-    """Path family: sector (exploration petals, 360 degree coverage) or ring (closed loop)."""
-    frames: int = param(81, ge=2)
+    kind: PathKind = PathKind.EXPLORE
+    """Path family: explore (one path per sector out to the room's extent), sector (one path of short out-and-back
+    petals, 360 degree coverage) or ring (closed loop)."""
+    frames: int = param(81, ge=2, le=MAX_POSES)
     """Number of poses N (pose 0 is the source camera)."""
-    step_m: float = param(0.05, gt=0)
+    step_m: float = param(0.05, gt=0, le=5.0)
     """Distance between consecutive poses at stride 1, in metres."""
     stride: int = param(1, choices=(1, 2, 4))
     """Step multiplier r in {1, 2, 4}: the planned path length is (N - 1) * step_m * stride (ring: N * step)."""
@@ -58,6 +63,8 @@ class TrajectoryParams:
     """Chaikin corner-cutting iterations; a cut that would leave the NavMesh keeps its corner."""
     plan_margin_m: float = param(0.03, ge=0)
     """Paths are planned on the NavMesh shrunk by this margin so smoothing and rounding stay inside it."""
+    reach_m: float = param(3.0, gt=0)
+    """explore: each sector's path walks at most this far from the camera (its target is the farthest floor within)."""
     seed: int = 0
     """Seed of the candidate points used to find each sector's farthest reachable point."""
 
@@ -90,3 +97,17 @@ def planning_hub(nav: NavMesh, start: np.ndarray) -> tuple[np.ndarray, float]:
         return start.copy(), 0.0
     hub = nav.closest_point(start)[0]
     return hub, float(np.linalg.norm(hub - start))
+
+
+MAX_APPROACH_SHARE = 0.1
+"""At most this share of a path's steps walks a camera that stands off the NavMesh onto it (in longer steps)."""
+
+
+def approach_path(start: np.ndarray, hub: np.ndarray, step: float, n_steps: int) -> np.ndarray:
+    """The straight way from the start to the hub, (k + 1, 2) with k steps of `step`, but never more than
+    MAX_APPROACH_SHARE of n_steps (the steps are longer then: a rig hiding 1 m of floor costs 8 of 81 poses)."""
+    off = float(np.linalg.norm(np.asarray(hub) - np.asarray(start)))
+    if off <= 0:
+        return np.asarray(start, np.float64)[None]
+    k = max(1, min(int(np.ceil(off / step)), int(MAX_APPROACH_SHARE * n_steps)))
+    return resample_polyline(np.stack([start, hub]), k + 1)

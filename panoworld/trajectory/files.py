@@ -7,7 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
+from panoworld import limits
 from panoworld.conventions import quat_wxyz_from_rotmat, quat_wxyz_from_xyzw, quat_xyzw_from_wxyz, rotmat_from_quat_wxyz
+from panoworld.errors import InputError
 from panoworld.trajectory.common import FRAME, TRAJECTORY_JSON, TRAJECTORY_TUM, TrajectoryFileError
 
 
@@ -74,23 +76,35 @@ def write_tum(path: Path, poses: np.ndarray, fps: float) -> None:
 
 
 def read_trajectory_file(path: Path) -> np.ndarray:
-    """A user trajectory: JSON ({"poses": [4x4, ...]} or a plain list of 4x4) or TUM text -> (N, 4, 4)."""
+    """A user trajectory: JSON ({"poses": [4x4, ...]} or a plain list of 4x4) or TUM text -> (N, 4, 4), within the
+    limits of panoworld.limits (file size, pose count, nesting, translations)."""
     path = Path(path)
     try:
+        limits.check_size(path, limits.MAX_TRAJECTORY_BYTES, "trajectory file")
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as e:
         raise TrajectoryFileError(f"{path}: unreadable ({e})") from None
+    except InputError as e:
+        raise TrajectoryFileError(str(e)) from None
     if path.suffix.lower() == ".json" or text.lstrip().startswith(("{", "[")):
         try:
-            data = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise TrajectoryFileError(f"{path}: invalid JSON ({e})") from None
+            data = limits.parse_json(text, str(path), max_nesting=8)
+        except InputError as e:
+            raise TrajectoryFileError(str(e)) from None
         if isinstance(data, dict):
             if "poses" not in data:
                 raise TrajectoryFileError(f"{path}: JSON object without a 'poses' list of 4x4 world_from_cam matrices")
             data = data["poses"]
-        return check_poses(data, str(path))
-    return check_poses(read_tum(path), str(path))
+        if isinstance(data, list) and len(data) > limits.MAX_POSES:
+            raise TrajectoryFileError(f"{path}: {len(data)} poses, over the limit of {limits.MAX_POSES}; give a shorter trajectory")
+        poses = check_poses(data, str(path))
+    else:
+        poses = check_poses(read_tum(path), str(path))
+    try:
+        limits.check_poses_range(poses, str(path))
+    except InputError as e:
+        raise TrajectoryFileError(str(e)) from None
+    return poses
 
 
 def load_trajectory(path: Path | str) -> np.ndarray:

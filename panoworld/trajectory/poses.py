@@ -21,6 +21,22 @@ def yaw_of_path(positions: np.ndarray, *, closed: bool, sigma_frames: float = 3.
     return heading - heading[0]
 
 
+def path_indices(path: dict) -> list[int]:
+    """Pose indices of one path of a multi-path trajectory: its predecessor (`from`, default pose 0) and [start, stop)."""
+    return ([int(path.get("from", 0))] if path["start"] > 0 else []) + list(range(path["start"], path["stop"]))
+
+
+def path_yaw(positions: np.ndarray, paths: list[dict], *, closed: bool) -> np.ndarray:
+    """yaw_of_path over each path of a multi-path trajectory (pose ranges [start, stop); a path starting after pose 0
+    leaves from its predecessor `from`, pose 0 unless given)."""
+    yaw = np.zeros(len(positions))
+    for p in paths:
+        idx = path_indices(p)
+        y = yaw_of_path(positions[idx], closed=closed and len(paths) == 1)
+        yaw[p["start"]:p["stop"]] = y[len(idx) - (p["stop"] - p["start"]):]
+    return yaw
+
+
 def poses_from_positions(positions: np.ndarray, yaw: np.ndarray | None = None, camera_y: float = 0.0) -> np.ndarray:
     """Upright world_from_cam poses (N, 4, 4) at x,z positions (N, 2), height camera_y, yaw (N,) about -Y.
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from panoworld.navmesh import NavMesh
-from panoworld.trajectory.common import Plan, TrajectoryParams, planning_hub, planning_mesh
+from panoworld.trajectory.common import Plan, TrajectoryParams, approach_path, planning_hub, planning_mesh
 from panoworld.trajectory.polyline import polyline_length, resample_polyline, smooth_polyline, truncate_polyline
 
 MIN_SECTOR_DIST_M = 0.1
@@ -164,7 +164,7 @@ def plan_sector(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> Pl
     step = params.step_m * params.stride
     plan_nav = planning_mesh(nav, start, params.plan_margin_m)
     hub, off = planning_hub(plan_nav, start)
-    approach = resample_polyline(np.stack([start, hub]), max(int(np.ceil(off / step)), 1) + 1) if off > 0 else start[None]
+    approach = approach_path(start, hub, step, n_steps)
     budget = n_steps - (len(approach) - 1)
     want = budget + (budget % 2)  # whole out-and-back legs; an odd budget drops the very last pose
     total_legs = want // 2
@@ -241,6 +241,7 @@ def plan_sector(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> Pl
             "leg_steps": [int(x) for x in m],
             "step_adapted": bool(s_used < step * (1 - 1e-6)),
             "start_off_navmesh_m": off,
+            "approach_steps": len(approach) - 1,
             "hub": hub.tolist(),
         },
     )

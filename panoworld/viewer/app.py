@@ -250,6 +250,29 @@ class SceneViewer:
         self.handles["frame_image"].image = self._frame_image(i)
 
 
+def is_loopback(host: str) -> bool:
+    """True for an address (or `localhost`) only this machine can reach."""
+    import ipaddress
+
+    if host.strip().lower() in ("localhost", "localhost."):
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False  # a host name: it resolves to whatever interface it names
+
+
+def serve_warnings(host: str, requested_port: int, served_port: int) -> list[str]:
+    """Loud lines for what the user may not expect: a non-loopback host, a requested port that was taken."""
+    out = []
+    if not is_loopback(host):
+        out.append(f"WARNING: --host {host} is not a loopback address: this scene (mesh, frames, Gaussians) is served "
+                   "without authentication to every machine that can reach this one; use --host 127.0.0.1 to keep it local")
+    if served_port != requested_port:
+        out.append(f"WARNING: port {requested_port} is taken; serving on port {served_port} instead (the URL below)")
+    return out
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python runner.py view", description=__doc__)
     ap.add_argument("scene", type=Path, help="scene directory (its artifacts/ are shown; missing stages are skipped)")
@@ -275,6 +298,8 @@ def main(argv: list[str] | None = None) -> int:
     viewer = SceneViewer(args.scene, params)
     for k, v in viewer.loaded.items():
         print(f"{k:<11} {v}")
+    for line in serve_warnings(params.host, params.port, viewer.server.get_port()):
+        print(line, file=sys.stderr, flush=True)
     print(f"viewer: {viewer.url}  (Ctrl-C to stop)", flush=True)
     try:
         while True:

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from panoworld.backends import register
+from panoworld.depth_outliers import mask_and_record
 from panoworld.errors import InputError
 from panoworld.params import param
 
@@ -40,7 +41,8 @@ def predict(job):
         raise InputError(f"--depth-anything-weights {o.weights}: the model predicted no positive depth anywhere")
     info = dict(model_kind=model.kind.value, view_overlap_rel_rmse=res.overlap_rel_rmse,
                 view_scales=res.scale.tolist(), view_shifts=res.shift.tolist())
-    return Result(res.depth, res.valid, relative=model.kind == dep.DepthKind.RELATIVE, info=info)
+    valid = mask_and_record(res.depth, res.valid, info, job.notes)  # before the floor-based rescale
+    return Result(res.depth, valid, relative=model.kind == dep.DepthKind.RELATIVE, info=info)
 
 
 register("depth", "depth-anything", predict, options=DepthAnythingOptions, key="depth_anything", needs_inputs=())

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from panoworld.backends import register
+from panoworld.depth_outliers import mask_and_record
 from panoworld.errors import InputError
 from panoworld.params import param
 
@@ -39,6 +40,7 @@ def read(job):
     info["valid_fraction_input"] = float(valid.mean())
     if not valid.any():
         raise InputError(f"{path}: no valid depth (all NaN, inf or <= 0); give a depth map with values in metres")
+    valid = mask_and_record(raw, valid, info, job.notes)  # before hole filling (lone spikes get filled) and the rescale
     gap = o.max_gap_px
     if gap < 0:
         gap, share = dep.auto_gap_px(valid)

@@ -19,13 +19,11 @@ def generate(job) -> tuple:
             "wan-shortcut: no weights directory given; pass --wan-weights DIR (Wan2.2-TI2V-5B-Diffusers), --wan-lora "
             "FILE and --wan-extra-weights FILE (weights are never downloaded), or use --backend warp-inpaint"
         )
-    import torch
 
     from panoworld.models.wan_shortcut import WanShortcutGenerator
 
     paths = {k: Path(v) for k in ("weights", "lora", "extra_weights", "prompt_embeds") if (v := getattr(cfg, k))}
-    device = ("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device
-    generator = WanShortcutGenerator.from_pretrained(dataclasses.replace(cfg, device=device, **paths))
+    generator = WanShortcutGenerator.from_pretrained(dataclasses.replace(cfg, **paths))
     generated, gen_info = generator.generate(np.asarray(job.cond.rgb), np.asarray(job.cond.mask))
     info = {k: v for k, v in gen_info.items() if isinstance(v, (int, float, str, bool))}
     return ((generated[k], None, None) for k in range(len(job.cond))), info

@@ -118,3 +118,43 @@ PRESETS: dict[str, dict] = {
         "mixed_precision": "no", "grad_checkpointing": False, "device": "cpu", "threads": 1,
     },
 }
+
+MATRIX3D_LORA = (
+    "not applied: the paper initialises the LoRA from Matrix-3D, but Matrix-3D's released video LoRA "
+    "(pano_video_gen_720p.bin / _480p.ckpt, loaded by code/panoramic_image_to_video.py) adapts Wan2.1-I2V-14B "
+    "(40 blocks, width 5120, CLIP image cross-attention), and our base is Wan2.2-TI2V-5B (30 blocks, width 3072): "
+    "no adapter tensor has a matching shape, so the LoRA starts at zero (B = 0) as PEFT initialises it"
+)
+"""Why the paper's 'LoRA initialized from Matrix-3D' is not reproduced (github.com/SkyworkAI/Matrix-3D, README)."""
+
+SOURCES: dict[str, dict[str, str]] = {
+    "paper": {
+        "base": "paper, Implementation details: Wan2.2-TI2V-5B, backbone and 3D VAE frozen",
+        "frames": "paper, Implementation details: 81 frames",
+        "height": "paper: 720 x 1440; ours: 704 = 720 rounded down to the model's multiple of 32 (VAE 16 x patch 2)",
+        "steps": "ours, not in the paper: a budget of 4000 LoRA steps (no data behind it)",
+        "batch_size": "ours, not in the paper: one 81 x 704 x 1408 clip per GPU (memory)",
+        "lr": "ours, not in the paper: 1e-4, a usual LoRA rate (DiffSynth-Studio's Wan trainer, which Matrix-3D "
+              "ships, defaults to 1e-5)",
+        "weight_decay": "torch AdamW's default 0.01 (not in the paper; DiffSynth-Studio's trainer keeps it too)",
+        "warmup_steps": "ours, not in the paper: 100 linear warm-up steps",
+        "grad_clip": "ours, not in the paper: clip at 1.0",
+        "rho": "paper, Shortcut-model training: rho = 0.75",
+        "sigma_levels": "paper: sigma = t / N_t; N_t = 1000 = Wan's num_train_timesteps",
+        "shortcut_levels": "Frans et al., shortcut models: finest step 1/128",
+        "teacher_decay": "ours: the paper says 'a frozen teacher'; Frans et al. allow an EMA; 0.99 from a toy study "
+                         "(docs/training.md, Teacher)",
+        "lora_rank": "paper, Implementation details: rank 48",
+        "lora_alpha": "paper, Implementation details: alpha 48",
+        "lora_init": MATRIX3D_LORA,
+        "mixed_precision": "paper: bf16",
+        "grad_checkpointing": "paper: gradient checkpointing",
+        "use_accelerate": "paper: DeepSpeed ZeRO-1 (accelerate_zero1.yaml; set under `accelerate launch`)",
+        "anchor_first_frame": "Wan2.2 TI2V: the first latent frame is the given image, kept clean",
+        "checkpoint_every": "ours: bookkeeping, no effect on the weights",
+        "val_every": "ours: bookkeeping, no effect on the weights",
+        "val_sample_every": "ours: bookkeeping, no effect on the weights",
+    },
+    "tiny": {key: "ours: CPU-proof sizes, every value chosen to run in minutes on 2 cores" for key in PRESETS["tiny"]},
+}
+"""Where each value of a preset (and each default the paper preset relies on) comes from."""

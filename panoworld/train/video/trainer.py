@@ -154,7 +154,7 @@ class VideoTrainer:
             if self.resume:
                 raise common.TrainConfigError(f"{self.ckpt.dir}: no checkpoint to resume from (drop --resume)")
             return 0, None
-        state = torch.load(latest, map_location="cpu", weights_only=False)
+        state = common.load_checkpoint(latest)
         return int(state["step"]), state
 
     def _restore_or_rng(self, name: str, objects: dict) -> None:

@@ -1,0 +1,122 @@
+"""Assemble the simulation asset from the stage artifacts: scene.usdc, collider.obj, asset.json in the asset frame."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from panoworld.asset.collider import Collider, collision_mesh, write_obj
+from panoworld.conventions import asset_from_canonical, transform_points
+from panoworld.gaussians import Gaussians
+from panoworld.mesh import ErpMesh
+from panoworld.navmesh import NavMesh
+from panoworld.trajectory import check_poses, load_trajectory
+
+SCENE_USD = "scene.usdc"
+COLLIDER_OBJ = "collider.obj"
+ASSET_JSON = "asset.json"
+FLOOR_PATCH_BELOW_M = 0.01
+"""The NavMesh floor joins the collider this far below the floor height: coplanar duplicates of the seen floor would
+make resting contacts jitter."""
+
+
+def trajectory_paths(trajectory_dir: Path) -> tuple[list[np.ndarray], float]:
+    """The planned camera paths (world_from_cam, canonical) and their frame rate: the artifact's `poses`, or each of
+    its `paths` when it holds several ({"paths": [{"poses": [...]}, ...]} or {"paths": [[...], ...]})."""
+    path = Path(trajectory_dir)
+    doc_path = path / "trajectory.json" if path.is_dir() else path
+    doc = json.loads(doc_path.read_text()) if doc_path.suffix == ".json" else {}
+    fps = float(doc.get("fps", 16.0))
+    if isinstance(doc.get("paths"), list) and doc["paths"]:
+        out = []
+        for k, p in enumerate(doc["paths"]):
+            poses = p["poses"] if isinstance(p, dict) else p
+            out.append(check_poses(poses, f"{doc_path} paths[{k}]"))
+        return out, fps
+    return [load_trajectory(path)], fps
+
+
+def with_walkable_floor(col: Collider, nav: NavMesh) -> Collider:
+    """The collider plus the NavMesh's triangles at floor height: where the NavMesh lets the agent walk, the floor is
+    solid, also where the mesh has no floor (the capture rig's blind spot under the camera, small depth dropouts)."""
+    nav_v, nav_f = nav.mesh3d()
+    nav_v[:, 1] += FLOOR_PATCH_BELOW_M  # y is down: just below the seen floor, so it only catches what falls through
+    v = np.concatenate([col.vertices, nav_v])
+    f = np.concatenate([col.faces, nav_f + len(col.vertices)])  # both face up (-Y), towards the camera
+    info = {**col.info, "faces_decimated": col.info["faces_out"], "walkable_floor_triangles": int(len(nav_f)),
+            "faces_out": int(len(f))}
+    return Collider(v, f, info)
+
+
+def spawn_point(collider_canonical: Collider, floor_y: float) -> tuple[np.ndarray, str]:
+    """The floor below the capture point (canonical frame): where a ray straight down from the camera meets the
+    collider, or the NavMesh floor height when it meets nothing within 1 m of that floor (a hole under the rig)."""
+    from panoworld.raycast import Raycaster
+
+    hits = Raycaster(collider_canonical.vertices, collider_canonical.faces).cast(
+        np.zeros((1, 3), np.float32), np.array([[0.0, 1.0, 0.0]], np.float32))
+    d = float(hits.distance[0])
+    if np.isfinite(d) and abs(d - floor_y) < 1.0:
+        return np.array([0.0, d, 0.0]), "collider"
+    return np.array([0.0, float(floor_y), 0.0]), "navmesh floor"
+
+
+def build_asset(out_dir: Path, *, mesh: ErpMesh, nav: NavMesh, trajectory_dir: Path, gaussians: Gaussians,
+                max_triangles: int) -> dict:
+    """Write scene.usdc, collider.obj and asset.json into out_dir; returns the manifest facts."""
+    from panoworld.asset.usd import UP_AXIS, SceneParts, compliance_errors, write_scene_usd
+
+    out_dir = Path(out_dir)
+    t0 = time.perf_counter()
+    timings: dict[str, float] = {}
+    col = with_walkable_floor(collision_mesh(mesh, max_triangles), nav)
+    timings["collider"] = time.perf_counter() - t0
+    t = time.perf_counter()
+    spawn_c, spawn_source = spawn_point(col, nav.floor_y)
+    a_from_c = asset_from_canonical(nav.floor_y)
+    spawn = transform_points(a_from_c, spawn_c[None])[0]
+    col_v = transform_points(a_from_c, col.vertices)
+    write_obj(out_dir / COLLIDER_OBJ, col_v, col.faces,
+              "PanoWorld collider: asset frame (z up, x forward, y left, floor below the capture at z = 0), metres")
+    nav_v, nav_f = nav.mesh3d()
+    paths, fps = trajectory_paths(trajectory_dir)
+    timings["collider_io"] = time.perf_counter() - t
+    t = time.perf_counter()
+    parts = SceneParts(asset_from_canonical=a_from_c, gaussians=gaussians, collider=(col_v, col.faces),
+                       navmesh=(transform_points(a_from_c, nav_v), nav_f), spawn=spawn, camera_paths=paths, fps=fps)
+    counts = write_scene_usd(out_dir / SCENE_USD, parts)
+    timings["write_usd"] = time.perf_counter() - t
+    t = time.perf_counter()
+    problems = compliance_errors(out_dir / SCENE_USD)
+    timings["compliance"] = time.perf_counter() - t
+    doc = {
+        "up_axis": UP_AXIS,
+        "meters_per_unit": 1.0,
+        "asset_from_canonical": a_from_c.tolist(),
+        "spawn": [float(x) for x in spawn],
+        "collider": COLLIDER_OBJ,
+        "scene": SCENE_USD,
+        "frame": "x forward (the panorama's centre column), y left, z up (REP 103); origin on the floor below the "
+                 "capture point; gravity -9.81 m/s^2 along -z",
+        "agent": dict(nav.agent),
+        "counts": {"particles": counts["particles"], "collider_triangles": counts["collider_triangles"],
+                   "collider_vertices": int(len(col_v)), "navmesh_triangles": counts["navmesh_triangles"],
+                   "cameras": counts["cameras"], "frames": counts["frames"]},
+    }
+    (out_dir / ASSET_JSON).write_text(json.dumps(doc, indent=1))
+    sizes = {n: (out_dir / n).stat().st_size for n in (SCENE_USD, COLLIDER_OBJ, ASSET_JSON)}
+    return {
+        **doc["counts"],
+        "sh_degree": counts["sh_degree"],
+        "spawn": doc["spawn"],
+        "spawn_source": spawn_source,
+        "up_axis": UP_AXIS,
+        "collider": col.info,
+        "compliance_errors": problems,
+        "sizes_mb": {n: s / 1e6 for n, s in sizes.items()},
+        "timings_s": timings,
+        "export_s": time.perf_counter() - t0,
+    }

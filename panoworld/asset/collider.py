@@ -1,0 +1,76 @@
+"""The collision mesh: the scene mesh's valid (non-stretched) faces, compacted, quadric-decimated to a budget."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from panoworld.mesh import ErpMesh
+
+MAX_PASSES = 3
+"""Decimation passes at most (each stops when no edge collapse keeps the quadric error low enough)."""
+
+
+@dataclass
+class Collider:
+    """A static triangle mesh (vertices in some frame, faces counter-clockwise seen from the capture point)."""
+
+    vertices: np.ndarray
+    """(V, 3) float64 metres."""
+    faces: np.ndarray
+    """(F, 3) int64."""
+    info: dict
+    """faces_in, faces_valid, faces_out, decimated, simplify_s."""
+
+
+def _compact(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    used, inverse = np.unique(faces.reshape(-1), return_inverse=True)
+    return np.asarray(vertices, np.float64)[used], inverse.reshape(-1, 3).astype(np.int64)
+
+
+def _drop_degenerate(vertices: np.ndarray, faces: np.ndarray, min_area_m2: float = 1e-12) -> np.ndarray:
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    area2 = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    distinct = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    return faces[distinct & (area2 > 2 * min_area_m2)]
+
+
+def collision_mesh(mesh: ErpMesh, max_triangles: int) -> Collider:
+    """Valid faces only (the stretched faces across depth edges are no real surface), unreferenced vertices and
+    degenerate faces removed, then decimated with fast-simplification's quadric edge collapse to at most
+    `max_triangles` (open borders kept in place, so holes at depth edges do not grow). The budget is a target: a
+    mesh with many borders may keep more faces (info["faces_out"])."""
+    import time
+
+    import fast_simplification
+
+    v, f = _compact(mesh.vertices, mesh.faces[mesh.face_valid])
+    f = _drop_degenerate(v, f)
+    v, f = _compact(v, f)
+    info = {"faces_in": int(len(mesh.faces)), "faces_valid": int(mesh.face_valid.sum()), "decimated": False}
+    t0 = time.perf_counter()
+    if max_triangles > 0 and len(f) > max_triangles:
+        for _ in range(MAX_PASSES):  # one pass stalls short of large reductions; a second one gets most of the rest
+            n = len(f)
+            v, f = fast_simplification.simplify(v, f.astype(np.int32), target_count=int(max_triangles),
+                                                preserve_border=True)
+            f = _drop_degenerate(np.asarray(v, np.float64), np.asarray(f, np.int64))
+            v, f = _compact(v, f)
+            info["passes"] = info.get("passes", 0) + 1
+            if len(f) <= max_triangles or len(f) > 0.95 * n:
+                break
+        info["decimated"] = True
+    info["simplify_s"] = time.perf_counter() - t0
+    info["faces_out"] = int(len(f))
+    return Collider(np.asarray(v, np.float64), np.asarray(f, np.int64), info)
+
+
+def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray, header: str) -> None:
+    """Wavefront OBJ (v / f lines, 1-based) that every physics engine's loader reads."""
+    import trimesh
+
+    text = trimesh.exchange.obj.export_obj(trimesh.Trimesh(vertices, faces, process=False), include_normals=False,
+                                           include_color=False, include_texture=False, header=None)
+    Path(path).write_text(f"# {header}\n{text}")

@@ -1,0 +1,88 @@
+"""Depth missing at the poles or in bands (LiDAR blind zones) completed from the fitted floor and ceiling planes."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from panoworld.conventions import erp_dirs, erp_pixel_solid_angle
+from panoworld.depth import estimate_floor
+
+MIN_POLE_LAT_DEG = 30.0
+"""Only rays at least this far above (ceiling) or below (floor) the horizon are completed."""
+
+
+def fit_planes(depth: np.ndarray, valid: np.ndarray) -> tuple[float | None, float | None]:
+    """(floor, ceiling) distances below / above the camera of the horizontal planes found in depth (H, W): the
+    floor fit of panoworld.depth.estimate_floor (area-weighted robust mode of horizontal surfaces), run on the
+    depth map as it is and flipped upside down; None where no such plane is visible."""
+    floor = estimate_floor(depth, valid)
+    ceiling = estimate_floor(np.ascontiguousarray(depth[::-1]), np.ascontiguousarray(valid[::-1]))
+    return (floor.camera_height if floor else None), (ceiling.camera_height if ceiling else None)
+
+
+def pole_regions(valid: np.ndarray, min_lat_deg: float = MIN_POLE_LAT_DEG) -> tuple[np.ndarray, np.ndarray]:
+    """(floor side, ceiling side) masks (H, W): invalid pixels at least min_lat_deg below / above the horizon that
+    are connected (through invalid pixels, seam wrapped) to the nadir / zenith row, or lie in a band of invalid
+    pixels spanning at least half the columns. Dropouts enclosed by valid depth (a black screen) are left out."""
+    H, W = valid.shape
+    lat = 90.0 - (np.arange(H) + 0.5) / H * 180.0
+    out = []
+    for rows, pole_row in ((lat <= -min_lat_deg, H - 1), (lat >= min_lat_deg, 0)):
+        inv = ~valid & rows[:, None]
+        wrapped = np.concatenate([inv, inv[:, :1]], axis=1)  # one wrapped column joins components across the seam
+        labels, n = ndimage.label(wrapped, structure=np.ones((3, 3)))
+        first, last = labels[:, 0], labels[:, -1]
+        pairs = {(a, b) for a, b in zip(first, last) if a and b and a != b}
+        parent = np.arange(n + 1)
+        for a, b in pairs:
+            ra, rb = parent[a], parent[b]
+            parent[parent == rb] = ra
+        labels = parent[labels[:, :W]]
+        keep = set(np.unique(labels[pole_row][labels[pole_row] > 0]).tolist())
+        for lab in np.unique(labels[labels > 0]):
+            if lab not in keep and (labels == lab).any(0).mean() >= 0.5:
+                keep.add(int(lab))
+        out.append(np.isin(labels, sorted(keep)) & inv)
+    return out[0], out[1]
+
+
+def complete_poles(depth: np.ndarray, valid: np.ndarray, *, min_lat_deg: float = MIN_POLE_LAT_DEG
+                   ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Fill pole_regions of depth (H, W, metres) from the horizontal floor / ceiling planes.
+
+    A filled ray must meet its plane no farther out horizontally than the farthest valid depth of its own column
+    (the room's extent that way; columns without depth take their neighbours'), so planes never reach past the
+    walls. Returns (depth, valid, info): info gives the plane distances (None when not found) and the completed
+    share of pixels and of the sphere per side.
+    """
+    H, W = depth.shape
+    floor_m, ceil_m = fit_planes(depth, valid)
+    dirs = erp_dirs(H, W, np.float64)
+    horiz = np.where(valid, depth * np.hypot(dirs[..., 0], dirs[..., 2]), 0.0)
+    extent = horiz.max(0)
+    have = extent > 0
+    if not have.any():
+        return depth, valid, {"floor_m": floor_m, "ceiling_m": ceil_m, "completed_fraction": 0.0}
+    cols = np.arange(W)
+    extent = np.interp(cols, cols[have], extent[have], period=W)
+    down, up = pole_regions(valid, min_lat_deg)
+    omega = np.broadcast_to(erp_pixel_solid_angle(H, W), (H, W))
+    depth, valid = depth.copy(), valid.copy()
+    info: dict = {"floor_m": floor_m, "ceiling_m": ceil_m, "min_lat_deg": min_lat_deg}
+    total = np.zeros((H, W), bool)
+    for side, region, dist, sign in (("floor", down, floor_m, 1.0), ("ceiling", up, ceil_m, -1.0)):
+        fill = np.zeros((H, W), bool)
+        if dist is not None and region.any():
+            dy = sign * dirs[..., 1]  # cosine to the plane's normal, > 0 towards it
+            r = dist / np.maximum(dy, 1e-6)
+            reach = r * np.hypot(dirs[..., 0], dirs[..., 2])
+            fill = region & (dy > 0) & (reach <= 1.02 * extent[None, :])
+            depth[fill] = r[fill].astype(depth.dtype)
+            valid |= fill
+        info[f"{side}_fraction"] = float(fill.mean())
+        info[f"{side}_sphere_fraction"] = float(omega[fill].sum() / (4 * np.pi))
+        info[f"{side}_missing_fraction"] = float(region.mean())
+        total |= fill
+    info["completed_fraction"] = float(total.mean())
+    return depth, valid, info

@@ -1,0 +1,457 @@
+"""Capture-rig detection and removal at the panorama's nadir, on the downward cube face (docs/rig.md)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy import ndimage
+from scipy.spatial.transform import Rotation
+
+from panoworld.conventions import erp_dirs, erp_pixel_from_dir, erp_pixel_solid_angle
+from panoworld.depth import PerspectiveView, render_view
+from panoworld.errors import InputError
+from panoworld.rig_inpaint import inpaint_plane
+
+FACE_FOV_DEG = 96.0
+"""Field of view of the downward face (48 degrees from the nadir at its sides)."""
+CAP_DEG = 30.0
+"""Largest rig: candidates must lie within this angle of the nadir (a tripod's feet reach 15-25 degrees)."""
+RING_DEG = (30.0, 42.0)
+"""The floor ring whose colours define 'floor' for the cap inside it."""
+MOUNT_MAX_DEG = 20.0
+"""A solid blob at the nadir (a camera mount without visible legs) is a rig only up to this angle."""
+FLOOR_SIGMAS = (1.0, 0.6)
+"""Smoothing (histogram bins) of the floor ring's colours: broad first, narrow when the broad pass finds no rig."""
+HUB_DEG = 6.0
+"""Anomalous regions reaching this close to the nadir are candidates (the mount and the roots of the legs)."""
+TABLE_MIN_GAP_M = 0.3
+"""A horizontal surface at least this far below the camera (and above the floor) is a seen object, not the mount."""
+
+
+@dataclass
+class RigDetection:
+    """What detect_rig found at the nadir; `found` with the ERP masks, else the reason none was taken."""
+
+    found: bool
+    reason: str
+    """One line: what was found and why it counts as a rig, or why nothing was removed."""
+    kind: str | None = None
+    """legs (tripod legs around a hub), mount (a small solid blob), mask (a uniform black nadir patch), user."""
+    mask: np.ndarray | None = None
+    """(H, W) bool ERP pixels of the rig itself (inpainted)."""
+    shadow: np.ndarray | None = None
+    """(H, W) bool ERP pixels of its shadow on the floor (relit, texture kept)."""
+    stats: dict = field(default_factory=dict)
+    """Shape measurements behind the decision (cap_deg, azimuth occupancy, arms, darkness, ...)."""
+    shadow_gain: np.ndarray | None = None
+    """(size, size) light factor on the downward face that divides the shadow out (1 outside it)."""
+    source: np.ndarray | None = None
+    """(size, size) face pixels the inpainting may copy floor texture from (floor-coloured, on the floor)."""
+
+
+def nadir_view(height: int) -> PerspectiveView:
+    """The downward face for an ERP of height rows, with about the ERP's angular resolution at the nadir."""
+    size = max(64, int(round(2.0 * np.tan(np.deg2rad(FACE_FOV_DEG / 2)) * height / np.pi)))
+    return PerspectiveView(Rotation.from_euler("x", -90, degrees=True).as_matrix(), FACE_FOV_DEG, size)
+
+
+def face_polar(view: PerspectiveView) -> tuple[np.ndarray, np.ndarray]:
+    """(theta, phi) of every face pixel: degrees from the nadir, azimuth in radians."""
+    c = np.arange(view.size) + 0.5 - 0.5 * view.size
+    x, y = np.meshgrid(c, c)
+    return np.rad2deg(np.arctan(np.hypot(x, y) / view.focal)), np.arctan2(y, x)
+
+
+def _face_depth(depth: np.ndarray, valid: np.ndarray, view: PerspectiveView) -> tuple[np.ndarray, np.ndarray]:
+    u, v = erp_pixel_from_dir(view.rays(), *depth.shape)
+    iu = np.clip(u.astype(int), 0, depth.shape[1] - 1)
+    iv = np.clip(v.astype(int), 0, depth.shape[0] - 1)
+    return depth[iv, iu], valid[iv, iu]
+
+
+def detect_rig(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndarray | None = None,
+               floor_m: float | None = None) -> RigDetection:
+    """Find a capture rig at the nadir of rgb (H, W, 3) uint8; depth/valid (H, W) and the camera's height above the
+    floor floor_m (depth units) are optional evidence. Never takes a region reaching CAP_DEG, a solid blob larger
+    than MOUNT_MAX_DEG that is not a uniform black mask, or a horizontal surface above the floor (a table).
+
+    Floor colours are first taken broadly (a blotchy concrete floor stays floor); when that finds no rig, once more
+    narrowly (a grey mount on a brown floor in shade); the shape tests decide either way."""
+    first = _detect_once(rgb, depth, valid, floor_m, FLOOR_SIGMAS[0])
+    if first.found:
+        return first
+    second = _detect_once(rgb, depth, valid, floor_m, FLOOR_SIGMAS[1])
+    return second if second.found else first
+
+
+def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
+    H, W = rgb.shape[:2]
+    view = nadir_view(H)
+    face = render_view(rgb, view)
+    theta, phi = face_polar(view)
+    on_floor = np.ones(theta.shape, bool)
+    fd = fv = None
+    if depth is not None and valid is not None:
+        fd, fv = _face_depth(depth, valid, view)
+        if floor_m:
+            drop = fd * np.cos(np.deg2rad(theta))  # vertical distance below the camera
+            on_floor = ~fv | (np.abs(drop - floor_m) < 0.05 * floor_m)
+    ring = (theta >= RING_DEG[0]) & (theta < RING_DEG[1])
+    ring_floor = ring & on_floor
+    stats: dict = {"ring_floor_share": float(ring_floor.sum() / max(ring.sum(), 1))}
+    if stats["ring_floor_share"] < 0.3:
+        return RigDetection(False, f"the floor ring {RING_DEG[0]:.0f}-{RING_DEG[1]:.0f} deg from the nadir is mostly "
+                            "not floor: nothing to compare the nadir with", stats=stats)
+    source = floor_coloured(cv2.cvtColor(cv2.medianBlur(face, 3), cv2.COLOR_RGB2LAB), ring_floor) & on_floor
+    black = _black_mask(face, theta, view)
+    if black is not None:
+        extent = float(np.percentile(theta[black], 98))
+        stats.update(cap_deg=extent, face_pixels=int(black.sum()))
+        mask = face_to_erp_mask(_dilate(black, view), view, H, W)
+        return RigDetection(True, f"a uniform black patch centred on the nadir, {extent:.1f} deg (a nadir mask)",
+                            "mask", mask, np.zeros_like(mask), stats, source=source)
+    comp = _nadir_component(face, theta, ring_floor, view, sigma)
+    if comp is None:
+        return RigDetection(False, "nothing at the nadir differs in colour from the floor ring around it", stats=stats)
+    # A soft shadow around the rig is divided out first, so that only the rig itself is measured below.
+    dil = cv2.dilate(comp.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))) > 0
+    gain, sh_deg = _shadow(face, dil, ring_floor, theta, phi, on_floor)
+    if sh_deg > 0:
+        face = _apply_gain(face, gain)
+        comp = _nadir_component(face, theta, ring_floor, view, sigma)
+        if comp is None:
+            return RigDetection(False, f"a soft shadow at the nadir ({sh_deg:.0f} deg) but nothing under it that "
+                                "differs from the floor: kept", stats=stats)
+    lab = cv2.cvtColor(cv2.medianBlur(face, 3), cv2.COLOR_RGB2LAB)
+    t, p = theta[comp], phi[comp]
+    extent = float(np.percentile(t, 98))
+    px_deg = np.rad2deg(1.0 / view.focal)
+    ring_lum = float(np.median(lab[..., 0][ring_floor]))
+    comp_lum = float(np.median(lab[..., 0][comp]))
+    stats.update(cap_deg=extent, face_pixels=int(comp.sum()), darkness=1.0 - comp_lum / max(ring_lum, 1.0),
+                 lum_std=float(lab[..., 0][comp].std()))
+    occ_in, arms_in = _azimuth_occupancy(p[(t > 0.3 * extent) & (t < 0.7 * extent)])
+    occ_out, arms_out = _azimuth_occupancy(p[(t > 0.45 * extent) & (t < 0.85 * extent)])
+    stats.update(occupancy_inner=occ_in, occupancy_outer=occ_out, arms=arms_out)
+    if (comp & (theta > CAP_DEG - 2 * px_deg - 0.5)).sum() > 3:
+        return RigDetection(False, f"the region under the camera reaches {CAP_DEG:.0f} deg from the nadir: larger than "
+                            "any rig (a rug, furniture, a floor pattern), kept", stats=stats)
+    table = _horizontal_surface(t, fd[comp] if fd is not None else None, fv[comp] if fv is not None else None, floor_m)
+    if table is not None:
+        stats["surface_below_camera_m"] = table
+        return RigDetection(False, f"the region under the camera is a horizontal surface {table:.2f} m below the "
+                            f"camera, above the floor: a seen object (a table, a stool), kept", stats=stats)
+    yy, xx = np.nonzero(comp)
+    r_mean = float(np.mean(np.hypot(xx + 0.5 - 0.5 * view.size, yy + 0.5 - 0.5 * view.size))) + 1e-9
+    off = float(np.hypot(xx.mean() + 0.5 - 0.5 * view.size, yy.mean() + 0.5 - 0.5 * view.size)) / r_mean
+    stats["centroid_offset"] = off
+    kind = reason = None
+    hub_seen = bool((t < HUB_DEG / 2).any())
+    if 3 <= arms_out <= 6 and occ_out <= 0.5 and extent >= 6.0 and hub_seen and off < 0.5 and stats["darkness"] > 0.2:
+        kind, reason = "legs", f"{arms_out} thin arms from a hub at the nadir out to {extent:.1f} deg (tripod legs)"
+    elif occ_in >= 0.9 and off < 0.35 and extent >= max(2.0, 3 * px_deg):
+        if extent <= MOUNT_MAX_DEG:
+            kind, reason = "mount", f"a solid blob centred on the nadir, {extent:.1f} deg, unlike the floor (camera mount)"
+    if kind is None:
+        return RigDetection(False, f"a {extent:.1f} deg region at the nadir that is neither tripod legs nor a centred "
+                            f"mount (occupancy {occ_in:.2f}/{occ_out:.2f}, {arms_out} arms, "
+                            f"offset {off:.2f}): a seen object, kept", stats=stats)
+    obj = comp.astype(np.uint8)
+    if kind == "legs":  # the hub between the legs' roots, floor-coloured parts of the mount included
+        hub = np.argwhere(comp & (theta < 0.4 * extent))[:, ::-1].astype(np.int32)
+        if len(hub) >= 3:
+            cv2.fillConvexPoly(obj, cv2.convexHull(hub), 1)
+    obj = _dilate(obj, view) | _cast_shadows(lab, obj > 0, theta, view)
+    stats["shadow_deg"] = sh_deg
+    mask = face_to_erp_mask(obj, view, H, W)
+    sh = face_to_erp_mask(gain > 1.0, view, H, W) & ~mask
+    if sh.any():
+        reason += f" with its shadow ({sh_deg:.0f} deg, up to {1 - 1 / gain.max():.0%} darker)"
+    return RigDetection(True, reason, kind, mask, sh, stats, shadow_gain=gain, source=source)
+
+
+def _cast_shadows(lab: np.ndarray, obj: np.ndarray, theta: np.ndarray, view: PerspectiveView) -> np.ndarray:
+    """Floor pixels within CAP_DEG at least 15 % darker than the floor around them and connected to the rig: the
+    legs' own cast shadows from the room's lights (inpainted with the rig)."""
+    win = 2 * max(7, view.size // 16) + 1
+    L = lab[..., 0]
+    local = cv2.medianBlur(L, min(win, 255)).astype(np.float32)
+    dark = ((L < 0.85 * local) & (theta < CAP_DEG)).astype(np.uint8)
+    _, labels = cv2.connectedComponents(dark | obj.astype(np.uint8), connectivity=8)
+    keep = np.unique(labels[obj])
+    return np.isin(labels, keep[keep > 0]) & (dark > 0)
+
+
+def _dilate(mask: np.ndarray, view: PerspectiveView) -> np.ndarray:
+    """Grow a face mask over the rig's anti-aliased rim and highlights."""
+    k = 2 * max(2, view.size // 100) + 1
+    return cv2.dilate(mask.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
+
+
+def _black_mask(face: np.ndarray, theta: np.ndarray, view: PerspectiveView) -> np.ndarray | None:
+    """The near-black (every channel <= 12) region holding the nadir when it is a centred, convex-ish patch of 3 to
+    CAP_DEG degrees (a capture system's nadir mask: a black disc or hexagon), else None."""
+    black = (face.max(-1) <= 12).astype(np.uint8)
+    _, labels = cv2.connectedComponents(black, connectivity=4)
+    c = view.size // 2
+    lab = labels[c, c]
+    if lab == 0:
+        return None
+    comp = labels == lab
+    t = theta[comp]
+    extent = float(np.percentile(t, 98))
+    if not 3.0 <= extent < CAP_DEG - 1.0:
+        return None
+    yy, xx = np.nonzero(comp)
+    r = np.hypot(xx + 0.5 - 0.5 * view.size, yy + 0.5 - 0.5 * view.size)
+    off = float(np.hypot(xx.mean() + 0.5 - 0.5 * view.size, yy.mean() + 0.5 - 0.5 * view.size)) / (r.mean() + 1e-9)
+    hull = cv2.convexHull(np.stack([xx, yy], 1).astype(np.int32))
+    solidity = comp.sum() / max(cv2.contourArea(hull), 1.0)
+    return comp if off < 0.2 and solidity > 0.9 else None
+
+
+def floor_coloured(lab: np.ndarray, ring_floor: np.ndarray, sigma: float = 1.0) -> np.ndarray:
+    """Pixels (size, size) whose Lab colour the floor ring shows: a 16x32x32 histogram of the ring's colours
+    smoothed by sigma bins, thresholded so that 98 % of the ring's own pixels pass."""
+    bins = (16, 32, 32)
+    idx = tuple((lab[..., k].astype(np.int32) * bins[k]) >> 8 for k in range(3))
+    hist = np.zeros(bins)
+    np.add.at(hist, tuple(i[ring_floor] for i in idx), 1.0)
+    hist = ndimage.gaussian_filter(hist, sigma, mode="constant")
+    dens = hist[idx]
+    return dens >= np.percentile(dens[ring_floor], 2.0)
+
+
+def _nadir_component(face: np.ndarray, theta: np.ndarray, ring_floor: np.ndarray, view: PerspectiveView,
+                     sigma: float = 1.0) -> np.ndarray | None:
+    """Face pixels within CAP_DEG, connected to the nadir, whose colour the floor ring (almost) never shows or that
+    are far darker than the floor around them; None when the nadir itself looks like floor."""
+    lab = cv2.cvtColor(cv2.medianBlur(face, 3), cv2.COLOR_RGB2LAB)
+    floor_like = floor_coloured(lab, ring_floor, sigma)
+    # Much darker than the floor around it: thin dark legs on a floor whose grout lines are dark too.
+    win = 2 * max(5, view.size // 24) + 1
+    local = cv2.medianBlur(lab[..., 0], min(win, 255)).astype(np.float32)
+    floor_l = float(np.median(lab[..., 0][ring_floor]))
+    anom = (theta < CAP_DEG) & (~floor_like | (lab[..., 0] < 0.6 * np.maximum(local, floor_l)))
+    anom = cv2.morphologyEx(anom.astype(np.uint8), cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3)))
+    _, labels = cv2.connectedComponents(anom, connectivity=8)
+    seed = theta < HUB_DEG  # the mount may be floor-coloured; its legs start within a few degrees of the nadir
+    hit = np.unique(labels[seed & (labels > 0)])
+    if len(hit) == 0:
+        return None
+    comp = np.isin(labels, hit)
+    k = 2 * max(5, view.size // 30) + 1
+    near = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    for _ in range(2):  # parts cut off by a floor-coloured piece of the mount (a leg behind a grey hub)
+        touch = np.unique(labels[(cv2.dilate(comp.astype(np.uint8), near) > 0) & (labels > 0)])
+        comp = np.isin(labels, touch)
+    return comp
+
+
+def _apply_gain(face: np.ndarray, gain: np.ndarray) -> np.ndarray:
+    """Multiply a uint8 sRGB face by a light factor (size, size) in linear RGB."""
+    lin = (face.astype(np.float32) / 255.0) ** 2.2 * gain[..., None]
+    return np.clip(np.rint(255.0 * np.clip(lin, 0, 1) ** (1 / 2.2)), 0, 255).astype(np.uint8)
+
+
+def _azimuth_occupancy(phi: np.ndarray, bins: int = 72) -> tuple[float, int]:
+    """Share of azimuth bins holding pixels, and the number of circular runs of occupied bins (arms)."""
+    if len(phi) == 0:
+        return 0.0, 0
+    h = np.bincount(((phi + np.pi) / (2 * np.pi) * bins).astype(int) % bins, minlength=bins) > 0
+    runs = int(np.sum(h & ~np.roll(h, 1)))
+    return float(h.mean()), runs if not h.all() else 1
+
+
+def _horizontal_surface(theta, fd, fv, floor_m) -> float | None:
+    """Distance below the camera of a horizontal surface holding >= 60 % of the region's depth pixels, when it lies
+    between TABLE_MIN_GAP_M below the camera and 5 % above the floor; else None."""
+    if fd is None or fv is None or not floor_m or fv.mean() < 0.5:
+        return None
+    drop = fd[fv] * np.cos(np.deg2rad(theta[fv]))
+    med = float(np.median(drop))
+    if np.mean(np.abs(drop - med) < 0.03 * med) < 0.6:
+        return None
+    return med if TABLE_MIN_GAP_M <= med < 0.95 * floor_m else None
+
+
+def _shadow(face: np.ndarray, obj: np.ndarray, ring_floor: np.ndarray, theta: np.ndarray, phi: np.ndarray,
+            floor: np.ndarray) -> tuple[np.ndarray, float]:
+    """A soft shadow centred under the rig: (gain (size, size) >= 1 that divides it out, its extent in degrees).
+
+    The radial profile of linear floor luminance (median per degree from the nadir, rig pixels left out) against
+    the ring's median: a shadow darkens it by >= 8 % near the nadir, in at least 6 of 8 azimuth sectors, and the
+    profile recovers before CAP_DEG. Lighting that is not centred on the nadir (a wall's shadow) fails the
+    sectors test; no shadow -> gain 1 everywhere, extent 0."""
+    lum = ((face.astype(np.float32) / 255.0) ** 2.2).mean(-1)
+    use = floor & ~obj & (theta < CAP_DEG)
+    ref = float(np.median(lum[ring_floor]))
+    nb = int(CAP_DEG)
+    tb = theta.astype(int)
+    prof = np.full(nb, np.nan)
+    for k in range(nb):
+        sel = use & (tb == k)
+        if sel.sum() >= 8:
+            prof[k] = np.median(lum[sel]) / max(ref, 1e-6)
+    ok = np.isfinite(prof)
+    if ok.sum() < nb // 2:
+        return np.ones(theta.shape, np.float32), 0.0
+    prof = np.interp(np.arange(nb), np.nonzero(ok)[0], prof[ok])
+    prof = np.minimum(ndimage.uniform_filter1d(prof, 3, mode="nearest"), 1.0)
+    lit = np.nonzero(prof >= 0.97)[0]
+    extent = float(lit[0]) if len(lit) else float(nb)
+    if prof[: max(int(extent) // 2, 1)].min() > 0.92 or extent >= nb - 1:
+        return np.ones(theta.shape, np.float32), 0.0
+    sector = ((phi + np.pi) / (2 * np.pi) * 8).astype(int) % 8
+    inner = use & (theta < max(extent / 2, 2.0))
+    ratios = np.array([np.median(lum[inner & (sector == k)]) / ref for k in range(8) if (inner & (sector == k)).sum() >= 4])
+    if (ratios < 0.95).sum() < 6 or np.ptp(ratios) > 0.25 * ratios.mean():
+        return np.ones(theta.shape, np.float32), 0.0
+    gain = 1.0 / np.interp(theta, np.arange(nb) + 0.5, prof)
+    return np.where(theta < extent, gain, 1.0).astype(np.float32), extent
+
+
+def face_to_erp_mask(face_mask: np.ndarray, view: PerspectiveView, H: int, W: int) -> np.ndarray:
+    """A face mask (size, size) bool -> the ERP pixels (H, W) whose centre samples it (> 0.5 bilinear)."""
+    out = np.zeros((H, W), bool)
+    rows = _cap_rows(H, view)
+    px, py, cos = view.project(erp_dirs(H, W, np.float64)[rows])
+    m = cv2.remap(face_mask.astype(np.float32), np.nan_to_num(px, nan=-10).astype(np.float32),
+                  np.nan_to_num(py, nan=-10).astype(np.float32), cv2.INTER_LINEAR, borderValue=0)
+    out[rows] = (m > 0.5) & (cos > 0)
+    return out
+
+
+def _cap_rows(H: int, view: PerspectiveView) -> slice:
+    """ERP rows that can see the face (from FACE_FOV_DEG / 2 above the nadir, cornered: 56 deg)."""
+    lat0 = np.deg2rad(-90.0 + 56.0)
+    return slice(int(np.floor((0.5 - lat0 / np.pi) * H)), H)
+
+
+def erp_mask_to_face(mask: np.ndarray, view: PerspectiveView) -> np.ndarray:
+    return render_view(np.repeat(mask.astype(np.uint8)[..., None] * 255, 3, axis=2), view)[..., 0] > 127
+
+
+def read_user_mask(path: Path, H: int, W: int) -> np.ndarray:
+    """A user rig mask (a 2:1 grayscale image, white = rig) -> (H, W) bool; InputError when not a 2:1 image."""
+    m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if m is None:
+        raise InputError(f"{path}: cannot read the rig mask; give a 2:1 grayscale PNG, white where the rig is")
+    if m.shape[1] != 2 * m.shape[0]:
+        raise InputError(f"{path}: rig mask is {m.shape[1]}x{m.shape[0]} but must be 2:1 like the panorama")
+    return cv2.resize(m, (W, H), interpolation=cv2.INTER_NEAREST) > 127
+
+
+# ---------------------------------------------------------------- removal
+
+
+def remove_rig(rgb: np.ndarray, det: RigDetection) -> np.ndarray:
+    """The panorama with the rig inpainted and its shadow relit on the downward face, changed only inside the
+    masks (H, W, 3) uint8. The rig: Telea inpainting for the low frequencies plus the texture of the best-matching
+    floor patch elsewhere on the face (the floor is a plane there, so its texture repeats under translation)."""
+    H, W = rgb.shape[:2]
+    view = nadir_view(H)
+    face = render_view(rgb, view).astype(np.float32)
+    obj = erp_mask_to_face(det.mask, view)
+    obj = cv2.dilate(obj.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    theta, _ = face_polar(view)
+    lin = (face / 255.0) ** 2.2
+    if det.shadow_gain is not None:
+        lin = lin * det.shadow_gain[..., None]
+    source = det.source if det.source is not None and det.source.shape == obj.shape else np.ones_like(obj)
+    clean = inpaint_plane(np.clip(lin, 0, 1) ** (1 / 2.2) * 255.0, obj, source)
+    rows = _cap_rows(H, view)
+    px, py, cos = view.project(erp_dirs(H, W, np.float64)[rows])
+    mx = np.nan_to_num(px, nan=-10).astype(np.float32)
+    my = np.nan_to_num(py, nan=-10).astype(np.float32)
+    back = cv2.remap(clean, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    out = rgb.copy()
+    m = det.mask | (det.shadow if det.shadow is not None else False)
+    sub = out[rows]
+    mm = m[rows] & (cos > 0)
+    sub[mm] = np.clip(np.rint(back[mm]), 0, 255).astype(np.uint8)
+    out[rows] = sub
+    return out
+
+
+def floor_depth(H: int, W: int, floor_m: float) -> np.ndarray:
+    """Ray distance (H, W) to the horizontal floor floor_m below the camera (0 where a ray does not look down)."""
+    down = erp_dirs(H, W, np.float64)[..., 1]
+    return np.where(down > 1e-3, floor_m / np.maximum(down, 1e-3), 0.0).astype(np.float32)
+
+
+def area_stats(mask: np.ndarray) -> dict:
+    """Solid-angle share of the sphere and the cap (degrees from the nadir) holding 98 % of a mask's pixels."""
+    H, W = mask.shape
+    omega = np.broadcast_to(erp_pixel_solid_angle(H, W), (H, W))
+    frac = float(omega[mask].sum() / (4 * np.pi))
+    rows = np.nonzero(mask.any(1))[0]
+    cap = float(180.0 - (rows.min() + 0.5) / H * 180.0) if len(rows) else 0.0
+    return {"sphere_fraction": frac, "cap_deg": cap, "pixels": int(mask.sum())}
+
+
+# ---------------------------------------------------------------- the depth stage's step
+
+
+def nadir_crop(rgb: np.ndarray, size: int = 192, fov_deg: float = 70.0) -> np.ndarray:
+    """A small downward view (size, size, 3) of an ERP panorama: the nadir before/after picture of the report."""
+    return render_view(rgb, PerspectiveView(nadir_view(rgb.shape[0]).cam_from_view, fov_deg, size))
+
+
+def rig_step(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, floor_m: float | None, *,
+             user_mask: Path | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, RigDetection]:
+    """Detect (or take the user's mask) and remove the rig: (rgb, depth, valid, info, detection). Inside the rig
+    mask depth comes from the floor plane floor_m below the camera (invalid when no floor was found); outside the
+    masks nothing changes (no rig: the very same arrays)."""
+    H, W = rgb.shape[:2]
+    if user_mask is not None:
+        m = read_user_mask(user_mask, H, W)
+        det = RigDetection(bool(m.any()), f"user mask {Path(user_mask).name}", "user", m, np.zeros_like(m))
+    else:
+        det = detect_rig(rgb, depth, valid, floor_m)
+    info = {"found": det.found, "reason": det.reason, "kind": det.kind,
+            "stats": {k: (round(v, 4) if isinstance(v, float) else v) for k, v in det.stats.items()}}
+    if not det.found:
+        return rgb, depth, valid, info, det
+    rgb = remove_rig(rgb, det)
+    info["mask"] = area_stats(det.mask)
+    info["shadow"] = area_stats(det.shadow)
+    depth, valid = depth.copy(), valid.copy()
+    if floor_m:
+        plane = floor_depth(H, W, floor_m)
+        put = det.mask & (plane > 0)
+        depth[put], valid[put] = plane[put], True
+        valid[det.mask & ~put] = False
+        info["depth"] = f"floor plane {floor_m:.3f} m below the camera"
+    else:
+        valid[det.mask] = False
+        info["depth"] = "no floor found: depth under the rig made invalid"
+    depth = np.where(valid, depth, 0.0).astype(np.float32)
+    return rgb, depth, valid, info, det
+
+
+def nadir_luminance_gap(rgb: np.ndarray, cap_deg: float = 15.0) -> float:
+    """Relative difference of the mean luminance (solid-angle weighted) of the cap within cap_deg of the nadir and
+    of the floor ring RING_DEG around it: (cap - ring) / ring, e.g. -0.5 for a cap half as bright (a dark mount)."""
+    H, W = rgb.shape[:2]
+    theta = (np.arange(H) + 0.5) / H * 180.0  # degrees from the zenith
+    from_nadir = 180.0 - theta
+    lum = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float64).mean(1)
+    w = erp_pixel_solid_angle(H, W)[:, 0]
+    cap = from_nadir < cap_deg
+    ring = (from_nadir >= RING_DEG[0]) & (from_nadir < RING_DEG[1])
+    lc = float((lum * w)[cap].sum() / w[cap].sum())
+    lr = float((lum * w)[ring].sum() / w[ring].sum())
+    return (lc - lr) / max(lr, 1e-6)
+
+
+def nadir_cap_psnr(a: np.ndarray, b: np.ndarray, deg: float = 15.0) -> float:
+    """Solid-angle weighted PSNR (dB) of two ERP images (H, W, 3) uint8 over the cap within deg of the nadir."""
+    h, w = a.shape[:2]
+    r0 = int(h * (1.0 - deg / 180.0))
+    wt = np.broadcast_to(erp_pixel_solid_angle(h, w)[r0:], (h - r0, w))[..., None]
+    mse = float((wt * (a[r0:].astype(np.float64) - b[r0:]) ** 2).sum() / (3 * wt.sum()))
+    return 10 * np.log10(255.0**2 / max(mse, 1e-12))

@@ -1,0 +1,63 @@
+"""Hole filling on a view of a plane (the floor on the downward cube face): shifted floor patches + Telea."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def inpaint_plane(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, n_sectors: int = 6) -> np.ndarray:
+    """Fill hole (size, size) of face (float RGB 0-255): per azimuth sector around the nadir, the best-matching
+    shifted floor patch with its low frequencies corrected to the hole's border (Telea where no patch fits)."""
+    img8 = np.clip(np.rint(face), 0, 255).astype(np.uint8)
+    hole8 = hole.astype(np.uint8)
+    radius = max(3, face.shape[0] // 60)
+    base = cv2.inpaint(img8, hole8, radius, cv2.INPAINT_TELEA).astype(np.float32)
+    out = face.copy()
+    out[hole] = base[hole]
+    S = face.shape[0]
+    c = np.arange(S) + 0.5 - 0.5 * S
+    sector = ((np.arctan2(*np.meshgrid(c, c)[::-1]) + np.pi) / (2 * np.pi) * n_sectors).astype(int) % n_sectors
+    sig = max(1.5, S / 100)
+    known = (~hole).astype(np.float32)
+    scales = [3 * sig, 12 * sig]  # the wider one reaches the middle of a large hole
+    wsums = [cv2.GaussianBlur(known, (0, 0), g)[..., None] for g in scales]
+    for k in range(n_sectors):  # one patch per sector of the hole: each leg gets floor that fits its own border
+        part = hole & (sector == k)
+        d = _best_offset(face, part, floor_area & ~hole)
+        if d is None:
+            continue
+        src = np.roll(face, (-d[0], -d[1]), axis=(0, 1))
+        # The shifted patch, corrected by its smooth mismatch on the known pixels around the hole.
+        diff = (face - src) * known[..., None]
+        fill = src + float(np.mean((face - src)[~hole & floor_area])) if (~hole & floor_area).any() else out
+        for g, wsum in zip(scales[::-1], wsums[::-1]):
+            resid = cv2.GaussianBlur(diff, (0, 0), g)
+            fill = np.where(wsum > 0.02, src + resid / np.maximum(wsum, 1e-3), fill)
+        out[part] = fill[part]
+    return out
+
+
+def _best_offset(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray) -> tuple[int, int] | None:
+    """(dy, dx) such that face shifted by it matches face on a band around hole (sum of squared differences) and
+    the shifted hole lands on known floor: one patch match by template matching."""
+    ys, xs = np.nonzero(hole)
+    if len(ys) == 0:
+        return None
+    S = face.shape[0]
+    pad = max(4, S // 40)
+    y0, y1 = max(ys.min() - pad, 0), min(ys.max() + pad + 1, S)
+    x0, x1 = max(xs.min() - pad, 0), min(xs.max() + pad + 1, S)
+    hole_box = hole[y0:y1, x0:x1]
+    band = (cv2.dilate(hole_box.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=pad) > 0) & floor_area[y0:y1, x0:x1]
+    tmpl = face[y0:y1, x0:x1].astype(np.float32)
+    ssd = cv2.matchTemplate(face.astype(np.float32), tmpl, cv2.TM_SQDIFF,
+                            mask=np.repeat(band.astype(np.float32)[..., None], 3, axis=2))
+    # Where the hole's pixels would come from must be known floor: no overlap with the hole, inside the floor area.
+    bad = (hole | ~floor_area).astype(np.float32)
+    overlap = cv2.matchTemplate(bad, hole_box.astype(np.float32), cv2.TM_CCORR)
+    ssd = np.where(overlap < 0.5, ssd, np.inf)
+    if not np.isfinite(ssd).any():
+        return None
+    iy, ix = np.unravel_index(np.argmin(ssd), ssd.shape)
+    return int(iy - y0), int(ix - x0)

@@ -1,0 +1,221 @@
+"""The simulation asset checked by its real consumers: usd-core (stage, schemas, validators) and PyBullet (drop, walk,
+wall), plus the geometry against the synthetic ground truth."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from panoworld.conventions import invert_pose, transform_points
+from tests.test_report import pipeline_scene  # noqa: F401 - the shared session fixture (ci-tiny, every stage run)
+
+pxr = pytest.importorskip("pxr", reason="the sim extra: pip install -e '.[sim]'")
+pybullet = pytest.importorskip("pybullet", reason="the sim extra: pip install -e '.[sim]'")
+
+REPO = Path(__file__).resolve().parent.parent
+pytestmark = pytest.mark.slow  # the shared ci-tiny pipeline run
+
+
+@pytest.fixture(scope="module")
+def asset(pipeline_scene):  # noqa: F811
+    a = pipeline_scene / "artifacts" / "asset"
+    return a, json.loads((a / "asset.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def stage(asset):
+    from pxr import Usd
+
+    s = Usd.Stage.Open(str(asset[0] / "scene.usdc"))
+    assert s is not None
+    return s
+
+
+def _bullet(asset):
+    from panoworld.asset.physics import Agent, BulletScene
+
+    ag = asset[1]["agent"]
+    return BulletScene(asset[0] / "collider.obj",
+                       Agent(radius=ag["agent_radius_m"], height=ag["agent_height_m"], step_height=ag["step_height_m"]))
+
+
+def test_usd_validators_pass_and_stage_metadata(stage):
+    from pxr import UsdGeom, UsdPhysics, UsdValidation
+
+    validators = UsdValidation.ValidationRegistry().GetOrLoadAllValidators()
+    assert len(validators) >= 20  # every validator usd-core registers (what usdchecker runs)
+    errors = UsdValidation.ValidationContext(validators).Validate(stage)
+    assert [e.GetMessage() for e in errors] == []
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+    assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z
+    assert UsdPhysics.GetStageKilogramsPerUnit(stage) == 1.0
+    assert stage.GetDefaultPrim().GetPath() == "/World"
+    scene = UsdPhysics.Scene(stage.GetPrimAtPath("/World/PhysicsScene"))
+    assert tuple(scene.GetGravityDirectionAttr().Get()) == (0.0, 0.0, -1.0)
+    assert scene.GetGravityMagnitudeAttr().Get() == pytest.approx(9.81)
+
+
+def test_gaussians_are_one_particle_field_with_every_gaussian(stage, asset, pipeline_scene):  # noqa: F811
+    from plyfile import PlyData
+    from pxr import Usd, UsdVol
+
+    ply = PlyData.read(str(pipeline_scene / "artifacts" / "gaussians" / "gaussians.ply"))["vertex"].data
+    fields = [p for p in stage.Traverse() if p.IsA(UsdVol.ParticleField3DGaussianSplat)]
+    assert len(fields) == 1
+    g = UsdVol.ParticleField3DGaussianSplat(fields[0])
+    pos = np.array(g.GetPositionsAttr().Get())
+    assert len(pos) == len(ply) > 100
+    world = np.array(g.ComputeLocalToWorldTransform(Usd.TimeCode.Default())).T  # Gf row vectors -> column
+    ply_xyz = np.stack([ply["x"], ply["y"], ply["z"]], 1)
+    a_from_c = np.array(asset[1]["asset_from_canonical"])
+    np.testing.assert_allclose(transform_points(world, pos), transform_points(a_from_c, ply_xyz), atol=1e-5)
+    q = np.array([[o.GetReal(), *o.GetImaginary()] for o in g.GetOrientationsAttr().Get()])
+    rot = np.stack([ply[f"rot_{k}"] for k in range(4)], 1)
+    np.testing.assert_allclose(q, rot / np.linalg.norm(rot, axis=1, keepdims=True), atol=1e-6)
+    np.testing.assert_allclose(np.array(g.GetScalesAttr().Get()),
+                               np.exp(np.stack([ply[f"scale_{k}"] for k in range(3)], 1)), rtol=1e-5)
+    np.testing.assert_allclose(np.array(g.GetOpacitiesAttr().Get()), 1 / (1 + np.exp(-ply["opacity"])), atol=1e-6)
+    deg = g.GetRadianceSphericalHarmonicsDegreeAttr().Get()
+    sh = np.array(g.GetRadianceSphericalHarmonicsCoefficientsAttr().Get()).reshape(len(ply), (deg + 1) ** 2, 3)
+    np.testing.assert_allclose(sh[:, 0], np.stack([ply[f"f_dc_{k}"] for k in range(3)], 1), atol=1e-6)
+
+
+def test_collider_mesh_has_physics_apis_and_equals_collider_obj(stage, asset):
+    import trimesh
+    from pxr import UsdGeom, UsdPhysics
+
+    prim = stage.GetPrimAtPath("/World/Collider")
+    assert prim.HasAPI(UsdPhysics.CollisionAPI) and prim.HasAPI(UsdPhysics.MeshCollisionAPI)
+    assert UsdPhysics.MeshCollisionAPI(prim).GetApproximationAttr().Get() == UsdPhysics.Tokens.none
+    m = UsdGeom.Mesh(prim)
+    counts = np.array(m.GetFaceVertexCountsAttr().Get())
+    assert (counts == 3).all()
+    obj = trimesh.load(asset[0] / "collider.obj", process=False, force="mesh")
+    assert len(counts) == len(obj.faces) == asset[1]["counts"]["collider_triangles"]
+    np.testing.assert_allclose(np.array(m.GetPointsAttr().Get()), obj.vertices, atol=1e-4)
+    nav = stage.GetPrimAtPath("/World/NavMesh")
+    assert UsdGeom.Imageable(nav).GetPurposeAttr().Get() == UsdGeom.Tokens.guide
+    nav_pts = np.array(UsdGeom.Mesh(nav).GetPointsAttr().Get())
+    assert np.abs(nav_pts[:, 2]).max() < 1e-5  # the NavMesh is the floor: z = 0 in the asset frame
+
+
+def test_camera_animation_follows_the_planned_poses(stage, asset, pipeline_scene):  # noqa: F811
+    from pxr import Usd, UsdGeom
+
+    poses = np.array(json.loads((pipeline_scene / "artifacts/trajectory/trajectory.json").read_text())["poses"])
+    cam = UsdGeom.Camera(stage.GetPrimAtPath("/World/Trajectory/Camera"))
+    xf = UsdGeom.Xformable(cam)
+    assert xf.GetTimeSamples() == list(map(float, range(len(poses))))
+    assert stage.GetEndTimeCode() == len(poses) - 1
+    a_from_c = np.array(asset[1]["asset_from_canonical"])
+    for i in (0, len(poses) // 2, len(poses) - 1):
+        m = np.array(xf.ComputeLocalToWorldTransform(Usd.TimeCode(i))).T
+        np.testing.assert_allclose(m[:3, 3], (a_from_c @ poses[i])[:3, 3], atol=1e-5)
+        np.testing.assert_allclose(-m[:3, 2], (a_from_c @ poses[i])[:3, 2], atol=1e-5)  # USD cameras look along -z
+
+
+def test_asset_frame_and_spawn_match_ground_truth(asset, pipeline_scene):  # noqa: F811
+    import trimesh
+
+    from panoworld.synth.scene import SynthScene
+    from panoworld.trajectory import mesh_clearance
+
+    gt = SynthScene.load(pipeline_scene / "gt")
+    a, doc = asset
+    assert doc["up_axis"] == "Z" and doc["meters_per_unit"] == 1.0 and doc["collider"] == "collider.obj"
+    world_from_asset = gt.world_from_canonical @ invert_pose(np.array(doc["asset_from_canonical"]))
+    spawn_w = transform_points(world_from_asset, np.array([doc["spawn"]]))[0]
+    np.testing.assert_allclose(spawn_w[[0, 2]], gt.world_from_canonical[[0, 2], 3], atol=1e-6)  # below the camera
+    assert abs(spawn_w[1]) < 0.02  # on the GT floor (world y = 0)
+    obj = trimesh.load(a / "collider.obj", process=False, force="mesh")
+    pts = transform_points(world_from_asset, obj.vertices)
+    dist = mesh_clearance(gt.vertices, gt.faces, pts, cap=1.0)
+    assert np.percentile(dist, 95) < 0.03 and np.median(dist) < 0.01, np.percentile(dist, [50, 95, 100])
+
+
+def test_capsule_dropped_at_spawn_rests_on_the_floor(asset):
+    from panoworld.asset.physics import drop_test
+
+    with _bullet(asset) as sim:
+        r = drop_test(sim, np.array(asset[1]["spawn"]), drop_m=0.5)
+    assert r["speed_m_s"] < 0.01 and abs(r["rest_height_m"]) < 0.02 and r["drift_m"] < 0.02, r
+
+
+def test_capsule_walked_along_the_plan_never_penetrates(asset, pipeline_scene):  # noqa: F811
+    from panoworld.asset import trajectory_paths
+    from panoworld.asset.physics import walk_test
+
+    paths, _ = trajectory_paths(pipeline_scene / "artifacts" / "trajectory")
+    xy = transform_points(np.array(asset[1]["asset_from_canonical"]), paths[0][:, :3, 3])[:, :2]
+    with _bullet(asset) as sim:
+        r = walk_test(sim, xy, floor_z=0.0)
+        assert r["min_clearance_m"] > 0.0 and r["length_m"] > 0.3, r
+        # the same sweep through the nearest wall collides: the check can fail
+        wall = walk_test(sim, np.stack([xy[0], xy[0] + 6.0 * np.array([1.0, 0.0])]), floor_z=0.0)
+        assert wall["min_clearance_m"] < 0.0, wall
+
+
+def test_capsule_pushed_towards_a_wall_stops_at_it(asset):
+    from panoworld.asset.physics import wall_ok, wall_test
+
+    with _bullet(asset) as sim:
+        r = wall_test(sim, np.array(asset[1]["spawn"]))
+    assert 0.3 < r["wall_distance_m"] < 6.0, r
+    assert wall_ok(r), r  # in contact with an obstacle, not through the wall, not through the floor
+    assert abs(r["gap_m"]) < 0.05, r  # the synthetic room: nothing beside the way, so it stops at the wall itself
+
+
+def test_several_paths_become_several_cameras(pipeline_scene, tmp_path):  # noqa: F811
+    from pxr import Usd, UsdGeom
+
+    from panoworld.asset import build_asset
+    from panoworld.mesh import load_erp_mesh
+    from panoworld.navmesh import load_navmesh
+    from panoworld.splat_ply import read_gaussians_ply
+
+    arts = pipeline_scene / "artifacts"
+    traj = tmp_path / "trajectory"
+    shutil.copytree(arts / "trajectory", traj)
+    doc = json.loads((traj / "trajectory.json").read_text())
+    doc["paths"] = [{"poses": doc["poses"]}, {"poses": doc["poses"][:3]}]
+    (traj / "trajectory.json").write_text(json.dumps(doc))
+    out = tmp_path / "asset"
+    out.mkdir()
+    info = build_asset(out, mesh=load_erp_mesh(arts / "mesh"), nav=load_navmesh(arts / "navmesh"), trajectory_dir=traj,
+                       gaussians=read_gaussians_ply(arts / "gaussians" / "gaussians.ply"), max_triangles=8000)
+    assert info["compliance_errors"] == [] and info["cameras"] == 2
+    s = Usd.Stage.Open(str(out / "scene.usdc"))
+    cams = [p for p in s.Traverse() if p.IsA(UsdGeom.Camera)]
+    assert [len(UsdGeom.Xformable(c).GetTimeSamples()) for c in cams] == [len(doc["poses"]), 3]
+    assert info["collider"]["faces_decimated"] <= 8000  # the budget; the NavMesh floor comes on top
+    n_nav = len(load_navmesh(arts / "navmesh").triangles)
+    assert info["collider_triangles"] == info["collider"]["faces_decimated"] + n_nav
+
+
+def test_unreadable_gaussians_is_one_line_exit_2_nothing_written(pipeline_scene, tmp_path):  # noqa: F811
+    import stages.asset as stage
+    from panoworld.errors import InputError
+
+    arts = pipeline_scene / "artifacts"
+    bad = tmp_path / "gaussians"
+    bad.mkdir()
+    (bad / "gaussians.ply").write_text("not a ply")
+    out = tmp_path / "asset"
+    cmd = [sys.executable, "-m", "stages.asset", "--gaussians", str(bad), "--mesh", str(arts / "mesh"),
+           "--navmesh", str(arts / "navmesh"), "--trajectory", str(arts / "trajectory"), "--out", str(out)]
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
+    assert res.returncode == 2
+    lines = [ln for ln in res.stderr.strip().splitlines() if ln]
+    assert len(lines) == 1 and str(bad) in lines[0], res.stderr
+    assert not out.exists()
+    inputs = {"gaussians": bad, "mesh": arts / "mesh", "navmesh": arts / "navmesh", "trajectory": arts / "trajectory"}
+    out.mkdir()
+    with pytest.raises(InputError, match="gaussians.ply.*rerun the gaussians stage"):
+        stage.run(inputs, stage.Params(), out)
+    assert list(out.iterdir()) == []

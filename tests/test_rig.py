@@ -1,0 +1,154 @@
+"""Capture-rig removal at the nadir and pole completion, against the synthetic generator's rig-free ground truth."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+
+from panoworld.depth_complete import complete_poles
+from panoworld.errors import InputError
+from panoworld.rig import nadir_cap_psnr
+from panoworld.stage import execute_stage, load_stage, params_from_dict
+from panoworld.synth import generate_scene, params_for, write_scene
+from panoworld.synth.rig import FloorObject, with_floor_object
+
+SEED = 8  # a development seed; bench/bench_rig.py reports held-out seeds
+H = 256
+
+
+def read_rgb(path):
+    return cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+
+
+def run_depth(tmp_path, scene_dir, name="out", rig_mask=None, **params):
+    spec = load_stage("depth")
+    out = tmp_path / name
+    inputs = {"panorama": scene_dir / "panorama.png", "depth": scene_dir / "depth.npy", "rig_mask": rig_mask}
+    manifest = execute_stage(spec, inputs, params_from_dict(spec.params_cls, params), out)
+    return manifest["info"], out
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return generate_scene(SEED, "ci-tiny")
+
+
+@pytest.fixture(scope="module")
+def tripod_dir(tmp_path_factory, scene):
+    p = params_for("ci-tiny")
+    p = replace(p, render=replace(p.render, pano_height=H, write_frames=False, rig="tripod"))
+    return write_scene(scene, tmp_path_factory.mktemp("tripod") / "scene", p, progress=False)
+
+
+@pytest.fixture(scope="module")
+def plain_dir(tmp_path_factory, scene):
+    p = params_for("ci-tiny")
+    p = replace(p, render=replace(p.render, pano_height=H, write_frames=False))
+    return write_scene(scene, tmp_path_factory.mktemp("plain") / "scene", p, progress=False)
+
+
+def test_synth_rig_ground_truth(tripod_dir):
+    rigged, clean = read_rgb(tripod_dir / "panorama.png"), read_rgb(tripod_dir / "gt" / "panorama_clean.png")
+    mask = cv2.imread(str(tripod_dir / "gt" / "rig_mask.png"), cv2.IMREAD_GRAYSCALE) > 0
+    assert mask.any() and np.abs(rigged[~mask].astype(int) - clean[~mask]).max() <= 8  # faint leg shadows aside
+    rows = np.nonzero(mask.any(1))[0]
+    assert 150.0 < (rows.min() + 0.5) / H * 180.0 < 168.0  # the legs reach 12-30 degrees from the nadir
+    assert nadir_cap_psnr(rigged, clean) < 22.0
+
+
+def test_tripod_removed_against_rig_free_truth(tmp_path, tripod_dir, scene):
+    info, out = run_depth(tmp_path, tripod_dir)
+    rig = info["rig"]
+    assert rig["found"] and rig["kind"] == "legs", rig["reason"]
+    assert 10.0 < rig["mask"]["cap_deg"] < 30.0 and 0 < rig["mask"]["sphere_fraction"] < 0.03
+    clean = read_rgb(tripod_dir / "gt" / "panorama_clean.png")
+    cleaned = read_rgb(out / "panorama.png")
+    assert nadir_cap_psnr(cleaned, clean) >= 25.0
+    assert nadir_cap_psnr(read_rgb(tripod_dir / "panorama.png"), clean) < 22.0
+    # Depth under the rig is the floor plane: the rig-free depth within 2 %.
+    mask = cv2.imread(str(out / "rig_mask.png"), cv2.IMREAD_GRAYSCALE) > 0
+    truth = np.load(tripod_dir / "gt" / "depth_clean.npy")
+    depth = np.load(out / "depth.npy")
+    assert np.all(np.abs(depth[mask] - truth[mask]) < 0.02 * truth[mask])
+    assert (out / "nadir_before_after.jpg").is_file()
+
+
+def test_keep_leaves_the_rig(tmp_path, tripod_dir):
+    info, out = run_depth(tmp_path, tripod_dir, rig="keep")
+    assert "rig" not in info
+    assert np.array_equal(read_rgb(out / "panorama.png"), read_rgb(tripod_dir / "panorama.png"))
+
+
+def test_no_rig_is_left_unchanged(tmp_path, plain_dir):
+    info, out = run_depth(tmp_path, plain_dir)
+    assert not info["rig"]["found"] and "nothing at the nadir" in info["rig"]["reason"]
+    assert np.array_equal(read_rgb(out / "panorama.png"), read_rgb(plain_dir / "panorama.png"))
+    assert not (out / "rig_mask.png").exists()
+
+
+@pytest.mark.parametrize("kind", list(FloorObject))
+def test_seen_object_under_the_camera_is_kept(tmp_path, scene, kind):
+    obj = with_floor_object(scene, kind)
+    rgb, depth = obj.render(obj.world_from_canonical, H, 2 * H)
+    d = tmp_path / "scene"
+    d.mkdir()
+    cv2.imwrite(str(d / "panorama.png"), rgb[..., ::-1])
+    np.save(d / "depth.npy", depth)
+    info, out = run_depth(tmp_path, d)
+    assert not info["rig"]["found"], info["rig"]["reason"]
+    assert ("30 deg" if kind == FloorObject.RUG else "horizontal surface") in info["rig"]["reason"]
+    assert np.array_equal(read_rgb(out / "panorama.png"), rgb)
+
+
+def test_user_mask_overrides_detection(tmp_path, plain_dir, tripod_dir):
+    # On a rig-free scene detection finds nothing; the user's mask is inpainted anyway, nothing outside it changes.
+    mask = np.zeros((H, 2 * H), np.uint8)
+    mask[H - 12:, :] = 255
+    cv2.imwrite(str(tmp_path / "rig_mask.png"), mask)
+    info, out = run_depth(tmp_path, plain_dir, rig_mask=tmp_path / "rig_mask.png")
+    assert info["rig"]["found"] and info["rig"]["kind"] == "user"
+    before, after = read_rgb(plain_dir / "panorama.png"), read_rgb(out / "panorama.png")
+    assert np.array_equal(before[: H - 12], after[: H - 12])
+    # The generator's own rig mask on the tripod scene removes the tripod.
+    info, out = run_depth(tmp_path, tripod_dir, name="out2", rig_mask=tripod_dir / "gt" / "rig_mask.png")
+    assert info["rig"]["kind"] == "user"
+    assert nadir_cap_psnr(read_rgb(out / "panorama.png"), read_rgb(tripod_dir / "gt" / "panorama_clean.png")) >= 25.0
+
+
+def test_bad_user_mask_is_an_input_error(tmp_path, plain_dir):
+    cv2.imwrite(str(tmp_path / "rig_mask.png"), np.zeros((10, 10), np.uint8))
+    with pytest.raises(InputError, match=r"rig_mask.png: rig mask is 10x10 but must be 2:1"):
+        run_depth(tmp_path, plain_dir, rig_mask=tmp_path / "rig_mask.png")
+    assert not (tmp_path / "out" / "panorama.png").exists()
+
+
+def test_pole_completion_recovers_floor_and_ceiling(scene):
+    _, depth = scene.render(scene.world_from_canonical, 128, 256)
+    truth = depth.copy()
+    lat = 90.0 - (np.arange(128) + 0.5) / 128 * 180.0
+    cut = (np.abs(lat) > 62.0)[:, None] | ((lat < -48.0) & (lat > -52.0))[:, None]  # LiDAR poles + a band
+    valid = np.isfinite(depth) & ~np.broadcast_to(cut, depth.shape)
+    depth = np.where(valid, depth, 0.0).astype(np.float32)
+    out, out_valid, info = complete_poles(depth, valid)
+    h = scene.tracks[0].camera_height
+    assert abs(info["floor_m"] - h) < 0.03
+    assert abs(info["ceiling_m"] - (scene.meta["ceiling_height_m"] - h)) < 0.03
+    filled = out_valid & ~valid
+    assert info["completed_fraction"] == pytest.approx(filled.mean())
+    assert filled[np.broadcast_to(cut, depth.shape)].mean() > 0.9
+    # Completed depth is the true plane distance (furniture under the poles aside): median error < 2 %.
+    rel = np.abs(out[filled] - truth[filled]) / truth[filled]
+    assert np.median(rel) < 0.02
+    assert np.array_equal(out[valid], depth[valid])
+
+
+def test_report_shows_the_nadir_before_and_after(tmp_path, tripod_dir):
+    from panoworld.report.scene import ReportParams, SceneData, section_depth
+
+    run_depth(tmp_path, tripod_dir, name="scene/artifacts/depth")
+    section = section_depth(SceneData(tmp_path / "scene"), ReportParams())
+    assert "nadir before / after capture-rig removal (legs" in section.body
+    assert "tripod legs" in section.body
