@@ -13,6 +13,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -45,7 +46,19 @@ def pose_errors(est: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> dict[s
     return out
 
 
-def run_one(seed: int, k: int, height: int, work: Path, with_navmesh: bool) -> dict:
+def perturb_depths(scene: Path, seed: int, scale_error: float, noise: float) -> None:
+    """Degrade the rendered depths like a predictor would: one scale factor per panorama (1 +- scale_error, uniform)
+    and multiplicative per-pixel noise (relative std `noise`, smoothed over ~8 pixels)."""
+    rng = np.random.default_rng(seed)
+    for f in sorted((scene / "depths").glob("*.npy")):
+        d = np.load(f)
+        field = cv2.GaussianBlur(rng.normal(size=d.shape).astype(np.float32), (0, 0), 8.0)
+        field *= noise / max(float(field.std()), 1e-12)
+        np.save(f, (d * rng.uniform(1 - scale_error, 1 + scale_error) * (1 + field)).astype(np.float32))
+
+
+def run_one(seed: int, k: int, height: int, work: Path, with_navmesh: bool, scale_error: float = 0.0,
+            noise: float = 0.0) -> dict:
     params = home_params("default")
     params = replace(params, render=replace(params.render, pano_height=height))
     t0 = time.perf_counter()
@@ -53,6 +66,8 @@ def run_one(seed: int, k: int, height: int, work: Path, with_navmesh: bool) -> d
     scene = work / f"home_{seed}_{k}"
     write_home(home, scene, params)
     synth_s = time.perf_counter() - t0
+    if scale_error > 0 or noise > 0:
+        perturb_depths(scene, seed, scale_error, noise)
     out = scene / "artifacts" / "register"
     cmd = [sys.executable, "-m", "stages.register", "--scene", str(scene), "--out", str(out)]
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
@@ -100,6 +115,9 @@ def main() -> int:
     ap.add_argument("--split", choices=["test", "val"], default="test", help="held-out test seeds or validation seeds")
     ap.add_argument("--seeds", type=int, nargs="+", default=None, help="override the split's seeds")
     ap.add_argument("--height", type=int, default=720, help="panorama rows (the default preset renders 720)")
+    ap.add_argument("--depth-scale-error", type=float, default=0.0,
+                    help="per-panorama depth scale error (uniform 1 +- this) applied before registration")
+    ap.add_argument("--depth-noise", type=float, default=0.0, help="relative per-pixel depth noise (smooth field std)")
     ap.add_argument("--no-navmesh", action="store_true", help="skip the fused mesh and NavMesh figures")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
     args = ap.parse_args()
@@ -108,7 +126,8 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="bench_multi_") as tmp:
         for k in args.panoramas:
             for seed in seeds:
-                rows.append(run_one(seed, k, args.height, Path(tmp), not args.no_navmesh))
+                rows.append(run_one(seed, k, args.height, Path(tmp), not args.no_navmesh, args.depth_scale_error,
+                                    args.depth_noise))
                 print(json.dumps(rows[-1]), file=sys.stderr)
     summary = []
     for k in args.panoramas:
@@ -128,7 +147,8 @@ def main() -> int:
             else None,
         })
     if args.json:
-        print(json.dumps({"height": args.height, "seeds": list(seeds), "rows": rows, "summary": summary}, indent=1))
+        print(json.dumps({"height": args.height, "seeds": list(seeds), "depth_scale_error": args.depth_scale_error,
+                          "depth_noise": args.depth_noise, "rows": rows, "summary": summary}, indent=1))
         return 0
     print(f"| panoramas | scenes | registered | misplaced | trans cm mean / max | rot deg mean / max | register s "
           f"| peak MB | NavMesh holds all registered | fuse + NavMesh s |  (height {args.height}, seeds {list(seeds)})")
