@@ -190,3 +190,12 @@ def test_fused_mesh_reproduces_every_view_and_navmesh_joins_the_rooms(home_dir):
         assert (d < 0.98 * ref).mean() < 0.02  # ... and nothing in front of what the panorama saw
     _, on = home_navmesh(mesh, poses)
     assert all(on.values()), on
+
+
+def test_runner_points_a_multi_scene_to_the_register_stage(home_dir):
+    from panoworld.errors import PipelineError
+    from panoworld.pipeline import Pipeline, open_scene
+
+    with pytest.raises(PipelineError, match="multi-panorama scene.*stages.register") as e:
+        open_scene(home_dir, Pipeline.load())
+    assert e.value.exit_code == 2 and not (home_dir / "artifacts").exists()
