@@ -19,6 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from panoworld.conditions import (
     Backend,
+    MeshReference,
     iter_conditions,
     make_renderer,
     split_stretched_faces,
@@ -50,16 +51,16 @@ def quality(seeds: int, height: int, distance: float) -> None:
     print(f"== warp quality: {seeds} synthetic scenes (default preset), ERP {height}x{2 * height}, novel pose "
           f"{distance} m along GT track 0; {load_line()}")
     print("   PSNR on pixels the mask marks valid and that are truly visible; IoU of the 'must be generated' sets")
-    print("   (mask == 0) vs true disocclusion (surface > 2% behind the source depth at its source pixel, or none)")
+    print("   (mask == 0) vs true disocclusion (a surface > 2% nearer along the exact source ray, or none)")
     rows = []
     for seed in range(seeds):
         scene = generate_scene(seed, "default")
         src_pose, tgt_pose, chord = novel_pose(scene, distance)
         rgb0, d0 = scene.render(src_pose, height, 2 * height)
-        rgb1, d1 = scene.render(tgt_pose, height, 2 * height)
+        rgb1, _ = scene.render(tgt_pose, height, 2 * height)
         src_from_tgt = invert_pose(src_pose) @ tgt_pose
         mesh = erp_mesh_from_depth(d0, rgb0)
-        hole_true = true_disocclusion(d0, d1, src_from_tgt)
+        hole_true = true_disocclusion(MeshReference(scene.vertices, scene.faces), src_pose, tgt_pose, height, 2 * height)
         scores = []
         for split in (True, False):
             (frame,) = iter_conditions(mesh, src_from_tgt[None], height, 2 * height, split_silhouettes=split)

@@ -12,23 +12,12 @@ from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld.conventions import erp_dirs, erp_pixel_from_dir, invert_pose, transform_points
+from panoworld.conditions import MeshReference, true_disocclusion
+from panoworld.conventions import invert_pose
 from panoworld.mesh import ErpMesh, erp_mesh_from_depth
 from panoworld.metrics import psnr
 from panoworld.raycast import Raycaster
 from panoworld.synth import generate_scene
-
-
-def true_disocclusion(points_ref: np.ndarray, depth_ref: np.ndarray, rel_tol: float = 0.02, abs_tol: float = 0.02):
-    """GT points (H, W, 3) seen at the novel pose, in the reference camera frame -> (H, W) bool: not visible from
-    the reference camera (behind its depth at the nearest reference pixel, or outside its valid depth)."""
-    Hr, Wr = depth_ref.shape
-    dist = np.linalg.norm(points_ref, axis=-1)
-    u, v = erp_pixel_from_dir(points_ref, Hr, Wr)
-    i = np.clip(v.astype(int), 0, Hr - 1)
-    j = np.clip(u.astype(int), 0, Wr - 1)
-    d_ref = depth_ref[i, j]
-    return ~np.isfinite(d_ref) | (dist > d_ref * (1 + rel_tol) + abs_tol)
 
 
 def render_variant(mesh: ErpMesh, cam_pose: np.ndarray, H: int, W: int) -> tuple[np.ndarray, np.ndarray]:
@@ -96,8 +85,7 @@ def main(argv: list[str] | None = None) -> None:
     # Novel pose: GT vs the two ways of handling stretched faces.
     Hn, Wn = args.novel_height, 2 * args.novel_height
     rgb_gt, depth_gt = scene.render(track[k], Hn, Wn)
-    pts_ref = transform_points(ref_from_novel, erp_dirs(Hn, Wn, dtype=np.float64) * depth_gt[..., None].astype(np.float64))
-    truth = true_disocclusion(pts_ref, np.where(valid, depth, np.inf))
+    truth = true_disocclusion(MeshReference(scene.vertices, scene.faces), world_from_ref, track[k], Hn, Wn)
     print(f"novel view {Wn}x{Hn}: true disoccluded area {truth.mean():.3%} of pixels")
     dropped = ErpMesh(mesh.vertices, mesh.faces[mesh.face_valid], mesh.colors, np.ones(len(valid_mesh.faces), bool))
     for name, variant in (("flag", mesh), ("drop", dropped)):

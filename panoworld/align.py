@@ -4,23 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from panoworld.conventions import check_poses
 from panoworld.shapes import check_shape
 
 
 def _check_points(src: np.ndarray, dst: np.ndarray) -> None:
-    if src.ndim != 2 or src.shape[1] != 3 or dst.shape != src.shape:
-        raise ValueError(f"{src.shape=} and {dst.shape=} but expected both (N, 3)")
+    check_shape("dst", dst, "N 3", dims=check_shape("src", src, "N 3"))
     if len(src) < 1:
         raise ValueError("cannot align empty point sets")
-
-
-def check_trajectory(poses: np.ndarray, what: str = "poses") -> np.ndarray:
-    """Return poses as float64 (N, 4, 4); raise ValueError naming `what` on a wrong shape or non-finite values."""
-    poses = np.asarray(poses, dtype=np.float64)
-    check_shape(what, poses, "N 4 4")
-    if not np.isfinite(poses).all():
-        raise ValueError(f"{what} contains NaN or inf")
-    return poses
 
 
 def _rotation_from_correlation(M: np.ndarray) -> np.ndarray:
@@ -67,7 +58,7 @@ def apply_sim3(s: float, R: np.ndarray, t: np.ndarray, poses: np.ndarray) -> np.
 
     Rotations become R R_i and camera centres s R c_i + t (the camera frame itself is not scaled).
     """
-    poses = check_trajectory(poses)
+    poses = check_poses(poses)
     out = np.repeat(np.eye(4)[None], len(poses), axis=0)
     out[:, :3, :3] = np.asarray(R)[None] @ poses[:, :3, :3]
     out[:, :3, 3] = s * poses[:, :3, 3] @ np.asarray(R).T + t
@@ -94,8 +85,8 @@ def align_trajectory(
     correlation plus w times the orientation correlation, then s and t are Umeyama's given R. Exact data
     is recovered exactly either way. sim3=False fixes s = 1.
     """
-    est = check_trajectory(est, "est")
-    gt = check_trajectory(gt, "gt")
+    est = check_poses(est, "est")
+    gt = check_poses(gt, "gt")
     check_shape("gt", gt, "N 4 4", dims={"N": len(est)})
     c_est, c_gt = est[:, :3, 3], gt[:, :3, 3]
     if rotation_weight <= 0 and _spans_a_plane(c_gt):
@@ -135,7 +126,7 @@ def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
 
 def path_length(poses: np.ndarray) -> float:
     """Sum of distances between consecutive camera centres of poses (N, 4, 4), in the poses' units."""
-    c = check_trajectory(poses)[:, :3, 3]
+    c = check_poses(poses)[:, :3, 3]
     return float(np.linalg.norm(np.diff(c, axis=0), axis=1).sum())
 
 
@@ -144,7 +135,7 @@ def relative_pose_errors(est: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, n
 
     Both inputs are world_from_cam (N, 4, 4) in the same units (align est first for metric RPE_t).
     """
-    est, gt = check_trajectory(est, "est"), check_trajectory(gt, "gt")
+    est, gt = check_poses(est, "est"), check_poses(gt, "gt")
     if len(est) < 2:
         return np.zeros(0), np.zeros(0)
     rel_e = np.linalg.inv(est[:-1]) @ est[1:]
@@ -169,7 +160,7 @@ def trajectory_metrics(est: np.ndarray, gt: np.ndarray, sim3: bool = True) -> di
     the relative errors between frames, the same quantities as its RPE_r/RPE_t (reconstruction tables): they do not
     grow with the path length the way an absolute error does (docs/evaluation.md).
     """
-    est, gt = check_trajectory(est, "est"), check_trajectory(gt, "gt")
+    est, gt = check_poses(est, "est"), check_poses(gt, "gt")
     check_shape("gt", gt, "N 4 4", dims={"N": len(est)})
     aligned, (s, _, _) = align_trajectory(est, gt, sim3=sim3)
     e = np.linalg.norm(aligned[:, :3, 3] - gt[:, :3, 3], axis=1)

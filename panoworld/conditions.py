@@ -15,22 +15,16 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.conventions import DEPTH_PNG_SCALE, check_erp_shape, depth_to_mm
+from panoworld.conventions import DEPTH_PNG_SCALE, check_erp_shape, check_poses, depth_to_mm
 from panoworld.io.depth_png import metres_from_png
 from panoworld.mesh import ErpMesh
+from panoworld.shapes import check_shape
 from panoworld.warped_frame import WarpedFrame
 
 CONDITIONS_JSON = "conditions.json"
 PREVIEW_MP4 = "preview.mp4"
 DEPTH_SCALE = DEPTH_PNG_SCALE
 """Metres per unit of the uint16 depth PNGs (millimetres; 0 = nothing, saturates at 65.535 m)."""
-
-
-def check_poses(poses: np.ndarray, what: str = "poses") -> np.ndarray:
-    """world_from_cam poses (N, 4, 4), N >= 1, finite and rigid, as float64; ValueError naming the first bad pose."""
-    from panoworld.trajectory import check_poses as check_trajectory_poses
-
-    return check_trajectory_poses(poses, what)
 
 
 class Backend(enum.StrEnum):
@@ -158,35 +152,47 @@ def render_conditions(mesh: ErpMesh, poses: np.ndarray, height: int, width: int,
 # ---------------------------------------------------------------------------------------------- ground truth
 
 
+class MeshReference:
+    """An exact mesh as the reference of true_disocclusion: depth renders and ray casts, poses in the mesh's frame."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        from panoworld.raycast import Raycaster
+
+        self.raycaster = Raycaster(vertices, faces)
+
+    def depth(self, pose: np.ndarray, height: int, width: int) -> np.ndarray:
+        """Exact ERP ray distance (H, W) at world_from_cam pose (inf = no surface)."""
+        return self.raycaster.render_erp(pose, height, width).distance
+
+    def cast(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """Distance (N,) along unit rays origins (N | 1, 3) + t dirs (N, 3) to the first surface (inf = none)."""
+        return self.raycaster.cast(origins, dirs).distance
+
+
 def true_disocclusion(
-    depth_src: np.ndarray, depth_tgt: np.ndarray, src_from_tgt: np.ndarray, rel_tol: float = 0.02
+    reference, source_pose: np.ndarray, pose: np.ndarray, height: int, width: int, tol: float = 0.02
 ) -> np.ndarray:
-    """Pixels of the target view whose surface the source view does not see, from exact depths -> (H, W) bool.
+    """(H, W) bool: pixels of the view at `pose` whose ground-truth surface point the camera at `source_pose` does not
+    see (something lies nearer than (1 - tol) x its distance along the source ray), or where there is no surface.
 
-    depth_src (Hs, Ws) and depth_tgt (H, W) are ground-truth ERP ray distances (inf / <= 0 = nothing) of the
-    source and target cameras; src_from_tgt (4, 4) maps target-camera to source-camera coordinates. A target
-    pixel's surface point is seen from the source unless it lies more than rel_tol (relative) behind the source
-    depth at the source pixel it projects into (the standard shadow-map test). Pixels without a surface, or
-    projecting onto source pixels without one, count as disoccluded (nothing to warp there).
+    reference: exact geometry with depth(pose, H, W) -> (H, W) ray distances (inf = none) and cast(origins, dirs) ->
+    (N,) distances, e.g. MeshReference or the evaluation's GroundTruth; poses are world_from_cam (4, 4) in its frame.
+    This is the projection test 'project the point into the source ERP, compare with the source depth' with the
+    source depth taken exactly along the point's own ray (a ray cast), so it has no source-resolution error.
     """
-    from panoworld.conventions import (
-        erp_pixel_from_dir,
-        points_from_depth,
-        transform_points,
-    )
+    from panoworld.conventions import points_from_depth
 
-    hs, ws = depth_src.shape
-    check_erp_shape(hs, ws, "depth_src")
-    check_erp_shape(*depth_tgt.shape, "depth_tgt")
-    has = np.isfinite(depth_tgt) & (depth_tgt > 0)
-    pts = transform_points(src_from_tgt, points_from_depth(np.where(has, depth_tgt, 1.0).astype(np.float64)))
-    dist = np.linalg.norm(pts, axis=-1)
-    u, v = erp_pixel_from_dir(pts, hs, ws)
-    i = np.clip(np.floor(v).astype(np.int64), 0, hs - 1)
-    j = np.floor(u).astype(np.int64) % ws
-    src = np.where(np.isfinite(depth_src) & (depth_src > 0), depth_src, 0.0).astype(np.float64)
-    seen = has & (dist <= src[i, j] * (1 + rel_tol))
-    return ~seen
+    check_erp_shape(height, width, "true_disocclusion size")
+    depth = reference.depth(pose, height, width)
+    hole = ~(np.isfinite(depth) & (depth > 0))
+    pts = points_from_depth(np.where(hole, 1.0, depth), np.asarray(pose, np.float64))[~hole]
+    centre = np.asarray(source_pose, np.float64)[:3, 3]
+    ray = pts - centre
+    dist = np.linalg.norm(ray, axis=1)
+    seen = reference.cast(centre[None], ray / np.maximum(dist, 1e-12)[:, None]) >= (1.0 - tol) * dist
+    out = hole.copy()
+    out[~hole] = ~seen
+    return out
 
 
 @dataclass
@@ -207,8 +213,9 @@ def warp_quality(frame: WarpedFrame, rgb_true: np.ndarray, disoccluded: np.ndarr
     """Score a WarpedFrame against the true rgb (H, W, 3) uint8 and true_disocclusion (H, W) at its pose."""
     from panoworld.metrics import psnr
 
-    if rgb_true.shape != frame.rgb.shape or disoccluded.shape != frame.mask.shape:
-        raise ValueError(f"{rgb_true.shape=}, {disoccluded.shape=} but expected {frame.rgb.shape}, {frame.mask.shape}")
+    dims = {"H": frame.mask.shape[0], "W": frame.mask.shape[1]}
+    check_shape("rgb_true", rgb_true, "H W 3", dims=dims)
+    check_shape("disoccluded", disoccluded, "H W", dims=dims)
     hole = ~frame.mask
     union = (hole | disoccluded).sum()
     iou = float((hole & disoccluded).sum() / union) if union else 1.0

@@ -121,8 +121,41 @@ def transform_points(a_from_b: np.ndarray, pts_b: np.ndarray) -> np.ndarray:
 
 
 def check_pose(T: np.ndarray, what: str = "pose") -> None:
-    if np.shape(T) != (4, 4):
-        raise ValueError(f"{what} has shape {np.shape(T)} but expected (4, 4)")
+    check_shape(what, T, "4 4")
+
+
+POSE_RIGID_TOL = 1e-4
+"""check_poses' tolerance on every entry of R R^T - I and of the last row - (0, 0, 0, 1): poses stored as float32 or
+rounded to 6 decimals pass; a scaled, sheared or similarity (s != 1) matrix does not."""
+
+
+def check_poses(poses, what: str = "poses") -> np.ndarray:
+    """world_from_cam poses (N, 4, 4), N >= 1, finite and rigid (det +1, within POSE_RIGID_TOL), as float64; else
+    InputError naming `what` and the first bad pose."""
+    from panoworld.errors import InputError
+
+    try:
+        poses = np.asarray(poses, np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{what}: poses are not a numeric array of 4x4 matrices") from None
+    check_shape(what, poses, "N 4 4")
+    if len(poses) == 0:
+        raise InputError(f"{what}: no poses (expected (N, 4, 4) with N >= 1)")
+    if not np.isfinite(poses).all():
+        bad = int(np.flatnonzero(~np.isfinite(poses).reshape(len(poses), -1).all(1))[0])
+        raise InputError(f"{what}: pose {bad} has NaN or inf entries")
+    R = poses[:, :3, :3]
+    err = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+    det = np.linalg.det(R)
+    row = np.abs(poses[:, 3] - [0, 0, 0, 1]).max(axis=1)
+    bad = np.flatnonzero((err > POSE_RIGID_TOL) | (det < 0) | (row > POSE_RIGID_TOL))
+    if len(bad):
+        i = int(bad[0])
+        raise InputError(
+            f"{what}: pose {i} is not a rigid world_from_cam transform (|R R^T - I| = {err[i]:.2e}, det = {det[i]:.3f}, "
+            f"last row {poses[i, 3].tolist()}); {len(bad)} such poses"
+        )
+    return poses
 
 
 def invert_pose(T: np.ndarray) -> np.ndarray:

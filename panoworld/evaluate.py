@@ -14,6 +14,7 @@ import sys
 import typing
 from pathlib import Path
 
+from panoworld.conditions import true_disocclusion  # noqa: F401 - re-exported API
 from panoworld.eval.common import (  # noqa: F401 - re-exported API
     GT_DIRNAME,
     TARGETS,
@@ -34,7 +35,6 @@ from panoworld.eval.groundtruth import (  # noqa: F401 - re-exported API
     NoReference,
     PlanOnly,
     open_ground_truth,
-    true_disocclusion,
 )
 from panoworld.eval.report import (  # noqa: F401 - re-exported API
     NOTHING_MESSAGE,

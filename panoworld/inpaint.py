@@ -375,8 +375,9 @@ def warp_inpaint_video(
 ) -> tuple[list[FilledFrame], BackgroundLayer]:
     """Fill conditions rgb (T, H, W, 3) uint8 / mask (T, H, W) bool / depth (T, H, W) at poses (T, 4, 4) from
     one background layer built from the source mesh (see build_background_layer)."""
-    if rgb.ndim != 4 or mask.shape != rgb.shape[:3] or len(poses) != len(rgb):
-        raise ValueError(f"{rgb.shape=} {mask.shape=} {np.shape(poses)=} but expected (T, H, W, 3), (T, H, W), (T, 4, 4)")
+    dims = check_shape("rgb", rgb, "T H W 3")
+    check_shape("mask", mask, "T H W", dims=dims)
+    check_shape("poses", poses, "T 4 4", dims=dims)
     layer = build_background_layer(
         mesh, max_translation(poses), max_band_deg=max_band_deg, inpaint_radius=inpaint_radius
     )

@@ -153,8 +153,9 @@ def reprojection_error(
 
     img_t, img_t1 = _pair(img_t, img_t1)
     H, W = img_t.shape[:2]
-    if depth_t.shape != (H, W) or depth_t1.shape != (H, W):
-        raise ValueError(f"{depth_t.shape=} {depth_t1.shape=} but expected {(H, W)} (H, W)")
+    dims = {"H": H, "W": W}
+    check_shape("depth_t", depth_t, "H W", dims=dims)
+    check_shape("depth_t1", depth_t1, "H W", dims=dims)
     if mask_t is not None:
         mask_t = _mask(mask_t, (H, W))
     ok = np.isfinite(depth_t1) & (depth_t1 > 0)
@@ -220,7 +221,8 @@ def loop_closure_flow_deg(first: np.ndarray, last: np.ndarray) -> float:
 def feature_statistics(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(mean (D,), covariance (D, D)) of features (N, D), N >= 2 (unbiased covariance, as pytorch-fid)."""
     f = np.asarray(features, dtype=np.float64)
-    if f.ndim != 2 or len(f) < 2:
+    check_shape("features", f, "N D")
+    if len(f) < 2:
         raise ValueError(f"{f.shape=} but expected (N, D) with N >= 2")
     return f.mean(0), np.cov(f, rowvar=False)
 
@@ -233,8 +235,9 @@ def frechet_distance(mu1: np.ndarray, sigma1: np.ndarray, mu2: np.ndarray, sigma
 
     mu1, mu2 = np.atleast_1d(mu1).astype(np.float64), np.atleast_1d(mu2).astype(np.float64)
     s1, s2 = np.atleast_2d(sigma1).astype(np.float64), np.atleast_2d(sigma2).astype(np.float64)
-    if mu1.shape != mu2.shape or s1.shape != s2.shape or s1.shape != (len(mu1), len(mu1)):
-        raise ValueError(f"{mu1.shape=} {mu2.shape=} {s1.shape=} {s2.shape=} but expected (D,), (D,), (D, D), (D, D)")
+    dims = check_shape("mu1", mu1, "D")
+    for name, arr, spec in (("mu2", mu2, "D"), ("sigma1", s1, "D D"), ("sigma2", s2, "D D")):
+        check_shape(name, arr, spec, dims=dims)
     covmean, _ = linalg.sqrtm(s1 @ s2, disp=False)
     if not np.isfinite(covmean).all():
         offset = np.eye(len(s1)) * eps

@@ -30,7 +30,6 @@ from panoworld.stage import (
     LOCK_FILE,
     RUNNER_PID_ENV,
     StageSpec,
-    cache_key,
     input_digest,
     load_stage,
     merge,
@@ -40,6 +39,7 @@ from panoworld.stage import (
     params_to_dict,
     resolve_stage_weights,
     stage_code,
+    stage_key,
 )
 
 PIPELINE_FILE = art.REPO_ROOT / "pipeline.yaml"
@@ -463,7 +463,7 @@ def stage_state(node: StageNode, scene: Scene, params: Any) -> tuple[bool, str]:
         return False, f"weights missing: {e}"
     pdict = params_to_dict(params)
     code = stage_code(node.spec)
-    key = cache_key(node.spec.version, params_hash(pdict), digests, hub.weights_key(weights), code_digest.combined(code))
+    key = stage_key(node.spec, params, digests, weights)
     if key == manifest["key"]:
         return True, "up to date"
     if manifest["stage_version"] != node.spec.version:

@@ -15,9 +15,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from panoworld.align import align_trajectory, apply_sim3, check_trajectory, trajectory_metrics
+from panoworld.align import align_trajectory, apply_sim3, trajectory_metrics
 from panoworld.choices import Alignment, ColmapOptions, Matcher, RenderType
-from panoworld.conventions import cv_world_from_cam_from_gl, gl_world_from_cam, invert_pose
+from panoworld.conventions import check_poses, cv_world_from_cam_from_gl, gl_world_from_cam, invert_pose
 from panoworld.errors import InputError
 from panoworld.io import to_jsonable, write_json
 from panoworld.io.depth_png import read_depth_png, write_depth_png  # noqa: F401  (re-exported)
@@ -97,7 +97,7 @@ class PoseEstimate:
 
 def planned_estimate(planned: np.ndarray) -> PoseEstimate:
     """The planned trajectory as the poses (for generators that follow it exactly)."""
-    planned = check_trajectory(planned, "planned")
+    planned = check_poses(planned, "planned")
     return PoseEstimate(planned.copy(), np.ones(len(planned), bool), "planned", raw=planned.copy())
 
 
@@ -245,7 +245,7 @@ def colmap_estimate(
     """
     import pycolmap
 
-    planned = check_trajectory(planned, "planned")
+    planned = check_poses(planned, "planned")
     n = len(image_paths)
     if len(planned) != n:
         raise InputError(f"the planned trajectory has {len(planned)} poses but the video has {n} frames")
@@ -314,7 +314,7 @@ def vggt_estimate(
     if alignment != Alignment.NONE:
         if planned is None:
             raise InputError(f"align={alignment} needs the planned trajectory; give --trajectory or use --align none")
-        planned = check_trajectory(planned, "planned")
+        planned = check_poses(planned, "planned")
         if len(planned) != n:
             raise InputError(f"the planned trajectory has {len(planned)} poses but the video has {n} frames")
         sim = _alignment(raw, planned, reg, alignment)
@@ -334,7 +334,7 @@ def reconstruction_from_poses(names: list[str], world_from_cam: np.ndarray, heig
     """A pycolmap.Reconstruction with one EQUIRECTANGULAR camera and posed images (no points)."""
     import pycolmap
 
-    world_from_cam = check_trajectory(world_from_cam)
+    world_from_cam = check_poses(world_from_cam)
     rec = pycolmap.Reconstruction()
     cam = pycolmap.Camera.create_from_model_id(
         camera_id=1, model=pycolmap.CameraModelId.EQUIRECTANGULAR, focal_length=0.0, width=width, height=height
@@ -365,7 +365,7 @@ def transforms_json(
     nerfstudio's equirectangular rays need fl_x = W/2, fl_y = H, cx = W/2, cy = H/2 (its convention), which
     reproduces our ERP mapping. Depth PNGs are millimetres (nerfstudio's default depth_unit_scale_factor 1e-3).
     """
-    world_from_cam = check_trajectory(world_from_cam)
+    world_from_cam = check_poses(world_from_cam)
     frames = []
     for i, (fp, T) in enumerate(zip(file_paths, world_from_cam)):
         f = {"file_path": fp, "transform_matrix": gl_world_from_cam(T).tolist()}
@@ -509,7 +509,7 @@ def load_poses(poses_dir: Path) -> PosesArtifact:
     path = poses_dir / "poses.json"
     try:
         d = json.loads(path.read_text())
-        T = check_trajectory(d["poses"], "poses.json poses")
+        T = check_poses(d["poses"], "poses.json poses")
         frames = d["frames"]
         rgb = [(poses_dir / f["rgb"]).resolve() for f in frames]
         depth = [poses_dir / f["depth"] for f in frames] if all(f["depth"] for f in frames) else None

@@ -10,7 +10,7 @@ import multiprocessing
 import os
 import sys
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -21,13 +21,13 @@ import numpy as np
 from panoworld import artifacts as art
 from panoworld import precompute_clip as clip_mod
 from panoworld.errors import InputError
+from panoworld.io import write_json, write_jsonl
 from panoworld.stage import (
-    cache_key,
     execute_stage,
     input_digest,
     load_stage,
-    params_hash,
     params_to_dict,
+    stage_key,
 )
 
 INDEX = "index.jsonl"
@@ -262,7 +262,7 @@ def run_clip(task: ClipTask) -> dict:
         params = clip_mod.Params(**task.params)
         inputs = _clip_inputs(Path(task.scene_root), spec)
         digests = {n: input_digest(n, stage.inputs[n], p) for n, p in inputs.items()}
-        key = cache_key(stage.version, params_hash(params_to_dict(params)), digests)
+        key = stage_key(stage, params, digests)
         out = Path(task.out_dir)
         try:
             manifest = art.read_manifest(out, stage.artifact)
@@ -325,7 +325,7 @@ def precompute(
     wall = time.perf_counter() - t0
     ok = sorted((r for r in rows if r["status"] != "failed"), key=lambda r: (r["scene"], r["clip"]))
     _write_index(out_dir, ok, params)
-    _write_lines(out_dir / FAILURES, sorted(failures, key=lambda f: (f["scene"], f["clip"] or "")))
+    write_jsonl(out_dir / FAILURES, sorted(failures, key=lambda f: (f["scene"], f["clip"] or "")))
     summary = {
         "clips": len(tasks),
         "rendered": sum(r["status"] == "rendered" for r in rows),
@@ -338,7 +338,7 @@ def precompute(
         "executor": executor,
         "workers": workers,
     }
-    (out_dir / SUMMARY).write_text(json.dumps(summary, indent=2) + "\n")
+    write_json(out_dir / SUMMARY, summary, indent=2)
     return summary
 
 
@@ -354,11 +354,8 @@ def _write_index(out_dir: Path, rows: list[dict], params: PrecomputeParams) -> N
                 "conditions": (clip_dir / "cond" / "conditions.json").as_posix(), "digest": r["digest"],
             }
         )
-    _write_lines(out_dir / INDEX, lines)
+    write_jsonl(out_dir / INDEX, lines)
 
-
-def _write_lines(path: Path, rows: Iterable[dict]) -> None:
-    art.write_text_atomic(path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in rows))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from panoworld.io import write_json
 from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "clip"
@@ -89,7 +89,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         "conditions": "cond/conditions.json",
         "targets": targets,
     }
-    (out_dir / "clip.json").write_text(json.dumps(clip, indent=1))
+    write_json(out_dir / "clip.json", clip)
     return info
 
 

@@ -233,6 +233,13 @@ def cache_key(version: str, p_hash: str, input_digests: dict[str, str | None], w
     return art.json_digest(doc)
 
 
+def stage_key(spec: StageSpec, params: Any, input_digests: dict[str, str | None], weights: dict | None = None) -> str:
+    """The cache key of running `spec` with these params on inputs with these digests: the one definition used by
+    the runner, execute_stage and precompute (version, params hash, input digests, weights digests, code digest)."""
+    return cache_key(spec.version, params_hash(params_to_dict(params)), input_digests, hub.weights_key(weights or {}),
+                     code_digest.combined(stage_code(spec)))
+
+
 def resolve_stage_weights(params: Any, hints: dict | None = None, *, stage: str = "") -> dict[str, dict]:
     """{param: record} of every weights-like param that is set (a local path or an `hf:` id, resolved offline);
     StageInputError naming the `weights fetch` command when an id is not in the local cache."""
@@ -344,7 +351,7 @@ def execute_stage(
     phash = params_hash(pdict)
     weights = resolve_stage_weights(params, previous_weights(out_dir), stage=spec.name)
     code = stage_code(spec)
-    key = cache_key(spec.version, phash, input_digests, hub.weights_key(weights), code_digest.combined(code))
+    key = stage_key(spec, params, input_digests, weights)
 
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     art.recover_dir(out_dir)

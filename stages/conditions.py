@@ -38,8 +38,8 @@ class Params:
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     from plyfile import PlyParseError
 
-    from panoworld.conditions import check_poses, iter_conditions, write_conditions
-    from panoworld.conventions import check_erp_shape
+    from panoworld.conditions import iter_conditions, write_conditions
+    from panoworld.conventions import check_erp_shape, check_poses
     from panoworld.mesh import load_erp_mesh
     from panoworld.trajectory import load_trajectory
 

@@ -79,10 +79,10 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         )
     backend = backends.get(NAME, params.backend)
     decisions = []
-    if planned is not None and str(params.backend) == "colmap" and np.ptp(planned[:, :3, 3], axis=0).max() < 1e-6:
-        backend = backends.get(NAME, "planned")  # no room to move (a rotation-only path): SfM has no baseline
-        decisions.append("the trajectory does not move (rotation only: no room to move), so COLMAP has no baseline; "
-                         "planned poses used")
+    if planned is not None and backend.traits.get("needs_baseline") and np.ptp(planned[:, :3, 3], axis=0).max() < 1e-6:
+        decisions.append(f"the trajectory does not move (rotation only: no room to move), so {backend.name} has no "
+                         "baseline; planned poses used")
+        backend = backends.with_trait(NAME, "copies_plan")
     if planned is None and (backend.traits["needs_plan"] or params.align != Alignment.NONE):
         raise StageInputError(
             f"backend {params.backend} with align {params.align} needs planned poses: give --trajectory "

@@ -1,3 +1,5 @@
+import json
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -57,8 +59,10 @@ def test_umeyama_without_scale_is_rigid_and_handles_reflection_case():
 
 
 def test_umeyama_rejects_bad_shapes():
-    with pytest.raises(ValueError, match=r"expected both \(N, 3\)"):
+    with pytest.raises(ValueError, match=r"src.shape=\(4, 2\) but expected \(N, 3\)"):
         umeyama(np.zeros((4, 2)), np.zeros((4, 2)))
+    with pytest.raises(ValueError, match=r"dst.shape=\(5, 3\) but expected \(4, 3\)"):
+        umeyama(np.zeros((4, 3)), np.zeros((5, 3)))
 
 
 @pytest.mark.parametrize("make", [lambda: random_trajectory(30, 4), lambda: straight_line(12)])
@@ -191,3 +195,29 @@ def test_trajectory_shape_errors_are_self_describing():
         trajectory_metrics(np.zeros((3, 3, 4)), np.zeros((3, 4, 4)))
     with pytest.raises(ValueError, match="NaN"):
         align_trajectory(np.full((3, 4, 4), np.nan), np.zeros((3, 4, 4)))
+
+
+def test_one_pose_checker_for_metrics_and_trajectory_files(tmp_path):
+    """align (metrics) and trajectory files share conventions.check_poses: same rigidity rule and tolerance."""
+    from panoworld.conventions import POSE_RIGID_TOL, check_poses
+    from panoworld.trajectory import TrajectoryFileError, read_trajectory_file
+
+    good = np.tile(np.eye(4), (3, 1, 1))
+    good[1, :3, :3] = Rotation.from_rotvec([0.1, 0.2, 0.3]).as_matrix()
+    near = good.copy()
+    near[2, :3, :3] *= 1 + 0.4 * POSE_RIGID_TOL  # inside the tolerance: float32 / rounded storage
+    scaled = good.copy()
+    scaled[2, :3, :3] *= 1 + 3 * POSE_RIGID_TOL
+    np.testing.assert_array_equal(check_poses(near), near)
+    path = tmp_path / "t.json"
+    path.write_text(json.dumps(near.tolist()))
+    assert trajectory_metrics(read_trajectory_file(path), good)["ate"] < 1e-3
+    with pytest.raises(ValueError, match="est: pose 2 is not a rigid"):
+        trajectory_metrics(scaled, good)
+    path.write_text(json.dumps(scaled.tolist()))
+    with pytest.raises(TrajectoryFileError, match="t.json: pose 2 is not a rigid"):
+        read_trajectory_file(path)
+    reflected = good.copy()
+    reflected[0, 0, 0] = -1
+    with pytest.raises(ValueError, match="gt: pose 0 is not a rigid"):
+        trajectory_metrics(good, reflected)

@@ -86,7 +86,7 @@ def test_quaternion_round_trip_and_order():
 def test_pose_inverse():
     T = random_pose()
     np.testing.assert_allclose(T @ cv.invert_pose(T), np.eye(4), atol=1e-12)
-    with pytest.raises(ValueError, match=r"shape \(3, 4\) but expected \(4, 4\)"):
+    with pytest.raises(ValueError, match=r"pose.shape=\(3, 4\) but expected \(4, 4\)"):
         cv.invert_pose(T[:3])
 
 

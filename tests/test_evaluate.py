@@ -11,7 +11,6 @@ import cv2
 import numpy as np
 import pytest
 import torch
-import trimesh
 
 from panoworld import pipeline as pl
 from panoworld.conventions import invert_pose, points_from_depth, transform_points
@@ -26,7 +25,6 @@ from panoworld.evaluate import (
 )
 from panoworld.models.lpips import LPIPS
 from panoworld.models.weights import MissingWeightsError
-from panoworld.raycast import Raycaster
 
 COND_H, VIDEO_H = 32, 64
 OFFSET = 10  # every pixel of the test conditions is off by exactly this: PSNR = 20 log10(255 / 10)
@@ -129,39 +127,6 @@ def test_depth_errors_analytic():
     pred = gt.copy()
     pred[:, 8:] *= 3.0  # outside the mask: must not count
     assert depth_errors(pred, gt, mask)["abs_rel"] == pytest.approx(0.0, abs=1e-7)
-
-
-def test_true_disocclusion_is_the_shadow_of_an_occluder():
-    """A 1 m cube 2 m in front of the source camera, a wall at z = 5: a camera 0.7 m to the side sees exactly two
-    regions the source cannot see: the wall in the cube's shadow (cast from the source) and the cube's +x side."""
-    room = trimesh.creation.box(extents=(12.0, 12.0, 10.0))  # inner walls at |x|, |y| = 6, z = +-5
-    cube = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
-    cube.apply_translation((0.0, 0.0, 2.5))  # |x|, |y| <= 0.5, 2 <= z <= 3
-    mesh = trimesh.util.concatenate([room, cube])
-    rc = Raycaster(mesh.vertices, mesh.faces)
-
-    class Box:
-        def depth(self, pose, h, w):
-            return rc.render_erp(pose, h, w).distance
-
-        def cast(self, origins, dirs):
-            return rc.cast(origins, dirs).distance
-
-    pose = np.eye(4)
-    pose[0, 3] = 0.7
-    H = 96
-    hole = true_disocclusion(Box(), np.eye(4), pose, H, 2 * H, 0.015)
-    pts = points_from_depth(Box().depth(pose, H, 2 * H), pose)
-    x, y, z = pts[..., 0], pts[..., 1], pts[..., 2]
-    wall = np.abs(z - 5.0) < 1e-4
-    side = (np.abs(x - 0.5) < 1e-4) & (z > 2.0) & (z < 3.0)
-    # The source's shadow of the cube's front face (|x|, |y| <= 0.5 at z = 2) on the wall z = 5 is 5 / 2 times larger.
-    expected = (wall & (np.maximum(np.abs(x), np.abs(y)) < 1.25)) | side
-    # Within a pixel or the tolerance of an edge either answer is right.
-    edge = (wall & (np.abs(np.maximum(np.abs(x), np.abs(y)) - 1.25) < 0.1)) | (side & (z < 2.1))
-    assert (wall & expected).sum() > 20 and side.sum() > 5
-    assert np.array_equal(hole & ~edge, expected & ~edge)
-    assert not true_disocclusion(Box(), np.eye(4), np.eye(4), H, 2 * H, 0.015).any()
 
 
 # ---------------------------------------------------------------- stages against ground truth

@@ -13,7 +13,7 @@ from panoworld.conventions import asset_from_canonical, transform_points
 from panoworld.gaussians import Gaussians
 from panoworld.mesh import ErpMesh
 from panoworld.navmesh import NavMesh
-from panoworld.trajectory import check_poses, load_trajectory
+from panoworld.trajectory import load_trajectory, path_indices
 
 SCENE_USD = "scene.usdc"
 COLLIDER_OBJ = "collider.obj"
@@ -25,18 +25,16 @@ make resting contacts jitter."""
 
 def trajectory_paths(trajectory_dir: Path) -> tuple[list[np.ndarray], float]:
     """The planned camera paths (world_from_cam, canonical) and their frame rate: the artifact's `poses`, or each of
-    its `paths` when it holds several ({"paths": [{"poses": [...]}, ...]} or {"paths": [[...], ...]})."""
+    its `paths` (pose ranges [start, stop) with their predecessor `from`, see trajectory.path_indices) when it holds
+    several."""
     path = Path(trajectory_dir)
     doc_path = path / "trajectory.json" if path.is_dir() else path
     doc = json.loads(doc_path.read_text()) if doc_path.suffix == ".json" else {}
     fps = float(doc.get("fps", 16.0))
+    poses = load_trajectory(path)
     if isinstance(doc.get("paths"), list) and doc["paths"]:
-        out = []
-        for k, p in enumerate(doc["paths"]):
-            poses = p["poses"] if isinstance(p, dict) else p
-            out.append(check_poses(poses, f"{doc_path} paths[{k}]"))
-        return out, fps
-    return [load_trajectory(path)], fps
+        return [poses[path_indices(p)] for p in doc["paths"]], fps
+    return [poses], fps
 
 
 def with_walkable_floor(col: Collider, nav: NavMesh) -> Collider:

@@ -59,6 +59,14 @@ def pick(stage: str, name: str, given: dict[str, Any]) -> Backend:
     return max(usable, key=lambda b: len(b.traits.get("needs_inputs", ())))
 
 
+def with_trait(stage: str, trait: str) -> Backend:
+    """The first backend of a stage whose trait `trait` is true (e.g. poses' copies_plan)."""
+    for b in backends(stage).values():
+        if b.traits.get(trait):
+            return b
+    raise KeyError(f"{stage}: no backend with trait {trait!r}")
+
+
 def get(stage: str, name: str) -> Backend:
     try:
         return backends(stage)[str(name)]

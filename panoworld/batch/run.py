@@ -13,9 +13,9 @@ from pathlib import Path
 from typing import Any
 
 from panoworld import pipeline as pl
-from panoworld.artifacts import write_text_atomic
 from panoworld.batch.executors import make_stage_executor
 from panoworld.batch.variants import Variant, parse_sweeps, write_variant
+from panoworld.io import write_json, write_jsonl
 
 SUMMARY = "batch_summary.json"
 FAILURES = "batch_failures.jsonl"
@@ -141,8 +141,8 @@ def run_dataset(
         "workers": workers,
         "results": [{"scene": r.scene, "runs": r.runs} for r in results],
     }
-    write_text_atomic(dataset_dir / SUMMARY, json.dumps(summary, indent=2) + "\n")
-    write_text_atomic(dataset_dir / FAILURES, "".join(json.dumps(f, sort_keys=True) + "\n" for f in failures))
+    write_json(dataset_dir / SUMMARY, summary, indent=2, atomic=True)
+    write_jsonl(dataset_dir / FAILURES, failures)
     return summary
 
 

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import itertools
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 from panoworld.artifacts import ARTIFACTS_DIRNAME, VARIANTS_DIRNAME
 from panoworld.errors import PipelineError
+from panoworld.io import read_json, write_json
 from panoworld.pipeline import Pipeline
 
 VARIANT_JSON = "variant.json"
@@ -59,15 +59,15 @@ def write_variant(scene_dir: Path, variant: Variant, pipeline: Pipeline) -> None
     d.mkdir(parents=True, exist_ok=True)
     doc = {"name": variant.name, "sets": list(variant.sets), "tail": variant.tail(pipeline)}
     path = d / VARIANT_JSON
-    if not path.is_file() or json.loads(path.read_text()) != doc:
-        path.write_text(json.dumps(doc, indent=2) + "\n")
+    if read_json(path, default=None) != doc:
+        write_json(path, doc, indent=2)
 
 
 def read_variant(scene_dir: Path, name: str) -> dict:
     path = variant_dir(scene_dir, name) / VARIANT_JSON
     try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
+        return read_json(path)
+    except (OSError, ValueError) as e:
         raise ValueError(f"{path}: missing or unreadable variant record ({e}); rerun `runner.py run DATASET --all "
                          "--sweep ...`") from None
 

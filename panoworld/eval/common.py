@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from panoworld.errors import InputError
+from panoworld.shapes import check_shape
 
 GT_DIRNAME = "gt"
 
@@ -128,8 +129,7 @@ TARGETS: dict[str, dict[str, Target]] = {
 def depth_errors(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> dict[str, float]:
     """AbsRel = mean |p - g| / g, RMSE (metres), delta1 = share with max(p/g, g/p) < 1.25, and the median of g / p,
     over pixels where mask (H, W) is set, p > 0 and g are finite and positive; pred, gt (H, W) metres."""
-    if pred.shape != gt.shape:
-        raise ValueError(f"{pred.shape=} but expected {gt.shape} (the ground truth's (H, W))")
+    check_shape("pred", pred, "H W", dims=check_shape("gt", gt, "H W"))
     sel = np.isfinite(pred) & np.isfinite(gt) & (pred > 0) & (gt > 0)
     if mask is not None:
         sel &= mask.astype(bool)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.conventions import invert_pose, points_from_depth, transform_points
+from panoworld.conventions import invert_pose, transform_points
 from panoworld.eval.common import GT_DIRNAME
 
 
@@ -249,24 +249,3 @@ def open_ground_truth(scene_dir: Path, pose_tol_m: float = 1e-3, *, supersample:
     if tracks and all((t.get("frames") or {}).get("rgb") for t in tracks):
         return FramesGroundTruth(gt_dir, pose_tol_m)
     return PlanOnly()
-
-
-def true_disocclusion(gt: GroundTruth, source_pose: np.ndarray, pose: np.ndarray, height: int, width: int,
-                      tol: float) -> np.ndarray:
-    """(H, W) bool: pixels of the view at `pose` whose ground-truth surface point the camera at `source_pose` does not
-    see (something lies nearer than (1 - tol) x its distance along the source ray), or where there is no surface.
-
-    This is the projection test 'project the point into the source ERP, compare with the source depth' with the
-    source depth taken exactly along the point's own ray (a ray cast), so it has no source-resolution error.
-    """
-    depth = gt.depth(pose, height, width)
-    hole = ~np.isfinite(depth)
-    pts = points_from_depth(np.where(hole, 1.0, depth), np.asarray(pose, np.float64))[~hole]
-    centre = np.asarray(source_pose, np.float64)[:3, 3]
-    ray = pts - centre
-    dist = np.linalg.norm(ray, axis=1)
-    seen = gt.cast(centre[None], ray / np.maximum(dist, 1e-12)[:, None]) >= (1.0 - tol) * dist
-    out = hole.copy()
-    out[~hole] = ~seen
-    return out
-

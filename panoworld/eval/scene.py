@@ -14,6 +14,7 @@ import numpy as np
 from tqdm import tqdm
 
 from panoworld.artifacts import ARTIFACTS_DIRNAME, MANIFEST, VARIANTS_DIRNAME
+from panoworld.conditions import true_disocclusion
 from panoworld.eval.common import (
     EvalParams,
     Lpips,
@@ -25,7 +26,7 @@ from panoworld.eval.common import (
     iou,
     unavailable,
 )
-from panoworld.eval.groundtruth import NoReference, open_ground_truth, true_disocclusion
+from panoworld.eval.groundtruth import NoReference, open_ground_truth
 from panoworld.metrics import psnr, ssim, ws_psnr
 from panoworld.params import flatten
 

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import html
-import json
 import time
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
+from panoworld.io import read_json, read_jsonl
 from panoworld.report import encode as enc
 from panoworld.report.page import Page, Section, figure, missing, table
 
@@ -36,27 +36,20 @@ def histogram_svg(counts: dict, label: str, width: int = 420, height: int = 120)
 def read_index(cond_dir: Path) -> list[dict]:
     from panoworld.precompute import INDEX
 
-    rows = []
-    for k, line in enumerate((cond_dir / INDEX).read_text().splitlines()):
-        if line.strip():
-            try:
-                rows.append(json.loads(line))
-            except ValueError as e:
-                raise ValueError(f"{cond_dir / INDEX}: line {k + 1} is not JSON ({e})") from None
-    return rows
+    return read_jsonl(cond_dir / INDEX)
 
 
 def clip_strip(cond_dir: Path, row: dict, width: int) -> str:
     """Condition, mask and target of a clip's middle frame, side by side."""
+    from panoworld.conditions import load_conditions
+
     cdir = cond_dir / row["path"]
-    cdoc = json.loads((cond_dir / row["conditions"]).read_text())
-    frames = cdoc.get("frames", [])
-    if not frames:
+    cond = load_conditions(cond_dir / row["conditions"])
+    if not len(cond):
         return ""
-    i = len(frames) // 2
-    cond_root = (cond_dir / row["conditions"]).parent
-    rgb = enc.read_rgb(cond_root / frames[i]["rgb"], width)
-    mask = enc.read_gray(cond_root / frames[i]["mask"], width)
+    i = len(cond) // 2
+    rgb = enc.shrink(cond.rgb[i], width)
+    mask = enc.shrink(cond.mask[i].astype(np.uint8) * 255, width, nearest=True)
     target = enc.read_rgb(cdir / "target" / f"{i:06d}.png", width)
     name = (f"{row['scene']}/{row['clip']} · track {row.get('track')} · frames {row.get('length')} · "
             f"stride {row.get('stride')} · shown: frame {i}")
@@ -80,18 +73,12 @@ def build_dataset_report(cond_dir: Path, out: Path | None = None, *, clips: int 
     rows = read_index(cond_dir)
     page = Page(f"PanoWorld dataset report: {cond_dir.resolve().name}",
                 f"{cond_dir.resolve()} · {len(rows)} clips · written {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}")
-    summary = {}
-    try:
-        summary = json.loads((cond_dir / SUMMARY).read_text())
-    except (OSError, ValueError):
-        pass
+    summary = read_json(cond_dir / SUMMARY, default={})
     scenes = Counter(r["scene"] for r in rows)
     facts = [["clips", len(rows)], ["scenes", len(scenes)],
              ["frames", sum(int(r.get("length", 0)) for r in rows)]]
     facts += [[k, v] for k, v in summary.items() if not isinstance(v, (dict, list))]
-    fails = []
-    if (cond_dir / FAILURES).is_file():
-        fails = [json.loads(x) for x in (cond_dir / FAILURES).read_text().splitlines() if x.strip()]
+    fails = read_jsonl(cond_dir / FAILURES, missing_ok=True)
     body = table(["dataset", "value"], facts)
     if fails:
         body += table(["failed scene", "clip", "error"], [[f.get("scene"), f.get("clip"), f.get("error")] for f in fails])

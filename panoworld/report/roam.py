@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import json
-
+from panoworld.io import read_json
 from panoworld.report import encode as enc
 from panoworld.report.page import Section, figure, fmt, missing, table
 from panoworld.report.scene import ROAM_IMAGES, ReportParams, SceneData, find_eval_json
@@ -19,7 +18,7 @@ def section_roam(scene: SceneData, params: ReportParams) -> Section:
     roam = None
     if path is not None:
         try:
-            roam = json.loads(path.read_text())["stages"].get("roam")
+            roam = read_json(path)["stages"].get("roam")
         except (OSError, ValueError, KeyError, TypeError, AttributeError):
             roam = None
     if not isinstance(roam, dict) or roam.get("available") is False:

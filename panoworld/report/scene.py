@@ -12,10 +12,17 @@ from pathlib import Path
 
 import numpy as np
 
+from panoworld.artifacts import read_manifest
+from panoworld.conditions import load_conditions
+from panoworld.errors import PanoWorldError
 from panoworld.io import read_json
+from panoworld.io.video import read_video_doc
+from panoworld.navmesh import load_navmesh
+from panoworld.poses import load_poses
 from panoworld.report import encode as enc
 from panoworld.report.page import Page, Section, figure, fmt, missing, slider, svg_figure, table
 from panoworld.report.topdown import PlanView, clearance_colors, footprint_rings, mesh_from_above
+from panoworld.trajectory import load_trajectory
 
 ARTIFACTS = "artifacts"
 ROAM_IMAGES = "report/roam"
@@ -45,12 +52,43 @@ class ReportParams:
 
 
 class SceneData:
-    """Reads a scene's artifacts defensively: a missing or unreadable file gives None, never an exception."""
+    """Reads a scene's artifacts through each kind's one reader, defensively: a missing or unreadable artifact gives
+    None, never an exception."""
 
     def __init__(self, root: Path):
         self.root = Path(root)
         self.art = self.root / ARTIFACTS
         self._json: dict[Path, dict | None] = {}
+        self._read: dict[str, object] = {}
+
+    def _load(self, stage: str, reader, key: str = ""):
+        key = key or stage
+        if key not in self._read:
+            try:
+                self._read[key] = reader(self.dir(stage)) if self.has(stage) else None
+            except (PanoWorldError, OSError, ValueError, KeyError, TypeError):
+                self._read[key] = None
+        return self._read[key]
+
+    def navmesh(self):
+        """NavMesh or None."""
+        return self._load("navmesh", load_navmesh)
+
+    def trajectory(self) -> np.ndarray | None:
+        """Planned world_from_cam (N, 4, 4) or None."""
+        return self._load("trajectory", load_trajectory)
+
+    def conditions(self):
+        """LoadedConditions (frames read lazily) or None."""
+        return self._load("conditions", load_conditions)
+
+    def video(self):
+        """VideoDoc or None."""
+        return self._load("video", read_video_doc)
+
+    def poses_artifact(self):
+        """PosesArtifact or None."""
+        return self._load("poses", load_poses)
 
     def dir(self, stage: str) -> Path:
         return self.art / stage
@@ -65,19 +103,16 @@ class SceneData:
         return self._json[path]
 
     def manifest(self, stage: str) -> dict | None:
-        return self.json(f"{stage}/manifest.json")
+        return self._load(stage, read_manifest, "manifest:" + stage)
 
     def info(self, stage: str) -> dict:
         m = self.manifest(stage)
         return (m or {}).get("info") or {}
 
-    def poses(self, rel: str) -> np.ndarray | None:
-        doc = self.json(rel)
-        try:
-            p = np.asarray(doc["poses"], np.float64)
-        except (TypeError, KeyError, ValueError):
-            return None
-        return p if p.ndim == 3 and p.shape[1:] == (4, 4) else None
+    def video_poses(self) -> np.ndarray | None:
+        """The poses the video was generated along, when video.json records them."""
+        v = self.video()
+        return None if v is None else v.poses
 
 
 def subsample(n: int, k: int) -> list[int]:
@@ -217,12 +252,12 @@ def section_depth(scene: SceneData, params: ReportParams) -> Section:
 # ---------------------------------------------------------------- plan view
 
 
-def _plan_extent(scene: SceneData, traj: np.ndarray | None, nav: dict | None) -> np.ndarray:
+def _plan_extent(scene: SceneData, traj: np.ndarray | None, nav) -> np.ndarray:
     pts = [np.zeros((1, 2))]
     if traj is not None:
         pts.append(traj[:, [0, 2], 3])
-    if nav and nav.get("vertices"):
-        pts.append(np.asarray(nav["vertices"], np.float64).reshape(-1, 2))
+    if nav is not None and len(nav.vertices):
+        pts.append(nav.vertices)
     return np.concatenate(pts)
 
 
@@ -258,7 +293,8 @@ def _load_collider(scene: SceneData) -> tuple | None:
 @dataclass
 class _PlanLayers:
     mesh: object
-    nav: dict | None
+    nav: object
+    """NavMesh or None."""
     traj: np.ndarray | None
     tdoc: dict
     tinfo: dict
@@ -274,13 +310,9 @@ def _draw_plan(view: PlanView, L: _PlanLayers, floor_y: float | None, reach_m: f
         cut = -0.2 if floor_y is None else floor_y - 1.9  # drop the ceiling: everything above ~1.9 m over the floor
         view.background(mesh_from_above(L.mesh.vertices, L.mesh.faces, L.mesh.colors, view, cut, max_samples=2_000_000))
     if L.nav is not None:
-        rings = []
-        for poly in L.nav.get("polygons", []):
-            rings.append(np.asarray(poly["outer"], np.float64))
-            rings += [np.asarray(h, np.float64) for h in poly.get("holes", [])]
-        if L.nav.get("vertices") and L.nav.get("triangles"):
-            view.triangles(np.asarray(L.nav["vertices"]), np.asarray(L.nav["triangles"]), "rgba(80,255,160,0.35)")
-        view.polygon_rings(rings, "rgba(40,200,120,0.28)", "#3ee08f", "NavMesh (walkable, eroded by the agent radius)")
+        if len(L.nav.vertices) and len(L.nav.triangles):
+            view.triangles(L.nav.vertices, L.nav.triangles, "rgba(80,255,160,0.35)")
+        view.polygon_rings(L.nav.rings, "rgba(40,200,120,0.28)", "#3ee08f", "NavMesh (walkable, eroded by the agent radius)")
         legend.append('<span><i class="sw" style="background:#3ee08f"></i>NavMesh</span>')
     if L.collider is not None and floor_y is not None:
         v, f, agent = L.collider
@@ -317,8 +349,8 @@ def _draw_plan(view: PlanView, L: _PlanLayers, floor_y: float | None, reach_m: f
 
 def section_plan(scene: SceneData, params: ReportParams) -> Section:
     title = "Top-down: mesh, NavMesh and trajectory"
-    nav = scene.json("navmesh/navmesh.json") if scene.has("navmesh") else None
-    traj = scene.poses("trajectory/trajectory.json") if scene.has("trajectory") else None
+    nav = scene.navmesh()
+    traj = scene.trajectory()
     if nav is None and traj is None and not scene.has("mesh"):
         return missing("plan", title, "mesh, navmesh and trajectory have not run yet")
     tdoc = scene.json("trajectory/trajectory.json") or {}
@@ -327,7 +359,7 @@ def section_plan(scene: SceneData, params: ReportParams) -> Section:
     notes += [f"{name}: not run" for name, x in (("navmesh", nav), ("trajectory", traj)) if x is None]
     n_sec = int((scene.manifest("trajectory") or {}).get("params", {}).get("sectors", 8))
     layers = _PlanLayers(mesh, nav, traj, tdoc, scene.info("trajectory"), n_sec, _load_collider(scene))
-    floor_y = (nav or {}).get("floor_y", tdoc.get("floor_y"))
+    floor_y = nav.floor_y if nav is not None else tdoc.get("floor_y")
     ext = _plan_extent(scene, traj, nav)
     view = PlanView(ext, margin_m=0.6)
     reach = float(np.max(np.linalg.norm(ext - (traj[0, [0, 2], 3] if traj is not None else 0), axis=1)))
@@ -362,12 +394,12 @@ def section_plan(scene: SceneData, params: ReportParams) -> Section:
 # ---------------------------------------------------------------- frames
 
 
-def _fill_fractions(cond_dir: Path, frames: list[dict]) -> list[float | None]:
-    def one(f):
-        m = enc.read_gray(cond_dir / f["mask"]) if "mask" in f else None
+def _fill_fractions(masks: list[Path]) -> list[float | None]:
+    def one(path):
+        m = enc.read_gray(path)
         return None if m is None else float((m == 0).mean())
 
-    return _pmap(one, frames)
+    return _pmap(one, masks)
 
 
 def _bar_chart(values: list[float | None], key: str, marker_index: list[int] | None, label: str,
@@ -391,22 +423,22 @@ def _bar_chart(values: list[float | None], key: str, marker_index: list[int] | N
 
 def section_frames(scene: SceneData, page: Page, params: ReportParams) -> Section:
     title = "Conditions, masks and video frames"
-    cdoc = scene.json("conditions/conditions.json") if scene.has("conditions") else None
-    vdoc = scene.json("video/video.json") if scene.has("video") else None
-    if cdoc is None and vdoc is None:
+    cond, video = scene.conditions(), scene.video()
+    if cond is None and video is None:
         return missing("frames", title, "conditions and video have not run yet")
-    cframes = (cdoc or {}).get("frames", [])
-    vframes = (vdoc or {}).get("frames", [])
+    cframes = [] if cond is None else [cond.rgb.root / p for p in cond.rgb.paths]
+    cmasks = [] if cond is None else [cond.mask.root / p for p in cond.mask.paths]
+    vframes = [] if video is None else video.rgb
     n = max(len(cframes), len(vframes))
     idx = subsample(n, params.max_frames)
     w = params.image_width
     cols: dict[str, list] = {}
     jobs = []
     if cframes:
-        jobs += [("condition", scene.dir("conditions") / cframes[i]["rgb"], "rgb") for i in idx if i < len(cframes)]
-        jobs += [("mask", scene.dir("conditions") / cframes[i]["mask"], "mask") for i in idx if i < len(cframes)]
+        jobs += [("condition", cframes[i], "rgb") for i in idx if i < len(cframes)]
+        jobs += [("mask", cmasks[i], "mask") for i in idx if i < len(cframes)]
     if vframes:
-        jobs += [("video", scene.dir("video") / vframes[i]["rgb"], "rgb") for i in idx if i < len(vframes)]
+        jobs += [("video", vframes[i], "rgb") for i in idx if i < len(vframes)]
 
     def load(job):
         col, path, kind = job
@@ -418,7 +450,7 @@ def section_frames(scene: SceneData, page: Page, params: ReportParams) -> Sectio
 
     for col, uri in _pmap(load, jobs):
         cols.setdefault(col, []).append(uri)
-    fills = _fill_fractions(scene.dir("conditions"), cframes) if cframes else []
+    fills = _fill_fractions(cmasks)
     text = [f"frame {i} of {n}" + (f" · fill {100 * fills[i]:.2f} % (mask = 0: to be generated)"
                                     if i < len(fills) and fills[i] is not None else "") for i in idx]
     page.data["frames"] = {"images": cols, "text": {"label": text}}
@@ -426,9 +458,9 @@ def section_frames(scene: SceneData, page: Page, params: ReportParams) -> Sectio
                 "video": "generated video frame (video/frames)"}
     figs = "".join(figure(uris[0] or "", captions[col], slot=f"frames:{col}") for col, uris in cols.items() if uris)
     notes = []
-    if cdoc is None:
+    if cond is None:
         notes.append("conditions: not run")
-    if vdoc is None:
+    if video is None:
         notes.append("video: not run")
     if len(idx) < n:
         notes.append(f"{len(idx)} of {n} frames embedded (every ~{n / len(idx):.1f}th; --max-frames to change)")
@@ -448,15 +480,14 @@ def section_poses(scene: SceneData, params: ReportParams) -> Section:
     title = "Poses: recovered vs planned"
     if not scene.has("poses"):
         return missing("poses", title, "the poses stage has not run yet")
-    pdoc = scene.json("poses/poses.json") or {}
-    est = scene.poses("poses/poses.json")
-    ref = scene.poses("video/video.json")
+    pa = scene.poses_artifact()
+    ref = scene.video_poses()
     ref_name = "video.json (the poses the video was generated along)"
     if ref is None:
-        ref, ref_name = scene.poses("trajectory/trajectory.json"), "trajectory.json"
-    if est is None:
+        ref, ref_name = scene.trajectory(), "trajectory.json"
+    if pa is None:
         return missing("poses", title, "poses.json is unreadable")
-    reg = np.asarray(pdoc.get("registered", [True] * len(est)), bool)
+    est, reg = pa.world_from_cam, pa.registered
     unreg = [i for i in range(len(est)) if i >= len(reg) or not reg[i]]
     pts = [est[:, [0, 2], 3]] + ([ref[:, [0, 2], 3]] if ref is not None else [])
     view = PlanView(np.concatenate(pts), margin_m=0.25, max_px=480)
@@ -478,7 +509,7 @@ def section_poses(scene: SceneData, params: ReportParams) -> Section:
         err = np.linalg.norm(est[:, :3, 3] - ref[:, :3, 3], axis=1)
         err_chart = _bar_chart([float(e) for e in err], "poses-err", None, "position error per frame vs plan", 1000.0, "mm")
     info = scene.info("poses")
-    metrics = info.get("metrics_vs_planned") or pdoc.get("metrics_vs_planned") or {}
+    metrics = info.get("metrics_vs_planned") or {}
     rows = [[k, fmt(info.get(k))] for k in ("backend", "num_frames", "num_registered", "sim3_scale", "depth_source") if k in info]
     rows.append(["unregistered frames", ", ".join(map(str, unreg)) or "none"])
     rows += [[f"{k} (vs plan)", fmt(v)] for k, v in metrics.items()]
@@ -504,7 +535,7 @@ def section_eval(scene: SceneData, params: ReportParams) -> Section:
                "SCENE/artifacts/report/eval.json`)" if has_gt else "no ground truth (gt/gt.json): nothing to evaluate against")
         return missing("eval", title, why)
     try:
-        rep = json.loads(path.read_text())
+        rep = read_json(path)
         stages = rep["stages"]
     except (OSError, ValueError, KeyError, TypeError) as e:
         return missing("eval", title, f"{path}: unreadable evaluation ({e})")

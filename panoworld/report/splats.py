@@ -73,7 +73,7 @@ def _renders(scene: SceneData, d, info: dict, poses: np.ndarray, vframes: list, 
             cov = float((out.alpha.numpy() > 0.5).mean())
             fig = figure(enc.data_uri(img), f"Gaussians: {label}, forward {fov:.0f} deg view, coverage {100 * cov:.1f} %",
                          small=True)
-            frame = enc.read_rgb(scene.dir("video") / vframes[near]["rgb"]) if 0 <= near < len(vframes) else None
+            frame = enc.read_rgb(vframes[near]) if 0 <= near < len(vframes) else None
             if frame is not None:
                 fig += figure(enc.data_uri(pinhole_from_erp(frame, size, fov)), f"video frame {near}, same view from its own pose",
                               small=True)
@@ -93,13 +93,13 @@ def section_gaussians(scene: SceneData, params: ReportParams) -> Section:
         return missing("gaussians", title, "the gaussians stage has not run yet")
     d = scene.dir("gaussians")
     info = scene.info("gaussians")
-    vdoc = scene.json("video/video.json") or {}
-    vframes = vdoc.get("frames", [])
+    video = scene.video()
+    vframes = [] if video is None else video.rgb
     w = params.image_width
 
     def video_frame(i: int) -> str:
         if 0 <= i < len(vframes):
-            img = enc.read_rgb(scene.dir("video") / vframes[i]["rgb"], w)
+            img = enc.read_rgb(vframes[i], w)
             if img is not None:
                 return figure(enc.data_uri(img), f"video frame {i}")
         return '<p class="note">video frame unavailable</p>'
@@ -112,9 +112,8 @@ def section_gaussians(scene: SceneData, params: ReportParams) -> Section:
         f0 = int(evals[0]["frame"]) if evals else int((info.get("frames") or [0])[0])
         psnr = f", PSNR {evals[0]['psnr']:.2f} dB" if evals and isinstance(evals[0].get("psnr"), (int, float)) else ""
         pairs.append(figure(enc.data_uri(prev), f"stage preview.png: context frame {f0} re-rendered{psnr}") + video_frame(f0))
-    poses = scene.poses("poses/poses.json")
-    if poses is None:
-        poses = scene.poses("video/video.json")
+    pa = scene.poses_artifact()
+    poses = scene.video_poses() if pa is None else pa.world_from_cam
     if params.gs_views > 0 and poses is not None:
         r_pairs, r_notes = _renders(scene, d, info, poses, vframes, params)
         pairs += r_pairs

@@ -8,6 +8,8 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
+from panoworld.shapes import check_shape
+
 _U64 = np.uint64
 
 
@@ -114,8 +116,7 @@ def _palette(seed: int, n: int) -> np.ndarray:
 
 def albedo(mat: Material, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """Linear RGB albedo (N, 3) of material at world points (N, 3) with unit normals (N, 3)."""
-    if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
-        raise ValueError(f"{points.shape=} and {normals.shape=} but expected both (N, 3)")
+    check_shape("normals", normals, "N 3", dims=check_shape("points", points, "N 3"))
     s, seed = mat.scale, mat.seed
     u, v = planar_coords(points, normals)
     kind = mat.kind

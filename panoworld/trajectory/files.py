@@ -7,35 +7,18 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld import limits
+from panoworld import conventions, limits
 from panoworld.conventions import quat_wxyz_from_rotmat, quat_wxyz_from_xyzw, quat_xyzw_from_wxyz, rotmat_from_quat_wxyz
 from panoworld.errors import InputError
 from panoworld.trajectory.common import FRAME, TRAJECTORY_JSON, TRAJECTORY_TUM, TrajectoryFileError
 
 
-def check_poses(poses: np.ndarray, where: str = "poses", tol: float = 1e-4) -> np.ndarray:
-    """(N, 4, 4) float64 rigid transforms or TrajectoryFileError naming the first bad pose."""
+def check_poses(poses: np.ndarray, where: str = "poses") -> np.ndarray:
+    """conventions.check_poses raising TrajectoryFileError (a trajectory file's poses)."""
     try:
-        poses = np.asarray(poses, np.float64)
-    except (TypeError, ValueError):
-        raise TrajectoryFileError(f"{where}: poses are not a numeric array of 4x4 matrices") from None
-    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) == 0:
-        raise TrajectoryFileError(f"{where}: {poses.shape=} but expected (N, 4, 4) with N >= 1")
-    if not np.isfinite(poses).all():
-        bad = int(np.flatnonzero(~np.isfinite(poses).reshape(len(poses), -1).all(1))[0])
-        raise TrajectoryFileError(f"{where}: pose {bad} has NaN or inf entries")
-    R = poses[:, :3, :3]
-    err = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
-    det = np.linalg.det(R)
-    row = np.abs(poses[:, 3] - [0, 0, 0, 1]).max(axis=1)
-    bad = np.flatnonzero((err > tol) | (det < 0) | (row > tol))
-    if len(bad):
-        i = int(bad[0])
-        raise TrajectoryFileError(
-            f"{where}: pose {i} is not a rigid world_from_cam transform (|R R^T - I| = {err[i]:.2e}, det = {det[i]:.3f}, "
-            f"last row {poses[i, 3].tolist()}); {len(bad)} such poses"
-        )
-    return poses
+        return conventions.check_poses(poses, where)
+    except InputError as e:
+        raise TrajectoryFileError(str(e)) from None
 
 
 def read_tum(path: Path) -> np.ndarray:

@@ -10,8 +10,14 @@ from pathlib import Path
 
 import numpy as np
 
+from panoworld.artifacts import read_manifest
 from panoworld.conventions import quat_wxyz_from_rotmat
-from panoworld.io import read_json
+from panoworld.depth import load_depth_artifact
+from panoworld.errors import PanoWorldError
+from panoworld.io.video import read_video_doc
+from panoworld.navmesh import load_navmesh
+from panoworld.poses import load_poses
+from panoworld.trajectory import load_trajectory
 
 ARTIFACTS = "artifacts"
 
@@ -32,16 +38,12 @@ class ViewerParams:
     """Width of the video frame shown for the selected pose."""
 
 
-def _read_json(path: Path) -> dict | None:
-    return read_json(path, default=None)
-
-
-def _poses(doc: dict | None) -> np.ndarray | None:
+def _read(reader, path: Path):
+    """reader(path) (the artifact kind's one reader), or None when the artifact is missing or unreadable."""
     try:
-        p = np.asarray(doc["poses"], np.float64)
-    except (TypeError, KeyError, ValueError):
+        return reader(path)
+    except (PanoWorldError, OSError, ValueError, KeyError, TypeError):
         return None
-    return p if p.ndim == 3 and p.shape[1:] == (4, 4) and len(p) else None
 
 
 def load_scene_mesh(art: Path, max_rows: int):
@@ -49,17 +51,16 @@ def load_scene_mesh(art: Path, max_rows: int):
     from panoworld.mesh import erp_mesh_from_depth, load_erp_mesh
 
     depth_dir = art / "depth"
-    if (depth_dir / "depth.npy").is_file() and (depth_dir / "panorama.png").is_file():
+    loaded = _read(load_depth_artifact, depth_dir)
+    if loaded is not None:
         import cv2
 
-        depth = np.load(depth_dir / "depth.npy").astype(np.float32)
-        rgb = cv2.imread(str(depth_dir / "panorama.png"), cv2.IMREAD_COLOR)[..., ::-1]
-        valid = cv2.imread(str(depth_dir / "valid.png"), cv2.IMREAD_GRAYSCALE)
-        valid = None if valid is None else valid > 0
+        depth, valid, rgb = loaded
+        depth = depth.astype(np.float32)
         if rgb.shape[:2] != depth.shape:
             rgb = cv2.resize(np.ascontiguousarray(rgb), (depth.shape[1], depth.shape[0]), interpolation=cv2.INTER_AREA)
         stride = max(1, int(np.ceil(depth.shape[0] / max_rows)))
-        ratio = ((_read_json(art / "mesh" / "manifest.json") or {}).get("params") or {}).get("max_edge_ratio", 12.0)
+        ratio = ((_read(read_manifest, art / "mesh") or {}).get("params") or {}).get("max_edge_ratio", 12.0)
         return erp_mesh_from_depth(depth, np.ascontiguousarray(rgb), valid, max_edge_ratio=ratio, stride=stride).valid_only()
     if (art / "mesh" / "mesh.ply").is_file():
         return load_erp_mesh(art / "mesh").valid_only()
@@ -133,22 +134,22 @@ class SceneViewer:
         return f"{len(mesh.faces)} faces"
 
     def _add_navmesh(self) -> str:
-        doc = _read_json(self.art / "navmesh" / "navmesh.json")
-        if doc is None:
+        nav = _read(load_navmesh, self.art / "navmesh")
+        if nav is None:
             return "missing"
-        xz = np.asarray(doc["vertices"], np.float32).reshape(-1, 2)
-        y = float(doc["floor_y"]) - 0.01
+        xz = np.asarray(nav.vertices, np.float32).reshape(-1, 2)
+        y = float(nav.floor_y) - 0.01
         v = np.stack([xz[:, 0], np.full(len(xz), y, np.float32), xz[:, 1]], 1)
         self.handles["navmesh"] = self.server.scene.add_mesh_simple(
-            "/navmesh", v, np.asarray(doc["triangles"], np.int32), color=(60, 220, 140), opacity=0.55, side="double")
-        return f"{len(doc['triangles'])} triangles"
+            "/navmesh", v, np.asarray(nav.triangles, np.int32), color=(60, 220, 140), opacity=0.55, side="double")
+        return f"{len(nav.triangles)} triangles"
 
     def _add_trajectory(self) -> str:
-        planned = _poses(_read_json(self.art / "trajectory" / "trajectory.json"))
-        pdoc = _read_json(self.art / "poses" / "poses.json")
-        recovered = _poses(pdoc)
-        vdoc = _read_json(self.art / "video" / "video.json") or {}
-        self._frames = [self.art / "video" / f["rgb"] for f in vdoc.get("frames", [])]
+        planned = _read(load_trajectory, self.art / "trajectory")
+        pa = _read(load_poses, self.art / "poses")
+        recovered = None if pa is None else pa.world_from_cam
+        vdoc = _read(read_video_doc, self.art / "video")
+        self._frames = [] if vdoc is None else list(vdoc.rgb)
         if planned is not None and len(planned) > 1:
             seg = np.stack([planned[:-1, :3, 3], planned[1:, :3, 3]], 1).astype(np.float32)
             self.handles["planned"] = self.server.scene.add_line_segments("/trajectory/planned", seg, (255, 200, 0), thickness=0.01)
@@ -156,7 +157,7 @@ class SceneViewer:
         if poses is None:
             return "missing"
         self._poses = poses
-        reg = np.asarray((pdoc or {}).get("registered", [True] * len(poses)), bool) if recovered is not None else None
+        reg = pa.registered if recovered is not None else None
         for i, T in enumerate(poses):
             ok = reg is None or (i < len(reg) and reg[i])
             self.server.scene.add_camera_frustum(
