@@ -7,7 +7,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from panoworld.register.solve import RegisterOptions
+from panoworld.register.options import RegisterOptions
 from panoworld.stage import Input, stage_main
 
 NAME = "register"

@@ -15,8 +15,9 @@ import torch
 
 from panoworld.conventions import invert_pose
 from panoworld.depth import read_panorama
+from panoworld.register.options import RegisterOptions
 from panoworld.register.pairwise import consistency
-from panoworld.register.solve import RegisterOptions, register_panoramas
+from panoworld.register.solve import register_panoramas
 from panoworld.stage import execute_stage, load_stage, params_from_dict
 from panoworld.synth.home import generate_home, home_params, write_home
 from panoworld.synth.scene import generate_scene

@@ -9,7 +9,8 @@ from panoworld.depth import read_depth, read_panorama
 from panoworld.errors import InputError
 from panoworld.io.jsonio import read_json, write_json
 from panoworld.register.inputs import find_multi_scene, read_poses
-from panoworld.register.solve import RegisterOptions, Registration, register_panoramas
+from panoworld.register.options import RegisterOptions
+from panoworld.register.solve import Registration, register_panoramas
 
 PANORAMAS_JSON = "panoramas.json"
 REGISTRATION_JSON = "registration.json"
