@@ -6,7 +6,6 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from panoworld.errors import InputError
@@ -87,8 +86,10 @@ def _strict_jpeg(path: Path, what: str) -> None:
         raise ImageInputError(f"{path}: {what} is corrupt or truncated (libjpeg: {e}); {_fix(path)}") from None
 
 
-def read_image(path: Path | str, flags: int = cv2.IMREAD_UNCHANGED, what: str = "image") -> np.ndarray:
-    """check_image, then decode with OpenCV (flags as cv2.imread: BGR order, 16 bit kept with IMREAD_UNCHANGED)."""
+def read_image(path: Path | str, flags: int = -1, what: str = "image") -> np.ndarray:
+    """check_image, then decode with OpenCV (flags as cv2.imread, default -1 = IMREAD_UNCHANGED: BGR order, 16 bit
+    kept)."""
+    import cv2  # here, not at module level: the runner imports this module to check panoramas
     check_image(path, what)
     img = cv2.imread(str(path), flags)
     if img is None:

@@ -24,6 +24,7 @@ from panoworld.errors import InputError, PipelineError
 from panoworld.hub import resolve as hub
 from panoworld.image_io import check_image
 from panoworld.params import flatten, suggest
+from panoworld.register.inputs import is_multi_scene
 from panoworld.stage import (
     LOCK_ENV,
     LOCK_FILE,
@@ -220,6 +221,10 @@ def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
     pano = files.get("panorama")
     if pano is None:
         names = pipeline.scene_files.get("panorama", [])
+        if is_multi_scene(root):
+            raise PipelineError(f"{root}: a multi-panorama scene (panoramas/) is not run by the runner yet; register it "
+                                f"with python -m stages.register --scene {root} --out {root}/artifacts/register "
+                                "(docs/multi.md), or put one panorama in panorama.png")
         raise PipelineError(f"{root}: no panorama; expected one of {', '.join(names)}")
     try:  # fully decoded here, so a truncated or corrupt panorama is refused before anything is written
         w, h = check_image(pano, "panorama").oriented  # the depth stage applies the EXIF orientation too

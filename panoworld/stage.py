@@ -45,7 +45,8 @@ class Input:
     """One named input of a stage: a scene file or another stage's artifact directory."""
 
     kind: str
-    """'file' for a scene file, otherwise the artifact kind (schema name) of the upstream artifact."""
+    """'file' for a scene file, 'dir' for a scene directory (digest over its files), otherwise the artifact kind
+    (schema name) of the upstream artifact."""
     optional: bool = False
     """Whether the stage runs without it."""
     help: str = ""
@@ -270,6 +271,11 @@ def input_digest(name: str, spec: Input, path: Path | None) -> str | None:
         if not path.is_file():
             raise StageInputError(f"input {name}: file not found: {path}")
         return art.file_digest(path)
+    if spec.kind == "dir":
+        if not path.is_dir():
+            raise StageInputError(f"input {name}: directory not found: {path}")
+        files = sorted(p for p in path.rglob("*") if p.is_file() and art.ARTIFACTS_DIRNAME not in p.relative_to(path).parts)
+        return art.json_digest([[p.relative_to(path).as_posix(), art.file_digest(p)] for p in files])
     try:
         manifest = art.read_manifest(path, spec.kind)
     except art.ArtifactError as e:
@@ -400,7 +406,7 @@ def build_parser(spec: StageSpec) -> argparse.ArgumentParser:
     )
     g_in = parser.add_argument_group("inputs")
     for name, inp in spec.inputs.items():
-        what = "file" if inp.kind == "file" else f"{inp.kind} artifact directory"
+        what = {"file": "file", "dir": "directory"}.get(inp.kind, f"{inp.kind} artifact directory")
         g_in.add_argument(
             f"--{name.replace('_', '-')}", dest=f"in_{name}", type=Path, required=not inp.optional,
             help=f"{inp.help} ({what}{', optional' if inp.optional else ''})",

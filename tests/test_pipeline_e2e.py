@@ -17,13 +17,14 @@ REPO = Path(__file__).resolve().parent.parent
 HEAVY = ("torch", "numba", "trimesh", "pycolmap", "diffusers", "transformers", "embreex", "ray", "cv2", "scipy")
 
 
-@pytest.mark.parametrize("stage", pl.Pipeline.load().order)
+@pytest.mark.parametrize("stage", [*pl.Pipeline.load().order, "register", "<runner>"])
 def test_stage_modules_import_light(stage):
     """The runner imports every stage module for its params: heavy libraries must be imported inside run()."""
-    code = f"import sys, stages.{stage}; print([m for m in {HEAVY!r} if m in sys.modules])"
+    module = "panoworld.pipeline" if stage == "<runner>" else f"stages.{stage}"
+    code = f"import sys, {module}; print([m for m in {HEAVY!r} if m in sys.modules])"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "[]", f"stages.{stage} imports {out.stdout.strip()} at module level"
+    assert out.stdout.strip() == "[]", f"{module} imports {out.stdout.strip()} at module level"
 
 
 @pytest.mark.slow

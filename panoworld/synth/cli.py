@@ -1,4 +1,4 @@
-"""Command line: `synth OUT_DIR --seed N [--preset P] [--frames F] [--rig tripod]` or `synth DATASET_DIR --seed N --scenes K`."""
+"""Command line: `synth OUT_DIR --seed N [--preset P] [--frames F] [--rig tripod | --panoramas K]` or `synth DATASET_DIR --seed N --scenes K`."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from panoworld.synth.home import MAX_PANORAMAS, generate_home, home_params, write_home
 from panoworld.synth.params import Preset, params_for
 from panoworld.synth.rig import RigKind
 from panoworld.synth.scene import SceneGenerationError, derive_seed, generate_scene, write_scene
@@ -27,6 +28,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="a capture rig under the panorama camera (gt/panorama_clean.png keeps the rig-free truth)")
     ap.add_argument("--scenes", type=int, default=None,
                     help="write this many scenes DATASET_DIR/scene_0000 ... with seeds derived from --seed")
+    ap.add_argument("--panoramas", type=int, default=None,
+                    help="a home of >= 3 rooms captured by this many panoramas (2-8): panoramas/, depths/, gt/poses.json")
     return ap
 
 
@@ -40,9 +43,22 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--frames {args.frames} but expected >= 1")
     if args.scenes is not None and args.scenes < 1:
         ap.error(f"--scenes {args.scenes} but expected >= 1")
+    if args.panoramas is not None and not 2 <= args.panoramas <= MAX_PANORAMAS:
+        ap.error(f"--panoramas {args.panoramas} but expected 2..{MAX_PANORAMAS}")
+    if args.panoramas is not None and (args.scenes is not None or args.frames is not None or args.rig != "none"):
+        ap.error("--panoramas cannot be combined with --scenes, --frames or --rig")
     params = params_for(args.preset, frames=args.frames)
     params = replace(params, render=replace(params.render, rig=args.rig))
     try:
+        if args.panoramas is not None:
+            if args.out_dir.exists() and (not args.out_dir.is_dir() or any(args.out_dir.iterdir())):
+                ap.error(f"{args.out_dir} already exists and is not empty")
+            hp = home_params(args.preset)
+            home = generate_home(args.seed, args.panoramas, args.preset, params=hp)
+            write_home(home, args.out_dir, hp)
+            print(f"wrote {args.out_dir} (seed {args.seed}, {args.panoramas} panoramas in rooms {home.rooms} of "
+                  f"{home.scene.meta['n_rooms']})")
+            return 0
         if args.scenes is None:
             if args.out_dir.exists() and (not args.out_dir.is_dir() or any(args.out_dir.iterdir())):
                 ap.error(f"{args.out_dir} already exists and is not empty")

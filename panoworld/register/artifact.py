@@ -1,0 +1,49 @@
+"""The register artifact: panoramas.json ({NAME: 4x4 world_from_cam}, first registered panorama's frame) and
+registration.json (per-panorama quality and every pair tried)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from panoworld.depth import read_depth, read_panorama
+from panoworld.errors import InputError
+from panoworld.io.jsonio import read_json, write_json
+from panoworld.register.inputs import find_multi_scene, read_poses
+from panoworld.register.options import RegisterOptions
+from panoworld.register.solve import Registration, register_panoramas
+
+PANORAMAS_JSON = "panoramas.json"
+REGISTRATION_JSON = "registration.json"
+
+
+def register_scene(scene: Path, options: RegisterOptions, out_dir: Path) -> dict:
+    """Register the panoramas of scene and write the artifact files into out_dir -> manifest info."""
+    ms = find_multi_scene(scene)
+    given = read_poses(ms.poses, ms.names) if ms.poses else {}
+    missing = [n for n in ms.names if n not in given and n not in ms.depths]
+    if missing:
+        raise InputError(f"{Path(scene) / 'depths'}: no depth for {missing}; give depths/NAME.npy (metric ray depth, "
+                         "metres) for every panorama without a pose in poses.json")
+    need_pixels = len(given) < len(ms.names)
+    rgbs = {n: read_panorama(ms.panoramas[n]) for n in ms.names} if need_pixels else {}
+    depths = {n: read_depth(ms.depths[n]) for n in ms.names if n in ms.depths} if need_pixels else {}
+    reg = register_panoramas(ms.names, rgbs, depths, given=given, options=options)
+    write_registration(out_dir, reg)
+    n_reg = sum(p["registered"] for p in reg.panoramas.values())
+    return {"num_panoramas": len(ms.names), "num_registered": n_reg, "num_given": len(given),
+            "unregistered": [n for n, p in reg.panoramas.items() if not p["registered"]],
+            "pairs_accepted": sum(p["accepted"] for p in reg.pairs), "pairs_tried": len(reg.pairs)}
+
+
+def write_registration(out_dir: Path, reg: Registration) -> None:
+    """panoramas.json and registration.json into out_dir."""
+    write_json(out_dir / PANORAMAS_JSON, {n: T.round(9).tolist() for n, T in reg.world_from_cam.items()},
+               sort_keys=True)
+    write_json(out_dir / REGISTRATION_JSON, {"frame": "world_from_cam (OpenCV camera axes, metres) in the frame of the "
+                                             "first registered panorama", "panoramas": reg.panoramas,
+                                             "pairs": reg.pairs})
+
+
+def read_registration(artifact_dir: Path) -> tuple[dict, dict]:
+    """(panoramas.json, registration.json) of a register artifact."""
+    return read_json(Path(artifact_dir) / PANORAMAS_JSON), read_json(Path(artifact_dir) / REGISTRATION_JSON)

@@ -1,0 +1,31 @@
+"""Options of panorama registration (light to import: the register stage's Params nest them)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from panoworld.params import param
+
+
+@dataclass(kw_only=True)
+class RegisterOptions:
+    """How panoramas are matched and when a pairwise estimate is trusted."""
+
+    height: int = param(720, ge=64)
+    """Panoramas and depths are resampled to at most this many rows before feature detection."""
+    max_features: int = param(16000, ge=100)
+    """SIFT keypoints per panorama (shared by its six cube-face views)."""
+    max_error_m: float = param(0.05, gt=0)
+    """RANSAC inlier threshold: 3D distance in metres between matched depth-backed points."""
+    min_inliers: int = param(12, ge=3)
+    """A pair needs at least this many RANSAC inliers."""
+    min_consistency: float = param(0.9, ge=0, le=1)
+    """A pair needs at least this free-space consistency of its dense depth maps at the estimated pose (see
+    PairResult.consistency): rejects wrong poses that a few repeated-texture matches agree on."""
+    min_overlap: float = param(0.02, ge=0, le=1)
+    """A pair needs at least this fraction of depth pixels seen by both panoramas."""
+    refine_height: int = param(256, ge=16)
+    """Rows of the depth maps (valid-weighted area average) the ICP refinement runs on."""
+    refine_iterations: int = param(15, ge=0)
+    """Point-to-plane ICP steps on the dense depth maps after RANSAC (0 = RANSAC only), starting with pairs within
+    2 max_error_m and ending within 1 cm; a wider start locked onto surfaces a wall thickness away."""

@@ -1,0 +1,205 @@
+"""One pair of panoramas: SIFT on cube-face views, depth-backed 3D points, rigid LO-RANSAC (pycolmap), point-to-plane
+ICP on the dense depth maps and a free-space consistency check."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import pycolmap
+import torch
+from scipy import ndimage
+from scipy.spatial.transform import Rotation
+
+from panoworld.conventions import erp_dirs, erp_pixel_from_dir
+from panoworld.depth import cube_views, render_view
+from panoworld.models.pose_refine import depth_edges, sample_range
+
+
+@dataclass(kw_only=True)
+class Features:
+    """Keypoints of one panorama that have a depth: camera-frame 3D points and SIFT descriptors."""
+
+    points: np.ndarray
+    """(N, 3) float64 points in the camera frame (bearing times ray depth), metres."""
+    descriptors: np.ndarray
+    """(N, 128) float32 SIFT descriptors."""
+
+
+@dataclass(kw_only=True)
+class PairResult:
+    """The estimate of i_from_j for panoramas i and j, and how far to trust it."""
+
+    matches: int
+    """Descriptor matches passing the ratio test."""
+    inliers: int
+    """RANSAC inliers of the rigid fit (3D distance below max_error_m)."""
+    i_from_j: np.ndarray | None
+    """(4, 4) rigid transform after refinement, None when RANSAC failed."""
+    overlap: float
+    """Fraction of the depth pixels of each view that the other view sees at the estimated pose (mean of both)."""
+    consistency: float
+    """Of the pixels of each view that land on the other's visible surface or in front of it, the fraction within
+    tol of that surface (1 = no free-space violation; a wrong pose puts surfaces in the other's free space)."""
+    residual: float
+    """Median |log range - log depth| over the consistent pixels."""
+
+
+def erp_features(rgb: np.ndarray, depth: np.ndarray, *, max_features: int, max_edge: float = 0.05,
+                 contrast: float = 0.01) -> Features:
+    """SIFT on six cube-face views of the panorama (less distortion than the ERP image); each keypoint whose ray is
+    closest to its own face's axis, on valid depth and off depth edges (log-depth range over 3x3 below max_edge), keeps
+    a 3D point from the bilinearly sampled ray depth."""
+    h, w = depth.shape
+    if rgb.shape[:2] != depth.shape:
+        rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
+    valid = np.isfinite(depth) & (depth > 0)
+    d = np.where(valid, depth, 0).astype(np.float64)
+    edges = depth_edges(torch.from_numpy(np.where(valid, d, 1e-6))[None])[0].numpy()
+    views = cube_views(fov_deg=100.0, size=int(round(h / 2 * 100 / 90)))
+    axes = np.stack([v.cam_from_view[:, 2] for v in views])
+    sift = cv2.SIFT_create(nfeatures=max_features // len(views), contrastThreshold=contrast)
+    pts, descs = [], []
+    for k, view in enumerate(views):
+        gray = cv2.cvtColor(render_view(rgb, view), cv2.COLOR_RGB2GRAY)
+        kps, desc = sift.detectAndCompute(gray, None)
+        if desc is None or not kps:
+            continue
+        xy = np.array([kp.pt for kp in kps], np.float64)
+        c = 0.5 * view.size - 0.5  # OpenCV pixel centres are integers
+        ray = np.stack([(xy[:, 0] - c) / view.focal, (xy[:, 1] - c) / view.focal, np.ones(len(xy))], 1)
+        ray = ray / np.linalg.norm(ray, axis=1, keepdims=True) @ view.cam_from_view.T
+        u, v = erp_pixel_from_dir(ray, h, w)
+        rc = np.stack([v - 0.5, u - 0.5])
+        dk = ndimage.map_coordinates(d, rc, order=1, mode="nearest")
+        ok = ndimage.map_coordinates(valid.astype(np.float32), rc, order=1, mode="nearest") > 0.999
+        ek = ndimage.map_coordinates(edges, rc, order=0, mode="nearest")
+        keep = ok & (ek < max_edge) & (dk > 0) & (np.argmax(ray @ axes.T, axis=1) == k)
+        pts.append(ray[keep] * dk[keep, None])
+        descs.append(desc[keep])
+    if not pts:
+        return Features(points=np.zeros((0, 3)), descriptors=np.zeros((0, 128), np.float32))
+    return Features(points=np.concatenate(pts), descriptors=np.concatenate(descs).astype(np.float32))
+
+
+def match(a: Features, b: Features, *, ratio: float = 0.8) -> np.ndarray:
+    """(M, 2) indices (into a, into b) of mutual nearest neighbours passing Lowe's ratio test."""
+    if len(a.descriptors) < 2 or len(b.descriptors) < 2:
+        return np.zeros((0, 2), np.int64)
+    bf = cv2.BFMatcher(cv2.NORM_L2)
+    ab = bf.knnMatch(a.descriptors, b.descriptors, k=2)
+    ba = {m[0].queryIdx: m[0].trainIdx for m in bf.knnMatch(b.descriptors, a.descriptors, k=1) if m}
+    out = [(m[0].queryIdx, m[0].trainIdx) for m in ab
+           if len(m) == 2 and m[0].distance < ratio * m[1].distance and ba.get(m[0].trainIdx) == m[0].queryIdx]
+    return np.array(out, np.int64).reshape(-1, 2)
+
+
+def _small(depth: np.ndarray, height: int) -> np.ndarray:
+    """Depth (H, W) -> float64 at most `height` rows, 0 where invalid; downsampled by a valid-weighted area average
+    (pixel centres stay where the ERP convention puts them, which nearest-neighbour resizing breaks)."""
+    valid = np.isfinite(depth) & (depth > 0)
+    d = np.where(valid, depth, 0).astype(np.float64)
+    if d.shape[0] > height:
+        size = (2 * height, height)
+        total = cv2.resize(d, size, interpolation=cv2.INTER_AREA)
+        frac = cv2.resize(valid.astype(np.float64), size, interpolation=cv2.INTER_AREA)
+        d = np.where(frac > 0.99, total / np.maximum(frac, 1e-12), 0.0)
+    return d
+
+
+def consistency(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.ndarray, *, height: int = 128,
+                tol: float = 0.03, edge: float = 0.1) -> tuple[float, float, float]:
+    """(overlap, consistency, residual) of PairResult for the pose i_from_j, on depth maps at `height` rows."""
+    di, dj = (torch.from_numpy(_small(x, height))[None] for x in (depth_i, depth_j))
+    dirs = torch.from_numpy(erp_dirs(*di.shape[1:], dtype=np.float64)).reshape(1, -1, 3)
+    T = torch.from_numpy(np.asarray(i_from_j, np.float64))
+    ei, ej = depth_edges(di.clamp(min=1e-6)), depth_edges(dj.clamp(min=1e-6))
+    stats = []
+    for src, dst, e_dst, A in ((dj, di, ei, T), (di, dj, ej, torch.linalg.inv(T))):
+        p = dirs * src.reshape(1, -1, 1)
+        p = p @ A[:3, :3].T + A[:3, 3]
+        r, d, e = sample_range(dst, p, e_dst)
+        ok = (src.reshape(1, -1) > 0) & (d > 0) & (e < edge)
+        res = torch.log(r.clamp(min=1e-6)) - torch.log(d.clamp(min=1e-6))
+        agree = ok & (res.abs() < tol)
+        front = ok & (res < -tol)  # in the other view's free space
+        n = max(int((src > 0).sum()), 1)
+        stats.append((float(agree.sum() / n), int(agree.sum()), int(front.sum()),
+                      res[agree].abs().numpy()))
+    overlap = 0.5 * (stats[0][0] + stats[1][0])
+    agree = stats[0][1] + stats[1][1]
+    front = stats[0][2] + stats[1][2]
+    res = np.concatenate([stats[0][3], stats[1][3]])
+    return overlap, agree / max(agree + front, 1), float(np.median(res)) if len(res) else float("nan")
+
+
+def _erp_normals(pts: np.ndarray) -> np.ndarray:
+    """Unit normals (H, W, 3) of an ERP point grid (H, W, 3) from central differences (columns wrap), facing the
+    camera; zero where a neighbour is missing."""
+    du = np.roll(pts, -1, axis=1) - np.roll(pts, 1, axis=1)
+    dv = np.zeros_like(pts)
+    dv[1:-1] = pts[2:] - pts[:-2]
+    n = np.cross(du, dv)
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    n = np.where(norm > 1e-12, n / np.maximum(norm, 1e-12), 0.0)
+    return np.where((np.einsum("hwk,hwk->hw", n, pts) > 0)[..., None], -n, n)
+
+
+def icp_refine(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.ndarray, *, height: int = 256,
+               iterations: int = 15, max_dist: float = 0.1, min_dist: float = 0.01) -> np.ndarray:
+    """Rigid point-to-plane ICP of depth_j's points onto depth_i's surface with projective association (each point
+    paired with depth_i's point on its ray); pairs farther apart than a threshold shrinking from max_dist to min_dist
+    (occluded or unseen surfaces) are dropped. -> refined i_from_j (4, 4)."""
+    di, dj = _small(depth_i, height), _small(depth_j, height)
+    h, w = di.shape
+    dirs = erp_dirs(h, w, np.float64)
+    pi = dirs * di[..., None]
+    ni = _erp_normals(pi)
+    edge_i = depth_edges(torch.from_numpy(np.where(di > 0, di, 1e-6))[None])[0].numpy()
+    good_i = (di > 0) & (np.abs(ni).sum(-1) > 0) & (edge_i < 0.1)
+    pj = (dirs * dj[..., None])[dj > 0]
+    R, t = i_from_j[:3, :3].copy(), i_from_j[:3, 3].copy()
+    for it in range(iterations):
+        thresh = max(min_dist, max_dist * 0.75**it)
+        q = pj @ R.T + t
+        u, v = erp_pixel_from_dir(q, h, w)
+        iu, iv = np.floor(u).astype(int) % w, np.clip(np.floor(v).astype(int), 0, h - 1)
+        P, N = pi[iv, iu], ni[iv, iu]
+        keep = good_i[iv, iu] & (np.linalg.norm(q - P, axis=1) < thresh)
+        if keep.sum() < 100:
+            break
+        q, P, N = q[keep], P[keep], N[keep]
+        e = np.einsum("nk,nk->n", q - P, N)
+        A = np.concatenate([np.cross(q, N), N], 1)
+        x = np.linalg.lstsq(A, -e, rcond=None)[0]
+        dR = Rotation.from_rotvec(x[:3]).as_matrix()
+        R, t = dR @ R, dR @ t + x[3:]
+        if np.linalg.norm(x) < 1e-7:
+            break
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = R, t
+    return out
+
+
+def register_pair(fi: Features, fj: Features, depth_i: np.ndarray, depth_j: np.ndarray, *, max_error_m: float,
+                  min_inliers: int, refine_height: int, refine_iterations: int, seed: int = 0) -> PairResult:
+    """Estimate i_from_j from matched 3D points (LO-RANSAC), then refine it on the dense depth maps."""
+    m = match(fi, fj)
+    if len(m) < max(min_inliers, 3):
+        return PairResult(matches=len(m), inliers=0, i_from_j=None, overlap=0.0, consistency=0.0, residual=float("nan"))
+    opts = pycolmap.RANSACOptions()
+    opts.max_error = max_error_m
+    opts.random_seed = seed
+    opts.num_threads = 1
+    est = pycolmap.estimate_rigid3d_robust(fj.points[m[:, 1]], fi.points[m[:, 0]], opts)
+    if est is None or est["num_inliers"] < min_inliers:
+        n = 0 if est is None else int(est["num_inliers"])
+        return PairResult(matches=len(m), inliers=n, i_from_j=None, overlap=0.0, consistency=0.0, residual=float("nan"))
+    T = np.eye(4)
+    T[:3] = est["tgt_from_src"].matrix()
+    if refine_iterations > 0:
+        T = icp_refine(T, depth_i, depth_j, height=refine_height, iterations=refine_iterations, max_dist=2 * max_error_m)
+    overlap, cons, res = consistency(T, depth_i, depth_j)
+    return PairResult(matches=len(m), inliers=int(est["num_inliers"]), i_from_j=T, overlap=overlap, consistency=cons,
+                      residual=res)

@@ -1,0 +1,202 @@
+"""Multi-panorama homes (issue #27): synthetic ground truth and the register stage against it."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from panoworld.conventions import invert_pose
+from panoworld.depth import read_panorama
+from panoworld.register.options import RegisterOptions
+from panoworld.register.pairwise import consistency
+from panoworld.register.solve import register_panoramas
+from panoworld.stage import execute_stage, load_stage, params_from_dict
+from panoworld.synth.home import generate_home, home_params, write_home
+from panoworld.synth.scene import generate_scene
+from stages.register import main as register_main
+
+ROOT = Path(__file__).resolve().parent.parent
+HEIGHT = 384  # SIFT finds too few matches on the small ci-tiny textures at 256 rows
+TOL_CM, TOL_DEG = 5.0, 1.0
+
+torch.set_num_threads(1)
+
+
+def _errors(E: np.ndarray, G: np.ndarray) -> tuple[float, float]:
+    cos = np.clip((np.trace(G[:3, :3].T @ E[:3, :3]) - 1) / 2, -1, 1)
+    return float(np.linalg.norm(G[:3, 3] - E[:3, 3]) * 100), float(np.degrees(np.arccos(cos)))
+
+
+@pytest.fixture(scope="module")
+def home_dir(tmp_path_factory) -> Path:
+    params = home_params("ci-tiny")
+    params = replace(params, render=replace(params.render, pano_height=HEIGHT))
+    home = generate_home(7, 3, "ci-tiny", params=params)
+    return write_home(home, tmp_path_factory.mktemp("home") / "scene", params)
+
+
+def _gt(scene: Path) -> dict[str, np.ndarray]:
+    return {n: np.asarray(T) for n, T in json.loads((scene / "gt" / "poses.json").read_text()).items()}
+
+
+def _scene_copy(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("gt"))
+    return dst
+
+
+def test_home_ground_truth_layout_and_consistency(home_dir):
+    names = ["pano_00", "pano_01", "pano_02"]
+    assert sorted(p.stem for p in (home_dir / "panoramas").glob("*.png")) == names
+    assert sorted(p.stem for p in (home_dir / "depths").glob("*.npy")) == names
+    assert not (home_dir / "poses.json").exists() and not (home_dir / "panorama.png").exists()
+    gt = _gt(home_dir)
+    rooms = json.loads((home_dir / "gt" / "capture_rooms.json").read_text())
+    assert len(set(rooms.values())) >= 3
+    for T in gt.values():
+        assert np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-9) and np.allclose(T[3], [0, 0, 0, 1])
+        assert np.allclose(T[:3, 1], [0, 1, 0])  # upright: camera y is world down
+    # The renders agree with the poses: each panorama's depth lands on the other's surface where both see it.
+    depth = {n: np.load(home_dir / "depths" / f"{n}.npy") for n in names}
+    overlap, cons, _ = consistency(invert_pose(gt["pano_00"]) @ gt["pano_01"], depth["pano_00"], depth["pano_01"])
+    assert overlap > 0.02 and cons > 0.97
+    shifted = invert_pose(gt["pano_00"]) @ gt["pano_01"]
+    shifted[:3, 3] += [0.3, 0.0, 0.0]
+    assert consistency(shifted, depth["pano_00"], depth["pano_01"])[1] < 0.9
+
+
+def test_register_stage_within_tolerance(home_dir, tmp_path):
+    spec = load_stage("register")
+    out = tmp_path / "register"
+    manifest = execute_stage(spec, {"scene": home_dir}, params_from_dict(spec.params_cls, {}), out)
+    assert manifest["info"]["num_registered"] == 3 and manifest["info"]["unregistered"] == []
+    est = {n: np.asarray(T) for n, T in json.loads((out / "panoramas.json").read_text()).items()}
+    gt = _gt(home_dir)
+    assert np.allclose(est["pano_00"], np.eye(4))
+    for n, E in est.items():
+        t_cm, r_deg = _errors(E, invert_pose(gt["pano_00"]) @ gt[n])
+        assert t_cm <= TOL_CM and r_deg <= TOL_DEG, (n, t_cm, r_deg)
+    reg = json.loads((out / "registration.json").read_text())
+    assert all(p["source"] == "estimated" for p in reg["panoramas"].values())
+    assert all(reg["panoramas"][n]["inliers"] >= 12 for n in ("pano_01", "pano_02"))
+
+
+def test_given_poses_are_used_without_estimation(home_dir, tmp_path):
+    scene = _scene_copy(home_dir, tmp_path / "scene")
+    gt = _gt(home_dir)
+    (scene / "poses.json").write_text(json.dumps({n: T.tolist() for n, T in gt.items()}))
+    shutil.rmtree(scene / "depths")  # given poses need no depth
+    spec = load_stage("register")
+    out = tmp_path / "register"
+    manifest = execute_stage(spec, {"scene": scene}, params_from_dict(spec.params_cls, {}), out)
+    assert manifest["info"]["num_given"] == 3 and manifest["info"]["pairs_tried"] == 0
+    est = json.loads((out / "panoramas.json").read_text())
+    for n, T in gt.items():
+        assert np.allclose(est[n], invert_pose(gt["pano_00"]) @ T, atol=1e-8)
+
+
+@pytest.mark.parametrize("poses, needle", [
+    ({"pano_00": np.diag([2.0, 2, 2, 1]).tolist()}, "not rigid"),
+    ({"kitchen": np.eye(4).tolist()}, "no such panoramas"),
+    ({"pano_00": [[1, 0, 0], [0, 1, 0]]}, "not a finite 4x4"),
+    ([1, 2], "expected a JSON object"),
+])
+def test_bad_poses_file_exits_2_naming_it(home_dir, tmp_path, capsys, poses, needle):
+    scene = _scene_copy(home_dir, tmp_path / "scene")
+    (scene / "poses.json").write_text(json.dumps(poses))
+    out = tmp_path / "register"
+    assert register_main(["--scene", str(scene), "--out", str(out)]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "poses.json" in lines[0] and needle in lines[0]
+    assert not out.exists()
+
+
+def test_missing_depth_exits_2(home_dir, tmp_path, capsys):
+    scene = _scene_copy(home_dir, tmp_path / "scene")
+    (scene / "depths" / "pano_01.npy").unlink()
+    out = tmp_path / "register"
+    assert register_main(["--scene", str(scene), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "pano_01" in err and "depths" in err and not out.exists()
+
+
+def test_stage_cli_runs_as_a_module(home_dir, tmp_path):
+    out = tmp_path / "register"
+    proc = subprocess.run([sys.executable, "-m", "stages.register", "--scene", str(tmp_path / "nowhere"), "--out",
+                           str(out)], cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 2 and "directory not found" in proc.stderr and not out.exists()
+
+
+@pytest.mark.slow
+def test_unrelated_panorama_is_reported_not_placed(home_dir):
+    gt = _gt(home_dir)
+    names = ["pano_00", "pano_01"]
+    rgbs = {n: read_panorama(home_dir / "panoramas" / f"{n}.png") for n in names}
+    depths = {n: np.load(home_dir / "depths" / f"{n}.npy") for n in names}
+    other = generate_scene(3, "ci-tiny")
+    rgbs["other"], depths["other"] = other.render(other.world_from_canonical, HEIGHT, 2 * HEIGHT)
+    reg = register_panoramas(["pano_00", "pano_01", "other"], rgbs, depths, options=RegisterOptions(height=HEIGHT))
+    assert "other" not in reg.world_from_cam
+    assert reg.panoramas["other"]["registered"] is False and "no pair" in reg.panoramas["other"]["reason"]
+    t_cm, r_deg = _errors(reg.world_from_cam["pano_01"], invert_pose(gt["pano_00"]) @ gt["pano_01"])
+    assert t_cm <= TOL_CM and r_deg <= TOL_DEG
+    assert not any(p["accepted"] for p in reg.pairs if "other" in (p["a"], p["b"]))
+
+
+def test_synth_cli_panoramas_refuses_bad_counts(tmp_path):
+    from panoworld.synth.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main([str(tmp_path / "x"), "--seed", "1", "--panoramas", "9"])
+    assert e.value.code == 2 and not (tmp_path / "x").exists()
+
+
+def test_fused_mesh_reproduces_every_view_and_navmesh_joins_the_rooms(home_dir):
+    from panoworld.raycast import Raycaster
+    from panoworld.register.fuse import fuse_meshes, home_navmesh
+
+    gt = _gt(home_dir)
+    names = sorted(gt)
+    poses = {n: invert_pose(gt[names[0]]) @ gt[n] for n in names}
+    rgbs = {n: read_panorama(home_dir / "panoramas" / f"{n}.png") for n in names}
+    depths = {n: np.load(home_dir / "depths" / f"{n}.npy") for n in names}
+    mesh, source = fuse_meshes(names, rgbs, depths, poses)
+    assert set(np.unique(source)) == {0, 1, 2}
+    alone = [fuse_meshes([n], rgbs, depths, {n: poses[n]})[0] for n in names]
+
+    def doubled(parts, n):
+        """Fraction of panorama n's pixels whose surface two or more of the parts reproduce (a doubled wall)."""
+        ref = depths[n][2::4, 2::4]
+        hits = [np.abs(np.log(Raycaster(v, f).render_erp(poses[n], HEIGHT // 4, HEIGHT // 2).distance / ref)) < 0.02
+                for v, f in parts]
+        return float((np.sum(hits, axis=0) >= 2).mean())
+
+    fused_parts = [(mesh.vertices, mesh.faces[source == k]) for k in range(3)]
+    naive_parts = [(m.vertices, m.faces) for m in alone]
+    for n in names:
+        # Naively concatenated meshes double every surface two panoramas see; the fused one only its seams.
+        assert doubled(fused_parts, n) < 0.25 * doubled(naive_parts, n), n
+    rc = Raycaster(mesh.vertices, mesh.faces)
+    for n in names:
+        d = rc.render_erp(poses[n], HEIGHT // 4, HEIGHT // 2).distance
+        ref = depths[n][2::4, 2::4]
+        assert (np.abs(np.log(d / ref)) < 0.02).mean() > 0.97  # nothing missing ...
+        assert (d < 0.98 * ref).mean() < 0.02  # ... and nothing in front of what the panorama saw
+    _, on = home_navmesh(mesh, poses)
+    assert all(on.values()), on
+
+
+def test_runner_points_a_multi_scene_to_the_register_stage(home_dir):
+    from panoworld.errors import PipelineError
+    from panoworld.pipeline import Pipeline, open_scene
+
+    with pytest.raises(PipelineError, match="multi-panorama scene.*stages.register") as e:
+        open_scene(home_dir, Pipeline.load())
+    assert e.value.exit_code == 2 and not (home_dir / "artifacts").exists()
