@@ -432,3 +432,25 @@ def test_self_consistency_target_is_the_mean_of_the_teachers_two_half_steps_on_t
     # and it is not the student's own two half steps (the teacher's weights differ)
     s1 = real(tr, first["x"], first["sigma"], first["dt"], cond, text).detach()
     assert (s1 - v1).abs().max() > 1e-4
+
+
+def test_one_clip_per_path_frames_back_in_pose_order():
+    """wan-shortcut generates each path of a multi-path trajectory as its own clip (source view first) and puts the
+    frames back in pose order: each path's frames equal that path generated alone."""
+    from panoworld.backends.video.wan_shortcut import generate_clips
+
+    gen = WanShortcutGenerator.from_components(tiny_transformer(), tiny_vae(), cfg(seed=2), embeds())
+    rgb, mask = inputs(4)
+    clips = [[0, 1, 2], [0, 3, 4]]
+    frames, info = generate_clips(gen, rgb, mask, clips)
+    assert info["clips"] == 2 and info["clip_frames"] == [3, 3] and len(frames) == T
+    for idx in clips:
+        alone, _ = gen.generate(rgb[idx], mask[idx])
+        for i, f in zip(idx[1:], alone[1:]):
+            np.testing.assert_array_equal(frames[i], f)
+    first, _ = gen.generate(rgb[clips[0]], mask[clips[0]])
+    np.testing.assert_array_equal(frames[0], first[0])
+    whole, _ = gen.generate(rgb, mask)  # one sequence across both paths differs: path 2 would continue path 1
+    assert not np.array_equal(np.stack(frames[3:]), whole[3:])
+    with pytest.raises(ValueError, match="without a frame"):
+        generate_clips(gen, rgb, mask, [[0, 1, 2]])
