@@ -32,6 +32,8 @@ VALIDATION_SEEDS = [1, 2, 3]
 QUICK_SEEDS = [0, 7]
 BUCKET_KEYS = [b.key for b in BUCKETS] + [FAR_KEY]
 METRICS = ["erp_psnr", "erp_ssim", "erp_coverage", "pinhole_psnr", "pinhole_ssim", "pinhole_coverage"]
+SPLIT = ["erp_psnr_seen", "erp_psnr_unseen", "erp_unseen_fraction", "erp_unseen_error_share", "erp_coverage_unseen"]
+"""The ERP error split by what the capture point sees (roam.split_scores)."""
 REALSEE = {"realsee-real": ("panoImage_real.jpg", "depth_real_raw_units_float32.npy")}
 
 
@@ -103,6 +105,7 @@ def print_scene(name: str, res: dict) -> None:
         f = ["n/a" if v is None else f"{v:.2f}" if "psnr" in m else f"{v:.4f}" for v, m in zip(vals, METRICS)]
         print(f"  {key:<6} {roam[f'{key}_range_m']:>10} {roam[f'{key}_count']:>2} {roam[f'{key}_distance_m']:6.2f}  "
               f"{f[0]:>8} {f[1]:>6} {f[2]:>7}  {f[3]:>8} {f[4]:>6} {f[5]:>7}")
+    print_split({key: {m: _num(roam.get(f"{key}_{m}")) for m in SPLIT} for key in BUCKET_KEYS})
     if _num(roam.get("d0_erp_psnr_vs_input")) is not None:
         print(f"  capture point vs the input panorama: {roam['d0_erp_psnr_vs_input']:.2f} dB")
     reach = traj.get("reach_max_m")
@@ -115,6 +118,17 @@ def print_scene(name: str, res: dict) -> None:
           f"{p['peak_mb'] or 0:.0f} MB; eval {res['eval_s']:.1f} s")
 
 
+def print_split(rows: dict[str, dict]) -> None:
+    """Per bucket: PSNR where the capture point sees the surface / where it does not, the unseen pixels' fraction,
+    their share of the squared error and their coverage."""
+    if not any(v is not None for r in rows.values() for v in r.values()):
+        return
+    print(f"  {'bucket':<6} {'seen dB':>8} {'unseen dB':>9} {'unseen px':>9} {'err share':>9} {'unseen cov':>10}")
+    for key, r in rows.items():
+        f = ["n/a" if r.get(m) is None else f"{r[m]:.2f}" if "psnr" in m else f"{r[m]:.4f}" for m in SPLIT]
+        print(f"  {key:<6} {f[0]:>8} {f[1]:>9} {f[2]:>9} {f[3]:>9} {f[4]:>10}")
+
+
 def print_mean(results: dict[str, dict]) -> dict:
     """Mean over scenes per bucket and metric (scenes lacking a bucket are left out; their count is shown)."""
     print(f"\nmean over {len(results)} scene(s)")
@@ -122,13 +136,14 @@ def print_mean(results: dict[str, dict]) -> dict:
     summary = {}
     for key in BUCKET_KEYS:
         row = {}
-        for m in METRICS:
+        for m in METRICS + SPLIT:
             vals = [v for r in results.values() if (v := _num(r["roam"].get(f"{key}_{m}"))) is not None]
             row[m] = sum(vals) / len(vals) if vals else None
             row["scenes"] = max(row.get("scenes", 0), len(vals))
         summary[key] = row
         f = ["n/a" if row[m] is None else f"{row[m]:.2f}" if "psnr" in m else f"{row[m]:.4f}" for m in METRICS]
         print(f"  {key:<6} {row['scenes']:>6}  {f[0]:>8} {f[1]:>6} {f[2]:>7}  {f[3]:>8} {f[4]:>6} {f[5]:>7}")
+    print_split(summary)
     walls = [r["pipeline"]["wall_s"] for r in results.values()]
     peaks = [r["pipeline"]["peak_mb"] or 0 for r in results.values()]
     fr = [v for r in results.values() if (v := _num(r["trajectory"].get("sector_reach_fraction_min"))) is not None]
