@@ -71,10 +71,10 @@ def real_scenes(root: Path, real: Path) -> list[tuple[str, Path]]:
     return scenes
 
 
-def run_pipeline(scene: Path, preset: str) -> dict:
+def run_pipeline(scene: Path, preset: str, sets: list[str] = ()) -> dict:
     """Run every stage; wall seconds and peak MB from the stage manifests (so a cached stage counts with the time it
     took when it ran: scenes kept with --out are reused, not rerun)."""
-    report = pl.run(scene, preset=preset, on_result=lambda r: print(f"    [{r.stage}] {r.action} {r.seconds:.1f} s",
+    report = pl.run(scene, preset=preset, sets=list(sets), on_result=lambda r: print(f"    [{r.stage}] {r.action} {r.seconds:.1f} s",
                                                                        file=sys.stderr, flush=True))
     if not report.ok:
         failed = next(r for r in report.results if r.action == "failed")
@@ -191,6 +191,8 @@ def main() -> int:
     ap.add_argument("--out", type=Path, help="keep the scenes here (reused: cached stages are not rerun; their "
                     "manifests' wall times count)")
     ap.add_argument("--json", type=Path, help="also write everything as JSON to this file")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="STAGE.PARAM=VALUE",
+                    help="a param override for every scene (as runner.py run --set; for validation runs)")
     a = ap.parse_args()
     import torch
 
@@ -200,7 +202,7 @@ def main() -> int:
     seeds = seeds[: a.scenes] if a.scenes else seeds
     params = EvalParams(roam_views=a.views)
     load = Path("/proc/loadavg").read_text().split()[0]
-    print(f"preset {preset}; seeds {seeds} ({'TEST set' if set(seeds) <= set(TEST_SEEDS) else 'not the test set'}); "
+    print(f"preset {preset}{' ' + ' '.join(a.sets) if a.sets else ''}; seeds {seeds} ({'TEST set' if set(seeds) <= set(TEST_SEEDS) else 'not the test set'}); "
           f"load average {load} at start on {os.cpu_count()} cores (shared machines inflate wall times)")
     results: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="bench-roam-") as tmp:
@@ -211,7 +213,7 @@ def main() -> int:
             scenes += real_scenes(root, a.real)
         for name, scene in scenes:
             print(f"\n{name}: {scene}", file=sys.stderr, flush=True)
-            pipe = run_pipeline(scene, preset)
+            pipe = run_pipeline(scene, preset, a.sets)
             t0 = time.perf_counter()
             report, errors = evaluate(scene, params, stages=["trajectory", "roam"])
             if errors:
