@@ -202,7 +202,7 @@ def main() -> int:
     seeds = seeds[: a.scenes] if a.scenes else seeds
     params = EvalParams(roam_views=a.views)
     load = Path("/proc/loadavg").read_text().split()[0]
-    print(f"preset {preset}{' ' + ' '.join(a.sets) if a.sets else ''}; seeds {seeds} ({'TEST set' if set(seeds) <= set(TEST_SEEDS) else 'not the test set'}); "
+    print(f"preset {preset}{' ' + ' '.join(a.sets) if a.sets else ''}; seeds {seeds} ({'TEST set' if seeds and set(seeds) <= set(TEST_SEEDS) else 'not the test set'}); "
           f"load average {load} at start on {os.cpu_count()} cores (shared machines inflate wall times)")
     results: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="bench-roam-") as tmp:
