@@ -432,3 +432,32 @@ def test_self_consistency_target_is_the_mean_of_the_teachers_two_half_steps_on_t
     # and it is not the student's own two half steps (the teacher's weights differ)
     s1 = real(tr, first["x"], first["sigma"], first["dt"], cond, text).detach()
     assert (s1 - v1).abs().max() > 1e-4
+
+
+def test_batch_split_gives_a_quarter_of_every_batch_to_self_consistency():
+    """split='batch' (Frans et al.): the first round((1 - rho) B) samples take L_SC, the rest L_FM, and the loss is
+    the per-sample mean; split='iteration' (the paper) sends the whole batch to one loss."""
+    torch.set_num_threads(1)
+    vae, tr = tiny_vae(), tiny_transformer()
+    wt.prepare_for_training(tr, wl.condition_channels(vae), rank=4, alpha=4)
+    perturb(tr, 5, ("lora_B", "step_embedder.embedder.linear_2"))
+    g = torch.Generator().manual_seed(0)
+    video = torch.rand(4, 3, T, H, W, generator=g) * 2 - 1
+    mask = (torch.rand(4, 1, T, H, W, generator=g) > 0.3).float()
+    with torch.no_grad():
+        x0 = wl.encode_video(vae, video)
+        cond = wl.encode_condition(vae, video, mask)
+        text = torch.randn(4, 7, TEXT_DIM, generator=g)
+        loss, branch = wt.shortcut_objective(tr, x0, cond, text, rho=0.75, split="batch",
+                                             generator=torch.Generator().manual_seed(7))
+        eg = torch.Generator().manual_seed(7)
+        sc = wt.self_consistency_loss(tr, x0[:1], cond[:1], text[:1], generator=eg)
+        fm = wt.flow_matching_loss(tr, x0[1:], cond[1:], text[1:], generator=eg)
+        fm_all, fm_branch = wt.shortcut_objective(tr, x0, cond, text, rho=1.0, split="batch",
+                                                  generator=torch.Generator().manual_seed(7))
+    assert branch == "mixed" and fm_branch == "fm"
+    assert float(sc) != pytest.approx(float(fm), rel=0.05)  # the weighting below is visible
+    assert float(loss) == pytest.approx((1 * float(sc) + 3 * float(fm)) / 4, rel=1e-5)
+    with pytest.raises(ValueError, match="split='half'"):
+        wt.shortcut_objective(tr, x0, cond, text, split="half")
+    assert torch.isfinite(fm_all)

@@ -46,6 +46,9 @@ class ToyConfig:
     shortcut_levels: int = 8
     """Finest shortcut step 1/shortcut_levels (the trainer: 128). The toy samples at <= 4 shortcut steps, so 8 levels
     (dt in {1, 1/2, 1/4}, the teacher's half of 1/4 is the plain flow) keep the bootstrap chain 3 links long."""
+    sc_split: str = "iteration"
+    """How rho shares the stage between the losses: "iteration" (the paper: each step goes to one loss) or "batch"
+    (Frans et al.: every batch gives a 1 - rho share of its samples to the self-consistency loss)."""
     flow_shift: float = 1.0
     """Timestep shift of the flow sampler (1 = uniform sigmas; Wan's 5 is for high-resolution latents)."""
 
@@ -186,7 +189,7 @@ def train_stage(cfg: ToyConfig, base, data: ToyScenes, *, rho: float, seed: int)
         bt = data.batch(torch.randint(0, len(data.seeds), (cfg.batch,), generator=g), g)
         loss, _ = wt.shortcut_objective(tr, bt["x0"], bt["cond"], emb.expand(cfg.batch, -1, -1), rho=rho,
                                         anchor=bt["anchor"], generator=g, max_steps=cfg.shortcut_levels,
-                                        teacher=teacher)
+                                        teacher=teacher, split=cfg.sc_split)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 1.0)
