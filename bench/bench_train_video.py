@@ -7,8 +7,10 @@
 The toy (panoworld/train/video/toy.py): frame 0 is a scene's panorama in latent space, frame 1 the same scene turned
 by a random yaw with a square disocclusion filled with one of `modes` plausible fills at random; the condition is frame
 1 with the hole masked out. Per seed: a tiny Wan transformer pre-trained with flow matching (the frozen base), then
-the paper's stage (LoRA + widened patch embedding + step-size embedding) trained twice on it with the same steps:
-FM only (rho = 1) and shortcut (rho = 0.75, EMA teacher), through panoworld.models.wan_training. Scenes: train, val
+the paper's stage (LoRA + widened patch embedding + step-size embedding) trained twice on it at equal compute: the
+shortcut model (rho = 0.75, EMA teacher) `steps` steps, FM only (rho = 1) the steps that cost the same network passes
+(toy.equal_compute_steps: a self-consistency sample costs 5 forward equivalents, an FM sample 3, so 7/6 as many), both
+through panoworld.models.wan_training. Scenes: train, val
 and test from disjoint seed ranges. Metric: sliced Wasserstein distance between the generated hole contents and a
 fresh draw of the true fills on the same test conditions (lower is better; the blurry mean of the fills is far from
 every fill), plus PSNR of frame 1 against the drawn target (which rewards that mean) and the RMS distance to the
@@ -27,10 +29,13 @@ import numpy as np
 import torch
 from training_tables import targets  # bench/ is on sys.path when this file runs as a script
 
-MODES = {
-    "quick": {"seeds": (0, 1), "base_steps": 600, "steps": 600, "train": 256, "eval_scenes": 64, "clips": 256},
-    "full": {"seeds": (0, 1, 2), "base_steps": 2000, "steps": 2000, "train": 1024, "eval_scenes": 128, "clips": 512},
+MODES = {  # steps: the shortcut model's stage steps (FM-only gets equal compute); sc_split: see ToyConfig
+    "quick": {"seeds": (0, 1), "base_steps": 600, "steps": 1500, "sc_split": "batch", "train": 256, "eval_scenes": 64,
+              "clips": 256},
+    "full": {"seeds": (0, 1, 2), "base_steps": 2000, "steps": 4000, "sc_split": "batch", "train": 1024,
+             "eval_scenes": 128, "clips": 512},
 }
+RHO = 0.75
 STEPS = (1, 2, 4, 20)
 
 
@@ -42,7 +47,8 @@ def run(mode_name: str, split: str, seeds: list[int] | None = None) -> dict:
     from panoworld.train.video import toy
 
     mode = MODES[mode_name]
-    cfg = toy.ToyConfig(base_steps=mode["base_steps"], steps=mode["steps"])
+    cfg = toy.ToyConfig(base_steps=mode["base_steps"], steps=mode["steps"], sc_split=mode["sc_split"])
+    stage_steps = {"fm-only": toy.equal_compute_steps(cfg.steps, RHO), "shortcut": cfg.steps}
     rows, times = [], {}
     train_seeds = toy.scene_seeds("train", mode["train"])
     eval_seeds = toy.scene_seeds(split, mode["eval_scenes"])
@@ -51,21 +57,26 @@ def run(mode_name: str, split: str, seeds: list[int] | None = None) -> dict:
     for seed in seeds or mode["seeds"]:
         c0 = time.process_time()
         base = toy.train_base(cfg, train, seed)
-        models = {"fm-only": toy.train_stage(cfg, base, train, rho=1.0, seed=seed),
-                  "shortcut": toy.train_stage(cfg, base, train, rho=0.75, seed=seed)}
-        times[seed] = {"train_cpu_s": round(time.process_time() - c0, 1)}
+        times[seed] = {"base_cpu_s": round(time.process_time() - c0, 1)}
+        models = {}
+        for name, rho in (("fm-only", 1.0), ("shortcut", RHO)):
+            c1 = time.process_time()
+            models[name] = toy.train_stage(cfg, base, train, rho=rho, seed=seed, steps=stage_steps[name])
+            times[seed][f"{name}_cpu_s"] = round(time.process_time() - c1, 1)
         for name, model in models.items():
             for steps in STEPS:
                 sampler = sampler_for(name, steps)
                 r = toy.evaluate(cfg, model, held, sampler=sampler, steps=steps, clips=mode["clips"], seed=seed)
                 rows.append({"model": name, "steps": steps, "sampler": sampler, "value": r["swd"], "psnr": r["psnr"],
-                             "mode_error": r["mode_error"], "seed": seed, "split": split})
+                             "mode_error": r["mode_error"], "seed": seed, "split": split,
+                             "train_steps": stage_steps[name]})
                 print(f"seed {seed} {name} {steps} steps ({sampler}): SWD {r['swd']:.4f}, PSNR {r['psnr']:.2f} dB, "
                       f"distance to the nearest fill {r['mode_error']:.3f}", flush=True)
         times[seed]["cpu_s"] = round(time.process_time() - c0, 1)
     return {"metric": "sliced Wasserstein distance of disoccluded content to the true fills", "higher_is_better": False,
             "mode": mode_name, "split": split, "rows": rows, "train_scenes": train_seeds,
             f"{split}_scenes": eval_seeds, "clips": mode["clips"], "config": vars(cfg), "times": times,
+            "stage_steps": stage_steps, "held_equal": "training compute: network passes per sample x samples",
             "floor": toy.swd_floor(cfg, mode["clips"])}
 
 

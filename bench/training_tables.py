@@ -28,6 +28,10 @@ def video_table(d: dict) -> str:
             f"scenes, {len(d[f'{split}_scenes'])} {split} scenes, {d['clips']} {split} clips per seed, seeds {seeds}; "
             f"metric: {d['metric']} ({better} is better), mean ± std over seeds; {d['wall_s']:.0f} s wall, "
             f"{d['cpu_s']:.0f} s CPU")
+    if "stage_steps" in d:
+        st = d["stage_steps"]
+        head += (f"; LoRA stage: shortcut {st['shortcut']} steps ({d['config']['sc_split']} split), FM-only "
+                 f"{st['fm-only']} (equal compute: {d['held_equal']})")
     n = d.get("processes", 1)
     head += f" (run as {n} processes side by side, one `--seeds` each, merged)." if n > 1 else "."
     out = [head, "", "| model | steps | sampler | SWD | PSNR (dB) | distance to nearest fill |",

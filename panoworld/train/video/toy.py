@@ -175,8 +175,20 @@ def train_base(cfg: ToyConfig, data: ToyScenes, seed: int):
     return tr.eval().requires_grad_(False)
 
 
-def train_stage(cfg: ToyConfig, base, data: ToyScenes, *, rho: float, seed: int):
-    """The paper's stage on a copy of `base`: rho = 1 FM only, rho = 0.75 FM + shortcut self-consistency."""
+def passes_per_sample(rho: float) -> float:
+    """Network passes a training sample costs, in forward equivalents (a backward ~ 2 forwards): FM 3; self-consistency
+    5 (the teacher's two forwards without gradient, then the student's forward and backward)."""
+    return 3.0 + 2.0 * (1.0 - rho)
+
+
+def equal_compute_steps(steps: int, rho: float) -> int:
+    """FM-only steps costing what `steps` steps at this rho cost (same batch): 700 for 600 at rho 0.75."""
+    return round(steps * passes_per_sample(rho) / passes_per_sample(1.0))
+
+
+def train_stage(cfg: ToyConfig, base, data: ToyScenes, *, rho: float, seed: int, steps: int | None = None):
+    """The paper's stage on a copy of `base`: rho = 1 FM only, rho = 0.75 FM + shortcut self-consistency;
+    `steps` (default cfg.steps) optimiser steps."""
     tr = copy.deepcopy(base)
     torch.manual_seed(seed + 3)
     params = wt.prepare_for_training(tr, cfg.z + 1, rank=cfg.lora_rank, alpha=float(cfg.lora_rank))
@@ -185,7 +197,7 @@ def train_stage(cfg: ToyConfig, base, data: ToyScenes, *, rho: float, seed: int)
     g = torch.Generator().manual_seed(seed + 3)
     emb = prompt()
     tr.train()
-    for _ in range(cfg.steps):
+    for _ in range(cfg.steps if steps is None else steps):
         bt = data.batch(torch.randint(0, len(data.seeds), (cfg.batch,), generator=g), g)
         loss, _ = wt.shortcut_objective(tr, bt["x0"], bt["cond"], emb.expand(cfg.batch, -1, -1), rho=rho,
                                         anchor=bt["anchor"], generator=g, max_steps=cfg.shortcut_levels,
