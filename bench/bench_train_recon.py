@@ -189,7 +189,7 @@ def table(rows: list[dict], keys: list[str]) -> str:
 
 MODES = {
     # scenes per split, the synth seed of each split (test: a seed no earlier run has seen), stage steps
-    "quick": {"train": 40, "val": 6, "test": 8, "seeds": (7, 8, 2026), "steps1": 1000, "steps2": 50, "s2_scenes": 4},
+    "quick": {"train": 60, "val": 6, "test": 8, "seeds": (7, 8, 2026), "steps1": 3000, "steps2": 50, "s2_scenes": 4},
     "full": {"train": 168, "val": 12, "test": 24, "seeds": (7, 8, 2026), "steps1": 12000, "steps2": 500,
              "s2_scenes": 8},
 }
