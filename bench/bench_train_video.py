@@ -78,7 +78,7 @@ def run(mode_name: str, split: str, seeds: list[int] | None = None) -> dict:
     return {"metric": "sliced Wasserstein distance of disoccluded content to the true fills", "higher_is_better": False,
             "mode": mode_name, "split": splits[-1], "splits": list(splits), "rows": rows, "train_scenes": train_seeds,
             **{f"{sp}_scenes": e for sp, e in eval_seeds.items()}, "clips": mode["clips"], "config": vars(cfg), "times": times,
-            "stage_steps": stage_steps, "held_equal": "training compute: network passes per sample x samples",
+            "stage_steps": stage_steps, "held_equal": "network passes per training sample x samples",
             "floor": toy.swd_floor(cfg, mode["clips"])}
 
 
