@@ -36,7 +36,7 @@ def video_table(d: dict) -> str:
     if "stage_steps" in d:
         st = d["stage_steps"]
         head += (f"; LoRA stage: shortcut {st['shortcut']} steps ({d['config']['sc_split']} split), FM-only "
-                 f"{st['fm-only']} (equal compute: {d['held_equal']})")
+                 f"{st['fm-only']} (held equal: {d['held_equal']})")
     n = d.get("processes", 1)
     head += f" (run as {n} processes side by side, one `--seeds` each, merged)." if n > 1 else "."
     out = [head, "", "| model | steps | sampler | SWD | PSNR (dB) | distance to nearest fill |",
