@@ -45,11 +45,12 @@ def sampler_for(model: str, steps: int) -> str:
     return "shortcut" if model == "shortcut" and steps & (steps - 1) == 0 else "flow"
 
 
-def run(mode_name: str, split: str, seeds: list[int] | None = None) -> dict:
-    """split: 'test', 'val' or 'both' (each model trained once, scored on val and on test; the headline is test)."""
+def run(mode_name: str, split: str, seeds: list[int] | None = None, steps: int | None = None) -> dict:
+    """split: 'test', 'val' or 'both' (each model trained once, scored on val and on test; the headline is test);
+    steps: the shortcut model's stage steps instead of the mode's (FM-only still gets equal compute)."""
     from panoworld.train.video import toy
 
-    mode = MODES[mode_name]
+    mode = dict(MODES[mode_name], **({"steps": steps} if steps else {}))
     cfg = toy.ToyConfig(base_steps=mode["base_steps"], steps=mode["steps"], sc_split=mode["sc_split"])
     stage_steps = {"fm-only": toy.equal_compute_steps(cfg.steps, RHO), "shortcut": cfg.steps}
     rows, times = [], {}
@@ -105,11 +106,13 @@ def main(argv: list[str] | None = None) -> int:
                     help="held-out scenes scored (both: the same models on val and test)")
     ap.add_argument("--seeds", type=int, nargs="+", help="these training seeds instead of the mode's (e.g. one per "
                     "process; bench/training_tables.py merges the JSON files of one mode)")
+    ap.add_argument("--steps", type=int, help="the shortcut model's LoRA-stage steps instead of the mode's (FM-only "
+                    "gets the steps of equal compute)")
     ap.add_argument("--json", type=Path, help="write the rows here")
     a = ap.parse_args(argv)
     torch.set_num_threads(1)
     t0, c0 = time.perf_counter(), time.process_time()
-    result = run("quick" if a.quick else "full", a.split, a.seeds)
+    result = run("quick" if a.quick else "full", a.split, a.seeds, a.steps)
     result.update(wall_s=round(time.perf_counter() - t0, 1), cpu_s=round(time.process_time() - c0, 1))
     print(f"\n{result['mode']}: {result['wall_s']:.0f} s wall, {result['cpu_s']:.0f} s CPU; SWD of two draws of the "
           f"true fills (a perfect sampler): {result['floor']:.4f}")
