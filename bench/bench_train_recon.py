@@ -316,7 +316,7 @@ def bench(mode_name: str, work: Path, resume: bool, seed: int, frames: int, view
         rows += split_rows(models, heads, data, split, frames, mode["s2_scenes"], views, refine)
     return {"mode": mode_name, "rows": rows, "train_scenes": seeds["train"], "val_scenes": seeds["val"],
             "test_scenes": seeds["test"], "split_seeds": dict(zip(("train", "val", "test"), mode["seeds"])),
-            "steps": {"stage1": mode["steps1"], "stage2": mode["steps2"]},
+            "steps": {"stage1": mode["steps1"], "stage1_restarts": mode.get("restarts", 0), "stage2": mode["steps2"]},
             "wall_s": round(time.perf_counter() - t0, 1), "cpu_s": round(time.process_time() - c0, 1)}
 
 

@@ -3,7 +3,7 @@
     python bench/training_tables.py [--video video.json] [--recon recon.json] [--doc docs/training.md] [--check]
 
 Each JSON replaces the text between `<!-- BEGIN <name> -->` and `<!-- END <name> -->` where <name> is video-<mode> or
-recon-<mode> (mode: quick or full, from the JSON); --check exits 1 instead of writing when the file would change.
+recon-<mode> (mode: quick, medium or full, from the JSON); --check exits 1 instead of writing when the file would change.
 """
 
 from __future__ import annotations
@@ -101,13 +101,20 @@ def targets(rows: list[dict]) -> dict[str, bool]:
             "shortcut_beats_fm_at_4": beats(("shortcut", 4), ("fm-only", 4))}
 
 
+def stage1_steps(steps: dict) -> str:
+    """'3000', or '3000 + 3000 (warm restart from the previous export)' for --medium's restarts."""
+    k = steps.get("stage1_restarts", 0)
+    return str(steps["stage1"]) + "".join(f" + {steps['stage1']}" for _ in range(k)) + (
+        " (warm restarts: each from the previous export, fresh AdamW and cosine, the next batch seed)" if k else "")
+
+
 def recon_table(d: dict) -> str:
     disjoint = not (set(d["test_scenes"]) & (set(d["train_scenes"]) | set(d["val_scenes"])))
     seeds = ", ".join(f"{k} {v}" for k, v in d["split_seeds"].items())
     head = (f"`python bench/bench_train_recon.py --{d['mode']} --out WORK --json recon.json` — scenes by split "
             f"(synth seeds {seeds}): {len(d['train_scenes'])} train / {len(d['val_scenes'])} val / "
             f"{len(d['test_scenes'])} test, test disjoint from train and val: {'yes' if disjoint else '**no**'}; "
-            f"stage 1 {d['steps']['stage1']} steps, stage 2 {d['steps']['stage2']}; {d['wall_s']:.0f} s wall, "
+            f"stage 1 {stage1_steps(d['steps'])} steps, stage 2 {d['steps']['stage2']}; {d['wall_s']:.0f} s wall, "
             f"{d['cpu_s']:.0f} s CPU.")
     out = [head, "",
            "| split | model | refine_iters | ATE (m) | RPE_t (m) | RPE_r (°) | depth AbsRel | novel PSNR (dB) |",

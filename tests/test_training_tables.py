@@ -51,7 +51,8 @@ def test_marked_sections_are_rewritten_from_json_and_the_rest_is_kept(tmp_path):
     assert "| shortcut | 1 | flow | 0.3100 ± 0.0100 |" in text  # mean ± std over the two seeds
     assert "| test | trained | 0 (paper) | 0.1000 |" in text and "20 (not in the paper)" in text
     assert "test: init / trained ATE = 3.60x (meets the 3x target)" in text
-    assert "disjoint from train and val: yes" in text
+    assert "disjoint from train and val: yes" in text and "stage 1 10 steps," in text
+    assert tables.stage1_steps({"stage1": 30, "stage1_restarts": 1}).startswith("30 + 30 (warm restarts")
     assert tables.main([*args, "--check"]) == 0  # up to date
 
 
@@ -69,6 +70,6 @@ def test_docs_training_tables_are_the_committed_results():
     """docs/training.md's quick tables are what training_tables.py writes from docs/results/training/*.json."""
     res = ROOT / "docs" / "results" / "training"
     args = [f"--video={p}" for p in sorted(res.glob("video_quick_*.json"))]
-    args += [f"--recon={p}" for p in sorted(res.glob("recon_quick*.json"))]
+    args += [f"--recon={p}" for p in sorted(res.glob("recon_*.json"))]
     assert args, f"no results under {res}"
     assert _tables().main([*args, "--check"]) == 0, "stale: run bench/training_tables.py with the JSON under " + str(res)
