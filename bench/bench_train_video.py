@@ -32,7 +32,7 @@ import torch
 from training_tables import targets  # bench/ is on sys.path when this file runs as a script
 
 MODES = {  # steps: the shortcut model's stage steps (FM-only gets equal compute); sc_split: see ToyConfig
-    "quick": {"seeds": (0, 1), "base_steps": 600, "steps": 1500, "sc_split": "batch", "train": 256, "eval_scenes": 64,
+    "quick": {"seeds": (0, 1), "base_steps": 600, "steps": 3000, "sc_split": "batch", "train": 256, "eval_scenes": 64,
               "clips": 256},
     "full": {"seeds": (0, 1, 2), "base_steps": 2000, "steps": 4000, "sc_split": "batch", "train": 1024,
              "eval_scenes": 128, "clips": 512},
