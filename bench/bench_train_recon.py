@@ -1,6 +1,7 @@
 """Trained PanoVGGT vs its random init on a train / val / test split by scene that the bench builds from seeds.
 
     python bench/bench_train_recon.py --quick --out WORK [--json recon.json] [--resume]     # <= 15 min on 2 cores
+    python bench/bench_train_recon.py --medium --out WORK [--json recon.json] [--resume]    # quick + 2 warm restarts
     python bench/bench_train_recon.py --full --out WORK [--json recon.json] [--resume]
     python bench/bench_train_recon.py --data DATASET_DIR --held-out 4 --stage1 RUN1/export/weights \
         [--stage2 RUN2/export/weights] [--colmap-scenes 2]                                 # evaluate given exports
