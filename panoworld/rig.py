@@ -14,6 +14,7 @@ from panoworld.conventions import erp_dirs, erp_pixel_from_dir, erp_pixel_solid_
 from panoworld.depth import PerspectiveView, render_view
 from panoworld.errors import InputError
 from panoworld.rig_inpaint import inpaint_plane
+from panoworld.rig_shadow import apply_gain, linear_luminance, shadow_gain
 
 FACE_FOV_DEG = 96.0
 """Field of view of the downward face (48 degrees from the nadir at its sides)."""
@@ -117,10 +118,14 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     if comp is None:
         return RigDetection(False, "nothing at the nadir differs in colour from the floor ring around it", stats=stats)
     # A soft shadow around the rig is divided out first, so that only the rig itself is measured below.
-    dil = cv2.dilate(comp.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))) > 0
-    gain, sh_deg = _shadow(face, dil, ring_floor, theta, phi, on_floor)
+    chroma = _floor_chroma(face, ring_floor)
+    lum = linear_luminance(face)
+    not_floor = comp & (~on_floor | ~chroma | (lum < 0.3 * np.median(lum[ring_floor])))
+    gain, sh_deg, sh_stats = shadow_gain(face, _dilate(not_floor, view), on_floor & chroma, theta, phi, view.focal)
+    stats.update(sh_stats)
     if sh_deg > 0:
-        face = _apply_gain(face, gain)
+        face = apply_gain(face, gain)
+        source = floor_coloured(cv2.cvtColor(cv2.medianBlur(face, 3), cv2.COLOR_RGB2LAB), ring_floor) & on_floor
         comp = _nadir_component(face, theta, ring_floor, view, sigma)
         if comp is None:
             return RigDetection(False, f"a soft shadow at the nadir ({sh_deg:.0f} deg) but nothing under it that "
@@ -183,6 +188,13 @@ def _cast_shadows(lab: np.ndarray, obj: np.ndarray, theta: np.ndarray, view: Per
     _, labels = cv2.connectedComponents(dark | obj.astype(np.uint8), connectivity=8)
     keep = np.unique(labels[obj])
     return np.isin(labels, keep[keep > 0]) & (dark > 0)
+
+
+def _floor_chroma(face: np.ndarray, ring_floor: np.ndarray) -> np.ndarray:
+    """Face pixels of a chroma (Lab a, b) the floor ring shows, at any lightness: floor, shadowed or not."""
+    lab = cv2.cvtColor(cv2.medianBlur(face, 3), cv2.COLOR_RGB2LAB)
+    lab[..., 0] = 128
+    return floor_coloured(lab, ring_floor)
 
 
 def _dilate(mask: np.ndarray, view: PerspectiveView) -> np.ndarray:
@@ -251,12 +263,6 @@ def _nadir_component(face: np.ndarray, theta: np.ndarray, ring_floor: np.ndarray
     return comp
 
 
-def _apply_gain(face: np.ndarray, gain: np.ndarray) -> np.ndarray:
-    """Multiply a uint8 sRGB face by a light factor (size, size) in linear RGB."""
-    lin = (face.astype(np.float32) / 255.0) ** 2.2 * gain[..., None]
-    return np.clip(np.rint(255.0 * np.clip(lin, 0, 1) ** (1 / 2.2)), 0, 255).astype(np.uint8)
-
-
 def _azimuth_occupancy(phi: np.ndarray, bins: int = 72) -> tuple[float, int]:
     """Share of azimuth bins holding pixels, and the number of circular runs of occupied bins (arms)."""
     if len(phi) == 0:
@@ -278,51 +284,21 @@ def _horizontal_surface(theta, fd, fv, floor_m) -> float | None:
     return med if TABLE_MIN_GAP_M <= med < 0.95 * floor_m else None
 
 
-def _shadow(face: np.ndarray, obj: np.ndarray, ring_floor: np.ndarray, theta: np.ndarray, phi: np.ndarray,
-            floor: np.ndarray) -> tuple[np.ndarray, float]:
-    """A soft shadow centred under the rig: (gain (size, size) >= 1 that divides it out, its extent in degrees).
-
-    The radial profile of linear floor luminance (median per degree from the nadir, rig pixels left out) against
-    the ring's median: a shadow darkens it by >= 8 % near the nadir, in at least 6 of 8 azimuth sectors, and the
-    profile recovers before CAP_DEG. Lighting that is not centred on the nadir (a wall's shadow) fails the
-    sectors test; no shadow -> gain 1 everywhere, extent 0."""
-    lum = ((face.astype(np.float32) / 255.0) ** 2.2).mean(-1)
-    use = floor & ~obj & (theta < CAP_DEG)
-    ref = float(np.median(lum[ring_floor]))
-    nb = int(CAP_DEG)
-    tb = theta.astype(int)
-    prof = np.full(nb, np.nan)
-    for k in range(nb):
-        sel = use & (tb == k)
-        if sel.sum() >= 8:
-            prof[k] = np.median(lum[sel]) / max(ref, 1e-6)
-    ok = np.isfinite(prof)
-    if ok.sum() < nb // 2:
-        return np.ones(theta.shape, np.float32), 0.0
-    prof = np.interp(np.arange(nb), np.nonzero(ok)[0], prof[ok])
-    prof = np.minimum(ndimage.uniform_filter1d(prof, 3, mode="nearest"), 1.0)
-    lit = np.nonzero(prof >= 0.97)[0]
-    extent = float(lit[0]) if len(lit) else float(nb)
-    if prof[: max(int(extent) // 2, 1)].min() > 0.92 or extent >= nb - 1:
-        return np.ones(theta.shape, np.float32), 0.0
-    sector = ((phi + np.pi) / (2 * np.pi) * 8).astype(int) % 8
-    inner = use & (theta < max(extent / 2, 2.0))
-    ratios = np.array([np.median(lum[inner & (sector == k)]) / ref for k in range(8) if (inner & (sector == k)).sum() >= 4])
-    if (ratios < 0.95).sum() < 6 or np.ptp(ratios) > 0.25 * ratios.mean():
-        return np.ones(theta.shape, np.float32), 0.0
-    gain = 1.0 / np.interp(theta, np.arange(nb) + 0.5, prof)
-    return np.where(theta < extent, gain, 1.0).astype(np.float32), extent
+def face_to_erp(values: np.ndarray, view: PerspectiveView, H: int, W: int, outside: float = 0.0) -> np.ndarray:
+    """Face values (size, size[, C]) float -> (H, W[, C]) ERP, bilinear; outside where a pixel does not see the face."""
+    out = np.full((H, W, *values.shape[2:]), outside, np.float32)
+    rows = _cap_rows(H, view)
+    px, py, cos = view.project(erp_dirs(H, W, np.float64)[rows])
+    m = cv2.remap(values.astype(np.float32), np.nan_to_num(px, nan=-10).astype(np.float32),
+                  np.nan_to_num(py, nan=-10).astype(np.float32), cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                  borderValue=outside)
+    out[rows] = np.where((cos > 0).reshape(cos.shape + (1,) * (values.ndim - 2)), m, outside)
+    return out
 
 
 def face_to_erp_mask(face_mask: np.ndarray, view: PerspectiveView, H: int, W: int) -> np.ndarray:
     """A face mask (size, size) bool -> the ERP pixels (H, W) whose centre samples it (> 0.5 bilinear)."""
-    out = np.zeros((H, W), bool)
-    rows = _cap_rows(H, view)
-    px, py, cos = view.project(erp_dirs(H, W, np.float64)[rows])
-    m = cv2.remap(face_mask.astype(np.float32), np.nan_to_num(px, nan=-10).astype(np.float32),
-                  np.nan_to_num(py, nan=-10).astype(np.float32), cv2.INTER_LINEAR, borderValue=0)
-    out[rows] = (m > 0.5) & (cos > 0)
-    return out
+    return face_to_erp(face_mask.astype(np.float32), view, H, W) > 0.5
 
 
 def _cap_rows(H: int, view: PerspectiveView) -> slice:
@@ -357,23 +333,17 @@ def remove_rig(rgb: np.ndarray, det: RigDetection) -> np.ndarray:
     face = render_view(rgb, view).astype(np.float32)
     obj = erp_mask_to_face(det.mask, view)
     obj = cv2.dilate(obj.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    theta, _ = face_polar(view)
     lin = (face / 255.0) ** 2.2
     if det.shadow_gain is not None:
         lin = lin * det.shadow_gain[..., None]
     source = det.source if det.source is not None and det.source.shape == obj.shape else np.ones_like(obj)
     clean = inpaint_plane(np.clip(lin, 0, 1) ** (1 / 2.2) * 255.0, obj, source)
-    rows = _cap_rows(H, view)
-    px, py, cos = view.project(erp_dirs(H, W, np.float64)[rows])
-    mx = np.nan_to_num(px, nan=-10).astype(np.float32)
-    my = np.nan_to_num(py, nan=-10).astype(np.float32)
-    back = cv2.remap(clean, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    back = face_to_erp(clean, view, H, W)
     out = rgb.copy()
-    m = det.mask | (det.shadow if det.shadow is not None else False)
-    sub = out[rows]
-    mm = m[rows] & (cos > 0)
-    sub[mm] = np.clip(np.rint(back[mm]), 0, 255).astype(np.uint8)
-    out[rows] = sub
+    out[det.mask] = np.clip(np.rint(back[det.mask]), 0, 255).astype(np.uint8)
+    if det.shadow is not None and det.shadow_gain is not None:  # relit where it is: the texture is not resampled
+        sh = det.shadow & ~det.mask
+        out[sh] = apply_gain(rgb[sh], face_to_erp(det.shadow_gain, view, H, W, 1.0)[sh])
     return out
 
 
