@@ -88,10 +88,27 @@ def detect_rig(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndarr
     return second if second.found else first
 
 
-def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
-    H, W = rgb.shape[:2]
-    view = nadir_view(H)
-    face = render_view(rgb, view)
+@dataclass
+class NadirFace:
+    """The downward face of a panorama and what detection measures on it."""
+
+    view: PerspectiveView
+    face: np.ndarray
+    """(size, size, 3) uint8."""
+    theta: np.ndarray
+    """Degrees from the nadir per face pixel."""
+    phi: np.ndarray
+    """Azimuth (radians) per face pixel."""
+    on_floor: np.ndarray
+    """Face pixels on the floor plane by depth (all True without depth or floor height)."""
+    ring_floor: np.ndarray
+    """The floor ring RING_DEG's on-floor pixels: what 'floor' looks like."""
+    depth: np.ndarray | None = None
+    valid: np.ndarray | None = None
+
+
+def nadir_face(rgb: np.ndarray, depth: np.ndarray | None, valid: np.ndarray | None, floor_m: float | None) -> NadirFace:
+    view = nadir_view(rgb.shape[0])
     theta, phi = face_polar(view)
     on_floor = np.ones(theta.shape, bool)
     fd = fv = None
@@ -101,12 +118,57 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
             drop = fd * np.cos(np.deg2rad(theta))  # vertical distance below the camera
             on_floor = ~fv | (np.abs(drop - floor_m) < 0.05 * floor_m)
     ring = (theta >= RING_DEG[0]) & (theta < RING_DEG[1])
-    ring_floor = ring & on_floor
-    stats: dict = {"ring_floor_share": float(ring_floor.sum() / max(ring.sum(), 1))}
-    if stats["ring_floor_share"] < 0.3:
-        return RigDetection(False, f"the floor ring {RING_DEG[0]:.0f}-{RING_DEG[1]:.0f} deg from the nadir is mostly "
-                            "not floor: nothing to compare the nadir with", stats=stats)
-    source = floor_coloured(cv2.cvtColor(cv2.medianBlur(face, 3), cv2.COLOR_RGB2LAB), ring_floor) & on_floor
+    return NadirFace(view, render_view(rgb, view), theta, phi, on_floor, ring & on_floor, fd, fv)
+
+
+def no_floor_ring(nf: NadirFace) -> RigDetection | None:
+    """The refusal when the floor ring is mostly not floor (nothing to compare the nadir with), else None."""
+    ring = (nf.theta >= RING_DEG[0]) & (nf.theta < RING_DEG[1])
+    share = float(nf.ring_floor.sum() / max(ring.sum(), 1))
+    if share >= 0.3:
+        return None
+    return RigDetection(False, f"the floor ring {RING_DEG[0]:.0f}-{RING_DEG[1]:.0f} deg from the nadir is mostly "
+                        "not floor: nothing to compare the nadir with", stats={"ring_floor_share": share})
+
+
+def face_shadow(nf: NadirFace, face: np.ndarray, rig_px: np.ndarray) -> tuple[np.ndarray, float, dict]:
+    """rig_shadow.shadow_gain on the face's floor (by depth and chroma), the rig pixels rig_px left out."""
+    chroma = _floor_chroma(face, nf.ring_floor)
+    lum = linear_luminance(face)
+    not_floor = rig_px & (~nf.on_floor | ~chroma | (lum < 0.3 * np.median(lum[nf.ring_floor])))
+    return shadow_gain(face, _dilate(not_floor, nf.view), nf.on_floor & chroma, nf.theta, nf.phi, nf.view.focal)
+
+
+def floor_source(face: np.ndarray, nf: NadirFace) -> np.ndarray:
+    """Face pixels the inpainting may copy floor texture from: floor-coloured and on the floor."""
+    return floor_coloured(cv2.cvtColor(cv2.medianBlur(face, 3), cv2.COLOR_RGB2LAB), nf.ring_floor) & nf.on_floor
+
+
+def seen_object(nf: NadirFace, comp: np.ndarray, floor_m: float | None) -> RigDetection | None:
+    """The refusal for a candidate that is a seen object (reaches CAP_DEG, or a horizontal surface above the
+    floor in depth), else None."""
+    px_deg = np.rad2deg(1.0 / nf.view.focal)
+    if (comp & (nf.theta > CAP_DEG - 2 * px_deg - 0.5)).sum() > 3:
+        return RigDetection(False, f"the region under the camera reaches {CAP_DEG:.0f} deg from the nadir: larger than "
+                            "any rig (a rug, furniture, a floor pattern), kept")
+    table = _horizontal_surface(nf.theta[comp], nf.depth[comp] if nf.depth is not None else None,
+                                nf.valid[comp] if nf.valid is not None else None, floor_m)
+    if table is not None:
+        return RigDetection(False, f"the region under the camera is a horizontal surface {table:.2f} m below the "
+                            f"camera, above the floor: a seen object (a table, a stool), kept",
+                            stats={"surface_below_camera_m": table})
+    return None
+
+
+def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
+    H, W = rgb.shape[:2]
+    nf = nadir_face(rgb, depth, valid, floor_m)
+    refusal = no_floor_ring(nf)
+    if refusal is not None:
+        return refusal
+    view, face, theta, phi, ring_floor = nf.view, nf.face, nf.theta, nf.phi, nf.ring_floor
+    stats: dict = {}
+    source = floor_source(face, nf)
     black = _black_mask(face, theta, view)
     if black is not None:
         extent = float(np.percentile(theta[black], 98))
@@ -118,14 +180,11 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     if comp is None:
         return RigDetection(False, "nothing at the nadir differs in colour from the floor ring around it", stats=stats)
     # A soft shadow around the rig is divided out first, so that only the rig itself is measured below.
-    chroma = _floor_chroma(face, ring_floor)
-    lum = linear_luminance(face)
-    not_floor = comp & (~on_floor | ~chroma | (lum < 0.3 * np.median(lum[ring_floor])))
-    gain, sh_deg, sh_stats = shadow_gain(face, _dilate(not_floor, view), on_floor & chroma, theta, phi, view.focal)
+    gain, sh_deg, sh_stats = face_shadow(nf, face, comp)
     stats.update(sh_stats)
     if sh_deg > 0:
         face = apply_gain(face, gain)
-        source = floor_coloured(cv2.cvtColor(cv2.medianBlur(face, 3), cv2.COLOR_RGB2LAB), ring_floor) & on_floor
+        source = floor_source(face, nf)
         comp = _nadir_component(face, theta, ring_floor, view, sigma)
         if comp is None:
             return RigDetection(False, f"a soft shadow at the nadir ({sh_deg:.0f} deg) but nothing under it that "
@@ -141,14 +200,10 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     occ_in, arms_in = _azimuth_occupancy(p[(t > 0.3 * extent) & (t < 0.7 * extent)])
     occ_out, arms_out = _azimuth_occupancy(p[(t > 0.45 * extent) & (t < 0.85 * extent)])
     stats.update(occupancy_inner=occ_in, occupancy_outer=occ_out, arms=arms_out)
-    if (comp & (theta > CAP_DEG - 2 * px_deg - 0.5)).sum() > 3:
-        return RigDetection(False, f"the region under the camera reaches {CAP_DEG:.0f} deg from the nadir: larger than "
-                            "any rig (a rug, furniture, a floor pattern), kept", stats=stats)
-    table = _horizontal_surface(t, fd[comp] if fd is not None else None, fv[comp] if fv is not None else None, floor_m)
-    if table is not None:
-        stats["surface_below_camera_m"] = table
-        return RigDetection(False, f"the region under the camera is a horizontal surface {table:.2f} m below the "
-                            f"camera, above the floor: a seen object (a table, a stool), kept", stats=stats)
+    refusal = seen_object(nf, comp, floor_m)
+    if refusal is not None:
+        refusal.stats = {**stats, **refusal.stats}
+        return refusal
     yy, xx = np.nonzero(comp)
     r_mean = float(np.mean(np.hypot(xx + 0.5 - 0.5 * view.size, yy + 0.5 - 0.5 * view.size))) + 1e-9
     off = float(np.hypot(xx.mean() + 0.5 - 0.5 * view.size, yy.mean() + 0.5 - 0.5 * view.size)) / r_mean
@@ -372,8 +427,9 @@ def nadir_crop(rgb: np.ndarray, size: int = 192, fov_deg: float = 70.0) -> np.nd
 
 
 def rig_step(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, floor_m: float | None, *,
-             user_mask: Path | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, RigDetection]:
-    """Detect (or take the user's mask) and remove the rig: (rgb, depth, valid, info, detection). Inside the rig
+             user_mask: Path | None = None, detect=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, RigDetection]:
+    """Detect with detect(rgb, depth, valid, floor_m) (default detect_rig), or take the user's mask, and remove the
+    rig: (rgb, depth, valid, info, detection). Inside the rig
     mask depth comes from the floor plane floor_m below the camera (invalid when no floor was found); outside the
     masks nothing changes (no rig: the very same arrays)."""
     H, W = rgb.shape[:2]
@@ -381,7 +437,7 @@ def rig_step(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, floor_m: flo
         m = read_user_mask(user_mask, H, W)
         det = RigDetection(bool(m.any()), f"user mask {Path(user_mask).name}", "user", m, np.zeros_like(m))
     else:
-        det = detect_rig(rgb, depth, valid, floor_m)
+        det = (detect or detect_rig)(rgb, depth, valid, floor_m)
     info = {"found": det.found, "reason": det.reason, "kind": det.kind,
             "stats": {k: (round(v, 4) if isinstance(v, float) else v) for k, v in det.stats.items()}}
     if not det.found:

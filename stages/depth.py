@@ -45,6 +45,13 @@ class Params:
     rig: RigMode = RigMode.AUTO
     """Capture rig at the nadir (tripod, mount, nadir mask): auto = detect it without weights and remove it (floor
     inpainted, depth from the floor plane; a scene rig_mask.png overrides detection); keep = leave it (docs/rig.md)."""
+    rig_detector: str = param("heuristic", choices=backends.names("rig"))
+    """How rig=auto finds the rig: heuristic (colour and shape tests, no weights) or learned (a small U-Net trained
+    by bench/train_rig.py on synthetic rigs; weights in rig_weights); both keep seen objects (panoworld/backends/rig/)."""
+    rig_weights: Path | None = None
+    """Directory with the rig U-Net's config.json + model.safetensors (rig_detector=learned)."""
+    rig_device: str = "cpu"
+    """Torch device of the learned rig detector."""
     complete_poles: bool = True
     """Depth missing at the poles or in bands (LiDAR blind zones) is completed from the fitted floor and ceiling
     planes, within the room's extent (panoworld.depth_complete)."""
@@ -94,8 +101,10 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         from panoworld.rig import nadir_crop, rig_step
 
         before = rgb
+        detector = backends.get("rig", params.rig_detector).impl
         rgb, depth, valid, info["rig"], det = rig_step(rgb, depth, valid, info.get("camera_height_estimated_after"),
-                                                         user_mask=inputs.get("rig_mask"))
+                                                         user_mask=inputs.get("rig_mask"),
+                                                         detect=lambda *a: detector(*a, params))
         notes.append(f"capture rig {'removed' if det.found else 'not found'}: {det.reason}")
         if det.found:
             cv2.imwrite(str(out_dir / "rig_mask.png"), det.mask.astype(np.uint8) * 255)
