@@ -174,3 +174,18 @@ def test_soft_shadow_is_relit_not_left(scene):
         after = np.abs(out[sh].astype(int) - clean[sh]).mean()
         assert before > 5 and after < 0.3 * before, (before, after)
         assert nadir_cap_psnr(out, clean) >= 27.0
+
+
+def test_learned_detector_is_chosen_by_the_stage_option(tmp_path, plain_dir):
+    """depth.rig_detector=learned loads the U-Net from depth.rig_weights (a one-line error without them)."""
+    from panoworld.errors import WeightsError
+    from panoworld.models.rig_unet import RigUNet, RigUNetConfig
+
+    with pytest.raises(WeightsError, match="depth.rig_weights"):
+        run_depth(tmp_path, plain_dir, name="none", rig_detector="learned")
+    net = RigUNet(RigUNetConfig(channels=4, levels=2, size=32)).eval()
+    net.head.bias.data.fill_(-20.0)  # an untrained net told to see no rig: the stage runs it and finds nothing
+    info, out = run_depth(tmp_path, plain_dir, name="learned", rig_detector="learned",
+                          rig_weights=net.save(tmp_path / "w"))
+    assert not info["rig"]["found"] and "rig network" in info["rig"]["reason"]
+    assert np.array_equal(read_rgb(out / "panorama.png"), read_rgb(plain_dir / "panorama.png"))
