@@ -3,7 +3,7 @@
     python bench/bench_rig_learned.py --quick --out /tmp/rig-unet [--json]
     python bench/bench_rig_learned.py --weights /tmp/rig-unet           # evaluate saved weights only
 
-Training seeds 200-223 (--quick) or 200-263 (--full); held-out test seeds 116-131 (never used for training or
+Training seeds 200-215 (--quick, 400 steps) or 200-263 (--full); held-out test seeds 116-131 (never used for training or
 tuning). Per case (tripod, tripod with a soft shadow; no rig, rug, stool as controls): the ERP IoU of each detector's
 mask with the rig's own pixels (ray hits the rig), the 15-degree nadir-cap PSNR after removal against the rig-free
 render, and detections on the controls (must be 0). The weights go to --out (config.json + model.safetensors), to
@@ -60,15 +60,34 @@ def evaluate(seeds: list[int], weights: Path, height: int) -> list[dict]:
     return rows
 
 
+def cached_samples(seeds, height: int, cache: Path) -> list:
+    """rig_samples of every seed, rendered once and kept in cache/seed_N_H.npz."""
+    from panoworld.train.rig import RigSample, rig_samples
+
+    out = []
+    cache.mkdir(parents=True, exist_ok=True)
+    for seed in seeds:
+        f = cache / f"seed_{seed}_{height}.npz"
+        if not f.is_file():
+            ss = rig_samples(seed, height)
+            np.savez_compressed(f, faces=np.stack([s.face for s in ss]), targets=np.stack([s.target for s in ss]),
+                                cases=np.array([s.case for s in ss]))
+        d = np.load(f)
+        out += [RigSample(fa, t, str(c), seed) for fa, t, c in zip(d["faces"], d["targets"], d["cases"])]
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     mode = ap.add_mutually_exclusive_group()
-    mode.add_argument("--quick", action="store_true", help="train on seeds 200-223, 600 steps (default)")
+    mode.add_argument("--quick", action="store_true", help="train on seeds 200-215, 400 steps (default)")
     mode.add_argument("--full", action="store_true", help="train on seeds 200-263, 3000 steps")
     mode.add_argument("--weights", type=Path, help="evaluate these weights, no training")
     ap.add_argument("--out", type=Path, default=Path("/tmp/panoworld_rig_unet"), help="where the trained weights go")
     ap.add_argument("--seeds", default="116-131", help="held-out test seeds (default 116-131)")
     ap.add_argument("--height", type=int, default=256)
+    ap.add_argument("--cache", type=Path, default=Path("/tmp/panoworld_rig_samples"),
+                    help="rendered training faces are kept here (one .npz per seed)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     import torch
@@ -78,13 +97,13 @@ def main(argv: list[str] | None = None) -> int:
     weights = args.weights
     if weights is None:
         from panoworld.models.rig_unet import RigUNetConfig
-        from panoworld.train.rig import rig_samples, train_rig_unet
+        from panoworld.train.rig import train_rig_unet
 
-        train_seeds, steps = (range(200, 264), 3000) if args.full else (range(200, 224), 600)
+        train_seeds, steps = (range(200, 264), 3000) if args.full else (range(200, 216), 400)
         t0 = time.perf_counter()
-        samples = [s for seed in train_seeds for s in rig_samples(seed, args.height)]
+        samples = cached_samples(train_seeds, args.height, args.cache)
         t1 = time.perf_counter()
-        net = train_rig_unet(samples, RigUNetConfig(), steps=steps, log=lambda m: print(m, file=sys.stderr, flush=True))
+        net = train_rig_unet(samples, RigUNetConfig(), steps=steps, batch=6, log=lambda m: print(m, file=sys.stderr, flush=True))
         weights = net.save(args.out)
         info = {"train_seeds": f"{train_seeds.start}-{train_seeds.stop - 1}", "steps": steps,
                 "data_s": t1 - t0, "train_s": time.perf_counter() - t1, "weights": str(weights)}

@@ -157,7 +157,7 @@ register(WeightsEntry(
 ))
 register(WeightsEntry(
     name="rig-unet", model="small U-Net segmenting the capture rig on the downward cube face (the learned rig detector)",
-    licence="this project's", size="about 2 MB (0.48M params, fp32)",
+    licence="this project's", size="about 0.5 MB (0.12M params, fp32)",
     trained="python bench/bench_rig_learned.py --quick --out DIR",
     uses=(Use("depth.rig_weights", also=("depth.rig_detector=learned",)),),
     notes="trained by this project on synthetic tripods (runner.py synth --rig); no public rig segmenter exists",

@@ -19,11 +19,11 @@ FLAG = "--set depth.rig_weights"
 class RigUNetConfig:
     """Shape of the network; stored as config.json beside model.safetensors."""
 
-    channels: int = 16
+    channels: int = 8
     """Channels of the first level (doubled per level down)."""
     levels: int = 3
     """Down-sampling steps (the input side must be divisible by 2**levels)."""
-    size: int = 128
+    size: int = 96
     """Side of the downward face the network sees (faces are resized to it)."""
 
 
