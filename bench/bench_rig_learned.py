@@ -118,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
                          psnr_min=float(min(r["psnr_after"] for r in rs)), ge25=sum(r["psnr_after"] >= 25 for r in rs))
             summary.append(s)
     if args.json:
-        print(json.dumps({"info": info, "summary": summary, "rows": rows}, indent=1))
+        print(json.dumps({"info": info, "summary": summary, "rows": rows}, indent=1, default=lambda v: v.item()))
         return 0
     print(f"\n{info}\nheld-out seeds {args.seeds}, {args.height}x{2 * args.height}\n")
     print("| case | detector | found | IoU with the rig (mean) | PSNR15 after (mean / min) | >= 25 dB |\n|---|---|---|---|---|---|")
