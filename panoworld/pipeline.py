@@ -462,6 +462,9 @@ def stage_state(node: StageNode, scene: Scene, params: Any) -> tuple[bool, str]:
         return False, problem
     try:
         digests = {r.name: input_digest(r.name, node.spec.inputs[r.name], p) for r, p in zip(node.inputs, _input_paths(node, scene).values())}
+        for name, spec in node.spec.inputs.items():  # an optional input the DAG does not wire (the stage sees None)
+            if name not in digests:
+                digests[name] = input_digest(name, spec, None)
     except InputError as e:
         return False, f"input not ready: {e}"
     try:
