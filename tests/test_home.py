@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import shutil
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -73,3 +74,32 @@ def test_home_gaussians_reproduce_every_panorama_at_its_capture_pose(home_run):
     assert min(scores.values()) > 27.0, scores
     # Every source is anchored, but no surface twice: fewer per-pixel Gaussians than the sources' pixels.
     assert 0.4 * 3 * 128 * 256 < info["num_source_gaussians"] < 0.9 * 3 * 128 * 256
+
+
+def test_conditions_take_each_surface_from_its_nearest_panorama(home_dir):
+    """Conditions are rendered from the fused mesh, whose colours come from the panorama that sees each surface
+    nearest: rendered at every capture pose they reproduce that panorama (covered and close in colour), also where
+    other panoramas' surfaces show."""
+    from panoworld.conditions import render_conditions
+    from panoworld.home.mesh import home_mesh
+
+    gt = {n: np.asarray(T) for n, T in json.loads((home_dir / "gt" / "poses.json").read_text()).items()}
+    poses = {n: invert_pose(gt["pano_00"]) @ T for n, T in gt.items()}
+    dirs = {}
+    for n in poses:  # a depth artifact's per-panorama folders
+        d = home_dir.parent / "home_depth" / n
+        d.mkdir(parents=True, exist_ok=True)
+        depth = np.load(home_dir / "depths" / f"{n}.npy")
+        np.save(d / "depth.npy", depth)
+        cv2.imwrite(str(d / "valid.png"), (depth > 0).astype(np.uint8) * 255)
+        shutil.copy(home_dir / "panoramas" / f"{n}.png", d / "panorama.png")
+        dirs[n] = d
+    mesh, face_source, sources = home_mesh(dirs, poses, stride=4)
+    assert [s["name"] for s in sources] == list(poses)
+    h = 64
+    for k, (n, T) in enumerate(poses.items()):
+        frame = render_conditions(mesh, T[None], h, 2 * h)[0]
+        ref = cv2.resize(read_panorama(home_dir / "panoramas" / f"{n}.png"), (2 * h, h), interpolation=cv2.INTER_AREA)
+        ok = frame.mask > 0
+        err = np.abs(frame.rgb.astype(np.float32) - ref.astype(np.float32))[ok].mean()
+        assert ok.mean() > 0.97 and err < 8.0, (n, ok.mean(), err)
