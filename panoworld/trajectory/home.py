@@ -60,10 +60,10 @@ def plan_home(nav: NavMesh, captures: dict[str, np.ndarray], params: TrajectoryP
     names = list(captures)
     xz = np.array([captures[n][[0, 2], 3] for n in names])
     ys = np.array([captures[n][1, 3] for n in names])
-    order, walks = visit_order(nav, xz)
+    plan_nav = planning_mesh(nav, xz[0], params.plan_margin_m)  # walks keep the explore paths' margin to the edge
+    order, walks = visit_order(plan_nav, xz)
     unreached = [names[k] for k in range(len(names)) if k not in order]
     plans = {k: _explore(nav, xz[k], params) for k in order}
-    plan_nav = planning_mesh(nav, xz[0], params.plan_margin_m)
     walks = {ab: smooth_polyline(plan_nav, w, closed=False, iterations=params.smooth_iterations) for ab, w in walks.items()}
     lengths = [_explore_length(plans[k]) for k in order] + [polyline_length(w) for w in walks.values()]
     minimum = [0 if plans[k] is None else len(plans[k].info["paths"]) for k in order] + [1] * len(walks)
