@@ -103,3 +103,14 @@ def test_conditions_take_each_surface_from_its_nearest_panorama(home_dir):
         ok = frame.mask > 0
         err = np.abs(frame.rgb.astype(np.float32) - ref.astype(np.float32))[ok].mean()
         assert ok.mean() > 0.97 and err < 8.0, (n, ok.mean(), err)
+
+
+@pytest.mark.slow
+def test_home_report_marks_every_capture_point(home_run, tmp_path):
+    from panoworld.report.cli import build_scene_report
+
+    scene, _ = home_run
+    page = build_scene_report(scene, tmp_path / "report.html").read_text()
+    for n in ("pano_00", "pano_01", "pano_02"):
+        assert f"capture point {n}" in page
+    assert "3 capture points" in page
