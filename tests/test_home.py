@@ -94,10 +94,10 @@ def test_conditions_take_each_surface_from_its_nearest_panorama(home_dir):
         cv2.imwrite(str(d / "valid.png"), (depth > 0).astype(np.uint8) * 255)
         shutil.copy(home_dir / "panoramas" / f"{n}.png", d / "panorama.png")
         dirs[n] = d
-    mesh, face_source, sources = home_mesh(dirs, poses, stride=4)
+    mesh, _, sources = home_mesh(dirs, poses, stride=4)
     assert [s["name"] for s in sources] == list(poses)
     h = 64
-    for k, (n, T) in enumerate(poses.items()):
+    for n, T in poses.items():
         frame = render_conditions(mesh, T[None], h, 2 * h)[0]
         ref = cv2.resize(read_panorama(home_dir / "panoramas" / f"{n}.png"), (2 * h, h), interpolation=cv2.INTER_AREA)
         ok = frame.mask > 0

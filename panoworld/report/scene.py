@@ -15,9 +15,9 @@ import numpy as np
 from panoworld.artifacts import read_manifest
 from panoworld.conditions import load_conditions
 from panoworld.errors import PanoWorldError
+from panoworld.home.layout import capture_poses
 from panoworld.io import read_json
 from panoworld.io.video import read_video_doc
-from panoworld.home.layout import capture_poses
 from panoworld.navmesh import load_navmesh
 from panoworld.poses import load_poses
 from panoworld.report import encode as enc

@@ -79,7 +79,7 @@ def plan_home(nav: NavMesh, captures: dict[str, np.ndarray], params: TrajectoryP
         cam_y.append([ys[k]])
         plan = None if plans[k] is None else _explore(nav, xz[k], replace(params, frames=int(counts[i]) + 1))
         if plan is not None:
-            shift = lambda j, c=c: c if j == 0 else c + j  # noqa: E731  (explore index -> home index)
+            shift = lambda j, c=c: c if j == 0 else c + j
             positions.append(plan.positions[1:])
             cam_y.append(np.full(len(plan.positions) - 1, ys[k]))
             for p in plan.info["paths"]:

@@ -14,8 +14,8 @@ from panoworld.artifacts import read_manifest
 from panoworld.conventions import quat_wxyz_from_rotmat
 from panoworld.depth import load_depth_artifact
 from panoworld.errors import PanoWorldError
-from panoworld.io.video import read_video_doc
 from panoworld.home.layout import capture_poses
+from panoworld.io.video import read_video_doc
 from panoworld.navmesh import load_navmesh
 from panoworld.poses import load_poses
 from panoworld.trajectory import load_trajectory
