@@ -234,7 +234,7 @@ def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
         panos = [pano]
     for pano in panos:
         try:  # fully decoded here, so a truncated or corrupt panorama is refused before anything is written
-            w, h = check_image(pano, "panorama").oriented  # the depth stage applies the EXIF orientation too
+            w, h = check_image(pano, "panorama", remember=True).oriented  # the depth stage applies EXIF orientation too
         except InputError as e:
             raise PipelineError(str(e)) from None
         if w != 2 * h:
