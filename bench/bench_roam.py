@@ -32,6 +32,8 @@ VALIDATION_SEEDS = [1, 2, 3]
 QUICK_SEEDS = [0, 7]
 BUCKET_KEYS = [b.key for b in BUCKETS] + [FAR_KEY]
 METRICS = ["erp_psnr", "erp_ssim", "erp_coverage", "pinhole_psnr", "pinhole_ssim", "pinhole_coverage"]
+SPLIT = ["erp_psnr_seen", "erp_psnr_unseen", "erp_unseen_fraction", "erp_unseen_error_share", "erp_coverage_unseen"]
+"""The ERP error split by what the capture point sees (roam.split_scores)."""
 REALSEE = {"realsee-real": ("panoImage_real.jpg", "depth_real_raw_units_float32.npy")}
 
 
@@ -69,10 +71,10 @@ def real_scenes(root: Path, real: Path) -> list[tuple[str, Path]]:
     return scenes
 
 
-def run_pipeline(scene: Path, preset: str) -> dict:
+def run_pipeline(scene: Path, preset: str, sets: list[str] = ()) -> dict:
     """Run every stage; wall seconds and peak MB from the stage manifests (so a cached stage counts with the time it
     took when it ran: scenes kept with --out are reused, not rerun)."""
-    report = pl.run(scene, preset=preset, on_result=lambda r: print(f"    [{r.stage}] {r.action} {r.seconds:.1f} s",
+    report = pl.run(scene, preset=preset, sets=list(sets), on_result=lambda r: print(f"    [{r.stage}] {r.action} {r.seconds:.1f} s",
                                                                        file=sys.stderr, flush=True))
     if not report.ok:
         failed = next(r for r in report.results if r.action == "failed")
@@ -103,6 +105,7 @@ def print_scene(name: str, res: dict) -> None:
         f = ["n/a" if v is None else f"{v:.2f}" if "psnr" in m else f"{v:.4f}" for v, m in zip(vals, METRICS)]
         print(f"  {key:<6} {roam[f'{key}_range_m']:>10} {roam[f'{key}_count']:>2} {roam[f'{key}_distance_m']:6.2f}  "
               f"{f[0]:>8} {f[1]:>6} {f[2]:>7}  {f[3]:>8} {f[4]:>6} {f[5]:>7}")
+    print_split({key: {m: _num(roam.get(f"{key}_{m}")) for m in SPLIT} for key in BUCKET_KEYS})
     if _num(roam.get("d0_erp_psnr_vs_input")) is not None:
         print(f"  capture point vs the input panorama: {roam['d0_erp_psnr_vs_input']:.2f} dB")
     reach = traj.get("reach_max_m")
@@ -115,6 +118,17 @@ def print_scene(name: str, res: dict) -> None:
           f"{p['peak_mb'] or 0:.0f} MB; eval {res['eval_s']:.1f} s")
 
 
+def print_split(rows: dict[str, dict]) -> None:
+    """Per bucket: PSNR where the capture point sees the surface / where it does not, the unseen pixels' fraction,
+    their share of the squared error and their coverage."""
+    if not any(v is not None for r in rows.values() for v in r.values()):
+        return
+    print(f"  {'bucket':<6} {'seen dB':>8} {'unseen dB':>9} {'unseen px':>9} {'err share':>9} {'unseen cov':>10}")
+    for key, r in rows.items():
+        f = ["n/a" if r.get(m) is None else f"{r[m]:.2f}" if "psnr" in m else f"{r[m]:.4f}" for m in SPLIT]
+        print(f"  {key:<6} {f[0]:>8} {f[1]:>9} {f[2]:>9} {f[3]:>9} {f[4]:>10}")
+
+
 def print_mean(results: dict[str, dict]) -> dict:
     """Mean over scenes per bucket and metric (scenes lacking a bucket are left out; their count is shown)."""
     print(f"\nmean over {len(results)} scene(s)")
@@ -122,13 +136,14 @@ def print_mean(results: dict[str, dict]) -> dict:
     summary = {}
     for key in BUCKET_KEYS:
         row = {}
-        for m in METRICS:
+        for m in METRICS + SPLIT:
             vals = [v for r in results.values() if (v := _num(r["roam"].get(f"{key}_{m}"))) is not None]
             row[m] = sum(vals) / len(vals) if vals else None
             row["scenes"] = max(row.get("scenes", 0), len(vals))
         summary[key] = row
         f = ["n/a" if row[m] is None else f"{row[m]:.2f}" if "psnr" in m else f"{row[m]:.4f}" for m in METRICS]
         print(f"  {key:<6} {row['scenes']:>6}  {f[0]:>8} {f[1]:>6} {f[2]:>7}  {f[3]:>8} {f[4]:>6} {f[5]:>7}")
+    print_split(summary)
     walls = [r["pipeline"]["wall_s"] for r in results.values()]
     peaks = [r["pipeline"]["peak_mb"] or 0 for r in results.values()]
     fr = [v for r in results.values() if (v := _num(r["trajectory"].get("sector_reach_fraction_min"))) is not None]
@@ -144,6 +159,27 @@ def print_mean(results: dict[str, dict]) -> dict:
     return summary
 
 
+def print_real(results: dict[str, dict]) -> None:
+    """Real captures (no ground truth off the capture point): ERP coverage per bucket and the capture point against
+    the input panorama, with issue 28's targets (Realsee: >= 0.99 coverage and >= 25 dB at the capture point; real
+    captures in general: >= 0.99 coverage ~1 m and ~2 m away)."""
+    print("\nreal captures: ERP coverage per bucket (alpha > 0.5), capture point vs the input panorama")
+    keys = ["d0", "d0.5", "d1", "d2", FAR_KEY]
+    print("| scene | " + " | ".join(f"cov {k}" for k in keys) + " | d0 vs input dB | targets |\n|---|"
+          + "---|" * (len(keys) + 2))
+    for name, res in results.items():
+        roam = res["roam"]
+        cov = {k: _num(roam.get(f"{k}_erp_coverage")) for k in keys}
+        vs = _num(roam.get("d0_erp_psnr_vs_input"))
+        checks = [("d0 cov", cov["d0"], 0.99), ("d1 cov", cov["d1"], 0.99), ("d2 cov", cov["d2"], 0.99)]
+        if "realsee" in name:
+            checks.append(("d0 vs input", vs, 25.0))
+        met = ", ".join(f"{n} {'met' if v is not None and v >= b else 'NOT met' if v is not None else 'n/a'}"
+                        for n, v, b in checks)
+        print(f"| {name} | " + " | ".join("-" if cov[k] is None else f"{cov[k]:.4f}" for k in keys)
+              + f" | {'-' if vs is None else f'{vs:.2f}'} | {met} |")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, nargs="*", help=f"synthetic scene seeds (default: the test set {TEST_SEEDS})")
@@ -155,6 +191,8 @@ def main() -> int:
     ap.add_argument("--out", type=Path, help="keep the scenes here (reused: cached stages are not rerun; their "
                     "manifests' wall times count)")
     ap.add_argument("--json", type=Path, help="also write everything as JSON to this file")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="STAGE.PARAM=VALUE",
+                    help="a param override for every scene (as runner.py run --set; for validation runs)")
     a = ap.parse_args()
     import torch
 
@@ -164,7 +202,7 @@ def main() -> int:
     seeds = seeds[: a.scenes] if a.scenes else seeds
     params = EvalParams(roam_views=a.views)
     load = Path("/proc/loadavg").read_text().split()[0]
-    print(f"preset {preset}; seeds {seeds} ({'TEST set' if set(seeds) <= set(TEST_SEEDS) else 'not the test set'}); "
+    print(f"preset {preset}{' ' + ' '.join(a.sets) if a.sets else ''}; seeds {seeds} ({'TEST set' if seeds and set(seeds) <= set(TEST_SEEDS) else 'not the test set'}); "
           f"load average {load} at start on {os.cpu_count()} cores (shared machines inflate wall times)")
     results: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="bench-roam-") as tmp:
@@ -175,7 +213,7 @@ def main() -> int:
             scenes += real_scenes(root, a.real)
         for name, scene in scenes:
             print(f"\n{name}: {scene}", file=sys.stderr, flush=True)
-            pipe = run_pipeline(scene, preset)
+            pipe = run_pipeline(scene, preset, a.sets)
             t0 = time.perf_counter()
             report, errors = evaluate(scene, params, stages=["trajectory", "roam"])
             if errors:
@@ -188,6 +226,9 @@ def main() -> int:
             print_scene(name, results[name])
     synth = {k: v for k, v in results.items() if k.startswith("synth")}
     summary = print_mean(synth) if synth else {}
+    real = {k: v for k, v in results.items() if not k.startswith("synth")}
+    if real:
+        print_real(real)
     if a.json:
         a.json.write_text(json.dumps(jsonable({"preset": preset, "seeds": seeds, "load_at_start": float(load),
                                                "scenes": results, "mean": summary}), indent=1) + "\n")

@@ -50,6 +50,10 @@ class Params:
     complete_poles: bool = True
     """Depth missing at the poles or in bands (LiDAR blind zones) is completed from the fitted floor and ceiling
     planes, within the room's extent (panoworld.depth_complete)."""
+    complete_dropouts: bool = True
+    """Depth still missing after that (dropouts inside the scan: glass, dark surfaces, object silhouettes) is
+    completed: the rim's plane where it has one, else smooth continuation of the rim where that agrees with the
+    nearest depth, else the nearest depth (a step at a silhouette) (panoworld.depth_complete.complete_dropouts)."""
     provided: ProvidedOptions = options(ProvidedOptions, "provided")
     """provided's options."""
     depth_anything: DepthAnythingOptions = options(DepthAnythingOptions, "depth-anything")
@@ -136,6 +140,15 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
         if info["pole_completion"]["completed_fraction"] > 0:
             notes.append(f"{info['pole_completion']['completed_fraction']:.1%} of the pixels (poles, bands) completed "
                          "from the floor/ceiling planes")
+    if params.complete_dropouts:
+        from panoworld.depth_complete import complete_dropouts
+
+        depth, valid, info["dropout_completion"] = complete_dropouts(depth, valid)
+        if info["dropout_completion"]["completed_fraction"] > 0:
+            d = info["dropout_completion"]
+            notes.append(f"{d['completed_fraction']:.1%} of the pixels ({d['dropouts']} dropouts) completed: "
+                         f"{d['plane_fraction']:.0%} from their rim's plane, {d['smooth_fraction']:.0%} as smooth surface, "
+                         f"{d['step_fraction']:.0%} as a step at a depth edge")
     info["valid_fraction"] = float(valid.mean())
     info["depth_range_m"] = [float(depth[valid].min()), float(depth[valid].max())]
     info["decisions"] = notes

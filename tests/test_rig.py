@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from panoworld.depth_complete import complete_poles
+from panoworld.depth_complete import complete_dropouts, complete_poles
 from panoworld.errors import InputError
 from panoworld.rig import nadir_cap_psnr
 from panoworld.stage import execute_stage, load_stage, params_from_dict
@@ -143,6 +143,31 @@ def test_pole_completion_recovers_floor_and_ceiling(scene):
     rel = np.abs(out[filled] - truth[filled]) / truth[filled]
     assert np.median(rel) < 0.02
     assert np.array_equal(out[valid], depth[valid])
+
+
+def test_dropouts_completed_smooth_inside_surfaces_and_as_steps_at_edges(scene):
+    from scipy import ndimage
+
+    _, depth = scene.render(scene.world_from_canonical, 128, 256)
+    truth = np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
+    lo, hi = ndimage.minimum_filter(truth, 3, mode="wrap"), ndimage.maximum_filter(truth, 3, mode="wrap")
+    edge = ndimage.binary_dilation(hi > 1.3 * lo, iterations=2)  # LiDAR mixed returns along silhouettes
+    window = np.zeros_like(edge)
+    window[52:70, 140:170] = True  # a dropout on a wall (glass, a dark panel)
+    window &= ~ndimage.binary_dilation(edge, iterations=3)
+    assert window.sum() > 100 and edge.sum() > 100
+    valid = ~(edge | window)
+    out, out_valid, info = complete_dropouts(np.where(valid, truth, 0.0).astype(np.float32), valid)
+    assert out_valid.all() and np.array_equal(out[valid], truth[valid])
+    assert info["completed_fraction"] == pytest.approx((~valid).mean())
+    assert np.median(np.abs(out[window] - truth[window]) / truth[window]) < 0.01
+    # At edges a step between the two surfaces (most pixels on the right one), not a ramp of floating geometry.
+    ramp, _, _ = complete_dropouts(np.where(valid, truth, 0.0).astype(np.float32), valid, smooth_tol=np.inf)
+
+    def on_truth(d):
+        return (np.abs(d[edge] - truth[edge]) <= 0.05 * truth[edge]).mean()
+
+    assert on_truth(out) > 0.6 and on_truth(out) > on_truth(ramp) + 0.15
 
 
 def test_report_shows_the_nadir_before_and_after(tmp_path, tripod_dir):

@@ -16,6 +16,7 @@ from panoworld.eval.roam import (
     FAR_KEY,
     sample_roam_poses,
     sector_reachable,
+    source_seen,
     trajectory_reach,
 )
 from panoworld.eval.tables import build_tables
@@ -96,6 +97,35 @@ def test_roam_metrics_per_bucket_on_a_ci_tiny_scene(scene):
     report["unit"] = "scene"
     table = next(t for t in build_tables([report]) if t.title.startswith("Roam"))
     assert table.rows[0][1][0].mean == pytest.approx(roam["d0_erp_psnr"])
+
+
+def test_source_visibility_split_matches_the_source_depth_map(scene):
+    from panoworld.conventions import erp_pixel_from_dir
+
+    gt = GroundTruth(scene / "gt", supersample=1)
+    assert source_seen(gt, np.eye(4), 32, 64).all()  # the capture point sees all it sees
+    nav = load_navmesh(scene / "artifacts" / "navmesh")
+    poses = sample_roam_poses(nav, 3, seed=1).poses
+    pose = poses.get("far", poses.get("d1"))[0]
+    H = 48
+    seen = source_seen(gt, pose, H, 2 * H)
+    # oracle: the view's surface points against the source's own depth map at 4x the resolution (nearest pixel)
+    depth = gt.depth(pose, H, 2 * H).astype(np.float64)
+    pts = points_from_depth(np.where(np.isfinite(depth), depth, 1.0)) @ pose[:3, :3].T + pose[:3, 3]
+    dist = np.linalg.norm(pts, axis=-1)
+    u, v = erp_pixel_from_dir(pts / dist[..., None], 4 * H, 8 * H)
+    src = gt.depth(np.eye(4), 4 * H, 8 * H)[np.clip(v.astype(int), 0, 4 * H - 1), u.astype(int) % (8 * H)]
+    behind = np.isfinite(depth) & (dist > src * 1.05 + 0.05)
+    clear = ~np.isfinite(depth) | (dist < src * 0.99)
+    assert behind.sum() > 20, "the pose should see something the capture point does not"
+    assert (~seen[behind]).mean() > 0.97 and seen[clear].mean() > 0.97
+    # source-only Gaussians (the fixture's): the unseen part holds more than its share of the error
+    roam = evaluate(scene, EvalParams(roam_views=3, roam_height=H, roam_pinhole=0), stages=["roam"])[0]["stages"]["roam"]
+    assert roam["d0_erp_unseen_fraction"] == 0.0 and roam["d0_erp_unseen_error_share"] == 0.0
+    far = [k for k in KEYS if roam.get(f"{k}_erp_unseen_fraction", 0) > 0.01]
+    assert far and all(0.0 <= roam[f"{k}_erp_unseen_error_share"] <= 1.0 for k in far)
+    assert all(roam[f"{k}_erp_unseen_error_share"] > roam[f"{k}_erp_unseen_fraction"] for k in far), roam
+    assert all(roam[f"{k}_erp_psnr_seen"] > roam[f"{k}_erp_psnr_unseen"] for k in far)
 
 
 def test_scene_without_ground_truth_gets_coverage_only(scene, tmp_path):

@@ -28,6 +28,11 @@ FAR_FRACTION = 0.85
 """The 'farthest reachable' bucket: NavMesh points at least this fraction of the farthest one's distance away."""
 CANDIDATES = 20000
 """NavMesh points drawn (uniformly over its area) to pick the roam poses from."""
+SEEN_TOL = (0.01, 0.01)
+"""source_seen's tolerance (relative, metres): a surface point counts as seen by the capture point when the capture
+point's ray towards it hits nothing nearer than its distance * (1 - relative) - metres."""
+MIN_PART = 1e-3
+"""A view's seen / unseen part is scored only when it holds at least this fraction of the view's pixels."""
 
 
 @dataclass
@@ -71,6 +76,42 @@ def sample_roam_poses(nav, views: int, seed: int = 0, camera_y: float = 0.0) -> 
     return out
 
 
+def source_seen(gt, pose: np.ndarray, height: int, width: int, tol: tuple[float, float] = SEEN_TOL) -> np.ndarray:
+    """(H, W) bool of an ERP view at canonical `pose`: the pixels whose ground-truth surface (one exact ray per pixel
+    centre) the capture point (the identity pose) sees, i.e. what the source panorama observed; False where the
+    surface is hidden from it (disoccluded: only other frames, or nothing, can have it). Pixels without a surface
+    count as seen."""
+    from panoworld.conventions import erp_dirs
+
+    pose = np.asarray(pose, np.float64)
+    depth = gt.depth(pose, height, width).astype(np.float64).reshape(-1)
+    hit = np.isfinite(depth)
+    dirs = erp_dirs(height, width, np.float64).reshape(-1, 3)[hit] @ pose[:3, :3].T
+    pts = pose[:3, 3] + dirs * depth[hit, None]
+    dist = np.linalg.norm(pts, axis=1)
+    first = gt.cast(np.zeros((1, 3)), pts / np.maximum(dist, 1e-12)[:, None])
+    seen = np.ones(height * width, bool)
+    seen[hit] = first >= dist * (1.0 - tol[0]) - tol[1]
+    return seen.reshape(height, width)
+
+
+def split_scores(img: np.ndarray, ref: np.ndarray, seen: np.ndarray, alpha: np.ndarray) -> dict[str, float]:
+    """One view's error split by source visibility (seen (H, W) bool): PSNR of the seen and the unseen part (only
+    parts of at least MIN_PART of the pixels), the unseen fraction, the unseen part's share of the squared error, and
+    the coverage (alpha > 0.5) of each part."""
+    from panoworld.metrics import psnr
+
+    err2 = ((img.astype(np.float64) - ref.astype(np.float64)) ** 2).sum(-1)
+    frac = float(1.0 - seen.mean())
+    out = {"erp_unseen_fraction": frac,
+           "erp_unseen_error_share": float(err2[~seen].sum() / max(err2.sum(), 1e-12))}
+    for name, part in (("seen", seen), ("unseen", ~seen)):
+        if part.mean() >= MIN_PART:
+            out[f"erp_psnr_{name}"] = psnr(img, ref, part)
+            out[f"erp_coverage_{name}"] = float((alpha[part] > 0.5).mean())
+    return out
+
+
 def pinhole_intrinsics(size: int, fov_deg: float) -> tuple[float, float, float, float]:
     """(fx, fy, cx, cy) of a square pinhole view `size` pixels wide with a horizontal field of view fov_deg."""
     f = 0.5 * size / math.tan(math.radians(fov_deg) / 2)
@@ -96,7 +137,8 @@ def evaluate_roam(gaussians, nav, gt, settings: RoamSettings, lpips: Lpips, *, p
                   on_view: Callable[[str, int, dict], None] | None = None, bar=lambda it, desc: it) -> dict[str, Any]:
     """Roam metrics {bucket}_{metric} of a Gaussian scene; gt: the scene's reference (GroundTruth renders; a scene
     without a mesh raises NoReference and gets coverage only); panorama (H, W, 3) uint8: the input, scored against
-    the identity view of the d0 bucket. on_view(bucket, k, images) receives the renders (report pictures)."""
+    the identity view of the d0 bucket. on_view(bucket, k, images) receives the renders (report pictures). With a
+    mesh, each ERP view's error is also split into what the capture point sees and what it does not (split_scores)."""
     import cv2
 
     from panoworld.metrics import psnr, ssim, ws_psnr
@@ -138,6 +180,8 @@ def evaluate_roam(gaussians, nav, gt, settings: RoamSettings, lpips: Lpips, *, p
                 acc.setdefault("erp_psnr", []).append(psnr(img, ref))
                 acc.setdefault("erp_ssim", []).append(ssim(img, ref))
                 acc.setdefault("erp_ws_psnr", []).append(ws_psnr(img, ref))
+                for name, v in split_scores(img, ref, source_seen(gt, pose, H, 2 * H), r.alpha.numpy()).items():
+                    acc.setdefault(name, []).append(v)
                 if lpips.enabled:
                     acc.setdefault("erp_lpips", []).append(lpips.distance(img, ref))
             if pin is not None:

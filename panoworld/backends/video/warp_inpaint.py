@@ -16,6 +16,10 @@ from panoworld.params import param
 class WarpOptions:
     max_band_deg: float = param(45.0, gt=0, le=180)
     """Widest background band (degrees) synthesized behind a foreground edge."""
+    reuse: bool = False
+    """Holes the background layer does not fill are filled from the farther side (depth-aware 2D fill, with depth)
+    and committed as 3D points that later frames reuse (panoworld.inpaint.CommittedPoints); else a per-frame 2D fill
+    without depth."""
 
 
 def fill(job) -> tuple:
@@ -42,7 +46,7 @@ def fill(job) -> tuple:
         raise InputError(f"{mesh_dir}/mesh.ply: {e}; rerun the mesh stage") from None
     info = dict(layer_faces=int(layer.layer_faces), layer_pixels=int(layer.synthesized.sum()),
                 layer_s=round(time.perf_counter() - t0, 3))
-    filler = inpaint.WarpInpainter(layer, inpaint_radius=job.inpaint_radius)
+    filler = inpaint.WarpInpainter(layer, inpaint_radius=job.inpaint_radius, reuse=job.options.reuse)
     cond = job.cond
 
     def frames():
