@@ -33,7 +33,7 @@ def viewer(pipeline_scene):  # noqa: F811
 @pytest.mark.slow
 def test_viewer_loads_every_layer_and_binds_localhost(viewer, pipeline_scene):  # noqa: F811
     assert viewer.server.get_host() == "127.0.0.1"
-    assert set(viewer.loaded) == {"mesh", "navmesh", "trajectory", "points", "splats"}
+    assert set(viewer.loaded) == {"mesh", "navmesh", "trajectory", "points", "splats", "captures"}
     assert not any(v.startswith(("unreadable", "missing")) for k, v in viewer.loaded.items() if k != "points"), viewer.loaded
     info = json.loads((pipeline_scene / "artifacts" / "gaussians" / "manifest.json").read_text())["info"]
     assert viewer.loaded["splats"] == f"{info['num_gaussians']} Gaussians"
