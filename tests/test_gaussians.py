@@ -363,3 +363,26 @@ def test_pole_thinning_keeps_about_square_pixels():
     width = 512 / keep.sum(1) * np.cos(lat)  # a kept pixel's width on the sphere, in row heights
     assert np.all((width[8:-8] > 0.5) & (width[8:-8] <= 1.0 + 1e-9))
     assert 0.75 < keep.mean() < 0.8
+
+
+def test_resize_depth_keeps_smooth_surfaces_evenly_sampled_and_edges_sharp(room):
+    from panoworld.gaussians import DEPTH_EDGE_REL, resize_depth
+
+    pose = pose_at(0.2, 0.1, -0.3)
+    _, d720 = room(pose, 180, 360)  # stored frames 180 rows, fused at 128 (the 720 -> 512 ratio)
+    d = d720.copy()
+    d[60:70, 100:110] = np.nan  # a hole in the depth
+    _, exact = room(pose, 128, 256)
+    out = resize_depth(d, 128, 256)
+    nearest = cv2.resize(d, (256, 128), interpolation=cv2.INTER_NEAREST)
+    ok = np.isfinite(out)
+    # no depth made up: NaN where the nearest source pixel has none, never between a surface and a hole
+    assert np.array_equal(ok, np.isfinite(nearest))
+    # every value is a surface's depth (area mean on smooth surfaces, a source value at edges), none in between
+    rel = np.abs(out[ok] / exact[ok] - 1.0)
+    assert np.quantile(rel, 0.95) < 0.005
+    off = rel > 0.02  # at depth edges: the nearest source pixel's depth, or a mean across a step under edge_rel
+    assert off.mean() < 0.01 and np.all((out[ok][off] == nearest[ok][off]) | (rel[off] <= DEPTH_EDGE_REL))
+    # nearest sampling puts pixels of a smooth surface off their ray's depth (every third row/column skipped)
+    rel_n = np.abs(nearest[ok] / exact[ok] - 1.0)
+    assert np.quantile(rel_n, 0.9) > 5 * np.quantile(rel, 0.9)
