@@ -87,12 +87,13 @@ def merge_gaussians(parts: list[Gaussians]) -> Gaussians:
 
 
 def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, source_height: int = 0, tol: float = 0.03,
-                           source_scale: float | None = None, thin_poles: bool = True,
+                           source_scale: float | None = None, unseen_voxel_size: float = 0.0, thin_poles: bool = True,
                            progress: bool = False) -> FusionResult:
     """Per-pixel Gaussians of the source view (video frame 0, at source_height rows; 0 = as the other frames) plus
-    voxel fusion of what the other frames see that the source does not (SourceVisibility with tolerance tol): the
-    capture point keeps the input's full detail, the rest of the room is fused as before. source_scale: the per-pixel
-    Gaussians' scale_factor (None = params.scale_factor). Without frame 0 among the frames it is plain voxel fusion."""
+    voxel fusion of what the other frames see that the source does not (SourceVisibility with tolerance tol) in voxels
+    of unseen_voxel_size (0 = params.voxel_size): the capture point keeps the input's full detail, the rest of the
+    room is fused as before. source_scale: the per-pixel Gaussians' scale_factor (None = params.scale_factor). Without
+    frame 0 among the frames it is plain voxel fusion."""
     if not frames.indices or frames.indices[0] != 0:
         return voxel_fusion(frames, params, progress=progress)
     src = replace(frames, height=min(source_height or frames.height, frames.stored_height))
@@ -103,7 +104,9 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
                    world_from_cam=frames.world_from_cam[1:], indices=frames.indices[1:])
     if not len(rest):
         return FusionResult(pix, len(pix), 0, 0, bbox_extent(pix.means), params.voxel_size)
-    fused = voxel_fusion(rest, params, progress=progress, select=SourceVisibility(depth, pose, tol).keep_unexplained)
+    vox_params = replace(params, voxel_size=unseen_voxel_size) if unseen_voxel_size > 0 else params
+    fused = voxel_fusion(rest, vox_params, progress=progress,
+                         select=SourceVisibility(depth, pose, tol).keep_unexplained)
     g = merge_gaussians([pix, fused.gaussians])
     return FusionResult(g, fused.num_observations + len(pix), fused.num_voxels, fused.num_pruned, bbox_extent(g.means),
-                        params.voxel_size, num_source=len(pix))
+                        vox_params.voxel_size, num_source=len(pix))

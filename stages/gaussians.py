@@ -55,6 +55,10 @@ class Params(FusionParams):
     source_scale: float = param(1.9, gt=0)
     """Footprint scale of the source's per-pixel Gaussians (scale_factor of the voxel Gaussians otherwise): large
     enough that neighbours leave no see-through cracks between them, small enough to keep the input's detail."""
+    unseen_voxel_size: float = param(0.04, ge=0)
+    """With source_pixels: voxel edge (metres) of what the other frames see that the source does not (0 =
+    voxel_size). That is the generated (disoccluded) content, softer than the input: 4 cm voxels hold it with fewer,
+    larger Gaussians and fewer see-through gaps than 2 cm (docs/evaluation.md, "Away from the capture point")."""
     source_tol: float = param(0.03, gt=0)
     """Observations of the other frames within this relative depth of the source's surface (or in front of it) count
     as seen by the source and are not fused."""
@@ -80,7 +84,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
             result = model.decode(frames.load())
         elif params.source_pixels:
             result = source_anchored_fusion(frames, params, source_height=params.source_height, tol=params.source_tol,
-                                            source_scale=params.source_scale, progress=True)
+                                            source_scale=params.source_scale,
+                                            unseen_voxel_size=params.unseen_voxel_size, progress=True)
         else:
             result = voxel_fusion(frames, params, progress=True)
     except StageInputError:

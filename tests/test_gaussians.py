@@ -270,6 +270,13 @@ def test_stage_writes_a_valid_artifact(tmp_path, room):
     ratio = np.median(g1.scales[:n].max(1)) / np.median(g0.scales[:n].max(1))
     assert ratio == pytest.approx(2.0, rel=0.05)
     assert len(g1) == len(g0) and np.allclose(g1.scales[n:], g0.scales[n:])  # the voxel Gaussians are unchanged
+    # unseen_voxel_size sizes the voxels of what the source does not see, and only those
+    coarse = execute_stage(spec, {"video": video, "poses": poses}, Params(voxel_size=0.05, eval_views=0,
+                           unseen_voxel_size=0.16), tmp_path / "coarse", input_digests={"video": "0" * 64, "poses": "1" * 64})
+    g2 = read_gaussians_ply(tmp_path / "coarse" / "gaussians.ply")
+    assert coarse["info"]["num_source_gaussians"] == n and np.allclose(g2.means[:n], g0.means[:n])
+    assert coarse["info"]["voxel_size"] == 0.16 and 0 < len(g2) - n < len(g0) - n
+    assert np.median(g2.scales[n:].max(1)) > 1.5 * np.median(g0.scales[n:].max(1))
 
 
 def test_stage_input_errors(tmp_path, room):
