@@ -485,7 +485,7 @@ def resize_depth(depth: np.ndarray, height: int, width: int, edge_rel: float = D
     full = cv2.erode(valid.astype(np.uint8), kernel)
     hi, lo, full = (cv2.resize(a, (width, height), interpolation=cv2.INTER_NEAREST) for a in (hi, lo, full))
     area = cv2.resize(np.where(valid, d, 0).astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore", over="ignore"):
         smooth = (full > 0) & (hi <= lo * (1.0 + edge_rel))
     return np.where(smooth, area, nearest).astype(np.float32)
 
