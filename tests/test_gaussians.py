@@ -358,6 +358,13 @@ def test_source_visibility_keeps_only_what_the_source_cannot_see():
     assert vis.explained(pts).tolist() == [True, True, True, False, False]
     moved = SourceVisibility(depth, pose_at(0, 0, 1.0), 0.03)  # the source's pose is honoured
     assert moved.explained(pts + [0, 0, 1.0]).tolist() == [True, True, True, False, False]
+    # a splat behind the surface pokes through it when it reaches it (3 x its largest scale)
+    from panoworld.gaussians import Gaussians
+
+    means = np.stack([d * 2.05, d * 2.05, d * 2.2, d_none * 2.05]).astype(np.float32)
+    scales = np.array([[0.03, 0.001, 0.001], [0.01, 0.01, 0.001], [0.1, 0.1, 0.1], [0.1, 0.1, 0.1]], np.float32)
+    g = Gaussians(means, scales, np.tile(np.float32([1, 0, 0, 0]), (4, 1)), np.ones(4, np.float32), np.zeros((4, 3), np.float32))
+    assert vis.poking_through(g).tolist() == [True, False, True, False]
 
 
 def test_pole_thinning_keeps_about_square_pixels():
