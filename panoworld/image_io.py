@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import json
+import os
 import warnings
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -37,14 +39,67 @@ def _fix(path: Path) -> str:
     return f"re-export {path.name} as a complete PNG/JPEG (re-download or re-save it)"
 
 
-def check_image(path: Path | str, what: str = "image") -> ImageInfo:
-    """Check a user image without trusting it: exists, a known format, at most MAX_PIXELS, and fully decodable with no
-    decoder warning (truncated or corrupt data is refused). ImageInputError (one line: the file and the fix) otherwise."""
-    from PIL import Image
+_CHECKED_FILE = "checked_images.json"
+_CHECKED_MAX = 256
 
+
+def _checked_path() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "panoworld" / _CHECKED_FILE
+
+
+def _checked_key(path: Path) -> tuple[str, list[int]]:
+    st = path.stat()
+    return os.path.realpath(path), [st.st_size, st.st_mtime_ns, st.st_ino, st.st_dev]
+
+
+def _load_checked() -> dict:
+    try:
+        doc = json.loads(_checked_path().read_text())
+        return doc if isinstance(doc, dict) else {}
+    except (OSError, ValueError):
+        return {}
+
+
+def _remember_checked(path: Path, info: ImageInfo) -> None:
+    key, stat = _checked_key(path)
+    doc = _load_checked()
+    doc.pop(key, None)
+    doc[key] = [stat, list(astuple(info))]
+    doc = dict(list(doc.items())[-_CHECKED_MAX:])
+    out = _checked_path()
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_name(f"{out.name}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(doc))
+        os.replace(tmp, out)
+    except OSError:
+        pass  # a read-only home only costs a full decode next time
+
+
+def check_image(path: Path | str, what: str = "image", *, remember: bool = False) -> ImageInfo:
+    """Check a user image without trusting it: exists, a known format, at most MAX_PIXELS, and fully decodable with no
+    decoder warning (truncated or corrupt data is refused). ImageInputError (one line: the file and the fix) otherwise.
+
+    remember: an image that passed before with the same path, size, mtime, inode and device is not decoded again (a
+    record of passed checks in the user cache, like DVC's state); readers that decode the pixels check in full anyway.
+    """
     path = Path(path)
     if not path.is_file():
         raise ImageInputError(f"{path}: {what} not found (or not a regular file)")
+    if remember:
+        key, stat = _checked_key(path)
+        hit = _load_checked().get(key)
+        if isinstance(hit, list) and len(hit) == 2 and hit[0] == stat:
+            try:
+                return ImageInfo(*hit[1])
+            except TypeError:
+                pass
+        info = check_image(path, what)
+        _remember_checked(path, info)
+        return info
+    from PIL import Image
+
     old = Image.MAX_IMAGE_PIXELS
     try:
         Image.MAX_IMAGE_PIXELS = None  # we apply our own limit below, with the image's size in the message

@@ -227,7 +227,7 @@ def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
                                 "(docs/multi.md), or put one panorama in panorama.png")
         raise PipelineError(f"{root}: no panorama; expected one of {', '.join(names)}")
     try:  # fully decoded here, so a truncated or corrupt panorama is refused before anything is written
-        w, h = check_image(pano, "panorama").oriented  # the depth stage applies the EXIF orientation too
+        w, h = check_image(pano, "panorama", remember=True).oriented  # the depth stage applies EXIF orientation too
     except InputError as e:
         raise PipelineError(str(e)) from None
     if w != 2 * h:

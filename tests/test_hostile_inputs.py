@@ -73,6 +73,26 @@ def test_intact_images_pass_and_report_size(tmp_path):
         assert read_panorama(tmp_path / name).shape == (64, 128, 3)
 
 
+def test_a_remembered_check_skips_the_decode_until_the_file_changes(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    path = tmp_path / "p.jpg"
+    cv2.imwrite(str(path), photo())
+    first = check_image(path, "panorama", remember=True)
+    import PIL.Image
+
+    def no_decode(*a, **k):
+        raise AssertionError("decoded again")
+    monkeypatch.setattr(PIL.Image, "open", no_decode)
+    assert check_image(path, "panorama", remember=True) == first  # same stat: no decode
+    monkeypatch.undo()
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    make_bad_image(path, "garbage")  # rewritten in place: a new mtime, so checked in full and refused
+    with pytest.raises(ImageInputError, match="corrupt or truncated"):
+        check_image(path, "panorama", remember=True)
+    with pytest.raises(ImageInputError):  # a refused check is never remembered
+        check_image(path, "panorama", remember=True)
+
+
 def test_pixel_bomb_is_named_with_the_limit_before_decoding(tmp_path):
     path = tmp_path / "panorama.png"
     png_header_only(path, 20000, 10000)

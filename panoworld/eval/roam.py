@@ -224,21 +224,19 @@ def save_view(out_dir, bucket: str, k: int, images: dict[str, np.ndarray]) -> No
         cv2.imwrite(str(out_dir / f"{bucket}_{kind}.png"), np.ascontiguousarray(img[..., ::-1]))
 
 
-def sector_reachable(nav, n_sectors: int = 8, step_m: float = 0.02) -> np.ndarray:
+def sector_reachable(nav, n_sectors: int = 8, start_within_m: float = 0.5) -> np.ndarray:
     """(n_sectors,) distance (m) walkable from the capture point (x, z = 0) straight along each sector's centre
-    direction (sector k at lon = k 2 pi / n, lon 0 = +z): marching in step_m steps until leaving the NavMesh. A capture
-    point off the NavMesh (the rig's blind spot) starts at the first inside point within 0.5 m."""
-    far = float(np.linalg.norm(nav.vertices, axis=1).max()) + step_m
-    ts = np.arange(0.0, far, step_m)
+    direction (sector k at lon = k 2 pi / n, lon 0 = +z) to the NavMesh boundary. A capture point off the NavMesh (the
+    rig's blind spot) starts at the first inside point within start_within_m (searched in 1 cm steps)."""
+    lon = 2 * math.pi * np.arange(n_sectors) / n_sectors
+    dirs = np.stack([np.sin(lon), np.cos(lon)], 1)
+    ts = np.arange(0.0, start_within_m + 1e-9, 0.01)
     out = np.zeros(n_sectors)
     for k in range(n_sectors):
-        lon = 2 * math.pi * k / n_sectors
-        inside = nav.contains(ts[:, None] * np.array([math.sin(lon), math.cos(lon)]))
-        first = np.flatnonzero(inside[ts <= 0.5])
-        if not len(first):
-            continue
-        out_ = np.flatnonzero(~inside[first[0]:])
-        out[k] = ts[first[0] + out_[0]] if len(out_) else ts[-1]
+        first = np.flatnonzero(nav.contains(ts[:, None] * dirs[k]))
+        if len(first):
+            t0 = ts[first[0]]
+            out[k] = t0 + float(nav.ray_reach(t0 * dirs[k], dirs[k][None])[0])
     return out
 
 
