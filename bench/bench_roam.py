@@ -71,10 +71,10 @@ def real_scenes(root: Path, real: Path) -> list[tuple[str, Path]]:
     return scenes
 
 
-def run_pipeline(scene: Path, preset: str) -> dict:
+def run_pipeline(scene: Path, preset: str, sets: list[str] = ()) -> dict:
     """Run every stage; wall seconds and peak MB from the stage manifests (so a cached stage counts with the time it
     took when it ran: scenes kept with --out are reused, not rerun)."""
-    report = pl.run(scene, preset=preset, on_result=lambda r: print(f"    [{r.stage}] {r.action} {r.seconds:.1f} s",
+    report = pl.run(scene, preset=preset, sets=list(sets), on_result=lambda r: print(f"    [{r.stage}] {r.action} {r.seconds:.1f} s",
                                                                        file=sys.stderr, flush=True))
     if not report.ok:
         failed = next(r for r in report.results if r.action == "failed")
@@ -159,6 +159,27 @@ def print_mean(results: dict[str, dict]) -> dict:
     return summary
 
 
+def print_real(results: dict[str, dict]) -> None:
+    """Real captures (no ground truth off the capture point): ERP coverage per bucket and the capture point against
+    the input panorama, with issue 28's targets (Realsee: >= 0.99 coverage and >= 25 dB at the capture point; real
+    captures in general: >= 0.99 coverage ~1 m and ~2 m away)."""
+    print("\nreal captures: ERP coverage per bucket (alpha > 0.5), capture point vs the input panorama")
+    keys = ["d0", "d0.5", "d1", "d2", FAR_KEY]
+    print("| scene | " + " | ".join(f"cov {k}" for k in keys) + " | d0 vs input dB | targets |\n|---|"
+          + "---|" * (len(keys) + 2))
+    for name, res in results.items():
+        roam = res["roam"]
+        cov = {k: _num(roam.get(f"{k}_erp_coverage")) for k in keys}
+        vs = _num(roam.get("d0_erp_psnr_vs_input"))
+        checks = [("d0 cov", cov["d0"], 0.99), ("d1 cov", cov["d1"], 0.99), ("d2 cov", cov["d2"], 0.99)]
+        if "realsee" in name:
+            checks.append(("d0 vs input", vs, 25.0))
+        met = ", ".join(f"{n} {'met' if v is not None and v >= b else 'NOT met' if v is not None else 'n/a'}"
+                        for n, v, b in checks)
+        print(f"| {name} | " + " | ".join("-" if cov[k] is None else f"{cov[k]:.4f}" for k in keys)
+              + f" | {'-' if vs is None else f'{vs:.2f}'} | {met} |")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, nargs="*", help=f"synthetic scene seeds (default: the test set {TEST_SEEDS})")
@@ -170,6 +191,8 @@ def main() -> int:
     ap.add_argument("--out", type=Path, help="keep the scenes here (reused: cached stages are not rerun; their "
                     "manifests' wall times count)")
     ap.add_argument("--json", type=Path, help="also write everything as JSON to this file")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="STAGE.PARAM=VALUE",
+                    help="a param override for every scene (as runner.py run --set; for validation runs)")
     a = ap.parse_args()
     import torch
 
@@ -179,7 +202,7 @@ def main() -> int:
     seeds = seeds[: a.scenes] if a.scenes else seeds
     params = EvalParams(roam_views=a.views)
     load = Path("/proc/loadavg").read_text().split()[0]
-    print(f"preset {preset}; seeds {seeds} ({'TEST set' if set(seeds) <= set(TEST_SEEDS) else 'not the test set'}); "
+    print(f"preset {preset}{' ' + ' '.join(a.sets) if a.sets else ''}; seeds {seeds} ({'TEST set' if seeds and set(seeds) <= set(TEST_SEEDS) else 'not the test set'}); "
           f"load average {load} at start on {os.cpu_count()} cores (shared machines inflate wall times)")
     results: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="bench-roam-") as tmp:
@@ -190,7 +213,7 @@ def main() -> int:
             scenes += real_scenes(root, a.real)
         for name, scene in scenes:
             print(f"\n{name}: {scene}", file=sys.stderr, flush=True)
-            pipe = run_pipeline(scene, preset)
+            pipe = run_pipeline(scene, preset, a.sets)
             t0 = time.perf_counter()
             report, errors = evaluate(scene, params, stages=["trajectory", "roam"])
             if errors:
@@ -203,6 +226,9 @@ def main() -> int:
             print_scene(name, results[name])
     synth = {k: v for k, v in results.items() if k.startswith("synth")}
     summary = print_mean(synth) if synth else {}
+    real = {k: v for k, v in results.items() if not k.startswith("synth")}
+    if real:
+        print_real(real)
     if a.json:
         a.json.write_text(json.dumps(jsonable({"preset": preset, "seeds": seeds, "load_at_start": float(load),
                                                "scenes": results, "mean": summary}), indent=1) + "\n")

@@ -189,7 +189,7 @@ def table(rows: list[dict], keys: list[str]) -> str:
 
 MODES = {
     # scenes per split, the synth seed of each split (test: a seed no earlier run has seen), stage steps
-    "quick": {"train": 40, "val": 6, "test": 8, "seeds": (7, 8, 2026), "steps1": 1000, "steps2": 50, "s2_scenes": 4},
+    "quick": {"train": 60, "val": 6, "test": 8, "seeds": (7, 8, 2026), "steps1": 3000, "steps2": 50, "s2_scenes": 4},
     "full": {"train": 168, "val": 12, "test": 24, "seeds": (7, 8, 2026), "steps1": 12000, "steps2": 500,
              "s2_scenes": 8},
 }
@@ -273,15 +273,17 @@ def novel_psnr(model: PanoVGGT, data: SceneFrames, views: int) -> float:
 
 
 def split_rows(models: dict[str, PanoVGGT], heads: dict[str, PanoVGGT | None], data: SceneFrames, split: str,
-               frames: int, s2_scenes: int, views: int) -> list[dict]:
-    """One row per (model, refine_iters) on one split: metrics averaged over every track."""
-    variants = {f"{m}|{r}": with_refinement(model, r) for m, model in models.items() for r in (0, REFINE)}
+               frames: int, s2_scenes: int, views: int, refine: int = REFINE) -> list[dict]:
+    """One row per (model, refine_iters) on one split (refine_iters 0 and `refine`, unless that is 0): metrics
+    averaged over every track."""
+    iters = (0, refine) if refine else (0,)
+    variants = {f"{m}|{r}": with_refinement(model, r) for m, model in models.items() for r in iters}
     per_track = stage1_rows(variants, data, frames, colmap_scenes=0, colmap_height=0)
     sub = SceneFrames([sc.root for sc in data.scenes[:s2_scenes]], data.height)
     rows = []
     for m in models:
         nv = novel_psnr(heads[m], sub, views) if heads.get(m) is not None else None
-        for r in (0, REFINE):
+        for r in iters:
             sel = [x for x in per_track if x["method"] == f"{m}|{r}"]
             rows.append({"model": m, "refine_iters": r, "split": split, "in_paper": r == 0,
                          **{k: float(np.mean([x[k] for x in sel])) for k in ("ate", "rpe_t", "rpe_r", "abs_rel")},
@@ -290,7 +292,7 @@ def split_rows(models: dict[str, PanoVGGT], heads: dict[str, PanoVGGT | None], d
 
 
 def bench(mode_name: str, work: Path, resume: bool, seed: int, frames: int, views: int,
-          stage2: bool = True) -> dict:
+          stage2: bool = True, refine: int = REFINE) -> dict:
     mode = dict(MODES[mode_name], **({} if stage2 else {"steps2": 0}))
     t0, c0 = time.perf_counter(), time.process_time()
     seeds = build_split(work, mode, resume)
@@ -302,7 +304,7 @@ def bench(mode_name: str, work: Path, resume: bool, seed: int, frames: int, view
     rows = []
     for split in ("val", "test"):
         data = SceneFrames(list_scenes(work / split), trained1.cfg.image_height)
-        rows += split_rows(models, heads, data, split, frames, mode["s2_scenes"], views)
+        rows += split_rows(models, heads, data, split, frames, mode["s2_scenes"], views, refine)
     return {"mode": mode_name, "rows": rows, "train_scenes": seeds["train"], "val_scenes": seeds["val"],
             "test_scenes": seeds["test"], "split_seeds": dict(zip(("train", "val", "test"), mode["seeds"])),
             "steps": {"stage1": mode["steps1"], "stage2": mode["steps2"]},
@@ -340,7 +342,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--stage2-scenes", type=int, default=0, help="stage 2 on the first K held-out scenes only (0 = all)")
     p.add_argument("--skip-stage1", action="store_true", help="stage 2 only (stage 1 still loads --stage1)")
     p.add_argument("--refine-iters", type=int, default=REFINE,
-                   help="depth-consistency pose refinement steps of the '+ refinement' rows (0 = no such rows)")
+                   help="depth-consistency pose refinement steps of the '+ refinement' rows (0 = no such rows; "
+                        "--quick/--full too)")
     p.add_argument("--json", type=Path, help="also write every row here")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -348,7 +351,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.out is None:
             p.error("--quick/--full need --out WORK_DIR")
         result = bench("quick" if args.quick else "full", args.out, args.resume, args.seed, args.frames, args.views,
-                       stage2=not args.no_stage2)
+                       stage2=not args.no_stage2, refine=args.refine_iters)
         print_rows(result)
         if args.json:
             args.json.write_text(json.dumps(result, indent=1))

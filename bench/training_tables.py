@@ -19,15 +19,24 @@ import numpy as np
 DOC = Path(__file__).resolve().parent.parent / "docs" / "training.md"
 
 
+def _video_rows(d: dict, split: str) -> list[dict]:
+    return [r for r in d["rows"] if r.get("split", d.get("split", "test")) == split]
+
+
 def video_table(d: dict) -> str:
-    rows = d["rows"]
     split = d.get("split", "test")
+    rows = _video_rows(d, split)
     seeds = sorted({r["seed"] for r in rows})
     better = "higher" if d["higher_is_better"] else "lower"
-    head = (f"`python bench/bench_train_video.py --{d['mode']} --json video.json` — {len(d['train_scenes'])} train "
+    how = " --split both" if len(d.get("splits", [])) > 1 else ""
+    head = (f"`python bench/bench_train_video.py --{d['mode']}{how} --json video.json` — {len(d['train_scenes'])} train "
             f"scenes, {len(d[f'{split}_scenes'])} {split} scenes, {d['clips']} {split} clips per seed, seeds {seeds}; "
             f"metric: {d['metric']} ({better} is better), mean ± std over seeds; {d['wall_s']:.0f} s wall, "
             f"{d['cpu_s']:.0f} s CPU")
+    if "stage_steps" in d:
+        st = d["stage_steps"]
+        head += (f"; LoRA stage: shortcut {st['shortcut']} steps ({d['config']['sc_split']} split), FM-only "
+                 f"{st['fm-only']} (held equal: {d['held_equal']})")
     n = d.get("processes", 1)
     head += f" (run as {n} processes side by side, one `--seeds` each, merged)." if n > 1 else "."
     out = [head, "", "| model | steps | sampler | SWD | PSNR (dB) | distance to nearest fill |",
@@ -43,10 +52,17 @@ def video_table(d: dict) -> str:
     if "floor" in d:
         out += ["", f"SWD between two independent draws of the true fills ({d['clips']} each): {d['floor']:.4f} "
                     "(what a perfect sampler scores)."]
-    t = d.get("targets", {})
-    if t:
-        out += ["", "Per seed: " + "; ".join(f"{k.replace('_', ' ')}: {'met' if ok else '**not met**'}"
-                                            for k, ok in t.items()) + "."]
+    for sp in d.get("splits", [split]):
+        t = d.get("targets" if sp == split else f"{sp}_targets", {})
+        if t:
+            out += ["", f"Per seed, {sp} split: " + "; ".join(f"{k.replace('_', ' ')}: {'met' if ok else '**not met**'}"
+                                                          for k, ok in t.items()) + "."]
+    if "val" in d.get("splits", []) and split != "val":
+        val = _video_rows(d, "val")
+        cells = [f"{m} {k}: {np.mean([r['value'] for r in val if r['model'] == m and r['steps'] == k]):.4f}"
+                 for m in ("fm-only", "shortcut") for k in sorted({r["steps"] for r in val})]
+        out += ["", f"The same models on the val split ({len(d['val_scenes'])} scenes), SWD mean over seeds: "
+                    + ", ".join(cells) + "."]
     return "\n".join(out)
 
 
@@ -66,7 +82,8 @@ def merge_video(results: list[dict]) -> dict[str, dict]:
         m["wall_s"], m["cpu_s"] = max(m["wall_s"], d["wall_s"]), m["cpu_s"] + d["cpu_s"]
         m["processes"] += 1
     for m in merged.values():
-        m["targets"] = targets(m["rows"])
+        for sp in m.get("splits", [m.get("split", "test")]):
+            m["targets" if sp == m.get("split", "test") else f"{sp}_targets"] = targets(_video_rows(m, sp))
     return merged
 
 

@@ -4,21 +4,16 @@ from __future__ import annotations
 
 import ast
 import hashlib
-import json
 import os
 from pathlib import Path
 
 from panoworld.artifacts import REPO_ROOT, json_digest
+from panoworld.io.user_cache import read_user_cache, write_user_cache
 
 _CACHE_FILE = "code_digests.json"
 _memo: dict[str, tuple[int, int, str, list[str]]] = {}
 """path -> (mtime_ns, size, digest, imported module names): files are parsed again only when their stat changes."""
 _disk_loaded = False
-
-
-def _cache_path() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "panoworld" / _CACHE_FILE
 
 
 def _load_disk_cache() -> None:
@@ -27,21 +22,13 @@ def _load_disk_cache() -> None:
         return
     _disk_loaded = True
     try:
-        doc = json.loads(_cache_path().read_text())
-        _memo.update({k: (v[0], v[1], v[2], v[3]) for k, v in doc.items() if k not in _memo})
-    except (OSError, ValueError, TypeError, IndexError, AttributeError):
+        _memo.update({k: (v[0], v[1], v[2], v[3]) for k, v in read_user_cache(_CACHE_FILE).items() if k not in _memo})
+    except (TypeError, IndexError, KeyError):
         pass
 
 
 def _save_disk_cache() -> None:
-    path = _cache_path()
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(_memo))
-        os.replace(tmp, path)
-    except OSError:
-        pass  # a read-only home only costs a re-parse next time
+    write_user_cache(_CACHE_FILE, _memo)
 
 
 def _strip_docstrings(tree: ast.AST) -> ast.AST:

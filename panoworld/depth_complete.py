@@ -86,3 +86,75 @@ def complete_poles(depth: np.ndarray, valid: np.ndarray, *, min_lat_deg: float =
         total |= fill
     info["completed_fraction"] = float(total.mean())
     return depth, valid, info
+
+
+SMOOTH_TOL = 0.03
+"""complete_dropouts: where the harmonic fill lies within this relative distance of the nearest valid depth, the
+surface is taken to continue smoothly across the dropout; elsewhere it is a depth edge."""
+PLANE_TOL = 0.02
+"""complete_dropouts: a dropout whose rim lies on one plane within this relative depth (90th percentile) is filled
+with that plane."""
+
+
+def _rim_planes(depth: np.ndarray, valid: np.ndarray, holes: np.ndarray, tol: float) -> tuple[np.ndarray, int]:
+    """Depth (H, W) of the plane fitted to each dropout's rim (its valid 8-neighbours), NaN where the rim is not one
+    plane within tol, and the number of dropouts so filled. The plane is fitted as 1 / d = a . dir (least squares)."""
+    H, W = depth.shape
+    dirs = erp_dirs(H, W, np.float64)
+    out = np.full((H, W), np.nan)
+    labels, n = ndimage.label(holes, structure=np.ones((3, 3)))
+    planar = 0
+    for k, sl in enumerate(ndimage.find_objects(labels), 1):
+        sl = tuple(slice(max(s.start - 1, 0), s.stop + 1) for s in sl)
+        comp = labels[sl] == k
+        rim = ndimage.binary_dilation(comp, structure=np.ones((3, 3))) & valid[sl]
+        if rim.sum() < 8:
+            continue
+        A, b = dirs[sl][rim], 1.0 / depth[sl][rim]
+        a = np.linalg.lstsq(A, b, rcond=None)[0]
+        if np.quantile(np.abs(A @ a - b) / b, 0.9) > tol:
+            continue
+        inv = dirs[sl][comp] @ a
+        if (inv <= 0).any():
+            continue
+        out[sl][comp] = 1.0 / inv
+        planar += 1
+    return out, planar
+
+
+def complete_dropouts(depth: np.ndarray, valid: np.ndarray, *, smooth_tol: float = SMOOTH_TOL,
+                      plane_tol: float = PLANE_TOL) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Fill every invalid pixel of depth (H, W, metres) left after the poles: dropouts inside the scan (glass, dark
+    or shiny surfaces, the mixed returns along object silhouettes).
+
+    The prior, per dropout: when its rim lies on one plane (within plane_tol) the dropout is that plane (a window, a
+    dark panel). Otherwise each pixel gets the harmonic interpolation of the rim in inverse depth where that lies
+    within smooth_tol of the nearest valid pixel's depth (a smooth surface continuing), and elsewhere, where the
+    dropout spans a depth edge, the nearest valid pixel's depth (seam wrapped): the edge stays a step between the two
+    surfaces instead of a ramp of floating geometry. Returns (depth, valid, info).
+    """
+    from panoworld.depth import _harmonic_fill
+
+    holes = ~valid
+    H, W = depth.shape
+    info: dict = {"smooth_tol": smooth_tol, "plane_tol": plane_tol, "completed_fraction": 0.0}
+    if not holes.any() or not valid.any():
+        return depth, valid, info
+    inv = np.where(valid, 1.0 / np.where(valid, depth, 1.0), 0.0)
+    harmonic = 1.0 / np.maximum(_harmonic_fill(inv, holes, valid), 1e-12)
+    pad = W // 4  # nearest valid pixel with the seam wrapped: pad with wrapped columns
+    padded = np.concatenate([holes[:, -pad:], holes, holes[:, :pad]], axis=1)
+    _, (ii, jj) = ndimage.distance_transform_edt(padded, return_indices=True)
+    nearest = depth[ii[:, pad:pad + W], (jj[:, pad:pad + W] - pad) % W]
+    plane, n_planar = _rim_planes(depth, valid, holes, plane_tol)
+    on_plane = holes & np.isfinite(plane)
+    smooth = holes & ~on_plane & (np.abs(harmonic - nearest) <= smooth_tol * nearest)
+    fill = np.where(on_plane, plane, np.where(smooth, harmonic, nearest))
+    out = np.where(valid, depth, fill).astype(depth.dtype)
+    omega = np.broadcast_to(erp_pixel_solid_angle(H, W), (H, W))
+    _, n = ndimage.label(holes, structure=np.ones((3, 3)))
+    m = holes.sum()
+    info.update(completed_fraction=float(holes.mean()), sphere_fraction=float(omega[holes].sum() / (4 * np.pi)),
+                dropouts=int(n), planar_dropouts=n_planar, plane_fraction=float(on_plane.sum() / m),
+                smooth_fraction=float(smooth.sum() / m), step_fraction=float((holes & ~on_plane & ~smooth).sum() / m))
+    return out, np.ones_like(valid), info

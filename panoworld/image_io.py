@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import warnings
 from dataclasses import astuple, dataclass
@@ -11,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.errors import InputError
+from panoworld.io.user_cache import read_user_cache, write_user_cache
 from panoworld.limits import MAX_PIXELS
 
 MAX_SIDE = 65535
@@ -43,38 +43,17 @@ _CHECKED_FILE = "checked_images.json"
 _CHECKED_MAX = 256
 
 
-def _checked_path() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "panoworld" / _CHECKED_FILE
-
-
 def _checked_key(path: Path) -> tuple[str, list[int]]:
     st = path.stat()
     return os.path.realpath(path), [st.st_size, st.st_mtime_ns, st.st_ino, st.st_dev]
 
 
-def _load_checked() -> dict:
-    try:
-        doc = json.loads(_checked_path().read_text())
-        return doc if isinstance(doc, dict) else {}
-    except (OSError, ValueError):
-        return {}
-
-
 def _remember_checked(path: Path, info: ImageInfo) -> None:
     key, stat = _checked_key(path)
-    doc = _load_checked()
+    doc = read_user_cache(_CHECKED_FILE)
     doc.pop(key, None)
     doc[key] = [stat, list(astuple(info))]
-    doc = dict(list(doc.items())[-_CHECKED_MAX:])
-    out = _checked_path()
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(f"{out.name}.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(doc))
-        os.replace(tmp, out)
-    except OSError:
-        pass  # a read-only home only costs a full decode next time
+    write_user_cache(_CHECKED_FILE, dict(list(doc.items())[-_CHECKED_MAX:]))
 
 
 def check_image(path: Path | str, what: str = "image", *, remember: bool = False) -> ImageInfo:
@@ -89,7 +68,7 @@ def check_image(path: Path | str, what: str = "image", *, remember: bool = False
         raise ImageInputError(f"{path}: {what} not found (or not a regular file)")
     if remember:
         key, stat = _checked_key(path)
-        hit = _load_checked().get(key)
+        hit = read_user_cache(_CHECKED_FILE).get(key)
         if isinstance(hit, list) and len(hit) == 2 and hit[0] == stat:
             try:
                 return ImageInfo(*hit[1])

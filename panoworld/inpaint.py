@@ -8,7 +8,14 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from panoworld.conventions import check_pose, dir_from_lonlat, erp_lonlat_from_pixel
+from panoworld.conventions import (
+    check_pose,
+    dir_from_lonlat,
+    erp_dirs,
+    erp_lonlat_from_pixel,
+    erp_pixel_from_dir,
+    invert_pose,
+)
 from panoworld.mesh import ErpMesh, grid_faces
 from panoworld.raycast import Raycaster
 from panoworld.shapes import check_shape
@@ -280,8 +287,86 @@ def build_background_layer(
 class FilledFrame:
     rgb: np.ndarray  # (H, W, 3) uint8
     depth: np.ndarray  # (H, W) float32 metres, 0 where unknown
-    filled_3d: np.ndarray  # (H, W) bool: hole pixels filled from the fill mesh
+    filled_3d: np.ndarray  # (H, W) bool: hole pixels filled from the fill mesh (or reused from earlier frames)
     filled_2d: np.ndarray  # (H, W) bool: hole pixels filled by the 2D last resort
+
+
+FOREGROUND_RATIO = 0.85
+"""background_fill: a pixel nearer than this fraction of the background depth around a hole is foreground."""
+
+
+def background_fill(rgb: np.ndarray, depth: np.ndarray, hole: np.ndarray, *, radius: float = 3.0, max_window: int = 129
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Depth-aware 2D fill of hole (H, W) in an ERP frame rgb (H, W, 3) uint8 with depth (H, W) metres (0 = unknown):
+    the hidden surface continues the farther side of the hole, never its occluder. The hole's rim pixels within
+    FOREGROUND_RATIO of the farthest rim depth around them (a window twice as wide as the holes, at most max_window)
+    are its background; each hole pixel
+    takes the depth and colour of the nearest background rim pixel (seam wrapped), the colour smoothed (Gaussian
+    of sigma radius, seam-aware) over the hole and that rim only. Returns (rgb, depth) with only the hole changed;
+    depth stays 0 where no rim has depth."""
+    from scipy import ndimage
+
+    H, W = hole.shape
+    ring = ndimage.binary_dilation(hole, structure=np.ones((3, 3))) & ~hole & (depth > 0)
+    if not ring.any():
+        return erp_inpaint(rgb, hole, radius=radius), np.where(hole, 0.0, depth).astype(np.float32)
+    thick = float(ndimage.distance_transform_edt(hole).max())  # half the widest hole's width
+    window = int(min(4 * thick + 3, max_window))
+    far = ndimage.maximum_filter(np.where(ring, depth, 0.0), size=window, mode="wrap")
+    bg_rim = ring & (depth >= FOREGROUND_RATIO * far)
+    pad = W // 4
+    padded = np.concatenate([~bg_rim[:, -pad:], ~bg_rim, ~bg_rim[:, :pad]], axis=1)
+    _, (ii, jj) = ndimage.distance_transform_edt(padded, return_indices=True)
+    ii, jj = ii[:, pad:pad + W], (jj[:, pad:pad + W] - pad) % W
+    fill_d = np.where(hole, depth[ii, jj], depth).astype(np.float32)
+    # colour: the nearest background rim pixel's, smoothed over the hole and that rim only (never the occluder)
+    known = (hole | bg_rim).astype(np.float32)
+    col = np.where(hole[..., None], rgb[ii, jj], rgb).astype(np.float32) * known[..., None]
+    pad_x = pad_y = int(np.ceil(3 * max(radius, 1.0))) + 1
+    sigma = max(radius, 1.0)
+    blur = [cv2.GaussianBlur(erp_pad(a, pad_x, pad_y if W % 2 == 0 else 0), (0, 0), sigma) for a in (col, known)]
+    py = pad_y if W % 2 == 0 else 0
+    num, den = (b[py:py + H, pad_x:pad_x + W] for b in blur)
+    smooth = num / np.maximum(den, 1e-6)[..., None]
+    out = np.where(hole[..., None], np.clip(np.rint(smooth), 0, 255).astype(np.uint8), rgb)
+    return out, fill_d
+
+
+class CommittedPoints:
+    """World points (colour) that 2D fills committed: later frames reuse them before filling anew, so content
+    invented once keeps its place and colour along the path (temporal reuse of what the video already showed)."""
+
+    def __init__(self) -> None:
+        self._xyz: list[np.ndarray] = []
+        self._rgb: list[np.ndarray] = []
+
+    def add(self, world_from_cam: np.ndarray, pixels: np.ndarray, depth: np.ndarray, rgb: np.ndarray, H: int, W: int
+            ) -> None:
+        """Commit the flat pixel indices `pixels` of an ERP frame (H, W) at pose world_from_cam with their depth (M,)
+        metres and colours (M, 3); pixels without depth are skipped."""
+        ok = depth > 0
+        if not ok.any():
+            return
+        dirs = erp_dirs(H, W, np.float64).reshape(-1, 3)[pixels[ok]]
+        T = np.asarray(world_from_cam, np.float64)
+        self._xyz.append((dirs * depth[ok, None]) @ T[:3, :3].T + T[:3, 3])
+        self._rgb.append(rgb[ok])
+
+    def project(self, world_from_cam: np.ndarray, H: int, W: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The nearest committed point of each ERP pixel at pose world_from_cam: (flat pixel indices, depth, rgb)."""
+        if not self._xyz:
+            return np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3), np.uint8)
+        xyz, rgb = np.concatenate(self._xyz), np.concatenate(self._rgb)
+        self._xyz, self._rgb = [xyz], [rgb]
+        T = invert_pose(np.asarray(world_from_cam, np.float64))
+        p = xyz @ T[:3, :3].T + T[:3, 3]
+        dist = np.linalg.norm(p, axis=1)
+        u, v = erp_pixel_from_dir(p / np.maximum(dist, 1e-12)[:, None], H, W)
+        pix = np.clip(np.floor(v).astype(np.int64), 0, H - 1) * W + np.mod(np.floor(u).astype(np.int64), W)
+        order = np.lexsort((dist, pix))
+        first = np.unique(pix[order], return_index=True)[1]
+        k = order[first]
+        return pix[k], dist[k], rgb[k]
 
 
 def _check_frame(rgb: np.ndarray, mask: np.ndarray, depth: np.ndarray | None) -> None:
@@ -300,11 +385,12 @@ class WarpInpainter:
     """Fills the holes of conditions frames by casting their rays against a BackgroundLayer (same surface, same
     colour in every frame); rays that hit nothing get the seam-aware 2D fill."""
 
-    def __init__(self, layer: BackgroundLayer, *, inpaint_radius: float = 3.0):
+    def __init__(self, layer: BackgroundLayer, *, inpaint_radius: float = 3.0, reuse: bool = False):
         self.layer = layer
         self.inpaint_radius = inpaint_radius
         self._rc = layer.raycaster() if len(layer.faces) else None
         self._colors = layer.colors.astype(np.float32)
+        self.committed = CommittedPoints() if reuse else None
 
     def fill(self, rgb: np.ndarray, mask: np.ndarray, depth: np.ndarray | None, world_from_cam: np.ndarray) -> FilledFrame:
         """rgb (H, W, 3) uint8, mask (H, W) bool (True = valid condition), depth (H, W) metres or None, pose 4x4."""
@@ -333,7 +419,18 @@ class WarpInpainter:
                 out_d[ti[ok], tj[ok]] = hits.distance[ok]
                 filled[ti[ok], tj[ok]] = True
         rest = hole & ~filled
-        if rest.any() and not rest.all():
+        if self.committed is not None and rest.any() and not rest.all():
+            pix, dist, col = self.committed.project(world_from_cam, H, W)
+            use = rest.reshape(-1)[pix]
+            out.reshape(-1, 3)[pix[use]] = col[use]
+            out_d.reshape(-1)[pix[use]] = dist[use]
+            filled.reshape(-1)[pix[use]] = True
+            rest = hole & ~filled
+            if rest.any() and not rest.all():
+                out, out_d = background_fill(out, out_d, rest, radius=self.inpaint_radius)
+                px = np.flatnonzero(rest)
+                self.committed.add(world_from_cam, px, out_d.reshape(-1)[px], out.reshape(-1, 3)[px], H, W)
+        elif rest.any() and not rest.all():
             out = erp_inpaint(out, rest, radius=self.inpaint_radius)
         return FilledFrame(out, out_d, filled, rest)
 

@@ -17,6 +17,8 @@ ARTIFACT = "gaussians"
 INPUTS = {
     "video": Input("video", help="video artifact (video.json, frames/, depth/)"),
     "poses": Input("poses", help="poses artifact (poses.json, depth/)"),
+    "depth": Input("depth", optional=True, help="a home: depth artifact whose panoramas are anchored (with --register)"),
+    "register": Input("register", optional=True, help="a home: register artifact placing those panoramas"),
 }
 
 
@@ -71,6 +73,7 @@ class Params(FusionParams):
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     from panoworld.gaussians import context_source, voxel_fusion
     from panoworld.gaussians_artifact import write_artifact
+    from panoworld.home.layout import capture_poses
     from panoworld.pixel_gaussians import source_anchored_fusion
 
     frames = context_source(inputs["video"], inputs["poses"], context_views=params.context_views,
@@ -82,6 +85,19 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
             model = PanoVGGT.from_pretrained(params.weights, flag="--weights", device=params.device)
             model.require_gaussian_head("--weights")
             result = model.decode(frames.load())
+        elif params.source_pixels and len(captures := capture_poses(inputs.get("register"))) >= 2:
+            from panoworld.home.gaussians import home_anchored_fusion
+            from panoworld.home.layout import home_depth_dirs
+            from panoworld.home.mesh import load_sources
+
+            dirs = home_depth_dirs(inputs["depth"]) if inputs.get("depth") else None
+            if dirs is None:
+                raise StageInputError("the register artifact places several panoramas: give --depth, the home's depth "
+                                      "artifact (its panoramas are anchored)")
+            names, rgbs, depths = load_sources(dirs, captures)
+            result = home_anchored_fusion(frames, {n: (rgbs[n], depths[n], captures[n]) for n in names}, params,
+                                          source_height=params.source_height, tol=params.source_tol,
+                                          source_scale=params.source_scale, progress=True)
         elif params.source_pixels:
             result = source_anchored_fusion(frames, params, source_height=params.source_height, tol=params.source_tol,
                                             source_scale=params.source_scale,

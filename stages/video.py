@@ -84,7 +84,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     from tqdm import tqdm
 
     from panoworld.conditions import load_conditions
-    from panoworld.trajectory import load_trajectory
+    from panoworld.trajectory import load_clips, load_trajectory
     from panoworld.upscale import FrameUpscaler
     from panoworld.video_io import VideoWriter
 
@@ -113,8 +113,12 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     info: dict = {"backend": str(params.backend), "upscale": str(params.upscale)}
     t0 = time.perf_counter()
     backend = backends.get(NAME, params.backend)
+    try:
+        clips = load_clips(traj_dir, len(poses))
+    except ValueError as e:
+        raise StageInputError(str(e)) from None
     job = Job(cond=cond, poses=poses, mesh_dir=inputs.get("mesh"), options=backend.options_of(params),
-              inpaint_radius=params.inpaint_radius)
+              inpaint_radius=params.inpaint_radius, clips=clips)
     produce, backend_info = backend.impl(job)
     info.update(backend_info)
 

@@ -10,6 +10,10 @@ import trimesh
 from panoworld.conditions import render_conditions
 from panoworld.conventions import erp_dirs, points_from_depth
 from panoworld.inpaint import (
+    BackgroundLayer,
+    CommittedPoints,
+    WarpInpainter,
+    background_fill,
     build_background_layer,
     erp_inpaint,
     erp_pad,
@@ -186,3 +190,50 @@ def test_warp_inpaint_across_the_seam_equals_the_centred_case(box_case):
     for a, b, m in zip(warp, warp_t, stack[1]):
         diff = np.abs(np.roll(b.rgb, W // 2, axis=1).astype(int) - a.rgb.astype(int)).max(axis=-1)
         assert np.mean(diff[~m] <= 2) > 0.99
+
+
+def _panel_frame():
+    """A blue wall at 3 m with a red panel at 1 m (columns 40-59) and a hole right of the panel (columns 60-74)."""
+    rgb = np.zeros((H, W, 3), np.uint8)
+    rgb[..., 2] = 200
+    depth = np.full((H, W), 3.0, np.float32)
+    rgb[20:70, 40:60] = (220, 30, 30)
+    depth[20:70, 40:60] = 1.0
+    hole = np.zeros((H, W), bool)
+    hole[25:65, 60:75] = True
+    return rgb, depth, hole
+
+
+def test_background_fill_continues_the_far_side_not_the_occluder():
+    rgb, depth, hole = _panel_frame()
+    out, out_d = background_fill(rgb, np.where(hole, 0, depth), hole)
+    np.testing.assert_allclose(out_d[hole], 3.0)
+    np.testing.assert_array_equal(out[~hole], rgb[~hole])
+    plain = erp_inpaint(rgb, hole)
+    red = lambda img: img[hole][:, 0].astype(float).mean()
+    assert red(out) < 10 < red(plain)  # the plain fill smears the panel's red into the wall
+
+
+def test_committed_points_are_reused_at_their_place():
+    rgb, depth, hole = _panel_frame()
+    pts = CommittedPoints()
+    px = np.flatnonzero(hole)
+    pts.add(np.eye(4), px, depth.reshape(-1)[px], rgb.reshape(-1, 3)[px], H, W)
+    pix, dist, col = pts.project(np.eye(4), H, W)
+    order = np.argsort(pix)
+    np.testing.assert_array_equal(pix[order], px)
+    np.testing.assert_allclose(dist[order], 3.0, rtol=1e-6)
+    moved = np.eye(4)
+    moved[:3, 3] = (0.2, 0.0, 0.5)
+    pix, dist, _ = pts.project(moved, H, W)
+    world = erp_dirs(H, W, np.float64).reshape(-1, 3)[px] * 3.0
+    assert abs(np.sort(dist).mean() - np.linalg.norm(world - moved[:3, 3], axis=1).mean()) < 1e-6 + 0.05 * (len(px) - len(pix))
+    # A warp-inpainter with reuse fills a hole it filled before from those points: same colours, with depth.
+    empty = BackgroundLayer(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.uint8), 0,
+                            np.zeros((H, W), bool), np.zeros((H, W), np.float32))
+    filler = WarpInpainter(empty, reuse=True)
+    first = filler.fill(rgb, ~hole, depth, np.eye(4))
+    assert first.filled_2d[hole].all() and (first.depth[hole] > 2.9).all()
+    second = filler.fill(rgb, ~hole, depth, np.eye(4))
+    assert second.filled_3d[hole].all() and not second.filled_2d.any()
+    np.testing.assert_array_equal(second.rgb, first.rgb)

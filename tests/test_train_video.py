@@ -180,7 +180,7 @@ def test_every_paper_preset_value_names_its_source():
         missing = sorted(set(PRESETS[preset]) - set(SOURCES[preset]))
         assert not missing, f"{preset} preset values without a source: {missing}"
     # the defaults the paper preset inherits and that shape the weights carry a source too
-    for key in ("weight_decay", "warmup_steps", "grad_clip", "shortcut_levels", "teacher_decay"):
+    for key in ("weight_decay", "warmup_steps", "grad_clip", "shortcut_levels", "teacher_decay", "sc_split"):
         assert key not in PRESETS["paper"] and SOURCES["paper"][key]
     assert all(s.startswith(("paper", "ours", "VGGT", "Wan", "torch", "Frans")) for s in SOURCES["paper"].values()
                if s is not MATRIX3D_LORA)

@@ -63,3 +63,12 @@ def test_overlapping_test_scenes_are_flagged_and_missing_markers_name_the_fix(tm
     (tmp_path / "v.json").write_text(json.dumps(_video(mode="full")))
     with pytest.raises(SystemExit, match="BEGIN video-full"):
         tables.main(["--video", str(tmp_path / "v.json"), "--doc", str(doc)])
+
+
+def test_docs_training_tables_are_the_committed_results():
+    """docs/training.md's quick tables are what training_tables.py writes from docs/results/training/*.json."""
+    res = ROOT / "docs" / "results" / "training"
+    args = [f"--video={p}" for p in sorted(res.glob("video_quick_*.json"))]
+    args += [f"--recon={p}" for p in sorted(res.glob("recon_quick*.json"))]
+    assert args, f"no results under {res}"
+    assert _tables().main([*args, "--check"]) == 0, "stale: run bench/training_tables.py with the JSON under " + str(res)

@@ -16,6 +16,7 @@ from panoworld.trajectory import (
     TrajectoryFileError,
     TrajectoryParams,
     YawMode,
+    load_clips,
     load_trajectory,
     mesh_clearance,
     plan_path,
@@ -202,6 +203,17 @@ def test_trajectory_files_round_trip(tmp_path):
     assert lines[2].split()[0] == f"{1 / 16:.6f}" and len(lines) == len(poses) + 1
     (tmp_path / "plain.json").write_text(json.dumps(poses.tolist()))
     assert np.allclose(read_trajectory_file(tmp_path / "plain.json"), poses)
+    assert load_clips(tmp_path, len(poses)) == [list(range(len(poses)))]  # one path: one clip
+
+
+def test_clips_are_the_paths_with_their_predecessor(tmp_path):
+    poses = _wobbly_poses()[:7]
+    paths = [{"sector": 0, "start": 1, "stop": 4, "from": 0}, {"sector": 3, "start": 4, "stop": 7, "from": 0}]
+    write_trajectory(tmp_path, poses, np.ones(7), fps=16.0, kind="explore", paths=paths)
+    assert load_clips(tmp_path, 7) == [[0, 1, 2, 3], [0, 4, 5, 6]]
+    write_trajectory(tmp_path, poses, np.ones(7), fps=16.0, kind="explore", paths=paths[:1])
+    with pytest.raises(ValueError, match="do not cover the 7 poses"):
+        load_clips(tmp_path, 7)
 
 
 @pytest.mark.parametrize(

@@ -52,3 +52,23 @@ def test_splits_are_disjoint_and_the_mean_of_the_fills_scores_worse_than_samples
     mean = f.mean(0, keepdim=True).expand(256, -1)  # what one flow-matching Euler step from noise gives
     assert toy.sliced_wasserstein(mean, ref) > 3 * toy.sliced_wasserstein(draw, ref)
     assert toy.swd_floor(cfg, 256) < toy.sliced_wasserstein(mean, ref) / 3
+
+
+def test_equal_compute_matches_the_network_passes_training_makes():
+    """toy.passes_per_sample (a backward = 2 forwards) against the forwards train_stage actually runs: FM-only 3 per
+    sample; the shortcut model with the batch split 3.5 at rho 0.75 (a quarter of each batch: 2 teacher forwards more)."""
+    torch.set_num_threads(1)
+    cfg = toy.ToyConfig(batch=8, sc_split="batch")
+    data = toy.ToyScenes(cfg, toy.scene_seeds("train", 8))
+    base = toy.tiny_base(cfg, 0)
+    count = {"passes": 0}
+
+    def hook(module, args, kwargs, out):
+        count["passes"] += kwargs["hidden_states"].shape[0] * (3 if torch.is_grad_enabled() else 1)
+
+    base.register_forward_hook(hook, with_kwargs=True)
+    for rho in (1.0, 0.75):
+        count["passes"] = 0
+        toy.train_stage(cfg, base, data, rho=rho, seed=0, steps=3)
+        assert count["passes"] / (3 * cfg.batch) == pytest.approx(toy.passes_per_sample(rho))
+    assert toy.equal_compute_steps(600, 0.75) == 700

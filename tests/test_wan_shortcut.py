@@ -303,16 +303,21 @@ def test_missing_weights_name_files_and_flags(tmp_path):
         )
 
 
-def test_training_step_lowers_the_mixed_objective():
+def _training_batch(b: int):
+    """A tiny VAE + widened transformer with LoRA, and a batch of b clips: (tr, params, x0, cond, text, generator)."""
     vae, tr = tiny_vae(), tiny_transformer()
     params = wt.prepare_for_training(tr, wl.condition_channels(vae), rank=4, alpha=4)
     g = torch.Generator().manual_seed(0)
-    video = torch.rand(2, 3, T, H, W, generator=g) * 2 - 1
-    mask = (torch.rand(2, 1, T, H, W, generator=g) > 0.3).float()
+    video = torch.rand(b, 3, T, H, W, generator=g) * 2 - 1
+    mask = (torch.rand(b, 1, T, H, W, generator=g) > 0.3).float()
     with torch.no_grad():
         x0 = wl.encode_video(vae, video)
         cond = wl.encode_condition(vae, video, mask)
-    text = torch.randn(2, 7, TEXT_DIM, generator=g)
+    return tr, params, x0, cond, torch.randn(b, 7, TEXT_DIM, generator=g), g
+
+
+def test_training_step_lowers_the_mixed_objective():
+    tr, params, x0, cond, text, g = _training_batch(2)
 
     def eval_loss() -> float:
         eg = torch.Generator().manual_seed(123)
@@ -432,3 +437,47 @@ def test_self_consistency_target_is_the_mean_of_the_teachers_two_half_steps_on_t
     # and it is not the student's own two half steps (the teacher's weights differ)
     s1 = real(tr, first["x"], first["sigma"], first["dt"], cond, text).detach()
     assert (s1 - v1).abs().max() > 1e-4
+
+
+def test_one_clip_per_path_frames_back_in_pose_order():
+    """wan-shortcut generates each path of a multi-path trajectory as its own clip (source view first) and puts the
+    frames back in pose order: each path's frames equal that path generated alone."""
+    from panoworld.backends.video.wan_shortcut import generate_clips
+
+    gen = WanShortcutGenerator.from_components(tiny_transformer(), tiny_vae(), cfg(seed=2), embeds())
+    rgb, mask = inputs(4)
+    clips = [[0, 1, 2], [0, 3, 4]]
+    frames, info = generate_clips(gen, rgb, mask, clips)
+    assert info["clips"] == 2 and info["clip_frames"] == [3, 3] and len(frames) == T
+    for idx in clips:
+        alone, _ = gen.generate(rgb[idx], mask[idx])
+        for i, f in zip(idx[1:], alone[1:]):
+            np.testing.assert_array_equal(frames[i], f)
+    first, _ = gen.generate(rgb[clips[0]], mask[clips[0]])
+    np.testing.assert_array_equal(frames[0], first[0])
+    whole, _ = gen.generate(rgb, mask)  # one sequence across both paths differs: path 2 would continue path 1
+    assert not np.array_equal(np.stack(frames[3:]), whole[3:])
+    with pytest.raises(ValueError, match="without a frame"):
+        generate_clips(gen, rgb, mask, [[0, 1, 2]])
+
+
+def test_batch_split_gives_a_quarter_of_every_batch_to_self_consistency():
+    """split='batch' (Frans et al.): the first round((1 - rho) B) samples take L_SC, the rest L_FM, and the loss is
+    the per-sample mean; split='iteration' (the paper) sends the whole batch to one loss."""
+    torch.set_num_threads(1)
+    tr, _, x0, cond, text, _ = _training_batch(4)
+    perturb(tr, 5, ("lora_B", "step_embedder.embedder.linear_2"))
+    with torch.no_grad():
+        loss, branch = wt.shortcut_objective(tr, x0, cond, text, rho=0.75, split="batch",
+                                             generator=torch.Generator().manual_seed(7))
+        eg = torch.Generator().manual_seed(7)
+        sc = wt.self_consistency_loss(tr, x0[:1], cond[:1], text[:1], generator=eg)
+        fm = wt.flow_matching_loss(tr, x0[1:], cond[1:], text[1:], generator=eg)
+        fm_all, fm_branch = wt.shortcut_objective(tr, x0, cond, text, rho=1.0, split="batch",
+                                                  generator=torch.Generator().manual_seed(7))
+    assert branch == "mixed" and fm_branch == "fm"
+    assert float(sc) != pytest.approx(float(fm), rel=0.05)  # the weighting below is visible
+    assert float(loss) == pytest.approx((1 * float(sc) + 3 * float(fm)) / 4, rel=1e-5)
+    with pytest.raises(ValueError, match="split='half'"):
+        wt.shortcut_objective(tr, x0, cond, text, split="half")
+    assert torch.isfinite(fm_all)

@@ -176,14 +176,31 @@ def shortcut_objective(
     max_steps: int = 128,
     teacher: EmaTeacher | None = None,
     sigma_levels: int = 0,
+    split: str = "iteration",
 ) -> tuple[torch.Tensor, str]:
-    """L_video = b L_FM + (1 - b) L_SC with b ~ Bernoulli(rho); returns (loss, 'fm' or 'sc'). rho = 1 is the paper's
-    "+Mixed Training, FM only" ablation (no self-consistency, no teacher forwards)."""
+    """L_video = b L_FM + (1 - b) L_SC; returns (loss, 'fm', 'sc' or 'mixed').
+
+    split "iteration" (the paper): b ~ Bernoulli(rho) per iteration, the whole batch goes to one loss. split "batch"
+    (Frans et al.): every batch gives round((1 - rho) B) samples (at least one, when rho < 1) to L_SC and the rest to
+    L_FM, and the loss is the per-sample mean over the whole batch. rho = 1 is the paper's "+Mixed Training, FM only"
+    ablation (no self-consistency, no teacher forwards)."""
+    if split not in ("iteration", "batch"):
+        raise ValueError(f"{split=} but expected 'iteration' or 'batch'")
+    fm = {"generator": generator, "sigma_levels": sigma_levels}
+    sc = {"generator": generator, "max_steps": max_steps, "teacher": teacher}
+    if split == "batch" and rho < 1:
+        b = x0.shape[0]
+        n = min(b, max(1, round((1 - rho) * b)))  # the first n samples go to L_SC, the rest to L_FM
+
+        def part(sl: slice) -> tuple:
+            return x0[sl], condition[sl], prompt_embeds[sl], None if anchor is None else anchor[sl]
+
+        x, c, e, a = part(slice(None, n))
+        total = n * self_consistency_loss(transformer, x, c, e, anchor=a, **sc)
+        if n < b:
+            x, c, e, a = part(slice(n, None))
+            total = total + (b - n) * flow_matching_loss(transformer, x, c, e, anchor=a, **fm)
+        return total / b, "mixed"
     if torch.rand((), generator=generator).item() < rho:
-        return flow_matching_loss(
-            transformer, x0, condition, prompt_embeds, anchor=anchor, generator=generator, sigma_levels=sigma_levels
-        ), "fm"
-    return self_consistency_loss(
-        transformer, x0, condition, prompt_embeds, anchor=anchor, generator=generator, max_steps=max_steps,
-        teacher=teacher,
-    ), "sc"
+        return flow_matching_loss(transformer, x0, condition, prompt_embeds, anchor=anchor, **fm), "fm"
+    return self_consistency_loss(transformer, x0, condition, prompt_embeds, anchor=anchor, **sc), "sc"

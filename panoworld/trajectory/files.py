@@ -11,6 +11,7 @@ from panoworld import conventions, limits
 from panoworld.conventions import quat_wxyz_from_rotmat, quat_wxyz_from_xyzw, quat_xyzw_from_wxyz, rotmat_from_quat_wxyz
 from panoworld.errors import InputError
 from panoworld.trajectory.common import FRAME, TRAJECTORY_JSON, TRAJECTORY_TUM, TrajectoryFileError
+from panoworld.trajectory.poses import path_indices
 
 
 def check_poses(poses: np.ndarray, where: str = "poses") -> np.ndarray:
@@ -96,6 +97,23 @@ def load_trajectory(path: Path | str) -> np.ndarray:
     if path.is_dir():
         path = path / TRAJECTORY_JSON
     return read_trajectory_file(path)
+
+
+def load_clips(path: Path | str, n_poses: int) -> list[list[int]]:
+    """Pose indices of each clip of a trajectory artifact (directory or trajectory.json): one per path of a multi-path
+    trajectory (its predecessor and its own poses, see path_indices), else one clip of all n_poses poses."""
+    path = Path(path)
+    doc_path = path / TRAJECTORY_JSON if path.is_dir() else path
+    try:
+        paths = json.loads(doc_path.read_text()).get("paths") if doc_path.suffix == ".json" else None
+    except (OSError, ValueError):
+        paths = None
+    if not isinstance(paths, list) or not paths:
+        return [list(range(n_poses))]
+    clips = [path_indices(p) for p in paths]
+    if sorted({i for c in clips for i in c}) != list(range(n_poses)):
+        raise TrajectoryFileError(f"{doc_path}: its paths do not cover the {n_poses} poses exactly; rerun the trajectory stage")
+    return clips
 
 
 def write_trajectory(out_dir: Path, poses: np.ndarray, clearance: np.ndarray, *, fps: float, **meta) -> list[str]:

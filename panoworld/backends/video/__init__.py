@@ -5,7 +5,7 @@ A backend's impl is `impl(job: Job) -> (frames, info)`: `frames` yields (rgb, de
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +26,9 @@ class Job:
     """The backend's own options (None for a backend without options)."""
     inpaint_radius: float
     """Telea inpainting radius in pixels (shared by the backends that inpaint in 2D)."""
+    clips: list[list[int]] = field(default_factory=list)
+    """Pose indices of each clip (one per path of a multi-path trajectory, panoworld.trajectory.load_clips); empty =
+    one clip of every pose. Clip generators (wan-shortcut) generate each alone; frame-by-frame backends ignore it."""
 
 
 from panoworld.backends.video import frame_inpaint, wan_shortcut, warp_inpaint  # noqa: E402,F401  (registers them)

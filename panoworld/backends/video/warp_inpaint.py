@@ -16,10 +16,16 @@ from panoworld.params import param
 class WarpOptions:
     max_band_deg: float = param(45.0, gt=0, le=180)
     """Widest background band (degrees) synthesized behind a foreground edge."""
+    reuse: bool = False
+    """Holes the background layer does not fill are filled from the farther side (depth-aware 2D fill, with depth)
+    and committed as 3D points that later frames reuse (panoworld.inpaint.CommittedPoints); else a per-frame 2D fill
+    without depth."""
 
 
 def fill(job) -> tuple:
     from panoworld import inpaint
+    from panoworld.home.inpaint import home_background_layer
+    from panoworld.home.mesh import read_home_sources
     from panoworld.io import read_json
     from panoworld.mesh import load_erp_mesh
 
@@ -30,15 +36,17 @@ def fill(job) -> tuple:
     try:
         mesh = load_erp_mesh(mesh_dir)
         ratio = float(read_json(mesh_dir / "manifest.json", default={}).get("params", {}).get("max_edge_ratio", 12.0))
-        layer = inpaint.build_background_layer(
-            mesh, inpaint.max_translation(job.poses), max_band_deg=job.options.max_band_deg,
-            inpaint_radius=job.inpaint_radius, max_edge_ratio=ratio,
-        )
+        opts = dict(max_band_deg=job.options.max_band_deg, inpaint_radius=job.inpaint_radius, max_edge_ratio=ratio)
+        sources = read_home_sources(mesh_dir)
+        if sources is not None:  # a home: one layer per source panorama (panoworld/home/inpaint.py)
+            layer = home_background_layer(mesh, sources, job.poses, **opts)
+        else:
+            layer = inpaint.build_background_layer(mesh, inpaint.max_translation(job.poses), **opts)
     except (OSError, ValueError, KeyError) as e:
         raise InputError(f"{mesh_dir}/mesh.ply: {e}; rerun the mesh stage") from None
     info = dict(layer_faces=int(layer.layer_faces), layer_pixels=int(layer.synthesized.sum()),
                 layer_s=round(time.perf_counter() - t0, 3))
-    filler = inpaint.WarpInpainter(layer, inpaint_radius=job.inpaint_radius)
+    filler = inpaint.WarpInpainter(layer, inpaint_radius=job.inpaint_radius, reuse=job.options.reuse)
     cond = job.cond
 
     def frames():

@@ -13,6 +13,13 @@ class BaseModel(enum.StrEnum):
     """A tiny Wan-architecture VAE + transformer built here, pre-trained on the clips (stand-in for Wan on a CPU)."""
 
 
+class ScSplit(enum.StrEnum):
+    ITERATION = "iteration"
+    """The paper: b ~ Bernoulli(rho) per iteration, the whole batch goes to one loss."""
+    BATCH = "batch"
+    """Frans et al.'s code: a 1 - rho share of every batch goes to the self-consistency loss, the rest to FM."""
+
+
 @dataclass(kw_only=True)
 class VideoTrainConfig:
     base: BaseModel = BaseModel.WAN
@@ -39,6 +46,8 @@ class VideoTrainConfig:
     """Gradient-norm clip (0 = off)."""
     rho: float = 0.75
     """Probability of routing a step to the flow-matching loss (else self-consistency); 1 = the FM-only ablation."""
+    sc_split: ScSplit = ScSplit.ITERATION
+    """How rho shares training between the losses: iteration (the paper) or batch (Frans et al.'s code)."""
     shortcut_levels: int = 128
     """Finest shortcut step 1/shortcut_levels (dt in {1, 1/2, ..., 2/shortcut_levels})."""
     sigma_levels: int = 0
@@ -140,6 +149,8 @@ SOURCES: dict[str, dict[str, str]] = {
         "warmup_steps": "ours, not in the paper: 100 linear warm-up steps",
         "grad_clip": "ours, not in the paper: clip at 1.0",
         "rho": "paper, Shortcut-model training: rho = 0.75",
+        "sc_split": "paper, Training objective: b ~ Bernoulli(rho) per iteration (the toy uses Frans et al.'s per-batch "
+                    "split: docs/training.md)",
         "sigma_levels": "paper: sigma = t / N_t; N_t = 1000 = Wan's num_train_timesteps",
         "shortcut_levels": "Frans et al., shortcut models: finest step 1/128",
         "teacher_decay": "ours: the paper says 'a frozen teacher'; Frans et al. allow an EMA; 0.99 from a toy study "

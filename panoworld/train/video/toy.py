@@ -46,6 +46,9 @@ class ToyConfig:
     shortcut_levels: int = 8
     """Finest shortcut step 1/shortcut_levels (the trainer: 128). The toy samples at <= 4 shortcut steps, so 8 levels
     (dt in {1, 1/2, 1/4}, the teacher's half of 1/4 is the plain flow) keep the bootstrap chain 3 links long."""
+    sc_split: str = "iteration"
+    """How rho shares the stage between the losses: "iteration" (the paper: each step goes to one loss) or "batch"
+    (Frans et al.: every batch gives a 1 - rho share of its samples to the self-consistency loss)."""
     flow_shift: float = 1.0
     """Timestep shift of the flow sampler (1 = uniform sigmas; Wan's 5 is for high-resolution latents)."""
 
@@ -172,8 +175,20 @@ def train_base(cfg: ToyConfig, data: ToyScenes, seed: int):
     return tr.eval().requires_grad_(False)
 
 
-def train_stage(cfg: ToyConfig, base, data: ToyScenes, *, rho: float, seed: int):
-    """The paper's stage on a copy of `base`: rho = 1 FM only, rho = 0.75 FM + shortcut self-consistency."""
+def passes_per_sample(rho: float) -> float:
+    """Network passes a training sample costs, in forward equivalents (a backward ~ 2 forwards): FM 3; self-consistency
+    5 (the teacher's two forwards without gradient, then the student's forward and backward)."""
+    return 3.0 + 2.0 * (1.0 - rho)
+
+
+def equal_compute_steps(steps: int, rho: float) -> int:
+    """FM-only steps costing what `steps` steps at this rho cost (same batch): 700 for 600 at rho 0.75."""
+    return round(steps * passes_per_sample(rho) / passes_per_sample(1.0))
+
+
+def train_stage(cfg: ToyConfig, base, data: ToyScenes, *, rho: float, seed: int, steps: int | None = None):
+    """The paper's stage on a copy of `base`: rho = 1 FM only, rho = 0.75 FM + shortcut self-consistency;
+    `steps` (default cfg.steps) optimiser steps."""
     tr = copy.deepcopy(base)
     torch.manual_seed(seed + 3)
     params = wt.prepare_for_training(tr, cfg.z + 1, rank=cfg.lora_rank, alpha=float(cfg.lora_rank))
@@ -182,11 +197,11 @@ def train_stage(cfg: ToyConfig, base, data: ToyScenes, *, rho: float, seed: int)
     g = torch.Generator().manual_seed(seed + 3)
     emb = prompt()
     tr.train()
-    for _ in range(cfg.steps):
+    for _ in range(cfg.steps if steps is None else steps):
         bt = data.batch(torch.randint(0, len(data.seeds), (cfg.batch,), generator=g), g)
         loss, _ = wt.shortcut_objective(tr, bt["x0"], bt["cond"], emb.expand(cfg.batch, -1, -1), rho=rho,
                                         anchor=bt["anchor"], generator=g, max_steps=cfg.shortcut_levels,
-                                        teacher=teacher)
+                                        teacher=teacher, split=cfg.sc_split)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 1.0)

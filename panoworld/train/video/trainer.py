@@ -336,6 +336,7 @@ class VideoTrainer:
                 loss, branch = wt.shortcut_objective(
                     tr, x0, cond, embeds.expand(x0.shape[0], -1, -1), rho=cfg.rho, anchor=anchor, generator=gen.g,
                     max_steps=cfg.shortcut_levels, teacher=teacher, sigma_levels=cfg.sigma_levels,
+                    split=cfg.sc_split,
                 )
             opt.zero_grad(set_to_none=True)
             self.rt.backward(loss)
@@ -345,7 +346,8 @@ class VideoTrainer:
             sched.step()
             if teacher is not None:
                 teacher.update()
-            return float(loss.detach()), {"sc": float(branch == "sc"), "lr": sched.get_last_lr()[0]}
+            sc = {"sc": 1.0, "fm": 0.0}.get(branch, 1.0 - cfg.rho)  # "mixed": the batch's self-consistency share
+            return float(loss.detach()), {"sc": sc, "lr": sched.get_last_lr()[0]}
 
         def evaluate(s: int) -> None:
             self.metrics.log(s, "val", phase=2, fm_loss=self._val_loss(tr, True))
