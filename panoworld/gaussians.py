@@ -514,7 +514,6 @@ class ContextSource:
         return len(self.indices)
 
     def frame(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-
         from panoworld.errors import InputError
         from panoworld.poses import load_frames, read_depth_png
 
