@@ -50,13 +50,17 @@ class Params(FusionParams):
     source_pixels: bool = True
     """voxel-fusion: the source view (video frame 0) becomes one Gaussian per pixel (its full detail at the capture
     point); the other frames are voxel-fused only where they see what the source does not."""
-    source_height: int = param(512, ge=0)
+    source_height: int = param(640, ge=0)
     """ERP height of the source view's per-pixel Gaussians (0 = that of the other frames); rows near the poles keep
-    every k-th pixel so kept pixels are about square on the sphere. 512 with source_scale 1.9: 32.3 dB at the capture
-    point vs 29.3 dB at 256 rows (validation seed 1, supersampled render_erp; docs/evaluation.md)."""
+    every k-th pixel so kept pixels are about square on the sphere. 640 with source_scale 1.9: as sharp as 512 rows at
+    the capture point and +0.6 dB on what it sees from ~1-2 m away (validation seed 1; docs/evaluation.md)."""
     source_scale: float = param(1.9, gt=0)
     """Footprint scale of the source's per-pixel Gaussians (scale_factor of the voxel Gaussians otherwise): large
     enough that neighbours leave no see-through cracks between them, small enough to keep the input's detail."""
+    unseen_voxel_size: float = param(0.04, ge=0)
+    """With source_pixels: voxel edge (metres) of what the other frames see that the source does not (0 =
+    voxel_size). That is the generated (disoccluded) content, softer than the input: 4 cm voxels hold it with fewer,
+    larger Gaussians and fewer see-through gaps than 2 cm (docs/evaluation.md, "Away from the capture point")."""
     source_tol: float = param(0.03, gt=0)
     """Observations of the other frames within this relative depth of the source's surface (or in front of it) count
     as seen by the source and are not fused."""
@@ -96,7 +100,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
                                           source_scale=params.source_scale, progress=True)
         elif params.source_pixels:
             result = source_anchored_fusion(frames, params, source_height=params.source_height, tol=params.source_tol,
-                                            source_scale=params.source_scale, progress=True)
+                                            source_scale=params.source_scale,
+                                            unseen_voxel_size=params.unseen_voxel_size, progress=True)
         else:
             result = voxel_fusion(frames, params, progress=True)
     except StageInputError:
