@@ -154,7 +154,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python runner.py", description=__doc__)
     sub = parser.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("run", help="bring a scene's artifacts up to date")
-    p.add_argument("scene", type=Path, help="scene directory (panorama.png|jpg, optional depth.npy|exr|png, scene.yaml)")
+    p.add_argument("scene", type=Path, help="scene directory (panorama.png|jpg, optional depth.npy|exr|png, scene.yaml; or a home: panoramas/, docs/multi.md)")
     _add_run_args(p)
     g = p.add_argument_group("datasets (--all: SCENE is a directory of scene directories; docs/scale.md)")
     g.add_argument("--all", action="store_true", help="run every scene directory under SCENE; failures never stop the others")

@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import numpy as np
 
 from panoworld.eval.groundtruth import open_ground_truth
-from panoworld.eval.roam import BUCKETS, sample_roam_poses
+from panoworld.eval.roam import BUCKETS, sample_roam_poses, source_seen, split_scores
 
 ARTIFACTS = "artifacts"
 
@@ -49,7 +49,8 @@ def build(scene: Path, variant: str, out: Path) -> tuple[Path, float]:
     return out / "gaussians.ply", time.perf_counter() - t0
 
 
-def measure(scene: Path, ply: Path, supersample: int, views: int, height: int, refs: dict) -> dict:
+def measure(scene: Path, ply: Path, supersample: int, views: int, height: int, refs: dict,
+            buckets: list[str] | None = None) -> dict:
     import cv2
 
     from panoworld.metrics import psnr
@@ -65,9 +66,9 @@ def measure(scene: Path, ply: Path, supersample: int, views: int, height: int, r
     row: dict = {"gaussians": len(g.means), "ply_mb": ply.stat().st_size / 2**20}
     times = []
     for b in BUCKETS:
-        if b.key not in roam.poses:
+        if b.key not in roam.poses or (buckets and b.key not in buckets):
             continue
-        ps, cov = [], []
+        ps, cov, split = [], [], {}
         for k, pose in enumerate(roam.poses[b.key]):
             t0 = time.perf_counter()
             r = render_erp(g, pose, height, 2 * height, supersample=supersample)
@@ -77,14 +78,18 @@ def measure(scene: Path, ply: Path, supersample: int, views: int, height: int, r
             if gt.kind == "synthetic":
                 key = (b.key, k)
                 if key not in refs:
-                    refs[key] = gt.render(pose, height, 2 * height)[0]
-                ps.append(psnr(img, refs[key]))
+                    refs[key] = gt.render(pose, height, 2 * height)[0], source_seen(gt, pose, height, 2 * height)
+                ps.append(psnr(img, refs[key][0]))
+                for name, v in split_scores(img, refs[key][0], refs[key][1], r.alpha.numpy()).items():
+                    split.setdefault(name, []).append(v)
             if b.key == "d0" and k == 0:
                 pano = next(p for p in (scene / f"panorama.{e}" for e in ("png", "jpg", "jpeg")) if p.is_file())
                 ref = cv2.resize(load_frames([pano])[0], (2 * height, height), interpolation=cv2.INTER_AREA)
                 row["d0_vs_input"] = psnr(img, ref)
         row[f"{b.key}_psnr"] = float(np.mean(ps)) if ps else None
         row[f"{b.key}_cov"] = float(np.mean(cov))
+        for name, vals in split.items():
+            row[f"{b.key}_{name.removeprefix('erp_')}"] = float(np.mean(vals))
     row["render_s"] = float(np.median(times))
     return row
 
@@ -97,6 +102,7 @@ def main() -> int:
     ap.add_argument("--supersample", type=int, nargs="+", default=[2])
     ap.add_argument("--views", type=int, default=2, help="roam views per bucket")
     ap.add_argument("--height", type=int, default=256)
+    ap.add_argument("--buckets", nargs="*", help="only these roam buckets (e.g. d0 d1 d2)")
     ap.add_argument("--json", type=Path)
     a = ap.parse_args()
     import torch
@@ -104,7 +110,7 @@ def main() -> int:
     torch.set_num_threads(1)
     variants = a.variant or ["artifact"]
     rows = []
-    keys = [b.key for b in BUCKETS]
+    keys = [b.key for b in BUCKETS if not a.buckets or b.key in a.buckets]
     print(f"{'scene':<10} {'variant':<34} {'ss':>2} {'N':>8} {'MB':>6} {'fuse s':>6} {'rend s':>6} "
           + " ".join(f"{k + ' dB':>8} {'cov':>6}" for k in keys) + f" {'vs in':>6}")
     with tempfile.TemporaryDirectory(prefix="gs-variants-") as tmp:
@@ -113,7 +119,7 @@ def main() -> int:
             for vi, variant in enumerate(variants):
                 ply, fuse_s = build(scene, variant, Path(tmp) / scene.name / str(vi))
                 for s in a.supersample:
-                    r = measure(scene, ply, s, a.views, a.height, refs)
+                    r = measure(scene, ply, s, a.views, a.height, refs, a.buckets)
                     r.update(scene=scene.name, variant=variant, supersample=s, fuse_s=fuse_s)
                     rows.append(r)
 
@@ -124,6 +130,10 @@ def main() -> int:
                           f"{fuse_s:6.1f} {r['render_s']:6.2f} "
                           + " ".join(f"{f(r.get(k + '_psnr')):>8} {f(r.get(k + '_cov'), 4):>6}" for k in keys)
                           + f" {f(r.get('d0_vs_input')):>6}", flush=True)
+                    print(f"{'':<10} {'seen / unseen dB, unseen px, err share':<34} "
+                          + " ".join(f"{f(r.get(k + '_psnr_seen'))}/{f(r.get(k + '_psnr_unseen'))} "
+                                     f"{f(r.get(k + '_unseen_fraction'), 3)} {f(r.get(k + '_unseen_error_share'), 3)}"
+                                     for k in keys), flush=True)
     if a.json:
         a.json.write_text(json.dumps(rows, indent=1) + "\n")
     return 0

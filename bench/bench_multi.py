@@ -1,6 +1,7 @@
-"""Benchmark of multi-panorama registration (issue #27): synthetic homes of >= 3 rooms with 2, 4 and 8 panoramas ->
+"""Benchmark of multi-panorama homes (issue #27): synthetic homes of >= 3 rooms with 2, 4 and 8 panoramas ->
 registration error against ground truth (translation cm, rotation deg), registered fraction, time and peak memory,
-and whether one NavMesh over the fused mesh holds every registered capture point."""
+and whether one NavMesh over the fused mesh holds every registered capture point. With --pipeline: the whole
+`runner.py run` on each home (wall and CPU seconds, peak memory, NavMesh, Gaussian render at every capture pose)."""
 
 from __future__ import annotations
 
@@ -109,6 +110,71 @@ def navmesh_figures(scene: Path, est: dict[str, np.ndarray]) -> dict:
             "on_navmesh": int(sum(on.values()))}
 
 
+def run_pipeline_one(seed: int, k: int, height: int, work: Path, preset: str, psnr_height: int) -> dict:
+    """`runner.py run` on one synthetic home: wall and CPU seconds (the runner and its stages), each stage's wall
+    seconds and the largest stage peak memory, registration error, capture points on the NavMesh, the trajectory's
+    size and the Gaussians rendered at every capture pose against its panorama (PSNR at psnr_height rows)."""
+    import resource
+
+    from panoworld.home.layout import capture_poses
+    from panoworld.home.quality import capture_psnr
+
+    params = home_params(preset)
+    params = replace(params, render=replace(params.render, pano_height=height))
+    home = generate_home(seed, k, preset, params=params)
+    scene = write_home(home, work / f"home_{seed}_{k}", params)
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "runner.py", "run", str(scene), "--preset", preset, "--json"], cwd=ROOT,
+                          capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if proc.returncode != 0:
+        raise SystemExit(f"runner failed on seed {seed} k {k}:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
+    stages = {r["stage"]: r for r in json.loads(proc.stdout)["stages"]}
+    arts = scene / "artifacts"
+    est = capture_poses(arts / "register")
+    gt = {n: np.asarray(T) for n, T in json.loads((scene / "gt" / "poses.json").read_text()).items()}
+    errs = [v for n, v in pose_errors(est, gt).items() if n != sorted(est)[0]]
+    nav = json.loads((arts / "navmesh" / "manifest.json").read_text())["info"]
+    traj = json.loads((arts / "trajectory" / "manifest.json").read_text())["info"]
+    gs = json.loads((arts / "gaussians" / "manifest.json").read_text())["info"]
+    panos = {n: read_panorama(scene / "panoramas" / f"{n}.png") for n in est}
+    scores = capture_psnr(arts / "gaussians" / "gaussians.ply", est, panos, height=psnr_height)
+    return {
+        "seed": seed, "panoramas": k, "rooms": len(set(home.rooms)), "registered": len(est),
+        "trans_cm_max": max(e[0] for e in errs), "rot_deg_max": max(e[1] for e in errs),
+        "on_navmesh": int(sum(nav["capture_points_on_navmesh"].values())), "navmesh_area_m2": nav["area_m2"],
+        "frames": traj["frames"], "unreached_captures": traj["plan"]["unreached_captures"],
+        "num_gaussians": gs["num_gaussians"], "capture_psnr": scores, "capture_psnr_min": min(scores.values()),
+        "wall_s": wall, "cpu_s": (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime),
+        "peak_rss_mb": max(r["peak_rss_mb"] or 0 for r in stages.values()),
+        "stage_s": {n: round(r["seconds"], 1) for n, r in stages.items()},
+    }
+
+
+def pipeline_main(args, seeds) -> int:
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench_home_") as tmp:
+        for k in args.panoramas:
+            for seed in seeds:
+                rows.append(run_pipeline_one(seed, k, args.height, Path(tmp), args.preset, args.psnr_height))
+                print(json.dumps(rows[-1]), file=sys.stderr)
+    if args.json:
+        print(json.dumps({"height": args.height, "preset": args.preset, "seeds": list(seeds), "rows": rows}, indent=1))
+        return 0
+    print(f"| seed | panoramas | rooms | registered | trans cm / rot deg max | on NavMesh | frames | Gaussians | "
+          f"capture PSNR dB min (each) | wall s | CPU s | peak MB |  (preset {args.preset}, height {args.height})")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    for r in rows:
+        each = ", ".join(f"{v:.1f}" for v in r["capture_psnr"].values())
+        print(f"| {r['seed']} | {r['panoramas']} | {r['rooms']} | {r['registered']} | {r['trans_cm_max']:.2f} / "
+              f"{r['rot_deg_max']:.3f} | {r['on_navmesh']} of {r['registered']} | {r['frames']} | "
+              f"{r['num_gaussians']} | {r['capture_psnr_min']:.2f} ({each}) | {r['wall_s']:.0f} | {r['cpu_s']:.0f} | "
+              f"{r['peak_rss_mb']:.0f} |")
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--panoramas", type=int, nargs="+", default=[2, 4, 8])
@@ -120,8 +186,13 @@ def main() -> int:
     ap.add_argument("--depth-noise", type=float, default=0.0, help="relative per-pixel depth noise (smooth field std)")
     ap.add_argument("--no-navmesh", action="store_true", help="skip the fused mesh and NavMesh figures")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
+    ap.add_argument("--pipeline", action="store_true", help="run the whole pipeline (runner.py run) on each home")
+    ap.add_argument("--preset", default="default", help="--pipeline: the runner's preset")
+    ap.add_argument("--psnr-height", type=int, default=256, help="--pipeline: rows of the capture-pose renders")
     args = ap.parse_args()
     seeds = args.seeds or (TEST_SEEDS if args.split == "test" else VALIDATION_SEEDS)
+    if args.pipeline:
+        return pipeline_main(args, seeds)
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_multi_") as tmp:
         for k in args.panoramas:

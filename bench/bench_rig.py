@@ -59,7 +59,7 @@ def one(scene, kind, height: int) -> dict:
     return row
 
 
-def floor_from_afar(seed: int, height: int, work: Path, sets: list[str]) -> dict:
+def floor_from_afar(seed: int, height: int, work: Path, sets: list[str], rig_kind: str = "tripod") -> dict:
     """Run the pipeline (ci-tiny preset + sets) on a tripod scene with the rig removed and kept; render the
     Gaussians from the ground-truth track pose about 1 m from the capture point and score the floor within 0.8 m of
     the point under the capture camera (where the rig stood) against the rig-free render (PSNR)."""
@@ -83,10 +83,10 @@ def floor_from_afar(seed: int, height: int, work: Path, sets: list[str]) -> dict
     near = np.isfinite(tdepth) & (np.abs(pts[..., 1] - floor_y) < 2e-3) & (
         np.hypot(pts[..., 0] - T0[0, 3], pts[..., 2] - T0[2, 3]) < 0.8)
     p = params_for("ci-tiny")
-    p = dc_replace(p, render=dc_replace(p.render, pano_height=height, write_frames=False, rig="tripod"))
-    out = {"seed": seed, "distance_m": float(dist[k]), "floor_pixels": int(near.sum())}
+    p = dc_replace(p, render=dc_replace(p.render, pano_height=height, write_frames=False, rig=rig_kind))
+    out = {"seed": seed, "rig": rig_kind, "distance_m": float(dist[k]), "floor_pixels": int(near.sum())}
     for mode in ("auto", "keep"):
-        d = work / f"seed{seed}_{mode}"
+        d = work / f"seed{seed}_{rig_kind}_{mode}"
         if not (d / "panorama.png").is_file():
             write_scene(scene, d, p, progress=False)
         t0 = time.perf_counter()
@@ -125,12 +125,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pipeline", action="store_true",
                     help="instead: the Gaussians rendered ~1 m away vs rig-free truth on the floor, rig removed / kept")
     ap.add_argument("--work", type=Path, default=Path("/tmp/panoworld_bench_rig"), help="pipeline scenes go here")
+    ap.add_argument("--rig", default="tripod", choices=("tripod", "tripod-shadow"), help="the rig of --pipeline")
     ap.add_argument("--set", dest="sets", action="append", default=[], help="extra STAGE.PARAM=VALUE for --pipeline")
     args = ap.parse_args(argv)
     if args.pipeline:
-        rows = [floor_from_afar(seed, args.height, args.work, args.sets) for seed in parse_seeds(args.seeds)]
+        rows = [floor_from_afar(seed, args.height, args.work, args.sets, args.rig) for seed in parse_seeds(args.seeds)]
         print(json.dumps(rows, indent=1) if args.json else "")
         if not args.json:
+            print(f"rig: {args.rig}\n")
             print("| seed | pose distance m | floor px | floor PSNR rig removed | floor PSNR rig kept |\n|---|---|---|---|---|")
             for r in rows:
                 cells = [fmt(r["psnr_" + m]) if r.get("psnr_" + m) is not None else "failed (" + r["failed_" + m] + ")"

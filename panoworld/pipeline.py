@@ -24,7 +24,7 @@ from panoworld.errors import InputError, PipelineError
 from panoworld.hub import resolve as hub
 from panoworld.image_io import check_image
 from panoworld.params import flatten, suggest
-from panoworld.register.inputs import is_multi_scene
+from panoworld.register.inputs import find_multi_scene, is_multi_scene
 from panoworld.stage import (
     LOCK_ENV,
     LOCK_FILE,
@@ -217,21 +217,28 @@ def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
         raise PipelineError(f"{root}: scene directory not found")
     files: dict[str, Path | None] = {}
     for key, names in pipeline.scene_files.items():
-        files[key] = next((root / n for n in names if (root / n).is_file()), None)
+        files[key] = next((root / n for n in names if (root / n).exists()), None)
     pano = files.get("panorama")
-    if pano is None:
+    if is_multi_scene(root) and (pano or files.get("depth")):
+        raise PipelineError(f"{root}: holds both panoramas/ (a home) and {(pano or files['depth']).name} (one "
+                            "panorama); keep one layout (docs/multi.md)")
+    if pano is None and is_multi_scene(root):  # a home: SCENE/panoramas/ (docs/multi.md)
+        try:
+            panos = list(find_multi_scene(root).panoramas.values())
+        except InputError as e:
+            raise PipelineError(str(e)) from None
+    elif pano is None:
         names = pipeline.scene_files.get("panorama", [])
-        if is_multi_scene(root):
-            raise PipelineError(f"{root}: a multi-panorama scene (panoramas/) is not run by the runner yet; register it "
-                                f"with python -m stages.register --scene {root} --out {root}/artifacts/register "
-                                "(docs/multi.md), or put one panorama in panorama.png")
-        raise PipelineError(f"{root}: no panorama; expected one of {', '.join(names)}")
-    try:  # fully decoded here, so a truncated or corrupt panorama is refused before anything is written
-        w, h = check_image(pano, "panorama", remember=True).oriented  # the depth stage applies EXIF orientation too
-    except InputError as e:
-        raise PipelineError(str(e)) from None
-    if w != 2 * h:
-        raise PipelineError(f"{pano}: {w}x{h} is not an equirectangular panorama (width must be exactly 2x height)")
+        raise PipelineError(f"{root}: no panorama; expected one of {', '.join(names)}, or panoramas/ (docs/multi.md)")
+    else:
+        panos = [pano]
+    for pano in panos:
+        try:  # fully decoded here, so a truncated or corrupt panorama is refused before anything is written
+            w, h = check_image(pano, "panorama", remember=True).oriented  # the depth stage applies EXIF orientation too
+        except InputError as e:
+            raise PipelineError(str(e)) from None
+        if w != 2 * h:
+            raise PipelineError(f"{pano}: {w}x{h} is not an equirectangular panorama (width must be exactly 2x height)")
     config: dict[str, Any] = {}
     cfg_path = root / SCENE_CONFIG
     try:
@@ -455,6 +462,9 @@ def stage_state(node: StageNode, scene: Scene, params: Any) -> tuple[bool, str]:
         return False, problem
     try:
         digests = {r.name: input_digest(r.name, node.spec.inputs[r.name], p) for r, p in zip(node.inputs, _input_paths(node, scene).values())}
+        for name, spec in node.spec.inputs.items():  # an optional input the DAG does not wire (the stage sees None)
+            if name not in digests:
+                digests[name] = input_digest(name, spec, None)
     except InputError as e:
         return False, f"input not ready: {e}"
     try:

@@ -62,19 +62,30 @@ class SourceVisibility:
         self.cam_from_world = invert_pose(np.asarray(world_from_cam, np.float64))
         self.tol = tol
 
-    def explained(self, points: np.ndarray) -> np.ndarray:
-        """(M,) bool for world points (M, 3): on the source's visible surfaces or in front of them (within tol of its
-        depth, relative, or nearer), i.e. the per-pixel Gaussians already stand for them or they would float in
-        front of what the source saw. Points behind the source's surfaces or where it has no depth are not."""
+    def _lookup(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(distance of world points (M, 3) from the source, the source's depth along their ray (NaN = none))."""
         p = np.einsum("ij,mj->mi", self.cam_from_world[:3, :3], points) + self.cam_from_world[:3, 3]
         dist = np.linalg.norm(p, axis=1)
         h, w = self.depth.shape
         u, v = erp_pixel_from_dir(p / np.maximum(dist, 1e-12)[:, None], h, w)
         j = np.mod(np.floor(u).astype(np.int64), w)
         i = np.clip(np.floor(v).astype(np.int64), 0, h - 1)
-        d_src = self.depth[i, j]
+        return dist, self.depth[i, j]
+
+    def explained(self, points: np.ndarray) -> np.ndarray:
+        """(M,) bool for world points (M, 3): on the source's visible surfaces or in front of them (within tol of its
+        depth, relative, or nearer), i.e. the per-pixel Gaussians already stand for them or they would float in
+        front of what the source saw. Points behind the source's surfaces or where it has no depth are not."""
+        dist, d_src = self._lookup(points)
         with np.errstate(invalid="ignore"):
             return np.isfinite(d_src) & (dist <= d_src * (1.0 + self.tol))
+
+    def poking_through(self, g: Gaussians, reach: float = 3.0) -> np.ndarray:
+        """(N,) bool: Gaussians behind the source's surface by less than reach x their largest scale, i.e. whose
+        splat reaches through a surface the source saw (inside a wall, they show only as a smear on it)."""
+        dist, d_src = self._lookup(np.asarray(g.means, np.float64))
+        with np.errstate(invalid="ignore"):
+            return np.isfinite(d_src) & (dist - d_src < reach * np.asarray(g.scales).max(1))
 
     def keep_unexplained(self, obs: Observations) -> Observations:
         return obs.subset(torch.from_numpy(~self.explained(obs.points.numpy())))
@@ -87,12 +98,13 @@ def merge_gaussians(parts: list[Gaussians]) -> Gaussians:
 
 
 def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, source_height: int = 0, tol: float = 0.03,
-                           source_scale: float | None = None, thin_poles: bool = True,
+                           source_scale: float | None = None, unseen_voxel_size: float = 0.0, thin_poles: bool = True,
                            progress: bool = False) -> FusionResult:
     """Per-pixel Gaussians of the source view (video frame 0, at source_height rows; 0 = as the other frames) plus
-    voxel fusion of what the other frames see that the source does not (SourceVisibility with tolerance tol): the
-    capture point keeps the input's full detail, the rest of the room is fused as before. source_scale: the per-pixel
-    Gaussians' scale_factor (None = params.scale_factor). Without frame 0 among the frames it is plain voxel fusion."""
+    voxel fusion of what the other frames see that the source does not (SourceVisibility with tolerance tol) in voxels
+    of unseen_voxel_size (0 = params.voxel_size), less those poking through the source's surfaces: the capture point keeps the input's full detail, the rest of the
+    room is fused as before. source_scale: the per-pixel Gaussians' scale_factor (None = params.scale_factor). Without
+    frame 0 among the frames it is plain voxel fusion."""
     if not frames.indices or frames.indices[0] != 0:
         return voxel_fusion(frames, params, progress=progress)
     src = replace(frames, height=min(source_height or frames.height, frames.stored_height))
@@ -103,7 +115,10 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
                    world_from_cam=frames.world_from_cam[1:], indices=frames.indices[1:])
     if not len(rest):
         return FusionResult(pix, len(pix), 0, 0, bbox_extent(pix.means), params.voxel_size)
-    fused = voxel_fusion(rest, params, progress=progress, select=SourceVisibility(depth, pose, tol).keep_unexplained)
-    g = merge_gaussians([pix, fused.gaussians])
-    return FusionResult(g, fused.num_observations + len(pix), fused.num_voxels, fused.num_pruned, bbox_extent(g.means),
-                        params.voxel_size, num_source=len(pix))
+    vox_params = replace(params, voxel_size=unseen_voxel_size) if unseen_voxel_size > 0 else params
+    vis = SourceVisibility(depth, pose, tol)
+    fused = voxel_fusion(rest, vox_params, progress=progress, select=vis.keep_unexplained)
+    poking = vis.poking_through(fused.gaussians)
+    g = merge_gaussians([pix, fused.gaussians.subset(~poking)])
+    return FusionResult(g, fused.num_observations + len(pix), fused.num_voxels, fused.num_pruned + int(poking.sum()),
+                        bbox_extent(g.means), vox_params.voxel_size, num_source=len(pix))

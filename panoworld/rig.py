@@ -14,6 +14,7 @@ from panoworld.conventions import erp_dirs, erp_pixel_from_dir, erp_pixel_solid_
 from panoworld.depth import PerspectiveView, render_view
 from panoworld.errors import InputError
 from panoworld.rig_inpaint import inpaint_plane
+from panoworld.rig_shadow import apply_gain, linear_luminance, shadow_gain
 
 FACE_FOV_DEG = 96.0
 """Field of view of the downward face (48 degrees from the nadir at its sides)."""
@@ -87,10 +88,27 @@ def detect_rig(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndarr
     return second if second.found else first
 
 
-def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
-    H, W = rgb.shape[:2]
-    view = nadir_view(H)
-    face = render_view(rgb, view)
+@dataclass
+class NadirFace:
+    """The downward face of a panorama and what detection measures on it."""
+
+    view: PerspectiveView
+    face: np.ndarray
+    """(size, size, 3) uint8."""
+    theta: np.ndarray
+    """Degrees from the nadir per face pixel."""
+    phi: np.ndarray
+    """Azimuth (radians) per face pixel."""
+    on_floor: np.ndarray
+    """Face pixels on the floor plane by depth (all True without depth or floor height)."""
+    ring_floor: np.ndarray
+    """The floor ring RING_DEG's on-floor pixels: what 'floor' looks like."""
+    depth: np.ndarray | None = None
+    valid: np.ndarray | None = None
+
+
+def nadir_face(rgb: np.ndarray, depth: np.ndarray | None, valid: np.ndarray | None, floor_m: float | None) -> NadirFace:
+    view = nadir_view(rgb.shape[0])
     theta, phi = face_polar(view)
     on_floor = np.ones(theta.shape, bool)
     fd = fv = None
@@ -100,12 +118,57 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
             drop = fd * np.cos(np.deg2rad(theta))  # vertical distance below the camera
             on_floor = ~fv | (np.abs(drop - floor_m) < 0.05 * floor_m)
     ring = (theta >= RING_DEG[0]) & (theta < RING_DEG[1])
-    ring_floor = ring & on_floor
-    stats: dict = {"ring_floor_share": float(ring_floor.sum() / max(ring.sum(), 1))}
-    if stats["ring_floor_share"] < 0.3:
-        return RigDetection(False, f"the floor ring {RING_DEG[0]:.0f}-{RING_DEG[1]:.0f} deg from the nadir is mostly "
-                            "not floor: nothing to compare the nadir with", stats=stats)
-    source = floor_coloured(cv2.cvtColor(cv2.medianBlur(face, 3), cv2.COLOR_RGB2LAB), ring_floor) & on_floor
+    return NadirFace(view, render_view(rgb, view), theta, phi, on_floor, ring & on_floor, fd, fv)
+
+
+def no_floor_ring(nf: NadirFace) -> RigDetection | None:
+    """The refusal when the floor ring is mostly not floor (nothing to compare the nadir with), else None."""
+    ring = (nf.theta >= RING_DEG[0]) & (nf.theta < RING_DEG[1])
+    share = float(nf.ring_floor.sum() / max(ring.sum(), 1))
+    if share >= 0.3:
+        return None
+    return RigDetection(False, f"the floor ring {RING_DEG[0]:.0f}-{RING_DEG[1]:.0f} deg from the nadir is mostly "
+                        "not floor: nothing to compare the nadir with", stats={"ring_floor_share": share})
+
+
+def face_shadow(nf: NadirFace, face: np.ndarray, rig_px: np.ndarray) -> tuple[np.ndarray, float, dict]:
+    """rig_shadow.shadow_gain on the face's floor (by depth and chroma), the rig pixels rig_px left out."""
+    chroma = _floor_chroma(face, nf.ring_floor)
+    lum = linear_luminance(face)
+    not_floor = rig_px & (~nf.on_floor | ~chroma | (lum < 0.3 * np.median(lum[nf.ring_floor])))
+    return shadow_gain(face, _dilate(not_floor, nf.view), nf.on_floor & chroma, nf.theta, nf.phi, nf.view.focal)
+
+
+def floor_source(face: np.ndarray, nf: NadirFace) -> np.ndarray:
+    """Face pixels the inpainting may copy floor texture from: floor-coloured and on the floor."""
+    return floor_coloured(cv2.cvtColor(cv2.medianBlur(face, 3), cv2.COLOR_RGB2LAB), nf.ring_floor) & nf.on_floor
+
+
+def seen_object(nf: NadirFace, comp: np.ndarray, floor_m: float | None) -> RigDetection | None:
+    """The refusal for a candidate that is a seen object (reaches CAP_DEG, or a horizontal surface above the
+    floor in depth), else None."""
+    px_deg = np.rad2deg(1.0 / nf.view.focal)
+    if (comp & (nf.theta > CAP_DEG - 2 * px_deg - 0.5)).sum() > 3:
+        return RigDetection(False, f"the region under the camera reaches {CAP_DEG:.0f} deg from the nadir: larger than "
+                            "any rig (a rug, furniture, a floor pattern), kept")
+    table = _horizontal_surface(nf.theta[comp], nf.depth[comp] if nf.depth is not None else None,
+                                nf.valid[comp] if nf.valid is not None else None, floor_m)
+    if table is not None:
+        return RigDetection(False, f"the region under the camera is a horizontal surface {table:.2f} m below the "
+                            f"camera, above the floor: a seen object (a table, a stool), kept",
+                            stats={"surface_below_camera_m": table})
+    return None
+
+
+def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
+    H, W = rgb.shape[:2]
+    nf = nadir_face(rgb, depth, valid, floor_m)
+    refusal = no_floor_ring(nf)
+    if refusal is not None:
+        return refusal
+    view, face, theta, phi, ring_floor = nf.view, nf.face, nf.theta, nf.phi, nf.ring_floor
+    stats: dict = {}
+    source = floor_source(face, nf)
     black = _black_mask(face, theta, view)
     if black is not None:
         extent = float(np.percentile(theta[black], 98))
@@ -117,10 +180,11 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     if comp is None:
         return RigDetection(False, "nothing at the nadir differs in colour from the floor ring around it", stats=stats)
     # A soft shadow around the rig is divided out first, so that only the rig itself is measured below.
-    dil = cv2.dilate(comp.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))) > 0
-    gain, sh_deg = _shadow(face, dil, ring_floor, theta, phi, on_floor)
+    gain, sh_deg, sh_stats = face_shadow(nf, face, comp)
+    stats.update(sh_stats)
     if sh_deg > 0:
-        face = _apply_gain(face, gain)
+        face = apply_gain(face, gain)
+        source = floor_source(face, nf)
         comp = _nadir_component(face, theta, ring_floor, view, sigma)
         if comp is None:
             return RigDetection(False, f"a soft shadow at the nadir ({sh_deg:.0f} deg) but nothing under it that "
@@ -136,14 +200,10 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     occ_in, arms_in = _azimuth_occupancy(p[(t > 0.3 * extent) & (t < 0.7 * extent)])
     occ_out, arms_out = _azimuth_occupancy(p[(t > 0.45 * extent) & (t < 0.85 * extent)])
     stats.update(occupancy_inner=occ_in, occupancy_outer=occ_out, arms=arms_out)
-    if (comp & (theta > CAP_DEG - 2 * px_deg - 0.5)).sum() > 3:
-        return RigDetection(False, f"the region under the camera reaches {CAP_DEG:.0f} deg from the nadir: larger than "
-                            "any rig (a rug, furniture, a floor pattern), kept", stats=stats)
-    table = _horizontal_surface(t, fd[comp] if fd is not None else None, fv[comp] if fv is not None else None, floor_m)
-    if table is not None:
-        stats["surface_below_camera_m"] = table
-        return RigDetection(False, f"the region under the camera is a horizontal surface {table:.2f} m below the "
-                            f"camera, above the floor: a seen object (a table, a stool), kept", stats=stats)
+    refusal = seen_object(nf, comp, floor_m)
+    if refusal is not None:
+        refusal.stats = {**stats, **refusal.stats}
+        return refusal
     yy, xx = np.nonzero(comp)
     r_mean = float(np.mean(np.hypot(xx + 0.5 - 0.5 * view.size, yy + 0.5 - 0.5 * view.size))) + 1e-9
     off = float(np.hypot(xx.mean() + 0.5 - 0.5 * view.size, yy.mean() + 0.5 - 0.5 * view.size)) / r_mean
@@ -183,6 +243,13 @@ def _cast_shadows(lab: np.ndarray, obj: np.ndarray, theta: np.ndarray, view: Per
     _, labels = cv2.connectedComponents(dark | obj.astype(np.uint8), connectivity=8)
     keep = np.unique(labels[obj])
     return np.isin(labels, keep[keep > 0]) & (dark > 0)
+
+
+def _floor_chroma(face: np.ndarray, ring_floor: np.ndarray) -> np.ndarray:
+    """Face pixels of a chroma (Lab a, b) the floor ring shows, at any lightness: floor, shadowed or not."""
+    lab = cv2.cvtColor(cv2.medianBlur(face, 3), cv2.COLOR_RGB2LAB)
+    lab[..., 0] = 128
+    return floor_coloured(lab, ring_floor)
 
 
 def _dilate(mask: np.ndarray, view: PerspectiveView) -> np.ndarray:
@@ -251,12 +318,6 @@ def _nadir_component(face: np.ndarray, theta: np.ndarray, ring_floor: np.ndarray
     return comp
 
 
-def _apply_gain(face: np.ndarray, gain: np.ndarray) -> np.ndarray:
-    """Multiply a uint8 sRGB face by a light factor (size, size) in linear RGB."""
-    lin = (face.astype(np.float32) / 255.0) ** 2.2 * gain[..., None]
-    return np.clip(np.rint(255.0 * np.clip(lin, 0, 1) ** (1 / 2.2)), 0, 255).astype(np.uint8)
-
-
 def _azimuth_occupancy(phi: np.ndarray, bins: int = 72) -> tuple[float, int]:
     """Share of azimuth bins holding pixels, and the number of circular runs of occupied bins (arms)."""
     if len(phi) == 0:
@@ -278,51 +339,21 @@ def _horizontal_surface(theta, fd, fv, floor_m) -> float | None:
     return med if TABLE_MIN_GAP_M <= med < 0.95 * floor_m else None
 
 
-def _shadow(face: np.ndarray, obj: np.ndarray, ring_floor: np.ndarray, theta: np.ndarray, phi: np.ndarray,
-            floor: np.ndarray) -> tuple[np.ndarray, float]:
-    """A soft shadow centred under the rig: (gain (size, size) >= 1 that divides it out, its extent in degrees).
-
-    The radial profile of linear floor luminance (median per degree from the nadir, rig pixels left out) against
-    the ring's median: a shadow darkens it by >= 8 % near the nadir, in at least 6 of 8 azimuth sectors, and the
-    profile recovers before CAP_DEG. Lighting that is not centred on the nadir (a wall's shadow) fails the
-    sectors test; no shadow -> gain 1 everywhere, extent 0."""
-    lum = ((face.astype(np.float32) / 255.0) ** 2.2).mean(-1)
-    use = floor & ~obj & (theta < CAP_DEG)
-    ref = float(np.median(lum[ring_floor]))
-    nb = int(CAP_DEG)
-    tb = theta.astype(int)
-    prof = np.full(nb, np.nan)
-    for k in range(nb):
-        sel = use & (tb == k)
-        if sel.sum() >= 8:
-            prof[k] = np.median(lum[sel]) / max(ref, 1e-6)
-    ok = np.isfinite(prof)
-    if ok.sum() < nb // 2:
-        return np.ones(theta.shape, np.float32), 0.0
-    prof = np.interp(np.arange(nb), np.nonzero(ok)[0], prof[ok])
-    prof = np.minimum(ndimage.uniform_filter1d(prof, 3, mode="nearest"), 1.0)
-    lit = np.nonzero(prof >= 0.97)[0]
-    extent = float(lit[0]) if len(lit) else float(nb)
-    if prof[: max(int(extent) // 2, 1)].min() > 0.92 or extent >= nb - 1:
-        return np.ones(theta.shape, np.float32), 0.0
-    sector = ((phi + np.pi) / (2 * np.pi) * 8).astype(int) % 8
-    inner = use & (theta < max(extent / 2, 2.0))
-    ratios = np.array([np.median(lum[inner & (sector == k)]) / ref for k in range(8) if (inner & (sector == k)).sum() >= 4])
-    if (ratios < 0.95).sum() < 6 or np.ptp(ratios) > 0.25 * ratios.mean():
-        return np.ones(theta.shape, np.float32), 0.0
-    gain = 1.0 / np.interp(theta, np.arange(nb) + 0.5, prof)
-    return np.where(theta < extent, gain, 1.0).astype(np.float32), extent
+def face_to_erp(values: np.ndarray, view: PerspectiveView, H: int, W: int, outside: float = 0.0) -> np.ndarray:
+    """Face values (size, size[, C]) float -> (H, W[, C]) ERP, bilinear; outside where a pixel does not see the face."""
+    out = np.full((H, W, *values.shape[2:]), outside, np.float32)
+    rows = _cap_rows(H, view)
+    px, py, cos = view.project(erp_dirs(H, W, np.float64)[rows])
+    m = cv2.remap(values.astype(np.float32), np.nan_to_num(px, nan=-10).astype(np.float32),
+                  np.nan_to_num(py, nan=-10).astype(np.float32), cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                  borderValue=outside)
+    out[rows] = np.where((cos > 0).reshape(cos.shape + (1,) * (values.ndim - 2)), m, outside)
+    return out
 
 
 def face_to_erp_mask(face_mask: np.ndarray, view: PerspectiveView, H: int, W: int) -> np.ndarray:
     """A face mask (size, size) bool -> the ERP pixels (H, W) whose centre samples it (> 0.5 bilinear)."""
-    out = np.zeros((H, W), bool)
-    rows = _cap_rows(H, view)
-    px, py, cos = view.project(erp_dirs(H, W, np.float64)[rows])
-    m = cv2.remap(face_mask.astype(np.float32), np.nan_to_num(px, nan=-10).astype(np.float32),
-                  np.nan_to_num(py, nan=-10).astype(np.float32), cv2.INTER_LINEAR, borderValue=0)
-    out[rows] = (m > 0.5) & (cos > 0)
-    return out
+    return face_to_erp(face_mask.astype(np.float32), view, H, W) > 0.5
 
 
 def _cap_rows(H: int, view: PerspectiveView) -> slice:
@@ -357,23 +388,17 @@ def remove_rig(rgb: np.ndarray, det: RigDetection) -> np.ndarray:
     face = render_view(rgb, view).astype(np.float32)
     obj = erp_mask_to_face(det.mask, view)
     obj = cv2.dilate(obj.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    theta, _ = face_polar(view)
     lin = (face / 255.0) ** 2.2
     if det.shadow_gain is not None:
         lin = lin * det.shadow_gain[..., None]
     source = det.source if det.source is not None and det.source.shape == obj.shape else np.ones_like(obj)
     clean = inpaint_plane(np.clip(lin, 0, 1) ** (1 / 2.2) * 255.0, obj, source)
-    rows = _cap_rows(H, view)
-    px, py, cos = view.project(erp_dirs(H, W, np.float64)[rows])
-    mx = np.nan_to_num(px, nan=-10).astype(np.float32)
-    my = np.nan_to_num(py, nan=-10).astype(np.float32)
-    back = cv2.remap(clean, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    back = face_to_erp(clean, view, H, W)
     out = rgb.copy()
-    m = det.mask | (det.shadow if det.shadow is not None else False)
-    sub = out[rows]
-    mm = m[rows] & (cos > 0)
-    sub[mm] = np.clip(np.rint(back[mm]), 0, 255).astype(np.uint8)
-    out[rows] = sub
+    out[det.mask] = np.clip(np.rint(back[det.mask]), 0, 255).astype(np.uint8)
+    if det.shadow is not None and det.shadow_gain is not None:  # relit where it is: the texture is not resampled
+        sh = det.shadow & ~det.mask
+        out[sh] = apply_gain(rgb[sh], face_to_erp(det.shadow_gain, view, H, W, 1.0)[sh])
     return out
 
 
@@ -402,8 +427,9 @@ def nadir_crop(rgb: np.ndarray, size: int = 192, fov_deg: float = 70.0) -> np.nd
 
 
 def rig_step(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, floor_m: float | None, *,
-             user_mask: Path | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, RigDetection]:
-    """Detect (or take the user's mask) and remove the rig: (rgb, depth, valid, info, detection). Inside the rig
+             user_mask: Path | None = None, detect=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, RigDetection]:
+    """Detect with detect(rgb, depth, valid, floor_m) (default detect_rig), or take the user's mask, and remove the
+    rig: (rgb, depth, valid, info, detection). Inside the rig
     mask depth comes from the floor plane floor_m below the camera (invalid when no floor was found); outside the
     masks nothing changes (no rig: the very same arrays)."""
     H, W = rgb.shape[:2]
@@ -411,7 +437,7 @@ def rig_step(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, floor_m: flo
         m = read_user_mask(user_mask, H, W)
         det = RigDetection(bool(m.any()), f"user mask {Path(user_mask).name}", "user", m, np.zeros_like(m))
     else:
-        det = detect_rig(rgb, depth, valid, floor_m)
+        det = (detect or detect_rig)(rgb, depth, valid, floor_m)
     info = {"found": det.found, "reason": det.reason, "kind": det.kind,
             "stats": {k: (round(v, 4) if isinstance(v, float) else v) for k, v in det.stats.items()}}
     if not det.found:

@@ -21,9 +21,11 @@ NAME = "depth"
 VERSION = "3"
 ARTIFACT = "depth"
 INPUTS = {
-    "panorama": Input("file", help="equirectangular RGB panorama (2:1)"),
+    "panorama": Input("file", optional=True, help="equirectangular RGB panorama (2:1); or --panoramas"),
     "depth": Input("file", optional=True, help="measured ERP depth: .npy (metres), .exr (metres) or 16-bit .png"),
     "rig_mask": Input("file", optional=True, help="2:1 grayscale mask, white where the capture rig is (overrides detection)"),
+    "panoramas": Input("dir", optional=True, help="a home: directory of two or more panoramas NAME.png|jpg (docs/multi.md)"),
+    "depths": Input("dir", optional=True, help="a home: directory of depth files NAME.npy|exr|png (same stems)"),
 }
 
 
@@ -45,6 +47,13 @@ class Params:
     rig: RigMode = RigMode.AUTO
     """Capture rig at the nadir (tripod, mount, nadir mask): auto = detect it without weights and remove it (floor
     inpainted, depth from the floor plane; a scene rig_mask.png overrides detection); keep = leave it (docs/rig.md)."""
+    rig_detector: str = param("heuristic", choices=backends.names("rig"))
+    """How rig=auto finds the rig: heuristic (colour and shape tests, no weights) or learned (a small U-Net trained
+    by bench/train_rig.py on synthetic rigs; weights in rig_weights); both keep seen objects (panoworld/backends/rig/)."""
+    rig_weights: Path | None = None
+    """Directory with the rig U-Net's config.json + model.safetensors (rig_detector=learned)."""
+    rig_device: str = "cpu"
+    """Torch device of the learned rig detector."""
     complete_poles: bool = True
     """Depth missing at the poles or in bands (LiDAR blind zones) is completed from the fitted floor and ceiling
     planes, within the room's extent (panoworld.depth_complete)."""
@@ -64,6 +73,32 @@ class Params:
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
+    if inputs.get("panoramas") is None:
+        if inputs.get("panorama") is None:
+            raise StageInputError("give --panorama FILE (one panorama) or --panoramas DIR (a home, docs/multi.md)")
+        return depth_of_panorama(inputs, params, out_dir)
+    from panoworld.home.layout import HOME_DIR, HOME_INFO
+    from panoworld.register.inputs import DEPTH_SUFFIXES, PANORAMA_SUFFIXES
+
+    pano_dir, depth_dir = Path(inputs["panoramas"]), inputs.get("depths")
+    panos = {p.stem: p for p in sorted(pano_dir.iterdir()) if p.suffix.lower() in PANORAMA_SUFFIXES}
+    if len(panos) < 2:
+        raise StageInputError(f"{pano_dir}: found {len(panos)} panoramas; put two or more NAME.png/.jpg there "
+                              "(a single panorama goes in SCENE/panorama.png)")
+    names = sorted(panos)
+    infos, dirs = {}, {}
+    for k, name in enumerate(names):  # the first panorama's files at the top level: the world frame's panorama
+        sub = out_dir if k == 0 else out_dir / HOME_DIR / name
+        sub.mkdir(parents=True, exist_ok=True)
+        depth = next((Path(depth_dir) / f"{name}{s}" for s in DEPTH_SUFFIXES
+                      if depth_dir is not None and (Path(depth_dir) / f"{name}{s}").is_file()), None)
+        infos[name] = depth_of_panorama({"panorama": panos[name], "depth": depth, "rig_mask": None}, params, sub)
+        dirs[name] = sub.relative_to(out_dir).as_posix()
+    return {**infos[names[0]], HOME_INFO: {"names": names, "dirs": dirs, "panoramas": infos}}
+
+
+def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
+    """Depth, validity and the cleaned panorama (rig removed, poles completed) of one panorama into out_dir."""
     import cv2
 
     from panoworld import depth as dep
@@ -98,8 +133,10 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         from panoworld.rig import nadir_crop, rig_step
 
         before = rgb
+        detector = backends.get("rig", params.rig_detector).impl
         rgb, depth, valid, info["rig"], det = rig_step(rgb, depth, valid, info.get("camera_height_estimated_after"),
-                                                         user_mask=inputs.get("rig_mask"))
+                                                         user_mask=inputs.get("rig_mask"),
+                                                         detect=lambda *a: detector(*a, params))
         notes.append(f"capture rig {'removed' if det.found else 'not found'}: {det.reason}")
         if det.found:
             cv2.imwrite(str(out_dir / "rig_mask.png"), det.mask.astype(np.uint8) * 255)

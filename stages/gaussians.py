@@ -17,6 +17,8 @@ ARTIFACT = "gaussians"
 INPUTS = {
     "video": Input("video", help="video artifact (video.json, frames/, depth/)"),
     "poses": Input("poses", help="poses artifact (poses.json, depth/)"),
+    "depth": Input("depth", optional=True, help="a home: depth artifact whose panoramas are anchored (with --register)"),
+    "register": Input("register", optional=True, help="a home: register artifact placing those panoramas"),
 }
 
 
@@ -48,13 +50,17 @@ class Params(FusionParams):
     source_pixels: bool = True
     """voxel-fusion: the source view (video frame 0) becomes one Gaussian per pixel (its full detail at the capture
     point); the other frames are voxel-fused only where they see what the source does not."""
-    source_height: int = param(512, ge=0)
+    source_height: int = param(640, ge=0)
     """ERP height of the source view's per-pixel Gaussians (0 = that of the other frames); rows near the poles keep
-    every k-th pixel so kept pixels are about square on the sphere. 512 with source_scale 1.9: 32.3 dB at the capture
-    point vs 29.3 dB at 256 rows (validation seed 1, supersampled render_erp; docs/evaluation.md)."""
+    every k-th pixel so kept pixels are about square on the sphere. 640 with source_scale 1.9: as sharp as 512 rows at
+    the capture point and +0.6 dB on what it sees from ~1-2 m away (validation seed 1; docs/evaluation.md)."""
     source_scale: float = param(1.9, gt=0)
     """Footprint scale of the source's per-pixel Gaussians (scale_factor of the voxel Gaussians otherwise): large
     enough that neighbours leave no see-through cracks between them, small enough to keep the input's detail."""
+    unseen_voxel_size: float = param(0.04, ge=0)
+    """With source_pixels: voxel edge (metres) of what the other frames see that the source does not (0 =
+    voxel_size). That is the generated (disoccluded) content, softer than the input: 4 cm voxels hold it with fewer,
+    larger Gaussians and fewer see-through gaps than 2 cm (docs/evaluation.md, "Away from the capture point")."""
     source_tol: float = param(0.03, gt=0)
     """Observations of the other frames within this relative depth of the source's surface (or in front of it) count
     as seen by the source and are not fused."""
@@ -67,6 +73,7 @@ class Params(FusionParams):
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     from panoworld.gaussians import context_source, voxel_fusion
     from panoworld.gaussians_artifact import write_artifact
+    from panoworld.home.layout import capture_poses
     from panoworld.pixel_gaussians import source_anchored_fusion
 
     frames = context_source(inputs["video"], inputs["poses"], context_views=params.context_views,
@@ -78,9 +85,23 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
             model = PanoVGGT.from_pretrained(params.weights, flag="--weights", device=params.device)
             model.require_gaussian_head("--weights")
             result = model.decode(frames.load())
+        elif params.source_pixels and len(captures := capture_poses(inputs.get("register"))) >= 2:
+            from panoworld.home.gaussians import home_anchored_fusion
+            from panoworld.home.layout import home_depth_dirs
+            from panoworld.home.mesh import load_sources
+
+            dirs = home_depth_dirs(inputs["depth"]) if inputs.get("depth") else None
+            if dirs is None:
+                raise StageInputError("the register artifact places several panoramas: give --depth, the home's depth "
+                                      "artifact (its panoramas are anchored)")
+            names, rgbs, depths = load_sources(dirs, captures)
+            result = home_anchored_fusion(frames, {n: (rgbs[n], depths[n], captures[n]) for n in names}, params,
+                                          source_height=params.source_height, tol=params.source_tol,
+                                          source_scale=params.source_scale, progress=True)
         elif params.source_pixels:
             result = source_anchored_fusion(frames, params, source_height=params.source_height, tol=params.source_tol,
-                                            source_scale=params.source_scale, progress=True)
+                                            source_scale=params.source_scale,
+                                            unseen_voxel_size=params.unseen_voxel_size, progress=True)
         else:
             result = voxel_fusion(frames, params, progress=True)
     except StageInputError:

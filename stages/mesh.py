@@ -11,12 +11,16 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.params import param
-from panoworld.stage import Input, stage_main
+from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "mesh"
 VERSION = "2"
 ARTIFACT = "mesh"
-INPUTS = {"depth": Input("depth", help="depth artifact (depth.npy, valid.png, panorama.png)")}
+INPUTS = {
+    "depth": Input("depth", help="depth artifact (depth.npy, valid.png, panorama.png)"),
+    "register": Input("register", optional=True, help="register artifact: with two or more panoramas placed, the "
+                      "mesh is the home's, fused in the world frame (docs/multi.md)"),
+}
 
 
 class Discontinuity(enum.StrEnum):
@@ -37,12 +41,18 @@ class Params:
     """Use every stride-th ERP pixel per axis as a vertex (exact points, colours averaged per block) to bound memory."""
     glb: bool = True
     """Also write mesh.glb (valid faces, vertex colours, glTF Y-up) for glTF viewers."""
+    home_stride: int = param(2, ge=1, le=64)
+    """A home (several panoramas): stride of each panorama's ERP mesh before fusion (memory grows with panoramas)."""
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     from panoworld.depth import load_depth_artifact
+    from panoworld.home.layout import capture_poses, home_depth_dirs
     from panoworld.mesh import ErpMesh, erp_mesh_from_depth, save_erp_mesh, save_erp_mesh_glb
 
+    poses = capture_poses(inputs.get("register"))
+    if len(poses) >= 2:
+        return _home_mesh(home_depth_dirs(inputs["depth"]), poses, params, out_dir)
     depth, valid, rgb = load_depth_artifact(inputs["depth"])
     t0 = time.perf_counter()
     mesh = erp_mesh_from_depth(depth, rgb, valid, max_edge_ratio=params.max_edge_ratio, stride=params.stride)
@@ -61,6 +71,33 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         "num_faces_stretched": n_stretched,
         "stretched_kept_as_occluders": params.discontinuity == Discontinuity.FLAG,
         "grid": [len(range(params.stride // 2, n, params.stride)) for n in depth.shape],
+        "build_s": build_s,
+    }
+
+
+def _home_mesh(dirs, poses, params: Params, out_dir: Path) -> dict:
+    from panoworld.home.mesh import home_mesh, write_home_mesh_info
+    from panoworld.mesh import save_erp_mesh, save_erp_mesh_glb
+
+    if dirs is None:
+        raise StageInputError("the register artifact places several panoramas but the depth artifact holds one; "
+                              "rerun the depth stage on the home's panoramas/")
+    t0 = time.perf_counter()
+    mesh, face_source, sources = home_mesh(dirs, poses, stride=params.home_stride)
+    build_s = time.perf_counter() - t0
+    save_erp_mesh(mesh, out_dir / "mesh.ply")
+    write_home_mesh_info(out_dir, sources)
+    if params.glb:
+        save_erp_mesh_glb(mesh, out_dir / "mesh.glb")
+    return {
+        "num_vertices": len(mesh.vertices),
+        "vertices_written": int(len(np.unique(mesh.faces))),
+        "num_faces": len(mesh.faces),
+        "num_faces_stretched": 0,
+        "stretched_kept_as_occluders": False,
+        "grid": sources[0]["grid"],
+        "home": {"sources": [s["name"] for s in sources],
+                 "faces_per_source": np.bincount(face_source, minlength=len(sources)).tolist()},
         "build_s": build_s,
     }
 

@@ -7,15 +7,20 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from panoworld.home.layout import capture_poses
 from panoworld.mesh import load_erp_mesh
 from panoworld.navmesh import NavMeshParams
 from panoworld.navmesh.no_room import build_navmesh_with_room
+from panoworld.register.fuse import home_navmesh
 from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "navmesh"
 VERSION = "3"
 ARTIFACT = "navmesh"
-INPUTS = {"mesh": Input("mesh", help="mesh artifact (mesh.ply, canonical frame, face property valid)")}
+INPUTS = {
+    "mesh": Input("mesh", help="mesh artifact (mesh.ply, canonical frame, face property valid)"),
+    "register": Input("register", optional=True, help="register artifact: a home's NavMesh spans every capture point"),
+}
 
 
 @dataclass(kw_only=True)
@@ -31,7 +36,15 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     except Exception as e:  # plyfile raises many types on corrupt files
         raise StageInputError(f"{path}: unreadable mesh ({type(e).__name__}: {e}); rerun the mesh stage") from None
     t0 = time.perf_counter()
-    nav = build_navmesh_with_room(mesh.vertices, mesh.faces, mesh.face_valid, params)  # no room: smaller agent / stationary
+    captures = capture_poses(inputs.get("register"))
+    on_navmesh = None
+    if len(captures) >= 2:  # a home: one NavMesh from the first capture point across rooms and doorways
+        nav, on_navmesh = home_navmesh(mesh, captures, params)
+        off = [n for n, ok in on_navmesh.items() if not ok]
+        if off:
+            print(f"capture points off the NavMesh (not joined to the first one's floor): {off}", flush=True)
+    else:
+        nav = build_navmesh_with_room(mesh.vertices, mesh.faces, mesh.face_valid, params)  # no room: smaller agent / stationary
     no_room = nav.info.get("no_room")
     if no_room:
         print(f"no room to move: {no_room['reason']}; decided: {no_room['decision']} (agent radius "
@@ -54,6 +67,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         "build_s": build_s,
         "timings_s": nav.info["timings_s"],
         "files": files,
+        **({"capture_points_on_navmesh": on_navmesh} if on_navmesh is not None else {}),
     }
 
 

@@ -8,13 +8,18 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from panoworld.register.options import RegisterOptions
-from panoworld.stage import Input, stage_main
+from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "register"
 VERSION = "1"
 ARTIFACT = "register"
-INPUTS = {"scene": Input("dir", help="scene directory with panoramas/NAME.png|jpg, depths/NAME.npy|exr|png, "
-                                    "optional poses.json")}
+INPUTS = {
+    "depth": Input("depth", optional=True, help="depth artifact of the scene (the pipeline's input: a home's cleaned "
+                   "panoramas and depths; one panorama is one capture point at the identity)"),
+    "poses": Input("file", optional=True, help="with --depth: the scene's poses.json {NAME: 4x4 world_from_cam}"),
+    "scene": Input("dir", optional=True, help="instead of --depth: scene directory with panoramas/NAME.png|jpg, "
+                   "depths/NAME.npy|exr|png, optional poses.json"),
+}
 
 
 @dataclass(kw_only=True)
@@ -23,10 +28,18 @@ class Params(RegisterOptions):
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
-    from panoworld.register.artifact import register_scene
-
     t0 = time.perf_counter()
-    info = register_scene(inputs["scene"], params, out_dir)
+    if inputs.get("scene") is not None:
+        from panoworld.register.artifact import register_scene
+
+        info = register_scene(inputs["scene"], params, out_dir)
+    elif inputs.get("depth") is not None:
+        from panoworld.home.layout import home_depth_dirs
+        from panoworld.register.artifact import register_depth_dirs
+
+        info = register_depth_dirs(home_depth_dirs(inputs["depth"]), inputs.get("poses"), params, out_dir)
+    else:
+        raise StageInputError("give --depth DIR (a depth artifact) or --scene DIR (a scene with panoramas/)")
     return {**info, "register_s": time.perf_counter() - t0}
 
 

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.conventions import invert_pose
+from panoworld.home.layout import capture_poses
 from panoworld.mesh import load_erp_mesh
 from panoworld.navmesh import load_navmesh
 from panoworld.params import param
@@ -49,6 +50,7 @@ INPUTS = {
         help="user poses instead of planning: JSON {\"poses\": [4x4 world_from_cam, ...]} or a list, or TUM text "
         "'t tx ty tz qx qy qz qw'; canonical frame (pose 0 = identity = the panorama camera)",
     ),
+    "register": Input("register", optional=True, help="register artifact: a home's trajectory visits every capture point"),
 }
 
 
@@ -67,6 +69,9 @@ class Params(TrajectoryParams):
     """Frame rate for the TUM timestamps (t = i / fps)."""
     reanchor: bool = False
     """Re-express a user trajectory whose pose 0 is not the identity relative to pose 0 (else that is an error)."""
+    home_frames: int = param(41, ge=2)
+    """A home (several capture points): frames per capture point; its explore paths and the walk to the next capture
+    point share them (panoworld/trajectory/home.py)."""
 
 
 def _user_poses(path: Path, params: Params) -> np.ndarray:
@@ -119,6 +124,16 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         poses = _user_poses(Path(user), params)
         source = f"user: {Path(user).name}"
         kind, stride, step_m = "user", None, float(np.median(step_lengths(poses))) if len(poses) > 1 else 0.0
+    elif len(captures := capture_poses(inputs.get("register"))) >= 2:
+        from panoworld.trajectory.home import plan_home
+
+        plan = plan_home(nav, captures, params, params.home_frames * len(captures))
+        yaw = None if params.yaw == YawMode.FIXED else path_yaw(plan.positions, plan.info["paths"], closed=False)
+        poses = poses_from_positions(plan.positions, yaw)
+        poses[:, 1, 3] = plan.info.pop("camera_y")
+        source, kind, stride, step_m = "planned", "home", None, plan.step_m
+        meta = plan.info
+        skip = tuple(plan.exempt)
     else:
         plan = _plan_or_stay(nav, params, Path(inputs["navmesh"]) / "navmesh.json")
         paths = plan.info.get("paths") or [{"start": 0, "stop": len(plan.positions)}]

@@ -42,3 +42,19 @@ def cond_dir(synth_dataset, tmp_path_factory):
     assert precompute_main([str(synth_dataset), "--out", str(out), "--clips-per-scene", "2", "--frames", "5",
                             "--strides", "1", "--height", "32", "--workers", "1", "--json"]) == 0
     return out
+
+
+HOME_HEIGHT = 384
+"""Rows of the test home's panoramas: SIFT finds too few matches on the small ci-tiny textures at 256 rows."""
+
+
+@pytest.fixture(scope="session")
+def home_dir(tmp_path_factory):
+    """A ci-tiny home (seed 7) of >= 3 rooms captured by 3 panoramas at HOME_HEIGHT rows, with gt/poses.json."""
+    from dataclasses import replace
+
+    from panoworld.synth.home import generate_home, home_params, write_home
+
+    params = home_params("ci-tiny")
+    params = replace(params, render=replace(params.render, pano_height=HOME_HEIGHT))
+    return write_home(generate_home(7, 3, "ci-tiny", params=params), tmp_path_factory.mktemp("home") / "scene", params)

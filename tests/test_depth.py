@@ -267,9 +267,9 @@ def test_depth_stage_provided_masks_bad_values(tmp_path, room):
     pano = write_png(tmp_path / "panorama.png", rgb)
     bad = (depth * 1000).astype(np.float32)  # millimetres in a PNG
     bad[5:7, 10:12] = 0  # small dropout: filled
-    bad[40:60, 60:90] = 0  # sensor dropout: masked
+    bad[40:60, 60:90] = 0  # sensor dropout: masked (and, by default, completed afterwards: see below)
     cv2.imwrite(str(tmp_path / "depth.png"), bad[::2, ::2].astype(np.uint16))  # half resolution
-    manifest, out = run_depth_stage(tmp_path, pano, tmp_path / "depth.png", max_hole_px=8)
+    manifest, out = run_depth_stage(tmp_path, pano, tmp_path / "depth.png", max_hole_px=8, complete_dropouts=False)
     info = manifest["info"]
     assert info["backend"] == "provided" and "resized from 64x32 to 128x64" in info["resized"]
     assert info["camera_height_estimated_before"] == pytest.approx(CAMERA_HEIGHT, rel=0.02)
@@ -281,6 +281,12 @@ def test_depth_stage_provided_masks_bad_values(tmp_path, room):
     assert valid.mean() == pytest.approx(1 - 600 / depth.size, abs=0.01)
     np.testing.assert_array_equal(cv2.cvtColor(cv2.imread(str(out / "panorama.png")), cv2.COLOR_BGR2RGB), rgb)
     assert json.loads((out / "manifest.json").read_text())["schema"] == "depth"
+    # with dropout completion (the default) the masked dropout is filled from its rim and recorded
+    manifest, out = run_depth_stage(tmp_path / "completed", pano, tmp_path / "depth.png", max_hole_px=8)
+    done = manifest["info"]["dropout_completion"]
+    assert done["dropouts"] >= 1 and done["completed_fraction"] == pytest.approx(600 / depth.size, abs=0.01)
+    filled = np.load(out / "depth.npy")[40:60, 60:90]
+    assert np.all(filled > 0) and np.median(np.abs(filled - depth[40:60, 60:90]) / depth[40:60, 60:90]) < 0.1
 
 
 def test_depth_stage_rescales_unknown_units(tmp_path, room):

@@ -270,6 +270,13 @@ def test_stage_writes_a_valid_artifact(tmp_path, room):
     ratio = np.median(g1.scales[:n].max(1)) / np.median(g0.scales[:n].max(1))
     assert ratio == pytest.approx(2.0, rel=0.05)
     assert len(g1) == len(g0) and np.allclose(g1.scales[n:], g0.scales[n:])  # the voxel Gaussians are unchanged
+    # unseen_voxel_size sizes the voxels of what the source does not see, and only those
+    coarse = execute_stage(spec, {"video": video, "poses": poses}, Params(voxel_size=0.05, eval_views=0,
+                           unseen_voxel_size=0.16), tmp_path / "coarse", input_digests={"video": "0" * 64, "poses": "1" * 64})
+    g2 = read_gaussians_ply(tmp_path / "coarse" / "gaussians.ply")
+    assert coarse["info"]["num_source_gaussians"] == n and np.allclose(g2.means[:n], g0.means[:n])
+    assert coarse["info"]["voxel_size"] == 0.16 and 0 < len(g2) - n < len(g0) - n
+    assert np.median(g2.scales[n:].max(1)) > 1.5 * np.median(g0.scales[n:].max(1))
 
 
 def test_stage_input_errors(tmp_path, room):
@@ -351,6 +358,13 @@ def test_source_visibility_keeps_only_what_the_source_cannot_see():
     assert vis.explained(pts).tolist() == [True, True, True, False, False]
     moved = SourceVisibility(depth, pose_at(0, 0, 1.0), 0.03)  # the source's pose is honoured
     assert moved.explained(pts + [0, 0, 1.0]).tolist() == [True, True, True, False, False]
+    # a splat behind the surface pokes through it when it reaches it (3 x its largest scale)
+    from panoworld.gaussians import Gaussians
+
+    means = np.stack([d * 2.05, d * 2.05, d * 2.2, d_none * 2.05]).astype(np.float32)
+    scales = np.array([[0.03, 0.001, 0.001], [0.01, 0.01, 0.001], [0.1, 0.1, 0.1], [0.1, 0.1, 0.1]], np.float32)
+    g = Gaussians(means, scales, np.tile(np.float32([1, 0, 0, 0]), (4, 1)), np.ones(4, np.float32), np.zeros((4, 3), np.float32))
+    assert vis.poking_through(g).tolist() == [True, False, True, False]
 
 
 def test_pole_thinning_keeps_about_square_pixels():
@@ -363,3 +377,26 @@ def test_pole_thinning_keeps_about_square_pixels():
     width = 512 / keep.sum(1) * np.cos(lat)  # a kept pixel's width on the sphere, in row heights
     assert np.all((width[8:-8] > 0.5) & (width[8:-8] <= 1.0 + 1e-9))
     assert 0.75 < keep.mean() < 0.8
+
+
+def test_resize_depth_keeps_smooth_surfaces_evenly_sampled_and_edges_sharp(room):
+    from panoworld.gaussians import DEPTH_EDGE_REL, resize_depth
+
+    pose = pose_at(0.2, 0.1, -0.3)
+    _, d720 = room(pose, 180, 360)  # stored frames 180 rows, fused at 128 (the 720 -> 512 ratio)
+    d = d720.copy()
+    d[60:70, 100:110] = np.nan  # a hole in the depth
+    _, exact = room(pose, 128, 256)
+    out = resize_depth(d, 128, 256)
+    nearest = cv2.resize(d, (256, 128), interpolation=cv2.INTER_NEAREST)
+    ok = np.isfinite(out)
+    # no depth made up: NaN where the nearest source pixel has none, never between a surface and a hole
+    assert np.array_equal(ok, np.isfinite(nearest))
+    # every value is a surface's depth (area mean on smooth surfaces, a source value at edges), none in between
+    rel = np.abs(out[ok] / exact[ok] - 1.0)
+    assert np.quantile(rel, 0.95) < 0.005
+    off = rel > 0.02  # at depth edges: the nearest source pixel's depth, or a mean across a step under edge_rel
+    assert off.mean() < 0.01 and np.all((out[ok][off] == nearest[ok][off]) | (rel[off] <= DEPTH_EDGE_REL))
+    # nearest sampling puts pixels of a smooth surface off their ray's depth (every third row/column skipped)
+    rel_n = np.abs(nearest[ok] / exact[ok] - 1.0)
+    assert np.quantile(rel_n, 0.9) > 5 * np.quantile(rel, 0.9)

@@ -6,7 +6,6 @@ import json
 import shutil
 import subprocess
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,12 +18,11 @@ from panoworld.register.options import RegisterOptions
 from panoworld.register.pairwise import consistency
 from panoworld.register.solve import register_panoramas
 from panoworld.stage import execute_stage, load_stage, params_from_dict
-from panoworld.synth.home import generate_home, home_params, write_home
 from panoworld.synth.scene import generate_scene
 from stages.register import main as register_main
+from tests.conftest import HOME_HEIGHT as HEIGHT
 
 ROOT = Path(__file__).resolve().parent.parent
-HEIGHT = 384  # SIFT finds too few matches on the small ci-tiny textures at 256 rows
 TOL_CM, TOL_DEG = 5.0, 1.0
 
 torch.set_num_threads(1)
@@ -33,14 +31,6 @@ torch.set_num_threads(1)
 def _errors(E: np.ndarray, G: np.ndarray) -> tuple[float, float]:
     cos = np.clip((np.trace(G[:3, :3].T @ E[:3, :3]) - 1) / 2, -1, 1)
     return float(np.linalg.norm(G[:3, 3] - E[:3, 3]) * 100), float(np.degrees(np.arccos(cos)))
-
-
-@pytest.fixture(scope="module")
-def home_dir(tmp_path_factory) -> Path:
-    params = home_params("ci-tiny")
-    params = replace(params, render=replace(params.render, pano_height=HEIGHT))
-    home = generate_home(7, 3, "ci-tiny", params=params)
-    return write_home(home, tmp_path_factory.mktemp("home") / "scene", params)
 
 
 def _gt(scene: Path) -> dict[str, np.ndarray]:
@@ -193,10 +183,15 @@ def test_fused_mesh_reproduces_every_view_and_navmesh_joins_the_rooms(home_dir):
     assert all(on.values()), on
 
 
-def test_runner_points_a_multi_scene_to_the_register_stage(home_dir):
+def test_runner_opens_a_home_and_refuses_a_mixed_layout(home_dir, tmp_path):
     from panoworld.errors import PipelineError
     from panoworld.pipeline import Pipeline, open_scene
 
-    with pytest.raises(PipelineError, match="multi-panorama scene.*stages.register") as e:
-        open_scene(home_dir, Pipeline.load())
-    assert e.value.exit_code == 2 and not (home_dir / "artifacts").exists()
+    scene = open_scene(home_dir, Pipeline.load())
+    assert scene.files["panorama"] is None and scene.files["panoramas"] == home_dir / "panoramas"
+    assert scene.files["depths"] == home_dir / "depths" and not (home_dir / "artifacts").exists()
+    mixed = _scene_copy(home_dir, tmp_path / "mixed")
+    shutil.copy(mixed / "panoramas" / "pano_00.png", mixed / "panorama.png")
+    with pytest.raises(PipelineError, match="keep one layout") as e:
+        open_scene(mixed, Pipeline.load())
+    assert e.value.exit_code == 2 and not (mixed / "artifacts").exists()

@@ -177,3 +177,40 @@ def test_report_shows_the_nadir_before_and_after(tmp_path, tripod_dir):
     section = section_depth(SceneData(tmp_path / "scene"), ReportParams())
     assert "nadir before / after capture-rig removal (legs" in section.body
     assert "tripod legs" in section.body
+
+
+def test_soft_shadow_is_relit_not_left(scene):
+    """The tripod with a soft shadow disc: the shadow is found around the rig and divided out, its texture kept."""
+    from panoworld import rig
+    from panoworld.synth.rig import RigKind, render_with_rig
+
+    clean, _ = scene.render(scene.world_from_canonical, H, 2 * H)
+    for kind in (RigKind.TRIPOD, RigKind.TRIPOD_SHADOW):
+        rgb, depth, _ = render_with_rig(scene, kind, H)
+        det = rig.detect_rig(rgb, depth, np.isfinite(depth) & (depth > 0), scene.tracks[0].camera_height)
+        assert det.found and det.kind == "legs", det.reason
+        out = rig.remove_rig(rgb, det)
+        if kind == RigKind.TRIPOD:
+            assert det.stats["shadow_deg"] == 0 and not det.shadow.any()  # no shadow invented
+            continue
+        assert det.stats["shadow_deg"] > 10 and det.shadow.sum() > 1000, det.stats
+        sh = det.shadow
+        before = np.abs(rgb[sh].astype(int) - clean[sh]).mean()
+        after = np.abs(out[sh].astype(int) - clean[sh]).mean()
+        assert before > 5 and after < 0.3 * before, (before, after)
+        assert nadir_cap_psnr(out, clean) >= 27.0
+
+
+def test_learned_detector_is_chosen_by_the_stage_option(tmp_path, plain_dir):
+    """depth.rig_detector=learned loads the U-Net from depth.rig_weights (a one-line error without them)."""
+    from panoworld.errors import WeightsError
+    from panoworld.models.rig_unet import RigUNet, RigUNetConfig
+
+    with pytest.raises(WeightsError, match="depth.rig_weights"):
+        run_depth(tmp_path, plain_dir, name="none", rig_detector="learned")
+    net = RigUNet(RigUNetConfig(channels=4, levels=2, size=32)).eval()
+    net.head.bias.data.fill_(-20.0)  # an untrained net told to see no rig: the stage runs it and finds nothing
+    info, out = run_depth(tmp_path, plain_dir, name="learned", rig_detector="learned",
+                          rig_weights=net.save(tmp_path / "w"))
+    assert not info["rig"]["found"] and "rig network" in info["rig"]["reason"]
+    assert np.array_equal(read_rgb(out / "panorama.png"), read_rgb(plain_dir / "panorama.png"))

@@ -33,7 +33,7 @@ def viewer(pipeline_scene):  # noqa: F811
 @pytest.mark.slow
 def test_viewer_loads_every_layer_and_binds_localhost(viewer, pipeline_scene):  # noqa: F811
     assert viewer.server.get_host() == "127.0.0.1"
-    assert set(viewer.loaded) == {"mesh", "navmesh", "trajectory", "points", "splats"}
+    assert set(viewer.loaded) == {"mesh", "navmesh", "trajectory", "points", "splats", "captures"}
     assert not any(v.startswith(("unreadable", "missing")) for k, v in viewer.loaded.items() if k != "points"), viewer.loaded
     info = json.loads((pipeline_scene / "artifacts" / "gaussians" / "manifest.json").read_text())["info"]
     assert viewer.loaded["splats"] == f"{info['num_gaussians']} Gaussians"
@@ -122,7 +122,7 @@ def test_viewer_skips_missing_stages_and_shows_colmap_points(tmp_path):
     v = SceneViewer(tmp_path, ViewerParams(port=_free_port()))
     try:
         assert v.loaded == {"mesh": "missing (depth and mesh not run)", "navmesh": "missing", "trajectory": "missing",
-                            "points": "3 points", "splats": "missing"}
+                            "captures": "missing", "points": "3 points", "splats": "missing"}
         assert set(v.handles) == {"points"}
     finally:
         v.stop()
@@ -155,3 +155,16 @@ def test_non_loopback_host_and_taken_port_are_announced(tmp_path):
             assert f"port {port} is taken; serving on port {served}" in lines[1]
         finally:
             v.stop()
+
+
+def test_viewer_shows_a_homes_capture_points(tmp_path):
+    reg = tmp_path / "artifacts" / "register"
+    reg.mkdir(parents=True)
+    moved = np.eye(4)
+    moved[:3, 3] = [2.0, 0.0, 1.0]
+    (reg / "panoramas.json").write_text(json.dumps({"hall": np.eye(4).tolist(), "kitchen": moved.tolist()}))
+    v = SceneViewer(tmp_path, ViewerParams(port=_free_port()))
+    try:
+        assert v.loaded["captures"] == "2 capture points (hall, kitchen)" and "captures" in v.handles
+    finally:
+        v.stop()

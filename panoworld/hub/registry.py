@@ -156,6 +156,13 @@ register(WeightsEntry(
     notes="no public release: trained by this project on precomputed conditions",
 ))
 register(WeightsEntry(
+    name="rig-unet", model="small U-Net segmenting the capture rig on the downward cube face (the learned rig detector)",
+    licence="this project's", size="about 0.5 MB (0.12M params, fp32)",
+    trained="python bench/bench_rig_learned.py --quick --out DIR",
+    uses=(Use("depth.rig_weights", also=("depth.rig_detector=learned",)),),
+    notes="trained by this project on synthetic tripods (runner.py synth --rig); no public rig segmenter exists",
+))
+register(WeightsEntry(
     name="panovggt", model="panoramic VGGT (feed-forward poses and depth)", licence="this project's", size="-",
     trained="python runner.py train recon", uses=(Use("poses.vggt.weights", also=("poses.backend=vggt",)),),
     notes="no public panoramic VGGT checkpoint exists; trained by this project",

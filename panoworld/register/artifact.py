@@ -5,15 +5,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from panoworld.depth import read_depth, read_panorama
 from panoworld.errors import InputError
 from panoworld.io.jsonio import read_json, write_json
-from panoworld.register.inputs import find_multi_scene, read_poses
+from panoworld.register.inputs import PANORAMAS_JSON, REGISTRATION_JSON, find_multi_scene, read_poses
 from panoworld.register.options import RegisterOptions
 from panoworld.register.solve import Registration, register_panoramas
-
-PANORAMAS_JSON = "panoramas.json"
-REGISTRATION_JSON = "registration.json"
 
 
 def register_scene(scene: Path, options: RegisterOptions, out_dir: Path) -> dict:
@@ -29,8 +28,39 @@ def register_scene(scene: Path, options: RegisterOptions, out_dir: Path) -> dict
     depths = {n: read_depth(ms.depths[n]) for n in ms.names if n in ms.depths} if need_pixels else {}
     reg = register_panoramas(ms.names, rgbs, depths, given=given, options=options)
     write_registration(out_dir, reg)
+    return _summary(ms.names, given, reg)
+
+
+def register_depth_dirs(dirs: dict[str, Path] | None, poses_file: Path | None, options: RegisterOptions,
+                        out_dir: Path) -> dict:
+    """Register the cleaned panoramas and depths of a home's depth artifact ({NAME: dir of depth.npy, valid.png,
+    panorama.png}; the pipeline's path); None (a single panorama) is one capture point at the identity. -> info."""
+    from panoworld.depth import load_depth_artifact
+
+    if dirs is None:
+        if poses_file is not None:
+            raise InputError(f"{poses_file}: poses are for a home (SCENE/panoramas/); this scene has one panorama, "
+                             "remove poses.json")
+        reg = Registration(world_from_cam={"panorama": np.eye(4)},
+                           panoramas={"panorama": {"registered": True, "source": "single", "parent": None}})
+        write_registration(out_dir, reg)
+        return {"num_panoramas": 1, "num_registered": 1, "num_given": 0, "unregistered": [], "pairs_accepted": 0,
+                "pairs_tried": 0}
+    names = list(dirs)
+    given = read_poses(poses_file, names) if poses_file is not None else {}
+    rgbs, depths = {}, {}
+    if len(given) < len(names):
+        for n, d in dirs.items():
+            depth, valid, rgb = load_depth_artifact(d)
+            depths[n], rgbs[n] = np.where(valid, depth, 0.0).astype(np.float32), rgb
+    reg = register_panoramas(names, rgbs, depths, given=given, options=options)
+    write_registration(out_dir, reg)
+    return _summary(names, given, reg)
+
+
+def _summary(names: list[str], given: dict, reg: Registration) -> dict:
     n_reg = sum(p["registered"] for p in reg.panoramas.values())
-    return {"num_panoramas": len(ms.names), "num_registered": n_reg, "num_given": len(given),
+    return {"num_panoramas": len(names), "num_registered": n_reg, "num_given": len(given),
             "unregistered": [n for n, p in reg.panoramas.items() if not p["registered"]],
             "pairs_accepted": sum(p["accepted"] for p in reg.pairs), "pairs_tried": len(reg.pairs)}
 

@@ -19,6 +19,24 @@ def _nearest_depth(depth: np.ndarray, pts_cam: np.ndarray) -> np.ndarray:
     return depth[np.clip(np.floor(v).astype(int), 0, h - 1), np.floor(u).astype(int) % w]
 
 
+def nearest_source(k: int, pts_world: np.ndarray, names: list[str], depths: dict[str, np.ndarray],
+                   world_from_cam: dict[str, np.ndarray], *, tol: float = 0.03) -> np.ndarray:
+    """(M,) bool for surface points (M, 3) seen by panorama names[k]: no other panorama j sees the same surface (its
+    depth along the ray agrees within tol in log range) from nearer (ties: the lower index keeps it)."""
+    r_k = np.linalg.norm(pts_world - world_from_cam[names[k]][:3, 3], axis=1)
+    keep = np.ones(len(pts_world), bool)
+    for j, other in enumerate(names):
+        if j == k:
+            continue
+        p = transform_points(invert_pose(world_from_cam[other]), pts_world)
+        r_j = np.linalg.norm(p, axis=1)
+        d_j = _nearest_depth(np.asarray(depths[other], np.float64), p)
+        seen = np.isfinite(d_j) & (d_j > 0) & (np.abs(np.log(np.maximum(r_j, 1e-6) / np.maximum(d_j, 1e-6))) < tol)
+        nearer = (r_j < r_k) | ((r_j == r_k) & (j < k))
+        keep &= ~(seen & nearer)
+    return keep
+
+
 def fuse_meshes(names: list[str], rgbs: dict[str, np.ndarray], depths: dict[str, np.ndarray],
                 world_from_cam: dict[str, np.ndarray], *, stride: int = 4, tol: float = 0.03) -> tuple[ErpMesh, np.ndarray]:
     """(fused mesh in the world frame, source panorama index of each face). A vertex of panorama k is dropped when
@@ -31,17 +49,7 @@ def fuse_meshes(names: list[str], rgbs: dict[str, np.ndarray], depths: dict[str,
     for k, n in enumerate(names):
         m = meshes[n]
         pts_world = transform_points(world_from_cam[n], m.vertices.astype(np.float64))
-        r_k = np.linalg.norm(m.vertices.astype(np.float64), axis=1)
-        keep = np.ones(len(pts_world), bool)
-        for j, other in enumerate(names):
-            if other == n:
-                continue
-            p = transform_points(invert_pose(world_from_cam[other]), pts_world)
-            r_j = np.linalg.norm(p, axis=1)
-            d_j = _nearest_depth(np.asarray(depths[other], np.float64), p)
-            seen = np.isfinite(d_j) & (d_j > 0) & (np.abs(np.log(np.maximum(r_j, 1e-6) / np.maximum(d_j, 1e-6))) < tol)
-            nearer = (r_j < r_k) | ((r_j == r_k) & (j < k))
-            keep &= ~(seen & nearer)
+        keep = nearest_source(k, pts_world, names, depths, world_from_cam, tol=tol)
         # Faces with any kept vertex survive: neighbouring sources overlap by one face instead of leaving a crack.
         # Stretched faces (across one view's depth edges) are dropped: another view sees what they hide.
         kept = keep[m.faces].any(1) & m.face_valid

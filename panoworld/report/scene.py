@@ -15,6 +15,7 @@ import numpy as np
 from panoworld.artifacts import read_manifest
 from panoworld.conditions import load_conditions
 from panoworld.errors import PanoWorldError
+from panoworld.home.layout import capture_poses
 from panoworld.io import read_json
 from panoworld.io.video import read_video_doc
 from panoworld.navmesh import load_navmesh
@@ -89,6 +90,10 @@ class SceneData:
     def poses_artifact(self):
         """PosesArtifact or None."""
         return self._load("poses", load_poses)
+
+    def capture_points(self) -> dict[str, np.ndarray]:
+        """{NAME: world_from_cam} of the register artifact (a home's capture points; one for a single panorama)."""
+        return self._load("register", capture_poses) or {}
 
     def dir(self, stage: str) -> Path:
         return self.art / stage
@@ -301,6 +306,8 @@ class _PlanLayers:
     n_sectors: int
     collider: tuple | None = None
     """(vertices canonical, faces, agent dict) of the asset's collider.obj, when the asset stage ran."""
+    captures: dict | None = None
+    """A home's capture points {NAME: world_from_cam} (register artifact), None for a single panorama."""
 
 
 def _draw_plan(view: PlanView, L: _PlanLayers, floor_y: float | None, reach_m: float, dot_r: float) -> list[str]:
@@ -343,6 +350,11 @@ def _draw_plan(view: PlanView, L: _PlanLayers, floor_y: float | None, reach_m: f
         legend.append('<span><i class="sw" style="background:#ff2222"></i>invalid poses</span>')
     view.star(xz[0], "#ffffff", title="start (pose 0, the source panorama)")
     legend.append("<span>&#9734; start (pose 0)</span>")
+    if L.captures:
+        for name, T in L.captures.items():
+            view.star(np.asarray(T)[[0, 2], 3], "#ffb020", title=f"capture point {name}")
+        legend.append(f'<span style="color:#ffb020">&#9733;</span><span>{len(L.captures)} capture points '
+                      f'({", ".join(map(html.escape, L.captures))})</span>')
     legend.append(f'<span>pose colour = clearance 0 .. {cap:.2f} m</span>{enc.scale_bar(0.0, cap, "m")}')
     return legend
 
@@ -358,7 +370,9 @@ def section_plan(scene: SceneData, params: ReportParams) -> Section:
     notes = [note] if note else []
     notes += [f"{name}: not run" for name, x in (("navmesh", nav), ("trajectory", traj)) if x is None]
     n_sec = int((scene.manifest("trajectory") or {}).get("params", {}).get("sectors", 8))
-    layers = _PlanLayers(mesh, nav, traj, tdoc, scene.info("trajectory"), n_sec, _load_collider(scene))
+    captures = scene.capture_points()
+    layers = _PlanLayers(mesh, nav, traj, tdoc, scene.info("trajectory"), n_sec, _load_collider(scene),
+                         captures if len(captures) >= 2 else None)
     floor_y = nav.floor_y if nav is not None else tdoc.get("floor_y")
     ext = _plan_extent(scene, traj, nav)
     view = PlanView(ext, margin_m=0.6)

@@ -14,6 +14,7 @@ from panoworld.artifacts import read_manifest
 from panoworld.conventions import quat_wxyz_from_rotmat
 from panoworld.depth import load_depth_artifact
 from panoworld.errors import PanoWorldError
+from panoworld.home.layout import capture_poses
 from panoworld.io.video import read_video_doc
 from panoworld.navmesh import load_navmesh
 from panoworld.poses import load_poses
@@ -103,7 +104,7 @@ class SceneViewer:
         self._frames: list[Path] = []
         self._poses: np.ndarray | None = None
         for name, fn in [("mesh", self._add_mesh), ("navmesh", self._add_navmesh), ("trajectory", self._add_trajectory),
-                         ("points", self._add_points), ("splats", self._add_splats)]:
+                         ("captures", self._add_captures), ("points", self._add_points), ("splats", self._add_splats)]:
             try:
                 self.loaded[name] = fn()
             except Exception as e:  # one unreadable artifact must not stop the viewer
@@ -172,6 +173,19 @@ class SceneViewer:
         src = "recovered (poses.json)" if recovered is not None else "planned (trajectory.json)"
         return f"{len(poses)} {src} poses"
 
+    def _add_captures(self) -> str:
+        """A home's capture points (register artifact): a large frustum and a label at each."""
+        captures = _read(capture_poses, self.art / "register") or {}
+        if len(captures) < 2:
+            return "one panorama" if captures else "missing"
+        for name, T in captures.items():
+            self.server.scene.add_camera_frustum(
+                f"/captures/{name}", fov=np.deg2rad(90.0), aspect=2.0, scale=0.25, thickness=3.0,
+                thickness_units="screen", color=(255, 176, 32), wxyz=quat_wxyz_from_rotmat(T[:3, :3]), position=T[:3, 3])
+            self.server.scene.add_label(f"/captures/{name}/label", name, position=(0.0, -0.2, 0.0))
+        self.handles["captures"] = self.server.scene.add_frame("/captures", show_axes=False)
+        return f"{len(captures)} capture points ({', '.join(captures)})"
+
     def _add_points(self) -> str:
         sparse = self.art / "poses" / "sparse" / "0"
         if not (sparse / "points3D.bin").is_file():
@@ -201,7 +215,7 @@ class SceneViewer:
     def _add_gui(self) -> None:
         gui = self.server.gui
         gui.add_markdown(f"**{self.scene_dir.resolve().name}**  \n" + "  \n".join(f"{k}: {v}" for k, v in self.loaded.items()))
-        for name in ("mesh", "navmesh", "planned", "frustums", "points", "splats"):
+        for name in ("mesh", "navmesh", "planned", "frustums", "captures", "points", "splats"):
             h = self.handles.get(name)
             if h is None:
                 continue

@@ -24,6 +24,8 @@ class WarpOptions:
 
 def fill(job) -> tuple:
     from panoworld import inpaint
+    from panoworld.home.inpaint import home_background_layer
+    from panoworld.home.mesh import read_home_sources
     from panoworld.io import read_json
     from panoworld.mesh import load_erp_mesh
 
@@ -34,10 +36,12 @@ def fill(job) -> tuple:
     try:
         mesh = load_erp_mesh(mesh_dir)
         ratio = float(read_json(mesh_dir / "manifest.json", default={}).get("params", {}).get("max_edge_ratio", 12.0))
-        layer = inpaint.build_background_layer(
-            mesh, inpaint.max_translation(job.poses), max_band_deg=job.options.max_band_deg,
-            inpaint_radius=job.inpaint_radius, max_edge_ratio=ratio,
-        )
+        opts = dict(max_band_deg=job.options.max_band_deg, inpaint_radius=job.inpaint_radius, max_edge_ratio=ratio)
+        sources = read_home_sources(mesh_dir)
+        if sources is not None:  # a home: one layer per source panorama (panoworld/home/inpaint.py)
+            layer = home_background_layer(mesh, sources, job.poses, **opts)
+        else:
+            layer = inpaint.build_background_layer(mesh, inpaint.max_translation(job.poses), **opts)
     except (OSError, ValueError, KeyError) as e:
         raise InputError(f"{mesh_dir}/mesh.ply: {e}; rerun the mesh stage") from None
     info = dict(layer_faces=int(layer.layer_faces), layer_pixels=int(layer.synthesized.sum()),

@@ -1,0 +1,68 @@
+"""One Gaussian scene over a home: every capture panorama as per-pixel Gaussians at its registered pose (each surface
+from the panorama that sees it nearest), the video frames voxel-fused where no panorama sees."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import torch
+
+from panoworld.conventions import erp_dirs, transform_points
+from panoworld.fusion_params import FusionParams
+from panoworld.gaussians import ContextSource, FusionResult, bbox_extent, voxel_fusion
+from panoworld.pixel_gaussians import SourceVisibility, merge_gaussians, pixel_gaussians
+from panoworld.register.fuse import nearest_source
+
+
+class SourcesVisibility:
+    """What any of several source panoramas sees (SourceVisibility of each, or-ed)."""
+
+    def __init__(self, sources: list[SourceVisibility]):
+        self.sources = sources
+
+    def keep_unexplained(self, obs):
+        pts = obs.points.numpy()
+        explained = np.zeros(len(pts), bool)
+        for s in self.sources:
+            explained |= s.explained(pts)
+        return obs.subset(torch.from_numpy(~explained))
+
+
+def _at_height(rgb: np.ndarray, depth: np.ndarray, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """rgb (area) and depth (nearest) at `height` rows when they are taller (never upsampled)."""
+    if height and depth.shape[0] > height:
+        rgb = cv2.resize(rgb, (2 * height, height), interpolation=cv2.INTER_AREA)
+        depth = cv2.resize(depth, (2 * height, height), interpolation=cv2.INTER_NEAREST)
+    return rgb, depth
+
+
+def home_anchored_fusion(frames: ContextSource, sources: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
+                         params: FusionParams, *, source_height: int = 0, tol: float = 0.03,
+                         source_scale: float | None = None, progress: bool = False) -> FusionResult:
+    """Per-pixel Gaussians of every source {NAME: (rgb (H, W, 3), depth (H, W) metres (0 = unknown), world_from_cam)}
+    at most source_height rows (0 = as given), a pixel kept only when no other source sees its surface from nearer
+    (register.fuse.nearest_source: no doubled surfaces), plus voxel fusion of what the frames see that no source
+    does (SourceVisibility of each, tolerance tol)."""
+    names = list(sources)
+    small = {n: _at_height(sources[n][0], sources[n][1], source_height) for n in names}
+    depths = {n: small[n][1] for n in names}
+    poses = {n: np.asarray(sources[n][2], np.float64) for n in names}
+    pix_params = params if source_scale is None else replace(params, scale_factor=source_scale)
+    parts = []
+    for k, n in enumerate(names):
+        rgb, depth = small[n]
+        h, w = depth.shape
+        pts = transform_points(poses[n], erp_dirs(h, w, np.float64).reshape(-1, 3) * depth.reshape(-1, 1))
+        keep = nearest_source(k, pts, names, depths, poses, tol=tol).reshape(h, w)
+        parts.append(pixel_gaussians(rgb, np.where(keep & (depth > 0), depth, 0.0).astype(np.float32), poses[n],
+                                     pix_params))
+    pix = merge_gaussians(parts)
+    if not len(frames):
+        return FusionResult(pix, len(pix), 0, 0, bbox_extent(pix.means), params.voxel_size)
+    seen = SourcesVisibility([SourceVisibility(depths[n], poses[n], tol) for n in names])
+    fused = voxel_fusion(frames, params, progress=progress, select=seen.keep_unexplained)
+    g = merge_gaussians([pix, fused.gaussians])
+    return FusionResult(g, fused.num_observations + len(pix), fused.num_voxels, fused.num_pruned, bbox_extent(g.means),
+                        params.voxel_size, num_source=len(pix))

@@ -1,0 +1,116 @@
+"""A home from several panoramas through `runner.py run` (issue #27): every stage, capture points on the NavMesh,
+the trajectory visiting them, and the Gaussian scene reproducing each panorama at its capture pose."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from panoworld import artifacts as art
+from panoworld import pipeline as pl
+from panoworld.conventions import invert_pose
+from panoworld.depth import read_panorama
+from panoworld.home.layout import capture_poses
+from panoworld.home.quality import capture_psnr
+
+torch.set_num_threads(1)
+
+SMALL = ["mesh.home_stride=4", "trajectory.sectors=4", "gaussians.source_height=128", "register.height=384"]
+"""ci-tiny plus: coarser fused mesh, fewer explore paths per capture point, small per-pixel sources (test speed)."""
+
+
+@pytest.fixture(scope="module")
+def home_run(home_dir, tmp_path_factory):
+    scene = tmp_path_factory.mktemp("run") / "scene"
+    shutil.copytree(home_dir, scene, ignore=shutil.ignore_patterns("artifacts"))
+    report = pl.run(scene, preset="ci-tiny", sets=SMALL)
+    return scene, report
+
+
+@pytest.mark.slow
+def test_home_runs_every_stage_and_caches(home_run):
+    scene, report = home_run
+    assert [r.action for r in report.results] == ["ran"] * len(pl.Pipeline.load().order), report.table()
+    again = pl.run(scene, preset="ci-tiny", sets=SMALL)
+    assert {r.action for r in again.results} == {"cached"}, again.table()
+    depth = art.read_manifest(scene / "artifacts" / "depth")["info"]
+    assert depth["home"]["names"] == ["pano_00", "pano_01", "pano_02"]
+
+
+@pytest.mark.slow
+def test_home_capture_points_registered_on_navmesh_and_visited(home_run):
+    scene, _ = home_run
+    arts = scene / "artifacts"
+    est = capture_poses(arts / "register")
+    gt = {n: np.asarray(T) for n, T in json.loads((scene / "gt" / "poses.json").read_text()).items()}
+    for n, E in est.items():
+        G = invert_pose(gt["pano_00"]) @ gt[n]
+        assert np.linalg.norm(G[:3, 3] - E[:3, 3]) < 0.05, n
+    nav = art.read_manifest(arts / "navmesh")["info"]
+    assert nav["capture_points_on_navmesh"] == dict.fromkeys(est, True)
+    traj = art.read_manifest(arts / "trajectory")["info"]
+    assert traj["kind"] == "home" and traj["invalid_poses"] == [] and traj["plan"]["unreached_captures"] == []
+    poses = np.asarray(json.loads((arts / "trajectory" / "trajectory.json").read_text())["poses"])
+    for n, k in traj["plan"]["capture_frames"].items():  # a frame stands at every capture point ...
+        assert np.allclose(poses[k][:3, 3], est[n][:3, 3], atol=1e-6), n
+    walks = [p for p in traj["plan"]["paths"] if "walk" in p]  # ... and walks join them
+    assert len(walks) == 2 and all(p["stop"] > p["start"] for p in walks)
+    assert len(poses) == traj["frames"] == len(json.loads((arts / "poses" / "poses.json").read_text())["poses"])
+
+
+@pytest.mark.slow
+def test_home_gaussians_reproduce_every_panorama_at_its_capture_pose(home_run):
+    scene, _ = home_run
+    arts = scene / "artifacts"
+    info = art.read_manifest(arts / "gaussians")["info"]
+    captures = capture_poses(arts / "register")
+    panos = {n: read_panorama(scene / "panoramas" / f"{n}.png") for n in captures}
+    scores = capture_psnr(arts / "gaussians" / "gaussians.ply", captures, panos, height=64)
+    assert min(scores.values()) > 27.0, scores
+    # Every source is anchored, but no surface twice: fewer per-pixel Gaussians than the sources' pixels.
+    assert 0.4 * 3 * 128 * 256 < info["num_source_gaussians"] < 0.9 * 3 * 128 * 256
+
+
+def test_conditions_take_each_surface_from_its_nearest_panorama(home_dir):
+    """Conditions are rendered from the fused mesh, whose colours come from the panorama that sees each surface
+    nearest: rendered at every capture pose they reproduce that panorama (covered and close in colour), also where
+    other panoramas' surfaces show."""
+    from panoworld.conditions import render_conditions
+    from panoworld.home.mesh import home_mesh
+
+    gt = {n: np.asarray(T) for n, T in json.loads((home_dir / "gt" / "poses.json").read_text()).items()}
+    poses = {n: invert_pose(gt["pano_00"]) @ T for n, T in gt.items()}
+    dirs = {}
+    for n in poses:  # a depth artifact's per-panorama folders
+        d = home_dir.parent / "home_depth" / n
+        d.mkdir(parents=True, exist_ok=True)
+        depth = np.load(home_dir / "depths" / f"{n}.npy")
+        np.save(d / "depth.npy", depth)
+        cv2.imwrite(str(d / "valid.png"), (depth > 0).astype(np.uint8) * 255)
+        shutil.copy(home_dir / "panoramas" / f"{n}.png", d / "panorama.png")
+        dirs[n] = d
+    mesh, _, sources = home_mesh(dirs, poses, stride=4)
+    assert [s["name"] for s in sources] == list(poses)
+    h = 64
+    for n, T in poses.items():
+        frame = render_conditions(mesh, T[None], h, 2 * h)[0]
+        ref = cv2.resize(read_panorama(home_dir / "panoramas" / f"{n}.png"), (2 * h, h), interpolation=cv2.INTER_AREA)
+        ok = frame.mask > 0
+        err = np.abs(frame.rgb.astype(np.float32) - ref.astype(np.float32))[ok].mean()
+        assert ok.mean() > 0.97 and err < 8.0, (n, ok.mean(), err)
+
+
+@pytest.mark.slow
+def test_home_report_marks_every_capture_point(home_run, tmp_path):
+    from panoworld.report.cli import build_scene_report
+
+    scene, _ = home_run
+    page = build_scene_report(scene, tmp_path / "report.html").read_text()
+    for n in ("pano_00", "pano_01", "pano_02"):
+        assert f"capture point {n}" in page
+    assert "3 capture points" in page
