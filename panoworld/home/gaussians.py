@@ -11,7 +11,7 @@ import torch
 
 from panoworld.conventions import erp_dirs, transform_points
 from panoworld.fusion_params import FusionParams
-from panoworld.gaussians import ContextSource, FusionResult, bbox_extent, voxel_fusion
+from panoworld.gaussians import ContextSource, FusionResult, bbox_extent, resize_depth, voxel_fusion
 from panoworld.pixel_gaussians import SourceVisibility, merge_gaussians, pixel_gaussians
 from panoworld.register.fuse import nearest_source
 
@@ -31,10 +31,11 @@ class SourcesVisibility:
 
 
 def _at_height(rgb: np.ndarray, depth: np.ndarray, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """rgb (area) and depth (nearest) at `height` rows when they are taller (never upsampled)."""
+    """rgb (area) and depth (resize_depth, 0 = unknown) at `height` rows when they are taller (never upsampled), as
+    the video frames are resized (ContextSource)."""
     if height and depth.shape[0] > height:
         rgb = cv2.resize(rgb, (2 * height, height), interpolation=cv2.INTER_AREA)
-        depth = cv2.resize(depth, (2 * height, height), interpolation=cv2.INTER_NEAREST)
+        depth = np.nan_to_num(resize_depth(depth, height, 2 * height), nan=0.0, posinf=0.0)
     return rgb, depth
 
 
