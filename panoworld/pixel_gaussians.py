@@ -17,6 +17,7 @@ from panoworld.gaussians import (
     bbox_extent,
     frame_observations,
     gaussians_from_cov,
+    rgb_to_sh_dc,
     voxel_fusion,
 )
 
@@ -122,3 +123,45 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
     g = merge_gaussians([pix, fused.gaussians.subset(~poking)])
     return FusionResult(g, fused.num_observations + len(pix), fused.num_voxels, fused.num_pruned + int(poking.sum()),
                         bbox_extent(g.means), vox_params.voxel_size, num_source=len(pix))
+
+
+def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, iters: int = 10, damping: float = 0.01,
+               supersample: int = 1) -> tuple[Gaussians, dict]:
+    """Gaussians whose colours (SH DC) are refitted so their ERP render at world_from_cam matches target (H, W, 3)
+    uint8 or [0, 1]: the render is linear in the colours for fixed geometry (render_gs.ErpColorOperator), so this is
+    `iters` steps of damped conjugate-gradient least squares, min |A c - y|^2 + damping |c - c0|^2 from the current
+    colours c0 (damping per unit of compositing weight: Gaussians the view barely sees stay put), clipped to [0, 1].
+    Returns the Gaussians and {"rmse_before", "rmse_after"} of the render at that pose."""
+    from panoworld.render_gs import ErpColorOperator
+
+    h, w = target.shape[:2]
+    y = torch.as_tensor(np.asarray(target, np.float32) / (255.0 if target.dtype == np.uint8 else 1.0))
+    op = ErpColorOperator(g, world_from_cam, h, w, supersample=supersample)
+    c0 = torch.from_numpy(g.base_colors())
+
+    def adjoint(r: torch.Tensor) -> torch.Tensor:
+        x = torch.zeros(len(g), 3, requires_grad=True)
+        (op(x) * r).sum().backward()
+        return x.grad
+
+    lam = damping * adjoint(torch.ones(h, w, 3))[:, :1].clamp(min=1e-3)  # A^T 1: each Gaussian's weight in the view
+
+    x = c0.clone()
+    r = y - op(x)
+    rmse0 = float(r.square().mean().sqrt())
+    s = adjoint(r)  # the gradient of the damped objective at c0 (its damping term is zero there)
+    p, gamma = s.clone(), float(s.square().sum())
+    for _ in range(iters):
+        with torch.no_grad():
+            q = op(p)
+        alpha = gamma / max(float(q.square().sum() + (lam * p.square()).sum()), 1e-20)
+        x = x + alpha * p
+        r = r - alpha * q
+        s = adjoint(r) - lam * (x - c0)
+        gamma_new = float(s.square().sum())
+        p, gamma = s + gamma_new / max(gamma, 1e-20) * p, gamma_new
+    x = x.clamp(0.0, 1.0)
+    with torch.no_grad():
+        rmse1 = float((y - op(x)).square().mean().sqrt())
+    out = Gaussians(g.means, g.scales, g.quats, g.opacities, rgb_to_sh_dc(x.numpy()).astype(np.float32), g.sh_rest)
+    return out, {"rmse_before": rmse0, "rmse_after": rmse1}

@@ -76,6 +76,8 @@ class Projected:
     """(P, 3)"""
     extent: torch.Tensor
     """(P, 2) half-widths in pixels (x, y) of the box holding the alpha >= 1/255 ellipse."""
+    index: torch.Tensor | None = None
+    """(P,) index of each projected Gaussian in the set passed to project."""
 
 
 @dataclass
@@ -169,7 +171,7 @@ def project(
     ok = ok.nonzero().squeeze(1)
     det = det[ok]
     conic = torch.stack([c[ok] / det, -b[ok] / det, a[ok] / det], -1)
-    return Projected(xy[ok], conic, z[ok], pc[ok].norm(dim=-1), opacity[ok], prep.color[idx[ok]], ext[ok])
+    return Projected(xy[ok], conic, z[ok], pc[ok].norm(dim=-1), opacity[ok], prep.color[idx[ok]], ext[ok], idx[ok])
 
 
 def _alpha(proj: Projected, gid: torch.Tensor, px: torch.Tensor, py: torch.Tensor) -> torch.Tensor:
@@ -220,12 +222,14 @@ def _finish(rgb: torch.Tensor, depth: torch.Tensor, T: torch.Tensor, background:
 
 def rasterize_tiles(
     proj: Projected, H: int, W: int, background: torch.Tensor, chunk: int = 32, raw: bool = False,
-    distance: bool = False,
+    distance: bool = False, weights: list | None = None,
 ) -> RenderOutput:
     """Tile rasteriser: bin Gaussians into 16x16 tiles, sort by (tile, depth), composite all tiles chunk by chunk.
 
     raw=True returns the un-normalised accumulated depth (sum w z) instead of the expected depth; distance=True
-    accumulates the centres' Euclidean distances instead of their z.
+    accumulates the centres' Euclidean distances instead of their z. weights, when a list, receives per chunk the
+    non-zero compositing weights as (flat pixel index (K,), Gaussian index in proj (K,), weight (K,)): the image is
+    their sum of weight x colour plus the transmittance x background.
     """
     depth_of = proj.dist if distance else proj.z
     ntx, nty = -(-W // TILE), -(-H // TILE)
@@ -267,6 +271,11 @@ def rasterize_tiles(
         py = (base_y[a, None] + local_pix // TILE).float() + 0.5
         alpha = _alpha(proj, g, px, py) * valid[..., None]
         w, T[a], done[a] = _composite_step(alpha, T[a], done[a])
+        if weights is not None:
+            ti, gi, pi = (w > 0).nonzero(as_tuple=True)
+            y, x = base_y[a[ti]] + pi // TILE, base_x[a[ti]] + pi % TILE
+            inside = (y < H) & (x < W)
+            weights.append(((y * W + x)[inside], g[ti, gi][inside], w[ti, gi, pi][inside]))
         acc_rgb[a] = acc_rgb[a] + torch.bmm(w.transpose(1, 2), proj.color[g])
         acc_z[a] = acc_z[a] + torch.bmm(w.transpose(1, 2), depth_of[g][..., None])[..., 0]
         k += chunk
@@ -325,6 +334,59 @@ and area-downsampled (2x2 box), so splats finer than a pixel (per-pixel Gaussian
 instead of aliasing. docs/evaluation.md, "Anti-aliased ERP renders", has the quality/time measurements behind it."""
 
 
+@dataclass
+class ErpFace:
+    """One cube face of an ERP render: its pinhole view and the ERP samples it serves."""
+
+    world_from_face: np.ndarray
+    f: float
+    """Focal length = principal point - margin, pixels."""
+    c: float
+    n: int
+    """Face size in pixels (with margin)."""
+    sel: torch.Tensor
+    """(Hs, Ws) bool: supersampled ERP pixels taken from this face."""
+    grid: torch.Tensor
+    """(Hs, Ws, 2) their grid_sample coordinates in the face."""
+
+    def sample(self, img: torch.Tensor) -> torch.Tensor:
+        """Face image (n, n, C) -> (C, Hs, Ws) bilinear samples (only those under sel are used)."""
+        return F.grid_sample(img.permute(2, 0, 1)[None], self.grid[None], mode="bilinear", padding_mode="border",
+                             align_corners=False)[0]
+
+
+def erp_faces(world_from_cam: np.ndarray, H: int, W: int, *, face_size: int | None = None, margin: int = 2,
+              supersample: int = ERP_SUPERSAMPLE) -> list[ErpFace]:
+    """The cube faces render_erp composes an (H, W) ERP at world_from_cam from (see there), those serving no sample
+    left out."""
+    check_erp_shape(H, W, "requested ERP render")
+    check_pose(world_from_cam, "world_from_cam")
+    if int(supersample) != supersample or supersample < 1:
+        raise ValueError(f"supersample={supersample!r} but expected a positive integer")
+    s = int(supersample)
+    world_from_cam = np.asarray(world_from_cam, dtype=np.float64)
+    Hs, Ws = s * H, s * W
+    S = face_size or math.ceil(Ws / math.pi)
+    n = S + 2 * margin
+    f = S / 2.0
+    c = n / 2.0
+    dirs = torch.from_numpy(erp_dirs(Hs, Ws))
+    best = torch.full((Hs, Ws), -2.0)
+    faces = []
+    for R_face in CUBE_FACES.values():
+        world_from_face = world_from_cam.copy()
+        world_from_face[:3, :3] = world_from_cam[:3, :3] @ R_face
+        d = dirs @ torch.as_tensor(R_face, dtype=torch.float32)  # face-frame directions (Hs, Ws, 3)
+        sel = d[..., 2] > best
+        if not bool(sel.any()):
+            continue
+        best = torch.where(sel, d[..., 2], best)
+        z = d[..., 2].clamp(min=1e-6)
+        grid = torch.stack([(f * d[..., 0] / z + c) / n * 2 - 1, (f * d[..., 1] / z + c) / n * 2 - 1], -1)
+        faces.append(ErpFace(world_from_face, f, c, n, sel, grid))
+    return faces
+
+
 def render_erp(
     gaussians: Gaussians, world_from_cam: np.ndarray, H: int, W: int, *, face_size: int | None = None,
     margin: int = 2, near: float = 0.01, background=None, supersample: int = ERP_SUPERSAMPLE,
@@ -337,44 +399,49 @@ def render_erp(
     depth averaged over each s x s block). depth is the expected Euclidean distance of the Gaussian centres (composited
     in each face's z order).
     """
-    check_erp_shape(H, W, "requested ERP render")
-    check_pose(world_from_cam, "world_from_cam")
-    if int(supersample) != supersample or supersample < 1:
-        raise ValueError(f"supersample={supersample!r} but expected a positive integer")
+    faces = erp_faces(world_from_cam, H, W, face_size=face_size, margin=margin, supersample=supersample)
     s = int(supersample)
-    world_from_cam = np.asarray(world_from_cam, dtype=np.float64)
-    Hs, Ws = s * H, s * W
-    S = face_size or math.ceil(Ws / math.pi)
-    n = S + 2 * margin
-    f = S / 2.0
-    c = n / 2.0
-    prep = _prepare(gaussians, world_from_cam[:3, 3])
+    prep = _prepare(gaussians, np.asarray(world_from_cam, dtype=np.float64)[:3, 3])
     bg = _background(background)
-    dirs = torch.from_numpy(erp_dirs(Hs, Ws))
-    out = torch.zeros(5, Hs, Ws)
-    best = torch.full((Hs, Ws), -2.0)
-    for R_face in CUBE_FACES.values():
-        world_from_face = world_from_cam.copy()
-        world_from_face[:3, :3] = world_from_cam[:3, :3] @ R_face
-        d = dirs @ torch.as_tensor(R_face, dtype=torch.float32)  # face-frame directions (Hs, Ws, 3)
-        sel = d[..., 2] > best
-        if not bool(sel.any()):
-            continue
-        proj = project(prep, invert_pose(world_from_face), f, f, c, c, n, n, near)
-        face = rasterize_tiles(proj, n, n, bg, raw=True, distance=True)
+    out = torch.zeros(5, s * H, s * W)
+    for fc in faces:
+        proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
+        face = rasterize_tiles(proj, fc.n, fc.n, bg, raw=True, distance=True)
         img = torch.cat([face.rgb, face.depth[..., None], face.alpha[..., None]], -1)
-        best = torch.where(sel, d[..., 2], best)
-        z = d[..., 2].clamp(min=1e-6)
-        grid = torch.stack([(f * d[..., 0] / z + c) / n * 2 - 1, (f * d[..., 1] / z + c) / n * 2 - 1], -1)
-        sampled = F.grid_sample(
-            img.permute(2, 0, 1)[None], grid[None], mode="bilinear", padding_mode="border", align_corners=False
-        )[0]
-        out = torch.where(sel[None], sampled, out)
+        out = torch.where(fc.sel[None], fc.sample(img), out)
     if s > 1:
         out = F.avg_pool2d(out[None], s)[0]
     alpha = out[4]
     depth = torch.where(alpha > 0, out[3] / alpha.clamp(min=1e-12), torch.zeros_like(alpha))
     return RenderOutput(out[:3].permute(1, 2, 0).contiguous(), depth, alpha)
+
+
+class ErpColorOperator:
+    """The ERP render of Gaussians at one pose as a linear map of their colours (geometry fixed, black background):
+    the compositing weights of every cube face kept as sparse matrices, resampled and pooled as render_erp does."""
+
+    def __init__(self, gaussians: Gaussians, world_from_cam: np.ndarray, H: int, W: int, *,
+                 supersample: int = ERP_SUPERSAMPLE, near: float = 0.01):
+        self.faces = erp_faces(world_from_cam, H, W, supersample=supersample)
+        self.s, self.H, self.W, self.N = int(supersample), H, W, len(gaussians)
+        prep = _prepare(gaussians, np.asarray(world_from_cam, dtype=np.float64)[:3, 3])
+        self.weights = []
+        for fc in self.faces:
+            proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
+            parts: list = []
+            rasterize_tiles(proj, fc.n, fc.n, torch.zeros(3), weights=parts)
+            pix, gid, w = (torch.cat(x) for x in zip(*parts)) if parts else (torch.zeros(0, dtype=torch.long),) * 3
+            self.weights.append(torch.sparse_coo_tensor(torch.stack([pix, proj.index[gid]]), w.float(),
+                                                        (fc.n * fc.n, self.N)).coalesce().to_sparse_csr())
+
+    def __call__(self, colors: torch.Tensor) -> torch.Tensor:
+        """Colours (N, 3) -> the rendered ERP (H, W, 3); differentiable in colors."""
+        out = torch.zeros(3, self.s * self.H, self.s * self.W)
+        for fc, A in zip(self.faces, self.weights):
+            out = torch.where(fc.sel[None], fc.sample((A @ colors).reshape(fc.n, fc.n, 3)), out)
+        if self.s > 1:
+            out = F.avg_pool2d(out[None], self.s)[0]
+        return out.permute(1, 2, 0)
 
 
 def _gsplat_available() -> bool:

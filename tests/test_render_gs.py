@@ -241,3 +241,24 @@ def test_erp_supersampling_averages_detail_finer_than_a_pixel():
     assert err[4] < 0.5 * err[1] and err[2] < 0.9 * err[1], err
     with pytest.raises(ValueError, match="supersample"):
         render_erp(g, np.eye(4), H, W, supersample=0)
+
+
+@pytest.mark.parametrize("supersample", [1, 2])
+def test_erp_color_operator_is_the_render_as_a_linear_map_of_colours(supersample):
+    from panoworld.render_gs import ErpColorOperator
+
+    g, _ = shell(3.0, 2000)
+    inner = random_gaussians(300, seed=3)  # overlapping, partly transparent Gaussians in front of the shell
+    inner = Gaussians(inner.means * 0.4, inner.scales * 0.5, inner.quats, inner.opacities, inner.sh_dc)
+    both = Gaussians(*(np.concatenate([getattr(a, f) for a in (g, inner)]) for f in
+                       ("means", "scales", "quats", "opacities", "sh_dc")))
+    pose = np.eye(4)
+    pose[:3, 3] = [0.2, -0.1, 0.3]
+    op = ErpColorOperator(both, pose, 24, 48, supersample=supersample)
+    rgb = (0.5 + SH_C0 * torch.from_numpy(both.sh_dc)).clamp(min=0)  # eval_sh's colour
+    want = render_erp(both, pose, 24, 48, supersample=supersample).rgb
+    torch.testing.assert_close(op(rgb), want, atol=2e-5, rtol=0)
+    other = torch.rand(len(both), 3)  # linear: any colours, not only the Gaussians' own
+    mixed = Gaussians(both.means, both.scales, both.quats, both.opacities, rgb_to_sh_dc(other.numpy()))
+    torch.testing.assert_close(op(other), render_erp(mixed, pose, 24, 48, supersample=supersample).rgb,
+                               atol=2e-5, rtol=0)
