@@ -138,30 +138,22 @@ def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, 
     y = torch.as_tensor(np.asarray(target, np.float32) / (255.0 if target.dtype == np.uint8 else 1.0))
     op = ErpColorOperator(g, world_from_cam, h, w, supersample=supersample)
     c0 = torch.from_numpy(g.base_colors())
-
-    def adjoint(r: torch.Tensor) -> torch.Tensor:
-        x = torch.zeros(len(g), 3, requires_grad=True)
-        (op(x) * r).sum().backward()
-        return x.grad
-
-    lam = damping * adjoint(torch.ones(h, w, 3))[:, :1].clamp(min=1e-3)  # A^T 1: each Gaussian's weight in the view
+    lam = damping * op.adjoint(torch.ones(h, w, 3))[:, :1].clamp(min=1e-3)  # A^T 1: each Gaussian's weight in the view
 
     x = c0.clone()
     r = y - op(x)
     rmse0 = float(r.square().mean().sqrt())
-    s = adjoint(r)  # the gradient of the damped objective at c0 (its damping term is zero there)
+    s = op.adjoint(r)  # the gradient of the damped objective at c0 (its damping term is zero there)
     p, gamma = s.clone(), float(s.square().sum())
     for _ in range(iters):
-        with torch.no_grad():
-            q = op(p)
+        q = op(p)
         alpha = gamma / max(float(q.square().sum() + (lam * p.square()).sum()), 1e-20)
         x = x + alpha * p
         r = r - alpha * q
-        s = adjoint(r) - lam * (x - c0)
+        s = op.adjoint(r) - lam * (x - c0)
         gamma_new = float(s.square().sum())
         p, gamma = s + gamma_new / max(gamma, 1e-20) * p, gamma_new
     x = x.clamp(0.0, 1.0)
-    with torch.no_grad():
-        rmse1 = float((y - op(x)).square().mean().sqrt())
+    rmse1 = float((y - op(x)).square().mean().sqrt())
     out = Gaussians(g.means, g.scales, g.quats, g.opacities, rgb_to_sh_dc(x.numpy()).astype(np.float32), g.sh_rest)
     return out, {"rmse_before": rmse0, "rmse_after": rmse1}

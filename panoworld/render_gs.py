@@ -417,31 +417,41 @@ def render_erp(
 
 
 class ErpColorOperator:
-    """The ERP render of Gaussians at one pose as a linear map of their colours (geometry fixed, black background):
-    the compositing weights of every cube face kept as sparse matrices, resampled and pooled as render_erp does."""
+    """The ERP render of Gaussians at one pose as a linear map A of their colours (geometry fixed, black background):
+    each cube face's compositing weights as a sparse matrix (and its transpose), resampled and pooled as render_erp
+    does. A(colors (N, 3)) -> (H, W, 3); adjoint(image (H, W, 3)) -> A^T image (N, 3)."""
 
     def __init__(self, gaussians: Gaussians, world_from_cam: np.ndarray, H: int, W: int, *,
                  supersample: int = ERP_SUPERSAMPLE, near: float = 0.01):
         self.faces = erp_faces(world_from_cam, H, W, supersample=supersample)
         self.s, self.H, self.W, self.N = int(supersample), H, W, len(gaussians)
         prep = _prepare(gaussians, np.asarray(world_from_cam, dtype=np.float64)[:3, 3])
-        self.weights = []
+        self.weights, self.weights_t = [], []
         for fc in self.faces:
             proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
             parts: list = []
             rasterize_tiles(proj, fc.n, fc.n, torch.zeros(3), weights=parts)
             pix, gid, w = (torch.cat(x) for x in zip(*parts)) if parts else (torch.zeros(0, dtype=torch.long),) * 3
-            self.weights.append(torch.sparse_coo_tensor(torch.stack([pix, proj.index[gid]]), w.float(),
-                                                        (fc.n * fc.n, self.N)).coalesce().to_sparse_csr())
+            ij = torch.stack([pix, proj.index[gid]])
+            self.weights.append(torch.sparse_coo_tensor(ij, w.float(), (fc.n * fc.n, self.N)).to_sparse_csr())
+            self.weights_t.append(torch.sparse_coo_tensor(ij.flip(0), w.float(), (self.N, fc.n * fc.n)).to_sparse_csr())
 
-    def __call__(self, colors: torch.Tensor) -> torch.Tensor:
-        """Colours (N, 3) -> the rendered ERP (H, W, 3); differentiable in colors."""
+    def compose(self, face_images: list[torch.Tensor]) -> torch.Tensor:
+        """Face images (n * n, 3) -> the ERP (H, W, 3) (differentiable)."""
         out = torch.zeros(3, self.s * self.H, self.s * self.W)
-        for fc, A in zip(self.faces, self.weights):
-            out = torch.where(fc.sel[None], fc.sample((A @ colors).reshape(fc.n, fc.n, 3)), out)
+        for fc, img in zip(self.faces, face_images):
+            out = torch.where(fc.sel[None], fc.sample(img.reshape(fc.n, fc.n, 3)), out)
         if self.s > 1:
             out = F.avg_pool2d(out[None], self.s)[0]
         return out.permute(1, 2, 0)
+
+    def __call__(self, colors: torch.Tensor) -> torch.Tensor:
+        return self.compose([A @ colors for A in self.weights])
+
+    def adjoint(self, image: torch.Tensor) -> torch.Tensor:
+        faces = [torch.zeros(A.shape[0], 3, requires_grad=True) for A in self.weights]
+        grads = torch.autograd.grad(self.compose(faces), faces, image)
+        return sum(At @ g for At, g in zip(self.weights_t, grads))
 
 
 def _gsplat_available() -> bool:

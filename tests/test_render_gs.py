@@ -262,3 +262,6 @@ def test_erp_color_operator_is_the_render_as_a_linear_map_of_colours(supersample
     mixed = Gaussians(both.means, both.scales, both.quats, both.opacities, rgb_to_sh_dc(other.numpy()))
     torch.testing.assert_close(op(other), render_erp(mixed, pose, 24, 48, supersample=supersample).rgb,
                                atol=2e-5, rtol=0)
+    img = torch.rand(24, 48, 3, dtype=torch.float64)  # the adjoint: <A x, y> = <x, A^T y>
+    lhs, rhs = float((op(other).double() * img).sum()), float((other.double() * op.adjoint(img.float())).sum())
+    assert abs(lhs - rhs) < 1e-4 * abs(lhs)
