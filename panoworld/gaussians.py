@@ -302,6 +302,8 @@ class FusionResult:
     backend: str = "voxel-fusion"
     num_source: int = 0
     """Per-pixel Gaussians of the source view among them (source_anchored_fusion)."""
+    color_fit: dict | None = None
+    """The colour fit at the capture point, when one ran (pixel_gaussians.fit_colors' statistics)."""
 
 
 MERGE_EVERY = 8

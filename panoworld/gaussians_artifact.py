@@ -45,6 +45,7 @@ def write_artifact(out_dir: Path, result: FusionResult, frames: ContextFrames | 
         "num_pruned_voxels": result.num_pruned,
         "num_observations": result.num_observations,
         "num_source_gaussians": result.num_source,
+        "color_fit": result.color_fit,
         "voxel_size": result.voxel_size,
         "frames": frames.indices,
         "fusion_height": int(frames.height) if isinstance(frames, ContextSource) else int(frames.rgb.shape[1]),

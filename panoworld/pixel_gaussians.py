@@ -63,12 +63,17 @@ class SourceVisibility:
         self.cam_from_world = invert_pose(np.asarray(world_from_cam, np.float64))
         self.tol = tol
 
-    def _lookup(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(distance of world points (M, 3) from the source, the source's depth along their ray (NaN = none))."""
+    def _lookup(self, points: np.ndarray, offset: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(distance of world points (M, 3) from the source, the source's depth along their ray (NaN = none)); offset
+        (M, 2): look the depth up that many radians away in longitude and latitude."""
         p = np.einsum("ij,mj->mi", self.cam_from_world[:3, :3], points) + self.cam_from_world[:3, 3]
         dist = np.linalg.norm(p, axis=1)
         h, w = self.depth.shape
         u, v = erp_pixel_from_dir(p / np.maximum(dist, 1e-12)[:, None], h, w)
+        if offset is not None:
+            lat = (0.5 - v / h) * np.pi
+            u = u + offset[:, 0] * w / (2 * np.pi) / np.maximum(np.cos(lat), 1e-3)
+            v = v + offset[:, 1] * h / np.pi
         j = np.mod(np.floor(u).astype(np.int64), w)
         i = np.clip(np.floor(v).astype(np.int64), 0, h - 1)
         return dist, self.depth[i, j]
@@ -88,6 +93,21 @@ class SourceVisibility:
         with np.errstate(invalid="ignore"):
             return np.isfinite(d_src) & (dist - d_src < reach * np.asarray(g.scales).max(1))
 
+    def covering(self, g: Gaussians, reach: float = 2.0) -> np.ndarray:
+        """(N,) bool: Gaussians whose splat, within reach x their largest scale of their centre as the source sees it,
+        lies in front of a surface the source saw there (nearer than its depth less that radius): from the capture
+        point they would cover part of the input (the side of an object seen edge-on smeared over the wall behind)."""
+        means = np.asarray(g.means, np.float64)
+        rad = reach * np.asarray(g.scales, np.float64).max(1)
+        dist, _ = self._lookup(means)
+        ang = rad / np.maximum(dist, 1e-6)
+        out = np.zeros(len(means), bool)
+        for du, dv in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+            _, d_src = self._lookup(means, np.stack([du * ang, dv * ang], 1))
+            with np.errstate(invalid="ignore"):
+                out |= np.isfinite(d_src) & (d_src > dist + rad)
+        return out
+
     def keep_unexplained(self, obs: Observations) -> Observations:
         return obs.subset(torch.from_numpy(~self.explained(obs.points.numpy())))
 
@@ -100,12 +120,13 @@ def merge_gaussians(parts: list[Gaussians]) -> Gaussians:
 
 def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, source_height: int = 0, tol: float = 0.03,
                            source_scale: float | None = None, unseen_voxel_size: float = 0.0, thin_poles: bool = True,
-                           progress: bool = False) -> FusionResult:
+                           fit_iters: int = 0, fit_height: int = 0, progress: bool = False) -> FusionResult:
     """Per-pixel Gaussians of the source view (video frame 0, at source_height rows; 0 = as the other frames) plus
     voxel fusion of what the other frames see that the source does not (SourceVisibility with tolerance tol) in voxels
     of unseen_voxel_size (0 = params.voxel_size), less those poking through the source's surfaces: the capture point keeps the input's full detail, the rest of the
     room is fused as before. source_scale: the per-pixel Gaussians' scale_factor (None = params.scale_factor). Without
-    frame 0 among the frames it is plain voxel fusion."""
+    frame 0 among the frames it is plain voxel fusion. fit_iters > 0: the colours are then fitted to frame 0 at its
+    pose (fit_colors, at fit_height rows; 0 = source_height)."""
     if not frames.indices or frames.indices[0] != 0:
         return voxel_fusion(frames, params, progress=progress)
     src = replace(frames, height=min(source_height or frames.height, frames.stored_height))
@@ -114,15 +135,23 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
     pix = pixel_gaussians(rgb, depth, pose, pix_params, thin_poles=thin_poles)
     rest = replace(frames, rgb_paths=frames.rgb_paths[1:], depth_paths=frames.depth_paths[1:],
                    world_from_cam=frames.world_from_cam[1:], indices=frames.indices[1:])
-    if not len(rest):
-        return FusionResult(pix, len(pix), 0, 0, bbox_extent(pix.means), params.voxel_size)
-    vox_params = replace(params, voxel_size=unseen_voxel_size) if unseen_voxel_size > 0 else params
-    vis = SourceVisibility(depth, pose, tol)
-    fused = voxel_fusion(rest, vox_params, progress=progress, select=vis.keep_unexplained)
-    poking = vis.poking_through(fused.gaussians)
-    g = merge_gaussians([pix, fused.gaussians.subset(~poking)])
-    return FusionResult(g, fused.num_observations + len(pix), fused.num_voxels, fused.num_pruned + int(poking.sum()),
-                        bbox_extent(g.means), vox_params.voxel_size, num_source=len(pix))
+    if len(rest):
+        vox_params = replace(params, voxel_size=unseen_voxel_size) if unseen_voxel_size > 0 else params
+        vis = SourceVisibility(depth, pose, tol)
+        fused = voxel_fusion(rest, vox_params, progress=progress, select=vis.keep_unexplained)
+        poking = vis.poking_through(fused.gaussians)
+        g = merge_gaussians([pix, fused.gaussians.subset(~poking)])
+        result = FusionResult(g, fused.num_observations + len(pix), fused.num_voxels,
+                              fused.num_pruned + int(poking.sum()), bbox_extent(g.means), vox_params.voxel_size,
+                              num_source=len(pix))
+    else:
+        result = FusionResult(pix, len(pix), 0, 0, bbox_extent(pix.means), params.voxel_size, num_source=len(pix))
+    if fit_iters > 0:
+        if fit_height and fit_height != src.height:
+            rgb = replace(frames, height=min(fit_height, frames.stored_height)).frame(0)[0]
+        result.gaussians, result.color_fit = fit_colors(result.gaussians, rgb, pose, iters=fit_iters)
+        result.color_fit.update(iters=fit_iters, height=int(rgb.shape[0]))
+    return result
 
 
 def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, iters: int = 10, damping: float = 0.01,

@@ -64,6 +64,13 @@ class Params(FusionParams):
     source_tol: float = param(0.03, gt=0)
     """Observations of the other frames within this relative depth of the source's surface (or in front of it) count
     as seen by the source and are not fused."""
+    fit_iters: int = param(10, ge=0)
+    """With source_pixels: conjugate-gradient steps of a colour fit at the capture point (0 = none): for the fixed
+    geometry the ERP render there is linear in the Gaussians' colours, which are refitted (least squares, damped
+    towards their fused values) so it reproduces the source frame, undoing the blur of overlapping splats
+    (docs/evaluation.md, "Colour fit at the capture point")."""
+    fit_height: int = param(0, ge=0)
+    """ERP height of that fit's render and target (0 = source_height)."""
     eval_views: int = param(1, ge=0)
     """Context views rendered back from the Gaussians to report PSNR/SSIM/WS-PSNR in the manifest (0 = none)."""
     eval_height: int = param(128, ge=8)
@@ -101,7 +108,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         elif params.source_pixels:
             result = source_anchored_fusion(frames, params, source_height=params.source_height, tol=params.source_tol,
                                             source_scale=params.source_scale,
-                                            unseen_voxel_size=params.unseen_voxel_size, progress=True)
+                                            unseen_voxel_size=params.unseen_voxel_size, fit_iters=params.fit_iters,
+                                            fit_height=params.fit_height, progress=True)
         else:
             result = voxel_fusion(frames, params, progress=True)
     except StageInputError:

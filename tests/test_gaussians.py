@@ -400,3 +400,26 @@ def test_resize_depth_keeps_smooth_surfaces_evenly_sampled_and_edges_sharp(room)
     # nearest sampling puts pixels of a smooth surface off their ray's depth (every third row/column skipped)
     rel_n = np.abs(nearest[ok] / exact[ok] - 1.0)
     assert np.quantile(rel_n, 0.9) > 5 * np.quantile(rel, 0.9)
+
+
+def test_colour_fit_at_the_capture_point_sharpens_it_and_keeps_other_views():
+    # The render at the source pose is linear in the colours: fitting them to the source frame brings the render at
+    # that pose closer to the frame and to the anti-aliased reference, and a view 0.4 m away gains too.
+    from panoworld.pixel_gaussians import fit_colors, pixel_gaussians
+
+    room = _room_renderer(textured_color)
+    src = pose_at(0, 0, 0)
+    rgb0, d0 = room(src, 128, 256)
+    g = pixel_gaussians(rgb0, d0, src, FusionParams(voxel_size=0.04, scale_factor=1.9))
+    fitted, info = fit_colors(g, rgb0, src, iters=10)
+    assert info["rmse_after"] < 0.8 * info["rmse_before"], info
+    assert np.array_equal(fitted.means, g.means) and np.array_equal(fitted.scales, g.scales)
+
+    def score(gs, pose, H=64):  # against an anti-aliased reference: 4x supersampled, area-downsampled
+        gt = cv2.resize(room(pose, 4 * H, 8 * H)[0], (2 * H, H), interpolation=cv2.INTER_AREA)
+        return psnr((render_erp(gs, pose, H, 2 * H).rgb.clamp(0, 1).numpy() * 255).round().astype(np.uint8), gt)
+
+    before, after = score(g, src), score(fitted, src)
+    assert after > before + 3.0, (before, after)  # 30.3 -> 40.0 dB
+    away = pose_at(0.3, 0.05, -0.25)
+    assert score(fitted, away) > score(g, away) + 1.0  # 28.7 -> 32.8 dB: sharper colours, not overfitted to one view
