@@ -63,17 +63,12 @@ class SourceVisibility:
         self.cam_from_world = invert_pose(np.asarray(world_from_cam, np.float64))
         self.tol = tol
 
-    def _lookup(self, points: np.ndarray, offset: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(distance of world points (M, 3) from the source, the source's depth along their ray (NaN = none)); offset
-        (M, 2): look the depth up that many radians away in longitude and latitude."""
+    def _lookup(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(distance of world points (M, 3) from the source, the source's depth along their ray (NaN = none))."""
         p = np.einsum("ij,mj->mi", self.cam_from_world[:3, :3], points) + self.cam_from_world[:3, 3]
         dist = np.linalg.norm(p, axis=1)
         h, w = self.depth.shape
         u, v = erp_pixel_from_dir(p / np.maximum(dist, 1e-12)[:, None], h, w)
-        if offset is not None:
-            lat = (0.5 - v / h) * np.pi
-            u = u + offset[:, 0] * w / (2 * np.pi) / np.maximum(np.cos(lat), 1e-3)
-            v = v + offset[:, 1] * h / np.pi
         j = np.mod(np.floor(u).astype(np.int64), w)
         i = np.clip(np.floor(v).astype(np.int64), 0, h - 1)
         return dist, self.depth[i, j]
@@ -92,21 +87,6 @@ class SourceVisibility:
         dist, d_src = self._lookup(np.asarray(g.means, np.float64))
         with np.errstate(invalid="ignore"):
             return np.isfinite(d_src) & (dist - d_src < reach * np.asarray(g.scales).max(1))
-
-    def covering(self, g: Gaussians, reach: float = 2.0) -> np.ndarray:
-        """(N,) bool: Gaussians whose splat, within reach x their largest scale of their centre as the source sees it,
-        lies in front of a surface the source saw there (nearer than its depth less that radius): from the capture
-        point they would cover part of the input (the side of an object seen edge-on smeared over the wall behind)."""
-        means = np.asarray(g.means, np.float64)
-        rad = reach * np.asarray(g.scales, np.float64).max(1)
-        dist, _ = self._lookup(means)
-        ang = rad / np.maximum(dist, 1e-6)
-        out = np.zeros(len(means), bool)
-        for du, dv in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-            _, d_src = self._lookup(means, np.stack([du * ang, dv * ang], 1))
-            with np.errstate(invalid="ignore"):
-                out |= np.isfinite(d_src) & (d_src > dist + rad)
-        return out
 
     def keep_unexplained(self, obs: Observations) -> Observations:
         return obs.subset(torch.from_numpy(~self.explained(obs.points.numpy())))
