@@ -344,15 +344,15 @@ class ErpFace:
     c: float
     n: int
     """Face size in pixels (with margin)."""
-    sel: torch.Tensor
-    """(Hs, Ws) bool: supersampled ERP pixels taken from this face."""
+    index: torch.Tensor
+    """(K,) flat indices of the supersampled ERP pixels taken from this face (those nearest its axis)."""
     grid: torch.Tensor
-    """(Hs, Ws, 2) their grid_sample coordinates in the face."""
+    """(K, 2) their grid_sample coordinates in the face."""
 
     def sample(self, img: torch.Tensor) -> torch.Tensor:
-        """Face image (n, n, C) -> (C, Hs, Ws) bilinear samples (only those under sel are used)."""
-        return F.grid_sample(img.permute(2, 0, 1)[None], self.grid[None], mode="bilinear", padding_mode="border",
-                             align_corners=False)[0]
+        """Face image (n, n, C) -> (C, K) bilinear samples at those pixels."""
+        return F.grid_sample(img.permute(2, 0, 1)[None], self.grid[None, None], mode="bilinear",
+                             padding_mode="border", align_corners=False)[0, :, 0]
 
 
 def erp_faces(world_from_cam: np.ndarray, H: int, W: int, *, face_size: int | None = None, margin: int = 2,
@@ -365,25 +365,24 @@ def erp_faces(world_from_cam: np.ndarray, H: int, W: int, *, face_size: int | No
         raise ValueError(f"supersample={supersample!r} but expected a positive integer")
     s = int(supersample)
     world_from_cam = np.asarray(world_from_cam, dtype=np.float64)
-    Hs, Ws = s * H, s * W
-    S = face_size or math.ceil(Ws / math.pi)
+    S = face_size or math.ceil(s * W / math.pi)
     n = S + 2 * margin
     f = S / 2.0
     c = n / 2.0
-    dirs = torch.from_numpy(erp_dirs(Hs, Ws))
-    best = torch.full((Hs, Ws), -2.0)
+    dirs = torch.from_numpy(erp_dirs(s * H, s * W)).reshape(-1, 3)
+    rots = [torch.as_tensor(R, dtype=torch.float32) for R in CUBE_FACES.values()]
+    owner = torch.stack([(dirs @ R)[:, 2] for R in rots]).argmax(0)  # the face nearest each ray's direction
     faces = []
-    for R_face in CUBE_FACES.values():
+    for k, (R_face, R) in enumerate(zip(CUBE_FACES.values(), rots)):
+        index = (owner == k).nonzero().squeeze(1)
+        if not index.numel():
+            continue
         world_from_face = world_from_cam.copy()
         world_from_face[:3, :3] = world_from_cam[:3, :3] @ R_face
-        d = dirs @ torch.as_tensor(R_face, dtype=torch.float32)  # face-frame directions (Hs, Ws, 3)
-        sel = d[..., 2] > best
-        if not bool(sel.any()):
-            continue
-        best = torch.where(sel, d[..., 2], best)
-        z = d[..., 2].clamp(min=1e-6)
-        grid = torch.stack([(f * d[..., 0] / z + c) / n * 2 - 1, (f * d[..., 1] / z + c) / n * 2 - 1], -1)
-        faces.append(ErpFace(world_from_face, f, c, n, sel, grid))
+        d = dirs[index] @ R  # face-frame directions (K, 3)
+        z = d[:, 2].clamp(min=1e-6)
+        grid = torch.stack([(f * d[:, 0] / z + c) / n * 2 - 1, (f * d[:, 1] / z + c) / n * 2 - 1], -1)
+        faces.append(ErpFace(world_from_face, f, c, n, index, grid))
     return faces
 
 
@@ -403,12 +402,12 @@ def render_erp(
     s = int(supersample)
     prep = _prepare(gaussians, np.asarray(world_from_cam, dtype=np.float64)[:3, 3])
     bg = _background(background)
-    out = torch.zeros(5, s * H, s * W)
+    out = torch.zeros(5, s * H * s * W)
     for fc in faces:
         proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
         face = rasterize_tiles(proj, fc.n, fc.n, bg, raw=True, distance=True)
-        img = torch.cat([face.rgb, face.depth[..., None], face.alpha[..., None]], -1)
-        out = torch.where(fc.sel[None], fc.sample(img), out)
+        out[:, fc.index] = fc.sample(torch.cat([face.rgb, face.depth[..., None], face.alpha[..., None]], -1))
+    out = out.reshape(5, s * H, s * W)
     if s > 1:
         out = F.avg_pool2d(out[None], s)[0]
     alpha = out[4]
@@ -438,9 +437,10 @@ class ErpColorOperator:
 
     def compose(self, face_images: list[torch.Tensor]) -> torch.Tensor:
         """Face images (n * n, 3) -> the ERP (H, W, 3) (differentiable)."""
-        out = torch.zeros(3, self.s * self.H, self.s * self.W)
+        out = torch.zeros(3, self.s * self.H * self.s * self.W)
         for fc, img in zip(self.faces, face_images):
-            out = torch.where(fc.sel[None], fc.sample(img.reshape(fc.n, fc.n, 3)), out)
+            out = out.index_copy(1, fc.index, fc.sample(img.reshape(fc.n, fc.n, 3)))
+        out = out.reshape(3, self.s * self.H, self.s * self.W)
         if self.s > 1:
             out = F.avg_pool2d(out[None], self.s)[0]
         return out.permute(1, 2, 0)
