@@ -253,8 +253,9 @@ def _floor_chroma(face: np.ndarray, ring_floor: np.ndarray) -> np.ndarray:
 
 
 def _dilate(mask: np.ndarray, view: PerspectiveView) -> np.ndarray:
-    """Grow a face mask over the rig's anti-aliased rim and highlights."""
-    k = 2 * max(2, view.size // 100) + 1
+    """Grow a face mask over the rig's anti-aliased rim and highlights (1 px at 256 rows: a wider margin replaces
+    seen floor by a guess; 2 px cost 0.3-0.6 dB on development seeds)."""
+    k = 2 * max(1, view.size // 180) + 1
     return cv2.dilate(mask.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
 
 
