@@ -30,6 +30,9 @@ HUB_DEG = 6.0
 """Anomalous regions reaching this close to the nadir are candidates (the mount and the roots of the legs)."""
 TABLE_MIN_GAP_M = 0.3
 """A horizontal surface at least this far below the camera (and above the floor) is a seen object, not the mount."""
+CAST_RATIO = 0.9
+"""Floor pixels darker than this share of the floor around them (Lab L) and connected to the rig are its cast
+shadows (inpainted with it; 0.85 missed the legs' and column's shadows from the room's lights on development seeds)."""
 
 
 @dataclass
@@ -239,7 +242,7 @@ def _cast_shadows(lab: np.ndarray, obj: np.ndarray, theta: np.ndarray, view: Per
     win = 2 * max(7, view.size // 16) + 1
     L = lab[..., 0]
     local = cv2.medianBlur(L, min(win, 255)).astype(np.float32)
-    dark = ((L < 0.85 * local) & (theta < CAP_DEG)).astype(np.uint8)
+    dark = ((L < CAST_RATIO * local) & (theta < CAP_DEG)).astype(np.uint8)
     _, labels = cv2.connectedComponents(dark | obj.astype(np.uint8), connectivity=8)
     keep = np.unique(labels[obj])
     return np.isin(labels, keep[keep > 0]) & (dark > 0)
