@@ -1,15 +1,17 @@
 """Capture-rig removal on held-out synthetic scenes against the generator's rig-free ground truth.
 
     python bench/bench_rig.py [--seeds 116-131] [--height 256] [--json]
-    python bench/bench_rig.py --pipeline --seeds 116 [--set conditions.height=256 --set conditions.width=512]
+    python bench/bench_rig.py --pipeline --seeds 116 [--modes auto,keep,truth] [--set conditions.height=256 ...]
 
 Per seed and rig (tripod, tripod with a soft shadow): what detection found, the mask's cap and sphere share, its
 IoU with the true rig mask, the nadir-cap (15 deg) PSNR of the panorama before and after removal against the
 rig-free render, and the cap-vs-floor-ring luminance gap before/after. Controls on the same seeds: no rig (must
 stay byte-identical), a dark rug and a dark stool top under the camera (must be kept). Seeds 3, 5, 8, 11, 12 and
-(after a first held-out table) 104 and 108 were used to develop the method; the default seeds 116-131 were not
-looked at before their table. --pipeline runs the whole pipeline (ci-tiny preset) with the rig removed and kept and
-scores the Gaussians rendered from a ground-truth pose about 1 m away on the floor where the rig stood.
+100-115 were used to develop the method; the default seeds 116-131 are held out. --pipeline runs the whole
+pipeline (ci-tiny preset) with the rig removed and kept (and with --modes truth: the rig-free scene, the ceiling a
+perfect fill could reach) and scores the Gaussians rendered from a ground-truth pose about 1 m away on the floor
+where the rig stood, split into the floor under the removed mask and outside it, next to the capture panoramas
+sampled at the same floor points.
 """
 
 from __future__ import annotations
