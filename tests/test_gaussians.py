@@ -258,9 +258,13 @@ def test_stage_writes_a_valid_artifact(tmp_path, room):
     assert len(info["eval"]) == 2 and info["context_psnr"] > 25
     assert info["context_psnr_covered"] >= info["context_psnr"] - 0.5  # the room is covered: about the same score
     assert info["fusion_height"] == 64
-    capped = execute_stage(spec, {"video": video, "poses": poses}, Params(voxel_size=0.05, eval_views=0, max_height=32, source_height=32),
-                           tmp_path / "capped", input_digests={"video": "0" * 64, "poses": "1" * 64})["info"]
+    fit = info["color_fit"]  # on by default: the render at the capture point moved towards frame 0
+    assert fit["iters"] == 10 and fit["height"] == 64 and fit["rmse_after"] < 0.9 * fit["rmse_before"], fit
+    capped = execute_stage(spec, {"video": video, "poses": poses}, Params(voxel_size=0.05, eval_views=0, max_height=32,
+                           source_height=32, fit_iters=0), tmp_path / "capped",
+                           input_digests={"video": "0" * 64, "poses": "1" * 64})["info"]
     assert capped["fusion_height"] == 32 and capped["num_observations"] < 0.3 * info["num_observations"]
+    assert capped["color_fit"] is None
     # source_scale sizes the per-pixel Gaussians of the source only (they come first in the .ply)
     wide = execute_stage(spec, {"video": video, "poses": poses}, Params(voxel_size=0.05, eval_views=0, source_scale=3.8),
                          tmp_path / "wide", input_digests={"video": "0" * 64, "poses": "1" * 64})["info"]
