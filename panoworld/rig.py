@@ -11,7 +11,7 @@ from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from panoworld.conventions import erp_dirs, erp_pixel_from_dir, erp_pixel_solid_angle
-from panoworld.depth import PerspectiveView, render_view
+from panoworld.cube_views import PerspectiveView, render_view
 from panoworld.errors import InputError
 from panoworld.rig_inpaint import inpaint_plane
 from panoworld.rig_shadow import apply_gain, linear_luminance, shadow_gain
