@@ -76,6 +76,30 @@ def test_home_gaussians_reproduce_every_panorama_at_its_capture_pose(home_run):
     assert 0.4 * 3 * 128 * 256 < info["num_source_gaussians"] < 0.9 * 3 * 128 * 256
 
 
+def test_sources_visibility_is_the_or_of_each_source(home_dir):
+    """The home's test of what the panoramas already explain asks the sources nearest first and each only about what
+    the nearer ones left: the same answer as asking every source about every point (and the same for poking)."""
+    from panoworld.gaussians import Gaussians
+    from panoworld.home.gaussians import SourcesVisibility
+    from panoworld.pixel_gaussians import SourceVisibility
+
+    poses = {n: np.asarray(T) for n, T in json.loads((home_dir / "gt" / "poses.json").read_text()).items()}
+    each = [SourceVisibility(np.load(home_dir / "depths" / f"{n}.npy"), T, 0.03) for n, T in poses.items()]
+    rng = np.random.default_rng(0)
+    centres = np.array([T[:3, 3] for T in poses.values()])
+    # Points around every capture point (in front of, on and behind surfaces) and far from all of them.
+    pts = np.concatenate([c + rng.normal(scale=2.0, size=(3000, 3)) for c in centres])
+    want = np.logical_or.reduce([s.explained(pts) for s in each])
+    assert 0.1 < want.mean() < 0.9  # both kinds are tested
+    seen = SourcesVisibility(each)
+    assert np.array_equal(seen.explained(pts), want)
+    assert np.array_equal(seen.explained(pts[:0]), np.zeros(0, bool))
+    n = len(pts)
+    g = Gaussians(pts.astype(np.float32), np.full((n, 3), 0.05, np.float32), np.tile([1, 0, 0, 0], (n, 1)).astype(
+        np.float32), np.full(n, 0.9, np.float32), np.zeros((n, 3), np.float32))
+    assert np.array_equal(seen.poking_through(g), np.logical_or.reduce([s.poking_through(g) for s in each]))
+
+
 def test_conditions_take_each_surface_from_its_nearest_panorama(home_dir):
     """Conditions are rendered from the fused mesh, whose colours come from the panorama that sees each surface
     nearest: rendered at every capture pose they reproduce that panorama (covered and close in colour), also where
