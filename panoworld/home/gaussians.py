@@ -5,15 +5,15 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-import cv2
 import numpy as np
 import torch
 
 from panoworld.conventions import erp_dirs, invert_pose, transform_points
 from panoworld.fusion_params import FusionParams
-from panoworld.gaussians import ContextSource, FusionResult, bbox_extent, resize_depth, voxel_fusion
+from panoworld.gaussians import ContextSource, FusionResult, bbox_extent, voxel_fusion
 from panoworld.pixel_gaussians import SourceVisibility, merge_gaussians, pixel_gaussians
 from panoworld.register.fuse import nearest_source
+from panoworld.register.solve import rgbd_at_height
 
 
 class SourcesVisibility:
@@ -46,15 +46,6 @@ class SourcesVisibility:
         return np.logical_or.reduce([s.poking_through(g) for s in self.sources])
 
 
-def _at_height(rgb: np.ndarray, depth: np.ndarray, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """rgb (area) and depth (resize_depth, 0 = unknown) at `height` rows when they are taller (never upsampled), as
-    the video frames are resized (ContextSource)."""
-    if height and depth.shape[0] > height:
-        rgb = cv2.resize(rgb, (2 * height, height), interpolation=cv2.INTER_AREA)
-        depth = np.nan_to_num(resize_depth(depth, height, 2 * height), nan=0.0, posinf=0.0)
-    return rgb, depth
-
-
 def home_anchored_fusion(frames: ContextSource, sources: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
                          params: FusionParams, *, source_height: int = 0, tol: float = 0.03,
                          source_scale: float | None = None, unseen_voxel_size: float = 0.0,
@@ -65,7 +56,7 @@ def home_anchored_fusion(frames: ContextSource, sources: dict[str, tuple[np.ndar
     does (SourceVisibility of each, tolerance tol) in voxels of unseen_voxel_size (0 = params.voxel_size), less those
     poking through a surface a source saw: source_anchored_fusion of a single panorama, over several."""
     names = list(sources)
-    small = {n: _at_height(sources[n][0], sources[n][1], source_height) for n in names}
+    small = {n: rgbd_at_height(sources[n][0], sources[n][1], source_height) for n in names}
     depths = {n: small[n][1] for n in names}
     poses = {n: np.asarray(sources[n][2], np.float64) for n in names}
     pix_params = params if source_scale is None else replace(params, scale_factor=source_scale)
