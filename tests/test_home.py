@@ -100,6 +100,37 @@ def test_sources_visibility_is_the_or_of_each_source(home_dir):
     assert np.array_equal(seen.poking_through(g), np.logical_or.reduce([s.poking_through(g) for s in each]))
 
 
+def test_home_rig_masks_override_detection_per_panorama(home_dir, tmp_path, capsys):
+    """SCENE/rig_masks/NAME.png is that panorama's rig (as rig_mask.png is one panorama's): inside it the floor is
+    made up from the floor plane; the other panoramas are untouched. A mask naming no panorama: exit 2, one line."""
+    from stages.depth import main as depth_main
+
+    masks = tmp_path / "rig_masks"
+    masks.mkdir()
+    pano = read_panorama(home_dir / "panoramas" / "pano_01.png")
+    h = pano.shape[0]
+    mask = np.zeros((h, 2 * h), np.uint8)
+    mask[int(0.93 * h):] = 255  # the nadir cap below -77 degrees
+    cv2.imwrite(str(masks / "pano_01.png"), mask)
+    out = tmp_path / "depth"
+    args = ["--panoramas", str(home_dir / "panoramas"), "--depths", str(home_dir / "depths"), "--rig-masks",
+            str(masks), "--complete-dropouts", "false"]
+    assert depth_main([*args, "--out", str(out)]) == 0
+    info = art.read_manifest(out)["info"]["home"]["panoramas"]
+    assert info["pano_01"]["rig"]["kind"] == "user" and info["pano_01"]["rig"]["found"]
+    assert all(info[n]["rig"]["kind"] != "user" for n in info if n != "pano_01")
+    cleaned = read_panorama(out / "panoramas" / "pano_01" / "panorama.png")
+    inside = mask > 0
+    assert np.abs(cleaned.astype(int) - pano.astype(int))[~inside].max() == 0  # untouched outside the mask
+    assert np.abs(cleaned.astype(int) - pano.astype(int))[inside].mean() > 1  # inpainted inside it
+
+    cv2.imwrite(str(masks / "pano_09.png"), mask)
+    capsys.readouterr()
+    assert depth_main([*args, "--out", str(tmp_path / "depth2")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "pano_09.png" in err[0] and "rig_masks" in err[0] and not (tmp_path / "depth2").exists()
+
+
 def test_conditions_take_each_surface_from_its_nearest_panorama(home_dir):
     """Conditions are rendered from the fused mesh, whose colours come from the panorama that sees each surface
     nearest: rendered at every capture pose they reproduce that panorama (covered and close in colour), also where
