@@ -8,6 +8,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
+
+# Before torch loads OpenMP (as every stage process does, panoworld.stage.stage_main): the capture-pose renders below
+# cost several times the CPU with spinning OpenMP threads on a busy machine.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import subprocess
 import sys
 import tempfile

@@ -40,6 +40,9 @@ def test_home_runs_every_stage_and_caches(home_run):
     assert {r.action for r in again.results} == {"cached"}, again.table()
     depth = art.read_manifest(scene / "artifacts" / "depth")["info"]
     assert depth["home"]["names"] == ["pano_00", "pano_01", "pano_02"]
+    for r in report.results:  # every stage's CPU seconds (all threads) beside its wall seconds
+        m = art.read_manifest(scene / "artifacts" / r.stage)
+        assert 0 < m["cpu_s"] < 2 * m["wall_s"] + 1, (r.stage, m["cpu_s"], m["wall_s"])
 
 
 @pytest.mark.slow
