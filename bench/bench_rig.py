@@ -1,15 +1,17 @@
 """Capture-rig removal on held-out synthetic scenes against the generator's rig-free ground truth.
 
     python bench/bench_rig.py [--seeds 116-131] [--height 256] [--json]
-    python bench/bench_rig.py --pipeline --seeds 116 [--set conditions.height=256 --set conditions.width=512]
+    python bench/bench_rig.py --pipeline --seeds 116 [--modes auto,keep,truth] [--set conditions.height=256 ...]
 
 Per seed and rig (tripod, tripod with a soft shadow): what detection found, the mask's cap and sphere share, its
 IoU with the true rig mask, the nadir-cap (15 deg) PSNR of the panorama before and after removal against the
 rig-free render, and the cap-vs-floor-ring luminance gap before/after. Controls on the same seeds: no rig (must
 stay byte-identical), a dark rug and a dark stool top under the camera (must be kept). Seeds 3, 5, 8, 11, 12 and
-(after a first held-out table) 104 and 108 were used to develop the method; the default seeds 116-131 were not
-looked at before their table. --pipeline runs the whole pipeline (ci-tiny preset) with the rig removed and kept and
-scores the Gaussians rendered from a ground-truth pose about 1 m away on the floor where the rig stood.
+100-115 were used to develop the method; the default seeds 116-131 are held out. --pipeline runs the whole
+pipeline (ci-tiny preset) with the rig removed and kept (and with --modes truth: the rig-free scene, the ceiling a
+perfect fill could reach) and scores the Gaussians rendered from a ground-truth pose about 1 m away on the floor
+where the rig stood, split into the floor under the removed mask and outside it, next to the capture panoramas
+sampled at the same floor points.
 """
 
 from __future__ import annotations
@@ -59,14 +61,21 @@ def one(scene, kind, height: int) -> dict:
     return row
 
 
-def floor_from_afar(seed: int, height: int, work: Path, sets: list[str], rig_kind: str = "tripod") -> dict:
-    """Run the pipeline (ci-tiny preset + sets) on a tripod scene with the rig removed and kept; render the
-    Gaussians from the ground-truth track pose about 1 m from the capture point and score the floor within 0.8 m of
-    the point under the capture camera (where the rig stood) against the rig-free render (PSNR)."""
+def floor_from_afar(seed: int, height: int, work: Path, sets: list[str], rig_kind: str = "tripod",
+                    modes: tuple[str, ...] = ("auto", "keep")) -> dict:
+    """Run the pipeline (ci-tiny preset + sets) on a tripod scene with the rig removed (auto) and kept (keep), and
+    optionally on the rig-free scene (truth); render the Gaussians from the ground-truth track pose about 1 m from the
+    capture point and score the floor within 0.8 m of the point under the capture camera (where the rig stood)
+    against the rig-free render (PSNR). Also split: the floor pixels whose point the removal changed (seen from the
+    capture point inside the removed mask, `_under`) and the rest (`_outside`), and the same floor points sampled from
+    the capture panoramas directly (`reproj_clean`: the cleaned panorama; `reproj_truth`: the rig-free one), i.e. the
+    error before any Gaussians."""
     from dataclasses import replace as dc_replace
 
+    import cv2
+
     from panoworld import pipeline as pl
-    from panoworld.conventions import erp_dirs, invert_pose
+    from panoworld.conventions import erp_dirs, erp_pixel_from_dir, invert_pose
     from panoworld.render_gs import render_erp
     from panoworld.splat_ply import read_gaussians_ply
     from panoworld.synth import params_for, write_scene
@@ -82,26 +91,55 @@ def floor_from_afar(seed: int, height: int, work: Path, sets: list[str], rig_kin
     floor_y = T0[1, 3] + scene.tracks[0].camera_height
     near = np.isfinite(tdepth) & (np.abs(pts[..., 1] - floor_y) < 2e-3) & (
         np.hypot(pts[..., 0] - T0[0, 3], pts[..., 2] - T0[2, 3]) < 0.8)
+    # Where each scored floor point sits in the capture panorama (canonical camera).
+    u, v = erp_pixel_from_dir((pts[near] - T0[:3, 3]) @ T0[:3, :3], height, 2 * height)
+    uv = [np.ascontiguousarray((a - 0.5).astype(np.float32)[None]) for a in (u, v)]
+
+    def sample(img: np.ndarray) -> np.ndarray:
+        return cv2.remap(img, *uv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
+
+    def psnr(a: np.ndarray, b: np.ndarray) -> float | None:
+        if len(a) == 0:
+            return None
+        mse = float(((a.astype(np.float64) - b) ** 2).mean())
+        return 10 * np.log10(255.0**2 / max(mse, 1e-12))
+
     p = params_for("ci-tiny")
-    p = dc_replace(p, render=dc_replace(p.render, pano_height=height, write_frames=False, rig=rig_kind))
     out = {"seed": seed, "rig": rig_kind, "distance_m": float(dist[k]), "floor_pixels": int(near.sum())}
-    for mode in ("auto", "keep"):
-        d = work / f"seed{seed}_{rig_kind}_{mode}"
+    under = None
+    for mode in modes:
+        kind = "none" if mode == "truth" else rig_kind
+        pm = dc_replace(p, render=dc_replace(p.render, pano_height=height, write_frames=False, rig=kind))
+        d = work / f"seed{seed}_{kind}_{'auto' if mode == 'truth' else mode}"
         if not (d / "panorama.png").is_file():
-            write_scene(scene, d, p, progress=False)
+            write_scene(scene, d, pm, progress=False)
         t0 = time.perf_counter()
-        report = pl.run(d, preset="ci-tiny", sets=[f"depth.rig={mode}", *sets])
+        report = pl.run(d, preset="ci-tiny", sets=[f"depth.rig={'auto' if mode == 'truth' else mode}", *sets])
         failed = [r for r in report.results if r.action == "failed"]
         if failed:  # the kept rig can leave the camera no walkable floor
             out[f"psnr_{mode}"] = None
             out[f"failed_{mode}"] = f"{failed[0].stage}: {failed[0].reason[:120]}"
             continue
+        art = d / "artifacts" / "depth"
+        if mode == "auto":
+            m = cv2.imread(str(art / "rig_mask.png"), cv2.IMREAD_GRAYSCALE)
+            under = sample((m > 127).astype(np.float32)) > 0.5 if m is not None else np.zeros(len(u), bool)
+            out["under_pixels"] = int(under.sum())
+            clean = cv2.imread(str(d / "gt" / "panorama_clean.png"))[..., ::-1].astype(np.float32)
+            cleaned = cv2.imread(str(art / "panorama.png"))[..., ::-1].astype(np.float32)
+            for name, img in (("reproj_clean", cleaned), ("reproj_truth", clean)):
+                s = sample(img)
+                out[name] = psnr(s, truth[near])
+                out[name + "_under"] = psnr(s[under], truth[near][under])
+            out["pano_under"] = psnr(sample(cleaned)[under], sample(clean)[under])  # the fill alone, capture view
         g = read_gaussians_ply(d / "artifacts" / "gaussians" / "gaussians.ply")
         cam_from_canonical = invert_pose(T0) @ world_from_cam  # Gaussians live in the canonical frame
         r = render_erp(g, cam_from_canonical, height, 2 * height)
         rgb = np.clip(np.rint(np.asarray(r.rgb) * 255.0), 0, 255).astype(np.uint8)
-        mse = float(((rgb[near].astype(np.float64) - truth[near]) ** 2).mean())
-        out[f"psnr_{mode}"] = 10 * np.log10(255.0**2 / max(mse, 1e-12))
+        out[f"psnr_{mode}"] = psnr(rgb[near], truth[near])
+        if under is not None:
+            out[f"psnr_{mode}_under"] = psnr(rgb[near][under], truth[near][under])
+            out[f"psnr_{mode}_outside"] = psnr(rgb[near][~under], truth[near][~under])
         out[f"seconds_{mode}"] = time.perf_counter() - t0
     return out
 
@@ -127,17 +165,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", type=Path, default=Path("/tmp/panoworld_bench_rig"), help="pipeline scenes go here")
     ap.add_argument("--rig", default="tripod", choices=("tripod", "tripod-shadow"), help="the rig of --pipeline")
     ap.add_argument("--set", dest="sets", action="append", default=[], help="extra STAGE.PARAM=VALUE for --pipeline")
+    ap.add_argument("--modes", default="auto,keep",
+                    help="--pipeline runs: auto (rig removed), keep, truth (the rig-free scene); default auto,keep")
     args = ap.parse_args(argv)
     if args.pipeline:
-        rows = [floor_from_afar(seed, args.height, args.work, args.sets, args.rig) for seed in parse_seeds(args.seeds)]
+        modes = tuple(args.modes.split(","))
+        rows = [floor_from_afar(seed, args.height, args.work, args.sets, args.rig, modes) for seed in parse_seeds(args.seeds)]
         print(json.dumps(rows, indent=1) if args.json else "")
         if not args.json:
             print(f"rig: {args.rig}\n")
-            print("| seed | pose distance m | floor px | floor PSNR rig removed | floor PSNR rig kept |\n|---|---|---|---|---|")
+            cols = ["distance_m", "floor_pixels", "under_pixels"] + [f"psnr_{m}{part}" for m in modes
+                                                                     for part in ("", "_under", "_outside")]
+            cols += ["reproj_clean", "reproj_clean_under", "reproj_truth", "reproj_truth_under", "pano_under"]
+            cols = [c for c in cols if any(c in r for r in rows)]
+            print("| seed | " + " | ".join(cols) + " |\n|---|" + "---|" * len(cols))
             for r in rows:
-                cells = [fmt(r["psnr_" + m]) if r.get("psnr_" + m) is not None else "failed (" + r["failed_" + m] + ")"
-                         for m in ("auto", "keep")]
-                print(f"| {r['seed']} | {r['distance_m']:.2f} | {r['floor_pixels']} | {cells[0]} | {cells[1]} |")
+                cells = [fmt(r.get(c)) if r.get(c) is not None or f"failed_{c[5:]}" not in r else "failed" for c in cols]
+                print(f"| {r['seed']} | " + " | ".join(cells) + " |")
+            for r in rows:
+                for m in modes:
+                    if f"failed_{m}" in r:
+                        print(f"seed {r['seed']} {m} failed: {r['failed_' + m]}")
         return 0
     cases = [RigKind.TRIPOD, RigKind.TRIPOD_SHADOW, RigKind.NONE, FloorObject.RUG, FloorObject.STOOL]
     rows = []

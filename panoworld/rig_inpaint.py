@@ -6,9 +6,13 @@ import cv2
 import numpy as np
 
 
-def inpaint_plane(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, n_sectors: int = 6) -> np.ndarray:
-    """Fill hole (size, size) of face (float RGB 0-255): per azimuth sector around the nadir, the best-matching
-    shifted floor patch with its low frequencies corrected to the hole's border (Telea where no patch fits)."""
+def inpaint_plane(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, n_sectors: int = 3,
+                  candidates: int = 8) -> np.ndarray:
+    """Fill hole (size, size) of face (float RGB 0-255): per azimuth sector around the nadir, the mean of the
+    `candidates` best-matching shifted floor patches, its low frequencies corrected to the hole's border (Telea where
+    no patch fits). The mean keeps what the matches share (the floor's lattice: grout, plank seams) and averages
+    what they do not (each tile's own colour and veins, which nothing around the hole predicts): one copied patch
+    doubles that part of the error."""
     img8 = np.clip(np.rint(face), 0, 255).astype(np.uint8)
     hole8 = hole.astype(np.uint8)
     radius = max(3, face.shape[0] // 60)
@@ -24,10 +28,10 @@ def inpaint_plane(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, n_
     wsums = [cv2.GaussianBlur(known, (0, 0), g)[..., None] for g in scales]
     for k in range(n_sectors):  # one patch per sector of the hole: each leg gets floor that fits its own border
         part = hole & (sector == k)
-        d = _best_offset(face, part, floor_area & ~hole)
-        if d is None:
+        offsets = _best_offsets(face, part, floor_area & ~hole, candidates)
+        if not offsets:
             continue
-        src = np.roll(face, (-d[0], -d[1]), axis=(0, 1))
+        src = np.mean([np.roll(face, (-d[0], -d[1]), axis=(0, 1)) for d in offsets], axis=0)
         # The shifted patch, corrected by its smooth mismatch on the known pixels around the hole.
         diff = (face - src) * known[..., None]
         fill = src + float(np.mean((face - src)[~hole & floor_area])) if (~hole & floor_area).any() else out
@@ -38,12 +42,13 @@ def inpaint_plane(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, n_
     return out
 
 
-def _best_offset(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray) -> tuple[int, int] | None:
-    """(dy, dx) such that face shifted by it matches face on a band around hole (sum of squared differences) and
-    the shifted hole lands on known floor: one patch match by template matching."""
+def _best_offsets(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, k: int = 1) -> list[tuple[int, int]]:
+    """Up to k offsets (dy, dx), best first, such that face shifted by them matches face on a band around hole (sum
+    of squared differences) and the shifted hole lands on known floor: patch matches by template matching, each a
+    separate minimum (at least the band's width from the others)."""
     ys, xs = np.nonzero(hole)
     if len(ys) == 0:
-        return None
+        return []
     S = face.shape[0]
     pad = max(4, S // 40)
     y0, y1 = max(ys.min() - pad, 0), min(ys.max() + pad + 1, S)
@@ -57,7 +62,11 @@ def _best_offset(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray) -> 
     bad = (hole | ~floor_area).astype(np.float32)
     overlap = cv2.matchTemplate(bad, hole_box.astype(np.float32), cv2.TM_CCORR)
     ssd = np.where(overlap < 0.5, ssd, np.inf)
-    if not np.isfinite(ssd).any():
-        return None
-    iy, ix = np.unravel_index(np.argmin(ssd), ssd.shape)
-    return int(iy - y0), int(ix - x0)
+    found = []
+    for _ in range(k):
+        if not np.isfinite(ssd).any():
+            break
+        iy, ix = np.unravel_index(np.argmin(ssd), ssd.shape)
+        found.append((int(iy - y0), int(ix - x0)))
+        ssd[max(iy - pad, 0):iy + pad + 1, max(ix - pad, 0):ix + pad + 1] = np.inf
+    return found

@@ -14,6 +14,7 @@ from panoworld.backends.depth import Job
 from panoworld.backends.depth.depth_anything import DepthAnythingOptions
 from panoworld.backends.depth.provided import ProvidedOptions
 from panoworld.choices import Rescale, RigMode
+from panoworld.depth_clean import clean_depth
 from panoworld.params import options, param
 from panoworld.stage import Input, StageInputError, stage_main
 
@@ -124,53 +125,22 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
         notes.append(f"panorama {W0}x{H0} is taller than max_height {params.max_height}: working at {W}x{H}")
     res = backend.impl(Job(rgb=rgb, depth_file=inputs.get("depth"), panorama_file=inputs["panorama"],
                            options=backend.options_of(params), notes=notes))
-    depth, valid, relative = res.depth, res.valid, res.relative
     info.update(res.info)
-    depth, scale_info = dep.metric_rescale(
-        depth, valid, relative=relative, rescale=params.rescale, camera_height=params.camera_height
-    )
-    info.update(scale_info)
-    if scale_info.get("scale_note"):
-        notes.append(scale_info["scale_note"])
-    near = valid & (depth < params.min_depth_m)
-    if near.any():
-        valid &= ~near
-        notes.append(f"{int(near.sum())} pixels nearer than min_depth_m {params.min_depth_m} m made invalid")
-    if not valid.any():
-        raise StageInputError(f"{inputs.get('depth') or inputs['panorama']}: no depth left beyond min_depth_m {params.min_depth_m} m")
-    depth = np.where(valid, depth, 0.0).astype(np.float32)
-    if params.rig != RigMode.KEEP:
-        from panoworld.rig import nadir_crop, rig_step
+    rig_backend = None if params.rig == RigMode.KEEP else backends.get("rig", params.rig_detector).impl
+    c = clean_depth(rgb, res.depth, res.valid, relative=res.relative, rescale=params.rescale,
+                    camera_height=params.camera_height, min_depth_m=params.min_depth_m,
+                    detect_rig=None if rig_backend is None else (lambda *a: rig_backend(*a, params)),
+                    rig_mask=inputs.get("rig_mask"), complete_poles=params.complete_poles,
+                    complete_dropouts=params.complete_dropouts, source=inputs.get("depth") or inputs["panorama"])
+    info.update(c.info)
+    info["decisions"] = notes + c.notes
+    if c.rig is not None and c.rig.found:
+        from panoworld.rig import nadir_crop
 
-        before = rgb
-        detector = backends.get("rig", params.rig_detector).impl
-        rgb, depth, valid, info["rig"], det = rig_step(rgb, depth, valid, info.get("camera_height_estimated_after"),
-                                                         user_mask=inputs.get("rig_mask"),
-                                                         detect=lambda *a: detector(*a, params))
-        notes.append(f"capture rig {'removed' if det.found else 'not found'}: {det.reason}")
-        if det.found:
-            cv2.imwrite(str(out_dir / "rig_mask.png"), det.mask.astype(np.uint8) * 255)
-            crops = np.concatenate([nadir_crop(before), nadir_crop(rgb)], axis=1)
-            cv2.imwrite(str(out_dir / "nadir_before_after.jpg"), cv2.cvtColor(crops, cv2.COLOR_RGB2BGR))
-    if params.complete_poles:
-        from panoworld.depth_complete import complete_poles
-
-        depth, valid, info["pole_completion"] = complete_poles(depth, valid)
-        if info["pole_completion"]["completed_fraction"] > 0:
-            notes.append(f"{info['pole_completion']['completed_fraction']:.1%} of the pixels (poles, bands) completed "
-                         "from the floor/ceiling planes")
-    if params.complete_dropouts:
-        from panoworld.depth_complete import complete_dropouts
-
-        depth, valid, info["dropout_completion"] = complete_dropouts(depth, valid)
-        if info["dropout_completion"]["completed_fraction"] > 0:
-            d = info["dropout_completion"]
-            notes.append(f"{d['completed_fraction']:.1%} of the pixels ({d['dropouts']} dropouts) completed: "
-                         f"{d['plane_fraction']:.0%} from their rim's plane, {d['smooth_fraction']:.0%} as smooth surface, "
-                         f"{d['step_fraction']:.0%} as a step at a depth edge")
-    info["valid_fraction"] = float(valid.mean())
-    info["depth_range_m"] = [float(depth[valid].min()), float(depth[valid].max())]
-    info["decisions"] = notes
+        cv2.imwrite(str(out_dir / "rig_mask.png"), c.rig.mask.astype(np.uint8) * 255)
+        crops = np.concatenate([nadir_crop(rgb), nadir_crop(c.rgb)], axis=1)
+        cv2.imwrite(str(out_dir / "nadir_before_after.jpg"), cv2.cvtColor(crops, cv2.COLOR_RGB2BGR))
+    rgb, depth, valid = c.rgb, c.depth, c.valid
     np.save(out_dir / "depth.npy", depth)
     cv2.imwrite(str(out_dir / "valid.png"), valid.astype(np.uint8) * 255)
     cv2.imwrite(str(out_dir / "panorama.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))

@@ -15,7 +15,6 @@ import numpy as np
 from panoworld import backends
 from panoworld.backends.video import Job
 from panoworld.backends.video.warp_inpaint import WarpOptions
-from panoworld.io import read_json
 from panoworld.models.wan_config import WanShortcutConfig
 from panoworld.params import options, param
 from panoworld.stage import Input, StageInputError, stage_main
@@ -84,7 +83,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     from tqdm import tqdm
 
     from panoworld.conditions import load_conditions
-    from panoworld.trajectory import load_clips, load_trajectory
+    from panoworld.trajectory import load_clips, load_trajectory, read_trajectory_doc
     from panoworld.upscale import FrameUpscaler
     from panoworld.video_io import VideoWriter
 
@@ -108,7 +107,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
             f"{cond_dir}/conditions.json: {len(cond.poses)} poses that differ from the {len(poses)} of "
             f"{traj_dir}/trajectory.json; rerun the conditions stage on this trajectory"
         )
-    fps = params.fps or float(read_json(traj_dir / "trajectory.json", default={}).get("fps") or DEFAULT_FPS)
+    fps = params.fps or float(read_trajectory_doc(traj_dir, missing_ok=True).get("fps") or DEFAULT_FPS)
 
     info: dict = {"backend": str(params.backend), "upscale": str(params.upscale)}
     t0 = time.perf_counter()

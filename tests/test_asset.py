@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from panoworld.asset import read_asset_doc, write_asset_doc
 from panoworld.conventions import invert_pose, transform_points
 from tests.test_report import pipeline_scene  # noqa: F401 - the shared session fixture (ci-tiny, every stage run)
 
@@ -25,7 +26,21 @@ pytestmark = pytest.mark.slow  # the shared ci-tiny pipeline run
 @pytest.fixture(scope="module")
 def asset(pipeline_scene):  # noqa: F811
     a = pipeline_scene / "artifacts" / "asset"
-    return a, json.loads((a / "asset.json").read_text())
+    return a, read_asset_doc(a)
+
+
+def test_asset_doc_reader_names_the_file(tmp_path):
+    from panoworld.errors import ArtifactError
+
+    doc = {"asset_from_canonical": np.eye(4).tolist(), "spawn": [0.0, 0.0, 0.0]}
+    write_asset_doc(tmp_path, doc)
+    assert read_asset_doc(tmp_path) == doc
+    (tmp_path / "asset.json").write_text('{"spawn": [0, 0, 0]}')
+    with pytest.raises(ArtifactError, match=r"asset\.json: not an asset document"):
+        read_asset_doc(tmp_path)
+    (tmp_path / "asset.json").write_text("{")
+    with pytest.raises(ArtifactError, match=r"asset\.json: unreadable"):
+        read_asset_doc(tmp_path)
 
 
 @pytest.fixture(scope="module")

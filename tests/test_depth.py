@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from panoworld import depth as dep
+from panoworld.cube_views import cube_views, merge_view_predictions, render_view
 from panoworld.depth import DepthKind, Rescale
 from panoworld.stage import StageInputError, execute_stage, load_stage, params_from_dict
 from tests.test_mesh import CAMERA_HEIGHT, BoxRoom
@@ -175,7 +176,7 @@ def _view_truth(scene, views):
 def test_merge_is_seamless(kind):
     scene = BoxRoom()
     _, gt = scene.render(np.eye(4), 96, 192)
-    views = dep.cube_views(110.0, 96)
+    views = cube_views(110.0, 96)
     rng = np.random.default_rng(7)
     preds = []
     for z in _view_truth(scene, views):
@@ -183,7 +184,7 @@ def test_merge_is_seamless(kind):
             preds.append(rng.uniform(0.3, 3.0) / z + rng.uniform(-0.3, 0.5))  # affine-invariant inverse depth
         else:
             preds.append(z * rng.uniform(0.8, 1.25))
-    res = dep.merge_view_predictions(preds, views, 96, 192, kind)
+    res = merge_view_predictions(preds, views, 96, 192, kind)
     assert res.valid.all()
     scale = np.median(gt / res.depth)
     rel = np.abs(res.depth * scale - gt) / gt
@@ -201,11 +202,11 @@ def test_merge_is_seamless(kind):
 def test_render_view_matches_panorama():
     scene = BoxRoom()
     rgb, _ = scene.render(np.eye(4), 256, 512)
-    view = dep.cube_views(110.0, 64)[1]
+    view = cube_views(110.0, 64)[1]
     rays = view.rays()
     hit = scene.rc.cast(np.zeros((1, 3)), rays.reshape(-1, 3)).distance.reshape(64, 64)
     truth = scene.texture(rays * hit[..., None])
-    assert np.abs(dep.render_view(rgb, view).astype(float) - truth).mean() < 3.0
+    assert np.abs(render_view(rgb, view).astype(float) - truth).mean() < 3.0
 
 
 # ---------------------------------------------------------------- Depth Anything
@@ -234,7 +235,7 @@ def test_depth_anything_loads_from_local_weights(tmp_path, room):
     _, rgb, _ = room
     model = DepthAnything.from_pretrained(tiny_depth_anything(tmp_path / "w"), input_size=56)
     assert model.kind == DepthKind.RELATIVE
-    view = dep.render_view(rgb, dep.cube_views(110.0, 70)[0])
+    view = render_view(rgb, cube_views(110.0, 70)[0])
     pred = model(view)
     assert pred.shape == (70, 70) and pred.dtype == np.float32 and np.isfinite(pred).all()
     with pytest.raises(StageInputError, match=r"--weights .*expected config.json \+ model.safetensors"):

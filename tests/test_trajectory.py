@@ -22,6 +22,7 @@ from panoworld.trajectory import (
     plan_path,
     polyline_length,
     poses_from_positions,
+    read_trajectory_doc,
     read_trajectory_file,
     resample_polyline,
     sector_coverage,
@@ -204,6 +205,13 @@ def test_trajectory_files_round_trip(tmp_path):
     (tmp_path / "plain.json").write_text(json.dumps(poses.tolist()))
     assert np.allclose(read_trajectory_file(tmp_path / "plain.json"), poses)
     assert load_clips(tmp_path, len(poses)) == [list(range(len(poses)))]  # one path: one clip
+    doc = read_trajectory_doc(tmp_path)
+    assert doc["fps"] == 16.0 and doc["kind"] == "user" and np.allclose(doc["poses"], poses)
+    assert read_trajectory_doc(tmp_path / "trajectory.tum") == {}  # TUM carries no metadata
+    assert read_trajectory_doc(tmp_path / "nowhere", missing_ok=True) == {}
+    (tmp_path / "trajectory.json").write_text('{"poses": [')
+    with pytest.raises(TrajectoryFileError, match=r"trajectory\.json"):
+        read_trajectory_doc(tmp_path)
 
 
 def test_clips_are_the_paths_with_their_predecessor(tmp_path):

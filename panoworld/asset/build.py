@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -10,10 +9,12 @@ import numpy as np
 
 from panoworld.asset.collider import Collider, collision_mesh, write_obj
 from panoworld.conventions import asset_from_canonical, transform_points
+from panoworld.errors import ArtifactError
 from panoworld.gaussians import Gaussians
+from panoworld.io import read_json, write_json
 from panoworld.mesh import ErpMesh
 from panoworld.navmesh import NavMesh
-from panoworld.trajectory import load_trajectory, path_indices
+from panoworld.trajectory import load_trajectory, path_indices, read_trajectory_doc
 
 SCENE_USD = "scene.usdc"
 COLLIDER_OBJ = "collider.obj"
@@ -23,13 +24,29 @@ FLOOR_PATCH_BELOW_M = 0.01
 make resting contacts jitter."""
 
 
+def write_asset_doc(out_dir: Path, doc: dict) -> Path:
+    """asset.json of an asset artifact (frame, spawn, collider, agent, counts; artifacts_schema/asset.schema.json)."""
+    return write_json(Path(out_dir) / ASSET_JSON, doc)
+
+
+def read_asset_doc(asset_dir: Path) -> dict:
+    """asset.json of an asset artifact directory; ArtifactError naming the file when it is missing or unreadable."""
+    path = Path(asset_dir) / ASSET_JSON
+    try:
+        doc = read_json(path)
+    except (OSError, ValueError) as e:
+        raise ArtifactError(f"{path}: unreadable ({e}); rerun the asset stage") from None
+    if not isinstance(doc, dict) or "asset_from_canonical" not in doc:
+        raise ArtifactError(f"{path}: not an asset document (no asset_from_canonical); rerun the asset stage")
+    return doc
+
+
 def trajectory_paths(trajectory_dir: Path) -> tuple[list[np.ndarray], float]:
     """The planned camera paths (world_from_cam, canonical) and their frame rate: the artifact's `poses`, or each of
     its `paths` (pose ranges [start, stop) with their predecessor `from`, see trajectory.path_indices) when it holds
     several."""
     path = Path(trajectory_dir)
-    doc_path = path / "trajectory.json" if path.is_dir() else path
-    doc = json.loads(doc_path.read_text()) if doc_path.suffix == ".json" else {}
+    doc = read_trajectory_doc(path)
     fps = float(doc.get("fps", 16.0))
     poses = load_trajectory(path)
     if isinstance(doc.get("paths"), list) and doc["paths"]:
@@ -104,7 +121,7 @@ def build_asset(out_dir: Path, *, mesh: ErpMesh, nav: NavMesh, trajectory_dir: P
                    "collider_vertices": int(len(col_v)), "navmesh_triangles": counts["navmesh_triangles"],
                    "cameras": counts["cameras"], "frames": counts["frames"]},
     }
-    (out_dir / ASSET_JSON).write_text(json.dumps(doc, indent=1))
+    write_asset_doc(out_dir, doc)
     sizes = {n: (out_dir / n).stat().st_size for n in (SCENE_USD, COLLIDER_OBJ, ASSET_JSON)}
     return {
         **doc["counts"],

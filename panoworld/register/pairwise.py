@@ -13,7 +13,7 @@ from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from panoworld.conventions import erp_dirs, erp_pixel_from_dir
-from panoworld.depth import cube_views, render_view
+from panoworld.cube_views import cube_views, render_view
 from panoworld.models.pose_refine import depth_edges, sample_range
 
 

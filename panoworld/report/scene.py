@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.artifacts import read_manifest
+from panoworld.asset import read_asset_doc
 from panoworld.conditions import load_conditions
 from panoworld.errors import PanoWorldError
 from panoworld.home.layout import capture_poses
@@ -23,7 +24,7 @@ from panoworld.poses import load_poses
 from panoworld.report import encode as enc
 from panoworld.report.page import Page, Section, figure, fmt, missing, slider, svg_figure, table
 from panoworld.report.topdown import PlanView, clearance_colors, footprint_rings, mesh_from_above
-from panoworld.trajectory import load_trajectory
+from panoworld.trajectory import load_trajectory, read_trajectory_doc
 
 ARTIFACTS = "artifacts"
 ROAM_IMAGES = "report/roam"
@@ -59,7 +60,6 @@ class SceneData:
     def __init__(self, root: Path):
         self.root = Path(root)
         self.art = self.root / ARTIFACTS
-        self._json: dict[Path, dict | None] = {}
         self._read: dict[str, object] = {}
 
     def _load(self, stage: str, reader, key: str = ""):
@@ -101,11 +101,13 @@ class SceneData:
     def has(self, stage: str) -> bool:
         return (self.dir(stage) / "manifest.json").is_file()
 
-    def json(self, rel: str) -> dict | None:
-        path = self.art / rel
-        if path not in self._json:
-            self._json[path] = read_json(path, default=None)
-        return self._json[path]
+    def trajectory_doc(self) -> dict | None:
+        """trajectory.json's document (poses and metadata: paths, fps, floor_y, ...) or None."""
+        return self._load("trajectory", read_trajectory_doc, "trajectory_doc")
+
+    def asset_doc(self) -> dict | None:
+        """asset.json of the asset artifact or None."""
+        return self._load("asset", read_asset_doc, "asset_doc")
 
     def manifest(self, stage: str) -> dict | None:
         return self._load(stage, read_manifest, "manifest:" + stage)
@@ -280,7 +282,7 @@ def _load_mesh(scene: SceneData):
 
 def _load_collider(scene: SceneData) -> tuple | None:
     """The asset's collider.obj mapped back to the canonical frame, with the agent it was checked for."""
-    doc = scene.json("asset/asset.json") if scene.has("asset") else None
+    doc = scene.asset_doc()
     if not doc:
         return None
     import trimesh
@@ -365,7 +367,7 @@ def section_plan(scene: SceneData, params: ReportParams) -> Section:
     traj = scene.trajectory()
     if nav is None and traj is None and not scene.has("mesh"):
         return missing("plan", title, "mesh, navmesh and trajectory have not run yet")
-    tdoc = scene.json("trajectory/trajectory.json") or {}
+    tdoc = scene.trajectory_doc() or {}
     mesh, note = _load_mesh(scene)
     notes = [note] if note else []
     notes += [f"{name}: not run" for name, x in (("navmesh", nav), ("trajectory", traj)) if x is None]

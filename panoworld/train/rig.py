@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from panoworld.depth import render_view
+from panoworld.cube_views import render_view
 
 
 @dataclass

@@ -17,6 +17,7 @@ from panoworld.trajectory.files import (
     check_poses,
     load_clips,
     load_trajectory,
+    read_trajectory_doc,
     read_trajectory_file,
     read_tum,
     write_trajectory,
@@ -57,7 +58,7 @@ from panoworld.trajectory.sectors import (
 __all__ = [
     "CLEARANCE_CAP_M", "FRAME", "GeodesicField", "MIN_SECTOR_DIST_M", "TRAJECTORY_JSON", "TRAJECTORY_TUM", "PathKind", "Plan", "PoseIssue",
     "TrajectoryFileError", "TrajectoryParams", "YawMode", "check_poses", "clearance_cap", "format_issues",
-    "load_clips", "load_trajectory", "mesh_clearance", "path_indices", "path_yaw", "plan_explore", "plan_path", "plan_ring", "plan_sector", "planning_hub", "planning_mesh",
+    "load_clips", "load_trajectory", "read_trajectory_doc", "mesh_clearance", "path_indices", "path_yaw", "plan_explore", "plan_path", "plan_ring", "plan_sector", "planning_hub", "planning_mesh",
     "polyline_length", "poses_from_positions", "read_trajectory_file", "read_tum", "resample_polyline",
     "sector_coverage", "sector_extent", "sector_of", "sector_reach", "sector_reachability", "smooth_polyline", "step_lengths", "subdivide_polyline",
     "truncate_polyline", "validate_poses", "write_trajectory", "write_tum", "yaw_of_path",

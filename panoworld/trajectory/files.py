@@ -99,15 +99,28 @@ def load_trajectory(path: Path | str) -> np.ndarray:
     return read_trajectory_file(path)
 
 
+def read_trajectory_doc(path: Path | str, *, missing_ok: bool = False) -> dict:
+    """The whole trajectory.json document (poses and metadata: fps, paths, kind, ...) of a trajectory artifact
+    directory or file; {} for a TUM file (no metadata), and for a missing one when missing_ok."""
+    path = Path(path)
+    doc_path = path / TRAJECTORY_JSON if path.is_dir() else path
+    if doc_path.suffix.lower() != ".json" or (missing_ok and not doc_path.is_file()):
+        return {}
+    try:
+        doc = limits.parse_json(doc_path.read_text(), str(doc_path), max_nesting=8)
+    except (OSError, UnicodeDecodeError) as e:
+        raise TrajectoryFileError(f"{doc_path}: unreadable ({e}); rerun the trajectory stage") from None
+    except InputError as e:
+        raise TrajectoryFileError(str(e)) from None
+    return doc if isinstance(doc, dict) else {"poses": doc}
+
+
 def load_clips(path: Path | str, n_poses: int) -> list[list[int]]:
     """Pose indices of each clip of a trajectory artifact (directory or trajectory.json): one per path of a multi-path
     trajectory (its predecessor and its own poses, see path_indices), else one clip of all n_poses poses."""
     path = Path(path)
     doc_path = path / TRAJECTORY_JSON if path.is_dir() else path
-    try:
-        paths = json.loads(doc_path.read_text()).get("paths") if doc_path.suffix == ".json" else None
-    except (OSError, ValueError):
-        paths = None
+    paths = read_trajectory_doc(path, missing_ok=True).get("paths")
     if not isinstance(paths, list) or not paths:
         return [list(range(n_poses))]
     clips = [path_indices(p) for p in paths]

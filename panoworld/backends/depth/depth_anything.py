@@ -26,6 +26,7 @@ class DepthAnythingOptions:
 def predict(job):
     from panoworld import depth as dep
     from panoworld.backends.depth import Result
+    from panoworld.cube_views import erp_depth_from_model
     from panoworld.models.depth_anything import DepthAnything
 
     o: DepthAnythingOptions = job.options
@@ -36,7 +37,7 @@ def predict(job):
             "(or put a metric depth.npy|exr|png next to the panorama)"
         )
     model = DepthAnything.from_pretrained(o.weights, input_size=o.view_size, device=o.device)
-    res = dep.erp_depth_from_model(job.rgb, model, model.kind, fov_deg=o.fov_deg, view_size=o.view_size)
+    res = erp_depth_from_model(job.rgb, model, model.kind, fov_deg=o.fov_deg, view_size=o.view_size)
     if not res.valid.any():
         raise InputError(f"--depth-anything-weights {o.weights}: the model predicted no positive depth anywhere")
     info = dict(model_kind=model.kind.value, view_overlap_rel_rmse=res.overlap_rel_rmse,
