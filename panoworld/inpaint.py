@@ -383,10 +383,12 @@ def erp_dir_at(u: np.ndarray, v: np.ndarray, height: int, width: int) -> np.ndar
 
 class WarpInpainter:
     """Fills the holes of conditions frames by casting their rays against a BackgroundLayer (same surface, same
-    colour in every frame); rays that hit nothing get the seam-aware 2D fill."""
+    colour in every frame); rays that hit nothing get the depth-aware 2D fill (background_fill: the far side's depth
+    and colour) when the frame has depth and depth_fill, else the colour-only seam-aware 2D fill."""
 
-    def __init__(self, layer: BackgroundLayer, *, inpaint_radius: float = 3.0, reuse: bool = False):
+    def __init__(self, layer: BackgroundLayer, *, inpaint_radius: float = 3.0, reuse: bool = False, depth_fill: bool = True):
         self.layer = layer
+        self.depth_fill = depth_fill
         self.inpaint_radius = inpaint_radius
         self._rc = layer.raycaster() if len(layer.faces) else None
         self._colors = layer.colors.astype(np.float32)
@@ -430,6 +432,8 @@ class WarpInpainter:
                 out, out_d = background_fill(out, out_d, rest, radius=self.inpaint_radius)
                 px = np.flatnonzero(rest)
                 self.committed.add(world_from_cam, px, out_d.reshape(-1)[px], out.reshape(-1, 3)[px], H, W)
+        elif rest.any() and not rest.all() and self.depth_fill and depth is not None:
+            out, out_d = background_fill(out, out_d, rest, radius=self.inpaint_radius)
         elif rest.any() and not rest.all():
             out = erp_inpaint(out, rest, radius=self.inpaint_radius)
         return FilledFrame(out, out_d, filled, rest)

@@ -237,3 +237,17 @@ def test_committed_points_are_reused_at_their_place():
     second = filler.fill(rgb, ~hole, depth, np.eye(4))
     assert second.filled_3d[hole].all() and not second.filled_2d.any()
     np.testing.assert_array_equal(second.rgb, first.rgb)
+
+
+def test_warp_inpainter_last_resort_fill_has_background_depth():
+    # Hole pixels the layer misses get the depth-aware fill by default: the far side's depth (so the Gaussians stage
+    # places them) and no occluder colour; depth_fill=False keeps the plain colour-only fill (no depth).
+    rgb, depth, hole = _panel_frame()
+    empty = BackgroundLayer(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.uint8), 0,
+                            np.zeros((H, W), bool), np.zeros((H, W), np.float32))
+    f = WarpInpainter(empty).fill(rgb, ~hole, depth, np.eye(4))
+    assert f.filled_2d[hole].all()
+    np.testing.assert_allclose(f.depth[hole], 3.0)
+    assert f.rgb[hole][:, 0].astype(float).mean() < 10
+    plain = WarpInpainter(empty, depth_fill=False).fill(rgb, ~hole, depth, np.eye(4))
+    assert (plain.depth[hole] == 0).all() and plain.rgb[hole][:, 0].astype(float).mean() > 10

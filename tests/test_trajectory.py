@@ -103,11 +103,35 @@ def test_explore_paths_leave_the_camera_into_every_sector_and_reach_the_room(see
         walk = plan.positions[[0, *range(p["start"], p["stop"])]]
         steps = np.linalg.norm(np.diff(walk, axis=0), axis=1)
         assert steps.max() <= 1.35 * steps.mean()  # smoothing and corners: chords a little shorter than arcs
-        extent = _walk_extent(nav, p["sector"], params.reach_m)
+        extent = _walk_extent(nav, p["sector"], params.reach_m or np.inf)
         tip = float(np.linalg.norm(walk[-1]))
         assert tip >= 0.7 * extent - 0.05, (p, extent)
         if extent >= 1.5:
             assert tip >= 1.0
+
+
+def test_explore_reaches_the_far_end_of_a_long_hall_within_the_step_bound():
+    # An 8 m hall, the camera 2 m off its centre: the default (no reach cap) walks >= 70 % of each sector's straight walkable distance (the eval's
+    # own measure, ray cast on the NavMesh) with a mean step <= max_step_m; the old 3 m cap does not; a tighter
+    # max_step_m cuts the paths to one fraction of their length (cut_lengths) and the step follows.
+    from panoworld.eval.roam import trajectory_reach
+    from panoworld.trajectory.explore import cut_lengths
+    from tests.test_navmesh import nav_of
+
+    nav = nav_of(box_room(size=(8.0, 2.8, 5.0), cam_xz=(-2.0, 0.0), obstacles=()), 128)
+    for params, ok in ((TrajectoryParams(), True), (TrajectoryParams(reach_m=3.0), False)):
+        plan = plan_path(nav, params)
+        r = trajectory_reach(nav, poses_from_positions(plan.positions))
+        assert (r["sector_reach_fraction_min"] >= 0.7) == ok, r
+        steps = plan.info["path_steps_m"]
+        assert plan.step_m <= params.max_step_m + 1e-9 and max(steps) <= 1.2 * params.max_step_m
+    tight = plan_path(nav, TrajectoryParams(max_step_m=0.15))
+    assert tight.step_m == pytest.approx(0.15, rel=0.02) and tight.info["path_cut_fraction"] < 0.7
+    lengths = np.array([0.5, 2.0, 6.0, 9.0])
+    assert np.array_equal(cut_lengths(lengths, 100.0), lengths)
+    cut = cut_lengths(lengths, 8.0)  # the same fraction f of each, but >= 1 m of each that long
+    assert cut.sum() == pytest.approx(8.0) and cut[0] == 0.5 and cut[1] == pytest.approx(1.0)
+    assert cut[2] / 6.0 == pytest.approx(cut[3] / 9.0)
 
 
 def test_camera_off_the_navmesh_walks_straight_onto_it():

@@ -63,8 +63,12 @@ class TrajectoryParams:
     """Chaikin corner-cutting iterations; a cut that would leave the NavMesh keeps its corner."""
     plan_margin_m: float = param(0.03, ge=0)
     """Paths are planned on the NavMesh shrunk by this margin so smoothing and rounding stay inside it."""
-    reach_m: float = param(3.0, gt=0)
-    """explore: each sector's path walks at most this far from the camera (its target is the farthest floor within)."""
+    reach_m: float | None = param(None, gt=0)
+    """explore: each sector's path walks at most this far from the camera (its target is the farthest floor within);
+    None = no cap: the farthest floor of the sector connected to the camera (the room's extent, bounded by max_step_m)."""
+    max_step_m: float = param(0.3, gt=0)
+    """explore: when the paths together are longer than (N - 1) * max_step_m, the longest are cut to one common length
+    (short sectors keep their whole path) so the step the conditions, video and SfM see stays at most this."""
     seed: int = 0
     """Seed of the candidate points used to find each sector's farthest reachable point."""
 

@@ -6,7 +6,7 @@ import numpy as np
 
 from panoworld.navmesh import NavMesh
 from panoworld.trajectory.common import Plan, TrajectoryParams, approach_path, planning_hub, planning_mesh
-from panoworld.trajectory.polyline import polyline_length, resample_polyline, smooth_polyline
+from panoworld.trajectory.polyline import polyline_length, resample_polyline, smooth_polyline, truncate_polyline
 from panoworld.trajectory.sectors import MIN_SECTOR_DIST_M, GeodesicField, sector_coverage, sector_of
 
 OFF_CENTRE_WEIGHT = 0.75
@@ -22,6 +22,27 @@ def sector_extent(field: GeodesicField, start: np.ndarray, n_sectors: int, max_w
     out = np.zeros(n_sectors)
     np.maximum.at(out, sector_of(field.xz[ok], start, n_sectors), r[ok])
     return out
+
+
+KEEP_M = 1.0
+"""A path cut to the step bound keeps at least this much (the issue's 'reach >= 1 m where the floor allows')."""
+
+
+def cut_lengths(lengths: np.ndarray, budget: float, keep_m: float = KEEP_M) -> np.ndarray:
+    """Path lengths summing to at most budget: each keeps the same fraction f of its length (the largest f that fits,
+    which maximises the smallest reach fraction), but at least min(length, keep_m); the lengths unchanged when they fit."""
+    lengths = np.asarray(lengths, np.float64)
+    if lengths.sum() <= budget:
+        return lengths.copy()
+
+    def cut(f):
+        return np.minimum(lengths, np.maximum(f * lengths, keep_m))
+
+    lo, hi = 0.0, 1.0
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if cut(mid).sum() <= budget else (lo, mid)
+    return cut(lo)
 
 
 def _largest_remainder(weights: np.ndarray, total: int, minimum: int = 1) -> np.ndarray:
@@ -41,9 +62,11 @@ def _largest_remainder(weights: np.ndarray, total: int, minimum: int = 1) -> np.
 def plan_explore(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> Plan:
     """Sector exploration paths: pose 0 at the camera, then one path per sector walking away from it.
 
-    Each sector's target is its NavMesh point farthest from the camera within params.reach_m of walking (points
-    outside the central half of the sector count OFF_CENTRE_WEIGHT of their distance); its path is the smoothed NavMesh shortest path (A* +
-    funnel) from the camera's walkable hub to that target. Sectors whose path is shorter than one step are skipped.
+    Each sector's target is its NavMesh point farthest from the camera within params.reach_m of walking (None: any
+    connected floor; points outside the central half of the sector count OFF_CENTRE_WEIGHT of their distance); its
+    path is the smoothed NavMesh shortest path (A* + funnel) from the camera's walkable hub to that target. Sectors
+    whose path is shorter than one step are skipped. When the paths (and the approach) are longer than
+    (N - 1) * params.max_step_m, they are cut to one fraction of their length (cut_lengths; info["path_cut_fraction"]).
     The N - 1 poses after pose 0 are shared between the paths in proportion to their lengths and each path is
     resampled uniformly (its first pose one step out from the camera, its last on the target), so every path has
     about the same step, (total path length) / (N - 1); params.step_m and stride do not apply. Paths are ordered
@@ -62,8 +85,9 @@ def plan_explore(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> P
     lon = np.arctan2(field.xz[:, 0] - start[0], field.xz[:, 1] - start[1])
     central = np.abs(np.angle(np.exp(1j * (lon - sec * width)))) <= 0.25 * width
     score = r * np.where(central, 1.0, OFF_CENTRE_WEIGHT)
-    usable = (r >= MIN_SECTOR_DIST_M) & np.isfinite(field.dist) & (off + field.dist <= params.reach_m)
-    extent = sector_extent(field, start, params.sectors, params.reach_m - off)
+    reach = np.inf if params.reach_m is None else params.reach_m
+    usable = (r >= MIN_SECTOR_DIST_M) & np.isfinite(field.dist) & (off + field.dist <= reach)
+    extent = sector_extent(field, start, params.sectors, reach - off)
     legs, sectors = [], []
     for k in range(params.sectors):
         cand = np.flatnonzero(usable & (sec == k))
@@ -75,6 +99,10 @@ def plan_explore(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> P
             legs.append(leg)
             sectors.append(k)
     lengths = np.array([polyline_length(leg) for leg in legs])
+    # paths too long for max_step_m over the N - 1 poses (the approach included): each cut to the same fraction
+    full = lengths
+    lengths = cut_lengths(full, n_steps * params.max_step_m - off)
+    legs = [truncate_polyline(leg, x) for leg, x in zip(legs, lengths)]
     # a start off the NavMesh: one shared straight approach to the hub (<= MAX_APPROACH_SHARE of the poses), then
     # every path leaves from the hub
     approach = approach_path(start, hub, (off + lengths.sum()) / max(n_steps, 1), n_steps) if off > 0 else start[None]
@@ -113,6 +141,7 @@ def plan_explore(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> P
             "sector_tip_m": tip_by_sector.round(4).tolist(),
             "reach_fraction_min": float(np.nanmin(frac)) if np.isfinite(frac).any() else None,
             "path_steps_m": steps.round(4).tolist(),
+            "path_cut_fraction": float((lengths / np.maximum(full, 1e-9)).min()) if len(full) else 1.0,
             "start_off_navmesh_m": off,
             "approach_steps": n_approach,
             "hub": hub.tolist(),

@@ -39,14 +39,20 @@ def visit_order(nav: NavMesh, xz: np.ndarray) -> tuple[list[int], dict[tuple[int
     return order, walks
 
 
+HOME_REACH_M = 3.0
+"""A home's explore paths walk at most this far from their capture point (other rooms have capture points of their own)."""
+
+
 def _explore_length(plan: Plan | None) -> float:
     return 0.0 if plan is None else float(sum(polyline_length(plan.positions[path_indices(p)]) for p in plan.info["paths"]))
 
 
 def _explore(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> Plan | None:
-    """plan_explore, or None where the floor around this capture point leaves no sector path (the walks still come)."""
+    """plan_explore, or None where the floor around this capture point leaves no sector path (the walks still come).
+    No reach_m (one panorama: the room's extent) walks HOME_REACH_M here (the rest of the home has its own captures),
+    and no max_step_m cut: plan_home shares the frames by path length itself."""
     try:
-        return plan_explore(nav, start, params)
+        return plan_explore(nav, start, replace(params, reach_m=params.reach_m or HOME_REACH_M, max_step_m=np.inf))
     except ValueError:
         return None
 

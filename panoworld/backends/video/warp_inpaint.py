@@ -20,6 +20,10 @@ class WarpOptions:
     """Holes the background layer does not fill are filled from the farther side (depth-aware 2D fill, with depth)
     and committed as 3D points that later frames reuse (panoworld.inpaint.CommittedPoints); else a per-frame 2D fill
     without depth."""
+    depth_fill: bool = True
+    """Without reuse: holes the background layer does not fill take the depth and colour of their farther side
+    (panoworld.inpaint.background_fill), so the Gaussians stage places them; false = a colour-only 2D fill (no depth:
+    no Gaussians there)."""
 
 
 def fill(job) -> tuple:
@@ -46,7 +50,8 @@ def fill(job) -> tuple:
         raise InputError(f"{mesh_dir}/mesh.ply: {e}; rerun the mesh stage") from None
     info = dict(layer_faces=int(layer.layer_faces), layer_pixels=int(layer.synthesized.sum()),
                 layer_s=round(time.perf_counter() - t0, 3))
-    filler = inpaint.WarpInpainter(layer, inpaint_radius=job.inpaint_radius, reuse=job.options.reuse)
+    filler = inpaint.WarpInpainter(layer, inpaint_radius=job.inpaint_radius, reuse=job.options.reuse,
+                                    depth_fill=job.options.depth_fill)
     cond = job.cond
 
     def frames():
