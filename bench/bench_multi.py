@@ -7,6 +7,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+
+# Before torch loads OpenMP (as every stage process does, panoworld.stage.stage_main): the capture-pose renders below
+# cost several times the CPU with spinning OpenMP threads on a busy machine.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import subprocess
 import sys
 import tempfile
@@ -123,6 +128,7 @@ def run_pipeline_one(seed: int, k: int, height: int, work: Path, preset: str, ps
     params = replace(params, render=replace(params.render, pano_height=height))
     home = generate_home(seed, k, preset, params=params)
     scene = write_home(home, work / f"home_{seed}_{k}", params)
+    load_before = os.getloadavg()[0]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, "runner.py", "run", str(scene), "--preset", preset, "--json"], cwd=ROOT,
@@ -147,31 +153,37 @@ def run_pipeline_one(seed: int, k: int, height: int, work: Path, preset: str, ps
         "on_navmesh": int(sum(nav["capture_points_on_navmesh"].values())), "navmesh_area_m2": nav["area_m2"],
         "frames": traj["frames"], "unreached_captures": traj["plan"]["unreached_captures"],
         "num_gaussians": gs["num_gaussians"], "capture_psnr": scores, "capture_psnr_min": min(scores.values()),
-        "wall_s": wall, "cpu_s": (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime),
+        "load_avg": [round(load_before, 1), round(os.getloadavg()[0], 1)], "wall_s": wall, "cpu_s": (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime),
         "peak_rss_mb": max(r["peak_rss_mb"] or 0 for r in stages.values()),
         "stage_s": {n: round(r["seconds"], 1) for n, r in stages.items()},
+        "stage_cpu_s": {n: round(json.loads((arts / n / "manifest.json").read_text()).get("cpu_s", float("nan")), 1)
+                        for n in stages},
     }
 
 
 def pipeline_main(args, seeds) -> int:
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_home_") as tmp:
+        work = Path(args.work) if args.work else Path(tmp)
         for k in args.panoramas:
             for seed in seeds:
-                rows.append(run_pipeline_one(seed, k, args.height, Path(tmp), args.preset, args.psnr_height))
+                rows.append(run_pipeline_one(seed, k, args.height, work, args.preset, args.psnr_height))
                 print(json.dumps(rows[-1]), file=sys.stderr)
     if args.json:
         print(json.dumps({"height": args.height, "preset": args.preset, "seeds": list(seeds), "rows": rows}, indent=1))
         return 0
     print(f"| seed | panoramas | rooms | registered | trans cm / rot deg max | on NavMesh | frames | Gaussians | "
-          f"capture PSNR dB min (each) | wall s | CPU s | peak MB |  (preset {args.preset}, height {args.height})")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+          f"capture PSNR dB min (each) | wall s | CPU s | load | peak MB |  (preset {args.preset}, height {args.height})")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for r in rows:
         each = ", ".join(f"{v:.1f}" for v in r["capture_psnr"].values())
         print(f"| {r['seed']} | {r['panoramas']} | {r['rooms']} | {r['registered']} | {r['trans_cm_max']:.2f} / "
               f"{r['rot_deg_max']:.3f} | {r['on_navmesh']} of {r['registered']} | {r['frames']} | "
               f"{r['num_gaussians']} | {r['capture_psnr_min']:.2f} ({each}) | {r['wall_s']:.0f} | {r['cpu_s']:.0f} | "
-              f"{r['peak_rss_mb']:.0f} |")
+              f"{r['load_avg'][0]:.0f}-{r['load_avg'][1]:.0f} | {r['peak_rss_mb']:.0f} |")
+    for r in rows:
+        print(f"seed {r['seed']}, {r['panoramas']} panoramas, per stage wall / CPU s: " + ", ".join(
+            f"{n} {r['stage_s'][n]:.0f} / {r['stage_cpu_s'][n]:.0f}" for n in r["stage_s"]))
     return 0
 
 
@@ -189,6 +201,8 @@ def main() -> int:
     ap.add_argument("--pipeline", action="store_true", help="run the whole pipeline (runner.py run) on each home")
     ap.add_argument("--preset", default="default", help="--pipeline: the runner's preset")
     ap.add_argument("--psnr-height", type=int, default=256, help="--pipeline: rows of the capture-pose renders")
+    ap.add_argument("--work", help="--pipeline: keep the homes and their artifacts in this directory (default: a "
+                    "temporary one)")
     args = ap.parse_args()
     seeds = args.seeds or (TEST_SEEDS if args.split == "test" else VALIDATION_SEEDS)
     if args.pipeline:

@@ -27,6 +27,8 @@ INPUTS = {
     "rig_mask": Input("file", optional=True, help="2:1 grayscale mask, white where the capture rig is (overrides detection)"),
     "panoramas": Input("dir", optional=True, help="a home: directory of two or more panoramas NAME.png|jpg (docs/multi.md)"),
     "depths": Input("dir", optional=True, help="a home: directory of depth files NAME.npy|exr|png (same stems)"),
+    "rig_masks": Input("dir", optional=True, help="a home: rig masks NAME.png (2:1, white = rig; same stems as the "
+                       "panoramas), each overriding detection on its panorama"),
 }
 
 
@@ -77,6 +79,9 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     if inputs.get("panoramas") is None:
         if inputs.get("panorama") is None:
             raise StageInputError("give --panorama FILE (one panorama) or --panoramas DIR (a home, docs/multi.md)")
+        if inputs.get("rig_masks") is not None:
+            raise StageInputError(f"{inputs['rig_masks']}: rig_masks/ is for a home (panoramas/); one panorama's mask "
+                                  "is --rig-mask FILE (SCENE/rig_mask.png)")
         return depth_of_panorama(inputs, params, out_dir)
     from panoworld.home.layout import HOME_DIR, HOME_INFO
     from panoworld.register.inputs import DEPTH_SUFFIXES, PANORAMA_SUFFIXES
@@ -87,13 +92,18 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         raise StageInputError(f"{pano_dir}: found {len(panos)} panoramas; put two or more NAME.png/.jpg there "
                               "(a single panorama goes in SCENE/panorama.png)")
     names = sorted(panos)
+    mask_dir = inputs.get("rig_masks")
+    masks = {p.stem: p for p in sorted(Path(mask_dir).glob("*.png"))} if mask_dir is not None else {}
+    if unknown := sorted(set(masks) - set(names)):
+        raise StageInputError(f"{mask_dir}: rig masks {', '.join(f'{n}.png' for n in unknown)} name no panorama in "
+                              f"{pano_dir}; name each mask after its panorama (NAME.png)")
     infos, dirs = {}, {}
     for k, name in enumerate(names):  # the first panorama's files at the top level: the world frame's panorama
         sub = out_dir if k == 0 else out_dir / HOME_DIR / name
         sub.mkdir(parents=True, exist_ok=True)
         depth = next((Path(depth_dir) / f"{name}{s}" for s in DEPTH_SUFFIXES
                       if depth_dir is not None and (Path(depth_dir) / f"{name}{s}").is_file()), None)
-        infos[name] = depth_of_panorama({"panorama": panos[name], "depth": depth, "rig_mask": None}, params, sub)
+        infos[name] = depth_of_panorama({"panorama": panos[name], "depth": depth, "rig_mask": masks.get(name)}, params, sub)
         dirs[name] = sub.relative_to(out_dir).as_posix()
     return {**infos[names[0]], HOME_INFO: {"names": names, "dirs": dirs, "panoramas": infos}}
 

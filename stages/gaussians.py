@@ -104,7 +104,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
             names, rgbs, depths = load_sources(dirs, captures)
             result = home_anchored_fusion(frames, {n: (rgbs[n], depths[n], captures[n]) for n in names}, params,
                                           source_height=params.source_height, tol=params.source_tol,
-                                          source_scale=params.source_scale, progress=True)
+                                          source_scale=params.source_scale,
+                                          unseen_voxel_size=params.unseen_voxel_size, progress=True)
         elif params.source_pixels:
             result = source_anchored_fusion(frames, params, source_height=params.source_height, tol=params.source_tol,
                                             source_scale=params.source_scale,

@@ -40,6 +40,9 @@ def test_home_runs_every_stage_and_caches(home_run):
     assert {r.action for r in again.results} == {"cached"}, again.table()
     depth = art.read_manifest(scene / "artifacts" / "depth")["info"]
     assert depth["home"]["names"] == ["pano_00", "pano_01", "pano_02"]
+    for r in report.results:  # every stage's CPU seconds (all threads) beside its wall seconds
+        m = art.read_manifest(scene / "artifacts" / r.stage)
+        assert 0 < m["cpu_s"] < 2 * m["wall_s"] + 1, (r.stage, m["cpu_s"], m["wall_s"])
 
 
 @pytest.mark.slow
@@ -74,6 +77,61 @@ def test_home_gaussians_reproduce_every_panorama_at_its_capture_pose(home_run):
     assert min(scores.values()) > 27.0, scores
     # Every source is anchored, but no surface twice: fewer per-pixel Gaussians than the sources' pixels.
     assert 0.4 * 3 * 128 * 256 < info["num_source_gaussians"] < 0.9 * 3 * 128 * 256
+
+
+def test_sources_visibility_is_the_or_of_each_source(home_dir):
+    """The home's test of what the panoramas already explain asks the sources nearest first and each only about what
+    the nearer ones left: the same answer as asking every source about every point (and the same for poking)."""
+    from panoworld.gaussians import Gaussians
+    from panoworld.home.gaussians import SourcesVisibility
+    from panoworld.pixel_gaussians import SourceVisibility
+
+    poses = {n: np.asarray(T) for n, T in json.loads((home_dir / "gt" / "poses.json").read_text()).items()}
+    each = [SourceVisibility(np.load(home_dir / "depths" / f"{n}.npy"), T, 0.03) for n, T in poses.items()]
+    rng = np.random.default_rng(0)
+    centres = np.array([T[:3, 3] for T in poses.values()])
+    # Points around every capture point (in front of, on and behind surfaces) and far from all of them.
+    pts = np.concatenate([c + rng.normal(scale=2.0, size=(3000, 3)) for c in centres])
+    want = np.logical_or.reduce([s.explained(pts) for s in each])
+    assert 0.1 < want.mean() < 0.9  # both kinds are tested
+    seen = SourcesVisibility(each)
+    assert np.array_equal(seen.explained(pts), want)
+    assert np.array_equal(seen.explained(pts[:0]), np.zeros(0, bool))
+    n = len(pts)
+    g = Gaussians(pts.astype(np.float32), np.full((n, 3), 0.05, np.float32), np.tile([1, 0, 0, 0], (n, 1)).astype(
+        np.float32), np.full(n, 0.9, np.float32), np.zeros((n, 3), np.float32))
+    assert np.array_equal(seen.poking_through(g), np.logical_or.reduce([s.poking_through(g) for s in each]))
+
+
+def test_home_rig_masks_override_detection_per_panorama(home_dir, tmp_path, capsys):
+    """SCENE/rig_masks/NAME.png is that panorama's rig (as rig_mask.png is one panorama's): inside it the floor is
+    made up from the floor plane; the other panoramas are untouched. A mask naming no panorama: exit 2, one line."""
+    from stages.depth import main as depth_main
+
+    masks = tmp_path / "rig_masks"
+    masks.mkdir()
+    pano = read_panorama(home_dir / "panoramas" / "pano_01.png")
+    h = pano.shape[0]
+    mask = np.zeros((h, 2 * h), np.uint8)
+    mask[int(0.93 * h):] = 255  # the nadir cap below -77 degrees
+    cv2.imwrite(str(masks / "pano_01.png"), mask)
+    out = tmp_path / "depth"
+    args = ["--panoramas", str(home_dir / "panoramas"), "--depths", str(home_dir / "depths"), "--rig-masks",
+            str(masks), "--complete-dropouts", "false"]
+    assert depth_main([*args, "--out", str(out)]) == 0
+    info = art.read_manifest(out)["info"]["home"]["panoramas"]
+    assert info["pano_01"]["rig"]["kind"] == "user" and info["pano_01"]["rig"]["found"]
+    assert all(info[n]["rig"]["kind"] != "user" for n in info if n != "pano_01")
+    cleaned = read_panorama(out / "panoramas" / "pano_01" / "panorama.png")
+    inside = mask > 0
+    assert np.abs(cleaned.astype(int) - pano.astype(int))[~inside].max() == 0  # untouched outside the mask
+    assert np.abs(cleaned.astype(int) - pano.astype(int))[inside].mean() > 1  # inpainted inside it
+
+    cv2.imwrite(str(masks / "pano_09.png"), mask)
+    capsys.readouterr()
+    assert depth_main([*args, "--out", str(tmp_path / "depth2")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "pano_09.png" in err[0] and "rig_masks" in err[0] and not (tmp_path / "depth2").exists()
 
 
 def test_conditions_take_each_surface_from_its_nearest_panorama(home_dir):

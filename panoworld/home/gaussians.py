@@ -5,15 +5,15 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-import cv2
 import numpy as np
 import torch
 
-from panoworld.conventions import erp_dirs, transform_points
+from panoworld.conventions import erp_dirs, invert_pose, transform_points
 from panoworld.fusion_params import FusionParams
-from panoworld.gaussians import ContextSource, FusionResult, bbox_extent, resize_depth, voxel_fusion
+from panoworld.gaussians import ContextSource, FusionResult, bbox_extent, voxel_fusion
 from panoworld.pixel_gaussians import SourceVisibility, merge_gaussians, pixel_gaussians
 from panoworld.register.fuse import nearest_source
+from panoworld.register.solve import rgbd_at_height
 
 
 class SourcesVisibility:
@@ -21,33 +21,42 @@ class SourcesVisibility:
 
     def __init__(self, sources: list[SourceVisibility]):
         self.sources = sources
+        self.centres = np.array([invert_pose(s.cam_from_world)[:3, 3] for s in sources])
+
+    def explained(self, points: np.ndarray) -> np.ndarray:
+        """(M,) bool: SourceVisibility.explained by any source. The sources are asked nearest to the points' mean
+        first, each only about the points the nearer ones left (most of a frame is explained by one source)."""
+        explained = np.zeros(len(points), bool)
+        if not len(points):
+            return explained
+        rest = np.arange(len(points))
+        for k in np.argsort(np.linalg.norm(self.centres - points.mean(0), axis=1)):
+            e = self.sources[k].explained(points[rest])
+            explained[rest[e]] = True
+            rest = rest[~e]
+            if not len(rest):
+                break
+        return explained
 
     def keep_unexplained(self, obs):
-        pts = obs.points.numpy()
-        explained = np.zeros(len(pts), bool)
-        for s in self.sources:
-            explained |= s.explained(pts)
-        return obs.subset(torch.from_numpy(~explained))
+        return obs.subset(torch.from_numpy(~self.explained(obs.points.numpy())))
 
-
-def _at_height(rgb: np.ndarray, depth: np.ndarray, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """rgb (area) and depth (resize_depth, 0 = unknown) at `height` rows when they are taller (never upsampled), as
-    the video frames are resized (ContextSource)."""
-    if height and depth.shape[0] > height:
-        rgb = cv2.resize(rgb, (2 * height, height), interpolation=cv2.INTER_AREA)
-        depth = np.nan_to_num(resize_depth(depth, height, 2 * height), nan=0.0, posinf=0.0)
-    return rgb, depth
+    def poking_through(self, g) -> np.ndarray:
+        """(N,) bool: SourceVisibility.poking_through of any source."""
+        return np.logical_or.reduce([s.poking_through(g) for s in self.sources])
 
 
 def home_anchored_fusion(frames: ContextSource, sources: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
                          params: FusionParams, *, source_height: int = 0, tol: float = 0.03,
-                         source_scale: float | None = None, progress: bool = False) -> FusionResult:
+                         source_scale: float | None = None, unseen_voxel_size: float = 0.0,
+                         progress: bool = False) -> FusionResult:
     """Per-pixel Gaussians of every source {NAME: (rgb (H, W, 3), depth (H, W) metres (0 = unknown), world_from_cam)}
     at most source_height rows (0 = as given), a pixel kept only when no other source sees its surface from nearer
     (register.fuse.nearest_source: no doubled surfaces), plus voxel fusion of what the frames see that no source
-    does (SourceVisibility of each, tolerance tol)."""
+    does (SourceVisibility of each, tolerance tol) in voxels of unseen_voxel_size (0 = params.voxel_size), less those
+    poking through a surface a source saw: source_anchored_fusion of a single panorama, over several."""
     names = list(sources)
-    small = {n: _at_height(sources[n][0], sources[n][1], source_height) for n in names}
+    small = {n: rgbd_at_height(sources[n][0], sources[n][1], source_height) for n in names}
     depths = {n: small[n][1] for n in names}
     poses = {n: np.asarray(sources[n][2], np.float64) for n in names}
     pix_params = params if source_scale is None else replace(params, scale_factor=source_scale)
@@ -62,8 +71,10 @@ def home_anchored_fusion(frames: ContextSource, sources: dict[str, tuple[np.ndar
     pix = merge_gaussians(parts)
     if not len(frames):
         return FusionResult(pix, len(pix), 0, 0, bbox_extent(pix.means), params.voxel_size)
+    vox_params = replace(params, voxel_size=unseen_voxel_size) if unseen_voxel_size > 0 else params
     seen = SourcesVisibility([SourceVisibility(depths[n], poses[n], tol) for n in names])
-    fused = voxel_fusion(frames, params, progress=progress, select=seen.keep_unexplained)
-    g = merge_gaussians([pix, fused.gaussians])
-    return FusionResult(g, fused.num_observations + len(pix), fused.num_voxels, fused.num_pruned, bbox_extent(g.means),
-                        params.voxel_size, num_source=len(pix))
+    fused = voxel_fusion(frames, vox_params, progress=progress, select=seen.keep_unexplained)
+    poking = seen.poking_through(fused.gaussians)
+    g = merge_gaussians([pix, fused.gaussians.subset(~poking)])
+    return FusionResult(g, fused.num_observations + len(pix), fused.num_voxels, fused.num_pruned + int(poking.sum()),
+                        bbox_extent(g.means), vox_params.voxel_size, num_source=len(pix))

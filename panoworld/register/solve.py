@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from panoworld.conventions import invert_pose
+from panoworld.gaussians import resize_depth
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pairwise import Features, PairResult, erp_features, register_pair
 
@@ -26,12 +27,12 @@ class Registration:
     """Every pair tried: names, matches, inliers, overlap, consistency, residual, accepted."""
 
 
-def _resize_pair(rgb: np.ndarray, depth: np.ndarray, height: int) -> tuple[np.ndarray, np.ndarray]:
-    h = min(height, depth.shape[0])
-    if rgb.shape[:2] != (h, 2 * h):
-        rgb = cv2.resize(rgb, (2 * h, h), interpolation=cv2.INTER_AREA)
-    if depth.shape != (h, 2 * h):
-        depth = cv2.resize(depth, (2 * h, h), interpolation=cv2.INTER_NEAREST)
+def rgbd_at_height(rgb: np.ndarray, depth: np.ndarray, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """rgb (area) and depth (resize_depth; 0 = unknown) at `height` rows when they are taller (never upsampled; 0 = as
+    given): a panorama resized as the video frames are (ContextSource)."""
+    if height and depth.shape[0] > height:
+        rgb = cv2.resize(rgb, (2 * height, height), interpolation=cv2.INTER_AREA)
+        depth = np.nan_to_num(resize_depth(depth, height, 2 * height), nan=0.0, posinf=0.0)
     return rgb, depth
 
 
@@ -48,7 +49,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     pairs: dict[tuple[int, int], PairResult] = {}
     k = len(names)
     if need:
-        small = {n: _resize_pair(rgbs[n], depths[n], o.height) for n in names}
+        small = {n: rgbd_at_height(rgbs[n], depths[n], o.height) for n in names}
         feats = {n: erp_features(*small[n], max_features=o.max_features) for n in names}
         for a in range(k):
             for b in range(a + 1, k):
