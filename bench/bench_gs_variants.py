@@ -16,7 +16,6 @@ import json
 import sys
 import tempfile
 import time
-from dataclasses import fields, replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -35,14 +34,14 @@ def build(scene: Path, variant: str, out: Path) -> tuple[Path, float]:
         return scene / ARTIFACTS / "gaussians" / "gaussians.ply", 0.0
     import yaml
 
+    from panoworld.stage import params_from_dict
     from stages.gaussians import Params, run
 
-    names = {f.name for f in fields(Params)}
     kv = dict(item.split("=", 1) for item in variant.split(",") if item)
-    bad = sorted(set(kv) - names)
-    if bad:
-        raise SystemExit(f"unknown gaussians params {bad}")
-    params = replace(Params(), **{k: yaml.safe_load(v) for k, v in kv.items()}, eval_views=0)
+    try:  # flat (source_height) or nested (voxel_fusion.source_height) names, as --set takes them
+        params = params_from_dict(Params, {**{k: yaml.safe_load(v) for k, v in kv.items()}, "eval_views": 0}, "gaussians")
+    except ValueError as e:
+        raise SystemExit(str(e)) from None
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     run({"video": scene / ARTIFACTS / "video", "poses": scene / ARTIFACTS / "poses"}, params, out)

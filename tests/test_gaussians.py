@@ -241,15 +241,22 @@ def write_inputs(tmp: Path, room, *, with_depth: bool = True) -> tuple[Path, Pat
     return video, poses
 
 
+def _params(**values):
+    """The gaussians stage's Params from flat names (voxel-fusion's options among them), as --set takes them."""
+    from panoworld.stage import params_from_dict
+    from stages.gaussians import Params
+
+    return params_from_dict(Params, values, "gaussians")
+
+
 def test_stage_writes_a_valid_artifact(tmp_path, room):
     from panoworld.splat_ply import read_gaussians_ply
     from panoworld.stage import execute_stage, load_stage
-    from stages.gaussians import Params
 
     video, poses = write_inputs(tmp_path, room)
     spec = load_stage("gaussians")
     out = tmp_path / "out"
-    manifest = execute_stage(spec, {"video": video, "poses": poses}, Params(voxel_size=0.05, eval_views=2),
+    manifest = execute_stage(spec, {"video": video, "poses": poses}, _params(voxel_size=0.05, eval_views=2),
                              out, input_digests={"video": "0" * 64, "poses": "1" * 64})
     info = manifest["info"]
     assert {"gaussians.ply", "points.ply", "preview.png"} <= set(manifest["files"])
@@ -260,13 +267,13 @@ def test_stage_writes_a_valid_artifact(tmp_path, room):
     assert info["fusion_height"] == 64
     fit = info["color_fit"]  # on by default: the render at the capture point moved towards frame 0
     assert fit["iters"] == 10 and fit["height"] == 64 and fit["rmse_after"] < 0.9 * fit["rmse_before"], fit
-    capped = execute_stage(spec, {"video": video, "poses": poses}, Params(voxel_size=0.05, eval_views=0, max_height=32,
+    capped = execute_stage(spec, {"video": video, "poses": poses}, _params(voxel_size=0.05, eval_views=0, max_height=32,
                            source_height=32, fit_iters=0), tmp_path / "capped",
                            input_digests={"video": "0" * 64, "poses": "1" * 64})["info"]
     assert capped["fusion_height"] == 32 and capped["num_observations"] < 0.3 * info["num_observations"]
     assert capped["color_fit"] is None
     # source_scale sizes the per-pixel Gaussians of the source only (they come first in the .ply)
-    wide = execute_stage(spec, {"video": video, "poses": poses}, Params(voxel_size=0.05, eval_views=0, source_scale=3.8),
+    wide = execute_stage(spec, {"video": video, "poses": poses}, _params(voxel_size=0.05, eval_views=0, source_scale=3.8),
                          tmp_path / "wide", input_digests={"video": "0" * 64, "poses": "1" * 64})["info"]
     g0, g1 = read_gaussians_ply(out / "gaussians.ply"), read_gaussians_ply(tmp_path / "wide" / "gaussians.ply")
     n = info["num_source_gaussians"]
@@ -275,7 +282,7 @@ def test_stage_writes_a_valid_artifact(tmp_path, room):
     assert ratio == pytest.approx(2.0, rel=0.05)
     assert len(g1) == len(g0) and np.allclose(g1.scales[n:], g0.scales[n:])  # the voxel Gaussians are unchanged
     # unseen_voxel_size sizes the voxels of what the source does not see, and only those
-    coarse = execute_stage(spec, {"video": video, "poses": poses}, Params(voxel_size=0.05, eval_views=0,
+    coarse = execute_stage(spec, {"video": video, "poses": poses}, _params(voxel_size=0.05, eval_views=0,
                            unseen_voxel_size=0.16), tmp_path / "coarse", input_digests={"video": "0" * 64, "poses": "1" * 64})
     g2 = read_gaussians_ply(tmp_path / "coarse" / "gaussians.ply")
     assert coarse["info"]["num_source_gaussians"] == n and np.allclose(g2.means[:n], g0.means[:n])
@@ -285,7 +292,7 @@ def test_stage_writes_a_valid_artifact(tmp_path, room):
 
 def test_stage_input_errors(tmp_path, room):
     from panoworld.stage import StageInputError, execute_stage, load_stage
-    from stages.gaussians import Backend, Params
+    from stages.gaussians import Params
 
     spec = load_stage("gaussians")
     digests = {"video": "0" * 64, "poses": "1" * 64}
@@ -293,15 +300,15 @@ def test_stage_input_errors(tmp_path, room):
     with pytest.raises(StageInputError, match="needs per-frame depth: use video backend warp-inpaint or poses backend vggt"):
         execute_stage(spec, {"video": video, "poses": poses}, Params(), tmp_path / "o1", input_digests=digests)
     video, poses = write_inputs(tmp_path / "b", room)
-    with pytest.raises(StageInputError, match="pass --weights"):
-        execute_stage(spec, {"video": video, "poses": poses}, Params(backend=Backend.DECODER), tmp_path / "o2",
+    with pytest.raises(StageInputError, match="pass --decoder-weights"):
+        execute_stage(spec, {"video": video, "poses": poses}, Params(backend="decoder"), tmp_path / "o2",
                       input_digests=digests)
     for p in (video / "depth").iterdir():
         cv2.imwrite(str(p), np.zeros((64, 128), np.uint16))
     with pytest.raises(StageInputError, match="no valid depth"):
         execute_stage(spec, {"video": video, "poses": poses}, Params(), tmp_path / "o3", input_digests=digests)
     with pytest.raises(StageInputError, match="per_voxel"):
-        execute_stage(spec, {"video": video, "poses": poses}, Params(per_voxel=3), tmp_path / "o4", input_digests=digests)
+        execute_stage(spec, {"video": video, "poses": poses}, _params(per_voxel=3), tmp_path / "o4", input_digests=digests)
     assert not any((tmp_path / f"o{i}").exists() for i in range(1, 5))
 
 

@@ -78,7 +78,7 @@ def test_old_flat_names_still_work():
     assert p == params_from_dict(video, {"wan": {"steps": 2, "weights": "/w"}, "warp.max_band_deg": 10}, "video")
 
 
-@pytest.mark.parametrize("stage", ["video", "poses", "depth"])
+@pytest.mark.parametrize("stage", ["video", "poses", "depth", "gaussians"])
 def test_registry_stages_do_not_branch_on_backend_names(stage):
     text = (REPO / "stages" / f"{stage}.py").read_text()
     code = "\n".join(ln for ln in text.splitlines() if " = param(" not in ln and " = options(" not in ln)
@@ -86,6 +86,18 @@ def test_registry_stages_do_not_branch_on_backend_names(stage):
         assert f'"{name}"' not in code, f"stages/{stage}.py names backend {name} outside its Params"
     for bad in ("backend ==", "backend !=", "Backend."):
         assert bad not in text, f"stages/{stage}.py: {bad}"
+
+
+def test_gaussians_backends_nest_their_options_and_keep_the_flat_names():
+    gs = load_stage("gaussians").params_cls
+    assert set(backends.names("gaussians")) == {"voxel-fusion", "decoder"}
+    p = params_from_dict(gs, {"voxel_size": 0.05, "source_height": 320, "weights": "/w"}, "gaussians")
+    assert (p.voxel_fusion.voxel_size, p.voxel_fusion.source_height, p.decoder.weights) == (0.05, 320, "/w")
+    assert p == params_from_dict(gs, {"voxel_fusion": {"voxel_size": 0.05, "source_height": 320},
+                                      "decoder.weights": "/w"}, "gaussians")
+    assert "decoder" not in params_to_dict(p)  # voxel-fusion chosen: the decoder's weights are not in the cache key
+    with pytest.raises(ValueError, match=r"^gaussians.voxel_fusion.source_tol=0.0: must be > 0$"):
+        params_from_dict(gs, {"source_tol": 0}, "gaussians")
 
 
 def test_stage_help_shows_rules_and_nested_options():

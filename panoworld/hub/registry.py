@@ -169,6 +169,6 @@ register(WeightsEntry(
 ))
 register(WeightsEntry(
     name="gs-decoder", model="voxel-aligned Gaussian decoder", licence="this project's", size="-",
-    trained="python runner.py train recon", uses=(Use("gaussians.weights", also=("gaussians.backend=decoder",)),),
+    trained="python runner.py train recon", uses=(Use("gaussians.decoder.weights", also=("gaussians.backend=decoder",)),),
     notes="trained by this project together with panovggt",
 ))

@@ -262,7 +262,7 @@ class Trainer:
         # The model is trained in metres: keep its scale (se3) rather than fitting one to the plan (sim3).
         params = {"poses": {"backend": "vggt", "weights": str(weights.resolve()), "align": "se3"}}
         if self.cfg.stage == 2:
-            params["gaussians"] = {"backend": "decoder", "weights": str(weights.resolve())}
+            params["gaussians"] = {"backend": "decoder", "decoder": {"weights": str(weights.resolve())}}
         common.write_export_scene_yaml(
             self.run_dir, params, note=f"PanoVGGT trained by `runner.py train recon --stage {self.cfg.stage}`")
         return weights

@@ -1,0 +1,68 @@
+"""voxel-fusion: no weights; the source view as one Gaussian per pixel, the other frames voxel-fused where it is blind."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from panoworld.backends import register
+from panoworld.errors import InputError
+from panoworld.fusion_params import FusionParams
+from panoworld.params import param
+
+
+@dataclass(kw_only=True)
+class VoxelFusionOptions(FusionParams):
+    source_pixels: bool = True
+    """The source view (video frame 0; a home: every anchored panorama) becomes one Gaussian per pixel (its full
+    detail at the capture point); the other frames are voxel-fused only where they see what the source does not."""
+    source_height: int = param(640, ge=0)
+    """ERP height of the source view's per-pixel Gaussians (0 = that of the other frames); rows near the poles keep
+    every k-th pixel so kept pixels are about square on the sphere. 640 with source_scale 1.9: as sharp as 512 rows at
+    the capture point and +0.6 dB on what it sees from ~1-2 m away (validation seed 1; docs/evaluation.md)."""
+    source_scale: float = param(1.9, gt=0)
+    """Footprint scale of the source's per-pixel Gaussians (scale_factor of the voxel Gaussians otherwise): large
+    enough that neighbours leave no see-through cracks between them, small enough to keep the input's detail."""
+    unseen_voxel_size: float = param(0.04, ge=0)
+    """With source_pixels: voxel edge (metres) of what the other frames see that the source does not (0 =
+    voxel_size). That is the generated (disoccluded) content, softer than the input: 4 cm voxels hold it with fewer,
+    larger Gaussians and fewer see-through gaps than 2 cm (docs/evaluation.md, "Away from the capture point")."""
+    source_tol: float = param(0.03, gt=0)
+    """Observations of the other frames within this relative depth of the source's surface (or in front of it) count
+    as seen by the source and are not fused."""
+    fit_iters: int = param(10, ge=0)
+    """With source_pixels: conjugate-gradient steps of a colour fit at the capture point (0 = none): for the fixed
+    geometry the ERP render there is linear in the Gaussians' colours, which are refitted (least squares, damped
+    towards their fused values) so it reproduces the source frame, undoing the blur of overlapping splats
+    (docs/evaluation.md, "Colour fit at the capture point"). Not applied to a home's panoramas."""
+    fit_height: int = param(0, ge=0)
+    """ERP height of that fit's render and target (0 = source_height)."""
+
+
+def fuse(job):
+    from panoworld.gaussians import voxel_fusion
+    from panoworld.home.layout import capture_poses
+    from panoworld.pixel_gaussians import source_anchored_fusion
+
+    o: VoxelFusionOptions = job.options
+    if not o.source_pixels:
+        return voxel_fusion(job.frames, o, progress=job.progress)
+    captures = capture_poses(job.register)
+    if len(captures) < 2:
+        return source_anchored_fusion(job.frames, o, source_height=o.source_height, tol=o.source_tol,
+                                      source_scale=o.source_scale, unseen_voxel_size=o.unseen_voxel_size,
+                                      fit_iters=o.fit_iters, fit_height=o.fit_height, progress=job.progress)
+    from panoworld.home.gaussians import home_anchored_fusion
+    from panoworld.home.layout import home_depth_dirs
+    from panoworld.home.mesh import load_sources
+
+    dirs = home_depth_dirs(job.depth) if job.depth else None
+    if dirs is None:
+        raise InputError(f"{job.register}: the register artifact places several panoramas: give --depth, the home's "
+                         "depth artifact (its panoramas are anchored)")
+    names, rgbs, depths = load_sources(dirs, captures)
+    return home_anchored_fusion(job.frames, {n: (rgbs[n], depths[n], captures[n]) for n in names}, o,
+                                source_height=o.source_height, tol=o.source_tol, source_scale=o.source_scale,
+                                unseen_voxel_size=o.unseen_voxel_size, progress=job.progress)
+
+
+register("gaussians", "voxel-fusion", fuse, options=VoxelFusionOptions, key="voxel_fusion", weights=False)
