@@ -243,7 +243,7 @@ def test_gradient_checkpointing_gives_the_same_gradients():
 
 def test_gaussians_stage_decoder_backend_loads_the_export(tmp_path):
     from panoworld.stage import StageInputError, execute_stage, load_stage
-    from stages.gaussians import Backend, Params
+    from stages.gaussians import DecoderOptions, Params
     from tests.test_gaussians import room as room_fixture
     from tests.test_gaussians import write_inputs
 
@@ -251,13 +251,14 @@ def test_gaussians_stage_decoder_backend_loads_the_export(tmp_path):
     head_model(4).save_pretrained(tmp_path / "w")
     digests = {"video": "0" * 64, "poses": "1" * 64}
     info = execute_stage(load_stage("gaussians"), {"video": video, "poses": poses},
-                         Params(backend=Backend.DECODER, weights=str(tmp_path / "w"), eval_views=1, eval_height=32),
+                         Params(backend="decoder", decoder=DecoderOptions(weights=str(tmp_path / "w")), eval_views=1,
+                                eval_height=32),
                          tmp_path / "out", input_digests=digests)["info"]
     assert info["backend"] == "decoder" and info["voxel_size"] == 0.2 and info["num_gaussians"] > 10
     tiny_model().save_pretrained(tmp_path / "nohead")
     with pytest.raises(StageInputError, match="no Gaussian head"):
         execute_stage(load_stage("gaussians"), {"video": video, "poses": poses},
-                      Params(backend=Backend.DECODER, weights=str(tmp_path / "nohead")), tmp_path / "out2",
+                      Params(backend="decoder", decoder=DecoderOptions(weights=str(tmp_path / "nohead"))), tmp_path / "out2",
                       input_digests=digests)
 
 
