@@ -115,23 +115,29 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
     pix = pixel_gaussians(rgb, depth, pose, pix_params, thin_poles=thin_poles)
     rest = replace(frames, rgb_paths=frames.rgb_paths[1:], depth_paths=frames.depth_paths[1:],
                    world_from_cam=frames.world_from_cam[1:], indices=frames.indices[1:])
-    if len(rest):
-        vox_params = replace(params, voxel_size=unseen_voxel_size) if unseen_voxel_size > 0 else params
-        vis = SourceVisibility(depth, pose, tol)
-        fused = voxel_fusion(rest, vox_params, progress=progress, select=vis.keep_unexplained)
-        poking = vis.poking_through(fused.gaussians)
-        g = merge_gaussians([pix, fused.gaussians.subset(~poking)])
-        result = FusionResult(g, fused.num_observations + len(pix), fused.num_voxels,
-                              fused.num_pruned + int(poking.sum()), bbox_extent(g.means), vox_params.voxel_size,
-                              num_source=len(pix))
-    else:
-        result = FusionResult(pix, len(pix), 0, 0, bbox_extent(pix.means), params.voxel_size, num_source=len(pix))
+    result = fuse_unseen(pix, rest, SourceVisibility(depth, pose, tol), params, unseen_voxel_size=unseen_voxel_size,
+                         progress=progress)
     if fit_iters > 0:
         if fit_height and fit_height != src.height:
             rgb = replace(frames, height=min(fit_height, frames.stored_height)).frame(0)[0]
         result.gaussians, result.color_fit = fit_colors(result.gaussians, rgb, pose, iters=fit_iters)
         result.color_fit.update(iters=fit_iters, height=int(rgb.shape[0]))
     return result
+
+
+def fuse_unseen(pix: Gaussians, frames: ContextSource, vis, params: FusionParams, *, unseen_voxel_size: float = 0.0,
+                progress: bool = False) -> FusionResult:
+    """The source Gaussians pix plus voxel fusion of what `frames` see that the source(s) do not (vis: a
+    SourceVisibility, or any object with its keep_unexplained / poking_through) in voxels of unseen_voxel_size (0 =
+    params.voxel_size), less the voxel Gaussians poking through a surface the source saw."""
+    if not len(frames):
+        return FusionResult(pix, len(pix), 0, 0, bbox_extent(pix.means), params.voxel_size, num_source=len(pix))
+    vox_params = replace(params, voxel_size=unseen_voxel_size) if unseen_voxel_size > 0 else params
+    fused = voxel_fusion(frames, vox_params, progress=progress, select=vis.keep_unexplained)
+    poking = vis.poking_through(fused.gaussians)
+    g = merge_gaussians([pix, fused.gaussians.subset(~poking)])
+    return FusionResult(g, fused.num_observations + len(pix), fused.num_voxels, fused.num_pruned + int(poking.sum()),
+                        bbox_extent(g.means), vox_params.voxel_size, num_source=len(pix))
 
 
 def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, iters: int = 10, damping: float = 0.01,

@@ -10,8 +10,8 @@ import torch
 
 from panoworld.conventions import erp_dirs, invert_pose, transform_points
 from panoworld.fusion_params import FusionParams
-from panoworld.gaussians import ContextSource, FusionResult, bbox_extent, voxel_fusion
-from panoworld.pixel_gaussians import SourceVisibility, merge_gaussians, pixel_gaussians
+from panoworld.gaussians import ContextSource, FusionResult
+from panoworld.pixel_gaussians import SourceVisibility, fuse_unseen, merge_gaussians, pixel_gaussians
 from panoworld.register.fuse import nearest_source
 from panoworld.register.solve import rgbd_at_height
 
@@ -69,12 +69,5 @@ def home_anchored_fusion(frames: ContextSource, sources: dict[str, tuple[np.ndar
         parts.append(pixel_gaussians(rgb, np.where(keep & (depth > 0), depth, 0.0).astype(np.float32), poses[n],
                                      pix_params))
     pix = merge_gaussians(parts)
-    if not len(frames):
-        return FusionResult(pix, len(pix), 0, 0, bbox_extent(pix.means), params.voxel_size)
-    vox_params = replace(params, voxel_size=unseen_voxel_size) if unseen_voxel_size > 0 else params
     seen = SourcesVisibility([SourceVisibility(depths[n], poses[n], tol) for n in names])
-    fused = voxel_fusion(frames, vox_params, progress=progress, select=seen.keep_unexplained)
-    poking = seen.poking_through(fused.gaussians)
-    g = merge_gaussians([pix, fused.gaussians.subset(~poking)])
-    return FusionResult(g, fused.num_observations + len(pix), fused.num_voxels, fused.num_pruned + int(poking.sum()),
-                        bbox_extent(g.means), vox_params.voxel_size, num_source=len(pix))
+    return fuse_unseen(pix, frames, seen, params, unseen_voxel_size=unseen_voxel_size, progress=progress)
