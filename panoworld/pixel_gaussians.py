@@ -128,12 +128,12 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
 def fuse_unseen(pix: Gaussians, frames: ContextSource, vis, params: FusionParams, *, unseen_voxel_size: float = 0.0,
                 progress: bool = False) -> FusionResult:
     """The source Gaussians pix plus voxel fusion of what `frames` see that the source(s) do not (vis: a
-    SourceVisibility, or any object with its keep_unexplained / poking_through) in voxels of unseen_voxel_size (0 =
+    SourceVisibility, or any object with its explained / poking_through) in voxels of unseen_voxel_size (0 =
     params.voxel_size), less the voxel Gaussians poking through a surface the source saw."""
     if not len(frames):
         return FusionResult(pix, len(pix), 0, 0, bbox_extent(pix.means), params.voxel_size, num_source=len(pix))
     vox_params = replace(params, voxel_size=unseen_voxel_size) if unseen_voxel_size > 0 else params
-    fused = voxel_fusion(frames, vox_params, progress=progress, select=vis.keep_unexplained)
+    fused = voxel_fusion(frames, vox_params, progress=progress, keep_points=lambda p: ~vis.explained(p))
     poking = vis.poking_through(fused.gaussians)
     g = merge_gaussians([pix, fused.gaussians.subset(~poking)])
     return FusionResult(g, fused.num_observations + len(pix), fused.num_voxels, fused.num_pruned + int(poking.sum()),

@@ -17,6 +17,7 @@ from panoworld.gaussians import (
     FUSION_EPS,
     SH_C0,
     FusionParams,
+    frame_observations,
     fuse_voxels,
     merge_voxel_sums,
     uniform_subset,
@@ -376,6 +377,24 @@ def test_source_visibility_keeps_only_what_the_source_cannot_see():
     scales = np.array([[0.03, 0.001, 0.001], [0.01, 0.01, 0.001], [0.1, 0.1, 0.1], [0.1, 0.1, 0.1]], np.float32)
     g = Gaussians(means, scales, np.tile(np.float32([1, 0, 0, 0]), (4, 1)), np.ones(4, np.float32), np.zeros((4, 3), np.float32))
     assert vis.poking_through(g).tolist() == [True, False, True, False]
+
+
+def test_frame_observations_filtered_before_footprints_equal_those_filtered_after(room):
+    # keep_points drops pixels before their footprints are computed: the same observations, bit for bit, as computing
+    # all of them and subsetting (depth edges at the block, a band without depth, the seam and the poles included).
+    from panoworld.pixel_gaussians import SourceVisibility
+
+    rgb0, d0 = room(pose_at(0, 0, 0), 48, 96)
+    vis = SourceVisibility(d0, pose_at(0, 0, 0), 0.03)
+    pose = pose_at(0.5, 0.1, 0.4)
+    rgb, d = room(pose, 48, 96)
+    d[:, 40:44] = np.nan
+    fp = FusionParams(voxel_size=0.04)
+    after = vis.keep_unexplained(frame_observations(rgb, d, pose, fp))
+    before = frame_observations(rgb, d, pose, fp, keep_points=lambda p: ~vis.explained(p))
+    assert 0 < len(before.points) < (d > 0).sum() / 2
+    for f in ("points", "colors", "steps", "weights", "pixels"):
+        assert torch.equal(getattr(before, f), getattr(after, f)), f
 
 
 def test_pole_thinning_keeps_about_square_pixels():
