@@ -444,6 +444,10 @@ def test_colour_fit_at_the_capture_point_sharpens_it_and_keeps_other_views():
     fitted, info = fit_colors(g, rgb0, src, iters=10)
     assert info["rmse_after"] < 0.8 * info["rmse_before"], info
     assert np.array_equal(fitted.means, g.means) and np.array_equal(fitted.scales, g.scales)
+    # its last render is that of the fitted Gaussians (the stage's self-check of frame 0 reuses it)
+    again = render_erp(fitted, src, 128, 256, supersample=1)
+    rgb, alpha = info["render"]
+    assert np.abs(rgb - again.rgb.numpy()).max() < 1e-4 and np.abs(alpha - again.alpha.numpy()).max() < 1e-4
 
     def score(gs, pose, H=64):  # against an anti-aliased reference: 4x supersampled, area-downsampled
         gt = cv2.resize(room(pose, 4 * H, 8 * H)[0], (2 * H, H), interpolation=cv2.INTER_AREA)
