@@ -43,10 +43,8 @@ def write_gaussians_ply(path: str | Path, gaussians: Gaussians) -> None:
         g.means, normals, g.sh_dc, rest.transpose(0, 2, 1).reshape(n, NUM_REST),
         _logit(g.opacities)[:, None], np.log(np.maximum(g.scales, 1e-12)), g.quats,
     ]
-    data = np.concatenate([np.asarray(c, np.float32).reshape(n, -1) for c in cols], 1)
-    vertex = np.empty(n, dtype=[(name, "<f4") for name in GAUSSIAN_FIELDS])
-    for i, name in enumerate(GAUSSIAN_FIELDS):
-        vertex[name] = data[:, i]
+    data = np.concatenate([np.asarray(c, "<f4").reshape(n, -1) for c in cols], 1)
+    vertex = data.view([(name, "<f4") for name in GAUSSIAN_FIELDS]).reshape(n)  # each row one record, no copy
     PlyData([PlyElement.describe(vertex, "vertex")], byte_order="<").write(str(path))
 
 
