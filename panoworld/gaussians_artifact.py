@@ -27,9 +27,11 @@ def write_artifact(out_dir: Path, result: FusionResult, frames: ContextFrames | 
         if frames.indices[k] == 0 and result.fit_render is not None:  # the colour fit rendered it already
             rgb, alpha = (cv2.resize(a, (2 * eval_height, eval_height), interpolation=cv2.INTER_AREA)
                           for a in result.fit_render)
+            how = f"the colour fit's render at {len(result.fit_render[1])} rows, area-downsampled"
         else:
             out = render_erp(g, frames.world_from_cam[k], eval_height, 2 * eval_height)
             rgb, alpha = out.rgb.numpy(), out.alpha.numpy()
+            how = "render_erp"
         img = (np.clip(rgb, 0, 1) * 255.0).round().astype(np.uint8)
         ref = frames.rgb_at(k)
         if ref.shape[0] != eval_height:
@@ -37,7 +39,7 @@ def write_artifact(out_dir: Path, result: FusionResult, frames: ContextFrames | 
         if not evals:
             cv2.imwrite(str(out_dir / "preview.png"), img[..., ::-1])
         covered = alpha > 0.5
-        evals.append({"frame": frames.indices[k], "psnr": psnr(img, ref), "ws_psnr": ws_psnr(img, ref),
+        evals.append({"frame": frames.indices[k], "render": how, "psnr": psnr(img, ref), "ws_psnr": ws_psnr(img, ref),
                       "ssim": ssim(img, ref), "coverage": float(alpha.mean()),
                       "psnr_covered": psnr(img, ref, covered) if covered.any() else None})
     warnings = []
