@@ -67,8 +67,15 @@ def read_gaussians_ply(path: str | Path) -> Gaussians:
     if n_rest % 3 or n_rest // 3 not in (0, 3, 8, 15):
         raise ValueError(f"{path}: {n_rest} f_rest_* properties but expected 0, 9, 24 or 45")
 
-    def cols(fields):
-        return np.stack([np.asarray(v[f], np.float32) for f in fields], 1)
+    order = list(v.dtype.names)
+    if v.flags.c_contiguous and v.dtype == np.dtype([(f, "<f4") for f in order]):  # all float32: one (N, P) block
+        block = v.view("<f4").reshape(len(v), len(order))
+
+        def cols(fields):
+            return np.ascontiguousarray(block[:, [order.index(f) for f in fields]])
+    else:
+        def cols(fields):
+            return np.stack([np.asarray(v[f], np.float32) for f in fields], 1)
 
     k = n_rest // 3
     rest = cols([f"f_rest_{i}" for i in range(n_rest)]) if n_rest else np.zeros((len(v), 0), np.float32)
