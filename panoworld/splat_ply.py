@@ -8,7 +8,7 @@ import numpy as np
 from plyfile import PlyData, PlyElement, PlyParseError
 
 from panoworld.conventions import rotmat_from_quat_wxyz
-from panoworld.gaussians import Gaussians
+from panoworld.gaussian_set import Gaussians
 from panoworld.shapes import check_shape
 
 NUM_REST = 45

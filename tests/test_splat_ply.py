@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -102,3 +106,12 @@ def test_bad_files_raise_naming_the_problem(tmp_path):
         read_gaussians_ply(tmp_path / "pts.ply")
     with pytest.raises(ValueError, match=r"^rgb.shape=\(3, 3\) but expected \(4, 3\)$"):  # N bound by xyz
         write_points_ply(tmp_path / "x.ply", xyz, np.zeros((3, 3)))
+
+
+def test_asset_stage_and_ply_reader_import_without_torch_or_scipy():
+    # torch and scipy cost the asset stage ~3-7 CPU-s per run in imports alone; it needs neither.
+    code = ("import sys, stages.asset, panoworld.asset, panoworld.splat_ply, panoworld.mesh, panoworld.navmesh, "
+            "panoworld.trajectory; print(sorted(m for m in ('torch', 'scipy') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=Path(__file__).resolve().parent.parent)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr

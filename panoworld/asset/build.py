@@ -10,7 +10,7 @@ import numpy as np
 from panoworld.asset.collider import Collider, collision_mesh, write_obj
 from panoworld.conventions import asset_from_canonical, transform_points
 from panoworld.errors import ArtifactError
-from panoworld.gaussians import Gaussians
+from panoworld.gaussian_set import Gaussians
 from panoworld.io import read_json, write_json
 from panoworld.mesh import ErpMesh
 from panoworld.navmesh import NavMesh
