@@ -29,6 +29,8 @@ class Raycaster:
         check_shape("faces", faces, "F 3")
         if len(faces) == 0:
             raise ValueError("cannot ray cast an empty mesh (0 faces)")
+        if faces.min() < 0 or faces.max() >= len(vertices):
+            raise ValueError(f"faces index vertices 0..{len(vertices) - 1} but range over {faces.min()}..{faces.max()}")
         self.vertices = vertices.astype(np.float32)
         self.faces = faces.astype(np.int32)
         self._scene = None
@@ -41,7 +43,9 @@ class Raycaster:
             except ImportError as e:  # pragma: no cover - embreex is a core dependency
                 raise ImportError("embreex is required for ray casting: pip install embreex") from e
             self._scene = rtcore_scene.EmbreeScene()
-            TriangleMesh(self._scene, self.vertices[self.faces])
+            # Indexed (shared vertices) rather than a (F, 3, 3) soup: the same triangles and hits, ~1 CPU-s less per
+            # 2.7M-face build.
+            TriangleMesh(self._scene, self.vertices, self.faces)
         return self._scene
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray, chunk: int = 1 << 20) -> Hits:
