@@ -17,7 +17,7 @@ from panoworld.conventions import (
     invert_pose,
 )
 from panoworld.mesh import ErpMesh, grid_faces
-from panoworld.raycast import Raycaster
+from panoworld.raycast import Hits, Raycaster
 from panoworld.shapes import check_shape
 
 # ---------------------------------------------------------------- seam-aware 2D helpers
@@ -429,10 +429,11 @@ class WarpInpainter:
                 dirs = erp_dir_at(tj + 0.5 + du, ti + 0.5 + dv, H, W) @ R.T
                 hits = self._rc.cast(origin, dirs)
                 ok = hits.face >= 0
-                col = self._rc.interpolate(hits, self._colors)
-                out[ti[ok], tj[ok]] = np.clip(np.rint(col[ok]), 0, 255).astype(np.uint8)
-                out_d[ti[ok], tj[ok]] = hits.distance[ok]
-                filled[ti[ok], tj[ok]] = True
+                ti, tj = ti[ok], tj[ok]
+                col = self._rc.interpolate(Hits(hits.distance[ok], hits.face[ok], hits.bary[ok]), self._colors)
+                out[ti, tj] = np.clip(np.rint(col), 0, 255).astype(np.uint8)
+                out_d[ti, tj] = hits.distance[ok]
+                filled[ti, tj] = True
         rest = hole & ~filled
         if self.committed is not None and rest.any() and not rest.all():
             pix, dist, col = self.committed.project(world_from_cam, H, W)
