@@ -152,8 +152,7 @@ def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, 
 
     h, w = target.shape[:2]
     y = torch.as_tensor(np.asarray(target, np.float32) / (255.0 if target.dtype == np.uint8 else 1.0))
-    op = ErpColorOperator(g, world_from_cam, h, w, supersample=supersample,
-                          **({} if pole_scale is None else {"pole_scale": pole_scale}))
+    op = ErpColorOperator(g, world_from_cam, h, w, supersample=supersample, pole_scale=pole_scale)
     c0 = torch.from_numpy(g.base_colors())
     lam = damping * op.adjoint(torch.ones(h, w, 3))[:, :1].clamp(min=1e-3)  # A^T 1: each Gaussian's weight in the view
 

@@ -360,9 +360,10 @@ class ErpFace:
 
 
 def erp_faces(world_from_cam: np.ndarray, H: int, W: int, *, face_size: int | None = None, margin: int = 2,
-              supersample: int = ERP_SUPERSAMPLE, pole_scale: float = ERP_POLE_SCALE) -> list[ErpFace]:
+              supersample: int = ERP_SUPERSAMPLE, pole_scale: float | None = None) -> list[ErpFace]:
     """The cube faces render_erp composes an (H, W) ERP at world_from_cam from (see there), those serving no sample
     left out."""
+    pole_scale = ERP_POLE_SCALE if pole_scale is None else pole_scale
     if not pole_scale >= 1.0:
         raise ValueError(f"pole_scale={pole_scale!r} but expected >= 1")
     check_erp_shape(H, W, "requested ERP render")
@@ -396,7 +397,7 @@ def erp_faces(world_from_cam: np.ndarray, H: int, W: int, *, face_size: int | No
 def render_erp(
     gaussians: Gaussians, world_from_cam: np.ndarray, H: int, W: int, *, face_size: int | None = None,
     margin: int = 2, near: float = 0.01, background=None, supersample: int = ERP_SUPERSAMPLE,
-    pole_scale: float = ERP_POLE_SCALE,
+    pole_scale: float | None = None,
 ) -> RenderOutput:
     """Render an equirectangular view (W = 2H) from 6 perspective cube faces resampled bilinearly with grid_sample.
 
@@ -405,7 +406,8 @@ def render_erp(
     supersample s > 1 the ERP is sampled at (s H, s W) and area-downsampled by s (colour, alpha and alpha-weighted
     depth averaged over each s x s block). depth is the expected Euclidean distance of the Gaussian centres (composited
     in each face's z order). pole_scale: the two faces holding the poles (+y, -y) at that many times the face size,
-    as ERP rows near a pole sample longitude ever more finely (tan(latitude) times the face's pixel there).
+    as ERP rows near a pole sample longitude ever more finely (tan(latitude) times the face's pixel there); None =
+    ERP_POLE_SCALE.
     """
     faces = erp_faces(world_from_cam, H, W, face_size=face_size, margin=margin, supersample=supersample,
                       pole_scale=pole_scale)
@@ -431,7 +433,7 @@ class ErpColorOperator:
     does. A(colors (N, 3)) -> (H, W, 3); adjoint(image (H, W, 3)) -> A^T image (N, 3)."""
 
     def __init__(self, gaussians: Gaussians, world_from_cam: np.ndarray, H: int, W: int, *,
-                 supersample: int = ERP_SUPERSAMPLE, near: float = 0.01, pole_scale: float = ERP_POLE_SCALE):
+                 supersample: int = ERP_SUPERSAMPLE, near: float = 0.01, pole_scale: float | None = None):
         self.faces = erp_faces(world_from_cam, H, W, supersample=supersample, pole_scale=pole_scale)
         self.s, self.H, self.W, self.N = int(supersample), H, W, len(gaussians)
         prep = _prepare(gaussians, np.asarray(world_from_cam, dtype=np.float64)[:3, 3])
