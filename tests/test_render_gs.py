@@ -234,7 +234,7 @@ def test_erp_supersampling_averages_detail_finer_than_a_pixel():
     rows = slice(H // 4, 3 * H // 4)  # |lat| < 45 deg: the stripes are finer than a pixel there
     err = {}
     for ss in (1, 2, 4):
-        out = render_erp(g, np.eye(4), H, W, supersample=ss, pole_scale=1.0)  # the poles: test_erp_pole_scale_...
+        out = render_erp(g, np.eye(4), H, W, supersample=ss, pole_scale=1.0)  # finer pole faces show the gaps
         assert float(out.alpha.min()) > 0.99
         assert np.allclose(out.depth.numpy(), 2.0, atol=0.05)
         err[ss] = float(np.abs(out.rgb.numpy() - ref)[rows].mean())

@@ -34,9 +34,8 @@ class VoxelFusionOptions(FusionParams):
     geometry the ERP render there is linear in the Gaussians' colours, which are refitted (least squares, damped
     towards their fused values) so it reproduces the source frame, undoing the blur of overlapping splats
     (docs/evaluation.md, "Colour fit at the capture point"). Not applied to a home's panoramas."""
-    fit_height: int = param(512, ge=0)
-    """ERP height of that fit's render and target (0 = source_height): 512 rows render from the same cube faces as
-    the 256-row, 2x supersampled eval (docs/evaluation.md, "The poles at the capture point")."""
+    fit_height: int = param(0, ge=0)
+    """ERP height of that fit's render and target (0 = source_height)."""
 
 
 def fuse(job):
