@@ -4,7 +4,7 @@
 
 SCENE: a synthetic scene (runner.py synth; tune on validation seeds only) run to `conditions` at least. Every frame
 of the chosen paths is filled in path order (as the video stage does) with the default fill, each
-`video.warp.side_depth_m` asked for and (--reuse) `video.warp.reuse`, and its hole pixels (conditions mask 0) are
+`video.warp.side_depth_m` asked for and each `video.warp.edge_depth_ratio`, (--reuse) `video.warp.reuse`, and its hole pixels (conditions mask 0) are
 scored against the anti-aliased ground truth at the same pose: PSNR over the holes and per true surface (floor /
 walls / ceiling / object side / top / underside: roam.unseen_parts), the share of hole pixels given depth (those
 become Gaussians), the share whose depth is within 10 % of the truth, and the fill time.
@@ -40,8 +40,12 @@ def main() -> int:
     ap.add_argument("--paths", type=int, nargs="*", default=[0, 2, 4, 6], help="which paths (clips) to fill")
     ap.add_argument("--height", type=int, default=180, help="rows the frames are scored at (area-downsampled)")
     ap.add_argument("--side-depth", type=float, nargs="*", default=[0.0], help="video.warp.side_depth_m values")
+    ap.add_argument("--edge-ratio", type=float, nargs="*", default=[0.95],
+                    help="video.warp.edge_depth_ratio values (each with the first side depth)")
     ap.add_argument("--reuse", action="store_true", help="also video.warp.reuse (default side depth)")
     ap.add_argument("--stride", type=int, default=1, help="score every n-th frame (all are filled)")
+    ap.add_argument("--max-dist", type=float, default=float("inf"),
+                    help="score only frames at most this far (m) from the capture point (e.g. 1.5: the ~1 m bucket)")
     a = ap.parse_args()
     art = a.scene / "artifacts"
     cond = load_conditions(art / "conditions")
@@ -51,14 +55,18 @@ def main() -> int:
     gt = GroundTruth(a.scene / "gt", supersample=2)
     h, w = a.height, 2 * a.height
     frames = [i for k in a.paths if k < len(clips) for i in clips[k][1:]]
-    scored = set(frames[a.stride - 1::a.stride])
+    near = [i for i in frames if np.linalg.norm(poses[i][:3, 3]) <= a.max_dist]
+    scored = set(near[a.stride - 1::a.stride])
     print(f"{a.scene}: paths {a.paths} of {len(clips)} ({len(frames)} frames, {len(scored)} scored), scored at {h}x{w}")
     print("| fill | hole PSNR | " + " | ".join(UNSEEN_PARTS) + " | with depth | depth within 10 % | fill s |\n|---|"
           + "---|" * (len(UNSEEN_PARTS) + 4))
-    variants = [(s, False) for s in a.side_depth] + ([(a.side_depth[0], True)] if a.reuse else [])
+    variants = [(s, a.edge_ratio[0], False) for s in a.side_depth]
+    variants += [(a.side_depth[0], r, False) for r in a.edge_ratio[1:]]
+    variants += [(a.side_depth[0], a.edge_ratio[0], True)] if a.reuse else []
     truth = {}
-    for side, reuse in variants:
-        layer = inpaint.build_background_layer(mesh, inpaint.max_translation(poses), side_depth_m=side)
+    for side, ratio, reuse in variants:
+        layer = inpaint.build_background_layer(mesh, inpaint.max_translation(poses), side_depth_m=side,
+                                               edge_depth_ratio=ratio)
         filler = inpaint.WarpInpainter(layer, reuse=reuse)
         se, n = np.zeros(len(UNSEEN_PARTS) + 1), np.zeros(len(UNSEEN_PARTS) + 1, np.int64)
         with_depth = right = holes = 0
@@ -86,7 +94,7 @@ def main() -> int:
                 m = hs & (part == k)
                 se[k + 1] += err[m].sum()
                 n[k + 1] += m.sum()
-        name = "warp.reuse=true" if reuse else f"side_depth_m={side:g}"
+        name = f"side_depth_m={side:g} edge_depth_ratio={ratio:g}" + (" reuse=true" if reuse else "")
         parts = " | ".join(f"{psnr(se[k + 1], n[k + 1])} ({100 * n[k + 1] / max(n[0], 1):.0f} %)"
                            for k in range(len(UNSEEN_PARTS)))
         print(f"| {name} | {psnr(se[0], n[0])} | {parts} | {with_depth / max(holes, 1):.3f} | "

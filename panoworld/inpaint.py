@@ -208,12 +208,15 @@ def build_background_layer(
     inpaint_radius: float = 3.0,
     max_edge_ratio: float = 12.0,
     side_depth_m: float = 0.0,
+    edge_depth_ratio: float = 0.95,
 ) -> BackgroundLayer:
     """Extend the far side of every depth discontinuity of the source view behind its foreground occluder, and
     (side_depth_m > 0) the occluder's own surface back from its silhouette (occluder_sides).
 
     The discontinuities are the grid faces stretched by more than max_edge_ratio pixel footprints (the mesh stage's
-    rule, whatever it did with them): their far vertices are background edge pixels. From them a breadth-first
+    rule, whatever it did with them): their far vertices are background edge pixels where the nearest foreground
+    across the edge is nearer than edge_depth_ratio x their depth (smaller steps, such as shelves in front of the
+    books or a cabinet against the wall, are left to the 2D fill of the far side). From them a breadth-first
     growth enters the occluder (pixels nearer than the midpoint of the edge's near and far depth) for as many pixels
     as a camera moving at most `max_translation` metres from the source can uncover, max_translation *
     (1 / d_near - 1 / d_far) radians (capped at max_band_deg). Each pixel reached gets a background vertex on its
@@ -244,7 +247,7 @@ def build_background_layer(
     far = fd >= 0.5 * (dmin + dmax)[:, None]
     near_of = np.full(n, np.inf)
     np.minimum.at(near_of, bad[far], np.repeat(dmin, 3).reshape(-1, 3)[far])
-    edge = (near_of < d * 0.95).reshape(h, w)
+    edge = (near_of < d * edge_depth_ratio).reshape(h, w)
     if not edge.any():
         return none
     near_of = near_of.reshape(h, w)
@@ -289,6 +292,10 @@ def build_background_layer(
     )
 
 
+UPRIGHT_COS = 0.5
+"""occluder_sides: a silhouette is upright when its surface normal's |cos| with the vertical is below this."""
+
+
 def occluder_sides(points: np.ndarray, colors: np.ndarray, stretched: np.ndarray, side_depth_m: float, first: int
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The hidden side of each foreground occluder, guessed as a box's: straight back from its silhouette.
@@ -312,6 +319,9 @@ def occluder_sides(points: np.ndarray, colors: np.ndarray, stretched: np.ndarray
     keep = far.any(axis=1) & ~far.all(axis=1)
     f, far, dmin = stretched[keep], far[keep], dmin[keep]
     near_vertex = f[np.arange(len(f)), np.argmin(d[f], axis=1)]
+    # only upright silhouettes (a cabinet's side): a sheet behind a top edge would hang over the floor under tables
+    upright = np.abs(normal[near_vertex, 1]) < UPRIGHT_COS
+    f, far, dmin, near_vertex = f[upright], far[upright], dmin[upright], near_vertex[upright]
     # each far vertex takes the nearest silhouette point across any of its faces
     fv = f[far]
     fn = np.repeat(dmin, far.sum(axis=1))
