@@ -390,8 +390,7 @@ def remove_rig(rgb: np.ndarray, det: RigDetection) -> np.ndarray:
     H, W = rgb.shape[:2]
     view = nadir_view(H)
     face = render_view(rgb, view).astype(np.float32)
-    obj = erp_mask_to_face(det.mask, view)
-    obj = cv2.dilate(obj.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    obj = erp_mask_to_face(det.mask, view)  # not grown further: 0.15 dB on development seeds 100-115
     lin = (face / 255.0) ** 2.2
     if det.shadow_gain is not None:
         lin = lin * det.shadow_gain[..., None]
