@@ -38,8 +38,8 @@ def shadow_gain(face: np.ndarray, rig: np.ndarray, floor: np.ndarray, theta: np.
     log(floor luminance) = quadratic in floor coordinates (the room's lights: smooth, broad) + a piecewise-linear
     radial profile with knots every KNOT_DEG up to SHADOW_MAX_DEG (the shadow: compact, around the nadir), fitted by
     least squares on floor pixels outside the rig with 3-MAD trimming (texture, the legs' own cast shadows), then
-    refitted to the LIGHT_EXPECTILE expectile. A shadow
-    is taken when the profile darkens the floor by >= MIN_DARKENING and >= MIN_SECTORS of 8 sectors agree."""
+    refitted to the LIGHT_EXPECTILE expectile. A shadow is taken when the profile darkens the floor by >=
+    MIN_DARKENING and >= MIN_SECTORS of 8 sectors agree."""
     lum = linear_luminance(face)
     S = face.shape[0]
     c = (np.arange(S) + 0.5 - 0.5 * S) / focal
