@@ -182,6 +182,11 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     comp = _nadir_component(face, theta, ring_floor, view, sigma)
     if comp is None:
         return RigDetection(False, "nothing at the nadir differs in colour from the floor ring around it", stats=stats)
+    # A region that reaches CAP_DEG before any shadow is divided out is a seen object (a dark rug read as a shadow
+    # would leave a mount-sized remainder).
+    refusal = seen_object(nf, comp, floor_m)
+    if refusal is not None:
+        return refusal
     # A soft shadow around the rig is divided out first, so that only the rig itself is measured below.
     gain, sh_deg, sh_stats = face_shadow(nf, face, comp)
     stats.update(sh_stats)
