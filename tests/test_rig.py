@@ -264,12 +264,12 @@ def test_shadow_fit_tells_crowding_dark_texture_from_a_shadow_and_measures_it():
     # measured within 6 % from 6 to 18 degrees.
     from panoworld.rig_shadow import shadow_gain
 
-    crowd = lambda t: 0.1 + 0.35 * np.exp(-((t / 12.0) ** 2))  # noqa: E731
+    crowd = lambda t: 0.1 + 0.35 * np.exp(-((t / 12.0) ** 2))
     face, theta, phi, focal = _blotchy_floor(crowd)
     rig_px = theta < 3.0
     gain, extent, stats = shadow_gain(face, rig_px, np.ones_like(rig_px), theta, phi, focal)
     assert extent == 0.0 and np.all(gain == 1.0), stats
-    light = lambda t: 1.0 - 0.45 * np.exp(-((t / 14.0) ** 2))  # noqa: E731
+    light = lambda t: 1.0 - 0.45 * np.exp(-((t / 14.0) ** 2))
     face, theta, phi, focal = _blotchy_floor(lambda t: np.full_like(t, 0.2), light)
     gain, extent, stats = shadow_gain(face, rig_px, np.ones_like(rig_px), theta, phi, focal)
     assert extent > 15.0, stats
