@@ -364,11 +364,25 @@ def background_fill(rgb: np.ndarray, depth: np.ndarray, hole: np.ndarray, *, rad
     from scipy import ndimage
 
     H, W = hole.shape
-    ring = ndimage.binary_dilation(hole, structure=np.ones((3, 3))) & ~hole & (depth > 0)
+    rows = np.flatnonzero(hole.any(axis=1))
+    if not len(rows):
+        return rgb.copy(), np.asarray(depth, np.float32).copy()
+    # Only rows near the holes matter: the rim lies within a row of them and every filter below reaches a bounded
+    # number of rows, so away from the poles the work runs on that band of full-width rows (the same result).
+    r0, r1 = max(int(rows[0]) - 1, 0), min(int(rows[-1]) + 1, H - 1)
+    thick = float(ndimage.distance_transform_edt(hole[r0:r1 + 1]).max())  # half the widest hole's width
+    window = int(min(4 * thick + 3, max_window))
+    sigma = max(radius, 1.0)
+    pad_x = pad_y = int(np.ceil(3 * sigma)) + 1
+    reach = max(window // 2, int(np.ceil(4 * sigma))) + 2  # the maximum filter's and the blur kernel's half-widths
+    a, b = r0 - reach - pad_y, r1 + reach + pad_y
+    polar = a < 0 or b > H - 1 or W % 2  # near a pole: the whole frame, padded across the poles
+    a, b = (0, H - 1) if polar else (a + pad_y, b - pad_y)
+    ring = ndimage.binary_dilation(hole[a:b + 1], structure=np.ones((3, 3))) & ~hole[a:b + 1] & (depth[a:b + 1] > 0)
     if not ring.any():
         return erp_inpaint(rgb, hole, radius=radius), np.where(hole, 0.0, depth).astype(np.float32)
-    thick = float(ndimage.distance_transform_edt(hole).max())  # half the widest hole's width
-    window = int(min(4 * thick + 3, max_window))
+    out_rgb, out_d = rgb.copy(), np.asarray(depth, np.float32).copy()
+    rgb, depth, hole = rgb[a:b + 1], depth[a:b + 1], hole[a:b + 1]
     far = ndimage.maximum_filter(np.where(ring, depth, 0.0), size=window, mode="wrap")
     bg_rim = ring & (depth >= FOREGROUND_RATIO * far)
     pad = W // 4
@@ -379,14 +393,13 @@ def background_fill(rgb: np.ndarray, depth: np.ndarray, hole: np.ndarray, *, rad
     # colour: the nearest background rim pixel's, smoothed over the hole and that rim only (never the occluder)
     known = (hole | bg_rim).astype(np.float32)
     col = np.where(hole[..., None], rgb[ii, jj], rgb).astype(np.float32) * known[..., None]
-    pad_x = pad_y = int(np.ceil(3 * max(radius, 1.0))) + 1
-    sigma = max(radius, 1.0)
-    blur = [cv2.GaussianBlur(erp_pad(a, pad_x, pad_y if W % 2 == 0 else 0), (0, 0), sigma) for a in (col, known)]
-    py = pad_y if W % 2 == 0 else 0
-    num, den = (b[py:py + H, pad_x:pad_x + W] for b in blur)
+    py = pad_y if polar and W % 2 == 0 else 0
+    blur = [cv2.GaussianBlur(erp_pad(x, pad_x, py), (0, 0), sigma) for x in (col, known)]
+    num, den = (x[py:py + len(hole), pad_x:pad_x + W] for x in blur)
     smooth = num / np.maximum(den, 1e-6)[..., None]
-    out = np.where(hole[..., None], np.clip(np.rint(smooth), 0, 255).astype(np.uint8), rgb)
-    return out, fill_d
+    out_rgb[a:b + 1] = np.where(hole[..., None], np.clip(np.rint(smooth), 0, 255).astype(np.uint8), rgb)
+    out_d[a:b + 1] = fill_d
+    return out_rgb, out_d
 
 
 class CommittedPoints:
