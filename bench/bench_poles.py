@@ -69,6 +69,7 @@ def source_gaussians(scene: Path, v: dict):
         kw = {k.removeprefix("fit_"): v[k] for k in ("fit_supersample", "fit_pole_scale") if k in v}
         t0 = time.process_time()
         g, fit = fit_colors(g, target, pose, iters=iters, **kw)
+        fit.pop("render", None)
         info.update(fit_cpu_s=time.process_time() - t0, **fit)
     return g, pose, info
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
@@ -217,52 +218,84 @@ def _min_step(fwd: np.ndarray, bwd: np.ndarray) -> np.ndarray:
     return np.where((nf <= nb)[..., None], fwd, bwd)
 
 
+@functools.lru_cache(maxsize=4)
+def _erp_dirs64(h: int, w: int) -> np.ndarray:
+    """erp_dirs(h, w) in float64, read-only and cached (every frame of a run has the same size)."""
+    dirs = erp_dirs(h, w, dtype=np.float64)
+    dirs.flags.writeable = False
+    return dirs
+
+
+def _neighbour_steps(pts: np.ndarray, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Steps a (along the row) and b (across rows) of the flat pixels px (M,) of an ERP grid of points pts (H, W, 3):
+    the shorter of the forward/backward step on each axis (_min_step); longitude wraps around the seam, latitude
+    steps are one-sided at the poles."""
+    h, w = pts.shape[:2]
+    flat = pts.reshape(-1, 3)
+    i, j = np.divmod(px, w)
+    p = flat[px]
+    row = i * w
+    a = _min_step(flat[row + (j + 1) % w] - p, p - flat[row + (j - 1) % w])
+    nan = np.full(3, np.nan)
+    down = np.where((i < h - 1)[:, None], flat[np.minimum(i + 1, h - 1) * w + j] - p, nan)
+    up = np.where((i > 0)[:, None], p - flat[np.maximum(i - 1, 0) * w + j], nan)
+    return a, _min_step(down, up)
+
+
 def frame_observations(
-    rgb: np.ndarray, depth: np.ndarray, world_from_cam: np.ndarray, params: FusionParams
+    rgb: np.ndarray, depth: np.ndarray, world_from_cam: np.ndarray, params: FusionParams, *,
+    keep_points: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> Observations:
     """One ERP frame rgb (H, W, 3) uint8 or float in [0, 1], depth (H, W) metres (0/inf/nan = none), pose (4, 4).
 
     Each valid pixel becomes a world point with a footprint covariance from its neighbour steps (the shorter step on
     each axis, so pixels on a depth edge borrow the geometry of their own surface) and a confidence (params.confidence).
-    Pixels at grazing angles (|cos| < params.min_cos) are dropped.
+    Pixels at grazing angles (|cos| < params.min_cos) are dropped. keep_points, when given, maps the world points
+    (M, 3) of the valid pixels to a bool mask (M,) of those to keep; the others are dropped before their footprints
+    are computed (the same observations as subsetting afterwards, for a fraction of the work when few are kept).
     """
     depth = np.asarray(depth)
     check_shape("rgb", rgb, "H W 3", dims=check_shape("depth", depth, "H W"))
     h, w = depth.shape
     check_pose(world_from_cam, "world_from_cam")
-    colors = rgb.astype(np.float32) / 255.0 if rgb.dtype == np.uint8 else rgb.astype(np.float32)
     d = depth.astype(np.float64)
     valid = np.isfinite(d) & (d > 0)
     if params.max_depth > 0:
         valid &= d <= params.max_depth
-    dirs = erp_dirs(h, w, dtype=np.float64)
+    dirs = _erp_dirs64(h, w)
     pts = np.where(valid[..., None], dirs * np.where(valid, d, 0.0)[..., None], np.nan)
-    # Longitude wraps around the seam; latitude steps are one-sided at the poles.
-    a = _min_step(np.roll(pts, -1, axis=1) - pts, pts - np.roll(pts, 1, axis=1))
-    up = np.full_like(pts, np.nan)
-    down = np.full_like(pts, np.nan)
-    down[:-1] = pts[1:] - pts[:-1]
-    up[1:] = pts[1:] - pts[:-1]
-    b = _min_step(down, up)
+    R = world_from_cam[:3, :3]
+    px = np.flatnonzero(valid)
+    pts_w = None
+    # einsum, not @: these (M, 3) x (3, 3) products run far slower through a multithreaded BLAS on a busy CPU.
+    if keep_points is not None:
+        pts_w = np.einsum("mi,ji->mj", pts.reshape(-1, 3)[px], R) + world_from_cam[:3, 3]
+        sel = np.asarray(keep_points(pts_w), bool)
+        px, pts_w = px[sel], pts_w[sel]
+    a, b = _neighbour_steps(pts, px)
     normal = np.cross(a, b)
     area = np.linalg.norm(normal, axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        cos = np.abs(np.einsum("hwc,hwc->hw", normal, dirs)) / area
-    keep = valid & np.isfinite(area) & (area > 0) & (cos >= params.min_cos)
-    a, b, pts, cos, area, d = a[keep], b[keep], pts[keep], cos[keep], area[keep], d[keep]
-    R = world_from_cam[:3, :3]
-    # einsum, not @: these (M, 3) x (3, 3) products run far slower through a multithreaded BLAS on a busy CPU.
-    pts_w = np.einsum("mi,ji->mj", pts, R) + world_from_cam[:3, 3]
+        cos = np.abs(np.einsum("mc,mc->m", normal, dirs.reshape(-1, 3)[px])) / area
+    keep = np.isfinite(area) & (area > 0) & (cos >= params.min_cos)
+    px, a, b, cos, area = px[keep], a[keep], b[keep], cos[keep], area[keep]
+    d = d.reshape(-1)[px]
+    if pts_w is None:
+        pts_w = np.einsum("mi,ji->mj", pts.reshape(-1, 3)[px], R) + world_from_cam[:3, 3]
+    else:
+        pts_w = pts_w[keep]
     steps = np.einsum("mki,ji->mkj", np.stack([a, b], 1), R)
     if params.confidence == Confidence.UNIFORM:
-        wts = np.ones(len(pts))
+        wts = np.ones(len(px))
     elif params.confidence == Confidence.AREA:
         wts = area
     else:
         wts = cos / d**2
+    colors = rgb.reshape(-1, 3)[px]
+    colors = colors.astype(np.float32) / 255.0 if rgb.dtype == np.uint8 else colors.astype(np.float32)
     return Observations(
-        torch.from_numpy(pts_w), torch.from_numpy(colors[keep].astype(np.float64)), torch.from_numpy(steps),
-        torch.from_numpy(wts), torch.from_numpy(np.flatnonzero(keep)),
+        torch.from_numpy(pts_w), torch.from_numpy(colors.astype(np.float64)), torch.from_numpy(steps),
+        torch.from_numpy(wts), torch.from_numpy(px),
     )
 
 
@@ -304,6 +337,9 @@ class FusionResult:
     """Per-pixel Gaussians of the source view among them (source_anchored_fusion)."""
     color_fit: dict | None = None
     """The colour fit at the capture point, when one ran (pixel_gaussians.fit_colors' statistics)."""
+    fit_render: tuple[np.ndarray, np.ndarray] | None = None
+    """The colour fit's render of the final Gaussians at frame 0's pose, when one ran: (rgb (H, W, 3), alpha (H, W))
+    float32 at the fit's height (write_artifact's self-check of frame 0 downsamples it instead of rendering again)."""
 
 
 MERGE_EVERY = 8
@@ -318,6 +354,7 @@ def _reduce(parts: list[VoxelSums], part: VoxelSums) -> list[VoxelSums]:
 def voxel_fusion(
     frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], params: FusionParams, *, progress: bool = False,
     select: Callable[[Observations], Observations] | None = None,
+    keep_points: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> FusionResult:
     """Fuse ERP frames (rgb (H, W, 3), depth (H, W) metres, world_from_cam (4, 4)) into voxel-aligned Gaussians.
 
@@ -328,7 +365,9 @@ def voxel_fusion(
     Frames are consumed one at a time and their voxel sums reduced into a running total every MERGE_EVERY frames, so
     memory is bounded by one frame's observations plus the occupied voxels, whatever the number of frames (pass a
     re-iterable such as ContextSource that reads frames lazily; per_voxel > 1 iterates twice). select, when given,
-    keeps a subset of each frame's observations (e.g. those the source panorama's own Gaussians do not explain).
+    keeps a subset of each frame's observations; keep_points (frame_observations') a subset of each frame's valid
+    pixels by their world points (e.g. those the source panorama's own Gaussians do not explain), before their
+    footprints are computed.
     """
     from tqdm import tqdm
 
@@ -341,7 +380,7 @@ def voxel_fusion(
     def observations():
         for rgb, depth, pose in tqdm(frames, total=total, desc="voxel fusion", disable=None if progress else True,
                                      leave=False):
-            obs = frame_observations(rgb, depth, pose, params)
+            obs = frame_observations(rgb, depth, pose, params, keep_points=keep_points)
             if select is not None:
                 obs = select(obs)
             if len(obs.points):

@@ -16,23 +16,31 @@ from panoworld.splat_ply import write_gaussians_ply, write_points_ply
 def write_artifact(out_dir: Path, result: FusionResult, frames: ContextFrames | ContextSource, *, eval_views: int = 1,
                    eval_height: int = 128) -> dict:
     """Write gaussians.ply, points.ply and preview.png (the first context view rendered back); return manifest info
-    with PSNR/SSIM/WS-PSNR of eval_views context views re-rendered as ERP at eval_height."""
+    with PSNR/SSIM/WS-PSNR of eval_views context views re-rendered as ERP at eval_height (frame 0, after a colour
+    fit: the fit's own render of the final Gaussians, area-downsampled from the fit's height)."""
     g = result.gaussians.numpy()
     out_dir = Path(out_dir)
     write_gaussians_ply(out_dir / "gaussians.ply", g)
     write_points_ply(out_dir / "points.ply", g.means, g.base_colors())
     evals = []
     for k in uniform_subset(range(len(frames.indices)), eval_views) if eval_views > 0 else []:
-        out = render_erp(g, frames.world_from_cam[k], eval_height, 2 * eval_height)
-        img = (out.rgb.clamp(0, 1).numpy() * 255.0).round().astype(np.uint8)
+        if frames.indices[k] == 0 and result.fit_render is not None:  # the colour fit rendered it already
+            rgb, alpha = (cv2.resize(a, (2 * eval_height, eval_height), interpolation=cv2.INTER_AREA)
+                          for a in result.fit_render)
+            how = f"the colour fit's render at {len(result.fit_render[1])} rows, area-downsampled"
+        else:
+            out = render_erp(g, frames.world_from_cam[k], eval_height, 2 * eval_height)
+            rgb, alpha = out.rgb.numpy(), out.alpha.numpy()
+            how = "render_erp"
+        img = (np.clip(rgb, 0, 1) * 255.0).round().astype(np.uint8)
         ref = frames.rgb_at(k)
         if ref.shape[0] != eval_height:
             ref = cv2.resize(ref, (2 * eval_height, eval_height), interpolation=cv2.INTER_AREA)
         if not evals:
             cv2.imwrite(str(out_dir / "preview.png"), img[..., ::-1])
-        covered = out.alpha.numpy() > 0.5
-        evals.append({"frame": frames.indices[k], "psnr": psnr(img, ref), "ws_psnr": ws_psnr(img, ref),
-                      "ssim": ssim(img, ref), "coverage": float(out.alpha.mean()),
+        covered = alpha > 0.5
+        evals.append({"frame": frames.indices[k], "render": how, "psnr": psnr(img, ref), "ws_psnr": ws_psnr(img, ref),
+                      "ssim": ssim(img, ref), "coverage": float(alpha.mean()),
                       "psnr_covered": psnr(img, ref, covered) if covered.any() else None})
     warnings = []
     if max(result.extent_m) < 2 * result.voxel_size:

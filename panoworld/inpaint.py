@@ -207,16 +207,22 @@ def build_background_layer(
     max_band_deg: float = 45.0,
     inpaint_radius: float = 3.0,
     max_edge_ratio: float = 12.0,
+    side_depth_m: float = 0.0,
+    edge_depth_ratio: float = 0.95,
 ) -> BackgroundLayer:
-    """Extend the far side of every depth discontinuity of the source view behind its foreground occluder.
+    """Extend the far side of every depth discontinuity of the source view behind its foreground occluder, and
+    (side_depth_m > 0) the occluder's own surface back from its silhouette (occluder_sides).
 
     The discontinuities are the grid faces stretched by more than max_edge_ratio pixel footprints (the mesh stage's
-    rule, whatever it did with them): their far vertices are background edge pixels. From them a breadth-first
+    rule, whatever it did with them): their far vertices are background edge pixels where the nearest foreground
+    across the edge is nearer than edge_depth_ratio x their depth (smaller steps, such as shelves in front of the
+    books or a cabinet against the wall, are left to the 2D fill of the far side). From them a breadth-first
     growth enters the occluder (pixels nearer than the midpoint of the edge's near and far depth) for as many pixels
     as a camera moving at most `max_translation` metres from the source can uncover, max_translation *
     (1 / d_near - 1 / d_far) radians (capped at max_band_deg). Each pixel reached gets a background vertex on its
     ray: depth from the tangent plane of the background at the edge pixel it came from, colour inpainted (Telea,
-    seam-aware) with the occluder masked, so both continue the background only.
+    seam-aware) with the occluder masked, so both continue the background only. The side faces (side_depth_m > 0)
+    come last among the layer faces.
     """
     h, w = erp_grid_shape(mesh)
     n = h * w
@@ -241,7 +247,7 @@ def build_background_layer(
     far = fd >= 0.5 * (dmin + dmax)[:, None]
     near_of = np.full(n, np.inf)
     np.minimum.at(near_of, bad[far], np.repeat(dmin, 3).reshape(-1, 3)[far])
-    edge = (near_of < d * 0.95).reshape(h, w)
+    edge = (near_of < d * edge_depth_ratio).reshape(h, w)
     if not edge.any():
         return none
     near_of = near_of.reshape(h, w)
@@ -270,6 +276,12 @@ def build_background_layer(
     faces = np.where(s_flat[grid], idx_new[grid], grid).astype(np.int32)
     faces = faces[_stretch(vertices.astype(np.float64), faces) <= max_edge_ratio]
     colors = np.concatenate([mesh.colors, bg_color.reshape(-1, 3)[s_flat]])
+    if side_depth_m > 0:
+        side_v, side_c, side_f = occluder_sides(p.reshape(h, w, 3), mesh.colors[:n], bad, side_depth_m,
+                                                 len(vertices))
+        vertices = np.concatenate([vertices, side_v.astype(np.float32)])
+        colors = np.concatenate([colors, side_c])
+        faces = np.concatenate([faces, side_f])
     return BackgroundLayer(
         vertices.astype(np.float32),
         np.concatenate([main_faces, faces]).astype(np.int32),
@@ -278,6 +290,51 @@ def build_background_layer(
         synth,
         np.where(synth, bg_depth, 0.0).astype(np.float32),
     )
+
+
+UPRIGHT_COS = 0.5
+"""occluder_sides: a silhouette is upright when its surface normal's |cos| with the vertical is below this."""
+
+
+def occluder_sides(points: np.ndarray, colors: np.ndarray, stretched: np.ndarray, side_depth_m: float, first: int
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The hidden side of each foreground occluder, guessed as a box's: straight back from its silhouette.
+
+    points (h, w, 3): the source's ERP grid points, colours (h, w, 3); stretched (F, 3): flat grid faces spanning a
+    depth discontinuity. Each face's far vertices (depth at least the midpoint of its near and far depth) are
+    replaced by the silhouette point across the edge (the face's nearest vertex) moved against its surface normal
+    by side_depth_m, or by the distance to the far vertex where that is shorter (an occluder standing against the
+    background reaches it), coloured as the silhouette: a sheet from the silhouette straight back, which a camera
+    moving around the occluder sees as its side (a cabinet's side between its front face and the wall) instead of
+    background colour. Returns the new vertices (M, 3), their colours (M, 3) uint8 and the faces (K, 3) int32
+    indexing flat grid vertices and the new vertices numbered from `first`."""
+    h, w = points.shape[:2]
+    p = points.reshape(-1, 3)
+    d = np.linalg.norm(p, axis=1)
+    normal = _surface_normals(points).reshape(-1, 3)
+    normal *= -np.sign((normal * p).sum(axis=1, keepdims=True) + 1e-12)  # towards the source camera
+    fd = d[stretched]
+    dmin = fd.min(axis=1)
+    far = fd >= 0.5 * (dmin + fd.max(axis=1))[:, None]
+    keep = far.any(axis=1) & ~far.all(axis=1)
+    f, far, dmin = stretched[keep], far[keep], dmin[keep]
+    near_vertex = f[np.arange(len(f)), np.argmin(d[f], axis=1)]
+    # only upright silhouettes (a cabinet's side): a sheet behind a top edge would hang over the floor under tables
+    upright = np.abs(normal[near_vertex, 1]) < UPRIGHT_COS
+    f, far, dmin, near_vertex = f[upright], far[upright], dmin[upright], near_vertex[upright]
+    # each far vertex takes the nearest silhouette point across any of its faces
+    fv = f[far]
+    fn = np.repeat(dmin, far.sum(axis=1))
+    src = np.repeat(near_vertex, far.sum(axis=1))
+    order = np.lexsort((fn, fv))
+    verts, first_of = np.unique(fv[order], return_index=True)
+    sil = src[order][first_of]
+    length = np.minimum(side_depth_m, np.linalg.norm(p[verts] - p[sil], axis=1))
+    new_v = p[sil] - normal[sil] * length[:, None]
+    index = np.full(len(p), -1, np.int64)
+    index[verts] = first + np.arange(len(verts))
+    faces = np.where(far, index[f], f).astype(np.int32)
+    return new_v, colors.reshape(-1, 3)[sil].astype(np.uint8), faces
 
 
 # ---------------------------------------------------------------- per-frame filling
@@ -307,11 +364,25 @@ def background_fill(rgb: np.ndarray, depth: np.ndarray, hole: np.ndarray, *, rad
     from scipy import ndimage
 
     H, W = hole.shape
-    ring = ndimage.binary_dilation(hole, structure=np.ones((3, 3))) & ~hole & (depth > 0)
+    rows = np.flatnonzero(hole.any(axis=1))
+    if not len(rows):
+        return rgb.copy(), np.asarray(depth, np.float32).copy()
+    # Only rows near the holes matter: the rim lies within a row of them and every filter below reaches a bounded
+    # number of rows, so away from the poles the work runs on that band of full-width rows (the same result).
+    r0, r1 = max(int(rows[0]) - 1, 0), min(int(rows[-1]) + 1, H - 1)
+    thick = float(ndimage.distance_transform_edt(hole[r0:r1 + 1]).max())  # half the widest hole's width
+    window = int(min(4 * thick + 3, max_window))
+    sigma = max(radius, 1.0)
+    pad_x = pad_y = int(np.ceil(3 * sigma)) + 1
+    reach = max(window // 2, int(np.ceil(4 * sigma))) + 2  # the maximum filter's and the blur kernel's half-widths
+    a, b = r0 - reach - pad_y, r1 + reach + pad_y
+    polar = a < 0 or b > H - 1 or W % 2  # near a pole: the whole frame, padded across the poles
+    a, b = (0, H - 1) if polar else (a + pad_y, b - pad_y)
+    ring = ndimage.binary_dilation(hole[a:b + 1], structure=np.ones((3, 3))) & ~hole[a:b + 1] & (depth[a:b + 1] > 0)
     if not ring.any():
         return erp_inpaint(rgb, hole, radius=radius), np.where(hole, 0.0, depth).astype(np.float32)
-    thick = float(ndimage.distance_transform_edt(hole).max())  # half the widest hole's width
-    window = int(min(4 * thick + 3, max_window))
+    out_rgb, out_d = rgb.copy(), np.asarray(depth, np.float32).copy()
+    rgb, depth, hole = rgb[a:b + 1], depth[a:b + 1], hole[a:b + 1]
     far = ndimage.maximum_filter(np.where(ring, depth, 0.0), size=window, mode="wrap")
     bg_rim = ring & (depth >= FOREGROUND_RATIO * far)
     pad = W // 4
@@ -322,14 +393,13 @@ def background_fill(rgb: np.ndarray, depth: np.ndarray, hole: np.ndarray, *, rad
     # colour: the nearest background rim pixel's, smoothed over the hole and that rim only (never the occluder)
     known = (hole | bg_rim).astype(np.float32)
     col = np.where(hole[..., None], rgb[ii, jj], rgb).astype(np.float32) * known[..., None]
-    pad_x = pad_y = int(np.ceil(3 * max(radius, 1.0))) + 1
-    sigma = max(radius, 1.0)
-    blur = [cv2.GaussianBlur(erp_pad(a, pad_x, pad_y if W % 2 == 0 else 0), (0, 0), sigma) for a in (col, known)]
-    py = pad_y if W % 2 == 0 else 0
-    num, den = (b[py:py + H, pad_x:pad_x + W] for b in blur)
+    py = pad_y if polar and W % 2 == 0 else 0
+    blur = [cv2.GaussianBlur(erp_pad(x, pad_x, py), (0, 0), sigma) for x in (col, known)]
+    num, den = (x[py:py + len(hole), pad_x:pad_x + W] for x in blur)
     smooth = num / np.maximum(den, 1e-6)[..., None]
-    out = np.where(hole[..., None], np.clip(np.rint(smooth), 0, 255).astype(np.uint8), rgb)
-    return out, fill_d
+    out_rgb[a:b + 1] = np.where(hole[..., None], np.clip(np.rint(smooth), 0, 255).astype(np.uint8), rgb)
+    out_d[a:b + 1] = fill_d
+    return out_rgb, out_d
 
 
 class CommittedPoints:

@@ -121,6 +121,7 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
         if fit_height and fit_height != src.height:
             rgb = replace(frames, height=min(fit_height, frames.stored_height)).frame(0)[0]
         result.gaussians, result.color_fit = fit_colors(result.gaussians, rgb, pose, iters=fit_iters)
+        result.fit_render = result.color_fit.pop("render")
         result.color_fit.update(iters=fit_iters, height=int(rgb.shape[0]))
     return result
 
@@ -128,12 +129,12 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
 def fuse_unseen(pix: Gaussians, frames: ContextSource, vis, params: FusionParams, *, unseen_voxel_size: float = 0.0,
                 progress: bool = False) -> FusionResult:
     """The source Gaussians pix plus voxel fusion of what `frames` see that the source(s) do not (vis: a
-    SourceVisibility, or any object with its keep_unexplained / poking_through) in voxels of unseen_voxel_size (0 =
+    SourceVisibility, or any object with its explained / poking_through) in voxels of unseen_voxel_size (0 =
     params.voxel_size), less the voxel Gaussians poking through a surface the source saw."""
     if not len(frames):
         return FusionResult(pix, len(pix), 0, 0, bbox_extent(pix.means), params.voxel_size, num_source=len(pix))
     vox_params = replace(params, voxel_size=unseen_voxel_size) if unseen_voxel_size > 0 else params
-    fused = voxel_fusion(frames, vox_params, progress=progress, select=vis.keep_unexplained)
+    fused = voxel_fusion(frames, vox_params, progress=progress, keep_points=lambda p: ~vis.explained(p))
     poking = vis.poking_through(fused.gaussians)
     g = merge_gaussians([pix, fused.gaussians.subset(~poking)])
     return FusionResult(g, fused.num_observations + len(pix), fused.num_voxels, fused.num_pruned + int(poking.sum()),
@@ -147,7 +148,8 @@ def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, 
     `iters` steps of damped conjugate-gradient least squares, min |A c - y|^2 + damping |c - c0|^2 from the current
     colours c0 (damping per unit of compositing weight: Gaussians the view barely sees stay put), clipped to [0, 1].
     pole_scale: the operator's (None = render_erp's default). Returns the Gaussians and {"rmse_before", "rmse_after"}
-    of the render at that pose."""
+    of the render at that pose, and "render": that render of the fitted Gaussians, (rgb (H, W, 3), alpha (H, W))
+    float32 numpy."""
     from panoworld.render_gs import ErpColorOperator
 
     h, w = target.shape[:2]
@@ -170,6 +172,8 @@ def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, 
         gamma_new = float(s.square().sum())
         p, gamma = s + gamma_new / max(gamma, 1e-20) * p, gamma_new
     x = x.clamp(0.0, 1.0)
-    rmse1 = float((y - op(x)).square().mean().sqrt())
+    img = op(x)
+    rmse1 = float((y - img).square().mean().sqrt())
     out = Gaussians(g.means, g.scales, g.quats, g.opacities, rgb_to_sh_dc(x.numpy()).astype(np.float32), g.sh_rest)
-    return out, {"rmse_before": rmse0, "rmse_after": rmse1}
+    alpha = op(torch.ones_like(x))[..., 0]  # the weights of each pixel sum to its opacity 1 - T
+    return out, {"rmse_before": rmse0, "rmse_after": rmse1, "render": (img.numpy(), alpha.numpy())}

@@ -435,6 +435,8 @@ class ErpColorOperator:
 
     def __init__(self, gaussians: Gaussians, world_from_cam: np.ndarray, H: int, W: int, *,
                  supersample: int = ERP_SUPERSAMPLE, near: float = 0.01, pole_scale: float | None = None):
+        import scipy.sparse
+
         self.faces = erp_faces(world_from_cam, H, W, supersample=supersample, pole_scale=pole_scale)
         self.s, self.H, self.W, self.N = int(supersample), H, W, len(gaussians)
         prep = _prepare(gaussians, np.asarray(world_from_cam, dtype=np.float64)[:3, 3])
@@ -444,9 +446,11 @@ class ErpColorOperator:
             parts: list = []
             rasterize_tiles(proj, fc.n, fc.n, torch.zeros(3), weights=parts)
             pix, gid, w = (torch.cat(x) for x in zip(*parts)) if parts else (torch.zeros(0, dtype=torch.long),) * 3
-            ij = torch.stack([pix, proj.index[gid]])
-            self.weights.append(torch.sparse_coo_tensor(ij, w.float(), (fc.n * fc.n, self.N)).to_sparse_csr())
-            self.weights_t.append(torch.sparse_coo_tensor(ij.flip(0), w.float(), (self.N, fc.n * fc.n)).to_sparse_csr())
+            # scipy: COO -> CSR is a counting sort, 32-bit indices, and the transpose a free CSC view
+            A = scipy.sparse.csr_matrix((w.float().numpy(), (pix.numpy(), proj.index[gid].numpy())),
+                                        shape=(fc.n * fc.n, self.N))
+            self.weights.append(A)
+            self.weights_t.append(A.T)
 
     def compose(self, face_images: list[torch.Tensor]) -> torch.Tensor:
         """Face images (n * n, 3) -> the ERP (H, W, 3) (differentiable)."""
@@ -459,12 +463,13 @@ class ErpColorOperator:
         return out.permute(1, 2, 0)
 
     def __call__(self, colors: torch.Tensor) -> torch.Tensor:
-        return self.compose([A @ colors for A in self.weights])
+        c = colors.detach().numpy()
+        return self.compose([torch.from_numpy(A @ c) for A in self.weights])
 
     def adjoint(self, image: torch.Tensor) -> torch.Tensor:
         faces = [torch.zeros(A.shape[0], 3, requires_grad=True) for A in self.weights]
         grads = torch.autograd.grad(self.compose(faces), faces, image)
-        return sum(At @ g for At, g in zip(self.weights_t, grads))
+        return sum(torch.from_numpy(At @ g.numpy()) for At, g in zip(self.weights_t, grads))
 
 
 def _gsplat_available() -> bool:

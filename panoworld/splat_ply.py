@@ -43,10 +43,8 @@ def write_gaussians_ply(path: str | Path, gaussians: Gaussians) -> None:
         g.means, normals, g.sh_dc, rest.transpose(0, 2, 1).reshape(n, NUM_REST),
         _logit(g.opacities)[:, None], np.log(np.maximum(g.scales, 1e-12)), g.quats,
     ]
-    data = np.concatenate([np.asarray(c, np.float32).reshape(n, -1) for c in cols], 1)
-    vertex = np.empty(n, dtype=[(name, "<f4") for name in GAUSSIAN_FIELDS])
-    for i, name in enumerate(GAUSSIAN_FIELDS):
-        vertex[name] = data[:, i]
+    data = np.concatenate([np.asarray(c, "<f4").reshape(n, -1) for c in cols], 1)
+    vertex = data.view([(name, "<f4") for name in GAUSSIAN_FIELDS]).reshape(n)  # each row one record, no copy
     PlyData([PlyElement.describe(vertex, "vertex")], byte_order="<").write(str(path))
 
 
@@ -69,8 +67,15 @@ def read_gaussians_ply(path: str | Path) -> Gaussians:
     if n_rest % 3 or n_rest // 3 not in (0, 3, 8, 15):
         raise ValueError(f"{path}: {n_rest} f_rest_* properties but expected 0, 9, 24 or 45")
 
-    def cols(fields):
-        return np.stack([np.asarray(v[f], np.float32) for f in fields], 1)
+    order = list(v.dtype.names)
+    if v.flags.c_contiguous and v.dtype == np.dtype([(f, "<f4") for f in order]):  # all float32: one (N, P) block
+        block = v.view("<f4").reshape(len(v), len(order))
+
+        def cols(fields):
+            return np.ascontiguousarray(block[:, [order.index(f) for f in fields]])
+    else:
+        def cols(fields):
+            return np.stack([np.asarray(v[f], np.float32) for f in fields], 1)
 
     k = n_rest // 3
     rest = cols([f"f_rest_{i}" for i in range(n_rest)]) if n_rest else np.zeros((len(v), 0), np.float32)

@@ -17,6 +17,7 @@ from panoworld.gaussians import (
     FUSION_EPS,
     SH_C0,
     FusionParams,
+    frame_observations,
     fuse_voxels,
     merge_voxel_sums,
     uniform_subset,
@@ -378,6 +379,24 @@ def test_source_visibility_keeps_only_what_the_source_cannot_see():
     assert vis.poking_through(g).tolist() == [True, False, True, False]
 
 
+def test_frame_observations_filtered_before_footprints_equal_those_filtered_after(room):
+    # keep_points drops pixels before their footprints are computed: the same observations, bit for bit, as computing
+    # all of them and subsetting (depth edges at the block, a band without depth, the seam and the poles included).
+    from panoworld.pixel_gaussians import SourceVisibility
+
+    rgb0, d0 = room(pose_at(0, 0, 0), 48, 96)
+    vis = SourceVisibility(d0, pose_at(0, 0, 0), 0.03)
+    pose = pose_at(0.5, 0.1, 0.4)
+    rgb, d = room(pose, 48, 96)
+    d[:, 40:44] = np.nan
+    fp = FusionParams(voxel_size=0.04)
+    after = vis.keep_unexplained(frame_observations(rgb, d, pose, fp))
+    before = frame_observations(rgb, d, pose, fp, keep_points=lambda p: ~vis.explained(p))
+    assert 0 < len(before.points) < (d > 0).sum() / 2
+    for f in ("points", "colors", "steps", "weights", "pixels"):
+        assert torch.equal(getattr(before, f), getattr(after, f)), f
+
+
 def test_pole_thinning_keeps_about_square_pixels():
     from panoworld.pixel_gaussians import pole_thinning
 
@@ -425,6 +444,10 @@ def test_colour_fit_at_the_capture_point_sharpens_it_and_keeps_other_views():
     fitted, info = fit_colors(g, rgb0, src, iters=10)
     assert info["rmse_after"] < 0.8 * info["rmse_before"], info
     assert np.array_equal(fitted.means, g.means) and np.array_equal(fitted.scales, g.scales)
+    # its last render is that of the fitted Gaussians (the stage's self-check of frame 0 reuses it)
+    again = render_erp(fitted, src, 128, 256, supersample=1)
+    rgb, alpha = info["render"]
+    assert np.abs(rgb - again.rgb.numpy()).max() < 1e-4 and np.abs(alpha - again.alpha.numpy()).max() < 1e-4
 
     def score(gs, pose, H=64):  # against an anti-aliased reference: 4x supersampled, area-downsampled
         gt = cv2.resize(room(pose, 4 * H, 8 * H)[0], (2 * H, H), interpolation=cv2.INTER_AREA)
