@@ -1,11 +1,13 @@
 """Prints how well warp-inpaint fills the disoccluded pixels of a synthetic scene's video, against the ground truth.
 
-    python bench/bench_warp_fill.py SCENE [--paths 0 2 4 6] [--height 180]
+    python bench/bench_warp_fill.py SCENE [--paths 0 2 4 6] [--height 180] [--side-depth 0 0.5] [--reuse]
 
 SCENE: a synthetic scene (runner.py synth; tune on validation seeds only) run to `conditions` at least. Every frame
-of the chosen paths is filled in path order (as the video stage does) with the default fill and with
-`video.warp.reuse`, and its hole pixels (conditions mask 0) are scored against the anti-aliased ground truth at
-the same pose: PSNR, the share of hole pixels given depth (those become Gaussians) and the fill time.
+of the chosen paths is filled in path order (as the video stage does) with the default fill, each
+`video.warp.side_depth_m` asked for and each `video.warp.edge_depth_ratio`, (--reuse) `video.warp.reuse`, and its hole pixels (conditions mask 0) are
+scored against the anti-aliased ground truth at the same pose: PSNR over the holes and per true surface (floor /
+walls / ceiling / object side / top / underside: roam.unseen_parts), the share of hole pixels given depth (those
+become Gaussians), the share whose depth is within 10 % of the truth, and the fill time.
 """
 
 from __future__ import annotations
@@ -23,8 +25,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from panoworld import inpaint
 from panoworld.conditions import load_conditions
 from panoworld.eval.groundtruth import GroundTruth
+from panoworld.eval.roam import UNSEEN_PARTS, unseen_parts
 from panoworld.mesh import load_erp_mesh
 from panoworld.trajectory import load_clips, load_trajectory
+
+
+def psnr(se: float, n: int) -> str:
+    return f"{10 * np.log10(255.0**2 / max(se / n, 1e-12)):.2f}" if n else "-"
 
 
 def main() -> int:
@@ -32,34 +39,66 @@ def main() -> int:
     ap.add_argument("scene", type=Path)
     ap.add_argument("--paths", type=int, nargs="*", default=[0, 2, 4, 6], help="which paths (clips) to fill")
     ap.add_argument("--height", type=int, default=180, help="rows the frames are scored at (area-downsampled)")
+    ap.add_argument("--side-depth", type=float, nargs="*", default=[0.0], help="video.warp.side_depth_m values")
+    ap.add_argument("--edge-ratio", type=float, nargs="*", default=[0.95],
+                    help="video.warp.edge_depth_ratio values (each with the first side depth)")
+    ap.add_argument("--reuse", action="store_true", help="also video.warp.reuse (default side depth)")
+    ap.add_argument("--stride", type=int, default=1, help="score every n-th frame (all are filled)")
+    ap.add_argument("--max-dist", type=float, default=float("inf"),
+                    help="score only frames at most this far (m) from the capture point (e.g. 1.5: the ~1 m bucket)")
     a = ap.parse_args()
     art = a.scene / "artifacts"
     cond = load_conditions(art / "conditions")
     poses = load_trajectory(art / "trajectory")
     clips = load_clips(art / "trajectory", len(poses))
-    layer = inpaint.build_background_layer(load_erp_mesh(art / "mesh"), inpaint.max_translation(poses))
+    mesh = load_erp_mesh(art / "mesh")
     gt = GroundTruth(a.scene / "gt", supersample=2)
     h, w = a.height, 2 * a.height
-    print(f"{a.scene}: paths {a.paths} of {len(clips)}, scored at {h}x{w}")
-    print("| fill | hole PSNR vs ground truth | hole pixels with depth | fill s |\n|---|---|---|---|")
-    for reuse in (False, True):
+    frames = [i for k in a.paths if k < len(clips) for i in clips[k][1:]]
+    near = [i for i in frames if np.linalg.norm(poses[i][:3, 3]) <= a.max_dist]
+    scored = set(near[a.stride - 1::a.stride])
+    print(f"{a.scene}: paths {a.paths} of {len(clips)} ({len(frames)} frames, {len(scored)} scored), scored at {h}x{w}")
+    print("| fill | hole PSNR | " + " | ".join(UNSEEN_PARTS) + " | with depth | depth within 10 % | fill s |\n|---|"
+          + "---|" * (len(UNSEEN_PARTS) + 4))
+    variants = [(s, a.edge_ratio[0], False) for s in a.side_depth]
+    variants += [(a.side_depth[0], r, False) for r in a.edge_ratio[1:]]
+    variants += [(a.side_depth[0], a.edge_ratio[0], True)] if a.reuse else []
+    truth = {}
+    for side, ratio, reuse in variants:
+        layer = inpaint.build_background_layer(mesh, inpaint.max_translation(poses), side_depth_m=side,
+                                               edge_depth_ratio=ratio)
         filler = inpaint.WarpInpainter(layer, reuse=reuse)
-        se, n, with_depth, holes, seconds = 0.0, 0, 0, 0, 0.0
-        for clip in (clips[k] for k in a.paths if k < len(clips)):
-            for i in clip[1:]:
-                t0 = time.perf_counter()
-                f = filler.fill(cond.rgb[i], cond.mask[i], cond.depth[i], poses[i])
-                seconds += time.perf_counter() - t0
-                hole = ~cond.mask[i]
-                holes += int(hole.sum())
-                with_depth += int((f.depth[hole] > 0).sum())
-                small = cv2.resize(f.rgb, (w, h), interpolation=cv2.INTER_AREA).astype(np.float64)
-                hs = cv2.resize(hole.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
-                err = ((small - gt.render(poses[i], h, w)[0]) ** 2).mean(-1)[hs]
-                se, n = se + err.sum(), n + err.size
-        psnr = 10 * np.log10(255.0**2 / max(se / max(n, 1), 1e-12))
-        print(f"| {'warp.reuse=true' if reuse else 'default'} | {psnr:.2f} dB | {with_depth / max(holes, 1):.3f} | "
-              f"{seconds:.0f} |")
+        se, n = np.zeros(len(UNSEEN_PARTS) + 1), np.zeros(len(UNSEEN_PARTS) + 1, np.int64)
+        with_depth = right = holes = 0
+        seconds = 0.0
+        for i in frames:
+            t0 = time.perf_counter()
+            f = filler.fill(cond.rgb[i], cond.mask[i], cond.depth[i], poses[i])
+            seconds += time.perf_counter() - t0
+            hole = ~cond.mask[i]
+            if i not in scored:
+                continue
+            if i not in truth:
+                H, W = hole.shape
+                truth[i] = (gt.render(poses[i], h, w)[0], gt.depth(poses[i], H, W), unseen_parts(gt, poses[i], h, w))
+            ref, ref_d, part = truth[i]
+            holes += int(hole.sum())
+            with_depth += int((f.depth[hole] > 0).sum())
+            right += int((np.abs(f.depth - ref_d) <= 0.1 * ref_d)[hole].sum())
+            small = cv2.resize(f.rgb, (w, h), interpolation=cv2.INTER_AREA).astype(np.float64)
+            hs = cv2.resize(hole.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
+            err = ((small - ref) ** 2).mean(-1)
+            se[0] += err[hs].sum()
+            n[0] += hs.sum()
+            for k in range(len(UNSEEN_PARTS)):
+                m = hs & (part == k)
+                se[k + 1] += err[m].sum()
+                n[k + 1] += m.sum()
+        name = f"side_depth_m={side:g} edge_depth_ratio={ratio:g}" + (" reuse=true" if reuse else "")
+        parts = " | ".join(f"{psnr(se[k + 1], n[k + 1])} ({100 * n[k + 1] / max(n[0], 1):.0f} %)"
+                           for k in range(len(UNSEEN_PARTS)))
+        print(f"| {name} | {psnr(se[0], n[0])} | {parts} | {with_depth / max(holes, 1):.3f} | "
+              f"{right / max(holes, 1):.3f} | {seconds:.0f} |", flush=True)
     return 0
 
 

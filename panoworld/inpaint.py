@@ -207,16 +207,22 @@ def build_background_layer(
     max_band_deg: float = 45.0,
     inpaint_radius: float = 3.0,
     max_edge_ratio: float = 12.0,
+    side_depth_m: float = 0.0,
+    edge_depth_ratio: float = 0.95,
 ) -> BackgroundLayer:
-    """Extend the far side of every depth discontinuity of the source view behind its foreground occluder.
+    """Extend the far side of every depth discontinuity of the source view behind its foreground occluder, and
+    (side_depth_m > 0) the occluder's own surface back from its silhouette (occluder_sides).
 
     The discontinuities are the grid faces stretched by more than max_edge_ratio pixel footprints (the mesh stage's
-    rule, whatever it did with them): their far vertices are background edge pixels. From them a breadth-first
+    rule, whatever it did with them): their far vertices are background edge pixels where the nearest foreground
+    across the edge is nearer than edge_depth_ratio x their depth (smaller steps, such as shelves in front of the
+    books or a cabinet against the wall, are left to the 2D fill of the far side). From them a breadth-first
     growth enters the occluder (pixels nearer than the midpoint of the edge's near and far depth) for as many pixels
     as a camera moving at most `max_translation` metres from the source can uncover, max_translation *
     (1 / d_near - 1 / d_far) radians (capped at max_band_deg). Each pixel reached gets a background vertex on its
     ray: depth from the tangent plane of the background at the edge pixel it came from, colour inpainted (Telea,
-    seam-aware) with the occluder masked, so both continue the background only.
+    seam-aware) with the occluder masked, so both continue the background only. The side faces (side_depth_m > 0)
+    come last among the layer faces.
     """
     h, w = erp_grid_shape(mesh)
     n = h * w
@@ -241,7 +247,7 @@ def build_background_layer(
     far = fd >= 0.5 * (dmin + dmax)[:, None]
     near_of = np.full(n, np.inf)
     np.minimum.at(near_of, bad[far], np.repeat(dmin, 3).reshape(-1, 3)[far])
-    edge = (near_of < d * 0.95).reshape(h, w)
+    edge = (near_of < d * edge_depth_ratio).reshape(h, w)
     if not edge.any():
         return none
     near_of = near_of.reshape(h, w)
@@ -270,6 +276,12 @@ def build_background_layer(
     faces = np.where(s_flat[grid], idx_new[grid], grid).astype(np.int32)
     faces = faces[_stretch(vertices.astype(np.float64), faces) <= max_edge_ratio]
     colors = np.concatenate([mesh.colors, bg_color.reshape(-1, 3)[s_flat]])
+    if side_depth_m > 0:
+        side_v, side_c, side_f = occluder_sides(p.reshape(h, w, 3), mesh.colors[:n], bad, side_depth_m,
+                                                 len(vertices))
+        vertices = np.concatenate([vertices, side_v.astype(np.float32)])
+        colors = np.concatenate([colors, side_c])
+        faces = np.concatenate([faces, side_f])
     return BackgroundLayer(
         vertices.astype(np.float32),
         np.concatenate([main_faces, faces]).astype(np.int32),
@@ -278,6 +290,51 @@ def build_background_layer(
         synth,
         np.where(synth, bg_depth, 0.0).astype(np.float32),
     )
+
+
+UPRIGHT_COS = 0.5
+"""occluder_sides: a silhouette is upright when its surface normal's |cos| with the vertical is below this."""
+
+
+def occluder_sides(points: np.ndarray, colors: np.ndarray, stretched: np.ndarray, side_depth_m: float, first: int
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The hidden side of each foreground occluder, guessed as a box's: straight back from its silhouette.
+
+    points (h, w, 3): the source's ERP grid points, colours (h, w, 3); stretched (F, 3): flat grid faces spanning a
+    depth discontinuity. Each face's far vertices (depth at least the midpoint of its near and far depth) are
+    replaced by the silhouette point across the edge (the face's nearest vertex) moved against its surface normal
+    by side_depth_m, or by the distance to the far vertex where that is shorter (an occluder standing against the
+    background reaches it), coloured as the silhouette: a sheet from the silhouette straight back, which a camera
+    moving around the occluder sees as its side (a cabinet's side between its front face and the wall) instead of
+    background colour. Returns the new vertices (M, 3), their colours (M, 3) uint8 and the faces (K, 3) int32
+    indexing flat grid vertices and the new vertices numbered from `first`."""
+    h, w = points.shape[:2]
+    p = points.reshape(-1, 3)
+    d = np.linalg.norm(p, axis=1)
+    normal = _surface_normals(points).reshape(-1, 3)
+    normal *= -np.sign((normal * p).sum(axis=1, keepdims=True) + 1e-12)  # towards the source camera
+    fd = d[stretched]
+    dmin = fd.min(axis=1)
+    far = fd >= 0.5 * (dmin + fd.max(axis=1))[:, None]
+    keep = far.any(axis=1) & ~far.all(axis=1)
+    f, far, dmin = stretched[keep], far[keep], dmin[keep]
+    near_vertex = f[np.arange(len(f)), np.argmin(d[f], axis=1)]
+    # only upright silhouettes (a cabinet's side): a sheet behind a top edge would hang over the floor under tables
+    upright = np.abs(normal[near_vertex, 1]) < UPRIGHT_COS
+    f, far, dmin, near_vertex = f[upright], far[upright], dmin[upright], near_vertex[upright]
+    # each far vertex takes the nearest silhouette point across any of its faces
+    fv = f[far]
+    fn = np.repeat(dmin, far.sum(axis=1))
+    src = np.repeat(near_vertex, far.sum(axis=1))
+    order = np.lexsort((fn, fv))
+    verts, first_of = np.unique(fv[order], return_index=True)
+    sil = src[order][first_of]
+    length = np.minimum(side_depth_m, np.linalg.norm(p[verts] - p[sil], axis=1))
+    new_v = p[sil] - normal[sil] * length[:, None]
+    index = np.full(len(p), -1, np.int64)
+    index[verts] = first + np.arange(len(verts))
+    faces = np.where(far, index[f], f).astype(np.int32)
+    return new_v, colors.reshape(-1, 3)[sil].astype(np.uint8), faces
 
 
 # ---------------------------------------------------------------- per-frame filling

@@ -142,18 +142,19 @@ def fuse_unseen(pix: Gaussians, frames: ContextSource, vis, params: FusionParams
 
 
 def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, iters: int = 10, damping: float = 0.01,
-               supersample: int = 1) -> tuple[Gaussians, dict]:
+               supersample: int = 1, pole_scale: float | None = None) -> tuple[Gaussians, dict]:
     """Gaussians whose colours (SH DC) are refitted so their ERP render at world_from_cam matches target (H, W, 3)
     uint8 or [0, 1]: the render is linear in the colours for fixed geometry (render_gs.ErpColorOperator), so this is
     `iters` steps of damped conjugate-gradient least squares, min |A c - y|^2 + damping |c - c0|^2 from the current
     colours c0 (damping per unit of compositing weight: Gaussians the view barely sees stay put), clipped to [0, 1].
-    Returns the Gaussians and {"rmse_before", "rmse_after"} of the render at that pose, and "render": that render
-    of the fitted Gaussians, (rgb (H, W, 3), alpha (H, W)) float32 numpy."""
+    pole_scale: the operator's (None = render_erp's default). Returns the Gaussians and {"rmse_before", "rmse_after"}
+    of the render at that pose, and "render": that render of the fitted Gaussians, (rgb (H, W, 3), alpha (H, W))
+    float32 numpy."""
     from panoworld.render_gs import ErpColorOperator
 
     h, w = target.shape[:2]
     y = torch.as_tensor(np.asarray(target, np.float32) / (255.0 if target.dtype == np.uint8 else 1.0))
-    op = ErpColorOperator(g, world_from_cam, h, w, supersample=supersample)
+    op = ErpColorOperator(g, world_from_cam, h, w, supersample=supersample, pole_scale=pole_scale)
     c0 = torch.from_numpy(g.base_colors())
     lam = damping * op.adjoint(torch.ones(h, w, 3))[:, :1].clamp(min=1e-3)  # A^T 1: each Gaussian's weight in the view
 

@@ -332,6 +332,11 @@ ERP_SUPERSAMPLE = 2
 """render_erp's default supersampling: the ERP is sampled at 2x its size in each axis from cube faces at 2x resolution
 and area-downsampled (2x2 box), so splats finer than a pixel (per-pixel Gaussians at the input's resolution) average
 instead of aliasing. docs/evaluation.md, "Anti-aliased ERP renders", has the quality/time measurements behind it."""
+ERP_POLE_SCALE = 1.0
+"""render_erp's default resolution of the two pole faces (+y, -y) relative to the others. ERP rows near a pole sample
+longitude tan(lat) times more finely than a cube face does there; 2 with the colour fit on the same faces gains 1.4 dB
+at the capture point but shows the splats' soft edges elsewhere (docs/evaluation.md, "The poles at the capture
+point")."""
 
 
 @dataclass
@@ -356,27 +361,31 @@ class ErpFace:
 
 
 def erp_faces(world_from_cam: np.ndarray, H: int, W: int, *, face_size: int | None = None, margin: int = 2,
-              supersample: int = ERP_SUPERSAMPLE) -> list[ErpFace]:
+              supersample: int = ERP_SUPERSAMPLE, pole_scale: float | None = None) -> list[ErpFace]:
     """The cube faces render_erp composes an (H, W) ERP at world_from_cam from (see there), those serving no sample
     left out."""
+    pole_scale = ERP_POLE_SCALE if pole_scale is None else pole_scale
+    if not pole_scale >= 1.0:
+        raise ValueError(f"pole_scale={pole_scale!r} but expected >= 1")
     check_erp_shape(H, W, "requested ERP render")
     check_pose(world_from_cam, "world_from_cam")
     if int(supersample) != supersample or supersample < 1:
         raise ValueError(f"supersample={supersample!r} but expected a positive integer")
     s = int(supersample)
     world_from_cam = np.asarray(world_from_cam, dtype=np.float64)
-    S = face_size or math.ceil(s * W / math.pi)
-    n = S + 2 * margin
-    f = S / 2.0
-    c = n / 2.0
+    S0 = face_size or math.ceil(s * W / math.pi)
     dirs = torch.from_numpy(erp_dirs(s * H, s * W)).reshape(-1, 3)
     rots = [torch.as_tensor(R, dtype=torch.float32) for R in CUBE_FACES.values()]
     owner = torch.stack([(dirs @ R)[:, 2] for R in rots]).argmax(0)  # the face nearest each ray's direction
     faces = []
-    for k, (R_face, R) in enumerate(zip(CUBE_FACES.values(), rots)):
+    for k, (name, R_face, R) in enumerate(zip(CUBE_FACES, CUBE_FACES.values(), rots)):
         index = (owner == k).nonzero().squeeze(1)
         if not index.numel():
             continue
+        S = math.ceil(pole_scale * S0) if name in ("+y", "-y") else S0
+        n = S + 2 * margin
+        f = S / 2.0
+        c = n / 2.0
         world_from_face = world_from_cam.copy()
         world_from_face[:3, :3] = world_from_cam[:3, :3] @ R_face
         d = dirs[index] @ R  # face-frame directions (K, 3)
@@ -389,6 +398,7 @@ def erp_faces(world_from_cam: np.ndarray, H: int, W: int, *, face_size: int | No
 def render_erp(
     gaussians: Gaussians, world_from_cam: np.ndarray, H: int, W: int, *, face_size: int | None = None,
     margin: int = 2, near: float = 0.01, background=None, supersample: int = ERP_SUPERSAMPLE,
+    pole_scale: float | None = None,
 ) -> RenderOutput:
     """Render an equirectangular view (W = 2H) from 6 perspective cube faces resampled bilinearly with grid_sample.
 
@@ -396,9 +406,12 @@ def render_erp(
     ceil(supersample W / pi), which matches the supersampled ERP's angular resolution at the face centres. With
     supersample s > 1 the ERP is sampled at (s H, s W) and area-downsampled by s (colour, alpha and alpha-weighted
     depth averaged over each s x s block). depth is the expected Euclidean distance of the Gaussian centres (composited
-    in each face's z order).
+    in each face's z order). pole_scale: the two faces holding the poles (+y, -y) at that many times the face size,
+    as ERP rows near a pole sample longitude ever more finely (tan(latitude) times the face's pixel there); None =
+    ERP_POLE_SCALE.
     """
-    faces = erp_faces(world_from_cam, H, W, face_size=face_size, margin=margin, supersample=supersample)
+    faces = erp_faces(world_from_cam, H, W, face_size=face_size, margin=margin, supersample=supersample,
+                      pole_scale=pole_scale)
     s = int(supersample)
     prep = _prepare(gaussians, np.asarray(world_from_cam, dtype=np.float64)[:3, 3])
     bg = _background(background)
@@ -421,10 +434,10 @@ class ErpColorOperator:
     does. A(colors (N, 3)) -> (H, W, 3); adjoint(image (H, W, 3)) -> A^T image (N, 3)."""
 
     def __init__(self, gaussians: Gaussians, world_from_cam: np.ndarray, H: int, W: int, *,
-                 supersample: int = ERP_SUPERSAMPLE, near: float = 0.01):
+                 supersample: int = ERP_SUPERSAMPLE, near: float = 0.01, pole_scale: float | None = None):
         import scipy.sparse
 
-        self.faces = erp_faces(world_from_cam, H, W, supersample=supersample)
+        self.faces = erp_faces(world_from_cam, H, W, supersample=supersample, pole_scale=pole_scale)
         self.s, self.H, self.W, self.N = int(supersample), H, W, len(gaussians)
         prep = _prepare(gaussians, np.asarray(world_from_cam, dtype=np.float64)[:3, 3])
         self.weights, self.weights_t = [], []

@@ -10,6 +10,11 @@ SHADOW_MAX_DEG = 30.0
 """The shadow's profile is 1 from here out (the floor-light model alone explains the floor there)."""
 MIN_DARKENING = 0.15
 """A shadow removes at least this share of the light at its darkest knot (weaker: floor lighting, kept)."""
+LIGHT_EXPECTILE = 0.8
+"""The light model and shadow profile fit this expectile of the floor's log luminance, not its mean: a shadow
+darkens all of the floor's texture, more dark texture near the nadir only lowers its mean (development seeds:
++0.12 dB with a soft shadow, +0.02 without; 0.9 lost 0.6 dB on seed 110; seed 102's shadow-free floor is still read
+as 11 % shadowed)."""
 MIN_SECTORS = 5
 """Of 8 azimuth sectors, at least this many must be darker inside the shadow (a leg's cast shadow or a wall's is
 not around the nadir)."""
@@ -33,8 +38,9 @@ def shadow_gain(face: np.ndarray, rig: np.ndarray, floor: np.ndarray, theta: np.
 
     log(floor luminance) = quadratic in floor coordinates (the room's lights: smooth, broad) + a piecewise-linear
     radial profile with knots every KNOT_DEG up to SHADOW_MAX_DEG (the shadow: compact, around the nadir), fitted by
-    least squares on floor pixels outside the rig with 3-MAD trimming (texture, the legs' own cast shadows). A shadow
-    is taken when the profile darkens the floor by >= MIN_DARKENING and >= MIN_SECTORS of 8 sectors agree."""
+    least squares on floor pixels outside the rig with 3-MAD trimming (texture, the legs' own cast shadows), then
+    refitted to the LIGHT_EXPECTILE expectile. A shadow is taken when the profile darkens the floor by >=
+    MIN_DARKENING and >= MIN_SECTORS of 8 sectors agree."""
     lum = linear_luminance(face)
     S = face.shape[0]
     c = (np.arange(S) + 0.5 - 0.5 * S) / focal
@@ -53,6 +59,10 @@ def shadow_gain(face: np.ndarray, rig: np.ndarray, floor: np.ndarray, theta: np.
         coef, *_ = np.linalg.lstsq(A[use], y[use], rcond=None)
         res = y - A @ coef
         use &= np.abs(res) < 3.0 * 1.4826 * np.median(np.abs(res[use])) + 1e-6
+    for _ in range(8):  # the upper expectile: the floor's brighter texture is lit like the rest (see LIGHT_EXPECTILE)
+        sw = np.sqrt(np.where(res[use] > 0, LIGHT_EXPECTILE, 1.0 - LIGHT_EXPECTILE))
+        coef, *_ = np.linalg.lstsq(A[use] * sw[:, None], y[use] * sw, rcond=None)
+        res = y - A @ coef
     seen = np.array([(use & (h > 0.5)).sum() >= 8 for h in hats])  # knots without floor pixels (under the mount)
     prof = np.exp(np.minimum(np.where(seen, coef[len(poly):], 0.0), 0.0))
     prof = np.r_[prof, 1.0]

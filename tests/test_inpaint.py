@@ -270,3 +270,39 @@ def test_warp_inpainter_last_resort_fill_has_background_depth():
     assert f.rgb[hole][:, 0].astype(float).mean() < 10
     plain = WarpInpainter(empty, depth_fill=False).fill(rgb, ~hole, depth, np.eye(4))
     assert (plain.depth[hole] == 0).all() and plain.rgb[hole][:, 0].astype(float).mean() > 10
+
+
+def test_occluder_sides_lie_on_the_hidden_side_of_a_cabinet():
+    # A cabinet 0.7 m wide and 0.5 m deep, 1.5 m in front of the source: its sides (x = +-0.35, z in [1.5, 2]) are
+    # hidden from the source; the side sheets start at its silhouette and go straight back.
+    room = trimesh.creation.box(bounds=[[-3.0, -1.6, -3.0], [3.0, 1.2, 4.0]])
+    cab = trimesh.creation.box(bounds=[[-0.35, -0.4, 1.5], [0.35, 1.2, 2.0]])
+    scene = trimesh.util.concatenate([room, cab])
+    d0 = Raycaster(scene.vertices, scene.faces).render_erp(np.eye(4), H, W).distance.astype(np.float32)
+    pts = points_from_depth(d0.astype(np.float64), np.eye(4))
+    mesh = erp_mesh_from_depth(d0, texture(pts))
+    plain = build_background_layer(mesh, 0.6)
+    layer = build_background_layer(mesh, 0.6, side_depth_m=0.5)
+    assert len(plain.faces) < len(layer.faces) and len(layer.vertices) > len(plain.vertices)
+    side = layer.vertices[len(plain.vertices):].astype(np.float64)
+    on_side = (np.abs(np.abs(side[:, 0]) - 0.35) < 0.08)  # a pixel is 5 cm at 1.5 m
+    on_side &= (side[:, 2] > 1.45) & (side[:, 2] < 2.05)
+    assert on_side.mean() > 0.8, on_side.mean()
+    assert side[on_side, 2].max() > 1.9  # reaches back the asked 0.5 m
+    # upright silhouettes only: no sheet hangs down from the cabinet's top edge
+    assert not ((side[:, 1] > -0.35) & (np.abs(side[:, 0]) < 0.3)).any()
+
+
+def test_edge_depth_ratio_leaves_small_steps_to_the_2d_fill():
+    # A panel 0.5 m in front of the far wall (depth ratio ~0.88) and one 2.5 m in front of it (ratio ~0.38).
+    room = trimesh.creation.box(bounds=[[-3.0, -1.6, -3.0], [3.0, 1.2, 4.0]])
+    near = trimesh.creation.box(bounds=[[-1.2, -0.4, 1.5], [-0.5, 1.2, 1.53]])
+    flat = trimesh.creation.box(bounds=[[0.5, -0.4, 3.47], [1.2, 1.2, 3.5]])
+    scene = trimesh.util.concatenate([room, near, flat])
+    d0 = Raycaster(scene.vertices, scene.faces).render_erp(np.eye(4), H, W).distance.astype(np.float32)
+    mesh = erp_mesh_from_depth(d0, texture(points_from_depth(d0.astype(np.float64), np.eye(4))))
+    x = points_from_depth(d0.astype(np.float64), np.eye(4))[..., 0]
+    for ratio, flat_layer in ((0.95, True), (0.7, False)):
+        layer = build_background_layer(mesh, 0.6, edge_depth_ratio=ratio, max_edge_ratio=3.0)  # 96 rows: the small step stretches a face ~4x
+        assert layer.synthesized[(x < -0.4) & (d0 < 2.0)].any()  # the deep step keeps its background layer
+        assert layer.synthesized[(x > 0.4) & (d0 < 3.6)].any() == flat_layer

@@ -234,7 +234,7 @@ def test_erp_supersampling_averages_detail_finer_than_a_pixel():
     rows = slice(H // 4, 3 * H // 4)  # |lat| < 45 deg: the stripes are finer than a pixel there
     err = {}
     for ss in (1, 2, 4):
-        out = render_erp(g, np.eye(4), H, W, supersample=ss)
+        out = render_erp(g, np.eye(4), H, W, supersample=ss, pole_scale=1.0)  # finer pole faces show the gaps
         assert float(out.alpha.min()) > 0.99
         assert np.allclose(out.depth.numpy(), 2.0, atol=0.05)
         err[ss] = float(np.abs(out.rgb.numpy() - ref)[rows].mean())
@@ -243,8 +243,8 @@ def test_erp_supersampling_averages_detail_finer_than_a_pixel():
         render_erp(g, np.eye(4), H, W, supersample=0)
 
 
-@pytest.mark.parametrize("supersample", [1, 2])
-def test_erp_color_operator_is_the_render_as_a_linear_map_of_colours(supersample):
+@pytest.mark.parametrize("supersample, pole_scale", [(1, 1.0), (2, 1.0), (2, 2.0)])
+def test_erp_color_operator_is_the_render_as_a_linear_map_of_colours(supersample, pole_scale):
     from panoworld.render_gs import ErpColorOperator
 
     g, _ = shell(3.0, 2000)
@@ -254,14 +254,53 @@ def test_erp_color_operator_is_the_render_as_a_linear_map_of_colours(supersample
                        ("means", "scales", "quats", "opacities", "sh_dc")))
     pose = np.eye(4)
     pose[:3, 3] = [0.2, -0.1, 0.3]
-    op = ErpColorOperator(both, pose, 24, 48, supersample=supersample)
+    op = ErpColorOperator(both, pose, 24, 48, supersample=supersample, pole_scale=pole_scale)
     rgb = (0.5 + SH_C0 * torch.from_numpy(both.sh_dc)).clamp(min=0)  # eval_sh's colour
-    want = render_erp(both, pose, 24, 48, supersample=supersample).rgb
+    want = render_erp(both, pose, 24, 48, supersample=supersample, pole_scale=pole_scale).rgb
     torch.testing.assert_close(op(rgb), want, atol=2e-5, rtol=0)
     other = torch.rand(len(both), 3)  # linear: any colours, not only the Gaussians' own
     mixed = Gaussians(both.means, both.scales, both.quats, both.opacities, rgb_to_sh_dc(other.numpy()))
-    torch.testing.assert_close(op(other), render_erp(mixed, pose, 24, 48, supersample=supersample).rgb,
+    torch.testing.assert_close(op(other), render_erp(mixed, pose, 24, 48, supersample=supersample,
+                                                     pole_scale=pole_scale).rgb,
                                atol=2e-5, rtol=0)
     img = torch.rand(24, 48, 3, dtype=torch.float64)  # the adjoint: <A x, y> = <x, A^T y>
     lhs, rhs = float((op(other).double() * img).sum()), float((other.double() * op.adjoint(img.float())).sum())
     assert abs(lhs - rhs) < 1e-4 * abs(lhs)
+
+
+def test_erp_pole_scale_resolves_longitude_detail_near_the_poles():
+    """Radial stripes around both poles, 2 ERP columns wide: near a pole they are finer than a cube-face pixel (ERP
+    rows sample longitude tan(lat) times more finely than the face), so finer pole faces follow the area average."""
+    from panoworld.conventions import erp_dirs
+    from panoworld.render_gs import erp_faces
+
+    n = 60000
+    k = np.arange(n) + 0.5
+    y = np.sign(k - n / 2) * (0.8 + 0.2 * (np.abs(2 * k / n - 1)))  # |y| in [0.8, 1]: the polar caps only
+    lon = np.pi * (1 + 5**0.5) * k
+    d = np.stack([np.sqrt(1 - y**2) * np.cos(lon), y, np.sqrt(1 - y**2) * np.sin(lon)], 1)
+
+    def color(dirs):
+        stripe = np.sin(16 * np.arctan2(dirs[..., 0], dirs[..., 2])) > 0
+        return np.repeat(np.where(stripe, 0.9, 0.1)[..., None], 3, -1)
+
+    spacing = np.sqrt(2 * 2 * np.pi * 0.2 / n)
+    g = Gaussians(
+        means=(2.0 * d).astype(np.float32), scales=np.full((n, 3), 0.6 * spacing * 2.0, np.float32),
+        quats=np.tile([1.0, 0, 0, 0], (n, 1)).astype(np.float32), opacities=np.full(n, 0.99, np.float32),
+        sh_dc=rgb_to_sh_dc(color(d)).astype(np.float32),
+    )
+    H, W, s = 32, 64, 8
+    ref = color(erp_dirs(s * H, s * W)).reshape(H, s, W, s, 3).mean((1, 3))
+    lat = 90 - (np.arange(H) + 0.5) / H * 180
+    rows = (np.abs(lat) > 70) & (np.abs(lat) < 85)
+    err = {}
+    for pole in (1, 3):
+        sizes = {f.n for f in erp_faces(np.eye(4), H, W, pole_scale=pole)}
+        assert len(sizes) == (1 if pole == 1 else 2)
+        out = render_erp(g, np.eye(4), H, W, pole_scale=pole)
+        assert float(out.alpha[rows].min()) > 0.99
+        err[pole] = float(np.abs(out.rgb.numpy() - ref)[rows].mean())
+    assert err[3] < 0.6 * err[1], err
+    with pytest.raises(ValueError, match="pole_scale"):
+        render_erp(g, np.eye(4), H, W, pole_scale=0.5)

@@ -255,3 +255,26 @@ def trajectory_reach(nav, poses: np.ndarray, n_sectors: int = 8) -> dict[str, An
     return {"reach_max_m": float(dist.max(initial=0.0)), "sector_reached_m": reached.round(3).tolist(),
             "sector_reachable_m": reachable.round(3).tolist(),
             "sector_reach_fraction_min": float(frac.min()) if len(frac) else float("nan")}
+
+
+UNSEEN_PARTS = ("floor", "walls", "ceiling", "object side", "object top", "object underside")
+"""unseen_parts' surface classes: architecture by the ground-truth node kind, furniture by its face normal."""
+
+
+def unseen_parts(gt, pose: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(H, W) int8 index into UNSEEN_PARTS of the ground-truth surface at each pixel centre of an ERP view at canonical
+    `pose` (-1 = no surface): floor / walls / ceiling by node kind; any other node (furniture, lights, pictures) by its
+    face normal against canonical up (-y): side (|cos| < 0.5), top, underside."""
+    pose = np.asarray(pose, np.float64)
+    hits = gt.scene.raycaster.render_erp(gt.world_from_canonical @ pose, height, width)
+    face = hits.face.reshape(-1)
+    out = np.full(face.shape, -1, np.int8)
+    hit = face >= 0
+    kind = np.array([n.kind for n in gt.scene.nodes])[gt.scene.face_node[face[hit]]]
+    up = -(gt.world_from_canonical[:3, :3] @ np.array([0.0, 1.0, 0.0]))  # canonical -y in the world frame
+    cos = gt.scene.face_normals[face[hit]] @ up
+    part = np.where(cos > 0.5, 4, np.where(cos < -0.5, 5, 3))
+    for k, name in enumerate(UNSEEN_PARTS[:3]):
+        part = np.where(kind == name, k, part)
+    out[hit] = part
+    return out.reshape(height, width)

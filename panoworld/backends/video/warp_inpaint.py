@@ -20,6 +20,15 @@ class WarpOptions:
     """Holes the background layer does not fill are filled from the farther side (depth-aware 2D fill, with depth)
     and committed as 3D points that later frames reuse (panoworld.inpaint.CommittedPoints); else a per-frame 2D fill
     without depth."""
+    side_depth_m: float = param(0.0, ge=0)
+    """Occluders' hidden sides: each foreground silhouette of the source view continues straight back along the
+    source's rays by this many metres (up to the background), in the foreground's colour
+    (panoworld.inpaint.occluder_sides), so a camera moving around furniture sees a side rather than wall colour;
+    0 = off (the background layer alone)."""
+    edge_depth_ratio: float = param(0.95, gt=0, le=1)
+    """A depth edge of the source view grows a background layer only where its foreground is nearer than this
+    fraction of the background's depth; smaller steps (shelves in front of books, furniture against a wall) are left
+    to the far side's 2D fill (panoworld.inpaint.build_background_layer)."""
     depth_fill: bool = True
     """Without reuse: holes the background layer does not fill take the depth and colour of their farther side
     (panoworld.inpaint.background_fill), so the Gaussians stage places them; false = a colour-only 2D fill (no depth:
@@ -40,7 +49,8 @@ def fill(job) -> tuple:
     try:
         mesh = load_erp_mesh(mesh_dir)
         ratio = float(read_json(mesh_dir / "manifest.json", default={}).get("params", {}).get("max_edge_ratio", 12.0))
-        opts = dict(max_band_deg=job.options.max_band_deg, inpaint_radius=job.inpaint_radius, max_edge_ratio=ratio)
+        opts = dict(max_band_deg=job.options.max_band_deg, inpaint_radius=job.inpaint_radius, max_edge_ratio=ratio,
+                    side_depth_m=job.options.side_depth_m, edge_depth_ratio=job.options.edge_depth_ratio)
         sources = read_home_sources(mesh_dir)
         if sources is not None:  # a home: one layer per source panorama (panoworld/home/inpaint.py)
             layer = home_background_layer(mesh, sources, job.poses, **opts)
