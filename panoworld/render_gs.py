@@ -229,7 +229,8 @@ def rasterize_tiles(
     raw=True returns the un-normalised accumulated depth (sum w z) instead of the expected depth; distance=True
     accumulates the centres' Euclidean distances instead of their z. weights, when a list, receives per chunk the
     non-zero compositing weights as (flat pixel index (K,), Gaussian index in proj (K,), weight (K,)): the image is
-    their sum of weight x colour plus the transmittance x background.
+    their sum of weight x colour plus the transmittance x background; the returned render then holds only the
+    transmittance (alpha; rgb is transmittance x background, depth 0): colour and depth are not accumulated.
     """
     depth_of = proj.dist if distance else proj.z
     ntx, nty = -(-W // TILE), -(-H // TILE)
@@ -276,8 +277,9 @@ def rasterize_tiles(
             y, x = base_y[a[ti]] + pi // TILE, base_x[a[ti]] + pi % TILE
             inside = (y < H) & (x < W)
             weights.append(((y * W + x)[inside], g[ti, gi][inside], w[ti, gi, pi][inside]))
-        acc_rgb[a] = acc_rgb[a] + torch.bmm(w.transpose(1, 2), proj.color[g])
-        acc_z[a] = acc_z[a] + torch.bmm(w.transpose(1, 2), depth_of[g][..., None])[..., 0]
+        else:  # the weights' caller builds its own image from them
+            acc_rgb[a] = acc_rgb[a] + torch.bmm(w.transpose(1, 2), proj.color[g])
+            acc_z[a] = acc_z[a] + torch.bmm(w.transpose(1, 2), depth_of[g][..., None])[..., 0]
         k += chunk
         a_keep = (counts[a] > k) & ~done[a].all(1)
         active = a[a_keep]
