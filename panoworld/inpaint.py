@@ -208,7 +208,7 @@ def build_background_layer(
     inpaint_radius: float = 3.0,
     max_edge_ratio: float = 12.0,
     side_depth_m: float = 0.0,
-    edge_depth_ratio: float = 0.95,
+    edge_depth_ratio: float = 0.75,
 ) -> BackgroundLayer:
     """Extend the far side of every depth discontinuity of the source view behind its foreground occluder, and
     (side_depth_m > 0) the occluder's own surface back from its silhouette (occluder_sides).

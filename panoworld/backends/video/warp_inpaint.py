@@ -25,7 +25,7 @@ class WarpOptions:
     source's rays by this many metres (up to the background), in the foreground's colour
     (panoworld.inpaint.occluder_sides), so a camera moving around furniture sees a side rather than wall colour;
     0 = off (the background layer alone)."""
-    edge_depth_ratio: float = param(0.95, gt=0, le=1)
+    edge_depth_ratio: float = param(0.75, gt=0, le=1)
     """A depth edge of the source view grows a background layer only where its foreground is nearer than this
     fraction of the background's depth; smaller steps (shelves in front of books, furniture against a wall) are left
     to the far side's 2D fill (panoworld.inpaint.build_background_layer)."""
