@@ -280,7 +280,6 @@ def _reduce(parts: list[VoxelSums], part: VoxelSums) -> list[VoxelSums]:
 
 def voxel_fusion(
     frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], params: FusionParams, *, progress: bool = False,
-    select: Callable[[Observations], Observations] | None = None,
     keep_points: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> FusionResult:
     """Fuse ERP frames (rgb (H, W, 3), depth (H, W) metres, world_from_cam (4, 4)) into voxel-aligned Gaussians.
@@ -291,10 +290,9 @@ def voxel_fusion(
     the rotation and scale_factor * sqrt(eigenvalues), clamped to [min_scale, max_scale] * voxel_size, the scales.
     Frames are consumed one at a time and their voxel sums reduced into a running total every MERGE_EVERY frames, so
     memory is bounded by one frame's observations plus the occupied voxels, whatever the number of frames (pass a
-    re-iterable such as ContextSource that reads frames lazily; per_voxel > 1 iterates twice). select, when given,
-    keeps a subset of each frame's observations; keep_points (frame_observations') a subset of each frame's valid
-    pixels by their world points (e.g. those the source panorama's own Gaussians do not explain), before their
-    footprints are computed.
+    re-iterable such as ContextSource that reads frames lazily; per_voxel > 1 iterates twice). keep_points, when
+    given (frame_observations'), keeps a subset of each frame's valid pixels by their world points (e.g. those the
+    source panorama's own Gaussians do not explain), before their footprints are computed.
     """
     from tqdm import tqdm
 
@@ -308,8 +306,6 @@ def voxel_fusion(
         for rgb, depth, pose in tqdm(frames, total=total, desc="voxel fusion", disable=None if progress else True,
                                      leave=False):
             obs = frame_observations(rgb, depth, pose, params, keep_points=keep_points)
-            if select is not None:
-                obs = select(obs)
             if len(obs.points):
                 yield obs
 

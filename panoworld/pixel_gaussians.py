@@ -13,7 +13,6 @@ from panoworld.gaussians import (
     ContextSource,
     FusionResult,
     Gaussians,
-    Observations,
     bbox_extent,
     frame_observations,
     gaussians_from_cov,
@@ -87,9 +86,6 @@ class SourceVisibility:
         dist, d_src = self._lookup(np.asarray(g.means, np.float64))
         with np.errstate(invalid="ignore"):
             return np.isfinite(d_src) & (dist - d_src < reach * np.asarray(g.scales).max(1))
-
-    def keep_unexplained(self, obs: Observations) -> Observations:
-        return obs.subset(torch.from_numpy(~self.explained(obs.points.numpy())))
 
 
 def merge_gaussians(parts: list[Gaussians]) -> Gaussians:

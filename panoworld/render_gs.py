@@ -442,17 +442,15 @@ class ErpColorOperator:
         self.faces = erp_faces(world_from_cam, H, W, supersample=supersample, pole_scale=pole_scale)
         self.s, self.H, self.W, self.N = int(supersample), H, W, len(gaussians)
         prep = _prepare(gaussians, np.asarray(world_from_cam, dtype=np.float64)[:3, 3])
-        self.weights, self.weights_t = [], []
+        self.weights = []
         for fc in self.faces:
             proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
             parts: list = []
             rasterize_tiles(proj, fc.n, fc.n, torch.zeros(3), weights=parts)
             pix, gid, w = (torch.cat(x) for x in zip(*parts)) if parts else (torch.zeros(0, dtype=torch.long),) * 3
             # scipy: COO -> CSR is a counting sort, 32-bit indices, and the transpose a free CSC view
-            A = scipy.sparse.csr_matrix((w.float().numpy(), (pix.numpy(), proj.index[gid].numpy())),
-                                        shape=(fc.n * fc.n, self.N))
-            self.weights.append(A)
-            self.weights_t.append(A.T)
+            self.weights.append(scipy.sparse.csr_matrix((w.float().numpy(), (pix.numpy(), proj.index[gid].numpy())),
+                                                        shape=(fc.n * fc.n, self.N)))
 
     def compose(self, face_images: list[torch.Tensor]) -> torch.Tensor:
         """Face images (n * n, 3) -> the ERP (H, W, 3) (differentiable)."""
@@ -471,7 +469,7 @@ class ErpColorOperator:
     def adjoint(self, image: torch.Tensor) -> torch.Tensor:
         faces = [torch.zeros(A.shape[0], 3, requires_grad=True) for A in self.weights]
         grads = torch.autograd.grad(self.compose(faces), faces, image)
-        return sum(torch.from_numpy(At @ g.numpy()) for At, g in zip(self.weights_t, grads))
+        return sum(torch.from_numpy(A.T @ g.numpy()) for A, g in zip(self.weights, grads))
 
 
 def _gsplat_available() -> bool:

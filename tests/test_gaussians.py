@@ -338,7 +338,7 @@ def test_source_pixels_reproduce_the_input_at_the_capture_point():
     fp = FusionParams(voxel_size=0.04)
     rgb0, d0, _ = frames[0]
     vis = SourceVisibility(d0, ctx[0], 0.03)
-    voxels = voxel_fusion(frames[1:], fp, select=vis.keep_unexplained).gaussians
+    voxels = voxel_fusion(frames[1:], fp, keep_points=lambda p: ~vis.explained(p)).gaussians
     g = merge_gaussians([pixel_gaussians(rgb0, d0, ctx[0], fp), voxels])
     plain = voxel_fusion(frames, fp).gaussians
 
@@ -390,7 +390,8 @@ def test_frame_observations_filtered_before_footprints_equal_those_filtered_afte
     rgb, d = room(pose, 48, 96)
     d[:, 40:44] = np.nan
     fp = FusionParams(voxel_size=0.04)
-    after = vis.keep_unexplained(frame_observations(rgb, d, pose, fp))
+    every = frame_observations(rgb, d, pose, fp)
+    after = every.subset(torch.from_numpy(~vis.explained(every.points.numpy())))
     before = frame_observations(rgb, d, pose, fp, keep_points=lambda p: ~vis.explained(p))
     assert 0 < len(before.points) < (d > 0).sum() / 2
     for f in ("points", "colors", "steps", "weights", "pixels"):

@@ -6,7 +6,6 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-import torch
 
 from panoworld.conventions import erp_dirs, invert_pose, transform_points
 from panoworld.fusion_params import FusionParams
@@ -37,9 +36,6 @@ class SourcesVisibility:
             if not len(rest):
                 break
         return explained
-
-    def keep_unexplained(self, obs):
-        return obs.subset(torch.from_numpy(~self.explained(obs.points.numpy())))
 
     def poking_through(self, g) -> np.ndarray:
         """(N,) bool: SourceVisibility.poking_through of any source."""
