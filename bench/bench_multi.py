@@ -24,6 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from panoworld.artifacts import read_manifest
 from panoworld.conventions import invert_pose
 from panoworld.depth import read_depth, read_panorama
 from panoworld.errors import InputError
@@ -142,9 +143,8 @@ def run_pipeline_one(seed: int, k: int, height: int, work: Path, preset: str, ps
     est = capture_poses(arts / "register")
     gt = {n: np.asarray(T) for n, T in json.loads((scene / "gt" / "poses.json").read_text()).items()}
     errs = [v for n, v in pose_errors(est, gt).items() if n != sorted(est)[0]]
-    nav = json.loads((arts / "navmesh" / "manifest.json").read_text())["info"]
-    traj = json.loads((arts / "trajectory" / "manifest.json").read_text())["info"]
-    gs = json.loads((arts / "gaussians" / "manifest.json").read_text())["info"]
+    manifests = {n: read_manifest(arts / n) for n in stages}
+    nav, traj, gs = (manifests[n]["info"] for n in ("navmesh", "trajectory", "gaussians"))
     panos = {n: read_panorama(scene / "panoramas" / f"{n}.png") for n in est}
     scores = capture_psnr(arts / "gaussians" / "gaussians.ply", est, panos, height=psnr_height)
     return {
@@ -156,8 +156,7 @@ def run_pipeline_one(seed: int, k: int, height: int, work: Path, preset: str, ps
         "load_avg": [round(load_before, 1), round(os.getloadavg()[0], 1)], "wall_s": wall, "cpu_s": (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime),
         "peak_rss_mb": max(r["peak_rss_mb"] or 0 for r in stages.values()),
         "stage_s": {n: round(r["seconds"], 1) for n, r in stages.items()},
-        "stage_cpu_s": {n: round(json.loads((arts / n / "manifest.json").read_text()).get("cpu_s", float("nan")), 1)
-                        for n in stages},
+        "stage_cpu_s": {n: round(m.get("cpu_s", float("nan")), 1) for n, m in manifests.items()},
     }
 
 

@@ -126,11 +126,12 @@ def main() -> int:
             ss = int(v.pop("supersample", 2))
             pole = float(v.pop("pole_scale", 1.0))
             if name.startswith("artifact"):
+                from panoworld.artifacts import read_manifest
                 from panoworld.splat_ply import read_gaussians_ply
 
                 art = scene / ARTIFACTS / "gaussians"
                 g = read_gaussians_ply(art / "gaussians.ply")
-                n_src = json.loads((art / "manifest.json").read_text())["info"]["num_source_gaussians"]
+                n_src = read_manifest(art)["info"]["num_source_gaussians"]
                 part = {"artifact": slice(None), "artifact_source": slice(0, n_src), "artifact_voxels": slice(n_src, None)}
                 g = g.subset(np.arange(len(g.means))[part[name]])
                 info = {"gaussians": len(g.means)}
