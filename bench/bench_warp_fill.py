@@ -13,6 +13,7 @@ become Gaussians), the share whose depth is within 10 % of the truth, and the fi
 from __future__ import annotations
 
 import argparse
+import inspect
 import sys
 import time
 from pathlib import Path
@@ -43,6 +44,9 @@ def main() -> int:
     ap.add_argument("--edge-ratio", type=float, nargs="*", default=[0.95],
                     help="video.warp.edge_depth_ratio values (each with the first side depth)")
     ap.add_argument("--reuse", action="store_true", help="also video.warp.reuse (default side depth)")
+    ap.add_argument("--variant", action="append", default=[],
+                    help="KEY=VAL[,KEY=VAL]: keyword arguments of build_background_layer / WarpInpainter (repeatable), "
+                         "e.g. color_sigma_px=4,plane_depth=1; each after the flags' variants")
     ap.add_argument("--stride", type=int, default=1, help="score every n-th frame (all are filled)")
     ap.add_argument("--max-dist", type=float, default=float("inf"),
                     help="score only frames at most this far (m) from the capture point (e.g. 1.5: the ~1 m bucket)")
@@ -60,16 +64,21 @@ def main() -> int:
     print(f"{a.scene}: paths {a.paths} of {len(clips)} ({len(frames)} frames, {len(scored)} scored), scored at {h}x{w}")
     print("| fill | hole PSNR | " + " | ".join(UNSEEN_PARTS) + " | with depth | depth within 10 % | fill s |\n|---|"
           + "---|" * (len(UNSEEN_PARTS) + 4))
-    variants = [(s, a.edge_ratio[0], False) for s in a.side_depth]
-    variants += [(a.side_depth[0], r, False) for r in a.edge_ratio[1:]]
-    variants += [(a.side_depth[0], a.edge_ratio[0], True)] if a.reuse else []
+    variants = [dict(side_depth_m=s, edge_depth_ratio=a.edge_ratio[0]) for s in a.side_depth]
+    variants += [dict(side_depth_m=a.side_depth[0], edge_depth_ratio=r) for r in a.edge_ratio[1:]]
+    variants += [dict(side_depth_m=a.side_depth[0], edge_depth_ratio=a.edge_ratio[0], reuse=True)] if a.reuse else []
+    variants += [dict(side_depth_m=a.side_depth[0], edge_depth_ratio=a.edge_ratio[0],
+                      **{k: float(v) for k, v in (kv.split("=") for kv in spec.split(","))}) for spec in a.variant]
+    filler_keys = set(inspect.signature(inpaint.WarpInpainter).parameters)
     truth = {}
-    for side, ratio, reuse in variants:
-        layer = inpaint.build_background_layer(mesh, inpaint.max_translation(poses), side_depth_m=side,
-                                               edge_depth_ratio=ratio)
-        filler = inpaint.WarpInpainter(layer, reuse=reuse)
+    for var in variants:
+        layer = inpaint.build_background_layer(mesh, inpaint.max_translation(poses),
+                                               **{k: v for k, v in var.items() if k not in filler_keys})
+        filler = inpaint.WarpInpainter(layer, **{k: bool(v) if k in ("reuse", "plane_depth", "depth_fill") else v
+                                                 for k, v in var.items() if k in filler_keys})
         se, n = np.zeros(len(UNSEEN_PARTS) + 1), np.zeros(len(UNSEEN_PARTS) + 1, np.int64)
         with_depth = right = holes = 0
+        split = np.zeros((2 + len(UNSEEN_PARTS), 3))  # rows: layer, 2D fill, per part; cols: pixels, depth right, se
         seconds = 0.0
         for i in frames:
             t0 = time.perf_counter()
@@ -90,15 +99,27 @@ def main() -> int:
             err = ((small - ref) ** 2).mean(-1)
             se[0] += err[hs].sum()
             n[0] += hs.sum()
+            ok = cv2.resize((np.abs(f.depth - ref_d) <= 0.1 * ref_d).astype(np.uint8), (w, h),
+                            interpolation=cv2.INTER_NEAREST) > 0
+            by = [cv2.resize(x.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
+                  for x in (f.filled_3d, f.filled_2d)]
             for k in range(len(UNSEEN_PARTS)):
                 m = hs & (part == k)
                 se[k + 1] += err[m].sum()
                 n[k + 1] += m.sum()
-        name = f"side_depth_m={side:g} edge_depth_ratio={ratio:g}" + (" reuse=true" if reuse else "")
+                by.append(m)
+            for r, m in enumerate(by):
+                m = m & hs
+                split[r] += (m.sum(), (m & ok).sum(), err[m].sum())
+        name = " ".join(f"{k}={v:g}" for k, v in var.items())
         parts = " | ".join(f"{psnr(se[k + 1], n[k + 1])} ({100 * n[k + 1] / max(n[0], 1):.0f} %)"
                            for k in range(len(UNSEEN_PARTS)))
         print(f"| {name} | {psnr(se[0], n[0])} | {parts} | {with_depth / max(holes, 1):.3f} | "
               f"{right / max(holes, 1):.3f} | {seconds:.0f} |", flush=True)
+        names = ["layer", "2D fill", *UNSEEN_PARTS]
+        print("    by source / surface (share of hole pixels, depth within 10 %, PSNR): " + "; ".join(
+            f"{nm} {100 * c / max(n[0], 1):.0f} % / {r / max(c, 1):.2f} / {psnr(e, int(c))}"
+            for nm, (c, r, e) in zip(names, split)), flush=True)
     return 0
 
 
