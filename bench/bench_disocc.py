@@ -69,14 +69,30 @@ def oracle_video(scene: Path, kinds: set[str], out: Path) -> Path:
     return out
 
 
-def fuse(scene: Path, video: Path, out: Path) -> tuple[Path, float]:
+def oracle_poses(scene: Path, video: Path, out: Path) -> Path:
+    """A copy of the scene's poses artifact whose depth maps are the (oracle) video's: the Gaussians stage fuses the
+    poses artifact's depth, not the video's."""
+    from panoworld.io.video import read_video_doc
+
+    shutil.copytree(scene / ARTIFACTS / "poses", out, ignore=shutil.ignore_patterns("*.mcap"))
+    doc = json.loads((out / "poses.json").read_text())
+    vdoc = read_video_doc(video)
+    if abs(float(doc.get("depth_scale", 0.001)) - float(vdoc.depth_scale)) > 1e-12:
+        raise SystemExit(f"{out}: depth scale differs from the video's; cannot put the oracle depth in")
+    for k, f in enumerate(doc.get("frames", [])):
+        if f.get("depth") and vdoc.depth[k] is not None:
+            shutil.copyfile(vdoc.depth[k], out / f["depth"])
+    return out
+
+
+def fuse(scene: Path, video: Path, out: Path, poses: Path | None = None) -> tuple[Path, float]:
     from panoworld.stage import params_from_dict
     from stages.gaussians import Params, run
 
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    run({"video": video, "poses": scene / ARTIFACTS / "poses"}, params_from_dict(Params, {"eval_views": 0}, "gaussians"),
-        out)
+    run({"video": video, "poses": poses or scene / ARTIFACTS / "poses"},
+        params_from_dict(Params, {"eval_views": 0}, "gaussians"), out)
     return out / "gaussians.ply", time.perf_counter() - t0
 
 
@@ -152,7 +168,9 @@ def main() -> int:
                     if not kinds <= {"rgb", "depth"}:
                         raise SystemExit(f"--oracle {variant}: expected rgb, depth or rgb,depth")
                     video = oracle_video(scene, kinds, Path(tmp) / f"{scene.name}_{vi}" / "video")
-                    ply, fuse_s = fuse(scene, video, Path(tmp) / f"{scene.name}_{vi}" / "gaussians")
+                    poses = oracle_poses(scene, video, Path(tmp) / f"{scene.name}_{vi}" / "poses") \
+                        if "depth" in kinds else None
+                    ply, fuse_s = fuse(scene, video, Path(tmp) / f"{scene.name}_{vi}" / "gaussians", poses)
                 rows = diagnose(scene, ply, a.views, a.height, a.buckets, cache)
                 title = f"{scene.name}: {'artifact' if variant == 'artifact' else 'oracle ' + variant} (fuse {fuse_s:.0f} s)"
                 print_rows(title, rows)
