@@ -67,8 +67,8 @@ def main() -> int:
     variants = [dict(side_depth_m=s, edge_depth_ratio=a.edge_ratio[0]) for s in a.side_depth]
     variants += [dict(side_depth_m=a.side_depth[0], edge_depth_ratio=r) for r in a.edge_ratio[1:]]
     variants += [dict(side_depth_m=a.side_depth[0], edge_depth_ratio=a.edge_ratio[0], reuse=True)] if a.reuse else []
-    variants += [dict(side_depth_m=a.side_depth[0], edge_depth_ratio=a.edge_ratio[0],
-                      **{k: float(v) for k, v in (kv.split("=") for kv in spec.split(","))}) for spec in a.variant]
+    variants += [{"side_depth_m": a.side_depth[0], "edge_depth_ratio": a.edge_ratio[0]}
+                 | {k: float(v) for k, v in (kv.split("=") for kv in spec.split(","))} for spec in a.variant]
     filler_keys = set(inspect.signature(inpaint.WarpInpainter).parameters)
     truth = {}
     for var in variants:

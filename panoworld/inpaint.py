@@ -352,23 +352,32 @@ def build_background_layer(
 
 
 def layer_mean_color(rgb: np.ndarray, hide: np.ndarray, sigma: float) -> np.ndarray:
-    """rgb (h, w, 3) uint8 with the hide (h, w) pixels replaced by the Gaussian-weighted (sigma pixels, seam-aware,
-    widening until every hidden pixel has support) mean colour of the pixels not hidden."""
+    """rgb (h, w, 3) uint8 with the hide (h, w) pixels replaced by the Gaussian-weighted (sigma pixels, seam-aware)
+    mean colour of the pixels not hidden; where none lies within reach, the same at 2x, 4x, ... coarser scales
+    (area-downsampled, so the wider means stay cheap)."""
+    h, w = hide.shape
     known = (~hide).astype(np.float32)
-    num, den = np.zeros(rgb.shape, np.float32), np.zeros(hide.shape, np.float32)
-    col = rgb.astype(np.float32) * known[..., None]
+    col, wt = rgb.astype(np.float32) * known[..., None], known
+    out = rgb.astype(np.float32)
     todo = hide.copy()
-    while todo.any() and sigma < rgb.shape[1]:
-        pad = min(int(np.ceil(3 * sigma)) + 1, rgb.shape[1])
-        py = min(pad, rgb.shape[0]) if rgb.shape[1] % 2 == 0 else 0
-        b = [cv2.GaussianBlur(erp_pad(x, pad, py), (0, 0), sigma)[py:py + rgb.shape[0], pad:pad + rgb.shape[1]]
-             for x in (col, known)]
-        ok = todo & (b[1] > 1e-3)
-        num[ok], den[ok] = b[0][ok], b[1][ok]
+    scale = 1
+    while todo.any():
+        pad = int(np.ceil(3 * sigma)) + 1
+        hh, ww = wt.shape
+        py = min(pad, hh) if ww % 2 == 0 else 0
+        num, den = (cv2.GaussianBlur(erp_pad(x, min(pad, ww), py), (0, 0), sigma)[py:py + hh, min(pad, ww):min(pad, ww) + ww]
+                    for x in (col, wt))
+        if scale > 1:
+            num, den = (cv2.resize(x, (w, h), interpolation=cv2.INTER_LINEAR) for x in (num, den))
+        ok = todo & (den > 1e-3)
+        out[ok] = num[ok] / den[ok, None]
         todo &= ~ok
-        sigma *= 2
-    out = np.where(hide[..., None], np.clip(np.rint(num / np.maximum(den, 1e-6)[..., None]), 0, 255), rgb)
-    return out.astype(np.uint8)
+        if min(hh, ww) < 8:
+            out[todo] = (col.reshape(-1, 3).sum(0) / max(float(wt.sum()), 1e-6)) if wt.sum() > 0 else 0
+            break
+        col, wt = (cv2.resize(x, (ww // 2, hh // 2), interpolation=cv2.INTER_AREA) for x in (col, wt))
+        scale *= 2
+    return np.where(hide[..., None], np.clip(np.rint(out), 0, 255), rgb).astype(np.uint8)
 
 
 UPRIGHT_COS = 0.5

@@ -29,6 +29,14 @@ class WarpOptions:
     """A depth edge of the source view grows a background layer only where its foreground is nearer than this
     fraction of the background's depth; smaller steps (shelves in front of books, furniture against a wall) are left
     to the far side's 2D fill (panoworld.inpaint.build_background_layer)."""
+    layout_planes: bool = False
+    """The background layer's depth never lies beyond the floor and ceiling planes fitted to the source depth
+    (panoworld.depth_complete.fit_planes): the hidden floor behind furniture and the ceiling behind a lamp stay on
+    the room's planes (panoworld.inpaint.build_background_layer)."""
+    color_sigma_px: float = param(0.0, ge=0)
+    """> 0: the background layer's colour is the Gaussian-weighted mean (this sigma, source grid pixels) of the
+    visible background around it (panoworld.inpaint.layer_mean_color) instead of Telea inpainting, which streaks
+    across wide bands; 0 = Telea."""
     depth_fill: bool = True
     """Without reuse: holes the background layer does not fill take the depth and colour of their farther side
     (panoworld.inpaint.background_fill), so the Gaussians stage places them; false = a colour-only 2D fill (no depth:
@@ -50,7 +58,8 @@ def fill(job) -> tuple:
         mesh = load_erp_mesh(mesh_dir)
         ratio = float(read_json(mesh_dir / "manifest.json", default={}).get("params", {}).get("max_edge_ratio", 12.0))
         opts = dict(max_band_deg=job.options.max_band_deg, inpaint_radius=job.inpaint_radius, max_edge_ratio=ratio,
-                    side_depth_m=job.options.side_depth_m, edge_depth_ratio=job.options.edge_depth_ratio)
+                    side_depth_m=job.options.side_depth_m, edge_depth_ratio=job.options.edge_depth_ratio,
+                    layout_planes=job.options.layout_planes, color_sigma_px=job.options.color_sigma_px)
         sources = read_home_sources(mesh_dir)
         if sources is not None:  # a home: one layer per source panorama (panoworld/home/inpaint.py)
             layer = home_background_layer(mesh, sources, job.poses, **opts)
