@@ -17,7 +17,9 @@ from panoworld.inpaint import (
     build_background_layer,
     erp_inpaint,
     erp_pad,
+    floor_ceiling,
     frame_inpaint,
+    layer_mean_color,
     max_translation,
     warp_inpaint_video,
 )
@@ -306,3 +308,44 @@ def test_edge_depth_ratio_leaves_small_steps_to_the_2d_fill():
         layer = build_background_layer(mesh, 0.6, edge_depth_ratio=ratio, max_edge_ratio=3.0)  # 96 rows: the small step stretches a face ~4x
         assert layer.synthesized[(x < -0.4) & (d0 < 2.0)].any()  # the deep step keeps its background layer
         assert layer.synthesized[(x > 0.4) & (d0 < 3.6)].any() == flat_layer
+
+
+def test_layout_planes_keep_the_hidden_floor_on_the_floor():
+    # A wide panel 1 m in front of the camera, standing on the floor: the floor behind it is hidden.
+    room = trimesh.creation.box(bounds=[[-3.0, -1.6, -3.0], [3.0, 1.2, 4.0]])
+    panel = trimesh.creation.box(bounds=[[-0.8, 0.2, 1.0], [0.8, 1.2, 1.03]])
+    scene = trimesh.util.concatenate([room, panel])
+    d0 = Raycaster(scene.vertices, scene.faces).render_erp(np.eye(4), H, W).distance.astype(np.float32)
+    assert np.allclose(floor_ceiling(d0, d0 > 0), (1.2, -1.6), atol=0.02)
+    mesh = erp_mesh_from_depth(d0, texture(points_from_depth(d0.astype(np.float64), np.eye(4))))
+    behind = Raycaster(room.vertices, room.faces).render_erp(np.eye(4), H, W).distance
+    y = erp_dirs(H, W, np.float64)[..., 1]
+    errs = {}
+    for layout in (False, True):
+        layer = build_background_layer(mesh, 1.0, layout_planes=layout)
+        s = layer.synthesized & (y > 0.1)  # rays down behind the panel: the hidden floor
+        assert s.sum() > 20
+        errs[layout] = np.abs(layer.layer_depth - behind)[s] / behind[s]
+        if layout:
+            assert (layer.layer_depth[s] * y[s] <= 1.2 * 1.02).all()  # nothing below the floor
+    assert np.quantile(errs[True], 0.9) < 0.01 and np.mean(errs[True] < 0.01) > np.mean(errs[False] < 0.01)
+
+
+def test_layer_mean_color_continues_the_visible_colour_only():
+    rgb = np.zeros((H, W, 3), np.uint8)
+    rgb[:, : W // 2] = (200, 40, 40)
+    rgb[:, W // 2 :] = (40, 40, 200)
+    hide = np.zeros((H, W), bool)
+    hide[30:60, 10:40] = True  # inside the red half
+    hide[:, W - 8 :] = True  # a band at the seam, blue on the left of it, red across the seam
+    hide[:3] = True  # the top rows, far from some known pixels
+    hide[40:50, W // 2 - 20 : W // 2 + 20] = True  # straddles the red / blue border
+    out = layer_mean_color(rgb, hide, 2.0)
+    assert (out[~hide] == rgb[~hide]).all()
+    assert np.abs(out[35:55, 15:35].astype(int) - (200, 40, 40)).max() <= 1  # a wide hole: no bleed, no streaks
+    seam = out[60, W - 8 :].astype(int)  # the seam band: blue near its left edge, red near the wrapped edge
+    assert seam[0, 2] > seam[0, 0] and seam[-1, 0] > seam[-1, 2]
+    mid = out[45, W // 2 - 20 : W // 2 + 20].astype(int)
+    assert mid[0, 0] > 150 and mid[-1, 2] > 150  # each side of the border keeps its own colour
+    everything = layer_mean_color(rgb, np.ones((H, W), bool) & ~(np.arange(W) == 0)[None], 2.0)
+    assert np.isfinite(everything.astype(float)).all() and (everything[:, 0] == rgb[:, 0]).all()
