@@ -1,13 +1,15 @@
 """Prints how well warp-inpaint fills the disoccluded pixels of a synthetic scene's video, against the ground truth.
 
     python bench/bench_warp_fill.py SCENE [--paths 0 2 4 6] [--height 180] [--side-depth 0 0.5] [--reuse]
+        [--variant layout_planes=1,color_sigma_px=2 ...]
 
 SCENE: a synthetic scene (runner.py synth; tune on validation seeds only) run to `conditions` at least. Every frame
 of the chosen paths is filled in path order (as the video stage does) with the default fill, each
 `video.warp.side_depth_m` asked for and each `video.warp.edge_depth_ratio`, (--reuse) `video.warp.reuse`, and its hole pixels (conditions mask 0) are
 scored against the anti-aliased ground truth at the same pose: PSNR over the holes and per true surface (floor /
 walls / ceiling / object side / top / underside: roam.unseen_parts), the share of hole pixels given depth (those
-become Gaussians), the share whose depth is within 10 % of the truth, and the fill time.
+become Gaussians), the share whose depth is within 10 % of the truth, and the fill time; below each row, per source
+(background layer / 2D fill) and per true surface: share of the hole pixels, depth within 10 %, PSNR.
 """
 
 from __future__ import annotations
