@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from panoworld.conventions import erp_dirs, erp_pixel_from_dir, erp_pixel_solid_angle
 from panoworld.cube_views import PerspectiveView, render_view
 from panoworld.errors import InputError
-from panoworld.rig_inpaint import inpaint_plane
+from panoworld.rig_inpaint import inpaint_plane, matte_rim
 from panoworld.rig_shadow import apply_gain, linear_luminance, shadow_gain
 
 FACE_FOV_DEG = 96.0
@@ -391,7 +391,8 @@ def read_user_mask(path: Path, H: int, W: int) -> np.ndarray:
 def remove_rig(rgb: np.ndarray, det: RigDetection) -> np.ndarray:
     """The panorama with the rig inpainted and its shadow relit on the downward face, changed only inside the
     masks (H, W, 3) uint8. The rig: Telea inpainting for the low frequencies plus the texture of the best-matching
-    floor patch elsewhere on the face (the floor is a plane there, so its texture repeats under translation)."""
+    floor patch elsewhere on the face (the floor is a plane there, so its texture repeats under translation); the
+    mask's rim is matted between the rig's colour and the fill (rig_inpaint.matte_rim)."""
     H, W = rgb.shape[:2]
     view = nadir_view(H)
     face = render_view(rgb, view).astype(np.float32)
@@ -402,11 +403,14 @@ def remove_rig(rgb: np.ndarray, det: RigDetection) -> np.ndarray:
     source = det.source if det.source is not None and det.source.shape == obj.shape else np.ones_like(obj)
     clean = inpaint_plane(np.clip(lin, 0, 1) ** (1 / 2.2) * 255.0, obj, source)
     back = face_to_erp(clean, view, H, W)
+    lit = rgb
+    if det.shadow_gain is not None:  # the rim's floor is matted in the relit panorama
+        lit = apply_gain(rgb, face_to_erp(det.shadow_gain, view, H, W, 1.0))
     out = rgb.copy()
-    out[det.mask] = np.clip(np.rint(back[det.mask]), 0, 255).astype(np.uint8)
+    out[det.mask] = np.clip(np.rint(matte_rim(lit, back, det.mask)[det.mask]), 0, 255).astype(np.uint8)
     if det.shadow is not None and det.shadow_gain is not None:  # relit where it is: the texture is not resampled
         sh = det.shadow & ~det.mask
-        out[sh] = apply_gain(rgb[sh], face_to_erp(det.shadow_gain, view, H, W, 1.0)[sh])
+        out[sh] = lit[sh]
     return out
 
 
