@@ -8,16 +8,22 @@ from pathlib import Path
 import cv2
 import numpy as np
 from scipy import ndimage
-from scipy.spatial.transform import Rotation
 
-from panoworld.conventions import erp_dirs, erp_pixel_from_dir, erp_pixel_solid_angle
+from panoworld.conventions import erp_dirs, erp_pixel_solid_angle
 from panoworld.cube_views import PerspectiveView, render_view
 from panoworld.errors import InputError
+from panoworld.rig_face import (
+    FACE_FOV_DEG,
+    erp_mask_to_face,
+    face_depth,
+    face_polar,
+    face_to_erp,
+    face_to_erp_mask,
+    nadir_view,
+)
 from panoworld.rig_inpaint import inpaint_plane, matte_rim
 from panoworld.rig_shadow import apply_gain, leg_shadow_lines, linear_luminance, shadow_gain
 
-FACE_FOV_DEG = 96.0
-"""Field of view of the downward face (48 degrees from the nadir at its sides)."""
 CAP_DEG = 30.0
 """Largest rig: candidates must lie within this angle of the nadir (a tripod's feet reach 15-25 degrees)."""
 RING_DEG = (30.0, 42.0)
@@ -54,26 +60,6 @@ class RigDetection:
     """(size, size) light factor on the downward face that divides the shadow out (1 outside it)."""
     source: np.ndarray | None = None
     """(size, size) face pixels the inpainting may copy floor texture from (floor-coloured, on the floor)."""
-
-
-def nadir_view(height: int) -> PerspectiveView:
-    """The downward face for an ERP of height rows, with about the ERP's angular resolution at the nadir."""
-    size = max(64, int(round(2.0 * np.tan(np.deg2rad(FACE_FOV_DEG / 2)) * height / np.pi)))
-    return PerspectiveView(Rotation.from_euler("x", -90, degrees=True).as_matrix(), FACE_FOV_DEG, size)
-
-
-def face_polar(view: PerspectiveView) -> tuple[np.ndarray, np.ndarray]:
-    """(theta, phi) of every face pixel: degrees from the nadir, azimuth in radians."""
-    c = np.arange(view.size) + 0.5 - 0.5 * view.size
-    x, y = np.meshgrid(c, c)
-    return np.rad2deg(np.arctan(np.hypot(x, y) / view.focal)), np.arctan2(y, x)
-
-
-def _face_depth(depth: np.ndarray, valid: np.ndarray, view: PerspectiveView) -> tuple[np.ndarray, np.ndarray]:
-    u, v = erp_pixel_from_dir(view.rays(), *depth.shape)
-    iu = np.clip(u.astype(int), 0, depth.shape[1] - 1)
-    iv = np.clip(v.astype(int), 0, depth.shape[0] - 1)
-    return depth[iv, iu], valid[iv, iu]
 
 
 def detect_rig(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndarray | None = None,
@@ -116,7 +102,7 @@ def nadir_face(rgb: np.ndarray, depth: np.ndarray | None, valid: np.ndarray | No
     on_floor = np.ones(theta.shape, bool)
     fd = fv = None
     if depth is not None and valid is not None:
-        fd, fv = _face_depth(depth, valid, view)
+        fd, fv = face_depth(depth, valid, view)
         if floor_m:
             drop = fd * np.cos(np.deg2rad(theta))  # vertical distance below the camera
             on_floor = ~fv | (np.abs(drop - floor_m) < 0.05 * floor_m)
@@ -363,33 +349,6 @@ def _horizontal_surface(theta, fd, fv, floor_m) -> float | None:
     return med if TABLE_MIN_GAP_M <= med < 0.95 * floor_m else None
 
 
-def face_to_erp(values: np.ndarray, view: PerspectiveView, H: int, W: int, outside: float = 0.0) -> np.ndarray:
-    """Face values (size, size[, C]) float -> (H, W[, C]) ERP, bilinear; outside where a pixel does not see the face."""
-    out = np.full((H, W, *values.shape[2:]), outside, np.float32)
-    rows = _cap_rows(H, view)
-    px, py, cos = view.project(erp_dirs(H, W, np.float64)[rows])
-    m = cv2.remap(values.astype(np.float32), np.nan_to_num(px, nan=-10).astype(np.float32),
-                  np.nan_to_num(py, nan=-10).astype(np.float32), cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                  borderValue=outside)
-    out[rows] = np.where((cos > 0).reshape(cos.shape + (1,) * (values.ndim - 2)), m, outside)
-    return out
-
-
-def face_to_erp_mask(face_mask: np.ndarray, view: PerspectiveView, H: int, W: int) -> np.ndarray:
-    """A face mask (size, size) bool -> the ERP pixels (H, W) whose centre samples it (> 0.5 bilinear)."""
-    return face_to_erp(face_mask.astype(np.float32), view, H, W) > 0.5
-
-
-def _cap_rows(H: int, view: PerspectiveView) -> slice:
-    """ERP rows that can see the face (from FACE_FOV_DEG / 2 above the nadir, cornered: 56 deg)."""
-    lat0 = np.deg2rad(-90.0 + 56.0)
-    return slice(int(np.floor((0.5 - lat0 / np.pi) * H)), H)
-
-
-def erp_mask_to_face(mask: np.ndarray, view: PerspectiveView) -> np.ndarray:
-    return render_view(np.repeat(mask.astype(np.uint8)[..., None] * 255, 3, axis=2), view)[..., 0] > 127
-
-
 def read_user_mask(path: Path, H: int, W: int) -> np.ndarray:
     """A user rig mask (a 2:1 grayscale image, white = rig) -> (H, W) bool; InputError when not a 2:1 image."""
     m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
@@ -446,11 +405,6 @@ def area_stats(mask: np.ndarray) -> dict:
 
 
 # ---------------------------------------------------------------- the depth stage's step
-
-
-def nadir_crop(rgb: np.ndarray, size: int = 192, fov_deg: float = 70.0) -> np.ndarray:
-    """A small downward view (size, size, 3) of an ERP panorama: the nadir before/after picture of the report."""
-    return render_view(rgb, PerspectiveView(nadir_view(rgb.shape[0]).cam_from_view, fov_deg, size))
 
 
 def rig_step(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, floor_m: float | None, *,

@@ -128,7 +128,8 @@ def test_leg_shadows_are_found_as_a_star_from_the_feet_and_grout_is_not():
     # shadow, one shared point (35 % less light on thin lines, as faint as the development scenes' leg shadows). The
     # lines are found (most of them, little else); without a light the lattice's straight grout is not taken.
     from panoworld.cube_views import PerspectiveView
-    from panoworld.rig import CAP_DEG, FACE_FOV_DEG, face_polar, nadir_view
+    from panoworld.rig import CAP_DEG
+    from panoworld.rig_face import FACE_FOV_DEG, face_polar, nadir_view
     from panoworld.rig_shadow import apply_gain, leg_shadow_lines
 
     view = nadir_view(256)
@@ -306,7 +307,7 @@ def test_learned_detector_is_chosen_by_the_stage_option(tmp_path, plain_dir):
 def _blotchy_floor(dark_share, shadow=None, seed=0):
     """A downward face (180 px, 96 deg) of a cream floor with dark-blue blotches, dark_share(theta) of it blotched,
     times an optional light factor shadow(theta)."""
-    from panoworld.rig import face_polar, nadir_view
+    from panoworld.rig_face import face_polar, nadir_view
 
     view = replace(nadir_view(H), size=180)
     theta, phi = face_polar(view)
