@@ -48,7 +48,7 @@ def main() -> int:
     ap.add_argument("--reuse", action="store_true", help="also video.warp.reuse (default side depth)")
     ap.add_argument("--variant", action="append", default=[],
                     help="KEY=VAL[,KEY=VAL]: keyword arguments of build_background_layer / WarpInpainter (repeatable), "
-                         "e.g. color_sigma_px=4,plane_depth=1; each after the flags' variants")
+                         "e.g. layout_planes=1,color_sigma_px=2; each after the flags' variants")
     ap.add_argument("--stride", type=int, default=1, help="score every n-th frame (all are filled)")
     ap.add_argument("--max-dist", type=float, default=float("inf"),
                     help="score only frames at most this far (m) from the capture point (e.g. 1.5: the ~1 m bucket)")
@@ -76,7 +76,7 @@ def main() -> int:
     for var in variants:
         layer = inpaint.build_background_layer(mesh, inpaint.max_translation(poses),
                                                **{k: v for k, v in var.items() if k not in filler_keys})
-        filler = inpaint.WarpInpainter(layer, **{k: bool(v) if k in ("reuse", "plane_depth", "depth_fill") else v
+        filler = inpaint.WarpInpainter(layer, **{k: bool(v) if k in ("reuse", "depth_fill") else v
                                                  for k, v in var.items() if k in filler_keys})
         se, n = np.zeros(len(UNSEEN_PARTS) + 1), np.zeros(len(UNSEEN_PARTS) + 1, np.int64)
         with_depth = right = holes = 0

@@ -144,7 +144,7 @@ def _surface_normals(points: np.ndarray) -> np.ndarray:
 
 def _grow_into_foreground(
     points: np.ndarray, seeds: np.ndarray, seed_mid: np.ndarray, seed_band: np.ndarray, margin: float,
-    nearest_plane_iters: int = 0, layout: tuple[float, ...] = (),
+    layout: tuple[float, ...] = (),
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Breadth-first growth (8-neighbours, columns wrapped) from background edge pixels seeds (h, w) of the ERP grid
     of points (h, w, 3) into the pixels in front of them: a pixel joins when its depth is below the mean `mid` depth
@@ -152,9 +152,8 @@ def _grow_into_foreground(
 
     Returns steps (h, w) (inf where never reached), reach (h, w), the band of the seeds that reached the pixel
     (growth stops after 2 * band + margin + 2 steps), and the background depth (h, w): the pixel's ray cut with the
-    tangent plane of the seed it came from (nearest_plane_iters > 0: relaxed by _nearest_planes), or, where that ray
-    grazes the plane, the seeds' geometric mean depth; never beyond the horizontal planes y = c of layout (the
-    floor's and the ceiling's heights, y down).
+    tangent plane of the seed it came from, or, where that ray grazes the plane, the seeds' geometric mean depth;
+    never beyond the horizontal planes y = c of layout (the floor's and the ceiling's heights, y down).
     """
     h, w = points.shape[:2]
     pts = points.reshape(-1, 3)
@@ -195,51 +194,16 @@ def _grow_into_foreground(
         steps[front] = k
     bg = np.exp(log_bg)
     dirs = pts / np.maximum(d, 1e-12)[:, None]
-    if nearest_plane_iters:
-        plane = _nearest_planes(plane, dirs, bg, np.isfinite(steps) & (steps > 0), h, w, nearest_plane_iters)
-    t, on_plane = _plane_depth(plane, dirs, bg)
+    cos = (plane[:, :3] * dirs).sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = plane[:, 3] / cos
+    on_plane = (np.abs(cos) > 0.1) & (t > 0.5 * bg) & (t < 2.0 * bg)
     bg = np.where(on_plane, t, bg)
     for c in layout:  # the horizontal planes y = c bound every hidden surface: nothing lies below the floor
         with np.errstate(divide="ignore", invalid="ignore"):
             t = c / dirs[:, 1]
         bg = np.where((np.abs(dirs[:, 1]) > 0.05) & (t > 0), np.minimum(bg, t), bg)
     return steps.reshape(h, w), reach.reshape(h, w), bg.reshape(h, w).astype(np.float32)
-
-
-def _plane_depth(plane: np.ndarray, dirs: np.ndarray, bg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distance t (N,) along unit rays dirs (N, 3) to planes (N, 4: n . x = c), and whether it is usable: the ray
-    does not graze the plane and t lies within [0.5, 2] x the rough background depth bg (N,)."""
-    cos = (plane[:, :3] * dirs).sum(axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = plane[:, 3] / cos
-    return t, (np.abs(cos) > 0.1) & (t > 0.5 * bg) & (t < 2.0 * bg)
-
-
-def _nearest_planes(plane: np.ndarray, dirs: np.ndarray, bg: np.ndarray, grown: np.ndarray, h: int, w: int,
-                    iters: int) -> np.ndarray:
-    """Planes (h * w, 4) of the grown pixels (h * w bool) relaxed: each takes, among its own and its 8 neighbours'
-    planes, the one its ray meets first (usable, _plane_depth), for at most iters rounds. Seen from inside a room, the
-    hidden surface is the nearest of the planes around it (the wall behind a pillar, not the floor continued under it).
-    """
-    idx = np.flatnonzero(grown)
-    if not len(idx):
-        return plane
-    i, j = np.divmod(idx, w)
-    nbrs = np.stack([np.clip(i + di, 0, h - 1) * w + (j + dj) % w for di in (-1, 0, 1) for dj in (-1, 0, 1)])
-    has = np.isfinite(plane).all(axis=1)
-    plane = plane.copy()
-    for _ in range(iters):
-        cand = plane[nbrs]  # (9, G, 4)
-        t, ok = _plane_depth(cand.reshape(-1, 4), np.tile(dirs[idx], (9, 1)), np.tile(bg[idx], 9))
-        t = np.where(ok & has[nbrs].reshape(-1), t, np.inf).reshape(9, -1)
-        best = np.argmin(t, axis=0)
-        ok = np.isfinite(t[best, np.arange(len(idx))])
-        new = cand[best, np.arange(len(idx))]
-        changed = ok & (best != 4)
-        if not changed.any():
-            break
-        plane[idx[changed]] = new[changed]
-    return plane
 
 
 def floor_ceiling(depth: np.ndarray, valid: np.ndarray) -> tuple[float, ...]:
@@ -261,7 +225,6 @@ def build_background_layer(
     side_depth_m: float = 0.0,
     edge_depth_ratio: float = 0.75,
     color_sigma_px: float = 0.0,
-    nearest_plane_iters: int = 0,
     layout_planes: bool = False,
 ) -> BackgroundLayer:
     """Extend the far side of every depth discontinuity of the source view behind its foreground occluder, and
@@ -277,7 +240,8 @@ def build_background_layer(
     ray: depth from the tangent plane of the background at the edge pixel it came from, colour inpainted (Telea,
     seam-aware) with the occluder masked, so both continue the background only; color_sigma_px > 0: instead the
     visible background's Gaussian-weighted mean colour of that sigma (grid pixels; layer_mean_color), no streaks
-    across wide bands. The side faces (side_depth_m > 0) come last among the layer faces.
+    across wide bands. layout_planes: no background depth beyond the floor and ceiling planes fitted to the source
+    depth (floor_ceiling). The side faces (side_depth_m > 0) come last among the layer faces.
     """
     h, w = erp_grid_shape(mesh)
     n = h * w
@@ -314,7 +278,7 @@ def build_background_layer(
         parallax = max_translation * (1.0 / near_of - 1.0 / depth)
     band = np.where(edge, np.minimum(parallax, np.deg2rad(max_band_deg)) / px_angle / cos_lat * 1.2 + 2, 0.0)
     steps, reach, bg_depth = _grow_into_foreground(
-        p.reshape(h, w, 3), edge, 0.5 * (depth + near_of), band, inpaint_radius, int(nearest_plane_iters),
+        p.reshape(h, w, 3), edge, 0.5 * (depth + near_of), band, inpaint_radius,
         floor_ceiling(depth, valid) if layout_planes else (),
     )
     synth = (steps <= reach) & (bg_depth > depth * 1.02)
@@ -365,8 +329,8 @@ def layer_mean_color(rgb: np.ndarray, hide: np.ndarray, sigma: float) -> np.ndar
         pad = int(np.ceil(3 * sigma)) + 1
         hh, ww = wt.shape
         py = min(pad, hh) if ww % 2 == 0 else 0
-        num, den = (cv2.GaussianBlur(erp_pad(x, min(pad, ww), py), (0, 0), sigma)[py:py + hh, min(pad, ww):min(pad, ww) + ww]
-                    for x in (col, wt))
+        px = min(pad, ww)
+        num, den = (cv2.GaussianBlur(erp_pad(x, px, py), (0, 0), sigma)[py:py + hh, px:px + ww] for x in (col, wt))
         if scale > 1:
             num, den = (cv2.resize(x, (w, h), interpolation=cv2.INTER_LINEAR) for x in (num, den))
         ok = todo & (den > 1e-3)
@@ -440,15 +404,14 @@ FOREGROUND_RATIO = 0.85
 """background_fill: a pixel nearer than this fraction of the background depth around a hole is foreground."""
 
 
-def background_fill(rgb: np.ndarray, depth: np.ndarray, hole: np.ndarray, *, radius: float = 3.0, max_window: int = 129,
-                    plane_depth: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def background_fill(rgb: np.ndarray, depth: np.ndarray, hole: np.ndarray, *, radius: float = 3.0, max_window: int = 129
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Depth-aware 2D fill of hole (H, W) in an ERP frame rgb (H, W, 3) uint8 with depth (H, W) metres (0 = unknown):
     the hidden surface continues the farther side of the hole, never its occluder. The hole's rim pixels within
     FOREGROUND_RATIO of the farthest rim depth around them (a window twice as wide as the holes, at most max_window)
     are its background; each hole pixel
     takes the depth and colour of the nearest background rim pixel (seam wrapped), the colour smoothed (Gaussian
-    of sigma radius, seam-aware) over the hole and that rim only; plane_depth: the depth where the pixel's ray meets
-    that rim pixel's tangent plane (rim_plane_depth) instead. Returns (rgb, depth) with only the hole changed;
+    of sigma radius, seam-aware) over the hole and that rim only. Returns (rgb, depth) with only the hole changed;
     depth stays 0 where no rim has depth."""
     from scipy import ndimage
 
@@ -479,8 +442,6 @@ def background_fill(rgb: np.ndarray, depth: np.ndarray, hole: np.ndarray, *, rad
     _, (ii, jj) = ndimage.distance_transform_edt(padded, return_indices=True)
     ii, jj = ii[:, pad:pad + W], (jj[:, pad:pad + W] - pad) % W
     fill_d = np.where(hole, depth[ii, jj], depth).astype(np.float32)
-    if plane_depth:
-        fill_d = np.where(hole, rim_plane_depth(depth, bg_rim, hole, ii, jj, a, H), fill_d).astype(np.float32)
     # colour: the nearest background rim pixel's, smoothed over the hole and that rim only (never the occluder)
     known = (hole | bg_rim).astype(np.float32)
     col = np.where(hole[..., None], rgb[ii, jj], rgb).astype(np.float32) * known[..., None]
@@ -491,28 +452,6 @@ def background_fill(rgb: np.ndarray, depth: np.ndarray, hole: np.ndarray, *, rad
     out_rgb[a:b + 1] = np.where(hole[..., None], np.clip(np.rint(smooth), 0, 255).astype(np.uint8), rgb)
     out_d[a:b + 1] = fill_d
     return out_rgb, out_d
-
-
-def rim_plane_depth(depth: np.ndarray, rim: np.ndarray, hole: np.ndarray, ii: np.ndarray, jj: np.ndarray, row0: int,
-                    H: int, window: int = 5) -> np.ndarray:
-    """Depth (h, W) where each pixel's ray meets the tangent plane of the rim pixel (ii, jj) assigned to it, for a band
-    of rows row0.. of an ERP frame of H rows: depth (h, W) metres, rim / hole (h, W) masks. The plane's normal is
-    the mean of the surface normals (_surface_normals) of the rim pixels in a window x window box around it (one
-    pixel's normal is noisy); where a ray grazes the plane or meets it beyond [0.5, 2] x the rim depth, the rim depth."""
-    h, W = depth.shape
-    dirs = erp_dirs(H, W, np.float64)[row0:row0 + h]
-    pts = dirs * np.where(hole, 0.0, depth)[..., None]
-    normal = _surface_normals(pts) * rim[..., None]
-    normal = cv2.blur(np.concatenate([normal[:, -window:], normal, normal[:, :window]], axis=1), (window, window))
-    normal = normal[:, window:window + W]
-    normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
-    n, d0 = normal[ii, jj], depth[ii, jj]
-    c = (n * pts[ii, jj]).sum(-1)
-    cos = (n * dirs).sum(-1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = c / cos
-    ok = (np.abs(cos) > 0.1) & (t > 0.5 * d0) & (t < 2.0 * d0)
-    return np.where(ok, t, d0)
 
 
 class CommittedPoints:
@@ -569,11 +508,9 @@ class WarpInpainter:
     colour in every frame); rays that hit nothing get the depth-aware 2D fill (background_fill: the far side's depth
     and colour) when the frame has depth and depth_fill, else the colour-only seam-aware 2D fill."""
 
-    def __init__(self, layer: BackgroundLayer, *, inpaint_radius: float = 3.0, reuse: bool = False, depth_fill: bool = True,
-                 plane_depth: bool = False):
+    def __init__(self, layer: BackgroundLayer, *, inpaint_radius: float = 3.0, reuse: bool = False, depth_fill: bool = True):
         self.layer = layer
         self.depth_fill = depth_fill
-        self.plane_depth = plane_depth
         self.inpaint_radius = inpaint_radius
         self._rc = layer.raycaster() if len(layer.faces) else None
         self._colors = layer.colors.astype(np.float32)
@@ -615,12 +552,11 @@ class WarpInpainter:
             filled.reshape(-1)[pix[use]] = True
             rest = hole & ~filled
             if rest.any() and not rest.all():
-                out, out_d = background_fill(out, out_d, rest, radius=self.inpaint_radius,
-                                             plane_depth=self.plane_depth)
+                out, out_d = background_fill(out, out_d, rest, radius=self.inpaint_radius)
                 px = np.flatnonzero(rest)
                 self.committed.add(world_from_cam, px, out_d.reshape(-1)[px], out.reshape(-1, 3)[px], H, W)
         elif rest.any() and not rest.all() and self.depth_fill and depth is not None:
-            out, out_d = background_fill(out, out_d, rest, radius=self.inpaint_radius, plane_depth=self.plane_depth)
+            out, out_d = background_fill(out, out_d, rest, radius=self.inpaint_radius)
         elif rest.any() and not rest.all():
             out = erp_inpaint(out, rest, radius=self.inpaint_radius)
         return FilledFrame(out, out_d, filled, rest)
