@@ -4,7 +4,7 @@ ERP supersampling factors on scenes already run to `poses` (e.g. kept by `bench_
 Each variant is a list of gaussians-stage params (KEY=VALUE, as `--set gaussians.KEY=VALUE`), fused from the scene's
 video and poses artifacts into a temporary directory; `artifact` is the scene's own gaussians.ply. The pseudo-param
 `pole_scale=S` (e.g. `artifact,pole_scale=2`) sets render_gs.ERP_POLE_SCALE, the pole faces of the stage's colour fit
-and of the renders, for that variant only; `pole_radial=0|1` sets render_gs.ERP_POLE_RADIAL_LOWPASS. Tune on the VALIDATION seeds of bench_roam.py (1 2 3), never on its test
+and of the renders, for that variant only. Tune on the VALIDATION seeds of bench_roam.py (1 2 3), never on its test
 seeds.
 
   python bench/bench_gs_variants.py /tmp/roam/seed_1 --variant artifact --supersample 1 2 3
@@ -31,15 +31,11 @@ from panoworld.eval.roam import BUCKETS, sample_roam_poses, source_seen, split_s
 ARTIFACTS = "artifacts"
 
 
-RENDER_KEYS = {"pole_scale": "ERP_POLE_SCALE", "pole_radial": "ERP_POLE_RADIAL_LOWPASS"}
-"""Pseudo-params of a variant: render_gs defaults set for its fit and renders."""
-
-
-def split_variant(variant: str) -> tuple[str, dict[str, float]]:
-    """'KEY=VALUE,...' -> (the gaussians params, {render_gs default: value} of the RENDER_KEYS pseudo-params)."""
-    items = [item.split("=", 1) for item in variant.split(",") if item]
-    render = {RENDER_KEYS[k]: float(v) for k, v in items if k in RENDER_KEYS}
-    return ",".join("=".join(kv) for kv in items if kv[0] not in RENDER_KEYS), render
+def split_variant(variant: str) -> tuple[str, float | None]:
+    """'KEY=VALUE,...' -> (the gaussians params, the pole_scale pseudo-param or None)."""
+    items = [item for item in variant.split(",") if item]
+    pole = [float(item.split("=", 1)[1]) for item in items if item.startswith("pole_scale=")]
+    return ",".join(item for item in items if not item.startswith("pole_scale=")), (pole[-1] if pole else None)
 
 
 def build(scene: Path, variant: str, out: Path) -> tuple[Path, float, float]:
@@ -127,21 +123,20 @@ def main() -> int:
     variants = a.variant or ["artifact"]
     rows = []
     keys = [b.key for b in BUCKETS if not a.buckets or b.key in a.buckets]
-    defaults = {name: getattr(render_gs, name) for name in RENDER_KEYS.values()}
+    default_pole = render_gs.ERP_POLE_SCALE
     print(f"{'scene':<10} {'variant':<34} {'ss':>2} {'N':>8} {'MB':>6} {'fuse s':>6} {'cpu s':>6} {'rend s':>6} "
           + " ".join(f"{k + ' dB':>8} {'cov':>6}" for k in keys) + f" {'vs in':>6}")
     with tempfile.TemporaryDirectory(prefix="gs-variants-") as tmp:
         for scene in a.scenes:
             refs: dict = {}
             for vi, variant in enumerate(variants):
-                params, render = split_variant(variant)
-                for name, value in {**defaults, **render}.items():
-                    setattr(render_gs, name, type(defaults[name])(value))
+                params, pole = split_variant(variant)
+                render_gs.ERP_POLE_SCALE = default_pole if pole is None else pole
                 ply, fuse_s, fuse_cpu_s = build(scene, params, Path(tmp) / scene.name / str(vi))
                 for s in a.supersample:
                     r = measure(scene, ply, s, a.views, a.height, refs, a.buckets)
                     r.update(scene=scene.name, variant=variant, supersample=s, fuse_s=fuse_s, fuse_cpu_s=fuse_cpu_s,
-                             pole_scale=render_gs.ERP_POLE_SCALE, pole_radial=render_gs.ERP_POLE_RADIAL_LOWPASS)
+                             pole_scale=render_gs.ERP_POLE_SCALE)
                     rows.append(r)
 
                     def f(v, p=2):

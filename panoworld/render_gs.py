@@ -133,11 +133,9 @@ def _prepare(g: Gaussians, cam_centre: np.ndarray) -> _Prepared:
 
 def project(
     prep: _Prepared, cam_from_world: np.ndarray, fx: float, fy: float, cx: float, cy: float, H: int, W: int,
-    near: float = 0.01, radial_lowpass: float = 1.0,
+    near: float = 0.01,
 ) -> Projected:
-    """EWA-project prepared Gaussians into a pinhole view; keeps those whose alpha >= 1/255 ellipse meets the image.
-    radial_lowpass: the low-pass dilation's width along the ray from the principal point, in multiples of its width
-    across (an ERP's pole face at k times the size: k keeps its latitude blur at the 1x face's)."""
+    """EWA-project prepared Gaussians into a pinhole view; keeps those whose alpha >= 1/255 ellipse meets the image."""
     R = torch.as_tensor(cam_from_world[:3, :3], dtype=torch.float32)
     t = torch.as_tensor(cam_from_world[:3, 3], dtype=torch.float32)
     pc = prep.means @ R.T + t
@@ -158,13 +156,6 @@ def project(
     a = cov2[:, 0, 0] + LOWPASS
     b = cov2[:, 0, 1]
     c = cov2[:, 1, 1] + LOWPASS
-    if radial_lowpass != 1.0:  # + LOWPASS (k^2 - 1) u u^T, u the unit ray from the principal point
-        u = torch.stack([fx * x / z, fy * y / z], -1)
-        u = u / u.norm(dim=-1, keepdim=True).clamp(min=1e-6)
-        extra = LOWPASS * (radial_lowpass**2 - 1.0)
-        a = a + extra * u[:, 0] ** 2
-        b = b + extra * u[:, 0] * u[:, 1]
-        c = c + extra * u[:, 1] ** 2
     det = a * c - b * b
     opacity = prep.opacity[idx]
     r2 = 2.0 * torch.log(opacity * 255.0)  # o exp(-r2 / 2) = 1/255 on the ellipse's border
@@ -348,10 +339,6 @@ ERP_POLE_SCALE = 1.0
 longitude tan(lat) times more finely than a cube face does there; 2 with the colour fit on the same faces gains 1.4 dB
 at the capture point but shows the splats' soft edges elsewhere (docs/evaluation.md, "The poles at the capture
 point")."""
-ERP_POLE_RADIAL_LOWPASS = False
-"""With pole faces finer than the others: their low-pass dilation keeps the 1x face's width along latitude (radially
-from the pole) and is finer only along the rows, where the ERP samples longitude more finely (project's
-radial_lowpass)."""
 
 
 @dataclass
@@ -364,8 +351,6 @@ class ErpFace:
     c: float
     n: int
     """Face size in pixels (with margin)."""
-    radial_lowpass: float
-    """project's radial_lowpass for this face."""
     index: torch.Tensor
     """(K,) flat indices of the supersampled ERP pixels taken from this face (those nearest its axis)."""
     grid: torch.Tensor
@@ -408,8 +393,7 @@ def erp_faces(world_from_cam: np.ndarray, H: int, W: int, *, face_size: int | No
         d = dirs[index] @ R  # face-frame directions (K, 3)
         z = d[:, 2].clamp(min=1e-6)
         grid = torch.stack([(f * d[:, 0] / z + c) / n * 2 - 1, (f * d[:, 1] / z + c) / n * 2 - 1], -1)
-        radial = S / S0 if ERP_POLE_RADIAL_LOWPASS and name in ("+y", "-y") else 1.0
-        faces.append(ErpFace(world_from_face, f, c, n, radial, index, grid))
+        faces.append(ErpFace(world_from_face, f, c, n, index, grid))
     return faces
 
 
@@ -435,8 +419,7 @@ def render_erp(
     bg = _background(background)
     out = torch.zeros(5, s * H * s * W)
     for fc in faces:
-        proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near,
-                       radial_lowpass=fc.radial_lowpass)
+        proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
         face = rasterize_tiles(proj, fc.n, fc.n, bg, raw=True, distance=True)
         out[:, fc.index] = fc.sample(torch.cat([face.rgb, face.depth[..., None], face.alpha[..., None]], -1))
     out = out.reshape(5, s * H, s * W)
@@ -461,8 +444,7 @@ class ErpColorOperator:
         prep = _prepare(gaussians, np.asarray(world_from_cam, dtype=np.float64)[:3, 3])
         self.weights = []
         for fc in self.faces:
-            proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near,
-                           radial_lowpass=fc.radial_lowpass)
+            proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
             parts: list = []
             rasterize_tiles(proj, fc.n, fc.n, torch.zeros(3), weights=parts)
             pix, gid, w = (torch.cat(x) for x in zip(*parts)) if parts else (torch.zeros(0, dtype=torch.long),) * 3
