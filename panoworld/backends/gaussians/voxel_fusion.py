@@ -17,8 +17,8 @@ class VoxelFusionOptions(FusionParams):
     detail at the capture point); the other frames are voxel-fused only where they see what the source does not."""
     source_height: int = param(640, ge=0)
     """ERP height of the source view's per-pixel Gaussians (0 = that of the other frames); rows near the poles keep
-    every k-th pixel so kept pixels are about square on the sphere. 640 with source_scale 1.9: as sharp as 512 rows at
-    the capture point and +0.6 dB on what it sees from ~1-2 m away (validation seed 1; docs/evaluation.md)."""
+    every k-th pixel so kept pixels are about square on the sphere. 640 (chosen with source_scale 1.9): as sharp as 512
+    rows at the capture point and +0.6 dB on what it sees from ~1-2 m away (validation seed 1; docs/evaluation.md)."""
     source_scale: float = param(2.1, gt=0)
     """Footprint scale of the source's per-pixel Gaussians (scale_factor of the voxel Gaussians otherwise): large
     enough that neighbours leave no see-through cracks between them, small enough to keep the input's detail. 2.1
