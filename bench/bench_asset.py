@@ -27,6 +27,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from panoworld import pipeline as pl
+from panoworld.artifacts import read_manifest
 from panoworld.asset import trajectory_paths
 from panoworld.asset.physics import Agent, BulletScene, drop_test, walk_test, wall_ok, wall_test
 from panoworld.asset.usd import compliance_errors
@@ -73,7 +74,7 @@ def measure(name: str, scene: Path, preset: str | None, as_is: bool = False) -> 
     if res.returncode != 0:
         raise SystemExit(f"{scene}: asset stage failed\n{res.stderr}")
     a = scene / "artifacts" / "asset"
-    info = json.loads((a / "manifest.json").read_text())["info"]
+    info = read_manifest(a)["info"]
     doc = json.loads((a / "asset.json").read_text())
     problems = compliance_errors(a / "scene.usdc")
     ag = doc["agent"]

@@ -80,7 +80,7 @@ def run_one(seed: int, k: int, height: int, work: Path, with_navmesh: bool, scal
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     if proc.returncode != 0:
         raise SystemExit(f"register failed on seed {seed} k {k}:\n{proc.stderr[-2000:]}")
-    manifest = json.loads((out / "manifest.json").read_text())
+    manifest = read_manifest(out)
     est = {n: np.asarray(T) for n, T in json.loads((out / "panoramas.json").read_text()).items()}
     gt = {n: np.asarray(T) for n, T in json.loads((scene / "gt" / "poses.json").read_text()).items()}
     errs = pose_errors(est, gt)

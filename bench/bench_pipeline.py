@@ -5,7 +5,6 @@ PSNR), and optionally the same scene at full size (features and fusion at the st
 from __future__ import annotations
 
 import argparse
-import json
 import resource
 import shutil
 import subprocess
@@ -17,6 +16,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from panoworld import pipeline as pl
+from panoworld.artifacts import read_manifest
 from panoworld.evaluate import EvalParams, evaluate, is_unavailable
 
 REPO = Path(__file__).resolve().parent.parent
@@ -59,14 +59,14 @@ def fidelity(scene: Path) -> dict:
     out: dict = {}
     art = scene / pl.ARTIFACTS_DIRNAME
     try:
-        info = json.loads((art / "poses" / "manifest.json").read_text())["info"]
+        info = read_manifest(art / "poses")["info"]
         m = info.get("metrics_vs_planned") or {}
         out.update(registered=f"{info['num_registered']}/{info['num_frames']}", ate_plan_mm=1000 * m["ate"]
                    if m.get("ate") is not None else None)
     except (OSError, KeyError, ValueError):
         pass
     try:
-        info = json.loads((art / "gaussians" / "manifest.json").read_text())["info"]
+        info = read_manifest(art / "gaussians")["info"]
         out.update(num_gaussians=info["num_gaussians"], self_psnr=info.get("context_psnr"))
     except (OSError, KeyError, ValueError):
         pass

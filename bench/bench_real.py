@@ -30,6 +30,7 @@ sys.path.insert(0, str(REPO))
 import numpy as np
 
 from panoworld import pipeline as pl
+from panoworld.artifacts import read_manifest
 
 REAL = REPO.parent / "shared" / "data" / "real" / "realsee3d_assets"
 ZIND = REPO.parent / "shared" / "data" / "real" / "zind_garage"
@@ -86,7 +87,7 @@ def huge_scene(work: Path) -> Path:
 def stage_info(scene: Path, stage: str) -> dict:
     """A stage's manifest `info` ({} when it has not run)."""
     try:
-        return json.loads((scene / "artifacts" / stage / "manifest.json").read_text())["info"]
+        return read_manifest(scene / "artifacts" / stage)["info"]
     except (OSError, KeyError, ValueError):
         return {}
 

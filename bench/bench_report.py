@@ -6,7 +6,6 @@ time (user+sys of this process, imports included) and the seconds per section; t
 
 from __future__ import annotations
 
-import json
 import resource
 import sys
 import tempfile
@@ -27,6 +26,8 @@ def main() -> int:
     if not (scene / "artifacts").is_dir():
         print(f"error: {scene}: no artifacts/ (run `python runner.py demo` first)", file=sys.stderr)
         return 2
+    from panoworld.artifacts import read_manifest
+    from panoworld.errors import ArtifactError
     from panoworld.report.cli import build_scene_report
 
     timings: dict[str, float] = {}
@@ -37,8 +38,8 @@ def main() -> int:
     info = {}
     for stage in ("conditions", "video", "gaussians"):
         try:
-            info[stage] = json.loads((scene / "artifacts" / stage / "manifest.json").read_text())["info"]
-        except (OSError, ValueError, KeyError):
+            info[stage] = read_manifest(scene / "artifacts" / stage)["info"]
+        except ArtifactError:
             info[stage] = {}
     print(f"scene: {scene}  ({info['video'].get('num_frames', '?')} frames of {info['video'].get('height', '?')}x"
           f"{info['video'].get('width', '?')}, {info['gaussians'].get('num_gaussians', '?')} Gaussians)")

@@ -22,6 +22,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from panoworld import pipeline as pl
+from panoworld.artifacts import read_manifest
 from panoworld.eval.report import jsonable
 from panoworld.eval.roam import BUCKETS, FAR_KEY
 from panoworld.evaluate import EvalParams, evaluate, is_unavailable
@@ -79,7 +80,7 @@ def run_pipeline(scene: Path, preset: str, sets: list[str] = ()) -> dict:
     if not report.ok:
         failed = next(r for r in report.results if r.action == "failed")
         raise RuntimeError(f"{scene}: stage {failed.stage} failed: {failed.reason}")
-    manifests = [json.loads((scene / pl.ARTIFACTS_DIRNAME / r.stage / "manifest.json").read_text())
+    manifests = [read_manifest(scene / pl.ARTIFACTS_DIRNAME / r.stage)
                  for r in report.results]
     return {"wall_s": sum(m.get("wall_s", 0.0) for m in manifests),
             "stages_ran": sum(r.action == "ran" for r in report.results),

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import sys
 import tempfile
@@ -17,6 +16,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from panoworld import inpaint
 from panoworld import pipeline as pl
+from panoworld.artifacts import read_manifest
 from panoworld.conditions import load_conditions
 from panoworld.mesh import load_erp_mesh
 from panoworld.metrics import reprojection_error, ssim_map, video_psnr
@@ -129,7 +129,7 @@ def time_full_size(scene, scene_dir: Path, height: int, frames: int) -> None:
         t0 = time.perf_counter()
         report = pl.run(scene_dir, preset="default", only=["video"], sets=[f"video.upscale={upscale}"], force=True)
         result = next(r for r in report.results if r.stage == "video")
-        info = json.loads((art / "video" / "manifest.json").read_text())["info"]
+        info = read_manifest(art / "video")["info"]
         print(f"  whole video stage, upscale={upscale} (PNG frames + depth, preview.mp4, video.mcap"
               f"{', upscaled/ x2 output' if upscale != 'none' else ''}): {time.perf_counter() - t0:.1f} s wall "
               f"({result.action}); fill {info['fill_s']:.1f} s, upscale {info['upscale_s']:.1f} s, "

@@ -8,16 +8,22 @@ from pathlib import Path
 import cv2
 import numpy as np
 from scipy import ndimage
-from scipy.spatial.transform import Rotation
 
-from panoworld.conventions import erp_dirs, erp_pixel_from_dir, erp_pixel_solid_angle
+from panoworld.conventions import erp_dirs, erp_pixel_solid_angle
 from panoworld.cube_views import PerspectiveView, render_view
 from panoworld.errors import InputError
-from panoworld.rig_inpaint import inpaint_plane
-from panoworld.rig_shadow import apply_gain, linear_luminance, shadow_gain
+from panoworld.rig_face import (
+    FACE_FOV_DEG,
+    erp_mask_to_face,
+    face_depth,
+    face_polar,
+    face_to_erp,
+    face_to_erp_mask,
+    nadir_view,
+)
+from panoworld.rig_inpaint import inpaint_plane, matte_rim
+from panoworld.rig_shadow import apply_gain, leg_shadow_lines, linear_luminance, shadow_gain
 
-FACE_FOV_DEG = 96.0
-"""Field of view of the downward face (48 degrees from the nadir at its sides)."""
 CAP_DEG = 30.0
 """Largest rig: candidates must lie within this angle of the nadir (a tripod's feet reach 15-25 degrees)."""
 RING_DEG = (30.0, 42.0)
@@ -54,26 +60,6 @@ class RigDetection:
     """(size, size) light factor on the downward face that divides the shadow out (1 outside it)."""
     source: np.ndarray | None = None
     """(size, size) face pixels the inpainting may copy floor texture from (floor-coloured, on the floor)."""
-
-
-def nadir_view(height: int) -> PerspectiveView:
-    """The downward face for an ERP of height rows, with about the ERP's angular resolution at the nadir."""
-    size = max(64, int(round(2.0 * np.tan(np.deg2rad(FACE_FOV_DEG / 2)) * height / np.pi)))
-    return PerspectiveView(Rotation.from_euler("x", -90, degrees=True).as_matrix(), FACE_FOV_DEG, size)
-
-
-def face_polar(view: PerspectiveView) -> tuple[np.ndarray, np.ndarray]:
-    """(theta, phi) of every face pixel: degrees from the nadir, azimuth in radians."""
-    c = np.arange(view.size) + 0.5 - 0.5 * view.size
-    x, y = np.meshgrid(c, c)
-    return np.rad2deg(np.arctan(np.hypot(x, y) / view.focal)), np.arctan2(y, x)
-
-
-def _face_depth(depth: np.ndarray, valid: np.ndarray, view: PerspectiveView) -> tuple[np.ndarray, np.ndarray]:
-    u, v = erp_pixel_from_dir(view.rays(), *depth.shape)
-    iu = np.clip(u.astype(int), 0, depth.shape[1] - 1)
-    iv = np.clip(v.astype(int), 0, depth.shape[0] - 1)
-    return depth[iv, iu], valid[iv, iu]
 
 
 def detect_rig(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndarray | None = None,
@@ -116,7 +102,7 @@ def nadir_face(rgb: np.ndarray, depth: np.ndarray | None, valid: np.ndarray | No
     on_floor = np.ones(theta.shape, bool)
     fd = fv = None
     if depth is not None and valid is not None:
-        fd, fv = _face_depth(depth, valid, view)
+        fd, fv = face_depth(depth, valid, view)
         if floor_m:
             drop = fd * np.cos(np.deg2rad(theta))  # vertical distance below the camera
             on_floor = ~fv | (np.abs(drop - floor_m) < 0.05 * floor_m)
@@ -235,10 +221,25 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     obj = _dilate(obj, view) | _cast_shadows(lab, obj > 0, theta, view)
     stats["shadow_deg"] = sh_deg
     mask = face_to_erp_mask(obj, view, H, W)
+    if kind == "legs":
+        mask |= _leg_shadows(rgb, mask, gain, view)
     sh = face_to_erp_mask(gain > 1.0, view, H, W) & ~mask
     if sh.any():
         reason += f" with its shadow ({sh_deg:.0f} deg, up to {1 - 1 / gain.max():.0%} darker)"
     return RigDetection(True, reason, kind, mask, sh, stats, shadow_gain=gain, source=source)
+
+
+def _leg_shadows(rgb: np.ndarray, mask: np.ndarray, gain: np.ndarray, view: PerspectiveView) -> np.ndarray:
+    """ERP pixels of the legs' thin cast shadows (rig_shadow.leg_shadow_lines) on a downward face at twice the
+    resolution (a shadow line is 1-2 ERP pixels wide), relit by the soft shadow's gain; development seeds 100-115:
+    +0.11 dB tripod, +0.07 + shadow (seed 109 +1.0)."""
+    H, W = rgb.shape[:2]
+    fine = PerspectiveView(view.cam_from_view, FACE_FOV_DEG, 2 * view.size)
+    g = cv2.resize(gain, (fine.size, fine.size), interpolation=cv2.INTER_LINEAR)
+    face = apply_gain(render_view(rgb, fine), g)
+    theta, _ = face_polar(fine)
+    lines = leg_shadow_lines(face, theta, erp_mask_to_face(mask, fine), CAP_DEG, 2.0)
+    return face_to_erp_mask(lines, fine, H, W) if lines.any() else np.zeros_like(mask)
 
 
 def _cast_shadows(lab: np.ndarray, obj: np.ndarray, theta: np.ndarray, view: PerspectiveView) -> np.ndarray:
@@ -348,33 +349,6 @@ def _horizontal_surface(theta, fd, fv, floor_m) -> float | None:
     return med if TABLE_MIN_GAP_M <= med < 0.95 * floor_m else None
 
 
-def face_to_erp(values: np.ndarray, view: PerspectiveView, H: int, W: int, outside: float = 0.0) -> np.ndarray:
-    """Face values (size, size[, C]) float -> (H, W[, C]) ERP, bilinear; outside where a pixel does not see the face."""
-    out = np.full((H, W, *values.shape[2:]), outside, np.float32)
-    rows = _cap_rows(H, view)
-    px, py, cos = view.project(erp_dirs(H, W, np.float64)[rows])
-    m = cv2.remap(values.astype(np.float32), np.nan_to_num(px, nan=-10).astype(np.float32),
-                  np.nan_to_num(py, nan=-10).astype(np.float32), cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                  borderValue=outside)
-    out[rows] = np.where((cos > 0).reshape(cos.shape + (1,) * (values.ndim - 2)), m, outside)
-    return out
-
-
-def face_to_erp_mask(face_mask: np.ndarray, view: PerspectiveView, H: int, W: int) -> np.ndarray:
-    """A face mask (size, size) bool -> the ERP pixels (H, W) whose centre samples it (> 0.5 bilinear)."""
-    return face_to_erp(face_mask.astype(np.float32), view, H, W) > 0.5
-
-
-def _cap_rows(H: int, view: PerspectiveView) -> slice:
-    """ERP rows that can see the face (from FACE_FOV_DEG / 2 above the nadir, cornered: 56 deg)."""
-    lat0 = np.deg2rad(-90.0 + 56.0)
-    return slice(int(np.floor((0.5 - lat0 / np.pi) * H)), H)
-
-
-def erp_mask_to_face(mask: np.ndarray, view: PerspectiveView) -> np.ndarray:
-    return render_view(np.repeat(mask.astype(np.uint8)[..., None] * 255, 3, axis=2), view)[..., 0] > 127
-
-
 def read_user_mask(path: Path, H: int, W: int) -> np.ndarray:
     """A user rig mask (a 2:1 grayscale image, white = rig) -> (H, W) bool; InputError when not a 2:1 image."""
     m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
@@ -391,7 +365,8 @@ def read_user_mask(path: Path, H: int, W: int) -> np.ndarray:
 def remove_rig(rgb: np.ndarray, det: RigDetection) -> np.ndarray:
     """The panorama with the rig inpainted and its shadow relit on the downward face, changed only inside the
     masks (H, W, 3) uint8. The rig: Telea inpainting for the low frequencies plus the texture of the best-matching
-    floor patch elsewhere on the face (the floor is a plane there, so its texture repeats under translation)."""
+    floor patch elsewhere on the face (the floor is a plane there, so its texture repeats under translation); the
+    mask's rim is matted between the rig's colour and the fill (rig_inpaint.matte_rim)."""
     H, W = rgb.shape[:2]
     view = nadir_view(H)
     face = render_view(rgb, view).astype(np.float32)
@@ -402,11 +377,14 @@ def remove_rig(rgb: np.ndarray, det: RigDetection) -> np.ndarray:
     source = det.source if det.source is not None and det.source.shape == obj.shape else np.ones_like(obj)
     clean = inpaint_plane(np.clip(lin, 0, 1) ** (1 / 2.2) * 255.0, obj, source)
     back = face_to_erp(clean, view, H, W)
+    lit = rgb
+    if det.shadow_gain is not None:  # the rim's floor is matted in the relit panorama
+        lit = apply_gain(rgb, face_to_erp(det.shadow_gain, view, H, W, 1.0))
     out = rgb.copy()
-    out[det.mask] = np.clip(np.rint(back[det.mask]), 0, 255).astype(np.uint8)
+    out[det.mask] = np.clip(np.rint(matte_rim(lit, back, det.mask)[det.mask]), 0, 255).astype(np.uint8)
     if det.shadow is not None and det.shadow_gain is not None:  # relit where it is: the texture is not resampled
         sh = det.shadow & ~det.mask
-        out[sh] = apply_gain(rgb[sh], face_to_erp(det.shadow_gain, view, H, W, 1.0)[sh])
+        out[sh] = lit[sh]
     return out
 
 
@@ -427,11 +405,6 @@ def area_stats(mask: np.ndarray) -> dict:
 
 
 # ---------------------------------------------------------------- the depth stage's step
-
-
-def nadir_crop(rgb: np.ndarray, size: int = 192, fov_deg: float = 70.0) -> np.ndarray:
-    """A small downward view (size, size, 3) of an ERP panorama: the nadir before/after picture of the report."""
-    return render_view(rgb, PerspectiveView(nadir_view(rgb.shape[0]).cam_from_view, fov_deg, size))
 
 
 def rig_step(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, floor_m: float | None, *,

@@ -12,12 +12,12 @@ from panoworld.rig import (
     RigDetection,
     _dilate,
     face_shadow,
-    face_to_erp_mask,
     floor_source,
     nadir_face,
     no_floor_ring,
     seen_object,
 )
+from panoworld.rig_face import face_to_erp_mask
 from panoworld.rig_shadow import apply_gain
 
 THRESHOLD = 0.5

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 KNOT_DEG = 3.0
@@ -87,3 +88,81 @@ def shadow_gain(face: np.ndarray, rig: np.ndarray, floor: np.ndarray, theta: np.
     if agree < MIN_SECTORS:
         return none[0], 0.0, stats
     return np.where(theta < extent, 1.0 / p_map, 1.0).astype(np.float32), extent, stats
+
+
+LEG_SHADOW_DARK = (0.06, 0.25)
+"""A leg's cast shadow darkens the floor along its line by this share of the local floor's lightness (Lab L) on
+average: fainter is the floor's own texture, darker than any shadow the rig's cast shadows showed (development
+seeds 100-115: 0.08-0.15)."""
+LEG_SHADOW_COVER = 0.6
+"""Share of a shadow line's visible samples that must be darker than the floor around them (by 4 %): a grout line
+or plank seam crossed at an angle is dark only where it crosses."""
+_TAU = 0.05  # darkening per sample that a line must beat to grow (the score's offset)
+
+
+def leg_shadow_lines(face: np.ndarray, theta: np.ndarray, rig: np.ndarray, cap_deg: float, px: float,
+                     samples: int = 100) -> np.ndarray:
+    """The legs' thin cast shadows on a downward view of the floor (face (S, S, 3) uint8, relit; theta degrees from
+    the nadir; rig (S, S) bool the rig's mask; px the view's pixels per base pixel): (S, S) bool, the pixels to
+    inpaint with the rig, empty when no such shadow is seen.
+
+    The physics: a light casts each straight leg's shadow from its foot on the floor to the shadow of the hub, one
+    point H shared by all legs (the view of a plane is a scaled map of it, so these are straight segments). H is
+    searched on a grid reaching a view's width past the view; a star is taken when at least two legs' segments are
+    visibly dark (LEG_SHADOW_DARK, LEG_SHADOW_COVER) and no visible segment contradicts it (a leg whose segment shows
+    plain floor casts no shadow there)."""
+    S = face.shape[0]
+    out = np.zeros((S, S), bool)
+    extent = float(np.percentile(theta[rig], 98)) if rig.any() else 0.0
+    n, lab = cv2.connectedComponents((rig & (theta > 0.55 * extent)).astype(np.uint8), connectivity=8)
+    sizes = np.bincount(lab.ravel(), minlength=n)[1:]
+    feet = []
+    for i in np.argsort(sizes)[::-1][:3] + 1:  # the three legs' outer parts; each foot is its farthest pixel
+        yy, xx = np.nonzero(lab == i)
+        if len(yy) >= 4 * px:
+            j = np.argmax(theta[yy, xx])
+            feet.append((xx[j] + 0.5, yy[j] + 0.5))
+    if len(feet) < 3:
+        return out
+    L = cv2.cvtColor(face, cv2.COLOR_RGB2LAB)[..., 0]
+    local = cv2.medianBlur(L, min(2 * max(7, S // 16) + 1, 255)).astype(np.float32)
+    dark = np.clip(1.0 - L / np.maximum(local, 1.0), -0.3, 0.5).astype(np.float32)
+    visible = (~rig & (theta < cap_deg)).astype(np.uint8)
+
+    def star(hx: np.ndarray, hy: np.ndarray) -> np.ndarray:
+        """Score per candidate H (-inf where the star is not accepted)."""
+        t = np.linspace(0.0, 1.0, samples, dtype=np.float32)
+        total, n_ok = np.zeros(len(hx)), np.zeros(len(hx), int)
+        veto = np.zeros(len(hx), bool)
+        for fx, fy in feet:
+            mx = (fx + (hx[:, None] - fx) * t).astype(np.float32)
+            my = (fy + (hy[:, None] - fy) * t).astype(np.float32)
+            val = cv2.remap(dark, mx, my, cv2.INTER_LINEAR, borderValue=0.0)
+            ok = cv2.remap(visible, mx, my, cv2.INTER_NEAREST, borderValue=0) > 0
+            cnt = ok.sum(1)
+            seen_px = cnt * np.hypot(hx - fx, hy - fy) / samples  # visible length in view pixels
+            mean = (val * ok).sum(1) / np.maximum(cnt, 1)
+            cover = ((val > 0.04) & ok).sum(1) / np.maximum(cnt, 1)
+            good = (mean >= LEG_SHADOW_DARK[0]) & (mean <= LEG_SHADOW_DARK[1]) & (cover >= LEG_SHADOW_COVER)
+            vis = seen_px >= 8 * px
+            n_ok += vis & good
+            veto |= vis & ~good
+            total += (mean - _TAU) * seen_px
+        return np.where((n_ok >= 2) & ~veto, total, -np.inf)
+
+    step = 3.0 * px  # the grid of H, refined to half a pixel around the best
+    g = np.arange(-S, 2 * S, step, dtype=np.float32) + 0.5
+    hx, hy = (a.ravel() for a in np.meshgrid(g, g))
+    score = np.concatenate([star(hx[i:i + 20000], hy[i:i + 20000]) for i in range(0, len(hx), 20000)])
+    if not np.isfinite(score).any():
+        return out
+    k = int(np.argmax(score))
+    d = np.arange(-step, step + 0.25, 0.5, dtype=np.float32)
+    fx_, fy_ = (a.ravel() for a in np.meshgrid(hx[k] + d, hy[k] + d))
+    fine = star(fx_, fy_)
+    H = (fx_[int(np.argmax(fine))], fy_[int(np.argmax(fine))]) if np.isfinite(fine).any() else (hx[k], hy[k])
+    band = np.zeros((S, S), np.uint8)
+    for fx, fy in feet:
+        cv2.line(band, (int(round(fx * 16)), int(round(fy * 16))), (int(round(H[0] * 16)), int(round(H[1] * 16))), 1,
+                 thickness=int(round(3 * px)), lineType=cv2.LINE_8, shift=4)
+    return (band > 0) & (dark > 0.03) & (visible > 0)

@@ -135,7 +135,7 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
     info.update(c.info)
     info["decisions"] = notes + c.notes
     if c.rig is not None and c.rig.found:
-        from panoworld.rig import nadir_crop
+        from panoworld.rig_face import nadir_crop
 
         cv2.imwrite(str(out_dir / "rig_mask.png"), c.rig.mask.astype(np.uint8) * 255)
         crops = np.concatenate([nadir_crop(rgb), nadir_crop(c.rgb)], axis=1)

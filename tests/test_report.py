@@ -183,3 +183,15 @@ def test_footprint_rings_outline_only_what_reaches_into_the_band():
     assert len(rings) == 1 and np.abs(pts[:, 0] - 1.0).max() < 3 * view.cell  # the wall's line at x = 1 ...
     assert pts[:, 1].min() < -0.9 and pts[:, 1].max() > 0.9  # ... along its whole length; the floor is not drawn
     assert footprint_rings(v, f, view, 3.0, 4.0) == []
+
+
+def test_missing_pictures_are_skipped_quietly(tmp_path, capfd):
+    """A picture a stage did not write (no capture rig: no nadir before/after) is no picture, and no OpenCV warning
+    in the user's terminal."""
+    from panoworld.report import encode
+
+    (tmp_path / "broken.jpg").write_bytes(b"not a jpeg")
+    assert encode.read_rgb(tmp_path / "nadir_before_after.jpg") is None
+    assert encode.read_gray(tmp_path / "valid.png") is None
+    assert capfd.readouterr().err == ""
+    assert encode.read_rgb(tmp_path / "broken.jpg") is None

@@ -15,7 +15,7 @@ TURBO = cv2.COLORMAP_TURBO
 
 def read_rgb(path: Path, max_width: int | None = None) -> np.ndarray | None:
     """(H, W, 3) uint8 RGB of an image file, shrunk to max_width (aspect kept); None when missing or unreadable."""
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR) if Path(path).is_file() else None
     if img is None:
         return None
     return shrink(img[..., ::-1], max_width)
@@ -23,7 +23,7 @@ def read_rgb(path: Path, max_width: int | None = None) -> np.ndarray | None:
 
 def read_gray(path: Path, max_width: int | None = None) -> np.ndarray | None:
     """(H, W) uint8 (or uint16 for 16-bit PNGs) of an image file; None when missing or unreadable."""
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if Path(path).is_file() else None
     if img is None:
         return None
     if img.ndim == 3:

@@ -23,18 +23,18 @@ class RigSample:
 def rig_samples(seed: int, height: int = 256) -> list[RigSample]:
     """The five cases of one synthetic scene on its downward face: tripod, tripod-shadow (targets: the rig's own
     pixels, not its shadow), none, rug, stool (empty targets)."""
-    from panoworld import rig
+    from panoworld.rig_face import erp_mask_to_face, nadir_view
     from panoworld.synth import generate_scene
     from panoworld.synth.rig import FloorObject, RigKind, render_with_rig, with_floor_object
 
     scene = generate_scene(seed, "ci-tiny")
-    view = rig.nadir_view(height)
+    view = nadir_view(height)
     clean, cdepth = scene.render(scene.world_from_canonical, height, 2 * height)
     out = [RigSample(render_view(clean, view), np.zeros((view.size,) * 2, bool), "none", seed)]
     for kind in (RigKind.TRIPOD, RigKind.TRIPOD_SHADOW):
         rgb, depth, _ = render_with_rig(scene, kind, height)
         geom = depth < cdepth - 1e-3
-        out.append(RigSample(render_view(rgb, view), rig.erp_mask_to_face(geom, view), str(kind), seed))
+        out.append(RigSample(render_view(rgb, view), erp_mask_to_face(geom, view), str(kind), seed))
     for kind in (FloorObject.RUG, FloorObject.STOOL):
         s = with_floor_object(scene, kind)
         rgb, _ = s.render(s.world_from_canonical, height, 2 * height)
