@@ -2,11 +2,14 @@
 ERP supersampling factors on scenes already run to `poses` (e.g. kept by `bench_roam.py --out DIR`).
 
 Each variant is a list of gaussians-stage params (KEY=VALUE, as `--set gaussians.KEY=VALUE`), fused from the scene's
-video and poses artifacts into a temporary directory; `artifact` is the scene's own gaussians.ply. Tune on the
-VALIDATION seeds of bench_roam.py (1 2 3), never on its test seeds.
+video and poses artifacts into a temporary directory; `artifact` is the scene's own gaussians.ply. The pseudo-param
+`pole_scale=S` (e.g. `artifact,pole_scale=2`) sets render_gs.ERP_POLE_SCALE, the pole faces of the stage's colour fit
+and of the renders, for that variant only. Tune on the VALIDATION seeds of bench_roam.py (1 2 3), never on its test
+seeds.
 
   python bench/bench_gs_variants.py /tmp/roam/seed_1 --variant artifact --supersample 1 2 3
   python bench/bench_gs_variants.py /tmp/roam/seed_1 --variant source_height=256 --variant source_height=512
+  python bench/bench_gs_variants.py /tmp/roam/seed_1 --variant pole_scale=2,source_scale=2.1,fit_height=512
 """
 
 from __future__ import annotations
@@ -28,10 +31,18 @@ from panoworld.eval.roam import BUCKETS, sample_roam_poses, source_seen, split_s
 ARTIFACTS = "artifacts"
 
 
-def build(scene: Path, variant: str, out: Path) -> tuple[Path, float]:
-    """The variant's gaussians.ply (fused into `out` unless 'artifact') and its fusion seconds (0 for 'artifact')."""
+def split_variant(variant: str) -> tuple[str, float | None]:
+    """'KEY=VALUE,...' -> (the gaussians params, the pole_scale pseudo-param or None)."""
+    items = [item for item in variant.split(",") if item]
+    pole = [float(item.split("=", 1)[1]) for item in items if item.startswith("pole_scale=")]
+    return ",".join(item for item in items if not item.startswith("pole_scale=")), (pole[-1] if pole else None)
+
+
+def build(scene: Path, variant: str, out: Path) -> tuple[Path, float, float]:
+    """The variant's gaussians.ply (fused into `out` unless 'artifact') and its fusion wall and CPU seconds (0 for
+    'artifact')."""
     if variant == "artifact":
-        return scene / ARTIFACTS / "gaussians" / "gaussians.ply", 0.0
+        return scene / ARTIFACTS / "gaussians" / "gaussians.ply", 0.0, 0.0
     import yaml
 
     from panoworld.stage import params_from_dict
@@ -43,9 +54,9 @@ def build(scene: Path, variant: str, out: Path) -> tuple[Path, float]:
     except ValueError as e:
         raise SystemExit(str(e)) from None
     out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     run({"video": scene / ARTIFACTS / "video", "poses": scene / ARTIFACTS / "poses"}, params, out)
-    return out / "gaussians.ply", time.perf_counter() - t0
+    return out / "gaussians.ply", time.perf_counter() - t0, time.process_time() - c0
 
 
 def measure(scene: Path, ply: Path, supersample: int, views: int, height: int, refs: dict,
@@ -106,27 +117,33 @@ def main() -> int:
     a = ap.parse_args()
     import torch
 
+    from panoworld import render_gs
+
     torch.set_num_threads(1)
     variants = a.variant or ["artifact"]
     rows = []
     keys = [b.key for b in BUCKETS if not a.buckets or b.key in a.buckets]
-    print(f"{'scene':<10} {'variant':<34} {'ss':>2} {'N':>8} {'MB':>6} {'fuse s':>6} {'rend s':>6} "
+    default_pole = render_gs.ERP_POLE_SCALE
+    print(f"{'scene':<10} {'variant':<34} {'ss':>2} {'N':>8} {'MB':>6} {'fuse s':>6} {'cpu s':>6} {'rend s':>6} "
           + " ".join(f"{k + ' dB':>8} {'cov':>6}" for k in keys) + f" {'vs in':>6}")
     with tempfile.TemporaryDirectory(prefix="gs-variants-") as tmp:
         for scene in a.scenes:
             refs: dict = {}
             for vi, variant in enumerate(variants):
-                ply, fuse_s = build(scene, variant, Path(tmp) / scene.name / str(vi))
+                params, pole = split_variant(variant)
+                render_gs.ERP_POLE_SCALE = default_pole if pole is None else pole
+                ply, fuse_s, fuse_cpu_s = build(scene, params, Path(tmp) / scene.name / str(vi))
                 for s in a.supersample:
                     r = measure(scene, ply, s, a.views, a.height, refs, a.buckets)
-                    r.update(scene=scene.name, variant=variant, supersample=s, fuse_s=fuse_s)
+                    r.update(scene=scene.name, variant=variant, supersample=s, fuse_s=fuse_s, fuse_cpu_s=fuse_cpu_s,
+                             pole_scale=render_gs.ERP_POLE_SCALE)
                     rows.append(r)
 
                     def f(v, p=2):
                         return "n/a" if v is None else f"{v:.{p}f}"
 
                     print(f"{scene.name:<10} {variant:<34} {s:>2} {r['gaussians']:>8} {r['ply_mb']:6.1f} "
-                          f"{fuse_s:6.1f} {r['render_s']:6.2f} "
+                          f"{fuse_s:6.1f} {fuse_cpu_s:6.1f} {r['render_s']:6.2f} "
                           + " ".join(f"{f(r.get(k + '_psnr')):>8} {f(r.get(k + '_cov'), 4):>6}" for k in keys)
                           + f" {f(r.get('d0_vs_input')):>6}", flush=True)
                     print(f"{'':<10} {'seen / unseen dB, unseen px, err share':<34} "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from collections import defaultdict
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -274,7 +275,10 @@ def test_stage_writes_a_valid_artifact(tmp_path, room):
     assert capped["fusion_height"] == 32 and capped["num_observations"] < 0.3 * info["num_observations"]
     assert capped["color_fit"] is None
     # source_scale sizes the per-pixel Gaussians of the source only (they come first in the .ply)
-    wide = execute_stage(spec, {"video": video, "poses": poses}, _params(voxel_size=0.05, eval_views=0, source_scale=3.8),
+    from panoworld.backends.gaussians.voxel_fusion import VoxelFusionOptions
+
+    wide = execute_stage(spec, {"video": video, "poses": poses},
+                         _params(voxel_size=0.05, eval_views=0, source_scale=2 * VoxelFusionOptions().source_scale),
                          tmp_path / "wide", input_digests={"video": "0" * 64, "poses": "1" * 64})["info"]
     g0, g1 = read_gaussians_ply(out / "gaussians.ply"), read_gaussians_ply(tmp_path / "wide" / "gaussians.ply")
     n = info["num_source_gaussians"]
@@ -328,8 +332,10 @@ def test_a_scene_smaller_than_a_voxel_is_reported(tmp_path):
 
 
 def test_source_pixels_reproduce_the_input_at_the_capture_point():
-    # The source view's per-pixel Gaussians give back its own (textured) image within a PSNR bound of the anti-aliased
-    # reference, and the other frames still fill the room for a view elsewhere.
+    # The source view's per-pixel Gaussians (the stage's footprint, unfitted as for a home) give back its own
+    # (textured) image within a PSNR bound of the anti-aliased reference, and the other frames still fill the room for
+    # a view elsewhere.
+    from panoworld.backends.gaussians.voxel_fusion import VoxelFusionOptions
     from panoworld.pixel_gaussians import SourceVisibility, merge_gaussians, pixel_gaussians
 
     room = _room_renderer(textured_color)
@@ -339,7 +345,8 @@ def test_source_pixels_reproduce_the_input_at_the_capture_point():
     rgb0, d0, _ = frames[0]
     vis = SourceVisibility(d0, ctx[0], 0.03)
     voxels = voxel_fusion(frames[1:], fp, keep_points=lambda p: ~vis.explained(p)).gaussians
-    g = merge_gaussians([pixel_gaussians(rgb0, d0, ctx[0], fp), voxels])
+    g = merge_gaussians([pixel_gaussians(rgb0, d0, ctx[0], replace(fp, scale_factor=VoxelFusionOptions().source_scale)),
+                         voxels])
     plain = voxel_fusion(frames, fp).gaussians
 
     def score(gs, pose, H):  # against an anti-aliased reference: 4x supersampled, area-downsampled

@@ -17,11 +17,12 @@ class VoxelFusionOptions(FusionParams):
     detail at the capture point); the other frames are voxel-fused only where they see what the source does not."""
     source_height: int = param(640, ge=0)
     """ERP height of the source view's per-pixel Gaussians (0 = that of the other frames); rows near the poles keep
-    every k-th pixel so kept pixels are about square on the sphere. 640 with source_scale 1.9: as sharp as 512 rows at
-    the capture point and +0.6 dB on what it sees from ~1-2 m away (validation seed 1; docs/evaluation.md)."""
-    source_scale: float = param(1.9, gt=0)
+    every k-th pixel so kept pixels are about square on the sphere. 640 (chosen with source_scale 1.9): as sharp as 512
+    rows at the capture point and +0.6 dB on what it sees from ~1-2 m away (validation seed 1; docs/evaluation.md)."""
+    source_scale: float = param(2.1, gt=0)
     """Footprint scale of the source's per-pixel Gaussians (scale_factor of the voxel Gaussians otherwise): large
-    enough that neighbours leave no see-through cracks between them, small enough to keep the input's detail."""
+    enough that neighbours leave no see-through cracks between them, small enough to keep the input's detail. 2.1
+    (was 1.9) with the 2x pole faces, whose finer dilation shows the cracks (validation seeds 1-3)."""
     unseen_voxel_size: float = param(0.04, ge=0)
     """With source_pixels: voxel edge (metres) of what the other frames see that the source does not (0 =
     voxel_size). That is the generated (disoccluded) content, softer than the input: 4 cm voxels hold it with fewer,
@@ -34,8 +35,10 @@ class VoxelFusionOptions(FusionParams):
     geometry the ERP render there is linear in the Gaussians' colours, which are refitted (least squares, damped
     towards their fused values) so it reproduces the source frame, undoing the blur of overlapping splats
     (docs/evaluation.md, "Colour fit at the capture point"). Not applied to a home's panoramas."""
-    fit_height: int = param(0, ge=0)
-    """ERP height of that fit's render and target (0 = source_height)."""
+    fit_height: int = param(512, ge=0)
+    """ERP height of that fit's render and target (0 = source_height). 512: its cube faces are those of a 256-row
+    render supersampled 2x (the roam protocol's), +1.4 dB at the capture point with the 2x pole faces
+    (docs/evaluation.md, "The poles at the capture point")."""
 
 
 def fuse(job):
