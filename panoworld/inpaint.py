@@ -38,6 +38,15 @@ def erp_pad(img: np.ndarray, pad_x: int, pad_y: int = 0) -> np.ndarray:
     return img
 
 
+def erp_gaussian_blur(img: np.ndarray, sigma: float, *, across_poles: bool) -> np.ndarray:
+    """img (h, w[, C]) float32 blurred by a Gaussian of sigma pixels, columns wrapped at the seam and, across_poles
+    (w even), rows continued across the poles (erp_pad); the same shape back."""
+    h, w = img.shape[:2]
+    pad = int(np.ceil(3 * sigma)) + 1
+    px, py = min(pad, w), (min(pad, h) if across_poles and w % 2 == 0 else 0)
+    return cv2.GaussianBlur(erp_pad(img, px, py), (0, 0), sigma)[py:py + h, px:px + w]
+
+
 def erp_inpaint(img: np.ndarray, mask: np.ndarray, *, radius: float = 3.0, pad_frac: float = 0.25) -> np.ndarray:
     """cv2.inpaint (Telea) of an ERP image (H, W, 3) uint8 or (H, W) uint16/float where mask (H, W) is True,
     seam-aware: the image is padded by pad_frac * W wrapped columns and mirrored polar rows, so fills continue
@@ -326,11 +335,8 @@ def layer_mean_color(rgb: np.ndarray, hide: np.ndarray, sigma: float) -> np.ndar
     todo = hide.copy()
     scale = 1
     while todo.any():
-        pad = int(np.ceil(3 * sigma)) + 1
         hh, ww = wt.shape
-        py = min(pad, hh) if ww % 2 == 0 else 0
-        px = min(pad, ww)
-        num, den = (cv2.GaussianBlur(erp_pad(x, px, py), (0, 0), sigma)[py:py + hh, px:px + ww] for x in (col, wt))
+        num, den = (erp_gaussian_blur(x, sigma, across_poles=True) for x in (col, wt))
         if scale > 1:
             num, den = (cv2.resize(x, (w, h), interpolation=cv2.INTER_LINEAR) for x in (num, den))
         ok = todo & (den > 1e-3)
@@ -425,7 +431,7 @@ def background_fill(rgb: np.ndarray, depth: np.ndarray, hole: np.ndarray, *, rad
     thick = float(ndimage.distance_transform_edt(hole[r0:r1 + 1]).max())  # half the widest hole's width
     window = int(min(4 * thick + 3, max_window))
     sigma = max(radius, 1.0)
-    pad_x = pad_y = int(np.ceil(3 * sigma)) + 1
+    pad_y = int(np.ceil(3 * sigma)) + 1  # erp_gaussian_blur's padding across the poles
     reach = max(window // 2, int(np.ceil(4 * sigma))) + 2  # the maximum filter's and the blur kernel's half-widths
     a, b = r0 - reach - pad_y, r1 + reach + pad_y
     polar = a < 0 or b > H - 1 or W % 2  # near a pole: the whole frame, padded across the poles
@@ -445,9 +451,7 @@ def background_fill(rgb: np.ndarray, depth: np.ndarray, hole: np.ndarray, *, rad
     # colour: the nearest background rim pixel's, smoothed over the hole and that rim only (never the occluder)
     known = (hole | bg_rim).astype(np.float32)
     col = np.where(hole[..., None], rgb[ii, jj], rgb).astype(np.float32) * known[..., None]
-    py = pad_y if polar and W % 2 == 0 else 0
-    blur = [cv2.GaussianBlur(erp_pad(x, pad_x, py), (0, 0), sigma) for x in (col, known)]
-    num, den = (x[py:py + len(hole), pad_x:pad_x + W] for x in blur)
+    num, den = (erp_gaussian_blur(x, sigma, across_poles=polar) for x in (col, known))
     smooth = num / np.maximum(den, 1e-6)[..., None]
     out_rgb[a:b + 1] = np.where(hole[..., None], np.clip(np.rint(smooth), 0, 255).astype(np.uint8), rgb)
     out_d[a:b + 1] = fill_d

@@ -22,7 +22,7 @@ from panoworld.rig_face import (
     nadir_view,
 )
 from panoworld.rig_inpaint import inpaint_plane, matte_rim
-from panoworld.rig_shadow import apply_gain, leg_shadow_lines, linear_luminance, shadow_gain
+from panoworld.rig_shadow import apply_gain, leg_shadow_lines, linear_luminance, local_lightness, shadow_gain
 
 CAP_DEG = 30.0
 """Largest rig: candidates must lie within this angle of the nadir (a tripod's feet reach 15-25 degrees)."""
@@ -218,7 +218,7 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
         hub = np.argwhere(comp & (theta < 0.4 * extent))[:, ::-1].astype(np.int32)
         if len(hub) >= 3:
             cv2.fillConvexPoly(obj, cv2.convexHull(hub), 1)
-    obj = _dilate(obj, view) | _cast_shadows(lab, obj > 0, theta, view)
+    obj = _dilate(obj, view) | _cast_shadows(lab, obj > 0, theta)
     stats["shadow_deg"] = sh_deg
     mask = face_to_erp_mask(obj, view, H, W)
     if kind == "legs":
@@ -242,13 +242,11 @@ def _leg_shadows(rgb: np.ndarray, mask: np.ndarray, gain: np.ndarray, view: Pers
     return face_to_erp_mask(lines, fine, H, W) if lines.any() else np.zeros_like(mask)
 
 
-def _cast_shadows(lab: np.ndarray, obj: np.ndarray, theta: np.ndarray, view: PerspectiveView) -> np.ndarray:
+def _cast_shadows(lab: np.ndarray, obj: np.ndarray, theta: np.ndarray) -> np.ndarray:
     """Floor pixels within CAP_DEG at least 15 % darker than the floor around them and connected to the rig: the
     legs' own cast shadows from the room's lights (inpainted with the rig)."""
-    win = 2 * max(7, view.size // 16) + 1
     L = lab[..., 0]
-    local = cv2.medianBlur(L, min(win, 255)).astype(np.float32)
-    dark = ((L < CAST_RATIO * local) & (theta < CAP_DEG)).astype(np.uint8)
+    dark = ((L < CAST_RATIO * local_lightness(L)) & (theta < CAP_DEG)).astype(np.uint8)
     _, labels = cv2.connectedComponents(dark | obj.astype(np.uint8), connectivity=8)
     keep = np.unique(labels[obj])
     return np.isin(labels, keep[keep > 0]) & (dark > 0)

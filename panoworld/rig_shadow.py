@@ -90,6 +90,12 @@ def shadow_gain(face: np.ndarray, rig: np.ndarray, floor: np.ndarray, theta: np.
     return np.where(theta < extent, 1.0 / p_map, 1.0).astype(np.float32), extent, stats
 
 
+def local_lightness(L: np.ndarray) -> np.ndarray:
+    """The floor's lightness around each pixel of a downward view's Lab L (S, S) uint8: the median over a window of
+    about a sixteenth of the view (at least 15 px), which thin legs, their shadows and grout do not move; float32."""
+    return cv2.medianBlur(L, min(2 * max(7, L.shape[0] // 16) + 1, 255)).astype(np.float32)
+
+
 LEG_SHADOW_DARK = (0.06, 0.25)
 """A leg's cast shadow darkens the floor along its line by this share of the local floor's lightness (Lab L) on
 average: fainter is the floor's own texture, darker than any shadow the rig's cast shadows showed (development
@@ -125,7 +131,7 @@ def leg_shadow_lines(face: np.ndarray, theta: np.ndarray, rig: np.ndarray, cap_d
     if len(feet) < 3:
         return out
     L = cv2.cvtColor(face, cv2.COLOR_RGB2LAB)[..., 0]
-    local = cv2.medianBlur(L, min(2 * max(7, S // 16) + 1, 255)).astype(np.float32)
+    local = local_lightness(L)
     dark = np.clip(1.0 - L / np.maximum(local, 1.0), -0.3, 0.5).astype(np.float32)
     visible = (~rig & (theta < cap_deg)).astype(np.uint8)
 
