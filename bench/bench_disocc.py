@@ -73,15 +73,16 @@ def oracle_poses(scene: Path, video: Path, out: Path) -> Path:
     """A copy of the scene's poses artifact whose depth maps are the (oracle) video's: the Gaussians stage fuses the
     poses artifact's depth, not the video's."""
     from panoworld.io.video import read_video_doc
+    from panoworld.poses import load_poses
+    from panoworld.video_io import DEPTH_SCALE
 
     shutil.copytree(scene / ARTIFACTS / "poses", out, ignore=shutil.ignore_patterns("*.mcap"))
-    doc = json.loads((out / "poses.json").read_text())
     vdoc = read_video_doc(video)
-    if abs(float(doc.get("depth_scale", 0.001)) - float(vdoc.depth_scale)) > 1e-12:
-        raise SystemExit(f"{out}: depth scale differs from the video's; cannot put the oracle depth in")
-    for k, f in enumerate(doc.get("frames", [])):
-        if f.get("depth") and vdoc.depth[k] is not None:
-            shutil.copyfile(vdoc.depth[k], out / f["depth"])
+    if abs(float(vdoc.depth_scale) - DEPTH_SCALE) > 1e-12:
+        raise SystemExit(f"{video}: depth scale differs from the poses artifact's; cannot put the oracle depth in")
+    for k, path in enumerate(load_poses(out).depth or []):
+        if vdoc.depth[k] is not None:
+            shutil.copyfile(vdoc.depth[k], path)
     return out
 
 
