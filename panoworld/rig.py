@@ -36,6 +36,10 @@ HUB_DEG = 6.0
 """Anomalous regions reaching this close to the nadir are candidates (the mount and the roots of the legs)."""
 TABLE_MIN_GAP_M = 0.3
 """A horizontal surface at least this far below the camera (and above the floor) is a seen object, not the mount."""
+MIN_LEG_WIDTH_DEG = 0.6
+"""Tripod legs are at least this wide (mean over the arms' outer half; a leg 1.5-4 cm across seen from 0.6-1.7 m:
+>= 1 degree; development tripods at 256 and 720 rows >= 1.05); the dark lines of a tiled or planked floor (grout,
+seams: 2-10 mm at the floor, <= 0.4 degrees, found in dashes) measure <= 0.33 on the rig-free grout controls."""
 CAST_RATIO = 0.9
 """Floor pixels darker than this share of the floor around them (Lab L) and connected to the rig are its cast
 shadows (inpainted with it; 0.85 missed the legs' and column's shadows from the room's lights on development seeds)."""
@@ -194,6 +198,7 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     occ_in, arms_in = _azimuth_occupancy(p[(t > 0.3 * extent) & (t < 0.7 * extent)])
     occ_out, arms_out = _azimuth_occupancy(p[(t > 0.45 * extent) & (t < 0.85 * extent)])
     stats.update(occupancy_inner=occ_in, occupancy_outer=occ_out, arms=arms_out)
+    stats["arm_width_deg"] = arm_width_deg(comp, theta, view, extent, arms_out)
     refusal = seen_object(nf, comp, floor_m)
     if refusal is not None:
         refusal.stats = {**stats, **refusal.stats}
@@ -204,11 +209,17 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     stats["centroid_offset"] = off
     kind = reason = None
     hub_seen = bool((t < HUB_DEG / 2).any())
-    if 3 <= arms_out <= 6 and occ_out <= 0.5 and extent >= 6.0 and hub_seen and off < 0.5 and stats["darkness"] > 0.2:
+    arms = 3 <= arms_out <= 6 and occ_out <= 0.5 and extent >= 6.0 and hub_seen and off < 0.5 and stats["darkness"] > 0.2
+    thin = arms and stats["arm_width_deg"] < MIN_LEG_WIDTH_DEG
+    if arms and not thin:
         kind, reason = "legs", f"{arms_out} thin arms from a hub at the nadir out to {extent:.1f} deg (tripod legs)"
     elif occ_in >= 0.9 and off < 0.35 and extent >= max(2.0, 3 * px_deg):
         if extent <= MOUNT_MAX_DEG:
             kind, reason = "mount", f"a solid blob centred on the nadir, {extent:.1f} deg, unlike the floor (camera mount)"
+    if kind is None and thin:
+        return RigDetection(False, f"{arms_out} arms from the nadir out to {extent:.1f} deg but only "
+                            f"{stats['arm_width_deg']:.2f} deg wide (a tripod leg: >= {MIN_LEG_WIDTH_DEG} deg): lines of "
+                            "the floor's texture (grout, plank seams), kept", stats=stats)
     if kind is None:
         return RigDetection(False, f"a {extent:.1f} deg region at the nadir that is neither tripod legs nor a centred "
                             f"mount (occupancy {occ_in:.2f}/{occ_out:.2f}, {arms_out} arms, "
@@ -227,6 +238,17 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     if sh.any():
         reason += f" with its shadow ({sh_deg:.0f} deg, up to {1 - 1 / gain.max():.0%} darker)"
     return RigDetection(True, reason, kind, mask, sh, stats, shadow_gain=gain, source=source)
+
+
+def arm_width_deg(comp: np.ndarray, theta: np.ndarray, view: PerspectiveView, extent: float, arms: int) -> float:
+    """Mean angular width (degrees) of a candidate's arms between 45 % and 85 % of its extent: their area on the
+    face over arms x the band's radial length (dashes along a line count as a thinner arm)."""
+    if arms == 0:
+        return 0.0
+    band = comp & (theta > 0.45 * extent) & (theta < 0.85 * extent)
+    t0, t1 = np.deg2rad(0.45 * extent), np.deg2rad(0.85 * extent)
+    length = view.focal * (np.tan(t1) - np.tan(t0))
+    return float(np.rad2deg(band.sum() / max(arms * length, 1e-9) / view.focal))
 
 
 def _leg_shadows(rgb: np.ndarray, mask: np.ndarray, gain: np.ndarray, view: PerspectiveView) -> np.ndarray:
