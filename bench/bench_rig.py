@@ -1,7 +1,8 @@
 """Capture-rig removal on held-out synthetic scenes against the generator's rig-free ground truth.
 
     python bench/bench_rig.py [--seeds 116-131] [--height 256] [--json]
-    python bench/bench_rig.py --preset default --height 720 --cases tripod,tripod-shadow --seeds 100-115 --grout-seeds ''
+    python bench/bench_rig.py --preset default --height 720 --cases tripod,tripod-shadow --seeds 100-115 --grout-seeds '' \
+        [--cache DIR]
     python bench/bench_rig.py --pipeline --seeds 116 [--modes auto,keep,truth] [--set conditions.height=256 ...]
 
 Per seed and rig (tripod, tripod with a soft shadow): what detection found, the mask's cap and sphere share, its
@@ -41,8 +42,8 @@ from panoworld.synth import generate_scene
 from panoworld.synth.rig import FloorObject, RigKind, render_with_rig, with_floor_object
 
 
-def one(scene, kind, height: int) -> dict:
-    """Detect and remove on one rendered case; depth as the scene gives it (the rig's own depth included)."""
+def render_case(scene, kind, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(rgb, depth, true rig mask, rig-free rgb) of one case; depth as the scene gives it (the rig's included)."""
     if isinstance(kind, FloorObject):
         s = with_floor_object(scene, kind)
         rgb, depth = s.render(s.world_from_canonical, height, 2 * height)
@@ -50,6 +51,20 @@ def one(scene, kind, height: int) -> dict:
     else:
         rgb, depth, true_mask = render_with_rig(scene, kind, height)
     clean, _ = scene.render(scene.world_from_canonical, height, 2 * height)
+    return rgb, depth, true_mask, clean
+
+
+def one(scene, kind, height: int, cache: Path | None = None) -> dict:
+    """Detect and remove on one rendered case (renders kept in and reused from cache, a folder, when given)."""
+    f = cache / f"{scene.meta['preset']}_{scene.meta['seed']}_{kind}_{height}.npz" if cache else None
+    if f is not None and f.is_file():
+        with np.load(f) as z:
+            rgb, depth, true_mask, clean = z["rgb"], z["depth"], z["true_mask"], z["clean"]
+    else:
+        rgb, depth, true_mask, clean = render_case(scene, kind, height)
+        if f is not None:
+            f.parent.mkdir(parents=True, exist_ok=True)
+            np.savez_compressed(f, rgb=rgb, depth=depth, true_mask=true_mask, clean=clean)
     valid = np.isfinite(depth) & (depth > 0)
     t0 = time.perf_counter()
     det = rig.detect_rig(rgb, depth, valid, scene.tracks[0].camera_height)
@@ -79,13 +94,13 @@ def floor_under_camera(scene) -> str:
     return str(scene.materials[scene.material_names[scene.face_material[hit.face[0]]]].kind)
 
 
-def grout_controls(seeds: list[int], height: int) -> list[dict]:
+def grout_controls(seeds: list[int], height: int, cache: Path | None = None) -> list[dict]:
     """The rig-free default-preset scenes at height rows whose floor seams (tile grout, plank gaps) at the nadir main
     before #29's width test took for tripod legs: nothing may be found, the panorama must stay byte-identical."""
     rows = []
     for seed in seeds:
         scene = generate_scene(seed, "default")
-        r = one(scene, RigKind.NONE, height)
+        r = one(scene, RigKind.NONE, height, cache)
         r.update(seed=seed, case="grout", floor=floor_under_camera(scene))
         rows.append(r)
         print(f"seed {seed} grout ({r['floor']}, {height} rows): {r['reason']}", file=sys.stderr, flush=True)
@@ -212,6 +227,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--preset", default="ci-tiny", help="scene preset of the rig cases (default ci-tiny; default: 720 rows)")
     ap.add_argument("--cases", default="tripod,tripod-shadow,none,rug,stool",
                     help="comma list of rig cases: tripod, tripod-shadow, none, rug, stool (default all)")
+    ap.add_argument("--cache", type=Path, help="keep the rendered cases here and reuse them (compare two detectors)")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON instead of tables")
     ap.add_argument("--pipeline", action="store_true",
                     help="instead: the Gaussians rendered ~1 m away vs rig-free truth on the floor, rig removed / kept")
@@ -252,12 +268,12 @@ def main(argv: list[str] | None = None) -> int:
     for seed in parse_seeds(args.seeds):
         scene = generate_scene(seed, args.preset)
         for kind in cases:
-            r = one(scene, kind, args.height)
+            r = one(scene, kind, args.height, args.cache)
             r["seed"] = seed
             rows.append(r)
             print(f"seed {seed} {kind}: {r['reason']}", file=sys.stderr, flush=True)
     if args.grout_seeds:
-        rows += grout_controls(parse_seeds(args.grout_seeds), args.grout_height)
+        rows += grout_controls(parse_seeds(args.grout_seeds), args.grout_height, args.cache)
         cases.append("grout")
     if args.json:
         print(json.dumps(rows, indent=1))

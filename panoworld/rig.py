@@ -41,6 +41,14 @@ MIN_LEG_WIDTH_DEG = 0.6
 1.5-4 cm across seen from 0.6-1.7 m: >= 1 degree). Thinner arms (the anti-aliased dashes of a tiled floor's grout,
 1 cm at the floor) neither count as legs nor in their azimuth occupancy. Third-widest arm: development tripods
 100-115 >= 1.65 deg at 256 rows, >= 1.19 at 720; bench_rig's rig-free grout controls <= 0.28."""
+RIG_DROP_MAX = 0.6
+"""With depth, a candidate reaching CAP_DEG is looked at once more without what cannot be the rig: surfaces off the
+floor plane whose vertical drop below the camera exceeds this share of the camera's height (walls and furniture at the
+cap's edge; the rig hangs from the camera: its hub and most of its legs lie far above the floor) and thin lines on the
+floor plane (grout, plank seams, leg shadows: narrower than FLOOR_LINE_DEG). Issue #29: at the default preset's 720
+rows the grout tied a tripod's legs to the walls beside it and the whole was refused as reaching 30 deg."""
+FLOOR_LINE_DEG = 1.0
+"""On-floor candidate pixels narrower than this (a morphological opening) are floor lines, not rig, in that second look."""
 CAST_RATIO = 0.9
 """Floor pixels darker than this share of the floor around them (Lab L) and connected to the rig are its cast
 shadows (inpainted with it; 0.85 missed the legs' and column's shadows from the room's lights on development seeds)."""
@@ -138,11 +146,16 @@ def floor_source(face: np.ndarray, nf: NadirFace) -> np.ndarray:
     return floor_coloured(cv2.cvtColor(cv2.medianBlur(face, 3), cv2.COLOR_RGB2LAB), nf.ring_floor) & nf.on_floor
 
 
+def reaches_cap(nf: NadirFace, comp: np.ndarray) -> bool:
+    """Whether the candidate comp reaches CAP_DEG from the nadir (larger than any rig)."""
+    px_deg = np.rad2deg(1.0 / nf.view.focal)
+    return int((comp & (nf.theta > CAP_DEG - 2 * px_deg - 0.5)).sum()) > 3
+
+
 def seen_object(nf: NadirFace, comp: np.ndarray, floor_m: float | None) -> RigDetection | None:
     """The refusal for a candidate that is a seen object (reaches CAP_DEG, or a horizontal surface above the
     floor in depth), else None."""
-    px_deg = np.rad2deg(1.0 / nf.view.focal)
-    if (comp & (nf.theta > CAP_DEG - 2 * px_deg - 0.5)).sum() > 3:
+    if reaches_cap(nf, comp):
         return RigDetection(False, f"the region under the camera reaches {CAP_DEG:.0f} deg from the nadir: larger than "
                             "any rig (a rug, furniture, a floor pattern), kept")
     table = _horizontal_surface(nf.theta[comp], nf.depth[comp] if nf.depth is not None else None,
@@ -174,8 +187,14 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     if comp is None:
         return RigDetection(False, "nothing at the nadir differs in colour from the floor ring around it", stats=stats)
     # A region that reaches CAP_DEG before any shadow is divided out is a seen object (a dark rug read as a shadow
-    # would leave a mount-sized remainder).
+    # would leave a mount-sized remainder), unless what reaches it cannot be the rig by depth (RIG_DROP_MAX).
     refusal = seen_object(nf, comp, floor_m)
+    not_rig = _not_rig_by_depth(nf, floor_m) if reaches_cap(nf, comp) else None
+    if not_rig is not None:
+        comp2 = _nadir_component(face, theta, ring_floor, view, sigma, not_rig)
+        if comp2 is not None and seen_object(nf, comp2, floor_m) is None:
+            comp, refusal = comp2, None
+            stats["second_look"] = "walls, furniture and floor lines left out by depth"
     if refusal is not None:
         return refusal
     # A soft shadow around the rig is divided out first, so that only the rig itself is measured below.
@@ -184,7 +203,7 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     if sh_deg > 0:
         face = apply_gain(face, gain)
         source = floor_source(face, nf)
-        comp = _nadir_component(face, theta, ring_floor, view, sigma)
+        comp = _nadir_component(face, theta, ring_floor, view, sigma, not_rig)
         if comp is None:
             return RigDetection(False, f"a soft shadow at the nadir ({sh_deg:.0f} deg) but nothing under it that "
                                 "differs from the floor: kept", stats=stats)
@@ -332,10 +351,20 @@ def floor_coloured(lab: np.ndarray, ring_floor: np.ndarray, sigma: float = 1.0) 
     return dens >= np.percentile(dens[ring_floor], 2.0)
 
 
+def _not_rig_by_depth(nf: NadirFace, floor_m: float | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """(off-floor pixels far below the camera, on-floor pixels) on the face (RIG_DROP_MAX), or None without depth."""
+    if nf.depth is None or nf.valid is None or not floor_m:
+        return None
+    drop = nf.depth * np.cos(np.deg2rad(nf.theta))
+    on = nf.valid & (np.abs(drop - floor_m) < 0.05 * floor_m)
+    return nf.valid & ~on & (drop > RIG_DROP_MAX * floor_m), on
+
+
 def _nadir_component(face: np.ndarray, theta: np.ndarray, ring_floor: np.ndarray, view: PerspectiveView,
-                     sigma: float = 1.0) -> np.ndarray | None:
+                     sigma: float = 1.0, not_rig: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray | None:
     """Face pixels within CAP_DEG, connected to the nadir, whose colour the floor ring (almost) never shows or that
-    are far darker than the floor around them; None when the nadir itself looks like floor."""
+    are far darker than the floor around them; None when the nadir itself looks like floor. not_rig (far, on_floor):
+    leave out far pixels and the on-floor ones narrower than FLOOR_LINE_DEG (_not_rig_by_depth)."""
     lab = cv2.cvtColor(cv2.medianBlur(face, 3), cv2.COLOR_RGB2LAB)
     floor_like = floor_coloured(lab, ring_floor, sigma)
     # Much darker than the floor around it: thin dark legs on a floor whose grout lines are dark too.
@@ -343,6 +372,12 @@ def _nadir_component(face: np.ndarray, theta: np.ndarray, ring_floor: np.ndarray
     local = cv2.medianBlur(lab[..., 0], min(win, 255)).astype(np.float32)
     floor_l = float(np.median(lab[..., 0][ring_floor]))
     anom = (theta < CAP_DEG) & (~floor_like | (lab[..., 0] < 0.6 * np.maximum(local, floor_l)))
+    if not_rig is not None:
+        far, on = not_rig
+        k = 2 * int(np.ceil(0.5 * view.focal * np.deg2rad(FLOOR_LINE_DEG))) + 1
+        wide = cv2.morphologyEx((anom & on).astype(np.uint8), cv2.MORPH_OPEN,
+                                cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
+        anom = anom & ~far & (~on | wide)
     anom = cv2.morphologyEx(anom.astype(np.uint8), cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3)))
     _, labels = cv2.connectedComponents(anom, connectivity=8)
     seed = theta < HUB_DEG  # the mount may be floor-coloured; its legs start within a few degrees of the nadir
