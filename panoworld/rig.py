@@ -47,6 +47,9 @@ floor plane whose vertical drop below the camera exceeds this share of the camer
 cap's edge; the rig hangs from the camera: its hub and most of its legs lie far above the floor) and thin lines on the
 floor plane (grout, plank seams, leg shadows: narrower than FLOOR_LINE_DEG). Issue #29: at the default preset's 720
 rows the grout tied a tripod's legs to the walls beside it and the whole was refused as reaching 30 deg."""
+SURFACE_DEG = 4.0
+"""Only far surfaces at least this wide are left out in that second look (the lower half of a leg lies far below
+the camera too, but is 1-2 degrees wide)."""
 FLOOR_LINE_DEG = 1.0
 """On-floor candidate pixels narrower than this (a morphological opening) are floor lines, not rig, in that second look."""
 CAST_RATIO = 0.9
@@ -204,6 +207,12 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
         face = apply_gain(face, gain)
         source = floor_source(face, nf)
         comp = _nadir_component(face, theta, ring_floor, view, sigma, not_rig)
+        if comp is not None and not_rig is None and reaches_cap(nf, comp):  # relit, the legs' cast shadows join
+            not_rig = _not_rig_by_depth(nf, floor_m)
+            comp2 = _nadir_component(face, theta, ring_floor, view, sigma, not_rig) if not_rig is not None else None
+            if comp2 is not None and not reaches_cap(nf, comp2):
+                comp = comp2
+                stats["second_look"] = "walls, furniture and floor lines left out by depth"
         if comp is None:
             return RigDetection(False, f"a soft shadow at the nadir ({sh_deg:.0f} deg) but nothing under it that "
                                 "differs from the floor: kept", stats=stats)
@@ -357,7 +366,9 @@ def _not_rig_by_depth(nf: NadirFace, floor_m: float | None) -> tuple[np.ndarray,
         return None
     drop = nf.depth * np.cos(np.deg2rad(nf.theta))
     on = nf.valid & (np.abs(drop - floor_m) < 0.05 * floor_m)
-    return nf.valid & ~on & (drop > RIG_DROP_MAX * floor_m), on
+    far = (nf.valid & ~on & (drop > RIG_DROP_MAX * floor_m)).astype(np.uint8)
+    k = 2 * int(np.ceil(0.5 * nf.view.focal * np.deg2rad(SURFACE_DEG))) + 1  # a leg's foot is far too, but thin
+    return cv2.morphologyEx(far, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0, on
 
 
 def _nadir_component(face: np.ndarray, theta: np.ndarray, ring_floor: np.ndarray, view: PerspectiveView,
