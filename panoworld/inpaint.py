@@ -344,7 +344,8 @@ def wall_layer(points: np.ndarray, rgb: np.ndarray, valid: np.ndarray, planes: t
     and valid (h, w) of the source grid; planes the floor's and ceiling's heights (floor_ceiling, both needed);
     steps / origin from _grow_into_foreground (the foreground: steps >= 1); hide: the pixels not to take colour from.
 
-    Returns the shell's depth (h, w) at the grown pixels whose seed lies on the shell (within 5 %; inf elsewhere),
+    Returns the shell's depth (h, w) at the grown pixels in front of it whose seed lies on the shell (within 5 %; inf
+    elsewhere: pixels on the shell themselves keep their layer, e.g. a wall beside a doorway hiding the next room),
     the walls' colour (h, w, 3) there (layout_columns.wall_colors: seen wall pixels at the same height beside the
     occluder) and where that colour applies (h, w) bool (shell pixels on a wall with a known colour); None without
     both planes."""
@@ -364,8 +365,8 @@ def wall_layer(points: np.ndarray, rgb: np.ndarray, valid: np.ndarray, planes: t
     grown = origin.reshape(-1) >= 0
     use = np.zeros(h * w, bool)
     use[grown] = seed_on_shell[origin.reshape(-1)[grown]]
-    use = use.reshape(h, w) & occluder & np.isfinite(shell)
-    bins = max(h // 2, 8)
+    use = use.reshape(h, w) & occluder & np.isfinite(shell) & (shell > d * 1.02)  # the pixel is in front of the shell
+    bins = max(h // 4, 8)  # a bin about as tall as a source pixel row on a wall ~4 m away
     tex, known = wall_colors(walls, points, rgb, valid, bins)
     k = height_bin(walls, shell * dirs[..., 1], bins)
     cols = np.broadcast_to(np.arange(w), (h, w))

@@ -19,6 +19,8 @@ COLOR_EDGE_COLS = 2
 """wall_colors: the wall columns next to a hidden span left out (their pixels mix the wall and the occluder)."""
 COLOR_SIGMA_COLS = 4
 """wall_colors: the seen wall colour smoothed over this many columns (sigma) before it is carried across a span."""
+COLOR_SIGMA_BINS = 1.5
+"""wall_colors: ... and over this many height bins (sigma), which also closes the bins no pixel row fell in."""
 
 LINEAR, LEFT, RIGHT = 0, 1, 2
 """WallColumns.owner: a hidden column's colour blends both sides' wall (one wall), or takes the left / right side's
@@ -191,7 +193,7 @@ def wall_colors(walls: WallColumns, points: np.ndarray, rgb: np.ndarray, seen: n
 
     The visible wall pixels (seen (h, w), within WALL_TOL of their column's wall and off the floor and ceiling
     planes) are averaged per column and height bin (bins between the ceiling and the floor), smoothed over about a
-    degree of columns and a bin of height, leaving out the COLOR_EDGE_COLS columns next to a hidden span (mixed with
+    degree of columns and a few bins of height (COLOR_SIGMA_COLS, COLOR_SIGMA_BINS), leaving out the COLOR_EDGE_COLS columns next to a hidden span (mixed with
     the occluder); each cell between two seen cells of the same height bin takes them blended by column (owner
     LINEAR), or the left / right one alone (a corner: LEFT / RIGHT); bins seen nowhere in a column take the nearest
     bin of that column."""
@@ -208,13 +210,15 @@ def wall_colors(walls: WallColumns, points: np.ndarray, rgb: np.ndarray, seen: n
     count = np.bincount(cell, minlength=bins * w).reshape(bins, w)
     col = np.stack([np.bincount(cell, rgb[ii, jj, c].astype(np.float64), bins * w) for c in range(3)], -1)
     col = col.reshape(bins, w, 3) / np.maximum(count, 1)[..., None]
-    known = count > 0
-    for s in range(1, COLOR_EDGE_COLS + 1):
-        known &= np.roll(count > 0, s, axis=1) & np.roll(count > 0, -s, axis=1)
+    seen_cell = count > 0
+    for k in range(1, COLOR_EDGE_COLS + 1):
+        seen_cell &= np.roll(count > 0, k, axis=1) & np.roll(count > 0, -k, axis=1)
     pad = 4 * COLOR_SIGMA_COLS
-    wt = np.concatenate([known[:, -pad:], known, known[:, :pad]], axis=1).astype(np.float32)
+    wt = np.concatenate([seen_cell[:, -pad:], seen_cell, seen_cell[:, :pad]], axis=1).astype(np.float32)
     cp = np.concatenate([col[:, -pad:], col, col[:, :pad]], axis=1).astype(np.float32) * wt[..., None]
-    num, den = (cv2.GaussianBlur(x, (0, 0), sigmaX=COLOR_SIGMA_COLS, sigmaY=1.0)[:, pad:pad + w] for x in (cp, wt))
+    num, den = (cv2.GaussianBlur(x, (0, 0), sigmaX=COLOR_SIGMA_COLS, sigmaY=COLOR_SIGMA_BINS)[:, pad:pad + w]
+                for x in (cp, wt))
+    known = den > 0.05  # seen cells and the small gaps between them
     col = np.where(known[..., None], num / np.maximum(den, 1e-6)[..., None], 0.0)
     # nearest known column to the left / right of every cell, on the columns tiled three times (the seam wraps)
     left, right, _ = _fill_along(np.tile(col, (1, 3, 1)).transpose(1, 0, 2), np.tile(known, 3).T, 0)
