@@ -69,4 +69,5 @@ def test_wall_layout_gives_the_hidden_wall_its_depth_and_colour():
     depth_on, colour_on = errs[True]
     assert np.mean(depth_on < 0.02) > 0.95 and np.mean(depth_on < 0.02) > np.mean(errs[False][0] < 0.02)
     assert np.median(colour_on) < 12 and np.mean(colour_on > 60) < 0.02  # no red pillar, no floor colour
-    assert np.median(colour_on) < 0.5 * np.median(errs[False][1])
+    # the inpainted colour (the default) strays where the band is wide: 11 % of these pixels off by > 30 levels
+    assert np.quantile(colour_on, 0.9) < 0.5 * np.quantile(errs[False][1], 0.9)
