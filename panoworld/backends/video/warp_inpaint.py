@@ -29,11 +29,11 @@ class WarpOptions:
     """A depth edge of the source view grows a background layer only where its foreground is nearer than this
     fraction of the background's depth; smaller steps (shelves in front of books, furniture against a wall) are left
     to the far side's 2D fill (panoworld.inpaint.build_background_layer)."""
-    layout_planes: bool = True
+    layout_planes: bool = False
     """The background layer's depth never lies beyond the floor and ceiling planes fitted to the source depth
     (panoworld.depth_complete.fit_planes): the hidden floor behind furniture and the ceiling behind a lamp stay on
     the room's planes (panoworld.inpaint.build_background_layer)."""
-    wall_layout: bool = True
+    wall_layout: bool = False
     """The room's shell from the source view: one wall per column, interpolated across the columns tall objects hide
     (panoworld.layout_columns), with the floor and ceiling planes; background layer pixels grown from an edge on the
     shell take its depth, and on a wall the wall's colour seen at the same height beside the occluder
