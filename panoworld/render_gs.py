@@ -220,21 +220,10 @@ def _finish(rgb: torch.Tensor, depth: torch.Tensor, T: torch.Tensor, background:
     return RenderOutput(rgb.reshape(H, W, 3), depth.reshape(H, W), alpha.reshape(H, W))
 
 
-def rasterize_tiles(
-    proj: Projected, H: int, W: int, background: torch.Tensor, chunk: int = 32, raw: bool = False,
-    distance: bool = False, weights: list | None = None,
-) -> RenderOutput:
-    """Tile rasteriser: bin Gaussians into 16x16 tiles, sort by (tile, depth), composite all tiles chunk by chunk.
-
-    raw=True returns the un-normalised accumulated depth (sum w z) instead of the expected depth; distance=True
-    accumulates the centres' Euclidean distances instead of their z. weights, when a list, receives per chunk the
-    non-zero compositing weights as (flat pixel index (K,), Gaussian index in proj (K,), weight (K,)): the image is
-    their sum of weight x colour plus the transmittance x background; the returned render then holds only the
-    transmittance (alpha; rgb is transmittance x background, depth 0): colour and depth are not accumulated.
-    """
-    depth_of = proj.dist if distance else proj.z
+def bin_tiles(proj: Projected, H: int, W: int):
+    """Bin projected Gaussians into TILE x TILE tiles -> (ntx, nty, Gaussian indices sorted by (tile, depth), per-tile
+    counts, per-tile starts into them)."""
     ntx, nty = -(-W // TILE), -(-H // TILE)
-    n_tiles = ntx * nty
     P = proj.z.shape[0]
     # Pixel index range holding the alpha >= 1/255 box, then the tiles it covers.
     j0 = torch.ceil(proj.xy[:, 0] - proj.extent[:, 0] - 0.5).clamp(0, W - 1).long() // TILE
@@ -249,10 +238,25 @@ def rasterize_tiles(
     rank = torch.empty(P, dtype=torch.long)
     rank[torch.argsort(proj.z, stable=True)] = torch.arange(P)
     order = torch.argsort(tile * max(P, 1) + rank[gid])
-    sorted_g = gid[order]
-    counts = torch.bincount(tile, minlength=n_tiles)
-    starts = torch.cumsum(counts, 0) - counts
+    counts = torch.bincount(tile, minlength=ntx * nty)
+    return ntx, nty, gid[order], counts, torch.cumsum(counts, 0) - counts
 
+
+def rasterize_tiles(
+    proj: Projected, H: int, W: int, background: torch.Tensor, chunk: int = 32, raw: bool = False,
+    distance: bool = False, weights: list | None = None,
+) -> RenderOutput:
+    """Tile rasteriser: bin Gaussians into 16x16 tiles, sort by (tile, depth), composite all tiles chunk by chunk.
+
+    raw=True returns the un-normalised accumulated depth (sum w z) instead of the expected depth; distance=True
+    accumulates the centres' Euclidean distances instead of their z. weights, when a list, receives per chunk the
+    non-zero compositing weights as (flat pixel index (K,), Gaussian index in proj (K,), weight (K,)): the image is
+    their sum of weight x colour plus the transmittance x background; the returned render then holds only the
+    transmittance (alpha; rgb is transmittance x background, depth 0): colour and depth are not accumulated.
+    """
+    depth_of = proj.dist if distance else proj.z
+    ntx, nty, sorted_g, counts, starts = bin_tiles(proj, H, W)
+    n_tiles = ntx * nty
     local_pix = torch.arange(TILE * TILE)
     base_x = (torch.arange(n_tiles) % ntx) * TILE
     base_y = (torch.arange(n_tiles) // ntx) * TILE
@@ -293,6 +297,17 @@ def rasterize_tiles(
     if raw:
         return RenderOutput((rgb + T[:, None] * background).reshape(H, W, 3), z.reshape(H, W), (1 - T).reshape(H, W))
     return _finish(rgb, z, T, background, H, W)
+
+
+def face_weights(proj: Projected, H: int, W: int, chunk: int = 32) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """rasterize_tiles(weights=...)'s non-zero compositing weights, concatenated, from its numba kernel
+    (splat_weights.tile_weights): (flat pixel index (K,) int32, Gaussian index in proj (K,) int32, weight (K,)
+    float32). Equal to the torch path's up to the last bit of exp (tests/test_render_gs.py)."""
+    from panoworld.splat_weights import tile_weights
+
+    ntx, _, sorted_g, counts, starts = bin_tiles(proj, H, W)
+    return tile_weights(proj.xy.numpy(), proj.conic.numpy(), proj.opacity.numpy(), sorted_g.numpy(), starts.numpy(),
+                        counts.numpy(), ntx, H, W, TILE, chunk)
 
 
 def _background(background) -> torch.Tensor:
@@ -445,11 +460,9 @@ class ErpColorOperator:
         self.weights = []
         for fc in self.faces:
             proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
-            parts: list = []
-            rasterize_tiles(proj, fc.n, fc.n, torch.zeros(3), weights=parts)
-            pix, gid, w = (torch.cat(x) for x in zip(*parts)) if parts else (torch.zeros(0, dtype=torch.long),) * 3
+            pix, gid, w = face_weights(proj, fc.n, fc.n)
             # scipy: COO -> CSR is a counting sort, 32-bit indices, and the transpose a free CSC view
-            self.weights.append(scipy.sparse.csr_matrix((w.float().numpy(), (pix.numpy(), proj.index[gid].numpy())),
+            self.weights.append(scipy.sparse.csr_matrix((w, (pix, proj.index.numpy().astype(np.int32)[gid])),
                                                         shape=(fc.n * fc.n, self.N)))
 
     def compose(self, face_images: list[torch.Tensor]) -> torch.Tensor:
