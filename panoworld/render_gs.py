@@ -12,6 +12,7 @@ what the brute-force reference (every Gaussian at every pixel) computes.
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -457,13 +458,19 @@ class ErpColorOperator:
         self.faces = erp_faces(world_from_cam, H, W, supersample=supersample, pole_scale=pole_scale)
         self.s, self.H, self.W, self.N = int(supersample), H, W, len(gaussians)
         prep = _prepare(gaussians, np.asarray(world_from_cam, dtype=np.float64)[:3, 3])
-        self.weights = []
-        for fc in self.faces:
+
+        def weights(fc: ErpFace):
             proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
             pix, gid, w = face_weights(proj, fc.n, fc.n)
             # scipy: COO -> CSR is a counting sort, 32-bit indices, and the transpose a free CSC view
-            self.weights.append(scipy.sparse.csr_matrix((w, (pix, proj.index.numpy().astype(np.int32)[gid])),
-                                                        shape=(fc.n * fc.n, self.N)))
+            return scipy.sparse.csr_matrix((w, (pix, proj.index.numpy().astype(np.int32)[gid])),
+                                           shape=(fc.n * fc.n, self.N))
+
+        # The faces on torch's threads (the kernel releases the GIL), the largest (the pole faces) first.
+        with ThreadPoolExecutor(max(1, torch.get_num_threads())) as pool:
+            by_size = sorted(range(len(self.faces)), key=lambda k: -self.faces[k].n)
+            done = dict(zip(by_size, pool.map(weights, [self.faces[k] for k in by_size])))
+        self.weights = [done[k] for k in range(len(self.faces))]
 
     def compose(self, face_images: list[torch.Tensor]) -> torch.Tensor:
         """Face images (n * n, 3) -> the ERP (H, W, 3) (differentiable)."""
