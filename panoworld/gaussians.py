@@ -491,7 +491,16 @@ class ContextSource:
         return rgb, d, self.world_from_cam[k]
 
     def __iter__(self):
-        return (self.frame(k) for k in range(len(self)))
+        """The frames in order, the next one read on a second thread while the caller works on this one (decoding
+        and resizing release the GIL; memory: two frames)."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(1) as pool:
+            ahead = pool.submit(self.frame, 0) if len(self) else None
+            for k in range(len(self)):
+                frame = ahead.result()
+                ahead = pool.submit(self.frame, k + 1) if k + 1 < len(self) else None
+                yield frame
 
     def rgb_at(self, k: int) -> np.ndarray:
         return self.frame(k)[0]
