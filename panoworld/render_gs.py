@@ -484,12 +484,18 @@ class ErpColorOperator:
 
     def __call__(self, colors: torch.Tensor) -> torch.Tensor:
         c = colors.detach().numpy()
-        return self.compose([torch.from_numpy(A @ c) for A in self.weights])
+        return self.compose([torch.from_numpy(x) for x in self._per_face(lambda A: A @ c)])
 
     def adjoint(self, image: torch.Tensor) -> torch.Tensor:
         faces = [torch.zeros(A.shape[0], 3, requires_grad=True) for A in self.weights]
         grads = torch.autograd.grad(self.compose(faces), faces, image)
-        return sum(torch.from_numpy(A.T @ g.numpy()) for A, g in zip(self.weights, grads))
+        return sum(torch.from_numpy(x) for x in self._per_face(lambda A, g: A.T @ g.numpy(), grads))
+
+    def _per_face(self, fn, *args) -> list:
+        """fn(face matrix, *its args) for every face, in face order, on torch's threads (scipy's sparse products
+        release the GIL)."""
+        with ThreadPoolExecutor(max(1, torch.get_num_threads())) as pool:
+            return list(pool.map(fn, self.weights, *args))
 
 
 def _gsplat_available() -> bool:
