@@ -305,7 +305,7 @@ def voxel_fusion(
     def observations():  # two frames at once (numpy releases the GIL), in frame order
         bar = tqdm(frames, total=total, desc="voxel fusion", disable=None if progress else True, leave=False)
         for obs in map_ahead(lambda f: frame_observations(*f, params, keep_points=keep_points), bar,
-                             workers=max(1, torch.get_num_threads())):
+                             workers=min(2, max(1, torch.get_num_threads()))):
             if len(obs.points):
                 yield obs
 
