@@ -31,6 +31,7 @@ import numpy as np
 
 from panoworld import pipeline as pl
 from panoworld.artifacts import read_manifest
+from panoworld.errors import ArtifactError
 
 REAL = REPO.parent / "shared" / "data" / "real" / "realsee3d_assets"
 ZIND = REPO.parent / "shared" / "data" / "real" / "zind_garage"
@@ -88,7 +89,7 @@ def stage_info(scene: Path, stage: str) -> dict:
     """A stage's manifest `info` ({} when it has not run)."""
     try:
         return read_manifest(scene / "artifacts" / stage)["info"]
-    except (OSError, KeyError, ValueError):
+    except (OSError, KeyError, ValueError, ArtifactError):  # --until stopped before the stage
         return {}
 
 

@@ -36,6 +36,11 @@ HUB_DEG = 6.0
 """Anomalous regions reaching this close to the nadir are candidates (the mount and the roots of the legs)."""
 TABLE_MIN_GAP_M = 0.3
 """A horizontal surface at least this far below the camera (and above the floor) is a seen object, not the mount."""
+MIN_LEG_WIDTH_DEG = 0.6
+"""An arm of the candidate is a tripod leg only when at least this wide on average over 45-85 % of its extent (a leg
+1.5-4 cm across seen from 0.6-1.7 m: >= 1 degree). Thinner arms (the anti-aliased dashes of a tiled floor's grout,
+1 cm at the floor) neither count as legs nor in their azimuth occupancy. Third-widest arm: development tripods
+100-115 >= 1.65 deg at 256 rows, >= 1.19 at 720; bench_rig's rig-free grout controls <= 0.28."""
 CAST_RATIO = 0.9
 """Floor pixels darker than this share of the floor around them (Lab L) and connected to the rig are its cast
 shadows (inpainted with it; 0.85 missed the legs' and column's shadows from the room's lights on development seeds)."""
@@ -194,6 +199,9 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     occ_in, arms_in = _azimuth_occupancy(p[(t > 0.3 * extent) & (t < 0.7 * extent)])
     occ_out, arms_out = _azimuth_occupancy(p[(t > 0.45 * extent) & (t < 0.85 * extent)])
     stats.update(occupancy_inner=occ_in, occupancy_outer=occ_out, arms=arms_out)
+    n_legs, occ_legs, widths = leg_arms(comp, theta, phi, view, extent)
+    widths = sorted(widths, reverse=True)
+    stats.update(legs=n_legs, occupancy_legs=occ_legs, arm_widths_deg=[round(w, 3) for w in widths[:8]])
     refusal = seen_object(nf, comp, floor_m)
     if refusal is not None:
         refusal.stats = {**stats, **refusal.stats}
@@ -204,11 +212,16 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     stats["centroid_offset"] = off
     kind = reason = None
     hub_seen = bool((t < HUB_DEG / 2).any())
-    if 3 <= arms_out <= 6 and occ_out <= 0.5 and extent >= 6.0 and hub_seen and off < 0.5 and stats["darkness"] > 0.2:
-        kind, reason = "legs", f"{arms_out} thin arms from a hub at the nadir out to {extent:.1f} deg (tripod legs)"
+    hub_legs = extent >= 6.0 and hub_seen and off < 0.5 and stats["darkness"] > 0.2
+    if hub_legs and 3 <= n_legs <= 6 and occ_legs <= 0.5:
+        kind, reason = "legs", f"{n_legs} thin arms from a hub at the nadir out to {extent:.1f} deg (tripod legs)"
     elif occ_in >= 0.9 and off < 0.35 and extent >= max(2.0, 3 * px_deg):
         if extent <= MOUNT_MAX_DEG:
             kind, reason = "mount", f"a solid blob centred on the nadir, {extent:.1f} deg, unlike the floor (camera mount)"
+    if kind is None and hub_legs and 3 <= arms_out <= 6 and occ_out <= 0.5:
+        return RigDetection(False, f"{arms_out} arms from the nadir out to {extent:.1f} deg, {n_legs} of them as wide "
+                            f"as a tripod leg (>= {MIN_LEG_WIDTH_DEG} deg; the third widest {widths[2]:.2f}): lines "
+                            "of the floor's texture (grout, plank seams), kept", stats=stats)
     if kind is None:
         return RigDetection(False, f"a {extent:.1f} deg region at the nadir that is neither tripod legs nor a centred "
                             f"mount (occupancy {occ_in:.2f}/{occ_out:.2f}, {arms_out} arms, "
@@ -227,6 +240,25 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     if sh.any():
         reason += f" with its shadow ({sh_deg:.0f} deg, up to {1 - 1 / gain.max():.0%} darker)"
     return RigDetection(True, reason, kind, mask, sh, stats, shadow_gain=gain, source=source)
+
+
+def leg_arms(comp: np.ndarray, theta: np.ndarray, phi: np.ndarray, view: PerspectiveView, extent: float,
+             bins: int = 72) -> tuple[int, float, list[float]]:
+    """The candidate's arms between 45 % and 85 % of its extent (circular runs of occupied azimuth bins) that are at
+    least MIN_LEG_WIDTH_DEG wide: their number and share of the bins, and every arm's width (degrees: its pixels on
+    the face over the band's radial length; dashes along a line count as a thinner arm)."""
+    band = comp & (theta > 0.45 * extent) & (theta < 0.85 * extent)
+    h = np.bincount(((phi[band] + np.pi) / (2 * np.pi) * bins).astype(int) % bins, minlength=bins)
+    if not h.any() or h.all():
+        return 0, 0.0, []
+    h = np.roll(h, -int(np.argmin(h)))  # start at an empty bin: no run wraps around
+    edges = np.diff(np.r_[0, (h > 0).astype(np.int8), 0])
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    t0, t1 = np.deg2rad(0.45 * extent), np.deg2rad(0.85 * extent)
+    length = view.focal * (np.tan(t1) - np.tan(t0))
+    widths = [float(np.rad2deg(h[a:b].sum() / length / view.focal)) for a, b in zip(starts, ends)]
+    legs = [b - a for a, b, w in zip(starts, ends, widths) if w >= MIN_LEG_WIDTH_DEG]
+    return len(legs), sum(legs) / bins, widths
 
 
 def _leg_shadows(rgb: np.ndarray, mask: np.ndarray, gain: np.ndarray, view: PerspectiveView) -> np.ndarray:
