@@ -56,7 +56,6 @@ def _column_azimuth(w: int) -> np.ndarray:
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """Circular runs [start, end] (inclusive, end may wrap past w) of True in mask (w,), not all True."""
-    w = len(mask)
     k = int(np.flatnonzero(~mask)[0])
     m = np.roll(mask, -k)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], m.astype(np.int8), [0]])))
