@@ -2,9 +2,11 @@
 
 The Gaussians are surfels (scales 1-4 cm, random rotations, opacity 0.5-1) on the walls, floor and ceiling of a
 6 x 3 x 6 m room around the camera, the density of a voxel-fused indoor scene. Also checks the tile rasteriser
-against the brute-force oracle on a crop of the same scene.
+against the brute-force oracle on a crop of the same scene, and times the colour fit's compositing weights
+(ErpColorOperator's cube faces at --weights-height ERP rows, 2x supersampled, 2x pole faces) from the torch tile
+rasteriser and from its numba kernel (splat_weights), with how far their weights differ.
 
-    python bench/bench_render_gs.py [--n 200000] [--threads 1] [--repeats 3] [--supersample 1 2]
+    python bench/bench_render_gs.py [--n 200000] [--threads 1] [--repeats 3] [--supersample 1 2] [--weights-height 256]
 """
 
 from __future__ import annotations
@@ -20,8 +22,17 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from panoworld.conventions import invert_pose
 from panoworld.gaussians import Gaussians
-from panoworld.render_gs import render_erp, render_perspective
+from panoworld.render_gs import (
+    _prepare,
+    erp_faces,
+    face_weights,
+    project,
+    rasterize_tiles,
+    render_erp,
+    render_perspective,
+)
 
 
 def room_surfels(n: int, seed: int = 0) -> Gaussians:
@@ -46,12 +57,40 @@ def timed(fn, repeats: int) -> tuple[float, float, object]:
     return times[0], min(times), out
 
 
+def fit_weights(g: Gaussians, height: int) -> None:
+    """The colour fit's per-face compositing weights: torch tile rasteriser vs the numba kernel, wall and CPU s."""
+    prep = _prepare(g, np.zeros(3))
+    projs = [(project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n), fc.n)
+             for fc in erp_faces(np.eye(4), height, 2 * height)]
+    times, out = {}, {}
+    for name in ("torch", "numba"):
+        if name == "numba":
+            face_weights(projs[0][0], projs[0][1], projs[0][1])  # compile (or load the cached kernel) first
+        t0, c0 = time.perf_counter(), time.process_time()
+        res = []
+        for proj, n in projs:
+            if name == "numba":
+                res.append(face_weights(proj, n, n))
+            else:
+                parts: list = []
+                rasterize_tiles(proj, n, n, torch.zeros(3), weights=parts)
+                res.append(tuple(torch.cat(x).numpy() for x in zip(*parts)))
+        times[name], out[name] = (time.perf_counter() - t0, time.process_time() - c0), res
+    diff = max(float(np.abs(np.sort(a[2]) - np.sort(b[2])).max()) for a, b in zip(out["torch"], out["numba"]))
+    count = sum(len(a[2]) for a in out["numba"])
+    print(f"colour-fit weights, ERP {2 * height}x{height} (faces {', '.join(str(n) for _, n in projs)} px), "
+          f"{count} weights: torch {times['torch'][0]:.2f} s wall / {times['torch'][1]:.2f} CPU s, numba "
+          f"{times['numba'][0]:.2f} s / {times['numba'][1]:.2f} CPU s; same count "
+          f"{count == sum(len(a[2]) for a in out['torch'])}, max |sorted weight diff| {diff:.1e}")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=200_000)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--supersample", type=int, nargs="+", default=[1, 2], help="render_erp supersampling factors")
+    ap.add_argument("--weights-height", type=int, default=256, help="ERP rows of the colour-fit weights timing (0 = skip)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     g = room_surfels(args.n)
@@ -70,6 +109,8 @@ def main() -> int:
     b = render_perspective(sub, pose, 60.0, 60.0, 40.0, 24.0, 48, 80, reference=True)
     print(f"tiles vs brute force on {len(sub)} Gaussians, 80x48: max |rgb diff| {float((a.rgb - b.rgb).abs().max()):.2e}, "
           f"max |alpha diff| {float((a.alpha - b.alpha).abs().max()):.2e}")
+    if args.weights_height:
+        fit_weights(g, args.weights_height)
     print("timings were taken on a shared CPU and are inflated by contention")
     return 0
 

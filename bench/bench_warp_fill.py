@@ -49,6 +49,7 @@ def main() -> int:
     ap.add_argument("--variant", action="append", default=[],
                     help="KEY=VAL[,KEY=VAL]: keyword arguments of build_background_layer / WarpInpainter (repeatable), "
                          "e.g. layout_planes=1,color_sigma_px=2; each after the flags' variants")
+    ap.add_argument("--variants-only", action="store_true", help="only the --variant rows (no flag variants)")
     ap.add_argument("--stride", type=int, default=1, help="score every n-th frame (all are filled)")
     ap.add_argument("--max-dist", type=float, default=float("inf"),
                     help="score only frames at most this far (m) from the capture point (e.g. 1.5: the ~1 m bucket)")
@@ -71,6 +72,7 @@ def main() -> int:
     variants += [dict(side_depth_m=a.side_depth[0], edge_depth_ratio=a.edge_ratio[0], reuse=True)] if a.reuse else []
     variants += [{"side_depth_m": a.side_depth[0], "edge_depth_ratio": a.edge_ratio[0]}
                  | {k: float(v) for k, v in (kv.split("=") for kv in spec.split(","))} for spec in a.variant]
+    variants = variants[len(variants) - len(a.variant):] if a.variants_only else variants
     filler_keys = set(inspect.signature(inpaint.WarpInpainter).parameters)
     truth = {}
     for var in variants:

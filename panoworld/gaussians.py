@@ -302,10 +302,10 @@ def voxel_fusion(
     total = len(frames) if hasattr(frames, "__len__") else None
     eps_v = params.voxel_size
 
-    def observations():
-        for rgb, depth, pose in tqdm(frames, total=total, desc="voxel fusion", disable=None if progress else True,
-                                     leave=False):
-            obs = frame_observations(rgb, depth, pose, params, keep_points=keep_points)
+    def observations():  # two frames at once (numpy releases the GIL), in frame order
+        bar = tqdm(frames, total=total, desc="voxel fusion", disable=None if progress else True, leave=False)
+        for obs in map_ahead(lambda f: frame_observations(*f, params, keep_points=keep_points), bar,
+                             workers=min(2, max(1, torch.get_num_threads()))):
             if len(obs.points):
                 yield obs
 
@@ -454,6 +454,22 @@ def resize_depth(depth: np.ndarray, height: int, width: int, edge_rel: float = D
     return np.where(smooth, area, nearest).astype(np.float32)
 
 
+def map_ahead(fn: Callable, items: Iterable, *, workers: int):
+    """fn(item) for each item, in order, computed on `workers` threads with `workers` calls beyond the one being
+    consumed in flight (items are drawn from the iterable in the caller's thread)."""
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(workers) as pool:
+        pending: deque = deque()
+        for item in items:
+            pending.append(pool.submit(fn, item))
+            if len(pending) > workers:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+
+
 @dataclass
 class ContextSource:
     """The frames a gaussians run fuses, read from disk one at a time when iterated (re-iterable; memory: one frame
@@ -491,7 +507,9 @@ class ContextSource:
         return rgb, d, self.world_from_cam[k]
 
     def __iter__(self):
-        return (self.frame(k) for k in range(len(self)))
+        """The frames in order, the next one read on a second thread while the caller works on this one (decoding
+        and resizing release the GIL; memory: two frames)."""
+        return map_ahead(self.frame, range(len(self)), workers=1)
 
     def rgb_at(self, k: int) -> np.ndarray:
         return self.frame(k)[0]

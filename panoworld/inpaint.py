@@ -154,7 +154,7 @@ def _surface_normals(points: np.ndarray) -> np.ndarray:
 def _grow_into_foreground(
     points: np.ndarray, seeds: np.ndarray, seed_mid: np.ndarray, seed_band: np.ndarray, margin: float,
     layout: tuple[float, ...] = (),
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Breadth-first growth (8-neighbours, columns wrapped) from background edge pixels seeds (h, w) of the ERP grid
     of points (h, w, 3) into the pixels in front of them: a pixel joins when its depth is below the mean `mid` depth
     of the pixels reaching it.
@@ -162,7 +162,8 @@ def _grow_into_foreground(
     Returns steps (h, w) (inf where never reached), reach (h, w), the band of the seeds that reached the pixel
     (growth stops after 2 * band + margin + 2 steps), and the background depth (h, w): the pixel's ray cut with the
     tangent plane of the seed it came from, or, where that ray grazes the plane, the seeds' geometric mean depth;
-    never beyond the horizontal planes y = c of layout (the floor's and the ceiling's heights, y down).
+    never beyond the horizontal planes y = c of layout (the floor's and the ceiling's heights, y down); and the flat
+    index (h, w) of that seed (-1 where never reached).
     """
     h, w = points.shape[:2]
     pts = points.reshape(-1, 3)
@@ -171,10 +172,12 @@ def _grow_into_foreground(
     reach = np.zeros(h * w)
     mid = seed_mid.reshape(-1).copy()
     log_bg = np.log(np.where(d > 0, d, 1.0))
+    origin = np.full(h * w, -1, np.int64)
     normal = _surface_normals(points).reshape(-1, 3)
     plane = np.concatenate([normal, (normal * pts).sum(axis=1, keepdims=True)], axis=1)  # n . x = c
     front = np.flatnonzero(seeds.reshape(-1))
     steps[front] = 0
+    origin[front] = front
     reach[front] = seed_band.reshape(-1)[front]
     offsets = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj]
     k = 0
@@ -197,6 +200,7 @@ def _grow_into_foreground(
         count = np.bincount(inv)
         mid[front] = np.bincount(inv, mid[src]) / count
         log_bg[front] = np.bincount(inv, log_bg[src]) / count
+        origin[front] = origin[src[first]]
         plane[front] = plane[src[first]]
         reach[front] = np.zeros(len(front))
         np.maximum.at(reach, front[inv], reach[src])
@@ -212,7 +216,7 @@ def _grow_into_foreground(
         with np.errstate(divide="ignore", invalid="ignore"):
             t = c / dirs[:, 1]
         bg = np.where((np.abs(dirs[:, 1]) > 0.05) & (t > 0), np.minimum(bg, t), bg)
-    return steps.reshape(h, w), reach.reshape(h, w), bg.reshape(h, w).astype(np.float32)
+    return steps.reshape(h, w), reach.reshape(h, w), bg.reshape(h, w).astype(np.float32), origin.reshape(h, w)
 
 
 def floor_ceiling(depth: np.ndarray, valid: np.ndarray) -> tuple[float, ...]:
@@ -235,6 +239,7 @@ def build_background_layer(
     edge_depth_ratio: float = 0.75,
     color_sigma_px: float = 0.0,
     layout_planes: bool = False,
+    wall_layout: bool = False,
 ) -> BackgroundLayer:
     """Extend the far side of every depth discontinuity of the source view behind its foreground occluder, and
     (side_depth_m > 0) the occluder's own surface back from its silhouette (occluder_sides).
@@ -250,7 +255,10 @@ def build_background_layer(
     seam-aware) with the occluder masked, so both continue the background only; color_sigma_px > 0: instead the
     visible background's Gaussian-weighted mean colour of that sigma (grid pixels; layer_mean_color), no streaks
     across wide bands. layout_planes: no background depth beyond the floor and ceiling planes fitted to the source
-    depth (floor_ceiling). The side faces (side_depth_m > 0) come last among the layer faces.
+    depth (floor_ceiling). wall_layout: the room's shell from the source view (panoworld.layout_columns: one wall
+    per column, interpolated behind tall objects, and the floor and ceiling planes); pixels grown from an edge pixel
+    on the shell take the shell's depth, and where that is a wall, the wall's colour seen at the same height beside
+    the occluder (wall_layer). The side faces (side_depth_m > 0) come last among the layer faces.
     """
     h, w = erp_grid_shape(mesh)
     n = h * w
@@ -286,16 +294,22 @@ def build_background_layer(
     with np.errstate(divide="ignore"):
         parallax = max_translation * (1.0 / near_of - 1.0 / depth)
     band = np.where(edge, np.minimum(parallax, np.deg2rad(max_band_deg)) / px_angle / cos_lat * 1.2 + 2, 0.0)
-    steps, reach, bg_depth = _grow_into_foreground(
-        p.reshape(h, w, 3), edge, 0.5 * (depth + near_of), band, inpaint_radius,
-        floor_ceiling(depth, valid) if layout_planes else (),
+    planes = floor_ceiling(depth, valid) if layout_planes or wall_layout else ()
+    steps, reach, bg_depth, origin = _grow_into_foreground(
+        p.reshape(h, w, 3), edge, 0.5 * (depth + near_of), band, inpaint_radius, planes if layout_planes else (),
     )
-    synth = (steps <= reach) & (bg_depth > depth * 1.02)
     hide = (steps <= 2 * reach + inpaint_radius + 2) | ~valid  # the occluder, masked for the colour inpainting
+    wall = wall_layer(p.reshape(h, w, 3), mesh.colors[:n].reshape(h, w, 3), valid, planes, steps, origin, hide
+                      ) if wall_layout else None
+    if wall is not None:
+        bg_depth = np.where(np.isfinite(wall[0]), wall[0], bg_depth).astype(np.float32)
+    synth = (steps <= reach) & (bg_depth > depth * 1.02)
     if color_sigma_px > 0:
         bg_color = layer_mean_color(mesh.colors[:n].reshape(h, w, 3), hide, color_sigma_px)
     else:
         bg_color = erp_inpaint(mesh.colors[:n].reshape(h, w, 3), hide, radius=inpaint_radius)
+    if wall is not None:
+        bg_color = np.where(wall[2][..., None], wall[1], bg_color)
 
     # Layer mesh: grid faces over synthesized pixels and the real background pixels next to them.
     s_flat = synth.reshape(-1)
@@ -322,6 +336,43 @@ def build_background_layer(
         synth,
         np.where(synth, bg_depth, 0.0).astype(np.float32),
     )
+
+
+def wall_layer(points: np.ndarray, rgb: np.ndarray, valid: np.ndarray, planes: tuple[float, ...], steps: np.ndarray,
+               origin: np.ndarray, hide: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The background layer on the room's shell (build_background_layer's wall_layout): points (h, w, 3), rgb (h, w, 3)
+    and valid (h, w) of the source grid; planes the floor's and ceiling's heights (floor_ceiling, both needed);
+    steps / origin from _grow_into_foreground (the foreground: steps >= 1); hide: the pixels not to take colour from.
+
+    Returns the shell's depth (h, w) at the grown pixels in front of it whose seed lies on the shell (within 5 %; inf
+    elsewhere: pixels on the shell themselves keep their layer, e.g. a wall beside a doorway hiding the next room),
+    the walls' colour (h, w, 3) there (layout_columns.wall_colors: seen wall pixels at the same height beside the
+    occluder) and where that colour applies (h, w) bool (shell pixels on a wall with a known colour); None without
+    both planes."""
+    from panoworld.layout_columns import height_bin, shell_depth, wall_colors, wall_columns
+
+    floor_y = [c for c in planes if c > 0]
+    ceil_y = [c for c in planes if c < 0]
+    if not floor_y or not ceil_y:
+        return None
+    h, w = valid.shape
+    occluder = np.isfinite(steps) & (steps >= 1)
+    walls = wall_columns(points, valid, floor_y[0], ceil_y[0])
+    d = np.linalg.norm(points, axis=-1)
+    dirs = points / np.maximum(d, 1e-12)[..., None]
+    shell, on_wall = shell_depth(walls, dirs)
+    seed_on_shell = (valid & (np.abs(d - shell) < 0.05 * shell)).reshape(-1)
+    grown = origin.reshape(-1) >= 0
+    use = np.zeros(h * w, bool)
+    use[grown] = seed_on_shell[origin.reshape(-1)[grown]]
+    use = use.reshape(h, w) & occluder & np.isfinite(shell) & (shell > d * 1.02)  # the pixel is in front of the shell
+    bins = max(h // 4, 8)  # a bin about as tall as a source pixel row on a wall ~4 m away
+    tex, known = wall_colors(walls, points, rgb, valid, bins)
+    k = height_bin(walls, shell * dirs[..., 1], bins)
+    cols = np.broadcast_to(np.arange(w), (h, w))
+    color = np.clip(np.rint(tex[k, cols]), 0, 255).astype(np.uint8)
+    paint = use & on_wall & known[k, cols]
+    return np.where(use, shell, np.inf), color, paint
 
 
 def layer_mean_color(rgb: np.ndarray, hide: np.ndarray, sigma: float) -> np.ndarray:

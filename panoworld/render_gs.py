@@ -12,6 +12,7 @@ what the brute-force reference (every Gaussian at every pixel) computes.
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -220,21 +221,10 @@ def _finish(rgb: torch.Tensor, depth: torch.Tensor, T: torch.Tensor, background:
     return RenderOutput(rgb.reshape(H, W, 3), depth.reshape(H, W), alpha.reshape(H, W))
 
 
-def rasterize_tiles(
-    proj: Projected, H: int, W: int, background: torch.Tensor, chunk: int = 32, raw: bool = False,
-    distance: bool = False, weights: list | None = None,
-) -> RenderOutput:
-    """Tile rasteriser: bin Gaussians into 16x16 tiles, sort by (tile, depth), composite all tiles chunk by chunk.
-
-    raw=True returns the un-normalised accumulated depth (sum w z) instead of the expected depth; distance=True
-    accumulates the centres' Euclidean distances instead of their z. weights, when a list, receives per chunk the
-    non-zero compositing weights as (flat pixel index (K,), Gaussian index in proj (K,), weight (K,)): the image is
-    their sum of weight x colour plus the transmittance x background; the returned render then holds only the
-    transmittance (alpha; rgb is transmittance x background, depth 0): colour and depth are not accumulated.
-    """
-    depth_of = proj.dist if distance else proj.z
+def bin_tiles(proj: Projected, H: int, W: int):
+    """Bin projected Gaussians into TILE x TILE tiles -> (ntx, nty, Gaussian indices sorted by (tile, depth), per-tile
+    counts, per-tile starts into them)."""
     ntx, nty = -(-W // TILE), -(-H // TILE)
-    n_tiles = ntx * nty
     P = proj.z.shape[0]
     # Pixel index range holding the alpha >= 1/255 box, then the tiles it covers.
     j0 = torch.ceil(proj.xy[:, 0] - proj.extent[:, 0] - 0.5).clamp(0, W - 1).long() // TILE
@@ -249,10 +239,25 @@ def rasterize_tiles(
     rank = torch.empty(P, dtype=torch.long)
     rank[torch.argsort(proj.z, stable=True)] = torch.arange(P)
     order = torch.argsort(tile * max(P, 1) + rank[gid])
-    sorted_g = gid[order]
-    counts = torch.bincount(tile, minlength=n_tiles)
-    starts = torch.cumsum(counts, 0) - counts
+    counts = torch.bincount(tile, minlength=ntx * nty)
+    return ntx, nty, gid[order], counts, torch.cumsum(counts, 0) - counts
 
+
+def rasterize_tiles(
+    proj: Projected, H: int, W: int, background: torch.Tensor, chunk: int = 32, raw: bool = False,
+    distance: bool = False, weights: list | None = None,
+) -> RenderOutput:
+    """Tile rasteriser: bin Gaussians into 16x16 tiles, sort by (tile, depth), composite all tiles chunk by chunk.
+
+    raw=True returns the un-normalised accumulated depth (sum w z) instead of the expected depth; distance=True
+    accumulates the centres' Euclidean distances instead of their z. weights, when a list, receives per chunk the
+    non-zero compositing weights as (flat pixel index (K,), Gaussian index in proj (K,), weight (K,)): the image is
+    their sum of weight x colour plus the transmittance x background; the returned render then holds only the
+    transmittance (alpha; rgb is transmittance x background, depth 0): colour and depth are not accumulated.
+    """
+    depth_of = proj.dist if distance else proj.z
+    ntx, nty, sorted_g, counts, starts = bin_tiles(proj, H, W)
+    n_tiles = ntx * nty
     local_pix = torch.arange(TILE * TILE)
     base_x = (torch.arange(n_tiles) % ntx) * TILE
     base_y = (torch.arange(n_tiles) // ntx) * TILE
@@ -293,6 +298,17 @@ def rasterize_tiles(
     if raw:
         return RenderOutput((rgb + T[:, None] * background).reshape(H, W, 3), z.reshape(H, W), (1 - T).reshape(H, W))
     return _finish(rgb, z, T, background, H, W)
+
+
+def face_weights(proj: Projected, H: int, W: int, chunk: int = 32) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """rasterize_tiles(weights=...)'s non-zero compositing weights, concatenated, from its numba kernel
+    (splat_weights.tile_weights): (flat pixel index (K,) int32, Gaussian index in proj (K,) int32, weight (K,)
+    float32). Equal to the torch path's up to the last bit of exp (tests/test_render_gs.py)."""
+    from panoworld.splat_weights import tile_weights
+
+    ntx, _, sorted_g, counts, starts = bin_tiles(proj, H, W)
+    return tile_weights(proj.xy.numpy(), proj.conic.numpy(), proj.opacity.numpy(), sorted_g.numpy(), starts.numpy(),
+                        counts.numpy(), ntx, H, W, TILE, chunk)
 
 
 def _background(background) -> torch.Tensor:
@@ -442,15 +458,19 @@ class ErpColorOperator:
         self.faces = erp_faces(world_from_cam, H, W, supersample=supersample, pole_scale=pole_scale)
         self.s, self.H, self.W, self.N = int(supersample), H, W, len(gaussians)
         prep = _prepare(gaussians, np.asarray(world_from_cam, dtype=np.float64)[:3, 3])
-        self.weights = []
-        for fc in self.faces:
+
+        def weights(fc: ErpFace):
             proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
-            parts: list = []
-            rasterize_tiles(proj, fc.n, fc.n, torch.zeros(3), weights=parts)
-            pix, gid, w = (torch.cat(x) for x in zip(*parts)) if parts else (torch.zeros(0, dtype=torch.long),) * 3
+            pix, gid, w = face_weights(proj, fc.n, fc.n)
             # scipy: COO -> CSR is a counting sort, 32-bit indices, and the transpose a free CSC view
-            self.weights.append(scipy.sparse.csr_matrix((w.float().numpy(), (pix.numpy(), proj.index[gid].numpy())),
-                                                        shape=(fc.n * fc.n, self.N)))
+            return scipy.sparse.csr_matrix((w, (pix, proj.index.numpy().astype(np.int32)[gid])),
+                                           shape=(fc.n * fc.n, self.N))
+
+        # The faces on torch's threads (the kernel releases the GIL), the largest (the pole faces) first.
+        with ThreadPoolExecutor(max(1, torch.get_num_threads())) as pool:
+            by_size = sorted(range(len(self.faces)), key=lambda k: -self.faces[k].n)
+            done = dict(zip(by_size, pool.map(weights, [self.faces[k] for k in by_size])))
+        self.weights = [done[k] for k in range(len(self.faces))]
 
     def compose(self, face_images: list[torch.Tensor]) -> torch.Tensor:
         """Face images (n * n, 3) -> the ERP (H, W, 3) (differentiable)."""
@@ -464,12 +484,18 @@ class ErpColorOperator:
 
     def __call__(self, colors: torch.Tensor) -> torch.Tensor:
         c = colors.detach().numpy()
-        return self.compose([torch.from_numpy(A @ c) for A in self.weights])
+        return self.compose([torch.from_numpy(x) for x in self._per_face(lambda A: A @ c)])
 
     def adjoint(self, image: torch.Tensor) -> torch.Tensor:
         faces = [torch.zeros(A.shape[0], 3, requires_grad=True) for A in self.weights]
         grads = torch.autograd.grad(self.compose(faces), faces, image)
-        return sum(torch.from_numpy(A.T @ g.numpy()) for A, g in zip(self.weights, grads))
+        return sum(torch.from_numpy(x) for x in self._per_face(lambda A, g: A.T @ g.numpy(), grads))
+
+    def _per_face(self, fn, *args) -> list:
+        """fn(face matrix, *its args) for every face, in face order, on torch's threads (scipy's sparse products
+        release the GIL)."""
+        with ThreadPoolExecutor(max(1, torch.get_num_threads())) as pool:
+            return list(pool.map(fn, self.weights, *args))
 
 
 def _gsplat_available() -> bool:

@@ -60,6 +60,19 @@ def _bullet(asset):
                        Agent(radius=ag["agent_radius_m"], height=ag["agent_height_m"], step_height=ag["step_height_m"]))
 
 
+def test_collider_compaction_is_np_unique_without_the_sort():
+    from panoworld.asset.collider import _compact
+
+    rng = np.random.default_rng(0)
+    verts = rng.normal(size=(500, 3))
+    faces = rng.choice(np.arange(0, 500, 3), size=(200, 3))  # two thirds of the vertices unreferenced
+    used, inverse = np.unique(faces.reshape(-1), return_inverse=True)
+    v, f = _compact(verts, faces)
+    np.testing.assert_array_equal(v, verts[used])
+    np.testing.assert_array_equal(f, inverse.reshape(-1, 3))
+    assert f.dtype == np.int64 and np.array_equal(v[f], verts[faces])
+
+
 def test_usd_validators_pass_and_stage_metadata(stage):
     from pxr import UsdGeom, UsdPhysics, UsdValidation
 

@@ -295,6 +295,23 @@ def test_stage_writes_a_valid_artifact(tmp_path, room):
     assert np.median(g2.scales[n:].max(1)) > 1.5 * np.median(g0.scales[n:].max(1))
 
 
+def test_context_source_reads_ahead_and_yields_the_frames_in_order(tmp_path, room):
+    from panoworld.gaussians import context_source
+
+    video, poses = write_inputs(tmp_path, room)
+    src = context_source(video, poses)
+    frames = list(src)
+    assert len(frames) == len(src) == 2
+    for k, (rgb, depth, pose) in enumerate(frames):
+        want = src.frame(k)
+        assert np.array_equal(rgb, want[0]) and np.array_equal(depth, want[1], equal_nan=True)
+        assert np.array_equal(pose, want[2])
+    it = iter(src)  # a consumer that stops early leaves no thread behind
+    next(it)
+    it.close()
+    assert [np.array_equal(a[0], b[0]) for a, b in zip(src, frames)] == [True, True]  # re-iterable
+
+
 def test_stage_input_errors(tmp_path, room):
     from panoworld.stage import StageInputError, execute_stage, load_stage
     from stages.gaussians import Params

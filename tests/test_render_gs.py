@@ -304,3 +304,30 @@ def test_erp_pole_scale_resolves_longitude_detail_near_the_poles():
     assert err[3] < 0.6 * err[1], err
     with pytest.raises(ValueError, match="pole_scale"):
         render_erp(g, np.eye(4), H, W, pole_scale=0.5)
+
+
+@pytest.mark.parametrize("n, opacity", [(400, None), (120, 0.95)])
+def test_numba_face_weights_match_the_torch_tile_rasteriser(n, opacity):
+    # The colour fit's kernel (splat_weights) against rasterize_tiles(weights=...): the same (pixel, Gaussian) pairs,
+    # the same weights up to exp's last bit. Tiles hold > 32 Gaussians (several chunks); opaque ones stop pixels early.
+    from panoworld.render_gs import _prepare, bin_tiles, face_weights, project, rasterize_tiles
+
+    g = random_gaussians(n, seed=5)
+    if opacity is not None:
+        g = Gaussians(g.means * [0.2, 0.2, 1.0], g.scales, g.quats, np.full(n, opacity, np.float32), g.sh_dc)
+    H, W = 45, 70  # not multiples of the tile size
+    proj = project(_prepare(g, np.zeros(3)), np.eye(4), 55.0, 50.0, 33.0, 24.0, H, W)
+    parts: list = []
+    torch_T = rasterize_tiles(proj, H, W, torch.zeros(3), weights=parts).alpha
+    pix, gid, w = (torch.cat(x).numpy() for x in zip(*parts))
+    pix2, gid2, w2 = face_weights(proj, H, W)
+    assert pix2.dtype == gid2.dtype == np.int32 and w2.dtype == np.float32
+    key, key2 = pix * n + gid, pix2.astype(np.int64) * n + gid2
+    o, o2 = np.argsort(key), np.argsort(key2)
+    np.testing.assert_array_equal(key[o], key2[o2])
+    np.testing.assert_allclose(w2[o2], w[o], rtol=1e-6, atol=1e-9)
+    assert int(bin_tiles(proj, H, W)[3].max()) > 2 * 32  # tiles hold several chunks
+    alpha = np.bincount(pix2, weights=w2, minlength=H * W).reshape(H, W)  # the weights sum to 1 - T
+    np.testing.assert_allclose(alpha, torch_T.numpy(), atol=1e-5)
+    if opacity is not None:
+        assert float(torch_T.max()) > 1 - 1e-3  # saturated pixels: early termination exercised

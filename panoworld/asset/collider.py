@@ -26,8 +26,13 @@ class Collider:
 
 
 def _compact(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    used, inverse = np.unique(faces.reshape(-1), return_inverse=True)
-    return np.asarray(vertices, np.float64)[used], inverse.reshape(-1, 3).astype(np.int64)
+    """The referenced vertices in their order and the faces renumbered (np.unique's sorted values and inverse,
+    by a mask instead of a sort)."""
+    flat = np.asarray(faces, np.int64).reshape(-1)
+    used = np.zeros(len(vertices), bool)
+    used[flat] = True
+    new_index = np.cumsum(used) - 1
+    return np.asarray(vertices, np.float64)[used], new_index[flat].reshape(-1, 3)
 
 
 def _drop_degenerate(vertices: np.ndarray, faces: np.ndarray, min_area_m2: float = 1e-12) -> np.ndarray:

@@ -33,6 +33,11 @@ class WarpOptions:
     """The background layer's depth never lies beyond the floor and ceiling planes fitted to the source depth
     (panoworld.depth_complete.fit_planes): the hidden floor behind furniture and the ceiling behind a lamp stay on
     the room's planes (panoworld.inpaint.build_background_layer)."""
+    wall_layout: bool = False
+    """The room's shell from the source view: one wall per column, interpolated across the columns tall objects hide
+    (panoworld.layout_columns), with the floor and ceiling planes; background layer pixels grown from an edge on the
+    shell take its depth, and on a wall the wall's colour seen at the same height beside the occluder
+    (panoworld.inpaint.wall_layer) instead of the inpainted colour."""
     color_sigma_px: float = param(0.0, ge=0)
     """> 0: the background layer's colour is the Gaussian-weighted mean (this sigma, source grid pixels) of the
     visible background around it (panoworld.inpaint.layer_mean_color) instead of Telea inpainting, which streaks
@@ -59,7 +64,8 @@ def fill(job) -> tuple:
         ratio = float(read_json(mesh_dir / "manifest.json", default={}).get("params", {}).get("max_edge_ratio", 12.0))
         opts = dict(max_band_deg=job.options.max_band_deg, inpaint_radius=job.inpaint_radius, max_edge_ratio=ratio,
                     side_depth_m=job.options.side_depth_m, edge_depth_ratio=job.options.edge_depth_ratio,
-                    layout_planes=job.options.layout_planes, color_sigma_px=job.options.color_sigma_px)
+                    layout_planes=job.options.layout_planes, color_sigma_px=job.options.color_sigma_px,
+                    wall_layout=job.options.wall_layout)
         sources = read_home_sources(mesh_dir)
         if sources is not None:  # a home: one layer per source panorama (panoworld/home/inpaint.py)
             layer = home_background_layer(mesh, sources, job.poses, **opts)

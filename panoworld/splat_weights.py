@@ -1,0 +1,106 @@
+"""numba kernel of render_gs.rasterize_tiles(weights=...): the compositing weights of tile-binned Gaussians, pixel by pixel."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+_F = np.float32
+_HALF = _F(-0.5)
+_HALF_PX = _F(0.5)
+_ONE = _F(1.0)
+_ZERO = _F(0.0)
+_ALPHA_MIN = _F(1.0 / 255.0)
+_ALPHA_MAX = _F(0.99)
+_T_MIN = _F(1e-4)
+
+
+@njit(cache=True, nogil=True)
+def tile_weights(xy, conic, opacity, sorted_g, starts, counts, ntx, H, W, tile, chunk):
+    """Compositing weights (flat pixel index int32, Gaussian index int32, weight > 0 float32) of every pixel, as rasterize_tiles computes
+    them: per tile its depth-sorted Gaussians in chunks of `chunk`; within a chunk the transmittance is the chunk's
+    starting one times the running product of (1 - alpha) (float64, rounded to float32, as torch.cumprod on CPU);
+    a pixel stops at the chunk where it falls below T_MIN. All arithmetic in float32 in torch's order."""
+    cap = max(1024, 16 * int(counts.sum()))
+    pix_out = np.empty(cap, np.int32)
+    gid_out = np.empty(cap, np.int32)
+    w_out = np.empty(cap, np.float32)
+    n = 0
+    alphas = np.empty(chunk, np.float32)
+    nmax = counts.max() if counts.shape[0] else 0
+    gx = np.empty(nmax, np.float32)
+    gy = np.empty(nmax, np.float32)
+    ga = np.empty(nmax, np.float32)
+    gb = np.empty(nmax, np.float32)
+    gc = np.empty(nmax, np.float32)
+    go = np.empty(nmax, np.float32)
+    gcut = np.empty(nmax, np.float32)
+    for t in range(counts.shape[0]):
+        cnt = counts[t]
+        if cnt == 0:
+            continue
+        s0 = starts[t]
+        for i in range(cnt):  # the tile's Gaussians, contiguous
+            g = sorted_g[s0 + i]
+            gx[i], gy[i] = xy[g, 0], xy[g, 1]
+            ga[i], gb[i], gc[i] = conic[g, 0], conic[g, 1], conic[g, 2]
+            go[i] = opacity[g]
+            # below this power alpha < 1/255 whatever exp's last bit: exp is skipped
+            gcut[i] = np.log(_ALPHA_MIN / max(opacity[g], _F(1e-30))) - 0.01
+        bx = (t % ntx) * tile
+        by = (t // ntx) * tile
+        for p in range(tile * tile):
+            x = bx + p % tile
+            y = by + p // tile
+            if x >= W or y >= H:
+                continue
+            px = _F(x) + _HALF_PX
+            py = _F(y) + _HALF_PX
+            T = _ONE
+            k = 0
+            while k < cnt:
+                m = min(chunk, cnt - k)
+                for j in range(m):
+                    i = k + j
+                    dx = px - gx[i]
+                    dy = py - gy[i]
+                    power = _HALF * (ga[i] * dx * dx + gc[i] * dy * dy) - gb[i] * dx * dy
+                    if power < gcut[i] or power > _ZERO:
+                        alphas[j] = _ZERO
+                    else:
+                        a = min(go[i] * _F(np.exp(power)), _ALPHA_MAX)
+                        alphas[j] = a if a >= _ALPHA_MIN else _ZERO
+                if n + m > cap:  # grow the outputs
+                    cap = (n + m) * 3 // 2
+                    pix_out = _grow(pix_out, cap)
+                    gid_out = _grow(gid_out, cap)
+                    w_out = _grow(w_out, cap)
+                cum = 1.0
+                prev = _ONE
+                t_min = T
+                t_incl = T
+                for j in range(m):
+                    cum *= np.float64(_ONE - alphas[j])
+                    cp = _F(cum)
+                    t_incl = T * cp
+                    if t_incl >= _T_MIN:
+                        w = alphas[j] * (T * prev)
+                        if w > _ZERO:
+                            pix_out[n] = y * W + x
+                            gid_out[n] = sorted_g[s0 + k + j]
+                            w_out[n] = w
+                            n += 1
+                        t_min = min(t_min, t_incl)
+                    prev = cp
+                if t_incl < _T_MIN:  # the chunk's padding (alpha 0) leaves the product as its last Gaussian left it
+                    break
+                T = t_min
+                k += chunk
+    return pix_out[:n], gid_out[:n], w_out[:n]
+
+
+@njit(cache=True, nogil=True)
+def _grow(a, cap):
+    out = np.empty(cap, a.dtype)
+    out[: a.shape[0]] = a
+    return out
