@@ -23,6 +23,7 @@ from panoworld.rig_face import (
 )
 from panoworld.rig_inpaint import inpaint_plane, matte_rim
 from panoworld.rig_shadow import apply_gain, leg_shadow_lines, linear_luminance, local_lightness, shadow_gain
+from panoworld.rig_shape import MIN_LEG_WIDTH_DEG, azimuth_occupancy, horizontal_surface, leg_arms
 
 CAP_DEG = 30.0
 """Largest rig: candidates must lie within this angle of the nadir (a tripod's feet reach 15-25 degrees)."""
@@ -34,13 +35,6 @@ FLOOR_SIGMAS = (1.0, 0.6)
 """Smoothing (histogram bins) of the floor ring's colours: broad first, narrow when the broad pass finds no rig."""
 HUB_DEG = 6.0
 """Anomalous regions reaching this close to the nadir are candidates (the mount and the roots of the legs)."""
-TABLE_MIN_GAP_M = 0.3
-"""A horizontal surface at least this far below the camera (and above the floor) is a seen object, not the mount."""
-MIN_LEG_WIDTH_DEG = 0.6
-"""An arm of the candidate is a tripod leg only when at least this wide on average over 45-85 % of its extent (a leg
-1.5-4 cm across seen from 0.6-1.7 m: >= 1 degree). Thinner arms (the anti-aliased dashes of a tiled floor's grout,
-1 cm at the floor) neither count as legs nor in their azimuth occupancy. Third-widest arm: development tripods
-100-115 >= 1.65 deg at 256 rows, >= 1.19 at 720; bench_rig's rig-free grout controls <= 0.28."""
 RIG_DROP_MAX = 0.6
 """With depth, a candidate reaching CAP_DEG is looked at once more without what cannot be the rig: surfaces off the
 floor plane whose vertical drop below the camera exceeds this share of the camera's height (walls and furniture at the
@@ -161,7 +155,7 @@ def seen_object(nf: NadirFace, comp: np.ndarray, floor_m: float | None) -> RigDe
     if reaches_cap(nf, comp):
         return RigDetection(False, f"the region under the camera reaches {CAP_DEG:.0f} deg from the nadir: larger than "
                             "any rig (a rug, furniture, a floor pattern), kept")
-    table = _horizontal_surface(nf.theta[comp], nf.depth[comp] if nf.depth is not None else None,
+    table = horizontal_surface(nf.theta[comp], nf.depth[comp] if nf.depth is not None else None,
                                 nf.valid[comp] if nf.valid is not None else None, floor_m)
     if table is not None:
         return RigDetection(False, f"the region under the camera is a horizontal surface {table:.2f} m below the "
@@ -224,10 +218,10 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     comp_lum = float(np.median(lab[..., 0][comp]))
     stats.update(cap_deg=extent, face_pixels=int(comp.sum()), darkness=1.0 - comp_lum / max(ring_lum, 1.0),
                  lum_std=float(lab[..., 0][comp].std()))
-    occ_in, arms_in = _azimuth_occupancy(p[(t > 0.3 * extent) & (t < 0.7 * extent)])
-    occ_out, arms_out = _azimuth_occupancy(p[(t > 0.45 * extent) & (t < 0.85 * extent)])
+    occ_in, arms_in = azimuth_occupancy(p[(t > 0.3 * extent) & (t < 0.7 * extent)])
+    occ_out, arms_out = azimuth_occupancy(p[(t > 0.45 * extent) & (t < 0.85 * extent)])
     stats.update(occupancy_inner=occ_in, occupancy_outer=occ_out, arms=arms_out)
-    n_legs, occ_legs, widths = leg_arms(comp, theta, phi, view, extent)
+    n_legs, occ_legs, widths = leg_arms(comp, theta, phi, view.focal, extent)
     widths = sorted(widths, reverse=True)
     stats.update(legs=n_legs, occupancy_legs=occ_legs, arm_widths_deg=[round(w, 3) for w in widths[:8]])
     refusal = seen_object(nf, comp, floor_m)
@@ -268,25 +262,6 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     if sh.any():
         reason += f" with its shadow ({sh_deg:.0f} deg, up to {1 - 1 / gain.max():.0%} darker)"
     return RigDetection(True, reason, kind, mask, sh, stats, shadow_gain=gain, source=source)
-
-
-def leg_arms(comp: np.ndarray, theta: np.ndarray, phi: np.ndarray, view: PerspectiveView, extent: float,
-             bins: int = 72) -> tuple[int, float, list[float]]:
-    """The candidate's arms between 45 % and 85 % of its extent (circular runs of occupied azimuth bins) that are at
-    least MIN_LEG_WIDTH_DEG wide: their number and share of the bins, and every arm's width (degrees: its pixels on
-    the face over the band's radial length; dashes along a line count as a thinner arm)."""
-    band = comp & (theta > 0.45 * extent) & (theta < 0.85 * extent)
-    h = np.bincount(((phi[band] + np.pi) / (2 * np.pi) * bins).astype(int) % bins, minlength=bins)
-    if not h.any() or h.all():
-        return 0, 0.0, []
-    h = np.roll(h, -int(np.argmin(h)))  # start at an empty bin: no run wraps around
-    edges = np.diff(np.r_[0, (h > 0).astype(np.int8), 0])
-    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
-    t0, t1 = np.deg2rad(0.45 * extent), np.deg2rad(0.85 * extent)
-    length = view.focal * (np.tan(t1) - np.tan(t0))
-    widths = [float(np.rad2deg(h[a:b].sum() / length / view.focal)) for a, b in zip(starts, ends)]
-    legs = [b - a for a, b, w in zip(starts, ends, widths) if w >= MIN_LEG_WIDTH_DEG]
-    return len(legs), sum(legs) / bins, widths
 
 
 def _leg_shadows(rgb: np.ndarray, mask: np.ndarray, gain: np.ndarray, view: PerspectiveView) -> np.ndarray:
@@ -402,27 +377,6 @@ def _nadir_component(face: np.ndarray, theta: np.ndarray, ring_floor: np.ndarray
         touch = np.unique(labels[(cv2.dilate(comp.astype(np.uint8), near) > 0) & (labels > 0)])
         comp = np.isin(labels, touch)
     return comp
-
-
-def _azimuth_occupancy(phi: np.ndarray, bins: int = 72) -> tuple[float, int]:
-    """Share of azimuth bins holding pixels, and the number of circular runs of occupied bins (arms)."""
-    if len(phi) == 0:
-        return 0.0, 0
-    h = np.bincount(((phi + np.pi) / (2 * np.pi) * bins).astype(int) % bins, minlength=bins) > 0
-    runs = int(np.sum(h & ~np.roll(h, 1)))
-    return float(h.mean()), runs if not h.all() else 1
-
-
-def _horizontal_surface(theta, fd, fv, floor_m) -> float | None:
-    """Distance below the camera of a horizontal surface holding >= 60 % of the region's depth pixels, when it lies
-    between TABLE_MIN_GAP_M below the camera and 5 % above the floor; else None."""
-    if fd is None or fv is None or not floor_m or fv.mean() < 0.5:
-        return None
-    drop = fd[fv] * np.cos(np.deg2rad(theta[fv]))
-    med = float(np.median(drop))
-    if np.mean(np.abs(drop - med) < 0.03 * med) < 0.6:
-        return None
-    return med if TABLE_MIN_GAP_M <= med < 0.95 * floor_m else None
 
 
 def read_user_mask(path: Path, H: int, W: int) -> np.ndarray:

@@ -7,7 +7,7 @@ import pytest
 import torch
 import trimesh
 
-from panoworld import rig
+from panoworld import rig, rig_shape
 from panoworld.conventions import erp_dirs
 from panoworld.raycast import Raycaster
 from panoworld.synth.appearance import Material, MaterialKind, albedo, srgb_uint8
@@ -55,13 +55,13 @@ def test_grout_at_the_nadir_is_kept_and_a_tripod_on_the_same_floor_is_found(monk
     rgb, depth = tiled_floor((0.04, 0.12), tripod=False)
     assert not detect(rgb, depth).found
     with monkeypatch.context() as m:
-        m.setattr(rig, "MIN_LEG_WIDTH_DEG", 0.0)
+        m.setattr(rig_shape, "MIN_LEG_WIDTH_DEG", 0.0)
         det = detect(rgb, depth)
         assert det.found and det.kind == "legs" and det.stats["arm_widths_deg"][2] < 0.4, (det.reason, det.stats)
     rgb, depth = tiled_floor((0.04, 0.12), tripod=True)
     det = detect(rgb, depth)
     assert det.found and det.kind == "legs" and det.stats["legs"] == 3, (det.reason, det.stats)
-    assert det.stats["arm_widths_deg"][2] > 2 * rig.MIN_LEG_WIDTH_DEG
+    assert det.stats["arm_widths_deg"][2] > 2 * rig_shape.MIN_LEG_WIDTH_DEG
 
 
 @pytest.mark.slow
