@@ -472,8 +472,8 @@ def map_ahead(fn: Callable, items: Iterable, *, workers: int):
 
 @dataclass
 class ContextSource:
-    """The frames a gaussians run fuses, read from disk one at a time when iterated (re-iterable; memory: one frame
-    whatever their number and size). Yields (rgb (H, W, 3) uint8, depth (H, W) float32 metres NaN = unknown,
+    """The frames a gaussians run fuses, read from disk one at a time when iterated (re-iterable; memory: two frames,
+    the one being used and the next, whatever their number and size). Yields (rgb (H, W, 3) uint8, depth (H, W) float32 metres NaN = unknown,
     world_from_cam (4, 4)) at ERP height `height`."""
 
     rgb_paths: list[Path]
