@@ -186,12 +186,12 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     # A region that reaches CAP_DEG before any shadow is divided out is a seen object (a dark rug read as a shadow
     # would leave a mount-sized remainder), unless what reaches it cannot be the rig by depth (RIG_DROP_MAX).
     refusal = seen_object(nf, comp, floor_m)
-    not_rig = _not_rig_by_depth(nf, floor_m) if reaches_cap(nf, comp) else None
-    if not_rig is not None:
-        comp2 = _nadir_component(face, theta, ring_floor, view, sigma, not_rig)
+    not_rig = None
+    if reaches_cap(nf, comp):
+        not_rig, comp2 = _second_look(nf, face, sigma, floor_m)
         if comp2 is not None and seen_object(nf, comp2, floor_m) is None:
             comp, refusal = comp2, None
-            stats["second_look"] = "walls, furniture and floor lines left out by depth"
+            stats["second_look"] = SECOND_LOOK
     if refusal is not None:
         return refusal
     # A soft shadow around the rig is divided out first, so that only the rig itself is measured below.
@@ -202,11 +202,10 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
         source = floor_source(face, nf)
         comp = _nadir_component(face, theta, ring_floor, view, sigma, not_rig)
         if comp is not None and not_rig is None and reaches_cap(nf, comp):  # relit, the legs' cast shadows join
-            not_rig = _not_rig_by_depth(nf, floor_m)
-            comp2 = _nadir_component(face, theta, ring_floor, view, sigma, not_rig) if not_rig is not None else None
+            not_rig, comp2 = _second_look(nf, face, sigma, floor_m)
             if comp2 is not None and not reaches_cap(nf, comp2):
                 comp = comp2
-                stats["second_look"] = "walls, furniture and floor lines left out by depth"
+                stats["second_look"] = SECOND_LOOK
         if comp is None:
             return RigDetection(False, f"a soft shadow at the nadir ({sh_deg:.0f} deg) but nothing under it that "
                                 "differs from the floor: kept", stats=stats)
@@ -344,6 +343,19 @@ def _not_rig_by_depth(nf: NadirFace, floor_m: float | None) -> tuple[np.ndarray,
     far = (nf.valid & ~on & (drop > RIG_DROP_MAX * floor_m)).astype(np.uint8)
     k = 2 * int(np.ceil(0.5 * nf.view.focal * np.deg2rad(SURFACE_DEG))) + 1  # a leg's foot is far too, but thin
     return cv2.morphologyEx(far, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0, on
+
+
+SECOND_LOOK = "walls, furniture and floor lines left out by depth"
+
+
+def _second_look(nf: NadirFace, face: np.ndarray, sigma: float, floor_m: float | None
+                 ) -> tuple[tuple[np.ndarray, np.ndarray] | None, np.ndarray | None]:
+    """What depth says is not the rig (_not_rig_by_depth) and the candidate of face rebuilt without it; (None, None)
+    without depth."""
+    not_rig = _not_rig_by_depth(nf, floor_m)
+    if not_rig is None:
+        return None, None
+    return not_rig, _nadir_component(face, nf.theta, nf.ring_floor, nf.view, sigma, not_rig)
 
 
 def _nadir_component(face: np.ndarray, theta: np.ndarray, ring_floor: np.ndarray, view: PerspectiveView,

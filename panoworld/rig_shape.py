@@ -13,6 +13,11 @@ MIN_LEG_WIDTH_DEG = 0.6
 100-115 >= 1.65 deg at 256 rows, >= 1.19 at 720; bench_rig's rig-free grout controls <= 0.28."""
 
 
+def azimuth_histogram(phi: np.ndarray, bins: int) -> np.ndarray:
+    """Pixel count (bins,) per azimuth bin of the face azimuths phi (K,) radians in [-pi, pi]."""
+    return np.bincount(((phi + np.pi) / (2 * np.pi) * bins).astype(int) % bins, minlength=bins)
+
+
 def leg_arms(comp: np.ndarray, theta: np.ndarray, phi: np.ndarray, focal: float, extent: float,
              bins: int = 72) -> tuple[int, float, list[float]]:
     """The candidate's arms between 45 % and 85 % of its extent (circular runs of occupied azimuth bins) that are at
@@ -20,7 +25,7 @@ def leg_arms(comp: np.ndarray, theta: np.ndarray, phi: np.ndarray, focal: float,
     the downward face of focal length `focal` px over the band's radial length; dashes along a line count as a
     thinner arm)."""
     band = comp & (theta > 0.45 * extent) & (theta < 0.85 * extent)
-    h = np.bincount(((phi[band] + np.pi) / (2 * np.pi) * bins).astype(int) % bins, minlength=bins)
+    h = azimuth_histogram(phi[band], bins)
     if not h.any() or h.all():
         return 0, 0.0, []
     h = np.roll(h, -int(np.argmin(h)))  # start at an empty bin: no run wraps around
@@ -37,7 +42,7 @@ def azimuth_occupancy(phi: np.ndarray, bins: int = 72) -> tuple[float, int]:
     """Share of azimuth bins holding pixels, and the number of circular runs of occupied bins (arms)."""
     if len(phi) == 0:
         return 0.0, 0
-    h = np.bincount(((phi + np.pi) / (2 * np.pi) * bins).astype(int) % bins, minlength=bins) > 0
+    h = azimuth_histogram(phi, bins) > 0
     runs = int(np.sum(h & ~np.roll(h, 1)))
     return float(h.mean()), runs if not h.all() else 1
 
