@@ -173,7 +173,7 @@ def shell_depth(walls: WallColumns, dirs: np.ndarray) -> tuple[np.ndarray, np.nd
     return np.minimum(t_wall, t_plane), t_wall < t_plane
 
 
-def _fill_along(values: np.ndarray, known: np.ndarray, axis: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _fill_along(values: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Index of the nearest known cell before and after each cell along axis 0 of known (n, m) (-1 / n where none),
     and the nearer one's values (n, m, C); no wrapping."""
     n = known.shape[0]
@@ -221,7 +221,7 @@ def wall_colors(walls: WallColumns, points: np.ndarray, rgb: np.ndarray, seen: n
     known = den > 0.05  # seen cells and the small gaps between them
     col = np.where(known[..., None], num / np.maximum(den, 1e-6)[..., None], 0.0)
     # nearest known column to the left / right of every cell, on the columns tiled three times (the seam wraps)
-    left, right, _ = _fill_along(np.tile(col, (1, 3, 1)).transpose(1, 0, 2), np.tile(known, 3).T, 0)
+    left, right, _ = _fill_along(np.tile(col, (1, 3, 1)).transpose(1, 0, 2), np.tile(known, 3).T)
     left, right = left.T[:, w:2 * w], right.T[:, w:2 * w]
     ok = (left >= 0) & (right < 3 * w) & (right - left <= w)
     left, right = np.clip(left, 0, 3 * w - 1), np.clip(right, 0, 3 * w - 1)
@@ -231,7 +231,7 @@ def wall_colors(walls: WallColumns, points: np.ndarray, rgb: np.ndarray, seen: n
     out = (1 - a)[..., None] * col[rows, left % w] + a[..., None] * col[rows, right % w]
     out = np.where(known[..., None], col, out)
     known = known | ok
-    before, after, nearest = _fill_along(out, known, 0)
+    before, after, nearest = _fill_along(out, known)
     out = np.where(known[..., None], out, nearest)
     return out.astype(np.float32), known | (((before >= 0) | (after < bins)) & np.isfinite(walls.dist)[None])
 
