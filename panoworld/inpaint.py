@@ -240,6 +240,7 @@ def build_background_layer(
     color_sigma_px: float = 0.0,
     layout_planes: bool = False,
     wall_layout: bool = False,
+    shadow_ambient: float = 1.0,
 ) -> BackgroundLayer:
     """Extend the far side of every depth discontinuity of the source view behind its foreground occluder, and
     (side_depth_m > 0) the occluder's own surface back from its silhouette (occluder_sides).
@@ -258,7 +259,8 @@ def build_background_layer(
     depth (floor_ceiling). wall_layout: the room's shell from the source view (panoworld.layout_columns: one wall
     per column, interpolated behind tall objects, and the floor and ceiling planes); pixels grown from an edge pixel
     on the shell take the shell's depth, and where that is a wall, the wall's colour seen at the same height beside
-    the occluder (wall_layer). The side faces (side_depth_m > 0) come last among the layer faces.
+    the occluder (wall_layer). shadow_ambient < 1: the layer's colour relit (relight_layer). The side faces
+    (side_depth_m > 0) come last among the layer faces.
     """
     h, w = erp_grid_shape(mesh)
     n = h * w
@@ -322,6 +324,11 @@ def build_background_layer(
     faces = np.where(s_flat[grid], idx_new[grid], grid).astype(np.int32)
     faces = faces[_stretch(vertices.astype(np.float64), faces) <= max_edge_ratio]
     colors = np.concatenate([mesh.colors, bg_color.reshape(-1, 3)[s_flat]])
+    if shadow_ambient < 1:
+        colors[len(mesh.vertices):] = relight_layer(
+            p.reshape(h, w, 3), mesh.colors[:n].reshape(h, w, 3), valid, hide, synth,
+            vertices[len(mesh.vertices):], colors[len(mesh.vertices):], Raycaster(vertices, np.concatenate(
+                [main_faces, faces])), shadow_ambient, inpaint_radius)
     if side_depth_m > 0:
         side_v, side_c, side_f = occluder_sides(p.reshape(h, w, 3), mesh.colors[:n], bad, side_depth_m,
                                                  len(vertices))
@@ -336,6 +343,30 @@ def build_background_layer(
         synth,
         np.where(synth, bg_depth, 0.0).astype(np.float32),
     )
+
+
+def relight_layer(points: np.ndarray, rgb: np.ndarray, valid: np.ndarray, hide: np.ndarray, synth: np.ndarray,
+                  layer_points: np.ndarray, layer_rgb: np.ndarray, rc: Raycaster, ambient: float, radius: float
+                  ) -> np.ndarray:
+    """The background layer's colours layer_rgb (N, 3) at layer_points (N, 3) (the synth (h, w) pixels, in order)
+    relit for the source view's ceiling lights (panoworld.fill_shadows): the layer's colour comes from the visible
+    pixels around the occluder (hide); each point's colour is scaled in linear light by how much more or less of the
+    lights reaches it than reached those pixels (shadow rays against the fill mesh rc), with ambient light this share
+    of full light. Unchanged without lights."""
+    from panoworld.depth_complete import fit_planes
+    from panoworld.fill_shadows import apply_gain, ceiling_lights, lit_fraction, shadow_gain
+
+    ceiling_m = fit_planes(np.linalg.norm(points, axis=-1), valid)[1]
+    lights, weights = ceiling_lights(points, rgb, valid, None if ceiling_m is None else -ceiling_m)
+    if not len(lights) or not len(layer_points):
+        return layer_rgb
+    rim = cv2.dilate(hide.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=int(np.ceil(radius)) + 1) > 0
+    rim &= valid & ~hide
+    lit_src = np.ones(valid.shape, np.float32)
+    lit_src[rim] = lit_fraction(rc, points[rim], lights, weights)
+    donor = erp_inpaint(lit_src, hide, radius=radius)[synth]
+    here = lit_fraction(rc, layer_points, lights, weights)
+    return apply_gain(layer_rgb, shadow_gain(here, donor, ambient))
 
 
 def wall_layer(points: np.ndarray, rgb: np.ndarray, valid: np.ndarray, planes: tuple[float, ...], steps: np.ndarray,
