@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -100,9 +100,10 @@ class BackgroundLayer:
     layer_faces: int
     synthesized: np.ndarray  # (h, w) bool
     layer_depth: np.ndarray  # (h, w) float32, background depth at synthesized pixels, 0 elsewhere
+    built: Raycaster | None = field(default=None, repr=False)  # one already built over these vertices and faces
 
     def raycaster(self) -> Raycaster:
-        return Raycaster(self.vertices, self.faces)
+        return self.built if self.built is not None else Raycaster(self.vertices, self.faces)
 
 
 def erp_grid_shape(mesh: ErpMesh) -> tuple[int, int]:
@@ -324,12 +325,15 @@ def build_background_layer(
     faces = np.where(s_flat[grid], idx_new[grid], grid).astype(np.int32)
     faces = faces[_stretch(vertices.astype(np.float64), faces) <= max_edge_ratio]
     colors = np.concatenate([mesh.colors, bg_color.reshape(-1, 3)[s_flat]])
+    built = None
     if shadow_ambient < 1:
+        vertices = vertices.astype(np.float32)
+        built = Raycaster(vertices, np.concatenate([main_faces, faces]).astype(np.int32))
         colors[len(mesh.vertices):] = relight_layer(
-            p.reshape(h, w, 3), mesh.colors[:n].reshape(h, w, 3), valid, hide, synth,
-            vertices[len(mesh.vertices):], colors[len(mesh.vertices):], Raycaster(vertices, np.concatenate(
-                [main_faces, faces])), shadow_ambient, inpaint_radius)
+            p.reshape(h, w, 3), mesh.colors[:n].reshape(h, w, 3), valid, hide, synth, vertices[len(mesh.vertices):],
+            colors[len(mesh.vertices):], built, shadow_ambient, inpaint_radius)
     if side_depth_m > 0:
+        built = None
         side_v, side_c, side_f = occluder_sides(p.reshape(h, w, 3), mesh.colors[:n], bad, side_depth_m,
                                                  len(vertices))
         vertices = np.concatenate([vertices, side_v.astype(np.float32)])
@@ -342,6 +346,7 @@ def build_background_layer(
         len(faces),
         synth,
         np.where(synth, bg_depth, 0.0).astype(np.float32),
+        built,
     )
 
 
