@@ -350,6 +350,10 @@ def build_background_layer(
     )
 
 
+ROOM_TOL = 1.05
+"""relight_layer: a layer point farther than this times the room's shell along its ray is outside the room."""
+
+
 def relight_layer(points: np.ndarray, rgb: np.ndarray, valid: np.ndarray, hide: np.ndarray, synth: np.ndarray,
                   layer_points: np.ndarray, layer_rgb: np.ndarray, rc: Raycaster, ambient: float, radius: float
                   ) -> np.ndarray:
@@ -357,21 +361,27 @@ def relight_layer(points: np.ndarray, rgb: np.ndarray, valid: np.ndarray, hide: 
     relit for the source view's ceiling lights (panoworld.fill_shadows): the layer's colour comes from the visible
     pixels around the occluder (hide); each point's colour is scaled in linear light by how much more or less of the
     lights reaches it than reached those pixels (shadow rays against the fill mesh rc), with ambient light this share
-    of full light. Unchanged without lights."""
+    of full light. Points beyond the room's walls (panoworld.layout_columns' shell; the next room through a doorway,
+    lit by lights the source view does not see) keep their colour. Unchanged without lights."""
     from panoworld.depth_complete import fit_planes
     from panoworld.fill_shadows import apply_gain, ceiling_lights, lit_fraction, shadow_gain
+    from panoworld.layout_columns import shell_depth, wall_columns
 
-    ceiling_m = fit_planes(np.linalg.norm(points, axis=-1), valid)[1]
+    depth = np.linalg.norm(points, axis=-1)
+    floor_m, ceiling_m = fit_planes(depth, valid)
     lights, weights = ceiling_lights(points, rgb, valid, None if ceiling_m is None else -ceiling_m)
-    if not len(lights) or not len(layer_points):
+    if not len(lights) or not len(layer_points) or floor_m is None:
         return layer_rgb
+    dirs = points / np.maximum(depth, 1e-12)[..., None]
+    shell = shell_depth(wall_columns(points, valid, floor_m, -ceiling_m), dirs)[0][synth]
+    inside = ~(np.linalg.norm(layer_points, axis=1) > ROOM_TOL * shell)  # unknown shell (nan): inside
     rim = cv2.dilate(hide.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=int(np.ceil(radius)) + 1) > 0
     rim &= valid & ~hide
     lit_src = np.ones(valid.shape, np.float32)
     lit_src[rim] = lit_fraction(rc, points[rim], lights, weights)
     donor = erp_inpaint(lit_src, hide, radius=radius)[synth]
     here = lit_fraction(rc, layer_points, lights, weights)
-    return apply_gain(layer_rgb, shadow_gain(here, donor, ambient))
+    return np.where(inside[:, None], apply_gain(layer_rgb, shadow_gain(here, donor, ambient)), layer_rgb)
 
 
 def wall_layer(points: np.ndarray, rgb: np.ndarray, valid: np.ndarray, planes: tuple[float, ...], steps: np.ndarray,
