@@ -46,7 +46,7 @@ class WarpOptions:
     """< 1: the background layer is relit for the ceiling lights found in the source view (bright patches on the
     fitted ceiling; panoworld.fill_shadows): where an occluder hides those lights from a hidden surface more than
     from the visible pixels its colour came from, it is darker (panoworld.inpaint.relight_layer), with ambient light
-    this share of a fully lit surface's; 1 = off."""
+    this share of a fully lit surface's; points beyond the room's walls are left as they are; 1 = off."""
     depth_fill: bool = True
     """Without reuse: holes the background layer does not fill take the depth and colour of their farther side
     (panoworld.inpaint.background_fill), so the Gaussians stage places them; false = a colour-only 2D fill (no depth:
