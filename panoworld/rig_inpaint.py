@@ -53,10 +53,11 @@ def lattice_offsets(face: np.ndarray, known: np.ndarray, k: int = LATTICE_OFFSET
     overlap = auto(kn)
     var = float((tex**2).sum()) / max(total, 1.0)
     corr = np.where(overlap > 0.15 * total, auto(tex) / np.maximum(overlap, 1.0) / max(var, 1e-6), -1.0)
+    corr = corr.astype(np.float32)  # compared with its own dilation below: one precision
     c = n // 2
     yy, xx = np.mgrid[:n, :n] - c
     win = 2 * max(2, S // 100) + 1
-    peak = (corr >= cv2.dilate(corr.astype(np.float32), np.ones((win, win), np.uint8))) & (corr >= min_corr) & (
+    peak = (corr >= cv2.dilate(corr, np.ones((win, win), np.uint8))) & (corr >= min_corr) & (
         np.hypot(yy, xx) > max(3.0, S / 60))
     iy, ix = np.nonzero(peak)
     best = np.argsort(-corr[iy, ix])[:k]
