@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -16,8 +17,12 @@ from panoworld.conventions import (
     erp_pixel_from_dir,
     invert_pose,
 )
+from panoworld.layout_columns import ROOM_TOL
 from panoworld.mesh import ErpMesh, grid_faces
 from panoworld.raycast import Hits, Raycaster
+
+if TYPE_CHECKING:
+    from panoworld.plane_colors import PlaneColors
 from panoworld.shapes import check_shape
 
 # ---------------------------------------------------------------- seam-aware 2D helpers
@@ -101,6 +106,7 @@ class BackgroundLayer:
     synthesized: np.ndarray  # (h, w) bool
     layer_depth: np.ndarray  # (h, w) float32, background depth at synthesized pixels, 0 elsewhere
     built: Raycaster | None = field(default=None, repr=False)  # one already built over these vertices and faces
+    planes: PlaneColors | None = field(default=None, repr=False)  # plane_colors: for the frames' 2D-filled pixels
 
     def raycaster(self) -> Raycaster:
         return self.built if self.built is not None else Raycaster(self.vertices, self.faces)
@@ -242,6 +248,7 @@ def build_background_layer(
     layout_planes: bool = False,
     wall_layout: bool = False,
     shadow_ambient: float = 1.0,
+    plane_colors: bool = False,
 ) -> BackgroundLayer:
     """Extend the far side of every depth discontinuity of the source view behind its foreground occluder, and
     (side_depth_m > 0) the occluder's own surface back from its silhouette (occluder_sides).
@@ -261,7 +268,9 @@ def build_background_layer(
     per column, interpolated behind tall objects, and the floor and ceiling planes); pixels grown from an edge pixel
     on the shell take the shell's depth, and where that is a wall, the wall's colour seen at the same height beside
     the occluder (wall_layer). shadow_ambient < 1: the layer's colour relit (relight_layer). The side faces
-    (side_depth_m > 0) come last among the layer faces.
+    (side_depth_m > 0) come last among the layer faces. plane_colors: layer points on the floor or ceiling plane
+    take the colour of the plane's top-down map (panoworld.plane_colors, before any relighting), and the layer keeps
+    the maps for the frames' 2D-filled pixels (WarpInpainter).
     """
     h, w = erp_grid_shape(mesh)
     n = h * w
@@ -325,6 +334,13 @@ def build_background_layer(
     faces = np.where(s_flat[grid], idx_new[grid], grid).astype(np.int32)
     faces = faces[_stretch(vertices.astype(np.float64), faces) <= max_edge_ratio]
     colors = np.concatenate([mesh.colors, bg_color.reshape(-1, 3)[s_flat]])
+    planes = None
+    if plane_colors:
+        from panoworld.plane_colors import plane_colors as build_planes
+
+        planes = build_planes(p.reshape(h, w, 3), mesh.colors[:n].reshape(h, w, 3), valid)
+        colors[len(mesh.vertices):] = planes.paint(vertices[len(mesh.vertices):].astype(np.float64),
+                                                   colors[len(mesh.vertices):])[0]
     built = None
     if shadow_ambient < 1:
         vertices = vertices.astype(np.float32)
@@ -347,11 +363,8 @@ def build_background_layer(
         synth,
         np.where(synth, bg_depth, 0.0).astype(np.float32),
         built,
+        planes,
     )
-
-
-ROOM_TOL = 1.05
-"""relight_layer: a layer point farther than this times the room's shell along its ray is outside the room."""
 
 
 def relight_layer(points: np.ndarray, rgb: np.ndarray, valid: np.ndarray, hide: np.ndarray, synth: np.ndarray,
@@ -658,9 +671,21 @@ class WarpInpainter:
                 self.committed.add(world_from_cam, px, out_d.reshape(-1)[px], out.reshape(-1, 3)[px], H, W)
         elif rest.any() and not rest.all() and self.depth_fill and depth is not None:
             out, out_d = background_fill(out, out_d, rest, radius=self.inpaint_radius)
+            if self.layer.planes is not None:
+                self._paint_planes(out, out_d, rest, world_from_cam)
         elif rest.any() and not rest.all():
             out = erp_inpaint(out, rest, radius=self.inpaint_radius)
         return FilledFrame(out, out_d, filled, rest)
+
+
+    def _paint_planes(self, out: np.ndarray, out_d: np.ndarray, rest: np.ndarray, world_from_cam: np.ndarray) -> None:
+        """The 2D-filled pixels rest (H, W) of out (H, W, 3) whose depth out_d puts them on the floor or ceiling plane
+        take the plane's map colour (in place)."""
+        ti, tj = np.nonzero(rest & (out_d > 0))
+        H, W = rest.shape
+        pose = np.asarray(world_from_cam, np.float64)
+        pts = pose[:3, 3] + (erp_dir_at(tj + 0.5, ti + 0.5, H, W) @ pose[:3, :3].T) * out_d[ti, tj, None]
+        out[ti, tj] = self.layer.planes.paint(pts, out[ti, tj])[0]
 
 
 def frame_inpaint(

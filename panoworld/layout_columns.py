@@ -23,6 +23,10 @@ COLOR_SIGMA_COLS = 1
 COLOR_SIGMA_BINS = 1.5
 """wall_colors: ... and over this many height bins (sigma), which also closes the bins no pixel row fell in."""
 
+ROOM_TOL = 1.05
+"""A point farther than this times the room's shell along its ray is outside the room (the next room through a
+doorway)."""
+
 LINEAR, LEFT, RIGHT = 0, 1, 2
 """WallColumns.owner: a hidden column's colour blends both sides' wall (one wall), or takes the left / right side's
 (a corner hidden between two walls)."""
@@ -105,7 +109,8 @@ def _front_pieces(r: np.ndarray) -> np.ndarray:
     return front
 
 
-def wall_columns(points: np.ndarray, valid: np.ndarray, floor: float, ceiling: float) -> WallColumns:
+def wall_columns(points: np.ndarray, valid: np.ndarray, floor: float, ceiling: float, *, nearest: bool = False
+                 ) -> WallColumns:
     """The walls of the room around the capture point, one distance per ERP column.
 
     points (h, w, 3): the source view's points (canonical frame, y down), valid (h, w); floor > 0 > ceiling: the
@@ -125,9 +130,13 @@ def wall_columns(points: np.ndarray, valid: np.ndarray, floor: float, ceiling: f
     cont = np.abs(depth[1:] - depth[:-1]) < 0.05 * np.maximum(depth[1:], depth[:-1])
     ceil_j = upright[1:] & on_ceil[:-1] & cont
     floor_j = upright[:-1] & on_floor[1:] & cont
-    r_c = np.where(ceil_j, rho[1:], -np.inf).max(axis=0)
-    r_f = np.where(floor_j, rho[:-1], -np.inf).max(axis=0)
-    r = np.where(np.isfinite(r_c), r_c, np.where(np.isfinite(r_f), r_f, np.nan))
+    if nearest:
+        r_c = np.where(ceil_j, rho[1:], np.inf).min(axis=0)
+        r_f = np.where(floor_j, rho[:-1], np.inf).min(axis=0)
+    else:
+        r_c = np.where(ceil_j, rho[1:], -np.inf).max(axis=0)
+        r_f = np.where(floor_j, rho[:-1], -np.inf).max(axis=0)
+    r = np.where(np.isfinite(r_c), r_c, np.where(np.isfinite(r_f), r_f, np.nan))  # +-inf: no junction
     visible = np.isfinite(r) & ~_front_pieces(r)
     dist = np.where(visible, r, np.nan)
     owner = np.full(w, LINEAR, np.int8)
@@ -171,6 +180,17 @@ def shell_depth(walls: WallColumns, dirs: np.ndarray) -> tuple[np.ndarray, np.nd
     t_wall = np.where(t_wall > 0, t_wall, np.inf)
     t_plane = np.minimum(t_floor, t_ceil)
     return np.minimum(t_wall, t_plane), t_wall < t_plane
+
+
+def shell_along(walls: WallColumns, dirs: np.ndarray) -> np.ndarray:
+    """shell_depth for any unit rays dirs (N, 3): each takes the wall of the ERP column its azimuth falls in."""
+    from panoworld.conventions import erp_pixel_from_dir
+
+    w = len(walls.dist)
+    u, _ = erp_pixel_from_dir(dirs, w // 2, w)
+    j = np.clip(np.floor(u).astype(np.int64), 0, w - 1)
+    cols = WallColumns(walls.dist[j], walls.visible[j], walls.owner[j], walls.floor, walls.ceiling)
+    return shell_depth(cols, dirs[None])[0][0]
 
 
 def _fill_along(values: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -47,6 +47,11 @@ class WarpOptions:
     fitted ceiling; panoworld.fill_shadows): where an occluder hides those lights from a hidden surface more than
     from the visible pixels its colour came from, it is darker (panoworld.inpaint.relight_layer), with ambient light
     this share of a fully lit surface's; points beyond the room's walls are left as they are; 1 = off."""
+    plane_colors: bool = False
+    """Hidden points on the floor or ceiling plane fitted to the source depth take their colour from a top-down map
+    of that plane's visible part (panoworld.plane_colors: holes filled from the nearest visible cells, blending into
+    the plane's mean far from them; the room's shell splits it, so the next room through a doorway takes the floor
+    seen through the doorway), not from the source pixels around the occluder; false = inpainted colour."""
     depth_fill: bool = True
     """Without reuse: holes the background layer does not fill take the depth and colour of their farther side
     (panoworld.inpaint.background_fill), so the Gaussians stage places them; false = a colour-only 2D fill (no depth:
@@ -70,7 +75,8 @@ def fill(job) -> tuple:
         opts = dict(max_band_deg=job.options.max_band_deg, inpaint_radius=job.inpaint_radius, max_edge_ratio=ratio,
                     side_depth_m=job.options.side_depth_m, edge_depth_ratio=job.options.edge_depth_ratio,
                     layout_planes=job.options.layout_planes, color_sigma_px=job.options.color_sigma_px,
-                    wall_layout=job.options.wall_layout, shadow_ambient=job.options.shadow_ambient)
+                    wall_layout=job.options.wall_layout, shadow_ambient=job.options.shadow_ambient,
+                    plane_colors=job.options.plane_colors)
         sources = read_home_sources(mesh_dir)
         if sources is not None:  # a home: one layer per source panorama (panoworld/home/inpaint.py)
             layer = home_background_layer(mesh, sources, job.poses, **opts)

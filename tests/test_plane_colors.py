@@ -1,0 +1,86 @@
+"""The floor's top-down colour map: the hidden floor of the next room takes the floor seen through the doorway."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from panoworld.conventions import points_from_depth
+from panoworld.inpaint import BackgroundLayer, build_background_layer
+from panoworld.mesh import erp_mesh_from_depth
+from panoworld.raycast import Raycaster
+
+torch.set_num_threads(1)
+H, W = 128, 256
+FLOOR, CEILING, DOOR_TOP = 1.2, -1.6, -0.8
+WALL_Z = (2.0, 2.15)  # the wall between the rooms, a doorway in it at |x| < DOOR_X under DOOR_TOP
+DOOR_X = 0.45
+FLOOR_A, FLOOR_B = (200, 180, 120), (60, 90, 200)  # the source room's floor, the next room's
+WALL_RGB, FRAME_RGB, CEIL_RGB = (150, 200, 150), (240, 60, 60), (230, 230, 240)
+
+
+def colour(p: np.ndarray) -> np.ndarray:
+    x, y, z = p[..., 0], p[..., 1], p[..., 2]
+    out = np.broadcast_to(np.array(WALL_RGB, float), p.shape).copy()
+    floor = np.abs(y - FLOOR) < 1e-3
+    out[floor & (z < WALL_Z[0])] = FLOOR_A
+    out[floor & (z >= WALL_Z[0])] = FLOOR_B
+    out[np.abs(y - CEILING) < 1e-3] = CEIL_RGB
+    frame = (z > WALL_Z[0] - 1e-3) & (z < WALL_Z[1] + 1e-3) & ~floor & (np.abs(y - CEILING) > 1e-3)
+    out[frame] = FRAME_RGB  # the divider's faces, the doorway's jambs and lintel: a colour found nowhere else
+    return out.astype(np.uint8)
+
+
+def scene():
+    room = trimesh.creation.box(bounds=[[-3.0, CEILING, -2.5], [3.0, FLOOR, 5.0]])
+    parts = [trimesh.creation.box(bounds=[[-3.0, CEILING, WALL_Z[0]], [-DOOR_X, FLOOR, WALL_Z[1]]]),
+             trimesh.creation.box(bounds=[[DOOR_X, CEILING, WALL_Z[0]], [3.0, FLOOR, WALL_Z[1]]]),
+             trimesh.creation.box(bounds=[[-DOOR_X, CEILING, WALL_Z[0]], [DOOR_X, DOOR_TOP, WALL_Z[1]]])]
+    full = trimesh.util.concatenate([room] + parts)
+    d = Raycaster(full.vertices, full.faces).render_erp(np.eye(4), H, W).distance.astype(np.float64)
+    room_d = Raycaster(room.vertices, room.faces).render_erp(np.eye(4), H, W).distance.astype(np.float64)
+    return d, room_d
+
+
+@pytest.fixture(scope="module")
+def layers():
+    d, room_d = scene()
+    rgb = colour(points_from_depth(d, np.eye(4)))
+    mesh = erp_mesh_from_depth(d.astype(np.float32), rgb)
+    return mesh, d, room_d, {on: build_background_layer(mesh, 1.5, plane_colors=on) for on in (False, True)}
+
+
+def layer_rgb(mesh, layer: BackgroundLayer) -> np.ndarray:
+    out = np.zeros((H, W, 3))
+    k = int(layer.synthesized.sum())
+    out[layer.synthesized] = layer.colors[len(mesh.vertices):len(mesh.vertices) + k]
+    return out
+
+
+def test_hidden_floor_beyond_the_doorway_takes_the_floor_seen_through_it(layers):
+    mesh, d, room_d, layer = layers
+    p_true = points_from_depth(room_d, np.eye(4))
+    hidden_b = (room_d > d * 1.2) & (np.abs(p_true[..., 1] - FLOOR) < 1e-3) & (p_true[..., 2] > WALL_Z[1] + 0.1)
+    errs = {}
+    for on in (False, True):
+        s = layer[on].synthesized & hidden_b
+        assert s.sum() > 0.4 * hidden_b.sum() and s.sum() > 30
+        errs[on] = np.abs(layer_rgb(mesh, layer[on]) - FLOOR_B)[s].max(axis=-1)
+    # the default inpaints across the door frame: half of these pixels get its red or the near room's floor
+    assert np.mean(errs[False] > 30) > 0.3
+    assert np.median(errs[True]) < 8 and np.quantile(errs[True], 0.9) < 25
+    # the doorway's lintel is the room's wall there (not the next room's far wall seen under it)
+    walls = layer[True].planes.walls
+    assert np.isfinite(walls.dist).all() and np.abs(walls.dist[W // 2 - 4:W // 2 + 4] - WALL_Z[0]).max() < 0.05
+
+
+def test_the_map_paints_points_on_the_floor_by_room(layers):
+    layer = layers[3]
+    planes = layer[True].planes
+    # points on both floors and one on a wall: the floors take their room's colour, the wall keeps its own
+    pts = np.array([[0.0, FLOOR, 3.5], [1.5, FLOOR, 3.0], [-1.0, FLOOR, 1.0], [0.0, 0.0, 4.99]])
+    rgb, done = planes.paint(pts, np.zeros((4, 3), np.uint8))
+    assert done.tolist() == [True, True, True, False]
+    assert np.abs(rgb[:2].astype(int) - FLOOR_B).max() < 10 and np.abs(rgb[2].astype(int) - FLOOR_A).max() < 10
