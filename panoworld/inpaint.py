@@ -22,7 +22,7 @@ from panoworld.mesh import ErpMesh, grid_faces
 from panoworld.raycast import Hits, Raycaster
 
 if TYPE_CHECKING:
-    from panoworld.plane_colors import PlaneColors
+    from panoworld.plane_colors import FloorBeyond
 from panoworld.shapes import check_shape
 
 # ---------------------------------------------------------------- seam-aware 2D helpers
@@ -106,7 +106,7 @@ class BackgroundLayer:
     synthesized: np.ndarray  # (h, w) bool
     layer_depth: np.ndarray  # (h, w) float32, background depth at synthesized pixels, 0 elsewhere
     built: Raycaster | None = field(default=None, repr=False)  # one already built over these vertices and faces
-    planes: PlaneColors | None = field(default=None, repr=False)  # plane_colors: for the frames' 2D-filled pixels
+    floor_map: FloorBeyond | None = field(default=None, repr=False)  # plane_colors: for the frames' 2D-filled pixels
 
     def raycaster(self) -> Raycaster:
         return self.built if self.built is not None else Raycaster(self.vertices, self.faces)
@@ -268,9 +268,10 @@ def build_background_layer(
     per column, interpolated behind tall objects, and the floor and ceiling planes); pixels grown from an edge pixel
     on the shell take the shell's depth, and where that is a wall, the wall's colour seen at the same height beside
     the occluder (wall_layer). shadow_ambient < 1: the layer's colour relit (relight_layer). The side faces
-    (side_depth_m > 0) come last among the layer faces. plane_colors: layer points on the floor or ceiling plane
-    take the colour of the plane's top-down map (panoworld.plane_colors, before any relighting), and the layer keeps
-    the maps for the frames' 2D-filled pixels (WarpInpainter).
+    (side_depth_m > 0) come last among the layer faces. plane_colors: layer points on the floor plane beyond the
+    room's shell (the next room through a doorway) take the colour of a top-down map of the floor seen beyond it
+    (panoworld.plane_colors, before any relighting), and the layer keeps the map for the frames' 2D-filled pixels
+    (WarpInpainter).
     """
     h, w = erp_grid_shape(mesh)
     n = h * w
@@ -334,13 +335,14 @@ def build_background_layer(
     faces = np.where(s_flat[grid], idx_new[grid], grid).astype(np.int32)
     faces = faces[_stretch(vertices.astype(np.float64), faces) <= max_edge_ratio]
     colors = np.concatenate([mesh.colors, bg_color.reshape(-1, 3)[s_flat]])
-    planes = None
+    floor_map = None
     if plane_colors:
-        from panoworld.plane_colors import plane_colors as build_planes
+        from panoworld.plane_colors import floor_beyond
 
-        planes = build_planes(p.reshape(h, w, 3), mesh.colors[:n].reshape(h, w, 3), valid)
-        colors[len(mesh.vertices):] = planes.paint(vertices[len(mesh.vertices):].astype(np.float64),
-                                                   colors[len(mesh.vertices):])[0]
+        floor_map = floor_beyond(p.reshape(h, w, 3), mesh.colors[:n].reshape(h, w, 3), valid)
+        if floor_map is not None:
+            colors[len(mesh.vertices):] = floor_map.paint(vertices[len(mesh.vertices):].astype(np.float64),
+                                                       colors[len(mesh.vertices):])[0]
     built = None
     if shadow_ambient < 1:
         vertices = vertices.astype(np.float32)
@@ -363,7 +365,7 @@ def build_background_layer(
         synth,
         np.where(synth, bg_depth, 0.0).astype(np.float32),
         built,
-        planes,
+        floor_map,
     )
 
 
@@ -671,7 +673,7 @@ class WarpInpainter:
                 self.committed.add(world_from_cam, px, out_d.reshape(-1)[px], out.reshape(-1, 3)[px], H, W)
         elif rest.any() and not rest.all() and self.depth_fill and depth is not None:
             out, out_d = background_fill(out, out_d, rest, radius=self.inpaint_radius)
-            if self.layer.planes is not None:
+            if self.layer.floor_map is not None:
                 self._paint_planes(out, out_d, rest, world_from_cam)
         elif rest.any() and not rest.all():
             out = erp_inpaint(out, rest, radius=self.inpaint_radius)
@@ -679,13 +681,13 @@ class WarpInpainter:
 
 
     def _paint_planes(self, out: np.ndarray, out_d: np.ndarray, rest: np.ndarray, world_from_cam: np.ndarray) -> None:
-        """The 2D-filled pixels rest (H, W) of out (H, W, 3) whose depth out_d puts them on the floor or ceiling plane
-        take the plane's map colour (in place)."""
+        """The 2D-filled pixels rest (H, W) of out (H, W, 3) whose depth out_d puts them on the floor beyond the
+        room's shell take the floor map's colour (in place)."""
         ti, tj = np.nonzero(rest & (out_d > 0))
         H, W = rest.shape
         pose = np.asarray(world_from_cam, np.float64)
         pts = pose[:3, 3] + (erp_dir_at(tj + 0.5, ti + 0.5, H, W) @ pose[:3, :3].T) * out_d[ti, tj, None]
-        out[ti, tj] = self.layer.planes.paint(pts, out[ti, tj])[0]
+        out[ti, tj] = self.layer.floor_map.paint(pts, out[ti, tj])[0]
 
 
 def frame_inpaint(

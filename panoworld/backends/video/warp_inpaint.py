@@ -48,10 +48,9 @@ class WarpOptions:
     from the visible pixels its colour came from, it is darker (panoworld.inpaint.relight_layer), with ambient light
     this share of a fully lit surface's; points beyond the room's walls are left as they are; 1 = off."""
     plane_colors: bool = False
-    """Hidden points on the floor or ceiling plane fitted to the source depth take their colour from a top-down map
-    of that plane's visible part (panoworld.plane_colors: holes filled from the nearest visible cells, blending into
-    the plane's mean far from them; the room's shell splits it, so the next room through a doorway takes the floor
-    seen through the doorway), not from the source pixels around the occluder; false = inpainted colour."""
+    """Hidden points on the floor plane beyond the room's walls (the next room through a doorway) take their colour
+    from a top-down map of the floor seen beyond them (panoworld.plane_colors: push-pull filled, blending back into
+    the inpainted colour far from any floor seen), not from the source pixels at the doorway's edge; false = off."""
     depth_fill: bool = True
     """Without reuse: holes the background layer does not fill take the depth and colour of their farther side
     (panoworld.inpaint.background_fill), so the Gaussians stage places them; false = a colour-only 2D fill (no depth:
