@@ -25,6 +25,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -54,17 +55,24 @@ def render_case(scene, kind, height: int) -> tuple[np.ndarray, np.ndarray, np.nd
     return rgb, depth, true_mask, clean
 
 
-def one(scene, kind, height: int, cache: Path | None = None) -> dict:
-    """Detect and remove on one rendered case (renders kept in and reused from cache, a folder, when given)."""
+def load_case(scene, kind, height: int, cache: Path | None = None) -> tuple[np.ndarray, ...]:
+    """render_case, kept in and reused from cache (a folder) when given."""
     f = cache / f"{scene.meta['preset']}_{scene.meta['seed']}_{kind}_{height}.npz" if cache else None
     if f is not None and f.is_file():
         with np.load(f) as z:
-            rgb, depth, true_mask, clean = z["rgb"], z["depth"], z["true_mask"], z["clean"]
-    else:
-        rgb, depth, true_mask, clean = render_case(scene, kind, height)
-        if f is not None:
-            f.parent.mkdir(parents=True, exist_ok=True)
-            np.savez_compressed(f, rgb=rgb, depth=depth, true_mask=true_mask, clean=clean)
+            return z["rgb"], z["depth"], z["true_mask"], z["clean"]
+    rgb, depth, true_mask, clean = render_case(scene, kind, height)
+    if f is not None:
+        f.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(f, rgb=rgb, depth=depth, true_mask=true_mask, clean=clean)
+    return rgb, depth, true_mask, clean
+
+
+def one(scene, kind, height: int, cache: Path | None = None, oracle: bool = False) -> dict:
+    """Detect and remove on one rendered case (renders kept in and reused from cache, a folder, when given). oracle:
+    also the error share on the true rig and its cast shadows left outside the detected mask (`missed_share`) and the
+    cap with the same removal on that true mask instead of the detected one (`psnr_true_mask`: the mask's part)."""
+    rgb, depth, true_mask, clean = load_case(scene, kind, height, cache)
     valid = np.isfinite(depth) & (depth > 0)
     t0 = time.perf_counter()
     det = rig.detect_rig(rgb, depth, valid, scene.tracks[0].camera_height)
@@ -82,6 +90,12 @@ def one(scene, kind, height: int, cache: Path | None = None) -> dict:
         row["psnr_before"] = nadir_cap_psnr(rgb, clean)
         row["psnr_after"] = nadir_cap_psnr(out, clean)
         row.update(error_split(out, clean, m))
+        if oracle:  # the tripod case's truth: the rig and its cast shadows (> 8 levels), without the soft disc
+            rig_true = load_case(scene, RigKind.TRIPOD, height, cache)[2] if kind == RigKind.TRIPOD_SHADOW else true_mask
+            row["missed_share"] = error_split(out, clean, rig_true & ~m)["under_share"]
+            shadow = det.shadow & ~rig_true if det.found else np.zeros_like(m)
+            det_true = replace(det, found=True, mask=rig_true, shadow=shadow)
+            row["psnr_true_mask"] = nadir_cap_psnr(rig.remove_rig(rgb, det_true), clean)
     return row
 
 
@@ -229,6 +243,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="comma list of rig cases: tripod, tripod-shadow, none, rug, stool (default all)")
     ap.add_argument("--cache", type=Path, help="keep the rendered cases here and reuse them (compare two detectors)")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON instead of tables")
+    ap.add_argument("--oracle", action="store_true", help="also the error on the missed true rig and the cap with the "
+                    "generator's rig mask (+ cast shadows) in place of the detected one: the mask's share vs the fill's")
     ap.add_argument("--pipeline", action="store_true",
                     help="instead: the Gaussians rendered ~1 m away vs rig-free truth on the floor, rig removed / kept")
     ap.add_argument("--work", type=Path, default=Path("/tmp/panoworld_bench_rig"), help="pipeline scenes go here")
@@ -268,7 +284,7 @@ def main(argv: list[str] | None = None) -> int:
     for seed in parse_seeds(args.seeds):
         scene = generate_scene(seed, args.preset)
         for kind in cases:
-            r = one(scene, kind, args.height, args.cache)
+            r = one(scene, kind, args.height, args.cache, args.oracle)
             r["seed"] = seed
             rows.append(r)
             print(f"seed {seed} {kind}: {r['reason']}", file=sys.stderr, flush=True)
@@ -282,6 +298,7 @@ def main(argv: list[str] | None = None) -> int:
           f"default-preset tiled floors at {args.grout_height} rows, seeds {args.grout_seeds or '-'}\n")
     head = ["seed", "case", "found", "kind", "cap deg", "sphere %", "IoU", "PSNR15 before", "PSNR15 after",
             "error under mask", "error low-freq", "lum gap before", "lum gap after", "unchanged", "s"]
+    head += ["error on missed rig", "PSNR15 true mask"] if args.oracle else []
     print("| " + " | ".join(head) + " |\n|" + "---|" * len(head))
     for r in rows:
         cells = [r["seed"], r["case"], r["found"], r["kind"] or "-", fmt(r.get("cap_deg"), ".1f"),
@@ -291,6 +308,8 @@ def main(argv: list[str] | None = None) -> int:
                  fmt(100 * r["lowfreq_share"] if "lowfreq_share" in r else None, ".0f"),
                  f"{r['gap_before']:+.1%}", f"{r['gap_after']:+.1%}",
                  r["identical"], fmt(r["seconds"])]
+        if args.oracle:
+            cells += [fmt(100 * r["missed_share"] if "missed_share" in r else None, ".0f"), fmt(r.get("psnr_true_mask"))]
         print("| " + " | ".join(str(c) for c in cells) + " |")
     print("\n| case | scenes | found | PSNR15 before (mean) | PSNR15 after (mean / min) | >= 25 dB |")
     print("|---|---|---|---|---|---|")
@@ -301,6 +320,10 @@ def main(argv: list[str] | None = None) -> int:
             after = [r["psnr_after"] for r in rs]
             print(f"| {kind} | {len(rs)} | {found} | {np.mean([r['psnr_before'] for r in rs]):.2f} | "
                   f"{np.mean(after):.2f} / {min(after):.2f} | {sum(a >= 25 for a in after)}/{len(rs)} |")
+            if args.oracle:
+                t = [r["psnr_true_mask"] for r in rs]
+                print(f"| {kind}, the true mask | {len(rs)} | - | - | {np.mean(t):.2f} / {min(t):.2f} | "
+                      f"{sum(a >= 25 for a in t)}/{len(rs)} |")
         else:
             print(f"| {kind} | {len(rs)} | {found} (must be 0) | - | unchanged {sum(r['identical'] for r in rs)}/{len(rs)} | - |")
     return 0
