@@ -22,7 +22,14 @@ from panoworld.rig_face import (
     nadir_view,
 )
 from panoworld.rig_inpaint import inpaint_plane, matte_rim
-from panoworld.rig_shadow import apply_gain, leg_shadow_lines, linear_luminance, local_lightness, shadow_gain
+from panoworld.rig_shadow import (
+    RELIGHT_MIN_DARKENING,
+    apply_gain,
+    leg_shadow_lines,
+    linear_luminance,
+    local_lightness,
+    shadow_gain,
+)
 from panoworld.rig_shape import MIN_LEG_WIDTH_DEG, azimuth_occupancy, horizontal_surface, leg_arms
 
 CAP_DEG = 30.0
@@ -265,6 +272,8 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     mask = face_to_erp_mask(obj, view, H, W)
     if kind == "legs":
         mask |= _leg_shadows(rgb, mask, gain, view)
+    if 1.0 - stats.get("shadow_min_light", 1.0) < RELIGHT_MIN_DARKENING:  # the rig was measured relit, the floor stays
+        gain = np.ones_like(gain)
     sh = face_to_erp_mask(gain > 1.0, view, H, W) & ~mask
     if sh.any():
         reason += f" with its shadow ({sh_deg:.0f} deg, up to {1 - 1 / gain.max():.0%} darker)"

@@ -9,10 +9,13 @@ KNOT_DEG = 3.0
 """Spacing (degrees from the nadir) of the knots of the shadow's piecewise-linear radial log-profile."""
 SHADOW_MAX_DEG = 30.0
 """The shadow's profile is 1 from here out (the floor-light model alone explains the floor there)."""
-MIN_DARKENING = 0.25
-"""A shadow removes at least this share of the light at its darkest knot (weaker: floor lighting, kept). Development
-tripods without a shadow read 15-29 % (0.15 took 7 of 16 at 720 rows and relit unshadowed floor: -4 dB on 102 and
-111); those with the soft shadow 30-54 %."""
+MIN_DARKENING = 0.15
+"""A shadow removes at least this share of the light at its darkest knot (weaker: floor lighting, kept). Detection
+measures the rig on the face relit by such a shadow; the removal relights only from RELIGHT_MIN_DARKENING."""
+RELIGHT_MIN_DARKENING = 0.25
+"""The removal relights the floor only when the shadow removes at least this share of the light: development tripods
+without a shadow read 15-29 % (the room's uneven light; relit, the unshadowed floor lost up to 4 dB at 720 rows on
+102 and 111); those with the soft shadow 30-54 %."""
 LIGHT_EXPECTILE = 0.8
 """The light model and shadow profile fit this expectile of the floor's log luminance, not its mean: a shadow
 darkens all of the floor's texture, more dark texture near the nadir only lowers its mean (development seeds:
