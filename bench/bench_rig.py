@@ -3,6 +3,7 @@
     python bench/bench_rig.py [--seeds 116-131] [--height 256] [--json]
     python bench/bench_rig.py --preset default --height 720 --cases tripod,tripod-shadow --seeds 100-115 --grout-seeds '' \
         [--cache DIR]
+    python bench/bench_rig.py --preset default --height 720 --cases tripod --seeds 100-115 --oracle [PICTURES]
     python bench/bench_rig.py --pipeline --seeds 116 [--modes auto,keep,truth] [--set conditions.height=256 ...]
 
 Per seed and rig (tripod, tripod with a soft shadow): what detection found, the mask's cap and sphere share, its
@@ -16,7 +17,7 @@ pipeline (ci-tiny preset) with the rig removed and kept (and with --modes truth:
 perfect fill could reach) and scores the Gaussians rendered from a ground-truth pose about 1 m away on the floor
 where the rig stood, split into the floor under the removed mask and outside it, next to the capture panoramas
 sampled at the same floor points. --preset default --height 720 measures the rig cases on the default preset's scenes
-at its 720 rows (what real 1000-4000-row captures are closer to than ci-tiny's 256); --cases picks which cases run.
+at its 720 rows (what real 1000-4000-row captures are closer to than ci-tiny's 256); --cases picks which cases run. --oracle also fills the true rig mask (what the fill alone can reach).
 """
 
 from __future__ import annotations
@@ -25,7 +26,6 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -55,24 +55,19 @@ def render_case(scene, kind, height: int) -> tuple[np.ndarray, np.ndarray, np.nd
     return rgb, depth, true_mask, clean
 
 
-def load_case(scene, kind, height: int, cache: Path | None = None) -> tuple[np.ndarray, ...]:
-    """render_case, kept in and reused from cache (a folder) when given."""
+def one(scene, kind, height: int, cache: Path | None = None, oracle: Path | None = None,
+        mask_oracle: bool = False) -> dict:
+    """Detect and remove on one rendered case (renders kept in and reused from cache, a folder, when given); with
+    oracle (a folder, or Path() for none) also the fill of the true rig mask (fill_oracle)."""
     f = cache / f"{scene.meta['preset']}_{scene.meta['seed']}_{kind}_{height}.npz" if cache else None
     if f is not None and f.is_file():
         with np.load(f) as z:
-            return z["rgb"], z["depth"], z["true_mask"], z["clean"]
-    rgb, depth, true_mask, clean = render_case(scene, kind, height)
-    if f is not None:
-        f.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(f, rgb=rgb, depth=depth, true_mask=true_mask, clean=clean)
-    return rgb, depth, true_mask, clean
-
-
-def one(scene, kind, height: int, cache: Path | None = None, oracle: bool = False) -> dict:
-    """Detect and remove on one rendered case (renders kept in and reused from cache, a folder, when given). oracle:
-    also the error share on the true rig and its cast shadows left outside the detected mask (`missed_share`) and the
-    cap with the same removal on that true mask instead of the detected one (`psnr_true_mask`: the mask's part)."""
-    rgb, depth, true_mask, clean = load_case(scene, kind, height, cache)
+            rgb, depth, true_mask, clean = z["rgb"], z["depth"], z["true_mask"], z["clean"]
+    else:
+        rgb, depth, true_mask, clean = render_case(scene, kind, height)
+        if f is not None:
+            f.parent.mkdir(parents=True, exist_ok=True)
+            np.savez_compressed(f, rgb=rgb, depth=depth, true_mask=true_mask, clean=clean)
     valid = np.isfinite(depth) & (depth > 0)
     t0 = time.perf_counter()
     det = rig.detect_rig(rgb, depth, valid, scene.tracks[0].camera_height)
@@ -90,12 +85,105 @@ def one(scene, kind, height: int, cache: Path | None = None, oracle: bool = Fals
         row["psnr_before"] = nadir_cap_psnr(rgb, clean)
         row["psnr_after"] = nadir_cap_psnr(out, clean)
         row.update(error_split(out, clean, m))
-        if oracle:  # the tripod case's truth: the rig and its cast shadows (> 8 levels), without the soft disc
-            rig_true = load_case(scene, RigKind.TRIPOD, height, cache)[2] if kind == RigKind.TRIPOD_SHADOW else true_mask
-            row["missed_share"] = error_split(out, clean, rig_true & ~m)["under_share"]
-            shadow = det.shadow & ~rig_true if det.found else np.zeros_like(m)
-            det_true = replace(det, found=True, mask=rig_true, shadow=shadow)
-            row["psnr_true_mask"] = nadir_cap_psnr(rig.remove_rig(rgb, det_true), clean)
+        if oracle is not None:
+            row.update(fill_oracle(scene, kind, rgb, depth, clean, det, oracle))
+        if mask_oracle:
+            row.update(mask_split(scene, kind, rgb, depth, clean, det, out))
+    return row
+
+
+LOW_DEG = 1.5
+"""Gaussian sigma (degrees, on the downward face) that splits a fill's error into low frequencies (mean colour,
+shading) and texture (grout, plank seams, veins)."""
+
+
+def true_rig(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """(the rig's own ERP pixels with its cast shadows from the room's lights, the generator's soft-shadow light
+    factor (H, W) or None): what a perfect detector would return, the soft shadow of tripod-shadow divided out."""
+    from panoworld.synth.rig import shadow_gain
+
+    light = None
+    img = rgb.astype(np.float64)
+    if kind == RigKind.TRIPOD_SHADOW:
+        light = shadow_gain(scene.world_from_canonical, scene.tracks[0].camera_height, depth)
+        img = 255.0 * np.clip((img / 255.0) ** 2.2 / light[..., None], 0, 1) ** (1 / 2.2)
+    nearer = np.isfinite(depth) & (depth < scene.render(scene.world_from_canonical, *depth.shape)[1] - 1e-3)
+    return (np.abs(img - clean).max(-1) > 8.5) | nearer, light
+
+
+def oracle_detection(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarray):
+    """A RigDetection of the true rig mask (true_rig, grown by the detector's rim on the downward face) and, for
+    tripod-shadow, the generator's light factor: remove_rig on it measures the fill alone."""
+    from panoworld.cube_views import render_view
+    from panoworld.rig_face import erp_mask_to_face, face_to_erp_mask, nadir_view
+    from panoworld.rig_shadow import apply_gain
+
+    H, W = rgb.shape[:2]
+    view = nadir_view(H)
+    mask, light = true_rig(scene, kind, rgb, depth, clean)
+    mask |= face_to_erp_mask(rig._dilate(erp_mask_to_face(mask, view), view), view, H, W)
+    gain = None if light is None else 1.0 / np.maximum(render_view(light.astype(np.float32), view), 1e-3)
+    face = render_view(rgb, view)
+    nf = rig.nadir_face(rgb, depth, np.isfinite(depth) & (depth > 0), scene.tracks[0].camera_height)
+    fmask = erp_mask_to_face(mask, view)
+    source = rig.floor_source(face if gain is None else apply_gain(face, gain), nf) & ~fmask
+    shadow = face_to_erp_mask(gain > 1.0, view, H, W) & ~mask if gain is not None else np.zeros_like(mask)
+    return rig.RigDetection(True, "oracle", "legs", mask, shadow, shadow_gain=gain, source=source)
+
+
+def mask_split(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarray, det, out: np.ndarray) -> dict:
+    """What the detected mask costs: the cap's error share on the true rig and its cast shadows (true_rig) left outside
+    the detected mask (`missed_share`) and the cap with the same removal (the detected shadow and fill) on the true
+    mask instead of the detected one (`psnr_true_mask`)."""
+    from dataclasses import replace
+
+    truth = true_rig(scene, kind, rgb, depth, clean)[0]
+    m = det.mask if det.found else np.zeros_like(truth)
+    shadow = det.shadow & ~truth if det.found else np.zeros_like(truth)
+    return {"missed_share": error_split(out, clean, truth & ~m)["under_share"],
+            "psnr_true_mask": nadir_cap_psnr(rig.remove_rig(rgb, replace(det, found=True, mask=truth, shadow=shadow)), clean)}
+
+
+def fill_oracle(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarray, det, pictures: Path,
+                odet=None) -> dict:
+    """The fill's ceiling and its error split: remove_rig on oracle_detection: `psnr_oracle`. On that fill, the cap
+    cap on the downward face (`face_oracle`) with only its low-frequency error (LOW_DEG; texture perfect: `face_low`),
+    with only its texture error (`face_tex`), the fill blurred (`face_smooth_fill`) and a texture-free guess that is
+    the truth's own low-pass inside the mask (`face_smooth`).
+    Pictures (truth | oracle fill | fill, the downward face) go to pictures/ when it is not Path()."""
+    import cv2
+
+    from panoworld.cube_views import render_view
+    from panoworld.rig_face import erp_mask_to_face, face_polar, nadir_view
+
+    H, W = rgb.shape[:2]
+    view = nadir_view(H)
+    odet = odet or oracle_detection(scene, kind, rgb, depth, clean)
+    mask = odet.mask
+    out = rig.remove_rig(rgb, odet)
+    # The split on the downward face (a plane view: one blur scale everywhere), solid-angle weighted within 15 deg.
+    sig = LOW_DEG * np.pi / 180 * view.focal
+    theta, _ = face_polar(view)
+    cap = (theta < 15.0)[..., None] * np.cos(np.deg2rad(theta))[..., None] ** 3
+    f_out, f_clean = (render_view(a, view).astype(np.float32) for a in (out, clean))
+    f_mask = erp_mask_to_face(mask, view)[..., None]
+    low_err = cv2.GaussianBlur(f_out - f_clean, (0, 0), sig)
+    clean_low = cv2.GaussianBlur(f_clean, (0, 0), sig)
+
+    def face_psnr(img: np.ndarray) -> float:
+        err = np.where(f_mask, img, f_out) - f_clean
+        return 10 * np.log10(255.0**2 / max(float((cap * err**2).sum() / (3 * cap.sum())), 1e-12))
+
+    row = {"psnr_oracle": nadir_cap_psnr(out, clean), "oracle_iou_det": float((mask & det.mask).sum() / max(
+        (mask | det.mask).sum(), 1)) if det.found else 0.0, "face_oracle": face_psnr(f_out),
+           "face_low": face_psnr(f_clean + low_err), "face_tex": face_psnr(f_out - low_err),
+           "face_smooth": face_psnr(clean_low), "face_smooth_fill": face_psnr(cv2.GaussianBlur(f_out, (0, 0), sig))}
+    if pictures != Path():
+        pictures.mkdir(parents=True, exist_ok=True)
+        pic = np.concatenate([render_view(clean, view), render_view(out, view),
+                              render_view(rig.remove_rig(rgb, det) if det.found else rgb, view)], 1)
+        cv2.imwrite(str(pictures / f"{scene.meta['preset']}_{scene.meta['seed']}_{kind}_{H}.jpg"), pic[..., ::-1],
+                    [cv2.IMWRITE_JPEG_QUALITY, 90])
     return row
 
 
@@ -242,9 +330,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cases", default="tripod,tripod-shadow,none,rug,stool",
                     help="comma list of rig cases: tripod, tripod-shadow, none, rug, stool (default all)")
     ap.add_argument("--cache", type=Path, help="keep the rendered cases here and reuse them (compare two detectors)")
+    ap.add_argument("--mask-oracle", action="store_true", help="also the error on the true rig the mask missed and "
+                    "the cap with the same removal on the true mask: what the detected mask costs")
+    ap.add_argument("--oracle", type=Path, nargs="?", const=Path(), metavar="PICTURES",
+                    help="also fill the true rig mask (the fill's ceiling, its low-frequency / texture split); "
+                         "pictures of the downward face (truth | oracle fill | fill) into PICTURES when given")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON instead of tables")
-    ap.add_argument("--oracle", action="store_true", help="also the error on the missed true rig and the cap with the "
-                    "generator's rig mask (+ cast shadows) in place of the detected one: the mask's share vs the fill's")
     ap.add_argument("--pipeline", action="store_true",
                     help="instead: the Gaussians rendered ~1 m away vs rig-free truth on the floor, rig removed / kept")
     ap.add_argument("--work", type=Path, default=Path("/tmp/panoworld_bench_rig"), help="pipeline scenes go here")
@@ -284,7 +375,7 @@ def main(argv: list[str] | None = None) -> int:
     for seed in parse_seeds(args.seeds):
         scene = generate_scene(seed, args.preset)
         for kind in cases:
-            r = one(scene, kind, args.height, args.cache, args.oracle)
+            r = one(scene, kind, args.height, args.cache, args.oracle, args.mask_oracle)
             r["seed"] = seed
             rows.append(r)
             print(f"seed {seed} {kind}: {r['reason']}", file=sys.stderr, flush=True)
@@ -298,7 +389,7 @@ def main(argv: list[str] | None = None) -> int:
           f"default-preset tiled floors at {args.grout_height} rows, seeds {args.grout_seeds or '-'}\n")
     head = ["seed", "case", "found", "kind", "cap deg", "sphere %", "IoU", "PSNR15 before", "PSNR15 after",
             "error under mask", "error low-freq", "lum gap before", "lum gap after", "unchanged", "s"]
-    head += ["error on missed rig", "PSNR15 true mask"] if args.oracle else []
+    head += ["error on missed rig", "PSNR15 true mask"] if args.mask_oracle else []
     print("| " + " | ".join(head) + " |\n|" + "---|" * len(head))
     for r in rows:
         cells = [r["seed"], r["case"], r["found"], r["kind"] or "-", fmt(r.get("cap_deg"), ".1f"),
@@ -308,9 +399,22 @@ def main(argv: list[str] | None = None) -> int:
                  fmt(100 * r["lowfreq_share"] if "lowfreq_share" in r else None, ".0f"),
                  f"{r['gap_before']:+.1%}", f"{r['gap_after']:+.1%}",
                  r["identical"], fmt(r["seconds"])]
-        if args.oracle:
+        if args.mask_oracle:
             cells += [fmt(100 * r["missed_share"] if "missed_share" in r else None, ".0f"), fmt(r.get("psnr_true_mask"))]
         print("| " + " | ".join(str(c) for c in cells) + " |")
+    if args.oracle is not None:
+        print("\nthe fill on the true rig mask (oracle) and its error split, PSNR15 per seed:\n")
+        cols = ["psnr_after", "psnr_oracle", "face_oracle", "face_low", "face_tex", "face_smooth_fill", "face_smooth",
+                "oracle_iou_det"]
+        print("| seed | case | " + " | ".join(cols) + " |\n|---|---|" + "---|" * len(cols))
+        for r in rows:
+            if "psnr_oracle" in r:
+                print(f"| {r['seed']} | {r['case']} | " + " | ".join(fmt(r[c]) for c in cols) + " |")
+        for kind in cases:
+            rs = [r for r in rows if r["case"] == str(kind) and "psnr_oracle" in r]
+            if rs:
+                print(f"| mean | {kind} | " + " | ".join(f"{np.mean([r[c] for r in rs]):.2f}" for c in cols) + " |")
+                print(f"| min | {kind} | " + " | ".join(f"{np.min([r[c] for r in rs]):.2f}" for c in cols) + " |")
     print("\n| case | scenes | found | PSNR15 before (mean) | PSNR15 after (mean / min) | >= 25 dB |")
     print("|---|---|---|---|---|---|")
     for kind in cases:
@@ -320,7 +424,7 @@ def main(argv: list[str] | None = None) -> int:
             after = [r["psnr_after"] for r in rs]
             print(f"| {kind} | {len(rs)} | {found} | {np.mean([r['psnr_before'] for r in rs]):.2f} | "
                   f"{np.mean(after):.2f} / {min(after):.2f} | {sum(a >= 25 for a in after)}/{len(rs)} |")
-            if args.oracle:
+            if args.mask_oracle:
                 t = [r["psnr_true_mask"] for r in rs]
                 print(f"| {kind}, the true mask | {len(rs)} | - | - | {np.mean(t):.2f} / {min(t):.2f} | "
                       f"{sum(a >= 25 for a in t)}/{len(rs)} |")

@@ -1,18 +1,107 @@
-"""Hole filling on a view of a plane (the floor on the downward cube face): shifted floor patches + Telea."""
+"""Hole filling on a view of a plane (the floor on the downward face): its texture's lattice, floor patches, Telea."""
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
 
+LATTICE_OFFSETS = 48
+"""Most offsets (autocorrelation peaks) averaged by the lattice fill (development seeds 100-115 at 720 rows, tripod
+mean against 24: 8 -0.4 dB, 48 +0.47 dB; at 256 rows +-0.01)."""
+LATTICE_MIN_CORR = 0.25
+"""An autocorrelation peak below this (normalised: 1 = the texture repeats exactly) is no period of the floor."""
+
 
 def inpaint_plane(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, n_sectors: int = 3,
                   candidates: int = 8) -> np.ndarray:
-    """Fill hole (size, size) of face (float RGB 0-255): per azimuth sector around the nadir, the mean of the
-    `candidates` best-matching shifted floor patches, its low frequencies corrected to the hole's border (Telea where
-    no patch fits). The mean keeps what the matches share (the floor's lattice: grout, plank seams) and averages
-    what they do not (each tile's own colour and veins, which nothing around the hole predicts): one copied patch
-    doubles that part of the error."""
+    """Fill hole (size, size) of face (float RGB 0-255). Where the floor's texture repeats (tiles, planks: peaks of
+    its autocorrelation, lattice_offsets), the mean of the known floor at every such offset from the pixel: the
+    lattice (grout, plank seams) continues in phase and what differs from tile to tile averages out. Elsewhere, per
+    azimuth sector around the nadir, the mean of the `candidates` best-matching shifted floor patches (Telea where
+    no patch fits). Both are corrected in their low frequencies to the hole's border (_border_matched)."""
+    known = floor_area & ~hole
+    offsets = lattice_offsets(face, known)
+    if len(offsets) >= 2:
+        pred, ok = lattice_mean(face, known, offsets)
+        use = hole & ok
+        face = face.copy()
+        face[use] = _border_matched(face, pred, known & ok)[use]
+        hole, floor_area = hole & ~use, floor_area & ~use
+        if not hole.any():
+            return face
+    return patch_fill(face, hole, floor_area, n_sectors, candidates)
+
+
+def lattice_offsets(face: np.ndarray, known: np.ndarray, k: int = LATTICE_OFFSETS,
+                    min_corr: float = LATTICE_MIN_CORR) -> list[tuple[int, int, float]]:
+    """Up to k offsets (dy, dx, correlation), best first, under which the texture of face on the known pixels
+    repeats: local maxima of its autocorrelation (luminance less its local mean; masked, normalised by the overlap,
+    by FFT) of at least min_corr, outside the central lobe."""
+    S = face.shape[0]
+    L = face.mean(-1).astype(np.float32)
+    kn = known.astype(np.float32)
+    sig = max(2.0, S / 60)
+    mu = cv2.GaussianBlur(L * kn, (0, 0), sig) / np.maximum(cv2.GaussianBlur(kn, (0, 0), sig), 1e-3)
+    tex = (L - mu) * kn
+    n = cv2.getOptimalDFTSize(2 * S)
+
+    def auto(a: np.ndarray) -> np.ndarray:
+        f = np.fft.rfft2(a, s=(n, n))
+        return np.fft.fftshift(np.fft.irfft2(f * np.conj(f), s=(n, n)))  # offset d at index d + n // 2
+
+    total = float(kn.sum())
+    overlap = auto(kn)
+    var = float((tex**2).sum()) / max(total, 1.0)
+    corr = np.where(overlap > 0.15 * total, auto(tex) / np.maximum(overlap, 1.0) / max(var, 1e-6), -1.0)
+    corr = corr.astype(np.float32)  # compared with its own dilation below: one precision
+    c = n // 2
+    yy, xx = np.mgrid[:n, :n] - c
+    win = 2 * max(2, S // 100) + 1
+    peak = (corr >= cv2.dilate(corr, np.ones((win, win), np.uint8))) & (corr >= min_corr) & (
+        np.hypot(yy, xx) > max(3.0, S / 60))
+    iy, ix = np.nonzero(peak)
+    best = np.argsort(-corr[iy, ix])[:k]
+    return [(int(iy[i] - c), int(ix[i] - c), float(corr[iy[i], ix[i]])) for i in best]
+
+
+def lattice_mean(face: np.ndarray, known: np.ndarray, offsets: list[tuple[int, int, float]],
+                 min_sources: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """(the correlation-weighted mean of face at p + d over the offsets d whose source is known, (size, size) bool:
+    at least min_sources of them were)."""
+    S = face.shape[0]
+    acc = np.zeros(face.shape, np.float32)
+    wsum = np.zeros(known.shape, np.float32)
+    count = np.zeros(known.shape, np.int32)
+    for dy, dx, w in offsets:
+        src = np.zeros(known.shape, bool)
+        src[max(-dy, 0):S - max(dy, 0), max(-dx, 0):S - max(dx, 0)] = known[max(dy, 0):S + min(dy, 0),
+                                                                           max(dx, 0):S + min(dx, 0)]
+        shifted = np.roll(face, (-dy, -dx), axis=(0, 1))
+        acc += (w * src)[..., None] * shifted
+        wsum += w * src
+        count += src
+    return acc / np.maximum(wsum, 1e-6)[..., None], count >= min_sources
+
+
+def _border_matched(face: np.ndarray, src: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """src corrected by its smooth mismatch with face on the known pixels (normalised convolution of the residual
+    at two scales; the wider one reaches the middle of a large hole; beyond both, the mean mismatch)."""
+    sig = max(1.5, face.shape[0] / 100)
+    kn = known.astype(np.float32)
+    diff = (face - src) * kn[..., None]
+    fill = src + (float(np.mean((face - src)[known])) if known.any() else 0.0)
+    for g in (12 * sig, 3 * sig):
+        wsum = cv2.GaussianBlur(kn, (0, 0), g)[..., None]
+        fill = np.where(wsum > 0.02, src + cv2.GaussianBlur(diff, (0, 0), g) / np.maximum(wsum, 1e-3), fill)
+    return fill
+
+
+def patch_fill(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, n_sectors: int = 3,
+                candidates: int = 8) -> np.ndarray:
+    """Per azimuth sector around the nadir, the mean of the `candidates` best-matching shifted floor patches, its
+    low frequencies corrected to the hole's border (Telea where no patch fits). The mean keeps what the matches
+    share (the floor's lattice: grout, plank seams) and averages what they do not (each tile's own colour and
+    veins, which nothing around the hole predicts): one copied patch doubles that part of the error."""
     img8 = np.clip(np.rint(face), 0, 255).astype(np.uint8)
     hole8 = hole.astype(np.uint8)
     radius = max(3, face.shape[0] // 60)
@@ -22,23 +111,13 @@ def inpaint_plane(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, n_
     S = face.shape[0]
     c = np.arange(S) + 0.5 - 0.5 * S
     sector = ((np.arctan2(*np.meshgrid(c, c)[::-1]) + np.pi) / (2 * np.pi) * n_sectors).astype(int) % n_sectors
-    sig = max(1.5, S / 100)
-    known = (~hole).astype(np.float32)
-    scales = [3 * sig, 12 * sig]  # the wider one reaches the middle of a large hole
-    wsums = [cv2.GaussianBlur(known, (0, 0), g)[..., None] for g in scales]
     for k in range(n_sectors):  # one patch per sector of the hole: each leg gets floor that fits its own border
         part = hole & (sector == k)
         offsets = _best_offsets(face, part, floor_area & ~hole, candidates)
         if not offsets:
             continue
         src = np.mean([np.roll(face, (-d[0], -d[1]), axis=(0, 1)) for d in offsets], axis=0)
-        # The shifted patch, corrected by its smooth mismatch on the known pixels around the hole.
-        diff = (face - src) * known[..., None]
-        fill = src + float(np.mean((face - src)[~hole & floor_area])) if (~hole & floor_area).any() else out
-        for g, wsum in zip(scales[::-1], wsums[::-1]):
-            resid = cv2.GaussianBlur(diff, (0, 0), g)
-            fill = np.where(wsum > 0.02, src + resid / np.maximum(wsum, 1e-3), fill)
-        out[part] = fill[part]
+        out[part] = _border_matched(face, src, ~hole)[part]
     return out
 
 

@@ -76,26 +76,65 @@ def test_tripod_removed_against_rig_free_truth(tmp_path, tripod_dir, scene):
     assert (out / "nadir_before_after.jpg").is_file()
 
 
-def test_fill_keeps_the_floor_lattice_and_averages_what_it_cannot_predict():
+def _tiled_floor(S: int, tile: float, angle_deg: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A floor of square tiles (tile px, rotated by angle_deg) with a random colour each and dark grout, plus noise:
+    (face (S, S, 3) float, grout (S, S) bool)."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:S, :S].astype(float)
+    a = np.deg2rad(angle_deg)
+    u, v = (np.cos(a) * xx + np.sin(a) * yy) / tile, (-np.sin(a) * xx + np.cos(a) * yy) / tile
+    iu, iv = np.floor(u).astype(int), np.floor(v).astype(int)
+    colours = rng.uniform(90, 200, (iu.max() - iu.min() + 1, iv.max() - iv.min() + 1, 3))
+    face = colours[iu - iu.min(), iv - iv.min()] + rng.normal(0, 4, (S, S, 3))
+    grout = (np.minimum(u % 1, 1 - u % 1) * tile < 0.7) | (np.minimum(v % 1, 1 - v % 1) * tile < 0.7)
+    face[grout] = 40.0
+    return face, grout
+
+
+def test_patch_fill_keeps_the_floor_lattice_and_averages_what_it_cannot_predict():
     # Tiles 12 px wide with a random colour each and dark grout: the grout under the hole is predictable (the
     # lattice), each hidden tile's colour is not. The mean of several lattice-aligned matches keeps the grout and
     # beats one copied patch, whose tile colours are as wrong as a random guess.
-    from panoworld.rig_inpaint import inpaint_plane
+    from panoworld.rig_inpaint import patch_fill
 
-    rng = np.random.default_rng(0)
-    S, tile = 180, 12
-    colours = rng.uniform(90, 200, (S // tile + 1, S // tile + 1, 3))
+    S = 180
+    face, grout = _tiled_floor(S, 12.0, 0.0)
     yy, xx = np.mgrid[:S, :S]
-    face = colours[yy // tile, xx // tile] + rng.normal(0, 4, (S, S, 3))
-    grout = (yy % tile == 0) | (xx % tile == 0)
-    face[grout] = 40.0
     hole = np.hypot(yy - S / 2, xx - S / 2) < 25
     floor = np.ones((S, S), bool)
-    filled = {k: inpaint_plane(np.where(hole[..., None], 0.0, face), hole, floor, candidates=k) for k in (1, 8)}
+    filled = {k: patch_fill(np.where(hole[..., None], 0.0, face), hole, floor, candidates=k) for k in (1, 8)}
     mse = {k: float(((f - face)[hole] ** 2).mean()) for k, f in filled.items()}
     assert 10 * np.log10(mse[1] / mse[8]) > 1.0, mse
     inside = filled[8][hole].mean(-1)
     assert inside[grout[hole]].mean() < inside[~grout[hole]].mean() - 50  # the grout lines go on under the hole
+
+
+def test_lattice_fill_continues_rotated_grout_in_phase():
+    # Tiles 37.3 px wide rotated 31 deg (neither axis-aligned nor a whole number of pixels; larger than the patch
+    # matcher's spacing, as at 720 rows) under a tripod-like hole (a hub and three legs): the autocorrelation finds
+    # the tiles' period, and the mean over the lattice's offsets keeps the grout in phase across the hole (its
+    # error less than half the 8 patches') at no loss overall (each hidden tile's colour is a guess either way).
+    from panoworld.rig_inpaint import inpaint_plane, lattice_offsets, patch_fill
+
+    S, tile, angle = 300, 37.3, 31.0
+    face, grout = _tiled_floor(S, tile, angle, seed=3)
+    yy, xx = np.mgrid[:S, :S] + 0.5 - S / 2
+    r, phi = np.hypot(yy, xx), np.arctan2(yy, xx)
+    legs = (r < 0.3 * S) & (np.abs(((phi - 0.3) * 3 / (2 * np.pi) + 0.5) % 1 - 0.5) * 2 * np.pi / 3 * r < 6)
+    hole = (r < 0.09 * S) | legs
+    floor = np.ones((S, S), bool)
+    observed = np.where(hole[..., None], 0.0, face)
+    offsets = lattice_offsets(observed, floor & ~hole)
+    assert len(offsets) >= 4
+    a = np.deg2rad(angle)
+    for dy, dx, _ in offsets[:8]:  # each a whole number of tiles along the rotated axes, within a pixel
+        u, v = (np.cos(a) * dx + np.sin(a) * dy) / tile, (-np.sin(a) * dx + np.cos(a) * dy) / tile
+        assert abs(u - round(u)) * tile < 1.0 and abs(v - round(v)) * tile < 1.0, (dy, dx)
+    err = {name: (f - face)[hole] ** 2 for name, f in (("lattice", inpaint_plane(observed, hole, floor)),
+                                                      ("patches", patch_fill(observed, hole, floor)))}
+    g = grout[hole]
+    assert err["lattice"][g].mean() < 0.5 * err["patches"][g].mean()
+    assert err["lattice"].mean() <= err["patches"].mean()
 
 
 def test_rim_matting_keeps_the_floor_a_mask_margin_shows_and_unmixes_edges():
