@@ -25,12 +25,12 @@ from panoworld.rig_inpaint import inpaint_plane, matte_rim
 from panoworld.rig_shadow import (
     RELIGHT_MIN_DARKENING,
     apply_gain,
+    cast_shadows,
     leg_shadow_lines,
     linear_luminance,
-    local_lightness,
     shadow_gain,
 )
-from panoworld.rig_shape import MIN_LEG_WIDTH_DEG, azimuth_occupancy, horizontal_surface, leg_arms
+from panoworld.rig_shape import MIN_LEG_WIDTH_DEG, azimuth_occupancy, horizontal_surface, leg_arms, without_floor_lines
 
 CAP_DEG = 30.0
 """Largest rig: candidates must lie within this angle of the nadir (a tripod's feet reach 15-25 degrees)."""
@@ -53,13 +53,6 @@ SURFACE_DEG = 4.0
 the camera too, but is 1-2 degrees wide)."""
 FLOOR_LINE_DEG = 1.0
 """On-floor candidate pixels narrower than this (a morphological opening) are floor lines, not rig, in that second look."""
-CAST_RATIO = 0.9
-"""Floor pixels darker than this share of the floor around them (Lab L) and connected to the rig are its cast
-shadows (inpainted with it; 0.85 missed the legs' and column's shadows from the room's lights on development seeds)."""
-FLOOR_LINE_MAX_DEG = 0.5
-"""On-floor parts of the rig's mask and of its cast shadows narrower than this are floor lines (tile grout, plank
-seams) touching the legs, not the rig: at 720 rows the grout network out to 30 deg joined the mask through the cast
-shadows (development 113: 21.2 -> 26.6 dB without it). Where it spans under a face pixel (256 rows) nothing is opened."""
 LEG_SHADOW_WIDTH_DEG = 0.75
 """A leg's cast-shadow line must be dark this wide across (a 3.6 cm leg's shadow is >= 1.2 deg): floor lines are
 narrower. Tested only where its half-width exceeds a face pixel (at 720 rows, not 256)."""
@@ -266,8 +259,8 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
         hub = np.argwhere(comp & (theta < 0.4 * extent))[:, ::-1].astype(np.int32)
         if len(hub) >= 3:
             cv2.fillConvexPoly(obj, cv2.convexHull(hub), 1)
-    obj = _without_floor_lines(obj > 0, nf.on_floor, view.focal).astype(np.uint8)
-    obj = _dilate(obj, view) | _cast_shadows(lab, obj > 0, theta, view.focal)
+    obj = without_floor_lines(obj > 0, nf.on_floor, view.focal).astype(np.uint8)
+    obj = _dilate(obj, view) | cast_shadows(lab, obj > 0, theta, view.focal, CAP_DEG)
     stats["shadow_deg"] = sh_deg
     mask = face_to_erp_mask(obj, view, H, W)
     if kind == "legs":
@@ -293,40 +286,6 @@ def _leg_shadows(rgb: np.ndarray, mask: np.ndarray, gain: np.ndarray, view: Pers
     width = width if 0.5 * width >= 2.0 else 0.0  # resolvable: the half-width is more than one face pixel
     lines = leg_shadow_lines(face, theta, erp_mask_to_face(mask, fine), CAP_DEG, 2.0, width_px=width)
     return face_to_erp_mask(lines, fine, H, W) if lines.any() else np.zeros_like(mask)
-
-
-def _thin_width_px(focal: float, deg: float) -> int:
-    """The odd kernel (face pixels) of an opening that removes lines narrower than deg (1: none at this resolution)."""
-    return 2 * int(round(0.5 * focal * np.deg2rad(deg))) + 1
-
-
-def _without_floor_lines(obj: np.ndarray, on_floor: np.ndarray, focal: float) -> np.ndarray:
-    """obj less its on-floor parts narrower than FLOOR_LINE_MAX_DEG: floor lines (grout, plank seams) touching the
-    legs, which the rig's mask would otherwise carry into the inpainting."""
-    k = _thin_width_px(focal, FLOOR_LINE_MAX_DEG)
-    if k <= 1:
-        return obj
-    flat = (obj & on_floor).astype(np.uint8)
-    wide = cv2.morphologyEx(flat, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
-    out = obj & (~on_floor | wide)
-    n, labels, st, _ = cv2.connectedComponentsWithStats(out.astype(np.uint8), connectivity=8)
-    if n <= 2:
-        return out
-    area = st[1:, cv2.CC_STAT_AREA]
-    return np.isin(labels, 1 + np.nonzero(area >= 0.05 * area.max())[0])  # pieces of grout left, cut off the rig
-
-
-def _cast_shadows(lab: np.ndarray, obj: np.ndarray, theta: np.ndarray, focal: float) -> np.ndarray:
-    """Floor pixels within CAP_DEG at least 10 % darker than the floor around them and connected to the rig: the
-    legs' own cast shadows from the room's lights (inpainted with the rig)."""
-    L = lab[..., 0]
-    dark = ((L < CAST_RATIO * local_lightness(L)) & (theta < CAP_DEG)).astype(np.uint8)
-    k = _thin_width_px(focal, FLOOR_LINE_MAX_DEG)
-    if k > 1:
-        dark = cv2.morphologyEx(dark, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
-    _, labels = cv2.connectedComponents(dark | obj.astype(np.uint8), connectivity=8)
-    keep = np.unique(labels[obj])
-    return np.isin(labels, keep[keep > 0]) & (dark > 0)
 
 
 def _floor_chroma(face: np.ndarray, ring_floor: np.ndarray) -> np.ndarray:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from panoworld.rig_shape import FLOOR_LINE_MAX_DEG, thin_kernel
+
 KNOT_DEG = 3.0
 """Spacing (degrees from the nadir) of the knots of the shadow's piecewise-linear radial log-profile."""
 SHADOW_MAX_DEG = 30.0
@@ -16,6 +18,9 @@ RELIGHT_MIN_DARKENING = 0.25
 """The removal relights the floor only when the shadow removes at least this share of the light: development tripods
 without a shadow read 15-29 % (the room's uneven light; relit, the unshadowed floor lost up to 4 dB at 720 rows on
 102 and 111); those with the soft shadow 30-54 %."""
+CAST_RATIO = 0.9
+"""Floor pixels darker than this share of the floor around them (Lab L) and connected to the rig are its cast
+shadows (inpainted with it; 0.85 missed the legs' and column's shadows from the room's lights on development seeds)."""
 LIGHT_EXPECTILE = 0.8
 """The light model and shadow profile fit this expectile of the floor's log luminance, not its mean: a shadow
 darkens all of the floor's texture, more dark texture near the nadir only lowers its mean (development seeds:
@@ -184,3 +189,17 @@ def leg_shadow_lines(face: np.ndarray, theta: np.ndarray, rig: np.ndarray, cap_d
         cv2.line(band, (int(round(fx * 16)), int(round(fy * 16))), (int(round(H[0] * 16)), int(round(H[1] * 16))), 1,
                  thickness=int(round(3 * px)), lineType=cv2.LINE_8, shift=4)
     return (band > 0) & (dark > 0.03) & (visible > 0)
+
+
+def cast_shadows(lab: np.ndarray, obj: np.ndarray, theta: np.ndarray, focal: float, cap_deg: float) -> np.ndarray:
+    """Floor pixels within cap_deg at least 10 % darker (CAST_RATIO) than the floor around them (Lab L, lab of a
+    downward view whose focal is given) and connected to the rig obj: the legs' own cast shadows from the room's
+    lights (inpainted with the rig); floor lines narrower than FLOOR_LINE_MAX_DEG are not taken."""
+    L = lab[..., 0]
+    dark = ((L < CAST_RATIO * local_lightness(L)) & (theta < cap_deg)).astype(np.uint8)
+    k = thin_kernel(focal, FLOOR_LINE_MAX_DEG)
+    if k > 1:
+        dark = cv2.morphologyEx(dark, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    _, labels = cv2.connectedComponents(dark | obj.astype(np.uint8), connectivity=8)
+    keep = np.unique(labels[obj])
+    return np.isin(labels, keep[keep > 0]) & (dark > 0)

@@ -399,8 +399,9 @@ def test_floor_lines_touching_the_legs_leave_the_mask_at_720_rows():
     # At 720 rows tile grout is 1-2 face pixels wide and touches the legs (5-6 px): the rig's mask and its cast
     # shadows must not carry the grout lattice into the inpainting. At 256 rows (grout under a face pixel) nothing
     # is opened.
-    from panoworld.rig import _cast_shadows, _without_floor_lines
     from panoworld.rig_face import face_polar, nadir_view
+    from panoworld.rig_shadow import cast_shadows
+    from panoworld.rig_shape import without_floor_lines
 
     view = nadir_view(720)
     theta, _ = face_polar(view)
@@ -415,15 +416,15 @@ def test_floor_lines_touching_the_legs_leave_the_mask_at_720_rows():
     legs, on = legs > 0, np.ones((S, S), bool)
     lines = grout & ~legs
     obj = legs | (lines & (np.hypot(xx - c, yy - c) < 110))  # grout dashes caught with the legs, some cut off
-    kept = _without_floor_lines(obj, on, view.focal)
+    kept = without_floor_lines(obj, on, view.focal)
     assert (kept & legs).sum() > 0.97 * legs.sum() and (kept & lines).sum() < 0.03 * (obj & lines).sum()
     L = np.where(grout, 90, 180).astype(np.uint8)
     L[legs] = 30
     lab = np.stack([L, np.full_like(L, 128), np.full_like(L, 128)], -1)
-    cast = _cast_shadows(lab, legs, theta, view.focal)
+    cast = cast_shadows(lab, legs, theta, view.focal, 30.0)
     assert (cast & lines).sum() < 0.03 * lines.sum(), (cast & lines).sum()
     small = nadir_view(256)
-    assert np.array_equal(_without_floor_lines(obj[:small.size, :small.size], on[:small.size, :small.size],
+    assert np.array_equal(without_floor_lines(obj[:small.size, :small.size], on[:small.size, :small.size],
                                                small.focal), obj[:small.size, :small.size])
 
 
