@@ -97,7 +97,30 @@ def fuse(scene: Path, video: Path, out: Path, poses: Path | None = None) -> tupl
     return out / "gaussians.ply", time.perf_counter() - t0
 
 
-def diagnose(scene: Path, ply: Path, views: int, height: int, buckets: list[str], cache: dict) -> dict:
+PART_BGR = np.array([[60, 160, 60], [200, 120, 40], [40, 200, 220], [40, 40, 230], [200, 60, 200], [120, 120, 120]],
+                    np.uint8)
+"""--png: colour of each UNSEEN_PARTS class (BGR): floor green, walls blue, ceiling yellow, object side red, top
+magenta, underside grey."""
+
+
+def save_png(path: Path, img: np.ndarray, ref: np.ndarray, seen: np.ndarray, part: np.ndarray,
+             depth_ok: np.ndarray) -> None:
+    """render | reference over unseen parts (depth wrong dimmed) | squared error (unseen only, 0..64^2)."""
+    import cv2
+
+    parts = np.zeros_like(img)
+    unseen = ~seen & (part >= 0)
+    parts[unseen] = PART_BGR[part[unseen]][:, ::-1]
+    parts[unseen & ~depth_ok] //= 2
+    err = np.sqrt(((img.astype(np.float64) - ref) ** 2).mean(-1))
+    heat = cv2.applyColorMap(np.clip(err * 4, 0, 255).astype(np.uint8), cv2.COLORMAP_INFERNO)[..., ::-1]
+    heat[seen] //= 4
+    grid = np.concatenate([np.concatenate([img, ref], 1), np.concatenate([parts, heat], 1)], 0)
+    cv2.imwrite(str(path), np.ascontiguousarray(grid[..., ::-1]))
+
+
+def diagnose(scene: Path, ply: Path, views: int, height: int, buckets: list[str], cache: dict,
+             png: Path | None = None) -> dict:
     """Per bucket: PSNR of the view, of its seen and unseen parts, and per unseen part (surface class, geometry)."""
     from panoworld.navmesh import load_navmesh
     from panoworld.render_gs import render_erp
@@ -117,31 +140,43 @@ def diagnose(scene: Path, ply: Path, views: int, height: int, buckets: list[str]
             ref, ref_d, seen, part = cache[key, k]
             r = render_erp(g, pose, height, W)
             img = (r.rgb.clamp(0, 1).numpy() * 255.0).round().astype(np.uint8)
-            err = ((img.astype(np.float64) - ref) ** 2).mean(-1)
+            diff = img.astype(np.float64) - ref
+            err = (diff**2).mean(-1)
             depth_ok = (r.alpha.numpy() > 0.5) & (np.abs(r.depth.numpy() / np.maximum(r.alpha.numpy(), 1e-6) - ref_d)
                                                    <= DEPTH_TOL * ref_d)
+            if png is not None:
+                png.mkdir(parents=True, exist_ok=True)
+                save_png(png / f"{key}_{k}.png", img, ref, seen, part, depth_ok)
             groups = {"all": np.ones_like(seen), "seen": seen, "unseen": ~seen,
                       "unseen, depth right": ~seen & depth_ok, "unseen, depth wrong": ~seen & ~depth_ok}
             groups.update({f"unseen {name}": ~seen & (part == i) for i, name in enumerate(UNSEEN_PARTS)})
             for name, m in groups.items():
-                acc.setdefault(name, []).append((float(err[m].sum()), int(m.sum()), err.size, float(err.sum())))
+                acc.setdefault(name, []).append((float(err[m].sum()), int(m.sum()), err.size, float(err.sum()),
+                                                 diff[m].sum(0)))
         rows[key] = {}
         for name, vals in acc.items():
-            se, n, npx, tot = (sum(v[i] for v in vals) for i in range(4))
+            se, n, npx, tot, dsum = (sum(v[i] for v in vals) for i in range(5))
+            bias = dsum / max(n, 1)  # mean render - reference per channel (levels)
+            flat = se - n * float((bias**2).mean())  # the same pixels with that constant offset removed
             rows[key][name] = {"area": n / npx, "error_share": se / max(tot, 1e-12),
-                               "psnr": 10 * np.log10(255.0**2 / (se / n)) if n and se > 0 else None}
+                               "psnr": 10 * np.log10(255.0**2 / (se / n)) if n and se > 0 else None,
+                               "bias": float(bias.mean()),
+                               "psnr_unbiased": 10 * np.log10(255.0**2 / (flat / n)) if n and flat > 0 else None}
     return rows
 
 
 def print_rows(title: str, rows: dict) -> None:
     print(f"\n{title}")
-    print("| bucket | part | area % | PSNR dB | error share % |\n|---|---|---|---|---|")
+    print("| bucket | part | area % | PSNR dB | error share % | render - ref (levels) | PSNR, offset removed |\n"
+          "|---|---|---|---|---|---|---|")
     for key, parts in rows.items():
         for name, r in parts.items():
             if r["area"] < 1e-4 and name not in ("all", "seen", "unseen"):
                 continue
             p = "n/a" if r["psnr"] is None else f"{r['psnr']:.2f}"
-            print(f"| {key} | {name} | {100 * r['area']:.2f} | {p} | {100 * r['error_share']:.1f} |")
+            pu = "n/a" if r["psnr_unbiased"] is None else f"{r['psnr_unbiased']:.2f}"
+            print(f"| {key} | {name} | {100 * r['area']:.2f} | {p} | {100 * r['error_share']:.1f} | {r['bias']:+.1f} | "
+                  f"{pu} |")
 
 
 def main() -> int:
@@ -152,6 +187,7 @@ def main() -> int:
     ap.add_argument("--height", type=int, default=256)
     ap.add_argument("--oracle", action="append", default=[], help="rgb | depth | rgb,depth (repeatable)")
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--png", type=Path, help="write render | reference / unseen parts | unseen error per view here")
     a = ap.parse_args()
     import torch
 
@@ -172,7 +208,8 @@ def main() -> int:
                     poses = oracle_poses(scene, video, Path(tmp) / f"{scene.name}_{vi}" / "poses") \
                         if "depth" in kinds else None
                     ply, fuse_s = fuse(scene, video, Path(tmp) / f"{scene.name}_{vi}" / "gaussians", poses)
-                rows = diagnose(scene, ply, a.views, a.height, a.buckets, cache)
+                rows = diagnose(scene, ply, a.views, a.height, a.buckets, cache,
+                                a.png / scene.name / variant.replace(",", "_") if a.png else None)
                 title = f"{scene.name}: {'artifact' if variant == 'artifact' else 'oracle ' + variant} (fuse {fuse_s:.0f} s)"
                 print_rows(title, rows)
                 out[f"{scene.name} {variant}"] = rows

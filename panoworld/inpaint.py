@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -100,9 +100,10 @@ class BackgroundLayer:
     layer_faces: int
     synthesized: np.ndarray  # (h, w) bool
     layer_depth: np.ndarray  # (h, w) float32, background depth at synthesized pixels, 0 elsewhere
+    built: Raycaster | None = field(default=None, repr=False)  # one already built over these vertices and faces
 
     def raycaster(self) -> Raycaster:
-        return Raycaster(self.vertices, self.faces)
+        return self.built if self.built is not None else Raycaster(self.vertices, self.faces)
 
 
 def erp_grid_shape(mesh: ErpMesh) -> tuple[int, int]:
@@ -240,6 +241,7 @@ def build_background_layer(
     color_sigma_px: float = 0.0,
     layout_planes: bool = False,
     wall_layout: bool = False,
+    shadow_ambient: float = 1.0,
 ) -> BackgroundLayer:
     """Extend the far side of every depth discontinuity of the source view behind its foreground occluder, and
     (side_depth_m > 0) the occluder's own surface back from its silhouette (occluder_sides).
@@ -258,7 +260,8 @@ def build_background_layer(
     depth (floor_ceiling). wall_layout: the room's shell from the source view (panoworld.layout_columns: one wall
     per column, interpolated behind tall objects, and the floor and ceiling planes); pixels grown from an edge pixel
     on the shell take the shell's depth, and where that is a wall, the wall's colour seen at the same height beside
-    the occluder (wall_layer). The side faces (side_depth_m > 0) come last among the layer faces.
+    the occluder (wall_layer). shadow_ambient < 1: the layer's colour relit (relight_layer). The side faces
+    (side_depth_m > 0) come last among the layer faces.
     """
     h, w = erp_grid_shape(mesh)
     n = h * w
@@ -322,7 +325,15 @@ def build_background_layer(
     faces = np.where(s_flat[grid], idx_new[grid], grid).astype(np.int32)
     faces = faces[_stretch(vertices.astype(np.float64), faces) <= max_edge_ratio]
     colors = np.concatenate([mesh.colors, bg_color.reshape(-1, 3)[s_flat]])
+    built = None
+    if shadow_ambient < 1:
+        vertices = vertices.astype(np.float32)
+        built = Raycaster(vertices, np.concatenate([main_faces, faces]).astype(np.int32))
+        colors[len(mesh.vertices):] = relight_layer(
+            p.reshape(h, w, 3), mesh.colors[:n].reshape(h, w, 3), valid, hide, synth, vertices[len(mesh.vertices):],
+            colors[len(mesh.vertices):], built, shadow_ambient, inpaint_radius)
     if side_depth_m > 0:
+        built = None
         side_v, side_c, side_f = occluder_sides(p.reshape(h, w, 3), mesh.colors[:n], bad, side_depth_m,
                                                  len(vertices))
         vertices = np.concatenate([vertices, side_v.astype(np.float32)])
@@ -335,7 +346,42 @@ def build_background_layer(
         len(faces),
         synth,
         np.where(synth, bg_depth, 0.0).astype(np.float32),
+        built,
     )
+
+
+ROOM_TOL = 1.05
+"""relight_layer: a layer point farther than this times the room's shell along its ray is outside the room."""
+
+
+def relight_layer(points: np.ndarray, rgb: np.ndarray, valid: np.ndarray, hide: np.ndarray, synth: np.ndarray,
+                  layer_points: np.ndarray, layer_rgb: np.ndarray, rc: Raycaster, ambient: float, radius: float
+                  ) -> np.ndarray:
+    """The background layer's colours layer_rgb (N, 3) at layer_points (N, 3) (the synth (h, w) pixels, in order)
+    relit for the source view's ceiling lights (panoworld.fill_shadows): the layer's colour comes from the visible
+    pixels around the occluder (hide); each point's colour is scaled in linear light by how much more or less of the
+    lights reaches it than reached those pixels (shadow rays against the fill mesh rc), with ambient light this share
+    of full light. Points beyond the room's walls (panoworld.layout_columns' shell; the next room through a doorway,
+    lit by lights the source view does not see) keep their colour. Unchanged without lights."""
+    from panoworld.depth_complete import fit_planes
+    from panoworld.fill_shadows import apply_gain, ceiling_lights, lit_fraction, shadow_gain
+    from panoworld.layout_columns import shell_depth, wall_columns
+
+    depth = np.linalg.norm(points, axis=-1)
+    floor_m, ceiling_m = fit_planes(depth, valid)
+    lights, weights = ceiling_lights(points, rgb, valid, None if ceiling_m is None else -ceiling_m)
+    if not len(lights) or not len(layer_points) or floor_m is None:
+        return layer_rgb
+    dirs = points / np.maximum(depth, 1e-12)[..., None]
+    shell = shell_depth(wall_columns(points, valid, floor_m, -ceiling_m), dirs)[0][synth]
+    inside = ~(np.linalg.norm(layer_points, axis=1) > ROOM_TOL * shell)  # unknown shell (nan): inside
+    rim = cv2.dilate(hide.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=int(np.ceil(radius)) + 1) > 0
+    rim &= valid & ~hide
+    lit_src = np.ones(valid.shape, np.float32)
+    lit_src[rim] = lit_fraction(rc, points[rim], lights, weights)
+    donor = erp_inpaint(lit_src, hide, radius=radius)[synth]
+    here = lit_fraction(rc, layer_points, lights, weights)
+    return np.where(inside[:, None], apply_gain(layer_rgb, shadow_gain(here, donor, ambient)), layer_rgb)
 
 
 def wall_layer(points: np.ndarray, rgb: np.ndarray, valid: np.ndarray, planes: tuple[float, ...], steps: np.ndarray,

@@ -42,6 +42,11 @@ class WarpOptions:
     """> 0: the background layer's colour is the Gaussian-weighted mean (this sigma, source grid pixels) of the
     visible background around it (panoworld.inpaint.layer_mean_color) instead of Telea inpainting, which streaks
     across wide bands; 0 = Telea."""
+    shadow_ambient: float = param(1.0, gt=0, le=1)
+    """< 1: the background layer is relit for the ceiling lights found in the source view (bright patches on the
+    fitted ceiling; panoworld.fill_shadows): where an occluder hides those lights from a hidden surface more than
+    from the visible pixels its colour came from, it is darker (panoworld.inpaint.relight_layer), with ambient light
+    this share of a fully lit surface's; points beyond the room's walls are left as they are; 1 = off."""
     depth_fill: bool = True
     """Without reuse: holes the background layer does not fill take the depth and colour of their farther side
     (panoworld.inpaint.background_fill), so the Gaussians stage places them; false = a colour-only 2D fill (no depth:
@@ -65,7 +70,7 @@ def fill(job) -> tuple:
         opts = dict(max_band_deg=job.options.max_band_deg, inpaint_radius=job.inpaint_radius, max_edge_ratio=ratio,
                     side_depth_m=job.options.side_depth_m, edge_depth_ratio=job.options.edge_depth_ratio,
                     layout_planes=job.options.layout_planes, color_sigma_px=job.options.color_sigma_px,
-                    wall_layout=job.options.wall_layout)
+                    wall_layout=job.options.wall_layout, shadow_ambient=job.options.shadow_ambient)
         sources = read_home_sources(mesh_dir)
         if sources is not None:  # a home: one layer per source panorama (panoworld/home/inpaint.py)
             layer = home_background_layer(mesh, sources, job.poses, **opts)
