@@ -385,7 +385,8 @@ def test_shadow_fit_tells_crowding_dark_texture_from_a_shadow_and_measures_it():
 
 def test_room_light_past_the_rigs_feet_is_not_relit_as_its_shadow():
     # The room's light dims toward the nadir (not a quadratic in floor coordinates) under the rig's soft shadow: the
-    # floor past a tripod's feet (17-20 deg; the profile ends at 24) keeps its light; the shadow under the rig is still found.
+    # floor past a tripod's feet (17-20 deg; the profile ends at 24) keeps its light; the shadow under the rig is
+    # still found.
     from panoworld.rig_shadow import shadow_gain
 
     light = lambda t: (1.0 - 0.45 * np.exp(-((t / 14.0) ** 2))) * (1.0 - 0.2 * np.exp(-((t / 28.0) ** 4)))
