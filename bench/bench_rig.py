@@ -4,6 +4,7 @@
     python bench/bench_rig.py --preset default --height 720 --cases tripod,tripod-shadow --seeds 100-115 --grout-seeds '' \
         [--cache DIR]
     python bench/bench_rig.py --preset default --height 720 --cases tripod --seeds 100-115 --oracle [PICTURES]
+    python bench/bench_rig.py --preset default --height 720 --cases tripod-shadow --seeds 100-115 --light-oracle
     python bench/bench_rig.py --pipeline --seeds 116 [--modes auto,keep,truth] [--set conditions.height=256 ...]
 
 Per seed and rig (tripod, tripod with a soft shadow): what detection found, the mask's cap and sphere share, its
@@ -17,7 +18,8 @@ pipeline (ci-tiny preset) with the rig removed and kept (and with --modes truth:
 perfect fill could reach) and scores the Gaussians rendered from a ground-truth pose about 1 m away on the floor
 where the rig stood, split into the floor under the removed mask and outside it, next to the capture panoramas
 sampled at the same floor points. --preset default --height 720 measures the rig cases on the default preset's scenes
-at its 720 rows (what real 1000-4000-row captures are closer to than ci-tiny's 256); --cases picks which cases run. --oracle also fills the true rig mask (what the fill alone can reach).
+at its 720 rows (what real 1000-4000-row captures are closer to than ci-tiny's 256); --cases picks which cases run. --oracle also fills the true rig mask (what the fill alone can reach); --light-oracle relights with the
+generator's true soft-shadow factor (what the relighting costs).
 """
 
 from __future__ import annotations
