@@ -4,6 +4,7 @@
     python bench/bench_rig.py --preset default --height 720 --cases tripod,tripod-shadow --seeds 100-115 --grout-seeds '' \
         [--cache DIR]
     python bench/bench_rig.py --preset default --height 720 --cases tripod --seeds 100-115 --oracle [PICTURES]
+    python bench/bench_rig.py --preset default --height 720 --cases tripod-shadow --seeds 100-115 --light-oracle
     python bench/bench_rig.py --pipeline --seeds 116 [--modes auto,keep,truth] [--set conditions.height=256 ...]
 
 Per seed and rig (tripod, tripod with a soft shadow): what detection found, the mask's cap and sphere share, its
@@ -17,7 +18,8 @@ pipeline (ci-tiny preset) with the rig removed and kept (and with --modes truth:
 perfect fill could reach) and scores the Gaussians rendered from a ground-truth pose about 1 m away on the floor
 where the rig stood, split into the floor under the removed mask and outside it, next to the capture panoramas
 sampled at the same floor points. --preset default --height 720 measures the rig cases on the default preset's scenes
-at its 720 rows (what real 1000-4000-row captures are closer to than ci-tiny's 256); --cases picks which cases run. --oracle also fills the true rig mask (what the fill alone can reach).
+at its 720 rows (what real 1000-4000-row captures are closer to than ci-tiny's 256); --cases picks which cases run. --oracle also fills the true rig mask (what the fill alone can reach); --light-oracle relights with the
+generator's true soft-shadow factor (what the relighting costs).
 """
 
 from __future__ import annotations
@@ -55,7 +57,8 @@ def render_case(scene, kind, height: int) -> tuple[np.ndarray, np.ndarray, np.nd
     return rgb, depth, true_mask, clean
 
 
-def one(scene, kind, height: int, cache: Path | None = None, oracle: Path | None = None) -> dict:
+def one(scene, kind, height: int, cache: Path | None = None, oracle: Path | None = None,
+        mask_oracle: bool = False, light_oracle: bool = False) -> dict:
     """Detect and remove on one rendered case (renders kept in and reused from cache, a folder, when given); with
     oracle (a folder, or Path() for none) also the fill of the true rig mask (fill_oracle)."""
     f = cache / f"{scene.meta['preset']}_{scene.meta['seed']}_{kind}_{height}.npz" if cache else None
@@ -86,6 +89,10 @@ def one(scene, kind, height: int, cache: Path | None = None, oracle: Path | None
         row.update(error_split(out, clean, m))
         if oracle is not None:
             row.update(fill_oracle(scene, kind, rgb, depth, clean, det, oracle))
+        if mask_oracle:
+            row.update(mask_split(scene, kind, rgb, depth, clean, det, out))
+        if light_oracle and det.found:
+            row.update(relight_oracle(scene, kind, rgb, depth, clean, det))
     return row
 
 
@@ -126,6 +133,57 @@ def oracle_detection(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.
     source = rig.floor_source(face if gain is None else apply_gain(face, gain), nf) & ~fmask
     shadow = face_to_erp_mask(gain > 1.0, view, H, W) & ~mask if gain is not None else np.zeros_like(mask)
     return rig.RigDetection(True, "oracle", "legs", mask, shadow, shadow_gain=gain, source=source)
+
+
+def mask_split(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarray, det, out: np.ndarray) -> dict:
+    """What the detected mask costs: the cap's error share on the true rig and its cast shadows (true_rig) left outside
+    the detected mask (`missed_share`) and the cap with the same removal (the detected shadow and fill) on the true
+    mask instead of the detected one (`psnr_true_mask`)."""
+    from dataclasses import replace
+
+    truth = true_rig(scene, kind, rgb, depth, clean)[0]
+    m = det.mask if det.found else np.zeros_like(truth)
+    shadow = det.shadow & ~truth if det.found else np.zeros_like(truth)
+    return {"missed_share": error_split(out, clean, truth & ~m)["under_share"],
+            "psnr_true_mask": nadir_cap_psnr(rig.remove_rig(rgb, replace(det, found=True, mask=truth, shadow=shadow)), clean)}
+
+
+LIGHT_BANDS_DEG = (0.0, 5.0, 10.0, 15.0, 20.0, 30.0)
+"""Rings (degrees from the nadir) in which relight_oracle compares the detected light factor with the true one."""
+
+
+def relight_oracle(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarray, det) -> dict:
+    """What the relighting costs: the same removal (detected mask, usual fill) with the generator's true soft-shadow
+    factor instead of the detected one (none for tripod: the floor is not relit), `psnr_true_light`; and per ring of
+    LIGHT_BANDS_DEG on the floor outside the mask, the detected gain over the true one (`relight_<a>_<b>`, mean of
+    the ratio - 1: > 0 the floor relit too bright, the profile too deep; < 0 too shallow)."""
+    from dataclasses import replace
+
+    from panoworld.cube_views import render_view
+    from panoworld.rig_face import erp_mask_to_face, face_polar, face_to_erp_mask, nadir_view
+    from panoworld.rig_shadow import apply_gain
+    from panoworld.synth.rig import shadow_gain
+
+    H, W = rgb.shape[:2]
+    view = nadir_view(H)
+    size = view.size
+    gain = np.ones((size, size), np.float32)
+    if kind == RigKind.TRIPOD_SHADOW:
+        light = shadow_gain(scene.world_from_canonical, scene.tracks[0].camera_height, depth).astype(np.float32)
+        gain = 1.0 / np.maximum(render_view(light, view), 1e-3)
+    nf = rig.nadir_face(rgb, depth, np.isfinite(depth) & (depth > 0), scene.tracks[0].camera_height)
+    fmask = erp_mask_to_face(det.mask, view)
+    source = rig.floor_source(apply_gain(nf.face, gain), nf) & ~fmask
+    shadow = face_to_erp_mask(gain > 1.0, view, H, W) & ~det.mask
+    out = rig.remove_rig(rgb, replace(det, shadow_gain=gain, shadow=shadow, source=source))
+    row = {"psnr_true_light": nadir_cap_psnr(out, clean)}
+    det_gain = det.shadow_gain if det.shadow_gain is not None else np.ones_like(gain)
+    theta, _ = face_polar(view)
+    floor = nf.on_floor & ~fmask
+    for a, b in zip(LIGHT_BANDS_DEG[:-1], LIGHT_BANDS_DEG[1:]):
+        sel = floor & (theta >= a) & (theta < b)
+        row[f"relight_{a:.0f}_{b:.0f}"] = float(np.mean(det_gain[sel] / gain[sel]) - 1.0) if sel.any() else None
+    return row
 
 
 def fill_oracle(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarray, det, pictures: Path,
@@ -314,6 +372,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cases", default="tripod,tripod-shadow,none,rug,stool",
                     help="comma list of rig cases: tripod, tripod-shadow, none, rug, stool (default all)")
     ap.add_argument("--cache", type=Path, help="keep the rendered cases here and reuse them (compare two detectors)")
+    ap.add_argument("--mask-oracle", action="store_true", help="also the error on the true rig the mask missed and "
+                    "the cap with the same removal on the true mask: what the detected mask costs")
+    ap.add_argument("--light-oracle", action="store_true", help="also the cap with the true soft-shadow factor "
+                    "(none for tripod) instead of the detected one, same mask and fill, and the detected gain over the "
+                    "true one per ring: what the relighting costs")
     ap.add_argument("--oracle", type=Path, nargs="?", const=Path(), metavar="PICTURES",
                     help="also fill the true rig mask (the fill's ceiling, its low-frequency / texture split); "
                          "pictures of the downward face (truth | oracle fill | fill) into PICTURES when given")
@@ -357,7 +420,7 @@ def main(argv: list[str] | None = None) -> int:
     for seed in parse_seeds(args.seeds):
         scene = generate_scene(seed, args.preset)
         for kind in cases:
-            r = one(scene, kind, args.height, args.cache, args.oracle)
+            r = one(scene, kind, args.height, args.cache, args.oracle, args.mask_oracle, args.light_oracle)
             r["seed"] = seed
             rows.append(r)
             print(f"seed {seed} {kind}: {r['reason']}", file=sys.stderr, flush=True)
@@ -371,6 +434,7 @@ def main(argv: list[str] | None = None) -> int:
           f"default-preset tiled floors at {args.grout_height} rows, seeds {args.grout_seeds or '-'}\n")
     head = ["seed", "case", "found", "kind", "cap deg", "sphere %", "IoU", "PSNR15 before", "PSNR15 after",
             "error under mask", "error low-freq", "lum gap before", "lum gap after", "unchanged", "s"]
+    head += ["error on missed rig", "PSNR15 true mask"] if args.mask_oracle else []
     print("| " + " | ".join(head) + " |\n|" + "---|" * len(head))
     for r in rows:
         cells = [r["seed"], r["case"], r["found"], r["kind"] or "-", fmt(r.get("cap_deg"), ".1f"),
@@ -380,7 +444,25 @@ def main(argv: list[str] | None = None) -> int:
                  fmt(100 * r["lowfreq_share"] if "lowfreq_share" in r else None, ".0f"),
                  f"{r['gap_before']:+.1%}", f"{r['gap_after']:+.1%}",
                  r["identical"], fmt(r["seconds"])]
+        if args.mask_oracle:
+            cells += [fmt(100 * r["missed_share"] if "missed_share" in r else None, ".0f"), fmt(r.get("psnr_true_mask"))]
         print("| " + " | ".join(str(c) for c in cells) + " |")
+    if args.light_oracle:
+        bands = [f"relight_{a:.0f}_{b:.0f}" for a, b in zip(LIGHT_BANDS_DEG[:-1], LIGHT_BANDS_DEG[1:])]
+        print("\nthe true soft-shadow factor instead of the detected one (same mask and fill), PSNR15, and the "
+              "detected gain over the true one per ring (deg) on the floor outside the mask, %:\n")
+        print("| seed | case | detected light | true light | " + " | ".join(b[8:].replace("_", "-") for b in bands)
+              + " |\n|---|---|---|---|" + "---|" * len(bands))
+        for r in rows:
+            if "psnr_true_light" in r:
+                print(f"| {r['seed']} | {r['case']} | {fmt(r['psnr_after'])} | {fmt(r['psnr_true_light'])} | "
+                      + " | ".join(fmt(100 * r[b] if r[b] is not None else None, "+.1f") for b in bands) + " |")
+        for kind in cases:
+            rs = [r for r in rows if r["case"] == str(kind) and "psnr_true_light" in r]
+            if rs:
+                print(f"| mean / min | {kind} | {np.mean([r['psnr_after'] for r in rs]):.2f} / "
+                      f"{min(r['psnr_after'] for r in rs):.2f} | {np.mean([r['psnr_true_light'] for r in rs]):.2f} / "
+                      f"{min(r['psnr_true_light'] for r in rs):.2f} | |")
     if args.oracle is not None:
         print("\nthe fill on the true rig mask (oracle) and its error split, PSNR15 per seed:\n")
         cols = ["psnr_after", "psnr_oracle", "face_oracle", "face_low", "face_tex", "face_smooth_fill", "face_smooth",
@@ -403,6 +485,10 @@ def main(argv: list[str] | None = None) -> int:
             after = [r["psnr_after"] for r in rs]
             print(f"| {kind} | {len(rs)} | {found} | {np.mean([r['psnr_before'] for r in rs]):.2f} | "
                   f"{np.mean(after):.2f} / {min(after):.2f} | {sum(a >= 25 for a in after)}/{len(rs)} |")
+            if args.mask_oracle:
+                t = [r["psnr_true_mask"] for r in rs]
+                print(f"| {kind}, the true mask | {len(rs)} | - | - | {np.mean(t):.2f} / {min(t):.2f} | "
+                      f"{sum(a >= 25 for a in t)}/{len(rs)} |")
         else:
             print(f"| {kind} | {len(rs)} | {found} (must be 0) | - | unchanged {sum(r['identical'] for r in rs)}/{len(rs)} | - |")
     return 0

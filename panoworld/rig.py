@@ -22,8 +22,15 @@ from panoworld.rig_face import (
     nadir_view,
 )
 from panoworld.rig_inpaint import inpaint_plane, matte_rim
-from panoworld.rig_shadow import apply_gain, leg_shadow_lines, linear_luminance, local_lightness, shadow_gain
-from panoworld.rig_shape import MIN_LEG_WIDTH_DEG, azimuth_occupancy, horizontal_surface, leg_arms
+from panoworld.rig_shadow import (
+    RELIGHT_MIN_DARKENING,
+    apply_gain,
+    cast_shadows,
+    leg_shadow_lines,
+    linear_luminance,
+    shadow_gain,
+)
+from panoworld.rig_shape import MIN_LEG_WIDTH_DEG, azimuth_occupancy, horizontal_surface, leg_arms, without_floor_lines
 
 CAP_DEG = 30.0
 """Largest rig: candidates must lie within this angle of the nadir (a tripod's feet reach 15-25 degrees)."""
@@ -46,9 +53,9 @@ SURFACE_DEG = 4.0
 the camera too, but is 1-2 degrees wide)."""
 FLOOR_LINE_DEG = 1.0
 """On-floor candidate pixels narrower than this (a morphological opening) are floor lines, not rig, in that second look."""
-CAST_RATIO = 0.9
-"""Floor pixels darker than this share of the floor around them (Lab L) and connected to the rig are its cast
-shadows (inpainted with it; 0.85 missed the legs' and column's shadows from the room's lights on development seeds)."""
+LEG_SHADOW_WIDTH_DEG = 0.75
+"""A leg's cast-shadow line must be dark this wide across (a 3.6 cm leg's shadow is >= 1.2 deg): floor lines are
+narrower. Tested only where its half-width exceeds a face pixel (at 720 rows, not 256)."""
 
 
 @dataclass
@@ -252,11 +259,14 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
         hub = np.argwhere(comp & (theta < 0.4 * extent))[:, ::-1].astype(np.int32)
         if len(hub) >= 3:
             cv2.fillConvexPoly(obj, cv2.convexHull(hub), 1)
-    obj = _dilate(obj, view) | _cast_shadows(lab, obj > 0, theta)
+    obj = without_floor_lines(obj > 0, nf.on_floor, view.focal).astype(np.uint8)
+    obj = _dilate(obj, view) | cast_shadows(lab, obj > 0, theta, view.focal, CAP_DEG)
     stats["shadow_deg"] = sh_deg
     mask = face_to_erp_mask(obj, view, H, W)
     if kind == "legs":
         mask |= _leg_shadows(rgb, mask, gain, view)
+    if 1.0 - stats.get("shadow_min_light", 1.0) < RELIGHT_MIN_DARKENING:  # the rig was measured relit, the floor stays
+        gain = np.ones_like(gain)
     sh = face_to_erp_mask(gain > 1.0, view, H, W) & ~mask
     if sh.any():
         reason += f" with its shadow ({sh_deg:.0f} deg, up to {1 - 1 / gain.max():.0%} darker)"
@@ -272,18 +282,10 @@ def _leg_shadows(rgb: np.ndarray, mask: np.ndarray, gain: np.ndarray, view: Pers
     g = cv2.resize(gain, (fine.size, fine.size), interpolation=cv2.INTER_LINEAR)
     face = apply_gain(render_view(rgb, fine), g)
     theta, _ = face_polar(fine)
-    lines = leg_shadow_lines(face, theta, erp_mask_to_face(mask, fine), CAP_DEG, 2.0)
+    width = fine.focal * np.deg2rad(LEG_SHADOW_WIDTH_DEG)
+    width = width if 0.5 * width >= 2.0 else 0.0  # resolvable: the half-width is more than one face pixel
+    lines = leg_shadow_lines(face, theta, erp_mask_to_face(mask, fine), CAP_DEG, 2.0, width_px=width)
     return face_to_erp_mask(lines, fine, H, W) if lines.any() else np.zeros_like(mask)
-
-
-def _cast_shadows(lab: np.ndarray, obj: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """Floor pixels within CAP_DEG at least 15 % darker than the floor around them and connected to the rig: the
-    legs' own cast shadows from the room's lights (inpainted with the rig)."""
-    L = lab[..., 0]
-    dark = ((L < CAST_RATIO * local_lightness(L)) & (theta < CAP_DEG)).astype(np.uint8)
-    _, labels = cv2.connectedComponents(dark | obj.astype(np.uint8), connectivity=8)
-    keep = np.unique(labels[obj])
-    return np.isin(labels, keep[keep > 0]) & (dark > 0)
 
 
 def _floor_chroma(face: np.ndarray, ring_floor: np.ndarray) -> np.ndarray:

@@ -5,12 +5,26 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from panoworld.rig_shape import FLOOR_LINE_MAX_DEG, thin_kernel
+
 KNOT_DEG = 3.0
 """Spacing (degrees from the nadir) of the knots of the shadow's piecewise-linear radial log-profile."""
-SHADOW_MAX_DEG = 30.0
-"""The shadow's profile is 1 from here out (the floor-light model alone explains the floor there)."""
+SHADOW_MAX_DEG = 24.0
+"""The shadow's profile is 1 from here out (the floor-light model alone explains the floor there): a little past a
+tripod's feet (17-20 deg). At 30 the profile took up the room's light inside 30 deg that the floor-light model,
+fitted on the face's floor beyond, extrapolated wrongly: the floor relit 5-25 % too bright out to 30 deg on 5 of 16
+development seeds (720 rows, bench_rig --light-oracle). Development tripod + shadow, 720 / 256 rows: 30: 27.68 /
+26.92 dB; 27: 27.9 / -; 24: 28.00 / 26.94; 21: 28.10 / 26.86."""
 MIN_DARKENING = 0.15
-"""A shadow removes at least this share of the light at its darkest knot (weaker: floor lighting, kept)."""
+"""A shadow removes at least this share of the light at its darkest knot (weaker: floor lighting, kept). Detection
+measures the rig on the face relit by such a shadow; the removal relights only from RELIGHT_MIN_DARKENING."""
+RELIGHT_MIN_DARKENING = 0.25
+"""The removal relights the floor only when the shadow removes at least this share of the light: development tripods
+without a shadow read 15-29 % (the room's uneven light; relit, the unshadowed floor lost up to 4 dB at 720 rows on
+102 and 111); those with the soft shadow 30-54 %."""
+CAST_RATIO = 0.9
+"""Floor pixels darker than this share of the floor around them (Lab L) and connected to the rig are its cast
+shadows (inpainted with it; 0.85 missed the legs' and column's shadows from the room's lights on development seeds)."""
 LIGHT_EXPECTILE = 0.8
 """The light model and shadow profile fit this expectile of the floor's log luminance, not its mean: a shadow
 darkens all of the floor's texture, more dark texture near the nadir only lowers its mean (development seeds:
@@ -107,10 +121,11 @@ _TAU = 0.05  # darkening per sample that a line must beat to grow (the score's o
 
 
 def leg_shadow_lines(face: np.ndarray, theta: np.ndarray, rig: np.ndarray, cap_deg: float, px: float,
-                     samples: int = 100) -> np.ndarray:
+                     samples: int = 100, width_px: float = 0.0) -> np.ndarray:
     """The legs' thin cast shadows on a downward view of the floor (face (S, S, 3) uint8, relit; theta degrees from
-    the nadir; rig (S, S) bool the rig's mask; px the view's pixels per base pixel): (S, S) bool, the pixels to
-    inpaint with the rig, empty when no such shadow is seen.
+    the nadir; rig (S, S) bool the rig's mask; px the view's pixels per base pixel; width_px > 0: a line must be dark
+    this wide across, not only along its middle): (S, S) bool, the pixels to inpaint with the rig, empty when no such
+    shadow is seen.
 
     The physics: a light casts each straight leg's shadow from its foot on the floor to the shadow of the hub, one
     point H shared by all legs (the view of a plane is a scaled map of it, so these are straight segments). H is
@@ -144,6 +159,12 @@ def leg_shadow_lines(face: np.ndarray, theta: np.ndarray, rig: np.ndarray, cap_d
             mx = (fx + (hx[:, None] - fx) * t).astype(np.float32)
             my = (fy + (hy[:, None] - fy) * t).astype(np.float32)
             val = cv2.remap(dark, mx, my, cv2.INTER_LINEAR, borderValue=0.0)
+            if width_px > 0:  # dark across its width too: a floor line (grout, a seam) is narrower than a leg's shadow
+                d = np.hypot(hx - fx, hy - fy)[:, None] + 1e-6
+                ox, oy = (-(hy[:, None] - fy) / d * 0.5 * width_px).astype(np.float32), \
+                    ((hx[:, None] - fx) / d * 0.5 * width_px).astype(np.float32)
+                for sgn in (-1.0, 1.0):
+                    val = np.minimum(val, cv2.remap(dark, mx + sgn * ox, my + sgn * oy, cv2.INTER_LINEAR, borderValue=0.0))
             ok = cv2.remap(visible, mx, my, cv2.INTER_NEAREST, borderValue=0) > 0
             cnt = ok.sum(1)
             seen_px = cnt * np.hypot(hx - fx, hy - fy) / samples  # visible length in view pixels
@@ -172,3 +193,17 @@ def leg_shadow_lines(face: np.ndarray, theta: np.ndarray, rig: np.ndarray, cap_d
         cv2.line(band, (int(round(fx * 16)), int(round(fy * 16))), (int(round(H[0] * 16)), int(round(H[1] * 16))), 1,
                  thickness=int(round(3 * px)), lineType=cv2.LINE_8, shift=4)
     return (band > 0) & (dark > 0.03) & (visible > 0)
+
+
+def cast_shadows(lab: np.ndarray, obj: np.ndarray, theta: np.ndarray, focal: float, cap_deg: float) -> np.ndarray:
+    """Floor pixels within cap_deg at least 10 % darker (CAST_RATIO) than the floor around them (Lab L, lab of a
+    downward view whose focal is given) and connected to the rig obj: the legs' own cast shadows from the room's
+    lights (inpainted with the rig); floor lines narrower than FLOOR_LINE_MAX_DEG are not taken."""
+    L = lab[..., 0]
+    dark = ((L < CAST_RATIO * local_lightness(L)) & (theta < cap_deg)).astype(np.uint8)
+    k = thin_kernel(focal, FLOOR_LINE_MAX_DEG)
+    if k > 1:
+        dark = cv2.morphologyEx(dark, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    _, labels = cv2.connectedComponents(dark | obj.astype(np.uint8), connectivity=8)
+    keep = np.unique(labels[obj])
+    return np.isin(labels, keep[keep > 0]) & (dark > 0)
