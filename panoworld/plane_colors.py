@@ -15,7 +15,7 @@ REACH_M = 1.5
 """A hidden point this far from the nearest visible cell of the map takes half the map's colour and half the colour
 it had (Gaussian fall-off): far from any floor seen, a point on the floor plane may be something else (a wall the
 background layer continued the floor through). Validation seeds 1 / 6 / 4, bench_warp_fill hole PSNR vs off:
-1 m -0.05 / +1.13 / -0.14 dB, 2 m -0.15 / +1.44 / -0.19, 4 m -0.38 / +1.52 / (not run)."""
+1 m -0.05 / +1.13 / -0.14 dB, 1.5 m -0.11 / +1.19 / -0.11, 2 m -0.15 / +1.44 / -0.19, 4 m -0.38 / +1.52 / (not run)."""
 MAX_EXTENT_M = 30.0
 """The map spans the visible floor's points clipped to this many metres around the capture point."""
 MIN_CELLS = 20
