@@ -91,7 +91,7 @@ def floor_beyond(points: np.ndarray, rgb: np.ndarray, valid: np.ndarray) -> Floo
         return None
     xz = np.clip(points[on][:, [0, 2]].astype(np.float64), -MAX_EXTENT_M, MAX_EXTENT_M)
     lo = xz.min(axis=0) - 3 * REACH_M  # beyond the margin the map's weight is < 0.002
-    shape = tuple(((xz.max(axis=0) + 3 * REACH_M - lo) / CELL_M).astype(int)[::-1] + 1)  # (rows along z, columns along x)
+    shape = tuple(((xz.max(axis=0) + 3 * REACH_M - lo) / CELL_M).astype(int)[::-1] + 1)  # (rows: z, columns: x)
     ij = ((xz - lo) / CELL_M).astype(np.int64)
     cell = ij[:, 1] * shape[1] + ij[:, 0]
     cnt = np.bincount(cell, minlength=shape[0] * shape[1]).reshape(shape)
