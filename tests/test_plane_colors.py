@@ -22,7 +22,7 @@ WALL_RGB, FRAME_RGB, CEIL_RGB = (150, 200, 150), (240, 60, 60), (230, 230, 240)
 
 
 def colour(p: np.ndarray) -> np.ndarray:
-    x, y, z = p[..., 0], p[..., 1], p[..., 2]
+    y, z = p[..., 1], p[..., 2]
     out = np.broadcast_to(np.array(WALL_RGB, float), p.shape).copy()
     floor = np.abs(y - FLOOR) < 1e-3
     out[floor & (z < WALL_Z[0])] = FLOOR_A
