@@ -14,7 +14,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld import inpaint
+from panoworld import background_layer, inpaint
 from panoworld import pipeline as pl
 from panoworld.artifacts import read_manifest
 from panoworld.conditions import load_conditions
@@ -114,7 +114,7 @@ def time_full_size(scene, scene_dir: Path, height: int, frames: int) -> None:
     mesh = load_erp_mesh(art / "mesh")
     rgb, mask, depth = np.asarray(cond.rgb), np.asarray(cond.mask), np.asarray(cond.depth)
     c0, w0 = time.process_time(), time.perf_counter()
-    layer = inpaint.build_background_layer(mesh, inpaint.max_translation(poses))
+    layer = background_layer.build_background_layer(mesh, inpaint.max_translation(poses))
     c1, w1 = time.process_time(), time.perf_counter()
     filler = inpaint.WarpInpainter(layer)
     filled = [filler.fill(rgb[t], mask[t], depth[t], poses[t]) for t in range(len(rgb))]

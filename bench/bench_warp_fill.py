@@ -25,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld import inpaint
+from panoworld import background_layer, inpaint
 from panoworld.conditions import load_conditions
 from panoworld.eval.groundtruth import GroundTruth
 from panoworld.eval.roam import UNSEEN_PARTS, unseen_parts
@@ -76,7 +76,7 @@ def main() -> int:
     filler_keys = set(inspect.signature(inpaint.WarpInpainter).parameters)
     truth = {}
     for var in variants:
-        layer = inpaint.build_background_layer(mesh, inpaint.max_translation(poses),
+        layer = background_layer.build_background_layer(mesh, inpaint.max_translation(poses),
                                                **{k: v for k, v in var.items() if k not in filler_keys})
         filler = inpaint.WarpInpainter(layer, **{k: bool(v) if k in ("reuse", "depth_fill") else v
                                                  for k, v in var.items() if k in filler_keys})

@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from panoworld.inpaint import erp_pad
+from panoworld.erp_fill import erp_pad
 from panoworld.shapes import check_shape
 
 SCALE = 2

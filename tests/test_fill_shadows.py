@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
+from panoworld.background_layer import build_background_layer
 from panoworld.conventions import points_from_depth
 from panoworld.fill_shadows import LIGHT_DROP_M, apply_gain, ceiling_lights, shadow_gain
-from panoworld.inpaint import build_background_layer
 from panoworld.mesh import erp_mesh_from_depth
 from panoworld.raycast import Raycaster
 

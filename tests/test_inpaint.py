@@ -7,19 +7,15 @@ import numpy as np
 import pytest
 import trimesh
 
+from panoworld.background_layer import BackgroundLayer, build_background_layer, floor_ceiling, layer_mean_color
 from panoworld.conditions import render_conditions
 from panoworld.conventions import erp_dirs, points_from_depth
+from panoworld.erp_fill import erp_inpaint, erp_pad
 from panoworld.inpaint import (
-    BackgroundLayer,
     CommittedPoints,
     WarpInpainter,
     background_fill,
-    build_background_layer,
-    erp_inpaint,
-    erp_pad,
-    floor_ceiling,
     frame_inpaint,
-    layer_mean_color,
     max_translation,
     warp_inpaint_video,
 )

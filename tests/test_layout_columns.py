@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
+from panoworld.background_layer import build_background_layer, erp_grid_shape
 from panoworld.conventions import points_from_depth
-from panoworld.inpaint import build_background_layer, erp_grid_shape
 from panoworld.layout_columns import shell_depth, wall_columns
 from panoworld.mesh import erp_mesh_from_depth
 from panoworld.raycast import Raycaster

@@ -7,8 +7,8 @@ import pytest
 import torch
 import trimesh
 
+from panoworld.background_layer import BackgroundLayer, build_background_layer
 from panoworld.conventions import points_from_depth
-from panoworld.inpaint import BackgroundLayer, build_background_layer
 from panoworld.mesh import erp_mesh_from_depth
 from panoworld.raycast import Raycaster
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from panoworld.background_layer import BackgroundLayer, build_background_layer
 from panoworld.conventions import invert_pose, transform_points
-from panoworld.inpaint import BackgroundLayer, build_background_layer
 from panoworld.mesh import ErpMesh
 
 

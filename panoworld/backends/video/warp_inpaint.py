@@ -23,29 +23,29 @@ class WarpOptions:
     side_depth_m: float = param(0.0, ge=0)
     """Occluders' hidden sides: each foreground silhouette of the source view continues straight back along the
     source's rays by this many metres (up to the background), in the foreground's colour
-    (panoworld.inpaint.occluder_sides), so a camera moving around furniture sees a side rather than wall colour;
+    (panoworld.background_layer.occluder_sides), so a camera moving around furniture sees a side rather than wall colour;
     0 = off (the background layer alone)."""
     edge_depth_ratio: float = param(0.75, gt=0, le=1)
     """A depth edge of the source view grows a background layer only where its foreground is nearer than this
     fraction of the background's depth; smaller steps (shelves in front of books, furniture against a wall) are left
-    to the far side's 2D fill (panoworld.inpaint.build_background_layer)."""
+    to the far side's 2D fill (panoworld.background_layer.build_background_layer)."""
     layout_planes: bool = False
     """The background layer's depth never lies beyond the floor and ceiling planes fitted to the source depth
     (panoworld.depth_complete.fit_planes): the hidden floor behind furniture and the ceiling behind a lamp stay on
-    the room's planes (panoworld.inpaint.build_background_layer)."""
+    the room's planes (panoworld.background_layer.build_background_layer)."""
     wall_layout: bool = False
     """The room's shell from the source view: one wall per column, interpolated across the columns tall objects hide
     (panoworld.layout_columns), with the floor and ceiling planes; background layer pixels grown from an edge on the
     shell take its depth, and on a wall the wall's colour seen at the same height beside the occluder
-    (panoworld.inpaint.wall_layer) instead of the inpainted colour."""
+    (panoworld.background_layer.wall_layer) instead of the inpainted colour."""
     color_sigma_px: float = param(0.0, ge=0)
     """> 0: the background layer's colour is the Gaussian-weighted mean (this sigma, source grid pixels) of the
-    visible background around it (panoworld.inpaint.layer_mean_color) instead of Telea inpainting, which streaks
+    visible background around it (panoworld.background_layer.layer_mean_color) instead of Telea inpainting, which streaks
     across wide bands; 0 = Telea."""
     shadow_ambient: float = param(1.0, gt=0, le=1)
     """< 1: the background layer is relit for the ceiling lights found in the source view (bright patches on the
     fitted ceiling; panoworld.fill_shadows): where an occluder hides those lights from a hidden surface more than
-    from the visible pixels its colour came from, it is darker (panoworld.inpaint.relight_layer), with ambient light
+    from the visible pixels its colour came from, it is darker (panoworld.background_layer.relight_layer), with ambient light
     this share of a fully lit surface's; points beyond the room's walls are left as they are; 1 = off."""
     plane_colors: bool = False
     """Hidden points on the floor plane beyond the room's walls (the next room through a doorway) take their colour
@@ -58,7 +58,7 @@ class WarpOptions:
 
 
 def fill(job) -> tuple:
-    from panoworld import inpaint
+    from panoworld import background_layer, inpaint
     from panoworld.home.inpaint import home_background_layer
     from panoworld.home.mesh import read_home_sources
     from panoworld.io import read_json
@@ -80,7 +80,7 @@ def fill(job) -> tuple:
         if sources is not None:  # a home: one layer per source panorama (panoworld/home/inpaint.py)
             layer = home_background_layer(mesh, sources, job.poses, **opts)
         else:
-            layer = inpaint.build_background_layer(mesh, inpaint.max_translation(job.poses), **opts)
+            layer = background_layer.build_background_layer(mesh, inpaint.max_translation(job.poses), **opts)
     except (OSError, ValueError, KeyError) as e:
         raise InputError(f"{mesh_dir}/mesh.ply: {e}; rerun the mesh stage") from None
     info = dict(layer_faces=int(layer.layer_faces), layer_pixels=int(layer.synthesized.sum()),
