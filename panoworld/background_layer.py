@@ -306,8 +306,9 @@ def relight_layer(points: np.ndarray, rgb: np.ndarray, valid: np.ndarray, hide: 
     of full light. Points beyond the room's walls (panoworld.layout_columns' shell; the next room through a doorway,
     lit by lights the source view does not see) keep their colour. Unchanged without lights."""
     from panoworld.depth_complete import fit_planes
-    from panoworld.fill_shadows import apply_gain, ceiling_lights, lit_fraction, shadow_gain
+    from panoworld.fill_shadows import ceiling_lights, lit_fraction, shadow_gain
     from panoworld.layout_columns import shell_depth, wall_columns
+    from panoworld.rig_shadow import apply_gain
 
     depth = np.linalg.norm(points, axis=-1)
     floor_m, ceiling_m = fit_planes(depth, valid)
@@ -323,7 +324,7 @@ def relight_layer(points: np.ndarray, rgb: np.ndarray, valid: np.ndarray, hide: 
     lit_src[rim] = lit_fraction(rc, points[rim], lights, weights)
     donor = erp_inpaint(lit_src, hide, radius=radius)[synth]
     here = lit_fraction(rc, layer_points, lights, weights)
-    return np.where(inside[:, None], apply_gain(layer_rgb, shadow_gain(here, donor, ambient)), layer_rgb)
+    return np.where(inside[:, None], apply_gain(layer_rgb, shadow_gain(here, donor, ambient).astype(np.float32)), layer_rgb)
 
 
 def wall_layer(points: np.ndarray, rgb: np.ndarray, valid: np.ndarray, planes: tuple[float, ...], steps: np.ndarray,

@@ -73,8 +73,3 @@ def shadow_gain(lit_here: np.ndarray, lit_donor: np.ndarray, ambient: float) -> 
     is this share of a fully lit point's irradiance."""
     return (ambient + (1 - ambient) * lit_here) / (ambient + (1 - ambient) * lit_donor)
 
-
-def apply_gain(rgb: np.ndarray, gain: np.ndarray) -> np.ndarray:
-    """8-bit sRGB-like colours (..., 3) (gamma 2.2, as the renders) scaled by gain (...) in linear light."""
-    lin = (rgb.astype(np.float32) / 255.0) ** 2.2 * gain[..., None].astype(np.float32)
-    return np.round(255.0 * np.clip(lin, 0.0, 1.0) ** (1 / 2.2)).astype(np.uint8)

@@ -7,9 +7,10 @@ import trimesh
 
 from panoworld.background_layer import build_background_layer
 from panoworld.conventions import points_from_depth
-from panoworld.fill_shadows import LIGHT_DROP_M, apply_gain, ceiling_lights, shadow_gain
+from panoworld.fill_shadows import LIGHT_DROP_M, ceiling_lights, shadow_gain
 from panoworld.mesh import erp_mesh_from_depth
 from panoworld.raycast import Raycaster
+from panoworld.rig_shadow import apply_gain
 
 H, W = 96, 192
 FLOOR, CEILING = 1.2, -1.6
