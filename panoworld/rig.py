@@ -30,7 +30,14 @@ from panoworld.rig_shadow import (
     linear_luminance,
     shadow_gain,
 )
-from panoworld.rig_shape import MIN_LEG_WIDTH_DEG, azimuth_occupancy, horizontal_surface, leg_arms, without_floor_lines
+from panoworld.rig_shape import (
+    MIN_LEG_WIDTH_DEG,
+    azimuth_occupancy,
+    horizontal_surface,
+    leg_arms,
+    opened,
+    without_floor_lines,
+)
 
 CAP_DEG = 30.0
 """Largest rig: candidates must lie within this angle of the nadir (a tripod's feet reach 15-25 degrees)."""
@@ -342,9 +349,9 @@ def _not_rig_by_depth(nf: NadirFace, floor_m: float | None) -> tuple[np.ndarray,
         return None
     drop = nf.depth * np.cos(np.deg2rad(nf.theta))
     on = nf.valid & (np.abs(drop - floor_m) < 0.05 * floor_m)
-    far = (nf.valid & ~on & (drop > RIG_DROP_MAX * floor_m)).astype(np.uint8)
+    far = nf.valid & ~on & (drop > RIG_DROP_MAX * floor_m)
     k = 2 * int(np.ceil(0.5 * nf.view.focal * np.deg2rad(SURFACE_DEG))) + 1  # a leg's foot is far too, but thin
-    return cv2.morphologyEx(far, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0, on
+    return opened(far, k), on
 
 
 SECOND_LOOK = "walls, furniture and floor lines left out by depth"
@@ -375,8 +382,7 @@ def _nadir_component(face: np.ndarray, theta: np.ndarray, ring_floor: np.ndarray
     if not_rig is not None:
         far, on = not_rig
         k = 2 * int(np.ceil(0.5 * view.focal * np.deg2rad(FLOOR_LINE_DEG))) + 1
-        wide = cv2.morphologyEx((anom & on).astype(np.uint8), cv2.MORPH_OPEN,
-                                cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
+        wide = opened(anom & on, k)
         anom = anom & ~far & (~on | wide)
     anom = cv2.morphologyEx(anom.astype(np.uint8), cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3)))
     _, labels = cv2.connectedComponents(anom, connectivity=8)

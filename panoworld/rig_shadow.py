@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from panoworld.rig_shape import FLOOR_LINE_MAX_DEG, thin_kernel
+from panoworld.rig_shape import FLOOR_LINE_MAX_DEG, opened, thin_kernel
 
 KNOT_DEG = 3.0
 """Spacing (degrees from the nadir) of the knots of the shadow's piecewise-linear radial log-profile."""
@@ -203,7 +203,7 @@ def cast_shadows(lab: np.ndarray, obj: np.ndarray, theta: np.ndarray, focal: flo
     dark = ((L < CAST_RATIO * local_lightness(L)) & (theta < cap_deg)).astype(np.uint8)
     k = thin_kernel(focal, FLOOR_LINE_MAX_DEG)
     if k > 1:
-        dark = cv2.morphologyEx(dark, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+        dark = opened(dark, k).astype(np.uint8)
     _, labels = cv2.connectedComponents(dark | obj.astype(np.uint8), connectivity=8)
     keep = np.unique(labels[obj])
     return np.isin(labels, keep[keep > 0]) & (dark > 0)

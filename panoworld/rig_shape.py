@@ -64,6 +64,11 @@ def horizontal_surface(theta, fd, fv, floor_m) -> float | None:
     return med if TABLE_MIN_GAP_M <= med < 0.95 * floor_m else None
 
 
+def opened(mask: np.ndarray, k: int) -> np.ndarray:
+    """mask (S, S) less its parts narrower than k face pixels: a morphological opening by a k x k ellipse (bool)."""
+    return cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
+
+
 def thin_kernel(focal: float, deg: float) -> int:
     """The odd kernel (face pixels) of an opening that removes lines narrower than deg (1: none at this resolution)."""
     return 2 * int(round(0.5 * focal * np.deg2rad(deg))) + 1
@@ -75,8 +80,7 @@ def without_floor_lines(obj: np.ndarray, on_floor: np.ndarray, focal: float) -> 
     k = thin_kernel(focal, FLOOR_LINE_MAX_DEG)
     if k <= 1:
         return obj
-    flat = (obj & on_floor).astype(np.uint8)
-    wide = cv2.morphologyEx(flat, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
+    wide = opened(obj & on_floor, k)
     out = obj & (~on_floor | wide)
     n, labels, st, _ = cv2.connectedComponentsWithStats(out.astype(np.uint8), connectivity=8)
     if n <= 2:
