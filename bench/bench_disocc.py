@@ -2,8 +2,10 @@
 (e.g. kept by `bench_roam.py --out DIR`), and each part's ceiling with the true content in the video's holes.
 
 Per bucket, the pixels the capture point does not see (roam.source_seen) are split by ground-truth surface (floor,
-walls, ceiling, object side / top / underside: roam.unseen_parts) and by geometry (the render's depth within 10 % of
-the true depth, or not): area (share of the view), PSNR and share of the view's squared error.
+walls, ceiling, object side / top / underside: roam.unseen_parts), by room (the capture point's room or another: the
+next room through a doorway) and by geometry (the render's depth within 10 % of the true depth, or not): area (share
+of the view), PSNR, share of the view's squared error, the mean render - reference and the mean render / reference
+colours (RGB levels).
 `--oracle rgb,depth`: the video's hole pixels (conditions mask 0) are replaced by the ground truth (one exact ray
 per pixel centre) - `rgb`: colour only, `depth`: depth only, `rgb,depth`: both - and the Gaussians refused from that
 video with the scene's poses: what a perfect fill of that kind would give. Tune on VALIDATION seeds (1 2 3) only.
@@ -119,6 +121,21 @@ def save_png(path: Path, img: np.ndarray, ref: np.ndarray, seen: np.ndarray, par
     cv2.imwrite(str(path), np.ascontiguousarray(grid[..., ::-1]))
 
 
+def pixel_rooms(gt, pose: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(H, W) int of the ground-truth surface's room at each pixel centre of an ERP view at canonical pose (-1: none)."""
+    hits = gt.scene.raycaster.render_erp(gt.world_from_canonical @ np.asarray(pose, np.float64), height, width)
+    face = hits.face.reshape(-1)
+    room = np.array([n.room for n in gt.scene.nodes])
+    return np.where(face >= 0, room[gt.scene.face_node[np.maximum(face, 0)]], -1).reshape(height, width)
+
+
+def capture_room(gt) -> int:
+    """The room of the floor under the capture point (the source view's bottom row)."""
+    r = pixel_rooms(gt, np.eye(4), 16, 32)[-1]
+    vals = r[r >= 0]
+    return int(np.bincount(vals).argmax()) if len(vals) else -1
+
+
 def diagnose(scene: Path, ply: Path, views: int, height: int, buckets: list[str], cache: dict,
              png: Path | None = None) -> dict:
     """Per bucket: PSNR of the view, of its seen and unseen parts, and per unseen part (surface class, geometry)."""
@@ -130,14 +147,16 @@ def diagnose(scene: Path, ply: Path, views: int, height: int, buckets: list[str]
     gt = open_ground_truth(scene)
     roam = sample_roam_poses(load_navmesh(scene / ARTIFACTS / "navmesh"), views, seed=0)
     W = 2 * height
+    home = capture_room(gt)
     rows = {}
     for key in buckets:
         acc: dict[str, list] = {}
         for k, pose in enumerate(roam.poses.get(key, [])):
             if (key, k) not in cache:
                 ref, ref_d = gt.render(pose, height, W)
-                cache[key, k] = ref, ref_d, source_seen(gt, pose, height, W), unseen_parts(gt, pose, height, W)
-            ref, ref_d, seen, part = cache[key, k]
+                cache[key, k] = (ref, ref_d, source_seen(gt, pose, height, W), unseen_parts(gt, pose, height, W),
+                                 pixel_rooms(gt, pose, height, W))
+            ref, ref_d, seen, part, room = cache[key, k]
             r = render_erp(g, pose, height, W)
             img = (r.rgb.clamp(0, 1).numpy() * 255.0).round().astype(np.uint8)
             diff = img.astype(np.float64) - ref
@@ -150,25 +169,31 @@ def diagnose(scene: Path, ply: Path, views: int, height: int, buckets: list[str]
             groups = {"all": np.ones_like(seen), "seen": seen, "unseen": ~seen,
                       "unseen, depth right": ~seen & depth_ok, "unseen, depth wrong": ~seen & ~depth_ok}
             groups.update({f"unseen {name}": ~seen & (part == i) for i, name in enumerate(UNSEEN_PARTS)})
+            for where, in_room in (("this room", room == home), ("next room", (room >= 0) & (room != home))):
+                groups[f"unseen, {where}"] = ~seen & in_room
+                groups.update({f"unseen, {where}: {name}": ~seen & in_room & (part == i)
+                               for i, name in enumerate(UNSEEN_PARTS)})
             for name, m in groups.items():
                 acc.setdefault(name, []).append((float(err[m].sum()), int(m.sum()), err.size, float(err.sum()),
-                                                 diff[m].sum(0)))
+                                                 diff[m].sum(0), ref[m].sum(0)))
         rows[key] = {}
         for name, vals in acc.items():
-            se, n, npx, tot, dsum = (sum(v[i] for v in vals) for i in range(5))
+            se, n, npx, tot, dsum, rsum = (sum(v[i] for v in vals) for i in range(6))
             bias = dsum / max(n, 1)  # mean render - reference per channel (levels)
             flat = se - n * float((bias**2).mean())  # the same pixels with that constant offset removed
             rows[key][name] = {"area": n / npx, "error_share": se / max(tot, 1e-12),
                                "psnr": 10 * np.log10(255.0**2 / (se / n)) if n and se > 0 else None,
                                "bias": float(bias.mean()),
+                               "render_rgb": [float(x) for x in (rsum + dsum) / max(n, 1)],
+                               "ref_rgb": [float(x) for x in rsum / max(n, 1)],
                                "psnr_unbiased": 10 * np.log10(255.0**2 / (flat / n)) if n and flat > 0 else None}
     return rows
 
 
 def print_rows(title: str, rows: dict) -> None:
     print(f"\n{title}")
-    print("| bucket | part | area % | PSNR dB | error share % | render - ref (levels) | PSNR, offset removed |\n"
-          "|---|---|---|---|---|---|---|")
+    print("| bucket | part | area % | PSNR dB | error share % | render - ref (levels) | PSNR, offset removed | "
+          "render / ref RGB |\n|---|---|---|---|---|---|---|---|")
     for key, parts in rows.items():
         for name, r in parts.items():
             if r["area"] < 1e-4 and name not in ("all", "seen", "unseen"):
@@ -176,7 +201,7 @@ def print_rows(title: str, rows: dict) -> None:
             p = "n/a" if r["psnr"] is None else f"{r['psnr']:.2f}"
             pu = "n/a" if r["psnr_unbiased"] is None else f"{r['psnr_unbiased']:.2f}"
             print(f"| {key} | {name} | {100 * r['area']:.2f} | {p} | {100 * r['error_share']:.1f} | {r['bias']:+.1f} | "
-                  f"{pu} |")
+                  f"{pu} | {'/'.join(f'{x:.0f}' for x in r['render_rgb'])} vs {'/'.join(f'{x:.0f}' for x in r['ref_rgb'])} |")
 
 
 def main() -> int:

@@ -176,6 +176,7 @@ def build_background_layer(
     wall_layout: bool = False,
     shadow_ambient: float = 1.0,
     plane_colors: bool = False,
+    next_room_colors: bool = False,
 ) -> BackgroundLayer:
     """Extend the far side of every depth discontinuity of the source view behind its foreground occluder, and
     (side_depth_m > 0) the occluder's own surface back from its silhouette (occluder_sides).
@@ -198,7 +199,8 @@ def build_background_layer(
     (side_depth_m > 0) come last among the layer faces. plane_colors: layer points on the floor plane beyond the
     room's shell (the next room through a doorway) take the colour of a top-down map of the floor seen beyond it
     (panoworld.plane_colors, before any relighting), and the layer keeps the map for the frames' 2D-filled pixels
-    (WarpInpainter).
+    (WarpInpainter). next_room_colors: likewise, points beyond the shell on the ceiling plane take the colour of the
+    ceiling seen beyond it, those between the floor and the ceiling the colour of the next room's walls seen.
     """
     h, w = erp_grid_shape(mesh)
     n = h * w
@@ -263,10 +265,11 @@ def build_background_layer(
     faces = faces[_stretch(vertices.astype(np.float64), faces) <= max_edge_ratio]
     colors = np.concatenate([mesh.colors, bg_color.reshape(-1, 3)[s_flat]])
     floor_map = None
-    if plane_colors:
+    if plane_colors or next_room_colors:
         from panoworld.plane_colors import floor_beyond
 
-        floor_map = floor_beyond(p.reshape(h, w, 3), mesh.colors[:n].reshape(h, w, 3), valid)
+        floor_map = floor_beyond(p.reshape(h, w, 3), mesh.colors[:n].reshape(h, w, 3), valid, floor=plane_colors,
+                                 walls_ceiling=next_room_colors)
         if floor_map is not None:
             colors[len(mesh.vertices):] = floor_map.paint(vertices[len(mesh.vertices):].astype(np.float64),
                                                        colors[len(mesh.vertices):])[0]

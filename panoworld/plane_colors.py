@@ -1,4 +1,5 @@
-"""A top-down colour map of the floor seen beyond the room's walls (the next room through a doorway), holes filled."""
+"""The next room's colours as the doorway shows them: a top-down map of the floor seen beyond the room's walls, and
+the colour of the walls and the ceiling seen beyond them."""
 
 from __future__ import annotations
 
@@ -20,6 +21,11 @@ MAX_EXTENT_M = 30.0
 """The map spans the visible floor's points clipped to this many metres around the capture point."""
 MIN_CELLS = 20
 """Fewer floor cells seen beyond the room's shell: no map (nothing recoloured)."""
+MIN_PIXELS = 40
+"""Fewer wall (ceiling) pixels seen beyond the room's shell: no colour for the next room's walls (ceiling): its
+hidden points keep theirs."""
+LAMP_LUMA = 245
+"""Pixels this bright (8-bit luma) are lamps, not the surface's colour."""
 
 
 def push_pull(col: np.ndarray, known: np.ndarray) -> np.ndarray:
@@ -47,46 +53,98 @@ def beyond_shell(walls: WallColumns, pts: np.ndarray) -> np.ndarray:
 
 @dataclass
 class FloorBeyond:
-    """The colour map of the floor (height y) beyond the room's shell: cell (i, j) covers x in x0 + j * CELL_M, z in
-    z0 + i * CELL_M; weight: the map's share of a point's colour there (REACH_M)."""
+    """The next room's colours beyond the room's shell (walls): the colour map of the floor (height y; cell (i, j)
+    covers x in x0 + j * CELL_M, z in z0 + i * CELL_M; weight: the map's share of a point's colour there, REACH_M;
+    color None: the floor is left alone), and one colour (3,) for its walls and one for its ceiling (height
+    `ceiling`; None: left alone)."""
 
     y: float
     x0: float
     z0: float
-    color: np.ndarray  # (n, m, 3) float32
-    weight: np.ndarray  # (n, m) float32
+    color: np.ndarray | None  # (n, m, 3) float32
+    weight: np.ndarray | None  # (n, m) float32
     walls: WallColumns
+    ceiling: float = 0.0
+    wall_rgb: np.ndarray | None = None
+    ceiling_rgb: np.ndarray | None = None
 
     def paint(self, pts: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """rgb (N, 3) of points pts (N, 3, canonical frame) with those on the floor beyond the room's shell blended
-        towards the map; returns (rgb uint8, which points were changed)."""
+        """rgb (N, 3) of points pts (N, 3, canonical frame) with those beyond the room's shell recoloured: on the floor
+        plane blended towards the map, on the ceiling plane the ceiling's colour, between them the walls' colour;
+        returns (rgb uint8, which points were changed)."""
         out = np.asarray(rgb, np.float32).copy()
-        on = np.abs(pts[:, 1] - self.y) < PLANE_TOL * abs(self.y)
-        on[on] = beyond_shell(self.walls, pts[on])
-        n, m = self.weight.shape
-        j = np.clip(((pts[on, 0] - self.x0) / CELL_M).astype(np.int64), 0, m - 1)
-        i = np.clip(((pts[on, 2] - self.z0) / CELL_M).astype(np.int64), 0, n - 1)
-        a = self.weight[i, j][:, None]
-        out[on] = a * self.color[i, j] + (1 - a) * out[on]
-        return np.clip(np.rint(out), 0, 255).astype(np.uint8), on
+        y = pts[:, 1]
+        floor = np.abs(y - self.y) < PLANE_TOL * abs(self.y)
+        ceil = np.abs(y - self.ceiling) < PLANE_TOL * abs(self.ceiling)
+        wall = ~floor & ~ceil & (y > self.ceiling) & (y < self.y)
+        todo = (floor & (self.color is not None)) | (ceil & (self.ceiling_rgb is not None)) | (
+            wall & (self.wall_rgb is not None))
+        todo[todo] = beyond_shell(self.walls, pts[todo])
+        on = todo & floor
+        if self.color is not None and on.any():
+            n, m = self.weight.shape
+            j = np.clip(((pts[on, 0] - self.x0) / CELL_M).astype(np.int64), 0, m - 1)
+            i = np.clip(((pts[on, 2] - self.z0) / CELL_M).astype(np.int64), 0, n - 1)
+            a = self.weight[i, j][:, None]
+            out[on] = a * self.color[i, j] + (1 - a) * out[on]
+        for part, col in ((ceil, self.ceiling_rgb), (wall, self.wall_rgb)):
+            if col is not None:
+                out[todo & part] = col
+        return np.clip(np.rint(out), 0, 255).astype(np.uint8), todo
 
 
-def floor_beyond(points: np.ndarray, rgb: np.ndarray, valid: np.ndarray) -> FloorBeyond | None:
-    """The FloorBeyond map of the source view's grid points (h, w, 3), colours (h, w, 3) and valid (h, w): its floor
-    and ceiling planes (panoworld.depth_complete.fit_planes), the room's shell with a doorway's lintel as the wall
-    (panoworld.layout_columns.wall_columns, nearest junction) and the floor pixels seen beyond it (less one pixel at
-    their edges, which mix the floor and what borders it); None without both planes or without such floor."""
+def _seen_beyond(walls: WallColumns, points: np.ndarray, on: np.ndarray) -> np.ndarray:
+    """The on (h, w) pixels less one pixel at their edges (which mix with what borders them) beyond the room's shell."""
+    on = on & (cv2.erode(on.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)
+    on[on] = beyond_shell(walls, points[on].astype(np.float64))
+    return on
+
+
+def _median_beyond(walls: WallColumns, points: np.ndarray, rgb: np.ndarray, on: np.ndarray) -> np.ndarray | None:
+    """Median colour (3,) of the on (h, w) pixels seen beyond the room's shell (_seen_beyond), lamps left out; None
+    when fewer than MIN_PIXELS."""
+    on = _seen_beyond(walls, points, on & (rgb.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
+                                           < LAMP_LUMA))
+    return np.median(rgb[on], axis=0).astype(np.float32) if on.sum() >= MIN_PIXELS else None
+
+
+def floor_beyond(points: np.ndarray, rgb: np.ndarray, valid: np.ndarray, *, floor: bool = True,
+                 walls_ceiling: bool = False) -> FloorBeyond | None:
+    """The FloorBeyond colours of the source view's grid points (h, w, 3), colours (h, w, 3) and valid (h, w): its
+    floor and ceiling planes (panoworld.depth_complete.fit_planes), the room's shell with a doorway's lintel as the
+    wall (panoworld.layout_columns.wall_columns, nearest junction) and the pixels seen beyond it. floor: the map of
+    the floor pixels there (less one pixel at their edges, which mix the floor and what borders it); walls_ceiling:
+    the median colour of the ceiling pixels there and of the walls' (upright pixels on the wall the farthest
+    junction of their column finds: the next room's wall seen through the doorway, not the furniture in front of
+    it; _median_beyond). None without both planes or with nothing to paint."""
     from panoworld.depth_complete import fit_planes
-    from panoworld.layout_columns import wall_columns
+    from panoworld.layout_columns import WALL_TOL, wall_columns
 
     depth = np.linalg.norm(points, axis=-1)
     floor_m, ceiling_m = fit_planes(depth, valid)
     if floor_m is None or ceiling_m is None:
         return None
     walls = wall_columns(points, valid, floor_m, -ceiling_m, nearest=True)
-    on = valid & (np.abs(points[..., 1] - floor_m) < PLANE_TOL * floor_m)
-    on &= cv2.erode(on.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    on[on] = beyond_shell(walls, points[on].astype(np.float64))
+    wall_rgb = ceiling_rgb = None
+    y = points[..., 1]
+    if walls_ceiling:
+        far = wall_columns(points, valid, floor_m, -ceiling_m).dist
+        rho = np.hypot(points[..., 0], points[..., 2])
+        upright = valid & (y > -ceiling_m * (1 - PLANE_TOL)) & (y < floor_m * (1 - PLANE_TOL))
+        upright &= np.abs(rho - far[None]) < WALL_TOL * np.nan_to_num(far, nan=-1.0)[None]
+        wall_rgb = _median_beyond(walls, points, rgb, upright)
+        ceiling_rgb = _median_beyond(walls, points, rgb, valid & (np.abs(y + ceiling_m) < PLANE_TOL * ceiling_m))
+    fm = _floor_map(walls, points, rgb, valid) if floor else None
+    if fm is None and wall_rgb is None and ceiling_rgb is None:
+        return None
+    x0, z0, color, weight = fm if fm is not None else (0.0, 0.0, None, None)
+    return FloorBeyond(floor_m, x0, z0, color, weight, walls, -ceiling_m, wall_rgb, ceiling_rgb)
+
+
+def _floor_map(walls: WallColumns, points: np.ndarray, rgb: np.ndarray, valid: np.ndarray
+               ) -> tuple[float, float, np.ndarray, np.ndarray] | None:
+    """FloorBeyond's floor map (x0, z0, color, weight) from the floor pixels seen beyond the shell; None if too few."""
+    on = _seen_beyond(walls, points, valid & (np.abs(points[..., 1] - walls.floor) < PLANE_TOL * walls.floor))
     if on.sum() < MIN_CELLS:
         return None
     xz = np.clip(points[on][:, [0, 2]].astype(np.float64), -MAX_EXTENT_M, MAX_EXTENT_M)
@@ -101,5 +159,4 @@ def floor_beyond(points: np.ndarray, rgb: np.ndarray, valid: np.ndarray) -> Floo
         return None
     fill = push_pull((col.reshape(*shape, 3) / np.maximum(cnt, 1)[..., None]).astype(np.float32), known)
     dist = cv2.distanceTransform((~known).astype(np.uint8), cv2.DIST_L2, 5) * CELL_M
-    return FloorBeyond(floor_m, float(lo[0]), float(lo[1]), fill, (0.5 ** ((dist / REACH_M) ** 2)).astype(np.float32),
-                       walls)
+    return float(lo[0]), float(lo[1]), fill, (0.5 ** ((dist / REACH_M) ** 2)).astype(np.float32)

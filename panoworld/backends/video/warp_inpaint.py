@@ -51,6 +51,10 @@ class WarpOptions:
     """Hidden points on the floor plane beyond the room's walls (the next room through a doorway) take their colour
     from a top-down map of the floor seen beyond them (panoworld.plane_colors: push-pull filled, blending back into
     the inpainted colour far from any floor seen), not from the source pixels at the doorway's edge; false = off."""
+    next_room_colors: bool = False
+    """Hidden points beyond the room's walls on the ceiling plane take the median colour of the ceiling seen beyond
+    them, those between the floor and the ceiling the median colour of the next room's walls seen through the
+    doorway (panoworld.plane_colors), not the doorway edge's colour; where none is seen they keep theirs; false = off."""
     depth_fill: bool = True
     """Without reuse: holes the background layer does not fill take the depth and colour of their farther side
     (panoworld.inpaint.background_fill), so the Gaussians stage places them; false = a colour-only 2D fill (no depth:
@@ -75,7 +79,7 @@ def fill(job) -> tuple:
                     side_depth_m=job.options.side_depth_m, edge_depth_ratio=job.options.edge_depth_ratio,
                     layout_planes=job.options.layout_planes, color_sigma_px=job.options.color_sigma_px,
                     wall_layout=job.options.wall_layout, shadow_ambient=job.options.shadow_ambient,
-                    plane_colors=job.options.plane_colors)
+                    plane_colors=job.options.plane_colors, next_room_colors=job.options.next_room_colors)
         sources = read_home_sources(mesh_dir)
         if sources is not None:  # a home: one layer per source panorama (panoworld/home/inpaint.py)
             layer = home_background_layer(mesh, sources, job.poses, **opts)
