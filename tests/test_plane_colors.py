@@ -1,4 +1,5 @@
-"""The floor seen beyond the room's walls as a top-down map: the next room's hidden floor takes the doorway's view of it."""
+"""The next room seen through a doorway: its hidden floor takes the top-down map of the floor the doorway shows, its
+hidden walls and ceiling the colour of the walls and the ceiling the doorway shows."""
 
 from __future__ import annotations
 
@@ -14,11 +15,13 @@ from panoworld.raycast import Raycaster
 
 torch.set_num_threads(1)
 H, W = 128, 256
-FLOOR, CEILING, DOOR_TOP = 1.2, -1.6, -0.8
+FLOOR, CEILING, DOOR_TOP = 1.2, -1.6, -1.2
 WALL_Z = (2.0, 2.15)  # the wall between the rooms, a doorway in it at |x| < DOOR_X under DOOR_TOP
 DOOR_X = 0.45
 FLOOR_A, FLOOR_B = (200, 180, 120), (60, 90, 200)  # the source room's floor, the next room's
 WALL_RGB, FRAME_RGB, CEIL_RGB = (150, 200, 150), (240, 60, 60), (230, 230, 240)
+WALL_B, CEIL_B, POSTER = (235, 215, 170), (120, 160, 140), (40, 60, 220)  # the next room's walls, ceiling, and
+POSTER_X, POSTER_Y = (0.75, 1.3), (-1.0, 0.6)  # posters on its far wall at the edges of what the doorway shows
 
 
 def colour(p: np.ndarray) -> np.ndarray:
@@ -27,7 +30,11 @@ def colour(p: np.ndarray) -> np.ndarray:
     floor = np.abs(y - FLOOR) < 1e-3
     out[floor & (z < WALL_Z[0])] = FLOOR_A
     out[floor & (z >= WALL_Z[0])] = FLOOR_B
+    out[(z > WALL_Z[1] + 1e-3) & ~floor] = WALL_B
+    ax = np.abs(p[..., 0])
+    out[(z > 5.0 - 1e-3) & (ax > POSTER_X[0]) & (ax < POSTER_X[1]) & (y > POSTER_Y[0]) & (y < POSTER_Y[1])] = POSTER
     out[np.abs(y - CEILING) < 1e-3] = CEIL_RGB
+    out[(np.abs(y - CEILING) < 1e-3) & (z > WALL_Z[1] + 1e-3)] = CEIL_B
     frame = (z > WALL_Z[0] - 1e-3) & (z < WALL_Z[1] + 1e-3) & ~floor & (np.abs(y - CEILING) > 1e-3)
     out[frame] = FRAME_RGB  # the divider's faces, the doorway's jambs and lintel: a colour found nowhere else
     return out.astype(np.uint8)
@@ -49,7 +56,9 @@ def layers():
     d, room_d = scene()
     rgb = colour(points_from_depth(d, np.eye(4)))
     mesh = erp_mesh_from_depth(d.astype(np.float32), rgb)
-    return mesh, d, room_d, {on: build_background_layer(mesh, 1.5, plane_colors=on) for on in (False, True)}
+    layers = {on: build_background_layer(mesh, 1.5, plane_colors=on) for on in (False, True)}
+    layers["walls"] = build_background_layer(mesh, 1.5, plane_colors=True, next_room_colors=True)
+    return mesh, d, room_d, layers
 
 
 def layer_rgb(mesh, layer: BackgroundLayer) -> np.ndarray:
@@ -89,3 +98,27 @@ def test_the_map_paints_only_the_floor_beyond_the_room(layers):
     assert (rgb[3:] == 7).all()
     # far from any floor seen (a corner the doorway does not show), partly the colour it had
     assert np.abs(rgb[2].astype(int) - FLOOR_B).max() > np.abs(rgb[1].astype(int) - FLOOR_B).max()
+
+
+def test_hidden_next_room_walls_and_ceiling_take_the_colours_seen_through_the_doorway(layers):
+    mesh, _, _, layer = layers
+    n0 = len(mesh.vertices)
+    k = int(layer[True].synthesized.sum())
+    assert int(layer["walls"].synthesized.sum()) == k  # the same layer points, recoloured
+    pts = layer[True].vertices[n0:n0 + k].astype(np.float64)
+    # layer points on the next room's far wall (the plane z = 5 continued behind the divider) and ceiling, hidden
+    far_wall = (np.abs(pts[:, 2] - 5.0) < 0.05) & (pts[:, 1] > CEILING + 0.1) & (pts[:, 1] < FLOOR - 0.1)
+    hidden = np.abs(pts[:, 0]) > DOOR_X * 5.0 / WALL_Z[0] + 0.2  # beyond what the doorway shows of that wall
+    ceiling = (np.abs(pts[:, 1] - CEILING) < 0.02) & (pts[:, 2] > WALL_Z[1] + 0.2)
+    assert (far_wall & hidden).sum() > 50 and ceiling.sum() > 20
+    fm = layer["walls"].floor_map
+    assert np.abs(fm.wall_rgb - WALL_B).max() < 6 and np.abs(fm.ceiling_rgb - CEIL_B).max() < 6
+    for part, truth in ((far_wall & hidden, WALL_B), (ceiling, CEIL_B)):
+        err = {v: np.abs(layer[v].colors[n0:n0 + k][part].astype(int) - truth).max(axis=1) for v in (True, "walls")}
+        assert np.quantile(err["walls"], 0.9) < 8 and err["walls"].mean() < err[True].mean()
+        if truth == WALL_B:  # the default inpaints the posters at the doorway's edges over the hidden wall
+            assert np.mean(err[True] > 30) > 0.5
+    # only points beyond the room's shell change, none on the floor (the floor map's)
+    changed = (layer["walls"].colors[n0:n0 + k] != layer[True].colors[n0:n0 + k]).any(axis=1)
+    assert changed.sum() > 100 and (pts[changed, 2] > WALL_Z[0]).all()
+    assert not (changed & (np.abs(pts[:, 1] - FLOOR) < 0.02)).any()
