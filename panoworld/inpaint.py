@@ -32,10 +32,6 @@ class FilledFrame:
     filled_2d: np.ndarray  # (H, W) bool: hole pixels filled by the 2D last resort
 
 
-BACK_COS = 0.1
-"""_paint_wall_backs: a surface is seen from behind when the cosine between its normal (towards the source) and the
-direction to the camera is below minus this (not grazing)."""
-
 FOREGROUND_RATIO = 0.85
 """background_fill: a pixel nearer than this fraction of the background depth around a hole is foreground."""
 
@@ -149,7 +145,6 @@ class WarpInpainter:
         self._rc = layer.raycaster() if len(layer.faces) else None
         self._colors = layer.colors.astype(np.float32)
         self.committed = CommittedPoints() if reuse else None
-        self._src_normals: np.ndarray | None = None  # (h, w, 3) the source grid's normals, for _paint_wall_backs
 
     def fill(self, rgb: np.ndarray, mask: np.ndarray, depth: np.ndarray | None, world_from_cam: np.ndarray) -> FilledFrame:
         """rgb (H, W, 3) uint8, mask (H, W) bool (True = valid condition), depth (H, W) metres or None, pose 4x4."""
@@ -196,43 +191,7 @@ class WarpInpainter:
                 self._paint_planes(out, out_d, rest, world_from_cam)
         elif rest.any() and not rest.all():
             out = erp_inpaint(out, rest, radius=self.inpaint_radius)
-        fm = self.layer.floor_map
-        if fm is not None and fm.wall_rgb is not None and depth is not None:
-            self._paint_wall_backs(out, np.where(mask, depth, 0.0), world_from_cam)
         return FilledFrame(out, out_d, filled, rest)
-
-    def _paint_wall_backs(self, out: np.ndarray, depth: np.ndarray, world_from_cam: np.ndarray) -> None:
-        """From a camera beyond the room's shell (in the next room), the pixels of out (H, W, 3) that see the room's
-        walls from behind (depth (H, W) > 0 on the shell, the source surface's normal facing away from the camera)
-        show the wall's other side: they take the next room's wall colour (in place)."""
-        from panoworld.background_layer import _surface_normals
-        from panoworld.layout_columns import PLANE_TOL, ROOM_TOL, shell_along
-        from panoworld.plane_colors import beyond_shell
-
-        fm = self.layer.floor_map
-        pose = np.asarray(world_from_cam, np.float64)
-        o = pose[:3, 3]
-        if not beyond_shell(fm.walls, o[None])[0]:
-            return
-        if self._src_normals is None:
-            h, w = self.layer.synthesized.shape
-            grid = self.layer.vertices[:h * w].astype(np.float64).reshape(h, w, 3)
-            n = _surface_normals(grid)
-            self._src_normals = n * -np.sign((n * grid).sum(-1, keepdims=True) + 1e-12)  # towards the source
-        h, w = self._src_normals.shape[:2]
-        H, W = depth.shape
-        ii, jj = np.nonzero(depth > 0)
-        p = o + (erp_dir_at(jj + 0.5, ii + 0.5, H, W) @ pose[:3, :3].T) * depth[ii, jj, None]
-        y = p[:, 1]
-        ok = (y > fm.ceiling * (1 - PLANE_TOL)) & (y < fm.y * (1 - PLANE_TOL))
-        r = np.linalg.norm(p[ok], axis=1)
-        ok[ok] = r > (2 - ROOM_TOL) * shell_along(fm.walls, p[ok] / r[:, None])  # on the shell, not in front of it
-        u, v = erp_pixel_from_dir(p[ok] / np.linalg.norm(p[ok], axis=1, keepdims=True), h, w)
-        n = self._src_normals[np.clip(v.astype(np.int64), 0, h - 1), np.mod(u.astype(np.int64), w)]
-        to_cam = o - p[ok]
-        back = (n * to_cam).sum(1) < -BACK_COS * np.linalg.norm(to_cam, axis=1)
-        ok[ok] = back
-        out[ii[ok], jj[ok]] = np.clip(np.rint(fm.wall_rgb), 0, 255).astype(np.uint8)
 
 
     def _paint_planes(self, out: np.ndarray, out_d: np.ndarray, rest: np.ndarray, world_from_cam: np.ndarray) -> None:
