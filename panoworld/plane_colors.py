@@ -24,6 +24,9 @@ MIN_CELLS = 20
 MIN_PIXELS = 40
 """Fewer wall (ceiling) pixels seen beyond the room's shell: no colour for the next room's walls (ceiling): its
 hidden points keep theirs."""
+NEXT_CEILING = False
+"""walls_ceiling: the next room's hidden ceiling takes the colour of the ceiling seen beyond the shell too (validation
+seeds 6 / 4 ~2 m: -0.06 / -0.62 dB with it and the walls' colour, vs the floor map alone; see docs/evaluation.md)."""
 LAMP_LUMA = 245
 """Pixels this bright (8-bit luma) are lamps, not the surface's colour."""
 
@@ -133,7 +136,8 @@ def floor_beyond(points: np.ndarray, rgb: np.ndarray, valid: np.ndarray, *, floo
         upright = valid & (y > -ceiling_m * (1 - PLANE_TOL)) & (y < floor_m * (1 - PLANE_TOL))
         upright &= np.abs(rho - far[None]) < WALL_TOL * np.nan_to_num(far, nan=-1.0)[None]
         wall_rgb = _median_beyond(walls, points, rgb, upright)
-        ceiling_rgb = _median_beyond(walls, points, rgb, valid & (np.abs(y + ceiling_m) < PLANE_TOL * ceiling_m))
+        ceiling_rgb = _median_beyond(walls, points, rgb, valid & (np.abs(y + ceiling_m) < PLANE_TOL * ceiling_m)
+                                     ) if NEXT_CEILING else None
     fm = _floor_map(walls, points, rgb, valid) if floor else None
     if fm is None and wall_rgb is None and ceiling_rgb is None:
         return None
