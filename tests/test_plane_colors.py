@@ -8,6 +8,7 @@ import pytest
 import torch
 import trimesh
 
+from panoworld import plane_colors
 from panoworld.background_layer import BackgroundLayer, build_background_layer
 from panoworld.conventions import points_from_depth
 from panoworld.mesh import erp_mesh_from_depth
@@ -58,6 +59,9 @@ def layers():
     mesh = erp_mesh_from_depth(d.astype(np.float32), rgb)
     layers = {on: build_background_layer(mesh, 1.5, plane_colors=on) for on in (False, True)}
     layers["walls"] = build_background_layer(mesh, 1.5, plane_colors=True, next_room_colors=True)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(plane_colors, "NEXT_CEILING", True)
+        layers["ceiling"] = build_background_layer(mesh, 1.5, plane_colors=True, next_room_colors=True)
     return mesh, d, room_d, layers
 
 
@@ -111,11 +115,13 @@ def test_hidden_next_room_walls_and_ceiling_take_the_colours_seen_through_the_do
     hidden = np.abs(pts[:, 0]) > DOOR_X * 5.0 / WALL_Z[0] + 0.2  # beyond what the doorway shows of that wall
     ceiling = (np.abs(pts[:, 1] - CEILING) < 0.02) & (pts[:, 2] > WALL_Z[1] + 0.2)
     assert (far_wall & hidden).sum() > 50 and ceiling.sum() > 20
-    fm = layer["walls"].floor_map
+    fm = layer["ceiling"].floor_map
     assert np.abs(fm.wall_rgb - WALL_B).max() < 6 and np.abs(fm.ceiling_rgb - CEIL_B).max() < 6
-    for part, truth in ((far_wall & hidden, WALL_B), (ceiling, CEIL_B)):
-        err = {v: np.abs(layer[v].colors[n0:n0 + k][part].astype(int) - truth).max(axis=1) for v in (True, "walls")}
-        assert np.quantile(err["walls"], 0.9) < 8 and err["walls"].mean() < err[True].mean()
+    assert layer["walls"].floor_map.ceiling_rgb is None  # NEXT_CEILING off: the ceiling keeps its colour
+    assert (layer["walls"].colors[n0:n0 + k][ceiling] == layer[True].colors[n0:n0 + k][ceiling]).all()
+    for part, truth, v in ((far_wall & hidden, WALL_B, "walls"), (ceiling, CEIL_B, "ceiling")):
+        err = {u: np.abs(layer[u].colors[n0:n0 + k][part].astype(int) - truth).max(axis=1) for u in (True, v)}
+        assert np.quantile(err[v], 0.9) < 8 and err[v].mean() < err[True].mean()
         if truth == WALL_B:  # the default inpaints the posters at the doorway's edges over the hidden wall
             assert np.mean(err[True] > 30) > 0.5
     # only points beyond the room's shell change, none on the floor (the floor map's)
