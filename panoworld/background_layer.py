@@ -199,8 +199,8 @@ def build_background_layer(
     (side_depth_m > 0) come last among the layer faces. plane_colors: layer points on the floor plane beyond the
     room's shell (the next room through a doorway) take the colour of a top-down map of the floor seen beyond it
     (panoworld.plane_colors, before any relighting), and the layer keeps the map for the frames' 2D-filled pixels
-    (WarpInpainter). next_room_colors: likewise, points beyond the shell on the ceiling plane take the colour of the
-    ceiling seen beyond it, those between the floor and the ceiling the colour of the next room's walls seen.
+    (WarpInpainter). next_room_colors: likewise, points beyond the shell between the floor and the ceiling take the
+    colour of the next room's walls seen beyond it (and on the ceiling plane the ceiling's, plane_colors.NEXT_CEILING).
     """
     h, w = erp_grid_shape(mesh)
     n = h * w

@@ -52,9 +52,10 @@ class WarpOptions:
     from a top-down map of the floor seen beyond them (panoworld.plane_colors: push-pull filled, blending back into
     the inpainted colour far from any floor seen), not from the source pixels at the doorway's edge; false = off."""
     next_room_colors: bool = False
-    """Hidden points beyond the room's walls on the ceiling plane take the median colour of the ceiling seen beyond
-    them, those between the floor and the ceiling the median colour of the next room's walls seen through the
-    doorway (panoworld.plane_colors), not the doorway edge's colour; where none is seen they keep theirs; false = off."""
+    """Hidden points beyond the room's walls between the floor and the ceiling take the median colour of the next
+    room's walls seen through the doorway (panoworld.plane_colors), not the doorway edge's colour; where none is seen
+    they keep theirs; false = off (validation ~2 m vs plane_colors alone: seed 6 +0.28 dB, seeds 1 / 2 -0.43 / -2.07,
+    seed 4 ~1 m -0.43)."""
     depth_fill: bool = True
     """Without reuse: holes the background layer does not fill take the depth and colour of their farther side
     (panoworld.inpaint.background_fill), so the Gaussians stage places them; false = a colour-only 2D fill (no depth:
