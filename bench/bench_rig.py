@@ -388,7 +388,7 @@ def main(argv: list[str] | None = None) -> int:
                     "the cap with the same removal on the true mask: what the detected mask costs")
     ap.add_argument("--light-oracle", action="store_true", help="also the cap with the true soft-shadow factor "
                     "(none for tripod) instead of the detected one, same mask and fill, and the detected gain over the "
-                    "true one per ring: what the relighting costs")
+                    "true one per ring: what the relighting costs; the floor's light per azimuth sector and ring")
     ap.add_argument("--oracle", type=Path, nargs="?", const=Path(), metavar="PICTURES",
                     help="also fill the true rig mask (the fill's ceiling, its low-frequency / texture split); "
                          "pictures of the downward face (truth | oracle fill | fill) into PICTURES when given")
