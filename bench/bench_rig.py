@@ -180,7 +180,8 @@ def relight_oracle(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.nd
     source = rig.floor_source(apply_gain(nf.face, gain), nf) & ~fmask
     shadow = face_to_erp_mask(gain > 1.0, view, H, W) & ~det.mask
     out = rig.remove_rig(rgb, replace(det, shadow_gain=gain, shadow=shadow, source=source))
-    row = {"psnr_true_light": nadir_cap_psnr(out, clean), "shadow_sectors": det.stats.get("shadow_sectors", "-")}
+    row = {"psnr_true_light": nadir_cap_psnr(out, clean), "shadow_sectors": f"{det.stats.get('shadow_sectors', '-')}, "
+           f"{det.stats.get('shadow_even_sectors', '-')}"}
     det_gain = det.shadow_gain if det.shadow_gain is not None else np.ones_like(gain)
     theta, _ = face_polar(view)
     floor = nf.on_floor & ~fmask
@@ -471,7 +472,7 @@ def main(argv: list[str] | None = None) -> int:
                       + " | ".join(fmt(100 * r[b] if r[b] is not None else None, "+.1f") for b in bands) + " |")
         sect = [f"sectors_{a:.0f}_{b:.0f}" for a, b in zip(SECTOR_BANDS_DEG[:-1], SECTOR_BANDS_DEG[1:])]
         print("\nthe floor's light over the floor-light model in 8 azimuth sectors per ring (deg), min-max (the radial "
-              "profile's; the true factor), and the sector test:\n")
+              "profile's; the true factor), and the sector tests (detection's; the relighting's even sectors):\n")
         print("| seed | case | " + " | ".join(b[8:].replace("_", "-") for b in sect) + " | sectors |\n|---|---|"
               + "---|" * (len(sect) + 1))
         for r in rows:
