@@ -396,8 +396,9 @@ def test_room_shadow_on_one_side_of_the_nadir_is_not_relit_a_shadow_around_it_is
     around = lambda t, p: 1.0 - 0.45 * np.exp(-((t / 14.0) ** 2))
     for seed in (0, 1):
         face, theta, phi, focal = _blotchy_floor(lambda t: np.full_like(t, 0.2), seed=seed, light=edge)
-        _, _, stats = shadow_gain(face, theta < 3.0, np.ones_like(theta, bool), theta, phi, focal)
-        assert 1.0 - stats["shadow_min_light"] >= RELIGHT_MIN_DARKENING and not relights(stats), stats
+        _, extent, stats = shadow_gain(face, theta < 3.0, np.ones_like(theta, bool), theta, phi, focal)
+        assert extent > 0.0 and 1.0 - stats["shadow_min_light"] >= RELIGHT_MIN_DARKENING, stats  # main relit it
+        assert not relights(stats), stats
         face, theta, phi, focal = _blotchy_floor(lambda t: np.full_like(t, 0.2), seed=seed, light=around)
         gain, extent, stats = shadow_gain(face, theta < 3.0, np.ones_like(theta, bool), theta, phi, focal)
         assert relights(stats) and extent > 15.0, stats
