@@ -150,18 +150,22 @@ def mask_split(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarra
 
 LIGHT_BANDS_DEG = (0.0, 5.0, 10.0, 15.0, 20.0, 30.0)
 """Rings (degrees from the nadir) in which relight_oracle compares the detected light factor with the true one."""
+SECTOR_BANDS_DEG = (5.0, 10.0, 15.0, 20.0, 24.0)
+"""Rings (degrees from the nadir) in which relight_oracle reports the floor's light per azimuth sector."""
 
 
 def relight_oracle(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarray, det) -> dict:
     """What the relighting costs: the same removal (detected mask, usual fill) with the generator's true soft-shadow
     factor instead of the detected one (none for tripod: the floor is not relit), `psnr_true_light`; and per ring of
     LIGHT_BANDS_DEG on the floor outside the mask, the detected gain over the true one (`relight_<a>_<b>`, mean of
-    the ratio - 1: > 0 the floor relit too bright, the profile too deep; < 0 too shallow)."""
+    the ratio - 1: > 0 the floor relit too bright, the profile too deep; < 0 too shallow); per ring of
+    SECTOR_BANDS_DEG the floor's light over the floor-light model in 8 azimuth sectors, min-max, next to the radial
+    profile's (`sectors_<a>_<b>`: a shadow around the rig dims every sector alike) and the true factor's."""
     from dataclasses import replace
 
     from panoworld.cube_views import render_view
     from panoworld.rig_face import erp_mask_to_face, face_polar, face_to_erp_mask, nadir_view
-    from panoworld.rig_shadow import apply_gain
+    from panoworld.rig_shadow import apply_gain, floor_light, sector_light
     from panoworld.synth.rig import shadow_gain
 
     H, W = rgb.shape[:2]
@@ -176,13 +180,22 @@ def relight_oracle(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.nd
     source = rig.floor_source(apply_gain(nf.face, gain), nf) & ~fmask
     shadow = face_to_erp_mask(gain > 1.0, view, H, W) & ~det.mask
     out = rig.remove_rig(rgb, replace(det, shadow_gain=gain, shadow=shadow, source=source))
-    row = {"psnr_true_light": nadir_cap_psnr(out, clean)}
+    row = {"psnr_true_light": nadir_cap_psnr(out, clean), "shadow_sectors": f"{det.stats.get('shadow_sectors', '-')}, "
+           f"{det.stats.get('shadow_even_sectors', '-')}"}
     det_gain = det.shadow_gain if det.shadow_gain is not None else np.ones_like(gain)
     theta, _ = face_polar(view)
     floor = nf.on_floor & ~fmask
     for a, b in zip(LIGHT_BANDS_DEG[:-1], LIGHT_BANDS_DEG[1:]):
         sel = floor & (theta >= a) & (theta < b)
         row[f"relight_{a:.0f}_{b:.0f}"] = float(np.mean(det_gain[sel] / gain[sel]) - 1.0) if sel.any() else None
+    fit = floor_light(nf.face, fmask, nf.on_floor & rig._floor_chroma(nf.face, nf.ring_floor), theta, view.focal)
+    if fit is not None:
+        lit = sector_light(fit, theta, nf.phi, SECTOR_BANDS_DEG)
+        for i, (a, b) in enumerate(zip(SECTOR_BANDS_DEG[:-1], SECTOR_BANDS_DEG[1:])):
+            ring = (theta >= a) & (theta < b)
+            prof = float(np.interp(0.5 * (a + b), fit.knots, fit.profile))
+            row[f"sectors_{a:.0f}_{b:.0f}"] = (f"{np.nanmin(lit[i]):.2f}-{np.nanmax(lit[i]):.2f} "
+                                               f"({prof:.2f}; {1 / np.median(gain[ring]):.2f})")
     return row
 
 
@@ -376,7 +389,7 @@ def main(argv: list[str] | None = None) -> int:
                     "the cap with the same removal on the true mask: what the detected mask costs")
     ap.add_argument("--light-oracle", action="store_true", help="also the cap with the true soft-shadow factor "
                     "(none for tripod) instead of the detected one, same mask and fill, and the detected gain over the "
-                    "true one per ring: what the relighting costs")
+                    "true one per ring: what the relighting costs; the floor's light per azimuth sector and ring")
     ap.add_argument("--oracle", type=Path, nargs="?", const=Path(), metavar="PICTURES",
                     help="also fill the true rig mask (the fill's ceiling, its low-frequency / texture split); "
                          "pictures of the downward face (truth | oracle fill | fill) into PICTURES when given")
@@ -457,6 +470,15 @@ def main(argv: list[str] | None = None) -> int:
             if "psnr_true_light" in r:
                 print(f"| {r['seed']} | {r['case']} | {fmt(r['psnr_after'])} | {fmt(r['psnr_true_light'])} | "
                       + " | ".join(fmt(100 * r[b] if r[b] is not None else None, "+.1f") for b in bands) + " |")
+        sect = [f"sectors_{a:.0f}_{b:.0f}" for a, b in zip(SECTOR_BANDS_DEG[:-1], SECTOR_BANDS_DEG[1:])]
+        print("\nthe floor's light over the floor-light model in 8 azimuth sectors per ring (deg), min-max (the radial "
+              "profile's; the true factor), and the sector tests (detection's; the relighting's even sectors):\n")
+        print("| seed | case | " + " | ".join(b[8:].replace("_", "-") for b in sect) + " | sectors |\n|---|---|"
+              + "---|" * (len(sect) + 1))
+        for r in rows:
+            if sect[0] in r:
+                print(f"| {r['seed']} | {r['case']} | " + " | ".join(r[b] for b in sect)
+                      + f" | {r['shadow_sectors']} |")
         for kind in cases:
             rs = [r for r in rows if r["case"] == str(kind) and "psnr_true_light" in r]
             if rs:
