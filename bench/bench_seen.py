@@ -11,6 +11,10 @@ Development diagnosis only (it reads the generator's truth): VALIDATION seeds, n
 
   python bench/bench_seen.py /tmp/roam/seed_6 --buckets d1 d2 --png /tmp/seen
   python bench/bench_seen.py SCENE --ply OTHER/gaussians.ply --json F
+  python bench/bench_seen.py SCENE --variant fit_iters=10,fit_height=512 --variant source_scale=1.9,fit_iters=10
+
+--variant adds the source per-pixel Gaussians built as bench_poles.py builds them (keys source_height, source_scale,
+thin_poles, fit_iters, fit_height: cheap, no voxel fusion; the voxels barely touch the seen part).
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np
 
@@ -161,6 +166,9 @@ def main() -> int:
     ap.add_argument("--height", type=int, default=256)
     ap.add_argument("--supersample", type=int, default=4, help="the oracles' sub-rays per pixel side")
     ap.add_argument("--ply", type=Path, help="score these Gaussians instead of the scene's (one scene)")
+    ap.add_argument("--variant", action="append", default=[], help="source per-pixel Gaussians, KEY=VALUE,... "
+                    "(bench_poles.py's keys)")
+    ap.add_argument("--only-variants", action="store_true", help="skip the scene's own Gaussians")
     ap.add_argument("--png", type=Path, help="write one picture per view here")
     ap.add_argument("--json", type=Path)
     a = ap.parse_args()
@@ -176,16 +184,25 @@ def main() -> int:
 
     torch.set_num_threads(1)
     H, W = a.height, 2 * a.height
-    names = ("oracle", "frame", "gaussians", "source_gs")
+    from bench_poles import parse_variant, source_gaussians
+
+    names = ("oracle", "frame", "gaussians", "source_gs", *[f"var{i}" for i in range(len(a.variant))])
     rows = []
     print(f"{'scene':<8} {'view':<6} {'d m':>4} {'frm':>4} {'image':<10} {'seen':>6} "
           + " ".join(f"{k:>14}" for k in KINDS) + "   (kind: dB / share of seen px / share of seen err)")
     for scene in a.scenes:
         gt = open_ground_truth(scene)
         art = scene / ARTIFACTS / "gaussians"
-        g = read_gaussians_ply(a.ply or art / "gaussians.ply")
-        n_src = read_manifest(art)["info"]["num_source_gaussians"] if a.ply is None else None
-        g_src = g.subset(np.arange(n_src)) if n_src else None
+        models = {}
+        if not a.only_variants:
+            g = read_gaussians_ply(a.ply or art / "gaussians.ply")
+            models["gaussians"] = g
+            if a.ply is None:
+                models["source_gs"] = g.subset(np.arange(read_manifest(art)["info"]["num_source_gaussians"]))
+        for i, v in enumerate(a.variant):
+            models[f"var{i}"], _, info = source_gaussians(scene, parse_variant(v))
+            print(f"{scene.name} var{i} = {v}: " + " ".join(f"{k}={x:.4g}" if isinstance(x, float) else f"{k}={x}"
+                                                          for k, x in info.items()), flush=True)
         pano = load_frames([next(p for p in (scene / f"panorama.{e}" for e in ("png", "jpg", "jpeg")) if p.is_file())])[0]
         roam = sample_roam_poses(load_navmesh(scene / ARTIFACTS / "navmesh"), a.views, seed=0)
         for b in a.buckets:
@@ -196,9 +213,8 @@ def main() -> int:
                 fi, frame, frame_pose = nearest_frame(scene, pose)
                 images = {"oracle": textured_view(gt, pose, H, W, pano, np.eye(4), a.supersample),
                           "frame": textured_view(gt, pose, H, W, frame, frame_pose, a.supersample)}
-                for name, gs in (("gaussians", g), ("source_gs", g_src)):
-                    if gs is not None:
-                        images[name] = (render_erp(gs, pose, H, W).rgb.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+                for name, gs in models.items():
+                    images[name] = (render_erp(gs, pose, H, W).rgb.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
                 sc = scores(images, ref, seen, kinds)
                 dist = float(roam.distances[b][k])
                 rows.append({"scene": scene.name, "bucket": b, "view": k, "distance_m": dist, "frame": fi,
@@ -223,7 +239,7 @@ def main() -> int:
     print("mean seen-part dB per bucket: " + "; ".join(
         f"{b}: " + ", ".join(f"{n} {v:.2f}" for n, v in s.items()) for b, s in summary.items()))
     if a.json:
-        a.json.write_text(json.dumps({"views": rows, "mean_seen_db": summary}, indent=1) + "\n")
+        a.json.write_text(json.dumps({"variants": a.variant, "views": rows, "mean_seen_db": summary}, indent=1) + "\n")
     return 0
 
 
