@@ -482,3 +482,35 @@ def test_colour_fit_at_the_capture_point_sharpens_it_and_keeps_other_views():
     assert after > before + 3.0, (before, after)  # 30.3 -> 40.0 dB
     away = pose_at(0.3, 0.05, -0.25)
     assert score(fitted, away) > score(g, away) + 1.0  # 28.7 -> 32.8 dB: sharper colours, not overfitted to one view
+
+
+def test_colour_fit_with_views_from_aside_fits_them_and_a_zero_weight_view_changes_nothing():
+    # A second view 0.4 m away joins the fit: the render there gets closer to its frame than with the capture point
+    # alone; the same view at weight 0 gives the capture-only fit exactly.
+    from panoworld.pixel_gaussians import fit_colors, pixel_gaussians
+
+    room = _room_renderer(textured_color)
+    src, away = pose_at(0, 0, 0), pose_at(0.3, 0.05, -0.25)
+    rgb0, d0 = room(src, 128, 256)
+    rgb1 = room(away, 64, 128)[0]
+    g = pixel_gaussians(rgb0, d0, src, FusionParams(voxel_size=0.04, scale_factor=1.9))
+    alone, _ = fit_colors(g, rgb0, src, iters=10)
+    both, _ = fit_colors(g, rgb0, src, iters=10, extra=[(rgb1, away, np.ones((64, 128), np.float32))])
+    muted, _ = fit_colors(g, rgb0, src, iters=10, extra=[(rgb1, away, np.zeros((64, 128), np.float32))])
+    assert np.allclose(muted.sh_dc, alone.sh_dc, atol=1e-6)
+
+    def score(gs, pose, ref):
+        img = (render_erp(gs, pose, ref.shape[0], ref.shape[1], supersample=1).rgb.clamp(0, 1).numpy() * 255)
+        return psnr(img.round().astype(np.uint8), ref)
+
+    assert score(both, away, rgb1) > score(alone, away, rgb1) + 0.5
+    # the capture point gives some of its fit away (35.9 -> 34.3 dB) but keeps most of it over the unfitted colours
+    assert score(both, src, rgb0) > score(g, src, rgb0) + 2.0
+
+
+def test_spread_frames_picks_the_farthest_then_spreads():
+    from panoworld.pixel_gaussians import spread_frames
+
+    c = np.array([[0.5, 0, 0], [2.0, 0, 0], [1.9, 0, 0.1], [-1.5, 0, 0], [0, 0, 1.0]])
+    assert spread_frames(c, 3) == [1, 3, 4]
+    assert spread_frames(c, 9) == spread_frames(c, 5) and sorted(spread_frames(c, 5)) == [0, 1, 2, 3, 4]
