@@ -72,8 +72,9 @@ def source_gaussians(scene: Path, v: dict):
         if int(v.get("fit_views", 0)):
             rest = replace(frames, rgb_paths=frames.rgb_paths[1:], depth_paths=frames.depth_paths[1:],
                            world_from_cam=frames.world_from_cam[1:], indices=frames.indices[1:])
-            kw["extra"] = view_targets(rest, SourceVisibility(depth, pose, o.source_tol), int(v["fit_views"]),
-                                       int(v.get("fit_view_height", 256)))
+            kw["extra"] = [(img, p, float(v.get("fit_view_weight", 1.0)) * wt) for img, p, wt in view_targets(
+                rest, SourceVisibility(depth, pose, o.source_tol), int(v["fit_views"]), int(v.get("fit_view_height", 256)),
+                float(v.get("fit_view_reach", 0.0)))]
         g, fit = fit_colors(g, target, pose, iters=iters, **kw)
         fit.pop("render", None)
         info.update(fit_cpu_s=time.process_time() - t0, **fit)
@@ -85,7 +86,7 @@ def main() -> int:
     ap.add_argument("scenes", type=Path, nargs="+")
     ap.add_argument("--variant", action="append", default=[],
                     help="comma-separated KEY=VALUE (source_height, source_scale, opacity, thin_poles, sharpen, "
-                    "sharpen_sigma, fit_iters, fit_height, fit_views, fit_view_height, "
+                    "sharpen_sigma, fit_iters, fit_height, fit_views, fit_view_height, fit_view_reach, fit_view_weight, "
                     "fit_supersample, fit_pole_scale; the render's supersample, pole_scale), or 'artifact' (the scene's gaussians.ply; 'artifact_source' / 'artifact_voxels': "
                     "its source / voxel part)")
     ap.add_argument("--height", type=int, default=256)

@@ -74,7 +74,8 @@ class SourceVisibility:
 
     def __init__(self, depth: np.ndarray, world_from_cam: np.ndarray, tol: float):
         self.depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.nan).astype(np.float64)
-        self.cam_from_world = invert_pose(np.asarray(world_from_cam, np.float64))
+        self.world_from_cam = np.asarray(world_from_cam, np.float64)
+        self.cam_from_world = invert_pose(self.world_from_cam)
         self.tol = tol
 
     def _lookup(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -153,18 +154,20 @@ def spread_frames(centres: np.ndarray, k: int) -> list[int]:
     return picked
 
 
-def view_targets(frames: ContextSource, vis: SourceVisibility, k: int, height: int
-              ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """k frames spread over the path (spread_frames) at `height` rows as colour-fit views (rgb, world_from_cam,
-    weight): weight 1 where the frame sees a surface the source saw (vis.explained), 0 elsewhere (generated
-    content, no depth)."""
+def view_targets(frames: ContextSource, vis: SourceVisibility, k: int, height: int, reach: float = 0.0
+                 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """k frames spread over the path (spread_frames; only those within `reach` metres of the capture point when > 0)
+    at `height` rows as colour-fit views (rgb, world_from_cam, weight): weight 1 where the frame sees a surface the
+    source saw (vis.explained), 0 elsewhere (generated content, no depth)."""
     from panoworld.conventions import erp_dirs
 
     if k <= 0 or not len(frames):
         return []
     src = replace(frames, height=min(height, frames.stored_height))
+    centres = np.asarray(src.world_from_cam)[:, :3, 3] - vis.world_from_cam[:3, 3]
+    near = np.flatnonzero(np.linalg.norm(centres, axis=1) <= reach) if reach > 0 else np.arange(len(centres))
     out = []
-    for i in spread_frames(np.asarray(src.world_from_cam)[:, :3, 3], k):
+    for i in near[spread_frames(centres[near], k)]:
         rgb, depth, pose = src.frame(i)
         ok = np.isfinite(depth) & (depth > 0)
         pts = erp_dirs(*depth.shape, np.float64) * np.where(ok, depth, 0.0)[..., None]
