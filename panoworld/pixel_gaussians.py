@@ -113,14 +113,15 @@ def merge_gaussians(parts: list[Gaussians]) -> Gaussians:
 def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, source_height: int = 0, tol: float = 0.03,
                            source_scale: float | None = None, unseen_voxel_size: float = 0.0, thin_poles: bool = True,
                            fit_iters: int = 0, fit_height: int = 0, fit_views: int = 0, fit_view_height: int = 256,
-                           progress: bool = False) -> FusionResult:
+                           fit_view_reach: float = 0.0, progress: bool = False) -> FusionResult:
     """Per-pixel Gaussians of the source view (video frame 0, at source_height rows; 0 = as the other frames) plus
     voxel fusion of what the other frames see that the source does not (SourceVisibility with tolerance tol) in voxels
     of unseen_voxel_size (0 = params.voxel_size), less those poking through the source's surfaces: the capture point keeps the input's full detail, the rest of the
     room is fused as before. source_scale: the per-pixel Gaussians' scale_factor (None = params.scale_factor). Without
     frame 0 among the frames it is plain voxel fusion. fit_iters > 0: the colours are then fitted to frame 0 at its
     pose (fit_colors, at fit_height rows; 0 = source_height), and with fit_views > 0 to that many other frames
-    spread over the path (view_targets(), at fit_view_height rows) where they see what the source saw."""
+    spread over the path within fit_view_reach metres (view_targets(), at fit_view_height rows) where they see
+    what the source saw."""
     if not frames.indices or frames.indices[0] != 0:
         return voxel_fusion(frames, params, progress=progress)
     src = replace(frames, height=min(source_height or frames.height, frames.stored_height))
@@ -134,10 +135,12 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
     if fit_iters > 0:
         if fit_height and fit_height != src.height:
             rgb = replace(frames, height=min(fit_height, frames.stored_height)).frame(0)[0]
-        result.gaussians, result.color_fit = fit_colors(result.gaussians, rgb, pose, iters=fit_iters,
-                                                        extra=view_targets(rest, vis, fit_views, fit_view_height))
+        extra = view_targets(rest, vis, fit_views, fit_view_height, fit_view_reach)
+        result.gaussians, result.color_fit = fit_colors(result.gaussians, rgb, pose, iters=fit_iters, extra=extra)
         result.fit_render = result.color_fit.pop("render")
         result.color_fit.update(iters=fit_iters, height=int(rgb.shape[0]))
+        if extra:
+            result.color_fit["views_from_aside"] = len(extra)
     return result
 
 

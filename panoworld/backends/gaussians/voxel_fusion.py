@@ -54,7 +54,8 @@ def fuse(job):
         return source_anchored_fusion(job.frames, o, source_height=o.source_height, tol=o.source_tol,
                                       source_scale=o.source_scale, unseen_voxel_size=o.unseen_voxel_size,
                                       fit_iters=o.fit_iters, fit_height=o.fit_height, fit_views=o.fit_views,
-                                      fit_view_height=o.fit_view_height, progress=job.progress)
+                                      fit_view_height=o.fit_view_height, fit_view_reach=o.fit_view_reach,
+                                      progress=job.progress)
     from panoworld.home.gaussians import home_anchored_fusion
     from panoworld.home.layout import home_depth_dirs
     from panoworld.home.mesh import load_sources
