@@ -514,3 +514,27 @@ def test_spread_frames_picks_the_farthest_then_spreads():
     c = np.array([[0.5, 0, 0], [2.0, 0, 0], [1.9, 0, 0.1], [-1.5, 0, 0], [0, 0, 1.0]])
     assert spread_frames(c, 3) == [1, 3, 4]
     assert spread_frames(c, 9) == spread_frames(c, 5) and sorted(spread_frames(c, 5)) == [0, 1, 2, 3, 4]
+
+
+def test_views_from_aside_weigh_what_the_source_saw_and_reach_the_stage(tmp_path, room):
+    from panoworld.gaussians import context_source
+    from panoworld.pixel_gaussians import SourceVisibility, view_targets
+    from panoworld.stage import execute_stage, load_stage
+
+    video, poses = write_inputs(tmp_path, room)
+    src = context_source(video, poses)
+    _, d0, p0 = src.frame(0)
+    rest = replace(src, rgb_paths=src.rgb_paths[1:], depth_paths=src.depth_paths[1:],
+                   world_from_cam=src.world_from_cam[1:], indices=src.indices[1:])
+    vis = SourceVisibility(d0, p0, 0.03)
+    (img, pose, w), = view_targets(rest, vis, 3, 32)  # one other registered frame, 0.5 m away
+    assert img.shape == (32, 64, 3) and w.shape == (32, 64) and np.array_equal(pose, rest.world_from_cam[0])
+    _, d1, _ = replace(rest, height=32).frame(0)
+    pts = (erp_dirs(32, 64, np.float64) * np.nan_to_num(d1)[..., None]).reshape(-1, 3) @ pose[:3, :3].T + pose[:3, 3]
+    seen = (np.isfinite(d1) & (d1 > 0)).reshape(-1) & vis.explained(pts)
+    assert np.array_equal(w.reshape(-1) > 0, seen) and 0.5 < w.mean() < 1.0  # the block hides some of the room
+    assert view_targets(rest, vis, 3, 32, reach=0.4) == []
+    info = execute_stage(load_stage("gaussians"), {"video": video, "poses": poses},
+                         _params(voxel_size=0.05, eval_views=0, fit_views=2, fit_view_height=32), tmp_path / "out",
+                         input_digests={"video": "0" * 64, "poses": "1" * 64})["info"]
+    assert info["color_fit"]["views_from_aside"] == 1

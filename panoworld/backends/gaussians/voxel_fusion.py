@@ -39,6 +39,16 @@ class VoxelFusionOptions(FusionParams):
     """ERP height of that fit's render and target (0 = source_height). 512: its cube faces are those of a 256-row
     render supersampled 2x (the roam protocol's), +1.4 dB at the capture point with the 2x pole faces
     (docs/evaluation.md, "The poles at the capture point")."""
+    fit_views: int = param(0, ge=0)
+    """With fit_iters: that many other frames, spread over the path (farthest-point from the capture point), join the
+    colour fit where they see what the source saw, so the source's colours are fitted from aside too (0 = the capture
+    point only). Off: +0.2-0.5 dB on the seen part ~2 m away for -0.6 dB at the capture point and a slower fit
+    (docs/evaluation.md, "The seen part from aside")."""
+    fit_view_height: int = param(256, ge=8)
+    """ERP height of those frames' renders and targets in the fit."""
+    fit_view_reach: float = param(2.0, ge=0)
+    """Those frames are picked among the ones within this distance (metres) of the capture point (0 = any): where a
+    user roams, not at the room's far walls."""
 
 
 def fuse(job):
