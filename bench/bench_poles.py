@@ -72,9 +72,9 @@ def source_gaussians(scene: Path, v: dict):
         if int(v.get("fit_views", 0)):
             rest = replace(frames, rgb_paths=frames.rgb_paths[1:], depth_paths=frames.depth_paths[1:],
                            world_from_cam=frames.world_from_cam[1:], indices=frames.indices[1:])
-            kw["extra"] = [(img, p, float(v.get("fit_view_weight", 1.0)) * wt) for img, p, wt in view_targets(
-                rest, SourceVisibility(depth, pose, o.source_tol), int(v["fit_views"]), int(v.get("fit_view_height", 256)),
-                float(v.get("fit_view_reach", 0.0)))]
+            kw["extra"] = view_targets(rest, SourceVisibility(depth, pose, o.source_tol), int(v["fit_views"]),
+                                       int(v.get("fit_view_height", o.fit_view_height)),
+                                       float(v.get("fit_view_reach", 0.0)), float(v.get("fit_view_weight", 1.0)))
         g, fit = fit_colors(g, target, pose, iters=iters, **kw)
         fit.pop("render", None)
         info.update(fit_cpu_s=time.process_time() - t0, **fit)

@@ -113,15 +113,16 @@ def merge_gaussians(parts: list[Gaussians]) -> Gaussians:
 def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, source_height: int = 0, tol: float = 0.03,
                            source_scale: float | None = None, unseen_voxel_size: float = 0.0, thin_poles: bool = True,
                            fit_iters: int = 0, fit_height: int = 0, fit_views: int = 0, fit_view_height: int = 256,
-                           fit_view_reach: float = 0.0, progress: bool = False) -> FusionResult:
+                           fit_view_reach: float = 0.0, fit_view_weight: float = 1.0,
+                           progress: bool = False) -> FusionResult:
     """Per-pixel Gaussians of the source view (video frame 0, at source_height rows; 0 = as the other frames) plus
     voxel fusion of what the other frames see that the source does not (SourceVisibility with tolerance tol) in voxels
     of unseen_voxel_size (0 = params.voxel_size), less those poking through the source's surfaces: the capture point keeps the input's full detail, the rest of the
     room is fused as before. source_scale: the per-pixel Gaussians' scale_factor (None = params.scale_factor). Without
     frame 0 among the frames it is plain voxel fusion. fit_iters > 0: the colours are then fitted to frame 0 at its
     pose (fit_colors, at fit_height rows; 0 = source_height), and with fit_views > 0 to that many other frames
-    spread over the path within fit_view_reach metres (view_targets(), at fit_view_height rows) where they see
-    what the source saw."""
+    spread over the path within fit_view_reach metres (view_targets(), at fit_view_height rows, each pixel
+    weighted fit_view_weight against 1 for the capture point's) where they see what the source saw."""
     if not frames.indices or frames.indices[0] != 0:
         return voxel_fusion(frames, params, progress=progress)
     src = replace(frames, height=min(source_height or frames.height, frames.stored_height))
@@ -135,7 +136,7 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
     if fit_iters > 0:
         if fit_height and fit_height != src.height:
             rgb = replace(frames, height=min(fit_height, frames.stored_height)).frame(0)[0]
-        extra = view_targets(rest, vis, fit_views, fit_view_height, fit_view_reach)
+        extra = view_targets(rest, vis, fit_views, fit_view_height, fit_view_reach, fit_view_weight)
         result.gaussians, result.color_fit = fit_colors(result.gaussians, rgb, pose, iters=fit_iters, extra=extra)
         result.fit_render = result.color_fit.pop("render")
         result.color_fit.update(iters=fit_iters, height=int(rgb.shape[0]))
@@ -157,11 +158,11 @@ def spread_frames(centres: np.ndarray, k: int) -> list[int]:
     return picked
 
 
-def view_targets(frames: ContextSource, vis: SourceVisibility, k: int, height: int, reach: float = 0.0
-                 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def view_targets(frames: ContextSource, vis: SourceVisibility, k: int, height: int, reach: float = 0.0,
+                 weight: float = 1.0) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """k frames spread over the path (spread_frames; only those within `reach` metres of the capture point when > 0)
-    at `height` rows as colour-fit views (rgb, world_from_cam, weight): weight 1 where the frame sees a surface the
-    source saw (vis.explained), 0 elsewhere (generated content, no depth)."""
+    at `height` rows as colour-fit views (rgb, world_from_cam, pixel weights): `weight` where the frame sees a surface
+    the source saw (vis.explained), 0 elsewhere (generated content, no depth)."""
     from panoworld.conventions import erp_dirs
 
     if k <= 0 or not len(frames):
@@ -175,7 +176,7 @@ def view_targets(frames: ContextSource, vis: SourceVisibility, k: int, height: i
         ok = np.isfinite(depth) & (depth > 0)
         pts = erp_dirs(*depth.shape, np.float64) * np.where(ok, depth, 0.0)[..., None]
         pts = pts.reshape(-1, 3) @ pose[:3, :3].T + pose[:3, 3]
-        out.append((rgb, pose, (ok.reshape(-1) & vis.explained(pts)).reshape(depth.shape).astype(np.float32)))
+        out.append((rgb, pose, weight * (ok.reshape(-1) & vis.explained(pts)).reshape(depth.shape).astype(np.float32)))
     return out
 
 

@@ -49,6 +49,8 @@ class VoxelFusionOptions(FusionParams):
     fit_view_reach: float = param(2.0, ge=0)
     """Those frames are picked among the ones within this distance (metres) of the capture point (0 = any): where a
     user roams, not at the room's far walls."""
+    fit_view_weight: float = param(1.0, ge=0)
+    """Weight of each of those frames' pixels in the fit against 1 for the capture point's."""
 
 
 def fuse(job):
@@ -65,7 +67,7 @@ def fuse(job):
                                       source_scale=o.source_scale, unseen_voxel_size=o.unseen_voxel_size,
                                       fit_iters=o.fit_iters, fit_height=o.fit_height, fit_views=o.fit_views,
                                       fit_view_height=o.fit_view_height, fit_view_reach=o.fit_view_reach,
-                                      progress=job.progress)
+                                      fit_view_weight=o.fit_view_weight, progress=job.progress)
     from panoworld.home.gaussians import home_anchored_fusion
     from panoworld.home.layout import home_depth_dirs
     from panoworld.home.mesh import load_sources
