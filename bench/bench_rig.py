@@ -101,38 +101,54 @@ LOW_DEG = 1.5
 shading) and texture (grout, plank seams, veins)."""
 
 
-def true_rig(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-    """(the rig's own ERP pixels with its cast shadows from the room's lights, the generator's soft-shadow light
-    factor (H, W) or None): what a perfect detector would return, the soft shadow of tripod-shadow divided out."""
+def true_light(scene, kind, depth: np.ndarray) -> np.ndarray | None:
+    """The generator's soft-shadow light factor (H, W) for tripod-shadow, None for the other cases."""
     from panoworld.synth.rig import shadow_gain
 
-    light = None
+    if kind != RigKind.TRIPOD_SHADOW:
+        return None
+    return shadow_gain(scene.world_from_canonical, scene.tracks[0].camera_height, depth)
+
+
+def true_rig(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """(the rig's own ERP pixels with its cast shadows from the room's lights, true_light): what a perfect detector
+    would return, the soft shadow of tripod-shadow divided out."""
+    light = true_light(scene, kind, depth)
     img = rgb.astype(np.float64)
-    if kind == RigKind.TRIPOD_SHADOW:
-        light = shadow_gain(scene.world_from_canonical, scene.tracks[0].camera_height, depth)
+    if light is not None:
         img = 255.0 * np.clip((img / 255.0) ** 2.2 / light[..., None], 0, 1) ** (1 / 2.2)
     nearer = np.isfinite(depth) & (depth < scene.render(scene.world_from_canonical, *depth.shape)[1] - 1e-3)
     return (np.abs(img - clean).max(-1) > 8.5) | nearer, light
 
 
-def oracle_detection(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarray):
-    """A RigDetection of the true rig mask (true_rig, grown by the detector's rim on the downward face) and, for
-    tripod-shadow, the generator's light factor: remove_rig on it measures the fill alone."""
+def true_relight(scene, rgb: np.ndarray, depth: np.ndarray, light: np.ndarray | None, mask: np.ndarray):
+    """(the nadir face, the face gain that divides out `light` (ones where None), the floor source outside the rig
+    `mask` on the relit face, the ERP shadow mask outside `mask`): the relighting with the generator's true light."""
     from panoworld.cube_views import render_view
     from panoworld.rig_face import erp_mask_to_face, face_to_erp_mask, nadir_view
     from panoworld.rig_shadow import apply_gain
 
     H, W = rgb.shape[:2]
     view = nadir_view(H)
-    mask, light = true_rig(scene, kind, rgb, depth, clean)
-    mask |= face_to_erp_mask(rig._dilate(erp_mask_to_face(mask, view), view), view, H, W)
-    gain = None if light is None else 1.0 / np.maximum(render_view(light.astype(np.float32), view), 1e-3)
-    face = render_view(rgb, view)
+    gain = np.ones((view.size, view.size), np.float32)
+    if light is not None:
+        gain = 1.0 / np.maximum(render_view(light.astype(np.float32), view), 1e-3)
     nf = rig.nadir_face(rgb, depth, np.isfinite(depth) & (depth > 0), scene.tracks[0].camera_height)
-    fmask = erp_mask_to_face(mask, view)
-    source = rig.floor_source(face if gain is None else apply_gain(face, gain), nf) & ~fmask
-    shadow = face_to_erp_mask(gain > 1.0, view, H, W) & ~mask if gain is not None else np.zeros_like(mask)
-    return rig.RigDetection(True, "oracle", "legs", mask, shadow, shadow_gain=gain, source=source)
+    source = rig.floor_source(apply_gain(nf.face, gain), nf) & ~erp_mask_to_face(mask, view)
+    return nf, gain, source, face_to_erp_mask(gain > 1.0, view, H, W) & ~mask
+
+
+def oracle_detection(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarray):
+    """A RigDetection of the true rig mask (true_rig, grown by the detector's rim on the downward face) and, for
+    tripod-shadow, the generator's light factor: remove_rig on it measures the fill alone."""
+    from panoworld.rig_face import erp_mask_to_face, face_to_erp_mask, nadir_view
+
+    view = nadir_view(rgb.shape[0])
+    mask, light = true_rig(scene, kind, rgb, depth, clean)
+    mask |= face_to_erp_mask(rig._dilate(erp_mask_to_face(mask, view), view), view, *rgb.shape[:2])
+    _, gain, source, shadow = true_relight(scene, rgb, depth, light, mask)
+    return rig.RigDetection(True, "oracle", "legs", mask, shadow, shadow_gain=None if light is None else gain,
+                            source=source)
 
 
 def mask_split(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarray, det, out: np.ndarray) -> dict:
@@ -150,39 +166,42 @@ def mask_split(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarra
 
 LIGHT_BANDS_DEG = (0.0, 5.0, 10.0, 15.0, 20.0, 30.0)
 """Rings (degrees from the nadir) in which relight_oracle compares the detected light factor with the true one."""
+SECTOR_BANDS_DEG = (5.0, 10.0, 15.0, 20.0, 24.0)
+"""Rings (degrees from the nadir) in which relight_oracle reports the floor's light per azimuth sector."""
 
 
 def relight_oracle(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarray, det) -> dict:
     """What the relighting costs: the same removal (detected mask, usual fill) with the generator's true soft-shadow
     factor instead of the detected one (none for tripod: the floor is not relit), `psnr_true_light`; and per ring of
     LIGHT_BANDS_DEG on the floor outside the mask, the detected gain over the true one (`relight_<a>_<b>`, mean of
-    the ratio - 1: > 0 the floor relit too bright, the profile too deep; < 0 too shallow)."""
+    the ratio - 1: > 0 the floor relit too bright, the profile too deep; < 0 too shallow); per ring of
+    SECTOR_BANDS_DEG the floor's light over the floor-light model in 8 azimuth sectors, min-max, next to the radial
+    profile's (`sectors_<a>_<b>`: a shadow around the rig dims every sector alike) and the true factor's."""
     from dataclasses import replace
 
-    from panoworld.cube_views import render_view
-    from panoworld.rig_face import erp_mask_to_face, face_polar, face_to_erp_mask, nadir_view
-    from panoworld.rig_shadow import apply_gain
-    from panoworld.synth.rig import shadow_gain
+    from panoworld.rig_face import erp_mask_to_face, face_polar, nadir_view
+    from panoworld.rig_shadow import floor_light, sector_light
 
-    H, W = rgb.shape[:2]
-    view = nadir_view(H)
-    size = view.size
-    gain = np.ones((size, size), np.float32)
-    if kind == RigKind.TRIPOD_SHADOW:
-        light = shadow_gain(scene.world_from_canonical, scene.tracks[0].camera_height, depth).astype(np.float32)
-        gain = 1.0 / np.maximum(render_view(light, view), 1e-3)
-    nf = rig.nadir_face(rgb, depth, np.isfinite(depth) & (depth > 0), scene.tracks[0].camera_height)
+    view = nadir_view(rgb.shape[0])
+    nf, gain, source, shadow = true_relight(scene, rgb, depth, true_light(scene, kind, depth), det.mask)
     fmask = erp_mask_to_face(det.mask, view)
-    source = rig.floor_source(apply_gain(nf.face, gain), nf) & ~fmask
-    shadow = face_to_erp_mask(gain > 1.0, view, H, W) & ~det.mask
     out = rig.remove_rig(rgb, replace(det, shadow_gain=gain, shadow=shadow, source=source))
-    row = {"psnr_true_light": nadir_cap_psnr(out, clean)}
+    row = {"psnr_true_light": nadir_cap_psnr(out, clean), "shadow_sectors": f"{det.stats.get('shadow_sectors', '-')}, "
+           f"{det.stats.get('shadow_even_sectors', '-')}"}
     det_gain = det.shadow_gain if det.shadow_gain is not None else np.ones_like(gain)
     theta, _ = face_polar(view)
     floor = nf.on_floor & ~fmask
     for a, b in zip(LIGHT_BANDS_DEG[:-1], LIGHT_BANDS_DEG[1:]):
         sel = floor & (theta >= a) & (theta < b)
         row[f"relight_{a:.0f}_{b:.0f}"] = float(np.mean(det_gain[sel] / gain[sel]) - 1.0) if sel.any() else None
+    fit = floor_light(nf.face, fmask, nf.on_floor & rig._floor_chroma(nf.face, nf.ring_floor), theta, view.focal)
+    if fit is not None:
+        lit = sector_light(fit, theta, nf.phi, SECTOR_BANDS_DEG)
+        for i, (a, b) in enumerate(zip(SECTOR_BANDS_DEG[:-1], SECTOR_BANDS_DEG[1:])):
+            ring = (theta >= a) & (theta < b)
+            prof = float(np.interp(0.5 * (a + b), fit.knots, fit.profile))
+            row[f"sectors_{a:.0f}_{b:.0f}"] = (f"{np.nanmin(lit[i]):.2f}-{np.nanmax(lit[i]):.2f} "
+                                               f"({prof:.2f}; {1 / np.median(gain[ring]):.2f})")
     return row
 
 
@@ -360,6 +379,20 @@ def parse_seeds(text: str) -> list[int]:
     return [int(s) for s in text.split(",")]
 
 
+DEVELOPMENT_SEEDS = range(100, 116)
+"""Seeds the method was developed on; HELD_OUT_SEEDS are looked at once, at the end."""
+HELD_OUT_SEEDS = range(116, 132)
+
+
+def seed_role(seeds: list[int]) -> str:
+    """'held out', 'development' or 'mixed / other' for the table's header."""
+    if all(s in HELD_OUT_SEEDS for s in seeds):
+        return "held out"
+    if all(s in DEVELOPMENT_SEEDS for s in seeds):
+        return "development"
+    return "mixed / other"
+
+
 def fmt(v, spec=".2f"):
     return "-" if v is None else format(v, spec) if isinstance(v, float) else str(v)
 
@@ -376,7 +409,7 @@ def main(argv: list[str] | None = None) -> int:
                     "the cap with the same removal on the true mask: what the detected mask costs")
     ap.add_argument("--light-oracle", action="store_true", help="also the cap with the true soft-shadow factor "
                     "(none for tripod) instead of the detected one, same mask and fill, and the detected gain over the "
-                    "true one per ring: what the relighting costs")
+                    "true one per ring: what the relighting costs; the floor's light per azimuth sector and ring")
     ap.add_argument("--oracle", type=Path, nargs="?", const=Path(), metavar="PICTURES",
                     help="also fill the true rig mask (the fill's ceiling, its low-frequency / texture split); "
                          "pictures of the downward face (truth | oracle fill | fill) into PICTURES when given")
@@ -430,7 +463,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(rows, indent=1))
         return 0
-    print(f"\nrig removal, {args.preset} scenes at {args.height}x{2 * args.height}, seeds {args.seeds} (held out); grout: "
+    print(f"\nrig removal, {args.preset} scenes at {args.height}x{2 * args.height}, seeds {args.seeds} ({seed_role(parse_seeds(args.seeds))}); grout: "
           f"default-preset tiled floors at {args.grout_height} rows, seeds {args.grout_seeds or '-'}\n")
     head = ["seed", "case", "found", "kind", "cap deg", "sphere %", "IoU", "PSNR15 before", "PSNR15 after",
             "error under mask", "error low-freq", "lum gap before", "lum gap after", "unchanged", "s"]
@@ -457,6 +490,15 @@ def main(argv: list[str] | None = None) -> int:
             if "psnr_true_light" in r:
                 print(f"| {r['seed']} | {r['case']} | {fmt(r['psnr_after'])} | {fmt(r['psnr_true_light'])} | "
                       + " | ".join(fmt(100 * r[b] if r[b] is not None else None, "+.1f") for b in bands) + " |")
+        sect = [f"sectors_{a:.0f}_{b:.0f}" for a, b in zip(SECTOR_BANDS_DEG[:-1], SECTOR_BANDS_DEG[1:])]
+        print("\nthe floor's light over the floor-light model in 8 azimuth sectors per ring (deg), min-max (the radial "
+              "profile's; the true factor), and the sector tests (detection's; the relighting's even sectors):\n")
+        print("| seed | case | " + " | ".join(b[8:].replace("_", "-") for b in sect) + " | sectors |\n|---|---|"
+              + "---|" * (len(sect) + 1))
+        for r in rows:
+            if sect[0] in r:
+                print(f"| {r['seed']} | {r['case']} | " + " | ".join(r[b] for b in sect)
+                      + f" | {r['shadow_sectors']} |")
         for kind in cases:
             rs = [r for r in rows if r["case"] == str(kind) and "psnr_true_light" in r]
             if rs:

@@ -23,11 +23,11 @@ from panoworld.rig_face import (
 )
 from panoworld.rig_inpaint import inpaint_plane, matte_rim
 from panoworld.rig_shadow import (
-    RELIGHT_MIN_DARKENING,
     apply_gain,
     cast_shadows,
     leg_shadow_lines,
     linear_luminance,
+    relights,
     shadow_gain,
 )
 from panoworld.rig_shape import (
@@ -272,7 +272,7 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
     mask = face_to_erp_mask(obj, view, H, W)
     if kind == "legs":
         mask |= _leg_shadows(rgb, mask, gain, view)
-    if 1.0 - stats.get("shadow_min_light", 1.0) < RELIGHT_MIN_DARKENING:  # the rig was measured relit, the floor stays
+    if not relights(stats):  # the rig was measured relit, the floor stays
         gain = np.ones_like(gain)
     sh = face_to_erp_mask(gain > 1.0, view, H, W) & ~mask
     if sh.any():

@@ -343,9 +343,9 @@ def test_learned_detector_is_chosen_by_the_stage_option(tmp_path, plain_dir):
     assert np.array_equal(read_rgb(out / "panorama.png"), read_rgb(plain_dir / "panorama.png"))
 
 
-def _blotchy_floor(dark_share, shadow=None, seed=0):
+def _blotchy_floor(dark_share, shadow=None, seed=0, light=None):
     """A downward face (180 px, 96 deg) of a cream floor with dark-blue blotches, dark_share(theta) of it blotched,
-    times an optional light factor shadow(theta)."""
+    times an optional light factor shadow(theta) or light(theta, phi)."""
     from panoworld.rig_face import face_polar, nadir_view
 
     view = replace(nadir_view(H), size=180)
@@ -359,6 +359,8 @@ def _blotchy_floor(dark_share, shadow=None, seed=0):
     lin = np.where(blotch[..., None], [0.30, 0.33, 0.36], [0.55, 0.52, 0.42]) * (1 + 0.05 * rng.normal(0, 1, theta.shape))[..., None]
     if shadow is not None:
         lin = lin * shadow(theta)[..., None]
+    if light is not None:
+        lin = lin * light(theta, phi)[..., None]
     face = np.clip(np.rint(255 * np.clip(lin, 0, 1) ** (1 / 2.2)), 0, 255).astype(np.uint8)
     return face, theta, phi, view.focal
 
@@ -381,6 +383,26 @@ def test_shadow_fit_tells_crowding_dark_texture_from_a_shadow_and_measures_it():
     for deg in (6.0, 12.0, 18.0):
         ring = np.abs(theta - deg) < 1.0
         assert abs(np.median(gain[ring]) * light(deg) - 1.0) < 0.06, (deg, np.median(gain[ring]), 1 / light(deg))
+
+
+def test_room_shadow_on_one_side_of_the_nadir_is_not_relit_a_shadow_around_it_is():
+    # The camera just inside the straight hard edge of the room's shadow (the floor dimmed by 45 % on one side of a
+    # line passing 0.1 camera heights from the nadir): the radial profile reads it as a >= 25 % shadow (relit before),
+    # but two of the eight sectors around the nadir are lit: the removal does not relight it. A soft shadow around the
+    # rig on the same floor is relit.
+    from panoworld.rig_shadow import RELIGHT_MIN_DARKENING, relights, shadow_gain
+
+    edge = lambda t, p: np.where(np.tan(np.deg2rad(t)) * np.cos(p) > -0.1, 0.55, 1.0)
+    around = lambda t, p: 1.0 - 0.45 * np.exp(-((t / 14.0) ** 2))
+    for seed in (0, 1):
+        face, theta, phi, focal = _blotchy_floor(lambda t: np.full_like(t, 0.2), seed=seed, light=edge)
+        _, extent, stats = shadow_gain(face, theta < 3.0, np.ones_like(theta, bool), theta, phi, focal)
+        assert extent > 0.0 and 1.0 - stats["shadow_min_light"] >= RELIGHT_MIN_DARKENING, stats  # main relit it
+        assert not relights(stats), stats
+        face, theta, phi, focal = _blotchy_floor(lambda t: np.full_like(t, 0.2), seed=seed, light=around)
+        gain, extent, stats = shadow_gain(face, theta < 3.0, np.ones_like(theta, bool), theta, phi, focal)
+        assert relights(stats) and extent > 15.0, stats
+        assert abs(np.median(gain[np.abs(theta - 8.0) < 1.0]) * around(8.0, 0.0) - 1.0) < 0.06, stats
 
 
 def test_room_light_past_the_rigs_feet_is_not_relit_as_its_shadow():
