@@ -43,7 +43,7 @@ class VoxelFusionOptions(FusionParams):
     """With fit_iters: that many other frames, spread over the path (farthest-point from the capture point), join the
     colour fit where they see what the source saw, so the source's colours are fitted from aside too (0 = the capture
     point only). Off by default for its cost: 4 views with fit_view_weight 0.3 gave +0.4-1.0 dB on the seen part
-    ~2 m away and kept the capture point (validation seeds 1, 5, 6), for about +70 % of the stage's CPU time
+    ~2 m away and kept the capture point on seeds 1, 5, 6 (seed 4: -0.19 dB), for about +70 % of the stage's CPU time
     (docs/evaluation.md, "The seen part from aside")."""
     fit_view_height: int = param(256, ge=8)
     """ERP height of those frames' renders and targets in the fit."""
