@@ -51,15 +51,16 @@ def source_gaussians(scene: Path, v: dict):
     fit_height, fit_supersample, fit_pole_scale) and the frame-0 target and pose of its fit."""
     from panoworld.backends.gaussians.voxel_fusion import VoxelFusionOptions
     from panoworld.gaussians import context_source
-    from panoworld.pixel_gaussians import fit_colors, pixel_gaussians
+    from panoworld.pixel_gaussians import SourceVisibility, fit_colors, pixel_gaussians, view_targets
 
     o = VoxelFusionOptions()
     frames = context_source(scene / ARTIFACTS / "video", scene / ARTIFACTS / "poses", max_height=512)
     h = int(v.get("source_height", o.source_height))
     src = replace(frames, height=min(h, frames.stored_height))
     rgb, depth, pose = src.frame(0)
-    params = replace(o, scale_factor=float(v.get("source_scale", o.source_scale)))
-    kw = {k: v[k] for k in ("thin_poles",) if k in v}
+    params = replace(o, scale_factor=float(v.get("source_scale", o.source_scale)),
+                     opacity=float(v.get("opacity", o.opacity)))
+    kw = {k: v[k] for k in ("thin_poles", "sharpen", "sharpen_sigma") if k in v}
     g = pixel_gaussians(rgb, depth, pose, params, **kw)
     info: dict = {"gaussians": len(g.means)}
     iters = int(v.get("fit_iters", 0))
@@ -68,6 +69,12 @@ def source_gaussians(scene: Path, v: dict):
         target = replace(frames, height=min(fh, frames.stored_height)).frame(0)[0] if fh != src.height else rgb
         kw = {k.removeprefix("fit_"): v[k] for k in ("fit_supersample", "fit_pole_scale") if k in v}
         t0 = time.process_time()
+        if int(v.get("fit_views", 0)):
+            rest = replace(frames, rgb_paths=frames.rgb_paths[1:], depth_paths=frames.depth_paths[1:],
+                           world_from_cam=frames.world_from_cam[1:], indices=frames.indices[1:])
+            kw["extra"] = view_targets(rest, SourceVisibility(depth, pose, o.source_tol), int(v["fit_views"]),
+                                       int(v.get("fit_view_height", o.fit_view_height)),
+                                       float(v.get("fit_view_reach", 0.0)), float(v.get("fit_view_weight", 1.0)))
         g, fit = fit_colors(g, target, pose, iters=iters, **kw)
         fit.pop("render", None)
         info.update(fit_cpu_s=time.process_time() - t0, **fit)
@@ -78,7 +85,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scenes", type=Path, nargs="+")
     ap.add_argument("--variant", action="append", default=[],
-                    help="comma-separated KEY=VALUE (source_height, source_scale, thin_poles, fit_iters, fit_height, "
+                    help="comma-separated KEY=VALUE (source_height, source_scale, opacity, thin_poles, sharpen, "
+                    "sharpen_sigma, fit_iters, fit_height, fit_views, fit_view_height, fit_view_reach, fit_view_weight, "
                     "fit_supersample, fit_pole_scale; the render's supersample, pole_scale), or 'artifact' (the scene's gaussians.ply; 'artifact_source' / 'artifact_voxels': "
                     "its source / voxel part)")
     ap.add_argument("--height", type=int, default=256)

@@ -30,15 +30,30 @@ def pole_thinning(height: int, width: int) -> np.ndarray:
     return (np.arange(width)[None, :] % k[:, None]) == 0
 
 
+def sharpened(rgb: np.ndarray, amount: float, sigma: float) -> np.ndarray:
+    """(H, W, 3) float32 in [0, 1]: an ERP image (uint8 or [0, 1]) unsharp-masked, rgb + amount (rgb - its Gaussian
+    blur of sigma pixels), longitude wrapped, clipped."""
+    import cv2
+
+    x = np.asarray(rgb, np.float32) / (255.0 if rgb.dtype == np.uint8 else 1.0)
+    pad = int(np.ceil(3 * sigma)) + 1
+    wide = np.concatenate([x[:, -pad:], x, x[:, :pad]], 1)
+    blur = cv2.GaussianBlur(wide, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)[:, pad:-pad]
+    return np.clip(x + amount * (x - blur), 0.0, 1.0)
+
+
 def pixel_gaussians(rgb: np.ndarray, depth: np.ndarray, world_from_cam: np.ndarray, params: FusionParams,
-                    *, thin_poles: bool = True) -> Gaussians:
+                    *, thin_poles: bool = True, sharpen: float = 0.0, sharpen_sigma: float = 1.0) -> Gaussians:
     """One Gaussian per valid pixel of an ERP frame (rgb (H, W, 3), depth (H, W) metres, pose (4, 4)).
 
     Each is the pixel's surface footprint (frame_observations' parallelogram covariance) times params.scale_factor,
     flat along the surface normal (at least min_scale * voxel_size thick); with thin_poles, rows near the poles keep
-    every k-th pixel (pole_thinning) with a k times wider footprint along the row.
+    every k-th pixel (pole_thinning) with a k times wider footprint along the row. sharpen > 0: the colours are
+    unsharp-masked first (sharpened, sigma sharpen_sigma pixels), against the blur of overlapping splats.
     """
     h, w = depth.shape
+    if sharpen > 0:
+        rgb = sharpened(rgb, sharpen, sharpen_sigma)
     obs = frame_observations(rgb, depth, world_from_cam, params)
     steps = obs.steps
     if thin_poles:
@@ -59,7 +74,8 @@ class SourceVisibility:
 
     def __init__(self, depth: np.ndarray, world_from_cam: np.ndarray, tol: float):
         self.depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.nan).astype(np.float64)
-        self.cam_from_world = invert_pose(np.asarray(world_from_cam, np.float64))
+        self.world_from_cam = np.asarray(world_from_cam, np.float64)
+        self.cam_from_world = invert_pose(self.world_from_cam)
         self.tol = tol
 
     def _lookup(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -96,13 +112,17 @@ def merge_gaussians(parts: list[Gaussians]) -> Gaussians:
 
 def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, source_height: int = 0, tol: float = 0.03,
                            source_scale: float | None = None, unseen_voxel_size: float = 0.0, thin_poles: bool = True,
-                           fit_iters: int = 0, fit_height: int = 0, progress: bool = False) -> FusionResult:
+                           fit_iters: int = 0, fit_height: int = 0, fit_views: int = 0, fit_view_height: int = 256,
+                           fit_view_reach: float = 0.0, fit_view_weight: float = 1.0,
+                           progress: bool = False) -> FusionResult:
     """Per-pixel Gaussians of the source view (video frame 0, at source_height rows; 0 = as the other frames) plus
     voxel fusion of what the other frames see that the source does not (SourceVisibility with tolerance tol) in voxels
     of unseen_voxel_size (0 = params.voxel_size), less those poking through the source's surfaces: the capture point keeps the input's full detail, the rest of the
     room is fused as before. source_scale: the per-pixel Gaussians' scale_factor (None = params.scale_factor). Without
     frame 0 among the frames it is plain voxel fusion. fit_iters > 0: the colours are then fitted to frame 0 at its
-    pose (fit_colors, at fit_height rows; 0 = source_height)."""
+    pose (fit_colors, at fit_height rows; 0 = source_height), and with fit_views > 0 to that many other frames
+    spread over the path within fit_view_reach metres (view_targets(), at fit_view_height rows, each pixel
+    weighted fit_view_weight against 1 for the capture point's) where they see what the source saw."""
     if not frames.indices or frames.indices[0] != 0:
         return voxel_fusion(frames, params, progress=progress)
     src = replace(frames, height=min(source_height or frames.height, frames.stored_height))
@@ -111,15 +131,53 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
     pix = pixel_gaussians(rgb, depth, pose, pix_params, thin_poles=thin_poles)
     rest = replace(frames, rgb_paths=frames.rgb_paths[1:], depth_paths=frames.depth_paths[1:],
                    world_from_cam=frames.world_from_cam[1:], indices=frames.indices[1:])
-    result = fuse_unseen(pix, rest, SourceVisibility(depth, pose, tol), params, unseen_voxel_size=unseen_voxel_size,
-                         progress=progress)
+    vis = SourceVisibility(depth, pose, tol)
+    result = fuse_unseen(pix, rest, vis, params, unseen_voxel_size=unseen_voxel_size, progress=progress)
     if fit_iters > 0:
         if fit_height and fit_height != src.height:
             rgb = replace(frames, height=min(fit_height, frames.stored_height)).frame(0)[0]
-        result.gaussians, result.color_fit = fit_colors(result.gaussians, rgb, pose, iters=fit_iters)
+        extra = view_targets(rest, vis, fit_views, fit_view_height, fit_view_reach, fit_view_weight)
+        result.gaussians, result.color_fit = fit_colors(result.gaussians, rgb, pose, iters=fit_iters, extra=extra)
         result.fit_render = result.color_fit.pop("render")
         result.color_fit.update(iters=fit_iters, height=int(rgb.shape[0]))
+        if extra:
+            result.color_fit["views_from_aside"] = len(extra)
     return result
+
+
+def spread_frames(centres: np.ndarray, k: int) -> list[int]:
+    """Indices of k camera centres (M, 3) spread out from the origin (the capture point): each the farthest from the
+    origin and the ones already picked (farthest-point order)."""
+    centres = np.asarray(centres, np.float64)
+    near = np.linalg.norm(centres, axis=1)
+    picked: list[int] = []
+    for _ in range(min(k, len(centres))):
+        i = int(np.argmax(near))
+        picked.append(i)
+        near = np.minimum(near, np.linalg.norm(centres - centres[i], axis=1))
+    return picked
+
+
+def view_targets(frames: ContextSource, vis: SourceVisibility, k: int, height: int, reach: float = 0.0,
+                 weight: float = 1.0) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """k frames spread over the path (spread_frames; only those within `reach` metres of the capture point when > 0)
+    at `height` rows as colour-fit views (rgb, world_from_cam, pixel weights): `weight` where the frame sees a surface
+    the source saw (vis.explained), 0 elsewhere (generated content, no depth)."""
+    from panoworld.conventions import erp_dirs
+
+    if k <= 0 or not len(frames):
+        return []
+    src = replace(frames, height=min(height, frames.stored_height))
+    centres = np.asarray(src.world_from_cam)[:, :3, 3] - vis.world_from_cam[:3, 3]
+    near = np.flatnonzero(np.linalg.norm(centres, axis=1) <= reach) if reach > 0 else np.arange(len(centres))
+    out = []
+    for i in near[spread_frames(centres[near], k)]:
+        rgb, depth, pose = src.frame(i)
+        ok = np.isfinite(depth) & (depth > 0)
+        pts = erp_dirs(*depth.shape, np.float64) * np.where(ok, depth, 0.0)[..., None]
+        pts = pts.reshape(-1, 3) @ pose[:3, :3].T + pose[:3, 3]
+        out.append((rgb, pose, weight * (ok.reshape(-1) & vis.explained(pts)).reshape(depth.shape).astype(np.float32)))
+    return out
 
 
 def fuse_unseen(pix: Gaussians, frames: ContextSource, vis, params: FusionParams, *, unseen_voxel_size: float = 0.0,
@@ -138,33 +196,53 @@ def fuse_unseen(pix: Gaussians, frames: ContextSource, vis, params: FusionParams
 
 
 def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, iters: int = 10, damping: float = 0.01,
-               supersample: int = 1, pole_scale: float | None = None) -> tuple[Gaussians, dict]:
+               supersample: int = 1, pole_scale: float | None = None,
+               extra: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = ()) -> tuple[Gaussians, dict]:
     """Gaussians whose colours (SH DC) are refitted so their ERP render at world_from_cam matches target (H, W, 3)
     uint8 or [0, 1]: the render is linear in the colours for fixed geometry (render_gs.ErpColorOperator), so this is
     `iters` steps of damped conjugate-gradient least squares, min |A c - y|^2 + damping |c - c0|^2 from the current
     colours c0 (damping per unit of compositing weight: Gaussians the view barely sees stay put), clipped to [0, 1].
-    pole_scale: the operator's (None = render_erp's default). Returns the Gaussians and {"rmse_before", "rmse_after"}
-    of the render at that pose, and "render": that render of the fitted Gaussians, (rgb (H, W, 3), alpha (H, W))
-    float32 numpy."""
+    extra: more views (target, world_from_cam, weight (h, w) >= 0) whose weighted squared errors join the objective
+    (their own sizes, supersample 1). pole_scale: the operators' (None = render_erp's default). Returns the Gaussians
+    and {"rmse_before", "rmse_after"} of the render at world_from_cam, and "render": that render of the fitted
+    Gaussians, (rgb (H, W, 3), alpha (H, W)) float32 numpy."""
     from panoworld.render_gs import ErpColorOperator
 
+    def as_float(img):
+        return torch.as_tensor(np.asarray(img, np.float32) / (255.0 if img.dtype == np.uint8 else 1.0))
+
     h, w = target.shape[:2]
-    y = torch.as_tensor(np.asarray(target, np.float32) / (255.0 if target.dtype == np.uint8 else 1.0))
+    y = as_float(target)
     op = ErpColorOperator(g, world_from_cam, h, w, supersample=supersample, pole_scale=pole_scale)
+    views = [(op, y, None)]  # (operator, target, sqrt of the pixel weights or None)
+    for img, pose, wt in extra:
+        m = torch.as_tensor(np.sqrt(np.asarray(wt, np.float32)))[..., None]
+        views.append((ErpColorOperator(g, pose, img.shape[0], img.shape[1], supersample=1, pole_scale=pole_scale),
+                      as_float(img) * m, m))
+
+    def fwd(k, x):
+        A, _, m = views[k]
+        return A(x) if m is None else A(x) * m
+
+    def adj(k, r):
+        A, _, m = views[k]
+        return A.adjoint(r if m is None else r * m)
+
     c0 = torch.from_numpy(g.base_colors())
-    lam = damping * op.adjoint(torch.ones(h, w, 3))[:, :1].clamp(min=1e-3)  # A^T 1: each Gaussian's weight in the view
+    ones = [torch.ones_like(v[1]) if v[2] is None else v[2].expand_as(v[1]).clone() for v in views]
+    lam = damping * sum(adj(k, ones[k]) for k in range(len(views)))[:, :1].clamp(min=1e-3)  # each Gaussian's weight
 
     x = c0.clone()
-    r = y - op(x)
-    rmse0 = float(r.square().mean().sqrt())
-    s = op.adjoint(r)  # the gradient of the damped objective at c0 (its damping term is zero there)
+    r = [v[1] - fwd(k, x) for k, v in enumerate(views)]
+    rmse0 = float(r[0].square().mean().sqrt())
+    s = sum(adj(k, r[k]) for k in range(len(views)))  # the gradient of the damped objective at c0 (damping term 0)
     p, gamma = s.clone(), float(s.square().sum())
     for _ in range(iters):
-        q = op(p)
-        alpha = gamma / max(float(q.square().sum() + (lam * p.square()).sum()), 1e-20)
+        q = [fwd(k, p) for k in range(len(views))]
+        alpha = gamma / max(float(sum(qk.square().sum() for qk in q) + (lam * p.square()).sum()), 1e-20)
         x = x + alpha * p
-        r = r - alpha * q
-        s = op.adjoint(r) - lam * (x - c0)
+        r = [rk - alpha * qk for rk, qk in zip(r, q)]
+        s = sum(adj(k, r[k]) for k in range(len(views))) - lam * (x - c0)
         gamma_new = float(s.square().sum())
         p, gamma = s + gamma_new / max(gamma, 1e-20) * p, gamma_new
     x = x.clamp(0.0, 1.0)

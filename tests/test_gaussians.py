@@ -482,3 +482,59 @@ def test_colour_fit_at_the_capture_point_sharpens_it_and_keeps_other_views():
     assert after > before + 3.0, (before, after)  # 30.3 -> 40.0 dB
     away = pose_at(0.3, 0.05, -0.25)
     assert score(fitted, away) > score(g, away) + 1.0  # 28.7 -> 32.8 dB: sharper colours, not overfitted to one view
+
+
+def test_colour_fit_with_views_from_aside_fits_them_and_a_zero_weight_view_changes_nothing():
+    # A second view 0.4 m away joins the fit: the render there gets closer to its frame than with the capture point
+    # alone; the same view at weight 0 gives the capture-only fit exactly.
+    from panoworld.pixel_gaussians import fit_colors, pixel_gaussians
+
+    room = _room_renderer(textured_color)
+    src, away = pose_at(0, 0, 0), pose_at(0.3, 0.05, -0.25)
+    rgb0, d0 = room(src, 128, 256)
+    rgb1 = room(away, 64, 128)[0]
+    g = pixel_gaussians(rgb0, d0, src, FusionParams(voxel_size=0.04, scale_factor=1.9))
+    alone, _ = fit_colors(g, rgb0, src, iters=10)
+    both, _ = fit_colors(g, rgb0, src, iters=10, extra=[(rgb1, away, np.ones((64, 128), np.float32))])
+    muted, _ = fit_colors(g, rgb0, src, iters=10, extra=[(rgb1, away, np.zeros((64, 128), np.float32))])
+    assert np.allclose(muted.sh_dc, alone.sh_dc, atol=1e-6)
+
+    def score(gs, pose, ref):
+        img = (render_erp(gs, pose, ref.shape[0], ref.shape[1], supersample=1).rgb.clamp(0, 1).numpy() * 255)
+        return psnr(img.round().astype(np.uint8), ref)
+
+    assert score(both, away, rgb1) > score(alone, away, rgb1) + 0.5
+    # the capture point gives some of its fit away (35.9 -> 34.3 dB) but keeps most of it over the unfitted colours
+    assert score(both, src, rgb0) > score(g, src, rgb0) + 2.0
+
+
+def test_spread_frames_picks_the_farthest_then_spreads():
+    from panoworld.pixel_gaussians import spread_frames
+
+    c = np.array([[0.5, 0, 0], [2.0, 0, 0], [1.9, 0, 0.1], [-1.5, 0, 0], [0, 0, 1.0]])
+    assert spread_frames(c, 3) == [1, 3, 4]
+    assert spread_frames(c, 9) == spread_frames(c, 5) and sorted(spread_frames(c, 5)) == [0, 1, 2, 3, 4]
+
+
+def test_views_from_aside_weigh_what_the_source_saw_and_reach_the_stage(tmp_path, room):
+    from panoworld.gaussians import context_source
+    from panoworld.pixel_gaussians import SourceVisibility, view_targets
+    from panoworld.stage import execute_stage, load_stage
+
+    video, poses = write_inputs(tmp_path, room)
+    src = context_source(video, poses)
+    _, d0, p0 = src.frame(0)
+    rest = replace(src, rgb_paths=src.rgb_paths[1:], depth_paths=src.depth_paths[1:],
+                   world_from_cam=src.world_from_cam[1:], indices=src.indices[1:])
+    vis = SourceVisibility(d0, p0, 0.03)
+    (img, pose, w), = view_targets(rest, vis, 3, 32)  # one other registered frame, 0.5 m away
+    assert img.shape == (32, 64, 3) and w.shape == (32, 64) and np.array_equal(pose, rest.world_from_cam[0])
+    _, d1, _ = replace(rest, height=32).frame(0)
+    pts = (erp_dirs(32, 64, np.float64) * np.nan_to_num(d1)[..., None]).reshape(-1, 3) @ pose[:3, :3].T + pose[:3, 3]
+    seen = (np.isfinite(d1) & (d1 > 0)).reshape(-1) & vis.explained(pts)
+    assert np.array_equal(w.reshape(-1) > 0, seen) and 0.5 < w.mean() < 1.0  # the block hides some of the room
+    assert view_targets(rest, vis, 3, 32, reach=0.4) == []
+    info = execute_stage(load_stage("gaussians"), {"video": video, "poses": poses},
+                         _params(voxel_size=0.05, eval_views=0, fit_views=2, fit_view_height=32), tmp_path / "out",
+                         input_digests={"video": "0" * 64, "poses": "1" * 64})["info"]
+    assert info["color_fit"]["views_from_aside"] == 1

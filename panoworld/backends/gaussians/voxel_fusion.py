@@ -39,6 +39,19 @@ class VoxelFusionOptions(FusionParams):
     """ERP height of that fit's render and target (0 = source_height). 512: its cube faces are those of a 256-row
     render supersampled 2x (the roam protocol's), +1.4 dB at the capture point with the 2x pole faces
     (docs/evaluation.md, "The poles at the capture point")."""
+    fit_views: int = param(0, ge=0)
+    """With fit_iters: that many other frames, spread over the path (farthest-point from the capture point), join the
+    colour fit where they see what the source saw, so the source's colours are fitted from aside too (0 = the capture
+    point only). Off by default for its cost: 4 views with fit_view_weight 0.3 gave +0.4-1.0 dB on the seen part
+    ~2 m away and kept the capture point on seeds 1, 5, 6 (seed 4: -0.19 dB), for about +70 % of the stage's CPU time
+    (docs/evaluation.md, "The seen part from aside")."""
+    fit_view_height: int = param(256, ge=8)
+    """ERP height of those frames' renders and targets in the fit."""
+    fit_view_reach: float = param(2.0, ge=0)
+    """Those frames are picked among the ones within this distance (metres) of the capture point (0 = any): where a
+    user roams, not at the room's far walls."""
+    fit_view_weight: float = param(1.0, ge=0)
+    """Weight of each of those frames' pixels in the fit against 1 for the capture point's."""
 
 
 def fuse(job):
@@ -53,7 +66,9 @@ def fuse(job):
     if len(captures) < 2:
         return source_anchored_fusion(job.frames, o, source_height=o.source_height, tol=o.source_tol,
                                       source_scale=o.source_scale, unseen_voxel_size=o.unseen_voxel_size,
-                                      fit_iters=o.fit_iters, fit_height=o.fit_height, progress=job.progress)
+                                      fit_iters=o.fit_iters, fit_height=o.fit_height, fit_views=o.fit_views,
+                                      fit_view_height=o.fit_view_height, fit_view_reach=o.fit_view_reach,
+                                      fit_view_weight=o.fit_view_weight, progress=job.progress)
     from panoworld.home.gaussians import home_anchored_fusion
     from panoworld.home.layout import home_depth_dirs
     from panoworld.home.mesh import load_sources
