@@ -114,7 +114,7 @@ def test_only_the_chosen_backends_options_enter_the_cache_key():
     assert "wan" not in params_to_dict(warp)
     assert params_to_dict(warp)["warp"] == {"max_band_deg": 45.0, "reuse": False, "side_depth_m": 0.0,
                                           "edge_depth_ratio": 0.75, "layout_planes": False, "wall_layout": False,
-                                          "color_sigma_px": 0.0, "shadow_ambient": 1.0, "plane_colors": False,
+                                          "color_sigma_px": 0.0, "shadow_ambient": 1.0, "plane_colors": True,
                                           "next_room_colors": False, "depth_fill": True}
     assert params_to_dict(warp) == params_to_dict(params_from_dict(video, {}, "video"))  # no rerun for wan.steps
     depth = load_stage("depth").params_cls
