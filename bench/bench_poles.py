@@ -60,7 +60,7 @@ def source_gaussians(scene: Path, v: dict):
     rgb, depth, pose = src.frame(0)
     params = replace(o, scale_factor=float(v.get("source_scale", o.source_scale)),
                      opacity=float(v.get("opacity", o.opacity)))
-    kw = {k: v[k] for k in ("thin_poles", "sharpen", "sharpen_sigma") if k in v}
+    kw = {k: v[k] for k in ("thin_poles",) if k in v}
     g = pixel_gaussians(rgb, depth, pose, params, **kw)
     info: dict = {"gaussians": len(g.means)}
     iters = int(v.get("fit_iters", 0))
@@ -85,8 +85,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scenes", type=Path, nargs="+")
     ap.add_argument("--variant", action="append", default=[],
-                    help="comma-separated KEY=VALUE (source_height, source_scale, opacity, thin_poles, sharpen, "
-                    "sharpen_sigma, fit_iters, fit_height, fit_views, fit_view_height, fit_view_reach, fit_view_weight, "
+                    help="comma-separated KEY=VALUE (source_height, source_scale, opacity, thin_poles, "
+                    "fit_iters, fit_height, fit_views, fit_view_height, fit_view_reach, fit_view_weight, "
                     "fit_supersample, fit_pole_scale; the render's supersample, pole_scale), or 'artifact' (the scene's gaussians.ply; 'artifact_source' / 'artifact_voxels': "
                     "its source / voxel part)")
     ap.add_argument("--height", type=int, default=256)

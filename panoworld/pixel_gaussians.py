@@ -30,30 +30,15 @@ def pole_thinning(height: int, width: int) -> np.ndarray:
     return (np.arange(width)[None, :] % k[:, None]) == 0
 
 
-def sharpened(rgb: np.ndarray, amount: float, sigma: float) -> np.ndarray:
-    """(H, W, 3) float32 in [0, 1]: an ERP image (uint8 or [0, 1]) unsharp-masked, rgb + amount (rgb - its Gaussian
-    blur of sigma pixels), longitude wrapped, clipped."""
-    import cv2
-
-    x = np.asarray(rgb, np.float32) / (255.0 if rgb.dtype == np.uint8 else 1.0)
-    pad = int(np.ceil(3 * sigma)) + 1
-    wide = np.concatenate([x[:, -pad:], x, x[:, :pad]], 1)
-    blur = cv2.GaussianBlur(wide, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)[:, pad:-pad]
-    return np.clip(x + amount * (x - blur), 0.0, 1.0)
-
-
 def pixel_gaussians(rgb: np.ndarray, depth: np.ndarray, world_from_cam: np.ndarray, params: FusionParams,
-                    *, thin_poles: bool = True, sharpen: float = 0.0, sharpen_sigma: float = 1.0) -> Gaussians:
+                    *, thin_poles: bool = True) -> Gaussians:
     """One Gaussian per valid pixel of an ERP frame (rgb (H, W, 3), depth (H, W) metres, pose (4, 4)).
 
     Each is the pixel's surface footprint (frame_observations' parallelogram covariance) times params.scale_factor,
     flat along the surface normal (at least min_scale * voxel_size thick); with thin_poles, rows near the poles keep
-    every k-th pixel (pole_thinning) with a k times wider footprint along the row. sharpen > 0: the colours are
-    unsharp-masked first (sharpened, sigma sharpen_sigma pixels), against the blur of overlapping splats.
+    every k-th pixel (pole_thinning) with a k times wider footprint along the row.
     """
     h, w = depth.shape
-    if sharpen > 0:
-        rgb = sharpened(rgb, sharpen, sharpen_sigma)
     obs = frame_observations(rgb, depth, world_from_cam, params)
     steps = obs.steps
     if thin_poles:
