@@ -175,7 +175,7 @@ def build_background_layer(
     layout_planes: bool = False,
     wall_layout: bool = False,
     shadow_ambient: float = 1.0,
-    plane_colors: bool = False,
+    plane_colors: bool = True,
     next_room_colors: bool = False,
 ) -> BackgroundLayer:
     """Extend the far side of every depth discontinuity of the source view behind its foreground occluder, and
