@@ -191,7 +191,7 @@ def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, 
     (their own sizes, supersample 1). pole_scale: the operators' (None = render_erp's default). Returns the Gaussians
     and {"rmse_before", "rmse_after"} of the render at world_from_cam, and "render": that render of the fitted
     Gaussians, (rgb (H, W, 3), alpha (H, W)) float32 numpy."""
-    from panoworld.render_gs import ErpColorOperator
+    from panoworld.erp_operator import ErpColorOperator
 
     def as_float(img):
         return torch.as_tensor(np.asarray(img, np.float32) / (255.0 if img.dtype == np.uint8 else 1.0))
@@ -202,8 +202,8 @@ def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, 
     views = [(op, y, None)]  # (operator, target, sqrt of the pixel weights or None)
     for img, pose, wt in extra:
         m = torch.as_tensor(np.sqrt(np.asarray(wt, np.float32)))[..., None]
-        views.append((ErpColorOperator(g, pose, img.shape[0], img.shape[1], supersample=1, pole_scale=pole_scale),
-                      as_float(img) * m, m))
+        views.append((ErpColorOperator(g, pose, img.shape[0], img.shape[1], supersample=1, pole_scale=pole_scale,
+                                       mask=np.asarray(wt) > 0), as_float(img) * m, m))
 
     def fwd(k, x):
         A, _, m = views[k]
