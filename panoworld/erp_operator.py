@@ -15,7 +15,7 @@ from panoworld.render_gs import (
     LOWPASS,
     TILE,
     ErpFace,
-    _prepare,
+    covariance_3d,
     _Prepared,
     erp_faces,
     face_weights,
@@ -71,17 +71,21 @@ class ErpColorOperator:
 
     mask (H, W) bool: only those ERP pixels are rendered (0 elsewhere): the face pixels their samples read are the
     only ones composited, and each face projects only the Gaussians whose box can meet it (face_candidates), so a view
-    that counts only part of its pixels costs that part. On the kept pixels it equals the operator without a mask."""
+    that counts only part of its pixels costs that part. On the kept pixels it equals the operator without a mask.
+    tile: the weights kernel's tile size (face_weights); cov: the Gaussians' covariance_3d when already at hand."""
 
     def __init__(self, gaussians: Gaussians, world_from_cam: np.ndarray, H: int, W: int, *,
                  supersample: int = ERP_SUPERSAMPLE, near: float = 0.01, pole_scale: float | None = None,
-                 mask: np.ndarray | None = None, tile: int = TILE):
+                 mask: np.ndarray | None = None, tile: int = TILE, cov: torch.Tensor | None = None):
         import scipy.sparse
 
         faces = erp_faces(world_from_cam, H, W, supersample=supersample, pole_scale=pole_scale)
         s = self.s = int(supersample)
         self.H, self.W, self.N = H, W, len(gaussians)
-        prep = _prepare(gaussians, np.asarray(world_from_cam, dtype=np.float64)[:3, 3])
+        means, opacity = torch.as_tensor(gaussians.means).float(), torch.as_tensor(gaussians.opacities).float()
+        if cov is None:
+            cov = covariance_3d(torch.as_tensor(gaussians.scales).float(), torch.as_tensor(gaussians.quats).float())
+        prep = _Prepared(means, cov, opacity, torch.zeros(1, 3).expand(len(means), 3))  # colours: the operand
         offsets = prep.means - torch.as_tensor(np.asarray(world_from_cam, np.float32)[:3, 3])
         r2 = torch.where(prep.opacity > ALPHA_MIN * 0.999, 2.0 * (255.0 * prep.opacity).clamp(min=1.0).log(), 0.0)
         scale2 = torch.as_tensor(np.asarray(gaussians.scales, np.float32)).amax(1).square()
@@ -129,7 +133,8 @@ class ErpColorOperator:
         if self.s > 1:  # the pooling's adjoint: each sample gets its pixel's value / s^2
             r = np.broadcast_to(r[:, None, :, None] / self.s**2, (self.H, self.s, self.W, self.s, 3))
         r = np.ascontiguousarray(r).reshape(-1, 3)
-        return torch.from_numpy(sum(self._per_face(lambda f: f[2].T @ (f[1].T @ r[f[0]]))))
+        return torch.from_numpy(sum(self._per_face(lambda f: f[2].T @ (f[1].T @ r[f[0]])),
+                                    np.zeros((self.N, 3), np.float32)))
 
     def _per_face(self, fn) -> list:
         """fn((sample index, sampling, weights)) for every face, in face order, on torch's threads (scipy's sparse

@@ -52,6 +52,12 @@ class VoxelFusionOptions(FusionParams):
     user roams, not at the room's far walls."""
     fit_view_weight: float = param(1.0, ge=0)
     """Weight of each of those frames' pixels in the fit against 1 for the capture point's."""
+    fit_sh_degree: int = param(0, ge=0, le=1)
+    """With fit_views: 1 fits view-dependent colours too (degree-1 SH, written as f_rest_*), so the colours seen from
+    those frames need not be the capture point's."""
+    fit_sh_damping: float = param(1.0, ge=0)
+    """Damping of those degree-1 coefficients towards 0 per unit of compositing weight (the colours' is 0.01): a
+    Gaussian seen from few directions keeps about one colour."""
 
 
 def fuse(job):
@@ -68,7 +74,8 @@ def fuse(job):
                                       source_scale=o.source_scale, unseen_voxel_size=o.unseen_voxel_size,
                                       fit_iters=o.fit_iters, fit_height=o.fit_height, fit_views=o.fit_views,
                                       fit_view_height=o.fit_view_height, fit_view_reach=o.fit_view_reach,
-                                      fit_view_weight=o.fit_view_weight, progress=job.progress)
+                                      fit_view_weight=o.fit_view_weight, fit_sh_degree=o.fit_sh_degree,
+                                      fit_sh_damping=o.fit_sh_damping, progress=job.progress)
     from panoworld.home.gaussians import home_anchored_fusion
     from panoworld.home.layout import home_depth_dirs
     from panoworld.home.mesh import load_sources
