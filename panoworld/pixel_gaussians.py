@@ -239,16 +239,22 @@ def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, 
         basis = [b / rho for b in basis]
 
     def color(k, x):  # the unknowns (N, 3) or (N, 12: c, then s (3 basis x 3 channels)) -> view k's colours (N, 3)
-        return x if not sh_degree else x[:, :3] + torch.einsum("nj,njc->nc", basis[k], x[:, 3:].reshape(n, 3, 3))
+        if not sh_degree or k == 0:
+            return x[:, :3]
+        return x[:, :3] + torch.einsum("nj,njc->nc", basis[k], x[:, 3:].reshape(n, 3, 3))
 
     def fwd(k, x):
         A, _, m = views[k]
         return A(color(k, x)) if m is None else A(color(k, x)) * m
 
-    def adj(k, r):
-        A, _, m = views[k]
-        gc = A.adjoint(r if m is None else r * m)
-        return gc if not sh_degree else torch.cat([gc, (basis[k][:, :, None] * gc[:, None, :]).reshape(n, 9)], 1)
+    def grad(r):  # sum over the views of the adjoint of r (per view (h, w, 3)), as the unknowns
+        out = torch.zeros(n, 12 if sh_degree else 3)
+        for k, (A, _, m) in enumerate(views):
+            gc = A.adjoint(r[k] if m is None else r[k] * m)
+            out[:, :3] += gc
+            if sh_degree and k:
+                out[:, 3:].view(n, 3, 3).add_(basis[k][:, :, None] * gc[:, None, :])
+        return out
 
     c0 = torch.from_numpy(g.base_colors())
     rest0 = np.asarray(g.sh_rest, np.float32)
@@ -266,14 +272,14 @@ def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, 
     x = c0.clone()
     r = [v[1] - fwd(k, x) for k, v in enumerate(views)]
     rmse0 = float(r[0].square().mean().sqrt())
-    s = sum(adj(k, r[k]) for k in range(len(views)))  # the gradient of the damped objective at c0 (damping term 0)
+    s = grad(r)  # the gradient of the damped objective at c0 (damping term 0)
     p, gamma = s.clone(), float(s.square().sum())
     for _ in range(iters):
         q = [fwd(k, p) for k in range(len(views))]
         alpha = gamma / max(float(sum(qk.square().sum() for qk in q) + (lam * p.square()).sum()), 1e-20)
         x = x + alpha * p
         r = [rk - alpha * qk for rk, qk in zip(r, q)]
-        s = sum(adj(k, r[k]) for k in range(len(views))) - lam * (x - c0)
+        s = grad(r).sub_(lam * (x - c0))
         gamma_new = float(s.square().sum())
         p, gamma = s + gamma_new / max(gamma, 1e-20) * p, gamma_new
     x[:, :3] = x[:, :3].clamp(0.0, 1.0)
