@@ -15,8 +15,8 @@ from panoworld.render_gs import (
     LOWPASS,
     TILE,
     ErpFace,
-    covariance_3d,
     _Prepared,
+    covariance_3d,
     erp_faces,
     face_weights,
     project,
@@ -122,7 +122,7 @@ class ErpColorOperator:
     def __call__(self, colors: torch.Tensor) -> torch.Tensor:
         c = colors.detach().numpy().astype(np.float32)
         out = np.zeros((self.s * self.H * self.s * self.W, 3), np.float32)
-        for (index, S, _), face in zip(self.faces, self._per_face(lambda f: f[1] @ (f[2] @ c))):
+        for (index, _, _), face in zip(self.faces, self._per_face(lambda f: f[1] @ (f[2] @ c))):
             out[index] = face
         out = out.reshape(self.H, self.s, self.W, self.s, 3).mean((1, 3)) if self.s > 1 else \
             out.reshape(self.H, self.W, 3)
