@@ -99,7 +99,7 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
                            source_scale: float | None = None, unseen_voxel_size: float = 0.0, thin_poles: bool = True,
                            fit_iters: int = 0, fit_height: int = 0, fit_views: int = 0, fit_view_height: int = 256,
                            fit_view_reach: float = 0.0, fit_view_weight: float = 1.0, fit_sh_degree: int = 0,
-                           fit_sh_damping: float = 1.0, progress: bool = False) -> FusionResult:
+                           fit_sh_damping: float = 0.001, progress: bool = False) -> FusionResult:
     """Per-pixel Gaussians of the source view (video frame 0, at source_height rows; 0 = as the other frames) plus
     voxel fusion of what the other frames see that the source does not (SourceVisibility with tolerance tol) in voxels
     of unseen_voxel_size (0 = params.voxel_size), less those poking through the source's surfaces: the capture point keeps the input's full detail, the rest of the
@@ -186,7 +186,7 @@ def fuse_unseen(pix: Gaussians, frames: ContextSource, vis, params: FusionParams
 def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, iters: int = 10, damping: float = 0.01,
                supersample: int = 1, pole_scale: float | None = None,
                extra: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = (), tile: int = 8, sh_degree: int = 0,
-               sh_damping: float = 1.0) -> tuple[Gaussians, dict]:
+               sh_damping: float = 0.001) -> tuple[Gaussians, dict]:
     """Gaussians whose colours (SH DC) are refitted so their ERP render at world_from_cam matches target (H, W, 3)
     uint8 or [0, 1]: the render is linear in the colours for fixed geometry (erp_operator.ErpColorOperator), so this
     is `iters` steps of damped conjugate-gradient least squares, min |A c - y|^2 + damping |c - c0|^2 from the current
