@@ -43,7 +43,7 @@ class VoxelFusionOptions(FusionParams):
     """With fit_iters: that many other frames, spread over the path (farthest-point from the capture point), join the
     colour fit where they see what the source saw, so the source's colours are fitted from aside too (0 = the capture
     point only). Off by default: 4 views with fit_view_weight 0.3 gave +0.2-1.0 dB on the seen part ~2 m away on
-    validation seeds 1, 4, 5, 6 but seed 4's capture point -0.18 dB, for +36 % of the stage's CPU time (+4 % over
+    validation seeds 1, 4, 5, 6 but seed 4's capture point -0.18 dB, for +40 % of the stage's CPU time (+6 % over
     the stage before its operator was made cheaper) (docs/evaluation.md, "Views from aside, affordable")."""
     fit_view_height: int = param(256, ge=8)
     """ERP height of those frames' renders and targets in the fit."""
