@@ -89,6 +89,7 @@ def main() -> int:
     ap.add_argument("scenes", type=Path, nargs="+")
     ap.add_argument("--ply", action="append", default=[], help="NAME=PATH of another gaussians.ply (repeatable; "
                     "with one scene)")
+    ap.add_argument("--no-artifact", action="store_true", help="score only the --ply files")
     ap.add_argument("--buckets", nargs="*", default=["d0", "d1", "d2", "far"])
     ap.add_argument("--views", type=int, default=2)
     ap.add_argument("--height", type=int, default=256)
@@ -103,8 +104,8 @@ def main() -> int:
     print("| scene | variant | N | MB | bucket | seen from behind % (per view) | PSNR all | behind | rest |\n"
           "|---|---|---|---|---|---|---|---|---|")
     for scene in a.scenes:
-        plys = {"artifact": scene / ARTIFACTS / "gaussians" / "gaussians.ply",
-                **{kv.split("=", 1)[0]: Path(kv.split("=", 1)[1]) for kv in a.ply}}
+        plys = {} if a.no_artifact else {"artifact": scene / ARTIFACTS / "gaussians" / "gaussians.ply"}
+        plys.update({kv.split("=", 1)[0]: Path(kv.split("=", 1)[1]) for kv in a.ply})
         res[str(scene)] = rows = measure(scene, plys, a.buckets, a.views, a.height)
 
         def f(v):
