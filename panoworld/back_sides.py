@@ -1,4 +1,4 @@
-"""Back-side Gaussians: a thin wall's other side, where the floor a user walks reaches behind it."""
+"""Back-side Gaussians: a thin wall's other side, where the floor a user walks sees behind it."""
 
 from __future__ import annotations
 
@@ -12,11 +12,15 @@ from panoworld.gaussian_set import Gaussians, rgb_to_sh_dc
 from panoworld.rotations import rotmat_from_quat
 
 CELL_M = 0.05
-"""Edge of the floor-plan grid the reachable space is flooded on."""
+"""Edge of the floor-plan grid of sight_grid."""
 BAND_M = (0.2, 1.7)
-"""Heights above the floor whose source points block the flood (below a doorway's lintel, above skirting and rugs)."""
+"""Heights above the floor whose source points block the sight (below a doorway's lintel, above skirting and rugs)."""
 UPRIGHT = 0.35
 """Surfaces whose normal's vertical component is at most this (walls, within ~20 degrees) get a back side."""
+RAYS = 720
+"""Directions of sight_grid's rays (0.5 degrees: about a cell apart 5 m away)."""
+SIGHT_STEP_M = 0.25
+"""sight_grid looks from the NavMesh's points on a grid of this step."""
 WINDOW = 3
 """A back-side point must lie behind every source depth within this many pixels of its own (not at a doorway's
 jamb, where the source sees past the wall's edge)."""
@@ -40,9 +44,11 @@ def normals_facing(g: Gaussians, centre: np.ndarray) -> np.ndarray:
     return n
 
 
-def reachable_grid(nav, blockers: np.ndarray, reach_m: float) -> tuple[np.ndarray, float, float]:
-    """Floor-plan cells (CELL_M, x0 + j * CELL_M, z0 + i * CELL_M) a walk of at most reach_m from the NavMesh nav
-    reaches without crossing a source point (blockers (M, 3) in the band): (reached (n, m) bool, x0, z0)."""
+def sight_grid(nav, blockers: np.ndarray, reach_m: float) -> tuple[np.ndarray, float, float]:
+    """Floor-plan cells (CELL_M, x0 + j * CELL_M, z0 + i * CELL_M) in the line of sight of the NavMesh nav within
+    reach_m: rays in RAYS directions from points of nav every SIGHT_STEP_M, each up to the first cell holding (or next
+    to) one of the source's points blockers (M, 3) (what it saw between BAND_M; unseen space counts as free):
+    (seen (n, m) bool, x0, z0)."""
     import cv2
 
     v = np.asarray(nav.vertices, np.float64)
@@ -54,22 +60,31 @@ def reachable_grid(nav, blockers: np.ndarray, reach_m: float) -> tuple[np.ndarra
     ok = (jx >= 0) & (jx < m) & (jz >= 0) & (jz < n)
     occupied = np.zeros((n, m), np.uint8)
     occupied[jz[ok], jx[ok]] = 1
-    free = cv2.dilate(occupied, np.ones((3, 3), np.uint8)) == 0
-    zz, xx = np.mgrid[0:n, 0:m]
-    centres = np.stack([x0 + (xx.ravel() + 0.5) * CELL_M, z0 + (zz.ravel() + 0.5) * CELL_M], 1)
-    reached = (nav.contains(centres).reshape(n, m) & free).astype(np.uint8)
-    cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
-    for _ in range(int(round(reach_m / CELL_M))):
-        reached = cv2.dilate(reached, cross) & free
-    return reached.astype(bool), float(x0), float(z0)
+    occupied = cv2.dilate(occupied, np.ones((3, 3), np.uint8)).astype(bool)
+    lo, hi = v.min(0), v.max(0)
+    gx, gz = np.meshgrid(np.arange(lo[0], hi[0], SIGHT_STEP_M), np.arange(lo[1], hi[1], SIGHT_STEP_M))
+    eyes = np.stack([gx.ravel(), gz.ravel()], 1)
+    eyes = eyes[nav.contains(eyes)]
+    a = np.linspace(0, 2 * np.pi, RAYS, endpoint=False)
+    t = np.arange(1, int(reach_m / CELL_M) + 1) * CELL_M
+    steps = np.stack([np.cos(a)[:, None] * t, np.sin(a)[:, None] * t], -1)  # (RAYS, T, 2)
+    seen = np.zeros((n, m), bool)
+    for e in eyes:
+        p = e + steps
+        j = ((p[..., 0] - x0) / CELL_M).astype(np.int64)
+        i = ((p[..., 1] - z0) / CELL_M).astype(np.int64)
+        clear = ~np.maximum.accumulate(occupied[i, j], axis=1)
+        seen[i[clear], j[clear]] = True
+    return seen, float(x0), float(z0)
 
 
 def back_side_gaussians(g: Gaussians, depth: np.ndarray, world_from_cam: np.ndarray, nav, *, thickness: float,
                         reach: float, rgb: np.ndarray | None = None) -> BackSides:
-    """A second layer for the source's per-pixel Gaussians g on upright surfaces whose other side the NavMesh nav
-    reaches: each copied `thickness` metres behind its surface (along its normal, away from the capture point at
+    """A second layer for the source's per-pixel Gaussians g on upright surfaces whose other side is in the line of
+    sight of the NavMesh nav: each copied `thickness` metres behind its surface (along its normal, away from the capture point at
     world_from_cam), hidden from the capture point (behind the source depth (H, W) metres of every pixel within
-    WINDOW of its own), and the cell `thickness` + 2 CELL_M behind it reached by reachable_grid within `reach` metres.
+    WINDOW of its own), and the cell `thickness` + 2 CELL_M behind it seen from the NavMesh within `reach` metres
+    (sight_grid: from the front side the wall itself blocks the sight).
     Coloured rgb (3,) uint8 when given (the next room's walls), else as the front. Splats are two-sided: from behind,
     the back layer is in front of the front layer; from the capture point, behind it."""
     import cv2
@@ -92,9 +107,9 @@ def back_side_gaussians(g: Gaussians, depth: np.ndarray, world_from_cam: np.ndar
     j = np.mod(np.floor(u).astype(np.int64), depth.shape[1])
     i = np.clip(np.floor(v).astype(np.int64), 0, depth.shape[0] - 1)
     hidden = dist > d_max[i, j]
-    # reachable from behind
+    # in sight of the walkable floor from behind
     band = (height > BAND_M[0]) & (height < BAND_M[1])
-    reached, x0, z0 = reachable_grid(nav, means[band], reach)
+    reached, x0, z0 = sight_grid(nav, means[band], reach)
     far = means[cand] - (thickness + 2 * CELL_M) * n[cand]
     ci = ((far[:, 2] - z0) / CELL_M).astype(np.int64)
     cj = ((far[:, 0] - x0) / CELL_M).astype(np.int64)

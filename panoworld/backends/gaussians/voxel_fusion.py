@@ -53,14 +53,15 @@ class VoxelFusionOptions(FusionParams):
     fit_view_weight: float = param(1.0, ge=0)
     """Weight of each of those frames' pixels in the fit against 1 for the capture point's."""
     back_sides: bool = False
-    """With source_pixels and a navmesh input: upright source surfaces whose other side the walkable floor reaches
-    (within back_side_reach, not through a surface the source saw) get a second layer of Gaussians
-    back_side_thickness behind them, hidden from the capture point: a thin wall seen from the next room shows its
-    back, not the source side's colour (panoworld/back_sides.py; docs/evaluation.md, "Thin walls seen from behind")."""
+    """With source_pixels and a navmesh input: upright source surfaces whose other side is in the line of sight of the
+    walkable floor (within back_side_reach; what the source saw blocks the sight, unseen space does not) get a second
+    layer of Gaussians back_side_thickness behind them, hidden from the capture point: a thin wall seen from the next
+    room shows a back, not the source side's colour (panoworld/back_sides.py; docs/evaluation.md, "Thin walls seen
+    from behind")."""
     back_side_thickness: float = param(0.12, gt=0)
     """Metres behind the front surface (a wall's thickness; the synthetic walls are 0.15 m)."""
-    back_side_reach: float = param(1.5, gt=0)
-    """Metres of floor plan walked from the NavMesh, around what the source saw, to the wall's back."""
+    back_side_reach: float = param(4.0, gt=0)
+    """Metres of sight from the NavMesh to a wall's back."""
     back_side_color: str = param("next_room", choices=("next_room", "front"))
     """next_room: the next room's wall colour the doorway shows (plane_colors.floor_beyond's; the front's where
     none is seen); front: the front's colour."""
