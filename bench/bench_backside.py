@@ -1,8 +1,8 @@
 """Prints, per roam bucket of synthetic scenes already run to `gaussians`, the share of pixels where a view sees the
 source's surfaces from behind (a thin wall's other side) and the PSNR of the Gaussians there and elsewhere.
 
-A pixel sees a surface from behind when its ray's first hit on the scene's mesh artifact (the source depth's mesh,
-stretched faces left out) is a face whose side facing the view is not the side facing the capture point (faces seen
+A pixel sees a surface from behind when its ray's first hit on the scene's mesh artifact (the source depth's mesh
+without its stretched faces, which the Gaussians do not have either) is a face whose side facing the view is not the side facing the capture point (faces seen
 under 6 degrees or less from the capture point are left out). Each `--ply NAME=PATH` is scored on the same pixels
 (`artifact`: the scene's own gaussians.ply); roam poses as bench_gs_variants (seed 0). Tune on VALIDATION seeds only.
 
@@ -43,7 +43,8 @@ def behind_mask(mesh, caster, pose: np.ndarray, height: int, width: int) -> np.n
     return ok & mesh.face_valid[np.where(ok, face, 0)] & (np.abs(s_src) > EDGE_ON) & (s_src * s_view < 0)
 
 
-def measure(scene: Path, plys: dict[str, Path], buckets: list[str], views: int, height: int) -> dict:
+def measure(scene: Path, plys: dict[str, Path], buckets: list[str], views: int, height: int,
+            behind_views_only: bool = False) -> dict:
     from panoworld.eval.groundtruth import open_ground_truth
     from panoworld.eval.roam import sample_roam_poses
     from panoworld.mesh import load_erp_mesh
@@ -53,6 +54,8 @@ def measure(scene: Path, plys: dict[str, Path], buckets: list[str], views: int, 
     from panoworld.splat_ply import read_gaussians_ply
 
     mesh = load_erp_mesh(scene / ARTIFACTS / "mesh")
+    mesh.faces = mesh.faces[mesh.face_valid]
+    mesh.face_valid = mesh.face_valid[mesh.face_valid]
     caster = Raycaster(mesh.vertices, mesh.faces)
     gt = open_ground_truth(scene)
     roam = sample_roam_poses(load_navmesh(scene / ARTIFACTS / "navmesh"), views, seed=0)
@@ -70,14 +73,15 @@ def measure(scene: Path, plys: dict[str, Path], buckets: list[str], views: int, 
             per_view = []
             for k, pose in enumerate(roam.poses.get(key, [])):
                 ref, back = refs[key, k]
+                per_view.append(float(back.mean()))
+                if behind_views_only and not back.any():
+                    continue
                 img = (render_erp(g, pose, height, W).rgb.clamp(0, 1).numpy() * 255.0).round()
                 err = ((img - ref) ** 2).mean(-1)
-                per_view.append(float(back.mean()))
                 for part, m in (("all", np.ones_like(back)), ("behind", back), ("rest", ~back)):
                     acc[part][0] += float(err[m].sum())
                     acc[part][1] += int(m.sum())
-            n_all = max(acc["all"][1], 1)
-            row[key] = {"behind_share": acc["behind"][1] / n_all, "behind_share_views": per_view,
+            row[key] = {"behind_share": float(np.mean(per_view)) if per_view else 0.0, "behind_share_views": per_view,
                         **{f"psnr_{part}": (10 * np.log10(255.0**2 / (se / n)) if n and se > 0 else None)
                            for part, (se, n) in acc.items()}}
         out[name] = row
@@ -89,6 +93,8 @@ def main() -> int:
     ap.add_argument("scenes", type=Path, nargs="+")
     ap.add_argument("--ply", action="append", default=[], help="NAME=PATH of another gaussians.ply (repeatable; "
                     "with one scene)")
+    ap.add_argument("--behind-views-only", action="store_true", help="render only the views that see something "
+                    "from behind (PSNR all / rest then cover those views only)")
     ap.add_argument("--no-artifact", action="store_true", help="score only the --ply files")
     ap.add_argument("--buckets", nargs="*", default=["d0", "d1", "d2", "far"])
     ap.add_argument("--views", type=int, default=2)
@@ -106,7 +112,7 @@ def main() -> int:
     for scene in a.scenes:
         plys = {} if a.no_artifact else {"artifact": scene / ARTIFACTS / "gaussians" / "gaussians.ply"}
         plys.update({kv.split("=", 1)[0]: Path(kv.split("=", 1)[1]) for kv in a.ply})
-        res[str(scene)] = rows = measure(scene, plys, a.buckets, a.views, a.height)
+        res[str(scene)] = rows = measure(scene, plys, a.buckets, a.views, a.height, a.behind_views_only)
 
         def f(v):
             return "n/a" if v is None else f"{v:.2f}"
