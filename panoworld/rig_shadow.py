@@ -125,20 +125,23 @@ def disc_shadow(face: np.ndarray, rig: np.ndarray, floor: np.ndarray, theta: np.
     def shape(p: np.ndarray) -> tuple[float, float]:  # (radius, blur): radius + 2 blur <= DISC_REACH
         return p[1] * max(DISC_REACH - 2.0 * p[2], 0.0), p[2]
 
-    def resid(p: np.ndarray) -> np.ndarray:
+    def residual(p: np.ndarray) -> np.ndarray:  # every sample's, the quadratic fitted with the weights
         z = y - np.log(1.0 - p[0] * _disc(r, *shape(p)))
         sw = np.sqrt(wts)
         coef, *_ = np.linalg.lstsq(A * sw[:, None], z * sw, rcond=None)
-        return sw * (z - A @ coef)
+        return z - A @ coef
+
+    def resid(p: np.ndarray) -> np.ndarray:
+        return np.sqrt(wts) * residual(p)
 
     lo, hi = [0.0, 0.0, DISC_BLUR[0]], [DISC_DEPTH_MAX, 1.0, DISC_BLUR[1]]
     starts = [np.array([0.3, t, b]) for t in (0.0, 0.6) for b in (0.08, 0.16)]
     p = min(starts, key=lambda q: float(np.sum(resid(q) ** 2)))
     for it in range(10):
         p = least_squares(resid, p, bounds=(lo, hi), x_scale=[0.1, 0.2, 0.03], max_nfev=20).x
-        res = resid(p) / np.maximum(np.sqrt(wts), 1e-9)
+        res = residual(p)
         if it < 4:  # trimming (texture, the legs' own cast shadows), then the upper expectile
-            keep = np.abs(res) < 3.0 * 1.4826 * np.median(np.abs(res[wts > 0])) + 1e-6
+            keep = (wts > 0) & (np.abs(res) < 3.0 * 1.4826 * np.median(np.abs(res[wts > 0])) + 1e-6)
             wts = keep.astype(np.float64)
         else:
             wts = np.where(wts > 0, np.where(res > 0, LIGHT_EXPECTILE, 1.0 - LIGHT_EXPECTILE), 0.0)
