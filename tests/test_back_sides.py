@@ -13,8 +13,8 @@ import trimesh
 from panoworld.back_sides import back_side_layer
 from panoworld.conventions import points_from_depth
 from panoworld.fusion_params import FusionParams
-from panoworld.metrics import psnr
 from panoworld.mesh import erp_mesh_from_depth
+from panoworld.metrics import psnr
 from panoworld.navmesh.build import build_navmesh
 from panoworld.pixel_gaussians import merge_gaussians, pixel_gaussians
 from panoworld.raycast import Raycaster
