@@ -98,7 +98,7 @@ def merge_gaussians(parts: list[Gaussians]) -> Gaussians:
 def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, source_height: int = 0, tol: float = 0.03,
                            source_scale: float | None = None, unseen_voxel_size: float = 0.0, thin_poles: bool = True,
                            fit_iters: int = 0, fit_height: int = 0, fit_views: int = 0, fit_view_height: int = 256,
-                           fit_view_reach: float = 0.0, fit_view_weight: float = 1.0,
+                           fit_view_reach: float = 0.0, fit_view_weight: float = 1.0, back_sides=None,
                            progress: bool = False) -> FusionResult:
     """Per-pixel Gaussians of the source view (video frame 0, at source_height rows; 0 = as the other frames) plus
     voxel fusion of what the other frames see that the source does not (SourceVisibility with tolerance tol) in voxels
@@ -107,7 +107,8 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
     frame 0 among the frames it is plain voxel fusion. fit_iters > 0: the colours are then fitted to frame 0 at its
     pose (fit_colors, at fit_height rows; 0 = source_height), and with fit_views > 0 to that many other frames
     spread over the path within fit_view_reach metres (view_targets(), at fit_view_height rows, each pixel
-    weighted fit_view_weight against 1 for the capture point's) where they see what the source saw."""
+    weighted fit_view_weight against 1 for the capture point's) where they see what the source saw. back_sides: a
+    callable (pix, rgb, depth, world_from_cam) -> back_sides.BackSides whose Gaussians join the result."""
     if not frames.indices or frames.indices[0] != 0:
         return voxel_fusion(frames, params, progress=progress)
     src = replace(frames, height=min(source_height or frames.height, frames.stored_height))
@@ -118,6 +119,9 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
                    world_from_cam=frames.world_from_cam[1:], indices=frames.indices[1:])
     vis = SourceVisibility(depth, pose, tol)
     result = fuse_unseen(pix, rest, vis, params, unseen_voxel_size=unseen_voxel_size, progress=progress)
+    if back_sides is not None:
+        back = back_sides(pix, rgb, depth, pose)
+        result.gaussians, result.back_sides = merge_gaussians([result.gaussians, back.gaussians]), back.stats
     if fit_iters > 0:
         if fit_height and fit_height != src.height:
             rgb = replace(frames, height=min(fit_height, frames.stored_height)).frame(0)[0]
