@@ -55,7 +55,9 @@ def build(scene: Path, variant: str, out: Path) -> tuple[Path, float, float]:
         raise SystemExit(str(e)) from None
     out.mkdir(parents=True, exist_ok=True)
     t0, c0 = time.perf_counter(), time.process_time()
-    run({"video": scene / ARTIFACTS / "video", "poses": scene / ARTIFACTS / "poses"}, params, out)
+    nav = scene / ARTIFACTS / "navmesh"
+    run({"video": scene / ARTIFACTS / "video", "poses": scene / ARTIFACTS / "poses",
+         "navmesh": nav if nav.is_dir() else None}, params, out)
     return out / "gaussians.ply", time.perf_counter() - t0, time.process_time() - c0
 
 

@@ -188,6 +188,7 @@ def relight_oracle(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.nd
     out = rig.remove_rig(rgb, replace(det, shadow_gain=gain, shadow=shadow, source=source))
     row = {"psnr_true_light": nadir_cap_psnr(out, clean), "shadow_sectors": f"{det.stats.get('shadow_sectors', '-')}, "
            f"{det.stats.get('shadow_even_sectors', '-')}"}
+    row.update(disc_relight(rgb, clean, det, nf, gain))
     det_gain = det.shadow_gain if det.shadow_gain is not None else np.ones_like(gain)
     theta, _ = face_polar(view)
     floor = nf.on_floor & ~fmask
@@ -202,6 +203,35 @@ def relight_oracle(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.nd
             prof = float(np.interp(0.5 * (a + b), fit.knots, fit.profile))
             row[f"sectors_{a:.0f}_{b:.0f}"] = (f"{np.nanmin(lit[i]):.2f}-{np.nanmax(lit[i]):.2f} "
                                                f"({prof:.2f}; {1 / np.median(gain[ring]):.2f})")
+    return row
+
+
+def disc_relight(rgb: np.ndarray, clean: np.ndarray, det, nf, true_gain: np.ndarray) -> dict:
+    """The relighting's decision and its shadow model: the cap without any relighting (`psnr_no_relight`), and with
+    the floor relit by rig_shadow.disc_shadow's soft disc instead of the radial profile where the removal relights
+    (`psnr_disc_light`; unchanged where it does not), the disc's depth / radius / blur (deg) / gain of fit (`disc`)
+    and its gain over the true one (true_gain, on the face) per ring of SECTOR_BANDS_DEG 5-20 outside the mask
+    (`disc_over_true`, %)."""
+    from dataclasses import replace
+
+    from panoworld.rig_face import erp_mask_to_face, face_to_erp_mask
+    from panoworld.rig_shadow import disc_shadow
+
+    H, W = rgb.shape[:2]
+    row = {"psnr_no_relight": nadir_cap_psnr(rig.remove_rig(rgb, replace(det, shadow_gain=None, shadow=None)), clean)}
+    fmask = rig._dilate(erp_mask_to_face(det.mask, nf.view), nf.view)
+    disc = disc_shadow(nf.face, fmask, nf.on_floor & rig._floor_chroma(nf.face, nf.ring_floor), nf.theta, nf.view.focal)
+    if disc is None:
+        return row
+    deg = lambda x: float(np.rad2deg(np.arctan(x)))
+    row["disc"] = f"{disc.depth:.2f} / {deg(disc.radius):.1f} / {deg(disc.blur):.1f} / {disc.gain_of_fit:.3f}"
+    g, floor = disc.gain(nf.theta), nf.on_floor & ~fmask
+    rings = [floor & (nf.theta >= a) & (nf.theta < b) for a, b in zip(SECTOR_BANDS_DEG[:-2], SECTOR_BANDS_DEG[1:-1])]
+    row["disc_over_true"] = " / ".join(f"{100 * (np.mean(g[m] / true_gain[m]) - 1):+.0f}" for m in rings if m.any())
+    row["psnr_disc_light"] = nadir_cap_psnr(rig.remove_rig(rgb, det), clean)
+    if det.shadow is not None and det.shadow.any():
+        relit = replace(det, shadow_gain=g, shadow=face_to_erp_mask(g > 1.0, nf.view, H, W) & ~det.mask)
+        row["psnr_disc_light"] = nadir_cap_psnr(rig.remove_rig(rgb, relit), clean)
     return row
 
 
@@ -484,11 +514,14 @@ def main(argv: list[str] | None = None) -> int:
         bands = [f"relight_{a:.0f}_{b:.0f}" for a, b in zip(LIGHT_BANDS_DEG[:-1], LIGHT_BANDS_DEG[1:])]
         print("\nthe true soft-shadow factor instead of the detected one (same mask and fill), PSNR15, and the "
               "detected gain over the true one per ring (deg) on the floor outside the mask, %:\n")
-        print("| seed | case | detected light | true light | " + " | ".join(b[8:].replace("_", "-") for b in bands)
-              + " |\n|---|---|---|---|" + "---|" * len(bands))
+        print("| seed | case | detected light | true light | no relighting | disc light | disc: depth / radius / blur "
+              "(deg) / gain of fit | disc over true 5-10 / 10-15 / 15-20, % | " + " | ".join(b[8:].replace("_", "-") for b in bands)
+              + " |\n|---|---|---|---|---|---|---|---|" + "---|" * len(bands))
         for r in rows:
             if "psnr_true_light" in r:
                 print(f"| {r['seed']} | {r['case']} | {fmt(r['psnr_after'])} | {fmt(r['psnr_true_light'])} | "
+                      f"{fmt(r['psnr_no_relight'])} | {fmt(r.get('psnr_disc_light'))} | {r.get('disc', '-')} | "
+                      f"{r.get('disc_over_true', '-')} | "
                       + " | ".join(fmt(100 * r[b] if r[b] is not None else None, "+.1f") for b in bands) + " |")
         sect = [f"sectors_{a:.0f}_{b:.0f}" for a, b in zip(SECTOR_BANDS_DEG[:-1], SECTOR_BANDS_DEG[1:])]
         print("\nthe floor's light over the floor-light model in 8 azimuth sectors per ring (deg), min-max (the radial "
@@ -499,12 +532,14 @@ def main(argv: list[str] | None = None) -> int:
             if sect[0] in r:
                 print(f"| {r['seed']} | {r['case']} | " + " | ".join(r[b] for b in sect)
                       + f" | {r['shadow_sectors']} |")
+        print("\n| case | detected light | true light | no relighting | disc light (mean / min, >= 25 dB) |\n|---|---|---|---|---|")
         for kind in cases:
             rs = [r for r in rows if r["case"] == str(kind) and "psnr_true_light" in r]
             if rs:
-                print(f"| mean / min | {kind} | {np.mean([r['psnr_after'] for r in rs]):.2f} / "
-                      f"{min(r['psnr_after'] for r in rs):.2f} | {np.mean([r['psnr_true_light'] for r in rs]):.2f} / "
-                      f"{min(r['psnr_true_light'] for r in rs):.2f} | |")
+                cols = [[r.get(k, r["psnr_after"]) for r in rs] for k in
+                        ("psnr_after", "psnr_true_light", "psnr_no_relight", "psnr_disc_light")]
+                print(f"| {kind} | " + " | ".join(f"{np.mean(c):.2f} / {min(c):.2f} ({sum(v >= 25 for v in c)}/{len(c)})"
+                                                  for c in cols) + " |")
     if args.oracle is not None:
         print("\nthe fill on the true rig mask (oracle) and its error split, PSNR15 per seed:\n")
         cols = ["psnr_after", "psnr_oracle", "face_oracle", "face_low", "face_tex", "face_smooth_fill", "face_smooth",

@@ -264,6 +264,8 @@ class FusionResult:
     """Per-pixel Gaussians of the source view among them (source_anchored_fusion)."""
     color_fit: dict | None = None
     """The colour fit at the capture point, when one ran (pixel_gaussians.fit_colors' statistics)."""
+    back_sides: dict | None = None
+    """The back-side layer's statistics, when one was added (panoworld.back_sides)."""
     fit_render: tuple[np.ndarray, np.ndarray] | None = None
     """The colour fit's render of the final Gaussians at frame 0's pose, when one ran: (rgb (H, W, 3), alpha (H, W))
     float32 at the fit's height (write_artifact's self-check of frame 0 downsamples it instead of rendering again)."""

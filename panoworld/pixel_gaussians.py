@@ -99,7 +99,7 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
                            source_scale: float | None = None, unseen_voxel_size: float = 0.0, thin_poles: bool = True,
                            fit_iters: int = 0, fit_height: int = 0, fit_views: int = 0, fit_view_height: int = 256,
                            fit_view_reach: float = 0.0, fit_view_weight: float = 1.0, fit_sh_degree: int = 0,
-                           fit_sh_damping: float = 0.001, progress: bool = False) -> FusionResult:
+                           fit_sh_damping: float = 0.001, back_sides=None, progress: bool = False) -> FusionResult:
     """Per-pixel Gaussians of the source view (video frame 0, at source_height rows; 0 = as the other frames) plus
     voxel fusion of what the other frames see that the source does not (SourceVisibility with tolerance tol) in voxels
     of unseen_voxel_size (0 = params.voxel_size), less those poking through the source's surfaces: the capture point keeps the input's full detail, the rest of the
@@ -108,7 +108,8 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
     pose (fit_colors, at fit_height rows; 0 = source_height), and with fit_views > 0 to that many other frames
     spread over the path within fit_view_reach metres (view_targets(), at fit_view_height rows, each pixel
     weighted fit_view_weight against 1 for the capture point's) where they see what the source saw; fit_sh_degree 1
-    fits view-dependent colours (degree-1 SH, damped by fit_sh_damping) to those views."""
+    fits view-dependent colours (degree-1 SH, damped by fit_sh_damping) to those views. back_sides: a callable
+    (pix, rgb, depth, world_from_cam) -> back_sides.BackSides whose Gaussians join the result."""
     if not frames.indices or frames.indices[0] != 0:
         return voxel_fusion(frames, params, progress=progress)
     src = replace(frames, height=min(source_height or frames.height, frames.stored_height))
@@ -119,6 +120,9 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
                    world_from_cam=frames.world_from_cam[1:], indices=frames.indices[1:])
     vis = SourceVisibility(depth, pose, tol)
     result = fuse_unseen(pix, rest, vis, params, unseen_voxel_size=unseen_voxel_size, progress=progress)
+    if back_sides is not None:
+        back = back_sides(pix, rgb, depth, pose)
+        result.gaussians, result.back_sides = merge_gaussians([result.gaussians, back.gaussians]), back.stats
     if fit_iters > 0:
         if fit_height and fit_height != src.height:
             rgb = replace(frames, height=min(fit_height, frames.stored_height)).frame(0)[0]

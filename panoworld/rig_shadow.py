@@ -49,6 +49,107 @@ SECTOR_SHARE = 0.5
 of the profile's darkening there."""
 
 
+DISC_FIT_DEG = 90.0
+"""The soft disc and the room light are fitted jointly on the downward face's floor out to here (the whole face:
+inside 30 deg only, the quadratic took up the disc's darkening as a bowl)."""
+DISC_REACH = 0.45
+"""The rig's soft disc reaches no farther than this (radius + 2 sigma of its blur), in camera heights (24 deg; a
+tripod's feet 17-20 deg): a room's light or shadow reaching farther is left to the quadratic or the residual."""
+DISC_BLUR = (0.03, 0.225)
+"""Bounds of the disc's blur (Gaussian sigma of the penumbra), in camera heights."""
+DISC_DEPTH_MAX = 0.8
+"""Largest share of the light the disc may remove at its centre."""
+
+
+class DiscShadow(NamedTuple):
+    """disc_shadow's fit: the light factor 1 - depth * s(r), s a disc of radius `radius` blurred by a Gaussian of
+    sigma `blur` (s(0) = 1; a Gaussian when radius is 0), r the floor distance from the nadir in camera heights."""
+
+    depth: float
+    """Share of the light removed at the nadir."""
+    radius: float
+    """The disc's radius before the blur, camera heights."""
+    blur: float
+    """The penumbra's Gaussian sigma, camera heights."""
+    gain_of_fit: float
+    """Relative drop of the fit's weighted loss over the room light alone (0: the disc explains nothing)."""
+
+    def factor(self, r: np.ndarray) -> np.ndarray:
+        """The disc's light factor at floor distance r (camera heights) from the nadir."""
+        return 1.0 - self.depth * _disc(r, self.radius, self.blur)
+
+    def gain(self, theta: np.ndarray) -> np.ndarray:
+        """(as theta) float32 the gain >= 1 that divides the disc out at theta degrees from the nadir (1 where it
+        removes < 0.5 % of the light)."""
+        fac = self.factor(np.tan(np.deg2rad(theta)))
+        return np.where(fac < 0.995, 1.0 / fac, 1.0).astype(np.float32)
+
+
+def _disc(r: np.ndarray, a: float, sigma: float) -> np.ndarray:
+    """A disc of radius a blurred by a 2-D Gaussian of sigma, at distance r from its centre, over its value at 0 (the
+    non-central chi-square's cdf, tabulated on 256 radii and interpolated)."""
+    from scipy.stats import ncx2
+
+    if a < 1e-3 * sigma:
+        return np.exp(-0.5 * (r / sigma) ** 2)
+    k = (a / sigma) ** 2
+    grid = np.linspace(0.0, a + 6.0 * sigma, 256)
+    table = ncx2.cdf(k, 2, (grid / sigma) ** 2) / (1.0 - np.exp(-0.5 * k))
+    return np.interp(r, grid, table, right=0.0)
+
+
+def disc_shadow(face: np.ndarray, rig: np.ndarray, floor: np.ndarray, theta: np.ndarray, focal: float,
+                max_samples: int = 15000) -> DiscShadow | None:
+    """log(floor luminance) = quadratic in floor coordinates (the room's light) + log(1 - d s(r)), s a blurred disc
+    reaching at most DISC_REACH around the nadir (the rig's shadow: compact, round), fitted jointly on the floor
+    inside DISC_FIT_DEG outside the rig, with 3-MAD trimming, then to the LIGHT_EXPECTILE expectile (variable
+    projection: the quadratic by weighted least squares inside a bounded fit of d, the radius's share of the reach
+    and the blur); None when too little floor is seen."""
+    from scipy.optimize import least_squares
+
+    lum = linear_luminance(face)
+    S = face.shape[0]
+    c = (np.arange(S) + 0.5 - 0.5 * S) / focal
+    u, v = np.meshgrid(c, c)
+    use = floor & ~rig & (lum > 2e-3) & (theta < DISC_FIT_DEG)
+    if use.sum() < 2000:
+        return None
+    idx = np.flatnonzero(use)
+    idx = idx[:: max(1, len(idx) // max_samples)]
+    uu, vv = u.ravel()[idx], v.ravel()[idx]
+    r = np.hypot(uu, vv)
+    A = np.stack([uu**i * vv**j for i in range(3) for j in range(3 - i)], -1)
+    y = np.log(lum.ravel()[idx]).astype(np.float64)
+    wts = np.ones(len(y))
+
+    def shape(p: np.ndarray) -> tuple[float, float]:  # (radius, blur): radius + 2 blur <= DISC_REACH
+        return p[1] * max(DISC_REACH - 2.0 * p[2], 0.0), p[2]
+
+    def residual(p: np.ndarray) -> np.ndarray:  # every sample's, the quadratic fitted with the weights
+        z = y - np.log(1.0 - p[0] * _disc(r, *shape(p)))
+        sw = np.sqrt(wts)
+        coef, *_ = np.linalg.lstsq(A * sw[:, None], z * sw, rcond=None)
+        return z - A @ coef
+
+    def resid(p: np.ndarray) -> np.ndarray:
+        return np.sqrt(wts) * residual(p)
+
+    lo, hi = [0.0, 0.0, DISC_BLUR[0]], [DISC_DEPTH_MAX, 1.0, DISC_BLUR[1]]
+    starts = [np.array([0.3, t, b]) for t in (0.0, 0.6) for b in (0.08, 0.16)]
+    p = min(starts, key=lambda q: float(np.sum(resid(q) ** 2)))
+    for it in range(10):
+        p = least_squares(resid, p, bounds=(lo, hi), x_scale=[0.1, 0.2, 0.03], max_nfev=20).x
+        res = residual(p)
+        if it < 4:  # trimming (texture, the legs' own cast shadows), then the upper expectile
+            keep = (wts > 0) & (np.abs(res) < 3.0 * 1.4826 * np.median(np.abs(res[wts > 0])) + 1e-6)
+            wts = keep.astype(np.float64)
+        else:
+            wts = np.where(wts > 0, np.where(res > 0, LIGHT_EXPECTILE, 1.0 - LIGHT_EXPECTILE), 0.0)
+    loss1 = float(np.sum(resid(p) ** 2))
+    loss0 = float(np.sum(resid(np.array([0.0, p[1], p[2]])) ** 2))
+    return DiscShadow(float(p[0]), *shape(p), 1.0 - loss1 / max(loss0, 1e-12))
+
+
 def linear_luminance(face: np.ndarray) -> np.ndarray:
     """Mean linear RGB (size, size) of a uint8 sRGB face (gamma 2.2, the synthetic renderer's and ours)."""
     return ((face.astype(np.float32) / 255.0) ** 2.2).mean(-1)

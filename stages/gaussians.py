@@ -21,6 +21,8 @@ INPUTS = {
     "poses": Input("poses", help="poses artifact (poses.json, depth/)"),
     "depth": Input("depth", optional=True, help="a home: depth artifact whose panoramas are anchored (with --register)"),
     "register": Input("register", optional=True, help="a home: register artifact placing those panoramas"),
+    "navmesh": Input("navmesh", optional=True, help="navmesh artifact (voxel_fusion.back_sides: where a wall's back "
+                     "is walkable)"),
 }
 
 
@@ -63,7 +65,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     backend = backends.get(NAME, params.backend)
     try:
         result = backend.impl(Job(frames=frames, options=backend.options_of(params), depth=inputs.get("depth"),
-                                  register=inputs.get("register")))
+                                  register=inputs.get("register"), navmesh=inputs.get("navmesh")))
     except StageInputError:
         raise
     except ValueError as e:  # empty depth, nothing left after pruning, bad params

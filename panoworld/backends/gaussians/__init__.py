@@ -22,6 +22,8 @@ class Job:
     """A home: the depth artifact whose panoramas are anchored (None for a single panorama)."""
     register: Path | None = None
     """A home: the register artifact placing those panoramas."""
+    navmesh: Path | None = None
+    """The NavMesh artifact (the walkable floor; voxel_fusion.back_sides)."""
     progress: bool = True
     """Show a progress bar on long fusions."""
 

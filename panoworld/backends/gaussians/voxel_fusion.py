@@ -59,6 +59,19 @@ class VoxelFusionOptions(FusionParams):
     fit_sh_damping: float = param(0.001, ge=0)
     """Damping of those degree-1 coefficients towards 0 per unit of compositing weight (the colours' is 0.01): a
     Gaussian seen from few directions keeps about one colour (0.0001 gave the same dB on seed 4)."""
+    back_sides: bool = False
+    """With source_pixels and a navmesh input: upright source surfaces whose other side is in the line of sight of the
+    walkable floor (within back_side_reach; what the source saw blocks the sight, unseen space does not) get a second
+    layer of Gaussians back_side_thickness behind them, hidden from the capture point: a thin wall seen from the next
+    room shows a back, not the source side's colour (panoworld/back_sides.py; docs/evaluation.md, "Thin walls seen
+    from behind")."""
+    back_side_thickness: float = param(0.12, gt=0)
+    """Metres behind the front surface (a wall's thickness; the synthetic walls are 0.15 m)."""
+    back_side_reach: float = param(4.0, gt=0)
+    """Metres of sight from the NavMesh to a wall's back."""
+    back_side_color: str = param("next_room", choices=("next_room", "front"))
+    """next_room: the next room's wall colour the doorway shows (plane_colors.floor_beyond's; the front's where
+    none is seen); front: the front's colour."""
 
 
 def fuse(job):
@@ -76,7 +89,8 @@ def fuse(job):
                                       fit_iters=o.fit_iters, fit_height=o.fit_height, fit_views=o.fit_views,
                                       fit_view_height=o.fit_view_height, fit_view_reach=o.fit_view_reach,
                                       fit_view_weight=o.fit_view_weight, fit_sh_degree=o.fit_sh_degree,
-                                      fit_sh_damping=o.fit_sh_damping, progress=job.progress)
+                                      fit_sh_damping=o.fit_sh_damping, back_sides=back_side_hook(job),
+                                      progress=job.progress)
     from panoworld.home.gaussians import home_anchored_fusion
     from panoworld.home.layout import home_depth_dirs
     from panoworld.home.mesh import load_sources
@@ -89,6 +103,20 @@ def fuse(job):
     return home_anchored_fusion(job.frames, {n: (rgbs[n], depths[n], captures[n]) for n in names}, o,
                                 source_height=o.source_height, tol=o.source_tol, source_scale=o.source_scale,
                                 unseen_voxel_size=o.unseen_voxel_size, progress=job.progress)
+
+
+def back_side_hook(job):
+    """source_anchored_fusion's back_sides callable for the job's options (None when off or without a NavMesh)."""
+    o: VoxelFusionOptions = job.options
+    if not o.back_sides or job.navmesh is None:
+        return None
+    from functools import partial
+
+    from panoworld.back_sides import back_side_layer
+    from panoworld.navmesh import load_navmesh
+
+    return partial(back_side_layer, nav=load_navmesh(job.navmesh), thickness=o.back_side_thickness,
+                   reach=o.back_side_reach, color=o.back_side_color)
 
 
 register("gaussians", "voxel-fusion", fuse, options=VoxelFusionOptions, key="voxel_fusion", weights=False)
