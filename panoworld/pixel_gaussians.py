@@ -98,8 +98,8 @@ def merge_gaussians(parts: list[Gaussians]) -> Gaussians:
 def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, source_height: int = 0, tol: float = 0.03,
                            source_scale: float | None = None, unseen_voxel_size: float = 0.0, thin_poles: bool = True,
                            fit_iters: int = 0, fit_height: int = 0, fit_views: int = 0, fit_view_height: int = 256,
-                           fit_view_reach: float = 0.0, fit_view_weight: float = 1.0, back_sides=None,
-                           progress: bool = False) -> FusionResult:
+                           fit_view_reach: float = 0.0, fit_view_weight: float = 1.0, fit_sh_degree: int = 0,
+                           fit_sh_damping: float = 0.001, back_sides=None, progress: bool = False) -> FusionResult:
     """Per-pixel Gaussians of the source view (video frame 0, at source_height rows; 0 = as the other frames) plus
     voxel fusion of what the other frames see that the source does not (SourceVisibility with tolerance tol) in voxels
     of unseen_voxel_size (0 = params.voxel_size), less those poking through the source's surfaces: the capture point keeps the input's full detail, the rest of the
@@ -107,8 +107,9 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
     frame 0 among the frames it is plain voxel fusion. fit_iters > 0: the colours are then fitted to frame 0 at its
     pose (fit_colors, at fit_height rows; 0 = source_height), and with fit_views > 0 to that many other frames
     spread over the path within fit_view_reach metres (view_targets(), at fit_view_height rows, each pixel
-    weighted fit_view_weight against 1 for the capture point's) where they see what the source saw. back_sides: a
-    callable (pix, rgb, depth, world_from_cam) -> back_sides.BackSides whose Gaussians join the result."""
+    weighted fit_view_weight against 1 for the capture point's) where they see what the source saw; fit_sh_degree 1
+    fits view-dependent colours (degree-1 SH, damped by fit_sh_damping) to those views. back_sides: a callable
+    (pix, rgb, depth, world_from_cam) -> back_sides.BackSides whose Gaussians join the result."""
     if not frames.indices or frames.indices[0] != 0:
         return voxel_fusion(frames, params, progress=progress)
     src = replace(frames, height=min(source_height or frames.height, frames.stored_height))
@@ -126,11 +127,13 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
         if fit_height and fit_height != src.height:
             rgb = replace(frames, height=min(fit_height, frames.stored_height)).frame(0)[0]
         extra = view_targets(rest, vis, fit_views, fit_view_height, fit_view_reach, fit_view_weight)
-        result.gaussians, result.color_fit = fit_colors(result.gaussians, rgb, pose, iters=fit_iters, extra=extra)
+        result.gaussians, result.color_fit = fit_colors(result.gaussians, rgb, pose, iters=fit_iters, extra=extra,
+                                                        sh_degree=fit_sh_degree if extra else 0,
+                                                        sh_damping=fit_sh_damping)
         result.fit_render = result.color_fit.pop("render")
         result.color_fit.update(iters=fit_iters, height=int(rgb.shape[0]))
         if extra:
-            result.color_fit["views_from_aside"] = len(extra)
+            result.color_fit.update(views_from_aside=len(extra), sh_degree=fit_sh_degree)
     return result
 
 
@@ -186,57 +189,113 @@ def fuse_unseen(pix: Gaussians, frames: ContextSource, vis, params: FusionParams
 
 def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, iters: int = 10, damping: float = 0.01,
                supersample: int = 1, pole_scale: float | None = None,
-               extra: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = ()) -> tuple[Gaussians, dict]:
+               extra: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = (), tile: int = 8, sh_degree: int = 0,
+               sh_damping: float = 0.001) -> tuple[Gaussians, dict]:
     """Gaussians whose colours (SH DC) are refitted so their ERP render at world_from_cam matches target (H, W, 3)
-    uint8 or [0, 1]: the render is linear in the colours for fixed geometry (render_gs.ErpColorOperator), so this is
-    `iters` steps of damped conjugate-gradient least squares, min |A c - y|^2 + damping |c - c0|^2 from the current
+    uint8 or [0, 1]: the render is linear in the colours for fixed geometry (erp_operator.ErpColorOperator), so this
+    is `iters` steps of damped conjugate-gradient least squares, min |A c - y|^2 + damping |c - c0|^2 from the current
     colours c0 (damping per unit of compositing weight: Gaussians the view barely sees stay put), clipped to [0, 1].
     extra: more views (target, world_from_cam, weight (h, w) >= 0) whose weighted squared errors join the objective
-    (their own sizes, supersample 1). pole_scale: the operators' (None = render_erp's default). Returns the Gaussians
-    and {"rmse_before", "rmse_after"} of the render at world_from_cam, and "render": that render of the fitted
-    Gaussians, (rgb (H, W, 3), alpha (H, W)) float32 numpy."""
-    from panoworld.render_gs import ErpColorOperator
+    (their own sizes, supersample 1; only their pixels of weight > 0 are rendered). sh_degree 1: the degree-1 SH
+    coefficients s are fitted too: view k sees c + (b_k - b_0) . s, c the colour from the capture point, b_k the basis
+    SH_C1 (-y, z, -x) of the unit direction (x, y, z) from view k's centre (render_gs.eval_sh's), so s carries only
+    what changes away from the capture point, damped by sh_damping per unit of compositing weight towards its current
+    value (0 for a set without it): a Gaussian seen from one side keeps one colour. pole_scale: the operators' (None =
+    render_erp's default); tile: their weights kernel's tile size (8: fewer Gaussians scanned per pixel than the
+    rasteriser's 16, the same weights). Returns the Gaussians (sh_rest of degree >= sh_degree) and {"rmse_before",
+    "rmse_after"} of the render at world_from_cam, and "render": that render of the fitted Gaussians, (rgb (H, W, 3),
+    alpha (H, W)) float32 numpy."""
+    from panoworld.erp_operator import ErpColorOperator
+    from panoworld.render_gs import _SH_C1, covariance_3d
+
+    if sh_degree not in (0, 1):
+        raise ValueError(f"sh_degree={sh_degree!r} but expected 0 or 1")
 
     def as_float(img):
         return torch.as_tensor(np.asarray(img, np.float32) / (255.0 if img.dtype == np.uint8 else 1.0))
 
     h, w = target.shape[:2]
     y = as_float(target)
-    op = ErpColorOperator(g, world_from_cam, h, w, supersample=supersample, pole_scale=pole_scale)
+    cov = covariance_3d(torch.as_tensor(g.scales).float(), torch.as_tensor(g.quats).float())
+    op = ErpColorOperator(g, world_from_cam, h, w, supersample=supersample, pole_scale=pole_scale, tile=tile, cov=cov)
     views = [(op, y, None)]  # (operator, target, sqrt of the pixel weights or None)
+    poses = [world_from_cam]
     for img, pose, wt in extra:
         m = torch.as_tensor(np.sqrt(np.asarray(wt, np.float32)))[..., None]
-        views.append((ErpColorOperator(g, pose, img.shape[0], img.shape[1], supersample=1, pole_scale=pole_scale),
-                      as_float(img) * m, m))
+        views.append((ErpColorOperator(g, pose, img.shape[0], img.shape[1], supersample=1, pole_scale=pole_scale,
+                                       mask=np.asarray(wt) > 0, tile=tile, cov=cov), as_float(img) * m, m))
+        poses.append(pose)
+    n = len(g)
+    basis = []  # per view (N, 3): the degree-1 SH basis of each Gaussian's direction from its centre, less the
+    if sh_degree:  # capture point's: c is the colour seen from there, s only what changes from elsewhere
+        means = torch.as_tensor(np.asarray(g.means, np.float32))
+
+        def sh1(pose):
+            d = means - torch.as_tensor(np.asarray(pose, np.float32)[:3, 3])
+            d = d / d.norm(dim=1, keepdim=True).clamp(min=1e-12)
+            return _SH_C1 * torch.stack([-d[:, 1], d[:, 2], -d[:, 0]], 1)
+
+        b0 = sh1(world_from_cam)
+        basis = [torch.zeros(n, 3)] + [sh1(pose) - b0 for pose in poses[1:]]
+        # the unknowns are s times each Gaussian's RMS basis change (a diagonal preconditioner: CG's few steps
+        # otherwise hardly move coefficients whose basis changes little between the views)
+        rho = (sum(b.square().sum(1) for b in basis) / max(len(basis) - 1, 1)).sqrt().clamp(min=1e-3)[:, None]
+        basis = [b / rho for b in basis]
+
+    def color(k, x):  # the unknowns (N, 3) or (N, 12: c, then s (3 basis x 3 channels)) -> view k's colours (N, 3)
+        if not sh_degree or k == 0:
+            return x[:, :3]
+        return x[:, :3] + torch.einsum("nj,njc->nc", basis[k], x[:, 3:].reshape(n, 3, 3))
 
     def fwd(k, x):
         A, _, m = views[k]
-        return A(x) if m is None else A(x) * m
+        return A(color(k, x)) if m is None else A(color(k, x)) * m
 
-    def adj(k, r):
-        A, _, m = views[k]
-        return A.adjoint(r if m is None else r * m)
+    def grad(r):  # sum over the views of the adjoint of r (per view (h, w, 3)), as the unknowns
+        out = torch.zeros(n, 12 if sh_degree else 3)
+        for k, (A, _, m) in enumerate(views):
+            gc = A.adjoint(r[k] if m is None else r[k] * m)
+            out[:, :3] += gc
+            if sh_degree and k:
+                out[:, 3:].view(n, 3, 3).add_(basis[k][:, :, None] * gc[:, None, :])
+        return out
 
     c0 = torch.from_numpy(g.base_colors())
+    rest0 = np.asarray(g.sh_rest, np.float32)
+    if sh_degree:
+        s0 = np.zeros((n, 3, 3), np.float32)
+        s0[:, : rest0.shape[1]] = rest0[:, :3]
+        s0 = torch.from_numpy(s0)
+        c0 = torch.cat([c0 + torch.einsum("nj,njc->nc", b0, s0), (s0 * rho[:, :, None]).reshape(n, 9)], 1)
     ones = [torch.ones_like(v[1]) if v[2] is None else v[2].expand_as(v[1]).clone() for v in views]
-    lam = damping * sum(adj(k, ones[k]) for k in range(len(views)))[:, :1].clamp(min=1e-3)  # each Gaussian's weight
+    seen = sum(views[k][0].adjoint(ones[k] if views[k][2] is None else ones[k] * views[k][2])
+               for k in range(len(views)))[:, :1].clamp(min=1e-3)  # each Gaussian's compositing weight
+    lam = damping * seen if not sh_degree else \
+        torch.cat([damping * seen.expand(n, 3), (sh_damping * seen / rho.square()).expand(n, 9)], 1)
 
     x = c0.clone()
     r = [v[1] - fwd(k, x) for k, v in enumerate(views)]
     rmse0 = float(r[0].square().mean().sqrt())
-    s = sum(adj(k, r[k]) for k in range(len(views)))  # the gradient of the damped objective at c0 (damping term 0)
+    s = grad(r)  # the gradient of the damped objective at c0 (damping term 0)
     p, gamma = s.clone(), float(s.square().sum())
     for _ in range(iters):
         q = [fwd(k, p) for k in range(len(views))]
         alpha = gamma / max(float(sum(qk.square().sum() for qk in q) + (lam * p.square()).sum()), 1e-20)
         x = x + alpha * p
         r = [rk - alpha * qk for rk, qk in zip(r, q)]
-        s = sum(adj(k, r[k]) for k in range(len(views))) - lam * (x - c0)
+        s = grad(r).sub_(lam * (x - c0))
         gamma_new = float(s.square().sum())
         p, gamma = s + gamma_new / max(gamma, 1e-20) * p, gamma_new
-    x = x.clamp(0.0, 1.0)
-    img = op(x)
+    x[:, :3] = x[:, :3].clamp(0.0, 1.0)
+    img = op(x[:, :3])
     rmse1 = float((y - img).square().mean().sqrt())
-    out = Gaussians(g.means, g.scales, g.quats, g.opacities, rgb_to_sh_dc(x.numpy()).astype(np.float32), g.sh_rest)
-    alpha = op(torch.ones_like(x))[..., 0]  # the weights of each pixel sum to its opacity 1 - T
+    sh_rest = g.sh_rest
+    if sh_degree:
+        sh_rest = np.zeros((n, max(3, rest0.shape[1]), 3), np.float32)
+        sh_rest[:, : rest0.shape[1]] = rest0
+        coef = x[:, 3:].reshape(n, 3, 3) / rho[:, :, None]
+        sh_rest[:, :3] = coef.numpy()
+        x[:, :3] -= torch.einsum("nj,njc->nc", b0, coef)  # the DC: c less the capture point's part
+    out = Gaussians(g.means, g.scales, g.quats, g.opacities, rgb_to_sh_dc(x[:, :3].numpy()).astype(np.float32), sh_rest)
+    alpha = op(torch.ones(n, 3))[..., 0]  # the weights of each pixel sum to its opacity 1 - T
     return out, {"rmse_before": rmse0, "rmse_after": rmse1, "render": (img.numpy(), alpha.numpy())}

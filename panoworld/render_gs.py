@@ -12,7 +12,6 @@ what the brute-force reference (every Gaussian at every pixel) computes.
 from __future__ import annotations
 
 import math
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -221,16 +220,16 @@ def _finish(rgb: torch.Tensor, depth: torch.Tensor, T: torch.Tensor, background:
     return RenderOutput(rgb.reshape(H, W, 3), depth.reshape(H, W), alpha.reshape(H, W))
 
 
-def bin_tiles(proj: Projected, H: int, W: int):
-    """Bin projected Gaussians into TILE x TILE tiles -> (ntx, nty, Gaussian indices sorted by (tile, depth), per-tile
+def bin_tiles(proj: Projected, H: int, W: int, tile: int = TILE):
+    """Bin projected Gaussians into tile x tile tiles -> (ntx, nty, Gaussian indices sorted by (tile, depth), per-tile
     counts, per-tile starts into them)."""
-    ntx, nty = -(-W // TILE), -(-H // TILE)
+    ntx, nty = -(-W // tile), -(-H // tile)
     P = proj.z.shape[0]
     # Pixel index range holding the alpha >= 1/255 box, then the tiles it covers.
-    j0 = torch.ceil(proj.xy[:, 0] - proj.extent[:, 0] - 0.5).clamp(0, W - 1).long() // TILE
-    j1 = torch.floor(proj.xy[:, 0] + proj.extent[:, 0] - 0.5).clamp(0, W - 1).long() // TILE
-    i0 = torch.ceil(proj.xy[:, 1] - proj.extent[:, 1] - 0.5).clamp(0, H - 1).long() // TILE
-    i1 = torch.floor(proj.xy[:, 1] + proj.extent[:, 1] - 0.5).clamp(0, H - 1).long() // TILE
+    j0 = torch.ceil(proj.xy[:, 0] - proj.extent[:, 0] - 0.5).clamp(0, W - 1).long() // tile
+    j1 = torch.floor(proj.xy[:, 0] + proj.extent[:, 0] - 0.5).clamp(0, W - 1).long() // tile
+    i0 = torch.ceil(proj.xy[:, 1] - proj.extent[:, 1] - 0.5).clamp(0, H - 1).long() // tile
+    i1 = torch.floor(proj.xy[:, 1] + proj.extent[:, 1] - 0.5).clamp(0, H - 1).long() // tile
     wx = j1 - j0 + 1
     n_per = wx * (i1 - i0 + 1)
     gid = torch.repeat_interleave(torch.arange(P), n_per)
@@ -300,15 +299,26 @@ def rasterize_tiles(
     return _finish(rgb, z, T, background, H, W)
 
 
-def face_weights(proj: Projected, H: int, W: int, chunk: int = 32) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def face_weights(proj: Projected, H: int, W: int, chunk: int = 32, need: np.ndarray | None = None,
+                 tile: int = TILE) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """rasterize_tiles(weights=...)'s non-zero compositing weights, concatenated, from its numba kernel
     (splat_weights.tile_weights): (flat pixel index (K,) int32, Gaussian index in proj (K,) int32, weight (K,)
-    float32). Equal to the torch path's up to the last bit of exp (tests/test_render_gs.py)."""
+    float32). Equal to the torch path's up to the last bit of exp (tests/test_render_gs.py). need (H * W,) bool:
+    only those pixels' weights (None: all); tiles without one are skipped. A smaller tile than the rasteriser's
+    scans fewer Gaussians per pixel (the same weights but where a pixel's transmittance falls below T_MIN, which
+    chunk it stops at)."""
     from panoworld.splat_weights import tile_weights
 
-    ntx, _, sorted_g, counts, starts = bin_tiles(proj, H, W)
+    ntx, nty, sorted_g, counts, starts = bin_tiles(proj, H, W, tile)
+    counts = counts.numpy()
+    if need is None:
+        need = np.zeros(0, bool)
+    else:
+        pad = np.zeros((nty * tile, ntx * tile), bool)
+        pad[:H, :W] = np.asarray(need, bool).reshape(H, W)
+        counts = np.where(pad.reshape(nty, tile, ntx, tile).any((1, 3)).reshape(-1), counts, 0)
     return tile_weights(proj.xy.numpy(), proj.conic.numpy(), proj.opacity.numpy(), sorted_g.numpy(), starts.numpy(),
-                        counts.numpy(), ntx, H, W, TILE, chunk)
+                        counts, ntx, H, W, tile, chunk, need)
 
 
 def _background(background) -> torch.Tensor:
@@ -444,58 +454,6 @@ def render_erp(
     alpha = out[4]
     depth = torch.where(alpha > 0, out[3] / alpha.clamp(min=1e-12), torch.zeros_like(alpha))
     return RenderOutput(out[:3].permute(1, 2, 0).contiguous(), depth, alpha)
-
-
-class ErpColorOperator:
-    """The ERP render of Gaussians at one pose as a linear map A of their colours (geometry fixed, black background):
-    each cube face's compositing weights as a sparse matrix (and its transpose), resampled and pooled as render_erp
-    does. A(colors (N, 3)) -> (H, W, 3); adjoint(image (H, W, 3)) -> A^T image (N, 3)."""
-
-    def __init__(self, gaussians: Gaussians, world_from_cam: np.ndarray, H: int, W: int, *,
-                 supersample: int = ERP_SUPERSAMPLE, near: float = 0.01, pole_scale: float | None = None):
-        import scipy.sparse
-
-        self.faces = erp_faces(world_from_cam, H, W, supersample=supersample, pole_scale=pole_scale)
-        self.s, self.H, self.W, self.N = int(supersample), H, W, len(gaussians)
-        prep = _prepare(gaussians, np.asarray(world_from_cam, dtype=np.float64)[:3, 3])
-
-        def weights(fc: ErpFace):
-            proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
-            pix, gid, w = face_weights(proj, fc.n, fc.n)
-            # scipy: COO -> CSR is a counting sort, 32-bit indices, and the transpose a free CSC view
-            return scipy.sparse.csr_matrix((w, (pix, proj.index.numpy().astype(np.int32)[gid])),
-                                           shape=(fc.n * fc.n, self.N))
-
-        # The faces on torch's threads (the kernel releases the GIL), the largest (the pole faces) first.
-        with ThreadPoolExecutor(max(1, torch.get_num_threads())) as pool:
-            by_size = sorted(range(len(self.faces)), key=lambda k: -self.faces[k].n)
-            done = dict(zip(by_size, pool.map(weights, [self.faces[k] for k in by_size])))
-        self.weights = [done[k] for k in range(len(self.faces))]
-
-    def compose(self, face_images: list[torch.Tensor]) -> torch.Tensor:
-        """Face images (n * n, 3) -> the ERP (H, W, 3) (differentiable)."""
-        out = torch.zeros(3, self.s * self.H * self.s * self.W)
-        for fc, img in zip(self.faces, face_images):
-            out = out.index_copy(1, fc.index, fc.sample(img.reshape(fc.n, fc.n, 3)))
-        out = out.reshape(3, self.s * self.H, self.s * self.W)
-        if self.s > 1:
-            out = F.avg_pool2d(out[None], self.s)[0]
-        return out.permute(1, 2, 0)
-
-    def __call__(self, colors: torch.Tensor) -> torch.Tensor:
-        c = colors.detach().numpy()
-        return self.compose([torch.from_numpy(x) for x in self._per_face(lambda A: A @ c)])
-
-    def adjoint(self, image: torch.Tensor) -> torch.Tensor:
-        faces = [torch.zeros(A.shape[0], 3, requires_grad=True) for A in self.weights]
-        grads = torch.autograd.grad(self.compose(faces), faces, image)
-        return sum(torch.from_numpy(x) for x in self._per_face(lambda A, g: A.T @ g.numpy(), grads))
-
-    def _per_face(self, fn, *args) -> list:
-        """fn(face matrix, *its args) for every face, in face order, on torch's threads (scipy's sparse products
-        release the GIL)."""
-        with ThreadPoolExecutor(max(1, torch.get_num_threads())) as pool:
-            return list(pool.map(fn, self.weights, *args))
 
 
 def _gsplat_available() -> bool:

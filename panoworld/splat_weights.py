@@ -16,11 +16,12 @@ _T_MIN = _F(1e-4)
 
 
 @njit(cache=True, nogil=True)
-def tile_weights(xy, conic, opacity, sorted_g, starts, counts, ntx, H, W, tile, chunk):
+def tile_weights(xy, conic, opacity, sorted_g, starts, counts, ntx, H, W, tile, chunk, need):
     """Compositing weights (flat pixel index int32, Gaussian index int32, weight > 0 float32) of every pixel, as rasterize_tiles computes
     them: per tile its depth-sorted Gaussians in chunks of `chunk`; within a chunk the transmittance is the chunk's
     starting one times the running product of (1 - alpha) (float64, rounded to float32, as torch.cumprod on CPU);
-    a pixel stops at the chunk where it falls below T_MIN. All arithmetic in float32 in torch's order."""
+    a pixel stops at the chunk where it falls below T_MIN. All arithmetic in float32 in torch's order. need (H * W,)
+    bool: only those pixels (empty: all)."""
     cap = max(1024, 16 * int(counts.sum()))
     pix_out = np.empty(cap, np.int32)
     gid_out = np.empty(cap, np.int32)
@@ -52,7 +53,7 @@ def tile_weights(xy, conic, opacity, sorted_g, starts, counts, ntx, H, W, tile, 
         for p in range(tile * tile):
             x = bx + p % tile
             y = by + p // tile
-            if x >= W or y >= H:
+            if x >= W or y >= H or (need.shape[0] and not need[y * W + x]):
                 continue
             px = _F(x) + _HALF_PX
             py = _F(y) + _HALF_PX

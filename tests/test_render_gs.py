@@ -245,7 +245,7 @@ def test_erp_supersampling_averages_detail_finer_than_a_pixel():
 
 @pytest.mark.parametrize("supersample, pole_scale", [(1, 1.0), (2, 1.0), (2, 2.0)])
 def test_erp_color_operator_is_the_render_as_a_linear_map_of_colours(supersample, pole_scale):
-    from panoworld.render_gs import ErpColorOperator
+    from panoworld.erp_operator import ErpColorOperator
 
     g, _ = shell(3.0, 2000)
     inner = random_gaussians(300, seed=3)  # overlapping, partly transparent Gaussians in front of the shell

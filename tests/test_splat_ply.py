@@ -84,6 +84,30 @@ def test_f_rest_is_channel_major_like_inria(tmp_path):
     assert np.array_equal(v["f_rest_44"], g.sh_rest[:, 14, 2])
 
 
+def test_degree_one_colours_load_as_the_reference_implementation_loads_them(tmp_path):
+    # The colour fit's view-dependent colours (degree 1): INRIA's load_ply sorts f_rest_* by number and reshapes them
+    # to (N, 3 channels, (degree + 1)^2 - 1); our zero-padded degree-3 file gives it the degree-1 terms in place, and
+    # a file of degree 1 as INRIA writes it (f_rest_0..8) reads back the same.
+    g = gaussians(n=50, sh_k=3)
+    path = tmp_path / "g.ply"
+    write_gaussians_ply(path, g)
+    v = PlyData.read(str(path))["vertex"].data
+    names = sorted((p for p in v.dtype.names if p.startswith("f_rest_")), key=lambda p: int(p.split("_")[-1]))
+    extra = np.stack([v[p] for p in names], 1).reshape(len(g), 3, -1).transpose(0, 2, 1)  # INRIA's features_rest
+    assert extra.shape == (len(g), 15, 3)
+    assert np.array_equal(extra[:, :3], g.sh_rest) and not extra[:, 3:].any()
+    inria = np.empty(len(g), [(p, "<f4") for p in ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2"]
+                              + [f"f_rest_{i}" for i in range(9)] + ["opacity"] + [f"scale_{i}" for i in range(3)]
+                              + [f"rot_{i}" for i in range(4)]])
+    for p in inria.dtype.names:
+        inria[p] = v[p] if not p.startswith("f_rest_") else g.sh_rest[:, int(p[7:]) % 3, int(p[7:]) // 3]
+    from plyfile import PlyElement
+
+    PlyData([PlyElement.describe(inria, "vertex")]).write(str(tmp_path / "deg1.ply"))
+    back = read_gaussians_ply(tmp_path / "deg1.ply")
+    assert back.sh_degree == 1 and np.array_equal(back.sh_rest, g.sh_rest)
+
+
 def test_points_ply_round_trip(tmp_path):
     rng = np.random.default_rng(0)
     xyz = rng.normal(size=(50, 3)).astype(np.float32)

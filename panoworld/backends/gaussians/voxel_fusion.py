@@ -42,9 +42,9 @@ class VoxelFusionOptions(FusionParams):
     fit_views: int = param(0, ge=0)
     """With fit_iters: that many other frames, spread over the path (farthest-point from the capture point), join the
     colour fit where they see what the source saw, so the source's colours are fitted from aside too (0 = the capture
-    point only). Off by default for its cost: 4 views with fit_view_weight 0.3 gave +0.4-1.0 dB on the seen part
-    ~2 m away and kept the capture point on seeds 1, 5, 6 (seed 4: -0.19 dB), for about +70 % of the stage's CPU time
-    (docs/evaluation.md, "The seen part from aside")."""
+    point only). Off by default: 4 views with fit_view_weight 0.3 gave +0.2-1.0 dB on the seen part ~2 m away on
+    validation seeds 1, 4, 5, 6 but seed 4's capture point -0.18 dB, for +40 % of the stage's CPU time (+6 % over
+    the stage before its operator was made cheaper) (docs/evaluation.md, "Views from aside, affordable")."""
     fit_view_height: int = param(256, ge=8)
     """ERP height of those frames' renders and targets in the fit."""
     fit_view_reach: float = param(2.0, ge=0)
@@ -52,6 +52,13 @@ class VoxelFusionOptions(FusionParams):
     user roams, not at the room's far walls."""
     fit_view_weight: float = param(1.0, ge=0)
     """Weight of each of those frames' pixels in the fit against 1 for the capture point's."""
+    fit_sh_degree: int = param(0, ge=0, le=1)
+    """With fit_views: 1 fits view-dependent colours too (degree-1 SH, written as f_rest_*), so the colours seen from
+    those frames need not be the capture point's. Off: with 4 views it beat DC-only views in every bucket of
+    validation seeds 1, 4, 5, 6 (seen part ~2 m +0.5-1.3 dB over none) but seed 4's capture point lost 0.12 dB."""
+    fit_sh_damping: float = param(0.001, ge=0)
+    """Damping of those degree-1 coefficients towards 0 per unit of compositing weight (the colours' is 0.01): a
+    Gaussian seen from few directions keeps about one colour (0.0001 gave the same dB on seed 4)."""
     back_sides: bool = False
     """With source_pixels and a navmesh input: upright source surfaces whose other side is in the line of sight of the
     walkable floor (within back_side_reach; what the source saw blocks the sight, unseen space does not) get a second
@@ -81,7 +88,8 @@ def fuse(job):
                                       source_scale=o.source_scale, unseen_voxel_size=o.unseen_voxel_size,
                                       fit_iters=o.fit_iters, fit_height=o.fit_height, fit_views=o.fit_views,
                                       fit_view_height=o.fit_view_height, fit_view_reach=o.fit_view_reach,
-                                      fit_view_weight=o.fit_view_weight, back_sides=back_side_hook(job),
+                                      fit_view_weight=o.fit_view_weight, fit_sh_degree=o.fit_sh_degree,
+                                      fit_sh_damping=o.fit_sh_damping, back_sides=back_side_hook(job),
                                       progress=job.progress)
     from panoworld.home.gaussians import home_anchored_fusion
     from panoworld.home.layout import home_depth_dirs
