@@ -462,10 +462,14 @@ def map_ahead(fn: Callable, items: Iterable, *, workers: int):
     from collections import deque
     from concurrent.futures import ThreadPoolExecutor
 
+    def call(box: list):  # the item leaves the box, so it dies with fn's call, not with the pool's work item, which
+        return fn(box.pop())  # a busy worker thread may hold on to until after the result is handed over
+
     with ThreadPoolExecutor(workers) as pool:
         pending: deque = deque()
         for item in items:
-            pending.append(pool.submit(fn, item))
+            pending.append(pool.submit(call, [item]))
+            del item
             if len(pending) > workers:
                 yield pending.popleft().result()
         while pending:
