@@ -55,7 +55,8 @@ class VoxelFusionOptions(FusionParams):
     fit_sh_degree: int = param(0, ge=0, le=1)
     """With fit_views: 1 fits view-dependent colours too (degree-1 SH, written as f_rest_*), so the colours seen from
     those frames need not be the capture point's. Off: with 4 views it beat DC-only views in every bucket of
-    validation seeds 1, 4, 5, 6 (seen part ~2 m +0.5-1.3 dB over none) but seed 4's capture point lost 0.12 dB."""
+    validation seeds 1, 4, 5, 6 (seen part ~2 m +0.5-1.3 dB over none) but the capture point lost up to 0.25 dB
+    (seeds 4: 0.12, 3: 0.25) and the unseen part up to 1.3 dB at ~2 m (seed 3)."""
     fit_sh_damping: float = param(0.001, ge=0)
     """Damping of those degree-1 coefficients towards 0 per unit of compositing weight (the colours' is 0.01): a
     Gaussian seen from few directions keeps about one colour (0.0001 gave the same dB on seed 4)."""
