@@ -140,7 +140,14 @@ def test_fusion_streams_frames_and_bounds_its_accumulators(room, monkeypatch):
     merge = gs.merge_voxel_sums
     monkeypatch.setattr(gs, "merge_voxel_sums", lambda parts: sizes.append(len(parts)) or merge(parts))
     monkeypatch.setattr(gs, "MERGE_EVERY", 3)
-    lazy = gs.voxel_fusion(Lazy(), FusionParams(voxel_size=0.1, per_voxel=2))
+    # one worker (map_ahead's count follows torch's threads, which numba's OpenMP layer resets to the core count
+    # when a test before this one first runs a parallel numba kernel)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        lazy = gs.voxel_fusion(Lazy(), FusionParams(voxel_size=0.1, per_voxel=2))
+    finally:
+        torch.set_num_threads(threads)
     assert most[0] <= 2 and max(sizes) <= 4  # at most the frame in use (and the one being dropped)
     whole = gs.voxel_fusion([(*cache[i], p) for i, p in enumerate(poses)], FusionParams(voxel_size=0.1, per_voxel=2))
     assert lazy.num_observations == whole.num_observations and len(lazy.gaussians) == len(whole.gaussians)
