@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from panoworld.conventions import erp_dirs, erp_pixel_from_dir
+from panoworld.conventions import erp_pixel_from_dir, points_from_depth
 from panoworld.gaussian_set import Gaussians, rgb_to_sh_dc
 from panoworld.rotations import rotmat_from_quat
 
@@ -135,8 +135,8 @@ def next_room_wall_rgb(rgb: np.ndarray, depth: np.ndarray, world_from_cam: np.nd
 
     valid = np.isfinite(depth) & (depth > 0)
     pose = np.asarray(world_from_cam, np.float64)
-    pts = erp_dirs(*depth.shape, np.float64) * np.where(valid, depth, 0.0)[..., None]
-    fb = floor_beyond(pts @ pose[:3, :3].T + pose[:3, 3], rgb, valid, floor=False, walls_ceiling=True)
+    pts = points_from_depth(np.where(valid, depth, 0.0), pose)
+    fb = floor_beyond(pts, rgb, valid, floor=False, walls_ceiling=True)
     if fb is None or fb.wall_rgb is None:
         return None
     return np.clip(np.rint(fb.wall_rgb), 0, 255).astype(np.uint8)

@@ -155,7 +155,7 @@ def view_targets(frames: ContextSource, vis: SourceVisibility, k: int, height: i
     """k frames spread over the path (spread_frames; only those within `reach` metres of the capture point when > 0)
     at `height` rows as colour-fit views (rgb, world_from_cam, pixel weights): `weight` where the frame sees a surface
     the source saw (vis.explained), 0 elsewhere (generated content, no depth)."""
-    from panoworld.conventions import erp_dirs
+    from panoworld.conventions import points_from_depth
 
     if k <= 0 or not len(frames):
         return []
@@ -166,8 +166,7 @@ def view_targets(frames: ContextSource, vis: SourceVisibility, k: int, height: i
     for i in near[spread_frames(centres[near], k)]:
         rgb, depth, pose = src.frame(i)
         ok = np.isfinite(depth) & (depth > 0)
-        pts = erp_dirs(*depth.shape, np.float64) * np.where(ok, depth, 0.0)[..., None]
-        pts = pts.reshape(-1, 3) @ pose[:3, :3].T + pose[:3, 3]
+        pts = points_from_depth(np.where(ok, depth, 0.0), pose).reshape(-1, 3)
         out.append((rgb, pose, weight * (ok.reshape(-1) & vis.explained(pts)).reshape(depth.shape).astype(np.float32)))
     return out
 

@@ -108,9 +108,7 @@ def disc_shadow(face: np.ndarray, rig: np.ndarray, floor: np.ndarray, theta: np.
     from scipy.optimize import least_squares
 
     lum = linear_luminance(face)
-    S = face.shape[0]
-    c = (np.arange(S) + 0.5 - 0.5 * S) / focal
-    u, v = np.meshgrid(c, c)
+    u, v = _floor_coords(face.shape[0], focal)
     use = floor & ~rig & (lum > 2e-3) & (theta < DISC_FIT_DEG)
     if use.sum() < 2000:
         return None
@@ -118,7 +116,7 @@ def disc_shadow(face: np.ndarray, rig: np.ndarray, floor: np.ndarray, theta: np.
     idx = idx[:: max(1, len(idx) // max_samples)]
     uu, vv = u.ravel()[idx], v.ravel()[idx]
     r = np.hypot(uu, vv)
-    A = np.stack([uu**i * vv**j for i in range(3) for j in range(3 - i)], -1)
+    A = np.stack(_quadratic(uu, vv), -1)
     y = np.log(lum.ravel()[idx]).astype(np.float64)
     wts = np.ones(len(y))
 
@@ -141,10 +139,10 @@ def disc_shadow(face: np.ndarray, rig: np.ndarray, floor: np.ndarray, theta: np.
         p = least_squares(resid, p, bounds=(lo, hi), x_scale=[0.1, 0.2, 0.03], max_nfev=20).x
         res = residual(p)
         if it < 4:  # trimming (texture, the legs' own cast shadows), then the upper expectile
-            keep = (wts > 0) & (np.abs(res) < 3.0 * 1.4826 * np.median(np.abs(res[wts > 0])) + 1e-6)
+            keep = (wts > 0) & _within_3mad(res, res[wts > 0])
             wts = keep.astype(np.float64)
         else:
-            wts = np.where(wts > 0, np.where(res > 0, LIGHT_EXPECTILE, 1.0 - LIGHT_EXPECTILE), 0.0)
+            wts = np.where(wts > 0, _expectile_weights(res), 0.0)
     loss1 = float(np.sum(resid(p) ** 2))
     loss0 = float(np.sum(resid(np.array([0.0, p[1], p[2]])) ** 2))
     return DiscShadow(float(p[0]), *shape(p), 1.0 - loss1 / max(loss0, 1e-12))
@@ -181,10 +179,8 @@ def floor_light(face: np.ndarray, rig: np.ndarray, floor: np.ndarray, theta: np.
     least squares on floor pixels outside the rig with 3-MAD trimming (texture, the legs' own cast shadows), then
     refitted to the LIGHT_EXPECTILE expectile; None when too little floor is seen."""
     lum = linear_luminance(face)
-    S = face.shape[0]
-    c = (np.arange(S) + 0.5 - 0.5 * S) / focal
-    u, v = np.meshgrid(c, c)
-    poly = [u**i * v**j for i in range(3) for j in range(3 - i)]
+    u, v = _floor_coords(face.shape[0], focal)
+    poly = _quadratic(u, v)
     knots = np.arange(0.0, SHADOW_MAX_DEG + 1e-6, KNOT_DEG)
     hats = [np.clip(1.0 - np.abs(theta - k) / KNOT_DEG, 0.0, None) for k in knots[:-1]]
     A = np.stack(poly + hats, -1).astype(np.float64)
@@ -196,9 +192,9 @@ def floor_light(face: np.ndarray, rig: np.ndarray, floor: np.ndarray, theta: np.
     for _ in range(4):
         coef, *_ = np.linalg.lstsq(A[use], y[use], rcond=None)
         res = y - A @ coef
-        use &= np.abs(res) < 3.0 * 1.4826 * np.median(np.abs(res[use])) + 1e-6
+        use &= _within_3mad(res, res[use])
     for _ in range(8):  # the upper expectile: the floor's brighter texture is lit like the rest (see LIGHT_EXPECTILE)
-        sw = np.sqrt(np.where(res[use] > 0, LIGHT_EXPECTILE, 1.0 - LIGHT_EXPECTILE))
+        sw = np.sqrt(_expectile_weights(res[use]))
         coef, *_ = np.linalg.lstsq(A[use] * sw[:, None], y[use] * sw, rcond=None)
         res = y - A @ coef
     seen = np.array([(use & (h > 0.5)).sum() >= 8 for h in hats])  # knots without floor pixels (under the mount)
@@ -221,6 +217,27 @@ def sector_light(fit: FloorLight, theta: np.ndarray, phi: np.ndarray, rings: tup
             if len(v) >= 8:
                 out[i, k] = np.exp(_expectile(np.log(v), LIGHT_EXPECTILE))
     return out
+
+
+def _floor_coords(size: int, focal: float) -> list[np.ndarray]:
+    """(u, v) (size, size) of the downward face's pixel centres on the floor plane, in camera heights."""
+    c = (np.arange(size) + 0.5 - 0.5 * size) / focal
+    return np.meshgrid(c, c)
+
+
+def _quadratic(u: np.ndarray, v: np.ndarray) -> list[np.ndarray]:
+    """The room light's basis: the monomials of (u, v) up to degree 2."""
+    return [u**i * v**j for i in range(3) for j in range(3 - i)]
+
+
+def _within_3mad(res: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """The trimming of the light fits: |res| within 3 robust standard deviations (MAD) of the residuals ref."""
+    return np.abs(res) < 3.0 * 1.4826 * np.median(np.abs(ref)) + 1e-6
+
+
+def _expectile_weights(res: np.ndarray) -> np.ndarray:
+    """Least-squares weights of the LIGHT_EXPECTILE expectile at residuals res."""
+    return np.where(res > 0, LIGHT_EXPECTILE, 1.0 - LIGHT_EXPECTILE)
 
 
 def _expectile(v: np.ndarray, tau: float, iters: int = 30) -> float:
