@@ -344,8 +344,7 @@ def render_perspective(
         raise ValueError(f"image size {W}x{H} (WxH) must be positive")
     if backend not in ("auto", "torch", "gsplat"):
         raise ValueError(f"backend={backend!r} but expected 'auto', 'torch' or 'gsplat'")
-    on_cuda = isinstance(gaussians.means, torch.Tensor) and gaussians.means.is_cuda
-    if backend == "gsplat" or (backend == "auto" and on_cuda and _gsplat_available()):
+    if _use_gsplat(gaussians, backend):
         return _render_gsplat(gaussians, world_from_cam, fx, fy, cx, cy, H, W, near, background)
     world_from_cam = np.asarray(world_from_cam, dtype=np.float64)
     prep = _prepare(gaussians, world_from_cam[:3, 3])
@@ -426,7 +425,7 @@ def erp_faces(world_from_cam: np.ndarray, H: int, W: int, *, face_size: int | No
 def render_erp(
     gaussians: Gaussians, world_from_cam: np.ndarray, H: int, W: int, *, face_size: int | None = None,
     margin: int = 2, near: float = 0.01, background=None, supersample: int = ERP_SUPERSAMPLE,
-    pole_scale: float | None = None,
+    pole_scale: float | None = None, backend: str = "auto",
 ) -> RenderOutput:
     """Render an equirectangular view (W = 2H) from 6 perspective cube faces resampled bilinearly with grid_sample.
 
@@ -436,17 +435,32 @@ def render_erp(
     depth averaged over each s x s block). depth is the expected Euclidean distance of the Gaussian centres (composited
     in each face's z order). pole_scale: the two faces holding the poles (+y, -y) at that many times the face size,
     as ERP rows near a pole sample longitude ever more finely (tan(latitude) times the face's pixel there); None =
-    ERP_POLE_SCALE.
+    ERP_POLE_SCALE. backend: as render_perspective's, for the faces; with gsplat a face's depth is its expected z
+    turned into distance along each pixel's ray (the torch path composites the centres' distances). The result is on
+    the CPU either way.
     """
+    if _use_gsplat(gaussians, backend):
+        faces = erp_faces(world_from_cam, H, W, face_size=face_size, margin=margin, supersample=supersample,
+                          pole_scale=pole_scale)
+        return _compose_erp(faces, H, W, supersample, lambda fc: _gsplat_face(gaussians, fc, near, background))
     faces = erp_faces(world_from_cam, H, W, face_size=face_size, margin=margin, supersample=supersample,
                       pole_scale=pole_scale)
-    s = int(supersample)
     prep = _prepare(gaussians, np.asarray(world_from_cam, dtype=np.float64)[:3, 3])
     bg = _background(background)
+
+    def torch_face(fc: ErpFace) -> RenderOutput:
+        proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
+        return rasterize_tiles(proj, fc.n, fc.n, bg, raw=True, distance=True)
+
+    return _compose_erp(faces, H, W, supersample, torch_face)
+
+
+def _compose_erp(faces: list[ErpFace], H: int, W: int, supersample: int, render_face) -> RenderOutput:
+    """render_erp's resampling: each face's raw render (rgb over the background, sum of weight x distance, alpha)."""
+    s = int(supersample)
     out = torch.zeros(5, s * H * s * W)
     for fc in faces:
-        proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
-        face = rasterize_tiles(proj, fc.n, fc.n, bg, raw=True, distance=True)
+        face = render_face(fc)
         out[:, fc.index] = fc.sample(torch.cat([face.rgb, face.depth[..., None], face.alpha[..., None]], -1))
     out = out.reshape(5, s * H, s * W)
     if s > 1:
@@ -454,6 +468,20 @@ def render_erp(
     alpha = out[4]
     depth = torch.where(alpha > 0, out[3] / alpha.clamp(min=1e-12), torch.zeros_like(alpha))
     return RenderOutput(out[:3].permute(1, 2, 0).contiguous(), depth, alpha)
+
+
+def _use_gsplat(gaussians: Gaussians, backend: str) -> bool:
+    on_cuda = isinstance(gaussians.means, torch.Tensor) and gaussians.means.is_cuda
+    return backend == "gsplat" or (backend == "auto" and on_cuda and _gsplat_available())
+
+
+def _gsplat_face(gaussians: Gaussians, fc: ErpFace, near: float, background) -> RenderOutput:
+    """One cube face through gsplat, raw as rasterize_tiles(raw=True, distance=True) returns it, on the CPU."""
+    out = _render_gsplat(gaussians, fc.world_from_face, fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near, background)
+    t = (torch.arange(fc.n, dtype=torch.float32) + 0.5 - fc.c) / fc.f
+    ray_length = torch.sqrt(t[None, :] ** 2 + t[:, None] ** 2 + 1)
+    alpha = out.alpha.float().cpu()
+    return RenderOutput(out.rgb.float().cpu(), out.depth.float().cpu() * ray_length * alpha, alpha)
 
 
 def _gsplat_available() -> bool:
@@ -479,8 +507,10 @@ def _render_gsplat(g, world_from_cam, fx, fy, cx, cy, H, W, near, background) ->
     viewmat = torch.as_tensor(invert_pose(np.asarray(world_from_cam, np.float64)), dtype=torch.float32, device=dev)
     K = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float32, device=dev)
     bg = _background(background).to(dev)
+    # The background is composited here: gsplat 1.5's packed path (its default) rejects its own background shape.
     colors, alphas, _ = rasterization(
         t(g.means), t(g.quats), t(g.scales), t(g.opacities), sh, viewmat[None], K[None], W, H,
-        near_plane=near, sh_degree=g.sh_degree, backgrounds=bg[None], render_mode="RGB+ED",
+        near_plane=near, sh_degree=g.sh_degree, render_mode="RGB+ED",
     )
-    return RenderOutput(colors[0, ..., :3], colors[0, ..., 3], alphas[0, ..., 0])
+    alpha = alphas[0, ..., 0]
+    return RenderOutput(colors[0, ..., :3] + (1 - alpha)[..., None] * bg, colors[0, ..., 3], alpha)

@@ -182,6 +182,20 @@ def test_gsplat_matches_torch_renderer():
     assert (gpu.rgb.cpu() - cpu.rgb).abs().max() < 1e-2
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="gsplat path needs CUDA")
+def test_gsplat_erp_matches_torch_erp():
+    pytest.importorskip("gsplat")
+    from bench.bench_render_gs import room_surfels
+
+    g = room_surfels(3000)  # surfaces: the faces' depth along each ray is the centres' distance there
+    gt = Gaussians(**{k: torch.as_tensor(getattr(g, k)).cuda() for k in ("means", "scales", "quats", "opacities", "sh_dc")})
+    cpu = render_erp(g, np.eye(4), 32, 64, backend="torch")
+    gpu = render_erp(gt, np.eye(4), 32, 64)
+    assert (gpu.rgb - cpu.rgb).abs().max() < 2e-2 and (gpu.alpha - cpu.alpha).abs().max() < 2e-2
+    seen = (cpu.alpha > 0.5) & (gpu.alpha > 0.5)
+    assert seen.any() and ((gpu.depth - cpu.depth).abs() / cpu.depth)[seen].median() < 0.01
+
+
 def test_renderer_gradients_match_finite_differences():
     # Smooth conditions: large, semi-transparent Gaussians in view (few alpha-threshold crossings, no clamping).
     rng = np.random.default_rng(3)
@@ -325,7 +339,8 @@ def test_numba_face_weights_match_the_torch_tile_rasteriser(n, opacity):
     key, key2 = pix * n + gid, pix2.astype(np.int64) * n + gid2
     o, o2 = np.argsort(key), np.argsort(key2)
     np.testing.assert_array_equal(key[o], key2[o2])
-    np.testing.assert_allclose(w2[o2], w[o], rtol=1e-6, atol=1e-9)
+    # float32 transmittance chains: a few weights differ in the last bits with the CPU's vector width (3e-6 seen)
+    np.testing.assert_allclose(w2[o2], w[o], rtol=2e-5, atol=1e-8)
     assert int(bin_tiles(proj, H, W)[3].max()) > 2 * 32  # tiles hold several chunks
     alpha = np.bincount(pix2, weights=w2, minlength=H * W).reshape(H, W)  # the weights sum to 1 - T
     np.testing.assert_allclose(alpha, torch_T.numpy(), atol=1e-5)
