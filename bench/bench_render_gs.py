@@ -27,6 +27,7 @@ from panoworld.gaussians import Gaussians
 from panoworld.render_gs import (
     _prepare,
     erp_faces,
+    face_cull,
     face_weights,
     project,
     rasterize_tiles,
@@ -100,10 +101,13 @@ def main() -> int:
     first, best, out = timed(lambda: render_perspective(g, pose, f, f, W / 2, H / 2, H, W), args.repeats)
     print(f"perspective {W}x{H}, {args.n} Gaussians, {args.threads} thread(s): first {first:.2f} s, best {best:.2f} s "
           f"(target <= 2 s), coverage {float(out.alpha.mean()):.3f}")
+    cull = face_cull(_prepare(g, pose[:3, 3]), g.scales, pose[:3, 3], 0.01)
     for s in args.supersample:
         first, best, out = timed(lambda s=s: render_erp(g, pose, 256, 512, supersample=s), args.repeats)
+        projected = sum(len(cull(fc)[1]) for fc in erp_faces(pose, 256, 512, supersample=s)) / args.n
         print(f"ERP 512x256 supersample {s} (6 cube faces of {math.ceil(s * 512 / math.pi)} px + grid_sample + {s}x{s} "
-              f"area): first {first:.2f} s, best {best:.2f} s (target <= 5 s), coverage {float(out.alpha.mean()):.3f}")
+              f"area): first {first:.2f} s, best {best:.2f} s (target <= 5 s), coverage {float(out.alpha.mean()):.3f}, "
+              f"projected {projected:.2f} N (face cull)")
     sub = g.subset(np.linalg.norm(g.means - [0, 0, 3.0], axis=1) < 1.2)
     a = render_perspective(sub, pose, 60.0, 60.0, 40.0, 24.0, 48, 80)
     b = render_perspective(sub, pose, 60.0, 60.0, 40.0, 24.0, 48, 80, reference=True)

@@ -10,34 +10,16 @@ import torch
 from panoworld.conventions import invert_pose
 from panoworld.gaussians import Gaussians
 from panoworld.render_gs import (
-    ALPHA_MIN,
     ERP_SUPERSAMPLE,
-    LOWPASS,
     TILE,
     ErpFace,
     _Prepared,
     covariance_3d,
     erp_faces,
+    face_cull,
     face_weights,
     project,
 )
-
-
-def face_candidates(offsets: torch.Tensor, r2: torch.Tensor, scale2: torch.Tensor, fc: ErpFace,
-                    near: float) -> torch.Tensor:
-    """Indices of Gaussians (offsets (N, 3): centre - camera centre in the world; r2 (N,): 2 ln(255 opacity), 0 where
-    project drops them; scale2 (N,): largest variance; float32) that render_gs.project can keep for face fc: a
-    superset, from a bound of the box project puts around each centre (half-width sqrt(r2 a), a the 2D covariance's
-    diagonal plus LOWPASS, at most (f/z)^2 (1 + (1.3 c / f)^2) scale2 + LOWPASS as its Jacobian is clamped at 1.3x the
-    half-extent), with slack for float32 rounding."""
-    p = offsets @ torch.as_tensor(fc.world_from_face[:3, :3], dtype=torch.float32)  # face-frame coordinates
-    front = ((p[:, 2] > near * 0.999) & (r2 > 0)).nonzero().squeeze(1)
-    p = p[front]
-    inv_z = fc.f / p[:, 2]
-    k = 1.0 + (1.3 * fc.c / fc.f) ** 2
-    ext = (r2[front] * (k * scale2[front] * inv_z**2 + LOWPASS)).sqrt() * 1.01 + 1.0
-    lim = fc.c - 0.5 + ext
-    return front[((p[:, 0] * inv_z).abs() <= lim) & ((p[:, 1] * inv_z).abs() <= lim)]
 
 
 def _sampling(fc: ErpFace, rows: np.ndarray):
@@ -70,7 +52,7 @@ class ErpColorOperator:
     A(colors (N, 3)) -> (H, W, 3); adjoint(image (H, W, 3)) -> A^T image (N, 3).
 
     mask (H, W) bool: only those ERP pixels are rendered (0 elsewhere): the face pixels their samples read are the
-    only ones composited, and each face projects only the Gaussians whose box can meet it (face_candidates), so a view
+    only ones composited, and each face projects only the Gaussians whose box can meet it (render_gs.face_cull), so a view
     that counts only part of its pixels costs that part. On the kept pixels it equals the operator without a mask.
     tile: the weights kernel's tile size (face_weights); cov: the Gaussians' covariance_3d when already at hand."""
 
@@ -86,9 +68,7 @@ class ErpColorOperator:
         if cov is None:
             cov = covariance_3d(torch.as_tensor(gaussians.scales).float(), torch.as_tensor(gaussians.quats).float())
         prep = _Prepared(means, cov, opacity, torch.zeros(1, 3).expand(len(means), 3))  # colours: the operand
-        offsets = prep.means - torch.as_tensor(np.asarray(world_from_cam, np.float32)[:3, 3])
-        r2 = torch.where(prep.opacity > ALPHA_MIN * 0.999, 2.0 * (255.0 * prep.opacity).clamp(min=1.0).log(), 0.0)
-        scale2 = torch.as_tensor(np.asarray(gaussians.scales, np.float32)).amax(1).square()
+        cull = face_cull(prep, np.asarray(gaussians.scales, np.float32), np.asarray(world_from_cam)[:3, 3], near)
         keep_px = None
         if mask is not None:
             keep = np.asarray(mask, bool)
@@ -104,8 +84,7 @@ class ErpColorOperator:
             S = _sampling(fc, rows)
             need = np.zeros(fc.n * fc.n, bool)
             need[S.indices] = True
-            cand = face_candidates(offsets, r2, scale2, fc, near)
-            sub = _Prepared(prep.means[cand], prep.cov[cand], prep.opacity[cand], prep.color[cand])
+            sub, cand = cull(fc)
             proj = project(sub, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
             pix, gid, w = face_weights(proj, fc.n, fc.n, need=None if keep_px is None else need, tile=tile)
             # scipy: COO -> CSR is a counting sort, 32-bit indices, and the transpose a free CSC view

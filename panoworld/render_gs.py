@@ -422,6 +422,41 @@ def erp_faces(world_from_cam: np.ndarray, H: int, W: int, *, face_size: int | No
     return faces
 
 
+def face_candidates(offsets: torch.Tensor, r2: torch.Tensor, scale2: torch.Tensor, fc: ErpFace,
+                    near: float) -> torch.Tensor:
+    """Indices of Gaussians (offsets (N, 3): centre - camera centre in the world; r2 (N,): 2 ln(255 opacity), 0 where
+    project drops them; scale2 (N,): largest variance; float32) that project can keep for face fc: a superset, from a
+    bound of the box project puts around each centre (half-width sqrt(r2 a), a the 2D covariance's diagonal plus
+    LOWPASS, at most (f/z)^2 (1 + (1.3 c / f)^2) scale2 + LOWPASS as its Jacobian is clamped at 1.3x the
+    half-extent), with slack for float32 rounding."""
+    p = offsets @ torch.as_tensor(fc.world_from_face[:3, :3], dtype=torch.float32)  # face-frame coordinates
+    front = ((p[:, 2] > near * 0.999) & (r2 > 0)).nonzero().squeeze(1)
+    p = p[front]
+    inv_z = fc.f / p[:, 2]
+    k = 1.0 + (1.3 * fc.c / fc.f) ** 2
+    ext = (r2[front] * (k * scale2[front] * inv_z**2 + LOWPASS)).sqrt() * 1.01 + 1.0
+    lim = fc.c - 0.5 + ext
+    return front[((p[:, 0] * inv_z).abs() <= lim) & ((p[:, 1] * inv_z).abs() <= lim)]
+
+
+def face_cull(prep: _Prepared, scales, centre: np.ndarray, near: float):
+    """fc -> (the prepared Gaussians (scales (N, 3)) that cube face fc of a view centred at `centre` can show, their
+    indices in prep): face_candidates' superset of those project keeps, in prep's order, so projecting them gives
+    project's result on all of prep (render_erp and the colour fit's ErpColorOperator project each face so)."""
+    with torch.no_grad():
+        offsets = prep.means.detach() - torch.as_tensor(np.asarray(centre, np.float32))
+        o = prep.opacity.detach()
+        # r2 > 0 for every opacity project keeps (> ALPHA_MIN), also where 255 o rounds to 1
+        r2 = torch.where(o > ALPHA_MIN * 0.999, (2.0 * (255.0 * o).log()).clamp(min=1e-6), 0.0)
+        scale2 = _t(scales).detach().square().amax(1)
+
+    def subset(fc: ErpFace) -> tuple[_Prepared, torch.Tensor]:
+        cand = face_candidates(offsets, r2, scale2, fc, near)
+        return _Prepared(prep.means[cand], prep.cov[cand], prep.opacity[cand], prep.color[cand]), cand
+
+    return subset
+
+
 def render_erp(
     gaussians: Gaussians, world_from_cam: np.ndarray, H: int, W: int, *, face_size: int | None = None,
     margin: int = 2, near: float = 0.01, background=None, supersample: int = ERP_SUPERSAMPLE,
@@ -437,7 +472,8 @@ def render_erp(
     as ERP rows near a pole sample longitude ever more finely (tan(latitude) times the face's pixel there); None =
     ERP_POLE_SCALE. backend: as render_perspective's, for the faces; with gsplat a face's depth is its expected z
     turned into distance along each pixel's ray (the torch path composites the centres' distances). The result is on
-    the CPU either way.
+    the CPU either way. The torch path projects for each face only the Gaussians whose box can meet it (face_cull):
+    the same render as projecting all of them on every face.
     """
     if _use_gsplat(gaussians, backend):
         faces = erp_faces(world_from_cam, H, W, face_size=face_size, margin=margin, supersample=supersample,
@@ -445,11 +481,13 @@ def render_erp(
         return _compose_erp(faces, H, W, supersample, lambda fc: _gsplat_face(gaussians, fc, near, background))
     faces = erp_faces(world_from_cam, H, W, face_size=face_size, margin=margin, supersample=supersample,
                       pole_scale=pole_scale)
-    prep = _prepare(gaussians, np.asarray(world_from_cam, dtype=np.float64)[:3, 3])
+    centre = np.asarray(world_from_cam, dtype=np.float64)[:3, 3]
+    prep = _prepare(gaussians, centre)
+    cull = face_cull(prep, gaussians.scales, centre, near)
     bg = _background(background)
 
     def torch_face(fc: ErpFace) -> RenderOutput:
-        proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
+        proj = project(cull(fc)[0], invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
         return rasterize_tiles(proj, fc.n, fc.n, bg, raw=True, distance=True)
 
     return _compose_erp(faces, H, W, supersample, torch_face)

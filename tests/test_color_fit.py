@@ -32,21 +32,18 @@ def shell_and_clutter(seed: int = 0) -> Gaussians:
 
 
 def test_face_candidates_keep_every_gaussian_project_keeps():
-    from panoworld.erp_operator import face_candidates
-    from panoworld.render_gs import ALPHA_MIN, _prepare, covariance_3d, erp_faces, invert_pose, project
+    from panoworld.render_gs import _prepare, covariance_3d, erp_faces, face_cull, invert_pose, project
 
     g = shell_and_clutter(1)
     pose = np.eye(4)
     pose[:3, 3] = [0.3, -0.2, 0.1]
     prep = _prepare(g, pose[:3, 3])
-    offsets = prep.means - torch.as_tensor(pose[:3, 3], dtype=torch.float32)
-    r2 = torch.where(prep.opacity > ALPHA_MIN, 2.0 * (255.0 * prep.opacity).clamp(min=1.0).log(), 0.0)
-    scale2 = torch.as_tensor(g.scales).amax(1).square()
+    cull = face_cull(prep, g.scales, pose[:3, 3], 0.01)
     assert torch.allclose(prep.cov, covariance_3d(torch.as_tensor(g.scales), torch.as_tensor(g.quats)))
     total = kept = 0
     for fc in erp_faces(pose, 24, 48, pole_scale=2.0):
         full = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n)
-        cand = face_candidates(offsets, r2, scale2, fc, 0.01)
+        cand = cull(fc)[1]
         assert set(full.index.tolist()) <= set(cand.tolist())
         total, kept = total + len(cand), kept + len(full.index)
     assert total < 1.5 * kept < 3 * len(g), (total, kept)  # not every Gaussian on all six faces

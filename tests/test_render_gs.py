@@ -346,3 +346,97 @@ def test_numba_face_weights_match_the_torch_tile_rasteriser(n, opacity):
     np.testing.assert_allclose(alpha, torch_T.numpy(), atol=1e-5)
     if opacity is not None:
         assert float(torch_T.max()) > 1 - 1e-3  # saturated pixels: early termination exercised
+
+
+def cull_scene(seed: int = 0) -> tuple[Gaussians, np.ndarray]:
+    """Gaussians around a turned, moved camera: a shell, some on the cube faces' edges and corners (straddling two or
+    three faces), some near the camera's centre (behind and in front of the near plane), big ones close to it, and
+    opacities at the 1/255 threshold."""
+    from panoworld.render_gs import ALPHA_MIN
+
+    rng = np.random.default_rng(seed)
+    pose = np.eye(4)
+    pose[:3, :3] = rotmat_from_quat_wxyz(np.array([0.9, 0.2, -0.3, 0.1]) / np.linalg.norm([0.9, 0.2, -0.3, 0.1]))
+    pose[:3, 3] = [0.3, -0.2, 0.1]
+    n = 1500
+    k = np.arange(n) + 0.5
+    y = 1 - 2 * k / n
+    lon = np.pi * (1 + 5**0.5) * k
+    shell = 3.0 * np.stack([np.sqrt(1 - y**2) * np.cos(lon), y, np.sqrt(1 - y**2) * np.sin(lon)], 1)
+    edges = np.array([[a, b, 0] for a in (-1, 1) for b in (-1, 1)] + [[a, 0, b] for a in (-1, 1) for b in (-1, 1)]
+                     + [[0, a, b] for a in (-1, 1) for b in (-1, 1)] + [[a, b, c] for a in (-1, 1) for b in (-1, 1)
+                                                                         for c in (-1, 1)], float)
+    edges = np.repeat(edges / np.linalg.norm(edges, axis=1, keepdims=True), 10, 0)
+    edges = (edges + rng.normal(0, 0.01, edges.shape)) * rng.uniform(0.3, 4.0, (len(edges), 1))
+    near = rng.normal(size=(20, 3))
+    near *= rng.uniform(0.002, 0.03, (20, 1)) / np.linalg.norm(near, axis=1, keepdims=True)
+    big = rng.normal(size=(12, 3))
+    big *= rng.uniform(0.2, 0.8, (12, 1)) / np.linalg.norm(big, axis=1, keepdims=True)
+    local = np.concatenate([shell, edges, near, big])
+    m = len(local)
+    scales = np.concatenate([np.full((n, 3), 0.1), rng.uniform(0.005, 0.3, (len(edges), 3)),
+                             rng.uniform(0.001, 0.05, (20, 3)), rng.uniform(0.3, 1.2, (12, 3))])
+    scales[rng.random(m) < 0.2, 0] *= 10  # some needles
+    opacity = rng.uniform(0.05, 1.0, m)
+    opacity[-32:] = rng.uniform(0.01, 0.1, 32)  # the near and big ones: the shell shows through
+    opacity[rng.choice(m, 40, replace=False)] = ALPHA_MIN * rng.choice([0.999, 1.0, 1.000001, 1.001, 1.1], 40)
+    g = Gaussians(means=(local @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32), scales=scales.astype(np.float32),
+                  quats=rng.normal(size=(m, 4)).astype(np.float32), opacities=opacity.astype(np.float32),
+                  sh_dc=rng.normal(size=(m, 3)).astype(np.float32), sh_rest=0.3 * rng.normal(size=(m, 3, 3)).astype(np.float32))
+    return g, pose
+
+
+def render_erp_projecting_all(g: Gaussians, pose: np.ndarray, H: int, W: int, background, **kw):
+    """render_erp's torch path as it was before the face cull: every Gaussian projected on every face."""
+    from panoworld.render_gs import _compose_erp, _prepare, erp_faces, invert_pose, project, rasterize_tiles
+
+    prep = _prepare(g, pose[:3, 3])
+    bg = torch.as_tensor(background, dtype=torch.float32)
+
+    def face(fc):
+        proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n)
+        return rasterize_tiles(proj, fc.n, fc.n, bg, raw=True, distance=True)
+
+    return _compose_erp(erp_faces(pose, H, W, **kw), H, W, kw.get("supersample", 2), face)
+
+
+@pytest.mark.parametrize("supersample, pole_scale", [(1, 1.0), (2, 2.0), (2, 1.5)])
+def test_erp_face_cull_renders_what_projecting_every_gaussian_renders(supersample, pole_scale):
+    from panoworld.render_gs import _prepare, erp_faces, face_cull, invert_pose, project
+
+    g, pose = cull_scene()
+    H, W = 24, 48
+    kw = dict(supersample=supersample, pole_scale=pole_scale)
+    prep = _prepare(g, pose[:3, 3])
+    cull = face_cull(prep, g.scales, pose[:3, 3], 0.01)
+    total = 0
+    for fc in erp_faces(pose, H, W, **kw):  # the culled faces keep exactly the Gaussians project keeps, in order
+        full = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n)
+        sub, cand = cull(fc)
+        part = project(sub, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n)
+        assert torch.equal(cand[part.index], full.index)
+        total += len(cand)
+    assert total < 2.5 * len(g), total  # most Gaussians projected on one or two faces, not six
+    bg = [0.2, 0.5, 0.7]
+    want = render_erp_projecting_all(g, pose, H, W, bg, **kw)
+    got = render_erp(g, pose, H, W, background=bg, **kw)
+    for name in ("rgb", "depth", "alpha"):
+        assert float((getattr(got, name) - getattr(want, name)).abs().max()) <= 1e-6, name
+    assert float(got.alpha.mean()) > 0.9 and float(got.depth.max() - got.depth.min()) > 1.0  # not a blank view
+
+
+def test_erp_face_cull_keeps_gradients():
+    g, pose = cull_scene(1)
+    target = torch.rand(16, 32, 3, generator=torch.Generator().manual_seed(0))
+    grads = []
+    for render in (render_erp, render_erp_projecting_all):
+        means = torch.tensor(g.means, requires_grad=True)
+        opac = torch.tensor(g.opacities, requires_grad=True)
+        gi = Gaussians(means=means, scales=torch.tensor(g.scales), quats=torch.tensor(g.quats), opacities=opac,
+                       sh_dc=torch.tensor(g.sh_dc), sh_rest=torch.tensor(g.sh_rest))
+        out = render(gi, pose, 16, 32, background=[0.0, 0.0, 0.0], supersample=1)
+        ((out.rgb - target) ** 2).sum().backward()
+        grads.append((means.grad, opac.grad))
+    for a, b in zip(*grads):
+        assert a.abs().max() > 0
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
