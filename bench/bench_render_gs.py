@@ -23,17 +23,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from panoworld.conventions import invert_pose
+from panoworld.erp_render import erp_faces, face_cull, render_erp
 from panoworld.gaussians import Gaussians
-from panoworld.render_gs import (
-    _prepare,
-    erp_faces,
-    face_cull,
-    face_weights,
-    project,
-    rasterize_tiles,
-    render_erp,
-    render_perspective,
-)
+from panoworld.render_gs import _prepare, face_weights, project, rasterize_tiles, render_perspective
 
 
 def room_surfels(n: int, seed: int = 0) -> Gaussians:

@@ -8,18 +8,9 @@ import numpy as np
 import torch
 
 from panoworld.conventions import invert_pose
+from panoworld.erp_render import ERP_SUPERSAMPLE, ErpFace, erp_faces, face_cull
 from panoworld.gaussians import Gaussians
-from panoworld.render_gs import (
-    ERP_SUPERSAMPLE,
-    TILE,
-    ErpFace,
-    _Prepared,
-    covariance_3d,
-    erp_faces,
-    face_cull,
-    face_weights,
-    project,
-)
+from panoworld.render_gs import TILE, _Prepared, covariance_3d, face_weights, project
 
 
 def _sampling(fc: ErpFace, rows: np.ndarray):
