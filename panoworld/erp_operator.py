@@ -43,7 +43,7 @@ class ErpColorOperator:
     A(colors (N, 3)) -> (H, W, 3); adjoint(image (H, W, 3)) -> A^T image (N, 3).
 
     mask (H, W) bool: only those ERP pixels are rendered (0 elsewhere): the face pixels their samples read are the
-    only ones composited, and each face projects only the Gaussians whose box can meet it (render_gs.face_cull), so a view
+    only ones composited, and each face projects only the Gaussians whose box can meet it (erp_render.face_cull), so a view
     that counts only part of its pixels costs that part. On the kept pixels it equals the operator without a mask.
     tile: the weights kernel's tile size (face_weights); cov: the Gaussians' covariance_3d when already at hand."""
 
