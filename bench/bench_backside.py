@@ -45,12 +45,12 @@ def behind_mask(mesh, caster, pose: np.ndarray, height: int, width: int) -> np.n
 
 def measure(scene: Path, plys: dict[str, Path], buckets: list[str], views: int, height: int,
             behind_views_only: bool = False) -> dict:
+    from panoworld.erp_render import render_erp
     from panoworld.eval.groundtruth import open_ground_truth
     from panoworld.eval.roam import sample_roam_poses
     from panoworld.mesh import load_erp_mesh
     from panoworld.navmesh import load_navmesh
     from panoworld.raycast import Raycaster
-    from panoworld.render_gs import render_erp
     from panoworld.splat_ply import read_gaussians_ply
 
     mesh = load_erp_mesh(scene / ARTIFACTS / "mesh")

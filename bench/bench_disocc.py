@@ -139,8 +139,8 @@ def capture_room(gt) -> int:
 def diagnose(scene: Path, ply: Path, views: int, height: int, buckets: list[str], cache: dict,
              png: Path | None = None) -> dict:
     """Per bucket: PSNR of the view, of its seen and unseen parts, and per unseen part (surface class, geometry)."""
+    from panoworld.erp_render import render_erp
     from panoworld.navmesh import load_navmesh
-    from panoworld.render_gs import render_erp
     from panoworld.splat_ply import read_gaussians_ply
 
     g = read_gaussians_ply(ply)

@@ -20,9 +20,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from panoworld.erp_render import render_erp
 from panoworld.gaussians import FusionParams, uniform_subset, voxel_fusion
 from panoworld.metrics import psnr, ssim, ws_psnr
-from panoworld.render_gs import render_erp
 from panoworld.stage import params_from_dict
 from panoworld.synth import generate_scene
 

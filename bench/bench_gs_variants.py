@@ -3,7 +3,7 @@ ERP supersampling factors on scenes already run to `poses` (e.g. kept by `bench_
 
 Each variant is a list of gaussians-stage params (KEY=VALUE, as `--set gaussians.KEY=VALUE`), fused from the scene's
 video and poses artifacts into a temporary directory; `artifact` is the scene's own gaussians.ply. The pseudo-param
-`pole_scale=S` (e.g. `artifact,pole_scale=2`) sets render_gs.ERP_POLE_SCALE, the pole faces of the stage's colour fit
+`pole_scale=S` (e.g. `artifact,pole_scale=2`) sets erp_render.ERP_POLE_SCALE, the pole faces of the stage's colour fit
 and of the renders, for that variant only. Tune on the VALIDATION seeds of bench_roam.py (1 2 3), never on its test
 seeds.
 
@@ -77,10 +77,10 @@ def measure(scene: Path, ply: Path, supersample: int, views: int, height: int, r
             buckets: list[str] | None = None, fast: bool = False) -> dict:
     import cv2
 
+    from panoworld.erp_render import render_erp
     from panoworld.metrics import psnr
     from panoworld.navmesh import load_navmesh
     from panoworld.poses import load_frames
-    from panoworld.render_gs import render_erp
     from panoworld.splat_ply import read_gaussians_ply
 
     g = read_gaussians_ply(ply)
@@ -137,13 +137,13 @@ def main() -> int:
     a = ap.parse_args()
     import torch
 
-    from panoworld import render_gs
+    from panoworld import erp_render
 
     torch.set_num_threads(1)
     variants = a.variant or ["artifact"]
     rows = []
     keys = [b.key for b in BUCKETS if not a.buckets or b.key in a.buckets]
-    default_pole = render_gs.ERP_POLE_SCALE
+    default_pole = erp_render.ERP_POLE_SCALE
     print(f"{'scene':<10} {'variant':<34} {'ss':>2} {'N':>8} {'MB':>6} {'fuse s':>6} {'cpu s':>6} {'rend s':>6} "
           + " ".join(f"{k + ' dB':>8} {'cov':>6}" for k in keys) + f" {'vs in':>6}")
     with tempfile.TemporaryDirectory(prefix="gs-variants-") as tmp:
@@ -151,12 +151,12 @@ def main() -> int:
             refs: dict = {}
             for vi, variant in enumerate(variants):
                 params, pole = split_variant(variant)
-                render_gs.ERP_POLE_SCALE = default_pole if pole is None else pole
+                erp_render.ERP_POLE_SCALE = default_pole if pole is None else pole
                 ply, fuse_s, fuse_cpu_s = build(scene, params, Path(tmp) / scene.name / str(vi))
                 for s in a.supersample:
                     r = measure(scene, ply, s, a.views, a.height, refs, a.buckets, a.fast)
                     r.update(scene=scene.name, variant=variant, supersample=s, fuse_s=fuse_s, fuse_cpu_s=fuse_cpu_s,
-                             pole_scale=render_gs.ERP_POLE_SCALE)
+                             pole_scale=erp_render.ERP_POLE_SCALE)
                     rows.append(r)
 
                     def f(v, p=2):

@@ -97,9 +97,9 @@ def main() -> int:
     import cv2
     import torch
 
+    from panoworld.erp_render import render_erp
     from panoworld.eval.groundtruth import open_ground_truth
     from panoworld.poses import load_frames
-    from panoworld.render_gs import render_erp
     from panoworld.trajectory import poses_from_positions
 
     torch.set_num_threads(1)

@@ -6,7 +6,8 @@ against the brute-force oracle on a crop of the same scene, and times the colour
 (ErpColorOperator's cube faces at --weights-height ERP rows, 2x supersampled, 2x pole faces) from the torch tile
 rasteriser and from its numba kernel (splat_weights), with how far their weights differ.
 
-    python bench/bench_render_gs.py [--n 200000] [--threads 1] [--repeats 3] [--supersample 1 2] [--weights-height 256]
+    python bench/bench_render_gs.py [--n 200000] [--threads 1] [--repeats 3] [--supersample 1 2] [--backend auto]
+        [--weights-height 256]
 """
 
 from __future__ import annotations
@@ -23,17 +24,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from panoworld.conventions import invert_pose
+from panoworld.erp_render import erp_faces, face_cull, render_erp
 from panoworld.gaussians import Gaussians
-from panoworld.render_gs import (
-    _prepare,
-    erp_faces,
-    face_cull,
-    face_weights,
-    project,
-    rasterize_tiles,
-    render_erp,
-    render_perspective,
-)
+from panoworld.render_gs import _prepare, face_weights, project, rasterize_tiles, render_perspective
 
 
 def room_surfels(n: int, seed: int = 0) -> Gaussians:
@@ -91,6 +84,8 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--supersample", type=int, nargs="+", default=[1, 2], help="render_erp supersampling factors")
+    ap.add_argument("--backend", default="auto", choices=("auto", "torch", "numba"),
+                    help="render_erp's backend (auto: numba, as nothing needs a gradient)")
     ap.add_argument("--weights-height", type=int, default=256, help="ERP rows of the colour-fit weights timing (0 = skip)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -103,9 +98,10 @@ def main() -> int:
           f"(target <= 2 s), coverage {float(out.alpha.mean()):.3f}")
     cull = face_cull(_prepare(g, pose[:3, 3]), g.scales, pose[:3, 3], 0.01)
     for s in args.supersample:
-        first, best, out = timed(lambda s=s: render_erp(g, pose, 256, 512, supersample=s), args.repeats)
+        first, best, out = timed(lambda s=s: render_erp(g, pose, 256, 512, supersample=s, backend=args.backend),
+                                 args.repeats)
         projected = sum(len(cull(fc)[1]) for fc in erp_faces(pose, 256, 512, supersample=s)) / args.n
-        print(f"ERP 512x256 supersample {s} (6 cube faces of {math.ceil(s * 512 / math.pi)} px + grid_sample + {s}x{s} "
+        print(f"ERP 512x256 {args.backend} supersample {s} (6 cube faces of {math.ceil(s * 512 / math.pi)} px + grid_sample + {s}x{s} "
               f"area): first {first:.2f} s, best {best:.2f} s (target <= 5 s), coverage {float(out.alpha.mean()):.3f}, "
               f"projected {projected:.2f} N (face cull)")
     sub = g.subset(np.linalg.norm(g.means - [0, 0, 3.0], axis=1) < 1.2)

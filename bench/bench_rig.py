@@ -334,7 +334,7 @@ def floor_from_afar(seed: int, height: int, work: Path, sets: list[str], rig_kin
 
     from panoworld import pipeline as pl
     from panoworld.conventions import erp_dirs, erp_pixel_from_dir, invert_pose
-    from panoworld.render_gs import render_erp
+    from panoworld.erp_render import render_erp
     from panoworld.splat_ply import read_gaussians_ply
     from panoworld.synth import params_for, write_scene
 

@@ -175,11 +175,11 @@ def main() -> int:
     import torch
 
     from panoworld.artifacts import read_manifest
+    from panoworld.erp_render import render_erp
     from panoworld.eval.groundtruth import open_ground_truth
     from panoworld.eval.roam import sample_roam_poses, source_seen
     from panoworld.navmesh import load_navmesh
     from panoworld.poses import load_frames
-    from panoworld.render_gs import render_erp
     from panoworld.splat_ply import read_gaussians_ply
 
     torch.set_num_threads(1)

@@ -34,10 +34,10 @@ import torch
 
 from panoworld.align import trajectory_metrics
 from panoworld.dataset import DatasetScene
+from panoworld.erp_render import render_erp
 from panoworld.evaluate import depth_errors
 from panoworld.metrics import psnr, ssim
 from panoworld.models.panovggt import PanoVGGT, PanoVGGTConfig
-from panoworld.render_gs import render_erp
 from panoworld.train.recon.data import SceneFrames, list_scenes, roll_yaw
 
 

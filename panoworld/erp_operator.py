@@ -8,18 +8,9 @@ import numpy as np
 import torch
 
 from panoworld.conventions import invert_pose
+from panoworld.erp_render import ERP_SUPERSAMPLE, ErpFace, erp_faces, face_cull
 from panoworld.gaussians import Gaussians
-from panoworld.render_gs import (
-    ERP_SUPERSAMPLE,
-    TILE,
-    ErpFace,
-    _Prepared,
-    covariance_3d,
-    erp_faces,
-    face_cull,
-    face_weights,
-    project,
-)
+from panoworld.render_gs import TILE, _Prepared, covariance_3d, face_weights, project
 
 
 def _sampling(fc: ErpFace, rows: np.ndarray):
@@ -52,7 +43,7 @@ class ErpColorOperator:
     A(colors (N, 3)) -> (H, W, 3); adjoint(image (H, W, 3)) -> A^T image (N, 3).
 
     mask (H, W) bool: only those ERP pixels are rendered (0 elsewhere): the face pixels their samples read are the
-    only ones composited, and each face projects only the Gaussians whose box can meet it (render_gs.face_cull), so a view
+    only ones composited, and each face projects only the Gaussians whose box can meet it (erp_render.face_cull), so a view
     that counts only part of its pixels costs that part. On the kept pixels it equals the operator without a mask.
     tile: the weights kernel's tile size (face_weights); cov: the Gaussians' covariance_3d when already at hand."""
 

@@ -7,9 +7,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from panoworld.erp_render import render_erp
 from panoworld.gaussians import ContextFrames, ContextSource, FusionResult, uniform_subset
 from panoworld.metrics import psnr, ssim, ws_psnr
-from panoworld.render_gs import render_erp
 from panoworld.splat_ply import write_gaussians_ply, write_points_ply
 
 

@@ -105,3 +105,16 @@ def _grow(a, cap):
     out = np.empty(cap, a.dtype)
     out[: a.shape[0]] = a
     return out
+
+
+@njit(cache=True, nogil=True)
+def weighted_sums(pix, gid, w, values, size):
+    """Per pixel the float64 sums of w x values[gid] (values (G, C) float32) and of w: (size, C + 1)."""
+    c = values.shape[1]
+    out = np.zeros((size, c + 1), np.float64)
+    for k in range(pix.shape[0]):
+        p, wk = pix[k], np.float64(w[k])
+        for j in range(c):
+            out[p, j] += wk * values[gid[k], j]
+        out[p, c] += wk
+    return out

@@ -12,13 +12,13 @@ import trimesh
 
 from panoworld.back_sides import back_side_layer
 from panoworld.conventions import points_from_depth
+from panoworld.erp_render import render_erp
 from panoworld.fusion_params import FusionParams
 from panoworld.mesh import erp_mesh_from_depth
 from panoworld.metrics import psnr
 from panoworld.navmesh.build import build_navmesh
 from panoworld.pixel_gaussians import merge_gaussians, pixel_gaussians
 from panoworld.raycast import Raycaster
-from panoworld.render_gs import render_erp
 
 torch.set_num_threads(1)
 H, W = 192, 384

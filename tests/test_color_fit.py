@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
+from panoworld.erp_render import render_erp
 from panoworld.gaussians import Gaussians, rgb_to_sh_dc
-from panoworld.render_gs import render_erp
 
 torch.set_num_threads(1)
 
@@ -32,7 +32,8 @@ def shell_and_clutter(seed: int = 0) -> Gaussians:
 
 
 def test_face_candidates_keep_every_gaussian_project_keeps():
-    from panoworld.render_gs import _prepare, covariance_3d, erp_faces, face_cull, invert_pose, project
+    from panoworld.erp_render import erp_faces, face_cull
+    from panoworld.render_gs import _prepare, covariance_3d, invert_pose, project
 
     g = shell_and_clutter(1)
     pose = np.eye(4)

@@ -14,6 +14,7 @@ import torch
 import trimesh
 
 from panoworld.conventions import erp_dirs
+from panoworld.erp_render import render_erp
 from panoworld.gaussians import (
     FUSION_EPS,
     SH_C0,
@@ -28,7 +29,6 @@ from panoworld.gaussians import (
 )
 from panoworld.metrics import psnr
 from panoworld.raycast import Raycaster
-from panoworld.render_gs import render_erp
 
 torch.set_num_threads(1)
 

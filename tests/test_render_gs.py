@@ -7,15 +7,9 @@ import pytest
 import torch
 
 from panoworld.conventions import erp_pixel_from_dir, rotmat_from_quat_wxyz
+from panoworld.erp_render import render_erp
 from panoworld.gaussians import SH_C0, Gaussians, rgb_to_sh_dc
-from panoworld.render_gs import (
-    LOWPASS,
-    covariance_3d,
-    eval_sh,
-    render_erp,
-    render_perspective,
-    rotmat_from_quat,
-)
+from panoworld.render_gs import LOWPASS, covariance_3d, eval_sh, render_perspective, rotmat_from_quat
 
 torch.set_num_threads(1)
 
@@ -286,7 +280,7 @@ def test_erp_pole_scale_resolves_longitude_detail_near_the_poles():
     """Radial stripes around both poles, 2 ERP columns wide: near a pole they are finer than a cube-face pixel (ERP
     rows sample longitude tan(lat) times more finely than the face), so finer pole faces follow the area average."""
     from panoworld.conventions import erp_dirs
-    from panoworld.render_gs import erp_faces
+    from panoworld.erp_render import erp_faces
 
     n = 60000
     k = np.arange(n) + 0.5
@@ -388,7 +382,8 @@ def cull_scene(seed: int = 0) -> tuple[Gaussians, np.ndarray]:
 
 def render_erp_projecting_all(g: Gaussians, pose: np.ndarray, H: int, W: int, background, **kw):
     """render_erp's torch path as it was before the face cull: every Gaussian projected on every face."""
-    from panoworld.render_gs import _compose_erp, _prepare, erp_faces, invert_pose, project, rasterize_tiles
+    from panoworld.erp_render import _compose_erp, erp_faces
+    from panoworld.render_gs import _prepare, invert_pose, project, rasterize_tiles
 
     prep = _prepare(g, pose[:3, 3])
     bg = torch.as_tensor(background, dtype=torch.float32)
@@ -402,7 +397,8 @@ def render_erp_projecting_all(g: Gaussians, pose: np.ndarray, H: int, W: int, ba
 
 @pytest.mark.parametrize("supersample, pole_scale", [(1, 1.0), (2, 2.0), (2, 1.5)])
 def test_erp_face_cull_renders_what_projecting_every_gaussian_renders(supersample, pole_scale):
-    from panoworld.render_gs import _prepare, erp_faces, face_cull, invert_pose, project
+    from panoworld.erp_render import erp_faces, face_cull
+    from panoworld.render_gs import _prepare, invert_pose, project
 
     g, pose = cull_scene()
     H, W = 24, 48
@@ -419,7 +415,7 @@ def test_erp_face_cull_renders_what_projecting_every_gaussian_renders(supersampl
     assert total < 2.5 * len(g), total  # most Gaussians projected on one or two faces, not six
     bg = [0.2, 0.5, 0.7]
     want = render_erp_projecting_all(g, pose, H, W, bg, **kw)
-    got = render_erp(g, pose, H, W, background=bg, **kw)
+    got = render_erp(g, pose, H, W, background=bg, backend="torch", **kw)
     for name in ("rgb", "depth", "alpha"):
         assert float((getattr(got, name) - getattr(want, name)).abs().max()) <= 1e-6, name
     assert float(got.alpha.mean()) > 0.9 and float(got.depth.max() - got.depth.min()) > 1.0  # not a blank view
@@ -440,3 +436,47 @@ def test_erp_face_cull_keeps_gradients():
     for a, b in zip(*grads):
         assert a.abs().max() > 0
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+
+
+def sh1_scene() -> tuple[Gaussians, np.ndarray]:
+    """cull_scene with view-dependent colour (SH degree 1) strong enough to change the image."""
+    g, pose = cull_scene(2)
+    rest = np.random.default_rng(3).normal(0, 0.4, (len(g), 3, 3)).astype(np.float32)
+    return Gaussians(g.means, g.scales, g.quats, g.opacities, g.sh_dc, rest), pose
+
+
+@pytest.mark.parametrize("supersample, pole_scale", [(2, 2.0), (1, 1.5)])
+def test_erp_numba_backend_equals_the_torch_rasteriser(supersample, pole_scale):
+    # The torch tile rasteriser is the oracle; "auto" without gradients is the numba path.
+    g, pose = sh1_scene()
+    assert g.sh_degree == 1
+    kw = dict(background=[0.2, 0.5, 0.7], supersample=supersample, pole_scale=pole_scale)
+    want = render_erp(g, pose, 24, 48, backend="torch", **kw)
+    got = render_erp(g, pose, 24, 48, backend="numba", **kw)
+    auto = render_erp(g, pose, 24, 48, **kw)
+    for name in ("rgb", "depth", "alpha"):
+        assert float((getattr(got, name) - getattr(want, name)).abs().max()) <= 1e-5, name
+        assert torch.equal(getattr(auto, name), getattr(got, name)), name
+    sh0 = render_erp(Gaussians(g.means, g.scales, g.quats, g.opacities, g.sh_dc), pose, 24, 48, **kw)
+    assert float((sh0.rgb - got.rgb).abs().max()) > 0.05  # the SH term shows
+    assert float(got.alpha.min()) < 0.95  # the background colour shows through somewhere
+    assert float(got.depth.max() - got.depth.min()) > 1.0
+
+
+def test_erp_with_requires_grad_gaussians_takes_the_torch_path():
+    g, pose = sh1_scene()
+    means = torch.tensor(g.means, requires_grad=True)
+    gi = Gaussians(means=means, scales=torch.tensor(g.scales), quats=torch.tensor(g.quats),
+                   opacities=torch.tensor(g.opacities), sh_dc=torch.tensor(g.sh_dc), sh_rest=torch.tensor(g.sh_rest))
+    kw = dict(background=[0.2, 0.5, 0.7], supersample=2)
+    out = render_erp(gi, pose, 16, 32, **kw)
+    assert out.rgb.requires_grad
+    out.rgb.sum().backward()
+    assert means.grad is not None and float(means.grad.abs().max()) > 0
+    with pytest.raises(ValueError, match="requires grad"):
+        render_erp(gi, pose, 16, 32, backend="numba", **kw)
+    with torch.no_grad():  # no gradient wanted: the numba path
+        fast = render_erp(gi, pose, 16, 32, **kw)
+    assert not fast.rgb.requires_grad
+    assert torch.equal(fast.rgb, render_erp(g, pose, 16, 32, backend="numba", **kw).rgb)
+    assert float((fast.rgb - out.rgb.detach()).abs().max()) <= 1e-5

@@ -141,8 +141,9 @@ def evaluate_roam(gaussians, nav, gt, settings: RoamSettings, lpips: Lpips, *, p
     mesh, each ERP view's error is also split into what the capture point sees and what it does not (split_scores)."""
     import cv2
 
+    from panoworld.erp_render import render_erp
     from panoworld.metrics import psnr, ssim, ws_psnr
-    from panoworld.render_gs import render_erp, render_perspective
+    from panoworld.render_gs import render_perspective
 
     H = settings.height
     roam = sample_roam_poses(nav, settings.views, settings.seed)

@@ -332,8 +332,8 @@ class Evaluation:
         return {**out, **{k: m[k] for k in (*POSE_METRICS, "scale")}}
 
     def gaussians(self) -> dict:
+        from panoworld.erp_render import render_erp
         from panoworld.gaussians import uniform_subset
-        from panoworld.render_gs import render_erp
         from panoworld.splat_ply import read_gaussians_ply
 
         d = self._need("gaussians")

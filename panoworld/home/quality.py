@@ -7,8 +7,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from panoworld.erp_render import render_erp
 from panoworld.metrics import psnr
-from panoworld.render_gs import render_erp
 from panoworld.splat_ply import read_gaussians_ply
 
 

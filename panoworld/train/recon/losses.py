@@ -56,9 +56,9 @@ def depth_loss(pred: torch.Tensor, conf: torch.Tensor, gt: torch.Tensor, *, lam:
 
 def render_views(gaussians, poses: np.ndarray, height: int) -> torch.Tensor:
     """ERP renders (V, H, W, 3) of torch Gaussians at world_from_cam poses (V, 4, 4) with the project's
-    differentiable renderer (render_gs.render_erp: pure-torch tile rasteriser on 6 cube faces), without supersampling:
+    differentiable renderer (erp_render.render_erp: pure-torch tile rasteriser on 6 cube faces), without supersampling:
     the loss compares with frames at this resolution and s x s supersampling would cost s^2 per step."""
-    from panoworld.render_gs import render_erp
+    from panoworld.erp_render import render_erp
 
     return torch.stack([render_erp(gaussians, p, height, 2 * height, supersample=1).rgb for p in poses])
 
