@@ -27,7 +27,7 @@ WALL_Z = (2.0, 2.15)  # the divider between the rooms, a doorway at |x| < DOOR_X
 DOOR_X = 0.5
 FRONT, BACK, WALL, FLOOR_RGB, CEIL_RGB = (230, 120, 160), (235, 215, 170), (150, 200, 150), (120, 100, 80), (240,) * 3
 NEXT_ROOM = np.array([1.2, 0.0, 3.3])  # a camera in the next room, facing the divider's back
-CABINET = [[-0.8, 0.3, -1.6], [0.8, FLOOR, -1.0]]  # free-standing, 1.2 m tall, its front facing the capture point
+CABINET = [[-0.8, -0.3, -1.6], [0.8, FLOOR, -1.0]]  # free-standing, 1.8 m tall (its top unseen), facing the capture point
 
 
 def colour(p: np.ndarray) -> np.ndarray:
@@ -130,4 +130,6 @@ def test_furniture_fronts_get_no_back_only_the_rooms_shell():
     b = backs(True)
     assert not on_cabinet(b).any()
     divider = (b[:, 2] > WALL_Z[0]) & (b[:, 2] < WALL_Z[1])
-    assert divider.sum() > 500 and divider.mean() > 0.97
+    assert divider.sum() > 500
+    # the rest lie behind the room's outer walls (the wall the cabinet hides from the capture point blocks no sight)
+    assert ((np.abs(b[~divider, 0]) > 3.0) | (b[~divider, 2] < -2.5)).all()
