@@ -24,6 +24,9 @@ SIGHT_STEP_M = 0.25
 WINDOW = 3
 """A back-side point must lie behind every source depth within this many pixels of its own (not at a doorway's
 jamb, where the source sees past the wall's edge)."""
+SHELL_TOL = 0.05
+"""on_shell: a source point lies on the room's shell when its horizontal distance from the capture point is within
+this fraction of its ERP column's wall (panoworld.layout_columns.wall_columns)."""
 
 
 @dataclass
@@ -42,6 +45,28 @@ def normals_facing(g: Gaussians, centre: np.ndarray) -> np.ndarray:
     flip = ((centre - np.asarray(g.means)) * n).sum(1) < 0
     n[flip] *= -1
     return n
+
+
+def on_shell(means: np.ndarray, depth: np.ndarray, world_from_cam: np.ndarray) -> np.ndarray | None:
+    """(N,) bool: which points means (N, 3, world) lie on the walls of the room's shell as the source view (depth
+    (H, W) metres at world_from_cam) shows it (wall_columns: a wall meets the ceiling or floor in sight; furniture
+    in front of it does not), within SHELL_TOL; False in columns whose wall is unknown. None without a floor plane."""
+    from panoworld.depth_complete import fit_planes
+    from panoworld.layout_columns import wall_columns
+
+    valid = np.isfinite(depth) & (depth > 0)
+    d = np.where(valid, depth, 0.0).astype(np.float64)
+    floor_m, ceiling_m = fit_planes(d, valid)
+    if floor_m is None:
+        return None
+    ceiling = -ceiling_m if ceiling_m is not None else -1e6
+    walls = wall_columns(points_from_depth(d), valid, floor_m, ceiling, nearest=True)  # not a doorway's far wall
+    pose = np.asarray(world_from_cam, np.float64)
+    p = (np.asarray(means, np.float64) - pose[:3, 3]) @ pose[:3, :3]  # camera frame
+    u, _ = erp_pixel_from_dir(p / np.maximum(np.linalg.norm(p, axis=1), 1e-12)[:, None], *depth.shape)
+    wall = walls.dist[np.mod(np.floor(u).astype(np.int64), depth.shape[1])]
+    with np.errstate(invalid="ignore"):
+        return np.abs(np.hypot(p[:, 0], p[:, 2]) - wall) <= SHELL_TOL * wall
 
 
 def sight_grid(nav, blockers: np.ndarray, reach_m: float) -> tuple[np.ndarray, float, float]:
@@ -79,13 +104,14 @@ def sight_grid(nav, blockers: np.ndarray, reach_m: float) -> tuple[np.ndarray, f
 
 
 def back_side_gaussians(g: Gaussians, depth: np.ndarray, world_from_cam: np.ndarray, nav, *, thickness: float,
-                        reach: float, rgb: np.ndarray | None = None) -> BackSides:
+                        reach: float, rgb: np.ndarray | None = None, shell: bool = True) -> BackSides:
     """A second layer for the source's per-pixel Gaussians g on upright surfaces whose other side is in the line of
     sight of the NavMesh nav: each copied `thickness` metres behind its surface (along its normal, away from the capture point at
     world_from_cam), hidden from the capture point (behind the source depth (H, W) metres of every pixel within
     WINDOW of its own), and the cell `thickness` + 2 CELL_M behind it seen from the NavMesh within `reach` metres
     (sight_grid: from the front side the wall itself blocks the sight).
-    Coloured rgb (3,) uint8 when given (the next room's walls), else as the front. Splats are two-sided: from behind,
+    With shell, only surfaces on the room's shell (on_shell: walls, not the fronts of furniture whose unseen sides let
+    the sight reach behind them). Coloured rgb (3,) uint8 when given (the next room's walls), else as the front. Splats are two-sided: from behind,
     the back layer is in front of the front layer; from the capture point, behind it."""
     import cv2
 
@@ -117,6 +143,9 @@ def back_side_gaussians(g: Gaussians, depth: np.ndarray, world_from_cam: np.ndar
     behind = np.zeros(len(q), bool)
     behind[inside] = reached[ci[inside], cj[inside]]
     keep = hidden & behind
+    walls = on_shell(means[cand], depth, pose) if shell else None
+    if walls is not None:
+        keep &= walls
     idx = np.flatnonzero(cand)[keep]
     sh = np.asarray(g.sh_dc, np.float32)[idx]
     if rgb is not None:
@@ -124,6 +153,7 @@ def back_side_gaussians(g: Gaussians, depth: np.ndarray, world_from_cam: np.ndar
     back = Gaussians(q[keep].astype(np.float32), np.asarray(g.scales)[idx], np.asarray(g.quats)[idx],
                      np.asarray(g.opacities)[idx], sh, np.zeros((len(idx),) + np.asarray(g.sh_rest).shape[1:], np.float32))
     stats = {"num": len(idx), "upright": int(cand.sum()), "hidden": int(hidden.sum()), "reached": int(behind.sum()),
+             "off_shell": None if walls is None else int((hidden & behind & ~walls).sum()),
              "thickness_m": thickness, "reach_m": reach, "color": None if rgb is None else [int(c) for c in rgb]}
     return BackSides(back, stats)
 
@@ -143,8 +173,10 @@ def next_room_wall_rgb(rgb: np.ndarray, depth: np.ndarray, world_from_cam: np.nd
 
 
 def back_side_layer(pix: Gaussians, rgb: np.ndarray, depth: np.ndarray, world_from_cam: np.ndarray, *, nav,
-                    thickness: float, reach: float, color: str = "next_room") -> BackSides:
+                    thickness: float, reach: float, color: str = "next_room", shell: bool = True) -> BackSides:
     """back_side_gaussians of the source's per-pixel Gaussians pix, coloured as `color` says: "next_room" (the next
-    room's wall colour the doorway shows, next_room_wall_rgb; the front's colour where none is seen) or "front"."""
+    room's wall colour the doorway shows, next_room_wall_rgb; the front's colour where none is seen) or "front";
+    shell: back_side_gaussians'."""
     wall = next_room_wall_rgb(rgb, depth, world_from_cam) if color == "next_room" else None
-    return back_side_gaussians(pix, depth, world_from_cam, nav, thickness=thickness, reach=reach, rgb=wall)
+    return back_side_gaussians(pix, depth, world_from_cam, nav, thickness=thickness, reach=reach, rgb=wall,
+                               shell=shell)

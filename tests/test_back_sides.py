@@ -27,6 +27,7 @@ WALL_Z = (2.0, 2.15)  # the divider between the rooms, a doorway at |x| < DOOR_X
 DOOR_X = 0.5
 FRONT, BACK, WALL, FLOOR_RGB, CEIL_RGB = (230, 120, 160), (235, 215, 170), (150, 200, 150), (120, 100, 80), (240,) * 3
 NEXT_ROOM = np.array([1.2, 0.0, 3.3])  # a camera in the next room, facing the divider's back
+CABINET = [[-0.8, -0.3, -1.6], [0.8, FLOOR, -1.0]]  # free-standing, 1.8 m tall (its top unseen), facing the capture point
 
 
 def colour(p: np.ndarray) -> np.ndarray:
@@ -40,18 +41,20 @@ def colour(p: np.ndarray) -> np.ndarray:
     return out.astype(np.uint8)
 
 
-def scene(doorway: bool) -> trimesh.Trimesh:
+def scene(doorway: bool, cabinet: bool = False) -> trimesh.Trimesh:
     room = trimesh.creation.box(bounds=[[-3.0, CEILING, -2.5], [3.0, FLOOR, 5.0]])
     x = DOOR_X if doorway else 0.0
     parts = [trimesh.creation.box(bounds=[[-3.0, CEILING, WALL_Z[0]], [-x, FLOOR, WALL_Z[1]]]),
              trimesh.creation.box(bounds=[[x, CEILING, WALL_Z[0]], [3.0, FLOOR, WALL_Z[1]]]),
              trimesh.creation.box(bounds=[[-x, CEILING, WALL_Z[0]], [x, DOOR_TOP, WALL_Z[1]]])]
+    if cabinet:
+        parts.append(trimesh.creation.box(bounds=CABINET))
     return trimesh.util.concatenate([room] + parts)
 
 
-def source(doorway: bool):
+def source(doorway: bool, cabinet: bool = False):
     """(source Gaussians, rgb, depth, NavMesh of the source depth's mesh, ground-truth ray caster)."""
-    full = scene(doorway)
+    full = scene(doorway, cabinet)
     caster = Raycaster(full.vertices, full.faces)
     d = caster.render_erp(np.eye(4), H, W).distance.astype(np.float64)
     rgb = colour(points_from_depth(d, np.eye(4)))
@@ -106,3 +109,27 @@ def test_nothing_behind_walls_no_walk_reaches():
     g, rgb, d, nav, _ = source(False)  # the divider closed: the next room unseen, its floor unreachable
     back = back_side_layer(g, rgb, d, np.eye(4), nav=nav, thickness=0.12, reach=4.0)
     assert back.stats["num"] == 0 and back.stats["upright"] > 1000 and back.stats["color"] is None
+
+
+def test_furniture_fronts_get_no_back_only_the_rooms_shell():
+    g, rgb, d, nav, _ = source(True, cabinet=True)
+    m = np.asarray(g.means)
+    front = (np.abs(m[:, 2] - CABINET[1][2]) < 0.03) & (np.abs(m[:, 0]) < CABINET[1][0] - 0.1)
+    assert front.sum() > 100
+
+    def backs(shell: bool) -> np.ndarray:
+        out = back_side_layer(g, rgb, d, np.eye(4), nav=nav, thickness=0.12, reach=4.0, shell=shell)
+        return np.asarray(out.gaussians.means)
+
+    def on_cabinet(b: np.ndarray) -> np.ndarray:
+        return (b[:, 2] > CABINET[0][2]) & (b[:, 2] < CABINET[1][2] + 1e-3) & (np.abs(b[:, 0]) < CABINET[1][0])
+
+    # the walk beside the cabinet sees past its unseen sides to the space behind its front: the unrestricted rule
+    # copies the front
+    assert on_cabinet(backs(False)).sum() > 100
+    b = backs(True)
+    assert not on_cabinet(b).any()
+    divider = (b[:, 2] > WALL_Z[0]) & (b[:, 2] < WALL_Z[1])
+    assert divider.sum() > 500
+    # the rest lie behind the room's outer walls (the wall the cabinet hides from the capture point blocks no sight)
+    assert ((np.abs(b[~divider, 0]) > 3.0) | (b[~divider, 2] < -2.5)).all()

@@ -70,6 +70,9 @@ class VoxelFusionOptions(FusionParams):
     """Metres behind the front surface (a wall's thickness; the synthetic walls are 0.15 m)."""
     back_side_reach: float = param(4.0, gt=0)
     """Metres of sight from the NavMesh to a wall's back."""
+    back_side_shell: bool = True
+    """Only surfaces on the room's shell get a back (panoworld.back_sides.on_shell: walls that meet the ceiling or
+    floor in sight); off: the fronts of furniture too, whose unseen sides let the sight reach behind them."""
     back_side_color: str = param("next_room", choices=("next_room", "front"))
     """next_room: the next room's wall colour the doorway shows (plane_colors.floor_beyond's; the front's where
     none is seen); front: the front's colour."""
@@ -117,7 +120,7 @@ def back_side_hook(job):
     from panoworld.navmesh import load_navmesh
 
     return partial(back_side_layer, nav=load_navmesh(job.navmesh), thickness=o.back_side_thickness,
-                   reach=o.back_side_reach, color=o.back_side_color)
+                   reach=o.back_side_reach, color=o.back_side_color, shell=o.back_side_shell)
 
 
 register("gaussians", "voxel-fusion", fuse, options=VoxelFusionOptions, key="voxel_fusion", weights=False)
