@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -177,18 +178,17 @@ def render_erp(
         raise ValueError("backend='numba' renders without gradients but a Gaussian tensor requires grad: use 'torch'")
     centre = np.asarray(world_from_cam, dtype=np.float64)[:3, 3]
     bg = _background(background)
-    if backend == "torch" or grad:
+    rasterise = backend == "torch" or grad
+    with contextlib.nullcontext() if rasterise else torch.no_grad():
         prep = _prepare(gaussians, centre)
         cull = face_cull(prep, gaussians.scales, centre, near)
+        if rasterise:
 
-        def torch_face(fc: ErpFace) -> RenderOutput:
-            proj = project(cull(fc)[0], invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
-            return rasterize_tiles(proj, fc.n, fc.n, bg, raw=True, distance=True)
+            def torch_face(fc: ErpFace) -> RenderOutput:
+                proj = project(cull(fc)[0], invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
+                return rasterize_tiles(proj, fc.n, fc.n, bg, raw=True, distance=True)
 
-        return _compose_erp(faces, H, W, supersample, torch_face)
-    with torch.no_grad():
-        prep = _prepare(gaussians, centre)
-        cull = face_cull(prep, gaussians.scales, centre, near)
+            return _compose_erp(faces, H, W, supersample, torch_face)
         # the faces on torch's threads: the kernel releases the GIL
         return _compose_erp(faces, H, W, supersample, lambda fc: _numba_face(cull(fc)[0], fc, near, bg),
                             max(1, torch.get_num_threads()))
