@@ -102,7 +102,8 @@ def _front_pieces(r: np.ndarray) -> np.ndarray:
         while joined[b % w]:
             b += 1
         prev = kidx[kidx < a][-1] if (kidx < a).any() else kidx[-1]
-        after = kidx[kidx > b % w][0] if b < w and (kidx > b % w).any() else kidx[0]
+        later = kidx[kidx > b % w]  # a run may wrap past the seam: the column after it is then below a
+        after = later[0] if later.size else kidx[0]
         cols = np.arange(a, b + 1) % w
         if r[a] < (1 - 2 * WALL_TOL) * r[prev] and r[b % w] < (1 - 2 * WALL_TOL) * r[after]:
             front[cols] = True
