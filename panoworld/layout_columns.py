@@ -183,13 +183,17 @@ def shell_depth(walls: WallColumns, dirs: np.ndarray) -> tuple[np.ndarray, np.nd
     return np.minimum(t_wall, t_plane), t_wall < t_plane
 
 
-def shell_along(walls: WallColumns, dirs: np.ndarray) -> np.ndarray:
-    """shell_depth for any unit rays dirs (N, 3): each takes the wall of the ERP column its azimuth falls in."""
+def column_of(dirs: np.ndarray, w: int) -> np.ndarray:
+    """(N,) int: the ERP column (of w) that the azimuth of each direction dirs (N, 3) falls in (the seam wraps)."""
     from panoworld.conventions import erp_pixel_from_dir
 
-    w = len(walls.dist)
     u, _ = erp_pixel_from_dir(dirs, w // 2, w)
-    j = np.clip(np.floor(u).astype(np.int64), 0, w - 1)
+    return np.mod(np.floor(u).astype(np.int64), w)
+
+
+def shell_along(walls: WallColumns, dirs: np.ndarray) -> np.ndarray:
+    """shell_depth for any unit rays dirs (N, 3): each takes the wall of the ERP column its azimuth falls in."""
+    j = column_of(dirs, len(walls.dist))
     cols = WallColumns(walls.dist[j], walls.visible[j], walls.owner[j], walls.floor, walls.ceiling)
     return shell_depth(cols, dirs[None])[0][0]
 
