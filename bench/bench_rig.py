@@ -351,10 +351,13 @@ def floor_from_afar(seed: int, height: int, work: Path, sets: list[str], rig_kin
         np.hypot(pts[..., 0] - T0[0, 3], pts[..., 2] - T0[2, 3]) < 0.8)
     # Where each scored floor point sits in the capture panorama (canonical camera).
     u, v = erp_pixel_from_dir((pts[near] - T0[:3, 3]) @ T0[:3, :3], height, 2 * height)
-    uv = [np.ascontiguousarray((a - 0.5).astype(np.float32)[None]) for a in (u, v)]
+    n_pts, row = len(u), 4096  # remap's maps must stay under 32767 columns: rows of 4096 points
+    pad = (-n_pts) % row
+    uv = [np.pad((a - 0.5).astype(np.float32), (0, pad), mode="edge").reshape(-1, row) for a in (u, v)]
 
     def sample(img: np.ndarray) -> np.ndarray:
-        return cv2.remap(img, *uv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
+        out = cv2.remap(img, *uv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return out.reshape(-1, *out.shape[2:])[:n_pts]
 
     def psnr(a: np.ndarray, b: np.ndarray) -> float | None:
         if len(a) == 0:
