@@ -8,6 +8,9 @@ rasteriser and from its numba kernel (splat_weights), with how far their weights
 
     python bench/bench_render_gs.py [--n 200000] [--threads 1] [--repeats 3] [--supersample 1 2] [--backend auto]
         [--weights-height 256]
+
+With --device cuda (needs gsplat and a GPU) it instead times gsplat against the torch renderer on the CPU, perspective
+512x256 and ERP 256x512 (cube faces through gsplat, resampled on the CPU), and prints how far their outputs differ.
 """
 
 from __future__ import annotations
@@ -27,19 +30,7 @@ from panoworld.conventions import invert_pose
 from panoworld.erp_render import erp_faces, face_cull, render_erp
 from panoworld.gaussians import Gaussians
 from panoworld.render_gs import _prepare, face_weights, project, rasterize_tiles, render_perspective
-
-
-def room_surfels(n: int, seed: int = 0) -> Gaussians:
-    rng = np.random.default_rng(seed)
-    half = np.array([3.0, 1.5, 3.0])
-    pts = rng.uniform(-1, 1, (n, 3)) * half
-    axis = rng.integers(0, 3, n)
-    pts[np.arange(n), axis] = rng.choice([-1.0, 1.0], n) * half[axis]
-    return Gaussians(
-        means=pts.astype(np.float32), scales=rng.uniform(0.01, 0.04, (n, 3)).astype(np.float32),
-        quats=rng.normal(size=(n, 4)).astype(np.float32), opacities=rng.uniform(0.5, 1, n).astype(np.float32),
-        sh_dc=rng.normal(size=(n, 3)).astype(np.float32),
-    )
+from panoworld.synth.surfels import room_surfels
 
 
 def timed(fn, repeats: int) -> tuple[float, float, object]:
@@ -78,6 +69,37 @@ def fit_weights(g: Gaussians, height: int) -> None:
           f"{count == sum(len(a[2]) for a in out['torch'])}, max |sorted weight diff| {diff:.1e}")
 
 
+def cuda_timed(fn, repeats: int):
+    """Best wall seconds of fn() after one warm-up call, synchronising CUDA around each, and its last output."""
+    out = fn()
+    torch.cuda.synchronize()
+    best = math.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        torch.cuda.synchronize()
+        best = min(best, time.perf_counter() - t0)
+    return best, out
+
+
+def cuda_speed(g: Gaussians, repeats: int) -> None:
+    """gsplat (CUDA) vs the torch tile rasteriser (CPU) on the same Gaussians: times and agreement."""
+    gc = Gaussians(**{k: torch.as_tensor(getattr(g, k)).cuda() for k in ("means", "scales", "quats", "opacities", "sh_dc")})
+    print(f"{torch.cuda.get_device_name()}, torch on {torch.get_num_threads()} CPU thread(s), {len(g)} Gaussians")
+    args = (np.eye(4), 256.0, 256.0, 256.0, 128.0, 256, 512)
+    t_cpu, a = cuda_timed(lambda: render_perspective(g, *args, backend="torch"), 1)
+    t_gpu, b = cuda_timed(lambda: render_perspective(gc, *args, backend="gsplat"), repeats)
+    diff = (b.rgb.cpu() - a.rgb).abs()
+    print(f"perspective 512x256: torch CPU {t_cpu:.3f} s, gsplat {t_gpu * 1e3:.1f} ms; rgb |diff| mean "
+          f"{float(diff.mean()):.1e}, max {float(diff.max()):.3f}")
+    t_cpu, a = cuda_timed(lambda: render_erp(g, np.eye(4), 256, 512, backend="torch"), 1)
+    t_gpu, b = cuda_timed(lambda: render_erp(gc, np.eye(4), 256, 512, backend="gsplat"), repeats)
+    both = (a.alpha > 0.5) & (b.alpha > 0.5)
+    depth = ((b.depth - a.depth).abs() / a.depth.clamp(min=1e-6))[both].median()
+    print(f"ERP 256x512: torch CPU {t_cpu:.3f} s, gsplat {t_gpu:.3f} s; rgb |diff| mean {float((b.rgb - a.rgb).abs().mean()):.1e}, "
+          f"alpha mean {float((b.alpha - a.alpha).abs().mean()):.1e}, depth median relative {float(depth):.2%}")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=200_000)
@@ -87,9 +109,16 @@ def main() -> int:
     ap.add_argument("--backend", default="auto", choices=("auto", "torch", "numba"),
                     help="render_erp's backend (auto: numba, as nothing needs a gradient)")
     ap.add_argument("--weights-height", type=int, default=256, help="ERP rows of the colour-fit weights timing (0 = skip)")
+    ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="cuda: gsplat vs the CPU renderer instead")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     g = room_surfels(args.n)
+    if args.device == "cuda":
+        if not torch.cuda.is_available():
+            print("--device cuda: no CUDA GPU here", file=sys.stderr)
+            return 2
+        cuda_speed(g, args.repeats)
+        return 0
     W, H = 512, 256
     f = W / 2  # 90 degree horizontal field of view
     pose = np.eye(4)

@@ -14,7 +14,7 @@ luminance gap before/after. Controls on the same seeds: no rig (must stay byte-i
 stool top under the camera (must be kept), and the grout control: rig-free default-preset scenes at 720 rows whose
 tiled floor's grout at the nadir looked like tripod legs (--grout-seeds; must stay byte-identical). Seeds 3, 5, 8, 11, 12 and
 100-115 were used to develop the method; the default seeds 116-131 are held out. --pipeline runs the whole
-pipeline (ci-tiny preset) with the rig removed and kept (and with --modes truth: the rig-free scene, the ceiling a
+pipeline (ci-tiny preset, or --preset default --height 720: the default user path) with the rig removed and kept (and with --modes truth: the rig-free scene, the ceiling a
 perfect fill could reach) and scores the Gaussians rendered from a ground-truth pose about 1 m away on the floor
 where the rig stood, split into the floor under the removed mask and outside it, next to the capture panoramas
 sampled at the same floor points. --preset default --height 720 measures the rig cases on the default preset's scenes
@@ -320,8 +320,8 @@ def error_split(out: np.ndarray, clean: np.ndarray, mask: np.ndarray, deg: float
 
 
 def floor_from_afar(seed: int, height: int, work: Path, sets: list[str], rig_kind: str = "tripod",
-                    modes: tuple[str, ...] = ("auto", "keep")) -> dict:
-    """Run the pipeline (ci-tiny preset + sets) on a tripod scene with the rig removed (auto) and kept (keep), and
+                    modes: tuple[str, ...] = ("auto", "keep"), preset: str = "ci-tiny") -> dict:
+    """Run the pipeline (the preset + sets) on a tripod scene with the rig removed (auto) and kept (keep), and
     optionally on the rig-free scene (truth); render the Gaussians from the ground-truth track pose about 1 m from the
     capture point and score the floor within 0.8 m of the point under the capture camera (where the rig stood)
     against the rig-free render (PSNR). Also split: the floor pixels whose point the removal changed (seen from the
@@ -338,7 +338,7 @@ def floor_from_afar(seed: int, height: int, work: Path, sets: list[str], rig_kin
     from panoworld.splat_ply import read_gaussians_ply
     from panoworld.synth import params_for, write_scene
 
-    scene = generate_scene(seed, "ci-tiny", frames=40)
+    scene = generate_scene(seed, preset, frames=40 if preset == "ci-tiny" else None)
     T0 = scene.world_from_canonical
     dist = np.linalg.norm(scene.tracks[0].world_from_cam[:, :3, 3] - T0[:3, 3], axis=1)
     k = int(np.argmin(np.abs(dist - 1.0)))
@@ -351,10 +351,13 @@ def floor_from_afar(seed: int, height: int, work: Path, sets: list[str], rig_kin
         np.hypot(pts[..., 0] - T0[0, 3], pts[..., 2] - T0[2, 3]) < 0.8)
     # Where each scored floor point sits in the capture panorama (canonical camera).
     u, v = erp_pixel_from_dir((pts[near] - T0[:3, 3]) @ T0[:3, :3], height, 2 * height)
-    uv = [np.ascontiguousarray((a - 0.5).astype(np.float32)[None]) for a in (u, v)]
+    n_pts, row = len(u), 4096  # remap's maps must stay under 32767 columns: rows of 4096 points
+    pad = (-n_pts) % row
+    uv = [np.pad((a - 0.5).astype(np.float32), (0, pad), mode="edge").reshape(-1, row) for a in (u, v)]
 
     def sample(img: np.ndarray) -> np.ndarray:
-        return cv2.remap(img, *uv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
+        out = cv2.remap(img, *uv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return out.reshape(-1, *out.shape[2:])[:n_pts]
 
     def psnr(a: np.ndarray, b: np.ndarray) -> float | None:
         if len(a) == 0:
@@ -362,17 +365,17 @@ def floor_from_afar(seed: int, height: int, work: Path, sets: list[str], rig_kin
         mse = float(((a.astype(np.float64) - b) ** 2).mean())
         return 10 * np.log10(255.0**2 / max(mse, 1e-12))
 
-    p = params_for("ci-tiny")
+    p = params_for(preset)
     out = {"seed": seed, "rig": rig_kind, "distance_m": float(dist[k]), "floor_pixels": int(near.sum())}
     under = None
     for mode in modes:
         kind = "none" if mode == "truth" else rig_kind
         pm = dc_replace(p, render=dc_replace(p.render, pano_height=height, write_frames=False, rig=kind))
-        d = work / f"seed{seed}_{kind}_{'auto' if mode == 'truth' else mode}"
+        d = work / f"{'' if preset == 'ci-tiny' else preset + '_'}seed{seed}_{kind}_{'auto' if mode == 'truth' else mode}"
         if not (d / "panorama.png").is_file():
             write_scene(scene, d, pm, progress=False)
         t0 = time.perf_counter()
-        report = pl.run(d, preset="ci-tiny", sets=[f"depth.rig={'auto' if mode == 'truth' else mode}", *sets])
+        report = pl.run(d, preset=preset, sets=[f"depth.rig={'auto' if mode == 'truth' else mode}", *sets])
         failed = [r for r in report.results if r.action == "failed"]
         if failed:  # the kept rig can leave the camera no walkable floor
             out[f"psnr_{mode}"] = None
@@ -457,7 +460,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.pipeline:
         modes = tuple(args.modes.split(","))
-        rows = [floor_from_afar(seed, args.height, args.work, args.sets, args.rig, modes) for seed in parse_seeds(args.seeds)]
+        rows = [floor_from_afar(seed, args.height, args.work, args.sets, args.rig, modes, args.preset)
+                for seed in parse_seeds(args.seeds)]
         print(json.dumps(rows, indent=1) if args.json else "")
         if not args.json:
             print(f"rig: {args.rig}\n")

@@ -54,7 +54,7 @@ def on_shell(means: np.ndarray, depth: np.ndarray, world_from_cam: np.ndarray) -
     (H, W) metres at world_from_cam) shows it (wall_columns: a wall meets the ceiling or floor in sight; furniture
     in front of it does not), within SHELL_TOL; False in columns whose wall is unknown. None without a floor plane."""
     from panoworld.depth_complete import fit_planes
-    from panoworld.layout_columns import wall_columns
+    from panoworld.layout_columns import column_of, wall_columns
 
     valid = np.isfinite(depth) & (depth > 0)
     d = np.where(valid, depth, 0.0).astype(np.float64)
@@ -65,8 +65,7 @@ def on_shell(means: np.ndarray, depth: np.ndarray, world_from_cam: np.ndarray) -
     walls = wall_columns(points_from_depth(d), valid, floor_m, ceiling, nearest=True)  # not a doorway's far wall
     pose = np.asarray(world_from_cam, np.float64)
     p = (np.asarray(means, np.float64) - pose[:3, 3]) @ pose[:3, :3]  # camera frame
-    u, _ = erp_pixel_from_dir(p / np.maximum(np.linalg.norm(p, axis=1), 1e-12)[:, None], *depth.shape)
-    wall = walls.dist[np.mod(np.floor(u).astype(np.int64), depth.shape[1])]
+    wall = walls.dist[column_of(p / np.maximum(np.linalg.norm(p, axis=1), 1e-12)[:, None], depth.shape[1])]
     with np.errstate(invalid="ignore"):
         return np.abs(np.hypot(p[:, 0], p[:, 2]) - wall) <= SHELL_TOL * wall
 

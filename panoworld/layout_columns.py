@@ -102,7 +102,8 @@ def _front_pieces(r: np.ndarray) -> np.ndarray:
         while joined[b % w]:
             b += 1
         prev = kidx[kidx < a][-1] if (kidx < a).any() else kidx[-1]
-        after = kidx[kidx > b % w][0] if b < w and (kidx > b % w).any() else kidx[0]
+        later = kidx[kidx > b % w]  # a run may wrap past the seam: the column after it is then below a
+        after = later[0] if later.size else kidx[0]
         cols = np.arange(a, b + 1) % w
         if r[a] < (1 - 2 * WALL_TOL) * r[prev] and r[b % w] < (1 - 2 * WALL_TOL) * r[after]:
             front[cols] = True
@@ -182,13 +183,17 @@ def shell_depth(walls: WallColumns, dirs: np.ndarray) -> tuple[np.ndarray, np.nd
     return np.minimum(t_wall, t_plane), t_wall < t_plane
 
 
-def shell_along(walls: WallColumns, dirs: np.ndarray) -> np.ndarray:
-    """shell_depth for any unit rays dirs (N, 3): each takes the wall of the ERP column its azimuth falls in."""
+def column_of(dirs: np.ndarray, w: int) -> np.ndarray:
+    """(N,) int: the ERP column (of w) that the azimuth of each direction dirs (N, 3) falls in (the seam wraps)."""
     from panoworld.conventions import erp_pixel_from_dir
 
-    w = len(walls.dist)
     u, _ = erp_pixel_from_dir(dirs, w // 2, w)
-    j = np.clip(np.floor(u).astype(np.int64), 0, w - 1)
+    return np.mod(np.floor(u).astype(np.int64), w)
+
+
+def shell_along(walls: WallColumns, dirs: np.ndarray) -> np.ndarray:
+    """shell_depth for any unit rays dirs (N, 3): each takes the wall of the ERP column its azimuth falls in."""
+    j = column_of(dirs, len(walls.dist))
     cols = WallColumns(walls.dist[j], walls.visible[j], walls.owner[j], walls.floor, walls.ceiling)
     return shell_depth(cols, dirs[None])[0][0]
 

@@ -7,7 +7,7 @@ import trimesh
 
 from panoworld.background_layer import build_background_layer, erp_grid_shape
 from panoworld.conventions import points_from_depth
-from panoworld.layout_columns import shell_depth, wall_columns
+from panoworld.layout_columns import _front_pieces, shell_depth, wall_columns
 from panoworld.mesh import erp_mesh_from_depth
 from panoworld.raycast import Raycaster
 
@@ -48,6 +48,18 @@ def test_wall_columns_interpolate_the_wall_behind_a_pillar():
     assert np.nanmax(err) < 0.03 and np.isfinite(walls.dist).all()
     shell, on_wall = shell_depth(walls, p / d[..., None])
     assert np.quantile(np.abs(shell - room_d) / room_d, 0.95) < 0.03
+
+
+def test_front_pieces_do_not_depend_on_where_the_seam_is():
+    w = 64
+    r = np.full(w, 3.0) + 0.01 * np.sin(np.arange(w))
+    r[20:25] = 1.5  # a pillar in front of the wall
+    r[40:43] = np.nan  # unknown columns are skipped: the piece after them is compared with column 39
+    r[43:46] = 2.0
+    front = _front_pieces(r)
+    assert np.flatnonzero(front).tolist() == list(range(20, 25)) + list(range(43, 46))
+    for shift in range(w):  # the pillar straddles the seam for shifts 40-43
+        assert np.array_equal(_front_pieces(np.roll(r, shift)), np.roll(front, shift)), shift
 
 
 def test_wall_layout_gives_the_hidden_wall_its_depth_and_colour():

@@ -179,7 +179,7 @@ def test_gsplat_matches_torch_renderer():
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="gsplat path needs CUDA")
 def test_gsplat_erp_matches_torch_erp():
     pytest.importorskip("gsplat")
-    from bench.bench_render_gs import room_surfels
+    from panoworld.synth.surfels import room_surfels
 
     g = room_surfels(3000)  # surfaces: the faces' depth along each ray is the centres' distance there
     gt = Gaussians(**{k: torch.as_tensor(getattr(g, k)).cuda() for k in ("means", "scales", "quats", "opacities", "sh_dc")})
@@ -480,3 +480,11 @@ def test_erp_with_requires_grad_gaussians_takes_the_torch_path():
     assert not fast.rgb.requires_grad
     assert torch.equal(fast.rgb, render_erp(g, pose, 16, 32, backend="numba", **kw).rgb)
     assert float((fast.rgb - out.rgb.detach()).abs().max()) <= 1e-5
+
+
+def test_room_surfels_lie_on_the_rooms_shell():
+    from panoworld.synth.surfels import ROOM_HALF_M, room_surfels
+
+    g = room_surfels(500)
+    on_face = np.isclose(np.abs(g.means), np.array(ROOM_HALF_M, np.float32)).any(axis=1)
+    assert on_face.all() and (np.abs(g.means) <= np.array(ROOM_HALF_M) + 1e-6).all()
