@@ -23,7 +23,9 @@ SIGHT_STEP_M = 0.25
 """sight_grid looks from the NavMesh's points on a grid of this step."""
 WINDOW = 3
 """A back-side point must lie behind every source depth within this many pixels of its own (not at a doorway's
-jamb, where the source sees past the wall's edge)."""
+jamb, where the source sees past the wall's edge), and within its thickness across (edge_clear)."""
+MAX_WINDOW = 32
+"""edge_clear's largest window, pixels."""
 SHELL_TOL = 0.05
 """on_shell: a source point lies on the room's shell when its horizontal distance from the capture point is within
 this fraction of its ERP column's wall (panoworld.layout_columns.wall_columns)."""
@@ -66,6 +68,27 @@ def on_shell(means: np.ndarray, depth: np.ndarray, world_from_cam: np.ndarray) -
     wall = walls.dist[column_of(p / np.maximum(np.linalg.norm(p, axis=1), 1e-12)[:, None], depth.shape[1])]
     with np.errstate(invalid="ignore"):
         return np.abs(np.hypot(p[:, 0], p[:, 2]) - wall) <= SHELL_TOL * wall
+
+
+def edge_clear(p: np.ndarray, depth: np.ndarray, thickness: float) -> np.ndarray:
+    """(N,) bool: which points p (N, 3, camera frame) lie behind the source depth (H, W) metres of every pixel within
+    `thickness` metres across their ray (at least WINDOW pixels, at most MAX_WINDOW): a copy that far behind its
+    surface is then not seen past a wall's edge (a doorway's jamb) from views up to 45 degrees off the wall's normal."""
+    import cv2
+
+    d = np.where(np.isfinite(depth) & (depth > 0), depth, 1e6).astype(np.float32)
+    dist = np.linalg.norm(p, axis=1)
+    u, v = erp_pixel_from_dir(p / np.maximum(dist, 1e-12)[:, None], *depth.shape)
+    j = np.mod(np.floor(u).astype(np.int64), depth.shape[1])
+    i = np.clip(np.floor(v).astype(np.int64), 0, depth.shape[0] - 1)
+    px = thickness / np.maximum(dist, 1e-6) * depth.shape[1] / (2 * np.pi)
+    win = np.clip(np.ceil(px), WINDOW, MAX_WINDOW).astype(np.int64)
+    out = np.zeros(len(p), bool)
+    for w in np.unique(win):
+        sel = win == w
+        d_max = cv2.dilate(d, np.ones((2 * w + 1, 2 * w + 1), np.uint8))
+        out[sel] = dist[sel] > d_max[i[sel], j[sel]]
+    return out
 
 
 def sight_grid(nav, blockers: np.ndarray, reach_m: float) -> tuple[np.ndarray, float, float]:
@@ -112,7 +135,6 @@ def back_side_gaussians(g: Gaussians, depth: np.ndarray, world_from_cam: np.ndar
     With shell, only surfaces on the room's shell (on_shell: walls, not the fronts of furniture whose unseen sides let
     the sight reach behind them). Coloured rgb (3,) uint8 when given (the next room's walls), else as the front. Splats are two-sided: from behind,
     the back layer is in front of the front layer; from the capture point, behind it."""
-    import cv2
 
     pose = np.asarray(world_from_cam, np.float64)
     centre = pose[:3, 3]
@@ -123,15 +145,8 @@ def back_side_gaussians(g: Gaussians, depth: np.ndarray, world_from_cam: np.ndar
     cand = (np.abs(n[:, 1]) <= UPRIGHT) & (height > 0.05)
     q = means[cand] - thickness * n[cand]
     # hidden from the capture point: behind every source depth near q's pixel
-    d = np.where(np.isfinite(depth) & (depth > 0), depth, np.inf).astype(np.float32)
-    k = 2 * WINDOW + 1
-    d_max = cv2.dilate(np.where(np.isinf(d), np.float32(1e6), d), np.ones((k, k), np.uint8))
     p = (q - centre) @ pose[:3, :3]  # camera frame: cam_from_world applied
-    dist = np.linalg.norm(p, axis=1)
-    u, v = erp_pixel_from_dir(p / np.maximum(dist, 1e-12)[:, None], *depth.shape)
-    j = np.mod(np.floor(u).astype(np.int64), depth.shape[1])
-    i = np.clip(np.floor(v).astype(np.int64), 0, depth.shape[0] - 1)
-    hidden = dist > d_max[i, j]
+    hidden = edge_clear(p, depth, thickness)
     # in sight of the walkable floor from behind
     band = (height > BAND_M[0]) & (height < BAND_M[1])
     reached, x0, z0 = sight_grid(nav, means[band], reach)

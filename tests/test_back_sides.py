@@ -10,8 +10,8 @@ import pytest
 import torch
 import trimesh
 
-from panoworld.back_sides import back_side_layer
-from panoworld.conventions import points_from_depth
+from panoworld.back_sides import back_side_layer, edge_clear
+from panoworld.conventions import erp_dirs, points_from_depth
 from panoworld.erp_render import render_erp
 from panoworld.fusion_params import FusionParams
 from panoworld.mesh import erp_mesh_from_depth
@@ -133,3 +133,25 @@ def test_furniture_fronts_get_no_back_only_the_rooms_shell():
     assert divider.sum() > 500
     # the rest lie behind the room's outer walls (the wall the cabinet hides from the capture point blocks no sight)
     assert ((np.abs(b[~divider, 0]) > 3.0) | (b[~divider, 2] < -2.5)).all()
+
+
+def test_copies_stay_clear_of_a_doorways_edge_by_their_thickness():
+    # the source's resolution (640 rows): a wall 2 m ahead (camera frame, z forward), a doorway |x| < 0.5 under
+    # y > -0.6 seeing 5 m through it. Points 0.12 m behind the wall count as clear only where every ray within
+    # 0.12 m across (on the wall, 0.12 / 2.12 of their distance) hits the wall: else a view 45 degrees off the
+    # wall's normal sees them past the jamb (a 3-pixel window is 3 cm there)
+    h, w = 640, 1280
+    dirs = erp_dirs(h, w, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(dirs[..., 2] > 1e-6, 2.0 / dirs[..., 2], np.inf)
+    hit = dirs * t[..., None]
+    door = (np.abs(hit[..., 0]) < 0.5) & (hit[..., 1] > -0.6)
+    depth = np.where(door, 2.5 * t, np.minimum(t, 8.0))
+    gap = np.linspace(0.01, 0.3, 30)  # from the right jamb, across
+    p = np.stack([0.5 + gap, np.zeros_like(gap), np.full_like(gap, 2.12)], 1)
+    clear = edge_clear(p, depth, 0.12)
+    # seen past the jamb from 45 degrees off the normal: not clear; the window (a square of 12 pixels, taken
+    # along the capture point's rays, which bring a point behind the wall 6 % nearer the doorway) costs < 0.08 m more
+    assert not clear[gap < 0.12].any() and clear[gap > 0.2].all()
+    far = p + [1.0, 0.0, 0.0]  # away from the doorway: clear; in front of the wall: not
+    assert edge_clear(far, depth, 0.12).all() and not edge_clear(far - [0.0, 0.0, 0.3], depth, 0.12).any()
