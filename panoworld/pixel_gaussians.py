@@ -99,7 +99,8 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
                            source_scale: float | None = None, unseen_voxel_size: float = 0.0, thin_poles: bool = True,
                            fit_iters: int = 0, fit_height: int = 0, fit_views: int = 0, fit_view_height: int = 256,
                            fit_view_reach: float = 0.0, fit_view_weight: float = 1.0, fit_sh_degree: int = 0,
-                           fit_sh_damping: float = 0.001, back_sides=None, progress: bool = False) -> FusionResult:
+                           fit_sh_damping: float = 0.001, fit_views_sh_only: bool = False, back_sides=None,
+                           progress: bool = False) -> FusionResult:
     """Per-pixel Gaussians of the source view (video frame 0, at source_height rows; 0 = as the other frames) plus
     voxel fusion of what the other frames see that the source does not (SourceVisibility with tolerance tol) in voxels
     of unseen_voxel_size (0 = params.voxel_size), less those poking through the source's surfaces: the capture point keeps the input's full detail, the rest of the
@@ -108,7 +109,8 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
     pose (fit_colors, at fit_height rows; 0 = source_height), and with fit_views > 0 to that many other frames
     spread over the path within fit_view_reach metres (view_targets(), at fit_view_height rows, each pixel
     weighted fit_view_weight against 1 for the capture point's) where they see what the source saw; fit_sh_degree 1
-    fits view-dependent colours (degree-1 SH, damped by fit_sh_damping) to those views. back_sides: a callable
+    fits view-dependent colours (degree-1 SH, damped by fit_sh_damping) to those views (fit_views_sh_only: those
+    only, the colours seen from the capture point are its fit's alone). back_sides: a callable
     (pix, rgb, depth, world_from_cam) -> back_sides.BackSides whose Gaussians join the result."""
     if not frames.indices or frames.indices[0] != 0:
         return voxel_fusion(frames, params, progress=progress)
@@ -129,7 +131,8 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
         extra = view_targets(rest, vis, fit_views, fit_view_height, fit_view_reach, fit_view_weight)
         result.gaussians, result.color_fit = fit_colors(result.gaussians, rgb, pose, iters=fit_iters, extra=extra,
                                                         sh_degree=fit_sh_degree if extra else 0,
-                                                        sh_damping=fit_sh_damping)
+                                                        sh_damping=fit_sh_damping,
+                                                        views_sh_only=fit_views_sh_only)
         result.fit_render = result.color_fit.pop("render")
         result.color_fit.update(iters=fit_iters, height=int(rgb.shape[0]))
         if extra:
@@ -189,7 +192,7 @@ def fuse_unseen(pix: Gaussians, frames: ContextSource, vis, params: FusionParams
 def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, iters: int = 10, damping: float = 0.01,
                supersample: int = 1, pole_scale: float | None = None,
                extra: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = (), tile: int = 8, sh_degree: int = 0,
-               sh_damping: float = 0.001) -> tuple[Gaussians, dict]:
+               sh_damping: float = 0.001, views_sh_only: bool = False) -> tuple[Gaussians, dict]:
     """Gaussians whose colours (SH DC) are refitted so their ERP render at world_from_cam matches target (H, W, 3)
     uint8 or [0, 1]: the render is linear in the colours for fixed geometry (erp_operator.ErpColorOperator), so this
     is `iters` steps of damped conjugate-gradient least squares, min |A c - y|^2 + damping |c - c0|^2 from the current
@@ -203,7 +206,8 @@ def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, 
     render_erp's default); tile: their weights kernel's tile size (8: fewer Gaussians scanned per pixel than the
     rasteriser's 16, the same weights). Returns the Gaussians (sh_rest of degree >= sh_degree) and {"rmse_before",
     "rmse_after"} of the render at world_from_cam, and "render": that render of the fitted Gaussians, (rgb (H, W, 3),
-    alpha (H, W)) float32 numpy."""
+    alpha (H, W)) float32 numpy. views_sh_only (with sh_degree 1 and extra): c is fitted to the capture point alone
+    (the fit without extra, so its render there is that fit's) and the views fit s only, with c fixed."""
     from panoworld.erp_operator import ErpColorOperator
     from panoworld.render_gs import _SH_C1, covariance_3d
 
@@ -216,7 +220,14 @@ def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, 
     h, w = target.shape[:2]
     y = as_float(target)
     cov = covariance_3d(torch.as_tensor(g.scales).float(), torch.as_tensor(g.quats).float())
-    op = ErpColorOperator(g, world_from_cam, h, w, supersample=supersample, pole_scale=pole_scale, tile=tile, cov=cov)
+    sh_only = bool(views_sh_only and sh_degree and len(extra))
+    if sh_only:  # the capture point's fit alone; its colours stay, the views below move s only
+        g, info = fit_colors(g, target, world_from_cam, iters=iters, damping=damping, supersample=supersample,
+                             pole_scale=pole_scale, tile=tile)
+        op = None
+    else:
+        op = ErpColorOperator(g, world_from_cam, h, w, supersample=supersample, pole_scale=pole_scale, tile=tile,
+                              cov=cov)
     views = [(op, y, None)]  # (operator, target, sqrt of the pixel weights or None)
     poses = [world_from_cam]
     for img, pose, wt in extra:
@@ -250,11 +261,15 @@ def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, 
         A, _, m = views[k]
         return A(color(k, x)) if m is None else A(color(k, x)) * m
 
+    ks = range(1 if sh_only else 0, len(views))  # the views in the objective (view 0 does not see s)
+
     def grad(r):  # sum over the views of the adjoint of r (per view (h, w, 3)), as the unknowns
         out = torch.zeros(n, 12 if sh_degree else 3)
-        for k, (A, _, m) in enumerate(views):
+        for k in ks:
+            A, _, m = views[k]
             gc = A.adjoint(r[k] if m is None else r[k] * m)
-            out[:, :3] += gc
+            if not sh_only:
+                out[:, :3] += gc
             if sh_degree and k:
                 out[:, 3:].view(n, 3, 3).add_(basis[k][:, :, None] * gc[:, None, :])
         return out
@@ -268,26 +283,30 @@ def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, 
         c0 = torch.cat([c0 + torch.einsum("nj,njc->nc", b0, s0), (s0 * rho[:, :, None]).reshape(n, 9)], 1)
     ones = [torch.ones_like(v[1]) if v[2] is None else v[2].expand_as(v[1]).clone() for v in views]
     seen = sum(views[k][0].adjoint(ones[k] if views[k][2] is None else ones[k] * views[k][2])
-               for k in range(len(views)))[:, :1].clamp(min=1e-3)  # each Gaussian's compositing weight
+               for k in ks)[:, :1].clamp(min=1e-3)  # each Gaussian's compositing weight
     lam = damping * seen if not sh_degree else \
         torch.cat([damping * seen.expand(n, 3), (sh_damping * seen / rho.square()).expand(n, 9)], 1)
 
     x = c0.clone()
-    r = [v[1] - fwd(k, x) for k, v in enumerate(views)]
-    rmse0 = float(r[0].square().mean().sqrt())
+    r = {k: views[k][1] - fwd(k, x) for k in ks}
+    rmse0 = info["rmse_before"] if sh_only else float(r[0].square().mean().sqrt())
     s = grad(r)  # the gradient of the damped objective at c0 (damping term 0)
     p, gamma = s.clone(), float(s.square().sum())
     for _ in range(iters):
-        q = [fwd(k, p) for k in range(len(views))]
-        alpha = gamma / max(float(sum(qk.square().sum() for qk in q) + (lam * p.square()).sum()), 1e-20)
+        q = {k: fwd(k, p) for k in ks}
+        alpha = gamma / max(float(sum(qk.square().sum() for qk in q.values()) + (lam * p.square()).sum()), 1e-20)
         x = x + alpha * p
-        r = [rk - alpha * qk for rk, qk in zip(r, q)]
+        r = {k: r[k] - alpha * q[k] for k in ks}
         s = grad(r).sub_(lam * (x - c0))
         gamma_new = float(s.square().sum())
         p, gamma = s + gamma_new / max(gamma, 1e-20) * p, gamma_new
     x[:, :3] = x[:, :3].clamp(0.0, 1.0)
-    img = op(x[:, :3])
-    rmse1 = float((y - img).square().mean().sqrt())
+    if sh_only:
+        img, alpha = info["render"]
+        rmse1 = info["rmse_after"]
+    else:
+        img = op(x[:, :3])
+        rmse1 = float((y - img).square().mean().sqrt())
     sh_rest = g.sh_rest
     if sh_degree:
         sh_rest = np.zeros((n, max(3, rest0.shape[1]), 3), np.float32)
@@ -296,5 +315,7 @@ def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, 
         sh_rest[:, :3] = coef.numpy()
         x[:, :3] -= torch.einsum("nj,njc->nc", b0, coef)  # the DC: c less the capture point's part
     out = Gaussians(g.means, g.scales, g.quats, g.opacities, rgb_to_sh_dc(x[:, :3].numpy()).astype(np.float32), sh_rest)
+    if sh_only:
+        return out, {"rmse_before": rmse0, "rmse_after": rmse1, "render": (img, alpha)}
     alpha = op(torch.ones(n, 3))[..., 0]  # the weights of each pixel sum to its opacity 1 - T
     return out, {"rmse_before": rmse0, "rmse_after": rmse1, "render": (img.numpy(), alpha.numpy())}

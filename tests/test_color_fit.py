@@ -124,3 +124,44 @@ def test_degree_one_fit_recovers_a_view_dependent_colour_between_its_views():
     assert err(one, 0.0) == pytest.approx(err(fit_colors(g, view(0.0), src, iters=10, supersample=1)[0], 0.0), abs=1e-6)
     with pytest.raises(ValueError, match="sh_degree"):
         fit_colors(g, view(0.0), src, sh_degree=2)
+
+
+def test_views_fitting_only_the_degree_one_terms_keep_the_capture_points_fit():
+    # views_sh_only: the capture point renders exactly as its fit without the views (its colours are that fit's), while
+    # the degree-1 terms the views fit still bring a held-out view between them closer to the truth.
+    from panoworld.pixel_gaussians import fit_colors
+
+    g = shell_and_clutter()
+    n = 2500
+    g = Gaussians(g.means[:n], g.scales[:n], np.tile([1.0, 0, 0, 0], (n, 1)).astype(np.float32), g.opacities[:n],
+                  rgb_to_sh_dc(np.full((n, 3), 0.5, np.float32)))
+    rng = np.random.default_rng(4)
+    rest = np.zeros((n, 3, 3), np.float32)
+    rest[:, 2] = rng.uniform(1.0, 2.0, (n, 3)) * np.sign(g.means[:, :1])
+    truth = Gaussians(g.means, g.scales, g.quats, g.opacities,
+                      rgb_to_sh_dc(rng.uniform(0.3, 0.7, (n, 3))).astype(np.float32), rest)
+
+    def pose_at(x):
+        p = np.eye(4)
+        p[0, 3] = x
+        return p
+
+    H, W = 24, 48
+
+    def view(x, gs=truth):
+        return render_erp(gs, pose_at(x), H, W, supersample=1).rgb.numpy()
+
+    src = pose_at(0.0)
+    extra = [(view(x), pose_at(x), np.ones((H, W), np.float32)) for x in (-0.6, 0.6)]
+    alone, info_alone = fit_colors(g, view(0.0), src, iters=10, supersample=1)
+    only, info = fit_colors(g, view(0.0), src, iters=10, extra=extra, supersample=1, sh_degree=1, views_sh_only=True)
+    assert only.sh_degree == 1 and float(np.abs(only.sh_rest[:, :3]).max()) > 0
+    np.testing.assert_allclose(view(0.0, only), view(0.0, alone), atol=1e-5)  # the capture point: unchanged
+    assert info["rmse_after"] == info_alone["rmse_after"]
+    np.testing.assert_allclose(info["render"][0], info_alone["render"][0])
+
+    def err(gs, x):
+        return float(np.abs(view(x, gs) - view(x)).mean())
+
+    assert err(only, -0.3) < 0.7 * err(alone, -0.3), (err(only, -0.3), err(alone, -0.3))
+    assert err(only, 0.6) < 0.7 * err(alone, 0.6)

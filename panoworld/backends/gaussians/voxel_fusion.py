@@ -60,6 +60,9 @@ class VoxelFusionOptions(FusionParams):
     fit_sh_damping: float = param(0.001, ge=0)
     """Damping of those degree-1 coefficients towards 0 per unit of compositing weight (the colours' is 0.01): a
     Gaussian seen from few directions keeps about one colour (0.0001 gave the same dB on seed 4)."""
+    fit_views_sh_only: bool = False
+    """With fit_sh_degree 1: the views fit the degree-1 coefficients only; the colours seen from the capture point
+    are its own fit's (fit_views 0's), so the capture point renders as without the views."""
     back_sides: bool = False
     """With source_pixels and a navmesh input: upright source surfaces whose other side is in the line of sight of the
     walkable floor (within back_side_reach; what the source saw blocks the sight, unseen space does not) get a second
@@ -93,7 +96,8 @@ def fuse(job):
                                       fit_iters=o.fit_iters, fit_height=o.fit_height, fit_views=o.fit_views,
                                       fit_view_height=o.fit_view_height, fit_view_reach=o.fit_view_reach,
                                       fit_view_weight=o.fit_view_weight, fit_sh_degree=o.fit_sh_degree,
-                                      fit_sh_damping=o.fit_sh_damping, back_sides=back_side_hook(job),
+                                      fit_sh_damping=o.fit_sh_damping, fit_views_sh_only=o.fit_views_sh_only,
+                                      back_sides=back_side_hook(job),
                                       progress=job.progress)
     from panoworld.home.gaussians import home_anchored_fusion
     from panoworld.home.layout import home_depth_dirs
