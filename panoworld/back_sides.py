@@ -70,10 +70,11 @@ def on_shell(means: np.ndarray, depth: np.ndarray, world_from_cam: np.ndarray) -
         return np.abs(np.hypot(p[:, 0], p[:, 2]) - wall) <= SHELL_TOL * wall
 
 
-def edge_clear(p: np.ndarray, depth: np.ndarray, thickness: float) -> np.ndarray:
+def edge_clear(p: np.ndarray, depth: np.ndarray, thickness: float, adaptive: bool = True) -> np.ndarray:
     """(N,) bool: which points p (N, 3, camera frame) lie behind the source depth (H, W) metres of every pixel within
     `thickness` metres across their ray (at least WINDOW pixels, at most MAX_WINDOW): a copy that far behind its
-    surface is then not seen past a wall's edge (a doorway's jamb) from views up to 45 degrees off the wall's normal."""
+    surface is then not seen past a wall's edge (a doorway's jamb) from views up to 45 degrees off the wall's normal.
+    adaptive=False: within WINDOW pixels whatever the distance."""
     import cv2
 
     d = np.where(np.isfinite(depth) & (depth > 0), depth, 1e6).astype(np.float32)
@@ -82,7 +83,7 @@ def edge_clear(p: np.ndarray, depth: np.ndarray, thickness: float) -> np.ndarray
     j = np.mod(np.floor(u).astype(np.int64), depth.shape[1])
     i = np.clip(np.floor(v).astype(np.int64), 0, depth.shape[0] - 1)
     px = thickness / np.maximum(dist, 1e-6) * depth.shape[1] / (2 * np.pi)
-    win = np.clip(np.ceil(px), WINDOW, MAX_WINDOW).astype(np.int64)
+    win = np.clip(np.ceil(px), WINDOW, MAX_WINDOW if adaptive else WINDOW).astype(np.int64)
     out = np.zeros(len(p), bool)
     for w in np.unique(win):
         sel = win == w
@@ -126,11 +127,12 @@ def sight_grid(nav, blockers: np.ndarray, reach_m: float) -> tuple[np.ndarray, f
 
 
 def back_side_gaussians(g: Gaussians, depth: np.ndarray, world_from_cam: np.ndarray, nav, *, thickness: float,
-                        reach: float, rgb: np.ndarray | None = None, shell: bool = True) -> BackSides:
+                        reach: float, rgb: np.ndarray | None = None, shell: bool = True, edge: bool = False
+                        ) -> BackSides:
     """A second layer for the source's per-pixel Gaussians g on upright surfaces whose other side is in the line of
     sight of the NavMesh nav: each copied `thickness` metres behind its surface (along its normal, away from the capture point at
     world_from_cam), hidden from the capture point (behind the source depth (H, W) metres of every pixel within
-    WINDOW of its own), and the cell `thickness` + 2 CELL_M behind it seen from the NavMesh within `reach` metres
+    WINDOW of its own; with edge, within its thickness across: edge_clear), and the cell `thickness` + 2 CELL_M behind it seen from the NavMesh within `reach` metres
     (sight_grid: from the front side the wall itself blocks the sight).
     With shell, only surfaces on the room's shell (on_shell: walls, not the fronts of furniture whose unseen sides let
     the sight reach behind them). Coloured rgb (3,) uint8 when given (the next room's walls), else as the front. Splats are two-sided: from behind,
@@ -146,7 +148,7 @@ def back_side_gaussians(g: Gaussians, depth: np.ndarray, world_from_cam: np.ndar
     q = means[cand] - thickness * n[cand]
     # hidden from the capture point: behind every source depth near q's pixel
     p = (q - centre) @ pose[:3, :3]  # camera frame: cam_from_world applied
-    hidden = edge_clear(p, depth, thickness)
+    hidden = edge_clear(p, depth, thickness, adaptive=edge)
     # in sight of the walkable floor from behind
     band = (height > BAND_M[0]) & (height < BAND_M[1])
     reached, x0, z0 = sight_grid(nav, means[band], reach)
@@ -187,10 +189,11 @@ def next_room_wall_rgb(rgb: np.ndarray, depth: np.ndarray, world_from_cam: np.nd
 
 
 def back_side_layer(pix: Gaussians, rgb: np.ndarray, depth: np.ndarray, world_from_cam: np.ndarray, *, nav,
-                    thickness: float, reach: float, color: str = "next_room", shell: bool = True) -> BackSides:
+                    thickness: float, reach: float, color: str = "next_room", shell: bool = True, edge: bool = False
+                    ) -> BackSides:
     """back_side_gaussians of the source's per-pixel Gaussians pix, coloured as `color` says: "next_room" (the next
     room's wall colour the doorway shows, next_room_wall_rgb; the front's colour where none is seen) or "front";
-    shell: back_side_gaussians'."""
+    shell, edge: back_side_gaussians'."""
     wall = next_room_wall_rgb(rgb, depth, world_from_cam) if color == "next_room" else None
     return back_side_gaussians(pix, depth, world_from_cam, nav, thickness=thickness, reach=reach, rgb=wall,
-                               shell=shell)
+                               shell=shell, edge=edge)

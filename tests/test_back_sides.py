@@ -155,3 +155,4 @@ def test_copies_stay_clear_of_a_doorways_edge_by_their_thickness():
     assert not clear[gap < 0.12].any() and clear[gap > 0.2].all()
     far = p + [1.0, 0.0, 0.0]  # away from the doorway: clear; in front of the wall: not
     assert edge_clear(far, depth, 0.12).all() and not edge_clear(far - [0.0, 0.0, 0.3], depth, 0.12).any()
+    assert edge_clear(p, depth, 0.12, adaptive=False)[gap < 0.12].any()  # the default 3-pixel window: some pass
