@@ -62,7 +62,9 @@ class VoxelFusionOptions(FusionParams):
     Gaussian seen from few directions keeps about one colour (0.0001 gave the same dB on seed 4)."""
     fit_views_sh_only: bool = False
     """With fit_sh_degree 1: the views fit the degree-1 coefficients only; the colours seen from the capture point
-    are its own fit's (fit_views 0's), so the capture point renders as without the views."""
+    are its own fit's (fit_views 0's), so the capture point renders as without the views. Off: on validation seed 4
+    it kept the capture point (0.00 dB; the joint fit -0.12) and gained more at ~2 m (+0.42 dB, seen +0.75) with 4
+    views, but for +44 % of the stage's CPU (docs/evaluation.md, "the capture point kept exactly")."""
     back_sides: bool = True
     """With source_pixels and a navmesh input: upright source surfaces whose other side is in the line of sight of the
     walkable floor (within back_side_reach; what the source saw blocks the sight, unseen space does not) get a second
