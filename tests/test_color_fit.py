@@ -79,17 +79,14 @@ def test_masked_operator_is_the_render_on_the_pixels_it_keeps(supersample, tile)
     assert float(empty(colors).abs().max()) == 0.0 and empty.adjoint(img.float()).shape == (len(g), 3)
 
 
-def test_degree_one_fit_recovers_a_view_dependent_colour_between_its_views():
-    # A shell whose true colours depend on the side it is seen from (degree-1 SH along x); three views 0.6 m apart
-    # along x. Fitting DC only gives one colour per Gaussian; the degree-1 fit follows the change, so a held-out view
-    # between two of them is closer to the truth. Seen from one view only, the degree-1 terms stay near 0.
-    from panoworld.pixel_gaussians import fit_colors
-
+def view_dependent_shell(seed: int):
+    """The first 2500 shell Gaussians in mid-grey (what a fit starts from), the truth with degree-1 colours along x
+    (their sign follows the Gaussian's side), its x-term, and the pose at x (m) along the x axis."""
     g = shell_and_clutter()
     n = 2500
     g = Gaussians(g.means[:n], g.scales[:n], np.tile([1.0, 0, 0, 0], (n, 1)).astype(np.float32), g.opacities[:n],
                   rgb_to_sh_dc(np.full((n, 3), 0.5, np.float32)))
-    rng = np.random.default_rng(3)
+    rng = np.random.default_rng(seed)
     rest = np.zeros((n, 3, 3), np.float32)
     rest[:, 2] = rng.uniform(1.0, 2.0, (n, 3)) * np.sign(g.means[:, :1])  # the -x basis term
     truth = Gaussians(g.means, g.scales, g.quats, g.opacities,
@@ -100,6 +97,16 @@ def test_degree_one_fit_recovers_a_view_dependent_colour_between_its_views():
         p[0, 3] = x
         return p
 
+    return g, truth, rest, pose_at
+
+
+def test_degree_one_fit_recovers_a_view_dependent_colour_between_its_views():
+    # A shell whose true colours depend on the side it is seen from (degree-1 SH along x); three views 0.6 m apart
+    # along x. Fitting DC only gives one colour per Gaussian; the degree-1 fit follows the change, so a held-out view
+    # between two of them is closer to the truth. Seen from one view only, the degree-1 terms stay near 0.
+    from panoworld.pixel_gaussians import fit_colors
+
+    g, truth, rest, pose_at = view_dependent_shell(3)
     H, W = 24, 48
 
     def view(x):
@@ -131,21 +138,7 @@ def test_views_fitting_only_the_degree_one_terms_keep_the_capture_points_fit():
     # the degree-1 terms the views fit still bring a held-out view between them closer to the truth.
     from panoworld.pixel_gaussians import fit_colors
 
-    g = shell_and_clutter()
-    n = 2500
-    g = Gaussians(g.means[:n], g.scales[:n], np.tile([1.0, 0, 0, 0], (n, 1)).astype(np.float32), g.opacities[:n],
-                  rgb_to_sh_dc(np.full((n, 3), 0.5, np.float32)))
-    rng = np.random.default_rng(4)
-    rest = np.zeros((n, 3, 3), np.float32)
-    rest[:, 2] = rng.uniform(1.0, 2.0, (n, 3)) * np.sign(g.means[:, :1])
-    truth = Gaussians(g.means, g.scales, g.quats, g.opacities,
-                      rgb_to_sh_dc(rng.uniform(0.3, 0.7, (n, 3))).astype(np.float32), rest)
-
-    def pose_at(x):
-        p = np.eye(4)
-        p[0, 3] = x
-        return p
-
+    g, truth, _, pose_at = view_dependent_shell(4)
     H, W = 24, 48
 
     def view(x, gs=truth):
