@@ -23,7 +23,8 @@ SIGHT_STEP_M = 0.25
 """sight_grid looks from the NavMesh's points on a grid of this step."""
 WINDOW = 3
 """A back-side point must lie behind every source depth within this many pixels of its own (not at a doorway's
-jamb, where the source sees past the wall's edge), and within its thickness across (edge_clear)."""
+jamb, where the source sees past the wall's edge); with back_side_edge_clear, within its thickness across
+(edge_clear)."""
 MAX_WINDOW = 32
 """edge_clear's largest window, pixels."""
 SHELL_TOL = 0.05
@@ -137,7 +138,6 @@ def back_side_gaussians(g: Gaussians, depth: np.ndarray, world_from_cam: np.ndar
     With shell, only surfaces on the room's shell (on_shell: walls, not the fronts of furniture whose unseen sides let
     the sight reach behind them). Coloured rgb (3,) uint8 when given (the next room's walls), else as the front. Splats are two-sided: from behind,
     the back layer is in front of the front layer; from the capture point, behind it."""
-
     pose = np.asarray(world_from_cam, np.float64)
     centre = pose[:3, 3]
     means = np.asarray(g.means, np.float64)

@@ -301,10 +301,7 @@ def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, 
         gamma_new = float(s.square().sum())
         p, gamma = s + gamma_new / max(gamma, 1e-20) * p, gamma_new
     x[:, :3] = x[:, :3].clamp(0.0, 1.0)
-    if sh_only:
-        img, alpha = info["render"]
-        rmse1 = info["rmse_after"]
-    else:
+    if not sh_only:
         img = op(x[:, :3])
         rmse1 = float((y - img).square().mean().sqrt())
     sh_rest = g.sh_rest
@@ -315,7 +312,7 @@ def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, 
         sh_rest[:, :3] = coef.numpy()
         x[:, :3] -= torch.einsum("nj,njc->nc", b0, coef)  # the DC: c less the capture point's part
     out = Gaussians(g.means, g.scales, g.quats, g.opacities, rgb_to_sh_dc(x[:, :3].numpy()).astype(np.float32), sh_rest)
-    if sh_only:
-        return out, {"rmse_before": rmse0, "rmse_after": rmse1, "render": (img, alpha)}
+    if sh_only:  # the capture point sees c, which is its own fit's: that fit's render and error stand
+        return out, {"rmse_before": rmse0, "rmse_after": info["rmse_after"], "render": info["render"]}
     alpha = op(torch.ones(n, 3))[..., 0]  # the weights of each pixel sum to its opacity 1 - T
     return out, {"rmse_before": rmse0, "rmse_after": rmse1, "render": (img.numpy(), alpha.numpy())}
