@@ -13,6 +13,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from panoworld.conventions import check_pose, erp_dirs
+from panoworld.eig3 import eigh3
 from panoworld.fusion_params import Confidence, FusionParams
 from panoworld.gaussian_set import SH_C0, Gaussians, rgb_to_sh_dc  # noqa: F401  (re-exported)
 from panoworld.shapes import check_shape
@@ -376,7 +377,7 @@ def _gaussians_from_eig(mean: torch.Tensor, evals: torch.Tensor, axes: torch.Ten
 def gaussians_from_cov(mean: torch.Tensor, cov: torch.Tensor, colors: torch.Tensor, params: FusionParams,
                        max_scale_m: float) -> Gaussians:
     """Gaussians of covariance cov (N, 3, 3) (scaled by scale_factor as in voxel fusion) at mean (N, 3)."""
-    evals, axes = torch.linalg.eigh(0.5 * (cov + cov.transpose(1, 2)))
+    evals, axes = eigh3(cov)
     return _gaussians_from_eig(mean, evals, axes, colors, params, max_scale_m)
 
 
@@ -390,9 +391,7 @@ def _mean_cov_axes(sums: VoxelSums, centres: torch.Tensor) -> tuple[torch.Tensor
     fused = sums.fused()
     rel = fused[:, :3]
     cov = _sym_from6(fused[:, 6:12]) - rel[:, :, None] * rel[:, None, :]
-    cov = 0.5 * (cov + cov.transpose(1, 2))
-    cov = torch.nan_to_num(cov)
-    evals, axes = torch.linalg.eigh(cov)
+    evals, axes = eigh3(torch.nan_to_num(cov))
     return centres + rel, evals, axes
 
 

@@ -212,9 +212,9 @@ class Scene:
 
 def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
     """Find the scene files and check the panorama (exists, readable, 2:1) without writing anything."""
-    root = Path(scene_dir)
+    root = Path(scene_dir).absolute()  # stages run from the repository root: a relative path would not hold there
     if not root.is_dir():
-        raise PipelineError(f"{root}: scene directory not found")
+        raise PipelineError(f"{scene_dir}: scene directory not found")
     files: dict[str, Path | None] = {}
     for key, names in pipeline.scene_files.items():
         files[key] = next((root / n for n in names if (root / n).exists()), None)

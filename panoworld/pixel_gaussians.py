@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
 import torch
+from numba import njit, prange
 
 from panoworld.conventions import erp_pixel_from_dir, invert_pose
 from panoworld.fusion_params import FusionParams
@@ -54,6 +56,30 @@ def pixel_gaussians(rgb: np.ndarray, depth: np.ndarray, world_from_cam: np.ndarr
     return gaussians_from_cov(obs.points, cov, obs.colors, params, max_scale_m=np.inf)
 
 
+@njit(parallel=True, cache=True, nogil=True)
+def _source_lookup(points, cam_from_world, depth, dist, d_src):
+    """SourceVisibility._lookup fused per point: camera-frame distance and the ERP depth pixel the point falls in."""
+    h, w = depth.shape
+    for m in prange(points.shape[0]):
+        x = cam_from_world[0, 3]
+        y = cam_from_world[1, 3]
+        z = cam_from_world[2, 3]
+        for k in range(3):
+            x += cam_from_world[0, k] * points[m, k]
+            y += cam_from_world[1, k] * points[m, k]
+            z += cam_from_world[2, k] * points[m, k]
+        r = math.sqrt(x * x + y * y + z * z)
+        dist[m] = r
+        if not r < math.inf:  # NaN or infinite points fall in no pixel
+            d_src[m] = math.nan
+            continue
+        u = (math.atan2(x, z) / (2.0 * math.pi) + 0.5) * w
+        v = (0.5 - math.atan2(-y, math.hypot(x, z)) / math.pi) * h
+        j = int(math.floor(u)) % w
+        i = min(max(int(math.floor(v)), 0), h - 1)
+        d_src[m] = depth[i, j]
+
+
 class SourceVisibility:
     """What the source view sees: its ERP depth (H, W) metres (0/NaN/inf = unknown) and world_from_cam (4, 4)."""
 
@@ -64,7 +90,15 @@ class SourceVisibility:
         self.tol = tol
 
     def _lookup(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(distance of world points (M, 3) from the source, the source's depth along their ray (NaN = none))."""
+        """(distance of world points (M, 3) from the source, the source's depth along their ray (NaN = none));
+        _lookup_reference (conventions.erp_pixel_from_dir) is its test oracle."""
+        points = np.ascontiguousarray(points, np.float64)
+        dist = np.empty(len(points))
+        d_src = np.empty(len(points))
+        _source_lookup(points, self.cam_from_world, self.depth, dist, d_src)
+        return dist, d_src
+
+    def _lookup_reference(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         p = np.einsum("ij,mj->mi", self.cam_from_world[:3, :3], points) + self.cam_from_world[:3, 3]
         dist = np.linalg.norm(p, axis=1)
         h, w = self.depth.shape

@@ -410,6 +410,32 @@ def test_source_visibility_keeps_only_what_the_source_cannot_see():
     assert vis.poking_through(g).tolist() == [True, False, True, False]
 
 
+def test_source_lookup_kernel_matches_its_numpy_reference():
+    from scipy.spatial.transform import Rotation
+
+    from panoworld.pixel_gaussians import SourceVisibility
+
+    rng = np.random.default_rng(3)
+    depth = rng.uniform(1.0, 5.0, (90, 180))
+    depth[rng.random(depth.shape) < 0.1] = np.nan
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_euler("xyz", [0.1, 0.5, -0.2]).as_matrix()
+    pose[:3, 3] = [0.3, -0.1, 0.2]
+    vis = SourceVisibility(depth, pose, 0.03)
+    seam = pose[:3, 3] + np.einsum("ij,mj->mi", pose[:3, :3], [[0, 0, -1], [0, 1e-9, -1], [1e-12, 0.5, -1]])
+    pts = np.concatenate([rng.normal(size=(200_000, 3)) * 3.0, seam])
+    dist, d_src = vis._lookup(pts)
+    dist0, d_src0 = vis._lookup_reference(pts)
+    np.testing.assert_allclose(dist, dist0, rtol=1e-14)
+    assert np.array_equal(d_src, d_src0, equal_nan=True)
+    # exactly at a pole the longitude is rounding noise in either; the row is the pole's
+    poles = pose[:3, 3] + np.einsum("ij,mj->mi", pose[:3, :3], [[0, -1, 0], [0, 1, 0]])
+    top, bottom = vis._lookup(poles)[1]
+    assert np.isin(top, depth[0]) and np.isin(bottom, depth[-1])
+    bad = vis._lookup(np.array([[np.nan, 0.0, 1.0], [np.inf, 0.0, 0.0]]))[1]  # no pixel, no depth (not a wrapped index)
+    assert np.isnan(bad).all()
+
+
 def test_frame_observations_filtered_before_footprints_equal_those_filtered_after(room):
     # keep_points drops pixels before their footprints are computed: the same observations, bit for bit, as computing
     # all of them and subsetting (depth edges at the block, a band without depth, the seam and the poles included).

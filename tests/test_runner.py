@@ -47,7 +47,8 @@ def actions(res) -> dict[str, str]:
 
 def cli(*args, env_extra=None, **kw) -> subprocess.CompletedProcess:
     env = dict(os.environ, PANOWORLD_SCHEMA_PATH=str(TOY / "schemas"), **(env_extra or {}))
-    return subprocess.run([sys.executable, str(REPO / "runner.py"), *args], capture_output=True, text=True, env=env, cwd=REPO, **kw)
+    return subprocess.run([sys.executable, str(REPO / "runner.py"), *args], capture_output=True, text=True, env=env,
+                          **{"cwd": REPO, **kw})
 
 
 def test_second_run_is_all_cached(scene):
@@ -97,6 +98,13 @@ def test_from_reruns_the_tail(scene):
 def test_until_stops(scene):
     res = run(scene, until="b")
     assert actions(res) == {"a": "ran", "b": "ran", "c": "skipped", "d": "skipped"}
+
+
+def test_scene_given_relative_to_another_directory(scene):
+    """Stages run from the repository root; a scene path relative to the user's directory must still be found."""
+    out = cli("run", scene.name, "--pipeline", str(TOY / "pipeline.yaml"), cwd=scene.parent)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert (scene / "artifacts/d/out.txt").exists()
 
 
 def test_failure_stops_and_keep_going_runs_independent_branch(scene):
