@@ -82,8 +82,9 @@ def _ns(index: int, fps: float) -> int:
 class VideoWriter:
     """Streams frames into a video artifact directory: frames/%06d.png, depth/%06d.png, preview.mp4, video.mcap and,
     with upscale > 1, upscaled/%06d.png (an output only: later stages read frames/); close() writes video.json.
-    PNGs are encoded by `workers` threads; memory stays at a few frames whatever the length. The MCAP reuses the
-    frames' PNG bytes (no second encoding) and holds the frames once, at the generation size."""
+    PNGs are encoded by `workers` threads and the MCAP is written (in frame order) by one more, off the caller's thread;
+    memory stays at a few frames whatever the length. The MCAP reuses the frames' PNG bytes (no second encoding) and
+    holds the frames once, at the generation size."""
 
     def __init__(
         self,
@@ -117,6 +118,7 @@ class VideoWriter:
         self.entries: list[dict] = []
         self.poses: list[np.ndarray] = []
         self._pool = ThreadPoolExecutor(max_workers=workers)
+        self._mcap_pool = ThreadPoolExecutor(max_workers=1)  # one thread: messages stay in frame order
         self._pending: deque = deque()
         self._mp4 = None
         if preview:
@@ -183,17 +185,17 @@ class VideoWriter:
         up_job = None
         if upscaled is not None:
             up_job = self._pool.submit(self._encode_write, np.ascontiguousarray(upscaled), self.out_dir / entry["upscaled"])
-        self._pending.append((i, rgb_job, depth_job, up_job, mm, self.poses[-1], cond_rgb_png, cond_mask_png))
+        self._pending.append(self._mcap_pool.submit(
+            self._finish, i, rgb_job, depth_job, up_job, mm, self.poses[-1], cond_rgb_png, cond_mask_png))
         while len(self._pending) > 2:
-            self._finish_oldest()
+            self._pending.popleft().result()
 
     def _encode_write(self, image: np.ndarray, path: Path) -> bytes:
         png = encode_png(image, compression=self.png_compression)
         path.write_bytes(png)
         return png
 
-    def _finish_oldest(self) -> None:
-        i, rgb_job, depth_job, up_job, mm, pose, cond_rgb_png, cond_mask_png = self._pending.popleft()
+    def _finish(self, i, rgb_job, depth_job, up_job, mm, pose, cond_rgb_png, cond_mask_png) -> None:
         png = rgb_job.result()
         for job in (depth_job, up_job):
             if job is not None:
@@ -237,8 +239,9 @@ class VideoWriter:
     def close(self, meta: dict | None = None) -> dict:
         """Finish the frames, preview and MCAP and write video.json (meta adds keys such as backend/upscale); returns it."""
         while self._pending:
-            self._finish_oldest()
+            self._pending.popleft().result()
         self._pool.shutdown()
+        self._mcap_pool.shutdown()
         if self._mp4 is not None:
             self._mp4.close()
             self._mp4 = None

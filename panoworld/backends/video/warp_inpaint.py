@@ -97,8 +97,8 @@ def fill(job) -> tuple:
     cond = job.cond
 
     def frames():
-        for k in range(len(cond)):
-            f = filler.fill(cond.rgb[k], cond.mask[k], None if cond.depth is None else cond.depth[k], job.poses[k])
+        for k, (rgb, mask, depth) in enumerate(cond.iter_frames()):
+            f = filler.fill(rgb, mask, depth, job.poses[k])
             yield f.rgb, f.depth, f
 
     return frames(), info
