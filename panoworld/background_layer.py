@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -177,6 +178,7 @@ def build_background_layer(
     shadow_ambient: float = 1.0,
     plane_colors: bool = True,
     next_room_colors: bool = False,
+    ray_caster: bool = False,
 ) -> BackgroundLayer:
     """Extend the far side of every depth discontinuity of the source view behind its foreground occluder, and
     (side_depth_m > 0) the occluder's own surface back from its silhouette (occluder_sides).
@@ -201,6 +203,8 @@ def build_background_layer(
     (panoworld.plane_colors, before any relighting), and the layer keeps the map for the frames' 2D-filled pixels
     (WarpInpainter). next_room_colors: likewise, points beyond the shell between the floor and the ceiling take the
     colour of the next room's walls seen beyond it (and on the ceiling plane the ceiling's, plane_colors.NEXT_CEILING).
+    ray_caster: the layer comes with its fill mesh's ray caster built (BackgroundLayer.built), while the colours are
+    inpainted.
     """
     h, w = erp_grid_shape(mesh)
     n = h * w
@@ -246,52 +250,59 @@ def build_background_layer(
     if wall is not None:
         bg_depth = np.where(np.isfinite(wall[0]), wall[0], bg_depth).astype(np.float32)
     synth = (steps <= reach) & (bg_depth > depth * 1.02)
-    if color_sigma_px > 0:
-        bg_color = layer_mean_color(mesh.colors[:n].reshape(h, w, 3), hide, color_sigma_px)
-    else:
-        bg_color = erp_inpaint(mesh.colors[:n].reshape(h, w, 3), hide, radius=inpaint_radius)
+    src_rgb = mesh.colors[:n].reshape(h, w, 3)
+    # The colours (OpenCV's inpainting releases the GIL) are worked out by threads while the layer's geometry and its
+    # ray caster are built here.
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        if color_sigma_px > 0:
+            color_job = pool.submit(layer_mean_color, src_rgb, hide, color_sigma_px)
+        else:
+            color_job = pool.submit(erp_inpaint, src_rgb, hide, radius=inpaint_radius)
+        floor_job = None
+        if plane_colors or next_room_colors:
+            from panoworld.plane_colors import floor_beyond
+
+            floor_job = pool.submit(floor_beyond, p.reshape(h, w, 3), src_rgb, valid, floor=plane_colors,
+                                    walls_ceiling=next_room_colors)
+
+        # Layer mesh: grid faces over synthesized pixels and the real background pixels next to them.
+        s_flat = synth.reshape(-1)
+        idx_new = np.full(n, -1, np.int64)
+        idx_new[s_flat] = len(mesh.vertices) + np.arange(int(s_flat.sum()))
+        usable = s_flat | valid.reshape(-1)
+        grid = all_grid[usable[all_grid].all(axis=1) & s_flat[all_grid].any(axis=1)]
+        dirs = p[s_flat] / d[s_flat, None]
+        vertices = np.concatenate([mesh.vertices, (dirs * bg_depth.reshape(-1)[s_flat, None]).astype(np.float32)])
+        faces = np.where(s_flat[grid], idx_new[grid], grid).astype(np.int32)
+        faces = faces[_stretch(vertices.astype(np.float64), faces) <= max_edge_ratio]
+        sides = occluder_sides(p.reshape(h, w, 3), mesh.colors[:n], bad, side_depth_m, len(vertices)
+                               ) if side_depth_m > 0 else None
+        fill_v = vertices if sides is None else np.concatenate([vertices, sides[0].astype(np.float32)])
+        fill_f = np.concatenate([main_faces, faces, *([] if sides is None else [sides[2]])]).astype(np.int32)
+        del all_grid, grid, near_of, parallax, band, steps, reach, origin, idx_new  # the ray caster's build adds ~250 MB
+        built = Raycaster(fill_v, fill_f).build() if ray_caster and shadow_ambient >= 1 else None
+        bg_color = color_job.result()
+        floor_map = None if floor_job is None else floor_job.result()
     if wall is not None:
         bg_color = np.where(wall[2][..., None], wall[1], bg_color)
-
-    # Layer mesh: grid faces over synthesized pixels and the real background pixels next to them.
-    s_flat = synth.reshape(-1)
-    idx_new = np.full(n, -1, np.int64)
-    idx_new[s_flat] = len(mesh.vertices) + np.arange(int(s_flat.sum()))
-    usable = s_flat | valid.reshape(-1)
-    grid = all_grid[usable[all_grid].all(axis=1) & s_flat[all_grid].any(axis=1)]
-    dirs = p[s_flat] / d[s_flat, None]
-    vertices = np.concatenate([mesh.vertices, (dirs * bg_depth.reshape(-1)[s_flat, None]).astype(np.float32)])
-    faces = np.where(s_flat[grid], idx_new[grid], grid).astype(np.int32)
-    faces = faces[_stretch(vertices.astype(np.float64), faces) <= max_edge_ratio]
     colors = np.concatenate([mesh.colors, bg_color.reshape(-1, 3)[s_flat]])
-    floor_map = None
-    if plane_colors or next_room_colors:
-        from panoworld.plane_colors import floor_beyond
-
-        floor_map = floor_beyond(p.reshape(h, w, 3), mesh.colors[:n].reshape(h, w, 3), valid, floor=plane_colors,
-                                 walls_ceiling=next_room_colors)
-        if floor_map is not None:
-            colors[len(mesh.vertices):] = floor_map.paint(vertices[len(mesh.vertices):].astype(np.float64),
-                                                       colors[len(mesh.vertices):])[0]
-    built = None
+    if floor_map is not None:
+        colors[len(mesh.vertices):] = floor_map.paint(vertices[len(mesh.vertices):].astype(np.float64),
+                                                   colors[len(mesh.vertices):])[0]
     if shadow_ambient < 1:
         vertices = vertices.astype(np.float32)
-        built = Raycaster(vertices, np.concatenate([main_faces, faces]).astype(np.int32))
+        shadows = Raycaster(vertices, np.concatenate([main_faces, faces]).astype(np.int32))
         colors[len(mesh.vertices):] = relight_layer(
-            p.reshape(h, w, 3), mesh.colors[:n].reshape(h, w, 3), valid, hide, synth, vertices[len(mesh.vertices):],
-            colors[len(mesh.vertices):], built, shadow_ambient, inpaint_radius)
-    if side_depth_m > 0:
-        built = None
-        side_v, side_c, side_f = occluder_sides(p.reshape(h, w, 3), mesh.colors[:n], bad, side_depth_m,
-                                                 len(vertices))
-        vertices = np.concatenate([vertices, side_v.astype(np.float32)])
-        colors = np.concatenate([colors, side_c])
-        faces = np.concatenate([faces, side_f])
+            p.reshape(h, w, 3), src_rgb, valid, hide, synth, vertices[len(mesh.vertices):],
+            colors[len(mesh.vertices):], shadows, shadow_ambient, inpaint_radius)
+        built = shadows if sides is None else None
+    if sides is not None:
+        colors = np.concatenate([colors, sides[1]])
     return BackgroundLayer(
-        vertices.astype(np.float32),
-        np.concatenate([main_faces, faces]).astype(np.int32),
+        fill_v.astype(np.float32),
+        fill_f,
         colors.astype(np.uint8),
-        len(faces),
+        len(fill_f) - len(main_faces),
         synth,
         np.where(synth, bg_depth, 0.0).astype(np.float32),
         built,

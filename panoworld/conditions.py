@@ -448,19 +448,27 @@ class LoadedConditions:
         return WarpedFrame(self.rgb[k], depth, self.mask[k])
 
     def iter_frames(self, *, ahead: int = 2) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
-        """(rgb, mask, depth or None) of every frame in order, read `ahead` frames ahead by a background thread: PNG
-        decoding (OpenCV releases the GIL) overlaps the caller's work on the frames before."""
+        """(rgb, mask, depth or None) of every frame in order, read `ahead` frames ahead by a background thread that
+        starts at once (before the first frame is asked for): PNG decoding (OpenCV releases the GIL) overlaps the
+        caller's work."""
 
         def read(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
             return self.rgb[k], self.mask[k], None if self.depth is None else self.depth[k]
 
         n = len(self)
-        with ThreadPoolExecutor(max_workers=1) as pool:
-            pending = deque(pool.submit(read, k) for k in range(min(ahead, n)))
-            for k in range(n):
-                if k + ahead < n:
-                    pending.append(pool.submit(read, k + ahead))
-                yield pending.popleft().result()
+        pool = ThreadPoolExecutor(max_workers=1)
+        pending = deque(pool.submit(read, k) for k in range(min(ahead, n)))
+
+        def frames() -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
+            try:
+                for k in range(n):
+                    if k + ahead < n:
+                        pending.append(pool.submit(read, k + ahead))
+                    yield pending.popleft().result()
+            finally:
+                pool.shutdown(cancel_futures=True)
+
+        return frames()
 
 
 def load_conditions(path: Path | str) -> LoadedConditions:

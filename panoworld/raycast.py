@@ -48,6 +48,13 @@ class Raycaster:
             TriangleMesh(self._scene, self.vertices, self.faces)
         return self._scene
 
+    def build(self) -> Raycaster:
+        """Build the BVH now rather than at the first cast; returns self."""
+        scene = self._ensure()
+        if not scene.is_committed:  # embreex commits the scene (builds the BVH) at its first query
+            scene.run(np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32))
+        return self
+
     def cast(self, origins: np.ndarray, dirs: np.ndarray, chunk: int = 1 << 20) -> Hits:
         """Cast rays origins (N, 3) + t * dirs (N, 3); dirs must be unit length for metric distances."""
         origins = np.ascontiguousarray(np.broadcast_to(origins, dirs.shape), dtype=np.float32)
