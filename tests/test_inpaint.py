@@ -10,10 +10,12 @@ import trimesh
 from panoworld.background_layer import BackgroundLayer, build_background_layer, floor_ceiling, layer_mean_color
 from panoworld.conditions import render_conditions
 from panoworld.conventions import erp_dirs, points_from_depth
-from panoworld.erp_fill import erp_inpaint, erp_pad
+from panoworld.erp_fill import erp_gaussian_blur, erp_inpaint, erp_pad
 from panoworld.inpaint import (
+    FOREGROUND_RATIO,
     CommittedPoints,
     WarpInpainter,
+    _max_distance,
     background_fill,
     frame_inpaint,
     max_translation,
@@ -120,6 +122,22 @@ def test_background_layer_lies_on_the_hidden_wall(box_case):
     behind = Raycaster(room.vertices, room.faces).render_erp(np.eye(4), H, W).distance
     rel = np.abs(layer.layer_depth - behind)[layer.synthesized] / behind[layer.synthesized]
     assert np.median(rel) < 0.05
+
+
+@pytest.mark.parametrize("side_depth_m", [0.0, 0.5])
+def test_background_layer_with_its_ray_caster_is_the_same_layer(box_case, side_depth_m):
+    _, mesh, poses, cond, _ = box_case
+    plain = build_background_layer(mesh, max_translation(poses), side_depth_m=side_depth_m)
+    layer = build_background_layer(mesh, max_translation(poses), side_depth_m=side_depth_m, ray_caster=True)
+    assert plain.built is None and layer.built is not None and layer.built._scene.is_committed
+    for name in ("vertices", "faces", "colors", "synthesized", "layer_depth"):
+        np.testing.assert_array_equal(getattr(layer, name), getattr(plain, name))
+    assert layer.layer_faces == plain.layer_faces
+    a = WarpInpainter(plain).fill(cond[-1].rgb, cond[-1].mask, cond[-1].depth, poses[-1])
+    b = WarpInpainter(layer).fill(cond[-1].rgb, cond[-1].mask, cond[-1].depth, poses[-1])
+    assert a.filled_3d.any()
+    for name in ("rgb", "depth", "filled_3d", "filled_2d"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
 
 
 def test_warp_inpaint_is_temporally_consistent_and_fills_in_3d(box_case):
@@ -229,6 +247,79 @@ def test_background_fill_of_a_band_of_rows_equals_that_of_the_whole_frame():
     for a, b in zip(band, whole):
         np.testing.assert_array_equal(a[hole], b[hole])
     np.testing.assert_allclose(band[1][hole], depth[75:115, 142:143].mean(), rtol=0.2)  # the far side's depth
+
+
+def _background_fill_reference(rgb, depth, hole, *, radius=3.0, max_window=129):
+    """background_fill as first written (scipy's transforms and dilation, whole-band arrays): the oracle of the
+    faster one, which must match it bit for bit."""
+    from scipy import ndimage
+
+    H, W = hole.shape
+    rows = np.flatnonzero(hole.any(axis=1))
+    r0, r1 = max(int(rows[0]) - 1, 0), min(int(rows[-1]) + 1, H - 1)
+    thick = float(ndimage.distance_transform_edt(hole[r0:r1 + 1]).max())
+    window = int(min(4 * thick + 3, max_window))
+    sigma = max(radius, 1.0)
+    pad_y = int(np.ceil(3 * sigma)) + 1
+    reach = max(window // 2, int(np.ceil(4 * sigma))) + 2
+    a, b = r0 - reach - pad_y, r1 + reach + pad_y
+    polar = a < 0 or b > H - 1 or W % 2
+    a, b = (0, H - 1) if polar else (a + pad_y, b - pad_y)
+    ring = ndimage.binary_dilation(hole[a:b + 1], structure=np.ones((3, 3))) & ~hole[a:b + 1] & (depth[a:b + 1] > 0)
+    out_rgb, out_d = rgb.copy(), np.asarray(depth, np.float32).copy()
+    rgb, depth, hole = rgb[a:b + 1], depth[a:b + 1], hole[a:b + 1]
+    far = ndimage.maximum_filter(np.where(ring, depth, 0.0), size=window, mode="wrap")
+    bg_rim = ring & (depth >= FOREGROUND_RATIO * far)
+    pad = W // 4
+    padded = np.concatenate([~bg_rim[:, -pad:], ~bg_rim, ~bg_rim[:, :pad]], axis=1)
+    _, (ii, jj) = ndimage.distance_transform_edt(padded, return_indices=True)
+    ii, jj = ii[:, pad:pad + W], (jj[:, pad:pad + W] - pad) % W
+    fill_d = np.where(hole, depth[ii, jj], depth).astype(np.float32)
+    known = (hole | bg_rim).astype(np.float32)
+    col = np.where(hole[..., None], rgb[ii, jj], rgb).astype(np.float32) * known[..., None]
+    num, den = (erp_gaussian_blur(x, sigma, across_poles=polar) for x in (col, known))
+    smooth = num / np.maximum(den, 1e-6)[..., None]
+    out_rgb[a:b + 1] = np.where(hole[..., None], np.clip(np.rint(smooth), 0, 255).astype(np.uint8), rgb)
+    out_d[a:b + 1] = fill_d
+    return out_rgb, out_d
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_background_fill_equals_its_scipy_reference(seed):
+    # Textured frames with occluders and holes of every size: thin slivers, wide holes (the window at max_window),
+    # holes at a pole (the whole frame) and across the seam; the fill must be the reference's, bit for bit.
+    rng = np.random.default_rng(seed)
+    h, w = 120, 240
+    rgb = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    depth = (3.0 + rng.random((h, w))).astype(np.float32)
+    hole = np.zeros((h, w), bool)
+    for _ in range(rng.integers(1, 6)):
+        i, j = rng.integers(0, h), rng.integers(0, w)
+        hh, ww = rng.integers(1, 3 if seed % 3 == 0 else 70, size=2)
+        occ = (slice(max(i - 5, 0), min(i + hh + 5, h)), slice(max(j - 30, 0), j))
+        depth[occ] = rng.uniform(0.8, 2.0)
+        hole[i:i + hh, j:j + ww] = True
+        hole[i:i + hh, :max(j + ww - w, 0)] = True  # across the seam
+    if seed == 4:  # 70 x 70 across the seam: the window at max_window
+        depth[35:115, w - 40:w - 20] = 1.0
+        hole[40:110, w - 20:] = hole[40:110, :50] = True
+    if seed == 5:
+        hole[0, 10:20] = True
+    out = background_fill(rgb, np.where(hole, 0, depth), hole)
+    ref = _background_fill_reference(rgb, np.where(hole, 0, depth), hole)
+    for a, b in zip(out, ref):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_max_distance_equals_scipys():
+    from scipy import ndimage
+
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        h, w = rng.integers(2, 90, size=2)
+        mask = ndimage.binary_dilation(rng.random((h, w)) < rng.uniform(0.001, 0.3), iterations=int(rng.integers(0, 25)))
+        if mask.any():
+            assert _max_distance(mask) == float(ndimage.distance_transform_edt(mask).max())
 
 
 def test_committed_points_are_reused_at_their_place():
