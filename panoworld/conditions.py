@@ -409,9 +409,11 @@ class FrameStack:
 
 
 def _decode_rgb(img: np.ndarray) -> np.ndarray:
-    if img.ndim != 3 or img.dtype != np.uint8:
+    import cv2
+
+    if img.ndim != 3 or img.dtype != np.uint8 or img.shape[2] != 3:
         return np.empty((0,))
-    return np.ascontiguousarray(img[..., ::-1])
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
 def _decode_mask(img: np.ndarray) -> np.ndarray:

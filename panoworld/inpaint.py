@@ -165,13 +165,17 @@ class WarpInpainter:
         self._rc = layer.raycaster() if len(layer.faces) else None
         self._colors = layer.colors.astype(np.float32)
         self.committed = CommittedPoints() if reuse else None
-        self._dirs: np.ndarray | None = None  # erp_dirs of the frames' size (float64), the pixel centres' rays
+        self._trig: dict[tuple, tuple[np.ndarray, ...]] = {}  # (H, W, du, dv) -> per-row and per-column sines/cosines
 
-    def _centre_dirs(self, ti: np.ndarray, tj: np.ndarray, H: int, W: int) -> np.ndarray:
-        """erp_dir_at(tj + 0.5, ti + 0.5, H, W), read from a grid computed once per frame size."""
-        if self._dirs is None or self._dirs.shape[:2] != (H, W):
-            self._dirs = erp_dirs(H, W, np.float64)
-        return self._dirs[ti, tj]
+    def _dirs_at(self, ti: np.ndarray, tj: np.ndarray, H: int, W: int, du: float = 0.0, dv: float = 0.0) -> np.ndarray:
+        """erp_dir_at(tj + 0.5 + du, ti + 0.5 + dv, H, W), the same numbers, from per-row and per-column tables."""
+        key = (H, W, du, dv)
+        if key not in self._trig:
+            lon, lat = erp_lonlat_from_pixel(np.arange(W) + 0.5 + du, np.arange(H) + 0.5 + dv, H, W)
+            self._trig[key] = (np.cos(lat), np.sin(lat), np.sin(lon), np.cos(lon))
+        cos_lat, sin_lat, sin_lon, cos_lon = self._trig[key]
+        cl = cos_lat[ti]
+        return np.stack([cl * sin_lon[tj], -sin_lat[ti], cl * cos_lon[tj]], axis=-1)
 
     def fill(self, rgb: np.ndarray, mask: np.ndarray, depth: np.ndarray | None, world_from_cam: np.ndarray) -> FilledFrame:
         """rgb (H, W, 3) uint8, mask (H, W) bool (True = valid condition), depth (H, W) metres or None, pose 4x4."""
@@ -192,10 +196,7 @@ class WarpInpainter:
                 if not todo.any():
                     break
                 ti, tj = hi[todo], hj[todo]
-                if du == dv == 0:
-                    dirs = self._centre_dirs(ti, tj, H, W) @ R.T
-                else:
-                    dirs = erp_dir_at(tj + 0.5 + du, ti + 0.5 + dv, H, W) @ R.T
+                dirs = self._dirs_at(ti, tj, H, W, du, dv) @ R.T
                 hits = self._rc.cast(origin, dirs)
                 ok = hits.face >= 0
                 ti, tj = ti[ok], tj[ok]
@@ -230,7 +231,7 @@ class WarpInpainter:
         ti, tj = np.nonzero(rest & (out_d > 0))
         H, W = rest.shape
         pose = np.asarray(world_from_cam, np.float64)
-        pts = pose[:3, 3] + (self._centre_dirs(ti, tj, H, W) @ pose[:3, :3].T) * out_d[ti, tj, None]
+        pts = pose[:3, 3] + (self._dirs_at(ti, tj, H, W) @ pose[:3, :3].T) * out_d[ti, tj, None]
         out[ti, tj] = self.layer.floor_map.paint(pts, out[ti, tj])[0]
 
 

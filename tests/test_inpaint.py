@@ -17,6 +17,7 @@ from panoworld.inpaint import (
     WarpInpainter,
     _max_distance,
     background_fill,
+    erp_dir_at,
     frame_inpaint,
     max_translation,
     warp_inpaint_video,
@@ -309,6 +310,15 @@ def test_background_fill_equals_its_scipy_reference(seed):
     ref = _background_fill_reference(rgb, np.where(hole, 0, depth), hole)
     for a, b in zip(out, ref):
         np.testing.assert_array_equal(a, b)
+
+
+def test_warp_inpainter_ray_tables_equal_erp_dir_at(box_case):
+    _, mesh, poses, _, _ = box_case
+    filler = WarpInpainter(build_background_layer(mesh, max_translation(poses)))
+    rng = np.random.default_rng(0)
+    ti, tj = rng.integers(0, H, 5000), rng.integers(0, W, 5000)
+    for du, dv in ((0.0, 0.0), (0.25, -0.25), (-0.25, 0.25)):
+        np.testing.assert_array_equal(filler._dirs_at(ti, tj, H, W, du, dv), erp_dir_at(tj + 0.5 + du, ti + 0.5 + dv, H, W))
 
 
 def test_max_distance_equals_scipys():
