@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
+from numba import njit
 
 from panoworld.erp_fill import erp_gaussian_blur, erp_inpaint
 from panoworld.layout_columns import ROOM_TOL
@@ -57,12 +58,23 @@ def _stretch(p: np.ndarray, faces: np.ndarray) -> np.ndarray:
     depth = np.linalg.norm(p, axis=1)
     dirs = p / np.maximum(depth, 1e-12)[:, None]
     out = np.zeros(len(faces), np.float32)
-    for a, b in ((0, 1), (1, 2), (2, 0)):
-        va, vb = faces[:, a], faces[:, b]
-        length = np.linalg.norm(p[va] - p[vb], axis=1)
-        chord = np.linalg.norm(dirs[va] - dirs[vb], axis=1)
-        np.maximum(out, length / np.maximum(np.minimum(depth[va], depth[vb]) * chord, 1e-12), out=out)
+    _stretch_kernel(np.ascontiguousarray(p, np.float64), dirs, depth, np.ascontiguousarray(faces), out)
     return out
+
+
+@njit(cache=True, nogil=True)
+def _stretch_kernel(p, dirs, depth, faces, out):  # pragma: no cover - numba
+    """_stretch per face, numpy's arithmetic in numpy's order (tests/test_inpaint.py holds the numpy oracle)."""
+    for f in range(faces.shape[0]):
+        for e in range(3):
+            a, b = faces[f, e], faces[f, (e + 1) % 3]
+            x, y, z = p[a, 0] - p[b, 0], p[a, 1] - p[b, 1], p[a, 2] - p[b, 2]
+            length = np.sqrt((x * x + y * y) + z * z)  # np.linalg.norm's order
+            x, y, z = dirs[a, 0] - dirs[b, 0], dirs[a, 1] - dirs[b, 1], dirs[a, 2] - dirs[b, 2]
+            chord = np.sqrt((x * x + y * y) + z * z)
+            r = np.float32(length / max(min(depth[a], depth[b]) * chord, 1e-12))
+            if r > out[f]:
+                out[f] = r
 
 
 def _surface_normals(points: np.ndarray) -> np.ndarray:

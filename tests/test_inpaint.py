@@ -321,6 +321,34 @@ def test_warp_inpainter_ray_tables_equal_erp_dir_at(box_case):
         np.testing.assert_array_equal(filler._dirs_at(ti, tj, H, W, du, dv), erp_dir_at(tj + 0.5 + du, ti + 0.5 + dv, H, W))
 
 
+def _stretch_reference(p, faces):
+    """background_layer._stretch in numpy, as first written: the oracle of its numba kernel."""
+    depth = np.linalg.norm(p, axis=1)
+    dirs = p / np.maximum(depth, 1e-12)[:, None]
+    out = np.zeros(len(faces), np.float32)
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        va, vb = faces[:, a], faces[:, b]
+        length = np.linalg.norm(p[va] - p[vb], axis=1)
+        chord = np.linalg.norm(dirs[va] - dirs[vb], axis=1)
+        np.maximum(out, length / np.maximum(np.minimum(depth[va], depth[vb]) * chord, 1e-12), out=out)
+    return out
+
+
+def test_stretch_equals_its_numpy_reference(box_case):
+    from panoworld.background_layer import _stretch, erp_grid_shape
+    from panoworld.mesh import grid_faces
+
+    _, mesh, _, _, _ = box_case
+    h, w = erp_grid_shape(mesh)
+    p = mesh.vertices[:h * w].astype(np.float64)
+    faces = grid_faces(h, w)
+    rng = np.random.default_rng(0)
+    q = rng.standard_normal((500, 3)) * 10.0 ** rng.uniform(-3, 2, (500, 1))
+    q[:5] = 0.0  # points at the camera: zero depth and direction
+    for pts, f in ((p, faces), (p, faces.astype(np.int32)), (q, rng.integers(0, 500, (3000, 3)))):
+        np.testing.assert_array_equal(_stretch(pts, f), _stretch_reference(pts, f))
+
+
 def test_max_distance_equals_scipys():
     from scipy import ndimage
 
