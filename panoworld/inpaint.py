@@ -187,23 +187,22 @@ class WarpInpainter:
         out_d = np.where(mask, depth, 0.0).astype(np.float32) if depth is not None else np.zeros((H, W), np.float32)
         filled = np.zeros((H, W), bool)
         if hole.any() and self._rc is not None:
-            hi, hj = np.nonzero(hole)
+            ti, tj = np.nonzero(hole)  # the hole pixels not filled yet
             origin = np.asarray(world_from_cam)[:3, 3][None]
             R = np.asarray(world_from_cam)[:3, :3]
             # Rays through a vertex or edge can slip between triangles: retry those at sub-pixel offsets.
             for du, dv in ((0.0, 0.0), (0.25, 0.25), (-0.25, -0.25), (0.25, -0.25), (-0.25, 0.25)):
-                todo = ~filled[hi, hj]
-                if not todo.any():
+                if not len(ti):
                     break
-                ti, tj = hi[todo], hj[todo]
                 dirs = self._dirs_at(ti, tj, H, W, du, dv) @ R.T
                 hits = self._rc.cast(origin, dirs)
                 ok = hits.face >= 0
-                ti, tj = ti[ok], tj[ok]
+                px = ti[ok] * W + tj[ok]
                 col = self._rc.interpolate(Hits(hits.distance[ok], hits.face[ok], hits.bary[ok]), self._colors)
-                out[ti, tj] = np.clip(np.rint(col), 0, 255).astype(np.uint8)
-                out_d[ti, tj] = hits.distance[ok]
-                filled[ti, tj] = True
+                out.reshape(-1, 3)[px] = np.clip(np.rint(col), 0, 255).astype(np.uint8)
+                out_d.reshape(-1)[px] = hits.distance[ok]
+                filled.reshape(-1)[px] = True
+                ti, tj = ti[~ok], tj[~ok]
         rest = hole & ~filled
         if self.committed is not None and rest.any() and not rest.all():
             pix, dist, col = self.committed.project(world_from_cam, H, W)

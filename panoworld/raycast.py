@@ -98,5 +98,8 @@ class Raycaster:
         face = hits.face
         valid = face >= 0
         idx = self.faces[np.where(valid, face, 0)]  # (..., 3)
-        vals = (vertex_attr[idx] * hits.bary[..., None]).sum(axis=-2)
+        # (v0 + v1) + v2: the numbers (and order) of (vertex_attr[idx] * bary[..., None]).sum(axis=-2), ~2x faster
+        vals = vertex_attr[idx[..., 0]] * hits.bary[..., 0:1]
+        for k in (1, 2):
+            vals += vertex_attr[idx[..., k]] * hits.bary[..., k:k + 1]
         return np.where(valid[..., None], vals, fill)

@@ -349,6 +349,19 @@ def test_stretch_equals_its_numpy_reference(box_case):
         np.testing.assert_array_equal(_stretch(pts, f), _stretch_reference(pts, f))
 
 
+def test_raycaster_interpolate_equals_the_summed_form(box_case):
+    scene, _, _, _, _ = box_case
+    rc = scene.raycaster
+    hits = rc.render_erp(np.eye(4), H, W)
+    hits.face[::7, ::5] = -1  # misses take `fill`
+    rng = np.random.default_rng(0)
+    for attr in (rng.random((len(rc.vertices), 3)).astype(np.float32) * 255, rng.random((len(rc.vertices), 2)),
+                 rng.integers(0, 256, (len(rc.vertices), 3), dtype=np.uint8)):
+        valid = hits.face >= 0
+        ref = (attr[rc.faces[np.where(valid, hits.face, 0)]] * hits.bary[..., None]).sum(axis=-2)
+        np.testing.assert_array_equal(rc.interpolate(hits, attr, fill=-1.0), np.where(valid[..., None], ref, -1.0))
+
+
 def test_max_distance_equals_scipys():
     from scipy import ndimage
 
