@@ -64,7 +64,7 @@ class WarpOptions:
     no Gaussians there)."""
 
 
-READ_AHEAD = 12
+READ_AHEAD = 4
 """Conditions frames decoded ahead of the fill (~8 MB each at 720x1440)."""
 
 
