@@ -58,7 +58,7 @@ def _stretch(p: np.ndarray, faces: np.ndarray) -> np.ndarray:
     depth = np.linalg.norm(p, axis=1)
     dirs = p / np.maximum(depth, 1e-12)[:, None]
     out = np.zeros(len(faces), np.float32)
-    _stretch_kernel(np.ascontiguousarray(p, np.float64), dirs, depth, np.ascontiguousarray(faces), out)
+    _stretch_kernel(np.ascontiguousarray(p, np.float64), dirs, depth, np.ascontiguousarray(faces, np.int64), out)  # one signature
     return out
 
 
