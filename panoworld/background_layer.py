@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -51,6 +51,15 @@ def erp_grid_shape(mesh: ErpMesh) -> tuple[int, int]:
             "by the mesh stage"
         )
     return h, 2 * h
+
+
+def _start(fn, *args, **kwargs) -> Future:
+    """fn(*args, **kwargs) started on a thread of its own (numpy and OpenCV release the GIL in their loops)."""
+    pool = ThreadPoolExecutor(max_workers=1)
+    try:
+        return pool.submit(fn, *args, **kwargs)
+    finally:
+        pool.shutdown(wait=False)  # the job runs on; its thread ends with it
 
 
 def _stretch(p: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -245,6 +254,12 @@ def build_background_layer(
     if not edge.any():
         return none
     near_of = near_of.reshape(h, w)
+    floor_job = None
+    if plane_colors or next_room_colors:  # from the source view alone: a thread works it out while the layer grows
+        from panoworld.plane_colors import floor_beyond
+
+        floor_job = _start(floor_beyond, p.reshape(h, w, 3), mesh.colors[:n].reshape(h, w, 3), valid,
+                           floor=plane_colors, walls_ceiling=next_room_colors)
 
     px_angle = 2 * np.pi / w
     lat = (0.5 - (np.arange(h) + 0.5) / h) * np.pi
@@ -263,38 +278,30 @@ def build_background_layer(
         bg_depth = np.where(np.isfinite(wall[0]), wall[0], bg_depth).astype(np.float32)
     synth = (steps <= reach) & (bg_depth > depth * 1.02)
     src_rgb = mesh.colors[:n].reshape(h, w, 3)
-    # The colours (OpenCV's inpainting releases the GIL) are worked out by threads while the layer's geometry and its
-    # ray caster are built here.
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        if color_sigma_px > 0:
-            color_job = pool.submit(layer_mean_color, src_rgb, hide, color_sigma_px)
-        else:
-            color_job = pool.submit(erp_inpaint, src_rgb, hide, radius=inpaint_radius)
-        floor_job = None
-        if plane_colors or next_room_colors:
-            from panoworld.plane_colors import floor_beyond
+    # the colours are inpainted by a thread (OpenCV releases the GIL) while the layer's geometry and ray caster are built
+    if color_sigma_px > 0:
+        color_job = _start(layer_mean_color, src_rgb, hide, color_sigma_px)
+    else:
+        color_job = _start(erp_inpaint, src_rgb, hide, radius=inpaint_radius)
 
-            floor_job = pool.submit(floor_beyond, p.reshape(h, w, 3), src_rgb, valid, floor=plane_colors,
-                                    walls_ceiling=next_room_colors)
-
-        # Layer mesh: grid faces over synthesized pixels and the real background pixels next to them.
-        s_flat = synth.reshape(-1)
-        idx_new = np.full(n, -1, np.int64)
-        idx_new[s_flat] = len(mesh.vertices) + np.arange(int(s_flat.sum()))
-        usable = s_flat | valid.reshape(-1)
-        grid = all_grid[usable[all_grid].all(axis=1) & s_flat[all_grid].any(axis=1)]
-        dirs = p[s_flat] / d[s_flat, None]
-        vertices = np.concatenate([mesh.vertices, (dirs * bg_depth.reshape(-1)[s_flat, None]).astype(np.float32)])
-        faces = np.where(s_flat[grid], idx_new[grid], grid).astype(np.int32)
-        faces = faces[_stretch(vertices.astype(np.float64), faces) <= max_edge_ratio]
-        sides = occluder_sides(p.reshape(h, w, 3), mesh.colors[:n], bad, side_depth_m, len(vertices)
-                               ) if side_depth_m > 0 else None
-        fill_v = vertices if sides is None else np.concatenate([vertices, sides[0].astype(np.float32)])
-        fill_f = np.concatenate([main_faces, faces, *([] if sides is None else [sides[2]])]).astype(np.int32)
-        del all_grid, grid, near_of, parallax, band, steps, reach, origin, idx_new  # the ray caster's build adds ~250 MB
-        built = Raycaster(fill_v, fill_f).build() if ray_caster and shadow_ambient >= 1 else None
-        bg_color = color_job.result()
-        floor_map = None if floor_job is None else floor_job.result()
+    # Layer mesh: grid faces over synthesized pixels and the real background pixels next to them.
+    s_flat = synth.reshape(-1)
+    idx_new = np.full(n, -1, np.int64)
+    idx_new[s_flat] = len(mesh.vertices) + np.arange(int(s_flat.sum()))
+    usable = s_flat | valid.reshape(-1)
+    grid = all_grid[usable[all_grid].all(axis=1) & s_flat[all_grid].any(axis=1)]
+    dirs = p[s_flat] / d[s_flat, None]
+    vertices = np.concatenate([mesh.vertices, (dirs * bg_depth.reshape(-1)[s_flat, None]).astype(np.float32)])
+    faces = np.where(s_flat[grid], idx_new[grid], grid).astype(np.int32)
+    faces = faces[_stretch(vertices.astype(np.float64), faces) <= max_edge_ratio]
+    sides = occluder_sides(p.reshape(h, w, 3), mesh.colors[:n], bad, side_depth_m, len(vertices)
+                           ) if side_depth_m > 0 else None
+    fill_v = vertices if sides is None else np.concatenate([vertices, sides[0].astype(np.float32)])
+    fill_f = np.concatenate([main_faces, faces, *([] if sides is None else [sides[2]])]).astype(np.int32)
+    del all_grid, grid, near_of, parallax, band, steps, reach, origin, idx_new  # the ray caster's build adds ~250 MB
+    built = Raycaster(fill_v, fill_f).build() if ray_caster and shadow_ambient >= 1 else None
+    bg_color = color_job.result()
+    floor_map = None if floor_job is None else floor_job.result()
     if wall is not None:
         bg_color = np.where(wall[2][..., None], wall[1], bg_color)
     colors = np.concatenate([mesh.colors, bg_color.reshape(-1, 3)[s_flat]])
