@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
+from numba import njit
 
 from panoworld.erp_fill import erp_gaussian_blur, erp_inpaint
 from panoworld.layout_columns import ROOM_TOL
@@ -51,17 +53,37 @@ def erp_grid_shape(mesh: ErpMesh) -> tuple[int, int]:
     return h, 2 * h
 
 
+def _start(fn, *args, **kwargs) -> Future:
+    """fn(*args, **kwargs) started on a thread of its own (numpy and OpenCV release the GIL in their loops)."""
+    pool = ThreadPoolExecutor(max_workers=1)
+    try:
+        return pool.submit(fn, *args, **kwargs)
+    finally:
+        pool.shutdown(wait=False)  # the job runs on; its thread ends with it
+
+
 def _stretch(p: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Max over edges of edge length / (nearer depth x angle between the rays), faces (F, 3) into points p (V, 3)."""
     depth = np.linalg.norm(p, axis=1)
     dirs = p / np.maximum(depth, 1e-12)[:, None]
     out = np.zeros(len(faces), np.float32)
-    for a, b in ((0, 1), (1, 2), (2, 0)):
-        va, vb = faces[:, a], faces[:, b]
-        length = np.linalg.norm(p[va] - p[vb], axis=1)
-        chord = np.linalg.norm(dirs[va] - dirs[vb], axis=1)
-        np.maximum(out, length / np.maximum(np.minimum(depth[va], depth[vb]) * chord, 1e-12), out=out)
+    _stretch_kernel(np.ascontiguousarray(p, np.float64), dirs, depth, np.ascontiguousarray(faces, np.int64), out)  # one signature
     return out
+
+
+@njit(cache=True, nogil=True)
+def _stretch_kernel(p, dirs, depth, faces, out):  # pragma: no cover - numba
+    """_stretch per face, numpy's arithmetic in numpy's order (tests/test_inpaint.py holds the numpy oracle)."""
+    for f in range(faces.shape[0]):
+        for e in range(3):
+            a, b = faces[f, e], faces[f, (e + 1) % 3]
+            x, y, z = p[a, 0] - p[b, 0], p[a, 1] - p[b, 1], p[a, 2] - p[b, 2]
+            length = np.sqrt((x * x + y * y) + z * z)  # np.linalg.norm's order
+            x, y, z = dirs[a, 0] - dirs[b, 0], dirs[a, 1] - dirs[b, 1], dirs[a, 2] - dirs[b, 2]
+            chord = np.sqrt((x * x + y * y) + z * z)
+            r = np.float32(length / max(min(depth[a], depth[b]) * chord, 1e-12))
+            if r > out[f]:
+                out[f] = r
 
 
 def _surface_normals(points: np.ndarray) -> np.ndarray:
@@ -177,6 +199,7 @@ def build_background_layer(
     shadow_ambient: float = 1.0,
     plane_colors: bool = True,
     next_room_colors: bool = False,
+    ray_caster: bool = False,
 ) -> BackgroundLayer:
     """Extend the far side of every depth discontinuity of the source view behind its foreground occluder, and
     (side_depth_m > 0) the occluder's own surface back from its silhouette (occluder_sides).
@@ -201,6 +224,8 @@ def build_background_layer(
     (panoworld.plane_colors, before any relighting), and the layer keeps the map for the frames' 2D-filled pixels
     (WarpInpainter). next_room_colors: likewise, points beyond the shell between the floor and the ceiling take the
     colour of the next room's walls seen beyond it (and on the ceiling plane the ceiling's, plane_colors.NEXT_CEILING).
+    ray_caster: the layer comes with its fill mesh's ray caster built (BackgroundLayer.built), while the colours are
+    inpainted.
     """
     h, w = erp_grid_shape(mesh)
     n = h * w
@@ -229,6 +254,12 @@ def build_background_layer(
     if not edge.any():
         return none
     near_of = near_of.reshape(h, w)
+    floor_job = None
+    if plane_colors or next_room_colors:  # from the source view alone: a thread works it out while the layer grows
+        from panoworld.plane_colors import floor_beyond
+
+        floor_job = _start(floor_beyond, p.reshape(h, w, 3), mesh.colors[:n].reshape(h, w, 3), valid,
+                           floor=plane_colors, walls_ceiling=next_room_colors)
 
     px_angle = 2 * np.pi / w
     lat = (0.5 - (np.arange(h) + 0.5) / h) * np.pi
@@ -246,12 +277,12 @@ def build_background_layer(
     if wall is not None:
         bg_depth = np.where(np.isfinite(wall[0]), wall[0], bg_depth).astype(np.float32)
     synth = (steps <= reach) & (bg_depth > depth * 1.02)
+    src_rgb = mesh.colors[:n].reshape(h, w, 3)
+    # the colours are inpainted by a thread (OpenCV releases the GIL) while the layer's geometry and ray caster are built
     if color_sigma_px > 0:
-        bg_color = layer_mean_color(mesh.colors[:n].reshape(h, w, 3), hide, color_sigma_px)
+        color_job = _start(layer_mean_color, src_rgb, hide, color_sigma_px)
     else:
-        bg_color = erp_inpaint(mesh.colors[:n].reshape(h, w, 3), hide, radius=inpaint_radius)
-    if wall is not None:
-        bg_color = np.where(wall[2][..., None], wall[1], bg_color)
+        color_job = _start(erp_inpaint, src_rgb, hide, radius=inpaint_radius)
 
     # Layer mesh: grid faces over synthesized pixels and the real background pixels next to them.
     s_flat = synth.reshape(-1)
@@ -263,35 +294,34 @@ def build_background_layer(
     vertices = np.concatenate([mesh.vertices, (dirs * bg_depth.reshape(-1)[s_flat, None]).astype(np.float32)])
     faces = np.where(s_flat[grid], idx_new[grid], grid).astype(np.int32)
     faces = faces[_stretch(vertices.astype(np.float64), faces) <= max_edge_ratio]
+    sides = occluder_sides(p.reshape(h, w, 3), mesh.colors[:n], bad, side_depth_m, len(vertices)
+                           ) if side_depth_m > 0 else None
+    fill_v = vertices if sides is None else np.concatenate([vertices, sides[0].astype(np.float32)])
+    fill_f = np.concatenate([main_faces, faces, *([] if sides is None else [sides[2]])]).astype(np.int32)
+    del all_grid, grid, near_of, parallax, band, steps, reach, origin, idx_new  # the ray caster's build adds ~250 MB
+    built = Raycaster(fill_v, fill_f).build() if ray_caster and shadow_ambient >= 1 else None
+    bg_color = color_job.result()
+    floor_map = None if floor_job is None else floor_job.result()
+    if wall is not None:
+        bg_color = np.where(wall[2][..., None], wall[1], bg_color)
     colors = np.concatenate([mesh.colors, bg_color.reshape(-1, 3)[s_flat]])
-    floor_map = None
-    if plane_colors or next_room_colors:
-        from panoworld.plane_colors import floor_beyond
-
-        floor_map = floor_beyond(p.reshape(h, w, 3), mesh.colors[:n].reshape(h, w, 3), valid, floor=plane_colors,
-                                 walls_ceiling=next_room_colors)
-        if floor_map is not None:
-            colors[len(mesh.vertices):] = floor_map.paint(vertices[len(mesh.vertices):].astype(np.float64),
-                                                       colors[len(mesh.vertices):])[0]
-    built = None
+    if floor_map is not None:
+        colors[len(mesh.vertices):] = floor_map.paint(vertices[len(mesh.vertices):].astype(np.float64),
+                                                   colors[len(mesh.vertices):])[0]
     if shadow_ambient < 1:
         vertices = vertices.astype(np.float32)
-        built = Raycaster(vertices, np.concatenate([main_faces, faces]).astype(np.int32))
+        shadows = Raycaster(vertices, np.concatenate([main_faces, faces]).astype(np.int32))
         colors[len(mesh.vertices):] = relight_layer(
-            p.reshape(h, w, 3), mesh.colors[:n].reshape(h, w, 3), valid, hide, synth, vertices[len(mesh.vertices):],
-            colors[len(mesh.vertices):], built, shadow_ambient, inpaint_radius)
-    if side_depth_m > 0:
-        built = None
-        side_v, side_c, side_f = occluder_sides(p.reshape(h, w, 3), mesh.colors[:n], bad, side_depth_m,
-                                                 len(vertices))
-        vertices = np.concatenate([vertices, side_v.astype(np.float32)])
-        colors = np.concatenate([colors, side_c])
-        faces = np.concatenate([faces, side_f])
+            p.reshape(h, w, 3), src_rgb, valid, hide, synth, vertices[len(mesh.vertices):],
+            colors[len(mesh.vertices):], shadows, shadow_ambient, inpaint_radius)
+        built = shadows if sides is None else None
+    if sides is not None:
+        colors = np.concatenate([colors, sides[1]])
     return BackgroundLayer(
-        vertices.astype(np.float32),
-        np.concatenate([main_faces, faces]).astype(np.int32),
+        fill_v.astype(np.float32),
+        fill_f,
         colors.astype(np.uint8),
-        len(faces),
+        len(fill_f) - len(main_faces),
         synth,
         np.where(synth, bg_depth, 0.0).astype(np.float32),
         built,

@@ -409,9 +409,11 @@ class FrameStack:
 
 
 def _decode_rgb(img: np.ndarray) -> np.ndarray:
-    if img.ndim != 3 or img.dtype != np.uint8:
+    import cv2
+
+    if img.ndim != 3 or img.dtype != np.uint8 or img.shape[2] != 3:
         return np.empty((0,))
-    return np.ascontiguousarray(img[..., ::-1])
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
 def _decode_mask(img: np.ndarray) -> np.ndarray:
@@ -446,6 +448,29 @@ class LoadedConditions:
     def frame(self, k: int) -> WarpedFrame:
         depth = self.depth[k] if self.depth is not None else np.zeros((self.height, self.width), np.float32)
         return WarpedFrame(self.rgb[k], depth, self.mask[k])
+
+    def iter_frames(self, *, ahead: int = 2) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
+        """(rgb, mask, depth or None) of every frame in order, read `ahead` frames ahead by a background thread that
+        starts at once (before the first frame is asked for): PNG decoding (OpenCV releases the GIL) overlaps the
+        caller's work."""
+
+        def read(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+            return self.rgb[k], self.mask[k], None if self.depth is None else self.depth[k]
+
+        n = len(self)
+        pool = ThreadPoolExecutor(max_workers=1)
+        pending = deque(pool.submit(read, k) for k in range(min(ahead, n)))
+
+        def frames() -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
+            try:
+                for k in range(n):
+                    if k + ahead < n:
+                        pending.append(pool.submit(read, k + ahead))
+                    yield pending.popleft().result()
+            finally:
+                pool.shutdown(cancel_futures=True)
+
+        return frames()
 
 
 def load_conditions(path: Path | str) -> LoadedConditions:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from tqdm import tqdm
 
@@ -47,6 +48,7 @@ def background_fill(rgb: np.ndarray, depth: np.ndarray, hole: np.ndarray, *, rad
     depth stays 0 where no rim has depth."""
     from scipy import ndimage
 
+    hole = np.ascontiguousarray(hole, bool)
     H, W = hole.shape
     rows = np.flatnonzero(hole.any(axis=1))
     if not len(rows):
@@ -54,7 +56,7 @@ def background_fill(rgb: np.ndarray, depth: np.ndarray, hole: np.ndarray, *, rad
     # Only rows near the holes matter: the rim lies within a row of them and every filter below reaches a bounded
     # number of rows, so away from the poles the work runs on that band of full-width rows (the same result).
     r0, r1 = max(int(rows[0]) - 1, 0), min(int(rows[-1]) + 1, H - 1)
-    thick = float(ndimage.distance_transform_edt(hole[r0:r1 + 1]).max())  # half the widest hole's width
+    thick = _max_distance(hole[r0:r1 + 1])  # half the widest hole's width
     window = int(min(4 * thick + 3, max_window))
     sigma = max(radius, 1.0)
     pad_y = int(np.ceil(3 * sigma)) + 1  # erp_gaussian_blur's padding across the poles
@@ -62,26 +64,44 @@ def background_fill(rgb: np.ndarray, depth: np.ndarray, hole: np.ndarray, *, rad
     a, b = r0 - reach - pad_y, r1 + reach + pad_y
     polar = a < 0 or b > H - 1 or W % 2  # near a pole: the whole frame, padded across the poles
     a, b = (0, H - 1) if polar else (a + pad_y, b - pad_y)
-    ring = ndimage.binary_dilation(hole[a:b + 1], structure=np.ones((3, 3))) & ~hole[a:b + 1] & (depth[a:b + 1] > 0)
+    band_hole = hole[a:b + 1]
+    ring = (cv2.dilate(band_hole.view(np.uint8), np.ones((3, 3), np.uint8)) > 0) & ~band_hole & (depth[a:b + 1] > 0)
     if not ring.any():
         return erp_inpaint(rgb, hole, radius=radius), np.where(hole, 0.0, depth).astype(np.float32)
     out_rgb, out_d = rgb.copy(), np.asarray(depth, np.float32).copy()
-    rgb, depth, hole = rgb[a:b + 1], depth[a:b + 1], hole[a:b + 1]
+    rgb, depth, hole = rgb[a:b + 1], depth[a:b + 1], band_hole
     far = ndimage.maximum_filter(np.where(ring, depth, 0.0), size=window, mode="wrap")
     bg_rim = ring & (depth >= FOREGROUND_RATIO * far)
     pad = W // 4
     padded = np.concatenate([~bg_rim[:, -pad:], ~bg_rim, ~bg_rim[:, :pad]], axis=1)
-    _, (ii, jj) = ndimage.distance_transform_edt(padded, return_indices=True)
-    ii, jj = ii[:, pad:pad + W], (jj[:, pad:pad + W] - pad) % W
-    fill_d = np.where(hole, depth[ii, jj], depth).astype(np.float32)
+    ii, jj = ndimage.distance_transform_edt(padded, return_distances=False, return_indices=True)
+    # Only the hole pixels read their nearest background rim pixel (hi, hj) -> (ii, jj).
+    hi, hj = np.nonzero(hole)
+    ii, jj = ii[hi, hj + pad], (jj[hi, hj + pad] - pad) % W
+    fill_d = np.asarray(depth, np.float32).copy()
+    fill_d[hi, hj] = depth[ii, jj]
     # colour: the nearest background rim pixel's, smoothed over the hole and that rim only (never the occluder)
     known = (hole | bg_rim).astype(np.float32)
-    col = np.where(hole[..., None], rgb[ii, jj], rgb).astype(np.float32) * known[..., None]
+    col = rgb.astype(np.float32)
+    col[hi, hj] = rgb[ii, jj]
+    col *= known[..., None]
     num, den = (erp_gaussian_blur(x, sigma, across_poles=polar) for x in (col, known))
-    smooth = num / np.maximum(den, 1e-6)[..., None]
-    out_rgb[a:b + 1] = np.where(hole[..., None], np.clip(np.rint(smooth), 0, 255).astype(np.uint8), rgb)
+    smooth = num[hi, hj] / np.maximum(den[hi, hj], 1e-6)[..., None]
+    out_rgb[a + hi, hj] = np.clip(np.rint(smooth), 0, 255).astype(np.uint8)
     out_d[a:b + 1] = fill_d
     return out_rgb, out_d
+
+
+def _max_distance(mask: np.ndarray) -> float:
+    """The largest Euclidean distance (pixels) of a True pixel of mask (h, w) bool from the nearest False one, as
+    scipy.ndimage.distance_transform_edt(mask).max() gives it (OpenCV's exact transform, ~10x faster, is off by up
+    to ~1e-5 px: its squared distance is rounded back to the integer it is)."""
+    if mask.all() or not mask.any():
+        from scipy import ndimage
+
+        return float(ndimage.distance_transform_edt(mask).max())
+    d = cv2.distanceTransform(mask.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return float(np.sqrt(np.rint(np.float64(d.max()) ** 2)))
 
 
 class CommittedPoints:
@@ -145,6 +165,17 @@ class WarpInpainter:
         self._rc = layer.raycaster() if len(layer.faces) else None
         self._colors = layer.colors.astype(np.float32)
         self.committed = CommittedPoints() if reuse else None
+        self._trig: dict[tuple, tuple[np.ndarray, ...]] = {}  # (H, W, du, dv) -> per-row and per-column sines/cosines
+
+    def _dirs_at(self, ti: np.ndarray, tj: np.ndarray, H: int, W: int, du: float = 0.0, dv: float = 0.0) -> np.ndarray:
+        """erp_dir_at(tj + 0.5 + du, ti + 0.5 + dv, H, W), the same numbers, from per-row and per-column tables."""
+        key = (H, W, du, dv)
+        if key not in self._trig:
+            lon, lat = erp_lonlat_from_pixel(np.arange(W) + 0.5 + du, np.arange(H) + 0.5 + dv, H, W)
+            self._trig[key] = (np.cos(lat), np.sin(lat), np.sin(lon), np.cos(lon))
+        cos_lat, sin_lat, sin_lon, cos_lon = self._trig[key]
+        cl = cos_lat[ti]
+        return np.stack([cl * sin_lon[tj], -sin_lat[ti], cl * cos_lon[tj]], axis=-1)
 
     def fill(self, rgb: np.ndarray, mask: np.ndarray, depth: np.ndarray | None, world_from_cam: np.ndarray) -> FilledFrame:
         """rgb (H, W, 3) uint8, mask (H, W) bool (True = valid condition), depth (H, W) metres or None, pose 4x4."""
@@ -156,23 +187,22 @@ class WarpInpainter:
         out_d = np.where(mask, depth, 0.0).astype(np.float32) if depth is not None else np.zeros((H, W), np.float32)
         filled = np.zeros((H, W), bool)
         if hole.any() and self._rc is not None:
-            hi, hj = np.nonzero(hole)
+            ti, tj = np.nonzero(hole)  # the hole pixels not filled yet
             origin = np.asarray(world_from_cam)[:3, 3][None]
             R = np.asarray(world_from_cam)[:3, :3]
             # Rays through a vertex or edge can slip between triangles: retry those at sub-pixel offsets.
             for du, dv in ((0.0, 0.0), (0.25, 0.25), (-0.25, -0.25), (0.25, -0.25), (-0.25, 0.25)):
-                todo = ~filled[hi, hj]
-                if not todo.any():
+                if not len(ti):
                     break
-                ti, tj = hi[todo], hj[todo]
-                dirs = erp_dir_at(tj + 0.5 + du, ti + 0.5 + dv, H, W) @ R.T
+                dirs = self._dirs_at(ti, tj, H, W, du, dv) @ R.T
                 hits = self._rc.cast(origin, dirs)
                 ok = hits.face >= 0
-                ti, tj = ti[ok], tj[ok]
+                px = ti[ok] * W + tj[ok]
                 col = self._rc.interpolate(Hits(hits.distance[ok], hits.face[ok], hits.bary[ok]), self._colors)
-                out[ti, tj] = np.clip(np.rint(col), 0, 255).astype(np.uint8)
-                out_d[ti, tj] = hits.distance[ok]
-                filled[ti, tj] = True
+                out.reshape(-1, 3)[px] = np.clip(np.rint(col), 0, 255).astype(np.uint8)
+                out_d.reshape(-1)[px] = hits.distance[ok]
+                filled.reshape(-1)[px] = True
+                ti, tj = ti[~ok], tj[~ok]
         rest = hole & ~filled
         if self.committed is not None and rest.any() and not rest.all():
             pix, dist, col = self.committed.project(world_from_cam, H, W)
@@ -200,7 +230,7 @@ class WarpInpainter:
         ti, tj = np.nonzero(rest & (out_d > 0))
         H, W = rest.shape
         pose = np.asarray(world_from_cam, np.float64)
-        pts = pose[:3, 3] + (erp_dir_at(tj + 0.5, ti + 0.5, H, W) @ pose[:3, :3].T) * out_d[ti, tj, None]
+        pts = pose[:3, 3] + (self._dirs_at(ti, tj, H, W) @ pose[:3, :3].T) * out_d[ti, tj, None]
         out[ti, tj] = self.layer.floor_map.paint(pts, out[ti, tj])[0]
 
 

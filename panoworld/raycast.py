@@ -48,6 +48,13 @@ class Raycaster:
             TriangleMesh(self._scene, self.vertices, self.faces)
         return self._scene
 
+    def build(self) -> Raycaster:
+        """Build the BVH now rather than at the first cast; returns self."""
+        scene = self._ensure()
+        if not scene.is_committed:  # embreex commits the scene (builds the BVH) at its first query
+            scene.run(np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32))
+        return self
+
     def cast(self, origins: np.ndarray, dirs: np.ndarray, chunk: int = 1 << 20) -> Hits:
         """Cast rays origins (N, 3) + t * dirs (N, 3); dirs must be unit length for metric distances."""
         origins = np.ascontiguousarray(np.broadcast_to(origins, dirs.shape), dtype=np.float32)
@@ -91,5 +98,8 @@ class Raycaster:
         face = hits.face
         valid = face >= 0
         idx = self.faces[np.where(valid, face, 0)]  # (..., 3)
-        vals = (vertex_attr[idx] * hits.bary[..., None]).sum(axis=-2)
+        # (v0 + v1) + v2: the numbers (and order) of (vertex_attr[idx] * bary[..., None]).sum(axis=-2), ~2x faster
+        vals = vertex_attr[idx[..., 0]] * hits.bary[..., 0:1]
+        for k in (1, 2):
+            vals += vertex_attr[idx[..., k]] * hits.bary[..., k:k + 1]
         return np.where(valid[..., None], vals, fill)

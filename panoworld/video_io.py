@@ -56,10 +56,18 @@ class Video:
 
 
 def encode_png(image: np.ndarray, *, compression: int = 1) -> bytes:
-    """PNG bytes of an RGB (H, W, 3) uint8, grey (H, W) uint8 or 16-bit (H, W) uint16 image."""
+    """PNG bytes of an RGB (H, W, 3) uint8, grey (H, W) uint8 or 16-bit (H, W) uint16 image.
+
+    Every row takes one fixed PNG filter (8-bit: Sub, with zlib's run-length strategy, OpenCV's own fast setting;
+    16-bit: Up) instead of libpng's trial of all five per row: on 720x1440 video frames ~40 % faster to encode, ~20 %
+    faster to decode and a few % smaller (bench/bench_png.py)."""
     if image.ndim == 3:
         image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, compression])
+    if image.dtype == np.uint16:
+        tuning = [cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_UP]
+    else:
+        tuning = [cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
+    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, compression, *tuning])
     if not ok:
         raise RuntimeError(f"PNG encoding failed for an image of shape {image.shape}")
     return buf.tobytes()
@@ -82,8 +90,9 @@ def _ns(index: int, fps: float) -> int:
 class VideoWriter:
     """Streams frames into a video artifact directory: frames/%06d.png, depth/%06d.png, preview.mp4, video.mcap and,
     with upscale > 1, upscaled/%06d.png (an output only: later stages read frames/); close() writes video.json.
-    PNGs are encoded by `workers` threads; memory stays at a few frames whatever the length. The MCAP reuses the
-    frames' PNG bytes (no second encoding) and holds the frames once, at the generation size."""
+    PNGs are encoded by `workers` threads and the MCAP is written (in frame order) by one more, off the caller's thread;
+    memory stays at a few frames whatever the length. The MCAP reuses the frames' PNG bytes (no second encoding) and
+    holds the frames once, at the generation size."""
 
     def __init__(
         self,
@@ -117,6 +126,7 @@ class VideoWriter:
         self.entries: list[dict] = []
         self.poses: list[np.ndarray] = []
         self._pool = ThreadPoolExecutor(max_workers=workers)
+        self._mcap_pool = ThreadPoolExecutor(max_workers=1)  # one thread: messages stay in frame order
         self._pending: deque = deque()
         self._mp4 = None
         if preview:
@@ -183,17 +193,17 @@ class VideoWriter:
         up_job = None
         if upscaled is not None:
             up_job = self._pool.submit(self._encode_write, np.ascontiguousarray(upscaled), self.out_dir / entry["upscaled"])
-        self._pending.append((i, rgb_job, depth_job, up_job, mm, self.poses[-1], cond_rgb_png, cond_mask_png))
+        self._pending.append(self._mcap_pool.submit(
+            self._finish, i, rgb_job, depth_job, up_job, mm, self.poses[-1], cond_rgb_png, cond_mask_png))
         while len(self._pending) > 2:
-            self._finish_oldest()
+            self._pending.popleft().result()
 
     def _encode_write(self, image: np.ndarray, path: Path) -> bytes:
         png = encode_png(image, compression=self.png_compression)
         path.write_bytes(png)
         return png
 
-    def _finish_oldest(self) -> None:
-        i, rgb_job, depth_job, up_job, mm, pose, cond_rgb_png, cond_mask_png = self._pending.popleft()
+    def _finish(self, i, rgb_job, depth_job, up_job, mm, pose, cond_rgb_png, cond_mask_png) -> None:
         png = rgb_job.result()
         for job in (depth_job, up_job):
             if job is not None:
@@ -237,8 +247,9 @@ class VideoWriter:
     def close(self, meta: dict | None = None) -> dict:
         """Finish the frames, preview and MCAP and write video.json (meta adds keys such as backend/upscale); returns it."""
         while self._pending:
-            self._finish_oldest()
+            self._pending.popleft().result()
         self._pool.shutdown()
+        self._mcap_pool.shutdown()
         if self._mp4 is not None:
             self._mp4.close()
             self._mp4 = None

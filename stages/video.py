@@ -134,9 +134,10 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         t2 = time.perf_counter()
         t_fill += t2 - t1
         if filled is not None:
-            holes += int(filled.filled_3d.sum() + filled.filled_2d.sum())
-            filled_3d += int(filled.filled_3d.sum())
-            filled_2d += int(filled.filled_2d.sum())
+            n3, n2 = np.count_nonzero(filled.filled_3d), np.count_nonzero(filled.filled_2d)
+            holes += n3 + n2
+            filled_3d += n3
+            filled_2d += n2
         big = up.rgb(rgb) if up.scale > 1 else None
         t3 = time.perf_counter()
         t_up += t3 - t2

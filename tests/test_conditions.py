@@ -187,9 +187,16 @@ def test_write_and_load_roundtrip(room_mesh, tmp_path):
         assert np.abs(c.depth[k] - f.depth).max() <= 0.0005 + 1e-6
         assert (c.depth[k][~f.mask] == 0).all()
     np.testing.assert_allclose(c.poses, poses)
+    for ahead in (1, 2, 5):  # read ahead by a thread: the same frames, in order
+        got = list(c.iter_frames(ahead=ahead))
+        assert len(got) == 3
+        for k, (rgb, mask, depth) in enumerate(got):
+            for a, b in ((rgb, c.rgb[k]), (mask, c.mask[k]), (depth, c.depth[k])):
+                np.testing.assert_array_equal(a, b)
     # Without depth: no depth files, and the reader says so.
     write_conditions(tmp_path / "n", frames, poses, write_depth=False)
     assert not (tmp_path / "n/depth").exists() and load_conditions(tmp_path / "n/conditions.json").depth is None
+    assert all(d is None for _, _, d in load_conditions(tmp_path / "n").iter_frames())
 
 
 def test_writer_and_reader_reject_bad_input(room_mesh, tmp_path):

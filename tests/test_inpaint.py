@@ -10,11 +10,14 @@ import trimesh
 from panoworld.background_layer import BackgroundLayer, build_background_layer, floor_ceiling, layer_mean_color
 from panoworld.conditions import render_conditions
 from panoworld.conventions import erp_dirs, points_from_depth
-from panoworld.erp_fill import erp_inpaint, erp_pad
+from panoworld.erp_fill import erp_gaussian_blur, erp_inpaint, erp_pad
 from panoworld.inpaint import (
+    FOREGROUND_RATIO,
     CommittedPoints,
     WarpInpainter,
+    _max_distance,
     background_fill,
+    erp_dir_at,
     frame_inpaint,
     max_translation,
     warp_inpaint_video,
@@ -120,6 +123,22 @@ def test_background_layer_lies_on_the_hidden_wall(box_case):
     behind = Raycaster(room.vertices, room.faces).render_erp(np.eye(4), H, W).distance
     rel = np.abs(layer.layer_depth - behind)[layer.synthesized] / behind[layer.synthesized]
     assert np.median(rel) < 0.05
+
+
+@pytest.mark.parametrize("side_depth_m", [0.0, 0.5])
+def test_background_layer_with_its_ray_caster_is_the_same_layer(box_case, side_depth_m):
+    _, mesh, poses, cond, _ = box_case
+    plain = build_background_layer(mesh, max_translation(poses), side_depth_m=side_depth_m)
+    layer = build_background_layer(mesh, max_translation(poses), side_depth_m=side_depth_m, ray_caster=True)
+    assert plain.built is None and layer.built is not None and layer.built._scene.is_committed
+    for name in ("vertices", "faces", "colors", "synthesized", "layer_depth"):
+        np.testing.assert_array_equal(getattr(layer, name), getattr(plain, name))
+    assert layer.layer_faces == plain.layer_faces
+    a = WarpInpainter(plain).fill(cond[-1].rgb, cond[-1].mask, cond[-1].depth, poses[-1])
+    b = WarpInpainter(layer).fill(cond[-1].rgb, cond[-1].mask, cond[-1].depth, poses[-1])
+    assert a.filled_3d.any()
+    for name in ("rgb", "depth", "filled_3d", "filled_2d"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
 
 
 def test_warp_inpaint_is_temporally_consistent_and_fills_in_3d(box_case):
@@ -229,6 +248,129 @@ def test_background_fill_of_a_band_of_rows_equals_that_of_the_whole_frame():
     for a, b in zip(band, whole):
         np.testing.assert_array_equal(a[hole], b[hole])
     np.testing.assert_allclose(band[1][hole], depth[75:115, 142:143].mean(), rtol=0.2)  # the far side's depth
+
+
+def _background_fill_reference(rgb, depth, hole, *, radius=3.0, max_window=129):
+    """background_fill as first written (scipy's transforms and dilation, whole-band arrays): the oracle of the
+    faster one, which must match it bit for bit."""
+    from scipy import ndimage
+
+    H, W = hole.shape
+    rows = np.flatnonzero(hole.any(axis=1))
+    r0, r1 = max(int(rows[0]) - 1, 0), min(int(rows[-1]) + 1, H - 1)
+    thick = float(ndimage.distance_transform_edt(hole[r0:r1 + 1]).max())
+    window = int(min(4 * thick + 3, max_window))
+    sigma = max(radius, 1.0)
+    pad_y = int(np.ceil(3 * sigma)) + 1
+    reach = max(window // 2, int(np.ceil(4 * sigma))) + 2
+    a, b = r0 - reach - pad_y, r1 + reach + pad_y
+    polar = a < 0 or b > H - 1 or W % 2
+    a, b = (0, H - 1) if polar else (a + pad_y, b - pad_y)
+    ring = ndimage.binary_dilation(hole[a:b + 1], structure=np.ones((3, 3))) & ~hole[a:b + 1] & (depth[a:b + 1] > 0)
+    out_rgb, out_d = rgb.copy(), np.asarray(depth, np.float32).copy()
+    rgb, depth, hole = rgb[a:b + 1], depth[a:b + 1], hole[a:b + 1]
+    far = ndimage.maximum_filter(np.where(ring, depth, 0.0), size=window, mode="wrap")
+    bg_rim = ring & (depth >= FOREGROUND_RATIO * far)
+    pad = W // 4
+    padded = np.concatenate([~bg_rim[:, -pad:], ~bg_rim, ~bg_rim[:, :pad]], axis=1)
+    _, (ii, jj) = ndimage.distance_transform_edt(padded, return_indices=True)
+    ii, jj = ii[:, pad:pad + W], (jj[:, pad:pad + W] - pad) % W
+    fill_d = np.where(hole, depth[ii, jj], depth).astype(np.float32)
+    known = (hole | bg_rim).astype(np.float32)
+    col = np.where(hole[..., None], rgb[ii, jj], rgb).astype(np.float32) * known[..., None]
+    num, den = (erp_gaussian_blur(x, sigma, across_poles=polar) for x in (col, known))
+    smooth = num / np.maximum(den, 1e-6)[..., None]
+    out_rgb[a:b + 1] = np.where(hole[..., None], np.clip(np.rint(smooth), 0, 255).astype(np.uint8), rgb)
+    out_d[a:b + 1] = fill_d
+    return out_rgb, out_d
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_background_fill_equals_its_scipy_reference(seed):
+    # Textured frames with occluders and holes of every size: thin slivers, wide holes (the window at max_window),
+    # holes at a pole (the whole frame) and across the seam; the fill must be the reference's, bit for bit.
+    rng = np.random.default_rng(seed)
+    h, w = 120, 240
+    rgb = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    depth = (3.0 + rng.random((h, w))).astype(np.float32)
+    hole = np.zeros((h, w), bool)
+    for _ in range(rng.integers(1, 6)):
+        i, j = rng.integers(0, h), rng.integers(0, w)
+        hh, ww = rng.integers(1, 3 if seed % 3 == 0 else 70, size=2)
+        occ = (slice(max(i - 5, 0), min(i + hh + 5, h)), slice(max(j - 30, 0), j))
+        depth[occ] = rng.uniform(0.8, 2.0)
+        hole[i:i + hh, j:j + ww] = True
+        hole[i:i + hh, :max(j + ww - w, 0)] = True  # across the seam
+    if seed == 4:  # 70 x 70 across the seam: the window at max_window
+        depth[35:115, w - 40:w - 20] = 1.0
+        hole[40:110, w - 20:] = hole[40:110, :50] = True
+    if seed == 5:
+        hole[0, 10:20] = True
+    out = background_fill(rgb, np.where(hole, 0, depth), hole)
+    ref = _background_fill_reference(rgb, np.where(hole, 0, depth), hole)
+    for a, b in zip(out, ref):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_warp_inpainter_ray_tables_equal_erp_dir_at(box_case):
+    _, mesh, poses, _, _ = box_case
+    filler = WarpInpainter(build_background_layer(mesh, max_translation(poses)))
+    rng = np.random.default_rng(0)
+    ti, tj = rng.integers(0, H, 5000), rng.integers(0, W, 5000)
+    for du, dv in ((0.0, 0.0), (0.25, -0.25), (-0.25, 0.25)):
+        np.testing.assert_array_equal(filler._dirs_at(ti, tj, H, W, du, dv), erp_dir_at(tj + 0.5 + du, ti + 0.5 + dv, H, W))
+
+
+def _stretch_reference(p, faces):
+    """background_layer._stretch in numpy, as first written: the oracle of its numba kernel."""
+    depth = np.linalg.norm(p, axis=1)
+    dirs = p / np.maximum(depth, 1e-12)[:, None]
+    out = np.zeros(len(faces), np.float32)
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        va, vb = faces[:, a], faces[:, b]
+        length = np.linalg.norm(p[va] - p[vb], axis=1)
+        chord = np.linalg.norm(dirs[va] - dirs[vb], axis=1)
+        np.maximum(out, length / np.maximum(np.minimum(depth[va], depth[vb]) * chord, 1e-12), out=out)
+    return out
+
+
+def test_stretch_equals_its_numpy_reference(box_case):
+    from panoworld.background_layer import _stretch, erp_grid_shape
+    from panoworld.mesh import grid_faces
+
+    _, mesh, _, _, _ = box_case
+    h, w = erp_grid_shape(mesh)
+    p = mesh.vertices[:h * w].astype(np.float64)
+    faces = grid_faces(h, w)
+    rng = np.random.default_rng(0)
+    q = rng.standard_normal((500, 3)) * 10.0 ** rng.uniform(-3, 2, (500, 1))
+    q[:5] = 0.0  # points at the camera: zero depth and direction
+    for pts, f in ((p, faces), (p, faces.astype(np.int32)), (q, rng.integers(0, 500, (3000, 3)))):
+        np.testing.assert_array_equal(_stretch(pts, f), _stretch_reference(pts, f))
+
+
+def test_raycaster_interpolate_equals_the_summed_form(box_case):
+    scene, _, _, _, _ = box_case
+    rc = scene.raycaster
+    hits = rc.render_erp(np.eye(4), H, W)
+    hits.face[::7, ::5] = -1  # misses take `fill`
+    rng = np.random.default_rng(0)
+    for attr in (rng.random((len(rc.vertices), 3)).astype(np.float32) * 255, rng.random((len(rc.vertices), 2)),
+                 rng.integers(0, 256, (len(rc.vertices), 3), dtype=np.uint8)):
+        valid = hits.face >= 0
+        ref = (attr[rc.faces[np.where(valid, hits.face, 0)]] * hits.bary[..., None]).sum(axis=-2)
+        np.testing.assert_array_equal(rc.interpolate(hits, attr, fill=-1.0), np.where(valid[..., None], ref, -1.0))
+
+
+def test_max_distance_equals_scipys():
+    from scipy import ndimage
+
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        h, w = rng.integers(2, 90, size=2)
+        mask = ndimage.binary_dilation(rng.random((h, w)) < rng.uniform(0.001, 0.3), iterations=int(rng.integers(0, 25)))
+        if mask.any():
+            assert _max_distance(mask) == float(ndimage.distance_transform_edt(mask).max())
 
 
 def test_committed_points_are_reused_at_their_place():

@@ -64,6 +64,10 @@ class WarpOptions:
     no Gaussians there)."""
 
 
+READ_AHEAD = 4
+"""Conditions frames decoded ahead of the fill (~8 MB each at 720x1440)."""
+
+
 def fill(job) -> tuple:
     from panoworld import background_layer, inpaint
     from panoworld.home.inpaint import home_background_layer
@@ -74,6 +78,9 @@ def fill(job) -> tuple:
     if job.mesh_dir is None:
         raise InputError("warp-inpaint needs --mesh DIR (the mesh artifact the conditions were rendered from)")
     t0 = time.perf_counter()
+    cond = job.cond
+    # Decoding the first frames overlaps the layer's build (which leaves the second core mostly idle).
+    cond_frames = cond.iter_frames(ahead=READ_AHEAD)
     mesh_dir = Path(job.mesh_dir)
     try:
         mesh = load_erp_mesh(mesh_dir)
@@ -87,18 +94,18 @@ def fill(job) -> tuple:
         if sources is not None:  # a home: one layer per source panorama (panoworld/home/inpaint.py)
             layer = home_background_layer(mesh, sources, job.poses, **opts)
         else:
-            layer = background_layer.build_background_layer(mesh, inpaint.max_translation(job.poses), **opts)
+            layer = background_layer.build_background_layer(mesh, inpaint.max_translation(job.poses), ray_caster=True,
+                                                           **opts)
     except (OSError, ValueError, KeyError) as e:
         raise InputError(f"{mesh_dir}/mesh.ply: {e}; rerun the mesh stage") from None
     info = dict(layer_faces=int(layer.layer_faces), layer_pixels=int(layer.synthesized.sum()),
                 layer_s=round(time.perf_counter() - t0, 3))
     filler = inpaint.WarpInpainter(layer, inpaint_radius=job.inpaint_radius, reuse=job.options.reuse,
                                     depth_fill=job.options.depth_fill)
-    cond = job.cond
 
     def frames():
-        for k in range(len(cond)):
-            f = filler.fill(cond.rgb[k], cond.mask[k], None if cond.depth is None else cond.depth[k], job.poses[k])
+        for k, (rgb, mask, depth) in enumerate(cond_frames):
+            f = filler.fill(rgb, mask, depth, job.poses[k])
             yield f.rgb, f.depth, f
 
     return frames(), info
