@@ -17,6 +17,7 @@ import numpy as np
 
 from panoworld.conventions import DEPTH_PNG_SCALE, check_erp_shape, check_poses, depth_to_mm
 from panoworld.io.depth_png import metres_from_png
+from panoworld.io.png import encode_png
 from panoworld.mesh import ErpMesh
 from panoworld.shapes import check_shape
 from panoworld.warped_frame import WarpedFrame
@@ -235,17 +236,15 @@ def frame_files(k: int, write_depth: bool = True) -> dict[str, str]:
 
 
 def _write_frame(out_dir: Path, files: dict[str, str], frame: WarpedFrame, compression: int) -> None:
-    import cv2
-
-    # Run-length matching is faster than zlib's default strategy here and compresses the rgb and mask as well.
-    rle = [cv2.IMWRITE_PNG_COMPRESSION, compression, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
-    ok = cv2.imwrite(str(out_dir / files["rgb"]), np.ascontiguousarray(frame.rgb[..., ::-1]), rle)
-    ok &= cv2.imwrite(str(out_dir / files["mask"]), frame.mask.astype(np.uint8) * 255, rle)
+    pngs = {"rgb": encode_png(frame.rgb, compression=compression),
+            "mask": encode_png(frame.mask.astype(np.uint8) * 255, compression=compression)}
     if "depth" in files:
-        opts = [cv2.IMWRITE_PNG_COMPRESSION, compression]
-        ok &= cv2.imwrite(str(out_dir / files["depth"]), depth_to_mm(frame.depth), opts)
-    if not ok:
-        raise OSError(f"{out_dir}: could not write the PNGs of {files['rgb']}")
+        pngs["depth"] = encode_png(depth_to_mm(frame.depth), compression=compression)
+    for key, data in pngs.items():
+        try:
+            (out_dir / files[key]).write_bytes(data)
+        except OSError as e:
+            raise OSError(f"{out_dir}: could not write the PNGs of {files['rgb']}: {e}") from e
 
 
 def _preview_frame(frame: WarpedFrame, max_height: int) -> np.ndarray:

@@ -30,14 +30,10 @@ def read_depth_png(path: Path | str, scale: float = DEPTH_PNG_SCALE) -> np.ndarr
 
 def write_depth_png(path: Path | str, depth_m: np.ndarray) -> None:
     """Depth (H, W) metres -> uint16 PNG in millimetres (unknown (0, NaN, inf) -> 0, clipped at 65.535 m)."""
-    import cv2
-
+    from panoworld.io.png import encode_png
     from panoworld.shapes import check_shape
 
     check_shape("depth_m", depth_m, "H W")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    ok, buf = cv2.imencode(".png", depth_to_mm(depth_m), [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    if not ok:
-        raise RuntimeError(f"PNG encoding failed for {path}")
-    path.write_bytes(buf.tobytes())
+    path.write_bytes(encode_png(depth_to_mm(depth_m), compression=1))
