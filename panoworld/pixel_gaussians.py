@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 import torch
-from numba import njit, prange
+from numba import njit
 
 from panoworld.conventions import erp_pixel_from_dir, invert_pose
 from panoworld.fusion_params import FusionParams
@@ -56,11 +56,12 @@ def pixel_gaussians(rgb: np.ndarray, depth: np.ndarray, world_from_cam: np.ndarr
     return gaussians_from_cov(obs.points, cov, obs.colors, params, max_scale_m=np.inf)
 
 
-@njit(parallel=True, cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def _source_lookup(points, cam_from_world, depth, dist, d_src):
-    """SourceVisibility._lookup fused per point: camera-frame distance and the ERP depth pixel the point falls in."""
+    """SourceVisibility._lookup fused per point: camera-frame distance and the ERP depth pixel the point falls in.
+    Serial: voxel fusion calls it from two frame threads at once (nogil), which a parallel kernel would oversubscribe."""
     h, w = depth.shape
-    for m in prange(points.shape[0]):
+    for m in range(points.shape[0]):
         x = cam_from_world[0, 3]
         y = cam_from_world[1, 3]
         z = cam_from_world[2, 3]
