@@ -89,6 +89,24 @@ class ErpColorOperator:
             done = dict(zip(by_size, pool.map(build, [faces[k] for k in by_size])))
         self.faces = [done[k] for k in range(len(faces)) if done[k] is not None]
 
+    def restricted(self, cols: np.ndarray) -> ErpColorOperator:
+        """The same operator on the Gaussians `cols` (sorted indices) alone, A's columns renumbered: colours (len(cols),
+        3) in, A^T image (len(cols), 3) out. A ValueError when a Gaussian not in cols has a weight."""
+        import copy
+
+        import scipy.sparse
+
+        remap = np.full(self.N, -1, np.int32)
+        remap[np.asarray(cols)] = np.arange(len(cols), dtype=np.int32)
+        out = copy.copy(self)
+        out.N, out.faces = len(cols), []
+        for index, S, A in self.faces:
+            j = remap[A.indices]
+            if len(j) and j.min() < 0:
+                raise ValueError("a Gaussian with a weight is not in cols")
+            out.faces.append((index, S, scipy.sparse.csr_matrix((A.data, j, A.indptr), shape=(A.shape[0], len(cols)))))
+        return out
+
     def __call__(self, colors: torch.Tensor) -> torch.Tensor:
         c = colors.detach().numpy().astype(np.float32)
         out = np.zeros((self.s * self.H * self.s * self.W, 3), np.float32)

@@ -227,7 +227,8 @@ def fuse_unseen(pix: Gaussians, frames: ContextSource, vis, params: FusionParams
 def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, iters: int = 10, damping: float = 0.01,
                supersample: int = 1, pole_scale: float | None = None,
                extra: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = (), tile: int = 8, sh_degree: int = 0,
-               sh_damping: float = 0.001, views_sh_only: bool = False) -> tuple[Gaussians, dict]:
+               sh_damping: float = 0.001, views_sh_only: bool = False, views_seen_only: bool = True,
+               cov: torch.Tensor | None = None) -> tuple[Gaussians, dict]:
     """Gaussians whose colours (SH DC) are refitted so their ERP render at world_from_cam matches target (H, W, 3)
     uint8 or [0, 1]: the render is linear in the colours for fixed geometry (erp_operator.ErpColorOperator), so this
     is `iters` steps of damped conjugate-gradient least squares, min |A c - y|^2 + damping |c - c0|^2 from the current
@@ -242,7 +243,10 @@ def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, 
     rasteriser's 16, the same weights). Returns the Gaussians (sh_rest of degree >= sh_degree) and {"rmse_before",
     "rmse_after"} of the render at world_from_cam, and "render": that render of the fitted Gaussians, (rgb (H, W, 3),
     alpha (H, W)) float32 numpy. views_sh_only (with sh_degree 1 and extra): c is fitted to the capture point alone
-    (the fit without extra, so its render there is that fit's) and the views fit s only, with c fixed."""
+    (the fit without extra, so its render there is that fit's) and the views fit s only, with c fixed; with
+    views_seen_only the CG runs on the Gaussians a view sees alone (the others' gradient is 0, so they keep the
+    capture fit's colours: the same fit for less CPU; False: on all, as the tests' reference). cov: the Gaussians'
+    covariance_3d when at hand."""
     from panoworld.erp_operator import ErpColorOperator
     from panoworld.render_gs import _SH_C1, covariance_3d
 
@@ -254,11 +258,12 @@ def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, 
 
     h, w = target.shape[:2]
     y = as_float(target)
-    cov = covariance_3d(torch.as_tensor(g.scales).float(), torch.as_tensor(g.quats).float())
+    if cov is None:
+        cov = covariance_3d(torch.as_tensor(g.scales).float(), torch.as_tensor(g.quats).float())
     sh_only = bool(views_sh_only and sh_degree and len(extra))
     if sh_only:  # the capture point's fit alone; its colours stay, the views below move s only
         g, info = fit_colors(g, target, world_from_cam, iters=iters, damping=damping, supersample=supersample,
-                             pole_scale=pole_scale, tile=tile)
+                             pole_scale=pole_scale, tile=tile, cov=cov)
         op = None
     else:
         op = ErpColorOperator(g, world_from_cam, h, w, supersample=supersample, pole_scale=pole_scale, tile=tile,
@@ -270,6 +275,11 @@ def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, 
         views.append((ErpColorOperator(g, pose, img.shape[0], img.shape[1], supersample=1, pole_scale=pole_scale,
                                        mask=np.asarray(wt) > 0, tile=tile, cov=cov), as_float(img) * m, m))
         poses.append(pose)
+    g_all, act = g, None
+    if sh_only and views_seen_only:  # the Gaussians some view sees: only their s moves
+        act = np.flatnonzero(sum(v[0].adjoint(v[2].expand_as(v[1]).square()) for v in views[1:])[:, 0].numpy() > 0)
+        views = [views[0]] + [(A.restricted(act), t, m) for A, t, m in views[1:]]
+        g = g.subset(act)
     n = len(g)
     basis = []  # per view (N, 3): the degree-1 SH basis of each Gaussian's direction from its centre, less the
     if sh_degree:  # capture point's: c is the colour seen from there, s only what changes from elsewhere
@@ -347,6 +357,11 @@ def fit_colors(g: Gaussians, target: np.ndarray, world_from_cam: np.ndarray, *, 
         sh_rest[:, :3] = coef.numpy()
         x[:, :3] -= torch.einsum("nj,njc->nc", b0, coef)  # the DC: c less the capture point's part
     out = Gaussians(g.means, g.scales, g.quats, g.opacities, rgb_to_sh_dc(x[:, :3].numpy()).astype(np.float32), sh_rest)
+    if act is not None:  # the Gaussians no view sees keep the capture fit's colours
+        dc, rest = np.array(g_all.sh_dc, np.float32), np.zeros((len(g_all),) + sh_rest.shape[1:], np.float32)
+        rest[:, : g_all.sh_rest.shape[1]] = g_all.sh_rest
+        dc[act], rest[act] = out.sh_dc, sh_rest
+        out = Gaussians(g_all.means, g_all.scales, g_all.quats, g_all.opacities, dc, rest)
     if sh_only:  # the capture point sees c, which is its own fit's: that fit's render and error stand
         return out, {"rmse_before": rmse0, "rmse_after": info["rmse_after"], "render": info["render"]}
     alpha = op(torch.ones(n, 3))[..., 0]  # the weights of each pixel sum to its opacity 1 - T

@@ -158,3 +158,42 @@ def test_views_fitting_only_the_degree_one_terms_keep_the_capture_points_fit():
 
     assert err(only, -0.3) < 0.7 * err(alone, -0.3), (err(only, -0.3), err(alone, -0.3))
     assert err(only, 0.6) < 0.7 * err(alone, 0.6)
+
+
+def test_the_views_fit_on_the_gaussians_they_see_alone_is_the_fit_on_all():
+    # views_seen_only (the default): the s-only CG runs on the Gaussians the views' weighted pixels see; the others'
+    # gradient is 0, so the fit is the one on all Gaussians (to float32 rounding: CG's sums run over other lengths),
+    # and those keep the capture fit's colours exactly.
+    from panoworld.erp_operator import ErpColorOperator
+    from panoworld.pixel_gaussians import fit_colors
+
+    g, truth, _, pose_at = view_dependent_shell(5)
+    H, W = 24, 48
+
+    def view(x):
+        return render_erp(truth, pose_at(x), H, W, supersample=1).rgb.numpy()
+
+    src = pose_at(0.0)
+    half = np.zeros((H, W), np.float32)
+    half[: H // 2] = 0.3  # the views weigh their upper half only: the shell's lower part is seen from the capture point alone
+    extra = [(view(x), pose_at(x), half) for x in (-0.6, 0.6)]
+    kw = dict(iters=10, extra=extra, supersample=1, sh_degree=1, views_sh_only=True)
+    seen, info_seen = fit_colors(g, view(0.0), src, **kw)
+    full, info_full = fit_colors(g, view(0.0), src, **kw, views_seen_only=False)
+    alone, _ = fit_colors(g, view(0.0), src, iters=10, supersample=1)
+    moved = np.abs(full.sh_rest).max((1, 2)) > 0
+    assert 0.2 < moved.mean() < 0.8  # the restriction bites: part of the shell is not in the views' fit
+    np.testing.assert_allclose(seen.sh_rest, full.sh_rest, rtol=1e-4, atol=1e-5)  # seen: 2e-5 on 1.06
+    np.testing.assert_allclose(seen.sh_dc, full.sh_dc, rtol=1e-4, atol=1e-5)
+    np.testing.assert_array_equal(seen.sh_dc[~moved], alone.sh_dc[~moved])
+    assert info_seen["rmse_after"] == info_full["rmse_after"]
+    # the restricted operator is the full one's columns, renumbered
+    op = ErpColorOperator(g, pose_at(0.6), H, W, supersample=1, mask=half > 0)
+    cols = np.flatnonzero(op.adjoint(torch.ones(H, W, 3))[:, 0].numpy() > 0)
+    c = torch.rand(len(g), 3)
+    c[np.setdiff1d(np.arange(len(g)), cols)] = 0
+    sub = op.restricted(cols)
+    np.testing.assert_array_equal(sub(c[cols]).numpy(), op(c).numpy())
+    np.testing.assert_array_equal(sub.adjoint(torch.ones(H, W, 3)).numpy(), op.adjoint(torch.ones(H, W, 3)).numpy()[cols])
+    with pytest.raises(ValueError, match="cols"):
+        op.restricted(cols[1:])
