@@ -195,7 +195,7 @@ def test_plane_clear_keeps_the_divider_and_drops_its_jambs(doorway):
     clear = back_side_layer(g, rgb, d, np.eye(4), nav=nav, thickness=0.12, reach=4.0, plane=True)
     m = np.asarray(clear.gaussians.means)
     divider = (m[:, 2] > WALL_Z[0]) & (m[:, 2] < WALL_Z[1])
-    assert divider.sum() > 0.8 * back.stats["num"]
+    assert divider.sum() > 0.6 * back.stats["num"]  # 384 columns: the 3-pixel window is 0.1 m on the divider
     near_jamb = (np.abs(np.abs(m[:, 0]) - DOOR_X) < 0.1) & (m[:, 1] > DOOR_TOP - 0.1)
     assert not near_jamb[divider].any()
     assert np.asarray(back.gaussians.means)[:, 0].size > m.shape[0]
