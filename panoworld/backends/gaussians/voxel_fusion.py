@@ -85,7 +85,8 @@ class VoxelFusionOptions(FusionParams):
     -0.02 dB against back sides without it, but seed 4 keeps about half their gain: ~2 m +0.44 instead of +0.75)."""
     back_side_plane_clear: bool = False
     """A back must stay hidden when moved up to its thickness along its wall's plane (back_sides.plane_clear): not
-    seen past a doorway's jamb, yet kept on walls the capture point sees at a grazing angle (docs/evaluation.md,
+    seen past a doorway's jamb, yet kept on walls the capture point sees at a grazing angle (validation seed 5 ~2 m
+    -0.01 dB against off, seed 4 ~2 m +0.70 as shell's +0.75, but seed 4's ~1 m gain lost: docs/evaluation.md,
     "issue 28, twelfth pass")."""
     back_side_color: str = param("next_room", choices=("next_room", "front"))
     """next_room: the next room's wall colour the doorway shows (plane_colors.floor_beyond's; the front's where
