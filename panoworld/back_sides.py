@@ -27,6 +27,8 @@ jamb, where the source sees past the wall's edge); with back_side_edge_clear, wi
 (edge_clear)."""
 MAX_WINDOW = 32
 """edge_clear's largest window, pixels."""
+PLANE_STEPS = (0.5, 1.0)
+"""plane_clear's offsets along the wall, in thicknesses."""
 SHELL_TOL = 0.05
 """on_shell: a source point lies on the room's shell when its horizontal distance from the capture point is within
 this fraction of its ERP column's wall (panoworld.layout_columns.wall_columns)."""
@@ -93,6 +95,32 @@ def edge_clear(p: np.ndarray, depth: np.ndarray, thickness: float, adaptive: boo
     return out
 
 
+def plane_clear(p: np.ndarray, n: np.ndarray, depth: np.ndarray, thickness: float) -> np.ndarray:
+    """(N,) bool: which copies p (N, 3, camera frame) of surfaces with unit normals n (N, 3, camera frame) would stay
+    hidden (behind the source depth (H, W) metres within WINDOW pixels) if moved up to `thickness` metres along their
+    wall's plane (horizontally and vertically, PLANE_STEPS): the wall goes on that far around the copy, so no view up to
+    45 degrees off its normal sees it past a jamb or a lintel. Unlike edge_clear the test follows the wall, not the
+    capture point's rays, so a wall seen at a grazing angle (its depth rising fast across the pixels) keeps its copies."""
+    import cv2
+
+    d = np.where(np.isfinite(depth) & (depth > 0), depth, 1e6).astype(np.float32)
+    d_max = cv2.dilate(d, np.ones((2 * WINDOW + 1, 2 * WINDOW + 1), np.uint8))
+    along = np.cross(n, [0.0, 1.0, 0.0])  # horizontal on the wall (y is down)
+    along /= np.maximum(np.linalg.norm(along, axis=1, keepdims=True), 1e-12)
+    up = np.cross(n, along)
+    out = np.ones(len(p), bool)
+    for t in PLANE_STEPS:
+        for axis in (along, up):
+            for sign in (1.0, -1.0):
+                s = p + sign * t * thickness * axis
+                dist = np.linalg.norm(s, axis=1)
+                u, v = erp_pixel_from_dir(s / np.maximum(dist, 1e-12)[:, None], *depth.shape)
+                j = np.mod(np.floor(u).astype(np.int64), depth.shape[1])
+                i = np.clip(np.floor(v).astype(np.int64), 0, depth.shape[0] - 1)
+                out &= dist > d_max[i, j]
+    return out
+
+
 def sight_grid(nav, blockers: np.ndarray, reach_m: float) -> tuple[np.ndarray, float, float]:
     """Floor-plan cells (CELL_M, x0 + j * CELL_M, z0 + i * CELL_M) in the line of sight of the NavMesh nav within
     reach_m: rays in RAYS directions from points of nav every SIGHT_STEP_M, each up to the first cell holding (or next
@@ -128,12 +156,13 @@ def sight_grid(nav, blockers: np.ndarray, reach_m: float) -> tuple[np.ndarray, f
 
 
 def back_side_gaussians(g: Gaussians, depth: np.ndarray, world_from_cam: np.ndarray, nav, *, thickness: float,
-                        reach: float, rgb: np.ndarray | None = None, shell: bool = True, edge: bool = False
-                        ) -> BackSides:
+                        reach: float, rgb: np.ndarray | None = None, shell: bool = True, edge: bool = False,
+                        plane: bool = False) -> BackSides:
     """A second layer for the source's per-pixel Gaussians g on upright surfaces whose other side is in the line of
     sight of the NavMesh nav: each copied `thickness` metres behind its surface (along its normal, away from the capture point at
     world_from_cam), hidden from the capture point (behind the source depth (H, W) metres of every pixel within
-    WINDOW of its own; with edge, within its thickness across: edge_clear), and the cell `thickness` + 2 CELL_M behind it seen from the NavMesh within `reach` metres
+    WINDOW of its own; with edge, within its thickness across: edge_clear; with plane, its neighbours along the
+    wall within its thickness too: plane_clear), and the cell `thickness` + 2 CELL_M behind it seen from the NavMesh within `reach` metres
     (sight_grid: from the front side the wall itself blocks the sight).
     With shell, only surfaces on the room's shell (on_shell: walls, not the fronts of furniture whose unseen sides let
     the sight reach behind them). Coloured rgb (3,) uint8 when given (the next room's walls), else as the front. Splats are two-sided: from behind,
@@ -149,6 +178,8 @@ def back_side_gaussians(g: Gaussians, depth: np.ndarray, world_from_cam: np.ndar
     # hidden from the capture point: behind every source depth near q's pixel
     p = (q - centre) @ pose[:3, :3]  # camera frame: cam_from_world applied
     hidden = edge_clear(p, depth, thickness, adaptive=edge)
+    if plane:
+        hidden &= plane_clear(p, n[cand] @ pose[:3, :3], depth, thickness)
     # in sight of the walkable floor from behind
     band = (height > BAND_M[0]) & (height < BAND_M[1])
     reached, x0, z0 = sight_grid(nav, means[band], reach)
@@ -189,11 +220,11 @@ def next_room_wall_rgb(rgb: np.ndarray, depth: np.ndarray, world_from_cam: np.nd
 
 
 def back_side_layer(pix: Gaussians, rgb: np.ndarray, depth: np.ndarray, world_from_cam: np.ndarray, *, nav,
-                    thickness: float, reach: float, color: str = "next_room", shell: bool = True, edge: bool = False
-                    ) -> BackSides:
+                    thickness: float, reach: float, color: str = "next_room", shell: bool = True, edge: bool = False,
+                    plane: bool = False) -> BackSides:
     """back_side_gaussians of the source's per-pixel Gaussians pix, coloured as `color` says: "next_room" (the next
     room's wall colour the doorway shows, next_room_wall_rgb; the front's colour where none is seen) or "front";
-    shell, edge: back_side_gaussians'."""
+    shell, edge, plane: back_side_gaussians'."""
     wall = next_room_wall_rgb(rgb, depth, world_from_cam) if color == "next_room" else None
     return back_side_gaussians(pix, depth, world_from_cam, nav, thickness=thickness, reach=reach, rgb=wall,
-                               shell=shell, edge=edge)
+                               shell=shell, edge=edge, plane=plane)

@@ -10,7 +10,7 @@ import pytest
 import torch
 import trimesh
 
-from panoworld.back_sides import back_side_layer, edge_clear
+from panoworld.back_sides import back_side_layer, edge_clear, plane_clear
 from panoworld.conventions import erp_dirs, points_from_depth
 from panoworld.erp_render import render_erp
 from panoworld.fusion_params import FusionParams
@@ -156,3 +156,46 @@ def test_copies_stay_clear_of_a_doorways_edge_by_their_thickness():
     far = p + [1.0, 0.0, 0.0]  # away from the doorway: clear; in front of the wall: not
     assert edge_clear(far, depth, 0.12).all() and not edge_clear(far - [0.0, 0.0, 0.3], depth, 0.12).any()
     assert edge_clear(p, depth, 0.12, adaptive=False)[gap < 0.12].any()  # the default 3-pixel window: some pass
+
+
+def test_copies_along_the_wall_keep_a_grazing_wall_drop_a_jamb():
+    # the depth of the test above: a wall 2 m ahead with a doorway |x| < 0.5 under y > -0.6. plane_clear moves each
+    # copy up to its thickness along the wall's plane: near the jamb (or under the lintel) the moved copy is seen
+    # through the doorway, so it goes; far along the wall, where the capture point sees it at a grazing angle (66-69
+    # degrees off its normal), it stays, while edge_clear's window across the ray reaches farther along the wall,
+    # whose depth there exceeds the copy's, and drops most (some pass by pixel rounding)
+    h, w = 640, 1280
+    dirs = erp_dirs(h, w, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(dirs[..., 2] > 1e-6, 2.0 / dirs[..., 2], np.inf)
+    hit = dirs * t[..., None]
+    door = (np.abs(hit[..., 0]) < 0.5) & (hit[..., 1] > -0.6)
+    depth = np.where(door, 2.5 * t, np.minimum(t, 8.0))
+    normal = np.array([[0.0, 0.0, -1.0]])  # towards the capture point
+
+    def copies(x, y):
+        return np.stack(np.broadcast_arrays(x, y, np.full_like(x, 2.12)), 1)
+
+    gap = np.linspace(0.01, 0.3, 30)
+    jamb = copies(0.5 + gap, np.zeros_like(gap))
+    clear = plane_clear(jamb, normal.repeat(len(gap), 0), depth, 0.12)
+    assert not clear[gap < 0.11].any() and clear[gap > 0.19].all()  # + 3 pixels, and the rays 6 % nearer
+    lintel = copies(np.zeros_like(gap), -0.6 - gap)  # above the doorway (y is down)
+    clear = plane_clear(lintel, normal.repeat(len(gap), 0), depth, 0.12)
+    assert not clear[gap < 0.11].any() and clear[gap > 0.19].all()  # + 3 pixels, and the rays 6 % nearer
+    x = np.linspace(4.5, 5.5, 41)
+    grazing = copies(x, np.full_like(x, 0.3))
+    assert plane_clear(grazing, normal.repeat(len(x), 0), depth, 0.12).all()
+    assert edge_clear(grazing, depth, 0.12).mean() < 0.3
+    assert not plane_clear(grazing - [0.0, 0.0, 0.3], normal.repeat(len(x), 0), depth, 0.12).any()  # in front
+
+
+def test_plane_clear_keeps_the_divider_and_drops_its_jambs(doorway):
+    g, rgb, d, nav, _, back = doorway
+    clear = back_side_layer(g, rgb, d, np.eye(4), nav=nav, thickness=0.12, reach=4.0, plane=True)
+    m = np.asarray(clear.gaussians.means)
+    divider = (m[:, 2] > WALL_Z[0]) & (m[:, 2] < WALL_Z[1])
+    assert divider.sum() > 0.6 * back.stats["num"]  # 384 columns: the 3-pixel window is 0.1 m on the divider
+    near_jamb = (np.abs(np.abs(m[:, 0]) - DOOR_X) < 0.1) & (m[:, 1] > DOOR_TOP - 0.1)
+    assert not near_jamb[divider].any()
+    assert np.asarray(back.gaussians.means)[:, 0].size > m.shape[0]

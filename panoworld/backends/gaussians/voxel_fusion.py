@@ -83,6 +83,11 @@ class VoxelFusionOptions(FusionParams):
     """A back must lie behind the source depth within its thickness across its ray (back_sides.edge_clear), not
     only within 3 pixels: not seen past a doorway's jamb from views at 45 degrees (validation seed 5 ~2 m -0.19 ->
     -0.02 dB against back sides without it, but seed 4 keeps about half their gain: ~2 m +0.44 instead of +0.75)."""
+    back_side_plane_clear: bool = False
+    """A back must stay hidden when moved up to its thickness along its wall's plane (back_sides.plane_clear): not
+    seen past a doorway's jamb, yet kept on walls the capture point sees at a grazing angle (validation seed 5 ~2 m
+    -0.01 dB against off, seed 4 ~2 m +0.70 as shell's +0.75, but seed 4's ~1 m gain lost: docs/evaluation.md,
+    "issue 28, twelfth pass")."""
     back_side_color: str = param("next_room", choices=("next_room", "front"))
     """next_room: the next room's wall colour the doorway shows (plane_colors.floor_beyond's; the front's where
     none is seen); front: the front's colour."""
@@ -132,7 +137,7 @@ def back_side_hook(job):
 
     return partial(back_side_layer, nav=load_navmesh(job.navmesh), thickness=o.back_side_thickness,
                    reach=o.back_side_reach, color=o.back_side_color, shell=o.back_side_shell,
-                   edge=o.back_side_edge_clear)
+                   edge=o.back_side_edge_clear, plane=o.back_side_plane_clear)
 
 
 register("gaussians", "voxel-fusion", fuse, options=VoxelFusionOptions, key="voxel_fusion", weights=False)
