@@ -135,18 +135,22 @@ def test_furniture_fronts_get_no_back_only_the_rooms_shell():
     assert ((np.abs(b[~divider, 0]) > 3.0) | (b[~divider, 2] < -2.5)).all()
 
 
-def test_copies_stay_clear_of_a_doorways_edge_by_their_thickness():
-    # the source's resolution (640 rows): a wall 2 m ahead (camera frame, z forward), a doorway |x| < 0.5 under
-    # y > -0.6 seeing 5 m through it. Points 0.12 m behind the wall count as clear only where every ray within
-    # 0.12 m across (on the wall, 0.12 / 2.12 of their distance) hits the wall: else a view 45 degrees off the
-    # wall's normal sees them past the jamb (a 3-pixel window is 3 cm there)
-    h, w = 640, 1280
-    dirs = erp_dirs(h, w, np.float64)
+def doorway_wall_depth() -> np.ndarray:
+    """The source's depth (640 x 1280 rows, ERP): a wall 2 m ahead (camera frame, z forward), a doorway |x| < 0.5
+    under y > -0.6 seeing 5 m through it."""
+    dirs = erp_dirs(640, 1280, np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(dirs[..., 2] > 1e-6, 2.0 / dirs[..., 2], np.inf)
     hit = dirs * t[..., None]
     door = (np.abs(hit[..., 0]) < 0.5) & (hit[..., 1] > -0.6)
-    depth = np.where(door, 2.5 * t, np.minimum(t, 8.0))
+    return np.where(door, 2.5 * t, np.minimum(t, 8.0))
+
+
+def test_copies_stay_clear_of_a_doorways_edge_by_their_thickness():
+    # doorway_wall_depth(). Points 0.12 m behind the wall count as clear only where every ray within 0.12 m across
+    # (on the wall, 0.12 / 2.12 of their distance) hits the wall: else a view 45 degrees off the wall's normal sees
+    # them past the jamb (a 3-pixel window is 3 cm there)
+    depth = doorway_wall_depth()
     gap = np.linspace(0.01, 0.3, 30)  # from the right jamb, across
     p = np.stack([0.5 + gap, np.zeros_like(gap), np.full_like(gap, 2.12)], 1)
     clear = edge_clear(p, depth, 0.12)
@@ -159,18 +163,12 @@ def test_copies_stay_clear_of_a_doorways_edge_by_their_thickness():
 
 
 def test_copies_along_the_wall_keep_a_grazing_wall_drop_a_jamb():
-    # the depth of the test above: a wall 2 m ahead with a doorway |x| < 0.5 under y > -0.6. plane_clear moves each
+    # doorway_wall_depth(): a wall 2 m ahead with a doorway |x| < 0.5 under y > -0.6. plane_clear moves each
     # copy up to its thickness along the wall's plane: near the jamb (or under the lintel) the moved copy is seen
     # through the doorway, so it goes; far along the wall, where the capture point sees it at a grazing angle (66-69
     # degrees off its normal), it stays, while edge_clear's window across the ray reaches farther along the wall,
     # whose depth there exceeds the copy's, and drops most (some pass by pixel rounding)
-    h, w = 640, 1280
-    dirs = erp_dirs(h, w, np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(dirs[..., 2] > 1e-6, 2.0 / dirs[..., 2], np.inf)
-    hit = dirs * t[..., None]
-    door = (np.abs(hit[..., 0]) < 0.5) & (hit[..., 1] > -0.6)
-    depth = np.where(door, 2.5 * t, np.minimum(t, 8.0))
+    depth = doorway_wall_depth()
     normal = np.array([[0.0, 0.0, -1.0]])  # towards the capture point
 
     def copies(x, y):
