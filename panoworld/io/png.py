@@ -1,4 +1,4 @@
-"""PNG bytes with one fixed filter per bit depth: the encoder and decoder of every PNG an artifact stores."""
+"""PNG bytes with one fixed filter per bit depth: the encoder and decoder of the artifacts' frame and depth PNGs."""
 
 from __future__ import annotations
 
