@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 
@@ -12,6 +11,8 @@ def encode_png(image: np.ndarray, *, compression: int = 1) -> bytes:
     Every row takes one fixed PNG filter (8-bit: Sub, with zlib's run-length strategy, OpenCV's own fast setting;
     16-bit: Up) instead of libpng's trial of all five per row: on 720x1440 video frames ~40 % faster to encode, ~20 %
     faster to decode and a few % smaller (bench/bench_png.py)."""
+    import cv2
+
     if image.ndim == 3:
         image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
     if image.dtype == np.uint16:
@@ -26,6 +27,8 @@ def encode_png(image: np.ndarray, *, compression: int = 1) -> bytes:
 
 def decode_png(data: bytes, *, what: str = "PNG") -> np.ndarray:
     """Inverse of encode_png: RGB (H, W, 3) uint8, or (H, W) uint8/uint16 as stored."""
+    import cv2
+
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise ValueError(f"{what}: not a decodable PNG")
