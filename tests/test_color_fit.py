@@ -79,9 +79,14 @@ def test_masked_operator_is_the_render_on_the_pixels_it_keeps(supersample, tile)
     assert float(empty(colors).abs().max()) == 0.0 and empty.adjoint(img.float()).shape == (len(g), 3)
 
 
+SHELL_H, SHELL_W = 24, 48
+"""The size of view_dependent_shell's views."""
+
+
 def view_dependent_shell(seed: int):
     """The first 2500 shell Gaussians in mid-grey (what a fit starts from), the truth with degree-1 colours along x
-    (their sign follows the Gaussian's side), its x-term, and the pose at x (m) along the x axis."""
+    (their sign follows the Gaussian's side), its x-term, the pose at x (m) along the x axis, and view(x, gs=truth):
+    the render of gs from there (SHELL_H x SHELL_W, (H, W, 3) numpy)."""
     g = shell_and_clutter()
     n = 2500
     g = Gaussians(g.means[:n], g.scales[:n], np.tile([1.0, 0, 0, 0], (n, 1)).astype(np.float32), g.opacities[:n],
@@ -97,7 +102,10 @@ def view_dependent_shell(seed: int):
         p[0, 3] = x
         return p
 
-    return g, truth, rest, pose_at
+    def view(x, gs=truth):
+        return render_erp(gs, pose_at(x), SHELL_H, SHELL_W, supersample=1).rgb.numpy()
+
+    return g, truth, rest, pose_at, view
 
 
 def test_degree_one_fit_recovers_a_view_dependent_colour_between_its_views():
@@ -106,11 +114,8 @@ def test_degree_one_fit_recovers_a_view_dependent_colour_between_its_views():
     # between two of them is closer to the truth. Seen from one view only, the degree-1 terms stay near 0.
     from panoworld.pixel_gaussians import fit_colors
 
-    g, truth, rest, pose_at = view_dependent_shell(3)
-    H, W = 24, 48
-
-    def view(x):
-        return render_erp(truth, pose_at(x), H, W, supersample=1).rgb.numpy()
+    g, truth, rest, pose_at, view = view_dependent_shell(3)
+    H, W = SHELL_H, SHELL_W
 
     src = pose_at(0.0)
     extra = [(view(x), pose_at(x), np.ones((H, W), np.float32)) for x in (-0.6, 0.6)]
@@ -119,7 +124,7 @@ def test_degree_one_fit_recovers_a_view_dependent_colour_between_its_views():
     assert dc.sh_degree == 0 and sh.sh_degree == 1
 
     def err(gs, x):
-        return float(np.abs(render_erp(gs, pose_at(x), H, W, supersample=1).rgb.numpy() - view(x)).mean())
+        return float(np.abs(view(x, gs) - view(x)).mean())
 
     assert err(sh, -0.3) < 0.5 * err(dc, -0.3), (err(sh, -0.3), err(dc, -0.3))  # 0.014 against 0.040
     assert err(sh, 0.0) < err(dc, 0.0) and err(sh, -0.6) < 0.5 * err(dc, -0.6)
@@ -138,11 +143,8 @@ def test_views_fitting_only_the_degree_one_terms_keep_the_capture_points_fit():
     # the degree-1 terms the views fit still bring a held-out view between them closer to the truth.
     from panoworld.pixel_gaussians import fit_colors
 
-    g, truth, _, pose_at = view_dependent_shell(4)
-    H, W = 24, 48
-
-    def view(x, gs=truth):
-        return render_erp(gs, pose_at(x), H, W, supersample=1).rgb.numpy()
+    g, truth, _, pose_at, view = view_dependent_shell(4)
+    H, W = SHELL_H, SHELL_W
 
     src = pose_at(0.0)
     extra = [(view(x), pose_at(x), np.ones((H, W), np.float32)) for x in (-0.6, 0.6)]
@@ -167,11 +169,8 @@ def test_the_views_fit_on_the_gaussians_they_see_alone_is_the_fit_on_all():
     from panoworld.erp_operator import ErpColorOperator
     from panoworld.pixel_gaussians import fit_colors
 
-    g, truth, _, pose_at = view_dependent_shell(5)
-    H, W = 24, 48
-
-    def view(x):
-        return render_erp(truth, pose_at(x), H, W, supersample=1).rgb.numpy()
+    g, truth, _, pose_at, view = view_dependent_shell(5)
+    H, W = SHELL_H, SHELL_W
 
     src = pose_at(0.0)
     half = np.zeros((H, W), np.float32)
