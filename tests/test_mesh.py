@@ -239,3 +239,4 @@ def test_compact_faces_is_np_unique_with_inverse():
     np.testing.assert_array_equal(got_used, used)
     np.testing.assert_array_equal(got_faces, inv.reshape(-1, 3))
     np.testing.assert_array_equal(got_used[got_faces], faces)
+    assert got_faces.dtype == np.intp
