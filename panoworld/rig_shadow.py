@@ -231,9 +231,17 @@ def _quadratic(u: np.ndarray, v: np.ndarray) -> list[np.ndarray]:
 
 
 def _lstsq(A: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Least squares by the normal equations: A (n, k) with n >> k, well conditioned here (monomials of floor
-    coordinates in camera heights and hat functions); ~10x cheaper than np.linalg.lstsq's SVD on the face's pixels."""
-    return np.linalg.solve(A.T @ A, A.T @ y)
+    """np.linalg.lstsq(A, y)[0] for A (n, k), n >> k, by the normal equations (~10x cheaper than its SVD on a face's
+    pixels): columns without support (a knot no floor pixel reaches) get 0, as the minimum-norm solution gives them;
+    a singular rest falls back to lstsq."""
+    G, b = A.T @ A, A.T @ y
+    keep = np.diag(G) > 0
+    coef = np.zeros(A.shape[1])
+    try:
+        coef[keep] = np.linalg.solve(G[np.ix_(keep, keep)], b[keep])
+    except np.linalg.LinAlgError:
+        coef = np.linalg.lstsq(A, y, rcond=None)[0]
+    return coef
 
 
 def _within_3mad(res: np.ndarray, ref: np.ndarray) -> np.ndarray:
