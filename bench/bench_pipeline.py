@@ -98,6 +98,16 @@ def print_fidelity(f: dict) -> None:
           f"self-render PSNR {fmt(f.get('self_psnr'))} dB")
 
 
+def reference_loop_s() -> float:
+    """Seconds of a pure-Python 20M-step sum: this machine's single-core speed, to compare timings across machines
+    (2.06 s where the twelfth #28 pass measured the demo at 129.3 s; 2.85 s at the start of the thirteenth)."""
+    t = time.perf_counter()
+    s = 0
+    for i in range(20_000_000):
+        s += i
+    return time.perf_counter() - t
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2], help="synthetic scenes (synth preset default)")
@@ -128,7 +138,7 @@ def main() -> int:
                     scenes.append((name, scene))
         print(f"preset {a.preset}; machine: {subprocess.run(['nproc'], capture_output=True, text=True).stdout.strip()} "
               f"cores, load average {open('/proc/loadavg').read().split()[0]} at start (shared: wall times inflate, "
-              "CPU times much less)")
+              f"CPU times much less); reference loop {reference_loop_s():.2f} s (see reference_loop_s)")
         for name, scene in scenes:
             print(f"\n{name}: {scene}")
             rows, total = run_scene(scene, a.preset)

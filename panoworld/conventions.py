@@ -84,8 +84,13 @@ def erp_dirs(height: int, width: int, dtype=np.float32) -> np.ndarray:
     check_erp_shape(height, width, "requested ERP grid")
     u = np.arange(width, dtype=np.float64) + 0.5
     v = np.arange(height, dtype=np.float64) + 0.5
-    lon, lat = erp_lonlat_from_pixel(u[None, :], v[:, None], height, width)
-    return dir_from_lonlat(lon, lat).astype(dtype)
+    lon, lat = erp_lonlat_from_pixel(u, v, height, width)
+    cl = np.cos(lat)[:, None]  # separable: dir_from_lonlat on the grid, the trigonometry once per row and column
+    out = np.empty((height, width, 3), dtype)
+    out[..., 0] = cl * np.sin(lon)
+    out[..., 1] = -np.sin(lat)[:, None]
+    out[..., 2] = cl * np.cos(lon)
+    return out
 
 
 def pinhole_dirs(fx: float, fy: float, cx: float, cy: float, height: int, width: int, dtype=np.float32) -> np.ndarray:

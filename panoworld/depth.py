@@ -9,9 +9,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy import ndimage, sparse
-from scipy.sparse import csgraph
-from scipy.sparse import linalg as sparse_linalg
 
 from panoworld.choices import Rescale
 from panoworld.conventions import erp_dirs, erp_pixel_solid_angle, points_from_depth
@@ -178,6 +175,9 @@ def fill_small_holes(
     of sparse LiDAR; interpolation only, never extrapolation past the rim of a dropout).
     depth (H, W), valid (H, W) bool -> (depth with 0 where still invalid, valid, number of pixels filled).
     """
+    from scipy import ndimage, sparse  # here: most stages read depth artifacts and never fill holes
+    from scipy.sparse import csgraph
+
     holes = ~valid
     if not holes.any() or not valid.any() or (max_hole_px <= 0 and max_gap_px <= 0):
         return np.where(valid, depth, 0).astype(np.float32), valid, 0
@@ -247,6 +247,9 @@ def _harmonic_fill(values: np.ndarray, fill: np.ndarray, known: np.ndarray) -> n
     """Solve Laplace's equation on the pixels fill (H, W) with their known (H, W) 4-neighbours' values (H, W) as
     boundary values; other neighbours are left out (a free boundary). Seam wrapped, rows clamped; each fill
     component must touch a known pixel. Returns values with the fill pixels solved."""
+    from scipy import sparse
+    from scipy.sparse import linalg as sparse_linalg
+
     H, W = values.shape
     n = int(fill.sum())
     idx = np.full((H, W), -1, np.int64)

@@ -190,12 +190,12 @@ def floor_light(face: np.ndarray, rig: np.ndarray, floor: np.ndarray, theta: np.
         return None
     coef = np.zeros(A.shape[-1])
     for _ in range(4):
-        coef, *_ = np.linalg.lstsq(A[use], y[use], rcond=None)
+        coef = _lstsq(A[use], y[use])
         res = y - A @ coef
         use &= _within_3mad(res, res[use])
     for _ in range(8):  # the upper expectile: the floor's brighter texture is lit like the rest (see LIGHT_EXPECTILE)
         sw = np.sqrt(_expectile_weights(res[use]))
-        coef, *_ = np.linalg.lstsq(A[use] * sw[:, None], y[use] * sw, rcond=None)
+        coef = _lstsq(A[use] * sw[:, None], y[use] * sw)
         res = y - A @ coef
     seen = np.array([(use & (h > 0.5)).sum() >= 8 for h in hats])  # knots without floor pixels (under the mount)
     prof = np.exp(np.minimum(np.where(seen, coef[len(poly):], 0.0), 0.0))
@@ -228,6 +228,20 @@ def _floor_coords(size: int, focal: float) -> list[np.ndarray]:
 def _quadratic(u: np.ndarray, v: np.ndarray) -> list[np.ndarray]:
     """The room light's basis: the monomials of (u, v) up to degree 2."""
     return [u**i * v**j for i in range(3) for j in range(3 - i)]
+
+
+def _lstsq(A: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """np.linalg.lstsq(A, y)[0] for A (n, k), n >> k, by the normal equations (~10x cheaper than its SVD on a face's
+    pixels): columns without support (a knot no floor pixel reaches) get 0, as the minimum-norm solution gives them;
+    a singular rest falls back to lstsq."""
+    G, b = A.T @ A, A.T @ y
+    keep = np.diag(G) > 0
+    coef = np.zeros(A.shape[1])
+    try:
+        coef[keep] = np.linalg.solve(G[np.ix_(keep, keep)], b[keep])
+    except np.linalg.LinAlgError:
+        coef = np.linalg.lstsq(A, y, rcond=None)[0]
+    return coef
 
 
 def _within_3mad(res: np.ndarray, ref: np.ndarray) -> np.ndarray:

@@ -63,10 +63,11 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     save_erp_mesh(mesh, out_dir / "mesh.ply")
     if params.glb:
         save_erp_mesh_glb(mesh, out_dir / "mesh.glb")
+    written = int(np.count_nonzero(np.bincount(mesh.faces.ravel(), minlength=len(mesh.vertices))))
     return {
         "num_vertices": len(mesh.vertices),
-        "vertices_written": int(len(np.unique(mesh.faces))),
-        "invalid_pixels_dropped": int(len(mesh.vertices) - len(np.unique(mesh.faces))),
+        "vertices_written": written,
+        "invalid_pixels_dropped": len(mesh.vertices) - written,
         "num_faces": len(mesh.faces),
         "num_faces_stretched": n_stretched,
         "stretched_kept_as_occluders": params.discontinuity == Discontinuity.FLAG,
@@ -91,7 +92,7 @@ def _home_mesh(dirs, poses, params: Params, out_dir: Path) -> dict:
         save_erp_mesh_glb(mesh, out_dir / "mesh.glb")
     return {
         "num_vertices": len(mesh.vertices),
-        "vertices_written": int(len(np.unique(mesh.faces))),
+        "vertices_written": int(np.count_nonzero(np.bincount(mesh.faces.ravel(), minlength=len(mesh.vertices)))),
         "num_faces": len(mesh.faces),
         "num_faces_stretched": 0,
         "stretched_kept_as_occluders": False,

@@ -60,17 +60,21 @@ def _bullet(asset):
                        Agent(radius=ag["agent_radius_m"], height=ag["agent_height_m"], step_height=ag["step_height_m"]))
 
 
-def test_collider_compaction_is_np_unique_without_the_sort():
-    from panoworld.asset.collider import _compact
+def test_collider_obj_is_the_text_trimesh_writes(tmp_path):
+    """write_obj formats without trimesh; trimesh's export_obj (8 decimals, 1-based faces) is its oracle."""
+    import trimesh
+
+    from panoworld.asset.collider import write_obj
 
     rng = np.random.default_rng(0)
-    verts = rng.normal(size=(500, 3))
-    faces = rng.choice(np.arange(0, 500, 3), size=(200, 3))  # two thirds of the vertices unreferenced
-    used, inverse = np.unique(faces.reshape(-1), return_inverse=True)
-    v, f = _compact(verts, faces)
-    np.testing.assert_array_equal(v, verts[used])
-    np.testing.assert_array_equal(f, inverse.reshape(-1, 3))
-    assert f.dtype == np.int64 and np.array_equal(v[f], verts[faces])
+    verts = rng.normal(size=(500, 3)) * 3
+    verts[0] = [-0.0, 1e-9, -1e-9]  # signed zero and values rounding to it
+    verts[1] = [1234.5, 0.5e-8, 1.5e-8]  # ties at the 8th decimal
+    faces = rng.integers(0, 500, (300, 3))
+    write_obj(tmp_path / "c.obj", verts, faces, "a header")
+    ref = trimesh.exchange.obj.export_obj(trimesh.Trimesh(verts, faces, process=False), include_normals=False,
+                                          include_color=False, include_texture=False, header=None)
+    assert (tmp_path / "c.obj").read_text() == f"# a header\n{ref}"
 
 
 def test_usd_validators_pass_and_stage_metadata(stage):

@@ -39,6 +39,18 @@ def test_erp_pixel_dir_round_trip():
     np.testing.assert_allclose(v, ii, atol=1e-9)
 
 
+@pytest.mark.parametrize("height", [1, 33, 256, 720])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_erp_dirs_is_dir_from_lonlat_on_the_pixel_grid(height, dtype):
+    """The separable erp_dirs equals dir_from_lonlat of every pixel centre's (lon, lat), bit for bit."""
+    W = 2 * height
+    jj, ii = np.meshgrid(np.arange(W) + 0.5, np.arange(height) + 0.5)
+    ref = cv.dir_from_lonlat(*cv.erp_lonlat_from_pixel(jj, ii, height, W)).astype(dtype)
+    got = cv.erp_dirs(height, W, dtype=dtype)
+    assert got.dtype == dtype and got.shape == (height, W, 3)
+    np.testing.assert_array_equal(got, ref)
+
+
 def test_seam_wraps():
     H, W = 8, 16
     lon = np.array([np.pi - 1e-9, -np.pi])

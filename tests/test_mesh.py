@@ -225,3 +225,18 @@ def test_mesh_stage_cli(room_64, tmp_path):
     assert dropped.face_valid.all() and not (tmp_path / "mesh_drop" / "mesh.glb").exists()
     r = run("stages.mesh", "--depth", str(tmp_path / "nowhere"), "--out", str(tmp_path / "mesh_bad"))
     assert r.returncode == 2 and "run the stage that produces it" in r.stderr
+
+
+def test_compact_faces_is_np_unique_with_inverse():
+    """compact_faces (mark + prefix sum) equals np.unique(faces, return_inverse=True), unused vertices included."""
+    from panoworld.mesh import compact_faces
+
+    rng = np.random.default_rng(3)
+    faces = rng.integers(0, 500, (800, 3))
+    faces[faces % 7 == 0] = 11  # vertices nobody references, one referenced many times
+    used, inv = np.unique(faces, return_inverse=True)
+    got_used, got_faces = compact_faces(faces, 520)
+    np.testing.assert_array_equal(got_used, used)
+    np.testing.assert_array_equal(got_faces, inv.reshape(-1, 3))
+    np.testing.assert_array_equal(got_used[got_faces], faces)
+    assert got_faces.dtype == np.intp

@@ -498,3 +498,18 @@ def test_leg_shadow_star_must_be_dark_across_a_leg_shadows_width():
         assert ((found & truth).sum() > 0.5 * truth.sum()) == expect, (w, (found & truth).sum(), truth.sum())
         if not expect:  # what the width test changes: without it the thin lines are a star
             assert (leg_shadow_lines(lit, theta, rig, CAP_DEG, 2.0) & truth).sum() > 0.5 * truth.sum()
+
+
+def test_floor_light_least_squares_match_lstsq():
+    """rig_shadow._lstsq (normal equations) equals np.linalg.lstsq, a column without support included (its
+    minimum-norm coefficient is 0)."""
+    from panoworld.rig_shadow import _lstsq
+
+    rng = np.random.default_rng(1)
+    A = rng.normal(size=(5000, 9))
+    A[:, 4] = 0.0  # a hat no floor pixel reaches
+    y = rng.normal(size=5000)
+    ref = np.linalg.lstsq(A, y, rcond=None)[0]
+    got = _lstsq(A, y)
+    assert got[4] == 0.0
+    np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-12)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.mesh import ErpMesh
+from panoworld.mesh import ErpMesh, compact_faces
 
 MAX_PASSES = 3
 """Decimation passes at most (each stops when no edge collapse keeps the quadric error low enough)."""
@@ -31,13 +31,9 @@ class Collider:
 
 
 def _compact(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The referenced vertices in their order and the faces renumbered (np.unique's sorted values and inverse,
-    by a mask instead of a sort)."""
-    flat = np.asarray(faces, np.int64).reshape(-1)
-    used = np.zeros(len(vertices), bool)
-    used[flat] = True
-    new_index = np.cumsum(used) - 1
-    return np.asarray(vertices, np.float64)[used], new_index[flat].reshape(-1, 3)
+    """The referenced vertices (float64) in their order and the faces (int64) renumbered into them."""
+    used, new_faces = compact_faces(np.asarray(faces, np.int64).reshape(-1, 3), len(vertices))
+    return np.asarray(vertices, np.float64)[used], new_faces.astype(np.int64, copy=False)
 
 
 def _drop_degenerate(vertices: np.ndarray, faces: np.ndarray, min_area_m2: float = 1e-12) -> np.ndarray:
@@ -78,9 +74,10 @@ def collision_mesh(mesh: ErpMesh, max_triangles: int) -> Collider:
 
 
 def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray, header: str) -> None:
-    """Wavefront OBJ (v / f lines, 1-based) that every physics engine's loader reads."""
-    import trimesh
-
-    text = trimesh.exchange.obj.export_obj(trimesh.Trimesh(vertices, faces, process=False), include_normals=False,
-                                           include_color=False, include_texture=False, header=None)
-    Path(path).write_text(f"# {header}\n{text}")
+    """Wavefront OBJ (v / f lines, 1-based) that every physics engine's loader reads; the text trimesh's export_obj
+    writes (8 decimals), formatted in one pass without importing trimesh (1.7 s of the asset stage)."""
+    v = np.asarray(vertices, np.float64).reshape(-1, 3)
+    f = np.asarray(faces, np.int64).reshape(-1, 3) + 1
+    text = ("v %.8f %.8f %.8f\n" * len(v)) % tuple(v.ravel().tolist())
+    text += ("f %d %d %d\n" * len(f)) % tuple(f.ravel().tolist())
+    Path(path).write_text(f"# {header}\n{text}\n")

@@ -12,7 +12,7 @@ from panoworld.errors import InputError
 from panoworld.io.jsonio import read_json, write_json
 from panoworld.register.inputs import PANORAMAS_JSON, REGISTRATION_JSON, find_multi_scene, read_poses
 from panoworld.register.options import RegisterOptions
-from panoworld.register.solve import Registration, register_panoramas
+from panoworld.register.registration import Registration
 
 
 def register_scene(scene: Path, options: RegisterOptions, out_dir: Path) -> dict:
@@ -23,6 +23,8 @@ def register_scene(scene: Path, options: RegisterOptions, out_dir: Path) -> dict
     if missing:
         raise InputError(f"{Path(scene) / 'depths'}: no depth for {missing}; give depths/NAME.npy (metric ray depth, "
                          "metres) for every panorama without a pose in poses.json")
+    from panoworld.register.solve import register_panoramas  # cv2, torch, pycolmap
+
     need_pixels = len(given) < len(ms.names)
     rgbs = {n: read_panorama(ms.panoramas[n]) for n in ms.names} if need_pixels else {}
     depths = {n: read_depth(ms.depths[n]) for n in ms.names if n in ms.depths} if need_pixels else {}
@@ -46,6 +48,8 @@ def register_depth_dirs(dirs: dict[str, Path] | None, poses_file: Path | None, o
         write_registration(out_dir, reg)
         return {"num_panoramas": 1, "num_registered": 1, "num_given": 0, "unregistered": [], "pairs_accepted": 0,
                 "pairs_tried": 0}
+    from panoworld.register.solve import register_panoramas  # cv2, torch, pycolmap: not for one panorama
+
     names = list(dirs)
     given = read_poses(poses_file, names) if poses_file is not None else {}
     rgbs, depths = {}, {}

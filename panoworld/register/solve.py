@@ -3,8 +3,6 @@ the posed (or first) panoramas, and per-panorama quality figures; unconnected pa
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import cv2
 import numpy as np
 
@@ -12,19 +10,7 @@ from panoworld.conventions import invert_pose
 from panoworld.gaussians import resize_depth
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pairwise import Features, PairResult, erp_features, register_pair
-
-
-@dataclass(kw_only=True)
-class Registration:
-    """Poses in the first registered panorama's frame and what each estimate rests on."""
-
-    world_from_cam: dict[str, np.ndarray]
-    """Registered panoramas only."""
-    panoramas: dict[str, dict]
-    """Per panorama: registered, source ('given' / 'estimated' / None), parent, inliers, overlap, consistency,
-    residual (of the edge that placed it), reason when not registered."""
-    pairs: list[dict] = field(default_factory=list)
-    """Every pair tried: names, matches, inliers, overlap, consistency, residual, accepted."""
+from panoworld.register.registration import Registration
 
 
 def rgbd_at_height(rgb: np.ndarray, depth: np.ndarray, height: int) -> tuple[np.ndarray, np.ndarray]:
