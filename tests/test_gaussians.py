@@ -114,7 +114,7 @@ def test_merging_per_frame_sums_equals_one_pass():
 
 
 def test_fusion_streams_frames_and_bounds_its_accumulators(room, monkeypatch):
-    """Frames are consumed one at a time (a lazy source never has two alive) and the per-frame voxel sums are reduced
+    """Frames are streamed (a lazy source has at most three alive) and the per-frame voxel sums are reduced
     every MERGE_EVERY frames, with the same result as fusing the frames held in a list."""
     import weakref
 
@@ -148,7 +148,9 @@ def test_fusion_streams_frames_and_bounds_its_accumulators(room, monkeypatch):
         lazy = gs.voxel_fusion(Lazy(), FusionParams(voxel_size=0.1, per_voxel=2))
     finally:
         torch.set_num_threads(threads)
-    assert most[0] <= 2 and max(sizes) <= 4  # at most the frame in use (and the one being dropped)
+    # at most the frame being fused, the one drawn ahead and the previous one while its worker thread lets go of it
+    # (2 on an idle machine; 3 seen under load): streamed, never the 12 of the list
+    assert most[0] <= 3 and max(sizes) <= 4
     whole = gs.voxel_fusion([(*cache[i], p) for i, p in enumerate(poses)], FusionParams(voxel_size=0.1, per_voxel=2))
     assert lazy.num_observations == whole.num_observations and len(lazy.gaussians) == len(whole.gaussians)
     np.testing.assert_allclose(lazy.gaussians.means, whole.gaussians.means, atol=1e-5)
