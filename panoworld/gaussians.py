@@ -276,6 +276,11 @@ MERGE_EVERY = 8
 """voxel_fusion reduces its per-frame voxel sums into the running total every this many frames (bounds memory)."""
 
 
+def _nonempty(obs: Observations, fn: Callable):
+    """fn(obs), or None when obs holds no observation."""
+    return fn(obs) if len(obs.points) else None
+
+
 def _reduce(parts: list[VoxelSums], part: VoxelSums) -> list[VoxelSums]:
     parts.append(part)
     return [merge_voxel_sums(parts)] if len(parts) > MERGE_EVERY else parts
@@ -299,29 +304,35 @@ def voxel_fusion(
     """
     from tqdm import tqdm
 
+    from panoworld.voxel_reduce import frame_moment_sums, merge_sums
+
     params.check()
     if params.per_voxel > 1 and iter(frames) is frames:
         frames = list(frames)  # a one-shot iterator cannot feed the second pass
     total = len(frames) if hasattr(frames, "__len__") else None
     eps_v = params.voxel_size
 
-    def observations():  # two frames at once (numpy releases the GIL), in frame order
+    def observations(fn=lambda obs: obs):  # fn(each frame's observations), two frames at once (numpy and the
         bar = tqdm(frames, total=total, desc="voxel fusion", disable=None if progress else True, leave=False)
-        for obs in map_ahead(lambda f: frame_observations(*f, params, keep_points=keep_points), bar,
-                             workers=min(2, max(1, torch.get_num_threads()))):
-            if len(obs.points):
-                yield obs
+        for out in map_ahead(lambda f: _nonempty(frame_observations(*f, params, keep_points=keep_points), fn), bar,
+                             workers=min(2, max(1, torch.get_num_threads()))):  # kernels release the GIL), in order
+            if out is not None:
+                yield out
 
-    parts: list[VoxelSums] = []
+    def frame_sums(obs):  # voxel_sums(voxel_keys, _moment_values)'s sums by voxel_reduce's kernel, bit for bit
+        return len(obs.points), frame_moment_sums(obs.points.numpy(), obs.colors.numpy(), obs.steps.numpy(),
+                                                  obs.weights.numpy(), eps_v)
+
+    parts: list[tuple] = []
     n_obs = 0
-    for obs in observations():
-        keys, ijk = voxel_keys(obs.points, eps_v)
-        centre = (ijk.double() + 0.5) * eps_v
-        parts = _reduce(parts, voxel_sums(keys, obs.weights, _moment_values(obs, centre))[0])
-        n_obs += len(obs.points)
+    for n, part in observations(frame_sums):
+        parts.append(part)
+        if len(parts) > MERGE_EVERY:
+            parts = [merge_sums(parts)]
+        n_obs += n
     if not parts:
         raise ValueError("no valid depth pixel in any frame: every depth is 0, inf or NaN (or beyond max_depth)")
-    sums = merge_voxel_sums(parts)
+    sums = VoxelSums(*(torch.from_numpy(a) for a in merge_sums(parts)))
     centres = (voxel_coords_from_keys(sums.keys).double() + 0.5) * eps_v
     num_voxels = int(sums.keys.shape[0])
 
