@@ -182,22 +182,16 @@ def frame_observations(
     (M, 3) of the valid pixels to a bool mask (M,) of those to keep; the others are dropped before their footprints
     are computed (the same observations as subsetting afterwards, for a fraction of the work when few are kept).
     """
+    from panoworld.fusion_kernels import frame_points
+
     depth = np.asarray(depth)
     check_shape("rgb", rgb, "H W 3", dims=check_shape("depth", depth, "H W"))
     h, w = depth.shape
     check_pose(world_from_cam, "world_from_cam")
-    d = depth.astype(np.float64)
-    valid = np.isfinite(d) & (d > 0)
-    if params.max_depth > 0:
-        valid &= d <= params.max_depth
     dirs = _erp_dirs64(h, w)
-    pts = np.where(valid[..., None], dirs * np.where(valid, d, 0.0)[..., None], np.nan)
-    R = world_from_cam[:3, :3]
-    px = np.flatnonzero(valid)
-    pts_w = None
-    # einsum, not @: these (M, 3) x (3, 3) products run far slower through a multithreaded BLAS on a busy CPU.
+    # the camera points (NaN where invalid), the valid pixels and their world points, in one numba pass
+    pts, px, pts_w = frame_points(depth, dirs, world_from_cam, params.max_depth)
     if keep_points is not None:
-        pts_w = np.einsum("mi,ji->mj", pts.reshape(-1, 3)[px], R) + world_from_cam[:3, 3]
         sel = np.asarray(keep_points(pts_w), bool)
         px, pts_w = px[sel], pts_w[sel]
     a, b = _neighbour_steps(pts, px)
@@ -206,13 +200,10 @@ def frame_observations(
     with np.errstate(invalid="ignore", divide="ignore"):
         cos = np.abs(np.einsum("mc,mc->m", normal, dirs.reshape(-1, 3)[px])) / area
     keep = np.isfinite(area) & (area > 0) & (cos >= params.min_cos)
-    px, a, b, cos, area = px[keep], a[keep], b[keep], cos[keep], area[keep]
-    d = d.reshape(-1)[px]
-    if pts_w is None:
-        pts_w = np.einsum("mi,ji->mj", pts.reshape(-1, 3)[px], R) + world_from_cam[:3, 3]
-    else:
-        pts_w = pts_w[keep]
-    steps = np.einsum("mki,ji->mkj", np.stack([a, b], 1), R)
+    px, a, b, cos, area, pts_w = px[keep], a[keep], b[keep], cos[keep], area[keep], pts_w[keep]
+    d = depth.reshape(-1)[px].astype(np.float64)
+    # einsum, not @: these (M, 3) x (3, 3) products run far slower through a multithreaded BLAS on a busy CPU.
+    steps = np.einsum("mki,ji->mkj", np.stack([a, b], 1), world_from_cam[:3, :3])
     if params.confidence == Confidence.UNIFORM:
         wts = np.ones(len(px))
     elif params.confidence == Confidence.AREA:
@@ -304,7 +295,7 @@ def voxel_fusion(
     """
     from tqdm import tqdm
 
-    from panoworld.voxel_reduce import frame_moment_sums, merge_sums
+    from panoworld.fusion_kernels import frame_moment_sums, merge_sums
 
     params.check()
     if params.per_voxel > 1 and iter(frames) is frames:
@@ -319,7 +310,7 @@ def voxel_fusion(
             if out is not None:
                 yield out
 
-    def frame_sums(obs):  # voxel_sums(voxel_keys, _moment_values)'s sums by voxel_reduce's kernel, bit for bit
+    def frame_sums(obs):  # voxel_sums(voxel_keys, _moment_values)'s sums by fusion_kernels's kernel, bit for bit
         return len(obs.points), frame_moment_sums(obs.points.numpy(), obs.colors.numpy(), obs.steps.numpy(),
                                                   obs.weights.numpy(), eps_v)
 

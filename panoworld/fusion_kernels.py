@@ -1,4 +1,4 @@
-"""Numba voxel sums of voxel fusion's moments: gaussians.voxel_sums / merge_voxel_sums' arithmetic, bit for bit, for less CPU."""
+"""Numba kernels of voxel fusion (panoworld.gaussians), each bit for bit its numpy/torch reference, for less CPU."""
 
 from __future__ import annotations
 
@@ -8,6 +8,46 @@ from numba import njit
 _KEY_BITS = 21
 _KEY_HALF = 1 << (_KEY_BITS - 1)
 _SQRT12 = 12.0**0.5
+
+
+@njit(cache=True, nogil=True)
+def _frame_points(depth, dirs, world_from_cam, max_depth, pts, px, pts_w):
+    """frame_points' pass over the pixels; returns the number of valid ones."""
+    h, w = depth.shape
+    n = 0
+    for i in range(h):
+        for j in range(w):
+            d = np.float64(depth[i, j])
+            if not (np.isfinite(d) and d > 0.0 and (max_depth <= 0.0 or d <= max_depth)):
+                pts[i, j, 0] = np.nan
+                pts[i, j, 1] = np.nan
+                pts[i, j, 2] = np.nan
+                continue
+            for c in range(3):
+                pts[i, j, c] = dirs[i, j, c] * d
+            px[n] = i * w + j
+            for k in range(3):
+                a = world_from_cam[k, 0] * pts[i, j, 0]
+                b = world_from_cam[k, 1] * pts[i, j, 1]
+                e = world_from_cam[k, 2] * pts[i, j, 2]
+                # numpy's einsum("mi,ji->mj") sums its 3 products in two SIMD lanes, (0 + a + e) + (0 + b + 0)
+                pts_w[n, k] = 0.0 + (((0.0 + a) + e) + ((0.0 + b) + 0.0)) + world_from_cam[k, 3]
+            n += 1
+    return n
+
+
+def frame_points(depth: np.ndarray, dirs: np.ndarray, world_from_cam: np.ndarray, max_depth: float = 0.0):
+    """ERP depth (H, W) metres and ray directions (H, W, 3) float64 -> (camera points (H, W, 3) float64, NaN where the
+    depth is 0, non-finite or beyond max_depth when > 0; flat indices (M,) of the valid pixels; their world points
+    (M, 3) = einsum("mi,ji->mj", points, R) + t of world_from_cam (4, 4)), in one pass: frame_observations' numpy
+    (its test oracle), bit for bit."""
+    h, w = depth.shape
+    pts = np.empty((h, w, 3))
+    px = np.empty(h * w, np.int64)
+    pts_w = np.empty((h * w, 3))
+    n = _frame_points(np.ascontiguousarray(depth), np.ascontiguousarray(dirs, np.float64),
+                      np.ascontiguousarray(world_from_cam, np.float64), float(max_depth), pts, px, pts_w)
+    return pts, px[:n], pts_w[:n]
 
 
 @njit(cache=True, nogil=True)

@@ -1,11 +1,11 @@
-"""voxel_reduce's numba sums against their torch oracle (gaussians.voxel_sums / merge_voxel_sums): equal bit for bit."""
+"""fusion_kernels's numba sums against their torch oracle (gaussians.voxel_sums / merge_voxel_sums): equal bit for bit."""
 
 import numpy as np
 import pytest
 import torch
 
 from panoworld.gaussians import Observations, _moment_values, merge_voxel_sums, voxel_keys, voxel_sums
-from panoworld.voxel_reduce import frame_moment_sums, merge_sums
+from panoworld.fusion_kernels import frame_moment_sums, merge_sums
 
 
 def _observations(rng, m, spread):
@@ -61,3 +61,39 @@ def test_far_points_refused_like_voxel_keys():
         voxel_keys(torch.from_numpy(pts), 0.02)
     with pytest.raises(ValueError, match="beyond"):
         frame_moment_sums(pts, np.zeros((2, 3)), np.zeros((2, 2, 3)), np.ones(2), 0.02)
+
+
+def _frame_points_reference(depth, dirs, world_from_cam, max_depth):
+    """frame_observations' numpy before the kernel: the kernel's oracle."""
+    d = depth.astype(np.float64)
+    valid = np.isfinite(d) & (d > 0)
+    if max_depth > 0:
+        valid &= d <= max_depth
+    pts = np.where(valid[..., None], dirs * np.where(valid, d, 0.0)[..., None], np.nan)
+    px = np.flatnonzero(valid)
+    return pts, px, np.einsum("mi,ji->mj", pts.reshape(-1, 3)[px], world_from_cam[:3, :3]) + world_from_cam[:3, 3]
+
+
+@pytest.mark.parametrize("max_depth", [0.0, 4.0])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_frame_points_equal_numpy_bitwise(max_depth, dtype):
+    from scipy.spatial.transform import Rotation
+
+    from panoworld.conventions import erp_dirs
+    from panoworld.fusion_kernels import frame_points
+
+    rng = np.random.default_rng(2)
+    depth = rng.uniform(0.3, 8.0, (64, 128)).astype(dtype)
+    depth[rng.random(depth.shape) < 0.1] = 0.0
+    depth[rng.random(depth.shape) < 0.05] = np.nan
+    depth[rng.random(depth.shape) < 0.05] = np.inf
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_euler("xyz", [0.3, -1.2, 0.7]).as_matrix()
+    pose[:3, 3] = [1.5, -0.2, 3.1]
+    dirs = erp_dirs(64, 128, dtype=np.float64)
+    ours = frame_points(depth, dirs, pose, max_depth)
+    ref = _frame_points_reference(depth, dirs, pose, max_depth)
+    assert 0 < len(ref[1]) < depth.size
+    for a, b in zip(ours, ref):
+        assert a.shape == b.shape and a.dtype == b.dtype
+        assert np.array_equal(a, b, equal_nan=True)
