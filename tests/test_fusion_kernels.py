@@ -1,11 +1,11 @@
-"""fusion_kernels's numba sums against their torch oracle (gaussians.voxel_sums / merge_voxel_sums): equal bit for bit."""
+"""fusion_kernels against their numpy/torch oracles (frame_observations' numpy, gaussians.voxel_sums / merge_voxel_sums): bit for bit."""
 
 import numpy as np
 import pytest
 import torch
 
-from panoworld.gaussians import Observations, _moment_values, merge_voxel_sums, voxel_keys, voxel_sums
 from panoworld.fusion_kernels import frame_moment_sums, merge_sums
+from panoworld.gaussians import Observations, _moment_values, merge_voxel_sums, voxel_keys, voxel_sums
 
 
 def _observations(rng, m, spread):
