@@ -102,21 +102,39 @@ def _frame_sums(keys, order, ijk, points, colors, steps, weights, voxel_size, ou
 
 
 @njit(cache=True, nogil=True)
-def _merge(keys, order, w, wv, n, out_keys, out_w, out_wv, out_n):
-    """Rows (key, w, wv, n) summed per key in the order of `order` (keys sorted, stable)."""
-    v = -1
-    last = np.int64(0)
-    for t in range(order.shape[0]):
-        m = order[t]
-        if v < 0 or keys[m] != last:
-            v += 1
-            last = keys[m]
-            out_keys[v] = last
-        out_w[v] += w[m]
-        for c in range(wv.shape[1]):
-            out_wv[v, c] += wv[m, c]
-        out_n[v] += n[m]
-    return v + 1
+def _merge(first, keys, w, wv, n, starts, out_keys, out_w, out_wv, out_n):
+    """The sorted runs `first` (keys, w, wv, n) and keys[starts[r]:starts[r + 1]] (unique keys each) merged, summed
+    per key in run order (first, then the others), without copying `first` into the others."""
+    fk, fw, fwv, fn = first
+    runs = starts.shape[0] - 1
+    head = starts[:-1].copy()
+    f = 0
+    v = 0
+    while True:
+        found = f < fk.shape[0]
+        key = fk[f] if found else np.int64(0)
+        for r in range(runs):
+            if head[r] < starts[r + 1] and (not found or keys[head[r]] < key):
+                key = keys[head[r]]
+                found = True
+        if not found:
+            return v
+        out_keys[v] = key
+        if f < fk.shape[0] and fk[f] == key:
+            out_w[v] += fw[f]
+            for c in range(fwv.shape[1]):
+                out_wv[v, c] += fwv[f, c]
+            out_n[v] += fn[f]
+            f += 1
+        for r in range(runs):  # then the other runs, in order
+            m = head[r]
+            if m < starts[r + 1] and keys[m] == key:
+                out_w[v] += w[m]
+                for c in range(wv.shape[1]):
+                    out_wv[v, c] += wv[m, c]
+                out_n[v] += n[m]
+                head[r] = m + 1
+        v += 1
 
 
 def frame_moment_sums(points: np.ndarray, colors: np.ndarray, steps: np.ndarray, weights: np.ndarray,
@@ -140,11 +158,15 @@ def frame_moment_sums(points: np.ndarray, colors: np.ndarray, steps: np.ndarray,
 
 
 def merge_sums(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]):
-    """Several (keys, w, wv, n) into one, summed per key in the parts' order (merge_voxel_sums', bit for bit)."""
-    keys, w, wv, n = (np.concatenate([p[i] for p in parts]) for i in range(4))
-    order = np.argsort(keys, kind="stable")  # sorted runs: timsort merges them
-    out = _alloc(len(keys), wv.shape[1])
-    v = _merge(keys, order, w, wv, n, *out)
+    """Several (keys, w, wv, n), keys sorted and unique in each, into one, summed per key in the parts' order
+    (merge_voxel_sums', bit for bit). The first part (voxel fusion's running total) is read in place."""
+    first, rest = parts[0], parts[1:]
+    if not rest:
+        rest = [tuple(a[:0] for a in first)]
+    keys, w, wv, n = (np.concatenate([p[i] for p in rest]) for i in range(4))
+    starts = np.cumsum([0] + [len(p[0]) for p in rest])
+    out = _alloc(len(first[0]) + len(keys), first[2].shape[1])
+    v = _merge(first, keys, w, wv, n, starts, *out)
     return tuple(a[:v] for a in out)
 
 

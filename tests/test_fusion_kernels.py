@@ -53,6 +53,7 @@ def test_merge_equals_torch_bitwise():
     parts = [frame_moment_sums(o.points.numpy(), o.colors.numpy(), o.steps.numpy(), o.weights.numpy(), 0.05)
              for o in frames]
     _assert_equal(merge_sums([merge_sums(parts[:3]), *parts[3:]]), ours)
+    _assert_equal(merge_sums(parts[:1]), _as_tuple(merge_voxel_sums([_torch_sums(frames[0], 0.05)])))
 
 
 def test_far_points_refused_like_voxel_keys():
