@@ -502,9 +502,9 @@ class ContextSource:
 
     def frame(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         from panoworld.errors import InputError
-        from panoworld.poses import load_frames, read_depth_png
+        from panoworld.poses import read_depth_png
 
-        rgb = load_frames([self.rgb_paths[k]], self.height)[0]
+        rgb = self.rgb_at(k)
         d = read_depth_png(self.depth_paths[k], self.depth_scale)
         if d.shape != (self.stored_height, 2 * self.stored_height):
             raise InputError(f"{self.depth_paths[k]}: depth is {d.shape[1]}x{d.shape[0]} but frames are "
@@ -519,7 +519,10 @@ class ContextSource:
         return map_ahead(self.frame, range(len(self)), workers=1)
 
     def rgb_at(self, k: int) -> np.ndarray:
-        return self.frame(k)[0]
+        """Frame k's colour alone (frame()'s, without reading its depth)."""
+        from panoworld.poses import load_frames
+
+        return load_frames([self.rgb_paths[k]], self.height)[0]
 
     def load(self) -> ContextFrames:
         """All frames in memory (for the learned decoder)."""

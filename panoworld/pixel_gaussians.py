@@ -228,7 +228,7 @@ def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, sourc
         result.gaussians, result.back_sides = merge_gaussians([result.gaussians, back.gaussians]), back.stats
     if fit_iters > 0:
         if fit_height and fit_height != src.height:
-            rgb = replace(frames, height=min(fit_height, frames.stored_height)).frame(0)[0]
+            rgb = replace(frames, height=min(fit_height, frames.stored_height)).rgb_at(0)  # its depth is not needed
         extra = view_targets(rest, vis, fit_views, fit_view_height, fit_view_reach, fit_view_weight)
         result.gaussians, result.color_fit = fit_colors(result.gaussians, rgb, pose, iters=fit_iters, extra=extra,
                                                         sh_degree=fit_sh_degree if extra else 0,
