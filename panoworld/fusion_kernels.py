@@ -50,6 +50,64 @@ def frame_points(depth: np.ndarray, dirs: np.ndarray, world_from_cam: np.ndarray
     return pts, px[:n], pts_w[:n]
 
 
+@njit(cache=True, inline="always")
+def _norm3(x, y, z):
+    return np.sqrt((x * x + y * y) + z * z)  # np.linalg.norm(axis=-1)'s order
+
+
+@njit(cache=True, inline="always")
+def _pick(f, b, out):
+    """_min_step: out = the shorter of f and b (f on a tie; a non-finite length counts as infinite)."""
+    nf = _norm3(f[0], f[1], f[2])
+    nb = _norm3(b[0], b[1], b[2])
+    nf = nf if np.isfinite(nf) else np.inf
+    nb = nb if np.isfinite(nb) else np.inf
+    src = f if nf <= nb else b
+    for c in range(3):
+        out[c] = src[c]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _footprints(pts, px, dirs, a, b, area, cos):
+    """frame_footprints' pass over the pixels px."""
+    h, w = pts.shape[:2]
+    fwd = np.empty(3)
+    bwd = np.empty(3)
+    for m in range(px.shape[0]):
+        i = px[m] // w
+        j = px[m] % w
+        jn = (j + 1) % w
+        jp = (j - 1) % w
+        for c in range(3):
+            fwd[c] = pts[i, jn, c] - pts[i, j, c]
+            bwd[c] = pts[i, j, c] - pts[i, jp, c]
+        _pick(fwd, bwd, a[m])
+        for c in range(3):
+            fwd[c] = pts[i + 1, j, c] - pts[i, j, c] if i < h - 1 else np.nan
+            bwd[c] = pts[i, j, c] - pts[i - 1, j, c] if i > 0 else np.nan
+        _pick(fwd, bwd, b[m])
+        n0 = a[m, 1] * b[m, 2] - a[m, 2] * b[m, 1]  # np.cross
+        n1 = a[m, 2] * b[m, 0] - a[m, 0] * b[m, 2]
+        n2 = a[m, 0] * b[m, 1] - a[m, 1] * b[m, 0]
+        area[m] = _norm3(n0, n1, n2)
+        # np.einsum("mc,mc->m")'s order (two SIMD lanes), as in _frame_points
+        dot = 0.0 + (((0.0 + n0 * dirs[i, j, 0]) + n2 * dirs[i, j, 2]) + ((0.0 + n1 * dirs[i, j, 1]) + 0.0))
+        cos[m] = abs(dot) / area[m]
+
+
+def frame_footprints(pts: np.ndarray, px: np.ndarray, dirs: np.ndarray):
+    """For the flat pixels px (M,) of an ERP grid of camera points pts (H, W, 3) (NaN = invalid) with ray directions
+    dirs (H, W, 3): (steps a (M, 3) along the row and b (M, 3) across rows, gaussians._neighbour_steps'; the area
+    |a x b| (M,); |cos| of the angle between a x b and the ray (M,)), as frame_observations' numpy computes them (its
+    test oracle), bit for bit."""
+    m = len(px)
+    a, b = np.empty((m, 3)), np.empty((m, 3))
+    area, cos = np.empty(m), np.empty(m)
+    _footprints(np.ascontiguousarray(pts, np.float64), np.ascontiguousarray(px, np.int64),
+                np.ascontiguousarray(dirs, np.float64), a, b, area, cos)
+    return a, b, area, cos
+
+
 @njit(cache=True, nogil=True)
 def _keys(points, voxel_size, keys, ijk):
     """voxel_keys' packing of floor(points / voxel_size); returns the largest |ijk|."""

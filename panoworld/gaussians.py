@@ -182,7 +182,7 @@ def frame_observations(
     (M, 3) of the valid pixels to a bool mask (M,) of those to keep; the others are dropped before their footprints
     are computed (the same observations as subsetting afterwards, for a fraction of the work when few are kept).
     """
-    from panoworld.fusion_kernels import frame_points
+    from panoworld.fusion_kernels import frame_footprints, frame_points
 
     depth = np.asarray(depth)
     check_shape("rgb", rgb, "H W 3", dims=check_shape("depth", depth, "H W"))
@@ -194,11 +194,7 @@ def frame_observations(
     if keep_points is not None:
         sel = np.asarray(keep_points(pts_w), bool)
         px, pts_w = px[sel], pts_w[sel]
-    a, b = _neighbour_steps(pts, px)
-    normal = np.cross(a, b)
-    area = np.linalg.norm(normal, axis=-1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cos = np.abs(np.einsum("mc,mc->m", normal, dirs.reshape(-1, 3)[px])) / area
+    a, b, area, cos = frame_footprints(pts, px, dirs)  # _neighbour_steps, |a x b| and its cos to the ray, in numba
     keep = np.isfinite(area) & (area > 0) & (cos >= params.min_cos)
     px, a, b, cos, area, pts_w = px[keep], a[keep], b[keep], cos[keep], area[keep], pts_w[keep]
     d = depth.reshape(-1)[px].astype(np.float64)

@@ -98,3 +98,26 @@ def test_frame_points_equal_numpy_bitwise(max_depth, dtype):
     for a, b in zip(ours, ref):
         assert a.shape == b.shape and a.dtype == b.dtype
         assert np.array_equal(a, b, equal_nan=True)
+
+
+def test_frame_footprints_equal_numpy_bitwise():
+    from panoworld.conventions import erp_dirs
+    from panoworld.fusion_kernels import frame_footprints, frame_points
+    from panoworld.gaussians import _neighbour_steps
+
+    rng = np.random.default_rng(4)
+    h, w = 48, 96
+    depth = rng.uniform(0.5, 6.0, (h, w))
+    depth[:, 20:40] = 2.0  # smooth stretches beside rough ones: steps of equal length both ways
+    depth[rng.random(depth.shape) < 0.15] = 0.0
+    dirs = erp_dirs(h, w, dtype=np.float64)
+    pts, px, _ = frame_points(depth, dirs, np.eye(4))
+    a, b, area, cos = frame_footprints(pts, px, dirs)
+    a0, b0 = _neighbour_steps(pts, px)  # frame_observations' numpy before the kernel
+    normal = np.cross(a0, b0)
+    area0 = np.linalg.norm(normal, axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos0 = np.abs(np.einsum("mc,mc->m", normal, dirs.reshape(-1, 3)[px])) / area0
+    assert (px < w).any() and (px >= (h - 1) * w).any()  # both poles' rows, where one latitude step is missing
+    for x, y in ((a, a0), (b, b0), (area, area0), (cos, cos0)):
+        assert np.array_equal(x, y, equal_nan=True)
