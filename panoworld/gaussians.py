@@ -299,14 +299,16 @@ def voxel_fusion(
     total = len(frames) if hasattr(frames, "__len__") else None
     eps_v = params.voxel_size
 
-    def observations(fn=lambda obs: obs):  # fn(each frame's observations), two frames at once (numpy and the
+    def observations(fn=lambda obs: obs):
+        """fn(each frame's non-empty observations), in frame order, two frames at once on worker threads (numpy and
+        the numba kernels release the GIL)."""
         bar = tqdm(frames, total=total, desc="voxel fusion", disable=None if progress else True, leave=False)
         for out in map_ahead(lambda f: _nonempty(frame_observations(*f, params, keep_points=keep_points), fn), bar,
-                             workers=min(2, max(1, torch.get_num_threads()))):  # kernels release the GIL), in order
+                             workers=min(2, max(1, torch.get_num_threads()))):
             if out is not None:
                 yield out
 
-    def frame_sums(obs):  # voxel_sums(voxel_keys, _moment_values)'s sums by fusion_kernels's kernel, bit for bit
+    def frame_sums(obs):  # voxel_sums(voxel_keys, _moment_values)'s sums, bit for bit, by a numba kernel
         return len(obs.points), frame_moment_sums(obs.points.numpy(), obs.colors.numpy(), obs.steps.numpy(),
                                                   obs.weights.numpy(), eps_v)
 
