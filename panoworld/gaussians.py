@@ -182,37 +182,24 @@ def frame_observations(
     (M, 3) of the valid pixels to a bool mask (M,) of those to keep; the others are dropped before their footprints
     are computed (the same observations as subsetting afterwards, for a fraction of the work when few are kept).
     """
+    from panoworld.fusion_kernels import frame_footprints, frame_points
+
     depth = np.asarray(depth)
     check_shape("rgb", rgb, "H W 3", dims=check_shape("depth", depth, "H W"))
     h, w = depth.shape
     check_pose(world_from_cam, "world_from_cam")
-    d = depth.astype(np.float64)
-    valid = np.isfinite(d) & (d > 0)
-    if params.max_depth > 0:
-        valid &= d <= params.max_depth
     dirs = _erp_dirs64(h, w)
-    pts = np.where(valid[..., None], dirs * np.where(valid, d, 0.0)[..., None], np.nan)
-    R = world_from_cam[:3, :3]
-    px = np.flatnonzero(valid)
-    pts_w = None
-    # einsum, not @: these (M, 3) x (3, 3) products run far slower through a multithreaded BLAS on a busy CPU.
+    # the camera points (NaN where invalid), the valid pixels and their world points, in one numba pass
+    pts, px, pts_w = frame_points(depth, dirs, world_from_cam, params.max_depth)
     if keep_points is not None:
-        pts_w = np.einsum("mi,ji->mj", pts.reshape(-1, 3)[px], R) + world_from_cam[:3, 3]
         sel = np.asarray(keep_points(pts_w), bool)
         px, pts_w = px[sel], pts_w[sel]
-    a, b = _neighbour_steps(pts, px)
-    normal = np.cross(a, b)
-    area = np.linalg.norm(normal, axis=-1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cos = np.abs(np.einsum("mc,mc->m", normal, dirs.reshape(-1, 3)[px])) / area
+    a, b, area, cos = frame_footprints(pts, px, dirs)  # _neighbour_steps, |a x b| and its cos to the ray, in numba
     keep = np.isfinite(area) & (area > 0) & (cos >= params.min_cos)
-    px, a, b, cos, area = px[keep], a[keep], b[keep], cos[keep], area[keep]
-    d = d.reshape(-1)[px]
-    if pts_w is None:
-        pts_w = np.einsum("mi,ji->mj", pts.reshape(-1, 3)[px], R) + world_from_cam[:3, 3]
-    else:
-        pts_w = pts_w[keep]
-    steps = np.einsum("mki,ji->mkj", np.stack([a, b], 1), R)
+    px, a, b, cos, area, pts_w = px[keep], a[keep], b[keep], cos[keep], area[keep], pts_w[keep]
+    d = depth.reshape(-1)[px].astype(np.float64)
+    # einsum, not @: these (M, 3) x (3, 3) products run far slower through a multithreaded BLAS on a busy CPU.
+    steps = np.einsum("mki,ji->mkj", np.stack([a, b], 1), world_from_cam[:3, :3])
     if params.confidence == Confidence.UNIFORM:
         wts = np.ones(len(px))
     elif params.confidence == Confidence.AREA:
@@ -276,6 +263,11 @@ MERGE_EVERY = 8
 """voxel_fusion reduces its per-frame voxel sums into the running total every this many frames (bounds memory)."""
 
 
+def _nonempty(obs: Observations, fn: Callable):
+    """fn(obs), or None when obs holds no observation."""
+    return fn(obs) if len(obs.points) else None
+
+
 def _reduce(parts: list[VoxelSums], part: VoxelSums) -> list[VoxelSums]:
     parts.append(part)
     return [merge_voxel_sums(parts)] if len(parts) > MERGE_EVERY else parts
@@ -299,29 +291,37 @@ def voxel_fusion(
     """
     from tqdm import tqdm
 
+    from panoworld.fusion_kernels import frame_moment_sums, merge_sums
+
     params.check()
     if params.per_voxel > 1 and iter(frames) is frames:
         frames = list(frames)  # a one-shot iterator cannot feed the second pass
     total = len(frames) if hasattr(frames, "__len__") else None
     eps_v = params.voxel_size
 
-    def observations():  # two frames at once (numpy releases the GIL), in frame order
+    def observations(fn=lambda obs: obs):
+        """fn(each frame's non-empty observations), in frame order, two frames at once on worker threads (numpy and
+        the numba kernels release the GIL)."""
         bar = tqdm(frames, total=total, desc="voxel fusion", disable=None if progress else True, leave=False)
-        for obs in map_ahead(lambda f: frame_observations(*f, params, keep_points=keep_points), bar,
+        for out in map_ahead(lambda f: _nonempty(frame_observations(*f, params, keep_points=keep_points), fn), bar,
                              workers=min(2, max(1, torch.get_num_threads()))):
-            if len(obs.points):
-                yield obs
+            if out is not None:
+                yield out
 
-    parts: list[VoxelSums] = []
+    def frame_sums(obs):  # voxel_sums(voxel_keys, _moment_values)'s sums, bit for bit, by a numba kernel
+        return len(obs.points), frame_moment_sums(obs.points.numpy(), obs.colors.numpy(), obs.steps.numpy(),
+                                                  obs.weights.numpy(), eps_v)
+
+    parts: list[tuple] = []
     n_obs = 0
-    for obs in observations():
-        keys, ijk = voxel_keys(obs.points, eps_v)
-        centre = (ijk.double() + 0.5) * eps_v
-        parts = _reduce(parts, voxel_sums(keys, obs.weights, _moment_values(obs, centre))[0])
-        n_obs += len(obs.points)
+    for n, part in observations(frame_sums):
+        parts.append(part)
+        if len(parts) > MERGE_EVERY:
+            parts = [merge_sums(parts)]
+        n_obs += n
     if not parts:
         raise ValueError("no valid depth pixel in any frame: every depth is 0, inf or NaN (or beyond max_depth)")
-    sums = merge_voxel_sums(parts)
+    sums = VoxelSums(*(torch.from_numpy(a) for a in merge_sums(parts)))
     centres = (voxel_coords_from_keys(sums.keys).double() + 0.5) * eps_v
     num_voxels = int(sums.keys.shape[0])
 
@@ -500,9 +500,9 @@ class ContextSource:
 
     def frame(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         from panoworld.errors import InputError
-        from panoworld.poses import load_frames, read_depth_png
+        from panoworld.poses import read_depth_png
 
-        rgb = load_frames([self.rgb_paths[k]], self.height)[0]
+        rgb = self.rgb_at(k)
         d = read_depth_png(self.depth_paths[k], self.depth_scale)
         if d.shape != (self.stored_height, 2 * self.stored_height):
             raise InputError(f"{self.depth_paths[k]}: depth is {d.shape[1]}x{d.shape[0]} but frames are "
@@ -517,7 +517,10 @@ class ContextSource:
         return map_ahead(self.frame, range(len(self)), workers=1)
 
     def rgb_at(self, k: int) -> np.ndarray:
-        return self.frame(k)[0]
+        """Frame k's colour alone (frame()'s, without reading its depth)."""
+        from panoworld.poses import load_frames
+
+        return load_frames([self.rgb_paths[k]], self.height)[0]
 
     def load(self) -> ContextFrames:
         """All frames in memory (for the learned decoder)."""

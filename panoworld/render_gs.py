@@ -295,18 +295,18 @@ def face_weights(proj: Projected, H: int, W: int, chunk: int = 32, need: np.ndar
     only those pixels' weights (None: all); tiles without one are skipped. A smaller tile than the rasteriser's
     scans fewer Gaussians per pixel (the same weights but where a pixel's transmittance falls below T_MIN, which
     chunk it stops at)."""
-    from panoworld.splat_weights import tile_weights
+    from panoworld.splat_weights import bin_tiles_numba, tile_weights
 
-    ntx, nty, sorted_g, counts, starts = bin_tiles(proj, H, W, tile)
-    counts = counts.numpy()
+    ntx, nty, sorted_g, counts, starts = bin_tiles_numba(proj.xy.numpy(), proj.extent.numpy(), proj.z.numpy(), H, W,
+                                                         tile)
     if need is None:
         need = np.zeros(0, bool)
     else:
         pad = np.zeros((nty * tile, ntx * tile), bool)
         pad[:H, :W] = np.asarray(need, bool).reshape(H, W)
         counts = np.where(pad.reshape(nty, tile, ntx, tile).any((1, 3)).reshape(-1), counts, 0)
-    return tile_weights(proj.xy.numpy(), proj.conic.numpy(), proj.opacity.numpy(), sorted_g.numpy(), starts.numpy(),
-                        counts, ntx, H, W, tile, chunk, need)
+    return tile_weights(proj.xy.numpy(), proj.conic.numpy(), proj.opacity.numpy(), sorted_g, starts, counts, ntx, H, W,
+                        tile, chunk, need)
 
 
 def _background(background) -> torch.Tensor:

@@ -101,6 +101,50 @@ def tile_weights(xy, conic, opacity, sorted_g, starts, counts, ntx, H, W, tile, 
 
 
 @njit(cache=True, nogil=True)
+def _tile_ranges(xy, extent, H, W, tile, out):
+    """Per Gaussian the tile range (j0, j1, i0, i1) its alpha >= 1/255 box covers, in float32 as render_gs.bin_tiles."""
+    for g in range(xy.shape[0]):
+        for c, size in ((0, W), (1, H)):
+            lo = np.ceil(xy[g, c] - extent[g, c] - _HALF_PX)
+            hi = np.floor(xy[g, c] + extent[g, c] - _HALF_PX)
+            top = _F(size - 1)
+            out[g, 2 * c] = np.int64(min(max(lo, _ZERO), top)) // tile
+            out[g, 2 * c + 1] = np.int64(min(max(hi, _ZERO), top)) // tile
+
+
+@njit(cache=True, nogil=True)
+def _bin(ranges, by_depth, ntx, n_tiles):
+    counts = np.zeros(n_tiles, np.int64)
+    for g in range(ranges.shape[0]):
+        j0, j1, i0, i1 = ranges[g, 0], ranges[g, 1], ranges[g, 2], ranges[g, 3]
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                counts[i * ntx + j] += 1
+    starts = np.cumsum(counts) - counts
+    fill = starts.copy()
+    sorted_g = np.empty(counts.sum(), np.int64)
+    for g in by_depth:  # in depth order, so each tile's list is sorted by depth (rank)
+        j0, j1, i0, i1 = ranges[g, 0], ranges[g, 1], ranges[g, 2], ranges[g, 3]
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                t = i * ntx + j
+                sorted_g[fill[t]] = g
+                fill[t] += 1
+    return sorted_g, counts, starts
+
+
+def bin_tiles_numba(xy: np.ndarray, extent: np.ndarray, z: np.ndarray, H: int, W: int, tile: int):
+    """render_gs.bin_tiles' (ntx, nty, Gaussian indices sorted by (tile, depth), per-tile counts, starts) from
+    projected centres xy (P, 2), box half-extents (P, 2) and depths z (P,) float32, by a counting sort: equal to it
+    (its test oracle), for a fraction of its time."""
+    ntx, nty = -(-W // tile), -(-H // tile)
+    ranges = np.empty((len(xy), 4), np.int64)
+    _tile_ranges(np.ascontiguousarray(xy, np.float32), np.ascontiguousarray(extent, np.float32), H, W, tile, ranges)
+    sorted_g, counts, starts = _bin(ranges, np.argsort(z, kind="stable"), ntx, ntx * nty)
+    return ntx, nty, sorted_g, counts, starts
+
+
+@njit(cache=True, nogil=True)
 def _grow(a, cap):
     out = np.empty(cap, a.dtype)
     out[: a.shape[0]] = a

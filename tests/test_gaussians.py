@@ -438,6 +438,36 @@ def test_source_lookup_kernel_matches_its_numpy_reference():
     assert np.isnan(bad).all()
 
 
+def test_source_lookup_fast_atan_equals_libm_bitwise():
+    # _source_lookup takes the pixel from a polynomial atan2 away from pixel edges and libm's near them: the same
+    # pixels as _source_lookup_exact everywhere, also for points on the pixel edges, the seam, the poles and the centre
+    from scipy.spatial.transform import Rotation
+
+    from panoworld.pixel_gaussians import _source_lookup, _source_lookup_exact
+
+    rng = np.random.default_rng(5)
+    h, w = 96, 192
+    depth = rng.uniform(1.0, 5.0, (h, w))
+    cam_from_world = np.eye(4)
+    cam_from_world[:3, :3] = Rotation.from_euler("xyz", [0.2, -0.4, 1.1]).as_matrix()
+    cam_from_world[:3, 3] = [0.1, 0.3, -0.2]
+    lon = (np.arange(w + 1) / w - 0.5) * 2 * np.pi  # every column edge and row edge, and just beside them
+    lat = (0.5 - np.arange(h + 1) / h) * np.pi
+    lon, lat = (np.concatenate([a, np.nextafter(a, np.inf), np.nextafter(a, -np.inf), a + 1e-10, a - 1e-10])
+                for a in (lon, lat))
+    lo, la = np.meshgrid(lon, lat)
+    dirs = np.stack([np.cos(la) * np.sin(lo), -np.sin(la), np.cos(la) * np.cos(lo)], -1).reshape(-1, 3)
+    cam = np.concatenate([dirs * rng.uniform(0.5, 4.0, (len(dirs), 1)), rng.normal(size=(300_000, 3)) * 3.0,
+                          [[0, 0, 0], [0, 1, 0], [0, -2, 0], [0, 0, -1], [-0.0, 0, -1], [1e-300, 0, 1], [0, 0, 1e-300]]])
+    inv = np.linalg.inv(cam_from_world)
+    pts = np.ascontiguousarray(np.einsum("ij,mj->mi", inv[:3, :3], cam) + inv[:3, 3])
+    out = [(np.empty(len(pts)), np.empty(len(pts))) for _ in range(2)]
+    _source_lookup(pts, cam_from_world, depth, *out[0])
+    _source_lookup_exact(pts, cam_from_world, depth, *out[1])
+    assert np.array_equal(out[0][0], out[1][0])
+    assert np.array_equal(out[0][1], out[1][1], equal_nan=True)
+
+
 def test_frame_observations_filtered_before_footprints_equal_those_filtered_after(room):
     # keep_points drops pixels before their footprints are computed: the same observations, bit for bit, as computing
     # all of them and subsetting (depth edges at the block, a band without depth, the seam and the poles included).

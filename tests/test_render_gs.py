@@ -488,3 +488,20 @@ def test_room_surfels_lie_on_the_rooms_shell():
     g = room_surfels(500)
     on_face = np.isclose(np.abs(g.means), np.array(ROOM_HALF_M, np.float32)).any(axis=1)
     assert on_face.all() and (np.abs(g.means) <= np.array(ROOM_HALF_M) + 1e-6).all()
+
+
+@pytest.mark.parametrize("tile", [8, 16])
+def test_numba_bin_tiles_equal_torch(tile):
+    # face_weights bins by a numba counting sort; bin_tiles (torch argsort by (tile, depth rank)) is its oracle
+    from panoworld.render_gs import _prepare, bin_tiles, project
+    from panoworld.splat_weights import bin_tiles_numba
+
+    g = random_gaussians(500, seed=7)
+    H, W = 45, 70
+    proj = project(_prepare(g, np.zeros(3)), np.eye(4), 55.0, 50.0, 33.0, 24.0, H, W)
+    proj.z[::7] = proj.z[3]  # ties in depth: both keep index order
+    ref = bin_tiles(proj, H, W, tile)
+    ours = bin_tiles_numba(proj.xy.numpy(), proj.extent.numpy(), proj.z.numpy(), H, W, tile)
+    assert ours[:2] == ref[:2] and len(ref[2]) > 500
+    for a, b in zip(ours[2:], ref[2:]):
+        assert np.array_equal(a, b.numpy())
