@@ -156,11 +156,12 @@ def _spherical_sfm(img_dir: Path, out: Path, matcher: Matcher, sfm: ColmapOption
     upsample = sfm.upsample_features or width < SMALL_FRAME_WIDTH
     extraction.sift.first_octave = -1 if upsample else 0
     timings["features_upsampled"] = upsample
-    from panoworld.sift_thumbnail import restore_full_size, write_thumbnails
+    from panoworld.colmap_images import restore_full_size, set_point_colors, write_thumbnails
 
     # COLMAP's own shrink (OpenImageIO) is half its extraction time; the same pixels made here give the same features.
     thumbs = out / "thumbnails"
-    size = write_thumbnails(sorted(img_dir.iterdir()), thumbs, sfm.max_image_size, sfm.num_threads)
+    frames: dict | None = {} if sfm.mapper == "global" else None  # decoded once: the point colours come from them
+    size = write_thumbnails(sorted(img_dir.iterdir()), thumbs, sfm.max_image_size, sfm.num_threads, frames)
     timings["thumbnails_s"] = round(time.perf_counter() - t0, 3)
     pycolmap.extract_features(
         db, img_dir if size is None else thumbs,
@@ -181,7 +182,11 @@ def _spherical_sfm(img_dir: Path, out: Path, matcher: Matcher, sfm: ColmapOption
     t0 = time.perf_counter()
     if sfm.mapper == "global":
         mapping = pycolmap.GlobalPipelineOptions(num_threads=sfm.num_threads, random_seed=sfm.seed)
-        recs = pycolmap.global_mapping(db, img_dir, rec_path, mapping)
+        # Without an image path COLMAP leaves the points black instead of decoding every frame again.
+        recs = pycolmap.global_mapping(db, img_dir if size is None else "", rec_path, mapping)
+        if size is not None:
+            for rec in recs.values():
+                set_point_colors(rec, frames)
     elif sfm.mapper == "incremental":
         mapping = pycolmap.IncrementalPipelineOptions(num_threads=sfm.num_threads, random_seed=sfm.seed)
         recs = pycolmap.incremental_mapping(db, img_dir, rec_path, mapping)

@@ -4,12 +4,13 @@ import cv2
 import numpy as np
 import pytest
 
-from panoworld.sift_thumbnail import (
+from panoworld.colmap_images import (
     THUMB_SUFFIX,
     Thumbnailer,
     grey_reference,
     resize_reference,
     restore_full_size,
+    set_point_colors,
     thumbnail_size,
     write_thumbnails,
 )
@@ -92,3 +93,34 @@ def test_write_thumbnails_declines_what_colmap_reads_differently(tmp_path):
     grey = tmp_path / "g.png"
     cv2.imwrite(str(grey), _texture(256, 512, seed=5)[..., 0])
     assert write_thumbnails([grey], tmp_path / "t", 128) is None
+
+
+def test_point_colors_are_colmaps(tmp_path):
+    from panoworld.poses import reconstruction_from_poses
+
+    h, w = 60, 120
+    rng = np.random.default_rng(7)
+    names = ["a.png", "b.png"]
+    frames = {n: _texture(h, w, seed=10 + i)[..., ::-1].copy() for i, n in enumerate(names)}
+    for n, bgr in frames.items():
+        cv2.imwrite(str(tmp_path / n), bgr)
+    rec = reconstruction_from_poses(names, np.repeat(np.eye(4)[None], 2, axis=0), h, w)
+    # Observations anywhere, edges included (out-of-bounds samples are skipped; a point with none stays black).
+    xy = {i: np.concatenate([rng.uniform(0, [w, h], (40, 2)), [[0.2, 30.0], [w - 0.3, 5.0], [60.0, h - 0.1]]])
+          for i in rec.images}
+    for i, img in rec.images.items():
+        img.points2D = pycolmap.Point2DList([pycolmap.Point2D(p) for p in xy[i]])
+    (i1, i2), n = sorted(rec.images), len(xy[1])
+    for k in range(n):
+        track = pycolmap.Track()
+        track.add_element(i1, k)
+        if k % 2:
+            track.add_element(i2, k)  # seen twice: the mean of two samples is rounded
+        rec.add_point3D(np.array([0.0, 0.0, 1.0 + k]), track)
+    ref = pycolmap.Reconstruction(rec)
+    ref.extract_colors_for_all_images(str(tmp_path))
+    set_point_colors(rec, frames)
+    colors = {pid: rec.points3D[pid].color for pid in rec.point3D_ids()}
+    assert sum(int(c.max() == 0) for c in colors.values()) >= 1
+    for pid in ref.point3D_ids():
+        np.testing.assert_array_equal(colors[pid], ref.points3D[pid].color)

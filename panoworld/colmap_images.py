@@ -1,4 +1,4 @@
-"""Frames pre-shrunk for COLMAP's SIFT exactly as its extractor shrinks them (grey + OpenImageIO triangle resize), in numba."""
+"""COLMAP's image work redone bit for bit, faster: SIFT thumbnails (grey + OpenImageIO triangle resize, numba), point colours."""
 
 from __future__ import annotations
 
@@ -113,8 +113,12 @@ class Thumbnailer:
         return out
 
 
-def write_thumbnails(paths: list[Path], out_dir: Path, max_image_size: int, num_threads: int = -1) -> tuple[int, int] | None:
+def write_thumbnails(
+    paths: list[Path], out_dir: Path, max_image_size: int, num_threads: int = -1, frames: dict | None = None,
+) -> tuple[int, int] | None:
     """Grey thumbnails of the frames under out_dir as NAME + THUMB_SUFFIX; the frames' (width, height).
+
+    frames, when given, receives each frame's (H, W, 3) uint8 BGR pixels by file name (for point_colors).
 
     None (nothing to gain or not reproducible: then let COLMAP read the frames) unless every frame is an 8-bit RGB
     PNG of one size larger than max_image_size: only there is OpenCV's decode the same as COLMAP's.
@@ -138,6 +142,8 @@ def write_thumbnails(paths: list[Path], out_dir: Path, max_image_size: int, num_
         bgr = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
         if bgr is None or bgr.dtype != np.uint8 or bgr.shape != (height, width, 3):
             return False
+        if frames is not None:
+            frames[p.name] = bgr
         return cv2.imwrite(str(out_dir / (p.name + THUMB_SUFFIX)), shrink(bgr))
 
     workers = (os.cpu_count() or 1) if num_threads <= 0 else num_threads
@@ -171,3 +177,40 @@ def restore_full_size(database: Path, width: int, height: int) -> None:
             db.update_image(img)
     finally:
         db.close()
+
+
+def set_point_colors(rec, frames: dict[str, np.ndarray]) -> None:
+    """colmap::Reconstruction::ExtractColorsForAllImages from decoded frames (BGR by image name): each point's colour
+    is the rounded mean over its observations of the bilinear sample at (x - 0.5, y - 0.5), float32 per sample;
+    points without an in-bounds observation are black."""
+    ids, samples = [], []
+    for img in rec.images.values():
+        if not img.has_pose:
+            continue
+        obs = [(q.xy, q.point3D_id) for q in img.points2D if q.has_point3D()]
+        if not obs:
+            continue
+        bgr = frames[img.name]
+        h, w = bgr.shape[:2]
+        xy = np.array([o[0] for o in obs], np.float64) - 0.5
+        pid = np.array([o[1] for o in obs], np.int64)
+        x0, y0 = np.floor(xy[:, 0]).astype(np.int64), np.floor(xy[:, 1]).astype(np.int64)
+        ok = (x0 >= 0) & (x0 + 1 < w) & (y0 >= 0) & (y0 + 1 < h)
+        xy, pid, x0, y0 = xy[ok], pid[ok], x0[ok], y0[ok]
+        dx, dy = (xy[:, 0] - x0)[:, None], (xy[:, 1] - y0)[:, None]
+        rgb = [bgr[r, c, ::-1].astype(np.float64) for r, c in ((y0, x0), (y0, x0 + 1), (y0 + 1, x0), (y0 + 1, x0 + 1))]
+        top = (1 - dx) * rgb[0] + dx * rgb[1]
+        bottom = (1 - dx) * rgb[2] + dx * rgb[3]
+        samples.append(((1 - dy) * top + dy * bottom).astype(F32).astype(np.float64))
+        ids.append(pid)
+    point_ids = np.asarray(sorted(rec.point3D_ids()), np.int64)
+    total = np.zeros((len(point_ids), 3))
+    count = np.zeros(len(point_ids))
+    if ids:
+        at = np.searchsorted(point_ids, np.concatenate(ids))
+        np.add.at(total, at, np.concatenate(samples))
+        np.add.at(count, at, 1.0)
+    mean = total / np.maximum(count, 1.0)[:, None]
+    colors = np.where(count[:, None] > 0, np.floor(mean + 0.5), 0.0).astype(np.uint8)  # std::round: halves up
+    for pid, color in zip(point_ids.tolist(), colors):
+        rec.point3D(pid).color = color
