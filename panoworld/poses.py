@@ -184,8 +184,10 @@ def _spherical_sfm(img_dir: Path, out: Path, matcher: Matcher, sfm: ColmapOption
         mapping = pycolmap.GlobalPipelineOptions(num_threads=sfm.num_threads, random_seed=sfm.seed)
         mapping.mapper.ba_num_iterations = sfm.ba_iterations
         mapping.mapper.keep_max_num_tracks = sfm.max_tracks
-        # Without an image path COLMAP leaves the points black instead of decoding every frame again.
-        recs = pycolmap.global_mapping(db, img_dir if size is None else "", rec_path, mapping)
+        # Pointed at an empty folder COLMAP leaves the points black instead of decoding every frame again.
+        no_images = out / "no_images"
+        no_images.mkdir(exist_ok=True)
+        recs = pycolmap.global_mapping(db, img_dir if size is None else no_images, rec_path, mapping)
         if size is not None:
             for rec in recs.values():
                 set_point_colors(rec, frames)
