@@ -70,6 +70,13 @@ class ColmapOptions:
     """sequential: each frame is matched with this many successors (plus successors 2^k further: quadratic overlap)."""
     mapper: Mapper = Mapper.GLOBAL
     """spherical: how the matched frames become a model."""
+    ba_iterations: int = param(1, ge=1)
+    """global: rounds of bundle adjustment and track filtering after global positioning (COLMAP's default is 3);
+    the retriangulation's refinement runs after them either way. On a smooth planned path more rounds cost time and
+    do not move the poses."""
+    max_tracks: int = param(1000, ge=1)
+    """global: the longest tracks kept for global positioning and its bundle adjustments (COLMAP keeps all); the
+    retriangulation afterwards triangulates every match again, so the model keeps all its points."""
     max_image_size: int = param(1024, ge=0)
     """spherical: SIFT runs on frames downscaled to at most this width (0 = as stored); keypoints are scaled back, so
     the model stays in the video's pixel coordinates."""

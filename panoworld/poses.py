@@ -156,10 +156,20 @@ def _spherical_sfm(img_dir: Path, out: Path, matcher: Matcher, sfm: ColmapOption
     upsample = sfm.upsample_features or width < SMALL_FRAME_WIDTH
     extraction.sift.first_octave = -1 if upsample else 0
     timings["features_upsampled"] = upsample
+    from panoworld.colmap_images import restore_full_size, set_point_colors, write_thumbnails
+
+    # COLMAP's own shrink (OpenImageIO) is half its extraction time; the same pixels made here give the same features.
+    thumbs = out / "thumbnails"
+    frames: dict | None = {} if sfm.mapper == "global" else None  # decoded once: the point colours come from them
+    size = write_thumbnails(sorted(img_dir.iterdir()), thumbs, sfm.max_image_size, sfm.num_threads, frames)
+    timings["thumbnails_s"] = round(time.perf_counter() - t0, 3)
     pycolmap.extract_features(
-        db, img_dir, reader_options=pycolmap.ImageReaderOptions(camera_model="EQUIRECTANGULAR"),
+        db, img_dir if size is None else thumbs,
+        reader_options=pycolmap.ImageReaderOptions(camera_model="EQUIRECTANGULAR"),
         camera_mode=pycolmap.CameraMode.SINGLE, extraction_options=extraction,
     )
+    if size is not None:
+        restore_full_size(db, *size)
     timings["extract_s"] = round(time.perf_counter() - t0, 3)
     t0 = time.perf_counter()
     matching = pycolmap.FeatureMatchingOptions(use_gpu=False, num_threads=sfm.num_threads)
@@ -172,7 +182,15 @@ def _spherical_sfm(img_dir: Path, out: Path, matcher: Matcher, sfm: ColmapOption
     t0 = time.perf_counter()
     if sfm.mapper == "global":
         mapping = pycolmap.GlobalPipelineOptions(num_threads=sfm.num_threads, random_seed=sfm.seed)
-        recs = pycolmap.global_mapping(db, img_dir, rec_path, mapping)
+        mapping.mapper.ba_num_iterations = sfm.ba_iterations
+        mapping.mapper.keep_max_num_tracks = sfm.max_tracks
+        # Pointed at an empty folder COLMAP leaves the points black instead of decoding every frame again.
+        no_images = out / "no_images"
+        no_images.mkdir(exist_ok=True)
+        recs = pycolmap.global_mapping(db, img_dir if size is None else no_images, rec_path, mapping)
+        if size is not None:
+            for rec in recs.values():
+                set_point_colors(rec, frames)
     elif sfm.mapper == "incremental":
         mapping = pycolmap.IncrementalPipelineOptions(num_threads=sfm.num_threads, random_seed=sfm.seed)
         recs = pycolmap.incremental_mapping(db, img_dir, rec_path, mapping)

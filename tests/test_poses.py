@@ -198,6 +198,12 @@ def test_features_at_a_bounded_size_keep_the_model_in_the_video_pixel_coordinate
     xy = np.array([p.xy for img in rec.images.values() for p in img.points2D])
     assert xy[:, 0].max() > 400 and xy[:, 1].max() > 200  # keypoints span the stored frame, not the 256-wide copy
     assert rec.compute_mean_reprojection_error() < 2.0  # pixels of the stored frames
+    # The point colours (from the frames decoded for the thumbnails) are those COLMAP extracts from the frames.
+    ref = pycolmap.Reconstruction(rec)
+    ref.extract_colors_for_all_images(str(tmp_path / "video" / "frames"))
+    colors = np.array([rec.points3D[i].color for i in sorted(rec.point3D_ids())])
+    assert colors.max(axis=1).min() > 0
+    np.testing.assert_array_equal(colors, [ref.points3D[i].color for i in sorted(ref.point3D_ids())])
 
 
 def test_blank_frames_give_a_clear_error_not_a_crash(tmp_path, room):
