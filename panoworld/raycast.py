@@ -15,19 +15,20 @@ from panoworld.shapes import check_shape
 PARALLEL_MIN_RAYS = 1 << 14
 """Raycaster.cast splits at least this many rays over two threads (embreex releases the GIL while it traces)."""
 
-_pool: ThreadPoolExecutor | None = None
+_pool: tuple[int, ThreadPoolExecutor] | None = None  # (the pid that started it, the pool)
 _pool_lock = threading.Lock()
 
 
 def _helper() -> ThreadPoolExecutor | None:
-    """One shared helper thread for casts on machines with more than one core (None on one core)."""
+    """One shared helper thread for casts on machines with more than one core (None on one core); a forked child
+    starts its own (the parent's thread does not exist there)."""
     global _pool
     if (os.cpu_count() or 1) < 2:
         return None
     with _pool_lock:
-        if _pool is None:
-            _pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="raycast")
-        return _pool
+        if _pool is None or _pool[0] != os.getpid():
+            _pool = (os.getpid(), ThreadPoolExecutor(max_workers=1, thread_name_prefix="raycast"))
+        return _pool[1]
 
 
 @dataclass
