@@ -260,6 +260,10 @@ def _preview_frame(frame: WarpedFrame, max_height: int) -> np.ndarray:
     return np.concatenate([rgb, np.repeat(mask[..., None], 3, axis=2)], axis=1)
 
 
+def _append_preview(writer, frame: WarpedFrame, max_height: int) -> None:
+    writer.append_data(_preview_frame(frame, max_height))
+
+
 def write_conditions(
     out_dir: Path,
     frames: Iterable[WarpedFrame],
@@ -300,6 +304,9 @@ def write_conditions(
     t_render = 0.0
     t0 = time.perf_counter()
     pending: deque = deque()
+    previews: deque = deque()
+    # preview.mp4 frames are resized and piped to ffmpeg by a thread of their own, in order, while the next renders
+    preview_pool = ThreadPoolExecutor(max_workers=1) if writer is not None else None
     try:
         with ThreadPoolExecutor(max_workers=workers) if workers > 0 else contextlib.nullcontext() as pool:
             it = iter(frames)
@@ -327,11 +334,17 @@ def write_conditions(
                     pending.append(pool.submit(_write_frame, out_dir, files, frame, compression))
                 while len(pending) > 2 * max(1, workers):
                     pending.popleft().result()
-                if writer is not None:
-                    writer.append_data(_preview_frame(frame, preview_height))
+                if preview_pool is not None:
+                    previews.append(preview_pool.submit(_append_preview, writer, frame, preview_height))
+                    while len(previews) > 2:
+                        previews.popleft().result()
             while pending:
                 pending.popleft().result()
+            while previews:
+                previews.popleft().result()
     finally:
+        if preview_pool is not None:
+            preview_pool.shutdown(cancel_futures=True)
         if writer is not None:
             writer.close()
     if len(entries) != len(poses):

@@ -33,6 +33,9 @@ _ACOS_ERR = 1e-4
 _EPS_PX = 1e-2
 # Triangles whose bounding box holds more pixels than this get exact per-row longitude spans.
 _SPAN_MIN_PIXELS = 48
+# At most this many pieces of a row's longitude arcs are kept apart (a thin face seen edge-on, nearly through the
+# camera, spans half the panorama in two short pieces; their hull would test every pixel between them).
+_MAX_PIECES = 8
 
 
 # ---------------------------------------------------------------------------------------------- numba kernels
@@ -106,12 +109,13 @@ def _acos_approx(x):
 
 @njit(inline="always")
 def _raster_face(
-    f, ia, ib, ic, vdata, height, width, sin_lat, cos_lat, sin_lon, cos_lon, pad_polar, zbuf, bbuf, t32, t_bits
+    f, ia, ib, ic, vdata, height, width, sin_lat, cos_lat, sin_lon, cos_lon, pad_polar, zbuf, bbuf, t32, t_bits, pieces
 ):
     """Z-buffer one triangle into zbuf (H * W,) uint64 and its barycentrics 1, 2 into bbuf (H * W, 2) float32.
 
-    Candidates: a conservative ERP bounding box (exact per-row longitude arcs for large faces); each candidate pixel
-    gets the exact cone test of its ray. t32 / t_bits: a float32 scratch cell and its uint32 view.
+    Candidates: a conservative ERP bounding box (for large faces, per row the intersection of the edges' longitude
+    arcs, in up to _MAX_PIECES pieces); each candidate pixel gets the exact cone test of its ray. t32 / t_bits: a
+    float32 scratch cell and its uint32 view; pieces: (4, _MAX_PIECES) float64 scratch for the arcs' pieces.
     """
     if vdata[ia, 6] <= 0.0 or vdata[ib, 6] <= 0.0 or vdata[ic, 6] <= 0.0:
         return
@@ -241,52 +245,66 @@ def _raster_face(
         c2c = _arc_centre(n2x, n2z, width)
     for i in range(i0, i1 + 1):
         cl = cos_lat[i]
-        ny_term0 = -n0y * sin_lat[i]
-        ny_term1 = -n1y * sin_lat[i]
-        ny_term2 = -n2y * sin_lat[i]
+        ny0 = -n0y * sin_lat[i]
+        ny1 = -n1y * sin_lat[i]
+        ny2 = -n2y * sin_lat[i]
         row = i * width
-        ja = j0
-        jb = j1
-        if spans:
-            lo = lo_box
-            hi = hi_box
-            ok = True
-            for a_k, c_k, t_k in ((a0, c0, ny_term0), (a1, c1, ny_term1), (a2, c2c, ny_term2)):
-                ok, lo, hi = _clip_arc(a_k * cl, c_k, t_k, px_per_rad, width, lo, hi, eps)
-                if not ok:
-                    break
-            if not ok:
-                continue
+        if not spans:
+            _scan_row(j0, j1, width, row, cl, sin_lon, cos_lon, n0x, n0z, ny0, n1x, n1z, ny1, n2x, n2z, ny2, det, fid,
+                      zbuf, bbuf, t32, t_bits)
+            continue
+        pieces[0, 0] = lo_box
+        pieces[1, 0] = hi_box
+        n_pieces = 1
+        for a_k, c_k, t_k in ((a0, c0, ny0), (a1, c1, ny1), (a2, c2c, ny2)):
+            n_pieces = _clip_pieces(a_k * cl, c_k, t_k, px_per_rad, width, eps, pieces, n_pieces)
+            if n_pieces == 0:
+                break
+        # A pixel in two pieces (a full-width face's pieces may overlap modulo width) is tested twice with the same
+        # key: the second test writes nothing.
+        for p in range(n_pieces):
+            ja = j0
+            jb = j1
+            lo = pieces[0, p]
+            hi = pieces[1, p]
             if hi - lo < width:
                 ja = max(j0, math.ceil(lo - 0.5)) if not full_width else math.ceil(lo - 0.5)
                 jb = min(j1, math.floor(hi - 0.5)) if not full_width else min(math.floor(hi - 0.5), ja + width - 1)
-        for jj in range(ja, jb + 1):
-            j = jj
-            if j < 0:
-                j += width
-            elif j >= width:
-                j -= width
-            sl = sin_lon[j]
-            co = cos_lon[j]
-            w0 = cl * (n0x * sl + n0z * co) + ny_term0
-            if w0 < 0.0:
-                continue
-            w1 = cl * (n1x * sl + n1z * co) + ny_term1
-            if w1 < 0.0:
-                continue
-            w2 = cl * (n2x * sl + n2z * co) + ny_term2
-            if w2 < 0.0:
-                continue
-            s = w0 + w1 + w2
-            if s <= 0.0:
-                continue
-            inv_s = 1.0 / s
-            t32[0] = det * inv_s
-            key = (np.uint64(t_bits[0]) << np.uint64(32)) | fid
-            if key < zbuf[row + j]:
-                zbuf[row + j] = key
-                bbuf[row + j, 0] = w1 * inv_s
-                bbuf[row + j, 1] = w2 * inv_s
+            _scan_row(ja, jb, width, row, cl, sin_lon, cos_lon, n0x, n0z, ny0, n1x, n1z, ny1, n2x, n2z, ny2, det, fid,
+                      zbuf, bbuf, t32, t_bits)
+
+
+@njit(inline="always")
+def _scan_row(ja, jb, width, row, cl, sin_lon, cos_lon, n0x, n0z, ny0, n1x, n1z, ny1, n2x, n2z, ny2, det, fid, zbuf,
+              bbuf, t32, t_bits):
+    """The exact cone test of columns ja..jb (wrapped) of one row; z-buffer the pixels inside."""
+    for jj in range(ja, jb + 1):
+        j = jj
+        if j < 0:
+            j += width
+        elif j >= width:
+            j -= width
+        sl = sin_lon[j]
+        co = cos_lon[j]
+        w0 = cl * (n0x * sl + n0z * co) + ny0
+        if w0 < 0.0:
+            continue
+        w1 = cl * (n1x * sl + n1z * co) + ny1
+        if w1 < 0.0:
+            continue
+        w2 = cl * (n2x * sl + n2z * co) + ny2
+        if w2 < 0.0:
+            continue
+        s = w0 + w1 + w2
+        if s <= 0.0:
+            continue
+        inv_s = 1.0 / s
+        t32[0] = det * inv_s
+        key = (np.uint64(t_bits[0]) << np.uint64(32)) | fid
+        if key < zbuf[row + j]:
+            zbuf[row + j] = key
+            bbuf[row + j, 0] = w1 * inv_s
+            bbuf[row + j, 1] = w2 * inv_s
 
 
 @njit(inline="always")
@@ -296,37 +314,53 @@ def _arc_centre(nx, nz, width):
 
 
 @njit(inline="always")
-def _clip_arc(amp, centre, offset, px_per_rad, width, lo, hi, eps):
-    """Intersect [lo, hi] (u) with the set amp * cos(lon - lon_c) + offset >= 0 (an arc around centre) -> (ok, lo, hi).
+def _clip_pieces(amp, centre, offset, px_per_rad, width, eps, pieces, n):
+    """Intersect the n intervals (u) in pieces[0:2, :n] with the set amp * cos(lon - lon_c) + offset >= 0 (an arc
+    around column centre, repeating every width columns) -> the number of pieces left, written back into pieces.
 
-    Conservative: where the arc meets [lo, hi] in two pieces their hull is kept.
+    Conservative: the arc is padded by the acos error and eps; an interval as wide as the image (a full-width face
+    before its first arc) becomes the arc itself; past _MAX_PIECES pieces the last one takes the hull of the rest.
     """
     if amp <= 1e-300:
-        return offset >= 0.0, lo, hi
+        return n if offset >= 0.0 else 0
     kappa = -offset / amp
     if kappa > 1.0 + 1e-12:
-        return False, lo, hi
+        return 0
     if kappa <= -1.0:
-        return True, lo, hi
+        return n
     h = (_acos_approx(min(kappa, 1.0)) + _ACOS_ERR) * px_per_rad + eps
     if h >= 0.5 * width:
-        return True, lo, hi
-    if hi - lo >= width:  # unbounded so far (a full-width triangle): the arc itself
-        return True, centre - h, centre + h
-    mid = 0.5 * (lo + hi)
-    c = mid + _wrap(centre - mid, width)
-    c_other = c - width if c > mid else c + width
-    new_lo = 1e300
-    new_hi = -1e300
-    for cc in (c, c_other):
-        a = max(lo, cc - h)
-        b = min(hi, cc + h)
-        if a <= b:
-            new_lo = min(new_lo, a)
-            new_hi = max(new_hi, b)
-    if new_lo > new_hi:
-        return False, lo, hi
-    return True, new_lo, new_hi
+        return n
+    m = 0
+    for p in range(n):
+        lo = pieces[0, p]
+        hi = pieces[1, p]
+        if hi - lo >= width:
+            m = _add_piece(pieces, m, centre - h, centre + h)
+            continue
+        c = 0.5 * (lo + hi)
+        c += _wrap(centre - c, width)
+        for cc in (c - width, c, c + width):
+            a = max(lo, cc - h)
+            b = min(hi, cc + h)
+            if a <= b:
+                m = _add_piece(pieces, m, a, b)
+    for p in range(m):
+        pieces[0, p] = pieces[2, p]
+        pieces[1, p] = pieces[3, p]
+    return m
+
+
+@njit(inline="always")
+def _add_piece(pieces, m, a, b):
+    """Append [a, b] to the new pieces (rows 2, 3 of pieces) holding m; when they are full, widen the last one."""
+    if m < pieces.shape[1]:
+        pieces[2, m] = a
+        pieces[3, m] = b
+        return m + 1
+    pieces[2, m - 1] = min(pieces[2, m - 1], a)
+    pieces[3, m - 1] = max(pieces[3, m - 1], b)
+    return m
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -338,10 +372,11 @@ def _raster_pass(faces, vdata, height, width, sin_lat, cos_lat, sin_lon, cos_lon
         bbuf = bbufs[tid]
         t32 = np.empty(1, np.float32)
         t_bits = t32.view(np.uint32)
+        pieces = np.empty((4, _MAX_PIECES), np.float64)
         for f in range(chunk_starts[k], chunk_starts[k + 1]):
             _raster_face(
                 f, faces[f, 0], faces[f, 1], faces[f, 2], vdata, height, width,
-                sin_lat, cos_lat, sin_lon, cos_lon, pad_polar, zbuf, bbuf, t32, t_bits,
+                sin_lat, cos_lat, sin_lon, cos_lon, pad_polar, zbuf, bbuf, t32, t_bits, pieces,
             )
 
 

@@ -2,12 +2,33 @@
 
 from __future__ import annotations
 
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
 from panoworld.conventions import check_erp_shape, check_pose, erp_dirs
 from panoworld.shapes import check_shape
+
+PARALLEL_MIN_RAYS = 1 << 14
+"""Raycaster.cast splits at least this many rays over two threads (embreex releases the GIL while it traces)."""
+
+_pool: tuple[int, ThreadPoolExecutor] | None = None  # (the pid that started it, the pool)
+_pool_lock = threading.Lock()
+
+
+def _helper() -> ThreadPoolExecutor | None:
+    """One shared helper thread for casts on machines with more than one core (None on one core); a forked child
+    starts its own (the parent's thread does not exist there)."""
+    global _pool
+    if (os.cpu_count() or 1) < 2:
+        return None
+    with _pool_lock:
+        if _pool is None or _pool[0] != os.getpid():
+            _pool = (os.getpid(), ThreadPoolExecutor(max_workers=1, thread_name_prefix="raycast"))
+        return _pool[1]
 
 
 @dataclass
@@ -56,16 +77,32 @@ class Raycaster:
         return self
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray, chunk: int = 1 << 20) -> Hits:
-        """Cast rays origins (N, 3) + t * dirs (N, 3); dirs must be unit length for metric distances."""
+        """Cast rays origins (N, 3) + t * dirs (N, 3); dirs must be unit length for metric distances.
+
+        From PARALLEL_MIN_RAYS rays on, the second half is traced by a helper thread (each ray's result is the same)."""
         origins = np.ascontiguousarray(np.broadcast_to(origins, dirs.shape), dtype=np.float32)
         dirs = np.ascontiguousarray(dirs, dtype=np.float32)
-        scene = self._ensure()
         n = len(dirs)
-        dist = np.full(n, np.inf, np.float32)
-        face = np.full(n, -1, np.int64)
-        bary = np.zeros((n, 3), np.float32)
-        for s in range(0, n, chunk):
-            e = min(n, s + chunk)
+        hits = Hits(np.full(n, np.inf, np.float32), np.full(n, -1, np.int64), np.zeros((n, 3), np.float32))
+        pool = _helper() if n >= PARALLEL_MIN_RAYS else None
+        if pool is None:
+            self._cast_into(hits, origins, dirs, 0, n, chunk)
+            return hits
+        self.build()  # committed before two threads trace it
+        half = n // 2
+        job = pool.submit(self._cast_into, hits, origins, dirs, half, n, chunk)
+        try:
+            self._cast_into(hits, origins, dirs, 0, half, chunk)
+        finally:
+            job.result()
+        return hits
+
+    def _cast_into(self, hits: Hits, origins: np.ndarray, dirs: np.ndarray, start: int, stop: int, chunk: int) -> None:
+        """Trace rays start:stop into hits (distance inf / face -1 / bary 0 already where nothing is hit)."""
+        scene = self._ensure()
+        dist, face, bary = hits.distance, hits.face, hits.bary
+        for s in range(start, stop, chunk):
+            e = min(stop, s + chunk)
             res = scene.run(origins[s:e], dirs[s:e], output=1)
             pid = np.asarray(res["primID"]).astype(np.int64)
             hit = pid >= 0
@@ -78,7 +115,6 @@ class Raycaster:
             bary[s:e, 0] = np.where(hit, 1.0 - u - v, 0.0)
             bary[s:e, 1] = np.where(hit, u, 0.0)
             bary[s:e, 2] = np.where(hit, v, 0.0)
-        return Hits(dist, face, bary)
 
     def render_erp(self, world_from_cam: np.ndarray, height: int, width: int) -> Hits:
         """Cast one ray through every ERP pixel centre from the camera; results reshaped to (H, W[, 3])."""

@@ -102,6 +102,8 @@ class VideoWriter:
         self._mcap_pool = ThreadPoolExecutor(max_workers=1)  # one thread: messages stay in frame order
         self._pending: deque = deque()
         self._mp4 = None
+        self._mp4_pool = ThreadPoolExecutor(max_workers=1)  # one thread: preview frames stay in order
+        self._mp4_pending: deque = deque()
         if preview:
             import imageio_ffmpeg
 
@@ -149,38 +151,51 @@ class VideoWriter:
         entry = {"rgb": f"frames/{name}", "depth": None}
         if upscaled is not None:
             entry["upscaled"] = f"upscaled/{name}"
-        mm = None
         if depth is not None:
-            mm = depth_to_mm(depth)
             entry["depth"] = f"depth/{name}"
         self.entries.append(entry)
         self.poses.append(np.asarray(world_from_cam, np.float64))
+        # Everything below runs off the caller's thread (OpenCV, numpy and the pipe to ffmpeg release the GIL), so the
+        # caller's next frame overlaps it; MCAP messages and preview frames stay in order.
+        rgb = rgb.copy()
         if self._mp4 is not None:
-            small = rgb
-            if self._preview_size != (W, H):
-                small = cv2.resize(rgb, self._preview_size, interpolation=cv2.INTER_AREA)
-            self._mp4.send(np.ascontiguousarray(small))
-        # PNG encoding (OpenCV releases the GIL) overlaps with the caller's next frame; MCAP messages stay in order.
-        rgb_job = self._pool.submit(self._encode_write, rgb.copy(), self.out_dir / entry["rgb"])
-        depth_job = self._pool.submit(self._encode_write, mm, self.out_dir / entry["depth"]) if mm is not None else None
+            self._mp4_pending.append(self._mp4_pool.submit(self._send_preview, rgb))
+        rgb_job = self._pool.submit(self._encode_write, rgb, self.out_dir / entry["rgb"])
+        depth_job = None
+        if depth is not None:
+            depth_job = self._pool.submit(self._encode_depth, np.array(depth), self.out_dir / entry["depth"])
         up_job = None
         if upscaled is not None:
             up_job = self._pool.submit(self._encode_write, np.ascontiguousarray(upscaled), self.out_dir / entry["upscaled"])
         self._pending.append(self._mcap_pool.submit(
-            self._finish, i, rgb_job, depth_job, up_job, mm, self.poses[-1], cond_rgb_png, cond_mask_png))
+            self._finish, i, rgb_job, depth_job, up_job, self.poses[-1], cond_rgb_png, cond_mask_png))
         while len(self._pending) > 2:
             self._pending.popleft().result()
+        while len(self._mp4_pending) > 2:
+            self._mp4_pending.popleft().result()
+
+    def _send_preview(self, rgb: np.ndarray) -> None:
+        small = rgb
+        if self._preview_size != (self.width, self.height):
+            small = cv2.resize(rgb, self._preview_size, interpolation=cv2.INTER_AREA)
+        self._mp4.send(np.ascontiguousarray(small))
+
+    def _encode_depth(self, depth: np.ndarray, path: Path) -> np.ndarray:
+        """Depth (H, W) metres -> its uint16 millimetre PNG at path; returns the millimetres (the MCAP's)."""
+        mm = depth_to_mm(depth)
+        self._encode_write(mm, path)
+        return mm
 
     def _encode_write(self, image: np.ndarray, path: Path) -> bytes:
         png = encode_png(image, compression=self.png_compression)
         path.write_bytes(png)
         return png
 
-    def _finish(self, i, rgb_job, depth_job, up_job, mm, pose, cond_rgb_png, cond_mask_png) -> None:
+    def _finish(self, i, rgb_job, depth_job, up_job, pose, cond_rgb_png, cond_mask_png) -> None:
         png = rgb_job.result()
-        for job in (depth_job, up_job):
-            if job is not None:
-                job.result()
+        mm = None if depth_job is None else depth_job.result()
+        if up_job is not None:
+            up_job.result()
         if self._mcap is not None:
             self._write_mcap(i, png, mm, pose, cond_rgb_png, cond_mask_png)
 
@@ -221,8 +236,11 @@ class VideoWriter:
         """Finish the frames, preview and MCAP and write video.json (meta adds keys such as backend/upscale); returns it."""
         while self._pending:
             self._pending.popleft().result()
+        while self._mp4_pending:
+            self._mp4_pending.popleft().result()
         self._pool.shutdown()
         self._mcap_pool.shutdown()
+        self._mp4_pool.shutdown()
         if self._mp4 is not None:
             self._mp4.close()
             self._mp4 = None

@@ -108,6 +108,25 @@ def test_near_and_tiny_triangles():
     compare(tiny_v, tiny_f, np.eye(4), 256, 512)
 
 
+def test_thin_faces_seen_edge_on_through_the_camera():
+    # Long slivers whose planes pass ~1 cm from the camera: each row meets them in short pieces half a panorama
+    # apart (the rasteriser keeps the pieces apart rather than scanning between them); every covered pixel is found.
+    rng = np.random.default_rng(5)
+    tris = []
+    for _ in range(60):
+        u = rng.normal(size=3)
+        u /= np.linalg.norm(u)
+        n = np.cross(u, rng.normal(size=3))
+        n /= np.linalg.norm(n)
+        w = np.cross(n, u)
+        a, b = rng.uniform(1.0, 3.0, 2)
+        tris.append([-a * u + 0.01 * n, b * u + 0.01 * n, rng.uniform(0.05, 0.3) * w + rng.uniform(-1, 1) * u])
+    v = np.asarray(tris, np.float32).reshape(-1, 3)
+    f = np.arange(len(v)).reshape(-1, 3)
+    a, b = compare(v, f, np.eye(4), 90, 180)
+    assert (a.face >= 0).sum() > 500
+
+
 def test_camera_inside_closed_box_covers_every_pixel():
     box = trimesh.creation.box(extents=[4.0, 2.5, 3.0])
     rng = np.random.default_rng(4)
