@@ -99,8 +99,9 @@ def print_fidelity(f: dict) -> None:
 
 
 def reference_loop_s() -> float:
-    """Seconds of a pure-Python 20M-step sum: this machine's single-core speed, to compare timings across machines
-    (2.06 s where the twelfth #28 pass measured the demo at 129.3 s; 2.85 s at the start of the thirteenth)."""
+    """Seconds of a pure-Python 20M-step sum in a function: this machine's single-core speed, to compare timings
+    across machines (0.84-1.10 s in the thirteenth #28 pass's runs; the "20 M-step loop" figures of earlier passes ran
+    it at module level, about 2.5x slower: 2.06 s in the twelfth, 2.72-2.85 s in the thirteenth)."""
     t = time.perf_counter()
     s = 0
     for i in range(20_000_000):
