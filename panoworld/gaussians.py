@@ -268,9 +268,10 @@ def _nonempty(obs: Observations, fn: Callable):
     return fn(obs) if len(obs.points) else None
 
 
-def _reduce(parts: list[VoxelSums], part: VoxelSums) -> list[VoxelSums]:
+def _reduce(parts: list, part, merge: Callable | None = None) -> list:
+    """parts with part appended, merged into one (merge, default merge_voxel_sums) once more than MERGE_EVERY."""
     parts.append(part)
-    return [merge_voxel_sums(parts)] if len(parts) > MERGE_EVERY else parts
+    return [(merge or merge_voxel_sums)(parts)] if len(parts) > MERGE_EVERY else parts
 
 
 def voxel_fusion(
@@ -315,9 +316,7 @@ def voxel_fusion(
     parts: list[tuple] = []
     n_obs = 0
     for n, part in observations(frame_sums):
-        parts.append(part)
-        if len(parts) > MERGE_EVERY:
-            parts = [merge_sums(parts)]
+        parts = _reduce(parts, part, merge_sums)
         n_obs += n
     if not parts:
         raise ValueError("no valid depth pixel in any frame: every depth is 0, inf or NaN (or beyond max_depth)")

@@ -56,6 +56,19 @@ def pixel_gaussians(rgb: np.ndarray, depth: np.ndarray, world_from_cam: np.ndarr
     return gaussians_from_cov(obs.points, cov, obs.colors, params, max_scale_m=np.inf)
 
 
+@njit(cache=True, inline="always")
+def _cam_point(cam_from_world, points, m):
+    """World point m of points (M, 3) in the camera frame, (x, y, z), summed in one fixed order (both lookups')."""
+    x = cam_from_world[0, 3]
+    y = cam_from_world[1, 3]
+    z = cam_from_world[2, 3]
+    for k in range(3):
+        x += cam_from_world[0, k] * points[m, k]
+        y += cam_from_world[1, k] * points[m, k]
+        z += cam_from_world[2, k] * points[m, k]
+    return x, y, z
+
+
 @njit(cache=True, nogil=True)
 def _source_lookup_exact(points, cam_from_world, depth, dist, d_src):
     """SourceVisibility._lookup fused per point: camera-frame distance and the ERP depth pixel the point falls in (libm's
@@ -63,13 +76,7 @@ def _source_lookup_exact(points, cam_from_world, depth, dist, d_src):
     parallel kernel would oversubscribe."""
     h, w = depth.shape
     for m in range(points.shape[0]):
-        x = cam_from_world[0, 3]
-        y = cam_from_world[1, 3]
-        z = cam_from_world[2, 3]
-        for k in range(3):
-            x += cam_from_world[0, k] * points[m, k]
-            y += cam_from_world[1, k] * points[m, k]
-            z += cam_from_world[2, k] * points[m, k]
+        x, y, z = _cam_point(cam_from_world, points, m)
         r = math.sqrt(x * x + y * y + z * z)
         dist[m] = r
         if not r < math.inf:  # NaN or infinite points fall in no pixel
@@ -119,13 +126,7 @@ def _source_lookup(points, cam_from_world, depth, dist, d_src):
     uu = np.empty(n)
     vv = np.empty(n)
     for m in range(n):  # no branch: vectorised
-        x = cam_from_world[0, 3]
-        y = cam_from_world[1, 3]
-        z = cam_from_world[2, 3]
-        for k in range(3):
-            x += cam_from_world[0, k] * points[m, k]
-            y += cam_from_world[1, k] * points[m, k]
-            z += cam_from_world[2, k] * points[m, k]
+        x, y, z = _cam_point(cam_from_world, points, m)
         dist[m] = math.sqrt(x * x + y * y + z * z)
         uu[m] = (_fast_atan2(x, z) / (2.0 * math.pi) + 0.5) * w
         vv[m] = (0.5 - _fast_atan2(-y, math.sqrt(x * x + z * z)) / math.pi) * h
@@ -140,13 +141,7 @@ def _source_lookup(points, cam_from_world, depth, dist, d_src):
         fu = u - math.floor(u)  # NaN (0 / 0 at the camera centre or a pole's longitude) fails both tests below
         fv = v - math.floor(v)
         if not (mu < fu < 1.0 - mu and mv < fv < 1.0 - mv):  # near a pixel edge: libm's pixel, as the exact kernel
-            x = cam_from_world[0, 3]
-            y = cam_from_world[1, 3]
-            z = cam_from_world[2, 3]
-            for k in range(3):
-                x += cam_from_world[0, k] * points[m, k]
-                y += cam_from_world[1, k] * points[m, k]
-                z += cam_from_world[2, k] * points[m, k]
+            x, y, z = _cam_point(cam_from_world, points, m)
             if not mu < fu < 1.0 - mu:
                 u = (math.atan2(x, z) / (2.0 * math.pi) + 0.5) * w
             if not mv < fv < 1.0 - mv:
