@@ -122,8 +122,13 @@ def cmd_demo(args) -> int:
     report = pl.run(scene, echo=True, on_result=live)
     code = _print_report(report, False)
     ran = [r for r in report.results if r.action == "ran"]
+    from panoworld.report.cli import build_scene_report
+
+    t_report = time.perf_counter()
+    page = build_scene_report(scene, run_results=[r.as_dict() for r in report.results])
+    t_report = time.perf_counter() - t_report
     print(f"\nscene synthesis {t_synth:.1f} s; stages {sum(r.seconds for r in ran):.1f} s wall, "
-          f"{sum(cpu_s.get(r.stage, 0.0) for r in ran):.1f} s CPU (user+sys); demo total "
+          f"{sum(cpu_s.get(r.stage, 0.0) for r in ran):.1f} s CPU (user+sys); report {t_report:.1f} s; demo total "
           f"{time.perf_counter() - t_start:.1f} s")
     if code == 0:
         print(f"\ndemo scene: {scene} (preset {args.preset}, remembered in {cfg.name})\n"
@@ -131,9 +136,6 @@ def cmd_demo(args) -> int:
               f"open {scene / pl.ARTIFACTS_DIRNAME / 'gaussians' / 'gaussians.ply'} in a 3DGS viewer (e.g. SuperSplat), "
               f"{scene / pl.ARTIFACTS_DIRNAME / 'video' / 'preview.mp4'} in any player; "
               f"score it: python runner.py eval {scene}")
-    from panoworld.report.cli import build_scene_report
-
-    page = build_scene_report(scene, run_results=[r.as_dict() for r in report.results])
     print(f"report: {page} (open it in a browser; 3D viewer: python runner.py view {scene})")
     return code
 

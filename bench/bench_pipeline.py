@@ -5,6 +5,7 @@ PSNR), and optionally the same scene at full size (features and fusion at the st
 from __future__ import annotations
 
 import argparse
+import os
 import resource
 import shutil
 import subprocess
@@ -118,8 +119,13 @@ def main() -> int:
     ap.add_argument("--full", type=int, default=None, metavar="SEED",
                     help="also rerun poses and gaussians of this seed's scene at full size (" + " ".join(FULL_SETS) + ")")
     ap.add_argument("--out", type=Path, help="keep the scenes here (default: a temporary directory)")
+    ap.add_argument("--cold", action="store_true",
+                    help="a new user's first run: numba's on-disk caches empty (NUMBA_CACHE_DIR a fresh directory), so "
+                         "every kernel is compiled in the stage that first calls it")
     a = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="bench-pipeline-") as tmp:
+        if a.cold:
+            os.environ["NUMBA_CACHE_DIR"] = str(Path(tmp) / "numba-cache")  # the stages' subprocesses inherit it
         root = a.out or Path(tmp)
         root.mkdir(parents=True, exist_ok=True)
         scenes: list[tuple[str, Path]] = []
@@ -139,7 +145,8 @@ def main() -> int:
                     scenes.append((name, scene))
         print(f"preset {a.preset}; machine: {subprocess.run(['nproc'], capture_output=True, text=True).stdout.strip()} "
               f"cores, load average {open('/proc/loadavg').read().split()[0]} at start (shared: wall times inflate, "
-              f"CPU times much less); reference loop {reference_loop_s():.2f} s (see reference_loop_s)")
+              f"CPU times much less); reference loop {reference_loop_s():.2f} s (see reference_loop_s); numba caches "
+              f"{'cold (--cold)' if a.cold else 'as found (warm after a first run)'}")
         for name, scene in scenes:
             print(f"\n{name}: {scene}")
             rows, total = run_scene(scene, a.preset)

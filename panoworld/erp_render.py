@@ -14,18 +14,18 @@ import torch.nn.functional as F
 from panoworld.conventions import check_erp_shape, check_pose, erp_dirs, invert_pose
 from panoworld.gaussians import Gaussians
 from panoworld.render_gs import (
-    ALPHA_MIN,
-    LOWPASS,
     RenderOutput,
     _background,
+    _needs_grad,
     _prepare,
     _Prepared,
     _render_gsplat,
-    _t,
     _use_gsplat,
-    face_weights,
+    cull_terms,
     project,
+    rasterize_numba,
     rasterize_tiles,
+    view_candidates,
 )
 
 # Rotations cam_from_face of the 6 cube faces (columns: face x, y, z axes in the ERP camera frame).
@@ -47,11 +47,6 @@ ERP_POLE_SCALE = 2.0
 longitude tan(lat) times more finely than a cube face does there; 2, with the colour fit on the same faces and a wider
 source footprint (gaussians.source_scale), gains 1.4 dB at the capture point on the validation seeds
 (docs/evaluation.md, "The poles at the capture point")."""
-
-NUMBA_TILE = 8
-"""render_erp's numba path bins Gaussians into 8 x 8 tiles (the rasteriser: 16 x 16), so each pixel scans fewer: the
-same weights up to float32 rounding of the transmittance (a pixel's list holds every Gaussian whose box covers it, in
-the same order), 1.7-1.9x less CPU on an 830k-Gaussian scene with differences <= 1.5e-6 (bench/bench_render_gs.py)."""
 
 @dataclass
 class ErpFace:
@@ -111,31 +106,15 @@ def erp_faces(world_from_cam: np.ndarray, H: int, W: int, *, face_size: int | No
 
 def face_candidates(offsets: torch.Tensor, r2: torch.Tensor, scale2: torch.Tensor, fc: ErpFace,
                     near: float) -> torch.Tensor:
-    """Indices of Gaussians (offsets (N, 3): centre - camera centre in the world; r2 (N,): 2 ln(255 opacity), 0 where
-    project drops them; scale2 (N,): largest variance; float32) that project can keep for face fc: a superset, from a
-    bound of the box project puts around each centre (half-width sqrt(r2 a), a the 2D covariance's diagonal plus
-    LOWPASS, at most (f/z)^2 (1 + (1.3 c / f)^2) scale2 + LOWPASS as its Jacobian is clamped at 1.3x the
-    half-extent), with slack for float32 rounding."""
-    p = offsets @ torch.as_tensor(fc.world_from_face[:3, :3], dtype=torch.float32)  # face-frame coordinates
-    front = ((p[:, 2] > near * 0.999) & (r2 > 0)).nonzero().squeeze(1)
-    p = p[front]
-    inv_z = fc.f / p[:, 2]
-    k = 1.0 + (1.3 * fc.c / fc.f) ** 2
-    ext = (r2[front] * (k * scale2[front] * inv_z**2 + LOWPASS)).sqrt() * 1.01 + 1.0
-    lim = fc.c - 0.5 + ext
-    return front[((p[:, 0] * inv_z).abs() <= lim) & ((p[:, 1] * inv_z).abs() <= lim)]
+    """render_gs.view_candidates for cube face fc: a superset of the Gaussians project keeps there."""
+    return view_candidates(offsets, r2, scale2, fc.world_from_face[:3, :3].T, fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
 
 
 def face_cull(prep: _Prepared, scales, centre: np.ndarray, near: float):
     """fc -> (the prepared Gaussians (scales (N, 3)) that cube face fc of a view centred at `centre` can show, their
     indices in prep): face_candidates' superset of those project keeps, in prep's order, so projecting them gives
     project's result on all of prep (render_erp and the colour fit's ErpColorOperator project each face so)."""
-    with torch.no_grad():
-        offsets = prep.means.detach() - torch.as_tensor(np.asarray(centre, np.float32))
-        o = prep.opacity.detach()
-        # r2 > 0 for every opacity project keeps (> ALPHA_MIN), also where 255 o rounds to 1
-        r2 = torch.where(o > ALPHA_MIN * 0.999, (2.0 * (255.0 * o).log()).clamp(min=1e-6), 0.0)
-        scale2 = _t(scales).detach().square().amax(1)
+    offsets, r2, scale2 = cull_terms(prep.means, prep.opacity, scales, centre)
 
     def subset(fc: ErpFace) -> tuple[_Prepared, torch.Tensor]:
         cand = face_candidates(offsets, r2, scale2, fc, near)
@@ -194,26 +173,10 @@ def render_erp(
                             max(1, torch.get_num_threads()))
 
 
-def _needs_grad(gaussians: Gaussians) -> bool:
-    return torch.is_grad_enabled() and any(
-        isinstance(a, torch.Tensor) and a.requires_grad
-        for a in (gaussians.means, gaussians.scales, gaussians.quats, gaussians.opacities, gaussians.sh_dc,
-                  gaussians.sh_rest))
-
-
 def _numba_face(prep: _Prepared, fc: ErpFace, near: float, bg: torch.Tensor) -> RenderOutput:
-    """One cube face raw as rasterize_tiles(raw=True, distance=True) returns it, summed from face_weights' weights
-    (in float64, so the sums are at least as exact as the rasteriser's float32 ones)."""
-    from panoworld.splat_weights import weighted_sums
-
-    n = fc.n
-    proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, n, n, near)
-    pix, gid, w = face_weights(proj, n, n, tile=NUMBA_TILE)
-    values = torch.cat([proj.color, proj.dist[:, None]], 1).numpy()
-    sums = weighted_sums(pix, gid, w, values, n * n)
-    out = torch.from_numpy(sums.astype(np.float32)).reshape(n, n, 5)
-    alpha = out[..., 4]
-    return RenderOutput(out[..., :3] + (1 - alpha)[..., None] * bg, out[..., 3], alpha)
+    """One cube face raw as rasterize_tiles(raw=True, distance=True) returns it (render_gs.rasterize_numba)."""
+    proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
+    return rasterize_numba(proj, fc.n, fc.n, bg, raw=True, distance=True)
 
 
 def _compose_erp(faces: list[ErpFace], H: int, W: int, supersample: int, render_face, workers: int = 1) -> RenderOutput:

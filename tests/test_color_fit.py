@@ -50,6 +50,33 @@ def test_face_candidates_keep_every_gaussian_project_keeps():
     assert total < 1.5 * kept < 3 * len(g), (total, kept)  # not every Gaussian on all six faces
 
 
+def test_view_candidates_keep_every_gaussian_an_off_centre_pinhole_keeps():
+    # render_perspective projects only view_candidates' Gaussians: a superset of what project keeps on all of them,
+    # here for a pinhole with fx != fy and the principal point off centre, in several directions.
+    from panoworld.render_gs import _prepare, cull_terms, invert_pose, project, render_perspective, view_candidates
+
+    g = shell_and_clutter(2)
+    pose = np.eye(4)
+    pose[:3, 3] = [-0.2, 0.1, 0.25]
+    prep = _prepare(g, pose[:3, 3])
+    total = kept = 0
+    for yaw in np.deg2rad([0.0, 70.0, 160.0, 250.0]):
+        c, s = np.cos(yaw), np.sin(yaw)
+        pose[:3, :3] = [[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]
+        view = (30.0, 22.0, 9.0, 25.0, 33, 41)  # fx, fy, cx, cy, H, W
+        full = project(prep, invert_pose(pose), *view)
+        cand = view_candidates(*cull_terms(g.means, g.opacities, g.scales, pose[:3, 3]), pose[:3, :3].T, *view, 0.01)
+        assert set(full.index.tolist()) <= set(cand.tolist())
+        total, kept = total + len(cand), kept + len(full.index)
+        with torch.no_grad():  # the culled numba path (auto) against the unculled differentiable one
+            fast = render_perspective(g, pose, *view)
+        means = torch.tensor(g.means, requires_grad=True)
+        slow = render_perspective(Gaussians(means=means, scales=g.scales, quats=g.quats, opacities=g.opacities,
+                                            sh_dc=g.sh_dc), pose, *view)
+        assert float((fast.rgb - slow.rgb.detach()).abs().max()) <= 1e-5
+    assert total < 1.5 * kept < 3 * len(g), (total, kept)  # a cull, not every Gaussian
+
+
 @pytest.mark.parametrize("supersample, tile", [(1, 8), (2, 4), (2, 16)])
 def test_masked_operator_is_the_render_on_the_pixels_it_keeps(supersample, tile):
     from panoworld.erp_operator import ErpColorOperator

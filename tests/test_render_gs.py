@@ -27,13 +27,14 @@ def random_gaussians(n: int, seed: int = 0, sh_k: int = 0) -> Gaussians:
     )
 
 
-def test_tiles_match_brute_force_reference():
+@pytest.mark.parametrize("backend", ["torch", "numba"])
+def test_tiles_match_brute_force_reference(backend):
     g = random_gaussians(400, sh_k=3)
     pose = np.eye(4)
     pose[:3, 3] = [0.1, -0.05, 0.2]
     H, W = 45, 70  # not multiples of the tile size
     args = (g, pose, 55.0, 50.0, 33.0, 24.0, H, W)
-    tile = render_perspective(*args, background=[0.2, 0.3, 0.4])
+    tile = render_perspective(*args, background=[0.2, 0.3, 0.4], backend=backend)
     ref = render_perspective(*args, background=[0.2, 0.3, 0.4], reference=True)
     assert (tile.rgb - ref.rgb).abs().max() < 1e-5
     assert (tile.alpha - ref.alpha).abs().max() < 1e-5
@@ -41,7 +42,8 @@ def test_tiles_match_brute_force_reference():
     assert 0.3 < float(ref.alpha.mean()) < 1.0  # a non-trivial image
 
 
-def test_early_termination_matches_reference():
+@pytest.mark.parametrize("backend", ["torch", "numba"])
+def test_early_termination_matches_reference(backend):
     # A stack of opaque Gaussians: pixels saturate and stop before the back layers, in both renderers.
     n = 60
     means = np.stack([np.zeros(n), np.zeros(n), np.linspace(1.0, 3.0, n)], 1).astype(np.float32)
@@ -51,7 +53,7 @@ def test_early_termination_matches_reference():
         opacities=np.full(n, 0.95, np.float32), sh_dc=rgb_to_sh_dc(colors).astype(np.float32),
     )
     args = (g, np.eye(4), 20.0, 20.0, 16.5, 16.5, 32, 32)
-    tile = render_perspective(*args)
+    tile = render_perspective(*args, backend=backend)
     ref = render_perspective(*args, reference=True)
     assert (tile.rgb - ref.rgb).abs().max() < 1e-6
     assert (tile.alpha - ref.alpha).abs().max() < 1e-6
@@ -202,7 +204,7 @@ def test_renderer_gradients_match_finite_differences():
     target = torch.rand(20, 28, 3, generator=torch.Generator().manual_seed(0))
 
     def loss(p):
-        out = render_perspective(Gaussians(**p), np.eye(4), 25.0, 25.0, 14.0, 10.0, 20, 28)
+        out = render_perspective(Gaussians(**p), np.eye(4), 25.0, 25.0, 14.0, 10.0, 20, 28, backend="torch")
         return ((out.rgb - target) ** 2).sum()
 
     params = {k: v.clone().requires_grad_(k in names) for k, v in base.items()}
@@ -480,6 +482,28 @@ def test_erp_with_requires_grad_gaussians_takes_the_torch_path():
     assert not fast.rgb.requires_grad
     assert torch.equal(fast.rgb, render_erp(g, pose, 16, 32, backend="numba", **kw).rgb)
     assert float((fast.rgb - out.rgb.detach()).abs().max()) <= 1e-5
+
+
+def test_perspective_numba_backend_equals_the_torch_rasteriser_and_keeps_gradients():
+    # Pinhole views: "auto" without gradients is the numba path, within float32 rounding of the torch oracle; with a
+    # Gaussian tensor that requires grad it is the differentiable torch path, and "numba" refuses.
+    g, pose = sh1_scene()
+    args = (pose, 30.0, 28.0, 21.0, 15.5, 31, 44)
+    want = render_perspective(g, *args, background=[0.2, 0.5, 0.7], backend="torch")
+    got = render_perspective(g, *args, background=[0.2, 0.5, 0.7], backend="numba")
+    auto = render_perspective(g, *args, background=[0.2, 0.5, 0.7])
+    for name in ("rgb", "depth", "alpha"):
+        assert float((getattr(got, name) - getattr(want, name)).abs().max()) <= 1e-5, name
+        assert torch.equal(getattr(auto, name), getattr(got, name)), name
+    assert float(got.alpha.min()) < 0.9 and float(got.depth.max() - got.depth.min()) > 0.3  # a non-trivial view
+    means = torch.tensor(g.means, requires_grad=True)
+    gi = Gaussians(means=means, scales=torch.tensor(g.scales), quats=torch.tensor(g.quats),
+                   opacities=torch.tensor(g.opacities), sh_dc=torch.tensor(g.sh_dc), sh_rest=torch.tensor(g.sh_rest))
+    out = render_perspective(gi, *args)
+    out.rgb.sum().backward()
+    assert means.grad is not None and float(means.grad.abs().max()) > 0
+    with pytest.raises(ValueError, match="requires grad"):
+        render_perspective(gi, *args, backend="numba")
 
 
 def test_room_surfels_lie_on_the_rooms_shell():
