@@ -28,7 +28,9 @@ def tile_weights(xy, conic, opacity, sorted_g, starts, counts, ntx, H, W, tile, 
     w_out = np.empty(cap, np.float32)
     n = 0
     alphas = np.empty(chunk, np.float32)
-    nmax = counts.max() if counts.shape[0] else 0
+    nmax = 0
+    for t in range(counts.shape[0]):  # not counts.max(): one numpy overload less to compile
+        nmax = max(nmax, counts[t])
     gx = np.empty(nmax, np.float32)
     gy = np.empty(nmax, np.float32)
     ga = np.empty(nmax, np.float32)
@@ -147,7 +149,8 @@ def bin_tiles_numba(xy: np.ndarray, extent: np.ndarray, z: np.ndarray, H: int, W
 @njit(cache=True, nogil=True)
 def _grow(a, cap):
     out = np.empty(cap, a.dtype)
-    out[: a.shape[0]] = a
+    for k in range(a.shape[0]):  # a loop: slice assignment compiles numba's shape-mismatch message (~4 s cold)
+        out[k] = a[k]
     return out
 
 
