@@ -65,9 +65,8 @@ def _eig3(cov, evals, axes):
             off = abs(a[0, 1]) + abs(a[0, 2]) + abs(a[1, 2])
             if off <= 1e-300 or off <= 1e-17 * scale:
                 break
-            _rotate(a, v, 0, 1)
-            _rotate(a, v, 0, 2)
-            _rotate(a, v, 1, 2)
+            for p, q in ((0, 1), (0, 2), (1, 2)):  # one call site: numba inlines _rotate's IR once
+                _rotate(a, v, p, q)
         d0, d1, d2 = a[0, 0], a[1, 1], a[2, 2]
         o0, o1, o2 = 0, 1, 2  # ascending order, as eigh
         if d0 > d1:

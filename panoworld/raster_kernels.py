@@ -30,8 +30,14 @@ _MAX_PIECES = 8
 
 # ---------------------------------------------------------------------------------------------- numba kernels
 
+# Helpers compiled once each and inlined by LLVM (forceinline), not by numba's IR inliner: inline="always" copies
+# them into the parfor bodies, whose passes then take most of a cold cache's compile (~10 s). error_model="numpy"
+# as in a parfor body (x / 0 is inf, not an exception). Helpers taking arrays that run per face or per pixel stay
+# inline="always": a separately compiled function increfs each array argument on every call (atomic operations).
+_helper = njit(forceinline=True, error_model="numpy")
 
-@njit(inline="always")
+
+@_helper
 def _atan2_approx(y, x):
     """atan2(y, x) to within _ATAN2_ERR radians (a degree-11 odd polynomial for atan on [0, 1]); for bounding boxes."""
     ax = abs(x)
@@ -79,7 +85,7 @@ def _xyz(vdata, k):
     return np.float64(vdata[k, 0]), np.float64(vdata[k, 1]), np.float64(vdata[k, 2])
 
 
-@njit(inline="always")
+@_helper
 def _wrap(d, width):
     """d (|d| < 1.5 width) wrapped into [-width / 2, width / 2]."""
     if d > 0.5 * width:
@@ -89,7 +95,7 @@ def _wrap(d, width):
     return d
 
 
-@njit(inline="always")
+@_helper
 def _acos_approx(x):
     """acos(x) for x in [-1, 1] to within _ACOS_ERR radians (Abramowitz & Stegun 4.4.45)."""
     ax = abs(x)
@@ -245,7 +251,7 @@ def _raster_face(
             continue
         pieces[0, 0] = lo_box
         pieces[1, 0] = hi_box
-        n_pieces = 1
+        n_pieces = np.int64(1)  # not a literal 1: _clip_pieces would compile for Literal[int](1) too
         for a_k, c_k, t_k in ((a0, c0, ny0), (a1, c1, ny1), (a2, c2c, ny2)):
             n_pieces = _clip_pieces(a_k * cl, c_k, t_k, px_per_rad, width, eps, pieces, n_pieces)
             if n_pieces == 0:
@@ -264,7 +270,7 @@ def _raster_face(
                       zbuf, bbuf, t32, t_bits)
 
 
-@njit(inline="always")
+@_helper
 def _scan_row(ja, jb, width, row, cl, sin_lon, cos_lon, n0x, n0z, ny0, n1x, n1z, ny1, n2x, n2z, ny2, det, fid, zbuf,
               bbuf, t32, t_bits):
     """The exact cone test of columns ja..jb (wrapped) of one row; z-buffer the pixels inside."""
@@ -297,13 +303,13 @@ def _scan_row(ja, jb, width, row, cl, sin_lon, cos_lon, n0x, n0z, ny0, n1x, n1z,
             bbuf[row + j, 1] = w2 * inv_s
 
 
-@njit(inline="always")
+@_helper
 def _arc_centre(nx, nz, width):
     """Column (u) where nx sin(lon) + nz cos(lon) peaks: lon = atan2(nx, nz)."""
     return (math.atan2(nx, nz) / (2.0 * math.pi) + 0.5) * width
 
 
-@njit(inline="always")
+@_helper
 def _clip_pieces(amp, centre, offset, px_per_rad, width, eps, pieces, n):
     """Intersect the n intervals (u) in pieces[0:2, :n] with the set amp * cos(lon - lon_c) + offset >= 0 (an arc
     around column centre, repeating every width columns) -> the number of pieces left, written back into pieces.
@@ -321,7 +327,7 @@ def _clip_pieces(amp, centre, offset, px_per_rad, width, eps, pieces, n):
     h = (_acos_approx(min(kappa, 1.0)) + _ACOS_ERR) * px_per_rad + eps
     if h >= 0.5 * width:
         return n
-    m = 0
+    m = np.int64(0)  # not a literal 0 (one _add_piece compile, not two)
     for p in range(n):
         lo = pieces[0, p]
         hi = pieces[1, p]
@@ -341,7 +347,7 @@ def _clip_pieces(amp, centre, offset, px_per_rad, width, eps, pieces, n):
     return m
 
 
-@njit(inline="always")
+@_helper
 def _add_piece(pieces, m, a, b):
     """Append [a, b] to the new pieces (rows 2, 3 of pieces) holding m; when they are full, widen the last one."""
     if m < pieces.shape[1]:

@@ -344,6 +344,16 @@ def test_numba_face_weights_match_the_torch_tile_rasteriser(n, opacity):
         assert float(torch_T.max()) > 1 - 1e-3  # saturated pixels: early termination exercised
 
 
+@pytest.mark.parametrize("dtype", [np.int32, np.float32])
+def test_numba_weight_buffers_grow_keeping_their_contents(dtype):
+    from panoworld.splat_weights import _grow
+
+    a = np.arange(7).astype(dtype) * 3
+    out = _grow(a, 11)
+    assert out.dtype == dtype and out.shape == (11,)
+    np.testing.assert_array_equal(out[:7], a)
+
+
 def cull_scene(seed: int = 0) -> tuple[Gaussians, np.ndarray]:
     """Gaussians around a turned, moved camera: a shell, some on the cube faces' edges and corners (straddling two or
     three faces), some near the camera's centre (behind and in front of the near plane), big ones close to it, and
