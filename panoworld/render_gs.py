@@ -120,7 +120,10 @@ def _prepare(g: Gaussians, cam_centre: np.ndarray) -> _Prepared:
     means = _t(g.means)
     dirs = means - torch.as_tensor(cam_centre, dtype=torch.float32)
     dirs = dirs / dirs.norm(dim=-1, keepdim=True).clamp(min=1e-12)
-    color = eval_sh(_t(g.sh_dc), _t(g.sh_rest), dirs)
+    rest = _t(g.sh_rest)
+    if rest.shape[1] and not rest.requires_grad and not bool(rest.any()):
+        rest = rest[:, :0]  # all zero (a degree-3 .ply of degree-0 colours): the same colours without the terms
+    color = eval_sh(_t(g.sh_dc), rest, dirs)
     return _Prepared(means, covariance_3d(_t(g.scales), _t(g.quats)), _t(g.opacities), color)
 
 

@@ -516,6 +516,19 @@ def test_perspective_numba_backend_equals_the_torch_rasteriser_and_keeps_gradien
         render_perspective(gi, *args, backend="numba")
 
 
+def test_all_zero_sh_rest_renders_as_degree_zero_and_nonzero_rest_still_shows():
+    # A degree-3 .ply of degree-0 colours (45 zero f_rest columns) skips the SH terms: bit for bit the same image.
+    g, pose = sh1_scene()
+    zero = Gaussians(g.means, g.scales, g.quats, g.opacities, g.sh_dc, np.zeros((len(g), 15, 3), np.float32))
+    dc = Gaussians(g.means, g.scales, g.quats, g.opacities, g.sh_dc)
+    a, b = render_erp(zero, pose, 16, 32), render_erp(dc, pose, 16, 32)
+    assert torch.equal(a.rgb, b.rgb) and torch.equal(a.depth, b.depth)
+    one = zero.sh_rest.copy()
+    one[7, 2] = 0.5  # a single non-zero coefficient keeps every term
+    c = render_erp(Gaussians(g.means, g.scales, g.quats, g.opacities, g.sh_dc, one), pose, 16, 32)
+    assert not torch.equal(c.rgb, a.rgb)
+
+
 def test_room_surfels_lie_on_the_rooms_shell():
     from panoworld.synth.surfels import ROOM_HALF_M, room_surfels
 
