@@ -349,7 +349,7 @@ def render_perspective(
         raise ValueError("backend='numba' renders without gradients but a Gaussian tensor requires grad: use 'torch'")
     world_from_cam = np.asarray(world_from_cam, dtype=np.float64)
     bg = _background(background)
-    if not grad:  # only what the view can show is prepared and projected: the same image
+    if not grad and not reference:  # only what the view can show is prepared and projected: the same image
         cand = view_candidates(*cull_terms(gaussians.means, gaussians.opacities, gaussians.scales, world_from_cam[:3, 3]),
                                world_from_cam[:3, :3].T, fx, fy, cx, cy, H, W, near)
         gaussians = gaussians.subset(cand.numpy() if isinstance(gaussians.means, np.ndarray) else cand)
