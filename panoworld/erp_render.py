@@ -48,6 +48,7 @@ longitude tan(lat) times more finely than a cube face does there; 2, with the co
 source footprint (gaussians.source_scale), gains 1.4 dB at the capture point on the validation seeds
 (docs/evaluation.md, "The poles at the capture point")."""
 
+
 @dataclass
 class ErpFace:
     """One cube face of an ERP render: its pinhole view and the ERP samples it serves."""
