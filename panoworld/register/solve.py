@@ -25,11 +25,13 @@ def rgbd_at_height(rgb: np.ndarray, depth: np.ndarray, height: int) -> tuple[np.
     return rgb, depth
 
 
-def _bearing_pair(fi: Features, fj: Features, m: np.ndarray, o: RegisterOptions) -> tuple[UprightPose | None, float,
-                                                                                         int]:
-    """Upright two-view geometry of the matches m and its metric scale -> (pose or None, scale (nan: none), support)."""
+def _bearing_pair(fi: Features, fj: Features, m: np.ndarray, rows: int, o: RegisterOptions
+                  ) -> tuple[UprightPose | None, float, int]:
+    """Upright two-view geometry of the matches m (panoramas of `rows` rows) and its metric scale -> (pose or None,
+    scale (nan: none), support)."""
     xi, xj = fi.bearings[m[:, 0]], fj.bearings[m[:, 1]]
-    pose = upright_relative_pose(xi, xj, threshold_deg=o.bearing_threshold_deg, min_inliers=o.min_bearing_inliers)
+    pose = upright_relative_pose(xi, xj, threshold_deg=o.bearing_threshold_px * 180.0 / rows,
+                                 min_inliers=o.min_bearing_inliers)
     if pose is None:
         return None, float("nan"), 0
     scale, support = metric_scale(pose, xi, xj, fi.depth[m[:, 0]], fj.depth[m[:, 1]])
@@ -64,7 +66,8 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                                             refine_height=o.refine_height, refine_iterations=o.refine_iterations,
                                             matches=m)
                 if not accepted(pairs[a, b], o):
-                    bearing[a, b] = _bearing_pair(fa, fb, m, o)
+                    rows = max(small[names[a]][1].shape[0], small[names[b]][1].shape[0])
+                    bearing[a, b] = _bearing_pair(fa, fb, m, rows, o)
                 if progress:
                     progress(names[a], names[b], pairs[a, b])
     edges = []

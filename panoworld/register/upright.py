@@ -67,6 +67,23 @@ def _hypotheses(xi: np.ndarray, xj: np.ndarray, samples: np.ndarray) -> tuple[np
     return np.arctan2(s, c), t / np.sqrt(n2)[:, None]
 
 
+def _hypotheses_tilted(xi: np.ndarray, xj: np.ndarray, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Upright essential matrices with any baseline from 5-match samples (K, 5) -> (yaw (K,), t (K, 3)). xi^T E xj is
+    linear in (E00 = E22, E02 = -E20, E01, E10, E12, E21) = (-ty s, ty c, -tz, tz c + tx s, tz s - tx c, tx)."""
+    a, b = xi[samples], xj[samples]
+    rows = np.stack([a[..., 0] * b[..., 0] + a[..., 2] * b[..., 2], a[..., 0] * b[..., 2] - a[..., 2] * b[..., 0],
+                     a[..., 0] * b[..., 1], a[..., 1] * b[..., 0], a[..., 1] * b[..., 2], a[..., 2] * b[..., 1]], -1)
+    p = np.linalg.svd(rows, full_matrices=True)[2][:, -1]  # (K, 6)
+    tx, tz = p[:, 5], -p[:, 2]
+    n2 = np.maximum(tx**2 + tz**2, 1e-12)
+    c = (tz * p[:, 3] - tx * p[:, 4]) / n2
+    s = (tx * p[:, 3] + tz * p[:, 4]) / n2
+    norm = np.maximum(np.hypot(c, s), 1e-12)
+    c, s = c / norm, s / norm
+    t = np.stack([tx, p[:, 1] * c - p[:, 0] * s, tz], 1)
+    return np.arctan2(s, c), t / np.maximum(np.linalg.norm(t, axis=1), 1e-12)[:, None]
+
+
 def _essentials(yaw: np.ndarray, t: np.ndarray) -> np.ndarray:
     c, s = np.cos(yaw), np.sin(yaw)
     R = np.zeros((len(yaw), 3, 3))
@@ -109,17 +126,21 @@ def _refine(yaw: float, t: np.ndarray, xi: np.ndarray, xj: np.ndarray, f_scale: 
 def upright_relative_pose(xi: np.ndarray, xj: np.ndarray, *, threshold_deg: float = 0.4, iterations: int = 2000,
                           min_inliers: int = 12, seed: int = 0) -> UprightPose | None:
     """RANSAC over matched unit bearings xi, xj (N, 3) of two upright panoramas (camera y = gravity in both):
-    3-match hypotheses with a horizontal baseline (cameras at one height), the best refined on its inliers with the
-    baseline free to tilt, inliers re-counted. None when fewer than min_inliers support the best model."""
+    3-match hypotheses with a horizontal baseline (cameras at one height) and half as many 5-match ones with any
+    baseline, the best refined on the inliers of a
+    shrinking band (4, 2, 1.5 thresholds) with the baseline free to tilt, inliers re-counted. None when fewer than min_inliers support the best model."""
     n = len(xi)
     if n < max(min_inliers, 3):
         return None
     rng = np.random.default_rng(seed)
-    samples = np.stack([rng.choice(n, 3, replace=False) for _ in range(iterations)])
     thr = np.radians(threshold_deg)
     best, best_count = None, -1
-    for chunk in np.array_split(samples, max(1, iterations // 500)):
-        yaw, t = _hypotheses(xi, xj, chunk)
+    chunks = [(_hypotheses, np.argsort(rng.random((500, n)), 1)[:, :3]) for _ in range(max(1, iterations // 500))]
+    if n >= 5:
+        chunks += [(_hypotheses_tilted, np.argsort(rng.random((500, n)), 1)[:, :5])
+                   for _ in range(max(1, iterations // 1000))]
+    for solver, chunk in chunks:
+        yaw, t = solver(xi, xj, chunk)
         ok = np.isfinite(yaw) & np.isfinite(t).all(1)
         if not ok.any():
             continue
@@ -131,9 +152,9 @@ def upright_relative_pose(xi: np.ndarray, xj: np.ndarray, *, threshold_deg: floa
     if best is None or best_count < min_inliers:
         return None
     yaw, t = best
-    for _ in range(3):  # local optimisation: refine on the inliers, re-count
+    for widen in (4.0, 2.0, 1.5):  # local optimisation: refine on the inliers of a shrinking band, re-count
         E = _essentials(np.array([yaw]), t[None])[0]
-        inl = epipolar_angles(E, xi, xj) < 2 * thr
+        inl = epipolar_angles(E, xi, xj) < widen * thr
         if inl.sum() < min_inliers:
             return None
         yaw, t = _refine(yaw, t, xi[inl], xj[inl], thr)
