@@ -162,7 +162,7 @@ def print_mean(results: dict[str, dict]) -> dict:
 
 def print_real(results: dict[str, dict]) -> None:
     """Real captures (no ground truth off the capture point): ERP coverage per bucket and the capture point against
-    the input panorama, with issue 28's targets (Realsee: >= 0.99 coverage and >= 25 dB at the capture point; real
+    the input panorama, with the targets (Realsee: >= 0.99 coverage and >= 25 dB at the capture point; real
     captures in general: >= 0.99 coverage ~1 m and ~2 m away)."""
     print("\nreal captures: ERP coverage per bucket (alpha > 0.5), capture point vs the input panorama")
     keys = ["d0", "d0.5", "d1", "d2", FAR_KEY]
