@@ -1,9 +1,9 @@
 """Prints the roam protocol on held-out synthetic scenes at the default preset: Gaussian renders at random NavMesh poses
 per distance bucket (ERP 256x512 and a 90-degree pinhole) vs the anti-aliased ground truth, the planned trajectory's
-reach, and the pipeline's wall time and peak memory (docs/evaluation.md, "Roam protocol").
+reach, and the pipeline's wall time and peak memory (docs/evaluation.md, "Roam").
 
 TEST seeds (report on these, never tune on them): 0 (the `runner.py demo` scene), 7, 19, 23.
-VALIDATION seeds (tune on these): 1, 2, 3 (`--seeds 1 2 3`).
+VALIDATION seeds (tune on these): 1-6 (`--seeds 1 2 3 4 5 6`).
 """
 
 from __future__ import annotations
