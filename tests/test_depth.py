@@ -8,10 +8,11 @@ import cv2
 import numpy as np
 import pytest
 
-from panoworld import depth as dep
-from panoworld.cube_views import cube_views, merge_view_predictions, render_view
-from panoworld.depth import DepthKind, Rescale
-from panoworld.stage import StageInputError, execute_stage, load_stage, params_from_dict
+from panoworld.depth import depth_map as dep
+from panoworld.depth.depth_map import Rescale
+from panoworld.framework.stage import StageInputError, execute_stage, load_stage, params_from_dict
+from panoworld.geometry.cube_views import cube_views, merge_view_predictions, render_view
+from panoworld.io.depth import DepthKind
 from tests.test_mesh import CAMERA_HEIGHT, BoxRoom
 
 

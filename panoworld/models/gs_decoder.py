@@ -10,8 +10,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from panoworld.conventions import erp_dirs
-from panoworld.gaussians import SH_C0, Gaussians, fuse_voxels
+from panoworld.core.conventions import erp_dirs
+from panoworld.geometry.voxels import fuse_voxels
+from panoworld.io.gaussian_set import SH_C0, Gaussians
 from panoworld.models.weights import JsonConfig
 
 IN_CHANNELS = 10
