@@ -113,9 +113,10 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
     import cv2
 
     from panoworld.depth import depth_map as dep
+    from panoworld.io.depth import read_panorama
 
     notes: list[str] = []
-    rgb = dep.read_panorama(inputs["panorama"], notes)
+    rgb = read_panorama(inputs["panorama"], notes)
     H0, W0 = rgb.shape[:2]
     H, W = dep.working_size(H0, params.max_height)
     rgb = dep.resize_panorama(rgb, H)

@@ -1,4 +1,4 @@
-"""fusion_kernels against their numpy/torch oracles (frame_observations' numpy, gaussians.voxel_sums / merge_voxel_sums): bit for bit."""
+"""fusion_kernels against their numpy/torch oracles (frame_observations' numpy, geometry.voxels.voxel_sums / merge_voxel_sums): bit for bit."""
 
 import numpy as np
 import pytest

@@ -199,7 +199,7 @@ def frame_moment_sums(points: np.ndarray, colors: np.ndarray, steps: np.ndarray,
                       voxel_size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One frame's observations (points (M, 3), colors (M, 3), steps (M, 2, 3), weights (M,), float64) -> per occupied
     voxel of size voxel_size (sorted unique keys (V,), sum w (V,), sum w * moments (V, 12), count (V,)): equal bit
-    for bit to gaussians.voxel_sums(keys, weights, _moment_values(obs, centre)) (its test oracle)."""
+    for bit to geometry.voxels.voxel_sums(keys, weights, _moment_values(obs, centre)) (its test oracle)."""
     points, colors, steps, weights = (np.ascontiguousarray(a, np.float64) for a in (points, colors, steps, weights))
     m = len(points)
     keys = np.empty(m, np.int64)

@@ -49,7 +49,7 @@ def home_anchored_fusion(frames: ContextSource, sources: dict[str, tuple[np.ndar
                          progress: bool = False) -> FusionResult:
     """Per-pixel Gaussians of every source {NAME: (rgb (H, W, 3), depth (H, W) metres (0 = unknown), world_from_cam)}
     at most source_height rows (0 = as given), a pixel kept only when no other source sees its surface from nearer
-    (register.fuse.nearest_source: no doubled surfaces), plus voxel fusion of what the frames see that no source
+    (geometry.panoramas.nearest_source: no doubled surfaces), plus voxel fusion of what the frames see that no source
     does (SourceVisibility of each, tolerance tol) in voxels of unseen_voxel_size (0 = params.voxel_size), less those
     poking through a surface a source saw: source_anchored_fusion of a single panorama, over several."""
     names = list(sources)

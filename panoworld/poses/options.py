@@ -1,4 +1,4 @@
-"""Choices (StrEnums) of stage params whose library modules are heavy to import: the runner imports them cheaply."""
+"""The poses stage's choices: COLMAP render type, matcher, mapper, alignment and the COLMAP options (cheap to import)."""
 
 from __future__ import annotations
 

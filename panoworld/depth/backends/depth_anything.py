@@ -24,9 +24,9 @@ class DepthAnythingOptions:
 
 
 def predict(job):
-    from panoworld.depth import depth_map as dep
     from panoworld.depth.backends import Result
     from panoworld.geometry.cube_views import erp_depth_from_model
+    from panoworld.io.depth import DepthKind
     from panoworld.models.depth_anything import DepthAnything
 
     o: DepthAnythingOptions = job.options
@@ -43,7 +43,7 @@ def predict(job):
     info = dict(model_kind=model.kind.value, view_overlap_rel_rmse=res.overlap_rel_rmse,
                 view_scales=res.scale.tolist(), view_shifts=res.shift.tolist())
     valid = mask_and_record(res.depth, res.valid, info, job.notes)  # before the floor-based rescale
-    return Result(res.depth, valid, relative=model.kind == dep.DepthKind.RELATIVE, info=info)
+    return Result(res.depth, valid, relative=model.kind == DepthKind.RELATIVE, info=info)
 
 
 register("depth", "depth-anything", predict, options=DepthAnythingOptions, key="depth_anything", needs_inputs=())

@@ -25,6 +25,7 @@ class ProvidedOptions:
 def read(job):
     from panoworld.depth import depth_map as dep
     from panoworld.depth.backends import Result
+    from panoworld.io.depth import read_depth
 
     o: ProvidedOptions = job.options
     path = job.depth_file
@@ -32,7 +33,7 @@ def read(job):
         raise InputError("backend provided needs --depth FILE (depth.npy, depth.exr or a 16-bit depth.png)")
     H, W = job.rgb.shape[:2]
     info: dict = {}
-    raw = dep.read_depth(path, png_scale=o.png_scale)
+    raw = read_depth(path, png_scale=o.png_scale)
     if raw.shape[0] > H:  # fill at most at the working resolution (nearest: invalid never blends in)
         raw, note = dep.conform_depth(raw, H, W, str(path))
         job.notes.append(note)
