@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.core.errors import InputError
-from panoworld.io.depth import load_depth_artifact
 from panoworld.io.jsonio import read_json, write_json
 
 PANORAMAS_JSON = "panoramas.json"
@@ -56,6 +55,8 @@ def is_home(register_artifact: Path | None) -> bool:
 def load_sources(dirs: dict[str, Path], world_from_cam: dict[str, np.ndarray]
                  ) -> tuple[list[str], dict[str, np.ndarray], dict[str, np.ndarray]]:
     """(registered names in order, cleaned RGB, depth with invalid pixels 0) of the home's panoramas."""
+    from panoworld.io.depth import load_depth_artifact  # cv2
+
     names = [n for n in dirs if n in world_from_cam]
     rgbs, depths = {}, {}
     for n in names:
