@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from panoworld.conventions import invert_pose
-from panoworld.depth import read_panorama
+from panoworld.core.conventions import invert_pose
+from panoworld.io.depth import read_panorama
 from panoworld.register.graph import BEARING, DEPTH, DIRECTION, Edge, solve_graph
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pairwise import consistency

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from panoworld.conventions import invert_pose
+from panoworld.core.conventions import invert_pose
 from panoworld.register.upright import yaw_matrix, yaw_of
 
 DEPTH, BEARING, DIRECTION = "depth", "bearing", "direction"
