@@ -50,7 +50,7 @@ def cmd_run(args) -> int:
         raise pl.PipelineError("--sweep, --executor, --workers and --ray-address need --all (SCENE = a dataset directory)")
 
     def live(r: pl.StageResult) -> None:
-        if not args.json:
+        if not args.json and not r.bad_input:  # a refused input: one line, the report's error line
             print(f"[{r.stage}] {r.action}: {r.reason}", file=sys.stderr, flush=True)
 
     report = pl.run(

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from panoworld.errors import ArtifactError
+from panoworld.io.atomic import write_text_atomic  # noqa: F401  (part of this module's API)
 
 MANIFEST = "manifest.json"
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -237,14 +238,6 @@ def list_files(root: Path) -> dict[str, dict]:
 def tmp_dir_for(out_dir: Path) -> Path:
     out_dir = Path(out_dir)
     return out_dir.parent / f"{TMP_PREFIX}{out_dir.name}-{os.getpid()}-{time.time_ns()}"
-
-
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write text to path through a hidden sibling and a rename: readers see the old file or the new, never a part."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.part")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def write_manifest(tmp_dir: Path, manifest: dict, kind: str) -> None:

@@ -36,7 +36,8 @@ INPUTS = {
 class Params:
     backend: str = param("auto", choices=("auto", *backends.names(NAME)))
     """Where depth comes from: the scene's depth file (provided), a Depth Anything V2 model on cube views
-    (depth-anything), or auto: provided when a depth file is given, else depth-anything (panoworld/backends/depth/)."""
+    (depth-anything), or auto: provided when a depth file is given, else depth-anything (with depth_anything.weights,
+    else the Depth Anything V2 weights found in the local Hugging Face cache) (panoworld/backends/depth/)."""
     rescale: Rescale = Rescale.AUTO
     """When to rescale depth so the floor lies camera_height below the camera: auto = relative depth, and provided
     depth whose floor is no plausible capture height (0.9-2.4 m: unknown units); always: e.g. raw sensor units."""

@@ -11,7 +11,7 @@ from typing import ClassVar
 import numpy as np
 
 from panoworld import backends
-from panoworld.backends.poses import Job, choose_auto
+from panoworld.backends.poses import Job, pick
 from panoworld.backends.poses.vggt import VggtOptions
 from panoworld.choices import Alignment, ColmapOptions
 from panoworld.params import options, param
@@ -79,12 +79,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
             f"the planned trajectory has {len(planned)} poses but video.json lists {video.num_frames} frames; "
             "rerun the video stage on this trajectory"
         )
-    decisions = []
-    if params.backend == "auto":
-        backend, why = choose_auto(_video_backend(Path(inputs["video"]), video.meta), params)
-        decisions.append(f"backend auto: {backend.name} ({why})")
-    else:
-        backend = backends.get(NAME, params.backend)
+    backend, decisions = pick(params.backend, _video_backend(Path(inputs["video"]), video.meta), params)
     if planned is not None and backend.traits.get("needs_baseline") and np.ptp(planned[:, :3, 3], axis=0).max() < 1e-6:
         decisions.append(f"the trajectory does not move (rotation only: no room to move), so {backend.name} has no "
                          "baseline; planned poses used")

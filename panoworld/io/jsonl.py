@@ -6,8 +6,8 @@ import json
 from collections.abc import Iterable
 from pathlib import Path
 
-from panoworld.artifacts import write_text_atomic
 from panoworld.errors import InputError
+from panoworld.io.atomic import write_text_atomic
 from panoworld.io.jsonio import to_jsonable
 
 

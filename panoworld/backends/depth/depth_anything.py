@@ -10,11 +10,14 @@ from panoworld.depth_outliers import mask_and_record
 from panoworld.errors import InputError
 from panoworld.params import param
 
+WEIGHTS_PARAM = "depth.depth_anything.weights"
+
 
 @dataclass(kw_only=True)
 class DepthAnythingOptions:
     weights: Path | None = None
-    """Local folder with config.json + model.safetensors (e.g. Depth-Anything-V2-Small-hf)."""
+    """Local folder with config.json + model.safetensors (e.g. Depth-Anything-V2-Small-hf) or an `hf:` id; None = the
+    first registered Depth Anything V2 weights in the local Hugging Face cache (`runner.py weights fetch NAME`)."""
     view_size: int = param(518, ge=14)
     """Side of each perspective cube view fed to the model (a multiple of 14)."""
     fov_deg: float = param(110.0, gt=90, lt=180)
@@ -30,18 +33,29 @@ def predict(job):
     from panoworld.models.depth_anything import DepthAnything
 
     o: DepthAnythingOptions = job.options
-    if o.weights is None:
-        raise InputError(
-            f"{job.panorama_file}: no depth file in the scene and no depth model weights; run "
-            "`python runner.py weights fetch depth-anything-v2-small` and pass --set depth.depth_anything.weights=DIR "
-            "(or put a metric depth.npy|exr|png next to the panorama)"
-        )
-    model = DepthAnything.from_pretrained(o.weights, input_size=o.view_size, device=o.device)
+    weights, found = o.weights, None
+    if weights is None:
+        from panoworld.hub.resolve import find_local_weights
+
+        found = find_local_weights(WEIGHTS_PARAM)
+        if found is None:
+            raise InputError(
+                f"{job.panorama_file}: no depth file in the scene and no depth model on disk; run "
+                "`python runner.py weights fetch depth-anything-v2-small` (or put a metric depth.npy|exr|png next to "
+                "the panorama)"
+            )
+        entry, weights, commit = found
+        job.notes.append(f"no depth file: depth from {entry.name} found on disk (hf:{entry.repo} {commit[:12]}; "
+                         f"another: --set {WEIGHTS_PARAM}=DIR)")
+    model = DepthAnything.from_pretrained(weights, input_size=o.view_size, device=o.device)
     res = erp_depth_from_model(job.rgb, model, model.kind, fov_deg=o.fov_deg, view_size=o.view_size)
     if not res.valid.any():
         raise InputError(f"--depth-anything-weights {o.weights}: the model predicted no positive depth anywhere")
     info = dict(model_kind=model.kind.value, view_overlap_rel_rmse=res.overlap_rel_rmse,
                 view_scales=res.scale.tolist(), view_shifts=res.shift.tolist())
+    if found is not None:
+        info["weights_found"] = {"name": found[0].name, "spec": f"hf:{found[0].repo}", "commit": found[2],
+                                 "path": str(found[1])}
     valid = mask_and_record(res.depth, res.valid, info, job.notes)  # before the floor-based rescale
     return Result(res.depth, valid, relative=model.kind == dep.DepthKind.RELATIVE, info=info)
 

@@ -26,6 +26,16 @@ class Job:
     """The backend's own options (None for a backend without options)."""
 
 
+def pick(name: str, video_backend: str | None, params: Any) -> tuple[Any, list[str]]:
+    """The backend `name` stands for (auto: choose_auto) and the decisions to record."""
+    from panoworld import backends
+
+    if name != "auto":
+        return backends.get("poses", name), []
+    backend, why = choose_auto(video_backend, params)
+    return backend, [f"backend auto: {backend.name} ({why})"]
+
+
 def choose_auto(video_backend: str | None, params: Any) -> tuple[Any, str]:
     """The backend `auto` stands for, and why: the plan's copier when the video backend renders every frame at its
     planned pose (trait renders_plan), else a recovering backend whose weights are given, else one needing none."""
