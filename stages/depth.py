@@ -9,14 +9,14 @@ from typing import ClassVar
 
 import numpy as np
 
-from panoworld import backends
-from panoworld.backends.depth import Job
-from panoworld.backends.depth.depth_anything import DepthAnythingOptions
-from panoworld.backends.depth.provided import ProvidedOptions
-from panoworld.choices import Rescale, RigMode
-from panoworld.depth_clean import clean_depth
-from panoworld.params import options, param
-from panoworld.stage import Input, StageInputError, stage_main
+from panoworld.core import registry as backends
+from panoworld.core.params import options, param
+from panoworld.depth.backends import Job
+from panoworld.depth.backends.depth_anything import DepthAnythingOptions
+from panoworld.depth.backends.provided import ProvidedOptions
+from panoworld.depth.clean import clean_depth
+from panoworld.depth.options import Rescale, RigMode
+from panoworld.framework.stage import Input, StageInputError, stage_main
 
 NAME = "depth"
 VERSION = "3"
@@ -37,7 +37,7 @@ class Params:
     backend: str = param("auto", choices=("auto", *backends.names(NAME)))
     """Where depth comes from: the scene's depth file (provided), a Depth Anything V2 model on cube views
     (depth-anything), or auto: provided when a depth file is given, else depth-anything (with depth_anything.weights,
-    else the Depth Anything V2 weights found in the local Hugging Face cache) (panoworld/backends/depth/)."""
+    else the Depth Anything V2 weights found in the local Hugging Face cache) (panoworld/depth/backends/)."""
     rescale: Rescale = Rescale.AUTO
     """When to rescale depth so the floor lies camera_height below the camera: auto = relative depth, and provided
     depth whose floor is no plausible capture height (0.9-2.4 m: unknown units); always: e.g. raw sensor units."""
@@ -53,18 +53,18 @@ class Params:
     inpainted, depth from the floor plane; a scene rig_mask.png overrides detection); keep = leave it (docs/rig.md)."""
     rig_detector: str = param("heuristic", choices=backends.names("rig"))
     """How rig=auto finds the rig: heuristic (colour and shape tests, no weights) or learned (a small U-Net trained
-    by bench/train_rig.py on synthetic rigs; weights in rig_weights); both keep seen objects (panoworld/backends/rig/)."""
+    by bench/train_rig.py on synthetic rigs; weights in rig_weights); both keep seen objects (panoworld/depth/rig/backends/)."""
     rig_weights: Path | None = None
     """Directory with the rig U-Net's config.json + model.safetensors (rig_detector=learned)."""
     rig_device: str = "cpu"
     """Torch device of the learned rig detector."""
     complete_poles: bool = True
     """Depth missing at the poles or in bands (LiDAR blind zones) is completed from the fitted floor and ceiling
-    planes, within the room's extent (panoworld.depth_complete)."""
+    planes, within the room's extent (panoworld.depth.complete)."""
     complete_dropouts: bool = True
     """Depth still missing after that (dropouts inside the scan: glass, dark surfaces, object silhouettes) is
     completed: the rim's plane where it has one, else smooth continuation of the rim where that agrees with the
-    nearest depth, else the nearest depth (a step at a silhouette) (panoworld.depth_complete.complete_dropouts)."""
+    nearest depth, else the nearest depth (a step at a silhouette) (panoworld.depth.complete.complete_dropouts)."""
     provided: ProvidedOptions = options(ProvidedOptions, "provided")
     """provided's options."""
     depth_anything: DepthAnythingOptions = options(DepthAnythingOptions, "depth-anything")
@@ -84,7 +84,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
             raise StageInputError(f"{inputs['rig_masks']}: rig_masks/ is for a home (panoramas/); one panorama's mask "
                                   "is --rig-mask FILE (SCENE/rig_mask.png)")
         return depth_of_panorama(inputs, params, out_dir)
-    from panoworld.home.layout import HOME_DIR, HOME_INFO
+    from panoworld.io.home import HOME_DIR, HOME_INFO
     from panoworld.register.inputs import DEPTH_SUFFIXES, PANORAMA_SUFFIXES
 
     pano_dir, depth_dir = Path(inputs["panoramas"]), inputs.get("depths")
@@ -113,10 +113,11 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
     """Depth, validity and the cleaned panorama (rig removed, poles completed) of one panorama into out_dir."""
     import cv2
 
-    from panoworld import depth as dep
+    from panoworld.depth import depth_map as dep
+    from panoworld.io.depth import read_panorama
 
     notes: list[str] = []
-    rgb = dep.read_panorama(inputs["panorama"], notes)
+    rgb = read_panorama(inputs["panorama"], notes)
     H0, W0 = rgb.shape[:2]
     H, W = dep.working_size(H0, params.max_height)
     rgb = dep.resize_panorama(rgb, H)
@@ -124,9 +125,12 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
     info: dict = {"backend": backend.name, "height": H, "width": W, "input_size": [W0, H0]}
     if (H, W) != (H0, W0):
         notes.append(f"panorama {W0}x{H0} is taller than max_height {params.max_height}: working at {W}x{H}")
+    opts, found = _with_weights_on_disk(backend, backend.options_of(params), notes)
     res = backend.impl(Job(rgb=rgb, depth_file=inputs.get("depth"), panorama_file=inputs["panorama"],
-                           options=backend.options_of(params), notes=notes))
+                           options=opts, notes=notes))
     info.update(res.info)
+    if found is not None:
+        info["weights_found"] = found
     rig_backend = None if params.rig == RigMode.KEEP else backends.get("rig", params.rig_detector).impl
     c = clean_depth(rgb, res.depth, res.valid, relative=res.relative, rescale=params.rescale,
                     camera_height=params.camera_height, min_depth_m=params.min_depth_m,
@@ -136,7 +140,7 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
     info.update(c.info)
     info["decisions"] = notes + c.notes
     if c.rig is not None and c.rig.found:
-        from panoworld.rig_face import nadir_crop
+        from panoworld.depth.rig.face import nadir_crop
 
         cv2.imwrite(str(out_dir / "rig_mask.png"), c.rig.mask.astype(np.uint8) * 255)
         crops = np.concatenate([nadir_crop(rgb), nadir_crop(c.rgb)], axis=1)
@@ -146,6 +150,26 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
     cv2.imwrite(str(out_dir / "valid.png"), valid.astype(np.uint8) * 255)
     cv2.imwrite(str(out_dir / "panorama.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     return info
+
+
+def _with_weights_on_disk(backend, opts, notes: list[str]) -> tuple:
+    """A backend with trait finds_weights and no weights given takes the first registered weights of its param in the
+    local Hugging Face cache (`runner.py weights fetch NAME`): (its options, what was found for the manifest)."""
+    if not backend.traits.get("finds_weights") or opts is None or opts.weights is not None:
+        return opts, None
+    from dataclasses import replace
+
+    from panoworld.framework.hub.resolve import find_local_weights
+
+    param = f"{NAME}.{backend.key}.weights"
+    hit = find_local_weights(param)
+    if hit is None:
+        return opts, None
+    entry, path, commit = hit
+    notes.append(f"no depth file: depth from {entry.name} found on disk (hf:{entry.repo} {commit[:12]}; another: "
+                 f"--set {param}=DIR)")
+    return replace(opts, weights=path), {"name": entry.name, "spec": f"hf:{entry.repo}", "commit": commit,
+                                         "path": str(path)}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from panoworld import artifacts as art
+from panoworld.io import manifest as art
 from tests.toy.common import use_toy_schemas
 
 

@@ -6,7 +6,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from panoworld.splat_ply import read_gaussians_ply
+from panoworld.io.splat_ply import read_gaussians_ply
 from panoworld.splat_spz import read_gaussians_spz, write_gaussians_spz
 from tests.test_splat_ply import gaussians
 

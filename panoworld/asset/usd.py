@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.conventions import CV_FROM_GL, quat_xyzw_from_wxyz
-from panoworld.gaussian_set import Gaussians
-from panoworld.splat_ply import used_sh_degree as sh_degree  # INRIA files may pad to degree 3 with zeros
+from panoworld.core.conventions import CV_FROM_GL, quat_xyzw_from_wxyz
+from panoworld.io.gaussian_set import Gaussians
+from panoworld.io.splat_ply import used_sh_degree as sh_degree  # INRIA files may pad to degree 3 with zeros
 
 UP_AXIS = "Z"
 GRAVITY_M_S2 = 9.81
