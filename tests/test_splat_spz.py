@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from panoworld.io.splat_ply import read_gaussians_ply
-from panoworld.splat_spz import read_gaussians_spz, write_gaussians_spz
+from panoworld.io.splat_spz import read_gaussians_spz, write_gaussians_spz
 from tests.test_splat_ply import gaussians
 
 SPLAT_TRANSFORM = shutil.which("splat-transform")  # npm install -g @playcanvas/splat-transform (.ci/run does)
