@@ -34,6 +34,8 @@ LOCK_FILE = ".lock"
 """The scene lock, SCENE/artifacts/.lock: held (flock) by the runner working on the scene, naming its pid."""
 LOCK_ENV = "PANOWORLD_SCENE_LOCK"
 RUNNER_PID_ENV = "PANOWORLD_RUNNER_PID"
+REFUSAL_ENV = "PANOWORLD_REFUSAL_FILE"
+"""Set by a runner: a stage that refuses its input (exit 2) writes its one line there, for the runner to print once."""
 """Set by a local runner for the stages it starts: the lock it holds and its pid (see check_runner)."""
 
 StageInputError = InputError
@@ -474,7 +476,11 @@ def stage_main(module_name: str, argv: list[str] | None = None) -> int:
         inputs = {name: getattr(args, f"in_{name}") for name in spec.inputs}
         manifest = execute_stage(spec, inputs, params, args.out)
     except PanoWorldError as e:
-        print(f"error: stage {spec.name}: {e}", file=sys.stderr)
+        refusal = os.environ.get(REFUSAL_ENV)
+        if refusal and e.exit_code == 2:
+            Path(refusal).write_text(str(e))
+        else:
+            print(f"error: stage {spec.name}: {e}", file=sys.stderr)
         return e.exit_code
     print(
         f"{spec.name}: wrote {args.out} ({len(manifest['files'])} files, {manifest['wall_s']:.2f} s, "
