@@ -289,7 +289,7 @@ def fuse_unseen(pix: Gaussians, frames: ContextSource, vis, params: FusionParams
         return FusionResult(pix, len(pix), 0, 0, bbox_extent(pix.means), params.voxel_size, num_source=len(pix))
     vox_params = replace(params, voxel_size=unseen_voxel_size) if unseen_voxel_size > 0 else params
     fused = voxel_fusion(frames, vox_params, progress=progress, keep_points=lambda p: ~vis.explained(p),
-                         empty_ok=True)
+                         empty_ok=len(pix) > 0)
     poking = vis.poking_through(fused.gaussians)
     g = merge_gaussians([pix, fused.gaussians.subset(~poking)])
     return FusionResult(g, fused.num_observations + len(pix), fused.num_voxels, fused.num_pruned + int(poking.sum()),
