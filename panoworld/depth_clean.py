@@ -77,6 +77,28 @@ def clean_depth(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, *, relati
             notes.append(f"{d['completed_fraction']:.1%} of the pixels ({d['dropouts']} dropouts) completed: "
                          f"{d['plane_fraction']:.0%} from their rim's plane, {d['smooth_fraction']:.0%} as smooth surface, "
                          f"{d['step_fraction']:.0%} as a step at a depth edge")
+    depth, valid = _plausible(depth, valid, info, notes)
+    if not valid.any():
+        raise InputError(f"{source}: no plausible depth left (every surface passes within "
+                         f"{info['plausibility']['near_plane_m']} m of the camera or lies beyond its room)")
     info["valid_fraction"] = float(valid.mean())
     info["depth_range_m"] = [float(depth[valid].min()), float(depth[valid].max())]
     return Cleaned(rgb=rgb, depth=depth, valid=valid, info=info, rig=det, notes=notes)
+
+
+def _plausible(depth: np.ndarray, valid: np.ndarray, info: dict, notes: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """depth_plausible.mask_implausible with the pole completion's planes (fitted here when it did not run); its record
+    goes to info["plausibility"], a line to notes when anything was masked."""
+    from panoworld.depth_plausible import describe, mask_implausible
+
+    planes = info.get("pole_completion") or {}
+    if "floor_m" in planes:
+        floor_m, ceil_m = planes["floor_m"], planes["ceiling_m"]
+    else:
+        from panoworld.depth_complete import fit_planes
+
+        floor_m, ceil_m = fit_planes(depth, valid)
+    depth, valid, info["plausibility"] = mask_implausible(depth, valid, floor_m, ceil_m)
+    if line := describe(info["plausibility"]):
+        notes.append(line)
+    return depth, valid

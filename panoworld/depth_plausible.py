@@ -1,0 +1,197 @@
+"""Implausible room geometry masked: floor or ceiling receding past the walls that bound it, surfaces through the camera."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from panoworld.conventions import erp_dirs, erp_pixel_solid_angle
+
+PLANE_TOL = 0.02
+"""A pixel lies on the floor (ceiling) plane when its height is within this fraction of the plane's distance."""
+REACH_REL, REACH_ABS_M = 0.05, 0.10
+"""Floor or ceiling seen farther out horizontally than bound x (1 + REACH_REL) + REACH_ABS_M is beyond its room."""
+STAND_RADIUS_M = 1.0
+"""Floor and ceiling within this horizontal distance of the camera are kept where no wall bounds them: the floor the
+tripod stands on and the photographer walked, wide enough for the NavMesh's agent to stand at the capture point."""
+NEAR_PLANE_M = 0.15
+"""A surface whose plane passes nearer the camera centre than a camera on a tripod can stand to a wall is not
+geometry (a doorway line through the camera in a layout annotation): a tripod's legs spread >= 0.3 m, so with two
+feet against a wall its centre stands >= ~15 cm from it."""
+ANALYSIS_HEIGHT = 512
+"""Walls and planes through the camera are found at most at this ERP height (a power-of-two stride)."""
+GROW_PASSES = 3
+"""near_plane_mask grows its planes this many pixels into their rim (where the plane meets the floor or ceiling)."""
+COLLINEAR_REL = 0.01
+"""A pixel lies on the line through its two neighbours when within this fraction of their distance (plus 2 mm)."""
+
+
+def _plane_masks(depth, valid, dirs, floor_m, ceil_m):
+    y = depth * dirs[..., 1]  # camera frame: +Y is down
+    floor = np.zeros(depth.shape, bool) if floor_m is None else valid & (np.abs(y - floor_m) <= PLANE_TOL * floor_m)
+    ceil = np.zeros(depth.shape, bool) if ceil_m is None else valid & (np.abs(-y - ceil_m) <= PLANE_TOL * ceil_m)
+    return floor, ceil
+
+
+def _gaps(has: np.ndarray) -> list[tuple[int, int]]:
+    """Circular runs of False in has (W,) as (last True column before, first True column after)."""
+    W = len(has)
+    cols = np.flatnonzero(has)
+    out = []
+    for a, b in zip(cols, np.roll(cols, -1)):
+        if (b - a) % W != 1 and not (len(cols) == 1 and W == 1):
+            out.append((int(a), int(b)))
+    return out
+
+
+def wall_bounds(depth: np.ndarray, valid: np.ndarray, floor_m: float | None, ceil_m: float | None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Per ERP column (W,): how far out horizontally its room reaches, the wall points (W, 2) in the horizontal
+    plane (x, z) and whether the column sees a wall. A column's bound is its farthest wall (a valid pixel on neither
+    the floor nor the ceiling plane); in a run of columns that see none, it is where the column's ray crosses the line
+    joining the walls at the run's two ends (the room closed by that chord; at most the farthest wall), 0 where it
+    does not cross it.
+    None when no column sees a wall."""
+    H, W = depth.shape
+    dirs = erp_dirs(H, W, np.float32)
+    floor, ceil = _plane_masks(depth, valid, dirs, floor_m, ceil_m)
+    wall = valid & ~floor & ~ceil
+    horiz = np.where(wall, depth * np.hypot(dirs[..., 0], dirs[..., 2]), 0.0)
+    r = horiz.max(0).astype(np.float64)
+    has = r > 0
+    if not has.any():
+        return None
+    az = np.arctan2(dirs[H // 2, :, 0], dirs[H // 2, :, 2]).astype(np.float64)
+    u = np.stack([np.sin(az), np.cos(az)], axis=1)
+    pts = u * r[:, None]
+    bound = r.copy()
+    for a, b in _gaps(has):
+        cols = np.arange(a + 1, a + 1 + (b - a - 1) % W) % W
+        e = pts[b] - pts[a]
+        den = u[cols, 0] * e[1] - u[cols, 1] * e[0]
+        s = (pts[a, 0] * e[1] - pts[a, 1] * e[0]) / np.where(np.abs(den) > 1e-12, den, np.nan)
+        bound[cols] = np.where(np.isfinite(s) & (s > 0), np.minimum(s, r.max()), 0.0)
+    return bound, pts, has
+
+
+def room_floor_area(pts: np.ndarray, has: np.ndarray) -> float:
+    """Area (m^2) of the polygon through the wall points (W, 2) of the columns that see a wall, in column order (a
+    run without walls is closed by the chord between its ends): the room's floor as its walls outline it."""
+    p = pts[has]
+    if len(p) < 3:
+        return 0.0
+    x, z = p[:, 0], p[:, 1]
+    return float(0.5 * abs(np.dot(x, np.roll(z, -1)) - np.dot(z, np.roll(x, -1))))
+
+
+def near_plane_mask(depth: np.ndarray, valid: np.ndarray, near_m: float = NEAR_PLANE_M) -> np.ndarray:
+    """(H, W) bool: valid pixels on a surface whose plane passes within near_m of the camera centre: the pixel is
+    collinear with its two neighbours along the row (seam wrapped) and with its two along the column (within
+    COLLINEAR_REL of the shorter step: never across a depth edge), and the plane of those two lines passes that near.
+    A wall line through the camera is seen edge-on, so every pixel of it qualifies, however far along it."""
+    H, W = depth.shape
+    pts = erp_dirs(H, W, np.float32) * np.where(valid, depth, 0.0).astype(np.float32)[..., None]
+    ok = valid & np.roll(valid, 1, 1) & np.roll(valid, -1, 1)
+    ok[1:] &= valid[:-1]
+    ok[:-1] &= valid[1:]
+    ok[0] = ok[-1] = False
+    edges = []
+    for lo, hi in ((np.roll(pts, 1, 1), np.roll(pts, -1, 1)),
+                   (np.concatenate([pts[:1], pts[:-1]]), np.concatenate([pts[1:], pts[-1:]]))):
+        e = hi - lo
+        le = np.maximum(np.linalg.norm(e, axis=-1), 1e-9)
+        off = np.linalg.norm(np.cross(pts - lo, e), axis=-1) / le
+        step = np.minimum(np.linalg.norm(pts - lo, axis=-1), np.linalg.norm(hi - pts, axis=-1))
+        ok &= (off <= COLLINEAR_REL * step + 0.001) & (step > 0)
+        edges.append(e)
+    n = np.cross(edges[0], edges[1])
+    nn = np.linalg.norm(n, axis=-1)
+    ok &= nn > 0
+    n = n / np.maximum(nn, 1e-30)[..., None]
+    c = (n * pts).sum(-1)
+    near = ok & (np.abs(c) < near_m)
+    for _ in range(GROW_PASSES):  # the rim where a neighbour lies on another surface: on the plane of a near pixel
+        grow = np.zeros_like(near)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                if dy or dx:
+                    nb = np.roll(np.roll(near, dy, 0), dx, 1)
+                    if dy:
+                        nb[0 if dy > 0 else -1] = False
+                    on = np.abs((np.roll(np.roll(n, dy, 0), dx, 1) * pts).sum(-1) - np.roll(np.roll(c, dy, 0), dx, 1))
+                    grow |= nb & (on <= COLLINEAR_REL * np.linalg.norm(pts, axis=-1) + 0.002)
+        grow &= valid & ~near
+        if not grow.any():
+            break
+        near |= grow
+        n[grow], c[grow] = _first_neighbour_plane(near & ~grow, n, c, grow)
+    return near
+
+
+def _first_neighbour_plane(src, n, c, at):
+    """Plane (normal, offset) of a src pixel among the 8-neighbours of each pixel of at."""
+    nn, cc = np.zeros((int(at.sum()), 3), n.dtype), np.zeros(int(at.sum()), c.dtype)
+    done = np.zeros(len(cc), bool)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy or dx:
+                has = np.roll(np.roll(src, dy, 0), dx, 1)[at] & ~done
+                nn[has] = np.roll(np.roll(n, dy, 0), dx, 1)[at][has]
+                cc[has] = np.roll(np.roll(c, dy, 0), dx, 1)[at][has]
+                done |= has
+    return nn, cc
+
+
+def mask_implausible(depth: np.ndarray, valid: np.ndarray, floor_m: float | None, ceil_m: float | None,
+                     *, near_m: float = NEAR_PLANE_M) -> tuple[np.ndarray, np.ndarray, dict]:
+    """depth, valid (H, W) with implausible room geometry made invalid (depth 0), and a record for the manifest.
+
+    Beyond the room: floor (ceiling) pixels, on the horizontal plane floor_m below (ceil_m above) the camera, seen
+    farther out than their column's wall_bounds (x 1 + REACH_REL, + REACH_ABS_M), but never within STAND_RADIUS_M:
+    where the camera stands outside its own annotated room, rays that miss every wall otherwise reach the plane
+    hundreds of metres away; with no wall at all only that stand is kept. Through the camera: near_plane_mask, and
+    any pixel nearer than near_m. Both are found on every k-th row and column (ANALYSIS_HEIGHT rows at most: the pixel
+    centres of a depth map nearest-upsampled by k, as provided layout depth is) and apply to their k x k blocks.
+    Nothing changes when nothing is found."""
+    H, W = depth.shape
+    k = max(1, H // ANALYSIS_HEIGHT)
+    k = k if H % k == 0 and W % k == 0 else 1
+    small_d, small_v = depth[::k, ::k], valid[::k, ::k]
+    near_small = near_plane_mask(small_d, small_v, near_m) | (small_v & (small_d < near_m))
+    near = (near_small if k == 1 else np.repeat(np.repeat(near_small, k, 0), k, 1)) & valid
+    near |= valid & (depth < near_m)
+    rec: dict = {"near_plane_m": near_m, "near_surface_px": int(near.sum()), "far_floor_px": 0, "far_ceiling_px": 0}
+    b = wall_bounds(small_d, small_v & ~near_small, floor_m, ceil_m)
+    far = np.zeros((H, W), bool)
+    valid2 = valid & ~near
+    if floor_m is not None or ceil_m is not None:
+        w = W // k
+        bound, pts, has = b if b is not None else (np.zeros(w), np.zeros((w, 2)), np.zeros(w, bool))
+        bound = np.repeat(bound, k)
+        dirs = erp_dirs(H, W, np.float32)
+        floor, ceil = _plane_masks(depth, valid2, dirs, floor_m, ceil_m)
+        horiz = depth * np.hypot(dirs[..., 0], dirs[..., 2])
+        reach = np.maximum(bound * (1 + REACH_REL) + REACH_ABS_M, STAND_RADIUS_M)[None, :]
+        beyond = horiz > reach
+        rec.update(far_floor_px=int((floor & beyond).sum()), far_ceiling_px=int((ceil & beyond).sum()),
+                   wall_columns_fraction=float(has.mean()), room_floor_area_m2=room_floor_area(pts, has))
+        far = (floor | ceil) & beyond
+    drop = near | far
+    omega = np.broadcast_to(erp_pixel_solid_angle(H, W), (H, W))
+    rec["masked_fraction"] = float(drop.mean())
+    rec["masked_sphere_fraction"] = float(omega[drop].sum() / omega.sum())
+    if not drop.any():
+        return depth, valid, rec
+    rec["max_depth_before"] = float(depth[valid].max())
+    valid = valid & ~drop
+    rec["max_depth_after"] = float(depth[valid].max()) if valid.any() else None
+    return np.where(valid, depth, 0.0).astype(depth.dtype), valid, rec
+
+
+def describe(rec: dict) -> str | None:
+    """One line for the depth manifest's decisions, or None when nothing was masked."""
+    if not (rec["near_surface_px"] or rec["far_floor_px"] or rec["far_ceiling_px"]):
+        return None
+    return (f"implausible room geometry masked ({rec['masked_fraction']:.1%} of the pixels): "
+            f"{rec['far_floor_px']} floor and {rec['far_ceiling_px']} ceiling px beyond the walls that bound them "
+            f"(max depth {rec['max_depth_before']:.1f} -> {rec['max_depth_after'] or 0:.1f} m), "
+            f"{rec['near_surface_px']} px on a surface through the camera (< {rec['near_plane_m']:g} m)")
