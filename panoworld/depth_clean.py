@@ -61,23 +61,23 @@ def clean_depth(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, *, relati
         rgb, depth, valid, info["rig"], det = rig_step(rgb, depth, valid, info.get("camera_height_estimated_after"),
                                                          user_mask=rig_mask, detect=detect_rig)
         notes.append(f"capture rig {'removed' if det.found else 'not found'}: {det.reason}")
+    depth, valid, unknown, planes = _plausible(depth, valid, info, notes)
     if complete_poles:
         from panoworld.depth_complete import complete_poles as poles
 
-        depth, valid, info["pole_completion"] = poles(depth, valid)
+        depth, valid, info["pole_completion"] = poles(depth, valid, exclude=unknown, planes=planes)
         if info["pole_completion"]["completed_fraction"] > 0:
             notes.append(f"{info['pole_completion']['completed_fraction']:.1%} of the pixels (poles, bands) completed "
                          "from the floor/ceiling planes")
     if complete_dropouts:
         from panoworld.depth_complete import complete_dropouts as dropouts
 
-        depth, valid, info["dropout_completion"] = dropouts(depth, valid)
+        depth, valid, info["dropout_completion"] = dropouts(depth, valid, exclude=unknown)
         d = info["dropout_completion"]
         if d["completed_fraction"] > 0:
             notes.append(f"{d['completed_fraction']:.1%} of the pixels ({d['dropouts']} dropouts) completed: "
                          f"{d['plane_fraction']:.0%} from their rim's plane, {d['smooth_fraction']:.0%} as smooth surface, "
                          f"{d['step_fraction']:.0%} as a step at a depth edge")
-    depth, valid = _plausible(depth, valid, info, notes)
     if not valid.any():
         raise InputError(f"{source}: no plausible depth left (every surface passes within "
                          f"{info['plausibility']['near_plane_m']} m of the camera or lies beyond its room)")
@@ -86,19 +86,18 @@ def clean_depth(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, *, relati
     return Cleaned(rgb=rgb, depth=depth, valid=valid, info=info, rig=det, notes=notes)
 
 
-def _plausible(depth: np.ndarray, valid: np.ndarray, info: dict, notes: list[str]) -> tuple[np.ndarray, np.ndarray]:
-    """depth_plausible.mask_implausible with the pole completion's planes (fitted here when it did not run); its record
-    goes to info["plausibility"], a line to notes when anything was masked."""
-    from panoworld.depth_plausible import describe, mask_implausible
+def _plausible(depth: np.ndarray, valid: np.ndarray, info: dict, notes: list[str]):
+    """depth_plausible.implausible_mask on the floor and ceiling planes (depth_complete.fit_planes) made invalid: its
+    record goes to info["plausibility"], a line to notes when anything was masked. Returns (depth, valid, what the
+    completions must leave unknown (depth_plausible.unknown_beyond) or None, the planes)."""
+    from panoworld.depth_complete import fit_planes
+    from panoworld.depth_plausible import describe, implausible_mask, unknown_beyond
 
-    planes = info.get("pole_completion") or {}
-    if "floor_m" in planes:
-        floor_m, ceil_m = planes["floor_m"], planes["ceiling_m"]
-    else:
-        from panoworld.depth_complete import fit_planes
-
-        floor_m, ceil_m = fit_planes(depth, valid)
-    depth, valid, info["plausibility"] = mask_implausible(depth, valid, floor_m, ceil_m)
-    if line := describe(info["plausibility"]):
-        notes.append(line)
-    return depth, valid
+    planes = fit_planes(depth, valid)
+    drop, info["plausibility"] = implausible_mask(depth, valid, *planes)
+    if not drop.any():
+        return depth, valid, None, planes
+    notes.append(describe(info["plausibility"]))
+    unknown = unknown_beyond(drop, valid)
+    valid = valid & ~unknown
+    return np.where(valid, depth, 0.0).astype(depth.dtype), valid, unknown, planes

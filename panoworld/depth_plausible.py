@@ -19,10 +19,13 @@ geometry (a doorway line through the camera in a layout annotation): a tripod's 
 feet against a wall its centre stands >= ~15 cm from it."""
 ANALYSIS_HEIGHT = 512
 """Walls and planes through the camera are found at most at this ERP height (a power-of-two stride)."""
+NEAR_REACH_M = 0.5
+"""Such a surface counts only where it comes this near the camera (a doorway line through the camera does; the side
+of a door jamb seen edge-on across the room does not)."""
 GROW_PASSES = 3
 """near_plane_mask grows its planes this many pixels into their rim (where the plane meets the floor or ceiling)."""
 COLLINEAR_REL = 0.01
-"""A pixel lies on the line through its two neighbours when within this fraction of their distance (plus 2 mm)."""
+"""A pixel and its four neighbours lie on one plane when within this fraction of its shortest step to them."""
 
 
 def _plane_masks(depth, valid, dirs, floor_m, ceil_m):
@@ -84,31 +87,30 @@ def room_floor_area(pts: np.ndarray, has: np.ndarray) -> float:
 
 
 def near_plane_mask(depth: np.ndarray, valid: np.ndarray, near_m: float = NEAR_PLANE_M) -> np.ndarray:
-    """(H, W) bool: valid pixels on a surface whose plane passes within near_m of the camera centre: the pixel is
-    collinear with its two neighbours along the row (seam wrapped) and with its two along the column (within
-    COLLINEAR_REL of the shorter step: never across a depth edge), and the plane of those two lines passes that near.
-    A wall line through the camera is seen edge-on, so every pixel of it qualifies, however far along it."""
+    """(H, W) bool: valid pixels on a surface whose plane passes within near_m of the camera centre: the pixel and
+    its four neighbours (seam wrapped) lie on one plane (within COLLINEAR_REL of the shortest step to them: never
+    across a depth edge) and that plane passes that near. A wall line through the camera is seen edge-on, so every
+    pixel of it qualifies, however far along it, when the surface reaches within NEAR_REACH_M of the camera
+    (_reaching)."""
     H, W = depth.shape
     pts = erp_dirs(H, W, np.float32) * np.where(valid, depth, 0.0).astype(np.float32)[..., None]
     ok = valid & np.roll(valid, 1, 1) & np.roll(valid, -1, 1)
     ok[1:] &= valid[:-1]
     ok[:-1] &= valid[1:]
     ok[0] = ok[-1] = False
-    edges = []
-    for lo, hi in ((np.roll(pts, 1, 1), np.roll(pts, -1, 1)),
-                   (np.concatenate([pts[:1], pts[:-1]]), np.concatenate([pts[1:], pts[-1:]]))):
-        e = hi - lo
-        le = np.maximum(np.linalg.norm(e, axis=-1), 1e-9)
-        off = np.linalg.norm(np.cross(pts - lo, e), axis=-1) / le
-        step = np.minimum(np.linalg.norm(pts - lo, axis=-1), np.linalg.norm(hi - pts, axis=-1))
-        ok &= (off <= COLLINEAR_REL * step + 0.001) & (step > 0)
-        edges.append(e)
-    n = np.cross(edges[0], edges[1])
+    nbrs = (np.roll(pts, 1, 1), np.roll(pts, -1, 1), np.concatenate([pts[:1], pts[:-1]]),
+            np.concatenate([pts[1:], pts[-1:]]))
+    n = np.cross(nbrs[1] - nbrs[0], nbrs[3] - nbrs[2])
     nn = np.linalg.norm(n, axis=-1)
     ok &= nn > 0
     n = n / np.maximum(nn, 1e-30)[..., None]
+    step = np.min([np.linalg.norm(q - pts, axis=-1) for q in nbrs], axis=0)
+    tol = COLLINEAR_REL * step + 1e-5 * np.linalg.norm(pts, axis=-1)
+    for q in nbrs:
+        ok &= np.abs((n * (q - pts)).sum(-1)) <= tol
+    ok &= step > 0
     c = (n * pts).sum(-1)
-    near = ok & (np.abs(c) < near_m)
+    near = _reaching(ok & (np.abs(c) < near_m), depth)
     for _ in range(GROW_PASSES):  # the rim where a neighbour lies on another surface: on the plane of a near pixel
         grow = np.zeros_like(near)
         for dy in (-1, 0, 1):
@@ -127,6 +129,41 @@ def near_plane_mask(depth: np.ndarray, valid: np.ndarray, near_m: float = NEAR_P
     return near
 
 
+def label_wrapped(mask: np.ndarray) -> tuple[np.ndarray, int]:
+    """8-connected labels (H, W) of mask with the seam wrapped (a region across column 0 / W - 1 is one), and the
+    largest label."""
+    from scipy import ndimage
+
+    W = mask.shape[1]
+    labels, n = ndimage.label(np.concatenate([mask, mask[:, :1]], axis=1), structure=np.ones((3, 3)))
+    parent = np.arange(n + 1)
+
+    def root(a):
+        while parent[a] != a:
+            a = parent[a]
+        return a
+
+    for a, b in zip(labels[:, 0], labels[:, W]):  # the same pixels: column 0 and its copy past the seam
+        if a and b:
+            ra, rb = root(a), root(b)
+            if ra != rb:
+                parent[rb] = ra
+    roots = np.array([root(a) for a in range(n + 1)])
+    return roots[labels[:, :W]], n
+
+
+def _reaching(near: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """near less its regions (label_wrapped) that come no nearer the camera than NEAR_REACH_M: a surface seen edge-on
+    (a door jamb's side, a table's edge) lies on a plane through the camera too, but far from it."""
+    from scipy import ndimage
+
+    if not near.any():
+        return near
+    labels, n = label_wrapped(near)
+    closest = np.asarray(ndimage.minimum(depth, labels, np.arange(1, n + 1)))
+    return np.concatenate([[False], np.nan_to_num(closest, nan=np.inf) < NEAR_REACH_M])[labels]
+
+
 def _first_neighbour_plane(src, n, c, at):
     """Plane (normal, offset) of a src pixel among the 8-neighbours of each pixel of at."""
     nn, cc = np.zeros((int(at.sum()), 3), n.dtype), np.zeros(int(at.sum()), c.dtype)
@@ -141,17 +178,18 @@ def _first_neighbour_plane(src, n, c, at):
     return nn, cc
 
 
-def mask_implausible(depth: np.ndarray, valid: np.ndarray, floor_m: float | None, ceil_m: float | None,
-                     *, near_m: float = NEAR_PLANE_M) -> tuple[np.ndarray, np.ndarray, dict]:
-    """depth, valid (H, W) with implausible room geometry made invalid (depth 0), and a record for the manifest.
+def implausible_mask(depth: np.ndarray, valid: np.ndarray, floor_m: float | None, ceil_m: float | None,
+                     *, near_m: float = NEAR_PLANE_M) -> tuple[np.ndarray, dict]:
+    """(H, W) bool: valid pixels of implausible room geometry in depth, valid (H, W), and a record for the manifest.
 
-    Beyond the room: floor (ceiling) pixels, on the horizontal plane floor_m below (ceil_m above) the camera, seen
-    farther out than their column's wall_bounds (x 1 + REACH_REL, + REACH_ABS_M), but never within STAND_RADIUS_M:
+    Beyond the room: in the columns that see no wall, floor (ceiling) pixels, on the horizontal plane floor_m below
+    (ceil_m above) the camera, seen farther out than their column's wall_bounds (the chord closing the walls, x 1 +
+    REACH_REL, + REACH_ABS_M), but never within STAND_RADIUS_M:
     where the camera stands outside its own annotated room, rays that miss every wall otherwise reach the plane
-    hundreds of metres away; with no wall at all only that stand is kept. Through the camera: near_plane_mask, and
+    hundreds of metres away; with no wall at all only that stand is kept (a column that sees a wall keeps its floor:
+    beyond a wall it is a real scan's noise, not a room's). Through the camera: near_plane_mask, and
     any pixel nearer than near_m. Both are found on every k-th row and column (ANALYSIS_HEIGHT rows at most: the pixel
-    centres of a depth map nearest-upsampled by k, as provided layout depth is) and apply to their k x k blocks.
-    Nothing changes when nothing is found."""
+    centres of a depth map nearest-upsampled by k, as provided layout depth is) and apply to their k x k blocks."""
     H, W = depth.shape
     k = max(1, H // ANALYSIS_HEIGHT)
     k = k if H % k == 0 and W % k == 0 else 1
@@ -160,17 +198,17 @@ def mask_implausible(depth: np.ndarray, valid: np.ndarray, floor_m: float | None
     near = (near_small if k == 1 else np.repeat(np.repeat(near_small, k, 0), k, 1)) & valid
     near |= valid & (depth < near_m)
     rec: dict = {"near_plane_m": near_m, "near_surface_px": int(near.sum()), "far_floor_px": 0, "far_ceiling_px": 0}
-    b = wall_bounds(small_d, small_v & ~near_small, floor_m, ceil_m)
     far = np.zeros((H, W), bool)
-    valid2 = valid & ~near
     if floor_m is not None or ceil_m is not None:
+        b = wall_bounds(small_d, small_v & ~near_small, floor_m, ceil_m)
         w = W // k
         bound, pts, has = b if b is not None else (np.zeros(w), np.zeros((w, 2)), np.zeros(w, bool))
         bound = np.repeat(bound, k)
         dirs = erp_dirs(H, W, np.float32)
-        floor, ceil = _plane_masks(depth, valid2, dirs, floor_m, ceil_m)
+        floor, ceil = _plane_masks(depth, valid & ~near, dirs, floor_m, ceil_m)
         horiz = depth * np.hypot(dirs[..., 0], dirs[..., 2])
-        reach = np.maximum(bound * (1 + REACH_REL) + REACH_ABS_M, STAND_RADIUS_M)[None, :]
+        reach = np.where(np.repeat(has, k), np.inf, np.maximum(bound * (1 + REACH_REL) + REACH_ABS_M, STAND_RADIUS_M))
+        reach = reach[None, :]
         beyond = horiz > reach
         rec.update(far_floor_px=int((floor & beyond).sum()), far_ceiling_px=int((ceil & beyond).sum()),
                    wall_columns_fraction=float(has.mean()), room_floor_area_m2=room_floor_area(pts, has))
@@ -179,12 +217,32 @@ def mask_implausible(depth: np.ndarray, valid: np.ndarray, floor_m: float | None
     omega = np.broadcast_to(erp_pixel_solid_angle(H, W), (H, W))
     rec["masked_fraction"] = float(drop.mean())
     rec["masked_sphere_fraction"] = float(omega[drop].sum() / omega.sum())
+    if drop.any():
+        rec["max_depth_before"] = float(depth[valid].max())
+        rest = valid & ~drop
+        rec["max_depth_after"] = float(depth[rest].max()) if rest.any() else None
+    return drop, rec
+
+
+def mask_implausible(depth: np.ndarray, valid: np.ndarray, floor_m: float | None, ceil_m: float | None,
+                     *, near_m: float = NEAR_PLANE_M) -> tuple[np.ndarray, np.ndarray, dict]:
+    """depth, valid (H, W) with implausible_mask made invalid (depth 0), and its record; unchanged (the same arrays)
+    when nothing is found."""
+    drop, rec = implausible_mask(depth, valid, floor_m, ceil_m, near_m=near_m)
     if not drop.any():
         return depth, valid, rec
-    rec["max_depth_before"] = float(depth[valid].max())
     valid = valid & ~drop
-    rec["max_depth_after"] = float(depth[valid].max()) if valid.any() else None
     return np.where(valid, depth, 0.0).astype(depth.dtype), valid, rec
+
+
+def unknown_beyond(drop: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(H, W) bool: drop plus the invalid regions (label_wrapped) that touch it: what is left unknown rather than
+    completed from its rim (the rest of a surface through the camera, nearer than any depth kept)."""
+    if not drop.any():
+        return drop
+    labels, _ = label_wrapped(~valid | drop)
+    touch = np.unique(labels[drop])
+    return np.isin(labels, touch[touch > 0])
 
 
 def describe(rec: dict) -> str | None:
