@@ -97,3 +97,25 @@ def test_a_wall_line_through_the_camera_never_becomes_geometry_at_the_camera():
     assert rec["near_surface_px"] >= on_line.sum() * 0.99
     kept_other = v2[valid].reshape(-1)[~on_line].mean()
     assert kept_other > 0.97, kept_other  # the room's other walls, floor and ceiling stay
+
+
+@pytest.mark.parametrize("cam", [(0.3, -1.45), (0.0, -1.9)])
+def test_the_depth_cleaning_leaves_what_was_masked_unknown(cam):
+    # Through the depth stage's cleaning (near cut, poles and dropouts completed): the wall through the camera and the
+    # floor beyond the walls are neither completed back nor nearer than 10 cm, and the manifest says what was done.
+    from pathlib import Path
+
+    from panoworld.choices import Rescale
+    from panoworld.depth_clean import clean_depth
+
+    depth = layout_depth(ROOM, np.array(cam), 128, 256)
+    valid = depth > 0
+    c = clean_depth(np.zeros((*depth.shape, 3), np.uint8), depth, valid, relative=False, rescale=Rescale.AUTO,
+                    camera_height=1.6, min_depth_m=0.1, detect_rig=None, rig_mask=None, complete_poles=True,
+                    complete_dropouts=True, source=Path("depth.npy"))
+    pts = points(c.depth, c.valid)
+    assert len(pts) and np.linalg.norm(pts, axis=1).min() >= 0.10
+    assert np.hypot(pts[:, 0], pts[:, 2]).max() < 6.0  # nothing reaches past the room (its diagonal is 5 m)
+    assert not c.depth[~c.valid].any()
+    rec = c.info["plausibility"]
+    assert rec["masked_fraction"] > 0.05 and any(n.startswith("implausible room geometry masked") for n in c.notes)
