@@ -11,9 +11,10 @@ on it: the home NavMesh is one connected component grown from the first capture 
 each capture point; the Gaussian scene rendered at each capture pose against that panorama (PSNR, SSIM, coverage =
 share of pixels with alpha > 0.5, at --height rows); per-stage wall seconds and peak memory from the runner's report.
 
---survey-poses writes a poses.json built from the survey into the copy (survey_poses), so the stages after
+--survey-poses [--set STAGE.PARAM=VALUE ...] writes a poses.json built from the survey into the copy (survey_poses), so the stages after
 registration can be measured while registration cannot join the rooms: its rows are labelled "survey poses", and
-its registration numbers only check the poses went through.
+its registration numbers only check the poses went through. --set (that mode only, labelled) passes a runner
+override, e.g. trajectory.on_invalid=report where rooms whose floors do not connect stop the trajectory.
 
 --loo (every panorama) or --loo-only NAME...: leave-one-out novel views. The home is built again without that
 panorama (its panorama, depth and pose removed) and rendered at the panorama's pose as registered with all of them
@@ -117,11 +118,12 @@ def copy_home(src: Path, dst: Path, *, leave_out: str | None = None, poses: dict
     return dst
 
 
-def run_home(scene: Path) -> dict:
-    """`runner.py run SCENE --json` (default preset, no flags): wall seconds, the report's stages, the exit code."""
+def run_home(scene: Path, sets: list[str] = ()) -> dict:
+    """`runner.py run SCENE --json` (default preset; no flags unless sets, --set STAGE.PARAM=VALUE each): wall
+    seconds, the report's stages, the exit code."""
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "runner.py", "run", str(scene), "--json"], cwd=REPO, capture_output=True,
-                          text=True)
+    cmd = [sys.executable, "runner.py", "run", str(scene), "--json"] + [a for v in sets for a in ("--set", v)]
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     try:
         stages = json.loads(proc.stdout)["stages"]
@@ -193,11 +195,11 @@ def nearest_vertex_m(scene: Path, poses: dict[str, np.ndarray]) -> dict[str, flo
     return {n: float(tree.query(T[:3, 3])[0]) for n, T in poses.items()}
 
 
-def measure_home(scene: Path, survey: dict, height: int) -> dict:
+def measure_home(scene: Path, survey: dict, height: int, sets: list[str] = ()) -> dict:
     from panoworld.home.layout import capture_poses
     from panoworld.splat_ply import read_gaussians_ply
 
-    run = run_home(scene)
+    run = run_home(scene, sets)
     arts = scene / "artifacts"
     row: dict = {"scene": str(scene), "rc": run["rc"], "wall_s": run["wall_s"],
                  "stages": {s["stage"]: {"action": s.get("action"), "seconds": s.get("seconds"),
@@ -240,7 +242,8 @@ def measure_home(scene: Path, survey: dict, height: int) -> dict:
     return row
 
 
-def leave_one_out(src: Path, work: Path, full: Path, name: str, survey_mode: dict | None, height: int) -> dict:
+def leave_one_out(src: Path, work: Path, full: Path, name: str, survey_mode: dict | None, height: int,
+                  sets: list[str] = ()) -> dict:
     """The home built without `name`, rendered at its pose registered with all of them (the full run's)."""
     from panoworld.depth import read_panorama
     from panoworld.home.layout import capture_poses
@@ -250,7 +253,7 @@ def leave_one_out(src: Path, work: Path, full: Path, name: str, survey_mode: dic
     if name not in full_poses:
         return {"name": name, "skipped": "not registered in the full run"}
     scene = copy_home(src, work / f"loo_{name}", leave_out=name, poses=survey_mode)
-    run = run_home(scene)
+    run = run_home(scene, sets)
     out: dict = {"name": name, "rc": run["rc"], "wall_s": run["wall_s"]}
     if run["rc"] != 0 or not (scene / "artifacts" / "gaussians" / "gaussians.ply").is_file():
         out["stderr_tail"] = run["stderr_tail"]
@@ -282,6 +285,8 @@ def print_report(res: dict) -> None:
     r = res["home"]
     label = "SURVEY POSES (poses.json from survey.json: downstream only)" if res["survey_poses"] else \
         "as a user runs it (no poses.json, no flags)"
+    if res.get("sets"):
+        label += ", with " + " ".join(f"--set {v}" for v in res["sets"])
     print(f"\n## {res['scene']}: {label}\n")
     sv = r["survey"]
     print(f"registered {len(r['registered'])} of {len(r['registered']) + len(r['unregistered'])}; runner rc "
@@ -340,7 +345,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--loo-only", nargs="+", metavar="NAME", help="leave-one-out for these panoramas only")
     ap.add_argument("--skip-full", action="store_true", help="reuse the full run already in --work (no rerun)")
     ap.add_argument("--height", type=int, default=256, help="ERP rows of the renders and references")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="STAGE.PARAM=VALUE",
+                    help="with --survey-poses only: a runner override (labelled in the output)")
     args = ap.parse_args(argv)
+    if args.sets and not args.survey_poses:
+        ap.error("--set is for the --survey-poses development mode; the user mode runs with no flags")
     survey = json.loads(args.survey.read_text())
     src = args.scene.resolve()
     mode = "survey" if args.survey_poses else "user"
@@ -350,11 +359,11 @@ def main(argv: list[str] | None = None) -> int:
     full = work / "full"
     if not args.skip_full:
         copy_home(src, full, poses=poses)
-    home = measure_home(full, survey, args.height)
-    res = {"scene": src.name, "survey_poses": bool(args.survey_poses), "home": home, "loo": []}
+    home = measure_home(full, survey, args.height, args.sets)
+    res = {"scene": src.name, "survey_poses": bool(args.survey_poses), "sets": args.sets, "home": home, "loo": []}
     names = sorted(home["registered"]) if args.loo else (args.loo_only or [])
     for n in names:
-        res["loo"].append(leave_one_out(src, work, full, n, poses, args.height))
+        res["loo"].append(leave_one_out(src, work, full, n, poses, args.height, args.sets))
         print(json.dumps(res["loo"][-1])[:400], file=sys.stderr)
     print_report(res)
     if args.json:

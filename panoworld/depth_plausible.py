@@ -86,12 +86,13 @@ def room_floor_area(pts: np.ndarray, has: np.ndarray) -> float:
     return float(0.5 * abs(np.dot(x, np.roll(z, -1)) - np.dot(z, np.roll(x, -1))))
 
 
-def near_plane_mask(depth: np.ndarray, valid: np.ndarray, near_m: float = NEAR_PLANE_M) -> np.ndarray:
-    """(H, W) bool: valid pixels on a surface whose plane passes within near_m of the camera centre: the pixel and
-    its four neighbours (seam wrapped) lie on one plane (within COLLINEAR_REL of the shortest step to them: never
-    across a depth edge) and that plane passes that near. A wall line through the camera is seen edge-on, so every
-    pixel of it qualifies, however far along it, when the surface reaches within NEAR_REACH_M of the camera
-    (_reaching)."""
+def near_plane_mask(depth: np.ndarray, valid: np.ndarray, near_m: float = NEAR_PLANE_M,
+                    centres: np.ndarray | None = None) -> np.ndarray:
+    """(H, W) bool: valid pixels on a surface whose plane passes within near_m of the camera centre (or of any of
+    centres (M, 3), camera frame: other capture points of a home): the pixel and its four neighbours (seam wrapped)
+    lie on one plane (within COLLINEAR_REL of the shortest step to them: never across a depth edge) and that plane
+    passes that near. A wall line through the camera is seen edge-on, so every pixel of it qualifies, however far
+    along it, when the surface reaches within NEAR_REACH_M of that centre (_reaching)."""
     H, W = depth.shape
     pts = erp_dirs(H, W, np.float32) * np.where(valid, depth, 0.0).astype(np.float32)[..., None]
     ok = valid & np.roll(valid, 1, 1) & np.roll(valid, -1, 1)
@@ -110,7 +111,13 @@ def near_plane_mask(depth: np.ndarray, valid: np.ndarray, near_m: float = NEAR_P
         ok &= np.abs((n * (q - pts)).sum(-1)) <= tol
     ok &= step > 0
     c = (n * pts).sum(-1)
-    near = _reaching(ok & (np.abs(c) < near_m), depth)
+    if centres is None:
+        near = _reaching(ok & (np.abs(c) < near_m), depth)
+    else:
+        near = np.zeros_like(ok)
+        for q in np.asarray(centres, np.float32).reshape(-1, 3):
+            dist = np.linalg.norm(pts - q, axis=-1)
+            near |= _reaching(ok & (np.abs(c - n @ q) < near_m), dist) | (valid & (dist < near_m))
     for _ in range(GROW_PASSES):  # the rim where a neighbour lies on another surface: on the plane of a near pixel
         grow = np.zeros_like(near)
         for dy in (-1, 0, 1):
@@ -243,6 +250,30 @@ def unknown_beyond(drop: np.ndarray, valid: np.ndarray) -> np.ndarray:
     labels, _ = label_wrapped(~valid | drop)
     touch = np.unique(labels[drop])
     return np.isin(labels, touch[touch > 0])
+
+
+def near_captures_mask(depth: np.ndarray, world_from_cam: np.ndarray, centres_world: np.ndarray,
+                       near_m: float = NEAR_PLANE_M) -> np.ndarray:
+    """(H, W) bool: pixels of a home's panorama (depth (H, W), 0 = none, at world_from_cam) on a surface through
+    another capture point (centres_world (M, 3)): within near_m of it, or on a plane passing that near and reaching
+    within NEAR_REACH_M (near_plane_mask): a camera stood there, so it is a doorway line of a layout annotation, not
+    a wall. Found at most at ANALYSIS_HEIGHT rows, applied to their k x k blocks."""
+    H, W = depth.shape
+    valid = np.isfinite(depth) & (depth > 0)
+    centres = np.asarray(centres_world, np.float64).reshape(-1, 3)
+    if not len(centres) or not valid.any():
+        return np.zeros((H, W), bool)
+    from panoworld.conventions import invert_pose, transform_points
+
+    local = transform_points(invert_pose(np.asarray(world_from_cam, np.float64)), centres)
+    k = max(1, H // ANALYSIS_HEIGHT)
+    k = k if H % k == 0 and W % k == 0 else 1
+    small = near_plane_mask(depth[::k, ::k], valid[::k, ::k], near_m, centres=local)
+    out = (small if k == 1 else np.repeat(np.repeat(small, k, 0), k, 1)) & valid
+    pts = erp_dirs(H, W, np.float32) * np.where(valid, depth, 0.0).astype(np.float32)[..., None]
+    for q in local.astype(np.float32):
+        out |= valid & (np.linalg.norm(pts - q, axis=-1) < near_m)
+    return out
 
 
 def describe(rec: dict) -> str | None:
