@@ -119,3 +119,22 @@ def test_the_depth_cleaning_leaves_what_was_masked_unknown(cam):
     assert not c.depth[~c.valid].any()
     rec = c.info["plausibility"]
     assert rec["masked_fraction"] > 0.05 and any(n.startswith("implausible room geometry masked") for n in c.notes)
+
+
+def test_a_wall_through_another_capture_point_is_no_geometry_of_the_home():
+    # Camera B stood in a doorway that camera A's layout closes with a wall line: that wall is dropped from A's depth
+    # (near_captures_mask); A's other walls, floor and ceiling stay, and without B nothing is dropped.
+    from panoworld.depth_plausible import near_captures_mask
+
+    cam = np.array([-0.5, 0.2])
+    depth = layout_depth(ROOM, cam)
+    world_from_a = np.eye(4)
+    world_from_a[[0, 2], 3] = cam
+    pts = points(depth, depth > 0) + [cam[0], 0.0, cam[1]]
+    on_wall = (np.abs(pts[:, 0] - 2.0) < 1e-3).reshape(-1)
+    b = np.array([[2.0, 0.0, 0.3]])
+    drop = near_captures_mask(depth, world_from_a, b)[depth > 0]
+    assert on_wall.sum() > 500 and drop[on_wall].mean() > 0.99
+    assert drop[~on_wall].mean() < 0.01
+    assert not near_captures_mask(depth, world_from_a, np.zeros((0, 3))).any()
+    assert not near_captures_mask(depth, world_from_a, np.array([[0.5, 0.0, -0.4]])).any()  # B in the open room
