@@ -42,7 +42,7 @@ sys.path.insert(0, str(REPO))
 import cv2
 import numpy as np
 
-from panoworld.artifacts import read_manifest
+from panoworld.io.manifest import read_manifest
 
 # ---------------------------------------------------------------- survey
 
@@ -141,8 +141,7 @@ def manifest_info(scene: Path, stage: str) -> dict:
 
 def home_sources(scene: Path, poses: dict[str, np.ndarray]) -> tuple[dict, dict]:
     """{NAME: cleaned rgb}, {NAME: cleaned depth (0 = none)} of the run's depth artifact for the posed panoramas."""
-    from panoworld.home.layout import home_depth_dirs
-    from panoworld.home.mesh import load_sources
+    from panoworld.io.home import home_depth_dirs, load_sources
 
     dirs = home_depth_dirs(scene / "artifacts" / "depth")
     _, rgbs, depths = load_sources(dirs, poses)
@@ -152,8 +151,8 @@ def home_sources(scene: Path, poses: dict[str, np.ndarray]) -> tuple[dict, dict]
 def render_scores(g, pose: np.ndarray, rgb: np.ndarray, height: int, seen: np.ndarray | None = None) -> dict:
     """PSNR, SSIM and coverage of the Gaussians g rendered at pose against rgb (area-downsampled to height rows),
     over the sphere and, with seen (height, 2 height) bool, over the seen and unseen pixels."""
-    from panoworld.erp_render import render_erp
-    from panoworld.metrics import psnr, ssim_map
+    from panoworld.render.erp import render_erp
+    from panoworld.render.metrics import psnr, ssim_map
 
     ref = cv2.resize(rgb, (2 * height, height), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
     out = render_erp(g, pose, height, 2 * height)
@@ -173,10 +172,10 @@ def render_scores(g, pose: np.ndarray, rgb: np.ndarray, height: int, seen: np.nd
 
 def seen_by_others(name: str, poses: dict, depths: dict, height: int) -> np.ndarray:
     """(height, 2 height) bool: pixels of panorama name whose surface (its cleaned depth) another panorama sees."""
-    from panoworld.conventions import erp_dirs, transform_points
-    from panoworld.gaussians import resize_depth
-    from panoworld.home.gaussians import SourcesVisibility
-    from panoworld.pixel_gaussians import SourceVisibility
+    from panoworld.core.conventions import erp_dirs, transform_points
+    from panoworld.gaussians.home import SourcesVisibility
+    from panoworld.gaussians.pixel import SourceVisibility
+    from panoworld.geometry.resize import resize_depth
 
     d = resize_depth(depths[name], height, 2 * height)
     d = np.where(np.isfinite(d) & (d > 0), d, 0.0)
@@ -196,8 +195,8 @@ def nearest_vertex_m(scene: Path, poses: dict[str, np.ndarray]) -> dict[str, flo
 
 
 def measure_home(scene: Path, survey: dict, height: int, sets: list[str] = ()) -> dict:
-    from panoworld.home.layout import capture_poses
-    from panoworld.splat_ply import read_gaussians_ply
+    from panoworld.io.home import capture_poses
+    from panoworld.io.splat_ply import read_gaussians_ply
 
     run = run_home(scene, sets)
     arts = scene / "artifacts"
@@ -230,7 +229,7 @@ def measure_home(scene: Path, survey: dict, height: int, sets: list[str] = ()) -
     if (arts / "gaussians" / "gaussians.ply").is_file() and poses:
         g = read_gaussians_ply(arts / "gaussians" / "gaussians.ply")
         rgbs, _ = home_sources(scene, poses)
-        from panoworld.depth import read_panorama
+        from panoworld.io.depth import read_panorama
 
         row["capture"] = {}
         for n in poses:
@@ -245,9 +244,9 @@ def measure_home(scene: Path, survey: dict, height: int, sets: list[str] = ()) -
 def leave_one_out(src: Path, work: Path, full: Path, name: str, survey_mode: dict | None, height: int,
                   sets: list[str] = ()) -> dict:
     """The home built without `name`, rendered at its pose registered with all of them (the full run's)."""
-    from panoworld.depth import read_panorama
-    from panoworld.home.layout import capture_poses
-    from panoworld.splat_ply import read_gaussians_ply
+    from panoworld.io.depth import read_panorama
+    from panoworld.io.home import capture_poses
+    from panoworld.io.splat_ply import read_gaussians_ply
 
     full_poses = capture_poses(full / "artifacts" / "register")
     if name not in full_poses:

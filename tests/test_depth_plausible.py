@@ -1,12 +1,12 @@
-"""Implausible layout depth: floor and ceiling beyond the walls, surfaces through the camera (panoworld.depth_plausible)."""
+"""Implausible layout depth: floor and ceiling beyond the walls, surfaces through the camera (panoworld.room.plausible)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from panoworld.conventions import erp_dirs
-from panoworld.depth_plausible import STAND_RADIUS_M, mask_implausible, wall_bounds
+from panoworld.core.conventions import erp_dirs
+from panoworld.room.plausible import STAND_RADIUS_M, mask_implausible, wall_bounds
 
 CAM_H, CEIL_H = 1.4, 1.0  # floor below, ceiling above the camera (m)
 
@@ -105,8 +105,8 @@ def test_the_depth_cleaning_leaves_what_was_masked_unknown(cam):
     # floor beyond the walls are neither completed back nor nearer than 10 cm, and the manifest says what was done.
     from pathlib import Path
 
-    from panoworld.choices import Rescale
-    from panoworld.depth_clean import clean_depth
+    from panoworld.depth.clean import clean_depth
+    from panoworld.depth.options import Rescale
 
     depth = layout_depth(ROOM, np.array(cam), 128, 256)
     valid = depth > 0
@@ -124,7 +124,7 @@ def test_the_depth_cleaning_leaves_what_was_masked_unknown(cam):
 def test_a_wall_through_another_capture_point_is_no_geometry_of_the_home():
     # Camera B stood in a doorway that camera A's layout closes with a wall line: that wall is dropped from A's depth
     # (near_captures_mask); A's other walls, floor and ceiling stay, and without B nothing is dropped.
-    from panoworld.depth_plausible import near_captures_mask
+    from panoworld.room.plausible import near_captures_mask
 
     cam = np.array([-0.5, 0.2])
     depth = layout_depth(ROOM, cam)
