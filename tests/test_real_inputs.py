@@ -1,5 +1,5 @@
 """Real-capture failure classes rebuilt on synthetic scenes run at default settings: no crash, no invalid geometry,
-the rig's blind spot walkable, clearance kept, sector coverage reported (issue #10)."""
+the rig's blind spot walkable, clearance kept, sector coverage reported."""
 
 from __future__ import annotations
 
