@@ -142,9 +142,11 @@ def manifest_info(scene: Path, stage: str) -> dict:
 def home_sources(scene: Path, poses: dict[str, np.ndarray]) -> tuple[dict, dict]:
     """{NAME: cleaned rgb}, {NAME: cleaned depth (0 = none)} of the run's depth artifact for the posed panoramas."""
     from panoworld.io.home import home_depth_dirs, load_sources
+    from panoworld.room.plausible import drop_near_captures
 
     dirs = home_depth_dirs(scene / "artifacts" / "depth")
     _, rgbs, depths = load_sources(dirs, poses)
+    drop_near_captures(depths, poses)  # as the mesh and gaussians stages do
     return rgbs, depths
 
 
