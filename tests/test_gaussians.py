@@ -603,3 +603,36 @@ def test_views_from_aside_weigh_what_the_source_saw_and_reach_the_stage(tmp_path
 
     g = read_gaussians_ply(tmp_path / "out" / "gaussians.ply")  # the view-dependent colours reach the .ply
     assert g.sh_degree == info["sh_degree"] == 1 and np.abs(g.sh_rest).max() > 0
+
+
+def test_frames_that_add_nothing_leave_the_source_gaussians(tmp_path, room):
+    # Every other frame's depth is unknown (0): nothing is left to fuse, and the source view's own Gaussians are the
+    # scene (a valid .ply, no error).
+    from panoworld.framework.stage import execute_stage, load_stage
+    from panoworld.io.splat_ply import read_gaussians_ply
+
+    video, poses = write_inputs(tmp_path, room)
+    for p in sorted((video / "depth").iterdir())[1:]:
+        cv2.imwrite(str(p), np.zeros((64, 128), np.uint16))
+    out = tmp_path / "out"
+    info = execute_stage(load_stage("gaussians"), {"video": video, "poses": poses},
+                         _params(voxel_size=0.05, eval_views=1, fit_iters=0), out,
+                         input_digests={"video": "0" * 64, "poses": "1" * 64})["info"]
+    g = read_gaussians_ply(out / "gaussians.ply")
+    assert info["num_gaussians"] == info["num_source_gaussians"] == len(g) > 1000
+    assert info["context_psnr"] > 25
+
+
+def test_a_home_whose_frames_the_panoramas_explain_fuses_no_voxel(room):
+    # The frames stand where the panoramas stand and see only what they see: the home's Gaussians are the panoramas'
+    # own, and frames with no depth at all add nothing either.
+    from panoworld.gaussians.home import home_anchored_fusion
+
+    poses = [pose_at(0, 0, 0), pose_at(0.8, 0.1, -0.9)]
+    sources = {f"p{k}": (*room(p), p) for k, p in enumerate(poses)}
+    frames = [(*room(p), p) for p in poses]
+    res = home_anchored_fusion(frames, sources, FusionParams(voxel_size=0.05), unseen_voxel_size=0.05)
+    assert len(res.gaussians) == res.num_source > 1000 and res.num_voxels == 0
+    blind = [(rgb, np.zeros_like(d), p) for rgb, d, p in frames]
+    res2 = home_anchored_fusion(blind, sources, FusionParams(voxel_size=0.05))
+    assert len(res2.gaussians) == len(res.gaussians) and np.array_equal(res2.gaussians.means, res.gaussians.means)

@@ -61,22 +61,43 @@ def clean_depth(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, *, relati
         rgb, depth, valid, info["rig"], det = rig_step(rgb, depth, valid, info.get("camera_height_estimated_after"),
                                                          user_mask=rig_mask, detect=detect_rig)
         notes.append(f"capture rig {'removed' if det.found else 'not found'}: {det.reason}")
+    depth, valid, unknown, planes = _plausible(depth, valid, info, notes)
     if complete_poles:
         from panoworld.depth.complete import complete_poles as poles
 
-        depth, valid, info["pole_completion"] = poles(depth, valid)
+        depth, valid, info["pole_completion"] = poles(depth, valid, exclude=unknown, planes=planes)
         if info["pole_completion"]["completed_fraction"] > 0:
             notes.append(f"{info['pole_completion']['completed_fraction']:.1%} of the pixels (poles, bands) completed "
                          "from the floor/ceiling planes")
     if complete_dropouts:
         from panoworld.depth.complete import complete_dropouts as dropouts
 
-        depth, valid, info["dropout_completion"] = dropouts(depth, valid)
+        depth, valid, info["dropout_completion"] = dropouts(depth, valid, exclude=unknown)
         d = info["dropout_completion"]
         if d["completed_fraction"] > 0:
             notes.append(f"{d['completed_fraction']:.1%} of the pixels ({d['dropouts']} dropouts) completed: "
                          f"{d['plane_fraction']:.0%} from their rim's plane, {d['smooth_fraction']:.0%} as smooth surface, "
                          f"{d['step_fraction']:.0%} as a step at a depth edge")
+    if not valid.any():
+        raise InputError(f"{source}: no plausible depth left (every surface passes within "
+                         f"{info['plausibility']['near_plane_m']} m of the camera or lies beyond its room)")
     info["valid_fraction"] = float(valid.mean())
     info["depth_range_m"] = [float(depth[valid].min()), float(depth[valid].max())]
     return Cleaned(rgb=rgb, depth=depth, valid=valid, info=info, rig=det, notes=notes)
+
+
+def _plausible(depth: np.ndarray, valid: np.ndarray, info: dict, notes: list[str]):
+    """room.plausible.implausible_mask on the floor and ceiling planes (room.floor.fit_planes) made invalid: its
+    record goes to info["plausibility"], a line to notes when anything was masked. Returns (depth, valid, what the
+    completions must leave unknown (room.plausible.unknown_beyond) or None, the planes)."""
+    from panoworld.room.floor import fit_planes
+    from panoworld.room.plausible import describe, implausible_mask, unknown_beyond
+
+    planes = fit_planes(depth, valid)
+    drop, info["plausibility"] = implausible_mask(depth, valid, *planes)
+    if not drop.any():
+        return depth, valid, None, planes
+    notes.append(describe(info["plausibility"]))
+    unknown = unknown_beyond(drop, valid)
+    valid = valid & ~unknown
+    return np.where(valid, depth, 0.0).astype(depth.dtype), valid, unknown, planes

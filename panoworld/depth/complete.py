@@ -38,17 +38,19 @@ def pole_regions(valid: np.ndarray, min_lat_deg: float = MIN_POLE_LAT_DEG) -> tu
     return out[0], out[1]
 
 
-def complete_poles(depth: np.ndarray, valid: np.ndarray, *, min_lat_deg: float = MIN_POLE_LAT_DEG
+def complete_poles(depth: np.ndarray, valid: np.ndarray, *, min_lat_deg: float = MIN_POLE_LAT_DEG,
+                   exclude: np.ndarray | None = None, planes: tuple[float | None, float | None] | None = None
                    ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Fill pole_regions of depth (H, W, metres) from the horizontal floor / ceiling planes.
 
     A filled ray must meet its plane no farther out horizontally than the farthest valid depth of its own column
     (the room's extent that way; columns without depth take their neighbours'), so planes never reach past the
     walls. Returns (depth, valid, info): info gives the plane distances (None when not found) and the completed
-    share of pixels and of the sphere per side.
+    share of pixels and of the sphere per side. exclude (H, W): pixels left as they are (unknown); planes: the
+    (floor, ceiling) of fit_planes when already fitted on this depth.
     """
     H, W = depth.shape
-    floor_m, ceil_m = fit_planes(depth, valid)
+    floor_m, ceil_m = fit_planes(depth, valid) if planes is None else planes
     dirs = erp_dirs(H, W, np.float64)
     horiz = np.where(valid, depth * np.hypot(dirs[..., 0], dirs[..., 2]), 0.0)
     extent = horiz.max(0)
@@ -58,6 +60,8 @@ def complete_poles(depth: np.ndarray, valid: np.ndarray, *, min_lat_deg: float =
     cols = np.arange(W)
     extent = np.interp(cols, cols[have], extent[have], period=W)
     down, up = pole_regions(valid, min_lat_deg)
+    if exclude is not None:
+        down, up = down & ~exclude, up & ~exclude
     omega = np.broadcast_to(erp_pixel_solid_angle(H, W), (H, W))
     depth, valid = depth.copy(), valid.copy()
     info: dict = {"floor_m": floor_m, "ceiling_m": ceil_m, "min_lat_deg": min_lat_deg}
@@ -114,7 +118,8 @@ def _rim_planes(depth: np.ndarray, valid: np.ndarray, holes: np.ndarray, tol: fl
 
 
 def complete_dropouts(depth: np.ndarray, valid: np.ndarray, *, smooth_tol: float = SMOOTH_TOL,
-                      plane_tol: float = PLANE_TOL) -> tuple[np.ndarray, np.ndarray, dict]:
+                      plane_tol: float = PLANE_TOL, exclude: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Fill every invalid pixel of depth (H, W, metres) left after the poles: dropouts inside the scan (glass, dark
     or shiny surfaces, the mixed returns along object silhouettes).
 
@@ -122,11 +127,12 @@ def complete_dropouts(depth: np.ndarray, valid: np.ndarray, *, smooth_tol: float
     dark panel). Otherwise each pixel gets the harmonic interpolation of the rim in inverse depth where that lies
     within smooth_tol of the nearest valid pixel's depth (a smooth surface continuing), and elsewhere, where the
     dropout spans a depth edge, the nearest valid pixel's depth (seam wrapped): the edge stays a step between the two
-    surfaces instead of a ramp of floating geometry. Returns (depth, valid, info).
+    surfaces instead of a ramp of floating geometry. exclude (H, W): invalid pixels left unknown (no rim, no fill).
+    Returns (depth, valid, info).
     """
     from panoworld.depth.depth_map import _harmonic_fill
 
-    holes = ~valid
+    holes = ~valid if exclude is None else ~valid & ~exclude
     H, W = depth.shape
     info: dict = {"smooth_tol": smooth_tol, "plane_tol": plane_tol, "completed_fraction": 0.0}
     if not holes.any() or not valid.any():
@@ -134,18 +140,19 @@ def complete_dropouts(depth: np.ndarray, valid: np.ndarray, *, smooth_tol: float
     inv = np.where(valid, 1.0 / np.where(valid, depth, 1.0), 0.0)
     harmonic = 1.0 / np.maximum(_harmonic_fill(inv, holes, valid), 1e-12)
     pad = W // 4  # nearest valid pixel with the seam wrapped: pad with wrapped columns
-    padded = np.concatenate([holes[:, -pad:], holes, holes[:, :pad]], axis=1)
+    none = ~valid  # nearest valid pixel (not an excluded one)
+    padded = np.concatenate([none[:, -pad:], none, none[:, :pad]], axis=1)
     _, (ii, jj) = ndimage.distance_transform_edt(padded, return_indices=True)
     nearest = depth[ii[:, pad:pad + W], (jj[:, pad:pad + W] - pad) % W]
     plane, n_planar = _rim_planes(depth, valid, holes, plane_tol)
     on_plane = holes & np.isfinite(plane)
     smooth = holes & ~on_plane & (np.abs(harmonic - nearest) <= smooth_tol * nearest)
     fill = np.where(on_plane, plane, np.where(smooth, harmonic, nearest))
-    out = np.where(valid, depth, fill).astype(depth.dtype)
+    out = np.where(valid, depth, np.where(holes, fill, 0.0)).astype(depth.dtype)
     omega = np.broadcast_to(erp_pixel_solid_angle(H, W), (H, W))
     _, n = ndimage.label(holes, structure=np.ones((3, 3)))
     m = holes.sum()
     info.update(completed_fraction=float(holes.mean()), sphere_fraction=float(omega[holes].sum() / (4 * np.pi)),
                 dropouts=int(n), planar_dropouts=n_planar, plane_fraction=float(on_plane.sum() / m),
                 smooth_fraction=float(smooth.sum() / m), step_fraction=float((holes & ~on_plane & ~smooth).sum() / m))
-    return out, np.ones_like(valid), info
+    return out, (np.ones_like(valid) if exclude is None else ~exclude), info

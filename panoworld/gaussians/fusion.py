@@ -167,7 +167,7 @@ def _reduce(parts: list, part, merge: Callable | None = None) -> list:
 
 def voxel_fusion(
     frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], params: FusionParams, *, progress: bool = False,
-    keep_points: Callable[[np.ndarray], np.ndarray] | None = None,
+    keep_points: Callable[[np.ndarray], np.ndarray] | None = None, empty_ok: bool = False,
 ) -> FusionResult:
     """Fuse ERP frames (rgb (H, W, 3), depth (H, W) metres, world_from_cam (4, 4)) into voxel-aligned Gaussians.
 
@@ -179,7 +179,9 @@ def voxel_fusion(
     memory is bounded by one frame's observations plus the occupied voxels, whatever the number of frames (pass a
     re-iterable such as ContextSource that reads frames lazily; per_voxel > 1 iterates twice). keep_points, when
     given (frame_observations'), keeps a subset of each frame's valid pixels by their world points (e.g. those the
-    source panorama's own Gaussians do not explain), before their footprints are computed.
+    source panorama's own Gaussians do not explain), before their footprints are computed. empty_ok: nothing to fuse
+    (no pixel kept, or every voxel pruned) gives an empty result instead of a ValueError (what is left once the
+    sources explain everything).
     """
     from tqdm import tqdm
 
@@ -209,6 +211,8 @@ def voxel_fusion(
     for n, part in observations(frame_sums):
         parts = _reduce(parts, part, merge_sums)
         n_obs += n
+    if not parts and empty_ok:
+        return FusionResult(empty_gaussians(), 0, 0, 0, [0.0, 0.0, 0.0], eps_v)
     if not parts:
         raise ValueError("no valid depth pixel in any frame: every depth is 0, inf or NaN (or beyond max_depth)")
     sums = VoxelSums(*(torch.from_numpy(a) for a in merge_sums(parts)))
@@ -240,6 +244,8 @@ def voxel_fusion(
     keep = (sums.count >= params.min_points) & (sums.weight > 0) & torch.isfinite(evals).all(1)
     keep &= torch.isfinite(mean).all(1)
     num_pruned = int((~keep).sum())
+    if not bool(keep.any()) and empty_ok:
+        return FusionResult(empty_gaussians(), n_obs, num_voxels, num_pruned, [0.0, 0.0, 0.0], eps_v)
     if not bool(keep.any()):
         raise ValueError(
             f"all {num_voxels} voxels were pruned (fewer than min_points={params.min_points} observations or "
@@ -269,6 +275,13 @@ def gaussians_from_cov(mean: torch.Tensor, cov: torch.Tensor, colors: torch.Tens
     """Gaussians of covariance cov (N, 3, 3) (scaled by scale_factor as in voxel fusion) at mean (N, 3)."""
     evals, axes = eigh3(cov)
     return _gaussians_from_eig(mean, evals, axes, colors, params, max_scale_m)
+
+
+def empty_gaussians() -> Gaussians:
+    """A set of no Gaussians (degree 0)."""
+    z = np.zeros
+    return Gaussians(z((0, 3), np.float32), z((0, 3), np.float32), z((0, 4), np.float32), z(0, np.float32),
+                     z((0, 3), np.float32))
 
 
 def _mean_cov_axes(sums: VoxelSums, centres: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

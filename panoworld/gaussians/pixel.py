@@ -276,11 +276,13 @@ def fuse_unseen(pix: Gaussians, frames: ContextSource, vis, params: FusionParams
                 progress: bool = False) -> FusionResult:
     """The source Gaussians pix plus voxel fusion of what `frames` see that the source(s) do not (vis: a
     SourceVisibility, or any object with its explained / poking_through) in voxels of unseen_voxel_size (0 =
-    params.voxel_size), less the voxel Gaussians poking through a surface the source saw."""
+    params.voxel_size), less the voxel Gaussians poking through a surface the source saw. Frames that add nothing
+    (every pixel explained or without depth) leave the source Gaussians alone: a valid scene."""
     if not len(frames):
         return FusionResult(pix, len(pix), 0, 0, bbox_extent(pix.means), params.voxel_size, num_source=len(pix))
     vox_params = replace(params, voxel_size=unseen_voxel_size) if unseen_voxel_size > 0 else params
-    fused = voxel_fusion(frames, vox_params, progress=progress, keep_points=lambda p: ~vis.explained(p))
+    fused = voxel_fusion(frames, vox_params, progress=progress, keep_points=lambda p: ~vis.explained(p),
+                         empty_ok=len(pix) > 0)
     poking = vis.poking_through(fused.gaussians)
     g = merge_gaussians([pix, fused.gaussians.subset(~poking)])
     return FusionResult(g, fused.num_observations + len(pix), fused.num_voxels, fused.num_pruned + int(poking.sum()),

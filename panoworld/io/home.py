@@ -15,7 +15,8 @@ PANORAMAS_JSON = "panoramas.json"
 
 
 HOME_MESH_JSON = "home.json"
-"""In a home's mesh artifact: {"sources": [{name, world_from_cam, vertex_start, grid: [h, w]}]}; the fused mesh's
+"""In a home's mesh artifact: {"sources": [{name, world_from_cam, vertex_start, grid: [h, w], near_capture_px (its
+pixels dropped as a surface through another capture point)}]}; the fused mesh's
 vertices are each source's ERP grid (h * w + 2 poles, world frame) one after the other."""
 HOME_DIR = "panoramas"
 """A home's depth artifact: panoramas/NAME/{depth.npy, valid.png, panorama.png} per panorama; the top-level files are

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from panoworld.core.conventions import erp_dirs, erp_pixel_solid_angle, points_from_depth
+from panoworld.core.conventions import erp_dirs, erp_pixel_solid_angle
 
 
 @dataclass
@@ -30,9 +30,14 @@ def estimate_floor(
     refined by the weighted median of its inliers. None if no such horizontal surface exists.
     """
     H, W = depth.shape
-    pts = points_from_depth(np.where(valid, depth, 0.0))
     dirs = erp_dirs(H, W, dtype=np.float64)
-    # Central differences with the seam wrapped; rows clamp at the poles.
+    # Only rows min_below_deg below the horizon vote: they and the row above them (their normals' neighbour) are used.
+    r0 = max(int(np.argmax(dirs[:, 0, 1] > np.sin(np.deg2rad(min_below_deg)))) - 1, 0)
+    if not (dirs[:, 0, 1] > np.sin(np.deg2rad(min_below_deg))).any():
+        r0 = H
+    dirs, depth, valid = dirs[r0:], depth[r0:], valid[r0:]
+    pts = dirs * np.where(valid, depth, 0.0)[..., None]
+    # Central differences with the seam wrapped; rows clamp at the bottom pole (the top row of the slice never votes).
     dx = np.roll(pts, -1, axis=1) - np.roll(pts, 1, axis=1)
     up = np.concatenate([pts[:1], pts[:-1]])
     down = np.concatenate([pts[1:], pts[-1:]])
@@ -46,7 +51,7 @@ def estimate_floor(
     below = dirs[..., 1] > np.sin(np.deg2rad(min_below_deg))
     y = pts[..., 1]
     sel = ok & below & (cos_vert >= np.cos(np.deg2rad(max_tilt_deg))) & (y > 0)
-    omega = np.broadcast_to(erp_pixel_solid_angle(H, W), (H, W))
+    omega = np.broadcast_to(erp_pixel_solid_angle(H, W)[r0:], depth.shape)
     down_total = omega[below & valid].sum()
     if sel.sum() < 20 or down_total <= 0:
         return None

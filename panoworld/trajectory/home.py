@@ -100,6 +100,10 @@ def plan_home(nav: NavMesh, captures: dict[str, np.ndarray], params: TrajectoryP
             positions.append(pts)
             cam_y.append(np.linspace(ys[a], ys[b], n + 2)[1:-1])
             paths.append({"walk": [names[a], names[b]], "start": start, "stop": start + n, "from": c})
+    covered = {j for p in paths for j in [int(p.get("from", 0))] + list(range(p["start"], p["stop"]))}
+    for name, c in capture_frames.items():  # a capture point with no explore path and no walk leaving it (the last)
+        if c not in covered:
+            paths.append({"capture": name, "sector": None, "start": c, "stop": c + 1, "from": max(c - 1, 0)})
     positions = np.concatenate(positions)
     return Plan(positions, float(np.sum(lengths) / max(len(positions) - len(order), 1)), {
         "paths": paths, "capture_frames": capture_frames, "visit_order": [names[k] for k in order],

@@ -105,12 +105,14 @@ def fuse(job):
                                       progress=job.progress)
     from panoworld.gaussians.home import home_anchored_fusion
     from panoworld.io.home import home_depth_dirs, load_sources
+    from panoworld.room.plausible import drop_near_captures
 
     dirs = home_depth_dirs(job.depth) if job.depth else None
     if dirs is None:
         raise InputError(f"{job.register}: the register artifact places several panoramas: give --depth, the home's "
                          "depth artifact (its panoramas are anchored)")
     names, rgbs, depths = load_sources(dirs, captures)
+    drop_near_captures(depths, captures)  # as the fused mesh does
     return home_anchored_fusion(job.frames, {n: (rgbs[n], depths[n], captures[n]) for n in names}, o,
                                 source_height=o.source_height, tol=o.source_tol, source_scale=o.source_scale,
                                 unseen_voxel_size=o.unseen_voxel_size, progress=job.progress)

@@ -1,0 +1,376 @@
+"""A real home captured as several panoramas, run as a user would (no flags), measured against its survey.
+
+    python bench/bench_real_home.py SCENE --survey survey.json [--json F] [--work DIR] [--survey-poses]
+                                    [--loo | --loo-only NAME ...] [--height 256]
+
+SCENE is a home (docs/multi.md: panoramas/, depths/); it is copied to --work (default
+../scratch/bench_real_home/NAME) and `runner.py run` runs on the copy at the default preset with no flags and no
+poses.json. Reported: registered count and each unregistered panorama's reason; pairwise capture-point distance
+error and relative yaw error against the survey (compare_to_survey); the NavMesh (area, which capture points stand
+on it: the home NavMesh is one connected component grown from the first capture point), the nearest mesh vertex to
+each capture point; the Gaussian scene rendered at each capture pose against that panorama (PSNR, SSIM, coverage =
+share of pixels with alpha > 0.5, at --height rows); per-stage wall seconds and peak memory from the runner's report.
+
+--survey-poses [--set STAGE.PARAM=VALUE ...] writes a poses.json built from the survey into the copy (survey_poses), so the stages after
+registration can be measured while registration cannot join the rooms: its rows are labelled "survey poses", and
+its registration numbers only check the poses went through. --set (that mode only, labelled) passes a runner
+override, e.g. trajectory.on_invalid=report where rooms whose floors do not connect stop the trajectory.
+
+--loo (every panorama) or --loo-only NAME...: leave-one-out novel views. The home is built again without that
+panorama (its panorama, depth and pose removed) and rendered at the panorama's pose as registered with all of them
+(the full run's, mapped into the reduced run's world frame through the common capture point nearest to it), against
+the real panorama: PSNR, SSIM and coverage over the sphere and split into the pixels another panorama sees (seen:
+the others' cleaned depth explains the left-out panorama's surface) and the rest (unseen). One home build each.
+
+The survey (ZInD, zind_home/SOURCE.md) is read here only: never by the pipeline.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import cv2
+import numpy as np
+
+from panoworld.io.manifest import read_manifest
+
+# ---------------------------------------------------------------- survey
+
+
+def survey_poses(survey: dict) -> dict[str, np.ndarray]:
+    """{NAME: world_from_cam (4, 4)} from a ZInD survey (2D position m, yaw deg, camera height), in the frame of the
+    first panorama (by name) as the pipeline's register stage puts it: up = -Y, metres.
+
+    ZInD's pixel azimuth theta = atan2(-x, y) grows to the image's right, so its local floor-plan axes are a mirror
+    image of the camera's (camera x right, z forward: local x = -x_cam, y = z_cam); the floor plan is mirrored back
+    (gy -> -gy) to give proper rotations. Distances are unchanged by that mirror."""
+    panos = survey["panos"]
+    world = {}
+    for n, p in panos.items():
+        r = math.radians(p["yaw_deg"])
+        c, s = math.cos(r), math.sin(r)
+        x_cam = np.array([-c, s, 0.0])  # mirrored floor plan (gx, -gy), z up
+        z_cam = np.array([-s, -c, 0.0])
+        y_cam = np.array([0.0, 0.0, -1.0])
+        T = np.eye(4)
+        T[:3, :3] = np.stack([x_cam, y_cam, z_cam], axis=1)
+        gx, gy = p["position_m_xy"]
+        T[:3, 3] = [gx, -gy, p["camera_height_m"]]
+        world[n] = T
+    first = np.linalg.inv(world[sorted(world)[0]])
+    return {n: first @ T for n, T in sorted(world.items())}
+
+
+def rot_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+
+
+def compare_to_survey(est: dict[str, np.ndarray], survey: dict) -> dict:
+    """Pairwise figures of the registered capture points against the survey (frame-free): for every pair of
+    registered panoramas, |distance estimated - distance surveyed| (m) and the angle (deg) between the estimated and
+    surveyed relative rotations (the relative yaw error for upright panoramas). Summary: median and max of each."""
+    ref = survey_poses(survey)
+    names = sorted(n for n in est if n in ref)
+    pairs = []
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            d_est = float(np.linalg.norm(est[a][:3, 3] - est[b][:3, 3]))
+            d_ref = float(np.linalg.norm(ref[a][:3, 3] - ref[b][:3, 3]))
+            r_est = est[a][:3, :3].T @ est[b][:3, :3]
+            r_ref = ref[a][:3, :3].T @ ref[b][:3, :3]
+            pairs.append({"a": a, "b": b, "dist_m": d_ref, "dist_err_m": abs(d_est - d_ref),
+                          "yaw_err_deg": rot_deg(r_est.T @ r_ref)})
+    out: dict = {"pairs": pairs, "registered": names}
+    if pairs:
+        de = np.array([p["dist_err_m"] for p in pairs])
+        ye = np.array([p["yaw_err_deg"] for p in pairs])
+        out.update(dist_err_median_m=float(np.median(de)), dist_err_max_m=float(de.max()),
+                   yaw_err_median_deg=float(np.median(ye)), yaw_err_max_deg=float(ye.max()))
+    return out
+
+
+# ---------------------------------------------------------------- runs
+
+
+def copy_home(src: Path, dst: Path, *, leave_out: str | None = None, poses: dict[str, np.ndarray] | None = None
+              ) -> Path:
+    """The home's panoramas/, depths/ and rig_masks/ copied to dst (without leave_out), plus poses.json when given."""
+    if dst.exists():
+        shutil.rmtree(dst)
+    for sub in ("panoramas", "depths", "rig_masks"):
+        if (src / sub).is_dir():
+            (dst / sub).mkdir(parents=True)
+            for f in sorted((src / sub).iterdir()):
+                if f.stem != leave_out:
+                    shutil.copy(f, dst / sub / f.name)
+    if poses is not None:
+        (dst / "poses.json").write_text(json.dumps({n: T.tolist() for n, T in poses.items() if n != leave_out}))
+    return dst
+
+
+def run_home(scene: Path, sets: list[str] = ()) -> dict:
+    """`runner.py run SCENE --json` (default preset; no flags unless sets, --set STAGE.PARAM=VALUE each): wall
+    seconds, the report's stages, the exit code."""
+    t0 = time.perf_counter()
+    cmd = [sys.executable, "runner.py", "run", str(scene), "--json"] + [a for v in sets for a in ("--set", v)]
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    try:
+        stages = json.loads(proc.stdout)["stages"]
+    except (ValueError, KeyError):
+        stages = []
+    return {"rc": proc.returncode, "wall_s": wall, "stages": stages, "stderr_tail": proc.stderr[-1500:]}
+
+
+def manifest_info(scene: Path, stage: str) -> dict:
+    try:
+        return read_manifest(scene / "artifacts" / stage)["info"]
+    except Exception:  # a stage that did not run
+        return {}
+
+
+def home_sources(scene: Path, poses: dict[str, np.ndarray]) -> tuple[dict, dict]:
+    """{NAME: cleaned rgb}, {NAME: cleaned depth (0 = none)} of the run's depth artifact for the posed panoramas."""
+    from panoworld.io.home import home_depth_dirs, load_sources
+    from panoworld.room.plausible import drop_near_captures
+
+    dirs = home_depth_dirs(scene / "artifacts" / "depth")
+    _, rgbs, depths = load_sources(dirs, poses)
+    drop_near_captures(depths, poses)  # as the mesh and gaussians stages do
+    return rgbs, depths
+
+
+def render_scores(g, pose: np.ndarray, rgb: np.ndarray, height: int, seen: np.ndarray | None = None) -> dict:
+    """PSNR, SSIM and coverage of the Gaussians g rendered at pose against rgb (area-downsampled to height rows),
+    over the sphere and, with seen (height, 2 height) bool, over the seen and unseen pixels."""
+    from panoworld.render.erp import render_erp
+    from panoworld.render.metrics import psnr, ssim_map
+
+    ref = cv2.resize(rgb, (2 * height, height), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
+    out = render_erp(g, pose, height, 2 * height)
+    img = np.clip(np.asarray(out.rgb, np.float32), 0, 1)
+    alpha = np.asarray(out.alpha, np.float32)
+    smap = np.asarray(ssim_map(img, ref, data_range=1.0), np.float32)
+    if smap.ndim == 3:
+        smap = smap.mean(-1)
+    res = {"psnr": psnr(img, ref, data_range=1.0), "ssim": float(smap.mean()), "coverage": float((alpha > 0.5).mean())}
+    if seen is not None:
+        for key, m in (("seen", seen), ("unseen", ~seen)):
+            if m.any():
+                res[key] = {"share": float(m.mean()), "psnr": psnr(img, ref, m, data_range=1.0),
+                            "ssim": float(smap[m].mean()), "coverage": float((alpha[m] > 0.5).mean())}
+    return res
+
+
+def seen_by_others(name: str, poses: dict, depths: dict, height: int) -> np.ndarray:
+    """(height, 2 height) bool: pixels of panorama name whose surface (its cleaned depth) another panorama sees."""
+    from panoworld.core.conventions import erp_dirs, transform_points
+    from panoworld.gaussians.home import SourcesVisibility
+    from panoworld.gaussians.pixel import SourceVisibility
+    from panoworld.geometry.resize import resize_depth
+
+    d = resize_depth(depths[name], height, 2 * height)
+    d = np.where(np.isfinite(d) & (d > 0), d, 0.0)
+    pts = transform_points(poses[name], erp_dirs(height, 2 * height, np.float64).reshape(-1, 3) * d.reshape(-1, 1))
+    others = SourcesVisibility([SourceVisibility(depths[n], poses[n], 0.03) for n in poses if n != name])
+    return (others.explained(pts) & (d.reshape(-1) > 0)).reshape(height, 2 * height)
+
+
+def nearest_vertex_m(scene: Path, poses: dict[str, np.ndarray]) -> dict[str, float]:
+    """{NAME: distance (m) from that capture point to the nearest vertex of the fused mesh}."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    m = trimesh.load(scene / "artifacts" / "mesh" / "mesh.ply", process=False)
+    tree = cKDTree(np.asarray(m.vertices))
+    return {n: float(tree.query(T[:3, 3])[0]) for n, T in poses.items()}
+
+
+def measure_home(scene: Path, survey: dict, height: int, sets: list[str] = ()) -> dict:
+    from panoworld.io.home import capture_poses
+    from panoworld.io.splat_ply import read_gaussians_ply
+
+    run = run_home(scene, sets)
+    arts = scene / "artifacts"
+    row: dict = {"scene": str(scene), "rc": run["rc"], "wall_s": run["wall_s"],
+                 "stages": {s["stage"]: {"action": s.get("action"), "seconds": s.get("seconds"),
+                                         "peak_rss_mb": s.get("peak_rss_mb"), "reason": (s.get("reason") or "")[:200]}
+                            for s in run["stages"]}}
+    for st in row["stages"]:
+        row["stages"][st]["cpu_s"] = read_manifest(arts / st).get("cpu_s") if (arts / st / "manifest.json").is_file() \
+            else None
+    if run["rc"] != 0:
+        row["stderr_tail"] = run["stderr_tail"]
+    panos = sorted(p.stem for p in (scene / "panoramas").iterdir())
+    poses = capture_poses(arts / "register") if (arts / "register" / "panoramas.json").is_file() else {}
+    reg = manifest_info(scene, "register")
+    regdoc = json.loads((arts / "register" / "registration.json").read_text()) \
+        if (arts / "register" / "registration.json").is_file() else {}
+    row["registered"] = sorted(poses)
+    row["unregistered"] = {n: (regdoc.get("panoramas", {}).get(n, {}) or {}).get("reason", "?")
+                           for n in panos if n not in poses}
+    row["register_info"] = {k: v for k, v in reg.items() if not isinstance(v, (dict, list))}
+    row["survey"] = compare_to_survey(poses, survey)
+    nav = manifest_info(scene, "navmesh")
+    row["navmesh"] = {"area_m2": nav.get("area_m2"), "on": nav.get("capture_points_on_navmesh")}
+    depth = manifest_info(scene, "depth")
+    row["plausibility"] = {n: (i.get("plausibility") or {}) for n, i in
+                           (depth.get("home", {}).get("panoramas", {}) or {}).items()}
+    if (arts / "mesh" / "mesh.ply").is_file() and poses:
+        row["nearest_vertex_m"] = nearest_vertex_m(scene, poses)
+    if (arts / "gaussians" / "gaussians.ply").is_file() and poses:
+        g = read_gaussians_ply(arts / "gaussians" / "gaussians.ply")
+        rgbs, _ = home_sources(scene, poses)
+        from panoworld.io.depth import read_panorama
+
+        row["capture"] = {}
+        for n in poses:
+            src = next((scene / "panoramas").glob(f"{n}.*"))
+            raw = read_panorama(src)
+            row["capture"][n] = {"cleaned": render_scores(g, poses[n], rgbs[n], height),
+                                 "input": render_scores(g, poses[n], raw, height)}
+        row["num_gaussians"] = manifest_info(scene, "gaussians").get("num_gaussians")
+    return row
+
+
+def leave_one_out(src: Path, work: Path, full: Path, name: str, survey_mode: dict | None, height: int,
+                  sets: list[str] = ()) -> dict:
+    """The home built without `name`, rendered at its pose registered with all of them (the full run's)."""
+    from panoworld.io.depth import read_panorama
+    from panoworld.io.home import capture_poses
+    from panoworld.io.splat_ply import read_gaussians_ply
+
+    full_poses = capture_poses(full / "artifacts" / "register")
+    if name not in full_poses:
+        return {"name": name, "skipped": "not registered in the full run"}
+    scene = copy_home(src, work / f"loo_{name}", leave_out=name, poses=survey_mode)
+    run = run_home(scene, sets)
+    out: dict = {"name": name, "rc": run["rc"], "wall_s": run["wall_s"]}
+    if run["rc"] != 0 or not (scene / "artifacts" / "gaussians" / "gaussians.ply").is_file():
+        out["stderr_tail"] = run["stderr_tail"]
+        return out
+    loo_poses = capture_poses(scene / "artifacts" / "register")
+    common = [n for n in loo_poses if n in full_poses]
+    if not common:
+        out["skipped"] = "no capture point in common with the full run"
+        return out
+    ref = min(common, key=lambda n: np.linalg.norm(full_poses[n][:3, 3] - full_poses[name][:3, 3]))
+    loo_from_full = loo_poses[ref] @ np.linalg.inv(full_poses[ref])
+    pose = loo_from_full @ full_poses[name]
+    _, depths = home_sources(full, full_poses)
+    seen = seen_by_others(name, full_poses, depths, height)
+    g = read_gaussians_ply(scene / "artifacts" / "gaussians" / "gaussians.ply")
+    raw = read_panorama(next((src / "panoramas").glob(f"{name}.*")))
+    out.update(aligned_through=ref, registered=len(loo_poses), **render_scores(g, pose, raw, height, seen))
+    return out
+
+
+# ---------------------------------------------------------------- report
+
+
+def fmt(v, spec=".2f"):
+    return "-" if v is None else format(v, spec)
+
+
+def print_report(res: dict) -> None:
+    r = res["home"]
+    label = "SURVEY POSES (poses.json from survey.json: downstream only)" if res["survey_poses"] else \
+        "as a user runs it (no poses.json, no flags)"
+    if res.get("sets"):
+        label += ", with " + " ".join(f"--set {v}" for v in res["sets"])
+    print(f"\n## {res['scene']}: {label}\n")
+    sv = r["survey"]
+    print(f"registered {len(r['registered'])} of {len(r['registered']) + len(r['unregistered'])}; runner rc "
+          f"{r['rc']}, wall {r['wall_s']:.0f} s")
+    for n, why in r["unregistered"].items():
+        print(f"  unregistered {n}: {why}")
+    if sv.get("pairs"):
+        print(f"pairwise distance error median / max {sv['dist_err_median_m']:.3f} / {sv['dist_err_max_m']:.3f} m; "
+              f"yaw error median / max {sv['yaw_err_median_deg']:.2f} / {sv['yaw_err_max_deg']:.2f} deg "
+              f"({len(sv['pairs'])} pairs)")
+    nav = r["navmesh"]
+    on = nav.get("on") or {}
+    print(f"NavMesh {fmt(nav.get('area_m2'), '.1f')} m^2; capture points on it (one connected component): "
+          f"{sum(bool(v) for v in on.values())} of {len(on)}" + (f" (off: {', '.join(n for n, v in on.items() if not v)})"
+                                                                 if on and not all(on.values()) else ""))
+    print("\n| panorama | PSNR dB (cleaned) | SSIM | coverage | PSNR dB (input) | nearest mesh vertex m | masked "
+          "implausible | room floor m^2 (walls) |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    for n in sorted(set(r.get("capture", {})) | set(r.get("plausibility", {}))):
+        c = r.get("capture", {}).get(n, {})
+        p = r.get("plausibility", {}).get(n, {})
+        cl, ip = c.get("cleaned", {}), c.get("input", {})
+        print(f"| {n} | {fmt(cl.get('psnr'))} | {fmt(cl.get('ssim'), '.3f')} | {fmt(cl.get('coverage'), '.3f')} | "
+              f"{fmt(ip.get('psnr'))} | {fmt((r.get('nearest_vertex_m') or {}).get(n), '.3f')} | "
+              f"{fmt(p.get('masked_fraction'), '.1%')} | {fmt(p.get('room_floor_area_m2'), '.1f')} |")
+    print("\n| stage | action | wall s | CPU s | peak MB |")
+    print("| --- | --- | --- | --- | --- |")
+    for st, s in r["stages"].items():
+        print(f"| {st} | {s['action']} | {fmt(s['seconds'], '.1f')} | {fmt(s.get('cpu_s'), '.1f')} | "
+              f"{fmt(s['peak_rss_mb'], '.0f')} |")
+    if res.get("loo"):
+        print("\nleave-one-out novel views (the home without the panorama, rendered at its pose):\n")
+        print("| panorama | PSNR dB | SSIM | coverage | seen share | seen PSNR / SSIM / cov | unseen PSNR / SSIM / cov "
+              "| build s |")
+        print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+        for o in res["loo"]:
+            if "psnr" not in o:
+                print(f"| {o['name']} | failed: {o.get('skipped') or o.get('stderr_tail', '')[-120:]!r} |")
+                continue
+            s, u = o.get("seen", {}), o.get("unseen", {})
+            print(f"| {o['name']} | {o['psnr']:.2f} | {o['ssim']:.3f} | {o['coverage']:.3f} | "
+                  f"{fmt(s.get('share'), '.2f')} | {fmt(s.get('psnr'))} / {fmt(s.get('ssim'), '.3f')} / "
+                  f"{fmt(s.get('coverage'), '.3f')} | {fmt(u.get('psnr'))} / {fmt(u.get('ssim'), '.3f')} / "
+                  f"{fmt(u.get('coverage'), '.3f')} | {o['wall_s']:.0f} |")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("scene", type=Path)
+    ap.add_argument("--survey", type=Path, required=True, help="survey.json (ZInD convention; measuring only)")
+    ap.add_argument("--json", type=Path, help="write every figure here")
+    ap.add_argument("--work", type=Path, help="where the copies run (default ../scratch/bench_real_home/NAME)")
+    ap.add_argument("--survey-poses", action="store_true", help="give the copy a poses.json from the survey "
+                    "(development of the stages after registration; labelled in the output)")
+    ap.add_argument("--loo", action="store_true", help="leave-one-out novel views for every panorama")
+    ap.add_argument("--loo-only", nargs="+", metavar="NAME", help="leave-one-out for these panoramas only")
+    ap.add_argument("--skip-full", action="store_true", help="reuse the full run already in --work (no rerun)")
+    ap.add_argument("--height", type=int, default=256, help="ERP rows of the renders and references")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="STAGE.PARAM=VALUE",
+                    help="with --survey-poses only: a runner override (labelled in the output)")
+    args = ap.parse_args(argv)
+    if args.sets and not args.survey_poses:
+        ap.error("--set is for the --survey-poses development mode; the user mode runs with no flags")
+    survey = json.loads(args.survey.read_text())
+    src = args.scene.resolve()
+    mode = "survey" if args.survey_poses else "user"
+    work = (args.work or REPO.parent / "scratch" / "bench_real_home" / src.name).resolve() / mode
+    work.mkdir(parents=True, exist_ok=True)
+    poses = survey_poses(survey) if args.survey_poses else None
+    full = work / "full"
+    if not args.skip_full:
+        copy_home(src, full, poses=poses)
+    home = measure_home(full, survey, args.height, args.sets)
+    res = {"scene": src.name, "survey_poses": bool(args.survey_poses), "sets": args.sets, "home": home, "loo": []}
+    names = sorted(home["registered"]) if args.loo else (args.loo_only or [])
+    for n in names:
+        res["loo"].append(leave_one_out(src, work, full, n, poses, args.height, args.sets))
+        print(json.dumps(res["loo"][-1])[:400], file=sys.stderr)
+    print_report(res)
+    if args.json:
+        args.json.write_text(json.dumps(res, indent=1, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,140 @@
+"""Implausible layout depth: floor and ceiling beyond the walls, surfaces through the camera (panoworld.room.plausible)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from panoworld.core.conventions import erp_dirs
+from panoworld.room.plausible import STAND_RADIUS_M, mask_implausible, wall_bounds
+
+CAM_H, CEIL_H = 1.4, 1.0  # floor below, ceiling above the camera (m)
+
+
+def layout_depth(polygon, cam_xz, H=128, W=256):
+    """ERP ray depth (H, W) of a room-layout annotation as ZInD renders it: the polygon's wall segments (both faces),
+    a floor CAM_H below and a ceiling CEIL_H above the camera; rays that miss every wall reach the planes, however far."""
+    d = erp_dirs(H, W, np.float64)
+    ux, uz = d[H // 2, :, 0] / np.hypot(d[H // 2, :, 0], d[H // 2, :, 2]), d[H // 2, :, 2] / np.hypot(
+        d[H // 2, :, 0], d[H // 2, :, 2])
+    p = np.asarray(polygon, np.float64) - cam_xz
+    t_wall = np.full(W, np.inf)
+    for a, b in zip(p, np.roll(p, -1, 0)):
+        e = b - a
+        den = ux * e[1] - uz * e[0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (a[0] * e[1] - a[1] * e[0]) / den
+            s = (a[0] * uz - a[1] * ux) / den
+        hit = np.isfinite(t) & (t > 0) & (s >= 0) & (s <= 1)
+        t_wall = np.where(hit, np.minimum(t_wall, t), t_wall)
+    horiz = np.hypot(d[..., 0], d[..., 2])
+    down = d[..., 1]  # +Y is down
+    plane = np.where(down > 0, CAM_H / np.maximum(down, 1e-9), CEIL_H / np.maximum(-down, 1e-9))
+    return np.minimum(t_wall[None, :] / np.maximum(horiz, 1e-9), plane).astype(np.float32)
+
+
+def points(depth, valid):
+    H, W = depth.shape
+    return (erp_dirs(H, W, np.float64) * depth[..., None])[valid]
+
+
+def polygon_area(p):
+    p = np.asarray(p, float)
+    return 0.5 * abs(np.dot(p[:, 0], np.roll(p[:, 1], -1)) - np.dot(p[:, 1], np.roll(p[:, 0], -1)))
+
+
+def hull_area(xz):
+    import cv2
+
+    return float(cv2.contourArea(cv2.convexHull(xz.astype(np.float32))))
+
+
+ROOM = [(-2.0, -1.5), (2.0, -1.5), (2.0, 1.5), (-2.0, 1.5)]  # 4 x 3 m
+
+
+def test_a_room_seen_from_inside_is_left_alone():
+    depth = layout_depth(ROOM, np.array([0.4, -0.3]))
+    valid = depth > 0
+    d2, v2, rec = mask_implausible(depth, valid, CAM_H, CEIL_H)
+    assert d2 is depth and v2 is valid
+    assert rec["near_surface_px"] == rec["far_floor_px"] == rec["far_ceiling_px"] == 0 and rec["masked_fraction"] == 0
+    assert rec["room_floor_area_m2"] == pytest.approx(polygon_area(ROOM), rel=0.03)  # the walls outline the room
+
+
+def test_a_camera_outside_its_room_keeps_its_floor_in_the_room():
+    # The camera stands 0.4 m outside the polygon's edge: rays that miss the walls reach the floor and ceiling up to
+    # hundreds of metres away. What is left of them lies within the walls' reach or the tripod's stand.
+    cam = np.array([0.0, -1.9])
+    depth = layout_depth(ROOM, cam)
+    valid = depth > 0
+    floor_before = points(depth, valid & (np.abs(depth * erp_dirs(*depth.shape)[..., 1] - CAM_H) < 0.01))
+    assert np.hypot(floor_before[:, 0], floor_before[:, 2]).max() > 50
+    d2, v2, rec = mask_implausible(depth, valid, CAM_H, CEIL_H)
+    assert rec["far_floor_px"] > 0 and rec["far_ceiling_px"] > 0 and rec["near_surface_px"] == 0
+    pts = points(d2, v2)
+    on_floor = np.abs(pts[:, 1] - CAM_H) < 0.01
+    r = np.hypot(pts[:, 0], pts[:, 2])
+    bound = wall_bounds(depth, valid, CAM_H, CEIL_H)[0]
+    assert r.max() <= max(STAND_RADIUS_M, bound.max()) * 1.05 + 0.1  # nothing recedes past the walls
+    assert hull_area(pts[on_floor][:, [0, 2]]) <= 1.5 * polygon_area(ROOM)
+    assert not (d2[~v2]).any() and np.array_equal(d2[v2], depth[v2])  # masked, never moved
+    assert 0 < rec["masked_fraction"] < 1 and rec["max_depth_after"] < 10 < rec["max_depth_before"]
+
+
+def test_a_wall_line_through_the_camera_never_becomes_geometry_at_the_camera():
+    # The camera 5 cm from its polygon's edge (a doorway line annotated through the tripod): that plane, seen
+    # edge-on, covers half the sphere; none of it survives, the rest of the room does.
+    cam = np.array([0.3, -1.45])
+    depth = layout_depth(ROOM, cam)
+    valid = depth > 0
+    pts_all = points(depth, valid)
+    on_line = np.abs(pts_all[:, 2] - (-0.05)) < 1e-3
+    assert on_line.mean() > 0.2 and np.linalg.norm(pts_all, axis=1).min() < 0.06
+    d2, v2, rec = mask_implausible(depth, valid, CAM_H, CEIL_H)
+    pts = points(d2, v2)
+    assert np.linalg.norm(pts, axis=1).min() >= 0.10
+    assert not (np.abs(pts[:, 2] + 0.05) < 1e-3).any()  # nothing of the line's plane is left
+    assert rec["near_surface_px"] >= on_line.sum() * 0.99
+    kept_other = v2[valid].reshape(-1)[~on_line].mean()
+    assert kept_other > 0.97, kept_other  # the room's other walls, floor and ceiling stay
+
+
+@pytest.mark.parametrize("cam", [(0.3, -1.45), (0.0, -1.9)])
+def test_the_depth_cleaning_leaves_what_was_masked_unknown(cam):
+    # Through the depth stage's cleaning (near cut, poles and dropouts completed): the wall through the camera and the
+    # floor beyond the walls are neither completed back nor nearer than 10 cm, and the manifest says what was done.
+    from pathlib import Path
+
+    from panoworld.depth.clean import clean_depth
+    from panoworld.depth.options import Rescale
+
+    depth = layout_depth(ROOM, np.array(cam), 128, 256)
+    valid = depth > 0
+    c = clean_depth(np.zeros((*depth.shape, 3), np.uint8), depth, valid, relative=False, rescale=Rescale.AUTO,
+                    camera_height=1.6, min_depth_m=0.1, detect_rig=None, rig_mask=None, complete_poles=True,
+                    complete_dropouts=True, source=Path("depth.npy"))
+    pts = points(c.depth, c.valid)
+    assert len(pts) and np.linalg.norm(pts, axis=1).min() >= 0.10
+    assert np.hypot(pts[:, 0], pts[:, 2]).max() < 6.0  # nothing reaches past the room (its diagonal is 5 m)
+    assert not c.depth[~c.valid].any()
+    rec = c.info["plausibility"]
+    assert rec["masked_fraction"] > 0.05 and any(n.startswith("implausible room geometry masked") for n in c.notes)
+
+
+def test_a_wall_through_another_capture_point_is_no_geometry_of_the_home():
+    # Camera B stood in a doorway that camera A's layout closes with a wall line: that wall is dropped from A's depth
+    # (near_captures_mask); A's other walls, floor and ceiling stay, and without B nothing is dropped.
+    from panoworld.room.plausible import near_captures_mask
+
+    cam = np.array([-0.5, 0.2])
+    depth = layout_depth(ROOM, cam)
+    world_from_a = np.eye(4)
+    world_from_a[[0, 2], 3] = cam
+    pts = points(depth, depth > 0) + [cam[0], 0.0, cam[1]]
+    on_wall = (np.abs(pts[:, 0] - 2.0) < 1e-3).reshape(-1)
+    b = np.array([[2.0, 0.0, 0.3]])
+    drop = near_captures_mask(depth, world_from_a, b)[depth > 0]
+    assert on_wall.sum() > 500 and drop[on_wall].mean() > 0.99
+    assert drop[~on_wall].mean() < 0.01
+    assert not near_captures_mask(depth, world_from_a, np.zeros((0, 3))).any()
+    assert not near_captures_mask(depth, world_from_a, np.array([[0.5, 0.0, -0.4]])).any()  # B in the open room
