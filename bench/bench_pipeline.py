@@ -16,9 +16,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld import pipeline as pl
-from panoworld.artifacts import read_manifest
-from panoworld.evaluate import EvalParams, evaluate, is_unavailable
+from panoworld.framework import pipeline as pl
+from panoworld.io.manifest import read_manifest
+from panoworld.tools.eval.cli import EvalParams, evaluate, is_unavailable
 
 REPO = Path(__file__).resolve().parent.parent
 REAL = REPO.parent / "shared" / "data" / "real" / "realsee3d_assets"
@@ -101,8 +101,7 @@ def print_fidelity(f: dict) -> None:
 
 def reference_loop_s() -> float:
     """Seconds of a pure-Python 20M-step sum in a function: this machine's single-core speed, to compare timings
-    across machines (0.84-1.10 s in the thirteenth #28 pass's runs; the "20 M-step loop" figures of earlier passes ran
-    it at module level, about 2.5x slower: 2.06 s in the twelfth, 2.72-2.85 s in the thirteenth)."""
+    across machines (the same loop at module level runs about 2.5x slower)."""
     t = time.perf_counter()
     s = 0
     for i in range(20_000_000):

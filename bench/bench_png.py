@@ -3,8 +3,8 @@
     python bench/bench_png.py VIDEO_DIR [--frames 10]
 
 VIDEO_DIR: a video artifact (artifacts/video). Every setting is checked lossless (decoded == the input); `encode_png`
-is the one the video writer uses; `level 1, adaptive` is libpng's per-row trial of all five filters (the writer's
-setting before the #28 speed pass).
+is the one the video writer uses; `level 1, adaptive` is libpng's per-row trial of all five filters, for
+comparison.
 """
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld.conventions import depth_to_mm
+from panoworld.core.conventions import depth_to_mm
 from panoworld.io.png import encode_png
-from panoworld.video_io import load_video
+from panoworld.io.video import load_video
 
 C, F, S = cv2.IMWRITE_PNG_COMPRESSION, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_STRATEGY
 SETTINGS = {

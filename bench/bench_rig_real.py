@@ -32,7 +32,7 @@ sys.path.insert(0, str(REPO))
 import cv2
 import numpy as np
 
-from panoworld.conventions import erp_pixel_solid_angle
+from panoworld.core.conventions import erp_pixel_solid_angle
 
 DATA = next((p / "shared" / "data" / "real" for p in REPO.parents if (p / "shared" / "data" / "real").is_dir()),
             REPO.parent / "shared" / "data" / "real")
@@ -45,8 +45,8 @@ SPLIT = {"east": "dev", "garage": "dev", "west": "test"}
 
 def label_mask(entry: dict, view: dict, H: int, W: int) -> np.ndarray:
     """A label (polygons and thick lines in the pixels of a downward view of fov_deg and size) -> (H, W) bool ERP."""
-    from panoworld.cube_views import PerspectiveView
-    from panoworld.rig_face import face_to_erp_mask, nadir_view
+    from panoworld.depth.rig.face import face_to_erp_mask, nadir_view
+    from panoworld.geometry.cube_views import PerspectiveView
 
     size = int(view["size"])
     m = np.zeros((size, size), np.uint8)
@@ -90,9 +90,9 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
 
 def stage_input(pano: Path, depth: Path | None):
     """(rgb at the working size, Job result) as the depth stage makes them at default settings."""
-    from panoworld import backends
-    from panoworld import depth as dep
-    from panoworld.backends.depth import Job
+    from panoworld.core import registry as backends
+    from panoworld.depth import depth_map as dep
+    from panoworld.depth.backends import Job
     from stages.depth import NAME, Params
 
     params = Params()
@@ -107,8 +107,8 @@ def stage_input(pano: Path, depth: Path | None):
 
 def clean(rgb: np.ndarray, res, params, source: Path):
     """clean_depth with the default rig backend, as the depth stage calls it: (Cleaned, seconds)."""
-    from panoworld import backends
-    from panoworld.depth_clean import clean_depth
+    from panoworld.core import registry as backends
+    from panoworld.depth.clean import clean_depth
 
     rig_backend = backends.get("rig", params.rig_detector).impl
     t0 = time.perf_counter()
@@ -131,7 +131,7 @@ def rig_panoramas() -> list[tuple[str, Path, Path]]:
 
 
 def save_picture(out: Path, name: str, before: np.ndarray, after: np.ndarray, det_mask, label: np.ndarray) -> None:
-    from panoworld.rig_face import nadir_crop
+    from panoworld.depth.rig.face import nadir_crop
 
     def outline(img, m, colour):
         if m is None or not m.any():
@@ -175,7 +175,7 @@ def rig_rows(split: str, save: Path | None) -> list[dict]:
 
 def control_rows() -> list[dict]:
     """The shared captures with no rig: panorama and depth must come out byte-identical."""
-    from panoworld.rig import detect_rig, remove_rig
+    from panoworld.depth.rig.detect import detect_rig, remove_rig
 
     rows = []
     real = DATA / "realsee3d_assets"
@@ -191,7 +191,7 @@ def control_rows() -> list[dict]:
     for pano in sorted((DATA / "rgb_only").glob("*")):
         if pano.suffix.lower() not in (".png", ".jpg", ".jpeg"):
             continue
-        from panoworld import depth as dep
+        from panoworld.depth import depth_map as dep
 
         rgb = dep.read_panorama(pano, [])
         rgb = dep.resize_panorama(rgb, dep.working_size(rgb.shape[0], 1024)[0])

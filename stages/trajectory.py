@@ -10,12 +10,12 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.conventions import invert_pose
-from panoworld.home.layout import capture_poses
-from panoworld.mesh import load_erp_mesh
+from panoworld.core.conventions import invert_pose
+from panoworld.core.params import param
+from panoworld.framework.stage import Input, StageInputError, stage_main
+from panoworld.geometry.erp_mesh import load_erp_mesh
+from panoworld.io.home import capture_poses
 from panoworld.navmesh import load_navmesh
-from panoworld.params import param
-from panoworld.stage import Input, StageInputError, stage_main
 from panoworld.trajectory import (
     MIN_SECTOR_DIST_M,
     PathKind,
@@ -93,7 +93,7 @@ def _user_poses(path: Path, params: Params) -> np.ndarray:
 
 
 def _plan_or_stay(nav, params: Params, where: Path):
-    """plan_path, or a stationary rotation-only path when the NavMesh records no room to move (issue #24)."""
+    """plan_path, or a stationary rotation-only path when the NavMesh records no room to move."""
     no_room = nav.info.get("no_room")
     if no_room and no_room.get("decision") == "stationary":
         return stationary_plan(params, no_room["reason"])

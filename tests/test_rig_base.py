@@ -7,11 +7,11 @@ import cv2
 import numpy as np
 import pytest
 
-from panoworld import rig
-from panoworld.conventions import erp_dirs, erp_pixel_solid_angle
-from panoworld.rig_base import BASE_BG_DEG, attached_legs
-from panoworld.rig_face import face_polar, face_to_erp_mask, nadir_view
-from panoworld.synth import generate_scene
+from panoworld.core.conventions import erp_dirs, erp_pixel_solid_angle
+from panoworld.depth.rig import detect as rig
+from panoworld.depth.rig.base import BASE_BG_DEG, attached_legs
+from panoworld.depth.rig.face import face_polar, face_to_erp_mask, nadir_view
+from panoworld.tools.synth import generate_scene
 
 SEED = 8
 H = 384

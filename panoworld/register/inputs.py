@@ -8,13 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.errors import InputError
+from panoworld.core.errors import InputError
 
 PANORAMAS_DIR = "panoramas"
 DEPTHS_DIR = "depths"
 POSES_FILE = "poses.json"
-PANORAMAS_JSON = "panoramas.json"
-"""The register artifact's {NAME: 4x4 world_from_cam} of the registered panoramas."""
 REGISTRATION_JSON = "registration.json"
 """The register artifact's per-panorama quality figures and every pair tried."""
 PANORAMA_SUFFIXES = (".png", ".jpg", ".jpeg")

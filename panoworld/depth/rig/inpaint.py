@@ -1,0 +1,184 @@
+"""Hole filling on a view of a plane (the floor on the downward face): its texture's lattice, floor patches, Telea."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+LATTICE_OFFSETS = 48
+"""Most offsets (autocorrelation peaks) averaged by the lattice fill: more keep grout and seams in phase across a
+larger hole and average each tile's own colour."""
+LATTICE_MIN_CORR = 0.25
+"""An autocorrelation peak below this (normalised: 1 = the texture repeats exactly) is no period of the floor."""
+
+
+def inpaint_plane(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, n_sectors: int = 3,
+                  candidates: int = 8) -> np.ndarray:
+    """Fill hole (size, size) of face (float RGB 0-255). Where the floor's texture repeats (tiles, planks: peaks of
+    its autocorrelation, lattice_offsets), the mean of the known floor at every such offset from the pixel: the
+    lattice (grout, plank seams) continues in phase and what differs from tile to tile averages out. Elsewhere, per
+    azimuth sector around the nadir, the mean of the `candidates` best-matching shifted floor patches (Telea where
+    no patch fits). Both are corrected in their low frequencies to the hole's border (_border_matched)."""
+    known = floor_area & ~hole
+    offsets = lattice_offsets(face, known)
+    if len(offsets) >= 2:
+        pred, ok = lattice_mean(face, known, offsets)
+        use = hole & ok
+        face = face.copy()
+        face[use] = _border_matched(face, pred, known & ok)[use]
+        hole, floor_area = hole & ~use, floor_area & ~use
+        if not hole.any():
+            return face
+    return patch_fill(face, hole, floor_area, n_sectors, candidates)
+
+
+def lattice_offsets(face: np.ndarray, known: np.ndarray, k: int = LATTICE_OFFSETS,
+                    min_corr: float = LATTICE_MIN_CORR) -> list[tuple[int, int, float]]:
+    """Up to k offsets (dy, dx, correlation), best first, under which the texture of face on the known pixels
+    repeats: local maxima of its autocorrelation (luminance less its local mean; masked, normalised by the overlap,
+    by FFT) of at least min_corr, outside the central lobe."""
+    S = face.shape[0]
+    L = face.mean(-1).astype(np.float32)
+    kn = known.astype(np.float32)
+    sig = max(2.0, S / 60)
+    mu = cv2.GaussianBlur(L * kn, (0, 0), sig) / np.maximum(cv2.GaussianBlur(kn, (0, 0), sig), 1e-3)
+    tex = (L - mu) * kn
+    n = cv2.getOptimalDFTSize(2 * S)
+
+    def auto(a: np.ndarray) -> np.ndarray:
+        f = np.fft.rfft2(a, s=(n, n))
+        return np.fft.fftshift(np.fft.irfft2(f * np.conj(f), s=(n, n)))  # offset d at index d + n // 2
+
+    total = float(kn.sum())
+    overlap = auto(kn)
+    var = float((tex**2).sum()) / max(total, 1.0)
+    corr = np.where(overlap > 0.15 * total, auto(tex) / np.maximum(overlap, 1.0) / max(var, 1e-6), -1.0)
+    corr = corr.astype(np.float32)  # compared with its own dilation below: one precision
+    c = n // 2
+    yy, xx = np.mgrid[:n, :n] - c
+    win = 2 * max(2, S // 100) + 1
+    peak = (corr >= cv2.dilate(corr, np.ones((win, win), np.uint8))) & (corr >= min_corr) & (
+        np.hypot(yy, xx) > max(3.0, S / 60))
+    iy, ix = np.nonzero(peak)
+    best = np.argsort(-corr[iy, ix])[:k]
+    return [(int(iy[i] - c), int(ix[i] - c), float(corr[iy[i], ix[i]])) for i in best]
+
+
+def lattice_mean(face: np.ndarray, known: np.ndarray, offsets: list[tuple[int, int, float]],
+                 min_sources: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """(the correlation-weighted mean of face at p + d over the offsets d whose source is known, (size, size) bool:
+    at least min_sources of them were)."""
+    S = face.shape[0]
+    acc = np.zeros(face.shape, np.float32)
+    wsum = np.zeros(known.shape, np.float32)
+    count = np.zeros(known.shape, np.int32)
+    for dy, dx, w in offsets:
+        src = np.zeros(known.shape, bool)
+        src[max(-dy, 0):S - max(dy, 0), max(-dx, 0):S - max(dx, 0)] = known[max(dy, 0):S + min(dy, 0),
+                                                                           max(dx, 0):S + min(dx, 0)]
+        shifted = np.roll(face, (-dy, -dx), axis=(0, 1))
+        acc += (w * src)[..., None] * shifted
+        wsum += w * src
+        count += src
+    return acc / np.maximum(wsum, 1e-6)[..., None], count >= min_sources
+
+
+def _border_matched(face: np.ndarray, src: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """src corrected by its smooth mismatch with face on the known pixels (normalised convolution of the residual
+    at two scales; the wider one reaches the middle of a large hole; beyond both, the mean mismatch)."""
+    sig = max(1.5, face.shape[0] / 100)
+    kn = known.astype(np.float32)
+    diff = (face - src) * kn[..., None]
+    fill = src + (float(np.mean((face - src)[known])) if known.any() else 0.0)
+    for g in (12 * sig, 3 * sig):
+        wsum = cv2.GaussianBlur(kn, (0, 0), g)[..., None]
+        fill = np.where(wsum > 0.02, src + cv2.GaussianBlur(diff, (0, 0), g) / np.maximum(wsum, 1e-3), fill)
+    return fill
+
+
+def patch_fill(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, n_sectors: int = 3,
+                candidates: int = 8) -> np.ndarray:
+    """Per azimuth sector around the nadir, the mean of the `candidates` best-matching shifted floor patches, its
+    low frequencies corrected to the hole's border (Telea where no patch fits). The mean keeps what the matches
+    share (the floor's lattice: grout, plank seams) and averages what they do not (each tile's own colour and
+    veins, which nothing around the hole predicts): one copied patch doubles that part of the error."""
+    img8 = np.clip(np.rint(face), 0, 255).astype(np.uint8)
+    hole8 = hole.astype(np.uint8)
+    radius = max(3, face.shape[0] // 60)
+    base = cv2.inpaint(img8, hole8, radius, cv2.INPAINT_TELEA).astype(np.float32)
+    out = face.copy()
+    out[hole] = base[hole]
+    S = face.shape[0]
+    c = np.arange(S) + 0.5 - 0.5 * S
+    sector = ((np.arctan2(*np.meshgrid(c, c)[::-1]) + np.pi) / (2 * np.pi) * n_sectors).astype(int) % n_sectors
+    for k in range(n_sectors):  # one patch per sector of the hole: each leg gets floor that fits its own border
+        part = hole & (sector == k)
+        offsets = _best_offsets(face, part, floor_area & ~hole, candidates)
+        if not offsets:
+            continue
+        src = np.mean([np.roll(face, (-d[0], -d[1]), axis=(0, 1)) for d in offsets], axis=0)
+        out[part] = _border_matched(face, src, ~hole)[part]
+    return out
+
+
+def _best_offsets(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, k: int = 1) -> list[tuple[int, int]]:
+    """Up to k offsets (dy, dx), best first, such that face shifted by them matches face on a band around hole (sum
+    of squared differences) and the shifted hole lands on known floor: patch matches by template matching, each a
+    separate minimum (at least the band's width from the others)."""
+    ys, xs = np.nonzero(hole)
+    if len(ys) == 0:
+        return []
+    S = face.shape[0]
+    pad = max(4, S // 40)
+    y0, y1 = max(ys.min() - pad, 0), min(ys.max() + pad + 1, S)
+    x0, x1 = max(xs.min() - pad, 0), min(xs.max() + pad + 1, S)
+    hole_box = hole[y0:y1, x0:x1]
+    band = (cv2.dilate(hole_box.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=pad) > 0) & floor_area[y0:y1, x0:x1]
+    tmpl = face[y0:y1, x0:x1].astype(np.float32)
+    ssd = cv2.matchTemplate(face.astype(np.float32), tmpl, cv2.TM_SQDIFF,
+                            mask=np.repeat(band.astype(np.float32)[..., None], 3, axis=2))
+    # Where the hole's pixels would come from must be known floor: no overlap with the hole, inside the floor area.
+    bad = (hole | ~floor_area).astype(np.float32)
+    overlap = cv2.matchTemplate(bad, hole_box.astype(np.float32), cv2.TM_CCORR)
+    ssd = np.where(overlap < 0.5, ssd, np.inf)
+    found = []
+    for _ in range(k):
+        if not np.isfinite(ssd).any():
+            break
+        iy, ix = np.unravel_index(np.argmin(ssd), ssd.shape)
+        found.append((int(iy - y0), int(ix - x0)))
+        ssd[max(iy - pad, 0):iy + pad + 1, max(ix - pad, 0):ix + pad + 1] = np.inf
+    return found
+
+
+RIM_PX = 2
+"""Width (ERP pixels) of the band inside a rig mask whose pixels are matted rather than replaced (the rig's
+anti-aliased edge and the mask's 1 px margin, which hold floor the input shows)."""
+MIN_CONTRAST = 30.0
+"""Below this distance (sRGB levels) between the rig's and the fill's colour the pixel's alpha is unknowable: filled."""
+
+
+def matte_rim(observed: np.ndarray, fill: np.ndarray, mask: np.ndarray, rim_px: int = RIM_PX) -> np.ndarray:
+    """The mask's rim pixels as floor: (H, W, 3) float, observed (the panorama) where the mask is not, observed plus
+    alpha times (fill - rig) on the rim, the fill inside. Per rim pixel the rig's colour R is the local mean of the
+    mask's interior, the floor's is the fill F, and alpha the projection of the observed colour on the line F -> R:
+    a pixel that shows floor (a dilated margin, an anti-aliased edge) keeps its own texture, one that shows rig gets
+    the fill."""
+    c = observed.astype(np.float32)
+    F = fill.astype(np.float32)
+    m8 = mask.astype(np.uint8)
+    k = np.ones((3, 3), np.uint8)
+    rim = mask & ~(cv2.erode(m8, k, iterations=rim_px) > 0)
+    core = cv2.erode(m8, k, iterations=rim_px + 1) > 0
+    out = np.where(mask[..., None], F, c)
+    if not rim.any() or not core.any():
+        return out
+    wc = cv2.GaussianBlur(core.astype(np.float32), (0, 0), 3.0)
+    R = cv2.GaussianBlur(c * core[..., None], (0, 0), 3.0) / np.maximum(wc, 1e-6)[..., None]
+    R = np.where((wc > 1e-3)[..., None], R, np.median(c[core], 0))
+    d = (R - F)[rim]
+    n2 = (d**2).sum(-1)
+    alpha = np.clip(((c[rim] - F[rim]) * d).sum(-1) / np.maximum(n2, 1e-6), 0.0, 1.0)
+    alpha = np.where(n2 < MIN_CONTRAST**2, 1.0, alpha)
+    out[rim] = c[rim] - alpha[:, None] * d
+    return out
