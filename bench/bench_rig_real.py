@@ -93,10 +93,11 @@ def stage_input(pano: Path, depth: Path | None):
     from panoworld.core import registry as backends
     from panoworld.depth import depth_map as dep
     from panoworld.depth.backends import Job
+    from panoworld.io.depth import read_panorama
     from stages.depth import NAME, Params
 
     params = Params()
-    rgb = dep.read_panorama(pano, [])
+    rgb = read_panorama(pano, [])
     H, _ = dep.working_size(rgb.shape[0], params.max_height)
     rgb = dep.resize_panorama(rgb, H)
     inputs = {"panorama": pano, "depth": depth}
@@ -162,8 +163,8 @@ def rig_rows(split: str, save: Path | None) -> list[dict]:
         found = bool(det is not None and det.found)
         mask = det.mask if found else np.zeros_like(label)
         floor_m = c.info.get("camera_height_estimated_after")
-        gb, share = floor_gap(rgb, c.depth, c.valid, floor_m, label)
-        ga, _ = floor_gap(c.rgb, c.depth, c.valid, floor_m, label)
+        gb, share = floor_gap(rgb, res.depth, res.valid, floor_m, label)  # ZInD layout depth: metric as given
+        ga, _ = floor_gap(c.rgb, res.depth, res.valid, floor_m, label)
         rows.append({"panorama": name, "split": part, "found": found, "kind": det.kind if det else None,
                      "reason": det.reason if det else "", "iou": iou(mask, label), "gap_before": gb, "gap_after": ga,
                      "ring_floor": share, "seconds": sec})
@@ -192,8 +193,9 @@ def control_rows() -> list[dict]:
         if pano.suffix.lower() not in (".png", ".jpg", ".jpeg"):
             continue
         from panoworld.depth import depth_map as dep
+        from panoworld.io.depth import read_panorama
 
-        rgb = dep.read_panorama(pano, [])
+        rgb = read_panorama(pano, [])
         rgb = dep.resize_panorama(rgb, dep.working_size(rgb.shape[0], 1024)[0])
         t0 = time.perf_counter()
         det = detect_rig(rgb)
