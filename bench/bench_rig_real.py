@@ -11,7 +11,7 @@ garage; labels in bench/rig_labels/zind_real.json, drawn by hand on a 90 deg dow
   CAP_DEG of the nadir and of the floor ring RING_DEG (20-35 deg) around it on the working panorama; the ring keeps
   only pixels on the floor plane by the scene's depth (camera height from the depth stage) and outside the label,
   so walls of a narrow room and the rig itself never stand in for the floor; `ring_floor` its share of the ring;
-- seconds: clean_depth (rig detection, removal, pole completion) on this machine.
+- seconds: clean_depth up to the rig (metric scale, rig detection and removal; completion is left out) on this machine.
 
 Controls with no rig (must stay byte-identical: panorama and depth): the Realsee pair (real LiDAR and synthesis) and
 the RGB-only samples (colour alone, no depth). Split: east + garage = dev (where the method was tuned), west = test
@@ -107,7 +107,8 @@ def stage_input(pano: Path, depth: Path | None):
 
 
 def clean(rgb: np.ndarray, res, params, source: Path):
-    """clean_depth with the default rig backend, as the depth stage calls it: (Cleaned, seconds)."""
+    """clean_depth with the default rig backend, as the depth stage calls it, less the completion of poles and
+    dropouts (after the rig's removal: the panorama is the same): (Cleaned, seconds)."""
     from panoworld.core import registry as backends
     from panoworld.depth.clean import clean_depth
 
@@ -116,7 +117,7 @@ def clean(rgb: np.ndarray, res, params, source: Path):
     c = clean_depth(rgb, res.depth, res.valid, relative=res.relative, rescale=params.rescale,
                     camera_height=params.camera_height, min_depth_m=params.min_depth_m,
                     detect_rig=lambda *a: rig_backend(*a, params), rig_mask=None,
-                    complete_poles=params.complete_poles, complete_dropouts=params.complete_dropouts, source=source)
+                    complete_poles=False, complete_dropouts=False, source=source)
     return c, time.perf_counter() - t0
 
 
