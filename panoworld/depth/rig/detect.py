@@ -11,6 +11,7 @@ from scipy import ndimage
 
 from panoworld.core.conventions import erp_dirs, erp_pixel_solid_angle
 from panoworld.core.errors import InputError
+from panoworld.depth.rig.base import BASE_BG_DEG, attached_legs, base_component, base_stats, grabcut_nadir, is_base
 from panoworld.depth.rig.face import (
     FACE_FOV_DEG,
     erp_mask_to_face,
@@ -67,7 +68,8 @@ class RigDetection:
     reason: str
     """One line: what was found and why it counts as a rig, or why nothing was removed."""
     kind: str | None = None
-    """legs (tripod legs around a hub), mount (a small solid blob), mask (a uniform black nadir patch), user."""
+    """legs (tripod legs around a hub), mount (a small solid blob), mask (a uniform black nadir patch), base (a camera
+    base segmented by GrabCut, panoworld.depth.rig.base), user."""
     mask: np.ndarray | None = None
     """(H, W) bool ERP pixels of the rig itself (inpainted)."""
     shadow: np.ndarray | None = None
@@ -87,12 +89,48 @@ def detect_rig(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndarr
     than MOUNT_MAX_DEG that is not a uniform black mask, or a horizontal surface above the floor (a table).
 
     Floor colours are first taken broadly (a blotchy concrete floor stays floor); when that finds no rig, once more
-    narrowly (a grey mount on a brown floor in shade); the shape tests decide either way."""
+    narrowly (a grey mount on a brown floor in shade); the shape tests decide either way. When that finds no rig or
+    only a mount, a solid camera base is looked for (detect_base): found, it replaces the mount."""
     first = _detect_once(rgb, depth, valid, floor_m, FLOOR_SIGMAS[0])
-    if first.found:
+    if not first.found:
+        second = _detect_once(rgb, depth, valid, floor_m, FLOOR_SIGMAS[1])
+        first = second if second.found else first
+    if first.found and first.kind != "mount":
         return first
-    second = _detect_once(rgb, depth, valid, floor_m, FLOOR_SIGMAS[1])
-    return second if second.found else first
+    base = detect_base(rgb, depth, valid, floor_m)  # a mount's blob is taken whole with its legs, the rest refused
+    if base.found:
+        return base
+    first.stats["base"] = base.reason
+    return first
+
+
+def detect_base(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndarray | None = None,
+                floor_m: float | None = None) -> RigDetection:
+    """A solid camera base at the nadir (panoworld.depth.rig.base): GrabCut on the downward face, compared with the floor
+    that is there (on the floor plane by depth, BASE_BG_DEG-42 deg from the nadir: in a narrow hallway nearer than the
+    floor ring); a region that is no compact, centred body unlike that floor and closed by it is kept."""
+    H, W = rgb.shape[:2]
+    nf = nadir_face(rgb, depth, valid, floor_m)
+    ref = nf.on_floor & (nf.theta >= BASE_BG_DEG) & (nf.theta < RING_DEG[1])
+    share = float(ref.sum() / max(((nf.theta >= BASE_BG_DEG) & (nf.theta < RING_DEG[1])).sum(), 1))
+    if share < 0.15:
+        return RigDetection(False, f"no floor {BASE_BG_DEG:.0f}-{RING_DEG[1]:.0f} deg from the nadir to compare a "
+                            "camera base with", stats={"base_floor_share": share})
+    comp = base_component(grabcut_nadir(nf.face, nf.theta), nf.theta)
+    if comp is None:
+        return RigDetection(False, "no region at the nadir stands out from the floor")
+    unlike = unlike_floor(nf.face, ref, nf.view)
+    stats = base_stats(comp, nf.theta, unlike)
+    why = is_base(stats)
+    if why is None and (refusal := seen_object(nf, comp, floor_m)) is not None:
+        why = refusal.reason
+    if why is not None:
+        return RigDetection(False, f"the region at the nadir is no camera base: {why}, kept", stats=stats)
+    legs = attached_legs(comp, unlike, nf.theta, nf.view.focal)
+    stats["leg_pixels"] = int(legs.sum())
+    mask = face_to_erp_mask(cv2.dilate((comp | legs).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0, nf.view, H, W)
+    return RigDetection(True, f"a solid camera base centred on the nadir, {stats['cap_deg']:.1f} deg, unlike the floor "
+                        "around it", "base", mask, np.zeros_like(mask), stats, source=floor_source(nf.face, nf))
 
 
 @dataclass
@@ -365,13 +403,7 @@ def _nadir_component(face: np.ndarray, theta: np.ndarray, ring_floor: np.ndarray
     """Face pixels within CAP_DEG, connected to the nadir, whose colour the floor ring (almost) never shows or that
     are far darker than the floor around them; None when the nadir itself looks like floor. not_rig (far, on_floor):
     leave out far pixels and the on-floor ones narrower than FLOOR_LINE_DEG (_not_rig_by_depth)."""
-    lab = cv2.cvtColor(cv2.medianBlur(face, 3), cv2.COLOR_RGB2LAB)
-    floor_like = floor_coloured(lab, ring_floor, sigma)
-    # Much darker than the floor around it: thin dark legs on a floor whose grout lines are dark too.
-    win = 2 * max(5, view.size // 24) + 1
-    local = cv2.medianBlur(lab[..., 0], min(win, 255)).astype(np.float32)
-    floor_l = float(np.median(lab[..., 0][ring_floor]))
-    anom = (theta < CAP_DEG) & (~floor_like | (lab[..., 0] < 0.6 * np.maximum(local, floor_l)))
+    anom = (theta < CAP_DEG) & unlike_floor(face, ring_floor, view, sigma)
     if not_rig is not None:
         far, on = not_rig
         k = 2 * int(np.ceil(0.5 * view.focal * np.deg2rad(FLOOR_LINE_DEG))) + 1
@@ -390,6 +422,17 @@ def _nadir_component(face: np.ndarray, theta: np.ndarray, ring_floor: np.ndarray
         touch = np.unique(labels[(cv2.dilate(comp.astype(np.uint8), near) > 0) & (labels > 0)])
         comp = np.isin(labels, touch)
     return comp
+
+
+def unlike_floor(face: np.ndarray, ring_floor: np.ndarray, view: PerspectiveView, sigma: float = 1.0) -> np.ndarray:
+    """Face pixels (size, size) bool whose colour the floor pixels ring_floor (almost) never show, or far darker
+    (< 0.6x) than the floor around them (thin dark legs on a floor whose grout lines are dark too)."""
+    lab = cv2.cvtColor(cv2.medianBlur(face, 3), cv2.COLOR_RGB2LAB)
+    floor_like = floor_coloured(lab, ring_floor, sigma)
+    win = 2 * max(5, view.size // 24) + 1
+    local = cv2.medianBlur(lab[..., 0], min(win, 255)).astype(np.float32)
+    floor_l = float(np.median(lab[..., 0][ring_floor]))
+    return ~floor_like | (lab[..., 0] < 0.6 * np.maximum(local, floor_l))
 
 
 def read_user_mask(path: Path, H: int, W: int) -> np.ndarray:

@@ -1,0 +1,248 @@
+"""Capture-rig detection and removal on the shared real panoramas against hand-drawn rig labels.
+
+    python bench/bench_rig_real.py [--split dev|test|all] [--json F] [--save DIR]
+
+Runs what the depth stage runs at default settings (no flags): the panorama at the working size, the provided depth
+(ZInD layout depth), `clean_depth` with the default rig detector. Per panorama with a tripod (ZInD east, west and the
+garage; labels in bench/rig_labels/zind_real.json, drawn by hand on a 90 deg downward view):
+
+- iou: the detected rig mask against the label, solid-angle weighted on the ERP (0 when nothing was found);
+- gap before / after: |1 - cap / ring| of the mean luminance (Rec. 601 luma, solid-angle weighted) of the cap within
+  CAP_DEG of the nadir and of the floor ring RING_DEG (20-35 deg) around it on the working panorama; the ring keeps
+  only pixels on the floor plane by the scene's depth (camera height from the depth stage) and outside the label,
+  so walls of a narrow room and the rig itself never stand in for the floor; `ring_floor` its share of the ring;
+- seconds: clean_depth up to the rig (metric scale, rig detection and removal; completion is left out) on this machine.
+
+Controls with no rig (must stay byte-identical: panorama and depth): the Realsee pair (real LiDAR and synthesis) and
+the RGB-only samples (colour alone, no depth). Split: east + garage = dev (where the method was tuned), west = test
+(held out). --save DIR writes each panorama's nadir before/after with the detected mask's outline.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import cv2
+import numpy as np
+
+from panoworld.core.conventions import erp_pixel_solid_angle
+
+DATA = next((p / "shared" / "data" / "real" for p in REPO.parents if (p / "shared" / "data" / "real").is_dir()),
+            REPO.parent / "shared" / "data" / "real")
+"""The shared real captures: ../shared/data/real beside the repository (or beside a folder above it)."""
+LABELS = REPO / "bench" / "rig_labels" / "zind_real.json"
+CAP_DEG = 15.0
+RING_DEG = (20.0, 35.0)
+SPLIT = {"east": "dev", "garage": "dev", "west": "test"}
+
+
+def label_mask(entry: dict, view: dict, H: int, W: int) -> np.ndarray:
+    """A label (polygons and thick lines in the pixels of a downward view of fov_deg and size) -> (H, W) bool ERP."""
+    from panoworld.depth.rig.face import face_to_erp_mask, nadir_view
+    from panoworld.geometry.cube_views import PerspectiveView
+
+    size = int(view["size"])
+    m = np.zeros((size, size), np.uint8)
+    for p in entry.get("polygons", []):
+        cv2.fillPoly(m, [np.round(np.asarray(p, float) * 4).astype(np.int32)], 1, lineType=cv2.LINE_8, shift=2)
+    for x0, y0, x1, y1, w in entry.get("lines", []):
+        cv2.line(m, (round(x0), round(y0)), (round(x1), round(y1)), 1, max(1, round(w)))
+    pv = PerspectiveView(nadir_view(H).cam_from_view, float(view["fov_deg"]), size)
+    return face_to_erp_mask(m > 0, pv, H, W)
+
+
+def from_nadir(H: int, W: int) -> np.ndarray:
+    return np.broadcast_to((180.0 - (np.arange(H) + 0.5) / H * 180.0)[:, None], (H, W))
+
+
+def floor_gap(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, floor_m: float | None,
+              exclude: np.ndarray) -> tuple[float, float]:
+    """(|1 - cap / ring| of the mean luma, the ring's floor share): cap within CAP_DEG of the nadir, ring RING_DEG
+    on the floor plane by depth (within 5 % of floor_m below the camera) and outside exclude."""
+    H, W = rgb.shape[:2]
+    t = from_nadir(H, W)
+    lum = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float64)
+    w = np.broadcast_to(erp_pixel_solid_angle(H, W), (H, W))
+    ring = (t >= RING_DEG[0]) & (t < RING_DEG[1])
+    floor = ring & ~exclude
+    if floor_m:
+        drop = depth * np.cos(np.deg2rad(t))
+        floor &= valid & (np.abs(drop - floor_m) < 0.05 * floor_m)
+    share = float(w[floor].sum() / w[ring].sum())
+    cap = t < CAP_DEG
+    lc = float((lum * w)[cap].sum() / w[cap].sum())
+    lr = float((lum * w)[floor].sum() / max(w[floor].sum(), 1e-12))
+    return abs(1.0 - lc / max(lr, 1e-6)), share
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    H, W = a.shape
+    w = np.broadcast_to(erp_pixel_solid_angle(H, W), (H, W))
+    return float(w[a & b].sum() / max(w[a | b].sum(), 1e-12))
+
+
+def stage_input(pano: Path, depth: Path | None):
+    """(rgb at the working size, Job result) as the depth stage makes them at default settings."""
+    from panoworld.core import registry as backends
+    from panoworld.depth import depth_map as dep
+    from panoworld.depth.backends import Job
+    from panoworld.io.depth import read_panorama
+    from stages.depth import NAME, Params
+
+    params = Params()
+    rgb = read_panorama(pano, [])
+    H, _ = dep.working_size(rgb.shape[0], params.max_height)
+    rgb = dep.resize_panorama(rgb, H)
+    inputs = {"panorama": pano, "depth": depth}
+    backend = backends.pick(NAME, params.backend, inputs)
+    res = backend.impl(Job(rgb=rgb, depth_file=depth, panorama_file=pano, options=backend.options_of(params), notes=[]))
+    return rgb, res, params
+
+
+def clean(rgb: np.ndarray, res, params, source: Path):
+    """clean_depth with the default rig backend, as the depth stage calls it, less the completion of poles and
+    dropouts (after the rig's removal: the panorama is the same): (Cleaned, seconds)."""
+    from panoworld.core import registry as backends
+    from panoworld.depth.clean import clean_depth
+
+    rig_backend = backends.get("rig", params.rig_detector).impl
+    t0 = time.perf_counter()
+    c = clean_depth(rgb, res.depth, res.valid, relative=res.relative, rescale=params.rescale,
+                    camera_height=params.camera_height, min_depth_m=params.min_depth_m,
+                    detect_rig=lambda *a: rig_backend(*a, params), rig_mask=None,
+                    complete_poles=False, complete_dropouts=False, source=source)
+    return c, time.perf_counter() - t0
+
+
+def rig_panoramas() -> list[tuple[str, Path, Path]]:
+    out = []
+    for side in ("east", "west"):
+        for p in sorted((DATA / "zind_home" / side / "panoramas").glob("*.jpg")):
+            out.append((f"{side}/{p.stem}", p, DATA / "zind_home" / side / "depths" / f"{p.stem}.npy"))
+    g = DATA / "zind_garage"
+    if (g / "panorama.jpg").is_file():
+        out.append(("garage/panorama", g / "panorama.jpg", g / "layout_depth_m.npy"))
+    return out
+
+
+def save_picture(out: Path, name: str, before: np.ndarray, after: np.ndarray, det_mask, label: np.ndarray) -> None:
+    from panoworld.depth.rig.face import nadir_crop
+
+    def outline(img, m, colour):
+        if m is None or not m.any():
+            return img
+        face = nadir_crop(np.repeat(m.astype(np.uint8)[..., None] * 255, 3, 2), 384)[..., 0] > 127
+        cnt, _ = cv2.findContours(face.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        return cv2.drawContours(img.copy(), cnt, -1, colour, 1)
+
+    a = outline(nadir_crop(before, 384), label, (0, 255, 0))
+    a = outline(a, det_mask, (255, 0, 255))
+    b = nadir_crop(after, 384)
+    out.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(out / f"{name.replace('/', '_')}.png"), cv2.cvtColor(np.concatenate([a, b], 1), cv2.COLOR_RGB2BGR))
+
+
+def rig_rows(split: str, save: Path | None) -> list[dict]:
+    doc = json.loads(LABELS.read_text())
+    rows = []
+    for name, pano, depth in rig_panoramas():
+        part = SPLIT[name.split("/")[0]]
+        if split != "all" and part != split:
+            continue
+        rgb, res, params = stage_input(pano, depth)
+        c, sec = clean(rgb, res, params, depth)
+        H, W = rgb.shape[:2]
+        label = label_mask(doc["labels"][name], doc["view"], H, W)
+        det = c.rig
+        found = bool(det is not None and det.found)
+        mask = det.mask if found else np.zeros_like(label)
+        floor_m = c.info.get("camera_height_estimated_after")
+        gb, share = floor_gap(rgb, res.depth, res.valid, floor_m, label)  # ZInD layout depth: metric as given
+        ga, _ = floor_gap(c.rgb, res.depth, res.valid, floor_m, label)
+        rows.append({"panorama": name, "split": part, "found": found, "kind": det.kind if det else None,
+                     "reason": det.reason if det else "", "iou": iou(mask, label), "gap_before": gb, "gap_after": ga,
+                     "ring_floor": share, "seconds": sec})
+        if save is not None:
+            save_picture(save, name, rgb, c.rgb, mask, label)
+        print(f"  {name}: found={found} iou={rows[-1]['iou']:.3f} gap {gb:.1%} -> {ga:.1%}  ({sec:.1f} s)", flush=True)
+    return rows
+
+
+def control_rows() -> list[dict]:
+    """The shared captures with no rig: panorama and depth must come out byte-identical."""
+    from panoworld.depth.rig.detect import detect_rig, remove_rig
+
+    rows = []
+    real = DATA / "realsee3d_assets"
+    for name, pano, dep_file in (("realsee_real", real / "panoImage_real.jpg", real / "depth_image.png"),
+                                 ("realsee_synthesis", real / "panoImage_synthesis.jpg", real / "depth_image_synthesis.png")):
+        if not pano.is_file():
+            continue
+        rgb, res, params = stage_input(pano, dep_file)
+        c, sec = clean(rgb, res, params, dep_file)
+        found = bool(c.rig is not None and c.rig.found)
+        rows.append({"control": name, "found": found, "reason": c.rig.reason if c.rig else "",
+                     "identical": bool(np.array_equal(c.rgb, rgb)), "seconds": sec})
+    for pano in sorted((DATA / "rgb_only").glob("*")):
+        if pano.suffix.lower() not in (".png", ".jpg", ".jpeg"):
+            continue
+        from panoworld.depth import depth_map as dep
+        from panoworld.io.depth import read_panorama
+
+        rgb = read_panorama(pano, [])
+        rgb = dep.resize_panorama(rgb, dep.working_size(rgb.shape[0], 1024)[0])
+        t0 = time.perf_counter()
+        det = detect_rig(rgb)
+        out = remove_rig(rgb, det) if det.found else rgb
+        rows.append({"control": pano.name, "found": det.found, "reason": det.reason,
+                     "identical": bool(np.array_equal(out, rgb)), "seconds": time.perf_counter() - t0})
+    return rows
+
+
+def table(rows: list[dict], controls: list[dict]) -> str:
+    lines = ["| panorama | split | found | IoU | gap before | gap after | ring floor | s |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['panorama']} | {r['split']} | {'yes' if r['found'] else 'no'} | {r['iou']:.3f} | "
+                     f"{r['gap_before']:.1%} | {r['gap_after']:.1%} | {r['ring_floor']:.2f} | {r['seconds']:.1f} |")
+    for part in ("dev", "test"):
+        sub = [r for r in rows if r["split"] == part]
+        if sub:
+            ok = sum(r["iou"] >= 0.7 and r["gap_after"] <= 0.15 for r in sub)
+            lines.append(f"| **{part}** ({len(sub)}) | | {sum(r['found'] for r in sub)} | "
+                         f"{np.mean([r['iou'] for r in sub]):.3f} (min {min(r['iou'] for r in sub):.3f}) | "
+                         f"{np.mean([r['gap_before'] for r in sub]):.1%} | {np.mean([r['gap_after'] for r in sub]):.1%} "
+                         f"(max {max(r['gap_after'] for r in sub):.1%}) | | {ok}/{len(sub)} meet IoU >= 0.7 and gap <= 15 % |")
+    lines += ["", "| control | rig found | byte-identical | s |", "|---|---|---|---|"]
+    for c in controls:
+        lines.append(f"| {c['control']} | {'yes' if c['found'] else 'no'} | {'yes' if c['identical'] else 'NO'} | "
+                     f"{c['seconds']:.1f} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--split", choices=("dev", "test", "all"), default="all")
+    ap.add_argument("--json", type=Path, default=None, help="write the rows as JSON to this file")
+    ap.add_argument("--save", type=Path, default=None, help="folder for nadir before/after pictures")
+    ap.add_argument("--no-controls", action="store_true")
+    args = ap.parse_args(argv)
+    if not (DATA / "zind_home").is_dir():
+        print(f"{DATA / 'zind_home'}: the shared real panoramas are not there; nothing to measure", file=sys.stderr)
+        return 2
+    rows = rig_rows(args.split, args.save)
+    controls = [] if args.no_controls else control_rows()
+    print(table(rows, controls))
+    if args.json:
+        args.json.write_text(json.dumps({"rig": rows, "controls": controls}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,113 @@
+"""A solid camera base at the nadir (a camera body or stitched base with its tripod's legs), segmented by GrabCut on the downward face (docs/rig.md)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+BASE_FG_DEG = 10.0
+"""GrabCut starts with everything within this angle of the nadir as probably the rig."""
+BASE_BG_DEG = 27.0
+"""... and everything beyond this angle as surely not the rig (a tripod's feet reach 20-25 deg)."""
+BASE_MAX_DEG = 24.0
+"""The base (its 98th-percentile angle from the nadir) lies within this angle; a larger region is a seen object."""
+LEG_MAX_DEG = 2.0
+"""Parts of the rig narrower than this that touch the base are its legs (attached_legs)."""
+LEG_MIN_ASPECT = 3.0
+"""... and at least this elongated (attached_legs)."""
+BASE_MAX_OFFSET = 0.4
+"""Its centroid lies within this share of its mean radius of the nadir (the camera stands above it)."""
+BASE_MIN_SOLIDITY = 0.6
+"""Its area over its convex hull's (a compact body; legs lower it, floor patches scatter it)."""
+BASE_MIN_UNLIKE = 0.7
+"""At least this share of its pixels has a colour the floor around it (almost) never shows, or is far darker."""
+
+
+def grabcut_nadir(face: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """GrabCut of the downward face (size, size, 3) uint8 around the nadir: probable rig within BASE_FG_DEG, probable
+    floor out to BASE_BG_DEG, sure floor beyond; (size, size) bool foreground. Runs on the square holding 30 deg."""
+    size = face.shape[0]
+    c = size // 2
+    r = min(c, int(np.count_nonzero(theta[c, c:] < 30.0)) + 2)
+    sl = (slice(c - r, c + r), slice(c - r, c + r))
+    t = theta[sl]
+    m = np.full(t.shape, cv2.GC_PR_BGD, np.uint8)
+    m[t < BASE_FG_DEG] = cv2.GC_PR_FGD
+    m[t >= BASE_BG_DEG] = cv2.GC_BGD
+    bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
+    cv2.setRNGSeed(0)
+    cv2.grabCut(np.ascontiguousarray(face[sl]), m, None, bgd, fgd, 5, cv2.GC_INIT_WITH_MASK)
+    out = np.zeros(theta.shape, bool)
+    out[sl] = (m == cv2.GC_FGD) | (m == cv2.GC_PR_FGD)
+    return out
+
+
+def fill_holes(mask: np.ndarray) -> np.ndarray:
+    """mask (S, S) bool with its enclosed holes filled."""
+    inv = np.pad(~mask, 1, constant_values=True).astype(np.uint8)
+    cv2.floodFill(inv, None, (0, 0), 0)
+    return mask | (inv[1:-1, 1:-1] > 0)
+
+
+def base_component(fg: np.ndarray, theta: np.ndarray) -> np.ndarray | None:
+    """The foreground's components reaching within 4 deg of the nadir, holes filled; None when none does."""
+    _, labels = cv2.connectedComponents(fg.astype(np.uint8), connectivity=8)
+    hit = np.unique(labels[(theta < 4.0) & (labels > 0)])
+    return fill_holes(np.isin(labels, hit)) if len(hit) else None
+
+
+def base_stats(comp: np.ndarray, theta: np.ndarray, unlike: np.ndarray) -> dict:
+    """Shape and contrast of a nadir region comp (S, S) bool: extent (98th-percentile deg), centroid offset (share of
+    its mean radius), solidity and its share of pixels unlike the floor (unlike, (S, S) bool)."""
+    size = comp.shape[0]
+    yy, xx = np.nonzero(comp)
+    c = 0.5 * size
+    r = np.hypot(xx + 0.5 - c, yy + 0.5 - c)
+    hull = cv2.convexHull(np.stack([xx, yy], 1).astype(np.int32))
+    return {"cap_deg": float(np.percentile(theta[comp], 98)),
+            "centroid_offset": float(np.hypot(xx.mean() + 0.5 - c, yy.mean() + 0.5 - c) / (r.mean() + 1e-9)),
+            "solidity": float(comp.sum() / max(cv2.contourArea(hull), 1.0)),
+            "unlike_floor": float(unlike[comp].mean()),
+            "face_pixels": int(comp.sum())}
+
+
+def is_base(st: dict) -> str | None:
+    """Why the region measured by base_stats is not a camera base, or None when it is."""
+    if st["cap_deg"] > BASE_MAX_DEG:
+        return f"reaches {st['cap_deg']:.1f} deg (> {BASE_MAX_DEG:.0f})"
+    if st["centroid_offset"] > BASE_MAX_OFFSET:
+        return f"off the nadir (centroid offset {st['centroid_offset']:.2f})"
+    if st["solidity"] < BASE_MIN_SOLIDITY:
+        return f"not compact (solidity {st['solidity']:.2f})"
+    if st["unlike_floor"] < BASE_MIN_UNLIKE:
+        return f"mostly floor-coloured ({st['unlike_floor']:.0%} unlike the floor)"
+    return None
+
+
+def attached_legs(comp: np.ndarray, unlike: np.ndarray, theta: np.ndarray, focal: float) -> np.ndarray:
+    """Thin parts (narrower than LEG_MAX_DEG) of the pixels unlike the floor (unlike, (S, S) bool) that touch the base
+    comp and end before BASE_BG_DEG: the tripod's legs and the mount's thin pieces; a line that goes on (a door
+    trim, a long cast shadow) is left. (S, S) bool."""
+    k = 2 * int(round(0.5 * focal * np.deg2rad(LEG_MAX_DEG))) + 1
+    ell = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    u = unlike & (theta < BASE_BG_DEG)
+    thin = u & ~(cv2.morphologyEx(u.astype(np.uint8), cv2.MORPH_OPEN, ell) > 0) & ~comp
+    near = cv2.dilate(comp.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k + 4, k + 4))) > 0
+    n, labels = cv2.connectedComponents(thin.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return np.zeros_like(comp)
+    touching = np.unique(labels[near & thin])
+    far = np.unique(labels[thin & (theta >= BASE_BG_DEG - 1.0)])
+    keep = [i for i in np.setdiff1d(touching[touching > 0], far) if _elongated(labels == i)]
+    return np.isin(labels, keep)
+
+
+def _elongated(part: np.ndarray) -> bool:
+    """Whether a part (S, S) bool is a line: its minimum-area rectangle at least LEG_MIN_ASPECT times as long as wide
+    and the part filling at least half of it (a leg, not a ragged patch of carpet texture)."""
+    pts = np.argwhere(part)[:, ::-1].astype(np.float32)
+    if len(pts) < 5:
+        return False
+    (_, _), (w, h), _ = cv2.minAreaRect(pts)
+    lo, hi = sorted((max(w, 1.0), max(h, 1.0)))
+    return hi >= LEG_MIN_ASPECT * lo and len(pts) >= 0.5 * lo * hi

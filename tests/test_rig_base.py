@@ -1,0 +1,129 @@
+"""A solid camera base at the nadir (a camera body with its tripod's legs, as real stitched captures show it), in an
+open room and in a narrow hallway, against the rig-free synthetic render."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from panoworld.core.conventions import erp_dirs, erp_pixel_solid_angle
+from panoworld.depth.rig import detect as rig
+from panoworld.depth.rig.base import BASE_BG_DEG, attached_legs
+from panoworld.depth.rig.face import face_polar, face_to_erp_mask, nadir_view
+from panoworld.tools.synth import generate_scene
+
+SEED = 8
+H = 384
+
+
+@pytest.fixture(scope="module")
+def room():
+    """(rgb, depth, camera height) of a rig-free synthetic room."""
+    scene = generate_scene(SEED, "ci-tiny")
+    rgb, depth = scene.render(scene.world_from_canonical, H, 2 * H)
+    return rgb, depth.astype(np.float32), scene.tracks[0].camera_height
+
+
+def hallway(rgb: np.ndarray, depth: np.ndarray, floor_m: float, half_width: float = 0.5):
+    """The room with two walls half_width beside the camera (light paint): every downward ray that meets a wall
+    before the floor sees the wall."""
+    d = erp_dirs(*depth.shape, np.float64)
+    down, x = d[..., 1], d[..., 0]
+    t_floor = np.where(down > 1e-6, floor_m / np.maximum(down, 1e-6), np.inf)
+    t_wall = np.where(np.abs(x) > 1e-6, half_width / np.maximum(np.abs(x), 1e-6), np.inf)
+    wall = (down > 0) & (t_wall < t_floor)
+    rgb, depth = rgb.copy(), depth.copy()
+    rgb[wall] = (206, 198, 184)
+    depth[wall] = t_wall[wall]
+    return rgb, depth
+
+
+def with_base(rgb: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """rgb with a dark camera body (a rounded box 13 x 9 deg about the nadir and a knob) on three thin legs reaching
+    21 deg, drawn on the downward face: (rgb, its ERP mask)."""
+    view = nadir_view(rgb.shape[0])
+    f, c = view.focal, view.size / 2
+    theta, phi = face_polar(view)
+    m = np.zeros((view.size, view.size), np.uint8)
+    hx, hy = f * np.tan(np.deg2rad(13)), f * np.tan(np.deg2rad(9))
+    box = cv2.boxPoints(((c, c), (2 * hx, 2 * hy), 4.0))
+    cv2.fillConvexPoly(m, np.round(box * 4).astype(np.int32), 1, shift=2)
+    cv2.rectangle(m, (int(c - 0.3 * hx), int(c - 1.3 * hy)), (int(c + 0.3 * hx), int(c - hy)), 1, -1)
+    r = f * np.tan(np.deg2rad(21))
+    for a in np.deg2rad([100.0, 220.0, 340.0]):
+        cv2.line(m, (int(c), int(c)), (int(c + r * np.cos(a)), int(c + r * np.sin(a))), 1, max(2, int(f * 0.012)))
+    mask = face_to_erp_mask(m > 0, view, *rgb.shape[:2])
+    out = rgb.copy()
+    noise = np.random.default_rng(seed).normal(0, 3, (int(mask.sum()), 3))
+    out[mask] = np.clip(np.array([38.0, 36.0, 42.0]) + noise, 0, 255).astype(np.uint8)
+    return out, mask
+
+
+def area_iou(a: np.ndarray, b: np.ndarray) -> float:
+    w = np.broadcast_to(erp_pixel_solid_angle(*a.shape), a.shape)
+    return float(w[a & b].sum() / w[a | b].sum())
+
+
+def cap_luminance(rgb: np.ndarray, deg: float = 15.0) -> float:
+    h, w = rgb.shape[:2]
+    r0 = int(h * (1 - deg / 180))
+    wt = np.broadcast_to(erp_pixel_solid_angle(h, w)[r0:], (h - r0, w))
+    return float((cv2.cvtColor(rgb[r0:], cv2.COLOR_RGB2GRAY) * wt).sum() / wt.sum())
+
+
+@pytest.mark.parametrize("narrow", [False, True], ids=["room", "hallway"])
+def test_camera_base_is_found_and_removed(room, narrow):
+    clean, depth, floor_m = room
+    if narrow:
+        clean, depth = hallway(clean, depth, floor_m)
+    rgb, truth = with_base(clean)
+    valid = np.isfinite(depth) & (depth > 0)
+    det = rig.detect_rig(rgb, depth, valid, floor_m)
+    assert det.found and det.kind == "base", det.reason
+    assert area_iou(det.mask, truth) >= 0.7, det.stats
+    out = rig.remove_rig(rgb, det)
+    assert np.array_equal(out[~det.mask], rgb[~det.mask])  # only the rig's pixels change
+    before = abs(1 - cap_luminance(rgb) / cap_luminance(clean))
+    after = abs(1 - cap_luminance(out) / cap_luminance(clean))
+    assert before > 0.3 and after <= 0.1, (before, after)
+
+
+@pytest.mark.parametrize("narrow", [False, True], ids=["room", "hallway"])
+def test_no_base_no_change(room, narrow):
+    """Without a rig, in the room and in the hallway whose walls are nearer than the floor ring, nothing is removed."""
+    rgb, depth, floor_m = room
+    if narrow:
+        rgb, depth = hallway(rgb, depth, floor_m)
+    valid = np.isfinite(depth) & (depth > 0)
+    assert not rig.detect_base(rgb, depth, valid, floor_m).found
+    out, d2, v2, info, det = rig.rig_step(rgb, depth, valid, floor_m)
+    assert not det.found and out is rgb and d2 is depth, det.reason
+
+
+def test_dark_rug_reaching_past_a_base_is_kept(room):
+    """A dark patch under the camera as large as a rug (30 deg) is no camera base."""
+    rgb, depth, floor_m = room
+    view = nadir_view(rgb.shape[0])
+    theta, _ = face_polar(view)
+    rug = face_to_erp_mask(theta < 32.0, view, *rgb.shape[:2])
+    dark = rgb.copy()
+    dark[rug] = (dark[rug] * 0.3).astype(np.uint8)
+    det = rig.detect_base(dark, depth, np.isfinite(depth) & (depth > 0), floor_m)
+    assert not det.found, det.reason
+
+
+def test_legs_touch_the_base_and_end_a_line_that_goes_on_does_not():
+    size, f = 301, 120.0
+    yy, xx = np.mgrid[:size, :size] + 0.5 - size / 2
+    theta = np.rad2deg(np.arctan(np.hypot(xx, yy) / f))
+    base = np.hypot(xx, yy) < 25
+    unlike = np.zeros((size, size), np.uint8)
+    c = size // 2
+    cv2.line(unlike, (c, c), (c + 45, c), 1, 2)  # a leg: ends at ~20 deg
+    cv2.line(unlike, (c, c), (c, size - 1), 1, 2)  # goes on past BASE_BG_DEG (a door trim)
+    blob = (np.hypot(xx + 32, yy + 10) < 9).astype(np.uint8)  # a ragged patch touching the base
+    legs = attached_legs(base, (unlike | blob).astype(bool) | base, theta, f)
+    assert legs[c, c + 35] and legs.sum() > 20
+    assert not legs[c + 60, c] and not legs[c + 40, c]
+    assert theta[legs].max() < BASE_BG_DEG
