@@ -14,7 +14,7 @@ from panoworld.choices import Rescale
 from panoworld.conventions import erp_dirs, erp_pixel_solid_angle, points_from_depth
 from panoworld.errors import InputError
 from panoworld.image_io import read_image
-from panoworld.limits import depth_plane, load_npy
+from panoworld.limits import check_image_size, depth_plane, exr_header, load_npy
 
 
 class DepthKind(enum.StrEnum):
@@ -96,6 +96,7 @@ def read_depth(path: Path, *, png_scale: float = 0.001) -> np.ndarray:
     if suffix == ".npy":
         depth = load_npy(path, "depth array", kinds="fiu")
     elif suffix == ".exr":
+        exr_header(path)
         depth = _read_exr(path)
     elif suffix == ".png":
         depth = read_image(path, cv2.IMREAD_UNCHANGED, what="depth PNG")
@@ -107,6 +108,7 @@ def read_depth(path: Path, *, png_scale: float = 0.001) -> np.ndarray:
     else:
         raise InputError(f"{path}: unsupported depth format {suffix!r}; give depth.npy, depth.exr or a 16-bit depth.png")
     depth = depth_plane(depth, path)
+    check_image_size(path, depth.shape[1], depth.shape[0], "depth")
     return np.asarray(depth, dtype=np.float32)
 
 

@@ -44,6 +44,7 @@ from panoworld.eval.report import (  # noqa: F401 - re-exported API
     target_report,
 )
 from panoworld.eval.scene import Evaluation
+from panoworld.io.safe_write import check_output_file, write_text_atomic
 
 evaluate = evaluate_scene
 """The name of evaluate_scene before dataset evaluation existed."""
@@ -83,6 +84,8 @@ def main(argv: list[str] | None = None) -> int:
     from panoworld.stage import params_from_dict
 
     args = build_parser().parse_args(argv)
+    if args.out:
+        check_output_file(args.out)
     values = {f.name: getattr(args, f"p_{f.name}") for f in dataclasses.fields(EvalParams)}
     try:
         params = params_from_dict(EvalParams, {k: v for k, v in values.items() if v is not None}, where="eval")
@@ -107,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     text = json.dumps(report, indent=2)
     if args.out:
-        args.out.write_text(text + "\n")
+        write_text_atomic(args.out, text + "\n")
     print(text if args.json else format_table(report))
     for stage in errors:
         print(f"error: stage {stage} could not be evaluated: {report['stages'][stage]['reason']}", file=sys.stderr)

@@ -22,6 +22,7 @@ from panoworld import artifacts as art
 from panoworld import precompute_clip as clip_mod
 from panoworld.errors import InputError
 from panoworld.io import write_json, write_jsonl
+from panoworld.io.safe_write import check_output_dir
 from panoworld.stage import (
     execute_stage,
     input_digest,
@@ -383,6 +384,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="print the summary as JSON")
     a = ap.parse_args(argv)
     try:
+        check_output_dir(a.out)
         if a.width is not None and a.width != 2 * a.height:
             raise InputError(f"--width {a.width} with --height {a.height}: ERP frames must be 2:1")
         strides = tuple(int(s) for s in a.strides.split(",") if s.strip())

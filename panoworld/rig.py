@@ -12,6 +12,7 @@ from scipy import ndimage
 from panoworld.conventions import erp_dirs, erp_pixel_solid_angle
 from panoworld.cube_views import PerspectiveView, render_view
 from panoworld.errors import InputError
+from panoworld.image_io import check_mask_file, read_image
 from panoworld.rig_face import (
     FACE_FOV_DEG,
     erp_mask_to_face,
@@ -401,9 +402,8 @@ def _nadir_component(face: np.ndarray, theta: np.ndarray, ring_floor: np.ndarray
 
 def read_user_mask(path: Path, H: int, W: int) -> np.ndarray:
     """A user rig mask (a 2:1 grayscale image, white = rig) -> (H, W) bool; InputError when not a 2:1 image."""
-    m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if m is None:
-        raise InputError(f"{path}: cannot read the rig mask; give a 2:1 grayscale PNG, white where the rig is")
+    check_mask_file(path)
+    m = read_image(path, cv2.IMREAD_GRAYSCALE, what="rig mask")
     if m.shape[1] != 2 * m.shape[0]:
         raise InputError(f"{path}: rig mask is {m.shape[1]}x{m.shape[0]} but must be 2:1 like the panorama")
     return cv2.resize(m, (W, H), interpolation=cv2.INTER_NEAREST) > 127

@@ -10,6 +10,7 @@ from pathlib import Path
 from panoworld.hub.fetch import Fetched, FetchError, fetch
 from panoworld.hub.registry import REGISTRY, WeightsEntry
 from panoworld.hub.resolve import HfId, WeightsNotFound, hub_cache_dir, resolve_hf, resolve_weights, weights_dir
+from panoworld.io.safe_write import check_output_dir
 
 
 def _cached_sizes() -> dict[str, int]:
@@ -106,6 +107,8 @@ def cmd_list(args) -> int:
 
 
 def cmd_fetch(args) -> int:
+    if args.to is not None:
+        check_output_dir(args.to)
     code = 0
     for name in args.names:
         try:

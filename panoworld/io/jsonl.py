@@ -6,9 +6,9 @@ import json
 from collections.abc import Iterable
 from pathlib import Path
 
-from panoworld.artifacts import write_text_atomic
 from panoworld.errors import InputError
 from panoworld.io.jsonio import to_jsonable
+from panoworld.io.safe_write import write_text_atomic
 
 
 def write_jsonl(path: Path | str, rows: Iterable[dict]) -> Path:

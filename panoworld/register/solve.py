@@ -1,5 +1,6 @@
-"""All panoramas of a home into one frame: pairwise estimates over every pair, a maximum-inlier spanning tree from
-the posed (or first) panoramas, and per-panorama quality figures; unconnected panoramas are reported, not placed."""
+"""All panoramas of a home into one frame: pairwise estimates over the candidate pairs (pair_select), a
+maximum-inlier spanning tree from the posed (or first) panoramas, and per-panorama quality figures; unconnected
+panoramas are reported, not placed."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import numpy as np
 from panoworld.conventions import invert_pose
 from panoworld.gaussians import resize_depth
 from panoworld.register.options import RegisterOptions
+from panoworld.register.pair_select import ALL_PAIRS_UP_TO, appearance_descriptor, candidate_pairs
 from panoworld.register.pairwise import Features, PairResult, erp_features, register_pair
 from panoworld.register.registration import Registration
 
@@ -37,15 +39,13 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     if need:
         small = {n: rgbd_at_height(rgbs[n], depths[n], o.height) for n in names}
         feats = {n: erp_features(*small[n], max_features=o.max_features) for n in names}
-        for a in range(k):
-            for b in range(a + 1, k):
-                if names[a] in given and names[b] in given:
-                    continue
-                pairs[a, b] = register_pair(feats[names[a]], feats[names[b]], small[names[a]][1], small[names[b]][1],
-                                            max_error_m=o.max_error_m, min_inliers=o.min_inliers,
-                                            refine_height=o.refine_height, refine_iterations=o.refine_iterations)
-                if progress:
-                    progress(names[a], names[b], pairs[a, b])
+        looks = {n: appearance_descriptor(small[n][0]) for n in names} if k > ALL_PAIRS_UP_TO else None
+        for a, b in candidate_pairs(names, looks, given=given):
+            pairs[a, b] = register_pair(feats[names[a]], feats[names[b]], small[names[a]][1], small[names[b]][1],
+                                        max_error_m=o.max_error_m, min_inliers=o.min_inliers,
+                                        refine_height=o.refine_height, refine_iterations=o.refine_iterations)
+            if progress:
+                progress(names[a], names[b], pairs[a, b])
 
     def accepted(p: PairResult) -> bool:
         return (p.i_from_j is not None and p.inliers >= o.min_inliers and p.consistency >= o.min_consistency

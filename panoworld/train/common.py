@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from panoworld.artifacts import write_text_atomic
 from panoworld.errors import InputError
+from panoworld.io.safe_write import write_text_atomic
 from panoworld.stage import params_from_dict, params_to_dict
 
 CONFIG = "config.yaml"

@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from panoworld.io.safe_write import check_output_dir
 from panoworld.stage import field_docs
 
 
@@ -39,6 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     from panoworld.train.video.trainer import VideoTrainer
 
     a = build_parser().parse_args(argv)
+    check_output_dir(a.out)
     try:
         cfg = resolve_config(VideoTrainConfig, PRESETS, a.preset, a.sets)
         summary = VideoTrainer(a.data, a.out, cfg, weights=a.weights, resume=a.resume, progress=not a.json).run()
