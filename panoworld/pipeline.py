@@ -270,6 +270,10 @@ def check_scene_inputs(root: Path, files: dict[str, Path | None]) -> None:
         raise InputError(f"{arts}: a dangling symbolic link; remove it (or point it at a directory)")
     if arts.exists() and not arts.is_dir():
         raise InputError(f"{arts}: exists but is not a directory; move it away, the runner keeps its artifacts there")
+    for sub in ("logs", VARIANTS_DIRNAME):
+        if (arts / sub).is_symlink() or ((arts / sub).exists() and not (arts / sub).is_dir()):
+            raise InputError(f"{arts / sub}: a file is where a folder must be; move it away (the runner keeps its "
+                             f"{sub} there)")
     if files.get("depth") is not None:
         check_depth_file(files["depth"])
     if files.get("rig_mask") is not None:

@@ -39,7 +39,7 @@ def check_output_file(path: Path | str) -> Path:
     path = Path(path)
     try:
         st = os.lstat(path)
-    except FileNotFoundError:
+    except (FileNotFoundError, NotADirectoryError):
         _check_parent(path)
         return path
     except OSError as e:
@@ -54,7 +54,7 @@ def check_output_dir(path: Path | str) -> Path:
     path = Path(path)
     try:
         st = os.lstat(path)
-    except FileNotFoundError:
+    except (FileNotFoundError, NotADirectoryError):
         _check_parent(path)
         return path
     except OSError as e:

@@ -335,13 +335,13 @@ def main(argv: list[str] | None = None) -> int:
     if not (args.scene / ARTIFACTS).is_dir():
         print(f"error: {args.scene}: no artifacts/ directory (run `python runner.py run {args.scene}` first)", file=sys.stderr)
         return 2
+    params = ViewerParams(host=args.host, port=args.port, mesh_rows=args.mesh_rows, max_splats=args.max_splats)
+    check_bind(params.host, params.port)
     try:
         import viser  # noqa: F401
     except ImportError:
         print("error: the viewer needs viser: pip install -e .", file=sys.stderr)
         return 2
-    params = ViewerParams(host=args.host, port=args.port, mesh_rows=args.mesh_rows, max_splats=args.max_splats)
-    check_bind(params.host, params.port)
     try:
         viewer = SceneViewer(args.scene, params)
     except OSError as e:
