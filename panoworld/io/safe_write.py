@@ -34,8 +34,7 @@ def _check_parent(path: Path) -> None:
             return
 
 
-def check_output_file(path: Path | str) -> Path:
-    """path, when it names nothing yet or a regular file (not a symbolic link); OutputPathError (exit 2) otherwise."""
+def _check_output(path: Path | str, want, noun: str) -> Path:
     path = Path(path)
     try:
         st = os.lstat(path)
@@ -44,24 +43,19 @@ def check_output_file(path: Path | str) -> Path:
         return path
     except OSError as e:
         raise OutputPathError(f"{path}: cannot be written ({e.strerror}); give another output path") from None
-    if not stat.S_ISREG(st.st_mode):
-        raise OutputPathError(f"{path}: is {_kind(st.st_mode)}, not a regular file; give the path of a file to write")
+    if not want(st.st_mode):
+        raise OutputPathError(f"{path}: is {_kind(st.st_mode)}, not {noun}; give the path of {noun} to write")
     return path
+
+
+def check_output_file(path: Path | str) -> Path:
+    """path, when it names nothing yet or a regular file (not a symbolic link); OutputPathError (exit 2) otherwise."""
+    return _check_output(path, stat.S_ISREG, "a regular file")
 
 
 def check_output_dir(path: Path | str) -> Path:
     """path, when it names nothing yet or a directory (not a symbolic link); OutputPathError (exit 2) otherwise."""
-    path = Path(path)
-    try:
-        st = os.lstat(path)
-    except (FileNotFoundError, NotADirectoryError):
-        _check_parent(path)
-        return path
-    except OSError as e:
-        raise OutputPathError(f"{path}: cannot be used ({e.strerror}); give another output directory") from None
-    if not stat.S_ISDIR(st.st_mode):
-        raise OutputPathError(f"{path}: is {_kind(st.st_mode)}, not a directory; give a directory to write into")
-    return path
+    return _check_output(path, stat.S_ISDIR, "a directory")
 
 
 @contextlib.contextmanager
