@@ -1,4 +1,4 @@
-"""Benchmark of multi-panorama homes (issue #27): synthetic homes of >= 3 rooms with 2, 4 and 8 panoramas ->
+"""Benchmark of multi-panorama homes: synthetic homes of >= 3 rooms with 2, 4 and 8 panoramas ->
 registration error against ground truth (translation cm, rotation deg), registered fraction, time and peak memory,
 and whether one NavMesh over the fused mesh holds every registered capture point. With --pipeline: the whole
 `runner.py run` on each home (wall and CPU seconds, peak memory, NavMesh, Gaussian render at every capture pose)."""

@@ -101,8 +101,7 @@ def print_fidelity(f: dict) -> None:
 
 def reference_loop_s() -> float:
     """Seconds of a pure-Python 20M-step sum in a function: this machine's single-core speed, to compare timings
-    across machines (0.84-1.10 s in the thirteenth #28 pass's runs; the "20 M-step loop" figures of earlier passes ran
-    it at module level, about 2.5x slower: 2.06 s in the twelfth, 2.72-2.85 s in the thirteenth)."""
+    across machines (the same loop at module level runs about 2.5x slower)."""
     t = time.perf_counter()
     s = 0
     for i in range(20_000_000):

@@ -3,8 +3,8 @@
     python bench/bench_png.py VIDEO_DIR [--frames 10]
 
 VIDEO_DIR: a video artifact (artifacts/video). Every setting is checked lossless (decoded == the input); `encode_png`
-is the one the video writer uses; `level 1, adaptive` is libpng's per-row trial of all five filters (the writer's
-setting before the #28 speed pass).
+is the one the video writer uses; `level 1, adaptive` is libpng's per-row trial of all five filters, for
+comparison.
 """
 
 from __future__ import annotations

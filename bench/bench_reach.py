@@ -5,7 +5,7 @@
 SCENE: a scene directory run to `navmesh` at least (runner.py run SCENE --until navmesh). Each variant plans the
 trajectory with those TrajectoryParams overrides (comma-separated KEY=VALUE; "" = the defaults) and scores the
 planned poses with `panoworld.eval.roam.trajectory_reach`: per sector the farthest pose against the distance walkable
-from the capture point straight along the sector's centre (issue 28's target: min fraction >= 0.7).
+from the capture point straight along the sector's centre (target: min fraction >= 0.7).
 """
 
 from __future__ import annotations

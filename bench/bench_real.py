@@ -9,7 +9,7 @@ synthetic failure classes of panoworld.synth.failure_cases at 256x512, and an 81
 scene upsampled: checks the depth stage's resolution policy keeps every stage under 8 GiB). Prints per scene:
 stages ok, seconds, peak MB (largest stage), NavMesh area, start-off-NavMesh distance, exempt poses, min
 clearance (against the scene mesh), sectors covered/reachable, the Gaussians' context PSNR; then what was decided
-for no room to move, depth outliers and a start off the NavMesh (issue #24); then the nadir table:
+for no room to move, depth outliers and a start off the NavMesh; then the nadir table:
 capture rig found and removed (kind, cap, sphere share), the nadir-cap vs floor-ring luminance gap before/after
 and the share of pixels completed from floor/ceiling planes, for these scenes, ../shared/data/real/zind_garage
 and (rig detection on colour alone) the RGB-only panoramas of ../shared/data/real/rgb_only.
@@ -128,7 +128,7 @@ def measure(scene: Path, until: str) -> dict:
 
 
 def hostile_decisions(scene: Path) -> dict:
-    """What the pipeline decided for the issue #24 classes (closet, depth outliers, a start off the NavMesh)."""
+    """What the pipeline decided for the hostile-input classes (closet, depth outliers, a start off the NavMesh)."""
     dep, nav, traj = (stage_info(scene, s) for s in ("depth", "navmesh", "trajectory"))
     out = dep.get("outliers") or {}
     nr = nav.get("no_room") or {}
@@ -146,7 +146,7 @@ def hostile_decisions(scene: Path) -> dict:
 
 
 def print_hostile_table(scenes: list[Path]) -> None:
-    """The issue #24 table: per scene, what was decided for no room to move, depth outliers and the approach."""
+    """The hostile-input table: per scene, what was decided for no room to move, depth outliers and the approach."""
     head = ("scene", "no room to move: decision", "rotation only", "depth outliers masked", "max depth before -> after",
             "NavMesh m2", "start off m", "approach steps / frames")
     print("\n| " + " | ".join(head) + " |\n|" + "---|" * len(head))

@@ -33,8 +33,8 @@ from pathlib import Path
 import numpy as np
 
 GROUT_SEEDS = "6,16,28,30,39,43,45"
-"""Default-preset seeds (of 1-60 less #28's test seeds) whose tile grout at the nadir main took for tripod legs at
-720 rows before the width test (MIN_LEG_WIDTH_DEG was tuned between these and development tripods 100-115)."""
+"""Rig-free default-preset seeds (of 1-60, the roam protocol's test seeds left out) whose tile grout at the nadir
+looks most like tripod legs at 720 rows: controls, nothing may be found there."""
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -288,8 +288,8 @@ def floor_under_camera(scene) -> str:
 
 
 def grout_controls(seeds: list[int], height: int, cache: Path | None = None) -> list[dict]:
-    """The rig-free default-preset scenes at height rows whose floor seams (tile grout, plank gaps) at the nadir main
-    before #29's width test took for tripod legs: nothing may be found, the panorama must stay byte-identical."""
+    """The rig-free default-preset scenes at height rows whose floor seams (tile grout, plank gaps) at the nadir look
+    like thin arms from a hub: nothing may be found, the panorama must stay byte-identical."""
     rows = []
     for seed in seeds:
         scene = generate_scene(seed, "default")

@@ -1,9 +1,9 @@
 """Prints the roam protocol on held-out synthetic scenes at the default preset: Gaussian renders at random NavMesh poses
 per distance bucket (ERP 256x512 and a 90-degree pinhole) vs the anti-aliased ground truth, the planned trajectory's
-reach, and the pipeline's wall time and peak memory (docs/evaluation.md, "Roam protocol").
+reach, and the pipeline's wall time and peak memory (docs/evaluation.md, "Roam").
 
 TEST seeds (report on these, never tune on them): 0 (the `runner.py demo` scene), 7, 19, 23.
-VALIDATION seeds (tune on these): 1, 2, 3 (`--seeds 1 2 3`).
+VALIDATION seeds (tune on these): 1-6 (`--seeds 1 2 3 4 5 6`).
 """
 
 from __future__ import annotations
@@ -162,7 +162,7 @@ def print_mean(results: dict[str, dict]) -> dict:
 
 def print_real(results: dict[str, dict]) -> None:
     """Real captures (no ground truth off the capture point): ERP coverage per bucket and the capture point against
-    the input panorama, with issue 28's targets (Realsee: >= 0.99 coverage and >= 25 dB at the capture point; real
+    the input panorama, with the targets (Realsee: >= 0.99 coverage and >= 25 dB at the capture point; real
     captures in general: >= 0.99 coverage ~1 m and ~2 m away)."""
     print("\nreal captures: ERP coverage per bucket (alpha > 0.5), capture point vs the input panorama")
     keys = ["d0", "d0.5", "d1", "d2", FAR_KEY]

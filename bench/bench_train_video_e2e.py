@@ -1,4 +1,4 @@
-"""End-to-end (historical issue #13 table): held-out video PSNR (all / disoccluded) of the untrained init, FM-only (rho = 1)
+"""End-to-end: held-out video PSNR (all / disoccluded) of the untrained init, FM-only (rho = 1)
 and shortcut (rho = 0.75) in 4 steps, same training budget, on the tiny preset; plus data-loader throughput.
 
     python bench/bench_train_video_e2e.py --data COND_DIR --out BENCH_DIR [--clips 16] [--set KEY=VALUE]...

@@ -41,12 +41,12 @@ CUBE_FACES = {
 ERP_SUPERSAMPLE = 2
 """render_erp's default supersampling: the ERP is sampled at 2x its size in each axis from cube faces at 2x resolution
 and area-downsampled (2x2 box), so splats finer than a pixel (per-pixel Gaussians at the input's resolution) average
-instead of aliasing. docs/evaluation.md, "Anti-aliased ERP renders", has the quality/time measurements behind it."""
+instead of aliasing; about 1.7x the render time of 1."""
 ERP_POLE_SCALE = 2.0
 """render_erp's default resolution of the two pole faces (+y, -y) relative to the others. ERP rows near a pole sample
-longitude tan(lat) times more finely than a cube face does there; 2, with the colour fit on the same faces and a wider
-source footprint (gaussians.source_scale), gains 1.4 dB at the capture point on the validation seeds
-(docs/evaluation.md, "The poles at the capture point")."""
+longitude tan(lat) times more finely than a cube face does there, so finer pole faces keep the floor's and ceiling's
+detail near the poles; the colour fit must use the same faces (gaussians.voxel_fusion.fit_height) and the source
+footprint be wide enough that the finer faces show no cracks (gaussians.voxel_fusion.source_scale)."""
 
 
 @dataclass

@@ -15,8 +15,8 @@ CELL_M = 0.04
 REACH_M = 1.5
 """A hidden point this far from the nearest visible cell of the map takes half the map's colour and half the colour
 it had (Gaussian fall-off): far from any floor seen, a point on the floor plane may be something else (a wall the
-background layer continued the floor through). Validation seeds 1 / 6 / 4, bench_warp_fill hole PSNR vs off:
-1 m -0.05 / +1.13 / -0.14 dB, 1.5 m -0.11 / +1.19 / -0.11, 2 m -0.15 / +1.44 / -0.19, 4 m -0.38 / +1.52 / (not run)."""
+background layer continued the floor through). A longer reach paints more of the next room's floor and more walls
+that the layer took for floor."""
 MAX_EXTENT_M = 30.0
 """The map spans the visible floor's points clipped to this many metres around the capture point."""
 MIN_CELLS = 20
@@ -25,8 +25,8 @@ MIN_PIXELS = 40
 """Fewer wall (ceiling) pixels seen beyond the room's shell: no colour for the next room's walls (ceiling): its
 hidden points keep theirs."""
 NEXT_CEILING = False
-"""walls_ceiling: the next room's hidden ceiling takes the colour of the ceiling seen beyond the shell too (validation
-seeds 6 / 4 ~2 m: -0.06 / -0.62 dB with it and the walls' colour, vs the floor map alone; see docs/evaluation.md)."""
+"""walls_ceiling: the next room's hidden ceiling takes the colour of the ceiling seen beyond the shell too (off: the
+part of a ceiling a doorway shows is often its far, darker end)."""
 LAMP_LUMA = 245
 """Pixels this bright (8-bit luma) are lamps, not the surface's colour."""
 

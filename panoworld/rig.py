@@ -54,8 +54,8 @@ RIG_DROP_MAX = 0.6
 """With depth, a candidate reaching CAP_DEG is looked at once more without what cannot be the rig: surfaces off the
 floor plane whose vertical drop below the camera exceeds this share of the camera's height (walls and furniture at the
 cap's edge; the rig hangs from the camera: its hub and most of its legs lie far above the floor) and thin lines on the
-floor plane (grout, plank seams, leg shadows: narrower than FLOOR_LINE_DEG). Issue #29: at the default preset's 720
-rows the grout tied a tripod's legs to the walls beside it and the whole was refused as reaching 30 deg."""
+floor plane (grout, plank seams, leg shadows: narrower than FLOOR_LINE_DEG): at 720 rows grout can tie a tripod's
+legs to the walls beside it, and the whole would be refused as reaching 30 deg."""
 SURFACE_DEG = 4.0
 """Only far surfaces at least this wide are left out in that second look (the lower half of a leg lies far below
 the camera too, but is 1-2 degrees wide)."""
@@ -283,8 +283,7 @@ def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
 
 def _leg_shadows(rgb: np.ndarray, mask: np.ndarray, gain: np.ndarray, view: PerspectiveView) -> np.ndarray:
     """ERP pixels of the legs' thin cast shadows (rig_shadow.leg_shadow_lines) on a downward face at twice the
-    resolution (a shadow line is 1-2 ERP pixels wide), relit by the soft shadow's gain; development seeds 100-115:
-    +0.11 dB tripod, +0.07 + shadow (seed 109 +1.0)."""
+    resolution (a shadow line is 1-2 ERP pixels wide), relit by the soft shadow's gain."""
     H, W = rgb.shape[:2]
     fine = PerspectiveView(view.cam_from_view, FACE_FOV_DEG, 2 * view.size)
     g = cv2.resize(gain, (fine.size, fine.size), interpolation=cv2.INTER_LINEAR)
@@ -305,7 +304,7 @@ def _floor_chroma(face: np.ndarray, ring_floor: np.ndarray) -> np.ndarray:
 
 def _dilate(mask: np.ndarray, view: PerspectiveView) -> np.ndarray:
     """Grow a face mask over the rig's anti-aliased rim and highlights (1 px at 256 rows: a wider margin replaces
-    seen floor by a guess; 2 px cost 0.3-0.6 dB on development seeds)."""
+    seen floor by a guess)."""
     k = 2 * max(1, view.size // 180) + 1
     return cv2.dilate(mask.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
 
@@ -420,7 +419,7 @@ def remove_rig(rgb: np.ndarray, det: RigDetection) -> np.ndarray:
     H, W = rgb.shape[:2]
     view = nadir_view(H)
     face = render_view(rgb, view).astype(np.float32)
-    obj = erp_mask_to_face(det.mask, view)  # not grown further: 0.15 dB on development seeds 100-115
+    obj = erp_mask_to_face(det.mask, view)  # not grown further: a wider hole replaces seen floor by a guess
     lin = (face / 255.0) ** 2.2
     if det.shadow_gain is not None:
         lin = lin * det.shadow_gain[..., None]

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 
 LATTICE_OFFSETS = 48
-"""Most offsets (autocorrelation peaks) averaged by the lattice fill (development seeds 100-115 at 720 rows, tripod
-mean against 24: 8 -0.4 dB, 48 +0.47 dB; at 256 rows +-0.01)."""
+"""Most offsets (autocorrelation peaks) averaged by the lattice fill: more keep grout and seams in phase across a
+larger hole and average each tile's own colour."""
 LATTICE_MIN_CORR = 0.25
 """An autocorrelation peak below this (normalised: 1 = the texture repeats exactly) is no period of the floor."""
 
@@ -152,8 +152,8 @@ def _best_offsets(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, k:
 
 
 RIM_PX = 2
-"""Width (ERP pixels) of the band inside a rig mask whose pixels are matted rather than replaced (development seeds
-100-115: 1 px +0.13, 2 px +0.18, 3 px +0.14 dB; the whole mask -0.27 dB)."""
+"""Width (ERP pixels) of the band inside a rig mask whose pixels are matted rather than replaced (the rig's
+anti-aliased edge and the mask's 1 px margin, which hold floor the input shows)."""
 MIN_CONTRAST = 30.0
 """Below this distance (sRGB levels) between the rig's and the fill's colour the pixel's alpha is unknowable: filled."""
 

@@ -13,35 +13,31 @@ KNOT_DEG = 3.0
 """Spacing (degrees from the nadir) of the knots of the shadow's piecewise-linear radial log-profile."""
 SHADOW_MAX_DEG = 24.0
 """The shadow's profile is 1 from here out (the floor-light model alone explains the floor there): a little past a
-tripod's feet (17-20 deg). At 30 the profile took up the room's light inside 30 deg that the floor-light model,
-fitted on the face's floor beyond, extrapolated wrongly: the floor relit 5-25 % too bright out to 30 deg on 5 of 16
-development seeds (720 rows, bench_rig --light-oracle). Development tripod + shadow, 720 / 256 rows: 30: 27.68 /
-26.92 dB; 27: 27.9 / -; 24: 28.00 / 26.94; 21: 28.10 / 26.86."""
+tripod's feet (17-20 deg). Farther out, the profile would take up the room's own light there, which the
+floor-light model (fitted on the face's floor beyond) extrapolates poorly, and relight the floor too bright."""
 MIN_DARKENING = 0.15
 """A shadow removes at least this share of the light at its darkest knot (weaker: floor lighting, kept). Detection
 measures the rig on the face relit by such a shadow; the removal relights only from RELIGHT_MIN_DARKENING."""
 RELIGHT_MIN_DARKENING = 0.25
-"""The removal relights the floor only when the shadow removes at least this share of the light: development tripods
-without a shadow read 15-29 % (the room's uneven light; relit, the unshadowed floor lost up to 4 dB at 720 rows on
-102 and 111); those with the soft shadow 30-54 %."""
+"""The removal relights the floor only when the shadow removes at least this share of the light: the room's uneven
+light alone reads up to about 30 % under a tripod without a shadow (relighting that floor brightens it wrongly), a
+rig's soft shadow 30-54 % on the synthetic scenes."""
 CAST_RATIO = 0.9
 """Floor pixels darker than this share of the floor around them (Lab L) and connected to the rig are its cast
-shadows (inpainted with it; 0.85 missed the legs' and column's shadows from the room's lights on development seeds)."""
+shadows (inpainted with it); lower values miss the fainter shadows the legs and column cast from the room's lights."""
 LIGHT_EXPECTILE = 0.8
 """The light model and shadow profile fit this expectile of the floor's log luminance, not its mean: a shadow
-darkens all of the floor's texture, more dark texture near the nadir only lowers its mean (development seeds:
-+0.12 dB with a soft shadow, +0.02 without; 0.9 lost 0.6 dB on seed 110; seed 102's shadow-free floor is still read
-as 11 % shadowed)."""
+darkens all of the floor's texture, more dark texture near the nadir only lowers its mean (0.5 = the mean; a
+blotchy floor can still read as shadowed by about 10 %)."""
 MIN_SECTORS = 5
 """Of 8 azimuth sectors, at least this many must be darker inside the shadow (a leg's cast shadow or a wall's is
 not around the nadir)."""
 RELIGHT_MIN_SECTORS = 6
 """The removal relights the floor only when at least this many of 8 azimuth sectors are darkened like the shadow's
 profile (even_sectors): a shadow around the rig dims every side of it; the room's light dimming one side, or the
-camera just inside the straight edge of the room's shadow, does not. Development seeds 100-115: every soft shadow
-7-8/8 at 720 rows (seed 8, 256 rows: 6/8); the one development tripod whose room light reads >= 25 % (100, its whole
-nadir in a room shadow) 8/8: not told apart. Detection keeps MIN_SECTORS (it measures the rig on the relit face;
-held-out 119's tripod is found only with its room light divided out)."""
+camera just inside the straight edge of the room's shadow, does not. A camera whose whole nadir lies in a room
+shadow passes it too. Detection keeps MIN_SECTORS (it measures the rig on the relit face, which needs the room's
+light divided out even where the removal does not relight)."""
 SECTOR_RINGS_DEG = (5.0, 10.0, 15.0)
 """Rings (degrees from the nadir) of even_sectors: inside the tripod's feet, where a soft shadow is darkest."""
 SECTOR_SHARE = 0.5
@@ -319,8 +315,7 @@ def local_lightness(L: np.ndarray) -> np.ndarray:
 
 LEG_SHADOW_DARK = (0.06, 0.25)
 """A leg's cast shadow darkens the floor along its line by this share of the local floor's lightness (Lab L) on
-average: fainter is the floor's own texture, darker than any shadow the rig's cast shadows showed (development
-seeds 100-115: 0.08-0.15)."""
+average: fainter is the floor's own texture, darker is no shadow of a thin leg."""
 LEG_SHADOW_COVER = 0.6
 """Share of a shadow line's visible samples that must be darker than the floor around them (by 4 %): a grout line
 or plank seam crossed at an angle is dark only where it crosses."""

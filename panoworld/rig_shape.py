@@ -9,13 +9,12 @@ TABLE_MIN_GAP_M = 0.3
 """A horizontal surface at least this far below the camera (and above the floor) is a seen object, not the mount."""
 FLOOR_LINE_MAX_DEG = 0.5
 """On-floor parts of the rig's mask and of its cast shadows narrower than this are floor lines (tile grout, plank
-seams) touching the legs, not the rig: at 720 rows the grout network out to 30 deg joined the mask through the cast
-shadows (development 113: 21.2 -> 26.6 dB without it). Where it spans under a face pixel (256 rows) nothing is opened."""
+seams) touching the legs, not the rig: without this, a tiled floor's grout network can join the mask through the
+cast shadows out to 30 deg at 720 rows. Where it spans under a face pixel (256 rows) nothing is opened."""
 MIN_LEG_WIDTH_DEG = 0.6
 """An arm of the candidate is a tripod leg only when at least this wide on average over 45-85 % of its extent (a leg
 1.5-4 cm across seen from 0.6-1.7 m: >= 1 degree). Thinner arms (the anti-aliased dashes of a tiled floor's grout,
-1 cm at the floor) neither count as legs nor in their azimuth occupancy. Third-widest arm: development tripods
-100-115 >= 1.65 deg at 256 rows, >= 1.19 at 720; bench_rig's rig-free grout controls <= 0.28."""
+1 cm at the floor, <= 0.3 degrees) neither count as legs nor in their azimuth occupancy."""
 
 
 def azimuth_histogram(phi: np.ndarray, bins: int) -> np.ndarray:

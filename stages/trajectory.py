@@ -93,7 +93,7 @@ def _user_poses(path: Path, params: Params) -> np.ndarray:
 
 
 def _plan_or_stay(nav, params: Params, where: Path):
-    """plan_path, or a stationary rotation-only path when the NavMesh records no room to move (issue #24)."""
+    """plan_path, or a stationary rotation-only path when the NavMesh records no room to move."""
     no_room = nav.info.get("no_room")
     if no_room and no_room.get("decision") == "stationary":
         return stationary_plan(params, no_room["reason"])

@@ -13,9 +13,8 @@ MAX_PASSES = 3
 """Decimation passes at most (each stops when no edge collapse keeps the quadric error low enough)."""
 MORE_PASSES_ABOVE = 1.5
 """Another pass runs only while more than this many times the budget remains: a pass that ends near the budget has
-stalled on the borders it keeps, and the next one removes little for much time (the real captures' meshes, 100,000
-budget: 4.2 M faces -> 134,106 after one pass, 133,928 after a second, 11 + 4 s; 2.5 M -> 140,986, then 137,700,
-8 + 6 s)."""
+stalled on the borders it keeps, and the next one removes little for much time (on a real capture's mesh of millions
+of faces, a second pass removes about 0.1-2 % more of them for 40-75 % more time)."""
 
 
 @dataclass

@@ -96,7 +96,7 @@ def is_unavailable(value: Any) -> bool:
 
 @dataclass(frozen=True)
 class Target:
-    """A pass mark: value op bound (issue #6's targets, and collision-freeness for trajectories)."""
+    """A pass mark: value op bound (the targets of docs/evaluation.md, and collision-freeness for trajectories)."""
 
     op: str
     """'>=' or '<='."""

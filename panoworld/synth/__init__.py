@@ -1,4 +1,4 @@
-"""Procedural indoor scenes with exact ground truth: meshes, ERP RGB/depth renders and camera tracks (issue #3)."""
+"""Procedural indoor scenes with exact ground truth: meshes, ERP RGB/depth renders and camera tracks."""
 
 from panoworld.synth.appearance import Light, Material, MaterialKind
 from panoworld.synth.params import (

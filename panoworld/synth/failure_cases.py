@@ -36,7 +36,7 @@ class FailureCase(enum.StrEnum):
     """A panorama taller than the depth stage's max_height (its resolution policy; the test lowers max_height)."""
     CLOSET = "closet"
     """The camera stands in a shallow closet (0.8 m wide, 0.65 m deep) looking out through its 0.6 m door: no floor
-    fits the agent (issue #24)."""
+    fits the agent."""
     FAR_OUTLIERS = "far-outliers"
     """0.2 % isolated depth spikes and one degenerate wall patch at hundreds of metres (a broken layout / sensor)."""
     RIG_HIDES_FLOOR = "rig-hides-floor"

@@ -17,16 +17,16 @@ class VoxelFusionOptions(FusionParams):
     detail at the capture point); the other frames are voxel-fused only where they see what the source does not."""
     source_height: int = param(640, ge=0)
     """ERP height of the source view's per-pixel Gaussians (0 = that of the other frames); rows near the poles keep
-    every k-th pixel so kept pixels are about square on the sphere. 640 (chosen with source_scale 1.9): as sharp as 512
-    rows at the capture point and +0.6 dB on what it sees from ~1-2 m away (validation seed 1; docs/evaluation.md)."""
+    every k-th pixel so kept pixels are about square on the sphere. More rows keep more of the input's detail for
+    views from aside, at the cost of more Gaussians (quadratic in the rows)."""
     source_scale: float = param(2.1, gt=0)
     """Footprint scale of the source's per-pixel Gaussians (scale_factor of the voxel Gaussians otherwise): large
-    enough that neighbours leave no see-through cracks between them, small enough to keep the input's detail. 2.1
-    (was 1.9) with the 2x pole faces, whose finer dilation shows the cracks (validation seeds 1-3)."""
+    enough that neighbours leave no see-through cracks between them (the renderer's 2x pole faces show cracks a
+    smaller footprint leaves), small enough to keep the input's detail."""
     unseen_voxel_size: float = param(0.04, ge=0)
     """With source_pixels: voxel edge (metres) of what the other frames see that the source does not (0 =
     voxel_size). That is the generated (disoccluded) content, softer than the input: 4 cm voxels hold it with fewer,
-    larger Gaussians and fewer see-through gaps than 2 cm (docs/evaluation.md, "Away from the capture point")."""
+    larger Gaussians and fewer see-through gaps than 2 cm."""
     source_tol: float = param(0.03, gt=0)
     """Observations of the other frames within this relative depth of the source's surface (or in front of it) count
     as seen by the source and are not fused."""
@@ -34,17 +34,15 @@ class VoxelFusionOptions(FusionParams):
     """With source_pixels: conjugate-gradient steps of a colour fit at the capture point (0 = none): for the fixed
     geometry the ERP render there is linear in the Gaussians' colours, which are refitted (least squares, damped
     towards their fused values) so it reproduces the source frame, undoing the blur of overlapping splats
-    (docs/evaluation.md, "Colour fit at the capture point"). Not applied to a home's panoramas."""
+    (the manifest's color_fit holds the RMSE before and after). Not applied to a home's panoramas."""
     fit_height: int = param(512, ge=0)
     """ERP height of that fit's render and target (0 = source_height). 512: its cube faces are those of a 256-row
-    render supersampled 2x (the roam protocol's), +1.4 dB at the capture point with the 2x pole faces
-    (docs/evaluation.md, "The poles at the capture point")."""
+    render supersampled 2x (the roam protocol's), so the fit resolves what the eval's render shows."""
     fit_views: int = param(0, ge=0)
     """With fit_iters: that many other frames, spread over the path (farthest-point from the capture point), join the
     colour fit where they see what the source saw, so the source's colours are fitted from aside too (0 = the capture
-    point only). Off by default: 4 views with fit_view_weight 0.3 gave +0.2-1.0 dB on the seen part ~2 m away on
-    validation seeds 1, 4, 5, 6 but seed 4's capture point -0.18 dB, for +40 % of the stage's CPU time (+6 % over
-    the stage before its operator was made cheaper) (docs/evaluation.md, "Views from aside, affordable")."""
+    point only). Improves the seen part from aside; each view adds about a third of the colour fit's cost (its
+    operator over every Gaussian the view sees). Off by default (docs/evaluation.md, options off by default)."""
     fit_view_height: int = param(256, ge=8)
     """ERP height of those frames' renders and targets in the fit."""
     fit_view_reach: float = param(2.0, ge=0)
@@ -54,24 +52,20 @@ class VoxelFusionOptions(FusionParams):
     """Weight of each of those frames' pixels in the fit against 1 for the capture point's."""
     fit_sh_degree: int = param(0, ge=0, le=1)
     """With fit_views: 1 fits view-dependent colours too (degree-1 SH, written as f_rest_*), so the colours seen from
-    those frames need not be the capture point's. Off: with 4 views it beat DC-only views in every bucket of
-    validation seeds 1, 4, 5, 6 (seen part ~2 m +0.5-1.3 dB over none) but the capture point lost up to 0.25 dB
-    (seeds 4: 0.12, 3: 0.25) and the unseen part up to 1.3 dB at ~2 m (seed 3)."""
+    those frames need not be the capture point's (0 = one colour per Gaussian). The joint fit may move the colours
+    seen from the capture point; fit_views_sh_only keeps them."""
     fit_sh_damping: float = param(0.001, ge=0)
     """Damping of those degree-1 coefficients towards 0 per unit of compositing weight (the colours' is 0.01): a
-    Gaussian seen from few directions keeps about one colour (0.0001 gave the same dB on seed 4)."""
+    Gaussian seen from few directions keeps about one colour."""
     fit_views_sh_only: bool = False
     """With fit_sh_degree 1: the views fit the degree-1 coefficients only; the colours seen from the capture point
-    are its own fit's (fit_views 0's), so the capture point renders as without the views. Off: on validation seed 4
-    it kept the capture point (0.00 dB; the joint fit -0.12) and gained more at ~2 m (+0.42 dB, seen +0.75) with 4
-    views, but for +44 % of the stage's CPU (docs/evaluation.md, "the capture point kept exactly")."""
+    are its own fit's (fit_views 0's), so the capture point renders exactly as without the views."""
     back_sides: bool = True
     """With source_pixels and a navmesh input: upright source surfaces whose other side is in the line of sight of the
     walkable floor (within back_side_reach; what the source saw blocks the sight, unseen space does not) get a second
     layer of Gaussians back_side_thickness behind them, hidden from the capture point: a thin wall seen from the next
-    room shows a back, not the source side's colour (panoworld/back_sides.py; docs/evaluation.md, "Thin walls seen
-    from behind"; on by default since the eleventh pass: no validation seed loses > 0.2 dB in any bucket, the
-    capture point is unchanged on all six)."""
+    room shows a back, not the source side's colour (panoworld/back_sides.py). The capture point's render is
+    unchanged: the front covers its copy."""
     back_side_thickness: float = param(0.12, gt=0)
     """Metres behind the front surface (a wall's thickness; the synthetic walls are 0.15 m)."""
     back_side_reach: float = param(4.0, gt=0)
@@ -81,13 +75,11 @@ class VoxelFusionOptions(FusionParams):
     floor in sight); off: the fronts of furniture too, whose unseen sides let the sight reach behind them."""
     back_side_edge_clear: bool = False
     """A back must lie behind the source depth within its thickness across its ray (back_sides.edge_clear), not
-    only within 3 pixels: not seen past a doorway's jamb from views at 45 degrees (validation seed 5 ~2 m -0.19 ->
-    -0.02 dB against back sides without it, but seed 4 keeps about half their gain: ~2 m +0.44 instead of +0.75)."""
+    only within 3 pixels: not seen past a doorway's jamb from views at 45 degrees. Stricter: it also drops the backs
+    of walls the capture point sees at a grazing angle."""
     back_side_plane_clear: bool = False
     """A back must stay hidden when moved up to its thickness along its wall's plane (back_sides.plane_clear): not
-    seen past a doorway's jamb, yet kept on walls the capture point sees at a grazing angle (validation seed 5 ~2 m
-    -0.01 dB against off, seed 4 ~2 m +0.70 as shell's +0.75, but seed 4's ~1 m gain lost: docs/evaluation.md,
-    "issue 28, twelfth pass")."""
+    seen past a doorway's jamb, yet kept on walls the capture point sees at a grazing angle."""
     back_side_color: str = param("next_room", choices=("next_room", "front"))
     """next_room: the next room's wall colour the doorway shows (plane_colors.floor_beyond's; the front's where
     none is seen); front: the front's colour."""

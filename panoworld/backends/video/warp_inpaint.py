@@ -50,14 +50,11 @@ class WarpOptions:
     plane_colors: bool = True
     """Hidden points on the floor plane beyond the room's walls (the next room through a doorway) take their colour
     from a top-down map of the floor seen beyond them (panoworld.plane_colors: push-pull filled, blending back into
-    the inpainted colour far from any floor seen), not from the source pixels at the doorway's edge; false = off.
-    On since the eighth #28 pass: validation seeds 1-6 at ~2 m +0.89 (seed 6) / +0.10 / +0.06 / +0.03 / +0.02 / 0,
-    at ~1 m -0.13 to +0.41 dB (docs/evaluation.md)."""
+    the inpainted colour far from any floor seen), not from the source pixels at the doorway's edge; false = off."""
     next_room_colors: bool = False
     """Hidden points beyond the room's walls between the floor and the ceiling take the median colour of the next
     room's walls seen through the doorway (panoworld.plane_colors), not the doorway edge's colour; where none is seen
-    they keep theirs; false = off (validation ~2 m vs plane_colors alone: seed 6 +0.28 dB, seeds 1 / 2 -0.43 / -2.07,
-    seed 4 ~1 m -0.43)."""
+    they keep theirs (a hidden piece of furniture there gets the wall's colour too); false = off."""
     depth_fill: bool = True
     """Without reuse: holes the background layer does not fill take the depth and colour of their farther side
     (panoworld.inpaint.background_fill), so the Gaussians stage places them; false = a colour-only 2D fill (no depth:
