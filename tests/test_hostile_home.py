@@ -68,10 +68,15 @@ def refused(out: subprocess.CompletedProcess, expect: str, code: int = 2) -> str
 
 
 def open_within_2s(d: Path) -> None:
-    """The runner's scene checks (all of them run before anything is hashed or run) refuse d within 2 s."""
+    """The runner's scene checks (all of them run before anything is hashed or run) refuse d within 2 s, hashing
+    nothing (bench/bench_refusals.py prints the times)."""
+    def no_hash(*a, **k):
+        raise AssertionError("a user file was hashed before it was checked")
     t0 = time.perf_counter()
-    with pytest.raises(InputError):
-        pl.open_scene(d, PIPE)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(art, "file_digest", no_hash)
+        with pytest.raises(InputError):
+            pl.open_scene(d, PIPE)
     assert time.perf_counter() - t0 < 2.0
 
 
@@ -564,9 +569,7 @@ def test_200_panoramas_are_planned_without_trying_all_pairs():
     rng = np.random.default_rng(0)
     names = [f"p{i:03d}" for i in range(200)]
     looks = {n: appearance_descriptor(rng.integers(0, 255, (32, 64, 3), dtype=np.uint8)) for n in names}
-    t0 = time.perf_counter()
     pairs = candidate_pairs(names, looks)
-    assert time.perf_counter() - t0 < 1.0
     assert len(pairs) <= PAIRS_PER_PANORAMA * 200 < 19_900
     assert all(0 <= a < b < 200 for a, b in pairs) and len(set(pairs)) == len(pairs)
     # The chain in capture order keeps every panorama reachable from the first.
