@@ -1,4 +1,4 @@
-"""Command-line runner for the PanoWorld pipeline (a thin CLI over panoworld.pipeline)."""
+"""Command-line runner for the PanoWorld pipeline (a thin CLI over panoworld.framework.pipeline)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import json
 import sys
 from pathlib import Path
 
-from panoworld import pipeline as pl
-from panoworld.errors import PanoWorldError, from_os_error
+from panoworld.core.errors import PanoWorldError, from_os_error
+from panoworld.framework import pipeline as pl
 from panoworld.io.safe_write import check_output_dir
 
 
@@ -46,7 +46,7 @@ def _print_report(report: pl.Report, as_json: bool) -> int:
 
 def cmd_run(args) -> int:
     if args.all:
-        from panoworld.batch.run import cmd_run_all
+        from panoworld.tools.batch.run import cmd_run_all
 
         return cmd_run_all(args)
     if args.sweep or args.executor != "local" or args.workers != 1 or args.ray_address:
@@ -87,7 +87,7 @@ def cmd_demo(args) -> int:
 
     import yaml
 
-    from panoworld.synth.cli import main as synth_main
+    from panoworld.tools.synth.cli import main as synth_main
 
     out = check_output_dir(args.out_dir)
     scene = out / "scene"
@@ -125,7 +125,7 @@ def cmd_demo(args) -> int:
     report = pl.run(scene, echo=True, on_result=live)
     code = _print_report(report, False)
     ran = [r for r in report.results if r.action == "ran"]
-    from panoworld.report.cli import build_scene_report
+    from panoworld.tools.report.cli import build_scene_report
 
     t_report = time.perf_counter()
     page = build_scene_report(scene, run_results=[r.as_dict() for r in report.results])
@@ -145,13 +145,13 @@ def cmd_demo(args) -> int:
 
 # Verbs whose CLI lives in a library module: verb -> ("module:function" called with the remaining argv, help).
 DELEGATED = {
-    "synth": ("panoworld.synth.cli:main", "generate synthetic scenes with ground truth"),
-    "eval": ("panoworld.evaluate:main", "evaluate a scene's artifacts against its reference, or a dataset in the paper's tables (--all)"),
-    "precompute": ("panoworld.precompute:main", "precompute training conditions for a dataset"),
-    "train": ("panoworld.train.cli:main", "train the video generator or the reconstruction model (train video|recon)"),
-    "weights": ("panoworld.hub.cli:main", "list, fetch and resolve the learned backends' weights (weights list|fetch|resolve)"),
-    "report": ("panoworld.report.cli:main", "write a scene's (or a precompute dataset's) self-contained HTML report"),
-    "view": ("panoworld.viewer.app:main", "interactive 3D viewer of a scene in the browser (viser)"),
+    "synth": ("panoworld.tools.synth.cli:main", "generate synthetic scenes with ground truth"),
+    "eval": ("panoworld.tools.eval.cli:main", "evaluate a scene's artifacts against its reference, or a dataset in the paper's tables (--all)"),
+    "precompute": ("panoworld.tools.precompute.run:main", "precompute training conditions for a dataset"),
+    "train": ("panoworld.tools.train.cli:main", "train the video generator or the reconstruction model (train video|recon)"),
+    "weights": ("panoworld.framework.hub.cli:main", "list, fetch and resolve the learned backends' weights (weights list|fetch|resolve)"),
+    "report": ("panoworld.tools.report.cli:main", "write a scene's (or a precompute dataset's) self-contained HTML report"),
+    "view": ("panoworld.tools.viewer.app:main", "interactive 3D viewer of a scene in the browser (viser)"),
 }
 
 

@@ -26,12 +26,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from panoworld import pipeline as pl
-from panoworld.artifacts import read_manifest
 from panoworld.asset import trajectory_paths
 from panoworld.asset.physics import Agent, BulletScene, drop_test, walk_test, wall_ok, wall_test
 from panoworld.asset.usd import compliance_errors
-from panoworld.conventions import transform_points
+from panoworld.core.conventions import transform_points
+from panoworld.framework import pipeline as pl
+from panoworld.io.manifest import read_manifest
 
 REAL = REPO.parent / "shared" / "data" / "real" / "realsee3d_assets"
 

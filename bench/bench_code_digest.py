@@ -16,7 +16,7 @@ STAGES = ["depth", "mesh", "navmesh", "trajectory", "conditions", "video", "pose
 PROBE = """
 import json, sys, time
 t = time.perf_counter()
-from panoworld import code_digest
+from panoworld.framework import code_digest
 t_import = time.perf_counter() - t
 out = {}
 for s in sys.argv[1:]:

@@ -17,7 +17,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld.conditions import (
+from panoworld.conditions.warp import (
     Backend,
     MeshReference,
     iter_conditions,
@@ -27,9 +27,9 @@ from panoworld.conditions import (
     warp_quality,
     write_conditions,
 )
-from panoworld.conventions import invert_pose
-from panoworld.mesh import ErpMesh, erp_mesh_from_depth
-from panoworld.synth import generate_scene
+from panoworld.core.conventions import invert_pose
+from panoworld.geometry.erp_mesh import ErpMesh, erp_mesh_from_depth
+from panoworld.tools.synth import generate_scene
 
 
 def load_line() -> str:

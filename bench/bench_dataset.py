@@ -15,9 +15,9 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from panoworld.batch.run import cost_table, run_dataset
-from panoworld.eval.common import EvalParams
-from panoworld.eval.dataset import evaluate_dataset
+from panoworld.tools.batch.run import cost_table, run_dataset
+from panoworld.tools.eval.common import EvalParams
+from panoworld.tools.eval.dataset import evaluate_dataset
 
 
 def cpu_seconds() -> float:

@@ -27,8 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import numpy as np
 
-from panoworld.eval.groundtruth import open_ground_truth
-from panoworld.eval.roam import UNSEEN_PARTS, sample_roam_poses, source_seen, unseen_parts
+from panoworld.tools.eval.groundtruth import open_ground_truth
+from panoworld.tools.eval.roam import UNSEEN_PARTS, sample_roam_poses, source_seen, unseen_parts
 
 ARTIFACTS = "artifacts"
 DEPTH_TOL = 0.10
@@ -37,10 +37,9 @@ DEPTH_TOL = 0.10
 
 def oracle_video(scene: Path, kinds: set[str], out: Path) -> Path:
     """A copy of the scene's video artifact whose hole pixels hold the ground truth's colour and/or depth."""
-    from panoworld.conditions import load_conditions
-    from panoworld.conventions import depth_to_mm, erp_dirs
-    from panoworld.io.video import read_video_doc
-    from panoworld.video_io import decode_png, encode_png
+    from panoworld.conditions.warp import load_conditions
+    from panoworld.core.conventions import depth_to_mm, erp_dirs
+    from panoworld.io.video import decode_png, encode_png, read_video_doc
 
     src = scene / ARTIFACTS / "video"
     shutil.copytree(src, out, ignore=shutil.ignore_patterns("*.mcap", "*.mp4", "upscaled"))
@@ -56,7 +55,7 @@ def oracle_video(scene: Path, kinds: set[str], out: Path) -> Path:
         dirs = erp_dirs(H, W, np.float64)[hole][:, None]  # (N, 1, 3): one column for SynthScene._shade
         hits = gt.scene.raycaster.cast(pose[:3, 3][None], dirs.reshape(-1, 3) @ pose[:3, :3].T)
         if "rgb" in kinds:
-            from panoworld.synth.appearance import srgb_uint8
+            from panoworld.tools.synth.appearance import srgb_uint8
 
             lin = gt.scene._shade(pose, hits.distance[:, None], hits.face[:, None], dirs)
             rgb = decode_png(doc.rgb[k].read_bytes())
@@ -74,9 +73,8 @@ def oracle_video(scene: Path, kinds: set[str], out: Path) -> Path:
 def oracle_poses(scene: Path, video: Path, out: Path) -> Path:
     """A copy of the scene's poses artifact whose depth maps are the (oracle) video's: the Gaussians stage fuses the
     poses artifact's depth, not the video's."""
-    from panoworld.io.video import read_video_doc
-    from panoworld.poses import load_poses
-    from panoworld.video_io import DEPTH_SCALE
+    from panoworld.io.video import DEPTH_SCALE, read_video_doc
+    from panoworld.poses.estimate import load_poses
 
     shutil.copytree(scene / ARTIFACTS / "poses", out, ignore=shutil.ignore_patterns("*.mcap"))
     vdoc = read_video_doc(video)
@@ -89,7 +87,7 @@ def oracle_poses(scene: Path, video: Path, out: Path) -> Path:
 
 
 def fuse(scene: Path, video: Path, out: Path, poses: Path | None = None) -> tuple[Path, float]:
-    from panoworld.stage import params_from_dict
+    from panoworld.framework.stage import params_from_dict
     from stages.gaussians import Params, run
 
     out.mkdir(parents=True, exist_ok=True)
@@ -139,9 +137,9 @@ def capture_room(gt) -> int:
 def diagnose(scene: Path, ply: Path, views: int, height: int, buckets: list[str], cache: dict,
              png: Path | None = None) -> dict:
     """Per bucket: PSNR of the view, of its seen and unseen parts, and per unseen part (surface class, geometry)."""
-    from panoworld.erp_render import render_erp
+    from panoworld.io.splat_ply import read_gaussians_ply
     from panoworld.navmesh import load_navmesh
-    from panoworld.splat_ply import read_gaussians_ply
+    from panoworld.render.erp import render_erp
 
     g = read_gaussians_ply(ply)
     gt = open_ground_truth(scene)

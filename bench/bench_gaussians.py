@@ -20,11 +20,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld.erp_render import render_erp
-from panoworld.gaussians import FusionParams, uniform_subset, voxel_fusion
-from panoworld.metrics import psnr, ssim, ws_psnr
-from panoworld.stage import params_from_dict
-from panoworld.synth import generate_scene
+from panoworld.framework.stage import params_from_dict
+from panoworld.gaussians.fusion import FusionParams, uniform_subset, voxel_fusion
+from panoworld.render.erp import render_erp
+from panoworld.render.metrics import psnr, ssim, ws_psnr
+from panoworld.tools.synth import generate_scene
 
 
 def evaluate(gaussians, poses, frames, H):

@@ -25,8 +25,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import numpy as np
 
-from panoworld.eval.groundtruth import open_ground_truth
-from panoworld.eval.roam import BUCKETS, sample_roam_poses, source_seen, split_scores
+from panoworld.tools.eval.groundtruth import open_ground_truth
+from panoworld.tools.eval.roam import BUCKETS, sample_roam_poses, source_seen, split_scores
 
 ARTIFACTS = "artifacts"
 
@@ -45,7 +45,7 @@ def build(scene: Path, variant: str, out: Path) -> tuple[Path, float, float]:
         return scene / ARTIFACTS / "gaussians" / "gaussians.ply", 0.0, 0.0
     import yaml
 
-    from panoworld.stage import params_from_dict
+    from panoworld.framework.stage import params_from_dict
     from stages.gaussians import Params, run
 
     kv = dict(item.split("=", 1) for item in variant.split(",") if item)
@@ -66,8 +66,8 @@ def render_by_weights(g, pose, height: int, supersample: int):
     tests/test_render_gs.py), several times faster on CPU: (rgb (H, W, 3), alpha (H, W)) tensors."""
     import torch
 
-    from panoworld.erp_operator import ErpColorOperator
-    from panoworld.render_gs import _prepare
+    from panoworld.render.erp_operator import ErpColorOperator
+    from panoworld.render.splats import _prepare
 
     op = ErpColorOperator(g, pose, height, 2 * height, supersample=supersample)
     return op(_prepare(g, np.asarray(pose, np.float64)[:3, 3]).color), op(torch.ones(len(g), 3))[..., 0]
@@ -77,11 +77,11 @@ def measure(scene: Path, ply: Path, supersample: int, views: int, height: int, r
             buckets: list[str] | None = None, fast: bool = False) -> dict:
     import cv2
 
-    from panoworld.erp_render import render_erp
-    from panoworld.metrics import psnr
+    from panoworld.io.splat_ply import read_gaussians_ply
+    from panoworld.io.video import load_frames
     from panoworld.navmesh import load_navmesh
-    from panoworld.poses import load_frames
-    from panoworld.splat_ply import read_gaussians_ply
+    from panoworld.render.erp import render_erp
+    from panoworld.render.metrics import psnr
 
     g = read_gaussians_ply(ply)
     nav = load_navmesh(scene / ARTIFACTS / "navmesh")
@@ -137,7 +137,7 @@ def main() -> int:
     a = ap.parse_args()
     import torch
 
-    from panoworld import erp_render
+    from panoworld.render import erp as erp_render
 
     torch.set_num_threads(1)
     variants = a.variant or ["artifact"]

@@ -12,12 +12,12 @@ from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld.conditions import MeshReference, true_disocclusion
-from panoworld.conventions import invert_pose
-from panoworld.mesh import ErpMesh, erp_mesh_from_depth
-from panoworld.metrics import psnr
-from panoworld.raycast import Raycaster
-from panoworld.synth import generate_scene
+from panoworld.conditions.warp import MeshReference, true_disocclusion
+from panoworld.core.conventions import invert_pose
+from panoworld.geometry.erp_mesh import ErpMesh, erp_mesh_from_depth
+from panoworld.geometry.raycast import Raycaster
+from panoworld.render.metrics import psnr
+from panoworld.tools.synth import generate_scene
 
 
 def render_variant(mesh: ErpMesh, cam_pose: np.ndarray, H: int, W: int) -> tuple[np.ndarray, np.ndarray]:

@@ -9,7 +9,7 @@ import argparse
 import json
 import os
 
-# Before torch loads OpenMP (as every stage process does, panoworld.stage.stage_main): the capture-pose renders below
+# Before torch loads OpenMP (as every stage process does, panoworld.framework.stage.stage_main): the capture-pose renders below
 # cost several times the CPU with spinning OpenMP threads on a busy machine.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import subprocess
@@ -24,12 +24,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld.artifacts import read_manifest
-from panoworld.conventions import invert_pose
-from panoworld.depth import read_depth, read_panorama
-from panoworld.errors import InputError
-from panoworld.register.fuse import fuse_meshes, home_navmesh
-from panoworld.synth.home import generate_home, home_params, write_home
+from panoworld.core.conventions import invert_pose
+from panoworld.core.errors import InputError
+from panoworld.io.depth import read_depth, read_panorama
+from panoworld.io.manifest import read_manifest
+from panoworld.mesh.fuse import fuse_meshes
+from panoworld.navmesh.home import home_navmesh
+from panoworld.tools.synth.home import generate_home, home_params, write_home
 
 ROOT = Path(__file__).resolve().parent.parent
 VALIDATION_SEEDS = (1, 2, 3)
@@ -122,8 +123,8 @@ def run_pipeline_one(seed: int, k: int, height: int, work: Path, preset: str, ps
     size and the Gaussians rendered at every capture pose against its panorama (PSNR at psnr_height rows)."""
     import resource
 
-    from panoworld.home.layout import capture_poses
-    from panoworld.home.quality import capture_psnr
+    from panoworld.gaussians.quality import capture_psnr
+    from panoworld.io.home import capture_poses
 
     params = home_params(preset)
     params = replace(params, render=replace(params.render, pano_height=height))

@@ -16,9 +16,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld import pipeline as pl
-from panoworld.artifacts import read_manifest
-from panoworld.evaluate import EvalParams, evaluate, is_unavailable
+from panoworld.framework import pipeline as pl
+from panoworld.io.manifest import read_manifest
+from panoworld.tools.eval.cli import EvalParams, evaluate, is_unavailable
 
 REPO = Path(__file__).resolve().parent.parent
 REAL = REPO.parent / "shared" / "data" / "real" / "realsee3d_assets"

@@ -19,9 +19,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld.conventions import depth_to_mm
+from panoworld.core.conventions import depth_to_mm
 from panoworld.io.png import encode_png
-from panoworld.video_io import load_video
+from panoworld.io.video import load_video
 
 C, F, S = cv2.IMWRITE_PNG_COMPRESSION, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_STRATEGY
 SETTINGS = {

@@ -32,7 +32,7 @@ def band_masks(height: int) -> list[np.ndarray]:
 
 
 def band_psnr(img: np.ndarray, ref: np.ndarray) -> dict[str, float]:
-    from panoworld.metrics import psnr
+    from panoworld.render.metrics import psnr
 
     out = {"all": psnr(img, ref)}
     for (lo, hi), m in zip(BANDS, band_masks(img.shape[0])):
@@ -49,9 +49,9 @@ def parse_variant(text: str) -> dict:
 def source_gaussians(scene: Path, v: dict):
     """The source view's per-pixel Gaussians of a variant (keys: source_height, source_scale, thin_poles, fit_iters,
     fit_height, fit_supersample, fit_pole_scale) and the frame-0 target and pose of its fit."""
-    from panoworld.backends.gaussians.voxel_fusion import VoxelFusionOptions
-    from panoworld.gaussians import context_source
-    from panoworld.pixel_gaussians import SourceVisibility, fit_colors, pixel_gaussians, view_targets
+    from panoworld.gaussians.backends.voxel_fusion import VoxelFusionOptions
+    from panoworld.gaussians.fusion import context_source
+    from panoworld.gaussians.pixel import SourceVisibility, fit_colors, pixel_gaussians, view_targets
 
     o = VoxelFusionOptions()
     frames = context_source(scene / ARTIFACTS / "video", scene / ARTIFACTS / "poses", max_height=512)
@@ -97,9 +97,9 @@ def main() -> int:
     import cv2
     import torch
 
-    from panoworld.erp_render import render_erp
-    from panoworld.eval.groundtruth import open_ground_truth
-    from panoworld.poses import load_frames
+    from panoworld.io.video import load_frames
+    from panoworld.render.erp import render_erp
+    from panoworld.tools.eval.groundtruth import open_ground_truth
     from panoworld.trajectory import poses_from_positions
 
     torch.set_num_threads(1)
@@ -134,8 +134,8 @@ def main() -> int:
             ss = int(v.pop("supersample", 2))
             pole = float(v.pop("pole_scale", 1.0))
             if name.startswith("artifact"):
-                from panoworld.artifacts import read_manifest
-                from panoworld.splat_ply import read_gaussians_ply
+                from panoworld.io.manifest import read_manifest
+                from panoworld.io.splat_ply import read_gaussians_ply
 
                 art = scene / ARTIFACTS / "gaussians"
                 g = read_gaussians_ply(art / "gaussians.ply")

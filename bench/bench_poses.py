@@ -15,16 +15,16 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld.conventions import invert_pose
-from panoworld.poses import write_depth_png
-from panoworld.stage import execute_stage, load_stage, params_from_dict
+from panoworld.core.conventions import invert_pose
+from panoworld.framework.stage import execute_stage, load_stage, params_from_dict
+from panoworld.io.depth_png import write_depth_png
 
 
 def generate(seed: int, frames: int):
     try:
-        from panoworld.synth import generate_scene
+        from panoworld.tools.synth import generate_scene
     except ImportError:
-        from panoworld.synth.scene import generate_scene
+        from panoworld.tools.synth.scene import generate_scene
     return generate_scene(seed, "default", frames=frames)
 
 

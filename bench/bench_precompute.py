@@ -10,10 +10,10 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from panoworld.precompute import PrecomputeParams, precompute
-from panoworld.synth import generate_scene, write_scene
-from panoworld.synth.params import Preset, params_for
-from panoworld.synth.scene import derive_seed
+from panoworld.tools.precompute.run import PrecomputeParams, precompute
+from panoworld.tools.synth import generate_scene, write_scene
+from panoworld.tools.synth.params import Preset, params_for
+from panoworld.tools.synth.scene import derive_seed
 
 
 def make_dataset(root: Path, scenes: int, frames: int, height: int) -> None:

@@ -4,7 +4,7 @@
 
 SCENE: a scene directory run to `navmesh` at least (runner.py run SCENE --until navmesh). Each variant plans the
 trajectory with those TrajectoryParams overrides (comma-separated KEY=VALUE; "" = the defaults) and scores the
-planned poses with `panoworld.eval.roam.trajectory_reach`: per sector the farthest pose against the distance walkable
+planned poses with `panoworld.tools.eval.roam.trajectory_reach`: per sector the farthest pose against the distance walkable
 from the capture point straight along the sector's centre (target: min fraction >= 0.7).
 """
 
@@ -18,8 +18,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld.eval.roam import trajectory_reach
 from panoworld.navmesh import load_navmesh
+from panoworld.tools.eval.roam import trajectory_reach
 from panoworld.trajectory import TrajectoryParams, plan_path, poses_from_positions
 
 

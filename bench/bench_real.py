@@ -5,7 +5,7 @@
 A SCENE_DIR is a scene directory (panorama.png|jpg [+ depth.npy|exr|png]) or a folder holding an RGB-D pair the
 way the Realsee3D README assets come (panoImage_*.jpg + depth_image*.png: each pair becomes a scene under
 --work). Default: the Realsee pair under ../shared/data/real/realsee3d_assets (real LiDAR and synthesis), the
-synthetic failure classes of panoworld.synth.failure_cases at 256x512, and an 8192x4096 panorama (the synthetic
+synthetic failure classes of panoworld.tools.synth.failure_cases at 256x512, and an 8192x4096 panorama (the synthetic
 scene upsampled: checks the depth stage's resolution policy keeps every stage under 8 GiB). Prints per scene:
 stages ok, seconds, peak MB (largest stage), NavMesh area, start-off-NavMesh distance, exempt poses, min
 clearance (against the scene mesh), sectors covered/reachable, the Gaussians' context PSNR; then what was decided
@@ -29,9 +29,9 @@ sys.path.insert(0, str(REPO))
 
 import numpy as np
 
-from panoworld import pipeline as pl
-from panoworld.artifacts import read_manifest
-from panoworld.errors import ArtifactError
+from panoworld.core.errors import ArtifactError
+from panoworld.framework import pipeline as pl
+from panoworld.io.manifest import read_manifest
 
 REAL = REPO.parent / "shared" / "data" / "real" / "realsee3d_assets"
 ZIND = REPO.parent / "shared" / "data" / "real" / "zind_garage"
@@ -71,7 +71,7 @@ def huge_scene(work: Path) -> Path:
     import cv2
     import numpy as np
 
-    from panoworld.synth.failure_cases import failure_scene
+    from panoworld.tools.synth.failure_cases import failure_scene
 
     d = work / "huge-8192x4096"
     if (d / "depth.npy").is_file():
@@ -161,8 +161,9 @@ def nadir_row(scene: Path, depth_info: dict) -> dict:
     panorama (artifacts/depth/panorama.png), and the share of pixels completed from floor/ceiling planes."""
     import cv2
 
-    from panoworld.depth import read_panorama, resize_panorama
-    from panoworld.rig import nadir_luminance_gap
+    from panoworld.depth.depth_map import resize_panorama
+    from panoworld.depth.rig.detect import nadir_luminance_gap
+    from panoworld.io.depth import read_panorama
 
     rig = depth_info.get("rig") or {}
     out = {"rig": rig.get("kind") if rig.get("found") else ("none" if rig else "-"),
@@ -182,8 +183,9 @@ def nadir_row(scene: Path, depth_info: dict) -> dict:
 
 def nadir_only(paths: list[Path]) -> list[dict]:
     """RGB-only panoramas (no depth, so no pipeline without weights): rig detection and removal on the colour alone."""
-    from panoworld.depth import read_panorama, resize_panorama
-    from panoworld.rig import area_stats, detect_rig, nadir_luminance_gap, remove_rig
+    from panoworld.depth.depth_map import resize_panorama
+    from panoworld.depth.rig.detect import area_stats, detect_rig, nadir_luminance_gap, remove_rig
+    from panoworld.io.depth import read_panorama
 
     rows = []
     for p in paths:
@@ -232,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
     for s in args.scenes or [p for p in (REAL, ZIND) if p.is_dir()]:
         scenes += scenes_from(s, args.work)
     if not args.scenes and not args.no_synthetic:
-        from panoworld.synth.failure_cases import FailureCase, write_failure_scene
+        from panoworld.tools.synth.failure_cases import FailureCase, write_failure_scene
 
         for case in FailureCase:
             if case in (FailureCase.HUGE,):

@@ -103,8 +103,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
     args = ap.parse_args(argv)
-    from panoworld import pipeline as pl
-    from panoworld.errors import PanoWorldError
+    from panoworld.core.errors import PanoWorldError
+    from panoworld.framework import pipeline as pl
 
     pipe = pl.Pipeline.load()
     rows = []

@@ -26,11 +26,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld.conventions import invert_pose
-from panoworld.erp_render import erp_faces, face_cull, render_erp
-from panoworld.gaussians import Gaussians
-from panoworld.render_gs import _prepare, face_weights, project, rasterize_tiles, render_perspective
-from panoworld.synth.surfels import room_surfels
+from panoworld.core.conventions import invert_pose
+from panoworld.io.gaussian_set import Gaussians
+from panoworld.render.erp import erp_faces, face_cull, render_erp
+from panoworld.render.splats import _prepare, face_weights, project, rasterize_tiles, render_perspective
+from panoworld.tools.synth.surfels import room_surfels
 
 
 def timed(fn, repeats: int) -> tuple[float, float, object]:

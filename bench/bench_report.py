@@ -26,9 +26,9 @@ def main() -> int:
     if not (scene / "artifacts").is_dir():
         print(f"error: {scene}: no artifacts/ (run `python runner.py demo` first)", file=sys.stderr)
         return 2
-    from panoworld.artifacts import read_manifest
-    from panoworld.errors import ArtifactError
-    from panoworld.report.cli import build_scene_report
+    from panoworld.core.errors import ArtifactError
+    from panoworld.io.manifest import read_manifest
+    from panoworld.tools.report.cli import build_scene_report
 
     timings: dict[str, float] = {}
     with tempfile.TemporaryDirectory() as tmp:

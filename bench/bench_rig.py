@@ -39,10 +39,10 @@ looks most like tripod legs at 720 rows: controls, nothing may be found there.""
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from panoworld import rig
-from panoworld.rig import nadir_cap_psnr
-from panoworld.synth import generate_scene
-from panoworld.synth.rig import FloorObject, RigKind, render_with_rig, with_floor_object
+from panoworld.depth.rig import detect as rig
+from panoworld.depth.rig.detect import nadir_cap_psnr
+from panoworld.tools.synth import generate_scene
+from panoworld.tools.synth.rig import FloorObject, RigKind, render_with_rig, with_floor_object
 
 
 def render_case(scene, kind, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -103,7 +103,7 @@ shading) and texture (grout, plank seams, veins)."""
 
 def true_light(scene, kind, depth: np.ndarray) -> np.ndarray | None:
     """The generator's soft-shadow light factor (H, W) for tripod-shadow, None for the other cases."""
-    from panoworld.synth.rig import shadow_gain
+    from panoworld.tools.synth.rig import shadow_gain
 
     if kind != RigKind.TRIPOD_SHADOW:
         return None
@@ -124,9 +124,9 @@ def true_rig(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarray)
 def true_relight(scene, rgb: np.ndarray, depth: np.ndarray, light: np.ndarray | None, mask: np.ndarray):
     """(the nadir face, the face gain that divides out `light` (ones where None), the floor source outside the rig
     `mask` on the relit face, the ERP shadow mask outside `mask`): the relighting with the generator's true light."""
-    from panoworld.cube_views import render_view
-    from panoworld.rig_face import erp_mask_to_face, face_to_erp_mask, nadir_view
-    from panoworld.rig_shadow import apply_gain
+    from panoworld.depth.rig.face import erp_mask_to_face, face_to_erp_mask, nadir_view
+    from panoworld.geometry.cube_views import render_view
+    from panoworld.room.light import apply_gain
 
     H, W = rgb.shape[:2]
     view = nadir_view(H)
@@ -141,7 +141,7 @@ def true_relight(scene, rgb: np.ndarray, depth: np.ndarray, light: np.ndarray | 
 def oracle_detection(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarray):
     """A RigDetection of the true rig mask (true_rig, grown by the detector's rim on the downward face) and, for
     tripod-shadow, the generator's light factor: remove_rig on it measures the fill alone."""
-    from panoworld.rig_face import erp_mask_to_face, face_to_erp_mask, nadir_view
+    from panoworld.depth.rig.face import erp_mask_to_face, face_to_erp_mask, nadir_view
 
     view = nadir_view(rgb.shape[0])
     mask, light = true_rig(scene, kind, rgb, depth, clean)
@@ -179,8 +179,8 @@ def relight_oracle(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.nd
     profile's (`sectors_<a>_<b>`: a shadow around the rig dims every sector alike) and the true factor's."""
     from dataclasses import replace
 
-    from panoworld.rig_face import erp_mask_to_face, face_polar, nadir_view
-    from panoworld.rig_shadow import floor_light, sector_light
+    from panoworld.depth.rig.face import erp_mask_to_face, face_polar, nadir_view
+    from panoworld.depth.rig.shadow import floor_light, sector_light
 
     view = nadir_view(rgb.shape[0])
     nf, gain, source, shadow = true_relight(scene, rgb, depth, true_light(scene, kind, depth), det.mask)
@@ -214,8 +214,8 @@ def disc_relight(rgb: np.ndarray, clean: np.ndarray, det, nf, true_gain: np.ndar
     (`disc_over_true`, %)."""
     from dataclasses import replace
 
-    from panoworld.rig_face import erp_mask_to_face, face_to_erp_mask
-    from panoworld.rig_shadow import disc_shadow
+    from panoworld.depth.rig.face import erp_mask_to_face, face_to_erp_mask
+    from panoworld.depth.rig.shadow import disc_shadow
 
     H, W = rgb.shape[:2]
     row = {"psnr_no_relight": nadir_cap_psnr(rig.remove_rig(rgb, replace(det, shadow_gain=None, shadow=None)), clean)}
@@ -244,8 +244,8 @@ def fill_oracle(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarr
     Pictures (truth | oracle fill | fill, the downward face) go to pictures/ when it is not Path()."""
     import cv2
 
-    from panoworld.cube_views import render_view
-    from panoworld.rig_face import erp_mask_to_face, face_polar, nadir_view
+    from panoworld.depth.rig.face import erp_mask_to_face, face_polar, nadir_view
+    from panoworld.geometry.cube_views import render_view
 
     H, W = rgb.shape[:2]
     view = nadir_view(H)
@@ -306,7 +306,7 @@ def error_split(out: np.ndarray, clean: np.ndarray, mask: np.ndarray, deg: float
     by a 6 px Gaussian; the rest is texture)."""
     import cv2
 
-    from panoworld.conventions import erp_pixel_solid_angle
+    from panoworld.core.conventions import erp_pixel_solid_angle
 
     h, w = out.shape[:2]
     r0 = int(h * (1.0 - deg / 180.0))
@@ -332,11 +332,11 @@ def floor_from_afar(seed: int, height: int, work: Path, sets: list[str], rig_kin
 
     import cv2
 
-    from panoworld import pipeline as pl
-    from panoworld.conventions import erp_dirs, erp_pixel_from_dir, invert_pose
-    from panoworld.erp_render import render_erp
-    from panoworld.splat_ply import read_gaussians_ply
-    from panoworld.synth import params_for, write_scene
+    from panoworld.core.conventions import erp_dirs, erp_pixel_from_dir, invert_pose
+    from panoworld.framework import pipeline as pl
+    from panoworld.io.splat_ply import read_gaussians_ply
+    from panoworld.render.erp import render_erp
+    from panoworld.tools.synth import params_for, write_scene
 
     scene = generate_scene(seed, preset, frames=40 if preset == "ci-tiny" else None)
     T0 = scene.world_from_canonical

@@ -24,15 +24,15 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bench.bench_rig import parse_seeds
-from panoworld import rig
-from panoworld.rig_learned import detect_rig_learned
+from panoworld.depth.rig import detect as rig
+from panoworld.depth.rig.learned import detect_rig_learned
 
 CASES = ("tripod", "tripod-shadow", "none", "rug", "stool")
 
 
 def evaluate(seeds: list[int], weights: Path, height: int) -> list[dict]:
-    from panoworld.synth import generate_scene
-    from panoworld.synth.rig import FloorObject, render_with_rig, with_floor_object
+    from panoworld.tools.synth import generate_scene
+    from panoworld.tools.synth.rig import FloorObject, render_with_rig, with_floor_object
 
     rows = []
     for seed in seeds:
@@ -62,7 +62,7 @@ def evaluate(seeds: list[int], weights: Path, height: int) -> list[dict]:
 
 def cached_samples(seeds, height: int, cache: Path) -> list:
     """rig_samples of every seed, rendered once and kept in cache/seed_N_H.npz."""
-    from panoworld.train.rig import RigSample, rig_samples
+    from panoworld.tools.train.rig import RigSample, rig_samples
 
     out = []
     cache.mkdir(parents=True, exist_ok=True)
@@ -97,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     weights = args.weights
     if weights is None:
         from panoworld.models.rig_unet import RigUNetConfig
-        from panoworld.train.rig import train_rig_unet
+        from panoworld.tools.train.rig import train_rig_unet
 
         train_seeds, steps = (range(200, 264), 3000) if args.full else (range(200, 216), 400)
         t0 = time.perf_counter()

@@ -21,11 +21,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld import pipeline as pl
-from panoworld.artifacts import read_manifest
-from panoworld.eval.report import jsonable
-from panoworld.eval.roam import BUCKETS, FAR_KEY
-from panoworld.evaluate import EvalParams, evaluate, is_unavailable
+from panoworld.framework import pipeline as pl
+from panoworld.io.manifest import read_manifest
+from panoworld.tools.eval.cli import EvalParams, evaluate, is_unavailable
+from panoworld.tools.eval.report import jsonable
+from panoworld.tools.eval.roam import BUCKETS, FAR_KEY
 
 REPO = Path(__file__).resolve().parent.parent
 TEST_SEEDS = [0, 7, 19, 23]

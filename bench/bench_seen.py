@@ -44,7 +44,7 @@ def to_linear(rgb: np.ndarray) -> np.ndarray:
 
 
 def to_srgb(linear: np.ndarray) -> np.ndarray:
-    from panoworld.synth.appearance import srgb_uint8
+    from panoworld.tools.synth.appearance import srgb_uint8
 
     return srgb_uint8(linear)
 
@@ -52,7 +52,7 @@ def to_srgb(linear: np.ndarray) -> np.ndarray:
 def surface_points(gt, pose: np.ndarray, height: int, width: int):
     """Canonical points (H W, 3) and world-frame face index (H W,) of an ERP view's pixel-centre rays (inf / -1 where
     nothing is hit)."""
-    from panoworld.conventions import erp_dirs
+    from panoworld.core.conventions import erp_dirs
 
     pose = np.asarray(pose, np.float64)
     hits = gt.scene.raycaster.render_erp(gt.world_from_canonical @ pose, height, width)
@@ -69,7 +69,7 @@ def textured_view(gt, pose: np.ndarray, height: int, width: int, image: np.ndarr
     colour, which is what a depth-perfect reprojection of that image gives."""
     import cv2
 
-    from panoworld.conventions import erp_pixel_from_dir
+    from panoworld.core.conventions import erp_pixel_from_dir
 
     s = supersample
     pts, face = surface_points(gt, pose, s * height, s * width)
@@ -115,7 +115,7 @@ def pixel_kinds(gt, pose: np.ndarray, ref: np.ndarray, depth: np.ndarray) -> np.
 
 def nearest_frame(scene: Path, pose: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
     """(index, uint8 image, planned canonical pose) of the video frame whose planned centre is nearest `pose`'s."""
-    from panoworld.poses import load_frames
+    from panoworld.io.video import load_frames
 
     traj = json.loads((scene / ARTIFACTS / "trajectory" / "trajectory.json").read_text())
     poses = np.asarray(traj["poses"], np.float64)
@@ -126,7 +126,7 @@ def nearest_frame(scene: Path, pose: np.ndarray) -> tuple[int, np.ndarray, np.nd
 
 def scores(images: dict[str, np.ndarray], ref: np.ndarray, seen: np.ndarray, kinds: np.ndarray) -> dict:
     """Per image: seen-part PSNR, and per kind its PSNR and share of the seen part's squared error."""
-    from panoworld.metrics import psnr
+    from panoworld.render.metrics import psnr
 
     out: dict = {"share": {k: float((seen & (kinds == i)).sum() / max(seen.sum(), 1)) for i, k in enumerate(KINDS)}}
     for name, img in images.items():
@@ -174,13 +174,13 @@ def main() -> int:
     a = ap.parse_args()
     import torch
 
-    from panoworld.artifacts import read_manifest
-    from panoworld.erp_render import render_erp
-    from panoworld.eval.groundtruth import open_ground_truth
-    from panoworld.eval.roam import sample_roam_poses, source_seen
+    from panoworld.io.manifest import read_manifest
+    from panoworld.io.splat_ply import read_gaussians_ply
+    from panoworld.io.video import load_frames
     from panoworld.navmesh import load_navmesh
-    from panoworld.poses import load_frames
-    from panoworld.splat_ply import read_gaussians_ply
+    from panoworld.render.erp import render_erp
+    from panoworld.tools.eval.groundtruth import open_ground_truth
+    from panoworld.tools.eval.roam import sample_roam_poses, source_seen
 
     torch.set_num_threads(1)
     H, W = a.height, 2 * a.height

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from panoworld.synth import Preset, generate_scene, params_for
+from panoworld.tools.synth import Preset, generate_scene, params_for
 
 
 def bench(preset: Preset, seed: int, n_frames: int, supersample: int) -> dict:

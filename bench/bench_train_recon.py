@@ -32,13 +32,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from panoworld.align import trajectory_metrics
-from panoworld.dataset import DatasetScene
-from panoworld.erp_render import render_erp
-from panoworld.evaluate import depth_errors
-from panoworld.metrics import psnr, ssim
+from panoworld.geometry.align import trajectory_metrics
 from panoworld.models.panovggt import PanoVGGT, PanoVGGTConfig
-from panoworld.train.recon.data import SceneFrames, list_scenes, roll_yaw
+from panoworld.render.erp import render_erp
+from panoworld.render.metrics import psnr, ssim
+from panoworld.tools.dataset import DatasetScene
+from panoworld.tools.eval.cli import depth_errors
+from panoworld.tools.train.recon.data import SceneFrames, list_scenes, roll_yaw
 
 
 def random_init(trained: PanoVGGT, seed: int, keep_trained_backbone: bool) -> PanoVGGT:
@@ -107,8 +107,8 @@ def colmap_row(scene: DatasetScene, track: int, idx: np.ndarray, gt: np.ndarray,
 
     import cv2
 
-    from panoworld.poses import colmap_estimate
-    from panoworld.synth import SynthScene
+    from panoworld.poses.estimate import colmap_estimate
+    from panoworld.tools.synth import SynthScene
 
     synth = SynthScene.load(scene.gt_dir)
     poses = scene.poses(track)
@@ -140,8 +140,8 @@ def _scores(g, poses: np.ndarray, rgb: np.ndarray, h: int) -> tuple[float, float
 
 @torch.no_grad()
 def stage2_rows(models: dict[str, PanoVGGT], data: SceneFrames, views: int, voxel_size: float) -> list[dict]:
-    from panoworld.fusion_params import FusionParams
-    from panoworld.gaussians import voxel_fusion
+    from panoworld.gaussians.fusion import voxel_fusion
+    from panoworld.gaussians.fusion_params import FusionParams
 
     rows = []
     for s, scene in enumerate(data.scenes):
@@ -204,14 +204,14 @@ REFINE = 20
 
 
 def scene_seeds(seed: int, n: int) -> list[int]:
-    from panoworld.synth.scene import derive_seed
+    from panoworld.tools.synth.scene import derive_seed
 
     return [derive_seed(seed, 1, k) for k in range(n)]
 
 
 def build_split(work: Path, mode: dict, resume: bool) -> dict[str, list[int]]:
     """WORK/{train,val,test} from seeds and WORK/trainval (train, then val, by name); the scene seeds per split."""
-    from panoworld.synth.cli import main as synth
+    from panoworld.tools.synth.cli import main as synth
 
     seeds = {split: scene_seeds(s, mode[split]) for split, s in zip(("train", "val", "test"), mode["seeds"])}
     for a, b in (("train", "val"), ("train", "test"), ("val", "test")):
@@ -239,8 +239,8 @@ def list_scenes_or_none(d: Path) -> list[Path]:
 
 
 def train(work: Path, mode: dict, resume: bool) -> tuple[Path, Path]:
-    from panoworld.train.recon.cli import main as train_recon
-    from panoworld.train.recon.data import split_scenes
+    from panoworld.tools.train.recon.cli import main as train_recon
+    from panoworld.tools.train.recon.data import split_scenes
 
     tv = work / "trainval"
     _, val = split_scenes(list_scenes(tv), mode["val"])

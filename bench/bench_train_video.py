@@ -5,7 +5,7 @@
     python bench/bench_train_video.py --quick --split val               # what tuning may look at (never test)
     python bench/bench_train_video.py --quick --split both              # the same models scored on val and test
 
-The toy (panoworld/train/video/toy.py): frame 0 is a scene's panorama in latent space, frame 1 the same scene turned
+The toy (panoworld/tools/train/video/toy.py): frame 0 is a scene's panorama in latent space, frame 1 the same scene turned
 by a random yaw with a square disocclusion filled with one of `modes` plausible fills at random; the condition is frame
 1 with the hole masked out. Per seed: a tiny Wan transformer pre-trained with flow matching (the frozen base), then
 the paper's stage (LoRA + widened patch embedding + step-size embedding) trained twice on it at equal compute: the
@@ -48,7 +48,7 @@ def sampler_for(model: str, steps: int) -> str:
 def run(mode_name: str, split: str, seeds: list[int] | None = None, steps: int | None = None) -> dict:
     """split: 'test', 'val' or 'both' (each model trained once, scored on val and on test; the headline is test);
     steps: the shortcut model's stage steps instead of the mode's (FM-only still gets equal compute)."""
-    from panoworld.train.video import toy
+    from panoworld.tools.train.video import toy
 
     mode = dict(MODES[mode_name], **({"steps": steps} if steps else {}))
     cfg = toy.ToyConfig(base_steps=mode["base_steps"], steps=mode["steps"], sc_split=mode["sc_split"])

@@ -23,7 +23,7 @@ import torch
 
 
 def _run(args: list[str]) -> dict:
-    from panoworld.train.video.cli import main
+    from panoworld.tools.train.video.cli import main
 
     t0, c0 = time.perf_counter(), time.process_time()
     code = main([*args, "--json"])
@@ -49,7 +49,7 @@ def _generator(export: Path | None, base: Path, sampler: str, steps: int, shift:
 
 
 def _score(gen, items: list[dict]) -> tuple[float, float, float]:
-    from panoworld.train.video.trainer import _uint8, psnr
+    from panoworld.tools.train.video.trainer import _uint8, psnr
 
     alls, holes, t0 = [], [], time.process_time()
     for k, it in enumerate(items):
@@ -70,9 +70,9 @@ def main() -> None:
     ap.add_argument("--resume", action="store_true", help="reuse finished runs in --out")
     a = ap.parse_args()
     torch.set_num_threads(1)
-    from panoworld.train.common import resolve_config
-    from panoworld.train.video.config import PRESETS, VideoTrainConfig
-    from panoworld.train.video.data import ClipDataset, read_index, split_scenes
+    from panoworld.tools.train.common import resolve_config
+    from panoworld.tools.train.video.config import PRESETS, VideoTrainConfig
+    from panoworld.tools.train.video.data import ClipDataset, read_index, split_scenes
 
     cfg = resolve_config(VideoTrainConfig, PRESETS, "tiny", a.sets)
     rows = read_index(a.data)
@@ -110,7 +110,7 @@ def main() -> None:
     rec = []
     with torch.no_grad():  # the ceiling every row shares: the frozen tiny VAE's reconstruction of the targets
         from panoworld.models import wan_layers as wl
-        from panoworld.train.video.trainer import _uint8, psnr
+        from panoworld.tools.train.video.trainer import _uint8, psnr
 
         for it in items:
             video = wl.decode_latents(vae, wl.encode_video(vae, it["target"][None]))[0]

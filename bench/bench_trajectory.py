@@ -8,10 +8,10 @@ import time
 
 import numpy as np
 
-from panoworld.conventions import invert_pose, transform_points
-from panoworld.mesh import erp_mesh_from_depth
+from panoworld.core.conventions import invert_pose, transform_points
+from panoworld.geometry.erp_mesh import erp_mesh_from_depth
 from panoworld.navmesh import NavMeshParams, NoFloorError, build_navmesh
-from panoworld.synth import generate_scene
+from panoworld.tools.synth import generate_scene
 from panoworld.trajectory import (
     PathKind,
     TrajectoryParams,

@@ -14,14 +14,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld import background_layer, inpaint
-from panoworld import pipeline as pl
-from panoworld.artifacts import read_manifest
-from panoworld.conditions import load_conditions
-from panoworld.mesh import load_erp_mesh
-from panoworld.metrics import reprojection_error, ssim_map, video_psnr
-from panoworld.synth import generate_scene
+from panoworld.conditions.warp import load_conditions
+from panoworld.framework import pipeline as pl
+from panoworld.geometry.erp_mesh import load_erp_mesh
+from panoworld.io.manifest import read_manifest
+from panoworld.render.metrics import reprojection_error, ssim_map, video_psnr
+from panoworld.tools.synth import generate_scene
 from panoworld.trajectory import load_trajectory
+from panoworld.video import background_layer, inpaint
 
 
 def make_scene_dir(scene, root: Path, height: int) -> Path:

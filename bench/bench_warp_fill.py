@@ -25,12 +25,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld import background_layer, inpaint
-from panoworld.conditions import load_conditions
-from panoworld.eval.groundtruth import GroundTruth
-from panoworld.eval.roam import UNSEEN_PARTS, unseen_parts
-from panoworld.mesh import load_erp_mesh
+from panoworld.conditions.warp import load_conditions
+from panoworld.geometry.erp_mesh import load_erp_mesh
+from panoworld.tools.eval.groundtruth import GroundTruth
+from panoworld.tools.eval.roam import UNSEEN_PARTS, unseen_parts
 from panoworld.trajectory import load_clips, load_trajectory
+from panoworld.video import background_layer, inpaint
 
 
 def psnr(se: float, n: int) -> str:

@@ -37,8 +37,8 @@ def save_small(img: np.ndarray, path: Path, width: int = 1100) -> None:
 
 
 def report_shots(scene: Path, out: Path) -> None:
-    from panoworld.report.browser import browser_page, screenshot_array
-    from panoworld.report.cli import build_scene_report
+    from panoworld.tools.report.browser import browser_page, screenshot_array
+    from panoworld.tools.report.cli import build_scene_report
 
     html = build_scene_report(scene)
     with browser_page(1280, 900) as (page, console):
@@ -61,8 +61,8 @@ def report_shots(scene: Path, out: Path) -> None:
 
 
 def viewer_shot(scene: Path, out: Path) -> None:
-    from panoworld.report.browser import browser_page, screenshot_array
-    from panoworld.viewer.app import SceneViewer, ViewerParams
+    from panoworld.tools.report.browser import browser_page, screenshot_array
+    from panoworld.tools.viewer.app import SceneViewer, ViewerParams
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

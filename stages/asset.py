@@ -7,8 +7,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from panoworld.errors import ArtifactError
-from panoworld.stage import Input, StageInputError, stage_main
+from panoworld.core.errors import ArtifactError
+from panoworld.framework.stage import Input, StageInputError, stage_main
 
 NAME = "asset"
 VERSION = "1"
@@ -38,9 +38,9 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         raise StageInputError(f"the asset stage needs the sim extra ({e.name} is missing): "
                               "pip install -e '.[sim]'") from None
     from panoworld.asset import build_asset
-    from panoworld.mesh import load_erp_mesh
+    from panoworld.geometry.erp_mesh import load_erp_mesh
+    from panoworld.io.splat_ply import read_gaussians_ply
     from panoworld.navmesh import load_navmesh
-    from panoworld.splat_ply import read_gaussians_ply
 
     if params.collider_max_triangles < 0:
         raise StageInputError(f"--collider-max-triangles {params.collider_max_triangles}: must be >= 0 (0 = keep all)")

@@ -6,9 +6,9 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from panoworld.conditions import Backend
-from panoworld.params import param
-from panoworld.stage import Input, StageInputError, stage_main
+from panoworld.conditions.warp import Backend
+from panoworld.core.params import param
+from panoworld.framework.stage import Input, StageInputError, stage_main
 
 NAME = "conditions"
 VERSION = "1"
@@ -38,9 +38,9 @@ class Params:
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     from plyfile import PlyParseError
 
-    from panoworld.conditions import iter_conditions, write_conditions
-    from panoworld.conventions import check_erp_shape, check_poses
-    from panoworld.mesh import load_erp_mesh
+    from panoworld.conditions.warp import iter_conditions, write_conditions
+    from panoworld.core.conventions import check_erp_shape, check_poses
+    from panoworld.geometry.erp_mesh import load_erp_mesh
     from panoworld.trajectory import load_trajectory
 
     try:

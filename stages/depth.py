@@ -9,15 +9,15 @@ from typing import ClassVar
 
 import numpy as np
 
-from panoworld import backends
-from panoworld.backends.depth import Job
-from panoworld.backends.depth.depth_anything import DepthAnythingOptions
-from panoworld.backends.depth.provided import ProvidedOptions
-from panoworld.choices import Rescale, RigMode
-from panoworld.depth_clean import clean_depth
-from panoworld.params import options, param
+from panoworld.core import registry as backends
+from panoworld.core.params import options, param
+from panoworld.depth.backends import Job
+from panoworld.depth.backends.depth_anything import DepthAnythingOptions
+from panoworld.depth.backends.provided import ProvidedOptions
+from panoworld.depth.clean import clean_depth
+from panoworld.depth.options import Rescale, RigMode
+from panoworld.framework.stage import Input, StageInputError, stage_main
 from panoworld.register.inputs import DEPTH_SUFFIXES, PANORAMA_SUFFIXES, RIG_MASK_SUFFIXES
-from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "depth"
 VERSION = "3"
@@ -37,7 +37,7 @@ INPUTS = {
 class Params:
     backend: str = param("auto", choices=("auto", *backends.names(NAME)))
     """Where depth comes from: the scene's depth file (provided), a Depth Anything V2 model on cube views
-    (depth-anything), or auto: provided when a depth file is given, else depth-anything (panoworld/backends/depth/)."""
+    (depth-anything), or auto: provided when a depth file is given, else depth-anything (panoworld/depth/backends/)."""
     rescale: Rescale = Rescale.AUTO
     """When to rescale depth so the floor lies camera_height below the camera: auto = relative depth, and provided
     depth whose floor is no plausible capture height (0.9-2.4 m: unknown units); always: e.g. raw sensor units."""
@@ -53,18 +53,18 @@ class Params:
     inpainted, depth from the floor plane; a scene rig_mask.png overrides detection); keep = leave it (docs/rig.md)."""
     rig_detector: str = param("heuristic", choices=backends.names("rig"))
     """How rig=auto finds the rig: heuristic (colour and shape tests, no weights) or learned (a small U-Net trained
-    by bench/train_rig.py on synthetic rigs; weights in rig_weights); both keep seen objects (panoworld/backends/rig/)."""
+    by bench/train_rig.py on synthetic rigs; weights in rig_weights); both keep seen objects (panoworld/depth/rig/backends/)."""
     rig_weights: Path | None = None
     """Directory with the rig U-Net's config.json + model.safetensors (rig_detector=learned)."""
     rig_device: str = "cpu"
     """Torch device of the learned rig detector."""
     complete_poles: bool = True
     """Depth missing at the poles or in bands (LiDAR blind zones) is completed from the fitted floor and ceiling
-    planes, within the room's extent (panoworld.depth_complete)."""
+    planes, within the room's extent (panoworld.depth.complete)."""
     complete_dropouts: bool = True
     """Depth still missing after that (dropouts inside the scan: glass, dark surfaces, object silhouettes) is
     completed: the rim's plane where it has one, else smooth continuation of the rim where that agrees with the
-    nearest depth, else the nearest depth (a step at a silhouette) (panoworld.depth_complete.complete_dropouts)."""
+    nearest depth, else the nearest depth (a step at a silhouette) (panoworld.depth.complete.complete_dropouts)."""
     provided: ProvidedOptions = options(ProvidedOptions, "provided")
     """provided's options."""
     depth_anything: DepthAnythingOptions = options(DepthAnythingOptions, "depth-anything")
@@ -84,7 +84,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
             raise StageInputError(f"{inputs['rig_masks']}: rig_masks/ is for a home (panoramas/); one panorama's mask "
                                   "is --rig-mask FILE (SCENE/rig_mask.png)")
         return depth_of_panorama(inputs, params, out_dir)
-    from panoworld.home.layout import HOME_DIR, HOME_INFO
+    from panoworld.io.home import HOME_DIR, HOME_INFO
     from panoworld.io.safe_write import inside
     from panoworld.register.inputs import find_home_files
 
@@ -104,10 +104,11 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
     """Depth, validity and the cleaned panorama (rig removed, poles completed) of one panorama into out_dir."""
     import cv2
 
-    from panoworld import depth as dep
+    from panoworld.depth import depth_map as dep
+    from panoworld.io.depth import read_panorama
 
     notes: list[str] = []
-    rgb = dep.read_panorama(inputs["panorama"], notes)
+    rgb = read_panorama(inputs["panorama"], notes)
     H0, W0 = rgb.shape[:2]
     H, W = dep.working_size(H0, params.max_height)
     rgb = dep.resize_panorama(rgb, H)
@@ -127,7 +128,7 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
     info.update(c.info)
     info["decisions"] = notes + c.notes
     if c.rig is not None and c.rig.found:
-        from panoworld.rig_face import nadir_crop
+        from panoworld.depth.rig.face import nadir_crop
 
         cv2.imwrite(str(out_dir / "rig_mask.png"), c.rig.mask.astype(np.uint8) * 255)
         crops = np.concatenate([nadir_crop(rgb), nadir_crop(c.rgb)], axis=1)

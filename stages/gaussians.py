@@ -7,11 +7,11 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import ClassVar
 
-from panoworld import backends
-from panoworld.backends.gaussians.decoder import DecoderOptions
-from panoworld.backends.gaussians.voxel_fusion import VoxelFusionOptions
-from panoworld.params import options, param
-from panoworld.stage import Input, StageInputError, stage_main
+from panoworld.core import registry as backends
+from panoworld.core.params import options, param
+from panoworld.framework.stage import Input, StageInputError, stage_main
+from panoworld.gaussians.backends.decoder import DecoderOptions
+from panoworld.gaussians.backends.voxel_fusion import VoxelFusionOptions
 
 NAME = "gaussians"
 VERSION = "4"
@@ -30,7 +30,7 @@ INPUTS = {
 class Params:
     backend: str = param("voxel-fusion", choices=backends.names(NAME))
     """Gaussian head: voxel-fusion (no weights) or decoder (the paper's learned head, needs decoder.weights)
-    (panoworld/backends/gaussians/)."""
+    (panoworld/gaussians/backends/)."""
     context_views: int = param(0, ge=0)
     """Number of registered frames used, uniformly spaced (0 = all)."""
     height: int = param(0, ge=0)
@@ -56,9 +56,9 @@ class Params:
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
-    from panoworld.backends.gaussians import Job
-    from panoworld.gaussians import context_source
-    from panoworld.gaussians_artifact import write_artifact
+    from panoworld.gaussians.artifact import write_artifact
+    from panoworld.gaussians.backends import Job
+    from panoworld.gaussians.fusion import context_source
 
     frames = context_source(inputs["video"], inputs["poses"], context_views=params.context_views,
                             height=params.height, max_height=params.max_height)

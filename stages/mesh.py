@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.params import param
-from panoworld.stage import Input, StageInputError, stage_main
+from panoworld.core.params import param
+from panoworld.framework.stage import Input, StageInputError, stage_main
 
 NAME = "mesh"
 VERSION = "2"
@@ -46,9 +46,9 @@ class Params:
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
-    from panoworld.depth import load_depth_artifact
-    from panoworld.home.layout import capture_poses, home_depth_dirs
-    from panoworld.mesh import ErpMesh, erp_mesh_from_depth, save_erp_mesh, save_erp_mesh_glb
+    from panoworld.geometry.erp_mesh import ErpMesh, erp_mesh_from_depth, save_erp_mesh, save_erp_mesh_glb
+    from panoworld.io.depth import load_depth_artifact
+    from panoworld.io.home import capture_poses, home_depth_dirs
 
     poses = capture_poses(inputs.get("register"))
     if len(poses) >= 2:
@@ -77,8 +77,9 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
 
 
 def _home_mesh(dirs, poses, params: Params, out_dir: Path) -> dict:
-    from panoworld.home.mesh import home_mesh, write_home_mesh_info
-    from panoworld.mesh import save_erp_mesh, save_erp_mesh_glb
+    from panoworld.geometry.erp_mesh import save_erp_mesh, save_erp_mesh_glb
+    from panoworld.io.home import write_home_mesh_info
+    from panoworld.mesh.home import home_mesh
 
     if dirs is None:
         raise StageInputError("the register artifact places several panoramas but the depth artifact holds one; "

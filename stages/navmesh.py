@@ -7,12 +7,12 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from panoworld.home.layout import capture_poses
-from panoworld.mesh import load_erp_mesh
+from panoworld.framework.stage import Input, StageInputError, stage_main
+from panoworld.geometry.erp_mesh import load_erp_mesh
+from panoworld.io.home import capture_poses
 from panoworld.navmesh import NavMeshParams
+from panoworld.navmesh.home import home_navmesh
 from panoworld.navmesh.no_room import build_navmesh_with_room
-from panoworld.register.fuse import home_navmesh
-from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "navmesh"
 VERSION = "3"

@@ -10,12 +10,12 @@ from typing import ClassVar
 
 import numpy as np
 
-from panoworld import backends
-from panoworld.backends.poses import Job
-from panoworld.backends.poses.vggt import VggtOptions
-from panoworld.choices import Alignment, ColmapOptions
-from panoworld.params import options, param
-from panoworld.stage import Input, StageInputError, stage_main
+from panoworld.core import registry as backends
+from panoworld.core.params import options, param
+from panoworld.framework.stage import Input, StageInputError, stage_main
+from panoworld.poses.backends import Job
+from panoworld.poses.backends.vggt import VggtOptions
+from panoworld.poses.options import Alignment, ColmapOptions
 
 NAME = "poses"
 VERSION = "2"
@@ -43,7 +43,7 @@ class DepthSource(enum.StrEnum):
 @dataclass(kw_only=True)
 class Params:
     backend: str = param("colmap", choices=backends.names(NAME))
-    """Pose estimator: colmap, planned or vggt (panoworld/backends/poses/)."""
+    """Pose estimator: colmap, planned or vggt (panoworld/poses/backends/)."""
     align: Alignment = Alignment.SIM3
     """How estimates enter the canonical frame: sim3 to the plan (colmap needs it), se3 (keep the estimated metric
     scale), or none (vggt's own camera-0 frame)."""
@@ -64,11 +64,8 @@ class Params:
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
-    from panoworld.poses import (
-        read_planned_trajectory,
-        read_video_frames,
-        write_poses_artifact,
-    )
+    from panoworld.io.video import read_video_frames
+    from panoworld.poses.estimate import read_planned_trajectory, write_poses_artifact
 
     video = read_video_frames(inputs["video"])
     planned = read_planned_trajectory(inputs["trajectory"]) if inputs.get("trajectory") else video.poses
@@ -97,7 +94,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
 
 def _choose_depth(src: DepthSource, video, est) -> tuple[list | None, str]:
     """Per-frame depth to write (PNG paths to copy or arrays in metres) and where it came from."""
-    from panoworld.poses import DEPTH_SCALE, read_depth_png
+    from panoworld.io.depth_png import read_depth_png
+    from panoworld.io.video import DEPTH_SCALE
 
     if src == DepthSource.VIDEO and not video.has_depth:
         raise StageInputError("depth_source=video but video.json has no depth; use --depth-source auto or none")

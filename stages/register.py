@@ -7,8 +7,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from panoworld.framework.stage import Input, StageInputError, stage_main
 from panoworld.register.options import RegisterOptions
-from panoworld.stage import Input, StageInputError, stage_main
 
 NAME = "register"
 VERSION = "1"
@@ -34,7 +34,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
 
         info = register_scene(inputs["scene"], params, out_dir)
     elif inputs.get("depth") is not None:
-        from panoworld.home.layout import home_depth_dirs
+        from panoworld.io.home import home_depth_dirs
         from panoworld.register.artifact import register_depth_dirs
 
         info = register_depth_dirs(home_depth_dirs(inputs["depth"]), inputs.get("poses"), params, out_dir)

@@ -10,12 +10,12 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.conventions import invert_pose
-from panoworld.home.layout import capture_poses
-from panoworld.mesh import load_erp_mesh
+from panoworld.core.conventions import invert_pose
+from panoworld.core.params import param
+from panoworld.framework.stage import Input, StageInputError, stage_main
+from panoworld.geometry.erp_mesh import load_erp_mesh
+from panoworld.io.home import capture_poses
 from panoworld.navmesh import load_navmesh
-from panoworld.params import param
-from panoworld.stage import Input, StageInputError, stage_main
 from panoworld.trajectory import (
     MIN_SECTOR_DIST_M,
     PathKind,

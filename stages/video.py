@@ -12,12 +12,12 @@ from typing import ClassVar
 
 import numpy as np
 
-from panoworld import backends
-from panoworld.backends.video import Job
-from panoworld.backends.video.warp_inpaint import WarpOptions
+from panoworld.core import registry as backends
+from panoworld.core.params import options, param
+from panoworld.framework.stage import Input, StageInputError, stage_main
 from panoworld.models.wan_config import WanShortcutConfig
-from panoworld.params import options, param
-from panoworld.stage import Input, StageInputError, stage_main
+from panoworld.video.backends import Job
+from panoworld.video.backends.warp_inpaint import WarpOptions
 
 NAME = "video"
 VERSION = "2"
@@ -39,7 +39,7 @@ class Upscale(enum.StrEnum):
 @dataclass(kw_only=True)
 class Params:
     backend: str = param("warp-inpaint", choices=backends.names(NAME))
-    """How disoccluded pixels are filled: warp-inpaint, frame-inpaint or wan-shortcut (panoworld/backends/video/)."""
+    """How disoccluded pixels are filled: warp-inpaint, frame-inpaint or wan-shortcut (panoworld/video/backends/)."""
     upscale: Upscale = Upscale.NONE
     """Also write the frames x2 upscaled into upscaled/ (an output for viewing; frames/, which later stages read, stay
     at the generation size): none, lanczos (seam-aware) or realesrgan (needs --upscale-weights, the paper's)."""
@@ -82,10 +82,10 @@ def _device(name: str) -> str:
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     from tqdm import tqdm
 
-    from panoworld.conditions import load_conditions
+    from panoworld.conditions.warp import load_conditions
+    from panoworld.io.video import VideoWriter
     from panoworld.trajectory import load_clips, load_trajectory, read_trajectory_doc
-    from panoworld.upscale import FrameUpscaler
-    from panoworld.video_io import VideoWriter
+    from panoworld.video.upscale import FrameUpscaler
 
     if params.upscale == Upscale.REALESRGAN and not (params.upscale_weights and Path(params.upscale_weights).is_file()):
         raise StageInputError(

@@ -20,7 +20,7 @@ def pytest_configure(config):
 @pytest.fixture(scope="session")
 def synth_dataset(tmp_path_factory):
     """Three ci-tiny synthetic scenes (seeded), generated once per test session."""
-    from panoworld.synth.cli import main as synth_main
+    from panoworld.tools.synth.cli import main as synth_main
 
     root = tmp_path_factory.mktemp("synth") / "dataset"
     assert synth_main([str(root), "--seed", "11", "--scenes", "3", "--preset", "ci-tiny"]) == 0
@@ -36,7 +36,7 @@ def synth_scene(synth_dataset):
 @pytest.fixture(scope="session")
 def cond_dir(synth_dataset, tmp_path_factory):
     """A precompute output of synth_dataset: 2 clips per scene, 5 frames, 32 x 64 (the video trainer's tests)."""
-    from panoworld.precompute import main as precompute_main
+    from panoworld.tools.precompute.run import main as precompute_main
 
     out = tmp_path_factory.mktemp("cond") / "cond"
     assert precompute_main([str(synth_dataset), "--out", str(out), "--clips-per-scene", "2", "--frames", "5",
@@ -53,7 +53,7 @@ def home_dir(tmp_path_factory):
     """A ci-tiny home (seed 7) of >= 3 rooms captured by 3 panoramas at HOME_HEIGHT rows, with gt/poses.json."""
     from dataclasses import replace
 
-    from panoworld.synth.home import generate_home, home_params, write_home
+    from panoworld.tools.synth.home import generate_home, home_params, write_home
 
     params = home_params("ci-tiny")
     params = replace(params, render=replace(params.render, pano_height=HOME_HEIGHT))

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from panoworld.align import (
+from panoworld.core.conventions import pose_from_rt
+from panoworld.geometry.align import (
     align_trajectory,
     apply_sim3,
     path_length,
@@ -12,7 +13,6 @@ from panoworld.align import (
     trajectory_metrics,
     umeyama,
 )
-from panoworld.conventions import pose_from_rt
 
 
 def random_trajectory(n: int, seed: int, planar: bool = False) -> np.ndarray:
@@ -199,7 +199,7 @@ def test_trajectory_shape_errors_are_self_describing():
 
 def test_one_pose_checker_for_metrics_and_trajectory_files(tmp_path):
     """align (metrics) and trajectory files share conventions.check_poses: same rigidity rule and tolerance."""
-    from panoworld.conventions import POSE_RIGID_TOL, check_poses
+    from panoworld.core.conventions import POSE_RIGID_TOL, check_poses
     from panoworld.trajectory import TrajectoryFileError, read_trajectory_file
 
     good = np.tile(np.eye(4), (3, 1, 1))

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from panoworld.asset import read_asset_doc, write_asset_doc
-from panoworld.conventions import invert_pose, transform_points
+from panoworld.core.conventions import invert_pose, transform_points
 from tests.test_report import pipeline_scene  # noqa: F401 - the shared session fixture (ci-tiny, every stage run)
 
 pxr = pytest.importorskip("pxr", reason="the sim extra: pip install -e '.[sim]'")
@@ -30,7 +30,7 @@ def asset(pipeline_scene):  # noqa: F811
 
 
 def test_asset_doc_reader_names_the_file(tmp_path):
-    from panoworld.errors import ArtifactError
+    from panoworld.core.errors import ArtifactError
 
     doc = {"asset_from_canonical": np.eye(4).tolist(), "spawn": [0.0, 0.0, 0.0]}
     write_asset_doc(tmp_path, doc)
@@ -158,7 +158,7 @@ def test_camera_animation_follows_the_planned_poses(stage, asset, pipeline_scene
 def test_asset_frame_and_spawn_match_ground_truth(asset, pipeline_scene):  # noqa: F811
     import trimesh
 
-    from panoworld.synth.scene import SynthScene
+    from panoworld.tools.synth.scene import SynthScene
     from panoworld.trajectory import mesh_clearance
 
     gt = SynthScene.load(pipeline_scene / "gt")
@@ -215,9 +215,9 @@ def test_several_paths_become_several_cameras(pipeline_scene, tmp_path):  # noqa
     from pxr import Usd, UsdGeom
 
     from panoworld.asset import build_asset
-    from panoworld.mesh import load_erp_mesh
+    from panoworld.geometry.erp_mesh import load_erp_mesh
+    from panoworld.io.splat_ply import read_gaussians_ply
     from panoworld.navmesh import load_navmesh
-    from panoworld.splat_ply import read_gaussians_ply
 
     arts = pipeline_scene / "artifacts"
     traj = tmp_path / "trajectory"
@@ -240,7 +240,7 @@ def test_several_paths_become_several_cameras(pipeline_scene, tmp_path):  # noqa
 
 def test_unreadable_gaussians_is_one_line_exit_2_nothing_written(pipeline_scene, tmp_path):  # noqa: F811
     import stages.asset as stage
-    from panoworld.errors import InputError
+    from panoworld.core.errors import InputError
 
     arts = pipeline_scene / "artifacts"
     bad = tmp_path / "gaussians"

@@ -10,15 +10,15 @@ import pytest
 import torch
 import trimesh
 
-from panoworld.back_sides import back_side_layer, edge_clear, plane_clear
-from panoworld.conventions import erp_dirs, points_from_depth
-from panoworld.erp_render import render_erp
-from panoworld.fusion_params import FusionParams
-from panoworld.mesh import erp_mesh_from_depth
-from panoworld.metrics import psnr
+from panoworld.core.conventions import erp_dirs, points_from_depth
+from panoworld.gaussians.fusion_params import FusionParams
+from panoworld.gaussians.pixel import merge_gaussians, pixel_gaussians
+from panoworld.geometry.erp_mesh import erp_mesh_from_depth
+from panoworld.geometry.raycast import Raycaster
 from panoworld.navmesh.build import build_navmesh
-from panoworld.pixel_gaussians import merge_gaussians, pixel_gaussians
-from panoworld.raycast import Raycaster
+from panoworld.render.erp import render_erp
+from panoworld.render.metrics import psnr
+from panoworld.room.back_sides import back_side_layer, edge_clear, plane_clear
 
 torch.set_num_threads(1)
 H, W = 192, 384

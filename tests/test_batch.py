@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 
 import runner
-from panoworld.batch.run import FAILURES, SUMMARY
-from panoworld.batch.variants import parse_sweeps, read_variant
-from panoworld.pipeline import Pipeline, PipelineError
+from panoworld.framework.pipeline import Pipeline, PipelineError
+from panoworld.tools.batch.run import FAILURES, SUMMARY
+from panoworld.tools.batch.variants import parse_sweeps, read_variant
 
 SHARED = ("depth", "mesh", "navmesh")
 RUN = ["--preset", "ci-tiny", "--until", "poses", "--sweep", "trajectory.stride=1,2", "--json"]
@@ -120,8 +120,8 @@ def test_ray_executor_gives_the_same_artifacts_and_tables(dataset, first_run, tm
     pytest.importorskip("ray")
     import ray
 
-    from panoworld.eval.tables import build_tables
-    from panoworld.evaluate import EvalParams, evaluate_scene
+    from panoworld.tools.eval.cli import EvalParams, evaluate_scene
+    from panoworld.tools.eval.tables import build_tables
 
     scene = dataset["scenes"][0]
     ray_root = tmp_path / "data"

@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from panoworld.colmap_images import (
+from panoworld.poses.colmap_images import (
     THUMB_SUFFIX,
     Thumbnailer,
     grey_reference,
@@ -96,7 +96,7 @@ def test_write_thumbnails_declines_what_colmap_reads_differently(tmp_path):
 
 
 def test_point_colors_are_colmaps(tmp_path):
-    from panoworld.poses import reconstruction_from_poses
+    from panoworld.poses.estimate import reconstruction_from_poses
 
     h, w = 60, 120
     rng = np.random.default_rng(7)

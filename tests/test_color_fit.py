@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from panoworld.erp_render import render_erp
-from panoworld.gaussians import Gaussians, rgb_to_sh_dc
+from panoworld.io.gaussian_set import Gaussians, rgb_to_sh_dc
+from panoworld.render.erp import render_erp
 
 torch.set_num_threads(1)
 
@@ -32,8 +32,8 @@ def shell_and_clutter(seed: int = 0) -> Gaussians:
 
 
 def test_face_candidates_keep_every_gaussian_project_keeps():
-    from panoworld.erp_render import erp_faces, face_cull
-    from panoworld.render_gs import _prepare, covariance_3d, invert_pose, project
+    from panoworld.render.erp import erp_faces, face_cull
+    from panoworld.render.splats import _prepare, covariance_3d, invert_pose, project
 
     g = shell_and_clutter(1)
     pose = np.eye(4)
@@ -53,7 +53,7 @@ def test_face_candidates_keep_every_gaussian_project_keeps():
 def test_view_candidates_keep_every_gaussian_an_off_centre_pinhole_keeps():
     # render_perspective projects only view_candidates' Gaussians: a superset of what project keeps on all of them,
     # here for a pinhole with fx != fy and the principal point off centre, in several directions.
-    from panoworld.render_gs import _prepare, cull_terms, invert_pose, project, render_perspective, view_candidates
+    from panoworld.render.splats import _prepare, cull_terms, invert_pose, project, render_perspective, view_candidates
 
     g = shell_and_clutter(2)
     pose = np.eye(4)
@@ -79,7 +79,7 @@ def test_view_candidates_keep_every_gaussian_an_off_centre_pinhole_keeps():
 
 @pytest.mark.parametrize("supersample, tile", [(1, 8), (2, 4), (2, 16)])
 def test_masked_operator_is_the_render_on_the_pixels_it_keeps(supersample, tile):
-    from panoworld.erp_operator import ErpColorOperator
+    from panoworld.render.erp_operator import ErpColorOperator
 
     g = shell_and_clutter()
     pose = np.eye(4)
@@ -139,7 +139,7 @@ def test_degree_one_fit_recovers_a_view_dependent_colour_between_its_views():
     # A shell whose true colours depend on the side it is seen from (degree-1 SH along x); three views 0.6 m apart
     # along x. Fitting DC only gives one colour per Gaussian; the degree-1 fit follows the change, so a held-out view
     # between two of them is closer to the truth. Seen from one view only, the degree-1 terms stay near 0.
-    from panoworld.pixel_gaussians import fit_colors
+    from panoworld.gaussians.pixel import fit_colors
 
     g, truth, rest, pose_at, view = view_dependent_shell(3)
     H, W = SHELL_H, SHELL_W
@@ -168,7 +168,7 @@ def test_degree_one_fit_recovers_a_view_dependent_colour_between_its_views():
 def test_views_fitting_only_the_degree_one_terms_keep_the_capture_points_fit():
     # views_sh_only: the capture point renders exactly as its fit without the views (its colours are that fit's), while
     # the degree-1 terms the views fit still bring a held-out view between them closer to the truth.
-    from panoworld.pixel_gaussians import fit_colors
+    from panoworld.gaussians.pixel import fit_colors
 
     g, truth, _, pose_at, view = view_dependent_shell(4)
     H, W = SHELL_H, SHELL_W
@@ -193,8 +193,8 @@ def test_the_views_fit_on_the_gaussians_they_see_alone_is_the_fit_on_all():
     # views_seen_only (the default): the s-only CG runs on the Gaussians the views' weighted pixels see; the others'
     # gradient is 0, so the fit is the one on all Gaussians (to float32 rounding: CG's sums run over other lengths),
     # and those keep the capture fit's colours exactly.
-    from panoworld.erp_operator import ErpColorOperator
-    from panoworld.pixel_gaussians import fit_colors
+    from panoworld.gaussians.pixel import fit_colors
+    from panoworld.render.erp_operator import ErpColorOperator
 
     g, truth, _, pose_at, view = view_dependent_shell(5)
     H, W = SHELL_H, SHELL_W

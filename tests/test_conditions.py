@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from panoworld.conditions import (
+from panoworld.conditions.warp import (
     MeshReference,
     load_conditions,
     render_conditions,
@@ -17,16 +17,11 @@ from panoworld.conditions import (
     warp_quality,
     write_conditions,
 )
-from panoworld.conventions import (
-    invert_pose,
-    points_from_depth,
-    pose_from_rt,
-    transform_points,
-)
-from panoworld.mesh import erp_mesh_from_depth, save_erp_mesh
-from panoworld.rasterize import ErpRasterizer
-from panoworld.raycast import Raycaster
-from panoworld.stage import StageInputError, execute_stage, load_stage, params_from_dict
+from panoworld.core.conventions import invert_pose, points_from_depth, pose_from_rt, transform_points
+from panoworld.framework.stage import StageInputError, execute_stage, load_stage, params_from_dict
+from panoworld.geometry.erp_mesh import erp_mesh_from_depth, save_erp_mesh
+from panoworld.geometry.raycast import Raycaster
+from panoworld.render.rasterize import ErpRasterizer
 from panoworld.trajectory import write_trajectory
 
 H, W = 48, 96
@@ -148,7 +143,7 @@ def test_warp_iou_and_psnr_on_a_room(room_mesh):
 def test_warp_quality_on_synthetic_scenes():
     """The issue's target: 0.5 m from the source, PSNR >= 28 dB on valid & visible pixels and IoU >= 0.75 of the
     'must be generated' sets (mask == 0 vs true disocclusion), averaged over 10 seeds at 512 x 1024."""
-    from panoworld.synth import generate_scene
+    from panoworld.tools.synth import generate_scene
 
     h = 512
     scores = []

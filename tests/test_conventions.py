@@ -1,11 +1,11 @@
-"""Round trips and anchors for every mapping in panoworld/conventions.py."""
+"""Round trips and anchors for every mapping in panoworld/core/conventions.py."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from panoworld import conventions as cv
+from panoworld.core import conventions as cv
 
 RNG = np.random.default_rng(7)
 

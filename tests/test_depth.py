@@ -8,10 +8,13 @@ import cv2
 import numpy as np
 import pytest
 
-from panoworld import depth as dep
-from panoworld.cube_views import cube_views, merge_view_predictions, render_view
-from panoworld.depth import DepthKind, Rescale
-from panoworld.stage import StageInputError, execute_stage, load_stage, params_from_dict
+from panoworld.core.conventions import erp_dirs
+from panoworld.depth import depth_map as dep
+from panoworld.depth.depth_map import Rescale
+from panoworld.framework.stage import StageInputError, execute_stage, load_stage, params_from_dict
+from panoworld.geometry.cube_views import cube_views, merge_view_predictions, render_view
+from panoworld.io.depth import DepthKind, read_depth, read_panorama
+from panoworld.room.floor import estimate_floor
 from tests.test_mesh import CAMERA_HEIGHT, BoxRoom
 
 
@@ -40,21 +43,21 @@ def write_png(path, rgb):
 def test_read_depth_formats(room, tmp_path):
     _, _, depth = room
     np.save(tmp_path / "d.npy", depth)
-    np.testing.assert_array_equal(dep.read_depth(tmp_path / "d.npy"), depth)
+    np.testing.assert_array_equal(read_depth(tmp_path / "d.npy"), depth)
     cv2.imwrite(str(tmp_path / "d.png"), np.rint(depth / 0.00025).astype(np.uint16))
-    np.testing.assert_allclose(dep.read_depth(tmp_path / "d.png", png_scale=0.00025), depth, atol=0.000126)
+    np.testing.assert_allclose(read_depth(tmp_path / "d.png", png_scale=0.00025), depth, atol=0.000126)
     cv2.imwrite(str(tmp_path / "d8.png"), np.rint(depth * 10).astype(np.uint8))
     with pytest.raises(StageInputError, match="8-bit PNG cannot hold depth"):
-        dep.read_depth(tmp_path / "d8.png")
+        read_depth(tmp_path / "d8.png")
     (tmp_path / "bad.npy").write_bytes(b"not numpy at all")
     with pytest.raises(StageInputError, match="bad.npy: cannot read"):
-        dep.read_depth(tmp_path / "bad.npy")
+        read_depth(tmp_path / "bad.npy")
     (tmp_path / "bad.png").write_bytes(b"\x89PNG garbage")
     with pytest.raises(StageInputError, match="bad.png: depth PNG is corrupt or not an image"):
-        dep.read_depth(tmp_path / "bad.png")
+        read_depth(tmp_path / "bad.png")
     depth.tofile(tmp_path / "d.raw")
     with pytest.raises(StageInputError, match="unsupported depth format"):
-        dep.read_depth(tmp_path / "d.raw")
+        read_depth(tmp_path / "d.raw")
 
 
 def test_read_exr(room, tmp_path):
@@ -63,21 +66,21 @@ def test_read_exr(room, tmp_path):
     with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
                       {"Z": depth.astype(np.float32)}) as f:
         f.write(str(tmp_path / "d.exr"))
-    np.testing.assert_array_equal(dep.read_depth(tmp_path / "d.exr"), depth)
+    np.testing.assert_array_equal(read_depth(tmp_path / "d.exr"), depth)
     (tmp_path / "bad.exr").write_bytes(b"v/1\x01 not an exr")
     with pytest.raises(StageInputError, match="bad.exr: cannot read"):
-        dep.read_depth(tmp_path / "bad.exr")
+        read_depth(tmp_path / "bad.exr")
 
 
 def test_panorama_checks(room, tmp_path):
     _, rgb, _ = room
     write_png(tmp_path / "wide.png", np.zeros((64, 100, 3), np.uint8))
     with pytest.raises(StageInputError, match=r"wide.png: panorama is 100x64 .* must be 2:1"):
-        dep.read_panorama(tmp_path / "wide.png")
+        read_panorama(tmp_path / "wide.png")
     (tmp_path / "broken.jpg").write_bytes(b"\xff\xd8\xff garbage")
     with pytest.raises(StageInputError, match="broken.jpg: panorama is corrupt or not an image"):
-        dep.read_panorama(tmp_path / "broken.jpg")
-    np.testing.assert_array_equal(dep.read_panorama(write_png(tmp_path / "p.png", rgb)), rgb)
+        read_panorama(tmp_path / "broken.jpg")
+    np.testing.assert_array_equal(read_panorama(write_png(tmp_path / "p.png", rgb)), rgb)
 
 
 def test_conform_depth(room):
@@ -124,7 +127,7 @@ def test_fill_scan_line_gaps():
 
 def test_floor_recovers_camera_height():
     rgb, depth = BoxRoom().render(np.eye(4), 96, 192)
-    fit = dep.estimate_floor(depth, np.ones_like(depth, bool))
+    fit = estimate_floor(depth, np.ones_like(depth, bool))
     assert fit.camera_height == pytest.approx(CAMERA_HEIGHT, rel=1e-3)
     assert fit.support > 0.3
     raw = depth * 3.7  # unknown units
@@ -154,7 +157,7 @@ def test_no_floor_is_an_input_error(room):
     _, _, depth = room
     upper = np.zeros_like(depth, bool)
     upper[:30] = True
-    assert dep.estimate_floor(depth, upper) is None
+    assert estimate_floor(depth, upper) is None
     with pytest.raises(StageInputError, match="no horizontal floor"):
         dep.metric_rescale(depth, upper, relative=True, rescale=Rescale.RELATIVE_ONLY, camera_height=1.6)
 
@@ -190,7 +193,7 @@ def test_merge_is_seamless(kind):
     rel = np.abs(res.depth * scale - gt) / gt
     assert np.median(rel) < 1e-3 and np.percentile(rel, 99) < 0.02  # the rest: bilinear resampling at depth edges
     # No seams: the error along view borders is no larger than inside the views.
-    dirs = dep.erp_dirs(96, 192, dtype=np.float64)
+    dirs = erp_dirs(96, 192, dtype=np.float64)
     n_cover = sum(np.isfinite(v.project(dirs)[0]) & (np.abs(v.project(dirs)[0] - 47.5) <= 47.5)
                   & (np.abs(v.project(dirs)[1] - 47.5) <= 47.5) for v in views)
     assert np.median(rel[n_cover > 1]) < 2e-3

@@ -3,7 +3,7 @@
 import numpy as np
 import torch
 
-from panoworld.eig3 import eigh3
+from panoworld.gaussians.eig3 import eigh3
 
 
 def _covs(n: int, seed: int = 0) -> torch.Tensor:

@@ -12,9 +12,11 @@ import numpy as np
 import pytest
 import torch
 
-from panoworld import pipeline as pl
-from panoworld.conventions import invert_pose, points_from_depth, transform_points
-from panoworld.evaluate import (
+from panoworld.core.conventions import invert_pose, points_from_depth, transform_points
+from panoworld.framework import pipeline as pl
+from panoworld.models.lpips import LPIPS
+from panoworld.models.weights import MissingWeightsError
+from panoworld.tools.eval.cli import (
     EvalParams,
     GroundTruth,
     depth_errors,
@@ -23,8 +25,6 @@ from panoworld.evaluate import (
     main,
     true_disocclusion,
 )
-from panoworld.models.lpips import LPIPS
-from panoworld.models.weights import MissingWeightsError
 
 COND_H, VIDEO_H = 32, 64
 OFFSET = 10  # every pixel of the test conditions is off by exactly this: PSNR = 20 log10(255 / 10)
@@ -71,8 +71,8 @@ def _write_conditions(d: Path, gt: GroundTruth, poses: np.ndarray, tol: float) -
 def scene(synth_scene, tmp_path_factory):
     """A copy of the ci-tiny synthetic scene: depth and mesh from the pipeline; trajectory, conditions, video and
     poses written directly along the ground-truth track (so their metrics are known exactly)."""
+    from panoworld.io.video import write_video
     from panoworld.trajectory import write_trajectory
-    from panoworld.video_io import write_video
 
     root = tmp_path_factory.mktemp("eval") / "scene"
     shutil.copytree(synth_scene, root, ignore=shutil.ignore_patterns("artifacts"))
@@ -228,8 +228,8 @@ def test_sim3_moved_poses_still_give_zero_ate_and_too_few_registered_is_unavaila
 
 
 def test_gaussians_context_and_novel_views(scene, tmp_path):
-    from panoworld.gaussians import Gaussians, rgb_to_sh_dc
-    from panoworld.splat_ply import write_gaussians_ply
+    from panoworld.io.gaussian_set import Gaussians, rgb_to_sh_dc
+    from panoworld.io.splat_ply import write_gaussians_ply
 
     root = tmp_path / "gs"
     shutil.copytree(scene["root"], root)
@@ -372,9 +372,9 @@ def _planned_poses_artifact(art: Path, poses: np.ndarray, height: int) -> None:
 def test_frames_and_poses_scene_without_a_mesh(synth_scene, tmp_path):
     """An InteriorGS-like scene (ground-truth frames + poses, no mesh) made with the converter from a synthetic
     track: the video is scored against the ground-truth frame at each pose; mesh metrics say why they are missing."""
-    from panoworld.eval.convert import convert_frames_scene
+    from panoworld.io.video import write_video
+    from panoworld.tools.eval.convert import convert_frames_scene
     from panoworld.trajectory import write_trajectory
-    from panoworld.video_io import write_video
 
     root = convert_frames_scene(synth_scene / "gt" / "tracks" / "track_00.json", tmp_path / "frames_scene",
                                 "../frames/track_00/rgb/{:06d}.png", "../frames/track_00/depth/{:06d}.npy", stride=2)
@@ -425,8 +425,8 @@ def test_plan_only_scene_scores_poses_against_the_plan_and_the_loop(tmp_path, ca
     from scipy.ndimage import gaussian_filter
     from scipy.spatial.transform import Rotation
 
+    from panoworld.io.video import write_video
     from panoworld.trajectory import write_trajectory
-    from panoworld.video_io import write_video
 
     root = tmp_path / "plan_scene"
     art = root / "artifacts"
@@ -469,9 +469,9 @@ def test_plan_only_scene_scores_poses_against_the_plan_and_the_loop(tmp_path, ca
 def test_dataset_fid_and_fvd_with_local_feature_networks(scene, tmp_path):
     """FID/FVD over scenes with randomly initialised networks saved in the reference file layouts: the whole path
     from artifacts to a table cell runs; without weights each says which file to pass."""
-    from panoworld.eval.distribution import distribution_metrics
-    from panoworld.eval.tables import build_tables, group_key
     from panoworld.models.inception import FIDInceptionV3
+    from panoworld.tools.eval.distribution import distribution_metrics
+    from panoworld.tools.eval.tables import build_tables, group_key
 
     units = [(scene["root"], None), (scene["root"], None)]  # FVD needs two clips; FID runs on the first unit only
     none = distribution_metrics(units, EvalParams())

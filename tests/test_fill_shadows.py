@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from panoworld.background_layer import build_background_layer
-from panoworld.conventions import points_from_depth
-from panoworld.fill_shadows import LIGHT_DROP_M, ceiling_lights, shadow_gain
-from panoworld.mesh import erp_mesh_from_depth
-from panoworld.raycast import Raycaster
-from panoworld.rig_shadow import apply_gain
+from panoworld.core.conventions import points_from_depth
+from panoworld.geometry.erp_mesh import erp_mesh_from_depth
+from panoworld.geometry.raycast import Raycaster
+from panoworld.room.fill_shadows import LIGHT_DROP_M, ceiling_lights, shadow_gain
+from panoworld.room.light import apply_gain
+from panoworld.video.background_layer import build_background_layer
 
 H, W = 96, 192
 FLOOR, CEILING = 1.2, -1.6

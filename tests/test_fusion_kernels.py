@@ -1,11 +1,12 @@
-"""fusion_kernels against their numpy/torch oracles (frame_observations' numpy, gaussians.voxel_sums / merge_voxel_sums): bit for bit."""
+"""fusion_kernels against their numpy/torch oracles (frame_observations' numpy, geometry.voxels.voxel_sums / merge_voxel_sums): bit for bit."""
 
 import numpy as np
 import pytest
 import torch
 
-from panoworld.fusion_kernels import frame_moment_sums, merge_sums
-from panoworld.gaussians import Observations, _moment_values, merge_voxel_sums, voxel_keys, voxel_sums
+from panoworld.gaussians.fusion import Observations, _moment_values
+from panoworld.gaussians.fusion_kernels import frame_moment_sums, merge_sums
+from panoworld.geometry.voxels import merge_voxel_sums, voxel_keys, voxel_sums
 
 
 def _observations(rng, m, spread):
@@ -80,8 +81,8 @@ def _frame_points_reference(depth, dirs, world_from_cam, max_depth):
 def test_frame_points_equal_numpy_bitwise(max_depth, dtype):
     from scipy.spatial.transform import Rotation
 
-    from panoworld.conventions import erp_dirs
-    from panoworld.fusion_kernels import frame_points
+    from panoworld.core.conventions import erp_dirs
+    from panoworld.gaussians.fusion_kernels import frame_points
 
     rng = np.random.default_rng(2)
     depth = rng.uniform(0.3, 8.0, (64, 128)).astype(dtype)
@@ -101,9 +102,9 @@ def test_frame_points_equal_numpy_bitwise(max_depth, dtype):
 
 
 def test_frame_footprints_equal_numpy_bitwise():
-    from panoworld.conventions import erp_dirs
-    from panoworld.fusion_kernels import frame_footprints, frame_points
-    from panoworld.gaussians import _neighbour_steps
+    from panoworld.core.conventions import erp_dirs
+    from panoworld.gaussians.fusion import _neighbour_steps
+    from panoworld.gaussians.fusion_kernels import frame_footprints, frame_points
 
     rng = np.random.default_rng(4)
     h, w = 48, 96

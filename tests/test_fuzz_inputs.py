@@ -16,11 +16,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from panoworld import artifacts as art
-from panoworld import pipeline as pl
-from panoworld.errors import PanoWorldError
-from panoworld.limits import MAX_POSES, MAX_TRANSLATION_M
-from panoworld.stage import execute_stage, load_stage, params_from_dict
+from panoworld.core.errors import PanoWorldError
+from panoworld.core.limits import MAX_POSES, MAX_TRANSLATION_M
+from panoworld.framework import pipeline as pl
+from panoworld.framework.stage import execute_stage, load_stage, params_from_dict
+from panoworld.io import manifest as art
 from panoworld.trajectory import TrajectoryFileError, read_trajectory_file
 
 FAST = settings(max_examples=int(os.environ.get("PANOWORLD_FUZZ_EXAMPLES", 25)), deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,
@@ -84,7 +84,7 @@ def test_set_values_never_traceback(scene_dir, name, value):
         sets = pl.parse_sets([f"{name}={value}"], PIPE)
         scene = pl.open_scene(scene_dir, PIPE)
         params = pl.resolve_params(PIPE, None, scene, sets, list(PIPE.order))
-        from panoworld.hub import resolve as hub
+        from panoworld.framework.hub import resolve as hub
 
         for stage in PIPE.order:
             hub.check_params_weights(params[stage], where=f"{stage}.")

@@ -13,22 +13,13 @@ import pytest
 import torch
 import trimesh
 
-from panoworld.conventions import erp_dirs
-from panoworld.erp_render import render_erp
-from panoworld.gaussians import (
-    FUSION_EPS,
-    SH_C0,
-    FusionParams,
-    frame_observations,
-    fuse_voxels,
-    merge_voxel_sums,
-    uniform_subset,
-    voxel_fusion,
-    voxel_keys,
-    voxel_sums,
-)
-from panoworld.metrics import psnr
-from panoworld.raycast import Raycaster
+from panoworld.core.conventions import erp_dirs
+from panoworld.gaussians.fusion import FusionParams, frame_observations, uniform_subset, voxel_fusion
+from panoworld.geometry.raycast import Raycaster
+from panoworld.geometry.voxels import FUSION_EPS, fuse_voxels, merge_voxel_sums, voxel_keys, voxel_sums
+from panoworld.io.gaussian_set import SH_C0
+from panoworld.render.erp import render_erp
+from panoworld.render.metrics import psnr
 
 torch.set_num_threads(1)
 
@@ -118,7 +109,7 @@ def test_fusion_streams_frames_and_bounds_its_accumulators(room, monkeypatch):
     every MERGE_EVERY frames, with the same result as fusing the frames held in a list."""
     import weakref
 
-    from panoworld import gaussians as gs
+    from panoworld.gaussians import fusion as gs
 
     poses = [pose_at(0.05 * k, 0.0, -0.04 * k) for k in range(12)]
     cache = {i: room(p, 32, 64) for i, p in enumerate(poses)}
@@ -254,15 +245,15 @@ def write_inputs(tmp: Path, room, *, with_depth: bool = True) -> tuple[Path, Pat
 
 def _params(**values):
     """The gaussians stage's Params from flat names (voxel-fusion's options among them), as --set takes them."""
-    from panoworld.stage import params_from_dict
+    from panoworld.framework.stage import params_from_dict
     from stages.gaussians import Params
 
     return params_from_dict(Params, values, "gaussians")
 
 
 def test_stage_writes_a_valid_artifact(tmp_path, room):
-    from panoworld.splat_ply import read_gaussians_ply
-    from panoworld.stage import execute_stage, load_stage
+    from panoworld.framework.stage import execute_stage, load_stage
+    from panoworld.io.splat_ply import read_gaussians_ply
 
     video, poses = write_inputs(tmp_path, room)
     spec = load_stage("gaussians")
@@ -284,7 +275,7 @@ def test_stage_writes_a_valid_artifact(tmp_path, room):
     assert capped["fusion_height"] == 32 and capped["num_observations"] < 0.3 * info["num_observations"]
     assert capped["color_fit"] is None
     # source_scale sizes the per-pixel Gaussians of the source only (they come first in the .ply)
-    from panoworld.backends.gaussians.voxel_fusion import VoxelFusionOptions
+    from panoworld.gaussians.backends.voxel_fusion import VoxelFusionOptions
 
     wide = execute_stage(spec, {"video": video, "poses": poses},
                          _params(voxel_size=0.05, eval_views=0, source_scale=2 * VoxelFusionOptions().source_scale),
@@ -305,7 +296,7 @@ def test_stage_writes_a_valid_artifact(tmp_path, room):
 
 
 def test_context_source_reads_ahead_and_yields_the_frames_in_order(tmp_path, room):
-    from panoworld.gaussians import context_source
+    from panoworld.gaussians.fusion import context_source
 
     video, poses = write_inputs(tmp_path, room)
     src = context_source(video, poses)
@@ -322,7 +313,7 @@ def test_context_source_reads_ahead_and_yields_the_frames_in_order(tmp_path, roo
 
 
 def test_stage_input_errors(tmp_path, room):
-    from panoworld.stage import StageInputError, execute_stage, load_stage
+    from panoworld.framework.stage import StageInputError, execute_stage, load_stage
     from stages.gaussians import Params
 
     spec = load_stage("gaussians")
@@ -344,8 +335,8 @@ def test_stage_input_errors(tmp_path, room):
 
 
 def test_a_scene_smaller_than_a_voxel_is_reported(tmp_path):
-    from panoworld.gaussians import ContextFrames
-    from panoworld.gaussians_artifact import write_artifact
+    from panoworld.gaussians.artifact import write_artifact
+    from panoworld.io.gaussian_set import ContextFrames
 
     rgb = np.full((16, 32, 3), 200, np.uint8)
     depth = np.full((16, 32), 0.004, np.float32)  # a 4 mm sphere around the camera
@@ -361,8 +352,8 @@ def test_source_pixels_reproduce_the_input_at_the_capture_point():
     # The source view's per-pixel Gaussians (the stage's footprint, unfitted as for a home) give back its own
     # (textured) image within a PSNR bound of the anti-aliased reference, and the other frames still fill the room for
     # a view elsewhere.
-    from panoworld.backends.gaussians.voxel_fusion import VoxelFusionOptions
-    from panoworld.pixel_gaussians import SourceVisibility, merge_gaussians, pixel_gaussians
+    from panoworld.gaussians.backends.voxel_fusion import VoxelFusionOptions
+    from panoworld.gaussians.pixel import SourceVisibility, merge_gaussians, pixel_gaussians
 
     room = _room_renderer(textured_color)
     ctx = [pose_at(*t) for t in [(0, 0, 0), (0.6, 0.1, 0.5), (-0.5, -0.1, -0.6)]]
@@ -392,7 +383,7 @@ def test_source_pixels_reproduce_the_input_at_the_capture_point():
 
 
 def test_source_visibility_keeps_only_what_the_source_cannot_see():
-    from panoworld.pixel_gaussians import SourceVisibility
+    from panoworld.gaussians.pixel import SourceVisibility
 
     depth = np.full((32, 64), 2.0, np.float32)  # a sphere of radius 2 around the camera
     depth[:, :8] = np.nan  # no depth in a band of longitudes
@@ -404,7 +395,7 @@ def test_source_visibility_keeps_only_what_the_source_cannot_see():
     moved = SourceVisibility(depth, pose_at(0, 0, 1.0), 0.03)  # the source's pose is honoured
     assert moved.explained(pts + [0, 0, 1.0]).tolist() == [True, True, True, False, False]
     # a splat behind the surface pokes through it when it reaches it (3 x its largest scale)
-    from panoworld.gaussians import Gaussians
+    from panoworld.io.gaussian_set import Gaussians
 
     means = np.stack([d * 2.05, d * 2.05, d * 2.2, d_none * 2.05]).astype(np.float32)
     scales = np.array([[0.03, 0.001, 0.001], [0.01, 0.01, 0.001], [0.1, 0.1, 0.1], [0.1, 0.1, 0.1]], np.float32)
@@ -415,7 +406,7 @@ def test_source_visibility_keeps_only_what_the_source_cannot_see():
 def test_source_lookup_kernel_matches_its_numpy_reference():
     from scipy.spatial.transform import Rotation
 
-    from panoworld.pixel_gaussians import SourceVisibility
+    from panoworld.gaussians.pixel import SourceVisibility
 
     rng = np.random.default_rng(3)
     depth = rng.uniform(1.0, 5.0, (90, 180))
@@ -443,7 +434,7 @@ def test_source_lookup_fast_atan_equals_libm_bitwise():
     # pixels as _source_lookup_exact everywhere, also for points on the pixel edges, the seam, the poles and the centre
     from scipy.spatial.transform import Rotation
 
-    from panoworld.pixel_gaussians import _source_lookup, _source_lookup_exact
+    from panoworld.gaussians.pixel import _source_lookup, _source_lookup_exact
 
     rng = np.random.default_rng(5)
     h, w = 96, 192
@@ -471,7 +462,7 @@ def test_source_lookup_fast_atan_equals_libm_bitwise():
 def test_frame_observations_filtered_before_footprints_equal_those_filtered_after(room):
     # keep_points drops pixels before their footprints are computed: the same observations, bit for bit, as computing
     # all of them and subsetting (depth edges at the block, a band without depth, the seam and the poles included).
-    from panoworld.pixel_gaussians import SourceVisibility
+    from panoworld.gaussians.pixel import SourceVisibility
 
     rgb0, d0 = room(pose_at(0, 0, 0), 48, 96)
     vis = SourceVisibility(d0, pose_at(0, 0, 0), 0.03)
@@ -488,7 +479,7 @@ def test_frame_observations_filtered_before_footprints_equal_those_filtered_afte
 
 
 def test_pole_thinning_keeps_about_square_pixels():
-    from panoworld.pixel_gaussians import pole_thinning
+    from panoworld.gaussians.pixel import pole_thinning
 
     keep = pole_thinning(256, 512)
     assert keep[128].all() and keep[:, 0].all()  # the equator row and the first column are whole
@@ -500,7 +491,7 @@ def test_pole_thinning_keeps_about_square_pixels():
 
 
 def test_resize_depth_keeps_smooth_surfaces_evenly_sampled_and_edges_sharp(room):
-    from panoworld.gaussians import DEPTH_EDGE_REL, resize_depth
+    from panoworld.geometry.resize import DEPTH_EDGE_REL, resize_depth
 
     pose = pose_at(0.2, 0.1, -0.3)
     _, d720 = room(pose, 180, 360)  # stored frames 180 rows, fused at 128 (the 720 -> 512 ratio)
@@ -525,7 +516,7 @@ def test_resize_depth_keeps_smooth_surfaces_evenly_sampled_and_edges_sharp(room)
 def test_colour_fit_at_the_capture_point_sharpens_it_and_keeps_other_views():
     # The render at the source pose is linear in the colours: fitting them to the source frame brings the render at
     # that pose closer to the frame and to the anti-aliased reference, and a view 0.4 m away gains too.
-    from panoworld.pixel_gaussians import fit_colors, pixel_gaussians
+    from panoworld.gaussians.pixel import fit_colors, pixel_gaussians
 
     room = _room_renderer(textured_color)
     src = pose_at(0, 0, 0)
@@ -552,7 +543,7 @@ def test_colour_fit_at_the_capture_point_sharpens_it_and_keeps_other_views():
 def test_colour_fit_with_views_from_aside_fits_them_and_a_zero_weight_view_changes_nothing():
     # A second view 0.4 m away joins the fit: the render there gets closer to its frame than with the capture point
     # alone; the same view at weight 0 gives the capture-only fit exactly.
-    from panoworld.pixel_gaussians import fit_colors, pixel_gaussians
+    from panoworld.gaussians.pixel import fit_colors, pixel_gaussians
 
     room = _room_renderer(textured_color)
     src, away = pose_at(0, 0, 0), pose_at(0.3, 0.05, -0.25)
@@ -574,7 +565,7 @@ def test_colour_fit_with_views_from_aside_fits_them_and_a_zero_weight_view_chang
 
 
 def test_spread_frames_picks_the_farthest_then_spreads():
-    from panoworld.pixel_gaussians import spread_frames
+    from panoworld.gaussians.pixel import spread_frames
 
     c = np.array([[0.5, 0, 0], [2.0, 0, 0], [1.9, 0, 0.1], [-1.5, 0, 0], [0, 0, 1.0]])
     assert spread_frames(c, 3) == [1, 3, 4]
@@ -582,9 +573,9 @@ def test_spread_frames_picks_the_farthest_then_spreads():
 
 
 def test_views_from_aside_weigh_what_the_source_saw_and_reach_the_stage(tmp_path, room):
-    from panoworld.gaussians import context_source
-    from panoworld.pixel_gaussians import SourceVisibility, view_targets
-    from panoworld.stage import execute_stage, load_stage
+    from panoworld.framework.stage import execute_stage, load_stage
+    from panoworld.gaussians.fusion import context_source
+    from panoworld.gaussians.pixel import SourceVisibility, view_targets
 
     video, poses = write_inputs(tmp_path, room)
     src = context_source(video, poses)
@@ -603,7 +594,7 @@ def test_views_from_aside_weigh_what_the_source_saw_and_reach_the_stage(tmp_path
                          _params(voxel_size=0.05, eval_views=0, fit_views=2, fit_view_height=32, fit_sh_degree=1),
                          tmp_path / "out", input_digests={"video": "0" * 64, "poses": "1" * 64})["info"]
     assert info["color_fit"]["views_from_aside"] == 1 and info["color_fit"]["sh_degree"] == 1
-    from panoworld.splat_ply import read_gaussians_ply
+    from panoworld.io.splat_ply import read_gaussians_ply
 
     g = read_gaussians_ply(tmp_path / "out" / "gaussians.ply")  # the view-dependent colours reach the .ply
     assert g.sh_degree == 3 and np.abs(g.sh_rest[:, :3]).max() > 0 and not g.sh_rest[:, 3:].any()

@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from panoworld.gaussians import SH_C0, fuse_voxels
+from panoworld.geometry.voxels import fuse_voxels
+from panoworld.io.gaussian_set import SH_C0
 from panoworld.models.gs_decoder import (
     GaussianHead,
     GaussianHeadConfig,

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 import torch
 
-from panoworld import artifacts as art
-from panoworld import pipeline as pl
-from panoworld.conventions import invert_pose
-from panoworld.depth import read_panorama
-from panoworld.home.layout import capture_poses
-from panoworld.home.quality import capture_psnr
+from panoworld.core.conventions import invert_pose
+from panoworld.framework import pipeline as pl
+from panoworld.gaussians.quality import capture_psnr
+from panoworld.io import manifest as art
+from panoworld.io.depth import read_panorama
+from panoworld.io.home import capture_poses
 
 torch.set_num_threads(1)
 
@@ -82,9 +82,9 @@ def test_home_gaussians_reproduce_every_panorama_at_its_capture_pose(home_run):
 def test_sources_visibility_is_the_or_of_each_source(home_dir):
     """The home's test of what the panoramas already explain asks the sources nearest first and each only about what
     the nearer ones left: the same answer as asking every source about every point (and the same for poking)."""
-    from panoworld.gaussians import Gaussians
-    from panoworld.home.gaussians import SourcesVisibility
-    from panoworld.pixel_gaussians import SourceVisibility
+    from panoworld.gaussians.home import SourcesVisibility
+    from panoworld.gaussians.pixel import SourceVisibility
+    from panoworld.io.gaussian_set import Gaussians
 
     poses = {n: np.asarray(T) for n, T in json.loads((home_dir / "gt" / "poses.json").read_text()).items()}
     each = [SourceVisibility(np.load(home_dir / "depths" / f"{n}.npy"), T, 0.03) for n, T in poses.items()]
@@ -138,8 +138,8 @@ def test_conditions_take_each_surface_from_its_nearest_panorama(home_dir):
     """Conditions are rendered from the fused mesh, whose colours come from the panorama that sees each surface
     nearest: rendered at every capture pose they reproduce that panorama (covered and close in colour), also where
     other panoramas' surfaces show."""
-    from panoworld.conditions import render_conditions
-    from panoworld.home.mesh import home_mesh
+    from panoworld.conditions.warp import render_conditions
+    from panoworld.mesh.home import home_mesh
 
     gt = {n: np.asarray(T) for n, T in json.loads((home_dir / "gt" / "poses.json").read_text()).items()}
     poses = {n: invert_pose(gt["pano_00"]) @ T for n, T in gt.items()}
@@ -165,7 +165,7 @@ def test_conditions_take_each_surface_from_its_nearest_panorama(home_dir):
 
 @pytest.mark.slow
 def test_home_report_marks_every_capture_point(home_run, tmp_path):
-    from panoworld.report.cli import build_scene_report
+    from panoworld.tools.report.cli import build_scene_report
 
     scene, _ = home_run
     page = build_scene_report(scene, tmp_path / "report.html").read_text()

@@ -19,11 +19,11 @@ import cv2
 import numpy as np
 import pytest
 
-from panoworld import artifacts as art
-from panoworld import pipeline as pl
-from panoworld.errors import InputError
+from panoworld.core.errors import InputError
+from panoworld.core.limits import MAX_POSES_JSON_BYTES, MIN_HEIGHT, LimitError, parse_yaml
+from panoworld.framework import pipeline as pl
+from panoworld.io import manifest as art
 from panoworld.io.safe_write import OutputPathError, atomic_output, check_output_dir, inside, write_text_atomic
-from panoworld.limits import MAX_POSES_JSON_BYTES, MIN_HEIGHT, LimitError, parse_yaml
 from panoworld.register.inputs import find_home_files
 from panoworld.register.pair_select import ALL_PAIRS_UP_TO, PAIRS_PER_PANORAMA, appearance_descriptor, candidate_pairs
 from tests.test_hostile_inputs import npy_claiming, png_header_only
@@ -328,7 +328,7 @@ def test_rig_masks_and_exr_depths_are_checked_from_their_headers(tmp_path, case,
 
 def test_exr_header_gives_the_size_of_a_real_exr(tmp_path):
     OpenEXR = pytest.importorskip("OpenEXR")
-    from panoworld.limits import exr_header
+    from panoworld.core.limits import exr_header
 
     with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
                       {"Z": np.ones((20, 40), np.float32)}) as f:
@@ -409,7 +409,7 @@ def test_images_below_the_minimum_size_are_refused(tmp_path, case, expect):
 
 
 def test_read_depth_refuses_a_tiny_depth(tmp_path):
-    from panoworld.depth import read_depth
+    from panoworld.io.depth import read_depth
 
     np.save(tmp_path / "d.npy", np.ones((2, 4), np.float32))
     with pytest.raises(LimitError, match="below the minimum"):
@@ -488,7 +488,7 @@ def test_view_bind_failures_are_one_line_and_exit(tmp_path, args, expect):
 
 
 def test_check_bind_answers_within_2s():
-    from panoworld.viewer.app import check_bind
+    from panoworld.tools.viewer.app import check_bind
 
     t0 = time.perf_counter()
     for host, port in (("no.such.host.invalid", 8080), ("127.0.0.1", 0), ("192.0.2.1", 8080)):

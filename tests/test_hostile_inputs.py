@@ -13,10 +13,10 @@ import cv2
 import numpy as np
 import pytest
 
-from panoworld.depth import read_depth, read_panorama
-from panoworld.errors import InputError
-from panoworld.image_io import ImageInputError, check_image
-from panoworld.limits import MAX_PIXELS, MAX_POSES, MAX_TRAJECTORY_BYTES, LimitError, parse_json, parse_yaml
+from panoworld.core.errors import InputError
+from panoworld.core.limits import MAX_PIXELS, MAX_POSES, MAX_TRAJECTORY_BYTES, LimitError, parse_json, parse_yaml
+from panoworld.io.depth import read_depth, read_panorama
+from panoworld.io.images import ImageInputError, check_image
 from panoworld.trajectory import TrajectoryFileError, read_trajectory_file
 from tests.test_runner import TOY, cli, toy_schemas  # noqa: F401 - toy_schemas: the shared autouse fixture
 
@@ -239,7 +239,7 @@ class _Planted:
 def test_resume_never_unpickles_code(tmp_path):
     import torch
 
-    from panoworld.train.common import Checkpointer, TrainConfigError
+    from panoworld.tools.train.common import Checkpointer, TrainConfigError
 
     ckpt = Checkpointer(tmp_path / "run")
     ckpt.dir.mkdir(parents=True)
@@ -255,7 +255,7 @@ def test_rng_state_round_trips_through_a_weights_only_checkpoint(tmp_path):
 
     import torch
 
-    from panoworld.train.common import Checkpointer
+    from panoworld.tools.train.common import Checkpointer
 
     class Box:  # an object with state, as the trainers checkpoint them
         def __init__(self):

@@ -9,9 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from panoworld.depth_outliers import SPIKE_RATIO, mask_depth_outliers, spike_mask
+from panoworld.depth.outliers import SPIKE_RATIO, mask_depth_outliers, spike_mask
 from panoworld.navmesh.no_room import MIN_ROOM_M2
-from panoworld.synth.failure_cases import FailureCase, failure_scene, write_failure_scene
+from panoworld.tools.synth.failure_cases import FailureCase, failure_scene, write_failure_scene
 from panoworld.trajectory.common import MAX_APPROACH_SHARE
 from tests.test_real_inputs import run_default
 
@@ -34,7 +34,7 @@ def test_closet_delivers_a_path_with_a_smaller_agent(tmp_path):
                                     ["clearance_m"]) if i not in traj["exempt_poses"]]
     assert min(held) >= no_room["agent_radius_m"] - 1e-9  # clear of the closet walls (they are in the depth)
     assert traj["length_m"] > 1.0  # it walks out of the closet into the room
-    from panoworld.report.scene import ReportParams, SceneData, section_plan
+    from panoworld.tools.report.scene import ReportParams, SceneData, section_plan
 
     body = section_plan(SceneData(scene.root), ReportParams()).body  # the HTML report says it too
     assert "no room to move" in body and "decided: smaller agent" in body
@@ -108,7 +108,7 @@ def test_start_off_the_navmesh_costs_at_most_a_tenth_of_the_poses(tmp_path):
 
 @pytest.mark.slow
 def test_no_visible_floor_still_delivers_gaussians_end_to_end(tmp_path):
-    from panoworld import pipeline as pl
+    from panoworld.framework import pipeline as pl
 
     d = write_failure_scene(FailureCase.CLOSET, tmp_path / "blind", height=64)
     depth = np.load(d / "depth.npy")

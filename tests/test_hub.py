@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from panoworld import pipeline as pl
-from panoworld.hub import cli, registry
-from panoworld.hub import fetch as hf_fetch
-from panoworld.hub.resolve import HfId, WeightsNotFound, describe_change, parse_hf, resolve_weights
+from panoworld.framework import pipeline as pl
+from panoworld.framework.hub import cli, registry
+from panoworld.framework.hub import fetch as hf_fetch
+from panoworld.framework.hub.resolve import HfId, WeightsNotFound, describe_change, parse_hf, resolve_weights
 
 REPO = Path(__file__).resolve().parent.parent
 TINY = "test-org/tiny-depth-anything"
@@ -148,7 +148,7 @@ def test_missing_id_is_one_line_naming_weights_fetch(hub_env, tiny_files):
 
 
 def test_local_weights_are_hashed_once_per_change(tmp_path, monkeypatch):
-    from panoworld.hub import resolve as res
+    from panoworld.framework.hub import resolve as res
 
     d = tmp_path / "w"
     d.mkdir()

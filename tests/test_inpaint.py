@@ -7,11 +7,14 @@ import numpy as np
 import pytest
 import trimesh
 
-from panoworld.background_layer import BackgroundLayer, build_background_layer, floor_ceiling, layer_mean_color
-from panoworld.conditions import render_conditions
-from panoworld.conventions import erp_dirs, points_from_depth
-from panoworld.erp_fill import erp_gaussian_blur, erp_inpaint, erp_pad
-from panoworld.inpaint import (
+from panoworld.conditions.warp import render_conditions
+from panoworld.core.conventions import erp_dirs, points_from_depth
+from panoworld.geometry.erp_mesh import erp_mesh_from_depth
+from panoworld.geometry.raycast import Raycaster
+from panoworld.render.metrics import psnr, reprojection_error
+from panoworld.video.background_layer import BackgroundLayer, build_background_layer, floor_ceiling, layer_mean_color
+from panoworld.video.erp_fill import erp_gaussian_blur, erp_inpaint, erp_pad
+from panoworld.video.inpaint import (
     FOREGROUND_RATIO,
     CommittedPoints,
     WarpInpainter,
@@ -22,9 +25,6 @@ from panoworld.inpaint import (
     max_translation,
     warp_inpaint_video,
 )
-from panoworld.mesh import erp_mesh_from_depth
-from panoworld.metrics import psnr, reprojection_error
-from panoworld.raycast import Raycaster
 
 H, W = 96, 192
 
@@ -335,8 +335,8 @@ def _stretch_reference(p, faces):
 
 
 def test_stretch_equals_its_numpy_reference(box_case):
-    from panoworld.background_layer import _stretch, erp_grid_shape
-    from panoworld.mesh import grid_faces
+    from panoworld.geometry.erp_mesh import grid_faces
+    from panoworld.video.background_layer import _stretch, erp_grid_shape
 
     _, mesh, _, _, _ = box_case
     h, w = erp_grid_shape(mesh)

@@ -8,12 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from panoworld.errors import InputError
+from panoworld.core.errors import InputError
+from panoworld.core.shapes import check_shape
 from panoworld.io import read_json, to_jsonable, write_json
 from panoworld.io.depth_png import read_depth_png, write_depth_png
-from panoworld.io.video import read_video_doc
-from panoworld.shapes import check_shape
-from panoworld.video_io import load_video, write_video
+from panoworld.io.video import load_video, read_video_doc, write_video
 
 
 def test_json_non_finite_is_null_and_strict(tmp_path):

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from panoworld.background_layer import build_background_layer, erp_grid_shape
-from panoworld.conventions import points_from_depth
-from panoworld.layout_columns import _front_pieces, shell_depth, wall_columns
-from panoworld.mesh import erp_mesh_from_depth
-from panoworld.raycast import Raycaster
+from panoworld.core.conventions import points_from_depth
+from panoworld.geometry.erp_mesh import erp_mesh_from_depth
+from panoworld.geometry.raycast import Raycaster
+from panoworld.room.layout_columns import _front_pieces, shell_depth, wall_columns
+from panoworld.video.background_layer import build_background_layer, erp_grid_shape
 
 H, W = 96, 192
 FLOOR, CEILING = 1.2, -1.6

@@ -11,10 +11,17 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from panoworld.conventions import erp_dirs, points_from_depth
-from panoworld.mesh import ErpMesh, erp_mesh_from_depth, face_stretch, load_erp_mesh, save_erp_mesh, save_erp_mesh_glb
-from panoworld.metrics import psnr
-from panoworld.raycast import Raycaster
+from panoworld.core.conventions import erp_dirs, points_from_depth
+from panoworld.geometry.erp_mesh import (
+    ErpMesh,
+    erp_mesh_from_depth,
+    face_stretch,
+    load_erp_mesh,
+    save_erp_mesh,
+    save_erp_mesh_glb,
+)
+from panoworld.geometry.raycast import Raycaster
+from panoworld.render.metrics import psnr
 
 CAMERA_HEIGHT = 1.45
 
@@ -229,7 +236,7 @@ def test_mesh_stage_cli(room_64, tmp_path):
 
 def test_compact_faces_is_np_unique_with_inverse():
     """compact_faces (mark + prefix sum) equals np.unique(faces, return_inverse=True), unused vertices included."""
-    from panoworld.mesh import compact_faces
+    from panoworld.geometry.erp_mesh import compact_faces
 
     rng = np.random.default_rng(3)
     faces = rng.integers(0, 500, (800, 3))

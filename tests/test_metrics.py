@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from panoworld.conventions import erp_pixel_solid_angle
-from panoworld.metrics import psnr, ssim, ssim_map, video_psnr, ws_psnr
+from panoworld.core.conventions import erp_pixel_solid_angle
+from panoworld.render.metrics import psnr, ssim, ssim_map, video_psnr, ws_psnr
 
 
 def _rand(shape, seed=0):
@@ -102,7 +102,7 @@ def _smooth_erp(h=64, seed=0):
 
 
 def test_loop_closure_is_zero_for_a_closed_loop_and_grows_with_the_shift():
-    from panoworld.metrics import loop_closure_flow_deg
+    from panoworld.render.metrics import loop_closure_flow_deg
 
     a = _smooth_erp()
     assert loop_closure_flow_deg(a, a.copy()) == 0.0
@@ -115,7 +115,7 @@ def test_loop_closure_is_zero_for_a_closed_loop_and_grows_with_the_shift():
 
 
 def test_frechet_distance_matches_the_closed_form_for_gaussians():
-    from panoworld.metrics import frechet_distance, frechet_feature_distance
+    from panoworld.render.metrics import frechet_distance, frechet_feature_distance
 
     # Commuting (diagonal) covariances: tr(S1 + S2 - 2 sqrt(S1 S2)) = sum (s1 - s2)^2 over the standard deviations.
     mu1, mu2 = np.array([0.0, 1.0, 2.0]), np.array([1.0, 1.0, 0.0])

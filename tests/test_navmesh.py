@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from panoworld.mesh import erp_mesh_from_depth
+from panoworld.geometry.erp_mesh import erp_mesh_from_depth
+from panoworld.geometry.raycast import Raycaster
 from panoworld.navmesh import (
     NavMesh,
     NavMeshParams,
@@ -18,7 +19,6 @@ from panoworld.navmesh import (
     load_navmesh,
     triangulate_rings,
 )
-from panoworld.raycast import Raycaster
 from panoworld.trajectory import mesh_clearance
 
 CAM_H = 1.5
@@ -205,7 +205,7 @@ def test_save_load_round_trip(room, tmp_path):
 def _make_mesh_artifact(root, depth):
     from PIL import Image
 
-    from panoworld.stage import execute_stage, load_stage, params_from_dict
+    from panoworld.framework.stage import execute_stage, load_stage, params_from_dict
 
     np.save(root / "depth.npy", depth)
     Image.fromarray(np.full(depth.shape + (3,), 128, np.uint8)).save(root / "panorama.png")

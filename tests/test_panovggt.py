@@ -199,7 +199,7 @@ def test_gaussian_head_shares_the_backbone_tokens():
 
 
 def test_decode_context_frames_and_round_trip(tmp_path):
-    from panoworld.gaussians import ContextFrames
+    from panoworld.io.gaussian_set import ContextFrames
 
     m = head_model(2)
     m.save_pretrained(tmp_path / "w")
@@ -217,7 +217,7 @@ def test_decode_context_frames_and_round_trip(tmp_path):
 
 
 def test_weights_without_a_gaussian_head_name_stage_2(tmp_path):
-    from panoworld.gaussians import ContextFrames
+    from panoworld.io.gaussian_set import ContextFrames
 
     tiny_model().save_pretrained(tmp_path / "w")
     m = PanoVGGT.from_pretrained(tmp_path / "w")
@@ -242,7 +242,7 @@ def test_gradient_checkpointing_gives_the_same_gradients():
 
 
 def test_gaussians_stage_decoder_backend_loads_the_export(tmp_path):
-    from panoworld.stage import StageInputError, execute_stage, load_stage
+    from panoworld.framework.stage import StageInputError, execute_stage, load_stage
     from stages.gaussians import DecoderOptions, Params
     from tests.test_gaussians import room as room_fixture
     from tests.test_gaussians import write_inputs

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from panoworld import backends
-from panoworld import pipeline as pl
-from panoworld.params import flatten
-from panoworld.stage import load_stage, params_from_dict, params_to_dict
+from panoworld.core import registry as backends
+from panoworld.core.params import flatten
+from panoworld.framework import pipeline as pl
+from panoworld.framework.stage import load_stage, params_from_dict, params_to_dict
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from panoworld import artifacts as art
-from panoworld import pipeline as pl
+from panoworld.framework import pipeline as pl
+from panoworld.io import manifest as art
 
 REPO = Path(__file__).resolve().parent.parent
 HEAVY = ("torch", "numba", "trimesh", "pycolmap", "diffusers", "transformers", "embreex", "ray", "cv2", "scipy")
@@ -20,7 +20,7 @@ HEAVY = ("torch", "numba", "trimesh", "pycolmap", "diffusers", "transformers", "
 @pytest.mark.parametrize("stage", [*pl.Pipeline.load().order, "register", "<runner>"])
 def test_stage_modules_import_light(stage):
     """The runner imports every stage module for its params: heavy libraries must be imported inside run()."""
-    module = "panoworld.pipeline" if stage == "<runner>" else f"stages.{stage}"
+    module = "panoworld.framework.pipeline" if stage == "<runner>" else f"stages.{stage}"
     code = f"import sys, {module}; print([m for m in {HEAVY!r} if m in sys.modules])"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO)
     assert out.returncode == 0, out.stderr
@@ -31,7 +31,7 @@ def test_stage_modules_import_light(stage):
 def test_full_pipeline_runs_caches_and_reruns_one_stage(synth_scene, tmp_path):
     import yaml
 
-    from panoworld.stage import params_to_dict
+    from panoworld.framework.stage import params_to_dict
 
     scene = tmp_path / "scene"
     shutil.copytree(synth_scene, scene, ignore=shutil.ignore_patterns("artifacts"))

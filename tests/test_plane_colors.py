@@ -8,11 +8,11 @@ import pytest
 import torch
 import trimesh
 
-from panoworld import plane_colors
-from panoworld.background_layer import BackgroundLayer, build_background_layer
-from panoworld.conventions import points_from_depth
-from panoworld.mesh import erp_mesh_from_depth
-from panoworld.raycast import Raycaster
+from panoworld.core.conventions import points_from_depth
+from panoworld.geometry.erp_mesh import erp_mesh_from_depth
+from panoworld.geometry.raycast import Raycaster
+from panoworld.room import plane_colors
+from panoworld.video.background_layer import BackgroundLayer, build_background_layer
 
 torch.set_num_threads(1)
 H, W = 128, 256

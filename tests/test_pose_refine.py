@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 import torch
 
-from panoworld.conventions import erp_dirs
+from panoworld.core.conventions import erp_dirs
 from panoworld.models.pose_refine import depth_edges, refine_relative_poses, refine_sequence, sample_range, so3_exp
 
 
 @pytest.fixture(scope="module")
 def track():
     """Four frames of a ci-tiny synthetic track at 32x64: GT ray depth (4, 32, 64) and cam0_from_cam (4, 4, 4)."""
-    from panoworld.synth.scene import generate_scene
+    from panoworld.tools.synth.scene import generate_scene
 
     scene = generate_scene(3, "ci-tiny")
     poses = scene.tracks[0].world_from_cam

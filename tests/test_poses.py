@@ -6,18 +6,12 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from panoworld import video_io
-from panoworld.conventions import erp_dirs, erp_pixel_from_dir, invert_pose, pose_from_rt, transform_points
-from panoworld.poses import (
-    colmap_estimate,
-    load_poses,
-    poses_from_reconstruction,
-    poses_from_transforms,
-    read_depth_png,
-    write_depth_png,
-)
-from panoworld.raycast import Raycaster
-from panoworld.stage import StageInputError, execute_stage, load_stage, params_from_dict
+from panoworld.core.conventions import erp_dirs, erp_pixel_from_dir, invert_pose, pose_from_rt, transform_points
+from panoworld.framework.stage import StageInputError, execute_stage, load_stage, params_from_dict
+from panoworld.geometry.raycast import Raycaster
+from panoworld.io import video as video_io
+from panoworld.io.depth_png import read_depth_png, write_depth_png
+from panoworld.poses.estimate import colmap_estimate, load_poses, poses_from_reconstruction, poses_from_transforms
 
 STAGE = load_stage("poses")
 

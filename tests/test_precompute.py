@@ -10,8 +10,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from panoworld import artifacts as art
-from panoworld.precompute import INDEX, ClipSampling, PrecomputeParams, clip_span, main, precompute, sample_clips
+from panoworld.io import manifest as art
+from panoworld.tools.precompute.run import (
+    INDEX,
+    ClipSampling,
+    PrecomputeParams,
+    clip_span,
+    main,
+    precompute,
+    sample_clips,
+)
 
 ARGS = ["--clips-per-scene", "2", "--frames", "4", "--min-frames", "2", "--height", "32", "--strides", "1,2"]
 
@@ -132,7 +140,7 @@ def test_local_pool_survives_a_busy_opencv_thread_pool_in_the_parent():
     """A child forked after OpenCV's thread pool ran hangs in cv2.setNumThreads; the pool must spawn instead."""
     import cv2
 
-    from panoworld.precompute import LocalExecutor
+    from panoworld.tools.precompute.run import LocalExecutor
 
     img = np.random.default_rng(0).random((1500, 1500), dtype=np.float32)
     for _ in range(3):

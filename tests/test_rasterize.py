@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from panoworld.conventions import erp_dirs, pose_from_rt, rotmat_from_quat_wxyz
-from panoworld.mesh import erp_mesh_from_depth
-from panoworld.rasterize import ErpRasterizer, RaycastRenderer, shade_hits
+from panoworld.core.conventions import erp_dirs, pose_from_rt, rotmat_from_quat_wxyz
+from panoworld.geometry.erp_mesh import erp_mesh_from_depth
+from panoworld.render.rasterize import ErpRasterizer, RaycastRenderer, shade_hits
 
 
 def compare(vertices, faces, pose, h, w, *, colors=None, face_valid=None, min_agree=0.999):

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from panoworld import raycast
-from panoworld.raycast import Raycaster
+from panoworld.geometry import raycast
+from panoworld.geometry.raycast import Raycaster
 
 
 def test_split_cast_equals_one_thread_cast():

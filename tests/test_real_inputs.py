@@ -9,11 +9,11 @@ import cv2
 import numpy as np
 import pytest
 
-from panoworld import pipeline as pl
-from panoworld.conventions import invert_pose, transform_points
-from panoworld.mesh import load_erp_mesh
-from panoworld.stage import StageInputError, execute_stage, load_stage
-from panoworld.synth.failure_cases import FailureCase, failure_scene, write_failure_scene
+from panoworld.core.conventions import invert_pose, transform_points
+from panoworld.framework import pipeline as pl
+from panoworld.framework.stage import StageInputError, execute_stage, load_stage
+from panoworld.geometry.erp_mesh import load_erp_mesh
+from panoworld.tools.synth.failure_cases import FailureCase, failure_scene, write_failure_scene
 from panoworld.trajectory import mesh_clearance
 
 STAGES = ("depth", "mesh", "navmesh", "trajectory")
@@ -120,8 +120,8 @@ def test_odd_panoramas_and_sizes(tmp_path, case):
 
 def test_planar_layout_depth_floor_fit():
     # A perfectly planar floor puts every vote into one histogram bin (the crash of the issue).
-    from panoworld.depth import estimate_floor
-    from panoworld.synth.failure_cases import empty_room
+    from panoworld.room.floor import estimate_floor
+    from panoworld.tools.synth.failure_cases import empty_room
 
     scene = empty_room(0)
     _, depth = scene.render(scene.world_from_canonical, 32, 64)

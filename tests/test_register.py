@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 import torch
 
-from panoworld.conventions import invert_pose
-from panoworld.depth import read_panorama
+from panoworld.core.conventions import invert_pose
+from panoworld.framework.stage import execute_stage, load_stage, params_from_dict
+from panoworld.io.depth import read_panorama
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pairwise import consistency
 from panoworld.register.solve import register_panoramas
-from panoworld.stage import execute_stage, load_stage, params_from_dict
-from panoworld.synth.scene import generate_scene
+from panoworld.tools.synth.scene import generate_scene
 from stages.register import main as register_main
 from tests.conftest import HOME_HEIGHT as HEIGHT
 
@@ -141,7 +141,7 @@ def test_unrelated_panorama_is_reported_not_placed(home_dir):
 
 
 def test_synth_cli_panoramas_refuses_bad_counts(tmp_path):
-    from panoworld.synth.cli import main
+    from panoworld.tools.synth.cli import main
 
     with pytest.raises(SystemExit) as e:
         main([str(tmp_path / "x"), "--seed", "1", "--panoramas", "9"])
@@ -149,8 +149,9 @@ def test_synth_cli_panoramas_refuses_bad_counts(tmp_path):
 
 
 def test_fused_mesh_reproduces_every_view_and_navmesh_joins_the_rooms(home_dir):
-    from panoworld.raycast import Raycaster
-    from panoworld.register.fuse import fuse_meshes, home_navmesh
+    from panoworld.geometry.raycast import Raycaster
+    from panoworld.mesh.fuse import fuse_meshes
+    from panoworld.navmesh.home import home_navmesh
 
     gt = _gt(home_dir)
     names = sorted(gt)
@@ -184,8 +185,8 @@ def test_fused_mesh_reproduces_every_view_and_navmesh_joins_the_rooms(home_dir):
 
 
 def test_runner_opens_a_home_and_refuses_a_mixed_layout(home_dir, tmp_path):
-    from panoworld.errors import PipelineError
-    from panoworld.pipeline import Pipeline, open_scene
+    from panoworld.core.errors import PipelineError
+    from panoworld.framework.pipeline import Pipeline, open_scene
 
     scene = open_scene(home_dir, Pipeline.load())
     assert scene.files["panorama"] is None and scene.files["panoramas"] == home_dir / "panoramas"

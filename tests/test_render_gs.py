@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from panoworld.conventions import erp_pixel_from_dir, rotmat_from_quat_wxyz
-from panoworld.erp_render import render_erp
-from panoworld.gaussians import SH_C0, Gaussians, rgb_to_sh_dc
-from panoworld.render_gs import LOWPASS, covariance_3d, eval_sh, render_perspective, rotmat_from_quat
+from panoworld.core.conventions import erp_pixel_from_dir, rotmat_from_quat_wxyz
+from panoworld.io.gaussian_set import SH_C0, Gaussians, rgb_to_sh_dc
+from panoworld.render.erp import render_erp
+from panoworld.render.splats import LOWPASS, covariance_3d, eval_sh, render_perspective, rotmat_from_quat
 
 torch.set_num_threads(1)
 
@@ -124,7 +124,7 @@ def shell(radius: float, n: int = 3000) -> tuple[Gaussians, callable]:
 
 
 def test_erp_of_a_shell_is_complete_with_exact_depth_across_seam_and_poles():
-    from panoworld.conventions import erp_dirs
+    from panoworld.core.conventions import erp_dirs
 
     g, color = shell(2.0)
     pose = np.eye(4)
@@ -181,7 +181,7 @@ def test_gsplat_matches_torch_renderer():
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="gsplat path needs CUDA")
 def test_gsplat_erp_matches_torch_erp():
     pytest.importorskip("gsplat")
-    from panoworld.synth.surfels import room_surfels
+    from panoworld.tools.synth.surfels import room_surfels
 
     g = room_surfels(3000)  # surfaces: the faces' depth along each ray is the centres' distance there
     gt = Gaussians(**{k: torch.as_tensor(getattr(g, k)).cuda() for k in ("means", "scales", "quats", "opacities", "sh_dc")})
@@ -221,7 +221,7 @@ def test_renderer_gradients_match_finite_differences():
 
 def test_erp_supersampling_averages_detail_finer_than_a_pixel():
     """Stripes 1.3 px wide: supersampled renders approach the area average of the texture, a plain one aliases."""
-    from panoworld.conventions import erp_dirs
+    from panoworld.core.conventions import erp_dirs
 
     n = 40000
     k = np.arange(n) + 0.5
@@ -255,7 +255,7 @@ def test_erp_supersampling_averages_detail_finer_than_a_pixel():
 
 @pytest.mark.parametrize("supersample, pole_scale", [(1, 1.0), (2, 1.0), (2, 2.0)])
 def test_erp_color_operator_is_the_render_as_a_linear_map_of_colours(supersample, pole_scale):
-    from panoworld.erp_operator import ErpColorOperator
+    from panoworld.render.erp_operator import ErpColorOperator
 
     g, _ = shell(3.0, 2000)
     inner = random_gaussians(300, seed=3)  # overlapping, partly transparent Gaussians in front of the shell
@@ -281,8 +281,8 @@ def test_erp_color_operator_is_the_render_as_a_linear_map_of_colours(supersample
 def test_erp_pole_scale_resolves_longitude_detail_near_the_poles():
     """Radial stripes around both poles, 2 ERP columns wide: near a pole they are finer than a cube-face pixel (ERP
     rows sample longitude tan(lat) times more finely than the face), so finer pole faces follow the area average."""
-    from panoworld.conventions import erp_dirs
-    from panoworld.erp_render import erp_faces
+    from panoworld.core.conventions import erp_dirs
+    from panoworld.render.erp import erp_faces
 
     n = 60000
     k = np.arange(n) + 0.5
@@ -320,7 +320,7 @@ def test_erp_pole_scale_resolves_longitude_detail_near_the_poles():
 def test_numba_face_weights_match_the_torch_tile_rasteriser(n, opacity):
     # The colour fit's kernel (splat_weights) against rasterize_tiles(weights=...): the same (pixel, Gaussian) pairs,
     # the same weights up to exp's last bit. Tiles hold > 32 Gaussians (several chunks); opaque ones stop pixels early.
-    from panoworld.render_gs import _prepare, bin_tiles, face_weights, project, rasterize_tiles
+    from panoworld.render.splats import _prepare, bin_tiles, face_weights, project, rasterize_tiles
 
     g = random_gaussians(n, seed=5)
     if opacity is not None:
@@ -346,7 +346,7 @@ def test_numba_face_weights_match_the_torch_tile_rasteriser(n, opacity):
 
 @pytest.mark.parametrize("dtype", [np.int32, np.float32])
 def test_numba_weight_buffers_grow_keeping_their_contents(dtype):
-    from panoworld.splat_weights import _grow
+    from panoworld.render.splat_weights import _grow
 
     a = np.arange(7).astype(dtype) * 3
     out = _grow(a, 11)
@@ -358,7 +358,7 @@ def cull_scene(seed: int = 0) -> tuple[Gaussians, np.ndarray]:
     """Gaussians around a turned, moved camera: a shell, some on the cube faces' edges and corners (straddling two or
     three faces), some near the camera's centre (behind and in front of the near plane), big ones close to it, and
     opacities at the 1/255 threshold."""
-    from panoworld.render_gs import ALPHA_MIN
+    from panoworld.render.splats import ALPHA_MIN
 
     rng = np.random.default_rng(seed)
     pose = np.eye(4)
@@ -394,8 +394,8 @@ def cull_scene(seed: int = 0) -> tuple[Gaussians, np.ndarray]:
 
 def render_erp_projecting_all(g: Gaussians, pose: np.ndarray, H: int, W: int, background, **kw):
     """render_erp's torch path as it was before the face cull: every Gaussian projected on every face."""
-    from panoworld.erp_render import _compose_erp, erp_faces
-    from panoworld.render_gs import _prepare, invert_pose, project, rasterize_tiles
+    from panoworld.render.erp import _compose_erp, erp_faces
+    from panoworld.render.splats import _prepare, invert_pose, project, rasterize_tiles
 
     prep = _prepare(g, pose[:3, 3])
     bg = torch.as_tensor(background, dtype=torch.float32)
@@ -409,8 +409,8 @@ def render_erp_projecting_all(g: Gaussians, pose: np.ndarray, H: int, W: int, ba
 
 @pytest.mark.parametrize("supersample, pole_scale", [(1, 1.0), (2, 2.0), (2, 1.5)])
 def test_erp_face_cull_renders_what_projecting_every_gaussian_renders(supersample, pole_scale):
-    from panoworld.erp_render import erp_faces, face_cull
-    from panoworld.render_gs import _prepare, invert_pose, project
+    from panoworld.render.erp import erp_faces, face_cull
+    from panoworld.render.splats import _prepare, invert_pose, project
 
     g, pose = cull_scene()
     H, W = 24, 48
@@ -530,7 +530,7 @@ def test_all_zero_sh_rest_renders_as_degree_zero_and_nonzero_rest_still_shows():
 
 
 def test_room_surfels_lie_on_the_rooms_shell():
-    from panoworld.synth.surfels import ROOM_HALF_M, room_surfels
+    from panoworld.tools.synth.surfels import ROOM_HALF_M, room_surfels
 
     g = room_surfels(500)
     on_face = np.isclose(np.abs(g.means), np.array(ROOM_HALF_M, np.float32)).any(axis=1)
@@ -540,8 +540,8 @@ def test_room_surfels_lie_on_the_rooms_shell():
 @pytest.mark.parametrize("tile", [8, 16])
 def test_numba_bin_tiles_equal_torch(tile):
     # face_weights bins by a numba counting sort; bin_tiles (torch argsort by (tile, depth rank)) is its oracle
-    from panoworld.render_gs import _prepare, bin_tiles, project
-    from panoworld.splat_weights import bin_tiles_numba
+    from panoworld.render.splat_weights import bin_tiles_numba
+    from panoworld.render.splats import _prepare, bin_tiles, project
 
     g = random_gaussians(500, seed=7)
     H, W = 45, 70

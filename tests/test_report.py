@@ -9,9 +9,9 @@ import shutil
 import numpy as np
 import pytest
 
-from panoworld.report.cli import build_scene_report, main
-from panoworld.report.scene import ReportParams
-from panoworld.report.topdown import PlanView
+from panoworld.tools.report.cli import build_scene_report, main
+from panoworld.tools.report.scene import ReportParams
+from panoworld.tools.report.topdown import PlanView
 
 SCENE_SECTIONS = ["stages", "depth", "plan", "frames", "poses", "gaussians", "eval", "roam"]
 
@@ -23,7 +23,7 @@ _BUILT: dict[str, object] = {}
 def pipeline_scene(synth_scene, tmp_path_factory):
     """A ci-tiny synthetic scene with every stage run, built once per session: test_viewer imports this fixture,
     which gives it a second session fixture definition, so the scene itself is cached in this module."""
-    from panoworld import pipeline as pl
+    from panoworld.framework import pipeline as pl
 
     if "scene" not in _BUILT:
         scene = tmp_path_factory.mktemp("report") / "scene"
@@ -36,8 +36,8 @@ def pipeline_scene(synth_scene, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def scene_report(pipeline_scene):
-    from panoworld.evaluate import EvalParams, evaluate
-    from panoworld.report.scene import ROAM_IMAGES
+    from panoworld.tools.eval.cli import EvalParams, evaluate
+    from panoworld.tools.report.scene import ROAM_IMAGES
 
     # cheap stages (the page shows any saved eval) and the roam protocol at small sizes, with its pictures
     rep, errors = evaluate(pipeline_scene, EvalParams(roam_height=32, roam_pinhole=16),
@@ -77,7 +77,7 @@ def test_scene_report_has_every_section_and_is_self_contained(scene_report, pipe
 
 @pytest.mark.slow
 def test_scene_report_in_chromium(scene_report, tmp_path):
-    from panoworld.report.browser import browser_page, screenshot_array
+    from panoworld.tools.report.browser import browser_page, screenshot_array
 
     out, _ = scene_report
     with browser_page(1280, 900) as (page, console):
@@ -115,7 +115,7 @@ def test_plan_view_puts_forward_up_and_right_right():
 
 
 def test_partial_scene_shows_missing_stages(synth_scene, tmp_path):
-    from panoworld import pipeline as pl
+    from panoworld.framework import pipeline as pl
 
     scene = tmp_path / "scene"
     shutil.copytree(synth_scene, scene, ignore=shutil.ignore_patterns("artifacts"))
@@ -131,8 +131,8 @@ def test_partial_scene_shows_missing_stages(synth_scene, tmp_path):
 
 @pytest.mark.slow
 def test_dataset_report(synth_dataset, tmp_path):
-    from panoworld.precompute import main as precompute_main
-    from panoworld.report.browser import browser_page
+    from panoworld.tools.precompute.run import main as precompute_main
+    from panoworld.tools.report.browser import browser_page
 
     cond = tmp_path / "cond"
     assert precompute_main([str(synth_dataset), "--out", str(cond), "--clips-per-scene", "2", "--frames", "4",
@@ -158,7 +158,7 @@ def test_cli_rejects_what_is_not_a_scene(tmp_path, capsys):
 
 
 def test_pinhole_cut_from_erp_looks_along_plus_z():
-    from panoworld.report.splats import pinhole_from_erp
+    from panoworld.tools.report.splats import pinhole_from_erp
 
     erp = np.zeros((64, 128, 3), np.uint8)
     erp[..., 0] = np.arange(128)[None, :] * 2  # red encodes the column (longitude)
@@ -171,7 +171,7 @@ def test_pinhole_cut_from_erp_looks_along_plus_z():
 
 
 def test_footprint_rings_outline_only_what_reaches_into_the_band():
-    from panoworld.report.topdown import footprint_rings
+    from panoworld.tools.report.topdown import footprint_rings
 
     wall = np.array([[1.0, 0.0, -1.0], [1.0, 0.0, 1.0], [1.0, 2.0, 1.0], [1.0, 2.0, -1.0]])  # vertical, y 0..2
     floor = np.array([[-2.0, 2.5, -2.0], [2.0, 2.5, -2.0], [2.0, 2.5, 2.0], [-2.0, 2.5, 2.0]])  # below the band
@@ -188,7 +188,7 @@ def test_footprint_rings_outline_only_what_reaches_into_the_band():
 def test_missing_pictures_are_skipped_quietly(tmp_path, capfd):
     """A picture a stage did not write (no capture rig: no nadir before/after) is no picture, and no OpenCV warning
     in the user's terminal."""
-    from panoworld.report import encode
+    from panoworld.tools.report import encode
 
     (tmp_path / "broken.jpg").write_bytes(b"not a jpeg")
     assert encode.read_rgb(tmp_path / "nadir_before_after.jpg") is None

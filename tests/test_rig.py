@@ -8,12 +8,12 @@ import cv2
 import numpy as np
 import pytest
 
-from panoworld.depth_complete import complete_dropouts, complete_poles
-from panoworld.errors import InputError
-from panoworld.rig import nadir_cap_psnr
-from panoworld.stage import execute_stage, load_stage, params_from_dict
-from panoworld.synth import generate_scene, params_for, write_scene
-from panoworld.synth.rig import FloorObject, with_floor_object
+from panoworld.core.errors import InputError
+from panoworld.depth.complete import complete_dropouts, complete_poles
+from panoworld.depth.rig.detect import nadir_cap_psnr
+from panoworld.framework.stage import execute_stage, load_stage, params_from_dict
+from panoworld.tools.synth import generate_scene, params_for, write_scene
+from panoworld.tools.synth.rig import FloorObject, with_floor_object
 
 SEED = 8  # a development seed; bench/bench_rig.py reports held-out seeds
 H = 256
@@ -95,7 +95,7 @@ def test_patch_fill_keeps_the_floor_lattice_and_averages_what_it_cannot_predict(
     # Tiles 12 px wide with a random colour each and dark grout: the grout under the hole is predictable (the
     # lattice), each hidden tile's colour is not. The mean of several lattice-aligned matches keeps the grout and
     # beats one copied patch, whose tile colours are as wrong as a random guess.
-    from panoworld.rig_inpaint import patch_fill
+    from panoworld.depth.rig.inpaint import patch_fill
 
     S = 180
     face, grout = _tiled_floor(S, 12.0, 0.0)
@@ -114,7 +114,7 @@ def test_lattice_fill_continues_rotated_grout_in_phase():
     # matcher's spacing, as at 720 rows) under a tripod-like hole (a hub and three legs): the autocorrelation finds
     # the tiles' period, and the mean over the lattice's offsets keeps the grout in phase across the hole (its
     # error less than half the 8 patches') at no loss overall (each hidden tile's colour is a guess either way).
-    from panoworld.rig_inpaint import inpaint_plane, lattice_offsets, patch_fill
+    from panoworld.depth.rig.inpaint import inpaint_plane, lattice_offsets, patch_fill
 
     S, tile, angle = 300, 37.3, 31.0
     face, grout = _tiled_floor(S, tile, angle, seed=3)
@@ -142,7 +142,7 @@ def test_rim_matting_keeps_the_floor_a_mask_margin_shows_and_unmixes_edges():
     # 2 px past it. The fill is only the floor's mean colour: matting the rim must give back the margin's own
     # texture and the floor inside the mixed edge pixels, closer to the truth than the fill there (the floor noise
     # projected on the rig-floor line leaves some error).
-    from panoworld.rig_inpaint import matte_rim
+    from panoworld.depth.rig.inpaint import matte_rim
 
     rng = np.random.default_rng(1)
     S = 96
@@ -166,10 +166,11 @@ def test_leg_shadows_are_found_as_a_star_from_the_feet_and_grout_is_not():
     # A tiled floor with dark grout under three legs; a light casts each leg's shadow from its foot to the hub's
     # shadow, one shared point (35 % less light on thin lines, as faint as the development scenes' leg shadows). The
     # lines are found (most of them, little else); without a light the lattice's straight grout is not taken.
-    from panoworld.cube_views import PerspectiveView
-    from panoworld.rig import CAP_DEG
-    from panoworld.rig_face import FACE_FOV_DEG, face_polar, nadir_view
-    from panoworld.rig_shadow import apply_gain, leg_shadow_lines
+    from panoworld.depth.rig.detect import CAP_DEG
+    from panoworld.depth.rig.face import FACE_FOV_DEG, face_polar, nadir_view
+    from panoworld.depth.rig.shadow import leg_shadow_lines
+    from panoworld.geometry.cube_views import PerspectiveView
+    from panoworld.room.light import apply_gain
 
     view = nadir_view(256)
     fine = PerspectiveView(view.cam_from_view, FACE_FOV_DEG, 2 * view.size)
@@ -298,7 +299,7 @@ def test_dropouts_completed_smooth_inside_surfaces_and_as_steps_at_edges(scene):
 
 
 def test_report_shows_the_nadir_before_and_after(tmp_path, tripod_dir):
-    from panoworld.report.scene import ReportParams, SceneData, section_depth
+    from panoworld.tools.report.scene import ReportParams, SceneData, section_depth
 
     run_depth(tmp_path, tripod_dir, name="scene/artifacts/depth")
     section = section_depth(SceneData(tmp_path / "scene"), ReportParams())
@@ -308,8 +309,8 @@ def test_report_shows_the_nadir_before_and_after(tmp_path, tripod_dir):
 
 def test_soft_shadow_is_relit_not_left(scene):
     """The tripod with a soft shadow disc: the shadow is found around the rig and divided out, its texture kept."""
-    from panoworld import rig
-    from panoworld.synth.rig import RigKind, render_with_rig
+    from panoworld.depth.rig import detect as rig
+    from panoworld.tools.synth.rig import RigKind, render_with_rig
 
     clean, _ = scene.render(scene.world_from_canonical, H, 2 * H)
     for kind in (RigKind.TRIPOD, RigKind.TRIPOD_SHADOW):
@@ -330,7 +331,7 @@ def test_soft_shadow_is_relit_not_left(scene):
 
 def test_learned_detector_is_chosen_by_the_stage_option(tmp_path, plain_dir):
     """depth.rig_detector=learned loads the U-Net from depth.rig_weights (a one-line error without them)."""
-    from panoworld.errors import WeightsError
+    from panoworld.core.errors import WeightsError
     from panoworld.models.rig_unet import RigUNet, RigUNetConfig
 
     with pytest.raises(WeightsError, match="depth.rig_weights"):
@@ -346,7 +347,7 @@ def test_learned_detector_is_chosen_by_the_stage_option(tmp_path, plain_dir):
 def _blotchy_floor(dark_share, shadow=None, seed=0, light=None):
     """A downward face (180 px, 96 deg) of a cream floor with dark-blue blotches, dark_share(theta) of it blotched,
     times an optional light factor shadow(theta) or light(theta, phi)."""
-    from panoworld.rig_face import face_polar, nadir_view
+    from panoworld.depth.rig.face import face_polar, nadir_view
 
     view = replace(nadir_view(H), size=180)
     theta, phi = face_polar(view)
@@ -369,7 +370,7 @@ def test_shadow_fit_tells_crowding_dark_texture_from_a_shadow_and_measures_it():
     # Dark blotches crowding under the camera lower the floor's mean there as a shadow would, but not its bright
     # texture; a real shadow dims both. No shadow may be found in the first, and the second's light factor must be
     # measured within 6 % from 6 to 18 degrees.
-    from panoworld.rig_shadow import shadow_gain
+    from panoworld.depth.rig.shadow import shadow_gain
 
     crowd = lambda t: 0.1 + 0.35 * np.exp(-((t / 12.0) ** 2))
     face, theta, phi, focal = _blotchy_floor(crowd)
@@ -390,7 +391,7 @@ def test_room_shadow_on_one_side_of_the_nadir_is_not_relit_a_shadow_around_it_is
     # line passing 0.1 camera heights from the nadir): the radial profile reads it as a >= 25 % shadow (relit before),
     # but two of the eight sectors around the nadir are lit: the removal does not relight it. A soft shadow around the
     # rig on the same floor is relit.
-    from panoworld.rig_shadow import RELIGHT_MIN_DARKENING, relights, shadow_gain
+    from panoworld.depth.rig.shadow import RELIGHT_MIN_DARKENING, relights, shadow_gain
 
     edge = lambda t, p: np.where(np.tan(np.deg2rad(t)) * np.cos(p) > -0.1, 0.55, 1.0)
     around = lambda t, p: 1.0 - 0.45 * np.exp(-((t / 14.0) ** 2))
@@ -409,7 +410,7 @@ def test_room_light_past_the_rigs_feet_is_not_relit_as_its_shadow():
     # The room's light dims toward the nadir (not a quadratic in floor coordinates) under the rig's soft shadow: the
     # floor past a tripod's feet (17-20 deg; the profile ends at 24) keeps its light; the shadow under the rig is
     # still found.
-    from panoworld.rig_shadow import shadow_gain
+    from panoworld.depth.rig.shadow import shadow_gain
 
     light = lambda t: (1.0 - 0.45 * np.exp(-((t / 14.0) ** 2))) * (1.0 - 0.2 * np.exp(-((t / 28.0) ** 4)))
     face, theta, phi, focal = _blotchy_floor(lambda t: np.full_like(t, 0.2), light)
@@ -422,7 +423,7 @@ def test_room_light_past_the_rigs_feet_is_not_relit_as_its_shadow():
 def test_dark_rug_that_looks_like_a_shadow_is_kept():
     # Development seed 103: the rug around the nadir fits the shadow model (about half the light); divided out, what
     # is left under the camera is a mount-sized blob. The candidate reaching 30 deg must be refused before that.
-    from panoworld import rig
+    from panoworld.depth.rig import detect as rig
 
     scene = generate_scene(103, "ci-tiny")
     s = with_floor_object(scene, FloorObject.RUG)
@@ -435,9 +436,9 @@ def test_floor_lines_touching_the_legs_leave_the_mask_at_720_rows():
     # At 720 rows tile grout is 1-2 face pixels wide and touches the legs (5-6 px): the rig's mask and its cast
     # shadows must not carry the grout lattice into the inpainting. At 256 rows (grout under a face pixel) nothing
     # is opened.
-    from panoworld.rig_face import face_polar, nadir_view
-    from panoworld.rig_shadow import cast_shadows
-    from panoworld.rig_shape import without_floor_lines
+    from panoworld.depth.rig.face import face_polar, nadir_view
+    from panoworld.depth.rig.shadow import cast_shadows
+    from panoworld.depth.rig.shape import without_floor_lines
 
     view = nadir_view(720)
     theta, _ = face_polar(view)
@@ -467,10 +468,11 @@ def test_floor_lines_touching_the_legs_leave_the_mask_at_720_rows():
 def test_leg_shadow_star_must_be_dark_across_a_leg_shadows_width():
     # Where a leg's shadow is several pixels wide (720 rows), lines from the feet to one point that are dark only
     # along a 4 px middle (grout, plank seams: 1.5-2 face pixels) are not a star; the same lines 10 px wide are.
-    from panoworld.cube_views import PerspectiveView
-    from panoworld.rig import CAP_DEG, LEG_SHADOW_WIDTH_DEG
-    from panoworld.rig_face import FACE_FOV_DEG, face_polar, nadir_view
-    from panoworld.rig_shadow import apply_gain, leg_shadow_lines
+    from panoworld.depth.rig.detect import CAP_DEG, LEG_SHADOW_WIDTH_DEG
+    from panoworld.depth.rig.face import FACE_FOV_DEG, face_polar, nadir_view
+    from panoworld.depth.rig.shadow import leg_shadow_lines
+    from panoworld.geometry.cube_views import PerspectiveView
+    from panoworld.room.light import apply_gain
 
     view = nadir_view(720)
     fine = PerspectiveView(view.cam_from_view, FACE_FOV_DEG, 2 * view.size)
@@ -503,7 +505,7 @@ def test_leg_shadow_star_must_be_dark_across_a_leg_shadows_width():
 def test_floor_light_least_squares_match_lstsq():
     """rig_shadow._lstsq (normal equations) equals np.linalg.lstsq, a column without support included (its
     minimum-norm coefficient is 0)."""
-    from panoworld.rig_shadow import _lstsq
+    from panoworld.depth.rig.shadow import _lstsq
 
     rng = np.random.default_rng(1)
     A = rng.normal(size=(5000, 9))

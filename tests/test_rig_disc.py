@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from panoworld.rig_shadow import disc_shadow
+from panoworld.depth.rig.shadow import disc_shadow
 from tests.test_rig import _blotchy_floor
 
 torch.set_num_threads(1)

@@ -7,11 +7,12 @@ import pytest
 import torch
 import trimesh
 
-from panoworld import rig, rig_shape
-from panoworld.conventions import erp_dirs
-from panoworld.raycast import Raycaster
-from panoworld.synth.appearance import Material, MaterialKind, albedo, srgb_uint8
-from panoworld.synth.rig import rig_meshes
+from panoworld.core.conventions import erp_dirs
+from panoworld.depth.rig import detect as rig
+from panoworld.depth.rig import shape as rig_shape
+from panoworld.geometry.raycast import Raycaster
+from panoworld.tools.synth.appearance import Material, MaterialKind, albedo, srgb_uint8
+from panoworld.tools.synth.rig import rig_meshes
 
 torch.set_num_threads(1)
 H, CAMERA_M, CEILING_M = 720, 1.45, 1.2
@@ -69,8 +70,8 @@ def test_tripod_beside_walls_at_720_rows_is_found(monkeypatch):
     # Development seed 100, default preset: the camera stands between walls and furniture; the floor's grout lines
     # tie the tripod's legs to them and the candidate reaches 30 deg (refused as a seen object on main). Depth leaves
     # out what cannot be the rig (surfaces far below the camera, thin lines on the floor plane) for a second look.
-    from panoworld.synth import generate_scene
-    from panoworld.synth.rig import render_with_rig
+    from panoworld.tools.synth import generate_scene
+    from panoworld.tools.synth.rig import render_with_rig
 
     scene = generate_scene(100, "default")
     rgb, depth, true_mask = render_with_rig(scene, "tripod", H)

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from panoworld import backends
-from panoworld.errors import WeightsError
-from panoworld.hub.registry import REGISTRY
+from panoworld.core import registry as backends
+from panoworld.core.errors import WeightsError
+from panoworld.framework.hub.registry import REGISTRY
 from panoworld.models.rig_unet import RigUNet, RigUNetConfig
 
 torch.set_num_threads(1)
@@ -16,7 +16,7 @@ TINY = RigUNetConfig(channels=4, levels=2, size=32)
 
 
 def test_tiny_unet_trains_saves_and_loads(tmp_path):
-    from panoworld.train.rig import RigSample, train_rig_unet
+    from panoworld.tools.train.rig import RigSample, train_rig_unet
 
     # A dark disc at the nadir on a noisy light floor, and the same floor without it: learnable in a few steps.
     rng = np.random.default_rng(0)

@@ -1,4 +1,4 @@
-"""The roam protocol and anti-aliased references of `runner.py eval` (panoworld/eval/roam.py, groundtruth.py)."""
+"""The roam protocol and anti-aliased references of `runner.py eval` (panoworld/tools/eval/roam.py, groundtruth.py)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,12 @@ import shutil
 import numpy as np
 import pytest
 
-from panoworld import pipeline as pl
-from panoworld.conventions import points_from_depth
-from panoworld.eval.roam import (
+from panoworld.core.conventions import points_from_depth
+from panoworld.framework import pipeline as pl
+from panoworld.navmesh import load_navmesh
+from panoworld.render.metrics import psnr
+from panoworld.tools.eval.cli import EvalParams, GroundTruth, evaluate, is_unavailable
+from panoworld.tools.eval.roam import (
     BUCKETS,
     FAR_KEY,
     sample_roam_poses,
@@ -19,10 +22,7 @@ from panoworld.eval.roam import (
     source_seen,
     trajectory_reach,
 )
-from panoworld.eval.tables import build_tables
-from panoworld.evaluate import EvalParams, GroundTruth, evaluate, is_unavailable
-from panoworld.metrics import psnr
-from panoworld.navmesh import load_navmesh
+from panoworld.tools.eval.tables import build_tables
 
 KEYS = [b.key for b in BUCKETS] + [FAR_KEY]
 PARAMS = EvalParams(roam_views=1, roam_height=32, roam_pinhole=24)
@@ -34,8 +34,8 @@ def scene(synth_scene, tmp_path_factory):
     """The ci-tiny scene through depth, mesh and navmesh, with Gaussians made from the exact ground truth at the
     capture point (one splat of half a pixel's size per pixel of a GS_ROWS-row ERP), so the capture-point view is
     known to be close."""
-    from panoworld.gaussians import Gaussians, rgb_to_sh_dc
-    from panoworld.splat_ply import write_gaussians_ply
+    from panoworld.io.gaussian_set import Gaussians, rgb_to_sh_dc
+    from panoworld.io.splat_ply import write_gaussians_ply
 
     root = tmp_path_factory.mktemp("roam") / "scene"
     shutil.copytree(synth_scene, root, ignore=shutil.ignore_patterns("artifacts"))
@@ -100,7 +100,7 @@ def test_roam_metrics_per_bucket_on_a_ci_tiny_scene(scene):
 
 
 def test_source_visibility_split_matches_the_source_depth_map(scene):
-    from panoworld.conventions import erp_pixel_from_dir
+    from panoworld.core.conventions import erp_pixel_from_dir
 
     gt = GroundTruth(scene / "gt", supersample=1)
     assert source_seen(gt, np.eye(4), 32, 64).all()  # the capture point sees all it sees

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from panoworld import artifacts as art
-from panoworld import pipeline as pl
+from panoworld.framework import pipeline as pl
+from panoworld.io import manifest as art
 from tests.toy.common import toy_scene, use_toy_schemas
 
 TOY = Path(__file__).parent / "toy"

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from panoworld import artifacts as art
-from panoworld import code_digest
-from panoworld import pipeline as pl
+from panoworld.framework import code_digest
+from panoworld.framework import pipeline as pl
+from panoworld.io import manifest as art
 from tests.toy.common import toy_scene, use_toy_schemas
 
 TOY = Path(__file__).parent / "toy"
@@ -25,7 +25,7 @@ STAGE = '''
 import sys
 from dataclasses import dataclass
 
-from panoworld.stage import Input, stage_main
+from panoworld.framework.stage import Input, stage_main
 from cdtoy.helper import word
 
 NAME, VERSION, ARTIFACT = "x", "1", "toy"
@@ -86,7 +86,7 @@ def test_library_edit_reruns_the_stage_naming_the_file_and_comment_edit_does_not
 
     assert run() == ("ran", "no artifact yet")
     files = art.read_manifest(scene / "artifacts/x")["code"]["files"]
-    assert {"cdtoy/stage_x.py", "cdtoy/helper.py", "cdtoy/__init__.py", "panoworld/stage.py"} <= set(files)
+    assert {"cdtoy/stage_x.py", "cdtoy/helper.py", "cdtoy/__init__.py", "panoworld/framework/stage.py"} <= set(files)
     assert run() == ("cached", "up to date")
     _touch_later(pkg / "helper.py", HELPER.replace("# a comment", "# another comment")
                  .replace('"""The word."""', '"""The word, documented again."""'))
@@ -171,8 +171,8 @@ def test_sigkill_of_the_runner_alone_leaves_no_stage_process_and_commits_nothing
 
 
 def test_a_stage_does_not_commit_for_a_runner_that_no_longer_holds_the_lock(scene, monkeypatch):
-    from panoworld.errors import PipelineError
-    from panoworld.stage import LOCK_ENV, RUNNER_PID_ENV, execute_stage, load_stage, params_from_dict
+    from panoworld.core.errors import PipelineError
+    from panoworld.framework.stage import LOCK_ENV, RUNNER_PID_ENV, execute_stage, load_stage, params_from_dict
 
     spec = load_stage("tests.toy.a")
     (scene / "artifacts").mkdir()

@@ -11,15 +11,15 @@ import pytest
 import torch
 from plyfile import PlyData
 
-from panoworld.gaussians import Gaussians
-from panoworld.render_gs import render_perspective
-from panoworld.splat_ply import (
+from panoworld.io.gaussian_set import Gaussians
+from panoworld.io.splat_ply import (
     GAUSSIAN_FIELDS,
     read_gaussians_ply,
     read_points_ply,
     write_gaussians_ply,
     write_points_ply,
 )
+from panoworld.render.splats import render_perspective
 
 torch.set_num_threads(1)
 
@@ -134,7 +134,7 @@ def test_bad_files_raise_naming_the_problem(tmp_path):
 
 def test_asset_stage_and_ply_reader_import_without_torch_or_scipy():
     # torch and scipy cost the asset stage ~3-7 CPU-s per run in imports alone; it needs neither.
-    code = ("import sys, stages.asset, panoworld.asset, panoworld.splat_ply, panoworld.mesh, panoworld.navmesh, "
+    code = ("import sys, stages.asset, panoworld.asset, panoworld.io.splat_ply, panoworld.geometry.erp_mesh, panoworld.navmesh, "
             "panoworld.trajectory; print(sorted(m for m in ('torch', 'scipy') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=Path(__file__).resolve().parent.parent)

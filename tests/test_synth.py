@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from panoworld.conventions import (
+from panoworld.core.conventions import (
     erp_dirs,
     erp_pixel_from_dir,
     invert_pose,
@@ -22,8 +22,8 @@ from panoworld.conventions import (
     rotmat_from_quat_wxyz,
     transform_points,
 )
-from panoworld.synth import Preset, SceneGenerationError, SynthScene, generate_scene, params_for
-from panoworld.synth.cli import main
+from panoworld.tools.synth import Preset, SceneGenerationError, SynthScene, generate_scene, params_for
+from panoworld.tools.synth.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 ARTIFACTS = ROOT / "tests" / "artifacts"
@@ -222,7 +222,7 @@ def test_bad_input_writes_nothing(tmp_path, monkeypatch, capsys):
     impossible = replace(p, tracks=replace(p.tracks, clearance_m=3.0), max_scene_attempts=3)
     with pytest.raises(SceneGenerationError, match="no walkable scene in 3 attempts"):
         generate_scene(1, Preset.CI_TINY, params=impossible)
-    monkeypatch.setattr("panoworld.synth.cli.params_for", lambda *a, **k: impossible)
+    monkeypatch.setattr("panoworld.tools.synth.cli.params_for", lambda *a, **k: impossible)
     assert main([str(out), "--seed", "1", "--preset", "ci-tiny"]) == 1
     assert "no walkable scene" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []

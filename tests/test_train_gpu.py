@@ -23,10 +23,10 @@ def test_video_trainer_bf16_on_cuda(cond_dir, tmp_path, accelerate):
     pytest.importorskip("peft")
     if accelerate:
         pytest.importorskip("accelerate")
-    from panoworld.train import common
-    from panoworld.train.common import resolve_config
-    from panoworld.train.video.config import PRESETS, VideoTrainConfig
-    from panoworld.train.video.trainer import VideoTrainer
+    from panoworld.tools.train import common
+    from panoworld.tools.train.common import resolve_config
+    from panoworld.tools.train.video.config import PRESETS, VideoTrainConfig
+    from panoworld.tools.train.video.trainer import VideoTrainer
 
     cfg = resolve_config(VideoTrainConfig, PRESETS, "tiny", _video_sets(accelerate))
     trainer = VideoTrainer(cond_dir, tmp_path / "run", cfg, progress=False)
@@ -44,7 +44,7 @@ def test_shortcut_objective_under_bf16_autocast_on_cuda():
     pytest.importorskip("diffusers")
     pytest.importorskip("peft")
     from panoworld.models import wan_training as wt
-    from panoworld.train.video import toy
+    from panoworld.tools.train.video import toy
 
     cfg = toy.ToyConfig()
     tr = toy.tiny_base(cfg, 0).cuda().to(torch.bfloat16)
@@ -67,9 +67,9 @@ def test_shortcut_objective_under_bf16_autocast_on_cuda():
 
 def test_recon_stage1_bf16_with_checkpointing_on_cuda(synth_dataset, tmp_path):
     from panoworld.models.panovggt import PanoVGGT
-    from panoworld.train.common import read_metrics
-    from panoworld.train.recon.config import ReconConfig
-    from panoworld.train.recon.loop import Trainer
+    from panoworld.tools.train.common import read_metrics
+    from panoworld.tools.train.recon.config import ReconConfig
+    from panoworld.tools.train.recon.loop import Trainer
 
     cfg = ReconConfig(stage=1, steps=3, image_height=16, patch_size=8, embed_dim=16, depth=2, num_heads=2,
                       num_register_tokens=1, camera_trunk_depth=1, camera_iterations=1, dpt_features=8, min_frames=2,

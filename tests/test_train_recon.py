@@ -9,12 +9,12 @@ import pytest
 import torch
 import yaml
 
-from panoworld.train.common import read_metrics
-from panoworld.train.recon.cli import main as cli_main
-from panoworld.train.recon.config import ReconConfig
-from panoworld.train.recon.data import SceneFrames, list_scenes, split_scenes
-from panoworld.train.recon.loop import Trainer
-from panoworld.train.recon.losses import camera_loss, depth_loss
+from panoworld.tools.train.common import read_metrics
+from panoworld.tools.train.recon.cli import main as cli_main
+from panoworld.tools.train.recon.config import ReconConfig
+from panoworld.tools.train.recon.data import SceneFrames, list_scenes, split_scenes
+from panoworld.tools.train.recon.loop import Trainer
+from panoworld.tools.train.recon.losses import camera_loss, depth_loss
 
 torch.set_num_threads(1)
 
@@ -144,8 +144,8 @@ def test_cli_errors_name_the_fix(synth_dataset, tmp_path, capsys):
 
 
 def test_yaw_augmentation_is_exact_for_erp(synth_dataset):
-    from panoworld.dataset import DatasetScene
-    from panoworld.train.recon.data import roll_yaw
+    from panoworld.tools.dataset import DatasetScene
+    from panoworld.tools.train.recon.data import roll_yaw
 
     scene = DatasetScene(list_scenes(synth_dataset)[0])
     pose = scene.poses(0)[1]
@@ -157,7 +157,7 @@ def test_yaw_augmentation_is_exact_for_erp(synth_dataset):
 
 
 def test_yaw_augment_modes_keep_or_randomise_relative_rotations(synth_dataset):
-    from panoworld.train.recon.data import SceneFrames
+    from panoworld.tools.train.recon.data import SceneFrames
 
     data = SceneFrames(list_scenes(synth_dataset)[:1], 16)
     batches = {m: data.sample(np.random.default_rng(3), 4, 4, yaw_augment=m) for m in ("none", "shared", "per-frame")}
@@ -178,7 +178,7 @@ def test_yaw_augment_modes_keep_or_randomise_relative_rotations(synth_dataset):
 
 
 def test_paper_preset_values_name_their_source_and_follow_vggt():
-    from panoworld.train.recon.config import PRESETS, SOURCES, ReconConfig, dpt_layers, model_config
+    from panoworld.tools.train.recon.config import PRESETS, SOURCES, ReconConfig, dpt_layers, model_config
 
     missing = sorted(set(PRESETS["paper"]) - set(SOURCES["paper"]))
     assert not missing, f"paper preset values without a source: {missing}"

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from panoworld.train import common
+from panoworld.tools.train import common
 
 pytest.importorskip("diffusers")
 pytest.importorskip("peft")
@@ -89,7 +89,7 @@ def test_checkpoint_restores_everything_and_metrics_truncate(tmp_path):
 
 
 def test_scene_split_is_by_scene_and_stable():
-    from panoworld.train.video.data import split_scenes
+    from panoworld.tools.train.video.data import split_scenes
 
     scenes = [f"s{i:02d}" for i in range(20)]
     train, val = split_scenes(scenes * 3, 0.2, seed=0)
@@ -105,9 +105,9 @@ TINY_SETS = ["frames=5", "height=32", "vae_steps=2", "base_steps=2", "steps=4", 
 
 
 def _train(cond_dir, out, sets=(), **kw):
-    from panoworld.train.common import resolve_config
-    from panoworld.train.video.config import PRESETS, VideoTrainConfig
-    from panoworld.train.video.trainer import VideoTrainer
+    from panoworld.tools.train.common import resolve_config
+    from panoworld.tools.train.video.config import PRESETS, VideoTrainConfig
+    from panoworld.tools.train.video.trainer import VideoTrainer
 
     cfg = resolve_config(VideoTrainConfig, PRESETS, "tiny", [*TINY_SETS, *sets])
     resume = kw.pop("resume", False)
@@ -116,7 +116,7 @@ def _train(cond_dir, out, sets=(), **kw):
 
 @pytest.mark.slow
 def test_dataset_items_and_kill_resume_reproduces_the_loss_curve(cond_dir, tmp_path):
-    from panoworld.train.video.data import ClipDataset, read_index
+    from panoworld.tools.train.video.data import ClipDataset, read_index
 
     ds = ClipDataset(read_index(cond_dir), frames=5, height=32)
     item = ds[0]
@@ -161,7 +161,7 @@ def test_dataset_items_and_kill_resume_reproduces_the_loss_curve(cond_dir, tmp_p
 
 
 def test_cli_errors_are_one_line(tmp_path, capsys):
-    from panoworld.train.cli import main as train_main
+    from panoworld.tools.train.cli import main as train_main
 
     assert train_main(["video", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--preset", "tiny"]) == 2
     assert "index.jsonl: missing; run `python runner.py precompute" in capsys.readouterr().err
@@ -174,7 +174,7 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
 
 
 def test_every_paper_preset_value_names_its_source():
-    from panoworld.train.video.config import MATRIX3D_LORA, PRESETS, SOURCES
+    from panoworld.tools.train.video.config import MATRIX3D_LORA, PRESETS, SOURCES
 
     for preset in ("paper", "tiny"):
         missing = sorted(set(PRESETS[preset]) - set(SOURCES[preset]))

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from panoworld.conventions import invert_pose, pose_from_rt, rotmat_from_quat_wxyz, transform_points
-from panoworld.mesh import erp_mesh_from_depth
+from panoworld.core.conventions import invert_pose, pose_from_rt, rotmat_from_quat_wxyz, transform_points
+from panoworld.geometry.erp_mesh import erp_mesh_from_depth
 from panoworld.navmesh import NavMesh, build_navmesh, triangulate_rings
 from panoworld.trajectory import (
     PathKind,
@@ -37,7 +37,7 @@ from tests.test_navmesh import _make_mesh_artifact, box_room, erp_depth
 
 
 def _synth(seed: int, height: int = 128):
-    from panoworld.synth import generate_scene
+    from panoworld.tools.synth import generate_scene
 
     scene = generate_scene(seed, "ci-tiny")
     w_from_c = scene.world_from_canonical
@@ -114,7 +114,7 @@ def test_explore_reaches_the_far_end_of_a_long_hall_within_the_step_bound():
     # An 8 m hall, the camera 2 m off its centre: the default (no reach cap) walks >= 70 % of each sector's straight walkable distance (the eval's
     # own measure, ray cast on the NavMesh) with a mean step <= max_step_m; the old 3 m cap does not; a tighter
     # max_step_m cuts the paths to one fraction of their length (cut_lengths) and the step follows.
-    from panoworld.eval.roam import trajectory_reach
+    from panoworld.tools.eval.roam import trajectory_reach
     from panoworld.trajectory.explore import cut_lengths
     from tests.test_navmesh import nav_of
 

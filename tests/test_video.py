@@ -13,10 +13,9 @@ import imageio_ffmpeg
 import numpy as np
 import pytest
 
-from panoworld.conventions import rotmat_from_quat_wxyz
-from panoworld.stage import StageSpec, execute_stage
-from panoworld.upscale import lanczos_x2, nearest_x2
-from panoworld.video_io import (
+from panoworld.core.conventions import rotmat_from_quat_wxyz
+from panoworld.framework.stage import StageSpec, execute_stage
+from panoworld.io.video import (
     MCAP_FILE,
     PREVIEW_FILE,
     TOPIC_COND_MASK,
@@ -34,6 +33,7 @@ from panoworld.video_io import (
     world_from_cam_from_mcap,
     write_video,
 )
+from panoworld.video.upscale import lanczos_x2, nearest_x2
 from stages import video as video_stage
 
 REPO = Path(__file__).resolve().parent.parent
@@ -78,7 +78,7 @@ def test_video_without_depth(tmp_path):
 
 
 def test_mcap_decodes_back_exactly(tmp_path):
-    from panoworld.video_io import VideoWriter, encode_png
+    from panoworld.io.video import VideoWriter, encode_png
 
     frames, depth, poses = random_video(t=3)
     writer = VideoWriter(tmp_path, height=16, width=32, fps=10.0, has_depth=True, preview=False)
@@ -104,7 +104,7 @@ def test_mcap_decodes_back_exactly(tmp_path):
         np.testing.assert_allclose(world_from_cam_from_mcap(msgs[TOPIC_POSE][k]), poses[k], atol=1e-12)
         assert rgb.timestamp.ToNanoseconds() == round(k * 1e9 / 10.0)
     # The ROS world is z up: our up (-Y) must come out as +z.
-    from panoworld.conventions import ros_world_from_cam
+    from panoworld.core.conventions import ros_world_from_cam
 
     np.testing.assert_allclose(ros_world_from_cam(np.eye(4))[:3, :3] @ np.array([0.0, -1.0, 0.0]), [0, 0, 1])
 
@@ -147,8 +147,8 @@ def _artifact(kind: str, out: Path, write) -> Path:
 @pytest.fixture(scope="module")
 def upstream(tmp_path_factory):
     """mesh, trajectory and conditions artifacts of the box scene of test_inpaint (64x128, 5 poses)."""
-    from panoworld.conditions import render_conditions, write_conditions
-    from panoworld.mesh import erp_mesh_from_depth, save_erp_mesh
+    from panoworld.conditions.warp import render_conditions, write_conditions
+    from panoworld.geometry.erp_mesh import erp_mesh_from_depth, save_erp_mesh
     from panoworld.trajectory import write_trajectory
     from tests.test_inpaint import BoxScene, sideways_poses
 

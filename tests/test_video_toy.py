@@ -7,7 +7,7 @@ import torch
 
 pytest.importorskip("diffusers")
 
-from panoworld.train.video import toy
+from panoworld.tools.train.video import toy
 
 
 def test_sliced_wasserstein_is_a_distance_between_point_sets():

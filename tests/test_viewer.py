@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from panoworld.viewer.app import SceneViewer, ViewerParams, main, splat_arrays
+from panoworld.tools.viewer.app import SceneViewer, ViewerParams, main, splat_arrays
 from tests.test_report import pipeline_scene  # noqa: F401 - the shared session fixture
 
 # three.js logs this for viser's own splat geometry (a 2-component quad "position" attribute, viser 1.x
@@ -45,7 +45,7 @@ def test_viewer_loads_every_layer_and_binds_localhost(viewer, pipeline_scene):  
 
 
 def test_splat_covariances_match_scales_and_rotations():
-    from panoworld.gaussians import Gaussians
+    from panoworld.io.gaussian_set import Gaussians
 
     rng = np.random.default_rng(0)
     q = rng.normal(size=(5, 4))
@@ -62,7 +62,7 @@ def test_splat_covariances_match_scales_and_rotations():
 
 @pytest.mark.slow
 def test_viewer_canvas_shows_the_splats_in_chromium(viewer, tmp_path):
-    from panoworld.report.browser import browser_page, screenshot_array
+    from panoworld.tools.report.browser import browser_page, screenshot_array
 
     with browser_page(800, 450) as (page, console):  # small: SwiftShader renders every pixel on the CPU
         page.goto(viewer.url)
@@ -134,7 +134,7 @@ def test_view_cli_rejects_a_directory_without_artifacts(tmp_path, capsys):
 
 
 def test_non_loopback_host_and_taken_port_are_announced(tmp_path):
-    from panoworld.viewer.app import is_loopback, serve_warnings
+    from panoworld.tools.viewer.app import is_loopback, serve_warnings
 
     assert is_loopback("127.0.0.1") and is_loopback("localhost") and is_loopback("::1") and is_loopback("127.5.0.1")
     assert not any(is_loopback(h) for h in ("0.0.0.0", "::", "192.168.1.10", "my-host.lan"))

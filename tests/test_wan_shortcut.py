@@ -442,7 +442,7 @@ def test_self_consistency_target_is_the_mean_of_the_teachers_two_half_steps_on_t
 def test_one_clip_per_path_frames_back_in_pose_order():
     """wan-shortcut generates each path of a multi-path trajectory as its own clip (source view first) and puts the
     frames back in pose order: each path's frames equal that path generated alone."""
-    from panoworld.backends.video.wan_shortcut import generate_clips
+    from panoworld.video.backends.wan_shortcut import generate_clips
 
     gen = WanShortcutGenerator.from_components(tiny_transformer(), tiny_vae(), cfg(seed=2), embeds())
     rgb, mask = inputs(4)

@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.asset.collider import Collider, collision_mesh, write_obj
-from panoworld.conventions import asset_from_canonical, transform_points
-from panoworld.errors import ArtifactError
-from panoworld.gaussian_set import Gaussians
+from panoworld.core.conventions import asset_from_canonical, transform_points
+from panoworld.core.errors import ArtifactError
+from panoworld.geometry.erp_mesh import ErpMesh
 from panoworld.io import read_json, write_json
-from panoworld.mesh import ErpMesh
+from panoworld.io.gaussian_set import Gaussians
 from panoworld.navmesh import NavMesh
 from panoworld.trajectory import load_trajectory, path_indices, read_trajectory_doc
 
@@ -69,7 +69,7 @@ def with_walkable_floor(col: Collider, nav: NavMesh) -> Collider:
 def spawn_point(collider_canonical: Collider, floor_y: float) -> tuple[np.ndarray, str]:
     """The floor below the capture point (canonical frame): where a ray straight down from the camera meets the
     collider, or the NavMesh floor height when it meets nothing within 1 m of that floor (a hole under the rig)."""
-    from panoworld.raycast import Raycaster
+    from panoworld.geometry.raycast import Raycaster
 
     hits = Raycaster(collider_canonical.vertices, collider_canonical.faces).cast(
         np.zeros((1, 3), np.float32), np.array([[0.0, 1.0, 0.0]], np.float32))

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.mesh import ErpMesh, compact_faces
+from panoworld.geometry.erp_mesh import ErpMesh, compact_faces
 
 MAX_PASSES = 3
 """Decimation passes at most (each stops when no edge collapse keeps the quadric error low enough)."""

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.conventions import CV_FROM_GL, quat_xyzw_from_wxyz
-from panoworld.gaussian_set import Gaussians
+from panoworld.core.conventions import CV_FROM_GL, quat_xyzw_from_wxyz
+from panoworld.io.gaussian_set import Gaussians
 
 UP_AXIS = "Z"
 GRAVITY_M_S2 = 9.81

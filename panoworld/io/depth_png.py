@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.conventions import DEPTH_PNG_SCALE, depth_to_mm
-from panoworld.errors import InputError
+from panoworld.core.conventions import DEPTH_PNG_SCALE, depth_to_mm
+from panoworld.core.errors import InputError
 
 
 def metres_from_png(raw: np.ndarray, scale: float = DEPTH_PNG_SCALE, *, what: str = "depth PNG") -> np.ndarray:
@@ -30,8 +30,8 @@ def read_depth_png(path: Path | str, scale: float = DEPTH_PNG_SCALE) -> np.ndarr
 
 def write_depth_png(path: Path | str, depth_m: np.ndarray) -> None:
     """Depth (H, W) metres -> uint16 PNG in millimetres (unknown (0, NaN, inf) -> 0, clipped at 65.535 m)."""
+    from panoworld.core.shapes import check_shape
     from panoworld.io.png import encode_png
-    from panoworld.shapes import check_shape
 
     check_shape("depth_m", depth_m, "H W")
     path = Path(path)

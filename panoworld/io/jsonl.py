@@ -6,7 +6,7 @@ import json
 from collections.abc import Iterable
 from pathlib import Path
 
-from panoworld.errors import InputError
+from panoworld.core.errors import InputError
 from panoworld.io.jsonio import to_jsonable
 from panoworld.io.safe_write import write_text_atomic
 

@@ -10,7 +10,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
 
-from panoworld.errors import InputError
+from panoworld.core.errors import InputError
 
 
 class OutputPathError(InputError):

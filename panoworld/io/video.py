@@ -1,16 +1,34 @@
-"""video.json of a video artifact: the one parser (frames, depth PNGs, poses, fps) every reader goes through."""
+"""The video artifact: lossless PNG frames, uint16 depth, video.json (the one parser every reader goes through), an H.264
+preview and a Foxglove MCAP; its writer and readers."""
 
 from __future__ import annotations
 
+import json
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
-from panoworld.conventions import DEPTH_PNG_SCALE
-from panoworld.errors import InputError
+from panoworld.core.conventions import (
+    DEPTH_PNG_SCALE,
+    check_erp_shape,
+    check_pose,
+    depth_to_mm,
+    quat_wxyz_from_rotmat,
+    quat_wxyz_from_xyzw,
+    quat_xyzw_from_wxyz,
+    ros_world_from_cam,
+    rotmat_from_quat_wxyz,
+    world_from_ros_world,
+)
+from panoworld.core.errors import InputError
+from panoworld.core.shapes import check_shape
+from panoworld.io.depth_png import read_depth_png
 from panoworld.io.jsonio import read_json
-from panoworld.shapes import check_shape
+from panoworld.io.png import decode_png, encode_png
 
 VIDEO_FILE = "video.json"
 
@@ -63,3 +81,346 @@ def read_video_doc(video_dir: Path | str) -> VideoDoc:
     if poses is not None:
         check_shape(f"{path} poses", poses, "N 4 4", dims={"N": len(rgb)})
     return VideoDoc(root, h, w, rgb, depth, scale, poses, fps, meta)
+
+
+PREVIEW_FILE = "preview.mp4"
+MCAP_FILE = "video.mcap"
+DEPTH_SCALE = DEPTH_PNG_SCALE  # metres per depth PNG unit (millimetres); 0 = unknown
+
+# MCAP topics (Foxglove protobuf schemas). Depth is a foxglove.RawImage '16UC1' in millimetres (0 = unknown), which
+# Foxglove's Image panel shows with a colour map; RGB frames and conditions are PNG foxglove.CompressedImage.
+TOPIC_RGB = "/camera/rgb"
+TOPIC_DEPTH = "/camera/depth"
+TOPIC_COND_RGB = "/conditions/rgb"
+TOPIC_COND_MASK = "/conditions/mask"
+TOPIC_TF = "/tf"
+TOPIC_POSE = "/camera/pose"
+WORLD_FRAME = "world"
+CAMERA_FRAME = "camera"
+
+
+@dataclass
+class Video:
+    """A loaded video artifact."""
+
+    frames: np.ndarray  # (T, H, W, 3) uint8 RGB
+    depth: np.ndarray | None  # (T, H, W) float32 metres along the ray, 0 = unknown; None when the backend has none
+    poses: np.ndarray  # (T, 4, 4) float64 world_from_cam (canonical frame, OpenCV camera axes)
+    fps: float
+    meta: dict = field(default_factory=dict)  # the parsed video.json
+
+
+def _ns(index: int, fps: float) -> int:
+    return int(round(index * 1e9 / fps))
+
+
+class VideoWriter:
+    """Streams frames into a video artifact directory: frames/%06d.png, depth/%06d.png, preview.mp4, video.mcap and,
+    with upscale > 1, upscaled/%06d.png (an output only: later stages read frames/); close() writes video.json.
+    PNGs are encoded by `workers` threads and the MCAP is written (in frame order) by one more, off the caller's thread;
+    memory stays at a few frames whatever the length. The MCAP reuses the frames' PNG bytes (no second encoding) and
+    holds the frames once, at the generation size."""
+
+    def __init__(
+        self,
+        out_dir: Path,
+        *,
+        height: int,
+        width: int,
+        fps: float,
+        has_depth: bool,
+        preview: bool = True,
+        preview_max_width: int = 1920,
+        mcap: bool = True,
+        png_compression: int = 1,
+        workers: int = 2,
+        upscale: int = 1,
+    ):
+        check_erp_shape(height, width, "video frame")
+        if upscale < 1:
+            raise ValueError(f"{upscale=} must be >= 1")
+        if fps <= 0:
+            raise ValueError(f"{fps=} must be > 0")
+        self.out_dir = Path(out_dir)
+        self.height, self.width, self.fps, self.has_depth = height, width, float(fps), has_depth
+        self.png_compression = png_compression
+        self.upscale = upscale
+        (self.out_dir / "frames").mkdir(parents=True, exist_ok=True)
+        if upscale > 1:
+            (self.out_dir / "upscaled").mkdir(exist_ok=True)
+        if has_depth:
+            (self.out_dir / "depth").mkdir(exist_ok=True)
+        self.entries: list[dict] = []
+        self.poses: list[np.ndarray] = []
+        self._pool = ThreadPoolExecutor(max_workers=workers)
+        self._mcap_pool = ThreadPoolExecutor(max_workers=1)  # one thread: messages stay in frame order
+        self._pending: deque = deque()
+        self._mp4 = None
+        self._mp4_pool = ThreadPoolExecutor(max_workers=1)  # one thread: preview frames stay in order
+        self._mp4_pending: deque = deque()
+        if preview:
+            import imageio_ffmpeg
+
+            s = min(1.0, preview_max_width / width)
+            self._preview_size = (max(2, int(round(width * s / 2)) * 2), max(2, int(round(height * s / 2)) * 2))
+            self._mp4 = imageio_ffmpeg.write_frames(
+                str(self.out_dir / PREVIEW_FILE), self._preview_size, fps=self.fps, codec="libx264",
+                pix_fmt_out="yuv420p", quality=None, macro_block_size=2,
+                output_params=["-preset", "veryfast", "-crf", "18"], ffmpeg_log_level="error",
+            )
+            self._mp4.send(None)
+        self._mcap = None
+        if mcap:
+            from mcap_protobuf.writer import Writer
+
+            self._mcap_file = open(self.out_dir / MCAP_FILE, "wb")
+            self._mcap = Writer(self._mcap_file)
+
+    def add(
+        self,
+        rgb: np.ndarray,
+        depth: np.ndarray | None,
+        world_from_cam: np.ndarray,
+        *,
+        cond_rgb_png: bytes | None = None,
+        cond_mask_png: bytes | None = None,
+        upscaled: np.ndarray | None = None,
+    ) -> None:
+        """Append frame rgb (H, W, 3) uint8 with depth (H, W) metres (0 = unknown; required iff has_depth) at pose 4x4;
+        the conditions' PNG bytes (any size) go into the MCAP only; upscaled (sH, sW, 3) uint8 (required iff the
+        writer's upscale s > 1) goes to upscaled/ only."""
+        H, W = self.height, self.width
+        dims = check_shape("rgb", rgb, "H W 3", dtype=np.uint8, dims={"H": H, "W": W})
+        s = self.upscale
+        if (upscaled is not None) != (s > 1) or (upscaled is not None and upscaled.shape != (s * H, s * W, 3)):
+            raise ValueError(f"upscaled {None if upscaled is None else upscaled.shape} but expected "
+                             f"{(s * H, s * W, 3) if s > 1 else None} (writer upscale {s})")
+        if self.has_depth != (depth is not None):
+            raise ValueError(f"depth given: {depth is not None} but the writer has has_depth={self.has_depth}")
+        if depth is not None:
+            check_shape("depth", depth, "H W", dims=dims)
+        check_pose(world_from_cam, "world_from_cam")
+        i = len(self.entries)
+        name = f"{i:06d}.png"
+        entry = {"rgb": f"frames/{name}", "depth": None}
+        if upscaled is not None:
+            entry["upscaled"] = f"upscaled/{name}"
+        if depth is not None:
+            entry["depth"] = f"depth/{name}"
+        self.entries.append(entry)
+        self.poses.append(np.asarray(world_from_cam, np.float64))
+        # Everything below runs off the caller's thread (OpenCV, numpy and the pipe to ffmpeg release the GIL), so the
+        # caller's next frame overlaps it; MCAP messages and preview frames stay in order.
+        rgb = rgb.copy()
+        if self._mp4 is not None:
+            self._mp4_pending.append(self._mp4_pool.submit(self._send_preview, rgb))
+        rgb_job = self._pool.submit(self._encode_write, rgb, self.out_dir / entry["rgb"])
+        depth_job = None
+        if depth is not None:
+            depth_job = self._pool.submit(self._encode_depth, np.array(depth), self.out_dir / entry["depth"])
+        up_job = None
+        if upscaled is not None:
+            up_job = self._pool.submit(self._encode_write, np.ascontiguousarray(upscaled), self.out_dir / entry["upscaled"])
+        self._pending.append(self._mcap_pool.submit(
+            self._finish, i, rgb_job, depth_job, up_job, self.poses[-1], cond_rgb_png, cond_mask_png))
+        while len(self._pending) > 2:
+            self._pending.popleft().result()
+        while len(self._mp4_pending) > 2:
+            self._mp4_pending.popleft().result()
+
+    def _send_preview(self, rgb: np.ndarray) -> None:
+        small = rgb
+        if self._preview_size != (self.width, self.height):
+            small = cv2.resize(rgb, self._preview_size, interpolation=cv2.INTER_AREA)
+        self._mp4.send(np.ascontiguousarray(small))
+
+    def _encode_depth(self, depth: np.ndarray, path: Path) -> np.ndarray:
+        """Depth (H, W) metres -> its uint16 millimetre PNG at path; returns the millimetres (the MCAP's)."""
+        mm = depth_to_mm(depth)
+        self._encode_write(mm, path)
+        return mm
+
+    def _encode_write(self, image: np.ndarray, path: Path) -> bytes:
+        png = encode_png(image, compression=self.png_compression)
+        path.write_bytes(png)
+        return png
+
+    def _finish(self, i, rgb_job, depth_job, up_job, pose, cond_rgb_png, cond_mask_png) -> None:
+        png = rgb_job.result()
+        mm = None if depth_job is None else depth_job.result()
+        if up_job is not None:
+            up_job.result()
+        if self._mcap is not None:
+            self._write_mcap(i, png, mm, pose, cond_rgb_png, cond_mask_png)
+
+    def _write_mcap(self, i, png, mm, world_from_cam, cond_rgb_png, cond_mask_png) -> None:
+        from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+        from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+        from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+        from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+        from google.protobuf.timestamp_pb2 import Timestamp
+
+        t = _ns(i, self.fps)
+        stamp = Timestamp(seconds=t // 1_000_000_000, nanos=t % 1_000_000_000)
+
+        def put(topic, msg):
+            self._mcap.write_message(topic, msg, log_time=t, publish_time=t, sequence=i)
+
+        put(TOPIC_RGB, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=png, format="png"))
+        if mm is not None:
+            put(TOPIC_DEPTH, RawImage(timestamp=stamp, frame_id=CAMERA_FRAME, width=mm.shape[1], height=mm.shape[0],
+                                      encoding="16UC1", step=2 * mm.shape[1], data=mm.astype("<u2").tobytes()))
+        if cond_rgb_png is not None:
+            put(TOPIC_COND_RGB, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=cond_rgb_png, format="png"))
+        if cond_mask_png is not None:
+            put(TOPIC_COND_MASK, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=cond_mask_png, format="png"))
+        ros = ros_world_from_cam(world_from_cam)
+        x, y, z, w = quat_xyzw_from_wxyz(quat_wxyz_from_rotmat(ros[:3, :3]))
+        tx, ty, tz = ros[:3, 3]
+        tf = FrameTransform(timestamp=stamp, parent_frame_id=WORLD_FRAME, child_frame_id=CAMERA_FRAME)
+        tf.translation.x, tf.translation.y, tf.translation.z = tx, ty, tz
+        tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = x, y, z, w
+        put(TOPIC_TF, tf)
+        pose = PoseInFrame(timestamp=stamp, frame_id=WORLD_FRAME)
+        pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = tx, ty, tz
+        pose.pose.orientation.x, pose.pose.orientation.y, pose.pose.orientation.z, pose.pose.orientation.w = x, y, z, w
+        put(TOPIC_POSE, pose)
+
+    def close(self, meta: dict | None = None) -> dict:
+        """Finish the frames, preview and MCAP and write video.json (meta adds keys such as backend/upscale); returns it."""
+        while self._pending:
+            self._pending.popleft().result()
+        while self._mp4_pending:
+            self._mp4_pending.popleft().result()
+        self._pool.shutdown()
+        self._mcap_pool.shutdown()
+        self._mp4_pool.shutdown()
+        if self._mp4 is not None:
+            self._mp4.close()
+            self._mp4 = None
+        if self._mcap is not None:
+            self._mcap.finish()
+            self._mcap_file.close()
+            self._mcap = None
+        doc = {
+            "height": self.height,
+            "width": self.width,
+            "upscaled_height": self.height * self.upscale if self.upscale > 1 else None,
+            "upscaled_width": self.width * self.upscale if self.upscale > 1 else None,
+            "num_frames": len(self.entries),
+            "fps": self.fps,
+            **(meta or {}),
+            "has_depth": self.has_depth,
+            "depth_scale": DEPTH_SCALE,
+            "frames": self.entries,
+            "poses": [p.tolist() for p in self.poses],
+        }
+        (self.out_dir / VIDEO_FILE).write_text(json.dumps(doc, indent=1))
+        return doc
+
+
+def write_video(
+    out_dir: Path, frames: np.ndarray, depth: np.ndarray | None, poses: np.ndarray, *, fps: float,
+    meta: dict | None = None, **writer_kw,
+) -> dict:
+    """Write frames (T, H, W, 3) uint8, depth (T, H, W) metres or None and poses (T, 4, 4) as a video artifact."""
+    dims = check_shape("frames", frames, "T H W 3")
+    check_shape("poses", poses, "T 4 4", dims=dims)
+    if depth is not None:
+        check_shape("depth", depth, "T H W", dims=dims)
+    T, H, W = frames.shape[:3]
+    w = VideoWriter(Path(out_dir), height=H, width=W, fps=fps, has_depth=depth is not None, **writer_kw)
+    for t in range(T):
+        w.add(frames[t], None if depth is None else depth[t], poses[t])
+    return w.close(meta)
+
+
+def load_video(artifact_dir: Path, *, with_depth: bool = True) -> Video:
+    """Read a video artifact directory (video.json, frames/, depth/) into memory."""
+    doc = read_video_doc(artifact_dir)
+    H, W = doc.height, doc.width
+    if doc.poses is None:
+        raise InputError(f"{doc.root / VIDEO_FILE}: records no poses; rerun the video stage")
+    poses = doc.poses
+    frames = np.empty((doc.num_frames, H, W, 3), np.uint8)
+    depth = np.zeros((doc.num_frames, H, W), np.float32) if doc.meta.get("has_depth") and with_depth else None
+    for t, path in enumerate(doc.rgb):
+        img = decode_png(path.read_bytes(), what=str(path))
+        check_shape(str(path), img, "H W 3", dims={"H": H, "W": W})
+        frames[t] = img
+        if depth is not None and doc.depth[t] is not None:
+            d = read_depth_png(doc.depth[t], doc.depth_scale)
+            check_shape(str(doc.depth[t]), d, "H W", dims={"H": H, "W": W})
+            depth[t] = d
+    return Video(frames, depth, poses, doc.fps or 0.0, doc.meta)
+
+
+def read_mcap(path: Path) -> dict[str, list]:
+    """Decode a video.mcap: {topic: [decoded message, ...]} in log-time order (foxglove protobuf messages)."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    out: dict[str, list] = {}
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _schema, channel, _message, proto in reader.iter_decoded_messages(log_time_order=True):
+            out.setdefault(channel.topic, []).append(proto)
+    return out
+
+
+def world_from_cam_from_mcap(tf) -> np.ndarray:
+    """A foxglove FrameTransform / Pose of the camera in the ROS world -> our world_from_cam (4, 4)."""
+    if "translation" in tf.DESCRIPTOR.fields_by_name:
+        t, q = tf.translation, tf.rotation
+    else:
+        pose = tf.pose if "pose" in tf.DESCRIPTOR.fields_by_name else tf
+        t, q = pose.position, pose.orientation
+    ros = np.eye(4)
+    ros[:3, :3] = rotmat_from_quat_wxyz(quat_wxyz_from_xyzw(np.array([q.x, q.y, q.z, q.w])))
+    ros[:3, 3] = [t.x, t.y, t.z]
+    return world_from_ros_world() @ ros
+
+
+def raw_image_array(msg) -> np.ndarray:
+    """A foxglove RawImage ('16UC1', 'mono8', 'rgb8' or '32FC1') -> numpy array (H, W[, C])."""
+    dtypes = {"16UC1": ("<u2", 1), "mono8": ("u1", 1), "8UC1": ("u1", 1), "rgb8": ("u1", 3), "32FC1": ("<f4", 1)}
+    if msg.encoding not in dtypes:
+        raise ValueError(f"RawImage encoding {msg.encoding!r} not one of {sorted(dtypes)}")
+    dt, c = dtypes[msg.encoding]
+    item = np.dtype(dt).itemsize
+    rows = np.frombuffer(msg.data, np.uint8).reshape(msg.height, msg.step)[:, : msg.width * c * item]
+    arr = np.ascontiguousarray(rows).view(dt).reshape(msg.height, msg.width, c)
+    return arr[..., 0] if c == 1 else arr
+
+
+# ---------------------------------------------------------------- frames on disk
+
+
+VideoFrames = VideoDoc
+"""The frames of a video artifact (video.json), with paths resolved against its directory."""
+
+
+def read_video_frames(video_dir: Path) -> VideoFrames:
+    """video.json of a video artifact without loading frames (COLMAP reads them from disk; see
+    panoworld.io.video.load_video for the in-memory reader); InputError naming the file on any problem."""
+    video = read_video_doc(video_dir)
+    if not video.rgb:
+        raise InputError(f"{video.root / VIDEO_FILE}: lists no frames; rerun the video stage")
+    missing = [str(p) for p in video.rgb if not p.is_file()]
+    if missing:
+        raise InputError(f"{video.root / VIDEO_FILE}: {len(missing)} frame files are missing (first {missing[0]}); "
+                              "rerun the video stage")
+    return video
+
+
+def load_frames(paths: list[Path], height: int | None = None) -> np.ndarray:
+    """RGB frames (N, H, W, 3) uint8, resized (INTER_AREA) to height x 2*height when height is given."""
+    out = []
+    for p in paths:
+        bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise InputError(f"{p}: not a readable image; rerun the video stage")
+        if height is not None and bgr.shape[0] != height:
+            bgr = cv2.resize(bgr, (2 * height, height), interpolation=cv2.INTER_AREA)
+        out.append(bgr[..., ::-1])
+    return np.stack(out)

@@ -8,9 +8,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from panoworld.depth import DepthKind
-from panoworld.errors import InputError
-from panoworld.shapes import check_shape
+from panoworld.core.errors import InputError
+from panoworld.core.shapes import check_shape
+from panoworld.io.depth import DepthKind
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -31,7 +31,7 @@ class DepthAnything:
     """Wraps a DepthAnythingForDepthEstimation: `predictor(image (s, s, 3) uint8) -> (s, s) float32`.
 
     Relative checkpoints (config.depth_estimation_type == "relative", the V2 default) predict affine-invariant
-    inverse depth; metric ones predict z-depth in metres (see panoworld.depth.DepthKind).
+    inverse depth; metric ones predict z-depth in metres (see panoworld.io.depth.DepthKind).
     """
 
     def __init__(self, model, *, input_size: int = 518, mean=IMAGENET_MEAN, std=IMAGENET_STD, device: str = "cpu"):

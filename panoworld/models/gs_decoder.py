@@ -10,8 +10,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from panoworld.conventions import erp_dirs
-from panoworld.gaussians import SH_C0, Gaussians, fuse_voxels
+from panoworld.core.conventions import erp_dirs
+from panoworld.geometry.voxels import fuse_voxels
+from panoworld.io.gaussian_set import SH_C0, Gaussians
 from panoworld.models.weights import JsonConfig
 
 IN_CHANNELS = 10
@@ -143,7 +144,7 @@ class GaussianHead(nn.Module):
 
     The paper's head: f = [I, z, d, o x d] per pixel, patchified on the backbone's patch grid and summed with a
     projection of the shared backbone tokens; joint self-attention over all patches of all views; unpatchify to
-    full resolution; per-pixel confidence w; the confidence-weighted voxel fusion of gaussians.fuse_voxels (p_j and
+    full resolution; per-pixel confidence w; the confidence-weighted voxel fusion of geometry.voxels.fuse_voxels (p_j and
     f_vox_j); KNN attention over the voxel tokens; phi_gs([f_vox, gamma(p)]) -> K Gaussians per voxel with bounded
     activations.
     """

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from panoworld.core.shapes import check_shape
 from panoworld.models.weights import MissingWeightsError, require_weights_file
-from panoworld.shapes import check_shape
 
 I3D_WEIGHTS = "i3d_torchscript.pt"
 I3D_WEIGHTS_TEXT = (f"{I3D_WEIGHTS}, the TF-Hub Kinetics-400 I3D of Unterthiner et al.'s FVD exported to TorchScript "

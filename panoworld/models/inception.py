@@ -9,8 +9,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from panoworld.core.shapes import check_shape
 from panoworld.models.weights import MissingWeightsError, read_state_file, require_weights_file
-from panoworld.shapes import check_shape
 
 FID_WEIGHTS = "pt_inception-2015-12-05-6726825d.pth"
 FID_WEIGHTS_TEXT = f"pytorch-fid's {FID_WEIGHTS} (the TF FID Inception ported to torch)"

@@ -11,7 +11,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from panoworld.conventions import erp_lonlat_from_pixel
+from panoworld.core.conventions import erp_lonlat_from_pixel
+from panoworld.core.rotations import rotmat_from_quat
+from panoworld.core.shapes import check_shape
 from panoworld.models.gs_decoder import GaussianHead, GaussianHeadConfig
 from panoworld.models.pose_refine import refine_sequence
 from panoworld.models.weights import (
@@ -20,11 +22,9 @@ from panoworld.models.weights import (
     load_config_and_weights,
     save_config_and_weights,
 )
-from panoworld.rotations import rotmat_from_quat
-from panoworld.shapes import check_shape
 
 if TYPE_CHECKING:
-    from panoworld.gaussians import ContextFrames, FusionResult
+    from panoworld.io.gaussian_set import ContextFrames, FusionResult
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -484,7 +484,8 @@ class PanoVGGT(nn.Module):
         """Gaussians from a gaussians stage's ContextFrames (their depth and poses), at the model's input size."""
         import cv2
 
-        from panoworld.gaussians import FusionResult, bbox_extent
+        from panoworld.geometry.voxels import bbox_extent
+        from panoworld.io.gaussian_set import FusionResult
 
         head = self.require_gaussian_head()
         h = self.cfg.image_height

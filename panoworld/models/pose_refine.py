@@ -6,7 +6,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from panoworld.conventions import erp_dirs
+from panoworld.core.conventions import erp_dirs
 
 PARAMS = 7
 """Per-frame update: rotation vector (3) and translation (3), both in the camera's own frame, log depth scale (1)."""

@@ -11,8 +11,8 @@ import torch.nn.functional as F
 from torch import nn
 from tqdm import tqdm
 
+from panoworld.core.shapes import check_shape
 from panoworld.models.weights import read_state_file, require_weights_file
-from panoworld.shapes import check_shape
 
 EXPECTED_FILE = "RealESRGAN_x2plus.pth (official Real-ESRGAN release; state dict under 'params_ema' or 'params')"
 

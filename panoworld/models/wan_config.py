@@ -6,7 +6,7 @@ import enum
 from dataclasses import dataclass
 from pathlib import Path
 
-from panoworld.params import param
+from panoworld.core.params import param
 
 DEFAULT_PROMPT = "a panoramic video walking through an indoor scene"
 

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from panoworld.core.shapes import check_shape
 from panoworld.models import wan_layers as wl
 from panoworld.models.wan_config import (  # noqa: F401  (re-exported)
     DEFAULT_PROMPT,
@@ -20,7 +21,6 @@ from panoworld.models.wan_config import (  # noqa: F401  (re-exported)
     resolve_device,
 )
 from panoworld.models.weights import MissingWeightsError, require_weights_dir, require_weights_file
-from panoworld.shapes import check_shape
 
 MAX_SEQUENCE_LENGTH = 512  # Wan2.2 pads/truncates UMT5 prompts to 512 tokens
 BASE_FILES = (

@@ -6,7 +6,7 @@ import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
 
-from panoworld.errors import WeightsError
+from panoworld.core.errors import WeightsError
 
 
 class MissingWeightsError(WeightsError):

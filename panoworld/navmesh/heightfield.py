@@ -6,9 +6,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from panoworld.errors import InputError
-from panoworld.params import param
-from panoworld.shapes import check_shape
+from panoworld.core.errors import InputError
+from panoworld.core.params import param
+from panoworld.core.shapes import check_shape
 
 MIN_CAMERA_HEIGHT_M = 0.3
 """Horizontal triangles closer than this below the camera are never taken as the floor."""
@@ -53,7 +53,7 @@ class NavMeshParams:
     """Unseen holes of at most this area surrounded by walkable floor (sensor dropouts, LiDAR gaps) count as
     walkable; a region where rays hit something below the floor (a stairwell) never does. 0 = off."""
     max_erp_height: int = param(192, ge=0)
-    """ERP grid meshes (panoworld.mesh layout) with more rows are re-meshed from every s-th pixel first (speed)."""
+    """ERP grid meshes (panoworld.geometry.erp_mesh layout) with more rows are re-meshed from every s-th pixel first (speed)."""
 
 
 @dataclass
@@ -153,7 +153,7 @@ def erp_grid_shape(vertices: np.ndarray) -> tuple[int, int] | None:
 
     Checks that the non-zero vertices point along the h x w ERP pixel-centre rays (any other mesh gives None).
     """
-    from panoworld.conventions import dir_from_lonlat, erp_lonlat_from_pixel
+    from panoworld.core.conventions import dir_from_lonlat, erp_lonlat_from_pixel
 
     n = len(vertices) - 2
     h = int(round(np.sqrt(max(n, 0) / 2)))
@@ -176,9 +176,9 @@ def downsample_erp_mesh(
     """Re-mesh an ErpMesh grid from every s-th pixel so that it has at most max_height rows.
 
     Returns (vertices, faces, face_valid, s); s = 1 and the input unchanged when the mesh is small or not an
-    ERP grid mesh. Depth discontinuities are re-flagged by panoworld.mesh at the coarse grid.
+    ERP grid mesh. Depth discontinuities are re-flagged by panoworld.geometry.erp_mesh at the coarse grid.
     """
-    from panoworld.mesh import erp_mesh_from_depth
+    from panoworld.geometry.erp_mesh import erp_mesh_from_depth
 
     shape = erp_grid_shape(vertices)
     if shape is None or shape[0] <= max_height:
@@ -207,7 +207,7 @@ def floor_grid(
     """
     import cv2
 
-    from panoworld.raycast import Raycaster
+    from panoworld.geometry.raycast import Raycaster
 
     cell = params.cell_m
     top = band_top(floor_y, params)

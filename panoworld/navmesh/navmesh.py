@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.conventions import GLTF_FROM_WORLD, transform_points
+from panoworld.core.conventions import GLTF_FROM_WORLD, transform_points
+from panoworld.core.shapes import check_shape
 from panoworld.navmesh.heightfield import FloorGrid, NoFloorError
 from panoworld.navmesh.polygons import (
     cross_section,
@@ -20,7 +21,6 @@ from panoworld.navmesh.polygons import (
     segment_distance,
     triangulate_rings,
 )
-from panoworld.shapes import check_shape
 
 NAVMESH_JSON = "navmesh.json"
 RUN_ONLY_INFO = ("timings_s",)

@@ -7,10 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.depth import read_depth, read_panorama
-from panoworld.errors import InputError
+from panoworld.core.errors import InputError
+from panoworld.io.depth import read_depth, read_panorama
+from panoworld.io.home import PANORAMAS_JSON
 from panoworld.io.jsonio import read_json, write_json
-from panoworld.register.inputs import PANORAMAS_JSON, REGISTRATION_JSON, find_multi_scene, read_poses
+from panoworld.register.inputs import REGISTRATION_JSON, find_multi_scene, read_poses
 from panoworld.register.options import RegisterOptions
 from panoworld.register.registration import Registration
 
@@ -37,7 +38,7 @@ def register_depth_dirs(dirs: dict[str, Path] | None, poses_file: Path | None, o
                         out_dir: Path) -> dict:
     """Register the cleaned panoramas and depths of a home's depth artifact ({NAME: dir of depth.npy, valid.png,
     panorama.png}; the pipeline's path); None (a single panorama) is one capture point at the identity. -> info."""
-    from panoworld.depth import load_depth_artifact
+    from panoworld.io.depth import load_depth_artifact
 
     if dirs is None:
         if poses_file is not None:

@@ -8,14 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld import limits
-from panoworld.errors import InputError
+from panoworld.core import limits
+from panoworld.core.errors import InputError
 
 PANORAMAS_DIR = "panoramas"
 DEPTHS_DIR = "depths"
 POSES_FILE = "poses.json"
-PANORAMAS_JSON = "panoramas.json"
-"""The register artifact's {NAME: 4x4 world_from_cam} of the registered panoramas."""
 REGISTRATION_JSON = "registration.json"
 """The register artifact's per-panorama quality figures and every pair tried."""
 PANORAMA_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -86,7 +84,7 @@ def find_multi_scene(scene: Path) -> MultiScene:
 def check_home(scene: Path) -> MultiScene:
     """find_multi_scene, then every depth and rig mask checked from its header (size, format, minimum size) and
     poses.json read with its limits: all before anything is hashed or run; InputError (one line) otherwise."""
-    from panoworld.image_io import check_depth_file, check_mask_file
+    from panoworld.io.images import check_depth_file, check_mask_file
 
     home = find_multi_scene(scene)
     for path in home.depths.values():

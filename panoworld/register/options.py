@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from panoworld.params import param
+from panoworld.core.params import param
 
 
 @dataclass(kw_only=True)

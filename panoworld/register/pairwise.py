@@ -12,8 +12,8 @@ import torch
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from panoworld.conventions import erp_dirs, erp_pixel_from_dir
-from panoworld.cube_views import cube_views, render_view
+from panoworld.core.conventions import erp_dirs, erp_pixel_from_dir
+from panoworld.geometry.cube_views import cube_views, render_view
 from panoworld.models.pose_refine import depth_edges, sample_range
 
 

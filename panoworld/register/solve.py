@@ -4,24 +4,14 @@ panoramas are reported, not placed."""
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
-from panoworld.conventions import invert_pose
-from panoworld.gaussians import resize_depth
+from panoworld.core.conventions import invert_pose
+from panoworld.geometry.resize import rgbd_at_height
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pair_select import ALL_PAIRS_UP_TO, appearance_descriptor, candidate_pairs
 from panoworld.register.pairwise import Features, PairResult, erp_features, register_pair
 from panoworld.register.registration import Registration
-
-
-def rgbd_at_height(rgb: np.ndarray, depth: np.ndarray, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """rgb (area) and depth (resize_depth; 0 = unknown) at `height` rows when they are taller (never upsampled; 0 = as
-    given): a panorama resized as the video frames are (ContextSource)."""
-    if height and depth.shape[0] > height:
-        rgb = cv2.resize(rgb, (2 * height, height), interpolation=cv2.INTER_AREA)
-        depth = np.nan_to_num(resize_depth(depth, height, 2 * height), nan=0.0, posinf=0.0)
-    return rgb, depth
 
 
 def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: dict[str, np.ndarray], *,

@@ -7,10 +7,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from panoworld.errors import InputError
-from panoworld.limits import MAX_POSES
+from panoworld.core.errors import InputError
+from panoworld.core.limits import MAX_POSES
+from panoworld.core.params import param
 from panoworld.navmesh import NavMesh
-from panoworld.params import param
 from panoworld.trajectory.polyline import resample_polyline
 
 TRAJECTORY_JSON = "trajectory.json"

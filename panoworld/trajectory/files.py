@@ -7,9 +7,14 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld import conventions, limits
-from panoworld.conventions import quat_wxyz_from_rotmat, quat_wxyz_from_xyzw, quat_xyzw_from_wxyz, rotmat_from_quat_wxyz
-from panoworld.errors import InputError
+from panoworld.core import conventions, limits
+from panoworld.core.conventions import (
+    quat_wxyz_from_rotmat,
+    quat_wxyz_from_xyzw,
+    quat_xyzw_from_wxyz,
+    rotmat_from_quat_wxyz,
+)
+from panoworld.core.errors import InputError
 from panoworld.trajectory.common import FRAME, TRAJECTORY_JSON, TRAJECTORY_TUM, TrajectoryFileError
 from panoworld.trajectory.poses import path_indices
 
@@ -61,7 +66,7 @@ def write_tum(path: Path, poses: np.ndarray, fps: float) -> None:
 
 def read_trajectory_file(path: Path) -> np.ndarray:
     """A user trajectory: JSON ({"poses": [4x4, ...]} or a plain list of 4x4) or TUM text -> (N, 4, 4), within the
-    limits of panoworld.limits (file size, pose count, nesting, translations)."""
+    limits of panoworld.core.limits (file size, pose count, nesting, translations)."""
     path = Path(path)
     try:
         limits.check_size(path, limits.MAX_TRAJECTORY_BYTES, "trajectory file")

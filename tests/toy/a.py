@@ -1,6 +1,6 @@
 """Toy stage a."""
 
-from panoworld.stage import Input
+from panoworld.framework.stage import Input
 from tests.toy.common import entry, main_of, make_stage
 
 globals().update(make_stage("a", {"panorama": Input("file")}))

@@ -8,9 +8,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from panoworld.errors import InputError
-from panoworld.params import param
-from panoworld.stage import Input, stage_main
+from panoworld.core.errors import InputError
+from panoworld.core.params import param
+from panoworld.framework.stage import Input, stage_main
 
 
 @dataclass(kw_only=True)
@@ -57,7 +57,7 @@ def entry(module_name: str) -> None:
 
 def use_toy_schemas(monkeypatch) -> None:
     """Validate manifests against the toy schemas (tests/toy/schemas) for the rest of the test."""
-    from panoworld import artifacts as art
+    from panoworld.io import manifest as art
 
     monkeypatch.setenv("PANOWORLD_SCHEMA_PATH", str(Path(__file__).parent / "schemas"))
     art.load_schema.cache_clear()

@@ -1,0 +1,1 @@
+"""The capture rig at the nadir: detection (heuristic and learned), shadow, removal."""

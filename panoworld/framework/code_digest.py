@@ -1,0 +1,144 @@
+"""Code digests for the cache key: a module and the project modules it imports, comments and docstrings excluded."""
+
+from __future__ import annotations
+
+import ast
+import hashlib
+import os
+from pathlib import Path
+
+from panoworld.io.manifest import REPO_ROOT, json_digest
+from panoworld.io.user_cache import read_user_cache, write_user_cache
+
+_CACHE_FILE = "code_digests.json"
+_memo: dict[str, tuple[int, int, str, list[str]]] = {}
+"""path -> (mtime_ns, size, digest, imported module names): files are parsed again only when their stat changes."""
+_disk_loaded = False
+
+
+def _load_disk_cache() -> None:
+    global _disk_loaded
+    if _disk_loaded:
+        return
+    _disk_loaded = True
+    try:
+        _memo.update({k: (v[0], v[1], v[2], v[3]) for k, v in read_user_cache(_CACHE_FILE).items() if k not in _memo})
+    except (TypeError, IndexError, KeyError):
+        pass
+
+
+def _save_disk_cache() -> None:
+    write_user_cache(_CACHE_FILE, _memo)
+
+
+def _strip_docstrings(tree: ast.AST) -> ast.AST:
+    """Drop every statement that is a bare string (module/class/function and attribute docstrings)."""
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if isinstance(body, list):
+            node.body = [s for s in body if not (isinstance(s, ast.Expr) and isinstance(s.value, ast.Constant)
+                                                 and isinstance(s.value.value, str))]
+    return tree
+
+
+def _imports(tree: ast.AST, module: str, is_package: bool) -> list[str]:
+    """Absolute names of every module an import statement (at any depth, lazy ones included) may refer to."""
+    package = module if is_package else module.rpartition(".")[0]
+    out: list[str] = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")
+                parts = parts[: len(parts) - (node.level - 1)] if node.level > 1 else parts
+                base = ".".join(p for p in [*parts, base] if p)
+            out.append(base)
+            out += [f"{base}.{a.name}" for a in node.names if a.name != "*"]
+    return sorted(set(out))
+
+
+def file_digest(path: Path, module: str) -> tuple[str, list[str]]:
+    """(digest of the file's AST without docstrings, imported module names); cached by mtime and size."""
+    key = str(path)
+    st = path.stat()
+    hit = _memo.get(key)
+    if hit and hit[0] == st.st_mtime_ns and hit[1] == st.st_size:
+        return hit[2], hit[3]
+    tree = ast.parse(path.read_bytes(), filename=key)
+    imports = _imports(tree, module, path.name == "__init__.py")
+    digest = hashlib.sha256(ast.dump(_strip_docstrings(tree), annotate_fields=False).encode()).hexdigest()
+    _memo[key] = (st.st_mtime_ns, st.st_size, digest, imports)
+    return digest, imports
+
+
+_found: dict[tuple[str, tuple[str, ...]], tuple[Path, Path] | None] = {}
+
+
+def _find(module: str, roots: tuple[str, ...]) -> tuple[Path, Path] | None:
+    """(root, file) of a project module (package __init__ or .py file under one of roots), None outside them."""
+    key = (module, roots)
+    if key not in _found:
+        hit = None
+        top = module.partition(".")[0]
+        rel = module.replace(".", os.sep)
+        for root in roots:
+            if not os.path.exists(os.path.join(root, top)) and not os.path.isfile(os.path.join(root, top + ".py")):
+                continue  # numpy, torch, ...: not a project module
+            for cand in (os.path.join(root, rel, "__init__.py"), os.path.join(root, rel + ".py")):
+                if os.path.isfile(cand):
+                    hit = (Path(root), Path(cand))
+                    break
+            if hit:
+                break
+        _found[key] = hit
+    return _found[key]
+
+
+def code_digests(module: str, roots: list[Path] | None = None) -> dict[str, str]:
+    """{path relative to its root: digest} of `module`, its parent packages and every project module it imports,
+    transitively (imports inside functions included; dynamic `importlib` imports are not followed)."""
+    root_names = tuple(str(r) for r in (roots or [REPO_ROOT]))
+    _load_disk_cache()
+    n_before = len(_memo)
+    stale = False
+    out: dict[str, str] = {}
+    seen: set[str] = set()
+    todo = [module]
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        seen.add(name)
+        parts = name.split(".")
+        todo += [".".join(parts[:i]) for i in range(1, len(parts))]  # parent packages run on import
+        found = _find(name, root_names)
+        if found is None:
+            continue
+        root, path = found
+        before = _memo.get(str(path))
+        digest, imports = file_digest(path, name)
+        stale |= before is None or _memo[str(path)][:2] != before[:2]
+        out[path.relative_to(root).as_posix()] = digest
+        todo += imports
+    if stale or len(_memo) != n_before:
+        _save_disk_cache()
+    return dict(sorted(out.items()))
+
+
+def stage_roots(module_file: str | Path, module: str) -> list[Path]:
+    """The repository root plus the sys.path entry a stage module was found under (a stage outside the repo)."""
+    root = Path(module_file).resolve().parents[module.count(".")]
+    return [REPO_ROOT] if root == REPO_ROOT else [REPO_ROOT, root]
+
+
+def combined(digests: dict[str, str]) -> str:
+    """One digest of {file: digest} (what the cache key holds)."""
+    return json_digest(digests)
+
+
+def changed_files(old: dict[str, str] | None, new: dict[str, str]) -> list[str]:
+    """Files added, removed or edited between two {file: digest} records."""
+    old = old or {}
+    return sorted(f for f in set(old) | set(new) if old.get(f) != new.get(f))

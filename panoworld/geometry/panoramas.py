@@ -1,0 +1,31 @@
+"""Several registered panoramas: which one sees a surface point from nearest."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from panoworld.core.conventions import erp_pixel_from_dir, invert_pose, transform_points
+
+
+def _nearest_depth(depth: np.ndarray, pts_cam: np.ndarray) -> np.ndarray:
+    h, w = depth.shape
+    u, v = erp_pixel_from_dir(pts_cam, h, w)
+    return depth[np.clip(np.floor(v).astype(int), 0, h - 1), np.floor(u).astype(int) % w]
+
+
+def nearest_source(k: int, pts_world: np.ndarray, names: list[str], depths: dict[str, np.ndarray],
+                   world_from_cam: dict[str, np.ndarray], *, tol: float = 0.03) -> np.ndarray:
+    """(M,) bool for surface points (M, 3) seen by panorama names[k]: no other panorama j sees the same surface (its
+    depth along the ray agrees within tol in log range) from nearer (ties: the lower index keeps it)."""
+    r_k = np.linalg.norm(pts_world - world_from_cam[names[k]][:3, 3], axis=1)
+    keep = np.ones(len(pts_world), bool)
+    for j, other in enumerate(names):
+        if j == k:
+            continue
+        p = transform_points(invert_pose(world_from_cam[other]), pts_world)
+        r_j = np.linalg.norm(p, axis=1)
+        d_j = _nearest_depth(np.asarray(depths[other], np.float64), p)
+        seen = np.isfinite(d_j) & (d_j > 0) & (np.abs(np.log(np.maximum(r_j, 1e-6) / np.maximum(d_j, 1e-6))) < tol)
+        nearer = (r_j < r_k) | ((r_j == r_k) & (j < k))
+        keep &= ~(seen & nearer)
+    return keep

@@ -1,0 +1,28 @@
+"""The home's fused mesh from the depth artifact's panoramas at their registered poses, and its per-source layout."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from panoworld.geometry.erp_mesh import ErpMesh
+from panoworld.io.home import load_sources
+from panoworld.mesh.fuse import fuse_meshes
+
+
+def home_mesh(dirs: dict[str, Path], world_from_cam: dict[str, np.ndarray], *, stride: int
+              ) -> tuple[ErpMesh, np.ndarray, list[dict]]:
+    """(fused mesh in the world frame, source index per face, sources) of the registered panoramas: every surface
+    from the panorama that sees it from nearest (fuse.fuse_meshes), so its vertex colours come from that source."""
+    names, rgbs, depths = load_sources(dirs, world_from_cam)
+    mesh, face_source = fuse_meshes(names, rgbs, depths, world_from_cam, stride=stride)
+    sources, start = [], 0
+    for n in names:
+        h, w = (len(range(stride // 2, k, stride)) for k in depths[n].shape)
+        sources.append({"name": n, "world_from_cam": np.asarray(world_from_cam[n]).round(9).tolist(),
+                        "vertex_start": start, "grid": [h, w]})
+        start += h * w + 2
+    return mesh, face_source, sources
+
+

@@ -1,0 +1,1 @@
+"""Rendering: Gaussian splats (pinhole and ERP), mesh rasterisation, warped frames, image metrics."""

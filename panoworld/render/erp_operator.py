@@ -1,0 +1,131 @@
+"""The ERP render of fixed Gaussians as a sparse linear map of their colours (the colour fit's operator), optionally only on some pixels."""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import torch
+
+from panoworld.core.conventions import invert_pose
+from panoworld.io.gaussian_set import Gaussians
+from panoworld.render.erp import ERP_SUPERSAMPLE, ErpFace, erp_faces, face_cull
+from panoworld.render.splats import TILE, _Prepared, covariance_3d, face_weights, project
+
+
+def _sampling(fc: ErpFace, rows: np.ndarray):
+    """grid_sample's bilinear taps (align_corners False, border padding) of the face samples `rows` as a sparse
+    (len(rows), n * n) matrix."""
+    import scipy.sparse
+
+    g = fc.grid.numpy().astype(np.float64)[rows]
+    n = fc.n
+    xy = np.clip(((g + 1.0) * n - 1.0) / 2.0, 0.0, n - 1.0)
+    lo = np.floor(xy).astype(np.int64)
+    fr = xy - lo
+    r, cols, vals = [], [], []
+    ar = np.arange(len(rows))
+    for dy in (0, 1):
+        for dx in (0, 1):
+            w = (fr[:, 0] if dx else 1 - fr[:, 0]) * (fr[:, 1] if dy else 1 - fr[:, 1])
+            x, y = lo[:, 0] + dx, lo[:, 1] + dy
+            ok = (w > 0) & (x < n) & (y < n)
+            r.append(ar[ok])
+            cols.append((y * n + x)[ok])
+            vals.append(w[ok])
+    return scipy.sparse.csr_matrix((np.concatenate(vals).astype(np.float32), (np.concatenate(r), np.concatenate(cols))),
+                                   shape=(len(rows), n * n))
+
+
+class ErpColorOperator:
+    """The ERP render of Gaussians at one pose as a linear map A of their colours (geometry fixed, black background):
+    each cube face's compositing weights and its bilinear resampling as sparse matrices, pooled as render_erp does.
+    A(colors (N, 3)) -> (H, W, 3); adjoint(image (H, W, 3)) -> A^T image (N, 3).
+
+    mask (H, W) bool: only those ERP pixels are rendered (0 elsewhere): the face pixels their samples read are the
+    only ones composited, and each face projects only the Gaussians whose box can meet it (erp_render.face_cull), so a view
+    that counts only part of its pixels costs that part. On the kept pixels it equals the operator without a mask.
+    tile: the weights kernel's tile size (face_weights); cov: the Gaussians' covariance_3d when already at hand."""
+
+    def __init__(self, gaussians: Gaussians, world_from_cam: np.ndarray, H: int, W: int, *,
+                 supersample: int = ERP_SUPERSAMPLE, near: float = 0.01, pole_scale: float | None = None,
+                 mask: np.ndarray | None = None, tile: int = TILE, cov: torch.Tensor | None = None):
+        import scipy.sparse
+
+        faces = erp_faces(world_from_cam, H, W, supersample=supersample, pole_scale=pole_scale)
+        s = self.s = int(supersample)
+        self.H, self.W, self.N = H, W, len(gaussians)
+        means, opacity = torch.as_tensor(gaussians.means).float(), torch.as_tensor(gaussians.opacities).float()
+        if cov is None:
+            cov = covariance_3d(torch.as_tensor(gaussians.scales).float(), torch.as_tensor(gaussians.quats).float())
+        prep = _Prepared(means, cov, opacity, torch.zeros(1, 3).expand(len(means), 3))  # colours: the operand
+        cull = face_cull(prep, np.asarray(gaussians.scales, np.float32), np.asarray(world_from_cam)[:3, 3], near)
+        keep_px = None
+        if mask is not None:
+            keep = np.asarray(mask, bool)
+            if keep.shape != (H, W):
+                raise ValueError(f"mask.shape={keep.shape} but expected {(H, W)}")
+            keep_px = np.repeat(np.repeat(keep, s, 0), s, 1).reshape(-1)  # the supersampled samples kept
+
+        def build(fc: ErpFace):
+            index = fc.index.numpy()
+            rows = np.arange(len(index)) if keep_px is None else np.flatnonzero(keep_px[index])
+            if not len(rows):
+                return None
+            S = _sampling(fc, rows)
+            need = np.zeros(fc.n * fc.n, bool)
+            need[S.indices] = True
+            sub, cand = cull(fc)
+            proj = project(sub, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
+            pix, gid, w = face_weights(proj, fc.n, fc.n, need=None if keep_px is None else need, tile=tile)
+            # scipy: COO -> CSR is a counting sort, 32-bit indices, and the transpose a free CSC view
+            A = scipy.sparse.csr_matrix((w, (pix, cand.numpy().astype(np.int32)[proj.index.numpy()[gid]])),
+                                        shape=(fc.n * fc.n, self.N))
+            return index[rows], S, A
+
+        # The faces on torch's threads (the kernel releases the GIL), the largest (the pole faces) first.
+        with ThreadPoolExecutor(max(1, torch.get_num_threads())) as pool:
+            by_size = sorted(range(len(faces)), key=lambda k: -faces[k].n)
+            done = dict(zip(by_size, pool.map(build, [faces[k] for k in by_size])))
+        self.faces = [done[k] for k in range(len(faces)) if done[k] is not None]
+
+    def restricted(self, cols: np.ndarray) -> ErpColorOperator:
+        """The same operator on the Gaussians `cols` (sorted indices) alone, A's columns renumbered: colours (len(cols),
+        3) in, A^T image (len(cols), 3) out. A ValueError when a Gaussian not in cols has a weight."""
+        import copy
+
+        import scipy.sparse
+
+        remap = np.full(self.N, -1, np.int32)
+        remap[np.asarray(cols)] = np.arange(len(cols), dtype=np.int32)
+        out = copy.copy(self)
+        out.N, out.faces = len(cols), []
+        for index, S, A in self.faces:
+            j = remap[A.indices]
+            if len(j) and j.min() < 0:
+                raise ValueError("a Gaussian with a weight is not in cols")
+            out.faces.append((index, S, scipy.sparse.csr_matrix((A.data, j, A.indptr), shape=(A.shape[0], len(cols)))))
+        return out
+
+    def __call__(self, colors: torch.Tensor) -> torch.Tensor:
+        c = colors.detach().numpy().astype(np.float32)
+        out = np.zeros((self.s * self.H * self.s * self.W, 3), np.float32)
+        for (index, _, _), face in zip(self.faces, self._per_face(lambda f: f[1] @ (f[2] @ c))):
+            out[index] = face
+        out = out.reshape(self.H, self.s, self.W, self.s, 3).mean((1, 3)) if self.s > 1 else \
+            out.reshape(self.H, self.W, 3)
+        return torch.from_numpy(np.ascontiguousarray(out))
+
+    def adjoint(self, image: torch.Tensor) -> torch.Tensor:
+        r = image.detach().numpy().astype(np.float32)
+        if self.s > 1:  # the pooling's adjoint: each sample gets its pixel's value / s^2
+            r = np.broadcast_to(r[:, None, :, None] / self.s**2, (self.H, self.s, self.W, self.s, 3))
+        r = np.ascontiguousarray(r).reshape(-1, 3)
+        return torch.from_numpy(sum(self._per_face(lambda f: f[2].T @ (f[1].T @ r[f[0]])),
+                                    np.zeros((self.N, 3), np.float32)))
+
+    def _per_face(self, fn) -> list:
+        """fn((sample index, sampling, weights)) for every face, in face order, on torch's threads (scipy's sparse
+        products release the GIL)."""
+        with ThreadPoolExecutor(max(1, torch.get_num_threads())) as pool:
+            return list(pool.map(fn, self.faces))

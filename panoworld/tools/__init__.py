@@ -1,0 +1,1 @@
+"""Programs built on the framework: batch runs, evaluation, precompute, reports, training, the viewer, synthetic scenes."""

@@ -1,0 +1,1 @@
+"""Training data precomputed from datasets: conditions per clip."""
