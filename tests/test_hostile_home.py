@@ -615,3 +615,18 @@ def test_sweep_leftovers_restores_an_artifact_caught_mid_swap(tmp_path):
     (arts / ".old-a-1-2" / "f").write_text("previous")
     found = art.sweep_leftovers(arts)
     assert (arts / "a" / "f").read_text() == "previous" and found == [arts / ".old-a-1-2"]
+
+
+def test_the_planners_own_failure_is_exit_1_not_a_bad_navmesh(monkeypatch, tmp_path):
+    import stages.trajectory as traj
+    from panoworld.core.errors import PanoWorldError
+
+    def fail(nav, params):
+        raise ValueError("no reachable sector")
+    monkeypatch.setattr(traj, "plan_path", fail)
+
+    class Nav:
+        info: dict = {}
+    with pytest.raises(PanoWorldError, match="no path planned on the NavMesh") as e:
+        traj._plan_or_stay(Nav(), traj.Params(), tmp_path / "navmesh" / "navmesh.json")
+    assert e.value.exit_code == 1 and not isinstance(e.value, InputError)
