@@ -53,7 +53,7 @@ def cmd_run(args) -> int:
         raise pl.PipelineError("--sweep, --executor, --workers and --ray-address need --all (SCENE = a dataset directory)")
 
     def live(r: pl.StageResult) -> None:
-        if not args.json:
+        if not args.json and not r.bad_input:  # a refused input: one line, the report's error line
             print(f"[{r.stage}] {r.action}: {r.reason}", file=sys.stderr, flush=True)
 
     report = pl.run(
@@ -152,6 +152,7 @@ DELEGATED = {
     "weights": ("panoworld.framework.hub.cli:main", "list, fetch and resolve the learned backends' weights (weights list|fetch|resolve)"),
     "report": ("panoworld.tools.report.cli:main", "write a scene's (or a precompute dataset's) self-contained HTML report"),
     "view": ("panoworld.tools.viewer.app:main", "interactive 3D viewer of a scene in the browser (viser)"),
+    "warmup": ("panoworld.tools.warmup:main", "compile every numba kernel once per install (a first run then pays none)"),
 }
 
 
@@ -183,7 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="build the bundled synthetic example scene and run the whole pipeline on it")
     p.add_argument("out_dir", nargs="?", default="demo_out", type=Path)
     p.add_argument("--preset", default="default",
-                   help="param preset (default: a furnished multi-room scene, 81 frames of 720x1440, COLMAP poses, "
+                   help="param preset (default: a furnished multi-room scene, 81 frames of 720x1440, planned poses, "
                         "a few minutes on 2 cores; ci-tiny: one small room in well under a minute)")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_demo)

@@ -121,10 +121,17 @@ def main() -> int:
     ap.add_argument("--cold", action="store_true",
                     help="a new user's first run: numba's on-disk caches empty (NUMBA_CACHE_DIR a fresh directory), so "
                          "every kernel is compiled in the stage that first calls it")
+    ap.add_argument("--warmup", action="store_true",
+                    help="with --cold: `runner.py warmup` first (the once-per-install compilation), timed apart")
     a = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="bench-pipeline-") as tmp:
         if a.cold:
             os.environ["NUMBA_CACHE_DIR"] = str(Path(tmp) / "numba-cache")  # the stages' subprocesses inherit it
+        if a.warmup:
+            c0 = _cpu()
+            t0 = time.perf_counter()
+            subprocess.run([sys.executable, "runner.py", "warmup"], cwd=REPO, check=True)
+            print(f"warmup: {time.perf_counter() - t0:.1f} s wall, {_cpu() - c0:.1f} s CPU (once per install)")
         root = a.out or Path(tmp)
         root.mkdir(parents=True, exist_ok=True)
         scenes: list[tuple[str, Path]] = []
@@ -145,7 +152,7 @@ def main() -> int:
         print(f"preset {a.preset}; machine: {subprocess.run(['nproc'], capture_output=True, text=True).stdout.strip()} "
               f"cores, load average {open('/proc/loadavg').read().split()[0]} at start (shared: wall times inflate, "
               f"CPU times much less); reference loop {reference_loop_s():.2f} s (see reference_loop_s); numba caches "
-              f"{'cold (--cold)' if a.cold else 'as found (warm after a first run)'}")
+              f"{('cold (--cold)' + (', then runner.py warmup' if a.warmup else '')) if a.cold else 'as found (warm after a first run)'}")
         for name, scene in scenes:
             print(f"\n{name}: {scene}")
             rows, total = run_scene(scene, a.preset)

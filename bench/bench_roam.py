@@ -155,7 +155,7 @@ def print_mean(results: dict[str, dict]) -> dict:
               ("~2 m ERP PSNR >= 25 dB", summary["d2"]["erp_psnr"], 25.0),
               ("~2 m coverage >= 0.995", summary["d2"]["erp_coverage"], 0.995),
               ("every sector reached >= 70 %", min(fr) if fr else None, 0.7)]
-    print("  issue 28 targets (on the mean): " + "; ".join(
+    print("  targets (on the mean): " + "; ".join(
         f"{name}: {'n/a' if v is None else ('met' if v >= bound else 'NOT met')}" for name, v, bound in checks))
     return summary
 

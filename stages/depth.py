@@ -37,7 +37,8 @@ INPUTS = {
 class Params:
     backend: str = param("auto", choices=("auto", *backends.names(NAME)))
     """Where depth comes from: the scene's depth file (provided), a Depth Anything V2 model on cube views
-    (depth-anything), or auto: provided when a depth file is given, else depth-anything (panoworld/depth/backends/)."""
+    (depth-anything), or auto: provided when a depth file is given, else depth-anything (with depth_anything.weights,
+    else the Depth Anything V2 weights found in the local Hugging Face cache) (panoworld/depth/backends/)."""
     rescale: Rescale = Rescale.AUTO
     """When to rescale depth so the floor lies camera_height below the camera: auto = relative depth, and provided
     depth whose floor is no plausible capture height (0.9-2.4 m: unknown units); always: e.g. raw sensor units."""
@@ -116,9 +117,12 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
     info: dict = {"backend": backend.name, "height": H, "width": W, "input_size": [W0, H0]}
     if (H, W) != (H0, W0):
         notes.append(f"panorama {W0}x{H0} is taller than max_height {params.max_height}: working at {W}x{H}")
+    opts, found = _with_weights_on_disk(backend, backend.options_of(params), notes)
     res = backend.impl(Job(rgb=rgb, depth_file=inputs.get("depth"), panorama_file=inputs["panorama"],
-                           options=backend.options_of(params), notes=notes))
+                           options=opts, notes=notes))
     info.update(res.info)
+    if found is not None:
+        info["weights_found"] = found
     rig_backend = None if params.rig == RigMode.KEEP else backends.get("rig", params.rig_detector).impl
     c = clean_depth(rgb, res.depth, res.valid, relative=res.relative, rescale=params.rescale,
                     camera_height=params.camera_height, min_depth_m=params.min_depth_m,
@@ -138,6 +142,26 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
     cv2.imwrite(str(out_dir / "valid.png"), valid.astype(np.uint8) * 255)
     cv2.imwrite(str(out_dir / "panorama.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     return info
+
+
+def _with_weights_on_disk(backend, opts, notes: list[str]) -> tuple:
+    """A backend with trait finds_weights and no weights given takes the first registered weights of its param in the
+    local Hugging Face cache (`runner.py weights fetch NAME`): (its options, what was found for the manifest)."""
+    if not backend.traits.get("finds_weights") or opts is None or opts.weights is not None:
+        return opts, None
+    from dataclasses import replace
+
+    from panoworld.framework.hub.resolve import find_local_weights
+
+    param = f"{NAME}.{backend.key}.weights"
+    hit = find_local_weights(param)
+    if hit is None:
+        return opts, None
+    entry, path, commit = hit
+    notes.append(f"no depth file: depth from {entry.name} found on disk (hf:{entry.repo} {commit[:12]}; another: "
+                 f"--set {param}=DIR)")
+    return replace(opts, weights=path), {"name": entry.name, "spec": f"hf:{entry.repo}", "commit": commit,
+                                         "path": str(path)}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,4 +1,4 @@
-"""Voxel-aligned 3D Gaussians (INRIA gaussians.ply + points.ply) fused from the video's frames, depth and poses."""
+"""Voxel-aligned 3D Gaussians (INRIA gaussians.ply, SPZ gaussians.spz, points.ply) fused from the video's frames, depth and poses."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from panoworld.gaussians.backends.decoder import DecoderOptions
 from panoworld.gaussians.backends.voxel_fusion import VoxelFusionOptions
 
 NAME = "gaussians"
-VERSION = "4"
+VERSION = "5"
 ARTIFACT = "gaussians"
 INPUTS = {
     "video": Input("video", help="video artifact (video.json, frames/, depth/)"),
@@ -44,6 +44,9 @@ class Params:
     """Context views rendered back from the Gaussians to report PSNR/SSIM/WS-PSNR in the manifest (0 = none)."""
     eval_height: int = param(128, ge=8)
     """ERP height of those renders (and of preview.png)."""
+    ply_full_sh: bool = False
+    """Write gaussians.ply with all 45 f_rest_* properties (degree-3 SH, zero-padded) for tools that insist on the full
+    INRIA layout; by default it holds only the SH degree the Gaussians use (none for view-independent colours)."""
     voxel_fusion: VoxelFusionOptions = options(VoxelFusionOptions, "voxel-fusion")
     """voxel-fusion's options."""
     decoder: DecoderOptions = options(DecoderOptions, "decoder")
@@ -70,7 +73,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         raise
     except ValueError as e:  # empty depth, nothing left after pruning, bad params
         raise StageInputError(str(e)) from None
-    return write_artifact(out_dir, result, frames, eval_views=params.eval_views, eval_height=params.eval_height)
+    return write_artifact(out_dir, result, frames, eval_views=params.eval_views, eval_height=params.eval_height,
+                          full_sh=params.ply_full_sh)
 
 
 def main(argv: list[str] | None = None) -> int:

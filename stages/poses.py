@@ -13,7 +13,7 @@ import numpy as np
 from panoworld.core import registry as backends
 from panoworld.core.params import options, param
 from panoworld.framework.stage import Input, StageInputError, stage_main
-from panoworld.poses.backends import Job
+from panoworld.poses.backends import Job, pick
 from panoworld.poses.backends.vggt import VggtOptions
 from panoworld.poses.options import Alignment, ColmapOptions
 
@@ -42,8 +42,10 @@ class DepthSource(enum.StrEnum):
 
 @dataclass(kw_only=True)
 class Params:
-    backend: str = param("colmap", choices=backends.names(NAME))
-    """Pose estimator: colmap, planned or vggt (panoworld/poses/backends/)."""
+    backend: str = param("auto", choices=("auto", *backends.names(NAME)))
+    """Pose estimator: colmap, planned or vggt (panoworld/poses/backends/); auto = planned when the video backend renders
+    every frame at its planned pose (warp-inpaint, frame-inpaint), else vggt when vggt.weights is given, else colmap
+    (a generated video, wan-shortcut). colmap on a rendered video checks the renderer against the plan."""
     align: Alignment = Alignment.SIM3
     """How estimates enter the canonical frame: sim3 to the plan (colmap needs it), se3 (keep the estimated metric
     scale), or none (vggt's own camera-0 frame)."""
@@ -74,22 +76,31 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
             f"the planned trajectory has {len(planned)} poses but video.json lists {video.num_frames} frames; "
             "rerun the video stage on this trajectory"
         )
-    backend = backends.get(NAME, params.backend)
-    decisions = []
+    backend, decisions = pick(params.backend, _video_backend(Path(inputs["video"]), video.meta), params)
     if planned is not None and backend.traits.get("needs_baseline") and np.ptp(planned[:, :3, 3], axis=0).max() < 1e-6:
         decisions.append(f"the trajectory does not move (rotation only: no room to move), so {backend.name} has no "
                          "baseline; planned poses used")
         backend = backends.with_trait(NAME, "copies_plan")
     if planned is None and (backend.traits["needs_plan"] or params.align != Alignment.NONE):
         raise StageInputError(
-            f"backend {params.backend} with align {params.align} needs planned poses: give --trajectory "
+            f"backend {backend.name} with align {params.align} needs planned poses: give --trajectory "
             "(or a video.json with poses)"
         )
     est = backend.impl(Job(video=video, planned=planned, align=params.align, options=backend.options_of(params)))
 
     depth, depth_from = _choose_depth(params.depth_source, video, est)
     info = write_poses_artifact(out_dir, est, video, planned, depth=depth, copy_frames=params.copy_frames)
-    return {**info, "depth_source": depth_from, "decisions": decisions}
+    return {**info, "depth_source": depth_from, "decisions": decisions, "backend_requested": str(params.backend)}
+
+
+def _video_backend(video_dir: Path, video_json: dict) -> str | None:
+    """The video backend that produced the video artifact: its manifest's params, else what video.json records."""
+    from panoworld.io.manifest import ArtifactError, read_manifest
+
+    try:
+        return str(read_manifest(video_dir, "video")["params"]["backend"])
+    except (ArtifactError, KeyError, TypeError):
+        return video_json.get("backend")
 
 
 def _choose_depth(src: DepthSource, video, est) -> tuple[list | None, str]:

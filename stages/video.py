@@ -57,6 +57,9 @@ class Params:
     """Width cap of preview.mp4 (frames are downscaled to fit)."""
     mcap: bool = True
     """Write video.mcap (Foxglove: frames, conditions, depth, camera poses)."""
+    mcap_jpeg_quality: int = param(90, ge=0, le=100)
+    """JPEG quality of the frames and conditions in video.mcap (a log for viewing; frames/ hold the exact frames);
+    0 = their PNGs, lossless (about 3x the size)."""
     device: str = "auto"
     """Device of realesrgan: auto = cuda when available, else cpu (wan-shortcut: wan.device)."""
     warp: WarpOptions = options(WarpOptions, "warp-inpaint")
@@ -126,6 +129,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     has_depth = backend.traits["has_depth"]
     writer = VideoWriter(out_dir, height=cond.height, width=cond.width, fps=fps, has_depth=has_depth,
                          preview=params.preview, preview_max_width=params.preview_max_width, mcap=params.mcap,
+                         mcap_jpeg_quality=params.mcap_jpeg_quality,
                          upscale=up.scale)
     holes = filled_3d = filled_2d = 0
     t_fill = t_up = t_write = 0.0

@@ -247,7 +247,7 @@ def test_depth_anything_loads_from_local_weights(tmp_path, room):
         DepthAnything.from_pretrained(None)
 
 
-def test_depth_stage_depth_anything(tmp_path, room):
+def test_depth_stage_depth_anything(tmp_path, room, monkeypatch):
     _, rgb, _ = room
     weights = tiny_depth_anything(tmp_path / "w")
     pano = write_png(tmp_path / "panorama.png", rgb)
@@ -258,7 +258,9 @@ def test_depth_stage_depth_anything(tmp_path, room):
     valid = cv2.imread(str(out / "valid.png"), cv2.IMREAD_GRAYSCALE) == 255
     assert depth.shape == (64, 128) and valid.any() and np.all(depth[valid] > 0) and np.all(depth[~valid] == 0)
     # RGB only, no weights: one line naming both fixes.
-    with pytest.raises(StageInputError, match=r"runner.py weights fetch depth-anything-v2-small` and pass --set depth.depth_anything.weights=DIR") as e:
+    monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path / "empty-hf-cache"))
+    with pytest.raises(StageInputError, match=r"no depth model on disk; run `python runner.py weights fetch "
+                                              r"depth-anything-v2-small` \(or put a metric depth") as e:
         run_depth_stage(tmp_path, pano)
     assert "\n" not in str(e.value)
 

@@ -114,7 +114,7 @@ def test_no_visible_floor_still_delivers_gaussians_end_to_end(tmp_path):
     depth = np.load(d / "depth.npy")
     depth[depth.shape[0] // 2 + 2:] = 0.0
     np.save(d / "depth.npy", depth)
-    report = pl.run(d, preset="ci-tiny", sets=["poses.backend=colmap"])  # COLMAP, as the default preset
+    report = pl.run(d, preset="ci-tiny", sets=["poses.backend=colmap"])  # COLMAP, not the plan
     assert report.ok, report.table()
     poses = json.loads((d / "artifacts" / "poses" / "manifest.json").read_text())["info"]
     assert any("planned poses used" in x for x in poses["decisions"])

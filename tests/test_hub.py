@@ -373,3 +373,27 @@ def test_weights_list(hub_env, tiny_files, capsys):
     assert rows["panovggt"]["status"]["state"] == "trained" and "train recon" in rows["panovggt"]["trained_by"]
     with pytest.raises(ValueError, match="already registered"):
         registry.register(registry.WeightsEntry(name="panovggt", model="x", licence="x", size="x", uses=()))
+
+
+def test_rgb_only_scene_takes_the_depth_model_already_on_disk_and_refuses_in_one_line_without(hub_env, tiny_files,
+                                                                                              tmp_path):
+    scene = _scene(tmp_path)
+    sets = ["depth.depth_anything.view_size=56", "depth.rescale=never"]  # backend auto, no weights named
+    cmd = [sys.executable, str(REPO / "runner.py"), "run", str(scene), "--until", "depth", *sum((["--set", s] for s in sets), [])]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, env=dict(os.environ))
+    assert proc.returncode == 2
+    refusals = [ln for ln in proc.stderr.splitlines() if "weights fetch" in ln]
+    assert refusals == [refusals[0]] and "run `python runner.py weights fetch depth-anything-v2-small`" in refusals[0]
+    assert "no depth file in the scene and no depth model on disk" in refusals[0]
+    assert not (scene / "artifacts").exists()
+
+    entry = registry.REGISTRY["depth-anything-v2-small"]
+    put_snapshot(hub_env, entry.repo, tiny_files[0], C1)  # `weights fetch depth-anything-v2-small`, offline
+    result = {r.stage: r for r in pl.run(scene, until="depth", sets=sets).results}["depth"]
+    assert result.action == "ran", result.reason
+    info = json.loads((scene / "artifacts" / "depth" / "manifest.json").read_text())["info"]
+    assert info["backend"] == "depth-anything" and info["weights_found"]["name"] == "depth-anything-v2-small"
+    assert info["weights_found"]["commit"] == C1
+    assert any("depth from depth-anything-v2-small found on disk" in d for d in info["decisions"])
+    depth = np.load(scene / "artifacts" / "depth" / "depth.npy")
+    assert depth.shape == (64, 128) and np.isfinite(depth).all() and (depth > 0).any()

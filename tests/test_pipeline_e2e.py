@@ -46,6 +46,10 @@ def test_full_pipeline_runs_caches_and_reruns_one_stage(synth_scene, tmp_path):
     traj = art.read_manifest(scene / "artifacts" / "trajectory")["info"]
     assert traj["kind"] == "explore" and traj["paths"] > 1
     assert len(json.loads((scene / "artifacts" / "poses" / "poses.json").read_text())["poses"]) == traj["frames"]
+    # warp-inpaint renders every frame at its planned pose, so the poses stage's auto takes the plan and says why.
+    poses = art.read_manifest(scene / "artifacts" / "poses")["info"]
+    assert poses["backend"] == "planned" and poses["backend_requested"] == "auto"
+    assert "video backend warp-inpaint renders every frame at its planned pose" in poses["decisions"][0]
     for name in order:
         m = art.read_manifest(scene / "artifacts" / name)
         assert m["stage"] == name and m["peak_rss_mb"] > 0 and m["params"] == params_to_dict(

@@ -292,3 +292,28 @@ def test_depth_png_round_trip(tmp_path):
     back = read_depth_png(tmp_path / "d.png")
     assert back[0, 0] == 0 and back[1, 0] == 0  # unknown stays 0 (panoworld/io/depth_png.py)
     assert back[0, 1] == pytest.approx(1.234, abs=1e-6) and back[1, 1] == pytest.approx(65.535, abs=1e-6)
+
+
+def test_auto_takes_the_plan_for_a_rendered_video_and_recovers_poses_of_a_generated_one():
+    from panoworld.poses.backends import choose_auto
+
+    params = params_from_dict(STAGE.params_cls, {})
+    assert params.backend == "auto"
+    for video, want in (("warp-inpaint", "planned"), ("frame-inpaint", "planned"), ("wan-shortcut", "colmap"),
+                        (None, "colmap")):
+        assert choose_auto(video, params)[0].name == want, video
+    with_weights = params_from_dict(STAGE.params_cls, {"vggt.weights": "/some/dir"})
+    assert choose_auto("wan-shortcut", with_weights)[0].name == "vggt"
+    assert choose_auto("warp-inpaint", with_weights)[0].name == "planned"
+
+
+def test_auto_reads_the_video_backend_the_video_records(tmp_path, room):
+    gt = curved_track(3)
+    video = write_video(tmp_path / "video", room, gt, 16, depth=False)
+    doc = json.loads((video / "video.json").read_text())
+    (video / "video.json").write_text(json.dumps({**doc, "backend": "frame-inpaint"}))
+    info = run_stage(tmp_path, video, None)["info"]
+    assert info["backend"] == "planned" and info["backend_requested"] == "auto"
+    assert info["decisions"] == ["backend auto: planned (video backend frame-inpaint renders every frame at its planned "
+                                 "pose)"]
+    np.testing.assert_allclose(load_poses(tmp_path / "poses").world_from_cam, gt, atol=1e-12)

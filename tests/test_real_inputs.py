@@ -1,5 +1,5 @@
 """Real-capture failure classes rebuilt on synthetic scenes run at default settings: no crash, no invalid geometry,
-the rig's blind spot walkable, clearance kept, sector coverage reported (issue #10)."""
+the rig's blind spot walkable, clearance kept, sector coverage reported."""
 
 from __future__ import annotations
 
@@ -129,7 +129,8 @@ def test_planar_layout_depth_floor_fit():
     assert fit is not None and fit.camera_height == pytest.approx(scene.tracks[0].camera_height, rel=1e-3)
 
 
-def test_rgb_only_error_names_the_fix(tmp_path):
+def test_rgb_only_error_names_the_fix(tmp_path, monkeypatch):
+    monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path / "empty-hf-cache"))  # no depth model on disk
     scene_dir = tmp_path / "rgb"
     scene_dir.mkdir()
     cv2.imwrite(str(scene_dir / "panorama.png"), np.zeros((32, 64, 3), np.uint8))
@@ -137,10 +138,11 @@ def test_rgb_only_error_names_the_fix(tmp_path):
         run_default(scene_dir)
     msg = str(e.value)
     assert "\n" not in msg and "python runner.py weights fetch depth-anything-v2-small" in msg
-    assert "--set depth.depth_anything.weights=DIR" in msg
+    assert "put a metric depth.npy|exr|png next to the panorama" in msg
 
 
-def test_runner_prints_the_failing_stage_reason(tmp_path):
+def test_runner_prints_the_failing_stage_reason(tmp_path, monkeypatch):
+    monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path / "empty-hf-cache"))
     scene_dir = tmp_path / "rgb"
     scene_dir.mkdir()
     cv2.imwrite(str(scene_dir / "panorama.png"), np.zeros((32, 64, 3), np.uint8))

@@ -14,6 +14,7 @@ from plyfile import PlyData
 from panoworld.io.gaussian_set import Gaussians
 from panoworld.io.splat_ply import (
     GAUSSIAN_FIELDS,
+    gaussian_fields,
     read_gaussians_ply,
     read_points_ply,
     write_gaussians_ply,
@@ -38,21 +39,25 @@ def gaussians(n: int = 200, sh_k: int = 0, seed: int = 1) -> Gaussians:
     )
 
 
-def test_standard_inria_layout(tmp_path):
+@pytest.mark.parametrize("full_sh", [False, True])
+def test_standard_inria_layout(tmp_path, full_sh):
     g = gaussians()
     path = tmp_path / "gaussians.ply"
-    write_gaussians_ply(path, g)
+    write_gaussians_ply(path, g, full_sh=full_sh)
     ply = PlyData.read(str(path))
     assert not ply.text and ply.byte_order == "<"
     v = ply["vertex"]
-    assert [p.name for p in v.properties] == GAUSSIAN_FIELDS
-    assert len(GAUSSIAN_FIELDS) == 62 and all(p.val_dtype in ("f4", "float32", "<f4") for p in v.properties)
+    # Degree-0 colours: no f_rest_* at all (17 properties), or the full degree-3 layout (62) for tools that insist.
+    fields = GAUSSIAN_FIELDS if full_sh else gaussian_fields(0)
+    assert [p.name for p in v.properties] == fields and len(fields) == (62 if full_sh else 17)
+    assert all(p.val_dtype in ("f4", "float32", "<f4") for p in v.properties)
     assert len(v.data) == len(g)
     # Stored activations: logit opacity, log scales, (w, x, y, z) rotations, zero f_rest for degree 0.
     assert np.allclose(1 / (1 + np.exp(-v["opacity"])), g.opacities, atol=1e-6)
     assert np.allclose(np.exp(v["scale_1"]), g.scales[:, 1], rtol=1e-6)
     assert np.allclose(v["rot_0"], g.quats[:, 0])
-    assert all(np.all(v[f"f_rest_{i}"] == 0) for i in range(45))
+    assert all(np.all(v[f"f_rest_{i}"] == 0) for i in range(45 if full_sh else 0))
+    assert path.stat().st_size < 4 * len(fields) * len(g) + 2000  # 4 bytes per property and Gaussian + header
     normal = np.stack([v["nx"], v["ny"], v["nz"]], 1)
     assert np.allclose(np.linalg.norm(normal, axis=1), 1.0, atol=1e-5)  # the surfel's thinnest axis
 
@@ -62,8 +67,11 @@ def test_round_trip_and_identical_render(tmp_path):
     path = tmp_path / "g.ply"
     write_gaussians_ply(path, g)
     back = read_gaussians_ply(path)
-    assert back.sh_rest.shape == (len(g), 15, 3)
-    assert np.array_equal(back.sh_rest[:, :3], g.sh_rest) and not back.sh_rest[:, 3:].any()
+    assert back.sh_rest.shape == (len(g), 3, 3) and np.array_equal(back.sh_rest, g.sh_rest)  # the degree used
+    write_gaussians_ply(tmp_path / "full.ply", g, full_sh=True)
+    full = read_gaussians_ply(tmp_path / "full.ply")
+    assert full.sh_rest.shape == (len(g), 15, 3)
+    assert np.array_equal(full.sh_rest[:, :3], g.sh_rest) and not full.sh_rest[:, 3:].any()
     for name in ("means", "quats", "sh_dc"):
         assert np.array_equal(getattr(back, name), getattr(g, name))
     assert np.allclose(back.scales, g.scales, rtol=1e-6)
@@ -86,11 +94,11 @@ def test_f_rest_is_channel_major_like_inria(tmp_path):
 
 def test_degree_one_colours_load_as_the_reference_implementation_loads_them(tmp_path):
     # The colour fit's view-dependent colours (degree 1): INRIA's load_ply sorts f_rest_* by number and reshapes them
-    # to (N, 3 channels, (degree + 1)^2 - 1); our zero-padded degree-3 file gives it the degree-1 terms in place, and
-    # a file of degree 1 as INRIA writes it (f_rest_0..8) reads back the same.
+    # to (N, 3 channels, (degree + 1)^2 - 1); our zero-padded degree-3 file (full_sh) gives it the degree-1 terms in
+    # place, and a file of degree 1 as INRIA writes it (f_rest_0..8) reads back the same.
     g = gaussians(n=50, sh_k=3)
     path = tmp_path / "g.ply"
-    write_gaussians_ply(path, g)
+    write_gaussians_ply(path, g, full_sh=True)
     v = PlyData.read(str(path))["vertex"].data
     names = sorted((p for p in v.dtype.names if p.startswith("f_rest_")), key=lambda p: int(p.split("_")[-1]))
     extra = np.stack([v[p] for p in names], 1).reshape(len(g), 3, -1).transpose(0, 2, 1)  # INRIA's features_rest

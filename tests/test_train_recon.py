@@ -1,4 +1,4 @@
-"""Reconstruction training (issue #14) on tiny sizes: losses, frozen heads in stage 2, exact resume, export, CLI errors."""
+"""Reconstruction training on tiny sizes: losses, frozen heads in stage 2, exact resume, export, CLI errors."""
 
 from __future__ import annotations
 

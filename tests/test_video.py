@@ -9,6 +9,7 @@ import sys
 import types
 from pathlib import Path
 
+import cv2
 import imageio_ffmpeg
 import numpy as np
 import pytest
@@ -33,6 +34,7 @@ from panoworld.io.video import (
     world_from_cam_from_mcap,
     write_video,
 )
+from panoworld.render.metrics import psnr
 from panoworld.video.upscale import lanczos_x2, nearest_x2
 from stages import video as video_stage
 
@@ -77,11 +79,14 @@ def test_video_without_depth(tmp_path):
     assert load_video(tmp_path).depth is None
 
 
-def test_mcap_decodes_back_exactly(tmp_path):
+@pytest.mark.parametrize("jpeg_quality", [0, 90])
+def test_mcap_decodes_back_exactly(tmp_path, jpeg_quality):
     from panoworld.io.video import VideoWriter, encode_png
 
     frames, depth, poses = random_video(t=3)
-    writer = VideoWriter(tmp_path, height=16, width=32, fps=10.0, has_depth=True, preview=False)
+    frames = cv2.GaussianBlur(frames.reshape(-1, 32, 3), (5, 5), 2).reshape(frames.shape)  # photo-like: JPEG's domain
+    writer = VideoWriter(tmp_path, height=16, width=32, fps=10.0, has_depth=True, preview=False,
+                         mcap_jpeg_quality=jpeg_quality)
     cond_pngs = [encode_png(f[::2, ::2]) for f in frames]
     mask_pngs = [encode_png(((f[::2, ::2, 0] > 127) * 255).astype(np.uint8)) for f in frames]
     for k in range(3):
@@ -91,10 +96,17 @@ def test_mcap_decodes_back_exactly(tmp_path):
     assert {t: len(m) for t, m in msgs.items()} == {t: 3 for t in (TOPIC_RGB, TOPIC_DEPTH, TOPIC_COND_RGB,
                                                                      TOPIC_COND_MASK, TOPIC_TF, TOPIC_POSE)}
     for k in range(3):
-        rgb = msgs[TOPIC_RGB][k]
-        assert rgb.format == "png" and rgb.frame_id == "camera"
-        np.testing.assert_array_equal(decode_png(rgb.data), frames[k])
-        assert msgs[TOPIC_COND_RGB][k].data == cond_pngs[k] and msgs[TOPIC_COND_MASK][k].data == mask_pngs[k]
+        rgb, cond = msgs[TOPIC_RGB][k], msgs[TOPIC_COND_RGB][k]
+        assert rgb.frame_id == "camera" and msgs[TOPIC_COND_MASK][k].data == mask_pngs[k]
+        if jpeg_quality == 0:  # lossless: the PNGs themselves
+            assert rgb.format == cond.format == "png" and cond.data == cond_pngs[k]
+            np.testing.assert_array_equal(decode_png(rgb.data), frames[k])
+        else:  # for viewing: JPEG close to the frames and conditions
+            assert rgb.format == cond.format == "jpeg"
+            jpg = cv2.imdecode(np.frombuffer(rgb.data, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
+            assert psnr(jpg, frames[k]) > 25  # an unrelated image: about 12 dB
+            c = cv2.imdecode(np.frombuffer(cond.data, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
+            assert psnr(c, decode_png(cond_pngs[k])) > 25
         d = msgs[TOPIC_DEPTH][k]
         assert (d.encoding, d.width, d.height) == ("16UC1", 32, 16)
         np.testing.assert_array_equal(raw_image_array(d), depth_to_mm(depth[k]))
@@ -196,10 +208,13 @@ def test_stage_warp_inpaint_end_to_end(upstream, tmp_path):
     np.testing.assert_allclose(v.poses, upstream["poses"])
     assert (v.depth > 0).mean() > 0.99  # conditions depth + layer depth
     msgs = read_mcap(out / MCAP_FILE)
-    assert len(msgs[TOPIC_COND_RGB]) == 5 and decode_png(msgs[TOPIC_COND_RGB][0].data).shape == (64, 128, 3)
+    cond0 = cv2.imdecode(np.frombuffer(msgs[TOPIC_COND_RGB][0].data, np.uint8), cv2.IMREAD_COLOR)
+    assert len(msgs[TOPIC_COND_RGB]) == 5 and cond0.shape == (64, 128, 3) and msgs[TOPIC_COND_RGB][0].format == "jpeg"
     assert len(msgs[TOPIC_RGB]) == 5 and len(msgs[TOPIC_DEPTH]) == 5
-    # The MCAP holds each frame once, the very bytes of frames/ (no second encoding).
-    assert msgs[TOPIC_RGB][2].data == (out / "frames" / "000002.png").read_bytes()
+    # The MCAP holds each frame once, as JPEG for viewing (frames/ hold the exact PNGs), a fraction of their size.
+    frame2 = (out / "frames" / "000002.png").read_bytes()
+    jpg2 = cv2.imdecode(np.frombuffer(msgs[TOPIC_RGB][2].data, np.uint8), cv2.IMREAD_COLOR)
+    assert msgs[TOPIC_RGB][2].format == "jpeg" and psnr(jpg2, cv2.imdecode(np.frombuffer(frame2, np.uint8), 1)) > 25
 
 
 def test_stage_lanczos_upscale_is_an_output_not_an_input_to_later_stages(upstream, tmp_path):

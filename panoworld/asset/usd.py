@@ -9,6 +9,7 @@ import numpy as np
 
 from panoworld.core.conventions import CV_FROM_GL, quat_xyzw_from_wxyz
 from panoworld.io.gaussian_set import Gaussians
+from panoworld.io.splat_ply import used_sh_degree as sh_degree  # INRIA files may pad to degree 3 with zeros
 
 UP_AXIS = "Z"
 GRAVITY_M_S2 = 9.81
@@ -39,15 +40,6 @@ def _matrix(t: np.ndarray):
     from pxr import Gf
 
     return Gf.Matrix4d(np.asarray(t, np.float64).T.tolist())  # Gf: row vectors, translation in the last row
-
-
-def sh_degree(sh_rest: np.ndarray) -> int:
-    """Highest SH degree with a non-zero coefficient (INRIA files pad to degree 3 with zeros)."""
-    k = sh_rest.shape[1]
-    for deg in (3, 2, 1):
-        if k >= (deg + 1) ** 2 - 1 and np.any(sh_rest[:, deg**2 - 1:(deg + 1) ** 2 - 1]):
-            return deg
-    return 0
 
 
 def _mesh(stage, path: str, vertices: np.ndarray, faces: np.ndarray, color: tuple, purpose: str):

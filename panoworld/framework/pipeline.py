@@ -28,6 +28,7 @@ from panoworld.framework.stage import (
     LOCK_ENV,
     LOCK_FILE,
     LOCK_INODE_ENV,
+    REFUSAL_ENV,
     RUNNER_PID_ENV,
     StageSpec,
     input_digest,
@@ -638,7 +639,13 @@ def runner_env(scene: Scene) -> dict[str, str]:
 def _run_subprocess(node: StageNode, scene: Scene, params: Any, echo: bool) -> tuple[int, float, float]:
     """Run `python -m <stage module>` with explicit inputs; returns (exit code, seconds, peak RSS MB)."""
     template = stage_command(node, scene, "{params_file}", python="{python}")
-    return run_with_params_file(template, params_to_dict(params), scene.log_file(node.name), echo, runner_env(scene))
+    env = {**runner_env(scene), REFUSAL_ENV: str(refusal_file(scene.log_file(node.name)))}
+    return run_with_params_file(template, params_to_dict(params), scene.log_file(node.name), echo, env)
+
+
+def refusal_file(log: Path) -> Path:
+    """Where a stage started by this runner writes the one line refusing its input (exit 2)."""
+    return log.with_name(f".{log.stem}.refusal")
 
 
 StageExecutor = Callable[[StageNode, Scene, Any, bool], tuple[int, float, float]]
@@ -762,9 +769,10 @@ def run(
                 emit(StageResult(name, "ran", reason, secs, rss))
             elif code == 2:  # the stage refused its input: one line, its log not kept
                 blocked.add(name)
-                part = pending_log(scene.log_file(name))
-                why = _failure_line(part, name)
+                part, refusal = pending_log(scene.log_file(name)), refusal_file(scene.log_file(name))
+                why = refusal.read_text().strip() if refusal.is_file() else _failure_line(part, name)
                 part.unlink(missing_ok=True)
+                refusal.unlink(missing_ok=True)
                 emit(StageResult(name, "failed", f"bad input: {why or 'see the stage output above'}", secs, rss,
                                  bad_input=True))
             else:

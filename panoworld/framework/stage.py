@@ -39,6 +39,8 @@ LOCK_INODE_ENV = "PANOWORLD_SCENE_LOCK_INODE"
 """`DEV:INODE` of the artifacts directory the runner holds the flock of (a directory removed and made again is not
 the one locked)."""
 RUNNER_PID_ENV = "PANOWORLD_RUNNER_PID"
+REFUSAL_ENV = "PANOWORLD_REFUSAL_FILE"
+"""Set by a runner: a stage that refuses its input (exit 2) writes its one line there, for the runner to print once."""
 """Set by a local runner for the stages it starts: the lock it holds and its pid (see check_runner)."""
 
 StageInputError = InputError
@@ -509,7 +511,11 @@ def stage_main(module_name: str, argv: list[str] | None = None) -> int:
         inputs = {name: getattr(args, f"in_{name}") for name in spec.inputs}
         manifest = execute_stage(spec, inputs, params, args.out)
     except PanoWorldError as e:
-        print(f"error: stage {spec.name}: {e}", file=sys.stderr)
+        refusal = os.environ.get(REFUSAL_ENV)
+        if refusal and e.exit_code == 2:
+            Path(refusal).write_text(str(e))
+        else:
+            print(f"error: stage {spec.name}: {e}", file=sys.stderr)
         return e.exit_code
     except OSError as e:  # the environment (full disk, read-only output): one line
         err = from_os_error(e)

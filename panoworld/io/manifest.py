@@ -91,8 +91,48 @@ def current_schema_version(kind: str) -> int:
     return max(accepted_schema_versions(kind))
 
 
+_VALIDATED_FILE = "validated_manifests.json"
+_VALIDATED_KEEP = 4096
+_validated: dict[str, list[str]] | None = None
+"""schema digest -> checksums of manifests that passed its JSON Schema (the user cache, loaded once)."""
+
+
+_schema_digests: dict[str, tuple[dict, dict, str]] = {}
+
+
+def _schema_digest(kind: str) -> str:
+    """Digest of the schemas a manifest of `kind` is validated against (recomputed when load_schema reloads them)."""
+    base, schema = load_schema("manifest"), load_schema(kind)
+    hit = _schema_digests.get(kind)
+    if hit is None or hit[0] is not base or hit[1] is not schema:
+        hit = _schema_digests[kind] = (base, schema, json_digest([base, schema]))
+    return hit[2]
+
+
+def _validated_checksums(kind: str) -> list[str]:
+    global _validated
+    if _validated is None:
+        from panoworld.io.user_cache import read_user_cache
+
+        _validated = {k: v for k, v in read_user_cache(_VALIDATED_FILE).items() if isinstance(v, list)}
+    return _validated.setdefault(_schema_digest(kind), [])
+
+
+def _remember_valid(kind: str, checksum: str) -> None:
+    from panoworld.io.user_cache import write_user_cache
+
+    known = _validated_checksums(kind)
+    if checksum not in known:
+        known.append(checksum)
+        del known[:-_VALIDATED_KEEP]
+        write_user_cache(_VALIDATED_FILE, _validated)
+
+
 def validate_manifest(manifest: dict, kind: str, where: Path | str = "manifest") -> None:
-    """Raise ArtifactError with a readable reason if the manifest does not match its kind's schema."""
+    """Raise ArtifactError with a readable reason if the manifest does not match its kind's schema.
+
+    A manifest with its checksum passed is remembered (by checksum, per schema text) in the user cache, so that
+    read_manifest does not validate the same unedited manifest against the same schema again."""
     if manifest.get("schema") != kind:
         raise ArtifactError(f"{where}: schema is {manifest.get('schema')!r} but expected {kind!r}")
     sv = manifest.get("schema_version")
@@ -104,6 +144,8 @@ def validate_manifest(manifest: dict, kind: str, where: Path | str = "manifest")
         e = errors[0]
         loc = "/".join(str(p) for p in e.path) or "<root>"
         raise ArtifactError(f"{where}: schema-invalid at {loc}: {e.message}")
+    if isinstance(manifest.get("checksum"), str):
+        _remember_valid(kind, manifest["checksum"])
 
 
 def read_manifest(artifact_dir: Path, kind: str | None = None) -> dict:
@@ -117,29 +159,69 @@ def read_manifest(artifact_dir: Path, kind: str | None = None) -> dict:
         raise ArtifactError(f"{path}: unreadable ({e})") from e
     if not isinstance(manifest, dict):
         raise ArtifactError(f"{path}: not a JSON object")
-    validate_manifest(manifest, kind or str(manifest.get("schema")), path)
-    if manifest_checksum(manifest) != manifest["checksum"] or files_digest(manifest["files"]) != manifest["digest"]:
+    kind = kind or str(manifest.get("schema"))
+    checksum = manifest.get("checksum")
+    unedited = isinstance(checksum, str) and manifest_checksum(manifest) == checksum
+    if not (unedited and manifest.get("schema") == kind and checksum in _validated_checksums(kind)):
+        validate_manifest(manifest, kind, path)
+    if not unedited or files_digest(manifest["files"]) != manifest["digest"]:
         raise ArtifactError(f"{path}: checksum mismatch (manifest edited after it was written)")
     return manifest
+
+
+_HASHES_FILE = "file_hashes.json"
+_HASHES_KEEP = 20000
+_hashes: dict[str, list] | None = None
+"""absolute path -> [size, mtime_ns, sha256] of files re-hashed because their mtime no longer matched their manifest."""
+
+
+def _rehash(p: Path, st: os.stat_result) -> tuple[str, bool]:
+    """(sha256 of p, whether it was hashed now): a file re-hashed before with the same size and mtime is not read."""
+    global _hashes
+    if _hashes is None:
+        from panoworld.io.user_cache import read_user_cache
+
+        _hashes = read_user_cache(_HASHES_FILE)
+    key = str(p.resolve())
+    hit = _hashes.get(key)
+    if isinstance(hit, list) and len(hit) == 3 and hit[:2] == [st.st_size, st.st_mtime_ns]:
+        return str(hit[2]), False
+    digest = file_digest(p)
+    _hashes.pop(key, None)
+    _hashes[key] = [st.st_size, st.st_mtime_ns, digest]
+    for old in list(_hashes)[: max(0, len(_hashes) - _HASHES_KEEP)]:
+        del _hashes[old]
+    return digest, True
 
 
 def verify_files(artifact_dir: Path, manifest: dict) -> str | None:
     """Cheap check that the files on disk are the ones the manifest describes; None if they are.
 
-    Like DVC: compare size and mtime first and re-hash only files whose stat changed.
+    Like DVC: compare size and mtime first and re-hash only files whose stat changed (once: the new stat of a file
+    whose content still matches is remembered in the user cache, so a copied or touched artifact is read once).
     """
     artifact_dir = Path(artifact_dir)
-    for rel, meta in manifest["files"].items():
-        p = artifact_dir / rel
-        try:
-            st = p.stat()
-        except OSError:
-            return f"output file missing: {p}"
-        if st.st_size != meta["size"]:
-            return f"output file changed: {p} (size {meta['size']} -> {st.st_size})"
-        if st.st_mtime_ns != meta.get("mtime_ns") and file_digest(p) != meta["sha256"]:
-            return f"output file changed: {p} (content differs from manifest digest)"
-    return None
+    hashed = False
+    try:
+        for rel, meta in manifest["files"].items():
+            p = artifact_dir / rel
+            try:
+                st = p.stat()
+            except OSError:
+                return f"output file missing: {p}"
+            if st.st_size != meta["size"]:
+                return f"output file changed: {p} (size {meta['size']} -> {st.st_size})"
+            if st.st_mtime_ns != meta.get("mtime_ns"):
+                digest, now = _rehash(p, st)
+                hashed |= now
+                if digest != meta["sha256"]:
+                    return f"output file changed: {p} (content differs from manifest digest)"
+        return None
+    finally:
+        if hashed:
+            from panoworld.io.user_cache import write_user_cache
+
+            write_user_cache(_HASHES_FILE, _hashes)
 
 
 def list_files(root: Path) -> dict[str, dict]:

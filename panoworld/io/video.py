@@ -88,7 +88,8 @@ MCAP_FILE = "video.mcap"
 DEPTH_SCALE = DEPTH_PNG_SCALE  # metres per depth PNG unit (millimetres); 0 = unknown
 
 # MCAP topics (Foxglove protobuf schemas). Depth is a foxglove.RawImage '16UC1' in millimetres (0 = unknown), which
-# Foxglove's Image panel shows with a colour map; RGB frames and conditions are PNG foxglove.CompressedImage.
+# Foxglove's Image panel shows with a colour map; RGB frames and conditions are JPEG foxglove.CompressedImage (PNG, the
+# frames' own bytes, with mcap_jpeg_quality 0); condition masks are PNG.
 TOPIC_RGB = "/camera/rgb"
 TOPIC_DEPTH = "/camera/depth"
 TOPIC_COND_RGB = "/conditions/rgb"
@@ -118,8 +119,8 @@ class VideoWriter:
     """Streams frames into a video artifact directory: frames/%06d.png, depth/%06d.png, preview.mp4, video.mcap and,
     with upscale > 1, upscaled/%06d.png (an output only: later stages read frames/); close() writes video.json.
     PNGs are encoded by `workers` threads and the MCAP is written (in frame order) by one more, off the caller's thread;
-    memory stays at a few frames whatever the length. The MCAP reuses the frames' PNG bytes (no second encoding) and
-    holds the frames once, at the generation size."""
+    memory stays at a few frames whatever the length. The MCAP (a log for viewing: frames/ are the exact frames) holds
+    the frames and conditions as JPEG of mcap_jpeg_quality (0: the PNG bytes, lossless), once, at the generation size."""
 
     def __init__(
         self,
@@ -132,6 +133,7 @@ class VideoWriter:
         preview: bool = True,
         preview_max_width: int = 1920,
         mcap: bool = True,
+        mcap_jpeg_quality: int = 90,
         png_compression: int = 1,
         workers: int = 2,
         upscale: int = 1,
@@ -144,6 +146,9 @@ class VideoWriter:
         self.out_dir = Path(out_dir)
         self.height, self.width, self.fps, self.has_depth = height, width, float(fps), has_depth
         self.png_compression = png_compression
+        if not 0 <= mcap_jpeg_quality <= 100:
+            raise ValueError(f"{mcap_jpeg_quality=} must be in [0, 100]")
+        self.mcap_jpeg_quality = mcap_jpeg_quality
         self.upscale = upscale
         (self.out_dir / "frames").mkdir(parents=True, exist_ok=True)
         if upscale > 1:
@@ -222,7 +227,7 @@ class VideoWriter:
         if upscaled is not None:
             up_job = self._pool.submit(self._encode_write, np.ascontiguousarray(upscaled), self.out_dir / entry["upscaled"])
         self._pending.append(self._mcap_pool.submit(
-            self._finish, i, rgb_job, depth_job, up_job, self.poses[-1], cond_rgb_png, cond_mask_png))
+            self._finish, i, rgb_job, depth_job, up_job, self.poses[-1], cond_rgb_png, cond_mask_png, rgb))
         while len(self._pending) > 2:
             self._pending.popleft().result()
         while len(self._mp4_pending) > 2:
@@ -245,15 +250,27 @@ class VideoWriter:
         path.write_bytes(png)
         return png
 
-    def _finish(self, i, rgb_job, depth_job, up_job, pose, cond_rgb_png, cond_mask_png) -> None:
+    def _finish(self, i, rgb_job, depth_job, up_job, pose, cond_rgb_png, cond_mask_png, rgb) -> None:
         png = rgb_job.result()
         mm = None if depth_job is None else depth_job.result()
         if up_job is not None:
             up_job.result()
         if self._mcap is not None:
-            self._write_mcap(i, png, mm, pose, cond_rgb_png, cond_mask_png)
+            self._write_mcap(i, png, mm, pose, cond_rgb_png, cond_mask_png, rgb)
 
-    def _write_mcap(self, i, png, mm, world_from_cam, cond_rgb_png, cond_mask_png) -> None:
+    def _viewing_image(self, png: bytes, rgb: np.ndarray | None = None) -> tuple[bytes, str]:
+        """(bytes, format) of an RGB image in the MCAP: JPEG of mcap_jpeg_quality, or the PNG as it is with 0."""
+        q = self.mcap_jpeg_quality
+        if q == 0:
+            return png, "png"
+        bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR) if rgb is not None else cv2.imdecode(
+            np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+        ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, q])
+        if not ok:
+            raise ValueError("JPEG encoding failed")
+        return buf.tobytes(), "jpeg"
+
+    def _write_mcap(self, i, png, mm, world_from_cam, cond_rgb_png, cond_mask_png, rgb=None) -> None:
         from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
         from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
         from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
@@ -266,12 +283,14 @@ class VideoWriter:
         def put(topic, msg):
             self._mcap.write_message(topic, msg, log_time=t, publish_time=t, sequence=i)
 
-        put(TOPIC_RGB, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=png, format="png"))
+        data, fmt = self._viewing_image(png, rgb)
+        put(TOPIC_RGB, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=data, format=fmt))
         if mm is not None:
             put(TOPIC_DEPTH, RawImage(timestamp=stamp, frame_id=CAMERA_FRAME, width=mm.shape[1], height=mm.shape[0],
                                       encoding="16UC1", step=2 * mm.shape[1], data=mm.astype("<u2").tobytes()))
         if cond_rgb_png is not None:
-            put(TOPIC_COND_RGB, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=cond_rgb_png, format="png"))
+            data, fmt = self._viewing_image(cond_rgb_png)
+            put(TOPIC_COND_RGB, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=data, format=fmt))
         if cond_mask_png is not None:
             put(TOPIC_COND_MASK, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=cond_mask_png, format="png"))
         ros = ros_world_from_cam(world_from_cam)

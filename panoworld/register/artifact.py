@@ -67,7 +67,7 @@ def _summary(names: list[str], given: dict, reg: Registration) -> dict:
     n_reg = sum(p["registered"] for p in reg.panoramas.values())
     return {"num_panoramas": len(names), "num_registered": n_reg, "num_given": len(given),
             "unregistered": [n for n, p in reg.panoramas.items() if not p["registered"]],
-            "pairs_accepted": sum(p["accepted"] for p in reg.pairs), "pairs_tried": len(reg.pairs)}
+            "pairs_accepted": sum(p.get("edge") is not None for p in reg.pairs), "pairs_tried": len(reg.pairs)}
 
 
 def write_registration(out_dir: Path, reg: Registration) -> None:

@@ -29,3 +29,11 @@ class RegisterOptions:
     refine_iterations: int = param(15, ge=0)
     """Point-to-plane ICP steps on the dense depth maps after RANSAC (0 = RANSAC only), starting with pairs within
     2 max_error_m and ending within 1 cm; a wider start locked onto surfaces a wall thickness away."""
+    bearing_threshold_px: float = param(1.5, gt=0)
+    """Bearing-only pairs (those the depth-backed fit does not trust): RANSAC inlier threshold on the angle of a matched
+    ray to its epipolar plane, in ERP pixels of the resampled panorama (180 / rows degrees each)."""
+    min_bearing_inliers: int = param(20, ge=5)
+    """A bearing-only pair needs at least this many inliers."""
+    min_scale_support: int = param(8, ge=1)
+    """A bearing-only pair is metric when at least this many of its triangulated points have depths in both views
+    that agree on the scale; with fewer it only gives the direction of the baseline."""

@@ -19,12 +19,19 @@ from panoworld.models.pose_refine import depth_edges, sample_range
 
 @dataclass(kw_only=True)
 class Features:
-    """Keypoints of one panorama that have a depth: camera-frame 3D points and SIFT descriptors."""
+    """Keypoints of one panorama: unit bearings, ray depth where the depth is trustworthy, SIFT descriptors."""
 
-    points: np.ndarray
-    """(N, 3) float64 points in the camera frame (bearing times ray depth), metres."""
+    bearings: np.ndarray
+    """(N, 3) float64 unit rays in the camera frame."""
+    depth: np.ndarray
+    """(N,) float64 ray depth in metres; 0 where the depth is invalid or on a depth edge."""
     descriptors: np.ndarray
     """(N, 128) float32 SIFT descriptors."""
+
+    @property
+    def points(self) -> np.ndarray:
+        """(N, 3) camera-frame points (bearing times ray depth; the origin where there is no depth)."""
+        return self.bearings * self.depth[:, None]
 
 
 @dataclass(kw_only=True)
@@ -49,8 +56,8 @@ class PairResult:
 def erp_features(rgb: np.ndarray, depth: np.ndarray, *, max_features: int, max_edge: float = 0.05,
                  contrast: float = 0.01) -> Features:
     """SIFT on six cube-face views of the panorama (less distortion than the ERP image); each keypoint whose ray is
-    closest to its own face's axis, on valid depth and off depth edges (log-depth range over 3x3 below max_edge), keeps
-    a 3D point from the bilinearly sampled ray depth."""
+    closest to its own face's axis is kept, with the bilinearly sampled ray depth where the depth is valid and off
+    depth edges (log-depth range over 3x3 below max_edge)."""
     h, w = depth.shape
     if rgb.shape[:2] != depth.shape:
         rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
@@ -60,7 +67,7 @@ def erp_features(rgb: np.ndarray, depth: np.ndarray, *, max_features: int, max_e
     views = cube_views(fov_deg=100.0, size=int(round(h / 2 * 100 / 90)))
     axes = np.stack([v.cam_from_view[:, 2] for v in views])
     sift = cv2.SIFT_create(nfeatures=max_features // len(views), contrastThreshold=contrast)
-    pts, descs = [], []
+    rays, depths, descs = [], [], []
     for k, view in enumerate(views):
         gray = cv2.cvtColor(render_view(rgb, view), cv2.COLOR_RGB2GRAY)
         kps, desc = sift.detectAndCompute(gray, None)
@@ -75,12 +82,15 @@ def erp_features(rgb: np.ndarray, depth: np.ndarray, *, max_features: int, max_e
         dk = ndimage.map_coordinates(d, rc, order=1, mode="nearest")
         ok = ndimage.map_coordinates(valid.astype(np.float32), rc, order=1, mode="nearest") > 0.999
         ek = ndimage.map_coordinates(edges, rc, order=0, mode="nearest")
-        keep = ok & (ek < max_edge) & (dk > 0) & (np.argmax(ray @ axes.T, axis=1) == k)
-        pts.append(ray[keep] * dk[keep, None])
+        keep = np.argmax(ray @ axes.T, axis=1) == k
+        trusted = ok & (ek < max_edge) & (dk > 0)
+        rays.append(ray[keep])
+        depths.append(np.where(trusted, dk, 0.0)[keep])
         descs.append(desc[keep])
-    if not pts:
-        return Features(points=np.zeros((0, 3)), descriptors=np.zeros((0, 128), np.float32))
-    return Features(points=np.concatenate(pts), descriptors=np.concatenate(descs).astype(np.float32))
+    if not rays:
+        return Features(bearings=np.zeros((0, 3)), depth=np.zeros(0), descriptors=np.zeros((0, 128), np.float32))
+    return Features(bearings=np.concatenate(rays), depth=np.concatenate(depths),
+                    descriptors=np.concatenate(descs).astype(np.float32))
 
 
 def match(a: Features, b: Features, *, ratio: float = 0.8) -> np.ndarray:
@@ -183,9 +193,12 @@ def icp_refine(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.ndarray, *
 
 
 def register_pair(fi: Features, fj: Features, depth_i: np.ndarray, depth_j: np.ndarray, *, max_error_m: float,
-                  min_inliers: int, refine_height: int, refine_iterations: int, seed: int = 0) -> PairResult:
-    """Estimate i_from_j from matched 3D points (LO-RANSAC), then refine it on the dense depth maps."""
-    m = match(fi, fj)
+                  min_inliers: int, refine_height: int, refine_iterations: int, seed: int = 0,
+                  matches: np.ndarray | None = None) -> PairResult:
+    """Estimate i_from_j from the matches (match(fi, fj) when None) that have a depth in both views (LO-RANSAC on
+    their 3D points), then refine it on the dense depth maps."""
+    m = match(fi, fj) if matches is None else matches
+    m = m[(fi.depth[m[:, 0]] > 0) & (fj.depth[m[:, 1]] > 0)]
     if len(m) < max(min_inliers, 3):
         return PairResult(matches=len(m), inliers=0, i_from_j=None, overlap=0.0, consistency=0.0, residual=float("nan"))
     opts = pycolmap.RANSACOptions()

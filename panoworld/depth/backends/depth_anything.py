@@ -14,7 +14,8 @@ from panoworld.depth.outliers import mask_and_record
 @dataclass(kw_only=True)
 class DepthAnythingOptions:
     weights: Path | None = None
-    """Local folder with config.json + model.safetensors (e.g. Depth-Anything-V2-Small-hf)."""
+    """Local folder with config.json + model.safetensors (e.g. Depth-Anything-V2-Small-hf) or an `hf:` id; None = the
+    first registered Depth Anything V2 weights in the local Hugging Face cache (`runner.py weights fetch NAME`)."""
     view_size: int = param(518, ge=14)
     """Side of each perspective cube view fed to the model (a multiple of 14)."""
     fov_deg: float = param(110.0, gt=90, lt=180)
@@ -30,11 +31,11 @@ def predict(job):
     from panoworld.models.depth_anything import DepthAnything
 
     o: DepthAnythingOptions = job.options
-    if o.weights is None:
+    if o.weights is None:  # the depth stage puts weights found on disk here (trait finds_weights)
         raise InputError(
-            f"{job.panorama_file}: no depth file in the scene and no depth model weights; run "
-            "`python runner.py weights fetch depth-anything-v2-small` and pass --set depth.depth_anything.weights=DIR "
-            "(or put a metric depth.npy|exr|png next to the panorama)"
+            f"{job.panorama_file}: no depth file in the scene and no depth model on disk; run "
+            "`python runner.py weights fetch depth-anything-v2-small` (or put a metric depth.npy|exr|png next to "
+            "the panorama)"
         )
     model = DepthAnything.from_pretrained(o.weights, input_size=o.view_size, device=o.device)
     res = erp_depth_from_model(job.rgb, model, model.kind, fov_deg=o.fov_deg, view_size=o.view_size)
@@ -46,4 +47,5 @@ def predict(job):
     return Result(res.depth, valid, relative=model.kind == DepthKind.RELATIVE, info=info)
 
 
-register("depth", "depth-anything", predict, options=DepthAnythingOptions, key="depth_anything", needs_inputs=())
+register("depth", "depth-anything", predict, options=DepthAnythingOptions, key="depth_anything", needs_inputs=(),
+         finds_weights=True)

@@ -283,3 +283,21 @@ def describe_change(stage: str, old: dict[str, dict], new: dict[str, dict]) -> s
             what += f" ({', '.join(changed[:4])}{', ...' if len(changed) > 4 else ''})"
         parts.append(what)
     return "weights changed: " + "; ".join(parts) if parts else None
+
+
+def find_local_weights(param: str) -> tuple[Any, Path, str] | None:
+    """(registry entry, local path, commit) of the first registered weights for `param` (e.g.
+    `depth.depth_anything.weights`, in registry order: the smallest first) whose files are in the local Hugging Face
+    cache; None when there are none (or huggingface_hub is not installed)."""
+    from panoworld.framework.hub.registry import REGISTRY
+
+    for entry in REGISTRY.values():
+        if entry.kind != "hf" or not any(u.param == param for u in entry.uses):
+            continue
+        try:
+            path, commit = resolve_hf(HfId(entry.repo, entry.revision))
+        except (WeightsNotFound, ImportError):
+            continue
+        if all((path / f.path).is_file() for f in entry.files):
+            return entry, path, commit
+    return None

@@ -15,4 +15,5 @@ def estimate(job):
                            alignment=job.align)
 
 
-register("poses", "colmap", estimate, options=ColmapOptions, key="colmap", needs_plan=True, needs_baseline=True)
+register("poses", "colmap", estimate, options=ColmapOptions, key="colmap", needs_plan=True, needs_baseline=True,
+         recovers=True)

@@ -11,4 +11,4 @@ def estimate(job):
     return planned_estimate(job.planned)
 
 
-register("poses", "planned", estimate, needs_plan=True, copies_plan=True)
+register("poses", "planned", estimate, needs_plan=True, copies_plan=True, recovers=False)

@@ -31,4 +31,5 @@ def estimate(job):
                          out_hw=(job.video.height, job.video.width))
 
 
-register("poses", "vggt", estimate, options=VggtOptions, key="vggt", needs_plan=False)
+register("poses", "vggt", estimate, options=VggtOptions, key="vggt", needs_plan=False, recovers=True,
+         weights=True)

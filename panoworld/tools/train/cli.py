@@ -6,8 +6,8 @@ import importlib
 import sys
 
 TRAINERS = {
-    "video": ("panoworld.tools.train.video.cli:main", "the shortcut video generator (LoRA on Wan2.2, issue #13)"),
-    "recon": ("panoworld.tools.train.recon.cli:main", "the panoramic reconstruction model (issue #14)"),
+    "video": ("panoworld.tools.train.video.cli:main", "the shortcut video generator (LoRA on Wan2.2)"),
+    "recon": ("panoworld.tools.train.recon.cli:main", "the panoramic reconstruction model (PanoVGGT + Gaussian head)"),
 }
 
 

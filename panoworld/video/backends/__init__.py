@@ -1,7 +1,8 @@
 """Video backends: each fills the disoccluded pixels of the warped conditions, frame by frame.
 
 A backend's impl is `impl(job: Job) -> (frames, info)`: `frames` yields (rgb, depth or None, fill or None) per pose,
-`info` is merged into the manifest; trait `has_depth` says whether it yields depth."""
+`info` is merged into the manifest; trait `has_depth` says whether it yields depth, trait `renders_plan` whether every
+frame is rendered exactly at its planned pose (the poses stage's auto then takes the plan instead of recovering it)."""
 
 from __future__ import annotations
 

@@ -19,4 +19,4 @@ def fill(job) -> tuple:
     return frames(), {}
 
 
-register("video", "frame-inpaint", fill, has_depth=True)
+register("video", "frame-inpaint", fill, has_depth=True, renders_plan=True)

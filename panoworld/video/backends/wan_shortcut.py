@@ -49,4 +49,4 @@ def generate_clips(generator, rgb, mask, clips: list[list[int]]) -> tuple[list[n
     return out, info  # type: ignore[return-value]
 
 
-register("video", "wan-shortcut", generate, options=WanShortcutConfig, key="wan", has_depth=False)
+register("video", "wan-shortcut", generate, options=WanShortcutConfig, key="wan", has_depth=False, renders_plan=False)

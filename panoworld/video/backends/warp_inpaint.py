@@ -108,4 +108,4 @@ def fill(job) -> tuple:
     return frames(), info
 
 
-register("video", "warp-inpaint", fill, options=WarpOptions, key="warp", has_depth=True)
+register("video", "warp-inpaint", fill, options=WarpOptions, key="warp", has_depth=True, renders_plan=True)

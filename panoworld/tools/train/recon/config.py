@@ -211,8 +211,7 @@ SOURCES: dict[str, dict[str, str]] = {
         "grad_checkpointing": "ours: needed for 32 frames at 392 x 784 on 80 GB",
         "weight_decay": "VGGT: AdamW weight decay 0.05",
     },
-    "tiny": {"all": "ours: CPU-proof sizes and steps (stage 1 12 000 steps were picked on held-out ATE of the "
-                    "then-validation scenes; the bench's test split never informed them)"},
+    "tiny": {"all": "ours: CPU-proof sizes and steps (stage 1: 12 000 steps, picked on validation scenes only)"},
 }
 """Where each value of a preset comes from."""
 

@@ -1,0 +1,100 @@
+"""A home's registration against its survey (ZInD survey.json: 2D capture positions and yaws): registered count,
+pairwise capture-point distance error, relative yaw error and the position error after a best 2D rigid alignment.
+
+`python bench/real_home_survey.py REGISTER_ARTIFACT SURVEY_JSON [--json]` prints them; `compare_to_survey` is the
+function the real-home benchmark imports."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def _yaw(world_from_cam: np.ndarray) -> float:
+    """Yaw (radians) of a camera about the world's gravity axis (y)."""
+    R = world_from_cam[:3, :3]
+    return float(np.arctan2(R[0, 2] - R[2, 0], R[0, 0] + R[2, 2]))
+
+
+def _wrap_deg(a: np.ndarray) -> np.ndarray:
+    return (np.asarray(a) + 180.0) % 360.0 - 180.0
+
+
+def compare_to_survey(world_from_cam: dict[str, np.ndarray], survey: dict) -> dict:
+    """Registration ({NAME: 4x4 world_from_cam}, world y = gravity, as panoramas.json holds) against survey (the parsed
+    survey.json: {"panos": {NAME: {"position_m_xy", "yaw_deg", ...}}}) -> dict:
+
+    - registered / panoramas: how many surveyed panoramas have a pose; unregistered: their names.
+    - pairs: per registered pair, the horizontal capture-point distance (estimated, surveyed, |error| m) and the
+      relative yaw error (deg): (yaw_b - yaw_a) estimated against (yaw_deg_b - yaw_deg_a) surveyed, wrapped.
+      Our yaw turns camera x (right) towards z (forward) about y (down); ZInD's yaw_deg turns the same way.
+    - dist_err_m_median / _max, yaw_err_deg_median / _max over the pairs (None with fewer than 2 registered).
+    - aligned_err_m_median / _max: per registered panorama, the horizontal position error after the best 2D rigid
+      alignment of the estimated positions (x, z) onto the surveyed ones; ZInD's plan frame is mirrored against
+      (x, z), so the alignment is a rotation composed with that mirror.
+    """
+    panos = survey["panos"]
+    names = sorted(n for n in panos if n in world_from_cam)
+    out: dict = {"panoramas": len(panos), "registered": len(names),
+                 "unregistered": sorted(n for n in panos if n not in world_from_cam), "pairs": []}
+    keys = ("dist_err_m_median", "dist_err_m_max", "yaw_err_deg_median", "yaw_err_deg_max", "aligned_err_m_median",
+            "aligned_err_m_max")
+    if len(names) < 2:
+        return {**out, **dict.fromkeys(keys)}
+    est = {n: np.asarray(world_from_cam[n], np.float64) for n in names}
+    xz = {n: est[n][[0, 2], 3] for n in names}
+    xy = {n: np.asarray(panos[n]["position_m_xy"], np.float64) for n in names}
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            d_est, d_sur = float(np.linalg.norm(xz[b] - xz[a])), float(np.linalg.norm(xy[b] - xy[a]))
+            yaw_est = np.degrees(_yaw(est[b]) - _yaw(est[a]))
+            yaw_sur = panos[b]["yaw_deg"] - panos[a]["yaw_deg"]
+            out["pairs"].append({"a": a, "b": b, "dist_est_m": round(d_est, 4), "dist_survey_m": round(d_sur, 4),
+                                 "dist_err_m": round(abs(d_est - d_sur), 4),
+                                 "yaw_err_deg": round(float(abs(_wrap_deg(yaw_est - yaw_sur))), 3)})
+    dist = np.array([p["dist_err_m"] for p in out["pairs"]])
+    yaw = np.array([p["yaw_err_deg"] for p in out["pairs"]])
+    P = np.array([xz[n][::-1] for n in names])  # (z, x): the mirror between our plan and ZInD's
+    Q = np.array([xy[n] for n in names])
+    Pc, Qc = P - P.mean(0), Q - Q.mean(0)
+    U, _, Vt = np.linalg.svd(Pc.T @ Qc)
+    D = np.diag([1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt  # Pc @ R ~ Qc, a proper rotation
+    err = np.linalg.norm(Pc @ R - Qc, axis=1)
+    out["aligned_err_m"] = {n: round(float(e), 4) for n, e in zip(names, err)}
+    return {**out, "dist_err_m_median": float(np.median(dist)), "dist_err_m_max": float(dist.max()),
+            "yaw_err_deg_median": float(np.median(yaw)), "yaw_err_deg_max": float(yaw.max()),
+            "aligned_err_m_median": float(np.median(err)), "aligned_err_m_max": float(err.max())}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("register", type=Path, help="a register artifact (holds panoramas.json)")
+    ap.add_argument("survey", type=Path, help="survey.json")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+    poses = {n: np.asarray(T) for n, T in json.loads((args.register / "panoramas.json").read_text()).items()}
+    r = compare_to_survey(poses, json.loads(args.survey.read_text()))
+    if args.json:
+        print(json.dumps(r, indent=1))
+        return 0
+
+    def f(x, spec):
+        return "-" if x is None else format(x, spec)
+
+    print("| registered | distance error m median / max | yaw error deg median / max | aligned position error m "
+          "median / max | unregistered |")
+    print("| --- | --- | --- | --- | --- |")
+    print(f"| {r['registered']} of {r['panoramas']} | {f(r['dist_err_m_median'], '.3f')} / "
+          f"{f(r['dist_err_m_max'], '.3f')} | {f(r['yaw_err_deg_median'], '.2f')} / {f(r['yaw_err_deg_max'], '.2f')} "
+          f"| {f(r['aligned_err_m_median'], '.3f')} / {f(r['aligned_err_m_max'], '.3f')} | "
+          f"{', '.join(r['unregistered']) or '-'} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

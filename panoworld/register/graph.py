@@ -1,0 +1,165 @@
+"""The pose graph of a home: metric pair estimates join panoramas into rigid groups (maximum spanning trees, depth-backed
+pairs first), then direction-only pairs (bearings without a scale) place whole groups where they fix the position."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from panoworld.core.conventions import invert_pose
+from panoworld.register.upright import yaw_matrix, yaw_of
+
+DEPTH, BEARING, DIRECTION = "depth", "bearing", "direction"
+"""Edge kinds: rigid fit of depth-backed points (ICP-refined, free-space consistent); upright two-view geometry with
+its scale from the depths that agree; upright two-view geometry without a scale (the baseline's direction only)."""
+_RANK = {DEPTH: 2, BEARING: 1, DIRECTION: 0}
+
+
+@dataclass(kw_only=True)
+class Edge:
+    """One trusted pair estimate."""
+
+    a: str
+    b: str
+    a_from_b: np.ndarray
+    """(4, 4); for a direction edge the translation is the unit direction from a to b in a's frame."""
+    kind: str
+    """DEPTH, BEARING or DIRECTION."""
+    inliers: int
+    info: dict
+    """Quality figures reported for the panorama this edge places."""
+
+    def toward(self, src: str) -> tuple[str, np.ndarray]:
+        """(the other panorama, src_from_other)."""
+        if src == self.a:
+            return self.b, self.a_from_b
+        T = invert_pose(self.a_from_b)
+        if self.kind == DIRECTION:
+            T[:3, 3] /= max(np.linalg.norm(T[:3, 3]), 1e-12)
+        return self.a, T
+
+
+@dataclass(kw_only=True)
+class GraphOptions:
+    """When direction-only pairs may place a group."""
+
+    yaw_tol_deg: float = 3.0
+    """Direction pairs placing one group must agree on its yaw within this."""
+    direction_tol_deg: float = 5.0
+    """Each placing pair's baseline direction must point at the placed panorama within this."""
+    min_angle_deg: float = 15.0
+    """The placing directions must span at least this angle (rays nearly parallel do not fix a position)."""
+
+
+def _groups(names: list[str], edges: list[Edge], given: dict[str, np.ndarray]
+            ) -> list[tuple[dict[str, np.ndarray], dict[str, dict]]]:
+    """Rigid groups joined by metric edges (Prim: depth edges before bearing edges, then most inliers), the given
+    poses forming the first group -> [(poses in the group frame, per-panorama info)]."""
+    metric = [e for e in edges if e.kind != DIRECTION]
+    left = [n for n in names if n not in given]
+    out = []
+    seeds: list[dict[str, np.ndarray]] = [dict(given)] if given else []
+    while left or seeds:
+        poses = seeds.pop(0) if seeds else {left[0]: np.eye(4)}
+        info = {n: {"registered": True, "source": "given" if n in given else "estimated", "parent": None}
+                for n in poses}
+        left = [n for n in left if n not in poses]
+        while True:
+            best = None
+            for e in metric:
+                for src in (e.a, e.b):
+                    dst, rel = e.toward(src)
+                    if src in poses and dst not in poses and (
+                            best is None or (_RANK[e.kind], e.inliers) > (_RANK[best[0].kind], best[0].inliers)):
+                        best = (e, src, dst, rel)
+            if best is None:
+                break
+            e, src, dst, rel = best
+            poses[dst] = poses[src] @ rel
+            info[dst] = {"registered": True, "source": "estimated", "parent": src, "edge": e.kind, **e.info}
+            left.remove(dst)
+        out.append((poses, info))
+    return out
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def _place(group: dict[str, np.ndarray], placed: dict[str, np.ndarray], edges: list[Edge], o: GraphOptions
+           ) -> tuple[np.ndarray | None, list[Edge], str]:
+    """world_from_group (4, 4) fixing the group's yaw and position from the direction edges to placed panoramas, the
+    edges used, and why not when it cannot be placed."""
+    obs = []  # (placed panorama, group panorama, placed_from_group-panorama rotation yaw, unit direction, edge)
+    for e in edges:
+        if e.kind != DIRECTION:
+            continue
+        for src in (e.a, e.b):
+            dst, rel = e.toward(src)
+            if src in placed and dst in group:
+                obs.append((src, dst, rel, e))
+    if not obs:
+        return None, [], "no pair with the registered panoramas"
+    # The group's yaw from each edge: world yaw of dst = yaw(placed src) + edge yaw; group yaw = that - yaw in group.
+    psi = np.array([yaw_of(placed[s][:3, :3] @ rel[:3, :3]) - yaw_of(group[d][:3, :3]) for s, d, rel, _ in obs])
+    w = np.array([e.inliers for *_, e in obs], float)
+    ref = psi[np.argmax(w)]
+    ok = np.abs(_wrap(psi - ref)) < np.radians(o.yaw_tol_deg)
+    psi0 = ref + np.average(_wrap(psi[ok] - ref), weights=w[ok])
+    obs = [ob for ob, k in zip(obs, ok) if k]
+    R = yaw_matrix(psi0)
+    M, b, dirs = np.zeros((3, 3)), np.zeros(3), []
+    for s, d, rel, _e in obs:
+        u = placed[s][:3, :3] @ rel[:3, 3]
+        u /= np.linalg.norm(u)
+        P = np.eye(3) - np.outer(u, u)
+        M += P
+        b += P @ (placed[s][:3, 3] - R @ group[d][:3, 3])
+        dirs.append(u)
+    if np.linalg.eigvalsh(M)[0] < 1 - np.cos(np.radians(o.min_angle_deg)):
+        return None, [], (f"{len(obs)} direction-only pair(s) with the registered panoramas, their baselines too close "
+                          "to parallel to fix a position (no metric scale: the depths of the matched points disagree)")
+    off = np.linalg.solve(M, b)
+    for (s, d, _rel, _e), u in zip(obs, dirs):
+        v = R @ group[d][:3, 3] + off - placed[s][:3, 3]
+        if np.degrees(np.arccos(np.clip(v @ u / max(np.linalg.norm(v), 1e-12), -1, 1))) > o.direction_tol_deg:
+            return None, [], f"the direction-only pairs with the registered panoramas disagree ({s}-{d})"
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, off
+    return T, [e for *_, e in obs], ""
+
+
+def solve_graph(names: list[str], edges: list[Edge], given: dict[str, np.ndarray] | None = None,
+                options: GraphOptions | None = None) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
+    """world_from_cam of the panoramas that one connected, determined set holds (the group of the given poses, else
+    the largest), in that group's frame, and per-panorama info (reason for those left out)."""
+    o = options or GraphOptions()
+    given = dict(given or {})
+    groups = _groups(names, edges, given)
+    order = sorted(range(len(groups)), key=lambda k: (not (given and k == 0), -len(groups[k][0]),
+                                                      min(names.index(n) for n in groups[k][0])))
+    poses, info = dict(groups[order[0]][0]), dict(groups[order[0]][1])
+    waiting = [groups[k] for k in order[1:]]
+    reasons: dict[str, str] = {}
+    while waiting:
+        best = None
+        for k, (g, _) in enumerate(waiting):
+            T, used, why = _place(g, poses, edges, o)
+            reasons[min(g)] = why
+            if T is not None and (best is None or sum(e.inliers for e in used) > best[2]):
+                best = (k, T, sum(e.inliers for e in used), used)
+        if best is None:
+            break
+        k, T, _, used = best
+        g, ginfo = waiting.pop(k)
+        parents = sorted({n for e in used for n in (e.a, e.b) if n in poses})
+        for n, P in g.items():
+            poses[n] = T @ P
+            info[n] = {**ginfo[n], "joined_by": "direction", "joined_to": parents,
+                       "direction_inliers": [e.inliers for e in used]}
+    for g, _ in waiting:
+        for n in g:
+            info[n] = {"registered": False, "source": None, "parent": None,
+                       "reason": reasons.get(min(g)) or "not joined to the registered panoramas", "group": sorted(g)}
+    return poses, info

@@ -1,0 +1,71 @@
+"""What a cached run does not redo: schema validation of an unedited manifest, re-hashing a file whose mtime changed."""
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from panoworld.io import manifest as art
+from tests.toy.common import use_toy_schemas
+
+
+@pytest.fixture
+def fresh_caches(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    use_toy_schemas(monkeypatch)
+    monkeypatch.setattr(art, "_validated", None)
+    monkeypatch.setattr(art, "_hashes", None)
+
+
+def toy_artifact(root: Path, text: str = "hello") -> Path:
+    d = root / "a"
+    d.mkdir(parents=True)
+    (d / "out.txt").write_text(text)
+    files = art.list_files(d)
+    art.write_manifest(d, {
+        "schema": "toy", "schema_version": 1, "stage": "a", "stage_version": "1", "params": {}, "params_hash": "0" * 64,
+        "inputs": {}, "key": "1" * 64, "files": files, "digest": art.files_digest(files), "started": "s", "finished": "f",
+        "wall_s": 0.0, "peak_rss_mb": 1.0, "info": {},
+    }, "toy")
+    return d
+
+
+def count_calls(monkeypatch, name: str) -> list:
+    calls, f = [], getattr(art, name)
+    monkeypatch.setattr(art, name, lambda *a, **k: calls.append(a) or f(*a, **k))
+    return calls
+
+
+def test_an_unedited_manifest_is_validated_once_per_schema(tmp_path, monkeypatch, fresh_caches):
+    d = toy_artifact(tmp_path)  # write_manifest validated it
+    art._validated = None  # a new process: the user cache remembers
+    validations = count_calls(monkeypatch, "_validator")
+    assert art.read_manifest(d, "toy")["stage"] == "a" and art.read_manifest(d)["stage"] == "a"
+    assert validations == []
+    # An edit that keeps the checksum right is validated (and refused) all the same.
+    m = json.loads((d / art.MANIFEST).read_text())
+    m["wall_s"] = "slow"
+    m["checksum"] = art.manifest_checksum(m)
+    (d / art.MANIFEST).write_text(json.dumps(m))
+    with pytest.raises(art.ArtifactError, match="schema-invalid at wall_s"):
+        art.read_manifest(d, "toy")
+    # So is an edit without a new checksum, before the checksum is compared.
+    m["wall_s"] = 1.0
+    (d / art.MANIFEST).write_text(json.dumps(m))
+    with pytest.raises(art.ArtifactError, match="checksum mismatch"):
+        art.read_manifest(d, "toy")
+    assert len(validations) == 2
+
+
+def test_a_touched_file_is_rehashed_once_and_a_changed_one_is_caught(tmp_path, monkeypatch, fresh_caches):
+    d = toy_artifact(tmp_path)
+    manifest = art.read_manifest(d, "toy")
+    st = (d / "out.txt").stat()
+    os.utime(d / "out.txt", ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))  # copied or touched: same content
+    hashed = count_calls(monkeypatch, "file_digest")
+    assert art.verify_files(d, manifest) is None and len(hashed) == 1
+    art._hashes = None  # a new process
+    assert art.verify_files(d, manifest) is None and len(hashed) == 1
+    (d / "out.txt").write_text("jello")  # same size, new content and mtime
+    assert "content differs" in art.verify_files(d, manifest) and len(hashed) == 2
