@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.core.conventions import invert_pose
+from panoworld.core.errors import PanoWorldError
 from panoworld.core.params import param
 from panoworld.framework.stage import Input, StageInputError, stage_main
 from panoworld.geometry.erp_mesh import load_erp_mesh
@@ -102,7 +103,8 @@ def _plan_or_stay(nav, params: Params, where: Path):
     except ValueError as e:
         if no_room:
             return stationary_plan(params, f"{no_room['reason']}; with a smaller agent still: {e}")
-        raise StageInputError(f"{where}: {e}") from None
+        raise PanoWorldError(f"no path planned on the NavMesh of {where.parent} ({e}); the planner failed (exit 1), "
+                             "not an input") from None
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.io import read_json, read_jsonl
+from panoworld.io.safe_write import write_text_atomic
 from panoworld.tools.report import encode as enc
 from panoworld.tools.report.page import Page, Section, figure, missing, table
 
@@ -105,7 +106,5 @@ def build_dataset_report(cond_dir: Path, out: Path | None = None, *, clips: int 
         page.add(Section("clips", "Sample clips (condition, mask, target)",
                          f'<p class="note">{len(picks)} of {len(rows)} clips, spread over the index</p>' + "".join(strips)))
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp")
-    tmp.write_text(page.render(), encoding="utf-8")
-    tmp.replace(out)
+    write_text_atomic(out, page.render())
     return out
