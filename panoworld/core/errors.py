@@ -31,3 +31,7 @@ class WeightsError(InputError):
 
 class DataError(InputError):
     """A dataset, clip or track that cannot be used (training, precompute, batch)."""
+
+
+class NoFloorError(InputError):
+    """The mesh has no walkable floor (no up-facing area below the camera, or nothing left after erosion)."""

@@ -265,7 +265,7 @@ def check_scene_inputs(root: Path, files: dict[str, Path | None]) -> None:
     if depth is not None and depth.suffix.lower() == ".npy":
         limits.npy_header(depth, "depth array", kinds="fiu")
     if files.get("trajectory") is not None:
-        from panoworld.trajectory.files import read_trajectory_file
+        from panoworld.io.trajectory import read_trajectory_file
 
         read_trajectory_file(files["trajectory"])
 

@@ -16,8 +16,8 @@ import numpy as np
 from panoworld.core.conventions import check_poses, cv_world_from_cam_from_gl, gl_world_from_cam, invert_pose
 from panoworld.core.errors import InputError
 from panoworld.geometry.align import align_trajectory, apply_sim3, trajectory_metrics
-from panoworld.io import to_jsonable, write_json
-from panoworld.io.depth_png import read_depth_png, write_depth_png  # noqa: F401  (re-exported)
+from panoworld.io.depth_png import write_depth_png
+from panoworld.io.jsonio import to_jsonable, write_json
 from panoworld.io.video import DEPTH_SCALE, VideoFrames, load_frames
 from panoworld.poses.colmap_sfm import run_colmap
 from panoworld.poses.options import Alignment, ColmapOptions, Matcher, RenderType
@@ -30,7 +30,7 @@ MIN_REGISTERED = 3
 
 def read_planned_trajectory(trajectory_dir: Path) -> np.ndarray:
     """world_from_cam (N, 4, 4) of trajectory.json in a trajectory artifact (panoworld.trajectory.load_trajectory)."""
-    from panoworld.trajectory import TrajectoryFileError, load_trajectory
+    from panoworld.io.trajectory import TrajectoryFileError, load_trajectory
 
     try:
         return load_trajectory(trajectory_dir)

@@ -123,7 +123,7 @@ def back_side_hook(job):
         return None
     from functools import partial
 
-    from panoworld.navmesh import load_navmesh
+    from panoworld.geometry.navmesh import load_navmesh
     from panoworld.room.back_sides import back_side_layer
 
     return partial(back_side_layer, nav=load_navmesh(job.navmesh), thickness=o.back_side_thickness,
