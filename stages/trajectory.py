@@ -15,28 +15,25 @@ from panoworld.core.errors import PanoWorldError
 from panoworld.core.params import param
 from panoworld.framework.stage import Input, StageInputError, stage_main
 from panoworld.geometry.erp_mesh import load_erp_mesh
+from panoworld.geometry.navmesh import load_navmesh
 from panoworld.io.home import capture_poses
-from panoworld.navmesh import load_navmesh
+from panoworld.io.trajectory import TrajectoryFileError, path_indices, read_trajectory_file, write_trajectory
 from panoworld.trajectory import (
     MIN_SECTOR_DIST_M,
     PathKind,
-    TrajectoryFileError,
     TrajectoryParams,
     YawMode,
     clearance_cap,
     format_issues,
     mesh_clearance,
-    path_indices,
     path_yaw,
     plan_path,
     planning_hub,
     poses_from_positions,
-    read_trajectory_file,
     sector_coverage,
     sector_reachability,
     step_lengths,
     validate_poses,
-    write_trajectory,
 )
 from panoworld.trajectory.stationary import stationary_plan
 

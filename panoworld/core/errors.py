@@ -53,3 +53,7 @@ def from_os_error(e: OSError) -> PanoWorldError:
     where = e.filename if e.filename is not None else "a file"
     cls = InputError if user else PanoWorldError
     return cls(f"{where}: {e.strerror or type(e).__name__} (errno {e.errno}): {fix}")
+
+
+class NoFloorError(InputError):
+    """The mesh has no walkable floor (no up-facing area below the camera, or nothing left after erosion)."""

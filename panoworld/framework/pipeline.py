@@ -281,7 +281,7 @@ def check_scene_inputs(root: Path, files: dict[str, Path | None]) -> None:
     if files.get("rig_mask") is not None:
         check_mask_file(files["rig_mask"])
     if files.get("trajectory") is not None:
-        from panoworld.trajectory.files import read_trajectory_file
+        from panoworld.io.trajectory import read_trajectory_file
 
         read_trajectory_file(files["trajectory"])
 

@@ -30,7 +30,7 @@ from panoworld.core.errors import InputError, PanoWorldError, PipelineError, fro
 from panoworld.framework import code_digest
 from panoworld.framework.hub import resolve as hub
 from panoworld.io import manifest as art
-from panoworld.io import to_jsonable
+from panoworld.io.jsonio import to_jsonable
 
 LOCK_FILE = ".lock"
 """The scene lock, SCENE/artifacts/.lock: held (flock) by the runner working on the scene, naming its pid."""

@@ -21,7 +21,8 @@ import numpy as np
 from panoworld.core.errors import InputError
 from panoworld.framework.stage import execute_stage, input_digest, load_stage, params_to_dict, stage_key
 from panoworld.io import manifest as art
-from panoworld.io import write_json, write_jsonl
+from panoworld.io.jsonio import write_json
+from panoworld.io.jsonl import write_jsonl
 from panoworld.io.safe_write import check_output_dir
 from panoworld.tools.precompute import clip as clip_mod
 

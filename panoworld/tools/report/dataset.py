@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.io import read_json, read_jsonl
+from panoworld.io.jsonio import read_json
+from panoworld.io.jsonl import read_jsonl
 from panoworld.io.safe_write import write_text_atomic
 from panoworld.tools.report import encode as enc
 from panoworld.tools.report.page import Page, Section, figure, missing, table
@@ -42,7 +43,7 @@ def read_index(cond_dir: Path) -> list[dict]:
 
 def clip_strip(cond_dir: Path, row: dict, width: int) -> str:
     """Condition, mask and target of a clip's middle frame, side by side."""
-    from panoworld.conditions.warp import load_conditions
+    from panoworld.io.conditions import load_conditions
 
     cdir = cond_dir / row["path"]
     cond = load_conditions(cond_dir / row["conditions"])

@@ -12,13 +12,13 @@ import numpy as np
 
 from panoworld.core.conventions import quat_wxyz_from_rotmat
 from panoworld.core.errors import InputError, PanoWorldError
+from panoworld.geometry.navmesh import load_navmesh
 from panoworld.io.depth import load_depth_artifact
 from panoworld.io.home import capture_poses
 from panoworld.io.manifest import read_manifest
+from panoworld.io.trajectory import load_trajectory
 from panoworld.io.video import read_video_doc
-from panoworld.navmesh import load_navmesh
 from panoworld.poses.estimate import load_poses
-from panoworld.trajectory import load_trajectory
 
 ARTIFACTS = "artifacts"
 
