@@ -626,13 +626,15 @@ def test_frames_that_add_nothing_leave_the_source_gaussians(tmp_path, room):
 def test_a_home_whose_frames_the_panoramas_explain_fuses_no_voxel(room):
     # The frames stand where the panoramas stand and see only what they see: the home's Gaussians are the panoramas'
     # own, and frames with no depth at all add nothing either.
+    from panoworld.gaussians.fusion_params import SourcePixelParams
     from panoworld.gaussians.home import home_anchored_fusion
 
     poses = [pose_at(0, 0, 0), pose_at(0.8, 0.1, -0.9)]
     sources = {f"p{k}": (*room(p), p) for k, p in enumerate(poses)}
     frames = [(*room(p), p) for p in poses]
-    res = home_anchored_fusion(frames, sources, FusionParams(voxel_size=0.05), unseen_voxel_size=0.05)
+    params = SourcePixelParams(voxel_size=0.05, unseen_voxel_size=0.05, source_height=0)
+    res = home_anchored_fusion(frames, sources, params)
     assert len(res.gaussians) == res.num_source > 1000 and res.num_voxels == 0
     blind = [(rgb, np.zeros_like(d), p) for rgb, d, p in frames]
-    res2 = home_anchored_fusion(blind, sources, FusionParams(voxel_size=0.05))
+    res2 = home_anchored_fusion(blind, sources, params)
     assert len(res2.gaussians) == len(res.gaussians) and np.array_equal(res2.gaussians.means, res.gaussians.means)
