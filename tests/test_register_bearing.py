@@ -114,6 +114,19 @@ def test_largest_group_is_the_frame_and_given_poses_anchor():
 
 
 @pytest.mark.slow
+def _placed_within_tolerance_or_reported(reg, rel: dict[str, np.ndarray]) -> None:
+    """Every panorama of reg is within the synthetic tolerance of rel (ground truth in the first one's frame) or
+    reported as unregistered with a reason."""
+    for n, G in rel.items():
+        E = reg.world_from_cam.get(n)
+        if E is None:
+            assert reg.panoramas[n]["registered"] is False and reg.panoramas[n]["reason"]
+            continue
+        t_cm = np.linalg.norm(E[:3, 3] - G[:3, 3]) * 100
+        r_deg = np.degrees(np.arccos(np.clip((np.trace(G[:3, :3].T @ E[:3, :3]) - 1) / 2, -1, 1)))
+        assert t_cm <= TOL_CM and r_deg <= TOL_DEG, (n, t_cm, r_deg)
+
+
 def test_home_registers_when_layout_like_depth_disagrees_across_the_doorway(home_dir):
     """Depths cut off 2.5 m out (a door opening held as a wall, as layout depth does) fail the dense consistency check
     for every pair at the true poses; a pair still registers from its bearings within the synthetic tolerance, with
@@ -130,15 +143,7 @@ def test_home_registers_when_layout_like_depth_disagrees_across_the_doorway(home
     assert not any(p["edge"] == DEPTH for p in reg.pairs)
     assert any(p["edge"] == BEARING for p in reg.pairs)
     assert len(reg.world_from_cam) >= 2
-    for n in names:
-        E = reg.world_from_cam.get(n)
-        if E is None:
-            assert reg.panoramas[n]["registered"] is False and reg.panoramas[n]["reason"]
-            continue
-        G = rel[n]
-        t_cm = np.linalg.norm(E[:3, 3] - G[:3, 3]) * 100
-        r_deg = np.degrees(np.arccos(np.clip((np.trace(G[:3, :3].T @ E[:3, :3]) - 1) / 2, -1, 1)))
-        assert t_cm <= TOL_CM and r_deg <= TOL_DEG, (n, t_cm, r_deg)
+    _placed_within_tolerance_or_reported(reg, rel)
 
 
 
@@ -177,12 +182,4 @@ def test_depth_that_is_only_a_floor_and_ceiling_disc_is_not_trusted_alone(home_d
     reg = register_panoramas(names, rgbs, {**depths, names[2]: disc}, options=o)
     pair = next(p for p in reg.pairs if (p["a"], p["b"]) == (names[0], names[2]))
     assert pair["edge"] != DEPTH and not pair["accepted"] and pair["depth_refused"], reg.pairs
-    for n in names:
-        E = reg.world_from_cam.get(n)
-        if E is None:
-            assert reg.panoramas[n]["registered"] is False and reg.panoramas[n]["reason"]
-            continue
-        G = rel[n]
-        t_cm = np.linalg.norm(E[:3, 3] - G[:3, 3]) * 100
-        r_deg = np.degrees(np.arccos(np.clip((np.trace(G[:3, :3].T @ E[:3, :3]) - 1) / 2, -1, 1)))
-        assert t_cm <= TOL_CM and r_deg <= TOL_DEG, (n, t_cm, r_deg)
+    _placed_within_tolerance_or_reported(reg, rel)
