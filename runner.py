@@ -7,8 +7,9 @@ import json
 import sys
 from pathlib import Path
 
-from panoworld.core.errors import PanoWorldError
+from panoworld.core.errors import PanoWorldError, from_os_error
 from panoworld.framework import pipeline as pl
+from panoworld.io.safe_write import check_output_dir
 
 
 def _add_run_args(p: argparse.ArgumentParser) -> None:
@@ -33,6 +34,8 @@ def _print_report(report: pl.Report, as_json: bool) -> int:
         print(json.dumps(report.as_dict(), indent=2))
     else:
         print(report.table())
+    for note in report.notes:  # said even with --json: a partial result is never silent
+        print(f"note: {note}", file=sys.stderr)
     failed = [r for r in report.results if r.action == "failed"]
     for r in failed:
         print(f"error: stage {r.stage} failed: {r.reason}", file=sys.stderr)
@@ -86,7 +89,7 @@ def cmd_demo(args) -> int:
 
     from panoworld.tools.synth.cli import main as synth_main
 
-    out = Path(args.out_dir)
+    out = check_output_dir(args.out_dir)
     scene = out / "scene"
     cfg = scene / pl.SCENE_CONFIG
     t_start = time.perf_counter()
@@ -203,6 +206,10 @@ def main(argv: list[str] | None = None) -> int:
     except PanoWorldError as e:
         print(f"error: {e}", file=sys.stderr)
         return e.exit_code
+    except OSError as e:  # the environment (read-only scene, full disk, ...): one line, never a traceback
+        err = from_os_error(e)
+        print(f"error: {err}", file=sys.stderr)
+        return err.exit_code
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

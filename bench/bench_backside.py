@@ -46,9 +46,9 @@ def behind_mask(mesh, caster, pose: np.ndarray, height: int, width: int) -> np.n
 def measure(scene: Path, plys: dict[str, Path], buckets: list[str], views: int, height: int,
             behind_views_only: bool = False) -> dict:
     from panoworld.geometry.erp_mesh import load_erp_mesh
+    from panoworld.geometry.navmesh import load_navmesh
     from panoworld.geometry.raycast import Raycaster
     from panoworld.io.splat_ply import read_gaussians_ply
-    from panoworld.navmesh import load_navmesh
     from panoworld.render.erp import render_erp
     from panoworld.tools.eval.groundtruth import open_ground_truth
     from panoworld.tools.eval.roam import sample_roam_poses

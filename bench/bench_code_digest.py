@@ -1,5 +1,6 @@
-"""Prints the cost of the code digest in the cache key: per stage, files covered and seconds in a fresh process,
-cold (no digest cache) and warm (the cache a previous run left), what each stage process and `status` pay."""
+"""Prints what the code digest in the cache key covers and costs: per stage, the modules it follows (count and lines:
+an edit to any of them reruns the stage) and seconds in a fresh process, cold (no digest cache) and warm (the cache a
+previous run left), what each stage process and `status` pay."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import tempfile
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
-STAGES = ["depth", "mesh", "navmesh", "trajectory", "conditions", "video", "poses", "gaussians"]
+STAGES = ["depth", "register", "mesh", "navmesh", "trajectory", "conditions", "video", "poses", "gaussians", "asset"]
 PROBE = """
 import json, sys, time
 t = time.perf_counter()
@@ -21,8 +22,10 @@ t_import = time.perf_counter() - t
 out = {}
 for s in sys.argv[1:]:
     t = time.perf_counter()
-    n = len(code_digest.code_digests("stages." + s))
-    out[s] = {"files": n, "seconds": time.perf_counter() - t}
+    files = code_digest.code_digests("stages." + s)
+    seconds = time.perf_counter() - t
+    lines = sum(len((code_digest.REPO_ROOT / f).read_text().splitlines()) for f in files)
+    out[s] = {"files": len(files), "lines": lines, "seconds": seconds}
 print(json.dumps({"import_s": t_import, "stages": out}))
 """
 
@@ -44,7 +47,8 @@ def main() -> None:
             cold_cache = tempfile.mkdtemp(dir=cache)
             cold = probe(cold_cache, [s])["stages"][s]
             warm = probe(cold_cache, [s])["stages"][s]
-            rows[s] = {"files": cold["files"], "cold_s": cold["seconds"], "warm_s": warm["seconds"]}
+            rows[s] = {"modules": cold["files"], "lines": cold["lines"], "cold_s": cold["seconds"],
+                       "warm_s": warm["seconds"]}
         shared = tempfile.mkdtemp(dir=cache)  # the runner: every stage's digest in one process
         cold_all = probe(shared, STAGES)
         warm_all = probe(shared, STAGES)
@@ -54,10 +58,10 @@ def main() -> None:
     if args.json:
         print(json.dumps(result, indent=2))
         return
-    print("| stage | files | cold s | warm s |\n| --- | ---: | ---: | ---: |")
+    print("| stage | modules | lines | cold s | warm s |\n| --- | ---: | ---: | ---: | ---: |")
     for s, r in rows.items():
-        print(f"| {s} | {r['files']} | {r['cold_s']:.3f} | {r['warm_s']:.3f} |")
-    print(f"\nall 8 stages in one process (what `status` / a no-op run pays): cold "
+        print(f"| {s} | {r['modules']} | {r['lines']} | {r['cold_s']:.3f} | {r['warm_s']:.3f} |")
+    print(f"\nall {len(STAGES)} stages in one process (what `status` / a no-op run pays): cold "
           f"{result['all_stages_one_process_cold_s']:.3f} s (once per machine, and per edited file), warm "
           f"{result['all_stages_one_process_warm_s']:.3f} s")
 

@@ -37,8 +37,8 @@ DEPTH_TOL = 0.10
 
 def oracle_video(scene: Path, kinds: set[str], out: Path) -> Path:
     """A copy of the scene's video artifact whose hole pixels hold the ground truth's colour and/or depth."""
-    from panoworld.conditions.warp import load_conditions
     from panoworld.core.conventions import depth_to_mm, erp_dirs
+    from panoworld.io.conditions import load_conditions
     from panoworld.io.video import decode_png, encode_png, read_video_doc
 
     src = scene / ARTIFACTS / "video"
@@ -137,8 +137,8 @@ def capture_room(gt) -> int:
 def diagnose(scene: Path, ply: Path, views: int, height: int, buckets: list[str], cache: dict,
              png: Path | None = None) -> dict:
     """Per bucket: PSNR of the view, of its seen and unseen parts, and per unseen part (surface class, geometry)."""
+    from panoworld.geometry.navmesh import load_navmesh
     from panoworld.io.splat_ply import read_gaussians_ply
-    from panoworld.navmesh import load_navmesh
     from panoworld.render.erp import render_erp
 
     g = read_gaussians_ply(ply)

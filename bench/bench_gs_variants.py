@@ -77,9 +77,9 @@ def measure(scene: Path, ply: Path, supersample: int, views: int, height: int, r
             buckets: list[str] | None = None, fast: bool = False) -> dict:
     import cv2
 
+    from panoworld.geometry.navmesh import load_navmesh
     from panoworld.io.splat_ply import read_gaussians_ply
     from panoworld.io.video import load_frames
-    from panoworld.navmesh import load_navmesh
     from panoworld.render.erp import render_erp
     from panoworld.render.metrics import psnr
 

@@ -18,7 +18,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld.navmesh import load_navmesh
+from panoworld.geometry.navmesh import load_navmesh
 from panoworld.tools.eval.roam import trajectory_reach
 from panoworld.trajectory import TrajectoryParams, plan_path, poses_from_positions
 

@@ -174,10 +174,10 @@ def main() -> int:
     a = ap.parse_args()
     import torch
 
+    from panoworld.geometry.navmesh import load_navmesh
     from panoworld.io.manifest import read_manifest
     from panoworld.io.splat_ply import read_gaussians_ply
     from panoworld.io.video import load_frames
-    from panoworld.navmesh import load_navmesh
     from panoworld.render.erp import render_erp
     from panoworld.tools.eval.groundtruth import open_ground_truth
     from panoworld.tools.eval.roam import sample_roam_poses, source_seen

@@ -9,8 +9,9 @@ import time
 import numpy as np
 
 from panoworld.core.conventions import invert_pose, transform_points
+from panoworld.core.errors import NoFloorError
 from panoworld.geometry.erp_mesh import erp_mesh_from_depth
-from panoworld.navmesh import NavMeshParams, NoFloorError, build_navmesh
+from panoworld.navmesh import NavMeshParams, build_navmesh
 from panoworld.tools.synth import generate_scene
 from panoworld.trajectory import (
     PathKind,

@@ -14,13 +14,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld.conditions.warp import load_conditions
 from panoworld.framework import pipeline as pl
 from panoworld.geometry.erp_mesh import load_erp_mesh
+from panoworld.io.conditions import load_conditions
 from panoworld.io.manifest import read_manifest
+from panoworld.io.trajectory import load_trajectory
 from panoworld.render.metrics import reprojection_error, ssim_map, video_psnr
 from panoworld.tools.synth import generate_scene
-from panoworld.trajectory import load_trajectory
 from panoworld.video import background_layer, inpaint
 
 

@@ -25,11 +25,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld.conditions.warp import load_conditions
 from panoworld.geometry.erp_mesh import load_erp_mesh
+from panoworld.io.conditions import load_conditions
+from panoworld.io.trajectory import load_clips, load_trajectory
 from panoworld.tools.eval.groundtruth import GroundTruth
 from panoworld.tools.eval.roam import UNSEEN_PARTS, unseen_parts
-from panoworld.trajectory import load_clips, load_trajectory
 from panoworld.video import background_layer, inpaint
 
 

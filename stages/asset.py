@@ -39,8 +39,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
                               "pip install -e '.[sim]'") from None
     from panoworld.asset import build_asset
     from panoworld.geometry.erp_mesh import load_erp_mesh
+    from panoworld.geometry.navmesh import load_navmesh
     from panoworld.io.splat_ply import read_gaussians_ply
-    from panoworld.navmesh import load_navmesh
 
     if params.collider_max_triangles < 0:
         raise StageInputError(f"--collider-max-triangles {params.collider_max_triangles}: must be >= 0 (0 = keep all)")

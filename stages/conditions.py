@@ -41,7 +41,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     from panoworld.conditions.warp import iter_conditions, write_conditions
     from panoworld.core.conventions import check_erp_shape, check_poses
     from panoworld.geometry.erp_mesh import load_erp_mesh
-    from panoworld.trajectory import load_trajectory
+    from panoworld.io.trajectory import load_trajectory
 
     try:
         check_erp_shape(params.height, params.width, "--height/--width")

@@ -17,6 +17,7 @@ from panoworld.depth.backends.provided import ProvidedOptions
 from panoworld.depth.clean import clean_depth
 from panoworld.depth.options import Rescale, RigMode
 from panoworld.framework.stage import Input, StageInputError, stage_main
+from panoworld.register.inputs import DEPTH_SUFFIXES, PANORAMA_SUFFIXES, RIG_MASK_SUFFIXES
 
 NAME = "depth"
 VERSION = "3"
@@ -25,9 +26,9 @@ INPUTS = {
     "panorama": Input("file", optional=True, help="equirectangular RGB panorama (2:1); or --panoramas"),
     "depth": Input("file", optional=True, help="measured ERP depth: .npy (metres), .exr (metres) or 16-bit .png"),
     "rig_mask": Input("file", optional=True, help="2:1 grayscale mask, white where the capture rig is (overrides detection)"),
-    "panoramas": Input("dir", optional=True, help="a home: directory of two or more panoramas NAME.png|jpg (docs/multi.md)"),
-    "depths": Input("dir", optional=True, help="a home: directory of depth files NAME.npy|exr|png (same stems)"),
-    "rig_masks": Input("dir", optional=True, help="a home: rig masks NAME.png (2:1, white = rig; same stems as the "
+    "panoramas": Input("dir", optional=True, suffixes=PANORAMA_SUFFIXES, help="a home: directory of two or more panoramas NAME.png|jpg (docs/multi.md)"),
+    "depths": Input("dir", optional=True, suffixes=DEPTH_SUFFIXES, help="a home: directory of depth files NAME.npy|exr|png (same stems)"),
+    "rig_masks": Input("dir", optional=True, suffixes=RIG_MASK_SUFFIXES, help="a home: rig masks NAME.png (2:1, white = rig; same stems as the "
                        "panoramas), each overriding detection on its panorama"),
 }
 
@@ -85,26 +86,17 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
                                   "is --rig-mask FILE (SCENE/rig_mask.png)")
         return depth_of_panorama(inputs, params, out_dir)
     from panoworld.io.home import HOME_DIR, HOME_INFO
-    from panoworld.register.inputs import DEPTH_SUFFIXES, PANORAMA_SUFFIXES
+    from panoworld.io.safe_write import inside
+    from panoworld.register.inputs import find_home_files
 
-    pano_dir, depth_dir = Path(inputs["panoramas"]), inputs.get("depths")
-    panos = {p.stem: p for p in sorted(pano_dir.iterdir()) if p.suffix.lower() in PANORAMA_SUFFIXES}
-    if len(panos) < 2:
-        raise StageInputError(f"{pano_dir}: found {len(panos)} panoramas; put two or more NAME.png/.jpg there "
-                              "(a single panorama goes in SCENE/panorama.png)")
-    names = sorted(panos)
-    mask_dir = inputs.get("rig_masks")
-    masks = {p.stem: p for p in sorted(Path(mask_dir).glob("*.png"))} if mask_dir is not None else {}
-    if unknown := sorted(set(masks) - set(names)):
-        raise StageInputError(f"{mask_dir}: rig masks {', '.join(f'{n}.png' for n in unknown)} name no panorama in "
-                              f"{pano_dir}; name each mask after its panorama (NAME.png)")
+    home = find_home_files(inputs["panoramas"], inputs.get("depths"), inputs.get("rig_masks"))
+    names = home.names
     infos, dirs = {}, {}
     for k, name in enumerate(names):  # the first panorama's files at the top level: the world frame's panorama
-        sub = out_dir if k == 0 else out_dir / HOME_DIR / name
+        sub = out_dir if k == 0 else inside(out_dir / HOME_DIR, name)
         sub.mkdir(parents=True, exist_ok=True)
-        depth = next((Path(depth_dir) / f"{name}{s}" for s in DEPTH_SUFFIXES
-                      if depth_dir is not None and (Path(depth_dir) / f"{name}{s}").is_file()), None)
-        infos[name] = depth_of_panorama({"panorama": panos[name], "depth": depth, "rig_mask": masks.get(name)}, params, sub)
+        infos[name] = depth_of_panorama({"panorama": home.panoramas[name], "depth": home.depths.get(name),
+                                         "rig_mask": home.rig_masks.get(name)}, params, sub)
         dirs[name] = sub.relative_to(out_dir).as_posix()
     return {**infos[names[0]], HOME_INFO: {"names": names, "dirs": dirs, "panoramas": infos}}
 

@@ -11,31 +11,29 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.core.conventions import invert_pose
+from panoworld.core.errors import PanoWorldError
 from panoworld.core.params import param
 from panoworld.framework.stage import Input, StageInputError, stage_main
 from panoworld.geometry.erp_mesh import load_erp_mesh
+from panoworld.geometry.navmesh import load_navmesh
 from panoworld.io.home import capture_poses
-from panoworld.navmesh import load_navmesh
+from panoworld.io.trajectory import TrajectoryFileError, path_indices, read_trajectory_file, write_trajectory
 from panoworld.trajectory import (
     MIN_SECTOR_DIST_M,
     PathKind,
-    TrajectoryFileError,
     TrajectoryParams,
     YawMode,
     clearance_cap,
     format_issues,
     mesh_clearance,
-    path_indices,
     path_yaw,
     plan_path,
     planning_hub,
     poses_from_positions,
-    read_trajectory_file,
     sector_coverage,
     sector_reachability,
     step_lengths,
     validate_poses,
-    write_trajectory,
 )
 from panoworld.trajectory.stationary import stationary_plan
 
@@ -102,7 +100,8 @@ def _plan_or_stay(nav, params: Params, where: Path):
     except ValueError as e:
         if no_room:
             return stationary_plan(params, f"{no_room['reason']}; with a smaller agent still: {e}")
-        raise StageInputError(f"{where}: {e}") from None
+        raise PanoWorldError(f"no path planned on the NavMesh of {where.parent} ({e}); the planner failed (exit 1), "
+                             "not an input") from None
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:

@@ -85,9 +85,9 @@ def _device(name: str) -> str:
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     from tqdm import tqdm
 
-    from panoworld.conditions.warp import load_conditions
+    from panoworld.io.conditions import load_conditions
+    from panoworld.io.trajectory import load_clips, load_trajectory, read_trajectory_doc
     from panoworld.io.video import VideoWriter
-    from panoworld.trajectory import load_clips, load_trajectory, read_trajectory_doc
     from panoworld.video.upscale import FrameUpscaler
 
     if params.upscale == Upscale.REALESRGAN and not (params.upscale_weights and Path(params.upscale_weights).is_file()):

@@ -200,7 +200,7 @@ def test_trajectory_shape_errors_are_self_describing():
 def test_one_pose_checker_for_metrics_and_trajectory_files(tmp_path):
     """align (metrics) and trajectory files share conventions.check_poses: same rigidity rule and tolerance."""
     from panoworld.core.conventions import POSE_RIGID_TOL, check_poses
-    from panoworld.trajectory import TrajectoryFileError, read_trajectory_file
+    from panoworld.io.trajectory import TrajectoryFileError, read_trajectory_file
 
     good = np.tile(np.eye(4), (3, 1, 1))
     good[1, :3, :3] = Rotation.from_rotvec([0.1, 0.2, 0.3]).as_matrix()

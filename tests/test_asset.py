@@ -216,8 +216,8 @@ def test_several_paths_become_several_cameras(pipeline_scene, tmp_path):  # noqa
 
     from panoworld.asset import build_asset
     from panoworld.geometry.erp_mesh import load_erp_mesh
+    from panoworld.geometry.navmesh import load_navmesh
     from panoworld.io.splat_ply import read_gaussians_ply
-    from panoworld.navmesh import load_navmesh
 
     arts = pipeline_scene / "artifacts"
     traj = tmp_path / "trajectory"

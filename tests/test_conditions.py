@@ -10,7 +10,6 @@ import trimesh
 
 from panoworld.conditions.warp import (
     MeshReference,
-    load_conditions,
     render_conditions,
     split_stretched_faces,
     true_disocclusion,
@@ -21,8 +20,9 @@ from panoworld.core.conventions import invert_pose, points_from_depth, pose_from
 from panoworld.framework.stage import StageInputError, execute_stage, load_stage, params_from_dict
 from panoworld.geometry.erp_mesh import erp_mesh_from_depth, save_erp_mesh
 from panoworld.geometry.raycast import Raycaster
+from panoworld.io.conditions import load_conditions
+from panoworld.io.trajectory import write_trajectory
 from panoworld.render.rasterize import ErpRasterizer
-from panoworld.trajectory import write_trajectory
 
 H, W = 48, 96
 

@@ -71,8 +71,8 @@ def _write_conditions(d: Path, gt: GroundTruth, poses: np.ndarray, tol: float) -
 def scene(synth_scene, tmp_path_factory):
     """A copy of the ci-tiny synthetic scene: depth and mesh from the pipeline; trajectory, conditions, video and
     poses written directly along the ground-truth track (so their metrics are known exactly)."""
+    from panoworld.io.trajectory import write_trajectory
     from panoworld.io.video import write_video
-    from panoworld.trajectory import write_trajectory
 
     root = tmp_path_factory.mktemp("eval") / "scene"
     shutil.copytree(synth_scene, root, ignore=shutil.ignore_patterns("artifacts"))
@@ -163,7 +163,7 @@ def test_trajectory_along_the_gt_track_is_collision_free(report, scene):
 
 
 def test_trajectory_through_a_wall_is_caught(scene, tmp_path):
-    from panoworld.trajectory import write_trajectory
+    from panoworld.io.trajectory import write_trajectory
 
     root = tmp_path / "wall"
     shutil.copytree(scene["root"], root)
@@ -372,9 +372,9 @@ def _planned_poses_artifact(art: Path, poses: np.ndarray, height: int) -> None:
 def test_frames_and_poses_scene_without_a_mesh(synth_scene, tmp_path):
     """An InteriorGS-like scene (ground-truth frames + poses, no mesh) made with the converter from a synthetic
     track: the video is scored against the ground-truth frame at each pose; mesh metrics say why they are missing."""
+    from panoworld.io.trajectory import write_trajectory
     from panoworld.io.video import write_video
     from panoworld.tools.eval.convert import convert_frames_scene
-    from panoworld.trajectory import write_trajectory
 
     root = convert_frames_scene(synth_scene / "gt" / "tracks" / "track_00.json", tmp_path / "frames_scene",
                                 "../frames/track_00/rgb/{:06d}.png", "../frames/track_00/depth/{:06d}.npy", stride=2)
@@ -425,8 +425,8 @@ def test_plan_only_scene_scores_poses_against_the_plan_and_the_loop(tmp_path, ca
     from scipy.ndimage import gaussian_filter
     from scipy.spatial.transform import Rotation
 
+    from panoworld.io.trajectory import write_trajectory
     from panoworld.io.video import write_video
-    from panoworld.trajectory import write_trajectory
 
     root = tmp_path / "plan_scene"
     art = root / "artifacts"

@@ -21,7 +21,7 @@ from panoworld.core.limits import MAX_POSES, MAX_TRANSLATION_M
 from panoworld.framework import pipeline as pl
 from panoworld.framework.stage import execute_stage, load_stage, params_from_dict
 from panoworld.io import manifest as art
-from panoworld.trajectory import TrajectoryFileError, read_trajectory_file
+from panoworld.io.trajectory import TrajectoryFileError, read_trajectory_file
 
 FAST = settings(max_examples=int(os.environ.get("PANOWORLD_FUZZ_EXAMPLES", 25)), deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,
                                                                       HealthCheck.too_slow])

@@ -17,7 +17,7 @@ from panoworld.core.errors import InputError
 from panoworld.core.limits import MAX_PIXELS, MAX_POSES, MAX_TRAJECTORY_BYTES, LimitError, parse_json, parse_yaml
 from panoworld.io.depth import read_depth, read_panorama
 from panoworld.io.images import ImageInputError, check_image
-from panoworld.trajectory import TrajectoryFileError, read_trajectory_file
+from panoworld.io.trajectory import TrajectoryFileError, read_trajectory_file
 from tests.test_runner import TOY, cli, toy_schemas  # noqa: F401 - toy_schemas: the shared autouse fixture
 
 

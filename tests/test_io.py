@@ -10,8 +10,8 @@ import pytest
 
 from panoworld.core.errors import InputError
 from panoworld.core.shapes import check_shape
-from panoworld.io import read_json, to_jsonable, write_json
 from panoworld.io.depth_png import read_depth_png, write_depth_png
+from panoworld.io.jsonio import read_json, to_jsonable, write_json
 from panoworld.io.video import load_video, read_video_doc, write_video
 
 

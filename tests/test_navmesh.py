@@ -8,17 +8,12 @@ import numpy as np
 import pytest
 import trimesh
 
+from panoworld.core.errors import NoFloorError
 from panoworld.geometry.erp_mesh import erp_mesh_from_depth
+from panoworld.geometry.navmesh import NavMesh, load_navmesh
+from panoworld.geometry.polygons import triangulate_rings
 from panoworld.geometry.raycast import Raycaster
-from panoworld.navmesh import (
-    NavMesh,
-    NavMeshParams,
-    NoFloorError,
-    build_navmesh,
-    erp_grid_shape,
-    load_navmesh,
-    triangulate_rings,
-)
+from panoworld.navmesh import NavMeshParams, build_navmesh, erp_grid_shape
 from panoworld.trajectory import mesh_clearance
 
 CAM_H = 1.5

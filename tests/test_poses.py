@@ -12,6 +12,7 @@ from panoworld.geometry.raycast import Raycaster
 from panoworld.io import video as video_io
 from panoworld.io.depth_png import read_depth_png, write_depth_png
 from panoworld.poses.estimate import colmap_estimate, load_poses, poses_from_reconstruction, poses_from_transforms
+from panoworld.poses.options import ColmapOptions, RenderType
 
 STAGE = load_stage("poses")
 
@@ -224,9 +225,8 @@ def test_unregistered_frames_are_flagged_and_filled_from_the_plan(tmp_path, room
 def test_colmap_perspective_rig_fallback(tmp_path, room):
     gt = curved_track(8)
     video = write_video(tmp_path / "video", room, gt, 256, depth=False)  # 128x128 virtual views
-    est = colmap_estimate(
-        [video / f"frames/{i:06d}.png" for i in range(8)], gt, render_type="perspective_overlapping"
-    )
+    est = colmap_estimate([video / f"frames/{i:06d}.png" for i in range(8)], gt,
+                          ColmapOptions(render_type=RenderType.PERSPECTIVE_OVERLAPPING))
     assert est.registered.all()
     np.testing.assert_allclose(est.world_from_cam[:, :3, 3], gt[:, :3, 3], atol=0.02)
 

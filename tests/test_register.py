@@ -95,7 +95,7 @@ def test_given_poses_are_used_without_estimation(home_dir, tmp_path):
 @pytest.mark.parametrize("poses, needle", [
     ({"pano_00": np.diag([2.0, 2, 2, 1]).tolist()}, "not rigid"),
     ({"kitchen": np.eye(4).tolist()}, "no such panoramas"),
-    ({"pano_00": [[1, 0, 0], [0, 1, 0]]}, "not a finite 4x4"),
+    ({"pano_00": [[1, 0, 0], [0, 1, 0]]}, "not a 4x4 matrix of numbers"),
     ([1, 2], "expected a JSON object"),
 ])
 def test_bad_poses_file_exits_2_naming_it(home_dir, tmp_path, capsys, poses, needle):

@@ -494,6 +494,24 @@ def test_erp_with_requires_grad_gaussians_takes_the_torch_path():
     assert float((fast.rgb - out.rgb.detach()).abs().max()) <= 1e-5
 
 
+
+def test_erp_numba_path_of_requires_grad_gaussians_under_no_grad_on_several_threads():
+    # render_erp composites the faces on torch's threads; grad mode is per thread, so the workers must not track
+    # gradients of a Gaussian tensor that requires grad when the caller asked for none (torch.no_grad)
+    g, pose = sh1_scene()
+    gi = Gaussians(means=torch.tensor(g.means, requires_grad=True), scales=torch.tensor(g.scales),
+                   quats=torch.tensor(g.quats), opacities=torch.tensor(g.opacities), sh_dc=torch.tensor(g.sh_dc),
+                   sh_rest=torch.tensor(g.sh_rest))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        with torch.no_grad():
+            fast = render_erp(gi, pose, 16, 32, supersample=2)
+    finally:
+        torch.set_num_threads(threads)
+    assert not fast.rgb.requires_grad
+    assert torch.equal(fast.rgb, render_erp(g, pose, 16, 32, supersample=2, backend="numba").rgb)
+
 def test_perspective_numba_backend_equals_the_torch_rasteriser_and_keeps_gradients():
     # Pinhole views: "auto" without gradients is the numba path, within float32 rounding of the torch oracle; with a
     # Gaussian tensor that requires grad it is the differentiable torch path, and "numba" refuses.

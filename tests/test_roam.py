@@ -11,7 +11,7 @@ import pytest
 
 from panoworld.core.conventions import points_from_depth
 from panoworld.framework import pipeline as pl
-from panoworld.navmesh import load_navmesh
+from panoworld.geometry.navmesh import load_navmesh
 from panoworld.render.metrics import psnr
 from panoworld.tools.eval.cli import EvalParams, GroundTruth, evaluate, is_unavailable
 from panoworld.tools.eval.roam import (
@@ -184,7 +184,7 @@ def test_sector_reach_matches_the_navmesh_boundary(scene):
 
 
 def test_buckets_beyond_the_floor_say_so():
-    from panoworld.navmesh.navmesh import NavMesh
+    from panoworld.geometry.navmesh import NavMesh
 
     square = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]])
     nav = NavMesh(square, np.array([[0, 1, 2], [0, 2, 3]]), np.array([[-1, 1, -1], [-1, -1, 0]]), [square], 1.5)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fcntl
 import os
 import signal
 import subprocess
@@ -147,7 +148,7 @@ def test_sigkill_of_the_runner_alone_leaves_no_stage_process_and_commits_nothing
     runner = subprocess.Popen(
         [sys.executable, str(REPO / "runner.py"), "run", str(scene), "--pipeline", str(TOY / "pipeline.yaml"),
          "--set", "a.sleep=3"], env=env, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    log = scene / "artifacts/logs/.a.log.part"
+    log = scene / f"artifacts/logs/.a.log.{runner.pid}.part"
     deadline = time.time() + 60
     while time.time() < deadline and not (log.is_file() and "sleeping" in log.read_text()):
         time.sleep(0.05)
@@ -183,8 +184,14 @@ def test_a_stage_does_not_commit_for_a_runner_that_no_longer_holds_the_lock(scen
                       scene / "artifacts/a")
     assert not (scene / "artifacts/a").exists() and not list((scene / "artifacts").glob(".tmp-*"))
     (scene / "artifacts/.lock").write_text(f"pid {os.getppid()} since 2026-01-01 00:00:00")
+    with pytest.raises(PipelineError, match="no longer holds"):  # named, but nobody holds the flock on artifacts/
+        execute_stage(spec, {"panorama": scene / "panorama.png"}, params_from_dict(spec.params_cls, {}),
+                      scene / "artifacts/a")
+    held = os.open(scene / "artifacts", os.O_RDONLY | os.O_DIRECTORY)  # the runner's flock (another open file)
+    fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
     execute_stage(spec, {"panorama": scene / "panorama.png"}, params_from_dict(spec.params_cls, {}), scene / "artifacts/a")
     assert (scene / "artifacts/a/out.txt").is_file()
+    os.close(held)
 
 
 def _artifact_bytes(scene: Path) -> dict[str, str]:

@@ -10,27 +10,31 @@ import trimesh
 
 from panoworld.core.conventions import invert_pose, pose_from_rt, rotmat_from_quat_wxyz, transform_points
 from panoworld.geometry.erp_mesh import erp_mesh_from_depth
-from panoworld.navmesh import NavMesh, build_navmesh, triangulate_rings
-from panoworld.trajectory import (
-    PathKind,
+from panoworld.geometry.navmesh import NavMesh
+from panoworld.geometry.polygons import triangulate_rings
+from panoworld.io.trajectory import (
     TrajectoryFileError,
-    TrajectoryParams,
-    YawMode,
     load_clips,
     load_trajectory,
+    read_trajectory_doc,
+    read_trajectory_file,
+    write_trajectory,
+)
+from panoworld.navmesh import build_navmesh
+from panoworld.trajectory import (
+    PathKind,
+    TrajectoryParams,
+    YawMode,
     mesh_clearance,
     plan_path,
     polyline_length,
     poses_from_positions,
-    read_trajectory_doc,
-    read_trajectory_file,
     resample_polyline,
     sector_coverage,
     sector_of,
     sector_reach,
     smooth_polyline,
     step_lengths,
-    write_trajectory,
     yaw_of_path,
 )
 from tests.test_navmesh import _make_mesh_artifact, box_room, erp_depth
@@ -311,7 +315,7 @@ def test_stage_rejects_a_user_trajectory_through_a_wall(artifacts, capsys):
     assert not (root / "bad").exists()
 
     # The same poses as TUM text, reported instead of rejected.
-    from panoworld.trajectory import write_tum
+    from panoworld.io.trajectory import write_tum
 
     write_tum(root / "through_wall.tum", _through_wall(), 16.0)
     out = root / "reported"

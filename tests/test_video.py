@@ -161,7 +161,7 @@ def upstream(tmp_path_factory):
     """mesh, trajectory and conditions artifacts of the box scene of test_inpaint (64x128, 5 poses)."""
     from panoworld.conditions.warp import render_conditions, write_conditions
     from panoworld.geometry.erp_mesh import erp_mesh_from_depth, save_erp_mesh
-    from panoworld.trajectory import write_trajectory
+    from panoworld.io.trajectory import write_trajectory
     from tests.test_inpaint import BoxScene, sideways_poses
 
     root = tmp_path_factory.mktemp("upstream")
@@ -243,7 +243,7 @@ def test_stage_input_errors(upstream, tmp_path, capsys):
     assert video_stage.main(_cli(upstream, out, "--upscale", "realesrgan")) == 2
     assert "--upscale-weights FILE" in capsys.readouterr().err
     # Conditions rendered for another trajectory.
-    from panoworld.trajectory import write_trajectory
+    from panoworld.io.trajectory import write_trajectory
 
     other = _artifact("trajectory", tmp_path / "traj2", lambda o: (
         write_trajectory(o, upstream["poses"][:3], np.ones(3), fps=10.0),

@@ -11,10 +11,10 @@ from panoworld.asset.collider import Collider, collision_mesh, write_obj
 from panoworld.core.conventions import asset_from_canonical, transform_points
 from panoworld.core.errors import ArtifactError
 from panoworld.geometry.erp_mesh import ErpMesh
-from panoworld.io import read_json, write_json
+from panoworld.geometry.navmesh import NavMesh
 from panoworld.io.gaussian_set import Gaussians
-from panoworld.navmesh import NavMesh
-from panoworld.trajectory import load_trajectory, path_indices, read_trajectory_doc
+from panoworld.io.jsonio import read_json, write_json
+from panoworld.io.trajectory import load_trajectory, path_indices, read_trajectory_doc
 
 SCENE_USD = "scene.usdc"
 COLLIDER_OBJ = "collider.obj"

@@ -23,24 +23,49 @@ MAX_CONFIG_BYTES = 2**20
 """Largest scene.yaml."""
 MAX_NESTING = 32
 """Deepest nesting of lists/objects in a user JSON or YAML file (a trajectory needs 3)."""
+MAX_NODES = 1_000_000
+"""Most values in a user JSON or YAML document once YAML aliases are expanded (an alias bomb of 1 KB expands to
+billions; a 10 000-pose trajectory has 170 000)."""
+MAX_POSES_JSON_BYTES = 4 * 2**20
+"""Largest poses.json of a home (1000 capture points at full precision take about 400 KB)."""
+MIN_HEIGHT = 8
+"""Fewest rows of a panorama, depth map or rig mask (16x8): below that no stage has pixels to work with."""
 
 
 class LimitError(InputError):
     """A user input beyond a documented limit (size, count, nesting, value range)."""
 
 
-def _depth(doc: Any, limit: int) -> int:
-    """Nesting depth of parsed JSON/YAML (iterative: never a RecursionError), stopping once past limit."""
-    stack = [(doc, 1)]
-    deepest = 0
+def _depth(doc: Any, limit: int, max_nodes: int = MAX_NODES) -> tuple[int, int]:
+    """(nesting depth, number of values) of parsed JSON/YAML with shared nodes (YAML aliases) counted once per use,
+    each node walked once (memoised: an alias chain costs its size in nodes, not its expansion); stops early, with
+    values > max_nodes or depth > limit, once past a limit. A node that contains itself counts as too deep."""
+    memo: dict[int, tuple[int, int]] = {}
+    busy: set[int] = set()
+    stack: list[tuple[Any, bool]] = [(doc, False)]
     while stack:
-        node, d = stack.pop()
-        if isinstance(node, (list, tuple, dict)):
-            deepest = max(deepest, d)
-            if deepest > limit:
-                return deepest
-            stack.extend((v, d + 1) for v in (node.values() if isinstance(node, dict) else node))
-    return deepest
+        node, done = stack.pop()
+        if not isinstance(node, (list, tuple, dict)):
+            continue
+        key = id(node)
+        kids = list(node.values() if isinstance(node, dict) else node)
+        if done:
+            busy.discard(key)
+            sub = [memo.get(id(k), (0, 1)) for k in kids]
+            d = 1 + max((x[0] for x in sub), default=0)
+            n = 1 + sum(x[1] for x in sub)
+            memo[key] = (d, n)
+            if d > limit or n > max_nodes:
+                return d, n
+            continue
+        if key in memo:
+            continue
+        if key in busy:  # a recursive alias (&a [*a])
+            return limit + 1, 0
+        busy.add(key)
+        stack.append((node, True))
+        stack.extend((k, False) for k in kids if isinstance(k, (list, tuple, dict)) and id(k) not in memo)
+    return memo.get(id(doc), (0, 1))
 
 
 def check_size(path: Path, limit: int, what: str) -> int:
@@ -59,8 +84,12 @@ def _parse(text: str, where: str, max_nesting: int, kind: str, loads, syntax_err
         raise LimitError(f"{where}: {kind} nested too deep (limit {max_nesting} levels); give a flat document") from None
     except syntax_errors as e:
         raise InputError(f"{where}: invalid {kind} ({' '.join(str(e).split())})") from None
-    if _depth(doc, max_nesting) > max_nesting:
-        raise LimitError(f"{where}: {kind} nested deeper than {max_nesting} levels; give a flat document")
+    depth, nodes = _depth(doc, max_nesting)
+    if depth > max_nesting:
+        raise LimitError(f"{where}: {kind} nested deeper than {max_nesting} levels (or recursive); give a flat document")
+    if nodes > MAX_NODES:
+        raise LimitError(f"{where}: {kind} holds over {MAX_NODES} values once its aliases are expanded (an alias bomb?); "
+                         "give a plain document (docs/real_inputs.md#limits)")
     return doc
 
 
@@ -133,3 +162,44 @@ def depth_plane(depth: np.ndarray, path: Path | str) -> np.ndarray:
         raise InputError(f"{path}: depth has shape {depth.shape} but expected (H, W) (or (H, W, C) / (C, H, W) with "
                          "C <= 4 channels, the first one used); save the depth plane alone")
     return depth
+
+
+def exr_header(path: Path | str, what: str = "EXR depth") -> tuple[int, int]:
+    """(width, height) of an untrusted OpenEXR file from its header's dataWindow (reads at most 64 KB), checked
+    against MAX_PIXELS and MIN_HEIGHT; InputError (one line) otherwise."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(1 << 16)
+    except OSError as e:
+        raise InputError(f"{path}: cannot read the {what} ({e.strerror})") from None
+    if head[:4] != b"\x76\x2f\x31\x01":
+        raise InputError(f"{path}: cannot read the {what} (not an OpenEXR file); save the depth as EXR or .npy")
+    pos, window = 8, None
+    while pos < len(head) and head[pos] != 0:
+        name_end = head.find(b"\0", pos)
+        type_end = head.find(b"\0", name_end + 1)
+        if name_end < 0 or type_end < 0 or type_end + 4 > len(head):
+            break
+        size = int.from_bytes(head[type_end + 1:type_end + 5], "little")
+        value = head[type_end + 5:type_end + 5 + size]
+        if head[pos:name_end] == b"dataWindow" and len(value) == 16:
+            window = [int.from_bytes(value[i:i + 4], "little", signed=True) for i in range(0, 16, 4)]
+            break
+        pos = type_end + 5 + size
+    if window is None:
+        raise InputError(f"{path}: cannot read the {what} (its header has no dataWindow: corrupt or truncated); save it "
+                         "again")
+    w, h = window[2] - window[0] + 1, window[3] - window[1] + 1
+    check_image_size(path, w, h, what)
+    return w, h
+
+
+def check_image_size(path: Path | str, w: int, h: int, what: str) -> None:
+    """w x h within MAX_PIXELS and at least MIN_HEIGHT rows; LimitError naming the file and the limit otherwise."""
+    if w <= 0 or h <= 0 or w * h > MAX_PIXELS:
+        raise LimitError(f"{path}: {what} is {w}x{h} = {max(w, 0) * max(h, 0) / 1e6:.0f} Mpx, beyond the limit of "
+                         f"{MAX_PIXELS / 1e6:.0f} Mpx (16384x8192); give a smaller one (docs/real_inputs.md#limits)")
+    if h < MIN_HEIGHT or w < MIN_HEIGHT:
+        raise LimitError(f"{path}: {what} is {w}x{h}, below the minimum of {2 * MIN_HEIGHT}x{MIN_HEIGHT}; give a "
+                         "larger one (docs/real_inputs.md#limits)")

@@ -20,12 +20,14 @@ import yaml
 
 from panoworld.core import limits
 from panoworld.core.errors import InputError, PipelineError
+from panoworld.core.limits import check_image_size
 from panoworld.core.params import flatten, suggest
 from panoworld.framework import code_digest
 from panoworld.framework.hub import resolve as hub
 from panoworld.framework.stage import (
     LOCK_ENV,
     LOCK_FILE,
+    LOCK_INODE_ENV,
     REFUSAL_ENV,
     RUNNER_PID_ENV,
     StageSpec,
@@ -41,8 +43,9 @@ from panoworld.framework.stage import (
     stage_key,
 )
 from panoworld.io import manifest as art
-from panoworld.io.images import check_image
-from panoworld.register.inputs import find_multi_scene, is_multi_scene
+from panoworld.io.images import check_depth_file, check_image, check_mask_file
+from panoworld.io.safe_write import write_text_atomic
+from panoworld.register.inputs import check_home, is_multi_scene
 
 PIPELINE_FILE = art.REPO_ROOT / "pipeline.yaml"
 ARTIFACTS_DIRNAME = art.ARTIFACTS_DIRNAME
@@ -197,6 +200,8 @@ class Scene:
     """A named variant of the DAG's tail (panoworld.tools.batch.variants): its `tail` stages live in
     artifacts/variants/NAME/, the shared upstream stages stay in artifacts/."""
     tail: frozenset[str] = frozenset()
+    notes: list[str] = field(default_factory=list)
+    """What the runner says about the scene's files without refusing them (files it leaves out of the inputs)."""
 
     @property
     def artifacts(self) -> Path:
@@ -224,11 +229,14 @@ def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
     if is_multi_scene(root) and (pano or files.get("depth")):
         raise PipelineError(f"{root}: holds both panoramas/ (a home) and {(pano or files['depth']).name} (one "
                             "panorama); keep one layout (docs/multi.md)")
+    notes: list[str] = []
     if pano is None and is_multi_scene(root):  # a home: SCENE/panoramas/ (docs/multi.md)
         try:
-            panos = list(find_multi_scene(root).panoramas.values())
+            home = check_home(root)
         except InputError as e:
             raise PipelineError(str(e)) from None
+        panos = list(home.panoramas.values())
+        notes += [f"ignored {p.relative_to(root)}: not a panorama, depth or rig mask of this home" for p in home.ignored]
     elif pano is None:
         names = pipeline.scene_files.get("panorama", [])
         raise PipelineError(f"{root}: no panorama; expected one of {', '.join(names)}, or panoramas/ (docs/multi.md)")
@@ -237,6 +245,7 @@ def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
     for pano in panos:
         try:  # fully decoded here, so a truncated or corrupt panorama is refused before anything is written
             w, h = check_image(pano, "panorama", remember=True).oriented  # the depth stage applies EXIF orientation too
+            check_image_size(pano, w, h, "panorama")
         except InputError as e:
             raise PipelineError(str(e)) from None
         if w != 2 * h:
@@ -251,22 +260,28 @@ def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
     except InputError as e:
         raise PipelineError(str(e)) from None
     check_scene_config(config, cfg_path, pipeline)
-    return Scene(root, files, config)
+    return Scene(root, files, config, notes=notes)
 
 
 def check_scene_inputs(root: Path, files: dict[str, Path | None]) -> None:
-    """The cheap checks of the scene's other user files, before anything is written: artifacts/ usable, the depth
-    .npy header within limits, a user trajectory readable and within limits. InputError (one line) otherwise."""
+    """The cheap checks of the scene's other user files, before anything is written or hashed: artifacts/ usable, the
+    depth's header and the rig mask within limits, a user trajectory readable and within limits. InputError (one
+    line) otherwise."""
     arts = root / ARTIFACTS_DIRNAME
     if arts.is_symlink() and not arts.exists():
         raise InputError(f"{arts}: a dangling symbolic link; remove it (or point it at a directory)")
     if arts.exists() and not arts.is_dir():
         raise InputError(f"{arts}: exists but is not a directory; move it away, the runner keeps its artifacts there")
-    depth = files.get("depth")
-    if depth is not None and depth.suffix.lower() == ".npy":
-        limits.npy_header(depth, "depth array", kinds="fiu")
+    for sub in ("logs", VARIANTS_DIRNAME):
+        if (arts / sub).is_symlink() or ((arts / sub).exists() and not (arts / sub).is_dir()):
+            raise InputError(f"{arts / sub}: a file is where a folder must be; move it away (the runner keeps its "
+                             f"{sub} there)")
+    if files.get("depth") is not None:
+        check_depth_file(files["depth"])
+    if files.get("rig_mask") is not None:
+        check_mask_file(files["rig_mask"])
     if files.get("trajectory") is not None:
-        from panoworld.trajectory.files import read_trajectory_file
+        from panoworld.io.trajectory import read_trajectory_file
 
         read_trajectory_file(files["trajectory"])
 
@@ -278,17 +293,17 @@ def check_scene_config(config: Any, path: Path, pipeline: Pipeline) -> None:
     """scene.yaml's schema: {preset: NAME, params: {STAGE: {PARAM: VALUE}}}; PipelineError (one line, with a
     "did you mean") for unknown keys, stages and params and for wrong shapes. Values are checked at resolve time."""
     if not isinstance(config, dict):
-        raise PipelineError(f"{path}: expected a mapping with keys 'preset' and/or 'params', got {config!r}")
+        raise PipelineError(f"{path}: expected a mapping with keys 'preset' and/or 'params', got {_short(config)}")
     for key in config:
         if key not in SCENE_CONFIG_KEYS:
             raise PipelineError(f"{path}: unknown key {key!r}{suggest(str(key), SCENE_CONFIG_KEYS)}")
     if config.get("preset") is not None and not isinstance(config["preset"], str):
-        raise PipelineError(f"{path}: preset: expected a preset name ({', '.join(pipeline.presets)}), got {config['preset']!r}")
+        raise PipelineError(f"{path}: preset: expected a preset name ({', '.join(pipeline.presets)}), got {_short(config['preset'])}")
     params = config.get("params")
     if params is None:
         return
     if not isinstance(params, dict):
-        raise PipelineError(f"{path}: params: expected a mapping of stage: {{param: value}}, got {params!r}")
+        raise PipelineError(f"{path}: params: expected a mapping of stage: {{param: value}}, got {_short(params)}")
     for stage, values in params.items():
         if stage not in pipeline.stages:
             raise PipelineError(f"{path}: params.{stage}: unknown stage{suggest(str(stage), pipeline.order)}")
@@ -298,6 +313,13 @@ def check_scene_config(config: Any, path: Path, pipeline: Pipeline) -> None:
             normalize(pipeline.stages[stage].spec.params_cls, values, stage)
         except ValueError as e:
             raise PipelineError(f"{path}: {e}") from None
+
+
+def _short(value: Any) -> str:
+    """repr of a user value, shortened (reprlib): a huge or aliased document never makes a huge message."""
+    import reprlib
+
+    return reprlib.repr(value)
 
 
 # ---------------------------------------------------------------- params
@@ -351,29 +373,39 @@ def resolve_params(
 
 
 class SceneLock:
-    """One runner per scene: an exclusive, non-blocking flock that dies with the process."""
+    """One runner per scene: an exclusive, non-blocking flock on the artifacts directory itself (deleting a file
+    cannot defeat it; stages re-check it and its inode before they commit), with the holder named in
+    artifacts/.lock for the message a second runner gets. It dies with the process."""
 
     def __init__(self, scene: Scene):
         self.path = scene.artifacts / LOCK_FILE
         self.fd: int | None = None
+        self.inode = ""
 
     def __enter__(self) -> SceneLock:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        arts = self.path.parent
+        arts.mkdir(parents=True, exist_ok=True)
+        fd = os.open(arts, os.O_RDONLY | os.O_DIRECTORY)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            holder = os.pread(fd, 200, 0).decode(errors="replace").strip()
             os.close(fd)
+            try:
+                holder = self.path.read_text(errors="replace")[:200].strip()
+            except OSError:
+                holder = ""
             raise PipelineError(
-                f"{self.path.parent.parent}: another runner is working on this scene ({holder or 'unknown holder'}); "
+                f"{arts.parent}: another runner is working on this scene ({holder or 'unknown holder'}); "
                 "wait for it to finish"
             ) from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"pid {os.getpid()} since {time.strftime('%Y-%m-%d %H:%M:%S')}".encode(), 0)
         self.fd = fd
-        for leftover in self.path.parent.glob(f"**/logs/{PARAMS_FILE_PREFIX}*.json"):  # of a killed runner
-            leftover.unlink(missing_ok=True)
+        st = os.fstat(fd)
+        self.inode = f"{st.st_dev}:{st.st_ino}"
+        with contextlib.suppress(OSError):  # a read-only scene whose stages are all up to date still reports them
+            write_text_atomic(self.path, f"pid {os.getpid()} since {time.strftime('%Y-%m-%d %H:%M:%S')}")
+            for leftover in arts.glob(f"**/logs/{PARAMS_FILE_PREFIX}*.json"):  # of a killed runner
+                leftover.unlink(missing_ok=True)
+            art.sweep_leftovers(arts)
         return self
 
     def remove_bookkeeping(self) -> None:
@@ -414,13 +446,15 @@ class StageResult:
 class Report:
     scene: Path
     results: list[StageResult] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    """What the run did not do in full without failing: files left out, panoramas not registered."""
 
     @property
     def ok(self) -> bool:
         return all(r.action != "failed" for r in self.results)
 
     def as_dict(self) -> dict[str, Any]:
-        return {"scene": str(self.scene), "stages": [r.as_dict() for r in self.results]}
+        return {"scene": str(self.scene), "stages": [r.as_dict() for r in self.results], "notes": self.notes}
 
     def table(self) -> str:
         rows = [("stage", "action", "reason", "seconds", "peak MB")]
@@ -429,7 +463,8 @@ class Report:
             rows.append((r.stage, r.action, r.reason, f"{r.seconds:.2f}", mem))
         widths = [min(max(len(row[i]) for row in rows), 70) for i in range(5)]
         fmt = lambda row: "  ".join(c[:70].ljust(w) if i < 3 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
-        return "\n".join([fmt(rows[0]), "  ".join("-" * w for w in widths)] + [fmt(r) for r in rows[1:]])
+        return "\n".join([fmt(rows[0]), "  ".join("-" * w for w in widths)] + [fmt(r) for r in rows[1:]]
+                         + [f"note: {n}" for n in self.notes])
 
 
 def _input_paths(node: StageNode, scene: Scene) -> dict[str, Path | None]:
@@ -533,7 +568,7 @@ def stage_command(node: StageNode, scene: Scene, params_file: str, python: str =
 
 def pending_log(log: Path) -> Path:
     """Where a stage's log is written while it runs; it becomes `log` unless the stage refused its input (exit 2)."""
-    return log.with_name(f".{log.name}.part")
+    return log.with_name(f".{log.name}.{os.getpid()}.part")
 
 
 def run_logged(cmd: list[str], log: Path, echo: bool = False, env_extra: dict[str, str] | None = None) -> tuple[int, float, float]:
@@ -593,7 +628,12 @@ def run_with_params_file(template: list[str], params: dict, log: Path, echo: boo
 
 def runner_env(scene: Scene) -> dict[str, str]:
     """What a stage started by this process needs to check, before it commits, that its runner still holds the lock."""
-    return {LOCK_ENV: str(scene.artifacts / LOCK_FILE), RUNNER_PID_ENV: str(os.getpid())}
+    try:
+        st = os.stat(scene.artifacts)
+        inode = f"{st.st_dev}:{st.st_ino}"
+    except OSError:
+        inode = ""
+    return {LOCK_ENV: str(scene.artifacts / LOCK_FILE), LOCK_INODE_ENV: inode, RUNNER_PID_ENV: str(os.getpid())}
 
 
 def _run_subprocess(node: StageNode, scene: Scene, params: Any, echo: bool) -> tuple[int, float, float]:
@@ -613,6 +653,10 @@ StageExecutor = Callable[[StageNode, Scene, Any, bool], tuple[int, float, float]
 (exit code, seconds, peak RSS MB). The default runs a local subprocess; panoworld.tools.batch submits Ray tasks."""
 
 
+MAX_REASON_CHARS = 400
+"""A failed stage's reason is cut to this many characters in the run table and on stderr (the log has it all)."""
+
+
 def _failure_line(log: Path, stage: str) -> str:
     """The one-line reason a failed stage gave: its `error: stage NAME: ...` line, else the last line of its log."""
     try:
@@ -620,10 +664,9 @@ def _failure_line(log: Path, stage: str) -> str:
     except OSError:
         return ""
     prefix = f"error: stage {stage}: "
-    for ln in reversed(lines):
-        if ln.startswith(prefix):
-            return ln[len(prefix):]
-    return lines[-1] if lines and not lines[-1].startswith("$ ") else ""
+    line = next((ln[len(prefix):] for ln in reversed(lines) if ln.startswith(prefix)),
+                lines[-1] if lines and not lines[-1].startswith("$ ") else "")
+    return line if len(line) <= MAX_REASON_CHARS else line[:MAX_REASON_CHARS] + " ... (cut)"
 
 
 def run(
@@ -664,7 +707,7 @@ def run(
                 hub.check_params_weights(params[name], where=f"{name}.")
             except hub.WeightsNotFound as e:
                 raise PipelineError(str(e)) from None
-    report = Report(scene.root)
+    report = Report(scene.root, notes=list(scene.notes))
 
     def emit(r: StageResult):
         report.results.append(r)
@@ -745,6 +788,13 @@ def run(
                 emit(StageResult(name, "skipped", "not run: an earlier stage failed (use --keep-going)"))
         if fresh and not any(r.action == "ran" for r in report.results):
             lock.remove_bookkeeping()  # nothing committed into a new artifacts/: leave the scene as it was
+    if "register" in pipeline.stages and any(r.stage == "register" and r.action in ("ran", "cached")
+                                              for r in report.results):
+        from panoworld.register.artifact import registration_note
+
+        note = registration_note(scene.artifact_dir("register"), scene.root)
+        if note:
+            report.notes.append(note)
     return report
 
 

@@ -6,6 +6,7 @@ import argparse
 import ast
 import dataclasses
 import enum
+import fcntl
 import importlib
 import inspect
 import json
@@ -16,6 +17,7 @@ import signal
 import sys
 import textwrap
 import time
+import traceback
 import types
 import typing
 from dataclasses import dataclass
@@ -24,15 +26,18 @@ from pathlib import Path
 from typing import Any
 
 from panoworld.core import params as P
-from panoworld.core.errors import InputError, PanoWorldError, PipelineError
+from panoworld.core.errors import InputError, PanoWorldError, PipelineError, from_os_error
 from panoworld.framework import code_digest
 from panoworld.framework.hub import resolve as hub
 from panoworld.io import manifest as art
-from panoworld.io import to_jsonable
+from panoworld.io.jsonio import to_jsonable
 
 LOCK_FILE = ".lock"
 """The scene lock, SCENE/artifacts/.lock: held (flock) by the runner working on the scene, naming its pid."""
 LOCK_ENV = "PANOWORLD_SCENE_LOCK"
+LOCK_INODE_ENV = "PANOWORLD_SCENE_LOCK_INODE"
+"""`DEV:INODE` of the artifacts directory the runner holds the flock of (a directory removed and made again is not
+the one locked)."""
 RUNNER_PID_ENV = "PANOWORLD_RUNNER_PID"
 REFUSAL_ENV = "PANOWORLD_REFUSAL_FILE"
 """Set by a runner: a stage that refuses its input (exit 2) writes its one line there, for the runner to print once."""
@@ -53,6 +58,9 @@ class Input:
     """Whether the stage runs without it."""
     help: str = ""
     """One line for --help."""
+    suffixes: tuple[str, ...] = ()
+    """For kind 'dir': only its top-level files with these suffixes are the input (others are left out of the
+    digest, so a stray notes.txt reruns nothing); empty: every file under it."""
 
 
 @dataclass(frozen=True)
@@ -276,7 +284,10 @@ def input_digest(name: str, spec: Input, path: Path | None) -> str | None:
     if spec.kind == "dir":
         if not path.is_dir():
             raise StageInputError(f"input {name}: directory not found: {path}")
-        files = sorted(p for p in path.rglob("*") if p.is_file() and art.ARTIFACTS_DIRNAME not in p.relative_to(path).parts)
+        if spec.suffixes:
+            files = sorted(p for p in path.iterdir() if p.suffix.lower() in spec.suffixes and p.is_file())
+        else:
+            files = sorted(p for p in path.rglob("*") if p.is_file() and art.ARTIFACTS_DIRNAME not in p.relative_to(path).parts)
         return art.json_digest([[p.relative_to(path).as_posix(), art.file_digest(p)] for p in files])
     try:
         manifest = art.read_manifest(path, spec.kind)
@@ -319,18 +330,42 @@ def die_with_runner() -> None:
 
 
 def check_runner() -> None:
-    """Refuse to commit unless the runner that started this stage is still its parent and still holds the scene lock
+    """Refuse to commit unless the runner that started this stage is still its parent and still holds the scene lock:
+    the flock on the artifacts directory (of the inode it locked), and artifacts/.lock, when present, naming it
     (a no-op for a stage run by hand or by a Ray worker)."""
     lock, pid = os.environ.get(LOCK_ENV), os.environ.get(RUNNER_PID_ENV)
     if not lock or not pid:
         return
     try:
-        holder = Path(lock).read_text()
+        holder: str | None = Path(lock).read_text()
+    except FileNotFoundError:
+        holder = None  # deleted by hand: the flock on the directory still decides
     except OSError:
         holder = ""
-    if os.getppid() != int(pid) or not holder.startswith(f"pid {pid} "):
+    held = dir_locked(Path(lock).parent, os.environ.get(LOCK_INODE_ENV))
+    if os.getppid() != int(pid) or not held or (holder is not None and not holder.startswith(f"pid {pid} ")):
         raise PipelineError(f"the runner (pid {pid}) that started this stage is gone or no longer holds {lock}; "
                             "not committing")
+
+
+def dir_locked(directory: Path, inode: str | None = None) -> bool:
+    """Whether someone holds an exclusive flock on directory (and, with inode `DEV:INO`, it is that directory)."""
+    try:
+        fd = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
+    except OSError:
+        return False
+    try:
+        st = os.fstat(fd)
+        if inode and inode != f"{st.st_dev}:{st.st_ino}":
+            return False
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return False
+    finally:
+        os.close(fd)
 
 
 def execute_stage(
@@ -482,6 +517,12 @@ def stage_main(module_name: str, argv: list[str] | None = None) -> int:
         else:
             print(f"error: stage {spec.name}: {e}", file=sys.stderr)
         return e.exit_code
+    except OSError as e:  # the environment (full disk, read-only output): one line
+        err = from_os_error(e)
+        if err.exit_code != 2:
+            traceback.print_exc()  # kept in the stage's log; the runner shows the line below
+        print(f"error: stage {spec.name}: {err}", file=sys.stderr)
+        return err.exit_code
     print(
         f"{spec.name}: wrote {args.out} ({len(manifest['files'])} files, {manifest['wall_s']:.2f} s, "
         f"peak {manifest['peak_rss_mb']:.0f} MB)",

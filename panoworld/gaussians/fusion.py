@@ -24,7 +24,7 @@ from panoworld.geometry.voxels import (
     voxel_keys,
     voxel_sums,
 )
-from panoworld.io.gaussian_set import SH_C0, ContextFrames, FusionResult, Gaussians, rgb_to_sh_dc  # noqa: F401  (re-exported)
+from panoworld.io.gaussian_set import ContextFrames, FusionResult, Gaussians, rgb_to_sh_dc
 
 # ---------------------------------------------------------------- fusion core (shared with the Gaussian head)
 

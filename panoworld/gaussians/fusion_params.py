@@ -56,3 +56,55 @@ class FusionParams:
             raise ValueError(f"min_scale={self.min_scale}, max_scale={self.max_scale} but expected 0 < min <= max")
         if not 0 < self.opacity < 1:
             raise ValueError(f"opacity={self.opacity} but expected in (0, 1)")
+
+
+@dataclass(kw_only=True)
+class SourcePixelParams(FusionParams):
+    """Settings of source-anchored fusion (gaussians.pixel, gaussians.home): the source view as one Gaussian per
+    pixel, the other frames voxel-fused where it is blind, the colours fitted at the capture point."""
+
+    source_height: int = param(640, ge=0)
+    """ERP height of the source view's per-pixel Gaussians (0 = that of the other frames); rows near the poles keep
+    every k-th pixel so kept pixels are about square on the sphere. More rows keep more of the input's detail for
+    views from aside, at the cost of more Gaussians (quadratic in the rows)."""
+    source_scale: float = param(2.1, gt=0)
+    """Footprint scale of the source's per-pixel Gaussians (scale_factor of the voxel Gaussians otherwise): large
+    enough that neighbours leave no see-through cracks between them (the renderer's 2x pole faces show cracks a
+    smaller footprint leaves), small enough to keep the input's detail."""
+    unseen_voxel_size: float = param(0.04, ge=0)
+    """With source_pixels: voxel edge (metres) of what the other frames see that the source does not (0 =
+    voxel_size). That is the generated (disoccluded) content, softer than the input: 4 cm voxels hold it with fewer,
+    larger Gaussians and fewer see-through gaps than 2 cm."""
+    source_tol: float = param(0.03, gt=0)
+    """Observations of the other frames within this relative depth of the source's surface (or in front of it) count
+    as seen by the source and are not fused."""
+    fit_iters: int = param(10, ge=0)
+    """With source_pixels: conjugate-gradient steps of a colour fit at the capture point (0 = none): for the fixed
+    geometry the ERP render there is linear in the Gaussians' colours, which are refitted (least squares, damped
+    towards their fused values) so it reproduces the source frame, undoing the blur of overlapping splats
+    (the manifest's color_fit holds the RMSE before and after). Not applied to a home's panoramas."""
+    fit_height: int = param(512, ge=0)
+    """ERP height of that fit's render and target (0 = source_height). 512: its cube faces are those of a 256-row
+    render supersampled 2x (the roam protocol's), so the fit resolves what the eval's render shows."""
+    fit_views: int = param(0, ge=0)
+    """With fit_iters: that many other frames, spread over the path (farthest-point from the capture point), join the
+    colour fit where they see what the source saw, so the source's colours are fitted from aside too (0 = the capture
+    point only). Improves the seen part from aside; each view adds about a third of the colour fit's cost (its
+    operator over every Gaussian the view sees). Off by default (docs/evaluation.md, options off by default)."""
+    fit_view_height: int = param(256, ge=8)
+    """ERP height of those frames' renders and targets in the fit."""
+    fit_view_reach: float = param(2.0, ge=0)
+    """Those frames are picked among the ones within this distance (metres) of the capture point (0 = any): where a
+    user roams, not at the room's far walls."""
+    fit_view_weight: float = param(1.0, ge=0)
+    """Weight of each of those frames' pixels in the fit against 1 for the capture point's."""
+    fit_sh_degree: int = param(0, ge=0, le=1)
+    """With fit_views: 1 fits view-dependent colours too (degree-1 SH, written as f_rest_*), so the colours seen from
+    those frames need not be the capture point's (0 = one colour per Gaussian). The joint fit may move the colours
+    seen from the capture point; fit_views_sh_only keeps them."""
+    fit_sh_damping: float = param(0.001, ge=0)
+    """Damping of those degree-1 coefficients towards 0 per unit of compositing weight (the colours' is 0.01): a
+    Gaussian seen from few directions keeps about one colour."""
+    fit_views_sh_only: bool = False
+    """With fit_sh_degree 1: the views fit the degree-1 coefficients only; the colours seen from the capture point
+    are its own fit's (fit_views 0's), so the capture point renders exactly as without the views."""

@@ -9,7 +9,7 @@ import numpy as np
 
 from panoworld.core.conventions import erp_dirs, invert_pose, transform_points
 from panoworld.gaussians.fusion import ContextSource
-from panoworld.gaussians.fusion_params import FusionParams
+from panoworld.gaussians.fusion_params import SourcePixelParams
 from panoworld.gaussians.pixel import SourceVisibility, fuse_unseen, merge_gaussians, pixel_gaussians
 from panoworld.geometry.panoramas import nearest_source
 from panoworld.geometry.resize import rgbd_at_height
@@ -44,19 +44,19 @@ class SourcesVisibility:
 
 
 def home_anchored_fusion(frames: ContextSource, sources: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
-                         params: FusionParams, *, source_height: int = 0, tol: float = 0.03,
-                         source_scale: float | None = None, unseen_voxel_size: float = 0.0,
-                         progress: bool = False) -> FusionResult:
+                         params: SourcePixelParams, *, progress: bool = False) -> FusionResult:
     """Per-pixel Gaussians of every source {NAME: (rgb (H, W, 3), depth (H, W) metres (0 = unknown), world_from_cam)}
-    at most source_height rows (0 = as given), a pixel kept only when no other source sees its surface from nearer
-    (geometry.panoramas.nearest_source: no doubled surfaces), plus voxel fusion of what the frames see that no source
-    does (SourceVisibility of each, tolerance tol) in voxels of unseen_voxel_size (0 = params.voxel_size), less those
-    poking through a surface a source saw: source_anchored_fusion of a single panorama, over several."""
+    at most params.source_height rows (0 = as given), a pixel kept only when no other source sees its surface from
+    nearer (geometry.panoramas.nearest_source: no doubled surfaces), plus voxel fusion of what the frames see that no
+    source does (SourceVisibility of each, tolerance params.source_tol) in voxels of params.unseen_voxel_size (0 =
+    params.voxel_size), less those poking through a surface a source saw: source_anchored_fusion of a single panorama,
+    over several."""
     names = list(sources)
-    small = {n: rgbd_at_height(sources[n][0], sources[n][1], source_height) for n in names}
+    tol = params.source_tol
+    small = {n: rgbd_at_height(sources[n][0], sources[n][1], params.source_height) for n in names}
     depths = {n: small[n][1] for n in names}
     poses = {n: np.asarray(sources[n][2], np.float64) for n in names}
-    pix_params = params if source_scale is None else replace(params, scale_factor=source_scale)
+    pix_params = replace(params, scale_factor=params.source_scale)
     parts = []
     for k, n in enumerate(names):
         rgb, depth = small[n]
@@ -67,4 +67,4 @@ def home_anchored_fusion(frames: ContextSource, sources: dict[str, tuple[np.ndar
                                      pix_params))
     pix = merge_gaussians(parts)
     seen = SourcesVisibility([SourceVisibility(depths[n], poses[n], tol) for n in names])
-    return fuse_unseen(pix, frames, seen, params, unseen_voxel_size=unseen_voxel_size, progress=progress)
+    return fuse_unseen(pix, frames, seen, params, unseen_voxel_size=params.unseen_voxel_size, progress=progress)

@@ -11,7 +11,7 @@ from numba import njit
 
 from panoworld.core.conventions import erp_pixel_from_dir, invert_pose
 from panoworld.gaussians.fusion import ContextSource, frame_observations, gaussians_from_cov, voxel_fusion
-from panoworld.gaussians.fusion_params import FusionParams
+from panoworld.gaussians.fusion_params import FusionParams, SourcePixelParams
 from panoworld.geometry.voxels import bbox_extent
 from panoworld.io.gaussian_set import FusionResult, Gaussians, rgb_to_sh_dc
 
@@ -193,48 +193,45 @@ def merge_gaussians(parts: list[Gaussians]) -> Gaussians:
                        ("means", "scales", "quats", "opacities", "sh_dc", "sh_rest")))
 
 
-def source_anchored_fusion(frames: ContextSource, params: FusionParams, *, source_height: int = 0, tol: float = 0.03,
-                           source_scale: float | None = None, unseen_voxel_size: float = 0.0, thin_poles: bool = True,
-                           fit_iters: int = 0, fit_height: int = 0, fit_views: int = 0, fit_view_height: int = 256,
-                           fit_view_reach: float = 0.0, fit_view_weight: float = 1.0, fit_sh_degree: int = 0,
-                           fit_sh_damping: float = 0.001, fit_views_sh_only: bool = False, back_sides=None,
+def source_anchored_fusion(frames: ContextSource, params: SourcePixelParams, *, thin_poles: bool = True, back_sides=None,
                            progress: bool = False) -> FusionResult:
-    """Per-pixel Gaussians of the source view (video frame 0, at source_height rows; 0 = as the other frames) plus
-    voxel fusion of what the other frames see that the source does not (SourceVisibility with tolerance tol) in voxels
-    of unseen_voxel_size (0 = params.voxel_size), less those poking through the source's surfaces: the capture point keeps the input's full detail, the rest of the
-    room is fused as before. source_scale: the per-pixel Gaussians' scale_factor (None = params.scale_factor). Without
-    frame 0 among the frames it is plain voxel fusion. fit_iters > 0: the colours are then fitted to frame 0 at its
-    pose (fit_colors, at fit_height rows; 0 = source_height), and with fit_views > 0 to that many other frames
-    spread over the path within fit_view_reach metres (view_targets(), at fit_view_height rows, each pixel
-    weighted fit_view_weight against 1 for the capture point's) where they see what the source saw; fit_sh_degree 1
-    fits view-dependent colours (degree-1 SH, damped by fit_sh_damping) to those views (fit_views_sh_only: those
-    only, the colours seen from the capture point are its fit's alone). back_sides: a callable
-    (pix, rgb, depth, world_from_cam) -> back_sides.BackSides whose Gaussians join the result."""
+    """Per-pixel Gaussians of the source view (video frame 0, at params.source_height rows; 0 = as the other frames)
+    plus voxel fusion of what the other frames see that the source does not (SourceVisibility with tolerance
+    params.source_tol) in voxels of params.unseen_voxel_size (0 = params.voxel_size), less those poking through the
+    source's surfaces: the capture point keeps the input's full detail, the rest of the room is fused as before. The
+    per-pixel Gaussians' scale_factor is params.source_scale. Without frame 0 among the frames it is plain voxel
+    fusion. params.fit_iters > 0: the colours are then fitted to frame 0 at its pose (fit_colors, at fit_height rows;
+    0 = source_height), and with fit_views > 0 to that many other frames spread over the path within fit_view_reach
+    metres (view_targets(), at fit_view_height rows, each pixel weighted fit_view_weight against 1 for the capture
+    point's) where they see what the source saw; fit_sh_degree 1 fits view-dependent colours (degree-1 SH, damped by
+    fit_sh_damping) to those views (fit_views_sh_only: those only, the colours seen from the capture point are its
+    fit's alone). back_sides: a callable (pix, rgb, depth, world_from_cam) -> back_sides.BackSides whose Gaussians
+    join the result."""
     if not frames.indices or frames.indices[0] != 0:
         return voxel_fusion(frames, params, progress=progress)
-    src = replace(frames, height=min(source_height or frames.height, frames.stored_height))
+    p = params
+    src = replace(frames, height=min(p.source_height or frames.height, frames.stored_height))
     rgb, depth, pose = src.frame(0)
-    pix_params = params if source_scale is None else replace(params, scale_factor=source_scale)
-    pix = pixel_gaussians(rgb, depth, pose, pix_params, thin_poles=thin_poles)
+    pix = pixel_gaussians(rgb, depth, pose, replace(p, scale_factor=p.source_scale), thin_poles=thin_poles)
     rest = replace(frames, rgb_paths=frames.rgb_paths[1:], depth_paths=frames.depth_paths[1:],
                    world_from_cam=frames.world_from_cam[1:], indices=frames.indices[1:])
-    vis = SourceVisibility(depth, pose, tol)
-    result = fuse_unseen(pix, rest, vis, params, unseen_voxel_size=unseen_voxel_size, progress=progress)
+    vis = SourceVisibility(depth, pose, p.source_tol)
+    result = fuse_unseen(pix, rest, vis, p, unseen_voxel_size=p.unseen_voxel_size, progress=progress)
     if back_sides is not None:
         back = back_sides(pix, rgb, depth, pose)
         result.gaussians, result.back_sides = merge_gaussians([result.gaussians, back.gaussians]), back.stats
-    if fit_iters > 0:
-        if fit_height and fit_height != src.height:
-            rgb = replace(frames, height=min(fit_height, frames.stored_height)).rgb_at(0)  # its depth is not needed
-        extra = view_targets(rest, vis, fit_views, fit_view_height, fit_view_reach, fit_view_weight)
-        result.gaussians, result.color_fit = fit_colors(result.gaussians, rgb, pose, iters=fit_iters, extra=extra,
-                                                        sh_degree=fit_sh_degree if extra else 0,
-                                                        sh_damping=fit_sh_damping,
-                                                        views_sh_only=fit_views_sh_only)
+    if p.fit_iters > 0:
+        if p.fit_height and p.fit_height != src.height:
+            rgb = replace(frames, height=min(p.fit_height, frames.stored_height)).rgb_at(0)  # its depth is not needed
+        extra = view_targets(rest, vis, p.fit_views, p.fit_view_height, p.fit_view_reach, p.fit_view_weight)
+        result.gaussians, result.color_fit = fit_colors(result.gaussians, rgb, pose, iters=p.fit_iters, extra=extra,
+                                                        sh_degree=p.fit_sh_degree if extra else 0,
+                                                        sh_damping=p.fit_sh_damping,
+                                                        views_sh_only=p.fit_views_sh_only)
         result.fit_render = result.color_fit.pop("render")
-        result.color_fit.update(iters=fit_iters, height=int(rgb.shape[0]))
+        result.color_fit.update(iters=p.fit_iters, height=int(rgb.shape[0]))
         if extra:
-            result.color_fit.update(views_from_aside=len(extra), sh_degree=fit_sh_degree)
+            result.color_fit.update(views_from_aside=len(extra), sh_degree=p.fit_sh_degree)
     return result
 
 

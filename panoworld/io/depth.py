@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from panoworld.core.errors import InputError
-from panoworld.core.limits import depth_plane, load_npy
+from panoworld.core.limits import check_image_size, depth_plane, exr_header, load_npy
 from panoworld.io.images import read_image
 
 
@@ -76,6 +76,7 @@ def read_depth(path: Path, *, png_scale: float = 0.001) -> np.ndarray:
     if suffix == ".npy":
         depth = load_npy(path, "depth array", kinds="fiu")
     elif suffix == ".exr":
+        exr_header(path)
         depth = _read_exr(path)
     elif suffix == ".png":
         depth = read_image(path, cv2.IMREAD_UNCHANGED, what="depth PNG")
@@ -87,6 +88,7 @@ def read_depth(path: Path, *, png_scale: float = 0.001) -> np.ndarray:
     else:
         raise InputError(f"{path}: unsupported depth format {suffix!r}; give depth.npy, depth.exr or a 16-bit depth.png")
     depth = depth_plane(depth, path)
+    check_image_size(path, depth.shape[1], depth.shape[0], "depth")
     return np.asarray(depth, dtype=np.float32)
 
 

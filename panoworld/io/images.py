@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.core.errors import InputError
-from panoworld.core.limits import MAX_PIXELS
+from panoworld.core.limits import MAX_PIXELS, check_image_size, depth_plane, exr_header, npy_header
 from panoworld.io.user_cache import read_user_cache, write_user_cache
 
 MAX_SIDE = 65535
@@ -129,3 +129,31 @@ def read_image(path: Path | str, flags: int = -1, what: str = "image") -> np.nda
     if img is None:
         raise ImageInputError(f"{path}: {what} cannot be decoded by OpenCV; {_fix(Path(path))}")
     return img
+
+
+def check_depth_file(path: Path | str) -> tuple[int, int]:
+    """(width, height) of a user depth file (.npy, .exr or .png) from its header (a PNG is decoded, as every image),
+    within MAX_PIXELS and MIN_HEIGHT; InputError (one line naming the file) otherwise. Nothing large is read."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if not path.is_file():
+        raise InputError(f"{path}: depth file not found (or not a regular file)")
+    if suffix == ".npy":
+        shape, _ = npy_header(path, "depth array", kinds="fiu")
+        h, w = depth_plane(np.broadcast_to(np.float32(0), shape), path).shape
+    elif suffix == ".exr":
+        w, h = exr_header(path)
+    else:
+        info = check_image(path, "depth PNG")
+        w, h = info.width, info.height
+    check_image_size(path, w, h, "depth")
+    return w, h
+
+
+def check_mask_file(path: Path | str, what: str = "rig mask") -> tuple[int, int]:
+    """(width, height) of a user mask image: check_image, within MIN_HEIGHT, 2:1; InputError (one line) otherwise."""
+    w, h = check_image(path, what).oriented
+    check_image_size(path, w, h, what)
+    if w != 2 * h:
+        raise InputError(f"{path}: {what} is {w}x{h} but must be 2:1 like the panorama")
+    return w, h

@@ -36,7 +36,7 @@ def to_jsonable(obj: Any) -> Any:
 def write_json(path: Path | str, obj: Any, *, indent: int | None = 1, sort_keys: bool = False, atomic: bool = False) -> Path:
     """Write obj (through to_jsonable) as strict JSON with a trailing newline; returns the path. atomic: through a
     hidden sibling and a rename (readers of a live file see the old or the new document, never a part)."""
-    from panoworld.io.manifest import write_text_atomic
+    from panoworld.io.safe_write import write_text_atomic
 
     path = Path(path)
     text = json.dumps(to_jsonable(obj), indent=indent, sort_keys=sort_keys, allow_nan=False) + "\n"

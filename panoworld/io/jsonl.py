@@ -8,7 +8,7 @@ from pathlib import Path
 
 from panoworld.core.errors import InputError
 from panoworld.io.jsonio import to_jsonable
-from panoworld.io.manifest import write_text_atomic
+from panoworld.io.safe_write import write_text_atomic
 
 
 def write_jsonl(path: Path | str, rows: Iterable[dict]) -> Path:

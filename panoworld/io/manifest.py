@@ -239,14 +239,6 @@ def tmp_dir_for(out_dir: Path) -> Path:
     return out_dir.parent / f"{TMP_PREFIX}{out_dir.name}-{os.getpid()}-{time.time_ns()}"
 
 
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write text to path through a hidden sibling and a rename: readers see the old file or the new, never a part."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.part")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def write_manifest(tmp_dir: Path, manifest: dict, kind: str) -> None:
     """Add the checksum, validate and write the manifest last, atomically (write + fsync + rename)."""
     manifest = dict(manifest, checksum=manifest_checksum(manifest))
@@ -287,3 +279,26 @@ def recover_dir(out_dir: Path) -> None:
         olds = olds[:-1]
     for p in olds:
         shutil.rmtree(p, ignore_errors=True)
+
+
+def sweep_leftovers(artifacts_dir: Path) -> list[Path]:
+    """Under the scene lock: clear what killed runs left anywhere under artifacts_dir (variants included) and return
+    it: `.tmp-*` and `.old-*` siblings of artifacts (recover_dir: a previous artifact caught mid-swap is restored),
+    and hidden `.*.part` files beside logs (kept as the log when the log itself is missing: the last attempt's)."""
+    artifacts_dir = Path(artifacts_dir)
+    found: list[Path] = []
+    for p in sorted(artifacts_dir.rglob(f"{TMP_PREFIX}*")) + sorted(artifacts_dir.rglob(f"{OLD_PREFIX}*")):
+        if p.is_dir() and p.parent.name != "logs":
+            prefix = TMP_PREFIX if p.name.startswith(TMP_PREFIX) else OLD_PREFIX
+            name = p.name[len(prefix):].rsplit("-", 2)[0]
+            if p.exists():
+                found.append(p)
+                recover_dir(p.parent / name)
+    for p in sorted(artifacts_dir.rglob("logs/.*.part")):
+        found.append(p)
+        log = p.with_name(p.name[1:].split(".log")[0] + ".log")
+        if not log.exists() and p.name.startswith(f".{log.name}"):
+            os.replace(p, log)
+        else:
+            p.unlink(missing_ok=True)
+    return found

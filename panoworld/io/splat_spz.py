@@ -30,6 +30,17 @@ def write_gaussians_spz(path: str | Path, gaussians: Gaussians) -> None:
         shN=np.ascontiguousarray(g.sh_rest[:, :k], np.float32),
     )
     gsply.write_spz(str(path), data)
+    _zero_gzip_mtime(Path(path))
+
+
+def _zero_gzip_mtime(path: Path) -> None:
+    """Zero the gzip header's modification time (bytes 4-7; no header CRC covers them), so that the same Gaussians give
+    the same file bytes."""
+    with open(path, "r+b") as f:
+        head = f.read(10)
+        if len(head) == 10 and head[:3] == b"\x1f\x8b\x08" and not head[3] & 0x02:
+            f.seek(4)
+            f.write(b"\x00\x00\x00\x00")
 
 
 def read_gaussians_spz(path: str | Path) -> Gaussians:

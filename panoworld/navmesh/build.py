@@ -6,9 +6,11 @@ import time
 
 import numpy as np
 
+from panoworld.core.errors import NoFloorError
+from panoworld.geometry.navmesh import NavMesh
+from panoworld.geometry.polygons import cross_section, pick_component, triangulate_rings
 from panoworld.navmesh.heightfield import (
     NavMeshParams,
-    NoFloorError,
     band_top,
     check_mesh,
     downsample_erp_mesh,
@@ -17,8 +19,7 @@ from panoworld.navmesh.heightfield import (
     floor_grid,
     simplify_tolerance_m,
 )
-from panoworld.navmesh.navmesh import NavMesh
-from panoworld.navmesh.polygons import cross_section, pick_component, polygons_from_mask, triangulate_rings
+from panoworld.navmesh.polygons import polygons_from_mask
 
 
 def build_navmesh(

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from panoworld.core.errors import InputError
+from panoworld.core.errors import NoFloorError
 from panoworld.core.params import param
 from panoworld.core.shapes import check_shape
 
@@ -14,10 +14,6 @@ MIN_CAMERA_HEIGHT_M = 0.3
 """Horizontal triangles closer than this below the camera are never taken as the floor."""
 RIM_WALKABLE_FRACTION = 0.8
 """An unseen region is assumed to be floor only when at least this share of the cells around it is walkable floor."""
-
-
-class NoFloorError(InputError):
-    """The mesh has no walkable floor (no up-facing area below the camera, or nothing left after erosion)."""
 
 
 @dataclass(kw_only=True)

@@ -7,8 +7,8 @@ from dataclasses import replace
 import numpy as np
 
 from panoworld.geometry.erp_mesh import ErpMesh
+from panoworld.geometry.navmesh import NavMesh
 from panoworld.navmesh import NavMeshParams, build_navmesh
-from panoworld.navmesh.navmesh import NavMesh
 
 
 def home_navmesh(mesh: ErpMesh, world_from_cam: dict[str, np.ndarray], params: NavMeshParams | None = None

@@ -6,10 +6,11 @@ from dataclasses import replace
 
 import numpy as np
 
+from panoworld.core.errors import NoFloorError
+from panoworld.geometry.navmesh import NavMesh
+from panoworld.geometry.polygons import triangulate_rings
 from panoworld.navmesh.build import build_navmesh
-from panoworld.navmesh.heightfield import NavMeshParams, NoFloorError, band_top, check_mesh, estimate_floor_y
-from panoworld.navmesh.navmesh import NavMesh
-from panoworld.navmesh.polygons import triangulate_rings
+from panoworld.navmesh.heightfield import NavMeshParams, band_top, check_mesh, estimate_floor_y
 
 MIN_ROOM_M2 = 0.1
 """A walkable area under this is no room to move: the planners need floor 0.1 m away from the camera in some sector."""

@@ -1,15 +1,10 @@
-"""Walkable-region polygons: raster contours, manifold3d cross sections, even-odd tests, constrained triangulation."""
+"""Walkable-region polygons from the floor raster: contours simplified into boundary rings."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from panoworld.navmesh.heightfield import FloorGrid, NoFloorError
-
-
-def ring_area(ring: np.ndarray) -> float:
-    x, y = ring[:, 0], ring[:, 1]
-    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
+from panoworld.navmesh.heightfield import FloorGrid
 
 
 def polygons_from_mask(mask: np.ndarray, grid: FloorGrid, tol_m: float) -> list[np.ndarray]:
@@ -27,89 +22,3 @@ def polygons_from_mask(mask: np.ndarray, grid: FloorGrid, tol_m: float) -> list[
         px = approx.reshape(-1, 2).astype(np.float64)  # (col, row)
         rings.append(grid.xz_of(px[:, ::-1]))
     return rings
-
-
-def cross_section(rings: list[np.ndarray]):
-    """manifold3d CrossSection of rings (even-odd), cleaned of self-intersections."""
-    from manifold3d import CrossSection, FillRule
-
-    return CrossSection([np.ascontiguousarray(r, dtype=np.float64) for r in rings], FillRule.EvenOdd)
-
-
-def pick_component(cs, xz: np.ndarray) -> tuple[list[np.ndarray], bool, float]:
-    """The connected piece of a CrossSection containing xz (or the nearest one): (rings, contains, distance)."""
-    best = None
-    for piece in cs.decompose():
-        rings = [np.asarray(r, np.float64) for r in piece.to_polygons()]
-        segs = ring_segments(rings)
-        if even_odd(xz[None], segs)[0]:
-            return rings, True, 0.0
-        d = float(segment_distance(xz[None], segs)[0])
-        if best is None or d < best[1]:
-            best = (rings, d)
-    if best is None:
-        raise NoFloorError("no walkable floor is left after eroding by the agent radius")
-    return best[0], False, best[1]
-
-
-def ring_segments(rings: list[np.ndarray]) -> np.ndarray:
-    """All ring edges as (S, 2, 2)."""
-    return np.concatenate([np.stack([r, np.roll(r, -1, axis=0)], 1) for r in rings], axis=0)
-
-
-def even_odd(points: np.ndarray, segs: np.ndarray, chunk: int = 4096) -> np.ndarray:
-    """Point-in-polygon (even-odd rule) of points (N, 2) against ring segments (S, 2, 2) -> (N,) bool."""
-    out = np.zeros(len(points), bool)
-    a, b = segs[:, 0], segs[:, 1]
-    for s in range(0, len(points), chunk):
-        p = points[s : s + chunk, None, :]
-        cond = (a[None, :, 1] > p[..., 1]) != (b[None, :, 1] > p[..., 1])
-        dy = np.where(cond, b[None, :, 1] - a[None, :, 1], 1.0)
-        xint = a[None, :, 0] + (p[..., 1] - a[None, :, 1]) * (b[None, :, 0] - a[None, :, 0]) / dy
-        out[s : s + chunk] = (np.count_nonzero(cond & (p[..., 0] < xint), axis=1) % 2) == 1
-    return out
-
-
-def segment_distance(points: np.ndarray, segs: np.ndarray, chunk: int = 2048) -> np.ndarray:
-    """Distance of points (N, 2) to the nearest of segments (S, 2, 2) -> (N,)."""
-    out = np.empty(len(points))
-    a, ab = segs[:, 0], segs[:, 1] - segs[:, 0]
-    ll = np.maximum((ab**2).sum(1), 1e-30)
-    for s in range(0, len(points), chunk):
-        p = points[s : s + chunk, None, :]
-        t = np.clip(((p - a) * ab).sum(-1) / ll, 0.0, 1.0)
-        out[s : s + chunk] = np.sqrt(((a + t[..., None] * ab - p) ** 2).sum(-1).min(axis=1))
-    return out
-
-
-def triangulate_rings(rings: list[np.ndarray], max_area_m2: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Constrained quality triangulation ('triangle' pq) of CCW outer rings and CW holes.
-
-    Returns vertices (V, 2), CCW triangles (T, 3), adjacency (T, 3): the triangle across the edge opposite
-    vertex k, or -1 on the boundary.
-    """
-    import triangle
-    from manifold3d import triangulate
-
-    verts, segs, holes = [], [], []
-    base = 0
-    for r in rings:
-        n = len(r)
-        verts.append(r)
-        segs.append(np.stack([np.arange(n), (np.arange(n) + 1) % n], 1) + base)
-        base += n
-        if ring_area(r) < 0:  # a hole: Triangle needs a point strictly inside it (a zero-area hole needs none)
-            ccw = r[::-1].copy()
-            tris = np.asarray(triangulate([ccw])).reshape(-1, 3)
-            if len(tris):
-                biggest = max(tris, key=lambda k: abs(ring_area(ccw[k])))
-                holes.append(ccw[biggest].mean(axis=0))
-    data = {"vertices": np.concatenate(verts), "segments": np.concatenate(segs)}
-    if holes:
-        data["holes"] = np.asarray(holes)
-    out = triangle.triangulate(data, f"pq25na{max_area_m2:.6f}")
-    if "triangles" not in out or len(out["triangles"]) == 0:
-        raise NoFloorError("the walkable floor polygon is degenerate (no triangles)")
-    return np.asarray(out["vertices"], np.float64), np.asarray(out["triangles"], np.int32), np.asarray(out["neighbors"], np.int32)
-
-

@@ -104,14 +104,13 @@ def _spherical_sfm(img_dir: Path, out: Path, matcher: Matcher, sfm: ColmapOption
 def run_colmap(
     image_paths: list[Path],
     work_dir: Path,
+    options: ColmapOptions | None = None,
     *,
-    render_type: RenderType = RenderType.SPHERICAL,
-    matcher: Matcher = Matcher.SEQUENTIAL,
-    sfm: ColmapOptions | None = None,
     verbose: bool = False,
     timings: dict | None = None,
 ):
-    """COLMAP panorama SfM on the frames -> (largest reconstruction with EQUIRECTANGULAR camera, all models).
+    """COLMAP panorama SfM on the frames with options (None = the defaults) -> (largest reconstruction with
+    EQUIRECTANGULAR camera, all models).
 
     spherical: our bounded pipeline (_spherical_sfm); the perspective rigs: pycolmap.panorama.reconstruct at full size.
     Frames are linked into work_dir/images under their file names (which must be unique).
@@ -119,7 +118,8 @@ def run_colmap(
     import pycolmap
     from pycolmap import panorama
 
-    sfm = sfm or ColmapOptions()
+    sfm = options or ColmapOptions()
+    render_type, matcher = sfm.render_type, sfm.matcher
     names = [p.name for p in image_paths]
     if len(set(names)) != len(names):
         raise InputError("video frames must have unique file names for COLMAP")

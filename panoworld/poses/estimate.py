@@ -16,11 +16,11 @@ import numpy as np
 from panoworld.core.conventions import check_poses, cv_world_from_cam_from_gl, gl_world_from_cam, invert_pose
 from panoworld.core.errors import InputError
 from panoworld.geometry.align import align_trajectory, apply_sim3, trajectory_metrics
-from panoworld.io import to_jsonable, write_json
-from panoworld.io.depth_png import read_depth_png, write_depth_png  # noqa: F401  (re-exported)
+from panoworld.io.depth_png import write_depth_png
+from panoworld.io.jsonio import to_jsonable, write_json
 from panoworld.io.video import DEPTH_SCALE, VideoFrames, load_frames
 from panoworld.poses.colmap_sfm import run_colmap
-from panoworld.poses.options import Alignment, ColmapOptions, Matcher, RenderType
+from panoworld.poses.options import Alignment, ColmapOptions, RenderType
 
 MIN_REGISTERED = 3
 
@@ -30,7 +30,7 @@ MIN_REGISTERED = 3
 
 def read_planned_trajectory(trajectory_dir: Path) -> np.ndarray:
     """world_from_cam (N, 4, 4) of trajectory.json in a trajectory artifact (panoworld.trajectory.load_trajectory)."""
-    from panoworld.trajectory import TrajectoryFileError, load_trajectory
+    from panoworld.io.trajectory import TrajectoryFileError, load_trajectory
 
     try:
         return load_trajectory(trajectory_dir)
@@ -84,20 +84,20 @@ def _apply(sim, poses: np.ndarray) -> np.ndarray:
 def colmap_estimate(
     image_paths: list[Path],
     planned: np.ndarray,
+    options: ColmapOptions | None = None,
     *,
-    render_type: RenderType = RenderType.SPHERICAL,
-    matcher: Matcher = Matcher.SEQUENTIAL,
-    sfm: ColmapOptions | None = None,
     alignment: Alignment = Alignment.SIM3,
     verbose: bool = False,
 ) -> PoseEstimate:
-    """COLMAP panorama SfM on the frames, Sim(3)-aligned to the planned trajectory (N, 4, 4).
+    """COLMAP panorama SfM on the frames with options (render type, matcher, SfM settings; None = the defaults),
+    Sim(3)-aligned to the planned trajectory (N, 4, 4).
 
     The largest model is kept; frames it lacks are unregistered: flagged, with the planned pose filled in.
     Fewer than 3 registered frames (no alignment possible) -> InputError.
     """
     import pycolmap
 
+    options = options or ColmapOptions()
     planned = check_poses(planned, "planned")
     n = len(image_paths)
     if len(planned) != n:
@@ -107,8 +107,7 @@ def colmap_estimate(
     t0 = time.perf_counter()
     timings: dict = {}
     with tempfile.TemporaryDirectory(prefix="panoworld-colmap-") as tmp:
-        rec, recs = run_colmap(image_paths, Path(tmp), render_type=render_type, matcher=matcher, sfm=sfm,
-                               verbose=verbose, timings=timings)
+        rec, recs = run_colmap(image_paths, Path(tmp), options, verbose=verbose, timings=timings)
     sfm_s = time.perf_counter() - t0
     index = {p.name: i for i, p in enumerate(image_paths)}
     raw = np.repeat(np.eye(4)[None], n, axis=0)
@@ -135,7 +134,7 @@ def colmap_estimate(
     info = {
         "sfm_s": sfm_s,
         **timings,
-        "feature_image_size": None if render_type != RenderType.SPHERICAL else (sfm or ColmapOptions()).max_image_size,
+        "feature_image_size": None if options.render_type != RenderType.SPHERICAL else options.max_image_size,
         "num_models": len(recs),
         "model_sizes": sorted((m.num_reg_images() for m in recs.values()), reverse=True),
         "num_points3D": rec.num_points3D(),

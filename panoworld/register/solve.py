@@ -1,6 +1,6 @@
-"""All panoramas of a home into one frame: depth-backed and bearing-only estimates over every pair, a pose graph of
-rigid groups joined where the geometry fixes them (panoworld/register/graph.py), and per-panorama quality figures;
-panoramas that cannot be joined are reported, not placed."""
+"""All panoramas of a home into one frame: depth-backed and bearing-only estimates over the candidate pairs
+(pair_select), a pose graph of rigid groups joined where the geometry fixes them (panoworld/register/graph.py), and
+per-panorama quality figures; panoramas that cannot be joined are reported, not placed."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from panoworld.core.conventions import invert_pose
 from panoworld.geometry.resize import rgbd_at_height
 from panoworld.register.graph import BEARING, DEPTH, DIRECTION, Edge, solve_graph
 from panoworld.register.options import RegisterOptions
+from panoworld.register.pair_select import ALL_PAIRS_UP_TO, appearance_descriptor, candidate_pairs
 from panoworld.register.pairwise import Features, PairResult, erp_features, match, register_pair
 from panoworld.register.registration import Registration
 from panoworld.register.upright import UprightPose, metric_scale, upright_relative_pose, yaw_of
@@ -46,20 +47,18 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     if need:
         small = {n: rgbd_at_height(rgbs[n], depths[n], o.height) for n in names}
         feats = {n: erp_features(*small[n], max_features=o.max_features) for n in names}
-        for a in range(k):
-            for b in range(a + 1, k):
-                if names[a] in given and names[b] in given:
-                    continue
-                fa, fb = feats[names[a]], feats[names[b]]
-                m = match(fa, fb)
-                pairs[a, b] = register_pair(fa, fb, small[names[a]][1], small[names[b]][1],
-                                            max_error_m=o.max_error_m, min_inliers=o.min_inliers,
-                                            refine_height=o.refine_height, refine_iterations=o.refine_iterations,
-                                            matches=m)
-                rows = max(small[names[a]][1].shape[0], small[names[b]][1].shape[0])
-                bearing[a, b] = _bearing_pair(fa, fb, m, rows, o)
-                if progress:
-                    progress(names[a], names[b], pairs[a, b])
+        looks = {n: appearance_descriptor(small[n][0]) for n in names} if k > ALL_PAIRS_UP_TO else None
+        for a, b in candidate_pairs(names, looks, given=given):
+            fa, fb = feats[names[a]], feats[names[b]]
+            m = match(fa, fb)
+            pairs[a, b] = register_pair(fa, fb, small[names[a]][1], small[names[b]][1],
+                                        max_error_m=o.max_error_m, min_inliers=o.min_inliers,
+                                        refine_height=o.refine_height, refine_iterations=o.refine_iterations,
+                                        matches=m)
+            rows = max(small[names[a]][1].shape[0], small[names[b]][1].shape[0])
+            bearing[a, b] = _bearing_pair(fa, fb, m, rows, o)
+            if progress:
+                progress(names[a], names[b], pairs[a, b])
     refused = {ab: _contradiction(p, bearing[ab], o) for ab, p in pairs.items() if accepted(p, o)}
     depth_ok = {ab: accepted(p, o) and not refused[ab] for ab, p in pairs.items()}
     edges = []

@@ -174,6 +174,7 @@ def render_erp(
                             max(1, torch.get_num_threads()))
 
 
+@torch.no_grad()  # grad mode is per thread: render_erp's worker threads do not inherit its no_grad
 def _numba_face(prep: _Prepared, fc: ErpFace, near: float, bg: torch.Tensor) -> RenderOutput:
     """One cube face raw as rasterize_tiles(raw=True, distance=True) returns it (render_gs.rasterize_numba)."""
     proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)

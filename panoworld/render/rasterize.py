@@ -10,6 +10,7 @@ import numpy as np
 from panoworld.core.conventions import check_erp_shape, check_pose, erp_lonlat_from_pixel, invert_pose
 from panoworld.core.shapes import check_shape
 from panoworld.geometry.raycast import Hits, Raycaster
+from panoworld.io.conditions import WarpedFrame
 from panoworld.render.raster_kernels import (
     _NO_HIT,
     _POLAR_FRACTION,
@@ -18,7 +19,6 @@ from panoworld.render.raster_kernels import (
     _resolve_shaded,
     _vertex_pass,
 )
-from panoworld.render.warped_frame import WarpedFrame
 
 # ---------------------------------------------------------------------------------------------- public API
 

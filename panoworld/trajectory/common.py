@@ -7,15 +7,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from panoworld.core.errors import InputError
 from panoworld.core.limits import MAX_POSES
 from panoworld.core.params import param
-from panoworld.navmesh import NavMesh
+from panoworld.geometry.navmesh import NavMesh
 from panoworld.trajectory.polyline import resample_polyline
-
-TRAJECTORY_JSON = "trajectory.json"
-TRAJECTORY_TUM = "trajectory.tum"
-FRAME = "canonical (pose 0 = identity)"
 
 
 class PathKind(enum.StrEnum):
@@ -36,10 +31,6 @@ class YawMode(enum.StrEnum):
     """Identity rotation for every pose (the panorama's orientation; ERP covers every direction)."""
     FORWARD = "forward"
     """Yaw follows the (smoothed) direction of travel, relative to the initial heading so pose 0 = identity."""
-
-
-class TrajectoryFileError(InputError):
-    """A trajectory file cannot be read or holds no valid SE(3) poses."""
 
 
 @dataclass(kw_only=True)

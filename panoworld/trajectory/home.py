@@ -7,11 +7,11 @@ from dataclasses import replace
 
 import numpy as np
 
-from panoworld.navmesh import NavMesh
+from panoworld.geometry.navmesh import NavMesh
+from panoworld.io.trajectory import path_indices
 from panoworld.trajectory.common import Plan, TrajectoryParams, planning_hub, planning_mesh
 from panoworld.trajectory.explore import _largest_remainder, plan_explore
 from panoworld.trajectory.polyline import polyline_length, resample_polyline, smooth_polyline
-from panoworld.trajectory.poses import path_indices
 
 
 def visit_order(nav: NavMesh, xz: np.ndarray) -> tuple[list[int], dict[tuple[int, int], np.ndarray]]:

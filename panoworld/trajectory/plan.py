@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from panoworld.navmesh import NavMesh
+from panoworld.geometry.navmesh import NavMesh
 from panoworld.trajectory.common import PathKind, Plan, TrajectoryParams
 from panoworld.trajectory.explore import plan_explore
 from panoworld.trajectory.ring import plan_ring

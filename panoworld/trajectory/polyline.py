@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from panoworld.navmesh import NavMesh
+from panoworld.geometry.navmesh import NavMesh
 
 
 def polyline_length(pts: np.ndarray, closed: bool = False) -> float:

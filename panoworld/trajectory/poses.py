@@ -6,7 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from panoworld.navmesh import NavMesh
+from panoworld.geometry.navmesh import NavMesh
+from panoworld.io.trajectory import path_indices
 
 
 def yaw_of_path(positions: np.ndarray, *, closed: bool, sigma_frames: float = 3.0) -> np.ndarray:
@@ -19,11 +20,6 @@ def yaw_of_path(positions: np.ndarray, *, closed: bool, sigma_frames: float = 3.
     if sigma_frames > 0:
         heading = gaussian_filter1d(heading, sigma_frames, mode="wrap" if closed else "nearest")
     return heading - heading[0]
-
-
-def path_indices(path: dict) -> list[int]:
-    """Pose indices of one path of a multi-path trajectory: its predecessor (`from`, default pose 0) and [start, stop)."""
-    return ([int(path.get("from", 0))] if path["start"] > 0 else []) + list(range(path["start"], path["stop"]))
 
 
 def path_yaw(positions: np.ndarray, paths: list[dict], *, closed: bool) -> np.ndarray:

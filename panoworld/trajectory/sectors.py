@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from panoworld.navmesh import NavMesh
+from panoworld.geometry.navmesh import NavMesh
 from panoworld.trajectory.common import Plan, TrajectoryParams, approach_path, planning_hub, planning_mesh
 from panoworld.trajectory.polyline import polyline_length, resample_polyline, smooth_polyline, truncate_polyline
 

@@ -32,6 +32,7 @@ from panoworld.depth.rig.shape import (
     without_floor_lines,
 )
 from panoworld.geometry.cube_views import PerspectiveView, render_view
+from panoworld.io.images import check_mask_file, read_image
 from panoworld.room.light import apply_gain
 
 CAP_DEG = 30.0
@@ -437,9 +438,8 @@ def unlike_floor(face: np.ndarray, ring_floor: np.ndarray, view: PerspectiveView
 
 def read_user_mask(path: Path, H: int, W: int) -> np.ndarray:
     """A user rig mask (a 2:1 grayscale image, white = rig) -> (H, W) bool; InputError when not a 2:1 image."""
-    m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if m is None:
-        raise InputError(f"{path}: cannot read the rig mask; give a 2:1 grayscale PNG, white where the rig is")
+    check_mask_file(path)
+    m = read_image(path, cv2.IMREAD_GRAYSCALE, what="rig mask")
     if m.shape[1] != 2 * m.shape[0]:
         raise InputError(f"{path}: rig mask is {m.shape[1]}x{m.shape[0]} but must be 2:1 like the panorama")
     return cv2.resize(m, (W, H), interpolation=cv2.INTER_NEAREST) > 127

@@ -17,6 +17,7 @@ from panoworld.framework.hub.resolve import (
     resolve_weights,
     weights_dir,
 )
+from panoworld.io.safe_write import check_output_dir
 
 
 def _cached_sizes() -> dict[str, int]:
@@ -113,6 +114,8 @@ def cmd_list(args) -> int:
 
 
 def cmd_fetch(args) -> int:
+    if args.to is not None:
+        check_output_dir(args.to)
     code = 0
     for name in args.names:
         try:

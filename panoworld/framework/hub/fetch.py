@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import os
 import re
 import urllib.error
 import urllib.request
@@ -23,6 +22,7 @@ from panoworld.framework.hub.resolve import (
     sha256_file,
     weights_dir,
 )
+from panoworld.io.safe_write import atomic_output, check_output_dir, check_output_file
 
 
 class FetchError(PanoWorldError, RuntimeError):
@@ -67,12 +67,12 @@ def download_url(url: str, dest: Path, *, size: int | None = None, sha256: str |
         return False
     if hf_offline():
         raise FetchError(f"{dest.name}: HF_HUB_OFFLINE is set, not downloading {url}; unset it or put the file at {dest}")
+    check_output_file(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dest.with_name(f".{dest.name}.{os.getpid()}.part")
     try:
         req = urllib.request.Request(url, headers={"User-Agent": "panoworld-weights"})
         h, n = hashlib.sha256(), 0
-        with urllib.request.urlopen(req, timeout=timeout) as r, open(tmp, "wb") as f:
+        with urllib.request.urlopen(req, timeout=timeout) as r, atomic_output(dest) as f:
             total = int(r.headers.get("Content-Length") or 0) or size
             with tqdm(total=total, unit="B", unit_scale=True, desc=dest.name, disable=None) as bar:
                 while chunk := r.read(1 << 20):
@@ -80,18 +80,13 @@ def download_url(url: str, dest: Path, *, size: int | None = None, sha256: str |
                     h.update(chunk)
                     n += len(chunk)
                     bar.update(len(chunk))
-            f.flush()
-            os.fsync(f.fileno())
-        if total and n != total:
-            raise FetchError(f"{url}: truncated download ({n} of {total} bytes); {dest} left unchanged, run fetch again")
-        problem = check_content(n, h.hexdigest(), size, sha256)
-        if problem:
-            raise FetchError(f"{url}: {problem}; the download was discarded and {dest} left unchanged")
-        os.replace(tmp, dest)
+            if total and n != total:
+                raise FetchError(f"{url}: truncated download ({n} of {total} bytes); {dest} left unchanged, run fetch again")
+            problem = check_content(n, h.hexdigest(), size, sha256)
+            if problem:
+                raise FetchError(f"{url}: {problem}; the download was discarded and {dest} left unchanged")
     except (urllib.error.URLError, OSError, ValueError) as e:
         raise FetchError(f"{url}: download failed ({e}); check the network, or download it by hand to {dest}") from None
-    finally:
-        tmp.unlink(missing_ok=True)
     return True
 
 
@@ -190,6 +185,8 @@ def fetch_hf(hid: HfId, *, to: Path | None = None, patterns: tuple[str, ...] = (
 
 def fetch_entry(entry: WeightsEntry, *, to: Path | None = None) -> Fetched:
     """Fetch one registry entry (hub snapshot or release URLs) and return where its files are."""
+    if to is not None:
+        check_output_dir(to)
     if entry.trained:
         raise FetchError(f"{entry.name}: not downloadable, these weights are trained by this project: {entry.trained}")
     if entry.repo:

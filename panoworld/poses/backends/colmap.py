@@ -11,8 +11,7 @@ def estimate(job):
     from panoworld.poses.estimate import colmap_estimate
 
     o: ColmapOptions = job.options
-    return colmap_estimate(job.video.rgb, job.planned, render_type=o.render_type, matcher=o.matcher, sfm=o,
-                           alignment=job.align)
+    return colmap_estimate(job.video.rgb, job.planned, o, alignment=job.align)
 
 
 register("poses", "colmap", estimate, options=ColmapOptions, key="colmap", needs_plan=True, needs_baseline=True,

@@ -13,7 +13,8 @@ from pathlib import Path
 from typing import Any
 
 from panoworld.framework import pipeline as pl
-from panoworld.io import write_json, write_jsonl
+from panoworld.io.jsonio import write_json
+from panoworld.io.jsonl import write_jsonl
 from panoworld.tools.batch.executors import make_stage_executor
 from panoworld.tools.batch.variants import Variant, parse_sweeps, write_variant
 

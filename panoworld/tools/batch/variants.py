@@ -8,7 +8,7 @@ from pathlib import Path
 
 from panoworld.core.errors import PipelineError
 from panoworld.framework.pipeline import Pipeline
-from panoworld.io import read_json, write_json
+from panoworld.io.jsonio import read_json, write_json
 from panoworld.io.manifest import ARTIFACTS_DIRNAME, VARIANTS_DIRNAME
 
 VARIANT_JSON = "variant.json"

@@ -15,6 +15,7 @@ import typing
 from pathlib import Path
 
 from panoworld.conditions.warp import true_disocclusion  # noqa: F401 - re-exported API
+from panoworld.io.safe_write import check_output_file, write_text_atomic
 from panoworld.tools.eval.common import (  # noqa: F401 - re-exported API
     GT_DIRNAME,
     TARGETS,
@@ -71,6 +72,8 @@ def main(argv: list[str] | None = None) -> int:
     from panoworld.framework.stage import params_from_dict
 
     args = build_parser().parse_args(argv)
+    if args.out:
+        check_output_file(args.out)
     values = {f.name: getattr(args, f"p_{f.name}") for f in dataclasses.fields(EvalParams)}
     try:
         params = params_from_dict(EvalParams, {k: v for k, v in values.items() if v is not None}, where="eval")
@@ -95,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     text = json.dumps(report, indent=2)
     if args.out:
-        args.out.write_text(text + "\n")
+        write_text_atomic(args.out, text + "\n")
     print(text if args.json else format_table(report))
     for stage in errors:
         print(f"error: stage {stage} could not be evaluated: {report['stages'][stage]['reason']}", file=sys.stderr)

@@ -29,7 +29,7 @@ OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 def read_poses(path: Path, camera_axes: str = "opencv") -> tuple[np.ndarray, list[str] | None]:
     """(world_from_cam (N, 4, 4) with OpenCV camera axes, frame file names from a transforms.json or None)."""
-    from panoworld.trajectory import read_trajectory_file
+    from panoworld.io.trajectory import read_trajectory_file
 
     path = Path(path)
     names = None

@@ -81,7 +81,7 @@ class Evaluation:
 
     @cached_property
     def trajectory_poses(self) -> np.ndarray:
-        from panoworld.trajectory import load_trajectory
+        from panoworld.io.trajectory import load_trajectory
 
         return load_trajectory(self._need("trajectory"))
 
@@ -94,7 +94,7 @@ class Evaluation:
 
     @cached_property
     def conditions(self):
-        from panoworld.conditions.warp import load_conditions
+        from panoworld.io.conditions import load_conditions
 
         return load_conditions(self._need("conditions"))
 
@@ -150,7 +150,7 @@ class Evaluation:
         return {**out, "num_faces": int(len(mesh.faces))}
 
     def navmesh(self) -> dict:
-        from panoworld.navmesh import load_navmesh
+        from panoworld.geometry.navmesh import load_navmesh
 
         nav = load_navmesh(self._need("navmesh"))
         if self.gt.kind != "synthetic":
@@ -190,7 +190,7 @@ class Evaluation:
             info = self.manifest("trajectory").get("info") or {}
             plan.update({k: info[k] for k in ("sectors_covered", "sectors_reachable") if k in info})
         if self.artifact("navmesh") is not None:  # how far the plan gets from the capture point (roam protocol)
-            from panoworld.navmesh import load_navmesh
+            from panoworld.geometry.navmesh import load_navmesh
             from panoworld.tools.eval.roam import trajectory_reach
 
             plan.update(trajectory_reach(load_navmesh(self.artifact("navmesh")), poses))
@@ -417,9 +417,9 @@ class Evaluation:
 
     def roam(self) -> dict:
         """The roam protocol (panoworld/tools/eval/roam.py) on the gaussians and navmesh artifacts."""
+        from panoworld.geometry.navmesh import load_navmesh
         from panoworld.io.splat_ply import read_gaussians_ply
         from panoworld.io.video import load_frames
-        from panoworld.navmesh import load_navmesh
         from panoworld.tools.eval.roam import evaluate_roam
 
         g = read_gaussians_ply(self._need("gaussians") / "gaussians.ply")

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.framework.stage import Input, StageInputError, stage_main
-from panoworld.io import write_json
+from panoworld.io.jsonio import write_json
 
 NAME = "clip"
 VERSION = "2"

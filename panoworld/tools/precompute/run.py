@@ -21,7 +21,9 @@ import numpy as np
 from panoworld.core.errors import InputError
 from panoworld.framework.stage import execute_stage, input_digest, load_stage, params_to_dict, stage_key
 from panoworld.io import manifest as art
-from panoworld.io import write_json, write_jsonl
+from panoworld.io.jsonio import write_json
+from panoworld.io.jsonl import write_jsonl
+from panoworld.io.safe_write import check_output_dir
 from panoworld.tools.precompute import clip as clip_mod
 
 INDEX = "index.jsonl"
@@ -377,6 +379,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="print the summary as JSON")
     a = ap.parse_args(argv)
     try:
+        check_output_dir(a.out)
         if a.width is not None and a.width != 2 * a.height:
             raise InputError(f"--width {a.width} with --height {a.height}: ERP frames must be 2:1")
         strides = tuple(int(s) for s in a.strides.split(",") if s.strip())

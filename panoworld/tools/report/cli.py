@@ -11,6 +11,7 @@ import traceback
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from panoworld.io.safe_write import check_output_file, write_text_atomic
 from panoworld.tools.report.page import Page, Section
 
 DEFAULT_OUT = Path("artifacts") / "report" / "index.html"
@@ -67,9 +68,7 @@ def build_scene_report(scene_dir: Path, out: Path | None = None, params=None, *,
         sections = [timed(*b) for b in builders[:5]] + [splats.result()] + [timed(*b) for b in builders[6:]]
     for section in sections:
         page.add(section)
-    tmp = out.with_name(out.name + ".tmp")
-    tmp.write_text(page.render(), encoding="utf-8")
-    tmp.replace(out)
+    write_text_atomic(out, page.render())
     return out
 
 
@@ -105,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
 
     args = build_parser().parse_args(argv)
     path: Path = args.path
+    if args.out is not None:
+        check_output_file(args.out)
     if not path.is_dir():
         print(f"error: {path}: not a directory (pass a scene directory or a precompute output directory)", file=sys.stderr)
         return 2

@@ -9,7 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.io import read_json, read_jsonl
+from panoworld.io.jsonio import read_json
+from panoworld.io.jsonl import read_jsonl
+from panoworld.io.safe_write import write_text_atomic
 from panoworld.tools.report import encode as enc
 from panoworld.tools.report.page import Page, Section, figure, missing, table
 
@@ -41,7 +43,7 @@ def read_index(cond_dir: Path) -> list[dict]:
 
 def clip_strip(cond_dir: Path, row: dict, width: int) -> str:
     """Condition, mask and target of a clip's middle frame, side by side."""
-    from panoworld.conditions.warp import load_conditions
+    from panoworld.io.conditions import load_conditions
 
     cdir = cond_dir / row["path"]
     cond = load_conditions(cond_dir / row["conditions"])
@@ -105,7 +107,5 @@ def build_dataset_report(cond_dir: Path, out: Path | None = None, *, clips: int 
         page.add(Section("clips", "Sample clips (condition, mask, target)",
                          f'<p class="note">{len(picks)} of {len(rows)} clips, spread over the index</p>' + "".join(strips)))
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp")
-    tmp.write_text(page.render(), encoding="utf-8")
-    tmp.replace(out)
+    write_text_atomic(out, page.render())
     return out

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from panoworld.io import read_json
+from panoworld.io.jsonio import read_json
 from panoworld.tools.report import encode as enc
 from panoworld.tools.report.page import Section, figure, fmt, missing, table
 from panoworld.tools.report.scene import ROAM_IMAGES, ReportParams, SceneData, find_eval_json

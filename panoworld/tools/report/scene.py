@@ -13,18 +13,18 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.asset import read_asset_doc
-from panoworld.conditions.warp import load_conditions
 from panoworld.core.errors import PanoWorldError
-from panoworld.io import read_json
+from panoworld.geometry.navmesh import load_navmesh
+from panoworld.io.conditions import load_conditions
 from panoworld.io.home import capture_poses
+from panoworld.io.jsonio import read_json
 from panoworld.io.manifest import read_manifest
+from panoworld.io.trajectory import load_trajectory, read_trajectory_doc
 from panoworld.io.video import read_video_doc
-from panoworld.navmesh import load_navmesh
 from panoworld.poses.estimate import load_poses
 from panoworld.tools.report import encode as enc
 from panoworld.tools.report.page import Page, Section, figure, fmt, missing, slider, svg_figure, table
 from panoworld.tools.report.topdown import PlanView, clearance_colors, footprint_rings, mesh_from_above
-from panoworld.trajectory import load_trajectory, read_trajectory_doc
 
 ARTIFACTS = "artifacts"
 ROAM_IMAGES = "report/roam"

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from panoworld.io.safe_write import check_output_dir
 from panoworld.tools.synth.home import MAX_PANORAMAS, generate_home, home_params, write_home
 from panoworld.tools.synth.params import Preset, params_for
 from panoworld.tools.synth.rig import RigKind
@@ -50,6 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     params = params_for(args.preset, frames=args.frames)
     params = replace(params, render=replace(params.render, rig=args.rig))
     try:
+        check_output_dir(args.out_dir)
         if args.panoramas is not None:
             if args.out_dir.exists() and (not args.out_dir.is_dir() or any(args.out_dir.iterdir())):
                 ap.error(f"{args.out_dir} already exists and is not empty")

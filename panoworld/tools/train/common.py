@@ -32,7 +32,7 @@ import yaml
 
 from panoworld.core.errors import InputError
 from panoworld.framework.stage import params_from_dict, params_to_dict
-from panoworld.io.manifest import write_text_atomic
+from panoworld.io.safe_write import write_text_atomic
 
 CONFIG = "config.yaml"
 METRICS = "metrics.jsonl"

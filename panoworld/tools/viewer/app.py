@@ -11,14 +11,14 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.core.conventions import quat_wxyz_from_rotmat
-from panoworld.core.errors import PanoWorldError
+from panoworld.core.errors import InputError, PanoWorldError
+from panoworld.geometry.navmesh import load_navmesh
 from panoworld.io.depth import load_depth_artifact
 from panoworld.io.home import capture_poses
 from panoworld.io.manifest import read_manifest
+from panoworld.io.trajectory import load_trajectory
 from panoworld.io.video import read_video_doc
-from panoworld.navmesh import load_navmesh
 from panoworld.poses.estimate import load_poses
-from panoworld.trajectory import load_trajectory
 
 ARTIFACTS = "artifacts"
 
@@ -288,6 +288,37 @@ def serve_warnings(host: str, requested_port: int, served_port: int) -> list[str
     return out
 
 
+def check_bind(host: str, port: int, timeout_s: float = 1.5) -> None:
+    """Refuse, in one line and within timeout_s, a port outside 1..65535, a host that does not resolve, or an address
+    this machine cannot listen on (the server would otherwise fail in its own thread and never exit)."""
+    import socket
+    import threading
+
+    if not 1 <= port <= 65535:
+        raise InputError(f"--port {port}: expected a TCP port in 1..65535 (default {ViewerParams().port})")
+    found: list = []
+
+    def resolve() -> None:
+        try:
+            found.append(socket.getaddrinfo(host, None, type=socket.SOCK_STREAM))
+        except (OSError, UnicodeError) as e:
+            found.append(e)
+
+    worker = threading.Thread(target=resolve, daemon=True)
+    worker.start()
+    worker.join(timeout_s)
+    if not found or isinstance(found[0], Exception) or not found[0]:
+        why = "no answer in time" if not found else str(found[0])
+        raise InputError(f"--host {host}: cannot resolve it ({why}); give an address of this machine such as 127.0.0.1")
+    family, _, _, _, addr = found[0][0]
+    try:
+        with socket.socket(family, socket.SOCK_STREAM) as s:
+            s.bind((addr[0], 0))
+    except OSError as e:
+        raise InputError(f"--host {host}: cannot listen on {addr[0]} ({e.strerror}); give an address of this machine "
+                         "such as 127.0.0.1") from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python runner.py view", description=__doc__)
     ap.add_argument("scene", type=Path, help="scene directory (its artifacts/ are shown; missing stages are skipped)")
@@ -304,13 +335,18 @@ def main(argv: list[str] | None = None) -> int:
     if not (args.scene / ARTIFACTS).is_dir():
         print(f"error: {args.scene}: no artifacts/ directory (run `python runner.py run {args.scene}` first)", file=sys.stderr)
         return 2
+    params = ViewerParams(host=args.host, port=args.port, mesh_rows=args.mesh_rows, max_splats=args.max_splats)
+    check_bind(params.host, params.port)
     try:
         import viser  # noqa: F401
     except ImportError:
         print("error: the viewer needs viser: pip install -e .", file=sys.stderr)
         return 2
-    params = ViewerParams(host=args.host, port=args.port, mesh_rows=args.mesh_rows, max_splats=args.max_splats)
-    viewer = SceneViewer(args.scene, params)
+    try:
+        viewer = SceneViewer(args.scene, params)
+    except OSError as e:
+        raise InputError(f"--host {params.host} --port {params.port}: cannot serve there ({e.strerror or e}); "
+                         "give another --port or --host") from None
     for k, v in viewer.loaded.items():
         print(f"{k:<11} {v}")
     for line in serve_warnings(params.host, params.port, viewer.server.get_port()):

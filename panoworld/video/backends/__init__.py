@@ -18,7 +18,7 @@ class Job:
     """What a video backend works from."""
 
     cond: Any
-    """The conditions (panoworld.conditions.warp.load_conditions)."""
+    """The conditions (panoworld.io.conditions.load_conditions)."""
     poses: np.ndarray
     """(N, 4, 4) world_from_camera of the trajectory."""
     mesh_dir: Path | None

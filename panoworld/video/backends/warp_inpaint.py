@@ -67,8 +67,8 @@ READ_AHEAD = 4
 
 def fill(job) -> tuple:
     from panoworld.geometry.erp_mesh import load_erp_mesh
-    from panoworld.io import read_json
     from panoworld.io.home import read_home_sources
+    from panoworld.io.jsonio import read_json
     from panoworld.video import background_layer, inpaint
     from panoworld.video.home import home_background_layer
 

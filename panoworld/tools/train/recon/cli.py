@@ -8,6 +8,8 @@ import json
 import sys
 from pathlib import Path
 
+from panoworld.io.safe_write import check_output_dir
+
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
@@ -31,6 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    check_output_dir(args.out)
     from panoworld.models.weights import MissingWeightsError
     from panoworld.tools.dataset import DatasetError
     from panoworld.tools.train import common

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from panoworld.framework.stage import field_docs
+from panoworld.io.safe_write import check_output_dir
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -39,6 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     from panoworld.tools.train.video.trainer import VideoTrainer
 
     a = build_parser().parse_args(argv)
+    check_output_dir(a.out)
     try:
         cfg = resolve_config(VideoTrainConfig, PRESETS, a.preset, a.sets)
         summary = VideoTrainer(a.data, a.out, cfg, weights=a.weights, resume=a.resume, progress=not a.json).run()

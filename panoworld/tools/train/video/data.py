@@ -85,7 +85,7 @@ class ClipDataset(Dataset):
         return len(self.rows)
 
     def __getitem__(self, i: int) -> dict:
-        from panoworld.conditions.warp import load_conditions
+        from panoworld.io.conditions import load_conditions
 
         row = self.rows[i]
         try:

@@ -6,13 +6,14 @@ import heapq
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from panoworld.core.conventions import GLTF_FROM_WORLD, transform_points
+from panoworld.core.errors import NoFloorError
 from panoworld.core.shapes import check_shape
-from panoworld.navmesh.heightfield import FloorGrid, NoFloorError
-from panoworld.navmesh.polygons import (
+from panoworld.geometry.polygons import (
     cross_section,
     even_odd,
     pick_component,
@@ -52,8 +53,8 @@ class NavMesh:
     """agent_radius_m, agent_height_m, step_height_m, band_top_m used to build it."""
     info: dict = field(default_factory=dict)
     """Build facts (cell size, camera on NavMesh, timings...)."""
-    grid: FloorGrid | None = field(default=None, repr=False)
-    """The heightfield it was built from (only after build_navmesh, not stored on disk)."""
+    grid: Any = field(default=None, repr=False)
+    """The heightfield (panoworld.navmesh.FloorGrid) it was built from (only after build_navmesh, not stored on disk)."""
 
     def __post_init__(self):
         self.vertices = np.asarray(self.vertices, np.float64)

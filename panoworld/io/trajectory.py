@@ -15,8 +15,19 @@ from panoworld.core.conventions import (
     rotmat_from_quat_wxyz,
 )
 from panoworld.core.errors import InputError
-from panoworld.trajectory.common import FRAME, TRAJECTORY_JSON, TRAJECTORY_TUM, TrajectoryFileError
-from panoworld.trajectory.poses import path_indices
+
+TRAJECTORY_JSON = "trajectory.json"
+TRAJECTORY_TUM = "trajectory.tum"
+FRAME = "canonical (pose 0 = identity)"
+
+
+class TrajectoryFileError(InputError):
+    """A trajectory file cannot be read or holds no valid SE(3) poses."""
+
+
+def path_indices(path: dict) -> list[int]:
+    """Pose indices of one path of a multi-path trajectory: its predecessor (`from`, default pose 0) and [start, stop)."""
+    return ([int(path.get("from", 0))] if path["start"] > 0 else []) + list(range(path["start"], path["stop"]))
 
 
 def check_poses(poses: np.ndarray, where: str = "poses") -> np.ndarray:
