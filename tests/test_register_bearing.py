@@ -114,6 +114,19 @@ def test_largest_group_is_the_frame_and_given_poses_anchor():
 
 
 @pytest.mark.slow
+def _placed_within_tolerance_or_reported(reg, rel: dict[str, np.ndarray]) -> None:
+    """Every panorama of reg is within the synthetic tolerance of rel (ground truth in the first one's frame) or
+    reported as unregistered with a reason."""
+    for n, G in rel.items():
+        E = reg.world_from_cam.get(n)
+        if E is None:
+            assert reg.panoramas[n]["registered"] is False and reg.panoramas[n]["reason"]
+            continue
+        t_cm = np.linalg.norm(E[:3, 3] - G[:3, 3]) * 100
+        r_deg = np.degrees(np.arccos(np.clip((np.trace(G[:3, :3].T @ E[:3, :3]) - 1) / 2, -1, 1)))
+        assert t_cm <= TOL_CM and r_deg <= TOL_DEG, (n, t_cm, r_deg)
+
+
 def test_home_registers_when_layout_like_depth_disagrees_across_the_doorway(home_dir):
     """Depths cut off 2.5 m out (a door opening held as a wall, as layout depth does) fail the dense consistency check
     for every pair at the true poses; a pair still registers from its bearings within the synthetic tolerance, with
@@ -130,12 +143,43 @@ def test_home_registers_when_layout_like_depth_disagrees_across_the_doorway(home
     assert not any(p["edge"] == DEPTH for p in reg.pairs)
     assert any(p["edge"] == BEARING for p in reg.pairs)
     assert len(reg.world_from_cam) >= 2
-    for n in names:
-        E = reg.world_from_cam.get(n)
-        if E is None:
-            assert reg.panoramas[n]["registered"] is False and reg.panoramas[n]["reason"]
-            continue
-        G = rel[n]
-        t_cm = np.linalg.norm(E[:3, 3] - G[:3, 3]) * 100
-        r_deg = np.degrees(np.arccos(np.clip((np.trace(G[:3, :3].T @ E[:3, :3]) - 1) / 2, -1, 1)))
-        assert t_cm <= TOL_CM and r_deg <= TOL_DEG, (n, t_cm, r_deg)
+    _placed_within_tolerance_or_reported(reg, rel)
+
+
+
+def test_depth_that_is_only_a_floor_and_ceiling_disc_is_not_trusted_alone(home_dir, monkeypatch):
+    """One panorama's depth keeps only the floor and ceiling near the camera (the rest masked, as implausible layout
+    depth is where the camera stands outside its own room polygon): the dense consistency test passes at a wrong pose
+    (any yaw and horizontal shift keeps a floor on the floor). A depth-backed estimate at such a pose is refused where
+    the bearing-only estimate of the same images contradicts it, and the panorama is placed within the synthetic
+    tolerance or reported, never misplaced."""
+    import panoworld.register.solve as solve
+    from panoworld.register.pairwise import PairResult
+
+    gt = {n: np.asarray(T) for n, T in json.loads((home_dir / "gt" / "poses.json").read_text()).items()}
+    names = sorted(gt)  # pano_00 and pano_02 match well enough for a bearing-only estimate
+    rgbs = {n: read_panorama(home_dir / "panoramas" / f"{n}.png") for n in names}
+    depths = {n: np.load(home_dir / "depths" / f"{n}.npy").astype(np.float32) for n in names}
+    h, _ = depths[names[2]].shape
+    lat = np.abs(90.0 - (np.arange(h) + 0.5) * 180.0 / h)[:, None]
+    disc = np.where(lat > 65.0, depths[names[2]], 0.0).astype(np.float32)
+    rel = {n: invert_pose(gt[names[0]]) @ gt[n] for n in names}
+    wrong = rel[names[2]].copy()
+    wrong[:3, :3] = yaw_matrix(np.radians(5.0)) @ wrong[:3, :3]
+    wrong[:3, 3] *= 0.75
+    overlap, cons, res = consistency(wrong, depths[names[0]], disc)
+    o = RegisterOptions(height=HOME_HEIGHT)
+    assert cons >= o.min_consistency and overlap >= o.min_overlap  # the dense test alone accepts the wrong pose
+    real_pair, calls = solve.register_pair, []
+
+    def pair_at_wrong_pose(fi, fj, depth_i, depth_j, **kw):
+        calls.append(depth_j.shape == disc.shape and np.array_equal(depth_j, disc))
+        if calls == [False, True]:  # pairs run (0, 1), (0, 2), (1, 2): only (0, 2) gets the wrong pose
+            return PairResult(matches=60, inliers=40, i_from_j=wrong, overlap=overlap, consistency=cons, residual=res)
+        return real_pair(fi, fj, depth_i, depth_j, **kw)
+
+    monkeypatch.setattr(solve, "register_pair", pair_at_wrong_pose)
+    reg = register_panoramas(names, rgbs, {**depths, names[2]: disc}, options=o)
+    pair = next(p for p in reg.pairs if (p["a"], p["b"]) == (names[0], names[2]))
+    assert pair["edge"] != DEPTH and not pair["accepted"] and pair["depth_refused"], reg.pairs
+    _placed_within_tolerance_or_reported(reg, rel)

@@ -34,6 +34,16 @@ class RegisterOptions:
     ray to its epipolar plane, in ERP pixels of the resampled panorama (180 / rows degrees each)."""
     min_bearing_inliers: int = param(20, ge=5)
     """A bearing-only pair needs at least this many inliers."""
+    depth_yaw_tol_deg: float = param(2.0, gt=0)
+    """A depth-backed pose must agree with the pair's bearing-only estimate of the same matches (when that keeps
+    >= min_bearing_inliers) on the yaw within this: a dense consistency test passes trivially where one depth holds
+    little more than a floor and ceiling disc, the images do not."""
+    depth_direction_tol_deg: float = param(10.0, gt=0)
+    """... on the direction of the baseline within this (where the depth-backed baseline is longer than
+    2 max_error_m) ..."""
+    depth_scale_tol: float = param(0.1, gt=0)
+    """... and, where the bearing-only estimate is metric (>= min_scale_support), on the baseline length within this
+    fraction."""
     min_scale_support: int = param(8, ge=1)
     """A bearing-only pair is metric when at least this many of its triangulated points have depths in both views
     that agree on the scale; with fewer it only gives the direction of the baseline."""

@@ -13,7 +13,7 @@ from panoworld.register.options import RegisterOptions
 from panoworld.register.pair_select import ALL_PAIRS_UP_TO, appearance_descriptor, candidate_pairs
 from panoworld.register.pairwise import Features, PairResult, erp_features, match, register_pair
 from panoworld.register.registration import Registration
-from panoworld.register.upright import UprightPose, metric_scale, upright_relative_pose
+from panoworld.register.upright import UprightPose, metric_scale, upright_relative_pose, yaw_of
 
 
 def _bearing_pair(fi: Features, fj: Features, m: np.ndarray, rows: int, o: RegisterOptions
@@ -35,7 +35,8 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     """Register panoramas (RGB uint8 and metric ray depth (H, W) each); given poses are kept as they are (and anchor
     the others), otherwise the largest set joined together is registered in its first panorama's frame. A pair is a
     depth edge when RANSAC keeps >= min_inliers, the refined pose has >= min_consistency free-space consistency and
-    >= min_overlap overlap; otherwise a bearing edge when upright two-view geometry keeps >= min_bearing_inliers
+    >= min_overlap overlap, and the bearing-only estimate of the same matches does not contradict it (_contradiction);
+    otherwise a bearing edge when upright two-view geometry keeps >= min_bearing_inliers
     (metric when >= min_scale_support matched points' depths agree on its scale, a direction edge when not)."""
     o = options or RegisterOptions()
     given = dict(given or {})
@@ -54,14 +55,15 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                                         max_error_m=o.max_error_m, min_inliers=o.min_inliers,
                                         refine_height=o.refine_height, refine_iterations=o.refine_iterations,
                                         matches=m)
-            if not accepted(pairs[a, b], o):
-                rows = max(small[names[a]][1].shape[0], small[names[b]][1].shape[0])
-                bearing[a, b] = _bearing_pair(fa, fb, m, rows, o)
+            rows = max(small[names[a]][1].shape[0], small[names[b]][1].shape[0])
+            bearing[a, b] = _bearing_pair(fa, fb, m, rows, o)
             if progress:
                 progress(names[a], names[b], pairs[a, b])
+    refused = {ab: _contradiction(p, bearing[ab], o) for ab, p in pairs.items() if accepted(p, o)}
+    depth_ok = {ab: accepted(p, o) and not refused[ab] for ab, p in pairs.items()}
     edges = []
     for (a, b), p in pairs.items():
-        if accepted(p, o):
+        if depth_ok[a, b]:
             edges.append(Edge(a=names[a], b=names[b], a_from_b=p.i_from_j, kind=DEPTH, inliers=p.inliers,
                               info={"inliers": p.inliers, "overlap": round(p.overlap, 4),
                                     "consistency": round(p.consistency, 4), "residual": round(p.residual, 5)}))
@@ -86,8 +88,10 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     for (a, b), p in sorted(pairs.items()):
         row = {"a": names[a], "b": names[b], "matches": p.matches, "inliers": p.inliers,
                "overlap": round(p.overlap, 4), "consistency": round(p.consistency, 4),
-               "residual": None if not np.isfinite(p.residual) else round(p.residual, 5), "accepted": accepted(p, o),
+               "residual": None if not np.isfinite(p.residual) else round(p.residual, 5), "accepted": depth_ok[a, b],
                "edge": used.get((names[a], names[b]))}
+        if refused.get((a, b)):
+            row["depth_refused"] = refused[a, b]
         if (a, b) in bearing:
             pose, scale, support = bearing[a, b]
             row["bearing_inliers"] = 0 if pose is None else int(pose.inliers.sum())
@@ -96,6 +100,27 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                            scale_m=None if not np.isfinite(scale) else round(scale, 4), scale_support=support)
         rows.append(row)
     return Registration(world_from_cam=out, panoramas={n: info[n] for n in names}, pairs=rows)
+
+
+def _contradiction(p: PairResult, bearing: tuple[UprightPose | None, float, int], o: RegisterOptions) -> str:
+    """Why the images contradict an accepted depth-backed pose ('' when they do not): the bearing-only estimate of the
+    same matches, when well supported, differs in yaw, baseline direction or (where it is metric) baseline length
+    beyond the tolerances."""
+    pose, scale, support = bearing
+    if pose is None or int(pose.inliers.sum()) < o.min_bearing_inliers:
+        return ""
+    dyaw = abs(float(np.degrees((yaw_of(p.i_from_j[:3, :3]) - pose.yaw + np.pi) % (2 * np.pi) - np.pi)))
+    if dyaw > o.depth_yaw_tol_deg:
+        return f"bearing-only yaw differs by {dyaw:.1f} deg ({int(pose.inliers.sum())} inliers)"
+    t = p.i_from_j[:3, 3]
+    if np.linalg.norm(t) > 2 * o.max_error_m:
+        ang = float(np.degrees(np.arccos(np.clip(t @ pose.t / np.linalg.norm(t), -1.0, 1.0))))
+        if ang > o.depth_direction_tol_deg:
+            return f"bearing-only baseline direction differs by {ang:.1f} deg ({int(pose.inliers.sum())} inliers)"
+    if support >= o.min_scale_support and abs(np.linalg.norm(t) / scale - 1) > o.depth_scale_tol:
+        return (f"baseline {np.linalg.norm(t):.2f} m, bearing-only {scale:.2f} m from {support} points whose depths "
+                "agree")
+    return ""
 
 
 def accepted(p: PairResult, o: RegisterOptions) -> bool:
