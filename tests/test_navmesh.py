@@ -230,3 +230,18 @@ def test_stage_writes_navmesh_and_a_stationary_one_without_floor(tmp_path):
     info = json.loads((tmp_path / "nav_bad" / "manifest.json").read_text())["info"]
     assert info["no_room"]["decision"] == "stationary" and "no walkable floor" in info["no_room"]["reason"]
     assert info["camera_on_navmesh"] and info["area_m2"] < 0.01
+
+
+def test_a_floor_hundreds_of_metres_wide_is_refused_before_its_grid_is_allocated():
+    # Two floor patches 300 m apart in x and z (capture points of no one home): one line naming the extent, no 200M-cell grid.
+    from dataclasses import replace
+
+    from panoworld.core.errors import InputError
+    from panoworld.navmesh import NavMeshParams, floor_grid
+
+    quad = np.array([[0, 0, 0], [1, 0, 0], [1, 0, 1], [0, 0, 1]], float)
+    vertices = np.concatenate([quad, quad + [300.0, 0, 300.0]]) + [0, 1.5, 0]
+    faces = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    params = replace(NavMeshParams(), max_range_m=1000.0, max_erp_height=0)  # as a home sets it
+    with pytest.raises(InputError, match=r"the walkable floor spans 301 m x 301 m: a NavMesh grid of .* over the limit"):
+        floor_grid(vertices, faces, np.ones(4, bool), 1.5, params=params)

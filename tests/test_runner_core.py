@@ -111,6 +111,26 @@ def test_code_digest_ignores_docstrings_and_comments_only():
     assert digests[0] == digests[1] != digests[2]
 
 
+def test_a_run_digests_the_backend_it_uses_not_the_others():
+    # An edit to the decoder backend (or the network it loads) does not rerun voxel-fusion Gaussians, and the other
+    # way round; `auto` may pick any backend, so it digests them all.
+    from panoworld.framework.stage import load_stage, stage_code
+
+    spec = load_stage("gaussians")
+    fusion = stage_code(spec, spec.params_cls(backend="voxel-fusion"))
+    decoder = stage_code(spec, spec.params_cls(backend="decoder"))
+    assert "panoworld/gaussians/backends/voxel_fusion.py" in fusion and "panoworld/gaussians/fusion.py" in fusion
+    assert not {"panoworld/gaussians/backends/decoder.py", "panoworld/models/panovggt.py"} & set(fusion)
+    assert {"panoworld/gaussians/backends/decoder.py", "panoworld/models/panovggt.py"} <= set(decoder)
+    assert "panoworld/gaussians/backends/voxel_fusion.py" not in decoder
+    assert stage_code(spec) == stage_code(spec, None)  # no params: every backend, as before
+    assert set(fusion) | set(decoder) <= set(stage_code(spec))
+    depth = load_stage("depth")
+    auto = stage_code(depth, depth.params_cls())
+    assert depth.params_cls().backend == "auto"
+    assert {"panoworld/depth/backends/provided.py", "panoworld/depth/backends/depth_anything.py"} <= set(auto)
+
+
 def toy_cli(*args) -> subprocess.CompletedProcess:
     env = dict(os.environ, PANOWORLD_SCHEMA_PATH=str(TOY / "schemas"))
     return subprocess.run([sys.executable, str(REPO / "runner.py"), *args, "--pipeline", str(TOY / "pipeline.yaml")],

@@ -19,6 +19,9 @@ MAX_TRANSLATION_M = 1000.0
 """Largest |translation| of a user pose in metres (indoor scenes are tens of metres; the NavMesh check refines it)."""
 MAX_TRAJECTORY_BYTES = 16 * 2**20
 """Largest user trajectory file (10 000 poses as JSON at full precision take about 4 MB)."""
+MAX_FLOOR_CELLS = 40_000_000
+"""Most cells of a NavMesh floor grid (about 190 m x 190 m at 3 cm; a few bytes a cell in each of its layers): a floor
+spread wider is refused before the grid is allocated (capture points hundreds of metres apart are not one home)."""
 MAX_CONFIG_BYTES = 2**20
 """Largest scene.yaml."""
 MAX_NESTING = 32

@@ -96,9 +96,10 @@ def _find(module: str, roots: tuple[str, ...]) -> tuple[Path, Path] | None:
     return _found[key]
 
 
-def code_digests(module: str, roots: list[Path] | None = None) -> dict[str, str]:
+def code_digests(module: str, roots: list[Path] | None = None, skip: frozenset[str] = frozenset()) -> dict[str, str]:
     """{path relative to its root: digest} of `module`, its parent packages and every project module it imports,
-    transitively (imports inside functions included; dynamic `importlib` imports are not followed)."""
+    transitively (imports inside functions included; dynamic `importlib` imports are not followed); the modules named
+    in `skip` (the backends a run does not use) and what only they import are left out."""
     root_names = tuple(str(r) for r in (roots or [REPO_ROOT]))
     _load_disk_cache()
     n_before = len(_memo)
@@ -108,7 +109,7 @@ def code_digests(module: str, roots: list[Path] | None = None) -> dict[str, str]
     todo = [module]
     while todo:
         name = todo.pop()
-        if name in seen:
+        if name in seen or name in skip:
             continue
         seen.add(name)
         parts = name.split(".")

@@ -509,7 +509,7 @@ def stage_state(node: StageNode, scene: Scene, params: Any) -> tuple[bool, str]:
     except InputError as e:
         return False, f"weights missing: {e}"
     pdict = params_to_dict(params)
-    code = stage_code(node.spec)
+    code = stage_code(node.spec, params)
     key = stage_key(node.spec, params, digests, weights)
     if key == manifest["key"]:
         return True, "up to date"

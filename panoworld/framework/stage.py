@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from panoworld.core import params as P
+from panoworld.core import registry
 from panoworld.core.errors import InputError, PanoWorldError, PipelineError, from_os_error
 from panoworld.framework import code_digest
 from panoworld.framework.hub import resolve as hub
@@ -73,11 +74,29 @@ class StageSpec:
     module: types.ModuleType
 
 
-def stage_code(spec: StageSpec) -> dict[str, str]:
-    """{file: digest} of the stage module and the project modules it imports (panoworld.framework.code_digest)."""
+def stage_code(spec: StageSpec, params: Any = None) -> dict[str, str]:
+    """{file: digest} of the stage module and the project modules it imports (panoworld.framework.code_digest); with
+    params naming one backend (not auto), the stage's other backends are left out: the code this run executes."""
     mod = spec.module
     name = getattr(getattr(mod, "__spec__", None), "name", None) or mod.__name__  # `python -m` runs it as __main__
-    return code_digest.code_digests(name, code_digest.stage_roots(mod.__file__, name))
+    return code_digest.code_digests(name, code_digest.stage_roots(mod.__file__, name), unused_backends(spec, params))
+
+
+def unused_backends(spec: StageSpec, params: Any) -> frozenset[str]:
+    """Modules of the stage's registered backends other than the one `params.backend` names (none for auto, or for a
+    stage without backends). Backend modules of one stage never import each other (an import-linter contract), so
+    leaving them out of the code digest leaves out nothing the chosen backend runs."""
+    chosen = getattr(params, "backend", None)
+    if chosen is None or str(chosen) == "auto":
+        return frozenset()
+    try:
+        found = registry.backends(spec.name)
+    except ModuleNotFoundError:
+        return frozenset()
+    if str(chosen) not in found:
+        return frozenset()
+    keep = found[str(chosen)].impl.__module__
+    return frozenset(b.impl.__module__ for b in found.values()) - {keep}
 
 
 def load_stage(name_or_module: str | types.ModuleType) -> StageSpec:
@@ -247,7 +266,7 @@ def stage_key(spec: StageSpec, params: Any, input_digests: dict[str, str | None]
     """The cache key of running `spec` with these params on inputs with these digests: the one definition used by
     the runner, execute_stage and precompute (version, params hash, input digests, weights digests, code digest)."""
     return cache_key(spec.version, params_hash(params_to_dict(params)), input_digests, hub.weights_key(weights or {}),
-                     code_digest.combined(stage_code(spec)))
+                     code_digest.combined(stage_code(spec, params)))
 
 
 def resolve_stage_weights(params: Any, hints: dict | None = None, *, stage: str = "") -> dict[str, dict]:
@@ -387,7 +406,7 @@ def execute_stage(
     pdict = params_to_dict(params)
     phash = params_hash(pdict)
     weights = resolve_stage_weights(params, previous_weights(out_dir), stage=spec.name)
-    code = stage_code(spec)
+    code = stage_code(spec, params)
     key = stage_key(spec, params, input_digests, weights)
 
     out_dir.parent.mkdir(parents=True, exist_ok=True)

@@ -6,7 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from panoworld.core.errors import NoFloorError
+from panoworld.core.errors import InputError, NoFloorError
+from panoworld.core.limits import MAX_FLOOR_CELLS
 from panoworld.core.params import param
 from panoworld.core.shapes import check_shape
 
@@ -221,6 +222,11 @@ def floor_grid(
     lo = np.minimum(pts.min(axis=0), 0.0) - 2 * cell
     hi = np.maximum(pts.max(axis=0), 0.0) + 2 * cell
     nx, nz = (np.ceil((hi - lo) / cell).astype(int) + 1).tolist()
+    if nx * nz > MAX_FLOOR_CELLS:
+        ext = hi - lo
+        raise InputError(f"the walkable floor spans {ext[0]:.0f} m x {ext[1]:.0f} m: a NavMesh grid of {nx * nz:,} cells "
+                         f"of {cell} m, over the limit of {MAX_FLOOR_CELLS:,}; are the capture points (poses.json) "
+                         "of one home? Otherwise raise navmesh.cell_m")
     grid = FloorGrid(float(lo[0]), float(lo[1]), cell, *(np.zeros((nz, nx), bool) for _ in range(4)))
 
     rc = Raycaster(vertices, faces[relevant])
