@@ -41,6 +41,7 @@ sys.path.insert(0, str(REPO))
 
 import cv2
 import numpy as np
+from real_home_survey import compare_to_survey  # bench/, beside this script
 
 from panoworld.io.manifest import read_manifest
 
@@ -69,34 +70,6 @@ def survey_poses(survey: dict) -> dict[str, np.ndarray]:
         world[n] = T
     first = np.linalg.inv(world[sorted(world)[0]])
     return {n: first @ T for n, T in sorted(world.items())}
-
-
-def rot_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
-
-
-def compare_to_survey(est: dict[str, np.ndarray], survey: dict) -> dict:
-    """Pairwise figures of the registered capture points against the survey (frame-free): for every pair of
-    registered panoramas, |distance estimated - distance surveyed| (m) and the angle (deg) between the estimated and
-    surveyed relative rotations (the relative yaw error for upright panoramas). Summary: median and max of each."""
-    ref = survey_poses(survey)
-    names = sorted(n for n in est if n in ref)
-    pairs = []
-    for i, a in enumerate(names):
-        for b in names[i + 1:]:
-            d_est = float(np.linalg.norm(est[a][:3, 3] - est[b][:3, 3]))
-            d_ref = float(np.linalg.norm(ref[a][:3, 3] - ref[b][:3, 3]))
-            r_est = est[a][:3, :3].T @ est[b][:3, :3]
-            r_ref = ref[a][:3, :3].T @ ref[b][:3, :3]
-            pairs.append({"a": a, "b": b, "dist_m": d_ref, "dist_err_m": abs(d_est - d_ref),
-                          "yaw_err_deg": rot_deg(r_est.T @ r_ref)})
-    out: dict = {"pairs": pairs, "registered": names}
-    if pairs:
-        de = np.array([p["dist_err_m"] for p in pairs])
-        ye = np.array([p["yaw_err_deg"] for p in pairs])
-        out.update(dist_err_median_m=float(np.median(de)), dist_err_max_m=float(de.max()),
-                   yaw_err_median_deg=float(np.median(ye)), yaw_err_max_deg=float(ye.max()))
-    return out
 
 
 # ---------------------------------------------------------------- runs
@@ -295,8 +268,8 @@ def print_report(res: dict) -> None:
     for n, why in r["unregistered"].items():
         print(f"  unregistered {n}: {why}")
     if sv.get("pairs"):
-        print(f"pairwise distance error median / max {sv['dist_err_median_m']:.3f} / {sv['dist_err_max_m']:.3f} m; "
-              f"yaw error median / max {sv['yaw_err_median_deg']:.2f} / {sv['yaw_err_max_deg']:.2f} deg "
+        print(f"pairwise distance error median / max {sv['dist_err_m_median']:.3f} / {sv['dist_err_m_max']:.3f} m; "
+              f"yaw error median / max {sv['yaw_err_deg_median']:.2f} / {sv['yaw_err_deg_max']:.2f} deg "
               f"({len(sv['pairs'])} pairs)")
     nav = r["navmesh"]
     on = nav.get("on") or {}
