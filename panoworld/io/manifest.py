@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from panoworld.core.errors import ArtifactError
+from panoworld.io.safe_write import atomic_output
 
 MANIFEST = "manifest.json"
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -243,14 +244,9 @@ def write_manifest(tmp_dir: Path, manifest: dict, kind: str) -> None:
     """Add the checksum, validate and write the manifest last, atomically (write + fsync + rename)."""
     manifest = dict(manifest, checksum=manifest_checksum(manifest))
     validate_manifest(manifest, kind, Path(tmp_dir) / MANIFEST)
-    path = Path(tmp_dir) / MANIFEST
-    part = path.with_suffix(".json.part")
-    with open(part, "w") as f:
+    with atomic_output(Path(tmp_dir) / MANIFEST, "w") as f:
         json.dump(manifest, f, indent=2, sort_keys=True)
         f.write("\n")
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(part, path)
 
 
 def commit_dir(tmp_dir: Path, out_dir: Path) -> None:
