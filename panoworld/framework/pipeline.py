@@ -22,7 +22,7 @@ from panoworld.core import limits
 from panoworld.core.errors import InputError, PipelineError
 from panoworld.core.limits import check_image_size
 from panoworld.core.params import flatten, suggest
-from panoworld.framework import code_digest
+from panoworld.framework import code_digest, kernels
 from panoworld.framework.hub import resolve as hub
 from panoworld.framework.stage import (
     LOCK_ENV,
@@ -96,7 +96,7 @@ class Pipeline:
     def load(cls, path: Path | str | None = None) -> Pipeline:
         path = Path(path) if path else PIPELINE_FILE
         try:
-            doc = yaml.safe_load(path.read_text())
+            doc = yaml.load(path.read_text(), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))  # libyaml: ~10x faster
         except (OSError, yaml.YAMLError) as e:
             raise PipelineError(f"{path}: cannot read pipeline ({e})") from None
         stages: dict[str, StageNode] = {}
@@ -731,6 +731,7 @@ def run(
         return report
 
     blocked: set[str] = set()  # stages that failed or were skipped because of a failure
+    compiling: list = []
     fresh = not scene.artifacts.exists()
     with SceneLock(scene) as lock:
         for name in pipeline.order:
@@ -760,6 +761,8 @@ def run(
                 emit(StageResult(name, "cached", why))
                 continue
             reason = "forced" if up else why
+            if execute is None and not compiling:  # numba's cache cold: its kernels compile while earlier stages run
+                compiling = [kernels.start_background_compile()]
             code, secs, rss = (execute or _run_subprocess)(node, scene, params[name], echo)
             if code == 0:
                 try:

@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.core.errors import InputError
-from panoworld.io.depth import read_depth, read_panorama
 from panoworld.io.home import PANORAMAS_JSON
 from panoworld.io.jsonio import read_json, write_json
 from panoworld.register.inputs import REGISTRATION_JSON, find_multi_scene, read_poses
@@ -24,6 +23,7 @@ def register_scene(scene: Path, options: RegisterOptions, out_dir: Path) -> dict
     if missing:
         raise InputError(f"{Path(scene) / 'depths'}: no depth for {missing}; give depths/NAME.npy (metric ray depth, "
                          "metres) for every panorama without a pose in poses.json")
+    from panoworld.io.depth import read_depth, read_panorama  # cv2: the runner's registration_note needs neither
     from panoworld.register.solve import register_panoramas  # cv2, torch, pycolmap
 
     need_pixels = len(given) < len(ms.names)

@@ -64,10 +64,11 @@ def _start(fn, *args, **kwargs) -> Future:
 
 def _stretch(p: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Max over edges of edge length / (nearer depth x angle between the rays), faces (F, 3) into points p (V, 3)."""
+    p = np.ascontiguousarray(p, np.float64)
     depth = np.linalg.norm(p, axis=1)
     dirs = p / np.maximum(depth, 1e-12)[:, None]
     out = np.zeros(len(faces), np.float32)
-    _stretch_kernel(np.ascontiguousarray(p, np.float64), dirs, depth, np.ascontiguousarray(faces, np.int64), out)  # one signature
+    _stretch_kernel(p, dirs, depth, np.ascontiguousarray(faces, np.int64), out)  # one signature
     return out
 
 

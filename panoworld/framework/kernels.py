@@ -1,0 +1,173 @@
+"""The numba kernels a pipeline run calls, each with the one signature its stage calls it with, compiled into numba's
+on-disk cache ahead of the stages (`runner.py warmup`, or a background process the runner starts on a cold cache)."""
+
+from __future__ import annotations
+
+import argparse
+import fcntl
+import hashlib
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from panoworld.io.manifest import REPO_ROOT
+
+KERNEL_MODULES = (
+    "panoworld.render.raster_kernels", "panoworld.video.background_layer", "panoworld.gaussians.fusion_kernels",
+    "panoworld.gaussians.eig3", "panoworld.gaussians.pixel", "panoworld.render.splat_weights",
+)
+"""The modules of the kernels below, in the order of the stages that first call them."""
+STAMP = "panoworld-kernels.json"
+"""Written into the cache directory once every kernel is compiled there: its content is cache_key()."""
+LOCK = "panoworld-kernels.lock"
+"""Held by the process compiling the kernels (one at a time per cache directory)."""
+DISABLE_ENV = "PANOWORLD_PRECOMPILE"
+"""Set to 0: the runner starts no background compilation (the stages compile what they call, as numba does)."""
+
+
+def kernel_specs() -> list[tuple[str, str, str, tuple]]:
+    """(stage, module, function, argument types) of every kernel, in pipeline order (imports numba)."""
+    from numba import types as t
+
+    def a(dtype, ndim, readonly=False):
+        return t.Array(dtype, ndim, "C", readonly=readonly)
+
+    f4, f8, i4, i8, u1, u8, b1 = t.float32, t.float64, t.int32, t.int64, t.uint8, t.uint64, t.boolean
+    raster, fusion, splat = "panoworld.render.raster_kernels", "panoworld.gaussians.fusion_kernels", "panoworld.render.splat_weights"
+    return [
+        ("conditions", raster, "_vertex_pass", (a(f4, 2), a(f8, 2), i8, i8, f8, a(f4, 2))),
+        ("conditions", raster, "_raster_pass", (a(i4, 2), a(f4, 2), i8, i8, a(f8, 1), a(f8, 1), a(f8, 1), a(f8, 1), f8,
+                                                a(i8, 1), a(u8, 2), a(f4, 3))),
+        ("conditions", raster, "_resolve_shaded", (a(u8, 2), a(f4, 3), a(i4, 2), a(u1, 2), a(b1, 1), i8, a(u1, 3),
+                                                   a(f4, 2), a(b1, 2))),
+        ("video", "panoworld.video.background_layer", "_stretch_kernel", (a(f8, 2), a(f8, 2), a(f8, 1), a(i8, 2),
+                                                                          a(f4, 1))),
+        ("gaussians", fusion, "_frame_points", (a(f4, 2), a(f8, 3, True), a(f8, 2), f8, a(f8, 3), a(i8, 1), a(f8, 2))),
+        ("gaussians", fusion, "_footprints", (a(f8, 3), a(i8, 1), a(f8, 3, True), a(f8, 2), a(f8, 2), a(f8, 1),
+                                              a(f8, 1))),
+        ("gaussians", "panoworld.gaussians.eig3", "_eig3", (a(f8, 3), a(f8, 2), a(f8, 3))),
+        ("gaussians", "panoworld.gaussians.pixel", "_source_lookup", (a(f8, 2), a(f8, 2), a(f8, 2), a(f8, 1), a(f8, 1))),
+        ("gaussians", fusion, "_keys", (a(f8, 2), f8, a(i8, 1), a(i8, 2))),
+        ("gaussians", fusion, "_frame_sums", (a(i8, 1), a(i8, 1), a(i8, 2), a(f8, 2), a(f8, 2), a(f8, 3), a(f8, 1), f8,
+                                              a(i8, 1), a(f8, 1), a(f8, 2), a(i8, 1))),
+        ("gaussians", fusion, "_merge", (t.Tuple((a(i8, 1), a(f8, 1), a(f8, 2), a(i8, 1))), a(i8, 1), a(f8, 1),
+                                         a(f8, 2), a(i8, 1), a(i8, 1), a(i8, 1), a(f8, 1), a(f8, 2), a(i8, 1))),
+        ("gaussians", splat, "_tile_ranges", (a(f4, 2), a(f4, 2), i8, i8, i8, a(i8, 2))),
+        ("gaussians", splat, "_bin", (a(i8, 2), a(i8, 1), i8, i8)),
+        ("gaussians", splat, "tile_weights", (a(f4, 2), a(f4, 2), a(f4, 1), a(i8, 1), a(i8, 1), a(i8, 1), i8, i8, i8, i8,
+                                              i8, a(b1, 1))),
+        ("gaussians", splat, "weighted_sums", (a(i4, 1), a(i4, 1), a(f4, 1), a(f4, 2), i8)),
+        ("eval", raster, "_resolve_hits", (a(u8, 2), a(f4, 3), i8, a(f4, 2), a(i8, 2), a(f4, 3))),
+    ]
+
+
+def compile_kernels(progress=None) -> list[dict]:
+    """Compile every kernel of kernel_specs() (or load it from numba's cache) -> rows {stage, kernel, seconds (CPU),
+    cached (True: loaded from the on-disk cache, nothing compiled)}; progress(row) after each."""
+    import importlib
+
+    rows = []
+    for stage, module, name, sig in kernel_specs():
+        fn = getattr(importlib.import_module(module), name)
+        hits = sum(fn.stats.cache_hits.values())
+        c0 = time.process_time()
+        fn.compile(sig)
+        row = {"stage": stage, "kernel": f"{module.rsplit('.', 1)[1]}.{name}", "seconds": time.process_time() - c0,
+               "cached": sum(fn.stats.cache_hits.values()) > hits}
+        rows.append(row)
+        if progress:
+            progress(row)
+    return rows
+
+
+def cache_dir() -> Path:
+    """Where numba caches the kernels: $NUMBA_CACHE_DIR, else beside the sources (the package's __pycache__)."""
+    env = os.environ.get("NUMBA_CACHE_DIR")
+    return Path(env) if env else REPO_ROOT / "panoworld" / "__pycache__"
+
+
+def cache_key() -> str:
+    """Digest of what numba's cache of these kernels depends on: Python's version and the kernel sources' size and
+    modification time (numba's own invalidation)."""
+    parts = [sys.version]
+    for m in KERNEL_MODULES:
+        p = REPO_ROOT / (m.replace(".", "/") + ".py")
+        try:
+            st = p.stat()
+            parts.append(f"{m}:{st.st_size}:{st.st_mtime_ns}")
+        except OSError:
+            parts.append(f"{m}:missing")
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()
+
+
+def is_compiled(where: Path | None = None) -> bool:
+    """Whether every kernel was compiled into the cache directory for the current sources."""
+    try:
+        return json.loads(((where or cache_dir()) / STAMP).read_text()).get("key") == cache_key()
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def start_background_compile() -> subprocess.Popen | None:
+    """Start compiling the kernels in a background process at lower priority, unless they are compiled already, another
+    process is compiling them, or PANOWORLD_PRECOMPILE=0 -> the process (None when none was started). The lock it holds
+    is released when it exits; stages that call a kernel before it is done compile it themselves, as numba does."""
+    if os.environ.get(DISABLE_ENV) == "0" or is_compiled():
+        return None
+    where = cache_dir()
+    try:
+        where.mkdir(parents=True, exist_ok=True)
+        fd = os.open(where / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError:
+        return None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            return None  # another process is compiling them
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+        return subprocess.Popen([sys.executable, "-m", "panoworld.framework.kernels", "--locked"], cwd=REPO_ROOT, env=env,
+                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                pass_fds=(fd,))
+    except OSError:
+        return None
+    finally:
+        os.close(fd)  # the child's copy keeps the lock
+
+
+def compile_and_stamp(progress=None) -> list[dict]:
+    """compile_kernels(), then the stamp that tells later runs the cache holds them all."""
+    key = cache_key()
+    rows = compile_kernels(progress)
+    try:
+        (cache_dir() / STAMP).write_text(json.dumps({"key": key}))
+    except OSError:
+        pass
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m panoworld.framework.kernels", description=__doc__)
+    ap.add_argument("--locked", action="store_true", help="started by the runner, which passed the held lock")
+    ap.add_argument("--json", action="store_true", help="print the rows as JSON")
+    a = ap.parse_args(argv)
+    if a.locked:
+        try:
+            os.nice(5)
+        except OSError:
+            pass
+        compile_and_stamp()
+        return 0
+    rows = compile_and_stamp()
+    print(json.dumps(rows, indent=2) if a.json else "\n".join(
+        f"{r['stage']:<11} {r['kernel']:<34} {'cached' if r['cached'] else 'compiled':<9} {r['seconds']:6.2f} s CPU"
+        for r in rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

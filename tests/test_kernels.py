@@ -1,0 +1,104 @@
+"""Kernel precompilation: the listed signatures are the ones the stages call; the runner starts one background
+compilation per cold cache (none when the stamp is current, another process compiles, or it is switched off)."""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import sys
+
+import numpy as np
+import pytest
+
+from panoworld.framework import kernels
+
+
+def _listed(name: str) -> set:
+    return {tuple(sig) for _, _, fn, sig in kernels.kernel_specs() if fn == name}
+
+
+def test_listed_signatures_are_the_ones_the_renderers_call():
+    """ErpRasterizer (conditions) and the background layer's stretch (video) call their kernels with exactly the
+    listed signatures, one each (dtype casts at the entry points), whatever dtypes the caller passes."""
+    from panoworld.render import raster_kernels as rk
+    from panoworld.render.rasterize import ErpRasterizer
+    from panoworld.video import background_layer as bl
+
+    rng = np.random.default_rng(0)
+    verts = rng.normal(size=(40, 3))  # float64 and int64 in: the entry points cast
+    faces = rng.integers(0, 40, size=(60, 3))
+    r = ErpRasterizer(verts, faces, colors=np.full((40, 3), 200))
+    r.render(np.eye(4), 16, 32)
+    r.render_erp(np.eye(4), 16, 32)
+    bl._stretch(verts.astype(np.float32), faces.astype(np.int32))
+    for name, fn in [("_vertex_pass", rk._vertex_pass), ("_raster_pass", rk._raster_pass),
+                     ("_resolve_shaded", rk._resolve_shaded), ("_resolve_hits", rk._resolve_hits),
+                     ("_stretch_kernel", bl._stretch_kernel)]:
+        assert {tuple(s) for s in fn.signatures} == _listed(name), name
+
+
+def test_every_listed_kernel_exists_with_numba_cache():
+    import importlib
+
+    for _, module, name, _sig in kernels.kernel_specs():
+        assert module in kernels.KERNEL_MODULES
+        fn = getattr(importlib.import_module(module), name)
+        assert fn._cache.__class__.__name__ == "FunctionCache", f"{module}.{name} is not cache=True"
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "numba"))
+    monkeypatch.delenv(kernels.DISABLE_ENV, raising=False)
+    started = []
+
+    class FakePopen:
+        def __init__(self, cmd, **kw):
+            started.append((cmd, kw))
+
+    monkeypatch.setattr(kernels.subprocess, "Popen", FakePopen)
+    return tmp_path / "numba", started
+
+
+def test_background_compile_starts_once_per_cold_cache(cache, monkeypatch):
+    where, started = cache
+    assert not kernels.is_compiled()
+    assert kernels.start_background_compile() is not None
+    cmd, kw = started[0]
+    assert cmd[1:] == ["-m", "panoworld.framework.kernels", "--locked"] and len(kw["pass_fds"]) == 1
+    # the stamp of the current sources: nothing to do
+    (where / kernels.STAMP).write_text(json.dumps({"key": kernels.cache_key()}))
+    assert kernels.is_compiled() and kernels.start_background_compile() is None
+    # a kernel module edited since (numba's own invalidation: size and mtime): compile again
+    monkeypatch.setattr(kernels, "cache_key", lambda: "other sources")
+    assert not kernels.is_compiled() and kernels.start_background_compile() is not None
+    assert len(started) == 2
+
+
+def test_no_background_compile_while_another_runs_or_when_off(cache, monkeypatch):
+    where, started = cache
+    where.mkdir()
+    with open(where / kernels.LOCK, "w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        assert kernels.start_background_compile() is None
+    monkeypatch.setenv(kernels.DISABLE_ENV, "0")
+    assert kernels.start_background_compile() is None
+    assert started == []
+
+
+def test_cache_key_follows_python_and_sources(tmp_path, monkeypatch):
+    monkeypatch.setattr(kernels, "REPO_ROOT", tmp_path)
+    monkeypatch.setattr(kernels, "KERNEL_MODULES", ("pkg.mod",))
+    (tmp_path / "pkg").mkdir()
+    src = tmp_path / "pkg" / "mod.py"
+    src.write_text("x = 1\n")
+    k1 = kernels.cache_key()
+    assert kernels.cache_key() == k1
+    src.write_text("x = 22\n")
+    assert kernels.cache_key() != k1
+    monkeypatch.setattr(sys, "version", sys.version + " other")
+    k2 = kernels.cache_key()
+    src.write_text("x = 22\n")
+    os.utime(src, ns=(1, 1))
+    assert kernels.cache_key() != k2
