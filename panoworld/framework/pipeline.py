@@ -448,6 +448,9 @@ class Report:
     results: list[StageResult] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     """What the run did not do in full without failing: files left out, panoramas not registered."""
+    compile_process: subprocess.Popen | None = field(default=None, repr=False, compare=False)
+    """The background compilation of numba kernels this run started on a cold cache (kernels.start_background_compile;
+    None when none): it may outlive the run."""
 
     @property
     def ok(self) -> bool:
@@ -763,6 +766,7 @@ def run(
             reason = "forced" if up else why
             if execute is None and not compiling:  # numba's cache cold: its kernels compile while earlier stages run
                 compiling = [kernels.start_background_compile()]
+                report.compile_process = compiling[0]
             code, secs, rss = (execute or _run_subprocess)(node, scene, params[name], echo)
             if code == 0:
                 try:
