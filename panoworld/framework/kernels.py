@@ -59,7 +59,7 @@ def kernel_specs() -> list[tuple[str, str, str, tuple]]:
         ("gaussians", splat, "_bin", (a(i8, 2), a(i8, 1), i8, i8)),
         ("gaussians", splat, "tile_weights", (a(f4, 2), a(f4, 2), a(f4, 1), a(i8, 1), a(i8, 1), a(i8, 1), i8, i8, i8, i8,
                                               i8, a(b1, 1))),
-        ("gaussians", splat, "weighted_sums", (a(i4, 1), a(i4, 1), a(f4, 1), a(f4, 2), i8)),
+        ("eval", splat, "weighted_sums", (a(i4, 1), a(i4, 1), a(f4, 1), a(f4, 2), i8)),
         ("eval", raster, "_resolve_hits", (a(u8, 2), a(f4, 3), i8, a(f4, 2), a(i8, 2), a(f4, 3))),
     ]
 

@@ -513,7 +513,7 @@ def stage_state(node: StageNode, scene: Scene, params: Any) -> tuple[bool, str]:
         return False, f"weights missing: {e}"
     pdict = params_to_dict(params)
     code = stage_code(node.spec, params)
-    key = stage_key(node.spec, params, digests, weights)
+    key = stage_key(node.spec, params, digests, weights, code)
     if key == manifest["key"]:
         return True, "up to date"
     if manifest["stage_version"] != node.spec.version:

@@ -262,11 +262,13 @@ def cache_key(version: str, p_hash: str, input_digests: dict[str, str | None], w
     return art.json_digest(doc)
 
 
-def stage_key(spec: StageSpec, params: Any, input_digests: dict[str, str | None], weights: dict | None = None) -> str:
+def stage_key(spec: StageSpec, params: Any, input_digests: dict[str, str | None], weights: dict | None = None,
+              code: dict[str, str] | None = None) -> str:
     """The cache key of running `spec` with these params on inputs with these digests: the one definition used by
-    the runner, execute_stage and precompute (version, params hash, input digests, weights digests, code digest)."""
+    the runner, execute_stage and precompute (version, params hash, input digests, weights digests, code digest;
+    code: stage_code(spec, params) when the caller has it already)."""
     return cache_key(spec.version, params_hash(params_to_dict(params)), input_digests, hub.weights_key(weights or {}),
-                     code_digest.combined(stage_code(spec, params)))
+                     code_digest.combined(stage_code(spec, params) if code is None else code))
 
 
 def resolve_stage_weights(params: Any, hints: dict | None = None, *, stage: str = "") -> dict[str, dict]:
