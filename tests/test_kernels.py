@@ -102,3 +102,19 @@ def test_cache_key_follows_python_and_sources(tmp_path, monkeypatch):
     src.write_text("x = 22\n")
     os.utime(src, ns=(1, 1))
     assert kernels.cache_key() != k2
+
+
+def test_a_kernel_that_does_not_compile_is_reported_and_the_stamp_still_written(tmp_path, monkeypatch):
+    """A wrong listed signature must not make every later run start the compilation again."""
+    from numba import types
+
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(kernels, "kernel_specs", lambda: [
+        ("video", "panoworld.video.background_layer", "_stretch_kernel", (types.unicode_type,)),
+        ("video", "panoworld.video.no_such_module", "_k", ()),
+    ])
+    rows = kernels.compile_and_stamp()
+    assert [r["error"] is not None for r in rows] == [True, True]
+    assert "ModuleNotFoundError" in rows[1]["error"]
+    assert kernels.is_compiled()
+    assert kernels.main([]) == 1

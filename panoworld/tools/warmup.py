@@ -11,18 +11,19 @@ import time
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python runner.py warmup", description=__doc__)
     ap.parse_args(argv)
-    from panoworld.framework.kernels import cache_dir, compile_and_stamp
+    from panoworld.framework.kernels import cache_dir, compile_and_stamp, row_line
 
     print(f"warmup: compiling the numba kernels into {cache_dir()} (once per install)", file=sys.stderr, flush=True)
     t0, c0 = time.perf_counter(), time.process_time()
 
-    def row(r: dict) -> None:
-        print(f"  {r['stage']:<11} {r['kernel']:<34} {'cached' if r['cached'] else 'compiled':<9} {r['seconds']:6.2f} s CPU",
-              file=sys.stderr, flush=True)
-
-    rows = compile_and_stamp(row)
+    rows = compile_and_stamp(lambda r: print(f"  {row_line(r)}", file=sys.stderr, flush=True))
+    failed = [r["kernel"] for r in rows if r["error"]]
     print(f"warmup: {len(rows)} kernels, {sum(not r['cached'] for r in rows)} compiled, in "
           f"{time.perf_counter() - t0:.1f} s ({time.process_time() - c0:.1f} s CPU)", file=sys.stderr)
+    if failed:
+        print(f"error: warmup: {', '.join(failed)} did not compile (the stages compile them when they call them)",
+              file=sys.stderr)
+        return 1
     return 0
 
 
