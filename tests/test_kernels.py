@@ -118,3 +118,21 @@ def test_a_kernel_that_does_not_compile_is_reported_and_the_stamp_still_written(
     assert "ModuleNotFoundError" in rows[1]["error"]
     assert kernels.is_compiled()
     assert kernels.main([]) == 1
+
+
+def test_a_stage_waits_for_its_kernels_not_for_the_others(tmp_path, monkeypatch):
+    import subprocess
+
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    # a stand-in compilation: conditions done at once, then a long compile of the rest
+    proc = subprocess.Popen([sys.executable, "-c", f"import time; open({str(tmp_path / kernels.PROGRESS)!r}, 'a')"
+                             f".write('conditions\\n'); time.sleep(30)"])
+    try:
+        assert kernels.wait_for_stage(proc, "depth") == 0.0  # no kernels: never waits
+        assert kernels.wait_for_stage(proc, "conditions", poll_s=0.01) < 10
+        assert kernels.wait_for_stage(proc, "gaussians", poll_s=0.01, max_s=0.3) >= 0.3  # still compiling
+    finally:
+        proc.kill()
+        proc.wait()
+    assert kernels.wait_for_stage(proc, "gaussians") < 1  # the compilation ended: go ahead
+    assert kernels.wait_for_stage(None, "gaussians") == 0.0

@@ -24,6 +24,10 @@ STAMP = "panoworld-kernels.json"
 """Written into the cache directory once every kernel is compiled there: its content is cache_key()."""
 LOCK = "panoworld-kernels.lock"
 """Held by the process compiling the kernels (one at a time per cache directory)."""
+PROGRESS = "panoworld-kernels.progress"
+"""The background compilation appends a stage's name here once that stage's kernels are in the cache."""
+KERNEL_STAGES = ("conditions", "video", "gaussians")
+"""The pipeline stages whose kernels kernel_specs() lists, in the order they are compiled."""
 DISABLE_ENV = "PANOWORLD_PRECOMPILE"
 """Set to 0: the runner starts no background compilation (the stages compile what they call, as numba does)."""
 
@@ -118,7 +122,7 @@ def is_compiled(where: Path | None = None) -> bool:
 
 
 def start_background_compile() -> subprocess.Popen | None:
-    """Start compiling the kernels in a background process at lower priority, unless they are compiled already, another
+    """Start compiling the kernels in a background process, unless they are compiled already, another
     process is compiling them, or PANOWORLD_PRECOMPILE=0 -> the process (None when none was started). The lock it holds
     is released when it exits; stages that call a kernel before it is done compile it themselves, as numba does."""
     if os.environ.get(DISABLE_ENV) == "0" or is_compiled():
@@ -134,6 +138,7 @@ def start_background_compile() -> subprocess.Popen | None:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
             return None  # another process is compiling them
+        (where / PROGRESS).unlink(missing_ok=True)
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
         return subprocess.Popen([sys.executable, "-m", "panoworld.framework.kernels", "--locked"], cwd=REPO_ROOT, env=env,
@@ -143,6 +148,23 @@ def start_background_compile() -> subprocess.Popen | None:
         return None
     finally:
         os.close(fd)  # the child's copy keeps the lock
+
+
+def wait_for_stage(process: subprocess.Popen | None, stage: str, poll_s: float = 0.1, max_s: float = 300.0) -> float:
+    """Before `stage` runs: while the background compilation `process` is still compiling that stage's kernels, wait
+    (the stage would otherwise compile the same kernels again beside it), at most max_s -> seconds waited."""
+    if process is None or stage not in KERNEL_STAGES:
+        return 0.0
+    t0 = time.perf_counter()
+    progress = cache_dir() / PROGRESS
+    while process.poll() is None and time.perf_counter() - t0 < max_s:
+        try:
+            if stage in progress.read_text().split():
+                break
+        except OSError:
+            pass
+        time.sleep(poll_s)
+    return time.perf_counter() - t0
 
 
 def compile_and_stamp(progress=None) -> list[dict]:
@@ -162,11 +184,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
     a = ap.parse_args(argv)
     if a.locked:
-        try:
-            os.nice(5)
-        except OSError:
-            pass
-        compile_and_stamp()
+        specs = kernel_specs()
+        last = {stage: i for i, (stage, *_rest) in enumerate(specs)}
+        done = iter(range(len(specs)))
+
+        def stage_done(row: dict) -> None:
+            if next(done) == last[row["stage"]]:
+                with open(cache_dir() / PROGRESS, "a") as f:
+                    f.write(row["stage"] + "\n")
+
+        compile_and_stamp(stage_done)
         return 0
     rows = compile_and_stamp()
     print(json.dumps(rows, indent=2) if a.json else "\n".join(row_line(r) for r in rows))

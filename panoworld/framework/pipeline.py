@@ -767,6 +767,8 @@ def run(
             if execute is None and not compiling:  # numba's cache cold: its kernels compile while earlier stages run
                 compiling = [kernels.start_background_compile()]
                 report.compile_process = compiling[0]
+            if execute is None:
+                kernels.wait_for_stage(compiling[0], name)
             code, secs, rss = (execute or _run_subprocess)(node, scene, params[name], echo)
             if code == 0:
                 try:
