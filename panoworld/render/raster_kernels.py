@@ -359,27 +359,21 @@ def _add_piece(pieces, m, a, b):
     return m
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _raster_chunk(f0, f1, faces, vdata, height, width, sin_lat, cos_lat, sin_lon, cos_lon, pad_polar, zbuf, bbuf):
-    """Rasterise faces f0..f1 - 1 into one thread's buffers (compiled apart from the parfor that calls it: inlined
-    into the parfor body, _raster_face makes the parallel passes take several times its own compile)."""
-    t32 = np.empty(1, np.float32)
-    t_bits = t32.view(np.uint32)
-    pieces = np.empty((4, _MAX_PIECES), np.float64)
-    for f in range(f0, f1):
-        _raster_face(
-            f, faces[f, 0], faces[f, 1], faces[f, 2], vdata, height, width,
-            sin_lat, cos_lat, sin_lon, cos_lon, pad_polar, zbuf, bbuf, t32, t_bits, pieces,
-        )
-
-
 @njit(parallel=True, cache=True, nogil=True)
 def _raster_pass(faces, vdata, height, width, sin_lat, cos_lat, sin_lon, cos_lon, pad_polar, chunk_starts, zbufs, bbufs):
     """Rasterise all faces; chunk k of faces goes into the buffers of the thread that runs it."""
     for k in prange(len(chunk_starts) - 1):
         tid = numba.get_thread_id()
-        _raster_chunk(chunk_starts[k], chunk_starts[k + 1], faces, vdata, height, width, sin_lat, cos_lat, sin_lon,
-                      cos_lon, pad_polar, zbufs[tid], bbufs[tid])
+        zbuf = zbufs[tid]
+        bbuf = bbufs[tid]
+        t32 = np.empty(1, np.float32)
+        t_bits = t32.view(np.uint32)
+        pieces = np.empty((4, _MAX_PIECES), np.float64)
+        for f in range(chunk_starts[k], chunk_starts[k + 1]):
+            _raster_face(
+                f, faces[f, 0], faces[f, 1], faces[f, 2], vdata, height, width,
+                sin_lat, cos_lat, sin_lon, cos_lon, pad_polar, zbuf, bbuf, t32, t_bits, pieces,
+            )
 
 
 @njit(inline="always")
