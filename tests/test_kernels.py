@@ -136,3 +136,4 @@ def test_a_stage_waits_for_its_kernels_not_for_the_others(tmp_path, monkeypatch)
         proc.wait()
     assert kernels.wait_for_stage(proc, "gaussians") < 1  # the compilation ended: go ahead
     assert kernels.wait_for_stage(None, "gaussians") == 0.0
+

@@ -239,3 +239,21 @@ def test_two_runs_of_the_pipeline_give_byte_identical_artifacts(synth_scene, tmp
     assert {"navmesh/navmesh.json", "gaussians/gaussians.ply"} <= set(one)
     assert one.keys() == two.keys()
     assert [k for k in one if one[k] != two[k]] == []
+
+
+def test_code_digest_cache_keeps_what_other_processes_wrote(tmp_path, monkeypatch):
+    """Every checkout's runner and stages share ~/.cache/panoworld/code_digests.json: a process saving its digests
+    must not drop those another wrote meanwhile (a no-op would parse them all again: seconds on a busy machine)."""
+    from panoworld.framework import code_digest
+    from panoworld.io.user_cache import read_user_cache, write_user_cache
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setattr(code_digest, "_memo", {"/ours.py": (1, 2, "d1", [])})
+    monkeypatch.setattr(code_digest, "_disk_loaded", True)
+    write_user_cache(code_digest._CACHE_FILE, {"/theirs.py": [3, 4, "d2", ["x"]], "/ours.py": [0, 0, "old", []]})
+    code_digest._save_disk_cache()
+    doc = read_user_cache(code_digest._CACHE_FILE)
+    assert doc["/theirs.py"] == [3, 4, "d2", ["x"]] and doc["/ours.py"] == [1, 2, "d1", []]
+    monkeypatch.setattr(code_digest, "_CACHE_KEEP", 1)
+    code_digest._save_disk_cache()
+    assert list(read_user_cache(code_digest._CACHE_FILE)) == ["/ours.py"]  # bounded, the newest kept

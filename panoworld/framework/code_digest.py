@@ -11,6 +11,8 @@ from panoworld.io.manifest import REPO_ROOT, json_digest
 from panoworld.io.user_cache import read_user_cache, write_user_cache
 
 _CACHE_FILE = "code_digests.json"
+_CACHE_KEEP = 8192
+"""Entries kept in the user cache (every checkout on the machine shares it): the most recently written ones."""
 _memo: dict[str, tuple[int, int, str, list[str]]] = {}
 """path -> (mtime_ns, size, digest, imported module names): files are parsed again only when their stat changes."""
 _disk_loaded = False
@@ -28,7 +30,14 @@ def _load_disk_cache() -> None:
 
 
 def _save_disk_cache() -> None:
-    write_user_cache(_CACHE_FILE, _memo)
+    """Merge this process's entries into the file as it is now (other processes, stages and checkouts write it too:
+    replacing it with this process's view alone would drop what they added since, to be parsed again), newest last."""
+    try:
+        on_disk = {k: v for k, v in read_user_cache(_CACHE_FILE).items() if k not in _memo}
+    except (TypeError, AttributeError):
+        on_disk = {}
+    merged = {**on_disk, **_memo}
+    write_user_cache(_CACHE_FILE, dict(list(merged.items())[-_CACHE_KEEP:]))
 
 
 def _strip_docstrings(tree: ast.AST) -> ast.AST:
