@@ -50,8 +50,8 @@ def run_scene(scene: Path, preset: str, sets: list[str] = (), from_: str | None 
     report = pl.run(scene, preset=preset, sets=list(sets), from_=from_, on_result=on_result)
     total = time.perf_counter() - t0
     if report.compile_process is not None:  # numba's cache was cold: the runner compiled the kernels beside the stages
-        _, _, usage = os.wait4(report.compile_process.pid, 0)
-        report.compile_process.returncode = 0
+        _, status, usage = os.wait4(report.compile_process.pid, 0)
+        report.compile_process.returncode = os.waitstatus_to_exitcode(status)
         cpu = usage.ru_utime + usage.ru_stime
         print(f"  background kernel compilation (beside the stages, not in their CPU): {cpu:.1f} s CPU, waited "
               f"{time.perf_counter() - t0 - total:.1f} s for it after the run")

@@ -157,7 +157,7 @@ def wait_for_stage(process: subprocess.Popen | None, stage: str, poll_s: float =
         return 0.0
     t0 = time.perf_counter()
     progress = cache_dir() / PROGRESS
-    while process.poll() is None and time.perf_counter() - t0 < max_s:
+    while _running(process) and time.perf_counter() - t0 < max_s:
         try:
             if stage in progress.read_text().split():
                 break
@@ -165,6 +165,16 @@ def wait_for_stage(process: subprocess.Popen | None, stage: str, poll_s: float =
             pass
         time.sleep(poll_s)
     return time.perf_counter() - t0
+
+
+def _running(process: subprocess.Popen) -> bool:
+    """Whether process has not exited, without reaping it (its CPU time stays for whoever waits for it)."""
+    if process.returncode is not None:
+        return False
+    try:
+        return os.waitid(os.P_PID, process.pid, os.WEXITED | os.WNOHANG | os.WNOWAIT) is None
+    except ChildProcessError:
+        return False
 
 
 def compile_and_stamp(progress=None) -> list[dict]:
