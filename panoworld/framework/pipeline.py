@@ -767,8 +767,10 @@ def run(
             if execute is None and not compiling:  # numba's cache cold: its kernels compile while earlier stages run
                 compiling = [kernels.start_background_compile()]
                 report.compile_process = compiling[0]
-            if execute is None:
-                kernels.wait_for_stage(compiling[0], name)
+            waited = kernels.wait_for_stage(compiling[0], name) if execute is None else 0.0
+            if echo and waited >= 1.0:
+                print(f"[{name}] waited {waited:.1f} s for its numba kernels (compiled once, in the background)",
+                      file=sys.stderr, flush=True)
             code, secs, rss = (execute or _run_subprocess)(node, scene, params[name], echo)
             if code == 0:
                 try:
