@@ -4,6 +4,8 @@ so a surface gets the same colour in every frame (no weights); per-frame depth i
 from __future__ import annotations
 
 import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -63,6 +65,8 @@ class WarpOptions:
 
 READ_AHEAD = 4
 """Conditions frames decoded ahead of the fill (~8 MB each at 720x1440)."""
+FILL_AHEAD = 2
+"""Frames filled at once (threads; without reuse)."""
 
 
 def fill(job) -> tuple:
@@ -101,9 +105,23 @@ def fill(job) -> tuple:
                                     depth_fill=job.options.depth_fill)
 
     def frames():
-        for k, (rgb, mask, depth) in enumerate(cond_frames):
-            f = filler.fill(rgb, mask, depth, job.poses[k])
-            yield f.rgb, f.depth, f
+        if job.options.reuse:  # a frame reuses what the frames before it committed: one at a time, in order
+            for k, (rgb, mask, depth) in enumerate(cond_frames):
+                f = filler.fill(rgb, mask, depth, job.poses[k])
+                yield f.rgb, f.depth, f
+            return
+        # Each frame's fill is independent of the others': FILL_AHEAD frames in flight on a pool's threads (the ray
+        # casts, blurs and distance transforms release the GIL), yielded in order.
+        with ThreadPoolExecutor(max_workers=FILL_AHEAD) as pool:
+            pending: deque = deque()
+            for k, (rgb, mask, depth) in enumerate(cond_frames):
+                pending.append(pool.submit(filler.fill, rgb, mask, depth, job.poses[k]))
+                if len(pending) >= FILL_AHEAD:
+                    f = pending.popleft().result()
+                    yield f.rgb, f.depth, f
+            while pending:
+                f = pending.popleft().result()
+                yield f.rgb, f.depth, f
 
     return frames(), info
 
