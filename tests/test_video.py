@@ -217,6 +217,20 @@ def test_stage_warp_inpaint_end_to_end(upstream, tmp_path):
     assert msgs[TOPIC_RGB][2].format == "jpeg" and psnr(jpg2, cv2.imdecode(np.frombuffer(frame2, np.uint8), 1)) > 25
 
 
+def test_warp_inpaint_frames_filled_on_threads_equal_one_at_a_time(upstream, tmp_path, monkeypatch):
+    from panoworld.video.backends import warp_inpaint
+
+    outs = {}
+    for ahead in (1, 3):
+        monkeypatch.setattr(warp_inpaint, "FILL_AHEAD", ahead)
+        outs[ahead] = tmp_path / f"video{ahead}"
+        assert video_stage.main(_cli(upstream, outs[ahead], "--preview", "false", "--mcap", "false")) == 0
+    files = sorted(p.relative_to(outs[1]) for p in outs[1].rglob("*") if p.parent.name in ("frames", "depth"))
+    assert len(files) == 10  # each frame's colour and depth, in order
+    for f in files:
+        assert (outs[1] / f).read_bytes() == (outs[3] / f).read_bytes(), f
+
+
 def test_stage_lanczos_upscale_is_an_output_not_an_input_to_later_stages(upstream, tmp_path):
     out = tmp_path / "video"
     assert video_stage.main(_cli(upstream, out, "--upscale", "lanczos", "--preview", "false")) == 0
