@@ -9,6 +9,7 @@ import pytest
 
 from panoworld.core.conventions import erp_dirs, erp_pixel_solid_angle
 from panoworld.depth.rig import detect as rig
+from panoworld.depth.rig import remove as rig_remove
 from panoworld.depth.rig.base import BASE_BG_DEG, attached_legs
 from panoworld.depth.rig.face import face_polar, face_to_erp_mask, nadir_view
 from panoworld.tools.synth import generate_scene
@@ -82,7 +83,7 @@ def test_camera_base_is_found_and_removed(room, narrow):
     det = rig.detect_rig(rgb, depth, valid, floor_m)
     assert det.found and det.kind == "base", det.reason
     assert area_iou(det.mask, truth) >= 0.7, det.stats
-    out = rig.remove_rig(rgb, det)
+    out = rig_remove.remove_rig(rgb, det)
     assert np.array_equal(out[~det.mask], rgb[~det.mask])  # only the rig's pixels change
     before = abs(1 - cap_luminance(rgb) / cap_luminance(clean))
     after = abs(1 - cap_luminance(out) / cap_luminance(clean))
@@ -97,7 +98,7 @@ def test_no_base_no_change(room, narrow):
         rgb, depth = hallway(rgb, depth, floor_m)
     valid = np.isfinite(depth) & (depth > 0)
     assert not rig.detect_base(rgb, depth, valid, floor_m).found
-    out, d2, v2, info, det = rig.rig_step(rgb, depth, valid, floor_m)
+    out, d2, v2, info, det = rig_remove.rig_step(rgb, depth, valid, floor_m)
     assert not det.found and out is rgb and d2 is depth, det.reason
 
 

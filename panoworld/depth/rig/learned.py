@@ -7,17 +7,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from panoworld.depth.rig.detect import (
-    HUB_DEG,
+from panoworld.depth.rig.detect import HUB_DEG
+from panoworld.depth.rig.face import face_to_erp_mask
+from panoworld.depth.rig.nadir import (
     RigDetection,
-    _dilate,
+    dilate_rim,
     face_shadow,
     floor_source,
     nadir_face,
     no_floor_ring,
     seen_object,
 )
-from panoworld.depth.rig.face import face_to_erp_mask
 from panoworld.room.light import apply_gain
 
 THRESHOLD = 0.5
@@ -54,7 +54,7 @@ def detect_rig_learned(rgb: np.ndarray, depth: np.ndarray | None, valid: np.ndar
     face = apply_gain(nf.face, gain) if sh_deg > 0 else nf.face
     extent = float(np.percentile(nf.theta[comp], 98))
     stats.update(cap_deg=extent, face_pixels=int(comp.sum()), shadow_deg=sh_deg)
-    mask = face_to_erp_mask(_dilate(comp, nf.view), nf.view, H, W)
+    mask = face_to_erp_mask(dilate_rim(comp, nf.view), nf.view, H, W)
     shadow = face_to_erp_mask(gain > 1.0, nf.view, H, W) & ~mask
     reason = f"the rig network's mask at the nadir, {extent:.1f} deg" + (f" with a shadow ({sh_deg:.0f} deg)" if sh_deg else "")
     return RigDetection(True, reason, "learned", mask, shadow, stats, shadow_gain=gain, source=floor_source(face, nf))
