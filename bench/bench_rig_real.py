@@ -244,8 +244,9 @@ def table(rows: list[dict], controls: list[dict]) -> str:
     lines = ["| panorama | split | found | IoU | gap before | gap after | seen floor gap | gap on Gaussians | ring floor | s |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
+        gg = f"{r['gap_gaussians']:.1%}" if "gap_gaussians" in r else "-"
         lines.append(f"| {r['panorama']} | {r['split']} | {'yes' if r['found'] else 'no'} | {r['iou']:.3f} | "
-                     f"{r['gap_before']:.1%} | {r['gap_after']:.1%} | {r['gap_seen']:.1%} | {f"{r['gap_gaussians']:.1%}" if "gap_gaussians" in r else "–"} | {r['ring_floor']:.2f} | {r['seconds']:.1f} |")
+                     f"{r['gap_before']:.1%} | {r['gap_after']:.1%} | {r['gap_seen']:.1%} | {gg} | {r['ring_floor']:.2f} | {r['seconds']:.1f} |")
     for part in ("dev", "test"):
         sub = [r for r in rows if r["split"] == part]
         if sub:
