@@ -65,7 +65,7 @@ def floor_image(rgb: np.ndarray, height_m: float, *, radius_m: float, cell_m: fl
     return cv2.remap(padded, u.astype(np.float32), v.astype(np.float32), cv2.INTER_LINEAR)
 
 
-def floor_view(rgb: np.ndarray, depth: np.ndarray, *, radius_m: float = 5.0, cell_m: float = 0.02,
+def floor_view(rgb: np.ndarray, depth: np.ndarray, *, radius_m: float = 6.0, cell_m: float = 0.015,
                rig_deg: float = 32.0, max_features: int = 4000) -> FloorView | None:
     """SIFT keypoints of the floor image of an upright panorama rgb (H, 2H, 3) with ray depth (h, 2h) (camera height;
     0 = invalid). The whole lower hemisphere is projected onto the floor plane, walls included (they smear radially
@@ -122,7 +122,7 @@ def rigid2d_ransac(p: np.ndarray, q: np.ndarray, *, threshold: float, iterations
     return Rr, tr, inl
 
 
-def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.06, ratio: float = 0.85, seed: int = 0
+def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: float = 0.9, seed: int = 0
                ) -> FloorPose | None:
     """a_from_b of two floor views: ratio-test matches, 2D rigid RANSAC (threshold_m on the floor), yaw and
     horizontal translation from the fit, the vertical offset from the camera heights (one floor). None without a

@@ -52,12 +52,14 @@ class RegisterOptions:
     onto its floor plane at metric scale (camera height from its depth), SIFT on those top-down images and a 2-point
     rigid RANSAC over (x, z, yaw). Floor seen through a doorway from both sides matches where the perspective of the
     panoramas does not."""
-    floor_radius_m: float = param(5.0, gt=0)
+    floor_radius_m: float = param(6.0, gt=0)
     """The floor images cover x, z within this of the camera."""
-    floor_cell_m: float = param(0.02, gt=0)
+    floor_cell_m: float = param(0.015, gt=0)
     """Floor image pixel size (metres)."""
-    floor_threshold_m: float = param(0.06, gt=0)
+    floor_threshold_m: float = param(0.05, gt=0)
     """Floor RANSAC inlier threshold: distance on the floor between matched keypoints (metres)."""
-    min_floor_inliers: int = param(10, ge=3)
+    floor_ratio: float = param(0.9, gt=0, le=1)
+    """Lowe ratio of the floor image matches."""
+    min_floor_inliers: int = param(8, ge=3)
     """A floor pair needs at least this many inliers (and no contradiction from its bearing-only estimate, checked as
     for a depth-backed pose)."""

@@ -63,7 +63,8 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
             rows = max(small[names[a]][1].shape[0], small[names[b]][1].shape[0])
             bearing[a, b] = _bearing_pair(fa, fb, m, rows, o)
             va, vb = views[names[a]], views[names[b]]
-            floors[a, b] = None if va is None or vb is None else floor_pair(va, vb, threshold_m=o.floor_threshold_m)
+            floors[a, b] = None if va is None or vb is None else floor_pair(va, vb, threshold_m=o.floor_threshold_m,
+                                                                            ratio=o.floor_ratio)
             if progress:
                 progress(names[a], names[b], pairs[a, b])
     refused = {ab: _contradiction(p.i_from_j, bearing[ab], o) for ab, p in pairs.items() if accepted(p, o)}
