@@ -1,6 +1,6 @@
 """Floor-plane registration of upright panoramas: camera height from depth, the metric top-down floor images and the
 2-point rigid fit recover (x, z, yaw) against ground truth; unrelated floors give no supported pose; the pose graph
-joins groups by a floor edge."""
+joins groups by a floor edge, and the registration of a pair uses it."""
 
 from __future__ import annotations
 
@@ -10,6 +10,8 @@ import numpy as np
 from panoworld.core.conventions import erp_dirs, invert_pose
 from panoworld.register.floor import camera_height, floor_pair, floor_view, rigid2d_ransac
 from panoworld.register.graph import FLOOR, Edge, solve_graph
+from panoworld.register.options import RegisterOptions
+from panoworld.register.solve import register_panoramas
 from panoworld.register.upright import yaw_matrix, yaw_of
 
 H = 512
@@ -92,3 +94,15 @@ def test_floor_edge_joins_groups_in_the_pose_graph():
     assert set(poses) == {"a", "b", "c", "d"} and not info["e"]["registered"]
     assert np.allclose(poses["d"], ab @ bc @ cd)
     assert info["c"]["edge"] == FLOOR
+
+
+def test_register_panoramas_joins_a_pair_by_its_floor():
+    tex = _texture(4)
+    wa, wb = _pose(0.0, 0.0, 0.0), _pose(75.0, 1.6, 0.9)
+    (ra, da), (rb, db) = _render(wa, tex), _render(wb, tex)
+    o = RegisterOptions(min_inliers=10**6, floor_radius_m=4.0)  # no depth-backed edge: the floor must join them
+    reg = register_panoramas(["a", "b"], {"a": ra, "b": rb}, {"a": da, "b": db}, options=o)
+    assert reg.panoramas["b"]["registered"] and reg.panoramas["b"]["edge"] == FLOOR
+    truth = invert_pose(wa) @ wb
+    assert np.linalg.norm(reg.world_from_cam["b"][:3, 3] - truth[:3, 3]) < 0.03
+    assert reg.pairs[0]["floor_inliers"] >= 50
