@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from panoworld.core.conventions import erp_dirs, invert_pose, transform_points
+from panoworld.core.conventions import erp_dirs, erp_pixel_from_dir, invert_pose, transform_points
 from panoworld.gaussians.fusion import ContextSource
 from panoworld.gaussians.fusion_params import SourcePixelParams
 from panoworld.gaussians.pixel import SourceVisibility, fuse_unseen, merge_gaussians, pixel_gaussians
@@ -43,14 +43,49 @@ class SourcesVisibility:
         return np.logical_or.reduce([s.poking_through(g) for s in self.sources])
 
 
-def home_anchored_fusion(frames: ContextSource, sources: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
+def depth_from_others(k: int, names: list[str], depths: dict[str, np.ndarray], world_from_cam: dict[str, np.ndarray],
+                      *, height: int = 128) -> np.ndarray:
+    """(H, W) ray distance, from panorama names[k] (depths[names[k]] is (H, W)), of the nearest surface the other
+    panoramas see (their depth (h, w), 0 = none, as points at their poses), 0 where none: a z-buffer at `height` rows
+    (coarse, so the others' points leave no cracks between them; one-pixel gaps closed from the nearest neighbour),
+    nearest-upsampled to (H, W)."""
+    H, W = depths[names[k]].shape
+    h = min(height, H)
+    w = 2 * h
+    zbuf = np.full(h * w, np.inf)
+    cam_from_world = invert_pose(world_from_cam[names[k]])
+    for j, other in enumerate(names):
+        d = np.asarray(depths[other], np.float64)
+        ok = np.isfinite(d) & (d > 0)
+        if j == k or not ok.any():
+            continue
+        pts = erp_dirs(*d.shape, np.float64)[ok] * d[ok][:, None]
+        p = transform_points(cam_from_world @ world_from_cam[other], pts)
+        r = np.linalg.norm(p, axis=1)
+        u, v = erp_pixel_from_dir(p / np.maximum(r, 1e-12)[:, None], h, w)
+        idx = np.clip(np.floor(v).astype(int), 0, h - 1) * w + np.floor(u).astype(int) % w
+        np.minimum.at(zbuf, idx, r)
+    z = zbuf.reshape(h, w)
+    hole = ~np.isfinite(z)
+    if hole.any():
+        from scipy import ndimage
+
+        near = ndimage.minimum_filter(np.where(hole, np.inf, z), size=3, mode="wrap")
+        z = np.where(hole, near, z)
+    z = np.where(np.isfinite(z), z, 0.0)
+    rows = np.minimum((np.arange(H) + 0.5) * h / H, h - 1).astype(int)
+    cols = np.minimum((np.arange(W) + 0.5) * w / W, w - 1).astype(int)
+    return z[rows][:, cols]
+
+
+def home_anchored_fusion(frames: ContextSource | None, sources: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
                          params: SourcePixelParams, *, progress: bool = False) -> FusionResult:
     """Per-pixel Gaussians of every source {NAME: (rgb (H, W, 3), depth (H, W) metres (0 = unknown), world_from_cam)}
     at most params.source_height rows (0 = as given), a pixel kept only when no other source sees its surface from
     nearer (geometry.panoramas.nearest_source: no doubled surfaces), plus voxel fusion of what the frames see that no
     source does (SourceVisibility of each, tolerance params.source_tol) in voxels of params.unseen_voxel_size (0 =
     params.voxel_size), less those poking through a surface a source saw: source_anchored_fusion of a single panorama,
-    over several."""
+    over several. frames None: the panoramas' Gaussians alone (what the captures themselves show)."""
     names = list(sources)
     tol = params.source_tol
     small = {n: rgbd_at_height(sources[n][0], sources[n][1], params.source_height) for n in names}
@@ -66,5 +101,7 @@ def home_anchored_fusion(frames: ContextSource, sources: dict[str, tuple[np.ndar
         parts.append(pixel_gaussians(rgb, np.where(keep & (depth > 0), depth, 0.0).astype(np.float32), poses[n],
                                      pix_params))
     pix = merge_gaussians(parts)
+    if frames is None:
+        return fuse_unseen(pix, [], None, params)
     seen = SourcesVisibility([SourceVisibility(depths[n], poses[n], tol) for n in names])
     return fuse_unseen(pix, frames, seen, params, unseen_voxel_size=params.unseen_voxel_size, progress=progress)
