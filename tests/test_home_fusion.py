@@ -50,3 +50,22 @@ def test_a_home_without_frames_is_its_panoramas_gaussians():
     assert len(res.gaussians) == res.num_source > 500 and res.num_voxels == 0
     # b's Gaussians stand only where a does not see the same wall from nearer: fewer than one per pixel of each
     assert res.num_source < 2 * 32 * 64
+
+
+def test_a_surface_another_panorama_saw_through_is_dropped():
+    # b's depth holds a wall across the room 1 m in front of a (a layout's doorway line); a saw the room's far wall
+    # through it, so those points of b are seen through, b's true walls are not
+    from panoworld.core.conventions import erp_dirs, transform_points
+    from panoworld.gaussians.home import seen_through
+
+    poses = {"a": _pose(0, 0, 0), "b": _pose(0.9, 0.2, -1.1)}
+    depths = _box_depths(poses)
+    H, W = depths["b"].shape
+    dirs = erp_dirs(H, W, np.float64)
+    to_plane = (1.0 - poses["b"][2, 3]) / np.where(dirs[..., 2] > 1e-6, dirs[..., 2], np.nan)  # the plane z = 1
+    fake = np.isfinite(to_plane) & (to_plane < depths["b"]) & (np.abs(dirs[..., 1] * to_plane) < 0.8)
+    d = np.where(fake, to_plane, depths["b"])
+    pts = transform_points(poses["b"], dirs.reshape(-1, 3) * d.reshape(-1, 1))
+    got = seen_through(1, pts, ["a", "b"], {"a": depths["a"], "b": d}, poses, tol=0.1).reshape(H, W)
+    assert got[fake].mean() > 0.9 and got[~fake].mean() < 0.01
+    assert not seen_through(1, pts, ["a", "b"], {"a": np.zeros_like(depths["a"]), "b": d}, poses, tol=0.1).any()
