@@ -63,13 +63,21 @@ def _explore(nav: NavMesh, start: np.ndarray, params: TrajectoryParams) -> Plan 
         return None
 
 
+def _approach(nav: NavMesh, pts: np.ndarray, ends: np.ndarray, off: np.ndarray) -> np.ndarray:
+    """(M,) bool: the walk points pts (M, 2) off the NavMesh on the straight way between one of its ends (2, 2) and
+    the NavMesh (ends standing off it by off (2,)), exempt like an explore path's approach."""
+    near = (np.linalg.norm(pts[:, None] - ends[None], axis=2) <= off[None] + 1e-6).any(axis=1)
+    return near & ~nav.contains(pts)
+
+
 def plan_home(nav: NavMesh, captures: dict[str, np.ndarray], params: TrajectoryParams, frames: int) -> Plan:
     """About `frames` positions over the home: a frame at each capture point (exempt from the NavMesh checks, like
     pose 0 of a single panorama), then its plan_explore paths, then the walk to the next capture point on the same
     NavMesh component. Between components (floors that do not connect) there is no walk: a cut, and the next
     capture frame starts new paths, as every capture frame does. The frames after the capture frames are shared in
     proportion to path length (each explore keeps at least one per sector path). A capture point on no component
-    (none within HOME_SNAP_M) gets its capture frame only. info: paths (each with `capture` or `walk`; a path's
+    (none within HOME_SNAP_M) gets its capture frame only; one off the NavMesh but within HOME_SNAP_M walks
+    straight onto it (those poses exempt, like an explore path's approach). info: paths (each with `capture` or `walk`; a path's
     `from` is a pose of its own component, or its own start), capture_frames {NAME: index}, components {NAME:
     component or None}, cuts [[NAME, NAME]], camera_y (per frame: the height of the capture point the frame belongs
     to, walks interpolate)."""
@@ -80,6 +88,7 @@ def plan_home(nav: NavMesh, captures: dict[str, np.ndarray], params: TrajectoryP
     # walks keep the explore paths' margin to the edge
     plan_nav = planning_mesh(nav, xz[comp >= 0] if (comp >= 0).any() else xz[:1], params.plan_margin_m)
     order, walks = visit_order(plan_nav, xz, comp)
+    off = np.array([planning_hub(plan_nav, p)[1] for p in xz])
     plans = {k: _explore(nav, xz[k], params) if comp[k] >= 0 else None for k in order}
     walks = {i: smooth_polyline(plan_nav, w, closed=False, iterations=params.smooth_iterations) for i, w in walks.items()}
     lengths = [_explore_length(plans[k]) for k in order] + [polyline_length(w) for w in walks.values()]
@@ -106,7 +115,9 @@ def plan_home(nav: NavMesh, captures: dict[str, np.ndarray], params: TrajectoryP
         if i in walks:
             b, n = order[i + 1], walk_frames[i]
             start = sum(len(p) for p in positions)
-            positions.append(resample_polyline(walks[i], n + 2)[1:-1])
+            pts = resample_polyline(walks[i], n + 2)[1:-1]
+            positions.append(pts)
+            exempt += [start + int(j) for j in np.flatnonzero(_approach(nav, pts, xz[[k, b]], off[[k, b]]))]
             cam_y.append(np.linspace(ys[k], ys[b], n + 2)[1:-1])
             paths.append({"walk": [names[k], names[b]], "start": start, "stop": start + n, "from": c})
             arrived.add(i + 1)
