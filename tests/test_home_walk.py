@@ -44,11 +44,15 @@ def two_rooms(door: bool) -> trimesh.Trimesh:
     return trimesh.util.concatenate(parts)
 
 
-def _home(door: bool):
+def _home(door: bool, rig_deg: float = 0.0):
+    """The fused mesh of the two rooms seen from CAPTURES, and the capture poses; rig_deg > 0: no depth within that
+    angle of each panorama's nadir (the capture rig)."""
     gt = two_rooms(door)
     rc = Raycaster(gt.vertices, gt.faces)
     poses = {n: pose_from_rt(np.eye(3), np.array([x, 0.0, z])) for n, (x, z) in CAPTURES.items()}
     depths = {n: rc.render_erp(T, HEIGHT, 2 * HEIGHT).distance.astype(np.float32) for n, T in poses.items()}
+    for d in depths.values():
+        d[HEIGHT - int(np.ceil(rig_deg / 180 * HEIGHT)):] = 0.0
     rgbs = {n: np.full((HEIGHT, 2 * HEIGHT, 3), 128, np.uint8) for n in poses}
     mesh, _ = fuse_meshes(list(poses), rgbs, depths, poses, stride=1)
     return mesh, poses
@@ -74,6 +78,16 @@ def test_navmesh_holds_every_capture_point_in_one_component_per_floor(closed_hom
     assert not nav.contains(np.array([[0.0, 0.0]]))[0]
     with pytest.raises(ValueError, match="no path"):
         nav.path(np.array(CAPTURES["a"]), np.array(CAPTURES["b"]))
+
+
+def test_the_rig_blind_spot_under_every_capture_point_is_floor():
+    """a stands alone in its room: nobody else sees the floor under its rig; it is assumed floor as for one panorama."""
+    mesh, poses = _home(door=False, rig_deg=25.0)
+    nav, on = home_navmesh(mesh, poses)
+    assert on["a"] and on["b"], on
+    assumed = nav.info["assumed_walkable"]
+    assert 1.0 < assumed["blind_spot_m2"] < 2.5 and assumed["blind_spot_radius_m"] < 1.0, assumed
+    assert nav.clearance(np.array([CAPTURES["a"]]))[0] > 0.5
 
 
 def test_connected_home_stays_one_component():

@@ -53,7 +53,8 @@ def build_navmesh(
     floor_y, floor_area = estimate_floor_y(vertices, faces, face_valid, params=params)
     timings["floor_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    grid = floor_grid(vertices, faces, face_valid, floor_y, params=params)
+    cams = np.asarray(camera_xz, np.float64).reshape(-1, 2)
+    grid = floor_grid(vertices, faces, face_valid, floor_y, params=params, camera_xz=cams)
     timings["heightfield_s"] = time.perf_counter() - t
     if not grid.free.any():
         raise NoFloorError(
@@ -64,7 +65,6 @@ def build_navmesh(
     rings = polygons_from_mask(grid.free, grid, tol)
     if not rings:
         raise NoFloorError("the eroded walkable floor has no polygon")
-    cams = np.asarray(camera_xz, np.float64).reshape(-1, 2)
     comp_rings, on_mesh, cam_dist = pick_components(cross_section(rings), cams, snap_m)
     timings["polygons_s"] = time.perf_counter() - t
     t = time.perf_counter()
