@@ -116,10 +116,13 @@ def estimate_floor_y(
     Raises NoFloorError when there is not enough horizontal area below the camera.
     """
     face_valid = check_mesh(vertices, faces, face_valid)
+    # Only faces with a vertex more than MIN_CAMERA_HEIGHT_M below the camera can have their centroid there (a fused
+    # home holds millions of faces: the geometry of the rest is never computed).
+    below = np.flatnonzero(face_valid & (np.asarray(vertices)[:, 1][faces].max(axis=1) > MIN_CAMERA_HEIGHT_M))
+    faces = faces[below]
     cen, area, ny = _face_geometry(vertices, faces)
     cand = (
-        face_valid
-        & (ny >= np.cos(np.deg2rad(params.max_slope_deg)))
+        (ny >= np.cos(np.deg2rad(params.max_slope_deg)))
         & (cen[:, 1] > MIN_CAMERA_HEIGHT_M)
         & (np.hypot(cen[:, 0], cen[:, 2]) <= params.max_range_m)
         & np.isfinite(cen).all(axis=1)
