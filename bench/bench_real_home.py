@@ -7,7 +7,7 @@ SCENE is a home (docs/multi.md: panoramas/, depths/); it is copied to --work (de
 ../scratch/bench_real_home/NAME) and `runner.py run` runs on the copy at the default preset with no flags and no
 poses.json. Reported: registered count and each unregistered panorama's reason; pairwise capture-point distance
 error and relative yaw error against the survey (compare_to_survey); the NavMesh (area, which capture points stand
-on it: the home NavMesh is one connected component grown from the first capture point), the nearest mesh vertex to
+on it, its connected components and the capture points of each; the trajectory's cuts between them), the nearest mesh vertex to
 each capture point; the Gaussian scene rendered at each capture pose against that panorama (PSNR, SSIM, coverage =
 share of pixels with alpha > 0.5, at --height rows); per-stage wall seconds and peak memory from the runner's report.
 
@@ -205,7 +205,12 @@ def measure_home(scene: Path, survey: dict, height: int, sets: list[str] = ()) -
     row["register_info"] = {k: v for k, v in reg.items() if not isinstance(v, (dict, list))}
     row["survey"] = compare_to_survey(poses, survey)
     nav = manifest_info(scene, "navmesh")
-    row["navmesh"] = {"area_m2": nav.get("area_m2"), "on": nav.get("capture_points_on_navmesh")}
+    row["navmesh"] = {"area_m2": nav.get("area_m2"), "on": nav.get("capture_points_on_navmesh"),
+                      "components": nav.get("components")}
+    traj = manifest_info(scene, "trajectory")
+    plan = traj.get("plan") or {}
+    row["trajectory"] = {"frames": traj.get("frames"), "invalid_poses": len(traj.get("invalid_poses") or []),
+                         "cuts": plan.get("cuts"), "unreached": plan.get("unreached_captures")}
     depth = manifest_info(scene, "depth")
     row["plausibility"] = {n: (i.get("plausibility") or {}) for n, i in
                            (depth.get("home", {}).get("panoramas", {}) or {}).items()}
@@ -308,9 +313,16 @@ def print_report(res: dict) -> None:
               f"({len(sv['pairs'])} pairs)")
     nav = r["navmesh"]
     on = nav.get("on") or {}
-    print(f"NavMesh {fmt(nav.get('area_m2'), '.1f')} m^2; capture points on it (one connected component): "
+    comps = nav.get("components") or []
+    print(f"NavMesh {fmt(nav.get('area_m2'), '.1f')} m^2 in {len(comps)} component(s); capture points on it: "
           f"{sum(bool(v) for v in on.values())} of {len(on)}" + (f" (off: {', '.join(n for n, v in on.items() if not v)})"
                                                                  if on and not all(on.values()) else ""))
+    for k, c in enumerate(comps):
+        print(f"  component {k}: {fmt(c.get('area_m2'), '.1f')} m^2, capture points {', '.join(c['capture_points']) or '-'}")
+    tr = r.get("trajectory") or {}
+    if tr.get("frames") is not None:
+        print(f"trajectory {tr['frames']} frames, {tr['invalid_poses']} invalid poses; cuts between floors: "
+              f"{', '.join(' -> '.join(c) for c in tr.get('cuts') or []) or 'none'}")
     print("\n| panorama | PSNR dB (cleaned) | SSIM | coverage | PSNR dB (input) | nearest mesh vertex m | masked "
           "implausible | room floor m^2 (walls) |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- |")
