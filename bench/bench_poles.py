@@ -97,7 +97,7 @@ def main() -> int:
     import cv2
     import torch
 
-    from panoworld.io.video import load_frames
+    from panoworld.io.video import load_frames, read_video_doc
     from panoworld.render.erp import render_erp
     from panoworld.tools.eval.groundtruth import open_ground_truth
     from panoworld.trajectory import poses_from_positions
@@ -127,7 +127,7 @@ def main() -> int:
         if a.yaw == 0.0:
             pano = next(p for p in (scene / f"panorama.{e}" for e in ("png", "jpg")) if p.is_file())
             report(scene, "input panorama", cv2.resize(load_frames([pano])[0], (2 * H, H), interpolation=cv2.INTER_AREA), ref)
-            f0 = sorted((scene / ARTIFACTS / "video" / "frames").glob("*.png"))[0]
+            f0 = read_video_doc(scene / ARTIFACTS / "video").rgb[0]
             report(scene, "video frame 0", cv2.resize(load_frames([f0])[0], (2 * H, H), interpolation=cv2.INTER_AREA), ref)
         for name in a.variant:
             v = parse_variant(name) if "=" in name else {}

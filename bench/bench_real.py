@@ -162,7 +162,7 @@ def nadir_row(scene: Path, depth_info: dict) -> dict:
     import cv2
 
     from panoworld.depth.depth_map import resize_panorama
-    from panoworld.depth.rig.detect import nadir_luminance_gap
+    from panoworld.depth.rig.remove import nadir_luminance_gap
     from panoworld.io.depth import read_panorama
 
     rig = depth_info.get("rig") or {}
@@ -184,7 +184,8 @@ def nadir_row(scene: Path, depth_info: dict) -> dict:
 def nadir_only(paths: list[Path]) -> list[dict]:
     """RGB-only panoramas (no depth, so no pipeline without weights): rig detection and removal on the colour alone."""
     from panoworld.depth.depth_map import resize_panorama
-    from panoworld.depth.rig.detect import area_stats, detect_rig, nadir_luminance_gap, remove_rig
+    from panoworld.depth.rig.detect import detect_rig
+    from panoworld.depth.rig.remove import area_stats, nadir_luminance_gap, remove_rig
     from panoworld.io.depth import read_panorama
 
     rows = []

@@ -1,13 +1,13 @@
 """A real home captured as several panoramas, run as a user would (no flags), measured against its survey.
 
     python bench/bench_real_home.py SCENE --survey survey.json [--json F] [--work DIR] [--survey-poses]
-                                    [--loo | --loo-only NAME ...] [--height 256]
+                                    [--loo | --loo-only NAME ...] [--loo-build captures|full] [--height 256]
 
 SCENE is a home (docs/multi.md: panoramas/, depths/); it is copied to --work (default
 ../scratch/bench_real_home/NAME) and `runner.py run` runs on the copy at the default preset with no flags and no
 poses.json. Reported: registered count and each unregistered panorama's reason; pairwise capture-point distance
 error and relative yaw error against the survey (compare_to_survey); the NavMesh (area, which capture points stand
-on it: the home NavMesh is one connected component grown from the first capture point), the nearest mesh vertex to
+on it, its connected components and the capture points of each; the trajectory's cuts between them), the nearest mesh vertex to
 each capture point; the Gaussian scene rendered at each capture pose against that panorama (PSNR, SSIM, coverage =
 share of pixels with alpha > 0.5, at --height rows); per-stage wall seconds and peak memory from the runner's report.
 
@@ -20,7 +20,17 @@ override, e.g. trajectory.on_invalid=report where rooms whose floors do not conn
 panorama (its panorama, depth and pose removed) and rendered at the panorama's pose as registered with all of them
 (the full run's, mapped into the reduced run's world frame through the common capture point nearest to it), against
 the real panorama: PSNR, SSIM and coverage over the sphere and split into the pixels another panorama sees (seen:
-the others' cleaned depth explains the left-out panorama's surface) and the rest (unseen). One home build each.
+the others' cleaned depth explains the left-out panorama's surface) and the rest (unseen).
+
+--loo-build picks what "built without that panorama" means (the table header says which):
+  captures (default, seconds each): the Gaussians of the other panoramas alone (gaussians.home.home_anchored_fusion
+    with no frames, the stage's default settings), from the full run's depth artifact (each panorama's depth is
+    cleaned on its own, so it does not depend on the left-out one) with the doorway lines through the other capture
+    points dropped (drop_near_captures without the left-out one), at the full run's poses (no alignment needed). No
+    generated frames: they come from walks through every capture point, so the full run's would show the left-out
+    panorama; without them the unseen split's coverage is what the other captures cover.
+  full (one whole home build each, ~8 min of CPU on east): `runner.py run` on a copy without the panorama, rendered
+    at its pose mapped into that run's world frame through the common capture point nearest to it.
 
 The survey (ZInD, zind_home/SOURCE.md) is read here only: never by the pipeline.
 """
@@ -195,7 +205,12 @@ def measure_home(scene: Path, survey: dict, height: int, sets: list[str] = ()) -
     row["register_info"] = {k: v for k, v in reg.items() if not isinstance(v, (dict, list))}
     row["survey"] = compare_to_survey(poses, survey)
     nav = manifest_info(scene, "navmesh")
-    row["navmesh"] = {"area_m2": nav.get("area_m2"), "on": nav.get("capture_points_on_navmesh")}
+    row["navmesh"] = {"area_m2": nav.get("area_m2"), "on": nav.get("capture_points_on_navmesh"),
+                      "components": nav.get("components")}
+    traj = manifest_info(scene, "trajectory")
+    plan = traj.get("plan") or {}
+    row["trajectory"] = {"frames": traj.get("frames"), "invalid_poses": len(traj.get("invalid_poses") or []),
+                         "cuts": plan.get("cuts"), "unreached": plan.get("unreached_captures")}
     depth = manifest_info(scene, "depth")
     row["plausibility"] = {n: (i.get("plausibility") or {}) for n, i in
                            (depth.get("home", {}).get("panoramas", {}) or {}).items()}
@@ -216,9 +231,34 @@ def measure_home(scene: Path, survey: dict, height: int, sets: list[str] = ()) -
     return row
 
 
+def leave_one_out_captures(full: Path, name: str, height: int) -> dict:
+    """The other panoramas' Gaussians (--loo-build captures), rendered at `name`'s pose registered with all of them."""
+    from panoworld.gaussians.backends.voxel_fusion import VoxelFusionOptions
+    from panoworld.gaussians.home import home_anchored_fusion
+    from panoworld.io.home import capture_poses, home_depth_dirs, load_sources
+    from panoworld.room.plausible import drop_near_captures
+
+    full_poses = capture_poses(full / "artifacts" / "register")
+    if name not in full_poses:
+        return {"name": name, "skipped": "not registered in the full run"}
+    t0, c0 = time.perf_counter(), time.process_time()
+    others = {n: T for n, T in full_poses.items() if n != name}
+    names, rgbs, depths = load_sources(home_depth_dirs(full / "artifacts" / "depth"), full_poses)
+    drop_near_captures({n: depths[n] for n in others}, others)
+    g = home_anchored_fusion(None, {n: (rgbs[n], depths[n], others[n]) for n in names if n != name},
+                             VoxelFusionOptions()).gaussians
+    _, full_depths = home_sources(full, full_poses)
+    seen = seen_by_others(name, full_poses, full_depths, height)
+    out = {"name": name, "build": "captures", "registered": len(others), "num_gaussians": len(g)}
+    out.update(render_scores(g, full_poses[name], rgbs[name], height, seen))
+    out.update(wall_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0)
+    return out
+
+
 def leave_one_out(src: Path, work: Path, full: Path, name: str, survey_mode: dict | None, height: int,
                   sets: list[str] = ()) -> dict:
-    """The home built without `name`, rendered at its pose registered with all of them (the full run's)."""
+    """The home built without `name` (--loo-build full), rendered at its pose registered with all of them (the full
+    run's)."""
     from panoworld.io.depth import read_panorama
     from panoworld.io.home import capture_poses
     from panoworld.io.splat_ply import read_gaussians_ply
@@ -228,7 +268,7 @@ def leave_one_out(src: Path, work: Path, full: Path, name: str, survey_mode: dic
         return {"name": name, "skipped": "not registered in the full run"}
     scene = copy_home(src, work / f"loo_{name}", leave_out=name, poses=survey_mode)
     run = run_home(scene, sets)
-    out: dict = {"name": name, "rc": run["rc"], "wall_s": run["wall_s"]}
+    out: dict = {"name": name, "build": "full", "rc": run["rc"], "wall_s": run["wall_s"]}
     if run["rc"] != 0 or not (scene / "artifacts" / "gaussians" / "gaussians.ply").is_file():
         out["stderr_tail"] = run["stderr_tail"]
         return out
@@ -273,9 +313,16 @@ def print_report(res: dict) -> None:
               f"({len(sv['pairs'])} pairs)")
     nav = r["navmesh"]
     on = nav.get("on") or {}
-    print(f"NavMesh {fmt(nav.get('area_m2'), '.1f')} m^2; capture points on it (one connected component): "
+    comps = nav.get("components") or []
+    print(f"NavMesh {fmt(nav.get('area_m2'), '.1f')} m^2 in {len(comps)} component(s); capture points on it: "
           f"{sum(bool(v) for v in on.values())} of {len(on)}" + (f" (off: {', '.join(n for n, v in on.items() if not v)})"
                                                                  if on and not all(on.values()) else ""))
+    for k, c in enumerate(comps):
+        print(f"  component {k}: {fmt(c.get('area_m2'), '.1f')} m^2, capture points {', '.join(c['capture_points']) or '-'}")
+    tr = r.get("trajectory") or {}
+    if tr.get("frames") is not None:
+        print(f"trajectory {tr['frames']} frames, {tr['invalid_poses']} invalid poses; cuts between floors: "
+              f"{', '.join(' -> '.join(c) for c in tr.get('cuts') or []) or 'none'}")
     print("\n| panorama | PSNR dB (cleaned) | SSIM | coverage | PSNR dB (input) | nearest mesh vertex m | masked "
           "implausible | room floor m^2 (walls) |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- |")
@@ -292,7 +339,9 @@ def print_report(res: dict) -> None:
         print(f"| {st} | {s['action']} | {fmt(s['seconds'], '.1f')} | {fmt(s.get('cpu_s'), '.1f')} | "
               f"{fmt(s['peak_rss_mb'], '.0f')} |")
     if res.get("loo"):
-        print("\nleave-one-out novel views (the home without the panorama, rendered at its pose):\n")
+        how = {"captures": "the other panoramas' Gaussians alone, no generated frames (--loo-build captures)",
+               "full": "the whole home built again without it (--loo-build full)"}[res["loo_build"]]
+        print(f"\nleave-one-out novel views, rendered at the left-out panorama's pose against it: {how}\n")
         print("| panorama | PSNR dB | SSIM | coverage | seen share | seen PSNR / SSIM / cov | unseen PSNR / SSIM / cov "
               "| build s |")
         print("| --- | --- | --- | --- | --- | --- | --- | --- |")
@@ -317,6 +366,8 @@ def main(argv: list[str] | None = None) -> int:
                     "(development of the stages after registration; labelled in the output)")
     ap.add_argument("--loo", action="store_true", help="leave-one-out novel views for every panorama")
     ap.add_argument("--loo-only", nargs="+", metavar="NAME", help="leave-one-out for these panoramas only")
+    ap.add_argument("--loo-build", choices=("captures", "full"), default="captures",
+                    help="captures: the other panoramas' Gaussians alone (seconds); full: a whole home build each")
     ap.add_argument("--skip-full", action="store_true", help="reuse the full run already in --work (no rerun)")
     ap.add_argument("--height", type=int, default=256, help="ERP rows of the renders and references")
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="STAGE.PARAM=VALUE",
@@ -334,10 +385,12 @@ def main(argv: list[str] | None = None) -> int:
     if not args.skip_full:
         copy_home(src, full, poses=poses)
     home = measure_home(full, survey, args.height, args.sets)
-    res = {"scene": src.name, "survey_poses": bool(args.survey_poses), "sets": args.sets, "home": home, "loo": []}
+    res = {"scene": src.name, "survey_poses": bool(args.survey_poses), "sets": args.sets, "home": home, "loo": [],
+           "loo_build": args.loo_build}
     names = sorted(home["registered"]) if args.loo else (args.loo_only or [])
     for n in names:
-        res["loo"].append(leave_one_out(src, work, full, n, poses, args.height, args.sets))
+        res["loo"].append(leave_one_out_captures(full, n, args.height) if args.loo_build == "captures" else
+                          leave_one_out(src, work, full, n, poses, args.height, args.sets))
         print(json.dumps(res["loo"][-1])[:400], file=sys.stderr)
     print_report(res)
     if args.json:

@@ -40,7 +40,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from panoworld.depth.rig import detect as rig
-from panoworld.depth.rig.detect import nadir_cap_psnr
+from panoworld.depth.rig import nadir as rig_nadir
+from panoworld.depth.rig import remove as rig_remove
+from panoworld.depth.rig.remove import nadir_cap_psnr
 from panoworld.tools.synth import generate_scene
 from panoworld.tools.synth.rig import FloorObject, RigKind, render_with_rig, with_floor_object
 
@@ -73,13 +75,13 @@ def one(scene, kind, height: int, cache: Path | None = None, oracle: Path | None
     valid = np.isfinite(depth) & (depth > 0)
     t0 = time.perf_counter()
     det = rig.detect_rig(rgb, depth, valid, scene.tracks[0].camera_height)
-    out = rig.remove_rig(rgb, det) if det.found else rgb
+    out = rig_remove.remove_rig(rgb, det) if det.found else rgb
     sec = time.perf_counter() - t0
     row = {"case": str(kind), "found": det.found, "kind": det.kind, "reason": det.reason, "seconds": sec,
-           "identical": bool(np.array_equal(out, rgb)), "gap_before": rig.nadir_luminance_gap(rgb),
-           "gap_after": rig.nadir_luminance_gap(out)}
+           "identical": bool(np.array_equal(out, rgb)), "gap_before": rig_remove.nadir_luminance_gap(rgb),
+           "gap_after": rig_remove.nadir_luminance_gap(out)}
     if det.found:
-        a = rig.area_stats(det.mask)
+        a = rig_remove.area_stats(det.mask)
         row.update(cap_deg=a["cap_deg"], sphere_fraction=a["sphere_fraction"])
     if true_mask.any():
         m = det.mask if det.found else np.zeros_like(true_mask)
@@ -133,8 +135,8 @@ def true_relight(scene, rgb: np.ndarray, depth: np.ndarray, light: np.ndarray | 
     gain = np.ones((view.size, view.size), np.float32)
     if light is not None:
         gain = 1.0 / np.maximum(render_view(light.astype(np.float32), view), 1e-3)
-    nf = rig.nadir_face(rgb, depth, np.isfinite(depth) & (depth > 0), scene.tracks[0].camera_height)
-    source = rig.floor_source(apply_gain(nf.face, gain), nf) & ~erp_mask_to_face(mask, view)
+    nf = rig_nadir.nadir_face(rgb, depth, np.isfinite(depth) & (depth > 0), scene.tracks[0].camera_height)
+    source = rig_nadir.floor_source(apply_gain(nf.face, gain), nf) & ~erp_mask_to_face(mask, view)
     return nf, gain, source, face_to_erp_mask(gain > 1.0, view, H, W) & ~mask
 
 
@@ -145,9 +147,9 @@ def oracle_detection(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.
 
     view = nadir_view(rgb.shape[0])
     mask, light = true_rig(scene, kind, rgb, depth, clean)
-    mask |= face_to_erp_mask(rig._dilate(erp_mask_to_face(mask, view), view), view, *rgb.shape[:2])
+    mask |= face_to_erp_mask(rig_nadir.dilate_rim(erp_mask_to_face(mask, view), view), view, *rgb.shape[:2])
     _, gain, source, shadow = true_relight(scene, rgb, depth, light, mask)
-    return rig.RigDetection(True, "oracle", "legs", mask, shadow, shadow_gain=None if light is None else gain,
+    return rig_nadir.RigDetection(True, "oracle", "legs", mask, shadow, shadow_gain=None if light is None else gain,
                             source=source)
 
 
@@ -161,7 +163,7 @@ def mask_split(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarra
     m = det.mask if det.found else np.zeros_like(truth)
     shadow = det.shadow & ~truth if det.found else np.zeros_like(truth)
     return {"missed_share": error_split(out, clean, truth & ~m)["under_share"],
-            "psnr_true_mask": nadir_cap_psnr(rig.remove_rig(rgb, replace(det, found=True, mask=truth, shadow=shadow)), clean)}
+            "psnr_true_mask": nadir_cap_psnr(rig_remove.remove_rig(rgb, replace(det, found=True, mask=truth, shadow=shadow)), clean)}
 
 
 LIGHT_BANDS_DEG = (0.0, 5.0, 10.0, 15.0, 20.0, 30.0)
@@ -185,7 +187,7 @@ def relight_oracle(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.nd
     view = nadir_view(rgb.shape[0])
     nf, gain, source, shadow = true_relight(scene, rgb, depth, true_light(scene, kind, depth), det.mask)
     fmask = erp_mask_to_face(det.mask, view)
-    out = rig.remove_rig(rgb, replace(det, shadow_gain=gain, shadow=shadow, source=source))
+    out = rig_remove.remove_rig(rgb, replace(det, shadow_gain=gain, shadow=shadow, source=source))
     row = {"psnr_true_light": nadir_cap_psnr(out, clean), "shadow_sectors": f"{det.stats.get('shadow_sectors', '-')}, "
            f"{det.stats.get('shadow_even_sectors', '-')}"}
     row.update(disc_relight(rgb, clean, det, nf, gain))
@@ -195,7 +197,7 @@ def relight_oracle(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.nd
     for a, b in zip(LIGHT_BANDS_DEG[:-1], LIGHT_BANDS_DEG[1:]):
         sel = floor & (theta >= a) & (theta < b)
         row[f"relight_{a:.0f}_{b:.0f}"] = float(np.mean(det_gain[sel] / gain[sel]) - 1.0) if sel.any() else None
-    fit = floor_light(nf.face, fmask, nf.on_floor & rig._floor_chroma(nf.face, nf.ring_floor), theta, view.focal)
+    fit = floor_light(nf.face, fmask, nf.on_floor & rig_nadir.floor_chroma(nf.face, nf.ring_floor), theta, view.focal)
     if fit is not None:
         lit = sector_light(fit, theta, nf.phi, SECTOR_BANDS_DEG)
         for i, (a, b) in enumerate(zip(SECTOR_BANDS_DEG[:-1], SECTOR_BANDS_DEG[1:])):
@@ -218,9 +220,9 @@ def disc_relight(rgb: np.ndarray, clean: np.ndarray, det, nf, true_gain: np.ndar
     from panoworld.depth.rig.shadow import disc_shadow
 
     H, W = rgb.shape[:2]
-    row = {"psnr_no_relight": nadir_cap_psnr(rig.remove_rig(rgb, replace(det, shadow_gain=None, shadow=None)), clean)}
-    fmask = rig._dilate(erp_mask_to_face(det.mask, nf.view), nf.view)
-    disc = disc_shadow(nf.face, fmask, nf.on_floor & rig._floor_chroma(nf.face, nf.ring_floor), nf.theta, nf.view.focal)
+    row = {"psnr_no_relight": nadir_cap_psnr(rig_remove.remove_rig(rgb, replace(det, shadow_gain=None, shadow=None)), clean)}
+    fmask = rig_nadir.dilate_rim(erp_mask_to_face(det.mask, nf.view), nf.view)
+    disc = disc_shadow(nf.face, fmask, nf.on_floor & rig_nadir.floor_chroma(nf.face, nf.ring_floor), nf.theta, nf.view.focal)
     if disc is None:
         return row
     deg = lambda x: float(np.rad2deg(np.arctan(x)))
@@ -228,10 +230,10 @@ def disc_relight(rgb: np.ndarray, clean: np.ndarray, det, nf, true_gain: np.ndar
     g, floor = disc.gain(nf.theta), nf.on_floor & ~fmask
     rings = [floor & (nf.theta >= a) & (nf.theta < b) for a, b in zip(SECTOR_BANDS_DEG[:-2], SECTOR_BANDS_DEG[1:-1])]
     row["disc_over_true"] = " / ".join(f"{100 * (np.mean(g[m] / true_gain[m]) - 1):+.0f}" for m in rings if m.any())
-    row["psnr_disc_light"] = nadir_cap_psnr(rig.remove_rig(rgb, det), clean)
+    row["psnr_disc_light"] = nadir_cap_psnr(rig_remove.remove_rig(rgb, det), clean)
     if det.shadow is not None and det.shadow.any():
         relit = replace(det, shadow_gain=g, shadow=face_to_erp_mask(g > 1.0, nf.view, H, W) & ~det.mask)
-        row["psnr_disc_light"] = nadir_cap_psnr(rig.remove_rig(rgb, relit), clean)
+        row["psnr_disc_light"] = nadir_cap_psnr(rig_remove.remove_rig(rgb, relit), clean)
     return row
 
 
@@ -251,7 +253,7 @@ def fill_oracle(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarr
     view = nadir_view(H)
     odet = odet or oracle_detection(scene, kind, rgb, depth, clean)
     mask = odet.mask
-    out = rig.remove_rig(rgb, odet)
+    out = rig_remove.remove_rig(rgb, odet)
     # The split on the downward face (a plane view: one blur scale everywhere), solid-angle weighted within 15 deg.
     sig = LOW_DEG * np.pi / 180 * view.focal
     theta, _ = face_polar(view)
@@ -272,7 +274,7 @@ def fill_oracle(scene, kind, rgb: np.ndarray, depth: np.ndarray, clean: np.ndarr
     if pictures != Path():
         pictures.mkdir(parents=True, exist_ok=True)
         pic = np.concatenate([render_view(clean, view), render_view(out, view),
-                              render_view(rig.remove_rig(rgb, det) if det.found else rgb, view)], 1)
+                              render_view(rig_remove.remove_rig(rgb, det) if det.found else rgb, view)], 1)
         cv2.imwrite(str(pictures / f"{scene.meta['preset']}_{scene.meta['seed']}_{kind}_{H}.jpg"), pic[..., ::-1],
                     [cv2.IMWRITE_JPEG_QUALITY, 90])
     return row

@@ -25,6 +25,7 @@ sys.path.insert(0, str(REPO))
 
 from bench.bench_rig import parse_seeds
 from panoworld.depth.rig import detect as rig
+from panoworld.depth.rig import remove as rig_remove
 from panoworld.depth.rig.learned import detect_rig_learned
 
 CASES = ("tripod", "tripod-shadow", "none", "rug", "stool")
@@ -54,7 +55,7 @@ def evaluate(seeds: list[int], weights: Path, height: int) -> list[dict]:
                 if geom.any():
                     m = det.mask if det.found else np.zeros_like(geom)
                     r["iou"] = float((m & geom).sum() / max((m | geom).sum(), 1))
-                    r["psnr_after"] = rig.nadir_cap_psnr(rig.remove_rig(rgb, det) if det.found else rgb, clean)
+                    r["psnr_after"] = rig_remove.nadir_cap_psnr(rig_remove.remove_rig(rgb, det) if det.found else rgb, clean)
                 rows.append(r)
         print(f"seed {seed} done", file=sys.stderr, flush=True)
     return rows

@@ -13,6 +13,10 @@ garage; labels in bench/rig_labels/zind_real.json, drawn by hand on a 90 deg dow
   so walls of a narrow room and the rig itself never stand in for the floor; `ring_floor` its share of the ring;
 - seconds: clean_depth up to the rig (metric scale, rig detection and removal; completion is left out) on this machine.
 
+--scenes DIR: single-panorama scenes DIR/<side>_<pano> (panorama + depth, built by `runner.py run`, no flags):
+their Gaussians rendered at the capture point (camera 0 = identity, 512 rows), the same gap on the render against
+the ring of the render (gap_gaussians; `runner.py run` must have been run on them first).
+
 Controls with no rig (must stay byte-identical: panorama and depth): the Realsee pair (real LiDAR and synthesis) and
 the RGB-only samples (colour alone, no depth). Split: east + garage = dev (where the method was tuned), west = test
 (held out). --save DIR writes each panorama's nadir before/after with the detected mask's outline.
@@ -63,9 +67,10 @@ def from_nadir(H: int, W: int) -> np.ndarray:
 
 
 def floor_gap(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, floor_m: float | None,
-              exclude: np.ndarray) -> tuple[float, float]:
-    """(|1 - cap / ring| of the mean luma, the ring's floor share): cap within CAP_DEG of the nadir, ring RING_DEG
-    on the floor plane by depth (within 5 % of floor_m below the camera) and outside exclude."""
+              exclude: np.ndarray, cap_exclude: np.ndarray | None = None) -> tuple[float, float]:
+    """(|1 - cap / ring| of the mean luma, the ring's floor share): cap within CAP_DEG of the nadir (less
+    cap_exclude), ring RING_DEG on the floor plane by depth (within 5 % of floor_m below the camera) and outside
+    exclude."""
     H, W = rgb.shape[:2]
     t = from_nadir(H, W)
     lum = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float64)
@@ -76,7 +81,7 @@ def floor_gap(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, floor_m: fl
         drop = depth * np.cos(np.deg2rad(t))
         floor &= valid & (np.abs(drop - floor_m) < 0.05 * floor_m)
     share = float(w[floor].sum() / w[ring].sum())
-    cap = t < CAP_DEG
+    cap = (t < CAP_DEG) if cap_exclude is None else (t < CAP_DEG) & ~cap_exclude
     lc = float((lum * w)[cap].sum() / w[cap].sum())
     lr = float((lum * w)[floor].sum() / max(w[floor].sum(), 1e-12))
     return abs(1.0 - lc / max(lr, 1e-6)), share
@@ -166,18 +171,47 @@ def rig_rows(split: str, save: Path | None) -> list[dict]:
         floor_m = c.info.get("camera_height_estimated_after")
         gb, share = floor_gap(rgb, res.depth, res.valid, floor_m, label)  # ZInD layout depth: metric as given
         ga, _ = floor_gap(c.rgb, res.depth, res.valid, floor_m, label)
+        around = cv2.dilate(label.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+        gs, _ = floor_gap(rgb, res.depth, res.valid, floor_m, label, cap_exclude=around)
         rows.append({"panorama": name, "split": part, "found": found, "kind": det.kind if det else None,
-                     "reason": det.reason if det else "", "iou": iou(mask, label), "gap_before": gb, "gap_after": ga,
-                     "ring_floor": share, "seconds": sec})
+                     "reason": det.reason if det else "", "iou": iou(mask, label), "gap_before": gb, "gap_after": ga, "gap_seen": gs,
+                     "ring_floor": share, "seconds": sec, "floor_m": floor_m})
         if save is not None:
             save_picture(save, name, rgb, c.rgb, mask, label)
-        print(f"  {name}: found={found} iou={rows[-1]['iou']:.3f} gap {gb:.1%} -> {ga:.1%}  ({sec:.1f} s)", flush=True)
+        print(f"  {name}: found={found} iou={rows[-1]['iou']:.3f} gap {gb:.1%} -> {ga:.1%} (seen floor {gs:.1%})  ({sec:.1f} s)", flush=True)
     return rows
+
+
+def gaussian_gaps(rows: list[dict], scenes: Path, height: int = 512) -> None:
+    """Adds gap_gaussians to each row whose scene (scenes/<side>_<pano>) holds Gaussians: the gap of their render at
+    the capture point (floor ring by the provided depth, outside the label, as on the panorama)."""
+    from panoworld.depth.rig.face import nadir_crop
+    from panoworld.io.splat_ply import read_gaussians_ply
+    from panoworld.render.erp import render_erp
+
+    doc = json.loads(LABELS.read_text())
+    paths = {name: (pano, depth) for name, pano, depth in rig_panoramas()}
+    for r in rows:
+        scene = scenes / r["panorama"].replace("/", "_")
+        ply = scene / "artifacts" / "gaussians" / "gaussians.ply"
+        if not ply.is_file():
+            continue
+        out = render_erp(read_gaussians_ply(ply), np.eye(4), height, 2 * height)
+        img = np.clip(np.rint(np.asarray(out.rgb, np.float32) * 255), 0, 255).astype(np.uint8)
+        depth = np.load(paths[r["panorama"]][1]).astype(np.float32)
+        depth = cv2.resize(depth, (2 * height, height), interpolation=cv2.INTER_NEAREST)
+        info = json.loads((scene / "artifacts" / "depth" / "manifest.json").read_text()).get("info", {})
+        floor_m = info.get("camera_height_estimated_after") or r.get("floor_m")
+        label = label_mask(doc["labels"][r["panorama"]], doc["view"], height, 2 * height)
+        r["gap_gaussians"], _ = floor_gap(img, depth, np.isfinite(depth) & (depth > 0), floor_m, label)
+        cv2.imwrite(str(scene / "nadir_gaussians.png"), cv2.cvtColor(nadir_crop(img, 384), cv2.COLOR_RGB2BGR))
+        print(f"  {r['panorama']}: Gaussians at the capture point: gap {r['gap_gaussians']:.1%}", flush=True)
 
 
 def control_rows() -> list[dict]:
     """The shared captures with no rig: panorama and depth must come out byte-identical."""
-    from panoworld.depth.rig.detect import detect_rig, remove_rig
+    from panoworld.depth.rig.detect import detect_rig
+    from panoworld.depth.rig.remove import remove_rig
 
     rows = []
     real = DATA / "realsee3d_assets"
@@ -207,10 +241,12 @@ def control_rows() -> list[dict]:
 
 
 def table(rows: list[dict], controls: list[dict]) -> str:
-    lines = ["| panorama | split | found | IoU | gap before | gap after | ring floor | s |", "|---|---|---|---|---|---|---|---|"]
+    lines = ["| panorama | split | found | IoU | gap before | gap after | seen floor gap | gap on Gaussians | ring floor | s |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
+        gg = f"{r['gap_gaussians']:.1%}" if "gap_gaussians" in r else "-"
         lines.append(f"| {r['panorama']} | {r['split']} | {'yes' if r['found'] else 'no'} | {r['iou']:.3f} | "
-                     f"{r['gap_before']:.1%} | {r['gap_after']:.1%} | {r['ring_floor']:.2f} | {r['seconds']:.1f} |")
+                     f"{r['gap_before']:.1%} | {r['gap_after']:.1%} | {r['gap_seen']:.1%} | {gg} | {r['ring_floor']:.2f} | {r['seconds']:.1f} |")
     for part in ("dev", "test"):
         sub = [r for r in rows if r["split"] == part]
         if sub:
@@ -218,7 +254,7 @@ def table(rows: list[dict], controls: list[dict]) -> str:
             lines.append(f"| **{part}** ({len(sub)}) | | {sum(r['found'] for r in sub)} | "
                          f"{np.mean([r['iou'] for r in sub]):.3f} (min {min(r['iou'] for r in sub):.3f}) | "
                          f"{np.mean([r['gap_before'] for r in sub]):.1%} | {np.mean([r['gap_after'] for r in sub]):.1%} "
-                         f"(max {max(r['gap_after'] for r in sub):.1%}) | | {ok}/{len(sub)} meet IoU >= 0.7 and gap <= 15 % |")
+                         f"(max {max(r['gap_after'] for r in sub):.1%}) | {np.mean([r['gap_seen'] for r in sub]):.1%} | | | {ok}/{len(sub)} meet IoU >= 0.7 and gap <= 15 % |")
     lines += ["", "| control | rig found | byte-identical | s |", "|---|---|---|---|"]
     for c in controls:
         lines.append(f"| {c['control']} | {'yes' if c['found'] else 'no'} | {'yes' if c['identical'] else 'NO'} | "
@@ -232,11 +268,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, default=None, help="write the rows as JSON to this file")
     ap.add_argument("--save", type=Path, default=None, help="folder for nadir before/after pictures")
     ap.add_argument("--no-controls", action="store_true")
+    ap.add_argument("--scenes", type=Path, default=None,
+                    help="folder of single-panorama scenes <side>_<pano> built by runner.py run: gap on their Gaussians")
     args = ap.parse_args(argv)
     if not (DATA / "zind_home").is_dir():
         print(f"{DATA / 'zind_home'}: the shared real panoramas are not there; nothing to measure", file=sys.stderr)
         return 2
     rows = rig_rows(args.split, args.save)
+    if args.scenes is not None:
+        gaussian_gaps(rows, args.scenes)
     controls = [] if args.no_controls else control_rows()
     print(table(rows, controls))
     if args.json:

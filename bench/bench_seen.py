@@ -115,12 +115,12 @@ def pixel_kinds(gt, pose: np.ndarray, ref: np.ndarray, depth: np.ndarray) -> np.
 
 def nearest_frame(scene: Path, pose: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
     """(index, uint8 image, planned canonical pose) of the video frame whose planned centre is nearest `pose`'s."""
-    from panoworld.io.video import load_frames
+    from panoworld.io.video import load_frames, read_video_doc
 
     traj = json.loads((scene / ARTIFACTS / "trajectory" / "trajectory.json").read_text())
     poses = np.asarray(traj["poses"], np.float64)
     i = int(np.argmin(np.linalg.norm(poses[:, :3, 3] - np.asarray(pose)[:3, 3], axis=1)))
-    frame = sorted((scene / ARTIFACTS / "video" / "frames").glob("*.png"))[i]
+    frame = read_video_doc(scene / ARTIFACTS / "video").rgb[i]
     return i, load_frames([frame])[0], poses[i]
 
 

@@ -11,7 +11,7 @@ from panoworld.core.errors import ArtifactError
 from panoworld.framework.stage import Input, StageInputError, stage_main
 
 NAME = "asset"
-VERSION = "1"
+VERSION = "2"
 ARTIFACT = "asset"
 INPUTS = {
     "gaussians": Input("gaussians", help="gaussians artifact (gaussians.ply, canonical frame)"),

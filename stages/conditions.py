@@ -9,6 +9,7 @@ from pathlib import Path
 from panoworld.conditions.warp import Backend
 from panoworld.core.params import param
 from panoworld.framework.stage import Input, StageInputError, stage_main
+from panoworld.io.rgb_image import RgbFormat
 
 NAME = "conditions"
 VERSION = "1"
@@ -33,6 +34,11 @@ class Params:
     """Cut stretched faces at their depth jumps so fore- and background extend half a pixel (tighter masks)."""
     preview_mp4: bool = False
     """Also write preview.mp4 (warped rgb | mask side by side, H.264) for a quick look."""
+    rgb_format: RgbFormat = RgbFormat.JPEG
+    """Format of rgb/ (what the video backend reads): jpeg (of rgb_quality, about 4x smaller) or png (lossless; masks
+    and depth are always lossless PNG)."""
+    rgb_quality: int = param(95, ge=1, le=100)
+    """JPEG quality of rgb/."""
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
@@ -63,7 +69,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         mesh, poses, params.height, params.width, backend=params.backend,
         split_silhouettes=params.split_silhouettes, progress=True,
     )
-    info = write_conditions(out_dir, frames, poses, write_depth=params.write_depth, preview_mp4=params.preview_mp4)
+    info = write_conditions(out_dir, frames, poses, write_depth=params.write_depth, preview_mp4=params.preview_mp4,
+                            rgb_format=params.rgb_format, rgb_quality=params.rgb_quality)
     info["backend"] = str(params.backend)
     info["num_faces"] = len(mesh.faces)
     info["ms_per_frame_render"] = round(1000.0 * info["render_s"] / info["num_frames"], 2)

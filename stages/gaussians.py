@@ -1,4 +1,4 @@
-"""Voxel-aligned 3D Gaussians (INRIA gaussians.ply, SPZ gaussians.spz, points.ply) fused from the video's frames, depth and poses."""
+"""Voxel-aligned 3D Gaussians (INRIA gaussians.ply, SPZ gaussians.spz) fused from the video's frames, depth and poses."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from panoworld.gaussians.backends.decoder import DecoderOptions
 from panoworld.gaussians.backends.voxel_fusion import VoxelFusionOptions
 
 NAME = "gaussians"
-VERSION = "5"
+VERSION = "6"
 ARTIFACT = "gaussians"
 INPUTS = {
     "video": Input("video", help="video artifact (video.json, frames/, depth/)"),
@@ -45,8 +45,12 @@ class Params:
     eval_height: int = param(128, ge=8)
     """ERP height of those renders (and of preview.png)."""
     ply_full_sh: bool = False
-    """Write gaussians.ply with all 45 f_rest_* properties (degree-3 SH, zero-padded) for tools that insist on the full
-    INRIA layout; by default it holds only the SH degree the Gaussians use (none for view-independent colours)."""
+    """Write gaussians.ply in the full INRIA layout for tools that insist on it (nx ny nz and all 45 f_rest_*,
+    degree-3 SH zero-padded); by default it holds only the SH degree the Gaussians use and no normals, which 3DGS
+    viewers ignore."""
+    points_ply: bool = False
+    """Also write points.ply (the Gaussian centres with their base colours) for point-cloud tools (MeshLab,
+    CloudCompare); no stage reads it."""
     voxel_fusion: VoxelFusionOptions = options(VoxelFusionOptions, "voxel-fusion")
     """voxel-fusion's options."""
     decoder: DecoderOptions = options(DecoderOptions, "decoder")
@@ -74,7 +78,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     except ValueError as e:  # empty depth, nothing left after pruning, bad params
         raise StageInputError(str(e)) from None
     return write_artifact(out_dir, result, frames, eval_views=params.eval_views, eval_height=params.eval_height,
-                          full_sh=params.ply_full_sh)
+                          full_sh=params.ply_full_sh, points=params.points_ply)
 
 
 def main(argv: list[str] | None = None) -> int:

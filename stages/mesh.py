@@ -1,4 +1,4 @@
-"""Triangle mesh of the ERP depth (seam closed, pole fans, vertex colours) with stretched faces flagged: mesh.ply + mesh.glb."""
+"""Triangle mesh of the ERP depth (seam closed, pole fans, vertex colours) with stretched faces flagged: mesh.ply (+ mesh.glb)."""
 
 from __future__ import annotations
 
@@ -39,8 +39,9 @@ class Params:
     """How stretched triangles across depth edges are handled."""
     stride: int = param(1, ge=1, le=64)
     """Use every stride-th ERP pixel per axis as a vertex (exact points, colours averaged per block) to bound memory."""
-    glb: bool = True
-    """Also write mesh.glb (valid faces, vertex colours, glTF Y-up) for glTF viewers."""
+    glb: bool = False
+    """Also write mesh.glb (valid faces, vertex colours, glTF Y-up) for glTF viewers; mesh.ply (what the stages read)
+    opens in Blender, MeshLab, CloudCompare and Open3D as it is."""
     home_stride: int = param(2, ge=1, le=64)
     """A home (several panoramas): stride of each panorama's ERP mesh before fusion (memory grows with panoramas)."""
 

@@ -9,13 +9,14 @@ from pathlib import Path
 
 from panoworld.framework.stage import Input, StageInputError, stage_main
 from panoworld.geometry.erp_mesh import load_erp_mesh
+from panoworld.geometry.navmesh import HOME_SNAP_M
 from panoworld.io.home import capture_poses
 from panoworld.navmesh import NavMeshParams
 from panoworld.navmesh.home import home_navmesh
 from panoworld.navmesh.no_room import build_navmesh_with_room
 
 NAME = "navmesh"
-VERSION = "3"
+VERSION = "4"
 ARTIFACT = "navmesh"
 INPUTS = {
     "mesh": Input("mesh", help="mesh artifact (mesh.ply, canonical frame, face property valid)"),
@@ -37,12 +38,17 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         raise StageInputError(f"{path}: unreadable mesh ({type(e).__name__}: {e}); rerun the mesh stage") from None
     t0 = time.perf_counter()
     captures = capture_poses(inputs.get("register"))
-    on_navmesh = None
-    if len(captures) >= 2:  # a home: one NavMesh from the first capture point across rooms and doorways
+    on_navmesh = home = None
+    if len(captures) >= 2:  # a home: the floor component of every capture point, across rooms and doorways
         nav, on_navmesh = home_navmesh(mesh, captures, params)
+        home = nav.info["home"]
+        if len(home["components"]) > 1:
+            groups = "; ".join(", ".join(c["capture_points"]) or "none" for c in home["components"])
+            print(f"the home's floor is {len(home['components'])} NavMesh components that do not connect "
+                  f"(capture points: {groups}); the trajectory cuts between them", flush=True)
         off = [n for n, ok in on_navmesh.items() if not ok]
         if off:
-            print(f"capture points off the NavMesh (not joined to the first one's floor): {off}", flush=True)
+            print(f"capture points off the NavMesh (its nearest floor within {HOME_SNAP_M} m, or none): {off}", flush=True)
     else:
         nav = build_navmesh_with_room(mesh.vertices, mesh.faces, mesh.face_valid, params)  # no room: smaller agent / stationary
     no_room = nav.info.get("no_room")
@@ -67,7 +73,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         "build_s": build_s,
         "timings_s": nav.info["timings_s"],
         "files": files,
-        **({"capture_points_on_navmesh": on_navmesh} if on_navmesh is not None else {}),
+        **({"capture_points_on_navmesh": on_navmesh, "capture_components": home["capture_components"],
+            "components": home["components"]} if home is not None else {}),
     }
 
 

@@ -18,7 +18,7 @@ from panoworld.poses.backends.vggt import VggtOptions
 from panoworld.poses.options import Alignment, ColmapOptions
 
 NAME = "poses"
-VERSION = "2"
+VERSION = "3"
 ARTIFACT = "poses"
 INPUTS = {
     "video": Input("video", help="video artifact (video.json, frames/, depth/)"),

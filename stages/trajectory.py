@@ -15,7 +15,7 @@ from panoworld.core.errors import PanoWorldError
 from panoworld.core.params import param
 from panoworld.framework.stage import Input, StageInputError, stage_main
 from panoworld.geometry.erp_mesh import load_erp_mesh
-from panoworld.geometry.navmesh import load_navmesh
+from panoworld.geometry.navmesh import HOME_SNAP_M, load_navmesh
 from panoworld.io.home import capture_poses
 from panoworld.io.trajectory import TrajectoryFileError, path_indices, read_trajectory_file, write_trajectory
 from panoworld.trajectory import (
@@ -38,7 +38,7 @@ from panoworld.trajectory import (
 from panoworld.trajectory.stationary import stationary_plan
 
 NAME = "trajectory"
-VERSION = "3"
+VERSION = "4"
 ARTIFACT = "trajectory"
 INPUTS = {
     "navmesh": Input("navmesh", help="navmesh artifact (navmesh.json)"),
@@ -132,6 +132,12 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         poses[:, 1, 3] = plan.info.pop("camera_y")
         source, kind, stride, step_m = "planned", "home", None, plan.step_m
         meta = plan.info
+        if meta["cuts"]:
+            print(f"no walk joins these capture points (floors that do not connect on the NavMesh): "
+                  f"{', '.join(' -> '.join(c) for c in meta['cuts'])}; each starts new paths", flush=True)
+        if meta["unreached_captures"]:
+            print(f"capture points with no NavMesh floor within {HOME_SNAP_M} m (their capture frame only): "
+                  f"{meta['unreached_captures']}", flush=True)
         skip = tuple(plan.exempt)
     else:
         plan = _plan_or_stay(nav, params, Path(inputs["navmesh"]) / "navmesh.json")

@@ -15,6 +15,7 @@ import numpy as np
 from panoworld.core import registry as backends
 from panoworld.core.params import options, param
 from panoworld.framework.stage import Input, StageInputError, stage_main
+from panoworld.io.rgb_image import RgbFormat
 from panoworld.models.wan_config import WanShortcutConfig
 from panoworld.video.backends import Job
 from panoworld.video.backends.warp_inpaint import WarpOptions
@@ -57,9 +58,13 @@ class Params:
     """Width cap of preview.mp4 (frames are downscaled to fit)."""
     mcap: bool = True
     """Write video.mcap (Foxglove: frames, conditions, depth, camera poses)."""
+    frame_format: RgbFormat = RgbFormat.JPEG
+    """Format of frames/ (what poses and gaussians read): jpeg (of frame_quality, about 4x smaller) or png (lossless)."""
+    frame_quality: int = param(95, ge=1, le=100)
+    """JPEG quality of frames/ (4:4:4 chroma; 95: ~45 dB PSNR to the lossless frame; bench/bench_artifact_size.py)."""
     mcap_jpeg_quality: int = param(90, ge=0, le=100)
-    """JPEG quality of the frames and conditions in video.mcap (a log for viewing; frames/ hold the exact frames);
-    0 = their PNGs, lossless (about 3x the size)."""
+    """JPEG quality of the frames and conditions in video.mcap (a log for viewing; frames/ hold what later stages
+    read); 0 = the files' own bytes (with PNG frames about 3x the size)."""
     device: str = "auto"
     """Device of realesrgan: auto = cuda when available, else cpu (wan-shortcut: wan.device)."""
     warp: WarpOptions = options(WarpOptions, "warp-inpaint")
@@ -129,7 +134,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     has_depth = backend.traits["has_depth"]
     writer = VideoWriter(out_dir, height=cond.height, width=cond.width, fps=fps, has_depth=has_depth,
                          preview=params.preview, preview_max_width=params.preview_max_width, mcap=params.mcap,
-                         mcap_jpeg_quality=params.mcap_jpeg_quality,
+                         mcap_jpeg_quality=params.mcap_jpeg_quality, frame_format=params.frame_format,
+                         frame_quality=params.frame_quality,
                          upscale=up.scale)
     holes = filled_3d = filled_2d = 0
     t_fill = t_up = t_write = 0.0

@@ -22,6 +22,7 @@ from panoworld.geometry.erp_mesh import erp_mesh_from_depth, save_erp_mesh
 from panoworld.geometry.raycast import Raycaster
 from panoworld.io.conditions import load_conditions
 from panoworld.io.trajectory import write_trajectory
+from panoworld.render.metrics import psnr
 from panoworld.render.rasterize import ErpRasterizer
 
 H, W = 48, 96
@@ -234,12 +235,16 @@ def test_stage_writes_a_valid_artifact(room_mesh, tmp_path):
     inputs = _inputs(tmp_path, mesh, poses)
     manifest = _run(inputs, tmp_path / "out", preview_mp4=True)
     assert manifest["info"]["num_frames"] == 4 and manifest["info"]["backend"] == "raster"
-    assert {"conditions.json", "rgb/000003.png", "mask/000003.png", "depth/000003.png", "preview.mp4"} <= set(
+    assert {"conditions.json", "rgb/000003.jpg", "mask/000003.png", "depth/000003.png", "preview.mp4"} <= set(
         manifest["files"]
     )
     _run(inputs, tmp_path / "ref", backend="raycast")
     a, b = load_conditions(tmp_path / "out"), load_conditions(tmp_path / "ref")
     assert (np.asarray(a.mask) == np.asarray(b.mask)).mean() > 0.995
+    _run(inputs, tmp_path / "png", rgb_format="png")  # lossless on request; JPEG 95 close (4:2:0 chroma on 48x96)
+    exact = load_conditions(tmp_path / "png")
+    assert exact.rgb.paths[0] == "rgb/000000.png" and psnr(np.concatenate(a.rgb[:]), np.concatenate(exact.rgb[:])) > 25
+    assert np.array_equal(np.asarray(a.mask), np.asarray(exact.mask))
 
 
 def test_stage_rejects_bad_input_and_writes_nothing(room_mesh, tmp_path):

@@ -262,7 +262,8 @@ def test_stage_writes_a_valid_artifact(tmp_path, room):
     manifest = execute_stage(spec, {"video": video, "poses": poses}, _params(voxel_size=0.05, eval_views=2),
                              out, input_digests={"video": "0" * 64, "poses": "1" * 64})
     info = manifest["info"]
-    assert {"gaussians.ply", "gaussians.spz", "points.ply", "preview.png"} <= set(manifest["files"])
+    assert {"gaussians.ply", "gaussians.spz", "preview.png"} <= set(manifest["files"])
+    assert "points.ply" not in manifest["files"]  # opt-in: points_ply
     assert info["frames"] == [0, 1] and info["depth_source"] == "video"  # frame 2 is unregistered
     g = read_gaussians_ply(out / "gaussians.ply")
     assert info["num_gaussians"] == len(g) > 1000 and info["sh_degree"] == g.sh_degree == 0  # no zero f_rest_*

@@ -220,16 +220,16 @@ def test_mesh_stage_cli(room_64, tmp_path):
     r = run("stages.mesh", "--depth", str(tmp_path / "depth"), "--out", str(tmp_path / "mesh"))
     assert r.returncode == 0, r.stderr
     manifest = json.loads((tmp_path / "mesh" / "manifest.json").read_text())
-    assert {"mesh.ply", "mesh.glb"} <= set(manifest["files"])
+    assert "mesh.ply" in manifest["files"] and "mesh.glb" not in manifest["files"]  # one mesh file by default
     mesh = load_erp_mesh(tmp_path / "mesh")
     assert manifest["info"]["num_faces"] == len(mesh.faces)
     assert manifest["info"]["num_faces_stretched"] == int((~mesh.face_valid).sum()) > 0
     np.testing.assert_allclose(mesh.vertices[: depth.size], points_from_depth(depth).reshape(-1, 3), atol=1e-5)
     r = run("stages.mesh", "--depth", str(tmp_path / "depth"), "--out", str(tmp_path / "mesh_drop"),
-            "--discontinuity", "drop", "--stride", "2", "--glb", "false")
+            "--discontinuity", "drop", "--stride", "2", "--glb", "true")
     assert r.returncode == 0, r.stderr
     dropped = load_erp_mesh(tmp_path / "mesh_drop")
-    assert dropped.face_valid.all() and not (tmp_path / "mesh_drop" / "mesh.glb").exists()
+    assert dropped.face_valid.all() and (tmp_path / "mesh_drop" / "mesh.glb").is_file()  # glTF on request
     r = run("stages.mesh", "--depth", str(tmp_path / "nowhere"), "--out", str(tmp_path / "mesh_bad"))
     assert r.returncode == 2 and "run the stage that produces it" in r.stderr
 

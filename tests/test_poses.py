@@ -132,15 +132,16 @@ def test_exports_reference_video_frames_and_round_trip(colmap_run):
     tmp, gt, manifest = colmap_run
     out = tmp / "poses"
     for f in ("poses.json", "transforms.json", "sparse/0/cameras.bin", "sparse/0/images.bin",
-              "sparse/0/points3D.bin", "points3D.ply", "depth/000000.png"):
+              "sparse/0/points3D.bin", "points3D.ply"):
         assert f in manifest["files"], f
+    assert not (out / "depth").exists()  # the video's depth is referenced, not copied
     tf = json.loads((out / "transforms.json").read_text())
     assert tf["camera_model"] == "EQUIRECTANGULAR" and (tf["w"], tf["h"]) == (256, 128)
     assert tf["frames"][3]["file_path"] == "../video/frames/000003.png"
     assert (out / tf["frames"][3]["file_path"]).is_file()
     np.testing.assert_allclose(poses_from_transforms(tf), load_poses(out).world_from_cam, atol=1e-12)
-    # The video's depth is copied bit-exactly.
-    assert (out / "depth/000004.png").read_bytes() == (tmp / "video/depth/000004.png").read_bytes()
+    assert tf["frames"][3]["depth_file_path"] == "../video/depth/000003.png"
+    assert load_poses(out).depth[4].resolve() == (tmp / "video/depth/000004.png").resolve()
 
 
 def test_transforms_json_reproduces_our_rays_under_nerfstudio_equirectangular_model(tmp_path, room):

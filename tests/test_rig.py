@@ -10,7 +10,7 @@ import pytest
 
 from panoworld.core.errors import InputError
 from panoworld.depth.complete import complete_dropouts, complete_poles
-from panoworld.depth.rig.detect import nadir_cap_psnr
+from panoworld.depth.rig.remove import nadir_cap_psnr
 from panoworld.framework.stage import execute_stage, load_stage, params_from_dict
 from panoworld.tools.synth import generate_scene, params_for, write_scene
 from panoworld.tools.synth.rig import FloorObject, with_floor_object
@@ -310,6 +310,7 @@ def test_report_shows_the_nadir_before_and_after(tmp_path, tripod_dir):
 def test_soft_shadow_is_relit_not_left(scene):
     """The tripod with a soft shadow disc: the shadow is found around the rig and divided out, its texture kept."""
     from panoworld.depth.rig import detect as rig
+    from panoworld.depth.rig import remove as rig_remove
     from panoworld.tools.synth.rig import RigKind, render_with_rig
 
     clean, _ = scene.render(scene.world_from_canonical, H, 2 * H)
@@ -317,7 +318,7 @@ def test_soft_shadow_is_relit_not_left(scene):
         rgb, depth, _ = render_with_rig(scene, kind, H)
         det = rig.detect_rig(rgb, depth, np.isfinite(depth) & (depth > 0), scene.tracks[0].camera_height)
         assert det.found and det.kind == "legs", det.reason
-        out = rig.remove_rig(rgb, det)
+        out = rig_remove.remove_rig(rgb, det)
         if kind == RigKind.TRIPOD:
             assert det.stats["shadow_deg"] == 0 and not det.shadow.any()  # no shadow invented
             continue

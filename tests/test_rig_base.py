@@ -9,6 +9,7 @@ import pytest
 
 from panoworld.core.conventions import erp_dirs, erp_pixel_solid_angle
 from panoworld.depth.rig import detect as rig
+from panoworld.depth.rig import remove as rig_remove
 from panoworld.depth.rig.base import BASE_BG_DEG, attached_legs
 from panoworld.depth.rig.face import face_polar, face_to_erp_mask, nadir_view
 from panoworld.tools.synth import generate_scene
@@ -82,7 +83,7 @@ def test_camera_base_is_found_and_removed(room, narrow):
     det = rig.detect_rig(rgb, depth, valid, floor_m)
     assert det.found and det.kind == "base", det.reason
     assert area_iou(det.mask, truth) >= 0.7, det.stats
-    out = rig.remove_rig(rgb, det)
+    out = rig_remove.remove_rig(rgb, det)
     assert np.array_equal(out[~det.mask], rgb[~det.mask])  # only the rig's pixels change
     before = abs(1 - cap_luminance(rgb) / cap_luminance(clean))
     after = abs(1 - cap_luminance(out) / cap_luminance(clean))
@@ -97,7 +98,7 @@ def test_no_base_no_change(room, narrow):
         rgb, depth = hallway(rgb, depth, floor_m)
     valid = np.isfinite(depth) & (depth > 0)
     assert not rig.detect_base(rgb, depth, valid, floor_m).found
-    out, d2, v2, info, det = rig.rig_step(rgb, depth, valid, floor_m)
+    out, d2, v2, info, det = rig_remove.rig_step(rgb, depth, valid, floor_m)
     assert not det.found and out is rgb and d2 is depth, det.reason
 
 
@@ -127,3 +128,37 @@ def test_legs_touch_the_base_and_end_a_line_that_goes_on_does_not():
     assert legs[c, c + 35] and legs.sum() > 20
     assert not legs[c + 60, c] and not legs[c + 40, c]
     assert theta[legs].max() < BASE_BG_DEG
+
+
+def test_ring_fill_takes_the_floor_around_the_hole_not_a_wall_or_a_sun_band():
+    """A 15 deg hole in a textured carpet: a pale blue wall reaches the hole on one side (not floor by depth) and a
+    sun band crosses the floor beyond the ring. The fill's luminance is the ring's within 15 %, no filled pixel has
+    the wall's colour, and the carpet's grain goes on inside."""
+    from panoworld.depth.rig.inpaint import RING_WIDTH_DEG, floor_ring, ring_fill
+
+    view = nadir_view(384)
+    theta, _ = face_polar(view)
+    S = view.size
+    rng = np.random.default_rng(3)
+    grain = cv2.GaussianBlur(rng.normal(0, 1, (S, S)).astype(np.float32), (0, 0), 1.2)
+    face = np.clip(np.array([120.0, 96.0, 72.0]) * (1 + 0.25 * grain / grain.std())[..., None], 0, 255)
+    yy, xx = np.mgrid[:S, :S]
+    width = view.focal * np.deg2rad(RING_WIDTH_DEG)
+    hole = theta < 15.0
+    r_hole = view.focal * np.tan(np.deg2rad(15.0))
+    band = np.abs(yy - 0.5 * S - r_hole - 1.6 * width) < 0.15 * S  # sunlit floor beyond the ring
+    face[band] = np.minimum(face[band] * 2.2, 255)
+    wall = xx > 0.5 * S + 0.8 * r_hole  # a wall coming within the ring on one side
+    face[wall] = (150, 190, 235)
+    floor = ~wall
+    observed = face.copy()
+    observed[hole] = 30.0
+    out = ring_fill(observed, hole, floor, width)
+    ring = floor_ring(hole, floor, width)
+    lum = out.mean(-1)
+    gap = abs(1 - lum[hole].mean() / lum[ring].mean())
+    assert gap <= 0.15, gap
+    assert not (out[hole][:, 2] > out[hole][:, 0] + 20).any()  # no blue-dominant (wall) pixel in the fill
+    hi = lum - cv2.GaussianBlur(lum, (0, 0), 3.0)
+    inner = theta < 12.0
+    assert 0.5 <= hi[inner].std() / hi[ring & ~band].std() <= 1.5

@@ -47,9 +47,9 @@ def test_standard_inria_layout(tmp_path, full_sh):
     ply = PlyData.read(str(path))
     assert not ply.text and ply.byte_order == "<"
     v = ply["vertex"]
-    # Degree-0 colours: no f_rest_* at all (17 properties), or the full degree-3 layout (62) for tools that insist.
-    fields = GAUSSIAN_FIELDS if full_sh else gaussian_fields(0)
-    assert [p.name for p in v.properties] == fields and len(fields) == (62 if full_sh else 17)
+    # Degree-0 colours: no f_rest_* and no normals (14 properties), or the full layout (62) for tools that insist.
+    fields = GAUSSIAN_FIELDS if full_sh else gaussian_fields(0, normals=False)
+    assert [p.name for p in v.properties] == fields and len(fields) == (62 if full_sh else 14)
     assert all(p.val_dtype in ("f4", "float32", "<f4") for p in v.properties)
     assert len(v.data) == len(g)
     # Stored activations: logit opacity, log scales, (w, x, y, z) rotations, zero f_rest for degree 0.
@@ -58,8 +58,9 @@ def test_standard_inria_layout(tmp_path, full_sh):
     assert np.allclose(v["rot_0"], g.quats[:, 0])
     assert all(np.all(v[f"f_rest_{i}"] == 0) for i in range(45 if full_sh else 0))
     assert path.stat().st_size < 4 * len(fields) * len(g) + 2000  # 4 bytes per property and Gaussian + header
-    normal = np.stack([v["nx"], v["ny"], v["nz"]], 1)
-    assert np.allclose(np.linalg.norm(normal, axis=1), 1.0, atol=1e-5)  # the surfel's thinnest axis
+    if full_sh:
+        normal = np.stack([v["nx"], v["ny"], v["nz"]], 1)
+        assert np.allclose(np.linalg.norm(normal, axis=1), 1.0, atol=1e-5)  # the surfel's thinnest axis
 
 
 def test_round_trip_and_identical_render(tmp_path):

@@ -16,6 +16,7 @@ import pytest
 
 from panoworld.core.conventions import rotmat_from_quat_wxyz
 from panoworld.framework.stage import StageSpec, execute_stage
+from panoworld.io.png import decode_png, encode_png
 from panoworld.io.video import (
     MCAP_FILE,
     PREVIEW_FILE,
@@ -26,7 +27,6 @@ from panoworld.io.video import (
     TOPIC_RGB,
     TOPIC_TF,
     VIDEO_FILE,
-    decode_png,
     depth_to_mm,
     load_video,
     raw_image_array,
@@ -81,7 +81,7 @@ def test_video_without_depth(tmp_path):
 
 @pytest.mark.parametrize("jpeg_quality", [0, 90])
 def test_mcap_decodes_back_exactly(tmp_path, jpeg_quality):
-    from panoworld.io.video import VideoWriter, encode_png
+    from panoworld.io.video import VideoWriter
 
     frames, depth, poses = random_video(t=3)
     frames = cv2.GaussianBlur(frames.reshape(-1, 32, 3), (5, 5), 2).reshape(frames.shape)  # photo-like: JPEG's domain
@@ -119,6 +119,23 @@ def test_mcap_decodes_back_exactly(tmp_path, jpeg_quality):
     from panoworld.core.conventions import ros_world_from_cam
 
     np.testing.assert_allclose(ros_world_from_cam(np.eye(4))[:3, :3] @ np.array([0.0, -1.0, 0.0]), [0, 0, 1])
+
+
+def test_jpeg_frames_round_trip_and_go_into_the_mcap_as_they_are(tmp_path):
+    from panoworld.io.rgb_image import decode_rgb, encode_rgb
+
+    frames, depth, poses = random_video(t=2, h=32, w=64)
+    frames = cv2.GaussianBlur(frames.reshape(-1, 64, 3), (5, 5), 2).reshape(frames.shape)
+    write_video(tmp_path, frames, depth, poses, fps=5.0, preview=False, frame_format="jpeg", frame_quality=95,
+                mcap_jpeg_quality=0)
+    v = load_video(tmp_path)
+    assert [e["rgb"] for e in v.meta["frames"]] == ["frames/000000.jpg", "frames/000001.jpg"]
+    assert v.frames.shape == frames.shape and psnr(np.concatenate(v.frames), np.concatenate(frames)) > 30
+    assert np.abs(v.depth - depth).max() <= 5.1e-4  # depth stays a PNG of millimetres
+    data = (tmp_path / "frames" / "000001.jpg").read_bytes()
+    assert np.array_equal(decode_rgb(data), v.frames[1]) and data == encode_rgb(frames[1], "jpeg", quality=95)
+    msgs = read_mcap(tmp_path / MCAP_FILE)  # decoded with the foxglove.CompressedImage schema
+    assert msgs[TOPIC_RGB][1].format == "jpeg" and msgs[TOPIC_RGB][1].data == data
 
 
 def test_preview_is_h264_yuv420p_with_even_size(tmp_path):
@@ -211,10 +228,17 @@ def test_stage_warp_inpaint_end_to_end(upstream, tmp_path):
     cond0 = cv2.imdecode(np.frombuffer(msgs[TOPIC_COND_RGB][0].data, np.uint8), cv2.IMREAD_COLOR)
     assert len(msgs[TOPIC_COND_RGB]) == 5 and cond0.shape == (64, 128, 3) and msgs[TOPIC_COND_RGB][0].format == "jpeg"
     assert len(msgs[TOPIC_RGB]) == 5 and len(msgs[TOPIC_DEPTH]) == 5
-    # The MCAP holds each frame once, as JPEG for viewing (frames/ hold the exact PNGs), a fraction of their size.
-    frame2 = (out / "frames" / "000002.png").read_bytes()
+    # frames/ are JPEG (quality 95) by default; the MCAP holds each frame once, as JPEG of mcap_jpeg_quality (90).
+    frame2 = (out / "frames" / "000002.jpg").read_bytes()
     jpg2 = cv2.imdecode(np.frombuffer(msgs[TOPIC_RGB][2].data, np.uint8), cv2.IMREAD_COLOR)
     assert msgs[TOPIC_RGB][2].format == "jpeg" and psnr(jpg2, cv2.imdecode(np.frombuffer(frame2, np.uint8), 1)) > 25
+    # Lossless PNG frames on request: the same fill within JPEG's error (4:2:0 chroma at 64x128); the MCAP holds JPEG.
+    png_out = tmp_path / "video_png"
+    assert video_stage.main(_cli(upstream, png_out, "--frame-format", "png", "--preview", "false")) == 0
+    exact = load_video(png_out)
+    assert psnr(np.concatenate(v.frames), np.concatenate(exact.frames)) > 25 and np.array_equal(v.depth, exact.depth)
+    jpg2 = cv2.imdecode(np.frombuffer(read_mcap(png_out / MCAP_FILE)[TOPIC_RGB][2].data, np.uint8), cv2.IMREAD_COLOR)
+    assert psnr(jpg2[..., ::-1], exact.frames[2]) > 25
 
 
 def test_warp_inpaint_frames_filled_on_threads_equal_one_at_a_time(upstream, tmp_path, monkeypatch):
@@ -233,7 +257,7 @@ def test_warp_inpaint_frames_filled_on_threads_equal_one_at_a_time(upstream, tmp
 
 def test_stage_lanczos_upscale_is_an_output_not_an_input_to_later_stages(upstream, tmp_path):
     out = tmp_path / "video"
-    assert video_stage.main(_cli(upstream, out, "--upscale", "lanczos", "--preview", "false")) == 0
+    assert video_stage.main(_cli(upstream, out, "--upscale", "lanczos", "--preview", "false", "--frame-format", "png")) == 0
     v = load_video(out)
     assert v.frames.shape == (5, 64, 128, 3) and v.meta["upscaled_height"] == 128
     up = [decode_png((out / e["upscaled"]).read_bytes()) for e in v.meta["frames"]]

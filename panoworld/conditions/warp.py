@@ -20,6 +20,7 @@ from panoworld.core.shapes import check_shape
 from panoworld.geometry.erp_mesh import ErpMesh
 from panoworld.io.conditions import CONDITIONS_JSON, DEPTH_SCALE, WarpedFrame
 from panoworld.io.png import encode_png
+from panoworld.io.rgb_image import SUFFIX, RgbFormat, encode_rgb, rgb_file_name
 
 PREVIEW_MP4 = "preview.mp4"
 
@@ -223,16 +224,17 @@ def warp_quality(frame: WarpedFrame, rgb_true: np.ndarray, disoccluded: np.ndarr
 # ---------------------------------------------------------------------------------------------- storage
 
 
-def frame_files(k: int, write_depth: bool = True) -> dict[str, str]:
+def frame_files(k: int, write_depth: bool = True, rgb_format: RgbFormat | str = RgbFormat.PNG) -> dict[str, str]:
     """Relative file names of frame k inside a conditions directory."""
-    files = {"rgb": f"rgb/{k:06d}.png", "mask": f"mask/{k:06d}.png"}
+    files = {"rgb": f"rgb/{rgb_file_name(k, rgb_format)}", "mask": f"mask/{k:06d}.png"}
     if write_depth:
         files["depth"] = f"depth/{k:06d}.png"
     return files
 
 
-def _write_frame(out_dir: Path, files: dict[str, str], frame: WarpedFrame, compression: int) -> None:
-    pngs = {"rgb": encode_png(frame.rgb, compression=compression),
+def _write_frame(out_dir: Path, files: dict[str, str], frame: WarpedFrame, compression: int, rgb_quality: int) -> None:
+    fmt = RgbFormat.JPEG if files["rgb"].endswith(SUFFIX[RgbFormat.JPEG]) else RgbFormat.PNG
+    pngs = {"rgb": encode_rgb(frame.rgb, fmt, quality=rgb_quality, compression=compression),
             "mask": encode_png(frame.mask.astype(np.uint8) * 255, compression=compression)}
     if "depth" in files:
         pngs["depth"] = encode_png(depth_to_mm(frame.depth), compression=compression)
@@ -240,7 +242,7 @@ def _write_frame(out_dir: Path, files: dict[str, str], frame: WarpedFrame, compr
         try:
             (out_dir / files[key]).write_bytes(data)
         except OSError as e:
-            raise OSError(f"{out_dir}: could not write the PNGs of {files['rgb']}: {e}") from e
+            raise OSError(f"{out_dir}: could not write the images of {files['rgb']}: {e}") from e
 
 
 def _preview_frame(frame: WarpedFrame, max_height: int) -> np.ndarray:
@@ -271,11 +273,13 @@ def write_conditions(
     preview_height: int = 360,
     workers: int = 2,
     compression: int = 1,
+    rgb_format: RgbFormat | str = RgbFormat.PNG,
+    rgb_quality: int = 95,
 ) -> dict:
     """Write frames (one per pose of poses (N, 4, 4)) into out_dir; conditions.json is written last.
 
     Layout: conditions.json {"height", "width", "num_frames", "depth_scale", "frames": [{"rgb", "mask"[, "depth"]}],
-    "poses"}; rgb/%06d.png uint8 RGB (0 where mask is 0), mask/%06d.png uint8 0/255 (255 = valid geometry seen),
+    "poses"}; rgb/%06d.png uint8 RGB (0 where mask is 0; .jpg of rgb_quality with rgb_format jpeg), mask/%06d.png uint8 0/255 (255 = valid geometry seen),
     depth/%06d.png uint16 millimetres (0 = nothing); optional preview.mp4 (rgb | mask side by side, H.264).
     frames may be a lazy iterator: PNG encoding overlaps with rendering in a pool of `workers` threads (0 = encode in
     the calling thread, for callers that parallelise over processes).
@@ -321,13 +325,13 @@ def write_conditions(
                         f"frame {k}: {frame.rgb.shape=}, {frame.mask.shape=}, {frame.depth.shape=} but expected "
                         f"{(*size, 3)}, {size}, {size} like frame 0"
                     )
-                files = frame_files(k, write_depth)
+                files = frame_files(k, write_depth, rgb_format)
                 entries.append(files)
                 valid.append(float(frame.mask.mean()))
                 if pool is None:
-                    _write_frame(out_dir, files, frame, compression)
+                    _write_frame(out_dir, files, frame, compression, rgb_quality)
                 else:
-                    pending.append(pool.submit(_write_frame, out_dir, files, frame, compression))
+                    pending.append(pool.submit(_write_frame, out_dir, files, frame, compression, rgb_quality))
                 while len(pending) > 2 * max(1, workers):
                     pending.popleft().result()
                 if preview_pool is not None:

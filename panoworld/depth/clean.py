@@ -24,7 +24,7 @@ class Cleaned:
     info: dict
     """Manifest entries: scale, rig, pole_completion, dropout_completion, valid_fraction, depth_range_m."""
     rig: object | None = None
-    """The rig detection (panoworld.depth.rig.detect.RigDetection) when removal ran, else None."""
+    """The rig detection (panoworld.depth.rig.nadir.RigDetection) when removal ran, else None."""
     notes: list[str] = field(default_factory=list)
     """Decisions worth a line in the manifest."""
 
@@ -56,7 +56,7 @@ def clean_depth(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, *, relati
     depth = np.where(valid, depth, 0.0).astype(np.float32)
     det = None
     if detect_rig is not None:
-        from panoworld.depth.rig.detect import rig_step
+        from panoworld.depth.rig.remove import rig_step
 
         rgb, depth, valid, info["rig"], det = rig_step(rgb, depth, valid, info.get("camera_height_estimated_after"),
                                                          user_mask=rig_mask, detect=detect_rig)

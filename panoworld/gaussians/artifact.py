@@ -1,4 +1,4 @@
-"""The gaussians artifact: gaussians.ply, gaussians.spz, points.ply and a preview rendered back, with fit metrics."""
+"""The gaussians artifact: gaussians.ply, gaussians.spz, optionally points.ply and a preview rendered back, with fit metrics."""
 
 from __future__ import annotations
 
@@ -16,16 +16,17 @@ from panoworld.render.metrics import psnr, ssim, ws_psnr
 
 
 def write_artifact(out_dir: Path, result: FusionResult, frames: ContextFrames | ContextSource, *, eval_views: int = 1,
-                   eval_height: int = 128, full_sh: bool = False) -> dict:
-    """Write gaussians.ply (the SH degree the Gaussians use; degree 3 zero-padded with full_sh), gaussians.spz,
-    points.ply and preview.png (the first context view rendered back); return manifest info
+                   eval_height: int = 128, full_sh: bool = False, points: bool = False) -> dict:
+    """Write gaussians.ply (the SH degree the Gaussians use; the full INRIA layout with full_sh), gaussians.spz,
+    points.ply (with points) and preview.png (the first context view rendered back); return manifest info
     with PSNR/SSIM/WS-PSNR of eval_views context views re-rendered as ERP at eval_height (frame 0, after a colour
     fit: the fit's own render of the final Gaussians, area-downsampled from the fit's height)."""
     g = result.gaussians.numpy()
     out_dir = Path(out_dir)
     write_gaussians_ply(out_dir / "gaussians.ply", g, full_sh=full_sh)
     write_gaussians_spz(out_dir / "gaussians.spz", g)
-    write_points_ply(out_dir / "points.ply", g.means, g.base_colors())
+    if points:
+        write_points_ply(out_dir / "points.ply", g.means, g.base_colors())
     evals = []
     for k in uniform_subset(range(len(frames.indices)), eval_views) if eval_views > 0 else []:
         if frames.indices[k] == 0 and result.fit_render is not None:  # the colour fit rendered it already

@@ -78,6 +78,17 @@ class SourcePixelParams(FusionParams):
     source_tol: float = param(0.03, gt=0)
     """Observations of the other frames within this relative depth of the source's surface (or in front of it) count
     as seen by the source and are not fused."""
+    source_complete: bool = False
+    """A home: a panorama's pixels without depth (implausible layout masked, a doorway line through another capture
+    point dropped) take the depth of the nearest surface the other panoramas see along their ray
+    (gaussians.home.complete_from_others), so the panorama's own colours stand there where it sees that surface
+    nearest; without it the generated frames fill them. Off by default: on real layout-only depth the nearest surface
+    the others see along such a ray often lies behind a wall the panorama's own depth lacks (docs/multi.md)."""
+    source_carve_tol: float = param(0.0, ge=0)
+    """A home: a panorama's pixel whose surface lies nearer than another panorama's depth along that panorama's ray by
+    more than this (log range; the nearest of its 3 x 3 depths) is dropped: the other saw through it (a layout
+    annotation's wall across a doorway, seen from the next room). 0 = not checked (the default: on real layout-only
+    depth the rooms' polygons disagree and it drops real walls; docs/multi.md)."""
     fit_iters: int = param(10, ge=0)
     """With source_pixels: conjugate-gradient steps of a colour fit at the capture point (0 = none): for the fixed
     geometry the ERP render there is linear in the Gaussians' colours, which are refitted (least squares, damped

@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from panoworld.core.conventions import erp_dirs, invert_pose, transform_points
+from panoworld.core.conventions import erp_dirs, erp_pixel_from_dir, invert_pose, transform_points
 from panoworld.gaussians.fusion import ContextSource
 from panoworld.gaussians.fusion_params import SourcePixelParams
 from panoworld.gaussians.pixel import SourceVisibility, fuse_unseen, merge_gaussians, pixel_gaussians
@@ -43,28 +43,110 @@ class SourcesVisibility:
         return np.logical_or.reduce([s.poking_through(g) for s in self.sources])
 
 
-def home_anchored_fusion(frames: ContextSource, sources: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
+def depth_from_others(k: int, names: list[str], depths: dict[str, np.ndarray], world_from_cam: dict[str, np.ndarray],
+                      *, height: int = 128) -> np.ndarray:
+    """(H, W) ray distance, from panorama names[k] (depths[names[k]] is (H, W)), of the nearest surface the other
+    panoramas see (their depth (h, w), 0 = none, as points at their poses), 0 where none: a z-buffer at `height` rows
+    (coarse, so the others' points leave no cracks between them; one-pixel gaps closed from the nearest neighbour),
+    nearest-upsampled to (H, W)."""
+    H, W = depths[names[k]].shape
+    h = min(height, H)
+    w = 2 * h
+    zbuf = np.full(h * w, np.inf)
+    cam_from_world = invert_pose(world_from_cam[names[k]])
+    for j, other in enumerate(names):
+        d = np.asarray(depths[other], np.float64)
+        ok = np.isfinite(d) & (d > 0)
+        if j == k or not ok.any():
+            continue
+        pts = erp_dirs(*d.shape, np.float64)[ok] * d[ok][:, None]
+        p = transform_points(cam_from_world @ world_from_cam[other], pts)
+        r = np.linalg.norm(p, axis=1)
+        u, v = erp_pixel_from_dir(p / np.maximum(r, 1e-12)[:, None], h, w)
+        idx = np.clip(np.floor(v).astype(int), 0, h - 1) * w + np.floor(u).astype(int) % w
+        np.minimum.at(zbuf, idx, r)
+    z = zbuf.reshape(h, w)
+    hole = ~np.isfinite(z)
+    if hole.any():
+        from scipy import ndimage
+
+        near = ndimage.minimum_filter(np.where(hole, np.inf, z), size=3, mode="wrap")
+        z = np.where(hole, near, z)
+    z = np.where(np.isfinite(z), z, 0.0)
+    rows = np.minimum((np.arange(H) + 0.5) * h / H, h - 1).astype(int)
+    cols = np.minimum((np.arange(W) + 0.5) * w / W, w - 1).astype(int)
+    return z[rows][:, cols]
+
+
+def complete_from_others(k: int, names: list[str], depths: dict[str, np.ndarray], world_from_cam: dict[str, np.ndarray]
+                         ) -> np.ndarray:
+    """depths[names[k]] (H, W) with its pixels without depth (0: implausible layout masked, doorway lines dropped)
+    given the depth of the nearest surface the other panoramas see along their ray (depth_from_others at H / 4 rows),
+    float32; the same array when it has no such pixel."""
+    depth = depths[names[k]]
+    hole = ~(np.isfinite(depth) & (depth > 0))
+    if not hole.any():
+        return depth
+    fill = depth_from_others(k, names, depths, world_from_cam, height=max(8, depth.shape[0] // 4))
+    return np.where(hole, fill, depth).astype(np.float32)
+
+
+def seen_through(k: int, pts_world: np.ndarray, names: list[str], depths: dict[str, np.ndarray],
+                 world_from_cam: dict[str, np.ndarray], *, tol: float) -> np.ndarray:
+    """(M,) bool for surface points (M, 3) of panorama names[k]: another panorama saw through them, i.e. its depth
+    along the point's ray, the nearest over the 3 x 3 pixels around it (no evidence where any is unknown), lies
+    beyond the point by more than tol in log range. A surface standing in the space another capture saw empty (a
+    layout annotation's doorway wall seen from the next room) is not there."""
+    from scipy import ndimage
+
+    out = np.zeros(len(pts_world), bool)
+    for j, other in enumerate(names):
+        d = np.asarray(depths[other], np.float64)
+        d = np.where(np.isfinite(d) & (d > 0), d, 0.0)
+        if j == k or not d.any():
+            continue
+        near = ndimage.minimum_filter(d, size=3, mode="wrap")
+        p = transform_points(invert_pose(world_from_cam[other]), pts_world)
+        r = np.linalg.norm(p, axis=1)
+        h, w = near.shape
+        u, v = erp_pixel_from_dir(p / np.maximum(r, 1e-12)[:, None], h, w)
+        d_j = near[np.clip(np.floor(v).astype(int), 0, h - 1), np.floor(u).astype(int) % w]
+        out |= (d_j > 0) & (np.log(np.maximum(d_j, 1e-6) / np.maximum(r, 1e-6)) > tol)
+    return out
+
+
+def home_anchored_fusion(frames: ContextSource | None, sources: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
                          params: SourcePixelParams, *, progress: bool = False) -> FusionResult:
     """Per-pixel Gaussians of every source {NAME: (rgb (H, W, 3), depth (H, W) metres (0 = unknown), world_from_cam)}
     at most params.source_height rows (0 = as given), a pixel kept only when no other source sees its surface from
-    nearer (geometry.panoramas.nearest_source: no doubled surfaces), plus voxel fusion of what the frames see that no
+    nearer (geometry.panoramas.nearest_source: no doubled surfaces) nor saw through it (seen_through, tolerance
+    params.source_carve_tol; 0 = not checked), plus voxel fusion of what the frames see that no
     source does (SourceVisibility of each, tolerance params.source_tol) in voxels of params.unseen_voxel_size (0 =
     params.voxel_size), less those poking through a surface a source saw: source_anchored_fusion of a single panorama,
-    over several."""
+    over several. params.source_complete: each source's pixels without depth first take the others'
+    (complete_from_others). frames None: the panoramas' Gaussians alone (what the captures themselves show)."""
     names = list(sources)
     tol = params.source_tol
     small = {n: rgbd_at_height(sources[n][0], sources[n][1], params.source_height) for n in names}
     depths = {n: small[n][1] for n in names}
     poses = {n: np.asarray(sources[n][2], np.float64) for n in names}
+    observed = depths
+    if params.source_complete:
+        depths = {n: complete_from_others(k, names, depths, poses) for k, n in enumerate(names)}
     pix_params = replace(params, scale_factor=params.source_scale)
     parts = []
     for k, n in enumerate(names):
-        rgb, depth = small[n]
+        rgb, depth = small[n][0], depths[n]
         h, w = depth.shape
         pts = transform_points(poses[n], erp_dirs(h, w, np.float64).reshape(-1, 3) * depth.reshape(-1, 1))
-        keep = nearest_source(k, pts, names, depths, poses, tol=tol).reshape(h, w)
+        keep = nearest_source(k, pts, names, depths, poses, tol=tol)
+        if params.source_carve_tol > 0:
+            keep &= ~seen_through(k, pts, names, observed, poses, tol=params.source_carve_tol)
+        keep = keep.reshape(h, w)
         parts.append(pixel_gaussians(rgb, np.where(keep & (depth > 0), depth, 0.0).astype(np.float32), poses[n],
                                      pix_params))
     pix = merge_gaussians(parts)
+    if frames is None:
+        return fuse_unseen(pix, [], None, params)
     seen = SourcesVisibility([SourceVisibility(depths[n], poses[n], tol) for n in names])
     return fuse_unseen(pix, frames, seen, params, unseen_voxel_size=params.unseen_voxel_size, progress=progress)

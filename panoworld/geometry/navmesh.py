@@ -16,13 +16,16 @@ from panoworld.core.shapes import check_shape
 from panoworld.geometry.polygons import (
     cross_section,
     even_odd,
-    pick_component,
+    pick_components,
     ring_area,
     ring_segments,
     segment_distance,
     triangulate_rings,
 )
 
+HOME_SNAP_M = 1.0
+"""A home's capture point on no floor piece (its floor eroded, or unseen under the rig) belongs to the nearest piece
+within this distance; farther, to none (a piece that far is another room's, behind a wall)."""
 NAVMESH_JSON = "navmesh.json"
 RUN_ONLY_INFO = ("timings_s",)
 """Build facts that differ from run to run: reported in the stage manifest, never in navmesh.json (deterministic)."""
@@ -66,6 +69,7 @@ class NavMesh:
         self._tri = tri
         self._centroids = tri.mean(axis=1)
         self._tri_area = 0.5 * _cross(tri[:, 0], tri[:, 1], tri[:, 2])
+        self._labels: np.ndarray | None = None
 
     # -- geometry queries
 
@@ -188,10 +192,43 @@ class NavMesh:
                 return out[:n]
         raise ValueError(f"could not sample {n} points with clearance >= {min_clearance} m (NavMesh too narrow)")
 
+    def components(self) -> np.ndarray:
+        """Connected component (T,) of each triangle (across shared edges), numbered in order of first triangle."""
+        if self._labels is None:
+            from scipy.sparse import coo_matrix
+            from scipy.sparse.csgraph import connected_components
+
+            t, k = np.nonzero(self.adjacency >= 0)
+            n = len(self.triangles)
+            graph = coo_matrix((np.ones(len(t)), (t, self.adjacency[t, k])), shape=(n, n))
+            _, labels = connected_components(graph, directed=False)
+            _, first = np.unique(labels, return_index=True)
+            self._labels = np.argsort(np.argsort(first))[labels]
+        return self._labels
+
+    def component_areas(self) -> np.ndarray:
+        """Area (C,) of each connected component (components())."""
+        labels = self.components()
+        return np.bincount(labels, weights=self._tri_area, minlength=int(labels.max(initial=-1)) + 1)
+
+    def component_of(self, xz: np.ndarray, snap_m: float = 0.0) -> np.ndarray:
+        """Connected component (N,) holding each point (N, 2), or for a point outside the one nearest to it within
+        snap_m, else -1 (path() joins two points only within one component)."""
+        xz = _check_xz(xz)
+        tri = self.locate(xz, eps=1e-7)
+        comp = np.where(tri >= 0, self.components()[np.maximum(tri, 0)], -1)
+        off = np.flatnonzero(comp < 0)
+        if len(off) and snap_m > 0:
+            near = self.closest_point(xz[off])
+            tri = self.locate(near, eps=1e-7)
+            ok = (tri >= 0) & (np.linalg.norm(near - xz[off], axis=1) <= snap_m)
+            comp[off[ok]] = self.components()[tri[ok]]
+        return comp
+
     def offset(self, delta_m: float, keep_xz: np.ndarray | None = None) -> NavMesh:
         """A new NavMesh grown (delta > 0) or shrunk (delta < 0) exactly (manifold3d offset, round joins).
 
-        Shrinking can split it; keep_xz (2,) keeps only the piece containing (or nearest to) that point.
+        Shrinking can split it; keep_xz (2,) or (K, 2) keeps only the pieces containing (or nearest to) those points.
         """
         from manifold3d import JoinType
 
@@ -201,7 +238,7 @@ class NavMesh:
         if keep_xz is None:
             rings = [np.asarray(r, np.float64) for r in cs.to_polygons()]
         else:
-            rings = pick_component(cs, np.asarray(keep_xz, np.float64).reshape(2))[0]
+            rings = pick_components(cs, np.asarray(keep_xz, np.float64).reshape(-1, 2))[0]
         v, t, adj = triangulate_rings(rings, self.info.get("max_triangle_area_m2", 0.25))
         return NavMesh(v, t, adj, rings, self.floor_y, dict(self.agent), {**self.info, "offset_m": delta_m})
 

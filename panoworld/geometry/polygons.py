@@ -19,20 +19,25 @@ def cross_section(rings: list[np.ndarray]):
     return CrossSection([np.ascontiguousarray(r, dtype=np.float64) for r in rings], FillRule.EvenOdd)
 
 
-def pick_component(cs, xz: np.ndarray) -> tuple[list[np.ndarray], bool, float]:
-    """The connected piece of a CrossSection containing xz (or the nearest one): (rings, contains, distance)."""
-    best = None
-    for piece in cs.decompose():
-        rings = [np.asarray(r, np.float64) for r in piece.to_polygons()]
-        segs = ring_segments(rings)
-        if even_odd(xz[None], segs)[0]:
-            return rings, True, 0.0
-        d = float(segment_distance(xz[None], segs)[0])
-        if best is None or d < best[1]:
-            best = (rings, d)
-    if best is None:
+def pick_components(cs, xz: np.ndarray, snap_m: float = np.inf) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """The connected pieces of a CrossSection holding any of the points xz (K, 2): every piece containing one, and for
+    a point in none the nearest piece when it is within snap_m. Returns (rings of the kept pieces, contains (K,) bool,
+    distance (K,) of each point to its nearest piece, 0 inside). Raises NoFloorError when nothing is kept."""
+    xz = np.asarray(xz, np.float64).reshape(-1, 2)
+    pieces = [[np.asarray(r, np.float64) for r in piece.to_polygons()] for piece in cs.decompose()]
+    if not pieces:
         raise NoFloorError("no walkable floor is left after eroding by the agent radius")
-    return best[0], False, best[1]
+    dist = np.empty((len(pieces), len(xz)))
+    for k, rings in enumerate(pieces):
+        segs = ring_segments(rings)
+        dist[k] = np.where(even_odd(xz, segs), 0.0, segment_distance(xz, segs))
+    nearest = dist.argmin(axis=0)
+    best = dist[nearest, np.arange(len(xz))]
+    keep = sorted({int(k) for k, d in zip(nearest, best) if d <= snap_m})
+    if not keep:
+        raise NoFloorError(f"no walkable floor piece lies within {snap_m} m of any of the {len(xz)} points "
+                           f"(nearest {best.min():.2f} m)")
+    return [r for k in keep for r in pieces[k]], best == 0.0, best
 
 
 def ring_segments(rings: list[np.ndarray]) -> np.ndarray:

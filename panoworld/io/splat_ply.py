@@ -13,13 +13,16 @@ from panoworld.io.gaussian_set import Gaussians
 
 NUM_REST = 45
 """f_rest_* properties of the full degree-3 layout (written with full_sh=True for tools that insist on it)."""
+NORMAL_FIELDS = ["nx", "ny", "nz"]
+"""Written only in the full layout (full_sh=True): 3DGS viewers and the INRIA loader ignore them."""
 REST_PER_DEGREE = {0: 0, 1: 3, 2: 8, 3: 15}
 """Higher-order SH coefficients per colour channel up to each degree."""
 
 
-def gaussian_fields(degree: int = 3) -> list[str]:
-    """Vertex properties of the INRIA layout with SH up to `degree` (degree 3: 62 properties, degree 0: 17)."""
-    return (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+def gaussian_fields(degree: int = 3, *, normals: bool = True) -> list[str]:
+    """Vertex properties of the INRIA layout with SH up to `degree` (degree 3 with normals: 62 properties; degree 0
+    without: 14)."""
+    return (["x", "y", "z"] + (NORMAL_FIELDS if normals else []) + ["f_dc_0", "f_dc_1", "f_dc_2"]
             + [f"f_rest_{i}" for i in range(3 * REST_PER_DEGREE[degree])]
             + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
 
@@ -42,9 +45,10 @@ def _logit(p: np.ndarray) -> np.ndarray:
 
 
 def write_gaussians_ply(path: str | Path, gaussians: Gaussians, *, full_sh: bool = False) -> None:
-    """Binary little-endian INRIA layout: x y z, nx ny nz (the axis of the smallest scale), f_dc_0..2, f_rest_*
-    (channel-major, up to the highest SH degree the Gaussians use: none for view-independent colours; zero-padded to
-    degree 3, f_rest_0..44, with full_sh), opacity (logit), scale_0..2 (log), rot_0..3 (w, x, y, z).
+    """Binary little-endian INRIA layout: x y z, f_dc_0..2, f_rest_* (channel-major, up to the highest SH degree the
+    Gaussians use: none for view-independent colours), opacity (logit), scale_0..2 (log), rot_0..3 (w, x, y, z).
+    With full_sh the complete INRIA layout for tools that insist on it: nx ny nz (the axis of the smallest scale)
+    after x y z and f_rest_0..44 (zero-padded to degree 3).
 
     Coordinates are our canonical world frame: metres, camera 0 = identity with OpenCV axes, so y points down
     (gravity), like COLMAP-trained INRIA scenes. Viewers that assume y up (SuperSplat, three.js-based ones) show it
@@ -57,14 +61,14 @@ def write_gaussians_ply(path: str | Path, gaussians: Gaussians, *, full_sh: bool
     rest = np.zeros((n, k, 3), np.float32)
     m = min(k, g.sh_rest.shape[1])
     rest[:, :m] = g.sh_rest[:, :m]
-    axes = rotmat_from_quat_wxyz(g.quats) if n else np.zeros((0, 3, 3))
-    normals = axes[np.arange(n), :, np.argmin(g.scales, axis=1)] if n else np.zeros((0, 3))
-    cols = [
-        g.means, normals, g.sh_dc, rest.transpose(0, 2, 1).reshape(n, 3 * k),
-        _logit(g.opacities)[:, None], np.log(np.maximum(g.scales, 1e-12)), g.quats,
-    ]
+    cols = [g.means, g.sh_dc, rest.transpose(0, 2, 1).reshape(n, 3 * k),
+            _logit(g.opacities)[:, None], np.log(np.maximum(g.scales, 1e-12)), g.quats]
+    if full_sh:
+        axes = rotmat_from_quat_wxyz(g.quats) if n else np.zeros((0, 3, 3))
+        cols.insert(1, axes[np.arange(n), :, np.argmin(g.scales, axis=1)] if n else np.zeros((0, 3)))
     data = np.concatenate([np.asarray(c, "<f4").reshape(n, -1) for c in cols], 1)
-    vertex = data.view([(name, "<f4") for name in gaussian_fields(degree)]).reshape(n)  # each row one record, no copy
+    fields = gaussian_fields(degree, normals=full_sh)
+    vertex = data.view([(name, "<f4") for name in fields]).reshape(n)  # each row one record, no copy
     PlyData([PlyElement.describe(vertex, "vertex")], byte_order="<").write(str(path))
 
 

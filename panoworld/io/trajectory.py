@@ -26,8 +26,10 @@ class TrajectoryFileError(InputError):
 
 
 def path_indices(path: dict) -> list[int]:
-    """Pose indices of one path of a multi-path trajectory: its predecessor (`from`, default pose 0) and [start, stop)."""
-    return ([int(path.get("from", 0))] if path["start"] > 0 else []) + list(range(path["start"], path["stop"]))
+    """Pose indices of one path of a multi-path trajectory: its predecessor (`from`, default pose 0) and [start, stop).
+    A path whose `from` is its own start has no predecessor (it starts there: a home's cut between floors)."""
+    prev = int(path.get("from", 0))
+    return ([prev] if path["start"] > 0 and prev != path["start"] else []) + list(range(path["start"], path["stop"]))
 
 
 def check_poses(poses: np.ndarray, where: str = "poses") -> np.ndarray:

@@ -1,4 +1,4 @@
-"""The video artifact: lossless PNG frames, uint16 depth, video.json (the one parser every reader goes through), an H.264
+"""The video artifact: PNG or JPEG frames, uint16 depth, video.json (the one parser every reader goes through), an H.264
 preview and a Foxglove MCAP; its writer and readers."""
 
 from __future__ import annotations
@@ -28,7 +28,8 @@ from panoworld.core.errors import InputError
 from panoworld.core.shapes import check_shape
 from panoworld.io.depth_png import read_depth_png
 from panoworld.io.jsonio import read_json
-from panoworld.io.png import decode_png, encode_png
+from panoworld.io.png import encode_png
+from panoworld.io.rgb_image import RgbFormat, decode_rgb, encode_rgb, image_format_of, rgb_file_name
 
 VIDEO_FILE = "video.json"
 
@@ -88,8 +89,8 @@ MCAP_FILE = "video.mcap"
 DEPTH_SCALE = DEPTH_PNG_SCALE  # metres per depth PNG unit (millimetres); 0 = unknown
 
 # MCAP topics (Foxglove protobuf schemas). Depth is a foxglove.RawImage '16UC1' in millimetres (0 = unknown), which
-# Foxglove's Image panel shows with a colour map; RGB frames and conditions are JPEG foxglove.CompressedImage (PNG, the
-# frames' own bytes, with mcap_jpeg_quality 0); condition masks are PNG.
+# Foxglove's Image panel shows with a colour map; RGB frames and conditions are JPEG foxglove.CompressedImage (the
+# files' own bytes, PNG or JPEG, with mcap_jpeg_quality 0); condition masks are PNG.
 TOPIC_RGB = "/camera/rgb"
 TOPIC_DEPTH = "/camera/depth"
 TOPIC_COND_RGB = "/conditions/rgb"
@@ -116,11 +117,12 @@ def _ns(index: int, fps: float) -> int:
 
 
 class VideoWriter:
-    """Streams frames into a video artifact directory: frames/%06d.png, depth/%06d.png, preview.mp4, video.mcap and,
-    with upscale > 1, upscaled/%06d.png (an output only: later stages read frames/); close() writes video.json.
-    PNGs are encoded by `workers` threads and the MCAP is written (in frame order) by one more, off the caller's thread;
-    memory stays at a few frames whatever the length. The MCAP (a log for viewing: frames/ are the exact frames) holds
-    the frames and conditions as JPEG of mcap_jpeg_quality (0: the PNG bytes, lossless), once, at the generation size."""
+    """Streams frames into a video artifact directory: frames/%06d.png or .jpg (frame_format; JPEG of frame_quality),
+    depth/%06d.png, preview.mp4, video.mcap and, with upscale > 1, upscaled/ (same format; an output only: later
+    stages read frames/); close() writes video.json. Images are encoded by `workers` threads and the MCAP is written
+    (in frame order) by one more, off the caller's thread; memory stays at a few frames whatever the length. The MCAP
+    (a log for viewing) holds the frames and conditions once, at the generation size, as JPEG of mcap_jpeg_quality
+    (0: the files' own bytes)."""
 
     def __init__(
         self,
@@ -135,6 +137,8 @@ class VideoWriter:
         mcap: bool = True,
         mcap_jpeg_quality: int = 90,
         png_compression: int = 1,
+        frame_format: RgbFormat | str = RgbFormat.PNG,
+        frame_quality: int = 95,
         workers: int = 2,
         upscale: int = 1,
     ):
@@ -146,6 +150,10 @@ class VideoWriter:
         self.out_dir = Path(out_dir)
         self.height, self.width, self.fps, self.has_depth = height, width, float(fps), has_depth
         self.png_compression = png_compression
+        self.frame_format = RgbFormat(frame_format)
+        if not 1 <= frame_quality <= 100:
+            raise ValueError(f"{frame_quality=} must be in [1, 100]")
+        self.frame_quality = frame_quality
         if not 0 <= mcap_jpeg_quality <= 100:
             raise ValueError(f"{mcap_jpeg_quality=} must be in [0, 100]")
         self.mcap_jpeg_quality = mcap_jpeg_quality
@@ -192,8 +200,8 @@ class VideoWriter:
         upscaled: np.ndarray | None = None,
     ) -> None:
         """Append frame rgb (H, W, 3) uint8 with depth (H, W) metres (0 = unknown; required iff has_depth) at pose 4x4;
-        the conditions' PNG bytes (any size) go into the MCAP only; upscaled (sH, sW, 3) uint8 (required iff the
-        writer's upscale s > 1) goes to upscaled/ only."""
+        the conditions' image bytes (PNG or JPEG, any size) go into the MCAP only; upscaled (sH, sW, 3) uint8 (required
+        iff the writer's upscale s > 1) goes to upscaled/ only."""
         H, W = self.height, self.width
         dims = check_shape("rgb", rgb, "H W 3", dtype=np.uint8, dims={"H": H, "W": W})
         s = self.upscale
@@ -206,12 +214,12 @@ class VideoWriter:
             check_shape("depth", depth, "H W", dims=dims)
         check_pose(world_from_cam, "world_from_cam")
         i = len(self.entries)
-        name = f"{i:06d}.png"
+        name = rgb_file_name(i, self.frame_format)
         entry = {"rgb": f"frames/{name}", "depth": None}
         if upscaled is not None:
             entry["upscaled"] = f"upscaled/{name}"
         if depth is not None:
-            entry["depth"] = f"depth/{name}"
+            entry["depth"] = f"depth/{i:06d}.png"
         self.entries.append(entry)
         self.poses.append(np.asarray(world_from_cam, np.float64))
         # Everything below runs off the caller's thread (OpenCV, numpy and the pipe to ffmpeg release the GIL), so the
@@ -219,13 +227,14 @@ class VideoWriter:
         rgb = rgb.copy()
         if self._mp4 is not None:
             self._mp4_pending.append(self._mp4_pool.submit(self._send_preview, rgb))
-        rgb_job = self._pool.submit(self._encode_write, rgb, self.out_dir / entry["rgb"])
+        rgb_job = self._pool.submit(self._encode_write_rgb, rgb, self.out_dir / entry["rgb"])
         depth_job = None
         if depth is not None:
             depth_job = self._pool.submit(self._encode_depth, np.array(depth), self.out_dir / entry["depth"])
         up_job = None
         if upscaled is not None:
-            up_job = self._pool.submit(self._encode_write, np.ascontiguousarray(upscaled), self.out_dir / entry["upscaled"])
+            up_job = self._pool.submit(self._encode_write_rgb, np.ascontiguousarray(upscaled),
+                                       self.out_dir / entry["upscaled"])
         self._pending.append(self._mcap_pool.submit(
             self._finish, i, rgb_job, depth_job, up_job, self.poses[-1], cond_rgb_png, cond_mask_png, rgb))
         while len(self._pending) > 2:
@@ -250,6 +259,11 @@ class VideoWriter:
         path.write_bytes(png)
         return png
 
+    def _encode_write_rgb(self, rgb: np.ndarray, path: Path) -> bytes:
+        data = encode_rgb(rgb, self.frame_format, quality=self.frame_quality, compression=self.png_compression)
+        path.write_bytes(data)
+        return data
+
     def _finish(self, i, rgb_job, depth_job, up_job, pose, cond_rgb_png, cond_mask_png, rgb) -> None:
         png = rgb_job.result()
         mm = None if depth_job is None else depth_job.result()
@@ -259,10 +273,11 @@ class VideoWriter:
             self._write_mcap(i, png, mm, pose, cond_rgb_png, cond_mask_png, rgb)
 
     def _viewing_image(self, png: bytes, rgb: np.ndarray | None = None) -> tuple[bytes, str]:
-        """(bytes, format) of an RGB image in the MCAP: JPEG of mcap_jpeg_quality, or the PNG as it is with 0."""
+        """(bytes, format) of an RGB image file's bytes in the MCAP: JPEG of mcap_jpeg_quality, or the file's own
+        bytes (PNG or JPEG as stored) with 0."""
         q = self.mcap_jpeg_quality
         if q == 0:
-            return png, "png"
+            return png, image_format_of(png)
         bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR) if rgb is not None else cv2.imdecode(
             np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
         ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, q])
@@ -364,7 +379,7 @@ def load_video(artifact_dir: Path, *, with_depth: bool = True) -> Video:
     frames = np.empty((doc.num_frames, H, W, 3), np.uint8)
     depth = np.zeros((doc.num_frames, H, W), np.float32) if doc.meta.get("has_depth") and with_depth else None
     for t, path in enumerate(doc.rgb):
-        img = decode_png(path.read_bytes(), what=str(path))
+        img = decode_rgb(path.read_bytes(), what=str(path))
         check_shape(str(path), img, "H W 3", dims={"H": H, "W": W})
         frames[t] = img
         if depth is not None and doc.depth[t] is not None:

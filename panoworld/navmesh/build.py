@@ -1,4 +1,4 @@
-"""Build a NavMesh from a scene mesh: floor, heightfield, erosion, the component under the camera, triangulation."""
+"""Build a NavMesh from a scene mesh: floor, heightfield, erosion, the components under the cameras, triangulation."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 
 from panoworld.core.errors import NoFloorError
 from panoworld.geometry.navmesh import NavMesh
-from panoworld.geometry.polygons import cross_section, pick_component, triangulate_rings
+from panoworld.geometry.polygons import cross_section, pick_components, triangulate_rings
 from panoworld.navmesh.heightfield import (
     NavMeshParams,
     band_top,
@@ -28,13 +28,17 @@ def build_navmesh(
     face_valid: np.ndarray | None = None,
     *,
     params: NavMeshParams | None = None,
-    camera_xz: tuple[float, float] = (0.0, 0.0),
+    camera_xz: tuple[float, float] | np.ndarray = (0.0, 0.0),
+    snap_m: float = np.inf,
 ) -> NavMesh:
     """NavMesh of the walkable floor of a mesh (V, 3) / (F, 3) in the canonical frame (camera at the origin).
 
     face_valid (F,) False marks stretched triangles (treated as unseen, never floor). Keeps the connected
-    walkable region under the camera, or the nearest one (info["camera_on_navmesh"] = False, with the distance).
-    Raises NoFloorError when no walkable floor exists.
+    walkable region under the camera, or the nearest one within snap_m (info["camera_on_navmesh"] = False, with the
+    distance). camera_xz (K, 2) of several cameras (a home's capture points) keeps the region under each of them:
+    the NavMesh then has one connected component per floor that holds a camera, kept apart (info["cameras_on_navmesh"],
+    info["cameras_distance_to_navmesh_m"]; the first camera is "the camera"). Raises NoFloorError when no walkable floor
+    exists, or none within snap_m of a camera.
     """
     params = params or NavMeshParams()
     t0 = time.perf_counter()
@@ -49,7 +53,8 @@ def build_navmesh(
     floor_y, floor_area = estimate_floor_y(vertices, faces, face_valid, params=params)
     timings["floor_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    grid = floor_grid(vertices, faces, face_valid, floor_y, params=params)
+    cams = np.asarray(camera_xz, np.float64).reshape(-1, 2)
+    grid = floor_grid(vertices, faces, face_valid, floor_y, params=params, camera_xz=cams)
     timings["heightfield_s"] = time.perf_counter() - t
     if not grid.free.any():
         raise NoFloorError(
@@ -60,8 +65,7 @@ def build_navmesh(
     rings = polygons_from_mask(grid.free, grid, tol)
     if not rings:
         raise NoFloorError("the eroded walkable floor has no polygon")
-    cam = np.asarray(camera_xz, np.float64)
-    comp_rings, on_mesh, cam_dist = pick_component(cross_section(rings), cam)
+    comp_rings, on_mesh, cam_dist = pick_components(cross_section(rings), cams, snap_m)
     timings["polygons_s"] = time.perf_counter() - t
     t = time.perf_counter()
     v, tri, adj = triangulate_rings(comp_rings, params.max_triangle_area_m2)
@@ -82,8 +86,10 @@ def build_navmesh(
         "max_triangle_area_m2": params.max_triangle_area_m2,
         "grid_shape": list(grid.free.shape),
         "assumed_walkable": grid.assumptions,
-        "camera_on_navmesh": on_mesh,
-        "camera_distance_to_navmesh_m": cam_dist,
+        "camera_on_navmesh": bool(on_mesh[0]),
+        "camera_distance_to_navmesh_m": float(cam_dist[0]),
+        **({"cameras_on_navmesh": on_mesh.tolist(), "cameras_distance_to_navmesh_m": cam_dist.round(4).tolist()}
+           if len(cams) > 1 else {}),
         "mesh_faces": int(mesh_faces),
         "erp_downsample": stride,
         "faces_used": int(len(faces)),

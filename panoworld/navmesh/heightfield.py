@@ -116,10 +116,13 @@ def estimate_floor_y(
     Raises NoFloorError when there is not enough horizontal area below the camera.
     """
     face_valid = check_mesh(vertices, faces, face_valid)
+    # Only faces with a vertex more than MIN_CAMERA_HEIGHT_M below the camera can have their centroid there (a fused
+    # home holds millions of faces: the geometry of the rest is never computed).
+    below = np.flatnonzero(face_valid & (np.asarray(vertices)[:, 1][faces].max(axis=1) > MIN_CAMERA_HEIGHT_M))
+    faces = faces[below]
     cen, area, ny = _face_geometry(vertices, faces)
     cand = (
-        face_valid
-        & (ny >= np.cos(np.deg2rad(params.max_slope_deg)))
+        (ny >= np.cos(np.deg2rad(params.max_slope_deg)))
         & (cen[:, 1] > MIN_CAMERA_HEIGHT_M)
         & (np.hypot(cen[:, 0], cen[:, 2]) <= params.max_range_m)
         & np.isfinite(cen).all(axis=1)
@@ -193,9 +196,12 @@ def band_top(floor_y: float, params: NavMeshParams) -> float:
 
 
 def floor_grid(
-    vertices: np.ndarray, faces: np.ndarray, face_valid: np.ndarray, floor_y: float, *, params: NavMeshParams
+    vertices: np.ndarray, faces: np.ndarray, face_valid: np.ndarray, floor_y: float, *, params: NavMeshParams,
+    camera_xz: tuple[float, float] | np.ndarray = (0.0, 0.0),
 ) -> FloorGrid:
     """Heightfield by rays cast down on a grid + obstacle band marking + erosion by the agent radius.
+
+    camera_xz (2,) or (K, 2): the camera(s) whose blind spot under the rig may be assumed floor (fill_blind_spots).
 
     Obstacles are cells whose downward ray (from the band top) first hits a face higher than step height, plus
     cells holding vertices or edge samples of valid faces inside the band (thin geometry between ray centres).
@@ -267,7 +273,7 @@ def floor_grid(
         grid.obstacle[ij[:, 0], ij[:, 1]] = True
         grid.walkable[ij[:, 0], ij[:, 1]] = False
 
-    fill_blind_spots(grid, drop, params)
+    fill_blind_spots(grid, drop, params, camera_xz)
     walk = grid.walkable.copy()
     walk[[0, -1], :] = False
     walk[:, [0, -1]] = False
@@ -283,13 +289,16 @@ def fill_blind_spots(grid: FloorGrid, drop: np.ndarray, params: NavMeshParams, c
 
     Candidates are unseen cells that are no obstacle and no drop (drop (Hz, Wx): rays hit below the floor).
     Filled: the 8-connected region of candidates within blind_spot_m of the camera that holds the camera (the
-    capture rig hides the floor it stands on), and components of candidates of at most fill_holes_m2 that do not
+    capture rig hides the floor it stands on; camera_xz (K, 2): under each of several cameras, a home's capture
+    points: blind_spot_m2 summed, radius the largest, rim share the smallest), and components of candidates of at most fill_holes_m2 that do not
     touch the grid border; each only when its rim (the cells next to it) is at least RIM_WALKABLE_FRACTION
     walkable floor.
     """
     import cv2
 
     nz, nx = grid.walkable.shape
+    cams = np.asarray(camera_xz, np.float64).reshape(-1, 2)
+    xz = grid.xz_of(np.argwhere(np.ones((nz, nx), bool)))
     assumed = np.zeros((nz, nx), bool)
     info = {"blind_spot_m2": 0.0, "blind_spot_radius_m": 0.0, "blind_spot_rim_walkable": None,
             "holes_filled": 0, "holes_filled_m2": 0.0}
@@ -308,28 +317,33 @@ def fill_blind_spots(grid: FloorGrid, drop: np.ndarray, params: NavMeshParams, c
         ok[0] = False
         area = stats[:, cv2.CC_STAT_AREA] * grid.cell**2
         holes = ok & (area <= params.fill_holes_m2)
-        cam = grid.cell_of(np.asarray(camera_xz, np.float64))[0]
-        if params.blind_spot_m > 0 and 0 <= cam[0] < nz and 0 <= cam[1] < nx and cand[cam[0], cam[1]]:
+        rims = []
+        for cam_xz in cams:
+            cam = grid.cell_of(cam_xz)[0]
+            if not (params.blind_spot_m > 0 and 0 <= cam[0] < nz and 0 <= cam[1] < nx and cand[cam[0], cam[1]]):
+                continue
             holes[labels[cam[0], cam[1]]] = False
             # The camera's unseen region cut at blind_spot_m (where it leaks past a wall the rim shows it).
-            xz = grid.xz_of(np.argwhere(np.ones((nz, nx), bool)))
-            near_cam = (np.hypot(xz[:, 0] - camera_xz[0], xz[:, 1] - camera_xz[1]) <= params.blind_spot_m).reshape(nz, nx)
+            near_cam = (np.hypot(xz[:, 0] - cam_xz[0], xz[:, 1] - cam_xz[1]) <= params.blind_spot_m).reshape(nz, nx)
             _, spot = cv2.connectedComponents((cand & near_cam).astype(np.uint8), connectivity=8)
             spot = spot == spot[cam[0], cam[1]]
             ring = cv2.dilate(spot.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & ~spot
             share = float(grid.walkable[ring].mean()) if ring.any() else 0.0
-            info["blind_spot_rim_walkable"] = share
+            rims.append(share)
             if share >= RIM_WALKABLE_FRACTION:
                 assumed |= spot
                 ij = np.argwhere(spot)
-                info.update(blind_spot_m2=float(spot.sum() * grid.cell**2), blind_spot_radius_m=float(
-                    np.max(np.linalg.norm(grid.xz_of(ij) - np.asarray(camera_xz), axis=1)) + 0.5 * grid.cell))
+                info["blind_spot_m2"] += float(spot.sum() * grid.cell**2)
+                info["blind_spot_radius_m"] = max(info["blind_spot_radius_m"], float(
+                    np.max(np.linalg.norm(grid.xz_of(ij) - cam_xz, axis=1)) + 0.5 * grid.cell))
+        if rims:
+            info["blind_spot_rim_walkable"] = min(rims)
         assumed |= holes[labels]
         info.update(holes_filled=int(holes.sum()), holes_filled_m2=float(area[holes].sum()))
     if params.camera_footprint_m > 0:
-        xz = grid.xz_of(np.argwhere(np.ones((nz, nx), bool)))
-        d = np.hypot(xz[:, 0] - camera_xz[0], xz[:, 1] - camera_xz[1]).reshape(nz, nx)
-        assumed |= (d <= params.camera_footprint_m) & grid.unseen & ~grid.obstacle
+        for cam_xz in cams:
+            d = np.hypot(xz[:, 0] - cam_xz[0], xz[:, 1] - cam_xz[1]).reshape(nz, nx)
+            assumed |= (d <= params.camera_footprint_m) & grid.unseen & ~grid.obstacle
     info["assumed_m2"] = float(assumed.sum() * grid.cell**2)
     grid.walkable |= assumed
     grid.unseen &= ~assumed

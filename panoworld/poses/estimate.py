@@ -253,7 +253,8 @@ def write_poses_artifact(
 
     Frame paths in transforms.json and COLMAP image names refer to the video artifact's frames relative to
     out_dir (e.g. ../video/frames/000000.png), or to images/ in out_dir when copy_frames.
-    depth: per frame either a Path to a uint16 mm PNG to copy, or an (H, W) array in metres; None for no depth.
+    depth: per frame either a Path to a uint16 mm PNG (the video's: referenced relative to out_dir like the frames,
+    copied into depth/ with copy_frames), or an (H, W) array in metres (written to depth/); None for no depth.
     Exports (sparse/0, transforms.json) hold the registered frames only; poses.json holds every frame.
     """
     out_dir = Path(out_dir)
@@ -277,7 +278,9 @@ def write_poses_artifact(
         depth_rel = []
         for i, d in enumerate(depth):
             rel = f"depth/{i:06d}.png"
-            if isinstance(d, Path):
+            if isinstance(d, Path) and not copy_frames:  # the video's own depth PNG: referenced like its frames
+                rel = os.path.relpath(d.resolve(), out_dir.resolve())
+            elif isinstance(d, Path):
                 (out_dir / "depth").mkdir(parents=True, exist_ok=True)
                 shutil.copyfile(d, out_dir / rel)
             else:

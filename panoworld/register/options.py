@@ -47,3 +47,19 @@ class RegisterOptions:
     min_scale_support: int = param(8, ge=1)
     """A bearing-only pair is metric when at least this many of its triangulated points have depths in both views
     that agree on the scale; with fewer it only gives the direction of the baseline."""
+    floor: bool = True
+    """Also register pairs from their floors (panoworld/register/floor.py): each panorama's lower hemisphere projected
+    onto its floor plane at metric scale (camera height from its depth), SIFT on those top-down images and a 2-point
+    rigid RANSAC over (x, z, yaw). Floor seen through a doorway from both sides matches where the perspective of the
+    panoramas does not."""
+    floor_radius_m: float = param(6.0, gt=0)
+    """The floor images cover x, z within this of the camera."""
+    floor_cell_m: float = param(0.015, gt=0)
+    """Floor image pixel size (metres)."""
+    floor_threshold_m: float = param(0.05, gt=0)
+    """Floor RANSAC inlier threshold: distance on the floor between matched keypoints (metres)."""
+    floor_ratio: float = param(0.9, gt=0, le=1)
+    """Lowe ratio of the floor image matches."""
+    min_floor_inliers: int = param(8, ge=3)
+    """A floor pair needs at least this many inliers (and no contradiction from its bearing-only estimate, checked as
+    for a depth-backed pose)."""

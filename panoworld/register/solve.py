@@ -8,7 +8,8 @@ import numpy as np
 
 from panoworld.core.conventions import invert_pose
 from panoworld.geometry.resize import rgbd_at_height
-from panoworld.register.graph import BEARING, DEPTH, DIRECTION, Edge, solve_graph
+from panoworld.register.floor import FloorPose, FloorView, floor_pair, floor_view
+from panoworld.register.graph import BEARING, DEPTH, DIRECTION, FLOOR, Edge, solve_graph
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pair_select import ALL_PAIRS_UP_TO, appearance_descriptor, candidate_pairs
 from panoworld.register.pairwise import Features, PairResult, erp_features, match, register_pair
@@ -43,10 +44,14 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     need = [n for n in names if n not in given]
     pairs: dict[tuple[int, int], PairResult] = {}
     bearing: dict[tuple[int, int], tuple[UprightPose | None, float, int]] = {}
+    floors: dict[tuple[int, int], FloorPose | None] = {}
     k = len(names)
     if need:
         small = {n: rgbd_at_height(rgbs[n], depths[n], o.height) for n in names}
         feats = {n: erp_features(*small[n], max_features=o.max_features) for n in names}
+        views: dict[str, FloorView | None] = {
+            n: floor_view(rgbs[n], small[n][1], radius_m=o.floor_radius_m, cell_m=o.floor_cell_m) if o.floor else None
+            for n in names}
         looks = {n: appearance_descriptor(small[n][0]) for n in names} if k > ALL_PAIRS_UP_TO else None
         for a, b in candidate_pairs(names, looks, given=given):
             fa, fb = feats[names[a]], feats[names[b]]
@@ -57,16 +62,25 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                                         matches=m)
             rows = max(small[names[a]][1].shape[0], small[names[b]][1].shape[0])
             bearing[a, b] = _bearing_pair(fa, fb, m, rows, o)
+            va, vb = views[names[a]], views[names[b]]
+            floors[a, b] = None if va is None or vb is None else floor_pair(va, vb, threshold_m=o.floor_threshold_m,
+                                                                            ratio=o.floor_ratio)
             if progress:
                 progress(names[a], names[b], pairs[a, b])
-    refused = {ab: _contradiction(p, bearing[ab], o) for ab, p in pairs.items() if accepted(p, o)}
+    refused = {ab: _contradiction(p.i_from_j, bearing[ab], o) for ab, p in pairs.items() if accepted(p, o)}
     depth_ok = {ab: accepted(p, o) and not refused[ab] for ab, p in pairs.items()}
+    floor_refused = {ab: _contradiction(f.a_from_b, bearing[ab], o) for ab, f in floors.items()
+                     if f is not None and f.inliers >= o.min_floor_inliers}
     edges = []
     for (a, b), p in pairs.items():
+        f = floors.get((a, b))
         if depth_ok[a, b]:
             edges.append(Edge(a=names[a], b=names[b], a_from_b=p.i_from_j, kind=DEPTH, inliers=p.inliers,
                               info={"inliers": p.inliers, "overlap": round(p.overlap, 4),
                                     "consistency": round(p.consistency, 4), "residual": round(p.residual, 5)}))
+        elif f is not None and (a, b) in floor_refused and not floor_refused[a, b]:
+            edges.append(Edge(a=names[a], b=names[b], a_from_b=f.a_from_b, kind=FLOOR, inliers=f.inliers,
+                              info={"inliers": f.inliers, "matches": f.matches, "residual": round(f.residual_m, 4)}))
         elif (a, b) in bearing and bearing[a, b][0] is not None:
             pose, scale, support = bearing[a, b]
             metric = support >= o.min_scale_support
@@ -92,6 +106,11 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                "edge": used.get((names[a], names[b]))}
         if refused.get((a, b)):
             row["depth_refused"] = refused[a, b]
+        if floors.get((a, b)) is not None:
+            f = floors[a, b]
+            row.update(floor_inliers=f.inliers, floor_matches=f.matches, floor_residual_m=round(f.residual_m, 4))
+            if floor_refused.get((a, b)):
+                row["floor_refused"] = floor_refused[a, b]
         if (a, b) in bearing:
             pose, scale, support = bearing[a, b]
             row["bearing_inliers"] = 0 if pose is None else int(pose.inliers.sum())
@@ -102,17 +121,17 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     return Registration(world_from_cam=out, panoramas={n: info[n] for n in names}, pairs=rows)
 
 
-def _contradiction(p: PairResult, bearing: tuple[UprightPose | None, float, int], o: RegisterOptions) -> str:
-    """Why the images contradict an accepted depth-backed pose ('' when they do not): the bearing-only estimate of the
-    same matches, when well supported, differs in yaw, baseline direction or (where it is metric) baseline length
-    beyond the tolerances."""
+def _contradiction(i_from_j: np.ndarray, bearing: tuple[UprightPose | None, float, int], o: RegisterOptions) -> str:
+    """Why the images contradict a depth-backed or floor pose i_from_j (4, 4) ('' when they do not): the bearing-only
+    estimate of the pair's ERP matches, when well supported, differs in yaw, baseline direction or (where it is
+    metric) baseline length beyond the tolerances."""
     pose, scale, support = bearing
     if pose is None or int(pose.inliers.sum()) < o.min_bearing_inliers:
         return ""
-    dyaw = abs(float(np.degrees((yaw_of(p.i_from_j[:3, :3]) - pose.yaw + np.pi) % (2 * np.pi) - np.pi)))
+    dyaw = abs(float(np.degrees((yaw_of(i_from_j[:3, :3]) - pose.yaw + np.pi) % (2 * np.pi) - np.pi)))
     if dyaw > o.depth_yaw_tol_deg:
         return f"bearing-only yaw differs by {dyaw:.1f} deg ({int(pose.inliers.sum())} inliers)"
-    t = p.i_from_j[:3, 3]
+    t = i_from_j[:3, 3]
     if np.linalg.norm(t) > 2 * o.max_error_m:
         ang = float(np.degrees(np.arccos(np.clip(t @ pose.t / np.linalg.norm(t), -1.0, 1.0))))
         if ang > o.depth_direction_tol_deg:

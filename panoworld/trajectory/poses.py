@@ -28,6 +28,8 @@ def path_yaw(positions: np.ndarray, paths: list[dict], *, closed: bool) -> np.nd
     yaw = np.zeros(len(positions))
     for p in paths:
         idx = path_indices(p)
+        if len(idx) < 2:  # a single pose (a capture frame alone): the initial heading
+            continue
         y = yaw_of_path(positions[idx], closed=closed and len(paths) == 1)
         yaw[p["start"]:p["stop"]] = y[len(idx) - (p["stop"] - p["start"]):]
     return yaw

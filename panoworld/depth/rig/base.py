@@ -5,6 +5,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from panoworld.depth.rig.face import face_to_erp_mask
+from panoworld.depth.rig.nadir import RING_DEG, RigDetection, floor_source, nadir_face, seen_object, unlike_floor
+
 BASE_FG_DEG = 10.0
 """GrabCut starts with everything within this angle of the nadir as probably the rig."""
 BASE_BG_DEG = 27.0
@@ -111,3 +114,33 @@ def _elongated(part: np.ndarray) -> bool:
     (_, _), (w, h), _ = cv2.minAreaRect(pts)
     lo, hi = sorted((max(w, 1.0), max(h, 1.0)))
     return hi >= LEG_MIN_ASPECT * lo and len(pts) >= 0.5 * lo * hi
+
+
+def detect_base(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndarray | None = None,
+                floor_m: float | None = None) -> RigDetection:
+    """A solid camera base at the nadir (panoworld.depth.rig.base): GrabCut on the downward face, compared with the floor
+    that is there (on the floor plane by depth, BASE_BG_DEG-42 deg from the nadir: in a narrow hallway nearer than the
+    floor ring); a region that is no compact, centred body unlike that floor and closed by it is kept."""
+    H, W = rgb.shape[:2]
+    nf = nadir_face(rgb, depth, valid, floor_m)
+    ref = nf.on_floor & (nf.theta >= BASE_BG_DEG) & (nf.theta < RING_DEG[1])
+    share = float(ref.sum() / max(((nf.theta >= BASE_BG_DEG) & (nf.theta < RING_DEG[1])).sum(), 1))
+    if share < 0.15:
+        return RigDetection(False, f"no floor {BASE_BG_DEG:.0f}-{RING_DEG[1]:.0f} deg from the nadir to compare a "
+                            "camera base with", stats={"base_floor_share": share})
+    comp = base_component(grabcut_nadir(nf.face, nf.theta), nf.theta)
+    if comp is None:
+        return RigDetection(False, "no region at the nadir stands out from the floor")
+    unlike = unlike_floor(nf.face, ref, nf.view)
+    stats = base_stats(comp, nf.theta, unlike)
+    why = is_base(stats)
+    if why is None and (refusal := seen_object(nf, comp, floor_m)) is not None:
+        why = refusal.reason
+    if why is not None:
+        return RigDetection(False, f"the region at the nadir is no camera base: {why}, kept", stats=stats)
+    legs = attached_legs(comp, unlike, nf.theta, nf.view.focal)
+    stats["leg_pixels"] = int(legs.sum())
+    mask = face_to_erp_mask(cv2.dilate((comp | legs).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0, nf.view, H, W)
+    return RigDetection(True, f"a solid camera base centred on the nadir, {stats['cap_deg']:.1f} deg, unlike the floor "
+                        "around it", "base", mask, np.zeros_like(mask), stats, source=floor_source(nf.face, nf),
+                        fill="ring")

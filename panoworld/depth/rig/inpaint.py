@@ -182,3 +182,81 @@ def matte_rim(observed: np.ndarray, fill: np.ndarray, mask: np.ndarray, rim_px: 
     alpha = np.where(n2 < MIN_CONTRAST**2, 1.0, alpha)
     out[rim] = c[rim] - alpha[:, None] * d
     return out
+
+
+RING_WIDTH_DEG = 8.0
+"""Width of the floor annulus just outside a hole that ring_fill takes the floor from."""
+
+
+def floor_ring(hole: np.ndarray, floor_area: np.ndarray, width_px: float) -> np.ndarray:
+    """The floor pixels (size, size) bool within width_px outside hole: the floor the hole is surrounded by."""
+    dist = cv2.distanceTransform((~hole).astype(np.uint8), cv2.DIST_L2, 5)
+    return floor_area & ~hole & (dist <= width_px)
+
+
+def ring_fill(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, width_px: float,
+              seed: int = 0) -> np.ndarray:
+    """Fill hole (size, size) of face (float RGB 0-255) from the floor ring around it alone (floor_ring): its low
+    frequencies propagated inward by normalised convolution from the ring (coarse to fine: the ring's mean in the
+    middle of the hole, the local floor near its edge), its texture (face less the ring's local mean) laid by
+    overlap-added random ring blocks. Nothing beyond the ring (a wall, the next room, a sun band far away) is read;
+    with no ring the hole is left as it is."""
+    ring = floor_ring(hole, floor_area, width_px)
+    if ring.sum() < 16:
+        return face
+    S = face.shape[0]
+    sig = max(1.5, S / 100)
+    low = _spread(face, ring, (24 * sig, 12 * sig, 3 * sig))
+    tex_sig = max(1.0, S / 120)
+    local = _spread(face, ring, (tex_sig,))
+    resid = (face - local) * ring[..., None]
+    out = face.copy()
+    out[hole] = (low + _quilt(resid, ring, hole, max(8, int(S / 24)) // 2 * 2, seed))[hole]
+    return out
+
+
+def _spread(face: np.ndarray, known: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
+    """face's known pixels spread over every pixel (normalised convolution, coarse to fine; the known mean where
+    no scale reaches)."""
+    kn = known.astype(np.float32)
+    val = face * kn[..., None]
+    out = np.broadcast_to(face[known].mean(0), face.shape).astype(np.float32)
+    for g in sigmas:
+        w = cv2.GaussianBlur(kn, (0, 0), g)[..., None]
+        out = np.where(w > 0.02, cv2.GaussianBlur(val, (0, 0), g) / np.maximum(w, 1e-6), out)
+    return out
+
+
+def _quilt(resid: np.ndarray, ring: np.ndarray, hole: np.ndarray, block: int, seed: int) -> np.ndarray:
+    """Texture (size, size, 3) over hole: blocks of resid taken at random where a block lies wholly in ring (or
+    mostly, for a thin ring), overlap-added with Hann windows at half a block's stride and scaled so that the sum of
+    independent blocks keeps the ring's texture contrast."""
+    S = hole.shape[0]
+    rng = np.random.default_rng(seed)
+    cover = cv2.boxFilter(ring.astype(np.float32), -1, (block, block), normalize=True, borderType=cv2.BORDER_CONSTANT)
+    half = block // 2
+    cy, cx = np.nonzero(cover >= 0.95)
+    if len(cy) == 0:
+        cy, cx = np.nonzero(cover >= 0.5 * cover.max())
+    win = np.outer(np.hanning(block + 2)[1:-1], np.hanning(block + 2)[1:-1]).astype(np.float32)
+    acc = np.zeros(resid.shape, np.float32)
+    w2 = np.zeros(hole.shape, np.float32)
+    pad = np.pad(resid, ((half, half), (half, half), (0, 0)))
+    rpad = np.pad(ring.astype(np.float32), half)
+    ys, xs = np.nonzero(hole)
+    step = max(1, half)
+    for y0 in range(max(ys.min() - block, -half), min(ys.max() + 1, S), step):
+        for x0 in range(max(xs.min() - block, -half), min(xs.max() + 1, S), step):
+            k = rng.integers(len(cy))
+            sy, sx = cy[k], cx[k]  # the block centred there, its top-left corner in the padded arrays
+            patch = pad[sy:sy + block, sx:sx + block]
+            wk = win * rpad[sy:sy + block, sx:sx + block]
+            ty0, tx0 = max(y0, 0), max(x0, 0)
+            ty1, tx1 = min(y0 + block, S), min(x0 + block, S)
+            if ty1 <= ty0 or tx1 <= tx0:
+                continue
+            py, px = ty0 - y0, tx0 - x0
+            sl = (slice(py, py + ty1 - ty0), slice(px, px + tx1 - tx0))
+            acc[ty0:ty1, tx0:tx1] += (wk[sl])[..., None] * patch[sl]
+            w2[ty0:ty1, tx0:tx1] += wk[sl] ** 2
+    return acc / np.sqrt(np.maximum(w2, 1e-6))[..., None]

@@ -19,7 +19,7 @@ from panoworld.io.conditions import load_conditions
 from panoworld.io.home import capture_poses
 from panoworld.io.jsonio import read_json
 from panoworld.io.manifest import read_manifest
-from panoworld.io.trajectory import load_trajectory, read_trajectory_doc
+from panoworld.io.trajectory import load_trajectory, path_indices, read_trajectory_doc
 from panoworld.io.video import read_video_doc
 from panoworld.poses.estimate import load_poses
 from panoworld.tools.report import encode as enc
@@ -336,7 +336,12 @@ def _draw_plan(view: PlanView, L: _PlanLayers, floor_y: float | None, reach_m: f
     if L.tinfo.get("kind", L.tdoc.get("kind")) == "sector":
         view.sector_rays(start, L.n_sectors, reach_m)
         legend.append('<span><i class="sw" style="background:#ffd400"></i>sector boundaries (numbered)</span>')
-    view.polyline(xz, "#ffffff", 2.0)
+    paths = L.tdoc.get("paths")
+    clips = [path_indices(p) for p in paths] if isinstance(paths, list) and paths else [list(range(len(xz)))]
+    for idx in clips:  # each path from its predecessor: no line across a home's cut between floors
+        idx = [i for i in idx if 0 <= i < len(xz)]
+        if len(idx) > 1:
+            view.polyline(xz[idx], "#ffffff", 2.0)
     view.headings(L.traj, 3 * dot_r * view.cell, "#ffffff")
     clearance = np.asarray(L.tdoc.get("clearance_m", [np.nan] * len(xz)), np.float64)
     cap = float(L.tdoc.get("clearance_cap_m", L.tinfo.get("clearance_cap_m", 0.5)) or 0.5)
@@ -400,8 +405,16 @@ def section_plan(scene: SceneData, params: ReportParams) -> Section:
     if tinfo.get("plan", {}).get("approach_steps"):
         notes.append(f"the camera stands {fmt(tinfo.get('start_off_navmesh_m'))} m off the NavMesh: the first "
                      f"{tinfo['plan']['approach_steps']} steps walk onto it (exempt from the clearance check)")
+    comps = ninfo.get("components") or []
+    if len(comps) > 1:
+        groups = "; ".join(f"{', '.join(c.get('capture_points') or []) or 'no capture point'} "
+                           f"({fmt(c.get('area_m2'))} m²)" for c in comps)
+        cuts = (tinfo.get("plan") or {}).get("cuts") or []
+        notes.append(f"the home's floor is {len(comps)} NavMesh components that do not connect: {groups}"
+                     + (f"; the trajectory cuts (no walk) {', '.join(' → '.join(c) for c in cuts)}" if cuts else ""))
     nfacts = table(["navmesh", "value"], [[k, fmt(ninfo.get(k))] for k in
-                                          ("area_m2", "num_triangles", "num_holes", "floor_y", "camera_on_navmesh") if k in ninfo])
+                                          ("area_m2", "num_triangles", "num_holes", "floor_y", "camera_on_navmesh") if k in ninfo]
+                   + ([["components", str(len(comps))]] if comps else []))
     body = (f'<div class="legend">{"".join(legend)}</div><div class="row">{figs}</div><div class="row">{facts}{nfacts}</div>'
             + "".join(f'<p class="note">{html.escape(n)}</p>' for n in notes))
     return Section("plan", title, body, missing=traj is None and nav is None)

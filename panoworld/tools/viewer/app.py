@@ -16,7 +16,7 @@ from panoworld.geometry.navmesh import load_navmesh
 from panoworld.io.depth import load_depth_artifact
 from panoworld.io.home import capture_poses
 from panoworld.io.manifest import read_manifest
-from panoworld.io.trajectory import load_trajectory
+from panoworld.io.trajectory import load_clips, load_trajectory
 from panoworld.io.video import read_video_doc
 from panoworld.poses.estimate import load_poses
 
@@ -151,8 +151,10 @@ class SceneViewer:
         recovered = None if pa is None else pa.world_from_cam
         vdoc = _read(read_video_doc, self.art / "video")
         self._frames = [] if vdoc is None else list(vdoc.rgb)
-        if planned is not None and len(planned) > 1:
-            seg = np.stack([planned[:-1, :3, 3], planned[1:, :3, 3]], 1).astype(np.float32)
+        if planned is not None and len(planned) > 1:  # each path from its predecessor (a home's cuts are no line)
+            clips = _read(lambda p: load_clips(p, len(planned)), self.art / "trajectory") or [list(range(len(planned)))]
+            pairs = np.array([(c[k], c[k + 1]) for c in clips for k in range(len(c) - 1)], np.int64).reshape(-1, 2)
+            seg = np.stack([planned[pairs[:, 0], :3, 3], planned[pairs[:, 1], :3, 3]], 1).astype(np.float32)
             self.handles["planned"] = self.server.scene.add_line_segments("/trajectory/planned", seg, (255, 200, 0), thickness=0.01)
         poses = recovered if recovered is not None else planned
         if poses is None:

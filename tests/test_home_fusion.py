@@ -1,0 +1,71 @@
+"""A home's panoramas fused: depth holes completed from the other panoramas, the panoramas' Gaussians alone."""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from panoworld.gaussians.home import depth_from_others
+from panoworld.geometry.raycast import Raycaster
+
+ROOM = np.array([4.0, 2.6, 5.0])
+
+
+def _pose(x, y, z):
+    T = np.eye(4)
+    T[:3, 3] = [x, y, z]
+    return T
+
+
+def _box_depths(poses, H=48):
+    rc = Raycaster(*(lambda m: (m.vertices, m.faces))(trimesh.creation.box(extents=ROOM)))
+    return {n: rc.render_erp(T, H, 2 * H).distance.astype(np.float32) for n, T in poses.items()}
+
+
+def test_depth_holes_are_completed_from_the_surfaces_the_other_panoramas_see():
+    poses = {"a": _pose(0, 0, 0), "b": _pose(0.9, 0.2, -1.1)}
+    truth = _box_depths(poses)
+    depths = {n: d.copy() for n, d in truth.items()}
+    depths["a"][10:38, 30:70] = 0.0  # a band of a's walls with no depth (an implausible layout masked)
+    got = depth_from_others(0, ["a", "b"], depths, poses, height=48)
+    assert got.shape == truth["a"].shape
+    hole = depths["a"] == 0
+    rel = np.abs(got[hole] - truth["a"][hole]) / truth["a"][hole]
+    assert (got[hole] > 0).all() and np.median(rel) < 0.04 and np.quantile(rel, 0.95) < 0.1
+    # nothing to complete from: a lone panorama, or others without depth
+    assert not depth_from_others(0, ["a"], {"a": depths["a"]}, {"a": poses["a"]}).any()
+    assert not depth_from_others(0, ["a", "b"], {"a": depths["a"], "b": np.zeros_like(depths["b"])}, poses).any()
+
+
+def test_a_home_without_frames_is_its_panoramas_gaussians():
+    from panoworld.gaussians.fusion_params import SourcePixelParams
+    from panoworld.gaussians.home import home_anchored_fusion
+
+    poses = {"a": _pose(0, 0, 0), "b": _pose(0.9, 0.2, -1.1)}
+    depths = _box_depths(poses, H=32)
+    rgb = np.full((32, 64, 3), 128, np.uint8)
+    sources = {n: (rgb, depths[n], poses[n]) for n in poses}
+    params = SourcePixelParams(voxel_size=0.05, unseen_voxel_size=0.05, source_height=0)
+    res = home_anchored_fusion(None, sources, params)
+    assert len(res.gaussians) == res.num_source > 500 and res.num_voxels == 0
+    # b's Gaussians stand only where a does not see the same wall from nearer: fewer than one per pixel of each
+    assert res.num_source < 2 * 32 * 64
+
+
+def test_a_surface_another_panorama_saw_through_is_dropped():
+    # b's depth holds a wall across the room 1 m in front of a (a layout's doorway line); a saw the room's far wall
+    # through it, so those points of b are seen through, b's true walls are not
+    from panoworld.core.conventions import erp_dirs, transform_points
+    from panoworld.gaussians.home import seen_through
+
+    poses = {"a": _pose(0, 0, 0), "b": _pose(0.9, 0.2, -1.1)}
+    depths = _box_depths(poses)
+    H, W = depths["b"].shape
+    dirs = erp_dirs(H, W, np.float64)
+    to_plane = (1.0 - poses["b"][2, 3]) / np.where(dirs[..., 2] > 1e-6, dirs[..., 2], np.nan)  # the plane z = 1
+    fake = np.isfinite(to_plane) & (to_plane < depths["b"]) & (np.abs(dirs[..., 1] * to_plane) < 0.8)
+    d = np.where(fake, to_plane, depths["b"])
+    pts = transform_points(poses["b"], dirs.reshape(-1, 3) * d.reshape(-1, 1))
+    got = seen_through(1, pts, ["a", "b"], {"a": depths["a"], "b": d}, poses, tol=0.1).reshape(H, W)
+    assert got[fake].mean() > 0.9 and got[~fake].mean() < 0.01
+    assert not seen_through(1, pts, ["a", "b"], {"a": np.zeros_like(depths["a"]), "b": d}, poses, tol=0.1).any()

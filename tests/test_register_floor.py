@@ -1,0 +1,108 @@
+"""Floor-plane registration of upright panoramas: camera height from depth, the metric top-down floor images and the
+2-point rigid fit recover (x, z, yaw) against ground truth; unrelated floors give no supported pose; the pose graph
+joins groups by a floor edge, and the registration of a pair uses it."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from panoworld.core.conventions import erp_dirs, invert_pose
+from panoworld.register.floor import camera_height, floor_pair, floor_view, rigid2d_ransac
+from panoworld.register.graph import FLOOR, Edge, solve_graph
+from panoworld.register.options import RegisterOptions
+from panoworld.register.solve import register_panoramas
+from panoworld.register.upright import yaw_matrix, yaw_of
+
+H = 512
+FLOOR_Y = 1.4  # the floor, below every camera (y down)
+
+
+def _texture(seed: int, n: int = 1024) -> np.ndarray:
+    """(n, n) uint8 blob texture covering x, z in [-8, 8] m (1.6 cm cells)."""
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.random((n, n)).astype(np.float32), (0, 0), 3)
+    img = (img - img.min()) / (img.max() - img.min())
+    return (255 * img).astype(np.uint8)
+
+
+def _pose(yaw_deg: float, x: float, z: float, y: float = 0.0) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = yaw_matrix(np.radians(yaw_deg)), [x, y, z]
+    return T
+
+
+def _render(world_from_cam: np.ndarray, tex: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """An upright ERP panorama (H, 2H, 3) of a textured floor plane (world y = FLOOR_Y) under a grey ceiling 1 m above
+    the camera, and its ray depth."""
+    d = erp_dirs(H, 2 * H, np.float64) @ world_from_cam[:3, :3].T
+    cam_y = world_from_cam[1, 3]
+    rng_floor = np.where(d[..., 1] > 1e-3, (FLOOR_Y - cam_y) / np.maximum(d[..., 1], 1e-3), np.inf)
+    rng_ceil = np.where(d[..., 1] < -1e-3, 1.0 / np.maximum(-d[..., 1], 1e-3), np.inf)
+    depth = np.minimum(np.minimum(rng_floor, rng_ceil), 30.0)
+    p = world_from_cam[:3, 3] + d * rng_floor[..., None]
+    n = tex.shape[0]
+    u, v = (p[..., 0] + 8) / 16 * n, (p[..., 2] + 8) / 16 * n
+    ok = np.isfinite(rng_floor) & (rng_floor < 30)
+    g = cv2.remap(tex, np.where(ok, u, -1).astype(np.float32), np.where(ok, v, -1).astype(np.float32),
+                  cv2.INTER_LINEAR, borderValue=128)
+    g = np.where(ok, g, 200).astype(np.uint8)
+    return np.repeat(g[..., None], 3, 2), depth.astype(np.float32)
+
+
+def test_floor_pair_recovers_upright_pose_on_a_shared_floor():
+    tex = _texture(0)
+    wa, wb = _pose(20.0, 0.3, -0.2), _pose(-113.0, 2.1, 1.4, y=0.05)
+    (ra, da), (rb, db) = _render(wa, tex), _render(wb, tex)
+    assert abs(camera_height(da) - FLOOR_Y) < 0.01
+    assert abs(camera_height(db) - (FLOOR_Y - 0.05)) < 0.01
+    va, vb = floor_view(ra, da, radius_m=4.0), floor_view(rb, db, radius_m=4.0)
+    p = floor_pair(va, vb)
+    assert p is not None and p.inliers >= 50
+    truth = invert_pose(wa) @ wb
+    assert np.linalg.norm(p.a_from_b[:3, 3] - truth[:3, 3]) < 0.03
+    dyaw = np.degrees(yaw_of(p.a_from_b[:3, :3]) - yaw_of(truth[:3, :3]))
+    assert abs((dyaw + 180) % 360 - 180) < 0.5
+
+
+def test_unrelated_floors_give_no_supported_pose():
+    wa, wb = _pose(0.0, 0.0, 0.0), _pose(40.0, 1.5, 0.5)
+    va = floor_view(*_render(wa, _texture(1)), radius_m=4.0)
+    vb = floor_view(*_render(wb, _texture(2)), radius_m=4.0)
+    p = floor_pair(va, vb)
+    assert p is None or p.inliers < 8  # RegisterOptions.min_floor_inliers
+
+
+def test_rigid2d_ransac_with_outliers():
+    rng = np.random.default_rng(3)
+    q = rng.uniform(-3, 3, (60, 2))
+    th = np.radians(70.0)
+    R = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    p = q @ R.T + [1.0, -0.5] + rng.normal(0, 0.005, q.shape)
+    p[:40] = rng.uniform(-3, 3, (40, 2))  # two thirds outliers
+    Rr, t, inl = rigid2d_ransac(p, q, threshold=0.03)
+    assert inl[40:].all() and inl[:40].sum() <= 2
+    assert np.allclose(Rr, R, atol=5e-3) and np.allclose(t, [1.0, -0.5], atol=0.01)
+
+
+def test_floor_edge_joins_groups_in_the_pose_graph():
+    ab, cd, bc = _pose(30.0, 1.0, 0.0), _pose(-60.0, 0.0, 2.0), _pose(90.0, 3.0, 1.0)
+    edges = [Edge(a="a", b="b", a_from_b=ab, kind="depth", inliers=100, info={}),
+             Edge(a="c", b="d", a_from_b=cd, kind="depth", inliers=100, info={}),
+             Edge(a="b", b="c", a_from_b=bc, kind=FLOOR, inliers=12, info={})]
+    poses, info = solve_graph(["a", "b", "c", "d", "e"], edges)
+    assert set(poses) == {"a", "b", "c", "d"} and not info["e"]["registered"]
+    assert np.allclose(poses["d"], ab @ bc @ cd)
+    assert info["c"]["edge"] == FLOOR
+
+
+def test_register_panoramas_joins_a_pair_by_its_floor():
+    tex = _texture(4)
+    wa, wb = _pose(0.0, 0.0, 0.0), _pose(75.0, 1.6, 0.9)
+    (ra, da), (rb, db) = _render(wa, tex), _render(wb, tex)
+    o = RegisterOptions(min_inliers=10**6, floor_radius_m=4.0)  # no depth-backed edge: the floor must join them
+    reg = register_panoramas(["a", "b"], {"a": ra, "b": rb}, {"a": da, "b": db}, options=o)
+    assert reg.panoramas["b"]["registered"] and reg.panoramas["b"]["edge"] == FLOOR
+    truth = invert_pose(wa) @ wb
+    assert np.linalg.norm(reg.world_from_cam["b"][:3, 3] - truth[:3, 3]) < 0.03
+    assert reg.pairs[0]["floor_inliers"] >= 50
