@@ -20,7 +20,7 @@ from panoworld.core.shapes import check_shape
 from panoworld.geometry.erp_mesh import ErpMesh
 from panoworld.io.conditions import CONDITIONS_JSON, DEPTH_SCALE, WarpedFrame
 from panoworld.io.png import encode_png
-from panoworld.io.rgb_image import SUFFIX, RgbFormat, encode_rgb, rgb_file_name
+from panoworld.io.rgb_image import RgbFormat, encode_rgb, rgb_file_name
 
 PREVIEW_MP4 = "preview.mp4"
 
@@ -232,9 +232,9 @@ def frame_files(k: int, write_depth: bool = True, rgb_format: RgbFormat | str = 
     return files
 
 
-def _write_frame(out_dir: Path, files: dict[str, str], frame: WarpedFrame, compression: int, rgb_quality: int) -> None:
-    fmt = RgbFormat.JPEG if files["rgb"].endswith(SUFFIX[RgbFormat.JPEG]) else RgbFormat.PNG
-    pngs = {"rgb": encode_rgb(frame.rgb, fmt, quality=rgb_quality, compression=compression),
+def _write_frame(out_dir: Path, files: dict[str, str], frame: WarpedFrame, compression: int, rgb_format: RgbFormat | str,
+                 rgb_quality: int) -> None:
+    pngs = {"rgb": encode_rgb(frame.rgb, rgb_format, quality=rgb_quality, compression=compression),
             "mask": encode_png(frame.mask.astype(np.uint8) * 255, compression=compression)}
     if "depth" in files:
         pngs["depth"] = encode_png(depth_to_mm(frame.depth), compression=compression)
@@ -329,9 +329,9 @@ def write_conditions(
                 entries.append(files)
                 valid.append(float(frame.mask.mean()))
                 if pool is None:
-                    _write_frame(out_dir, files, frame, compression, rgb_quality)
+                    _write_frame(out_dir, files, frame, compression, rgb_format, rgb_quality)
                 else:
-                    pending.append(pool.submit(_write_frame, out_dir, files, frame, compression, rgb_quality))
+                    pending.append(pool.submit(_write_frame, out_dir, files, frame, compression, rgb_format, rgb_quality))
                 while len(pending) > 2 * max(1, workers):
                     pending.popleft().result()
                 if preview_pool is not None:

@@ -7,11 +7,11 @@ from dataclasses import replace
 
 import numpy as np
 
-from panoworld.core.conventions import erp_dirs, erp_pixel_from_dir, invert_pose, transform_points
+from panoworld.core.conventions import erp_dirs, invert_pose, transform_points
 from panoworld.gaussians.fusion import ContextSource
 from panoworld.gaussians.fusion_params import SourcePixelParams
 from panoworld.gaussians.pixel import SourceVisibility, fuse_unseen, merge_gaussians, pixel_gaussians
-from panoworld.geometry.panoramas import nearest_source
+from panoworld.geometry.panoramas import depth_along, erp_pixel_index, nearest_source
 from panoworld.geometry.resize import rgbd_at_height
 from panoworld.io.gaussian_set import FusionResult
 
@@ -61,10 +61,8 @@ def depth_from_others(k: int, names: list[str], depths: dict[str, np.ndarray], w
             continue
         pts = erp_dirs(*d.shape, np.float64)[ok] * d[ok][:, None]
         p = transform_points(cam_from_world @ world_from_cam[other], pts)
-        r = np.linalg.norm(p, axis=1)
-        u, v = erp_pixel_from_dir(p / np.maximum(r, 1e-12)[:, None], h, w)
-        idx = np.clip(np.floor(v).astype(int), 0, h - 1) * w + np.floor(u).astype(int) % w
-        np.minimum.at(zbuf, idx, r)
+        rows, cols = erp_pixel_index(p, h, w)
+        np.minimum.at(zbuf, rows * w + cols, np.linalg.norm(p, axis=1))
     z = zbuf.reshape(h, w)
     hole = ~np.isfinite(z)
     if hole.any():
@@ -108,9 +106,7 @@ def seen_through(k: int, pts_world: np.ndarray, names: list[str], depths: dict[s
         near = ndimage.minimum_filter(d, size=3, mode="wrap")
         p = transform_points(invert_pose(world_from_cam[other]), pts_world)
         r = np.linalg.norm(p, axis=1)
-        h, w = near.shape
-        u, v = erp_pixel_from_dir(p / np.maximum(r, 1e-12)[:, None], h, w)
-        d_j = near[np.clip(np.floor(v).astype(int), 0, h - 1), np.floor(u).astype(int) % w]
+        d_j = depth_along(near, p)
         out |= (d_j > 0) & (np.log(np.maximum(d_j, 1e-6) / np.maximum(r, 1e-6)) > tol)
     return out
 

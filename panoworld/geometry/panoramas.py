@@ -7,10 +7,15 @@ import numpy as np
 from panoworld.core.conventions import erp_pixel_from_dir, invert_pose, transform_points
 
 
-def _nearest_depth(depth: np.ndarray, pts_cam: np.ndarray) -> np.ndarray:
-    h, w = depth.shape
-    u, v = erp_pixel_from_dir(pts_cam, h, w)
-    return depth[np.clip(np.floor(v).astype(int), 0, h - 1), np.floor(u).astype(int) % w]
+def erp_pixel_index(pts_cam: np.ndarray, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) (M,) of the ERP pixels (height, width) the camera-frame points (M, 3) lie in the direction of."""
+    u, v = erp_pixel_from_dir(pts_cam, height, width)
+    return np.clip(np.floor(v).astype(int), 0, height - 1), np.floor(u).astype(int) % width
+
+
+def depth_along(depth: np.ndarray, pts_cam: np.ndarray) -> np.ndarray:
+    """(M,) the ERP depth (H, W) of the pixel in the direction of each camera-frame point (M, 3)."""
+    return depth[erp_pixel_index(pts_cam, *depth.shape)]
 
 
 def nearest_source(k: int, pts_world: np.ndarray, names: list[str], depths: dict[str, np.ndarray],
@@ -24,7 +29,7 @@ def nearest_source(k: int, pts_world: np.ndarray, names: list[str], depths: dict
             continue
         p = transform_points(invert_pose(world_from_cam[other]), pts_world)
         r_j = np.linalg.norm(p, axis=1)
-        d_j = _nearest_depth(np.asarray(depths[other], np.float64), p)
+        d_j = depth_along(np.asarray(depths[other], np.float64), p)
         seen = np.isfinite(d_j) & (d_j > 0) & (np.abs(np.log(np.maximum(r_j, 1e-6) / np.maximum(d_j, 1e-6))) < tol)
         nearer = (r_j < r_k) | ((r_j == r_k) & (j < k))
         keep &= ~(seen & nearer)

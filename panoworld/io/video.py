@@ -251,13 +251,8 @@ class VideoWriter:
     def _encode_depth(self, depth: np.ndarray, path: Path) -> np.ndarray:
         """Depth (H, W) metres -> its uint16 millimetre PNG at path; returns the millimetres (the MCAP's)."""
         mm = depth_to_mm(depth)
-        self._encode_write(mm, path)
+        path.write_bytes(encode_png(mm, compression=self.png_compression))
         return mm
-
-    def _encode_write(self, image: np.ndarray, path: Path) -> bytes:
-        png = encode_png(image, compression=self.png_compression)
-        path.write_bytes(png)
-        return png
 
     def _encode_write_rgb(self, rgb: np.ndarray, path: Path) -> bytes:
         data = encode_rgb(rgb, self.frame_format, quality=self.frame_quality, compression=self.png_compression)

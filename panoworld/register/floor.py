@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from panoworld.core.conventions import erp_dirs
+from panoworld.core.conventions import erp_dirs, erp_pixel_from_lonlat
 from panoworld.core.shapes import check_shape
 from panoworld.register.upright import yaw_matrix
 
@@ -60,9 +60,8 @@ def floor_image(rgb: np.ndarray, height_m: float, *, radius_m: float, cell_m: fl
     hi, wi = rgb.shape[:2]
     pad = 4
     padded = np.concatenate([rgb[:, -pad:], rgb, rgb[:, :pad]], 1)  # the seam wraps
-    u = (lon / (2 * np.pi) + 0.5) * wi - 0.5 + pad
-    v = (0.5 - lat / np.pi) * hi - 0.5
-    return cv2.remap(padded, u.astype(np.float32), v.astype(np.float32), cv2.INTER_LINEAR)
+    u, v = erp_pixel_from_lonlat(lon, lat, hi, wi)  # pixel centres at +0.5; OpenCV's remap at integers
+    return cv2.remap(padded, (u - 0.5 + pad).astype(np.float32), (v - 0.5).astype(np.float32), cv2.INTER_LINEAR)
 
 
 def floor_view(rgb: np.ndarray, depth: np.ndarray, *, radius_m: float = 6.0, cell_m: float = 0.015,
