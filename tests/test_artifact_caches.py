@@ -69,3 +69,24 @@ def test_a_touched_file_is_rehashed_once_and_a_changed_one_is_caught(tmp_path, m
     assert art.verify_files(d, manifest) is None and len(hashed) == 1
     (d / "out.txt").write_text("jello")  # same size, new content and mtime
     assert "content differs" in art.verify_files(d, manifest) and len(hashed) == 2
+
+
+def test_two_runs_remembering_at_once_keep_each_others_entries(tmp_path, monkeypatch, fresh_caches):
+    a, b = toy_artifact(tmp_path / "one"), toy_artifact(tmp_path / "two", "other")
+    art._validated = art._hashes = None
+    checksum_b = json.loads((b / art.MANIFEST).read_text())["checksum"]
+    disk = art._validated_checksums("toy")  # this process loaded the record, then another run added b's manifest
+    assert checksum_b in disk
+    art._validated = {k: [c for c in v if c != checksum_b] for k, v in art._validated.items()}
+    art._remember_valid("toy", "f" * 64)
+    art._validated = None  # a new process sees both
+    assert {"f" * 64, checksum_b} <= set(art._validated_checksums("toy"))
+    for d in (a, b):  # re-hashed files: each process's view merged into the record
+        st = (d / "out.txt").stat()
+        os.utime(d / "out.txt", ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    assert art.verify_files(a, art.read_manifest(a, "toy")) is None
+    art._hashes = {}  # another process, which read the record before the first one wrote it
+    assert art.verify_files(b, art.read_manifest(b, "toy")) is None
+    art._hashes = None
+    hashed = count_calls(monkeypatch, "file_digest")
+    assert art.verify_files(a, art.read_manifest(a, "toy")) is None and hashed == []

@@ -174,6 +174,22 @@ def test_trajectory_through_a_wall_is_caught(scene, tmp_path):
     assert t["path_collisions"] >= 1
 
 
+def test_trajectory_jump_between_paths_is_not_walked(scene, tmp_path):
+    from panoworld.io.trajectory import write_trajectory
+
+    root = tmp_path / "cut"
+    shutil.copytree(scene["root"], root)
+    poses = scene["poses"].copy()
+    n = len(poses)
+    poses[-1, 0, 3] += 30.0  # the last pose starts a path of its own (a cut), far outside the room
+    paths = [{"start": 0, "stop": n - 1}, {"start": n - 1, "stop": n, "from": n - 1}]
+    write_trajectory(root / "artifacts" / "trajectory", poses, np.zeros(len(poses)), fps=16.0, paths=paths)
+    t = evaluate(root, stages=["trajectory"])[0]["stages"]["trajectory"]
+    c = poses[:, :3, 3]
+    assert t["num_paths"] == 2 and t["path_collisions"] == 0
+    assert t["path_length_m"] == pytest.approx(np.linalg.norm(np.diff(c[:-1], axis=0), axis=1).sum(), rel=1e-9)
+
+
 def test_conditions_psnr_and_mask_iou(report, scene):
     c = report["stages"]["conditions"]
     assert c["frames_evaluated"] == 3

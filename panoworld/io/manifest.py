@@ -120,13 +120,19 @@ def _validated_checksums(kind: str) -> list[str]:
 
 
 def _remember_valid(kind: str, checksum: str) -> None:
-    from panoworld.io.user_cache import write_user_cache
+    global _validated
+    from panoworld.io.user_cache import read_user_cache, write_user_cache
 
     known = _validated_checksums(kind)
     if checksum not in known:
         known.append(checksum)
-        del known[:-_VALIDATED_KEEP]
-        write_user_cache(_VALIDATED_FILE, _validated)
+        # merged with the file as it is now: other runs add theirs meanwhile, and replacing the file with this
+        # process's view would only make them validate again
+        merged = {k: v for k, v in read_user_cache(_VALIDATED_FILE).items() if isinstance(v, list)}
+        for key, sums in _validated.items():
+            merged[key] = list(dict.fromkeys(merged.get(key, []) + sums))[-_VALIDATED_KEEP:]
+        _validated = merged
+        write_user_cache(_VALIDATED_FILE, merged)
 
 
 def validate_manifest(manifest: dict, kind: str, where: Path | str = "manifest") -> None:
@@ -220,9 +226,17 @@ def verify_files(artifact_dir: Path, manifest: dict) -> str | None:
         return None
     finally:
         if hashed:
-            from panoworld.io.user_cache import write_user_cache
+            _save_hashes()
 
-            write_user_cache(_HASHES_FILE, _hashes)
+
+def _save_hashes() -> None:
+    """Merge this process's re-hashed files into the file as it is now (other runs add theirs meanwhile), newest last."""
+    global _hashes
+    from panoworld.io.user_cache import read_user_cache, write_user_cache
+
+    on_disk = {k: v for k, v in read_user_cache(_HASHES_FILE).items() if k not in _hashes}
+    _hashes = dict(list({**on_disk, **_hashes}.items())[-_HASHES_KEEP:])
+    write_user_cache(_HASHES_FILE, _hashes)
 
 
 def list_files(root: Path) -> dict[str, dict]:

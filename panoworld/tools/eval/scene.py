@@ -172,17 +172,20 @@ class Evaluation:
         }
 
     def trajectory(self) -> dict:
+        from panoworld.io.trajectory import load_clips
         from panoworld.navmesh import NavMeshParams
-        from panoworld.trajectory import step_lengths
 
         poses = self.trajectory_poses
         centres = poses[:, :3, 3]
-        seg = np.diff(centres, axis=0)
-        length = np.linalg.norm(seg, axis=1)
-        steps = step_lengths(poses)
+        clips = load_clips(self._need("trajectory"), len(poses))
+        # the walked segments: consecutive poses of each path (a jump between paths is not walked)
+        a, b = (np.concatenate([np.asarray(c[k:len(c) - 1 + k], dtype=np.int64) for c in clips]) for k in (0, 1))
+        seg = centres[b] - centres[a]
+        steps = np.linalg.norm(seg, axis=1)
         plan = {
             "num_poses": int(len(poses)),
-            "path_length_m": float(length.sum()),
+            "num_paths": len(clips),
+            "path_length_m": float(steps.sum()),
             "loop_closure_m": float(np.linalg.norm(centres[-1] - centres[0])),
             "step_cv": float(steps.std() / steps.mean()) if len(steps) and steps.mean() > 0 else float("nan"),
         }
@@ -203,8 +206,8 @@ class Evaluation:
         if self.artifact("navmesh") is not None:
             doc = json.loads((self.artifact("navmesh") / "navmesh.json").read_text())
             radius, radius_src = float(doc["agent"]["agent_radius_m"]), "navmesh.json"
-        moving = length > 1e-9
-        free = self.gt.cast(centres[:-1][moving], seg[moving] / length[moving, None])
+        moving = steps > 1e-9
+        free = self.gt.cast(centres[a][moving], seg[moving] / steps[moving, None])
         return {
             **plan,
             "min_clearance_m": float(clearance.min()),
@@ -212,7 +215,7 @@ class Evaluation:
             "clear_fraction": float(np.mean(clearance >= radius)),
             "agent_radius_m": radius,
             "agent_radius_source": radius_src,
-            "path_collisions": int(np.sum(free < length[moving])),
+            "path_collisions": int(np.sum(free < steps[moving])),
         }
 
     def conditions_stage(self) -> dict:

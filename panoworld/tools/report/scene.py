@@ -19,7 +19,7 @@ from panoworld.io.conditions import load_conditions
 from panoworld.io.home import capture_poses
 from panoworld.io.jsonio import read_json
 from panoworld.io.manifest import read_manifest
-from panoworld.io.trajectory import load_trajectory, path_indices, read_trajectory_doc
+from panoworld.io.trajectory import load_clips, load_trajectory, read_trajectory_doc
 from panoworld.io.video import read_video_doc
 from panoworld.poses.estimate import load_poses
 from panoworld.tools.report import encode as enc
@@ -78,6 +78,11 @@ class SceneData:
     def trajectory(self) -> np.ndarray | None:
         """Planned world_from_cam (N, 4, 4) or None."""
         return self._load("trajectory", load_trajectory)
+
+    def clips(self) -> list[list[int]] | None:
+        """Pose indices of each path of the planned trajectory (io.trajectory.load_clips) or None."""
+        traj = self.trajectory()
+        return None if traj is None else self._load("trajectory", lambda d: load_clips(d, len(traj)), "clips")
 
     def conditions(self):
         """LoadedConditions (frames read lazily) or None."""
@@ -310,6 +315,8 @@ class _PlanLayers:
     """(vertices canonical, faces, agent dict) of the asset's collider.obj, when the asset stage ran."""
     captures: dict | None = None
     """A home's capture points {NAME: world_from_cam} (register artifact), None for a single panorama."""
+    clips: list | None = None
+    """Pose indices of each path of the trajectory (SceneData.clips), None when unreadable."""
 
 
 def _draw_plan(view: PlanView, L: _PlanLayers, floor_y: float | None, reach_m: float, dot_r: float) -> list[str]:
@@ -336,10 +343,7 @@ def _draw_plan(view: PlanView, L: _PlanLayers, floor_y: float | None, reach_m: f
     if L.tinfo.get("kind", L.tdoc.get("kind")) == "sector":
         view.sector_rays(start, L.n_sectors, reach_m)
         legend.append('<span><i class="sw" style="background:#ffd400"></i>sector boundaries (numbered)</span>')
-    paths = L.tdoc.get("paths")
-    clips = [path_indices(p) for p in paths] if isinstance(paths, list) and paths else [list(range(len(xz)))]
-    for idx in clips:  # each path from its predecessor: no line across a home's cut between floors
-        idx = [i for i in idx if 0 <= i < len(xz)]
+    for idx in L.clips or [list(range(len(xz)))]:  # each path from its predecessor: no line across a home's cut
         if len(idx) > 1:
             view.polyline(xz[idx], "#ffffff", 2.0)
     view.headings(L.traj, 3 * dot_r * view.cell, "#ffffff")
@@ -379,7 +383,7 @@ def section_plan(scene: SceneData, params: ReportParams) -> Section:
     n_sec = int((scene.manifest("trajectory") or {}).get("params", {}).get("sectors", 8))
     captures = scene.capture_points()
     layers = _PlanLayers(mesh, nav, traj, tdoc, scene.info("trajectory"), n_sec, _load_collider(scene),
-                         captures if len(captures) >= 2 else None)
+                         captures if len(captures) >= 2 else None, scene.clips())
     floor_y = nav.floor_y if nav is not None else tdoc.get("floor_y")
     ext = _plan_extent(scene, traj, nav)
     view = PlanView(ext, margin_m=0.6)
