@@ -12,6 +12,7 @@ import numpy as np
 
 from panoworld.core.conventions import erp_dirs
 from panoworld.core.shapes import check_shape
+from panoworld.geometry.resize import resize_depth
 from panoworld.register.floor import camera_height
 from panoworld.register.upright import yaw_matrix
 
@@ -73,13 +74,8 @@ def _gray(rgb: np.ndarray, rows: int) -> np.ndarray:
 
 
 def _depth_at(depth: np.ndarray, rows: int) -> np.ndarray:
-    """Ray depth at `rows` rows (nearest of the valid-weighted area average; 0 = unknown)."""
-    valid = np.isfinite(depth) & (depth > 0)
-    d = np.where(valid, depth, 0).astype(np.float64)
-    size = (2 * rows, rows)
-    total = cv2.resize(d, size, interpolation=cv2.INTER_AREA)
-    frac = cv2.resize(valid.astype(np.float64), size, interpolation=cv2.INTER_AREA)
-    return np.where(frac > 0.99, total / np.maximum(frac, 1e-12), 0.0)
+    """Ray depth at `rows` rows (resize_depth; 0 = unknown)."""
+    return np.nan_to_num(resize_depth(depth, rows, 2 * rows), nan=0.0, posinf=0.0).astype(np.float64)
 
 
 def outline(depth: np.ndarray, *, band_deg: float = 25.0, max_dist_m: float = 20.0) -> np.ndarray:
