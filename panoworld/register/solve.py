@@ -136,7 +136,9 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
         if layouts.get((a, b)) is not None:
             lp = layouts[a, b]
             row.update(layout_score=round(lp.score, 1), layout_second=round(lp.second, 1),
-                       layout_hypotheses=lp.hypotheses)
+                       layout_hypotheses=lp.hypotheses,
+                       layout_yaw_deg=round(float(np.degrees(yaw_of(lp.a_from_b[:3, :3]))), 2),
+                       layout_xz_m=[round(float(lp.a_from_b[0, 3]), 3), round(float(lp.a_from_b[2, 3]), 3)])
             if layout_refused.get((a, b)):
                 row["layout_refused"] = layout_refused[a, b]
         if (a, b) in bearing:
