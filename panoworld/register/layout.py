@@ -89,9 +89,10 @@ def outline(depth: np.ndarray, *, band_deg: float = 25.0, max_dist_m: float = 20
     d = np.where(np.isfinite(depth) & (depth > 0), depth, np.nan)[band]
     horiz = d * np.hypot(dirs[band, :, 0], dirs[band, :, 2])
     ok = np.isfinite(horiz).sum(0) >= 0.5 * band.sum()
-    with np.errstate(all="ignore"):
-        out = np.nanmedian(np.where(np.isfinite(horiz), horiz, np.nan), axis=0) if ok.any() else np.full(w, np.nan)
-    out[~ok | ~(out < max_dist_m)] = np.nan
+    out = np.full(w, np.nan)
+    if ok.any():
+        out[ok] = np.nanmedian(horiz[:, ok], axis=0)
+    out[~(out < max_dist_m)] = np.nan
     return out
 
 
