@@ -1,12 +1,13 @@
 """Layout registration of panoramas in adjoining rooms: wall outlines from layout depth, the overlap test, and on two
 rendered rooms joined by a doorway (layout depth closes it, the images see through it) the pose against ground truth;
-unrelated images give no trusted pose."""
+unrelated images give no trusted pose; layout edges rank below the image-based metric edges in the pose graph."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from panoworld.core.conventions import erp_dirs, invert_pose
+from panoworld.register.graph import BEARING, LAYOUT, Edge, solve_graph
 from panoworld.register.layout import LayoutPose, layout_pair, overlaps, room, walls_of
 from panoworld.register.options import RegisterOptions
 from panoworld.register.upright import yaw_matrix, yaw_of
@@ -101,3 +102,12 @@ def test_unrelated_images_give_no_clear_pose():
     b = room(*_render(wb, ROOM_B, ROOM_A, seed=1))  # another world's texture: nothing agrees
     p = layout_pair(a, b, step_m=0.2)  # a coarser slide than the default keeps the test fast; the refinement does the rest
     assert not _trusted(p)
+
+
+def test_layout_edges_rank_below_bearing_edges():
+    near, far = _pose(0.0, 1.0, 0.0), _pose(0.0, 9.0, 0.0)
+    edges = [Edge(a="a", b="b", a_from_b=np.eye(4), kind=BEARING, inliers=30, info={}),
+             Edge(a="a", b="c", a_from_b=far, kind=LAYOUT, inliers=900, info={}),
+             Edge(a="b", b="c", a_from_b=near, kind=BEARING, inliers=25, info={})]
+    poses, info = solve_graph(["a", "b", "c"], edges)
+    assert info["c"]["edge"] == BEARING and np.allclose(poses["c"], near)
