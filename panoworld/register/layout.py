@@ -65,7 +65,7 @@ class LayoutPose:
     hypotheses: int
     """Hypotheses scored (after the overlap test)."""
     thickness_m: float
-    """Wall thickness between the two rooms at the best hypothesis."""
+    """Wall thickness of the hypothesis the best placement was refined from."""
 
 
 def _gray(rgb: np.ndarray, rows: int) -> np.ndarray:
@@ -301,7 +301,7 @@ def agreement(target: Room, source: Room, target_from_source: np.ndarray, *, str
                                 for k in null_shifts]))
 
 
-def hypotheses(a: Room, b: Room, *, thickness_m: tuple[float, ...] = (0.1, 0.2, 0.3), step_m: float = 0.1,
+def hypotheses(a: Room, b: Room, *, thickness_m: tuple[float, ...] = (0.15,), step_m: float = 0.1,
                min_shared_m: float = 0.6, snap_deg: float = 10.0) -> list[tuple[float, np.ndarray, float]]:
     """(yaw, t (2,), thickness) placing b in a's frame: the yaw one of the 4 Manhattan candidates of the rooms'
     dominant directions; a wall of a and a wall of b facing it (normals opposed within snap_deg) at a wall thickness;

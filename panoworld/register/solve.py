@@ -107,8 +107,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
             layout_refused[a, b] = _layout_refusal(lp, bearing[a, b], o)
             if not layout_refused[a, b]:
                 edges.append(Edge(a=names[a], b=names[b], a_from_b=lp.a_from_b, kind=LAYOUT, inliers=int(lp.score),
-                                  info={"layout_score": round(lp.score, 1), "layout_second": round(lp.second, 1),
-                                        "thickness_m": lp.thickness_m}))
+                                  info={"layout_score": round(lp.score, 1), "layout_second": round(lp.second, 1)}))
     poses, info = solve_graph(names, edges, given)
     for n in names:
         if not info[n]["registered"]:
