@@ -1,6 +1,5 @@
-"""Layout registration of upright panoramas in adjoining rooms: each room's wall outline from its depth, hypotheses that
-put a wall of one room against an opposed wall of the other (Manhattan yaw, a wall thickness, a slide along the wall),
-rooms that would overlap rejected, and the images as the judge (the other room seen through a doorway)."""
+"""Layout registration of upright panoramas in adjoining rooms: a wall of one room against an opposed wall of the other,
+judged by where the images agree (the other room seen through a doorway)."""
 
 from __future__ import annotations
 
