@@ -5,11 +5,13 @@ unrelated images give no trusted pose; layout edges rank below the image-based m
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from panoworld.core.conventions import erp_dirs, invert_pose
 from panoworld.register.graph import BEARING, LAYOUT, Edge, solve_graph
 from panoworld.register.layout import LayoutPose, layout_pair, overlaps, room, walls_of
 from panoworld.register.options import RegisterOptions
+from panoworld.register.solve import register_panoramas
 from panoworld.register.upright import yaw_matrix, yaw_of
 
 H = 128
@@ -111,3 +113,17 @@ def test_layout_edges_rank_below_bearing_edges():
              Edge(a="b", b="c", a_from_b=near, kind=BEARING, inliers=25, info={})]
     poses, info = solve_graph(["a", "b", "c"], edges)
     assert info["c"]["edge"] == BEARING and np.allclose(poses["c"], near)
+
+
+@pytest.mark.slow
+def test_register_panoramas_joins_adjoining_rooms_by_a_layout_edge():
+    wa, wb = _pose(0.0, -0.5, 0.3), _pose(100.0, 3.3, 1.0)
+    (ra, da), (rb, db) = _render(wa, ROOM_A, ROOM_B), _render(wb, ROOM_B, ROOM_A)
+    reg = register_panoramas(["a", "b"], {"a": ra, "b": rb}, {"a": da, "b": db}, options=RegisterOptions(height=H))
+    assert reg.panoramas["b"]["edge"] == LAYOUT  # no depth, floor or bearing edge: the doorway is all they share
+    gt = invert_pose(wa) @ wb
+    assert np.linalg.norm(reg.world_from_cam["b"][[0, 2], 3] - gt[[0, 2], 3]) < 0.08
+    assert abs(np.degrees(yaw_of(reg.world_from_cam["b"][:3, :3]) - yaw_of(gt[:3, :3]))) < 1.0
+    off = register_panoramas(["a", "b"], {"a": ra, "b": rb}, {"a": da, "b": db},
+                             options=RegisterOptions(height=H, layout=False))
+    assert "b" not in off.world_from_cam
