@@ -1,5 +1,6 @@
 """A home's registration against its survey (ZInD survey.json: 2D capture positions and yaws): registered count,
-pairwise capture-point distance error, relative yaw error and the position error after a best 2D rigid alignment.
+pairwise capture-point distance error, relative yaw error and the position error after a best 2D rigid alignment; and
+every pair the registration tried by layout, with its layout pose's error against the survey.
 
 `python bench/real_home_survey.py REGISTER_ARTIFACT SURVEY_JSON [--json]` prints them; `compare_to_survey` is the
 function the real-home benchmark imports."""
@@ -8,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -71,6 +73,26 @@ def compare_to_survey(world_from_cam: dict[str, np.ndarray], survey: dict) -> di
             "aligned_err_m_median": float(np.median(err)), "aligned_err_m_max": float(err.max())}
 
 
+def layout_pairs(registration: dict, survey: dict) -> list[dict]:
+    """Per pair that registration (the parsed registration.json) says layout tried: the best and best distinct
+    score, their ratio, the layout pose's distance and yaw error against the survey, the edge it became or why not."""
+    from bench_real_home import survey_poses  # bench/, beside this script (it imports this module)
+
+    world = survey_poses(survey)
+    rows = []
+    for r in registration["pairs"]:
+        if "layout_score" not in r:
+            continue
+        gt = np.linalg.inv(world[r["a"]]) @ world[r["b"]]
+        gt_yaw = math.degrees(math.atan2(gt[0, 2] - gt[2, 0], gt[0, 0] + gt[2, 2]))
+        rows.append({"a": r["a"], "b": r["b"], "score": r["layout_score"], "second": r["layout_second"],
+                     "ratio": round(r["layout_score"] / max(r["layout_second"], 1e-9), 3),
+                     "err_m": round(float(np.hypot(r["layout_xz_m"][0] - gt[0, 3], r["layout_xz_m"][1] - gt[2, 3])), 3),
+                     "yaw_err_deg": round(abs((r["layout_yaw_deg"] - gt_yaw + 180) % 360 - 180), 2),
+                     "edge": r.get("edge"), "refused": r.get("layout_refused", "")})
+    return rows
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("register", type=Path, help="a register artifact (holds panoramas.json)")
@@ -78,7 +100,10 @@ def main() -> int:
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     poses = {n: np.asarray(T) for n, T in json.loads((args.register / "panoramas.json").read_text()).items()}
-    r = compare_to_survey(poses, json.loads(args.survey.read_text()))
+    survey = json.loads(args.survey.read_text())
+    r = compare_to_survey(poses, survey)
+    reg = args.register / "registration.json"
+    r["layout_pairs"] = layout_pairs(json.loads(reg.read_text()), survey) if reg.is_file() else []
     if args.json:
         print(json.dumps(r, indent=1))
         return 0
@@ -93,6 +118,12 @@ def main() -> int:
           f"{f(r['dist_err_m_max'], '.3f')} | {f(r['yaw_err_deg_median'], '.2f')} / {f(r['yaw_err_deg_max'], '.2f')} "
           f"| {f(r['aligned_err_m_median'], '.3f')} / {f(r['aligned_err_m_max'], '.3f')} | "
           f"{', '.join(r['unregistered']) or '-'} |")
+    if r["layout_pairs"]:
+        print("\n| layout pair | score | best distinct | ratio | error m | yaw error deg | edge | refused |")
+        print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+        for p in r["layout_pairs"]:
+            print(f"| {p['a']}-{p['b']} | {p['score']:.0f} | {p['second']:.0f} | {p['ratio']:.2f} | {p['err_m']:.2f} | "
+                  f"{p['yaw_err_deg']:.1f} | {p['edge'] or '-'} | {p['refused']} |")
     return 0
 
 

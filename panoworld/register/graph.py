@@ -10,11 +10,11 @@ import numpy as np
 from panoworld.core.conventions import invert_pose
 from panoworld.register.upright import yaw_matrix, yaw_of
 
-DEPTH, FLOOR, BEARING, DIRECTION = "depth", "floor", "bearing", "direction"
+DEPTH, FLOOR, BEARING, LAYOUT, DIRECTION = "depth", "floor", "bearing", "layout", "direction"
 """Edge kinds: rigid fit of depth-backed points (ICP-refined, free-space consistent); 2D rigid fit of the floor images;
-upright two-view geometry with its scale from the depths that agree; upright two-view geometry without a scale (the
-baseline's direction only)."""
-_RANK = {DEPTH: 3, FLOOR: 2, BEARING: 1, DIRECTION: 0}
+upright two-view geometry with its scale from the depths that agree; adjoining rooms' walls placed against each other
+where the images agree; upright two-view geometry without a scale (the baseline's direction only)."""
+_RANK = {DEPTH: 4, FLOOR: 3, BEARING: 2, LAYOUT: 1, DIRECTION: 0}
 
 
 @dataclass(kw_only=True)
@@ -26,7 +26,7 @@ class Edge:
     a_from_b: np.ndarray
     """(4, 4); for a direction edge the translation is the unit direction from a to b in a's frame."""
     kind: str
-    """DEPTH, FLOOR, BEARING or DIRECTION."""
+    """DEPTH, FLOOR, BEARING, LAYOUT or DIRECTION."""
     inliers: int
     info: dict
     """Quality figures reported for the panorama this edge places."""
@@ -55,7 +55,7 @@ class GraphOptions:
 
 def _groups(names: list[str], edges: list[Edge], given: dict[str, np.ndarray]
             ) -> list[tuple[dict[str, np.ndarray], dict[str, dict]]]:
-    """Rigid groups joined by metric edges (Prim: depth, floor, then bearing edges, then most inliers), the given
+    """Rigid groups joined by metric edges (Prim: depth, floor, bearing, then layout edges, then most inliers), the given
     poses forming the first group -> [(poses in the group frame, per-panorama info)]."""
     metric = [e for e in edges if e.kind != DIRECTION]
     left = [n for n in names if n not in given]

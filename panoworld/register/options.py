@@ -63,3 +63,13 @@ class RegisterOptions:
     min_floor_inliers: int = param(8, ge=3)
     """A floor pair needs at least this many inliers (and no contradiction from its bearing-only estimate, checked as
     for a depth-backed pose)."""
+    layout: bool = True
+    """Also try pairs that no depth, floor or bearing edge joins into one group with their layouts
+    (panoworld/register/layout.py): a wall of one room against an opposed wall of the other, judged by where the
+    images agree (the other room seen through a doorway)."""
+    layout_min_margin: float = param(1.5, gt=1)
+    """A layout pair is trusted only when its best hypothesis' agreeing image area is at least this multiple of the
+    best hypothesis distinct from it (farther than 0.3 m or 5 degrees)."""
+    layout_min_score: float = param(250.0, ge=0)
+    """... and at least this agreeing image area (pixels of the 96-row scoring grid, both directions, cos-latitude
+    weighted)."""

@@ -9,7 +9,8 @@ import numpy as np
 from panoworld.core.conventions import invert_pose
 from panoworld.geometry.resize import rgbd_at_height
 from panoworld.register.floor import FloorPose, FloorView, floor_pair, floor_view
-from panoworld.register.graph import BEARING, DEPTH, DIRECTION, FLOOR, Edge, solve_graph
+from panoworld.register.graph import BEARING, DEPTH, DIRECTION, FLOOR, LAYOUT, Edge, solve_graph
+from panoworld.register.layout import LayoutPose, layout_pair, room
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pair_select import ALL_PAIRS_UP_TO, appearance_descriptor, candidate_pairs
 from panoworld.register.pairwise import Features, PairResult, erp_features, match, register_pair
@@ -87,6 +88,26 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
             edges.append(Edge(a=names[a], b=names[b], a_from_b=pose.i_from_j(scale if metric else 1.0),
                               kind=BEARING if metric else DIRECTION, inliers=int(pose.inliers.sum()),
                               info={"inliers": int(pose.inliers.sum()), "scale_support": support}))
+    layouts: dict[tuple[int, int], LayoutPose | None] = {}
+    layout_refused: dict[tuple[int, int], str] = {}
+    if o.layout and need:
+        group = _groups_of(names, edges, given)
+        rooms: dict = {}
+        for a, b in pairs:
+            if group[names[a]] == group[names[b]]:
+                continue
+            for n in (names[a], names[b]):
+                if n not in rooms:
+                    rooms[n] = room(*small[n])
+            if rooms[names[a]] is not None and rooms[names[b]] is not None:
+                layouts[a, b] = layout_pair(rooms[names[a]], rooms[names[b]])
+        for (a, b), lp in layouts.items():
+            if lp is None:
+                continue
+            layout_refused[a, b] = _layout_refusal(lp, bearing[a, b], o)
+            if not layout_refused[a, b]:
+                edges.append(Edge(a=names[a], b=names[b], a_from_b=lp.a_from_b, kind=LAYOUT, inliers=int(lp.score),
+                                  info={"layout_score": round(lp.score, 1), "layout_second": round(lp.second, 1)}))
     poses, info = solve_graph(names, edges, given)
     for n in names:
         if not info[n]["registered"]:
@@ -111,6 +132,14 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
             row.update(floor_inliers=f.inliers, floor_matches=f.matches, floor_residual_m=round(f.residual_m, 4))
             if floor_refused.get((a, b)):
                 row["floor_refused"] = floor_refused[a, b]
+        if layouts.get((a, b)) is not None:
+            lp = layouts[a, b]
+            row.update(layout_score=round(lp.score, 1), layout_second=round(lp.second, 1),
+                       layout_hypotheses=lp.hypotheses,
+                       layout_yaw_deg=round(float(np.degrees(yaw_of(lp.a_from_b[:3, :3]))), 2),
+                       layout_xz_m=[round(float(lp.a_from_b[0, 3]), 3), round(float(lp.a_from_b[2, 3]), 3)])
+            if layout_refused.get((a, b)):
+                row["layout_refused"] = layout_refused[a, b]
         if (a, b) in bearing:
             pose, scale, support = bearing[a, b]
             row["bearing_inliers"] = 0 if pose is None else int(pose.inliers.sum())
@@ -140,6 +169,33 @@ def _contradiction(i_from_j: np.ndarray, bearing: tuple[UprightPose | None, floa
         return (f"baseline {np.linalg.norm(t):.2f} m, bearing-only {scale:.2f} m from {support} points whose depths "
                 "agree")
     return ""
+
+
+def _groups_of(names: list[str], edges: list[Edge], given: dict[str, np.ndarray]) -> dict[str, str]:
+    """{NAME: a representative of its group}: panoramas joined by metric edges (the given poses one group)."""
+    parent = {n: n for n in names}
+
+    def find(x: str) -> str:
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    held = sorted(given)
+    links = list(zip(held, held[1:])) + [(e.a, e.b) for e in edges if e.kind != DIRECTION]
+    for x, y in links:
+        parent[find(x)] = find(y)
+    return {n: find(n) for n in names}
+
+
+def _layout_refusal(lp: LayoutPose, bearing: tuple[UprightPose | None, float, int], o: RegisterOptions) -> str:
+    """Why a layout pose is not trusted ('' when it is): too little agreeing image area, no clear margin over the best
+    distinct hypothesis, or the bearing-only estimate contradicts it."""
+    if lp.score < o.layout_min_score:
+        return f"agreeing area {lp.score:.0f} below {o.layout_min_score:.0f}"
+    if lp.score < o.layout_min_margin * lp.second:
+        return f"agreeing area {lp.score:.0f} not clearly above the next hypothesis' {lp.second:.0f}"
+    return _contradiction(lp.a_from_b, bearing, o)
 
 
 def accepted(p: PairResult, o: RegisterOptions) -> bool:

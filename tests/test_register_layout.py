@@ -1,0 +1,129 @@
+"""Layout registration of panoramas in adjoining rooms: wall outlines from layout depth, the overlap test, and on two
+rendered rooms joined by a doorway (layout depth closes it, the images see through it) the pose against ground truth;
+unrelated images give no trusted pose; layout edges rank below the image-based metric edges in the pose graph."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from panoworld.core.conventions import erp_dirs, invert_pose
+from panoworld.register.graph import BEARING, LAYOUT, Edge, solve_graph
+from panoworld.register.layout import LayoutPose, layout_pair, overlaps, room, walls_of
+from panoworld.register.options import RegisterOptions
+from panoworld.register.solve import register_panoramas
+from panoworld.register.upright import yaw_matrix, yaw_of
+
+H = 128
+FLOOR_Y, CEIL_Y = 1.4, -1.0  # camera frame y down: floor below, ceiling above every camera
+ROOM_A = (-2.0, 1.5, -1.5, 2.0)  # x0, x1, z0, z1 of the world floor plan
+WALL = 0.15
+ROOM_B = (1.5 + WALL, 5.0, -1.0, 2.5)
+DOOR = (0.0, 1.0, -0.6)  # z0, z1 of the opening in the shared wall x = 1.5 .. 1.65, its top (y)
+
+
+def _trusted(p: LayoutPose) -> bool:
+    o = RegisterOptions()
+    return p.score >= o.layout_min_score and p.score >= o.layout_min_margin * p.second
+
+
+def _pose(yaw_deg: float, x: float, z: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = yaw_matrix(np.radians(yaw_deg)), [x, 0.0, z]
+    return T
+
+
+def _exit(o: np.ndarray, d: np.ndarray, box: tuple[float, float, float, float]) -> np.ndarray:
+    """Ray length (N,) from points o (N, 3) inside box along d (N, 3) to the box's walls, floor or ceiling."""
+    x0, x1, z0, z1 = box
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tx = np.where(d[:, 0] > 0, (x1 - o[:, 0]) / d[:, 0], (x0 - o[:, 0]) / d[:, 0])
+        tz = np.where(d[:, 2] > 0, (z1 - o[:, 2]) / d[:, 2], (z0 - o[:, 2]) / d[:, 2])
+        ty = np.where(d[:, 1] > 0, (FLOOR_Y - o[:, 1]) / d[:, 1], (CEIL_Y - o[:, 1]) / d[:, 1])
+    return np.nanmin(np.where(np.stack([tx, ty, tz]) > 0, np.stack([tx, ty, tz]), np.inf), axis=0)
+
+
+def _colour(p: np.ndarray, seed: int) -> np.ndarray:
+    """A texture fixed to the world: sums of sines of the surface point (N, 3) -> gray (N,) in [0, 1]."""
+    rng = np.random.default_rng(seed)
+    g = np.zeros(len(p))
+    for _ in range(12):
+        k = rng.normal(size=3) * 6.0
+        g += np.sin(p @ k + rng.uniform(0, 2 * np.pi))
+    return 0.5 + 0.5 * np.tanh(g / 4)
+
+
+def _render(world_from_cam: np.ndarray, inside: tuple, other: tuple, seed: int = 0
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """ERP (H, 2H, 3) of a camera in room `inside` seeing `other` through the doorway, and its layout depth (the
+    doorway closed)."""
+    d = (erp_dirs(H, 2 * H, np.float64) @ world_from_cam[:3, :3].T).reshape(-1, 3)
+    o = np.broadcast_to(world_from_cam[:3, 3], d.shape)
+    t = _exit(o, d, inside)
+    p = o + t[:, None] * d
+    z0, z1, top = DOOR
+    door = (np.abs(np.abs(p[:, 0] - 1.575) - 0.075) < 1e-6) & (p[:, 2] > z0) & (p[:, 2] < z1) & (p[:, 1] > top)
+    q = p[door] + d[door] * (WALL / np.abs(d[door, 0]))[:, None]
+    p[door] = q + _exit(q, d[door], other)[:, None] * d[door]
+    rgb = np.repeat((255 * _colour(p, seed))[:, None], 3, 1).reshape(H, 2 * H, 3).astype(np.uint8)
+    return rgb, t.reshape(H, 2 * H)
+
+
+def test_walls_of_a_rectangle_room():
+    cam = _pose(20.0, -0.5, 0.3)
+    r = room(*_render(cam, ROOM_A, ROOM_B))
+    assert r is not None and len(r.walls) == 4
+    # the walls' normals are the room's axes seen from a camera turned by 20 degrees
+    assert abs(np.degrees(np.angle(np.exp(4j * (r.theta - np.radians(20.0))))) / 4) < 0.5
+    lengths = np.array([np.linalg.norm(w.p1 - w.p0) for w in r.walls])
+    assert np.abs(lengths - 3.5).max() < 0.15  # corners fall between the 256 columns
+    assert walls_of(np.full(256, np.nan)) == []
+
+
+def test_overlapping_placement_is_rejected():
+    a = room(*_render(_pose(0, -0.5, 0.3), ROOM_A, ROOM_B))
+    b = room(*_render(_pose(0, 3.3, 1.0), ROOM_B, ROOM_A))
+    assert not overlaps(a, b, 0.0, np.array([3.8, 0.7]))  # the true placement: side by side, a wall between
+    assert overlaps(a, b, 0.0, np.array([1.0, 0.7]))  # b's room pushed into a's
+
+
+def test_adjoining_rooms_register_through_the_doorway():
+    wa, wb = _pose(0.0, -0.5, 0.3), _pose(100.0, 3.3, 1.0)
+    a = room(*_render(wa, ROOM_A, ROOM_B))
+    b = room(*_render(wb, ROOM_B, ROOM_A))
+    p = layout_pair(a, b, step_m=0.2)  # a coarser slide than the default keeps the test fast; the refinement does the rest
+    gt = invert_pose(wa) @ wb
+    assert np.linalg.norm(p.a_from_b[[0, 2], 3] - gt[[0, 2], 3]) < 0.08
+    assert abs(np.degrees(yaw_of(p.a_from_b[:3, :3]) - yaw_of(gt[:3, :3]))) < 1.0
+    assert _trusted(p) and p.score > 2.0 * p.second
+
+
+def test_unrelated_images_give_no_clear_pose():
+    wa, wb = _pose(0.0, -0.5, 0.3), _pose(100.0, 3.3, 1.0)
+    a = room(*_render(wa, ROOM_A, ROOM_B, seed=0))
+    b = room(*_render(wb, ROOM_B, ROOM_A, seed=1))  # another world's texture: nothing agrees
+    p = layout_pair(a, b, step_m=0.2)  # a coarser slide than the default keeps the test fast; the refinement does the rest
+    assert not _trusted(p)
+
+
+def test_layout_edges_rank_below_bearing_edges():
+    near, far = _pose(0.0, 1.0, 0.0), _pose(0.0, 9.0, 0.0)
+    edges = [Edge(a="a", b="b", a_from_b=np.eye(4), kind=BEARING, inliers=30, info={}),
+             Edge(a="a", b="c", a_from_b=far, kind=LAYOUT, inliers=900, info={}),
+             Edge(a="b", b="c", a_from_b=near, kind=BEARING, inliers=25, info={})]
+    poses, info = solve_graph(["a", "b", "c"], edges)
+    assert info["c"]["edge"] == BEARING and np.allclose(poses["c"], near)
+
+
+@pytest.mark.slow
+def test_register_panoramas_joins_adjoining_rooms_by_a_layout_edge():
+    wa, wb = _pose(0.0, -0.5, 0.3), _pose(100.0, 3.3, 1.0)
+    (ra, da), (rb, db) = _render(wa, ROOM_A, ROOM_B), _render(wb, ROOM_B, ROOM_A)
+    reg = register_panoramas(["a", "b"], {"a": ra, "b": rb}, {"a": da, "b": db}, options=RegisterOptions(height=H))
+    assert reg.panoramas["b"]["edge"] == LAYOUT  # no depth, floor or bearing edge: the doorway is all they share
+    gt = invert_pose(wa) @ wb
+    assert np.linalg.norm(reg.world_from_cam["b"][[0, 2], 3] - gt[[0, 2], 3]) < 0.08
+    assert abs(np.degrees(yaw_of(reg.world_from_cam["b"][:3, :3]) - yaw_of(gt[:3, :3]))) < 1.0
+    off = register_panoramas(["a", "b"], {"a": ra, "b": rb}, {"a": da, "b": db},
+                             options=RegisterOptions(height=H, layout=False))
+    assert "b" not in off.world_from_cam
