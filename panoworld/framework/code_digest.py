@@ -10,9 +10,10 @@ from pathlib import Path
 from panoworld.io.manifest import REPO_ROOT, json_digest
 from panoworld.io.user_cache import read_user_cache, write_user_cache
 
-_CACHE_FILE = "code_digests.json"
-_CACHE_KEEP = 8192
-"""Entries kept in the user cache (every checkout on the machine shares it): the most recently written ones."""
+_CACHE_FILE = f"code_digests-{hashlib.sha256(str(REPO_ROOT).encode()).hexdigest()[:16]}.json"
+"""One record per checkout (the runner and its stages share it; another checkout's files never need reading)."""
+_CACHE_KEEP = 4096
+"""Entries kept in the user cache: the most recently written ones."""
 _memo: dict[str, tuple[int, int, str, list[str]]] = {}
 """path -> (mtime_ns, size, digest, imported module names): files are parsed again only when their stat changes."""
 _disk_loaded = False
