@@ -69,3 +69,17 @@ def test_a_touched_file_is_rehashed_once_and_a_changed_one_is_caught(tmp_path, m
     assert art.verify_files(d, manifest) is None and len(hashed) == 1
     (d / "out.txt").write_text("jello")  # same size, new content and mtime
     assert "content differs" in art.verify_files(d, manifest) and len(hashed) == 2
+
+
+def test_validated_manifests_written_by_other_processes_are_kept(tmp_path, monkeypatch, fresh_caches):
+    """Stages and runners of other scenes remember their manifests in the same user cache meanwhile: a process adding
+    one keeps theirs (else the next no-op run validates its manifests again)."""
+    from panoworld.io.user_cache import read_user_cache, write_user_cache
+
+    art._validated = None
+    toy_artifact(tmp_path)  # validated and remembered: this process's view of the record is loaded
+    write_user_cache(art._VALIDATED_FILE, {art._schema_digest("toy"): ["theirs"], "another schema": ["x"]})
+    toy_artifact(tmp_path / "b", "bye")  # validated and remembered by this process
+    doc = read_user_cache(art._VALIDATED_FILE)
+    assert doc["another schema"] == ["x"]
+    assert doc[art._schema_digest("toy")][0] == "theirs" and len(doc[art._schema_digest("toy")]) == 3  # + a and b

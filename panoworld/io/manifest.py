@@ -120,13 +120,22 @@ def _validated_checksums(kind: str) -> list[str]:
 
 
 def _remember_valid(kind: str, checksum: str) -> None:
-    from panoworld.io.user_cache import write_user_cache
+    """Add checksum and write the record merged with the file as it is now: stages and other runners add theirs
+    meanwhile, and writing this process's view alone would drop them (their next no-op run would validate again)."""
+    from panoworld.io.user_cache import read_user_cache, write_user_cache
 
     known = _validated_checksums(kind)
-    if checksum not in known:
-        known.append(checksum)
-        del known[:-_VALIDATED_KEEP]
-        write_user_cache(_VALIDATED_FILE, _validated)
+    if checksum in known:
+        return
+    known.append(checksum)
+    on_disk = {k: v for k, v in read_user_cache(_VALIDATED_FILE).items() if isinstance(v, list)}
+    for key, mine in _validated.items():
+        have = set(mine)
+        mine[:0] = [c for c in on_disk.get(key, []) if c not in have]  # theirs before ours: the newest stay
+        del mine[:-_VALIDATED_KEEP]
+    for key, theirs in on_disk.items():
+        _validated.setdefault(key, theirs)
+    write_user_cache(_VALIDATED_FILE, _validated)
 
 
 def validate_manifest(manifest: dict, kind: str, where: Path | str = "manifest") -> None:
