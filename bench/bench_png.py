@@ -3,7 +3,7 @@
     python bench/bench_png.py VIDEO_DIR [--frames 10]
 
 VIDEO_DIR: a video artifact (artifacts/video). Every setting is checked lossless (decoded == the input); `encode_png`
-is the one the video writer uses; `level 1, adaptive` is libpng's per-row trial of all five filters, for
+and `encode_depth_png` are the ones the video writer uses for frames and depth; `level 1, adaptive` is libpng's per-row trial of all five filters, for
 comparison.
 """
 
@@ -20,6 +20,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from panoworld.core.conventions import depth_to_mm
+from panoworld.io.depth_png import encode_depth_png
 from panoworld.io.png import encode_png
 from panoworld.io.video import load_video
 
@@ -30,6 +31,7 @@ SETTINGS = {
     "level 1, Sub": [C, 1, F, cv2.IMWRITE_PNG_FILTER_SUB],
     "level 1, Up": [C, 1, F, cv2.IMWRITE_PNG_FILTER_UP],
     "level 1, Up, RLE": [C, 1, F, cv2.IMWRITE_PNG_FILTER_UP, S, cv2.IMWRITE_PNG_STRATEGY_RLE],
+    **{f"level {n}, Up": [C, n, F, cv2.IMWRITE_PNG_FILTER_UP] for n in (3, 4, 6)},
 }
 
 
@@ -47,10 +49,11 @@ def main(argv: list[str] | None = None) -> int:
     for kind, images in kinds.items():
         bgr = [cv2.cvtColor(x, cv2.COLOR_RGB2BGR) if x.ndim == 3 else x for x in images]
         encoders = {name: (lambda x, p=p: cv2.imencode(".png", x, p)[1].tobytes()) for name, p in SETTINGS.items()}
-        encoders["encode_png"] = None
+        writer = ("encode_depth_png", encode_depth_png) if kind == "depth" else ("encode_png", encode_png)
+        encoders[writer[0]] = None
         for name, enc in encoders.items():
             t0 = time.perf_counter()
-            data = [encode_png(x) for x in images] if enc is None else [enc(x) for x in bgr]
+            data = [writer[1](x) for x in images] if enc is None else [enc(x) for x in bgr]
             t1 = time.perf_counter()
             back = [cv2.imdecode(np.frombuffer(d, np.uint8), cv2.IMREAD_UNCHANGED) for d in data]
             t2 = time.perf_counter()

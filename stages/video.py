@@ -62,7 +62,7 @@ class Params:
     """Format of frames/ (what poses and gaussians read): jpeg (of frame_quality, about 4x smaller) or png (lossless)."""
     frame_quality: int = param(95, ge=1, le=100)
     """JPEG quality of frames/ (4:4:4 chroma; 95: ~45 dB PSNR to the lossless frame; bench/bench_artifact_size.py)."""
-    mcap_jpeg_quality: int = param(90, ge=0, le=100)
+    mcap_jpeg_quality: int = param(80, ge=0, le=100)
     """JPEG quality of the frames and conditions in video.mcap (a log for viewing; frames/ hold what later stages
     read); 0 = the files' own bytes (with PNG frames about 3x the size)."""
     device: str = "auto"

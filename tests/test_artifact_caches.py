@@ -90,3 +90,17 @@ def test_two_runs_remembering_at_once_keep_each_others_entries(tmp_path, monkeyp
     art._hashes = None
     hashed = count_calls(monkeypatch, "file_digest")
     assert art.verify_files(a, art.read_manifest(a, "toy")) is None and hashed == []
+
+
+def test_validated_manifests_written_by_other_processes_are_kept(tmp_path, monkeypatch, fresh_caches):
+    """Stages and runners of other scenes remember their manifests in the same user cache meanwhile: a process adding
+    one keeps theirs (else the next no-op run validates its manifests again)."""
+    from panoworld.io.user_cache import read_user_cache, write_user_cache
+
+    art._validated = None
+    toy_artifact(tmp_path)  # validated and remembered: this process's view of the record is loaded
+    write_user_cache(art._VALIDATED_FILE, {art._schema_digest("toy"): ["theirs"], "another schema": ["x"]})
+    toy_artifact(tmp_path / "b", "bye")  # validated and remembered by this process
+    doc = read_user_cache(art._VALIDATED_FILE)
+    assert doc["another schema"] == ["x"]
+    assert doc[art._schema_digest("toy")][0] == "theirs" and len(doc[art._schema_digest("toy")]) == 3  # + a and b

@@ -9,6 +9,7 @@ import sys
 import numpy as np
 import pytest
 import trimesh
+from plyfile import PlyData
 from scipy.spatial.transform import Rotation
 
 from panoworld.core.conventions import erp_dirs, points_from_depth
@@ -181,6 +182,18 @@ def test_ply_roundtrip_and_glb(room_64, tmp_path):
     # Any viewer's PLY reader sees the same triangles.
     tm = trimesh.load(tmp_path / "mesh.ply", process=False)
     np.testing.assert_array_equal(tm.faces, mesh.faces)
+    assert "pixel" not in PlyData.read(str(tmp_path / "mesh.ply"))["vertex"].data.dtype.names  # every vertex written
+    # Pixels without depth leave vertices out: `pixel` restores the grid layout.
+    holed = depth.copy()
+    holed[20:30, 40:60] = 0.0
+    sparse = erp_mesh_from_depth(holed, rgb)
+    save_erp_mesh(sparse, tmp_path / "sparse.ply")
+    back = load_erp_mesh(tmp_path / "sparse.ply")
+    used = np.unique(sparse.faces)
+    assert len(PlyData.read(str(tmp_path / "sparse.ply"))["vertex"].data["pixel"]) == len(used) < len(sparse.vertices)
+    for name in ("vertices", "faces", "face_valid"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(sparse, name))
+    np.testing.assert_array_equal(back.colors[used], sparse.colors[used])
     box = trimesh.creation.box()
     box.export(tmp_path / "box.ply")  # any triangle PLY: no colours, no valid property
     other = load_erp_mesh(tmp_path / "box.ply")

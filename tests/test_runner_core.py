@@ -242,7 +242,7 @@ def test_two_runs_of_the_pipeline_give_byte_identical_artifacts(synth_scene, tmp
 
 
 def test_code_digest_cache_keeps_what_other_processes_wrote(tmp_path, monkeypatch):
-    """Every checkout's runner and stages share ~/.cache/panoworld/code_digests.json: a process saving its digests
+    """A checkout's runner and stages share its ~/.cache/panoworld/code_digests-*.json: a process saving its digests
     must not drop those another wrote meanwhile (a no-op would parse them all again: seconds on a busy machine)."""
     from panoworld.framework import code_digest
     from panoworld.io.user_cache import read_user_cache, write_user_cache
@@ -257,3 +257,30 @@ def test_code_digest_cache_keeps_what_other_processes_wrote(tmp_path, monkeypatc
     monkeypatch.setattr(code_digest, "_CACHE_KEEP", 1)
     code_digest._save_disk_cache()
     assert list(read_user_cache(code_digest._CACHE_FILE)) == ["/ours.py"]  # bounded, the newest kept
+
+
+def test_yaml_documents_are_cached_by_their_text(tmp_path, monkeypatch):
+    """An unchanged pipeline.yaml / scene.yaml is read back from the user cache; an edited one is parsed again, a
+    document JSON cannot keep exactly (a date) is never cached, and a broken one fails every time."""
+    import datetime
+
+    import yaml
+
+    from panoworld.framework.pipeline import cached_yaml
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    calls: list[str] = []
+
+    def parse(text):
+        calls.append(text)
+        return yaml.safe_load(text)
+
+    assert cached_yaml("preset: ci-tiny\n", parse) == {"preset": "ci-tiny"}
+    assert cached_yaml("preset: ci-tiny\n", parse) == {"preset": "ci-tiny"} and len(calls) == 1
+    assert cached_yaml("preset: default\n", parse) == {"preset": "default"} and len(calls) == 2
+    assert cached_yaml("day: 2026-01-02\n", parse) == {"day": datetime.date(2026, 1, 2)}
+    assert cached_yaml("day: 2026-01-02\n", parse) == {"day": datetime.date(2026, 1, 2)} and len(calls) == 4
+    for _ in range(2):
+        with pytest.raises(yaml.YAMLError):
+            cached_yaml("a: [1, 2\n", parse)
+    assert len(calls) == 6

@@ -19,6 +19,7 @@ from panoworld.core.conventions import check_erp_shape, check_poses, depth_to_mm
 from panoworld.core.shapes import check_shape
 from panoworld.geometry.erp_mesh import ErpMesh
 from panoworld.io.conditions import CONDITIONS_JSON, DEPTH_SCALE, WarpedFrame
+from panoworld.io.depth_png import encode_depth_png
 from panoworld.io.png import encode_png
 from panoworld.io.rgb_image import RgbFormat, encode_rgb, rgb_file_name
 
@@ -237,7 +238,7 @@ def _write_frame(out_dir: Path, files: dict[str, str], frame: WarpedFrame, compr
     pngs = {"rgb": encode_rgb(frame.rgb, rgb_format, quality=rgb_quality, compression=compression),
             "mask": encode_png(frame.mask.astype(np.uint8) * 255, compression=compression)}
     if "depth" in files:
-        pngs["depth"] = encode_png(depth_to_mm(frame.depth), compression=compression)
+        pngs["depth"] = encode_depth_png(depth_to_mm(frame.depth))
     for key, data in pngs.items():
         try:
             (out_dir / files[key]).write_bytes(data)

@@ -10,9 +10,10 @@ from pathlib import Path
 from panoworld.io.manifest import REPO_ROOT, json_digest
 from panoworld.io.user_cache import read_user_cache, write_user_cache
 
-_CACHE_FILE = "code_digests.json"
-_CACHE_KEEP = 8192
-"""Entries kept in the user cache (every checkout on the machine shares it): the most recently written ones."""
+_CACHE_FILE = f"code_digests-{hashlib.sha256(str(REPO_ROOT).encode()).hexdigest()[:16]}.json"
+"""One record per checkout (the runner and its stages share it; another checkout's files never need reading)."""
+_CACHE_KEEP = 4096
+"""Entries kept in the user cache: the most recently written ones."""
 _memo: dict[str, tuple[int, int, str, list[str]]] = {}
 """path -> (mtime_ns, size, digest, imported module names): files are parsed again only when their stat changes."""
 _disk_loaded = False
@@ -68,41 +69,44 @@ def _imports(tree: ast.AST, module: str, is_package: bool) -> list[str]:
     return sorted(set(out))
 
 
-def file_digest(path: Path, module: str) -> tuple[str, list[str]]:
+def file_digest(path: Path | str, module: str) -> tuple[str, list[str]]:
     """(digest of the file's AST without docstrings, imported module names); cached by mtime and size."""
     key = str(path)
-    st = path.stat()
+    st = os.stat(key)
     hit = _memo.get(key)
     if hit and hit[0] == st.st_mtime_ns and hit[1] == st.st_size:
         return hit[2], hit[3]
-    tree = ast.parse(path.read_bytes(), filename=key)
-    imports = _imports(tree, module, path.name == "__init__.py")
+    tree = ast.parse(Path(key).read_bytes(), filename=key)
+    imports = _imports(tree, module, os.path.basename(key) == "__init__.py")
     digest = hashlib.sha256(ast.dump(_strip_docstrings(tree), annotate_fields=False).encode()).hexdigest()
     _memo[key] = (st.st_mtime_ns, st.st_size, digest, imports)
     return digest, imports
 
 
-_found: dict[tuple[str, tuple[str, ...]], tuple[Path, Path] | None] = {}
+_found: dict[tuple[str, tuple[str, ...]], tuple[str, str] | None] = {}
 
 
-def _find(module: str, roots: tuple[str, ...]) -> tuple[Path, Path] | None:
-    """(root, file) of a project module (package __init__ or .py file under one of roots), None outside them."""
+def _find(module: str, roots: tuple[str, ...]) -> tuple[str, str] | None:
+    """(file, its path relative to its root in POSIX form) of a project module (package __init__ or .py file under
+    one of roots), None outside them."""
     key = (module, roots)
-    if key not in _found:
-        hit = None
-        top = module.partition(".")[0]
-        rel = module.replace(".", os.sep)
-        for root in roots:
-            if not os.path.exists(os.path.join(root, top)) and not os.path.isfile(os.path.join(root, top + ".py")):
-                continue  # numpy, torch, ...: not a project module
-            for cand in (os.path.join(root, rel, "__init__.py"), os.path.join(root, rel + ".py")):
-                if os.path.isfile(cand):
-                    hit = (Path(root), Path(cand))
-                    break
-            if hit:
+    hit = _found.get(key, False)
+    if hit is not False:
+        return hit
+    hit = None
+    top = module.partition(".")[0]
+    rel = module.replace(".", os.sep)
+    for root in roots:
+        if not os.path.exists(os.path.join(root, top)) and not os.path.isfile(os.path.join(root, top + ".py")):
+            continue  # numpy, torch, ...: not a project module
+        for cand in (os.path.join(root, rel, "__init__.py"), os.path.join(root, rel + ".py")):
+            if os.path.isfile(cand):
+                hit = (cand, Path(cand).relative_to(root).as_posix())
                 break
-        _found[key] = hit
-    return _found[key]
+        if hit:
+            break
+    _found[key] = hit
+    return hit
 
 
 def code_digests(module: str, roots: list[Path] | None = None, skip: frozenset[str] = frozenset()) -> dict[str, str]:
@@ -126,11 +130,11 @@ def code_digests(module: str, roots: list[Path] | None = None, skip: frozenset[s
         found = _find(name, root_names)
         if found is None:
             continue
-        root, path = found
-        before = _memo.get(str(path))
+        path, rel = found
+        before = _memo.get(path)
         digest, imports = file_digest(path, name)
-        stale |= before is None or _memo[str(path)][:2] != before[:2]
-        out[path.relative_to(root).as_posix()] = digest
+        stale |= before is None or _memo[path][:2] != before[:2]
+        out[rel] = digest
         todo += imports
     if stale or len(_memo) != n_before:
         _save_disk_cache()

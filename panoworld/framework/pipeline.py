@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import fcntl
+import hashlib
 import json
 import os
 import subprocess
@@ -15,8 +16,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-
-import yaml
 
 from panoworld.core import limits
 from panoworld.core.errors import InputError, PipelineError
@@ -35,7 +34,7 @@ from panoworld.framework.stage import (
     load_stage,
     merge,
     normalize,
-    params_from_dict,
+    params_from_normalized,
     params_hash,
     params_to_dict,
     resolve_stage_weights,
@@ -45,6 +44,7 @@ from panoworld.framework.stage import (
 from panoworld.io import manifest as art
 from panoworld.io.images import check_depth_file, check_image, check_mask_file
 from panoworld.io.safe_write import write_text_atomic
+from panoworld.io.user_cache import read_user_cache, write_user_cache
 from panoworld.register.inputs import check_home, is_multi_scene
 
 PIPELINE_FILE = art.REPO_ROOT / "pipeline.yaml"
@@ -84,6 +84,41 @@ class StageNode:
         return self._spec
 
 
+_YAML_CACHE = "yaml_docs.json"
+_YAML_CACHE_KEEP = 64
+"""YAML documents (pipeline.yaml, scene.yaml) kept parsed in the user cache, by the digest of their text."""
+
+
+def cached_yaml(text: str, parse: Callable[[str], Any]) -> Any:
+    """parse(text), or its result for the same text (by sha256) from the user cache: an unchanged pipeline.yaml or
+    scene.yaml needs no YAML parser (a no-op run skips importing one). Only documents that JSON keeps exactly are
+    cached; a text that fails to parse raises every time."""
+    key = hashlib.sha256(text.encode()).hexdigest()
+    cache = read_user_cache(_YAML_CACHE)
+    hit = cache.get(key)
+    if isinstance(hit, list) and len(hit) == 1:
+        return hit[0]
+    doc = parse(text)
+    try:
+        exact = json.loads(json.dumps(doc)) == doc
+    except (TypeError, ValueError):
+        exact = False
+    if exact:
+        cache.pop(key, None)
+        cache[key] = [doc]
+        write_user_cache(_YAML_CACHE, dict(list(cache.items())[-_YAML_CACHE_KEEP:]))
+    return doc
+
+
+def _parse_pipeline_yaml(text: str) -> Any:
+    import yaml
+
+    try:
+        return yaml.load(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))  # libyaml: ~10x faster
+    except yaml.YAMLError as e:
+        raise ValueError(str(e)) from None
+
+
 @dataclass
 class Pipeline:
     path: Path
@@ -96,8 +131,8 @@ class Pipeline:
     def load(cls, path: Path | str | None = None) -> Pipeline:
         path = Path(path) if path else PIPELINE_FILE
         try:
-            doc = yaml.load(path.read_text(), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))  # libyaml: ~10x faster
-        except (OSError, yaml.YAMLError) as e:
+            doc = cached_yaml(path.read_text(), _parse_pipeline_yaml)
+        except (OSError, ValueError) as e:  # _parse_pipeline_yaml raises YAML errors as ValueError
             raise PipelineError(f"{path}: cannot read pipeline ({e})") from None
         stages: dict[str, StageNode] = {}
         for name, s in (doc.get("stages") or {}).items():
@@ -256,7 +291,8 @@ def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
         check_scene_inputs(root, files)
         if cfg_path.is_file():
             limits.check_size(cfg_path, limits.MAX_CONFIG_BYTES, SCENE_CONFIG)
-            config = limits.parse_yaml(cfg_path.read_text(errors="replace"), str(cfg_path)) or {}
+            config = cached_yaml(cfg_path.read_text(errors="replace"),
+                                 lambda text: limits.parse_yaml(text, str(cfg_path))) or {}
     except InputError as e:
         raise PipelineError(str(e)) from None
     check_scene_config(config, cfg_path, pipeline)
@@ -357,13 +393,16 @@ def resolve_params(
         ]
         values: dict[str, Any] = {}
         for layer, where in layers:
+            if not layer:
+                continue
             try:
-                params_from_dict(node.spec.params_cls, layer, where=name)  # names the layer that brings a bad value
-                values = merge(values, normalize(node.spec.params_cls, layer, name))
+                layer_values = normalize(node.spec.params_cls, layer, name)
+                params_from_normalized(node.spec.params_cls, layer_values, where=name)  # names the layer that brings a bad value
+                values = merge(values, layer_values)
             except ValueError as e:
                 raise PipelineError(f"{e} (from {where})") from None
         try:
-            out[name] = params_from_dict(node.spec.params_cls, values, where=name)
+            out[name] = params_from_normalized(node.spec.params_cls, values, where=name)
         except ValueError as e:
             raise PipelineError(str(e)) from None
     return out

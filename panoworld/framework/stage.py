@@ -7,6 +7,7 @@ import ast
 import dataclasses
 import enum
 import fcntl
+import functools
 import importlib
 import inspect
 import json
@@ -187,13 +188,24 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
     return value
 
 
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    """typing.get_type_hints of a params class, evaluated once per process (every layer of every stage asks)."""
+    return typing.get_type_hints(cls)
+
+
+@functools.cache
+def _fields(cls: type) -> dict[str, dataclasses.Field]:
+    return {f.name: f for f in dataclasses.fields(cls)}
+
+
 def normalize(cls: type, values: Any, where: str) -> dict[str, Any]:
     """A nested {param: value} dict from a layer of values (dotted keys and old names resolved, options nested);
     ValueError naming the param (with a "did you mean") for unknown names and wrong shapes."""
     if not isinstance(values, dict):
         raise ValueError(f"{where}: expected a mapping of param: value, got {type(values).__name__} {values!r}")
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    hints = typing.get_type_hints(cls)
+    fields = _fields(cls)
+    hints = _hints(cls)
     old = P.renamed(cls)
     out: dict[str, Any] = {}
     for key, v in values.items():
@@ -225,8 +237,8 @@ def merge(a: dict, b: dict) -> dict:
 
 
 def _build(cls: type, values: dict[str, Any], where: str) -> Any:
-    hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
+    hints = _hints(cls)
+    fields = _fields(cls)
     kwargs = {k: _build(hints[k], v, f"{where}.{k}") if P.is_options(fields[k]) else coerce(v, hints[k], f"{where}.{k}")
               for k, v in values.items()}
     return cls(**kwargs)
@@ -235,7 +247,12 @@ def _build(cls: type, values: dict[str, Any], where: str) -> Any:
 def params_from_dict(cls: type, values: Any, where: str = "params") -> Any:
     """Build and validate a params dataclass from plain values (nested or dotted `wan.steps`); ValueError
     `where.param=value: what is allowed` naming the first bad param."""
-    params = _build(cls, normalize(cls, values, where), where)
+    return params_from_normalized(cls, normalize(cls, values, where), where)
+
+
+def params_from_normalized(cls: type, values: dict[str, Any], where: str = "params") -> Any:
+    """params_from_dict of values normalize() already returned."""
+    params = _build(cls, values, where)
     P.validate(params, where)
     return params
 

@@ -188,24 +188,27 @@ def compact_faces(faces: np.ndarray, num_vertices: int) -> tuple[np.ndarray, np.
 
 
 def save_erp_mesh(mesh: ErpMesh, path: Path) -> None:
-    """Binary little-endian PLY: vertex x, y, z float32 + red, green, blue uint8 + pixel int32; face vertex_indices +
+    """Binary little-endian PLY: vertex x, y, z float32 + red, green, blue uint8 (+ pixel int32); face vertex_indices +
     uint8 valid.
 
-    Only vertices that a face references are written (invalid pixels never reach the file); `pixel` is each one's
-    index in the ErpMesh layout (grid pixel i * w + j, then the two poles), so load_erp_mesh restores the layout.
+    Only vertices that a face references are written (invalid pixels never reach the file); when some are left out,
+    `pixel` is each written one's index in the ErpMesh layout (grid pixel i * w + j, then the two poles), so
+    load_erp_mesh restores the layout; when none are, the file's vertex order is the layout and `pixel` is omitted.
     plyfile writes the header; the bodies go out as numpy records (plyfile writes list properties row by row,
     about 15 s for 2M faces).
     """
     from plyfile import PlyData, PlyElement
 
     used, faces = compact_faces(mesh.faces, len(mesh.vertices))
-    v = np.empty(len(used), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                   ("red", "u1"), ("green", "u1"), ("blue", "u1"), ("pixel", "<i4")])
+    subset = len(used) < len(mesh.vertices)
+    v = np.empty(len(used), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
+                                   ("blue", "u1")] + ([("pixel", "<i4")] if subset else []))
     for k, name in enumerate("xyz"):
         v[name] = mesh.vertices[used, k]
     for k, name in enumerate(("red", "green", "blue")):
         v[name] = mesh.colors[used, k]
-    v["pixel"] = used
+    if subset:
+        v["pixel"] = used
     f = np.empty(len(faces), dtype=[("n", "u1"), ("vertex_indices", "<i4", (3,)), ("valid", "u1")])
     f["n"] = 3
     f["vertex_indices"] = faces
@@ -216,8 +219,8 @@ def save_erp_mesh(mesh: ErpMesh, path: Path) -> None:
          PlyElement.describe(face_desc, "face", len_types={"vertex_indices": "u1"}, val_types={"vertex_indices": "i4"})],
         text=False, byte_order="<",
         comments=["PanoWorld ERP mesh: canonical frame (view 0, OpenCV axes, up = -Y), metres",
-                  "face valid = 0: stretched across a depth discontinuity, an occluder only",
-                  f"{GRID_COMMENT} {len(mesh.vertices)}"],
+                  "face valid = 0: stretched across a depth discontinuity, an occluder only"]
+        + ([f"{GRID_COMMENT} {len(mesh.vertices)}"] if subset else []),
     ).header.replace("element face 0", f"element face {len(f)}")
     with open(path, "wb") as fh:
         fh.write((header + "\n").encode("ascii"))

@@ -26,9 +26,8 @@ from panoworld.core.conventions import (
 )
 from panoworld.core.errors import InputError
 from panoworld.core.shapes import check_shape
-from panoworld.io.depth_png import read_depth_png
+from panoworld.io.depth_png import encode_depth_png, read_depth_png
 from panoworld.io.jsonio import read_json
-from panoworld.io.png import encode_png
 from panoworld.io.rgb_image import RgbFormat, decode_rgb, encode_rgb, image_format_of, rgb_file_name
 
 VIDEO_FILE = "video.json"
@@ -85,12 +84,17 @@ def read_video_doc(video_dir: Path | str) -> VideoDoc:
 
 
 PREVIEW_FILE = "preview.mp4"
+PREVIEW_CRF = "23"
+"""x264's constant rate factor of preview.mp4 (its default: a preview, not an input of any stage)."""
 MCAP_FILE = "video.mcap"
 DEPTH_SCALE = DEPTH_PNG_SCALE  # metres per depth PNG unit (millimetres); 0 = unknown
 
-# MCAP topics (Foxglove protobuf schemas). Depth is a foxglove.RawImage '16UC1' in millimetres (0 = unknown), which
-# Foxglove's Image panel shows with a colour map; RGB frames and conditions are JPEG foxglove.CompressedImage (the
-# files' own bytes, PNG or JPEG, with mcap_jpeg_quality 0); condition masks are PNG.
+# MCAP topics (Foxglove protobuf schemas). Depth is a foxglove.RawImage '16UC1' in millimetres (0 = unknown) of every
+# MCAP_DEPTH_STRIDE-th pixel of every MCAP_DEPTH_STRIDE-th row, which Foxglove's Image panel shows with a colour map
+# (depth/ holds the full frames); RGB frames and conditions are JPEG foxglove.CompressedImage (the files' own bytes,
+# PNG or JPEG, with mcap_jpeg_quality 0); condition masks are PNG.
+MCAP_DEPTH_STRIDE = 2
+"""The MCAP's depth keeps the exact millimetres of one pixel in 2 x 2 (a viewing log: about a quarter of the bytes)."""
 TOPIC_RGB = "/camera/rgb"
 TOPIC_DEPTH = "/camera/depth"
 TOPIC_COND_RGB = "/conditions/rgb"
@@ -135,7 +139,7 @@ class VideoWriter:
         preview: bool = True,
         preview_max_width: int = 1920,
         mcap: bool = True,
-        mcap_jpeg_quality: int = 90,
+        mcap_jpeg_quality: int = 80,
         png_compression: int = 1,
         frame_format: RgbFormat | str = RgbFormat.PNG,
         frame_quality: int = 95,
@@ -179,7 +183,7 @@ class VideoWriter:
             self._mp4 = imageio_ffmpeg.write_frames(
                 str(self.out_dir / PREVIEW_FILE), self._preview_size, fps=self.fps, codec="libx264",
                 pix_fmt_out="yuv420p", quality=None, macro_block_size=2,
-                output_params=["-preset", "veryfast", "-crf", "18"], ffmpeg_log_level="error",
+                output_params=["-preset", "veryfast", "-crf", PREVIEW_CRF], ffmpeg_log_level="error",
             )
             self._mp4.send(None)
         self._mcap = None
@@ -251,7 +255,7 @@ class VideoWriter:
     def _encode_depth(self, depth: np.ndarray, path: Path) -> np.ndarray:
         """Depth (H, W) metres -> its uint16 millimetre PNG at path; returns the millimetres (the MCAP's)."""
         mm = depth_to_mm(depth)
-        path.write_bytes(encode_png(mm, compression=self.png_compression))
+        path.write_bytes(encode_depth_png(mm))
         return mm
 
     def _encode_write_rgb(self, rgb: np.ndarray, path: Path) -> bytes:
@@ -296,8 +300,9 @@ class VideoWriter:
         data, fmt = self._viewing_image(png, rgb)
         put(TOPIC_RGB, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=data, format=fmt))
         if mm is not None:
+            mm = np.ascontiguousarray(mm[::MCAP_DEPTH_STRIDE, ::MCAP_DEPTH_STRIDE], "<u2")
             put(TOPIC_DEPTH, RawImage(timestamp=stamp, frame_id=CAMERA_FRAME, width=mm.shape[1], height=mm.shape[0],
-                                      encoding="16UC1", step=2 * mm.shape[1], data=mm.astype("<u2").tobytes()))
+                                      encoding="16UC1", step=2 * mm.shape[1], data=mm.tobytes()))
         if cond_rgb_png is not None:
             data, fmt = self._viewing_image(cond_rgb_png)
             put(TOPIC_COND_RGB, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=data, format=fmt))
