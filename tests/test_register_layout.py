@@ -119,11 +119,12 @@ def test_layout_edges_rank_below_bearing_edges():
 def test_register_panoramas_joins_adjoining_rooms_by_a_layout_edge():
     wa, wb = _pose(0.0, -0.5, 0.3), _pose(100.0, 3.3, 1.0)
     (ra, da), (rb, db) = _render(wa, ROOM_A, ROOM_B), _render(wb, ROOM_B, ROOM_A)
-    reg = register_panoramas(["a", "b"], {"a": ra, "b": rb}, {"a": da, "b": db}, options=RegisterOptions(height=H))
+    reg = register_panoramas(["a", "b"], {"a": ra, "b": rb}, {"a": da, "b": db},
+                             options=RegisterOptions(height=H, layout=True))
     assert reg.panoramas["b"]["edge"] == LAYOUT  # no depth, floor or bearing edge: the doorway is all they share
     gt = invert_pose(wa) @ wb
     assert np.linalg.norm(reg.world_from_cam["b"][[0, 2], 3] - gt[[0, 2], 3]) < 0.08
     assert abs(np.degrees(yaw_of(reg.world_from_cam["b"][:3, :3]) - yaw_of(gt[:3, :3]))) < 1.0
     off = register_panoramas(["a", "b"], {"a": ra, "b": rb}, {"a": da, "b": db},
-                             options=RegisterOptions(height=H, layout=False))
+                             options=RegisterOptions(height=H))  # layout off by default
     assert "b" not in off.world_from_cam

@@ -63,10 +63,11 @@ class RegisterOptions:
     min_floor_inliers: int = param(8, ge=3)
     """A floor pair needs at least this many inliers (and no contradiction from its bearing-only estimate, checked as
     for a depth-backed pose)."""
-    layout: bool = True
+    layout: bool = False
     """Also try pairs that no depth, floor or bearing edge joins into one group with their layouts
     (panoworld/register/layout.py): a wall of one room against an opposed wall of the other, judged by where the
-    images agree (the other room seen through a doorway)."""
+    images agree (the other room seen through a doorway). Off by default: on a real home of 15 panoramas it placed
+    two rooms wrongly (docs/multi.md, failure modes), and it costs 3-5 CPU s per pair tried."""
     layout_min_margin: float = param(1.5, gt=1)
     """A layout pair is trusted only when its best hypothesis' agreeing image area is at least this multiple of the
     best hypothesis distinct from it (farther than 0.3 m or 5 degrees)."""
