@@ -197,8 +197,8 @@ def floor_ring(hole: np.ndarray, floor_area: np.ndarray, width_px: float) -> np.
 def ring_fill(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, width_px: float,
               seed: int = 0) -> np.ndarray:
     """Fill hole (size, size) of face (float RGB 0-255) from the floor ring around it alone (floor_ring): its low
-    frequencies propagated inward by normalised convolution from the ring (coarse to fine: the ring's mean in the
-    middle of the hole, the local floor near its edge), its texture (face less the ring's local mean) laid by
+    frequencies a membrane (harmonic) interpolation of the ring's local mean across the hole (a light gradient or a
+    sun band on both sides carries across; _membrane), its texture (face less the ring's local mean) laid by
     overlap-added random ring blocks. Nothing beyond the ring (a wall, the next room, a sun band far away) is read;
     with no ring the hole is left as it is."""
     ring = floor_ring(hole, floor_area, width_px)
@@ -207,9 +207,9 @@ def ring_fill(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, width_
     ring = _majority_floor(face, ring)
     S = face.shape[0]
     sig = max(1.5, S / 100)
-    low = _spread(face, ring, (24 * sig, 12 * sig, 3 * sig))
     tex_sig = max(1.0, S / 120)
     local = _spread(face, ring, (tex_sig,))
+    low = _membrane(_spread(face, ring, (3 * sig,)), ring, hole, _spread(face, ring, (24 * sig, 12 * sig, 3 * sig)))
     resid = (face - local) * ring[..., None]
     out = face.copy()
     out[hole] = (low + _quilt(resid, ring, hole, max(8, int(S / 24)) // 2 * 2, seed))[hole]
@@ -241,6 +241,33 @@ def _majority_floor(face: np.ndarray, ring: np.ndarray) -> np.ndarray:
     out = ring.copy()
     out[ring] = lab_k != minor
     return out
+
+
+MEMBRANE_ITERS = 400
+"""Jacobi sweeps of _membrane on its 4x coarser grid, started from the normalised-convolution spread."""
+
+
+def _membrane(known_val: np.ndarray, known: np.ndarray, hole: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """(size, size, 3): known_val on the known pixels, the harmonic (membrane) interpolation of them over the rest
+    of the hole's box: on a 4x coarser grid (Jacobi sweeps from start), upsampled. Pixels farther from the hole keep
+    start."""
+    S = known.shape[0]
+    f = 4
+    s = max(8, S // f)
+    small = cv2.resize(known_val, (s, s), interpolation=cv2.INTER_AREA)
+    kn = cv2.resize(known.astype(np.float32), (s, s), interpolation=cv2.INTER_AREA) > 0.5
+    inside = cv2.resize(hole.astype(np.float32), (s, s), interpolation=cv2.INTER_AREA) > 0
+    free = inside & ~kn
+    if not free.any() or not kn.any():
+        return start
+    u = cv2.resize(start, (s, s), interpolation=cv2.INTER_AREA)
+    u[kn] = small[kn]
+    solve = cv2.dilate(free.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    for _ in range(MEMBRANE_ITERS):
+        u = np.where(free[..., None], cv2.blur(u, (3, 3), borderType=cv2.BORDER_REPLICATE), u)
+    up = cv2.resize(u, (S, S), interpolation=cv2.INTER_LINEAR)
+    near = cv2.resize(solve.astype(np.uint8), (S, S), interpolation=cv2.INTER_NEAREST) > 0
+    return np.where(near[..., None], up, start).astype(np.float32)
 
 
 def _spread(face: np.ndarray, known: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
