@@ -283,14 +283,14 @@ def _spread(face: np.ndarray, known: np.ndarray, sigmas: tuple[float, ...]) -> n
 
 
 QUILT_NEAREST = 64
-"""Each texture block of the fill is drawn from the this many ring blocks nearest to where it goes: the floor's
+"""Each texture block of the fill is drawn from this many ring blocks nearest to where it goes: the floor's
 texture on each side of the hole goes on there (carpet beside carpet, planks beside planks)."""
 
 
 def _quilt(resid: np.ndarray, ring: np.ndarray, hole: np.ndarray, block: int, seed: int) -> np.ndarray:
     """Texture (size, size, 3) over hole: blocks of resid taken at random among the QUILT_NEAREST nearest positions
-    where a block lies wholly in ring (or mostly, for a thin ring), overlap-added with Hann windows at half a block's stride and scaled so that the sum of
-    independent blocks keeps the ring's texture contrast."""
+    where a block lies wholly in ring (or mostly, for a thin ring), overlap-added with Hann windows at half a block's
+    stride and scaled so that the sum of independent blocks keeps the ring's texture contrast."""
     S = hole.shape[0]
     rng = np.random.default_rng(seed)
     cover = cv2.boxFilter(ring.astype(np.float32), -1, (block, block), normalize=True, borderType=cv2.BORDER_CONSTANT)
