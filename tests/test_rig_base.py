@@ -162,3 +162,61 @@ def test_ring_fill_takes_the_floor_around_the_hole_not_a_wall_or_a_sun_band():
     hi = lum - cv2.GaussianBlur(lum, (0, 0), 3.0)
     inner = theta < 12.0
     assert 0.5 <= hi[inner].std() / hi[ring & ~band].std() <= 1.5
+
+
+def _grain(S: int, colour, seed: int = 3) -> np.ndarray:
+    g = cv2.GaussianBlur(np.random.default_rng(seed).normal(0, 1, (S, S)).astype(np.float32), (0, 0), 1.2)
+    return np.clip(np.array(colour, float) * (1 + 0.25 * g / g.std())[..., None], 0, 255)
+
+
+def test_outline_edges_tell_an_object_from_a_region_of_the_floor():
+    """A disc cut out of a carpet's own texture has no edge along its outline; the same disc outlined (a body's
+    silhouette) has one all round."""
+    from panoworld.depth.rig.base import BASE_MIN_OUTLINE, outline_edges
+
+    view = nadir_view(384)
+    theta, _ = face_polar(view)
+    face = _grain(view.size, (120, 96, 72)).astype(np.uint8)
+    disc = theta < 12.0
+    floor = theta > 27.0
+    assert outline_edges(face, disc, floor, view.focal) < 0.3
+    drawn = face.copy()
+    cnt, _ = cv2.findContours(disc.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(drawn, cnt, -1, (30, 28, 30), 2)
+    assert outline_edges(drawn, disc, floor, view.focal) >= BASE_MIN_OUTLINE
+
+
+def test_ring_fill_leaves_out_a_darker_surface_of_another_colour_but_keeps_a_sun_band():
+    """The ring around a 15 deg hole: three quarters carpet, one quarter either a darker orange door jamb (left out:
+    the fill's mean colour is the carpet's, where the jamb taken in would move its blue by 13 levels) or a washed-out
+    sun band (kept: the fill is brighter than the carpet alone)."""
+    from panoworld.depth.rig.inpaint import RING_WIDTH_DEG, ring_fill
+
+    view = nadir_view(256)
+    theta, phi = face_polar(view)
+    S = view.size
+    carpet = _grain(S, (120, 96, 72))
+    hole = theta < 15.0
+    quarter = np.abs(np.angle(np.exp(1j * (phi - 0.5)))) < np.pi / 4
+    width = view.focal * np.deg2rad(RING_WIDTH_DEG)
+    jamb = carpet.copy()
+    jamb[quarter] = _grain(S, (150, 70, 20), 4)[quarter]
+    out = ring_fill(jamb, hole, np.ones_like(hole), width)
+    assert np.abs(out[hole].mean(0) - carpet[hole].mean(0)).max() < 4.0, out[hole].mean(0)
+    sun = carpet.copy()
+    sun[quarter] = np.minimum(_grain(S, (235, 228, 215), 4)[quarter], 255)
+    base = ring_fill(carpet, hole, np.ones_like(hole), width)[hole].mean()
+    assert ring_fill(sun, hole, np.ones_like(hole), width)[hole].mean() > base * 1.1
+
+
+def test_floor_coloured_base_outlined_all_round_is_found(room):
+    """A base whose body shows the floor's own texture a third lighter (half of it in colours the floor shows too, as
+    a beige base on a beige-brown carpet) within its dark outline is found by its outline and removed."""
+    clean, depth, floor_m = room
+    rgb, truth = with_base(clean)
+    body = cv2.erode(truth.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    rgb[body] = np.clip(clean[body] * 1.34, 0, 255).astype(np.uint8)
+    det = rig.detect_rig(rgb, depth, np.isfinite(depth) & (depth > 0), floor_m)
+    assert det.found and det.kind == "base" and "outlined" in det.reason, det.reason
+    assert 0.4 <= det.stats["unlike_floor"] < 0.7
+    assert area_iou(det.mask, truth) >= 0.7

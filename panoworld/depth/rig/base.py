@@ -23,7 +23,13 @@ BASE_MAX_OFFSET = 0.4
 BASE_MIN_SOLIDITY = 0.6
 """Its area over its convex hull's (a compact body; legs lower it, floor patches scatter it)."""
 BASE_MIN_UNLIKE = 0.7
-"""At least this share of its pixels has a colour the floor around it (almost) never shows, or is far darker."""
+"""At least this share of its pixels has a colour the floor around it (almost) never shows, or is far darker ..."""
+BASE_MIN_UNLIKE_OUTLINED = 0.4
+"""... or at least this share when its outline is an edge all round (BASE_MIN_OUTLINE): a beige base on a carpet
+that shows beige too."""
+BASE_MIN_OUTLINE = 0.85
+"""Share of the outline's pixels whose colour gradient exceeds the floor's 90th percentile (outline_edges); a region
+cut out of the floor's own texture scores about 0.1 (its outline meets the floor's strong gradients at random)."""
 
 
 def grabcut_nadir(face: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -82,9 +88,25 @@ def is_base(st: dict) -> str | None:
         return f"off the nadir (centroid offset {st['centroid_offset']:.2f})"
     if st["solidity"] < BASE_MIN_SOLIDITY:
         return f"not compact (solidity {st['solidity']:.2f})"
-    if st["unlike_floor"] < BASE_MIN_UNLIKE:
-        return f"mostly floor-coloured ({st['unlike_floor']:.0%} unlike the floor)"
+    outlined = st.get("outline_edges", 0.0) >= BASE_MIN_OUTLINE
+    if st["unlike_floor"] < (BASE_MIN_UNLIKE_OUTLINED if outlined else BASE_MIN_UNLIKE):
+        return (f"mostly floor-coloured ({st['unlike_floor']:.0%} unlike the floor, "
+                f"{st.get('outline_edges', 0.0):.0%} of its outline an edge)")
     return None
+
+
+def outline_edges(face: np.ndarray, comp: np.ndarray, floor: np.ndarray, focal: float) -> float:
+    """Share of the outline pixels of comp (size, size) bool whose Lab gradient (the face smoothed by 0.3 deg, so
+    a carpet's grain does not count; the largest within a pixel) exceeds the 90th percentile of the floor's (floor,
+    (size, size) bool)."""
+    lab = cv2.cvtColor(cv2.GaussianBlur(face, (0, 0), 0.3 * focal * np.deg2rad(1.0)), cv2.COLOR_RGB2LAB)
+    lab = lab.astype(np.float32)
+    g = np.sqrt((cv2.Sobel(lab, cv2.CV_32F, 1, 0) ** 2 + cv2.Sobel(lab, cv2.CV_32F, 0, 1) ** 2).sum(-1))
+    g = cv2.dilate(g, np.ones((3, 3), np.uint8))
+    rim = comp & ~(cv2.erode(comp.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)
+    if not rim.any() or not floor.any():
+        return 0.0
+    return float((g[rim] > np.percentile(g[floor], 90)).mean())
 
 
 def attached_legs(comp: np.ndarray, unlike: np.ndarray, theta: np.ndarray, focal: float) -> np.ndarray:
@@ -133,6 +155,7 @@ def detect_base(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndar
         return RigDetection(False, "no region at the nadir stands out from the floor")
     unlike = unlike_floor(nf.face, ref, nf.view)
     stats = base_stats(comp, nf.theta, unlike)
+    stats["outline_edges"] = outline_edges(nf.face, comp, ref, nf.view.focal)
     why = is_base(stats)
     if why is None and (refusal := seen_object(nf, comp, floor_m)) is not None:
         why = refusal.reason
@@ -141,6 +164,7 @@ def detect_base(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndar
     legs = attached_legs(comp, unlike, nf.theta, nf.view.focal)
     stats["leg_pixels"] = int(legs.sum())
     mask = face_to_erp_mask(cv2.dilate((comp | legs).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0, nf.view, H, W)
-    return RigDetection(True, f"a solid camera base centred on the nadir, {stats['cap_deg']:.1f} deg, unlike the floor "
-                        "around it", "base", mask, np.zeros_like(mask), stats, source=floor_source(nf.face, nf),
+    unlike_how = ("unlike the floor around it" if stats["unlike_floor"] >= BASE_MIN_UNLIKE else
+                  f"outlined by an edge all round ({stats['outline_edges']:.0%})")
+    return RigDetection(True, f"a solid camera base centred on the nadir, {stats['cap_deg']:.1f} deg, {unlike_how}", "base", mask, np.zeros_like(mask), stats, source=floor_source(nf.face, nf),
                         fill="ring")

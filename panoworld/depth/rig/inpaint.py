@@ -197,22 +197,77 @@ def floor_ring(hole: np.ndarray, floor_area: np.ndarray, width_px: float) -> np.
 def ring_fill(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, width_px: float,
               seed: int = 0) -> np.ndarray:
     """Fill hole (size, size) of face (float RGB 0-255) from the floor ring around it alone (floor_ring): its low
-    frequencies propagated inward by normalised convolution from the ring (coarse to fine: the ring's mean in the
-    middle of the hole, the local floor near its edge), its texture (face less the ring's local mean) laid by
+    frequencies a membrane (harmonic) interpolation of the ring's local mean across the hole (a light gradient or a
+    sun band on both sides carries across; _membrane), its texture (face less the ring's local mean) laid by
     overlap-added random ring blocks. Nothing beyond the ring (a wall, the next room, a sun band far away) is read;
     with no ring the hole is left as it is."""
     ring = floor_ring(hole, floor_area, width_px)
     if ring.sum() < 16:
         return face
+    ring = _majority_floor(face, ring)
     S = face.shape[0]
     sig = max(1.5, S / 100)
-    low = _spread(face, ring, (24 * sig, 12 * sig, 3 * sig))
     tex_sig = max(1.0, S / 120)
     local = _spread(face, ring, (tex_sig,))
+    low = _membrane(_spread(face, ring, (3 * sig,)), ring, hole, _spread(face, ring, (24 * sig, 12 * sig, 3 * sig)))
     resid = (face - local) * ring[..., None]
     out = face.copy()
     out[hole] = (low + _quilt(resid, ring, hole, max(8, int(S / 24)) // 2 * 2, seed))[hole]
     return out
+
+
+CHROMA_SPLIT = 12.0
+"""Two colour groups of the ring farther apart than this (Lab a*b* units) are two kinds of surface (_majority_floor)."""
+MINORITY_SHARE = 0.35
+"""... and the smaller one, below this share of the ring, is left out of the fill's source."""
+
+
+def _majority_floor(face: np.ndarray, ring: np.ndarray) -> np.ndarray:
+    """ring (size, size) bool less its chroma minority: the ring's a*b* split in two groups (k-means); where they are
+    more than CHROMA_SPLIT apart and the smaller holds less than MINORITY_SHARE of the ring, the pixels nearer its
+    centre are left out (a door jamb lying on the layout's floor plane). A brighter minority stays: the floor
+    under more light (a sun band across it, its colours washed out) is still the floor."""
+    lab = cv2.cvtColor(np.clip(face, 0, 255).astype(np.uint8), cv2.COLOR_RGB2LAB)[..., 1:].astype(np.float32)
+    ab = np.ascontiguousarray(lab[ring])
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.5)
+    cv2.setRNGSeed(0)
+    _, lab_k, centres = cv2.kmeans(ab, 2, None, crit, 3, cv2.KMEANS_PP_CENTERS)
+    lab_k = lab_k.ravel()
+    minor = int(np.argmin(np.bincount(lab_k, minlength=2)))
+    lum = face[ring].mean(-1)
+    if (float(np.linalg.norm(centres[0] - centres[1])) <= CHROMA_SPLIT or np.mean(lab_k == minor) >= MINORITY_SHARE
+            or lum[lab_k == minor].mean() > lum[lab_k != minor].mean()):
+        return ring
+    out = ring.copy()
+    out[ring] = lab_k != minor
+    return out
+
+
+MEMBRANE_ITERS = 400
+"""Jacobi sweeps of _membrane on its 4x coarser grid, started from the normalised-convolution spread."""
+
+
+def _membrane(known_val: np.ndarray, known: np.ndarray, hole: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """(size, size, 3): known_val on the known pixels, the harmonic (membrane) interpolation of them over the rest
+    of the hole's box: on a 4x coarser grid (Jacobi sweeps from start), upsampled. Pixels farther from the hole keep
+    start."""
+    S = known.shape[0]
+    f = 4
+    s = max(8, S // f)
+    small = cv2.resize(known_val, (s, s), interpolation=cv2.INTER_AREA)
+    kn = cv2.resize(known.astype(np.float32), (s, s), interpolation=cv2.INTER_AREA) > 0.5
+    inside = cv2.resize(hole.astype(np.float32), (s, s), interpolation=cv2.INTER_AREA) > 0
+    free = inside & ~kn
+    if not free.any() or not kn.any():
+        return start
+    u = cv2.resize(start, (s, s), interpolation=cv2.INTER_AREA)
+    u[kn] = small[kn]
+    solve = cv2.dilate(free.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    for _ in range(MEMBRANE_ITERS):
+        u = np.where(free[..., None], cv2.blur(u, (3, 3), borderType=cv2.BORDER_REPLICATE), u)
+    up = cv2.resize(u, (S, S), interpolation=cv2.INTER_LINEAR)
+    near = cv2.resize(solve.astype(np.uint8), (S, S), interpolation=cv2.INTER_NEAREST) > 0
+    return np.where(near[..., None], up, start).astype(np.float32)
 
 
 def _spread(face: np.ndarray, known: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
@@ -227,10 +282,15 @@ def _spread(face: np.ndarray, known: np.ndarray, sigmas: tuple[float, ...]) -> n
     return out
 
 
+QUILT_NEAREST = 64
+"""Each texture block of the fill is drawn from this many ring blocks nearest to where it goes: the floor's
+texture on each side of the hole goes on there (carpet beside carpet, planks beside planks)."""
+
+
 def _quilt(resid: np.ndarray, ring: np.ndarray, hole: np.ndarray, block: int, seed: int) -> np.ndarray:
-    """Texture (size, size, 3) over hole: blocks of resid taken at random where a block lies wholly in ring (or
-    mostly, for a thin ring), overlap-added with Hann windows at half a block's stride and scaled so that the sum of
-    independent blocks keeps the ring's texture contrast."""
+    """Texture (size, size, 3) over hole: blocks of resid taken at random among the QUILT_NEAREST nearest positions
+    where a block lies wholly in ring (or mostly, for a thin ring), overlap-added with Hann windows at half a block's
+    stride and scaled so that the sum of independent blocks keeps the ring's texture contrast."""
     S = hole.shape[0]
     rng = np.random.default_rng(seed)
     cover = cv2.boxFilter(ring.astype(np.float32), -1, (block, block), normalize=True, borderType=cv2.BORDER_CONSTANT)
@@ -245,9 +305,11 @@ def _quilt(resid: np.ndarray, ring: np.ndarray, hole: np.ndarray, block: int, se
     rpad = np.pad(ring.astype(np.float32), half)
     ys, xs = np.nonzero(hole)
     step = max(1, half)
+    near = min(len(cy), QUILT_NEAREST)
     for y0 in range(max(ys.min() - block, -half), min(ys.max() + 1, S), step):
         for x0 in range(max(xs.min() - block, -half), min(xs.max() + 1, S), step):
-            k = rng.integers(len(cy))
+            d2 = (cy - half - y0) ** 2 + (cx - half - x0) ** 2
+            k = np.argpartition(d2, near - 1)[rng.integers(near)]
             sy, sx = cy[k], cx[k]  # the block centred there, its top-left corner in the padded arrays
             patch = pad[sy:sy + block, sx:sx + block]
             wk = win * rpad[sy:sy + block, sx:sx + block]
