@@ -111,7 +111,7 @@ def _wrap(a: np.ndarray) -> np.ndarray:
 
 
 def oriented_rigid2d_ransac(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dlog2: np.ndarray, *, threshold: float,
-                            angle_tol: float = np.radians(15.0), scale_tol: float = 0.6, hypotheses: int = 4000,
+                            angle_tol: float = np.radians(15.0), scale_tol: float = 0.6, hypotheses: int = 2000,
                             seed: int = 0) -> tuple[float, np.ndarray, np.ndarray] | None:
     """2D rigid p ~ _rot2(yaw) q + t (no scale) over matched keypoints p, q (N, 2) whose orientations differ by dtheta
     (N,) (a_angle - b_angle, radians) and whose sizes differ by dlog2 (N,) octaves. Each match is a hypothesis by itself
