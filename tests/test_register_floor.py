@@ -117,3 +117,25 @@ def test_register_panoramas_joins_a_pair_by_its_floor():
     truth = invert_pose(wa) @ wb
     assert np.linalg.norm(reg.world_from_cam["b"][:3, 3] - truth[:3, 3]) < 0.03
     assert reg.pairs[0]["floor_inliers"] >= 50
+
+
+def test_no_keypoint_on_the_excluded_rig():
+    from panoworld.core.conventions import erp_pixel_from_dir
+    from panoworld.register.pairwise import erp_features, grow_exclusion
+
+    rgb, depth = _render(_pose(0.0, 0.0, 0.0), _texture(5))
+    rig = np.zeros(depth.shape, bool)
+    rig[int(0.8 * H):] = True  # everything within 36 deg of the nadir
+    grown = grow_exclusion(rig)
+    assert grown.sum() > rig.sum() and grow_exclusion(np.zeros_like(rig)) is None
+    free = erp_features(rgb, depth, max_features=4000)
+    f = erp_features(rgb, depth, max_features=4000, exclude=grown)
+    v = erp_pixel_from_dir(f.bearings, H, 2 * H)[1]
+    v_free = erp_pixel_from_dir(free.bearings, H, 2 * H)[1]
+    assert (v_free >= 0.8 * H).sum() > 50 and (v < 0.8 * H).all()
+    # the floor image: nothing left where the mask covers it beyond the nadir disc
+    whole = floor_view(rgb, depth, radius_m=4.0, exclude=None)
+    masked = floor_view(rgb, depth, radius_m=4.0, exclude=grown)
+    r = lambda fv: np.hypot(*fv.xz.T)  # noqa: E731
+    edge = FLOOR_Y * np.tan(np.radians(36.0))
+    assert (r(whole) < edge).sum() > 20 and (r(masked) < edge - 0.02).sum() == 0
