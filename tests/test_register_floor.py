@@ -136,6 +136,6 @@ def test_no_keypoint_on_the_excluded_rig():
     # the floor image: nothing left where the mask covers it beyond the nadir disc
     whole = floor_view(rgb, depth, radius_m=4.0, exclude=None)
     masked = floor_view(rgb, depth, radius_m=4.0, exclude=grown)
-    r = lambda fv: np.hypot(*fv.xz.T)  # noqa: E731
+    r = lambda fv: np.hypot(*fv.xz.T)
     edge = FLOOR_Y * np.tan(np.radians(36.0))
     assert (r(whole) < edge).sum() > 20 and (r(masked) < edge - 0.02).sum() == 0
