@@ -133,8 +133,9 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
     info["decisions"] = notes + c.notes
     if c.rig is not None and c.rig.found:
         from panoworld.depth.rig.face import nadir_crop
+        from panoworld.io.home import RIG_MASK_PNG
 
-        cv2.imwrite(str(out_dir / "rig_mask.png"), c.rig.mask.astype(np.uint8) * 255)
+        cv2.imwrite(str(out_dir / RIG_MASK_PNG), c.rig.mask.astype(np.uint8) * 255)
         crops = np.concatenate([nadir_crop(rgb), nadir_crop(c.rgb)], axis=1)
         cv2.imwrite(str(out_dir / "nadir_before_after.jpg"), cv2.cvtColor(crops, cv2.COLOR_RGB2BGR))
     rgb, depth, valid = c.rgb, c.depth, c.valid

@@ -139,11 +139,12 @@ def test_home_registers_when_layout_like_depth_disagrees_across_the_doorway(home
     for a, b in ((0, 1), (1, 2), (0, 2)):
         i_from_j = invert_pose(rel[names[a]]) @ rel[names[b]]
         assert consistency(i_from_j, depths[names[a]], depths[names[b]])[1] < 0.9
-    reg = register_panoramas(names, rgbs, depths, options=RegisterOptions(height=HOME_HEIGHT))
-    assert not any(p["edge"] == DEPTH for p in reg.pairs)
-    assert any(p["edge"] == BEARING for p in reg.pairs)
-    assert len(reg.world_from_cam) >= 2
-    _placed_within_tolerance_or_reported(reg, rel)
+    for floor in (False, True):  # the bearing-only pairs alone, then with the floor pairs (which rank above them)
+        reg = register_panoramas(names, rgbs, depths, options=RegisterOptions(height=HOME_HEIGHT, floor=floor))
+        assert not any(p["edge"] == DEPTH for p in reg.pairs)
+        assert floor or any(p["edge"] == BEARING for p in reg.pairs)
+        assert len(reg.world_from_cam) >= 2
+        _placed_within_tolerance_or_reported(reg, rel)
 
 
 

@@ -1,5 +1,5 @@
 """Floor-plane registration of upright panoramas: camera height from depth, the metric top-down floor images and the
-2-point rigid fit recover (x, z, yaw) against ground truth; unrelated floors give no supported pose; the pose graph
+1-point oriented rigid fit recover (x, z, yaw) against ground truth; unrelated floors give no supported pose; the pose graph
 joins groups by a floor edge, and the registration of a pair uses it."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 
 from panoworld.core.conventions import erp_dirs, invert_pose
-from panoworld.register.floor import camera_height, floor_pair, floor_view, rigid2d_ransac
+from panoworld.register.floor import camera_height, floor_pair, floor_view, oriented_rigid2d_ransac
 from panoworld.register.graph import FLOOR, Edge, solve_graph
 from panoworld.register.options import RegisterOptions
 from panoworld.register.solve import register_panoramas
@@ -73,16 +73,27 @@ def test_unrelated_floors_give_no_supported_pose():
     assert p is None or p.inliers < 8  # RegisterOptions.min_floor_inliers
 
 
-def test_rigid2d_ransac_with_outliers():
+def test_oriented_rigid2d_ransac_needs_position_orientation_and_scale_to_agree():
     rng = np.random.default_rng(3)
-    q = rng.uniform(-3, 3, (60, 2))
-    th = np.radians(70.0)
-    R = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
-    p = q @ R.T + [1.0, -0.5] + rng.normal(0, 0.005, q.shape)
-    p[:40] = rng.uniform(-3, 3, (40, 2))  # two thirds outliers
-    Rr, t, inl = rigid2d_ransac(p, q, threshold=0.03)
-    assert inl[40:].all() and inl[:40].sum() <= 2
-    assert np.allclose(Rr, R, atol=5e-3) and np.allclose(t, [1.0, -0.5], atol=0.01)
+    n_true, n = 10, 600
+    q = rng.uniform(-3, 3, (n, 2))
+    yaw = np.radians(70.0)
+    R = yaw_matrix(yaw)[[0, 2]][:, [0, 2]]  # acting on (x, z)
+    p = rng.uniform(-3, 3, (n, 2))  # outliers everywhere ...
+    p[:n_true] = q[:n_true] @ R.T + [1.0, -0.5] + rng.normal(0, 0.005, (n_true, 2))
+    dtheta = rng.uniform(-np.pi, np.pi, n)
+    dtheta[:n_true] = yaw + rng.normal(0, 0.02, n_true)
+    dlog2 = rng.normal(0, 0.3, n)
+    # ... and a decoy: matches that agree in position under another yaw, but not in keypoint orientation
+    decoy = slice(n_true, 3 * n_true)
+    R2 = yaw_matrix(-1.0)[[0, 2]][:, [0, 2]]
+    p[decoy] = q[decoy] @ R2.T + [0.2, 0.3]
+    yaw_hat, t, inl = oriented_rigid2d_ransac(p, q, dtheta, dlog2, threshold=0.03)
+    assert inl[:n_true].sum() >= n_true - 1 and inl[n_true:].sum() <= 1
+    assert abs(yaw_hat - yaw) < np.radians(0.5) and np.allclose(t, [1.0, -0.5], atol=0.01)
+    # the same positions without orientation agreement: nothing beyond chance
+    _, _, inl = oriented_rigid2d_ransac(p, q, rng.uniform(-np.pi, np.pi, n), dlog2, threshold=0.03)
+    assert inl.sum() <= 3
 
 
 def test_floor_edge_joins_groups_in_the_pose_graph():
@@ -106,3 +117,25 @@ def test_register_panoramas_joins_a_pair_by_its_floor():
     truth = invert_pose(wa) @ wb
     assert np.linalg.norm(reg.world_from_cam["b"][:3, 3] - truth[:3, 3]) < 0.03
     assert reg.pairs[0]["floor_inliers"] >= 50
+
+
+def test_no_keypoint_on_the_excluded_rig():
+    from panoworld.core.conventions import erp_pixel_from_dir
+    from panoworld.register.pairwise import erp_features, grow_exclusion
+
+    rgb, depth = _render(_pose(0.0, 0.0, 0.0), _texture(5))
+    rig = np.zeros(depth.shape, bool)
+    rig[int(0.8 * H):] = True  # everything within 36 deg of the nadir
+    grown = grow_exclusion(rig)
+    assert grown.sum() > rig.sum() and grow_exclusion(np.zeros_like(rig)) is None
+    free = erp_features(rgb, depth, max_features=4000)
+    f = erp_features(rgb, depth, max_features=4000, exclude=grown)
+    v = erp_pixel_from_dir(f.bearings, H, 2 * H)[1]
+    v_free = erp_pixel_from_dir(free.bearings, H, 2 * H)[1]
+    assert (v_free >= 0.8 * H).sum() > 50 and (v < 0.8 * H).all()
+    # the floor image: nothing left where the mask covers it beyond the nadir disc
+    whole = floor_view(rgb, depth, radius_m=4.0, exclude=None)
+    masked = floor_view(rgb, depth, radius_m=4.0, exclude=grown)
+    r = lambda fv: np.hypot(*fv.xz.T)
+    edge = FLOOR_Y * np.tan(np.radians(36.0))
+    assert (r(whole) < edge).sum() > 20 and (r(masked) < edge - 0.02).sum() == 0

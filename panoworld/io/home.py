@@ -21,6 +21,9 @@ vertices are each source's ERP grid (h * w + 2 poles, world frame) one after the
 HOME_DIR = "panoramas"
 """A home's depth artifact: panoramas/NAME/{depth.npy, valid.png, panorama.png} per panorama; the top-level files are
 those of the first panorama (so a single-panorama reader sees the world-frame panorama)."""
+RIG_MASK_PNG = "rig_mask.png"
+"""In a depth artifact's folder (top level or panoramas/NAME/): the detected or given capture rig (ERP, white = rig),
+written only where a rig was found."""
 HOME_INFO = "home"
 """The depth manifest's info key listing the home's panoramas: {"names": [...], "dirs": {NAME: relative dir}}."""
 

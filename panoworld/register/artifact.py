@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.core.errors import InputError
-from panoworld.io.home import PANORAMAS_JSON
+from panoworld.io.home import PANORAMAS_JSON, RIG_MASK_PNG
 from panoworld.io.jsonio import read_json, write_json
 from panoworld.register.inputs import REGISTRATION_JSON, find_multi_scene, read_poses
 from panoworld.register.options import RegisterOptions
@@ -29,7 +29,8 @@ def register_scene(scene: Path, options: RegisterOptions, out_dir: Path) -> dict
     need_pixels = len(given) < len(ms.names)
     rgbs = {n: read_panorama(ms.panoramas[n]) for n in ms.names} if need_pixels else {}
     depths = {n: read_depth(ms.depths[n]) for n in ms.names if n in ms.depths} if need_pixels else {}
-    reg = register_panoramas(ms.names, rgbs, depths, given=given, options=options)
+    rigs = {n: _read_rig_mask(p) for n, p in ms.rig_masks.items()} if need_pixels else {}
+    reg = register_panoramas(ms.names, rgbs, depths, given=given, options=options, rig_masks=rigs)
     write_registration(out_dir, reg)
     return _summary(ms.names, given, reg)
 
@@ -53,14 +54,26 @@ def register_depth_dirs(dirs: dict[str, Path] | None, poses_file: Path | None, o
 
     names = list(dirs)
     given = read_poses(poses_file, names) if poses_file is not None else {}
-    rgbs, depths = {}, {}
+    rgbs, depths, rigs = {}, {}, {}
     if len(given) < len(names):
         for n, d in dirs.items():
             depth, valid, rgb = load_depth_artifact(d)
             depths[n], rgbs[n] = np.where(valid, depth, 0.0).astype(np.float32), rgb
-    reg = register_panoramas(names, rgbs, depths, given=given, options=options)
+            if (Path(d) / RIG_MASK_PNG).is_file():
+                rigs[n] = _read_rig_mask(Path(d) / RIG_MASK_PNG)
+    reg = register_panoramas(names, rgbs, depths, given=given, options=options, rig_masks=rigs)
     write_registration(out_dir, reg)
     return _summary(names, given, reg)
+
+
+def _read_rig_mask(path: Path) -> np.ndarray:
+    """A rig mask (2:1 grayscale, white = rig) -> (H, W) bool; InputError (one line) when it is not one."""
+    import cv2
+
+    from panoworld.io.images import check_mask_file, read_image
+
+    check_mask_file(path)
+    return read_image(path, cv2.IMREAD_GRAYSCALE, what="rig mask") > 127
 
 
 def _summary(names: list[str], given: dict, reg: Registration) -> dict:

@@ -1,5 +1,6 @@
 """Floor-plane registration of upright panoramas: each panorama's floor as a metric top-down image (camera height from
-its depth), SIFT on those images and a 2-point rigid RANSAC over (x, z, yaw)."""
+its depth), SIFT on those images and a 1-point rigid RANSAC over (x, z, yaw) whose inliers agree in position, keypoint
+orientation and keypoint scale."""
 
 from __future__ import annotations
 
@@ -23,6 +24,11 @@ class FloorView:
     """(N, 2) keypoint positions on the floor in the camera frame (x right, z forward), metres."""
     descriptors: np.ndarray
     """(N, 128) float32 SIFT descriptors."""
+    angles: np.ndarray
+    """(N,) SIFT keypoint orientations (radians, OpenCV's angle): a yaw of the camera by psi turns them by psi."""
+    sizes: np.ndarray
+    """(N,) SIFT keypoint diameters (floor image pixels): the same floor patch has the same metric size in every
+    floor image."""
 
 
 @dataclass(kw_only=True)
@@ -52,7 +58,7 @@ def camera_height(depth: np.ndarray, *, min_depression_deg: float = 40.0) -> flo
 
 def floor_image(rgb: np.ndarray, height_m: float, *, radius_m: float, cell_m: float) -> np.ndarray:
     """(n, n, 3) uint8 top-down image of the plane height_m below the camera over x, z in [-radius_m, radius_m]
-    (column = x, row 0 = far +z), resampled from the ERP panorama rgb (H, 2H, 3)."""
+    (column = x, row 0 = far +z), resampled from the ERP panorama rgb (H, 2H, 3) (or (n, n) from an (H, 2H) image)."""
     n = int(round(2 * radius_m / cell_m))
     c = (np.arange(n) + 0.5) * cell_m - radius_m
     x, z = np.meshgrid(c, c[::-1])
@@ -65,11 +71,12 @@ def floor_image(rgb: np.ndarray, height_m: float, *, radius_m: float, cell_m: fl
 
 
 def floor_view(rgb: np.ndarray, depth: np.ndarray, *, radius_m: float = 6.0, cell_m: float = 0.015,
-               rig_deg: float = 32.0, max_features: int = 4000) -> FloorView | None:
+               rig_deg: float = 32.0, max_features: int = 4000, exclude: np.ndarray | None = None) -> FloorView | None:
     """SIFT keypoints of the floor image of an upright panorama rgb (H, 2H, 3) with ray depth (h, 2h) (camera height;
     0 = invalid). The whole lower hemisphere is projected onto the floor plane, walls included (they smear radially
     and find no consistent partner), so floor seen through a doorway that a layout depth closes is kept; the disc
-    within rig_deg of the nadir (the tripod) is masked. None without a camera height."""
+    within rig_deg of the nadir (the tripod) is masked, and so is what exclude (an ERP mask (H', 2H') bool, e.g. a
+    detected rig) covers. None without a camera height."""
     check_shape("panorama", rgb, "H W 3")
     h = camera_height(depth)
     if h is None or not np.isfinite(h) or h <= 0:
@@ -79,66 +86,102 @@ def floor_view(rgb: np.ndarray, depth: np.ndarray, *, radius_m: float = 6.0, cel
     n = gray.shape[0]
     c = (np.arange(n) + 0.5) * cell_m - radius_m
     r = np.hypot(*np.meshgrid(c, c))
-    mask = ((r > h * np.tan(np.radians(rig_deg))) & (r < radius_m - 2 * cell_m)).astype(np.uint8) * 255
+    keep = (r > h * np.tan(np.radians(rig_deg))) & (r < radius_m - 2 * cell_m)
+    if exclude is not None:
+        keep &= floor_image(exclude.astype(np.uint8) * 255, h, radius_m=radius_m, cell_m=cell_m) < 128
+    mask = keep.astype(np.uint8) * 255
     kps, desc = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=0.01).detectAndCompute(gray, mask)
     if desc is None or not kps:
-        return FloorView(height_m=h, xz=np.zeros((0, 2)), descriptors=np.zeros((0, 128), np.float32))
+        return FloorView(height_m=h, xz=np.zeros((0, 2)), descriptors=np.zeros((0, 128), np.float32),
+                         angles=np.zeros(0), sizes=np.zeros(0))
     pts = np.array([k.pt for k in kps], np.float64)  # OpenCV pixel centres are integers
     xz = np.stack([(pts[:, 0] + 0.5) * cell_m - radius_m, radius_m - (pts[:, 1] + 0.5) * cell_m], 1)
-    return FloorView(height_m=h, xz=xz, descriptors=desc.astype(np.float32))
+    return FloorView(height_m=h, xz=xz, descriptors=desc.astype(np.float32),
+                     angles=np.radians([k.angle for k in kps]), sizes=np.array([k.size for k in kps], np.float64))
 
 
-def rigid2d_ransac(p: np.ndarray, q: np.ndarray, *, threshold: float, iterations: int = 2000, seed: int = 0
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """2D rigid p ~ R q + t (no scale) over matched points p, q (N, 2): 2-point hypotheses (pairs whose lengths differ
-    by more than 2 threshold are skipped), the best refined by least squares on its inliers -> (R (2, 2), t (2,),
-    inliers (N,) bool), None with fewer than 2 matches."""
-    n = len(p)
-    if n < 2:
+def _rot2(theta: np.ndarray) -> np.ndarray:
+    """(..., 2, 2) rotations acting on (x, z) as yaw_matrix(theta) does: [[c, s], [-s, c]]."""
+    c, s = np.cos(theta), np.sin(theta)
+    return np.stack([np.stack([c, s], -1), np.stack([-s, c], -1)], -2)
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def oriented_rigid2d_ransac(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dlog2: np.ndarray, *, threshold: float,
+                            angle_tol: float = np.radians(15.0), scale_tol: float = 0.6, hypotheses: int = 2000,
+                            seed: int = 0) -> tuple[float, np.ndarray, np.ndarray] | None:
+    """2D rigid p ~ _rot2(yaw) q + t (no scale) over matched keypoints p, q (N, 2) whose orientations differ by dtheta
+    (N,) (a_angle - b_angle, radians) and whose sizes differ by dlog2 (N,) octaves. Each match is a hypothesis by itself
+    (yaw = its orientation difference); a match is an inlier when it lands within threshold, its orientation difference
+    is within angle_tol of the yaw and its sizes within scale_tol octaves: three independent tests, so chance
+    agreement stays at a few matches even without a ratio test. The best is refined by least squares on its inliers.
+    -> (yaw, t (2,), inliers (N,) bool), None without a hypothesis."""
+    check_shape("p", p, "N 2")
+    check_shape("q", q, "N 2")
+    same = np.abs(dlog2) < scale_tol
+    cand = np.flatnonzero(same)
+    if len(cand) < 1:
         return None
-    rng = np.random.default_rng(seed)
-    i, j = rng.integers(0, n, iterations), rng.integers(0, n, iterations)
-    dp, dq = p[j] - p[i], q[j] - q[i]
-    lq = np.linalg.norm(dq, axis=1)
-    ok = (i != j) & (np.abs(np.linalg.norm(dp, axis=1) - lq) < 2 * threshold) & (lq > 10 * threshold)
-    if not ok.any():
-        return None
-    i, dp, dq = i[ok], dp[ok], dq[ok]
-    th = np.arctan2(dp[:, 1], dp[:, 0]) - np.arctan2(dq[:, 1], dq[:, 0])
-    cs, sn = np.cos(th), np.sin(th)
-    R = np.stack([np.stack([cs, -sn], -1), np.stack([sn, cs], -1)], -2)  # (K, 2, 2)
-    t = p[i] - np.einsum("kab,kb->ka", R, q[i])
-    err = np.linalg.norm(np.einsum("kab,nb->kna", R, q) + t[:, None] - p[None], axis=2)
-    inl = err[int(np.argmax((err < threshold).sum(1)))] < threshold
-    for _ in range(2):
-        if inl.sum() < 2:
-            return None
-        pc, qc = p[inl].mean(0), q[inl].mean(0)
-        U, _, Vt = np.linalg.svd((q[inl] - qc).T @ (p[inl] - pc))
-        Rr = Vt.T @ np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
-        tr = pc - Rr @ qc
-        inl = np.linalg.norm(q @ Rr.T + tr - p, axis=1) < threshold
-    return Rr, tr, inl
+    if len(cand) > hypotheses:
+        cand = np.sort(np.random.default_rng(seed).choice(cand, hypotheses, replace=False))
+    # A hypothesis can only gather matches whose orientation difference is within angle_tol of its own: bins of
+    # angle_tol, each hypothesis tested against its own bin and the two beside it.
+    nb = max(1, int(2 * np.pi // angle_tol))
+    bins = np.floor((dtheta % (2 * np.pi)) / (2 * np.pi) * nb).astype(int) % nb
+    best, best_n = -1, -1
+    for b in range(nb):
+        k = cand[bins[cand] == b]
+        near = np.flatnonzero(same & np.isin(bins, [(b - 1) % nb, b, (b + 1) % nb]))
+        for k0 in range(0, len(k), 256):
+            kk = k[k0:k0 + 256]
+            c, s = np.cos(dtheta[kk])[:, None], np.sin(dtheta[kk])[:, None]  # _rot2, written out
+            qx, qz, px, pz = q[near, 0], q[near, 1], p[near, 0], p[near, 1]
+            ex = c * (qx - q[kk, :1]) + s * (qz - q[kk, 1:]) - (px - p[kk, :1])
+            ez = c * (qz - q[kk, 1:]) - s * (qx - q[kk, :1]) - (pz - p[kk, 1:])
+            n = ((ex**2 + ez**2 < threshold**2)
+                 & (np.abs(_wrap(dtheta[near][None] - dtheta[kk, None])) < angle_tol)).sum(1)
+            if n.max() > best_n:
+                best_n, best = int(n.max()), int(kk[int(np.argmax(n))])
+    yaw = float(dtheta[best])
+    t = p[best] - _rot2(yaw) @ q[best]
+    inl = np.zeros(len(p), bool)
+    inl[best] = True
+    for _ in range(3):
+        inl = inl | ((np.linalg.norm(q @ _rot2(yaw).T + t - p, axis=1) < threshold)
+                     & (np.abs(_wrap(dtheta - yaw)) < angle_tol) & same)
+        if inl.sum() >= 2:
+            pc, qc = p[inl].mean(0), q[inl].mean(0)
+            U, _, Vt = np.linalg.svd((q[inl] - qc).T @ (p[inl] - pc))
+            Rr = Vt.T @ np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
+            yaw, t = float(np.arctan2(Rr[0, 1], Rr[0, 0])), pc - Rr @ qc
+        inl = ((np.linalg.norm(q @ _rot2(yaw).T + t - p, axis=1) < threshold)
+               & (np.abs(_wrap(dtheta - yaw)) < angle_tol) & same)
+    return yaw, t, inl
 
 
-def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: float = 0.9, seed: int = 0
+def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: float = 1.0, seed: int = 0
                ) -> FloorPose | None:
-    """a_from_b of two floor views: ratio-test matches, 2D rigid RANSAC (threshold_m on the floor), yaw and
-    horizontal translation from the fit, the vertical offset from the camera heights (one floor). None without a
-    model."""
+    """a_from_b of two floor views: each keypoint of a with its nearest neighbour in b (Lowe's ratio test below 1),
+    oriented_rigid2d_ransac (threshold_m on the floor), the vertical offset from the camera heights (one floor). None
+    without a model."""
     if len(a.descriptors) < 2 or len(b.descriptors) < 2:
         return None
     knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(a.descriptors, b.descriptors, k=2)
     m = np.array([(k[0].queryIdx, k[0].trainIdx) for k in knn
-                  if len(k) == 2 and k[0].distance < ratio * k[1].distance], np.int64).reshape(-1, 2)
-    fit = rigid2d_ransac(a.xz[m[:, 0]], b.xz[m[:, 1]], threshold=threshold_m, seed=seed)
+                  if len(k) == 2 and (ratio >= 1 or k[0].distance < ratio * k[1].distance)], np.int64).reshape(-1, 2)
+    if len(m) < 2:
+        return None
+    fit = oriented_rigid2d_ransac(a.xz[m[:, 0]], b.xz[m[:, 1]], a.angles[m[:, 0]] - b.angles[m[:, 1]],
+                                  np.log2(a.sizes[m[:, 0]] / b.sizes[m[:, 1]]), threshold=threshold_m, seed=seed)
     if fit is None:
         return None
-    R, t, inl = fit
-    # yaw_matrix(yaw) acts on (x, z) as [[c, s], [-s, c]]
+    yaw, t, inl = fit
     T = np.eye(4)
-    T[:3, :3] = yaw_matrix(float(np.arctan2(R[0, 1], R[0, 0])))
+    T[:3, :3] = yaw_matrix(yaw)
     T[:3, 3] = [t[0], a.height_m - b.height_m, t[1]]
-    res = np.linalg.norm(b.xz[m[inl, 1]] @ R.T + t - a.xz[m[inl, 0]], axis=1)
+    res = np.linalg.norm(b.xz[m[inl, 1]] @ _rot2(yaw).T + t - a.xz[m[inl, 0]], axis=1)
     return FloorPose(a_from_b=T, inliers=int(inl.sum()), matches=len(m),
                      residual_m=float(np.sqrt(np.mean(res**2))) if len(res) else float("nan"))

@@ -49,7 +49,7 @@ class RegisterOptions:
     that agree on the scale; with fewer it only gives the direction of the baseline."""
     floor: bool = True
     """Also register pairs from their floors (panoworld/register/floor.py): each panorama's lower hemisphere projected
-    onto its floor plane at metric scale (camera height from its depth), SIFT on those top-down images and a 2-point
+    onto its floor plane at metric scale (camera height from its depth), SIFT on those top-down images and a 1-point
     rigid RANSAC over (x, z, yaw). Floor seen through a doorway from both sides matches where the perspective of the
     panoramas does not."""
     floor_radius_m: float = param(6.0, gt=0)
@@ -58,8 +58,9 @@ class RegisterOptions:
     """Floor image pixel size (metres)."""
     floor_threshold_m: float = param(0.05, gt=0)
     """Floor RANSAC inlier threshold: distance on the floor between matched keypoints (metres)."""
-    floor_ratio: float = param(0.9, gt=0, le=1)
-    """Lowe ratio of the floor image matches."""
+    floor_ratio: float = param(1.0, gt=0, le=1)
+    """Lowe ratio of the floor image matches (1 = every keypoint's nearest neighbour: the floor RANSAC's inliers must
+    also agree in keypoint orientation and scale, which keeps chance agreement at a few matches)."""
     min_floor_inliers: int = param(8, ge=3)
     """A floor pair needs at least this many inliers (and no contradiction from its bearing-only estimate, checked as
     for a depth-backed pose)."""

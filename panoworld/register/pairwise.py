@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from panoworld.core.conventions import erp_dirs, erp_pixel_from_dir
 from panoworld.geometry.cube_views import cube_views, render_view
+from panoworld.geometry.panoramas import erp_pixel_index
 from panoworld.models.pose_refine import depth_edges, sample_range
 
 
@@ -53,11 +54,21 @@ class PairResult:
     """Median |log range - log depth| over the consistent pixels."""
 
 
+def grow_exclusion(exclude: np.ndarray | None, degrees: float = 2.0) -> np.ndarray | None:
+    """An ERP mask (H, W) bool (a detected capture rig) dilated by about `degrees`, so that no keypoint next to it
+    describes the texture inside; None stays None."""
+    if exclude is None or not exclude.any():
+        return None
+    k = 2 * max(1, int(round(exclude.shape[0] * degrees / 180.0))) + 1
+    return cv2.dilate(exclude.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
+
+
 def erp_features(rgb: np.ndarray, depth: np.ndarray, *, max_features: int, max_edge: float = 0.05,
-                 contrast: float = 0.01) -> Features:
+                 contrast: float = 0.01, exclude: np.ndarray | None = None) -> Features:
     """SIFT on six cube-face views of the panorama (less distortion than the ERP image); each keypoint whose ray is
     closest to its own face's axis is kept, with the bilinearly sampled ray depth where the depth is valid and off
-    depth edges (log-depth range over 3x3 below max_edge)."""
+    depth edges (log-depth range over 3x3 below max_edge). No keypoint is kept whose ray falls in exclude (an ERP mask
+    (H', W') bool of any size, e.g. the capture rig, whose inpainted texture is no evidence)."""
     h, w = depth.shape
     if rgb.shape[:2] != depth.shape:
         rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
@@ -83,6 +94,8 @@ def erp_features(rgb: np.ndarray, depth: np.ndarray, *, max_features: int, max_e
         ok = ndimage.map_coordinates(valid.astype(np.float32), rc, order=1, mode="nearest") > 0.999
         ek = ndimage.map_coordinates(edges, rc, order=0, mode="nearest")
         keep = np.argmax(ray @ axes.T, axis=1) == k
+        if exclude is not None:
+            keep &= ~exclude[erp_pixel_index(ray, *exclude.shape)]
         trusted = ok & (ek < max_edge) & (dk > 0)
         rays.append(ray[keep])
         depths.append(np.where(trusted, dk, 0.0)[keep])

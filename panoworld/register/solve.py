@@ -13,7 +13,7 @@ from panoworld.register.graph import BEARING, DEPTH, DIRECTION, FLOOR, LAYOUT, E
 from panoworld.register.layout import LayoutPose, layout_pair, room
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pair_select import ALL_PAIRS_UP_TO, appearance_descriptor, candidate_pairs
-from panoworld.register.pairwise import Features, PairResult, erp_features, match, register_pair
+from panoworld.register.pairwise import Features, PairResult, erp_features, grow_exclusion, match, register_pair
 from panoworld.register.registration import Registration
 from panoworld.register.upright import UprightPose, metric_scale, upright_relative_pose, yaw_of
 
@@ -33,9 +33,11 @@ def _bearing_pair(fi: Features, fj: Features, m: np.ndarray, rows: int, o: Regis
 
 def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: dict[str, np.ndarray], *,
                        given: dict[str, np.ndarray] | None = None, options: RegisterOptions | None = None,
-                       progress=None) -> Registration:
-    """Register panoramas (RGB uint8 and metric ray depth (H, W) each); given poses are kept as they are (and anchor
-    the others), otherwise the largest set joined together is registered in its first panorama's frame. A pair is a
+                       rig_masks: dict[str, np.ndarray] | None = None, progress=None) -> Registration:
+    """Register panoramas (RGB uint8 and metric ray depth (H, W) each; rig_masks: an ERP mask (H', 2H') bool per
+    panorama that has a detected capture rig, where no keypoint is taken, on the panorama or its floor image); given
+    poses are kept as they are (and anchor the others), otherwise the largest set joined together is registered in
+    its first panorama's frame. A pair is a
     depth edge when RANSAC keeps >= min_inliers, the refined pose has >= min_consistency free-space consistency and
     >= min_overlap overlap, and the bearing-only estimate of the same matches does not contradict it (_contradiction);
     otherwise a bearing edge when upright two-view geometry keeps >= min_bearing_inliers
@@ -49,10 +51,11 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     k = len(names)
     if need:
         small = {n: rgbd_at_height(rgbs[n], depths[n], o.height) for n in names}
-        feats = {n: erp_features(*small[n], max_features=o.max_features) for n in names}
+        rig = {n: grow_exclusion((rig_masks or {}).get(n)) for n in names}
+        feats = {n: erp_features(*small[n], max_features=o.max_features, exclude=rig[n]) for n in names}
         views: dict[str, FloorView | None] = {
-            n: floor_view(rgbs[n], small[n][1], radius_m=o.floor_radius_m, cell_m=o.floor_cell_m) if o.floor else None
-            for n in names}
+            n: floor_view(rgbs[n], small[n][1], radius_m=o.floor_radius_m, cell_m=o.floor_cell_m, exclude=rig[n])
+            if o.floor else None for n in names}
         looks = {n: appearance_descriptor(small[n][0]) for n in names} if k > ALL_PAIRS_UP_TO else None
         for a, b in candidate_pairs(names, looks, given=given):
             fa, fb = feats[names[a]], feats[names[b]]
