@@ -60,6 +60,7 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         seen_k.append(ops[-1].adjoint(ones)[:, 0])  # the view's compositing weight of each Gaussian
         for f in ops[-1].faces:
             seen_any[f[2].indices] = True
+    del cov, ones
     n, views_n = len(g), len(ops)
     total = sum(seen_k)[:, None]
     seen = total.clamp(min=1e-3)
@@ -83,6 +84,7 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     else:
         basis = [bk - b_mean for bk in b]
         x0, lam = c0, damping * seen.expand(n, 3)
+    del b
 
     def colors(k, x):  # the unknowns (N, 3 or 12) -> the colours view k sees (N, 3)
         s = x[:, 3:].reshape(n, 3, 3) if sh_degree else s0
