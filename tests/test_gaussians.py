@@ -633,7 +633,7 @@ def test_a_home_whose_frames_the_panoramas_explain_fuses_no_voxel(room):
     poses = [pose_at(0, 0, 0), pose_at(0.8, 0.1, -0.9)]
     sources = {f"p{k}": (*room(p), p) for k, p in enumerate(poses)}
     frames = [(*room(p), p) for p in poses]
-    params = SourcePixelParams(voxel_size=0.05, unseen_voxel_size=0.05, source_height=0)
+    params = SourcePixelParams(voxel_size=0.05, unseen_voxel_size=0.05, source_height=0, capture_fit_iters=0)
     res = home_anchored_fusion(frames, sources, params)
     assert len(res.gaussians) == res.num_source > 1000 and res.num_voxels == 0
     blind = [(rgb, np.zeros_like(d), p) for rgb, d, p in frames]

@@ -45,7 +45,7 @@ def test_a_home_without_frames_is_its_panoramas_gaussians():
     depths = _box_depths(poses, H=32)
     rgb = np.full((32, 64, 3), 128, np.uint8)
     sources = {n: (rgb, depths[n], poses[n]) for n in poses}
-    params = SourcePixelParams(voxel_size=0.05, unseen_voxel_size=0.05, source_height=0)
+    params = SourcePixelParams(voxel_size=0.05, unseen_voxel_size=0.05, source_height=0, capture_fit_iters=0)
     res = home_anchored_fusion(None, sources, params)
     assert len(res.gaussians) == res.num_source > 500 and res.num_voxels == 0
     # b's Gaussians stand only where a does not see the same wall from nearer: fewer than one per pixel of each
@@ -69,3 +69,33 @@ def test_a_surface_another_panorama_saw_through_is_dropped():
     got = seen_through(1, pts, ["a", "b"], {"a": depths["a"], "b": d}, poses, tol=0.1).reshape(H, W)
     assert got[fake].mean() > 0.9 and got[~fake].mean() < 0.01
     assert not seen_through(1, pts, ["a", "b"], {"a": np.zeros_like(depths["a"]), "b": d}, poses, tol=0.1).any()
+
+
+def test_a_home_fits_its_colours_at_every_capture_point():
+    # Two panoramas see the same box in different colours (a surface's texture where each one's depth put it): without
+    # the fit each capture pose shows the other's colours where the other sees a wall from nearer; with it each
+    # capture pose reproduces its own panorama, and the manifest's figures say so per panorama.
+    from panoworld.gaussians.fusion_params import SourcePixelParams
+    from panoworld.gaussians.home import home_anchored_fusion
+    from panoworld.render.erp import render_erp
+
+    poses = {"a": _pose(0, 0, 0), "b": _pose(0.9, 0.2, -1.1)}
+    H = 32
+    depths = _box_depths(poses, H=H)
+    rows = np.linspace(0, 1, H)[:, None, None]
+    rgbs = {"a": np.broadcast_to(np.array([200, 60, 40]) * rows + 20, (H, 2 * H, 3)).astype(np.uint8),
+            "b": np.broadcast_to(np.array([40, 90, 210]) * (1 - rows) + 20, (H, 2 * H, 3)).astype(np.uint8)}
+    sources = {n: (rgbs[n], depths[n], poses[n]) for n in poses}
+    params = dict(voxel_size=0.05, unseen_voxel_size=0.05, source_height=0, capture_fit_height=H)
+    plain = home_anchored_fusion(None, sources, SourcePixelParams(**params, capture_fit_iters=0))
+    fitted = home_anchored_fusion(None, sources, SourcePixelParams(**params))
+    assert plain.color_fit is None and fitted.gaussians.sh_degree == 1
+    np.testing.assert_array_equal(fitted.gaussians.means, plain.gaussians.means)
+
+    def rmse(g, n):
+        img = render_erp(g, poses[n], H, 2 * H, supersample=1).rgb.numpy()
+        return float(np.sqrt(np.mean((img - rgbs[n] / 255.0) ** 2)))
+
+    for n in poses:
+        assert rmse(fitted.gaussians, n) < 0.5 * rmse(plain.gaussians, n), n
+        assert fitted.color_fit["rmse_after"][n] < 0.5 * fitted.color_fit["rmse_before"][n]

@@ -93,7 +93,7 @@ class SourcePixelParams(FusionParams):
     """With source_pixels: conjugate-gradient steps of a colour fit at the capture point (0 = none): for the fixed
     geometry the ERP render there is linear in the Gaussians' colours, which are refitted (least squares, damped
     towards their fused values) so it reproduces the source frame, undoing the blur of overlapping splats
-    (the manifest's color_fit holds the RMSE before and after). Not applied to a home's panoramas."""
+    (the manifest's color_fit holds the RMSE before and after). A home's colours: capture_fit_iters."""
     fit_height: int = param(512, ge=0)
     """ERP height of that fit's render and target (0 = source_height). 512: its cube faces are those of a 256-row
     render supersampled 2x (the roam protocol's), so the fit resolves what the eval's render shows."""
@@ -115,7 +115,22 @@ class SourcePixelParams(FusionParams):
     seen from the capture point; fit_views_sh_only keeps them."""
     fit_sh_damping: float = param(0.001, ge=0)
     """Damping of those degree-1 coefficients towards 0 per unit of compositing weight (the colours' is 0.01): a
-    Gaussian seen from few directions keeps about one colour."""
+    Gaussian seen from few directions keeps about one colour. A home's capture fit damps its own the same."""
     fit_views_sh_only: bool = False
     """With fit_sh_degree 1: the views fit the degree-1 coefficients only; the colours seen from the capture point
     are its own fit's (fit_views 0's), so the capture point renders exactly as without the views."""
+    capture_fit_iters: int = param(20, ge=0)
+    """A home: conjugate-gradient steps of a colour fit at every capture point (gaussians.capture_fit; 0 = none).
+    For the fixed geometry the ERP render at each capture pose is linear in the colours, which are refitted by
+    least squares over all capture poses at once (damped towards their fused values) so that each reproduces its
+    panorama: where several panoramas see a surface, a panorama's Gaussians seen from another capture point show
+    the texture where its own layout depth put it, and where a panorama has no depth the frames' coarser Gaussians
+    stand in. The manifest's color_fit holds each panorama's RMSE before and after."""
+    capture_fit_height: int = param(256, ge=8)
+    """ERP height of that fit's renders and targets (the panoramas area-downsampled)."""
+    capture_fit_supersample: int = param(1, ge=1, le=4)
+    """Supersampling of those renders (render.erp.ERP_SUPERSAMPLE's meaning; 1: pixel centres only)."""
+    capture_fit_sh_degree: int = param(1, ge=0, le=1)
+    """1: view-dependent colours (degree-1 SH, written as f_rest_*) so each capture point sees its own colour of a
+    surface that several see; they tell the capture points apart only (a Gaussian seen from one keeps one colour,
+    damped by fit_sh_damping). 0: one colour per Gaussian, the views' least-squares compromise."""

@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 
 from panoworld.core.conventions import erp_dirs, invert_pose, transform_points
+from panoworld.gaussians.capture_fit import fit_capture_colors
 from panoworld.gaussians.fusion import ContextSource
 from panoworld.gaussians.fusion_params import SourcePixelParams
 from panoworld.gaussians.pixel import SourceVisibility, fuse_unseen, merge_gaussians, pixel_gaussians
@@ -120,7 +121,9 @@ def home_anchored_fusion(frames: ContextSource | None, sources: dict[str, tuple[
     source does (SourceVisibility of each, tolerance params.source_tol) in voxels of params.unseen_voxel_size (0 =
     params.voxel_size), less those poking through a surface a source saw: source_anchored_fusion of a single panorama,
     over several. params.source_complete: each source's pixels without depth first take the others'
-    (complete_from_others). frames None: the panoramas' Gaussians alone (what the captures themselves show)."""
+    (complete_from_others). frames None: the panoramas' Gaussians alone (what the captures themselves show).
+    params.capture_fit_iters > 0: the colours are then fitted at every capture pose to its panorama
+    (capture_fit.fit_capture_colors; result.color_fit: its figures, RMSE per panorama before and after)."""
     names = list(sources)
     tol = params.source_tol
     small = {n: rgbd_at_height(sources[n][0], sources[n][1], params.source_height) for n in names}
@@ -143,6 +146,15 @@ def home_anchored_fusion(frames: ContextSource | None, sources: dict[str, tuple[
                                      pix_params))
     pix = merge_gaussians(parts)
     if frames is None:
-        return fuse_unseen(pix, [], None, params)
-    seen = SourcesVisibility([SourceVisibility(depths[n], poses[n], tol) for n in names])
-    return fuse_unseen(pix, frames, seen, params, unseen_voxel_size=params.unseen_voxel_size, progress=progress)
+        result = fuse_unseen(pix, [], None, params)
+    else:
+        seen = SourcesVisibility([SourceVisibility(depths[n], poses[n], tol) for n in names])
+        result = fuse_unseen(pix, frames, seen, params, unseen_voxel_size=params.unseen_voxel_size, progress=progress)
+    if params.capture_fit_iters > 0:
+        result.gaussians, fit = fit_capture_colors(
+            result.gaussians, [(sources[n][0], poses[n]) for n in names], height=params.capture_fit_height,
+            supersample=params.capture_fit_supersample, iters=params.capture_fit_iters,
+            sh_degree=params.capture_fit_sh_degree, sh_damping=params.fit_sh_damping)
+        result.color_fit = {**fit, "rmse_before": dict(zip(names, fit["rmse_before"])),
+                            "rmse_after": dict(zip(names, fit["rmse_after"]))}
+    return result

@@ -1,0 +1,130 @@
+"""A home's colours fitted at every capture point: least-squares (degree-1 SH) colours so the scene reproduces each panorama."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from panoworld.io.gaussian_set import Gaussians, rgb_to_sh_dc
+
+PIXEL_WEIGHT = 0.25
+"""A Gaussian's typical compositing weight in a pixel it covers: its colour's data term is about this times its
+compositing weight over the views (the damping's unit), which sets the preconditioner of the degree-1 terms."""
+
+
+def sh1_basis(means: np.ndarray, centre: np.ndarray) -> torch.Tensor:
+    """(N, 3) degree-1 SH basis SH_C1 (-y, z, -x) of the unit direction (x, y, z) from centre (3,) to each of means
+    (N, 3): the weights of a Gaussian's three f_rest coefficients in the colour seen from there (render.splats.eval_sh)."""
+    from panoworld.render.splats import _SH_C1
+
+    d = torch.as_tensor(np.asarray(means, np.float32) - np.asarray(centre, np.float32))
+    d = d / d.norm(dim=1, keepdim=True).clamp(min=1e-12)
+    return _SH_C1 * torch.stack([-d[:, 1], d[:, 2], -d[:, 0]], 1)
+
+
+def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]], *, height: int = 256,
+                       supersample: int = 2, iters: int = 20, damping: float = 0.01, sh_degree: int = 1,
+                       sh_damping: float = 0.001) -> tuple[Gaussians, dict]:
+    """Gaussians g whose colours are refitted so their ERP render (height rows, supersample: render_erp's sampling)
+    at each view's world_from_cam (4, 4) reproduces its target (H, W, 3) uint8 or [0, 1], area-resized to height rows.
+
+    For fixed geometry each render is linear in the colours (render.erp_operator.ErpColorOperator), so this is
+    `iters` steps of conjugate-gradient least squares over all views at once: min sum_k |A_k c_k - y_k|^2 +
+    damping |c - c0|^2 + sh_damping |s - s0|^2, the damping per unit of each Gaussian's compositing weight (Gaussians
+    the views barely see keep their colours). With sh_degree 1 view k sees c_k = c + (B_k - B) s: s the degree-1
+    coefficients, B_k their basis in the direction from view k (sh1_basis) and B its mean over the views weighted by
+    what each sees of the Gaussian, so c is the colour from that mean direction and s only tells the views apart: a
+    surface two capture points see differently shows each its own colour, one that a single view sees keeps s. Only
+    the Gaussians some view sees are fitted. Returns the Gaussians (SH degree max(sh_degree, g's)) and {"views",
+    "height", "iters", "sh_degree", "fitted", "rmse_before", "rmse_after" (per view)}."""
+    import cv2
+
+    from panoworld.render.erp_operator import ErpColorOperator
+    from panoworld.render.splats import covariance_3d
+
+    if sh_degree not in (0, 1):
+        raise ValueError(f"sh_degree={sh_degree!r} but expected 0 or 1")
+    targets = []
+    for img, _ in views:
+        img = np.asarray(img)
+        y = img.astype(np.float32) / (255.0 if img.dtype == np.uint8 else 1.0)
+        if y.shape[0] != height:
+            y = cv2.resize(y, (2 * height, height), interpolation=cv2.INTER_AREA)
+        targets.append(torch.from_numpy(np.ascontiguousarray(y)))
+    cov = covariance_3d(torch.as_tensor(g.scales).float(), torch.as_tensor(g.quats).float())
+    ops, seen_k = [], []
+    seen_any = np.zeros(len(g), bool)
+    ones = torch.ones(height, 2 * height, 3)
+    for _, pose in views:
+        ops.append(ErpColorOperator(g, pose, height, 2 * height, supersample=supersample, cov=cov))
+        seen_k.append(ops[-1].adjoint(ones)[:, 0])  # the view's compositing weight of each Gaussian
+        for f in ops[-1].faces:
+            seen_any[f[2].indices] = True
+    del cov, ones
+    n, views_n = len(g), len(ops)
+    total = sum(seen_k)[:, None]
+    seen = total.clamp(min=1e-3)
+    total = torch.where(total > 0, total, 1.0)  # the weighted means below, exact where the weights are small
+    s0 = np.zeros((n, 3, 3), np.float32)
+    s0[:, : min(3, g.sh_rest.shape[1])] = np.asarray(g.sh_rest, np.float32)[:, :3]
+    s0 = torch.from_numpy(s0)
+    b = [sh1_basis(g.means, np.asarray(pose)[:3, 3]) for _, pose in views]
+    b_mean = sum(w[:, None] * bk for w, bk in zip(seen_k, b)) / total
+    c0 = torch.from_numpy(g.base_colors()) + torch.einsum("nj,njc->nc", b_mean, s0)
+    if sh_degree:
+        # the unknowns are s times rho, each Gaussian's RMS basis change over the views lifted by the damping
+        # (a diagonal preconditioner: the data and the damping of each unknown then weigh about alike)
+        rho = (sum(w[:, None] * (bk - b_mean).square() for w, bk in zip(seen_k, b)).sum(1, keepdim=True)
+               / total)
+        one_way = rho < 1e-6  # seen from one direction (one view): s does not reach the colours
+        rho = (rho + sh_damping / PIXEL_WEIGHT).sqrt()
+        basis = [torch.where(one_way, 0.0, bk - b_mean) / rho for bk in b]
+        x0 = torch.cat([c0, (s0 * rho[:, :, None]).reshape(n, 9)], 1)
+        lam = torch.cat([damping * seen.expand(n, 3), (sh_damping * seen / rho.square()).expand(n, 9)], 1)
+    else:
+        basis = [bk - b_mean for bk in b]
+        x0, lam = c0, damping * seen.expand(n, 3)
+    del b
+
+    def colors(k, x):  # the unknowns (N, 3 or 12) -> the colours view k sees (N, 3)
+        s = x[:, 3:].reshape(n, 3, 3) if sh_degree else s0
+        return x[:, :3] + torch.einsum("nj,njc->nc", basis[k], s)
+
+    def lin(k, p):  # view k's render of a step p of the unknowns
+        gc = p[:, :3] + torch.einsum("nj,njc->nc", basis[k], p[:, 3:].reshape(n, 3, 3)) if sh_degree else p
+        return ops[k](gc)
+
+    def grad(r):  # the adjoint of the views' renders of the residuals r (per view (H, W, 3)), as the unknowns
+        out = torch.zeros_like(x0)
+        for k in range(views_n):
+            gc = ops[k].adjoint(r[k])
+            out[:, :3] += gc
+            if sh_degree:
+                out[:, 3:].view(n, 3, 3).add_(basis[k][:, :, None] * gc[:, None, :])
+        return out
+
+    x = x0.clone()
+    r = [targets[k] - ops[k](colors(k, x)) for k in range(views_n)]
+    rmse0 = [float(rk.square().mean().sqrt()) for rk in r]
+    s = grad(r)
+    p, gamma = s.clone(), float(s.square().sum())
+    for _ in range(iters):
+        q = [lin(k, p) for k in range(views_n)]
+        alpha = gamma / max(float(sum(qk.square().sum() for qk in q) + (lam * p.square()).sum()), 1e-20)
+        x = x + alpha * p
+        r = [r[k] - alpha * q[k] for k in range(views_n)]
+        s = grad(r).sub_(lam * (x - x0))
+        gamma_new = float(s.square().sum())
+        p, gamma = s + gamma_new / max(gamma, 1e-20) * p, gamma_new
+    x[:, :3] = x[:, :3].clamp(0.0, 1.0)
+    rmse1 = [float((targets[k] - ops[k](colors(k, x))).square().mean().sqrt()) for k in range(views_n)]
+    coef = x[:, 3:].reshape(n, 3, 3) / rho[:, :, None] if sh_degree else s0
+    dc = np.array(g.sh_dc, np.float32)  # only the Gaussians some view sees change
+    dc[seen_any] = rgb_to_sh_dc((x[:, :3] - torch.einsum("nj,njc->nc", b_mean, coef)).numpy()[seen_any])
+    rest = np.zeros((n, max(3 if sh_degree else 0, g.sh_rest.shape[1]), 3), np.float32)
+    rest[:, : g.sh_rest.shape[1]] = g.sh_rest
+    if sh_degree:
+        rest[seen_any, :3] = coef.numpy()[seen_any]
+    out = Gaussians(g.means, g.scales, g.quats, g.opacities, dc, rest)
+    return out, {"views": views_n, "height": height, "iters": iters, "sh_degree": sh_degree,
+                 "fitted": int(seen_any.sum()), "rmse_before": rmse0, "rmse_after": rmse1}
