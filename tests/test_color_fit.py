@@ -270,3 +270,16 @@ def test_capture_fit_seen_from_one_place_fits_the_base_colour_alone():
     assert info["rmse_after"][0] < 0.2 * info["rmse_before"][0], info
     assert float(np.abs(sh.sh_rest).max()) == 0.0
     np.testing.assert_allclose(sh.sh_dc, dc.sh_dc, atol=1e-3)  # float32 sums over more unknowns
+
+
+def test_capture_fit_over_its_memory_budget_is_skipped_and_says_why():
+    from panoworld.gaussians.capture_fit import fit_capture_colors, operator_nbytes
+    from panoworld.render.erp_operator import ErpColorOperator
+
+    g, _, _, pose_at, view = view_dependent_shell(8)
+    views = [(view(x), pose_at(x)) for x in (-0.6, 0.0, 0.6)]
+    one = operator_nbytes(ErpColorOperator(g, views[0][1], SHELL_H, SHELL_W, supersample=1))
+    out, info = fit_capture_colors(g, views, height=SHELL_H, supersample=1, iters=3, max_bytes=2.5 * one)
+    assert out is g and "3 capture poses" in info["skipped"] and info["views"] == 3
+    fitted, info = fit_capture_colors(g, views, height=SHELL_H, supersample=1, iters=3, max_bytes=4 * one)
+    assert "skipped" not in info and fitted is not g

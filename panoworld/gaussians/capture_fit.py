@@ -24,7 +24,7 @@ def sh1_basis(means: np.ndarray, centre: np.ndarray) -> torch.Tensor:
 
 def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]], *, height: int = 256,
                        supersample: int = 2, iters: int = 20, damping: float = 0.01, sh_degree: int = 1,
-                       sh_damping: float = 0.001) -> tuple[Gaussians, dict]:
+                       sh_damping: float = 0.001, max_bytes: float = float("inf")) -> tuple[Gaussians, dict]:
     """Gaussians g whose colours are refitted so their ERP render (height rows, supersample: render_erp's sampling)
     at each view's world_from_cam (4, 4) reproduces its target (H, W, 3) uint8 or [0, 1], area-resized to height rows.
 
@@ -36,7 +36,8 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     what each sees of the Gaussian, so c is the colour from that mean direction and s only tells the views apart: a
     surface two capture points see differently shows each its own colour, one that a single view sees keeps s. Only
     the Gaussians some view sees are fitted. Returns the Gaussians (SH degree max(sh_degree, g's)) and {"views",
-    "height", "iters", "sh_degree", "fitted", "rmse_before", "rmse_after" (per view)}."""
+    "height", "iters", "sh_degree", "fitted", "rmse_before", "rmse_after" (per view)}; g itself and {"views",
+    "skipped": why} when the operators built so far say all of them would hold more than max_bytes."""
     import cv2
 
     from panoworld.render.erp_operator import ErpColorOperator
@@ -55,8 +56,13 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     ops, seen_k = [], []
     seen_any = np.zeros(len(g), bool)
     ones = torch.ones(height, 2 * height, 3)
+    held = 0
     for _, pose in views:
         ops.append(ErpColorOperator(g, pose, height, 2 * height, supersample=supersample, cov=cov))
+        held += operator_nbytes(ops[-1])
+        if held / len(ops) * len(views) > max_bytes:
+            return g, {"views": len(views), "skipped": f"the render operators of the {len(views)} capture poses would "
+                       f"hold about {held / len(ops) * len(views) / 1e9:.1f} GB, more than {max_bytes / 1e9:.1f} GB"}
         seen_k.append(ops[-1].adjoint(ones)[:, 0])  # the view's compositing weight of each Gaussian
         for f in ops[-1].faces:
             seen_any[f[2].indices] = True
@@ -128,3 +134,9 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     out = Gaussians(g.means, g.scales, g.quats, g.opacities, dc, rest)
     return out, {"views": views_n, "height": height, "iters": iters, "sh_degree": sh_degree,
                  "fitted": int(seen_any.sum()), "rmse_before": rmse0, "rmse_after": rmse1}
+
+
+def operator_nbytes(op) -> int:
+    """Bytes an ErpColorOperator holds (its faces' sample indices and sparse sampling and weight matrices)."""
+    return sum(index.nbytes + sum(m.data.nbytes + m.indices.nbytes + m.indptr.nbytes for m in (S, A))
+               for index, S, A in op.faces)

@@ -128,6 +128,9 @@ class SourcePixelParams(FusionParams):
     stand in. The manifest's color_fit holds each panorama's RMSE before and after."""
     capture_fit_height: int = param(256, ge=8)
     """ERP height of that fit's renders and targets (the panoramas area-downsampled)."""
+    capture_fit_max_gb: float = param(8.0, gt=0)
+    """The fit holds one render operator per capture pose at once: when the ones built so far say all of them would
+    take more than this (GB), the fit is skipped (colours as fused) and the manifest's color_fit says why."""
     capture_fit_supersample: int = param(1, ge=1, le=4)
     """Supersampling of those renders (render.erp.ERP_SUPERSAMPLE's meaning; 1: pixel centres only)."""
     capture_fit_sh_degree: int = param(1, ge=0, le=1)
