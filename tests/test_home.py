@@ -20,7 +20,8 @@ from panoworld.io.home import capture_poses
 
 torch.set_num_threads(1)
 
-SMALL = ["mesh.home_stride=4", "trajectory.sectors=4", "gaussians.source_height=128", "register.height=384"]
+SMALL = ["mesh.home_stride=4", "trajectory.sectors=4", "gaussians.source_height=128", "register.height=384",
+         "gaussians.capture_fit_height=64"]
 """ci-tiny plus: coarser fused mesh, fewer explore paths per capture point, small per-pixel sources (test speed)."""
 
 
