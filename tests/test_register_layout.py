@@ -128,3 +128,44 @@ def test_register_panoramas_joins_adjoining_rooms_by_a_layout_edge():
     off = register_panoramas(["a", "b"], {"a": ra, "b": rb}, {"a": da, "b": db},
                              options=RegisterOptions(height=H))  # layout off by default
     assert "b" not in off.world_from_cam
+
+
+def _splat_reference(pts, gray, T, stride, depth_t, behind, beyond):
+    """numpy oracle of layout._splat: the nearest point per target pixel beyond depth * behind + beyond."""
+    from panoworld.core.conventions import erp_pixel_from_lonlat, lonlat_from_dir
+
+    h, w = depth_t.shape
+    p = pts[::stride, ::stride].reshape(-1, 3).astype(np.float64)
+    g = gray[::stride, ::stride].reshape(-1)
+    keep = np.any(p != 0, axis=1)
+    q = p[keep] @ T[:3, :3].T + T[:3, 3]
+    g = g[keep]
+    r = np.linalg.norm(q, axis=1)
+    u, v = erp_pixel_from_lonlat(*lonlat_from_dir(q), h, w)
+    u, v = np.floor(u).astype(int) % w, np.floor(v).astype(int)
+    ok = (r >= 1e-6) & (v >= 0) & (v < h)
+    d = np.where(ok, depth_t[np.clip(v, 0, h - 1), u], 0.0)
+    ok &= (d > 0) & (r >= d * behind + beyond)
+    out, zb = np.zeros((h, w), np.float32), np.full((h, w), np.inf)
+    for k in np.flatnonzero(ok):
+        if r[k] < zb[v[k], u[k]]:
+            zb[v[k], u[k]], out[v[k], u[k]] = r[k], g[k]
+    return out, np.isfinite(zb)
+
+
+def test_splat_kernel_matches_its_numpy_reference():
+    from panoworld.register.layout import _splat
+
+    rng = np.random.default_rng(3)
+    pts = rng.normal(0.0, 3.0, (40, 80, 3))
+    pts[rng.random((40, 80)) < 0.1] = 0.0  # no depth there
+    gray = rng.random((40, 80)).astype(np.float32)
+    T = _pose(30.0, 0.7, -0.4)
+    depth_t = rng.uniform(0.5, 4.0, (24, 48))
+    depth_t[rng.random((24, 48)) < 0.1] = 0.0
+    for stride in (1, 2):
+        got, filled = _splat(pts, gray, T, stride, depth_t, 1.02, 0.4)
+        want, want_filled = _splat_reference(pts, gray, T, stride, depth_t, 1.02, 0.4)
+        np.testing.assert_array_equal(filled, want_filled)
+        np.testing.assert_array_equal(got, want)
+        assert 20 < filled.sum() < filled.size
