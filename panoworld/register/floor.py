@@ -11,7 +11,7 @@ import numpy as np
 
 from panoworld.core.conventions import erp_dirs, erp_pixel_from_lonlat
 from panoworld.core.shapes import check_shape
-from panoworld.register.upright import yaw_matrix
+from panoworld.register.upright import wrap_angle, yaw_matrix, yaw_matrix_xz
 
 
 @dataclass(kw_only=True)
@@ -100,20 +100,10 @@ def floor_view(rgb: np.ndarray, depth: np.ndarray, *, radius_m: float = 6.0, cel
                      angles=np.radians([k.angle for k in kps]), sizes=np.array([k.size for k in kps], np.float64))
 
 
-def _rot2(theta: np.ndarray) -> np.ndarray:
-    """(..., 2, 2) rotations acting on (x, z) as yaw_matrix(theta) does: [[c, s], [-s, c]]."""
-    c, s = np.cos(theta), np.sin(theta)
-    return np.stack([np.stack([c, s], -1), np.stack([-s, c], -1)], -2)
-
-
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2 * np.pi) - np.pi
-
-
 def oriented_rigid2d_ransac(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dlog2: np.ndarray, *, threshold: float,
                             angle_tol: float = np.radians(15.0), scale_tol: float = 0.6, hypotheses: int = 2000,
                             seed: int = 0) -> tuple[float, np.ndarray, np.ndarray] | None:
-    """2D rigid p ~ _rot2(yaw) q + t (no scale) over matched keypoints p, q (N, 2) whose orientations differ by dtheta
+    """2D rigid p ~ yaw_matrix_xz(yaw) q + t (no scale) over matched keypoints p, q (N, 2) whose orientations differ by dtheta
     (N,) (a_angle - b_angle, radians) and whose sizes differ by dlog2 (N,) octaves. Each match is a hypothesis by itself
     (yaw = its orientation difference); a match is an inlier when it lands within threshold, its orientation difference
     is within angle_tol of the yaw and its sizes within scale_tol octaves: three independent tests, so chance
@@ -137,28 +127,28 @@ def oriented_rigid2d_ransac(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dl
         near = np.flatnonzero(same & np.isin(bins, [(b - 1) % nb, b, (b + 1) % nb]))
         for k0 in range(0, len(k), 256):
             kk = k[k0:k0 + 256]
-            c, s = np.cos(dtheta[kk])[:, None], np.sin(dtheta[kk])[:, None]  # _rot2, written out
+            c, s = np.cos(dtheta[kk])[:, None], np.sin(dtheta[kk])[:, None]  # yaw_matrix_xz, written out
             qx, qz, px, pz = q[near, 0], q[near, 1], p[near, 0], p[near, 1]
             ex = c * (qx - q[kk, :1]) + s * (qz - q[kk, 1:]) - (px - p[kk, :1])
             ez = c * (qz - q[kk, 1:]) - s * (qx - q[kk, :1]) - (pz - p[kk, 1:])
             n = ((ex**2 + ez**2 < threshold**2)
-                 & (np.abs(_wrap(dtheta[near][None] - dtheta[kk, None])) < angle_tol)).sum(1)
+                 & (np.abs(wrap_angle(dtheta[near][None] - dtheta[kk, None])) < angle_tol)).sum(1)
             if n.max() > best_n:
                 best_n, best = int(n.max()), int(kk[int(np.argmax(n))])
     yaw = float(dtheta[best])
-    t = p[best] - _rot2(yaw) @ q[best]
+    t = p[best] - yaw_matrix_xz(yaw) @ q[best]
     inl = np.zeros(len(p), bool)
     inl[best] = True
     for _ in range(3):
-        inl = inl | ((np.linalg.norm(q @ _rot2(yaw).T + t - p, axis=1) < threshold)
-                     & (np.abs(_wrap(dtheta - yaw)) < angle_tol) & same)
+        inl = inl | ((np.linalg.norm(q @ yaw_matrix_xz(yaw).T + t - p, axis=1) < threshold)
+                     & (np.abs(wrap_angle(dtheta - yaw)) < angle_tol) & same)
         if inl.sum() >= 2:
             pc, qc = p[inl].mean(0), q[inl].mean(0)
             U, _, Vt = np.linalg.svd((q[inl] - qc).T @ (p[inl] - pc))
             Rr = Vt.T @ np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
             yaw, t = float(np.arctan2(Rr[0, 1], Rr[0, 0])), pc - Rr @ qc
-        inl = ((np.linalg.norm(q @ _rot2(yaw).T + t - p, axis=1) < threshold)
-               & (np.abs(_wrap(dtheta - yaw)) < angle_tol) & same)
+        inl = ((np.linalg.norm(q @ yaw_matrix_xz(yaw).T + t - p, axis=1) < threshold)
+               & (np.abs(wrap_angle(dtheta - yaw)) < angle_tol) & same)
     return yaw, t, inl
 
 
@@ -182,6 +172,6 @@ def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: 
     T = np.eye(4)
     T[:3, :3] = yaw_matrix(yaw)
     T[:3, 3] = [t[0], a.height_m - b.height_m, t[1]]
-    res = np.linalg.norm(b.xz[m[inl, 1]] @ _rot2(yaw).T + t - a.xz[m[inl, 0]], axis=1)
+    res = np.linalg.norm(b.xz[m[inl, 1]] @ yaw_matrix_xz(yaw).T + t - a.xz[m[inl, 0]], axis=1)
     return FloorPose(a_from_b=T, inliers=int(inl.sum()), matches=len(m),
                      residual_m=float(np.sqrt(np.mean(res**2))) if len(res) else float("nan"))

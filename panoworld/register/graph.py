@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from panoworld.core.conventions import invert_pose
-from panoworld.register.upright import yaw_matrix, yaw_of
+from panoworld.register.upright import wrap_angle, yaw_matrix, yaw_of
 
 DEPTH, FLOOR, BEARING, LAYOUT, DIRECTION = "depth", "floor", "bearing", "layout", "direction"
 """Edge kinds: rigid fit of depth-backed points (ICP-refined, free-space consistent); 2D rigid fit of the floor images;
@@ -84,8 +84,9 @@ def _groups(names: list[str], edges: list[Edge], given: dict[str, np.ndarray]
     return out
 
 
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2 * np.pi) - np.pi
+def group_of(names: list[str], edges: list[Edge], given: dict[str, np.ndarray] | None = None) -> dict[str, int]:
+    """{NAME: index of its rigid group} (the groups of metric edges solve_graph starts from; the given poses one group)."""
+    return {n: k for k, (poses, _) in enumerate(_groups(names, edges, given or {})) for n in poses}
 
 
 def _place(group: dict[str, np.ndarray], placed: dict[str, np.ndarray], edges: list[Edge], o: GraphOptions
@@ -106,8 +107,8 @@ def _place(group: dict[str, np.ndarray], placed: dict[str, np.ndarray], edges: l
     psi = np.array([yaw_of(placed[s][:3, :3] @ rel[:3, :3]) - yaw_of(group[d][:3, :3]) for s, d, rel, _ in obs])
     w = np.array([e.inliers for *_, e in obs], float)
     ref = psi[np.argmax(w)]
-    ok = np.abs(_wrap(psi - ref)) < np.radians(o.yaw_tol_deg)
-    psi0 = ref + np.average(_wrap(psi[ok] - ref), weights=w[ok])
+    ok = np.abs(wrap_angle(psi - ref)) < np.radians(o.yaw_tol_deg)
+    psi0 = ref + np.average(wrap_angle(psi[ok] - ref), weights=w[ok])
     obs = [ob for ob, k in zip(obs, ok) if k]
     R = yaw_matrix(psi0)
     M, b, dirs = np.zeros((3, 3)), np.zeros(3), []

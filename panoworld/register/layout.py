@@ -13,7 +13,7 @@ from panoworld.core.conventions import erp_dirs
 from panoworld.core.shapes import check_shape
 from panoworld.geometry.resize import resize_depth
 from panoworld.register.floor import camera_height
-from panoworld.register.upright import yaw_matrix
+from panoworld.register.upright import yaw_matrix, yaw_matrix_xz
 
 
 @dataclass(kw_only=True)
@@ -191,11 +191,6 @@ def pose_2d(yaw: float, t: np.ndarray, dy: float = 0.0) -> np.ndarray:
     return T
 
 
-def _rot2(yaw: float) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, s], [-s, c]])  # yaw_matrix acting on (x, z)
-
-
 def _inside_fraction(dist_a: np.ndarray, pts: np.ndarray, margin: float) -> float:
     """Fraction of the floor points pts (N, 2) (a's frame, finite) inside a's outline by more than margin."""
     if not len(pts):
@@ -210,7 +205,7 @@ def overlaps(a: Room, b: Room, yaw: float, t: np.ndarray, *, margin_m: float = 0
              ) -> bool:
     """Whether b's room placed at (yaw, t) in a's frame overlaps a's room in area (more than max_fraction of either
     outline inside the other by more than margin_m), or either camera stands in the other's room."""
-    R = _rot2(yaw)
+    R = yaw_matrix_xz(yaw)
     pb = outline_points(b.dist)
     pb = pb[np.isfinite(b.dist)] @ R.T + t
     pa = outline_points(a.dist)
@@ -308,7 +303,7 @@ def hypotheses(a: Room, b: Room, *, thickness_m: tuple[float, ...] = (0.15,), st
     out, seen = [], set()
     for k in range(4):
         yaw = float(np.angle(np.exp(1j * (b.theta - a.theta + k * np.pi / 2))))
-        R = _rot2(yaw)
+        R = yaw_matrix_xz(yaw)
         for wa in a.walls:
             tau = np.array([-wa.normal[1], wa.normal[0]])
             a0, a1 = sorted((tau @ wa.p0, tau @ wa.p1))

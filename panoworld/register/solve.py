@@ -9,13 +9,13 @@ import numpy as np
 from panoworld.core.conventions import invert_pose
 from panoworld.geometry.resize import rgbd_at_height
 from panoworld.register.floor import FloorPose, FloorView, floor_pair, floor_view
-from panoworld.register.graph import BEARING, DEPTH, DIRECTION, FLOOR, LAYOUT, Edge, solve_graph
+from panoworld.register.graph import BEARING, DEPTH, DIRECTION, FLOOR, LAYOUT, Edge, group_of, solve_graph
 from panoworld.register.layout import LayoutPose, layout_pair, room
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pair_select import ALL_PAIRS_UP_TO, appearance_descriptor, candidate_pairs
 from panoworld.register.pairwise import Features, PairResult, erp_features, grow_exclusion, match, register_pair
 from panoworld.register.registration import Registration
-from panoworld.register.upright import UprightPose, metric_scale, upright_relative_pose, yaw_of
+from panoworld.register.upright import UprightPose, metric_scale, upright_relative_pose, wrap_angle, yaw_of
 
 
 def _bearing_pair(fi: Features, fj: Features, m: np.ndarray, rows: int, o: RegisterOptions
@@ -94,7 +94,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     layouts: dict[tuple[int, int], LayoutPose | None] = {}
     layout_refused: dict[tuple[int, int], str] = {}
     if o.layout and need:
-        group = _groups_of(names, edges, given)
+        group = group_of(names, edges, given)
         rooms: dict = {}
         for a, b in pairs:
             if group[names[a]] == group[names[b]]:
@@ -160,7 +160,7 @@ def _contradiction(i_from_j: np.ndarray, bearing: tuple[UprightPose | None, floa
     pose, scale, support = bearing
     if pose is None or int(pose.inliers.sum()) < o.min_bearing_inliers:
         return ""
-    dyaw = abs(float(np.degrees((yaw_of(i_from_j[:3, :3]) - pose.yaw + np.pi) % (2 * np.pi) - np.pi)))
+    dyaw = abs(float(np.degrees(wrap_angle(yaw_of(i_from_j[:3, :3]) - pose.yaw))))
     if dyaw > o.depth_yaw_tol_deg:
         return f"bearing-only yaw differs by {dyaw:.1f} deg ({int(pose.inliers.sum())} inliers)"
     t = i_from_j[:3, 3]
@@ -172,23 +172,6 @@ def _contradiction(i_from_j: np.ndarray, bearing: tuple[UprightPose | None, floa
         return (f"baseline {np.linalg.norm(t):.2f} m, bearing-only {scale:.2f} m from {support} points whose depths "
                 "agree")
     return ""
-
-
-def _groups_of(names: list[str], edges: list[Edge], given: dict[str, np.ndarray]) -> dict[str, str]:
-    """{NAME: a representative of its group}: panoramas joined by metric edges (the given poses one group)."""
-    parent = {n: n for n in names}
-
-    def find(x: str) -> str:
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
-
-    held = sorted(given)
-    links = list(zip(held, held[1:])) + [(e.a, e.b) for e in edges if e.kind != DIRECTION]
-    for x, y in links:
-        parent[find(x)] = find(y)
-    return {n: find(n) for n in names}
 
 
 def _layout_refusal(lp: LayoutPose, bearing: tuple[UprightPose | None, float, int], o: RegisterOptions) -> str:
