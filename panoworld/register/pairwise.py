@@ -157,6 +157,40 @@ def consistency(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.ndarray, 
     return overlap, agree / max(agree + front, 1), float(np.median(res)) if len(res) else float("nan")
 
 
+def depth_toward(depth: np.ndarray, point: np.ndarray, *, window: int = 2) -> float:
+    """Depth (H, W) of a panorama in the direction of `point` (3,) in its camera frame: the median valid depth of the
+    (2 window + 1)^2 pixels around that direction (0 when none is valid)."""
+    h, w = depth.shape
+    u, v = erp_pixel_from_dir(point[None] / max(float(np.linalg.norm(point)), 1e-12), h, w)
+    ui, vi = int(u[0]), min(max(int(v[0]), 0), h - 1)
+    rows = depth[max(vi - window, 0):vi + window + 1]
+    patch = rows[:, [(ui + k) % w for k in range(-window, window + 1)]]
+    valid = patch[np.isfinite(patch) & (patch > 0)]
+    return float(np.median(valid)) if len(valid) else 0.0
+
+
+def same_room_refusal(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.ndarray, *, min_consistency: float,
+                      margin_m: float = 0.15, margin_frac: float = 0.15) -> str:
+    """Why a pose i_from_j (4, 4) estimated without the dense depths cannot hold ('' when it can): it puts each camera
+    in the other's free space (nearer than that panorama's depth toward it, by margin_m and margin_frac of that depth),
+    i.e. both panoramas in one room, where their depth maps (H, W) must then agree as a depth-backed pair's do
+    (consistency >= min_consistency), and they do not. Panoramas in two rooms joined through a doorway see each
+    other's camera behind a wall (or where their depth is unknown) and pass."""
+    t = np.asarray(i_from_j, np.float64)
+    toward = []
+    for depth, cam in ((depth_i, t[:3, 3]), (depth_j, -t[:3, :3].T @ t[:3, 3])):
+        dist, d = float(np.linalg.norm(cam)), depth_toward(depth, cam)
+        toward.append((dist, d))
+        if not (d > 0 and dist < d - max(margin_m, margin_frac * d)):
+            return ""
+    _, cons, _ = consistency(t, depth_i, depth_j)
+    if cons >= min_consistency:
+        return ""
+    (di, ri), (dj, rj) = toward
+    return (f"puts the cameras in one room ({di:.2f} m apart, within {ri:.2f} m and {rj:.2f} m of free space) whose "
+            f"depths disagree (consistency {cons:.2f})")
+
+
 def _erp_normals(pts: np.ndarray) -> np.ndarray:
     """Unit normals (H, W, 3) of an ERP point grid (H, W, 3) from central differences (columns wrap), facing the
     camera; zero where a neighbour is missing."""

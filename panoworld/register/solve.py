@@ -13,7 +13,15 @@ from panoworld.register.graph import BEARING, DEPTH, DIRECTION, FLOOR, LAYOUT, E
 from panoworld.register.layout import LayoutPose, layout_pair, room
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pair_select import ALL_PAIRS_UP_TO, appearance_descriptor, candidate_pairs
-from panoworld.register.pairwise import Features, PairResult, erp_features, grow_exclusion, match, register_pair
+from panoworld.register.pairwise import (
+    Features,
+    PairResult,
+    erp_features,
+    grow_exclusion,
+    match,
+    register_pair,
+    same_room_refusal,
+)
 from panoworld.register.registration import Registration
 from panoworld.register.upright import UprightPose, metric_scale, upright_relative_pose, wrap_angle, yaw_of
 
@@ -73,8 +81,10 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                 progress(names[a], names[b], pairs[a, b])
     refused = {ab: _contradiction(p.i_from_j, bearing[ab], o) for ab, p in pairs.items() if accepted(p, o)}
     depth_ok = {ab: accepted(p, o) and not refused[ab] for ab, p in pairs.items()}
-    floor_refused = {ab: _contradiction(f.a_from_b, bearing[ab], o) for ab, f in floors.items()
-                     if f is not None and f.inliers >= o.min_floor_inliers}
+    floor_refused = {ab: _contradiction(f.a_from_b, bearing[ab], o)
+                     or same_room_refusal(f.a_from_b, small[names[ab[0]]][1], small[names[ab[1]]][1],
+                                          min_consistency=o.min_consistency)
+                     for ab, f in floors.items() if f is not None and f.inliers >= o.min_floor_inliers}
     edges = []
     for (a, b), p in pairs.items():
         f = floors.get((a, b))
@@ -107,7 +117,8 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
         for (a, b), lp in layouts.items():
             if lp is None:
                 continue
-            layout_refused[a, b] = _layout_refusal(lp, bearing[a, b], o)
+            layout_refused[a, b] = _layout_refusal(lp, bearing[a, b], o) or same_room_refusal(
+                lp.a_from_b, small[names[a]][1], small[names[b]][1], min_consistency=o.min_consistency)
             if not layout_refused[a, b]:
                 edges.append(Edge(a=names[a], b=names[b], a_from_b=lp.a_from_b, kind=LAYOUT, inliers=int(lp.score),
                                   info={"layout_score": round(lp.score, 1), "layout_second": round(lp.second, 1)}))
