@@ -17,11 +17,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from panoworld.core import limits
 from panoworld.core.errors import InputError, PipelineError
-from panoworld.core.limits import check_image_size
 from panoworld.core.params import flatten, suggest
-from panoworld.framework import code_digest, kernels
+from panoworld.framework import code_digest, kernels, uptodate
 from panoworld.framework.hub import resolve as hub
 from panoworld.framework.stage import (
     LOCK_ENV,
@@ -42,10 +40,8 @@ from panoworld.framework.stage import (
     stage_key,
 )
 from panoworld.io import manifest as art
-from panoworld.io.images import check_depth_file, check_image, check_mask_file
 from panoworld.io.safe_write import write_text_atomic
 from panoworld.io.user_cache import read_user_cache, write_user_cache
-from panoworld.register.inputs import check_home, is_multi_scene
 
 PIPELINE_FILE = art.REPO_ROOT / "pipeline.yaml"
 ARTIFACTS_DIRNAME = art.ARTIFACTS_DIRNAME
@@ -89,11 +85,15 @@ _YAML_CACHE_KEEP = 64
 """YAML documents (pipeline.yaml, scene.yaml) kept parsed in the user cache, by the digest of their text."""
 
 
+def text_digest(text: str) -> str:
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
 def cached_yaml(text: str, parse: Callable[[str], Any]) -> Any:
     """parse(text), or its result for the same text (by sha256) from the user cache: an unchanged pipeline.yaml or
     scene.yaml needs no YAML parser (a no-op run skips importing one). Only documents that JSON keeps exactly are
     cached; a text that fails to parse raises every time."""
-    key = hashlib.sha256(text.encode()).hexdigest()
+    key = text_digest(text)
     cache = read_user_cache(_YAML_CACHE)
     hit = cache.get(key)
     if isinstance(hit, list) and len(hit) == 1:
@@ -126,12 +126,15 @@ class Pipeline:
     order: list[str]
     scene_files: dict[str, list[str]]
     presets: list[str]
+    text_digest: str = ""
+    """text_digest of the file as read (a run's up-to-date record is keyed by it)."""
 
     @classmethod
     def load(cls, path: Path | str | None = None) -> Pipeline:
         path = Path(path) if path else PIPELINE_FILE
         try:
-            doc = cached_yaml(path.read_text(), _parse_pipeline_yaml)
+            text = path.read_text()
+            doc = cached_yaml(text, _parse_pipeline_yaml)
         except (OSError, ValueError) as e:  # _parse_pipeline_yaml raises YAML errors as ValueError
             raise PipelineError(f"{path}: cannot read pipeline ({e})") from None
         stages: dict[str, StageNode] = {}
@@ -152,7 +155,8 @@ class Pipeline:
                 params=dict(s.get("params") or {}),
                 presets={k: dict(v or {}) for k, v in (s.get("presets") or {}).items()},
             )
-        pipe = cls(path, stages, [], dict(doc.get("scene_files") or {}), list(doc.get("presets") or [DEFAULT_PRESET]))
+        pipe = cls(path, stages, [], dict(doc.get("scene_files") or {}), list(doc.get("presets") or [DEFAULT_PRESET]),
+                   text_digest(text))
         pipe.order = pipe._toposort()
         return pipe
 
@@ -237,6 +241,8 @@ class Scene:
     tail: frozenset[str] = frozenset()
     notes: list[str] = field(default_factory=list)
     """What the runner says about the scene's files without refusing them (files it leaves out of the inputs)."""
+    config_digest: str | None = None
+    """text_digest of scene.yaml as read (None: no scene.yaml)."""
 
     @property
     def artifacts(self) -> Path:
@@ -254,6 +260,10 @@ class Scene:
 
 def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
     """Find the scene files and check the panorama (exists, readable, 2:1) without writing anything."""
+    from panoworld.core import limits  # the image and home readers import numpy: a replayed run needs neither
+    from panoworld.io.images import check_image
+    from panoworld.register.inputs import check_home, is_multi_scene
+
     root = Path(scene_dir).absolute()  # stages run from the repository root: a relative path would not hold there
     if not root.is_dir():
         raise PipelineError(f"{scene_dir}: scene directory not found")
@@ -280,29 +290,33 @@ def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
     for pano in panos:
         try:  # fully decoded here, so a truncated or corrupt panorama is refused before anything is written
             w, h = check_image(pano, "panorama", remember=True).oriented  # the depth stage applies EXIF orientation too
-            check_image_size(pano, w, h, "panorama")
+            limits.check_image_size(pano, w, h, "panorama")
         except InputError as e:
             raise PipelineError(str(e)) from None
         if w != 2 * h:
             raise PipelineError(f"{pano}: {w}x{h} is not an equirectangular panorama (width must be exactly 2x height)")
     config: dict[str, Any] = {}
+    config_digest = None
     cfg_path = root / SCENE_CONFIG
     try:
         check_scene_inputs(root, files)
         if cfg_path.is_file():
             limits.check_size(cfg_path, limits.MAX_CONFIG_BYTES, SCENE_CONFIG)
-            config = cached_yaml(cfg_path.read_text(errors="replace"),
-                                 lambda text: limits.parse_yaml(text, str(cfg_path))) or {}
+            text = cfg_path.read_text(errors="replace")
+            config_digest = text_digest(text)
+            config = cached_yaml(text, lambda text: limits.parse_yaml(text, str(cfg_path))) or {}
     except InputError as e:
         raise PipelineError(str(e)) from None
     check_scene_config(config, cfg_path, pipeline)
-    return Scene(root, files, config, notes=notes)
+    return Scene(root, files, config, notes=notes, config_digest=config_digest)
 
 
 def check_scene_inputs(root: Path, files: dict[str, Path | None]) -> None:
     """The cheap checks of the scene's other user files, before anything is written or hashed: artifacts/ usable, the
     depth's header and the rig mask within limits, a user trajectory readable and within limits. InputError (one
     line) otherwise."""
+    from panoworld.io.images import check_depth_file, check_mask_file
+
     arts = root / ARTIFACTS_DIRNAME
     if arts.is_symlink() and not arts.exists():
         raise InputError(f"{arts}: a dangling symbolic link; remove it (or point it at a directory)")
@@ -732,6 +746,12 @@ def run(
     pipeline = pipeline or Pipeline.load()
     selected, forced = _select(pipeline, list(only), from_, until)
     set_map = parse_sets(list(sets), pipeline)
+    plain = not (only or from_ or until or force or dry_run) and variant is None and execute is None
+    if plain:
+        replayed = _replay(_record_key(pipeline, Path(scene_dir).absolute(), _config_digest(scene_dir), preset, sets),
+                           scene_dir, on_result)
+        if replayed is not None:
+            return replayed
     scene = open_scene(scene_dir, pipeline)
     if variant is not None:  # the variant's --set values override the run's; their stages and descendants are its tail
         name, vsets = variant
@@ -741,6 +761,7 @@ def run(
         tail = set(vmap).union(*(pipeline.descendants(st) for st in vmap))
         scene = dataclasses.replace(scene, variant=name, tail=frozenset(tail))
     params = resolve_params(pipeline, preset, scene, set_map, [n for n in pipeline.order if n in selected or n in set_map])
+    key = _record_key(pipeline, scene.root, scene.config_digest, preset, sets) if plain else None
     if force:
         forced |= selected
     if not dry_run:  # an `hf:` weights id missing from the local cache: one line naming `weights fetch`, nothing run
@@ -776,6 +797,7 @@ def run(
     compiling: list = []
     fresh = not scene.artifacts.exists()
     with SceneLock(scene) as lock:
+        watch = _watch(pipeline, scene) if key is not None else None
         for name in pipeline.order:
             node = pipeline.stages[name]
             art.recover_dir(scene.artifact_dir(name))
@@ -838,13 +860,73 @@ def run(
                 emit(StageResult(name, "skipped", "not run: an earlier stage failed (use --keep-going)"))
         if fresh and not any(r.action == "ran" for r in report.results):
             lock.remove_bookkeeping()  # nothing committed into a new artifacts/: leave the scene as it was
-    if "register" in pipeline.stages and any(r.stage == "register" and r.action in ("ran", "cached")
-                                              for r in report.results):
-        from panoworld.register.artifact import registration_note
+        if "register" in pipeline.stages and any(r.stage == "register" and r.action in ("ran", "cached")
+                                                  for r in report.results):
+            from panoworld.register.artifact import registration_note
 
-        note = registration_note(scene.artifact_dir("register"), scene.root)
-        if note:
-            report.notes.append(note)
+            note = registration_note(scene.artifact_dir("register"), scene.root)
+            if note:
+                report.notes.append(note)
+        if key is not None:
+            _record(key, pipeline, scene, params, report, watch)
+    return report
+
+
+def _record_key(pipeline: Pipeline, root: Path, config_digest: str | None, preset: str | None, sets) -> str:
+    """The up-to-date record's key of a plain run: its arguments and the texts of pipeline.yaml and scene.yaml."""
+    return uptodate.record_key(root, pipeline.path, [pipeline.text_digest, config_digest, preset, list(sets)])
+
+
+def _config_digest(scene_dir: Path | str) -> str | None:
+    try:
+        return text_digest((Path(scene_dir) / SCENE_CONFIG).read_text(errors="replace"))
+    except OSError:
+        return None
+
+
+def _watch(pipeline: Pipeline, scene: Scene) -> tuple[list[str], list] | None:
+    """(paths, their stats now) of what this run's decisions read (uptodate.watched_paths); None when no record can
+    stand for them."""
+    paths = uptodate.watched_paths(scene.root, pipeline.path, [(scene.artifact_dir(n), pipeline.stages[n].spec.module)
+                                                                for n in pipeline.order])
+    return None if paths is None else (paths, uptodate.stats(paths))
+
+
+def _record(key: str, pipeline: Pipeline, scene: Scene, params: dict[str, Any], report: Report,
+            watch: tuple[list[str], list] | None) -> None:
+    """After a plain run under the lock: record what a no-op of the same arguments reports while nothing it read
+    changes (uptodate); the stats are those taken before the decisions that found every stage up to date (for a run
+    that ran stages, decided again here)."""
+    if [r.stage for r in report.results] != pipeline.order or any(r.action not in ("cached", "ran") for r in report.results):
+        uptodate.drop(key)
+        return
+    results = report.results
+    if any(r.action == "ran" for r in results):
+        watch = _watch(pipeline, scene)
+        if watch is not None:
+            results = [StageResult(n, "cached", why) for n in pipeline.order
+                       for up, why in [stage_state(pipeline.stages[n], scene, params[n])] if up]
+    if watch is None or len(results) != len(pipeline.order):
+        uptodate.drop(key)
+        return
+    uptodate.save(key, *watch, [r.as_dict() for r in results], list(report.notes))
+
+
+def _replay(key: str, scene_dir: Path | str, on_result: Callable[[StageResult], None] | None) -> Report | None:
+    """The report a plain run recorded (_record) when none of the files its decisions read has changed since, checked
+    under the scene lock; None otherwise."""
+    root = Path(scene_dir).absolute()
+    if not (root / ARTIFACTS_DIRNAME).is_dir():
+        return None
+    with SceneLock(Scene(root, {}, {})):
+        rec = uptodate.replayable(key)
+        try:
+            report = Report(root, notes=[str(n) for n in rec["notes"]], results=[StageResult(**r) for r in rec["results"]])
+        except (TypeError, KeyError):  # no record, or not one this runner wrote
+            return None
+        for r in report.results:
+            if on_result:
+                on_result(r)
     return report
 
 
