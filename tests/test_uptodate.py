@@ -164,3 +164,23 @@ def test_a_replayed_cli_run_imports_no_stage_and_no_numpy(setup):
     assert "numpy" in first.stdout.splitlines()[-1]  # it decided: the stages' imports
     assert second.stdout.splitlines()[-1] == "[]"
     assert [s["action"] for s in json.loads(second.stdout.rsplit("\n", 2)[0])["stages"]] == ["cached"] * 5
+
+
+def test_code_rewritten_unchanged_is_not_parsed_again_and_an_edit_is(tmp_path, monkeypatch):
+    """A checkout, merge or copy that rewrites files without changing them costs a read and a hash per file (the
+    digest by text, shared by every checkout), not a parse; an edited file is parsed and its digest moves."""
+    from panoworld.framework import code_digest
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setattr(code_digest, "_by_text", None)
+    (tmp_path / "one").mkdir()
+    (tmp_path / "one/mod.py").write_text(HELPER)
+    parsed, real = [], code_digest._imports
+    monkeypatch.setattr(code_digest, "_imports", lambda tree, *a: parsed.append(a[0]) or real(tree, *a))
+    first = code_digest.file_digest(tmp_path / "one/mod.py", "mod")
+    shutil.copytree(tmp_path / "one", tmp_path / "two")  # another checkout: other paths, other mtimes
+    code_digest._save_disk_cache()
+    monkeypatch.setattr(code_digest, "_by_text", None)  # a new process
+    assert code_digest.file_digest(tmp_path / "two/mod.py", "mod") == first and parsed == ["mod"]
+    (tmp_path / "two/mod.py").write_text(HELPER.replace('"one"', '"two"'))
+    assert code_digest.file_digest(tmp_path / "two/mod.py", "mod")[0] != first[0] and parsed == ["mod", "mod"]
