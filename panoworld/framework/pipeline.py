@@ -455,7 +455,8 @@ class SceneLock:
         st = os.fstat(fd)
         self.inode = f"{st.st_dev}:{st.st_ino}"
         with contextlib.suppress(OSError):  # a read-only scene whose stages are all up to date still reports them
-            write_text_atomic(self.path, f"pid {os.getpid()} since {time.strftime('%Y-%m-%d %H:%M:%S')}")
+            write_text_atomic(self.path, f"pid {os.getpid()} since {time.strftime('%Y-%m-%d %H:%M:%S')}",
+                              durable=False)  # the flock is the lock; this only names its holder
             for leftover in arts.glob(f"**/logs/{PARAMS_FILE_PREFIX}*.json"):  # of a killed runner
                 leftover.unlink(missing_ok=True)
             art.sweep_leftovers(arts)

@@ -62,13 +62,15 @@ def _walk(top: Path, skip_top: str | None = None) -> list[str] | None:
     return out
 
 
-def _module_roots(mod: Any) -> tuple[str, list[Path]]:
+def _module_roots(mod: Any) -> tuple[str, ...]:
+    """The code roots of a stage module (code_digest.stage_roots)."""
     name = getattr(getattr(mod, "__spec__", None), "name", None) or mod.__name__  # `python -m` runs it as __main__
-    return name, code_digest.stage_roots(mod.__file__, name)
+    return tuple(map(str, code_digest.stage_roots(mod.__file__, name)))
 
 
-def _find(rel: str, roots: list[Path]) -> str | None:
-    return next((os.path.join(r, rel) for r in map(str, roots) if os.path.isfile(os.path.join(r, rel))), None)
+def _find(rel: str, roots: tuple[str, ...]) -> str | None:
+    """The file of a code digest's relative path: under the first root that has it (as code_digest finds it)."""
+    return next((os.path.join(r, rel) for r in roots if os.path.isfile(os.path.join(r, rel))), None)
 
 
 def watched_paths(scene_root: Path, pipeline_path: Path, stages: list[tuple[Path, Any]]) -> list[str] | None:
@@ -82,24 +84,23 @@ def watched_paths(scene_root: Path, pipeline_path: Path, stages: list[tuple[Path
     if scene is None:
         return None
     paths = [str(Path(pipeline_path).absolute()), *scene]
-    code: set[str] = set()
-    roots: set[str] = {str(REPO_ROOT)}
+    rels: dict[tuple[str, ...], set[str]] = {}  # code files by the roots they are found under
     for d, mod in stages:
-        _, mod_roots = _module_roots(mod)
-        roots.update(map(str, mod_roots))
         try:
             manifest = json.loads((d / MANIFEST).read_text())
             if manifest.get("weights"):
                 return None
             paths += [str(d / MANIFEST)] + [str(d / rel) for rel in manifest["files"]]
-            code.update(filter(None, (_find(rel, mod_roots) for rel in manifest["code"]["files"])))
+            rels.setdefault(_module_roots(mod), set()).update(manifest["code"]["files"])
         except (OSError, ValueError, TypeError, KeyError, AttributeError):
             return None
+    rels.setdefault((str(REPO_ROOT),), set()).update(code_digest.code_digests("panoworld.framework.pipeline"))
+    code = {f for mod_roots, names in rels.items() for rel in names if (f := _find(rel, mod_roots))}
+    roots = {r for mod_roots in rels for r in mod_roots}
     for d in schema_dirs():
         paths.append(str(d))
         if d.is_dir():
             paths += sorted(str(p) for p in d.glob("*.schema.json"))
-    code.update(filter(None, (_find(rel, [REPO_ROOT]) for rel in code_digest.code_digests(__package__ + ".pipeline"))))
     for m in list(sys.modules.values()):
         f = getattr(m, "__file__", None)
         if f and any(os.path.abspath(f).startswith(r + os.sep) for r in roots):
