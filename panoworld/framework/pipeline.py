@@ -8,40 +8,27 @@ import fcntl
 import hashlib
 import json
 import os
-import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from panoworld.core.errors import InputError, PipelineError
 from panoworld.core.params import flatten, suggest
-from panoworld.framework import code_digest, kernels, uptodate
-from panoworld.framework.hub import resolve as hub
-from panoworld.framework.stage import (
-    LOCK_ENV,
-    LOCK_FILE,
-    LOCK_INODE_ENV,
-    REFUSAL_ENV,
-    RUNNER_PID_ENV,
-    StageSpec,
-    input_digest,
-    load_stage,
-    merge,
-    normalize,
-    params_from_normalized,
-    params_hash,
-    params_to_dict,
-    resolve_stage_weights,
-    stage_code,
-    stage_key,
-)
+from panoworld.framework import uptodate
 from panoworld.io import manifest as art
 from panoworld.io.safe_write import write_text_atomic
 from panoworld.io.user_cache import read_user_cache, write_user_cache
+
+if TYPE_CHECKING:
+    import subprocess
+
+    from panoworld.framework.stage import StageSpec
+
+# The stage contract (panoworld.framework.stage), the kernels and the weights hub are imported where they are used: a
+# replayed no-op (uptodate) needs none of them.
 
 PIPELINE_FILE = art.REPO_ROOT / "pipeline.yaml"
 ARTIFACTS_DIRNAME = art.ARTIFACTS_DIRNAME
@@ -72,6 +59,8 @@ class StageNode:
 
     @property
     def spec(self) -> StageSpec:
+        from panoworld.framework.stage import load_stage
+
         if self._spec is None:
             try:
                 self._spec = load_stage(self.module)
@@ -352,6 +341,8 @@ def check_scene_config(config: Any, path: Path, pipeline: Pipeline) -> None:
     params = config.get("params")
     if params is None:
         return
+    from panoworld.framework.stage import normalize
+
     if not isinstance(params, dict):
         raise PipelineError(f"{path}: params: expected a mapping of stage: {{param: value}}, got {_short(params)}")
     for stage, values in params.items():
@@ -392,6 +383,8 @@ def resolve_params(
 ) -> dict[str, Any]:
     """Params objects per stage: dataclass defaults < pipeline params < preset < scene.yaml < --set, each value
     checked against its declared type, range and choices (PipelineError naming the param and where it was set)."""
+    from panoworld.framework.stage import merge, normalize, params_from_normalized
+
     preset = preset or (scene.config.get("preset") if scene else None) or DEFAULT_PRESET
     if preset not in pipeline.presets:
         raise PipelineError(f"--preset {preset}: unknown preset; known: {', '.join(pipeline.presets)}")
@@ -431,7 +424,7 @@ class SceneLock:
     artifacts/.lock for the message a second runner gets. It dies with the process."""
 
     def __init__(self, scene: Scene):
-        self.path = scene.artifacts / LOCK_FILE
+        self.path = scene.artifacts / art.LOCK_FILE
         self.fd: int | None = None
         self.inode = ""
 
@@ -544,6 +537,17 @@ def _diff_params(stage: str, old: dict, new: dict) -> str:
 
 def stage_state(node: StageNode, scene: Scene, params: Any) -> tuple[bool, str]:
     """(up_to_date, reason) for one stage given the artifacts on disk now."""
+    from panoworld.framework import code_digest
+    from panoworld.framework.hub import resolve as hub
+    from panoworld.framework.stage import (
+        input_digest,
+        params_hash,
+        params_to_dict,
+        resolve_stage_weights,
+        stage_code,
+        stage_key,
+    )
+
     out_dir = scene.artifact_dir(node.name)
     if not out_dir.exists():
         return False, "no artifact yet"
@@ -633,6 +637,9 @@ def run_logged(cmd: list[str], log: Path, echo: bool = False, env_extra: dict[st
 
     On exit code 2 (bad input) the output stays in pending_log(log), for the runner to read and delete: a refused
     input leaves no log behind, and the previous run's log stays."""
+    import subprocess
+    import threading
+
     log = Path(log)
     log.parent.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
@@ -672,6 +679,8 @@ scene lock deletes those a killed runner left."""
 def run_with_params_file(template: list[str], params: dict, log: Path, echo: bool = False,
                          env_extra: dict[str, str] | None = None) -> tuple[int, float, float]:
     """Write the params file beside the log, run the stage command template ({params_file}, {python}), delete it."""
+    import threading
+
     log = Path(log)
     log.parent.mkdir(parents=True, exist_ok=True)
     params_file = log.parent / f"{PARAMS_FILE_PREFIX}{log.stem}-{os.getpid()}-{threading.get_ident()}.json"
@@ -685,16 +694,20 @@ def run_with_params_file(template: list[str], params: dict, log: Path, echo: boo
 
 def runner_env(scene: Scene) -> dict[str, str]:
     """What a stage started by this process needs to check, before it commits, that its runner still holds the lock."""
+    from panoworld.framework.stage import LOCK_ENV, LOCK_INODE_ENV, RUNNER_PID_ENV
+
     try:
         st = os.stat(scene.artifacts)
         inode = f"{st.st_dev}:{st.st_ino}"
     except OSError:
         inode = ""
-    return {LOCK_ENV: str(scene.artifacts / LOCK_FILE), LOCK_INODE_ENV: inode, RUNNER_PID_ENV: str(os.getpid())}
+    return {LOCK_ENV: str(scene.artifacts / art.LOCK_FILE), LOCK_INODE_ENV: inode, RUNNER_PID_ENV: str(os.getpid())}
 
 
 def _run_subprocess(node: StageNode, scene: Scene, params: Any, echo: bool) -> tuple[int, float, float]:
     """Run `python -m <stage module>` with explicit inputs; returns (exit code, seconds, peak RSS MB)."""
+    from panoworld.framework.stage import REFUSAL_ENV, params_to_dict
+
     template = stage_command(node, scene, "{params_file}", python="{python}")
     env = {**runner_env(scene), REFUSAL_ENV: str(refusal_file(scene.log_file(node.name)))}
     return run_with_params_file(template, params_to_dict(params), scene.log_file(node.name), echo, env)
@@ -753,6 +766,9 @@ def run(
                            scene_dir, on_result)
         if replayed is not None:
             return replayed
+    from panoworld.framework import kernels
+    from panoworld.framework.hub import resolve as hub
+
     scene = open_scene(scene_dir, pipeline)
     if variant is not None:  # the variant's --set values override the run's; their stages and descendants are its tail
         name, vsets = variant
