@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from panoworld.framework import code_digest
-from panoworld.io.manifest import ARTIFACTS_DIRNAME, MANIFEST, REPO_ROOT, schema_dirs
+from panoworld.io.manifest import ARTIFACTS_DIRNAME, MANIFEST, REPO_ROOT, VARIANTS_DIRNAME, schema_dirs
 from panoworld.io.user_cache import user_cache_path
 
 RECORD_DIR = "uptodate"
@@ -50,10 +50,10 @@ def stat_of(path: str) -> list[int] | None:
 
 
 def _walk(top: Path, skip_top: str | None = None) -> list[str] | None:
-    """Every folder and file under top (top included, the top-level entry skip_top left out); None past
-    MAX_SCENE_ENTRIES."""
+    """Every folder and file under top (top included, the top-level entry skip_top left out, linked folders
+    followed); None past MAX_SCENE_ENTRIES (a link loop included)."""
     out = [str(top)]
-    for root, dirs, files in os.walk(top):
+    for root, dirs, files in os.walk(top, followlinks=True):
         if root == str(top) and skip_top in dirs:
             dirs.remove(skip_top)
         out += [os.path.join(root, n) for n in dirs + files]
@@ -75,7 +75,7 @@ def _find(rel: str, roots: tuple[str, ...]) -> str | None:
 
 def watched_paths(scene_root: Path, pipeline_path: Path, stages: list[tuple[Path, Any]]) -> list[str] | None:
     """Every path whose content the run's decisions read: pipeline.yaml, the scene folder outside artifacts/ (its
-    inputs and scene.yaml), each (artifact folder, stage module)'s manifest, files and code, the schemas, and the
+    inputs and scene.yaml), the folders the runner checks inside artifacts/, each (artifact folder, stage module)'s manifest, files and code, the schemas, and the
     runner's own code (the modules this process loaded from a code root and what the pipeline module imports), with
     the folders of the code (a new module there can change what an import finds). None when a record cannot stand for
     the decisions (a scene folder past MAX_SCENE_ENTRIES, an artifact missing or naming weights, which live outside
@@ -83,7 +83,8 @@ def watched_paths(scene_root: Path, pipeline_path: Path, stages: list[tuple[Path
     scene = _walk(Path(scene_root), ARTIFACTS_DIRNAME)
     if scene is None:
         return None
-    paths = [str(Path(pipeline_path).absolute()), *scene]
+    arts = Path(scene_root) / ARTIFACTS_DIRNAME
+    paths = [str(Path(pipeline_path).absolute()), *scene, str(arts / "logs"), str(arts / VARIANTS_DIRNAME)]
     rels: dict[tuple[str, ...], set[str]] = {}  # code files by the roots they are found under
     for d, mod in stages:
         try:
