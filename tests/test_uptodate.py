@@ -184,3 +184,19 @@ def test_code_rewritten_unchanged_is_not_parsed_again_and_an_edit_is(tmp_path, m
     assert code_digest.file_digest(tmp_path / "two/mod.py", "mod") == first and parsed == ["mod"]
     (tmp_path / "two/mod.py").write_text(HELPER.replace('"one"', '"two"'))
     assert code_digest.file_digest(tmp_path / "two/mod.py", "mod")[0] != first[0] and parsed == ["mod", "mod"]
+
+
+def test_records_are_bounded_and_a_broken_one_is_decided_again(setup, monkeypatch):
+    from panoworld.framework import uptodate
+
+    scene, pipe = setup
+    monkeypatch.setattr(uptodate, "KEEP", 2)
+    for n in (1, 2, 3):  # three argument lists, three records: the two newest kept
+        run(scene, pipe, sets=[f"a.n={n}"])
+    folder = uptodate.user_cache_path(uptodate.RECORD_DIR)
+    assert len(list(folder.glob("*.json"))) == 2
+    decided = decide(monkeypatch)
+    assert {a for _, a, _ in run(scene, pipe, sets=["a.n=3"])} == {"cached"} and decided == []
+    for record in folder.glob("*.json"):
+        record.write_text('{"paths": [], "stats": [], "results": [{"stage": "a"}]}')  # not one the runner wrote
+    assert {a for _, a, _ in run(scene, pipe, sets=["a.n=3"])} == {"cached"} and len(decided) == 5

@@ -126,9 +126,11 @@ def save(key: str, paths: list[str], before: list[list[int] | None], results: li
         tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
         tmp.write_text(json.dumps({"paths": paths, "stats": before, "results": results, "notes": notes}))
         os.replace(tmp, path)
-        records = sorted(path.parent.glob("*.json"), key=lambda p: p.stat().st_mtime_ns)
-        for old in records[:-KEEP]:
-            old.unlink(missing_ok=True)
+        names = [n for n in os.listdir(path.parent) if n.endswith(".json")]
+        if len(names) > KEEP:
+            records = sorted((path.parent / n for n in names), key=lambda p: p.stat().st_mtime_ns)
+            for old in records[:-KEEP]:
+                old.unlink(missing_ok=True)
     except OSError:
         pass
 
@@ -149,6 +151,7 @@ def replayable(key: str) -> dict[str, Any] | None:
         paths, recorded = rec["paths"], rec["stats"]
     except (OSError, ValueError, TypeError, KeyError):
         return None
-    if not isinstance(paths, list) or len(paths) != len(recorded) or any(stat_of(p) != s for p, s in zip(paths, recorded)):
+    if not isinstance(paths, list) or not paths or len(paths) != len(recorded) or any(
+            stat_of(p) != s for p, s in zip(paths, recorded)):
         return None
     return rec
