@@ -20,6 +20,7 @@ KEEP = 256
 MAX_SCENE_ENTRIES = 20_000
 """A scene folder with more files and folders than this (outside artifacts/) gets no record."""
 FORMAT = 1
+"""The records' layout (part of the key: a runner reading another layout finds no record)."""
 ENV_PREFIXES = ("PANOWORLD_", "HF_", "HUGGINGFACE_", "XDG_CACHE_HOME")
 """Environment variables that can change what a run decides (schema path, weights caches)."""
 
