@@ -12,7 +12,7 @@ import pytest
 from panoworld.core import registry as backends
 from panoworld.core.params import flatten
 from panoworld.framework import pipeline as pl
-from panoworld.framework.stage import load_stage, params_from_dict, params_to_dict
+from panoworld.framework.stage import load_stage, merge, normalize, params_from_dict, params_to_dict
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -25,13 +25,13 @@ def test_pipeline_yaml_only_overrides_defaults():
         defaults = flatten(params_to_dict(cls()))
         base = flatten(params_to_dict(params_from_dict(cls, node.params, name)))
         for key in flatten(params_to_dict(params_from_dict(cls, node.params, name))):
-            if key in {k for k in flatten(pl.normalize(cls, node.params, name))}:
+            if key in {k for k in flatten(normalize(cls, node.params, name))}:
                 assert base[key] != defaults[key], f"pipeline.yaml stages.{name}.params.{key} repeats the default"
         for preset, values in node.presets.items():
             assert values, f"pipeline.yaml stages.{name}.presets.{preset} is empty"
-            got = flatten(params_to_dict(params_from_dict(cls, pl.merge(pl.normalize(cls, node.params, name),
-                                                                           pl.normalize(cls, values, name)), name)))
-            for key in flatten(pl.normalize(cls, values, name)):
+            got = flatten(params_to_dict(params_from_dict(cls, merge(normalize(cls, node.params, name),
+                                                                           normalize(cls, values, name)), name)))
+            for key in flatten(normalize(cls, values, name)):
                 assert got[key] != base[key], f"pipeline.yaml stages.{name}.presets.{preset}.{key} changes nothing"
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import ast
 import hashlib
 import os
+import sys
 from pathlib import Path
 
 from panoworld.io.manifest import REPO_ROOT, json_digest
@@ -17,6 +18,17 @@ _CACHE_KEEP = 4096
 _memo: dict[str, tuple[int, int, str, list[str]]] = {}
 """path -> (mtime_ns, size, digest, imported module names): files are parsed again only when their stat changes."""
 _disk_loaded = False
+_BY_TEXT_FILE = "code_digests_by_text.json"
+"""Digest and imports by the file's bytes and module name, for every checkout: a file whose stat changed but whose
+text did not (a checkout, a merge, a copy of the repository) is read and hashed, not parsed."""
+_BY_TEXT_KEEP = 4096
+_by_text: dict[str, list] | None = None
+_by_text_added = False
+
+
+def _text_key(data: bytes, module: str, is_package: bool) -> str:
+    version = f"{sys.version_info[0]}.{sys.version_info[1]}"  # the AST's dump may differ between Python versions
+    return f"{version}:{module}:{int(is_package)}:{hashlib.sha256(data).hexdigest()}"
 
 
 def _load_disk_cache() -> None:
@@ -30,15 +42,27 @@ def _load_disk_cache() -> None:
         pass
 
 
+def _parsed_by_text() -> dict[str, list]:
+    global _by_text
+    if _by_text is None:
+        _by_text = read_user_cache(_BY_TEXT_FILE)
+    return _by_text
+
+
 def _save_disk_cache() -> None:
     """Merge this process's entries into the file as it is now (other processes, stages and checkouts write it too:
     replacing it with this process's view alone would drop what they added since, to be parsed again), newest last."""
+    global _by_text_added
     try:
         on_disk = {k: v for k, v in read_user_cache(_CACHE_FILE).items() if k not in _memo}
     except (TypeError, AttributeError):
         on_disk = {}
     merged = {**on_disk, **_memo}
     write_user_cache(_CACHE_FILE, dict(list(merged.items())[-_CACHE_KEEP:]))
+    if _by_text_added and _by_text is not None:
+        merged = {**read_user_cache(_BY_TEXT_FILE), **_by_text}
+        write_user_cache(_BY_TEXT_FILE, dict(list(merged.items())[-_BY_TEXT_KEEP:]))
+        _by_text_added = False
 
 
 def _strip_docstrings(tree: ast.AST) -> ast.AST:
@@ -70,15 +94,26 @@ def _imports(tree: ast.AST, module: str, is_package: bool) -> list[str]:
 
 
 def file_digest(path: Path | str, module: str) -> tuple[str, list[str]]:
-    """(digest of the file's AST without docstrings, imported module names); cached by mtime and size."""
+    """(digest of the file's AST without docstrings, imported module names); cached by mtime and size, then by the
+    file's bytes."""
+    global _by_text_added
     key = str(path)
     st = os.stat(key)
     hit = _memo.get(key)
     if hit and hit[0] == st.st_mtime_ns and hit[1] == st.st_size:
         return hit[2], hit[3]
-    tree = ast.parse(Path(key).read_bytes(), filename=key)
-    imports = _imports(tree, module, os.path.basename(key) == "__init__.py")
-    digest = hashlib.sha256(ast.dump(_strip_docstrings(tree), annotate_fields=False).encode()).hexdigest()
+    data = Path(key).read_bytes()
+    is_package = os.path.basename(key) == "__init__.py"
+    text_key = _text_key(data, module, is_package)
+    known = _parsed_by_text().get(text_key)
+    if isinstance(known, list) and len(known) == 2 and isinstance(known[0], str) and isinstance(known[1], list):
+        digest, imports = known
+    else:
+        tree = ast.parse(data, filename=key)
+        imports = _imports(tree, module, is_package)
+        digest = hashlib.sha256(ast.dump(_strip_docstrings(tree), annotate_fields=False).encode()).hexdigest()
+        _parsed_by_text()[text_key] = [digest, imports]
+        _by_text_added = True
     _memo[key] = (st.st_mtime_ns, st.st_size, digest, imports)
     return digest, imports
 

@@ -8,44 +8,27 @@ import fcntl
 import hashlib
 import json
 import os
-import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from panoworld.core import limits
 from panoworld.core.errors import InputError, PipelineError
-from panoworld.core.limits import check_image_size
 from panoworld.core.params import flatten, suggest
-from panoworld.framework import code_digest, kernels
-from panoworld.framework.hub import resolve as hub
-from panoworld.framework.stage import (
-    LOCK_ENV,
-    LOCK_FILE,
-    LOCK_INODE_ENV,
-    REFUSAL_ENV,
-    RUNNER_PID_ENV,
-    StageSpec,
-    input_digest,
-    load_stage,
-    merge,
-    normalize,
-    params_from_normalized,
-    params_hash,
-    params_to_dict,
-    resolve_stage_weights,
-    stage_code,
-    stage_key,
-)
+from panoworld.framework import uptodate
 from panoworld.io import manifest as art
-from panoworld.io.images import check_depth_file, check_image, check_mask_file
 from panoworld.io.safe_write import write_text_atomic
 from panoworld.io.user_cache import read_user_cache, write_user_cache
-from panoworld.register.inputs import check_home, is_multi_scene
+
+if TYPE_CHECKING:
+    import subprocess
+
+    from panoworld.framework.stage import StageSpec
+
+# The stage contract (panoworld.framework.stage), the kernels and the weights hub are imported where they are used: a
+# replayed no-op (uptodate) needs none of them.
 
 PIPELINE_FILE = art.REPO_ROOT / "pipeline.yaml"
 ARTIFACTS_DIRNAME = art.ARTIFACTS_DIRNAME
@@ -76,6 +59,8 @@ class StageNode:
 
     @property
     def spec(self) -> StageSpec:
+        from panoworld.framework.stage import load_stage
+
         if self._spec is None:
             try:
                 self._spec = load_stage(self.module)
@@ -89,11 +74,15 @@ _YAML_CACHE_KEEP = 64
 """YAML documents (pipeline.yaml, scene.yaml) kept parsed in the user cache, by the digest of their text."""
 
 
+def text_digest(text: str) -> str:
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
 def cached_yaml(text: str, parse: Callable[[str], Any]) -> Any:
     """parse(text), or its result for the same text (by sha256) from the user cache: an unchanged pipeline.yaml or
     scene.yaml needs no YAML parser (a no-op run skips importing one). Only documents that JSON keeps exactly are
     cached; a text that fails to parse raises every time."""
-    key = hashlib.sha256(text.encode()).hexdigest()
+    key = text_digest(text)
     cache = read_user_cache(_YAML_CACHE)
     hit = cache.get(key)
     if isinstance(hit, list) and len(hit) == 1:
@@ -126,12 +115,15 @@ class Pipeline:
     order: list[str]
     scene_files: dict[str, list[str]]
     presets: list[str]
+    text_digest: str = ""
+    """text_digest of the file as read (a run's up-to-date record is keyed by it)."""
 
     @classmethod
     def load(cls, path: Path | str | None = None) -> Pipeline:
         path = Path(path) if path else PIPELINE_FILE
         try:
-            doc = cached_yaml(path.read_text(), _parse_pipeline_yaml)
+            text = path.read_text()
+            doc = cached_yaml(text, _parse_pipeline_yaml)
         except (OSError, ValueError) as e:  # _parse_pipeline_yaml raises YAML errors as ValueError
             raise PipelineError(f"{path}: cannot read pipeline ({e})") from None
         stages: dict[str, StageNode] = {}
@@ -152,7 +144,8 @@ class Pipeline:
                 params=dict(s.get("params") or {}),
                 presets={k: dict(v or {}) for k, v in (s.get("presets") or {}).items()},
             )
-        pipe = cls(path, stages, [], dict(doc.get("scene_files") or {}), list(doc.get("presets") or [DEFAULT_PRESET]))
+        pipe = cls(path, stages, [], dict(doc.get("scene_files") or {}), list(doc.get("presets") or [DEFAULT_PRESET]),
+                   text_digest(text))
         pipe.order = pipe._toposort()
         return pipe
 
@@ -237,6 +230,8 @@ class Scene:
     tail: frozenset[str] = frozenset()
     notes: list[str] = field(default_factory=list)
     """What the runner says about the scene's files without refusing them (files it leaves out of the inputs)."""
+    config_digest: str | None = None
+    """text_digest of scene.yaml as read (None: no scene.yaml)."""
 
     @property
     def artifacts(self) -> Path:
@@ -254,6 +249,10 @@ class Scene:
 
 def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
     """Find the scene files and check the panorama (exists, readable, 2:1) without writing anything."""
+    from panoworld.core import limits  # the image and home readers import numpy: a replayed run needs neither
+    from panoworld.io.images import check_image
+    from panoworld.register.inputs import check_home, is_multi_scene
+
     root = Path(scene_dir).absolute()  # stages run from the repository root: a relative path would not hold there
     if not root.is_dir():
         raise PipelineError(f"{scene_dir}: scene directory not found")
@@ -280,29 +279,33 @@ def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
     for pano in panos:
         try:  # fully decoded here, so a truncated or corrupt panorama is refused before anything is written
             w, h = check_image(pano, "panorama", remember=True).oriented  # the depth stage applies EXIF orientation too
-            check_image_size(pano, w, h, "panorama")
+            limits.check_image_size(pano, w, h, "panorama")
         except InputError as e:
             raise PipelineError(str(e)) from None
         if w != 2 * h:
             raise PipelineError(f"{pano}: {w}x{h} is not an equirectangular panorama (width must be exactly 2x height)")
     config: dict[str, Any] = {}
+    config_digest = None
     cfg_path = root / SCENE_CONFIG
     try:
         check_scene_inputs(root, files)
         if cfg_path.is_file():
             limits.check_size(cfg_path, limits.MAX_CONFIG_BYTES, SCENE_CONFIG)
-            config = cached_yaml(cfg_path.read_text(errors="replace"),
-                                 lambda text: limits.parse_yaml(text, str(cfg_path))) or {}
+            text = cfg_path.read_text(errors="replace")
+            config_digest = text_digest(text)
+            config = cached_yaml(text, lambda text: limits.parse_yaml(text, str(cfg_path))) or {}
     except InputError as e:
         raise PipelineError(str(e)) from None
     check_scene_config(config, cfg_path, pipeline)
-    return Scene(root, files, config, notes=notes)
+    return Scene(root, files, config, notes=notes, config_digest=config_digest)
 
 
 def check_scene_inputs(root: Path, files: dict[str, Path | None]) -> None:
     """The cheap checks of the scene's other user files, before anything is written or hashed: artifacts/ usable, the
     depth's header and the rig mask within limits, a user trajectory readable and within limits. InputError (one
     line) otherwise."""
+    from panoworld.io.images import check_depth_file, check_mask_file
+
     arts = root / ARTIFACTS_DIRNAME
     if arts.is_symlink() and not arts.exists():
         raise InputError(f"{arts}: a dangling symbolic link; remove it (or point it at a directory)")
@@ -338,6 +341,8 @@ def check_scene_config(config: Any, path: Path, pipeline: Pipeline) -> None:
     params = config.get("params")
     if params is None:
         return
+    from panoworld.framework.stage import normalize
+
     if not isinstance(params, dict):
         raise PipelineError(f"{path}: params: expected a mapping of stage: {{param: value}}, got {_short(params)}")
     for stage, values in params.items():
@@ -378,6 +383,8 @@ def resolve_params(
 ) -> dict[str, Any]:
     """Params objects per stage: dataclass defaults < pipeline params < preset < scene.yaml < --set, each value
     checked against its declared type, range and choices (PipelineError naming the param and where it was set)."""
+    from panoworld.framework.stage import merge, normalize, params_from_normalized
+
     preset = preset or (scene.config.get("preset") if scene else None) or DEFAULT_PRESET
     if preset not in pipeline.presets:
         raise PipelineError(f"--preset {preset}: unknown preset; known: {', '.join(pipeline.presets)}")
@@ -417,7 +424,7 @@ class SceneLock:
     artifacts/.lock for the message a second runner gets. It dies with the process."""
 
     def __init__(self, scene: Scene):
-        self.path = scene.artifacts / LOCK_FILE
+        self.path = scene.artifacts / art.LOCK_FILE
         self.fd: int | None = None
         self.inode = ""
 
@@ -441,7 +448,8 @@ class SceneLock:
         st = os.fstat(fd)
         self.inode = f"{st.st_dev}:{st.st_ino}"
         with contextlib.suppress(OSError):  # a read-only scene whose stages are all up to date still reports them
-            write_text_atomic(self.path, f"pid {os.getpid()} since {time.strftime('%Y-%m-%d %H:%M:%S')}")
+            write_text_atomic(self.path, f"pid {os.getpid()} since {time.strftime('%Y-%m-%d %H:%M:%S')}",
+                              durable=False)  # the flock is the lock; this only names its holder
             for leftover in arts.glob(f"**/logs/{PARAMS_FILE_PREFIX}*.json"):  # of a killed runner
                 leftover.unlink(missing_ok=True)
             art.sweep_leftovers(arts)
@@ -529,6 +537,17 @@ def _diff_params(stage: str, old: dict, new: dict) -> str:
 
 def stage_state(node: StageNode, scene: Scene, params: Any) -> tuple[bool, str]:
     """(up_to_date, reason) for one stage given the artifacts on disk now."""
+    from panoworld.framework import code_digest
+    from panoworld.framework.hub import resolve as hub
+    from panoworld.framework.stage import (
+        input_digest,
+        params_hash,
+        params_to_dict,
+        resolve_stage_weights,
+        stage_code,
+        stage_key,
+    )
+
     out_dir = scene.artifact_dir(node.name)
     if not out_dir.exists():
         return False, "no artifact yet"
@@ -618,6 +637,9 @@ def run_logged(cmd: list[str], log: Path, echo: bool = False, env_extra: dict[st
 
     On exit code 2 (bad input) the output stays in pending_log(log), for the runner to read and delete: a refused
     input leaves no log behind, and the previous run's log stays."""
+    import subprocess
+    import threading
+
     log = Path(log)
     log.parent.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
@@ -657,6 +679,8 @@ scene lock deletes those a killed runner left."""
 def run_with_params_file(template: list[str], params: dict, log: Path, echo: bool = False,
                          env_extra: dict[str, str] | None = None) -> tuple[int, float, float]:
     """Write the params file beside the log, run the stage command template ({params_file}, {python}), delete it."""
+    import threading
+
     log = Path(log)
     log.parent.mkdir(parents=True, exist_ok=True)
     params_file = log.parent / f"{PARAMS_FILE_PREFIX}{log.stem}-{os.getpid()}-{threading.get_ident()}.json"
@@ -670,16 +694,20 @@ def run_with_params_file(template: list[str], params: dict, log: Path, echo: boo
 
 def runner_env(scene: Scene) -> dict[str, str]:
     """What a stage started by this process needs to check, before it commits, that its runner still holds the lock."""
+    from panoworld.framework.stage import LOCK_ENV, LOCK_INODE_ENV, RUNNER_PID_ENV
+
     try:
         st = os.stat(scene.artifacts)
         inode = f"{st.st_dev}:{st.st_ino}"
     except OSError:
         inode = ""
-    return {LOCK_ENV: str(scene.artifacts / LOCK_FILE), LOCK_INODE_ENV: inode, RUNNER_PID_ENV: str(os.getpid())}
+    return {LOCK_ENV: str(scene.artifacts / art.LOCK_FILE), LOCK_INODE_ENV: inode, RUNNER_PID_ENV: str(os.getpid())}
 
 
 def _run_subprocess(node: StageNode, scene: Scene, params: Any, echo: bool) -> tuple[int, float, float]:
     """Run `python -m <stage module>` with explicit inputs; returns (exit code, seconds, peak RSS MB)."""
+    from panoworld.framework.stage import REFUSAL_ENV, params_to_dict
+
     template = stage_command(node, scene, "{params_file}", python="{python}")
     env = {**runner_env(scene), REFUSAL_ENV: str(refusal_file(scene.log_file(node.name)))}
     return run_with_params_file(template, params_to_dict(params), scene.log_file(node.name), echo, env)
@@ -732,6 +760,15 @@ def run(
     pipeline = pipeline or Pipeline.load()
     selected, forced = _select(pipeline, list(only), from_, until)
     set_map = parse_sets(list(sets), pipeline)
+    plain = not (only or from_ or until or force or dry_run) and variant is None and execute is None
+    if plain:
+        replayed = _replay(_record_key(pipeline, Path(scene_dir).absolute(), _config_digest(scene_dir), preset, sets),
+                           scene_dir, on_result)
+        if replayed is not None:
+            return replayed
+    from panoworld.framework import kernels
+    from panoworld.framework.hub import resolve as hub
+
     scene = open_scene(scene_dir, pipeline)
     if variant is not None:  # the variant's --set values override the run's; their stages and descendants are its tail
         name, vsets = variant
@@ -741,6 +778,7 @@ def run(
         tail = set(vmap).union(*(pipeline.descendants(st) for st in vmap))
         scene = dataclasses.replace(scene, variant=name, tail=frozenset(tail))
     params = resolve_params(pipeline, preset, scene, set_map, [n for n in pipeline.order if n in selected or n in set_map])
+    key = _record_key(pipeline, scene.root, scene.config_digest, preset, sets) if plain else None
     if force:
         forced |= selected
     if not dry_run:  # an `hf:` weights id missing from the local cache: one line naming `weights fetch`, nothing run
@@ -776,6 +814,7 @@ def run(
     compiling: list = []
     fresh = not scene.artifacts.exists()
     with SceneLock(scene) as lock:
+        watch = _watch(pipeline, scene) if key is not None else None
         for name in pipeline.order:
             node = pipeline.stages[name]
             art.recover_dir(scene.artifact_dir(name))
@@ -838,13 +877,73 @@ def run(
                 emit(StageResult(name, "skipped", "not run: an earlier stage failed (use --keep-going)"))
         if fresh and not any(r.action == "ran" for r in report.results):
             lock.remove_bookkeeping()  # nothing committed into a new artifacts/: leave the scene as it was
-    if "register" in pipeline.stages and any(r.stage == "register" and r.action in ("ran", "cached")
-                                              for r in report.results):
-        from panoworld.register.artifact import registration_note
+        if "register" in pipeline.stages and any(r.stage == "register" and r.action in ("ran", "cached")
+                                                  for r in report.results):
+            from panoworld.register.artifact import registration_note
 
-        note = registration_note(scene.artifact_dir("register"), scene.root)
-        if note:
-            report.notes.append(note)
+            note = registration_note(scene.artifact_dir("register"), scene.root)
+            if note:
+                report.notes.append(note)
+        if key is not None:
+            _record(key, pipeline, scene, params, report, watch)
+    return report
+
+
+def _record_key(pipeline: Pipeline, root: Path, config_digest: str | None, preset: str | None, sets) -> str:
+    """The up-to-date record's key of a plain run: its arguments and the texts of pipeline.yaml and scene.yaml."""
+    return uptodate.record_key(root, pipeline.path, [pipeline.text_digest, config_digest, preset, list(sets)])
+
+
+def _config_digest(scene_dir: Path | str) -> str | None:
+    try:
+        return text_digest((Path(scene_dir) / SCENE_CONFIG).read_text(errors="replace"))
+    except OSError:
+        return None
+
+
+def _watch(pipeline: Pipeline, scene: Scene) -> tuple[list[str], list] | None:
+    """(paths, their stats now) of what this run's decisions read (uptodate.watched_paths); None when no record can
+    stand for them."""
+    paths = uptodate.watched_paths(scene.root, pipeline.path, [(scene.artifact_dir(n), pipeline.stages[n].spec.module)
+                                                                for n in pipeline.order])
+    return None if paths is None else (paths, uptodate.stats(paths))
+
+
+def _record(key: str, pipeline: Pipeline, scene: Scene, params: dict[str, Any], report: Report,
+            watch: tuple[list[str], list] | None) -> None:
+    """After a plain run under the lock: record what a no-op of the same arguments reports while nothing it read
+    changes (uptodate); the stats are those taken before the decisions that found every stage up to date (for a run
+    that ran stages, decided again here)."""
+    if [r.stage for r in report.results] != pipeline.order or any(r.action not in ("cached", "ran") for r in report.results):
+        uptodate.drop(key)
+        return
+    results = report.results
+    if any(r.action == "ran" for r in results):
+        watch = _watch(pipeline, scene)
+        if watch is not None:
+            results = [StageResult(n, "cached", why) for n in pipeline.order
+                       for up, why in [stage_state(pipeline.stages[n], scene, params[n])] if up]
+    if watch is None or len(results) != len(pipeline.order):
+        uptodate.drop(key)
+        return
+    uptodate.save(key, *watch, [r.as_dict() for r in results], list(report.notes))
+
+
+def _replay(key: str, scene_dir: Path | str, on_result: Callable[[StageResult], None] | None) -> Report | None:
+    """The report a plain run recorded (_record) when none of the files its decisions read has changed since, checked
+    under the scene lock; None otherwise."""
+    root = Path(scene_dir).absolute()
+    if not (root / ARTIFACTS_DIRNAME).is_dir():
+        return None
+    with SceneLock(Scene(root, {}, {})):
+        rec = uptodate.replayable(key)
+        try:
+            report = Report(root, notes=[str(n) for n in rec["notes"]], results=[StageResult(**r) for r in rec["results"]])
+        except (TypeError, KeyError):  # no record, or not one this runner wrote
+            return None
+        for r in report.results:
+            if on_result:
+                on_result(r)
     return report
 
 

@@ -34,8 +34,6 @@ from panoworld.framework.hub import resolve as hub
 from panoworld.io import manifest as art
 from panoworld.io.jsonio import to_jsonable
 
-LOCK_FILE = ".lock"
-"""The scene lock, SCENE/artifacts/.lock: held (flock) by the runner working on the scene, naming its pid."""
 LOCK_ENV = "PANOWORLD_SCENE_LOCK"
 LOCK_INODE_ENV = "PANOWORLD_SCENE_LOCK_INODE"
 """`DEV:INODE` of the artifacts directory the runner holds the flock of (a directory removed and made again is not

@@ -59,9 +59,10 @@ def check_output_dir(path: Path | str) -> Path:
 
 
 @contextlib.contextmanager
-def atomic_output(path: Path | str, mode: str = "wb", *, encoding: str | None = None) -> Iterator[IO]:
+def atomic_output(path: Path | str, mode: str = "wb", *, encoding: str | None = None, durable: bool = True) -> Iterator[IO]:
     """Open a temporary beside path (a random name created with O_EXCL, never followed through a link), yield it,
-    and on success fsync it and rename it over path; on failure the temporary goes and path stays as it was."""
+    and on success fsync it (durable) and rename it over path; on failure the temporary goes and path stays as it
+    was. Not durable: a crash may leave path empty, never half written (for notes whose loss costs nothing)."""
     path = check_output_file(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
@@ -69,7 +70,8 @@ def atomic_output(path: Path | str, mode: str = "wb", *, encoding: str | None = 
         with os.fdopen(fd, mode, encoding=encoding) as f:
             yield f
             f.flush()
-            os.fsync(f.fileno())
+            if durable:
+                os.fsync(f.fileno())
         check_output_file(path)  # still a regular file (or nothing) at the moment of the swap
         os.replace(tmp, path)
     except BaseException:
@@ -78,9 +80,9 @@ def atomic_output(path: Path | str, mode: str = "wb", *, encoding: str | None = 
         raise
 
 
-def write_text_atomic(path: Path | str, text: str, encoding: str = "utf-8") -> Path:
+def write_text_atomic(path: Path | str, text: str, encoding: str = "utf-8", *, durable: bool = True) -> Path:
     """Write text to path through atomic_output: readers see the old file or the new one, never a part."""
-    with atomic_output(path, "w", encoding=encoding) as f:
+    with atomic_output(path, "w", encoding=encoding, durable=durable) as f:
         f.write(text)
     return Path(path)
 
