@@ -115,7 +115,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
         for (a, b), lp in layouts.items():
             if lp is None:
                 continue
-            layout_refused[a, b] = _layout_refusal(lp, bearing[a, b], o)
+            layout_refused[a, b] = off_frames((a, b), lp.a_from_b) or _layout_refusal(lp, bearing[a, b], o)
             if not layout_refused[a, b]:
                 edges.append(Edge(a=names[a], b=names[b], a_from_b=lp.a_from_b, kind=LAYOUT, inliers=int(lp.score),
                                   info={"layout_score": round(lp.score, 1), "layout_second": round(lp.second, 1)}))
