@@ -68,8 +68,8 @@ class RegisterOptions:
     """Use each panorama's wall directions (panoworld/register/layout.py: manhattan_frame, from the depth's room
     outline; none where the outline is incomplete or not at right angles) where both panoramas of a pair have them:
     the pair's yaw is then one of 4 (the difference of the two modulo 90 degrees). A floor pair is fitted with its yaw
-    fixed to those 4 (translation only), and a depth-backed or bearing-only pose more than manhattan_tol_deg off them
-    is refused."""
+    fixed to those 4 (translation only), and a depth-backed, bearing-only or layout pose more than manhattan_tol_deg
+    off them is refused."""
     manhattan_tol_deg: float = param(5.0, gt=0, le=45)
     """A pose's yaw must lie within this of one the wall directions allow."""
     layout: bool = False
