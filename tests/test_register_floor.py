@@ -8,7 +8,13 @@ import cv2
 import numpy as np
 
 from panoworld.core.conventions import erp_dirs, invert_pose
-from panoworld.register.floor import camera_height, floor_pair, floor_view, oriented_rigid2d_ransac
+from panoworld.register.floor import (
+    camera_height,
+    fixed_yaw_translation,
+    floor_pair,
+    floor_view,
+    oriented_rigid2d_ransac,
+)
 from panoworld.register.graph import FLOOR, Edge, solve_graph
 from panoworld.register.options import RegisterOptions
 from panoworld.register.solve import register_panoramas
@@ -94,6 +100,38 @@ def test_oriented_rigid2d_ransac_needs_position_orientation_and_scale_to_agree()
     # the same positions without orientation agreement: nothing beyond chance
     _, _, inl = oriented_rigid2d_ransac(p, q, rng.uniform(-np.pi, np.pi, n), dlog2, threshold=0.03)
     assert inl.sum() <= 3
+
+
+def test_fixed_yaw_translation_takes_the_candidate_yaw_the_matches_agree_with():
+    rng = np.random.default_rng(4)
+    n_true, n = 8, 800
+    q = rng.uniform(-3, 3, (n, 2))
+    yaw = np.radians(-37.0)
+    R = yaw_matrix(yaw)[[0, 2]][:, [0, 2]]
+    p = rng.uniform(-3, 3, (n, 2))
+    p[:n_true] = q[:n_true] @ R.T + [0.4, 2.1] + rng.normal(0, 0.005, (n_true, 2))
+    dtheta = rng.uniform(-np.pi, np.pi, n)
+    dtheta[:n_true] = yaw + rng.normal(0, 0.05, n_true)
+    dlog2 = rng.normal(0, 0.3, n)
+    cands = yaw + np.arange(4) * np.pi / 2
+    yaw_hat, t, inl = fixed_yaw_translation(p, q, dtheta, dlog2, cands, threshold=0.03)
+    assert yaw_hat == cands[0] and inl[:n_true].all() and inl[n_true:].sum() <= 1
+    assert np.allclose(t, [0.4, 2.1], atol=0.01)
+    # candidates 20 degrees off the truth: the true matches no longer agree
+    _, _, inl = fixed_yaw_translation(p, q, dtheta, dlog2, cands + np.radians(20.0), threshold=0.03)
+    assert inl.sum() <= 3
+
+
+def test_floor_pair_with_the_yaw_fixed_recovers_the_translation():
+    tex = _texture(6)
+    wa, wb = _pose(10.0, 0.0, 0.0), _pose(-68.0, 1.9, -0.7)
+    va, vb = (floor_view(*_render(w, tex), radius_m=4.0) for w in (wa, wb))
+    truth = invert_pose(wa) @ wb
+    yaw = yaw_of(truth[:3, :3])
+    p = floor_pair(va, vb, yaws=yaw + np.arange(4) * np.pi / 2)
+    assert p is not None and p.inliers >= 50
+    assert abs(yaw_of(p.a_from_b[:3, :3]) - yaw) < 1e-9
+    assert np.linalg.norm(p.a_from_b[:3, 3] - truth[:3, 3]) < 0.03
 
 
 def test_floor_edge_joins_groups_in_the_pose_graph():

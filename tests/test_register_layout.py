@@ -9,9 +9,9 @@ import pytest
 
 from panoworld.core.conventions import erp_dirs, invert_pose
 from panoworld.register.graph import BEARING, LAYOUT, Edge, solve_graph
-from panoworld.register.layout import LayoutPose, layout_pair, overlaps, room, walls_of
+from panoworld.register.layout import LayoutPose, layout_pair, manhattan_frame, overlaps, room, walls_of
 from panoworld.register.options import RegisterOptions
-from panoworld.register.solve import register_panoramas
+from panoworld.register.solve import _off_manhattan, manhattan_yaws, register_panoramas
 from panoworld.register.upright import yaw_matrix, yaw_of
 
 H = 128
@@ -78,6 +78,31 @@ def test_walls_of_a_rectangle_room():
     lengths = np.array([np.linalg.norm(w.p1 - w.p0) for w in r.walls])
     assert np.abs(lengths - 3.5).max() < 0.15  # corners fall between the 256 columns
     assert walls_of(np.full(256, np.nan)) == []
+
+
+def test_manhattan_frames_give_the_relative_yaw_modulo_90_degrees():
+    wa, wb = _pose(20.0, -0.5, 0.3), _pose(-113.0, 3.0, 0.5)
+    ta, tb = manhattan_frame(_render(wa, ROOM_A, ROOM_B)[1]), manhattan_frame(_render(wb, ROOM_B, ROOM_A)[1])
+    assert ta is not None and tb is not None
+    yaws = manhattan_yaws(ta, tb)
+    truth = yaw_of((invert_pose(wa) @ wb)[:3, :3])
+    assert np.degrees(np.abs(np.angle(np.exp(1j * (yaws - truth)))).min()) < 0.5
+    o = RegisterOptions()
+    assert _off_manhattan(_pose(np.degrees(truth) + 3.0, 1.0, 0.0), yaws, o) == ""
+    assert "off the rooms' wall directions" in _off_manhattan(_pose(np.degrees(truth) + 30.0, 1.0, 0.0), yaws, o)
+    assert _off_manhattan(_pose(33.0, 1.0, 0.0), None, o) == ""
+
+
+def test_no_manhattan_frame_without_a_right_angled_outline():
+    depth = _render(_pose(0.0, 0.0, 0.0), ROOM_A, ROOM_B)[1]
+    masked = depth.copy()
+    masked[:, : depth.shape[1] // 4] = 0  # a quarter of the outline unknown (layout masked as implausible)
+    assert manhattan_frame(masked) is None
+    d = erp_dirs(H, 2 * H, np.float64)
+    circle = 2.0 / np.maximum(np.hypot(d[..., 0], d[..., 2]), 1e-6)  # a round room: no walls at right angles
+    circle = np.minimum(circle, np.where(d[..., 1] > 0, FLOOR_Y / np.maximum(d[..., 1], 1e-6), np.inf))
+    circle = np.minimum(circle, np.where(d[..., 1] < 0, -CEIL_Y / np.maximum(-d[..., 1], 1e-6), np.inf))
+    assert manhattan_frame(circle) is None
 
 
 def test_overlapping_placement_is_rejected():

@@ -152,11 +152,41 @@ def oriented_rigid2d_ransac(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dl
     return yaw, t, inl
 
 
-def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: float = 1.0, seed: int = 0
-               ) -> FloorPose | None:
+def fixed_yaw_translation(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dlog2: np.ndarray, yaws: np.ndarray, *,
+                          threshold: float, angle_tol: float = np.radians(15.0), scale_tol: float = 0.6
+                          ) -> tuple[float, np.ndarray, np.ndarray] | None:
+    """oriented_rigid2d_ransac with the yaw one of the candidates yaws (K,) (radians): per candidate, every match
+    whose orientation difference is within angle_tol of it and whose sizes agree gives one translation p - R q; the
+    translation most of them agree with (within threshold) is refined as their mean. The candidate with the most
+    inliers wins. -> (yaw, t (2,), inliers (N,) bool), None without a hypothesis."""
+    check_shape("p", p, "N 2")
+    check_shape("q", q, "N 2")
+    best: tuple[float, np.ndarray, np.ndarray] | None = None
+    for yaw in np.asarray(yaws, np.float64).ravel():
+        ok = (np.abs(dlog2) < scale_tol) & (np.abs(wrap_angle(dtheta - yaw)) < angle_tol)
+        idx = np.flatnonzero(ok)
+        if not len(idx):
+            continue
+        d = p[idx] - q[idx] @ yaw_matrix_xz(yaw).T
+        counts = np.zeros(len(d), np.int64)
+        for k0 in range(0, len(d), 1024):
+            counts[k0:k0 + 1024] = (((d[k0:k0 + 1024, None] - d[None]) ** 2).sum(-1) < threshold**2).sum(1)
+        t = d[int(np.argmax(counts))]
+        for _ in range(3):
+            near = np.linalg.norm(d - t, axis=1) < threshold
+            t = d[near].mean(0)
+        inl = np.zeros(len(p), bool)
+        inl[idx[np.linalg.norm(d - t, axis=1) < threshold]] = True
+        if best is None or inl.sum() > best[2].sum():
+            best = (float(yaw), t, inl)
+    return best
+
+
+def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: float = 1.0, seed: int = 0,
+               yaws: np.ndarray | None = None) -> FloorPose | None:
     """a_from_b of two floor views: each keypoint of a with its nearest neighbour in b (Lowe's ratio test below 1),
-    oriented_rigid2d_ransac (threshold_m on the floor), the vertical offset from the camera heights (one floor). None
-    without a model."""
+    oriented_rigid2d_ransac (threshold_m on the floor), or fixed_yaw_translation when the yaw is known to be one of
+    yaws (radians); the vertical offset from the camera heights (one floor). None without a model."""
     if len(a.descriptors) < 2 or len(b.descriptors) < 2:
         return None
     knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(a.descriptors, b.descriptors, k=2)
@@ -164,8 +194,10 @@ def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: 
                   if len(k) == 2 and (ratio >= 1 or k[0].distance < ratio * k[1].distance)], np.int64).reshape(-1, 2)
     if len(m) < 2:
         return None
-    fit = oriented_rigid2d_ransac(a.xz[m[:, 0]], b.xz[m[:, 1]], a.angles[m[:, 0]] - b.angles[m[:, 1]],
-                                  np.log2(a.sizes[m[:, 0]] / b.sizes[m[:, 1]]), threshold=threshold_m, seed=seed)
+    args = (a.xz[m[:, 0]], b.xz[m[:, 1]], a.angles[m[:, 0]] - b.angles[m[:, 1]],
+            np.log2(a.sizes[m[:, 0]] / b.sizes[m[:, 1]]))
+    fit = (oriented_rigid2d_ransac(*args, threshold=threshold_m, seed=seed) if yaws is None
+           else fixed_yaw_translation(*args, yaws, threshold=threshold_m))
     if fit is None:
         return None
     yaw, t, inl = fit

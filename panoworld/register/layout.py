@@ -163,6 +163,27 @@ def manhattan_fraction(walls: list[Wall], theta: float, *, tol_deg: float = 5.0)
     return float(length[off < np.radians(tol_deg)].sum() / max(length.sum(), 1e-9))
 
 
+def manhattan_frame(depth: np.ndarray, *, min_manhattan: float = 0.9, min_valid: float = 0.95, tol_deg: float = 5.0
+                    ) -> float | None:
+    """The wall directions of a panorama's room modulo 90 degrees (radians, atan2(z, x) of the wall normals, the
+    length-weighted mean of the walls within tol_deg of the dominant axes) from its ray depth (H, W) (0 = unknown);
+    None when the outline is known in fewer than min_valid of the columns (masked or open layout) or less than
+    min_manhattan of the wall length lies within tol_deg of the axes (not a Manhattan room, or a layout seen from
+    outside its polygon)."""
+    dist = outline(depth)
+    if np.isfinite(dist).mean() < min_valid:
+        return None
+    walls = walls_of(dist)
+    if not walls:
+        return None
+    theta = dominant_direction(walls)
+    if manhattan_fraction(walls, theta, tol_deg=tol_deg) < min_manhattan:
+        return None
+    on_axis = [w for w in walls if abs(np.angle(np.exp(4j * (np.arctan2(w.normal[1], w.normal[0]) - theta)))) / 4
+               < np.radians(tol_deg)]
+    return dominant_direction(on_axis)
+
+
 def room(rgb: np.ndarray, depth: np.ndarray, *, rows: int = 96, min_manhattan: float = 0.8) -> Room | None:
     """The Room of a panorama rgb (H, 2H, 3) with ray depth (h, 2h) (0 = unknown); None without walls or a camera
     height, or when less than min_manhattan of the wall length is at right angles (no dominant direction: a layout

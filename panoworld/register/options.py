@@ -64,6 +64,14 @@ class RegisterOptions:
     min_floor_inliers: int = param(8, ge=3)
     """A floor pair needs at least this many inliers (and no contradiction from its bearing-only estimate, checked as
     for a depth-backed pose)."""
+    manhattan: bool = True
+    """Use each panorama's wall directions (panoworld/register/layout.py: manhattan_frame, from the depth's room
+    outline; none where the outline is incomplete or not at right angles) where both panoramas of a pair have them:
+    the pair's yaw is then one of 4 (the difference of the two modulo 90 degrees). A floor pair is fitted with its yaw
+    fixed to those 4 (translation only), and a depth-backed, bearing-only or layout pose more than manhattan_tol_deg
+    off them is refused."""
+    manhattan_tol_deg: float = param(5.0, gt=0, le=45)
+    """A pose's yaw must lie within this of one the wall directions allow."""
     layout: bool = False
     """Also try pairs that no depth, floor or bearing edge joins into one group with their layouts
     (panoworld/register/layout.py): a wall of one room against an opposed wall of the other, judged by where the

@@ -10,7 +10,7 @@ from panoworld.core.conventions import invert_pose
 from panoworld.geometry.resize import rgbd_at_height
 from panoworld.register.floor import FloorPose, FloorView, floor_pair, floor_view
 from panoworld.register.graph import BEARING, DEPTH, DIRECTION, FLOOR, LAYOUT, Edge, group_of, solve_graph
-from panoworld.register.layout import LayoutPose, layout_pair, room
+from panoworld.register.layout import LayoutPose, layout_pair, manhattan_frame, room
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pair_select import ALL_PAIRS_UP_TO, appearance_descriptor, candidate_pairs
 from panoworld.register.pairwise import (
@@ -56,6 +56,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     pairs: dict[tuple[int, int], PairResult] = {}
     bearing: dict[tuple[int, int], tuple[UprightPose | None, float, int]] = {}
     floors: dict[tuple[int, int], FloorPose | None] = {}
+    frames: dict[str, float | None] = {}
     k = len(names)
     if need:
         small = {n: rgbd_at_height(rgbs[n], depths[n], o.height) for n in names}
@@ -65,6 +66,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
             n: floor_view(rgbs[n], small[n][1], radius_m=o.floor_radius_m, cell_m=o.floor_cell_m, exclude=rig[n])
             if o.floor else None for n in names}
         looks = {n: appearance_descriptor(small[n][0]) for n in names} if k > ALL_PAIRS_UP_TO else None
+        frames = {n: manhattan_frame(small[n][1]) if o.manhattan else None for n in names}
         for a, b in candidate_pairs(names, looks, given=given):
             fa, fb = feats[names[a]], feats[names[b]]
             m = match(fa, fb)
@@ -75,11 +77,16 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
             rows = max(small[names[a]][1].shape[0], small[names[b]][1].shape[0])
             bearing[a, b] = _bearing_pair(fa, fb, m, rows, o)
             va, vb = views[names[a]], views[names[b]]
-            floors[a, b] = None if va is None or vb is None else floor_pair(va, vb, threshold_m=o.floor_threshold_m,
-                                                                            ratio=o.floor_ratio)
+            floors[a, b] = None if va is None or vb is None else floor_pair(
+                va, vb, threshold_m=o.floor_threshold_m, ratio=o.floor_ratio,
+                yaws=manhattan_yaws(frames[names[a]], frames[names[b]]))
             if progress:
                 progress(names[a], names[b], pairs[a, b])
-    refused = {ab: _contradiction(p.i_from_j, bearing[ab], o) for ab, p in pairs.items() if accepted(p, o)}
+    def off_frames(ab: tuple[int, int], a_from_b: np.ndarray) -> str:
+        return _off_manhattan(a_from_b, manhattan_yaws(frames.get(names[ab[0]]), frames.get(names[ab[1]])), o)
+
+    refused = {ab: off_frames(ab, p.i_from_j) or _contradiction(p.i_from_j, bearing[ab], o)
+               for ab, p in pairs.items() if accepted(p, o)}
     depth_ok = {ab: accepted(p, o) and not refused[ab] for ab, p in pairs.items()}
     floor_refused = {ab: _contradiction(f.a_from_b, bearing[ab], o)
                      or same_room_refusal(f.a_from_b, small[names[ab[0]]][1], small[names[ab[1]]][1],
@@ -95,7 +102,8 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
         elif f is not None and (a, b) in floor_refused and not floor_refused[a, b]:
             edges.append(Edge(a=names[a], b=names[b], a_from_b=f.a_from_b, kind=FLOOR, inliers=f.inliers,
                               info={"inliers": f.inliers, "matches": f.matches, "residual": round(f.residual_m, 4)}))
-        elif (a, b) in bearing and bearing[a, b][0] is not None:
+        elif (a, b) in bearing and bearing[a, b][0] is not None and not off_frames(
+                (a, b), bearing[a, b][0].i_from_j()):
             pose, scale, support = bearing[a, b]
             metric = support >= o.min_scale_support
             edges.append(Edge(a=names[a], b=names[b], a_from_b=pose.i_from_j(scale if metric else 1.0),
@@ -117,8 +125,9 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
         for (a, b), lp in layouts.items():
             if lp is None:
                 continue
-            layout_refused[a, b] = _layout_refusal(lp, bearing[a, b], o) or same_room_refusal(
-                lp.a_from_b, small[names[a]][1], small[names[b]][1], min_consistency=o.min_consistency)
+            layout_refused[a, b] = (off_frames((a, b), lp.a_from_b) or _layout_refusal(lp, bearing[a, b], o)
+                                    or same_room_refusal(lp.a_from_b, small[names[a]][1], small[names[b]][1],
+                                                         min_consistency=o.min_consistency))
             if not layout_refused[a, b]:
                 edges.append(Edge(a=names[a], b=names[b], a_from_b=lp.a_from_b, kind=LAYOUT, inliers=int(lp.score),
                                   info={"layout_score": round(lp.score, 1), "layout_second": round(lp.second, 1)}))
@@ -129,6 +138,9 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
             best = max(tried, key=lambda p: (p.inliers, p.consistency), default=None)
             info[n]["reason"] += (f" (best depth-backed pair: {0 if best is None else best.inliers} inliers, "
                                   f"{0.0 if best is None else best.consistency:.2f} consistency)")
+    for n, theta in frames.items():
+        if theta is not None:
+            info[n]["walls_deg"] = round(float(np.degrees(theta)), 3)
     anchor = next(n for n in names if n in poses)
     cam_from_world = invert_pose(poses[anchor])
     out = {n: cam_from_world @ poses[n] for n in names if n in poses}
@@ -160,6 +172,8 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
             if pose is not None:
                 row.update(yaw_deg=round(float(np.degrees(pose.yaw)), 3),
                            scale_m=None if not np.isfinite(scale) else round(scale, 4), scale_support=support)
+                if off := off_frames((a, b), pose.i_from_j()):
+                    row["bearing_refused"] = off
         rows.append(row)
     return Registration(world_from_cam=out, panoramas={n: info[n] for n in names}, pairs=rows)
 
@@ -183,6 +197,23 @@ def _contradiction(i_from_j: np.ndarray, bearing: tuple[UprightPose | None, floa
         return (f"baseline {np.linalg.norm(t):.2f} m, bearing-only {scale:.2f} m from {support} points whose depths "
                 "agree")
     return ""
+
+
+def manhattan_yaws(theta_a: float | None, theta_b: float | None) -> np.ndarray | None:
+    """The 4 yaws (radians) of a_from_b that the wall directions theta_a, theta_b (manhattan_frame, modulo 90
+    degrees) of two panoramas in one Manhattan home allow; None when either has none."""
+    if theta_a is None or theta_b is None:
+        return None
+    return wrap_angle(theta_b - theta_a + np.arange(4) * np.pi / 2)
+
+
+def _off_manhattan(a_from_b: np.ndarray, yaws: np.ndarray | None, o: RegisterOptions) -> str:
+    """Why a pose a_from_b (4, 4) contradicts the yaws its panoramas' wall directions allow ('' when it does not, or
+    without them)."""
+    if yaws is None:
+        return ""
+    off = float(np.degrees(np.abs(wrap_angle(yaw_of(a_from_b[:3, :3]) - yaws)).min()))
+    return f"yaw {off:.1f} deg off the rooms' wall directions" if off > o.manhattan_tol_deg else ""
 
 
 def _layout_refusal(lp: LayoutPose, bearing: tuple[UprightPose | None, float, int], o: RegisterOptions) -> str:
