@@ -306,9 +306,8 @@ def _along_band(val: np.ndarray, known: np.ndarray, hole: np.ndarray, membrane: 
     line = cv2.GaussianBlur(line * ok[..., None], (0, 0), smooth) / np.maximum(wsum, 1e-6)[..., None]
     back = lambda a: cv2.warpAffine(a, to_rot, (s, s), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    wline = back(ok.astype(np.float32)) * share
+    wline = np.where(free, np.clip(back(wsum), 0.0, 1.0) * share, 0.0)[..., None]  # rows without both ends: no seam
     line = back(line.astype(np.float32))
-    wline = np.where(free, np.clip(wline, 0, 1), 0.0)[..., None]
     return (wline * line + (1 - wline) * membrane).astype(np.float32)
 
 
