@@ -1,6 +1,6 @@
 """Capture-rig detection and removal on the shared real panoramas against hand-drawn rig labels.
 
-    python bench/bench_rig_real.py [--split dev|test|all] [--json F] [--save DIR]
+    python bench/bench_rig_real.py [--split dev|test|all] [--json F] [--save DIR] [--sectors]
 
 Runs what the depth stage runs at default settings (no flags): the panorama at the working size, the provided depth
 (ZInD layout depth), `clean_depth` with the default rig detector. Per panorama with a tripod (ZInD east, west and the
@@ -19,7 +19,9 @@ the ring of the render (gap_gaussians; `runner.py run` must have been run on the
 
 Controls with no rig (must stay byte-identical: panorama and depth): the Realsee pair (real LiDAR and synthesis) and
 the RGB-only samples (colour alone, no depth). Split: east + garage = dev (where the method was tuned), west = test
-(held out). --save DIR writes each panorama's nadir before/after with the detected mask's outline.
+(held out). --save DIR writes each panorama's nadir before/after with the detected mask's outline. --sectors prints
+the floor the input shows (luma medians) per azimuth sector and angle from the nadir: whether the floor under the
+camera is darker on every side (a shadow the capture added) or the room's light crosses some sectors.
 """
 
 from __future__ import annotations
@@ -85,6 +87,38 @@ def floor_gap(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, floor_m: fl
     lc = float((lum * w)[cap].sum() / w[cap].sum())
     lr = float((lum * w)[floor].sum() / max(w[floor].sum(), 1e-12))
     return abs(1.0 - lc / max(lr, 1e-6)), share
+
+
+SECTOR_EDGES = (3, 6, 9, 12, 15, 18, 21, 24, 27, 30, 35, 40)
+
+
+def sector_profile(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, floor_m: float | None,
+                   exclude: np.ndarray, sectors: int = 8) -> list[list[float | None]]:
+    """Median luma of the floor the input shows (on the floor plane by depth, outside exclude) per azimuth sector
+    (rows) and per band of SECTOR_EDGES degrees from the nadir (columns; None under 20 pixels): a shadow the capture
+    adds darkens every sector towards the nadir, the room's light (a sun band) some sectors at every angle."""
+    H, W = rgb.shape[:2]
+    t = from_nadir(H, W)
+    lum = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float64)
+    phi = np.broadcast_to((np.arange(W) + 0.5) / W * sectors, (H, W)).astype(int)
+    floor = valid & ~exclude
+    if floor_m:
+        floor &= np.abs(depth * np.cos(np.deg2rad(t)) - floor_m) < 0.05 * floor_m
+    out = []
+    for k in range(sectors):
+        row = []
+        for a, b in zip(SECTOR_EDGES[:-1], SECTOR_EDGES[1:]):
+            m = floor & (phi == k) & (t >= a) & (t < b)
+            row.append(float(np.median(lum[m])) if m.sum() >= 20 else None)
+        out.append(row)
+    return out
+
+
+def print_sectors(name: str, prof: list[list[float | None]]) -> None:
+    print(f"  {name}: floor luma by azimuth sector (rows) and degrees from the nadir (columns, band starts)")
+    print("    deg" + "".join(f"{a:>5d}" for a in SECTOR_EDGES[:-1]))
+    for k, row in enumerate(prof):
+        print(f"    {k * 360 // len(prof):>3d}" + "".join(f"{v:5.0f}" if v is not None else "    -" for v in row))
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -154,7 +188,7 @@ def save_picture(out: Path, name: str, before: np.ndarray, after: np.ndarray, de
     cv2.imwrite(str(out / f"{name.replace('/', '_')}.png"), cv2.cvtColor(np.concatenate([a, b], 1), cv2.COLOR_RGB2BGR))
 
 
-def rig_rows(split: str, save: Path | None) -> list[dict]:
+def rig_rows(split: str, save: Path | None, sectors: bool = False) -> list[dict]:
     doc = json.loads(LABELS.read_text())
     rows = []
     for name, pano, depth in rig_panoramas():
@@ -176,6 +210,9 @@ def rig_rows(split: str, save: Path | None) -> list[dict]:
         rows.append({"panorama": name, "split": part, "found": found, "kind": det.kind if det else None,
                      "reason": det.reason if det else "", "iou": iou(mask, label), "gap_before": gb, "gap_after": ga, "gap_seen": gs,
                      "ring_floor": share, "seconds": sec, "floor_m": floor_m})
+        if sectors:
+            rows[-1]["sectors"] = sector_profile(rgb, res.depth, res.valid, floor_m, around)
+            print_sectors(name, rows[-1]["sectors"])
         if save is not None:
             save_picture(save, name, rgb, c.rgb, mask, label)
         print(f"  {name}: found={found} iou={rows[-1]['iou']:.3f} gap {gb:.1%} -> {ga:.1%} (seen floor {gs:.1%})  ({sec:.1f} s)", flush=True)
@@ -268,13 +305,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, default=None, help="write the rows as JSON to this file")
     ap.add_argument("--save", type=Path, default=None, help="folder for nadir before/after pictures")
     ap.add_argument("--no-controls", action="store_true")
+    ap.add_argument("--sectors", action="store_true",
+                    help="also print each panorama's floor luma by azimuth sector and angle from the nadir (seen floor)")
     ap.add_argument("--scenes", type=Path, default=None,
                     help="folder of single-panorama scenes <side>_<pano> built by runner.py run: gap on their Gaussians")
     args = ap.parse_args(argv)
     if not (DATA / "zind_home").is_dir():
         print(f"{DATA / 'zind_home'}: the shared real panoramas are not there; nothing to measure", file=sys.stderr)
         return 2
-    rows = rig_rows(args.split, args.save)
+    rows = rig_rows(args.split, args.save, args.sectors)
     if args.scenes is not None:
         gaussian_gaps(rows, args.scenes)
     controls = [] if args.no_controls else control_rows()

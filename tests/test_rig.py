@@ -162,6 +162,23 @@ def test_rim_matting_keeps_the_floor_a_mask_margin_shows_and_unmixes_edges():
     assert err_matte < 0.4 * err_fill, (err_matte, err_fill)  # 4.7 dB better (the fill alone: the floor noise)
 
 
+
+def test_rim_matting_takes_out_a_colour_fringe_of_the_rig_edge():
+    # The rig's outermost pixels are not its mean colour (a brown-orange edge around a grey-black body, as real camera
+    # bodies show): matting the rim must not leave that edge's colour as a line in the fill.
+    from panoworld.depth.rig.inpaint import matte_rim
+
+    S = 96
+    yy, xx = np.mgrid[:S, :S]
+    r = np.hypot(yy + 0.5 - S / 2, xx + 0.5 - S / 2)
+    floor = np.full((S, S, 3), (120.0, 100.0, 90.0))
+    observed = np.where((r < 20.5)[..., None], np.array([25.0, 25.0, 30.0]), floor)
+    observed[(r >= 19.0) & (r < 20.5)] = (40.0, 20.0, 2.0)  # the body's edge, fully covered
+    mask = r < 22.5
+    out = matte_rim(observed, floor, mask)
+    edge = (r >= 19.0) & (r < 20.5) & mask
+    assert np.abs(out[edge] - floor[edge]).max() < 3.0, np.abs(out[edge] - floor[edge]).max()
+
 def test_leg_shadows_are_found_as_a_star_from_the_feet_and_grout_is_not():
     # A tiled floor with dark grout under three legs; a light casts each leg's shadow from its foot to the hub's
     # shadow, one shared point (35 % less light on thin lines, as faint as the development scenes' leg shadows). The

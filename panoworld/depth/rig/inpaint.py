@@ -161,9 +161,10 @@ MIN_CONTRAST = 30.0
 def matte_rim(observed: np.ndarray, fill: np.ndarray, mask: np.ndarray, rim_px: int = RIM_PX) -> np.ndarray:
     """The mask's rim pixels as floor: (H, W, 3) float, observed (the panorama) where the mask is not, observed plus
     alpha times (fill - rig) on the rim, the fill inside. Per rim pixel the rig's colour R is the local mean of the
-    mask's interior, the floor's is the fill F, and alpha the projection of the observed colour on the line F -> R:
-    a pixel that shows floor (a dilated margin, an anti-aliased edge) keeps its own texture, one that shows rig gets
-    the fill."""
+    mask's interior, the floor's is the fill F, and alpha the projection of the observed colour on the line F -> R;
+    the pixel becomes F plus (1 - alpha) of what the line leaves unexplained: a pixel that shows floor (a dilated
+    margin, an anti-aliased edge) keeps its own texture, one that shows rig gets the fill, its edge's own colour
+    (a fringe unlike the rig's mean) included."""
     c = observed.astype(np.float32)
     F = fill.astype(np.float32)
     m8 = mask.astype(np.uint8)
@@ -179,8 +180,9 @@ def matte_rim(observed: np.ndarray, fill: np.ndarray, mask: np.ndarray, rim_px: 
     d = (R - F)[rim]
     n2 = (d**2).sum(-1)
     alpha = np.clip(((c[rim] - F[rim]) * d).sum(-1) / np.maximum(n2, 1e-6), 0.0, 1.0)
-    alpha = np.where(n2 < MIN_CONTRAST**2, 1.0, alpha)
-    out[rim] = c[rim] - alpha[:, None] * d
+    alpha = np.where(n2 < MIN_CONTRAST**2, 1.0, alpha)[:, None]
+    resid = c[rim] - F[rim] - alpha * d  # off the line F -> R: the floor's texture or the rig's own edge (a colour fringe)
+    out[rim] = F[rim] + (1.0 - alpha) * resid
     return out
 
 
@@ -209,7 +211,9 @@ def ring_fill(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, width_
     sig = max(1.5, S / 100)
     tex_sig = max(1.0, S / 120)
     local = _spread(face, ring, (tex_sig,))
-    low = _membrane(_spread(face, ring, (3 * sig,)), ring, hole, _spread(face, ring, (24 * sig, 12 * sig, 3 * sig)))
+    mean = _spread(face, ring, (3 * sig,))
+    low = _along_band(mean, ring, hole, _membrane(mean, ring, hole, _spread(face, ring, (24 * sig, 12 * sig, 3 * sig))),
+                      2 * sig)
     resid = (face - local) * ring[..., None]
     out = face.copy()
     out[hole] = (low + _quilt(resid, ring, hole, max(8, int(S / 24)) // 2 * 2, seed))[hole]
@@ -268,6 +272,78 @@ def _membrane(known_val: np.ndarray, known: np.ndarray, hole: np.ndarray, start:
     up = cv2.resize(u, (S, S), interpolation=cv2.INTER_LINEAR)
     near = cv2.resize(solve.astype(np.uint8), (S, S), interpolation=cv2.INTER_NEAREST) > 0
     return np.where(near[..., None], up, start).astype(np.float32)
+
+
+BAND_COHERENCE = (0.5, 0.8)
+"""Coherence of the ring's light (_isophote_direction: 1 when all its gradients cross one direction, the edges of a
+straight sun band; a carpet's grain or a room's light: less) from which the fill starts to follow that direction
+and where it follows it wholly."""
+
+
+def _along_band(val: np.ndarray, known: np.ndarray, hole: np.ndarray, membrane: np.ndarray,
+                smooth: float) -> np.ndarray:
+    """membrane over the free pixels, blended towards the linear interpolation between the two known pixels met along
+    the ring's isophote direction (a sun band across the hole goes on straight, where the membrane lets the shade on
+    either side darken its middle) as far as the ring's light gradients share one direction (BAND_COHERENCE)."""
+    (dx, dy), coherence = _isophote_direction(val, known)
+    share = float(np.clip((coherence - BAND_COHERENCE[0]) / (BAND_COHERENCE[1] - BAND_COHERENCE[0]), 0.0, 1.0))
+    free = hole & ~known
+    if share == 0.0:
+        return membrane
+    s = known.shape[0]
+    n = int(np.ceil(s * np.sqrt(2))) + 2
+    to_rot = cv2.getRotationMatrix2D((0.5 * s, 0.5 * s), float(np.degrees(np.arctan2(dy, dx))), 1.0)
+    to_rot[:, 2] += 0.5 * (n - s)  # the isophote direction along the rows of an n x n canvas
+
+    def rot(a: np.ndarray, interp: int) -> np.ndarray:
+        return cv2.warpAffine(a, to_rot, (n, n), flags=interp, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+    kv = rot(known.astype(np.uint8), cv2.INTER_NEAREST) > 0
+    fr = rot(free.astype(np.uint8), cv2.INTER_NEAREST) > 0
+    v = rot(val.astype(np.float32), cv2.INTER_LINEAR)
+    line, ok = _rowwise_line(v, kv, fr)
+    wsum = cv2.GaussianBlur(ok.astype(np.float32), (0, 0), smooth)  # each row's ends carry the ring's texture
+    line = cv2.GaussianBlur(line * ok[..., None], (0, 0), smooth) / np.maximum(wsum, 1e-6)[..., None]
+    back = lambda a: cv2.warpAffine(a, to_rot, (s, s), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    wline = np.where(free, np.clip(back(wsum), 0.0, 1.0) * share, 0.0)[..., None]  # rows without both ends: no seam
+    line = back(line.astype(np.float32))
+    return (wline * line + (1 - wline) * membrane).astype(np.float32)
+
+
+def _isophote_direction(val: np.ndarray, known: np.ndarray) -> tuple[tuple[float, float], float]:
+    """((dx, dy) unit direction on the face, coherence): the direction along which the known pixels' light stays the
+    same (the structure tensor's, of val's luminance on a 4x coarser grid, over the known pixels) and how much the
+    light's gradients share it: (l1 - l2) / (l1 + l2), 1 for a straight sun band's edges, low for a carpet's grain."""
+    s = max(8, known.shape[0] // 4)
+    lum = cv2.resize(np.ascontiguousarray(val.mean(-1), np.float32), (s, s), interpolation=cv2.INTER_AREA)
+    kn = cv2.resize(known.astype(np.float32), (s, s), interpolation=cv2.INTER_AREA) > 0.5
+    w = cv2.erode(kn.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(np.float32)
+    gx = cv2.Sobel(lum, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(lum, cv2.CV_32F, 0, 1, ksize=3)
+    jxx, jxy, jyy = float((w * gx * gx).sum()), float((w * gx * gy).sum()), float((w * gy * gy).sum())
+    if jxx + jyy <= 1e-6:
+        return (1.0, 0.0), 0.0
+    ev, vec = np.linalg.eigh(np.array([[jxx, jxy], [jxy, jyy]]))
+    return (float(vec[0, 0]), float(vec[1, 0])), float((ev[1] - ev[0]) / (ev[1] + ev[0]))
+
+def _rowwise_line(val: np.ndarray, known: np.ndarray, free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per row, each free pixel between a known pixel on its left and one on its right with only free pixels
+    between: the linear interpolation of the two; (values, where there were both)."""
+    h, w = known.shape
+    idx = np.broadcast_to(np.arange(w), (h, w))
+    stop = ~free  # a known pixel or a blocker ends a run
+    left = np.maximum.accumulate(np.where(stop, idx, -1), axis=1)
+    right = np.minimum.accumulate(np.where(stop, idx, w)[:, ::-1], axis=1)[:, ::-1]
+    rows = np.broadcast_to(np.arange(h)[:, None], (h, w))
+    lk = (left >= 0) & known[rows, np.clip(left, 0, w - 1)]
+    rk = (right < w) & known[rows, np.clip(right, 0, w - 1)]
+    ok = free & lk & rk
+    li, ri = np.clip(left, 0, w - 1), np.clip(right, 0, w - 1)
+    t = ((idx - li) / np.maximum(ri - li, 1))[..., None]
+    out = (1 - t) * val[rows, li] + t * val[rows, ri]
+    return np.where(ok[..., None], out, 0.0).astype(np.float32), ok
+
 
 
 def _spread(face: np.ndarray, known: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
