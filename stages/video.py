@@ -64,7 +64,7 @@ class Params:
     """JPEG quality of frames/ (4:4:4 chroma; 95: ~45 dB PSNR to the lossless frame; bench/bench_artifact_size.py)."""
     mcap_codec: str = param("h264", choices=("h264", "jpeg"))
     """How video.mcap holds the frames and conditions (a log for viewing; frames/ hold what later stages read): h264
-    (two foxglove.CompressedVideo streams, a keyframe a second) or jpeg (foxglove.CompressedImage per frame)."""
+    (two foxglove.CompressedVideo streams, a keyframe at least every 2 s) or jpeg (foxglove.CompressedImage per frame)."""
     mcap_crf: int = param(23, ge=0, le=51)
     """x264's constant rate factor of the MCAP's H.264 streams (23, x264's default: about 36 dB on the demo)."""
     mcap_jpeg_quality: int = param(80, ge=0, le=100)

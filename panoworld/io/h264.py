@@ -12,11 +12,11 @@ H264_FORMAT = "h264"
 
 class H264Encoder:
     """Encodes (H, W, 3) uint8 RGB frames into H.264 access units (Annex B byte stream, yuv420p, no B-frames, an IDR
-    with its SPS and PPS every keyframe_interval frames). x264 runs with tune=zerolatency: each frame's access unit
-    comes out of the encode() call that takes it. An odd width or height gets its last column or row repeated (yuv420p
-    needs even sizes)."""
+    with its SPS and PPS at least every keyframe_interval frames). x264 looks ahead: a frame's access unit may come out
+    of a later encode() call or of flush(), tagged with its frame index. An odd width or height gets its last column or
+    row repeated (yuv420p needs even sizes)."""
 
-    def __init__(self, width: int, height: int, *, fps: float, crf: int = 23, keyframe_interval: int = 16,
+    def __init__(self, width: int, height: int, *, fps: float, crf: int = 23, keyframe_interval: int = 32,
                  preset: str = "veryfast"):
         import av
 
@@ -27,7 +27,7 @@ class H264Encoder:
         c.framerate, c.time_base = rate, 1 / rate
         c.gop_size = max(1, int(keyframe_interval))
         c.max_b_frames = 0
-        c.options = {"crf": str(int(crf)), "preset": preset, "tune": "zerolatency", "bf": "0"}
+        c.options = {"crf": str(int(crf)), "preset": preset, "bf": "0"}
         self._ctx = c
         self._next = 0
 
