@@ -65,8 +65,9 @@ class Params:
     mcap_codec: str = param("h264", choices=("h264", "jpeg"))
     """How video.mcap holds the frames and conditions (a log for viewing; frames/ hold what later stages read): h264
     (two foxglove.CompressedVideo streams, a keyframe at least every 2 s) or jpeg (foxglove.CompressedImage per frame)."""
-    mcap_crf: int = param(23, ge=0, le=51)
-    """x264's constant rate factor of the MCAP's H.264 streams (23, x264's default: about 36 dB on the demo)."""
+    mcap_crf: int = param(26, ge=0, le=51)
+    """x264's constant rate factor of the MCAP's H.264 streams (26: about 35 dB PSNR to frames/ on the demo, 23 (x264's
+    default) 36 dB for 1.4x the bytes)."""
     mcap_jpeg_quality: int = param(80, ge=0, le=100)
     """JPEG quality of the frames and conditions in video.mcap with mcap_codec jpeg; 0 = the files' own bytes (with PNG
     frames about 3x the size)."""

@@ -85,7 +85,8 @@ def read_video_doc(video_dir: Path | str) -> VideoDoc:
 
 PREVIEW_FILE = "preview.mp4"
 PREVIEW_CRF = "23"
-"""x264's constant rate factor of preview.mp4 (its default: a preview, not an input of any stage)."""
+"""x264's constant rate factor of the previews (video and conditions preview.mp4; its default: a preview, not an input
+of any stage)."""
 MCAP_FILE = "video.mcap"
 DEPTH_SCALE = DEPTH_PNG_SCALE  # metres per depth PNG unit (millimetres); 0 = unknown
 
@@ -155,7 +156,7 @@ class VideoWriter:
         preview_max_width: int = 1920,
         mcap: bool = True,
         mcap_codec: str = "h264",
-        mcap_crf: int = 23,
+        mcap_crf: int = 26,
         mcap_jpeg_quality: int = 80,
         png_compression: int = 1,
         frame_format: RgbFormat | str = RgbFormat.PNG,
