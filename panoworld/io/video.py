@@ -95,8 +95,8 @@ DEPTH_SCALE = DEPTH_PNG_SCALE  # metres per depth PNG unit (millimetres); 0 = un
 # panel shows with a colour map (depth/ holds the exact full frames); RGB frames and conditions are H.264 foxglove.CompressedVideo (mcap_codec h264) or
 # JPEG foxglove.CompressedImage (jpeg: of mcap_jpeg_quality, or the files' own bytes, PNG or JPEG, with 0); condition
 # masks are PNG.
-MCAP_DEPTH_STRIDE = 2
-"""The MCAP's depth keeps one pixel in 2 x 2 (a viewing log: about a quarter of the bytes)."""
+MCAP_DEPTH_STRIDE = 4
+"""The MCAP's depth keeps one pixel in 4 x 4 (a viewing log: a 720x1440 frame's depth as 180x360)."""
 MCAP_DEPTH_STEP_MM = 20
 """The MCAP's depth in steps of 2 cm (still '16UC1' millimetres): on the demo 30 % of the compressed bytes of exact
 millimetres; a colour map over 0-10 m has steps of 4 cm."""
