@@ -4,6 +4,9 @@ seconds from its manifest, and what the lossy frames cost: PSNR of frames/ and c
     python bench/bench_artifact_size.py SCENE [--json OUT.json]     # an existing scene (e.g. after `runner.py demo`)
     python bench/bench_artifact_size.py --demo DIR [--json OUT.json]  # runs `runner.py demo DIR` first (a few minutes)
 
+The MCAP's frames (/camera/rgb: H.264 or JPEG) are decoded (H.264 by imageio-ffmpeg's ffmpeg program) and their PSNR
+to the stored frames printed.
+
 With --reference SCENE2 the table gets a second column (e.g. the same scene run with
 `--set video.frame_format=png --set conditions.rgb_format=png`), the PSNR of SCENE's video frames and condition
 RGB to SCENE2's, and the gaussians' fit figures of both.
@@ -79,6 +82,35 @@ def fidelity(scene: Path, ref: Path) -> dict:
     return out
 
 
+def mcap_psnr(scene: Path) -> dict | None:
+    """{'format', 'psnr_db'}: the MCAP's /camera/rgb frames decoded, their PSNR to video/frames/ (None: no MCAP)."""
+    import imageio_ffmpeg
+    import numpy as np
+
+    from panoworld.io.rgb_image import decode_rgb
+    from panoworld.io.video import MCAP_FILE, TOPIC_RGB, read_mcap, read_video_doc
+
+    doc = read_video_doc(scene / "artifacts" / "video")
+    path = doc.root / MCAP_FILE
+    if not path.is_file():
+        return None
+    msgs = read_mcap(path)[TOPIC_RGB]
+    fmt = msgs[0].format
+    if fmt == "h264":
+        out = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-loglevel", "error", "-f", "h264", "-i", "-", "-f",
+                              "rawvideo", "-pix_fmt", "rgb24", "-"], input=b"".join(m.data for m in msgs),
+                             capture_output=True, check=True).stdout
+        frames = np.frombuffer(out, np.uint8).reshape(-1, doc.height, doc.width, 3)
+    else:
+        frames = [decode_rgb(m.data) for m in msgs]
+    se = n = 0.0
+    for f, p in zip(frames, doc.rgb, strict=True):
+        d = f.astype(np.float64) - decode_rgb(p.read_bytes(), what=str(p))
+        se += float((d**2).sum())
+        n += d.size
+    return {"format": fmt, "frames": len(msgs), "psnr_db": round(float(10 * np.log10(255.0**2 / (se / n))), 2)}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scene", nargs="?", type=Path, help="a scene directory with artifacts/")
@@ -110,7 +142,11 @@ def main() -> int:
     print(f"\n{'stage':<12} {'wall s':>8} {'CPU s':>8} {'peak MB':>8}")
     for k, t in times.items():
         print(f"{k:<12} {t['wall_s']:>8.2f} {t['cpu_s']:>8.2f} {t['peak_rss_mb']:>8}")
-    out = {"scene": str(a.scene), "sizes_bytes": sizes, "total_bytes": total, "stages": times}
+    out = {"scene": str(a.scene), "sizes_bytes": sizes, "total_bytes": total, "stages": times,
+           "mcap_rgb": mcap_psnr(a.scene)}
+    if out["mcap_rgb"] is not None:
+        m = out["mcap_rgb"]
+        print(f"\nvideo.mcap /camera/rgb: {m['frames']} frames as {m['format']}, {m['psnr_db']} dB PSNR to video/frames/")
     if a.reference is not None:
         out.update(reference=str(a.reference), reference_sizes_bytes=ref, reference_total_bytes=sum(ref.values()),
                    reference_stages=stage_times(a.reference / "artifacts"), fidelity=fidelity(a.scene, a.reference))

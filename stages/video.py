@@ -62,9 +62,15 @@ class Params:
     """Format of frames/ (what poses and gaussians read): jpeg (of frame_quality, about 4x smaller) or png (lossless)."""
     frame_quality: int = param(95, ge=1, le=100)
     """JPEG quality of frames/ (4:4:4 chroma; 95: ~45 dB PSNR to the lossless frame; bench/bench_artifact_size.py)."""
+    mcap_codec: str = param("h264", choices=("h264", "jpeg"))
+    """How video.mcap holds the frames and conditions (a log for viewing; frames/ hold what later stages read): h264
+    (two foxglove.CompressedVideo streams, a keyframe at least every 2 s) or jpeg (foxglove.CompressedImage per frame)."""
+    mcap_crf: int = param(26, ge=0, le=51)
+    """x264's constant rate factor of the MCAP's H.264 streams (26: about 35 dB PSNR to frames/ on the demo, 23 (x264's
+    default) 36 dB for 1.4x the bytes)."""
     mcap_jpeg_quality: int = param(80, ge=0, le=100)
-    """JPEG quality of the frames and conditions in video.mcap (a log for viewing; frames/ hold what later stages
-    read); 0 = the files' own bytes (with PNG frames about 3x the size)."""
+    """JPEG quality of the frames and conditions in video.mcap with mcap_codec jpeg; 0 = the files' own bytes (with PNG
+    frames about 3x the size)."""
     device: str = "auto"
     """Device of realesrgan: auto = cuda when available, else cpu (wan-shortcut: wan.device)."""
     warp: WarpOptions = options(WarpOptions, "warp-inpaint")
@@ -134,6 +140,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     has_depth = backend.traits["has_depth"]
     writer = VideoWriter(out_dir, height=cond.height, width=cond.width, fps=fps, has_depth=has_depth,
                          preview=params.preview, preview_max_width=params.preview_max_width, mcap=params.mcap,
+                         mcap_codec=params.mcap_codec, mcap_crf=params.mcap_crf,
                          mcap_jpeg_quality=params.mcap_jpeg_quality, frame_format=params.frame_format,
                          frame_quality=params.frame_quality,
                          upscale=up.scale)

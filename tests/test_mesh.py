@@ -18,8 +18,10 @@ from panoworld.geometry.erp_mesh import (
     erp_mesh_from_depth,
     face_stretch,
     load_erp_mesh,
+    quads_from_triangles,
     save_erp_mesh,
     save_erp_mesh_glb,
+    triangles_from_quads,
 )
 from panoworld.geometry.raycast import Raycaster
 from panoworld.render.metrics import psnr
@@ -170,6 +172,27 @@ def test_stride_keeps_exact_points(room_64):
     np.testing.assert_allclose(mesh.colors[0], rgb[:4, :4].reshape(-1, 3).mean(axis=0), atol=0.51)
 
 
+def test_quads_round_trip_any_triangle_list():
+    # Grid pairs, a fan, lone triangles, pairs of unlike validity and empty triangles (a, c, c) next to (a, b, c).
+    faces = np.array([[0, 5, 6], [0, 6, 1], [1, 6, 7], [1, 7, 2], [9, 0, 1], [9, 1, 2], [9, 2, 3], [9, 3, 4],
+                      [4, 8, 3], [2, 3, 3], [2, 3, 8], [2, 8, 8], [5, 6, 7], [5, 7, 8], [3, 4, 5]])
+    valid = np.ones(len(faces), bool)
+    valid[[12, 14]] = False  # (5, 6, 7) and (5, 7, 8) differ: two lone triangles
+    quads, qvalid = quads_from_triangles(faces, valid)
+    assert [list(q) for q in quads[:4]] == [[0, 5, 6, 1], [1, 6, 7, 2], [9, 0, 1, 2], [9, 2, 3, 4]]
+    assert len(quads) == 10 and [list(q) for q in quads[4:7]] == [[4, 8, 3, 3], [2, 3, 3, 8], [2, 8, 8, 8]]
+    back, bvalid = triangles_from_quads(quads, qvalid)
+    np.testing.assert_array_equal(back, faces)
+    np.testing.assert_array_equal(bvalid, valid)
+
+
+def _triangle_set(faces: np.ndarray) -> np.ndarray:
+    """Triangles (F, 3) each rolled to start at its smallest index (orientation kept), rows sorted."""
+    f = np.asarray(faces)
+    rolled = np.stack([np.roll(f, -k, axis=1) for k in range(3)], axis=1)[np.arange(len(f)), np.argmin(f, axis=1)]
+    return rolled[np.lexsort(rolled.T[::-1])]
+
+
 def test_ply_roundtrip_and_glb(room_64, tmp_path):
     _, rgb, depth = room_64
     mesh = erp_mesh_from_depth(depth, rgb)
@@ -179,9 +202,12 @@ def test_ply_roundtrip_and_glb(room_64, tmp_path):
         back = load_erp_mesh(source)
         for name in ("vertices", "faces", "colors", "face_valid"):
             np.testing.assert_array_equal(getattr(back, name), getattr(mesh, name))
-    # Any viewer's PLY reader sees the same triangles.
+    # Any viewer's PLY reader sees the same triangles (the file's quads split, a lone triangle's empty half aside).
     tm = trimesh.load(tmp_path / "mesh.ply", process=False)
-    np.testing.assert_array_equal(tm.faces, mesh.faces)
+    seen = tm.faces[(tm.faces[:, 0] != tm.faces[:, 1]) & (tm.faces[:, 1] != tm.faces[:, 2]) & (tm.faces[:, 2] != tm.faces[:, 0])]
+    assert len(seen) == len(mesh.faces) and len(tm.faces) < len(mesh.faces) * 1.3
+    np.testing.assert_array_equal(_triangle_set(seen), _triangle_set(mesh.faces))
+    np.testing.assert_array_equal(tm.vertices, mesh.vertices)
     assert "pixel" not in PlyData.read(str(tmp_path / "mesh.ply"))["vertex"].data.dtype.names  # every vertex written
     # Pixels without depth leave vertices out: `pixel` restores the grid layout.
     holed = depth.copy()

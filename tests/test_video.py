@@ -52,6 +52,21 @@ def random_video(t=4, h=16, w=32, seed=0):
     return frames, depth, poses
 
 
+def decode_h264(messages, height: int, width: int) -> np.ndarray:
+    """foxglove.CompressedVideo messages of one topic -> frames (N, H, W, 3) RGB, decoded by the ffmpeg program that
+    imageio-ffmpeg ships (not the PyAV library that encoded them) from the messages' bytes laid end to end."""
+    stream = b"".join(m.data for m in messages)
+    out = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-loglevel", "error", "-f", "h264", "-i", "-",
+                          "-f", "rawvideo", "-pix_fmt", "rgb24", "-"], input=stream, capture_output=True, check=True)
+    return np.frombuffer(out.stdout, np.uint8).reshape(-1, height, width, 3)
+
+
+def nal_types(access_unit: bytes) -> list[int]:
+    """The NAL unit types of an Annex B access unit (5 IDR slice, 1 other slice, 7 SPS, 8 PPS, 6 SEI)."""
+    starts = [i + 3 for i in range(len(access_unit) - 3) if access_unit[i:i + 3] == b"\x00\x00\x01"]
+    return [access_unit[i] & 31 for i in starts]
+
+
 def test_write_and_load_video_round_trip(tmp_path):
     frames, depth, poses = random_video()
     doc = write_video(tmp_path, frames, depth, poses, fps=12.0, meta={"backend": "test", "upscale": "none"})
@@ -79,14 +94,14 @@ def test_video_without_depth(tmp_path):
     assert load_video(tmp_path).depth is None
 
 
-@pytest.mark.parametrize("jpeg_quality", [0, 80])
-def test_mcap_decodes_back_exactly(tmp_path, jpeg_quality):
+@pytest.mark.parametrize(("codec", "jpeg_quality"), [("jpeg", 0), ("jpeg", 80), ("h264", 80)])
+def test_mcap_decodes_back_exactly(tmp_path, codec, jpeg_quality):
     from panoworld.io.video import VideoWriter
 
     frames, depth, poses = random_video(t=3)
     frames = cv2.GaussianBlur(frames.reshape(-1, 32, 3), (5, 5), 2).reshape(frames.shape)  # photo-like: JPEG's domain
     writer = VideoWriter(tmp_path, height=16, width=32, fps=10.0, has_depth=True, preview=False,
-                         mcap_jpeg_quality=jpeg_quality)
+                         mcap_codec=codec, mcap_jpeg_quality=jpeg_quality)
     cond_pngs = [encode_png(f[::2, ::2]) for f in frames]
     mask_pngs = [encode_png(((f[::2, ::2, 0] > 127) * 255).astype(np.uint8)) for f in frames]
     for k in range(3):
@@ -95,10 +110,19 @@ def test_mcap_decodes_back_exactly(tmp_path, jpeg_quality):
     msgs = read_mcap(tmp_path / MCAP_FILE)
     assert {t: len(m) for t, m in msgs.items()} == {t: 3 for t in (TOPIC_RGB, TOPIC_DEPTH, TOPIC_COND_RGB,
                                                                      TOPIC_COND_MASK, TOPIC_TF, TOPIC_POSE)}
+    if codec == "h264":  # one access unit per message, the first an IDR, each IDR with its SPS and PPS (Foxglove's rules)
+        assert [m.format for m in msgs[TOPIC_RGB] + msgs[TOPIC_COND_RGB]] == ["h264"] * 6
+        types = [nal_types(m.data) for m in msgs[TOPIC_RGB] + msgs[TOPIC_COND_RGB]]
+        assert 5 in types[0] and 5 in types[3] and all({7, 8} <= set(t) for t in types if 5 in t)
+        video, cond_video = decode_h264(msgs[TOPIC_RGB], 16, 32), decode_h264(msgs[TOPIC_COND_RGB], 8, 16)
+        assert len(video) == len(cond_video) == 3
     for k in range(3):
         rgb, cond = msgs[TOPIC_RGB][k], msgs[TOPIC_COND_RGB][k]
         assert rgb.frame_id == "camera" and msgs[TOPIC_COND_MASK][k].data == mask_pngs[k]
-        if jpeg_quality == 0:  # lossless: the PNGs themselves
+        if codec == "h264":  # for viewing: the decoded streams close to the frames and conditions
+            assert psnr(video[k], frames[k]) > 25 and psnr(cond_video[k], decode_png(cond_pngs[k])) > 25
+            assert psnr(video[k], frames[k]) > psnr(video[k], frames[(k + 1) % 3]) + 5  # the frames in order
+        elif jpeg_quality == 0:  # lossless: the PNGs themselves
             assert rgb.format == cond.format == "png" and cond.data == cond_pngs[k]
             np.testing.assert_array_equal(decode_png(rgb.data), frames[k])
         else:  # for viewing: JPEG close to the frames and conditions
@@ -107,9 +131,11 @@ def test_mcap_decodes_back_exactly(tmp_path, jpeg_quality):
             assert psnr(jpg, frames[k]) > 25  # an unrelated image: about 12 dB
             c = cv2.imdecode(np.frombuffer(cond.data, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
             assert psnr(c, decode_png(cond_pngs[k])) > 25
-        d = msgs[TOPIC_DEPTH][k]  # one pixel in 2 x 2, its exact millimetres
-        assert (d.encoding, d.width, d.height) == ("16UC1", 16, 8)
-        np.testing.assert_array_equal(raw_image_array(d), depth_to_mm(depth[k])[::2, ::2])
+        d = msgs[TOPIC_DEPTH][k]  # one pixel in 4 x 4
+        mm = depth_to_mm(depth[k])[::4, ::4].astype(int)  # to the nearest 2 cm, unknown kept
+        assert (d.encoding, d.width, d.height) == ("16UC1", 8, 4) and (raw_image_array(d) % 20 == 0).all()
+        np.testing.assert_array_equal(raw_image_array(d) == 0, mm == 0)
+        assert np.abs(raw_image_array(d).astype(int) - mm).max() <= 10
         tf = msgs[TOPIC_TF][k]
         assert (tf.parent_frame_id, tf.child_frame_id) == ("world", "camera")
         np.testing.assert_allclose(world_from_cam_from_mcap(tf), poses[k], atol=1e-12)
@@ -127,7 +153,7 @@ def test_jpeg_frames_round_trip_and_go_into_the_mcap_as_they_are(tmp_path):
     frames, depth, poses = random_video(t=2, h=32, w=64)
     frames = cv2.GaussianBlur(frames.reshape(-1, 64, 3), (5, 5), 2).reshape(frames.shape)
     write_video(tmp_path, frames, depth, poses, fps=5.0, preview=False, frame_format="jpeg", frame_quality=95,
-                mcap_jpeg_quality=0)
+                mcap_codec="jpeg", mcap_jpeg_quality=0)
     v = load_video(tmp_path)
     assert [e["rgb"] for e in v.meta["frames"]] == ["frames/000000.jpg", "frames/000001.jpg"]
     assert v.frames.shape == frames.shape and psnr(np.concatenate(v.frames), np.concatenate(frames)) > 30
@@ -225,20 +251,19 @@ def test_stage_warp_inpaint_end_to_end(upstream, tmp_path):
     np.testing.assert_allclose(v.poses, upstream["poses"])
     assert (v.depth > 0).mean() > 0.99  # conditions depth + layer depth
     msgs = read_mcap(out / MCAP_FILE)
-    cond0 = cv2.imdecode(np.frombuffer(msgs[TOPIC_COND_RGB][0].data, np.uint8), cv2.IMREAD_COLOR)
-    assert len(msgs[TOPIC_COND_RGB]) == 5 and cond0.shape == (64, 128, 3) and msgs[TOPIC_COND_RGB][0].format == "jpeg"
+    assert len(msgs[TOPIC_COND_RGB]) == 5 and msgs[TOPIC_COND_RGB][0].format == "h264"
+    assert decode_h264(msgs[TOPIC_COND_RGB], 64, 128).shape == (5, 64, 128, 3)
     assert len(msgs[TOPIC_RGB]) == 5 and len(msgs[TOPIC_DEPTH]) == 5
-    # frames/ are JPEG (quality 95) by default; the MCAP holds each frame once, as JPEG of mcap_jpeg_quality (80).
+    # frames/ are JPEG (quality 95) by default; the MCAP holds each frame once, in an H.264 stream.
     frame2 = (out / "frames" / "000002.jpg").read_bytes()
-    jpg2 = cv2.imdecode(np.frombuffer(msgs[TOPIC_RGB][2].data, np.uint8), cv2.IMREAD_COLOR)
-    assert msgs[TOPIC_RGB][2].format == "jpeg" and psnr(jpg2, cv2.imdecode(np.frombuffer(frame2, np.uint8), 1)) > 25
+    video = decode_h264(msgs[TOPIC_RGB], 64, 128)
+    assert psnr(video[2], cv2.imdecode(np.frombuffer(frame2, np.uint8), 1)[..., ::-1]) > 20  # 64x128: 4:2:0 chroma
     # Lossless PNG frames on request: the same fill within JPEG's error (4:2:0 chroma at 64x128); the MCAP holds JPEG.
     png_out = tmp_path / "video_png"
     assert video_stage.main(_cli(upstream, png_out, "--frame-format", "png", "--preview", "false")) == 0
     exact = load_video(png_out)
     assert psnr(np.concatenate(v.frames), np.concatenate(exact.frames)) > 25 and np.array_equal(v.depth, exact.depth)
-    jpg2 = cv2.imdecode(np.frombuffer(read_mcap(png_out / MCAP_FILE)[TOPIC_RGB][2].data, np.uint8), cv2.IMREAD_COLOR)
-    assert psnr(jpg2[..., ::-1], exact.frames[2]) > 25
+    assert psnr(decode_h264(read_mcap(png_out / MCAP_FILE)[TOPIC_RGB], 64, 128)[2], exact.frames[2]) > 20
 
 
 def test_warp_inpaint_frames_filled_on_threads_equal_one_at_a_time(upstream, tmp_path, monkeypatch):

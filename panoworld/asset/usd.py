@@ -65,8 +65,11 @@ def _gaussians(stage, path: str, g: Gaussians, xform: np.ndarray) -> dict:
     p = UsdVol.ParticleField3DGaussianSplat.Define(stage, path)
     p.AddTransformOp().Set(_matrix(xform))
     means = np.ascontiguousarray(g.means, np.float32)
-    p.CreatePositionsAttr(Vt.Vec3fArray.FromNumpy(means))  # float: half would quantise metres to millimetres
-    # The rest in half precision (the schema's *h attributes): relative error <= 2^-11, far below what a render shows.
+    # Everything in half precision (the schema's *h attributes): relative error <= 2^-11, far below what a render
+    # shows. The positions stay in the canonical frame, centred on the capture point (the prim's transform places
+    # them), so a position's error is <= 2^-11 of its distance from there: about 0.1 of a 1440-wide ERP pixel as
+    # seen from the capture point, under a millimetre within 2 m of it.
+    p.CreatePositionshAttr(Vt.Vec3hArray.FromNumpy(np.ascontiguousarray(means, np.float16)))
     q = np.asarray(g.quats, np.float64)
     q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
     p.CreateOrientationshAttr(Vt.QuathArray.FromNumpy(np.ascontiguousarray(quat_xyzw_from_wxyz(q), np.float16)))

@@ -295,9 +295,11 @@ def write_conditions(
     if preview_mp4:
         import imageio.v2 as imageio
 
+        from panoworld.io.video import PREVIEW_CRF
+
         writer = imageio.get_writer(
-            str(out_dir / PREVIEW_MP4), fps=preview_fps, codec="libx264", quality=7, macro_block_size=16,
-            ffmpeg_log_level="error",
+            str(out_dir / PREVIEW_MP4), fps=preview_fps, codec="libx264", quality=None, macro_block_size=16,
+            output_params=["-preset", "veryfast", "-crf", PREVIEW_CRF], ffmpeg_log_level="error",
         )
     entries: list[dict[str, str]] = []
     valid: list[float] = []

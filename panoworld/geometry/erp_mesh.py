@@ -187,9 +187,50 @@ def compact_faces(faces: np.ndarray, num_vertices: int) -> tuple[np.ndarray, np.
     return used, rank[faces].astype(np.intp, copy=False)
 
 
+QUADS_COMMENT = "face_quads"
+"""PLY header comment `face_quads ...`: every face is a quad (a, b, c, d) standing for the mesh's consecutive
+triangles (a, b, c), (a, c, d) of one `valid`, or (a, b, c, c) for a lone triangle (a, b, c); readers split a quad
+the usual way, into (a, b, c) and (a, c, d), the second one empty for a lone triangle."""
+
+
+def quad_pairs(faces: np.ndarray, face_valid: np.ndarray) -> np.ndarray:
+    """(F,) bool: face k starts a quad with face k + 1, i.e. they are (a, b, c), (a, c, d) with d != c and one
+    validity; in a run of such links every other face starts one (a fan (p, 0, 1), (p, 1, 2), (p, 2, 3), (p, 3, 4)
+    gives the quads (p, 0, 1, 2) and (p, 2, 3, 4))."""
+    F = len(faces)
+    link = np.zeros(F, bool)
+    if F > 1:
+        link[:-1] = ((faces[:-1, 0] == faces[1:, 0]) & (faces[:-1, 2] == faces[1:, 1]) & (faces[1:, 2] != faces[1:, 1])
+                     & (face_valid[:-1] == face_valid[1:]))
+    idx = np.arange(F)
+    run_start = np.maximum.accumulate(np.where(link, 0, idx + 1))  # the first face of the run of links holding k
+    return link & ((idx - run_start) % 2 == 0)
+
+
+def quads_from_triangles(faces: np.ndarray, face_valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(quads (Q, 4), valid (Q,)) of triangles (F, 3) in order: pairs as quad_pairs, lone triangles as (a, b, c, c)."""
+    start = quad_pairs(faces, face_valid)
+    lone = np.ones(len(faces), bool)
+    lone[1:] = ~start[:-1]  # not the second triangle of a quad
+    keep = np.flatnonzero(lone)
+    quads = np.concatenate([faces[keep], faces[keep, 2:]], axis=1)
+    paired = start[keep]
+    quads[paired, 3] = faces[keep[paired] + 1, 2]
+    return quads, face_valid[keep]
+
+
+def triangles_from_quads(quads: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of quads_from_triangles: (faces (F, 3), face_valid (F,)) in the quads' order."""
+    both = np.stack([quads[:, :3], quads[:, [0, 2, 3]]], axis=1).reshape(-1, 3)
+    keep = np.ones((len(quads), 2), bool)
+    keep[:, 1] = quads[:, 3] != quads[:, 2]
+    keep = keep.reshape(-1)
+    return both[keep], np.repeat(valid, 2)[keep]
+
+
 def save_erp_mesh(mesh: ErpMesh, path: Path) -> None:
-    """Binary little-endian PLY: vertex x, y, z float32 + red, green, blue uint8 (+ pixel int32); face vertex_indices +
-    uint8 valid.
+    """Binary little-endian PLY: vertex x, y, z float32 + red, green, blue uint8 (+ pixel int32); face vertex_indices
+    (quads, see QUADS_COMMENT: a grid cell's two triangles in 18 bytes instead of 28) + uint8 valid.
 
     Only vertices that a face references are written (invalid pixels never reach the file); when some are left out,
     `pixel` is each written one's index in the ErpMesh layout (grid pixel i * w + j, then the two poles), so
@@ -209,17 +250,19 @@ def save_erp_mesh(mesh: ErpMesh, path: Path) -> None:
         v[name] = mesh.colors[used, k]
     if subset:
         v["pixel"] = used
-    f = np.empty(len(faces), dtype=[("n", "u1"), ("vertex_indices", "<i4", (3,)), ("valid", "u1")])
-    f["n"] = 3
-    f["vertex_indices"] = faces
-    f["valid"] = mesh.face_valid
+    quads, valid = quads_from_triangles(faces, np.asarray(mesh.face_valid, bool))
+    f = np.empty(len(quads), dtype=[("n", "u1"), ("vertex_indices", "<i4", (4,)), ("valid", "u1")])
+    f["n"] = 4
+    f["vertex_indices"] = quads
+    f["valid"] = valid
     face_desc = np.empty(0, dtype=[("vertex_indices", "O"), ("valid", "u1")])
     header = PlyData(
         [PlyElement.describe(v, "vertex"),
          PlyElement.describe(face_desc, "face", len_types={"vertex_indices": "u1"}, val_types={"vertex_indices": "i4"})],
         text=False, byte_order="<",
         comments=["PanoWorld ERP mesh: canonical frame (view 0, OpenCV axes, up = -Y), metres",
-                  "face valid = 0: stretched across a depth discontinuity, an occluder only"]
+                  "face valid = 0: stretched across a depth discontinuity, an occluder only",
+                  f"{QUADS_COMMENT}: quad (a, b, c, d) = triangles (a, b, c), (a, c, d); d = c: one triangle"]
         + ([f"{GRID_COMMENT} {len(mesh.vertices)}"] if subset else []),
     ).header.replace("element face 0", f"element face {len(f)}")
     with open(path, "wb") as fh:
@@ -232,31 +275,44 @@ def load_erp_mesh(path_or_artifact_dir: Path) -> ErpMesh:
     """Read a mesh artifact directory (its mesh.ply) or a .ply path written by save_erp_mesh.
 
     A file with the `erp_vertices N` comment and vertex property `pixel` is expanded back to the N-vertex ErpMesh
-    layout (unwritten vertices at the origin, unreferenced). Any triangle-mesh PLY loads too: without the face
-    property `valid` every face is valid; no colours -> grey.
+    layout (unwritten vertices at the origin, unreferenced); quads (comment `face_quads`) are split back into the
+    mesh's triangles. Any triangle-mesh PLY loads too: without the face property `valid` every face is valid; no
+    colours -> grey.
     """
     from plyfile import PlyData, PlyParseError
 
     path = Path(path_or_artifact_dir)
     if path.is_dir():
         path = path / MESH_FILE
-    try:  # fast, memory-mapped path for triangle lists
+    try:  # fast, memory-mapped paths for triangle or quad lists
         ply = PlyData.read(str(path), known_list_len={"face": {"vertex_indices": 3}})
-        faces = np.array(ply["face"].data["vertex_indices"], np.int32).reshape(-1, 3)  # a copy, not a map
     except (PlyParseError, ValueError):
+        try:
+            ply = PlyData.read(str(path), known_list_len={"face": {"vertex_indices": 4}})
+        except (PlyParseError, ValueError):
+            ply = None
+    quads = ply is not None and any(c.startswith(QUADS_COMMENT) for c in ply.comments)
+    if ply is None or (ply["face"].data["vertex_indices"].shape[1:] == (4,) and not quads):
         ply = PlyData.read(str(path), mmap=False)
         idx = ply["face"].data["vertex_indices"]
         if any(len(a) != 3 for a in idx):
-            raise ValueError(f"{path}: only triangle faces are supported") from None
+            raise ValueError(f"{path}: only triangle faces (or save_erp_mesh's quads) are supported") from None
         faces = np.stack(idx).astype(np.int32).reshape(-1, 3)
-    v = ply["vertex"].data
+    else:
+        faces = np.array(ply["face"].data["vertex_indices"], np.int32)  # a copy, not a map
+    f = ply["face"].data
+    face_valid = np.asarray(f["valid"]).astype(bool) if "valid" in f.dtype.names else np.ones(len(faces), bool)
+    if quads:
+        faces, face_valid = triangles_from_quads(faces, face_valid)
+    faces = faces.reshape(-1, 3)
+    v, comments = ply["vertex"].data, ply.comments
     vertices = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32)
     names = v.dtype.names
     if all(c in names for c in ("red", "green", "blue")):
         colors = np.stack([v["red"], v["green"], v["blue"]], axis=1).astype(np.uint8)
     else:
         colors = np.full((len(vertices), 3), 128, np.uint8)
-    n_layout = next((int(c.split()[1]) for c in ply.comments if c.startswith(GRID_COMMENT + " ")), None)
+    n_layout = next((int(c.split()[1]) for c in comments if c.startswith(GRID_COMMENT + " ")), None)
     if n_layout is not None and "pixel" in names:
         pixel = np.asarray(v["pixel"], np.int64)
         if len(pixel) and (pixel.min() < 0 or pixel.max() >= n_layout):
@@ -265,8 +321,6 @@ def load_erp_mesh(path_or_artifact_dir: Path) -> ErpMesh:
         full_c = np.zeros((n_layout, 3), np.uint8)
         full_v[pixel], full_c[pixel] = vertices, colors
         vertices, colors, faces = full_v, full_c, pixel[faces].astype(np.int32)
-    f = ply["face"].data
-    face_valid = np.asarray(f["valid"]).astype(bool) if "valid" in f.dtype.names else np.ones(len(faces), bool)
     return ErpMesh(vertices, faces, colors, face_valid)
 
 

@@ -27,7 +27,8 @@ def rgb_file_name(index: int, fmt: RgbFormat | str) -> str:
 
 def encode_rgb(rgb: np.ndarray, fmt: RgbFormat | str, *, quality: int = 95, compression: int = 1) -> bytes:
     """Bytes of an RGB (H, W, 3) uint8 image as fmt: PNG of zlib compression, or baseline JPEG of quality with 4:4:4
-    chroma (4:2:0 costs ~3 dB at quality 95 on coloured edges for ~20 % less size)."""
+    chroma (4:2:0 costs ~3 dB at quality 95 on coloured edges for ~20 % less size; progressive JPEG: the same pixels
+    once decoded and ~5 % smaller, but 6x the encoding and 3x the decoding time)."""
     import cv2
 
     if RgbFormat(fmt) == RgbFormat.PNG:

@@ -85,16 +85,23 @@ def read_video_doc(video_dir: Path | str) -> VideoDoc:
 
 PREVIEW_FILE = "preview.mp4"
 PREVIEW_CRF = "23"
-"""x264's constant rate factor of preview.mp4 (its default: a preview, not an input of any stage)."""
+"""x264's constant rate factor of the previews (video and conditions preview.mp4; its default: a preview, not an input
+of any stage)."""
 MCAP_FILE = "video.mcap"
 DEPTH_SCALE = DEPTH_PNG_SCALE  # metres per depth PNG unit (millimetres); 0 = unknown
 
 # MCAP topics (Foxglove protobuf schemas). Depth is a foxglove.RawImage '16UC1' in millimetres (0 = unknown) of every
-# MCAP_DEPTH_STRIDE-th pixel of every MCAP_DEPTH_STRIDE-th row, which Foxglove's Image panel shows with a colour map
-# (depth/ holds the full frames); RGB frames and conditions are JPEG foxglove.CompressedImage (the files' own bytes,
-# PNG or JPEG, with mcap_jpeg_quality 0); condition masks are PNG.
-MCAP_DEPTH_STRIDE = 2
-"""The MCAP's depth keeps the exact millimetres of one pixel in 2 x 2 (a viewing log: about a quarter of the bytes)."""
+# MCAP_DEPTH_STRIDE-th pixel of every MCAP_DEPTH_STRIDE-th row, rounded to MCAP_DEPTH_STEP_MM, which Foxglove's Image
+# panel shows with a colour map (depth/ holds the exact full frames); RGB frames and conditions are H.264 foxglove.CompressedVideo (mcap_codec h264) or
+# JPEG foxglove.CompressedImage (jpeg: of mcap_jpeg_quality, or the files' own bytes, PNG or JPEG, with 0); condition
+# masks are PNG.
+MCAP_DEPTH_STRIDE = 4
+"""The MCAP's depth keeps one pixel in 4 x 4 (a viewing log: a 720x1440 frame's depth as 180x360)."""
+MCAP_DEPTH_STEP_MM = 20
+"""The MCAP's depth in steps of 2 cm (still '16UC1' millimetres): on the demo 30 % of the compressed bytes of exact
+millimetres; a colour map over 0-10 m has steps of 4 cm."""
+MCAP_CODECS = ("h264", "jpeg")
+"""How video.mcap stores the RGB frames and conditions: H.264 streams (about a third of JPEG 80's bytes) or JPEG images."""
 TOPIC_RGB = "/camera/rgb"
 TOPIC_DEPTH = "/camera/depth"
 TOPIC_COND_RGB = "/conditions/rgb"
@@ -116,6 +123,15 @@ class Video:
     meta: dict = field(default_factory=dict)  # the parsed video.json
 
 
+def mcap_depth(mm: np.ndarray) -> np.ndarray:
+    """A frame's uint16 millimetres (H, W) -> the MCAP's (one pixel in MCAP_DEPTH_STRIDE^2, to the nearest
+    MCAP_DEPTH_STEP_MM, 0 = unknown kept and nothing known made 0), little-endian uint16."""
+    step = MCAP_DEPTH_STEP_MM
+    src = mm[::MCAP_DEPTH_STRIDE, ::MCAP_DEPTH_STRIDE].astype(np.int32)
+    out = np.clip((src + step // 2) // step * step, step, 65535 // step * step)
+    return np.ascontiguousarray(np.where(src == 0, 0, out), "<u2")
+
+
 def _ns(index: int, fps: float) -> int:
     return int(round(index * 1e9 / fps))
 
@@ -125,8 +141,8 @@ class VideoWriter:
     depth/%06d.png, preview.mp4, video.mcap and, with upscale > 1, upscaled/ (same format; an output only: later
     stages read frames/); close() writes video.json. Images are encoded by `workers` threads and the MCAP is written
     (in frame order) by one more, off the caller's thread; memory stays at a few frames whatever the length. The MCAP
-    (a log for viewing) holds the frames and conditions once, at the generation size, as JPEG of mcap_jpeg_quality
-    (0: the files' own bytes)."""
+    (a log for viewing) holds the frames and conditions once, at the generation size: mcap_codec h264 as two H.264
+    streams of x264 CRF mcap_crf (a keyframe at least every 2 s), jpeg as JPEG of mcap_jpeg_quality (0: the files' own bytes)."""
 
     def __init__(
         self,
@@ -139,6 +155,8 @@ class VideoWriter:
         preview: bool = True,
         preview_max_width: int = 1920,
         mcap: bool = True,
+        mcap_codec: str = "h264",
+        mcap_crf: int = 26,
         mcap_jpeg_quality: int = 80,
         png_compression: int = 1,
         frame_format: RgbFormat | str = RgbFormat.PNG,
@@ -160,7 +178,12 @@ class VideoWriter:
         self.frame_quality = frame_quality
         if not 0 <= mcap_jpeg_quality <= 100:
             raise ValueError(f"{mcap_jpeg_quality=} must be in [0, 100]")
-        self.mcap_jpeg_quality = mcap_jpeg_quality
+        if mcap_codec not in MCAP_CODECS:
+            raise ValueError(f"{mcap_codec=} must be one of {MCAP_CODECS}")
+        if not 0 <= mcap_crf <= 51:
+            raise ValueError(f"{mcap_crf=} must be in [0, 51]")
+        self.mcap_jpeg_quality, self.mcap_codec, self.mcap_crf = mcap_jpeg_quality, mcap_codec, mcap_crf
+        self._h264: dict = {}  # topic -> H264Encoder, made at the topic's first frame
         self.upscale = upscale
         (self.out_dir / "frames").mkdir(parents=True, exist_ok=True)
         if upscale > 1:
@@ -297,13 +320,18 @@ class VideoWriter:
         def put(topic, msg):
             self._mcap.write_message(topic, msg, log_time=t, publish_time=t, sequence=i)
 
-        data, fmt = self._viewing_image(png, rgb)
-        put(TOPIC_RGB, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=data, format=fmt))
+        if self.mcap_codec == "h264":
+            self._put_video(TOPIC_RGB, rgb if rgb is not None else decode_rgb(png, what="frame"))
+        else:
+            data, fmt = self._viewing_image(png, rgb)
+            put(TOPIC_RGB, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=data, format=fmt))
         if mm is not None:
-            mm = np.ascontiguousarray(mm[::MCAP_DEPTH_STRIDE, ::MCAP_DEPTH_STRIDE], "<u2")
+            mm = mcap_depth(mm)
             put(TOPIC_DEPTH, RawImage(timestamp=stamp, frame_id=CAMERA_FRAME, width=mm.shape[1], height=mm.shape[0],
                                       encoding="16UC1", step=2 * mm.shape[1], data=mm.tobytes()))
-        if cond_rgb_png is not None:
+        if cond_rgb_png is not None and self.mcap_codec == "h264":
+            self._put_video(TOPIC_COND_RGB, decode_rgb(cond_rgb_png, what="condition RGB"))
+        elif cond_rgb_png is not None:
             data, fmt = self._viewing_image(cond_rgb_png)
             put(TOPIC_COND_RGB, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=data, format=fmt))
         if cond_mask_png is not None:
@@ -320,6 +348,27 @@ class VideoWriter:
         pose.pose.orientation.x, pose.pose.orientation.y, pose.pose.orientation.z, pose.pose.orientation.w = x, y, z, w
         put(TOPIC_POSE, pose)
 
+    def _put_video(self, topic: str, rgb: np.ndarray | None) -> None:
+        """Feed frame rgb (None: the end of the stream) to topic's H.264 stream and log the access units it yields."""
+        from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
+        from google.protobuf.timestamp_pb2 import Timestamp
+
+        from panoworld.io.h264 import H264_FORMAT, H264Encoder
+
+        enc = self._h264.get(topic)
+        if rgb is None:
+            units = enc.flush() if enc is not None else []
+        else:
+            if enc is None:
+                enc = self._h264[topic] = H264Encoder(rgb.shape[1], rgb.shape[0], fps=self.fps, crf=self.mcap_crf,
+                                                      keyframe_interval=max(1, round(2 * self.fps)))
+            units = enc.encode(rgb)
+        for i, data, _key in units:
+            t = _ns(i, self.fps)
+            stamp = Timestamp(seconds=t // 1_000_000_000, nanos=t % 1_000_000_000)
+            msg = CompressedVideo(timestamp=stamp, frame_id=CAMERA_FRAME, data=data, format=H264_FORMAT)
+            self._mcap.write_message(topic, msg, log_time=t, publish_time=t, sequence=i)
+
     def close(self, meta: dict | None = None) -> dict:
         """Finish the frames, preview and MCAP and write video.json (meta adds keys such as backend/upscale); returns it."""
         while self._pending:
@@ -333,6 +382,8 @@ class VideoWriter:
             self._mp4.close()
             self._mp4 = None
         if self._mcap is not None:
+            for topic in list(self._h264):
+                self._put_video(topic, None)
             self._mcap.finish()
             self._mcap_file.close()
             self._mcap = None
