@@ -5,6 +5,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from panoworld.geometry.blur import gaussian_blur
+
 LATTICE_OFFSETS = 48
 """Most offsets (autocorrelation peaks) averaged by the lattice fill: more keep grout and seams in phase across a
 larger hole and average each tile's own colour."""
@@ -91,8 +93,8 @@ def _border_matched(face: np.ndarray, src: np.ndarray, known: np.ndarray) -> np.
     diff = (face - src) * kn[..., None]
     fill = src + (float(np.mean((face - src)[known])) if known.any() else 0.0)
     for g in (12 * sig, 3 * sig):
-        wsum = cv2.GaussianBlur(kn, (0, 0), g)[..., None]
-        fill = np.where(wsum > 0.02, src + cv2.GaussianBlur(diff, (0, 0), g) / np.maximum(wsum, 1e-3), fill)
+        wsum = gaussian_blur(kn, g)[..., None]
+        fill = np.where(wsum > 0.02, src + gaussian_blur(diff, g) / np.maximum(wsum, 1e-3), fill)
     return fill
 
 
@@ -277,8 +279,8 @@ def _spread(face: np.ndarray, known: np.ndarray, sigmas: tuple[float, ...]) -> n
     val = face * kn[..., None]
     out = np.broadcast_to(face[known].mean(0), face.shape).astype(np.float32)
     for g in sigmas:
-        w = cv2.GaussianBlur(kn, (0, 0), g)[..., None]
-        out = np.where(w > 0.02, cv2.GaussianBlur(val, (0, 0), g) / np.maximum(w, 1e-6), out)
+        w = gaussian_blur(kn, g)[..., None]
+        out = np.where(w > 0.02, gaussian_blur(val, g) / np.maximum(w, 1e-6), out)
     return out
 
 
