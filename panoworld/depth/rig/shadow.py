@@ -188,9 +188,10 @@ def floor_light(face: np.ndarray, rig: np.ndarray, floor: np.ndarray, theta: np.
         coef = _lstsq(A[keep], yu[keep])
         res = yu - A @ coef
         keep &= _within_3mad(res, res[keep])
+    A, yu, res = A[keep], yu[keep], res[keep]
     for _ in range(8):  # the upper expectile: the floor's brighter texture is lit like the rest (see LIGHT_EXPECTILE)
-        sw = np.sqrt(_expectile_weights(res[keep]))
-        coef = _lstsq(A[keep] * sw[:, None], yu[keep] * sw)
+        sw = np.sqrt(_expectile_weights(res))
+        coef = _lstsq(A * sw[:, None], yu * sw)
         res = yu - A @ coef
     seen = np.array([(keep & (h > 0.5)).sum() >= 8 for h in hats])  # knots without floor pixels (under the mount)
     prof = np.exp(np.minimum(np.where(seen, coef[len(poly):], 0.0), 0.0))
