@@ -211,7 +211,9 @@ def ring_fill(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, width_
     sig = max(1.5, S / 100)
     tex_sig = max(1.0, S / 120)
     local = _spread(face, ring, (tex_sig,))
-    low = _membrane(_spread(face, ring, (3 * sig,)), ring, hole, _spread(face, ring, (24 * sig, 12 * sig, 3 * sig)))
+    blurs: dict = {}
+    low = _membrane(_spread(face, ring, (3 * sig,), blurs), ring, hole,
+                    _spread(face, ring, (24 * sig, 12 * sig, 3 * sig), blurs))
     resid = (face - local) * ring[..., None]
     out = face.copy()
     out[hole] = (low + _quilt(resid, ring, hole, max(8, int(S / 24)) // 2 * 2, seed))[hole]
@@ -272,15 +274,19 @@ def _membrane(known_val: np.ndarray, known: np.ndarray, hole: np.ndarray, start:
     return np.where(near[..., None], up, start).astype(np.float32)
 
 
-def _spread(face: np.ndarray, known: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
+def _spread(face: np.ndarray, known: np.ndarray, sigmas: tuple[float, ...], blurs: dict | None = None) -> np.ndarray:
     """face's known pixels spread over every pixel (normalised convolution, coarse to fine; the known mean where
-    no scale reaches)."""
+    no scale reaches). blurs: {sigma: (blurred known, blurred values)} of earlier calls on the same face and known
+    pixels, reused and added to."""
     kn = known.astype(np.float32)
     val = face * kn[..., None]
     out = np.broadcast_to(face[known].mean(0), face.shape).astype(np.float32)
+    blurs = {} if blurs is None else blurs
     for g in sigmas:
-        w = gaussian_blur(kn, g)[..., None]
-        out = np.where(w > 0.02, gaussian_blur(val, g) / np.maximum(w, 1e-6), out)
+        if g not in blurs:
+            blurs[g] = gaussian_blur(kn, g)[..., None], gaussian_blur(val, g)
+        w, v = blurs[g]
+        out = np.where(w > 0.02, v / np.maximum(w, 1e-6), out)
     return out
 
 
