@@ -99,3 +99,31 @@ def test_a_home_fits_its_colours_at_every_capture_point():
     for n in poses:
         assert rmse(fitted.gaussians, n) < 0.5 * rmse(plain.gaussians, n), n
         assert fitted.color_fit["rmse_after"][n] < 0.5 * fitted.color_fit["rmse_before"][n]
+
+
+def test_nearest_source_equals_its_every_pair_reference():
+    """geometry.nearest_source (each panorama tests the points still kept, where it is nearer) against the plain
+    loop over every point and every other panorama, on a box seen from three capture points (ties included)."""
+    from panoworld.core.conventions import erp_dirs, invert_pose, transform_points
+    from panoworld.geometry.panoramas import depth_along, nearest_source
+
+    poses = {"a": _pose(0, 0, 0), "b": _pose(0.9, 0.2, -1.1), "c": _pose(-1.0, -0.3, 1.2)}
+    depths = _box_depths(poses)
+    names = list(poses)
+    depths["b"][5:20, 10:40] = 0.0  # no depth there: b explains nothing
+    for k, n in enumerate(names):
+        d = depths[n].astype(np.float64)
+        pts = transform_points(poses[n], erp_dirs(*d.shape, np.float64).reshape(-1, 3) * d.reshape(-1, 1))
+        pts = np.concatenate([pts, poses[names[(k + 1) % 3]][:3, 3][None]])  # a point at another capture point
+        r_k = np.linalg.norm(pts - poses[n][:3, 3], axis=1)
+        ref = np.ones(len(pts), bool)
+        for j, other in enumerate(names):
+            if j != k:
+                p = transform_points(invert_pose(poses[other]), pts)
+                r_j = np.linalg.norm(p, axis=1)
+                d_j = depth_along(np.asarray(depths[other], np.float64), p)
+                seen = np.isfinite(d_j) & (d_j > 0) & (np.abs(np.log(np.maximum(r_j, 1e-6) / np.maximum(d_j, 1e-6))) < 0.03)
+                ref &= ~(seen & ((r_j < r_k) | ((r_j == r_k) & (j < k))))
+        got = nearest_source(k, pts, names, depths, poses, tol=0.03)
+        assert 0.05 < got.mean() < 0.95
+        np.testing.assert_array_equal(got, ref)

@@ -7,6 +7,9 @@ import torch
 
 from panoworld.io.gaussian_set import Gaussians, rgb_to_sh_dc
 
+FIT_TILE = 8
+"""The operators' weights-kernel tile (render.splats.face_weights): fewer Gaussians scanned per pixel than the
+rasteriser's 16, the same weights."""
 PIXEL_WEIGHT = 0.25
 """A Gaussian's typical compositing weight in a pixel it covers: its colour's data term is about this times its
 compositing weight over the views (the damping's unit), which sets the preconditioner of the degree-1 terms."""
@@ -58,7 +61,7 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     ones = torch.ones(height, 2 * height, 3)
     held = 0
     for _, pose in views:
-        ops.append(ErpColorOperator(g, pose, height, 2 * height, supersample=supersample, cov=cov))
+        ops.append(ErpColorOperator(g, pose, height, 2 * height, supersample=supersample, cov=cov, tile=FIT_TILE))
         held += operator_nbytes(ops[-1])
         if held / len(ops) * len(views) > max_bytes:
             return g, {"views": len(views), "skipped": f"the render operators of the {len(views)} capture poses would "
@@ -67,16 +70,29 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         for f in ops[-1].faces:
             seen_any[f[2].indices] = True
     del cov, ones
-    n, views_n = len(g), len(ops)
+    # The unknowns are those of the Gaussians some view sees (the others' gradient is 0: they keep their colours),
+    # and each view's products run over the Gaussians it sees alone (cols[k], positions among the seen).
+    fit = np.flatnonzero(seen_any)
+    at = torch.from_numpy(fit)
+    n, views_n = len(fit), len(ops)
+    cols = []
+    for k in range(views_n):
+        mine = np.zeros(len(g), bool)
+        for f in ops[k].faces:
+            mine[f[2].indices] = True
+        cols.append(np.searchsorted(fit, np.flatnonzero(mine)).astype(np.int64))
+        ops[k] = ops[k].restricted(np.flatnonzero(mine))
+    seen_k = [w[at] for w in seen_k]
     total = sum(seen_k)[:, None]
     seen = total.clamp(min=1e-3)
     total = torch.where(total > 0, total, 1.0)  # the weighted means below, exact where the weights are small
     s0 = np.zeros((n, 3, 3), np.float32)
-    s0[:, : min(3, g.sh_rest.shape[1])] = np.asarray(g.sh_rest, np.float32)[:, :3]
+    s0[:, : min(3, g.sh_rest.shape[1])] = np.asarray(g.sh_rest, np.float32)[fit, :3]
     s0 = torch.from_numpy(s0)
-    b = [sh1_basis(g.means, np.asarray(pose)[:3, 3]) for _, pose in views]
+    means = np.asarray(g.means)[fit]
+    b = [sh1_basis(means, np.asarray(pose)[:3, 3]) for _, pose in views]
     b_mean = sum(w[:, None] * bk for w, bk in zip(seen_k, b)) / total
-    c0 = torch.from_numpy(g.base_colors()) + torch.einsum("nj,njc->nc", b_mean, s0)
+    c0 = torch.from_numpy(g.base_colors()[fit]) + torch.einsum("nj,njc->nc", b_mean, s0)
     if sh_degree:
         # the unknowns are s times rho, each Gaussian's RMS basis change over the views lifted by the damping
         # (a diagonal preconditioner: the data and the damping of each unknown then weigh about alike)
@@ -84,56 +100,63 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
                / total)
         one_way = rho < 1e-6  # seen from one direction (one view): s does not reach the colours
         rho = (rho + sh_damping / PIXEL_WEIGHT).sqrt()
-        basis = [torch.where(one_way, 0.0, bk - b_mean) / rho for bk in b]
+        basis = [(torch.where(one_way, 0.0, bk - b_mean) / rho)[cols[k]] for k, bk in enumerate(b)]
         x0 = torch.cat([c0, (s0 * rho[:, :, None]).reshape(n, 9)], 1)
         lam = torch.cat([damping * seen.expand(n, 3), (sh_damping * seen / rho.square()).expand(n, 9)], 1)
     else:
-        basis = [bk - b_mean for bk in b]
+        basis = [(bk - b_mean)[cols[k]] for k, bk in enumerate(b)]
+        s0_k = [s0[c] for c in cols]
         x0, lam = c0, damping * seen.expand(n, 3)
     del b
+    cols = [torch.from_numpy(c) for c in cols]
 
-    def colors(k, x):  # the unknowns (N, 3 or 12) -> the colours view k sees (N, 3)
-        s = x[:, 3:].reshape(n, 3, 3) if sh_degree else s0
-        return x[:, :3] + torch.einsum("nj,njc->nc", basis[k], s)
+    def colors(k, x):  # the unknowns (n, 3 or 12) -> the colours view k sees (len(cols[k]), 3)
+        xk = x[cols[k]]
+        s = xk[:, 3:].reshape(-1, 3, 3) if sh_degree else s0_k[k]
+        return xk[:, :3] + torch.einsum("nj,njc->nc", basis[k], s)
 
     def lin(k, p):  # view k's render of a step p of the unknowns
-        gc = p[:, :3] + torch.einsum("nj,njc->nc", basis[k], p[:, 3:].reshape(n, 3, 3)) if sh_degree else p
+        pk = p[cols[k]]
+        gc = pk[:, :3] + torch.einsum("nj,njc->nc", basis[k], pk[:, 3:].reshape(-1, 3, 3)) if sh_degree else pk
         return ops[k](gc)
 
-    def grad(r):  # the adjoint of the views' renders of the residuals r (per view (H, W, 3)), as the unknowns
-        out = torch.zeros_like(x0)
+    def grad(r, out):  # the adjoint of the views' renders of the residuals r (per view (H, W, 3)), as the unknowns
+        out.zero_()
         for k in range(views_n):
             gc = ops[k].adjoint(r[k])
-            out[:, :3] += gc
             if sh_degree:
-                out[:, 3:].view(n, 3, 3).add_(basis[k][:, :, None] * gc[:, None, :])
+                gc = torch.cat([gc, (basis[k][:, :, None] * gc[:, None, :]).reshape(-1, 9)], 1)
+            out.index_add_(0, cols[k], gc)
         return out
 
-    x = x0.clone()
+    # Conjugate gradients on the normal equations, the (n, 12) vectors updated in place (tmp: scratch)
+    x, s, tmp = x0.clone(), torch.empty_like(x0), torch.empty_like(x0)
     r = [targets[k] - ops[k](colors(k, x)) for k in range(views_n)]
     rmse0 = [float(rk.square().mean().sqrt()) for rk in r]
-    s = grad(r)
-    p, gamma = s.clone(), float(s.square().sum())
+    grad(r, s)
+    p, gamma = s.clone(), float(torch.mul(s, s, out=tmp).sum())
     for _ in range(iters):
         q = [lin(k, p) for k in range(views_n)]
-        alpha = gamma / max(float(sum(qk.square().sum() for qk in q) + (lam * p.square()).sum()), 1e-20)
-        x = x + alpha * p
+        damped = torch.mul(p, p, out=tmp).mul_(lam).sum()
+        alpha = gamma / max(float(sum(qk.square().sum() for qk in q) + damped), 1e-20)
+        x.add_(torch.mul(p, alpha, out=tmp))
         r = [r[k] - alpha * q[k] for k in range(views_n)]
-        s = grad(r).sub_(lam * (x - x0))
-        gamma_new = float(s.square().sum())
-        p, gamma = s + gamma_new / max(gamma, 1e-20) * p, gamma_new
+        grad(r, s).sub_(torch.sub(x, x0, out=tmp).mul_(lam))
+        gamma_new = float(torch.mul(s, s, out=tmp).sum())
+        p.mul_(gamma_new / max(gamma, 1e-20)).add_(s)
+        gamma = gamma_new
     x[:, :3] = x[:, :3].clamp(0.0, 1.0)
     rmse1 = [float((targets[k] - ops[k](colors(k, x))).square().mean().sqrt()) for k in range(views_n)]
     coef = x[:, 3:].reshape(n, 3, 3) / rho[:, :, None] if sh_degree else s0
     dc = np.array(g.sh_dc, np.float32)  # only the Gaussians some view sees change
-    dc[seen_any] = rgb_to_sh_dc((x[:, :3] - torch.einsum("nj,njc->nc", b_mean, coef)).numpy()[seen_any])
-    rest = np.zeros((n, max(3 if sh_degree else 0, g.sh_rest.shape[1]), 3), np.float32)
+    dc[fit] = rgb_to_sh_dc((x[:, :3] - torch.einsum("nj,njc->nc", b_mean, coef)).numpy())
+    rest = np.zeros((len(g), max(3 if sh_degree else 0, g.sh_rest.shape[1]), 3), np.float32)
     rest[:, : g.sh_rest.shape[1]] = g.sh_rest
     if sh_degree:
-        rest[seen_any, :3] = coef.numpy()[seen_any]
+        rest[fit, :3] = coef.numpy()
     out = Gaussians(g.means, g.scales, g.quats, g.opacities, dc, rest)
     return out, {"views": views_n, "height": height, "iters": iters, "sh_degree": sh_degree,
-                 "fitted": int(seen_any.sum()), "rmse_before": rmse0, "rmse_after": rmse1}
+                 "fitted": n, "rmse_before": rmse0, "rmse_after": rmse1}
 
 
 def operator_nbytes(op) -> int:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -56,12 +57,27 @@ def cube_views(fov_deg: float = 110.0, size: int = 518) -> list[PerspectiveView]
 def render_view(rgb: np.ndarray, view: PerspectiveView) -> np.ndarray:
     """Bilinear resampling of the panorama rgb (H, W, 3) into a perspective view (size, size, 3), seam wrapped."""
     H, W = rgb.shape[:2]
-    u, v = erp_pixel_from_dir(view.rays(), H, W)
+    mx, my = view_maps(view, H, W)
     # One wrapped column each side and one replicated row top/bottom, so remap never reads past the seam.
     padded = np.concatenate([rgb[:, -1:], rgb, rgb[:, :1]], axis=1)
     padded = np.concatenate([padded[:1], padded, padded[-1:]], axis=0)
-    return cv2.remap(padded, (u + 0.5).astype(np.float32), (v + 0.5).astype(np.float32), cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_REPLICATE)
+    return cv2.remap(padded, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def view_maps(view: PerspectiveView, H: int, W: int) -> tuple[np.ndarray, np.ndarray]:
+    """render_view's remap coordinates (size, size) float32 of the view into an (H, W) panorama padded by one pixel
+    (cached per view and size; read-only)."""
+    return _view_maps(np.asarray(view.cam_from_view, np.float64).tobytes(), float(view.fov_deg), int(view.size), H, W)
+
+
+@lru_cache(maxsize=8)
+def _view_maps(rot: bytes, fov_deg: float, size: int, H: int, W: int) -> tuple[np.ndarray, np.ndarray]:
+    view = PerspectiveView(np.frombuffer(rot, np.float64).reshape(3, 3), fov_deg, size)
+    u, v = erp_pixel_from_dir(view.rays(), H, W)
+    maps = (u + 0.5).astype(np.float32), (v + 0.5).astype(np.float32)
+    for m in maps:
+        m.flags.writeable = False
+    return maps
 
 
 @dataclass

@@ -27,10 +27,12 @@ def nearest_source(k: int, pts_world: np.ndarray, names: list[str], depths: dict
     for j, other in enumerate(names):
         if j == k:
             continue
-        p = transform_points(invert_pose(world_from_cam[other]), pts_world)
+        at = np.flatnonzero(keep)  # each panorama tests the points still kept, its depth looked up where it is nearer
+        p = transform_points(invert_pose(world_from_cam[other]), pts_world[at])
         r_j = np.linalg.norm(p, axis=1)
+        nearer = (r_j < r_k[at]) | ((r_j == r_k[at]) & (j < k))
+        at, p, r_j = at[nearer], p[nearer], r_j[nearer]
         d_j = depth_along(np.asarray(depths[other], np.float64), p)
         seen = np.isfinite(d_j) & (d_j > 0) & (np.abs(np.log(np.maximum(r_j, 1e-6) / np.maximum(d_j, 1e-6))) < tol)
-        nearer = (r_j < r_k) | ((r_j == r_k) & (j < k))
-        keep &= ~(seen & nearer)
+        keep[at[seen]] = False
     return keep

@@ -106,7 +106,8 @@ def near_plane_mask(depth: np.ndarray, valid: np.ndarray, near_m: float = NEAR_P
     ok &= nn > 0
     n = n / np.maximum(nn, 1e-30)[..., None]
     step = np.min([np.linalg.norm(q - pts, axis=-1) for q in nbrs], axis=0)
-    tol = COLLINEAR_REL * step + 1e-5 * np.linalg.norm(pts, axis=-1)
+    radius = np.linalg.norm(pts, axis=-1)
+    tol = COLLINEAR_REL * step + 1e-5 * radius
     for q in nbrs:
         ok &= np.abs((n * (q - pts)).sum(-1)) <= tol
     ok &= step > 0
@@ -116,19 +117,25 @@ def near_plane_mask(depth: np.ndarray, valid: np.ndarray, near_m: float = NEAR_P
     else:
         near = np.zeros_like(ok)
         for q in np.asarray(centres, np.float32).reshape(-1, 3):
-            dist = np.linalg.norm(pts - q, axis=-1)
-            near |= _reaching(ok & (np.abs(c - n @ q) < near_m), dist) | (valid & (dist < near_m))
+            on = ok & (np.abs(c - n @ q) < near_m)
+            close = _maybe_within(radius, valid, q, near_m)
+            dist = np.full(on.shape, np.inf, np.float32)  # the distance to q where it is read: on the planes, near q
+            need = on | close
+            dist[need] = np.linalg.norm(pts[need] - q, axis=-1)
+            near |= _reaching(on, dist) | (close & (dist < near_m))
     for _ in range(GROW_PASSES):  # the rim where a neighbour lies on another surface: on the plane of a near pixel
         grow = np.zeros_like(near)
+        free = valid & ~near
         for dy in (-1, 0, 1):
             for dx in (-1, 0, 1):
                 if dy or dx:
                     nb = np.roll(np.roll(near, dy, 0), dx, 1)
                     if dy:
                         nb[0 if dy > 0 else -1] = False
-                    on = np.abs((np.roll(np.roll(n, dy, 0), dx, 1) * pts).sum(-1) - np.roll(np.roll(c, dy, 0), dx, 1))
-                    grow |= nb & (on <= COLLINEAR_REL * np.linalg.norm(pts, axis=-1) + 0.002)
-        grow &= valid & ~near
+                    y, x = np.nonzero(nb & free & ~grow)  # tested there alone: grow keeps only free pixels
+                    sy, sx = (y - dy) % H, (x - dx) % W  # the near neighbour (np.roll's source pixel)
+                    on = np.abs((n[sy, sx] * pts[y, x]).sum(-1) - c[sy, sx])
+                    grow[y, x] = on <= COLLINEAR_REL * radius[y, x] + 0.002
         if not grow.any():
             break
         near |= grow
@@ -173,14 +180,17 @@ def _reaching(near: np.ndarray, depth: np.ndarray) -> np.ndarray:
 
 def _first_neighbour_plane(src, n, c, at):
     """Plane (normal, offset) of a src pixel among the 8-neighbours of each pixel of at."""
-    nn, cc = np.zeros((int(at.sum()), 3), n.dtype), np.zeros(int(at.sum()), c.dtype)
+    H, W = at.shape
+    y, x = np.nonzero(at)
+    nn, cc = np.zeros((len(y), 3), n.dtype), np.zeros(len(y), c.dtype)
     done = np.zeros(len(cc), bool)
     for dy in (-1, 0, 1):
         for dx in (-1, 0, 1):
             if dy or dx:
-                has = np.roll(np.roll(src, dy, 0), dx, 1)[at] & ~done
-                nn[has] = np.roll(np.roll(n, dy, 0), dx, 1)[at][has]
-                cc[has] = np.roll(np.roll(c, dy, 0), dx, 1)[at][has]
+                sy, sx = (y - dy) % H, (x - dx) % W  # np.roll's source pixel
+                has = src[sy, sx] & ~done
+                nn[has] = n[sy[has], sx[has]]
+                cc[has] = c[sy[has], sx[has]]
                 done |= has
     return nn, cc
 
@@ -270,10 +280,20 @@ def near_captures_mask(depth: np.ndarray, world_from_cam: np.ndarray, centres_wo
     k = k if H % k == 0 and W % k == 0 else 1
     small = near_plane_mask(depth[::k, ::k], valid[::k, ::k], near_m, centres=local)
     out = (small if k == 1 else np.repeat(np.repeat(small, k, 0), k, 1)) & valid
-    pts = erp_dirs(H, W, np.float32) * np.where(valid, depth, 0.0).astype(np.float32)[..., None]
+    d = np.where(valid, depth, 0.0).astype(np.float32)
+    dirs = None
     for q in local.astype(np.float32):
-        out |= valid & (np.linalg.norm(pts - q, axis=-1) < near_m)
+        close = _maybe_within(d, valid, q, near_m)
+        if close.any():
+            dirs = erp_dirs(H, W, np.float32) if dirs is None else dirs
+            out[close] |= np.linalg.norm(dirs[close] * d[close][:, None] - q, axis=-1) < near_m
     return out
+
+
+def _maybe_within(radius: np.ndarray, valid: np.ndarray, q: np.ndarray, near_m: float) -> np.ndarray:
+    """valid pixels whose point (at distance radius from the camera) may lie within near_m of q: |radius - |q|| is
+    a lower bound of that distance (with a margin for float32 rounding); the rest is surely farther."""
+    return valid & (np.abs(radius - float(np.linalg.norm(q))) < near_m + 1e-3 + 1e-5 * radius)
 
 
 def drop_near_captures(depths: dict[str, np.ndarray], world_from_cam: dict[str, np.ndarray]) -> dict[str, int]:

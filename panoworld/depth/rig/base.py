@@ -6,7 +6,15 @@ import cv2
 import numpy as np
 
 from panoworld.depth.rig.face import face_to_erp_mask
-from panoworld.depth.rig.nadir import RING_DEG, RigDetection, floor_source, nadir_face, seen_object, unlike_floor
+from panoworld.depth.rig.nadir import (
+    RING_DEG,
+    NadirFace,
+    RigDetection,
+    floor_source,
+    nadir_face,
+    seen_object,
+    unlike_floor,
+)
 
 BASE_FG_DEG = 10.0
 """GrabCut starts with everything within this angle of the nadir as probably the rig."""
@@ -139,12 +147,13 @@ def _elongated(part: np.ndarray) -> bool:
 
 
 def detect_base(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndarray | None = None,
-                floor_m: float | None = None) -> RigDetection:
+                floor_m: float | None = None, *, nf: NadirFace | None = None) -> RigDetection:
     """A solid camera base at the nadir (panoworld.depth.rig.base): GrabCut on the downward face, compared with the floor
     that is there (on the floor plane by depth, BASE_BG_DEG-42 deg from the nadir: in a narrow hallway nearer than the
-    floor ring); a region that is no compact, centred body unlike that floor and closed by it is kept."""
+    floor ring); a region that is no compact, centred body unlike that floor and closed by it is kept. nf: their
+    nadir_face when already at hand."""
     H, W = rgb.shape[:2]
-    nf = nadir_face(rgb, depth, valid, floor_m)
+    nf = nadir_face(rgb, depth, valid, floor_m) if nf is None else nf
     ref = nf.on_floor & (nf.theta >= BASE_BG_DEG) & (nf.theta < RING_DEG[1])
     share = float(ref.sum() / max(((nf.theta >= BASE_BG_DEG) & (nf.theta < RING_DEG[1])).sum(), 1))
     if share < 0.15:

@@ -79,22 +79,22 @@ def detect_rig(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndarr
     Floor colours are first taken broadly (a blotchy concrete floor stays floor); when that finds no rig, once more
     narrowly (a grey mount on a brown floor in shade); the shape tests decide either way. When that finds no rig or
     only a mount, a solid camera base is looked for (detect_base): found, it replaces the mount."""
-    first = _detect_once(rgb, depth, valid, floor_m, FLOOR_SIGMAS[0])
+    nf = nadir_face(rgb, depth, valid, floor_m)  # read, never written, by every look below
+    first = _detect_once(rgb, nf, floor_m, FLOOR_SIGMAS[0])
     if not first.found:
-        second = _detect_once(rgb, depth, valid, floor_m, FLOOR_SIGMAS[1])
+        second = _detect_once(rgb, nf, floor_m, FLOOR_SIGMAS[1])
         first = second if second.found else first
     if first.found and first.kind != "mount":
         return first
-    base = detect_base(rgb, depth, valid, floor_m)  # a mount's blob is taken whole with its legs, the rest refused
+    base = detect_base(rgb, depth, valid, floor_m, nf=nf)  # a mount's blob is taken whole with its legs, the rest refused
     if base.found:
         return base
     first.stats["base"] = base.reason
     return first
 
 
-def _detect_once(rgb, depth, valid, floor_m, sigma: float) -> RigDetection:
+def _detect_once(rgb, nf: NadirFace, floor_m, sigma: float) -> RigDetection:
     H, W = rgb.shape[:2]
-    nf = nadir_face(rgb, depth, valid, floor_m)
     refusal = no_floor_ring(nf)
     if refusal is not None:
         return refusal

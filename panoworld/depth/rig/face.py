@@ -3,6 +3,8 @@ angles of its pixels and resampling between it and the ERP (docs/rig.md)."""
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -36,12 +38,24 @@ def face_to_erp(values: np.ndarray, view: PerspectiveView, H: int, W: int, outsi
     """Face values (size, size[, C]) float -> (H, W[, C]) ERP, bilinear; outside where a pixel does not see the face."""
     out = np.full((H, W, *values.shape[2:]), outside, np.float32)
     rows = cap_rows(H, view)
-    px, py, cos = view.project(erp_dirs(H, W, np.float64)[rows])
-    m = cv2.remap(values.astype(np.float32), np.nan_to_num(px, nan=-10).astype(np.float32),
-                  np.nan_to_num(py, nan=-10).astype(np.float32), cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+    px, py, front = _erp_maps(np.asarray(view.cam_from_view, np.float64).tobytes(), float(view.fov_deg),
+                              int(view.size), H, W)
+    m = cv2.remap(values.astype(np.float32), px, py, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                   borderValue=outside)
-    out[rows] = np.where((cos > 0).reshape(cos.shape + (1,) * (values.ndim - 2)), m, outside)
+    out[rows] = np.where(front.reshape(front.shape + (1,) * (values.ndim - 2)), m, outside)
     return out
+
+
+@lru_cache(maxsize=4)
+def _erp_maps(rot: bytes, fov_deg: float, size: int, H: int, W: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """face_to_erp's remap coordinates (float32) and its ERP pixels in front of the view, on cap_rows (cached;
+    read-only)."""
+    view = PerspectiveView(np.frombuffer(rot, np.float64).reshape(3, 3), fov_deg, size)
+    px, py, cos = view.project(erp_dirs(H, W, np.float64)[cap_rows(H, view)])
+    maps = np.nan_to_num(px, nan=-10).astype(np.float32), np.nan_to_num(py, nan=-10).astype(np.float32), cos > 0
+    for m in maps:
+        m.flags.writeable = False
+    return maps
 
 
 def face_to_erp_mask(face_mask: np.ndarray, view: PerspectiveView, H: int, W: int) -> np.ndarray:

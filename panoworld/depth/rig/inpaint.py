@@ -5,6 +5,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from panoworld.geometry.blur import gaussian_blur
+
 LATTICE_OFFSETS = 48
 """Most offsets (autocorrelation peaks) averaged by the lattice fill: more keep grout and seams in phase across a
 larger hole and average each tile's own colour."""
@@ -91,8 +93,8 @@ def _border_matched(face: np.ndarray, src: np.ndarray, known: np.ndarray) -> np.
     diff = (face - src) * kn[..., None]
     fill = src + (float(np.mean((face - src)[known])) if known.any() else 0.0)
     for g in (12 * sig, 3 * sig):
-        wsum = cv2.GaussianBlur(kn, (0, 0), g)[..., None]
-        fill = np.where(wsum > 0.02, src + cv2.GaussianBlur(diff, (0, 0), g) / np.maximum(wsum, 1e-3), fill)
+        wsum = gaussian_blur(kn, g)[..., None]
+        fill = np.where(wsum > 0.02, src + gaussian_blur(diff, g) / np.maximum(wsum, 1e-3), fill)
     return fill
 
 
@@ -211,9 +213,10 @@ def ring_fill(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, width_
     sig = max(1.5, S / 100)
     tex_sig = max(1.0, S / 120)
     local = _spread(face, ring, (tex_sig,))
-    mean = _spread(face, ring, (3 * sig,))
-    low = _along_band(mean, ring, hole, _membrane(mean, ring, hole, _spread(face, ring, (24 * sig, 12 * sig, 3 * sig))),
-                      2 * sig)
+    blurs: dict = {}
+    mean = _spread(face, ring, (3 * sig,), blurs)
+    low = _along_band(mean, ring, hole, _membrane(mean, ring, hole, _spread(face, ring, (24 * sig, 12 * sig, 3 * sig),
+                                                                            blurs)), 2 * sig)
     resid = (face - local) * ring[..., None]
     out = face.copy()
     out[hole] = (low + _quilt(resid, ring, hole, max(8, int(S / 24)) // 2 * 2, seed))[hole]
@@ -327,6 +330,7 @@ def _isophote_direction(val: np.ndarray, known: np.ndarray) -> tuple[tuple[float
     ev, vec = np.linalg.eigh(np.array([[jxx, jxy], [jxy, jyy]]))
     return (float(vec[0, 0]), float(vec[1, 0])), float((ev[1] - ev[0]) / (ev[1] + ev[0]))
 
+
 def _rowwise_line(val: np.ndarray, known: np.ndarray, free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per row, each free pixel between a known pixel on its left and one on its right with only free pixels
     between: the linear interpolation of the two; (values, where there were both)."""
@@ -345,16 +349,19 @@ def _rowwise_line(val: np.ndarray, known: np.ndarray, free: np.ndarray) -> tuple
     return np.where(ok[..., None], out, 0.0).astype(np.float32), ok
 
 
-
-def _spread(face: np.ndarray, known: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
+def _spread(face: np.ndarray, known: np.ndarray, sigmas: tuple[float, ...], blurs: dict | None = None) -> np.ndarray:
     """face's known pixels spread over every pixel (normalised convolution, coarse to fine; the known mean where
-    no scale reaches)."""
+    no scale reaches). blurs: {sigma: (blurred known, blurred values)} of earlier calls on the same face and known
+    pixels, reused and added to."""
     kn = known.astype(np.float32)
     val = face * kn[..., None]
     out = np.broadcast_to(face[known].mean(0), face.shape).astype(np.float32)
+    blurs = {} if blurs is None else blurs
     for g in sigmas:
-        w = cv2.GaussianBlur(kn, (0, 0), g)[..., None]
-        out = np.where(w > 0.02, cv2.GaussianBlur(val, (0, 0), g) / np.maximum(w, 1e-6), out)
+        if g not in blurs:
+            blurs[g] = gaussian_blur(kn, g)[..., None], gaussian_blur(val, g)
+        w, v = blurs[g]
+        out = np.where(w > 0.02, v / np.maximum(w, 1e-6), out)
     return out
 
 

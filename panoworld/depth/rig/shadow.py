@@ -172,24 +172,32 @@ def floor_light(face: np.ndarray, rig: np.ndarray, floor: np.ndarray, theta: np.
     u, v = _floor_coords(face.shape[0], focal)
     poly = _quadratic(u, v)
     knots = np.arange(0.0, SHADOW_MAX_DEG + 1e-6, KNOT_DEG)
-    hats = [np.clip(1.0 - np.abs(theta - k) / KNOT_DEG, 0.0, None) for k in knots[:-1]]
-    A = np.stack(poly + hats, -1).astype(np.float64)
     y = np.log(np.maximum(lum, 1e-4)).astype(np.float64)
     use = floor & ~rig & (lum > 2e-3)
-    if use.sum() < 20 * A.shape[-1] or (use & (theta >= SHADOW_MAX_DEG)).sum() < 200:
+    k = len(poly) + len(knots) - 1
+    if use.sum() < 20 * k or (use & (theta >= SHADOW_MAX_DEG)).sum() < 200:
         return None
-    coef = np.zeros(A.shape[-1])
+    at = np.flatnonzero(use)  # the fit reads these pixels alone (the trimming only drops some)
+    th = theta.reshape(-1)[at]
+    hats = [np.clip(1.0 - np.abs(th - kn) / KNOT_DEG, 0.0, None) for kn in knots[:-1]]
+    A = np.stack([p.reshape(-1)[at] for p in poly] + hats, -1).astype(np.float64)
+    yu = y.reshape(-1)[at]
+    keep = np.ones(len(at), bool)
+    coef = np.zeros(k)
     for _ in range(4):
-        coef = _lstsq(A[use], y[use])
-        res = y - A @ coef
-        use &= _within_3mad(res, res[use])
+        coef = _lstsq(A[keep], yu[keep])
+        res = yu - A @ coef
+        keep &= _within_3mad(res, res[keep])
+    A, yu, res = A[keep], yu[keep], res[keep]
     for _ in range(8):  # the upper expectile: the floor's brighter texture is lit like the rest (see LIGHT_EXPECTILE)
-        sw = np.sqrt(_expectile_weights(res[use]))
-        coef = _lstsq(A[use] * sw[:, None], y[use] * sw)
-        res = y - A @ coef
-    seen = np.array([(use & (h > 0.5)).sum() >= 8 for h in hats])  # knots without floor pixels (under the mount)
+        sw = np.sqrt(_expectile_weights(res))
+        coef = _lstsq(A * sw[:, None], yu * sw)
+        res = yu - A @ coef
+    seen = np.array([(keep & (h > 0.5)).sum() >= 8 for h in hats])  # knots without floor pixels (under the mount)
     prof = np.exp(np.minimum(np.where(seen, coef[len(poly):], 0.0), 0.0))
-    light = np.exp(y - A[..., : len(poly)] @ coef[: len(poly)])
+    light = np.exp(y - sum(c * p for c, p in zip(coef[: len(poly)], poly)))
+    use = np.zeros(use.shape, bool)
+    use.reshape(-1)[at[keep]] = True
     return FloorLight(knots, np.r_[prof, 1.0], light, use)
 
 
