@@ -12,7 +12,7 @@ import torch
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from panoworld.core.conventions import erp_dirs, erp_pixel_from_dir
+from panoworld.core.conventions import erp_dirs, erp_pixel_from_dir, invert_pose
 from panoworld.geometry.cube_views import cube_views, render_view
 from panoworld.geometry.panoramas import erp_pixel_index
 from panoworld.models.pose_refine import depth_edges, sample_range
@@ -178,7 +178,7 @@ def same_room_refusal(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.nda
     other's camera behind a wall (or where their depth is unknown) and pass."""
     t = np.asarray(i_from_j, np.float64)
     toward = []
-    for depth, cam in ((depth_i, t[:3, 3]), (depth_j, -t[:3, :3].T @ t[:3, 3])):
+    for depth, cam in ((depth_i, t[:3, 3]), (depth_j, invert_pose(t)[:3, 3])):
         dist, d = float(np.linalg.norm(cam)), depth_toward(depth, cam)
         toward.append((dist, d))
         if not (d > 0 and dist < d - max(margin_m, margin_frac * d)):
