@@ -1,9 +1,11 @@
 """A home's registration against its survey (ZInD survey.json: 2D capture positions and yaws): registered count,
-pairwise capture-point distance error, relative yaw error and the position error after a best 2D rigid alignment; and
-every pair the registration tried by layout, with its layout pose's error against the survey.
+pairwise capture-point distance error, relative yaw error and the position error after a best 2D rigid alignment;
+every pair the registration tried by layout, with its layout pose's error against the survey; and with --floor-evidence,
+per pair of panoramas the registration did not join, how many floor-image matches agree with the survey's relative
+pose (the evidence any floor fit could find there).
 
-`python bench/real_home_survey.py REGISTER_ARTIFACT SURVEY_JSON [--json]` prints them; `compare_to_survey` is the
-function the real-home benchmark imports."""
+`python bench/real_home_survey.py REGISTER_ARTIFACT SURVEY_JSON [--json] [--floor-evidence]` prints them;
+`compare_to_survey` is the function the real-home benchmark imports."""
 
 from __future__ import annotations
 
@@ -93,17 +95,64 @@ def layout_pairs(registration: dict, survey: dict) -> list[dict]:
     return rows
 
 
+def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str]) -> list[dict]:
+    """Per pair of panoramas not both registered: the floor views' matches (the register stage's floor_view on the
+    depth artifact's cleaned panoramas, rig excluded, default RegisterOptions) that agree with the survey's relative pose
+    within 8 cm on the floor, 15 deg in keypoint orientation and 0.6 octaves in size; most first."""
+    import cv2
+    from bench_real_home import survey_poses
+
+    from panoworld.geometry.resize import rgbd_at_height
+    from panoworld.io.home import home_depth_dirs, load_sources
+    from panoworld.register.artifact import _read_rig_mask
+    from panoworld.register.floor import floor_view
+    from panoworld.register.options import RegisterOptions
+    from panoworld.register.pairwise import grow_exclusion
+    from panoworld.register.upright import wrap_angle, yaw_matrix_xz, yaw_of
+
+    o = RegisterOptions()
+    world = survey_poses(survey)
+    dirs = home_depth_dirs(depth_artifact)
+    names, rgbs, depths = load_sources(dirs, world)
+    views = {}
+    for n in names:
+        rig = dirs[n] / "rig_mask.png"
+        views[n] = floor_view(rgbs[n], rgbd_at_height(rgbs[n], depths[n], o.height)[1], radius_m=o.floor_radius_m,
+                              cell_m=o.floor_cell_m, exclude=grow_exclusion(_read_rig_mask(rig) if rig.is_file() else None))
+    rows = []
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            va, vb = views[a], views[b]
+            if (a in registered and b in registered) or va is None or vb is None or not len(va.xz) or not len(vb.xz):
+                continue
+            gt = np.linalg.inv(world[a]) @ world[b]
+            yaw = yaw_of(gt[:3, :3])
+            m = np.array([(k[0].queryIdx, k[0].trainIdx) for k in
+                          cv2.BFMatcher(cv2.NORM_L2).knnMatch(va.descriptors, vb.descriptors, k=1) if k], np.int64)
+            on_floor = np.linalg.norm(vb.xz[m[:, 1]] @ yaw_matrix_xz(yaw).T + gt[[0, 2], 3] - va.xz[m[:, 0]], axis=1)
+            turn = np.degrees(np.abs(wrap_angle(va.angles[m[:, 0]] - vb.angles[m[:, 1]] - yaw)))
+            octaves = np.abs(np.log2(va.sizes[m[:, 0]] / vb.sizes[m[:, 1]]))
+            rows.append({"a": a, "b": b, "distance_m": round(float(np.hypot(gt[0, 3], gt[2, 3])), 2),
+                         "agreeing": int(((on_floor < 0.08) & (turn < 15) & (octaves < 0.6)).sum()), "matches": len(m)})
+    return sorted(rows, key=lambda r: (-r["agreeing"], r["distance_m"]))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("register", type=Path, help="a register artifact (holds panoramas.json)")
     ap.add_argument("survey", type=Path, help="survey.json")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--floor-evidence", action="store_true",
+                    help="per pair not both registered, the floor matches that agree with the survey (reads the depth "
+                         "artifact beside REGISTER_ARTIFACT)")
     args = ap.parse_args()
     poses = {n: np.asarray(T) for n, T in json.loads((args.register / "panoramas.json").read_text()).items()}
     survey = json.loads(args.survey.read_text())
     r = compare_to_survey(poses, survey)
     reg = args.register / "registration.json"
     r["layout_pairs"] = layout_pairs(json.loads(reg.read_text()), survey) if reg.is_file() else []
+    if args.floor_evidence:
+        r["floor_evidence"] = floor_evidence(args.register.parent / "depth", survey, set(poses))
     if args.json:
         print(json.dumps(r, indent=1))
         return 0
@@ -124,6 +173,14 @@ def main() -> int:
         for p in r["layout_pairs"]:
             print(f"| {p['a']}-{p['b']} | {p['score']:.0f} | {p['second']:.0f} | {p['ratio']:.2f} | {p['err_m']:.2f} | "
                   f"{p['yaw_err_deg']:.1f} | {p['edge'] or '-'} | {p['refused']} |")
+    if args.floor_evidence:
+        ev = r["floor_evidence"]
+        print(f"\nfloor evidence over the {len(ev)} pairs not both registered (matches agreeing with the survey; a floor "
+              "edge needs 8 inliers, chance fits reach 3-7):")
+        print("| pair | distance m | agreeing matches | matches |")
+        print("| --- | --- | --- | --- |")
+        for p in ev[:15]:
+            print(f"| {p['a']}-{p['b']} | {p['distance_m']:.2f} | {p['agreeing']} | {p['matches']} |")
     return 0
 
 
