@@ -7,6 +7,7 @@ import json
 import numpy as np
 
 from panoworld.core.conventions import invert_pose
+from panoworld.gaussians.home import depth_from_others
 from panoworld.register.pairwise import depth_toward, same_room_refusal
 
 
@@ -33,22 +34,8 @@ def test_same_room_refusal_tells_rooms_apart(home_dir):
     # One room seen twice from 0.25 m apart agrees with itself: a same-room pose stays.
     shift = np.eye(4)
     shift[:3, 3] = [0.25, 0.0, 0.0]
-    moved = _depth_from(depth[a], shift)
+    # Panorama a's surfaces seen from the shifted camera: the z-buffer of its points there.
+    moved = depth_from_others(0, ["b", "a"], {"b": depth[a], "a": depth[a]}, {"a": np.eye(4), "b": shift},
+                              height=depth[a].shape[0]).astype(np.float32)
     assert same_room_refusal(shift, depth[a], moved, min_consistency=0.9) == ""
 
-
-def _depth_from(depth: np.ndarray, a_from_b: np.ndarray) -> np.ndarray:
-    """The depth map of panorama a's surfaces seen from camera b (nearest surface per pixel, 0 where none lands)."""
-    from panoworld.core.conventions import erp_dirs, erp_pixel_from_dir
-
-    h, w = depth.shape
-    pts = erp_dirs(h, w, np.float64).reshape(-1, 3) * depth.reshape(-1, 1)
-    b_from_a = invert_pose(a_from_b)
-    q = pts @ b_from_a[:3, :3].T + b_from_a[:3, 3]
-    r = np.linalg.norm(q, axis=1)
-    u, v = erp_pixel_from_dir(q / r[:, None], h, w)
-    ui, vi = np.clip(u.astype(int), 0, w - 1), np.clip(v.astype(int), 0, h - 1)
-    out = np.full(h * w, np.inf)
-    np.minimum.at(out, vi * w + ui, r)
-    out[~np.isfinite(out)] = 0
-    return out.reshape(h, w).astype(np.float32)
