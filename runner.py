@@ -34,7 +34,9 @@ def _print_report(report: pl.Report, as_json: bool) -> int:
         print(json.dumps(report.as_dict(), indent=2))
     else:
         print(report.table())
-    for note in report.notes:  # said even with --json: a partial result is never silent
+    # The table ends with the notes; where stdout is not the terminal (--json, a pipe, a file) the terminal hears them
+    # on stderr too: a partial result is never silent, and never said twice on one screen.
+    for note in report.notes if as_json or not sys.stdout.isatty() else ():
         print(f"note: {note}", file=sys.stderr)
     failed = [r for r in report.results if r.action == "failed"]
     for r in failed:
