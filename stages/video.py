@@ -158,8 +158,10 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         big = up.rgb(rgb) if up.scale > 1 else None
         t3 = time.perf_counter()
         t_up += t3 - t2
-        writer.add(rgb, depth if has_depth else None, poses[k], upscaled=big,
-                   cond_rgb_png=(cond.root / cond.rgb.paths[k]).read_bytes(),
+        source = filled.source if filled is not None else None  # the condition as the backend decoded it
+        writer.add(rgb, depth if has_depth else None, poses[k], upscaled=big, cond_rgb=source,
+                   cond_rgb_png=None if source is not None and params.mcap_codec == "h264"
+                   else (cond.root / cond.rgb.paths[k]).read_bytes(),
                    cond_mask_png=(cond.root / cond.mask.paths[k]).read_bytes())
         t1 = time.perf_counter()
         t_write += t1 - t3

@@ -147,6 +147,27 @@ def test_mcap_decodes_back_exactly(tmp_path, codec, jpeg_quality):
     np.testing.assert_allclose(ros_world_from_cam(np.eye(4))[:3, :3] @ np.array([0.0, -1.0, 0.0]), [0, 0, 1])
 
 
+@pytest.mark.parametrize(("codec", "jpeg_quality"), [("h264", 80), ("jpeg", 80)])
+def test_mcap_of_a_decoded_condition_is_that_of_its_bytes(tmp_path, codec, jpeg_quality):
+    from panoworld.io.video import VideoWriter
+
+    frames, depth, poses = random_video(t=3)
+    frames = cv2.GaussianBlur(frames.reshape(-1, 32, 3), (5, 5), 2).reshape(frames.shape)
+    cond_pngs = [encode_png(f[::2, ::2]) for f in frames]
+    data = {}
+    for how in ("bytes", "decoded"):
+        writer = VideoWriter(tmp_path / how, height=16, width=32, fps=10.0, has_depth=True, preview=False,
+                             mcap_codec=codec, mcap_jpeg_quality=jpeg_quality)
+        for k in range(3):
+            if how == "bytes":
+                writer.add(frames[k], depth[k], poses[k], cond_rgb_png=cond_pngs[k])
+            else:
+                writer.add(frames[k], depth[k], poses[k], cond_rgb=decode_png(cond_pngs[k]))
+        writer.close()
+        data[how] = [m.data for m in read_mcap(tmp_path / how / MCAP_FILE)[TOPIC_COND_RGB]]
+    assert len(data["bytes"]) == 3 and data["decoded"] == data["bytes"]
+
+
 def test_jpeg_frames_round_trip_and_go_into_the_mcap_as_they_are(tmp_path):
     from panoworld.io.rgb_image import decode_rgb, encode_rgb
 

@@ -224,11 +224,14 @@ class VideoWriter:
         *,
         cond_rgb_png: bytes | None = None,
         cond_mask_png: bytes | None = None,
+        cond_rgb: np.ndarray | None = None,
         upscaled: np.ndarray | None = None,
     ) -> None:
         """Append frame rgb (H, W, 3) uint8 with depth (H, W) metres (0 = unknown; required iff has_depth) at pose 4x4;
-        the conditions' image bytes (PNG or JPEG, any size) go into the MCAP only; upscaled (sH, sW, 3) uint8 (required
-        iff the writer's upscale s > 1) goes to upscaled/ only."""
+        the conditions' image bytes (PNG or JPEG, any size) go into the MCAP only, the RGB condition as its file's
+        bytes cond_rgb_png or already decoded, cond_rgb (h, w, 3) uint8 (the H.264 stream takes it without decoding the
+        bytes again; mcap_codec jpeg stores the bytes when given); upscaled (sH, sW, 3) uint8 (required iff the
+        writer's upscale s > 1) goes to upscaled/ only."""
         H, W = self.height, self.width
         dims = check_shape("rgb", rgb, "H W 3", dtype=np.uint8, dims={"H": H, "W": W})
         s = self.upscale
@@ -263,7 +266,7 @@ class VideoWriter:
             up_job = self._pool.submit(self._encode_write_rgb, np.ascontiguousarray(upscaled),
                                        self.out_dir / entry["upscaled"])
         self._pending.append(self._mcap_pool.submit(
-            self._finish, i, rgb_job, depth_job, up_job, self.poses[-1], cond_rgb_png, cond_mask_png, rgb))
+            self._finish, i, rgb_job, depth_job, up_job, self.poses[-1], cond_rgb_png, cond_mask_png, rgb, cond_rgb))
         while len(self._pending) > 2:
             self._pending.popleft().result()
         while len(self._mp4_pending) > 2:
@@ -286,20 +289,20 @@ class VideoWriter:
         path.write_bytes(data)
         return data
 
-    def _finish(self, i, rgb_job, depth_job, up_job, pose, cond_rgb_png, cond_mask_png, rgb) -> None:
+    def _finish(self, i, rgb_job, depth_job, up_job, pose, cond_rgb_png, cond_mask_png, rgb, cond_rgb) -> None:
         png = rgb_job.result()
         mm = None if depth_job is None else depth_job.result()
         if up_job is not None:
             up_job.result()
         if self._mcap is not None:
-            self._write_mcap(i, png, mm, pose, cond_rgb_png, cond_mask_png, rgb)
+            self._write_mcap(i, png, mm, pose, cond_rgb_png, cond_mask_png, rgb, cond_rgb)
 
-    def _viewing_image(self, png: bytes, rgb: np.ndarray | None = None) -> tuple[bytes, str]:
-        """(bytes, format) of an RGB image file's bytes in the MCAP: JPEG of mcap_jpeg_quality, or the file's own
-        bytes (PNG or JPEG as stored) with 0."""
+    def _viewing_image(self, png: bytes | None, rgb: np.ndarray | None = None) -> tuple[bytes, str]:
+        """(bytes, format) of an RGB image (its file's bytes png, or its pixels rgb when png is None) in the MCAP: JPEG
+        of mcap_jpeg_quality, or the file's own bytes (PNG or JPEG as stored; lossless PNG of rgb) with 0."""
         q = self.mcap_jpeg_quality
         if q == 0:
-            return png, image_format_of(png)
+            return (png, image_format_of(png)) if png is not None else (encode_rgb(rgb, RgbFormat.PNG), "png")
         bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR) if rgb is not None else cv2.imdecode(
             np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
         ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, q])
@@ -307,7 +310,7 @@ class VideoWriter:
             raise ValueError("JPEG encoding failed")
         return buf.tobytes(), "jpeg"
 
-    def _write_mcap(self, i, png, mm, world_from_cam, cond_rgb_png, cond_mask_png, rgb=None) -> None:
+    def _write_mcap(self, i, png, mm, world_from_cam, cond_rgb_png, cond_mask_png, rgb=None, cond_rgb=None) -> None:
         from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
         from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
         from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
@@ -329,10 +332,12 @@ class VideoWriter:
             mm = mcap_depth(mm)
             put(TOPIC_DEPTH, RawImage(timestamp=stamp, frame_id=CAMERA_FRAME, width=mm.shape[1], height=mm.shape[0],
                                       encoding="16UC1", step=2 * mm.shape[1], data=mm.tobytes()))
-        if cond_rgb_png is not None and self.mcap_codec == "h264":
+        if self.mcap_codec == "h264" and cond_rgb is not None:
+            self._put_video(TOPIC_COND_RGB, cond_rgb)
+        elif cond_rgb_png is not None and self.mcap_codec == "h264":
             self._put_video(TOPIC_COND_RGB, decode_rgb(cond_rgb_png, what="condition RGB"))
-        elif cond_rgb_png is not None:
-            data, fmt = self._viewing_image(cond_rgb_png)
+        elif cond_rgb_png is not None or cond_rgb is not None:
+            data, fmt = self._viewing_image(cond_rgb_png, cond_rgb if cond_rgb_png is None else None)
             put(TOPIC_COND_RGB, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=data, format=fmt))
         if cond_mask_png is not None:
             put(TOPIC_COND_MASK, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=cond_mask_png, format="png"))

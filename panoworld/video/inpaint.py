@@ -31,6 +31,7 @@ class FilledFrame:
     depth: np.ndarray  # (H, W) float32 metres, 0 where unknown
     filled_3d: np.ndarray  # (H, W) bool: hole pixels filled from the fill mesh (or reused from earlier frames)
     filled_2d: np.ndarray  # (H, W) bool: hole pixels filled by the 2D last resort
+    source: np.ndarray | None = None  # (H, W, 3) uint8: the condition RGB it was filled from (the caller's array)
 
 
 FOREGROUND_RATIO = 0.85
@@ -223,7 +224,7 @@ class WarpInpainter:
                 self._paint_planes(out, out_d, rest, world_from_cam)
         elif rest.any() and not rest.all():
             out = erp_inpaint(out, rest, radius=self.inpaint_radius)
-        return FilledFrame(out, out_d, filled, rest)
+        return FilledFrame(out, out_d, filled, rest, rgb)
 
 
     def _paint_planes(self, out: np.ndarray, out_d: np.ndarray, rest: np.ndarray, world_from_cam: np.ndarray) -> None:
@@ -250,7 +251,7 @@ def frame_inpaint(
         out_d = erp_inpaint(d, hole, radius=radius)
     else:
         out_d = np.zeros(mask.shape, np.float32)
-    return FilledFrame(out, out_d.astype(np.float32), np.zeros(mask.shape, bool), hole)
+    return FilledFrame(out, out_d.astype(np.float32), np.zeros(mask.shape, bool), hole, rgb)
 
 
 def max_translation(poses: np.ndarray) -> float:
