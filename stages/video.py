@@ -53,7 +53,8 @@ class Params:
     inpaint_radius: float = param(3.0, ge=0)
     """Telea inpainting radius in pixels (background layer colours, 2D fills)."""
     preview: bool = True
-    """Write preview.mp4 (H.264, yuv420p)."""
+    """Write preview.mp4 (H.264, yuv420p): video.mcap's H.264 frame stream itself when it has one (mcap_codec h264)
+    and the frames fit preview_max_width, else an encode of its own (x264 CRF 23)."""
     preview_max_width: int = param(1920, ge=16)
     """Width cap of preview.mp4 (frames are downscaled to fit)."""
     mcap: bool = True

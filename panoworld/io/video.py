@@ -85,8 +85,8 @@ def read_video_doc(video_dir: Path | str) -> VideoDoc:
 
 PREVIEW_FILE = "preview.mp4"
 PREVIEW_CRF = "23"
-"""x264's constant rate factor of the previews (video and conditions preview.mp4; its default: a preview, not an input
-of any stage)."""
+"""x264's constant rate factor of the previews the writers encode themselves (conditions preview.mp4; video
+preview.mp4 when it is not the MCAP's H.264 stream): x264's default, a preview, not an input of any stage."""
 MCAP_FILE = "video.mcap"
 DEPTH_SCALE = DEPTH_PNG_SCALE  # metres per depth PNG unit (millimetres); 0 = unknown
 
@@ -142,7 +142,9 @@ class VideoWriter:
     stages read frames/); close() writes video.json. Images are encoded by `workers` threads and the MCAP is written
     (in frame order) by one more, off the caller's thread; memory stays at a few frames whatever the length. The MCAP
     (a log for viewing) holds the frames and conditions once, at the generation size: mcap_codec h264 as two H.264
-    streams of x264 CRF mcap_crf (a keyframe at least every 2 s), jpeg as JPEG of mcap_jpeg_quality (0: the files' own bytes)."""
+    streams of x264 CRF mcap_crf (a keyframe at least every 2 s), jpeg as JPEG of mcap_jpeg_quality (0: the files' own bytes).
+    preview.mp4 is the MCAP's H.264 frame stream itself in an MP4 when the MCAP holds one and the frames are no wider
+    than preview_max_width (no second encode), else its own x264 encode of CRF PREVIEW_CRF."""
 
     def __init__(
         self,
@@ -198,11 +200,17 @@ class VideoWriter:
         self._mp4 = None
         self._mp4_pool = ThreadPoolExecutor(max_workers=1)  # one thread: preview frames stay in order
         self._mp4_pending: deque = deque()
+        self._preview_mux = None  # preview.mp4 muxed from the MCAP's H.264 frame stream
         if preview:
             import imageio_ffmpeg
 
             s = min(1.0, preview_max_width / width)
             self._preview_size = (max(2, int(round(width * s / 2)) * 2), max(2, int(round(height * s / 2)) * 2))
+        if preview and mcap and mcap_codec == "h264" and self._preview_size == (width, height):
+            from panoworld.io.h264 import Mp4Muxer
+
+            self._preview_mux = Mp4Muxer(self.out_dir / PREVIEW_FILE, width, height, fps=self.fps)
+        elif preview:
             self._mp4 = imageio_ffmpeg.write_frames(
                 str(self.out_dir / PREVIEW_FILE), self._preview_size, fps=self.fps, codec="libx264",
                 pix_fmt_out="yuv420p", quality=None, macro_block_size=2,
@@ -368,6 +376,8 @@ class VideoWriter:
                 enc = self._h264[topic] = H264Encoder(rgb.shape[1], rgb.shape[0], fps=self.fps, crf=self.mcap_crf,
                                                       keyframe_interval=max(1, round(2 * self.fps)))
             units = enc.encode(rgb)
+        if topic == TOPIC_RGB and self._preview_mux is not None:
+            self._preview_mux.write(units)
         for i, data, _key in units:
             t = _ns(i, self.fps)
             stamp = Timestamp(seconds=t // 1_000_000_000, nanos=t % 1_000_000_000)
@@ -392,6 +402,9 @@ class VideoWriter:
             self._mcap.finish()
             self._mcap_file.close()
             self._mcap = None
+        if self._preview_mux is not None:
+            self._preview_mux.close()
+            self._preview_mux = None
         doc = {
             "height": self.height,
             "width": self.width,
