@@ -53,7 +53,8 @@ class Params:
     inpaint_radius: float = param(3.0, ge=0)
     """Telea inpainting radius in pixels (background layer colours, 2D fills)."""
     preview: bool = True
-    """Write preview.mp4 (H.264, yuv420p)."""
+    """Write preview.mp4 (H.264, yuv420p): video.mcap's H.264 frame stream itself when it has one (mcap_codec h264)
+    and the frames fit preview_max_width, else an encode of its own (x264 CRF 23)."""
     preview_max_width: int = param(1920, ge=16)
     """Width cap of preview.mp4 (frames are downscaled to fit)."""
     mcap: bool = True
@@ -158,8 +159,10 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         big = up.rgb(rgb) if up.scale > 1 else None
         t3 = time.perf_counter()
         t_up += t3 - t2
-        writer.add(rgb, depth if has_depth else None, poses[k], upscaled=big,
-                   cond_rgb_png=(cond.root / cond.rgb.paths[k]).read_bytes(),
+        source = filled.source if filled is not None else None  # the condition as the backend decoded it
+        writer.add(rgb, depth if has_depth else None, poses[k], upscaled=big, cond_rgb=source,
+                   cond_rgb_png=None if source is not None and params.mcap_codec == "h264"
+                   else (cond.root / cond.rgb.paths[k]).read_bytes(),
                    cond_mask_png=(cond.root / cond.mask.paths[k]).read_bytes())
         t1 = time.perf_counter()
         t_write += t1 - t3

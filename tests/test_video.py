@@ -147,6 +147,41 @@ def test_mcap_decodes_back_exactly(tmp_path, codec, jpeg_quality):
     np.testing.assert_allclose(ros_world_from_cam(np.eye(4))[:3, :3] @ np.array([0.0, -1.0, 0.0]), [0, 0, 1])
 
 
+@pytest.mark.parametrize(("codec", "jpeg_quality"), [("h264", 80), ("jpeg", 80)])
+def test_mcap_of_a_decoded_condition_is_that_of_its_bytes(tmp_path, codec, jpeg_quality):
+    from panoworld.io.video import VideoWriter
+
+    frames, depth, poses = random_video(t=3)
+    frames = cv2.GaussianBlur(frames.reshape(-1, 32, 3), (5, 5), 2).reshape(frames.shape)
+    cond_pngs = [encode_png(f[::2, ::2]) for f in frames]
+    data = {}
+    for how in ("bytes", "decoded"):
+        writer = VideoWriter(tmp_path / how, height=16, width=32, fps=10.0, has_depth=True, preview=False,
+                             mcap_codec=codec, mcap_jpeg_quality=jpeg_quality)
+        for k in range(3):
+            if how == "bytes":
+                writer.add(frames[k], depth[k], poses[k], cond_rgb_png=cond_pngs[k])
+            else:
+                writer.add(frames[k], depth[k], poses[k], cond_rgb=decode_png(cond_pngs[k]))
+        writer.close()
+        data[how] = [m.data for m in read_mcap(tmp_path / how / MCAP_FILE)[TOPIC_COND_RGB]]
+    assert len(data["bytes"]) == 3 and data["decoded"] == data["bytes"]
+
+
+def test_preview_is_the_mcaps_h264_frame_stream(tmp_path):
+    frames, depth, poses = random_video(t=40, h=32, w=64)  # more frames than a keyframe interval (2 s at 8 fps)
+    frames = cv2.GaussianBlur(frames.reshape(-1, 64, 3), (5, 5), 2).reshape(frames.shape)
+    write_video(tmp_path, frames, depth, poses, fps=8.0)
+    reader = imageio_ffmpeg.read_frames(str(tmp_path / PREVIEW_FILE))
+    meta = next(reader)
+    assert meta["codec"] == "h264" and meta["size"] == (64, 32) and meta["fps"] == 8.0
+    assert meta["pix_fmt"].startswith("yuv420p")
+    preview = np.stack([np.frombuffer(f, np.uint8).reshape(32, 64, 3) for f in reader])
+    mcap = decode_h264(read_mcap(tmp_path / MCAP_FILE)[TOPIC_RGB], 32, 64)
+    assert len(preview) == 40 and np.array_equal(preview, mcap)  # the same access units, not a second encode
+    assert psnr(np.concatenate(preview), np.concatenate(frames)) > 25
+
+
 def test_jpeg_frames_round_trip_and_go_into_the_mcap_as_they_are(tmp_path):
     from panoworld.io.rgb_image import decode_rgb, encode_rgb
 

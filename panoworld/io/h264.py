@@ -51,3 +51,35 @@ class H264Encoder:
     @staticmethod
     def _units(packets) -> list[tuple[int, bytes, bool]]:
         return [(int(p.pts), bytes(p), bool(p.is_keyframe)) for p in packets]
+
+
+class Mp4Muxer:
+    """An MP4 file of an H264Encoder's access units as they are (no second encode), opened at the first unit; the
+    avcC header comes from the first keyframe's SPS and PPS."""
+
+    def __init__(self, path, width: int, height: int, *, fps: float):
+        self.path, self.width, self.height = path, width, height
+        self._rate = Fraction(fps).limit_denominator(1001)
+        self._out = self._stream = None
+
+    def write(self, units: list[tuple[int, bytes, bool]]) -> None:
+        """Mux (frame index, access unit, keyframe) triples, in decoding order."""
+        import av
+
+        if self._out is None and units:
+            self._out = av.open(str(self.path), "w", format="mp4")
+            self._stream = self._out.add_stream("h264", rate=self._rate)
+            self._stream.width, self._stream.height = self.width + self.width % 2, self.height + self.height % 2
+            self._stream.pix_fmt = "yuv420p"
+        for i, data, key in units:
+            packet = av.Packet(data)
+            packet.pts = packet.dts = i
+            packet.time_base = 1 / self._rate
+            packet.stream = self._stream
+            packet.is_keyframe = key
+            self._out.mux(packet)
+
+    def close(self) -> None:
+        if self._out is not None:
+            self._out.close()
+            self._out = None

@@ -85,8 +85,8 @@ def read_video_doc(video_dir: Path | str) -> VideoDoc:
 
 PREVIEW_FILE = "preview.mp4"
 PREVIEW_CRF = "23"
-"""x264's constant rate factor of the previews (video and conditions preview.mp4; its default: a preview, not an input
-of any stage)."""
+"""x264's constant rate factor of the previews the writers encode themselves (conditions preview.mp4; video
+preview.mp4 when it is not the MCAP's H.264 stream): x264's default, a preview, not an input of any stage."""
 MCAP_FILE = "video.mcap"
 DEPTH_SCALE = DEPTH_PNG_SCALE  # metres per depth PNG unit (millimetres); 0 = unknown
 
@@ -142,7 +142,9 @@ class VideoWriter:
     stages read frames/); close() writes video.json. Images are encoded by `workers` threads and the MCAP is written
     (in frame order) by one more, off the caller's thread; memory stays at a few frames whatever the length. The MCAP
     (a log for viewing) holds the frames and conditions once, at the generation size: mcap_codec h264 as two H.264
-    streams of x264 CRF mcap_crf (a keyframe at least every 2 s), jpeg as JPEG of mcap_jpeg_quality (0: the files' own bytes)."""
+    streams of x264 CRF mcap_crf (a keyframe at least every 2 s), jpeg as JPEG of mcap_jpeg_quality (0: the files' own bytes).
+    preview.mp4 is the MCAP's H.264 frame stream itself in an MP4 when the MCAP holds one and the frames are no wider
+    than preview_max_width (no second encode), else its own x264 encode of CRF PREVIEW_CRF."""
 
     def __init__(
         self,
@@ -198,11 +200,17 @@ class VideoWriter:
         self._mp4 = None
         self._mp4_pool = ThreadPoolExecutor(max_workers=1)  # one thread: preview frames stay in order
         self._mp4_pending: deque = deque()
+        self._preview_mux = None  # preview.mp4 muxed from the MCAP's H.264 frame stream
         if preview:
             import imageio_ffmpeg
 
             s = min(1.0, preview_max_width / width)
             self._preview_size = (max(2, int(round(width * s / 2)) * 2), max(2, int(round(height * s / 2)) * 2))
+        if preview and mcap and mcap_codec == "h264" and self._preview_size == (width, height):
+            from panoworld.io.h264 import Mp4Muxer
+
+            self._preview_mux = Mp4Muxer(self.out_dir / PREVIEW_FILE, width, height, fps=self.fps)
+        elif preview:
             self._mp4 = imageio_ffmpeg.write_frames(
                 str(self.out_dir / PREVIEW_FILE), self._preview_size, fps=self.fps, codec="libx264",
                 pix_fmt_out="yuv420p", quality=None, macro_block_size=2,
@@ -224,11 +232,14 @@ class VideoWriter:
         *,
         cond_rgb_png: bytes | None = None,
         cond_mask_png: bytes | None = None,
+        cond_rgb: np.ndarray | None = None,
         upscaled: np.ndarray | None = None,
     ) -> None:
         """Append frame rgb (H, W, 3) uint8 with depth (H, W) metres (0 = unknown; required iff has_depth) at pose 4x4;
-        the conditions' image bytes (PNG or JPEG, any size) go into the MCAP only; upscaled (sH, sW, 3) uint8 (required
-        iff the writer's upscale s > 1) goes to upscaled/ only."""
+        the conditions' image bytes (PNG or JPEG, any size) go into the MCAP only, the RGB condition as its file's
+        bytes cond_rgb_png or already decoded, cond_rgb (h, w, 3) uint8 (the H.264 stream takes it without decoding the
+        bytes again; mcap_codec jpeg stores the bytes when given); upscaled (sH, sW, 3) uint8 (required iff the
+        writer's upscale s > 1) goes to upscaled/ only."""
         H, W = self.height, self.width
         dims = check_shape("rgb", rgb, "H W 3", dtype=np.uint8, dims={"H": H, "W": W})
         s = self.upscale
@@ -263,7 +274,7 @@ class VideoWriter:
             up_job = self._pool.submit(self._encode_write_rgb, np.ascontiguousarray(upscaled),
                                        self.out_dir / entry["upscaled"])
         self._pending.append(self._mcap_pool.submit(
-            self._finish, i, rgb_job, depth_job, up_job, self.poses[-1], cond_rgb_png, cond_mask_png, rgb))
+            self._finish, i, rgb_job, depth_job, up_job, self.poses[-1], cond_rgb_png, cond_mask_png, rgb, cond_rgb))
         while len(self._pending) > 2:
             self._pending.popleft().result()
         while len(self._mp4_pending) > 2:
@@ -286,20 +297,20 @@ class VideoWriter:
         path.write_bytes(data)
         return data
 
-    def _finish(self, i, rgb_job, depth_job, up_job, pose, cond_rgb_png, cond_mask_png, rgb) -> None:
+    def _finish(self, i, rgb_job, depth_job, up_job, pose, cond_rgb_png, cond_mask_png, rgb, cond_rgb) -> None:
         png = rgb_job.result()
         mm = None if depth_job is None else depth_job.result()
         if up_job is not None:
             up_job.result()
         if self._mcap is not None:
-            self._write_mcap(i, png, mm, pose, cond_rgb_png, cond_mask_png, rgb)
+            self._write_mcap(i, png, mm, pose, cond_rgb_png, cond_mask_png, rgb, cond_rgb)
 
-    def _viewing_image(self, png: bytes, rgb: np.ndarray | None = None) -> tuple[bytes, str]:
-        """(bytes, format) of an RGB image file's bytes in the MCAP: JPEG of mcap_jpeg_quality, or the file's own
-        bytes (PNG or JPEG as stored) with 0."""
+    def _viewing_image(self, png: bytes | None, rgb: np.ndarray | None = None) -> tuple[bytes, str]:
+        """(bytes, format) of an RGB image (its file's bytes png, or its pixels rgb when png is None) in the MCAP: JPEG
+        of mcap_jpeg_quality, or the file's own bytes (PNG or JPEG as stored; lossless PNG of rgb) with 0."""
         q = self.mcap_jpeg_quality
         if q == 0:
-            return png, image_format_of(png)
+            return (png, image_format_of(png)) if png is not None else (encode_rgb(rgb, RgbFormat.PNG), "png")
         bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR) if rgb is not None else cv2.imdecode(
             np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
         ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, q])
@@ -307,7 +318,7 @@ class VideoWriter:
             raise ValueError("JPEG encoding failed")
         return buf.tobytes(), "jpeg"
 
-    def _write_mcap(self, i, png, mm, world_from_cam, cond_rgb_png, cond_mask_png, rgb=None) -> None:
+    def _write_mcap(self, i, png, mm, world_from_cam, cond_rgb_png, cond_mask_png, rgb=None, cond_rgb=None) -> None:
         from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
         from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
         from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
@@ -329,10 +340,12 @@ class VideoWriter:
             mm = mcap_depth(mm)
             put(TOPIC_DEPTH, RawImage(timestamp=stamp, frame_id=CAMERA_FRAME, width=mm.shape[1], height=mm.shape[0],
                                       encoding="16UC1", step=2 * mm.shape[1], data=mm.tobytes()))
-        if cond_rgb_png is not None and self.mcap_codec == "h264":
+        if self.mcap_codec == "h264" and cond_rgb is not None:
+            self._put_video(TOPIC_COND_RGB, cond_rgb)
+        elif cond_rgb_png is not None and self.mcap_codec == "h264":
             self._put_video(TOPIC_COND_RGB, decode_rgb(cond_rgb_png, what="condition RGB"))
-        elif cond_rgb_png is not None:
-            data, fmt = self._viewing_image(cond_rgb_png)
+        elif cond_rgb_png is not None or cond_rgb is not None:
+            data, fmt = self._viewing_image(cond_rgb_png, cond_rgb if cond_rgb_png is None else None)
             put(TOPIC_COND_RGB, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=data, format=fmt))
         if cond_mask_png is not None:
             put(TOPIC_COND_MASK, CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=cond_mask_png, format="png"))
@@ -363,6 +376,8 @@ class VideoWriter:
                 enc = self._h264[topic] = H264Encoder(rgb.shape[1], rgb.shape[0], fps=self.fps, crf=self.mcap_crf,
                                                       keyframe_interval=max(1, round(2 * self.fps)))
             units = enc.encode(rgb)
+        if topic == TOPIC_RGB and self._preview_mux is not None:
+            self._preview_mux.write(units)
         for i, data, _key in units:
             t = _ns(i, self.fps)
             stamp = Timestamp(seconds=t // 1_000_000_000, nanos=t % 1_000_000_000)
@@ -387,6 +402,9 @@ class VideoWriter:
             self._mcap.finish()
             self._mcap_file.close()
             self._mcap = None
+        if self._preview_mux is not None:
+            self._preview_mux.close()
+            self._preview_mux = None
         doc = {
             "height": self.height,
             "width": self.width,

@@ -31,6 +31,7 @@ class FilledFrame:
     depth: np.ndarray  # (H, W) float32 metres, 0 where unknown
     filled_3d: np.ndarray  # (H, W) bool: hole pixels filled from the fill mesh (or reused from earlier frames)
     filled_2d: np.ndarray  # (H, W) bool: hole pixels filled by the 2D last resort
+    source: np.ndarray | None = None  # (H, W, 3) uint8: the condition RGB it was filled from (the caller's array)
 
 
 FOREGROUND_RATIO = 0.85
@@ -191,10 +192,12 @@ class WarpInpainter:
             origin = np.asarray(world_from_cam)[:3, 3][None]
             R = np.asarray(world_from_cam)[:3, :3]
             # Rays through a vertex or edge can slip between triangles: retry those at sub-pixel offsets.
+            # einsum, not @: the (M, 3) x (3, 3) product through the multithreaded BLAS leaves its threads spinning
+            # beside the other fill thread and the encoders (~10 % of the stage's CPU).
             for du, dv in ((0.0, 0.0), (0.25, 0.25), (-0.25, -0.25), (0.25, -0.25), (-0.25, 0.25)):
                 if not len(ti):
                     break
-                dirs = self._dirs_at(ti, tj, H, W, du, dv) @ R.T
+                dirs = np.einsum("mi,ji->mj", self._dirs_at(ti, tj, H, W, du, dv), R)
                 hits = self._rc.cast(origin, dirs)
                 ok = hits.face >= 0
                 px = ti[ok] * W + tj[ok]
@@ -221,7 +224,7 @@ class WarpInpainter:
                 self._paint_planes(out, out_d, rest, world_from_cam)
         elif rest.any() and not rest.all():
             out = erp_inpaint(out, rest, radius=self.inpaint_radius)
-        return FilledFrame(out, out_d, filled, rest)
+        return FilledFrame(out, out_d, filled, rest, rgb)
 
 
     def _paint_planes(self, out: np.ndarray, out_d: np.ndarray, rest: np.ndarray, world_from_cam: np.ndarray) -> None:
@@ -230,7 +233,7 @@ class WarpInpainter:
         H, W = rest.shape
         ti, tj = np.divmod(np.flatnonzero(rest & (out_d > 0)), W)
         pose = np.asarray(world_from_cam, np.float64)
-        pts = pose[:3, 3] + (self._dirs_at(ti, tj, H, W) @ pose[:3, :3].T) * out_d[ti, tj, None]
+        pts = pose[:3, 3] + np.einsum("mi,ji->mj", self._dirs_at(ti, tj, H, W), pose[:3, :3]) * out_d[ti, tj, None]
         out[ti, tj] = self.layer.floor_map.paint(pts, out[ti, tj])[0]
 
 
@@ -248,7 +251,7 @@ def frame_inpaint(
         out_d = erp_inpaint(d, hole, radius=radius)
     else:
         out_d = np.zeros(mask.shape, np.float32)
-    return FilledFrame(out, out_d.astype(np.float32), np.zeros(mask.shape, bool), hole)
+    return FilledFrame(out, out_d.astype(np.float32), np.zeros(mask.shape, bool), hole, rgb)
 
 
 def max_translation(poses: np.ndarray) -> float:
