@@ -77,7 +77,7 @@ class ErpColorOperator:
             need[S.indices] = True
             sub, cand = cull(fc)
             proj = project(sub, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
-            pix, gid, w = face_weights(proj, fc.n, fc.n, need=None if keep_px is None else need, tile=tile)
+            pix, gid, w = face_weights(proj, fc.n, fc.n, need=need, tile=tile)
             # scipy: COO -> CSR is a counting sort, 32-bit indices, and the transpose a free CSC view
             A = scipy.sparse.csr_matrix((w, (pix, cand.numpy().astype(np.int32)[proj.index.numpy()[gid]])),
                                         shape=(fc.n * fc.n, self.N))
