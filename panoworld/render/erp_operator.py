@@ -40,11 +40,10 @@ def _sampling(fc: ErpFace, rows: np.ndarray):
 class ErpColorOperator:
     """The ERP render of Gaussians at one pose as a linear map A of their colours (geometry fixed, black background):
     each cube face's compositing weights and its bilinear resampling as sparse matrices, pooled as render_erp does.
-    A(colors (N, 3)) -> (H, W, 3); adjoint(image (H, W, 3)) -> A^T image (N, 3). Only the face pixels the ERP's
-    samples read are composited (a pole face's corners and the margins hold no weight).
+    A(colors (N, 3)) -> (H, W, 3); adjoint(image (H, W, 3)) -> A^T image (N, 3).
 
-    mask (H, W) bool: only those ERP pixels are rendered (0 elsewhere), so only the face pixels their samples read
-    are composited, and each face projects only the Gaussians whose box can meet it (erp_render.face_cull): a view
+    mask (H, W) bool: only those ERP pixels are rendered (0 elsewhere): the face pixels their samples read are the
+    only ones composited, and each face projects only the Gaussians whose box can meet it (erp_render.face_cull), so a view
     that counts only part of its pixels costs that part. On the kept pixels it equals the operator without a mask.
     tile: the weights kernel's tile size (face_weights); cov: the Gaussians' covariance_3d when already at hand."""
 
@@ -78,7 +77,7 @@ class ErpColorOperator:
             need[S.indices] = True
             sub, cand = cull(fc)
             proj = project(sub, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
-            pix, gid, w = face_weights(proj, fc.n, fc.n, need=need, tile=tile)
+            pix, gid, w = face_weights(proj, fc.n, fc.n, need=None if keep_px is None else need, tile=tile)
             # scipy: COO -> CSR is a counting sort, 32-bit indices, and the transpose a free CSC view
             A = scipy.sparse.csr_matrix((w, (pix, cand.numpy().astype(np.int32)[proj.index.numpy()[gid]])),
                                         shape=(fc.n * fc.n, self.N))
