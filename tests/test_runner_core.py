@@ -284,3 +284,24 @@ def test_yaml_documents_are_cached_by_their_text(tmp_path, monkeypatch):
         with pytest.raises(yaml.YAMLError):
             cached_yaml("a: [1, 2\n", parse)
     assert len(calls) == 6
+
+
+def test_stage_processes_get_one_blas_thread_but_depth_and_a_set_value(tmp_path):
+    """stages/__init__ (loaded before numpy in `python -m stages.NAME`): OPENBLAS_NUM_THREADS=1 in a stage process,
+    unset for the depth stage and for a process that only imports the package (the runner), a user's value kept."""
+    pkg = tmp_path / "stages"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text((REPO / "stages" / "__init__.py").read_text())
+    probe = 'import os; print(os.environ.get("OPENBLAS_NUM_THREADS"))'
+    for name in ("mesh", "depth"):
+        (pkg / f"{name}.py").write_text(probe)
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+
+    def threads(args, **extra):
+        return subprocess.run([sys.executable, *args], cwd=tmp_path, env={**env, **extra}, capture_output=True,
+                              text=True, check=True).stdout.strip()
+
+    assert threads(["-m", "stages.mesh", "--out", "x"]) == "1"
+    assert threads(["-m", "stages.depth"]) == "None"
+    assert threads(["-c", f"import stages; {probe}"]) == "None"
+    assert threads(["-m", "stages.mesh"], OPENBLAS_NUM_THREADS="2") == "2"

@@ -18,6 +18,7 @@ from panoworld.io.manifest import REPO_ROOT
 KERNEL_MODULES = (
     "panoworld.render.raster_kernels", "panoworld.video.background_layer", "panoworld.gaussians.fusion_kernels",
     "panoworld.gaussians.eig3", "panoworld.gaussians.pixel", "panoworld.render.splat_weights",
+    "panoworld.gaussians.capture_fit",
 )
 """The modules of the kernels below, in the order of the stages that first call them."""
 STAMP = "panoworld-kernels.json"
@@ -63,6 +64,8 @@ def kernel_specs() -> list[tuple[str, str, str, tuple]]:
         ("gaussians", splat, "_bin", (a(i8, 2), a(i8, 1), i8, i8)),
         ("gaussians", splat, "tile_weights", (a(f4, 2), a(f4, 2), a(f4, 1), a(i8, 1), a(i8, 1), a(i8, 1), i8, i8, i8, i8,
                                               i8, a(b1, 1))),
+        ("gaussians", "panoworld.gaussians.capture_fit", "_view_colors", (a(f4, 2), a(i8, 1), a(f4, 2))),
+        ("gaussians", "panoworld.gaussians.capture_fit", "_add_view_grad", (a(f4, 2), a(i8, 1), a(f4, 2), a(f4, 2))),
         ("eval", splat, "weighted_sums", (a(i4, 1), a(i4, 1), a(f4, 1), a(f4, 2), i8)),
         ("eval", raster, "_resolve_hits", (a(u8, 2), a(f4, 3), i8, a(f4, 2), a(i8, 2), a(f4, 3))),
     ]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from numba import njit
 
 from panoworld.io.gaussian_set import Gaussians, rgb_to_sh_dc
 
@@ -111,22 +112,21 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     cols = [torch.from_numpy(c) for c in cols]
 
     def colors(k, x):  # the unknowns (n, 3 or 12) -> the colours view k sees (len(cols[k]), 3)
-        xk = x[cols[k]]
-        s = xk[:, 3:].reshape(-1, 3, 3) if sh_degree else s0_k[k]
-        return xk[:, :3] + torch.einsum("nj,njc->nc", basis[k], s)
+        if sh_degree:
+            return torch.from_numpy(_view_colors(x.numpy(), cols[k].numpy(), basis[k].numpy()))
+        return x[cols[k]] + torch.einsum("nj,njc->nc", basis[k], s0_k[k])
 
     def lin(k, p):  # view k's render of a step p of the unknowns
-        pk = p[cols[k]]
-        gc = pk[:, :3] + torch.einsum("nj,njc->nc", basis[k], pk[:, 3:].reshape(-1, 3, 3)) if sh_degree else pk
-        return ops[k](gc)
+        return ops[k](colors(k, p) if sh_degree else p[cols[k]])
 
     def grad(r, out):  # the adjoint of the views' renders of the residuals r (per view (H, W, 3)), as the unknowns
         out.zero_()
         for k in range(views_n):
             gc = ops[k].adjoint(r[k])
             if sh_degree:
-                gc = torch.cat([gc, (basis[k][:, :, None] * gc[:, None, :]).reshape(-1, 9)], 1)
-            out.index_add_(0, cols[k], gc)
+                _add_view_grad(out.numpy(), cols[k].numpy(), gc.numpy(), basis[k].numpy())
+            else:
+                out.index_add_(0, cols[k], gc)
         return out
 
     # Conjugate gradients on the normal equations, the (n, 12) vectors updated in place (tmp: scratch)
@@ -157,6 +157,35 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     out = Gaussians(g.means, g.scales, g.quats, g.opacities, dc, rest)
     return out, {"views": views_n, "height": height, "iters": iters, "sh_degree": sh_degree,
                  "fitted": n, "rmse_before": rmse0, "rmse_after": rmse1}
+
+
+@njit(cache=True, nogil=True)
+def _view_colors(x, cols, basis):
+    """(len(cols), 3) float32: x[cols, :3] + sum_j basis[:, j] x[cols, 3 + 3 j:6 + 3 j] (x (n, 12): colour and
+    degree-1 terms), summed in j order as torch's einsum("nj,njc->nc") of the same arrays."""
+    out = np.empty((cols.shape[0], 3), np.float32)
+    for i in range(cols.shape[0]):
+        r = cols[i]
+        for c in range(3):
+            acc = basis[i, 0] * x[r, 3 + c]
+            acc += basis[i, 1] * x[r, 6 + c]
+            acc += basis[i, 2] * x[r, 9 + c]
+            out[i, c] = x[r, c] + acc
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _add_view_grad(out, cols, g, basis):
+    """out[cols, :3] += g and out[cols, 3 + 3 j:6 + 3 j] += basis[:, j] g (g (len(cols), 3): one view's adjoint of
+    its colours; cols unique), in place: _view_colors' adjoint."""
+    for i in range(cols.shape[0]):
+        r = cols[i]
+        for c in range(3):
+            out[r, c] += g[i, c]
+        for j in range(3):
+            b = basis[i, j]
+            for c in range(3):
+                out[r, 3 + 3 * j + c] += b * g[i, c]
 
 
 def operator_nbytes(op) -> int:
