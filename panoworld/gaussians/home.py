@@ -117,8 +117,12 @@ def own_fill(k: int, names: list[str], depths: dict[str, np.ndarray], world_from
              *, height: int, tol: float) -> np.ndarray | None:
     """(h, w) depth (0 = none; h = `height` rows at most) for panorama names[k]'s pixels without depth (depths (0 =
     none)): the distance the scene (Gaussians) shows along each one's ray from its capture point (render_erp's depth
-    where its alpha > 0.5), kept only where no other panorama's depth explains that point (SourcesVisibility of the
-    others, tolerance tol: on or in front of a surface another panorama measured). None when it has no such pixel."""
+    where its alpha > 0.5), kept only where no surface another panorama measured lies along the ray at or before it
+    (depth_from_others, tolerance tol: the splats' centres give a render's depth, behind a surface seen at a grazing
+    angle) nor explains that point (SourcesVisibility of the others: on or in front of a surface another panorama
+    measured, seen from there). None when it has no such pixel."""
+    from scipy import ndimage
+
     from panoworld.geometry.resize import resize_depth
     from panoworld.render.erp import render_erp
 
@@ -132,7 +136,10 @@ def own_fill(k: int, names: list[str], depths: dict[str, np.ndarray], world_from
     h, w = depth.shape
     out = render_erp(scene, world_from_cam[n], h, w, supersample=1)
     shown, alpha = np.asarray(out.depth, np.float64), np.asarray(out.alpha, np.float64)
-    fill = hole & (alpha > 0.5) & np.isfinite(shown) & (shown > 0)
+    inner = ndimage.binary_erosion(np.pad(hole, ((1, 1), (0, 0)), mode="edge"), np.ones((3, 3)), border_value=1)
+    fill = inner[1:-1] & (alpha > 0.5) & np.isfinite(shown) & (shown > 0)
+    nearer = depth_from_others(k, names, {**depths, n: depth}, world_from_cam, height=h)
+    fill &= ~((nearer > 0) & (nearer <= shown * (1.0 + tol)))
     others = SourcesVisibility([SourceVisibility(depths[m], world_from_cam[m], tol) for m in names if m != n])
     pts = transform_points(world_from_cam[n], erp_dirs(h, w, np.float64)[fill] * shown[fill][:, None])
     fill[fill] = ~others.explained(pts)
