@@ -116,11 +116,13 @@ def seen_through(k: int, pts_world: np.ndarray, names: list[str], depths: dict[s
 def own_fill(k: int, names: list[str], depths: dict[str, np.ndarray], world_from_cam: dict[str, np.ndarray], scene,
              *, height: int, tol: float) -> np.ndarray | None:
     """(h, w) depth (0 = none; h = `height` rows at most) for panorama names[k]'s pixels without depth (depths (0 =
-    none)): the distance the scene (Gaussians) shows along each one's ray from its capture point (render_erp's depth
-    where its alpha > 0.5), kept only where no surface another panorama measured lies along the ray at or before it
-    (depth_from_others, tolerance tol: the splats' centres give a render's depth, behind a surface seen at a grazing
-    angle) nor explains that point (SourcesVisibility of the others: on or in front of a surface another panorama
-    measured, seen from there). None when it has no such pixel."""
+    none)) but those next to one with depth: the nearest of what the scene (Gaussians) shows along the pixel's ray
+    from the capture point (render_erp's depth where its alpha > 0.5), the median of the panorama's own depth, and
+    just in front of the nearest surface another panorama measured along the ray (depth_from_others, / (1 + 2 tol)),
+    so the pixel's own Gaussian stands in front of whatever else its capture point sees there; kept only where no
+    other panorama's depth explains that point (SourcesVisibility of the others, tolerance tol: on or in front of a
+    surface another panorama measured, seen from there), so no other capture point sees it. None when it has no
+    pixel without depth."""
     from scipy import ndimage
 
     from panoworld.geometry.resize import resize_depth
@@ -137,13 +139,16 @@ def own_fill(k: int, names: list[str], depths: dict[str, np.ndarray], world_from
     out = render_erp(scene, world_from_cam[n], h, w, supersample=1)
     shown, alpha = np.asarray(out.depth, np.float64), np.asarray(out.alpha, np.float64)
     inner = ndimage.binary_erosion(np.pad(hole, ((1, 1), (0, 0)), mode="edge"), np.ones((3, 3)), border_value=1)
-    fill = inner[1:-1] & (alpha > 0.5) & np.isfinite(shown) & (shown > 0)
+    fill = inner[1:-1]
+    reach = float(np.median(depth[~hole])) if not hole.all() else np.inf
+    d = np.where((alpha > 0.5) & np.isfinite(shown) & (shown > 0), np.minimum(shown, reach), reach)
     nearer = depth_from_others(k, names, {**depths, n: depth}, world_from_cam, height=h)
-    fill &= ~((nearer > 0) & (nearer <= shown * (1.0 + tol)))
+    d = np.where(nearer > 0, np.minimum(d, nearer / (1.0 + 2.0 * tol)), d)
+    fill &= np.isfinite(d)
     others = SourcesVisibility([SourceVisibility(depths[m], world_from_cam[m], tol) for m in names if m != n])
-    pts = transform_points(world_from_cam[n], erp_dirs(h, w, np.float64)[fill] * shown[fill][:, None])
+    pts = transform_points(world_from_cam[n], erp_dirs(h, w, np.float64)[fill] * d[fill][:, None])
     fill[fill] = ~others.explained(pts)
-    return np.where(fill, shown, 0.0).astype(np.float32)
+    return np.where(fill, d, 0.0).astype(np.float32)
 
 
 def add_own_fill(result: FusionResult, names: list[str], rgbs: dict[str, np.ndarray], depths: dict[str, np.ndarray],
@@ -172,7 +177,13 @@ def add_own_fill(result: FusionResult, names: list[str], rgbs: dict[str, np.ndar
         h, w = d.shape
         stood_for = at[SourceVisibility(d, world_from_cam[n], params.source_tol).explained(means)]
         pts = transform_points(world_from_cam[n], erp_dirs(h, w, np.float64).reshape(-1, 3) * d.reshape(-1, 1))
-        own = nearest_source(k, pts, fill_names, fills, world_from_cam, tol=params.source_tol).reshape(h, w)
+        own = nearest_source(k, pts, fill_names, fills, world_from_cam, tol=params.source_tol)
+        for m in fill_names:
+            if m != n:
+                dist, d_m = SourceVisibility(fills[m], world_from_cam[m], params.source_tol)._lookup(pts)
+                with np.errstate(invalid="ignore"):
+                    own &= ~(dist < d_m * (1.0 - params.source_tol))
+        own = own.reshape(h, w)
         rgb = rgbs[n] if rgbs[n].shape[0] == h else cv2.resize(rgbs[n], (w, h), interpolation=cv2.INTER_AREA)
         fill = pixel_gaussians(rgb, np.where(own, d, 0.0).astype(np.float32), world_from_cam[n], pix_params)
         others = SourcesVisibility([SourceVisibility(depths[m], world_from_cam[m], params.source_tol)
