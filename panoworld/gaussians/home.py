@@ -156,7 +156,8 @@ def add_own_fill(result: FusionResult, names: list[str], rgbs: dict[str, np.ndar
     """(result.gaussians (the sources' per-pixel Gaussians first, result.num_source of them, then the frames' voxel
     ones) with every source's own fill of its pixels without depth (rgbs, depths (0 = none), each pair at one size):
     per-pixel Gaussians at params.source_fill_height rows where own_fill places them, a surface two fills share kept
-    by the source nearer it (nearest_source over the fills), less those whose splat reaches through a surface another
+    by the source nearer it (nearest_source over the fills), none in front of another source's fill seen from that
+    source's capture point (by more than params.source_tol), less those whose splat reaches through a surface another
     source saw (SourcesVisibility.poking_through); the voxel Gaussians a fill stands for (on it or in front of it from
     its capture point, params.source_tol) dropped. Second: {NAME: {"filled": its fill's Gaussians, "stood_for": the
     voxel Gaussians it dropped}} of the sources with pixels without depth.)"""
@@ -178,11 +179,11 @@ def add_own_fill(result: FusionResult, names: list[str], rgbs: dict[str, np.ndar
         stood_for = at[SourceVisibility(d, world_from_cam[n], params.source_tol).explained(means)]
         pts = transform_points(world_from_cam[n], erp_dirs(h, w, np.float64).reshape(-1, 3) * d.reshape(-1, 1))
         own = nearest_source(k, pts, fill_names, fills, world_from_cam, tol=params.source_tol)
-        for m in fill_names:
+        for m in fill_names:  # nor in front of another fill, seen from that one's capture point
             if m != n:
-                dist, d_m = SourceVisibility(fills[m], world_from_cam[m], params.source_tol)._lookup(pts)
-                with np.errstate(invalid="ignore"):
-                    own &= ~(dist < d_m * (1.0 - params.source_tol))
+                p = transform_points(invert_pose(world_from_cam[m]), pts)
+                d_m = depth_along(fills[m], p)
+                own &= ~((d_m > 0) & (np.linalg.norm(p, axis=1) < d_m * (1.0 - params.source_tol)))
         own = own.reshape(h, w)
         rgb = rgbs[n] if rgbs[n].shape[0] == h else cv2.resize(rgbs[n], (w, h), interpolation=cv2.INTER_AREA)
         fill = pixel_gaussians(rgb, np.where(own, d, 0.0).astype(np.float32), world_from_cam[n], pix_params)
