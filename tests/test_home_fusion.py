@@ -127,3 +127,73 @@ def test_nearest_source_equals_its_every_pair_reference():
         got = nearest_source(k, pts, names, depths, poses, tol=0.03)
         assert 0.05 < got.mean() < 0.95
         np.testing.assert_array_equal(got, ref)
+
+
+def test_a_panoramas_pixels_without_depth_get_its_own_fill_where_no_other_panorama_sees():
+    # a has no depth in a band of its view (an implausible layout masked) across the +x wall and parts of the +z and
+    # -z walls; b, farther from the +x wall, saw those two but not the +x wall. Coarse grey Gaussians (the frames'
+    # voxel ones) stand in there. a's own pixels fill its band where no other panorama measured a surface (the +x
+    # wall): in front of what a sees there, never on or in front of a surface b measured, so b's view of its own
+    # surfaces stays as it was while a's view shows its own colours.
+    from panoworld.core.conventions import erp_dirs, invert_pose, transform_points
+    from panoworld.gaussians.fusion_params import SourcePixelParams
+    from panoworld.gaussians.home import add_own_fill, home_anchored_fusion
+    from panoworld.gaussians.pixel import merge_gaussians, pixel_gaussians
+    from panoworld.geometry.panoramas import depth_along, erp_pixel_index
+    from panoworld.io.gaussian_set import FusionResult
+    from panoworld.render.erp import render_erp
+
+    poses = {"a": _pose(0, 0, 0), "b": _pose(-0.9, 0.2, -1.1)}
+    H = 48
+    truth = _box_depths(poses, H=H)
+    dirs = erp_dirs(H, 2 * H, np.float64)
+
+    def texture(n):  # smooth world-space colours: both panoramas see the same colours on a surface
+        p = transform_points(poses[n], dirs.reshape(-1, 3) * truth[n].reshape(-1, 1))
+        c = 0.5 + 0.4 * np.sin(p @ np.array([[1.5, 0.0, 0.6], [0.4, 1.8, 0.0], [0.0, 0.7, 1.6]]))
+        return (255 * c).reshape(H, 2 * H, 3).astype(np.uint8)
+
+    rgbs = {n: texture(n) for n in poses}
+    depths = {n: d.copy() for n, d in truth.items()}
+    hole = np.zeros((H, 2 * H), bool)
+    hole[10:38, int(0.55 * 2 * H):int(0.95 * 2 * H)] = True
+    depths["a"][hole] = 0.0
+    pts_b = transform_points(poses["b"], dirs.reshape(-1, 3) * truth["b"].reshape(-1, 1)).reshape(H, 2 * H, 3)
+    depths["b"][pts_b[..., 0] > ROOM[0] / 2 - 0.05] = 0.0  # b has no depth on the +x wall
+    params = SourcePixelParams(voxel_size=0.05, unseen_voxel_size=0.05, source_height=0, capture_fit_iters=0,
+                               source_fill_height=H)
+    pix = home_anchored_fusion(None, {n: (rgbs[n], depths[n], poses[n]) for n in poses},
+                               SourcePixelParams(**{**vars(params), "source_fill": False})).gaussians
+    h = H // 2  # the stand-ins: a's true surfaces in its band, coarser and grey
+    coarse = np.where(hole[::2, ::2], truth["a"][::2, ::2], 0.0).astype(np.float32)
+    stand_in = pixel_gaussians(np.full((h, 2 * h, 3), 128, np.uint8), coarse, poses["a"], params)
+    scene = FusionResult(merge_gaussians([pix, stand_in]), 0, 0, 0, [0.0] * 3, 0.05, num_source=len(pix))
+    filled, stats = add_own_fill(scene, list(poses), rgbs, depths, poses, params)
+
+    assert set(stats) == {"a", "b"}
+    n_left = len(filled) - len(pix) - stats["a"]["filled"] - stats["b"]["filled"]
+    assert len(stand_in) - n_left == stats["a"]["stood_for"] + stats["b"]["stood_for"]
+    idx = np.arange(len(filled))
+    np.testing.assert_array_equal(np.asarray(filled.means)[:len(pix)], np.asarray(pix.means))
+    fill_a = np.asarray(filled.subset(idx >= len(pix) + n_left).means, np.float64)[:stats["a"]["filled"]]
+    assert len(fill_a) > 100
+    # along a's rays without depth, never beyond the surface a sees there, never on or in front of one b measured
+    rows, cols = erp_pixel_index(fill_a, H, 2 * H)
+    assert hole[rows, cols].all() and (np.linalg.norm(fill_a, axis=1) < truth["a"][rows, cols] * 1.05).all()
+    from_b = transform_points(invert_pose(poses["b"]), fill_a)
+    d_b = depth_along(depths["b"].astype(np.float64), from_b)
+    assert not ((d_b > 0) & (np.linalg.norm(from_b, axis=1) < d_b * 1.03)).any()
+
+    def error(g, n, where):
+        img = render_erp(g, poses[n], H, 2 * H, supersample=1).rgb.numpy()
+        return np.abs(img - rgbs[n] / 255.0).mean(-1)[where]
+
+    on_x = hole & (transform_points(poses["a"], dirs.reshape(-1, 3) * truth["a"].reshape(-1, 1))[:, 0]
+                   .reshape(H, 2 * H) > ROOM[0] / 2 - 0.05)
+    before, after = error(scene.gaussians, "a", on_x), error(filled, "a", on_x)
+    assert np.median(after) < 0.3 * np.median(before)
+    seen_b = depths["b"] > 0  # b's view of the surfaces it measured: no worse
+    assert error(filled, "b", seen_b).mean() < error(scene.gaussians, "b", seen_b).mean() + 0.002
+    # nothing without depth: nothing added
+    whole, stats = add_own_fill(scene, list(poses), rgbs, truth, poses, params)
+    assert whole is scene.gaussians and stats == {}

@@ -61,6 +61,7 @@ def write_artifact(out_dir: Path, result: FusionResult, frames: ContextFrames | 
         "num_source_gaussians": result.num_source,
         "color_fit": result.color_fit,
         "back_sides": result.back_sides,
+        "own_fill": result.own_fill,
         "voxel_size": result.voxel_size,
         "frames": frames.indices,
         "fusion_height": int(frames.height) if isinstance(frames, ContextSource) else int(frames.rgb.shape[1]),

@@ -89,6 +89,16 @@ class SourcePixelParams(FusionParams):
     more than this (log range; the nearest of its 3 x 3 depths) is dropped: the other saw through it (a layout
     annotation's wall across a doorway, seen from the next room). 0 = not checked (the default: on real layout-only
     depth the rooms' polygons disagree and it drops real walls; docs/multi.md)."""
+    source_fill: bool = True
+    """A home: a panorama's pixels without depth (implausible layout masked, a doorway line through another capture
+    point dropped) get its own per-pixel Gaussians (gaussians.home.add_own_fill), placed in front of whatever else
+    its capture point sees along their rays (at most the median of its own depth), only where no other panorama's
+    depth explains them (on or in front of a surface another measured) and where they stand in front of no other
+    panorama's fill seen from its capture point; the frames' voxel Gaussians in front of them are dropped. Which
+    panorama keeps a surface stays decided by the measured depths alone; the capture fit then colours the
+    panorama's own pixels where the frames' coarser Gaussians or another panorama's stood in (docs/multi.md)."""
+    source_fill_height: int = param(320, ge=8)
+    """ERP height of that fill (its render and per-pixel Gaussians; at most source_height)."""
     fit_iters: int = param(10, ge=0)
     """With source_pixels: conjugate-gradient steps of a colour fit at the capture point (0 = none): for the fixed
     geometry the ERP render there is linear in the Gaussians' colours, which are refitted (least squares, damped

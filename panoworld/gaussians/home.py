@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import cv2
 import numpy as np
 
 from panoworld.core.conventions import erp_dirs, invert_pose, transform_points
@@ -112,6 +113,88 @@ def seen_through(k: int, pts_world: np.ndarray, names: list[str], depths: dict[s
     return out
 
 
+def own_fill(k: int, names: list[str], depths: dict[str, np.ndarray], world_from_cam: dict[str, np.ndarray], scene,
+             *, height: int, tol: float) -> np.ndarray | None:
+    """(h, w) depth (0 = none; h = `height` rows at most) for panorama names[k]'s pixels without depth (depths (0 =
+    none)) but those next to one with depth: the nearest of what the scene (Gaussians) shows along the pixel's ray
+    from the capture point (render_erp's depth where its alpha > 0.5), the median of the panorama's own depth, and
+    just in front of the nearest surface another panorama measured along the ray (depth_from_others, / (1 + 2 tol)),
+    so the pixel's own Gaussian stands in front of whatever else its capture point sees there; kept only where no
+    other panorama's depth explains that point (SourcesVisibility of the others, tolerance tol: on or in front of a
+    surface another panorama measured, seen from there), so no other capture point sees it. None when it has no
+    pixel without depth."""
+    from scipy import ndimage
+
+    from panoworld.geometry.resize import resize_depth
+    from panoworld.render.erp import render_erp
+
+    n = names[k]
+    depth = depths[n]
+    if depth.shape[0] > height:
+        depth = np.nan_to_num(resize_depth(depth, height, 2 * height), nan=0.0, posinf=0.0)
+    hole = ~(np.isfinite(depth) & (depth > 0))
+    if not hole.any() or len(scene) == 0:
+        return None
+    h, w = depth.shape
+    out = render_erp(scene, world_from_cam[n], h, w, supersample=1)
+    shown, alpha = np.asarray(out.depth, np.float64), np.asarray(out.alpha, np.float64)
+    inner = ndimage.binary_erosion(np.pad(hole, ((1, 1), (0, 0)), mode="edge"), np.ones((3, 3)), border_value=1)
+    fill = inner[1:-1]
+    reach = float(np.median(depth[~hole])) if not hole.all() else np.inf
+    d = np.where((alpha > 0.5) & np.isfinite(shown) & (shown > 0), np.minimum(shown, reach), reach)
+    nearer = depth_from_others(k, names, {**depths, n: depth}, world_from_cam, height=h)
+    d = np.where(nearer > 0, np.minimum(d, nearer / (1.0 + 2.0 * tol)), d)
+    fill &= np.isfinite(d)
+    others = SourcesVisibility([SourceVisibility(depths[m], world_from_cam[m], tol) for m in names if m != n])
+    pts = transform_points(world_from_cam[n], erp_dirs(h, w, np.float64)[fill] * d[fill][:, None])
+    fill[fill] = ~others.explained(pts)
+    return np.where(fill, d, 0.0).astype(np.float32)
+
+
+def add_own_fill(result: FusionResult, names: list[str], rgbs: dict[str, np.ndarray], depths: dict[str, np.ndarray],
+                 world_from_cam: dict[str, np.ndarray], params: SourcePixelParams):
+    """(result.gaussians (the sources' per-pixel Gaussians first, result.num_source of them, then the frames' voxel
+    ones) with every source's own fill of its pixels without depth (rgbs, depths (0 = none), each pair at one size):
+    per-pixel Gaussians at params.source_fill_height rows where own_fill places them, a surface two fills share kept
+    by the source nearer it (nearest_source over the fills), none in front of another source's fill seen from that
+    source's capture point (by more than params.source_tol), less those whose splat reaches through a surface another
+    source saw (SourcesVisibility.poking_through); the voxel Gaussians a fill stands for (on it or in front of it from
+    its capture point, params.source_tol) dropped. Second: {NAME: {"filled": its fill's Gaussians, "stood_for": the
+    voxel Gaussians it dropped}} of the sources with pixels without depth.)"""
+    g = result.gaussians
+    height = min(params.source_fill_height, min(d.shape[0] for d in depths.values()))
+    fills = {n: f for k, n in enumerate(names) if (f := own_fill(k, names, depths, world_from_cam, g, height=height,
+                                                                 tol=params.source_tol)) is not None}
+    if not fills:
+        return g, {}
+    keep = np.ones(len(g), bool)
+    at = np.arange(result.num_source, len(g))
+    means = np.asarray(g.means, np.float64)[at]
+    fill_names = list(fills)
+    pix_params = replace(params, scale_factor=params.source_scale)
+    parts, stats = [], {}
+    for k, n in enumerate(fill_names):
+        d = fills[n]
+        h, w = d.shape
+        stood_for = at[SourceVisibility(d, world_from_cam[n], params.source_tol).explained(means)]
+        pts = transform_points(world_from_cam[n], erp_dirs(h, w, np.float64).reshape(-1, 3) * d.reshape(-1, 1))
+        own = nearest_source(k, pts, fill_names, fills, world_from_cam, tol=params.source_tol)
+        for m in fill_names:  # nor in front of another fill, seen from that one's capture point
+            if m != n:
+                p = transform_points(invert_pose(world_from_cam[m]), pts)
+                d_m = depth_along(fills[m], p)
+                own &= ~((d_m > 0) & (np.linalg.norm(p, axis=1) < d_m * (1.0 - params.source_tol)))
+        own = own.reshape(h, w)
+        rgb = rgbs[n] if rgbs[n].shape[0] == h else cv2.resize(rgbs[n], (w, h), interpolation=cv2.INTER_AREA)
+        fill = pixel_gaussians(rgb, np.where(own, d, 0.0).astype(np.float32), world_from_cam[n], pix_params)
+        others = SourcesVisibility([SourceVisibility(depths[m], world_from_cam[m], params.source_tol)
+                                    for m in names if m != n])
+        parts.append(fill.subset(~others.poking_through(fill)))
+        stats[n] = {"filled": len(parts[-1]), "stood_for": int(np.count_nonzero(keep[stood_for]))}
+        keep[stood_for] = False
+    return merge_gaussians([g.subset(keep)] + parts), stats
+
+
 def home_anchored_fusion(frames: ContextSource | None, sources: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
                          params: SourcePixelParams, *, progress: bool = False) -> FusionResult:
     """Per-pixel Gaussians of every source {NAME: (rgb (H, W, 3), depth (H, W) metres (0 = unknown), world_from_cam)}
@@ -122,6 +205,10 @@ def home_anchored_fusion(frames: ContextSource | None, sources: dict[str, tuple[
     params.voxel_size), less those poking through a surface a source saw: source_anchored_fusion of a single panorama,
     over several. params.source_complete: each source's pixels without depth first take the others'
     (complete_from_others). frames None: the panoramas' Gaussians alone (what the captures themselves show).
+    params.source_fill: each source's pixels without depth then get its own per-pixel Gaussians where the scene shows
+    a surface no other source sees (own_fill), and the frames' voxel Gaussians they stand for (on that fill or in front
+    of it, within params.source_tol) are dropped (result.own_fill: add_own_fill's figures); which source keeps a
+    surface is decided by the measured depths alone.
     params.capture_fit_iters > 0: the colours are then fitted at every capture pose to its panorama
     (capture_fit.fit_capture_colors; result.color_fit: its figures, RMSE per panorama before and after)."""
     names = list(sources)
@@ -150,6 +237,9 @@ def home_anchored_fusion(frames: ContextSource | None, sources: dict[str, tuple[
     else:
         seen = SourcesVisibility([SourceVisibility(depths[n], poses[n], tol) for n in names])
         result = fuse_unseen(pix, frames, seen, params, unseen_voxel_size=params.unseen_voxel_size, progress=progress)
+    if params.source_fill:
+        result.gaussians, result.own_fill = add_own_fill(result, names, {n: small[n][0] for n in names}, observed,
+                                                         poses, params)
     if params.capture_fit_iters > 0:
         result.gaussians, fit = fit_capture_colors(
             result.gaussians, [(sources[n][0], poses[n]) for n in names], height=params.capture_fit_height,

@@ -103,6 +103,9 @@ class FusionResult:
     """The colour fit at the capture point, when one ran (pixel_gaussians.fit_colors' statistics)."""
     back_sides: dict | None = None
     """The back-side layer's statistics, when one was added (panoworld.room.back_sides)."""
+    own_fill: dict | None = None
+    """A home's panoramas' own fill of their pixels without depth, when on: {NAME: {"filled", "stood_for"}}
+    (gaussians.home.add_own_fill)."""
     fit_render: tuple[np.ndarray, np.ndarray] | None = None
     """The colour fit's render of the final Gaussians at frame 0's pose, when one ran: (rgb (H, W, 3), alpha (H, W))
     float32 at the fit's height (write_artifact's self-check of frame 0 downsamples it instead of rendering again)."""
