@@ -81,7 +81,7 @@ def test_full_pipeline_runs_caches_and_reruns_one_stage(synth_scene, pipeline_sc
     assert actions["video"] == "ran"
     assert all(a == "skipped" for s, a in actions.items() if s != "video")
 
-    third = pl.run(scene, preset="ci-tiny", sets=["trajectory.stride=2"])
+    third = pl.run(scene, preset="ci-tiny", sets=["trajectory.stride=2"], until="trajectory")
     acts = {r.stage: r.action for r in third.results}
     assert [acts[s] for s in ("depth", "mesh", "navmesh")] == ["cached"] * 3
     assert acts["trajectory"] == "ran"
