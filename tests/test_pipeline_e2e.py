@@ -12,6 +12,7 @@ import pytest
 
 from panoworld.framework import pipeline as pl
 from panoworld.io import manifest as art
+from tests.test_report import pipeline_scene  # noqa: F401 - the shared session fixture (ci-tiny, every stage run)
 
 REPO = Path(__file__).resolve().parent.parent
 HEAVY = ("torch", "numba", "trimesh", "pycolmap", "diffusers", "transformers", "embreex", "ray", "cv2", "scipy")
@@ -27,8 +28,15 @@ def test_stage_modules_import_light(stage):
     assert out.stdout.strip() == "[]", f"{module} imports {out.stdout.strip()} at module level"
 
 
+def _artifact_bytes(scene: Path, stages: list[str]) -> dict[str, str]:
+    """{path: sha256} of every file of the stages' artifacts (manifests and logs excepted: timings live there)."""
+    root = scene / "artifacts"
+    return {p.relative_to(root).as_posix(): art.file_digest(p) for s in stages for p in sorted((root / s).rglob("*"))
+            if p.is_file() and p.name != art.MANIFEST}
+
+
 @pytest.mark.slow
-def test_full_pipeline_runs_caches_and_reruns_one_stage(synth_scene, tmp_path):
+def test_full_pipeline_runs_caches_and_reruns_one_stage(synth_scene, pipeline_scene, tmp_path):  # noqa: F811
     import yaml
 
     from panoworld.framework.stage import params_to_dict
@@ -54,6 +62,11 @@ def test_full_pipeline_runs_caches_and_reruns_one_stage(synth_scene, tmp_path):
         m = art.read_manifest(scene / "artifacts" / name)
         assert m["stage"] == name and m["peak_rss_mb"] > 0 and m["params"] == params_to_dict(
             pl.resolve_params(pl.Pipeline.load(), "ci-tiny", None, {}, [name])[name])
+    # Two runs of the pipeline on the same scene (this one and the session's shared run) give byte-identical artifacts.
+    ours, shared = _artifact_bytes(scene, order), _artifact_bytes(pipeline_scene, order)
+    assert {"navmesh/navmesh.json", "gaussians/gaussians.ply"} <= set(ours)
+    assert ours.keys() == shared.keys()
+    assert [k for k in ours if ours[k] != shared[k]] == []
 
     # ... so that status and run without --preset agree with it, and a demo of another preset is refused.
     assert {r["state"] for r in pl.status(scene)} == {"up-to-date"}, pl.status(scene)
@@ -68,7 +81,7 @@ def test_full_pipeline_runs_caches_and_reruns_one_stage(synth_scene, tmp_path):
     assert actions["video"] == "ran"
     assert all(a == "skipped" for s, a in actions.items() if s != "video")
 
-    third = pl.run(scene, preset="ci-tiny", sets=["trajectory.stride=2"])
+    third = pl.run(scene, preset="ci-tiny", sets=["trajectory.stride=2"], until="trajectory")
     acts = {r.stage: r.action for r in third.results}
     assert [acts[s] for s in ("depth", "mesh", "navmesh")] == ["cached"] * 3
     assert acts["trajectory"] == "ran"

@@ -84,14 +84,23 @@ def _digests(out: Path) -> dict[str, str]:
             if p.is_file() and p.name not in ("manifest.json", "summary.json")}
 
 
-@pytest.mark.slow
-def test_precompute_cache_resume_failures(synth_dataset, tmp_path):
-    data = tmp_path / "data"
+@pytest.fixture(scope="module")
+def first_run(synth_dataset, tmp_path_factory):
+    """The synthetic dataset plus a scene with a corrupt gt.json, precomputed once locally (2 workers); the index and
+    the file digests as that run left them (the cache test goes on to change the output)."""
+    data = tmp_path_factory.mktemp("precompute") / "data"
     shutil.copytree(synth_dataset, data)
     (data / "zz_corrupt" / "gt").mkdir(parents=True)
     (data / "zz_corrupt" / "gt" / "gt.json").write_text("{not json")
-    out = tmp_path / "out"
-    assert main([str(data), "--out", str(out), *ARGS, "--workers", "2", "--json"]) == 1  # the corrupt scene fails
+    out = data.parent / "out"
+    code = main([str(data), "--out", str(out), *ARGS, "--workers", "2", "--json"])
+    return {"data": data, "out": out, "code": code, "index": (out / INDEX).read_bytes(), "digests": _digests(out)}
+
+
+@pytest.mark.slow
+def test_precompute_cache_resume_failures(synth_dataset, first_run):
+    data, out = first_run["data"], first_run["out"]
+    assert first_run["code"] == 1  # the corrupt scene fails
     index = _index(out)
     assert len(index) == 6 and {r["scene"] for r in index} == {p.name for p in synth_dataset.iterdir()}
     failures = [json.loads(x) for x in (out / "failures.jsonl").read_text().splitlines()]
@@ -118,13 +127,12 @@ def test_precompute_cache_resume_failures(synth_dataset, tmp_path):
 
 
 @pytest.mark.slow
-def test_local_and_ray_give_identical_outputs(synth_dataset, tmp_path):
+def test_local_and_ray_give_identical_outputs(first_run, tmp_path):
     pytest.importorskip("ray")
-    local, ray_out = tmp_path / "local", tmp_path / "ray"
-    assert main([str(synth_dataset), "--out", str(local), *ARGS, "--workers", "2", "--json"]) == 0
-    assert main([str(synth_dataset), "--out", str(ray_out), *ARGS, "--workers", "2", "--executor", "ray", "--json"]) == 0
-    assert (local / INDEX).read_bytes() == (ray_out / INDEX).read_bytes()
-    assert _digests(local) == _digests(ray_out)
+    ray_out = tmp_path / "ray"
+    assert main([str(first_run["data"]), "--out", str(ray_out), *ARGS, "--workers", "2", "--executor", "ray", "--json"]) == 1
+    assert (ray_out / INDEX).read_bytes() == first_run["index"]
+    assert _digests(ray_out) == first_run["digests"]  # the corrupt scene's failure line included
 
 
 def test_bad_arguments_are_one_line_errors(tmp_path, capsys):

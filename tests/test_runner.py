@@ -128,10 +128,11 @@ def test_killed_stage_leaves_old_artifact_valid_and_next_run_repairs(scene):
         env=dict(os.environ, PANOWORLD_SCHEMA_PATH=str(TOY / "schemas")), cwd=REPO, start_new_session=True,
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )
-    log = scene / "artifacts/logs/b.log"
+    log = scene / f"artifacts/logs/.b.log.{proc.pid}.part"  # the stage's log while it runs
     deadline = time.time() + 30
     while time.time() < deadline and not (log.is_file() and "sleeping" in log.read_text()):
         time.sleep(0.05)
+    assert log.is_file() and "sleeping" in log.read_text(), "stage b should be sleeping"
     assert list((scene / "artifacts").glob(".tmp-b-*")), "stage should be mid-write"
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
@@ -193,8 +194,9 @@ def test_two_concurrent_runs_do_not_both_write(scene):
         env=dict(os.environ, PANOWORLD_SCHEMA_PATH=str(TOY / "schemas")), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )
     try:
+        log = scene / f"artifacts/logs/.a.log.{proc.pid}.part"  # stage a is running (sleeping 5 s)
         deadline = time.time() + 20
-        while time.time() < deadline and not (scene / "artifacts/logs/a.log").is_file():
+        while time.time() < deadline and not (log.is_file() and "sleeping" in log.read_text()):
             time.sleep(0.05)
         second = cli("run", str(scene), "--pipeline", str(TOY / "pipeline.yaml"))
         assert second.returncode == 2

@@ -214,33 +214,6 @@ def test_a_stage_does_not_commit_for_a_runner_that_no_longer_holds_the_lock(scen
     os.close(held)
 
 
-def _artifact_bytes(scene: Path) -> dict[str, str]:
-    """{path: sha256} of every artifact file (manifests, logs and the lock excepted: timings live there)."""
-    root = scene / "artifacts"
-    return {p.relative_to(root).as_posix(): art.file_digest(p) for p in sorted(root.rglob("*"))
-            if p.is_file() and p.name not in (art.MANIFEST, ".lock") and "logs" not in p.relative_to(root).parts}
-
-
-@pytest.mark.slow
-def test_two_runs_of_the_pipeline_give_byte_identical_artifacts(synth_scene, tmp_path, monkeypatch):
-    import shutil
-
-    monkeypatch.delenv("PANOWORLD_SCHEMA_PATH")
-    art.load_schema.cache_clear()
-    art._validator.cache_clear()
-    scenes = []
-    for name in ("one", "two"):
-        d = tmp_path / name
-        shutil.copytree(synth_scene, d, ignore=shutil.ignore_patterns("artifacts"))
-        report = pl.run(d, preset="ci-tiny")
-        assert report.ok, [r.reason for r in report.results if r.action == "failed"]
-        scenes.append(d)
-    one, two = (_artifact_bytes(s) for s in scenes)
-    assert {"navmesh/navmesh.json", "gaussians/gaussians.ply"} <= set(one)
-    assert one.keys() == two.keys()
-    assert [k for k in one if one[k] != two[k]] == []
-
-
 def test_code_digest_cache_keeps_what_other_processes_wrote(tmp_path, monkeypatch):
     """A checkout's runner and stages share its ~/.cache/panoworld/code_digests-*.json: a process saving its digests
     must not drop those another wrote meanwhile (a no-op would parse them all again: seconds on a busy machine)."""
