@@ -229,22 +229,21 @@ def feature_statistics(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def frechet_distance(mu1: np.ndarray, sigma1: np.ndarray, mu2: np.ndarray, sigma2: np.ndarray, eps: float = 1e-6) -> float:
     """Frechet distance of two Gaussians: |mu1 - mu2|^2 + tr(S1 + S2 - 2 (S1 S2)^(1/2)) (Heusel et al. 2017, FID;
-    Unterthiner et al. 2018, FVD). As pytorch-fid: eps on the diagonals when the product is singular, the real part
-    of the matrix square root."""
-    from scipy import linalg
-
+    Unterthiner et al. 2018, FVD). tr (S1 S2)^(1/2) is the sum of the square roots of the eigenvalues of S1^(1/2) S2
+    S1^(1/2) (symmetric, positive semi-definite, the same eigenvalues as S1 S2), so a singular covariance (fewer
+    samples than dimensions) needs no eps; eps is the round-off below which an eigenvalue counts as 0."""
     mu1, mu2 = np.atleast_1d(mu1).astype(np.float64), np.atleast_1d(mu2).astype(np.float64)
     s1, s2 = np.atleast_2d(sigma1).astype(np.float64), np.atleast_2d(sigma2).astype(np.float64)
     dims = check_shape("mu1", mu1, "D")
     for name, arr, spec in (("mu2", mu2, "D"), ("sigma1", s1, "D D"), ("sigma2", s2, "D D")):
         check_shape(name, arr, spec, dims=dims)
-    covmean, _ = linalg.sqrtm(s1 @ s2, disp=False)
-    if not np.isfinite(covmean).all():
-        offset = np.eye(len(s1)) * eps
-        covmean = linalg.sqrtm((s1 + offset) @ (s2 + offset))
-    covmean = np.real(covmean)
+    w, v = np.linalg.eigh((s1 + s1.T) / 2)
+    root1 = (v * np.sqrt(np.clip(w, 0.0, None))) @ v.T
+    inner = root1 @ s2 @ root1
+    lam = np.linalg.eigvalsh((inner + inner.T) / 2)
+    tr_covmean = float(np.sqrt(np.clip(lam, 0.0, None) * (lam > eps * max(lam.max(initial=0.0), 1.0))).sum())
     diff = mu1 - mu2
-    return float(diff @ diff + np.trace(s1) + np.trace(s2) - 2.0 * np.trace(covmean))
+    return float(diff @ diff + np.trace(s1) + np.trace(s2) - 2.0 * tr_covmean)
 
 
 def frechet_feature_distance(feats_a: np.ndarray, feats_b: np.ndarray) -> float:
