@@ -283,3 +283,24 @@ def test_capture_fit_over_its_memory_budget_is_skipped_and_says_why():
     assert out is g and "3 capture poses" in info["skipped"] and info["views"] == 3
     fitted, info = fit_capture_colors(g, views, height=SHELL_H, supersample=1, iters=3, max_bytes=4 * one)
     assert "skipped" not in info and fitted is not g
+
+
+def test_capture_fit_view_kernels_match_torch_and_are_each_others_adjoint():
+    """capture_fit's numba kernels against their torch reference (the colours a view sees of the (n, 12) unknowns:
+    colour plus degree-1 terms weighted by the view's basis), and the gradient kernel as that map's exact adjoint."""
+    from panoworld.gaussians.capture_fit import _add_view_grad, _view_colors
+
+    rng = np.random.default_rng(3)
+    n, m = 50, 20
+    x = rng.normal(size=(n, 12)).astype(np.float32)
+    cols = rng.choice(n, size=m, replace=False).astype(np.int64)
+    basis = rng.normal(size=(m, 3)).astype(np.float32)
+    xt, bt = torch.from_numpy(x)[torch.from_numpy(cols)], torch.from_numpy(basis)
+    ref = xt[:, :3] + torch.einsum("nj,njc->nc", bt, xt[:, 3:].reshape(-1, 3, 3))
+    assert np.array_equal(_view_colors(x, cols, basis), ref.numpy())
+    g = rng.normal(size=(m, 3)).astype(np.float32)
+    out = np.zeros((n, 12), np.float32)
+    _add_view_grad(out, cols, g, basis)
+    assert not out[np.setdiff1d(np.arange(n), cols)].any()
+    assert np.sum(_view_colors(x, cols, basis).astype(np.float64) * g) == pytest.approx(
+        np.sum(x.astype(np.float64) * out), rel=1e-5)
