@@ -129,7 +129,7 @@ class SourcePixelParams(FusionParams):
     fit_views_sh_only: bool = False
     """With fit_sh_degree 1: the views fit the degree-1 coefficients only; the colours seen from the capture point
     are its own fit's (fit_views 0's), so the capture point renders exactly as without the views."""
-    capture_fit_iters: int = param(40, ge=0)
+    capture_fit_iters: int = param(80, ge=0)
     """A home: conjugate-gradient steps of a colour fit at every capture point (gaussians.capture_fit; 0 = none).
     For the fixed geometry the ERP render at each capture pose is linear in the colours, which are refitted by
     least squares over all capture poses at once (damped towards their fused values) so that each reproduces its
