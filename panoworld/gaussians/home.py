@@ -114,14 +114,14 @@ def seen_through(k: int, pts_world: np.ndarray, names: list[str], depths: dict[s
 
 
 def own_fill(k: int, names: list[str], depths: dict[str, np.ndarray], world_from_cam: dict[str, np.ndarray], scene,
-             *, height: int, tol: float) -> np.ndarray | None:
+             others: SourcesVisibility, *, height: int, tol: float) -> np.ndarray | None:
     """(h, w) depth (0 = none; h = `height` rows at most) for panorama names[k]'s pixels without depth (depths (0 =
     none)) but those next to one with depth: the nearest of what the scene (Gaussians) shows along the pixel's ray
     from the capture point (render_erp's depth where its alpha > 0.5), the median of the panorama's own depth, and
     just in front of the nearest surface another panorama measured along the ray (depth_from_others, / (1 + 2 tol)),
     so the pixel's own Gaussian stands in front of whatever else its capture point sees there; kept only where no
-    other panorama's depth explains that point (SourcesVisibility of the others, tolerance tol: on or in front of a
-    surface another panorama measured, seen from there), so no other capture point sees it. None when it has no
+    other panorama's depth explains that point (`others`: the other panoramas' SourcesVisibility at tolerance tol; on
+    or in front of a surface another panorama measured, seen from there), so no other capture point sees it. None when it has no
     pixel without depth."""
     from scipy import ndimage
 
@@ -145,7 +145,6 @@ def own_fill(k: int, names: list[str], depths: dict[str, np.ndarray], world_from
     nearer = depth_from_others(k, names, {**depths, n: depth}, world_from_cam, height=h)
     d = np.where(nearer > 0, np.minimum(d, nearer / (1.0 + 2.0 * tol)), d)
     fill &= np.isfinite(d)
-    others = SourcesVisibility([SourceVisibility(depths[m], world_from_cam[m], tol) for m in names if m != n])
     pts = transform_points(world_from_cam[n], erp_dirs(h, w, np.float64)[fill] * d[fill][:, None])
     fill[fill] = ~others.explained(pts)
     return np.where(fill, d, 0.0).astype(np.float32)
@@ -163,8 +162,10 @@ def add_own_fill(result: FusionResult, names: list[str], rgbs: dict[str, np.ndar
     voxel Gaussians it dropped}} of the sources with pixels without depth.)"""
     g = result.gaussians
     height = min(params.source_fill_height, min(d.shape[0] for d in depths.values()))
-    fills = {n: f for k, n in enumerate(names) if (f := own_fill(k, names, depths, world_from_cam, g, height=height,
-                                                                 tol=params.source_tol)) is not None}
+    vis = {n: SourceVisibility(depths[n], world_from_cam[n], params.source_tol) for n in names}
+    others = {n: SourcesVisibility([vis[m] for m in names if m != n]) for n in names}
+    fills = {n: f for k, n in enumerate(names) if (f := own_fill(k, names, depths, world_from_cam, g, others[n],
+                                                                 height=height, tol=params.source_tol)) is not None}
     if not fills:
         return g, {}
     keep = np.ones(len(g), bool)
@@ -187,9 +188,7 @@ def add_own_fill(result: FusionResult, names: list[str], rgbs: dict[str, np.ndar
         own = own.reshape(h, w)
         rgb = rgbs[n] if rgbs[n].shape[0] == h else cv2.resize(rgbs[n], (w, h), interpolation=cv2.INTER_AREA)
         fill = pixel_gaussians(rgb, np.where(own, d, 0.0).astype(np.float32), world_from_cam[n], pix_params)
-        others = SourcesVisibility([SourceVisibility(depths[m], world_from_cam[m], params.source_tol)
-                                    for m in names if m != n])
-        parts.append(fill.subset(~others.poking_through(fill)))
+        parts.append(fill.subset(~others[n].poking_through(fill)))
         stats[n] = {"filled": len(parts[-1]), "stood_for": int(np.count_nonzero(keep[stood_for]))}
         keep[stood_for] = False
     return merge_gaussians([g.subset(keep)] + parts), stats
