@@ -97,15 +97,15 @@ def layout_pairs(registration: dict, survey: dict) -> list[dict]:
 
 def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str]) -> list[dict]:
     """Per pair of panoramas not both registered: the floor views' matches (the register stage's floor_view on the
-    depth artifact's cleaned panoramas, rig excluded, default RegisterOptions) that agree with the survey's relative pose
+    depth artifact's cleaned panoramas, rig excluded, default RegisterOptions; floor_pair's nearest-neighbour matches)
+    that agree with the survey's relative pose
     within 8 cm on the floor, 15 deg in keypoint orientation and 0.6 octaves in size; most first."""
-    import cv2
     from bench_real_home import survey_poses
 
     from panoworld.geometry.resize import rgbd_at_height
-    from panoworld.io.home import home_depth_dirs, load_sources
+    from panoworld.io.home import RIG_MASK_PNG, home_depth_dirs, load_sources
     from panoworld.register.artifact import _read_rig_mask
-    from panoworld.register.floor import floor_view
+    from panoworld.register.floor import floor_matches, floor_view
     from panoworld.register.options import RegisterOptions
     from panoworld.register.pairwise import grow_exclusion
     from panoworld.register.upright import wrap_angle, yaw_matrix_xz, yaw_of
@@ -116,19 +116,18 @@ def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str]) -> 
     names, rgbs, depths = load_sources(dirs, world)
     views = {}
     for n in names:
-        rig = dirs[n] / "rig_mask.png"
+        rig = dirs[n] / RIG_MASK_PNG
         views[n] = floor_view(rgbs[n], rgbd_at_height(rgbs[n], depths[n], o.height)[1], radius_m=o.floor_radius_m,
                               cell_m=o.floor_cell_m, exclude=grow_exclusion(_read_rig_mask(rig) if rig.is_file() else None))
     rows = []
     for i, a in enumerate(names):
         for b in names[i + 1:]:
             va, vb = views[a], views[b]
-            if (a in registered and b in registered) or va is None or vb is None or not len(va.xz) or not len(vb.xz):
+            if (a in registered and b in registered) or va is None or vb is None or len(va.xz) < 2 or len(vb.xz) < 2:
                 continue
             gt = np.linalg.inv(world[a]) @ world[b]
             yaw = yaw_of(gt[:3, :3])
-            m = np.array([(k[0].queryIdx, k[0].trainIdx) for k in
-                          cv2.BFMatcher(cv2.NORM_L2).knnMatch(va.descriptors, vb.descriptors, k=1) if k], np.int64)
+            m = floor_matches(va, vb)  # the matches floor_pair fits
             on_floor = np.linalg.norm(vb.xz[m[:, 1]] @ yaw_matrix_xz(yaw).T + gt[[0, 2], 3] - va.xz[m[:, 0]], axis=1)
             turn = np.degrees(np.abs(wrap_angle(va.angles[m[:, 0]] - vb.angles[m[:, 1]] - yaw)))
             octaves = np.abs(np.log2(va.sizes[m[:, 0]] / vb.sizes[m[:, 1]]))

@@ -182,6 +182,14 @@ def fixed_yaw_translation(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dlog
     return best
 
 
+def floor_matches(a: FloorView, b: FloorView, *, ratio: float = 1.0) -> np.ndarray:
+    """(M, 2) int64 (index in a, index in b): each keypoint of a with its nearest neighbour in b (of two or more),
+    kept by Lowe's ratio test when ratio < 1."""
+    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(a.descriptors, b.descriptors, k=2)
+    return np.array([(k[0].queryIdx, k[0].trainIdx) for k in knn
+                     if len(k) == 2 and (ratio >= 1 or k[0].distance < ratio * k[1].distance)], np.int64).reshape(-1, 2)
+
+
 def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: float = 1.0, seed: int = 0,
                yaws: np.ndarray | None = None) -> FloorPose | None:
     """a_from_b of two floor views: each keypoint of a with its nearest neighbour in b (Lowe's ratio test below 1),
@@ -189,9 +197,7 @@ def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: 
     yaws (radians); the vertical offset from the camera heights (one floor). None without a model."""
     if len(a.descriptors) < 2 or len(b.descriptors) < 2:
         return None
-    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(a.descriptors, b.descriptors, k=2)
-    m = np.array([(k[0].queryIdx, k[0].trainIdx) for k in knn
-                  if len(k) == 2 and (ratio >= 1 or k[0].distance < ratio * k[1].distance)], np.int64).reshape(-1, 2)
+    m = floor_matches(a, b, ratio=ratio)
     if len(m) < 2:
         return None
     args = (a.xz[m[:, 0]], b.xz[m[:, 1]], a.angles[m[:, 0]] - b.angles[m[:, 1]],
