@@ -25,7 +25,13 @@ from panoworld.framework import pipeline as pl
 from panoworld.io import manifest as art
 from panoworld.io.safe_write import OutputPathError, atomic_output, check_output_dir, inside, write_text_atomic
 from panoworld.register.inputs import find_home_files
-from panoworld.register.pair_select import ALL_PAIRS_UP_TO, PAIRS_PER_PANORAMA, appearance_descriptor, candidate_pairs
+from panoworld.register.pair_select import (
+    ALL_PAIRS_UP_TO,
+    PAIRS_PER_PANORAMA,
+    appearance_descriptor,
+    bridge_pairs,
+    candidate_pairs,
+)
 from tests.test_hostile_inputs import npy_claiming, png_header_only
 from tests.test_runner import REPO, TOY, cli, toy_schemas  # noqa: F401 - toy_schemas: the shared autouse fixture
 
@@ -597,6 +603,20 @@ def test_200_panoramas_are_planned_without_trying_all_pairs():
     small = names[:ALL_PAIRS_UP_TO]
     assert len(candidate_pairs(small)) == ALL_PAIRS_UP_TO * (ALL_PAIRS_UP_TO - 1) // 2
     assert (0, 1) not in candidate_pairs(small, given={small[0], small[1]})
+
+
+def test_groups_left_apart_get_every_pair_across_them_nearest_in_capture_order_first():
+    names = [f"p{i:02d}" for i in range(40)]
+    group = {n: int(i >= 25) for i, n in enumerate(names)}  # two groups: p00-p24, p25-p39
+    tried = set(candidate_pairs(names, None))
+    across = {(a, b) for a in range(25) for b in range(25, 40)} - tried
+    assert len(bridge_pairs(names, group, tried)) == 8 * 40 < len(across)  # the cap
+    assert bridge_pairs(names, group, tried, per_panorama=10) == sorted(across)  # every pair across
+    capped = bridge_pairs(names, group, tried, per_panorama=2)
+    assert len(capped) == 80 and set(capped) <= across
+    near = sorted(across, key=lambda ab: ab[1] - ab[0])
+    assert max(b - a for a, b in capped) <= min(b - a for a, b in set(near) - set(capped))
+    assert bridge_pairs(names, dict.fromkeys(names, 0), set()) == []  # one group: nothing to bridge
 
 
 def test_appearance_neighbours_find_the_same_room_again():

@@ -140,6 +140,22 @@ def test_unrelated_panorama_is_reported_not_placed(home_dir):
     assert not any(p["accepted"] for p in reg.pairs if "other" in (p["a"], p["b"]))
 
 
+def test_a_panorama_the_first_pairs_miss_is_joined_across_groups(home_dir, monkeypatch):
+    import panoworld.register.solve as solve
+
+    names = ["pano_00", "pano_01", "pano_02"]
+    rgbs = {n: read_panorama(home_dir / "panoramas" / f"{n}.png") for n in names}
+    depths = {n: np.load(home_dir / "depths" / f"{n}.npy") for n in names}
+    monkeypatch.setattr(solve, "candidate_pairs", lambda names, looks, **kw: [(0, 1)])  # a large home's sparse pairs
+    reg = register_panoramas(names, rgbs, depths, options=RegisterOptions(height=HEIGHT, all_pairs_up_to=2))
+    assert sorted((p["a"], p["b"]) for p in reg.pairs) == [("pano_00", "pano_01"), ("pano_00", "pano_02"),
+                                                          ("pano_01", "pano_02")]
+    gt = _gt(home_dir)
+    for n in names:
+        t_cm, r_deg = _errors(reg.world_from_cam[n], invert_pose(gt["pano_00"]) @ gt[n])
+        assert t_cm <= TOL_CM and r_deg <= TOL_DEG, (n, t_cm, r_deg)
+
+
 def test_synth_cli_panoramas_refuses_bad_counts(tmp_path):
     from panoworld.tools.synth.cli import main
 

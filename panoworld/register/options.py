@@ -15,6 +15,10 @@ class RegisterOptions:
     """Panoramas and depths are resampled to at most this many rows before feature detection."""
     max_features: int = param(16000, ge=100)
     """SIFT keypoints per panorama (shared by its six cube-face views)."""
+    all_pairs_up_to: int = param(16, ge=2)
+    """Homes of at most this many panoramas try every pair. Larger homes try 8 pairs per panorama (its next in name
+    order and its most alike by appearance), then the pairs across the groups those leave apart, nearest in name order
+    first, up to 8 more per panorama (panoworld/register/pair_select.py)."""
     max_error_m: float = param(0.05, gt=0)
     """RANSAC inlier threshold: 3D distance in metres between matched depth-backed points."""
     min_inliers: int = param(12, ge=3)

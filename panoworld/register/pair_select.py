@@ -11,6 +11,9 @@ ALL_PAIRS_UP_TO = 16
 PAIRS_PER_PANORAMA = 8
 """Beyond ALL_PAIRS_UP_TO: pairs tried per panorama, half with the next panoramas in name (capture) order, half with
 the most similar ones by appearance_descriptor; at most PAIRS_PER_PANORAMA x panoramas pairs in all."""
+BRIDGE_PAIRS_PER_PANORAMA = 8
+"""Beyond ALL_PAIRS_UP_TO: pairs between panoramas the first pairs left in different groups, tried next (nearest in
+name order first), at most this many times the panoramas."""
 
 
 def appearance_descriptor(rgb: np.ndarray, rows: int = 32) -> np.ndarray:
@@ -43,3 +46,16 @@ def candidate_pairs(names: list[str], descriptors: dict[str, np.ndarray] | None 
             near = np.argsort(-sim, axis=1)[:, : per_panorama - chain]
             pairs |= {(min(a, int(b)), max(a, int(b))) for a in range(k) for b in near[a]}
     return sorted((a, b) for a, b in pairs if not (names[a] in given and names[b] in given))
+
+
+def bridge_pairs(names: list[str], group: dict[str, int], tried: set[tuple[int, int]], *,
+                 per_panorama: int = BRIDGE_PAIRS_PER_PANORAMA) -> list[tuple[int, int]]:
+    """Index pairs (a < b) not yet tried whose panoramas lie in different groups (group: {NAME: group index}), nearest
+    in name (capture) order first, at most per_panorama x len(names): rooms joined only through a doorway look
+    unlike each other, so appearance does not find those pairs, and a group that does not join the others needs
+    every pair across."""
+    k = len(names)
+    todo = [(a, b) for a in range(k) for b in range(a + 1, k)
+            if (a, b) not in tried and group.get(names[a], -1 - a) != group.get(names[b], -1 - b)]
+    todo.sort(key=lambda ab: (ab[1] - ab[0], ab[0]))
+    return sorted(todo[: per_panorama * k])

@@ -12,7 +12,7 @@ from panoworld.register.floor import FloorPose, FloorView, floor_pair, floor_vie
 from panoworld.register.graph import BEARING, DEPTH, DIRECTION, FLOOR, LAYOUT, Edge, group_of, solve_graph
 from panoworld.register.layout import LayoutPose, layout_pair, manhattan_frame, room
 from panoworld.register.options import RegisterOptions
-from panoworld.register.pair_select import ALL_PAIRS_UP_TO, appearance_descriptor, candidate_pairs
+from panoworld.register.pair_select import appearance_descriptor, bridge_pairs, candidate_pairs
 from panoworld.register.pairwise import (
     Features,
     PairResult,
@@ -57,6 +57,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     bearing: dict[tuple[int, int], tuple[UprightPose | None, float, int]] = {}
     floors: dict[tuple[int, int], FloorPose | None] = {}
     frames: dict[str, float | None] = {}
+    small: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     k = len(names)
     if need:
         small = {n: rgbd_at_height(rgbs[n], depths[n], o.height) for n in names}
@@ -65,50 +66,31 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
         views: dict[str, FloorView | None] = {
             n: floor_view(rgbs[n], small[n][1], radius_m=o.floor_radius_m, cell_m=o.floor_cell_m, exclude=rig[n])
             if o.floor else None for n in names}
-        looks = {n: appearance_descriptor(small[n][0]) for n in names} if k > ALL_PAIRS_UP_TO else None
+        looks = {n: appearance_descriptor(small[n][0]) for n in names} if k > o.all_pairs_up_to else None
         frames = {n: manhattan_frame(small[n][1]) if o.manhattan else None for n in names}
-        for a, b in candidate_pairs(names, looks, given=given):
-            fa, fb = feats[names[a]], feats[names[b]]
-            m = match(fa, fb)
-            pairs[a, b] = register_pair(fa, fb, small[names[a]][1], small[names[b]][1],
-                                        max_error_m=o.max_error_m, min_inliers=o.min_inliers,
-                                        refine_height=o.refine_height, refine_iterations=o.refine_iterations,
-                                        matches=m)
-            rows = max(small[names[a]][1].shape[0], small[names[b]][1].shape[0])
-            bearing[a, b] = _bearing_pair(fa, fb, m, rows, o)
-            va, vb = views[names[a]], views[names[b]]
-            floors[a, b] = None if va is None or vb is None else floor_pair(
-                va, vb, threshold_m=o.floor_threshold_m, ratio=o.floor_ratio,
-                yaws=manhattan_yaws(frames[names[a]], frames[names[b]]))
-            if progress:
-                progress(names[a], names[b], pairs[a, b])
-    def off_frames(ab: tuple[int, int], a_from_b: np.ndarray) -> str:
-        return _off_manhattan(a_from_b, manhattan_yaws(frames.get(names[ab[0]]), frames.get(names[ab[1]])), o)
 
-    refused = {ab: off_frames(ab, p.i_from_j) or _contradiction(p.i_from_j, bearing[ab], o)
-               for ab, p in pairs.items() if accepted(p, o)}
-    depth_ok = {ab: accepted(p, o) and not refused[ab] for ab, p in pairs.items()}
-    floor_refused = {ab: _contradiction(f.a_from_b, bearing[ab], o)
-                     or same_room_refusal(f.a_from_b, small[names[ab[0]]][1], small[names[ab[1]]][1],
-                                          min_consistency=o.min_consistency)
-                     for ab, f in floors.items() if f is not None and f.inliers >= o.min_floor_inliers}
-    edges = []
-    for (a, b), p in pairs.items():
-        f = floors.get((a, b))
-        if depth_ok[a, b]:
-            edges.append(Edge(a=names[a], b=names[b], a_from_b=p.i_from_j, kind=DEPTH, inliers=p.inliers,
-                              info={"inliers": p.inliers, "overlap": round(p.overlap, 4),
-                                    "consistency": round(p.consistency, 4), "residual": round(p.residual, 5)}))
-        elif f is not None and (a, b) in floor_refused and not floor_refused[a, b]:
-            edges.append(Edge(a=names[a], b=names[b], a_from_b=f.a_from_b, kind=FLOOR, inliers=f.inliers,
-                              info={"inliers": f.inliers, "matches": f.matches, "residual": round(f.residual_m, 4)}))
-        elif (a, b) in bearing and bearing[a, b][0] is not None and not off_frames(
-                (a, b), bearing[a, b][0].i_from_j()):
-            pose, scale, support = bearing[a, b]
-            metric = support >= o.min_scale_support
-            edges.append(Edge(a=names[a], b=names[b], a_from_b=pose.i_from_j(scale if metric else 1.0),
-                              kind=BEARING if metric else DIRECTION, inliers=int(pose.inliers.sum()),
-                              info={"inliers": int(pose.inliers.sum()), "scale_support": support}))
+        def try_pairs(todo: list[tuple[int, int]]) -> None:
+            for a, b in todo:
+                fa, fb = feats[names[a]], feats[names[b]]
+                m = match(fa, fb)
+                pairs[a, b] = register_pair(fa, fb, small[names[a]][1], small[names[b]][1],
+                                            max_error_m=o.max_error_m, min_inliers=o.min_inliers,
+                                            refine_height=o.refine_height, refine_iterations=o.refine_iterations,
+                                            matches=m)
+                rows = max(small[names[a]][1].shape[0], small[names[b]][1].shape[0])
+                bearing[a, b] = _bearing_pair(fa, fb, m, rows, o)
+                va, vb = views[names[a]], views[names[b]]
+                floors[a, b] = None if va is None or vb is None else floor_pair(
+                    va, vb, threshold_m=o.floor_threshold_m, ratio=o.floor_ratio,
+                    yaws=manhattan_yaws(frames[names[a]], frames[names[b]]))
+                if progress:
+                    progress(names[a], names[b], pairs[a, b])
+
+        try_pairs(candidate_pairs(names, looks, given=given, all_up_to=o.all_pairs_up_to))
+        if k > o.all_pairs_up_to:
+            group = group_of(names, _edges(names, pairs, bearing, floors, frames, small, o)[0], given)
+            try_pairs(bridge_pairs(names, group, set(pairs)))
+    edges, refused, depth_ok, floor_refused, off_frames = _edges(names, pairs, bearing, floors, frames, small, o)
     layouts: dict[tuple[int, int], LayoutPose | None] = {}
     layout_refused: dict[tuple[int, int], str] = {}
     if o.layout and need:
@@ -176,6 +158,39 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                     row["bearing_refused"] = off
         rows.append(row)
     return Registration(world_from_cam=out, panoramas={n: info[n] for n in names}, pairs=rows)
+
+
+def _edges(names, pairs, bearing, floors, frames, small, o: RegisterOptions):
+    """The pose graph's edges of the pairs tried so far (each pair's best trusted estimate: depth-backed, floor, then
+    bearing-only), with why depth-backed and floor poses were refused and the Manhattan yaw test they used."""
+    def off_frames(ab: tuple[int, int], a_from_b: np.ndarray) -> str:
+        return _off_manhattan(a_from_b, manhattan_yaws(frames.get(names[ab[0]]), frames.get(names[ab[1]])), o)
+
+    refused = {ab: off_frames(ab, p.i_from_j) or _contradiction(p.i_from_j, bearing[ab], o)
+               for ab, p in pairs.items() if accepted(p, o)}
+    depth_ok = {ab: accepted(p, o) and not refused[ab] for ab, p in pairs.items()}
+    floor_refused = {ab: _contradiction(f.a_from_b, bearing[ab], o)
+                     or same_room_refusal(f.a_from_b, small[names[ab[0]]][1], small[names[ab[1]]][1],
+                                          min_consistency=o.min_consistency)
+                     for ab, f in floors.items() if f is not None and f.inliers >= o.min_floor_inliers}
+    edges = []
+    for (a, b), p in pairs.items():
+        f = floors.get((a, b))
+        if depth_ok[a, b]:
+            edges.append(Edge(a=names[a], b=names[b], a_from_b=p.i_from_j, kind=DEPTH, inliers=p.inliers,
+                              info={"inliers": p.inliers, "overlap": round(p.overlap, 4),
+                                    "consistency": round(p.consistency, 4), "residual": round(p.residual, 5)}))
+        elif f is not None and (a, b) in floor_refused and not floor_refused[a, b]:
+            edges.append(Edge(a=names[a], b=names[b], a_from_b=f.a_from_b, kind=FLOOR, inliers=f.inliers,
+                              info={"inliers": f.inliers, "matches": f.matches, "residual": round(f.residual_m, 4)}))
+        elif (a, b) in bearing and bearing[a, b][0] is not None and not off_frames(
+                (a, b), bearing[a, b][0].i_from_j()):
+            pose, scale, support = bearing[a, b]
+            metric = support >= o.min_scale_support
+            edges.append(Edge(a=names[a], b=names[b], a_from_b=pose.i_from_j(scale if metric else 1.0),
+                              kind=BEARING if metric else DIRECTION, inliers=int(pose.inliers.sum()),
+                              info={"inliers": int(pose.inliers.sum()), "scale_support": support}))
+    return edges, refused, depth_ok, floor_refused, off_frames
 
 
 def _contradiction(i_from_j: np.ndarray, bearing: tuple[UprightPose | None, float, int], o: RegisterOptions) -> str:
