@@ -105,10 +105,9 @@ def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str]) -> 
     from panoworld.geometry.resize import rgbd_at_height
     from panoworld.io.home import RIG_MASK_PNG, home_depth_dirs, load_sources
     from panoworld.register.artifact import _read_rig_mask
-    from panoworld.register.floor import floor_matches, floor_view
+    from panoworld.register.floor import floor_matches, floor_support, floor_view
     from panoworld.register.options import RegisterOptions
     from panoworld.register.pairwise import grow_exclusion
-    from panoworld.register.upright import wrap_angle, yaw_matrix_xz, yaw_of
 
     o = RegisterOptions()
     world = survey_poses(survey)
@@ -126,13 +125,9 @@ def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str]) -> 
             if (a in registered and b in registered) or va is None or vb is None or len(va.xz) < 2 or len(vb.xz) < 2:
                 continue
             gt = np.linalg.inv(world[a]) @ world[b]
-            yaw = yaw_of(gt[:3, :3])
             m = floor_matches(va, vb)  # the matches floor_pair fits
-            on_floor = np.linalg.norm(vb.xz[m[:, 1]] @ yaw_matrix_xz(yaw).T + gt[[0, 2], 3] - va.xz[m[:, 0]], axis=1)
-            turn = np.degrees(np.abs(wrap_angle(va.angles[m[:, 0]] - vb.angles[m[:, 1]] - yaw)))
-            octaves = np.abs(np.log2(va.sizes[m[:, 0]] / vb.sizes[m[:, 1]]))
             rows.append({"a": a, "b": b, "distance_m": round(float(np.hypot(gt[0, 3], gt[2, 3])), 2),
-                         "agreeing": int(((on_floor < 0.08) & (turn < 15) & (octaves < 0.6)).sum()), "matches": len(m)})
+                         "agreeing": floor_support(va, vb, gt, matches=m), "matches": len(m)})
     return sorted(rows, key=lambda r: (-r["agreeing"], r["distance_m"]))
 
 

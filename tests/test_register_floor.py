@@ -12,6 +12,7 @@ from panoworld.register.floor import (
     camera_height,
     fixed_yaw_translation,
     floor_pair,
+    floor_support,
     floor_view,
     oriented_rigid2d_ransac,
 )
@@ -69,6 +70,11 @@ def test_floor_pair_recovers_upright_pose_on_a_shared_floor():
     assert np.linalg.norm(p.a_from_b[:3, 3] - truth[:3, 3]) < 0.03
     dyaw = np.degrees(yaw_of(p.a_from_b[:3, :3]) - yaw_of(truth[:3, :3]))
     assert abs((dyaw + 180) % 360 - 180) < 0.5
+    # The matches that agree with a pose given beforehand: the truth's are about the fit's inliers, a shifted one's none.
+    assert floor_support(va, vb, truth) >= 0.8 * p.inliers
+    shifted = truth.copy()
+    shifted[0, 3] += 0.5
+    assert floor_support(va, vb, shifted) <= 2
 
 
 def test_unrelated_floors_give_no_supported_pose():

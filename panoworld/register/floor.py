@@ -11,7 +11,7 @@ import numpy as np
 
 from panoworld.core.conventions import erp_dirs, erp_pixel_from_lonlat
 from panoworld.core.shapes import check_shape
-from panoworld.register.upright import wrap_angle, yaw_matrix, yaw_matrix_xz
+from panoworld.register.upright import wrap_angle, yaw_matrix, yaw_matrix_xz, yaw_of
 
 
 @dataclass(kw_only=True)
@@ -213,3 +213,18 @@ def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: 
     res = np.linalg.norm(b.xz[m[inl, 1]] @ yaw_matrix_xz(yaw).T + t - a.xz[m[inl, 0]], axis=1)
     return FloorPose(a_from_b=T, inliers=int(inl.sum()), matches=len(m),
                      residual_m=float(np.sqrt(np.mean(res**2))) if len(res) else float("nan"))
+
+
+def floor_support(a: FloorView, b: FloorView, a_from_b: np.ndarray, *, threshold_m: float = 0.08,
+                  angle_tol: float = np.radians(15.0), scale_tol: float = 0.6, matches: np.ndarray | None = None) -> int:
+    """How many of floor_matches(a, b) (or `matches`, (M, 2)) agree with a given pose a_from_b (4, 4): land within
+    threshold_m of their partner on the floor, turn by the pose's yaw within angle_tol and keep their size within
+    scale_tol octaves (the tests of floor_pair's inliers)."""
+    m = floor_matches(a, b) if matches is None else matches
+    if len(m) == 0:
+        return 0
+    yaw = yaw_of(a_from_b[:3, :3])
+    on_floor = np.linalg.norm(b.xz[m[:, 1]] @ yaw_matrix_xz(yaw).T + a_from_b[[0, 2], 3] - a.xz[m[:, 0]], axis=1)
+    turn = np.abs(wrap_angle(a.angles[m[:, 0]] - b.angles[m[:, 1]] - yaw))
+    octaves = np.abs(np.log2(a.sizes[m[:, 0]] / b.sizes[m[:, 1]]))
+    return int(((on_floor < threshold_m) & (turn < angle_tol) & (octaves < scale_tol)).sum())
