@@ -245,3 +245,20 @@ def test_a_floor_hundreds_of_metres_wide_is_refused_before_its_grid_is_allocated
     params = replace(NavMeshParams(), max_range_m=1000.0, max_erp_height=0)  # as a home sets it
     with pytest.raises(InputError, match=r"the walkable floor spans 301 m x 301 m: a NavMesh grid of .* over the limit"):
         floor_grid(vertices, faces, np.ones(4, bool), 1.5, params=params)
+
+
+def test_a_camera_off_the_floor_snaps_to_a_floor_piece_not_to_a_sliver_beside_it():
+    from panoworld.geometry.polygons import cross_section, pick_components
+
+    def square(x0, z0, side):
+        return np.array([[x0, z0], [x0 + side, z0], [x0 + side, z0 + side], [x0, z0 + side]], np.float64)
+
+    sliver, room = square(0.1, -0.05, 0.1), square(0.5, -1.0, 2.0)  # 0.01 m^2 at 0.1 m, 4 m^2 at 0.5 m
+    cs = cross_section([sliver, room])
+    rings, inside, dist = pick_components(cs, np.array([[0.0, 0.0]]), snap_m=1.0, min_area_m2=0.25)
+    assert len(rings) == 1 and np.allclose(rings[0].min(0), [0.5, -1.0]) and not inside[0]
+    assert abs(dist[0] - 0.5) < 1e-9
+    rings = pick_components(cs, np.array([[0.0, 0.0]]), snap_m=0.3, min_area_m2=0.25)[0]  # the room out of reach
+    assert len(rings) == 1 and np.allclose(rings[0].min(0), [0.1, -0.05])
+    rings = pick_components(cs, np.array([[0.0, 0.0]]), snap_m=1.0)[0]  # no least area: the nearest
+    assert len(rings) == 1 and np.allclose(rings[0].min(0), [0.1, -0.05])

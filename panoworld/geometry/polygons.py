@@ -19,12 +19,15 @@ def cross_section(rings: list[np.ndarray]):
     return CrossSection([np.ascontiguousarray(r, dtype=np.float64) for r in rings], FillRule.EvenOdd)
 
 
-def pick_components(cs, xz: np.ndarray, snap_m: float = np.inf) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+def pick_components(cs, xz: np.ndarray, snap_m: float = np.inf, min_area_m2: float = 0.0
+                    ) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
     """The connected pieces of a CrossSection holding any of the points xz (K, 2): every piece containing one, and for
-    a point in none the nearest piece when it is within snap_m. Returns (rings of the kept pieces, contains (K,) bool,
-    distance (K,) of each point to its nearest piece, 0 inside). Raises NoFloorError when nothing is kept."""
+    a point in none the nearest piece within snap_m of at least min_area_m2 (a sliver the erosion left beside it
+    is no floor to roam), else the nearest piece within snap_m. Returns (rings of the kept pieces, contains (K,) bool,
+    distance (K,) of each point to its kept piece, 0 inside). Raises NoFloorError when nothing is kept."""
     xz = np.asarray(xz, np.float64).reshape(-1, 2)
-    pieces = [[np.asarray(r, np.float64) for r in piece.to_polygons()] for piece in cs.decompose()]
+    parts = list(cs.decompose())
+    pieces = [[np.asarray(r, np.float64) for r in piece.to_polygons()] for piece in parts]
     if not pieces:
         raise NoFloorError("no walkable floor is left after eroding by the agent radius")
     dist = np.empty((len(pieces), len(xz)))
@@ -32,6 +35,12 @@ def pick_components(cs, xz: np.ndarray, snap_m: float = np.inf) -> tuple[list[np
         segs = ring_segments(rings)
         dist[k] = np.where(even_odd(xz, segs), 0.0, segment_distance(xz, segs))
     nearest = dist.argmin(axis=0)
+    small = np.array([part.area() < min_area_m2 for part in parts])
+    if small.any() and not small.all():
+        roomy = np.where(small[:, None], np.inf, dist).argmin(axis=0)
+        cols = np.arange(len(xz))
+        swap = (dist[nearest, cols] > 0) & (dist[roomy, cols] <= snap_m)
+        nearest = np.where(swap, roomy, nearest)
     best = dist[nearest, np.arange(len(xz))]
     keep = sorted({int(k) for k, d in zip(nearest, best) if d <= snap_m})
     if not keep:
