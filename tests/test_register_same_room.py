@@ -8,7 +8,7 @@ import numpy as np
 
 from panoworld.core.conventions import invert_pose
 from panoworld.gaussians.home import depth_from_others
-from panoworld.register.pairwise import depth_toward, same_room_refusal
+from panoworld.register.pairwise import depth_toward, free_space_violation, rooms_overlap_refusal, same_room_refusal
 
 
 def _gt(home_dir) -> dict[str, np.ndarray]:
@@ -39,3 +39,21 @@ def test_same_room_refusal_tells_rooms_apart(home_dir):
                               height=depth[a].shape[0]).astype(np.float32)
     assert same_room_refusal(shift, depth[a], moved, min_consistency=0.9) == ""
 
+
+
+def test_rooms_overlap_refusal_tells_adjoining_rooms_from_overlapping_ones(home_dir):
+    gt = _gt(home_dir)
+    a, b = "pano_00", "pano_01"
+    depth = {n: np.load(home_dir / "depths" / f"{n}.npy") for n in (a, b)}
+    true = invert_pose(gt[a]) @ gt[b]
+    # The true pose: the second room's surfaces lie behind the first room's walls or on what it sees through a doorway.
+    assert max(free_space_violation(true, depth[a], depth[b])) < 0.03  # edges of furniture and door frames
+    assert rooms_overlap_refusal(true, depth[a], depth[b]) == ""
+    # The second room turned a quarter about its own camera: its walls cut through the first room.
+    turned = true @ np.array([[0.0, 0, 1, 0], [0, 1, 0, 0], [-1, 0, 0, 0], [0, 0, 0, 1]])
+    assert max(free_space_violation(turned, depth[a], depth[b])) > 0.05
+    assert "the rooms overlap" in rooms_overlap_refusal(turned, depth[a], depth[b])
+    # A depth that does not hold its whole room (masked layout) is not judged.
+    masked = depth[b].copy()
+    masked[: masked.shape[0] // 4] = 0
+    assert rooms_overlap_refusal(turned, depth[a], masked) == ""

@@ -68,6 +68,11 @@ class RegisterOptions:
     min_floor_inliers: int = param(8, ge=3)
     """A floor pair needs at least this many inliers (and no contradiction from its bearing-only estimate, checked as
     for a depth-backed pose)."""
+    max_free_space_violation: float = param(0.05, ge=0, le=1)
+    """A floor or layout pose is refused where both panoramas' depths hold their whole room (98 % of the pixels valid)
+    and it puts more than this share of either view's surfaces inside the other's free space (0.15 m and 5 % nearer
+    than that view's depth): two rooms that overlap. On the real east and west parts the right floor poses of such
+    pairs put none there, chance fits 14-44 %."""
     manhattan: bool = True
     """Use each panorama's wall directions (panoworld/register/layout.py: manhattan_frame, from the depth's room
     outline; none where the outline is incomplete or not at right angles) where both panoramas of a pair have them:

@@ -191,6 +191,41 @@ def same_room_refusal(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.nda
             f"depths disagree (consistency {cons:.2f})")
 
 
+def free_space_violation(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.ndarray, *, height: int = 128,
+                         margin_m: float = 0.15, margin_frac: float = 0.05) -> tuple[float, float]:
+    """Shares of depth_j's and of depth_i's valid pixels (H, W each) that the pose i_from_j (4, 4) puts inside the other
+    view's free space: nearer to that camera than its depth along the same ray by more than margin_m plus margin_frac
+    of that depth (a wall of one room standing inside the other room)."""
+    di, dj = (torch.from_numpy(_small(x, height))[None] for x in (depth_i, depth_j))
+    dirs = torch.from_numpy(erp_dirs(*di.shape[1:], dtype=np.float64)).reshape(1, -1, 3)
+    T = torch.from_numpy(np.asarray(i_from_j, np.float64))
+    out = []
+    for src, dst, A in ((dj, di, T), (di, dj, torch.linalg.inv(T))):
+        p = (dirs * src.reshape(1, -1, 1)) @ A[:3, :3].T + A[:3, 3]
+        r, d, _ = sample_range(dst, p, depth_edges(dst.clamp(min=1e-6)))
+        ok = (src.reshape(1, -1) > 0) & (d > 0)
+        out.append(float((ok & (r < d * (1 - margin_frac) - margin_m)).sum()) / max(int((src > 0).sum()), 1))
+    return out[0], out[1]
+
+
+def rooms_overlap_refusal(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.ndarray, *, max_share: float = 0.05,
+                          min_valid: float = 0.98) -> str:
+    """Why a pose i_from_j (4, 4) estimated without the dense depths cannot hold ('' when it can): where both depth maps
+    (H, W) hold the whole room (at least min_valid of their pixels valid), more than max_share of either view's
+    surfaces stand inside the other's free space, so the two rooms overlap. Not tested where a depth is masked (a
+    layout seen from outside its own polygon holds wrong surfaces where it holds any)."""
+    if min(_valid_share(depth_i), _valid_share(depth_j)) < min_valid:
+        return ""
+    vj, vi = free_space_violation(i_from_j, depth_i, depth_j)
+    if max(vi, vj) <= max_share:
+        return ""
+    return f"puts {max(vi, vj):.0%} of one view's surfaces inside the other's free space (the rooms overlap)"
+
+
+def _valid_share(depth: np.ndarray) -> float:
+    return float((np.isfinite(depth) & (depth > 0)).mean())
+
+
 def _erp_normals(pts: np.ndarray) -> np.ndarray:
     """Unit normals (H, W, 3) of an ERP point grid (H, W, 3) from central differences (columns wrap), facing the
     camera; zero where a neighbour is missing."""

@@ -20,6 +20,7 @@ from panoworld.register.pairwise import (
     grow_exclusion,
     match,
     register_pair,
+    rooms_overlap_refusal,
     same_room_refusal,
 )
 from panoworld.register.registration import Registration
@@ -108,8 +109,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
             if lp is None:
                 continue
             layout_refused[a, b] = (off_frames((a, b), lp.a_from_b) or _layout_refusal(lp, bearing[a, b], o)
-                                    or same_room_refusal(lp.a_from_b, small[names[a]][1], small[names[b]][1],
-                                                         min_consistency=o.min_consistency))
+                                    or _placement_refusal(lp.a_from_b, small[names[a]][1], small[names[b]][1], o))
             if not layout_refused[a, b]:
                 edges.append(Edge(a=names[a], b=names[b], a_from_b=lp.a_from_b, kind=LAYOUT, inliers=int(lp.score),
                                   info={"layout_score": round(lp.score, 1), "layout_second": round(lp.second, 1)}))
@@ -170,8 +170,7 @@ def _edges(names, pairs, bearing, floors, frames, small, o: RegisterOptions):
                for ab, p in pairs.items() if accepted(p, o)}
     depth_ok = {ab: accepted(p, o) and not refused[ab] for ab, p in pairs.items()}
     floor_refused = {ab: _contradiction(f.a_from_b, bearing[ab], o)
-                     or same_room_refusal(f.a_from_b, small[names[ab[0]]][1], small[names[ab[1]]][1],
-                                          min_consistency=o.min_consistency)
+                     or _placement_refusal(f.a_from_b, small[names[ab[0]]][1], small[names[ab[1]]][1], o)
                      for ab, f in floors.items() if f is not None and f.inliers >= o.min_floor_inliers}
     edges = []
     for (a, b), p in pairs.items():
@@ -191,6 +190,13 @@ def _edges(names, pairs, bearing, floors, frames, small, o: RegisterOptions):
                               kind=BEARING if metric else DIRECTION, inliers=int(pose.inliers.sum()),
                               info={"inliers": int(pose.inliers.sum()), "scale_support": support}))
     return edges, refused, depth_ok, floor_refused, off_frames
+
+
+def _placement_refusal(a_from_b: np.ndarray, depth_a: np.ndarray, depth_b: np.ndarray, o: RegisterOptions) -> str:
+    """Why the depths refuse a pose estimated without them (a floor or layout pose; '' when they do not): one room whose
+    depths disagree (same_room_refusal), or two rooms that overlap (rooms_overlap_refusal)."""
+    return (same_room_refusal(a_from_b, depth_a, depth_b, min_consistency=o.min_consistency)
+            or rooms_overlap_refusal(a_from_b, depth_a, depth_b, max_share=o.max_free_space_violation))
 
 
 def _contradiction(i_from_j: np.ndarray, bearing: tuple[UprightPose | None, float, int], o: RegisterOptions) -> str:
