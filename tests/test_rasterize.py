@@ -206,9 +206,10 @@ def test_occlusion_culling_changes_nothing():
     f = np.concatenate([p_[0] for p_ in parts])
     c = np.concatenate([p_[1] for p_ in parts])
     ok = np.concatenate([p_[2] for p_ in parts])
-    culled = ErpRasterizer(v, f, c, ok, cull_cluster=32)
+    culled = ErpRasterizer(v, f, c, ok, cull_cluster=32, cull_min_faces=0)
     plain = ErpRasterizer(v, f, c, ok, cull_cluster=0)
     assert culled._clusters is not None and plain._clusters is None
+    assert ErpRasterizer(v, f, c, ok, cull_cluster=32, cull_min_faces=len(f) + 1)._clusters is None
     skipped = []
     for x in np.linspace(-0.5, 8.5, 12):
         pose = pose_from_rt(rotmat_from_quat_wxyz(rng.normal(size=4) * [4, 0.3, 1, 0.3]), [x, rng.uniform(-0.2, 0.2), 0.1])
