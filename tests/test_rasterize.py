@@ -188,6 +188,44 @@ def test_thread_count_does_not_change_the_result():
     np.testing.assert_array_equal(a.distance, b.distance)
 
 
+def test_occlusion_culling_changes_nothing():
+    # Three rooms side by side (ERP grid meshes of closed boxes) plus loose triangles: the culled rasteriser skips the
+    # clusters behind the walls and returns the same buffers as the unculled one, pose after pose along a walk
+    # through the rooms (the clusters the previous pose showed go first), at the seam and near the poles too.
+    rng = np.random.default_rng(8)
+    parts, verts, n = [], [], 0
+    for k in range(3):
+        m = _grid_mesh(rng, 48, 96)
+        verts.append(m.vertices + np.float32([4.0 * k, 0.0, 0.0]))
+        parts.append((m.faces + n, m.colors, m.face_valid))
+        n += len(m.vertices)
+    sv, sf = soup(rng, 400, dist=1.0, size=0.05)
+    verts.append(sv + np.float32([4.0, 0.0, 0.0]))
+    parts.append((sf + n, np.full((len(sv), 3), 200, np.uint8), np.ones(len(sf), bool)))
+    v = np.concatenate(verts)
+    f = np.concatenate([p_[0] for p_ in parts])
+    c = np.concatenate([p_[1] for p_ in parts])
+    ok = np.concatenate([p_[2] for p_ in parts])
+    culled = ErpRasterizer(v, f, c, ok, cull_cluster=32, cull_min_faces=0)
+    plain = ErpRasterizer(v, f, c, ok, cull_cluster=0)
+    assert culled._clusters is not None and plain._clusters is None
+    assert ErpRasterizer(v, f, c, ok, cull_cluster=32, cull_min_faces=len(f) + 1)._clusters is None
+    skipped = []
+    for x in np.linspace(-0.5, 8.5, 12):
+        pose = pose_from_rt(rotmat_from_quat_wxyz(rng.normal(size=4) * [4, 0.3, 1, 0.3]), [x, rng.uniform(-0.2, 0.2), 0.1])
+        for h in (32, 64):
+            a, b = culled.render(pose, h, 2 * h), plain.render(pose, h, 2 * h)
+            np.testing.assert_array_equal(a.rgb, b.rgb)
+            np.testing.assert_array_equal(a.depth, b.depth)
+            np.testing.assert_array_equal(a.mask, b.mask)
+            skipped.append(1.0 - culled.rasterised / len(culled._seen))
+        ha, hb = culled.render_erp(pose, 48, 96), plain.render_erp(pose, 48, 96)
+        np.testing.assert_array_equal(ha.face, hb.face)
+        np.testing.assert_array_equal(ha.distance, hb.distance)
+        np.testing.assert_array_equal(ha.bary, hb.bary)
+    assert np.mean(skipped) > 0.3  # many clusters lie in the other rooms
+
+
 def test_bad_inputs_raise_clear_errors():
     v, f = soup(np.random.default_rng(7), 10, 2.0, 0.3)
     r = ErpRasterizer(v, f)

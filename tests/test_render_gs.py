@@ -570,3 +570,22 @@ def test_numba_bin_tiles_equal_torch(tile):
     assert ours[:2] == ref[:2] and len(ref[2]) > 500
     for a, b in zip(ours[2:], ref[2:]):
         assert np.array_equal(a, b.numpy())
+
+
+@pytest.mark.parametrize("supersample", [1, 2])
+def test_erp_of_some_pixels_renders_only_their_faces_and_keeps_their_values(supersample):
+    # A patch of pixels below the horizon in front of the camera and another at the north pole: the render of those
+    # pixels alone equals the full render there, and the faces that sample neither are not rendered (their pixels 0).
+    g, pose = cull_scene()
+    H, W = 24, 48
+    full = render_erp(g, pose, H, W, supersample=supersample)
+    pixels = np.zeros((H, W), bool)
+    pixels[14:17, 20:24] = True
+    pixels[0, :5] = True
+    part = render_erp(g, pose, H, W, supersample=supersample, pixels=pixels)
+    for name in ("rgb", "depth", "alpha"):
+        torch.testing.assert_close(getattr(part, name)[torch.from_numpy(pixels)],
+                                   getattr(full, name)[torch.from_numpy(pixels)], rtol=0, atol=0)
+    assert float(full.alpha.min()) > 0 and (part.alpha == 0).float().mean() > 0.3
+    with pytest.raises(ValueError, match="pixels.shape"):
+        render_erp(g, pose, H, W, pixels=pixels[:, :10])

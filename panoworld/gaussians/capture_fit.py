@@ -57,59 +57,68 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
             y = cv2.resize(y, (2 * height, height), interpolation=cv2.INTER_AREA)
         targets.append(torch.from_numpy(np.ascontiguousarray(y)))
     cov = covariance_3d(torch.as_tensor(g.scales).float(), torch.as_tensor(g.quats).float())
-    ops, seen_k = [], []
+    # Each view is held on the Gaussians it sees alone (ops[k] restricted to mine[k]; seen_k[k]: its compositing
+    # weight of each of them), so what the fit holds grows with the views' pixels, not with views x Gaussians.
+    ops, seen_k, mine = [], [], []
     seen_any = np.zeros(len(g), bool)
-    ones = torch.ones(height, 2 * height, 3)
     held = 0
     for _, pose in views:
-        ops.append(ErpColorOperator(g, pose, height, 2 * height, supersample=supersample, cov=cov, tile=FIT_TILE))
-        held += operator_nbytes(ops[-1])
-        if held / len(ops) * len(views) > max_bytes:
+        op = ErpColorOperator(g, pose, height, 2 * height, supersample=supersample, cov=cov, tile=FIT_TILE)
+        held += operator_nbytes(op)
+        if held / (len(ops) + 1) * len(views) > max_bytes:
             return g, {"views": len(views), "skipped": f"the render operators of the {len(views)} capture poses would "
-                       f"hold about {held / len(ops) * len(views) / 1e9:.1f} GB, more than {max_bytes / 1e9:.1f} GB"}
-        seen_k.append(ops[-1].adjoint(ones)[:, 0])  # the view's compositing weight of each Gaussian
-        for f in ops[-1].faces:
-            seen_any[f[2].indices] = True
-    del cov, ones
+                       f"hold about {held / (len(ops) + 1) * len(views) / 1e9:.1f} GB, more than {max_bytes / 1e9:.1f} GB"}
+        seen = np.zeros(len(g), bool)
+        for f in op.faces:
+            seen[f[2].indices] = True
+        mine.append(np.flatnonzero(seen))
+        seen_any |= seen
+        ops.append(op.restricted(mine[-1]))
+        del op
+        seen_k.append(ops[-1].adjoint(torch.ones(height, 2 * height, 3))[:, 0].clone())
+    del cov
     # The unknowns are those of the Gaussians some view sees (the others' gradient is 0: they keep their colours),
     # and each view's products run over the Gaussians it sees alone (cols[k], positions among the seen).
     fit = np.flatnonzero(seen_any)
-    at = torch.from_numpy(fit)
     n, views_n = len(fit), len(ops)
-    cols = []
-    for k in range(views_n):
-        mine = np.zeros(len(g), bool)
-        for f in ops[k].faces:
-            mine[f[2].indices] = True
-        cols.append(np.searchsorted(fit, np.flatnonzero(mine)).astype(np.int64))
-        ops[k] = ops[k].restricted(np.flatnonzero(mine))
-    seen_k = [w[at] for w in seen_k]
-    total = sum(seen_k)[:, None]
+    cols = [np.searchsorted(fit, m).astype(np.int64) for m in mine]
+    del mine
+    cols_t = [torch.from_numpy(c) for c in cols]
+
+    def scatter(term, width):  # term(k): view k's (len(cols[k]), width) per Gaussian, summed over the views in order
+        out = torch.zeros(n, width)
+        for k in range(views_n):
+            out.index_add_(0, cols_t[k], term(k))
+        return out
+
+    total = scatter(lambda k: seen_k[k][:, None], 1)
     seen = total.clamp(min=1e-3)
     total = torch.where(total > 0, total, 1.0)  # the weighted means below, exact where the weights are small
     s0 = np.zeros((n, 3, 3), np.float32)
     s0[:, : min(3, g.sh_rest.shape[1])] = np.asarray(g.sh_rest, np.float32)[fit, :3]
     s0 = torch.from_numpy(s0)
     means = np.asarray(g.means)[fit]
-    b = [sh1_basis(means, np.asarray(pose)[:3, 3]) for _, pose in views]
-    b_mean = sum(w[:, None] * bk for w, bk in zip(seen_k, b)) / total
+
+    def b(k):  # view k's degree-1 basis of the Gaussians it sees
+        return sh1_basis(means[cols[k]], np.asarray(views[k][1])[:3, 3])
+
+    b_mean = scatter(lambda k: seen_k[k][:, None] * b(k), 3) / total
     c0 = torch.from_numpy(g.base_colors()[fit]) + torch.einsum("nj,njc->nc", b_mean, s0)
     if sh_degree:
         # the unknowns are s times rho, each Gaussian's RMS basis change over the views lifted by the damping
         # (a diagonal preconditioner: the data and the damping of each unknown then weigh about alike)
-        rho = (sum(w[:, None] * (bk - b_mean).square() for w, bk in zip(seen_k, b)).sum(1, keepdim=True)
-               / total)
+        rho = scatter(lambda k: seen_k[k][:, None] * (b(k) - b_mean[cols_t[k]]).square(), 3).sum(1, keepdim=True)
+        rho = rho / total
         one_way = rho < 1e-6  # seen from one direction (one view): s does not reach the colours
         rho = (rho + sh_damping / PIXEL_WEIGHT).sqrt()
-        basis = [(torch.where(one_way, 0.0, bk - b_mean) / rho)[cols[k]] for k, bk in enumerate(b)]
+        basis = [torch.where(one_way[c], 0.0, b(k) - b_mean[c]) / rho[c] for k, c in enumerate(cols_t)]
         x0 = torch.cat([c0, (s0 * rho[:, :, None]).reshape(n, 9)], 1)
         lam = torch.cat([damping * seen.expand(n, 3), (sh_damping * seen / rho.square()).expand(n, 9)], 1)
     else:
-        basis = [(bk - b_mean)[cols[k]] for k, bk in enumerate(b)]
+        basis = [b(k) - b_mean[c] for k, c in enumerate(cols_t)]
         s0_k = [s0[c] for c in cols]
         x0, lam = c0, damping * seen.expand(n, 3)
-    del b
-    cols = [torch.from_numpy(c) for c in cols]
+    cols = cols_t
 
     def colors(k, x):  # the unknowns (n, 3 or 12) -> the colours view k sees (len(cols[k]), 3)
         if sh_degree:

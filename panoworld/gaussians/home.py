@@ -136,10 +136,12 @@ def own_fill(k: int, names: list[str], depths: dict[str, np.ndarray], world_from
     if not hole.any() or len(scene) == 0:
         return None
     h, w = depth.shape
-    out = render_erp(scene, world_from_cam[n], h, w, supersample=1)
-    shown, alpha = np.asarray(out.depth, np.float64), np.asarray(out.alpha, np.float64)
     inner = ndimage.binary_erosion(np.pad(hole, ((1, 1), (0, 0)), mode="edge"), np.ones((3, 3)), border_value=1)
     fill = inner[1:-1]
+    if not fill.any():
+        return np.zeros((h, w), np.float32)
+    out = render_erp(scene, world_from_cam[n], h, w, supersample=1, pixels=fill)  # only fill's pixels are read
+    shown, alpha = np.asarray(out.depth, np.float64), np.asarray(out.alpha, np.float64)
     reach = float(np.median(depth[~hole])) if not hole.all() else np.inf
     d = np.where((alpha > 0.5) & np.isfinite(shown) & (shown > 0), np.minimum(shown, reach), reach)
     nearer = depth_from_others(k, names, {**depths, n: depth}, world_from_cam, height=h)

@@ -28,6 +28,9 @@ def nearest_source(k: int, pts_world: np.ndarray, names: list[str], depths: dict
         if j == k:
             continue
         at = np.flatnonzero(keep)  # each panorama tests the points still kept, its depth looked up where it is nearer
+        # those about as near to it (a margin over the rounding of the test below), before the exact test
+        near = np.linalg.norm(pts_world[at] - world_from_cam[other][:3, 3], axis=1) <= r_k[at] * (1.0 + 1e-6) + 1e-9
+        at = at[near]
         p = transform_points(invert_pose(world_from_cam[other]), pts_world[at])
         r_j = np.linalg.norm(p, axis=1)
         nearer = (r_j < r_k[at]) | ((r_j == r_k[at]) & (j < k))

@@ -127,7 +127,7 @@ def face_cull(prep: _Prepared, scales, centre: np.ndarray, near: float):
 def render_erp(
     gaussians: Gaussians, world_from_cam: np.ndarray, H: int, W: int, *, face_size: int | None = None,
     margin: int = 2, near: float = 0.01, background=None, supersample: int = ERP_SUPERSAMPLE,
-    pole_scale: float | None = None, backend: str = "auto",
+    pole_scale: float | None = None, backend: str = "auto", pixels: np.ndarray | None = None,
 ) -> RenderOutput:
     """Render an equirectangular view (W = 2H) from 6 perspective cube faces resampled bilinearly with grid_sample.
 
@@ -146,11 +146,21 @@ def render_erp(
     the Gaussians are CUDA tensors and gsplat imports, else numba when no gradient is needed, else torch. The CPU
     paths project for each face only the Gaussians whose box can meet it (face_cull): the same render as projecting
     all of them on every face.
+
+    pixels (H, W) bool: only the cube faces that sample one of these pixels are rendered (each pixel keeps its
+    value; the others' faces are not rendered and their pixels are 0).
     """
     if backend not in ("auto", "torch", "numba", "gsplat"):
         raise ValueError(f"backend={backend!r} but expected 'auto', 'torch', 'numba' or 'gsplat'")
     faces = erp_faces(world_from_cam, H, W, face_size=face_size, margin=margin, supersample=supersample,
                       pole_scale=pole_scale)
+    if pixels is not None:
+        keep = np.asarray(pixels, bool)
+        if keep.shape != (H, W):
+            raise ValueError(f"pixels.shape={keep.shape} but expected {(H, W)}")
+        s = int(supersample)
+        keep = torch.from_numpy(np.repeat(np.repeat(keep, s, 0), s, 1).reshape(-1))
+        faces = [fc for fc in faces if bool(keep[fc.index].any())]
     if _use_gsplat(gaussians, backend):
         return _compose_erp(faces, H, W, supersample, lambda fc: _gsplat_face(gaussians, fc, near, background))
     grad = _needs_grad(gaussians)
