@@ -67,9 +67,9 @@ class Params:
     mcap_codec: str = param("h264", choices=("h264", "jpeg"))
     """How video.mcap holds the frames and conditions (a log for viewing; frames/ hold what later stages read): h264
     (two foxglove.CompressedVideo streams, a keyframe at least every 2 s) or jpeg (foxglove.CompressedImage per frame)."""
-    mcap_crf: int = param(26, ge=0, le=51)
-    """x264's constant rate factor of the MCAP's H.264 streams (26: about 35 dB PSNR to frames/ on the demo, 23 (x264's
-    default) 36 dB for 1.4x the bytes)."""
+    mcap_crf: int = param(28, ge=0, le=51)
+    """x264's constant rate factor of the MCAP's H.264 streams (preset MCAP_X264_PRESET; 28: about 35 dB PSNR to frames/
+    on the demo, 26 35.5 dB for 1.3x the bytes)."""
     mcap_jpeg_quality: int = param(80, ge=0, le=100)
     """JPEG quality of the frames and conditions in video.mcap with mcap_codec jpeg; 0 = the files' own bytes (with PNG
     frames about 3x the size)."""
