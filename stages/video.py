@@ -61,9 +61,9 @@ class Params:
     """Write video.mcap (Foxglove: frames, conditions, depth, camera poses)."""
     frame_format: RgbFormat = RgbFormat.JPEG
     """Format of frames/ (what poses and gaussians read): jpeg (of frame_quality, about 4x smaller) or png (lossless)."""
-    frame_quality: int = param(90, ge=1, le=100)
-    """JPEG quality of frames/ (4:4:4 chroma; 90: ~41 dB PSNR to the lossless frame, 95: ~44 dB for 1.5x the bytes;
-    bench/bench_artifact_size.py)."""
+    frame_quality: int = param(93, ge=1, le=100)
+    """JPEG quality of frames/ (4:4:4 chroma; 93: ~43 dB PSNR to the lossless frame, 95: ~44 dB for 1.2x the bytes, 90:
+    ~41 dB for 0.8x; bench/bench_artifact_size.py)."""
     mcap_codec: str = param("h264", choices=("h264", "jpeg"))
     """How video.mcap holds the frames and conditions (a log for viewing; frames/ hold what later stages read): h264
     (two foxglove.CompressedVideo streams, a keyframe at least every 2 s) or jpeg (foxglove.CompressedImage per frame)."""
