@@ -37,8 +37,8 @@ class Params:
     rgb_format: RgbFormat = RgbFormat.JPEG
     """Format of rgb/ (what the video backend reads): jpeg (of rgb_quality, about 4x smaller) or png (lossless; masks
     and depth are always lossless PNG)."""
-    rgb_quality: int = param(95, ge=1, le=100)
-    """JPEG quality of rgb/."""
+    rgb_quality: int = param(93, ge=1, le=100)
+    """JPEG quality of rgb/ (as video.frame_quality)."""
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:

@@ -61,14 +61,15 @@ class Params:
     """Write video.mcap (Foxglove: frames, conditions, depth, camera poses)."""
     frame_format: RgbFormat = RgbFormat.JPEG
     """Format of frames/ (what poses and gaussians read): jpeg (of frame_quality, about 4x smaller) or png (lossless)."""
-    frame_quality: int = param(95, ge=1, le=100)
-    """JPEG quality of frames/ (4:4:4 chroma; 95: ~45 dB PSNR to the lossless frame; bench/bench_artifact_size.py)."""
+    frame_quality: int = param(93, ge=1, le=100)
+    """JPEG quality of frames/ (4:4:4 chroma; 93: ~43 dB PSNR to the lossless frame, 95: ~44 dB for 1.2x the bytes, 90:
+    ~41 dB for 0.8x; bench/bench_artifact_size.py)."""
     mcap_codec: str = param("h264", choices=("h264", "jpeg"))
     """How video.mcap holds the frames and conditions (a log for viewing; frames/ hold what later stages read): h264
     (two foxglove.CompressedVideo streams, a keyframe at least every 2 s) or jpeg (foxglove.CompressedImage per frame)."""
-    mcap_crf: int = param(26, ge=0, le=51)
-    """x264's constant rate factor of the MCAP's H.264 streams (26: about 35 dB PSNR to frames/ on the demo, 23 (x264's
-    default) 36 dB for 1.4x the bytes)."""
+    mcap_crf: int = param(28, ge=0, le=51)
+    """x264's constant rate factor of the MCAP's H.264 streams (preset MCAP_X264_PRESET; 28: about 35 dB PSNR to frames/
+    on the demo, 26 35.5 dB for 1.3x the bytes)."""
     mcap_jpeg_quality: int = param(80, ge=0, le=100)
     """JPEG quality of the frames and conditions in video.mcap with mcap_codec jpeg; 0 = the files' own bytes (with PNG
     frames about 3x the size)."""

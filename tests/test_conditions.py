@@ -241,7 +241,7 @@ def test_stage_writes_a_valid_artifact(room_mesh, tmp_path):
     _run(inputs, tmp_path / "ref", backend="raycast")
     a, b = load_conditions(tmp_path / "out"), load_conditions(tmp_path / "ref")
     assert (np.asarray(a.mask) == np.asarray(b.mask)).mean() > 0.995
-    _run(inputs, tmp_path / "png", rgb_format="png")  # lossless on request; JPEG 95 close (4:2:0 chroma on 48x96)
+    _run(inputs, tmp_path / "png", rgb_format="png")  # lossless on request; JPEG 93 close (4:2:0 chroma on 48x96)
     exact = load_conditions(tmp_path / "png")
     assert exact.rgb.paths[0] == "rgb/000000.png" and psnr(np.concatenate(a.rgb[:]), np.concatenate(exact.rgb[:])) > 25
     assert np.array_equal(np.asarray(a.mask), np.asarray(exact.mask))

@@ -289,7 +289,7 @@ def test_stage_warp_inpaint_end_to_end(upstream, tmp_path):
     assert len(msgs[TOPIC_COND_RGB]) == 5 and msgs[TOPIC_COND_RGB][0].format == "h264"
     assert decode_h264(msgs[TOPIC_COND_RGB], 64, 128).shape == (5, 64, 128, 3)
     assert len(msgs[TOPIC_RGB]) == 5 and len(msgs[TOPIC_DEPTH]) == 5
-    # frames/ are JPEG (quality 95) by default; the MCAP holds each frame once, in an H.264 stream.
+    # frames/ are JPEG (quality 93) by default; the MCAP holds each frame once, in an H.264 stream.
     frame2 = (out / "frames" / "000002.jpg").read_bytes()
     video = decode_h264(msgs[TOPIC_RGB], 64, 128)
     assert psnr(video[2], cv2.imdecode(np.frombuffer(frame2, np.uint8), 1)[..., ::-1]) > 20  # 64x128: 4:2:0 chroma

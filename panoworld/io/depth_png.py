@@ -28,9 +28,9 @@ def read_depth_png(path: Path | str, scale: float = DEPTH_PNG_SCALE) -> np.ndarr
     return metres_from_png(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), scale, what=str(path))
 
 
-DEPTH_PNG_COMPRESSION = 5
-"""zlib level of the depth PNGs (Up filter): on the demo's 720x1440 depth ~28 % smaller than level 1 for ~15 ms more
-per frame; level 6 saves 4 % more for 1.7x the time (bench/bench_png.py)."""
+DEPTH_PNG_COMPRESSION = 4
+"""zlib level of the depth PNGs (Up filter): on the demo's 720x1440 depth ~24 % smaller than level 1 for ~6 ms more
+per frame; level 5 saves 4 % more for 1.5x the time, level 6 8 % more for 3x (bench/bench_png.py)."""
 
 
 def encode_depth_png(mm: np.ndarray) -> bytes:
