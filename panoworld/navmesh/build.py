@@ -65,7 +65,8 @@ def build_navmesh(
     rings = polygons_from_mask(grid.free, grid, tol)
     if not rings:
         raise NoFloorError("the eroded walkable floor has no polygon")
-    comp_rings, on_mesh, cam_dist = pick_components(cross_section(rings), cams, snap_m, params.min_floor_area_m2)
+    comp_rings, on_mesh, cam_dist = pick_components(cross_section(rings), cams, snap_m,
+                                                    params.min_floor_area_m2 if np.isfinite(snap_m) else 0.0)
     timings["polygons_s"] = time.perf_counter() - t
     t = time.perf_counter()
     v, tri, adj = triangulate_rings(comp_rings, params.max_triangle_area_m2)

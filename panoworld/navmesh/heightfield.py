@@ -34,8 +34,10 @@ class NavMeshParams:
     max_range_m: float = param(12.0, gt=0, le=100.0)
     """Only geometry within this horizontal distance from the camera is considered."""
     min_floor_area_m2: float = 0.25
-    """Minimum visible floor area (in the winning histogram bin) to accept a floor height; also the least area of a
-    floor piece that a camera standing on no piece is snapped to, when one lies within reach (else the nearest)."""
+    """Minimum visible floor area (in the winning histogram bin) to accept a floor height; with a bounded snap
+    distance (a home's capture points), also the least area of a floor piece that a camera standing on no piece is
+    snapped to, when one lies within reach (else the nearest; one panorama keeps the nearest piece and its no-room
+    decision)."""
     simplify_m: float = param(0.0, ge=0)
     """Polygon simplification tolerance (approxPolyDP) in metres; 0 = one cell. Compensated by extra erosion."""
     max_triangle_area_m2: float = 0.25
