@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from panoworld.core.params import param
+from panoworld.register.pair_select import ALL_PAIRS_UP_TO
 
 
 @dataclass(kw_only=True)
@@ -15,7 +16,7 @@ class RegisterOptions:
     """Panoramas and depths are resampled to at most this many rows before feature detection."""
     max_features: int = param(16000, ge=100)
     """SIFT keypoints per panorama (shared by its six cube-face views)."""
-    all_pairs_up_to: int = param(16, ge=2)
+    all_pairs_up_to: int = param(ALL_PAIRS_UP_TO, ge=2)
     """Homes of at most this many panoramas try every pair. Larger homes try 8 pairs per panorama (its next in name
     order and its most alike by appearance), then the pairs across the groups those leave apart, nearest in name order
     first, up to 8 more per panorama (panoworld/register/pair_select.py)."""
