@@ -131,19 +131,29 @@ def _small(depth: np.ndarray, height: int) -> np.ndarray:
     return d
 
 
-def consistency(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.ndarray, *, height: int = 128,
-                tol: float = 0.03, edge: float = 0.1) -> tuple[float, float, float]:
-    """(overlap, consistency, residual) of PairResult for the pose i_from_j, on depth maps at `height` rows."""
+def _cross_ranges(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.ndarray, height: int
+                  ) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]:
+    """Each view's points seen from the other at the pose i_from_j, on depth maps at `height` rows: for depth_j in
+    view i, then depth_i in view j, (source depth (1, N), range r (1, N) of its points from the other camera, the
+    other's depth d along the same ray (1, N) and its depth-edge measure e there (sample_range))."""
     di, dj = (torch.from_numpy(_small(x, height))[None] for x in (depth_i, depth_j))
     dirs = torch.from_numpy(erp_dirs(*di.shape[1:], dtype=np.float64)).reshape(1, -1, 3)
     T = torch.from_numpy(np.asarray(i_from_j, np.float64))
     ei, ej = depth_edges(di.clamp(min=1e-6)), depth_edges(dj.clamp(min=1e-6))
-    stats = []
+    out = []
     for src, dst, e_dst, A in ((dj, di, ei, T), (di, dj, ej, torch.linalg.inv(T))):
         p = dirs * src.reshape(1, -1, 1)
         p = p @ A[:3, :3].T + A[:3, 3]
-        r, d, e = sample_range(dst, p, e_dst)
-        ok = (src.reshape(1, -1) > 0) & (d > 0) & (e < edge)
+        out.append((src.reshape(1, -1), *sample_range(dst, p, e_dst)))
+    return out
+
+
+def consistency(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.ndarray, *, height: int = 128,
+                tol: float = 0.03, edge: float = 0.1) -> tuple[float, float, float]:
+    """(overlap, consistency, residual) of PairResult for the pose i_from_j, on depth maps at `height` rows."""
+    stats = []
+    for src, r, d, e in _cross_ranges(i_from_j, depth_i, depth_j, height):
+        ok = (src > 0) & (d > 0) & (e < edge)
         res = torch.log(r.clamp(min=1e-6)) - torch.log(d.clamp(min=1e-6))
         agree = ok & (res.abs() < tol)
         front = ok & (res < -tol)  # in the other view's free space
@@ -196,14 +206,9 @@ def free_space_violation(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.
     """Shares of depth_j's and of depth_i's valid pixels (H, W each) that the pose i_from_j (4, 4) puts inside the other
     view's free space: nearer to that camera than its depth along the same ray by more than margin_m plus margin_frac
     of that depth (a wall of one room standing inside the other room)."""
-    di, dj = (torch.from_numpy(_small(x, height))[None] for x in (depth_i, depth_j))
-    dirs = torch.from_numpy(erp_dirs(*di.shape[1:], dtype=np.float64)).reshape(1, -1, 3)
-    T = torch.from_numpy(np.asarray(i_from_j, np.float64))
     out = []
-    for src, dst, A in ((dj, di, T), (di, dj, torch.linalg.inv(T))):
-        p = (dirs * src.reshape(1, -1, 1)) @ A[:3, :3].T + A[:3, 3]
-        r, d, _ = sample_range(dst, p, depth_edges(dst.clamp(min=1e-6)))
-        ok = (src.reshape(1, -1) > 0) & (d > 0)
+    for src, r, d, _ in _cross_ranges(i_from_j, depth_i, depth_j, height):
+        ok = (src > 0) & (d > 0)
         out.append(float((ok & (r < d * (1 - margin_frac) - margin_m)).sum()) / max(int((src > 0).sum()), 1))
     return out[0], out[1]
 
