@@ -57,3 +57,34 @@ def test_rooms_overlap_refusal_tells_adjoining_rooms_from_overlapping_ones(home_
     masked = depth[b].copy()
     masked[: masked.shape[0] // 4] = 0
     assert rooms_overlap_refusal(turned, depth[a], masked) == ""
+
+
+def test_refuse_overlapping_rooms_judges_a_chance_fit_by_every_room_it_joins(home_dir):
+    from panoworld.register.graph import DEPTH, FLOOR, Edge, solve_graph
+    from panoworld.register.options import RegisterOptions
+    from panoworld.register.solve import refuse_overlapping_rooms
+
+    gt = _gt(home_dir)
+    names = ["pano_00", "pano_01", "pano_02"]
+    depth = {n: np.load(home_dir / "depths" / f"{n}.npy") for n in names}
+    # pano_02's depth does not hold its whole room: no pair with it is judged.
+    depth["pano_02"][: depth["pano_02"].shape[0] // 4] = 0
+    rel = {(a, b): invert_pose(gt[a]) @ gt[b] for a in names for b in names}
+    turned = rel["pano_00", "pano_01"] @ np.array([[0.0, 0, 1, 0], [0, 1, 0, 0], [-1, 0, 0, 0], [0, 0, 0, 1]])
+    # A strong chance floor fit joins pano_01 through pano_02 with its room turned into pano_00's; a weaker floor fit
+    # gives pano_01's true pose.
+    chance = Edge(a="pano_02", b="pano_01", a_from_b=rel["pano_02", "pano_00"] @ turned, kind=FLOOR, inliers=15, info={})
+    edges = [Edge(a="pano_00", b="pano_02", a_from_b=rel["pano_00", "pano_02"], kind=DEPTH, inliers=40, info={}),
+             chance,
+             Edge(a="pano_00", b="pano_01", a_from_b=rel["pano_00", "pano_01"], kind=FLOOR, inliers=9, info={})]
+    poses, _ = solve_graph(names, list(edges), {})
+    assert not np.allclose(invert_pose(poses["pano_00"]) @ poses["pano_01"], rel["pano_00", "pano_01"], atol=1e-3)
+    refused = refuse_overlapping_rooms(names, edges, {}, depth, RegisterOptions())
+    assert list(refused) == [("pano_02", "pano_01")]
+    kind, why = refused["pano_02", "pano_01"]
+    assert kind == FLOOR and "pano_01's room into pano_00's" in why and "the rooms overlap" in why
+    assert all(e is not chance for e in edges)
+    poses, info = solve_graph(names, edges, {})
+    assert np.allclose(invert_pose(poses["pano_00"]) @ poses["pano_01"], rel["pano_00", "pano_01"], atol=1e-6)
+    # The true registration is left as it is.
+    assert refuse_overlapping_rooms(names, edges, {}, depth, RegisterOptions()) == {}

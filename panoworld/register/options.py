@@ -73,7 +73,8 @@ class RegisterOptions:
     """A floor or layout pose is refused where both panoramas' depths hold their whole room (98 % of the pixels valid)
     and it puts more than this share of either view's surfaces inside the other's free space (0.15 m and 5 % nearer
     than that view's depth): two rooms that overlap. On the real east and west parts the right floor poses of such
-    pairs put none there, chance fits 14-44 %."""
+    pairs put none there, chance fits 14-44 %. The same test between any two registered panoramas removes the floor,
+    layout or bearing-only edge the overlap rests on (solve.refuse_overlapping_rooms)."""
     manhattan: bool = True
     """Use each panorama's wall directions (panoworld/register/layout.py: manhattan_frame, from the depth's room
     outline; none where the outline is incomplete or not at right angles) where both panoramas of a pair have them:

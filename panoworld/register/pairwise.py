@@ -213,13 +213,17 @@ def free_space_violation(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.
     return out[0], out[1]
 
 
+WHOLE_ROOM = 0.98
+"""A depth map holds its whole room when at least this share of its pixels is valid (rooms_overlap_refusal)."""
+
+
 def rooms_overlap_refusal(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.ndarray, *, max_share: float = 0.05,
-                          min_valid: float = 0.98) -> str:
+                          min_valid: float = WHOLE_ROOM) -> str:
     """Why a pose i_from_j (4, 4) estimated without the dense depths cannot hold ('' when it can): where both depth maps
     (H, W) hold the whole room (at least min_valid of their pixels valid), more than max_share of either view's
     surfaces stand inside the other's free space, so the two rooms overlap. Not tested where a depth is masked (a
     layout seen from outside its own polygon holds wrong surfaces where it holds any)."""
-    if min(_valid_share(depth_i), _valid_share(depth_j)) < min_valid:
+    if min(valid_share(depth_i), valid_share(depth_j)) < min_valid:
         return ""
     vj, vi = free_space_violation(i_from_j, depth_i, depth_j)
     if max(vi, vj) <= max_share:
@@ -227,7 +231,8 @@ def rooms_overlap_refusal(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np
     return f"puts {max(vi, vj):.0%} of one view's surfaces inside the other's free space (the rooms overlap)"
 
 
-def _valid_share(depth: np.ndarray) -> float:
+def valid_share(depth: np.ndarray) -> float:
+    """Share of a depth map's pixels that are finite and positive."""
     return float((np.isfinite(depth) & (depth > 0)).mean())
 
 

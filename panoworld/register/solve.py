@@ -14,6 +14,7 @@ from panoworld.register.layout import LayoutPose, layout_pair, manhattan_frame, 
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pair_select import appearance_descriptor, bridge_pairs, candidate_pairs
 from panoworld.register.pairwise import (
+    WHOLE_ROOM,
     Features,
     PairResult,
     erp_features,
@@ -22,6 +23,7 @@ from panoworld.register.pairwise import (
     register_pair,
     rooms_overlap_refusal,
     same_room_refusal,
+    valid_share,
 )
 from panoworld.register.registration import Registration
 from panoworld.register.upright import UprightPose, metric_scale, upright_relative_pose, wrap_angle, yaw_of
@@ -113,6 +115,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
             if not layout_refused[a, b]:
                 edges.append(Edge(a=names[a], b=names[b], a_from_b=lp.a_from_b, kind=LAYOUT, inliers=int(lp.score),
                                   info={"layout_score": round(lp.score, 1), "layout_second": round(lp.second, 1)}))
+    overlaps = refuse_overlapping_rooms(names, edges, given, {n: small[n][1] for n in small}, o) if need else {}
     poses, info = solve_graph(names, edges, given)
     for n in names:
         if not info[n]["registered"]:
@@ -135,6 +138,9 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                "edge": used.get((names[a], names[b]))}
         if refused.get((a, b)):
             row["depth_refused"] = refused[a, b]
+        if (names[a], names[b]) in overlaps:
+            kind, why = overlaps[names[a], names[b]]
+            row[f"{kind}_refused"] = why
         if floors.get((a, b)) is not None:
             f = floors[a, b]
             row.update(floor_inliers=f.inliers, floor_matches=f.matches, floor_residual_m=round(f.residual_m, 4))
@@ -190,6 +196,62 @@ def _edges(names, pairs, bearing, floors, frames, small, o: RegisterOptions):
                               kind=BEARING if metric else DIRECTION, inliers=int(pose.inliers.sum()),
                               info={"inliers": int(pose.inliers.sum()), "scale_support": support}))
     return edges, refused, depth_ok, floor_refused, off_frames
+
+
+def refuse_overlapping_rooms(names: list[str], edges: list[Edge], given: dict[str, np.ndarray], depths: dict[str, np.ndarray],
+                     o: RegisterOptions) -> dict[tuple[str, str], tuple[str, str]]:
+    """Remove from `edges` the floor, layout and bearing-only poses (estimated without the dense depths) that the solved
+    registration needs to put two panoramas' rooms inside each other: while some registered pair whose depths (H, W)
+    hold their whole room overlaps (rooms_overlap_refusal) and the way between them in the pose graph runs through such
+    edges, the weakest of those goes -> {(a, b): (edge kind, reason)}. A chance fit between two rooms is caught this
+    way by any panorama of either room, not only by the pair it joined."""
+    whole = {n for n, d in depths.items() if valid_share(d) >= WHOLE_ROOM}
+    reach = {n: float(np.max(np.where(np.isfinite(d), d, 0.0))) for n, d in depths.items()}
+    judged: dict[tuple[str, str, bytes], str] = {}
+    out: dict[tuple[str, str], tuple[str, str]] = {}
+    while True:
+        poses, info = solve_graph(names, edges, given)
+        found = None
+        ranked = sorted(whole & set(poses), key=names.index)
+        for i, x in enumerate(ranked):
+            for y in ranked[i + 1:]:
+                weak = [e for e in _tree_path(x, y, info, edges) if e.kind in (FLOOR, LAYOUT, BEARING)]
+                x_from_y = invert_pose(poses[x]) @ poses[y]
+                if not weak or np.linalg.norm(x_from_y[:3, 3]) > reach[x] + reach[y]:
+                    continue
+                key = (x, y, np.round(x_from_y, 6).tobytes())
+                if key not in judged:
+                    judged[key] = rooms_overlap_refusal(x_from_y, depths[x], depths[y],
+                                                        max_share=o.max_free_space_violation)
+                if judged[key]:
+                    found = (x, y, judged[key], weak)
+                    break
+            if found:
+                break
+        if found is None:
+            return out
+        x, y, why, weak = found
+        e = min(weak, key=lambda e: ((LAYOUT, BEARING, FLOOR).index(e.kind), e.inliers))
+        edges[:] = [f for f in edges if f is not e]
+        out[e.a, e.b] = (e.kind, f"with it the registration puts {y}'s room into {x}'s: {why}")
+
+
+def _tree_path(x: str, y: str, info: dict[str, dict], edges: list[Edge]) -> list[Edge]:
+    """The metric edges of solve_graph's spanning trees on the way from x to y (each panorama's edge to its parent)."""
+    def up(n: str) -> list[str]:
+        chain = [n]
+        while info[chain[-1]].get("parent") is not None:
+            chain.append(info[chain[-1]]["parent"])
+        return chain
+
+    cx, cy = up(x), up(y)
+    common = set(cx) & set(cy)
+    steps = [n for n in cx if n not in common] + [n for n in cy if n not in common]
+    out = []
+    for n in steps:
+        p, kind = info[n]["parent"], info[n].get("edge")
+        out += [e for e in edges if e.kind == kind and {e.a, e.b} == {n, p}][:1]
+    return out
 
 
 def _placement_refusal(a_from_b: np.ndarray, depth_a: np.ndarray, depth_b: np.ndarray, o: RegisterOptions) -> str:
