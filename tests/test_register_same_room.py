@@ -47,7 +47,10 @@ def test_rooms_overlap_refusal_tells_adjoining_rooms_from_overlapping_ones(home_
     depth = {n: np.load(home_dir / "depths" / f"{n}.npy") for n in (a, b)}
     true = invert_pose(gt[a]) @ gt[b]
     # The true pose: the second room's surfaces lie behind the first room's walls or on what it sees through a doorway.
-    assert max(free_space_violation(true, depth[a], depth[b])) < 0.03  # edges of furniture and door frames
+    assert max(free_space_violation(true, depth[a], depth[b])) < 0.01  # furniture silhouettes are no evidence
+    # Counting them: the downsampled depth there mixes near and far, points in mid-air in the other room.
+    assert max(free_space_violation(true, depth[a], depth[b], edge=np.inf)) > max(
+        free_space_violation(true, depth[a], depth[b]))
     assert rooms_overlap_refusal(true, depth[a], depth[b]) == ""
     # The second room turned a quarter about its own camera: its walls cut through the first room.
     turned = true @ np.array([[0.0, 0, 1, 0], [0, 1, 0, 0], [-1, 0, 0, 0], [0, 0, 0, 1]])

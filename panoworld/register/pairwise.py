@@ -202,13 +202,14 @@ def same_room_refusal(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.nda
 
 
 def free_space_violation(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.ndarray, *, height: int = 128,
-                         margin_m: float = 0.15, margin_frac: float = 0.05) -> tuple[float, float]:
+                         margin_m: float = 0.15, margin_frac: float = 0.05, edge: float = 0.1) -> tuple[float, float]:
     """Shares of depth_j's and of depth_i's valid pixels (H, W each) that the pose i_from_j (4, 4) puts inside the other
     view's free space: nearer to that camera than its depth along the same ray by more than margin_m plus margin_frac
-    of that depth (a wall of one room standing inside the other room)."""
+    of that depth (a wall of one room standing inside the other room), where that depth is not at a depth edge (as in
+    consistency: the silhouettes of furniture, whose downsampled depth mixes near and far, are no evidence)."""
     out = []
-    for src, r, d, _ in _cross_ranges(i_from_j, depth_i, depth_j, height):
-        ok = (src > 0) & (d > 0)
+    for src, r, d, e in _cross_ranges(i_from_j, depth_i, depth_j, height):
+        ok = (src > 0) & (d > 0) & (e < edge)
         out.append(float((ok & (r < d * (1 - margin_frac) - margin_m)).sum()) / max(int((src > 0).sum()), 1))
     return out[0], out[1]
 
