@@ -102,10 +102,11 @@ def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str]) -> 
     within 8 cm on the floor, 15 deg in keypoint orientation and 0.6 octaves in size; most first."""
     from bench_real_home import survey_poses
 
+    from panoworld.geometry.floor_view import floor_matches, floor_view
     from panoworld.geometry.resize import rgbd_at_height
     from panoworld.io.home import RIG_MASK_PNG, home_depth_dirs, load_sources
     from panoworld.register.artifact import _read_rig_mask
-    from panoworld.register.floor import floor_matches, floor_support, floor_view
+    from panoworld.register.floor import floor_support
     from panoworld.register.options import RegisterOptions
     from panoworld.register.pairwise import grow_exclusion
 

@@ -9,12 +9,13 @@ import numpy as np
 import pytest
 
 from panoworld.core.conventions import invert_pose
+from panoworld.geometry.upright import yaw_matrix
 from panoworld.io.depth import read_panorama
 from panoworld.register.graph import BEARING, DEPTH, DIRECTION, Edge, solve_graph
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pairwise import consistency
 from panoworld.register.solve import register_panoramas
-from panoworld.register.upright import metric_scale, upright_relative_pose, yaw_matrix
+from panoworld.register.upright import metric_scale, upright_relative_pose
 from tests.conftest import HOME_HEIGHT
 
 TOL_CM, TOL_DEG = 5.0, 1.0

@@ -8,18 +8,12 @@ import cv2
 import numpy as np
 
 from panoworld.core.conventions import erp_dirs, invert_pose
-from panoworld.register.floor import (
-    camera_height,
-    fixed_yaw_translation,
-    floor_pair,
-    floor_support,
-    floor_view,
-    oriented_rigid2d_ransac,
-)
+from panoworld.geometry.floor_view import camera_height, floor_view
+from panoworld.geometry.upright import yaw_matrix, yaw_of
+from panoworld.register.floor import fixed_yaw_translation, floor_pair, floor_support, oriented_rigid2d_ransac
 from panoworld.register.graph import FLOOR, Edge, solve_graph
 from panoworld.register.options import RegisterOptions
 from panoworld.register.solve import register_panoramas
-from panoworld.register.upright import yaw_matrix, yaw_of
 
 H = 512
 FLOOR_Y = 1.4  # the floor, below every camera (y down)

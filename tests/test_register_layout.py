@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from panoworld.core.conventions import erp_dirs, invert_pose
+from panoworld.geometry.upright import yaw_matrix, yaw_of
 from panoworld.register.graph import BEARING, LAYOUT, Edge, solve_graph
 from panoworld.register.layout import LayoutPose, layout_pair, manhattan_frame, overlaps, room, walls_of
 from panoworld.register.options import RegisterOptions
 from panoworld.register.solve import _off_manhattan, manhattan_yaws, register_panoramas
-from panoworld.register.upright import yaw_matrix, yaw_of
 
 H = 128
 FLOOR_Y, CEIL_Y = 1.4, -1.0  # camera frame y down: floor below, ceiling above every camera

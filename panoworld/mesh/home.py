@@ -9,6 +9,7 @@ import numpy as np
 from panoworld.geometry.erp_mesh import ErpMesh
 from panoworld.io.home import load_sources
 from panoworld.mesh.fuse import fuse_meshes
+from panoworld.room.doorways import open_doorways
 from panoworld.room.plausible import drop_near_captures
 
 
@@ -16,15 +17,18 @@ def home_mesh(dirs: dict[str, Path], world_from_cam: dict[str, np.ndarray], *, s
               ) -> tuple[ErpMesh, np.ndarray, list[dict]]:
     """(fused mesh in the world frame, source index per face, sources) of the registered panoramas: every surface
     from the panorama that sees it from nearest (fuse.fuse_meshes), so its vertex colours come from that source. A
-    surface through another capture point is none (room.plausible.drop_near_captures)."""
+    surface through another capture point is none (room.plausible.drop_near_captures), nor a wall across a doorway
+    that another panorama's floor continues through (room.doorways.open_doorways)."""
     names, rgbs, depths = load_sources(dirs, world_from_cam)
     near = drop_near_captures(depths, world_from_cam)
+    doors = open_doorways(names, rgbs, depths, world_from_cam)
     mesh, face_source = fuse_meshes(names, rgbs, depths, world_from_cam, stride=stride)
     sources, start = [], 0
     for n in names:
         h, w = (len(range(stride // 2, k, stride)) for k in depths[n].shape)
         sources.append({"name": n, "world_from_cam": np.asarray(world_from_cam[n]).round(9).tolist(),
-                        "vertex_start": start, "grid": [h, w], "near_capture_px": near[n]})
+                        "vertex_start": start, "grid": [h, w], "near_capture_px": near[n],
+                        "doorway_px": doors[n]})
         start += h * w + 2
     return mesh, face_source, sources
 

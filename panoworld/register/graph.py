@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from panoworld.core.conventions import invert_pose
-from panoworld.register.upright import wrap_angle, yaw_matrix, yaw_of
+from panoworld.geometry.upright import wrap_angle, yaw_matrix, yaw_of
 
 DEPTH, FLOOR, BEARING, LAYOUT, DIRECTION = "depth", "floor", "bearing", "layout", "direction"
 """Edge kinds: rigid fit of depth-backed points (ICP-refined, free-space consistent); 2D rigid fit of the floor images;

@@ -11,9 +11,9 @@ import numpy as np
 
 from panoworld.core.conventions import erp_dirs
 from panoworld.core.shapes import check_shape
+from panoworld.geometry.floor_view import camera_height
 from panoworld.geometry.resize import resize_depth
-from panoworld.register.floor import camera_height
-from panoworld.register.upright import yaw_matrix, yaw_matrix_xz
+from panoworld.geometry.upright import yaw_matrix, yaw_matrix_xz
 
 
 @dataclass(kw_only=True)

@@ -7,8 +7,10 @@ from __future__ import annotations
 import numpy as np
 
 from panoworld.core.conventions import invert_pose
+from panoworld.geometry.floor_view import FloorView, floor_view
 from panoworld.geometry.resize import rgbd_at_height
-from panoworld.register.floor import FloorPose, FloorView, floor_pair, floor_view
+from panoworld.geometry.upright import wrap_angle, yaw_of
+from panoworld.register.floor import FloorPose, floor_pair
 from panoworld.register.graph import BEARING, DEPTH, DIRECTION, FLOOR, LAYOUT, Edge, group_of, solve_graph
 from panoworld.register.layout import LayoutPose, layout_pair, manhattan_frame, room
 from panoworld.register.options import RegisterOptions
@@ -26,7 +28,7 @@ from panoworld.register.pairwise import (
     valid_share,
 )
 from panoworld.register.registration import Registration
-from panoworld.register.upright import UprightPose, metric_scale, upright_relative_pose, wrap_angle, yaw_of
+from panoworld.register.upright import UprightPose, metric_scale, upright_relative_pose
 
 
 def _bearing_pair(fi: Features, fj: Features, m: np.ndarray, rows: int, o: RegisterOptions

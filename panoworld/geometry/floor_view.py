@@ -1,0 +1,108 @@
+"""An upright panorama's floor seen from above at metric scale (camera height from its depth), its SIFT keypoints, and
+the matches of two such views that agree with a pose."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from panoworld.core.conventions import erp_dirs, erp_pixel_from_lonlat
+from panoworld.core.shapes import check_shape
+from panoworld.geometry.upright import wrap_angle, yaw_matrix_xz, yaw_of
+
+
+@dataclass(kw_only=True)
+class FloorView:
+    """SIFT features of one panorama's floor seen from above."""
+
+    height_m: float
+    """Camera height above the floor (metres)."""
+    xz: np.ndarray
+    """(N, 2) keypoint positions on the floor in the camera frame (x right, z forward), metres."""
+    descriptors: np.ndarray
+    """(N, 128) float32 SIFT descriptors."""
+    angles: np.ndarray
+    """(N,) SIFT keypoint orientations (radians, OpenCV's angle): a yaw of the camera by psi turns them by psi."""
+    sizes: np.ndarray
+    """(N,) SIFT keypoint diameters (floor image pixels): the same floor patch has the same metric size in every
+    floor image."""
+
+
+def camera_height(depth: np.ndarray, *, min_depression_deg: float = 40.0) -> float | None:
+    """Camera height above the floor from the ray depth (H, W) below min_depression_deg under the horizon (median of
+    depth * down component); None when no valid depth is there."""
+    check_shape("depth", depth, "H W")
+    h, w = depth.shape
+    dirs = erp_dirs(h, w, np.float64)
+    down = dirs[..., 1]
+    sel = (down > np.sin(np.radians(min_depression_deg))) & np.isfinite(depth) & (depth > 0)
+    if sel.sum() < 0.01 * sel.size:
+        return None
+    return float(np.median(depth[sel] * down[sel]))
+
+
+def floor_image(rgb: np.ndarray, height_m: float, *, radius_m: float, cell_m: float) -> np.ndarray:
+    """(n, n, 3) uint8 top-down image of the plane height_m below the camera over x, z in [-radius_m, radius_m]
+    (column = x, row 0 = far +z), resampled from the ERP panorama rgb (H, 2H, 3) (or (n, n) from an (H, 2H) image)."""
+    n = int(round(2 * radius_m / cell_m))
+    c = (np.arange(n) + 0.5) * cell_m - radius_m
+    x, z = np.meshgrid(c, c[::-1])
+    lon, lat = np.arctan2(x, z), np.arctan2(-height_m, np.hypot(x, z))
+    hi, wi = rgb.shape[:2]
+    pad = 4
+    padded = np.concatenate([rgb[:, -pad:], rgb, rgb[:, :pad]], 1)  # the seam wraps
+    u, v = erp_pixel_from_lonlat(lon, lat, hi, wi)  # pixel centres at +0.5; OpenCV's remap at integers
+    return cv2.remap(padded, (u - 0.5 + pad).astype(np.float32), (v - 0.5).astype(np.float32), cv2.INTER_LINEAR)
+
+
+def floor_view(rgb: np.ndarray, depth: np.ndarray, *, radius_m: float = 6.0, cell_m: float = 0.015,
+               rig_deg: float = 32.0, max_features: int = 4000, exclude: np.ndarray | None = None) -> FloorView | None:
+    """SIFT keypoints of the floor image of an upright panorama rgb (H, 2H, 3) with ray depth (h, 2h) (camera height;
+    0 = invalid). The whole lower hemisphere is projected onto the floor plane, walls included (they smear radially
+    and find no consistent partner), so floor seen through a doorway that a layout depth closes is kept; the disc
+    within rig_deg of the nadir (the tripod) is masked, and so is what exclude (an ERP mask (H', 2H') bool, e.g. a
+    detected rig) covers. None without a camera height."""
+    check_shape("panorama", rgb, "H W 3")
+    h = camera_height(depth)
+    if h is None or not np.isfinite(h) or h <= 0:
+        return None
+    img = floor_image(rgb, h, radius_m=radius_m, cell_m=cell_m)
+    gray = cv2.createCLAHE(2.0, (8, 8)).apply(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY))
+    n = gray.shape[0]
+    c = (np.arange(n) + 0.5) * cell_m - radius_m
+    r = np.hypot(*np.meshgrid(c, c))
+    keep = (r > h * np.tan(np.radians(rig_deg))) & (r < radius_m - 2 * cell_m)
+    if exclude is not None:
+        keep &= floor_image(exclude.astype(np.uint8) * 255, h, radius_m=radius_m, cell_m=cell_m) < 128
+    mask = keep.astype(np.uint8) * 255
+    kps, desc = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=0.01).detectAndCompute(gray, mask)
+    if desc is None or not kps:
+        return FloorView(height_m=h, xz=np.zeros((0, 2)), descriptors=np.zeros((0, 128), np.float32),
+                         angles=np.zeros(0), sizes=np.zeros(0))
+    pts = np.array([k.pt for k in kps], np.float64)  # OpenCV pixel centres are integers
+    xz = np.stack([(pts[:, 0] + 0.5) * cell_m - radius_m, radius_m - (pts[:, 1] + 0.5) * cell_m], 1)
+    return FloorView(height_m=h, xz=xz, descriptors=desc.astype(np.float32),
+                     angles=np.radians([k.angle for k in kps]), sizes=np.array([k.size for k in kps], np.float64))
+
+
+def floor_matches(a: FloorView, b: FloorView, *, ratio: float = 1.0) -> np.ndarray:
+    """(M, 2) int64 (index in a, index in b): each keypoint of a with its nearest neighbour in b (of two or more),
+    kept by Lowe's ratio test when ratio < 1."""
+    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(a.descriptors, b.descriptors, k=2)
+    return np.array([(k[0].queryIdx, k[0].trainIdx) for k in knn
+                     if len(k) == 2 and (ratio >= 1 or k[0].distance < ratio * k[1].distance)], np.int64).reshape(-1, 2)
+
+
+def agrees_with_pose(a: FloorView, b: FloorView, a_from_b: np.ndarray, matches: np.ndarray, *, threshold_m: float = 0.08,
+                     angle_tol: float = np.radians(15.0), scale_tol: float = 0.6) -> np.ndarray:
+    """(M,) bool: which matches (M, 2) of the floor views a, b agree with the pose a_from_b (4, 4) (floor_support)."""
+    m = matches
+    if len(m) == 0:
+        return np.zeros(0, bool)
+    yaw = yaw_of(a_from_b[:3, :3])
+    on_floor = np.linalg.norm(b.xz[m[:, 1]] @ yaw_matrix_xz(yaw).T + a_from_b[[0, 2], 3] - a.xz[m[:, 0]], axis=1)
+    turn = np.abs(wrap_angle(a.angles[m[:, 0]] - b.angles[m[:, 1]] - yaw))
+    octaves = np.abs(np.log2(a.sizes[m[:, 0]] / b.sizes[m[:, 1]]))
+    return (on_floor < threshold_m) & (turn < angle_tol) & (octaves < scale_tol)

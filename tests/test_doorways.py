@@ -1,0 +1,127 @@
+"""Doorways a layout depth closes are opened where two panoramas see one floor through them, and nowhere else."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from panoworld.core.conventions import erp_dirs
+from panoworld.room.doorways import is_layout, open_doorways
+
+H, W = 512, 1024
+CAM_H, CEIL = 1.4, 1.0
+"""Camera height above the floor and ceiling above the camera (metres)."""
+# Two 4 x 4 m rooms side by side (x in [0, 4] and [4, 8], z in [0, 4]); the wall between them at x = 4 has a
+# doorway at z in [1.5, 2.5] (floor to ceiling).
+ROOMS = {"a": (0.0, 4.0), "b": (4.0, 8.0)}
+CAMS = {"a": np.array([2.6, 0.0, 2.2]), "b": np.array([5.4, 0.0, 1.8])}
+DOOR = (1.5, 2.5)
+
+
+def _floor_texture(seed: int = 0) -> np.ndarray:
+    """Grey floor texture over x, z in [0, 8] x [0, 4] at 1 cm: blobs of light and wear with fine grain."""
+    rng = np.random.default_rng(seed)
+    low = cv2.resize(rng.uniform(60, 200, (8, 16)).astype(np.float32), (800, 400), interpolation=cv2.INTER_CUBIC)
+    mid = cv2.resize(rng.uniform(-40, 40, (80, 160)).astype(np.float32), (800, 400), interpolation=cv2.INTER_CUBIC)
+    return np.clip(low + mid + rng.normal(0, 6, (400, 800)), 0, 255).astype(np.float32)
+
+
+def _render(cam: np.ndarray, walls: list[tuple[np.ndarray, np.ndarray]], tex: np.ndarray, wall_tex: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """(RGB (H, W, 3) uint8, ray depth (H, W)) from cam (world: x, y down, z) of floor, ceiling and the vertical wall
+    segments ((2,) plan start, (2,) plan end), with camera axes = world axes."""
+    d = erp_dirs(H, W, np.float64)
+    flat = np.hypot(d[..., 0], d[..., 2])
+    ux, uz = d[..., 0] / np.maximum(flat, 1e-12), d[..., 2] / np.maximum(flat, 1e-12)
+    r_wall = np.full((H, W), np.inf)
+    o = cam[[0, 2]]
+    for p0, p1 in walls:
+        e = p1 - p0
+        den = ux * (-e[1]) - uz * (-e[0])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = ((p0[0] - o[0]) * (-e[1]) - (p0[1] - o[1]) * (-e[0])) / den
+            s = (ux * (p0[1] - o[1]) - uz * (p0[0] - o[0])) / den
+        hit = np.isfinite(t) & (t > 1e-6) & (s >= 0) & (s <= 1)
+        r_wall = np.where(hit & (t < r_wall), t, r_wall)
+    t_wall = r_wall / np.maximum(flat, 1e-12)
+    t_floor = np.where(d[..., 1] > 0, CAM_H / np.maximum(d[..., 1], 1e-12), np.inf)
+    t_ceil = np.where(d[..., 1] < 0, CEIL / np.maximum(-d[..., 1], 1e-12), np.inf)
+    depth = np.minimum(np.minimum(t_wall, t_floor), t_ceil)
+    p = cam + d * depth[..., None]
+    # Walls papered with a texture like the floor's (its own pattern): texture alone could agree by chance.
+    along = np.clip(((p[..., 0] + p[..., 2]) * 100).astype(int), 0, wall_tex.shape[1] - 1)
+    up = np.clip(((CAM_H - p[..., 1]) * 100).astype(int), 0, wall_tex.shape[0] - 1)
+    grey = np.where(d[..., 1] < 0, 130.0, wall_tex[up, along])
+    on_floor = t_floor <= depth + 1e-9
+    ix = np.clip((p[..., 0] * 100).astype(int), 0, tex.shape[1] - 1)
+    iz = np.clip((p[..., 2] * 100).astype(int), 0, tex.shape[0] - 1)
+    grey = np.where(on_floor, tex[iz, ix], grey)
+    rgb = np.repeat(np.clip(grey, 0, 255).astype(np.uint8)[..., None], 3, -1)
+    return rgb, depth.astype(np.float32)
+
+
+def _box(x0: float, x1: float, door: bool) -> list[tuple[np.ndarray, np.ndarray]]:
+    """A room's walls; with door, the wall at x1 (a's) or x0 (b's) keeps a gap at DOOR."""
+    P = lambda x, z: np.array([x, z])
+    walls = [(P(x0, 0), P(x1, 0)), (P(x0, 4), P(x1, 4))]
+    for x in (x0, x1):
+        if door and x == 4.0:
+            walls += [(P(x, 0), P(x, DOOR[0])), (P(x, DOOR[1]), P(x, 4))]
+        else:
+            walls.append((P(x, 0), P(x, 4)))
+    return walls
+
+
+def _home(door: bool):
+    tex, wall_tex = _floor_texture(0), _floor_texture(1)
+    home = _box(0, 4, door) + _box(4, 8, door)
+    rgbs, depths, poses = {}, {}, {}
+    for n, cam in CAMS.items():
+        rgbs[n], _ = _render(cam, home, tex, wall_tex)  # what the camera sees: through the doorway where there is one
+        _, depths[n] = _render(cam, _box(*ROOMS[n], door=False), tex, wall_tex)  # its layout: its own room, doorway closed
+        poses[n] = np.eye(4)
+        poses[n][:3, 3] = cam
+    return rgbs, depths, poses
+
+
+@pytest.fixture(scope="module")
+def doorway_home():
+    return _home(door=True)
+
+
+def test_layout_depth_is_told_from_a_furnished_one(doorway_home):
+    _, depths, _ = doorway_home
+    assert is_layout(depths["a"], CAM_H)
+    furnished = depths["a"].copy()
+    furnished[H // 2 + 40:H // 2 + 120, 100:400] *= 0.7  # a sofa in front of the wall
+    assert not is_layout(furnished, CAM_H)
+
+
+def test_open_doorways_opens_the_doorway_from_both_sides(doorway_home):
+    rgbs, depths, poses = doorway_home
+    depths = {n: d.copy() for n, d in depths.items()}
+    before = {n: d.copy() for n, d in depths.items()}
+    opened = open_doorways(["a", "b"], rgbs, depths, poses)
+    assert opened["a"] > 0 and opened["b"] > 0
+    d = erp_dirs(H, W, np.float64)
+    for n in ("a", "b"):
+        changed = depths[n] != before[n]
+        p = CAMS[n] + d * before[n][..., None]
+        # What opened lies on the shared wall at x = 4, in or beside the doorway (the opening widened by its margin).
+        assert np.all(np.abs(p[changed][:, 0] - 4.0) < 1e-3)
+        z = p[changed][:, 2]
+        assert z.min() > DOOR[0] - 0.25 and z.max() < DOOR[1] + 0.25
+        in_door = (np.abs(p[..., 0] - 4.0) < 1e-3) & (p[..., 2] > DOOR[0] + 0.1) & (p[..., 2] < DOOR[1] - 0.1)
+        in_door &= (CAM_H - p[..., 1] > 0.1) & (CAM_H - p[..., 1] < 1.9)
+        assert changed[in_door].mean() > 0.95
+        # Below the horizon the floor continues through the doorway; the rest of the opening is unknown.
+        through = changed & (depths[n] > 0)
+        assert through.any() and np.allclose(depths[n][through] * d[..., 1][through], CAM_H, atol=1e-3)
+
+
+def test_open_doorways_keeps_a_solid_wall():
+    rgbs, depths, poses = _home(door=False)
+    before = {n: d.copy() for n, d in depths.items()}
+    assert open_doorways(["a", "b"], rgbs, depths, poses) == {"a": 0, "b": 0}
+    assert all(np.array_equal(depths[n], before[n]) for n in depths)
