@@ -44,6 +44,8 @@ SIDE_MAX_SHARE = 0.25
 """... and is at most this share of the base's area ..."""
 SIDE_MIN_SHARE = 0.025
 """... and at least this share (the bar: 3-4 % of the base; the floor's speckle falls apart smaller) ..."""
+SIDE_MIN_ON_FLOOR = 0.9
+"""... and this share of it on the floor plane by depth ..."""
 SIDE_MIN_SOLIDITY = 0.7
 """... and solid (a bar or a knob; a patch of the floor's texture is ragged)."""
 BASE_MIN_OUTLINE = 0.85
@@ -146,12 +148,13 @@ def attached_legs(comp: np.ndarray, unlike: np.ndarray, theta: np.ndarray, focal
     return np.isin(labels, keep)
 
 
-def side_pieces(comp: np.ndarray, unlike: np.ndarray, theta: np.ndarray, focal: float) -> np.ndarray:
+def side_pieces(comp: np.ndarray, unlike: np.ndarray, theta: np.ndarray, on_floor: np.ndarray,
+                focal: float) -> np.ndarray:
     """Separate pieces of the rig beside the base comp (S, S) bool: the components of the pixels unlike the floor
     (unlike, opened by 0.5 deg so the floor's speckle falls apart) within SIDE_GAP_DEG of the base, lying wholly
     within SIDE_MAX_DEG of the nadir, solid (SIDE_MIN_SOLIDITY) and between SIDE_MIN_SHARE and SIDE_MAX_SHARE of the
-    base's area (a side bar, a knob beyond a gap).
-    (S, S) bool."""
+    base's area, and on the floor plane by depth (on_floor, (S, S) bool: seen where the floor is, as the base is; a
+    wall's or a piece of furniture's corner beside the base is not): a side bar, a knob beyond a gap. (S, S) bool."""
     k = 2 * int(round(0.25 * focal * np.deg2rad(1.0))) + 1
     u = cv2.morphologyEx((unlike & ~comp).astype(np.uint8), cv2.MORPH_OPEN,
                          cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
@@ -165,7 +168,8 @@ def side_pieces(comp: np.ndarray, unlike: np.ndarray, theta: np.ndarray, focal: 
             continue
         part = labels == i
         size = int(part.sum())
-        if not (SIDE_MIN_SHARE * area <= size <= SIDE_MAX_SHARE * area) or theta[part].max() >= SIDE_MAX_DEG:
+        if (not (SIDE_MIN_SHARE * area <= size <= SIDE_MAX_SHARE * area) or theta[part].max() >= SIDE_MAX_DEG
+                or on_floor[part].mean() < SIDE_MIN_ON_FLOOR):
             continue
         hull = cv2.convexHull(np.argwhere(part)[:, ::-1].astype(np.int32))
         if size >= SIDE_MIN_SOLIDITY * max(cv2.contourArea(hull), 1.0):
@@ -209,7 +213,7 @@ def detect_base(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndar
     if why is not None:
         return RigDetection(False, f"the region at the nadir is no camera base: {why}, kept", stats=stats)
     legs = attached_legs(comp, unlike, nf.theta, nf.view.focal)
-    side = side_pieces(comp, unlike, nf.theta, nf.view.focal)
+    side = side_pieces(comp, unlike, nf.theta, nf.on_floor, nf.view.focal)
     stats["leg_pixels"], stats["side_pixels"] = int(legs.sum()), int(side.sum())
     mask = face_to_erp_mask(cv2.dilate((comp | legs | side).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0, nf.view, H, W)
     unlike_how = ("unlike the floor around it" if stats["unlike_floor"] >= BASE_MIN_UNLIKE else
