@@ -7,6 +7,8 @@ Runs what the depth stage runs at default settings (no flags): the panorama at t
 garage; labels in bench/rig_labels/zind_real.json, drawn by hand on a 90 deg downward view):
 
 - iou: the detected rig mask against the label, solid-angle weighted on the ERP (0 when nothing was found);
+- fill / seen floor: the mean luminance of the cleaned panorama under the label within CAP_DEG over that of the
+  floor the input shows in the cap (1: the fill is lit like the floor under the camera, whatever the ring's light);
 - gap before / after: |1 - cap / ring| of the mean luminance (Rec. 601 luma, solid-angle weighted) of the cap within
   CAP_DEG of the nadir and of the floor ring RING_DEG (20-35 deg) around it on the working panorama; the ring keeps
   only pixels on the floor plane by the scene's depth (camera height from the depth stage) and outside the label,
@@ -18,7 +20,9 @@ their Gaussians rendered at the capture point (camera 0 = identity, 512 rows), t
 the ring of the render (gap_gaussians; `runner.py run` must have been run on them first).
 
 Controls with no rig (must stay byte-identical: panorama and depth): the Realsee pair (real LiDAR and synthesis) and
-the RGB-only samples (colour alone, no depth). Split: east + garage = dev (where the method was tuned), west = test
+the RGB-only samples (colour alone, no depth), less those whose nadir is a capture artefact (ARTEFACTS: the
+Stanford 2D-3D-S sample's black hexagon where the capture has no pixels), which must be found as that kind and
+removed. Split: east + garage = dev (where the method was tuned), west = test
 (held out). --save DIR writes each panorama's nadir before/after with the detected mask's outline. --sectors prints
 the floor the input shows (luma medians) per azimuth sector and angle from the nadir: whether the floor under the
 camera is darker on every side (a shadow the capture added) or the room's light crosses some sectors.
@@ -47,6 +51,9 @@ LABELS = REPO / "bench" / "rig_labels" / "zind_real.json"
 CAP_DEG = 15.0
 RING_DEG = (20.0, 35.0)
 SPLIT = {"east": "dev", "garage": "dev", "west": "test"}
+ARTEFACTS = {"depthanywhere__sf3d_rgb1.png": "mask"}
+"""RGB-only samples whose nadir is a capture artefact, not the room (the kind detection must find): sf3d's black
+hexagon, pure black (0, 0, 0) with a jagged edge, is where the Stanford 2D-3D-S capture has no pixels."""
 
 
 def label_mask(entry: dict, view: dict, H: int, W: int) -> np.ndarray:
@@ -87,6 +94,19 @@ def floor_gap(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, floor_m: fl
     lc = float((lum * w)[cap].sum() / w[cap].sum())
     lr = float((lum * w)[floor].sum() / max(w[floor].sum(), 1e-12))
     return abs(1.0 - lc / max(lr, 1e-6)), share
+
+
+def fill_over_seen(before: np.ndarray, after: np.ndarray, label: np.ndarray, around: np.ndarray) -> float:
+    """Mean luma (solid-angle weighted) of the cleaned panorama under the label within CAP_DEG over that of the
+    floor the input shows in the cap (the cap less around): 1 when the fill is lit like the floor under the camera."""
+    H, W = before.shape[:2]
+    cap = from_nadir(H, W) < CAP_DEG
+    w = np.broadcast_to(erp_pixel_solid_angle(H, W), (H, W))
+
+    def mean(img: np.ndarray, m: np.ndarray) -> float:
+        return float((cv2.cvtColor(img, cv2.COLOR_RGB2GRAY).astype(np.float64) * w)[m].sum() / max(w[m].sum(), 1e-12))
+
+    return mean(after, cap & label) / max(mean(before, cap & ~around), 1e-6)
 
 
 SECTOR_EDGES = (3, 6, 9, 12, 15, 18, 21, 24, 27, 30, 35, 40)
@@ -209,6 +229,7 @@ def rig_rows(split: str, save: Path | None, sectors: bool = False) -> list[dict]
         gs, _ = floor_gap(rgb, res.depth, res.valid, floor_m, label, cap_exclude=around)
         rows.append({"panorama": name, "split": part, "found": found, "kind": det.kind if det else None,
                      "reason": det.reason if det else "", "iou": iou(mask, label), "gap_before": gb, "gap_after": ga, "gap_seen": gs,
+                     "fill_over_seen": fill_over_seen(rgb, c.rgb, label, around),
                      "ring_floor": share, "seconds": sec, "floor_m": floor_m})
         if sectors:
             rows[-1]["sectors"] = sector_profile(rgb, res.depth, res.valid, floor_m, around)
@@ -246,7 +267,8 @@ def gaussian_gaps(rows: list[dict], scenes: Path, height: int = 512) -> None:
 
 
 def control_rows() -> list[dict]:
-    """The shared captures with no rig: panorama and depth must come out byte-identical."""
+    """The shared captures with no rig: panorama and depth must come out byte-identical (`expect` None); and the
+    RGB-only captures of ARTEFACTS, whose artefact must be found as its kind (`expect`) and removed."""
     from panoworld.depth.rig.detect import detect_rig
     from panoworld.depth.rig.remove import remove_rig
 
@@ -259,8 +281,9 @@ def control_rows() -> list[dict]:
         rgb, res, params = stage_input(pano, dep_file)
         c, sec = clean(rgb, res, params, dep_file)
         found = bool(c.rig is not None and c.rig.found)
-        rows.append({"control": name, "found": found, "reason": c.rig.reason if c.rig else "",
-                     "identical": bool(np.array_equal(c.rgb, rgb)), "seconds": sec})
+        rows.append({"control": name, "expect": None, "found": found, "kind": c.rig.kind if found else None,
+                     "reason": c.rig.reason if c.rig else "", "identical": bool(np.array_equal(c.rgb, rgb)),
+                     "seconds": sec})
     for pano in sorted((DATA / "rgb_only").glob("*")):
         if pano.suffix.lower() not in (".png", ".jpg", ".jpeg"):
             continue
@@ -272,18 +295,19 @@ def control_rows() -> list[dict]:
         t0 = time.perf_counter()
         det = detect_rig(rgb)
         out = remove_rig(rgb, det) if det.found else rgb
-        rows.append({"control": pano.name, "found": det.found, "reason": det.reason,
+        rows.append({"control": pano.name, "expect": ARTEFACTS.get(pano.name), "found": det.found,
+                     "kind": det.kind if det.found else None, "reason": det.reason,
                      "identical": bool(np.array_equal(out, rgb)), "seconds": time.perf_counter() - t0})
     return rows
 
 
 def table(rows: list[dict], controls: list[dict]) -> str:
-    lines = ["| panorama | split | found | IoU | gap before | gap after | seen floor gap | gap on Gaussians | ring floor | s |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| panorama | split | found | IoU | gap before | gap after | seen floor gap | fill / seen floor | gap on Gaussians | ring floor | s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         gg = f"{r['gap_gaussians']:.1%}" if "gap_gaussians" in r else "-"
         lines.append(f"| {r['panorama']} | {r['split']} | {'yes' if r['found'] else 'no'} | {r['iou']:.3f} | "
-                     f"{r['gap_before']:.1%} | {r['gap_after']:.1%} | {r['gap_seen']:.1%} | {gg} | {r['ring_floor']:.2f} | {r['seconds']:.1f} |")
+                     f"{r['gap_before']:.1%} | {r['gap_after']:.1%} | {r['gap_seen']:.1%} | {r['fill_over_seen']:.2f} | {gg} | {r['ring_floor']:.2f} | {r['seconds']:.1f} |")
     for part in ("dev", "test"):
         sub = [r for r in rows if r["split"] == part]
         if sub:
@@ -291,11 +315,13 @@ def table(rows: list[dict], controls: list[dict]) -> str:
             lines.append(f"| **{part}** ({len(sub)}) | | {sum(r['found'] for r in sub)} | "
                          f"{np.mean([r['iou'] for r in sub]):.3f} (min {min(r['iou'] for r in sub):.3f}) | "
                          f"{np.mean([r['gap_before'] for r in sub]):.1%} | {np.mean([r['gap_after'] for r in sub]):.1%} "
-                         f"(max {max(r['gap_after'] for r in sub):.1%}) | {np.mean([r['gap_seen'] for r in sub]):.1%} | | | {ok}/{len(sub)} meet IoU >= 0.7 and gap <= 15 % |")
-    lines += ["", "| control | rig found | byte-identical | s |", "|---|---|---|---|"]
+                         f"(max {max(r['gap_after'] for r in sub):.1%}) | {np.mean([r['gap_seen'] for r in sub]):.1%} | | | | {ok}/{len(sub)} meet IoU >= 0.7 and gap <= 15 % |")
+    lines += ["", "| control | expected | found | byte-identical | ok | s |", "|---|---|---|---|---|---|"]
     for c in controls:
-        lines.append(f"| {c['control']} | {'yes' if c['found'] else 'no'} | {'yes' if c['identical'] else 'NO'} | "
-                     f"{c['seconds']:.1f} |")
+        ok = (c["found"] and c["kind"] == c["expect"] and not c["identical"]) if c["expect"] else \
+            (not c["found"] and c["identical"])
+        lines.append(f"| {c['control']} | {c['expect'] or 'no rig, byte-identical'} | {c['kind'] or 'no'} | "
+                     f"{'yes' if c['identical'] else 'no'} | {'yes' if ok else 'NO'} | {c['seconds']:.1f} |")
     return "\n".join(lines)
 
 

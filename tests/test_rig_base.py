@@ -10,7 +10,7 @@ import pytest
 from panoworld.core.conventions import erp_dirs, erp_pixel_solid_angle
 from panoworld.depth.rig import detect as rig
 from panoworld.depth.rig import remove as rig_remove
-from panoworld.depth.rig.base import BASE_BG_DEG, attached_legs
+from panoworld.depth.rig.base import BASE_BG_DEG, SIDE_MAX_DEG, attached_legs, side_pieces
 from panoworld.depth.rig.face import face_polar, face_to_erp_mask, nadir_view
 from panoworld.tools.synth import generate_scene
 
@@ -128,6 +128,28 @@ def test_legs_touch_the_base_and_end_a_line_that_goes_on_does_not():
     assert legs[c, c + 35] and legs.sum() > 20
     assert not legs[c + 60, c] and not legs[c + 40, c]
     assert theta[legs].max() < BASE_BG_DEG
+
+
+def test_a_side_bar_beyond_a_gap_joins_the_base_furniture_and_speckle_do_not():
+    """A solid bar a few degrees beside the base is the rig's; a speckle, a piece that goes on past SIDE_MAX_DEG, a
+    piece beyond the gap and one off the floor plane by depth are not."""
+    size, f = 401, 160.0
+    yy, xx = np.mgrid[:size, :size] + 0.5 - size / 2
+    theta = np.rad2deg(np.arctan(np.hypot(xx, yy) / f))
+    c = size // 2
+    base = np.hypot(xx, yy) < 30
+    unlike = np.zeros((size, size), np.uint8)
+    cv2.rectangle(unlike, (c + 40, c - 6), (c + 70, c + 6), 1, -1)  # the bar: 5 deg beyond the base, to 24 deg
+    cv2.rectangle(unlike, (c - 4, c + 40), (c + 4, size - 1), 1, -1)  # goes on past SIDE_MAX_DEG
+    cv2.circle(unlike, (c - 40, c - 10), 2, 1, -1)  # speckle
+    cv2.rectangle(unlike, (c - 100, c - 6), (c - 70, c + 6), 1, -1)  # beyond the gap
+    cv2.rectangle(unlike, (c - 6, c - 70), (c + 6, c - 40), 1, -1)  # off the floor plane (a table's corner)
+    on_floor = np.ones((size, size), bool)
+    on_floor[: c - 35] = False
+    side = side_pieces(base, unlike.astype(bool) | base, theta, on_floor, f)
+    assert side[c, c + 55] and side.sum() >= 0.9 * 31 * 13
+    assert not side[c + 60, c] and not side[c - 10, c - 40] and not side[c, c - 85] and not side[c - 55, c]
+    assert theta[side].max() < SIDE_MAX_DEG
 
 
 def test_ring_fill_takes_the_floor_around_the_hole_not_a_wall_or_a_sun_band():

@@ -35,6 +35,19 @@ BASE_MIN_UNLIKE = 0.7
 BASE_MIN_UNLIKE_OUTLINED = 0.4
 """... or at least this share when its outline is an edge all round (BASE_MIN_OUTLINE): a beige base on a carpet
 that shows beige too."""
+SIDE_GAP_DEG = 8.0
+"""A separate piece of the rig (the base's side bar beyond a gap) lies within this angle of the base (side_pieces)."""
+SIDE_MAX_DEG = 29.0
+"""... lies wholly within this angle of the nadir (a side bar reaches ~27 deg; what goes on past it is floor or
+furniture) ..."""
+SIDE_MAX_SHARE = 0.25
+"""... and is at most this share of the base's area ..."""
+SIDE_MIN_SHARE = 0.025
+"""... and at least this share (the bar: 3-4 % of the base; the floor's speckle falls apart smaller) ..."""
+SIDE_MIN_ON_FLOOR = 0.9
+"""... and this share of it on the floor plane by depth ..."""
+SIDE_MIN_SOLIDITY = 0.7
+"""... and solid (a bar or a knob; a patch of the floor's texture is ragged)."""
 BASE_MIN_OUTLINE = 0.85
 """Share of the outline's pixels whose colour gradient exceeds the floor's 90th percentile (outline_edges); a region
 cut out of the floor's own texture scores about 0.1 (its outline meets the floor's strong gradients at random)."""
@@ -135,6 +148,35 @@ def attached_legs(comp: np.ndarray, unlike: np.ndarray, theta: np.ndarray, focal
     return np.isin(labels, keep)
 
 
+def side_pieces(comp: np.ndarray, unlike: np.ndarray, theta: np.ndarray, on_floor: np.ndarray,
+                focal: float) -> np.ndarray:
+    """Separate pieces of the rig beside the base comp (S, S) bool: the components of the pixels unlike the floor
+    (unlike, opened by 0.5 deg so the floor's speckle falls apart) within SIDE_GAP_DEG of the base, lying wholly
+    within SIDE_MAX_DEG of the nadir, solid (SIDE_MIN_SOLIDITY) and between SIDE_MIN_SHARE and SIDE_MAX_SHARE of the
+    base's area, and on the floor plane by depth (on_floor, (S, S) bool: seen where the floor is, as the base is; a
+    wall's or a piece of furniture's corner beside the base is not): a side bar, a knob beyond a gap. (S, S) bool."""
+    k = 2 * int(round(0.25 * focal * np.deg2rad(1.0))) + 1
+    u = cv2.morphologyEx((unlike & ~comp).astype(np.uint8), cv2.MORPH_OPEN,
+                         cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    g = 2 * int(round(focal * np.deg2rad(SIDE_GAP_DEG))) + 1
+    near = cv2.dilate(comp.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (g, g))) > 0
+    n, labels = cv2.connectedComponents(u, connectivity=8)
+    area = float(comp.sum())
+    out = np.zeros_like(comp)
+    for i in np.unique(labels[near & (u > 0)]):
+        if i == 0:
+            continue
+        part = labels == i
+        size = int(part.sum())
+        if (not (SIDE_MIN_SHARE * area <= size <= SIDE_MAX_SHARE * area) or theta[part].max() >= SIDE_MAX_DEG
+                or on_floor[part].mean() < SIDE_MIN_ON_FLOOR):
+            continue
+        hull = cv2.convexHull(np.argwhere(part)[:, ::-1].astype(np.int32))
+        if size >= SIDE_MIN_SOLIDITY * max(cv2.contourArea(hull), 1.0):
+            out |= part
+    return out
+
+
 def _elongated(part: np.ndarray) -> bool:
     """Whether a part (S, S) bool is a line: its minimum-area rectangle at least LEG_MIN_ASPECT times as long as wide
     and the part filling at least half of it (a leg, not a ragged patch of carpet texture)."""
@@ -171,8 +213,9 @@ def detect_base(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndar
     if why is not None:
         return RigDetection(False, f"the region at the nadir is no camera base: {why}, kept", stats=stats)
     legs = attached_legs(comp, unlike, nf.theta, nf.view.focal)
-    stats["leg_pixels"] = int(legs.sum())
-    mask = face_to_erp_mask(cv2.dilate((comp | legs).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0, nf.view, H, W)
+    side = side_pieces(comp, unlike, nf.theta, nf.on_floor, nf.view.focal)
+    stats["leg_pixels"], stats["side_pixels"] = int(legs.sum()), int(side.sum())
+    mask = face_to_erp_mask(cv2.dilate((comp | legs | side).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0, nf.view, H, W)
     unlike_how = ("unlike the floor around it" if stats["unlike_floor"] >= BASE_MIN_UNLIKE else
                   f"outlined by an edge all round ({stats['outline_edges']:.0%})")
     return RigDetection(True, f"a solid camera base centred on the nadir, {stats['cap_deg']:.1f} deg, {unlike_how}", "base", mask, np.zeros_like(mask), stats, source=floor_source(nf.face, nf),
