@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+from functools import lru_cache
+
 import cv2
 import numpy as np
 
@@ -67,6 +70,7 @@ def open_doorways(names: list[str], rgbs: dict[str, np.ndarray], depths: dict[st
     grey = {n: cv2.cvtColor(rgbs[n], cv2.COLOR_RGB2GRAY).astype(np.float32) for n in known}
     views = {n: floor_view(rgbs[n], depths[n]) for n in known}
     walls = {n: _walls(depths[n], heights[n]) for n in layouts}
+    reach = {n: _reach(depths[n]) for n in known}
     masks, segments = {}, []
     for a in layouts:
         w = depths[a].shape[1]
@@ -74,8 +78,8 @@ def open_doorways(names: list[str], rgbs: dict[str, np.ndarray], depths: dict[st
         for b in known:
             if b != a and _near(world_from_cam[a], world_from_cam[b]):
                 cols |= _agreeing_columns(a, b, grey, depths, heights, world_from_cam)
-                through.append(_through_door(a, b, views, depths, world_from_cam))
-        plan = _wall_plan(depths[a])
+                through.append(_through_door(a, b, views, reach, world_from_cam))
+        plan = _wall_plan(reach[a])
         keep = np.zeros(w, bool)
         for idx in _runs(cols):
             if np.isin(np.concatenate(through or [np.zeros(0, np.int64)]), idx).sum() >= MIN_MATCHES:
@@ -89,9 +93,17 @@ def open_doorways(names: list[str], rgbs: dict[str, np.ndarray], depths: dict[st
             side = np.zeros_like(walls[c])
             side[walls[c]] = _on_segments(_plan_points(depths[c], world_from_cam[c], walls[c]), other)
             masks[c] |= side
-        _open(depths[c], heights[c], masks[c])
+        _open(depths[c], heights[c], reach[c], masks[c])
         out[c] = int(masks[c].sum())
     return out
+
+
+@lru_cache(maxsize=2)
+def _dirs(h: int, w: int) -> np.ndarray:
+    """erp_dirs (h, w, 3) float64, computed once per size (read-only)."""
+    d = erp_dirs(h, w, np.float64)
+    d.flags.writeable = False
+    return d
 
 
 def is_layout(depth: np.ndarray, height: float, *, tol: float = 0.02, share: float = 0.995) -> bool:
@@ -99,7 +111,7 @@ def is_layout(depth: np.ndarray, height: float, *, tol: float = 0.02, share: flo
     of its valid pixels within tol (relative) of the nearest of the floor plane, a flat ceiling (its height the median
     over the rays above 40 degrees) and, per column, one vertical wall at the column's farthest horizontal reach. A
     depth with furniture, or of a real sensor, is not: its doorways are open already."""
-    dirs = erp_dirs(*depth.shape, np.float64)
+    dirs = _dirs(*depth.shape)
     valid = depth > 0
     up = -dirs[..., 1]
     sel = valid & (up > np.sin(np.radians(40.0)))
@@ -174,42 +186,45 @@ def _agreeing_columns(a, b, grey, depths, heights, world_from_cam) -> np.ndarray
     return (n_agree >= 3) & (n_agree >= 0.5 * np.bincount(col_a[tried], minlength=w))
 
 
-def _through_door(a: str, b: str, views: dict[str, FloorView | None], depths: dict[str, np.ndarray],
+def _through_door(a: str, b: str, views: dict[str, FloorView | None], reach: dict[str, np.ndarray],
                   world_from_cam: dict[str, np.ndarray]) -> np.ndarray:
     """(K,) int: the columns of a's depth of the floor keypoints a sees behind its walls that match b's inside b's room
-    at the registered pose (geometry.floor_view.agrees_with_pose)."""
+    at the registered pose (geometry.floor_view.agrees_with_pose); reach: each panorama's _reach."""
     va, vb = views[a], views[b]
     if va is None or vb is None:
         return np.zeros(0, np.int64)
+    col_a = _column_of(va.xz, reach[a].size)
+    col_b = _column_of(vb.xz, reach[b].size)
+    behind = np.flatnonzero(np.linalg.norm(va.xz, axis=1) > reach[a][col_a] * 1.05 + 0.1)
+    inside = np.flatnonzero(np.linalg.norm(vb.xz, axis=1) < reach[b][col_b] * 0.98)
+    if len(behind) < 2 or len(inside) < 2:
+        return np.zeros(0, np.int64)
+    sa, sb = _subset(va, behind), _subset(vb, inside)
     a_from_b = invert_pose(np.asarray(world_from_cam[a], np.float64)) @ np.asarray(world_from_cam[b], np.float64)
-    m = floor_matches(va, vb)
-    m = m[agrees_with_pose(va, vb, a_from_b, m)]
-    xa, xb = va.xz[m[:, 0]], vb.xz[m[:, 1]]
-    reach_a, col_a = _reach_toward(depths[a], xa)
-    reach_b, _ = _reach_toward(depths[b], xb)
-    keep = (np.linalg.norm(xa, axis=1) > reach_a * 1.05 + 0.1) & (np.linalg.norm(xb, axis=1) < reach_b * 0.98)
-    return col_a[keep]
+    m = floor_matches(sa, sb)
+    return col_a[behind[m[agrees_with_pose(sa, sb, a_from_b, m), 0]]]
+
+
+def _subset(v: FloorView, idx: np.ndarray) -> FloorView:
+    return replace(v, xz=v.xz[idx], descriptors=v.descriptors[idx], angles=v.angles[idx], sizes=v.sizes[idx])
 
 
 def _reach(depth: np.ndarray) -> np.ndarray:
     """(W,) the farthest horizontal distance of depth (H, W) per column: the wall of a layout."""
-    dirs = erp_dirs(*depth.shape, np.float64)
+    dirs = _dirs(*depth.shape)
     return np.where(depth > 0, depth * np.hypot(dirs[..., 0], dirs[..., 2]), 0.0).max(0)
 
 
-def _reach_toward(depth: np.ndarray, xz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(_reach of depth (H, W) in the column of each floor point xz (N, 2) (camera-frame x, z), that column)."""
-    h, w = depth.shape
-    u, _ = erp_pixel_from_lonlat(np.arctan2(xz[:, 0], xz[:, 1]), np.zeros(len(xz)), h, w)
-    col = np.floor(u).astype(np.int64) % w
-    return _reach(depth)[col], col
+def _column_of(xz: np.ndarray, w: int) -> np.ndarray:
+    """(N,) int: the ERP column (of w) of each camera-frame floor point xz (N, 2)."""
+    u, _ = erp_pixel_from_lonlat(np.arctan2(xz[:, 0], xz[:, 1]), np.zeros(len(xz)), w // 2, w)
+    return np.floor(u).astype(np.int64) % w
 
 
-def _wall_plan(depth: np.ndarray) -> np.ndarray:
-    """(W, 2) camera-frame x, z of each column's wall (its _reach, horizontally)."""
-    w = depth.shape[1]
-    lon, _ = erp_lonlat_from_pixel(np.arange(w) + 0.5, np.zeros(w), *depth.shape)
-    reach = _reach(depth)
+def _wall_plan(reach: np.ndarray) -> np.ndarray:
+    """(W, 2) camera-frame x, z of each column's wall (at its _reach (W,), horizontally)."""
+    w = reach.size
+    lon, _ = erp_lonlat_from_pixel(np.arange(w) + 0.5, np.zeros(w), w // 2, w)
     return np.stack([reach * np.sin(lon), reach * np.cos(lon)], -1)
 
 
@@ -244,8 +259,7 @@ def _widen(idx: np.ndarray, plan: np.ndarray) -> np.ndarray:
 
 def _walls(depth: np.ndarray, height: float) -> np.ndarray:
     """(H, W) bool: the pixels of depth (H, W) on a surface between 5 cm and DOOR_TOP_M above the floor."""
-    dirs = erp_dirs(*depth.shape, np.float64)
-    above = height - depth * dirs[..., 1]
+    above = height - depth * _dirs(*depth.shape)[..., 1]
     return (depth > 0) & (above > 0.05) & (above < DOOR_TOP_M)
 
 
@@ -278,12 +292,11 @@ def _on_segments(pts: np.ndarray, segments: list[np.ndarray]) -> np.ndarray:
     return out
 
 
-def _open(depth: np.ndarray, height: float, mask: np.ndarray) -> None:
-    """Open the wall pixels mask (H, W) of depth (H, W) in place: the floor continues THRESHOLD_M beyond the wall,
-    the rest is unknown."""
-    dirs = erp_dirs(*depth.shape, np.float64)
+def _open(depth: np.ndarray, height: float, reach: np.ndarray, mask: np.ndarray) -> None:
+    """Open the wall pixels mask (H, W) of depth (H, W) (its _reach (W,)) in place: the floor continues THRESHOLD_M
+    beyond the wall, the rest is unknown."""
+    dirs = _dirs(*depth.shape)
     flat = np.hypot(dirs[..., 0], dirs[..., 2])
-    reach = _reach(depth)
     floor = height / np.maximum(dirs[..., 1], 1e-9)
     through = mask & (dirs[..., 1] > 0) & (floor * flat <= reach[None, :] + THRESHOLD_M)
     depth[mask] = 0.0
