@@ -168,6 +168,11 @@ def render_erp(
         raise ValueError("backend='numba' renders without gradients but a Gaussian tensor requires grad: use 'torch'")
     centre = np.asarray(world_from_cam, dtype=np.float64)[:3, 3]
     bg = _background(background)
+    if pixels is not None and faces and not grad:  # only what the faces rendered can show is prepared: the same render
+        terms = cull_terms(gaussians.means, gaussians.opacities, gaussians.scales, centre)
+        cand = torch.unique(torch.cat([face_candidates(*terms, fc, near) for fc in faces]))
+        del terms
+        gaussians = gaussians.subset(cand.numpy() if isinstance(gaussians.means, np.ndarray) else cand)
     rasterise = backend == "torch" or grad
     with contextlib.nullcontext() if rasterise else torch.no_grad():
         prep = _prepare(gaussians, centre)
