@@ -119,7 +119,9 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         basis = [b(k) - b_mean[c] for k, c in enumerate(cols_t)]
         s0_k = [s0[c] for c in cols]
         x0, lam = c0, [damping * seen]
-    del seen_k, total, seen, means, c0
+    seen_k.clear()
+    del total, seen, c0
+    means = None
     cols = cols_t
 
     def damp(t):  # t (n, 12 or 3) times each unknown's damping, in place
@@ -163,9 +165,12 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         p.mul_(gamma_new / max(gamma, 1e-20)).add_(s)
         gamma = gamma_new
     x[:, :3] = x[:, :3].clamp(0.0, 1.0)
-    del s, p, tmp, x0, lam
+    del s, p, tmp, x0
+    lam.clear()
     rmse1 = [float((targets[k] - ops[k](colors(k, x))).square().mean().sqrt()) for k in range(views_n)]
-    del ops, basis, targets, r
+    for held_list in (ops, basis, targets):
+        held_list.clear()
+    del r
     coef = x[:, 3:].reshape(n, 3, 3) / rho[:, :, None] if sh_degree else s0
     dc = np.array(g.sh_dc, np.float32)  # only the Gaussians some view sees change
     dc[fit] = rgb_to_sh_dc((x[:, :3] - torch.einsum("nj,njc->nc", b_mean, coef)).numpy())
