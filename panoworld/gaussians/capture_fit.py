@@ -6,6 +6,7 @@ import numpy as np
 import torch
 from numba import njit
 
+from panoworld.core.memory import release_free_memory
 from panoworld.io.gaussian_set import Gaussians, rgb_to_sh_dc
 
 FIT_TILE = 8
@@ -71,6 +72,7 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         seen_any |= seen
         ops.append(op.restricted(mine[-1]).read_rows())
         del op, seen
+        release_free_memory()  # the build's temporaries, so what the fit holds is what stays resident
         held += operator_nbytes(ops[-1])
         if held / len(ops) * len(views) > max_bytes:
             return g, {"views": len(views), "skipped": f"the render operators of the {len(views)} capture poses would "
