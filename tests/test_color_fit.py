@@ -283,7 +283,7 @@ def test_capture_fit_over_its_memory_budget_is_skipped_and_says_why():
 
     g, _, _, pose_at, view = view_dependent_shell(8)
     views = [(view(x), pose_at(x)) for x in (-0.6, 0.0, 0.6)]
-    one = operator_nbytes(ErpColorOperator(g, views[0][1], SHELL_H, SHELL_W, supersample=1))
+    one = operator_nbytes(ErpColorOperator(g, views[0][1], SHELL_H, SHELL_W, supersample=1).read_rows())  # as held
     out, info = fit_capture_colors(g, views, height=SHELL_H, supersample=1, iters=3, max_bytes=2.5 * one)
     assert out is g and "3 capture poses" in info["skipped"] and info["views"] == 3
     fitted, info = fit_capture_colors(g, views, height=SHELL_H, supersample=1, iters=3, max_bytes=4 * one)
