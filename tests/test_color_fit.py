@@ -102,6 +102,14 @@ def test_masked_operator_is_the_render_on_the_pixels_it_keeps(supersample, tile)
     img = torch.rand(H, W, 3, dtype=torch.float64)  # its adjoint: <A x, y> = <x, A^T y>
     lhs, rhs = float((got.double() * img).sum()), float((colors.double() * part.adjoint(img.float())).sum())
     assert abs(lhs - rhs) < 1e-4 * abs(lhs)
+    r = np.ascontiguousarray(np.broadcast_to(img.float().numpy()[:, None, :, None] / supersample**2,
+                                             (H, supersample, W, supersample, 3))).reshape(-1, 3)
+    sums = sum((A.T @ (S.T @ r[index]) for index, S, A in part.faces), np.zeros((len(g), 3), np.float32))
+    np.testing.assert_array_equal(part.adjoint(img.float()).numpy(), sums)  # scipy's products, sum for sum
+    samples = np.zeros((H * supersample * W * supersample, 3), np.float32)
+    for index, S, A in full.faces:
+        samples[index] = S @ (A @ colors.numpy())
+    np.testing.assert_array_equal(full(colors).numpy(), samples.reshape(H, supersample, W, supersample, 3).mean((1, 3)))
     for op in (full, part):  # the face pixels no sample reads dropped: the same products, bit for bit
         read = op.read_rows()
         np.testing.assert_array_equal(read(colors).numpy(), op(colors).numpy())
