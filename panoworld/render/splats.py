@@ -403,12 +403,13 @@ def _needs_grad(gaussians: Gaussians) -> bool:
 
 
 def rasterize_numba(proj: Projected, H: int, W: int, background: torch.Tensor, *, raw: bool = False,
-                    distance: bool = False, tile: int = NUMBA_TILE) -> RenderOutput:
+                    distance: bool = False, tile: int = NUMBA_TILE, need: np.ndarray | None = None) -> RenderOutput:
     """rasterize_tiles' image (same raw / distance meaning) summed in float64 from face_weights' weights: no
-    gradient, equal to it within float32 rounding (tests/test_render_gs.py)."""
+    gradient, equal to it within float32 rounding (tests/test_render_gs.py). need (H * W,) bool: only those pixels
+    are composited (the others hold the background, alpha 0)."""
     from panoworld.render.splat_weights import weighted_sums
 
-    pix, gid, w = face_weights(proj, H, W, tile=tile)
+    pix, gid, w = face_weights(proj, H, W, tile=tile, need=need)
     depth_of = proj.dist if distance else proj.z
     values = torch.cat([proj.color, depth_of[:, None]], 1).detach().numpy()
     out = torch.from_numpy(weighted_sums(pix, gid, w, values, H * W).astype(np.float32))
