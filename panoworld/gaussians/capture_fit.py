@@ -6,6 +6,7 @@ import numpy as np
 import torch
 from numba import njit
 
+from panoworld.core.memory import release_free_memory
 from panoworld.io.gaussian_set import Gaussians, rgb_to_sh_dc
 
 FIT_TILE = 8
@@ -64,17 +65,18 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     held = 0
     for _, pose in views:
         op = ErpColorOperator(g, pose, height, 2 * height, supersample=supersample, cov=cov, tile=FIT_TILE)
-        held += operator_nbytes(op)
-        if held / (len(ops) + 1) * len(views) > max_bytes:
-            return g, {"views": len(views), "skipped": f"the render operators of the {len(views)} capture poses would "
-                       f"hold about {held / (len(ops) + 1) * len(views) / 1e9:.1f} GB, more than {max_bytes / 1e9:.1f} GB"}
         seen = np.zeros(len(g), bool)
         for f in op.faces:
             seen[f[2].indices] = True
         mine.append(np.flatnonzero(seen))
         seen_any |= seen
-        ops.append(op.restricted(mine[-1]))
-        del op
+        ops.append(op.restricted(mine[-1]).read_rows())
+        del op, seen
+        release_free_memory()  # the build's temporaries, so what the fit holds is what stays resident
+        held += operator_nbytes(ops[-1])
+        if held / len(ops) * len(views) > max_bytes:
+            return g, {"views": len(views), "skipped": f"the render operators of the {len(views)} capture poses would "
+                       f"hold about {held / len(ops) * len(views) / 1e9:.1f} GB, more than {max_bytes / 1e9:.1f} GB"}
         seen_k.append(ops[-1].adjoint(torch.ones(height, 2 * height, 3))[:, 0].clone())
     del cov
     # The unknowns are those of the Gaussians some view sees (the others' gradient is 0: they keep their colours),
@@ -113,12 +115,22 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         rho = (rho + sh_damping / PIXEL_WEIGHT).sqrt()
         basis = [torch.where(one_way[c], 0.0, b(k) - b_mean[c]) / rho[c] for k, c in enumerate(cols_t)]
         x0 = torch.cat([c0, (s0 * rho[:, :, None]).reshape(n, 9)], 1)
-        lam = torch.cat([damping * seen.expand(n, 3), (sh_damping * seen / rho.square()).expand(n, 9)], 1)
+        lam = [damping * seen, sh_damping * seen / rho.square()]  # per Gaussian: of its colour, of its s
+        del one_way, s0
     else:
         basis = [b(k) - b_mean[c] for k, c in enumerate(cols_t)]
         s0_k = [s0[c] for c in cols]
-        x0, lam = c0, damping * seen.expand(n, 3)
+        x0, lam = c0, [damping * seen]
+    seen_k.clear()
+    del total, seen, c0
+    means = None
     cols = cols_t
+
+    def damp(t):  # t (n, 12 or 3) times each unknown's damping, in place
+        t[:, :3].mul_(lam[0])
+        if sh_degree:
+            t[:, 3:].mul_(lam[1])
+        return t
 
     def colors(k, x):  # the unknowns (n, 3 or 12) -> the colours view k sees (len(cols[k]), 3)
         if sh_degree:
@@ -146,16 +158,21 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     p, gamma = s.clone(), float(torch.mul(s, s, out=tmp).sum())
     for _ in range(iters):
         q = [lin(k, p) for k in range(views_n)]
-        damped = torch.mul(p, p, out=tmp).mul_(lam).sum()
+        damped = damp(torch.mul(p, p, out=tmp)).sum()
         alpha = gamma / max(float(sum(qk.square().sum() for qk in q) + damped), 1e-20)
         x.add_(torch.mul(p, alpha, out=tmp))
         r = [r[k] - alpha * q[k] for k in range(views_n)]
-        grad(r, s).sub_(torch.sub(x, x0, out=tmp).mul_(lam))
+        grad(r, s).sub_(damp(torch.sub(x, x0, out=tmp)))
         gamma_new = float(torch.mul(s, s, out=tmp).sum())
         p.mul_(gamma_new / max(gamma, 1e-20)).add_(s)
         gamma = gamma_new
     x[:, :3] = x[:, :3].clamp(0.0, 1.0)
+    del s, p, tmp, x0
+    lam.clear()
     rmse1 = [float((targets[k] - ops[k](colors(k, x))).square().mean().sqrt()) for k in range(views_n)]
+    for held_list in (ops, basis, targets):
+        held_list.clear()
+    del r
     coef = x[:, 3:].reshape(n, 3, 3) / rho[:, :, None] if sh_degree else s0
     dc = np.array(g.sh_dc, np.float32)  # only the Gaussians some view sees change
     dc[fit] = rgb_to_sh_dc((x[:, :3] - torch.einsum("nj,njc->nc", b_mean, coef)).numpy())

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from panoworld.core.conventions import erp_dirs, invert_pose, transform_points
+from panoworld.core.memory import release_free_memory
 from panoworld.gaussians.capture_fit import fit_capture_colors
 from panoworld.gaussians.fusion import ContextSource
 from panoworld.gaussians.fusion_params import SourcePixelParams
@@ -142,6 +143,8 @@ def own_fill(k: int, names: list[str], depths: dict[str, np.ndarray], world_from
         return np.zeros((h, w), np.float32)
     out = render_erp(scene, world_from_cam[n], h, w, supersample=1, pixels=fill)  # only fill's pixels are read
     shown, alpha = np.asarray(out.depth, np.float64), np.asarray(out.alpha, np.float64)
+    del out
+    release_free_memory()  # the render's temporaries, before the next panorama's
     reach = float(np.median(depth[~hole])) if not hole.all() else np.inf
     d = np.where((alpha > 0.5) & np.isfinite(shown) & (shown > 0), np.minimum(shown, reach), reach)
     nearer = depth_from_others(k, names, {**depths, n: depth}, world_from_cam, height=h)
@@ -238,6 +241,8 @@ def home_anchored_fusion(frames: ContextSource | None, sources: dict[str, tuple[
     else:
         seen = SourcesVisibility([SourceVisibility(depths[n], poses[n], tol) for n in names])
         result = fuse_unseen(pix, frames, seen, params, unseen_voxel_size=params.unseen_voxel_size, progress=progress)
+    del pix, parts
+    release_free_memory()
     if params.source_fill:
         result.gaussians, result.own_fill = add_own_fill(result, names, {n: small[n][0] for n in names}, observed,
                                                          poses, params)

@@ -147,8 +147,9 @@ def render_erp(
     paths project for each face only the Gaussians whose box can meet it (face_cull): the same render as projecting
     all of them on every face.
 
-    pixels (H, W) bool: only the cube faces that sample one of these pixels are rendered (each pixel keeps its
-    value; the others' faces are not rendered and their pixels are 0).
+    pixels (H, W) bool: only these pixels are rendered, each with its value: the cube faces that sample none of them
+    are not rendered, and the numba path composites only the face pixels their samples read (every other pixel holds
+    0 or a part of its value).
     """
     if backend not in ("auto", "torch", "numba", "gsplat"):
         raise ValueError(f"backend={backend!r} but expected 'auto', 'torch', 'numba' or 'gsplat'")
@@ -161,6 +162,7 @@ def render_erp(
         s = int(supersample)
         keep = torch.from_numpy(np.repeat(np.repeat(keep, s, 0), s, 1).reshape(-1))
         faces = [fc for fc in faces if bool(keep[fc.index].any())]
+        need = {id(fc): face_taps(fc, keep[fc.index].numpy()) for fc in faces}
     if _use_gsplat(gaussians, backend):
         return _compose_erp(faces, H, W, supersample, lambda fc: _gsplat_face(gaussians, fc, near, background))
     grad = _needs_grad(gaussians)
@@ -168,6 +170,11 @@ def render_erp(
         raise ValueError("backend='numba' renders without gradients but a Gaussian tensor requires grad: use 'torch'")
     centre = np.asarray(world_from_cam, dtype=np.float64)[:3, 3]
     bg = _background(background)
+    if pixels is not None and faces and not grad:  # only what the faces rendered can show is prepared: the same render
+        terms = cull_terms(gaussians.means, gaussians.opacities, gaussians.scales, centre)
+        cand = torch.unique(torch.cat([face_candidates(*terms, fc, near) for fc in faces]))
+        del terms
+        gaussians = gaussians.subset(cand.numpy() if isinstance(gaussians.means, np.ndarray) else cand)
     rasterise = backend == "torch" or grad
     with contextlib.nullcontext() if rasterise else torch.no_grad():
         prep = _prepare(gaussians, centre)
@@ -180,15 +187,31 @@ def render_erp(
 
             return _compose_erp(faces, H, W, supersample, torch_face)
         # the faces on torch's threads: the kernel releases the GIL
-        return _compose_erp(faces, H, W, supersample, lambda fc: _numba_face(cull(fc)[0], fc, near, bg),
+        return _compose_erp(faces, H, W, supersample,
+                            lambda fc: _numba_face(cull(fc)[0], fc, near, bg, None if pixels is None else need[id(fc)]),
                             max(1, torch.get_num_threads()))
 
 
 @torch.no_grad()  # grad mode is per thread: render_erp's worker threads do not inherit its no_grad
-def _numba_face(prep: _Prepared, fc: ErpFace, near: float, bg: torch.Tensor) -> RenderOutput:
-    """One cube face raw as rasterize_tiles(raw=True, distance=True) returns it (render_gs.rasterize_numba)."""
+def _numba_face(prep: _Prepared, fc: ErpFace, near: float, bg: torch.Tensor, need: np.ndarray | None = None
+                ) -> RenderOutput:
+    """One cube face raw as rasterize_tiles(raw=True, distance=True) returns it (render_gs.rasterize_numba), only on
+    the face pixels `need` (n * n,) bool when given."""
     proj = project(prep, invert_pose(fc.world_from_face), fc.f, fc.f, fc.c, fc.c, fc.n, fc.n, near)
-    return rasterize_numba(proj, fc.n, fc.n, bg, raw=True, distance=True)
+    return rasterize_numba(proj, fc.n, fc.n, bg, raw=True, distance=True, need=need)
+
+
+def face_taps(fc: ErpFace, samples: np.ndarray) -> np.ndarray:
+    """(n * n,) bool: the face pixels that ErpFace.sample's bilinear taps of its samples where samples (K,) bool read,
+    and their neighbours (a margin for grid_sample's rounding)."""
+    n = fc.n
+    g = fc.grid.numpy().astype(np.float64)[np.asarray(samples, bool)]
+    lo = np.floor(np.clip(((g + 1.0) * n - 1.0) / 2.0, 0.0, n - 1.0)).astype(np.int64)
+    out = np.zeros((n, n), bool)
+    for dy in (-1, 0, 1, 2):
+        for dx in (-1, 0, 1, 2):
+            out[np.clip(lo[:, 1] + dy, 0, n - 1), np.clip(lo[:, 0] + dx, 0, n - 1)] = True
+    return out.reshape(-1)
 
 
 def _compose_erp(faces: list[ErpFace], H: int, W: int, supersample: int, render_face, workers: int = 1) -> RenderOutput:

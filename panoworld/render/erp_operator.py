@@ -6,6 +6,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
+from numba import njit
 
 from panoworld.core.conventions import invert_pose
 from panoworld.io.gaussian_set import Gaussians
@@ -107,10 +108,28 @@ class ErpColorOperator:
             out.faces.append((index, S, scipy.sparse.csr_matrix((A.data, j, A.indptr), shape=(A.shape[0], len(cols)))))
         return out
 
+    def read_rows(self) -> ErpColorOperator:
+        """The same operator holding only the face pixels some ERP sample reads (A's other rows, a pole face's corners
+        and the margins, dropped; S's columns renumbered): the same products to the last bit, in less memory."""
+        import copy
+
+        import scipy.sparse
+
+        out = copy.copy(self)
+        out.faces = []
+        for index, S, A in self.faces:
+            read = np.zeros(A.shape[0], bool)
+            read[S.indices] = True
+            rows = np.flatnonzero(read)
+            renum = np.cumsum(read, dtype=np.int32) - 1
+            S = scipy.sparse.csr_matrix((S.data, renum[S.indices], S.indptr), shape=(S.shape[0], len(rows)))
+            out.faces.append((index, S, A[rows]))
+        return out
+
     def __call__(self, colors: torch.Tensor) -> torch.Tensor:
-        c = colors.detach().numpy().astype(np.float32)
+        c = np.ascontiguousarray(colors.detach().numpy(), np.float32)
         out = np.zeros((self.s * self.H * self.s * self.W, 3), np.float32)
-        for (index, _, _), face in zip(self.faces, self._per_face(lambda f: f[1] @ (f[2] @ c))):
+        for (index, _, _), face in zip(self.faces, self._per_face(lambda f: _times(f[1], _times(f[2], c)))):
             out[index] = face
         out = out.reshape(self.H, self.s, self.W, self.s, 3).mean((1, 3)) if self.s > 1 else \
             out.reshape(self.H, self.W, 3)
@@ -120,8 +139,8 @@ class ErpColorOperator:
         r = image.detach().numpy().astype(np.float32)
         if self.s > 1:  # the pooling's adjoint: each sample gets its pixel's value / s^2
             r = np.broadcast_to(r[:, None, :, None] / self.s**2, (self.H, self.s, self.W, self.s, 3))
-        r = np.ascontiguousarray(r).reshape(-1, 3)
-        return torch.from_numpy(sum(self._per_face(lambda f: f[2].T @ (f[1].T @ r[f[0]])),
+        r = np.ascontiguousarray(r, np.float32).reshape(-1, 3)
+        return torch.from_numpy(sum(self._per_face(lambda f: _times_t(f[2], _times_t(f[1], r[f[0]]))),
                                     np.zeros((self.N, 3), np.float32)))
 
     def _per_face(self, fn) -> list:
@@ -129,3 +148,40 @@ class ErpColorOperator:
         products release the GIL)."""
         with ThreadPoolExecutor(max(1, torch.get_num_threads())) as pool:
             return list(pool.map(fn, self.faces))
+
+
+def _times(m, x: np.ndarray) -> np.ndarray:
+    """m @ x for a CSR matrix m (float32) and x (cols, 3) float32: scipy's product, the same sums in the same order."""
+    out = np.zeros((m.shape[0], 3), np.float32)
+    _csr_times(m.indptr, m.indices, m.data, x, out)
+    return out
+
+
+def _times_t(m, y: np.ndarray) -> np.ndarray:
+    """m.T @ y for a CSR matrix m (float32) and y (rows, 3) float32: scipy's product, the same sums in the same order."""
+    out = np.zeros((m.shape[1], 3), np.float32)
+    _csr_times_t(m.indptr, m.indices, m.data, np.ascontiguousarray(y), out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _csr_times(indptr, indices, data, x, out):
+    for i in range(indptr.shape[0] - 1):
+        a0, a1, a2 = out[i, 0], out[i, 1], out[i, 2]
+        for p in range(indptr[i], indptr[i + 1]):
+            j, w = indices[p], data[p]
+            a0 += w * x[j, 0]
+            a1 += w * x[j, 1]
+            a2 += w * x[j, 2]
+        out[i, 0], out[i, 1], out[i, 2] = a0, a1, a2
+
+
+@njit(cache=True, nogil=True)
+def _csr_times_t(indptr, indices, data, y, out):
+    for i in range(indptr.shape[0] - 1):
+        y0, y1, y2 = y[i, 0], y[i, 1], y[i, 2]
+        for p in range(indptr[i], indptr[i + 1]):
+            j, w = indices[p], data[p]
+            out[j, 0] += w * y0
+            out[j, 1] += w * y1
+            out[j, 2] += w * y2

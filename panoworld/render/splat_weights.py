@@ -171,3 +171,34 @@ def weighted_sums(pix, gid, w, values, size):
             out[p, j] += wk * values[gid[k], j]
         out[p, c] += wk
     return out
+
+
+@njit(cache=True, nogil=True)
+def view_candidate_indices(offsets, r2, scale2, rot, fx, fy, cx, cy, H, W, near, kx, ky, lowpass):
+    """splats.view_candidates' test in one pass (float64 arithmetic on the float32 inputs): the ascending indices of
+    the Gaussians (offsets (N, 3), r2 (N,), scale2 (N,)) whose bound box, kx / ky the Jacobian clamp's factor per
+    axis, meets the pinhole view rotated by rot (3, 3) cam_from_world."""
+    out = np.empty(offsets.shape[0], np.int64)
+    m = 0
+    front = near * 0.999
+    for i in range(offsets.shape[0]):
+        if not r2[i] > 0:
+            continue
+        ox, oy, oz = np.float64(offsets[i, 0]), np.float64(offsets[i, 1]), np.float64(offsets[i, 2])
+        pz = ox * rot[2, 0] + oy * rot[2, 1] + oz * rot[2, 2]
+        if not pz > front:
+            continue
+        s2, rr = np.float64(scale2[i]), np.float64(r2[i])
+        inv_z = fx / pz
+        ext = np.sqrt(rr * (kx * s2 * inv_z * inv_z + lowpass)) * 1.01 + 1.0
+        u = (ox * rot[0, 0] + oy * rot[0, 1] + oz * rot[0, 2]) * inv_z + cx
+        if u < 0.5 - ext or u > W - 0.5 + ext:
+            continue
+        inv_z = fy / pz
+        ext = np.sqrt(rr * (ky * s2 * inv_z * inv_z + lowpass)) * 1.01 + 1.0
+        v = (ox * rot[1, 0] + oy * rot[1, 1] + oz * rot[1, 2]) * inv_z + cy
+        if v < 0.5 - ext or v > H - 0.5 + ext:
+            continue
+        out[m] = i
+        m += 1
+    return out[:m].copy()

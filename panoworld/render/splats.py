@@ -370,19 +370,18 @@ def view_candidates(offsets: torch.Tensor, r2: torch.Tensor, scale2: torch.Tenso
     (cam_from_world_rot (3, 3)): a superset, from a bound of the box project puts around each centre (half-width
     sqrt(r2 a), a the 2D covariance's diagonal plus LOWPASS, at most (f/z)^2 (1 + (1.3 c / f)^2) scale2 + LOWPASS
     with c the principal point's larger distance to the image's sides, as the Jacobian is clamped at 1.3x that), with
-    slack for float32 rounding."""
-    p = offsets @ torch.as_tensor(np.asarray(cam_from_world_rot).T, dtype=torch.float32)  # camera-frame coordinates
-    front = ((p[:, 2] > near * 0.999) & (r2 > 0)).nonzero().squeeze(1)
-    p = p[front]
-    inside = None
-    for axis, f, c, n in ((0, fx, cx, W), (1, fy, cy, H)):
-        inv_z = f / p[:, 2]
-        k = 1.0 + (1.3 * max(c, n - c) / f) ** 2
-        ext = (r2[front] * (k * scale2[front] * inv_z**2 + LOWPASS)).sqrt() * 1.01 + 1.0
-        u = p[:, axis] * inv_z + c
-        ok = (u >= 0.5 - ext) & (u <= n - 0.5 + ext)
-        inside = ok if inside is None else inside & ok
-    return front[inside]
+    slack for float32 rounding (in one pass, in float64: render.splat_weights.view_candidate_indices)."""
+    from panoworld.render.splat_weights import view_candidate_indices
+
+    k = [1.0 + (1.3 * max(c, n - c) / f) ** 2 for f, c, n in ((fx, cx, W), (fy, cy, H))]
+    rot = np.ascontiguousarray(cam_from_world_rot, np.float64)
+    return torch.from_numpy(view_candidate_indices(_contiguous(offsets), _contiguous(r2), _contiguous(scale2), rot,
+                                                   float(fx), float(fy), float(cx), float(cy), int(H), int(W),
+                                                   float(near), k[0], k[1], float(LOWPASS)))
+
+
+def _contiguous(t: torch.Tensor) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().numpy(), np.float32)
 
 
 def cull_terms(means, opacities, scales, centre: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -404,12 +403,13 @@ def _needs_grad(gaussians: Gaussians) -> bool:
 
 
 def rasterize_numba(proj: Projected, H: int, W: int, background: torch.Tensor, *, raw: bool = False,
-                    distance: bool = False, tile: int = NUMBA_TILE) -> RenderOutput:
+                    distance: bool = False, tile: int = NUMBA_TILE, need: np.ndarray | None = None) -> RenderOutput:
     """rasterize_tiles' image (same raw / distance meaning) summed in float64 from face_weights' weights: no
-    gradient, equal to it within float32 rounding (tests/test_render_gs.py)."""
+    gradient, equal to it within float32 rounding (tests/test_render_gs.py). need (H * W,) bool: only those pixels
+    are composited (the others hold the background, alpha 0)."""
     from panoworld.render.splat_weights import weighted_sums
 
-    pix, gid, w = face_weights(proj, H, W, tile=tile)
+    pix, gid, w = face_weights(proj, H, W, tile=tile, need=need)
     depth_of = proj.dist if distance else proj.z
     values = torch.cat([proj.color, depth_of[:, None]], 1).detach().numpy()
     out = torch.from_numpy(weighted_sums(pix, gid, w, values, H * W).astype(np.float32))
