@@ -28,7 +28,7 @@ def sh1_basis(means: np.ndarray, centre: np.ndarray) -> torch.Tensor:
 
 def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]], *, height: int = 256,
                        supersample: int = 2, iters: int = 20, damping: float = 0.01, sh_degree: int = 1,
-                       sh_damping: float = 0.001, sh_min_share: float = 0.0, max_bytes: float = float("inf")) -> tuple[Gaussians, dict]:
+                       sh_damping: float = 0.001, max_bytes: float = float("inf")) -> tuple[Gaussians, dict]:
     """Gaussians g whose colours are refitted so their ERP render (height rows, supersample: render_erp's sampling)
     at each view's world_from_cam (4, 4) reproduces its target (H, W, 3) uint8 or [0, 1], area-resized to height rows.
 
@@ -110,11 +110,6 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         rho = scatter(lambda k: seen_k[k][:, None] * (b(k) - b_mean[cols_t[k]]).square(), 3).sum(1, keepdim=True)
         rho = rho / total
         one_way = rho < 1e-6  # seen from one direction (one view): s does not reach the colours
-        if sh_min_share > 0:  # nor where the views besides the one that sees it most hold less than that share
-            most = torch.zeros(n)
-            for k in range(views_n):
-                most.scatter_reduce_(0, cols_t[k], seen_k[k], reduce="amax")
-            one_way |= (seen[:, 0] - most < sh_min_share * seen[:, 0])[:, None]
         rho = (rho + sh_damping / PIXEL_WEIGHT).sqrt()
         basis = [torch.where(one_way[c], 0.0, b(k) - b_mean[c]) / rho[c] for k, c in enumerate(cols_t)]
         x0 = torch.cat([c0, (s0 * rho[:, :, None]).reshape(n, 9)], 1)
