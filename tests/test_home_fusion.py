@@ -99,6 +99,15 @@ def test_a_home_fits_its_colours_at_every_capture_point():
     for n in poses:
         assert rmse(fitted.gaussians, n) < 0.5 * rmse(plain.gaussians, n), n
         assert fitted.color_fit["rmse_after"][n] < 0.5 * fitted.color_fit["rmse_before"][n]
+    # a stiffer damping keeps the colours nearer the fused ones, and the capture poses further from their panoramas
+    stiff = home_anchored_fusion(None, sources, SourcePixelParams(**params, capture_fit_damping=1.0))
+
+    def moved(g):
+        return float(np.abs(g.base_colors() - plain.gaussians.base_colors()).mean())
+
+    assert moved(stiff.gaussians) < 0.8 * moved(fitted.gaussians)
+    for n in poses:
+        assert fitted.color_fit["rmse_after"][n] < stiff.color_fit["rmse_after"][n] < stiff.color_fit["rmse_before"][n]
 
 
 def test_nearest_source_equals_its_every_pair_reference():
