@@ -100,7 +100,8 @@ def _home_mesh(dirs, poses, params: Params, out_dir: Path) -> dict:
         "stretched_kept_as_occluders": False,
         "grid": sources[0]["grid"],
         "home": {"sources": [s["name"] for s in sources],
-                 "faces_per_source": np.bincount(face_source, minlength=len(sources)).tolist()},
+                 "faces_per_source": np.bincount(face_source, minlength=len(sources)).tolist(),
+                 "doorway_px": {s["name"]: s["doorway_px"] for s in sources if s["doorway_px"]}},
         "build_s": build_s,
     }
 
