@@ -200,8 +200,9 @@ def _edges(names, pairs, bearing, floors, frames, small, o: RegisterOptions):
     return edges, refused, depth_ok, floor_refused, off_frames
 
 
-def refuse_overlapping_rooms(names: list[str], edges: list[Edge], given: dict[str, np.ndarray], depths: dict[str, np.ndarray],
-                     o: RegisterOptions) -> dict[tuple[str, str], tuple[str, str]]:
+def refuse_overlapping_rooms(names: list[str], edges: list[Edge], given: dict[str, np.ndarray],
+                             depths: dict[str, np.ndarray], o: RegisterOptions
+                             ) -> dict[tuple[str, str], tuple[str, str]]:
     """Remove from `edges` the floor, layout and bearing-only poses (estimated without the dense depths) that the solved
     registration needs to put two panoramas' rooms inside each other: while some registered pair whose depths (H, W)
     hold their whole room overlaps (rooms_overlap_refusal) and the way between them in the pose graph runs through such

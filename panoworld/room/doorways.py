@@ -34,7 +34,7 @@ MIN_STD = 4.0
 """... and both vary by at least this (grey levels, standard deviation over the window): plain floor tells nothing."""
 MIN_MATCHES = 3
 """A run of agreeing columns is an opening when at least this many floor keypoints seen through it match the other
-panorama's at the registered pose (SIFT on the floor images, register.floor): textures alone agree by chance on plain
+panorama's at the registered pose (SIFT on the floor images, geometry.floor_view): textures alone agree by chance on plain
 walls lit like the floor."""
 MARGIN_M = 0.15
 """An opening is widened by this on either side along its wall: the views agree only where both see the floor, short
