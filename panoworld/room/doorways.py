@@ -9,12 +9,12 @@ import cv2
 import numpy as np
 
 from panoworld.core.conventions import (
-    dir_from_lonlat,
     erp_dirs,
     erp_lonlat_from_pixel,
     erp_pixel_from_dir,
     erp_pixel_from_lonlat,
     invert_pose,
+    transform_points,
 )
 from panoworld.core.shapes import check_shape
 from panoworld.geometry.floor_view import FloorView, agrees_with_pose, camera_height, floor_matches, floor_view
@@ -119,8 +119,7 @@ def is_layout(depth: np.ndarray, height: float, *, tol: float = 0.02, share: flo
         return False
     ceiling = float(np.median(depth[sel] * up[sel]))
     flat = np.maximum(np.hypot(dirs[..., 0], dirs[..., 2]), 1e-9)
-    reach = np.where(valid, depth * flat, 0.0).max(0)
-    pred = np.minimum(reach[None, :] / flat, np.where(up < 0, height / np.maximum(-up, 1e-9), np.inf))
+    pred = np.minimum(_reach(depth)[None, :] / flat, np.where(up < 0, height / np.maximum(-up, 1e-9), np.inf))
     pred = np.minimum(pred, np.where(up > 0, ceiling / np.maximum(up, 1e-9), np.inf))
     good = valid & (np.abs(depth / pred - 1) < tol)
     return bool(good.sum() >= share * valid.sum())
@@ -133,8 +132,7 @@ def _near(world_from_a: np.ndarray, world_from_b: np.ndarray) -> bool:
 def _look(name: str, pts: np.ndarray, grey, depths, world_from_cam):
     """For world points pts (n, n, 3): (distance from the panorama's camera, its depth along that ray, its grey image
     there, the depth column)."""
-    T = np.asarray(world_from_cam[name], np.float64)
-    p = (pts - T[:3, 3]) @ T[:3, :3]
+    p = transform_points(invert_pose(np.asarray(world_from_cam[name], np.float64)), pts)
     dist = np.linalg.norm(p, axis=-1)
     d = (p / np.maximum(dist, 1e-9)[..., None]).reshape(-1, 3)
     depth = depths[name]
@@ -265,16 +263,15 @@ def _walls(depth: np.ndarray, height: float) -> np.ndarray:
 
 def _to_world_plan(world_from_cam: np.ndarray, xz: np.ndarray) -> np.ndarray:
     """(N, 2) world x, z of camera-frame floor-plan points xz (N, 2)."""
-    T = np.asarray(world_from_cam, np.float64)
-    return (np.stack([xz[:, 0], np.zeros(len(xz)), xz[:, 1]], -1) @ T[:3, :3].T + T[:3, 3])[:, [0, 2]]
+    return transform_points(np.asarray(world_from_cam, np.float64),
+                            np.stack([xz[:, 0], np.zeros(len(xz)), xz[:, 1]], -1))[:, [0, 2]]
 
 
 def _plan_points(depth: np.ndarray, world_from_cam: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """(N, 2) world x, z of the pixels mask (H, W) of depth (H, W)."""
     iv, iu = np.nonzero(mask)
-    d = dir_from_lonlat(*erp_lonlat_from_pixel(iu + 0.5, iv + 0.5, *depth.shape)) * depth[iv, iu, None]
-    T = np.asarray(world_from_cam, np.float64)
-    return (d @ T[:3, :3].T + T[:3, 3])[:, [0, 2]]
+    pts = _dirs(*depth.shape)[iv, iu] * depth[iv, iu, None]
+    return transform_points(np.asarray(world_from_cam, np.float64), pts)[:, [0, 2]]
 
 
 def _on_segments(pts: np.ndarray, segments: list[np.ndarray]) -> np.ndarray:
