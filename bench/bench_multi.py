@@ -1,7 +1,10 @@
 """Benchmark of multi-panorama homes: synthetic homes of >= 3 rooms with 2, 4 and 8 panoramas ->
 registration error against ground truth (translation cm, rotation deg), registered fraction, time and peak memory,
-and whether one NavMesh over the fused mesh holds every registered capture point. With --pipeline: the whole
-`runner.py run` on each home (wall and CPU seconds, peak memory, NavMesh, Gaussian render at every capture pose)."""
+and whether one NavMesh over the home mesh (the mesh stage's rules, as mesh.home.home_mesh applies them) holds every
+registered capture point. With --depth layout each panorama's depth is its room's layout alone (doorways closed, no furniture: as
+real-estate tours annotate it); the doorways the home mesh opens are then scored against the true doorways. With
+--pipeline: the whole `runner.py run` on each home (wall and CPU seconds, peak memory, NavMesh, Gaussian render at
+every capture pose)."""
 
 from __future__ import annotations
 
@@ -30,7 +33,9 @@ from panoworld.io.depth import read_depth, read_panorama
 from panoworld.io.manifest import read_manifest
 from panoworld.mesh.fuse import fuse_meshes
 from panoworld.navmesh.home import home_navmesh
-from panoworld.tools.synth.home import generate_home, home_params, write_home
+from panoworld.room.doorways import open_doorways
+from panoworld.room.plausible import drop_near_captures
+from panoworld.tools.synth.home import DEPTH_KINDS, floor_plan, generate_home, home_params, tour_rooms, write_home
 
 ROOT = Path(__file__).resolve().parent.parent
 VALIDATION_SEEDS = (1, 2, 3)
@@ -39,6 +44,9 @@ TEST_SEEDS = (100, 101, 102)
 """Held-out seeds: reported, never tuned on."""
 MISPLACED_CM, MISPLACED_DEG = 20.0, 5.0
 """A registered panorama farther than this from its true pose counts as misplaced (a wrong registration)."""
+DOORWAY_M = 0.2
+"""An opened wall pixel is at a true doorway when its wall point (at the true pose) lies within this of a doorway
+cell of the floor plan."""
 
 
 def pose_errors(est: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> dict[str, tuple[float, float]]:
@@ -65,17 +73,29 @@ def perturb_depths(scene: Path, seed: int, scale_error: float, noise: float) -> 
         np.save(f, (d * rng.uniform(1 - scale_error, 1 + scale_error) * (1 + field)).astype(np.float32))
 
 
+def perturb_exposure(scene: Path, seed: int, jitter: float) -> None:
+    """Expose each panorama like a camera on auto exposure would: one gain per panorama, log-uniform within
+    1 / (1 + jitter) .. 1 + jitter, applied in linear light and clipped."""
+    rng = np.random.default_rng(seed + 1)
+    for f in sorted((scene / "panoramas").glob("*.png")):
+        linear = (cv2.imread(str(f)).astype(np.float32) / 255.0) ** 2.2
+        gain = float(np.exp(rng.uniform(-1, 1) * np.log1p(jitter)))
+        cv2.imwrite(str(f), np.round(255 * np.clip(linear * gain, 0, 1) ** (1 / 2.2)).astype(np.uint8))
+
+
 def run_one(seed: int, k: int, height: int, work: Path, with_navmesh: bool, scale_error: float = 0.0,
-            noise: float = 0.0) -> dict:
-    params = home_params("default")
+            noise: float = 0.0, depth: str = "scene", exposure_jitter: float = 0.0) -> dict:
+    params = home_params("default", tour_rooms(k))
     params = replace(params, render=replace(params.render, pano_height=height))
     t0 = time.perf_counter()
     home = generate_home(seed, k, "default", params=params)
     scene = work / f"home_{seed}_{k}"
-    write_home(home, scene, params)
+    write_home(home, scene, params, depth=depth)
     synth_s = time.perf_counter() - t0
     if scale_error > 0 or noise > 0:
         perturb_depths(scene, seed, scale_error, noise)
+    if exposure_jitter > 0:
+        perturb_exposure(scene, seed, exposure_jitter)
     out = scene / "artifacts" / "register"
     cmd = [sys.executable, "-m", "stages.register", "--scene", str(scene), "--out", str(out)]
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
@@ -85,7 +105,7 @@ def run_one(seed: int, k: int, height: int, work: Path, with_navmesh: bool, scal
     est = {n: np.asarray(T) for n, T in json.loads((out / "panoramas.json").read_text()).items()}
     gt = {n: np.asarray(T) for n, T in json.loads((scene / "gt" / "poses.json").read_text()).items()}
     errs = pose_errors(est, gt)
-    nav = navmesh_figures(scene, est) if with_navmesh else {}
+    nav = navmesh_figures(scene, est, gt, home) if with_navmesh else {}
     others = [v for n, v in errs.items() if n != sorted(est)[0]]
     t = np.array([e[0] for e in others]) if others else np.zeros(1)
     r = np.array([e[1] for e in others]) if others else np.zeros(1)
@@ -99,22 +119,64 @@ def run_one(seed: int, k: int, height: int, work: Path, with_navmesh: bool, scal
     }
 
 
-def navmesh_figures(scene: Path, est: dict[str, np.ndarray]) -> dict:
-    """Fuse the registered panoramas at their estimated poses, build the NavMesh around the first capture point and
-    count the capture points standing on it (one connected NavMesh holds them all when the count is complete)."""
+def navmesh_figures(scene: Path, est: dict[str, np.ndarray], gt: dict[str, np.ndarray], home) -> dict:
+    """Build the home mesh of the registered panoramas at their estimated poses (as the depth stage and
+    mesh.home.home_mesh do: implausible layout depth masked, surfaces through another capture point dropped, doorways
+    opened, then the fusion) and its NavMesh: the capture points on it, the components holding capture points, and the doorway
+    openings: wall pixels opened, and the share of them whose wall point (at the true pose) lies within DOORWAY_M of
+    a true doorway."""
     names = sorted(est)
     rgbs = {n: read_panorama(scene / "panoramas" / f"{n}.png") for n in names}
-    depths = {n: read_depth(scene / "depths" / f"{n}.npy") for n in names}
+    depths = {n: _plausible(read_depth(scene / "depths" / f"{n}.npy")) for n in names}
     t0 = time.perf_counter()
+    drop_near_captures(depths, est)
+    before = {n: d.copy() for n, d in depths.items()}
+    opened = open_doorways(names, rgbs, depths, est)
     mesh, _ = fuse_meshes(names, rgbs, depths, est)
     t1 = time.perf_counter()
     try:
-        _, on = home_navmesh(mesh, est)
+        nav, on = home_navmesh(mesh, est)
+        comps = {c for c in nav.info["home"]["capture_components"].values() if c is not None}
     except InputError as e:
-        on = {n: False for n in names}
+        on, comps = {n: False for n in names}, set()
         print(f"navmesh failed on {scene.name}: {e}", file=sys.stderr)
     return {"fused_faces": len(mesh.faces), "fuse_s": t1 - t0, "navmesh_s": time.perf_counter() - t1,
-            "on_navmesh": int(sum(on.values()))}
+            "on_navmesh": int(sum(on.values())), "navmesh_components": len(comps),
+            "doorway_px": int(sum(opened.values())),
+            "doorway_px_at_doorways": _at_doorways(before, depths, gt, floor_plan(home.scene))}
+
+
+def _plausible(depth: np.ndarray) -> np.ndarray:
+    """depth (H, W) with what the depth stage leaves unknown as implausible (room.plausible: a layout wall through
+    the camera, floor beyond its room) set to 0."""
+    from panoworld.room.floor import fit_planes
+    from panoworld.room.plausible import implausible_mask, unknown_beyond
+
+    valid = np.isfinite(depth) & (depth > 0)
+    drop, _ = implausible_mask(depth, valid, *fit_planes(depth, valid))
+    return np.where(valid & ~unknown_beyond(drop, valid), depth, 0.0).astype(depth.dtype)
+
+
+def _at_doorways(before: dict[str, np.ndarray], after: dict[str, np.ndarray], gt: dict[str, np.ndarray], plan
+                 ) -> int:
+    """How many wall pixels the doorway opening changed (before -> after depths (H, W)) lie, at their true pose
+    (gt world_from_cam), within DOORWAY_M of a doorway cell of the floor plan (plan: the home's FloorPlan)."""
+    from scipy import ndimage
+
+    from panoworld.core.conventions import erp_dirs, transform_points
+
+    far = ndimage.distance_transform_edt(~plan.door) * plan.cell
+    count = 0
+    for n, d0 in before.items():
+        changed = (after[n] != d0) & np.isfinite(d0) & (d0 > 0)
+        if not changed.any():
+            continue
+        pts = erp_dirs(*d0.shape)[changed] * d0[changed][:, None]
+        world = transform_points(gt[n], pts)
+        ij = np.round(plan.to_grid(world[:, [0, 2]])).astype(int)
+        ij = np.clip(ij, 0, np.array(plan.door.shape) - 1)
+        count += int((far[ij[:, 0], ij[:, 1]] <= DOORWAY_M + plan.cell / 2).sum())
+    return count
 
 
 def run_pipeline_one(seed: int, k: int, height: int, work: Path, preset: str, psnr_height: int) -> dict:
@@ -126,7 +188,7 @@ def run_pipeline_one(seed: int, k: int, height: int, work: Path, preset: str, ps
     from panoworld.gaussians.quality import capture_psnr
     from panoworld.io.home import capture_poses
 
-    params = home_params(preset)
+    params = home_params(preset, tour_rooms(k))
     params = replace(params, render=replace(params.render, pano_height=height))
     home = generate_home(seed, k, preset, params=params)
     scene = write_home(home, work / f"home_{seed}_{k}", params)
@@ -196,6 +258,10 @@ def main() -> int:
     ap.add_argument("--depth-scale-error", type=float, default=0.0,
                     help="per-panorama depth scale error (uniform 1 +- this) applied before registration")
     ap.add_argument("--depth-noise", type=float, default=0.0, help="relative per-pixel depth noise (smooth field std)")
+    ap.add_argument("--depth", choices=DEPTH_KINDS, default="scene",
+                    help="each panorama's depth: the rendered scene's, or its room's layout alone")
+    ap.add_argument("--exposure-jitter", type=float, default=0.0,
+                    help="per-panorama exposure gain within 1 / (1 + this) .. 1 + this (auto exposure)")
     ap.add_argument("--no-navmesh", action="store_true", help="skip the fused mesh and NavMesh figures")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
     ap.add_argument("--pipeline", action="store_true", help="run the whole pipeline (runner.py run) on each home")
@@ -212,7 +278,7 @@ def main() -> int:
         for k in args.panoramas:
             for seed in seeds:
                 rows.append(run_one(seed, k, args.height, Path(tmp), not args.no_navmesh, args.depth_scale_error,
-                                    args.depth_noise))
+                                    args.depth_noise, args.depth, args.exposure_jitter))
                 print(json.dumps(rows[-1]), file=sys.stderr)
     summary = []
     for k in args.panoramas:
@@ -230,18 +296,24 @@ def main() -> int:
             else None,
             "fuse_navmesh_s_mean": float(np.mean([r["fuse_s"] + r["navmesh_s"] for r in sel])) if not args.no_navmesh
             else None,
+            "one_component": sum(r.get("navmesh_components") == 1 for r in sel) if not args.no_navmesh else None,
+            "doorway_px": sum(r.get("doorway_px", 0) for r in sel),
+            "doorway_px_at_doorways": sum(r.get("doorway_px_at_doorways", 0) for r in sel),
         })
     if args.json:
-        print(json.dumps({"height": args.height, "seeds": list(seeds), "depth_scale_error": args.depth_scale_error,
+        print(json.dumps({"height": args.height, "seeds": list(seeds), "depth": args.depth, "exposure_jitter": args.exposure_jitter,
+                          "depth_scale_error": args.depth_scale_error,
                           "depth_noise": args.depth_noise, "rows": rows, "summary": summary}, indent=1))
         return 0
     print(f"| panoramas | scenes | registered | misplaced | trans cm mean / max | rot deg mean / max | register s "
-          f"| peak MB | NavMesh holds all registered | fuse + NavMesh s |  (height {args.height}, seeds {list(seeds)})")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+          f"| peak MB | NavMesh holds all registered | one component | doorway px opened (at doorways) "
+          f"| mesh + NavMesh s |  (height {args.height}, seeds {list(seeds)}, depth {args.depth})")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for s in summary:
         print(f"| {s['panoramas']} | {s['scenes']} | {s['registered_frac']:.0%} | {s['misplaced']} | "
               f"{s['trans_cm_mean']:.2f} / {s['trans_cm_max']:.2f} | {s['rot_deg_mean']:.3f} / {s['rot_deg_max']:.3f} "
               f"| {s['register_s_mean']:.1f} | {s['peak_rss_mb_max']:.0f} | {s['navmesh_connected']} of {s['scenes']} "
+              f"| {s['one_component']} of {s['scenes']} | {s['doorway_px']} ({s['doorway_px_at_doorways']}) "
               f"| {s['fuse_navmesh_s_mean'] or 0:.1f} |")
     return 0
 

@@ -125,3 +125,68 @@ def test_open_doorways_keeps_a_solid_wall():
     before = {n: d.copy() for n, d in depths.items()}
     assert open_doorways(["a", "b"], rgbs, depths, poses) == {"a": 0, "b": 0}
     assert all(np.array_equal(depths[n], before[n]) for n in depths)
+
+
+def test_synth_layout_depth_is_the_capture_room_alone(tmp_path):
+    """`synth --panoramas K --depth layout`: each depth is its room's walls, floor and flat ceiling, every doorway
+    closed: finite everywhere, a layout (is_layout), the furniture in front of it, and the scene seen beyond it only
+    through the room's doorways."""
+    from dataclasses import replace
+
+    from scipy import ndimage
+
+    from panoworld.core.conventions import transform_points
+    from panoworld.tools.synth.cli import main
+    from panoworld.tools.synth.home import floor_plan, generate_home, home_params, layout_depth
+
+    params = home_params("ci-tiny")
+    params = replace(params, render=replace(params.render, pano_height=96))
+    home = generate_home(7, 3, "ci-tiny", params=params)
+    plan = floor_plan(home.scene)
+    near_door = ndimage.distance_transform_edt(~plan.door) * plan.cell <= plan.cell
+    for pose, room in zip(home.world_from_cam, home.rooms):
+        _, scene = home.scene.render(pose, 96, 192)
+        layout = layout_depth(plan, room, pose, 96, 192)
+        assert np.isfinite(layout).all() and is_layout(layout, -pose[1, 3])
+        assert (np.abs(scene - layout) < 1e-3).mean() > 0.4  # walls, floor and ceiling where nothing stands
+        beyond = scene > layout + 0.02
+        assert beyond.any()  # every capture room has a doorway
+        wall = transform_points(pose, erp_dirs(96, 192, np.float64)[beyond] * layout[beyond][:, None])
+        ij = np.clip(np.round(plan.to_grid(wall[:, [0, 2]])).astype(int), 0, np.array(plan.door.shape) - 1)
+        assert near_door[ij[:, 0], ij[:, 1]].all()
+    with pytest.raises(SystemExit) as e:
+        main([str(tmp_path / "x"), "--seed", "1", "--depth", "layout"])
+    assert e.value.code == 2 and not (tmp_path / "x").exists()
+
+
+def test_open_doorways_opens_the_true_doorways_of_a_synthetic_home():
+    """A furnished synthetic home of 4 rooms, 4 panoramas at their true poses, each with its room's layout depth: the
+    walls opened lie at the floor plan's doorways (within 0.2 m: the opening's margin), not on the plain walls beside
+    them that are shaded like the floor behind."""
+    from dataclasses import replace
+
+    from scipy import ndimage
+
+    from panoworld.core.conventions import invert_pose, transform_points
+    from panoworld.tools.synth.home import floor_plan, generate_home, home_params, layout_depth
+
+    params = home_params("ci-tiny")
+    params = replace(params, render=replace(params.render, pano_height=384))
+    home = generate_home(2, 4, "ci-tiny", params=params)
+    plan = floor_plan(home.scene)
+    rgbs, depths = {}, {}
+    for n, pose, room in zip(home.names, home.world_from_cam, home.rooms):
+        rgbs[n], _ = home.scene.render(pose, 384, 768)
+        depths[n] = layout_depth(plan, room, pose, 384, 768)
+    before = {n: d.copy() for n, d in depths.items()}
+    first = invert_pose(home.world_from_cam[0])
+    opened = open_doorways(home.names, rgbs, depths, {n: first @ T for n, T in zip(home.names, home.world_from_cam)})
+    assert sum(opened.values()) > 20000
+    near_door = ndimage.distance_transform_edt(~plan.door) * plan.cell <= 0.2 + plan.cell / 2
+    at_door = 0
+    for n, pose in zip(home.names, home.world_from_cam):
+        changed = depths[n] != before[n]
+        wall = transform_points(pose, erp_dirs(384, 768, np.float64)[changed] * before[n][changed][:, None])
+        ij = np.clip(np.round(plan.to_grid(wall[:, [0, 2]])).astype(int), 0, np.array(plan.door.shape) - 1)
+        at_door += int(near_door[ij[:, 0], ij[:, 1]].sum())
+    assert at_door >= 0.95 * sum(opened.values())

@@ -160,7 +160,7 @@ def test_synth_cli_panoramas_refuses_bad_counts(tmp_path):
     from panoworld.tools.synth.cli import main
 
     with pytest.raises(SystemExit) as e:
-        main([str(tmp_path / "x"), "--seed", "1", "--panoramas", "9"])
+        main([str(tmp_path / "x"), "--seed", "1", "--panoramas", "33"])
     assert e.value.code == 2 and not (tmp_path / "x").exists()
 
 

@@ -10,7 +10,14 @@ from pathlib import Path
 from tqdm import tqdm
 
 from panoworld.io.safe_write import check_output_dir
-from panoworld.tools.synth.home import MAX_PANORAMAS, generate_home, home_params, write_home
+from panoworld.tools.synth.home import (
+    DEPTH_KINDS,
+    MAX_PANORAMAS,
+    generate_home,
+    home_params,
+    tour_rooms,
+    write_home,
+)
 from panoworld.tools.synth.params import Preset, params_for
 from panoworld.tools.synth.rig import RigKind
 from panoworld.tools.synth.scene import SceneGenerationError, derive_seed, generate_scene, write_scene
@@ -30,7 +37,11 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--scenes", type=int, default=None,
                     help="write this many scenes DATASET_DIR/scene_0000 ... with seeds derived from --seed")
     ap.add_argument("--panoramas", type=int, default=None,
-                    help="a home of >= 3 rooms captured by this many panoramas (2-8): panoramas/, depths/, gt/poses.json")
+                    help="a home of >= 3 rooms captured by this many panoramas (2-32; more rooms beyond 8): panoramas/, "
+                    "depths/, gt/poses.json")
+    ap.add_argument("--depth", choices=DEPTH_KINDS, default=None,
+                    help="with --panoramas: depths/ holds the rendered scene's depth (scene, the default) or each "
+                    "capture room's layout alone (layout: walls with the doorways closed, floor, flat ceiling)")
     return ap
 
 
@@ -48,6 +59,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--panoramas {args.panoramas} but expected 2..{MAX_PANORAMAS}")
     if args.panoramas is not None and (args.scenes is not None or args.frames is not None or args.rig != "none"):
         ap.error("--panoramas cannot be combined with --scenes, --frames or --rig")
+    if args.depth is not None and args.panoramas is None:
+        ap.error("--depth needs --panoramas")
     params = params_for(args.preset, frames=args.frames)
     params = replace(params, render=replace(params.render, rig=args.rig))
     try:
@@ -55,9 +68,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.panoramas is not None:
             if args.out_dir.exists() and (not args.out_dir.is_dir() or any(args.out_dir.iterdir())):
                 ap.error(f"{args.out_dir} already exists and is not empty")
-            hp = home_params(args.preset)
+            hp = home_params(args.preset, tour_rooms(args.panoramas))
             home = generate_home(args.seed, args.panoramas, args.preset, params=hp)
-            write_home(home, args.out_dir, hp)
+            write_home(home, args.out_dir, hp, depth=args.depth or "scene")
             print(f"wrote {args.out_dir} (seed {args.seed}, {args.panoramas} panoramas in rooms {home.rooms} of "
                   f"{home.scene.meta['n_rooms']})")
             return 0

@@ -11,15 +11,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from panoworld.tools.synth.layout import FloorPlan
+from panoworld.geometry.raycast import Raycaster
+from panoworld.tools.synth.layout import SOLID, FloorPlan, architecture_quads, quads_to_mesh
 from panoworld.tools.synth.params import Preset, SynthParams, params_for
 from panoworld.tools.synth.scene import SceneGenerationError, SynthScene, derive_seed, generate_scene
 from panoworld.tools.synth.tracks import Track, TrackPlanner, distance_to_mesh, pose_from_xz_heading
 
 MIN_ROOMS = 3
-MAX_PANORAMAS = 8
+MAX_PANORAMAS = 32
 MAX_SPACING_M = 3.5
 """A capture point is at most this far from an earlier one it sees (real-estate tours: every few metres)."""
+DEPTH_KINDS = ("scene", "layout")
+"""What depths/NAME.npy holds: the rendered scene's depth, or its capture room's layout alone (layout_depth)."""
 
 
 @dataclass(kw_only=True)
@@ -36,6 +39,12 @@ class HomeCapture:
     """Room id of each capture point."""
 
 
+def tour_rooms(n_panoramas: int) -> tuple[int, int]:
+    """The range of room counts of a home captured by n_panoramas: MIN_ROOMS to 4 up to 8 panoramas, then about one
+    room per 3 panoramas (a real-estate tour: a few panoramas in the large rooms, one in each small one)."""
+    return (MIN_ROOMS, 4) if n_panoramas <= 8 else (n_panoramas // 3, n_panoramas // 3 + 2)
+
+
 def home_params(preset: Preset | str, n_rooms: tuple[int, int] = (MIN_ROOMS, 4)) -> SynthParams:
     """The preset's generator settings with at least MIN_ROOMS rooms and no dense tracks (captures are placed later)."""
     p = params_for(preset)
@@ -46,7 +55,8 @@ def home_params(preset: Preset | str, n_rooms: tuple[int, int] = (MIN_ROOMS, 4))
                    render=replace(p.render, write_frames=False))
 
 
-def _floor_plan(scene: SynthScene) -> FloorPlan:
+def floor_plan(scene: SynthScene) -> FloorPlan:
+    """The grid floor plan a generated scene was built from (rooms, doorways, ceiling and door heights)."""
     m, fp = scene.meta, scene.floorplan
     return FloorPlan(label=fp["label"], top=fp["top"], door=fp["door"], cell=m["cell_m"], origin_x=m["origin_x"],
                      origin_z=m["origin_z"], ceiling=m["ceiling_height_m"], door_height=m["door_height_m"],
@@ -57,7 +67,7 @@ def _place_captures(scene: SynthScene, params: SynthParams, k: int, rng: np.rand
                     ) -> tuple[np.ndarray, list[int]]:
     """k upright capture poses, each in line of sight of an earlier one 1.5 m to MAX_SPACING_M away, preferring rooms not yet
     captured (a tour through the doorways); raises SceneGenerationError when the home has no room for them."""
-    plan = _floor_plan(scene)
+    plan = floor_plan(scene)
     tp = params.tracks
     planner = TrackPlanner(plan, scene.floorplan["occupied"], scene.triangles, tp, margin=params.furniture.walk_margin_m)
     cells = planner.cells
@@ -106,10 +116,11 @@ def _place_captures(scene: SynthScene, params: SynthParams, k: int, rng: np.rand
 
 def generate_home(seed: int, n_panoramas: int, preset: Preset | str = Preset.DEFAULT, *,
                   params: SynthParams | None = None, attempts: int = 8) -> HomeCapture:
-    """A home of >= 3 rooms and n_panoramas (2-8) capture poses, deterministic in seed; then SceneGenerationError."""
+    """A home of >= 3 rooms (tour_rooms) and n_panoramas (2 to MAX_PANORAMAS) capture poses, deterministic in seed;
+    then SceneGenerationError."""
     if not 2 <= n_panoramas <= MAX_PANORAMAS:
         raise ValueError(f"{n_panoramas=} but expected 2..{MAX_PANORAMAS} panoramas of one home")
-    params = params or home_params(preset)
+    params = params or home_params(preset, tour_rooms(n_panoramas))
     errors = []
     for attempt in range(attempts):
         home_seed = derive_seed(int(seed), 7, attempt)
@@ -130,8 +141,24 @@ def generate_home(seed: int, n_panoramas: int, preset: Preset | str = Preset.DEF
                                + "\n  ".join(errors))
 
 
-def write_home(home: HomeCapture, out_dir: str | os.PathLike, params: SynthParams) -> Path:
-    """Render and write SCENE/panoramas/NAME.png, SCENE/depths/NAME.npy and gt/ (with gt/poses.json) atomically."""
+def layout_depth(plan: FloorPlan, room: int, world_from_cam: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(height, width) float32 ray depth of one room's layout as a room-layout annotation (ZInD) gives it: the walls
+    of room (a label of plan) with every doorway closed, its floor and a flat ceiling; no furniture, no other room."""
+    own = plan.label == room
+    solo = replace(plan, label=np.where(own, 0, SOLID).astype(np.int32), top=np.where(own, plan.ceiling, 0.0),
+                   door=np.zeros_like(plan.door), n_rooms=1)
+    parts = [quads_to_mesh(q.corners, q.normal) for q in architecture_quads(solo).values() if len(q.corners)]
+    starts = np.cumsum([0] + [len(v) for v, _ in parts[:-1]])
+    vertices = np.concatenate([v for v, _ in parts])
+    faces = np.concatenate([f + s for (_, f), s in zip(parts, starts)])
+    return Raycaster(vertices, faces).render_erp(world_from_cam, height, width).distance.astype(np.float32)
+
+
+def write_home(home: HomeCapture, out_dir: str | os.PathLike, params: SynthParams, *, depth: str = "scene") -> Path:
+    """Render and write SCENE/panoramas/NAME.png, SCENE/depths/NAME.npy and gt/ (with gt/poses.json) atomically; depth
+    (DEPTH_KINDS) "layout" writes each capture room's layout_depth, as real-estate tours annotate it."""
+    if depth not in DEPTH_KINDS:
+        raise ValueError(f"{depth=} but expected one of {DEPTH_KINDS}")
     out = Path(out_dir)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise FileExistsError(f"{out} already exists and is not an empty directory; refusing to overwrite it")
@@ -142,10 +169,11 @@ def write_home(home: HomeCapture, out_dir: str | os.PathLike, params: SynthParam
         for sub in ("gt", "panoramas", "depths"):
             (tmp / sub).mkdir(parents=True)
         h = params.render.pano_height
-        for name, pose in zip(home.names, home.world_from_cam):
-            rgb, depth = home.scene.render(pose, h, 2 * h, supersample=params.render.supersample)
+        plan = floor_plan(home.scene)
+        for name, pose, room in zip(home.names, home.world_from_cam, home.rooms):
+            rgb, d = home.scene.render(pose, h, 2 * h, supersample=params.render.supersample)
             cv2.imwrite(str(tmp / "panoramas" / f"{name}.png"), rgb[..., ::-1])
-            np.save(tmp / "depths" / f"{name}.npy", depth)
+            np.save(tmp / "depths" / f"{name}.npy", layout_depth(plan, room, pose, h, 2 * h) if depth == "layout" else d)
         pano_rel = {"rgb": f"../panoramas/{home.names[0]}.png", "depth": f"../depths/{home.names[0]}.npy", "height": h,
                     "width": 2 * h, "track": 0, "frame": 0, "supersample": params.render.supersample}
         home.scene.save_gt(tmp / "gt", pano_rel=pano_rel)
