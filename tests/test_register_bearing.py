@@ -15,7 +15,7 @@ from panoworld.register.graph import BEARING, DEPTH, DIRECTION, Edge, solve_grap
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pairwise import consistency
 from panoworld.register.solve import register_panoramas
-from panoworld.register.upright import metric_scale, upright_relative_pose
+from panoworld.register.upright import max_baseline, metric_scale, upright_relative_pose
 from tests.conftest import HOME_HEIGHT
 
 TOL_CM, TOL_DEG = 5.0, 1.0
@@ -65,6 +65,11 @@ def test_upright_pose_and_scale_from_bearings_with_outliers_and_wrong_depths():
     assert abs(scale / np.linalg.norm(truth[:3, 3]) - 1) < 0.01 and support >= 20
     # Nothing agrees: no scale rather than a wrong one.
     assert metric_scale(pose, xi, xj, di * 0.7, dj) == (pytest.approx(np.nan, nan_ok=True), 0)
+    # The floor 1.4 m under camera i (the lowest points lie 1.2-1.4 m under it) bounds the baseline: the true one keeps
+    # them above it, one 60 % longer puts them far under it.
+    length = np.linalg.norm(truth[:3, 3])
+    assert length < max_baseline(pose, xi, xj, 1.4) < 1.6 * length
+    assert max_baseline(pose, xi, xj, 3.0) > 2.5 * length
 
 
 def _edge(a, b, poses, kind, inliers=50):

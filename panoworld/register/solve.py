@@ -4,10 +4,12 @@ per-panorama quality figures; panoramas that cannot be joined are reported, not 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from panoworld.core.conventions import invert_pose
-from panoworld.geometry.floor_view import FloorView, floor_view
+from panoworld.geometry.floor_view import FloorView, camera_height, floor_view
 from panoworld.geometry.resize import rgbd_at_height
 from panoworld.geometry.upright import wrap_angle, yaw_of
 from panoworld.register.floor import FloorPose, floor_pair
@@ -28,18 +30,21 @@ from panoworld.register.pairwise import (
     valid_share,
 )
 from panoworld.register.registration import Registration
-from panoworld.register.upright import UprightPose, metric_scale, upright_relative_pose
+from panoworld.register.upright import UprightPose, max_baseline, metric_scale, upright_relative_pose
 
 
-def _bearing_pair(fi: Features, fj: Features, m: np.ndarray, rows: int, o: RegisterOptions
+def _bearing_pair(fi: Features, fj: Features, m: np.ndarray, rows: int, height_i: float | None, o: RegisterOptions
                   ) -> tuple[UprightPose | None, float, int]:
-    """Upright two-view geometry of the matches m (panoramas of `rows` rows) and its metric scale -> (pose or None,
-    scale (nan: none), support)."""
+    """Upright two-view geometry of the matches m (panoramas of `rows` rows), its metric scale and, with camera i's
+    height above the floor (metres), the longest baseline the floor allows -> (pose or None, scale (nan: none),
+    support)."""
     xi, xj = fi.bearings[m[:, 0]], fj.bearings[m[:, 1]]
     pose = upright_relative_pose(xi, xj, threshold_deg=o.bearing_threshold_px * 180.0 / rows,
                                  min_inliers=o.min_bearing_inliers)
     if pose is None:
         return None, float("nan"), 0
+    if height_i is not None:
+        pose = replace(pose, max_baseline_m=max_baseline(pose, xi, xj, height_i))
     scale, support = metric_scale(pose, xi, xj, fi.depth[m[:, 0]], fj.depth[m[:, 1]])
     return pose, scale, support
 
@@ -73,6 +78,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
             if o.floor else None for n in names}
         looks = {n: appearance_descriptor(small[n][0]) for n in names} if k > o.all_pairs_up_to else None
         frames = {n: manhattan_frame(small[n][1]) if o.manhattan else None for n in names}
+        heights = {n: camera_height(small[n][1]) for n in names}
 
         def try_pairs(todo: list[tuple[int, int]]) -> None:
             for a, b in todo:
@@ -83,7 +89,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                                             refine_height=o.refine_height, refine_iterations=o.refine_iterations,
                                             matches=m)
                 rows = max(small[names[a]][1].shape[0], small[names[b]][1].shape[0])
-                bearing[a, b] = _bearing_pair(fa, fb, m, rows, o)
+                bearing[a, b] = _bearing_pair(fa, fb, m, rows, heights[names[a]], o)
                 va, vb = views[names[a]], views[names[b]]
                 floors[a, b] = None if va is None or vb is None else floor_pair(
                     va, vb, threshold_m=o.floor_threshold_m, ratio=o.floor_ratio,
@@ -267,7 +273,8 @@ def _placement_refusal(a_from_b: np.ndarray, depth_a: np.ndarray, depth_b: np.nd
 def _contradiction(i_from_j: np.ndarray, bearing: tuple[UprightPose | None, float, int], o: RegisterOptions) -> str:
     """Why the images contradict a depth-backed or floor pose i_from_j (4, 4) ('' when they do not): the bearing-only
     estimate of the pair's ERP matches, when well supported, differs in yaw, baseline direction or (where it is
-    metric) baseline length beyond the tolerances."""
+    metric) baseline length beyond the tolerances, or the baseline is longer than its matched points allow above
+    the floor (UprightPose.max_baseline_m)."""
     pose, scale, support = bearing
     if pose is None or int(pose.inliers.sum()) < o.min_bearing_inliers:
         return ""
@@ -282,6 +289,9 @@ def _contradiction(i_from_j: np.ndarray, bearing: tuple[UprightPose | None, floa
     if support >= o.min_scale_support and abs(np.linalg.norm(t) / scale - 1) > o.depth_scale_tol:
         return (f"baseline {np.linalg.norm(t):.2f} m, bearing-only {scale:.2f} m from {support} points whose depths "
                 "agree")
+    if np.linalg.norm(t) > pose.max_baseline_m:
+        return (f"baseline {np.linalg.norm(t):.2f} m puts points both views see under the floor (at most "
+                f"{pose.max_baseline_m:.2f} m)")
     return ""
 
 

@@ -1,8 +1,10 @@
 """Two-view geometry of upright (gravity-aligned) panoramas from bearing vectors alone: yaw and translation by RANSAC on
-the upright essential matrix, least-squares refinement, and metric scale from the depths that agree."""
+the upright essential matrix, least-squares refinement, metric scale from the depths that agree, and the longest
+baseline the floor allows."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,6 +23,8 @@ class UprightPose:
     """(3,) unit direction from camera i to camera j in camera i's frame."""
     inliers: np.ndarray
     """(M,) bool over the matches: epipolar angle below the threshold and in front of both cameras."""
+    max_baseline_m: float = math.inf
+    """The longest baseline that keeps the matched points above the floor (max_baseline; inf: not bounded)."""
 
     def i_from_j(self, scale: float = 1.0) -> np.ndarray:
         """(4, 4) rigid transform with the translation scaled to `scale` metres."""
@@ -157,6 +161,16 @@ def upright_relative_pose(xi: np.ndarray, xj: np.ndarray, *, threshold_deg: floa
     return UprightPose(yaw=yaw, t=t, inliers=inliers)
 
 
+def _triangulated(pose: UprightPose, xi: np.ndarray, xj: np.ndarray, min_parallax_deg: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit-baseline ranges (li, lj) (N,) of the matches xi, xj (N, 3) and which are in front of both cameras with a
+    parallax above min_parallax_deg."""
+    li, lj = triangulate(pose.yaw, pose.t, xi, xj)
+    rj = xj @ yaw_matrix(pose.yaw).T
+    parallax = np.degrees(np.arccos(np.clip(np.einsum("nk,nk->n", xi, rj), -1, 1)))
+    return li, lj, (li > 0) & (lj > 0) & (parallax > min_parallax_deg)
+
+
 def metric_scale(pose: UprightPose, xi: np.ndarray, xj: np.ndarray, di: np.ndarray, dj: np.ndarray, *,
                  tol: float = 0.05, min_parallax_deg: float = 2.0) -> tuple[float, int]:
     """Metres per unit baseline of pose from the ray depths di, dj (N,) (0 = unknown) of the inlier matches: each
@@ -164,12 +178,23 @@ def metric_scale(pose: UprightPose, xi: np.ndarray, xj: np.ndarray, di: np.ndarr
     tol (log) lie on a surface both depths hold, and their median is the scale. -> (scale, support); nan, 0 when none
     agree (a door opening held as a wall, furniture missing from a layout depth: their two scales differ)."""
     m = pose.inliers & (di > 0) & (dj > 0)
-    li, lj = triangulate(pose.yaw, pose.t, xi[m], xj[m])
-    rj = xj[m] @ yaw_matrix(pose.yaw).T
-    parallax = np.degrees(np.arccos(np.clip(np.einsum("nk,nk->n", xi[m], rj), -1, 1)))
-    ok = (li > 0) & (lj > 0) & (parallax > min_parallax_deg)
+    li, lj, ok = _triangulated(pose, xi[m], xj[m], min_parallax_deg)
     si, sj = np.log(di[m][ok] / li[ok]), np.log(dj[m][ok] / lj[ok])
     agree = np.abs(si - sj) < tol
     if not agree.any():
         return float("nan"), 0
     return float(np.exp(np.median(0.5 * (si + sj)[agree]))), int(agree.sum())
+
+
+def max_baseline(pose: UprightPose, xi: np.ndarray, xj: np.ndarray, height_m: float, *, below: float = 0.3,
+                 count: int = 3, min_parallax_deg: float = 2.0) -> float:
+    """The longest baseline (metres) of pose that leaves fewer than `count` of its triangulated inlier matches
+    (xi, xj (N, 3), parallax above min_parallax_deg) more than `below` times camera i's height above the floor
+    (height_m) under that floor: every length scales the points with it, and a floor seen in both views would be
+    pushed under the floor by a baseline too long (a floor pattern matched at the wrong repeat). inf when fewer than
+    `count` points lie below camera i."""
+    m = pose.inliers
+    li, _, ok = _triangulated(pose, xi[m], xj[m], min_parallax_deg)
+    down = li[ok] * xi[m][ok, 1]  # unit-baseline depth below camera i (camera y points down)
+    lengths = np.sort((1.0 + below) * height_m / down[down > 0])
+    return float(lengths[count - 1]) if len(lengths) >= count else math.inf
