@@ -120,6 +120,28 @@ def test_open_doorways_opens_the_doorway_from_both_sides(doorway_home):
         assert through.any() and np.allclose(depths[n][through] * d[..., 1][through], CAM_H, atol=1e-3)
 
 
+def test_matched_keypoints_alone_open_a_doorway_and_never_a_wall(doorway_home, monkeypatch):
+    """Where the floor textures do not correlate (a narrow view through a doorway), at least MATCHED_OPENING floor
+    keypoints seen through the wall that match the other panorama's in place open it, within the doorway; a solid
+    wall gets none."""
+    from panoworld.room import doorways
+
+    monkeypatch.setattr(doorways, "_agreeing_columns", lambda a, b, grey, depths, heights, world_from_cam:
+                        np.zeros(depths[a].shape[1], bool))
+    rgbs, depths, poses = doorway_home
+    depths = {n: d.copy() for n, d in depths.items()}
+    before = {n: d.copy() for n, d in depths.items()}
+    opened = open_doorways(["a", "b"], rgbs, depths, poses)
+    assert opened["a"] > 0 and opened["b"] > 0
+    d = erp_dirs(H, W, np.float64)
+    for n in ("a", "b"):
+        p = CAMS[n] + d * before[n][..., None]
+        z = p[depths[n] != before[n]][:, 2]
+        assert z.min() > DOOR[0] - 0.25 and z.max() < DOOR[1] + 0.25
+    rgbs, depths, poses = _home(door=False)
+    assert open_doorways(["a", "b"], rgbs, depths, poses) == {"a": 0, "b": 0}
+
+
 def test_open_doorways_keeps_a_solid_wall():
     rgbs, depths, poses = _home(door=False)
     before = {n: d.copy() for n, d in depths.items()}

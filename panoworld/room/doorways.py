@@ -39,6 +39,10 @@ MIN_MATCHES = 3
 """A run of agreeing columns is an opening when at least this many floor keypoints seen through it match the other
 panorama's at the registered pose (SIFT on the floor images, geometry.floor_view): textures alone agree by chance on plain
 walls lit like the floor."""
+MATCHED_OPENING = 8
+"""A run of columns holding at least this many floor keypoints seen through the wall that match the other
+panorama's at the registered pose (gaps of 1 % closed) is an opening without the textures' agreement: a floor a
+panorama sees behind its wall is seen through an opening, and chance agreement stays at 3-4 keypoints."""
 MARGIN_M = 0.15
 """An opening is widened by this on either side along its wall: the views agree only where both see the floor, short
 of the door frame."""
@@ -59,6 +63,7 @@ def open_doorways(names: list[str], rgbs: dict[str, np.ndarray], depths: dict[st
     columns where the floor another panorama b sees directly lies behind a's wall and both images' floor textures
     there correlate, confirmed by at least MIN_MATCHES floor keypoints seen through it that match b's at the
     registered pose; it is widened by MARGIN_M, and the other panoramas' walls across it (within SIDE_M) open with it.
+    A run of columns holding at least MATCHED_OPENING such keypoints matched to one panorama b is an opening too.
     Opened: the wall from the floor up to DOOR_TOP_M, the floor continued THRESHOLD_M through. rgbs (H', 2H', 3)
     uint8 (the cleaned panoramas); -> {NAME: wall pixels opened}."""
     for n in names:
@@ -84,11 +89,14 @@ def open_doorways(names: list[str], rgbs: dict[str, np.ndarray], depths: dict[st
                 through.append(_through_door(a, b, views, reach, world_from_cam))
         plan = _wall_plan(reach[a])
         keep = np.zeros(w, bool)
-        for idx in _runs(cols):
-            if np.isin(np.concatenate(through or [np.zeros(0, np.int64)]), idx).sum() >= MIN_MATCHES:
-                idx = _widen(idx, plan)
-                keep[idx] = True
-                segments.append((a, _to_world_plan(world_from_cam[a], plan[[idx[0], idx[-1]]])))
+        seen = np.concatenate(through or [np.zeros(0, np.int64)])
+        runs = [idx for idx in _runs(cols) if np.isin(seen, idx).sum() >= MIN_MATCHES]
+        runs += [idx for cols_b in through for idx in _runs(np.bincount(cols_b, minlength=w) > 0)
+                 if np.isin(cols_b, idx).sum() >= MATCHED_OPENING]
+        for idx in runs:
+            idx = _widen(idx, plan)
+            keep[idx] = True
+            segments.append((a, _to_world_plan(world_from_cam[a], plan[[idx[0], idx[-1]]])))
         masks[a] = walls[a] & keep[None, :]
     for c in layouts:
         other = [seg for n, seg in segments if n != c]
