@@ -98,16 +98,22 @@ def test_layout_depth_is_told_from_a_furnished_one(doorway_home):
     assert not is_layout(furnished, CAM_H)
 
 
-def test_open_doorways_opens_the_doorway_from_both_sides(doorway_home):
-    rgbs, depths, poses = doorway_home
+def _opened(home):
+    """open_doorways on a copy of the home's depths -> (pixels opened per panorama, {NAME: (changed (H, W) bool,
+    world points of the depth before (H, W, 3), depth after (H, W))})."""
+    rgbs, depths, poses = home
     depths = {n: d.copy() for n, d in depths.items()}
     before = {n: d.copy() for n, d in depths.items()}
     opened = open_doorways(["a", "b"], rgbs, depths, poses)
+    d = erp_dirs(H, W, np.float64)
+    return opened, {n: (depths[n] != before[n], CAMS[n] + d * before[n][..., None], depths[n]) for n in depths}
+
+
+def test_open_doorways_opens_the_doorway_from_both_sides(doorway_home):
+    opened, result = _opened(doorway_home)
     assert opened["a"] > 0 and opened["b"] > 0
     d = erp_dirs(H, W, np.float64)
-    for n in ("a", "b"):
-        changed = depths[n] != before[n]
-        p = CAMS[n] + d * before[n][..., None]
+    for changed, p, after in result.values():
         # What opened lies on the shared wall at x = 4, in or beside the doorway (the opening widened by its margin).
         assert np.all(np.abs(p[changed][:, 0] - 4.0) < 1e-3)
         z = p[changed][:, 2]
@@ -116,8 +122,8 @@ def test_open_doorways_opens_the_doorway_from_both_sides(doorway_home):
         in_door &= (CAM_H - p[..., 1] > 0.1) & (CAM_H - p[..., 1] < 1.9)
         assert changed[in_door].mean() > 0.95
         # Below the horizon the floor continues through the doorway; the rest of the opening is unknown.
-        through = changed & (depths[n] > 0)
-        assert through.any() and np.allclose(depths[n][through] * d[..., 1][through], CAM_H, atol=1e-3)
+        through = changed & (after > 0)
+        assert through.any() and np.allclose(after[through] * d[..., 1][through], CAM_H, atol=1e-3)
 
 
 def test_matched_keypoints_alone_open_a_doorway_and_never_a_wall(doorway_home, monkeypatch):
@@ -128,25 +134,16 @@ def test_matched_keypoints_alone_open_a_doorway_and_never_a_wall(doorway_home, m
 
     monkeypatch.setattr(doorways, "_agreeing_columns", lambda a, b, grey, depths, heights, world_from_cam:
                         np.zeros(depths[a].shape[1], bool))
-    rgbs, depths, poses = doorway_home
-    depths = {n: d.copy() for n, d in depths.items()}
-    before = {n: d.copy() for n, d in depths.items()}
-    opened = open_doorways(["a", "b"], rgbs, depths, poses)
+    opened, result = _opened(doorway_home)
     assert opened["a"] > 0 and opened["b"] > 0
-    d = erp_dirs(H, W, np.float64)
-    for n in ("a", "b"):
-        p = CAMS[n] + d * before[n][..., None]
-        z = p[depths[n] != before[n]][:, 2]
-        assert z.min() > DOOR[0] - 0.25 and z.max() < DOOR[1] + 0.25
-    rgbs, depths, poses = _home(door=False)
-    assert open_doorways(["a", "b"], rgbs, depths, poses) == {"a": 0, "b": 0}
+    for changed, p, _ in result.values():
+        assert DOOR[0] - 0.25 < p[changed][:, 2].min() and p[changed][:, 2].max() < DOOR[1] + 0.25
+    assert _opened(_home(door=False))[0] == {"a": 0, "b": 0}
 
 
 def test_open_doorways_keeps_a_solid_wall():
-    rgbs, depths, poses = _home(door=False)
-    before = {n: d.copy() for n, d in depths.items()}
-    assert open_doorways(["a", "b"], rgbs, depths, poses) == {"a": 0, "b": 0}
-    assert all(np.array_equal(depths[n], before[n]) for n in depths)
+    opened, result = _opened(_home(door=False))
+    assert opened == {"a": 0, "b": 0} and not any(changed.any() for changed, _, _ in result.values())
 
 
 def test_synth_layout_depth_is_the_capture_room_alone(tmp_path):
