@@ -26,9 +26,6 @@ REACH_M = 4.0
 BLUR_CELLS = 2.0
 """The floor images are compared at this scale (Gaussian sigma in cells): the texture one view resolves at 1 m and
 the other at 4 m through a doorway differs, the pattern of light and wear does not."""
-SHADE_CELLS = 10.0
-"""... less the shading at this scale (Gaussian sigma in cells): a wall's smooth light gradient correlates with the
-floor's behind it, a texture does not."""
 WINDOW = 35
 """Side of the square of cells over which the two views' floor textures are correlated."""
 MIN_NCC = 0.5
@@ -183,8 +180,7 @@ def _agreeing_columns(a, b, grey, depths, heights, world_from_cam) -> np.ndarray
         return cv2.boxFilter(q.astype(np.float32), -1, (WINDOW, WINDOW), normalize=False,
                              borderType=cv2.BORDER_CONSTANT)
 
-    ga, gb = (cv2.GaussianBlur(g, (0, 0), BLUR_CELLS) - cv2.GaussianBlur(g, (0, 0), SHADE_CELLS)
-              for g in (grey_a.astype(np.float32), grey_b.astype(np.float32)))
+    ga, gb = (cv2.GaussianBlur(g.astype(np.float32), (0, 0), BLUR_CELLS) for g in (grey_a, grey_b))
     cnt = box(m)
     n = np.maximum(cnt, 1.0)
     ma, mb = box(ga * m) / n, box(gb * m) / n
