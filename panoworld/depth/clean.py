@@ -43,6 +43,7 @@ def clean_depth(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, *, relati
     check_shape("valid", valid, "H W", dims=dims)
     notes: list[str] = []
     info: dict = {}
+    valid = valid & (depth >= np.finfo(np.float32).tiny)  # subnormal depths: no scale survives them
     depth, scale_info = dep.metric_rescale(depth, valid, relative=relative, rescale=rescale, camera_height=camera_height)
     info.update(scale_info)
     if scale_info.get("scale_note"):
