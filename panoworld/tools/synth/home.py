@@ -147,10 +147,8 @@ def layout_depth(plan: FloorPlan, room: int, world_from_cam: np.ndarray, height:
     own = plan.label == room
     solo = replace(plan, label=np.where(own, 0, SOLID).astype(np.int32), top=np.where(own, plan.ceiling, 0.0),
                    door=np.zeros_like(plan.door), n_rooms=1)
-    parts = [quads_to_mesh(q.corners, q.normal) for q in architecture_quads(solo).values() if len(q.corners)]
-    starts = np.cumsum([0] + [len(v) for v, _ in parts[:-1]])
-    vertices = np.concatenate([v for v, _ in parts])
-    faces = np.concatenate([f + s for (_, f), s in zip(parts, starts)])
+    quads = list(architecture_quads(solo).values())
+    vertices, faces = quads_to_mesh(np.concatenate([q.corners for q in quads]), np.concatenate([q.normal for q in quads]))
     return Raycaster(vertices, faces).render_erp(world_from_cam, height, width).distance.astype(np.float32)
 
 
