@@ -150,11 +150,10 @@ def _plausible(depth: np.ndarray) -> np.ndarray:
     """depth (H, W) with what the depth stage leaves unknown as implausible (room.plausible: a layout wall through
     the camera, floor beyond its room) set to 0."""
     from panoworld.room.floor import fit_planes
-    from panoworld.room.plausible import implausible_mask, unknown_beyond
+    from panoworld.room.plausible import mask_implausible
 
     valid = np.isfinite(depth) & (depth > 0)
-    drop, _ = implausible_mask(depth, valid, *fit_planes(depth, valid))
-    return np.where(valid & ~unknown_beyond(drop, valid), depth, 0.0).astype(depth.dtype)
+    return mask_implausible(np.where(valid, depth, 0.0).astype(depth.dtype), valid, *fit_planes(depth, valid))[0]
 
 
 def _at_doorways(before: dict[str, np.ndarray], after: dict[str, np.ndarray], gt: dict[str, np.ndarray], plan

@@ -55,7 +55,7 @@ ROOM = [(-2.0, -1.5), (2.0, -1.5), (2.0, 1.5), (-2.0, 1.5)]  # 4 x 3 m
 def test_a_room_seen_from_inside_is_left_alone():
     depth = layout_depth(ROOM, np.array([0.4, -0.3]))
     valid = depth > 0
-    d2, v2, rec = mask_implausible(depth, valid, CAM_H, CEIL_H)
+    d2, v2, _, rec = mask_implausible(depth, valid, CAM_H, CEIL_H)
     assert d2 is depth and v2 is valid
     assert rec["near_surface_px"] == rec["far_floor_px"] == rec["far_ceiling_px"] == 0 and rec["masked_fraction"] == 0
     assert rec["room_floor_area_m2"] == pytest.approx(polygon_area(ROOM), rel=0.03)  # the walls outline the room
@@ -69,7 +69,7 @@ def test_a_camera_outside_its_room_keeps_its_floor_in_the_room():
     valid = depth > 0
     floor_before = points(depth, valid & (np.abs(depth * erp_dirs(*depth.shape)[..., 1] - CAM_H) < 0.01))
     assert np.hypot(floor_before[:, 0], floor_before[:, 2]).max() > 50
-    d2, v2, rec = mask_implausible(depth, valid, CAM_H, CEIL_H)
+    d2, v2, _, rec = mask_implausible(depth, valid, CAM_H, CEIL_H)
     assert rec["far_floor_px"] > 0 and rec["far_ceiling_px"] > 0 and rec["near_surface_px"] == 0
     pts = points(d2, v2)
     on_floor = np.abs(pts[:, 1] - CAM_H) < 0.01
@@ -90,7 +90,7 @@ def test_a_wall_line_through_the_camera_never_becomes_geometry_at_the_camera():
     pts_all = points(depth, valid)
     on_line = np.abs(pts_all[:, 2] - (-0.05)) < 1e-3
     assert on_line.mean() > 0.2 and np.linalg.norm(pts_all, axis=1).min() < 0.06
-    d2, v2, rec = mask_implausible(depth, valid, CAM_H, CEIL_H)
+    d2, v2, _, rec = mask_implausible(depth, valid, CAM_H, CEIL_H)
     pts = points(d2, v2)
     assert np.linalg.norm(pts, axis=1).min() >= 0.10
     assert not (np.abs(pts[:, 2] + 0.05) < 1e-3).any()  # nothing of the line's plane is left

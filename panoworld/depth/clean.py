@@ -92,13 +92,10 @@ def _plausible(depth: np.ndarray, valid: np.ndarray, info: dict, notes: list[str
     record goes to info["plausibility"], a line to notes when anything was masked. Returns (depth, valid, what the
     completions must leave unknown (room.plausible.unknown_beyond) or None, the planes)."""
     from panoworld.room.floor import fit_planes
-    from panoworld.room.plausible import describe, implausible_mask, unknown_beyond
+    from panoworld.room.plausible import describe, mask_implausible
 
     planes = fit_planes(depth, valid)
-    drop, info["plausibility"] = implausible_mask(depth, valid, *planes)
-    if not drop.any():
-        return depth, valid, None, planes
-    notes.append(describe(info["plausibility"]))
-    unknown = unknown_beyond(drop, valid)
-    valid = valid & ~unknown
-    return np.where(valid, depth, 0.0).astype(depth.dtype), valid, unknown, planes
+    depth, valid, unknown, info["plausibility"] = mask_implausible(depth, valid, *planes)
+    if unknown is not None:
+        notes.append(describe(info["plausibility"]))
+    return depth, valid, unknown, planes

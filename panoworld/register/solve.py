@@ -78,7 +78,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
             if o.floor else None for n in names}
         looks = {n: appearance_descriptor(small[n][0]) for n in names} if k > o.all_pairs_up_to else None
         frames = {n: manhattan_frame(small[n][1]) if o.manhattan else None for n in names}
-        heights = {n: camera_height(small[n][1]) for n in names}
+        heights = {n: v.height_m if (v := views[n]) is not None else camera_height(small[n][1]) for n in names}
 
         def try_pairs(todo: list[tuple[int, int]]) -> None:
             for a, b in todo:

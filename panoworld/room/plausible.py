@@ -242,14 +242,15 @@ def implausible_mask(depth: np.ndarray, valid: np.ndarray, floor_m: float | None
 
 
 def mask_implausible(depth: np.ndarray, valid: np.ndarray, floor_m: float | None, ceil_m: float | None,
-                     *, near_m: float = NEAR_PLANE_M) -> tuple[np.ndarray, np.ndarray, dict]:
-    """depth, valid (H, W) with implausible_mask made invalid (depth 0), and its record; unchanged (the same arrays)
-    when nothing is found."""
+                     *, near_m: float = NEAR_PLANE_M) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
+    """depth, valid (H, W) with implausible_mask made invalid (depth 0), what completions must leave unknown
+    (unknown_beyond, (H, W) bool) and the record; the same arrays and None when nothing is found."""
     drop, rec = implausible_mask(depth, valid, floor_m, ceil_m, near_m=near_m)
     if not drop.any():
-        return depth, valid, rec
-    valid = valid & ~drop
-    return np.where(valid, depth, 0.0).astype(depth.dtype), valid, rec
+        return depth, valid, None, rec
+    unknown = unknown_beyond(drop, valid)
+    valid = valid & ~unknown
+    return np.where(valid, depth, 0.0).astype(depth.dtype), valid, unknown, rec
 
 
 def unknown_beyond(drop: np.ndarray, valid: np.ndarray) -> np.ndarray:
