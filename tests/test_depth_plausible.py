@@ -92,8 +92,15 @@ def test_a_wall_line_through_the_camera_never_becomes_geometry_at_the_camera():
     assert on_line.mean() > 0.2 and np.linalg.norm(pts_all, axis=1).min() < 0.06
     d2, v2, _, rec = mask_implausible(depth, valid, CAM_H, CEIL_H)
     pts = points(d2, v2)
+    floor = np.abs(pts[:, 1] - CAM_H) < 1e-3
     assert np.linalg.norm(pts, axis=1).min() >= 0.10
-    assert not (np.abs(pts[:, 2] + 0.05) < 1e-3).any()  # nothing of the line's plane is left
+    assert not (np.abs(pts[~floor, 2] + 0.05) < 1e-3).any()  # nothing of the line's plane is left
+    # The tripod stands on a doorway line: the floor continues beyond it, completed from the floor plane within the
+    # stand's radius and no farther.
+    beyond = pts[floor & (pts[:, 2] < -0.05)][:, [0, 2]]
+    assert rec["stand_floor_px"] >= len(beyond) > 0
+    assert np.hypot(beyond[:, 0], beyond[:, 1]).max() <= STAND_RADIUS_M + 1e-4
+    assert hull_area(beyond) > 0.8 * np.pi * STAND_RADIUS_M ** 2 / 2
     assert rec["near_surface_px"] >= on_line.sum() * 0.99
     kept_other = v2[valid].reshape(-1)[~on_line].mean()
     assert kept_other > 0.97, kept_other  # the room's other walls, floor and ceiling stay
@@ -123,8 +130,9 @@ def test_the_depth_cleaning_leaves_what_was_masked_unknown(cam):
 
 def test_a_wall_through_another_capture_point_is_no_geometry_of_the_home():
     # Camera B stood in a doorway that camera A's layout closes with a wall line: that wall is dropped from A's depth
-    # (near_captures_mask); A's other walls, floor and ceiling stay, and without B nothing is dropped.
-    from panoworld.room.plausible import near_captures_mask
+    # (near_captures_mask) where B stood, at every height (a doorway); the wall beside it, A's other walls, floor and
+    # ceiling stay, and without B nothing is dropped.
+    from panoworld.room.plausible import NEAR_REACH_M, near_captures_mask
 
     cam = np.array([-0.5, 0.2])
     depth = layout_depth(ROOM, cam)
@@ -134,7 +142,10 @@ def test_a_wall_through_another_capture_point_is_no_geometry_of_the_home():
     on_wall = (np.abs(pts[:, 0] - 2.0) < 1e-3).reshape(-1)
     b = np.array([[2.0, 0.0, 0.3]])
     drop = near_captures_mask(depth, world_from_a, b)[depth > 0]
-    assert on_wall.sum() > 500 and drop[on_wall].mean() > 0.99
+    along = np.abs(pts[:, 2] - 0.3)
+    door, beside = on_wall & (along < NEAR_REACH_M - 0.05), on_wall & (along > NEAR_REACH_M + 0.3)  # + its rim
+    assert door.sum() > 200 and drop[door].mean() > 0.99
+    assert beside.sum() > 200 and drop[beside].mean() < 0.01
     assert drop[~on_wall].mean() < 0.01
     assert not near_captures_mask(depth, world_from_a, np.zeros((0, 3))).any()
     assert not near_captures_mask(depth, world_from_a, np.array([[0.5, 0.0, -0.4]])).any()  # B in the open room

@@ -21,7 +21,8 @@ ANALYSIS_HEIGHT = 512
 """Walls and planes through the camera are found at most at this ERP height (a power-of-two stride)."""
 NEAR_REACH_M = 0.5
 """Such a surface counts only where it comes this near the camera (a doorway line through the camera does; the side
-of a door jamb seen edge-on across the room does not)."""
+of a door jamb seen edge-on across the room does not); through another capture point, the wall within this of it
+horizontally (a doorway's half width)."""
 GROW_PASSES = 3
 """near_plane_mask grows its planes this many pixels into their rim (where the plane meets the floor or ceiling)."""
 COLLINEAR_REL = 0.01
@@ -92,7 +93,9 @@ def near_plane_mask(depth: np.ndarray, valid: np.ndarray, near_m: float = NEAR_P
     centres (M, 3), camera frame: other capture points of a home): the pixel and its four neighbours (seam wrapped)
     lie on one plane (within COLLINEAR_REL of the shortest step to them: never across a depth edge) and that plane
     passes that near. A wall line through the camera is seen edge-on, so every pixel of it qualifies, however far
-    along it, when the surface reaches within NEAR_REACH_M of that centre (_reaching)."""
+    along it, when the surface reaches within NEAR_REACH_M of the camera (_reaching). A wall through another capture
+    point qualifies within NEAR_REACH_M of it horizontally, at every height: the doorway that camera stood in, not
+    the wall beside it."""
     H, W = depth.shape
     pts = erp_dirs(H, W, np.float32) * np.where(valid, depth, 0.0).astype(np.float32)[..., None]
     ok = valid & np.roll(valid, 1, 1) & np.roll(valid, -1, 1)
@@ -122,7 +125,8 @@ def near_plane_mask(depth: np.ndarray, valid: np.ndarray, near_m: float = NEAR_P
             dist = np.full(on.shape, np.inf, np.float32)  # the distance to q where it is read: on the planes, near q
             need = on | close
             dist[need] = np.linalg.norm(pts[need] - q, axis=-1)
-            near |= _reaching(on, dist) | (close & (dist < near_m))
+            plan = np.hypot(pts[..., 0] - q[0], pts[..., 2] - q[2])
+            near |= (on & (plan < NEAR_REACH_M)) | (close & (dist < near_m))
     for _ in range(GROW_PASSES):  # the rim where a neighbour lies on another surface: on the plane of a near pixel
         grow = np.zeros_like(near)
         free = valid & ~near
@@ -244,13 +248,26 @@ def implausible_mask(depth: np.ndarray, valid: np.ndarray, floor_m: float | None
 def mask_implausible(depth: np.ndarray, valid: np.ndarray, floor_m: float | None, ceil_m: float | None,
                      *, near_m: float = NEAR_PLANE_M) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
     """depth, valid (H, W) with implausible_mask made invalid (depth 0), what completions must leave unknown
-    (unknown_beyond, (H, W) bool) and the record; the same arrays and None when nothing is found."""
+    (unknown_beyond, (H, W) bool) and the record; the same arrays and None when nothing is found.
+
+    Where a surface through the camera hid it, the floor the tripod stands on (within STAND_RADIUS_M, on the plane
+    floor_m below the camera) is completed from that plane (record: stand_floor_px): a camera standing on a layout's
+    doorway line stands on the floor of both rooms."""
     drop, rec = implausible_mask(depth, valid, floor_m, ceil_m, near_m=near_m)
+    rec["stand_floor_px"] = 0
     if not drop.any():
         return depth, valid, None, rec
     unknown = unknown_beyond(drop, valid)
     valid = valid & ~unknown
-    return np.where(valid, depth, 0.0).astype(depth.dtype), valid, unknown, rec
+    depth = np.where(valid, depth, 0.0).astype(depth.dtype)
+    if floor_m is not None and rec["near_surface_px"]:
+        dirs = erp_dirs(*depth.shape, np.float32)
+        down = dirs[..., 1]
+        stand = unknown & (down > 0) & (floor_m * np.hypot(dirs[..., 0], dirs[..., 2]) <= STAND_RADIUS_M * down)
+        depth[stand] = floor_m / down[stand]
+        valid, unknown = valid | stand, unknown & ~stand
+        rec["stand_floor_px"] = int(stand.sum())
+    return depth, valid, unknown, rec
 
 
 def unknown_beyond(drop: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -266,9 +283,9 @@ def unknown_beyond(drop: np.ndarray, valid: np.ndarray) -> np.ndarray:
 def near_captures_mask(depth: np.ndarray, world_from_cam: np.ndarray, centres_world: np.ndarray,
                        near_m: float = NEAR_PLANE_M) -> np.ndarray:
     """(H, W) bool: pixels of a home's panorama (depth (H, W), 0 = none, at world_from_cam) on a surface through
-    another capture point (centres_world (M, 3)): within near_m of it, or on a plane passing that near and reaching
-    within NEAR_REACH_M (near_plane_mask): a camera stood there, so it is a doorway line of a layout annotation, not
-    a wall. Found at most at ANALYSIS_HEIGHT rows, applied to their k x k blocks."""
+    another capture point (centres_world (M, 3)): within near_m of it, or on a plane passing that near, within
+    NEAR_REACH_M of it horizontally (near_plane_mask): a camera stood there, so it is the doorway of a layout
+    annotation's wall line, not a wall. Found at most at ANALYSIS_HEIGHT rows, applied to their k x k blocks."""
     H, W = depth.shape
     valid = np.isfinite(depth) & (depth > 0)
     centres = np.asarray(centres_world, np.float64).reshape(-1, 3)
@@ -316,4 +333,6 @@ def describe(rec: dict) -> str | None:
     return (f"implausible room geometry masked ({rec['masked_fraction']:.1%} of the pixels): "
             f"{rec['far_floor_px']} floor and {rec['far_ceiling_px']} ceiling px beyond the walls that bound them "
             f"(max depth {rec['max_depth_before']:.1f} -> {rec['max_depth_after'] or 0:.1f} m), "
-            f"{rec['near_surface_px']} px on a surface through the camera (< {rec['near_plane_m']:g} m)")
+            f"{rec['near_surface_px']} px on a surface through the camera (< {rec['near_plane_m']:g} m)"
+            + (f", {rec['stand_floor_px']} px of the floor the camera stands on behind it completed from the floor plane"
+               if rec.get("stand_floor_px") else ""))
