@@ -41,6 +41,14 @@ class Edge:
         return self.a, T
 
 
+LOOP_SIGMA = {DEPTH: (0.01, 0.2), FLOOR: (0.03, 0.3), BEARING: (0.05, 0.5), LAYOUT: (0.10, 1.0)}
+"""Each metric edge kind's translation (m) and yaw (deg) uncertainty: how much it holds a group's poses where edges
+close loops (_refine)."""
+LOOP_GATE = 5.0
+"""A loop-closing edge farther than this many LOOP_SIGMA from its group's spanning-tree poses contradicts the edges
+that outranked it there: it is left out of the adjustment."""
+
+
 @dataclass(kw_only=True)
 class GraphOptions:
     """When direction-only pairs may place a group."""
@@ -82,6 +90,70 @@ def _groups(names: list[str], edges: list[Edge], given: dict[str, np.ndarray]
             left.remove(dst)
         out.append((poses, info))
     return out
+
+
+def _refine(poses: dict[str, np.ndarray], edges: list[Edge], fixed: set[str]) -> dict[str, np.ndarray]:
+    """A rigid group's upright poses (world_from_cam (4, 4) in the group frame) adjusted to all its metric edges at
+    once: its spanning tree used one edge per panorama, the others close loops. Least squares (scipy, soft-L1 loss) on
+    each edge's translation (in its first panorama's frame) and yaw, in LOOP_SIGMA units, over the edges within
+    LOOP_GATE of the tree's poses; fixed poses (else the group's first) held. Unchanged when no edge closes a loop."""
+    from scipy.optimize import least_squares
+    from scipy.sparse import lil_matrix
+
+    names = list(poses)
+    inner = [e for e in edges if e.kind in LOOP_SIGMA and e.a in poses and e.b in poses]
+    inner = [e for e in inner if _off_sigma(invert_pose(poses[e.a]) @ poses[e.b], e) <= LOOP_GATE]
+    held = [n for n in names if n in fixed] or names[:1]
+    free = [n for n in names if n not in held]
+    if len(inner) < len(names) or not free:
+        return poses
+    col = {n: i for i, n in enumerate(free)}
+    t0 = np.array([poses[n][:3, 3] for n in names])
+    yaw0 = np.array([yaw_of(poses[n][:3, :3]) for n in names])
+    at = {n: i for i, n in enumerate(names)}
+    ia, ib = np.array([at[e.a] for e in inner]), np.array([at[e.b] for e in inner])
+    t_m = np.array([e.a_from_b[:3, 3] for e in inner])
+    yaw_m = np.array([yaw_of(e.a_from_b[:3, :3]) for e in inner])
+    sig_t = np.array([LOOP_SIGMA[e.kind][0] for e in inner])[:, None]
+    sig_y = np.radians([LOOP_SIGMA[e.kind][1] for e in inner])
+    idx = np.array([col.get(n, -1) for n in names])
+
+    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t, yaw = t0.copy(), yaw0.copy()
+        f = idx >= 0
+        v = x.reshape(-1, 4)
+        t[f], yaw[f] = v[idx[f], :3], v[idx[f], 3]
+        return t, yaw
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        t, yaw = unpack(x)
+        d, c, s = t[ib] - t[ia], np.cos(yaw[ia]), np.sin(yaw[ia])
+        rel = np.stack([c * d[:, 0] - s * d[:, 2], d[:, 1], s * d[:, 0] + c * d[:, 2]], 1)  # R_a^T (t_b - t_a)
+        return np.concatenate([((rel - t_m) / sig_t).ravel(), wrap_angle(yaw[ib] - yaw[ia] - yaw_m) / sig_y])
+
+    sparsity = lil_matrix((4 * len(inner), 4 * len(free)), dtype=int)
+    for k, (a, b) in enumerate(zip(ia, ib)):
+        for j in (idx[a], idx[b]):
+            if j >= 0:
+                sparsity[3 * k:3 * k + 3, 4 * j:4 * j + 4] = 1
+                sparsity[3 * len(inner) + k, 4 * j:4 * j + 4] = 1
+    x0 = np.concatenate([[*t0[at[n]], yaw0[at[n]]] for n in free])
+    t, yaw = unpack(least_squares(residuals, x0, loss="soft_l1", jac_sparsity=sparsity, x_scale="jac").x)
+    out = {}
+    for n in names:
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = yaw_matrix(yaw[at[n]]), t[at[n]]
+        out[n] = poses[n] if n in held else T
+    return out
+
+
+def _off_sigma(a_from_b: np.ndarray, e: Edge) -> float:
+    """How far the pose a_from_b (4, 4) lies from edge e's estimate: the larger of the translation and yaw
+    differences, in LOOP_SIGMA units of e's kind."""
+    sig_t, sig_y = LOOP_SIGMA[e.kind]
+    dt = np.linalg.norm(a_from_b[:3, 3] - e.a_from_b[:3, 3]) / sig_t
+    dy = abs(float(wrap_angle(yaw_of(a_from_b[:3, :3]) - yaw_of(e.a_from_b[:3, :3])))) / np.radians(sig_y)
+    return float(max(dt, dy))
 
 
 def group_of(names: list[str], edges: list[Edge], given: dict[str, np.ndarray] | None = None) -> dict[str, int]:
@@ -138,7 +210,7 @@ def solve_graph(names: list[str], edges: list[Edge], given: dict[str, np.ndarray
     the largest), in that group's frame, and per-panorama info (reason for those left out)."""
     o = options or GraphOptions()
     given = dict(given or {})
-    groups = _groups(names, edges, given)
+    groups = [(_refine(g, edges, set(given)), ginfo) for g, ginfo in _groups(names, edges, given)]
     order = sorted(range(len(groups)), key=lambda k: (not (given and k == 0), -len(groups[k][0]),
                                                       min(names.index(n) for n in groups[k][0])))
     poses, info = dict(groups[order[0]][0]), dict(groups[order[0]][1])

@@ -1,0 +1,65 @@
+"""The pose graph: edges that close loops adjust a rigid group's poses (panoworld.register.graph)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from panoworld.core.conventions import invert_pose
+from panoworld.geometry.upright import yaw_matrix
+from panoworld.register.graph import DEPTH, FLOOR, Edge, solve_graph
+
+
+def _pose(yaw_deg: float, x: float, z: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = yaw_matrix(np.radians(yaw_deg)), [x, 0.0, z]
+    return T
+
+
+TRUE = {n: _pose(yaw, x, z) for n, (yaw, x, z) in
+        {"a": (0, 0, 0), "b": (30, 3, 0), "c": (-40, 3, 3), "d": (80, 0, 3), "e": (10, 1.5, 5)}.items()}
+PAIRS = [("a", "b", DEPTH), ("b", "c", FLOOR), ("c", "d", FLOOR), ("d", "a", FLOOR), ("a", "c", FLOOR),
+         ("d", "e", FLOOR)]
+
+
+def _edges(rng: np.random.Generator, noise_m: float) -> list[Edge]:
+    out = []
+    for a, b, kind in PAIRS:
+        T = invert_pose(TRUE[a]) @ TRUE[b]
+        T[[0, 2], 3] += rng.normal(0.0, noise_m, 2)
+        T[:3, :3] = T[:3, :3] @ yaw_matrix(rng.normal(0.0, np.radians(0.3)))
+        out.append(Edge(a=a, b=b, a_from_b=T, kind=kind, inliers=50, info={}))
+    return out
+
+
+def _error_cm(poses: dict[str, np.ndarray]) -> np.ndarray:
+    return np.array([np.linalg.norm(poses[n][:3, 3] - TRUE[n][:3, 3]) * 100 for n in TRUE])
+
+
+def test_edges_closing_loops_pull_the_poses_towards_the_truth():
+    rng = np.random.default_rng(0)
+    tree_err, loop_err = [], []
+    for _ in range(20):
+        edges = _edges(rng, 0.03)
+        tree = [e for e in edges if (e.a, e.b) in {("a", "b"), ("b", "c"), ("c", "d"), ("d", "e")}]
+        tree_err.append(_error_cm(solve_graph(list(TRUE), tree)[0]).mean())
+        loop_err.append(_error_cm(solve_graph(list(TRUE), edges)[0]).mean())
+    assert np.mean(loop_err) < 0.75 * np.mean(tree_err), (np.mean(loop_err), np.mean(tree_err))
+
+
+def test_a_tree_is_kept_as_its_edges_chain_it():
+    edges = [e for e in _edges(np.random.default_rng(1), 0.03) if (e.a, e.b) != ("a", "c") and (e.a, e.b) != ("d", "a")]
+    poses, info = solve_graph(list(TRUE), edges)
+    for e in edges:
+        child, parent = (e.b, e.a) if info[e.b]["parent"] == e.a else (e.a, e.b)
+        rel = invert_pose(poses[parent]) @ poses[child]
+        assert np.array_equal(rel, e.a_from_b if parent == e.a else invert_pose(e.a_from_b)) or np.allclose(
+            rel, e.a_from_b if parent == e.a else invert_pose(e.a_from_b), atol=1e-12)
+
+
+def test_a_loop_edge_that_contradicts_the_tree_is_left_out():
+    edges = [e for e in _edges(np.random.default_rng(2), 0.03) if (e.a, e.b) != ("a", "c")]
+    wrong = invert_pose(TRUE["a"]) @ TRUE["c"]
+    wrong[0, 3] += 2.0  # a chance fit 2 m off
+    without, _ = solve_graph(list(TRUE), edges)
+    poses, _ = solve_graph(list(TRUE), edges + [Edge(a="a", b="c", a_from_b=wrong, kind=FLOOR, inliers=10, info={})])
+    assert all(np.allclose(poses[n], without[n], atol=1e-6) for n in TRUE)
