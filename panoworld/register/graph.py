@@ -41,9 +41,10 @@ class Edge:
         return self.a, T
 
 
-LOOP_SIGMA = {DEPTH: (0.01, 0.2), FLOOR: (0.03, 0.3), BEARING: (0.05, 0.5), LAYOUT: (0.10, 1.0)}
+LOOP_SIGMA = {DEPTH: (0.0005, 0.01), FLOOR: (0.03, 0.3), BEARING: (0.05, 0.5), LAYOUT: (0.10, 1.0)}
 """Each metric edge kind's translation (m) and yaw (deg) uncertainty: how much it holds a group's poses where edges
-close loops (_refine)."""
+close loops (_refine). Depth edges (dense points, ICP-refined) hold almost rigidly: the other kinds adjust around
+them."""
 LOOP_GATE = 5.0
 """A loop-closing edge farther than this many LOOP_SIGMA from its group's spanning-tree poses contradicts the edges
 that outranked it there: it is left out of the adjustment."""
