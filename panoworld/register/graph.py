@@ -1,5 +1,5 @@
-"""The pose graph of a home: metric pair estimates join panoramas into rigid groups (maximum spanning trees, depth-backed
-pairs first), then direction-only pairs (bearings without a scale) place whole groups where they fix the position."""
+"""The pose graph of a home: metric pair estimates join panoramas into rigid groups (maximum spanning trees, adjusted to
+the edges that close loops), then direction-only pairs (bearings without a scale) place whole groups."""
 
 from __future__ import annotations
 
