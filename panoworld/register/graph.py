@@ -102,21 +102,23 @@ def _refine(poses: dict[str, np.ndarray], edges: list[Edge], fixed: set[str]) ->
     from scipy.sparse import lil_matrix
 
     names = list(poses)
-    inner = [e for e in edges if e.kind in LOOP_SIGMA and e.a in poses and e.b in poses]
-    inner = [e for e in inner if _off_sigma(invert_pose(poses[e.a]) @ poses[e.b], e) <= LOOP_GATE]
-    held = [n for n in names if n in fixed] or names[:1]
-    free = [n for n in names if n not in held]
-    if len(inner) < len(names) or not free:
-        return poses
-    col = {n: i for i, n in enumerate(free)}
-    t0 = np.array([poses[n][:3, 3] for n in names])
-    yaw0 = np.array([yaw_of(poses[n][:3, :3]) for n in names])
     at = {n: i for i, n in enumerate(names)}
-    ia, ib = np.array([at[e.a] for e in inner]), np.array([at[e.b] for e in inner])
-    t_m = np.array([e.a_from_b[:3, 3] for e in inner])
+    inner = [e for e in edges if e.kind in LOOP_SIGMA and e.a in poses and e.b in poses]
+    ia, ib = np.array([at[e.a] for e in inner], int), np.array([at[e.b] for e in inner], int)
+    t_m = np.array([e.a_from_b[:3, 3] for e in inner]).reshape(-1, 3)
     yaw_m = np.array([yaw_of(e.a_from_b[:3, :3]) for e in inner])
     sig_t = np.array([LOOP_SIGMA[e.kind][0] for e in inner])[:, None]
     sig_y = np.radians([LOOP_SIGMA[e.kind][1] for e in inner])
+    t0 = np.array([poses[n][:3, 3] for n in names])
+    yaw0 = np.array([yaw_of(poses[n][:3, :3]) for n in names])
+    dt, dy = _misfit(t0, yaw0, ia, ib, t_m, yaw_m)
+    keep = np.maximum(np.linalg.norm(dt / sig_t, axis=1), np.abs(dy) / sig_y) <= LOOP_GATE
+    ia, ib, t_m, yaw_m, sig_t, sig_y = ia[keep], ib[keep], t_m[keep], yaw_m[keep], sig_t[keep], sig_y[keep]
+    held = [n for n in names if n in fixed] or names[:1]
+    free = [n for n in names if n not in held]
+    if len(ia) < len(names) or not free:
+        return poses
+    col = {n: i for i, n in enumerate(free)}
     idx = np.array([col.get(n, -1) for n in names])
 
     def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -127,17 +129,15 @@ def _refine(poses: dict[str, np.ndarray], edges: list[Edge], fixed: set[str]) ->
         return t, yaw
 
     def residuals(x: np.ndarray) -> np.ndarray:
-        t, yaw = unpack(x)
-        d, c, s = t[ib] - t[ia], np.cos(yaw[ia]), np.sin(yaw[ia])
-        rel = np.stack([c * d[:, 0] - s * d[:, 2], d[:, 1], s * d[:, 0] + c * d[:, 2]], 1)  # R_a^T (t_b - t_a)
-        return np.concatenate([((rel - t_m) / sig_t).ravel(), wrap_angle(yaw[ib] - yaw[ia] - yaw_m) / sig_y])
+        d_t, d_y = _misfit(*unpack(x), ia, ib, t_m, yaw_m)
+        return np.concatenate([(d_t / sig_t).ravel(), d_y / sig_y])
 
-    sparsity = lil_matrix((4 * len(inner), 4 * len(free)), dtype=int)
+    sparsity = lil_matrix((4 * len(ia), 4 * len(free)), dtype=int)
     for k, (a, b) in enumerate(zip(ia, ib)):
         for j in (idx[a], idx[b]):
             if j >= 0:
                 sparsity[3 * k:3 * k + 3, 4 * j:4 * j + 4] = 1
-                sparsity[3 * len(inner) + k, 4 * j:4 * j + 4] = 1
+                sparsity[3 * len(ia) + k, 4 * j:4 * j + 4] = 1
     x0 = np.concatenate([[*t0[at[n]], yaw0[at[n]]] for n in free])
     t, yaw = unpack(least_squares(residuals, x0, loss="soft_l1", jac_sparsity=sparsity, x_scale="jac").x)
     out = {}
@@ -148,13 +148,14 @@ def _refine(poses: dict[str, np.ndarray], edges: list[Edge], fixed: set[str]) ->
     return out
 
 
-def _off_sigma(a_from_b: np.ndarray, e: Edge) -> float:
-    """How far the pose a_from_b (4, 4) lies from edge e's estimate: the larger of the translation and yaw
-    differences, in LOOP_SIGMA units of e's kind."""
-    sig_t, sig_y = LOOP_SIGMA[e.kind]
-    dt = np.linalg.norm(a_from_b[:3, 3] - e.a_from_b[:3, 3]) / sig_t
-    dy = abs(float(wrap_angle(yaw_of(a_from_b[:3, :3]) - yaw_of(e.a_from_b[:3, :3])))) / np.radians(sig_y)
-    return float(max(dt, dy))
+def _misfit(t: np.ndarray, yaw: np.ndarray, ia: np.ndarray, ib: np.ndarray, t_m: np.ndarray, yaw_m: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """How far upright poses (positions t (N, 3), yaws (N,)) put each edge's second panorama ib (E,) from where the
+    edge does, seen from its first ia (E,): (translation (E, 3) in ia's frame, yaw (E,) radians) less the edges'
+    t_m (E, 3), yaw_m (E,)."""
+    d, c, s = t[ib] - t[ia], np.cos(yaw[ia]), np.sin(yaw[ia])
+    rel = np.stack([c * d[:, 0] - s * d[:, 2], d[:, 1], s * d[:, 0] + c * d[:, 2]], 1)  # R_a^T (t_b - t_a)
+    return rel - t_m, wrap_angle(yaw[ib] - yaw[ia] - yaw_m)
 
 
 def group_of(names: list[str], edges: list[Edge], given: dict[str, np.ndarray] | None = None) -> dict[str, int]:

@@ -122,11 +122,10 @@ def near_plane_mask(depth: np.ndarray, valid: np.ndarray, near_m: float = NEAR_P
         for q in np.asarray(centres, np.float32).reshape(-1, 3):
             on = ok & (np.abs(c - n @ q) < near_m)
             close = _maybe_within(radius, valid, q, near_m)
-            dist = np.full(on.shape, np.inf, np.float32)  # the distance to q where it is read: on the planes, near q
-            need = on | close
-            dist[need] = np.linalg.norm(pts[need] - q, axis=-1)
-            plan = np.hypot(pts[..., 0] - q[0], pts[..., 2] - q[2])
-            near |= (on & (plan < NEAR_REACH_M)) | (close & (dist < near_m))
+            dist = np.full(on.shape, np.inf, np.float32)  # the distance to q where it is read: near q
+            dist[close] = np.linalg.norm(pts[close] - q, axis=-1)
+            on[on] = np.hypot(pts[on][:, 0] - q[0], pts[on][:, 2] - q[2]) < NEAR_REACH_M  # within reach, horizontally
+            near |= on | (close & (dist < near_m))
     for _ in range(GROW_PASSES):  # the rim where a neighbour lies on another surface: on the plane of a near pixel
         grow = np.zeros_like(near)
         free = valid & ~near
