@@ -51,6 +51,21 @@ def _render(world_from_cam: np.ndarray, tex: np.ndarray) -> tuple[np.ndarray, np
     return np.repeat(g[..., None], 3, 2), depth.astype(np.float32)
 
 
+def test_camera_height_in_a_narrow_room_is_the_floor_not_the_walls():
+    """A camera in a closet 0.6 m wide: walls fill most of the cone below 40 degrees, floor pixels are a minority of
+    it; the height is still the floor's, not a median of every height there."""
+    d = erp_dirs(H, 2 * H, np.float64)
+    dy = np.maximum(d[..., 1], 1e-9)
+    to_floor = np.where(d[..., 1] > 1e-3, FLOOR_Y / dy, np.inf)
+    to_wall = np.where(np.abs(d[..., 0]) > 1e-9, 0.3 / np.maximum(np.abs(d[..., 0]), 1e-9), np.inf)
+    depth = np.minimum(np.minimum(to_floor, to_wall), 30.0).astype(np.float32)
+    down = d[..., 1] > np.sin(np.radians(40.0))
+    assert (depth[down] < to_floor[down] - 1e-3).mean() > 0.5  # walls are most of the cone
+    assert abs(camera_height(depth) - FLOOR_Y) < 0.005
+    flat = np.minimum(to_floor, 30.0).astype(np.float32)  # every height in the cone one value (one histogram bin)
+    assert abs(camera_height(flat) - FLOOR_Y) < 1e-4
+
+
 def test_floor_pair_recovers_upright_pose_on_a_shared_floor():
     tex = _texture(0)
     wa, wb = _pose(20.0, 0.3, -0.2), _pose(-113.0, 2.1, 1.4, y=0.05)

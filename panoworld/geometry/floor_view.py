@@ -31,8 +31,10 @@ class FloorView:
 
 
 def camera_height(depth: np.ndarray, *, min_depression_deg: float = 40.0) -> float | None:
-    """Camera height above the floor from the ray depth (H, W) below min_depression_deg under the horizon (median of
-    depth * down component); None when no valid depth is there."""
+    """Camera height above the floor from the ray depth (H, W) below min_depression_deg under the horizon: the most
+    common height under the camera there (a histogram of depth * down component in bins of 1 % of its median, the
+    median of the heights within two bins of the peak), so walls within that cone (a closet, a hallway, a doorway)
+    do not pull it up. None when no valid depth is there."""
     check_shape("depth", depth, "H W")
     h, w = depth.shape
     dirs = erp_dirs(h, w, np.float64)
@@ -40,7 +42,14 @@ def camera_height(depth: np.ndarray, *, min_depression_deg: float = 40.0) -> flo
     sel = (down > np.sin(np.radians(min_depression_deg))) & np.isfinite(depth) & (depth > 0)
     if sel.sum() < 0.01 * sel.size:
         return None
-    return float(np.median(depth[sel] * down[sel]))
+    y = depth[sel] * down[sel]
+    step = 0.01 * float(np.median(y))
+    if not step > 0:
+        return float(np.median(y))
+    hist, edges = np.histogram(y, bins=max(1, int(np.ceil((y.max() - y.min()) / step))), range=(y.min(), y.max()))
+    k = int(np.argmax(np.convolve(np.pad(hist, 1), [1, 2, 1], "valid")))
+    peak = 0.5 * (edges[k] + edges[k + 1])
+    return float(np.median(y[np.abs(y - peak) <= 2 * step]))
 
 
 def floor_image(rgb: np.ndarray, height_m: float, *, radius_m: float, cell_m: float) -> np.ndarray:
