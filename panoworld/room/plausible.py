@@ -110,7 +110,7 @@ def near_plane_mask(depth: np.ndarray, valid: np.ndarray, near_m: float = NEAR_P
     n = n / np.maximum(nn, 1e-30)[..., None]
     step = np.min([np.linalg.norm(q - pts, axis=-1) for q in nbrs], axis=0)
     radius = np.linalg.norm(pts, axis=-1)
-    tol = COLLINEAR_REL * step + 1e-5 * radius
+    tol = COLLINEAR_REL * step + 1e-5 * radius + _depth_quantum(depth, valid)
     for q in nbrs:
         ok &= np.abs((n * (q - pts)).sum(-1)) <= tol
     ok &= step > 0
@@ -144,6 +144,13 @@ def near_plane_mask(depth: np.ndarray, valid: np.ndarray, near_m: float = NEAR_P
         near |= grow
         n[grow], c[grow] = _first_neighbour_plane(near & ~grow, n, c, grow)
     return near
+
+
+def _depth_quantum(depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(H, W) the rounding step of depth values stored as float16 (ZInD's layout depth: 1 mm at 1-2 m), 0 for finer
+    ones and invalid pixels: a plane's points leave it by up to that step."""
+    d16 = np.where(valid, depth, 0.0).astype(np.float16)
+    return np.where(valid & (d16.astype(np.float32) == depth), np.spacing(d16).astype(np.float32), 0.0)
 
 
 def label_wrapped(mask: np.ndarray) -> tuple[np.ndarray, int]:
