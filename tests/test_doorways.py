@@ -96,6 +96,13 @@ def test_layout_depth_is_told_from_a_furnished_one(doorway_home):
     furnished = depths["a"].copy()
     furnished[H // 2 + 40:H // 2 + 120, 100:400] *= 0.7  # a sofa in front of the wall
     assert not is_layout(furnished, CAM_H)
+    # A closet 0.6 m square: its walls fill most of the view above 40 degrees, and it is still a layout.
+    tex = _floor_texture(0)
+    corners = [np.array(c) for c in ((0.7, 1.7), (1.3, 1.7), (1.3, 2.3), (0.7, 2.3))]
+    _, closet = _render(np.array([1.0, 0.0, 2.0]), list(zip(corners, corners[1:] + corners[:1])), tex, tex)
+    up = erp_dirs(H, W, np.float64)[..., 1] < -np.sin(np.radians(40.0))
+    assert (closet[up] * -erp_dirs(H, W, np.float64)[..., 1][up] < CEIL - 0.01).mean() > 0.5
+    assert is_layout(closet, CAM_H)
 
 
 def _opened(home):

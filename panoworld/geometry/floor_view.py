@@ -31,18 +31,23 @@ class FloorView:
 
 
 def camera_height(depth: np.ndarray, *, min_depression_deg: float = 40.0) -> float | None:
-    """Camera height above the floor from the ray depth (H, W) below min_depression_deg under the horizon: the most
-    common height under the camera there (a histogram of depth * down component in bins of 1 % of its median, the
-    median of the heights within two bins of the peak), so walls within that cone (a closet, a hallway, a doorway)
-    do not pull it up. None when no valid depth is there."""
+    """Camera height above the floor from the ray depth (H, W) below min_depression_deg under the horizon
+    (plane_distance). None when no valid depth is there."""
+    return plane_distance(depth, below=True, min_angle_deg=min_depression_deg)
+
+
+def plane_distance(depth: np.ndarray, *, below: bool, min_angle_deg: float = 40.0) -> float | None:
+    """Distance of the floor (below) or the ceiling (above) from the camera, from the ray depth (H, W) more than
+    min_angle_deg under (over) the horizon: the most common vertical distance there (a histogram of depth times the
+    ray's vertical component in bins of 1 % of its median, the median of the distances within two bins of the peak),
+    so walls within that cone (a closet, a hallway, a doorway) do not shorten it. None when no valid depth is there."""
     check_shape("depth", depth, "H W")
     h, w = depth.shape
-    dirs = erp_dirs(h, w, np.float64)
-    down = dirs[..., 1]
-    sel = (down > np.sin(np.radians(min_depression_deg))) & np.isfinite(depth) & (depth > 0)
+    vertical = erp_dirs(h, w, np.float64)[..., 1] * (1.0 if below else -1.0)
+    sel = (vertical > np.sin(np.radians(min_angle_deg))) & np.isfinite(depth) & (depth > 0)
     if sel.sum() < 0.01 * sel.size:
         return None
-    y = depth[sel] * down[sel]
+    y = depth[sel] * vertical[sel]
     step = 0.01 * float(np.median(y))
     if not step > 0:
         return float(np.median(y))

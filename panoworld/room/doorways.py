@@ -17,7 +17,14 @@ from panoworld.core.conventions import (
     transform_points,
 )
 from panoworld.core.shapes import check_shape
-from panoworld.geometry.floor_view import FloorView, agrees_with_pose, camera_height, floor_matches, floor_view
+from panoworld.geometry.floor_view import (
+    FloorView,
+    agrees_with_pose,
+    camera_height,
+    floor_matches,
+    floor_view,
+    plane_distance,
+)
 
 CELL_M = 0.02
 """Floor grid cell (metres) on which two panoramas' views of one floor are compared."""
@@ -116,16 +123,15 @@ def _dirs(h: int, w: int) -> np.ndarray:
 
 def is_layout(depth: np.ndarray, height: float, *, tol: float = 0.02, share: float = 0.995) -> bool:
     """Whether a ray depth (H, W) with the camera `height` above its floor holds a room's layout only: at least `share`
-    of its valid pixels within tol (relative) of the nearest of the floor plane, a flat ceiling (its height the median
-    over the rays above 40 degrees) and, per column, one vertical wall at the column's farthest horizontal reach. A
-    depth with furniture, or of a real sensor, is not: its doorways are open already."""
+    of its valid pixels within tol (relative) of the nearest of the floor plane, a flat ceiling (its height the most
+    common over the rays above 40 degrees, plane_distance) and, per column, one vertical wall at the column's farthest
+    horizontal reach. A depth with furniture, or of a real sensor, is not: its doorways are open already."""
     dirs = _dirs(*depth.shape)
     valid = depth > 0
     up = -dirs[..., 1]
-    sel = valid & (up > np.sin(np.radians(40.0)))
-    if sel.sum() < 0.01 * sel.size or valid.sum() < 0.5 * valid.size:
+    ceiling = plane_distance(depth, below=False)
+    if ceiling is None or valid.sum() < 0.5 * valid.size:
         return False
-    ceiling = float(np.median(depth[sel] * up[sel]))
     flat = np.maximum(np.hypot(dirs[..., 0], dirs[..., 2]), 1e-9)
     pred = np.minimum(_reach(depth)[None, :] / flat, np.where(up < 0, height / np.maximum(-up, 1e-9), np.inf))
     pred = np.minimum(pred, np.where(up > 0, ceiling / np.maximum(up, 1e-9), np.inf))
