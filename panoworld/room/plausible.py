@@ -149,8 +149,9 @@ def near_plane_mask(depth: np.ndarray, valid: np.ndarray, near_m: float = NEAR_P
 def _depth_quantum(depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """(H, W) the rounding step of depth values stored as float16 (ZInD's layout depth: 1 mm at 1-2 m), 0 for finer
     ones and invalid pixels: a plane's points leave it by up to that step."""
-    d16 = np.where(valid, depth, 0.0).astype(np.float16)
-    return np.where(valid & (d16.astype(np.float32) == depth), np.spacing(d16).astype(np.float32), 0.0)
+    with np.errstate(over="ignore", invalid="ignore"):  # past float16's range: not float16, no step
+        d16 = np.where(valid, depth, 0.0).astype(np.float16)
+        return np.where(valid & (d16.astype(np.float32) == depth), np.spacing(d16).astype(np.float32), 0.0)
 
 
 def label_wrapped(mask: np.ndarray) -> tuple[np.ndarray, int]:
