@@ -51,7 +51,8 @@ def plane_distance(depth: np.ndarray, *, below: bool, min_angle_deg: float = 40.
     step = 0.01 * float(np.median(y))
     if not step > 0:
         return float(np.median(y))
-    hist, edges = np.histogram(y, bins=max(1, int(np.ceil((y.max() - y.min()) / step))), range=(y.min(), y.max()))
+    top = min(float(y.max()), 1000 * step)  # at most 1,000 bins: a far outlier (a hole, a stairwell) widens nothing
+    hist, edges = np.histogram(y, bins=max(1, int(np.ceil((top - y.min()) / step))), range=(y.min(), top))
     k = int(np.argmax(np.convolve(np.pad(hist, 1), [1, 2, 1], "valid")))
     peak = 0.5 * (edges[k] + edges[k + 1])
     return float(np.median(y[np.abs(y - peak) <= 2 * step]))
