@@ -60,3 +60,26 @@ def test_a_loop_edge_that_contradicts_the_tree_is_left_out():
     without, _ = solve_graph(list(TRUE), edges)
     poses, _ = solve_graph(list(TRUE), edges + [Edge(a="a", b="c", a_from_b=wrong, kind=FLOOR, inliers=10, info={})])
     assert all(np.allclose(poses[n], without[n], atol=1e-6) for n in TRUE)
+
+
+def test_a_floor_fit_off_along_its_baseline_is_caught_by_a_direction_and_kept_as_one():
+    # x joins the group by a floor fit 3 m too far along its baseline (a repeated pattern: the direction holds, the
+    # length does not); a direction-only pair a-x says where x lies. The fit is kept as a direction, and the two
+    # directions place x where it is, instead of 3 m off.
+    from panoworld.register.graph import DIRECTION
+
+    true = {"a": _pose(0, 0, 0), "b": _pose(20, 3, 0), "x": _pose(-30, 1.5, 4)}
+    rel = {k: invert_pose(true[p]) @ true[q] for k, (p, q) in {"ab": ("a", "b"), "bx": ("b", "x"), "ax": ("a", "x")}.items()}
+    off = rel["bx"].copy()
+    off[:3, 3] *= 1 + 3.0 / np.linalg.norm(off[:3, 3])
+    direction = rel["ax"].copy()
+    direction[:3, 3] /= np.linalg.norm(direction[:3, 3])
+    edges = [Edge(a="a", b="b", a_from_b=rel["ab"], kind=DEPTH, inliers=100, info={}),
+             Edge(a="b", b="x", a_from_b=off, kind=FLOOR, inliers=20, info={}),
+             Edge(a="a", b="x", a_from_b=direction, kind=DIRECTION, inliers=80, info={})]
+    poses, info = solve_graph(["a", "b", "x"], edges)
+    assert info["x"]["registered"] and info["x"].get("joined_by") == "direction"
+    assert np.linalg.norm(poses["x"][:3, 3] - true["x"][:3, 3]) < 0.02
+    # Without the direction pair nothing contradicts the fit: it places x (what the floor alone says).
+    poses, _ = solve_graph(["a", "b", "x"], edges[:2])
+    assert np.linalg.norm(poses["x"][:3, 3] - true["x"][:3, 3]) > 2.9

@@ -1,5 +1,6 @@
 """The pose graph of a home: metric pair estimates join panoramas into rigid groups (maximum spanning trees, adjusted to
-the edges that close loops), then direction-only pairs (bearings without a scale) place whole groups."""
+the edges that close loops; a tree edge a direction-only pair inside its group contradicts kept as a direction), then
+direction-only pairs (bearings without a scale) place whole groups."""
 
 from __future__ import annotations
 
@@ -206,12 +207,67 @@ def _place(group: dict[str, np.ndarray], placed: dict[str, np.ndarray], edges: l
     return T, [e for *_, e in obs], ""
 
 
+def _without_contradicted(names: list[str], edges: list[Edge], given: dict[str, np.ndarray], o: GraphOptions
+                          ) -> list[Edge]:
+    """edges with each spanning-tree edge that a direction edge inside its group contradicts (the baseline direction it
+    measured more than direction_tol_deg from where the group puts the two panoramas) turned into a direction edge
+    (its own baseline direction, no length): of the tree path between that pair's panoramas, the weakest edge that is
+    not a depth edge. A floor fit on a repeated pattern can be off along its baseline by a whole tile run (metres)
+    while its direction holds; as a direction edge it still helps place its side (_place), checked against the others."""
+    for _ in range(len(edges)):
+        bad = None
+        for poses, info in _groups(names, edges, given):
+            for e in edges:
+                if e.kind == DIRECTION and e.a in poses and e.b in poses and _off_direction(poses, e) > o.direction_tol_deg:
+                    bad = (e, info)
+                    break
+            if bad:
+                break
+        if bad is None:
+            return edges
+        e, info = bad
+        up_a, up_b = _tree_edges(e.a, info, edges), _tree_edges(e.b, info, edges)
+        path = [t for k, t in {**up_a, **up_b}.items() if (k in up_a) != (k in up_b)]
+        weak = [t for t in path if t.kind not in (DEPTH, DIRECTION)]
+        if not weak:
+            return edges
+        w = min(weak, key=lambda t: (_RANK[t.kind], t.inliers))
+        T = np.array(w.a_from_b, np.float64)
+        T[:3, 3] /= max(np.linalg.norm(T[:3, 3]), 1e-12)
+        edges = [x for x in edges if x is not w] + [Edge(a=w.a, b=w.b, a_from_b=T, kind=DIRECTION, inliers=w.inliers,
+                                                        info={**w.info, "contradicted": e.a + "-" + e.b})]
+    return edges
+
+
+def _off_direction(poses: dict[str, np.ndarray], e: Edge) -> float:
+    """Degrees between a direction edge's baseline direction and the one poses give its two panoramas."""
+    v = poses[e.a][:3, :3].T @ (poses[e.b][:3, 3] - poses[e.a][:3, 3])
+    n = np.linalg.norm(v)
+    if n < 1e-9:
+        return 0.0
+    return float(np.degrees(np.arccos(np.clip(v @ e.a_from_b[:3, 3] / n, -1.0, 1.0))))
+
+
+def _tree_edges(n: str, info: dict[str, dict], edges: list[Edge]) -> dict[int, Edge]:
+    """The spanning-tree edges from n up to its group's root, by id."""
+    out = {}
+    while (p := info.get(n, {}).get("parent")) is not None:
+        kind = info[n].get("edge")
+        e = next((x for x in edges if {x.a, x.b} == {n, p} and x.kind == kind), None)
+        if e is None:
+            break
+        out[id(e)] = e
+        n = p
+    return out
+
+
 def solve_graph(names: list[str], edges: list[Edge], given: dict[str, np.ndarray] | None = None,
                 options: GraphOptions | None = None) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
     """world_from_cam of the panoramas that one connected, determined set holds (the group of the given poses, else
     the largest), in that group's frame, and per-panorama info (reason for those left out)."""
     o = options or GraphOptions()
     given = dict(given or {})
+    edges = _without_contradicted(names, list(edges), given, o)
     groups = [(_refine(g, edges, set(given)), ginfo) for g, ginfo in _groups(names, edges, given)]
     order = sorted(range(len(groups)), key=lambda k: (not (given and k == 0), -len(groups[k][0]),
                                                       min(names.index(n) for n in groups[k][0])))
