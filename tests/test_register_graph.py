@@ -80,6 +80,12 @@ def test_a_floor_fit_off_along_its_baseline_is_caught_by_a_direction_and_kept_as
     poses, info = solve_graph(["a", "b", "x"], edges)
     assert info["x"]["registered"] and info["x"].get("joined_by") == "direction"
     assert np.linalg.norm(poses["x"][:3, 3] - true["x"][:3, 3]) < 0.02
+    # A direction that contradicts a depth edge (nothing weaker between its ends) is passed over, not the end of it.
+    wrong = rel["ab"].copy()
+    wrong[:3, 3] = [0.0, 0.0, 1.0]
+    poses, _ = solve_graph(["a", "b", "x"], [Edge(a="b", b="a", a_from_b=invert_pose(wrong), kind=DIRECTION,
+                                                   inliers=90, info={}), *edges])
+    assert np.linalg.norm(poses["x"][:3, 3] - true["x"][:3, 3]) < 0.02
     # Without the direction pair nothing contradicts the fit: it places x (what the floor alone says).
     poses, _ = solve_graph(["a", "b", "x"], edges[:2])
     assert np.linalg.norm(poses["x"][:3, 3] - true["x"][:3, 3]) > 2.9

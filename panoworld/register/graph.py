@@ -214,23 +214,25 @@ def _without_contradicted(names: list[str], edges: list[Edge], given: dict[str, 
     (its own baseline direction, no length): of the tree path between that pair's panoramas, the weakest edge that is
     not a depth edge. A floor fit on a repeated pattern can be off along its baseline by a whole tile run (metres)
     while its direction holds; as a direction edge it still helps place its side (_place), checked against the others."""
+    settled: set[int] = set()  # contradicting directions with only depth edges (or given poses) between their ends
     for _ in range(len(edges)):
         bad = None
         for poses, info in _groups(names, edges, given):
             for e in edges:
-                if e.kind == DIRECTION and e.a in poses and e.b in poses and _off_direction(poses, e) > o.direction_tol_deg:
-                    bad = (e, info)
-                    break
+                if (e.kind == DIRECTION and id(e) not in settled and e.a in poses and e.b in poses
+                        and _off_direction(poses, e) > o.direction_tol_deg):
+                    up_a, up_b = _tree_edges(e.a, info, edges), _tree_edges(e.b, info, edges)
+                    path = [t for k, t in {**up_a, **up_b}.items() if (k in up_a) != (k in up_b)]
+                    weak = [t for t in path if t.kind not in (DEPTH, DIRECTION)]
+                    if weak:
+                        bad = (e, weak)
+                        break
+                    settled.add(id(e))
             if bad:
                 break
         if bad is None:
             return edges
-        e, info = bad
-        up_a, up_b = _tree_edges(e.a, info, edges), _tree_edges(e.b, info, edges)
-        path = [t for k, t in {**up_a, **up_b}.items() if (k in up_a) != (k in up_b)]
-        weak = [t for t in path if t.kind not in (DEPTH, DIRECTION)]
-        if not weak:
-            return edges
+        e, weak = bad
         w = min(weak, key=lambda t: (_RANK[t.kind], t.inliers))
         T = np.array(w.a_from_b, np.float64)
         T[:3, 3] /= max(np.linalg.norm(T[:3, 3]), 1e-12)
