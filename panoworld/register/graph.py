@@ -200,7 +200,7 @@ def _place(group: dict[str, np.ndarray], placed: dict[str, np.ndarray], edges: l
     off = np.linalg.solve(M, b)
     for (s, d, _rel, _e), u in zip(obs, dirs):
         v = R @ group[d][:3, 3] + off - placed[s][:3, 3]
-        if np.degrees(np.arccos(np.clip(v @ u / max(np.linalg.norm(v), 1e-12), -1, 1))) > o.direction_tol_deg:
+        if _angle_deg(v, u) > o.direction_tol_deg:
             return None, [], f"the direction-only pairs with the registered panoramas disagree ({s}-{d})"
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, off
@@ -225,29 +225,30 @@ def _without_contradicted(names: list[str], edges: list[Edge], given: dict[str, 
                     path = [t for k, t in {**up_a, **up_b}.items() if (k in up_a) != (k in up_b)]
                     weak = [t for t in path if t.kind not in (DEPTH, DIRECTION)]
                     if weak:
-                        bad = (e, weak)
+                        bad = weak
                         break
                     settled.add(id(e))
             if bad:
                 break
         if bad is None:
             return edges
-        e, weak = bad
-        w = min(weak, key=lambda t: (_RANK[t.kind], t.inliers))
+        w = min(bad, key=lambda t: (_RANK[t.kind], t.inliers))
         T = np.array(w.a_from_b, np.float64)
         T[:3, 3] /= max(np.linalg.norm(T[:3, 3]), 1e-12)
         edges = [x for x in edges if x is not w] + [Edge(a=w.a, b=w.b, a_from_b=T, kind=DIRECTION, inliers=w.inliers,
-                                                        info={**w.info, "contradicted": e.a + "-" + e.b})]
+                                                        info=w.info)]
     return edges
 
 
 def _off_direction(poses: dict[str, np.ndarray], e: Edge) -> float:
     """Degrees between a direction edge's baseline direction and the one poses give its two panoramas."""
     v = poses[e.a][:3, :3].T @ (poses[e.b][:3, 3] - poses[e.a][:3, 3])
-    n = np.linalg.norm(v)
-    if n < 1e-9:
-        return 0.0
-    return float(np.degrees(np.arccos(np.clip(v @ e.a_from_b[:3, 3] / n, -1.0, 1.0))))
+    return 0.0 if np.linalg.norm(v) < 1e-9 else _angle_deg(v, e.a_from_b[:3, 3])
+
+
+def _angle_deg(v: np.ndarray, u: np.ndarray) -> float:
+    """Degrees between a vector v (3,) and a unit direction u (3,)."""
+    return float(np.degrees(np.arccos(np.clip(v @ u / max(np.linalg.norm(v), 1e-12), -1.0, 1.0))))
 
 
 def _tree_edges(n: str, info: dict[str, dict], edges: list[Edge]) -> dict[int, Edge]:
