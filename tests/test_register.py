@@ -140,6 +140,40 @@ def test_unrelated_panorama_is_reported_not_placed(home_dir):
     assert not any(p["accepted"] for p in reg.pairs if "other" in (p["a"], p["b"]))
 
 
+def test_texture_on_a_wall_through_the_camera_backs_no_depth_fit(home_dir):
+    """A layout whose wall line passes 3 cm from the camera (a camera in a doorway): any match on that wall is within
+    the 5 cm tolerance at any rotation, so two such panoramas, their walls turned 90 deg apart, agreed on a 90 deg
+    turn in place (1,203 inliers). Keypoints that near carry no depth; the same texture 2 m away still does."""
+    import cv2
+
+    from panoworld.core.conventions import erp_dirs
+    from panoworld.geometry.panoramas import erp_pixel_index
+    from panoworld.register.pairwise import erp_features, register_pair
+
+    h, w = HEIGHT, 2 * HEIGHT
+    rng = np.random.default_rng(0)
+    texture = cv2.resize((rng.random((h // 8, w // 8, 3)) * 255).astype(np.uint8), (w, h),
+                         interpolation=cv2.INTER_NEAREST)
+    x_dir = erp_dirs(h, w, np.float64)[..., 0]
+    o = RegisterOptions(height=h)
+    feats, depths = [], []
+    for name, shift in (("pano_00", 0), ("pano_02", w // 4)):
+        rgb = cv2.resize(read_panorama(home_dir / "panoramas" / f"{name}.png"), (w, h))
+        depth = cv2.resize(np.load(home_dir / "depths" / f"{name}.npy"), (w, h), interpolation=cv2.INTER_NEAREST)
+        x = np.roll(x_dir, shift, axis=1)
+        wall = x > 0.1
+        rgb[wall] = np.roll(texture, shift, axis=1)[wall]
+        depths.append(np.where(wall, 0.03 / np.maximum(x, 1e-6), depth).astype(np.float32))
+        feats.append(erp_features(rgb, depths[-1], max_features=o.max_features))
+        far = erp_features(rgb, np.where(wall, 2.0 / np.maximum(x, 1e-6), depth), max_features=o.max_features)
+        on_wall = wall[erp_pixel_index(far.bearings, h, w)]
+        assert on_wall.sum() > 100 and (far.depth[on_wall] > 2.0).mean() > 0.7
+        assert not (feats[-1].depth[wall[erp_pixel_index(feats[-1].bearings, h, w)]] > 0).any()
+    p = register_pair(*feats, *depths, max_error_m=o.max_error_m, min_inliers=o.min_inliers,
+                      refine_height=o.refine_height, refine_iterations=o.refine_iterations)
+    assert p.inliers < o.min_inliers and p.i_from_j is None
+
+
 def test_a_panorama_the_first_pairs_miss_is_joined_across_groups(home_dir, monkeypatch):
     import panoworld.register.solve as solve
 

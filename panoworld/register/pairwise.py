@@ -54,6 +54,12 @@ class PairResult:
     """Median |log range - log depth| over the consistent pixels."""
 
 
+MIN_POINT_DEPTH_M = 0.3
+"""Keypoints nearer than this have no depth for the depth-backed fit: a 5 cm match tolerance there is an angle of
+10 deg and more, so any texture matches on them, and no camera on a tripod photographs a surface that near (a layout
+whose wall line passes through the camera puts one there)."""
+
+
 def grow_exclusion(exclude: np.ndarray | None, degrees: float = 2.0) -> np.ndarray | None:
     """An ERP mask (H, W) bool (a detected capture rig) dilated by about `degrees`, so that no keypoint next to it
     describes the texture inside; None stays None."""
@@ -64,10 +70,11 @@ def grow_exclusion(exclude: np.ndarray | None, degrees: float = 2.0) -> np.ndarr
 
 
 def erp_features(rgb: np.ndarray, depth: np.ndarray, *, max_features: int, max_edge: float = 0.05,
-                 contrast: float = 0.01, exclude: np.ndarray | None = None) -> Features:
+                 contrast: float = 0.01, exclude: np.ndarray | None = None, min_depth: float = MIN_POINT_DEPTH_M
+                 ) -> Features:
     """SIFT on six cube-face views of the panorama (less distortion than the ERP image); each keypoint whose ray is
-    closest to its own face's axis is kept, with the bilinearly sampled ray depth where the depth is valid and off
-    depth edges (log-depth range over 3x3 below max_edge). No keypoint is kept whose ray falls in exclude (an ERP mask
+    closest to its own face's axis is kept, with the bilinearly sampled ray depth where the depth is valid, off
+    depth edges (log-depth range over 3x3 below max_edge) and at least min_depth metres away. No keypoint is kept whose ray falls in exclude (an ERP mask
     (H', W') bool of any size, e.g. the capture rig, whose inpainted texture is no evidence)."""
     h, w = depth.shape
     if rgb.shape[:2] != depth.shape:
@@ -96,7 +103,7 @@ def erp_features(rgb: np.ndarray, depth: np.ndarray, *, max_features: int, max_e
         keep = np.argmax(ray @ axes.T, axis=1) == k
         if exclude is not None:
             keep &= ~exclude[erp_pixel_index(ray, *exclude.shape)]
-        trusted = ok & (ek < max_edge) & (dk > 0)
+        trusted = ok & (ek < max_edge) & (dk >= min_depth)
         rays.append(ray[keep])
         depths.append(np.where(trusted, dk, 0.0)[keep])
         descs.append(desc[keep])
