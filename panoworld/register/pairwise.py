@@ -25,7 +25,8 @@ class Features:
     bearings: np.ndarray
     """(N, 3) float64 unit rays in the camera frame."""
     depth: np.ndarray
-    """(N,) float64 ray depth in metres; 0 where the depth is invalid or on a depth edge."""
+    """(N,) float64 ray depth in metres; 0 where the depth is invalid, on a depth edge or nearer than
+    MIN_POINT_DEPTH_M."""
     descriptors: np.ndarray
     """(N, 128) float32 SIFT descriptors."""
 
@@ -73,9 +74,10 @@ def erp_features(rgb: np.ndarray, depth: np.ndarray, *, max_features: int, max_e
                  contrast: float = 0.01, exclude: np.ndarray | None = None, min_depth: float = MIN_POINT_DEPTH_M
                  ) -> Features:
     """SIFT on six cube-face views of the panorama (less distortion than the ERP image); each keypoint whose ray is
-    closest to its own face's axis is kept, with the bilinearly sampled ray depth where the depth is valid, off
-    depth edges (log-depth range over 3x3 below max_edge) and at least min_depth metres away. No keypoint is kept whose ray falls in exclude (an ERP mask
-    (H', W') bool of any size, e.g. the capture rig, whose inpainted texture is no evidence)."""
+    closest to its own face's axis is kept, with the bilinearly sampled ray depth where the depth is valid, off depth
+    edges (log-depth range over 3x3 below max_edge) and at least min_depth metres away. No keypoint is kept whose ray
+    falls in exclude (an ERP mask (H', W') bool of any size, e.g. the capture rig, whose inpainted texture is no
+    evidence)."""
     h, w = depth.shape
     if rgb.shape[:2] != depth.shape:
         rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
