@@ -221,9 +221,7 @@ def _without_contradicted(names: list[str], edges: list[Edge], given: dict[str, 
             for e in edges:
                 if (e.kind == DIRECTION and id(e) not in settled and e.a in poses and e.b in poses
                         and _off_direction(poses, e) > o.direction_tol_deg):
-                    up_a, up_b = _tree_edges(e.a, info, edges), _tree_edges(e.b, info, edges)
-                    path = [t for k, t in {**up_a, **up_b}.items() if (k in up_a) != (k in up_b)]
-                    weak = [t for t in path if t.kind not in (DEPTH, DIRECTION)]
+                    weak = [t for t in tree_path(e.a, e.b, info, edges) if t.kind not in (DEPTH, DIRECTION)]
                     if weak:
                         bad = weak
                         break
@@ -251,16 +249,22 @@ def _angle_deg(v: np.ndarray, u: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(v @ u / max(np.linalg.norm(v), 1e-12), -1.0, 1.0))))
 
 
-def _tree_edges(n: str, info: dict[str, dict], edges: list[Edge]) -> dict[int, Edge]:
-    """The spanning-tree edges from n up to its group's root, by id."""
-    out = {}
-    while (p := info.get(n, {}).get("parent")) is not None:
-        kind = info[n].get("edge")
-        e = next((x for x in edges if {x.a, x.b} == {n, p} and x.kind == kind), None)
-        if e is None:
-            break
-        out[id(e)] = e
-        n = p
+def tree_path(x: str, y: str, info: dict[str, dict], edges: list[Edge]) -> list[Edge]:
+    """The metric edges of a group's spanning tree (info: each panorama's parent and edge kind, as _groups gives it) on
+    the way from x to y (each panorama's edge to its parent)."""
+    def up(n: str) -> list[str]:
+        chain = [n]
+        while info[chain[-1]].get("parent") is not None:
+            chain.append(info[chain[-1]]["parent"])
+        return chain
+
+    cx, cy = up(x), up(y)
+    common = set(cx) & set(cy)
+    steps = [n for n in cx if n not in common] + [n for n in cy if n not in common]
+    out = []
+    for n in steps:
+        p, kind = info[n]["parent"], info[n].get("edge")
+        out += [e for e in edges if e.kind == kind and {e.a, e.b} == {n, p}][:1]
     return out
 
 

@@ -13,7 +13,7 @@ from panoworld.geometry.floor_view import FloorView, camera_height, floor_view
 from panoworld.geometry.resize import rgbd_at_height
 from panoworld.geometry.upright import wrap_angle, yaw_of
 from panoworld.register.floor import FloorPose, floor_pair
-from panoworld.register.graph import BEARING, DEPTH, DIRECTION, FLOOR, LAYOUT, Edge, group_of, solve_graph
+from panoworld.register.graph import BEARING, DEPTH, DIRECTION, FLOOR, LAYOUT, Edge, group_of, solve_graph, tree_path
 from panoworld.register.layout import LayoutPose, layout_pair, manhattan_frame, room
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pair_select import appearance_descriptor, bridge_pairs, candidate_pairs
@@ -224,7 +224,7 @@ def refuse_overlapping_rooms(names: list[str], edges: list[Edge], given: dict[st
         ranked = sorted(whole & set(poses), key=names.index)
         for i, x in enumerate(ranked):
             for y in ranked[i + 1:]:
-                weak = [e for e in _tree_path(x, y, info, edges) if e.kind in (FLOOR, LAYOUT, BEARING)]
+                weak = [e for e in tree_path(x, y, info, edges) if e.kind in (FLOOR, LAYOUT, BEARING)]
                 x_from_y = invert_pose(poses[x]) @ poses[y]
                 if not weak or np.linalg.norm(x_from_y[:3, 3]) > reach[x] + reach[y]:
                     continue
@@ -243,24 +243,6 @@ def refuse_overlapping_rooms(names: list[str], edges: list[Edge], given: dict[st
         e = min(weak, key=lambda e: ((LAYOUT, BEARING, FLOOR).index(e.kind), e.inliers))
         edges[:] = [f for f in edges if f is not e]
         out[e.a, e.b] = (e.kind, f"with it the registration puts {y}'s room into {x}'s: {why}")
-
-
-def _tree_path(x: str, y: str, info: dict[str, dict], edges: list[Edge]) -> list[Edge]:
-    """The metric edges of solve_graph's spanning trees on the way from x to y (each panorama's edge to its parent)."""
-    def up(n: str) -> list[str]:
-        chain = [n]
-        while info[chain[-1]].get("parent") is not None:
-            chain.append(info[chain[-1]]["parent"])
-        return chain
-
-    cx, cy = up(x), up(y)
-    common = set(cx) & set(cy)
-    steps = [n for n in cx if n not in common] + [n for n in cy if n not in common]
-    out = []
-    for n in steps:
-        p, kind = info[n]["parent"], info[n].get("edge")
-        out += [e for e in edges if e.kind == kind and {e.a, e.b} == {n, p}][:1]
-    return out
 
 
 def _placement_refusal(a_from_b: np.ndarray, depth_a: np.ndarray, depth_b: np.ndarray, o: RegisterOptions) -> str:
