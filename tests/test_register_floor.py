@@ -10,7 +10,13 @@ import numpy as np
 from panoworld.core.conventions import erp_dirs, invert_pose
 from panoworld.geometry.floor_view import camera_height, floor_view
 from panoworld.geometry.upright import yaw_matrix, yaw_of
-from panoworld.register.floor import fixed_yaw_translation, floor_pair, floor_support, oriented_rigid2d_ransac
+from panoworld.register.floor import (
+    fixed_yaw_translation,
+    floor_pair,
+    floor_support,
+    oriented_rigid2d_ransac,
+    runner_up,
+)
 from panoworld.register.graph import FLOOR, Edge, solve_graph
 from panoworld.register.options import RegisterOptions
 from panoworld.register.solve import register_panoramas
@@ -84,6 +90,35 @@ def test_floor_pair_recovers_upright_pose_on_a_shared_floor():
     shifted = truth.copy()
     shifted[0, 3] += 0.5
     assert floor_support(va, vb, shifted) <= 2
+
+
+def test_a_repeated_floor_pattern_leaves_a_runner_up_a_pattern_period_away():
+    """On tiles (a 0.5 m period) other translations a whole number of tiles away agree too (FloorPose.second); on an
+    aperiodic floor no other translation comes close."""
+    wa, wb = _pose(0.0, 0.0, 0.0), _pose(0.0, 2.0, 0.7)
+    tiles = np.tile(_texture(4, 256)[:32, :32], (32, 32))  # 32 x 32 tiles of 0.5 m over the 16 m texture
+    truth = invert_pose(wa) @ wb
+    second = {}
+    for name, tex in (("tiles", tiles), ("blobs", _texture(4))):
+        p = floor_pair(floor_view(*_render(wa, tex), radius_m=4.0), floor_view(*_render(wb, tex), radius_m=4.0),
+                       yaws=np.array([0.0]))
+        assert p is not None and p.inliers >= 20
+        off = (p.a_from_b[[0, 2], 3] - truth[[0, 2], 3]) / 0.5
+        assert np.allclose(off, np.round(off), atol=0.06)  # the fit is the truth up to whole tiles
+        second[name] = p.second / p.inliers
+    assert second["tiles"] >= 0.2 and second["blobs"] <= 0.05, second
+
+
+def test_runner_up_is_the_best_translation_away_from_the_fit():
+    rng = np.random.default_rng(5)
+    q = rng.uniform(-3, 3, (300, 2))
+    t_true, t_decoy = np.array([1.0, 0.5]), np.array([3.5, 0.5])  # a decoy 2.5 m along the baseline
+    p = rng.uniform(-3, 3, (300, 2))
+    p[:12], p[12:20] = q[:12] + t_true, q[12:20] + t_decoy
+    dtheta, dlog2 = np.where(np.arange(300) < 20, 0.0, rng.uniform(-np.pi, np.pi, 300)), np.zeros(300)
+    assert runner_up(p, q, dtheta, dlog2, 0.0, t_true, threshold=0.05) == 8
+    assert runner_up(p, q, dtheta, dlog2, 0.0, t_decoy, threshold=0.05) == 12
+    assert runner_up(p[:12], q[:12], dtheta[:12], dlog2[:12], 0.0, t_true, threshold=0.05) == 0
 
 
 def test_unrelated_floors_give_no_supported_pose():
@@ -192,3 +227,18 @@ def test_no_keypoint_on_the_excluded_rig():
     r = lambda fv: np.hypot(*fv.xz.T)
     edge = FLOOR_Y * np.tan(np.radians(36.0))
     assert (r(whole) < edge).sum() > 20 and (r(masked) < edge - 0.02).sum() == 0
+
+
+def test_a_floor_fit_the_images_cannot_check_is_refused_when_another_translation_agrees_nearly_as_well():
+    from panoworld.register.floor import FloorPose
+    from panoworld.register.solve import _ambiguous_floor
+    from panoworld.register.upright import UprightPose
+
+    o = RegisterOptions()
+    fit = FloorPose(a_from_b=_pose(0.0, 6.4, 0.0), inliers=12, matches=3500, residual_m=0.02, second=7)
+    no_images = (None, float("nan"), 0)
+    assert "another translation 7" in _ambiguous_floor(fit, no_images, o)
+    assert _ambiguous_floor(FloorPose(a_from_b=fit.a_from_b, inliers=12, matches=3500, residual_m=0.02, second=5),
+                            no_images, o) == ""  # 12 >= 2 x 5: clear
+    agree = UprightPose(yaw=0.0, t=np.array([1.0, 0.0, 0.0]), inliers=np.ones(o.min_bearing_inliers, bool))
+    assert _ambiguous_floor(fit, (agree, float("nan"), 0), o) == ""  # the images check it (_contradiction)

@@ -89,3 +89,27 @@ def test_a_floor_fit_off_along_its_baseline_is_caught_by_a_direction_and_kept_as
     # Without the direction pair nothing contradicts the fit: it places x (what the floor alone says).
     poses, _ = solve_graph(["a", "b", "x"], edges[:2])
     assert np.linalg.norm(poses["x"][:3, 3] - true["x"][:3, 3]) > 2.9
+
+
+def test_an_edge_the_images_do_not_confirm_only_closes_a_loop_where_confirmed_edges_reach():
+    # c is reached by a depth edge a-c resting on 12 matches whose layout depths agree by chance (3 m off; no bearing-
+    # only estimate of the pair to check it) and by a floor edge a-b and a depth edge b-c the images confirm. The
+    # confirmed path places c; a-c closes the loop, disagrees and is left out.
+    true = {"a": _pose(0, 0, 0), "b": _pose(30, 3, 0), "c": _pose(-20, 4, 2)}
+    rel = {k: invert_pose(true[p]) @ true[q] for k, (p, q) in {"ab": ("a", "b"), "bc": ("b", "c"), "ac": ("a", "c")}.items()}
+    off = rel["ac"].copy()
+    off[:3, 3] += [-3.0, 0.0, -1.0]
+    edges = [Edge(a="a", b="b", a_from_b=rel["ab"], kind=FLOOR, inliers=73, info={}),
+             Edge(a="b", b="c", a_from_b=rel["bc"], kind=DEPTH, inliers=385, info={}),
+             Edge(a="a", b="c", a_from_b=off, kind=DEPTH, inliers=12, info={}, confirmed=False)]
+    poses, info = solve_graph(["a", "b", "c"], edges)
+    assert info["c"]["parent"] == "b"
+    assert np.linalg.norm(poses["c"][:3, 3] - true["c"][:3, 3]) < 1e-6
+    # Confirmed, the depth edge outranks the floor edge (kind first) and c sits where it says.
+    edges[2].confirmed = True
+    poses, info = solve_graph(["a", "b", "c"], edges)
+    assert info["c"]["parent"] == "a" and np.linalg.norm(poses["c"][:3, 3] - true["c"][:3, 3]) > 3.0
+    # The only way to a panorama, an unconfirmed edge still places it.
+    poses, info = solve_graph(["a", "b", "c"], [edges[0], Edge(a="a", b="c", a_from_b=rel["ac"], kind=DEPTH, inliers=12,
+                                                               info={}, confirmed=False)])
+    assert info["c"]["registered"] and np.linalg.norm(poses["c"][:3, 3] - true["c"][:3, 3]) < 1e-6

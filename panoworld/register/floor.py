@@ -23,6 +23,29 @@ class FloorPose:
     matches: int
     residual_m: float
     """RMS floor distance of the inliers (metres)."""
+    second: int = 0
+    """Inliers of the best other translation at the same yaw (at least DISTINCT_M from this one): a repeated floor
+    pattern (tiles, planks) agrees nearly as well one pattern period along the baseline."""
+
+
+DISTINCT_M = 0.3
+"""A translation this far (metres) from the fitted one is another hypothesis (FloorPose.second)."""
+
+
+def runner_up(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dlog2: np.ndarray, yaw: float, t: np.ndarray, *,
+              threshold: float, angle_tol: float = np.radians(15.0), scale_tol: float = 0.6,
+              distinct: float = DISTINCT_M) -> int:
+    """Inliers of the best translation at least `distinct` from t (2,) at the same yaw, over matched keypoints p, q
+    (N, 2) with orientation and size differences dtheta, dlog2 (N,) (the inlier tests of oriented_rigid2d_ransac)."""
+    check_shape("p", p, "N 2")
+    check_shape("q", q, "N 2")
+    ok = (np.abs(dlog2) < scale_tol) & (np.abs(wrap_angle(dtheta - yaw)) < angle_tol)
+    d = p[ok] - q[ok] @ yaw_matrix_xz(yaw).T
+    d = d[np.linalg.norm(d - t, axis=1) >= distinct]
+    best = 0
+    for k0 in range(0, len(d), 1024):
+        best = max(best, int((((d[k0:k0 + 1024, None] - d[None]) ** 2).sum(-1) < threshold**2).sum(1).max()))
+    return best
 
 
 def oriented_rigid2d_ransac(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dlog2: np.ndarray, *, threshold: float,
@@ -111,7 +134,8 @@ def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: 
                yaws: np.ndarray | None = None) -> FloorPose | None:
     """a_from_b of two floor views: each keypoint of a with its nearest neighbour in b (Lowe's ratio test below 1),
     oriented_rigid2d_ransac (threshold_m on the floor), or fixed_yaw_translation when the yaw is known to be one of
-    yaws (radians); the vertical offset from the camera heights (one floor). None without a model."""
+    yaws (radians); the vertical offset from the camera heights (one floor), and the best distinct translation's
+    inliers (FloorPose.second). None without a model."""
     if len(a.descriptors) < 2 or len(b.descriptors) < 2:
         return None
     m = floor_matches(a, b, ratio=ratio)
@@ -129,7 +153,8 @@ def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: 
     T[:3, 3] = [t[0], a.height_m - b.height_m, t[1]]
     res = np.linalg.norm(b.xz[m[inl, 1]] @ yaw_matrix_xz(yaw).T + t - a.xz[m[inl, 0]], axis=1)
     return FloorPose(a_from_b=T, inliers=int(inl.sum()), matches=len(m),
-                     residual_m=float(np.sqrt(np.mean(res**2))) if len(res) else float("nan"))
+                     residual_m=float(np.sqrt(np.mean(res**2))) if len(res) else float("nan"),
+                     second=runner_up(*args, yaw, t, threshold=threshold_m))
 
 
 def floor_support(a: FloorView, b: FloorView, a_from_b: np.ndarray, *, threshold_m: float = 0.08,

@@ -31,6 +31,10 @@ class Edge:
     inliers: int
     info: dict
     """Quality figures reported for the panorama this edge places."""
+    confirmed: bool = True
+    """The pair's images confirm it: its bearing-only estimate (>= min_bearing_inliers of the ERP matches) agrees.
+    A depth-backed, floor or layout pose without one (too few matches agree on any two-view geometry) rests on the
+    depths or the floor images alone; a bearing or direction edge is an image estimate itself."""
 
     def toward(self, src: str) -> tuple[str, np.ndarray]:
         """(the other panorama, src_from_other)."""
@@ -65,8 +69,9 @@ class GraphOptions:
 
 def _groups(names: list[str], edges: list[Edge], given: dict[str, np.ndarray]
             ) -> list[tuple[dict[str, np.ndarray], dict[str, dict]]]:
-    """Rigid groups joined by metric edges (Prim: depth, floor, bearing, then layout edges, then most inliers), the given
-    poses forming the first group -> [(poses in the group frame, per-panorama info)]."""
+    """Rigid groups joined by metric edges (Prim: edges the images confirm first, then depth, floor, bearing, then layout
+    edges, then most inliers), the given poses forming the first group -> [(poses in the group frame, per-panorama
+    info)]."""
     metric = [e for e in edges if e.kind != DIRECTION]
     left = [n for n in names if n not in given]
     out = []
@@ -81,8 +86,7 @@ def _groups(names: list[str], edges: list[Edge], given: dict[str, np.ndarray]
             for e in metric:
                 for src in (e.a, e.b):
                     dst, rel = e.toward(src)
-                    if src in poses and dst not in poses and (
-                            best is None or (_RANK[e.kind], e.inliers) > (_RANK[best[0].kind], best[0].inliers)):
+                    if src in poses and dst not in poses and (best is None or _strength(e) > _strength(best[0])):
                         best = (e, src, dst, rel)
             if best is None:
                 break
@@ -92,6 +96,14 @@ def _groups(names: list[str], edges: list[Edge], given: dict[str, np.ndarray]
             left.remove(dst)
         out.append((poses, info))
     return out
+
+
+def _strength(e: Edge) -> tuple[bool, int, int]:
+    """How much an edge is trusted, for the spanning tree and for choosing the weakest edge of a path: confirmed by the
+    images, then kind, then inliers. A few matches whose depths agree by chance (layout depth: walls alone) or a floor
+    fit a tile run along its baseline are what the images leave unconfirmed; where a confirmed path reaches the same
+    panorama, such an edge only closes a loop, and the loop gate drops it when it disagrees."""
+    return e.confirmed, _RANK[e.kind], e.inliers
 
 
 def _refine(poses: dict[str, np.ndarray], edges: list[Edge], fixed: set[str]) -> dict[str, np.ndarray]:
@@ -230,11 +242,11 @@ def _without_contradicted(names: list[str], edges: list[Edge], given: dict[str, 
                 break
         if bad is None:
             return edges
-        w = min(bad, key=lambda t: (_RANK[t.kind], t.inliers))
+        w = min(bad, key=_strength)
         T = np.array(w.a_from_b, np.float64)
         T[:3, 3] /= max(np.linalg.norm(T[:3, 3]), 1e-12)
         edges = [x for x in edges if x is not w] + [Edge(a=w.a, b=w.b, a_from_b=T, kind=DIRECTION, inliers=w.inliers,
-                                                        info=w.info)]
+                                                        info=w.info, confirmed=w.confirmed)]
     return edges
 
 

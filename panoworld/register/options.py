@@ -69,6 +69,10 @@ class RegisterOptions:
     min_floor_inliers: int = param(8, ge=3)
     """A floor pair needs at least this many inliers (and no contradiction from its bearing-only estimate, checked as
     for a depth-backed pose)."""
+    floor_min_margin: float = param(2.0, ge=1)
+    """A floor pose that the pair's images do not confirm (no bearing-only estimate of min_bearing_inliers) needs at
+    least this many times the inliers of the best other translation at its yaw (FloorPose.second): a repeated floor
+    pattern seen from two rooms agrees nearly as well one pattern period along the baseline."""
     max_free_space_violation: float = param(0.05, ge=0, le=1)
     """A floor or layout pose is refused where both panoramas' depths hold their whole room (98 % of the pixels valid)
     and it puts more than this share of either view's surfaces inside the other's free space (0.15 m and 5 % nearer

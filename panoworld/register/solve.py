@@ -122,6 +122,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                                     or _placement_refusal(lp.a_from_b, small[names[a]][1], small[names[b]][1], o))
             if not layout_refused[a, b]:
                 edges.append(Edge(a=names[a], b=names[b], a_from_b=lp.a_from_b, kind=LAYOUT, inliers=int(lp.score),
+                                  confirmed=_confirmed(bearing[a, b], o),
                                   info={"layout_score": round(lp.score, 1), "layout_second": round(lp.second, 1)}))
     overlaps = refuse_overlapping_rooms(names, edges, given, {n: small[n][1] for n in small}, o) if need else {}
     poses, info = solve_graph(names, edges, given)
@@ -151,7 +152,8 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
             row[f"{kind}_refused"] = why
         if floors.get((a, b)) is not None:
             f = floors[a, b]
-            row.update(floor_inliers=f.inliers, floor_matches=f.matches, floor_residual_m=round(f.residual_m, 4))
+            row.update(floor_inliers=f.inliers, floor_matches=f.matches, floor_residual_m=round(f.residual_m, 4),
+                       floor_second=f.second)
             if floor_refused.get((a, b)):
                 row["floor_refused"] = floor_refused[a, b]
         if layouts.get((a, b)) is not None:
@@ -183,7 +185,7 @@ def _edges(names, pairs, bearing, floors, frames, small, o: RegisterOptions):
     refused = {ab: off_frames(ab, p.i_from_j) or _contradiction(p.i_from_j, bearing[ab], o)
                for ab, p in pairs.items() if accepted(p, o)}
     depth_ok = {ab: accepted(p, o) and not refused[ab] for ab, p in pairs.items()}
-    floor_refused = {ab: _contradiction(f.a_from_b, bearing[ab], o)
+    floor_refused = {ab: _contradiction(f.a_from_b, bearing[ab], o) or _ambiguous_floor(f, bearing[ab], o)
                      or _placement_refusal(f.a_from_b, small[names[ab[0]]][1], small[names[ab[1]]][1], o)
                      for ab, f in floors.items() if f is not None and f.inliers >= o.min_floor_inliers}
     edges = []
@@ -191,10 +193,12 @@ def _edges(names, pairs, bearing, floors, frames, small, o: RegisterOptions):
         f = floors.get((a, b))
         if depth_ok[a, b]:
             edges.append(Edge(a=names[a], b=names[b], a_from_b=p.i_from_j, kind=DEPTH, inliers=p.inliers,
+                              confirmed=_confirmed(bearing[a, b], o),
                               info={"inliers": p.inliers, "overlap": round(p.overlap, 4),
                                     "consistency": round(p.consistency, 4), "residual": round(p.residual, 5)}))
         elif f is not None and (a, b) in floor_refused and not floor_refused[a, b]:
             edges.append(Edge(a=names[a], b=names[b], a_from_b=f.a_from_b, kind=FLOOR, inliers=f.inliers,
+                              confirmed=_confirmed(bearing[a, b], o),
                               info={"inliers": f.inliers, "matches": f.matches, "residual": round(f.residual_m, 4)}))
         elif (a, b) in bearing and bearing[a, b][0] is not None and not off_frames(
                 (a, b), bearing[a, b][0].i_from_j()):
@@ -240,7 +244,7 @@ def refuse_overlapping_rooms(names: list[str], edges: list[Edge], given: dict[st
         if found is None:
             return out
         x, y, why, weak = found
-        e = min(weak, key=lambda e: ((LAYOUT, BEARING, FLOOR).index(e.kind), e.inliers))
+        e = min(weak, key=lambda e: (e.confirmed, (LAYOUT, BEARING, FLOOR).index(e.kind), e.inliers))
         edges[:] = [f for f in edges if f is not e]
         out[e.a, e.b] = (e.kind, f"with it the registration puts {y}'s room into {x}'s: {why}")
 
@@ -252,13 +256,29 @@ def _placement_refusal(a_from_b: np.ndarray, depth_a: np.ndarray, depth_b: np.nd
             or rooms_overlap_refusal(a_from_b, depth_a, depth_b, max_share=o.max_free_space_violation))
 
 
+def _ambiguous_floor(f: FloorPose, bearing: tuple[UprightPose | None, float, int], o: RegisterOptions) -> str:
+    """Why a floor pose the images do not confirm is ambiguous ('' when it is not): another translation at its yaw
+    keeps nearly as many inliers (floor_min_margin)."""
+    if _confirmed(bearing, o) or f.inliers >= o.floor_min_margin * f.second:
+        return ""
+    return (f"{f.inliers} floor inliers, another translation {f.second}: a repeated floor pattern, and no bearing-only "
+            "estimate to tell them apart")
+
+
+def _confirmed(bearing: tuple[UprightPose | None, float, int], o: RegisterOptions) -> bool:
+    """Whether a pair's bearing-only estimate is well supported (>= min_bearing_inliers): then it can contradict, or
+    confirm, the pair's depth-backed, floor or layout pose (_contradiction)."""
+    pose = bearing[0]
+    return pose is not None and int(pose.inliers.sum()) >= o.min_bearing_inliers
+
+
 def _contradiction(i_from_j: np.ndarray, bearing: tuple[UprightPose | None, float, int], o: RegisterOptions) -> str:
     """Why the images contradict a depth-backed or floor pose i_from_j (4, 4) ('' when they do not): the bearing-only
     estimate of the pair's ERP matches, when well supported, differs in yaw, baseline direction or (where it is
     metric) baseline length beyond the tolerances, or the baseline is longer than its matched points allow above
     the floor (UprightPose.max_baseline_m)."""
     pose, scale, support = bearing
-    if pose is None or int(pose.inliers.sum()) < o.min_bearing_inliers:
+    if not _confirmed(bearing, o):
         return ""
     dyaw = abs(float(np.degrees(wrap_angle(yaw_of(i_from_j[:3, :3]) - pose.yaw))))
     if dyaw > o.depth_yaw_tol_deg:
