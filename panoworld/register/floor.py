@@ -32,6 +32,22 @@ DISTINCT_M = 0.3
 """A translation this far (metres) from the fitted one is another hypothesis (FloorPose.second)."""
 
 
+def _translation_votes(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dlog2: np.ndarray, yaw: float, *,
+                       angle_tol: float, scale_tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """The matches whose orientation difference is within angle_tol of yaw and whose sizes agree -> (their indices
+    (M,), the translation p - R q each gives (M, 2))."""
+    idx = np.flatnonzero((np.abs(dlog2) < scale_tol) & (np.abs(wrap_angle(dtheta - yaw)) < angle_tol))
+    return idx, p[idx] - q[idx] @ yaw_matrix_xz(yaw).T
+
+
+def _neighbour_counts(d: np.ndarray, threshold: float) -> np.ndarray:
+    """(M,) int: how many of the translations d (M, 2) lie within threshold of each (itself included)."""
+    counts = np.zeros(len(d), np.int64)
+    for k0 in range(0, len(d), 1024):
+        counts[k0:k0 + 1024] = (((d[k0:k0 + 1024, None] - d[None]) ** 2).sum(-1) < threshold**2).sum(1)
+    return counts
+
+
 def runner_up(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dlog2: np.ndarray, yaw: float, t: np.ndarray, *,
               threshold: float, angle_tol: float = np.radians(15.0), scale_tol: float = 0.6,
               distinct: float = DISTINCT_M) -> int:
@@ -39,13 +55,8 @@ def runner_up(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dlog2: np.ndarra
     (N, 2) with orientation and size differences dtheta, dlog2 (N,) (the inlier tests of oriented_rigid2d_ransac)."""
     check_shape("p", p, "N 2")
     check_shape("q", q, "N 2")
-    ok = (np.abs(dlog2) < scale_tol) & (np.abs(wrap_angle(dtheta - yaw)) < angle_tol)
-    d = p[ok] - q[ok] @ yaw_matrix_xz(yaw).T
-    d = d[np.linalg.norm(d - t, axis=1) >= distinct]
-    best = 0
-    for k0 in range(0, len(d), 1024):
-        best = max(best, int((((d[k0:k0 + 1024, None] - d[None]) ** 2).sum(-1) < threshold**2).sum(1).max()))
-    return best
+    _, d = _translation_votes(p, q, dtheta, dlog2, yaw, angle_tol=angle_tol, scale_tol=scale_tol)
+    return int(_neighbour_counts(d[np.linalg.norm(d - t, axis=1) >= distinct], threshold).max(initial=0))
 
 
 def oriented_rigid2d_ransac(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dlog2: np.ndarray, *, threshold: float,
@@ -111,15 +122,10 @@ def fixed_yaw_translation(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dlog
     check_shape("q", q, "N 2")
     best: tuple[float, np.ndarray, np.ndarray] | None = None
     for yaw in np.asarray(yaws, np.float64).ravel():
-        ok = (np.abs(dlog2) < scale_tol) & (np.abs(wrap_angle(dtheta - yaw)) < angle_tol)
-        idx = np.flatnonzero(ok)
+        idx, d = _translation_votes(p, q, dtheta, dlog2, yaw, angle_tol=angle_tol, scale_tol=scale_tol)
         if not len(idx):
             continue
-        d = p[idx] - q[idx] @ yaw_matrix_xz(yaw).T
-        counts = np.zeros(len(d), np.int64)
-        for k0 in range(0, len(d), 1024):
-            counts[k0:k0 + 1024] = (((d[k0:k0 + 1024, None] - d[None]) ** 2).sum(-1) < threshold**2).sum(1)
-        t = d[int(np.argmax(counts))]
+        t = d[int(np.argmax(_neighbour_counts(d, threshold)))]
         for _ in range(3):
             near = np.linalg.norm(d - t, axis=1) < threshold
             t = d[near].mean(0)

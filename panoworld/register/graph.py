@@ -86,7 +86,7 @@ def _groups(names: list[str], edges: list[Edge], given: dict[str, np.ndarray]
             for e in metric:
                 for src in (e.a, e.b):
                     dst, rel = e.toward(src)
-                    if src in poses and dst not in poses and (best is None or _strength(e) > _strength(best[0])):
+                    if src in poses and dst not in poses and (best is None or strength(e) > strength(best[0])):
                         best = (e, src, dst, rel)
             if best is None:
                 break
@@ -98,7 +98,7 @@ def _groups(names: list[str], edges: list[Edge], given: dict[str, np.ndarray]
     return out
 
 
-def _strength(e: Edge) -> tuple[bool, int, int]:
+def strength(e: Edge) -> tuple[bool, int, int]:
     """How much an edge is trusted, for the spanning tree and for choosing the weakest edge of a path: confirmed by the
     images, then kind, then inliers. A few matches whose depths agree by chance (layout depth: walls alone) or a floor
     fit a tile run along its baseline are what the images leave unconfirmed; where a confirmed path reaches the same
@@ -242,7 +242,7 @@ def _without_contradicted(names: list[str], edges: list[Edge], given: dict[str, 
                 break
         if bad is None:
             return edges
-        w = min(bad, key=_strength)
+        w = min(bad, key=strength)
         T = np.array(w.a_from_b, np.float64)
         T[:3, 3] /= max(np.linalg.norm(T[:3, 3]), 1e-12)
         edges = [x for x in edges if x is not w] + [Edge(a=w.a, b=w.b, a_from_b=T, kind=DIRECTION, inliers=w.inliers,

@@ -13,7 +13,18 @@ from panoworld.geometry.floor_view import FloorView, camera_height, floor_view
 from panoworld.geometry.resize import rgbd_at_height
 from panoworld.geometry.upright import wrap_angle, yaw_of
 from panoworld.register.floor import FloorPose, floor_pair
-from panoworld.register.graph import BEARING, DEPTH, DIRECTION, FLOOR, LAYOUT, Edge, group_of, solve_graph, tree_path
+from panoworld.register.graph import (
+    BEARING,
+    DEPTH,
+    DIRECTION,
+    FLOOR,
+    LAYOUT,
+    Edge,
+    group_of,
+    solve_graph,
+    strength,
+    tree_path,
+)
 from panoworld.register.layout import LayoutPose, layout_pair, manhattan_frame, room
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pair_select import appearance_descriptor, bridge_pairs, candidate_pairs
@@ -244,7 +255,7 @@ def refuse_overlapping_rooms(names: list[str], edges: list[Edge], given: dict[st
         if found is None:
             return out
         x, y, why, weak = found
-        e = min(weak, key=lambda e: (e.confirmed, (LAYOUT, BEARING, FLOOR).index(e.kind), e.inliers))
+        e = min(weak, key=strength)
         edges[:] = [f for f in edges if f is not e]
         out[e.a, e.b] = (e.kind, f"with it the registration puts {y}'s room into {x}'s: {why}")
 
