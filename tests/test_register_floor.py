@@ -242,3 +242,45 @@ def test_a_floor_fit_the_images_cannot_check_is_refused_when_another_translation
                             no_images, o) == ""  # 12 >= 2 x 5: clear
     agree = UprightPose(yaw=0.0, t=np.array([1.0, 0.0, 0.0]), inliers=np.ones(o.min_bearing_inliers, bool))
     assert _ambiguous_floor(fit, (agree, float("nan"), 0), o) == ""  # the images check it (_contradiction)
+
+
+def test_a_floor_edge_the_floors_across_its_cut_outvote_is_refused():
+    """Two rooms of two panoramas each (depth edges), joined by a floor edge of 40 inliers the images do not confirm,
+    3 m off along its baseline (as two rooms with one flooring give), and a right one of 10: the tree takes the 40 and
+    the loop gate drops the 10. The floor images of the pairs across that cut agree on the truth: the 40 is refused and
+    the truth registered. One supporting pair is not enough, and a confirmed edge is never refused."""
+    from panoworld.register.cuts import refuse_outvoted_cuts
+    from panoworld.register.floor import floor_pair
+
+    tex = _texture(6)
+    names = ["a", "b", "c", "d"]
+    world = {"a": _pose(0.0, 0.0, 0.0), "b": _pose(40.0, 1.6, 0.0), "c": _pose(-70.0, 1.6, 1.9),
+             "d": _pose(150.0, 0.0, 1.9)}
+    o = RegisterOptions()
+    views = {n: floor_view(*_render(world[n], tex), radius_m=o.floor_radius_m, cell_m=o.floor_cell_m) for n in names}
+    rel = lambda x, y: invert_pose(world[x]) @ world[y]
+    wrong = rel("b", "c").copy()
+    wrong[:3, 3] *= 1 + 3.0 / np.linalg.norm(wrong[:3, 3])
+    depth = [Edge(a="a", b="b", a_from_b=rel("a", "b"), kind="depth", inliers=300, info={}),
+             Edge(a="c", b="d", a_from_b=rel("c", "d"), kind="depth", inliers=300, info={})]
+    cross = [Edge(a="b", b="c", a_from_b=wrong, kind=FLOOR, inliers=40, info={}, confirmed=False),
+             Edge(a="a", b="d", a_from_b=rel("a", "d"), kind=FLOOR, inliers=10, info={}, confirmed=False)]
+    floors = {(i, j): floor_pair(views[names[i]], views[names[j]]) for i, j in [(0, 2), (0, 3), (1, 2), (1, 3)]}
+    assert all(f.inliers >= 50 for f in floors.values())  # one floor: every pair across the cut sees it
+
+    def error_m(edges: list[Edge]) -> float:
+        poses, _ = solve_graph(names, edges)
+        return max(np.linalg.norm(poses[n][:3, 3] - rel("a", n)[:3, 3]) for n in names)
+
+    edges = depth + cross
+    assert error_m(edges) > 2.5  # the tree takes the 40 inliers
+    refused = refuse_outvoted_cuts(names, edges, {}, floors, views, o.min_floor_inliers)
+    assert list(refused) == [("b", "c")] and "4 pairs" in refused["b", "c"][1] and "c, d 3.0" in refused["b", "c"][1]
+    assert error_m(edges) < 0.01
+
+    alone = depth + cross
+    assert refuse_outvoted_cuts(names, alone, {}, floors, {"a": views["a"], "d": views["d"]}, 8) == {}
+    assert len(alone) == 4  # only the pair a-d supports the truth: not enough to overrule the tree
+
+    confirmed = depth + [Edge(a="b", b="c", a_from_b=wrong, kind=FLOOR, inliers=40, info={}), cross[1]]
+    assert refuse_outvoted_cuts(names, confirmed, {}, floors, views, 8) == {}

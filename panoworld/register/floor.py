@@ -26,6 +26,9 @@ class FloorPose:
     second: int = 0
     """Inliers of the best other translation at the same yaw (at least DISTINCT_M from this one): a repeated floor
     pattern (tiles, planks) agrees nearly as well one pattern period along the baseline."""
+    matched: np.ndarray | None = None
+    """(matches, 2) int32: the floor matches the fit was made from (index in a, index in b), for floor_support at
+    other poses."""
 
 
 DISTINCT_M = 0.3
@@ -160,7 +163,7 @@ def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: 
     res = np.linalg.norm(b.xz[m[inl, 1]] @ yaw_matrix_xz(yaw).T + t - a.xz[m[inl, 0]], axis=1)
     return FloorPose(a_from_b=T, inliers=int(inl.sum()), matches=len(m),
                      residual_m=float(np.sqrt(np.mean(res**2))) if len(res) else float("nan"),
-                     second=runner_up(*args, yaw, t, threshold=threshold_m))
+                     second=runner_up(*args, yaw, t, threshold=threshold_m), matched=m.astype(np.int32))
 
 
 def floor_support(a: FloorView, b: FloorView, a_from_b: np.ndarray, *, threshold_m: float = 0.08,

@@ -261,16 +261,18 @@ def _angle_deg(v: np.ndarray, u: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(v @ u / max(np.linalg.norm(v), 1e-12), -1.0, 1.0))))
 
 
+def ancestry(n: str, info: dict[str, dict]) -> list[str]:
+    """n and its spanning-tree ancestors up to its group's root (info: each panorama's parent, as _groups gives it)."""
+    chain = [n]
+    while info[chain[-1]].get("parent") is not None:
+        chain.append(info[chain[-1]]["parent"])
+    return chain
+
+
 def tree_path(x: str, y: str, info: dict[str, dict], edges: list[Edge]) -> list[Edge]:
     """The metric edges of a group's spanning tree (info: each panorama's parent and edge kind, as _groups gives it) on
     the way from x to y (each panorama's edge to its parent)."""
-    def up(n: str) -> list[str]:
-        chain = [n]
-        while info[chain[-1]].get("parent") is not None:
-            chain.append(info[chain[-1]]["parent"])
-        return chain
-
-    cx, cy = up(x), up(y)
+    cx, cy = ancestry(x, info), ancestry(y, info)
     common = set(cx) & set(cy)
     steps = [n for n in cx if n not in common] + [n for n in cy if n not in common]
     out = []

@@ -12,6 +12,7 @@ from panoworld.core.conventions import invert_pose
 from panoworld.geometry.floor_view import FloorView, camera_height, floor_view
 from panoworld.geometry.resize import rgbd_at_height
 from panoworld.geometry.upright import wrap_angle, yaw_of
+from panoworld.register.cuts import refuse_outvoted_cuts
 from panoworld.register.floor import FloorPose, floor_pair
 from panoworld.register.graph import (
     BEARING,
@@ -79,12 +80,13 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     floors: dict[tuple[int, int], FloorPose | None] = {}
     frames: dict[str, float | None] = {}
     small: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    views: dict[str, FloorView | None] = {}
     k = len(names)
     if need:
         small = {n: rgbd_at_height(rgbs[n], depths[n], o.height) for n in names}
         rig = {n: grow_exclusion((rig_masks or {}).get(n)) for n in names}
         feats = {n: erp_features(*small[n], max_features=o.max_features, exclude=rig[n]) for n in names}
-        views: dict[str, FloorView | None] = {
+        views = {
             n: floor_view(rgbs[n], small[n][1], radius_m=o.floor_radius_m, cell_m=o.floor_cell_m, exclude=rig[n])
             if o.floor else None for n in names}
         looks = {n: appearance_descriptor(small[n][0]) for n in names} if k > o.all_pairs_up_to else None
@@ -136,6 +138,8 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                                   confirmed=_confirmed(bearing[a, b], o),
                                   info={"layout_score": round(lp.score, 1), "layout_second": round(lp.second, 1)}))
     overlaps = refuse_overlapping_rooms(names, edges, given, {n: small[n][1] for n in small}, o) if need else {}
+    if need and (outvoted := refuse_outvoted_cuts(names, edges, given, floors, views, o.min_floor_inliers)):
+        overlaps |= outvoted | refuse_overlapping_rooms(names, edges, given, {n: small[n][1] for n in small}, o)
     poses, info = solve_graph(names, edges, given)
     for n in names:
         if not info[n]["registered"]:

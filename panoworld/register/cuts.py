@@ -1,0 +1,105 @@
+"""Floor evidence across a cut of the pose graph: a spanning-tree edge the images do not confirm is refused where the
+floor images of more pairs across the cut it makes agree on another placement of its side."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from panoworld.core.conventions import invert_pose
+from panoworld.geometry.floor_view import FloorView, agrees_with_pose
+from panoworld.geometry.upright import wrap_angle, yaw_of
+from panoworld.register.floor import FloorPose
+from panoworld.register.graph import DIRECTION, FLOOR, LAYOUT, Edge, ancestry, solve_graph, tree_path
+
+AGREE_M, AGREE_DEG = 0.25, 2.0
+"""Two placements of one side are the same when they put its cameras' mean position within AGREE_M of each other and
+its yaw within AGREE_DEG."""
+MIN_SUPPORT = 4
+"""A pair's floor images support a placement when at least this many of their matches agree with the relative pose it
+gives (floor_support's tests); between floors that share nothing, a given pose keeps 0-2."""
+
+
+def refuse_outvoted_cuts(names: list[str], edges: list[Edge], given: dict[str, np.ndarray],
+                         floors: dict[tuple[int, int], FloorPose | None], views: dict[str, FloorView | None],
+                         min_floor_inliers: int) -> dict[tuple[str, str], tuple[str, str]]:
+    """Remove from `edges` each floor or layout edge the images do not confirm that the solved registration joins two
+    sides by, where the floor images of the pairs across that cut (floors: each tried pair's fit, keyed by name indices)
+    outvote it: another placement of the side, given by a metric edge or a floor fit of >= min_floor_inliers across
+    the cut, is supported (MIN_SUPPORT) by at least two pairs and by more pairs than the tree's placement ->
+    {(a, b): (edge kind, reason)}. Two rooms with one flooring can give a single floor fit of many inliers metres off,
+    which the pair alone cannot tell from the truth; independent pairs agreeing on one placement are not chance."""
+    at = {n: i for i, n in enumerate(names)}
+    out: dict[tuple[str, str], tuple[str, str]] = {}
+    for _ in range(len(edges)):
+        poses, info = solve_graph(names, edges, given)
+        found = None
+        for n in sorted(poses, key=at.get):
+            parent = info[n].get("parent")
+            path = tree_path(n, parent, info, edges) if parent is not None else []
+            if not path or path[0].confirmed or path[0].kind not in (FLOOR, LAYOUT):
+                continue
+            side = {m for m in poses if n in ancestry(m, info)}
+            centre = np.mean([poses[m][:3, 3] for m in side], axis=0)
+            alts = [X for X in _placements(names, poses, side, edges, floors, min_floor_inliers)
+                    if not _same(X, np.eye(4), centre)]
+            if not alts:
+                continue
+            across = [(names[i], names[j], f.matched) for (i, j), f in floors.items()
+                      if f is not None and f.matched is not None and names[i] in poses and names[j] in poses
+                      and (names[i] in side) != (names[j] in side)
+                      and views.get(names[i]) is not None and views.get(names[j]) is not None]
+            here = _supporters(np.eye(4), across, poses, side, views)
+            best = max((_supporters(X, across, poses, side, views), k) for k, X in enumerate(alts))
+            if len(best[0]) >= 2 and len(best[0]) > len(here):
+                X = alts[best[1]]
+                found = (path[0], side, best[0], here, float(np.linalg.norm(X[:3, :3] @ centre + X[:3, 3] - centre)))
+                break
+        if found is None:
+            return out
+        e, side, there, here, moved = found
+        edges[:] = [f for f in edges if f is not e]
+        out[e.a, e.b] = (e.kind, f"the floor images of {len(there)} pairs across it ({_names(there)}) place "
+                                 f"{_names(sorted(side))} {moved:.2f} m from where it does, {len(here)} agree with it")
+    return out
+
+
+def _placements(names: list[str], poses: dict[str, np.ndarray], side: set[str], edges: list[Edge],
+                floors: dict[tuple[int, int], FloorPose | None], min_floor_inliers: int) -> list[np.ndarray]:
+    """Where each metric edge and each floor fit (of >= min_floor_inliers) across the cut would put the side: the
+    transform (4, 4) that moves the side's poses there."""
+    out = []
+    rels = [(e.a, e.b, e.a_from_b) for e in edges if e.kind != DIRECTION]
+    rels += [(names[i], names[j], f.a_from_b) for (i, j), f in floors.items()
+             if f is not None and f.inliers >= min_floor_inliers]
+    for a, b, a_from_b in rels:
+        if a not in poses or b not in poses or (a in side) == (b in side):
+            continue
+        if a in side:
+            out.append(poses[b] @ invert_pose(a_from_b) @ invert_pose(poses[a]))
+        else:
+            out.append(poses[a] @ a_from_b @ invert_pose(poses[b]))
+    return out
+
+
+def _supporters(X: np.ndarray, across: list[tuple[str, str, np.ndarray]], poses: dict[str, np.ndarray],
+                side: set[str], views: dict[str, FloorView | None]) -> list[tuple[str, str]]:
+    """The pairs (a, b, their floor matches (M, 2)) across the cut whose floor images support (MIN_SUPPORT) the side
+    moved by X (4, 4)."""
+    out = []
+    for a, b, m in across:
+        pa = X @ poses[a] if a in side else poses[a]
+        pb = X @ poses[b] if b in side else poses[b]
+        if int(agrees_with_pose(views[a], views[b], invert_pose(pa) @ pb, m).sum()) >= MIN_SUPPORT:
+            out.append((a, b))
+    return out
+
+
+def _same(X: np.ndarray, Y: np.ndarray, centre: np.ndarray) -> bool:
+    """Whether two placements X, Y (4, 4) of one side agree (AGREE_M at the point centre (3,), AGREE_DEG)."""
+    dyaw = abs(float(np.degrees(wrap_angle(yaw_of(X[:3, :3]) - yaw_of(Y[:3, :3])))))
+    return dyaw <= AGREE_DEG and float(np.linalg.norm((X - Y)[:3, :3] @ centre + (X - Y)[:3, 3])) <= AGREE_M
+
+
+def _names(items) -> str:
+    """A short list of names or pairs for a message."""
+    return ", ".join(x if isinstance(x, str) else "-".join(x) for x in items)
