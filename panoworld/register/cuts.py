@@ -49,7 +49,8 @@ def refuse_outvoted_cuts(names: list[str], edges: list[Edge], given: dict[str, n
                       and (names[i] in side) != (names[j] in side)
                       and views.get(names[i]) is not None and views.get(names[j]) is not None]
             here = _supporters(np.eye(4), across, poses, side, views)
-            best = max((_supporters(X, across, poses, side, views), k) for k, X in enumerate(alts))
+            best = max(((_supporters(X, across, poses, side, views), k) for k, X in enumerate(alts)),
+                       key=lambda sk: len(sk[0]))
             if len(best[0]) >= 2 and len(best[0]) > len(here):
                 X = alts[best[1]]
                 found = (path[0], side, best[0], here, float(np.linalg.norm(X[:3, :3] @ centre + X[:3, 3] - centre)))
@@ -100,6 +101,7 @@ def _same(X: np.ndarray, Y: np.ndarray, centre: np.ndarray) -> bool:
     return dyaw <= AGREE_DEG and float(np.linalg.norm((X - Y)[:3, :3] @ centre + (X - Y)[:3, 3])) <= AGREE_M
 
 
-def _names(items) -> str:
-    """A short list of names or pairs for a message."""
-    return ", ".join(x if isinstance(x, str) else "-".join(x) for x in items)
+def _names(items: list, most: int = 6) -> str:
+    """A short list of names or pairs (at most `most`, then how many more) for a message."""
+    shown = ", ".join(x if isinstance(x, str) else "-".join(x) for x in items[:most])
+    return shown + (f" +{len(items) - most} more" if len(items) > most else "")
