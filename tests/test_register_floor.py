@@ -284,3 +284,30 @@ def test_a_floor_edge_the_floors_across_its_cut_outvote_is_refused():
 
     confirmed = depth + [Edge(a="b", b="c", a_from_b=wrong, kind=FLOOR, inliers=40, info={}), cross[1]]
     assert refuse_outvoted_cuts(names, confirmed, {}, floors, views, 8) == {}
+
+
+def test_a_weak_floor_edge_no_other_pair_across_its_cut_supports_is_refused():
+    """A floor edge of 10 inliers the images do not confirm, the only pair whose floor images support it across the cut
+    it makes (a chance fit between floors that share nothing looks like this): refused below floor_lone_inliers, kept
+    at or above it, and kept where another pair across the cut agrees."""
+    from panoworld.register.cuts import refuse_outvoted_cuts
+    from panoworld.register.floor import floor_pair
+
+    tex = _texture(7)
+    names = ["a", "b", "c"]
+    world = {"a": _pose(0.0, 0.0, 0.0), "b": _pose(60.0, 1.5, 0.2), "c": _pose(-20.0, 0.4, 2.0)}
+    views = {n: floor_view(*_render(world[n], tex), radius_m=4.0) for n in names}
+    rel = lambda x, y: invert_pose(world[x]) @ world[y]
+    floors = {(i, j): floor_pair(views[names[i]], views[names[j]]) for i, j in [(0, 1), (0, 2), (1, 2)]}
+
+    def edges() -> list[Edge]:
+        return [Edge(a="a", b="b", a_from_b=rel("a", "b"), kind="depth", inliers=300, info={}),
+                Edge(a="a", b="c", a_from_b=rel("a", "c"), kind=FLOOR, inliers=10, info={}, confirmed=False)]
+
+    alone = {k: v for k, v in floors.items() if k != (1, 2)}  # b-c not tried: a-c is the only pair across
+    e = edges()
+    refused = refuse_outvoted_cuts(names, e, {}, alone, views, 8, 12)
+    assert list(refused) == [("a", "c")] and "no other of the 1 pairs" in refused["a", "c"][1]
+    assert "c" not in solve_graph(names, e)[0]
+    assert refuse_outvoted_cuts(names, edges(), {}, alone, views, 8, 10) == {}  # 10 inliers are not weak there
+    assert refuse_outvoted_cuts(names, edges(), {}, floors, views, 8, 12) == {}  # b-c's floor agrees

@@ -1,5 +1,6 @@
 """Floor evidence across a cut of the pose graph: a spanning-tree edge the images do not confirm is refused where the
-floor images of more pairs across the cut it makes agree on another placement of its side."""
+floor images of more pairs across the cut it makes agree on another placement of its side, or, for a weak floor fit,
+where no other pair agrees with it."""
 
 from __future__ import annotations
 
@@ -21,13 +22,15 @@ gives (floor_support's tests); between floors that share nothing, a given pose k
 
 def refuse_outvoted_cuts(names: list[str], edges: list[Edge], given: dict[str, np.ndarray],
                          floors: dict[tuple[int, int], FloorPose | None], views: dict[str, FloorView | None],
-                         min_floor_inliers: int) -> dict[tuple[str, str], tuple[str, str]]:
+                         min_floor_inliers: int, lone_inliers: int = 0) -> dict[tuple[str, str], tuple[str, str]]:
     """Remove from `edges` each floor or layout edge the images do not confirm that the solved registration joins two
     sides by, where the floor images of the pairs across that cut (floors: each tried pair's fit, keyed by name indices)
     outvote it: another placement of the side, given by a metric edge or a floor fit of >= min_floor_inliers across
     the cut, is supported (MIN_SUPPORT) by at least two pairs and by more pairs than the tree's placement ->
     {(a, b): (edge kind, reason)}. Two rooms with one flooring can give a single floor fit of many inliers metres off,
-    which the pair alone cannot tell from the truth; independent pairs agreeing on one placement are not chance."""
+    which the pair alone cannot tell from the truth; independent pairs agreeing on one placement are not chance. A floor
+    edge of fewer than lone_inliers inliers is also refused where its own pair is the only one across its cut whose
+    floor images support it (a chance fit between floors that share nothing)."""
     at = {n: i for i, n in enumerate(names)}
     out: dict[tuple[str, str], tuple[str, str]] = {}
     for _ in range(len(edges)):
@@ -42,25 +45,33 @@ def refuse_outvoted_cuts(names: list[str], edges: list[Edge], given: dict[str, n
             centre = np.mean([poses[m][:3, 3] for m in side], axis=0)
             alts = [X for X in _placements(names, poses, side, edges, floors, min_floor_inliers)
                     if not _same(X, np.eye(4), centre)]
-            if not alts:
+            weak = path[0].kind == FLOOR and path[0].inliers < lone_inliers
+            if not alts and not weak:
                 continue
             across = [(names[i], names[j], f.matched) for (i, j), f in floors.items()
                       if f is not None and f.matched is not None and names[i] in poses and names[j] in poses
                       and (names[i] in side) != (names[j] in side)
                       and views.get(names[i]) is not None and views.get(names[j]) is not None]
             here = _supporters(np.eye(4), across, poses, side, views)
+            if weak and len(here) < 2:
+                found = (path[0], f"{path[0].inliers} floor inliers, and no other of the {len(across)} pairs across it "
+                                  "has floor images that agree with it: a chance fit between floors that share nothing")
+                break
+            if not alts:
+                continue
             best = max(((_supporters(X, across, poses, side, views), k) for k, X in enumerate(alts)),
                        key=lambda sk: len(sk[0]))
             if len(best[0]) >= 2 and len(best[0]) > len(here):
-                X = alts[best[1]]
-                found = (path[0], side, best[0], here, float(np.linalg.norm(X[:3, :3] @ centre + X[:3, 3] - centre)))
+                X, there = alts[best[1]], best[0]
+                moved = float(np.linalg.norm(X[:3, :3] @ centre + X[:3, 3] - centre))
+                found = (path[0], f"the floor images of {len(there)} pairs across it ({_names(there)}) place "
+                                  f"{_names(sorted(side))} {moved:.2f} m from where it does, {len(here)} agree with it")
                 break
         if found is None:
             return out
-        e, side, there, here, moved = found
+        e, why = found
         edges[:] = [f for f in edges if f is not e]
-        out[e.a, e.b] = (e.kind, f"the floor images of {len(there)} pairs across it ({_names(there)}) place "
-                                 f"{_names(sorted(side))} {moved:.2f} m from where it does, {len(here)} agree with it")
+        out[e.a, e.b] = (e.kind, why)
     return out
 
 

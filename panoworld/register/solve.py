@@ -138,7 +138,9 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                                   confirmed=_confirmed(bearing[a, b], o),
                                   info={"layout_score": round(lp.score, 1), "layout_second": round(lp.second, 1)}))
     overlaps = refuse_overlapping_rooms(names, edges, given, {n: small[n][1] for n in small}, o) if need else {}
-    if need and (outvoted := refuse_outvoted_cuts(names, edges, given, floors, views, o.min_floor_inliers)):
+    outvoted = (refuse_outvoted_cuts(names, edges, given, floors, views, o.min_floor_inliers, o.floor_lone_inliers)
+                if need else {})
+    if outvoted:
         overlaps |= outvoted | refuse_overlapping_rooms(names, edges, given, {n: small[n][1] for n in small}, o)
     poses, info = solve_graph(names, edges, given)
     for n in names:
