@@ -1,6 +1,4 @@
-"""Floor evidence across a cut of the pose graph: a spanning-tree edge the images do not confirm is refused where the
-floor images of more pairs across the cut it makes agree on another placement of its side, or, for a weak floor fit,
-where no other pair agrees with it."""
+"""Pose-graph cuts judged by the floor images of every pair across them (refuse_outvoted_cuts)."""
 
 from __future__ import annotations
 
