@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from panoworld.core.conventions import invert_pose
-from panoworld.geometry.floor_view import FloorView, agrees_with_pose
+from panoworld.geometry.floor_view import FloorView
 from panoworld.geometry.upright import wrap_angle, yaw_of
-from panoworld.register.floor import FloorPose
+from panoworld.register.floor import FloorPose, floor_support
 from panoworld.register.graph import DIRECTION, FLOOR, LAYOUT, Edge, ancestry, solve_graph, tree_path
 
 AGREE_M, AGREE_DEG = 0.25, 2.0
@@ -99,7 +99,7 @@ def _supporters(X: np.ndarray, across: list[tuple[str, str, np.ndarray]], poses:
     for a, b, m in across:
         pa = X @ poses[a] if a in side else poses[a]
         pb = X @ poses[b] if b in side else poses[b]
-        if int(agrees_with_pose(views[a], views[b], invert_pose(pa) @ pb, m).sum()) >= MIN_SUPPORT:
+        if floor_support(views[a], views[b], invert_pose(pa) @ pb, matches=m) >= MIN_SUPPORT:
             out.append((a, b))
     return out
 

@@ -137,11 +137,12 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                 edges.append(Edge(a=names[a], b=names[b], a_from_b=lp.a_from_b, kind=LAYOUT, inliers=int(lp.score),
                                   confirmed=_confirmed(bearing[a, b], o),
                                   info={"layout_score": round(lp.score, 1), "layout_second": round(lp.second, 1)}))
-    overlaps = refuse_overlapping_rooms(names, edges, given, {n: small[n][1] for n in small}, o) if need else {}
+    room_depths = {n: small[n][1] for n in small}
+    overlaps = refuse_overlapping_rooms(names, edges, given, room_depths, o) if need else {}
     outvoted = (refuse_outvoted_cuts(names, edges, given, floors, views, o.min_floor_inliers, o.floor_lone_inliers)
                 if need else {})
     if outvoted:
-        overlaps |= outvoted | refuse_overlapping_rooms(names, edges, given, {n: small[n][1] for n in small}, o)
+        overlaps |= outvoted | refuse_overlapping_rooms(names, edges, given, room_depths, o)
     poses, info = solve_graph(names, edges, given)
     for n in names:
         if not info[n]["registered"]:
