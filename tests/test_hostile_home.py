@@ -21,6 +21,7 @@ import pytest
 
 from panoworld.core.errors import InputError
 from panoworld.core.limits import MAX_POSES_JSON_BYTES, MIN_HEIGHT, LimitError, parse_yaml
+from panoworld.framework import execute
 from panoworld.framework import pipeline as pl
 from panoworld.io import manifest as art
 from panoworld.io.safe_write import OutputPathError, atomic_output, check_output_dir, inside, write_text_atomic
@@ -632,8 +633,8 @@ def test_appearance_neighbours_find_the_same_room_again():
 def test_a_long_failure_line_is_cut_in_the_table(tmp_path):
     log = tmp_path / "t.log"
     log.write_text("$ cmd\nerror: stage trajectory: " + "x" * 10_000 + "\n")
-    line = pl._failure_line(log, "trajectory")
-    assert len(line) <= pl.MAX_REASON_CHARS + 20 and line.endswith("(cut)")
+    line = execute.failure_line(log, "trajectory")
+    assert len(line) <= execute.MAX_REASON_CHARS + 20 and line.endswith("(cut)")
 
 
 def test_sweep_leftovers_restores_an_artifact_caught_mid_swap(tmp_path):

@@ -11,6 +11,7 @@ import pytest
 
 from panoworld.core.conventions import invert_pose, transform_points
 from panoworld.framework import pipeline as pl
+from panoworld.framework.scene import input_paths
 from panoworld.framework.stage import StageInputError, execute_stage, load_stage
 from panoworld.geometry.erp_mesh import load_erp_mesh
 from panoworld.tools.synth.failure_cases import FailureCase, failure_scene, write_failure_scene
@@ -27,7 +28,7 @@ def run_default(scene_dir, sets=()):
     manifests = {}
     for name in STAGES:
         node = pipe.stages[name]
-        manifests[name] = execute_stage(load_stage(name), pl._input_paths(node, scene), params[name], scene.artifact_dir(name))
+        manifests[name] = execute_stage(load_stage(name), input_paths(node, scene), params[name], scene.artifact_dir(name))
     return manifests, scene
 
 

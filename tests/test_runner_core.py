@@ -239,7 +239,7 @@ def test_yaml_documents_are_cached_by_their_text(tmp_path, monkeypatch):
 
     import yaml
 
-    from panoworld.framework.pipeline import cached_yaml
+    from panoworld.framework.dag import cached_yaml
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     calls: list[str] = []
