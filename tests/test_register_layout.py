@@ -93,6 +93,20 @@ def test_manhattan_frames_give_the_relative_yaw_modulo_90_degrees():
     assert _off_manhattan(_pose(33.0, 1.0, 0.0), None, o) == ""
 
 
+@pytest.mark.parametrize("yaw_deg", [7.3, -33.1])
+def test_manhattan_frame_is_fitted_to_the_walls_to_a_hundredth_of_a_degree(yaw_deg):
+    """A floor edge takes its yaw from the two wall directions: their error turns everything beyond it in a chain of
+    rooms (0.1 deg is 1.7 cm at 10 m). The normals are fitted to every outline point of a wall, not taken from the two
+    polyline ends next to the rounded corners (which tilt them by 0.04-0.14 deg here)."""
+    cam = _pose(yaw_deg, -0.4, 0.2)
+    d = (erp_dirs(2 * H, 4 * H, np.float64) @ cam[:3, :3].T).reshape(-1, 3)
+    depth = _exit(np.broadcast_to(cam[:3, 3], d.shape), d, ROOM_A).reshape(2 * H, 4 * H)
+    depth *= 1 + 0.003 * np.random.default_rng(0).normal(size=depth.shape)  # 3 mm per metre of range
+    theta = manhattan_frame(depth)
+    assert theta is not None
+    assert np.degrees(np.abs(np.angle(np.exp(4j * (theta - np.radians(yaw_deg)))))) / 4 < 0.01
+
+
 def test_no_manhattan_frame_without_a_right_angled_outline():
     depth = _render(_pose(0.0, 0.0, 0.0), ROOM_A, ROOM_B)[1]
     masked = depth.copy()

@@ -181,7 +181,27 @@ def manhattan_frame(depth: np.ndarray, *, min_manhattan: float = 0.9, min_valid:
         return None
     on_axis = [w for w in walls if abs(np.angle(np.exp(4j * (np.arctan2(w.normal[1], w.normal[0]) - theta)))) / 4
                < np.radians(tol_deg)]
-    return dominant_direction(on_axis)
+    pts = outline_points(dist)
+    pts = pts[np.isfinite(dist)]
+    return dominant_direction([fitted_wall(w, pts) for w in on_axis])
+
+
+def fitted_wall(wall: Wall, pts: np.ndarray, *, tol_m: float = 0.03, trim: float = 0.05) -> Wall:
+    """The wall with its normal fitted (total least squares) to the outline points pts (N, 2) within tol_m of its
+    line, its ends' trim of its length left out (a corner rounds there); walls_of takes the normal from two outline
+    samples, the ends of the simplified polyline, whose noise tilts it. The wall itself where fewer than 5 points
+    lie on it."""
+    v = wall.p1 - wall.p0
+    length = float(np.linalg.norm(v))
+    rel = pts - wall.p0
+    along = rel @ v / max(length, 1e-9)
+    on = pts[(along > trim * length) & (along < (1 - trim) * length) & (np.abs(rel @ wall.normal) < tol_m)]
+    if len(on) < 5:
+        return wall
+    nrm = np.linalg.svd(on - on.mean(0), full_matrices=False)[2][1]
+    if nrm @ wall.normal < 0:
+        nrm = -nrm
+    return Wall(p0=wall.p0, p1=wall.p1, normal=nrm, offset=float(nrm @ on.mean(0)))
 
 
 def room(rgb: np.ndarray, depth: np.ndarray, *, rows: int = 96, min_manhattan: float = 0.8) -> Room | None:
