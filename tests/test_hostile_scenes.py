@@ -34,7 +34,8 @@ def test_closet_delivers_a_path_with_a_smaller_agent(tmp_path):
                                     ["clearance_m"]) if i not in traj["exempt_poses"]]
     assert min(held) >= no_room["agent_radius_m"] - 1e-9  # clear of the closet walls (they are in the depth)
     assert traj["length_m"] > 1.0  # it walks out of the closet into the room
-    from panoworld.tools.report.scene import ReportParams, SceneData, section_plan
+    from panoworld.tools.report.scene import section_plan
+    from panoworld.tools.report.scene_data import ReportParams, SceneData
 
     body = section_plan(SceneData(scene.root), ReportParams()).body  # the HTML report says it too
     assert "no room to move" in body and "decided: smaller agent" in body

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from panoworld.tools.report.cli import build_scene_report, main
-from panoworld.tools.report.scene import ReportParams
+from panoworld.tools.report.scene_data import ReportParams
 from panoworld.tools.report.topdown import PlanView
 
 SCENE_SECTIONS = ["stages", "depth", "plan", "frames", "poses", "gaussians", "eval", "roam"]
@@ -37,7 +37,7 @@ def pipeline_scene(synth_scene, tmp_path_factory):
 @pytest.fixture(scope="module")
 def scene_report(pipeline_scene):
     from panoworld.tools.eval.cli import EvalParams, evaluate
-    from panoworld.tools.report.scene import ROAM_IMAGES
+    from panoworld.tools.report.scene_data import ROAM_IMAGES
 
     # cheap stages (the page shows any saved eval) and the roam protocol at small sizes, with its pictures
     rep, errors = evaluate(pipeline_scene, EvalParams(roam_height=32, roam_pinhole=16),

@@ -316,7 +316,8 @@ def test_dropouts_completed_smooth_inside_surfaces_and_as_steps_at_edges(scene):
 
 
 def test_report_shows_the_nadir_before_and_after(tmp_path, tripod_dir):
-    from panoworld.tools.report.scene import ReportParams, SceneData, section_depth
+    from panoworld.tools.report.scene import section_depth
+    from panoworld.tools.report.scene_data import ReportParams, SceneData
 
     run_depth(tmp_path, tripod_dir, name="scene/artifacts/depth")
     section = section_depth(SceneData(tmp_path / "scene"), ReportParams())

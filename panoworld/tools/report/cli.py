@@ -36,13 +36,14 @@ def build_scene_report(scene_dir: Path, out: Path | None = None, params=None, *,
     """
     from panoworld.tools.report import scene as sc
     from panoworld.tools.report.roam import section_roam
+    from panoworld.tools.report.scene_data import ReportParams, SceneData
     from panoworld.tools.report.splats import section_gaussians
 
-    params = params or sc.ReportParams()
+    params = params or ReportParams()
     scene_dir = Path(scene_dir)
     out = Path(out) if out else scene_dir / DEFAULT_OUT
     out.parent.mkdir(parents=True, exist_ok=True)
-    data = sc.SceneData(scene_dir)
+    data = SceneData(scene_dir)
     page = Page(f"PanoWorld scene report: {scene_dir.resolve().name}",
                 f"{scene_dir.resolve()} · written {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}")
     builders = [
@@ -80,7 +81,7 @@ def is_dataset_dir(path: Path) -> bool:
 
 def build_parser() -> argparse.ArgumentParser:
     from panoworld.framework.stage import field_docs
-    from panoworld.tools.report.scene import ReportParams
+    from panoworld.tools.report.scene_data import ReportParams
 
     ap = argparse.ArgumentParser(prog="python runner.py report", description=__doc__)
     ap.add_argument("path", type=Path, help="scene directory, or a precompute output directory (has index.jsonl)")
@@ -100,7 +101,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from panoworld.tools.report.scene import ReportParams, run_eval
+    from panoworld.tools.report.scene import run_eval
+    from panoworld.tools.report.scene_data import ReportParams
 
     args = build_parser().parse_args(argv)
     path: Path = args.path

@@ -68,7 +68,7 @@ def clip_strip(cond_dir: Path, row: dict, width: int) -> str:
 def build_dataset_report(cond_dir: Path, out: Path | None = None, *, clips: int = 12, width: int = 256) -> Path:
     """Write COND_DIR/report.html (or out): histograms of the index and a strip of `clips` sample clips."""
     from panoworld.tools.precompute.run import FAILURES, SUMMARY
-    from panoworld.tools.report.scene import subsample
+    from panoworld.tools.report.scene_data import subsample
 
     cond_dir = Path(cond_dir)
     out = Path(out) if out else cond_dir / "report.html"

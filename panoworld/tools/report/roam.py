@@ -5,7 +5,7 @@ from __future__ import annotations
 from panoworld.io.jsonio import read_json
 from panoworld.tools.report import encode as enc
 from panoworld.tools.report.page import Section, figure, fmt, missing, table
-from panoworld.tools.report.scene import ROAM_IMAGES, ReportParams, SceneData, find_eval_json
+from panoworld.tools.report.scene_data import ROAM_IMAGES, ReportParams, SceneData, find_eval_json
 
 LABELS = {"d0": "capture point", "d0.5": "~0.5 m", "d1": "~1 m", "d2": "~2 m", "far": "farthest"}
 KINDS = (("erp", "Gaussians, ERP"), ("erp_ref", "reference, ERP"), ("pinhole", "Gaussians, pinhole"),

@@ -9,7 +9,7 @@ import numpy as np
 
 from panoworld.tools.report import encode as enc
 from panoworld.tools.report.page import Section, figure, fmt, missing, table
-from panoworld.tools.report.scene import ReportParams, SceneData
+from panoworld.tools.report.scene_data import ReportParams, SceneData
 
 
 def render_poses(poses: np.ndarray, context: list[int], k: int) -> list[tuple[str, int, np.ndarray]]:
