@@ -1,4 +1,5 @@
-"""Floor polygons in x,z: manifold3d cross sections, even-odd tests, distances to rings, constrained triangulation."""
+"""Floor polygons in x,z: manifold3d cross sections, even-odd tests, distances to rings, constrained triangulation,
+line fits."""
 
 from __future__ import annotations
 
@@ -110,3 +111,11 @@ def triangulate_rings(rings: list[np.ndarray], max_area_m2: float) -> tuple[np.n
     return np.asarray(out["vertices"], np.float64), np.asarray(out["triangles"], np.int32), np.asarray(out["neighbors"], np.int32)
 
 
+def fit_line(p: np.ndarray) -> tuple[np.ndarray, float]:
+    """Line n . q = c (n unit) through the 2D points p (K, 2), total least squares."""
+    c = p.mean(axis=0)
+    if len(p) < 2:
+        n = c / max(np.linalg.norm(c), 1e-12)
+    else:
+        n = np.linalg.svd(p - c, full_matrices=False)[2][-1]
+    return n, float(n @ c)

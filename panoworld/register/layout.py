@@ -12,6 +12,7 @@ import numpy as np
 from panoworld.core.conventions import erp_dirs
 from panoworld.core.shapes import check_shape
 from panoworld.geometry.floor_view import camera_height
+from panoworld.geometry.polygons import fit_line
 from panoworld.geometry.resize import resize_depth
 from panoworld.geometry.upright import yaw_matrix, yaw_matrix_xz
 
@@ -198,10 +199,9 @@ def fitted_wall(wall: Wall, pts: np.ndarray, *, tol_m: float = 0.03, trim: float
     on = pts[(along > trim * length) & (along < (1 - trim) * length) & (np.abs(rel @ wall.normal) < tol_m)]
     if len(on) < 5:
         return wall
-    nrm = np.linalg.svd(on - on.mean(0), full_matrices=False)[2][1]
-    if nrm @ wall.normal < 0:
-        nrm = -nrm
-    return Wall(p0=wall.p0, p1=wall.p1, normal=nrm, offset=float(nrm @ on.mean(0)))
+    nrm, offset = fit_line(on)
+    sign = 1.0 if nrm @ wall.normal >= 0 else -1.0
+    return Wall(p0=wall.p0, p1=wall.p1, normal=sign * nrm, offset=sign * offset)
 
 
 def room(rgb: np.ndarray, depth: np.ndarray, *, rows: int = 96, min_manhattan: float = 0.8) -> Room | None:

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from panoworld.geometry.polygons import fit_line
+
 PLANE_TOL = 0.03
 """A point lies on the floor (ceiling) plane when its height is within this fraction of the plane's distance."""
 WALL_TOL = 0.03
@@ -64,16 +66,6 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     m = np.roll(mask, -k)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], m.astype(np.int8), [0]])))
     return [(int(a) + k, int(b) - 1 + k) for a, b in zip(edges[::2], edges[1::2])]
-
-
-def _fit_line(p: np.ndarray) -> tuple[np.ndarray, float]:
-    """Line n . q = c (n unit) through the 2D points p (K, 2), total least squares."""
-    c = p.mean(axis=0)
-    if len(p) < 2:
-        n = c / max(np.linalg.norm(c), 1e-12)
-    else:
-        n = np.linalg.svd(p - c, full_matrices=False)[2][-1]
-    return n, float(n @ c)
 
 
 def _ray_line(u: np.ndarray, n: np.ndarray, c: float) -> np.ndarray:
@@ -154,8 +146,8 @@ def wall_columns(points: np.ndarray, valid: np.ndarray, floor: float, ceiling: f
             continue
         left = np.arange(max(a0, a1 - n_line + 1), a1 + 1) % w
         right = np.arange(b0, min(b1, b0 + n_line - 1) + 1) % w
-        nl, cl = _fit_line(q[left])
-        nr, cr = _fit_line(q[right])
+        nl, cl = fit_line(q[left])
+        nr, cr = fit_line(q[right])
         pl, pr = q[a1 % w], q[b0 % w]
         same = abs(nl @ nr) > np.cos(np.deg2rad(10)) and abs(nl @ pr - cl) < 2 * WALL_TOL * np.linalg.norm(pr)
         if same:
