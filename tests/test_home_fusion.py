@@ -138,6 +138,23 @@ def test_nearest_source_equals_its_every_pair_reference():
         np.testing.assert_array_equal(got, ref)
 
 
+def test_a_panorama_given_twice_keeps_every_surface_once():
+    """Two panoramas at one pose (a user's duplicate, rotated and off the origin): the first keeps every point it
+    sees, the second none, whatever the rounding of the two ways to a point's range."""
+    from panoworld.core.conventions import erp_dirs, transform_points
+    from panoworld.geometry.panoramas import nearest_source
+
+    c, s = np.cos(2.2), np.sin(2.2)
+    T = np.array([[c, 0, s, -0.873959777], [0, 1, 0, 0.000138522], [-s, 0, c, -1.334104734], [0, 0, 0, 1.0]])
+    poses = {"a": T, "a_copy": T.copy()}
+    depths = _box_depths({"a": T})
+    depths["a_copy"] = depths["a"].copy()
+    d = depths["a"].astype(np.float64)
+    pts = transform_points(T, erp_dirs(*d.shape, np.float64).reshape(-1, 3) * d.reshape(-1, 1))
+    assert nearest_source(0, pts, ["a", "a_copy"], depths, poses).all()
+    assert not nearest_source(1, pts, ["a", "a_copy"], depths, poses).any()
+
+
 def test_a_panoramas_pixels_without_depth_get_its_own_fill_where_no_other_panorama_sees():
     # a has no depth in a band of its view (an implausible layout masked) across the +x wall and parts of the +z and
     # -z walls; b, farther from the +x wall, saw those two but not the +x wall. Coarse grey Gaussians (the frames'

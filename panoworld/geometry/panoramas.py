@@ -22,7 +22,8 @@ def nearest_source(k: int, pts_world: np.ndarray, names: list[str], depths: dict
                    world_from_cam: dict[str, np.ndarray], *, tol: float = 0.03) -> np.ndarray:
     """(M,) bool for surface points (M, 3) seen by panorama names[k]: no other panorama j sees the same surface (its
     depth along the ray agrees within tol in log range) from nearer (ties: the lower index keeps it)."""
-    r_k = np.linalg.norm(pts_world - world_from_cam[names[k]][:3, 3], axis=1)
+    # ranges as each other panorama's are computed (through its camera frame), so two panoramas at one pose tie
+    r_k = np.linalg.norm(transform_points(invert_pose(world_from_cam[names[k]]), pts_world), axis=1)
     keep = np.ones(len(pts_world), bool)
     for j, other in enumerate(names):
         if j == k:
