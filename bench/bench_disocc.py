@@ -87,7 +87,7 @@ def oracle_poses(scene: Path, video: Path, out: Path) -> Path:
 
 
 def fuse(scene: Path, video: Path, out: Path, poses: Path | None = None) -> tuple[Path, float]:
-    from panoworld.framework.stage import params_from_dict
+    from panoworld.framework.stage_params import params_from_dict
     from stages.gaussians import Params, run
 
     out.mkdir(parents=True, exist_ok=True)

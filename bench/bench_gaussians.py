@@ -20,7 +20,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from panoworld.framework.stage import params_from_dict
+from panoworld.framework.stage_params import params_from_dict
 from panoworld.gaussians.fusion import FusionParams, uniform_subset, voxel_fusion
 from panoworld.render.erp import render_erp
 from panoworld.render.metrics import psnr, ssim, ws_psnr

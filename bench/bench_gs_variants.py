@@ -45,7 +45,7 @@ def build(scene: Path, variant: str, out: Path) -> tuple[Path, float, float]:
         return scene / ARTIFACTS / "gaussians" / "gaussians.ply", 0.0, 0.0
     import yaml
 
-    from panoworld.framework.stage import params_from_dict
+    from panoworld.framework.stage_params import params_from_dict
     from stages.gaussians import Params, run
 
     kv = dict(item.split("=", 1) for item in variant.split(",") if item)

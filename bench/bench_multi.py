@@ -12,7 +12,7 @@ import argparse
 import json
 import os
 
-# Before torch loads OpenMP (as every stage process does, panoworld.framework.stage.stage_main): the capture-pose renders below
+# Before torch loads OpenMP (as every stage process does, panoworld.framework.stage_cli.stage_main): the capture-pose renders below
 # cost several times the CPU with spinning OpenMP threads on a busy machine.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import subprocess

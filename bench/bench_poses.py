@@ -16,7 +16,8 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from panoworld.core.conventions import invert_pose
-from panoworld.framework.stage import execute_stage, load_stage, params_from_dict
+from panoworld.framework.stage import execute_stage, load_stage
+from panoworld.framework.stage_params import params_from_dict
 from panoworld.io.depth_png import write_depth_png
 
 

@@ -33,7 +33,8 @@ import numpy as np
 import torch
 
 from panoworld.geometry.align import trajectory_metrics
-from panoworld.models.panovggt import PanoVGGT, PanoVGGTConfig
+from panoworld.models.panovggt import PanoVGGT
+from panoworld.models.panovggt_config import PanoVGGTConfig
 from panoworld.render.erp import render_erp
 from panoworld.render.metrics import psnr, ssim
 from panoworld.tools.dataset import DatasetScene

@@ -8,7 +8,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from panoworld.core.errors import ArtifactError
-from panoworld.framework.stage import Input, StageInputError, stage_main
+from panoworld.framework.stage import Input, StageInputError
+from panoworld.framework.stage_cli import stage_main
 
 NAME = "asset"
 VERSION = "2"

@@ -8,7 +8,8 @@ from pathlib import Path
 
 from panoworld.conditions.warp import Backend
 from panoworld.core.params import param
-from panoworld.framework.stage import Input, StageInputError, stage_main
+from panoworld.framework.stage import Input, StageInputError
+from panoworld.framework.stage_cli import stage_main
 from panoworld.io.rgb_image import RgbFormat
 
 NAME = "conditions"

@@ -16,7 +16,8 @@ from panoworld.depth.backends.depth_anything import DepthAnythingOptions
 from panoworld.depth.backends.provided import ProvidedOptions
 from panoworld.depth.clean import clean_depth
 from panoworld.depth.options import Rescale, RigMode
-from panoworld.framework.stage import Input, StageInputError, stage_main
+from panoworld.framework.stage import Input, StageInputError
+from panoworld.framework.stage_cli import stage_main
 from panoworld.register.inputs import DEPTH_SUFFIXES, PANORAMA_SUFFIXES, RIG_MASK_SUFFIXES
 
 NAME = "depth"

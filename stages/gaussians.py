@@ -9,7 +9,8 @@ from typing import ClassVar
 
 from panoworld.core import registry as backends
 from panoworld.core.params import options, param
-from panoworld.framework.stage import Input, StageInputError, stage_main
+from panoworld.framework.stage import Input, StageInputError
+from panoworld.framework.stage_cli import stage_main
 from panoworld.gaussians.backends.decoder import DecoderOptions
 from panoworld.gaussians.backends.voxel_fusion import VoxelFusionOptions
 

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.core.params import param
-from panoworld.framework.stage import Input, StageInputError, stage_main
+from panoworld.framework.stage import Input, StageInputError
+from panoworld.framework.stage_cli import stage_main
 
 NAME = "mesh"
 VERSION = "2"

@@ -7,7 +7,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from panoworld.framework.stage import Input, StageInputError, stage_main
+from panoworld.framework.stage import Input, StageInputError
+from panoworld.framework.stage_cli import stage_main
 from panoworld.geometry.erp_mesh import load_erp_mesh
 from panoworld.geometry.navmesh import HOME_SNAP_M
 from panoworld.io.home import capture_poses

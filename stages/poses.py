@@ -12,7 +12,8 @@ import numpy as np
 
 from panoworld.core import registry as backends
 from panoworld.core.params import options, param
-from panoworld.framework.stage import Input, StageInputError, stage_main
+from panoworld.framework.stage import Input, StageInputError
+from panoworld.framework.stage_cli import stage_main
 from panoworld.poses.backends import Job, pick
 from panoworld.poses.backends.vggt import VggtOptions
 from panoworld.poses.options import Alignment, ColmapOptions

@@ -7,7 +7,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from panoworld.framework.stage import Input, StageInputError, stage_main
+from panoworld.framework.stage import Input, StageInputError
+from panoworld.framework.stage_cli import stage_main
 from panoworld.register.options import RegisterOptions
 
 NAME = "register"

@@ -13,7 +13,8 @@ import numpy as np
 from panoworld.core.conventions import invert_pose
 from panoworld.core.errors import PanoWorldError
 from panoworld.core.params import param
-from panoworld.framework.stage import Input, StageInputError, stage_main
+from panoworld.framework.stage import Input, StageInputError
+from panoworld.framework.stage_cli import stage_main
 from panoworld.geometry.erp_mesh import load_erp_mesh
 from panoworld.geometry.navmesh import HOME_SNAP_M, load_navmesh
 from panoworld.io.home import capture_poses

@@ -14,7 +14,8 @@ import numpy as np
 
 from panoworld.core import registry as backends
 from panoworld.core.params import options, param
-from panoworld.framework.stage import Input, StageInputError, stage_main
+from panoworld.framework.stage import Input, StageInputError
+from panoworld.framework.stage_cli import stage_main
 from panoworld.io.rgb_image import RgbFormat
 from panoworld.models.wan_config import WanShortcutConfig
 from panoworld.video.backends import Job

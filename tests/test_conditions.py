@@ -17,7 +17,8 @@ from panoworld.conditions.warp import (
     write_conditions,
 )
 from panoworld.core.conventions import invert_pose, points_from_depth, pose_from_rt, transform_points
-from panoworld.framework.stage import StageInputError, execute_stage, load_stage, params_from_dict
+from panoworld.framework.stage import StageInputError, execute_stage, load_stage
+from panoworld.framework.stage_params import params_from_dict
 from panoworld.geometry.erp_mesh import erp_mesh_from_depth, save_erp_mesh
 from panoworld.geometry.raycast import Raycaster
 from panoworld.io.conditions import load_conditions

@@ -11,7 +11,8 @@ import pytest
 from panoworld.core.conventions import erp_dirs
 from panoworld.depth import depth_map as dep
 from panoworld.depth.depth_map import Rescale
-from panoworld.framework.stage import StageInputError, execute_stage, load_stage, params_from_dict
+from panoworld.framework.stage import StageInputError, execute_stage, load_stage
+from panoworld.framework.stage_params import params_from_dict
 from panoworld.geometry.cube_views import cube_views, merge_view_predictions, render_view
 from panoworld.io.depth import DepthKind, read_depth, read_panorama
 from panoworld.room.floor import estimate_floor

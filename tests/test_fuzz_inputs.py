@@ -19,7 +19,8 @@ from hypothesis.extra import numpy as hnp
 from panoworld.core.errors import PanoWorldError
 from panoworld.core.limits import MAX_POSES, MAX_TRANSLATION_M
 from panoworld.framework import pipeline as pl
-from panoworld.framework.stage import execute_stage, load_stage, params_from_dict
+from panoworld.framework.stage import execute_stage, load_stage
+from panoworld.framework.stage_params import params_from_dict
 from panoworld.io import manifest as art
 from panoworld.io.trajectory import TrajectoryFileError, read_trajectory_file
 

@@ -245,7 +245,7 @@ def write_inputs(tmp: Path, room, *, with_depth: bool = True) -> tuple[Path, Pat
 
 def _params(**values):
     """The gaussians stage's Params from flat names (voxel-fusion's options among them), as --set takes them."""
-    from panoworld.framework.stage import params_from_dict
+    from panoworld.framework.stage_params import params_from_dict
     from stages.gaussians import Params
 
     return params_from_dict(Params, values, "gaussians")

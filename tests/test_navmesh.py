@@ -200,7 +200,8 @@ def test_save_load_round_trip(room, tmp_path):
 def _make_mesh_artifact(root, depth):
     from PIL import Image
 
-    from panoworld.framework.stage import execute_stage, load_stage, params_from_dict
+    from panoworld.framework.stage import execute_stage, load_stage
+    from panoworld.framework.stage_params import params_from_dict
 
     np.save(root / "depth.npy", depth)
     Image.fromarray(np.full(depth.shape + (3,), 128, np.uint8)).save(root / "panorama.png")

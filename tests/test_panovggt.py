@@ -4,14 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from panoworld.models.panovggt import (
-    ErpCorrelation,
-    PanoVGGT,
-    PanoVGGTConfig,
-    erp_coordinate_features,
-    erp_resize,
-    quat_wxyz_to_rotmat,
-)
+from panoworld.models.panovggt import PanoVGGT
+from panoworld.models.panovggt_config import PanoVGGTConfig
+from panoworld.models.panovggt_layers import ErpCorrelation, erp_coordinate_features, erp_resize, quat_wxyz_to_rotmat
 from panoworld.models.weights import MissingWeightsError
 
 torch.set_num_threads(1)

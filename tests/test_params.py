@@ -12,7 +12,8 @@ import pytest
 from panoworld.core import registry as backends
 from panoworld.core.params import flatten
 from panoworld.framework import pipeline as pl
-from panoworld.framework.stage import load_stage, merge, normalize, params_from_dict, params_to_dict
+from panoworld.framework.stage import load_stage
+from panoworld.framework.stage_params import merge, normalize, params_from_dict, params_to_dict
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -39,7 +39,7 @@ def _artifact_bytes(scene: Path, stages: list[str]) -> dict[str, str]:
 def test_full_pipeline_runs_caches_and_reruns_one_stage(synth_scene, pipeline_scene, tmp_path):  # noqa: F811
     import yaml
 
-    from panoworld.framework.stage import params_to_dict
+    from panoworld.framework.stage_params import params_to_dict
 
     scene = tmp_path / "scene"
     shutil.copytree(synth_scene, scene, ignore=shutil.ignore_patterns("artifacts"))

@@ -7,7 +7,8 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from panoworld.core.conventions import erp_dirs, erp_pixel_from_dir, invert_pose, pose_from_rt, transform_points
-from panoworld.framework.stage import StageInputError, execute_stage, load_stage, params_from_dict
+from panoworld.framework.stage import StageInputError, execute_stage, load_stage
+from panoworld.framework.stage_params import params_from_dict
 from panoworld.geometry.raycast import Raycaster
 from panoworld.io import video as video_io
 from panoworld.io.depth_png import read_depth_png, write_depth_png
@@ -235,7 +236,8 @@ def test_colmap_perspective_rig_fallback(tmp_path, room):
 def test_vggt_backend_needs_weights_and_runs_a_real_model_when_given_them(tmp_path, room):
     import torch
 
-    from panoworld.models.panovggt import PanoVGGT, PanoVGGTConfig
+    from panoworld.models.panovggt import PanoVGGT
+    from panoworld.models.panovggt_config import PanoVGGTConfig
 
     torch.set_num_threads(1)
     gt = curved_track(3)

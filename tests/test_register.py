@@ -13,7 +13,8 @@ import pytest
 import torch
 
 from panoworld.core.conventions import invert_pose
-from panoworld.framework.stage import execute_stage, load_stage, params_from_dict
+from panoworld.framework.stage import execute_stage, load_stage
+from panoworld.framework.stage_params import params_from_dict
 from panoworld.io.depth import read_panorama
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pairwise import consistency

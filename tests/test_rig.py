@@ -11,7 +11,8 @@ import pytest
 from panoworld.core.errors import InputError
 from panoworld.depth.complete import complete_dropouts, complete_poles
 from panoworld.depth.rig.remove import nadir_cap_psnr
-from panoworld.framework.stage import execute_stage, load_stage, params_from_dict
+from panoworld.framework.stage import execute_stage, load_stage
+from panoworld.framework.stage_params import params_from_dict
 from panoworld.tools.synth import generate_scene, params_for, write_scene
 from panoworld.tools.synth.rig import FloorObject, with_floor_object
 

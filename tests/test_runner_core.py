@@ -25,7 +25,8 @@ STAGE = '''
 import sys
 from dataclasses import dataclass
 
-from panoworld.framework.stage import Input, stage_main
+from panoworld.framework.stage import Input
+from panoworld.framework.stage_cli import stage_main
 from cdtoy.helper import word
 
 NAME, VERSION, ARTIFACT = "x", "1", "toy"
@@ -192,7 +193,8 @@ def test_sigkill_of_the_runner_alone_leaves_no_stage_process_and_commits_nothing
 
 def test_a_stage_does_not_commit_for_a_runner_that_no_longer_holds_the_lock(scene, monkeypatch):
     from panoworld.core.errors import PipelineError
-    from panoworld.framework.stage import LOCK_ENV, RUNNER_PID_ENV, execute_stage, load_stage, params_from_dict
+    from panoworld.framework.stage import LOCK_ENV, RUNNER_PID_ENV, execute_stage, load_stage
+    from panoworld.framework.stage_params import params_from_dict
 
     spec = load_stage("tests.toy.a")
     (scene / "artifacts").mkdir()

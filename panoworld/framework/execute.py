@@ -103,7 +103,8 @@ def runner_env(scene: Scene) -> dict[str, str]:
 
 def run_subprocess(node: StageNode, scene: Scene, params: Any, echo: bool) -> tuple[int, float, float]:
     """Run `python -m <stage module>` with explicit inputs; returns (exit code, seconds, peak RSS MB)."""
-    from panoworld.framework.stage import REFUSAL_ENV, params_to_dict
+    from panoworld.framework.stage_cli import REFUSAL_ENV
+    from panoworld.framework.stage_params import params_to_dict
 
     template = stage_command(node, scene, "{params_file}", python="{python}")
     env = {**runner_env(scene), REFUSAL_ENV: str(refusal_file(scene.log_file(node.name)))}

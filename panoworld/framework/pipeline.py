@@ -84,14 +84,8 @@ def stage_state(node: StageNode, scene: Scene, params: Any) -> tuple[bool, str]:
     """(up_to_date, reason) for one stage given the artifacts on disk now."""
     from panoworld.framework import code_digest
     from panoworld.framework.hub import resolve as hub
-    from panoworld.framework.stage import (
-        input_digest,
-        params_hash,
-        params_to_dict,
-        resolve_stage_weights,
-        stage_code,
-        stage_key,
-    )
+    from panoworld.framework.stage import input_digest, resolve_stage_weights, stage_code, stage_key
+    from panoworld.framework.stage_params import params_hash, params_to_dict
 
     out_dir = scene.artifact_dir(node.name)
     if not out_dir.exists():

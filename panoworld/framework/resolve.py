@@ -26,7 +26,7 @@ def resolve_params(
 ) -> dict[str, Any]:
     """Params objects per stage: dataclass defaults < pipeline params < preset < scene.yaml < --set, each value
     checked against its declared type, range and choices (PipelineError naming the param and where it was set)."""
-    from panoworld.framework.stage import merge, normalize, params_from_normalized
+    from panoworld.framework.stage_params import merge, normalize, params_from_normalized
 
     preset = preset or (scene.config.get("preset") if scene else None) or DEFAULT_PRESET
     if preset not in pipeline.presets:

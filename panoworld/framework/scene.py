@@ -138,7 +138,7 @@ def check_scene_config(config: Any, path: Path, pipeline: Pipeline) -> None:
     params = config.get("params")
     if params is None:
         return
-    from panoworld.framework.stage import normalize
+    from panoworld.framework.stage_params import normalize
 
     if not isinstance(params, dict):
         raise PipelineError(f"{path}: params: expected a mapping of stage: {{param: value}}, got {_short(params)}")

@@ -10,7 +10,8 @@ from pathlib import Path
 
 from panoworld.core.errors import InputError
 from panoworld.core.params import param
-from panoworld.framework.stage import Input, stage_main
+from panoworld.framework.stage import Input
+from panoworld.framework.stage_cli import stage_main
 
 
 @dataclass(kw_only=True)

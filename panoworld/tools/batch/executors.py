@@ -13,7 +13,7 @@ from panoworld.core.errors import PipelineError
 from panoworld.framework.dag import StageNode
 from panoworld.framework.execute import run_with_params_file, runner_env, stage_command
 from panoworld.framework.scene import Scene
-from panoworld.framework.stage import params_to_dict
+from panoworld.framework.stage_params import params_to_dict
 from panoworld.tools.precompute.run import thread_env
 
 

@@ -42,7 +42,7 @@ evaluate = evaluate_scene
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from panoworld.framework.stage import field_docs
+    from panoworld.framework.stage_params import field_docs
 
     ap = argparse.ArgumentParser(prog="python runner.py eval", description=__doc__)
     ap.add_argument("scene", type=Path, help="scene directory (artifacts/ and optional gt/), or with --all a dataset "
@@ -69,7 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from panoworld.framework.stage import params_from_dict
+    from panoworld.framework.stage_params import params_from_dict
 
     args = build_parser().parse_args(argv)
     if args.out:

@@ -31,7 +31,7 @@ def dataset_units(dataset_dir: Path) -> list[tuple[Path, str | None]]:
 
 def _eval_unit(task: tuple[str, str | None, dict]) -> dict:
     """One (scene, variant) report; never raises (an error becomes the report's "error")."""
-    from panoworld.framework.stage import params_from_dict
+    from panoworld.framework.stage_params import params_from_dict
     from panoworld.tools.eval.report import evaluate_scene
 
     scene, variant, pdict = task
@@ -50,7 +50,7 @@ def evaluate_dataset(dataset_dir: Path, params: EvalParams | None = None, *, wor
     from tqdm import tqdm
 
     from panoworld.core.errors import PipelineError
-    from panoworld.framework.stage import params_to_dict
+    from panoworld.framework.stage_params import params_to_dict
     from panoworld.tools.eval.distribution import distribution_metrics
 
     params = params or EvalParams()

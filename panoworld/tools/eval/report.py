@@ -86,7 +86,7 @@ def evaluate_scene(scene_dir: Path, params: EvalParams | None = None, *, stages:
     protocol saves its renders and references (the report's pictures). Raises EvalInputError when the scene has
     neither ground truth nor artifacts, or LPIPS weights were passed but cannot be loaded.
     """
-    from panoworld.framework.stage import params_to_dict
+    from panoworld.framework.stage_params import params_to_dict
 
     scene_dir = Path(scene_dir)
     if not (scene_dir / GT_DIRNAME / "gt.json").is_file() and not (scene_dir / ARTIFACTS_DIRNAME).is_dir():

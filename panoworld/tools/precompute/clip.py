@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.framework.stage import Input, StageInputError, stage_main
+from panoworld.framework.stage import Input, StageInputError
+from panoworld.framework.stage_cli import stage_main
 from panoworld.io.jsonio import write_json
 
 NAME = "clip"

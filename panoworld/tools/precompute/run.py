@@ -19,7 +19,8 @@ from typing import Any
 import numpy as np
 
 from panoworld.core.errors import InputError
-from panoworld.framework.stage import execute_stage, input_digest, load_stage, params_to_dict, stage_key
+from panoworld.framework.stage import execute_stage, input_digest, load_stage, stage_key
+from panoworld.framework.stage_params import params_to_dict
 from panoworld.io import manifest as art
 from panoworld.io.jsonio import write_json
 from panoworld.io.jsonl import write_jsonl

@@ -80,7 +80,7 @@ def is_dataset_dir(path: Path) -> bool:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from panoworld.framework.stage import field_docs
+    from panoworld.framework.stage_params import field_docs
     from panoworld.tools.report.scene_data import ReportParams
 
     ap = argparse.ArgumentParser(prog="python runner.py report", description=__doc__)

@@ -31,7 +31,7 @@ import numpy as np
 import yaml
 
 from panoworld.core.errors import InputError
-from panoworld.framework.stage import params_from_dict, params_to_dict
+from panoworld.framework.stage_params import params_from_dict, params_to_dict
 from panoworld.io.safe_write import write_text_atomic
 
 CONFIG = "config.yaml"

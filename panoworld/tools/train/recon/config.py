@@ -218,7 +218,7 @@ SOURCES: dict[str, dict[str, str]] = {
 
 def model_config(cfg: ReconConfig, with_head: bool):
     """PanoVGGTConfig of a fresh model of this run (the Gaussian head only for stage 2)."""
-    from panoworld.models.panovggt import PanoVGGTConfig
+    from panoworld.models.panovggt_config import PanoVGGTConfig
 
     d = cfg.depth
     dpt = dpt_layers(d)

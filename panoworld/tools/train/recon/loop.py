@@ -23,7 +23,8 @@ WEIGHTS = "weights"
 def build_model(cfg: ReconConfig, init: Path | None):
     """A fresh model (seeded), or the one in `init` (a previous export); stage 2 adds a fresh Gaussian head to a
     stage-1 model that has none."""
-    from panoworld.models.panovggt import PanoVGGT, PanoVGGTConfig
+    from panoworld.models.panovggt import PanoVGGT
+    from panoworld.models.panovggt_config import PanoVGGTConfig
     from panoworld.models.weights import CONFIG_FILE, WEIGHTS_FILE, require_weights_dir
 
     common.seed_everything(cfg.seed)

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from panoworld.framework.stage import field_docs
+from panoworld.framework.stage_params import field_docs
 from panoworld.io.safe_write import check_output_dir
 
 
