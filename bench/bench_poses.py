@@ -25,7 +25,7 @@ def generate(seed: int, frames: int):
     try:
         from panoworld.tools.synth import generate_scene
     except ImportError:
-        from panoworld.tools.synth.scene import generate_scene
+        from panoworld.tools.synth.generate import generate_scene
     return generate_scene(seed, "default", frames=frames)
 
 

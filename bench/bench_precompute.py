@@ -12,8 +12,8 @@ from pathlib import Path
 
 from panoworld.tools.precompute.run import PrecomputeParams, precompute
 from panoworld.tools.synth import generate_scene, write_scene
+from panoworld.tools.synth.generate import derive_seed
 from panoworld.tools.synth.params import Preset, params_for
-from panoworld.tools.synth.scene import derive_seed
 
 
 def make_dataset(root: Path, scenes: int, frames: int, height: int) -> None:

@@ -205,7 +205,7 @@ REFINE = 20
 
 
 def scene_seeds(seed: int, n: int) -> list[int]:
-    from panoworld.tools.synth.scene import derive_seed
+    from panoworld.tools.synth.generate import derive_seed
 
     return [derive_seed(seed, 1, k) for k in range(n)]
 

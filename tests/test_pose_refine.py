@@ -13,7 +13,7 @@ from panoworld.models.pose_refine import depth_edges, refine_relative_poses, ref
 @pytest.fixture(scope="module")
 def track():
     """Four frames of a ci-tiny synthetic track at 32x64: GT ray depth (4, 32, 64) and cam0_from_cam (4, 4, 4)."""
-    from panoworld.tools.synth.scene import generate_scene
+    from panoworld.tools.synth.generate import generate_scene
 
     scene = generate_scene(3, "ci-tiny")
     poses = scene.tracks[0].world_from_cam

@@ -19,7 +19,7 @@ from panoworld.io.depth import read_panorama
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pairwise import consistency
 from panoworld.register.solve import register_panoramas
-from panoworld.tools.synth.scene import generate_scene
+from panoworld.tools.synth.generate import generate_scene
 from stages.register import main as register_main
 from tests.conftest import HOME_HEIGHT as HEIGHT
 

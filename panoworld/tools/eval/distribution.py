@@ -19,9 +19,9 @@ def _unit_samples(scene: Path, variant: str | None, params: EvalParams, height: 
     """Generated frames (T, H, W, 3) of one scene's video and their references: the ground truth at the same poses
     when the scene has it (frames or a synthetic mesh), else the scene's input panorama (plan-only scenes)."""
     from panoworld.io.video import load_frames
-    from panoworld.tools.eval.scene import Evaluation
+    from panoworld.tools.eval.inputs import SceneInputs
 
-    ev = Evaluation(scene, params, progress=False, variant=variant)
+    ev = SceneInputs(scene, params, progress=False, variant=variant)
     video = ev.video
     gen = load_frames(video.rgb, height)
     poses, _ = ev.reference_poses()

@@ -5,21 +5,14 @@ from __future__ import annotations
 
 import json
 import math
-import sys
-from functools import cached_property
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 from panoworld.conditions.warp import true_disocclusion
-from panoworld.core.params import flatten
-from panoworld.io.manifest import ARTIFACTS_DIRNAME, MANIFEST, VARIANTS_DIRNAME
+from panoworld.io.manifest import ARTIFACTS_DIRNAME, MANIFEST
 from panoworld.render.metrics import psnr, ssim, ws_psnr
 from panoworld.tools.eval.common import (
-    EvalParams,
-    Lpips,
     _mean,
     _read_gray,
     depth_errors,
@@ -28,89 +21,18 @@ from panoworld.tools.eval.common import (
     iou,
     unavailable,
 )
-from panoworld.tools.eval.groundtruth import NoReference, open_ground_truth
+from panoworld.tools.eval.groundtruth import NoReference
+from panoworld.tools.eval.inputs import NotRun, SceneInputs
 
 POSE_METRICS = ("ate", "ate_rmse", "rpe_t", "rpe_r", "rre", "rte", "ate_over_path", "rot_error_abs")
 
 
-class Evaluation:
+class Evaluation(SceneInputs):
     """Evaluates every stage artifact of one scene; each stage gives {metric: value | unavailable(reason)}.
 
     The reference (self.gt, see open_ground_truth) decides what can be scored: a synthetic scene everything, a frames
     + poses scene what lies on its ground-truth tracks, a plan-only scene poses against the plan and ring loops.
     """
-
-    def __init__(self, scene_dir: Path, params: EvalParams | None = None, *, progress: bool = True,
-                 variant: str | None = None, roam_images: Path | None = None):
-        self.scene_dir = Path(scene_dir)
-        self.roam_images = roam_images
-        """Where the roam protocol saves the first view of every bucket (PNGs for the report), or None."""
-        self.params = params or EvalParams()
-        self.progress = progress
-        self.gt = open_ground_truth(self.scene_dir, self.params.pose_tol_m, supersample=self.params.reference_supersample,
-                                    max_rows=self.params.reference_max_rows, cache_mb=self.params.reference_cache_mb)
-        self.lpips = Lpips(self.params)
-        self.variant = variant
-        self.tail: set[str] = set()
-        if variant:
-            from panoworld.tools.batch.variants import read_variant
-
-            self.tail = set(read_variant(self.scene_dir, variant)["tail"])
-
-    # -- helpers
-
-    def artifact(self, stage: str) -> Path | None:
-        """The artifact directory of a stage that has run (its manifest.json is written last), else None."""
-        d = self.artifact_dir(stage)
-        return d if (d / MANIFEST).is_file() else None
-
-    def artifact_dir(self, stage: str) -> Path:
-        """artifacts/STAGE, or artifacts/variants/NAME/STAGE for a stage in the evaluated variant's tail."""
-
-        root = self.scene_dir / ARTIFACTS_DIRNAME
-        return (root / VARIANTS_DIRNAME / self.variant if stage in self.tail else root) / stage
-
-    def manifest(self, stage: str) -> dict:
-        return json.loads((self.artifact_dir(stage) / MANIFEST).read_text())
-
-    def _need(self, stage: str) -> Path:
-        d = self.artifact(stage)
-        if d is None:
-            raise _NotRun(stage)
-        return d
-
-    @cached_property
-    def trajectory_poses(self) -> np.ndarray:
-        from panoworld.io.trajectory import load_trajectory
-
-        return load_trajectory(self._need("trajectory"))
-
-    @cached_property
-    def video(self):
-        """The video artifact's description (frame and depth paths, poses); frames are read when evaluated."""
-        from panoworld.io.video import read_video_frames
-
-        return read_video_frames(self._need("video"))
-
-    @cached_property
-    def conditions(self):
-        from panoworld.io.conditions import load_conditions
-
-        return load_conditions(self._need("conditions"))
-
-    def reference_poses(self) -> tuple[np.ndarray, str]:
-        """The poses the video was generated along (the ground truth for recovered poses): video.json, else the trajectory."""
-        if self.artifact("video") is not None and self.video.poses is not None:
-            return self.video.poses, "video.json poses"
-        return self.trajectory_poses, "trajectory.json poses"
-
-    def _frames(self, n: int) -> list[int]:
-        from panoworld.gaussians.fusion import uniform_subset
-
-        return uniform_subset(range(1, n), self.params.max_frames)
-
-    def _bar(self, items, desc: str):
-        return tqdm(items, desc=desc, leave=False, disable=not self.progress, file=sys.stderr)
 
     # -- stages
 
@@ -397,19 +319,6 @@ class Evaluation:
         return [c[2] for c in picked], (f"ground-truth track frames not fused, nearest to midpoints between context "
                                         f"frames: (track, frame) {[c[:2] for c in picked]}")
 
-    @cached_property
-    def preset(self) -> str | None:
-        """The preset remembered in SCENE/scene.yaml (None when absent)."""
-        import yaml
-
-        from panoworld.io.manifest import SCENE_CONFIG
-
-        cfg = self.scene_dir / SCENE_CONFIG
-        try:
-            return (yaml.safe_load(cfg.read_text()) or {}).get("preset") if cfg.is_file() else None
-        except (OSError, yaml.YAMLError, AttributeError):
-            return None
-
     def roam_settings(self):
         """The roam protocol's sizes: EvalParams where set, else 2 views, 256 rows, 256 px pinhole (ci-tiny: 1, 64, 64)."""
         from panoworld.tools.eval.roam import RoamSettings
@@ -475,17 +384,6 @@ class Evaluation:
     ARTIFACT = {"loop": "video", "roam": "gaussians"}
     """Report sections that are not stage names: the artifact they read."""
 
-    def setting(self) -> dict[str, Any]:
-        """What the evaluated artifacts were made with: trajectory kind/stride/frames and the video backend (the
-        columns that group a dataset's results into the paper's rows); empty entries for stages not run."""
-        out: dict[str, Any] = {}
-        for stage, keys in (("trajectory", ("kind", "stride", "frames")), ("video", ("backend", "wan.steps")),
-                            ("poses", ("backend",))):
-            if self.artifact(stage) is not None:
-                params = flatten(self.manifest(stage).get("params") or {})
-                out.update({(f"{stage}_{k}" if k == "backend" else k.rpartition(".")[2]): params.get(k) for k in keys})
-        return out
-
     def run(self, stages: list[str] | None = None) -> tuple[dict[str, dict], list[str]]:
         """({stage: metrics or unavailable(reason)}, [stages whose existing artifact could not be evaluated])."""
         results, errors = {}, []
@@ -497,7 +395,7 @@ class Evaluation:
                 continue
             try:
                 results[stage] = getattr(self, self.STAGES[stage])()
-            except _NotRun as e:
+            except NotRun as e:
                 results[stage] = unavailable(f"needs the {e.stage} artifact, which is not run")
             except NoReference as e:
                 results[stage] = unavailable(str(e))
@@ -505,10 +403,3 @@ class Evaluation:
                 results[stage] = unavailable(f"error: {type(e).__name__}: {e}")
                 errors.append(stage)
         return results, errors
-
-
-class _NotRun(Exception):
-    def __init__(self, stage: str):
-        super().__init__(stage)
-        self.stage = stage
-

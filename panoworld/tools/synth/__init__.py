@@ -1,6 +1,7 @@
 """Procedural indoor scenes with exact ground truth: meshes, ERP RGB/depth renders and camera tracks."""
 
 from panoworld.tools.synth.appearance import Light, Material, MaterialKind
+from panoworld.tools.synth.generate import SceneGenerationError, derive_seed, generate_scene
 from panoworld.tools.synth.params import (
     FurnitureParams,
     LayoutParams,
@@ -10,8 +11,9 @@ from panoworld.tools.synth.params import (
     TrackParams,
     params_for,
 )
-from panoworld.tools.synth.scene import SceneGenerationError, SynthScene, derive_seed, generate_scene, write_scene
+from panoworld.tools.synth.scene import SynthScene
 from panoworld.tools.synth.tracks import Track
+from panoworld.tools.synth.write import write_scene
 
 __all__ = [
     "FurnitureParams", "LayoutParams", "Light", "Material", "MaterialKind", "Preset", "RenderParams",

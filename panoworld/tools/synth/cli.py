@@ -10,6 +10,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from panoworld.io.safe_write import check_output_dir
+from panoworld.tools.synth.generate import SceneGenerationError, derive_seed, generate_scene
 from panoworld.tools.synth.home import (
     DEPTH_KINDS,
     MAX_PANORAMAS,
@@ -20,7 +21,7 @@ from panoworld.tools.synth.home import (
 )
 from panoworld.tools.synth.params import Preset, params_for
 from panoworld.tools.synth.rig import RigKind
-from panoworld.tools.synth.scene import SceneGenerationError, derive_seed, generate_scene, write_scene
+from panoworld.tools.synth.write import write_scene
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -11,8 +11,9 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.core.conventions import erp_dirs
+from panoworld.tools.synth.generate import generate_scene
 from panoworld.tools.synth.params import FurnitureParams, params_for
-from panoworld.tools.synth.scene import SynthScene, generate_scene
+from panoworld.tools.synth.scene import SynthScene
 
 
 class FailureCase(enum.StrEnum):

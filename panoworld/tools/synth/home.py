@@ -12,9 +12,10 @@ import cv2
 import numpy as np
 
 from panoworld.geometry.raycast import Raycaster
+from panoworld.tools.synth.generate import SceneGenerationError, derive_seed, generate_scene
 from panoworld.tools.synth.layout import SOLID, FloorPlan, architecture_quads, quads_to_mesh
 from panoworld.tools.synth.params import Preset, SynthParams, params_for
-from panoworld.tools.synth.scene import SceneGenerationError, SynthScene, derive_seed, generate_scene
+from panoworld.tools.synth.scene import SynthScene
 from panoworld.tools.synth.tracks import Track, TrackPlanner, distance_to_mesh, pose_from_xz_heading
 
 MIN_ROOMS = 3
