@@ -88,7 +88,8 @@ def mcap_psnr(scene: Path) -> dict | None:
     import numpy as np
 
     from panoworld.io.rgb_image import decode_rgb
-    from panoworld.io.video import MCAP_FILE, TOPIC_RGB, read_mcap, read_video_doc
+    from panoworld.io.video import read_video_doc
+    from panoworld.io.video_mcap import MCAP_FILE, TOPIC_RGB, read_mcap
 
     doc = read_video_doc(scene / "artifacts" / "video")
     path = doc.root / MCAP_FILE

@@ -101,7 +101,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
 
     from panoworld.io.conditions import load_conditions
     from panoworld.io.trajectory import load_clips, load_trajectory, read_trajectory_doc
-    from panoworld.io.video import VideoWriter
+    from panoworld.io.video_writer import VideoWriter
     from panoworld.video.upscale import FrameUpscaler
 
     if params.upscale == Upscale.REALESRGAN and not (params.upscale_weights and Path(params.upscale_weights).is_file()):

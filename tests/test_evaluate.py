@@ -72,7 +72,7 @@ def scene(synth_scene, tmp_path_factory):
     """A copy of the ci-tiny synthetic scene: depth and mesh from the pipeline; trajectory, conditions, video and
     poses written directly along the ground-truth track (so their metrics are known exactly)."""
     from panoworld.io.trajectory import write_trajectory
-    from panoworld.io.video import write_video
+    from panoworld.io.video_writer import write_video
 
     root = tmp_path_factory.mktemp("eval") / "scene"
     shutil.copytree(synth_scene, root, ignore=shutil.ignore_patterns("artifacts"))
@@ -389,7 +389,7 @@ def test_frames_and_poses_scene_without_a_mesh(synth_scene, tmp_path):
     """An InteriorGS-like scene (ground-truth frames + poses, no mesh) made with the converter from a synthetic
     track: the video is scored against the ground-truth frame at each pose; mesh metrics say why they are missing."""
     from panoworld.io.trajectory import write_trajectory
-    from panoworld.io.video import write_video
+    from panoworld.io.video_writer import write_video
     from panoworld.tools.eval.convert import convert_frames_scene
 
     root = convert_frames_scene(synth_scene / "gt" / "tracks" / "track_00.json", tmp_path / "frames_scene",
@@ -442,7 +442,7 @@ def test_plan_only_scene_scores_poses_against_the_plan_and_the_loop(tmp_path, ca
     from scipy.spatial.transform import Rotation
 
     from panoworld.io.trajectory import write_trajectory
-    from panoworld.io.video import write_video
+    from panoworld.io.video_writer import write_video
 
     root = tmp_path / "plan_scene"
     art = root / "artifacts"

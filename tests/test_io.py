@@ -12,7 +12,8 @@ from panoworld.core.errors import InputError
 from panoworld.core.shapes import check_shape
 from panoworld.io.depth_png import read_depth_png, write_depth_png
 from panoworld.io.jsonio import read_json, to_jsonable, write_json
-from panoworld.io.video import load_video, read_video_doc, write_video
+from panoworld.io.video import load_video, read_video_doc
+from panoworld.io.video_writer import write_video
 
 
 def test_json_non_finite_is_null_and_strict(tmp_path):

@@ -10,7 +10,7 @@ from panoworld.core.conventions import erp_dirs, erp_pixel_from_dir, invert_pose
 from panoworld.framework.stage import StageInputError, execute_stage, load_stage
 from panoworld.framework.stage_params import params_from_dict
 from panoworld.geometry.raycast import Raycaster
-from panoworld.io import video as video_io
+from panoworld.io import video_writer
 from panoworld.io.depth_png import read_depth_png, write_depth_png
 from panoworld.poses.estimate import colmap_estimate, load_poses, poses_from_reconstruction, poses_from_transforms
 from panoworld.poses.options import ColmapOptions, RenderType
@@ -58,7 +58,7 @@ def write_video(root: Path, room: TexturedRoom, poses: np.ndarray, h: int, *, de
     rgb, dist = zip(*(room.render(T, h) for T in poses))
     rgb = np.stack(rgb)
     rgb[list(blank)] = 128
-    video_io.write_video(root, rgb, np.stack(dist) if depth else None, poses, fps=10.0, preview=False, mcap=False)
+    video_writer.write_video(root, rgb, np.stack(dist) if depth else None, poses, fps=10.0, preview=False, mcap=False)
     return root
 
 

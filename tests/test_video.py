@@ -14,26 +14,23 @@ import imageio_ffmpeg
 import numpy as np
 import pytest
 
-from panoworld.core.conventions import rotmat_from_quat_wxyz
+from panoworld.core.conventions import depth_to_mm, rotmat_from_quat_wxyz
 from panoworld.framework.stage import StageSpec, execute_stage
 from panoworld.io.png import decode_png, encode_png
-from panoworld.io.video import (
+from panoworld.io.video import VIDEO_FILE, load_video
+from panoworld.io.video_mcap import (
     MCAP_FILE,
-    PREVIEW_FILE,
     TOPIC_COND_MASK,
     TOPIC_COND_RGB,
     TOPIC_DEPTH,
     TOPIC_POSE,
     TOPIC_RGB,
     TOPIC_TF,
-    VIDEO_FILE,
-    depth_to_mm,
-    load_video,
     raw_image_array,
     read_mcap,
     world_from_cam_from_mcap,
-    write_video,
 )
+from panoworld.io.video_writer import PREVIEW_FILE, write_video
 from panoworld.render.metrics import psnr
 from panoworld.video.upscale import lanczos_x2, nearest_x2
 from stages import video as video_stage
@@ -96,7 +93,7 @@ def test_video_without_depth(tmp_path):
 
 @pytest.mark.parametrize(("codec", "jpeg_quality"), [("jpeg", 0), ("jpeg", 80), ("h264", 80)])
 def test_mcap_decodes_back_exactly(tmp_path, codec, jpeg_quality):
-    from panoworld.io.video import VideoWriter
+    from panoworld.io.video_writer import VideoWriter
 
     frames, depth, poses = random_video(t=3)
     frames = cv2.GaussianBlur(frames.reshape(-1, 32, 3), (5, 5), 2).reshape(frames.shape)  # photo-like: JPEG's domain
@@ -149,7 +146,7 @@ def test_mcap_decodes_back_exactly(tmp_path, codec, jpeg_quality):
 
 @pytest.mark.parametrize(("codec", "jpeg_quality"), [("h264", 80), ("jpeg", 80)])
 def test_mcap_of_a_decoded_condition_is_that_of_its_bytes(tmp_path, codec, jpeg_quality):
-    from panoworld.io.video import VideoWriter
+    from panoworld.io.video_writer import VideoWriter
 
     frames, depth, poses = random_video(t=3)
     frames = cv2.GaussianBlur(frames.reshape(-1, 32, 3), (5, 5), 2).reshape(frames.shape)

@@ -295,7 +295,7 @@ def write_conditions(
     if preview_mp4:
         import imageio.v2 as imageio
 
-        from panoworld.io.video import PREVIEW_CRF
+        from panoworld.io.video_writer import PREVIEW_CRF
 
         writer = imageio.get_writer(
             str(out_dir / PREVIEW_MP4), fps=preview_fps, codec="libx264", quality=None, macro_block_size=16,

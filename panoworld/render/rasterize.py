@@ -11,19 +11,21 @@ from panoworld.core.conventions import check_erp_shape, check_pose, erp_lonlat_f
 from panoworld.core.shapes import check_shape
 from panoworld.geometry.raycast import Hits, Raycaster
 from panoworld.io.conditions import WarpedFrame
-from panoworld.render.raster_kernels import (
-    _NO_HIT,
-    _POLAR_FRACTION,
+from panoworld.render.cull_kernels import (
     _cluster_spheres,
     _cluster_vertices,
     _may_show,
     _morton_keys,
+    _seen_clusters,
+    _tile_far,
+)
+from panoworld.render.raster_kernels import (
+    _NO_HIT,
+    _POLAR_FRACTION,
     _raster_clusters,
     _raster_pass,
     _resolve_hits,
     _resolve_shaded,
-    _seen_clusters,
-    _tile_far,
     _vertex_pass,
     _vertex_pass_clusters,
 )
