@@ -39,7 +39,8 @@ def oracle_video(scene: Path, kinds: set[str], out: Path) -> Path:
     """A copy of the scene's video artifact whose hole pixels hold the ground truth's colour and/or depth."""
     from panoworld.core.conventions import depth_to_mm, erp_dirs
     from panoworld.io.conditions import load_conditions
-    from panoworld.io.video import decode_png, encode_png, read_video_doc
+    from panoworld.io.png import decode_png, encode_png
+    from panoworld.io.video import read_video_doc
 
     src = scene / ARTIFACTS / "video"
     shutil.copytree(src, out, ignore=shutil.ignore_patterns("*.mcap", "*.mp4", "upscaled"))
