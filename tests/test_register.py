@@ -235,6 +235,25 @@ def test_fused_mesh_reproduces_every_view_and_navmesh_joins_the_rooms(home_dir):
     assert all(on.values()), on
 
 
+def test_a_panorama_given_twice_adds_nothing_to_the_fused_mesh_or_navmesh(home_dir):
+    from panoworld.mesh.fuse import fuse_meshes
+    from panoworld.navmesh.home import home_navmesh
+
+    gt = _gt(home_dir)
+    names = sorted(gt)
+    poses = {n: invert_pose(gt[names[0]]) @ gt[n] for n in names}
+    rgbs = {n: read_panorama(home_dir / "panoramas" / f"{n}.png") for n in names}
+    depths = {n: np.load(home_dir / "depths" / f"{n}.npy") for n in names}
+    copy = names[1] + "_copy"  # a rotated pose off the origin: its ranges round differently through each way
+    mesh, source = fuse_meshes(names, rgbs, depths, poses)
+    rgbs[copy], depths[copy], poses[copy] = rgbs[names[1]], depths[names[1]].copy(), poses[names[1]].copy()
+    both, source2 = fuse_meshes(names + [copy], rgbs, depths, poses)
+    assert not (source2 == len(names)).any()  # the copy keeps no face: the first of the two keeps them all
+    np.testing.assert_array_equal(both.faces, mesh.faces)
+    _, on = home_navmesh(both, poses)
+    assert all(on.values()), on
+
+
 def test_runner_opens_a_home_and_refuses_a_mixed_layout(home_dir, tmp_path):
     from panoworld.core.errors import PipelineError
     from panoworld.framework.pipeline import Pipeline, open_scene
