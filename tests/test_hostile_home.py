@@ -620,6 +620,25 @@ def test_groups_left_apart_get_every_pair_across_them_nearest_in_capture_order_f
     assert bridge_pairs(names, dict.fromkeys(names, 0), set()) == []  # one group: nothing to bridge
 
 
+def test_pairs_across_a_floor_edge_the_images_do_not_confirm_are_tried_too():
+    """A weak floor fit that the first pairs hold (real east's 14-31 in a home past all_pairs_up_to) is refused by the
+    lone-fit rule unless another pair across it agrees: so the pairs across it are bridge pairs."""
+    from panoworld.register.graph import FLOOR, Edge, bridging_groups, group_of
+
+    names = [f"p{i:02d}" for i in range(20)]
+    edges = [Edge(a=names[i], b=names[i + 1], a_from_b=np.eye(4), kind="depth", inliers=50, info={})
+             for i in range(19) if i != 9]
+    weak = Edge(a=names[9], b=names[10], a_from_b=np.eye(4), kind=FLOOR, inliers=10, info={}, confirmed=False)
+    tried = set(candidate_pairs(names, None))
+    assert len(set(group_of(names, edges + [weak]).values())) == 1  # the edge joins the home ...
+    group = bridging_groups(names, edges + [weak])
+    assert group[names[0]] == group[names[9]] != group[names[10]] == group[names[19]]  # ... not for bridging
+    across = bridge_pairs(names, group, tried)
+    assert (8, 13) in across and all((a < 10) != (b < 10) for a, b in across)
+    confirmed = Edge(a=names[9], b=names[10], a_from_b=np.eye(4), kind=FLOOR, inliers=10, info={})
+    assert bridge_pairs(names, bridging_groups(names, edges + [confirmed]), tried) == []
+
+
 def test_appearance_neighbours_find_the_same_room_again():
     rng = np.random.default_rng(1)
     base = [rng.integers(0, 255, (32, 64, 3), dtype=np.uint8) for _ in range(20)]

@@ -176,6 +176,14 @@ def group_of(names: list[str], edges: list[Edge], given: dict[str, np.ndarray] |
     return {n: k for k, (poses, _) in enumerate(_groups(names, edges, given or {})) for n in poses}
 
 
+def bridging_groups(names: list[str], edges: list[Edge], given: dict[str, np.ndarray] | None = None
+                    ) -> dict[str, int]:
+    """{NAME: group index} for choosing the pairs to try across groups (pair_select.bridge_pairs): the groups of the
+    metric edges less the floor edges the images do not confirm. Such an edge stays in the graph, but the cut vote and
+    the lone-fit rule (cuts.refuse_outvoted_cuts) weigh it by the other pairs tried across it, so those are tried."""
+    return group_of(names, [e for e in edges if e.confirmed or e.kind != FLOOR], given)
+
+
 def _place(group: dict[str, np.ndarray], placed: dict[str, np.ndarray], edges: list[Edge], o: GraphOptions
            ) -> tuple[np.ndarray | None, list[Edge], str]:
     """world_from_group (4, 4) fixing the group's yaw and position from the direction edges to placed panoramas, the

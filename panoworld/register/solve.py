@@ -21,6 +21,7 @@ from panoworld.register.graph import (
     FLOOR,
     LAYOUT,
     Edge,
+    bridging_groups,
     group_of,
     solve_graph,
     strength,
@@ -112,7 +113,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
 
         try_pairs(candidate_pairs(names, looks, given=given, all_up_to=o.all_pairs_up_to))
         if k > o.all_pairs_up_to:
-            group = group_of(names, _edges(names, pairs, bearing, floors, frames, small, o)[0], given)
+            group = bridging_groups(names, _edges(names, pairs, bearing, floors, frames, small, o)[0], given)
             try_pairs(bridge_pairs(names, group, set(pairs)))
     edges, refused, depth_ok, floor_refused, off_frames = _edges(names, pairs, bearing, floors, frames, small, o)
     layouts: dict[tuple[int, int], LayoutPose | None] = {}
