@@ -18,8 +18,9 @@ class RegisterOptions:
     """SIFT keypoints per panorama (shared by its six cube-face views)."""
     all_pairs_up_to: int = param(ALL_PAIRS_UP_TO, ge=2)
     """Homes of at most this many panoramas try every pair. Larger homes try 8 pairs per panorama (its next in name
-    order and its most alike by appearance), then the pairs across the groups those leave apart, nearest in name order
-    first, up to 8 more per panorama (panoworld/register/pair_select.py)."""
+    order and its most alike by appearance), then the pairs across the groups those leave apart (a floor edge the
+    images do not confirm joins none: graph.bridging_groups), nearest in name order first, up to 8 more per panorama
+    (panoworld/register/pair_select.py)."""
     max_error_m: float = param(0.05, gt=0)
     """RANSAC inlier threshold: 3D distance in metres between matched depth-backed points."""
     min_inliers: int = param(12, ge=3)
