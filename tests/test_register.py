@@ -199,16 +199,22 @@ def test_synth_cli_panoramas_refuses_bad_counts(tmp_path):
     assert e.value.code == 2 and not (tmp_path / "x").exists()
 
 
-def test_fused_mesh_reproduces_every_view_and_navmesh_joins_the_rooms(home_dir):
-    from panoworld.geometry.raycast import Raycaster
-    from panoworld.mesh.fuse import fuse_meshes
-    from panoworld.navmesh.home import home_navmesh
-
+def _home_sources(home_dir: Path) -> tuple[list[str], dict, dict, dict]:
+    """(names, true poses in the first panorama's frame, panoramas, depths) of a synthetic home."""
     gt = _gt(home_dir)
     names = sorted(gt)
     poses = {n: invert_pose(gt[names[0]]) @ gt[n] for n in names}
     rgbs = {n: read_panorama(home_dir / "panoramas" / f"{n}.png") for n in names}
     depths = {n: np.load(home_dir / "depths" / f"{n}.npy") for n in names}
+    return names, poses, rgbs, depths
+
+
+def test_fused_mesh_reproduces_every_view_and_navmesh_joins_the_rooms(home_dir):
+    from panoworld.geometry.raycast import Raycaster
+    from panoworld.mesh.fuse import fuse_meshes
+    from panoworld.navmesh.home import home_navmesh
+
+    names, poses, rgbs, depths = _home_sources(home_dir)
     mesh, source = fuse_meshes(names, rgbs, depths, poses)
     assert set(np.unique(source)) == {0, 1, 2}
     alone = [fuse_meshes([n], rgbs, depths, {n: poses[n]})[0] for n in names]
@@ -239,11 +245,7 @@ def test_a_panorama_given_twice_adds_nothing_to_the_fused_mesh_or_navmesh(home_d
     from panoworld.mesh.fuse import fuse_meshes
     from panoworld.navmesh.home import home_navmesh
 
-    gt = _gt(home_dir)
-    names = sorted(gt)
-    poses = {n: invert_pose(gt[names[0]]) @ gt[n] for n in names}
-    rgbs = {n: read_panorama(home_dir / "panoramas" / f"{n}.png") for n in names}
-    depths = {n: np.load(home_dir / "depths" / f"{n}.npy") for n in names}
+    names, poses, rgbs, depths = _home_sources(home_dir)
     copy = names[1] + "_copy"  # a rotated pose off the origin: its ranges round differently through each way
     mesh, source = fuse_meshes(names, rgbs, depths, poses)
     rgbs[copy], depths[copy], poses[copy] = rgbs[names[1]], depths[names[1]].copy(), poses[names[1]].copy()
