@@ -97,7 +97,8 @@ def layout_pairs(registration: dict, survey: dict) -> list[dict]:
 
 def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str]) -> list[dict]:
     """Per pair of panoramas not both registered: the floor views' matches (the register stage's floor_view on the
-    depth artifact's cleaned panoramas, rig excluded, default RegisterOptions; floor_pair's nearest-neighbour matches)
+    depth artifact's cleaned panoramas, rig excluded, default RegisterOptions; floor_pair's nearest-neighbour matches
+    both ways)
     that agree with the survey's relative pose
     within 8 cm on the floor, 15 deg in keypoint orientation and 0.6 octaves in size; most first."""
     from bench_real_home import survey_poses
@@ -126,7 +127,7 @@ def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str]) -> 
             if (a in registered and b in registered) or va is None or vb is None or len(va.xz) < 2 or len(vb.xz) < 2:
                 continue
             gt = np.linalg.inv(world[a]) @ world[b]
-            m = floor_matches(va, vb)  # the matches floor_pair fits
+            m = floor_matches(va, vb, both_ways=True)  # the matches floor_pair fits
             rows.append({"a": a, "b": b, "distance_m": round(float(np.hypot(gt[0, 3], gt[2, 3])), 2),
                          "agreeing": floor_support(va, vb, gt, matches=m), "matches": len(m)})
     return sorted(rows, key=lambda r: (-r["agreeing"], r["distance_m"]))

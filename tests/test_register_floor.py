@@ -92,6 +92,20 @@ def test_floor_pair_recovers_upright_pose_on_a_shared_floor():
     assert floor_support(va, vb, shifted) <= 2
 
 
+def test_a_floor_pair_is_the_same_whichever_panorama_comes_first():
+    """Swapping the two panoramas (renaming them) gives the same matches, the same inliers and the inverse pose."""
+    tex = _texture(3)
+    wa, wb = _pose(35.0, 0.0, 0.0), _pose(-70.0, 3.2, 1.1)  # 3.4 m apart: each floor image holds a part of the other
+    va, vb = floor_view(*_render(wa, tex), radius_m=4.0), floor_view(*_render(wb, tex), radius_m=4.0)
+    ab, ba = floor_pair(va, vb), floor_pair(vb, va)
+    assert ab is not None and ba is not None and ab.inliers >= 20
+    assert (ab.matches, ab.inliers, ab.second) == (ba.matches, ba.inliers, ba.second)
+    assert sorted(map(tuple, ab.matched)) == sorted(map(tuple, ba.matched[:, ::-1]))
+    assert np.abs(ab.a_from_b @ ba.a_from_b - np.eye(4)).max() < 1e-6
+    truth = invert_pose(wa) @ wb
+    assert np.linalg.norm(ab.a_from_b[:3, 3] - truth[:3, 3]) < 0.03
+
+
 def test_a_repeated_floor_pattern_leaves_a_runner_up_a_pattern_period_away():
     """On tiles (a 0.5 m period) other translations a whole number of tiles away agree too (FloorPose.second); on an
     aperiodic floor no other translation comes close."""

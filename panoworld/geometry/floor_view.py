@@ -102,12 +102,33 @@ def floor_view(rgb: np.ndarray, depth: np.ndarray, *, radius_m: float = 6.0, cel
                      angles=np.radians([k.angle for k in kps]), sizes=np.array([k.size for k in kps], np.float64))
 
 
-def floor_matches(a: FloorView, b: FloorView, *, ratio: float = 1.0) -> np.ndarray:
+def floor_matches(a: FloorView, b: FloorView, *, ratio: float = 1.0, both_ways: bool = False) -> np.ndarray:
     """(M, 2) int64 (index in a, index in b): each keypoint of a with its nearest neighbour in b (of two or more),
-    kept by Lowe's ratio test when ratio < 1."""
-    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(a.descriptors, b.descriptors, k=2)
-    return np.array([(k[0].queryIdx, k[0].trainIdx) for k in knn
-                     if len(k) == 2 and (ratio >= 1 or k[0].distance < ratio * k[1].distance)], np.int64).reshape(-1, 2)
+    kept by Lowe's ratio test when ratio < 1. both_ways adds each keypoint of b with its nearest neighbour in a, once
+    per pair of keypoints, best descriptor distance first: the same matches whichever view is a."""
+    if not both_ways:
+        knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(a.descriptors, b.descriptors, k=2)
+        return np.array([(k[0].queryIdx, k[0].trainIdx) for k in knn
+                         if len(k) == 2 and (ratio >= 1 or k[0].distance < ratio * k[1].distance)],
+                        np.int64).reshape(-1, 2)
+    da, db = a.descriptors.astype(np.float32), b.descriptors.astype(np.float32)
+    if len(da) < 2 or len(db) < 2:
+        return np.zeros((0, 2), np.int64)
+    d2 = np.maximum((da * da).sum(1)[:, None] + (db * db).sum(1)[None] - 2.0 * (da @ db.T), 0.0)
+    rows, cols = np.arange(len(da)), np.arange(len(db))
+    ab, ba = d2.argmin(1), d2.argmin(0)
+    keep_ab, keep_ba = np.ones(len(da), bool), np.ones(len(db), bool)
+    if ratio < 1:
+        second_ab = np.partition(d2, 1, axis=1)[:, 1]
+        second_ba = np.partition(d2, 1, axis=0)[1]
+        keep_ab = d2[rows, ab] < ratio**2 * second_ab
+        keep_ba = d2[ba, cols] < ratio**2 * second_ba
+    i = np.concatenate([rows[keep_ab], ba[keep_ba]])
+    j = np.concatenate([ab[keep_ab], cols[keep_ba]])
+    key = np.unique(i * len(db) + j)
+    i, j = key // len(db), key % len(db)
+    order = np.lexsort((np.minimum(i, j), d2[i, j]))
+    return np.stack([i[order], j[order]], 1).astype(np.int64)
 
 
 def agrees_with_pose(a: FloorView, b: FloorView, a_from_b: np.ndarray, matches: np.ndarray, *, threshold_m: float = 0.08,

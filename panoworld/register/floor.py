@@ -63,22 +63,22 @@ def runner_up(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dlog2: np.ndarra
 
 
 def oriented_rigid2d_ransac(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dlog2: np.ndarray, *, threshold: float,
-                            angle_tol: float = np.radians(15.0), scale_tol: float = 0.6, hypotheses: int = 2000,
-                            seed: int = 0) -> tuple[float, np.ndarray, np.ndarray] | None:
+                            angle_tol: float = np.radians(15.0), scale_tol: float = 0.6, hypotheses: int = 2000
+                            ) -> tuple[float, np.ndarray, np.ndarray] | None:
     """2D rigid p ~ yaw_matrix_xz(yaw) q + t (no scale) over matched keypoints p, q (N, 2) whose orientations differ by dtheta
     (N,) (a_angle - b_angle, radians) and whose sizes differ by dlog2 (N,) octaves. Each match is a hypothesis by itself
     (yaw = its orientation difference); a match is an inlier when it lands within threshold, its orientation difference
     is within angle_tol of the yaw and its sizes within scale_tol octaves: three independent tests, so chance
-    agreement stays at a few matches even without a ratio test. The best is refined by least squares on its inliers.
-    -> (yaw, t (2,), inliers (N,) bool), None without a hypothesis."""
+    agreement stays at a few matches even without a ratio test. The first `hypotheses` matches whose sizes agree are
+    the hypotheses (floor_pair orders them best descriptor distance first). The best is refined by least squares on
+    its inliers. -> (yaw, t (2,), inliers (N,) bool), None without a hypothesis."""
     check_shape("p", p, "N 2")
     check_shape("q", q, "N 2")
     same = np.abs(dlog2) < scale_tol
     cand = np.flatnonzero(same)
     if len(cand) < 1:
         return None
-    if len(cand) > hypotheses:
-        cand = np.sort(np.random.default_rng(seed).choice(cand, hypotheses, replace=False))
+    cand = np.sort(cand[:hypotheses])
     # A hypothesis can only gather matches whose orientation difference is within angle_tol of its own: bins of
     # angle_tol, each hypothesis tested against its own bin and the two beside it.
     nb = max(1, int(2 * np.pi // angle_tol))
@@ -139,20 +139,21 @@ def fixed_yaw_translation(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dlog
     return best
 
 
-def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: float = 1.0, seed: int = 0,
+def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: float = 1.0,
                yaws: np.ndarray | None = None) -> FloorPose | None:
-    """a_from_b of two floor views: each keypoint of a with its nearest neighbour in b (Lowe's ratio test below 1),
+    """a_from_b of two floor views: each keypoint of either view with its nearest neighbour in the other (Lowe's ratio
+    test below 1; the same matches, and so the same fit inverted, whichever view is a),
     oriented_rigid2d_ransac (threshold_m on the floor), or fixed_yaw_translation when the yaw is known to be one of
     yaws (radians); the vertical offset from the camera heights (one floor), and the best distinct translation's
     inliers (FloorPose.second). None without a model."""
     if len(a.descriptors) < 2 or len(b.descriptors) < 2:
         return None
-    m = floor_matches(a, b, ratio=ratio)
+    m = floor_matches(a, b, ratio=ratio, both_ways=True)
     if len(m) < 2:
         return None
     args = (a.xz[m[:, 0]], b.xz[m[:, 1]], a.angles[m[:, 0]] - b.angles[m[:, 1]],
             np.log2(a.sizes[m[:, 0]] / b.sizes[m[:, 1]]))
-    fit = (oriented_rigid2d_ransac(*args, threshold=threshold_m, seed=seed) if yaws is None
+    fit = (oriented_rigid2d_ransac(*args, threshold=threshold_m) if yaws is None
            else fixed_yaw_translation(*args, yaws, threshold=threshold_m))
     if fit is None:
         return None
