@@ -2,9 +2,14 @@
 pairwise capture-point distance error, relative yaw error and the position error after a best 2D rigid alignment;
 every pair the registration tried by layout, with its layout pose's error against the survey; and with --floor-evidence,
 per pair of panoramas the registration did not join, how many floor-image matches agree with the survey's relative
-pose (the evidence any floor fit could find there).
+pose (the evidence any floor fit could find there); and with --subsets N, the home registered again as N random
+subsets of its panoramas (3 to 10 each, fewer than all, from the depth artifact beside REGISTER_ARTIFACT, default
+RegisterOptions), each against the survey: a subset whose registered panoramas break 0.25 m of pairwise distance
+error or 2 deg of yaw error is misplaced (a home without the panoramas that join or check its rooms, as a user's
+capture may be).
 
-`python bench/real_home_survey.py REGISTER_ARTIFACT SURVEY_JSON [--json] [--floor-evidence]` prints them;
+`python bench/real_home_survey.py REGISTER_ARTIFACT SURVEY_JSON [--json] [--floor-evidence] [--subsets N [--seed S]]`
+prints them;
 `compare_to_survey` is the function the real-home benchmark imports."""
 
 from __future__ import annotations
@@ -133,6 +138,41 @@ def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str]) -> 
     return sorted(rows, key=lambda r: (-r["agreeing"], r["distance_m"]))
 
 
+MISPLACED_M, MISPLACED_DEG = 0.25, 2.0
+"""A registration that breaks either (pairwise distance error m, relative yaw error deg) has a panorama misplaced."""
+
+
+def subset_registrations(depth_artifact: Path, survey: dict, sets: int, seed: int = 0) -> list[dict]:
+    """The home's panoramas (depth_artifact: the depth stage's artifact of a home) registered again as `sets` random
+    subsets of 3 to 10, fewer than all (none for a home of 3 or fewer; register_depth_dirs, default RegisterOptions),
+    each against survey (compare_to_survey over its surveyed panoramas): per subset its panoramas, the registered
+    ones, the errors and whether it is misplaced."""
+
+    import tempfile
+
+    from panoworld.io.home import home_depth_dirs
+    from panoworld.register.artifact import register_depth_dirs
+    from panoworld.register.options import RegisterOptions
+
+    dirs = home_depth_dirs(depth_artifact)
+    names = sorted(dirs)
+    rng = np.random.default_rng(seed)
+    most = min(10, len(names) - 1)
+    rows: list[dict] = []
+    for i in range(sets if most >= 3 else 0):
+        sub = sorted(rng.choice(names, size=int(rng.integers(3, most + 1)), replace=False).tolist())
+        with tempfile.TemporaryDirectory() as td:
+            register_depth_dirs({n: dirs[n] for n in sub}, None, RegisterOptions(), Path(td))
+            world = {n: np.asarray(T) for n, T in json.loads((Path(td) / "panoramas.json").read_text()).items()}
+        part = {"panos": {n: v for n, v in survey["panos"].items() if n in sub}}
+        r = compare_to_survey(world, part)
+        d, y = r["dist_err_m_max"], r["yaw_err_deg_max"]
+        rows.append({"panoramas": sub, "registered": sorted(world), "dist_err_m_max": d, "yaw_err_deg_max": y,
+                     "misplaced": d is not None and (d > MISPLACED_M or y > MISPLACED_DEG)})
+        print(f"subset {i + 1}/{sets}: {len(world)} of {len(sub)} registered", file=sys.stderr, flush=True)
+    return rows
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("register", type=Path, help="a register artifact (holds panoramas.json)")
@@ -141,6 +181,10 @@ def main() -> int:
     ap.add_argument("--floor-evidence", action="store_true",
                     help="per pair not both registered, the floor matches that agree with the survey (reads the depth "
                          "artifact beside REGISTER_ARTIFACT)")
+    ap.add_argument("--subsets", type=int, default=0, metavar="N",
+                    help="register N random subsets of the home's panoramas again (3-10 each, from the depth artifact "
+                         "beside REGISTER_ARTIFACT) and report each against the survey")
+    ap.add_argument("--seed", type=int, default=0, help="the subsets' random seed")
     args = ap.parse_args()
     poses = {n: np.asarray(T) for n, T in json.loads((args.register / "panoramas.json").read_text()).items()}
     survey = json.loads(args.survey.read_text())
@@ -149,6 +193,8 @@ def main() -> int:
     r["layout_pairs"] = layout_pairs(json.loads(reg.read_text()), survey) if reg.is_file() else []
     if args.floor_evidence:
         r["floor_evidence"] = floor_evidence(args.register.parent / "depth", survey, set(poses))
+    if args.subsets:
+        r["subsets"] = subset_registrations(args.register.parent / "depth", survey, args.subsets, args.seed)
     if args.json:
         print(json.dumps(r, indent=1))
         return 0
@@ -172,11 +218,22 @@ def main() -> int:
     if args.floor_evidence:
         ev = r["floor_evidence"]
         print(f"\nfloor evidence over the {len(ev)} pairs not both registered (matches agreeing with the survey; a floor "
-              "edge needs 8 inliers, chance fits reach 3-7):")
+              "edge needs 8 inliers, and another pair across its cut below 12; chance fits reach 8):")
         print("| pair | distance m | agreeing matches | matches |")
         print("| --- | --- | --- | --- |")
         for p in ev[:15]:
             print(f"| {p['a']}-{p['b']} | {p['distance_m']:.2f} | {p['agreeing']} | {p['matches']} |")
+    if args.subsets:
+        rows = r["subsets"]
+        print(f"\n{len(rows)} random subsets registered again (seed {args.seed}): "
+              f"{sum(len(x['registered']) for x in rows)} of {sum(len(x['panoramas']) for x in rows)} panoramas "
+              f"registered, {sum(x['misplaced'] for x in rows)} subsets misplaced (> {MISPLACED_M} m or "
+              f"> {MISPLACED_DEG} deg)")
+        print("| panoramas | registered | distance error m max | yaw error deg max | misplaced |")
+        print("| --- | --- | --- | --- | --- |")
+        for x in rows:
+            print(f"| {', '.join(x['panoramas'])} | {', '.join(x['registered'])} | {f(x['dist_err_m_max'], '.3f')} | "
+                  f"{f(x['yaw_err_deg_max'], '.2f')} | {'yes' if x['misplaced'] else '-'} |")
     return 0
 
 

@@ -303,8 +303,8 @@ def test_a_floor_edge_the_floors_across_its_cut_outvote_is_refused():
 def test_a_weak_floor_edge_no_other_pair_across_its_cut_supports_is_refused():
     """A floor edge of 10 inliers the images do not confirm whose own pair is the only one across the cut it makes that
     its floor images support (another pair across it, b-c, sees other floors: a chance fit between floors that share
-    nothing looks like this): refused below floor_lone_inliers, kept at or above it, kept where b-c agrees, and kept
-    where it is the only pair tried across the cut (nothing could have agreed)."""
+    nothing looks like this): refused below floor_lone_inliers, kept at or above it, kept where b-c agrees, and refused
+    where it is the only pair tried across the cut (nothing tells it from a chance fit)."""
     from panoworld.register.cuts import refuse_outvoted_cuts
     from panoworld.register.floor import floor_pair
 
@@ -328,4 +328,6 @@ def test_a_weak_floor_edge_no_other_pair_across_its_cut_supports_is_refused():
     assert "c" not in solve_graph(names, e)[0]
     assert refuse_outvoted_cuts(names, edges(), {}, floors(apart), apart, 8, 10) == {}  # 10 inliers: not weak there
     assert refuse_outvoted_cuts(names, edges(), {}, floors(views), views, 8, 12) == {}  # b-c's floor agrees
-    assert refuse_outvoted_cuts(names, edges(), {}, floors(apart, ((0, 1), (0, 2))), apart, 8, 12) == {}
+    lone = refuse_outvoted_cuts(names, edges(), {}, floors(apart, ((0, 1), (0, 2))), apart, 8, 12)
+    assert list(lone) == [("a", "c")] and "no other pair across it" in lone["a", "c"][1]
+    assert refuse_outvoted_cuts(names, edges(), {}, floors(apart, ((0, 1), (0, 2))), apart, 8, 10) == {}

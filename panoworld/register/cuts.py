@@ -28,7 +28,8 @@ def refuse_outvoted_cuts(names: list[str], edges: list[Edge], given: dict[str, n
     {(a, b): (edge kind, reason)}. Two rooms with one flooring can give a single floor fit of many inliers metres off,
     which the pair alone cannot tell from the truth; independent pairs agreeing on one placement are not chance. A floor
     edge of fewer than lone_inliers inliers is also refused where its own pair is the only one across its cut whose
-    floor images support it while another pair across it was tried (a chance fit between floors that share nothing)."""
+    floor images support it, or the only pair across it (a chance fit between floors that share nothing reaches that
+    many)."""
     at = {n: i for i, n in enumerate(names)}
     out: dict[tuple[str, str], tuple[str, str]] = {}
     for _ in range(len(edges)):
@@ -51,9 +52,11 @@ def refuse_outvoted_cuts(names: list[str], edges: list[Edge], given: dict[str, n
                       and (names[i] in side) != (names[j] in side)
                       and views.get(names[i]) is not None and views.get(names[j]) is not None]
             here = _supporters(np.eye(4), across, poses, side, views)
-            if weak and len(here) < 2 and len(across) >= 2:
-                found = (path[0], f"{path[0].inliers} floor inliers, and no other of the {len(across)} pairs across it "
-                                  "has floor images that agree with it: a chance fit between floors that share nothing")
+            if weak and len(here) < 2:
+                others = (f"no other of the {len(across)} pairs across it has floor images that agree with it"
+                          if len(across) > 1 else "no other pair across it to agree with it")
+                found = (path[0], f"{path[0].inliers} floor inliers, and {others}: a chance fit between floors that "
+                                  "share nothing cannot be told from it")
                 break
             if not alts:
                 continue

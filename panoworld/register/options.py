@@ -76,9 +76,9 @@ class RegisterOptions:
     pattern seen from two rooms agrees nearly as well one pattern period along the baseline."""
     floor_lone_inliers: int = param(12, ge=0)
     """A floor pose the images do not confirm with fewer inliers than this joins two sides of the registration only where
-    the floor images of another pair across that cut also support it, when another pair across it was tried
-    (register/cuts.py): between floors that share nothing a chance fit can reach min_floor_inliers in a home of many
-    pairs, and no other pair agrees with it."""
+    the floor images of another pair across that cut also support it (register/cuts.py; a pair alone across its cut,
+    as two panoramas alone, is refused too): between floors that share nothing a chance fit can reach
+    min_floor_inliers, and no other pair agrees with it."""
     max_free_space_violation: float = param(0.05, ge=0, le=1)
     """A floor or layout pose is refused where both panoramas' depths hold their whole room (98 % of the pixels valid)
     and it puts more than this share of either view's surfaces inside the other's free space (0.15 m and 5 % nearer
