@@ -29,26 +29,23 @@ def sh1_basis(means: np.ndarray, centre: np.ndarray) -> torch.Tensor:
 
 def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]], *, height: int = 256,
                        supersample: int = 2, iters: int = 20, damping: float = 0.01, sh_degree: int = 1,
-                       sh_damping: float = 0.001, max_bytes: float = float("inf"),
-                       precondition: bool = True) -> tuple[Gaussians, dict]:
+                       sh_damping: float = 0.001, max_bytes: float = float("inf")) -> tuple[Gaussians, dict]:
     """Gaussians g whose colours are refitted so their ERP render (height rows, supersample: render_erp's sampling)
     at each view's world_from_cam (4, 4) reproduces its target (H, W, 3) uint8 or [0, 1], area-resized to height rows.
 
     For fixed geometry each render is linear in the colours (render.erp_operator.ErpColorOperator), so this is
-    `iters` steps of conjugate-gradient least squares over all views at once, preconditioned by the normal
-    matrix's diagonal (precondition False: plain CG, far slower to converge): min sum_k |A_k c_k - y_k|^2 +
+    `iters` steps of conjugate-gradient least squares over all views at once: min sum_k |A_k c_k - y_k|^2 +
     damping |c - c0|^2 + sh_damping |s - s0|^2, the damping per unit of each Gaussian's compositing weight (Gaussians
     the views barely see keep their colours). With sh_degree 1 view k sees c_k = c + (B_k - B) s: s the degree-1
     coefficients, B_k their basis in the direction from view k (sh1_basis) and B its mean over the views weighted by
     what each sees of the Gaussian, so c is the colour from that mean direction and s only tells the views apart: a
     surface two capture points see differently shows each its own colour, one that a single view sees keeps s. Only
-    the Gaussians some view sees are fitted. The operators are built at the finest supersampling, from supersample
-    down, at which the ones built so far say all of them hold at most max_bytes. Returns the Gaussians (SH degree
-    max(sh_degree, g's)) and {"views", "height", "supersample" (the one used), "iters", "sh_degree", "fitted",
-    "operators_gb", "rmse_before", "rmse_after" (per view), "supersample_reduced" (why, where it is below
-    supersample)}; g itself and {"views", "skipped": why} when even supersample 1 would hold more."""
+    the Gaussians some view sees are fitted. Returns the Gaussians (SH degree max(sh_degree, g's)) and {"views",
+    "height", "iters", "sh_degree", "fitted", "rmse_before", "rmse_after" (per view)}; g itself and {"views",
+    "skipped": why} when the operators built so far say all of them would hold more than max_bytes."""
     import cv2
 
+    from panoworld.render.erp_operator import ErpColorOperator
     from panoworld.render.splats import covariance_3d
 
     if sh_degree not in (0, 1):
@@ -61,16 +58,27 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
             y = cv2.resize(y, (2 * height, height), interpolation=cv2.INTER_AREA)
         targets.append(torch.from_numpy(np.ascontiguousarray(y)))
     cov = covariance_3d(torch.as_tensor(g.scales).float(), torch.as_tensor(g.quats).float())
-    built, reduced = None, []
-    for ss in range(supersample, 0, -1):  # the finest sampling whose operators fit in max_bytes
-        built = _view_operators(g, views, height, ss, cov, max_bytes)
-        if isinstance(built, tuple):
-            break
-        reduced.append(f"supersample {ss}: {built}")
+    # Each view is held on the Gaussians it sees alone (ops[k] restricted to mine[k]; seen_k[k]: its compositing
+    # weight of each of them), so what the fit holds grows with the views' pixels, not with views x Gaussians.
+    ops, seen_k, mine = [], [], []
+    seen_any = np.zeros(len(g), bool)
+    held = 0
+    for _, pose in views:
+        op = ErpColorOperator(g, pose, height, 2 * height, supersample=supersample, cov=cov, tile=FIT_TILE)
+        seen = np.zeros(len(g), bool)
+        for f in op.faces:
+            seen[f[2].indices] = True
+        mine.append(np.flatnonzero(seen))
+        seen_any |= seen
+        ops.append(op.restricted(mine[-1]).read_rows())
+        del op, seen
+        release_free_memory()  # the build's temporaries, so what the fit holds is what stays resident
+        held += operator_nbytes(ops[-1])
+        if held / len(ops) * len(views) > max_bytes:
+            return g, {"views": len(views), "skipped": f"the render operators of the {len(views)} capture poses would "
+                       f"hold about {held / len(ops) * len(views) / 1e9:.1f} GB, more than {max_bytes / 1e9:.1f} GB"}
+        seen_k.append(ops[-1].adjoint(torch.ones(height, 2 * height, 3))[:, 0].clone())
     del cov
-    if not isinstance(built, tuple):
-        return g, {"views": len(views), "skipped": built}
-    ops, seen_k, norms_k, mine, seen_any, held = built
     # The unknowns are those of the Gaussians some view sees (the others' gradient is 0: they keep their colours),
     # and each view's products run over the Gaussians it sees alone (cols[k], positions among the seen).
     fit = np.flatnonzero(seen_any)
@@ -113,25 +121,16 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         basis = [b(k) - b_mean[c] for k, c in enumerate(cols_t)]
         s0_k = [s0[c] for c in cols]
         x0, lam = c0, [damping * seen]
+    seen_k.clear()
+    del total, seen, c0
+    means = None
+    cols = cols_t
+
     def damp(t):  # t (n, 12 or 3) times each unknown's damping, in place
         t[:, :3].mul_(lam[0])
         if sh_degree:
             t[:, 3:].mul_(lam[1])
         return t
-
-    # Jacobi preconditioner: the normal matrix's diagonal (each view's squared column norms, through the degree-1
-    # basis for the view-dependent unknowns) plus the damping; Gaussians' footprints span orders of magnitude
-    diag = scatter(lambda k: norms_k[k][:, None], 1).expand(n, 3).clone()
-    if sh_degree:
-        sh_diag = scatter(lambda k: norms_k[k][:, None] * basis[k].square(), 3)
-        diag = torch.cat([diag, sh_diag.repeat_interleave(3, 1)], 1)
-    precond = damp(torch.ones_like(x0)).add_(diag).clamp_(min=1e-12).reciprocal_() if precondition else \
-        torch.ones_like(x0)
-    seen_k.clear()
-    norms_k.clear()
-    del total, seen, c0, diag
-    means = None
-    cols = cols_t
 
     def colors(k, x):  # the unknowns (n, 3 or 12) -> the colours view k sees (len(cols[k]), 3)
         if sh_degree:
@@ -156,8 +155,7 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     r = [targets[k] - ops[k](colors(k, x)) for k in range(views_n)]
     rmse0 = [float(rk.square().mean().sqrt()) for rk in r]
     grad(r, s)
-    p = s * precond
-    gamma = float(torch.mul(s, p, out=tmp).sum())
+    p, gamma = s.clone(), float(torch.mul(s, s, out=tmp).sum())
     for _ in range(iters):
         q = [lin(k, p) for k in range(views_n)]
         damped = damp(torch.mul(p, p, out=tmp)).sum()
@@ -165,12 +163,11 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         x.add_(torch.mul(p, alpha, out=tmp))
         r = [r[k] - alpha * q[k] for k in range(views_n)]
         grad(r, s).sub_(damp(torch.sub(x, x0, out=tmp)))
-        s.mul_(precond)  # z = M^-1 s; s . z = s^2 / M
-        gamma_new = float((s.square() / precond).sum())
+        gamma_new = float(torch.mul(s, s, out=tmp).sum())
         p.mul_(gamma_new / max(gamma, 1e-20)).add_(s)
         gamma = gamma_new
     x[:, :3] = x[:, :3].clamp(0.0, 1.0)
-    del s, p, tmp, x0, precond
+    del s, p, tmp, x0
     lam.clear()
     rmse1 = [float((targets[k] - ops[k](colors(k, x))).square().mean().sqrt()) for k in range(views_n)]
     for held_list in (ops, basis, targets):
@@ -184,41 +181,8 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     if sh_degree:
         rest[fit, :3] = coef.numpy()
     out = Gaussians(g.means, g.scales, g.quats, g.opacities, dc, rest)
-    info = {"views": views_n, "height": height, "supersample": supersample - len(reduced), "iters": iters,
-            "sh_degree": sh_degree, "fitted": n, "operators_gb": round(held / 1e9, 3), "rmse_before": rmse0,
-            "rmse_after": rmse1}
-    if reduced:
-        info["supersample_reduced"] = "; ".join(reduced)
-    return out, info
-
-
-def _view_operators(g: Gaussians, views, height: int, supersample: int, cov: torch.Tensor, max_bytes: float):
-    """Each view's render operator on the Gaussians it sees alone (ops[k] restricted to mine[k]; seen_k[k]: its
-    compositing weight of each, norms_k[k]: its squared column norms), so what the fit holds grows with the views'
-    pixels, not with views x Gaussians: (ops, seen_k, norms_k, mine, seen_any, bytes held), or why not (str) when
-    the operators built so far say all of them would hold more than max_bytes."""
-    from panoworld.render.erp_operator import ErpColorOperator
-
-    ops, seen_k, norms_k, mine = [], [], [], []
-    seen_any = np.zeros(len(g), bool)
-    held = 0
-    for _, pose in views:
-        op = ErpColorOperator(g, pose, height, 2 * height, supersample=supersample, cov=cov, tile=FIT_TILE)
-        seen = np.zeros(len(g), bool)
-        for f in op.faces:
-            seen[f[2].indices] = True
-        mine.append(np.flatnonzero(seen))
-        seen_any |= seen
-        ops.append(op.restricted(mine[-1]).read_rows())
-        del op, seen
-        release_free_memory()  # the build's temporaries, so what the fit holds is what stays resident
-        held += operator_nbytes(ops[-1])
-        if held / len(ops) * len(views) > max_bytes:
-            return (f"the render operators of the {len(views)} capture poses would hold about "
-                    f"{held / len(ops) * len(views) / 1e9:.1f} GB, more than {max_bytes / 1e9:.1f} GB")
-        seen_k.append(ops[-1].adjoint(torch.ones(height, 2 * height, 3))[:, 0].clone())
-        norms_k.append(torch.from_numpy(ops[-1].column_sq_norms()))
-    return ops, seen_k, norms_k, mine, seen_any, held
+    return out, {"views": views_n, "height": height, "iters": iters, "sh_degree": sh_degree,
+                 "fitted": n, "rmse_before": rmse0, "rmse_after": rmse1}
 
 
 @njit(cache=True, nogil=True)

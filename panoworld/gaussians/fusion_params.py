@@ -125,13 +125,12 @@ class SourcePixelParams(FusionParams):
     seen from the capture point; fit_views_sh_only keeps them."""
     fit_sh_damping: float = param(0.001, ge=0)
     """Damping of those degree-1 coefficients towards 0 per unit of compositing weight (the colours' is 0.01): a
-    Gaussian seen from few directions keeps about one colour. A home's capture fit: capture_fit_sh_damping."""
+    Gaussian seen from few directions keeps about one colour. A home's capture fit damps its own the same."""
     fit_views_sh_only: bool = False
     """With fit_sh_degree 1: the views fit the degree-1 coefficients only; the colours seen from the capture point
     are its own fit's (fit_views 0's), so the capture point renders exactly as without the views."""
-    capture_fit_iters: int = param(20, ge=0)
-    """A home: preconditioned conjugate-gradient steps of a colour fit at every capture point (gaussians.capture_fit;
-    0 = none; 20 converges on real homes).
+    capture_fit_iters: int = param(80, ge=0)
+    """A home: conjugate-gradient steps of a colour fit at every capture point (gaussians.capture_fit; 0 = none).
     For the fixed geometry the ERP render at each capture pose is linear in the colours, which are refitted by
     least squares over all capture poses at once (damped towards their fused values) so that each reproduces its
     panorama: where several panoramas see a surface, a panorama's Gaussians seen from another capture point show
@@ -145,16 +144,10 @@ class SourcePixelParams(FusionParams):
     """ERP height of that fit's renders and targets (the panoramas area-downsampled)."""
     capture_fit_max_gb: float = param(8.0, gt=0)
     """The fit holds one render operator per capture pose at once: when the ones built so far say all of them would
-    take more than this (GB), the fit is built at the next lower capture_fit_supersample, and skipped (colours as
-    fused) when even 1 would; the manifest's color_fit says which and why."""
-    capture_fit_supersample: int = param(2, ge=1, le=4)
-    """Supersampling of those renders (render.erp.ERP_SUPERSAMPLE's meaning; 1: pixel centres only, which a converged
-    fit overfits: the splats between the centres keep their fused colours). 2 is render_erp's default; its
-    operators hold about 4x those of 1."""
+    take more than this (GB), the fit is skipped (colours as fused) and the manifest's color_fit says why."""
+    capture_fit_supersample: int = param(1, ge=1, le=4)
+    """Supersampling of those renders (render.erp.ERP_SUPERSAMPLE's meaning; 1: pixel centres only)."""
     capture_fit_sh_degree: int = param(1, ge=0, le=1)
     """1: view-dependent colours (degree-1 SH, written as f_rest_*) so each capture point sees its own colour of a
     surface that several see; they tell the capture points apart only (a Gaussian seen from one keeps one colour,
-    damped by capture_fit_sh_damping). 0: one colour per Gaussian, the views' least-squares compromise."""
-    capture_fit_sh_damping: float = param(0.003, ge=0)
-    """Damping of that fit's degree-1 coefficients towards 0, per unit of compositing weight: less lets each capture
-    point's colours drift apart, which the views between them see as streaks (docs/multi.md)."""
+    damped by fit_sh_damping). 0: one colour per Gaussian, the views' least-squares compromise."""

@@ -250,8 +250,8 @@ def home_anchored_fusion(frames: ContextSource | None, sources: dict[str, tuple[
         result.gaussians, fit = fit_capture_colors(
             result.gaussians, [(sources[n][0], poses[n]) for n in names], height=params.capture_fit_height,
             supersample=params.capture_fit_supersample, iters=params.capture_fit_iters,
-            damping=params.capture_fit_damping, sh_degree=params.capture_fit_sh_degree,
-            sh_damping=params.capture_fit_sh_damping, max_bytes=params.capture_fit_max_gb * 1e9)
+            damping=params.capture_fit_damping, sh_degree=params.capture_fit_sh_degree, sh_damping=params.fit_sh_damping,
+            max_bytes=params.capture_fit_max_gb * 1e9)
         result.color_fit = fit if "skipped" in fit else {**fit, "rmse_before": dict(zip(names, fit["rmse_before"])),
                                                          "rmse_after": dict(zip(names, fit["rmse_after"]))}
     return result

@@ -143,14 +143,6 @@ class ErpColorOperator:
         return torch.from_numpy(sum(self._per_face(lambda f: _times_t(f[2], _times_t(f[1], r[f[0]]))),
                                     np.zeros((self.N, 3), np.float32)))
 
-    def column_sq_norms(self) -> np.ndarray:
-        """(N,) float32: each colour's squared column norm |A e_j|^2 (A^T A's diagonal, per channel): exact at
-        supersample 1; above it the bound sum over the samples of their squares / supersample^2 (a pixel is the mean
-        of its samples), exact where a Gaussian weighs alike in every sample of a pixel it covers."""
-        parts = self._per_face(lambda f: _sampled_column_sq_norms(
-            f[1].indptr, f[1].indices, f[1].data, f[2].indptr, f[2].indices, f[2].data, self.N))
-        return (sum(parts, np.zeros(self.N, np.float64)) / self.s**2).astype(np.float32)
-
     def _per_face(self, fn) -> list:
         """fn((sample index, sampling, weights)) for every face, in face order, on torch's threads (scipy's sparse
         products release the GIL)."""
@@ -169,32 +161,6 @@ def _times_t(m, y: np.ndarray) -> np.ndarray:
     """m.T @ y for a CSR matrix m (float32) and y (rows, 3) float32: scipy's product, the same sums in the same order."""
     out = np.zeros((m.shape[1], 3), np.float32)
     _csr_times_t(m.indptr, m.indices, m.data, np.ascontiguousarray(y), out)
-    return out
-
-
-@njit(cache=True, nogil=True)
-def _sampled_column_sq_norms(s_indptr, s_indices, s_data, a_indptr, a_indices, a_data, n):
-    """(n,) float64: the squared column norms of S @ A (CSR S: samples x face pixels, A: face pixels x n), each
-    sample's row of S @ A gathered over its taps before it is squared."""
-    out = np.zeros(n, np.float64)
-    acc = np.zeros(n, np.float64)
-    stamp = np.zeros(n, np.int64)
-    touched = np.empty(n, np.int64)
-    for i in range(s_indptr.shape[0] - 1):
-        nt = 0
-        for p in range(s_indptr[i], s_indptr[i + 1]):
-            t, sw = s_indices[p], s_data[p]
-            for q in range(a_indptr[t], a_indptr[t + 1]):
-                j = a_indices[q]
-                if stamp[j] != i + 1:
-                    stamp[j] = i + 1
-                    acc[j] = 0.0
-                    touched[nt] = j
-                    nt += 1
-                acc[j] += sw * a_data[q]
-        for k in range(nt):
-            j = touched[k]
-            out[j] += acc[j] * acc[j]
     return out
 
 
