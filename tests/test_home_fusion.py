@@ -110,6 +110,36 @@ def test_a_home_fits_its_colours_at_every_capture_point():
         assert fitted.color_fit["rmse_after"][n] < stiff.color_fit["rmse_after"][n] < stiff.color_fit["rmse_before"][n]
 
 
+def test_the_capture_fit_falls_back_to_a_lower_height_when_its_operators_exceed_the_memory_cap():
+    # The operators of a 128-row fit would exceed capture_fit_max_gb, those of a 64-row one do not: the fit runs at
+    # 64 rows, as it would have with capture_fit_height 64, and the manifest's figures say which height was refused
+    # and why. Under the cap at every height down to CAPTURE_FIT_MIN_HEIGHT the fit is skipped, the colours as fused.
+    from panoworld.gaussians.fusion_params import SourcePixelParams
+    from panoworld.gaussians.home import CAPTURE_FIT_MIN_HEIGHT, home_anchored_fusion
+
+    poses = {"a": _pose(0, 0, 0), "b": _pose(0.9, 0.2, -1.1)}
+    H = 64
+    assert H == CAPTURE_FIT_MIN_HEIGHT
+    depths = _box_depths(poses, H=H)
+    rng = np.random.default_rng(0)
+    rgbs = {n: rng.integers(0, 255, (H, 2 * H, 3), dtype=np.uint8) for n in poses}
+    sources = {n: (rgbs[n], depths[n], poses[n]) for n in poses}
+    params = dict(voxel_size=0.05, unseen_voxel_size=0.05, source_height=0, capture_fit_iters=5)
+    low = home_anchored_fusion(None, sources, SourcePixelParams(**params, capture_fit_height=H)).color_fit
+    high = home_anchored_fusion(None, sources, SourcePixelParams(**params, capture_fit_height=2 * H)).color_fit
+    assert "reduced_from" not in low and high["height"] == 2 * H and high["operators_gb"] > 2 * low["operators_gb"]
+    cap = (low["operators_gb"] + high["operators_gb"]) / 2
+    fell = home_anchored_fusion(None, sources, SourcePixelParams(**params, capture_fit_height=2 * H,
+                                                                 capture_fit_max_gb=cap))
+    assert fell.color_fit["height"] == H and fell.color_fit["rmse_after"] == low["rmse_after"]
+    (refused,) = fell.color_fit["reduced_from"]
+    assert refused["height"] == 2 * H and "more than" in refused["why"]
+    none = home_anchored_fusion(None, sources, SourcePixelParams(**params, capture_fit_height=2 * H,
+                                                                 capture_fit_max_gb=low["operators_gb"] / 4))
+    assert "skipped" in none.color_fit and [r["height"] for r in none.color_fit["reduced_from"]] == [2 * H]
+    assert none.gaussians.sh_degree == 0
+
+
 def test_nearest_source_equals_its_every_pair_reference():
     """geometry.nearest_source (each panorama tests the points still kept, where it is nearer) against the plain
     loop over every point and every other panorama, on a box seen from three capture points (ties included)."""

@@ -41,8 +41,9 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     what each sees of the Gaussian, so c is the colour from that mean direction and s only tells the views apart: a
     surface two capture points see differently shows each its own colour, one that a single view sees keeps s. Only
     the Gaussians some view sees are fitted. Returns the Gaussians (SH degree max(sh_degree, g's)) and {"views",
-    "height", "iters", "sh_degree", "fitted", "rmse_before", "rmse_after" (per view)}; g itself and {"views",
-    "skipped": why} when the operators built so far say all of them would hold more than max_bytes."""
+    "height", "iters", "sh_degree", "fitted", "operators_gb" (what the render operators held), "rmse_before",
+    "rmse_after" (per view)}; g itself and {"views", "skipped": why} when the operators built so far say all of them
+    would hold more than max_bytes."""
     import cv2
 
     from panoworld.render.erp_operator import ErpColorOperator
@@ -181,8 +182,8 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     if sh_degree:
         rest[fit, :3] = coef.numpy()
     out = Gaussians(g.means, g.scales, g.quats, g.opacities, dc, rest)
-    return out, {"views": views_n, "height": height, "iters": iters, "sh_degree": sh_degree,
-                 "fitted": n, "rmse_before": rmse0, "rmse_after": rmse1}
+    return out, {"views": views_n, "height": height, "iters": iters, "sh_degree": sh_degree, "fitted": n,
+                 "operators_gb": held / 1e9, "rmse_before": rmse0, "rmse_after": rmse1}
 
 
 @njit(cache=True, nogil=True)

@@ -140,11 +140,14 @@ class SourcePixelParams(FusionParams):
     """Damping of that fit's colours towards their fused values, per unit of each Gaussian's compositing weight. More
     keeps the colours nearer the fused ones: on real homes 0.05 gives higher SSIM on leave-one-out novel views than
     0.01 with the capture poses as close to their panoramas; 0.2 and more cost the capture poses (docs/multi.md)."""
-    capture_fit_height: int = param(256, ge=8)
-    """ERP height of that fit's renders and targets (the panoramas area-downsampled)."""
+    capture_fit_height: int = param(512, ge=8)
+    """ERP height of that fit's renders and targets (the panoramas area-downsampled). 512: the cube faces of a
+    256-row render supersampled 2x, so the fit resolves what a 256-row render shows; on real homes 3-8 dB more at the
+    capture poses than 256 rows, novel views as close (docs/multi.md)."""
     capture_fit_max_gb: float = param(8.0, gt=0)
     """The fit holds one render operator per capture pose at once: when the ones built so far say all of them would
-    take more than this (GB), the fit is skipped (colours as fused) and the manifest's color_fit says why."""
+    take more than this (GB), the fit runs at half the height (down to 64 rows), else it is skipped (colours as
+    fused); the manifest's color_fit says which heights were refused and why."""
     capture_fit_supersample: int = param(1, ge=1, le=4)
     """Supersampling of those renders (render.erp.ERP_SUPERSAMPLE's meaning; 1: pixel centres only)."""
     capture_fit_sh_degree: int = param(1, ge=0, le=1)

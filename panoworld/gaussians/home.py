@@ -247,11 +247,32 @@ def home_anchored_fusion(frames: ContextSource | None, sources: dict[str, tuple[
         result.gaussians, result.own_fill = add_own_fill(result, names, {n: small[n][0] for n in names}, observed,
                                                          poses, params)
     if params.capture_fit_iters > 0:
-        result.gaussians, fit = fit_capture_colors(
-            result.gaussians, [(sources[n][0], poses[n]) for n in names], height=params.capture_fit_height,
-            supersample=params.capture_fit_supersample, iters=params.capture_fit_iters,
-            damping=params.capture_fit_damping, sh_degree=params.capture_fit_sh_degree, sh_damping=params.fit_sh_damping,
-            max_bytes=params.capture_fit_max_gb * 1e9)
-        result.color_fit = fit if "skipped" in fit else {**fit, "rmse_before": dict(zip(names, fit["rmse_before"])),
-                                                         "rmse_after": dict(zip(names, fit["rmse_after"]))}
+        result.gaussians, result.color_fit = fit_at_capture_points(result.gaussians, names, sources, poses, params)
     return result
+
+
+CAPTURE_FIT_MIN_HEIGHT = 64
+"""The lowest ERP height the capture fit falls back to when its render operators exceed capture_fit_max_gb."""
+
+
+def fit_at_capture_points(g, names: list[str], sources: dict, poses: dict, params: SourcePixelParams):
+    """g with its colours fitted at every capture pose (capture_fit.fit_capture_colors at params.capture_fit_height
+    rows, halved down to CAPTURE_FIT_MIN_HEIGHT while its operators would exceed params.capture_fit_max_gb) and the
+    fit's figures, per panorama, with "reduced_from" (the heights refused, and why) when it fell back."""
+    height, refused = params.capture_fit_height, []
+    while True:
+        out, fit = fit_capture_colors(
+            g, [(sources[n][0], poses[n]) for n in names], height=height, supersample=params.capture_fit_supersample,
+            iters=params.capture_fit_iters, damping=params.capture_fit_damping,
+            sh_degree=params.capture_fit_sh_degree, sh_damping=params.fit_sh_damping,
+            max_bytes=params.capture_fit_max_gb * 1e9)
+        if "skipped" not in fit or height // 2 < CAPTURE_FIT_MIN_HEIGHT:
+            break
+        refused.append({"height": height, "why": fit["skipped"]})
+        height //= 2
+    if refused:
+        fit["reduced_from"] = refused
+    if "skipped" in fit:
+        return out, fit
+    return out, {**fit, "rmse_before": dict(zip(names, fit["rmse_before"])),
+                 "rmse_after": dict(zip(names, fit["rmse_after"]))}
