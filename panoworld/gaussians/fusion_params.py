@@ -142,12 +142,14 @@ class SourcePixelParams(FusionParams):
     0.01 with the capture poses as close to their panoramas; 0.2 and more cost the capture poses (docs/multi.md)."""
     capture_fit_height: int = param(512, ge=8)
     """ERP height of that fit's renders and targets (the panoramas area-downsampled). 512: the cube faces of a
-    256-row render supersampled 2x, so the fit resolves what a 256-row render shows; on real homes 3-8 dB more at the
-    capture poses than 256 rows, novel views as close (docs/multi.md)."""
-    capture_fit_max_gb: float = param(8.0, gt=0)
+    256-row render supersampled 2x, so the fit resolves what a 256-row render shows; on real homes 0.4-8 dB more at the
+    capture poses than 256 rows, leave-one-out novel views within 0.3 dB (docs/multi.md)."""
+    capture_fit_max_gb: float = param(4.0, gt=0)
     """The fit holds one render operator per capture pose at once: when the ones built so far say all of them would
     take more than this (GB), the fit runs at half the height (down to 64 rows), else it is skipped (colours as
-    fused); the manifest's color_fit says which heights were refused and why."""
+    fused); the manifest's color_fit says which heights were refused and why. 4: on real homes (0.22-0.28 GB per pose
+    at 512 rows) about 15 capture poses fit at 512 rows, about 55 at 256, so the fit's memory and time stay those
+    of 256 rows on a 32-panorama tour."""
     capture_fit_supersample: int = param(1, ge=1, le=4)
     """Supersampling of those renders (render.erp.ERP_SUPERSAMPLE's meaning; 1: pixel centres only)."""
     capture_fit_sh_degree: int = param(1, ge=0, le=1)

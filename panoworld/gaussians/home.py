@@ -214,7 +214,7 @@ def home_anchored_fusion(frames: ContextSource | None, sources: dict[str, tuple[
     of it, within params.source_tol) are dropped (result.own_fill: add_own_fill's figures); which source keeps a
     surface is decided by the measured depths alone.
     params.capture_fit_iters > 0: the colours are then fitted at every capture pose to its panorama
-    (capture_fit.fit_capture_colors; result.color_fit: its figures, RMSE per panorama before and after)."""
+    (fit_at_capture_points; result.color_fit: its figures, RMSE per panorama before and after)."""
     names = list(sources)
     tol = params.source_tol
     small = {n: rgbd_at_height(sources[n][0], sources[n][1], params.source_height) for n in names}
