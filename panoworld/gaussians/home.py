@@ -259,10 +259,11 @@ def fit_at_capture_points(g, names: list[str], sources: dict, poses: dict, param
     """g with its colours fitted at every capture pose (capture_fit.fit_capture_colors at params.capture_fit_height
     rows, halved down to CAPTURE_FIT_MIN_HEIGHT while its operators would exceed params.capture_fit_max_gb) and the
     fit's figures, per panorama, with "reduced_from" (the heights refused, and why) when it fell back."""
+    views = [(sources[n][0], poses[n]) for n in names]
     height, refused = params.capture_fit_height, []
     while True:
         out, fit = fit_capture_colors(
-            g, [(sources[n][0], poses[n]) for n in names], height=height, supersample=params.capture_fit_supersample,
+            g, views, height=height, supersample=params.capture_fit_supersample,
             iters=params.capture_fit_iters, damping=params.capture_fit_damping,
             sh_degree=params.capture_fit_sh_degree, sh_damping=params.fit_sh_damping,
             max_bytes=params.capture_fit_max_gb * 1e9)
