@@ -253,3 +253,54 @@ def test_a_panoramas_pixels_without_depth_get_its_own_fill_where_no_other_panora
     # nothing without depth: nothing added
     whole, stats = add_own_fill(scene, list(poses), rgbs, truth, poses, params)
     assert whole is scene.gaussians and stats == {}
+
+
+def test_nothing_the_frames_see_within_the_rig_radius_of_a_capture_point_is_fused():
+    # a has no depth in a band of its view across the +x wall (an implausible layout masked), b none on that wall.
+    # A frame 0.5 m towards that wall holds a stray surface a few cm in front of a's camera, in that band (a warped
+    # condition's smear where the rig stood). A capture point stood there: nothing is fused there, a's own fill
+    # stands beyond the rig's radius, not at the stray surface, and a's view of its band shows a's own colours.
+    from panoworld.core.conventions import erp_dirs, invert_pose, transform_points
+    from panoworld.gaussians.fusion_params import SourcePixelParams
+    from panoworld.gaussians.home import home_anchored_fusion
+    from panoworld.gaussians.pixel import SourceVisibility
+    from panoworld.render.erp import render_erp
+    from panoworld.room.plausible import NEAR_PLANE_M
+
+    poses = {"a": _pose(0, 0, 0), "b": _pose(-0.9, 0.2, -1.1)}
+    H = 48
+    truth = _box_depths(poses, H=H)
+    rows, cols = np.mgrid[0:H, 0:2 * H] / H
+    smooth = np.stack([np.sin(3 * cols), np.cos(2 * rows + cols), np.sin(2 * rows)], -1)
+    rgbs = {n: (128 + 70 * smooth).astype(np.uint8) for n in poses}
+    depths = {n: d.copy() for n, d in truth.items()}
+    hole = np.zeros((H, 2 * H), bool)
+    hole[10:38, int(0.55 * 2 * H):int(0.95 * 2 * H)] = True  # across the +x wall
+    depths["a"][hole] = 0.0
+    dirs = erp_dirs(H, 2 * H, np.float64)
+    pts_b = transform_points(poses["b"], dirs.reshape(-1, 3) * truth["b"].reshape(-1, 1)).reshape(H, 2 * H, 3)
+    depths["b"][pts_b[..., 0] > ROOM[0] / 2 - 0.05] = 0.0  # b has no depth on the +x wall
+    frame_pose = _pose(0.5, 0.0, 0.0)
+    fd = _box_depths({"f": frame_pose}, H=H)["f"]
+    # the frame's rays that pass within 8 cm of a's camera stop 4-9 cm in front of it
+    to_a = transform_points(invert_pose(frame_pose), np.zeros((1, 3)))[0]
+    along = dirs @ to_a
+    miss = np.linalg.norm(dirs * along[..., None] - to_a, axis=-1)
+    stray = (along > 0) & (miss < 0.08)
+    fd = np.where(stray, along - 0.04, fd).astype(np.float32)
+    assert stray.sum() >= 4
+    frames = [(np.full((H, 2 * H, 3), 250, np.uint8), fd, frame_pose)]
+    params = SourcePixelParams(voxel_size=0.02, unseen_voxel_size=0.02, source_height=0, capture_fit_iters=0,
+                               source_fill_height=H)
+    res = home_anchored_fusion(frames, {n: (rgbs[n], depths[n], poses[n]) for n in poses}, params)
+    means = np.asarray(res.gaussians.means, np.float64)
+    assert np.linalg.norm(means, axis=1).min() > NEAR_PLANE_M
+    assert res.own_fill["a"]["filled"] > 100
+    img = render_erp(res.gaussians, poses["a"], H, 2 * H, supersample=1).rgb.numpy()
+    err = np.abs(img - rgbs["a"] / 255.0).mean(-1)
+    assert np.median(err[hole]) < 0.05
+    # the rule itself: within `near` of the camera is explained whatever the depth (none here), beyond it is not
+    vis = SourceVisibility(np.zeros((H, 2 * H), np.float32), poses["a"], 0.03, near=NEAR_PLANE_M)
+    got = vis.explained(np.array([[0.0, 0.0, 0.1], [0.0, 0.0, 0.2]]))
+    assert got.tolist() == [True, False]
+    assert not SourceVisibility(np.zeros((H, 2 * H), np.float32), poses["a"], 0.03).explained(np.zeros((1, 3))).any()

@@ -17,6 +17,7 @@ from panoworld.gaussians.pixel import SourceVisibility, fuse_unseen, merge_gauss
 from panoworld.geometry.panoramas import depth_along, erp_pixel_index, nearest_source
 from panoworld.geometry.resize import rgbd_at_height
 from panoworld.io.gaussian_set import FusionResult
+from panoworld.room.plausible import NEAR_PLANE_M
 
 
 class SourcesVisibility:
@@ -118,7 +119,8 @@ def own_fill(k: int, names: list[str], depths: dict[str, np.ndarray], world_from
              others: SourcesVisibility, *, height: int, tol: float) -> np.ndarray | None:
     """(h, w) depth (0 = none; h = `height` rows at most) for panorama names[k]'s pixels without depth (depths (0 =
     none)) but those next to one with depth: the nearest of what the scene (Gaussians) shows along the pixel's ray
-    from the capture point (render_erp's depth where its alpha > 0.5), the median of the panorama's own depth, and
+    from the capture point (render_erp's depth where its alpha > 0.5, farther than NEAR_PLANE_M: nothing stands
+    where the rig stood), the median of the panorama's own depth, and
     just in front of the nearest surface another panorama measured along the ray (depth_from_others, / (1 + 2 tol)),
     so the pixel's own Gaussian stands in front of whatever else its capture point sees there; kept only where no
     other panorama's depth explains that point (`others`: the other panoramas' SourcesVisibility at tolerance tol; on
@@ -146,7 +148,7 @@ def own_fill(k: int, names: list[str], depths: dict[str, np.ndarray], world_from
     del out
     release_free_memory()  # the render's temporaries, before the next panorama's
     reach = float(np.median(depth[~hole])) if not hole.all() else np.inf
-    d = np.where((alpha > 0.5) & np.isfinite(shown) & (shown > 0), np.minimum(shown, reach), reach)
+    d = np.where((alpha > 0.5) & np.isfinite(shown) & (shown > NEAR_PLANE_M), np.minimum(shown, reach), reach)
     nearer = depth_from_others(k, names, {**depths, n: depth}, world_from_cam, height=h)
     d = np.where(nearer > 0, np.minimum(d, nearer / (1.0 + 2.0 * tol)), d)
     fill &= np.isfinite(d)
@@ -167,7 +169,7 @@ def add_own_fill(result: FusionResult, names: list[str], rgbs: dict[str, np.ndar
     voxel Gaussians it dropped}} of the sources with pixels without depth.)"""
     g = result.gaussians
     height = min(params.source_fill_height, min(d.shape[0] for d in depths.values()))
-    vis = {n: SourceVisibility(depths[n], world_from_cam[n], params.source_tol) for n in names}
+    vis = {n: SourceVisibility(depths[n], world_from_cam[n], params.source_tol, NEAR_PLANE_M) for n in names}
     others = {n: SourcesVisibility([vis[m] for m in names if m != n]) for n in names}
     fills = {n: f for k, n in enumerate(names) if (f := own_fill(k, names, depths, world_from_cam, g, others[n],
                                                                  height=height, tol=params.source_tol)) is not None}
@@ -205,7 +207,8 @@ def home_anchored_fusion(frames: ContextSource | None, sources: dict[str, tuple[
     at most params.source_height rows (0 = as given), a pixel kept only when no other source sees its surface from
     nearer (geometry.panoramas.nearest_source: no doubled surfaces) nor saw through it (seen_through, tolerance
     params.source_carve_tol; 0 = not checked), plus voxel fusion of what the frames see that no
-    source does (SourceVisibility of each, tolerance params.source_tol) in voxels of params.unseen_voxel_size (0 =
+    source does (SourceVisibility of each, tolerance params.source_tol; nor within NEAR_PLANE_M of a capture point,
+    where the rig stood, whatever its depth there) in voxels of params.unseen_voxel_size (0 =
     params.voxel_size), less those poking through a surface a source saw: source_anchored_fusion of a single panorama,
     over several. params.source_complete: each source's pixels without depth first take the others'
     (complete_from_others). frames None: the panoramas' Gaussians alone (what the captures themselves show).
@@ -239,7 +242,7 @@ def home_anchored_fusion(frames: ContextSource | None, sources: dict[str, tuple[
     if frames is None:
         result = fuse_unseen(pix, [], None, params)
     else:
-        seen = SourcesVisibility([SourceVisibility(depths[n], poses[n], tol) for n in names])
+        seen = SourcesVisibility([SourceVisibility(depths[n], poses[n], tol, NEAR_PLANE_M) for n in names])
         result = fuse_unseen(pix, frames, seen, params, unseen_voxel_size=params.unseen_voxel_size, progress=progress)
     del pix, parts
     release_free_memory()

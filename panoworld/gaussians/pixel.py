@@ -145,13 +145,15 @@ def _source_lookup(points, cam_from_world, depth, dist, d_src):
 
 
 class SourceVisibility:
-    """What the source view sees: its ERP depth (H, W) metres (0/NaN/inf = unknown) and world_from_cam (4, 4)."""
+    """What the source view sees: its ERP depth (H, W) metres (0/NaN/inf = unknown) and world_from_cam (4, 4); near:
+    the radius (metres) around its camera centre known to be free whatever the depth (the capture rig stood there)."""
 
-    def __init__(self, depth: np.ndarray, world_from_cam: np.ndarray, tol: float):
+    def __init__(self, depth: np.ndarray, world_from_cam: np.ndarray, tol: float, near: float = 0.0):
         self.depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.nan).astype(np.float64)
         self.world_from_cam = np.asarray(world_from_cam, np.float64)
         self.cam_from_world = invert_pose(self.world_from_cam)
         self.tol = tol
+        self.near = near
 
     def _lookup(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(distance of world points (M, 3) from the source, the source's depth along their ray (NaN = none));
@@ -174,10 +176,11 @@ class SourceVisibility:
     def explained(self, points: np.ndarray) -> np.ndarray:
         """(M,) bool for world points (M, 3): on the source's visible surfaces or in front of them (within tol of its
         depth, relative, or nearer), i.e. the per-pixel Gaussians already stand for them or they would float in
-        front of what the source saw. Points behind the source's surfaces or where it has no depth are not."""
+        front of what the source saw; points within `near` of its camera centre too, depth or not. Points behind the
+        source's surfaces or where it has no depth are not."""
         dist, d_src = self._lookup(points)
         with np.errstate(invalid="ignore"):
-            return np.isfinite(d_src) & (dist <= d_src * (1.0 + self.tol))
+            return (np.isfinite(d_src) & (dist <= d_src * (1.0 + self.tol))) | (dist < self.near)
 
     def poking_through(self, g: Gaussians, reach: float = 3.0) -> np.ndarray:
         """(N,) bool: Gaussians behind the source's surface by less than reach x their largest scale, i.e. whose
