@@ -135,7 +135,10 @@ def test_unrelated_panorama_is_reported_not_placed(home_dir):
     rgbs["other"], depths["other"] = other.render(other.world_from_canonical, HEIGHT, 2 * HEIGHT)
     reg = register_panoramas(["pano_00", "pano_01", "other"], rgbs, depths, options=RegisterOptions(height=HEIGHT))
     assert "other" not in reg.world_from_cam
-    assert reg.panoramas["other"]["registered"] is False and "no pair" in reg.panoramas["other"]["reason"]
+    reason = reg.panoramas["other"]["reason"]
+    assert reg.panoramas["other"]["registered"] is False and "no pair" in reason
+    # the reason gives what the pairs across found: how many were tried and the best one's evidence
+    assert "2 pair(s) tried with the registered panoramas, the best pano_0" in reason and "floor inliers" in reason
     t_cm, r_deg = _errors(reg.world_from_cam["pano_01"], invert_pose(gt["pano_00"]) @ gt["pano_01"])
     assert t_cm <= TOL_CM and r_deg <= TOL_DEG
     assert not any(p["accepted"] for p in reg.pairs if "other" in (p["a"], p["b"]))

@@ -147,10 +147,10 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     poses, info = solve_graph(names, edges, given)
     for n in names:
         if not info[n]["registered"]:
-            tried = [p for (a, b), p in pairs.items() if n in (names[a], names[b])]
-            best = max(tried, key=lambda p: (p.inliers, p.consistency), default=None)
-            info[n]["reason"] += (f" (best depth-backed pair: {0 if best is None else best.inliers} inliers, "
-                                  f"{0.0 if best is None else best.consistency:.2f} consistency)")
+            info[n]["reason"] += _evidence_across(n, info[n].get("group") or [n], poses, names, pairs, floors,
+                                                  {**floor_refused, **{(names.index(a), names.index(b)): why for
+                                                                       (a, b), (kind, why) in overlaps.items()
+                                                                       if kind == "floor"}}, o)
     for n, theta in frames.items():
         if theta is not None:
             info[n]["walls_deg"] = round(float(np.degrees(theta)), 3)
@@ -193,6 +193,25 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                     row["bearing_refused"] = off
         rows.append(row)
     return Registration(world_from_cam=out, panoramas={n: info[n] for n in names}, pairs=rows)
+
+
+def _evidence_across(n: str, group: list[str], registered: dict, names: list[str], pairs: dict, floors: dict,
+                     floor_refused: dict, o: RegisterOptions) -> str:
+    """What the pairs tried between an unregistered panorama's group and the registered panoramas found, for its
+    reason: the group, the pair of most floor inliers (then depth-backed inliers) and why it is no edge."""
+    across = [(a, b) for a, b in pairs if {names[a], names[b]} & set(group) and {names[a], names[b]} & set(registered)]
+    head = f" (group: {', '.join(sorted(group))}" if len(group) > 1 else " ("
+    if not across:
+        return head + ("; " if len(group) > 1 else "") + "no pair with the registered panoramas was tried)"
+    def floor_inliers(ab):
+        return floors[ab].inliers if floors.get(ab) is not None else 0
+
+    a, b = max(across, key=lambda ab: (floor_inliers(ab), pairs[ab].inliers, pairs[ab].consistency))
+    p, k = pairs[a, b], floor_inliers((a, b))
+    why = floor_refused.get((a, b)) or (f"below {o.min_floor_inliers}" if k < o.min_floor_inliers else "")
+    return (head + ("; " if len(group) > 1 else "") + f"{len(across)} pair(s) tried with the registered panoramas, the "
+            f"best {names[a]}-{names[b]}: {k} floor inliers{f' ({why})' if why else ''}, {p.inliers} depth-backed inliers at "
+            f"{p.consistency:.2f} consistency)")
 
 
 def _edges(names, pairs, bearing, floors, frames, small, o: RegisterOptions):
