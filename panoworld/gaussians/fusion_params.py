@@ -142,8 +142,8 @@ class SourcePixelParams(FusionParams):
     0.01 with the capture poses as close to their panoramas; 0.2 and more cost the capture poses (docs/multi.md)."""
     capture_fit_height: int = param(512, ge=8)
     """ERP height of that fit's renders and targets (the panoramas area-downsampled). 512: the cube faces of a
-    256-row render supersampled 2x, so the fit resolves what a 256-row render shows; on real homes 0.4-8 dB more at the
-    capture poses than 256 rows, leave-one-out novel views within 0.3 dB (docs/multi.md)."""
+    256-row render supersampled 2x, so the fit resolves what a 256-row render shows; on real homes 1.8-8.9 dB more at the
+    capture poses than 256 rows, leave-one-out novel views within 0.1 dB (docs/multi.md)."""
     capture_fit_max_gb: float = param(4.0, gt=0)
     """The fit holds one render operator per capture pose at once: when the ones built so far say all of them would
     take more than this (GB), the fit runs at half the height (down to 64 rows), else it is skipped (colours as

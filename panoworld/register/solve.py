@@ -145,11 +145,6 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     if outvoted:
         overlaps |= outvoted | refuse_overlapping_rooms(names, edges, given, room_depths, o)
     poses, info = solve_graph(names, edges, given)
-    why_not = {**floor_refused, **{(names.index(a), names.index(b)): why for (a, b), (kind, why) in overlaps.items()
-                                   if kind == "floor"}}
-    for n in names:
-        if not info[n]["registered"]:
-            info[n]["reason"] += _evidence_across(info[n].get("group") or [n], poses, names, pairs, floors, why_not, o)
     for n, theta in frames.items():
         if theta is not None:
             info[n]["walls_deg"] = round(float(np.degrees(theta)), 3)
@@ -191,27 +186,27 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                 if off := off_frames((a, b), pose.i_from_j()):
                     row["bearing_refused"] = off
         rows.append(row)
+    for n in names:
+        if not info[n]["registered"]:
+            info[n]["reason"] += _evidence_across(set(info[n].get("group") or [n]), set(poses), rows, o)
     return Registration(world_from_cam=out, panoramas={n: info[n] for n in names}, pairs=rows)
 
 
-def _evidence_across(group: list[str], registered: dict, names: list[str], pairs: dict, floors: dict,
-                     floor_refused: dict, o: RegisterOptions) -> str:
-    """What the pairs tried between an unregistered panorama's group and the registered panoramas found, for its
-    reason: the group, the pair of most floor inliers (then depth-backed inliers) and why it is no edge."""
-    across = [(a, b) for a, b in pairs if {names[a], names[b]} & set(group) and {names[a], names[b]} & set(registered)]
+def _evidence_across(group: set[str], registered: set[str], rows: list[dict], o: RegisterOptions) -> str:
+    """What the pairs tried (registration.json's pair rows) between an unregistered panorama's group and the
+    registered panoramas found, for its reason: the group, the pair of most floor inliers (then depth-backed inliers)
+    and why it is no edge."""
+    across = [r for r in rows if {r["a"], r["b"]} & group and {r["a"], r["b"]} & registered]
     parts = [f"group: {', '.join(sorted(group))}"] if len(group) > 1 else []
     if not across:
         parts.append("no pair with the registered panoramas was tried")
     else:
-        def floor_inliers(ab):
-            return floors[ab].inliers if floors.get(ab) is not None else 0
-
-        a, b = max(across, key=lambda ab: (floor_inliers(ab), pairs[ab].inliers, pairs[ab].consistency))
-        k = floor_inliers((a, b))
-        why = floor_refused.get((a, b)) or (f"below {o.min_floor_inliers}" if k < o.min_floor_inliers else "")
-        parts.append(f"{len(across)} pair(s) tried with the registered panoramas, the best {names[a]}-{names[b]}: "
-                     f"{k} floor inliers{f' ({why})' if why else ''}, {pairs[a, b].inliers} depth-backed inliers at "
-                     f"{pairs[a, b].consistency:.2f} consistency")
+        best = max(across, key=lambda r: (r.get("floor_inliers", 0), r["inliers"], r["consistency"]))
+        k = best.get("floor_inliers", 0)
+        why = best.get("floor_refused") or (f"below {o.min_floor_inliers}" if k < o.min_floor_inliers else "")
+        parts.append(f"{len(across)} pair(s) tried with the registered panoramas, the best {best['a']}-{best['b']}: "
+                     f"{k} floor inliers{f' ({why})' if why else ''}, {best['inliers']} depth-backed inliers at "
+                     f"{best['consistency']:.2f} consistency")
     return " (" + "; ".join(parts) + ")"
 
 
