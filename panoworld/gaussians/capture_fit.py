@@ -34,7 +34,8 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     at each view's world_from_cam (4, 4) reproduces its target (H, W, 3) uint8 or [0, 1], area-resized to height rows.
 
     For fixed geometry each render is linear in the colours (render.erp_operator.ErpColorOperator), so this is
-    `iters` steps of conjugate-gradient least squares over all views at once: min sum_k |A_k c_k - y_k|^2 +
+    `iters` steps of Jacobi-preconditioned conjugate-gradient least squares over all views at once (each unknown
+    scaled by the square root of its compositing weight over the views): min sum_k |A_k c_k - y_k|^2 +
     damping |c - c0|^2 + sh_damping |s - s0|^2, the damping per unit of each Gaussian's compositing weight (Gaussians
     the views barely see keep their colours). With sh_degree 1 view k sees c_k = c + (B_k - B) s: s the degree-1
     coefficients, B_k their basis in the direction from view k (sh1_basis) and B its mean over the views weighted by
@@ -123,6 +124,11 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         s0_k = [s0[c] for c in cols]
         x0, lam = c0, [damping * seen]
     seen_k.clear()
+    # Jacobi: the unknowns are x / dsc, dsc^-2 about each one's normal-matrix diagonal (its data term and its damping
+    # both grow with its compositing weight), so a Gaussian a few pixels wide converges as fast as a wall-sized one
+    dsc = seen.rsqrt()
+    x0 = x0 / dsc
+    lam = [lam_i * dsc.square() for lam_i in lam]
     del total, seen, c0
     means = None
     cols = cols_t
@@ -138,7 +144,7 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
             return torch.from_numpy(_view_colors(x.numpy(), cols[k].numpy(), basis[k].numpy()))
         return x[cols[k]] + torch.einsum("nj,njc->nc", basis[k], s0_k[k])
 
-    def lin(k, p):  # view k's render of a step p of the unknowns
+    def lin(k, p):  # view k's render of p (n, 12 or 3), colours and degree-1 terms (unknowns times dsc)
         return ops[k](colors(k, p) if sh_degree else p[cols[k]])
 
     def grad(r, out):  # the adjoint of the views' renders of the residuals r (per view (H, W, 3)), as the unknowns
@@ -149,16 +155,16 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
                 _add_view_grad(out.numpy(), cols[k].numpy(), gc.numpy(), basis[k].numpy())
             else:
                 out.index_add_(0, cols[k], gc)
-        return out
+        return out.mul_(dsc)
 
     # Conjugate gradients on the normal equations, the (n, 12) vectors updated in place (tmp: scratch)
     x, s, tmp = x0.clone(), torch.empty_like(x0), torch.empty_like(x0)
-    r = [targets[k] - ops[k](colors(k, x)) for k in range(views_n)]
+    r = [targets[k] - lin(k, x0 * dsc) for k in range(views_n)]
     rmse0 = [float(rk.square().mean().sqrt()) for rk in r]
     grad(r, s)
     p, gamma = s.clone(), float(torch.mul(s, s, out=tmp).sum())
     for _ in range(iters):
-        q = [lin(k, p) for k in range(views_n)]
+        q = [lin(k, torch.mul(p, dsc, out=tmp)) for k in range(views_n)]
         damped = damp(torch.mul(p, p, out=tmp)).sum()
         alpha = gamma / max(float(sum(qk.square().sum() for qk in q) + damped), 1e-20)
         x.add_(torch.mul(p, alpha, out=tmp))
@@ -167,6 +173,7 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         gamma_new = float(torch.mul(s, s, out=tmp).sum())
         p.mul_(gamma_new / max(gamma, 1e-20)).add_(s)
         gamma = gamma_new
+    x.mul_(dsc)
     x[:, :3] = x[:, :3].clamp(0.0, 1.0)
     del s, p, tmp, x0
     lam.clear()
