@@ -136,17 +136,17 @@ class SourcePixelParams(FusionParams):
     panorama: where several panoramas see a surface, a panorama's Gaussians seen from another capture point show
     the texture where its own layout depth put it, and where a panorama has no depth the frames' coarser Gaussians
     stand in. The manifest's color_fit holds each panorama's RMSE before and after. The steps are preconditioned
-    (Jacobi): on real homes 5 give the capture poses of 80 unpreconditioned steps (-0.1 to +0.9 dB) for a sixteenth
-    of the steps; the converged fit (20) gains up to 1.5 dB more there and loses 0.1 dB on leave-one-out novel views
-    (docs/multi.md)."""
+    (Jacobi): on real homes 5 give the capture poses of 80 unpreconditioned steps (-1.9 to +0.9 dB per pose, the
+    lowest -0.1 / +0.4 dB) in a sixteenth of the steps; the converged fit (20) gains up to 1.5 dB more there and
+    loses 0.1 dB and 0.01 SSIM on east's leave-one-out novel views (docs/multi.md)."""
     capture_fit_damping: float = param(0.05, ge=0)
     """Damping of that fit's colours towards their fused values, per unit of each Gaussian's compositing weight. More
     keeps the colours nearer the fused ones: on real homes 0.05 gives higher SSIM on leave-one-out novel views than
     0.01 with the capture poses as close to their panoramas; 0.2 and more cost the capture poses (docs/multi.md)."""
     capture_fit_height: int = param(512, ge=8)
     """ERP height of that fit's renders and targets (the panoramas area-downsampled). 512: the cube faces of a
-    256-row render supersampled 2x, so the fit resolves what a 256-row render shows; on real homes 1.8-8.9 dB more at the
-    capture poses than 256 rows, leave-one-out novel views within 0.1 dB (docs/multi.md)."""
+    256-row render supersampled 2x, so the fit resolves what a 256-row render shows; on real homes 1.3-9.2 dB more at the
+    capture poses than 256 rows, leave-one-out novel views within 0.01 dB (docs/multi.md)."""
     capture_fit_max_gb: float = param(4.0, gt=0)
     """The fit holds one render operator per capture pose at once: when the ones built so far say all of them would
     take more than this (GB), the fit runs at half the height (down to 64 rows), else it is skipped (colours as
