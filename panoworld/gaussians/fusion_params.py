@@ -143,7 +143,7 @@ class SourcePixelParams(FusionParams):
     """Damping of that fit's colours towards their fused values, per unit of each Gaussian's compositing weight. More
     keeps the colours nearer the fused ones: on real homes 0.05 gives higher SSIM on leave-one-out novel views than
     0.01 with the capture poses as close to their panoramas (with 80 plain steps); 0.1 and 0.2 cost the capture poses
-    0.9-1.9 and 2.8 dB without buying the novel views back (the converged preconditioned fit; docs/multi.md)."""
+    1.0 and 2.7 dB on average without buying the novel views back (the converged preconditioned fit; docs/multi.md)."""
     capture_fit_height: int = param(512, ge=8)
     """ERP height of that fit's renders and targets (the panoramas area-downsampled). 512: the cube faces of a
     256-row render supersampled 2x, so the fit resolves what a 256-row render shows; on real homes 1.3-9.2 dB more at the
