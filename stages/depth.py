@@ -88,22 +88,26 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         return depth_of_panorama(inputs, params, out_dir)
     from panoworld.io.home import HOME_DIR, HOME_INFO
     from panoworld.io.safe_write import inside
-    from panoworld.register.inputs import find_home_files
+    from panoworld.register.inputs import DEPTHS_DIR, find_home_files
 
     home = find_home_files(inputs["panoramas"], inputs.get("depths"), inputs.get("rig_masks"))
     names = home.names
+    depth_dir = inputs.get("depths") or inputs["panoramas"].parent / DEPTHS_DIR
     infos, dirs = {}, {}
     for k, name in enumerate(names):  # the first panorama's files at the top level: the world frame's panorama
         sub = out_dir if k == 0 else inside(out_dir / HOME_DIR, name)
         sub.mkdir(parents=True, exist_ok=True)
+        hint = f"give its metric depth as {depth_dir / name}.npy|exr|png"
         infos[name] = depth_of_panorama({"panorama": home.panoramas[name], "depth": home.depths.get(name),
-                                         "rig_mask": home.rig_masks.get(name)}, params, sub)
+                                         "rig_mask": home.rig_masks.get(name)}, params, sub, depth_hint=hint)
         dirs[name] = sub.relative_to(out_dir).as_posix()
     return {**infos[names[0]], HOME_INFO: {"names": names, "dirs": dirs, "panoramas": infos}}
 
 
-def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
-    """Depth, validity and the cleaned panorama (rig removed, poles completed) of one panorama into out_dir."""
+def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: Path, *,
+                      depth_hint: str | None = None) -> dict:
+    """Depth, validity and the cleaned panorama (rig removed, poles completed) of one panorama into out_dir;
+    depth_hint: where the user would give its depth (the backends' error messages)."""
     import cv2
 
     from panoworld.depth import depth_map as dep
@@ -119,8 +123,9 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
     if (H, W) != (H0, W0):
         notes.append(f"panorama {W0}x{H0} is taller than max_height {params.max_height}: working at {W}x{H}")
     opts, found = _with_weights_on_disk(backend, backend.options_of(params), notes)
+    hint = {"depth_hint": depth_hint} if depth_hint else {}
     res = backend.impl(Job(rgb=rgb, depth_file=inputs.get("depth"), panorama_file=inputs["panorama"],
-                           options=opts, notes=notes))
+                           options=opts, notes=notes, **hint))
     info.update(res.info)
     if found is not None:
         info["weights_found"] = found

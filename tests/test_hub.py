@@ -375,6 +375,27 @@ def test_weights_list(hub_env, tiny_files, capsys):
         registry.register(registry.WeightsEntry(name="panovggt", model="x", licence="x", size="x", uses=()))
 
 
+def test_a_home_without_depths_is_refused_naming_where_its_depth_goes(hub_env, tmp_path):
+    """A home (panoramas/, no depths/) with no depth model on disk: one line naming the home's depth file for the
+    panorama (SCENE/depths/NAME.npy|exr|png), not a file beside the panorama; exit 2, no artifact."""
+    from tests.test_mesh import BoxRoom
+
+    rgb, _ = BoxRoom().render(np.eye(4), 64, 128)
+    scene = tmp_path / "home"
+    (scene / "panoramas").mkdir(parents=True)
+    for name in ("hall", "kitchen"):
+        Image.fromarray(rgb).save(scene / "panoramas" / f"{name}.png")
+    cmd = [sys.executable, str(REPO / "runner.py"), "run", str(scene), "--until", "depth"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, env=dict(os.environ))
+    assert proc.returncode == 2
+    refusals = [ln for ln in proc.stderr.splitlines() if "weights fetch" in ln]
+    assert len(refusals) == 1, proc.stderr
+    assert f"{scene / 'panoramas' / 'hall.png'}: no depth file" in refusals[0]
+    assert f"give its metric depth as {scene / 'depths' / 'hall'}.npy|exr|png" in refusals[0]
+    assert "next to the panorama" not in refusals[0]
+    assert not (scene / "artifacts").exists()
+
+
 def test_rgb_only_scene_takes_the_depth_model_already_on_disk_and_refuses_in_one_line_without(hub_env, tiny_files,
                                                                                               tmp_path):
     scene = _scene(tmp_path)

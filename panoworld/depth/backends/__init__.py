@@ -23,6 +23,8 @@ class Job:
     panorama_file: Path
     options: Any
     """The backend's own options."""
+    depth_hint: str = "put a metric depth.npy|exr|png next to the panorama"
+    """Where the user would give this panorama's depth (for an error message)."""
     notes: list[str] = field(default_factory=list)
     """Decisions worth telling the user (appended to)."""
 

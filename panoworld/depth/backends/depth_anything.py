@@ -34,8 +34,7 @@ def predict(job):
     if o.weights is None:  # the depth stage puts weights found on disk here (trait finds_weights)
         raise InputError(
             f"{job.panorama_file}: no depth file in the scene and no depth model on disk; run "
-            "`python runner.py weights fetch depth-anything-v2-small` (or put a metric depth.npy|exr|png next to "
-            "the panorama)"
+            f"`python runner.py weights fetch depth-anything-v2-small` (or {job.depth_hint})"
         )
     model = DepthAnything.from_pretrained(o.weights, input_size=o.view_size, device=o.device)
     res = erp_depth_from_model(job.rgb, model, model.kind, fov_deg=o.fov_deg, view_size=o.view_size)
