@@ -6,10 +6,11 @@ pose (the evidence any floor fit could find there); and with --subsets N, the ho
 subsets of its panoramas (3 to 10 each, fewer than all, from the depth artifact beside REGISTER_ARTIFACT, default
 RegisterOptions), each against the survey: a subset whose registered panoramas break 0.25 m of pairwise distance
 error or 2 deg of yaw error is misplaced (a home without the panoramas that join or check its rooms, as a user's
-capture may be).
+capture may be); and with --rolls N --home HOME, the home registered again N times from its inputs with every panorama
+turned by its own random azimuth (where its seam falls), each draw against the survey.
 
-`python bench/real_home_survey.py REGISTER_ARTIFACT SURVEY_JSON [--json] [--floor-evidence] [--subsets N [--seed S]]`
-prints them;
+`python bench/real_home_survey.py REGISTER_ARTIFACT SURVEY_JSON [--json] [--floor-evidence] [--subsets N]
+[--rolls N --home HOME] [--seed S]` prints them;
 `compare_to_survey` is the function the real-home benchmark imports."""
 
 from __future__ import annotations
@@ -173,6 +174,56 @@ def subset_registrations(depth_artifact: Path, survey: dict, sets: int, seed: in
     return rows
 
 
+def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0) -> list[dict]:
+    """The home (panoramas/, depths/) registered again `draws` times with each panorama and its depth turned about
+    gravity by its own random azimuth (a whole number of depth columns, so both move exactly), through the depth and
+    register stages at default settings (`runner.py run COPY --until register`); the survey's yaws turned with
+    them. Per draw: the registered panoramas, the errors and whether it is misplaced. Where a panorama's seam falls
+    is arbitrary in a capture; the registration should not depend on it."""
+    import shutil
+    import subprocess
+    import tempfile
+
+    import cv2
+
+    from panoworld.io.depth import read_depth, read_panorama
+
+    rng = np.random.default_rng(seed)
+    names = sorted(p.stem for p in (home / "depths").iterdir() if p.suffix == ".npy")
+    rows: list[dict] = []
+    for i in range(draws):
+        with tempfile.TemporaryDirectory() as td:
+            copy = Path(td) / "home"
+            (copy / "panoramas").mkdir(parents=True)
+            (copy / "depths").mkdir()
+            turned = {"panos": {}}
+            for n in names:
+                src = next(p for p in (home / "panoramas").iterdir() if p.stem == n)
+                rgb, depth = read_panorama(src), read_depth(home / "depths" / f"{n}.npy")
+                k = int(rng.integers(0, depth.shape[1]))
+                if rgb.shape[1] % depth.shape[1]:
+                    raise SystemExit(f"{src}: width {rgb.shape[1]} is not a multiple of its depth's {depth.shape[1]}")
+                cv2.imwrite(str(copy / "panoramas" / f"{n}.png"),
+                            cv2.cvtColor(np.roll(rgb, k * rgb.shape[1] // depth.shape[1], axis=1), cv2.COLOR_RGB2BGR))
+                np.save(copy / "depths" / f"{n}.npy", np.roll(depth, k, axis=1))
+                if n in survey["panos"]:
+                    turned["panos"][n] = dict(survey["panos"][n],
+                                              yaw_deg=survey["panos"][n]["yaw_deg"] - 360.0 * k / depth.shape[1])
+            proc = subprocess.run([sys.executable, str(Path(__file__).resolve().parents[1] / "runner.py"), "run",
+                                   str(copy), "--until", "register"], capture_output=True, text=True)
+            if proc.returncode:
+                raise SystemExit(f"draw {i + 1}: runner.py run failed:\n{proc.stderr[-2000:]}")
+            out = copy / "artifacts" / "register"
+            world = {n: np.asarray(T) for n, T in json.loads((out / "panoramas.json").read_text()).items()}
+            shutil.rmtree(copy / "artifacts" / "depth", ignore_errors=True)
+        r = compare_to_survey(world, turned)
+        d, y = r["dist_err_m_max"], r["yaw_err_deg_max"]
+        rows.append({"registered": sorted(world), "unregistered": r["unregistered"], "dist_err_m_max": d,
+                     "yaw_err_deg_max": y, "misplaced": d is not None and (d > MISPLACED_M or y > MISPLACED_DEG)})
+        print(f"draw {i + 1}/{draws}: {len(world)} of {len(names)} registered", file=sys.stderr, flush=True)
+    return rows
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("register", type=Path, help="a register artifact (holds panoramas.json)")
@@ -184,7 +235,11 @@ def main() -> int:
     ap.add_argument("--subsets", type=int, default=0, metavar="N",
                     help="register N random subsets of the home's panoramas again (3-10 each, from the depth artifact "
                          "beside REGISTER_ARTIFACT) and report each against the survey")
-    ap.add_argument("--seed", type=int, default=0, help="the subsets' random seed")
+    ap.add_argument("--rolls", type=int, default=0, metavar="N",
+                    help="with --home: register the home N times again, each panorama and its depth turned by a random "
+                         "azimuth (the depth and register stages at default settings), and report each draw")
+    ap.add_argument("--home", type=Path, help="--rolls: the home's input folder (panoramas/, depths/)")
+    ap.add_argument("--seed", type=int, default=0, help="the subsets' and the draws' random seed")
     args = ap.parse_args()
     poses = {n: np.asarray(T) for n, T in json.loads((args.register / "panoramas.json").read_text()).items()}
     survey = json.loads(args.survey.read_text())
@@ -195,6 +250,10 @@ def main() -> int:
         r["floor_evidence"] = floor_evidence(args.register.parent / "depth", survey, set(poses))
     if args.subsets:
         r["subsets"] = subset_registrations(args.register.parent / "depth", survey, args.subsets, args.seed)
+    if args.rolls:
+        if args.home is None:
+            ap.error("--rolls needs --home (the home's panoramas/ and depths/)")
+        r["rolls"] = roll_registrations(args.home, survey, args.rolls, args.seed)
     if args.json:
         print(json.dumps(r, indent=1))
         return 0
@@ -218,7 +277,7 @@ def main() -> int:
     if args.floor_evidence:
         ev = r["floor_evidence"]
         print(f"\nfloor evidence over the {len(ev)} pairs not both registered (matches agreeing with the survey; a floor "
-              "edge needs 8 inliers, and another pair across its cut below 12; chance fits reach 8):")
+              "edge needs 6 distinct inliers, and another pair across its cut below 12; chance fits reach 8):")
         print("| pair | distance m | agreeing matches | matches |")
         print("| --- | --- | --- | --- |")
         for p in ev[:15]:
@@ -234,6 +293,16 @@ def main() -> int:
         for x in rows:
             print(f"| {', '.join(x['panoramas'])} | {', '.join(x['registered'])} | {f(x['dist_err_m_max'], '.3f')} | "
                   f"{f(x['yaw_err_deg_max'], '.2f')} | {'yes' if x['misplaced'] else '-'} |")
+    if args.rolls:
+        rows = r["rolls"]
+        print(f"\n{len(rows)} draws of random azimuths (seed {args.seed}): "
+              f"{sum(len(x['registered']) for x in rows)} of {len(rows) * r['panoramas']} surveyed panoramas "
+              f"registered, {sum(x['misplaced'] for x in rows)} draws misplaced")
+        print("| draw | registered | unregistered | distance error m max | yaw error deg max | misplaced |")
+        print("| --- | --- | --- | --- | --- | --- |")
+        for i, x in enumerate(rows):
+            print(f"| {i + 1} | {len(x['registered'])} | {', '.join(x['unregistered']) or '-'} | "
+                  f"{f(x['dist_err_m_max'], '.3f')} | {f(x['yaw_err_deg_max'], '.2f')} | {'yes' if x['misplaced'] else '-'} |")
     return 0
 
 

@@ -198,6 +198,67 @@ def test_floor_pair_with_the_yaw_fixed_recovers_the_translation():
     assert np.linalg.norm(p.a_from_b[:3, 3] - truth[:3, 3]) < 0.03
 
 
+def _views_of(points: np.ndarray, b_from_a_xz: tuple[float, float, float], height: float = 1.4):
+    """Floor views a, b whose keypoints are the floor points (N, 2) (x, z in a's frame, several keypoints per point
+    allowed), b at (x, z, yaw) in a's frame, with the orientations and sizes a true match has."""
+    from panoworld.geometry.floor_view import FloorView
+    from panoworld.geometry.upright import yaw_matrix_xz
+
+    x, z, yaw = b_from_a_xz
+    in_b = (points - [x, z]) @ yaw_matrix_xz(yaw)  # p_a = R(yaw) p_b + t
+    n = len(points)
+    desc = np.eye(n, 128, dtype=np.float32)
+    ang = np.linspace(0, 1, n)
+    a = FloorView(height_m=height, xz=points.astype(float), descriptors=desc, angles=ang, sizes=np.full(n, 4.0))
+    b = FloorView(height_m=height, xz=in_b, descriptors=desc, angles=ang - yaw, sizes=np.full(n, 4.0))
+    return a, b
+
+
+def test_floor_inliers_on_one_spot_count_once():
+    from panoworld.register.floor import distinct_inliers, floor_support
+
+    rng = np.random.default_rng(0)
+    spread = rng.uniform(-3, 3, (12, 2))
+    a, b = _views_of(spread, (1.0, 0.5, 0.3))
+    m = np.stack([np.arange(12), np.arange(12)], 1)
+    T = np.eye(4)
+    T[:3, :3], T[[0, 2], 3] = yaw_matrix(0.3), [1.0, 0.5]
+    assert distinct_inliers(a, b, m) == 12 and floor_support(a, b, T, matches=m) == 12
+    clustered = np.repeat(spread[:2], 6, axis=0) + rng.normal(0, 0.002, (12, 2))  # 6 keypoints on each of 2 spots
+    a, b = _views_of(clustered, (1.0, 0.5, 0.3))
+    assert distinct_inliers(a, b, m) == 2 and floor_support(a, b, T, matches=m) == 2
+
+
+def test_a_floor_fit_whose_inliers_lie_inside_both_rooms_of_two_cameras_is_refused():
+    """Two round rooms of 3 m radius, the cameras 4.5 m apart (each beyond the other's wall). Floor matched between
+    them where both rooms claim it (the rooms would overlap there): refused; floor of a's room seen by b beyond its
+    wall (through a doorway): kept; a's floor alone unknown to b (masked depth): not judged."""
+    from panoworld.register.floor import FloorPose, floor_rooms_refusal
+
+    depth = np.full((64, 128), 3.0, np.float32)
+    T = np.eye(4)
+    T[[0, 2], 3] = [4.5, 0.0]
+    rng = np.random.default_rng(1)
+    both = np.stack([rng.uniform(2.0, 2.5, 10), rng.uniform(-0.5, 0.5, 10)], 1)  # ~2.2 m from each camera
+    a_only = np.stack([rng.uniform(-2.0, -1.0, 10), rng.uniform(-1.0, 1.0, 10)], 1)  # 5.5 m from b, in a's room
+    m = np.stack([np.arange(10), np.arange(10)], 1)
+    for pts, refused in ((both, True), (a_only, False)):
+        a, b = _views_of(pts, (4.5, 0.0, 0.0))
+        f = FloorPose(a_from_b=T, inliers=10, matches=10, residual_m=0.0, matched=m.astype(np.int32))
+        why = floor_rooms_refusal(f, a, b, depth, depth, threshold_m=0.05)
+        assert bool(why) == refused, why
+        if refused:
+            assert "10 of its 10 floor inliers lie inside both rooms" in why
+    a, b = _views_of(both, (4.5, 0.0, 0.0))
+    f = FloorPose(a_from_b=T, inliers=10, matches=10, residual_m=0.0, matched=m.astype(np.int32))
+    assert floor_rooms_refusal(f, a, b, depth, np.zeros_like(depth), threshold_m=0.05) == ""
+    near = T.copy()
+    near[[0, 2], 3] = [1.0, 0.0]  # the cameras in each other's free space: one room, same_room_refusal's to judge
+    a, b = _views_of(both, (1.0, 0.0, 0.0))
+    f = FloorPose(a_from_b=near, inliers=10, matches=10, residual_m=0.0, matched=m.astype(np.int32))
+    assert floor_rooms_refusal(f, a, b, depth, depth, threshold_m=0.05) == ""
+
+
 def test_floor_edge_joins_groups_in_the_pose_graph():
     ab, cd, bc = _pose(30.0, 1.0, 0.0), _pose(-60.0, 0.0, 2.0), _pose(90.0, 3.0, 1.0)
     edges = [Edge(a="a", b="b", a_from_b=ab, kind="depth", inliers=100, info={}),

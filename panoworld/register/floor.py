@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from panoworld.core.conventions import invert_pose
 from panoworld.core.shapes import check_shape
 from panoworld.geometry.floor_view import FloorView, agrees_with_pose, floor_matches
 from panoworld.geometry.upright import wrap_angle, yaw_matrix, yaw_matrix_xz
@@ -20,6 +21,7 @@ class FloorPose:
     a_from_b: np.ndarray
     """(4, 4) rigid: yaw about gravity, horizontal translation, camera height difference."""
     inliers: int
+    """Inliers counted once per keypoint spot (distinct_inliers)."""
     matches: int
     residual_m: float
     """RMS floor distance of the inliers (metres)."""
@@ -29,6 +31,22 @@ class FloorPose:
     matched: np.ndarray | None = None
     """(matches, 2) int32: the floor matches the fit was made from (index in a, index in b), for floor_support at
     other poses."""
+
+
+SAME_SPOT_M = 0.03
+"""Inliers whose keypoints lie within this of each other (metres on the floor, in either view) are one piece of
+evidence (distinct_inliers)."""
+
+
+def distinct_inliers(a: FloorView, b: FloorView, m: np.ndarray) -> int:
+    """How many of the matches m (M, 2) of floor views a, b are distinct evidence: the fewer of the distinct keypoint
+    spots (SAME_SPOT_M cells) they use in a and in b. SIFT puts several keypoints on one spot (orientations, scales),
+    and a chance match of two spots repeats as a cluster of inliers, most often where a wall's radial smear meets
+    another's."""
+    if len(m) == 0:
+        return 0
+    return int(min(len(np.unique(np.floor(v.xz[idx] / SAME_SPOT_M).astype(np.int64), axis=0))
+                   for v, idx in ((a, m[:, 0]), (b, m[:, 1]))))
 
 
 DISTINCT_M = 0.3
@@ -162,7 +180,7 @@ def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: 
     T[:3, :3] = yaw_matrix(yaw)
     T[:3, 3] = [t[0], a.height_m - b.height_m, t[1]]
     res = np.linalg.norm(b.xz[m[inl, 1]] @ yaw_matrix_xz(yaw).T + t - a.xz[m[inl, 0]], axis=1)
-    return FloorPose(a_from_b=T, inliers=int(inl.sum()), matches=len(m),
+    return FloorPose(a_from_b=T, inliers=distinct_inliers(a, b, m[inl]), matches=len(m),
                      residual_m=float(np.sqrt(np.mean(res**2))) if len(res) else float("nan"),
                      second=runner_up(*args, yaw, t, threshold=threshold_m), matched=m.astype(np.int32))
 
@@ -171,8 +189,48 @@ def floor_support(a: FloorView, b: FloorView, a_from_b: np.ndarray, *, threshold
                   angle_tol: float = np.radians(15.0), scale_tol: float = 0.6, matches: np.ndarray | None = None) -> int:
     """How many of floor_matches(a, b) (or `matches`, (M, 2)) agree with a given pose a_from_b (4, 4): land within
     threshold_m of their partner on the floor, turn by the pose's yaw within angle_tol and keep their size within
-    scale_tol octaves (the tests of floor_pair's inliers)."""
+    scale_tol octaves (the tests of floor_pair's inliers), counted once per keypoint spot (distinct_inliers)."""
     m = floor_matches(a, b) if matches is None else matches
-    return int(agrees_with_pose(a, b, a_from_b, m, threshold_m=threshold_m, angle_tol=angle_tol,
-                                scale_tol=scale_tol).sum())
+    return distinct_inliers(a, b, m[agrees_with_pose(a, b, a_from_b, m, threshold_m=threshold_m, angle_tol=angle_tol,
+                                                     scale_tol=scale_tol)])
 
+
+
+def floor_rooms_refusal(f: FloorPose, a: FloorView, b: FloorView, depth_a: np.ndarray, depth_b: np.ndarray, *,
+                        threshold_m: float, max_share: float = 0.5, margin_m: float = 0.15, margin_frac: float = 0.15
+                        ) -> str:
+    """Why a floor pose f of two panoramas in two rooms cannot hold ('' when it can): more than max_share of its
+    inliers' floor points lie inside both rooms (nearer to each camera than its depth (H, W) in that direction, by
+    margin_m plus margin_frac of that depth). Floor that two rooms both see through a doorway lies in one of them,
+    behind the other's wall; a chance fit between the floors of two rooms that share no view matches each room's own
+    floor. Not judged where the cameras stand in each other's free space (one room: same_room_refusal) or where fewer
+    than 3 inliers, or than half of them, have a depth in both views (a masked layout)."""
+    from panoworld.register.pairwise import depth_toward
+
+    if f.matched is None:
+        return ""
+    T = f.a_from_b
+    for depth, cam in ((depth_a, T[:3, 3]), (depth_b, invert_pose(T)[:3, 3])):
+        d = depth_toward(depth, cam)
+        if not (d > 0 and np.linalg.norm(cam) < d - max(margin_m, margin_frac * d)):
+            break
+    else:
+        return ""
+    m = f.matched[agrees_with_pose(a, b, T, f.matched, threshold_m=threshold_m)]
+
+    def inside(view: FloorView, depth: np.ndarray, idx: np.ndarray) -> np.ndarray:  # 1 inside, 0 beyond, -1 unknown
+        out = np.full(len(idx), -1)
+        for k, i in enumerate(idx):
+            p = np.array([view.xz[i, 0], view.height_m, view.xz[i, 1]])
+            d = depth_toward(depth, p, window=1)
+            if d > 0:
+                out[k] = int(np.linalg.norm(p) <= d * (1 + margin_frac) + margin_m)
+        return out
+
+    ia, ib = inside(a, depth_a, m[:, 0]), inside(b, depth_b, m[:, 1])
+    known = (ia >= 0) & (ib >= 0)
+    both = int(((ia == 1) & (ib == 1)).sum())
+    if known.sum() < max(3, 0.5 * len(m)) or both <= max_share * known.sum():
+        return ""
+    return (f"{both} of its {int(known.sum())} floor inliers lie inside both rooms, and the cameras stand in two: "
+            "each room's own floor matched by chance")

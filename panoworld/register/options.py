@@ -67,9 +67,11 @@ class RegisterOptions:
     floor_ratio: float = param(1.0, gt=0, le=1)
     """Lowe ratio of the floor image matches (1 = every keypoint's nearest neighbour: the floor RANSAC's inliers must
     also agree in keypoint orientation and scale, which keeps chance agreement at a few matches)."""
-    min_floor_inliers: int = param(8, ge=3)
-    """A floor pair needs at least this many inliers (and no contradiction from its bearing-only estimate, checked as
-    for a depth-backed pose)."""
+    min_floor_inliers: int = param(6, ge=3)
+    """A floor pair needs at least this many inliers, counted once per keypoint spot (and no contradiction from its
+    bearing-only estimate, checked as for a depth-backed pose; with fewer than floor_lone_inliers, another pair across
+    its cut must agree). Chance fits between real rooms that share no floor reach 6-8 and are refused by the checks of
+    their two rooms (docs/multi.md)."""
     floor_min_margin: float = param(2.0, ge=1)
     """A floor pose that the pair's images do not confirm (no bearing-only estimate of min_bearing_inliers) needs at
     least this many times the inliers of the best other translation at its yaw (FloorPose.second): a repeated floor

@@ -13,7 +13,7 @@ from panoworld.geometry.floor_view import FloorView, camera_height, floor_view
 from panoworld.geometry.resize import rgbd_at_height
 from panoworld.geometry.upright import wrap_angle, yaw_of
 from panoworld.register.cuts import refuse_outvoted_cuts
-from panoworld.register.floor import FloorPose, floor_pair
+from panoworld.register.floor import FloorPose, floor_pair, floor_rooms_refusal
 from panoworld.register.graph import (
     BEARING,
     DEPTH,
@@ -113,13 +113,14 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
 
         try_pairs(candidate_pairs(names, looks, given=given, all_up_to=o.all_pairs_up_to))
         if k > o.all_pairs_up_to:
-            group = bridging_groups(names, _edges(names, pairs, bearing, floors, frames, small, o)[0], given)
+            group = bridging_groups(names, _edges(names, pairs, bearing, floors, frames, small, views, o)[0], given)
             try_pairs(bridge_pairs(names, group, set(pairs)))
-    edges, refused, depth_ok, floor_refused, off_frames = _edges(names, pairs, bearing, floors, frames, small, o)
+    edges, refused, depth_ok, floor_refused, off_frames = _edges(names, pairs, bearing, floors, frames, small, views, o)
     layouts: dict[tuple[int, int], LayoutPose | None] = {}
     layout_refused: dict[tuple[int, int], str] = {}
-    if o.layout and need:
-        group = group_of(names, edges, given)
+    if o.layout and need:  # tried across weak floor edges too: the cut vote may refuse them (refuse_outvoted_cuts)
+        group = group_of(names, [e for e in edges if not (e.kind == FLOOR and not e.confirmed
+                                                          and e.inliers < o.floor_lone_inliers)], given)
         rooms: dict = {}
         for a, b in pairs:
             if group[names[a]] == group[names[b]]:
@@ -210,7 +211,7 @@ def _evidence_across(group: set[str], registered: set[str], rows: list[dict], o:
     return " (" + "; ".join(parts) + ")"
 
 
-def _edges(names, pairs, bearing, floors, frames, small, o: RegisterOptions):
+def _edges(names, pairs, bearing, floors, frames, small, views, o: RegisterOptions):
     """The pose graph's edges of the pairs tried so far (each pair's best trusted estimate: depth-backed, floor, then
     bearing-only), with why depth-backed and floor poses were refused and the Manhattan yaw test they used."""
     def off_frames(ab: tuple[int, int], a_from_b: np.ndarray) -> str:
@@ -221,6 +222,8 @@ def _edges(names, pairs, bearing, floors, frames, small, o: RegisterOptions):
     depth_ok = {ab: accepted(p, o) and not refused[ab] for ab, p in pairs.items()}
     floor_refused = {ab: _contradiction(f.a_from_b, bearing[ab], o) or _ambiguous_floor(f, bearing[ab], o)
                      or _placement_refusal(f.a_from_b, small[names[ab[0]]][1], small[names[ab[1]]][1], o)
+                     or floor_rooms_refusal(f, views[names[ab[0]]], views[names[ab[1]]], small[names[ab[0]]][1],
+                                            small[names[ab[1]]][1], threshold_m=o.floor_threshold_m)
                      for ab, f in floors.items() if f is not None and f.inliers >= o.min_floor_inliers}
     edges = []
     for (a, b), p in pairs.items():
