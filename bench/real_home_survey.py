@@ -277,7 +277,7 @@ def main() -> int:
     if args.floor_evidence:
         ev = r["floor_evidence"]
         print(f"\nfloor evidence over the {len(ev)} pairs not both registered (matches agreeing with the survey; a floor "
-              "edge needs 6 distinct inliers, and another pair across its cut below 12; chance fits reach 8):")
+              "edge needs 6 distinct inliers, and another pair across its cut below 11; chance fits reach 8):")
         print("| pair | distance m | agreeing matches | matches |")
         print("| --- | --- | --- | --- |")
         for p in ev[:15]:

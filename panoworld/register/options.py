@@ -76,7 +76,7 @@ class RegisterOptions:
     """A floor pose that the pair's images do not confirm (no bearing-only estimate of min_bearing_inliers) needs at
     least this many times the inliers of the best other translation at its yaw (FloorPose.second): a repeated floor
     pattern seen from two rooms agrees nearly as well one pattern period along the baseline."""
-    floor_lone_inliers: int = param(12, ge=0)
+    floor_lone_inliers: int = param(11, ge=0)
     """A floor pose the images do not confirm with fewer inliers than this joins two sides of the registration only where
     the floor images of another pair across that cut also support it (register/cuts.py; a pair alone across its cut,
     as two panoramas alone, is refused too): between floors that share nothing a chance fit can reach
