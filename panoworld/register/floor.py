@@ -195,7 +195,6 @@ def floor_support(a: FloorView, b: FloorView, a_from_b: np.ndarray, *, threshold
                                                      scale_tol=scale_tol)])
 
 
-
 def floor_rooms_refusal(f: FloorPose, a: FloorView, b: FloorView, depth_a: np.ndarray, depth_b: np.ndarray, *,
                         threshold_m: float, max_share: float = 0.5, margin_m: float = 0.15, margin_frac: float = 0.15
                         ) -> str:
