@@ -180,7 +180,6 @@ def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0) -> l
     register stages at default settings (`runner.py run COPY --until register`); the survey's yaws turned with
     them. Per draw: the registered panoramas, the errors and whether it is misplaced. Where a panorama's seam falls
     is arbitrary in a capture; the registration should not depend on it."""
-    import shutil
     import subprocess
     import tempfile
 
@@ -215,7 +214,6 @@ def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0) -> l
                 raise SystemExit(f"draw {i + 1}: runner.py run failed:\n{proc.stderr[-2000:]}")
             out = copy / "artifacts" / "register"
             world = {n: np.asarray(T) for n, T in json.loads((out / "panoramas.json").read_text()).items()}
-            shutil.rmtree(copy / "artifacts" / "depth", ignore_errors=True)
         r = compare_to_survey(world, turned)
         d, y = r["dist_err_m_max"], r["yaw_err_deg_max"]
         rows.append({"registered": sorted(world), "unregistered": r["unregistered"], "dist_err_m_max": d,
