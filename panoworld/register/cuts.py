@@ -15,7 +15,8 @@ AGREE_M, AGREE_DEG = 0.25, 2.0
 its yaw within AGREE_DEG."""
 MIN_SUPPORT = 4
 """A pair's floor images support a placement when at least this many of their matches agree with the relative pose it
-gives (floor_support's tests); between floors that share nothing, a given pose keeps 0-2."""
+gives (floor_support's tests, counted once per keypoint spot); between floors that share nothing, a given pose keeps
+0-2."""
 
 
 def refuse_outvoted_cuts(names: list[str], edges: list[Edge], given: dict[str, np.ndarray],
