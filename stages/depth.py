@@ -123,9 +123,8 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
     if (H, W) != (H0, W0):
         notes.append(f"panorama {W0}x{H0} is taller than max_height {params.max_height}: working at {W}x{H}")
     opts, found = _with_weights_on_disk(backend, backend.options_of(params), notes)
-    hint = {"depth_hint": depth_hint} if depth_hint else {}
     res = backend.impl(Job(rgb=rgb, depth_file=inputs.get("depth"), panorama_file=inputs["panorama"],
-                           options=opts, notes=notes, **hint))
+                           options=opts, notes=notes, depth_hint=depth_hint or Job.depth_hint))
     info.update(res.info)
     if found is not None:
         info["weights_found"] = found

@@ -45,7 +45,7 @@ def refuse_outvoted_cuts(names: list[str], edges: list[Edge], given: dict[str, n
             centre = np.mean([poses[m][:3, 3] for m in side], axis=0)
             alts = [X for X in _placements(names, poses, side, edges, floors, min_floor_inliers)
                     if not _same(X, np.eye(4), centre)]
-            weak = path[0].kind == FLOOR and path[0].inliers < lone_inliers
+            weak = weak_floor(path[0], lone_inliers)
             if not alts and not weak:
                 continue
             across = [(names[i], names[j], f.matched) for (i, j), f in floors.items()
@@ -75,6 +75,12 @@ def refuse_outvoted_cuts(names: list[str], edges: list[Edge], given: dict[str, n
         edges[:] = [f for f in edges if f is not e]
         out[e.a, e.b] = (e.kind, why)
     return out
+
+
+def weak_floor(e: Edge, lone_inliers: int) -> bool:
+    """Whether an edge is a floor edge the images do not confirm with fewer than lone_inliers inliers: one that
+    refuse_outvoted_cuts keeps only where another pair across its cut agrees."""
+    return e.kind == FLOOR and not e.confirmed and e.inliers < lone_inliers
 
 
 def _placements(names: list[str], poses: dict[str, np.ndarray], side: set[str], edges: list[Edge],

@@ -8,7 +8,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from panoworld.core.conventions import invert_pose
 from panoworld.core.shapes import check_shape
 from panoworld.geometry.floor_view import FloorView, agrees_with_pose, floor_matches
 from panoworld.geometry.upright import wrap_angle, yaw_matrix, yaw_matrix_xz
@@ -204,16 +203,10 @@ def floor_rooms_refusal(f: FloorPose, a: FloorView, b: FloorView, depth_a: np.nd
     behind the other's wall; a chance fit between the floors of two rooms that share no view matches each room's own
     floor. Not judged where the cameras stand in each other's free space (one room: same_room_refusal) or where fewer
     than 3 inliers, or than half of them, have a depth in both views (a masked layout)."""
-    from panoworld.register.pairwise import depth_toward
+    from panoworld.register.pairwise import cameras_in_one_room, depth_toward
 
-    if f.matched is None:
-        return ""
     T = f.a_from_b
-    for depth, cam in ((depth_a, T[:3, 3]), (depth_b, invert_pose(T)[:3, 3])):
-        d = depth_toward(depth, cam)
-        if not (d > 0 and np.linalg.norm(cam) < d - max(margin_m, margin_frac * d)):
-            break
-    else:
+    if f.matched is None or cameras_in_one_room(T, depth_a, depth_b, margin_m=margin_m, margin_frac=margin_frac):
         return ""
     m = f.matched[agrees_with_pose(a, b, T, f.matched, threshold_m=threshold_m)]
 

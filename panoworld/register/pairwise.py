@@ -188,6 +188,21 @@ def depth_toward(depth: np.ndarray, point: np.ndarray, *, window: int = 2) -> fl
     return float(np.median(valid)) if len(valid) else 0.0
 
 
+def cameras_in_one_room(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.ndarray, *, margin_m: float = 0.15,
+                        margin_frac: float = 0.15) -> list[tuple[float, float]] | None:
+    """Whether a pose i_from_j (4, 4) puts each camera in the other's free space (nearer than that panorama's depth
+    (H, W) toward it, by margin_m and margin_frac of that depth): both panoramas in one room. -> per camera (i's, then
+    j's) its distance from the other and that depth, or None when either stands behind a wall or where the other's
+    depth is unknown."""
+    toward = []
+    for depth, cam in ((depth_i, i_from_j[:3, 3]), (depth_j, invert_pose(i_from_j)[:3, 3])):
+        dist, d = float(np.linalg.norm(cam)), depth_toward(depth, cam)
+        if not (d > 0 and dist < d - max(margin_m, margin_frac * d)):
+            return None
+        toward.append((dist, d))
+    return toward
+
+
 def same_room_refusal(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.ndarray, *, min_consistency: float,
                       margin_m: float = 0.15, margin_frac: float = 0.15) -> str:
     """Why a pose i_from_j (4, 4) estimated without the dense depths cannot hold ('' when it can): it puts each camera
@@ -196,12 +211,9 @@ def same_room_refusal(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.nda
     (consistency >= min_consistency), and they do not. Panoramas in two rooms joined through a doorway see each
     other's camera behind a wall (or where their depth is unknown) and pass."""
     t = np.asarray(i_from_j, np.float64)
-    toward = []
-    for depth, cam in ((depth_i, t[:3, 3]), (depth_j, invert_pose(t)[:3, 3])):
-        dist, d = float(np.linalg.norm(cam)), depth_toward(depth, cam)
-        toward.append((dist, d))
-        if not (d > 0 and dist < d - max(margin_m, margin_frac * d)):
-            return ""
+    toward = cameras_in_one_room(t, depth_i, depth_j, margin_m=margin_m, margin_frac=margin_frac)
+    if toward is None:
+        return ""
     _, cons, _ = consistency(t, depth_i, depth_j)
     if cons >= min_consistency:
         return ""

@@ -12,7 +12,7 @@ from panoworld.core.conventions import invert_pose
 from panoworld.geometry.floor_view import FloorView, camera_height, floor_view
 from panoworld.geometry.resize import rgbd_at_height
 from panoworld.geometry.upright import wrap_angle, yaw_of
-from panoworld.register.cuts import refuse_outvoted_cuts
+from panoworld.register.cuts import refuse_outvoted_cuts, weak_floor
 from panoworld.register.floor import FloorPose, floor_pair, floor_rooms_refusal
 from panoworld.register.graph import (
     BEARING,
@@ -119,8 +119,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     layouts: dict[tuple[int, int], LayoutPose | None] = {}
     layout_refused: dict[tuple[int, int], str] = {}
     if o.layout and need:  # tried across weak floor edges too: the cut vote may refuse them (refuse_outvoted_cuts)
-        group = group_of(names, [e for e in edges if not (e.kind == FLOOR and not e.confirmed
-                                                          and e.inliers < o.floor_lone_inliers)], given)
+        group = group_of(names, [e for e in edges if not weak_floor(e, o.floor_lone_inliers)], given)
         rooms: dict = {}
         for a, b in pairs:
             if group[names[a]] == group[names[b]]:
