@@ -4,6 +4,8 @@ joins groups by a floor edge, and the registration of a pair uses it."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 
@@ -133,6 +135,11 @@ def test_runner_up_is_the_best_translation_away_from_the_fit():
     assert runner_up(p, q, dtheta, dlog2, 0.0, t_true, threshold=0.05) == 8
     assert runner_up(p, q, dtheta, dlog2, 0.0, t_decoy, threshold=0.05) == 12
     assert runner_up(p[:12], q[:12], dtheta[:12], dlog2[:12], 0.0, t_true, threshold=0.05) == 0
+    # counted as a fit's inliers are, once per keypoint spot: the decoy's 8 matches on 2 spots of each view are 2
+    spots = (np.arange(300), np.arange(300))
+    spots[0][12:20], spots[1][12:20] = 1000 + np.arange(8) // 4, 2000 + np.arange(8) % 2
+    assert runner_up(p, q, dtheta, dlog2, 0.0, t_true, threshold=0.05, spots=spots) == 2
+    assert runner_up(p, q, dtheta, dlog2, 0.0, t_decoy, threshold=0.05, spots=spots) == 12
 
 
 def test_unrelated_floors_give_no_supported_pose():
@@ -317,6 +324,9 @@ def test_a_floor_fit_the_images_cannot_check_is_refused_when_another_translation
                             no_images, o) == ""  # 12 >= 2 x 5: clear
     agree = UprightPose(yaw=0.0, t=np.array([1.0, 0.0, 0.0]), inliers=np.ones(o.min_bearing_inliers, bool))
     assert _ambiguous_floor(fit, (agree, float("nan"), 0), o) == ""  # the images check it (_contradiction)
+    weak = FloorPose(a_from_b=fit.a_from_b, inliers=9, matches=3500, residual_m=0.02, second=o.min_floor_inliers - 1)
+    assert _ambiguous_floor(weak, no_images, o) == ""  # a runner-up too weak to be a floor fit is chance, no rival
+    assert "another translation" in _ambiguous_floor(replace(weak, second=o.min_floor_inliers), no_images, o)
 
 
 def test_a_floor_edge_the_floors_across_its_cut_outvote_is_refused():

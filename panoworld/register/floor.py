@@ -25,8 +25,8 @@ class FloorPose:
     residual_m: float
     """RMS floor distance of the inliers (metres)."""
     second: int = 0
-    """Inliers of the best other translation at the same yaw (at least DISTINCT_M from this one): a repeated floor
-    pattern (tiles, planks) agrees nearly as well one pattern period along the baseline."""
+    """Inliers of the best other translation at the same yaw (at least DISTINCT_M from this one), counted as inliers
+    are: a repeated floor pattern (tiles, planks) agrees nearly as well one pattern period along the baseline."""
     matched: np.ndarray | None = None
     """(matches, 2) int32: the floor matches the fit was made from (index in a, index in b), for floor_support at
     other poses."""
@@ -37,6 +37,16 @@ SAME_SPOT_M = 0.03
 evidence (distinct_inliers)."""
 
 
+def spot_ids(v: FloorView, idx: np.ndarray) -> np.ndarray:
+    """(M,) int64: the keypoint spot (SAME_SPOT_M cell) of each of v's keypoints idx (M,); equal ids, one spot."""
+    cell = np.floor(v.xz[idx] / SAME_SPOT_M).astype(np.int64)
+    return cell[:, 0] * (1 << 32) + cell[:, 1]
+
+
+def _distinct(spots_a: np.ndarray, spots_b: np.ndarray) -> int:
+    return int(min(len(np.unique(spots_a)), len(np.unique(spots_b))))
+
+
 def distinct_inliers(a: FloorView, b: FloorView, m: np.ndarray) -> int:
     """How many of the matches m (M, 2) of floor views a, b are distinct evidence: the fewer of the distinct keypoint
     spots (SAME_SPOT_M cells) they use in a and in b. SIFT puts several keypoints on one spot (orientations, scales),
@@ -44,8 +54,7 @@ def distinct_inliers(a: FloorView, b: FloorView, m: np.ndarray) -> int:
     another's."""
     if len(m) == 0:
         return 0
-    return int(min(len(np.unique(np.floor(v.xz[idx] / SAME_SPOT_M).astype(np.int64), axis=0))
-                   for v, idx in ((a, m[:, 0]), (b, m[:, 1]))))
+    return _distinct(spot_ids(a, m[:, 0]), spot_ids(b, m[:, 1]))
 
 
 DISTINCT_M = 0.3
@@ -70,13 +79,26 @@ def _neighbour_counts(d: np.ndarray, threshold: float) -> np.ndarray:
 
 def runner_up(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dlog2: np.ndarray, yaw: float, t: np.ndarray, *,
               threshold: float, angle_tol: float = np.radians(15.0), scale_tol: float = 0.6,
-              distinct: float = DISTINCT_M) -> int:
+              distinct: float = DISTINCT_M, spots: tuple[np.ndarray, np.ndarray] | None = None) -> int:
     """Inliers of the best translation at least `distinct` from t (2,) at the same yaw, over matched keypoints p, q
-    (N, 2) with orientation and size differences dtheta, dlog2 (N,) (the inlier tests of oriented_rigid2d_ransac)."""
+    (N, 2) with orientation and size differences dtheta, dlog2 (N,) (the inlier tests of oriented_rigid2d_ransac);
+    with spots (each match's keypoint spot in a and in b, (N,) int64 each: spot_ids), counted as the fit's inliers
+    are, once per spot (distinct_inliers)."""
     check_shape("p", p, "N 2")
     check_shape("q", q, "N 2")
-    _, d = _translation_votes(p, q, dtheta, dlog2, yaw, angle_tol=angle_tol, scale_tol=scale_tol)
-    return int(_neighbour_counts(d[np.linalg.norm(d - t, axis=1) >= distinct], threshold).max(initial=0))
+    idx, d = _translation_votes(p, q, dtheta, dlog2, yaw, angle_tol=angle_tol, scale_tol=scale_tol)
+    away = np.linalg.norm(d - t, axis=1) >= distinct
+    idx, d = idx[away], d[away]
+    counts = _neighbour_counts(d, threshold)
+    if spots is None:
+        return int(counts.max(initial=0))
+    best = 0
+    for k in np.argsort(-counts, kind="stable"):  # a translation's distinct count is at most its raw count
+        if counts[k] <= best:
+            break
+        near = idx[np.linalg.norm(d - d[k], axis=1) < threshold]
+        best = max(best, _distinct(spots[0][near], spots[1][near]))
+    return best
 
 
 def oriented_rigid2d_ransac(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dlog2: np.ndarray, *, threshold: float,
@@ -181,7 +203,9 @@ def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: 
     res = np.linalg.norm(b.xz[m[inl, 1]] @ yaw_matrix_xz(yaw).T + t - a.xz[m[inl, 0]], axis=1)
     return FloorPose(a_from_b=T, inliers=distinct_inliers(a, b, m[inl]), matches=len(m),
                      residual_m=float(np.sqrt(np.mean(res**2))) if len(res) else float("nan"),
-                     second=runner_up(*args, yaw, t, threshold=threshold_m), matched=m.astype(np.int32))
+                     second=runner_up(*args, yaw, t, threshold=threshold_m,
+                                       spots=(spot_ids(a, m[:, 0]), spot_ids(b, m[:, 1]))),
+                     matched=m.astype(np.int32))
 
 
 def floor_support(a: FloorView, b: FloorView, a_from_b: np.ndarray, *, threshold_m: float = 0.08,

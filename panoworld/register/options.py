@@ -74,8 +74,9 @@ class RegisterOptions:
     their two rooms (docs/multi.md)."""
     floor_min_margin: float = param(2.0, ge=1)
     """A floor pose that the pair's images do not confirm (no bearing-only estimate of min_bearing_inliers) needs at
-    least this many times the inliers of the best other translation at its yaw (FloorPose.second): a repeated floor
-    pattern seen from two rooms agrees nearly as well one pattern period along the baseline."""
+    least this many times the inliers of the best other translation at its yaw (FloorPose.second), where that one
+    keeps min_floor_inliers or more: a repeated floor pattern seen from two rooms agrees nearly as well one pattern
+    period along the baseline; fewer is the chance agreement any two floors leave somewhere."""
     floor_lone_inliers: int = param(11, ge=0)
     """A floor pose the images do not confirm with fewer inliers than this joins two sides of the registration only where
     the floor images of another pair across that cut also support it (register/cuts.py; a pair alone across its cut,

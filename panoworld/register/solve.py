@@ -294,8 +294,9 @@ def _placement_refusal(a_from_b: np.ndarray, depth_a: np.ndarray, depth_b: np.nd
 
 def _ambiguous_floor(f: FloorPose, bearing: tuple[UprightPose | None, float, int], o: RegisterOptions) -> str:
     """Why a floor pose the images do not confirm is ambiguous ('' when it is not): another translation at its yaw
-    keeps nearly as many inliers (floor_min_margin)."""
-    if _confirmed(bearing, o) or f.inliers >= o.floor_min_margin * f.second:
+    keeps nearly as many inliers (floor_min_margin), and enough to be a floor fit itself (min_floor_inliers: fewer
+    is the chance agreement any two floors leave somewhere, no rival)."""
+    if _confirmed(bearing, o) or f.second < o.min_floor_inliers or f.inliers >= o.floor_min_margin * f.second:
         return ""
     return (f"{f.inliers} floor inliers, another translation {f.second}: a repeated floor pattern, and no bearing-only "
             "estimate to tell them apart")
