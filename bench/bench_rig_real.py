@@ -1,6 +1,6 @@
 """Capture-rig detection and removal on the shared real panoramas against hand-drawn rig labels.
 
-    python bench/bench_rig_real.py [--split dev|test|all] [--json F] [--save DIR] [--sectors]
+    python bench/bench_rig_real.py [--split dev|test|all] [--json F] [--save DIR] [--sectors] [--turn SEED] [--rows N]
 
 Runs what the depth stage runs at default settings (no flags): the panorama at the working size, the provided depth
 (ZInD layout depth), `clean_depth` with the default rig detector. Per panorama with a tripod (ZInD east, west and the
@@ -25,7 +25,9 @@ Stanford 2D-3D-S sample's black hexagon where the capture has no pixels), which 
 removed. Split: east + garage = dev (where the method was tuned), west = test
 (held out). --save DIR writes each panorama's nadir before/after with the detected mask's outline. --sectors prints
 the floor the input shows (luma medians) per azimuth sector and angle from the nadir: whether the floor under the
-camera is darker on every side (a shadow the capture added) or the room's light crosses some sectors.
+camera is darker on every side (a shadow the capture added) or the room's light crosses some sectors. --turn SEED
+turns each panorama, its depth and its label by its own random azimuth first (where the seam falls is arbitrary
+in a capture); --rows N resizes each panorama and its depth to N rows first (another capture size).
 """
 
 from __future__ import annotations
@@ -208,17 +210,49 @@ def save_picture(out: Path, name: str, before: np.ndarray, after: np.ndarray, de
     cv2.imwrite(str(out / f"{name.replace('/', '_')}.png"), cv2.cvtColor(np.concatenate([a, b], 1), cv2.COLOR_RGB2BGR))
 
 
-def rig_rows(split: str, save: Path | None, sectors: bool = False) -> list[dict]:
+def varied_input(pano: Path, depth: Path, out: Path, rng: np.random.Generator | None, rows: int | None
+                 ) -> tuple[Path, Path, float]:
+    """A copy of a panorama and its depth under out (PNG and .npy): resized to `rows` rows (area; the depth by the same
+    factor, nearest) and/or turned about gravity by a random azimuth from rng (a whole number of depth columns, so both
+    move exactly) -> (panorama, depth, the turn as a fraction of the width: the label turns with it)."""
+    from panoworld.io.depth import read_panorama
+
+    rgb, d = read_panorama(pano), np.load(depth).astype(np.float32)
+    if rows:
+        f = rows / rgb.shape[0]
+        rgb = cv2.resize(rgb, (2 * rows, rows), interpolation=cv2.INTER_AREA)
+        d = cv2.resize(d, (max(2, round(d.shape[1] * f)), max(1, round(d.shape[0] * f))), interpolation=cv2.INTER_NEAREST)
+    k = int(rng.integers(0, d.shape[1])) if rng is not None else 0
+    if rgb.shape[1] % d.shape[1]:
+        raise SystemExit(f"{pano}: width {rgb.shape[1]} is not a multiple of its depth's {d.shape[1]}")
+    out.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(out / "panorama.png"), cv2.cvtColor(np.roll(rgb, k * rgb.shape[1] // d.shape[1], axis=1),
+                                                        cv2.COLOR_RGB2BGR))
+    np.save(out / "depth.npy", np.roll(d, k, axis=1))
+    return out / "panorama.png", out / "depth.npy", k / d.shape[1]
+
+
+def rig_rows(split: str, save: Path | None, sectors: bool = False, turn_seed: int | None = None,
+             rows_px: int | None = None) -> list[dict]:
+    """One row per labelled panorama of the split; turn_seed / rows_px: each panorama (and its depth and label) turned
+    by its own random azimuth / resized to that many rows first (varied_input)."""
+    import tempfile
+
     doc = json.loads(LABELS.read_text())
+    rng = np.random.default_rng(turn_seed) if turn_seed is not None else None
     rows = []
+    tmp = tempfile.TemporaryDirectory()
     for name, pano, depth in rig_panoramas():
         part = SPLIT[name.split("/")[0]]
         if split != "all" and part != split:
             continue
+        shift = 0.0
+        if rng is not None or rows_px:
+            pano, depth, shift = varied_input(pano, depth, Path(tmp.name) / name.replace("/", "_"), rng, rows_px)
         rgb, res, params = stage_input(pano, depth)
         c, sec = clean(rgb, res, params, depth)
         H, W = rgb.shape[:2]
-        label = label_mask(doc["labels"][name], doc["view"], H, W)
+        label = np.roll(label_mask(doc["labels"][name], doc["view"], H, W), round(shift * W), axis=1)
         det = c.rig
         found = bool(det is not None and det.found)
         mask = det.mask if found else np.zeros_like(label)
@@ -237,6 +271,7 @@ def rig_rows(split: str, save: Path | None, sectors: bool = False) -> list[dict]
         if save is not None:
             save_picture(save, name, rgb, c.rgb, mask, label)
         print(f"  {name}: found={found} iou={rows[-1]['iou']:.3f} gap {gb:.1%} -> {ga:.1%} (seen floor {gs:.1%})  ({sec:.1f} s)", flush=True)
+    tmp.cleanup()
     return rows
 
 
@@ -335,11 +370,17 @@ def main(argv: list[str] | None = None) -> int:
                     help="also print each panorama's floor luma by azimuth sector and angle from the nadir (seen floor)")
     ap.add_argument("--scenes", type=Path, default=None,
                     help="folder of single-panorama scenes <side>_<pano> built by runner.py run: gap on their Gaussians")
+    ap.add_argument("--turn", type=int, default=None, metavar="SEED",
+                    help="turn each panorama, its depth and its label by its own random azimuth (this seed) first: "
+                         "where the seam falls is arbitrary in a capture")
+    ap.add_argument("--rows", type=int, default=None, help="resize each panorama (and its depth) to this many rows first")
     args = ap.parse_args(argv)
+    if args.scenes is not None and (args.turn is not None or args.rows):
+        ap.error("--scenes measures the scenes as built from the panoramas as given: not with --turn or --rows")
     if not (DATA / "zind_home").is_dir():
         print(f"{DATA / 'zind_home'}: the shared real panoramas are not there; nothing to measure", file=sys.stderr)
         return 2
-    rows = rig_rows(args.split, args.save, args.sectors)
+    rows = rig_rows(args.split, args.save, args.sectors, args.turn, args.rows)
     if args.scenes is not None:
         gaussian_gaps(rows, args.scenes)
     controls = [] if args.no_controls else control_rows()

@@ -7,10 +7,11 @@ subsets of its panoramas (3 to 10 each, fewer than all, from the depth artifact 
 RegisterOptions), each against the survey: a subset whose registered panoramas break 0.25 m of pairwise distance
 error or 2 deg of yaw error is misplaced (a home without the panoramas that join or check its rooms, as a user's
 capture may be); and with --rolls N --home HOME, the home registered again N times from its inputs with every panorama
-turned by its own random azimuth (where its seam falls), each draw against the survey.
+turned by its own random azimuth (where its seam falls), each draw against the survey (with --rows R, from its
+panoramas resized to R rows; --rows alone: once, as given).
 
 `python bench/real_home_survey.py REGISTER_ARTIFACT SURVEY_JSON [--json] [--floor-evidence] [--subsets N]
-[--rolls N --home HOME] [--seed S]` prints them;
+[--rolls N] [--rows R] [--home HOME] [--seed S]` prints them;
 `compare_to_survey` is the function the real-home benchmark imports."""
 
 from __future__ import annotations
@@ -174,12 +175,14 @@ def subset_registrations(depth_artifact: Path, survey: dict, sets: int, seed: in
     return rows
 
 
-def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0) -> list[dict]:
+def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0, size: int | None = None,
+                       turn: bool = True) -> list[dict]:
     """The home (panoramas/, depths/) registered again `draws` times with each panorama and its depth turned about
-    gravity by its own random azimuth (a whole number of depth columns, so both move exactly), through the depth and
+    gravity by its own random azimuth (a whole number of depth columns, so both move exactly; not with turn=False),
+    and resized to `size` rows first (area; the depth by the same factor, nearest), through the depth and
     register stages at default settings (`runner.py run COPY --until register`); the survey's yaws turned with
     them. Per draw: the registered panoramas, the errors and whether it is misplaced. Where a panorama's seam falls
-    is arbitrary in a capture; the registration should not depend on it."""
+    and the capture's size are arbitrary; the registration should not depend on them."""
     import subprocess
     import tempfile
 
@@ -199,7 +202,12 @@ def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0) -> l
             for n in names:
                 src = next(p for p in (home / "panoramas").iterdir() if p.stem == n)
                 rgb, depth = read_panorama(src), read_depth(home / "depths" / f"{n}.npy")
-                k = int(rng.integers(0, depth.shape[1]))
+                if size:
+                    f = size / rgb.shape[0]
+                    rgb = cv2.resize(rgb, (2 * size, size), interpolation=cv2.INTER_AREA)
+                    depth = cv2.resize(depth, (max(2, round(depth.shape[1] * f)), max(1, round(depth.shape[0] * f))),
+                                       interpolation=cv2.INTER_NEAREST)
+                k = int(rng.integers(0, depth.shape[1])) if turn else 0
                 if rgb.shape[1] % depth.shape[1]:
                     raise SystemExit(f"{src}: width {rgb.shape[1]} is not a multiple of its depth's {depth.shape[1]}")
                 cv2.imwrite(str(copy / "panoramas" / f"{n}.png"),
@@ -236,7 +244,10 @@ def main() -> int:
     ap.add_argument("--rolls", type=int, default=0, metavar="N",
                     help="with --home: register the home N times again, each panorama and its depth turned by a random "
                          "azimuth (the depth and register stages at default settings), and report each draw")
-    ap.add_argument("--home", type=Path, help="--rolls: the home's input folder (panoramas/, depths/)")
+    ap.add_argument("--home", type=Path, help="--rolls, --rows: the home's input folder (panoramas/, depths/)")
+    ap.add_argument("--rows", type=int, default=None, metavar="R",
+                    help="with --home: register the home from its panoramas resized to R rows (each --rolls draw, or "
+                         "once as given)")
     ap.add_argument("--seed", type=int, default=0, help="the subsets' and the draws' random seed")
     args = ap.parse_args()
     poses = {n: np.asarray(T) for n, T in json.loads((args.register / "panoramas.json").read_text()).items()}
@@ -248,10 +259,10 @@ def main() -> int:
         r["floor_evidence"] = floor_evidence(args.register.parent / "depth", survey, set(poses))
     if args.subsets:
         r["subsets"] = subset_registrations(args.register.parent / "depth", survey, args.subsets, args.seed)
-    if args.rolls:
+    if args.rolls or args.rows:
         if args.home is None:
-            ap.error("--rolls needs --home (the home's panoramas/ and depths/)")
-        r["rolls"] = roll_registrations(args.home, survey, args.rolls, args.seed)
+            ap.error("--rolls and --rows need --home (the home's panoramas/ and depths/)")
+        r["rolls"] = roll_registrations(args.home, survey, args.rolls or 1, args.seed, args.rows, turn=bool(args.rolls))
     if args.json:
         print(json.dumps(r, indent=1))
         return 0
@@ -291,9 +302,10 @@ def main() -> int:
         for x in rows:
             print(f"| {', '.join(x['panoramas'])} | {', '.join(x['registered'])} | {f(x['dist_err_m_max'], '.3f')} | "
                   f"{f(x['yaw_err_deg_max'], '.2f')} | {'yes' if x['misplaced'] else '-'} |")
-    if args.rolls:
+    if "rolls" in r:
         rows = r["rolls"]
-        print(f"\n{len(rows)} draws of random azimuths (seed {args.seed}): "
+        what = f"draws of random azimuths (seed {args.seed})" if args.rolls else "registration from the inputs"
+        print(f"\n{len(rows)} {what}{f' at {args.rows} rows' if args.rows else ''}: "
               f"{sum(len(x['registered']) for x in rows)} of {len(rows) * r['panoramas']} surveyed panoramas "
               f"registered, {sum(x['misplaced'] for x in rows)} draws misplaced")
         print("| draw | registered | unregistered | distance error m max | yaw error deg max | misplaced |")
