@@ -210,25 +210,32 @@ def save_picture(out: Path, name: str, before: np.ndarray, after: np.ndarray, de
     cv2.imwrite(str(out / f"{name.replace('/', '_')}.png"), cv2.cvtColor(np.concatenate([a, b], 1), cv2.COLOR_RGB2BGR))
 
 
-def varied_input(pano: Path, depth: Path, out: Path, rng: np.random.Generator | None, rows: int | None
-                 ) -> tuple[Path, Path, float]:
-    """A copy of a panorama and its depth under out (PNG and .npy): resized to `rows` rows (area; the depth by the same
-    factor, nearest) and/or turned about gravity by a random azimuth from rng (a whole number of depth columns, so both
-    move exactly) -> (panorama, depth, the turn as a fraction of the width: the label turns with it)."""
-    from panoworld.io.depth import read_panorama
-
-    rgb, d = read_panorama(pano), np.load(depth).astype(np.float32)
+def vary(rgb: np.ndarray, depth: np.ndarray, rng: np.random.Generator | None, rows: int | None, source: Path
+         ) -> tuple[np.ndarray, np.ndarray, int]:
+    """A panorama (H, W, 3) and its depth (h, w) resized to `rows` rows (area; the depth by the same factor, nearest)
+    and/or turned about gravity by a random azimuth from rng (a whole number of depth columns, so both move exactly)
+    -> (panorama, depth, the turn in depth columns). source names the panorama in the error."""
     if rows:
         f = rows / rgb.shape[0]
         rgb = cv2.resize(rgb, (2 * rows, rows), interpolation=cv2.INTER_AREA)
-        d = cv2.resize(d, (max(2, round(d.shape[1] * f)), max(1, round(d.shape[0] * f))), interpolation=cv2.INTER_NEAREST)
-    k = int(rng.integers(0, d.shape[1])) if rng is not None else 0
-    if rgb.shape[1] % d.shape[1]:
-        raise SystemExit(f"{pano}: width {rgb.shape[1]} is not a multiple of its depth's {d.shape[1]}")
+        depth = cv2.resize(depth, (max(2, round(depth.shape[1] * f)), max(1, round(depth.shape[0] * f))),
+                           interpolation=cv2.INTER_NEAREST)
+    k = int(rng.integers(0, depth.shape[1])) if rng is not None else 0
+    if rgb.shape[1] % depth.shape[1]:
+        raise SystemExit(f"{source}: width {rgb.shape[1]} is not a multiple of its depth's {depth.shape[1]}")
+    return np.roll(rgb, k * rgb.shape[1] // depth.shape[1], axis=1), np.roll(depth, k, axis=1), k
+
+
+def varied_input(pano: Path, depth: Path, out: Path, rng: np.random.Generator | None, rows: int | None
+                 ) -> tuple[Path, Path, float]:
+    """A copy of a panorama and its depth under out (PNG and .npy), varied as `vary` does -> (panorama, depth, the
+    turn as a fraction of the width: the label turns with it)."""
+    from panoworld.io.depth import read_panorama
+
+    rgb, d, k = vary(read_panorama(pano), np.load(depth).astype(np.float32), rng, rows, pano)
     out.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(out / "panorama.png"), cv2.cvtColor(np.roll(rgb, k * rgb.shape[1] // d.shape[1], axis=1),
-                                                        cv2.COLOR_RGB2BGR))
-    np.save(out / "depth.npy", np.roll(d, k, axis=1))
+    cv2.imwrite(str(out / "panorama.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    np.save(out / "depth.npy", d)
     return out / "panorama.png", out / "depth.npy", k / d.shape[1]
 
 

@@ -187,6 +187,7 @@ def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0, size
     import tempfile
 
     import cv2
+    from bench_rig_real import vary
 
     from panoworld.io.depth import read_depth, read_panorama
 
@@ -201,18 +202,10 @@ def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0, size
             turned = {"panos": {}}
             for n in names:
                 src = next(p for p in (home / "panoramas").iterdir() if p.stem == n)
-                rgb, depth = read_panorama(src), read_depth(home / "depths" / f"{n}.npy")
-                if size:
-                    f = size / rgb.shape[0]
-                    rgb = cv2.resize(rgb, (2 * size, size), interpolation=cv2.INTER_AREA)
-                    depth = cv2.resize(depth, (max(2, round(depth.shape[1] * f)), max(1, round(depth.shape[0] * f))),
-                                       interpolation=cv2.INTER_NEAREST)
-                k = int(rng.integers(0, depth.shape[1])) if turn else 0
-                if rgb.shape[1] % depth.shape[1]:
-                    raise SystemExit(f"{src}: width {rgb.shape[1]} is not a multiple of its depth's {depth.shape[1]}")
-                cv2.imwrite(str(copy / "panoramas" / f"{n}.png"),
-                            cv2.cvtColor(np.roll(rgb, k * rgb.shape[1] // depth.shape[1], axis=1), cv2.COLOR_RGB2BGR))
-                np.save(copy / "depths" / f"{n}.npy", np.roll(depth, k, axis=1))
+                rgb, depth, k = vary(read_panorama(src), read_depth(home / "depths" / f"{n}.npy"),
+                                     rng if turn else None, size, src)
+                cv2.imwrite(str(copy / "panoramas" / f"{n}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+                np.save(copy / "depths" / f"{n}.npy", depth)
                 if n in survey["panos"]:
                     turned["panos"][n] = dict(survey["panos"][n],
                                               yaw_deg=survey["panos"][n]["yaw_deg"] - 360.0 * k / depth.shape[1])

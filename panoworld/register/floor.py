@@ -201,11 +201,10 @@ def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: 
     T[:3, :3] = yaw_matrix(yaw)
     T[:3, 3] = [t[0], a.height_m - b.height_m, t[1]]
     res = np.linalg.norm(b.xz[m[inl, 1]] @ yaw_matrix_xz(yaw).T + t - a.xz[m[inl, 0]], axis=1)
-    return FloorPose(a_from_b=T, inliers=distinct_inliers(a, b, m[inl]), matches=len(m),
+    spots = (spot_ids(a, m[:, 0]), spot_ids(b, m[:, 1]))
+    return FloorPose(a_from_b=T, inliers=_distinct(spots[0][inl], spots[1][inl]), matches=len(m),
                      residual_m=float(np.sqrt(np.mean(res**2))) if len(res) else float("nan"),
-                     second=runner_up(*args, yaw, t, threshold=threshold_m,
-                                       spots=(spot_ids(a, m[:, 0]), spot_ids(b, m[:, 1]))),
-                     matched=m.astype(np.int32))
+                     second=runner_up(*args, yaw, t, threshold=threshold_m, spots=spots), matched=m.astype(np.int32))
 
 
 def floor_support(a: FloorView, b: FloorView, a_from_b: np.ndarray, *, threshold_m: float = 0.08,
