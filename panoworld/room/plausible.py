@@ -215,9 +215,10 @@ def implausible_mask(depth: np.ndarray, valid: np.ndarray, floor_m: float | None
     REACH_REL, + REACH_ABS_M), but never within STAND_RADIUS_M:
     where the camera stands outside its own annotated room, rays that miss every wall otherwise reach the plane
     hundreds of metres away; with no wall at all only that stand is kept (a column that sees a wall keeps its floor:
-    beyond a wall it is a real scan's noise, not a room's). Through the camera: near_plane_mask, and
-    any pixel nearer than near_m. Both are found on every k-th row and column (ANALYSIS_HEIGHT rows at most: the pixel
-    centres of a depth map nearest-upsampled by k, as provided layout depth is) and apply to their k x k blocks."""
+    beyond a wall it is a real scan's noise, not a room's). Through the camera: near_plane_mask, any pixel nearer
+    than near_m, and with floor_m any point in the tripod's column (tripod_column). The first two are found on every
+    k-th row and column (ANALYSIS_HEIGHT rows at most: the pixel centres of a depth map nearest-upsampled by k, as
+    provided layout depth is) and apply to their k x k blocks."""
     H, W = depth.shape
     k = max(1, H // ANALYSIS_HEIGHT)
     k = k if H % k == 0 and W % k == 0 else 1
@@ -225,8 +226,13 @@ def implausible_mask(depth: np.ndarray, valid: np.ndarray, floor_m: float | None
     near_small = near_plane_mask(small_d, small_v, near_m) | (small_v & (small_d < near_m))
     near = (near_small if k == 1 else np.repeat(np.repeat(near_small, k, 0), k, 1)) & valid
     near |= valid & (depth < near_m)
-    rec: dict = {"near_plane_m": near_m, "near_surface_px": int(near.sum()), "far_floor_px": 0, "far_ceiling_px": 0}
+    rec: dict = {"near_plane_m": near_m, "near_surface_px": int(near.sum()), "far_floor_px": 0, "far_ceiling_px": 0,
+                 "tripod_column_px": 0}
     far = np.zeros((H, W), bool)
+    if floor_m is not None:
+        column = tripod_column(depth, valid & ~near, floor_m, near_m)
+        rec["tripod_column_px"] = int(column.sum())
+        near |= column
     if floor_m is not None or ceil_m is not None:
         b = wall_bounds(small_d, small_v & ~near_small, floor_m, ceil_m)
         w = W // k
@@ -252,6 +258,17 @@ def implausible_mask(depth: np.ndarray, valid: np.ndarray, floor_m: float | None
     return drop, rec
 
 
+def tripod_column(depth: np.ndarray, valid: np.ndarray, floor_m: float, near_m: float = NEAR_PLANE_M) -> np.ndarray:
+    """(H, W) bool: valid pixels of depth (H, W) whose point lies in the tripod's column: within near_m of the camera's
+    vertical axis, below the camera and above the floor plane floor_m below it (by more than PLANE_TOL of it). The
+    tripod stood there, so no surface did: the rest of a layout's doorway line through the camera that the plane test
+    missed near the nadir, where ERP pixels are too stretched for it."""
+    dirs = erp_dirs(*depth.shape, np.float32)
+    d = np.where(valid, depth, 0.0)
+    y = d * dirs[..., 1]
+    return valid & (d * np.hypot(dirs[..., 0], dirs[..., 2]) < near_m) & (y > 0) & (y < floor_m * (1 - PLANE_TOL))
+
+
 def mask_implausible(depth: np.ndarray, valid: np.ndarray, floor_m: float | None, ceil_m: float | None,
                      *, near_m: float = NEAR_PLANE_M) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
     """depth, valid (H, W) with implausible_mask made invalid (depth 0), what completions must leave unknown
@@ -267,7 +284,7 @@ def mask_implausible(depth: np.ndarray, valid: np.ndarray, floor_m: float | None
     unknown = unknown_beyond(drop, valid)
     valid = valid & ~unknown
     depth = np.where(valid, depth, 0.0).astype(depth.dtype)
-    if floor_m is not None and rec["near_surface_px"]:
+    if floor_m is not None and (rec["near_surface_px"] or rec["tripod_column_px"]):
         dirs = erp_dirs(*depth.shape, np.float32)
         down = dirs[..., 1]
         stand = unknown & (down > 0) & (floor_m * np.hypot(dirs[..., 0], dirs[..., 2]) <= STAND_RADIUS_M * down)
@@ -335,11 +352,13 @@ def drop_near_captures(depths: dict[str, np.ndarray], world_from_cam: dict[str, 
 
 def describe(rec: dict) -> str | None:
     """One line for the depth manifest's decisions, or None when nothing was masked."""
-    if not (rec["near_surface_px"] or rec["far_floor_px"] or rec["far_ceiling_px"]):
+    if not (rec["near_surface_px"] or rec["far_floor_px"] or rec["far_ceiling_px"] or rec.get("tripod_column_px")):
         return None
     return (f"implausible room geometry masked ({rec['masked_fraction']:.1%} of the pixels): "
             f"{rec['far_floor_px']} floor and {rec['far_ceiling_px']} ceiling px beyond the walls that bound them "
             f"(max depth {rec['max_depth_before']:.1f} -> {rec['max_depth_after'] or 0:.1f} m), "
             f"{rec['near_surface_px']} px on a surface through the camera (< {rec['near_plane_m']:g} m)"
+            + (f", {rec['tripod_column_px']} px in the tripod's column under the camera" if rec.get("tripod_column_px")
+               else "")
             + (f", {rec['stand_floor_px']} px of the floor the camera stands on behind it completed from the floor plane"
                if rec.get("stand_floor_px") else ""))
