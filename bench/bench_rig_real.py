@@ -381,11 +381,25 @@ def table(rows: list[dict], controls: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def labelled_parser(doc: str, save_help: str) -> argparse.ArgumentParser:
+    """The arguments of a bench over the labelled panoramas: --split, --json F, --save DIR (save_help)."""
+    ap = argparse.ArgumentParser(description=doc.split("\n")[0])
     ap.add_argument("--split", choices=("dev", "test", "all"), default="all")
     ap.add_argument("--json", type=Path, default=None, help="write the rows as JSON to this file")
-    ap.add_argument("--save", type=Path, default=None, help="folder for nadir before/after pictures")
+    ap.add_argument("--save", type=Path, default=None, help=save_help)
+    return ap
+
+
+def have_data() -> bool:
+    """Whether the shared real panoramas are there (a line on stderr when not)."""
+    if (DATA / "zind_home").is_dir():
+        return True
+    print(f"{DATA / 'zind_home'}: the shared real panoramas are not there; nothing to measure", file=sys.stderr)
+    return False
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = labelled_parser(__doc__, "folder for nadir before/after pictures")
     ap.add_argument("--no-controls", action="store_true")
     ap.add_argument("--sectors", action="store_true",
                     help="also print each panorama's floor luma by azimuth sector and angle from the nadir (seen floor)")
@@ -398,8 +412,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.scenes is not None and (args.turn is not None or args.rows):
         ap.error("--scenes measures the scenes as built from the panoramas as given: not with --turn or --rows")
-    if not (DATA / "zind_home").is_dir():
-        print(f"{DATA / 'zind_home'}: the shared real panoramas are not there; nothing to measure", file=sys.stderr)
+    if not have_data():
         return 2
     rows = rig_rows(args.split, args.save, args.sectors, args.turn, args.rows)
     if args.scenes is not None:
