@@ -216,7 +216,8 @@ def implausible_mask(depth: np.ndarray, valid: np.ndarray, floor_m: float | None
     where the camera stands outside its own annotated room, rays that miss every wall otherwise reach the plane
     hundreds of metres away; with no wall at all only that stand is kept (a column that sees a wall keeps its floor:
     beyond a wall it is a real scan's noise, not a room's). Through the camera: near_plane_mask, any pixel nearer
-    than near_m, and with floor_m any point in the tripod's column (tripod_column). The first two are found on every
+    than near_m, and where those found any, with floor_m, any point in the tripod's column (tripod_column: a camera
+    set on a table, with no surface through it, keeps the table). The first two are found on every
     k-th row and column (ANALYSIS_HEIGHT rows at most: the pixel centres of a depth map nearest-upsampled by k, as
     provided layout depth is) and apply to their k x k blocks."""
     H, W = depth.shape
@@ -229,7 +230,7 @@ def implausible_mask(depth: np.ndarray, valid: np.ndarray, floor_m: float | None
     rec: dict = {"near_plane_m": near_m, "near_surface_px": int(near.sum()), "far_floor_px": 0, "far_ceiling_px": 0,
                  "tripod_column_px": 0}
     far = np.zeros((H, W), bool)
-    if floor_m is not None:
+    if floor_m is not None and near.any():  # a surface through the camera: what is left of it near the nadir
         column = tripod_column(depth, valid & ~near, floor_m, near_m)
         rec["tripod_column_px"] = int(column.sum())
         near |= column
