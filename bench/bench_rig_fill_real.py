@@ -45,7 +45,9 @@ LOW_SIGMA_PX = 4.0
 
 def sites(label: np.ndarray, keep_out: np.ndarray, source: np.ndarray, ring_px: float) -> list[np.ndarray]:
     """Holes (S, S) bool: label moved per direction to the first distance (times its extent) where it lies on source
-    (>= MIN_ON_SOURCE), clear of keep_out, and its ring of ring_px is mostly source (MIN_RING_SOURCE)."""
+    (>= MIN_ON_SOURCE), clear of keep_out, and its ring of ring_px is mostly source clear of keep_out
+    (MIN_RING_SOURCE)."""
+    floor = source & ~keep_out
     S = label.shape[0]
     ys, xs = np.nonzero(label)
     h, w = int(np.ptp(ys)) + 1, int(np.ptp(xs)) + 1
@@ -61,7 +63,7 @@ def sites(label: np.ndarray, keep_out: np.ndarray, source: np.ndarray, ring_px: 
             ring = (cv2.dilate(hole.astype(np.uint8), grow) > 0) & ~hole
             if (hole & keep_out).any() or source[hole].mean() < MIN_ON_SOURCE:
                 continue
-            if (source & ~keep_out)[ring].mean() < MIN_RING_SOURCE:
+            if floor[ring].mean() < MIN_RING_SOURCE:
                 continue
             out.append(hole)
             break
@@ -102,9 +104,9 @@ def fill_rows(split: str, save: Path | None) -> list[dict]:
         source = det.source if det.source is not None else np.ones_like(label)
         width = view.focal * np.deg2rad(RING_WIDTH_DEG)
         found = sites(label, keep_out, source, width)
+        floor = source & ~keep_out
         per = []
         for k, hole in enumerate(found):
-            floor = source & ~keep_out
             ring = ring_fill(face, hole, floor, width)
             plane = inpaint_plane(face, hole, floor)
             per.append({"ring": scores(ring, face, hole), "plane": scores(plane, face, hole)})

@@ -230,16 +230,16 @@ def implausible_mask(depth: np.ndarray, valid: np.ndarray, floor_m: float | None
     rec: dict = {"near_plane_m": near_m, "near_surface_px": int(near.sum()), "far_floor_px": 0, "far_ceiling_px": 0,
                  "tripod_column_px": 0}
     far = np.zeros((H, W), bool)
+    dirs = erp_dirs(H, W, np.float32) if floor_m is not None or ceil_m is not None else None
     if floor_m is not None and near.any():  # a surface through the camera: what is left of it near the nadir
-        column = tripod_column(depth, valid & ~near, floor_m, near_m)
+        column = tripod_column(depth, valid & ~near, floor_m, dirs, near_m)
         rec["tripod_column_px"] = int(column.sum())
         near |= column
-    if floor_m is not None or ceil_m is not None:
+    if dirs is not None:
         b = wall_bounds(small_d, small_v & ~near_small, floor_m, ceil_m)
         w = W // k
         bound, pts, has = b if b is not None else (np.zeros(w), np.zeros((w, 2)), np.zeros(w, bool))
         bound = np.repeat(bound, k)
-        dirs = erp_dirs(H, W, np.float32)
         floor, ceil = _plane_masks(depth, valid & ~near, dirs, floor_m, ceil_m)
         horiz = depth * np.hypot(dirs[..., 0], dirs[..., 2])
         reach = np.where(np.repeat(has, k), np.inf, np.maximum(bound * (1 + REACH_REL) + REACH_ABS_M, STAND_RADIUS_M))
@@ -259,12 +259,12 @@ def implausible_mask(depth: np.ndarray, valid: np.ndarray, floor_m: float | None
     return drop, rec
 
 
-def tripod_column(depth: np.ndarray, valid: np.ndarray, floor_m: float, near_m: float = NEAR_PLANE_M) -> np.ndarray:
-    """(H, W) bool: valid pixels of depth (H, W) whose point lies in the tripod's column: within near_m of the camera's
-    vertical axis, below the camera and above the floor plane floor_m below it (by more than PLANE_TOL of it). The
-    tripod stood there, so no surface did: the rest of a layout's doorway line through the camera that the plane test
-    missed near the nadir, where ERP pixels are too stretched for it."""
-    dirs = erp_dirs(*depth.shape, np.float32)
+def tripod_column(depth: np.ndarray, valid: np.ndarray, floor_m: float, dirs: np.ndarray,
+                  near_m: float = NEAR_PLANE_M) -> np.ndarray:
+    """(H, W) bool: valid pixels of depth (H, W) (ray directions dirs (H, W, 3), erp_dirs) whose point lies in the
+    tripod's column: within near_m of the camera's vertical axis, below the camera and above the floor plane floor_m
+    below it (by more than PLANE_TOL of it). The tripod stood there, so no surface did: the rest of a layout's doorway
+    line through the camera that the plane test missed near the nadir, where ERP pixels are too stretched for it."""
     d = np.where(valid, depth, 0.0)
     y = d * dirs[..., 1]
     return valid & (d * np.hypot(dirs[..., 0], dirs[..., 2]) < near_m) & (y > 0) & (y < floor_m * (1 - PLANE_TOL))
@@ -285,7 +285,7 @@ def mask_implausible(depth: np.ndarray, valid: np.ndarray, floor_m: float | None
     unknown = unknown_beyond(drop, valid)
     valid = valid & ~unknown
     depth = np.where(valid, depth, 0.0).astype(depth.dtype)
-    if floor_m is not None and (rec["near_surface_px"] or rec["tripod_column_px"]):
+    if floor_m is not None and rec["near_surface_px"]:  # the tripod's column is searched only then
         dirs = erp_dirs(*depth.shape, np.float32)
         down = dirs[..., 1]
         stand = unknown & (down > 0) & (floor_m * np.hypot(dirs[..., 0], dirs[..., 2]) <= STAND_RADIUS_M * down)
@@ -353,7 +353,7 @@ def drop_near_captures(depths: dict[str, np.ndarray], world_from_cam: dict[str, 
 
 def describe(rec: dict) -> str | None:
     """One line for the depth manifest's decisions, or None when nothing was masked."""
-    if not (rec["near_surface_px"] or rec["far_floor_px"] or rec["far_ceiling_px"] or rec.get("tripod_column_px")):
+    if not (rec["near_surface_px"] or rec["far_floor_px"] or rec["far_ceiling_px"]):
         return None
     return (f"implausible room geometry masked ({rec['masked_fraction']:.1%} of the pixels): "
             f"{rec['far_floor_px']} floor and {rec['far_ceiling_px']} ceiling px beyond the walls that bound them "
