@@ -7,6 +7,7 @@ Runs what the depth stage runs at default settings (no flags): the panorama at t
 garage; labels in bench/rig_labels/zind_real.json, drawn by hand on a 90 deg downward view):
 
 - iou: the detected rig mask against the label, solid-angle weighted on the ERP (0 when nothing was found);
+- legs: the share of the label's tripod legs (its lines outside its polygons) the detected mask covers;
 - fill / seen floor: the mean luminance of the cleaned panorama under the label within CAP_DEG over that of the
   floor the input shows in the cap (1: the fill is lit like the floor under the camera, whatever the ring's light);
 - gap before / after: |1 - cap / ring| of the mean luminance (Rec. 601 luma, solid-angle weighted) of the cap within
@@ -149,6 +150,13 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
     return float(w[a & b].sum() / max(w[a | b].sum(), 1e-12))
 
 
+def coverage(mask: np.ndarray, part: np.ndarray) -> float:
+    """Solid-angle share of part (H, W) bool that mask covers (1 when part is empty)."""
+    H, W = part.shape
+    w = np.broadcast_to(erp_pixel_solid_angle(H, W), (H, W))
+    return float(w[mask & part].sum() / w[part].sum()) if part.any() else 1.0
+
+
 def stage_input(pano: Path, depth: Path | None):
     """(rgb at the working size, Job result) as the depth stage makes them at default settings."""
     from panoworld.core import registry as backends
@@ -259,7 +267,10 @@ def rig_rows(split: str, save: Path | None, sectors: bool = False, turn_seed: in
         rgb, res, params = stage_input(pano, depth)
         c, sec = clean(rgb, res, params, depth)
         H, W = rgb.shape[:2]
-        label = np.roll(label_mask(doc["labels"][name], doc["view"], H, W), round(shift * W), axis=1)
+        entry = doc["labels"][name]
+        label = np.roll(label_mask(entry, doc["view"], H, W), round(shift * W), axis=1)
+        legs = np.roll(label_mask({"lines": entry.get("lines", [])}, doc["view"], H, W)
+                       & ~label_mask({"polygons": entry.get("polygons", [])}, doc["view"], H, W), round(shift * W), axis=1)
         det = c.rig
         found = bool(det is not None and det.found)
         mask = det.mask if found else np.zeros_like(label)
@@ -269,7 +280,8 @@ def rig_rows(split: str, save: Path | None, sectors: bool = False, turn_seed: in
         around = cv2.dilate(label.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
         gs, _ = floor_gap(rgb, res.depth, res.valid, floor_m, label, cap_exclude=around)
         rows.append({"panorama": name, "split": part, "found": found, "kind": det.kind if det else None,
-                     "reason": det.reason if det else "", "iou": iou(mask, label), "gap_before": gb, "gap_after": ga, "gap_seen": gs,
+                     "reason": det.reason if det else "", "iou": iou(mask, label),
+                     "leg_recall": coverage(mask, legs), "gap_before": gb, "gap_after": ga, "gap_seen": gs,
                      "fill_over_seen": fill_over_seen(rgb, c.rgb, label, around),
                      "ring_floor": share, "seconds": sec, "floor_m": floor_m})
         if sectors:
@@ -344,11 +356,12 @@ def control_rows() -> list[dict]:
 
 
 def table(rows: list[dict], controls: list[dict]) -> str:
-    lines = ["| panorama | split | found | IoU | gap before | gap after | seen floor gap | fill / seen floor | gap on Gaussians | ring floor | s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| panorama | split | found | IoU | legs | gap before | gap after | seen floor gap | fill / seen floor | gap on Gaussians | ring floor | s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         gg = f"{r['gap_gaussians']:.1%}" if "gap_gaussians" in r else "-"
         lines.append(f"| {r['panorama']} | {r['split']} | {'yes' if r['found'] else 'no'} | {r['iou']:.3f} | "
+                     f"{r['leg_recall']:.2f} | "
                      f"{r['gap_before']:.1%} | {r['gap_after']:.1%} | {r['gap_seen']:.1%} | {r['fill_over_seen']:.2f} | {gg} | {r['ring_floor']:.2f} | {r['seconds']:.1f} |")
     for part in ("dev", "test"):
         sub = [r for r in rows if r["split"] == part]
@@ -356,6 +369,7 @@ def table(rows: list[dict], controls: list[dict]) -> str:
             ok = sum(r["iou"] >= 0.7 and r["gap_after"] <= 0.15 for r in sub)
             lines.append(f"| **{part}** ({len(sub)}) | | {sum(r['found'] for r in sub)} | "
                          f"{np.mean([r['iou'] for r in sub]):.3f} (min {min(r['iou'] for r in sub):.3f}) | "
+                         f"{np.mean([r['leg_recall'] for r in sub]):.2f} | "
                          f"{np.mean([r['gap_before'] for r in sub]):.1%} | {np.mean([r['gap_after'] for r in sub]):.1%} "
                          f"(max {max(r['gap_after'] for r in sub):.1%}) | {np.mean([r['gap_seen'] for r in sub]):.1%} | | | | {ok}/{len(sub)} meet IoU >= 0.7 and gap <= 15 % |")
     lines += ["", "| control | expected | found | byte-identical | ok | s |", "|---|---|---|---|---|---|"]

@@ -10,7 +10,7 @@ import pytest
 from panoworld.core.conventions import erp_dirs, erp_pixel_solid_angle
 from panoworld.depth.rig import detect as rig
 from panoworld.depth.rig import remove as rig_remove
-from panoworld.depth.rig.base import BASE_BG_DEG, SIDE_MAX_DEG, attached_legs, side_pieces
+from panoworld.depth.rig.base import BASE_BG_DEG, SIDE_MAX_DEG, attached_legs, radial_legs, side_pieces
 from panoworld.depth.rig.face import face_polar, face_to_erp_mask, nadir_view
 from panoworld.tools.synth import generate_scene
 
@@ -127,6 +127,40 @@ def test_legs_touch_the_base_and_end_a_line_that_goes_on_does_not():
     legs = attached_legs(base, (unlike | blob).astype(bool) | base, theta, f)
     assert legs[c, c + 35] and legs.sum() > 20
     assert not legs[c + 60, c] and not legs[c + 40, c]
+    assert theta[legs].max() < BASE_BG_DEG
+
+
+def test_radial_legs_are_dark_lines_leaving_the_base_not_a_line_across_or_one_that_goes_on():
+    """Dark legs whose colour the floor shows (brown on brown carpet, darker): found where they run away from the
+    base and end before BASE_BG_DEG; a dark line across the radial direction, or one that goes on (a door trim), is
+    left, and so is the carpet's own speckle."""
+    size, f = 401, 160.0
+    yy, xx = np.mgrid[:size, :size] + 0.5 - size / 2
+    theta = np.rad2deg(np.arctan(np.hypot(xx, yy) / f))
+    rng = np.random.default_rng(3)
+    carpet = np.clip(rng.normal(120, 10, (size, size, 1)) * np.array([1.0, 0.8, 0.6]), 0, 255)
+    face = cv2.GaussianBlur(carpet, (0, 0), 0.8).astype(np.uint8)
+    c = size // 2
+    base = np.hypot(xx, yy) < 30
+    face[base] = 30
+    legs_true = np.zeros((size, size), np.uint8)
+    for a in np.deg2rad([20.0, 140.0, 260.0]):  # to ~20 deg from the nadir, slightly off the radial direction
+        p0 = (int(c + 28 * np.cos(a)), int(c + 28 * np.sin(a)))
+        p1 = (int(c + 58 * np.cos(a + 0.12)), int(c + 58 * np.sin(a + 0.12)))
+        cv2.line(legs_true, p0, p1, 1, 3)
+    across = np.zeros((size, size), np.uint8)
+    cv2.line(across, (c - 25, c + 31), (c + 15, c + 31), 1, 3)  # touches the base, runs across the radial direction
+    trim = np.zeros((size, size), np.uint8)
+    cv2.line(trim, (c - 29, c), (0, c), 1, 3)  # leaves the base and goes on past BASE_BG_DEG
+    for m in (legs_true, across, trim):
+        face[m > 0] = (face[m > 0] * 0.55).astype(np.uint8)
+    floor = ~base & (theta >= BASE_BG_DEG)
+    legs = radial_legs(face, base, floor, theta, f)
+    grown = cv2.dilate(legs.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0  # as detect_base grows the mask
+    leg_px = (legs_true > 0) & ~base
+    assert (grown & leg_px).sum() > 0.9 * leg_px.sum()
+    assert not (legs & ((across | trim) > 0)).any()
+    assert not (legs & (legs_true == 0)).any()
     assert theta[legs].max() < BASE_BG_DEG
 
 

@@ -26,6 +26,17 @@ LEG_MAX_DEG = 2.0
 """Parts of the rig narrower than this that touch the base are its legs (attached_legs)."""
 LEG_MIN_ASPECT = 3.0
 """... and at least this elongated (attached_legs)."""
+LEG_MIN_DARK = 0.15
+"""A leg's pixel is darker than the lightest pixel within LEG_MAX_DEG of it by at least this share of that lightness
+(radial_legs) ..."""
+LEG_MIN_DEG = 3.0
+"""... on a straight run at least this long ..."""
+LEG_RADIAL_DEG = 30.0
+"""... within this angle of the direction away from the nadir ..."""
+LEG_REACH_DEG = 1.5
+"""... with an end within this angle of the base ..."""
+LEG_WIDTH_DEG = 0.6
+"""... and its pixels within this angle of the line."""
 BASE_MAX_OFFSET = 0.4
 """Its centroid lies within this share of its mean radius of the nadir (the camera stands above it)."""
 BASE_MIN_SOLIDITY = 0.6
@@ -148,6 +159,85 @@ def attached_legs(comp: np.ndarray, unlike: np.ndarray, theta: np.ndarray, focal
     return np.isin(labels, keep)
 
 
+def radial_legs(face: np.ndarray, comp: np.ndarray, floor: np.ndarray, theta: np.ndarray,
+                focal: float) -> np.ndarray:
+    """The tripod's legs as straight dark lines leaving the base comp (S, S) bool: a leg stands in a vertical plane
+    through the camera, so on the downward face (S, S, 3) uint8 it runs away from the nadir. Dark: the lightness
+    (Lab L, smoothed by a pixel) below the lightest within LEG_MAX_DEG by LEG_MIN_DARK of it and by more than 99 % of
+    the floor's pixels (floor, (S, S) bool) are. Straight runs of dark pixels outside the base (probabilistic Hough)
+    at least LEG_MIN_DEG long, one end within LEG_REACH_DEG of the base and within LEG_RADIAL_DEG of the direction
+    away from the nadir, and the runs starting within LEG_REACH_DEG of a run taken (a leg Hough cuts in pieces), are
+    the legs, less a run whose line, followed outward while it stays dark (a pixel aside, gaps of 3 pixels bridged), reaches
+    BASE_BG_DEG: it goes on (a door trim, a floorboard's seam). The dark pixels within LEG_WIDTH_DEG of each leg
+    taken, from its run's inner end to where its line ends; (S, S) bool."""
+    deg = focal * np.deg2rad(1.0)
+    light = cv2.GaussianBlur(cv2.cvtColor(face, cv2.COLOR_RGB2LAB)[..., 0].astype(np.float32), (0, 0), 1.0)
+    k = 2 * int(round(0.5 * deg * LEG_MAX_DEG)) + 1
+    top = cv2.morphologyEx(light, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    dark = (top - light) / np.maximum(top, 1.0)
+    dark = dark > max(LEG_MIN_DARK, float(np.percentile(dark[floor], 99.0)) if floor.any() else LEG_MIN_DARK)
+    cand = dark & ~comp
+    out = np.zeros_like(comp)
+    length = deg * LEG_MIN_DEG
+    runs = cv2.HoughLinesP((cand & (theta < BASE_BG_DEG)).astype(np.uint8), 1, np.pi / 180, int(0.7 * length),
+                           minLineLength=length, maxLineGap=3)
+    if runs is None:
+        return out
+    reach = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * int(round(deg * LEG_REACH_DEG)) + 1,) * 2)
+    wide = cv2.dilate(dark.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    S = comp.shape[0]
+    c = 0.5 * S - 0.5
+    cos_max = np.cos(np.deg2rad(LEG_RADIAL_DEG))
+    half = max(1, int(round(deg * LEG_WIDTH_DEG)))
+    lines = []  # (inner end, the run's dark pixels) of the runs along the radial direction that end
+    for x0, y0, x1, y1 in runs.reshape(-1, 4):
+        a, b = np.array([x0, y0], float), np.array([x1, y1], float)
+        if np.hypot(*(a - c)) > np.hypot(*(b - c)):
+            a, b = b, a  # b: the outer end
+        axis = (b - a) / max(float(np.linalg.norm(b - a)), 1e-9)
+        away = 0.5 * (a + b) - c
+        if float(axis @ away) < cos_max * float(np.linalg.norm(away)):
+            continue
+        end = np.rint(_follow(wide, b, axis)).astype(int)
+        if theta[end[1], end[0]] >= BASE_BG_DEG - 1.0:
+            continue
+        run = np.zeros(comp.shape, np.uint8)
+        cv2.line(run, (int(round(a[0])), int(round(a[1]))), (int(end[0]), int(end[1])), 1, 2 * half + 1)
+        lines.append((np.rint(a).astype(int), (run > 0) & cand))
+    grown = comp.copy()
+    while lines:  # runs that start at the base, then those that start on a run taken (a leg Hough cut in pieces)
+        near = cv2.dilate(grown.astype(np.uint8), reach) > 0
+        take = [k for k, (a, _) in enumerate(lines) if near[a[1], a[0]]]
+        if not take:
+            break
+        for k in take:
+            out |= lines[k][1]
+        grown |= out
+        lines = [x for k, x in enumerate(lines) if k not in take]
+    return out
+
+
+def _follow(dark: np.ndarray, p: np.ndarray, axis: np.ndarray, gap: int = 3) -> np.ndarray:
+    """The last dark pixel (dark, (S, S) bool) met walking from p (x, y) along axis, a pixel aside where the line
+    drifts, gaps of up to `gap` pixels bridged, before leaving the face: (x, y)."""
+    S = dark.shape[0]
+    side = np.array([-axis[1], axis[0]])
+    q, last, miss = p.astype(float), p.astype(float), 0
+    while miss <= gap:
+        q = q + axis
+        for step in (0.0, -1.0, 1.0):
+            x, y = np.rint(q + step * side).astype(int)
+            if not (0 <= x < S and 0 <= y < S):
+                return last
+            if dark[y, x]:
+                q = q + step * side
+                last, miss = q.copy(), 0
+                break
+        else:
+            miss += 1
+    return last
+
+
 def side_pieces(comp: np.ndarray, unlike: np.ndarray, theta: np.ndarray, on_floor: np.ndarray,
                 focal: float) -> np.ndarray:
     """Separate pieces of the rig beside the base comp (S, S) bool: the components of the pixels unlike the floor
@@ -212,7 +302,8 @@ def detect_base(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndar
         why = refusal.reason
     if why is not None:
         return RigDetection(False, f"the region at the nadir is no camera base: {why}, kept", stats=stats)
-    legs = attached_legs(comp, unlike, nf.theta, nf.view.focal)
+    legs = attached_legs(comp, unlike, nf.theta, nf.view.focal) | radial_legs(nf.face, comp, ref, nf.theta,
+                                                                              nf.view.focal)
     side = side_pieces(comp, unlike, nf.theta, nf.on_floor, nf.view.focal)
     stats["leg_pixels"], stats["side_pixels"] = int(legs.sum()), int(side.sum())
     mask = face_to_erp_mask(cv2.dilate((comp | legs | side).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0, nf.view, H, W)
