@@ -10,7 +10,7 @@ import pytest
 from panoworld.core.conventions import erp_dirs, erp_pixel_solid_angle
 from panoworld.depth.rig import detect as rig
 from panoworld.depth.rig import remove as rig_remove
-from panoworld.depth.rig.base import BASE_BG_DEG, SIDE_MAX_DEG, attached_legs, radial_legs, side_pieces
+from panoworld.depth.rig.base import BASE_BG_DEG, SIDE_MAX_DEG, attached_legs, radial_legs, rig_feet, side_pieces
 from panoworld.depth.rig.face import face_polar, face_to_erp_mask, nadir_view
 from panoworld.tools.synth import generate_scene
 
@@ -162,6 +162,29 @@ def test_radial_legs_are_dark_lines_leaving_the_base_not_a_line_across_or_one_th
     assert not (legs & ((across | trim) > 0)).any()
     assert not (legs & (legs_true == 0)).any()
     assert theta[legs].max() < BASE_BG_DEG
+
+
+def test_a_foot_at_a_legs_end_joins_the_rig_a_dark_patch_or_a_blob_apart_does_not():
+    size, f = 401, 160.0
+    yy, xx = np.mgrid[:size, :size] + 0.5 - size / 2
+    theta = np.rad2deg(np.arctan(np.hypot(xx, yy) / f))
+    rng = np.random.default_rng(5)
+    face = cv2.GaussianBlur(np.clip(rng.normal(150, 8, (size, size, 1)) * np.ones(3), 0, 255), (0, 0), 0.8)
+    face = face.astype(np.uint8)
+    c = size // 2
+    rig = np.hypot(xx, yy) < 30
+    cv2.line(rig_u8 := rig.astype(np.uint8), (c, c), (c + 50, c), 1, 3)  # the base and a leg to ~17 deg
+    rig = rig_u8 > 0
+    foot = np.hypot(xx - 53, yy) < 3.5  # the leg's foot, just past where the leg's mask ends
+    patch = (np.abs(xx) < 14) & (yy > 29) & (yy < 60)  # a dark patch as wide as a leg is long, touching the base
+    apart = np.hypot(xx + 45, yy + 20) < 3.5  # a dark blob 15 px from the base
+    face[rig] = 40
+    for m in (foot, patch, apart):
+        face[m] = (face[m] * 0.5).astype(np.uint8)
+    feet = rig_feet(face, rig, ~rig & (theta >= BASE_BG_DEG), theta, f)
+    grown = cv2.dilate(feet.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0  # as detect_base grows the mask
+    assert (grown & foot & ~rig).sum() > 0.9 * (foot & ~rig).sum()
+    assert not (feet & (patch | apart)).any()
 
 
 def test_a_side_bar_beyond_a_gap_joins_the_base_furniture_and_speckle_do_not():

@@ -37,6 +37,8 @@ LEG_REACH_DEG = 1.5
 """... with an end within this angle of the base ..."""
 LEG_WIDTH_DEG = 0.6
 """... and its pixels within this angle of the line."""
+LEG_FOOT_DEG = 3.0
+"""A dark blob touching the rig no larger than a disc this wide is its foot or tip (rig_feet)."""
 BASE_MAX_OFFSET = 0.4
 """Its centroid lies within this share of its mean radius of the nadir (the camera stands above it)."""
 BASE_MIN_SOLIDITY = 0.6
@@ -171,11 +173,7 @@ def radial_legs(face: np.ndarray, comp: np.ndarray, floor: np.ndarray, theta: np
     BASE_BG_DEG: it goes on (a door trim, a floorboard's seam). The dark pixels within LEG_WIDTH_DEG of each leg
     taken, from its run's inner end to where its line ends; (S, S) bool."""
     deg = focal * np.deg2rad(1.0)
-    light = cv2.GaussianBlur(cv2.cvtColor(face, cv2.COLOR_RGB2LAB)[..., 0].astype(np.float32), (0, 0), 1.0)
-    k = 2 * int(round(0.5 * deg * LEG_MAX_DEG)) + 1
-    top = cv2.morphologyEx(light, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
-    dark = (top - light) / np.maximum(top, 1.0)
-    dark = dark > max(LEG_MIN_DARK, float(np.percentile(dark[floor], 99.0)) if floor.any() else LEG_MIN_DARK)
+    dark = thin_dark(face, floor, focal)
     cand = dark & ~comp
     out = np.zeros_like(comp)
     length = deg * LEG_MIN_DEG
@@ -215,6 +213,32 @@ def radial_legs(face: np.ndarray, comp: np.ndarray, floor: np.ndarray, theta: np
         grown |= out
         lines = [x for k, x in enumerate(lines) if k not in take]
     return out
+
+
+def thin_dark(face: np.ndarray, floor: np.ndarray, focal: float) -> np.ndarray:
+    """(S, S) bool: the pixels of the face (S, S, 3) uint8 whose lightness (Lab L, smoothed by a pixel) lies below the
+    lightest within LEG_MAX_DEG by LEG_MIN_DARK of it and by more than 99 % of the floor's pixels (floor, (S, S)
+    bool) do: what is thin and dark there (a leg, a foot), not the floor's own texture."""
+    light = cv2.GaussianBlur(cv2.cvtColor(face, cv2.COLOR_RGB2LAB)[..., 0].astype(np.float32), (0, 0), 1.0)
+    k = 2 * int(round(0.5 * focal * np.deg2rad(LEG_MAX_DEG))) + 1
+    top = cv2.morphologyEx(light, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    dark = (top - light) / np.maximum(top, 1.0)
+    return dark > max(LEG_MIN_DARK, float(np.percentile(dark[floor], 99.0)) if floor.any() else LEG_MIN_DARK)
+
+
+def rig_feet(face: np.ndarray, rig: np.ndarray, floor: np.ndarray, theta: np.ndarray, focal: float) -> np.ndarray:
+    """The small dark blobs (thin_dark) that touch the rig (S, S) bool found so far (within 2 pixels) within
+    BASE_BG_DEG of the nadir, each at most a disc of LEG_FOOT_DEG across in area: a leg's foot, the tip of a knob or
+    a wing the base's outline stops short of. (S, S) bool."""
+    cand = thin_dark(face, floor, focal) & ~rig & (theta < BASE_BG_DEG)
+    touch = cv2.dilate(rig.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    n, labels = cv2.connectedComponents(cand.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return np.zeros_like(rig)
+    area = np.bincount(labels.ravel(), minlength=n)
+    most = np.pi * (0.5 * LEG_FOOT_DEG * focal * np.deg2rad(1.0)) ** 2
+    keep = [i for i in np.unique(labels[touch & cand]) if i and area[i] <= most]
+    return np.isin(labels, keep)
 
 
 def _follow(dark: np.ndarray, p: np.ndarray, axis: np.ndarray, gap: int = 3) -> np.ndarray:
@@ -304,6 +328,7 @@ def detect_base(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndar
         return RigDetection(False, f"the region at the nadir is no camera base: {why}, kept", stats=stats)
     legs = attached_legs(comp, unlike, nf.theta, nf.view.focal) | radial_legs(nf.face, comp, ref, nf.theta,
                                                                               nf.view.focal)
+    legs |= rig_feet(nf.face, comp | legs, ref, nf.theta, nf.view.focal)
     side = side_pieces(comp, unlike, nf.theta, nf.on_floor, nf.view.focal)
     stats["leg_pixels"], stats["side_pixels"] = int(legs.sum()), int(side.sum())
     mask = face_to_erp_mask(cv2.dilate((comp | legs | side).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0, nf.view, H, W)
