@@ -10,7 +10,15 @@ import pytest
 from panoworld.core.conventions import erp_dirs, erp_pixel_solid_angle
 from panoworld.depth.rig import detect as rig
 from panoworld.depth.rig import remove as rig_remove
-from panoworld.depth.rig.base import BASE_BG_DEG, SIDE_MAX_DEG, attached_legs, radial_legs, rig_feet, side_pieces
+from panoworld.depth.rig.base import (
+    BASE_BG_DEG,
+    SIDE_MAX_DEG,
+    attached_legs,
+    radial_legs,
+    rig_feet,
+    side_pieces,
+    thin_dark,
+)
 from panoworld.depth.rig.face import face_polar, face_to_erp_mask, nadir_view
 from panoworld.tools.synth import generate_scene
 
@@ -155,7 +163,7 @@ def test_radial_legs_are_dark_lines_leaving_the_base_not_a_line_across_or_one_th
     for m in (legs_true, across, trim):
         face[m > 0] = (face[m > 0] * 0.55).astype(np.uint8)
     floor = ~base & (theta >= BASE_BG_DEG)
-    legs = radial_legs(face, base, floor, theta, f)
+    legs = radial_legs(thin_dark(face, floor, f), base, theta, f)
     grown = cv2.dilate(legs.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0  # as detect_base grows the mask
     leg_px = (legs_true > 0) & ~base
     assert (grown & leg_px).sum() > 0.9 * leg_px.sum()
@@ -181,7 +189,7 @@ def test_a_foot_at_a_legs_end_joins_the_rig_a_dark_patch_or_a_blob_apart_does_no
     face[rig] = 40
     for m in (foot, patch, apart):
         face[m] = (face[m] * 0.5).astype(np.uint8)
-    feet = rig_feet(face, rig, ~rig & (theta >= BASE_BG_DEG), theta, f)
+    feet = rig_feet(thin_dark(face, ~rig & (theta >= BASE_BG_DEG), f), rig, theta, f)
     grown = cv2.dilate(feet.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0  # as detect_base grows the mask
     assert (grown & foot & ~rig).sum() > 0.9 * (foot & ~rig).sum()
     assert not (feet & (patch | apart)).any()

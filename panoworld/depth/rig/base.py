@@ -161,19 +161,16 @@ def attached_legs(comp: np.ndarray, unlike: np.ndarray, theta: np.ndarray, focal
     return np.isin(labels, keep)
 
 
-def radial_legs(face: np.ndarray, comp: np.ndarray, floor: np.ndarray, theta: np.ndarray,
-                focal: float) -> np.ndarray:
+def radial_legs(dark: np.ndarray, comp: np.ndarray, theta: np.ndarray, focal: float) -> np.ndarray:
     """The tripod's legs as straight dark lines leaving the base comp (S, S) bool: a leg stands in a vertical plane
-    through the camera, so on the downward face (S, S, 3) uint8 it runs away from the nadir. Dark: the lightness
-    (Lab L, smoothed by a pixel) below the lightest within LEG_MAX_DEG by LEG_MIN_DARK of it and by more than 99 % of
-    the floor's pixels (floor, (S, S) bool) are. Straight runs of dark pixels outside the base (probabilistic Hough)
-    at least LEG_MIN_DEG long, one end within LEG_REACH_DEG of the base and within LEG_RADIAL_DEG of the direction
-    away from the nadir, and the runs starting within LEG_REACH_DEG of a run taken (a leg Hough cuts in pieces), are
-    the legs, less a run whose line, followed outward while it stays dark (a pixel aside, gaps of 3 pixels bridged), reaches
-    BASE_BG_DEG: it goes on (a door trim, a floorboard's seam). The dark pixels within LEG_WIDTH_DEG of each leg
-    taken, from its run's inner end to where its line ends; (S, S) bool."""
+    through the camera, so on the downward face it runs away from the nadir. Straight runs of the dark pixels (dark,
+    (S, S) bool: thin_dark) outside the base (probabilistic Hough) at least LEG_MIN_DEG long, one end within
+    LEG_REACH_DEG of the base and within LEG_RADIAL_DEG of the direction away from the nadir, and the runs starting
+    within LEG_REACH_DEG of a run taken (a leg Hough cuts in pieces), are the legs, less a run whose line, followed
+    outward while it stays dark (a pixel aside, gaps of 3 pixels bridged), reaches BASE_BG_DEG: it goes on (a door
+    trim, a floorboard's seam). The dark pixels within LEG_WIDTH_DEG of each leg taken, from its run's inner end to
+    where its line ends; (S, S) bool."""
     deg = focal * np.deg2rad(1.0)
-    dark = thin_dark(face, floor, focal)
     cand = dark & ~comp
     out = np.zeros_like(comp)
     length = deg * LEG_MIN_DEG
@@ -216,9 +213,9 @@ def radial_legs(face: np.ndarray, comp: np.ndarray, floor: np.ndarray, theta: np
 
 
 def thin_dark(face: np.ndarray, floor: np.ndarray, focal: float) -> np.ndarray:
-    """(S, S) bool: the pixels of the face (S, S, 3) uint8 whose lightness (Lab L, smoothed by a pixel) lies below the
-    lightest within LEG_MAX_DEG by LEG_MIN_DARK of it and by more than 99 % of the floor's pixels (floor, (S, S)
-    bool) do: what is thin and dark there (a leg, a foot), not the floor's own texture."""
+    """(S, S) bool: the pixels of the downward face (S, S, 3) uint8 whose lightness (Lab L, smoothed by a pixel) lies
+    below the lightest within LEG_MAX_DEG by LEG_MIN_DARK of it and by more than 99 % of the floor's pixels (floor,
+    (S, S) bool) do: what is thin and dark there (a leg, a foot), not the floor's own texture."""
     light = cv2.GaussianBlur(cv2.cvtColor(face, cv2.COLOR_RGB2LAB)[..., 0].astype(np.float32), (0, 0), 1.0)
     k = 2 * int(round(0.5 * focal * np.deg2rad(LEG_MAX_DEG))) + 1
     top = cv2.morphologyEx(light, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
@@ -226,11 +223,11 @@ def thin_dark(face: np.ndarray, floor: np.ndarray, focal: float) -> np.ndarray:
     return dark > max(LEG_MIN_DARK, float(np.percentile(dark[floor], 99.0)) if floor.any() else LEG_MIN_DARK)
 
 
-def rig_feet(face: np.ndarray, rig: np.ndarray, floor: np.ndarray, theta: np.ndarray, focal: float) -> np.ndarray:
-    """The small dark blobs (thin_dark) that touch the rig (S, S) bool found so far (within 2 pixels) within
-    BASE_BG_DEG of the nadir, each at most a disc of LEG_FOOT_DEG across in area: a leg's foot, the tip of a knob or
-    a wing the base's outline stops short of. (S, S) bool."""
-    cand = thin_dark(face, floor, focal) & ~rig & (theta < BASE_BG_DEG)
+def rig_feet(dark: np.ndarray, rig: np.ndarray, theta: np.ndarray, focal: float) -> np.ndarray:
+    """The small blobs of the dark pixels (dark, (S, S) bool: thin_dark) that touch the rig (S, S) bool found so far
+    (within 2 pixels) within BASE_BG_DEG of the nadir, each at most a disc of LEG_FOOT_DEG across in area: a leg's
+    foot, the tip of a knob or a wing the base's outline stops short of. (S, S) bool."""
+    cand = dark & ~rig & (theta < BASE_BG_DEG)
     touch = cv2.dilate(rig.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
     n, labels = cv2.connectedComponents(cand.astype(np.uint8), connectivity=8)
     if n <= 1:
@@ -326,9 +323,9 @@ def detect_base(rgb: np.ndarray, depth: np.ndarray | None = None, valid: np.ndar
         why = refusal.reason
     if why is not None:
         return RigDetection(False, f"the region at the nadir is no camera base: {why}, kept", stats=stats)
-    legs = attached_legs(comp, unlike, nf.theta, nf.view.focal) | radial_legs(nf.face, comp, ref, nf.theta,
-                                                                              nf.view.focal)
-    legs |= rig_feet(nf.face, comp | legs, ref, nf.theta, nf.view.focal)
+    dark = thin_dark(nf.face, ref, nf.view.focal)
+    legs = attached_legs(comp, unlike, nf.theta, nf.view.focal) | radial_legs(dark, comp, nf.theta, nf.view.focal)
+    legs |= rig_feet(dark, comp | legs, nf.theta, nf.view.focal)
     side = side_pieces(comp, unlike, nf.theta, nf.on_floor, nf.view.focal)
     stats["leg_pixels"], stats["side_pixels"] = int(legs.sum()), int(side.sum())
     mask = face_to_erp_mask(cv2.dilate((comp | legs | side).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0, nf.view, H, W)
