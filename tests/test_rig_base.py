@@ -336,3 +336,25 @@ def test_floor_coloured_base_outlined_all_round_is_found(room):
     assert det.found and det.kind == "base" and "outlined" in det.reason, det.reason
     assert 0.4 <= det.stats["unlike_floor"] < 0.7
     assert area_iou(det.mask, truth) >= 0.7
+
+
+def test_depth_under_a_rig_mask_reaching_a_wall_stops_at_the_wall(room):
+    """A rig mask running up a wall's base (a leg against the wall): under it the floor plane where the ray
+    meets the floor, the wall where it meets the wall, never floor behind the wall."""
+    rgb, depth, floor_m = room
+    d = erp_dirs(*depth.shape, np.float64)
+    wall = np.where(d[..., 0] > 1e-6, 0.5 / np.maximum(d[..., 0], 1e-6), np.inf)  # a wall 0.5 m away along +x
+    depth = np.minimum(depth, wall).astype(np.float32)
+    from_nadir = np.rad2deg(np.arccos(np.clip(d[..., 1], -1, 1)))
+    toward = np.rad2deg(np.arctan2(np.abs(d[..., 2]), d[..., 0])) < 12  # around the +x wall
+    mask = (from_nadir < 35) & toward
+    det = rig.RigDetection(True, "test", "user", mask, np.zeros_like(mask))
+    valid = np.isfinite(depth) & (depth > 0)
+    _, d2, v2, _, _ = rig_remove.rig_step(rgb, depth, valid, floor_m, detect=lambda *a: det)
+    assert v2[mask].all()
+    beyond = d2[mask] / wall[mask] - 1
+    assert beyond.max() <= 1e-3, beyond.max()  # without the cut: floor up to ~1 m behind the wall
+    plane = rig_remove.floor_depth(*depth.shape, floor_m)
+    on_floor = mask & (plane < 0.99 * wall)
+    assert on_floor.sum() > 100 and np.allclose(d2[on_floor], plane[on_floor], rtol=1e-5)
+    assert np.array_equal(d2[~mask], np.where(valid, depth, 0)[~mask])

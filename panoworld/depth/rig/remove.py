@@ -70,6 +70,18 @@ def floor_depth(H: int, W: int, floor_m: float) -> np.ndarray:
     return np.where(down > 1e-3, floor_m / np.maximum(down, 1e-3), 0.0).astype(np.float32)
 
 
+def floor_within_walls(plane: np.ndarray, depth: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """The floor plane's ray distance plane (H, W) cut at each column's wall: no farther horizontally than the
+    farthest point of depth (H, W) at the pixels seen (H, W) bool in that column (a mask reaching a wall's base looks
+    at the wall there, not at floor behind it); columns with nothing seen keep the plane."""
+    H, W = depth.shape
+    dirs = erp_dirs(H, W, np.float64)
+    flat = np.hypot(dirs[..., 0], dirs[..., 2])
+    reach = np.where(seen & (depth > 0), depth * flat, 0.0).max(0)
+    wall = np.where(reach[None, :] > 0, reach[None, :] / np.maximum(flat, 1e-9), np.inf)
+    return np.minimum(plane, wall).astype(np.float32)
+
+
 def area_stats(mask: np.ndarray) -> dict:
     """Solid-angle share of the sphere and the cap (degrees from the nadir) holding 98 % of a mask's pixels."""
     H, W = mask.shape
@@ -83,9 +95,9 @@ def area_stats(mask: np.ndarray) -> dict:
 def rig_step(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, floor_m: float | None, *,
              user_mask: Path | None = None, detect=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, RigDetection]:
     """Detect with detect(rgb, depth, valid, floor_m) (default detect_rig), or take the user's mask, and remove the
-    rig: (rgb, depth, valid, info, detection). Inside the rig
-    mask depth comes from the floor plane floor_m below the camera (invalid when no floor was found); outside the
-    masks nothing changes (no rig: the very same arrays)."""
+    rig: (rgb, depth, valid, info, detection). Inside the rig mask depth comes from the floor plane floor_m below the
+    camera, never past its column's wall (floor_within_walls; invalid when no floor was found); outside the masks
+    nothing changes (no rig: the very same arrays)."""
     H, W = rgb.shape[:2]
     if user_mask is not None:
         m = read_user_mask(user_mask, H, W)
@@ -101,7 +113,7 @@ def rig_step(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, floor_m: flo
     info["shadow"] = area_stats(det.shadow)
     depth, valid = depth.copy(), valid.copy()
     if floor_m:
-        plane = floor_depth(H, W, floor_m)
+        plane = floor_within_walls(floor_depth(H, W, floor_m), depth, valid & ~det.mask)
         put = det.mask & (plane > 0)
         depth[put], valid[put] = plane[put], True
         valid[det.mask & ~put] = False
