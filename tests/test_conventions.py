@@ -159,3 +159,13 @@ def test_asset_frame_is_z_up_with_the_floor_at_zero():
     np.testing.assert_allclose(T[:3, :3] @ cv.WORLD_UP, [0, 0, 1], atol=1e-12)  # up -> +Z
     np.testing.assert_allclose(cv.transform_points(T, np.array([[0.0, 1.6, 0.0]])), [[0, 0, 0]], atol=1e-12)  # floor
     np.testing.assert_allclose(cv.transform_points(T, np.array([[0.0, 0.0, 2.0]])), [[2, 0, 1.6]], atol=1e-12)  # forward
+
+
+def test_erp_dirs64_is_the_float64_grid_shared_read_only():
+    from panoworld.core.conventions import erp_dirs, erp_dirs64
+
+    d = erp_dirs64(16, 32)
+    assert d.dtype == np.float64 and np.array_equal(d, erp_dirs(16, 32, np.float64))
+    assert erp_dirs64(16, 32) is d  # computed once per size
+    with pytest.raises(ValueError):
+        d[0, 0, 0] = 1.0  # callers share it: nobody may write into it

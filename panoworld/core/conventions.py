@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from panoworld.core.shapes import check_shape
@@ -91,6 +93,15 @@ def erp_dirs(height: int, width: int, dtype=np.float32) -> np.ndarray:
     out[..., 1] = -np.sin(lat)[:, None]
     out[..., 2] = cl * np.cos(lon)
     return out
+
+
+@lru_cache(maxsize=4)
+def erp_dirs64(height: int, width: int) -> np.ndarray:
+    """erp_dirs(height, width) in float64, computed once per size and read-only (callers that read the grid of every
+    depth map of a run)."""
+    d = erp_dirs(height, width, np.float64)
+    d.flags.writeable = False
+    return d
 
 
 def pinhole_dirs(fx: float, fy: float, cx: float, cy: float, height: int, width: int, dtype=np.float32) -> np.ndarray:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from panoworld.core.conventions import erp_dirs, erp_pixel_solid_angle
+from panoworld.core.conventions import erp_dirs64, erp_pixel_solid_angle
 from panoworld.room.floor import fit_planes
 
 MIN_POLE_LAT_DEG = 30.0
@@ -51,7 +51,7 @@ def complete_poles(depth: np.ndarray, valid: np.ndarray, *, min_lat_deg: float =
     """
     H, W = depth.shape
     floor_m, ceil_m = fit_planes(depth, valid) if planes is None else planes
-    dirs = erp_dirs(H, W, np.float64)
+    dirs = erp_dirs64(H, W)
     horiz = np.where(valid, depth * np.hypot(dirs[..., 0], dirs[..., 2]), 0.0)
     extent = horiz.max(0)
     have = extent > 0
@@ -95,7 +95,7 @@ def _rim_planes(depth: np.ndarray, valid: np.ndarray, holes: np.ndarray, tol: fl
     """Depth (H, W) of the plane fitted to each dropout's rim (its valid 8-neighbours), NaN where the rim is not one
     plane within tol, and the number of dropouts so filled. The plane is fitted as 1 / d = a . dir (least squares)."""
     H, W = depth.shape
-    dirs = erp_dirs(H, W, np.float64)
+    dirs = erp_dirs64(H, W)
     out = np.full((H, W), np.nan)
     labels, n = ndimage.label(holes, structure=np.ones((3, 3)))
     planar = 0

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -11,7 +10,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from panoworld.core.conventions import check_pose, erp_dirs
+from panoworld.core.conventions import check_pose, erp_dirs64
 from panoworld.core.shapes import check_shape
 from panoworld.gaussians.eig3 import eigh3
 from panoworld.gaussians.fusion_params import Confidence, FusionParams
@@ -63,14 +62,6 @@ def _min_step(fwd: np.ndarray, bwd: np.ndarray) -> np.ndarray:
     return np.where((nf <= nb)[..., None], fwd, bwd)
 
 
-@functools.lru_cache(maxsize=4)
-def _erp_dirs64(h: int, w: int) -> np.ndarray:
-    """erp_dirs(h, w) in float64, read-only and cached (every frame of a run has the same size)."""
-    dirs = erp_dirs(h, w, dtype=np.float64)
-    dirs.flags.writeable = False
-    return dirs
-
-
 def _neighbour_steps(pts: np.ndarray, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Steps a (along the row) and b (across rows) of the flat pixels px (M,) of an ERP grid of points pts (H, W, 3):
     the shorter of the forward/backward step on each axis (_min_step); longitude wraps around the seam, latitude
@@ -105,7 +96,7 @@ def frame_observations(
     check_shape("rgb", rgb, "H W 3", dims=check_shape("depth", depth, "H W"))
     h, w = depth.shape
     check_pose(world_from_cam, "world_from_cam")
-    dirs = _erp_dirs64(h, w)
+    dirs = erp_dirs64(h, w)
     # the camera points (NaN where invalid), the valid pixels and their world points, in one numba pass
     pts, px, pts_w = frame_points(depth, dirs, world_from_cam, params.max_depth)
     if keep_points is not None:

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from panoworld.core.conventions import erp_dirs, erp_pixel_from_lonlat
+from panoworld.core.conventions import erp_dirs64, erp_pixel_from_lonlat
 from panoworld.core.shapes import check_shape
 from panoworld.geometry.upright import wrap_angle, yaw_matrix_xz, yaw_of
 
@@ -43,7 +43,7 @@ def plane_distance(depth: np.ndarray, *, below: bool, min_angle_deg: float = 40.
     so walls within that cone (a closet, a hallway, a doorway) do not shorten it. None when no valid depth is there."""
     check_shape("depth", depth, "H W")
     h, w = depth.shape
-    vertical = erp_dirs(h, w, np.float64)[..., 1] * (1.0 if below else -1.0)
+    vertical = erp_dirs64(h, w)[..., 1] * (1.0 if below else -1.0)
     sel = (vertical > np.sin(np.radians(min_angle_deg))) & np.isfinite(depth) & (depth > 0)
     if sel.sum() < 0.01 * sel.size:
         return None

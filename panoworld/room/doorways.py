@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import replace
-from functools import lru_cache
 
 import cv2
 import numpy as np
 
 from panoworld.core.conventions import (
-    erp_dirs,
+    erp_dirs64,
     erp_lonlat_from_pixel,
     erp_pixel_from_dir,
     erp_pixel_from_lonlat,
@@ -113,20 +112,12 @@ def open_doorways(names: list[str], rgbs: dict[str, np.ndarray], depths: dict[st
     return out
 
 
-@lru_cache(maxsize=2)
-def _dirs(h: int, w: int) -> np.ndarray:
-    """erp_dirs (h, w, 3) float64, computed once per size (read-only)."""
-    d = erp_dirs(h, w, np.float64)
-    d.flags.writeable = False
-    return d
-
-
 def is_layout(depth: np.ndarray, height: float, *, tol: float = 0.02, share: float = 0.995) -> bool:
     """Whether a ray depth (H, W) with the camera `height` above its floor holds a room's layout only: at least `share`
     of its valid pixels within tol (relative) of the nearest of the floor plane, a flat ceiling (its height the most
     common over the rays above 40 degrees, plane_distance) and, per column, one vertical wall at the column's farthest
     horizontal reach. A depth with furniture, or of a real sensor, is not: its doorways are open already."""
-    dirs = _dirs(*depth.shape)
+    dirs = erp_dirs64(*depth.shape)
     valid = depth > 0
     up = -dirs[..., 1]
     ceiling = plane_distance(depth, below=False)
@@ -223,7 +214,7 @@ def _subset(v: FloorView, idx: np.ndarray) -> FloorView:
 
 def _reach(depth: np.ndarray) -> np.ndarray:
     """(W,) the farthest horizontal distance of depth (H, W) per column: the wall of a layout."""
-    dirs = _dirs(*depth.shape)
+    dirs = erp_dirs64(*depth.shape)
     return np.where(depth > 0, depth * np.hypot(dirs[..., 0], dirs[..., 2]), 0.0).max(0)
 
 
@@ -271,7 +262,7 @@ def _widen(idx: np.ndarray, plan: np.ndarray) -> np.ndarray:
 
 def _walls(depth: np.ndarray, height: float) -> np.ndarray:
     """(H, W) bool: the pixels of depth (H, W) on a surface between 5 cm and DOOR_TOP_M above the floor."""
-    above = height - depth * _dirs(*depth.shape)[..., 1]
+    above = height - depth * erp_dirs64(*depth.shape)[..., 1]
     return (depth > 0) & (above > 0.05) & (above < DOOR_TOP_M)
 
 
@@ -284,7 +275,7 @@ def _to_world_plan(world_from_cam: np.ndarray, xz: np.ndarray) -> np.ndarray:
 def _plan_points(depth: np.ndarray, world_from_cam: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """(N, 2) world x, z of the pixels mask (H, W) of depth (H, W)."""
     iv, iu = np.nonzero(mask)
-    pts = _dirs(*depth.shape)[iv, iu] * depth[iv, iu, None]
+    pts = erp_dirs64(*depth.shape)[iv, iu] * depth[iv, iu, None]
     return transform_points(np.asarray(world_from_cam, np.float64), pts)[:, [0, 2]]
 
 
@@ -306,7 +297,7 @@ def _on_segments(pts: np.ndarray, segments: list[np.ndarray]) -> np.ndarray:
 def _open(depth: np.ndarray, height: float, reach: np.ndarray, mask: np.ndarray) -> None:
     """Open the wall pixels mask (H, W) of depth (H, W) (its _reach (W,)) in place: the floor continues THRESHOLD_M
     beyond the wall, the rest is unknown."""
-    dirs = _dirs(*depth.shape)
+    dirs = erp_dirs64(*depth.shape)
     flat = np.hypot(dirs[..., 0], dirs[..., 2])
     floor = height / np.maximum(dirs[..., 1], 1e-9)
     through = mask & (dirs[..., 1] > 0) & (floor * flat <= reach[None, :] + THRESHOLD_M)

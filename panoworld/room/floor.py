@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from panoworld.core.conventions import erp_dirs, erp_pixel_solid_angle
+from panoworld.core.conventions import erp_dirs64, erp_pixel_solid_angle
 
 
 @dataclass
@@ -30,33 +30,33 @@ def estimate_floor(
     refined by the weighted median of its inliers. None if no such horizontal surface exists.
     """
     H, W = depth.shape
-    dirs = erp_dirs(H, W, dtype=np.float64)
+    dirs = erp_dirs64(H, W)
     # Only rows min_below_deg below the horizon vote: they and the row above them (their normals' neighbour) are used.
     r0 = max(int(np.argmax(dirs[:, 0, 1] > np.sin(np.deg2rad(min_below_deg)))) - 1, 0)
     if not (dirs[:, 0, 1] > np.sin(np.deg2rad(min_below_deg))).any():
         r0 = H
     dirs, depth, valid = dirs[r0:], depth[r0:], valid[r0:]
-    pts = dirs * np.where(valid, depth, 0.0)[..., None]
+    d = np.where(valid, depth, 0.0)
+    pts = [dirs[..., k] * d for k in range(3)]  # x, y, z (h, W) each: the arithmetic of an (h, W, 3) array, per axis
     # Central differences with the seam wrapped; rows clamp at the bottom pole (the top row of the slice never votes).
-    dx = np.roll(pts, -1, axis=1) - np.roll(pts, 1, axis=1)
-    up = np.concatenate([pts[:1], pts[:-1]])
-    down = np.concatenate([pts[1:], pts[-1:]])
-    n = np.cross(dx, down - up)
-    nn = np.linalg.norm(n, axis=-1)
+    dx = [np.roll(p, -1, axis=1) - np.roll(p, 1, axis=1) for p in pts]
+    dy = [np.concatenate([p[1:], p[-1:]]) - np.concatenate([p[:1], p[:-1]]) for p in pts]
+    n = [dx[1] * dy[2] - dx[2] * dy[1], dx[2] * dy[0] - dx[0] * dy[2], dx[0] * dy[1] - dx[1] * dy[0]]  # np.cross
+    nn = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
     ok = valid & np.roll(valid, 1, 1) & np.roll(valid, -1, 1)
     ok[1:] &= valid[:-1]
     ok[:-1] &= valid[1:]
     ok &= nn > 0
-    cos_vert = np.abs(n[..., 1]) / np.maximum(nn, 1e-30)
+    cos_vert = np.abs(n[1]) / np.maximum(nn, 1e-30)
     below = dirs[..., 1] > np.sin(np.deg2rad(min_below_deg))
-    y = pts[..., 1]
+    y = pts[1]
     sel = ok & below & (cos_vert >= np.cos(np.deg2rad(max_tilt_deg))) & (y > 0)
     omega = np.broadcast_to(erp_pixel_solid_angle(H, W)[r0:], depth.shape)
     down_total = omega[below & valid].sum()
     if sel.sum() < 20 or down_total <= 0:
         return None
-    cos_inc = np.clip(np.abs(dirs[..., 1]), 0.05, 1.0)  # ray vs vertical normal
-    area = (omega * depth**2 / cos_inc)[sel]
+    cos_inc = np.clip(np.abs(dirs[..., 1][sel]), 0.05, 1.0)  # ray vs vertical normal
+    area = omega[sel] * depth[sel] ** 2 / cos_inc
     ly = np.log(y[sel])
     lo, hi = ly.min(), ly.max()
     nb = max(1, int(np.ceil((hi - lo) / bin_rel)) + 1)

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from panoworld.core.conventions import erp_dirs, erp_pixel_from_dir
+from panoworld.core.conventions import erp_dirs64, erp_pixel_from_dir
 from panoworld.geometry.cube_views import PerspectiveView, render_view
 
 FACE_FOV_DEG = 96.0
@@ -51,7 +51,7 @@ def _erp_maps(rot: bytes, fov_deg: float, size: int, H: int, W: int) -> tuple[np
     """face_to_erp's remap coordinates (float32) and its ERP pixels in front of the view, on cap_rows (cached;
     read-only)."""
     view = PerspectiveView(np.frombuffer(rot, np.float64).reshape(3, 3), fov_deg, size)
-    px, py, cos = view.project(erp_dirs(H, W, np.float64)[cap_rows(H, view)])
+    px, py, cos = view.project(erp_dirs64(H, W)[cap_rows(H, view)])
     maps = np.nan_to_num(px, nan=-10).astype(np.float32), np.nan_to_num(py, nan=-10).astype(np.float32), cos > 0
     for m in maps:
         m.flags.writeable = False

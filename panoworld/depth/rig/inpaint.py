@@ -167,13 +167,27 @@ def matte_rim(observed: np.ndarray, fill: np.ndarray, mask: np.ndarray, rim_px: 
     the pixel becomes F plus (1 - alpha) of what the line leaves unexplained: a pixel that shows floor (a dilated
     margin, an anti-aliased edge) keeps its own texture, one that shows rig gets the fill, its edge's own colour
     (a fringe unlike the rig's mean) included."""
+    out = np.where(mask[..., None], fill.astype(np.float32), observed.astype(np.float32))
+    rows = np.flatnonzero(mask.any(1))
+    if len(rows):  # the rows the mask and its rig colour's blur reach: the rest stays as it is
+        band = slice(max(0, rows[0] - RIM_BLUR_ROWS), rows[-1] + 1 + RIM_BLUR_ROWS)
+        out[band] = _matte_rows(observed[band], fill[band], mask[band], rim_px, out[band])
+    return out
+
+
+RIM_BLUR_ROWS = 16
+"""Rows around a mask that matte_rim's blur of the rig's colour (sigma 3 px, a 25-tap kernel) reads."""
+
+
+def _matte_rows(observed: np.ndarray, fill: np.ndarray, mask: np.ndarray, rim_px: int, out: np.ndarray) -> np.ndarray:
+    """matte_rim on a band of rows holding the mask and RIM_BLUR_ROWS around it; out: the band's result outside the
+    rim (the fill inside the mask, observed elsewhere), completed on the rim."""
     c = observed.astype(np.float32)
     F = fill.astype(np.float32)
     m8 = mask.astype(np.uint8)
     k = np.ones((3, 3), np.uint8)
     rim = mask & ~(cv2.erode(m8, k, iterations=rim_px) > 0)
     core = cv2.erode(m8, k, iterations=rim_px + 1) > 0
-    out = np.where(mask[..., None], F, c)
     if not rim.any() or not core.any():
         return out
     wc = cv2.GaussianBlur(core.astype(np.float32), (0, 0), 3.0)
@@ -343,10 +357,12 @@ def _rowwise_line(val: np.ndarray, known: np.ndarray, free: np.ndarray) -> tuple
     lk = (left >= 0) & known[rows, np.clip(left, 0, w - 1)]
     rk = (right < w) & known[rows, np.clip(right, 0, w - 1)]
     ok = free & lk & rk
-    li, ri = np.clip(left, 0, w - 1), np.clip(right, 0, w - 1)
-    t = ((idx - li) / np.maximum(ri - li, 1))[..., None]
-    out = (1 - t) * val[rows, li] + t * val[rows, ri]
-    return np.where(ok[..., None], out, 0.0).astype(np.float32), ok
+    r, c = np.nonzero(ok)
+    li, ri = left[r, c], right[r, c]
+    t = ((c - li) / np.maximum(ri - li, 1))[:, None]
+    out = np.zeros(val.shape, np.float32)
+    out[r, c] = ((1 - t) * val[r, li] + t * val[r, ri]).astype(np.float32)
+    return out, ok
 
 
 def _spread(face: np.ndarray, known: np.ndarray, sigmas: tuple[float, ...], blurs: dict | None = None) -> np.ndarray:

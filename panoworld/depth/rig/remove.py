@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from panoworld.core.conventions import erp_dirs, erp_pixel_solid_angle
+from panoworld.core.conventions import erp_dirs64, erp_pixel_solid_angle
 from panoworld.core.errors import InputError
 from panoworld.depth.rig.detect import detect_rig
 from panoworld.depth.rig.face import (
@@ -66,7 +66,7 @@ def remove_rig(rgb: np.ndarray, det: RigDetection) -> np.ndarray:
 
 def floor_depth(H: int, W: int, floor_m: float) -> np.ndarray:
     """Ray distance (H, W) to the horizontal floor floor_m below the camera (0 where a ray does not look down)."""
-    down = erp_dirs(H, W, np.float64)[..., 1]
+    down = erp_dirs64(H, W)[..., 1]
     return np.where(down > 1e-3, floor_m / np.maximum(down, 1e-3), 0.0).astype(np.float32)
 
 
@@ -75,7 +75,7 @@ def floor_within_walls(plane: np.ndarray, depth: np.ndarray, seen: np.ndarray) -
     farthest point of depth (H, W) at the pixels seen (H, W) bool in that column (a mask reaching a wall's base looks
     at the wall there, not at floor behind it); columns with nothing seen keep the plane."""
     H, W = depth.shape
-    dirs = erp_dirs(H, W, np.float64)
+    dirs = erp_dirs64(H, W)
     flat = np.hypot(dirs[..., 0], dirs[..., 2])
     reach = np.where(seen & (depth > 0), depth * flat, 0.0).max(0)
     wall = np.where(reach[None, :] > 0, reach[None, :] / np.maximum(flat, 1e-9), np.inf)
