@@ -6,7 +6,7 @@ import numpy as np
 from scipy import ndimage
 
 from panoworld.core.conventions import erp_dirs64, erp_pixel_solid_angle
-from panoworld.room.floor import fit_planes
+from panoworld.room.floor import column_reach, fit_planes
 
 MIN_POLE_LAT_DEG = 30.0
 """Only rays at least this far above (ceiling) or below (floor) the horizon are completed."""
@@ -52,8 +52,7 @@ def complete_poles(depth: np.ndarray, valid: np.ndarray, *, min_lat_deg: float =
     H, W = depth.shape
     floor_m, ceil_m = fit_planes(depth, valid) if planes is None else planes
     dirs = erp_dirs64(H, W)
-    horiz = np.where(valid, depth * np.hypot(dirs[..., 0], dirs[..., 2]), 0.0)
-    extent = horiz.max(0)
+    extent = column_reach(np.where(valid, depth, 0.0))
     have = extent > 0
     if not have.any():
         return depth, valid, {"floor_m": floor_m, "ceiling_m": ceil_m, "completed_fraction": 0.0}

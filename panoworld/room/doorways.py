@@ -24,6 +24,7 @@ from panoworld.geometry.floor_view import (
     floor_view,
     plane_distance,
 )
+from panoworld.room.floor import column_reach
 
 CELL_M = 0.02
 """Floor grid cell (metres) on which two panoramas' views of one floor are compared."""
@@ -81,7 +82,7 @@ def open_doorways(names: list[str], rgbs: dict[str, np.ndarray], depths: dict[st
     grey = {n: cv2.cvtColor(rgbs[n], cv2.COLOR_RGB2GRAY).astype(np.float32) for n in known}
     views = {n: floor_view(rgbs[n], depths[n]) for n in known}
     walls = {n: _walls(depths[n], heights[n]) for n in layouts}
-    reach = {n: _reach(depths[n]) for n in known}
+    reach = {n: column_reach(depths[n]) for n in known}
     masks, segments = {}, []
     for a in layouts:
         w = depths[a].shape[1]
@@ -124,7 +125,7 @@ def is_layout(depth: np.ndarray, height: float, *, tol: float = 0.02, share: flo
     if ceiling is None or valid.sum() < 0.5 * valid.size:
         return False
     flat = np.maximum(np.hypot(dirs[..., 0], dirs[..., 2]), 1e-9)
-    pred = np.minimum(_reach(depth)[None, :] / flat, np.where(up < 0, height / np.maximum(-up, 1e-9), np.inf))
+    pred = np.minimum(column_reach(depth)[None, :] / flat, np.where(up < 0, height / np.maximum(-up, 1e-9), np.inf))
     pred = np.minimum(pred, np.where(up > 0, ceiling / np.maximum(up, 1e-9), np.inf))
     good = valid & (np.abs(depth / pred - 1) < tol)
     return bool(good.sum() >= share * valid.sum())
@@ -192,7 +193,7 @@ def _agreeing_columns(a, b, grey, depths, heights, world_from_cam) -> np.ndarray
 def _through_door(a: str, b: str, views: dict[str, FloorView | None], reach: dict[str, np.ndarray],
                   world_from_cam: dict[str, np.ndarray]) -> np.ndarray:
     """(K,) int: the columns of a's depth of the floor keypoints a sees behind its walls that match b's inside b's room
-    at the registered pose (geometry.floor_view.agrees_with_pose); reach: each panorama's _reach."""
+    at the registered pose (geometry.floor_view.agrees_with_pose); reach: each panorama's column_reach."""
     va, vb = views[a], views[b]
     if va is None or vb is None:
         return np.zeros(0, np.int64)
@@ -212,12 +213,6 @@ def _subset(v: FloorView, idx: np.ndarray) -> FloorView:
     return replace(v, xz=v.xz[idx], descriptors=v.descriptors[idx], angles=v.angles[idx], sizes=v.sizes[idx])
 
 
-def _reach(depth: np.ndarray) -> np.ndarray:
-    """(W,) the farthest horizontal distance of depth (H, W) per column: the wall of a layout."""
-    dirs = erp_dirs64(*depth.shape)
-    return np.where(depth > 0, depth * np.hypot(dirs[..., 0], dirs[..., 2]), 0.0).max(0)
-
-
 def _column_of(xz: np.ndarray, w: int) -> np.ndarray:
     """(N,) int: the ERP column (of w) of each camera-frame floor point xz (N, 2)."""
     u, _ = erp_pixel_from_lonlat(np.arctan2(xz[:, 0], xz[:, 1]), np.zeros(len(xz)), w // 2, w)
@@ -225,7 +220,7 @@ def _column_of(xz: np.ndarray, w: int) -> np.ndarray:
 
 
 def _wall_plan(reach: np.ndarray) -> np.ndarray:
-    """(W, 2) camera-frame x, z of each column's wall (at its _reach (W,), horizontally)."""
+    """(W, 2) camera-frame x, z of each column's wall (at its column_reach (W,), horizontally)."""
     w = reach.size
     lon, _ = erp_lonlat_from_pixel(np.arange(w) + 0.5, np.zeros(w), w // 2, w)
     return np.stack([reach * np.sin(lon), reach * np.cos(lon)], -1)
@@ -295,7 +290,7 @@ def _on_segments(pts: np.ndarray, segments: list[np.ndarray]) -> np.ndarray:
 
 
 def _open(depth: np.ndarray, height: float, reach: np.ndarray, mask: np.ndarray) -> None:
-    """Open the wall pixels mask (H, W) of depth (H, W) (its _reach (W,)) in place: the floor continues THRESHOLD_M
+    """Open the wall pixels mask (H, W) of depth (H, W) (its column_reach (W,)) in place: the floor continues THRESHOLD_M
     beyond the wall, the rest is unknown."""
     dirs = erp_dirs64(*depth.shape)
     flat = np.hypot(dirs[..., 0], dirs[..., 2])

@@ -75,6 +75,13 @@ def estimate_floor(
     return FloorFit(camera_height=h, support=support)
 
 
+def column_reach(depth: np.ndarray) -> np.ndarray:
+    """(W,) the farthest horizontal distance from the camera of the points (depth > 0) of each column of depth (H, W)
+    (0 where a column has none): in a room's layout, the wall of that column."""
+    dirs = erp_dirs64(*depth.shape)
+    return np.where(depth > 0, depth * np.hypot(dirs[..., 0], dirs[..., 2]), 0.0).max(0)
+
+
 def fit_planes(depth: np.ndarray, valid: np.ndarray) -> tuple[float | None, float | None]:
     """(floor, ceiling) distances below / above the camera of the horizontal planes found in depth (H, W): the
     floor fit of panoworld.room.floor.estimate_floor (area-weighted robust mode of horizontal surfaces), run on the

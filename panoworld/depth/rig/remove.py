@@ -22,6 +22,7 @@ from panoworld.depth.rig.nadir import (
 )
 from panoworld.geometry.cube_views import render_view
 from panoworld.io.images import check_mask_file, read_image
+from panoworld.room.floor import column_reach
 from panoworld.room.light import apply_gain
 
 
@@ -74,10 +75,9 @@ def floor_within_walls(plane: np.ndarray, depth: np.ndarray, seen: np.ndarray) -
     """The floor plane's ray distance plane (H, W) cut at each column's wall: no farther horizontally than the
     farthest point of depth (H, W) at the pixels seen (H, W) bool in that column (a mask reaching a wall's base looks
     at the wall there, not at floor behind it); columns with nothing seen keep the plane."""
-    H, W = depth.shape
-    dirs = erp_dirs64(H, W)
+    dirs = erp_dirs64(*depth.shape)
     flat = np.hypot(dirs[..., 0], dirs[..., 2])
-    reach = np.where(seen & (depth > 0), depth * flat, 0.0).max(0)
+    reach = column_reach(np.where(seen, depth, 0.0))
     wall = np.where(reach[None, :] > 0, reach[None, :] / np.maximum(flat, 1e-9), np.inf)
     return np.minimum(plane, wall).astype(np.float32)
 
