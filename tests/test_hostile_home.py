@@ -573,10 +573,24 @@ def test_a_partial_registration_is_said_on_stderr_and_in_the_table(tmp_path):
     d = make_home(tmp_path / "h", poses=False)  # random textures and flat depths: no pair registers
     out = cli("run", str(d), "--until", "register")
     assert out.returncode == 0, out.stderr
-    line = "home: 1 of 3 panoramas registered (not placed: b, c; see artifacts/register/registration.json)"
+    line = ("home: 1 of 3 panoramas registered (not placed: b, c; see artifacts/register/registration.json; a pose in "
+            "poses.json for one panorama of each group places it)")
     assert f"note: {line}" in out.stderr and f"note: {line}" in out.stdout
     js = cli("run", str(d), "--until", "register", "--json")
     assert line in json.loads(js.stdout)["notes"] and line in js.stderr
+    # The remedy the note names: each panorama here is a group of its own; those given a pose are placed, and the note
+    # names the rest until every group has one.
+    poses = {n: np.eye(4).tolist() for n in ("a", "b", "c")}
+    poses["b"][0][3], poses["c"][0][3] = 0.5, 1.0
+    (d / "poses.json").write_text(json.dumps({n: poses[n] for n in ("b", "c")}))
+    out = cli("run", str(d), "--until", "register")
+    assert out.returncode == 0 and "home: 2 of 3 panoramas registered (not placed: a;" in out.stderr, out.stderr
+    (d / "poses.json").write_text(json.dumps(poses))
+    out = cli("run", str(d), "--until", "register")
+    assert out.returncode == 0 and "note: home" not in out.stderr, out.stderr
+    placed = json.loads((d / "artifacts" / "register" / "panoramas.json").read_text())
+    assert sorted(placed) == ["a", "b", "c"]
+    assert np.isclose(np.linalg.norm(np.subtract(placed["c"], placed["b"])[:3, 3]), 0.5)
 
 
 def test_200_panoramas_are_planned_without_trying_all_pairs():
