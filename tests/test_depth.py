@@ -85,11 +85,28 @@ def test_panorama_checks(room, tmp_path):
 
 
 def test_conform_depth(room):
-    _, _, depth = room
-    half = depth[::2, ::2]
-    up, note = dep.conform_depth(half, 64, 128)
-    assert note == "depth resized from 64x32 to 128x64 (nearest)"
-    np.testing.assert_array_equal(up[::2, ::2], half)
+    scene, _, depth = room
+    _, small = scene.render(np.eye(4), 128, 256)
+    _, full = scene.render(np.eye(4), 256, 512)
+    up, note = dep.conform_depth(small, 256, 512)
+    assert note == "depth resized from 256x128 to 512x256 (bilinear on smooth surfaces, nearest at depth edges)"
+    # The room's walls, floor and ceiling are smooth: bilinear lands far nearer the depth rendered at 256 rows than
+    # nearest sampling, and neighbouring rows hardly repeat (a nearest 2x enlargement repeats every row: a terrace).
+    nearest = cv2.resize(small, (512, 256), interpolation=cv2.INTER_NEAREST_EXACT)
+    err, err_nearest = (np.median(np.abs(a - full) / full) for a in (up, nearest))
+    assert err < 0.1 * err_nearest, (err, err_nearest)
+    assert np.mean(up[1:] == up[:-1]) < 0.05 < 0.45 < np.mean(nearest[1:] == nearest[:-1])
+    # A depth edge stays an edge and invalid depth never blends in: only the source values, 0 where none.
+    step = np.where(np.arange(64) < 32, 1.0, 3.0)[None, :].repeat(32, 0).astype(np.float32)
+    step[:4] = np.nan
+    up, _ = dep.conform_depth(step, 64, 128)
+    assert set(np.unique(up)) == {0.0, 1.0, 3.0} and (up[:8] == 0).all() and (up[8:] > 0).all()
+    # Depth stored as float16 (ZInD's layout depth) keeps that precision, whose rounding step the plane tests read.
+    up16, _ = dep.conform_depth(small.astype(np.float16).astype(np.float32), 256, 512)
+    assert (up16.astype(np.float16).astype(np.float32) == up16).all() and np.mean(up16[1:] == up16[:-1]) < 0.3
+    down, note = dep.conform_depth(full, 128, 256)
+    assert note.endswith("(area-averaged on smooth surfaces, nearest at depth edges)")
+    assert np.median(np.abs(down - small) / small) < 1e-3
     with pytest.raises(StageInputError, match="different aspect"):
         dep.conform_depth(depth[:, :100], 64, 128)
 

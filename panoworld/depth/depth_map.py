@@ -32,8 +32,10 @@ def valid_depth_mask(depth: np.ndarray) -> np.ndarray:
 
 
 def conform_depth(depth: np.ndarray, height: int, width: int, what: str = "depth") -> tuple[np.ndarray, str | None]:
-    """Resize depth (h, w) to the panorama's (height, width) with nearest sampling (invalid pixels never blend into
-    valid ones); the aspect must match. Returns (depth, note) where note describes the resize (None if none)."""
+    """Resize depth (h, w) to the panorama's (height, width) as geometry.resize.resize_depth does (area-averaged when
+    shrinking and bilinear when enlarging on smooth surfaces, nearest at depth edges; invalid pixels never blend into
+    valid ones; 0 where invalid); the aspect must match. Returns (depth, note) where note describes the resize (None if
+    none)."""
     h, w = depth.shape
     if (h, w) == (height, width):
         return depth, None
@@ -42,8 +44,23 @@ def conform_depth(depth: np.ndarray, height: int, width: int, what: str = "depth
             f"{what}: depth is {w}x{h} but the panorama is {width}x{height} (WxH), a different aspect; "
             "give a 2:1 ERP depth map aligned with the panorama"
         )
-    out = cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST_EXACT)
-    return out, f"depth resized from {w}x{h} to {width}x{height} (nearest)"
+    from panoworld.geometry.resize import resize_depth
+
+    how = "bilinear" if height > h else "area-averaged"
+    out = np.nan_to_num(resize_depth(depth, height, width), nan=0.0)
+    if _float16_stored(depth):  # keep the input's precision: its rounding step is what plane tests allow for
+        with np.errstate(over="ignore"):
+            out = out.astype(np.float16).astype(np.float32)
+    return out, f"depth resized from {w}x{h} to {width}x{height} ({how} on smooth surfaces, nearest at depth edges)"
+
+
+def _float16_stored(depth: np.ndarray) -> bool:
+    """Whether depth (H, W) holds float16 values (at least 99 % of its valid values exactly representable as one, the
+    rest filled holes: ZInD's layout depth, rounded to 1 mm at 1-2 m)."""
+    d = np.asarray(depth, np.float32)
+    d = d[np.isfinite(d) & (d > 0)]
+    with np.errstate(over="ignore"):
+        return bool(len(d)) and float(np.mean(d.astype(np.float16).astype(np.float32) == d)) >= 0.99
 
 
 def fill_small_holes(

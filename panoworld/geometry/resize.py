@@ -1,4 +1,4 @@
-"""Depth maps resized like the colour beside them (area on smooth surfaces, nearest at edges)."""
+"""Depth maps resized like the colour beside them (area or bilinear on smooth surfaces, nearest at edges)."""
 
 from __future__ import annotations
 
@@ -12,11 +12,12 @@ DEPTH_EDGE_REL = 0.1
 
 
 def resize_depth(depth: np.ndarray, height: int, width: int, edge_rel: float = DEPTH_EDGE_REL) -> np.ndarray:
-    """Depth (h, w) metres (NaN/0/inf = none) resized to (height, width) like the colour beside it: area-averaged on
-    smooth surfaces (every source pixel the target pixel reads valid and their depths within edge_rel of each other),
-    nearest at depth edges and next to invalid pixels (no depth between two surfaces, none made up). Nearest everywhere
-    would put the pixels of a smooth surface on an uneven grid (720 -> 512 rows skips every third row or column),
-    which opens cracks between per-pixel Gaussians seen from aside."""
+    """Depth (h, w) metres (NaN/0/inf = none) resized to (height, width) like the colour beside it: on smooth surfaces
+    (every source pixel the target pixel reads valid and their depths within edge_rel of each other) area-averaged
+    when shrinking and bilinear when enlarging, nearest at depth edges and next to invalid pixels (no depth between two
+    surfaces, none made up). Nearest everywhere would put the pixels of a smooth surface on an uneven grid (720 -> 512
+    rows skips every third row or column; 512 -> 1024 rows repeats each one, a terrace every other row), which opens
+    cracks between per-pixel Gaussians seen from aside."""
     import cv2
 
     h, w = depth.shape
@@ -30,7 +31,9 @@ def resize_depth(depth: np.ndarray, height: int, width: int, edge_rel: float = D
     lo = cv2.erode(np.where(valid, d, np.inf).astype(np.float32), kernel)
     full = cv2.erode(valid.astype(np.uint8), kernel)
     hi, lo, full = (cv2.resize(a, (width, height), interpolation=cv2.INTER_NEAREST) for a in (hi, lo, full))
-    area = cv2.resize(np.where(valid, d, 0).astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
+    enlarge = height > h or width > w  # INTER_AREA enlarges as nearest does
+    area = cv2.resize(np.where(valid, d, 0).astype(np.float32), (width, height),
+                      interpolation=cv2.INTER_LINEAR if enlarge else cv2.INTER_AREA)
     with np.errstate(invalid="ignore", over="ignore"):
         smooth = (full > 0) & (hi <= lo * (1.0 + edge_rel))
     return np.where(smooth, area, nearest).astype(np.float32)
