@@ -132,7 +132,7 @@ def test_adjoining_rooms_register_through_the_doorway():
     b = room(*_render(wb, ROOM_B, ROOM_A))
     p = layout_pair(a, b, step_m=0.2)  # a coarser slide than the default keeps the test fast; the refinement does the rest
     gt = invert_pose(wa) @ wb
-    assert np.linalg.norm(p.a_from_b[[0, 2], 3] - gt[[0, 2], 3]) < 0.08
+    assert np.linalg.norm(p.a_from_b[[0, 2], 3] - gt[[0, 2], 3]) < 0.1  # two of the refinement's 5 cm steps
     assert abs(np.degrees(yaw_of(p.a_from_b[:3, :3]) - yaw_of(gt[:3, :3]))) < 1.0
     assert _trusted(p) and p.score > 2.0 * p.second
 
@@ -162,7 +162,7 @@ def test_register_panoramas_joins_adjoining_rooms_by_a_layout_edge():
                              options=RegisterOptions(height=H, layout=True))
     assert reg.panoramas["b"]["edge"] == LAYOUT  # no depth, floor or bearing edge: the doorway is all they share
     gt = invert_pose(wa) @ wb
-    assert np.linalg.norm(reg.world_from_cam["b"][[0, 2], 3] - gt[[0, 2], 3]) < 0.08
+    assert np.linalg.norm(reg.world_from_cam["b"][[0, 2], 3] - gt[[0, 2], 3]) < 0.1
     assert abs(np.degrees(yaw_of(reg.world_from_cam["b"][:3, :3]) - yaw_of(gt[:3, :3]))) < 1.0
     off = register_panoramas(["a", "b"], {"a": ra, "b": rb}, {"a": da, "b": db},
                              options=RegisterOptions(height=H))  # layout off by default
