@@ -218,8 +218,8 @@ def implausible_mask(depth: np.ndarray, valid: np.ndarray, floor_m: float | None
     beyond a wall it is a real scan's noise, not a room's). Through the camera: near_plane_mask, any pixel nearer
     than near_m, and where those found any, with floor_m, any point in the tripod's column (tripod_column: a camera
     set on a table, with no surface through it, keeps the table). The first two are found on every
-    k-th row and column (ANALYSIS_HEIGHT rows at most: the pixel centres of a depth map nearest-upsampled by k, as
-    provided layout depth is) and apply to their k x k blocks."""
+    k-th row and column (ANALYSIS_HEIGHT rows at most: the resolution provided layout depth comes at, enlarged by k
+    for its panorama) and apply to their k x k blocks."""
     H, W = depth.shape
     k = max(1, H // ANALYSIS_HEIGHT)
     k = k if H % k == 0 and W % k == 0 else 1

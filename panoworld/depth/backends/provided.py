@@ -34,7 +34,7 @@ def read(job):
     H, W = job.rgb.shape[:2]
     info: dict = {}
     raw = read_depth(path, png_scale=o.png_scale)
-    if raw.shape[0] > H:  # fill at most at the working resolution (nearest: invalid never blends in)
+    if raw.shape[0] > H:  # fill at most at the working resolution (invalid never blends in)
         raw, note = dep.conform_depth(raw, H, W, str(path))
         job.notes.append(note)
     valid = dep.valid_depth_mask(raw)
