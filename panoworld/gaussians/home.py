@@ -8,7 +8,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from panoworld.core.conventions import erp_dirs, invert_pose, transform_points
+from panoworld.core.conventions import erp_dirs64, invert_pose, transform_points
 from panoworld.core.memory import release_free_memory
 from panoworld.gaussians.capture_fit import fit_capture_colors
 from panoworld.gaussians.fusion import ContextSource
@@ -63,7 +63,7 @@ def depth_from_others(k: int, names: list[str], depths: dict[str, np.ndarray], w
         ok = np.isfinite(d) & (d > 0)
         if j == k or not ok.any():
             continue
-        pts = erp_dirs(*d.shape, np.float64)[ok] * d[ok][:, None]
+        pts = erp_dirs64(*d.shape)[ok] * d[ok][:, None]
         p = transform_points(cam_from_world @ world_from_cam[other], pts)
         rows, cols = erp_pixel_index(p, h, w)
         np.minimum.at(zbuf, rows * w + cols, np.linalg.norm(p, axis=1))
@@ -152,7 +152,7 @@ def own_fill(k: int, names: list[str], depths: dict[str, np.ndarray], world_from
     nearer = depth_from_others(k, names, {**depths, n: depth}, world_from_cam, height=h)
     d = np.where(nearer > 0, np.minimum(d, nearer / (1.0 + 2.0 * tol)), d)
     fill &= np.isfinite(d)
-    pts = transform_points(world_from_cam[n], erp_dirs(h, w, np.float64)[fill] * d[fill][:, None])
+    pts = transform_points(world_from_cam[n], erp_dirs64(h, w)[fill] * d[fill][:, None])
     fill[fill] = ~others.explained(pts)
     return np.where(fill, d, 0.0).astype(np.float32)
 
@@ -185,7 +185,7 @@ def add_own_fill(result: FusionResult, names: list[str], rgbs: dict[str, np.ndar
         d = fills[n]
         h, w = d.shape
         stood_for = at[SourceVisibility(d, world_from_cam[n], params.source_tol).explained(means)]
-        pts = transform_points(world_from_cam[n], erp_dirs(h, w, np.float64).reshape(-1, 3) * d.reshape(-1, 1))
+        pts = transform_points(world_from_cam[n], erp_dirs64(h, w).reshape(-1, 3) * d.reshape(-1, 1))
         own = nearest_source(k, pts, fill_names, fills, world_from_cam, tol=params.source_tol)
         for m in fill_names:  # nor in front of another fill, seen from that one's capture point
             if m != n:
@@ -231,7 +231,7 @@ def home_anchored_fusion(frames: ContextSource | None, sources: dict[str, tuple[
     for k, n in enumerate(names):
         rgb, depth = small[n][0], depths[n]
         h, w = depth.shape
-        pts = transform_points(poses[n], erp_dirs(h, w, np.float64).reshape(-1, 3) * depth.reshape(-1, 1))
+        pts = transform_points(poses[n], erp_dirs64(h, w).reshape(-1, 3) * depth.reshape(-1, 1))
         keep = nearest_source(k, pts, names, depths, poses, tol=tol)
         if params.source_carve_tol > 0:
             keep &= ~seen_through(k, pts, names, observed, poses, tol=params.source_carve_tol)

@@ -9,7 +9,7 @@ import cv2
 import numba
 import numpy as np
 
-from panoworld.core.conventions import erp_dirs
+from panoworld.core.conventions import erp_dirs64
 from panoworld.core.shapes import check_shape
 from panoworld.geometry.floor_view import camera_height
 from panoworld.geometry.polygons import fit_line
@@ -84,7 +84,7 @@ def outline(depth: np.ndarray, *, band_deg: float = 25.0, max_dist_m: float = 20
     of those pixels are valid or beyond max_dist_m."""
     check_shape("depth", depth, "H W")
     h, w = depth.shape
-    dirs = erp_dirs(h, w, np.float64)
+    dirs = erp_dirs64(h, w)
     band = np.abs(dirs[:, 0, 1]) < np.sin(np.radians(band_deg))
     d = np.where(np.isfinite(depth) & (depth > 0), depth, np.nan)[band]
     horiz = d * np.hypot(dirs[band, :, 0], dirs[band, :, 2])
@@ -219,7 +219,7 @@ def room(rgb: np.ndarray, depth: np.ndarray, *, rows: int = 96, min_manhattan: f
     src_rows = 2 * rows
     sg = _gray(rgb, src_rows)
     sd = _depth_at(depth, src_rows)
-    pts = erp_dirs(src_rows, 2 * src_rows, np.float64) * sd[..., None]
+    pts = erp_dirs64(src_rows, 2 * src_rows) * sd[..., None]
     return Room(dist=dist, walls=walls, theta=dominant_direction(walls), height_m=float(h), gray=gray, depth=d,
                 src_gray=sg, src_pts=pts)
 

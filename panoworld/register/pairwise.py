@@ -12,7 +12,7 @@ import torch
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from panoworld.core.conventions import erp_dirs, erp_pixel_from_dir, invert_pose
+from panoworld.core.conventions import erp_dirs, erp_dirs64, erp_pixel_from_dir, invert_pose
 from panoworld.geometry.cube_views import cube_views, render_view
 from panoworld.geometry.panoramas import erp_pixel_index
 from panoworld.models.pose_refine import depth_edges, sample_range
@@ -277,7 +277,7 @@ def icp_refine(i_from_j: np.ndarray, depth_i: np.ndarray, depth_j: np.ndarray, *
     (occluded or unseen surfaces) are dropped. -> refined i_from_j (4, 4)."""
     di, dj = _small(depth_i, height), _small(depth_j, height)
     h, w = di.shape
-    dirs = erp_dirs(h, w, np.float64)
+    dirs = erp_dirs64(h, w)
     pi = dirs * di[..., None]
     ni = _erp_normals(pi)
     edge_i = depth_edges(torch.from_numpy(np.where(di > 0, di, 1e-6))[None])[0].numpy()
