@@ -7,6 +7,7 @@ import numpy as np
 
 from panoworld.core.errors import InputError
 from panoworld.depth.options import Rescale
+from panoworld.geometry.resize import resize_depth
 from panoworld.room.floor import estimate_floor
 
 # ---------------------------------------------------------------- files
@@ -44,8 +45,6 @@ def conform_depth(depth: np.ndarray, height: int, width: int, what: str = "depth
             f"{what}: depth is {w}x{h} but the panorama is {width}x{height} (WxH), a different aspect; "
             "give a 2:1 ERP depth map aligned with the panorama"
         )
-    from panoworld.geometry.resize import resize_depth
-
     how = "bilinear" if height > h else "area-averaged"
     out = np.nan_to_num(resize_depth(depth, height, width), nan=0.0)
     if _float16_stored(depth):  # keep the input's precision: its rounding step is what plane tests allow for
