@@ -136,6 +136,27 @@ def test_contains_clearance_and_ray_reach_are_exact():
     assert nav.contains(s).all() and nav.clearance(s).min() >= 0.2
 
 
+def test_even_odd_matches_the_all_pairs_reference_bit_for_bit():
+    from panoworld.geometry.polygons import even_odd, even_odd_reference, ring_segments
+
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        rings = []
+        for _ in range(int(rng.integers(1, 4))):  # overlapping star rings: holes and self-crossings (even-odd)
+            m = int(rng.integers(3, 40))
+            t = np.sort(rng.uniform(0, 2 * np.pi, m))
+            ring = rng.uniform(-2, 2, 2) + rng.uniform(0.5, 3, (m, 1)) * np.stack([np.cos(t), np.sin(t)], 1)
+            rings.append(np.round(ring * 4) / 4 if rng.random() < 0.5 else ring)  # vertices on the points' rows
+        segs = ring_segments(rings)
+        grid = np.stack(np.meshgrid(np.arange(-24, 25) / 4, np.arange(-24, 25) / 4), -1).reshape(-1, 2)
+        pts = np.concatenate([rng.uniform(-6, 6, (2000, 2)), grid, segs[:, 0]])
+        ref = even_odd_reference(pts, segs)
+        assert 0 < ref.sum() < len(pts)
+        assert np.array_equal(even_odd(pts, segs), ref)
+        assert np.array_equal(even_odd(pts, segs, max_pairs=int(rng.integers(1, 500))), ref)  # many chunks
+    assert even_odd(np.zeros((0, 2)), segs).shape == (0,)
+
+
 def test_no_floor_is_a_clear_error():
     # A panorama whose lower half has no depth (no floor pixels).
     d = erp_depth(box_room(), 64)

@@ -55,8 +55,43 @@ def ring_segments(rings: list[np.ndarray]) -> np.ndarray:
     return np.concatenate([np.stack([r, np.roll(r, -1, axis=0)], 1) for r in rings], axis=0)
 
 
-def even_odd(points: np.ndarray, segs: np.ndarray, chunk: int = 4096) -> np.ndarray:
-    """Point-in-polygon (even-odd rule) of points (N, 2) against ring segments (S, 2, 2) -> (N,) bool."""
+def even_odd(points: np.ndarray, segs: np.ndarray, max_pairs: int = 1 << 22) -> np.ndarray:
+    """Point-in-polygon (even-odd rule) of points (N, 2) against ring segments (S, 2, 2) -> (N,) bool.
+
+    The same test as even_odd_reference, bit for bit, on only the (point, segment) pairs whose horizontal ray can
+    cross: with the points sorted by y, a segment is tested against the run of points with min(ay, by) <= y <
+    max(ay, by), at most max_pairs pairs at a time."""
+    points = np.asarray(points, np.float64)
+    n = len(points)
+    out = np.zeros(n, bool)
+    if n == 0 or len(segs) == 0:
+        return out
+    order = np.argsort(points[:, 1], kind="stable")
+    xs, ys = points[order, 0], points[order, 1]
+    a, b = segs[:, 0], segs[:, 1]
+    lo = np.searchsorted(ys, np.minimum(a[:, 1], b[:, 1]), side="left")
+    cnt = np.searchsorted(ys, np.maximum(a[:, 1], b[:, 1]), side="left") - lo
+    todo = np.flatnonzero(cnt > 0)
+    ends = np.cumsum(cnt[todo])
+    crossings = np.zeros(n, np.int64)
+    start = 0
+    while start < len(todo):
+        done = int(ends[start - 1]) if start else 0
+        stop = max(start + 1, int(np.searchsorted(ends, done + max_pairs, side="right")))
+        s = todo[start:stop]
+        c = cnt[s]
+        seg = np.repeat(s, c)
+        pi = np.repeat(lo[s] - (ends[start:stop] - c - done), c) + np.arange(len(seg))
+        ax, ay, bx, by = a[seg, 0], a[seg, 1], b[seg, 0], b[seg, 1]
+        xint = ax + (ys[pi] - ay) * (bx - ax) / (by - ay)
+        crossings += np.bincount(pi[xs[pi] < xint], minlength=n)
+        start = stop
+    out[order] = crossings % 2 == 1
+    return out
+
+
+def even_odd_reference(points: np.ndarray, segs: np.ndarray, chunk: int = 4096) -> np.ndarray:
+    """even_odd by testing every point against every segment (the test oracle)."""
     out = np.zeros(len(points), bool)
     a, b = segs[:, 0], segs[:, 1]
     for s in range(0, len(points), chunk):
