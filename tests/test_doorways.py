@@ -139,7 +139,7 @@ def test_matched_keypoints_alone_open_a_doorway_and_never_a_wall(doorway_home, m
     wall gets none."""
     from panoworld.room import doorways
 
-    monkeypatch.setattr(doorways, "_agreeing_columns", lambda a, b, grey, depths, heights, world_from_cam:
+    monkeypatch.setattr(doorways, "_agreeing_columns", lambda a, b, seen_b, gb, grey, depths, heights, world_from_cam:
                         np.zeros(depths[a].shape[1], bool))
     opened, result = _opened(doorway_home)
     assert opened["a"] > 0 and opened["b"] > 0

@@ -83,13 +83,16 @@ def open_doorways(names: list[str], rgbs: dict[str, np.ndarray], depths: dict[st
     views = {n: floor_view(rgbs[n], depths[n]) for n in known}
     walls = {n: _walls(depths[n], heights[n]) for n in layouts}
     reach = {n: column_reach(depths[n]) for n in known}
+    direct: dict[str, tuple] = {}
     masks, segments = {}, []
     for a in layouts:
         w = depths[a].shape[1]
         cols, through = np.zeros(w, bool), []
         for b in known:
             if b != a and _near(world_from_cam[a], world_from_cam[b]):
-                cols |= _agreeing_columns(a, b, grey, depths, heights, world_from_cam)
+                if b not in direct:
+                    direct[b] = _seen_directly(b, grey, depths, heights, world_from_cam)
+                cols |= _agreeing_columns(a, b, *direct[b], grey, depths, heights, world_from_cam)
                 through.append(_through_door(a, b, views, reach, world_from_cam))
         plan = _wall_plan(reach[a])
         keep = np.zeros(w, bool)
@@ -135,9 +138,9 @@ def _near(world_from_a: np.ndarray, world_from_b: np.ndarray) -> bool:
     return float(np.linalg.norm(np.asarray(world_from_a)[[0, 2], 3] - np.asarray(world_from_b)[[0, 2], 3])) <= 2 * REACH_M
 
 
-def _look(name: str, pts: np.ndarray, grey, depths, world_from_cam):
-    """For world points pts (n, n, 3): (distance from the panorama's camera, its depth along that ray, its grey image
-    there, the depth column)."""
+def _look(name: str, pts: np.ndarray, depths, world_from_cam):
+    """For world points pts (n, n, 3): (distance from the panorama's camera, its depth along that ray, the depth
+    column, the unit directions (n * n, 3) in the camera frame)."""
     p = transform_points(invert_pose(np.asarray(world_from_cam[name], np.float64)), pts)
     dist = np.linalg.norm(p, axis=-1)
     d = (p / np.maximum(dist, 1e-9)[..., None]).reshape(-1, 3)
@@ -145,29 +148,50 @@ def _look(name: str, pts: np.ndarray, grey, depths, world_from_cam):
     h, w = depth.shape
     u, v = erp_pixel_from_dir(d, h, w)
     iu, iv = np.floor(u).astype(int) % w, np.clip(np.floor(v).astype(int), 0, h - 1)
-    g = grey[name]
+    return dist, depth[iv, iu].reshape(dist.shape), iu.reshape(dist.shape), d
+
+
+def _grey_at(g: np.ndarray, d: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The grey image g (bilinear, the seam wrapped) in the unit directions d (shape[0] * shape[1], 3), blurred by
+    BLUR_CELLS on the grid of shape."""
     gu, gv = erp_pixel_from_dir(d, *g.shape)
     padded = np.concatenate([g[:, -2:], g, g[:, :2]], 1)  # the seam wraps
-    val = cv2.remap(padded, (gu - 0.5 + 2).astype(np.float32).reshape(dist.shape),
-                    (gv - 0.5).astype(np.float32).reshape(dist.shape), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return dist, depth[iv, iu].reshape(dist.shape), val, iu.reshape(dist.shape)
+    val = cv2.remap(padded, (gu - 0.5 + 2).astype(np.float32).reshape(shape),
+                    (gv - 0.5).astype(np.float32).reshape(shape), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return cv2.GaussianBlur(val.astype(np.float32), (0, 0), BLUR_CELLS)
 
 
-def _agreeing_columns(a, b, grey, depths, heights, world_from_cam) -> np.ndarray:
-    """(W,) bool: columns of a's depth through which a sees, behind its wall, floor that b sees directly, with both
-    images' textures correlating there (at least 3 cells and half of those compared in the column)."""
-    Ta, Tb = (np.asarray(world_from_cam[n], np.float64) for n in (a, b))
-    w = depths[a].shape[1]
+def _grid() -> tuple[np.ndarray, np.ndarray]:
+    """The floor grid's cell centres (x, z) around a camera, each (n, n) metres."""
     c = (np.arange(int(round(2 * REACH_M / CELL_M))) + 0.5) * CELL_M - REACH_M
-    x, z = np.meshgrid(c, c)
+    return np.meshgrid(c, c)
+
+
+def _seen_directly(b, grey, depths, heights, world_from_cam) -> tuple[np.ndarray, np.ndarray | None]:
+    """b's floor on the grid around its camera: (cells b sees directly (n, n) bool, within REACH_M and beyond the rig's
+    inpainted floor; b's blurred grey image there, None when no cell is seen)."""
+    Tb = np.asarray(world_from_cam[b], np.float64)
+    x, z = _grid()
     floor_b = Tb[:3, 3] + np.stack([x, np.full_like(x, heights[b]), z], -1)
-    floor_a = floor_b.copy()
-    floor_a[..., 1] = Ta[1, 3] + heights[a]
-    dist_b, depth_b, grey_b, _ = _look(b, floor_b, grey, depths, world_from_cam)
-    dist_a, depth_a, grey_a, col_a = _look(a, floor_a, grey, depths, world_from_cam)
+    dist_b, depth_b, _, d = _look(b, floor_b, depths, world_from_cam)
     r = np.hypot(x, z)
     seen_b = (depth_b > 0) & (dist_b <= depth_b * 1.02 + 0.03) & (r < REACH_M)
     seen_b &= r > heights[b] * np.tan(np.radians(35.0))  # not the rig's inpainted floor
+    return seen_b, (_grey_at(grey[b], d, x.shape) if seen_b.sum() >= WINDOW * WINDOW else None)
+
+
+def _agreeing_columns(a, b, seen_b, gb, grey, depths, heights, world_from_cam) -> np.ndarray:
+    """(W,) bool: columns of a's depth through which a sees, behind its wall, floor that b sees directly (seen_b, gb:
+    _seen_directly of b), with both images' textures correlating there (at least 3 cells and half of those compared in
+    the column)."""
+    w = depths[a].shape[1]
+    if gb is None:
+        return np.zeros(w, bool)
+    Ta, Tb = (np.asarray(world_from_cam[n], np.float64) for n in (a, b))
+    x, z = _grid()
+    floor_a = Tb[:3, 3] + np.stack([x, np.zeros_like(x), z], -1)
+    floor_a[..., 1] = Ta[1, 3] + heights[a]
+    dist_a, depth_a, col_a, d = _look(a, floor_a, depths, world_from_cam)
     behind_a = (depth_a > 0) & (dist_a > depth_a * 1.05 + 0.10)
     cand = seen_b & behind_a
     if cand.sum() < WINDOW * WINDOW:
@@ -178,7 +202,7 @@ def _agreeing_columns(a, b, grey, depths, heights, world_from_cam) -> np.ndarray
         return cv2.boxFilter(q.astype(np.float32), -1, (WINDOW, WINDOW), normalize=False,
                              borderType=cv2.BORDER_CONSTANT)
 
-    ga, gb = (cv2.GaussianBlur(g.astype(np.float32), (0, 0), BLUR_CELLS) for g in (grey_a, grey_b))
+    ga = _grey_at(grey[a], d, x.shape)
     cnt = box(m)
     n = np.maximum(cnt, 1.0)
     ma, mb = box(ga * m) / n, box(gb * m) / n
