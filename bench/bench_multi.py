@@ -178,10 +178,13 @@ def _at_doorways(before: dict[str, np.ndarray], after: dict[str, np.ndarray], gt
     return count
 
 
-def run_pipeline_one(seed: int, k: int, height: int, work: Path, preset: str, psnr_height: int) -> dict:
-    """`runner.py run` on one synthetic home: wall and CPU seconds (the runner and its stages), each stage's wall
-    seconds and the largest stage peak memory, registration error, capture points on the NavMesh, the trajectory's
-    size and the Gaussians rendered at every capture pose against its panorama (PSNR at psnr_height rows)."""
+def run_pipeline_one(seed: int, k: int, height: int, work: Path, preset: str, psnr_height: int, *,
+                     depth: str = "scene", scale_error: float = 0.0, noise: float = 0.0,
+                     exposure_jitter: float = 0.0) -> dict:
+    """`runner.py run` on one synthetic home (depth, perturbed as run_one does): wall and CPU seconds (the runner and
+    its stages), each stage's wall seconds and the largest stage peak memory, registration error, capture points on
+    the NavMesh, the trajectory's size and the Gaussians rendered at every capture pose against its panorama (PSNR at
+    psnr_height rows)."""
     import resource
 
     from panoworld.gaussians.quality import capture_psnr
@@ -190,7 +193,11 @@ def run_pipeline_one(seed: int, k: int, height: int, work: Path, preset: str, ps
     params = home_params(preset, tour_rooms(k))
     params = replace(params, render=replace(params.render, pano_height=height))
     home = generate_home(seed, k, preset, params=params)
-    scene = write_home(home, work / f"home_{seed}_{k}", params)
+    scene = write_home(home, work / f"home_{seed}_{k}", params, depth=depth)
+    if scale_error > 0 or noise > 0:
+        perturb_depths(scene, seed, scale_error, noise)
+    if exposure_jitter > 0:
+        perturb_exposure(scene, seed, exposure_jitter)
     load_before = os.getloadavg()[0]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
@@ -228,13 +235,17 @@ def pipeline_main(args, seeds) -> int:
         work = Path(args.work) if args.work else Path(tmp)
         for k in args.panoramas:
             for seed in seeds:
-                rows.append(run_pipeline_one(seed, k, args.height, work, args.preset, args.psnr_height))
+                rows.append(run_pipeline_one(seed, k, args.height, work, args.preset, args.psnr_height,
+                                             depth=args.depth, scale_error=args.depth_scale_error,
+                                             noise=args.depth_noise, exposure_jitter=args.exposure_jitter))
                 print(json.dumps(rows[-1]), file=sys.stderr)
     if args.json:
-        print(json.dumps({"height": args.height, "preset": args.preset, "seeds": list(seeds), "rows": rows}, indent=1))
+        print(json.dumps({"height": args.height, "preset": args.preset, "depth": args.depth, "seeds": list(seeds),
+                          "rows": rows}, indent=1))
         return 0
     print(f"| seed | panoramas | rooms | registered | trans cm / rot deg max | on NavMesh | frames | Gaussians | "
-          f"capture PSNR dB min (each) | wall s | CPU s | load | peak MB |  (preset {args.preset}, height {args.height})")
+          f"capture PSNR dB min (each) | wall s | CPU s | load | peak MB |  (preset {args.preset}, height {args.height}, "
+          f"{args.depth} depth)")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for r in rows:
         each = ", ".join(f"{v:.1f}" for v in r["capture_psnr"].values())
