@@ -6,8 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
-ALL_PAIRS_UP_TO = 16
-"""Homes of at most this many panoramas try every pair (120 pairs; RegisterOptions.all_pairs_up_to's default)."""
+ALL_PAIRS_UP_TO = 32
+"""Homes of at most this many panoramas (a real-estate tour) try every pair (496 pairs; RegisterOptions.all_pairs_up_to's
+default): rooms that join only through a doorway look unlike each other and need not be near in capture order."""
 PAIRS_PER_PANORAMA = 8
 """Beyond ALL_PAIRS_UP_TO: pairs tried per panorama, half with the next panoramas in name (capture) order, half with
 the most similar ones by appearance_descriptor; at most PAIRS_PER_PANORAMA x panoramas pairs in all."""
