@@ -169,7 +169,7 @@ def _grid() -> tuple[np.ndarray, np.ndarray]:
 
 def _seen_directly(b, grey, depths, heights, world_from_cam) -> tuple[np.ndarray, np.ndarray | None]:
     """b's floor on the grid around its camera: (cells b sees directly (n, n) bool, within REACH_M and beyond the rig's
-    inpainted floor; b's blurred grey image there, None when no cell is seen)."""
+    inpainted floor; b's blurred grey image there, None when fewer than WINDOW x WINDOW cells are: too few to compare)."""
     Tb = np.asarray(world_from_cam[b], np.float64)
     x, z = _grid()
     floor_b = Tb[:3, 3] + np.stack([x, np.full_like(x, heights[b]), z], -1)
