@@ -9,6 +9,7 @@ from panoworld.core.errors import InputError
 from panoworld.depth.options import Rescale
 from panoworld.geometry.resize import resize_depth
 from panoworld.room.floor import estimate_floor
+from panoworld.room.plausible import float16_exact
 
 # ---------------------------------------------------------------- files
 
@@ -57,9 +58,8 @@ def _float16_stored(depth: np.ndarray) -> bool:
     """Whether depth (H, W) holds float16 values (at least 99 % of its valid values exactly representable as one, the
     rest filled holes: ZInD's layout depth, rounded to 1 mm at 1-2 m)."""
     d = np.asarray(depth, np.float32)
-    d = d[np.isfinite(d) & (d > 0)]
-    with np.errstate(over="ignore"):
-        return bool(len(d)) and float(np.mean(d.astype(np.float16).astype(np.float32) == d)) >= 0.99
+    valid = np.isfinite(d) & (d > 0)
+    return bool(valid.any()) and float(float16_exact(d, valid)[0][valid].mean()) >= 0.99
 
 
 def fill_small_holes(

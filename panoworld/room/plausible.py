@@ -149,9 +149,17 @@ def near_plane_mask(depth: np.ndarray, valid: np.ndarray, near_m: float = NEAR_P
 def _depth_quantum(depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """(H, W) the rounding step of depth values stored as float16 (ZInD's layout depth: 1 mm at 1-2 m), 0 for finer
     ones and invalid pixels: a plane's points leave it by up to that step."""
-    with np.errstate(over="ignore", invalid="ignore"):  # past float16's range: not float16, no step
+    exact, d16 = float16_exact(depth, valid)
+    with np.errstate(invalid="ignore"):
+        return np.where(exact, np.spacing(d16).astype(np.float32), 0.0)
+
+
+def float16_exact(depth: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The valid pixels whose depth (H, W) is exactly a float16 value (depth stored at float16's precision), (H, W)
+    bool, and the depth as float16 (0 where not valid)."""
+    with np.errstate(over="ignore", invalid="ignore"):  # past float16's range: inf, not float16
         d16 = np.where(valid, depth, 0.0).astype(np.float16)
-        return np.where(valid & (d16.astype(np.float32) == depth), np.spacing(d16).astype(np.float32), 0.0)
+        return valid & (d16.astype(np.float32) == depth), d16
 
 
 def label_wrapped(mask: np.ndarray) -> tuple[np.ndarray, int]:
