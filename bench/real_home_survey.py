@@ -114,7 +114,8 @@ def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str]) -> 
     from panoworld.geometry.resize import rgbd_at_height
     from panoworld.io.home import RIG_MASK_PNG, home_depth_dirs, load_sources
     from panoworld.register.artifact import _read_rig_mask
-    from panoworld.register.floor import floor_support
+    from panoworld.register.floor import floor_support, floor_turn
+    from panoworld.register.layout import manhattan_frame
     from panoworld.register.options import RegisterOptions
     from panoworld.register.pairwise import grow_exclusion
 
@@ -125,8 +126,10 @@ def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str]) -> 
     views = {}
     for n in names:
         rig = dirs[n] / RIG_MASK_PNG
-        views[n] = floor_view(rgbs[n], rgbd_at_height(rgbs[n], depths[n], o.height)[1], radius_m=o.floor_radius_m,
-                              cell_m=o.floor_cell_m, exclude=grow_exclusion(_read_rig_mask(rig) if rig.is_file() else None))
+        small = rgbd_at_height(rgbs[n], depths[n], o.height)[1]
+        views[n] = floor_view(rgbs[n], small, radius_m=o.floor_radius_m, cell_m=o.floor_cell_m,
+                              exclude=grow_exclusion(_read_rig_mask(rig) if rig.is_file() else None),
+                              turn=floor_turn(manhattan_frame(small), o.floor_along_walls))
     rows = []
     for i, a in enumerate(names):
         for b in names[i + 1:]:

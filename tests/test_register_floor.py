@@ -74,6 +74,30 @@ def test_camera_height_in_a_narrow_room_is_the_floor_not_the_walls():
     assert abs(camera_height(flat) - FLOOR_Y) < 1e-4
 
 
+def test_a_turned_floor_view_returns_its_keypoints_in_the_camera_frame():
+    """A floor image laid along other axes (turn) holds the same floor: its keypoints, returned in the camera's frame,
+    fit the unturned view's at the identity; and a panorama turned about gravity by whole columns, whose floor image is
+    turned back by as much, gives the unturned floor image (the same samples) and a fit at the panorama's own yaw."""
+    rgb, depth = _render(_pose(0.0, 0.0, 0.0), _texture(3))
+    plain = floor_view(rgb, depth, radius_m=4.0)
+    for turn in (np.pi / 2, 0.61):
+        turned = floor_view(rgb, depth, radius_m=4.0, turn=turn)
+        p = floor_pair(plain, turned)
+        assert p.inliers > 0.3 * len(plain.xz)
+        assert np.abs(p.a_from_b[[0, 2], 3]).max() < 0.01 and abs(np.degrees(yaw_of(p.a_from_b[:3, :3]))) < 0.2
+    k = 2 * H // 8  # a 45 degree turn of the camera
+    rolled_rgb, rolled_depth = np.roll(rgb, k, axis=1), np.roll(depth, k, axis=1)
+    back = 2 * np.pi * k / (2 * H)
+    from panoworld.geometry.floor_view import floor_image
+
+    same = floor_image(rolled_rgb, FLOOR_Y, radius_m=4.0, cell_m=0.015, turn=back)
+    assert np.abs(same.astype(int) - floor_image(rgb, FLOOR_Y, radius_m=4.0, cell_m=0.015).astype(int)).max() <= 1
+    p = floor_pair(plain, floor_view(rolled_rgb, rolled_depth, radius_m=4.0, turn=back))
+    assert p.inliers > 0.5 * len(plain.xz)
+    assert np.abs(p.a_from_b[[0, 2], 3]).max() < 0.01
+    assert abs(abs(np.degrees(yaw_of(p.a_from_b[:3, :3]))) - 45.0) < 0.2
+
+
 def test_floor_pair_recovers_upright_pose_on_a_shared_floor():
     tex = _texture(0)
     wa, wb = _pose(20.0, 0.3, -0.2), _pose(-113.0, 2.1, 1.4, y=0.05)

@@ -58,13 +58,15 @@ def plane_distance(depth: np.ndarray, *, below: bool, min_angle_deg: float = 40.
     return float(np.median(y[np.abs(y - peak) <= 2 * step]))
 
 
-def floor_image(rgb: np.ndarray, height_m: float, *, radius_m: float, cell_m: float) -> np.ndarray:
+def floor_image(rgb: np.ndarray, height_m: float, *, radius_m: float, cell_m: float, turn: float = 0.0) -> np.ndarray:
     """(n, n, 3) uint8 top-down image of the plane height_m below the camera over x, z in [-radius_m, radius_m]
-    (column = x, row 0 = far +z), resampled from the ERP panorama rgb (H, 2H, 3) (or (n, n) from an (H, 2H) image)."""
+    (column = x, row 0 = far +z) of the camera turned by `turn` (radians, about gravity: image point (x, z) lies at
+    turn_xz(x, z, turn) in the camera frame), resampled from the ERP panorama rgb (H, 2H, 3) (or (n, n) from an
+    (H, 2H) image)."""
     n = int(round(2 * radius_m / cell_m))
     c = (np.arange(n) + 0.5) * cell_m - radius_m
     x, z = np.meshgrid(c, c[::-1])
-    lon, lat = np.arctan2(x, z), np.arctan2(-height_m, np.hypot(x, z))
+    lon, lat = np.arctan2(x, z) + turn, np.arctan2(-height_m, np.hypot(x, z))
     hi, wi = rgb.shape[:2]
     pad = 4
     padded = np.concatenate([rgb[:, -pad:], rgb, rgb[:, :pad]], 1)  # the seam wraps
@@ -72,25 +74,35 @@ def floor_image(rgb: np.ndarray, height_m: float, *, radius_m: float, cell_m: fl
     return cv2.remap(padded, (u - 0.5 + pad).astype(np.float32), (v - 0.5).astype(np.float32), cv2.INTER_LINEAR)
 
 
+def turn_xz(xz: np.ndarray, turn: float) -> np.ndarray:
+    """(N, 2) floor points x, z of a camera turned by `turn` (radians, the longitude it adds) -> the camera's frame."""
+    c, s = np.cos(turn), np.sin(turn)
+    return np.stack([xz[:, 0] * c + xz[:, 1] * s, xz[:, 1] * c - xz[:, 0] * s], 1)
+
+
 def floor_view(rgb: np.ndarray, depth: np.ndarray, *, radius_m: float = 6.0, cell_m: float = 0.015,
-               rig_deg: float = 32.0, max_features: int = 4000, exclude: np.ndarray | None = None) -> FloorView | None:
+               rig_deg: float = 32.0, max_features: int = 4000, exclude: np.ndarray | None = None,
+               turn: float = 0.0) -> FloorView | None:
     """SIFT keypoints of the floor image of an upright panorama rgb (H, 2H, 3) with ray depth (h, 2h) (camera height;
     0 = invalid). The whole lower hemisphere is projected onto the floor plane, walls included (they smear radially
     and find no consistent partner), so floor seen through a doorway that a layout depth closes is kept; the disc
     within rig_deg of the nadir (the tripod) is masked, and so is what exclude (an ERP mask (H', 2H') bool, e.g. a
-    detected rig) covers. None without a camera height."""
+    detected rig) covers. The image's axes are the camera's turned by `turn` (radians; the keypoints are returned in
+    the camera's frame): SIFT finds the same keypoints again under quarter turns of an image far more often than under
+    other turns, so floor images whose axes follow their rooms' walls match better than ones that follow where each
+    panorama's seam fell. None without a camera height."""
     check_shape("panorama", rgb, "H W 3")
     h = camera_height(depth)
     if h is None or not np.isfinite(h) or h <= 0:
         return None
-    img = floor_image(rgb, h, radius_m=radius_m, cell_m=cell_m)
+    img = floor_image(rgb, h, radius_m=radius_m, cell_m=cell_m, turn=turn)
     gray = cv2.createCLAHE(2.0, (8, 8)).apply(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY))
     n = gray.shape[0]
     c = (np.arange(n) + 0.5) * cell_m - radius_m
     r = np.hypot(*np.meshgrid(c, c))
     keep = (r > h * np.tan(np.radians(rig_deg))) & (r < radius_m - 2 * cell_m)
     if exclude is not None:
-        keep &= floor_image(exclude.astype(np.uint8) * 255, h, radius_m=radius_m, cell_m=cell_m) < 128
+        keep &= floor_image(exclude.astype(np.uint8) * 255, h, radius_m=radius_m, cell_m=cell_m, turn=turn) < 128
     mask = keep.astype(np.uint8) * 255
     kps, desc = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=0.01).detectAndCompute(gray, mask)
     if desc is None or not kps:
@@ -98,8 +110,11 @@ def floor_view(rgb: np.ndarray, depth: np.ndarray, *, radius_m: float = 6.0, cel
                          angles=np.zeros(0), sizes=np.zeros(0))
     pts = np.array([k.pt for k in kps], np.float64)  # OpenCV pixel centres are integers
     xz = np.stack([(pts[:, 0] + 0.5) * cell_m - radius_m, radius_m - (pts[:, 1] + 0.5) * cell_m], 1)
+    angles = np.radians([k.angle for k in kps])
+    if turn:
+        xz, angles = turn_xz(xz, turn), angles + turn
     return FloorView(height_m=h, xz=xz, descriptors=desc.astype(np.float32),
-                     angles=np.radians([k.angle for k in kps]), sizes=np.array([k.size for k in kps], np.float64))
+                     angles=angles, sizes=np.array([k.size for k in kps], np.float64))
 
 
 def floor_matches(a: FloorView, b: FloorView, *, ratio: float = 1.0, both_ways: bool = False) -> np.ndarray:

@@ -178,6 +178,13 @@ def fixed_yaw_translation(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dlog
     return best
 
 
+def floor_turn(walls: float | None, along_walls: bool = True) -> float:
+    """The turn (radians) of a panorama's floor image (floor_view) whose wall normals lie at `walls` (manhattan_frame:
+    atan2(z, x), modulo 90 degrees; None: not known): the image's x axis along a wall normal with along_walls, else
+    the camera's axes (0)."""
+    return -float(walls) if along_walls and walls is not None else 0.0
+
+
 def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: float = 1.0,
                yaws: np.ndarray | None = None) -> FloorPose | None:
     """a_from_b of two floor views: each keypoint of either view with its nearest neighbour in the other (Lowe's ratio

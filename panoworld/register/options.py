@@ -62,6 +62,10 @@ class RegisterOptions:
     """The floor images cover x, z within this of the camera."""
     floor_cell_m: float = param(0.015, gt=0)
     """Floor image pixel size (metres)."""
+    floor_along_walls: bool = True
+    """Lay each floor image's axes along its room's walls (manhattan_frame; the camera's axes where it has none): the
+    floor images of one home then differ by quarter turns, under which SIFT finds the same keypoints again, whatever
+    the azimuth each panorama's seam fell at."""
     floor_threshold_m: float = param(0.05, gt=0)
     """Floor RANSAC inlier threshold: distance on the floor between matched keypoints (metres)."""
     floor_ratio: float = param(1.0, gt=0, le=1)
