@@ -110,11 +110,11 @@ def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str]) -> 
     within 8 cm on the floor, 15 deg in keypoint orientation and 0.6 octaves in size; most first."""
     from bench_real_home import survey_poses
 
-    from panoworld.geometry.floor_view import floor_matches, floor_view
+    from panoworld.geometry.floor_view import floor_matches
     from panoworld.geometry.resize import rgbd_at_height
     from panoworld.io.home import RIG_MASK_PNG, home_depth_dirs, load_sources
     from panoworld.register.artifact import _read_rig_mask
-    from panoworld.register.floor import floor_support, floor_turn
+    from panoworld.register.floor import floor_support, panorama_floor_view
     from panoworld.register.layout import manhattan_frame
     from panoworld.register.options import RegisterOptions
     from panoworld.register.pairwise import grow_exclusion
@@ -127,9 +127,8 @@ def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str]) -> 
     for n in names:
         rig = dirs[n] / RIG_MASK_PNG
         small = rgbd_at_height(rgbs[n], depths[n], o.height)[1]
-        views[n] = floor_view(rgbs[n], small, radius_m=o.floor_radius_m, cell_m=o.floor_cell_m,
-                              exclude=grow_exclusion(_read_rig_mask(rig) if rig.is_file() else None),
-                              turn=floor_turn(manhattan_frame(small), o.floor_along_walls))
+        views[n] = panorama_floor_view(rgbs[n], small, grow_exclusion(_read_rig_mask(rig) if rig.is_file() else None),
+                                       manhattan_frame(small), o)
     rows = []
     for i, a in enumerate(names):
         for b in names[i + 1:]:

@@ -61,7 +61,7 @@ def plane_distance(depth: np.ndarray, *, below: bool, min_angle_deg: float = 40.
 def floor_image(rgb: np.ndarray, height_m: float, *, radius_m: float, cell_m: float, turn: float = 0.0) -> np.ndarray:
     """(n, n, 3) uint8 top-down image of the plane height_m below the camera over x, z in [-radius_m, radius_m]
     (column = x, row 0 = far +z) of the camera turned by `turn` (radians, about gravity: image point (x, z) lies at
-    turn_xz(x, z, turn) in the camera frame), resampled from the ERP panorama rgb (H, 2H, 3) (or (n, n) from an
+    yaw_matrix_xz(turn) @ (x, z) in the camera frame), resampled from the ERP panorama rgb (H, 2H, 3) (or (n, n) from an
     (H, 2H) image)."""
     n = int(round(2 * radius_m / cell_m))
     c = (np.arange(n) + 0.5) * cell_m - radius_m
@@ -72,12 +72,6 @@ def floor_image(rgb: np.ndarray, height_m: float, *, radius_m: float, cell_m: fl
     padded = np.concatenate([rgb[:, -pad:], rgb, rgb[:, :pad]], 1)  # the seam wraps
     u, v = erp_pixel_from_lonlat(lon, lat, hi, wi)  # pixel centres at +0.5; OpenCV's remap at integers
     return cv2.remap(padded, (u - 0.5 + pad).astype(np.float32), (v - 0.5).astype(np.float32), cv2.INTER_LINEAR)
-
-
-def turn_xz(xz: np.ndarray, turn: float) -> np.ndarray:
-    """(N, 2) floor points x, z of a camera turned by `turn` (radians, the longitude it adds) -> the camera's frame."""
-    c, s = np.cos(turn), np.sin(turn)
-    return np.stack([xz[:, 0] * c + xz[:, 1] * s, xz[:, 1] * c - xz[:, 0] * s], 1)
 
 
 def floor_view(rgb: np.ndarray, depth: np.ndarray, *, radius_m: float = 6.0, cell_m: float = 0.015,
@@ -112,7 +106,7 @@ def floor_view(rgb: np.ndarray, depth: np.ndarray, *, radius_m: float = 6.0, cel
     xz = np.stack([(pts[:, 0] + 0.5) * cell_m - radius_m, radius_m - (pts[:, 1] + 0.5) * cell_m], 1)
     angles = np.radians([k.angle for k in kps])
     if turn:
-        xz, angles = turn_xz(xz, turn), angles + turn
+        xz, angles = xz @ yaw_matrix_xz(turn).T, angles + turn
     return FloorView(height_m=h, xz=xz, descriptors=desc.astype(np.float32),
                      angles=angles, sizes=np.array([k.size for k in kps], np.float64))
 

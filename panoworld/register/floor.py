@@ -9,8 +9,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from panoworld.core.shapes import check_shape
-from panoworld.geometry.floor_view import FloorView, agrees_with_pose, floor_matches
+from panoworld.geometry.floor_view import FloorView, agrees_with_pose, floor_matches, floor_view
 from panoworld.geometry.upright import wrap_angle, yaw_matrix, yaw_matrix_xz
+from panoworld.register.options import RegisterOptions
 
 
 @dataclass(kw_only=True)
@@ -178,11 +179,14 @@ def fixed_yaw_translation(p: np.ndarray, q: np.ndarray, dtheta: np.ndarray, dlog
     return best
 
 
-def floor_turn(walls: float | None, along_walls: bool = True) -> float:
-    """The turn (radians) of a panorama's floor image (floor_view) whose wall normals lie at `walls` (manhattan_frame:
-    atan2(z, x), modulo 90 degrees; None: not known): the image's x axis along a wall normal with along_walls, else
-    the camera's axes (0)."""
-    return -float(walls) if along_walls and walls is not None else 0.0
+def panorama_floor_view(rgb: np.ndarray, small_depth: np.ndarray, exclude: np.ndarray | None, walls: float | None,
+                        o: RegisterOptions) -> FloorView | None:
+    """The floor view registration matches of a panorama rgb (H, 2H, 3) with its depth at the registration's height
+    (small_depth (h, 2h)), no keypoint where exclude (grow_exclusion's rig mask) is: its image's x axis along a wall
+    normal at `walls` (manhattan_frame: atan2(z, x), modulo 90 degrees) with floor_along_walls, the camera's axes
+    without wall directions."""
+    turn = -float(walls) if o.floor_along_walls and walls is not None else 0.0
+    return floor_view(rgb, small_depth, radius_m=o.floor_radius_m, cell_m=o.floor_cell_m, exclude=exclude, turn=turn)
 
 
 def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: float = 1.0,

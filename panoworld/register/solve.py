@@ -9,11 +9,11 @@ from dataclasses import replace
 import numpy as np
 
 from panoworld.core.conventions import invert_pose
-from panoworld.geometry.floor_view import FloorView, camera_height, floor_view
+from panoworld.geometry.floor_view import FloorView, camera_height
 from panoworld.geometry.resize import rgbd_at_height
 from panoworld.geometry.upright import wrap_angle, yaw_of
 from panoworld.register.cuts import refuse_outvoted_cuts, weak_floor
-from panoworld.register.floor import FloorPose, floor_pair, floor_rooms_refusal, floor_turn
+from panoworld.register.floor import FloorPose, floor_pair, floor_rooms_refusal, panorama_floor_view
 from panoworld.register.graph import (
     BEARING,
     DEPTH,
@@ -87,11 +87,9 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
         small = {n: rgbd_at_height(rgbs[n], depths[n], o.height) for n in names}
         rig = {n: grow_exclusion((rig_masks or {}).get(n)) for n in names}
         feats = {n: erp_features(*small[n], max_features=o.max_features, exclude=rig[n]) for n in names}
-        frames = {n: manhattan_frame(small[n][1]) if o.manhattan or o.floor_along_walls else None for n in names}
-        views = {n: floor_view(rgbs[n], small[n][1], radius_m=o.floor_radius_m, cell_m=o.floor_cell_m, exclude=rig[n],
-                               turn=floor_turn(frames[n], o.floor_along_walls)) if o.floor else None for n in names}
-        if not o.manhattan:
-            frames = dict.fromkeys(names)
+        walls = {n: manhattan_frame(small[n][1]) if o.manhattan or o.floor_along_walls else None for n in names}
+        views = {n: panorama_floor_view(rgbs[n], small[n][1], rig[n], walls[n], o) if o.floor else None for n in names}
+        frames = walls if o.manhattan else dict.fromkeys(names)
         looks = {n: appearance_descriptor(small[n][0]) for n in names} if k > o.all_pairs_up_to else None
         heights = {n: v.height_m if (v := views[n]) is not None else camera_height(small[n][1]) for n in names}
 
