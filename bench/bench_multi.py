@@ -1,7 +1,8 @@
 """Benchmark of multi-panorama homes: synthetic homes of >= 3 rooms with 2, 4 and 8 panoramas ->
 registration error against ground truth (translation cm, rotation deg), registered fraction, time and peak memory,
 and whether one NavMesh over the home mesh (the mesh stage's rules, as mesh.home.home_mesh applies them) holds every
-registered capture point. With --depth layout each panorama's depth is its room's layout alone (doorways closed, no furniture: as
+registered capture point, and the floor fits right and wrong against the truth (how many the repeated-pattern
+margin passes). With --depth layout each panorama's depth is its room's layout alone (doorways closed, no furniture: as
 real-estate tours annotate it); the doorways the home mesh opens are then scored against the true doorways. With
 --pipeline: the whole `runner.py run` on each home (wall and CPU seconds, peak memory, NavMesh, Gaussian render at
 every capture pose)."""
@@ -29,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from panoworld.core.conventions import invert_pose
 from panoworld.core.errors import InputError
+from panoworld.geometry.upright import yaw_of
 from panoworld.io.depth import read_depth, read_panorama
 from panoworld.io.manifest import read_manifest
 from panoworld.mesh.fuse import fuse_meshes
@@ -105,6 +107,7 @@ def run_one(seed: int, k: int, height: int, work: Path, with_navmesh: bool, scal
     est = {n: np.asarray(T) for n, T in json.loads((out / "panoramas.json").read_text()).items()}
     gt = {n: np.asarray(T) for n, T in json.loads((scene / "gt" / "poses.json").read_text()).items()}
     errs = pose_errors(est, gt)
+    fits = floor_fit_figures(json.loads((out / "registration.json").read_text()).get("pairs", []), gt)
     nav = navmesh_figures(scene, est, gt, home) if with_navmesh else {}
     others = [v for n, v in errs.items() if n != sorted(est)[0]]
     t = np.array([e[0] for e in others]) if others else np.zeros(1)
@@ -115,8 +118,38 @@ def run_one(seed: int, k: int, height: int, work: Path, with_navmesh: bool, scal
         "trans_cm_mean": float(t.mean()), "trans_cm_max": float(t.max()),
         "rot_deg_mean": float(r.mean()), "rot_deg_max": float(r.max()),
         "register_s": float(manifest["wall_s"]), "peak_rss_mb": float(manifest["peak_rss_mb"]), "synth_s": synth_s,
-        **nav,
+        "floor_fits": fits, **nav,
     }
+
+
+def floor_fit_figures(pairs: list[dict], gt: dict[str, np.ndarray]) -> dict:
+    """The floor fits of min_floor_inliers or more among registration.json's pair rows, right (within MISPLACED_CM
+    and MISPLACED_DEG of the true relative pose) or wrong, and how many of each pass the repeated-pattern margin
+    (floor_min_margin times the runner-up, or a runner-up below min_floor_inliers): {right, wrong, right_pass,
+    wrong_pass, right_by_minimum, wrong_by_minimum (those that pass only because the runner-up is below
+    min_floor_inliers), right_second_share_max (the right fits' largest runner-up over inliers)}."""
+    from panoworld.register.options import RegisterOptions
+
+    o = RegisterOptions()
+    out = dict.fromkeys(("right", "wrong", "right_pass", "wrong_pass", "right_by_minimum", "wrong_by_minimum"), 0)
+    shares = []
+    for r in pairs:
+        if r.get("floor_inliers", 0) < o.min_floor_inliers or "floor_xz_m" not in r:
+            continue
+        true = invert_pose(gt[r["a"]]) @ gt[r["b"]]
+        yaw = np.degrees(yaw_of(true[:3, :3]))
+        dyaw = abs((r["floor_yaw_deg"] - yaw + 180.0) % 360.0 - 180.0)
+        dxz = np.hypot(r["floor_xz_m"][0] - true[0, 3], r["floor_xz_m"][1] - true[2, 3])
+        kind = "right" if dxz * 100 <= MISPLACED_CM and dyaw <= MISPLACED_DEG else "wrong"
+        second, inl = r.get("floor_second", 0), r["floor_inliers"]
+        out[kind] += 1
+        if inl >= o.floor_min_margin * second or second < o.min_floor_inliers:
+            out[f"{kind}_pass"] += 1
+            out[f"{kind}_by_minimum"] += int(inl < o.floor_min_margin * second)
+        if kind == "right":
+            shares.append(second / inl)
+    out["right_second_share_max"] = max(shares, default=0.0)
+    return out
 
 
 def navmesh_figures(scene: Path, est: dict[str, np.ndarray], gt: dict[str, np.ndarray], home) -> dict:
@@ -309,6 +342,8 @@ def main() -> int:
             "one_component": sum(r.get("navmesh_components") == 1 for r in sel) if not args.no_navmesh else None,
             "doorway_px": sum(r.get("doorway_px", 0) for r in sel),
             "doorway_px_at_doorways": sum(r.get("doorway_px_at_doorways", 0) for r in sel),
+            "floor_fits": {key: (max if key.endswith("_max") else sum)(r["floor_fits"][key] for r in sel)
+                           for key in sel[0]["floor_fits"]} if sel else {},
         })
     if args.json:
         print(json.dumps({"height": args.height, "seeds": list(seeds), "depth": args.depth, "exposure_jitter": args.exposure_jitter,
@@ -325,6 +360,15 @@ def main() -> int:
               f"| {s['register_s_mean']:.1f} | {s['peak_rss_mb_max']:.0f} | {s['navmesh_connected']} of {s['scenes']} "
               f"| {s['one_component']} of {s['scenes']} | {s['doorway_px']} ({s['doorway_px_at_doorways']}) "
               f"| {s['fuse_navmesh_s_mean'] or 0:.1f} |")
+    print("\nfloor fits of min_floor_inliers or more (right: within the misplaced bounds of the true pose), and those "
+          "the repeated-pattern margin passes (of them, by the runner-up's minimum alone):\n")
+    print("| panoramas | right | right passed (by minimum) | wrong | wrong passed (by minimum) | right fits' runner-up "
+          "/ inliers max |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    for s in summary:
+        f = s["floor_fits"]
+        print(f"| {s['panoramas']} | {f['right']} | {f['right_pass']} ({f['right_by_minimum']}) | {f['wrong']} | "
+              f"{f['wrong_pass']} ({f['wrong_by_minimum']}) | {f['right_second_share_max']:.2f} |")
     return 0
 
 

@@ -133,9 +133,12 @@ def home_sources(scene: Path, poses: dict[str, np.ndarray]) -> tuple[dict, dict]
     return rgbs, depths
 
 
-def render_scores(g, pose: np.ndarray, rgb: np.ndarray, height: int, seen: np.ndarray | None = None) -> dict:
+def render_scores(g, pose: np.ndarray, rgb: np.ndarray, height: int, seen: np.ndarray | None = None,
+                  surfaces: dict[str, np.ndarray] | None = None) -> dict:
     """PSNR, SSIM and coverage of the Gaussians g rendered at pose against rgb (area-downsampled to height rows),
-    over the sphere and, with seen (height, 2 height) bool, over the seen and unseen pixels."""
+    over the sphere and, with seen (height, 2 height) bool, over the seen and unseen pixels; on the seen pixels also
+    the PSNR after one least-squares gain per channel (the captures' exposures differ) and per surface (surfaces:
+    surface_masks)."""
     from panoworld.render.erp import render_erp
     from panoworld.render.metrics import psnr, ssim_map
 
@@ -152,7 +155,33 @@ def render_scores(g, pose: np.ndarray, rgb: np.ndarray, height: int, seen: np.nd
             if m.any():
                 res[key] = {"share": float(m.mean()), "psnr": psnr(img, ref, m, data_range=1.0),
                             "ssim": float(smap[m].mean()), "coverage": float((alpha[m] > 0.5).mean())}
+        if seen.any():
+            gain = (img[seen] * ref[seen]).sum(0) / np.maximum((img[seen] ** 2).sum(0), 1e-12)
+            res["seen"].update(gain=[float(x) for x in gain],
+                               psnr_gain_matched=psnr(np.clip(img * gain, 0, 1), ref, seen, data_range=1.0))
+            for key, m in (surfaces or {}).items():
+                if (m & seen).any():
+                    res["seen"][key] = {"share": float((m & seen).sum() / seen.sum()),
+                                        "psnr": psnr(img, ref, m & seen, data_range=1.0)}
     return res
+
+
+def surface_masks(depth: np.ndarray, height: int) -> dict[str, np.ndarray]:
+    """{"floor", "ceiling", "walls"}: (height, 2 height) bool masks of a panorama's pixels by the surface its ray
+    depth puts them on: within 3 cm of its floor's or its ceiling's distance (plane_distance), or any other depth."""
+    from panoworld.core.conventions import erp_dirs64
+    from panoworld.geometry.floor_view import plane_distance
+    from panoworld.geometry.resize import resize_depth
+
+    d = resize_depth(depth, height, 2 * height)
+    d = np.where(np.isfinite(d) & (d > 0), d, 0.0)
+    y = erp_dirs64(height, 2 * height)[..., 1] * d
+    out = {}
+    for key, sign in (("floor", 1.0), ("ceiling", -1.0)):
+        h = plane_distance(d, below=sign > 0)
+        out[key] = (d > 0) & (np.abs(sign * y - h) < 0.03) if h is not None else np.zeros(d.shape, bool)
+    out["walls"] = (d > 0) & ~out["floor"] & ~out["ceiling"]
+    return out
 
 
 def seen_by_others(name: str, poses: dict, depths: dict, height: int) -> np.ndarray:
@@ -250,7 +279,7 @@ def leave_one_out_captures(full: Path, name: str, height: int) -> dict:
     _, full_depths = home_sources(full, full_poses)
     seen = seen_by_others(name, full_poses, full_depths, height)
     out = {"name": name, "build": "captures", "registered": len(others), "num_gaussians": len(g)}
-    out.update(render_scores(g, full_poses[name], rgbs[name], height, seen))
+    out.update(render_scores(g, full_poses[name], rgbs[name], height, seen, surface_masks(full_depths[name], height)))
     out.update(wall_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0)
     return out
 
@@ -284,7 +313,8 @@ def leave_one_out(src: Path, work: Path, full: Path, name: str, survey_mode: dic
     seen = seen_by_others(name, full_poses, depths, height)
     g = read_gaussians_ply(scene / "artifacts" / "gaussians" / "gaussians.ply")
     raw = read_panorama(next((src / "panoramas").glob(f"{name}.*")))
-    out.update(aligned_through=ref, registered=len(loo_poses), **render_scores(g, pose, raw, height, seen))
+    out.update(aligned_through=ref, registered=len(loo_poses),
+               **render_scores(g, pose, raw, height, seen, surface_masks(depths[name], height)))
     return out
 
 
@@ -354,6 +384,19 @@ def print_report(res: dict) -> None:
                   f"{fmt(s.get('share'), '.2f')} | {fmt(s.get('psnr'))} / {fmt(s.get('ssim'), '.3f')} / "
                   f"{fmt(s.get('coverage'), '.3f')} | {fmt(u.get('psnr'))} / {fmt(u.get('ssim'), '.3f')} / "
                   f"{fmt(u.get('coverage'), '.3f')} | {o['wall_s']:.0f} |")
+        print("\nthe seen pixels by the surface the left-out panorama's depth puts them on, and with one gain per "
+              "channel fitted (the captures' exposures differ):\n")
+        print("| panorama | seen PSNR dB | gain-matched PSNR dB (gain R, G, B) | floor share / PSNR | walls share / PSNR "
+              "| ceiling share / PSNR |")
+        print("| --- | --- | --- | --- | --- | --- |")
+        for o in res["loo"]:
+            s = o.get("seen") or {}
+            if "psnr" not in s:
+                continue
+            cells = [f"{fmt((s.get(k) or {}).get('share'), '.2f')} / {fmt((s.get(k) or {}).get('psnr'))}"
+                     for k in ("floor", "walls", "ceiling")]
+            print(f"| {o['name']} | {s['psnr']:.2f} | {fmt(s.get('psnr_gain_matched'))} "
+                  f"({', '.join(f'{x:.2f}' for x in s.get('gain', []))}) | " + " | ".join(cells) + " |")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -310,7 +310,11 @@ def test_register_panoramas_joins_a_pair_by_its_floor():
     assert reg.panoramas["b"]["registered"] and reg.panoramas["b"]["edge"] == FLOOR
     truth = invert_pose(wa) @ wb
     assert np.linalg.norm(reg.world_from_cam["b"][:3, 3] - truth[:3, 3]) < 0.03
-    assert reg.pairs[0]["floor_inliers"] >= 50
+    row = reg.pairs[0]
+    assert row["floor_inliers"] >= 50
+    # the row carries the floor fit's own pose (what bench_multi scores the floor fits by)
+    assert abs(row["floor_yaw_deg"] - np.degrees(yaw_of(truth[:3, :3]))) < 0.5
+    assert np.hypot(row["floor_xz_m"][0] - truth[0, 3], row["floor_xz_m"][1] - truth[2, 3]) < 0.03
 
 
 def test_no_keypoint_on_the_excluded_rig():

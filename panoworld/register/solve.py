@@ -165,7 +165,8 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
         if floors.get((a, b)) is not None:
             f = floors[a, b]
             row.update(floor_inliers=f.inliers, floor_matches=f.matches, floor_residual_m=round(f.residual_m, 4),
-                       floor_second=f.second)
+                       floor_second=f.second, floor_yaw_deg=round(float(np.degrees(yaw_of(f.a_from_b[:3, :3]))), 2),
+                       floor_xz_m=[round(float(f.a_from_b[0, 3]), 3), round(float(f.a_from_b[2, 3]), 3)])
             if floor_refused.get((a, b)):
                 row["floor_refused"] = floor_refused[a, b]
         if layouts.get((a, b)) is not None:
