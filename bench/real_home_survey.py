@@ -102,12 +102,14 @@ def layout_pairs(registration: dict, survey: dict) -> list[dict]:
     return rows
 
 
-def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str]) -> list[dict]:
+def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str], pairs: list[dict] = ()) -> list[dict]:
     """Per pair of panoramas not both registered: the floor views' matches (the register stage's floor_view on the
     depth artifact's cleaned panoramas, rig excluded, default RegisterOptions; floor_pair's nearest-neighbour matches
-    both ways)
-    that agree with the survey's relative pose
-    within 8 cm on the floor, 15 deg in keypoint orientation and 0.6 octaves in size; most first."""
+    both ways) that agree with the survey's relative pose within 8 cm on the floor, 15 deg in keypoint orientation
+    and 0.6 octaves in size, and, from the registration's pair rows (registration.json's "pairs"), the pair's floor
+    fit: its inliers, how far it lies from the survey's pose (m, deg: the survey itself is good to about 0.1 m
+    between rooms, so a fit can agree with the truth and keep no match within 8 cm of the survey's pose) and why it
+    was refused. Fits near the survey (MISPLACED_M, MISPLACED_DEG) first, then most agreeing."""
     from bench_real_home import survey_poses
 
     from panoworld.geometry.floor_view import floor_matches
@@ -129,6 +131,7 @@ def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str]) -> 
         small = rgbd_at_height(rgbs[n], depths[n], o.height)[1]
         views[n] = panorama_floor_view(rgbs[n], small, grow_exclusion(_read_rig_mask(rig) if rig.is_file() else None),
                                        manhattan_frame(small), o)
+    fits = {(r["a"], r["b"]): r for r in pairs} | {(r["b"], r["a"]): _flipped(r) for r in pairs}
     rows = []
     for i, a in enumerate(names):
         for b in names[i + 1:]:
@@ -137,9 +140,31 @@ def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str]) -> 
                 continue
             gt = np.linalg.inv(world[a]) @ world[b]
             m = floor_matches(va, vb, both_ways=True)  # the matches floor_pair fits
-            rows.append({"a": a, "b": b, "distance_m": round(float(np.hypot(gt[0, 3], gt[2, 3])), 2),
-                         "agreeing": floor_support(va, vb, gt, matches=m), "matches": len(m)})
-    return sorted(rows, key=lambda r: (-r["agreeing"], r["distance_m"]))
+            row = {"a": a, "b": b, "distance_m": round(float(np.hypot(gt[0, 3], gt[2, 3])), 2),
+                   "agreeing": floor_support(va, vb, gt, matches=m), "matches": len(m)}
+            fit = fits.get((a, b))
+            if fit is not None and "floor_xz_m" in fit:
+                row.update(fit_inliers=fit["floor_inliers"], refused=fit.get("floor_refused", ""),
+                           fit_err_m=round(float(np.hypot(fit["floor_xz_m"][0] - gt[0, 3],
+                                                          fit["floor_xz_m"][1] - gt[2, 3])), 3),
+                           fit_yaw_err_deg=round(abs(float(_wrap_deg(fit["floor_yaw_deg"] - np.degrees(_yaw(gt)))))
+                                                 , 2))
+            rows.append(row)
+
+    def near(r: dict) -> bool:
+        return r.get("fit_err_m", np.inf) <= MISPLACED_M and r.get("fit_yaw_err_deg", np.inf) <= MISPLACED_DEG
+
+    return sorted(rows, key=lambda r: (not near(r), -r["agreeing"], r["distance_m"]))
+
+
+def _flipped(row: dict) -> dict:
+    """A registration pair row's floor fit as b_from_a (the row holds a_from_b's yaw and x, z offset)."""
+    if "floor_xz_m" not in row:
+        return row
+    t = math.radians(row["floor_yaw_deg"])
+    x, z = row["floor_xz_m"]
+    c, s = math.cos(t), math.sin(t)
+    return row | {"floor_yaw_deg": -row["floor_yaw_deg"], "floor_xz_m": [-(c * x - s * z), -(s * x + c * z)]}
 
 
 MISPLACED_M, MISPLACED_DEG = 0.25, 2.0
@@ -251,7 +276,8 @@ def main() -> int:
     reg = args.register / "registration.json"
     r["layout_pairs"] = layout_pairs(json.loads(reg.read_text()), survey) if reg.is_file() else []
     if args.floor_evidence:
-        r["floor_evidence"] = floor_evidence(args.register.parent / "depth", survey, set(poses))
+        rows = json.loads(reg.read_text()).get("pairs", []) if reg.is_file() else []
+        r["floor_evidence"] = floor_evidence(args.register.parent / "depth", survey, set(poses), rows)
     if args.subsets:
         r["subsets"] = subset_registrations(args.register.parent / "depth", survey, args.subsets, args.seed)
     if args.rolls or args.rows:
@@ -282,10 +308,13 @@ def main() -> int:
         ev = r["floor_evidence"]
         print(f"\nfloor evidence over the {len(ev)} pairs not both registered (matches agreeing with the survey; a floor "
               "edge needs 6 distinct inliers, and another pair across its cut below 11; chance fits reach 8):")
-        print("| pair | distance m | agreeing matches | matches |")
-        print("| --- | --- | --- | --- |")
+        print("| pair | distance m | agreeing matches | matches | floor fit inliers | fit from the survey m / deg | "
+              "refused |")
+        print("| --- | --- | --- | --- | --- | --- | --- |")
         for p in ev[:15]:
-            print(f"| {p['a']}-{p['b']} | {p['distance_m']:.2f} | {p['agreeing']} | {p['matches']} |")
+            print(f"| {p['a']}-{p['b']} | {p['distance_m']:.2f} | {p['agreeing']} | {p['matches']} | "
+                  f"{f(p.get('fit_inliers'), 'd')} | {f(p.get('fit_err_m'), '.3f')} / {f(p.get('fit_yaw_err_deg'), '.2f')}"
+                  f" | {(p.get('refused') or '-')[:90]} |")
     if args.subsets:
         rows = r["subsets"]
         print(f"\n{len(rows)} random subsets registered again (seed {args.seed}): "
