@@ -24,11 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-
-def _yaw(world_from_cam: np.ndarray) -> float:
-    """Yaw (radians) of a camera about the world's gravity axis (y)."""
-    R = world_from_cam[:3, :3]
-    return float(np.arctan2(R[0, 2] - R[2, 0], R[0, 0] + R[2, 2]))
+from panoworld.geometry.upright import yaw_of
 
 
 def _wrap_deg(a: np.ndarray) -> np.ndarray:
@@ -62,7 +58,7 @@ def compare_to_survey(world_from_cam: dict[str, np.ndarray], survey: dict) -> di
     for i, a in enumerate(names):
         for b in names[i + 1:]:
             d_est, d_sur = float(np.linalg.norm(xz[b] - xz[a])), float(np.linalg.norm(xy[b] - xy[a]))
-            yaw_est = np.degrees(_yaw(est[b]) - _yaw(est[a]))
+            yaw_est = np.degrees(yaw_of(est[b][:3, :3]) - yaw_of(est[a][:3, :3]))
             yaw_sur = panos[b]["yaw_deg"] - panos[a]["yaw_deg"]
             out["pairs"].append({"a": a, "b": b, "dist_est_m": round(d_est, 4), "dist_survey_m": round(d_sur, 4),
                                  "dist_err_m": round(abs(d_est - d_sur), 4),
@@ -147,7 +143,7 @@ def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str], pai
                 row.update(fit_inliers=fit["floor_inliers"], refused=fit.get("floor_refused", ""),
                            fit_err_m=round(float(np.hypot(fit["floor_xz_m"][0] - gt[0, 3],
                                                           fit["floor_xz_m"][1] - gt[2, 3])), 3),
-                           fit_yaw_err_deg=round(abs(float(_wrap_deg(fit["floor_yaw_deg"] - np.degrees(_yaw(gt)))))
+                           fit_yaw_err_deg=round(abs(float(_wrap_deg(fit["floor_yaw_deg"] - np.degrees(yaw_of(gt[:3, :3])))))
                                                  , 2))
             rows.append(row)
 
