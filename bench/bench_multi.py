@@ -30,7 +30,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from panoworld.core.conventions import invert_pose
 from panoworld.core.errors import InputError
-from panoworld.geometry.upright import yaw_of
 from panoworld.io.depth import read_depth, read_panorama
 from panoworld.io.manifest import read_manifest
 from panoworld.mesh.fuse import fuse_meshes
@@ -128,6 +127,8 @@ def floor_fit_figures(pairs: list[dict], gt: dict[str, np.ndarray]) -> dict:
     (floor_min_margin times the runner-up, or a runner-up below min_floor_inliers): {right, wrong, right_pass,
     wrong_pass, right_by_minimum, wrong_by_minimum (those that pass only because the runner-up is below
     min_floor_inliers), right_second_share_max (the right fits' largest runner-up over inliers)}."""
+    from real_home_survey import row_pose_error  # bench/, beside this script
+
     from panoworld.register.options import RegisterOptions
 
     o = RegisterOptions()
@@ -136,10 +137,7 @@ def floor_fit_figures(pairs: list[dict], gt: dict[str, np.ndarray]) -> dict:
     for r in pairs:
         if r.get("floor_inliers", 0) < o.min_floor_inliers or "floor_xz_m" not in r:
             continue
-        true = invert_pose(gt[r["a"]]) @ gt[r["b"]]
-        yaw = np.degrees(yaw_of(true[:3, :3]))
-        dyaw = abs((r["floor_yaw_deg"] - yaw + 180.0) % 360.0 - 180.0)
-        dxz = np.hypot(r["floor_xz_m"][0] - true[0, 3], r["floor_xz_m"][1] - true[2, 3])
+        dxz, dyaw = row_pose_error(r, "floor", invert_pose(gt[r["a"]]) @ gt[r["b"]])
         kind = "right" if dxz * 100 <= MISPLACED_CM and dyaw <= MISPLACED_DEG else "wrong"
         second, inl = r.get("floor_second", 0), r["floor_inliers"]
         out[kind] += 1

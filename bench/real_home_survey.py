@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -78,6 +77,14 @@ def compare_to_survey(world_from_cam: dict[str, np.ndarray], survey: dict) -> di
             "aligned_err_m_median": float(np.median(err)), "aligned_err_m_max": float(err.max())}
 
 
+def row_pose_error(row: dict, kind: str, true_a_from_b: np.ndarray) -> tuple[float, float]:
+    """How far a registration.json pair row's `kind` pose ("floor" or "layout": its a_from_b as KIND_xz_m and
+    KIND_yaw_deg) lies from true_a_from_b (4, 4): (metres on the floor, degrees of yaw)."""
+    x, z = row[f"{kind}_xz_m"]
+    dyaw = _wrap_deg(row[f"{kind}_yaw_deg"] - np.degrees(yaw_of(true_a_from_b[:3, :3])))
+    return float(np.hypot(x - true_a_from_b[0, 3], z - true_a_from_b[2, 3])), abs(float(dyaw))
+
+
 def layout_pairs(registration: dict, survey: dict) -> list[dict]:
     """Per pair that registration (the parsed registration.json) says layout tried: the best and best distinct
     score, their ratio, the layout pose's distance and yaw error against the survey, the edge it became or why not."""
@@ -88,12 +95,10 @@ def layout_pairs(registration: dict, survey: dict) -> list[dict]:
     for r in registration["pairs"]:
         if "layout_score" not in r:
             continue
-        gt = np.linalg.inv(world[r["a"]]) @ world[r["b"]]
-        gt_yaw = math.degrees(math.atan2(gt[0, 2] - gt[2, 0], gt[0, 0] + gt[2, 2]))
+        err_m, yaw_err = row_pose_error(r, "layout", np.linalg.inv(world[r["a"]]) @ world[r["b"]])
         rows.append({"a": r["a"], "b": r["b"], "score": r["layout_score"], "second": r["layout_second"],
                      "ratio": round(r["layout_score"] / max(r["layout_second"], 1e-9), 3),
-                     "err_m": round(float(np.hypot(r["layout_xz_m"][0] - gt[0, 3], r["layout_xz_m"][1] - gt[2, 3])), 3),
-                     "yaw_err_deg": round(abs((r["layout_yaw_deg"] - gt_yaw + 180) % 360 - 180), 2),
+                     "err_m": round(err_m, 3), "yaw_err_deg": round(yaw_err, 2),
                      "edge": r.get("edge"), "refused": r.get("layout_refused", "")})
     return rows
 
@@ -127,7 +132,7 @@ def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str], pai
         small = rgbd_at_height(rgbs[n], depths[n], o.height)[1]
         views[n] = panorama_floor_view(rgbs[n], small, grow_exclusion(_read_rig_mask(rig) if rig.is_file() else None),
                                        manhattan_frame(small), o)
-    fits = {(r["a"], r["b"]): r for r in pairs} | {(r["b"], r["a"]): _flipped(r) for r in pairs}
+    fits = {(r["a"], r["b"]): r for r in pairs if "floor_xz_m" in r}
     rows = []
     for i, a in enumerate(names):
         for b in names[i + 1:]:
@@ -138,29 +143,19 @@ def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str], pai
             m = floor_matches(va, vb, both_ways=True)  # the matches floor_pair fits
             row = {"a": a, "b": b, "distance_m": round(float(np.hypot(gt[0, 3], gt[2, 3])), 2),
                    "agreeing": floor_support(va, vb, gt, matches=m), "matches": len(m)}
-            fit = fits.get((a, b))
-            if fit is not None and "floor_xz_m" in fit:
+            fit, true = fits.get((a, b)), gt
+            if fit is None and (b, a) in fits:  # the row holds b_from_a
+                fit, true = fits[b, a], np.linalg.inv(gt)
+            if fit is not None:
+                err_m, yaw_err = row_pose_error(fit, "floor", true)
                 row.update(fit_inliers=fit["floor_inliers"], refused=fit.get("floor_refused", ""),
-                           fit_err_m=round(float(np.hypot(fit["floor_xz_m"][0] - gt[0, 3],
-                                                          fit["floor_xz_m"][1] - gt[2, 3])), 3),
-                           fit_yaw_err_deg=round(abs(float(_wrap_deg(fit["floor_yaw_deg"] - np.degrees(yaw_of(gt[:3, :3])))))
-                                                 , 2))
+                           fit_err_m=round(err_m, 3), fit_yaw_err_deg=round(yaw_err, 2))
             rows.append(row)
 
     def near(r: dict) -> bool:
         return r.get("fit_err_m", np.inf) <= MISPLACED_M and r.get("fit_yaw_err_deg", np.inf) <= MISPLACED_DEG
 
     return sorted(rows, key=lambda r: (not near(r), -r["agreeing"], r["distance_m"]))
-
-
-def _flipped(row: dict) -> dict:
-    """A registration pair row's floor fit as b_from_a (the row holds a_from_b's yaw and x, z offset)."""
-    if "floor_xz_m" not in row:
-        return row
-    t = math.radians(row["floor_yaw_deg"])
-    x, z = row["floor_xz_m"]
-    c, s = math.cos(t), math.sin(t)
-    return row | {"floor_yaw_deg": -row["floor_yaw_deg"], "floor_xz_m": [-(c * x - s * z), -(s * x + c * z)]}
 
 
 MISPLACED_M, MISPLACED_DEG = 0.25, 2.0
