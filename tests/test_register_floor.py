@@ -41,10 +41,10 @@ def _pose(yaw_deg: float, x: float, z: float, y: float = 0.0) -> np.ndarray:
     return T
 
 
-def _render(world_from_cam: np.ndarray, tex: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """An upright ERP panorama (H, 2H, 3) of a textured floor plane (world y = FLOOR_Y) under a grey ceiling 1 m above
-    the camera, and its ray depth."""
-    d = erp_dirs(H, 2 * H, np.float64) @ world_from_cam[:3, :3].T
+def _render(world_from_cam: np.ndarray, tex: np.ndarray, rows: int = H) -> tuple[np.ndarray, np.ndarray]:
+    """An upright ERP panorama (rows, 2 rows, 3) of a textured floor plane (world y = FLOOR_Y) under a grey ceiling
+    1 m above the camera, and its ray depth."""
+    d = erp_dirs(rows, 2 * rows, np.float64) @ world_from_cam[:3, :3].T
     cam_y = world_from_cam[1, 3]
     rng_floor = np.where(d[..., 1] > 1e-3, (FLOOR_Y - cam_y) / np.maximum(d[..., 1], 1e-3), np.inf)
     rng_ceil = np.where(d[..., 1] < -1e-3, 1.0 / np.maximum(-d[..., 1], 1e-3), np.inf)
@@ -72,6 +72,33 @@ def test_camera_height_in_a_narrow_room_is_the_floor_not_the_walls():
     assert abs(camera_height(depth) - FLOOR_Y) < 0.005
     flat = np.minimum(to_floor, 30.0).astype(np.float32)  # every height in the cone one value (one histogram bin)
     assert abs(camera_height(flat) - FLOOR_Y) < 1e-4
+
+
+def test_a_supersampled_floor_image_is_the_floor_averaged_over_each_cell():
+    """Within 2 m of the camera a 1.6 cm floor cell spans several pixels of a 2048-wide panorama: one bilinear sample
+    per cell aliases a fine floor texture (about 1 cm blobs), 3 x 3 samples averaged give the texture averaged over
+    each cell (the reference: the texture itself area-resized to the cells) at half the error; farther out, where the
+    panorama's pixels are coarser than a cell, the two agree."""
+    from panoworld.geometry.floor_view import floor_image
+
+    n, radius, cell = 4096, 4.0, 0.016  # texels of 3.9 mm over [-8, 8] m; 500 cells over [-4, 4] m
+    rng = np.random.default_rng(5)
+    tex = cv2.GaussianBlur(rng.random((n, n)).astype(np.float32), (0, 0), 1.0)
+    tex = (255 * (tex - tex.min()) / (tex.max() - tex.min())).astype(np.uint8)
+    rgb, _ = _render(_pose(0.0, 0.0, 0.0), tex, rows=1024)
+    crop = tex[n // 4:3 * n // 4, n // 4:3 * n // 4].astype(np.float32)
+    truth = cv2.resize(crop, (500, 500), interpolation=cv2.INTER_AREA)[::-1]  # row 0 = far +z
+    c = (np.arange(500) + 0.5) * cell - radius
+    r = np.hypot(*np.meshgrid(c, c))
+
+    def rmse(k: int, lo: float, hi: float) -> float:
+        img = floor_image(rgb, FLOOR_Y, radius_m=radius, cell_m=cell, supersample=k)[..., 0].astype(np.float32)
+        ring = (r > lo) & (r < hi)
+        return float(np.sqrt(np.mean((img[ring] - truth[ring]) ** 2)))
+
+    assert rmse(3, 1.0, 2.0) < 0.65 * rmse(1, 1.0, 2.0)
+    assert rmse(3, 1.0, 2.0) < 0.45 * truth.std()
+    assert abs(rmse(3, 3.0, 3.9) - rmse(1, 3.0, 3.9)) < 0.1 * rmse(1, 3.0, 3.9)
 
 
 def test_a_turned_floor_view_returns_its_keypoints_in_the_camera_frame():

@@ -58,25 +58,30 @@ def plane_distance(depth: np.ndarray, *, below: bool, min_angle_deg: float = 40.
     return float(np.median(y[np.abs(y - peak) <= 2 * step]))
 
 
-def floor_image(rgb: np.ndarray, height_m: float, *, radius_m: float, cell_m: float, turn: float = 0.0) -> np.ndarray:
+def floor_image(rgb: np.ndarray, height_m: float, *, radius_m: float, cell_m: float, turn: float = 0.0,
+                supersample: int = 1) -> np.ndarray:
     """(n, n, 3) uint8 top-down image of the plane height_m below the camera over x, z in [-radius_m, radius_m]
     (column = x, row 0 = far +z) of the camera turned by `turn` (radians, about gravity: image point (x, z) lies at
     yaw_matrix_xz(turn) @ (x, z) in the camera frame), resampled from the ERP panorama rgb (H, 2H, 3) (or (n, n) from an
-    (H, 2H) image)."""
+    (H, 2H) image): bilinear at supersample x supersample points per cell, averaged (near the camera a cell spans
+    several panorama pixels, and one bilinear sample per cell aliases the floor's texture)."""
     n = int(round(2 * radius_m / cell_m))
-    c = (np.arange(n) + 0.5) * cell_m - radius_m
+    k = int(supersample)
+    dt = np.float64 if k == 1 else np.float32  # the supersampled grid is large; float32 is 1e-4 pixel here
+    c = ((np.arange(n * k) + 0.5) * (cell_m / k) - radius_m).astype(dt)
     x, z = np.meshgrid(c, c[::-1])
-    lon, lat = np.arctan2(x, z) + turn, np.arctan2(-height_m, np.hypot(x, z))
+    lon, lat = np.arctan2(x, z) + dt(turn), np.arctan2(dt(-height_m), np.hypot(x, z))
     hi, wi = rgb.shape[:2]
     pad = 4
     padded = np.concatenate([rgb[:, -pad:], rgb, rgb[:, :pad]], 1)  # the seam wraps
     u, v = erp_pixel_from_lonlat(lon, lat, hi, wi)  # pixel centres at +0.5; OpenCV's remap at integers
-    return cv2.remap(padded, (u - 0.5 + pad).astype(np.float32), (v - 0.5).astype(np.float32), cv2.INTER_LINEAR)
+    img = cv2.remap(padded, (u - 0.5 + pad).astype(np.float32), (v - 0.5).astype(np.float32), cv2.INTER_LINEAR)
+    return img if k == 1 else cv2.resize(img, (n, n), interpolation=cv2.INTER_AREA)
 
 
 def floor_view(rgb: np.ndarray, depth: np.ndarray, *, radius_m: float = 6.0, cell_m: float = 0.015,
                rig_deg: float = 32.0, max_features: int = 4000, exclude: np.ndarray | None = None,
-               turn: float = 0.0) -> FloorView | None:
+               turn: float = 0.0, supersample: int = 1) -> FloorView | None:
     """SIFT keypoints of the floor image of an upright panorama rgb (H, 2H, 3) with ray depth (h, 2h) (camera height;
     0 = invalid). The whole lower hemisphere is projected onto the floor plane, walls included (they smear radially
     and find no consistent partner), so floor seen through a doorway that a layout depth closes is kept; the disc
@@ -84,12 +89,12 @@ def floor_view(rgb: np.ndarray, depth: np.ndarray, *, radius_m: float = 6.0, cel
     detected rig) covers. The image's axes are the camera's turned by `turn` (radians; the keypoints are returned in
     the camera's frame): SIFT finds the same keypoints again under quarter turns of an image far more often than under
     other turns, so floor images whose axes follow their rooms' walls match better than ones that follow where each
-    panorama's seam fell. None without a camera height."""
+    panorama's seam fell. supersample: floor_image's samples per cell side. None without a camera height."""
     check_shape("panorama", rgb, "H W 3")
     h = camera_height(depth)
     if h is None or not np.isfinite(h) or h <= 0:
         return None
-    img = floor_image(rgb, h, radius_m=radius_m, cell_m=cell_m, turn=turn)
+    img = floor_image(rgb, h, radius_m=radius_m, cell_m=cell_m, turn=turn, supersample=supersample)
     gray = cv2.createCLAHE(2.0, (8, 8)).apply(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY))
     n = gray.shape[0]
     c = (np.arange(n) + 0.5) * cell_m - radius_m

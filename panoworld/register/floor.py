@@ -186,7 +186,8 @@ def panorama_floor_view(rgb: np.ndarray, small_depth: np.ndarray, exclude: np.nd
     normal at `walls` (manhattan_frame: atan2(z, x), modulo 90 degrees) with floor_along_walls, the camera's axes
     without wall directions."""
     turn = -float(walls) if o.floor_along_walls and walls is not None else 0.0
-    return floor_view(rgb, small_depth, radius_m=o.floor_radius_m, cell_m=o.floor_cell_m, exclude=exclude, turn=turn)
+    return floor_view(rgb, small_depth, radius_m=o.floor_radius_m, cell_m=o.floor_cell_m, exclude=exclude, turn=turn,
+                      supersample=o.floor_supersample)
 
 
 def floor_pair(a: FloorView, b: FloorView, *, threshold_m: float = 0.05, ratio: float = 1.0,

@@ -62,6 +62,9 @@ class RegisterOptions:
     """The floor images cover x, z within this of the camera."""
     floor_cell_m: float = param(0.015, gt=0)
     """Floor image pixel size (metres)."""
+    floor_supersample: int = param(3, ge=1, le=4)
+    """Samples per floor image pixel side, averaged: within about 2 m of the camera a 1.5 cm pixel spans several
+    pixels of a 2048-wide panorama, and one sample per pixel aliases the floor's texture differently in each view."""
     floor_along_walls: bool = True
     """Lay each floor image's axes along its room's walls (manhattan_frame; the camera's axes where it has none): the
     floor images of one home then differ by quarter turns, under which SIFT finds the same keypoints again, whatever
