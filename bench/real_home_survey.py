@@ -1,6 +1,7 @@
 """A home's registration against its survey (ZInD survey.json: 2D capture positions and yaws): registered count,
 pairwise capture-point distance error, relative yaw error and the position error after a best 2D rigid alignment;
-every pair the registration tried by layout, with its layout pose's error against the survey; and with --floor-evidence,
+every pair the registration tried by layout, with its layout pose's error against the survey; with --floor-fits, every
+pair's floor fit against the survey (right or chance); and with --floor-evidence,
 per pair of panoramas the registration did not join, how many floor-image matches agree with the survey's relative
 pose (the evidence any floor fit could find there); and with --subsets N, the home registered again as N random
 subsets of its panoramas (3 to 10 each, fewer than all, from the depth artifact beside REGISTER_ARTIFACT, default
@@ -10,7 +11,7 @@ capture may be); and with --rolls N --home HOME, the home registered again N tim
 turned by its own random azimuth (where its seam falls), each draw against the survey (with --rows R, from its
 panoramas resized to R rows; --rows alone: once, as given).
 
-`python bench/real_home_survey.py REGISTER_ARTIFACT SURVEY_JSON [--json] [--floor-evidence] [--subsets N]
+`python bench/real_home_survey.py REGISTER_ARTIFACT SURVEY_JSON [--json] [--floor-fits] [--floor-evidence] [--subsets N]
 [--rolls N] [--rows R] [--home HOME] [--seed S]` prints them;
 `compare_to_survey` is the function the real-home benchmark imports."""
 
@@ -101,6 +102,26 @@ def layout_pairs(registration: dict, survey: dict) -> list[dict]:
                      "err_m": round(err_m, 3), "yaw_err_deg": round(yaw_err, 2),
                      "edge": r.get("edge"), "refused": r.get("layout_refused", "")})
     return rows
+
+
+def floor_fits(registration: dict, survey: dict, *, least: int = 5) -> list[dict]:
+    """Every floor fit of at least `least` inliers among registration's pair rows (registration.json's "pairs", both
+    panoramas surveyed) against the survey: inliers, the runner-up's (floor_second), how far the fit lies from the
+    survey's pose (m, deg), right (within MISPLACED_M and MISPLACED_DEG: the survey is good to about 0.1 m between
+    rooms) or a chance fit, the edge it became and why it was refused. Right fits first, then most inliers."""
+    from bench_real_home import survey_poses
+
+    world = survey_poses(survey)
+    rows = []
+    for r in registration["pairs"]:
+        if r.get("floor_inliers", 0) < least or "floor_xz_m" not in r or r["a"] not in world or r["b"] not in world:
+            continue
+        err_m, yaw_err = row_pose_error(r, "floor", np.linalg.inv(world[r["a"]]) @ world[r["b"]])
+        rows.append({"a": r["a"], "b": r["b"], "inliers": r["floor_inliers"], "second": r.get("floor_second", 0),
+                     "err_m": round(err_m, 3), "yaw_err_deg": round(yaw_err, 2),
+                     "right": err_m <= MISPLACED_M and yaw_err <= MISPLACED_DEG, "edge": r.get("edge"),
+                     "refused": r.get("floor_refused", "")})
+    return sorted(rows, key=lambda r: (not r["right"], -r["inliers"]))
 
 
 def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str], pairs: list[dict] = ()) -> list[dict]:
@@ -249,6 +270,8 @@ def main() -> int:
     ap.add_argument("--floor-evidence", action="store_true",
                     help="per pair not both registered, the floor matches that agree with the survey (reads the depth "
                          "artifact beside REGISTER_ARTIFACT)")
+    ap.add_argument("--floor-fits", action="store_true",
+                    help="every pair's floor fit of 5 or more inliers against the survey: right or chance")
     ap.add_argument("--subsets", type=int, default=0, metavar="N",
                     help="register N random subsets of the home's panoramas again (3-10 each, from the depth artifact "
                          "beside REGISTER_ARTIFACT) and report each against the survey")
@@ -266,6 +289,8 @@ def main() -> int:
     r = compare_to_survey(poses, survey)
     reg = args.register / "registration.json"
     r["layout_pairs"] = layout_pairs(json.loads(reg.read_text()), survey) if reg.is_file() else []
+    if args.floor_fits:
+        r["floor_fits"] = floor_fits(json.loads(reg.read_text()), survey) if reg.is_file() else []
     if args.floor_evidence:
         rows = json.loads(reg.read_text()).get("pairs", []) if reg.is_file() else []
         r["floor_evidence"] = floor_evidence(args.register.parent / "depth", survey, set(poses), rows)
@@ -295,10 +320,23 @@ def main() -> int:
         for p in r["layout_pairs"]:
             print(f"| {p['a']}-{p['b']} | {p['score']:.0f} | {p['second']:.0f} | {p['ratio']:.2f} | {p['err_m']:.2f} | "
                   f"{p['yaw_err_deg']:.1f} | {p['edge'] or '-'} | {p['refused']} |")
+    if args.floor_fits:
+        fits = r["floor_fits"]
+        right = [x for x in fits if x["right"]]
+        chance = [x for x in fits if not x["right"]]
+        print(f"\nfloor fits of 5 or more inliers: {len(right)} right (inliers "
+              f"{min((x['inliers'] for x in right), default=0)}-{max((x['inliers'] for x in right), default=0)}, "
+              f"runner-ups at most {max((x['second'] / x['inliers'] for x in right), default=0):.0%} of the fit's), "
+              f"{len(chance)} chance fits (inliers at most {max((x['inliers'] for x in chance), default=0)})")
+        print("| pair | inliers | runner-up | from the survey m / deg | right | edge | refused |")
+        print("| --- | --- | --- | --- | --- | --- | --- |")
+        for x in fits:
+            print(f"| {x['a']}-{x['b']} | {x['inliers']} | {x['second']} | {x['err_m']:.3f} / {x['yaw_err_deg']:.2f} | "
+                  f"{'yes' if x['right'] else '-'} | {x['edge'] or '-'} | {(x['refused'] or '-')[:90]} |")
     if args.floor_evidence:
         ev = r["floor_evidence"]
         print(f"\nfloor evidence over the {len(ev)} pairs not both registered (matches agreeing with the survey; a floor "
-              "edge needs 6 distinct inliers, and another pair across its cut below 11; chance fits reach 8):")
+              "edge needs 6 distinct inliers, and another pair across its cut below 11):")
         print("| pair | distance m | agreeing matches | matches | floor fit inliers | fit from the survey m / deg | "
               "refused |")
         print("| --- | --- | --- | --- | --- | --- | --- |")
