@@ -45,6 +45,8 @@ TEST_SEEDS = (100, 101, 102)
 """Held-out seeds: reported, never tuned on."""
 MISPLACED_CM, MISPLACED_DEG = 20.0, 5.0
 """A registered panorama farther than this from its true pose counts as misplaced (a wrong registration)."""
+NOVEL_AWAY_M = 0.5
+"""--novel: the trajectory frames scored as novel views stand at least this far from every capture point."""
 DOORWAY_M = 0.2
 """An opened wall pixel is at a true doorway when its wall point (at the true pose) lies within this of a doorway
 cell of the floor plan."""
@@ -209,9 +211,39 @@ def _at_doorways(before: dict[str, np.ndarray], after: dict[str, np.ndarray], gt
     return count
 
 
+def novel_views(home, scene: Path, est: dict[str, np.ndarray], gt: dict[str, np.ndarray], count: int, height: int,
+                supersample: int, *, away_m: float = NOVEL_AWAY_M) -> dict:
+    """The home's Gaussians rendered at `count` trajectory frames (evenly spaced over those at least away_m from every
+    capture point: the walks between rooms and the explore paths) against the true home rendered there (supersample
+    x supersample rays per pixel, area-downsampled by the renderer): PSNR and SSIM of each (height x 2 height)."""
+    from panoworld.io.splat_ply import read_gaussians_ply
+    from panoworld.io.trajectory import load_trajectory
+    from panoworld.render.erp import render_erp
+    from panoworld.render.metrics import psnr, ssim
+
+    arts = scene / "artifacts"
+    poses = load_trajectory(arts / "trajectory" / "trajectory.json")
+    centres = np.array([T[:3, 3] for T in est.values()])
+    far = [i for i, T in enumerate(poses) if np.linalg.norm(centres - T[:3, 3], axis=1).min() >= away_m]
+    pick = [far[int(j)] for j in np.unique(np.linspace(0, len(far) - 1, count).round().astype(int))] if far else []
+    anchor = sorted(est)[0]
+    world_from_est = gt[anchor] @ invert_pose(est[anchor])
+    g = read_gaussians_ply(arts / "gaussians" / "gaussians.ply")
+    rows = []
+    for i in pick:
+        ref, _ = home.scene.render(world_from_est @ poses[i], height, 2 * height, supersample=supersample)
+        ref = ref.astype(np.float32) / 255.0
+        img = np.clip(np.asarray(render_erp(g, poses[i], height, 2 * height).rgb, np.float32), 0, 1)
+        rows.append({"frame": i, "psnr": psnr(img, ref, data_range=1.0), "ssim": ssim(img, ref, data_range=1.0),
+                     "capture_m": float(np.linalg.norm(centres - poses[i][:3, 3], axis=1).min())})
+    return {"frames": rows, "psnr_mean": float(np.mean([r["psnr"] for r in rows])) if rows else float("nan"),
+            "ssim_mean": float(np.mean([r["ssim"] for r in rows])) if rows else float("nan")}
+
+
 def run_pipeline_one(seed: int, k: int, height: int, work: Path, preset: str, psnr_height: int, *,
                      depth: str = "scene", scale_error: float = 0.0, noise: float = 0.0,
-                     exposure_jitter: float = 0.0) -> dict:
+                     exposure_jitter: float = 0.0, novel: int = 0, sets: list[str] = (), reuse: bool = False
+                     ) -> dict:
     """`runner.py run` on one synthetic home (depth, perturbed as run_one does): wall and CPU seconds (the runner and
     its stages), each stage's wall seconds and the largest stage peak memory, registration error, capture points on
     the NavMesh, the trajectory's size and the Gaussians rendered at every capture pose against its panorama (PSNR at
@@ -224,16 +256,18 @@ def run_pipeline_one(seed: int, k: int, height: int, work: Path, preset: str, ps
     params = home_params(preset, tour_rooms(k))
     params = replace(params, render=replace(params.render, pano_height=height))
     home = generate_home(seed, k, preset, params=params)
-    scene = write_home(home, work / f"home_{seed}_{k}", params, depth=depth)
-    if scale_error > 0 or noise > 0:
-        perturb_depths(scene, seed, scale_error, noise)
-    if exposure_jitter > 0:
-        perturb_exposure(scene, seed, exposure_jitter)
+    scene = work / f"home_{seed}_{k}"
+    if not (reuse and (scene / "gt" / "poses.json").is_file()):
+        scene = write_home(home, scene, params, depth=depth)
+        if scale_error > 0 or noise > 0:
+            perturb_depths(scene, seed, scale_error, noise)
+        if exposure_jitter > 0:
+            perturb_exposure(scene, seed, exposure_jitter)
     load_before = os.getloadavg()[0]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "runner.py", "run", str(scene), "--preset", preset, "--json"], cwd=ROOT,
-                          capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "runner.py", "run", str(scene), "--preset", preset, "--json",
+                           *[a for kv in sets for a in ("--set", kv)]], cwd=ROOT, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if proc.returncode != 0:
@@ -247,6 +281,7 @@ def run_pipeline_one(seed: int, k: int, height: int, work: Path, preset: str, ps
     nav, traj, gs = (manifests[n]["info"] for n in ("navmesh", "trajectory", "gaussians"))
     panos = {n: read_panorama(scene / "panoramas" / f"{n}.png") for n in est}
     scores = capture_psnr(arts / "gaussians" / "gaussians.ply", est, panos, height=psnr_height)
+    nv = novel_views(home, scene, est, gt, novel, psnr_height, params.render.supersample) if novel else None
     return {
         "seed": seed, "panoramas": k, "rooms": len(set(home.rooms)), "registered": len(est),
         "trans_cm_max": max(e[0] for e in errs), "rot_deg_max": max(e[1] for e in errs),
@@ -257,6 +292,7 @@ def run_pipeline_one(seed: int, k: int, height: int, work: Path, preset: str, ps
         "peak_rss_mb": max(r["peak_rss_mb"] or 0 for r in stages.values()),
         "stage_s": {n: round(r["seconds"], 1) for n, r in stages.items()},
         "stage_cpu_s": {n: round(m.get("cpu_s", float("nan")), 1) for n, m in manifests.items()},
+        **({"novel": nv} if nv is not None else {}),
     }
 
 
@@ -268,7 +304,8 @@ def pipeline_main(args, seeds) -> int:
             for seed in seeds:
                 rows.append(run_pipeline_one(seed, k, args.height, work, args.preset, args.psnr_height,
                                              depth=args.depth, scale_error=args.depth_scale_error,
-                                             noise=args.depth_noise, exposure_jitter=args.exposure_jitter))
+                                             noise=args.depth_noise, exposure_jitter=args.exposure_jitter,
+                                             novel=args.novel, sets=args.set, reuse=args.reuse))
                 print(json.dumps(rows[-1]), file=sys.stderr)
     if args.json:
         print(json.dumps({"height": args.height, "preset": args.preset, "depth": args.depth, "seeds": list(seeds),
@@ -284,6 +321,11 @@ def pipeline_main(args, seeds) -> int:
               f"{r['rot_deg_max']:.3f} | {r['on_navmesh']} of {r['registered']} | {r['frames']} | "
               f"{r['num_gaussians']} | {r['capture_psnr_min']:.2f} ({each}) | {r['wall_s']:.0f} | {r['cpu_s']:.0f} | "
               f"{r['load_avg'][0]:.0f}-{r['load_avg'][1]:.0f} | {r['peak_rss_mb']:.0f} |")
+    for r in (r for r in rows if "novel" in r):
+        each = ", ".join(f"{f['psnr']:.1f}" for f in r["novel"]["frames"])
+        print(f"seed {r['seed']}, {r['panoramas']} panoramas, novel views (trajectory frames >= {NOVEL_AWAY_M} m from "
+              f"every capture point): PSNR {r['novel']['psnr_mean']:.2f} dB, SSIM {r['novel']['ssim_mean']:.3f} mean "
+              f"({each})")
     for r in rows:
         print(f"seed {r['seed']}, {r['panoramas']} panoramas, per stage wall / CPU s: " + ", ".join(
             f"{n} {r['stage_s'][n]:.0f} / {r['stage_cpu_s'][n]:.0f}" for n in r["stage_s"]))
@@ -308,6 +350,14 @@ def main() -> int:
     ap.add_argument("--pipeline", action="store_true", help="run the whole pipeline (runner.py run) on each home")
     ap.add_argument("--preset", default="default", help="--pipeline: the runner's preset")
     ap.add_argument("--psnr-height", type=int, default=256, help="--pipeline: rows of the capture-pose renders")
+    ap.add_argument("--novel", type=int, default=0, metavar="N",
+                    help="--pipeline: also score N trajectory frames away from the capture points as novel views "
+                         "against the true home rendered there")
+    ap.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE",
+                    help="--pipeline: passed to `runner.py run` (repeatable)")
+    ap.add_argument("--reuse", action="store_true",
+                    help="--pipeline: a home already written under --work is run again as it is (the runner reruns "
+                         "what the --set changes; wall and CPU seconds are then of that rerun)")
     ap.add_argument("--work", help="--pipeline: keep the homes and their artifacts in this directory (default: a "
                     "temporary one)")
     args = ap.parse_args()

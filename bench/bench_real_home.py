@@ -124,12 +124,10 @@ def manifest_info(scene: Path, stage: str) -> dict:
 
 def home_sources(scene: Path, poses: dict[str, np.ndarray]) -> tuple[dict, dict]:
     """{NAME: cleaned rgb}, {NAME: cleaned depth (0 = none)} of the run's depth artifact for the posed panoramas."""
-    from panoworld.io.home import home_depth_dirs, load_sources
-    from panoworld.room.plausible import drop_near_captures
+    from panoworld.io.home import home_depth_dirs
+    from panoworld.room.home_sources import home_sources as prepared
 
-    dirs = home_depth_dirs(scene / "artifacts" / "depth")
-    _, rgbs, depths = load_sources(dirs, poses)
-    drop_near_captures(depths, poses)  # as the mesh and gaussians stages do
+    _, rgbs, depths, _ = prepared(home_depth_dirs(scene / "artifacts" / "depth"), poses)  # as the gaussians stage
     return rgbs, depths
 
 
@@ -264,19 +262,16 @@ def leave_one_out_captures(full: Path, name: str, height: int) -> dict:
     """The other panoramas' Gaussians (--loo-build captures), rendered at `name`'s pose registered with all of them."""
     from panoworld.gaussians.backends.voxel_fusion import VoxelFusionOptions
     from panoworld.gaussians.home import home_anchored_fusion
-    from panoworld.io.home import capture_poses, home_depth_dirs, load_sources
-    from panoworld.room.plausible import drop_near_captures
+    from panoworld.io.home import capture_poses
 
     full_poses = capture_poses(full / "artifacts" / "register")
     if name not in full_poses:
         return {"name": name, "skipped": "not registered in the full run"}
     t0, c0 = time.perf_counter(), time.process_time()
     others = {n: T for n, T in full_poses.items() if n != name}
-    names, rgbs, depths = load_sources(home_depth_dirs(full / "artifacts" / "depth"), full_poses)
-    drop_near_captures({n: depths[n] for n in others}, others)
-    g = home_anchored_fusion(None, {n: (rgbs[n], depths[n], others[n]) for n in names if n != name},
-                             VoxelFusionOptions()).gaussians
-    _, full_depths = home_sources(full, full_poses)
+    _, depths = home_sources(full, others)
+    rgbs, full_depths = home_sources(full, full_poses)
+    g = home_anchored_fusion(None, {n: (rgbs[n], depths[n], others[n]) for n in depths}, VoxelFusionOptions()).gaussians
     seen = seen_by_others(name, full_poses, full_depths, height)
     out = {"name": name, "build": "captures", "registered": len(others), "num_gaussians": len(g)}
     out.update(render_scores(g, full_poses[name], rgbs[name], height, seen, surface_masks(full_depths[name], height)))

@@ -7,20 +7,18 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.geometry.erp_mesh import ErpMesh
-from panoworld.io.home import load_sources
 from panoworld.mesh.fuse import fuse_meshes
 from panoworld.room.doorways import open_doorways
-from panoworld.room.plausible import drop_near_captures
+from panoworld.room.home_sources import home_sources
 
 
 def home_mesh(dirs: dict[str, Path], world_from_cam: dict[str, np.ndarray], *, stride: int
               ) -> tuple[ErpMesh, np.ndarray, list[dict]]:
     """(fused mesh in the world frame, source index per face, sources) of the registered panoramas: every surface
     from the panorama that sees it from nearest (fuse.fuse_meshes), so its vertex colours come from that source. A
-    surface through another capture point is none (room.plausible.drop_near_captures), nor a wall across a doorway
-    that another panorama's floor continues through (room.doorways.open_doorways)."""
-    names, rgbs, depths = load_sources(dirs, world_from_cam)
-    near = drop_near_captures(depths, world_from_cam)
+    surface through another capture point is none (room.home_sources), nor a wall across a doorway that
+    another panorama's floor continues through (room.doorways.open_doorways)."""
+    names, rgbs, depths, near = home_sources(dirs, world_from_cam)
     doors = open_doorways(names, rgbs, depths, world_from_cam)
     mesh, face_source = fuse_meshes(names, rgbs, depths, world_from_cam, stride=stride)
     sources, start = [], 0

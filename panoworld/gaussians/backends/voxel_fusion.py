@@ -52,15 +52,14 @@ def fuse(job):
     if len(captures) < 2:
         return source_anchored_fusion(job.frames, o, back_sides=back_side_hook(job), progress=job.progress)
     from panoworld.gaussians.home import home_anchored_fusion
-    from panoworld.io.home import home_depth_dirs, load_sources
-    from panoworld.room.plausible import drop_near_captures
+    from panoworld.io.home import home_depth_dirs
+    from panoworld.room.home_sources import home_sources
 
     dirs = home_depth_dirs(job.depth) if job.depth else None
     if dirs is None:
         raise InputError(f"{job.register}: the register artifact places several panoramas: give --depth, the home's "
                          "depth artifact (its panoramas are anchored)")
-    names, rgbs, depths = load_sources(dirs, captures)
-    drop_near_captures(depths, captures)  # as the fused mesh does
+    names, rgbs, depths, _ = home_sources(dirs, captures)  # as the fused mesh has them, its doorways not opened
     return home_anchored_fusion(job.frames, {n: (rgbs[n], depths[n], captures[n]) for n in names}, o,
                                 progress=job.progress)
 
