@@ -361,6 +361,8 @@ def main() -> int:
     ap.add_argument("--work", help="--pipeline: keep the homes and their artifacts in this directory (default: a "
                     "temporary one)")
     args = ap.parse_args()
+    if not args.pipeline and (args.novel or args.set or args.reuse):
+        ap.error("--novel, --set and --reuse need --pipeline")
     seeds = args.seeds or (TEST_SEEDS if args.split == "test" else VALIDATION_SEEDS)
     if args.pipeline:
         return pipeline_main(args, seeds)
