@@ -271,3 +271,23 @@ def test_runner_opens_a_home_and_refuses_a_mixed_layout(home_dir, tmp_path):
     with pytest.raises(PipelineError, match="keep one layout") as e:
         open_scene(mixed, Pipeline.load())
     assert e.value.exit_code == 2 and not (mixed / "artifacts").exists()
+
+
+def test_pairs_on_several_threads_register_as_one_at_a_time(home_dir, monkeypatch):
+    import panoworld.register.solve as solve
+
+    names = ["pano_00", "pano_01", "pano_02"]
+    rgbs = {n: read_panorama(home_dir / "panoramas" / f"{n}.png") for n in names}
+    depths = {n: np.load(home_dir / "depths" / f"{n}.npy") for n in names}
+    seen = []
+    out = {}
+    for threads in (1, 3):
+        monkeypatch.setattr(solve, "PAIR_THREADS", threads)
+        order = []
+        reg = register_panoramas(names, rgbs, depths, options=RegisterOptions(height=HEIGHT),
+                                 progress=lambda a, b, p: order.append((a, b)))
+        seen.append(order)
+        out[threads] = (json.dumps(reg.pairs, sort_keys=True), json.dumps(reg.panoramas, sort_keys=True),
+                        {n: T.tobytes() for n, T in reg.world_from_cam.items()})
+    assert seen[0] == seen[1] == [("pano_00", "pano_01"), ("pano_00", "pano_02"), ("pano_01", "pano_02")]
+    assert out[1] == out[3]

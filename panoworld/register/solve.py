@@ -4,6 +4,8 @@ per-panorama quality figures; panoramas that cannot be joined are reported, not 
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
@@ -44,6 +46,9 @@ from panoworld.register.pairwise import (
 )
 from panoworld.register.registration import Registration
 from panoworld.register.upright import UprightPose, max_baseline, metric_scale, upright_relative_pose
+
+PAIR_THREADS = max(1, min(8, os.cpu_count() or 1))
+"""Pairs registered at once (threads)."""
 
 
 def _bearing_pair(fi: Features, fj: Features, m: np.ndarray, rows: int, height_i: float | None, o: RegisterOptions
@@ -93,22 +98,27 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
         looks = {n: appearance_descriptor(small[n][0]) for n in names} if k > o.all_pairs_up_to else None
         heights = {n: v.height_m if (v := views[n]) is not None else camera_height(small[n][1]) for n in names}
 
-        def try_pairs(todo: list[tuple[int, int]]) -> None:
-            for a, b in todo:
-                fa, fb = feats[names[a]], feats[names[b]]
-                m = match(fa, fb)
-                pairs[a, b] = register_pair(fa, fb, small[names[a]][1], small[names[b]][1],
-                                            max_error_m=o.max_error_m, min_inliers=o.min_inliers,
-                                            refine_height=o.refine_height, refine_iterations=o.refine_iterations,
-                                            matches=m)
-                rows = max(small[names[a]][1].shape[0], small[names[b]][1].shape[0])
-                bearing[a, b] = _bearing_pair(fa, fb, m, rows, heights[names[a]], o)
-                va, vb = views[names[a]], views[names[b]]
-                floors[a, b] = None if va is None or vb is None else floor_pair(
+        def one_pair(ab: tuple[int, int]):
+            a, b = ab
+            fa, fb = feats[names[a]], feats[names[b]]
+            m = match(fa, fb)
+            pair = register_pair(fa, fb, small[names[a]][1], small[names[b]][1], max_error_m=o.max_error_m,
+                                 min_inliers=o.min_inliers, refine_height=o.refine_height,
+                                 refine_iterations=o.refine_iterations, matches=m)
+            rows = max(small[names[a]][1].shape[0], small[names[b]][1].shape[0])
+            va, vb = views[names[a]], views[names[b]]
+            return pair, _bearing_pair(fa, fb, m, rows, heights[names[a]], o), (
+                None if va is None or vb is None else floor_pair(
                     va, vb, threshold_m=o.floor_threshold_m, ratio=o.floor_ratio,
-                    yaws=manhattan_yaws(frames[names[a]], frames[names[b]]))
-                if progress:
-                    progress(names[a], names[b], pairs[a, b])
+                    yaws=manhattan_yaws(frames[names[a]], frames[names[b]])))
+
+        def try_pairs(todo: list[tuple[int, int]]) -> None:
+            # Each pair on its own: on PAIR_THREADS threads (matching, RANSAC and the floor's distance matrix release
+            # the GIL), results taken in the pairs' order, so the registration is the same as one pair at a time.
+            with ThreadPoolExecutor(PAIR_THREADS) as pool:
+                for (a, b), (pairs[a, b], bearing[a, b], floors[a, b]) in zip(todo, pool.map(one_pair, todo)):
+                    if progress:
+                        progress(names[a], names[b], pairs[a, b])
 
         try_pairs(candidate_pairs(names, looks, given=given, all_up_to=o.all_pairs_up_to))
         if k > o.all_pairs_up_to:
