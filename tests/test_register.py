@@ -282,10 +282,10 @@ def test_pairs_on_several_threads_register_as_one_at_a_time(home_dir, monkeypatc
     seen = []
     out = {}
     for threads in (1, 3):
-        monkeypatch.setattr(solve, "PAIR_THREADS", threads)
+        monkeypatch.setattr(solve, "pair_threads", lambda n=threads: n)
         order = []
         reg = register_panoramas(names, rgbs, depths, options=RegisterOptions(height=HEIGHT),
-                                 progress=lambda a, b, p: order.append((a, b)))
+                                 progress=lambda a, b, p, order=order: order.append((a, b)))
         seen.append(order)
         out[threads] = (json.dumps(reg.pairs, sort_keys=True), json.dumps(reg.panoramas, sort_keys=True),
                         {n: T.tobytes() for n, T in reg.world_from_cam.items()})

@@ -4,11 +4,11 @@ per-panorama quality figures; panoramas that cannot be joined are reported, not 
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
+import torch
 
 from panoworld.core.conventions import invert_pose
 from panoworld.geometry.floor_view import FloorView, camera_height
@@ -47,8 +47,14 @@ from panoworld.register.pairwise import (
 from panoworld.register.registration import Registration
 from panoworld.register.upright import UprightPose, max_baseline, metric_scale, upright_relative_pose
 
-PAIR_THREADS = max(1, min(8, os.cpu_count() or 1))
-"""Pairs registered at once (threads)."""
+MAX_PAIR_THREADS = 8
+"""Pairs registered at once at most (threads)."""
+
+
+def pair_threads() -> int:
+    """Pairs registered at once: torch's intra-op thread count (OMP_NUM_THREADS where set: the batch executors cap a
+    stage's threads so), at most MAX_PAIR_THREADS."""
+    return max(1, min(MAX_PAIR_THREADS, torch.get_num_threads()))
 
 
 def _bearing_pair(fi: Features, fj: Features, m: np.ndarray, rows: int, height_i: float | None, o: RegisterOptions
@@ -113,9 +119,9 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                     yaws=manhattan_yaws(frames[names[a]], frames[names[b]])))
 
         def try_pairs(todo: list[tuple[int, int]]) -> None:
-            # Each pair on its own: on PAIR_THREADS threads (matching, RANSAC and the floor's distance matrix release
+            # Each pair on its own: on pair_threads() threads (matching, RANSAC and the floor's distance matrix release
             # the GIL), results taken in the pairs' order, so the registration is the same as one pair at a time.
-            with ThreadPoolExecutor(PAIR_THREADS) as pool:
+            with ThreadPoolExecutor(pair_threads()) as pool:
                 for (a, b), (pairs[a, b], bearing[a, b], floors[a, b]) in zip(todo, pool.map(one_pair, todo)):
                     if progress:
                         progress(names[a], names[b], pairs[a, b])
