@@ -17,7 +17,7 @@ from panoworld.framework.stage import execute_stage, load_stage
 from panoworld.framework.stage_params import params_from_dict
 from panoworld.io.depth import read_panorama
 from panoworld.register.options import RegisterOptions
-from panoworld.register.pairwise import consistency
+from panoworld.register.pairwise import PairResult, consistency
 from panoworld.register.solve import register_panoramas
 from panoworld.tools.synth.generate import generate_scene
 from stages.register import main as register_main
@@ -291,3 +291,28 @@ def test_pairs_on_several_threads_register_as_one_at_a_time(home_dir, monkeypatc
                         {n: T.tobytes() for n, T in reg.world_from_cam.items()})
     assert seen[0] == seen[1] == [("pano_00", "pano_01"), ("pano_00", "pano_02"), ("pano_01", "pano_02")]
     assert out[1] == out[3]
+
+
+def test_a_failing_pair_stops_registration_without_the_pairs_not_started(monkeypatch):
+    import time
+
+    import panoworld.register.solve as solve
+
+    calls = []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            raise RuntimeError("pair failed")
+        time.sleep(1.0)  # long enough for the failure to reach the main thread first, even on a busy machine
+        return PairResult(matches=0, inliers=0, i_from_j=None, overlap=0.0, consistency=0.0, residual=float("nan"))
+
+    monkeypatch.setattr(solve, "register_pair", failing)
+    monkeypatch.setattr(solve, "pair_threads", lambda: 2)
+    rng = np.random.default_rng(0)
+    names = [f"p{i}" for i in range(10)]
+    rgbs = {n: (rng.random((64, 128, 3)) * 255).astype(np.uint8) for n in names}
+    depths = {n: np.full((64, 128), 2.0, np.float32) for n in names}
+    with pytest.raises(RuntimeError, match="pair failed"):
+        register_panoramas(names, rgbs, depths, options=RegisterOptions(height=64))
+    assert len(calls) <= 4  # of 45 pairs: those already running when the first failed, then no more

@@ -121,10 +121,13 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
         def try_pairs(todo: list[tuple[int, int]]) -> None:
             # Each pair on its own: on pair_threads() threads (matching, RANSAC and the floor's distance matrix release
             # the GIL), results taken in the pairs' order, so the registration is the same as one pair at a time.
-            with ThreadPoolExecutor(pair_threads()) as pool:
+            pool = ThreadPoolExecutor(pair_threads())
+            try:
                 for (a, b), (pairs[a, b], bearing[a, b], floors[a, b]) in zip(todo, pool.map(one_pair, todo)):
                     if progress:
                         progress(names[a], names[b], pairs[a, b])
+            finally:  # on an error or Ctrl-C the pairs not yet started are dropped, not waited for
+                pool.shutdown(wait=True, cancel_futures=True)
 
         try_pairs(candidate_pairs(names, looks, given=given, all_up_to=o.all_pairs_up_to))
         if k > o.all_pairs_up_to:
