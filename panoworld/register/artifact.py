@@ -61,7 +61,13 @@ def register_depth_dirs(dirs: dict[str, Path] | None, poses_file: Path | None, o
             depths[n], rgbs[n] = np.where(valid, depth, 0.0).astype(np.float32), rgb
             if (Path(d) / RIG_MASK_PNG).is_file():
                 rigs[n] = _read_rig_mask(Path(d) / RIG_MASK_PNG)
-    reg = register_panoramas(names, rgbs, depths, given=given, options=options, rig_masks=rigs)
+    from tqdm import tqdm
+
+    k = len(names)
+    with tqdm(total=k * (k - 1) // 2 if k <= options.all_pairs_up_to else None, desc="register pairs", unit="pair",
+              disable=None, leave=False) as bar:  # shown on a terminal only
+        reg = register_panoramas(names, rgbs, depths, given=given, options=options, rig_masks=rigs,
+                                 progress=lambda a, b, pair: bar.update(1))
     write_registration(out_dir, reg)
     return _summary(names, given, reg)
 
