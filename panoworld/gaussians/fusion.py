@@ -11,6 +11,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from panoworld.core.conventions import check_pose, erp_dirs64
+from panoworld.core.parallel import map_ahead
 from panoworld.core.shapes import check_shape
 from panoworld.gaussians.eig3 import eigh3
 from panoworld.gaussians.fusion_params import Confidence, FusionParams
@@ -294,26 +295,6 @@ def uniform_subset(candidates: Sequence[int], k: int) -> list[int]:
         return candidates
     pick = np.unique(np.round(np.linspace(0, len(candidates) - 1, k)).astype(int))
     return [candidates[i] for i in pick]
-
-
-def map_ahead(fn: Callable, items: Iterable, *, workers: int):
-    """fn(item) for each item, in order, computed on `workers` threads with `workers` calls beyond the one being
-    consumed in flight (items are drawn from the iterable in the caller's thread)."""
-    from collections import deque
-    from concurrent.futures import ThreadPoolExecutor
-
-    def call(box: list):  # the item leaves the box, so it dies with fn's call, not with the pool's work item, which
-        return fn(box.pop())  # a busy worker thread may hold on to until after the result is handed over
-
-    with ThreadPoolExecutor(workers) as pool:
-        pending: deque = deque()
-        for item in items:
-            pending.append(pool.submit(call, [item]))
-            del item
-            if len(pending) > workers:
-                yield pending.popleft().result()
-        while pending:
-            yield pending.popleft().result()
 
 
 @dataclass

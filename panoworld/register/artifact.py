@@ -63,9 +63,11 @@ def register_depth_dirs(dirs: dict[str, Path] | None, poses_file: Path | None, o
                 rigs[n] = _read_rig_mask(Path(d) / RIG_MASK_PNG)
     from tqdm import tqdm
 
-    k = len(names)
-    with tqdm(total=k * (k - 1) // 2 if k <= options.all_pairs_up_to else None, desc="register pairs", unit="pair",
-              disable=None, leave=False) as bar:  # shown on a terminal only
+    from panoworld.register.pair_select import candidate_pairs
+
+    total = len(candidate_pairs(names, given=given, all_up_to=options.all_pairs_up_to)) \
+        if len(names) <= options.all_pairs_up_to else None  # beyond: the pairs tried depend on what the first ones join
+    with tqdm(total=total, desc="register pairs", unit="pair", disable=None, leave=False) as bar:  # on a terminal only
         reg = register_panoramas(names, rgbs, depths, given=given, options=options, rig_masks=rigs,
                                  progress=lambda a, b, pair: bar.update(1))
     write_registration(out_dir, reg)

@@ -4,13 +4,13 @@ per-panorama quality figures; panoramas that cannot be joined are reported, not 
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
 import torch
 
 from panoworld.core.conventions import invert_pose
+from panoworld.core.parallel import map_ahead
 from panoworld.geometry.floor_view import FloorView, camera_height
 from panoworld.geometry.resize import rgbd_at_height
 from panoworld.geometry.upright import wrap_angle, yaw_of
@@ -120,14 +120,12 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
 
         def try_pairs(todo: list[tuple[int, int]]) -> None:
             # Each pair on its own: on pair_threads() threads (matching, RANSAC and the floor's distance matrix release
-            # the GIL), results taken in the pairs' order, so the registration is the same as one pair at a time.
-            pool = ThreadPoolExecutor(pair_threads())
-            try:
-                for (a, b), (pairs[a, b], bearing[a, b], floors[a, b]) in zip(todo, pool.map(one_pair, todo)):
-                    if progress:
-                        progress(names[a], names[b], pairs[a, b])
-            finally:  # on an error or Ctrl-C the pairs not yet started are dropped, not waited for
-                pool.shutdown(wait=True, cancel_futures=True)
+            # the GIL), results taken in the pairs' order, so the registration is the same as one pair at a time; only
+            # a few pairs are in flight, so an error or Ctrl-C waits for those alone.
+            for (a, b), (pairs[a, b], bearing[a, b], floors[a, b]) in zip(
+                    todo, map_ahead(one_pair, todo, workers=pair_threads())):
+                if progress:
+                    progress(names[a], names[b], pairs[a, b])
 
         try_pairs(candidate_pairs(names, looks, given=given, all_up_to=o.all_pairs_up_to))
         if k > o.all_pairs_up_to:
