@@ -181,3 +181,22 @@ def test_a_wall_through_another_capture_point_is_no_geometry_of_the_home(cam_x, 
     assert drop[~on_wall].mean() < 0.01
     assert not near_captures_mask(depth, world_from_a, np.zeros((0, 3))).any()
     assert not near_captures_mask(depth, world_from_a, np.array([[0.5, 0.0, -0.4]])).any()  # B in the open room
+
+
+def test_surfaces_through_other_capture_points_dropped_on_threads_as_on_one():
+    """drop_near_captures finds each panorama's mask on its own: on two worker threads the depths are zeroed exactly
+    where one thread zeroes them, and the counts per panorama are the same."""
+    from panoworld.room.plausible import drop_near_captures
+
+    cams = {"a": np.array([-0.5, 0.2]), "b": np.array([2.0, 0.3]), "c": np.array([0.4, -0.6])}
+    poses = {}
+    for n, cam in cams.items():
+        poses[n] = np.eye(4)
+        poses[n][[0, 2], 3] = cam
+    base = {n: layout_depth(ROOM, cam, 128, 256).astype(np.float32) for n, cam in cams.items()}
+    got = {}
+    for workers in (1, 2):
+        depths = {n: d.copy() for n, d in base.items()}
+        got[workers] = (drop_near_captures(depths, poses, workers=workers), depths)
+    assert got[1][0] == got[2][0] and got[1][0]["a"] > 0
+    assert all(np.array_equal(got[1][1][n], got[2][1][n]) for n in cams)

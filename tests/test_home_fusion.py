@@ -52,6 +52,26 @@ def test_a_home_without_frames_is_its_panoramas_gaussians():
     assert res.num_source < 2 * 32 * 64
 
 
+def test_the_panoramas_gaussians_on_several_threads_are_those_of_one_thread(monkeypatch):
+    """Each panorama's pixel Gaussians are computed on their own and merged in the panoramas' order: the home's
+    Gaussians are the same to the bit on one worker thread and on two."""
+    from panoworld.gaussians import home
+    from panoworld.gaussians.fusion_params import SourcePixelParams
+
+    poses = {"a": _pose(0, 0, 0), "b": _pose(0.9, 0.2, -1.1), "c": _pose(-1.2, 0.1, 0.8)}
+    depths = _box_depths(poses, H=32)
+    rng = np.random.default_rng(0)
+    sources = {n: (rng.integers(0, 256, (32, 64, 3), dtype=np.uint8), depths[n], poses[n]) for n in poses}
+    params = SourcePixelParams(voxel_size=0.05, unseen_voxel_size=0.05, source_height=0, capture_fit_iters=0)
+    got = {}
+    for workers in (1, 2):
+        monkeypatch.setattr(home, "cpu_threads", lambda most, w=workers: w)
+        got[workers] = home.home_anchored_fusion(None, sources, params).gaussians
+    assert len(got[1]) > 1000
+    for field in ("means", "scales", "quats", "opacities", "sh_dc"):
+        assert np.array_equal(np.asarray(getattr(got[1], field)), np.asarray(getattr(got[2], field))), field
+
+
 def test_a_surface_another_panorama_saw_through_is_dropped():
     # b's depth holds a wall across the room 1 m in front of a (a layout's doorway line); a saw the room's far wall
     # through it, so those points of b are seen through, b's true walls are not

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from panoworld.core.conventions import erp_dirs, invert_pose
-from panoworld.geometry.floor_view import camera_height, floor_view
+from panoworld.geometry.floor_view import camera_height, floor_view, nearest_both_ways, squared_distances
 from panoworld.geometry.upright import yaw_matrix, yaw_of
 from panoworld.register.floor import (
     fixed_yaw_translation,
@@ -157,6 +157,25 @@ def test_a_floor_pair_is_the_same_whichever_panorama_comes_first():
     assert np.abs(ab.a_from_b @ ba.a_from_b - np.eye(4)).max() < 1e-6
     truth = invert_pose(wa) @ wb
     assert np.linalg.norm(ab.a_from_b[:3, 3] - truth[:3, 3]) < 0.03
+
+
+def test_nearest_both_ways_is_numpys_argmin_along_both_axes_ties_included():
+    """The one-pass kernel gives numpy's argmin along the rows and along the columns (the first index on a tie) on
+    descriptor distances and on a matrix of ties; squared_distances is the plain formula clipped at 0, to the bit."""
+    from panoworld.framework import kernels
+
+    rng = np.random.default_rng(0)
+    da, db = (rng.random((300, 128)) * 100).astype(np.float32), (rng.random((257, 128)) * 100).astype(np.float32)
+    d2 = squared_distances(da, db)
+    ref = np.maximum((da * da).sum(1)[:, None] + (db * db).sum(1)[None] - 2.0 * (da @ db.T), 0.0)
+    assert d2.dtype == np.float32 and np.array_equal(d2.view(np.int32), ref.view(np.int32))
+    ties = rng.integers(0, 3, (200, 150)).astype(np.float32)
+    for m in (d2, ties, ties[:1], ties[:, :1]):
+        m = np.ascontiguousarray(m)
+        ab, ba = nearest_both_ways(m)
+        assert np.array_equal(ab, m.argmin(1)) and np.array_equal(ba, m.argmin(0))
+    listed = {tuple(sig) for _, _, fn, sig in kernels.kernel_specs() if fn == "nearest_both_ways"}
+    assert {tuple(s) for s in nearest_both_ways.signatures} == listed
 
 
 def test_a_repeated_floor_pattern_leaves_a_runner_up_a_pattern_period_away():

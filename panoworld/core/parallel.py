@@ -2,7 +2,16 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterable
+
+
+def cpu_threads(most: int) -> int:
+    """Worker threads for a stage's own thread map: OMP_NUM_THREADS where set (the batch executors cap a stage's
+    threads so), else the CPUs this process may run on; at least 1 and at most `most`."""
+    env = os.environ.get("OMP_NUM_THREADS", "")
+    n = int(env) if env.isdigit() and int(env) > 0 else len(os.sched_getaffinity(0))
+    return max(1, min(most, n))
 
 
 def map_ahead(fn: Callable, items: Iterable, *, workers: int):

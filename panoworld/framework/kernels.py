@@ -16,7 +16,7 @@ from pathlib import Path
 from panoworld.io.manifest import REPO_ROOT
 
 KERNEL_MODULES = (
-    "panoworld.render.raster_kernels", "panoworld.video.background_layer", "panoworld.gaussians.fusion_kernels",
+    "panoworld.geometry.floor_view", "panoworld.render.raster_kernels", "panoworld.video.background_layer", "panoworld.gaussians.fusion_kernels",
     "panoworld.gaussians.eig3", "panoworld.gaussians.pixel", "panoworld.render.splat_weights",
     "panoworld.gaussians.capture_fit",
 )
@@ -28,7 +28,9 @@ LOCK = "panoworld-kernels.lock"
 PROGRESS = "panoworld-kernels.progress"
 """The background compilation appends a stage's name here once that stage's kernels are in the cache."""
 KERNEL_STAGES = ("conditions", "video", "gaussians")
-"""The pipeline stages whose kernels kernel_specs() lists, in the order they are compiled."""
+"""The pipeline stages that wait for the background compilation of their kernels, in the order they are compiled (the
+register stage's one kernel compiles in under a second and only a home calls it, so a one-panorama scene's register
+stage does not wait for it)."""
 DISABLE_ENV = "PANOWORLD_PRECOMPILE"
 """Set to 0: the runner starts no background compilation (the stages compile what they call, as numba does)."""
 
@@ -43,6 +45,7 @@ def kernel_specs() -> list[tuple[str, str, str, tuple]]:
     f4, f8, i4, i8, u1, u8, b1 = t.float32, t.float64, t.int32, t.int64, t.uint8, t.uint64, t.boolean
     raster, fusion, splat = "panoworld.render.raster_kernels", "panoworld.gaussians.fusion_kernels", "panoworld.render.splat_weights"
     return [
+        ("register", "panoworld.geometry.floor_view", "nearest_both_ways", (a(f4, 2),)),
         ("conditions", raster, "_vertex_pass", (a(f4, 2), a(f8, 2), i8, i8, f8, a(f4, 2))),
         ("conditions", raster, "_raster_pass", (a(i4, 2), a(f4, 2), i8, i8, a(f8, 1), a(f8, 1), a(f8, 1), a(f8, 1), f8,
                                                 a(i8, 1), a(u8, 2), a(f4, 3))),

@@ -11,7 +11,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from panoworld.core.conventions import check_pose, erp_dirs64
-from panoworld.core.parallel import map_ahead
+from panoworld.core.parallel import cpu_threads, map_ahead
 from panoworld.core.shapes import check_shape
 from panoworld.gaussians.eig3 import eigh3
 from panoworld.gaussians.fusion_params import Confidence, FusionParams
@@ -190,7 +190,7 @@ def voxel_fusion(
         the numba kernels release the GIL)."""
         bar = tqdm(frames, total=total, desc="voxel fusion", disable=None if progress else True, leave=False)
         for out in map_ahead(lambda f: _nonempty(frame_observations(*f, params, keep_points=keep_points), fn), bar,
-                             workers=min(2, max(1, torch.get_num_threads()))):
+                             workers=cpu_threads(2)):
             if out is not None:
                 yield out
 

@@ -10,13 +10,14 @@ import numpy as np
 
 from panoworld.core.conventions import erp_dirs64, invert_pose, transform_points
 from panoworld.core.memory import release_free_memory
+from panoworld.core.parallel import cpu_threads, map_ahead
 from panoworld.gaussians.capture_fit import fit_capture_colors
 from panoworld.gaussians.fusion import ContextSource
 from panoworld.gaussians.fusion_params import SourcePixelParams
 from panoworld.gaussians.pixel import SourceVisibility, fuse_unseen, merge_gaussians, pixel_gaussians
 from panoworld.geometry.panoramas import depth_along, erp_pixel_index, nearest_source
 from panoworld.geometry.resize import rgbd_at_height
-from panoworld.io.gaussian_set import FusionResult
+from panoworld.io.gaussian_set import FusionResult, Gaussians
 from panoworld.room.plausible import NEAR_PLANE_M
 
 
@@ -227,8 +228,9 @@ def home_anchored_fusion(frames: ContextSource | None, sources: dict[str, tuple[
     if params.source_complete:
         depths = {n: complete_from_others(k, names, depths, poses) for k, n in enumerate(names)}
     pix_params = replace(params, scale_factor=params.source_scale)
-    parts = []
-    for k, n in enumerate(names):
+
+    def source_part(k: int) -> Gaussians:  # panorama k's pixel Gaussians of the surfaces no other sees from nearer
+        n = names[k]
         rgb, depth = small[n][0], depths[n]
         h, w = depth.shape
         pts = transform_points(poses[n], erp_dirs64(h, w).reshape(-1, 3) * depth.reshape(-1, 1))
@@ -236,8 +238,9 @@ def home_anchored_fusion(frames: ContextSource | None, sources: dict[str, tuple[
         if params.source_carve_tol > 0:
             keep &= ~seen_through(k, pts, names, observed, poses, tol=params.source_carve_tol)
         keep = keep.reshape(h, w)
-        parts.append(pixel_gaussians(rgb, np.where(keep & (depth > 0), depth, 0.0).astype(np.float32), poses[n],
-                                     pix_params))
+        return pixel_gaussians(rgb, np.where(keep & (depth > 0), depth, 0.0).astype(np.float32), poses[n], pix_params)
+
+    parts = list(map_ahead(source_part, range(len(names)), workers=cpu_threads(2)))
     pix = merge_gaussians(parts)
     if frames is None:
         result = fuse_unseen(pix, [], None, params)

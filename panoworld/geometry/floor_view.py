@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 
 from panoworld.core.conventions import erp_dirs64, erp_pixel_from_lonlat
@@ -116,6 +117,35 @@ def floor_view(rgb: np.ndarray, depth: np.ndarray, *, radius_m: float = 6.0, cel
                      angles=angles, sizes=np.array([k.size for k in kps], np.float64))
 
 
+def squared_distances(da: np.ndarray, db: np.ndarray) -> np.ndarray:
+    """(N, M) float32 squared L2 distances of the descriptors da (N, D) and db (M, D) float32, clipped at 0."""
+    g = da @ db.T
+    g *= 2.0
+    d2 = np.add.outer((da * da).sum(1), (db * db).sum(1))
+    np.subtract(d2, g, out=d2)
+    return np.maximum(d2, 0.0, out=d2)
+
+
+@numba.njit(cache=True, nogil=True)
+def nearest_both_ways(d2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(d2.argmin(1), d2.argmin(0)) of a distance matrix d2 (N, M), N, M >= 1, in one pass over its rows (numpy's
+    argmin along the columns strides through memory); ties go to the first index, as numpy's."""
+    n, m = d2.shape
+    ab = np.zeros(n, np.int64)
+    ba = np.zeros(m, np.int64)
+    best = d2[0].copy()
+    for i in range(n):
+        k, v = 0, d2[i, 0]
+        for j in range(m):
+            x = d2[i, j]
+            if x < v:
+                v, k = x, j
+            if x < best[j]:
+                best[j], ba[j] = x, i
+        ab[i] = k
+    return ab, ba
+
+
 def floor_matches(a: FloorView, b: FloorView, *, ratio: float = 1.0, both_ways: bool = False) -> np.ndarray:
     """(M, 2) int64 (index in a, index in b): each keypoint of a with its nearest neighbour in b (of two or more),
     kept by Lowe's ratio test when ratio < 1. both_ways adds each keypoint of b with its nearest neighbour in a, once
@@ -128,9 +158,9 @@ def floor_matches(a: FloorView, b: FloorView, *, ratio: float = 1.0, both_ways: 
     da, db = a.descriptors.astype(np.float32), b.descriptors.astype(np.float32)
     if len(da) < 2 or len(db) < 2:
         return np.zeros((0, 2), np.int64)
-    d2 = np.maximum((da * da).sum(1)[:, None] + (db * db).sum(1)[None] - 2.0 * (da @ db.T), 0.0)
+    d2 = squared_distances(da, db)
     rows, cols = np.arange(len(da)), np.arange(len(db))
-    ab, ba = d2.argmin(1), d2.argmin(0)
+    ab, ba = nearest_both_ways(d2)
     keep_ab, keep_ba = np.ones(len(da), bool), np.ones(len(db), bool)
     if ratio < 1:
         second_ab = np.partition(d2, 1, axis=1)[:, 1]

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from panoworld.core.parallel import cpu_threads
 from panoworld.geometry.erp_mesh import ErpMesh
 from panoworld.mesh.fuse import fuse_meshes
 from panoworld.room.doorways import open_doorways
@@ -19,7 +20,7 @@ def home_mesh(dirs: dict[str, Path], world_from_cam: dict[str, np.ndarray], *, s
     surface through another capture point is none (room.home_sources), nor a wall across a doorway that
     another panorama's floor continues through (room.doorways.open_doorways)."""
     names, rgbs, depths, near = home_sources(dirs, world_from_cam)
-    doors = open_doorways(names, rgbs, depths, world_from_cam)
+    doors = open_doorways(names, rgbs, depths, world_from_cam, workers=cpu_threads(2))
     mesh, face_source = fuse_meshes(names, rgbs, depths, world_from_cam, stride=stride)
     sources, start = [], 0
     for n in names:

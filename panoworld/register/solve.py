@@ -7,10 +7,9 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-import torch
 
 from panoworld.core.conventions import invert_pose
-from panoworld.core.parallel import map_ahead
+from panoworld.core.parallel import cpu_threads, map_ahead
 from panoworld.geometry.floor_view import FloorView, camera_height
 from panoworld.geometry.resize import rgbd_at_height
 from panoworld.geometry.upright import wrap_angle, yaw_of
@@ -52,9 +51,9 @@ MAX_PAIR_THREADS = 8
 
 
 def pair_threads() -> int:
-    """Pairs registered at once: torch's intra-op thread count (OMP_NUM_THREADS where set: the batch executors cap a
-    stage's threads so), at most MAX_PAIR_THREADS."""
-    return max(1, min(MAX_PAIR_THREADS, torch.get_num_threads()))
+    """Pairs registered at once: core.parallel.cpu_threads (the CPUs, or OMP_NUM_THREADS where set), at most
+    MAX_PAIR_THREADS."""
+    return cpu_threads(MAX_PAIR_THREADS)
 
 
 def _bearing_pair(fi: Features, fj: Features, m: np.ndarray, rows: int, height_i: float | None, o: RegisterOptions

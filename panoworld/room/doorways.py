@@ -15,6 +15,7 @@ from panoworld.core.conventions import (
     invert_pose,
     transform_points,
 )
+from panoworld.core.parallel import map_ahead
 from panoworld.core.shapes import check_shape
 from panoworld.geometry.floor_view import (
     FloorView,
@@ -61,7 +62,7 @@ doorway seen from the other room (two rooms' layouts put it a wall's thickness a
 
 
 def open_doorways(names: list[str], rgbs: dict[str, np.ndarray], depths: dict[str, np.ndarray],
-                  world_from_cam: dict[str, np.ndarray]) -> dict[str, int]:
+                  world_from_cam: dict[str, np.ndarray], *, workers: int = 1) -> dict[str, int]:
     """Open, in place, the doorways that the layout depths (H, W) of registered panoramas close (is_layout: walls,
     floor and ceiling of the panorama's own room, every doorway a wall). An opening of panorama a is a run of its
     columns where the floor another panorama b sees directly lies behind a's wall and both images' floor textures
@@ -69,7 +70,8 @@ def open_doorways(names: list[str], rgbs: dict[str, np.ndarray], depths: dict[st
     registered pose; it is widened by MARGIN_M, and the other panoramas' walls across it (within SIDE_M) open with it.
     A run of columns holding at least MATCHED_OPENING such keypoints matched to one panorama b is an opening too.
     Opened: the wall from the floor up to DOOR_TOP_M, the floor continued THRESHOLD_M through. rgbs (H', 2H', 3)
-    uint8 (the cleaned panoramas); -> {NAME: wall pixels opened}."""
+    uint8 (the cleaned panoramas); each panorama's floor view and looks through its walls on `workers` threads;
+    -> {NAME: wall pixels opened}."""
     for n in names:
         check_shape(f"depth of {n}", depths[n], "H W")
         check_shape(f"panorama of {n}", rgbs[n], "H W 3")
@@ -80,20 +82,23 @@ def open_doorways(names: list[str], rgbs: dict[str, np.ndarray], depths: dict[st
     if not layouts:
         return out
     grey = {n: cv2.cvtColor(rgbs[n], cv2.COLOR_RGB2GRAY).astype(np.float32) for n in known}
-    views = {n: floor_view(rgbs[n], depths[n]) for n in known}
+    views = dict(zip(known, map_ahead(lambda n: floor_view(rgbs[n], depths[n]), known, workers=workers)))
     walls = {n: _walls(depths[n], heights[n]) for n in layouts}
     reach = {n: column_reach(depths[n]) for n in known}
-    direct: dict[str, tuple] = {}
+    near = {a: [b for b in known if b != a and _near(world_from_cam[a], world_from_cam[b])] for a in layouts}
+    seen_by = [b for b in known if any(b in near[a] for a in layouts)]
+    direct = dict(zip(seen_by, map_ahead(lambda b: _seen_directly(b, grey, depths, heights, world_from_cam), seen_by,
+                                         workers=workers)))
+
+    def look(a: str) -> tuple[np.ndarray, list[np.ndarray]]:  # a's agreeing columns, keypoints through its walls
+        cols = np.zeros(depths[a].shape[1], bool)
+        for b in near[a]:
+            cols |= _agreeing_columns(a, b, *direct[b], grey, depths, heights, world_from_cam)
+        return cols, [_through_door(a, b, views, reach, world_from_cam) for b in near[a]]
+
     masks, segments = {}, []
-    for a in layouts:
+    for a, (cols, through) in zip(layouts, map_ahead(look, layouts, workers=workers)):
         w = depths[a].shape[1]
-        cols, through = np.zeros(w, bool), []
-        for b in known:
-            if b != a and _near(world_from_cam[a], world_from_cam[b]):
-                if b not in direct:
-                    direct[b] = _seen_directly(b, grey, depths, heights, world_from_cam)
-                cols |= _agreeing_columns(a, b, *direct[b], grey, depths, heights, world_from_cam)
-                through.append(_through_door(a, b, views, reach, world_from_cam))
         plan = _wall_plan(reach[a])
         keep = np.zeros(w, bool)
         seen = np.concatenate(through or [np.zeros(0, np.int64)])

@@ -347,14 +347,19 @@ def _maybe_within(radius: np.ndarray, valid: np.ndarray, q: np.ndarray, near_m: 
     return valid & (np.abs(radius - float(np.linalg.norm(q))) < near_m + 1e-3 + 1e-5 * radius)
 
 
-def drop_near_captures(depths: dict[str, np.ndarray], world_from_cam: dict[str, np.ndarray]) -> dict[str, int]:
+def drop_near_captures(depths: dict[str, np.ndarray], world_from_cam: dict[str, np.ndarray], *, workers: int = 1
+                       ) -> dict[str, int]:
     """Zero, in place, each home panorama's depth (H, W) where near_captures_mask finds a surface through another
-    capture point; {NAME: pixels dropped}."""
-    out = {}
-    for n, depth in depths.items():
+    capture point, the panoramas' masks found on `workers` threads; {NAME: pixels dropped}."""
+    from panoworld.core.parallel import map_ahead
+
+    def drop_mask(n: str) -> np.ndarray:
         others = np.array([np.asarray(world_from_cam[m])[:3, 3] for m in depths if m != n]).reshape(-1, 3)
-        drop = near_captures_mask(depth, world_from_cam[n], others)
-        depth[drop] = 0.0
+        return near_captures_mask(depths[n], world_from_cam[n], others)
+
+    out = {}
+    for n, drop in zip(list(depths), map_ahead(drop_mask, list(depths), workers=workers)):
+        depths[n][drop] = 0.0
         out[n] = int(drop.sum())
     return out
 
