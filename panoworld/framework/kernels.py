@@ -16,9 +16,9 @@ from pathlib import Path
 from panoworld.io.manifest import REPO_ROOT
 
 KERNEL_MODULES = (
-    "panoworld.geometry.floor_view", "panoworld.render.raster_kernels", "panoworld.video.background_layer", "panoworld.gaussians.fusion_kernels",
-    "panoworld.gaussians.eig3", "panoworld.gaussians.pixel", "panoworld.render.splat_weights",
-    "panoworld.gaussians.capture_fit",
+    "panoworld.geometry.floor_view", "panoworld.render.raster_kernels", "panoworld.video.background_layer",
+    "panoworld.gaussians.fusion_kernels", "panoworld.gaussians.eig3", "panoworld.gaussians.pixel", "panoworld.render.splat_weights",
+    "panoworld.gaussians.capture_fit", "panoworld.render.erp_operator",
 )
 """The modules of the kernels below, in the order of the stages that first call them."""
 STAMP = "panoworld-kernels.json"
@@ -69,6 +69,9 @@ def kernel_specs() -> list[tuple[str, str, str, tuple]]:
                                               i8, a(b1, 1))),
         ("gaussians", "panoworld.gaussians.capture_fit", "_view_colors", (a(f4, 2), a(i8, 1), a(f4, 2))),
         ("gaussians", "panoworld.gaussians.capture_fit", "_add_view_grad", (a(f4, 2), a(i8, 1), a(f4, 2), a(f4, 2))),
+        ("gaussians", "panoworld.render.erp_operator", "_csr_times", (a(i4, 1), a(i4, 1), a(f4, 1), a(f4, 2), a(f4, 2))),
+        ("gaussians", "panoworld.render.erp_operator", "_csr_times_t", (a(i4, 1), a(i4, 1), a(f4, 1), a(f4, 2),
+                                                                        a(f4, 2))),
         ("eval", splat, "weighted_sums", (a(i4, 1), a(i4, 1), a(f4, 1), a(f4, 2), i8)),
         ("eval", raster, "_resolve_hits", (a(u8, 2), a(f4, 3), i8, a(f4, 2), a(i8, 2), a(f4, 3))),
     ]

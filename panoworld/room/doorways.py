@@ -110,11 +110,17 @@ def open_doorways(names: list[str], rgbs: dict[str, np.ndarray], depths: dict[st
             keep[idx] = True
             segments.append((a, _to_world_plan(world_from_cam[a], plan[[idx[0], idx[-1]]])))
         masks[a] = walls[a] & keep[None, :]
-    for c in layouts:
+
+    def across(c: str) -> np.ndarray | None:  # c's walls within SIDE_M of the other panoramas' openings
         other = [seg for n, seg in segments if n != c]
-        if other:
-            side = np.zeros_like(walls[c])
-            side[walls[c]] = _on_segments(_plan_points(depths[c], world_from_cam[c], walls[c]), other)
+        if not other:
+            return None
+        side = np.zeros_like(walls[c])
+        side[walls[c]] = _on_segments(_plan_points(depths[c], world_from_cam[c], walls[c]), other)
+        return side
+
+    for c, side in zip(layouts, map_ahead(across, layouts, workers=workers)):
+        if side is not None:
             masks[c] |= side
         _open(depths[c], heights[c], reach[c], masks[c])
         out[c] = int(masks[c].sum())
