@@ -10,7 +10,8 @@ def cpu_threads(most: int) -> int:
     """Worker threads for a stage's own thread map: OMP_NUM_THREADS where set (the batch executors cap a stage's
     threads so), else the CPUs this process may run on; at least 1 and at most `most`."""
     env = os.environ.get("OMP_NUM_THREADS", "")
-    n = int(env) if env.isdigit() and int(env) > 0 else len(os.sched_getaffinity(0))
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    n = int(env) if env.isdigit() and int(env) > 0 else cpus
     return max(1, min(most, n))
 
 
