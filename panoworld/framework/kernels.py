@@ -63,6 +63,8 @@ def kernel_specs() -> list[tuple[str, str, str, tuple]]:
                                               a(i8, 1), a(f8, 1), a(f8, 2), a(i8, 1))),
         ("gaussians", fusion, "_merge", (t.Tuple((a(i8, 1), a(f8, 1), a(f8, 2), a(i8, 1))), a(i8, 1), a(f8, 1),
                                          a(f8, 2), a(i8, 1), a(i8, 1), a(i8, 1), a(f8, 1), a(f8, 2), a(i8, 1))),
+        ("gaussians", splat, "view_candidate_indices", (a(f4, 2), a(f4, 1), a(f4, 1), a(f8, 2), f8, f8, f8, f8, i8, i8,
+                                                        f8, f8, f8, f8)),
         ("gaussians", splat, "_tile_ranges", (a(f4, 2), a(f4, 2), i8, i8, i8, a(i8, 2))),
         ("gaussians", splat, "_bin", (a(i8, 2), a(i8, 1), i8, i8)),
         ("gaussians", splat, "tile_weights", (a(f4, 2), a(f4, 2), a(f4, 1), a(i8, 1), a(i8, 1), a(i8, 1), i8, i8, i8, i8,
