@@ -17,8 +17,8 @@ from panoworld.io.manifest import REPO_ROOT
 
 KERNEL_MODULES = (
     "panoworld.geometry.floor_view", "panoworld.render.raster_kernels", "panoworld.video.background_layer",
-    "panoworld.gaussians.fusion_kernels", "panoworld.gaussians.eig3", "panoworld.gaussians.pixel", "panoworld.render.splat_weights",
-    "panoworld.gaussians.capture_fit", "panoworld.render.erp_operator",
+    "panoworld.gaussians.fusion_kernels", "panoworld.gaussians.eig3", "panoworld.gaussians.pixel",
+    "panoworld.render.splat_weights", "panoworld.gaussians.capture_fit", "panoworld.render.erp_operator",
 )
 """The modules of the kernels below, in the order of the stages that first call them."""
 STAMP = "panoworld-kernels.json"

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from panoworld.core.conventions import erp_dirs, erp_pixel_solid_angle
+from panoworld.core.parallel import map_ahead
 
 PLANE_TOL = 0.02
 """A pixel lies on the floor (ceiling) plane when its height is within this fraction of the plane's distance."""
@@ -351,7 +352,6 @@ def drop_near_captures(depths: dict[str, np.ndarray], world_from_cam: dict[str, 
                        ) -> dict[str, int]:
     """Zero, in place, each home panorama's depth (H, W) where near_captures_mask finds a surface through another
     capture point, the panoramas' masks found on `workers` threads; {NAME: pixels dropped}."""
-    from panoworld.core.parallel import map_ahead
 
     def drop_mask(n: str) -> np.ndarray:
         others = np.array([np.asarray(world_from_cam[m])[:3, 3] for m in depths if m != n]).reshape(-1, 3)
