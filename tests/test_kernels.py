@@ -38,6 +38,28 @@ def test_listed_signatures_are_the_ones_the_renderers_call():
         assert {tuple(s) for s in fn.signatures} == _listed(name), name
 
 
+def test_listed_signatures_are_the_ones_the_culled_rasterizer_calls():
+    """ErpRasterizer's occlusion culling (a mesh of CULL_MIN_FACES and more; here any) calls its kernels with exactly the
+    listed signatures: a small sphere inside a large one, the second pose rasterising the clusters the first hid."""
+    import trimesh
+
+    from panoworld.render import cull_kernels as ck
+    from panoworld.render import raster_kernels as rk
+    from panoworld.render.rasterize import ErpRasterizer
+
+    inner, outer = trimesh.creation.icosphere(subdivisions=3), trimesh.creation.icosphere(subdivisions=3)
+    verts = np.concatenate([outer.vertices * 5.0, inner.vertices * 0.5 + [2.0, 0.0, 0.0]])
+    faces = np.concatenate([outer.faces, inner.faces + len(outer.vertices)])
+    r = ErpRasterizer(verts, faces, colors=np.full((len(verts), 3), 200), cull_cluster=16, cull_min_faces=0)
+    pose = np.eye(4)
+    r.render(pose, 32, 64)
+    pose[0, 3] = 0.2
+    r.render(pose, 32, 64)
+    for fn in (ck._morton_keys, ck._cluster_vertices, ck._cluster_spheres, ck._tile_far, ck._may_show,
+               ck._seen_clusters, rk._vertex_pass_clusters, rk._raster_clusters):
+        assert {tuple(s) for s in fn.signatures} == _listed(fn.py_func.__name__), fn.py_func.__name__
+
+
 def test_every_listed_kernel_exists_with_numba_cache():
     import importlib
 
@@ -74,6 +96,27 @@ def test_background_compile_starts_once_per_cold_cache(cache, monkeypatch):
     monkeypatch.setattr(kernels, "cache_key", lambda: "other sources")
     assert not kernels.is_compiled() and kernels.start_background_compile() is not None
     assert len(started) == 2
+
+
+def test_a_home_compiles_the_home_only_kernels_a_one_panorama_run_leaves_out(cache, monkeypatch):
+    """A one-panorama scene's background compilation leaves the HOME_ONLY groups out (its stamp says so); a home's
+    run then compiles again, with them."""
+    where, started = cache
+    assert kernels.start_background_compile(home=False) is not None
+    assert started[0][0][-1] == "--locked"
+    where.mkdir(exist_ok=True)
+    (where / kernels.STAMP).write_text(json.dumps({"key": kernels.cache_key(), "home": False}))
+    assert kernels.is_compiled(home=False) and not kernels.is_compiled(home=True)
+    assert kernels.start_background_compile(home=False) is None
+    assert kernels.start_background_compile(home=True) is not None and started[1][0][-2:] == ["--locked", "--home"]
+    (where / kernels.STAMP).write_text(json.dumps({"key": kernels.cache_key(), "home": True}))
+    assert kernels.is_compiled(home=True) and kernels.start_background_compile(home=True) is None
+    # what the one-panorama compilation runs: every kernel but the home-only groups
+    assert set(kernels.HOME_ONLY) <= {stage for stage, *_ in kernels.kernel_specs()}
+    monkeypatch.setattr(kernels, "kernel_specs", lambda: [("conditions", "no_such.module", "a", ()),
+                                                          ("culling", "no_such.module", "b", ())])
+    assert [r["stage"] for r in kernels.compile_kernels(home=False)] == ["conditions"]
+    assert [r["stage"] for r in kernels.compile_kernels()] == ["conditions", "culling"]
 
 
 def test_no_background_compile_while_another_runs_or_when_off(cache, monkeypatch):

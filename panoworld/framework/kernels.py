@@ -19,6 +19,7 @@ KERNEL_MODULES = (
     "panoworld.geometry.floor_view", "panoworld.render.raster_kernels", "panoworld.video.background_layer",
     "panoworld.gaussians.fusion_kernels", "panoworld.gaussians.eig3", "panoworld.gaussians.pixel",
     "panoworld.render.splat_weights", "panoworld.gaussians.capture_fit", "panoworld.render.erp_operator",
+    "panoworld.render.cull_kernels",
 )
 """The modules of the kernels below, in the order of the stages that first call them."""
 STAMP = "panoworld-kernels.json"
@@ -31,6 +32,9 @@ KERNEL_STAGES = ("conditions", "video", "gaussians")
 """The pipeline stages that wait for the background compilation of their kernels, in the order they are compiled (the
 register stage's one kernel compiles in under a second and only a home calls it, so a one-panorama scene's register
 stage does not wait for it)."""
+HOME_ONLY = ("culling",)
+"""kernel_specs() groups only a home's run calls (a mesh of millions of faces): the runner's background compilation
+of a one-panorama scene leaves them out."""
 DISABLE_ENV = "PANOWORLD_PRECOMPILE"
 """Set to 0: the runner starts no background compilation (the stages compile what they call, as numba does)."""
 
@@ -44,6 +48,7 @@ def kernel_specs() -> list[tuple[str, str, str, tuple]]:
 
     f4, f8, i4, i8, u1, u8, b1 = t.float32, t.float64, t.int32, t.int64, t.uint8, t.uint64, t.boolean
     raster, fusion, splat = "panoworld.render.raster_kernels", "panoworld.gaussians.fusion_kernels", "panoworld.render.splat_weights"
+    cull = "panoworld.render.cull_kernels"
     return [
         ("register", "panoworld.geometry.floor_view", "nearest_both_ways", (a(f4, 2),)),
         ("conditions", raster, "_vertex_pass", (a(f4, 2), a(f8, 2), i8, i8, f8, a(f4, 2))),
@@ -74,19 +79,33 @@ def kernel_specs() -> list[tuple[str, str, str, tuple]]:
         ("gaussians", "panoworld.render.erp_operator", "_csr_times", (a(i4, 1), a(i4, 1), a(f4, 1), a(f4, 2), a(f4, 2))),
         ("gaussians", "panoworld.render.erp_operator", "_csr_times_t", (a(i4, 1), a(i4, 1), a(f4, 1), a(f4, 2),
                                                                         a(f4, 2))),
+        # "culling": ErpRasterizer's occlusion culling, for meshes of CULL_MIN_FACES (6 M) faces and more (a home of
+        # about ten panoramas and more, in its conditions stage); compiled last, no stage waits for them
+        ("culling", cull, "_morton_keys", (a(f4, 2), a(f8, 1), f8)),
+        ("culling", cull, "_cluster_vertices", (a(i4, 2), a(i8, 1), a(i8, 1), i8)),
+        ("culling", cull, "_cluster_spheres", (a(f4, 2), a(i8, 1), a(i4, 1), a(f8, 2), a(f8, 1))),
+        ("culling", cull, "_tile_far", (a(u8, 2), i8, i8, a(f4, 2))),
+        ("culling", cull, "_may_show", (a(i8, 1), a(f8, 2), a(f8, 1), a(f8, 2), a(f4, 2), i8, i8, i8, a(b1, 1))),
+        ("culling", cull, "_seen_clusters", (a(u8, 2), a(i4, 1), a(b1, 1))),
+        ("culling", raster, "_vertex_pass_clusters", (a(f4, 2), a(f8, 2), i8, i8, f8, a(f4, 2), a(i8, 1), a(i4, 1),
+                                                      a(i8, 1))),
+        ("culling", raster, "_raster_clusters", (a(i4, 2), a(i8, 1), a(i8, 1), a(i8, 1), a(f4, 2), i8, i8, a(f8, 1),
+                                                 a(f8, 1), a(f8, 1), a(f8, 1), f8, a(u8, 2), a(f4, 3))),
         ("eval", splat, "weighted_sums", (a(i4, 1), a(i4, 1), a(f4, 1), a(f4, 2), i8)),
         ("eval", raster, "_resolve_hits", (a(u8, 2), a(f4, 3), i8, a(f4, 2), a(i8, 2), a(f4, 3))),
     ]
 
 
-def compile_kernels(progress=None) -> list[dict]:
-    """Compile every kernel of kernel_specs() (or load it from numba's cache) -> rows {stage, kernel, seconds (CPU),
-    cached (True: loaded from the on-disk cache, nothing compiled), error (None, or why it did not compile: its
-    stage then compiles it as numba does)}; progress(row) after each."""
+def compile_kernels(progress=None, *, home: bool = True) -> list[dict]:
+    """Compile every kernel of kernel_specs() (or load it from numba's cache; without home, not the HOME_ONLY groups)
+    -> rows {stage, kernel, seconds (CPU), cached (True: loaded from the on-disk cache, nothing compiled), error (None,
+    or why it did not compile: its stage then compiles it as numba does)}; progress(row) after each."""
     import importlib
 
     rows = []
     for stage, module, name, sig in kernel_specs():
+        if not home and stage in HOME_ONLY:
+            continue
         c0 = time.process_time()
         hits, error = 0, None
         try:
@@ -124,19 +143,21 @@ def cache_key() -> str:
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()
 
 
-def is_compiled(where: Path | None = None) -> bool:
-    """Whether every kernel was compiled into the cache directory for the current sources."""
+def is_compiled(where: Path | None = None, *, home: bool = True) -> bool:
+    """Whether every kernel (without home, but the HOME_ONLY groups) was compiled into the cache directory for the
+    current sources."""
     try:
-        return json.loads(((where or cache_dir()) / STAMP).read_text()).get("key") == cache_key()
+        stamp = json.loads(((where or cache_dir()) / STAMP).read_text())
+        return stamp.get("key") == cache_key() and (stamp.get("home", True) or not home)
     except (OSError, ValueError, AttributeError):
         return False
 
 
-def start_background_compile() -> subprocess.Popen | None:
+def start_background_compile(*, home: bool = False) -> subprocess.Popen | None:
     """Start compiling the kernels in a background process, unless they are compiled already, another
     process is compiling them, or PANOWORLD_PRECOMPILE=0 -> the process (None when none was started). The lock it holds
     is released when it exits; stages that call a kernel before it is done compile it themselves, as numba does."""
-    if os.environ.get(DISABLE_ENV) == "0" or is_compiled():
+    if os.environ.get(DISABLE_ENV) == "0" or is_compiled(home=home):
         return None
     where = cache_dir()
     try:
@@ -152,7 +173,8 @@ def start_background_compile() -> subprocess.Popen | None:
         (where / PROGRESS).unlink(missing_ok=True)
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
-        return subprocess.Popen([sys.executable, "-m", "panoworld.framework.kernels", "--locked"], cwd=REPO_ROOT, env=env,
+        return subprocess.Popen([sys.executable, "-m", "panoworld.framework.kernels", "--locked"] + (["--home"] if home else []),
+                                cwd=REPO_ROOT, env=env,
                                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                 pass_fds=(fd,))
     except OSError:
@@ -188,12 +210,13 @@ def _running(process: subprocess.Popen) -> bool:
         return False
 
 
-def compile_and_stamp(progress=None) -> list[dict]:
-    """compile_kernels(), then the stamp that tells later runs the cache holds them all."""
+def compile_and_stamp(progress=None, *, home: bool = True) -> list[dict]:
+    """compile_kernels(), then the stamp that tells later runs the cache holds them all (without home: all but the
+    HOME_ONLY groups)."""
     key = cache_key()
-    rows = compile_kernels(progress)
+    rows = compile_kernels(progress, home=home)
     try:
-        (cache_dir() / STAMP).write_text(json.dumps({"key": key}))
+        (cache_dir() / STAMP).write_text(json.dumps({"key": key, "home": home}))
     except OSError:
         pass
     return rows
@@ -202,10 +225,11 @@ def compile_and_stamp(progress=None) -> list[dict]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m panoworld.framework.kernels", description=__doc__)
     ap.add_argument("--locked", action="store_true", help="started by the runner, which passed the held lock")
+    ap.add_argument("--home", action="store_true", help="with --locked: the HOME_ONLY groups too (a home's run)")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
     a = ap.parse_args(argv)
     if a.locked:
-        specs = kernel_specs()
+        specs = [spec for spec in kernel_specs() if a.home or spec[0] not in HOME_ONLY]
         last = {stage: i for i, (stage, *_rest) in enumerate(specs)}
         done = iter(range(len(specs)))
 
@@ -214,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
                 with open(cache_dir() / PROGRESS, "a") as f:
                     f.write(row["stage"] + "\n")
 
-        compile_and_stamp(stage_done)
+        compile_and_stamp(stage_done, home=a.home)
         return 0
     rows = compile_and_stamp()
     print(json.dumps(rows, indent=2) if a.json else "\n".join(row_line(r) for r in rows))

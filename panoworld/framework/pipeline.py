@@ -262,7 +262,8 @@ def run(
                 continue
             reason = "forced" if up else why
             if execute is None and not compiling:  # numba's cache cold: its kernels compile while earlier stages run
-                compiling = [kernels.start_background_compile() if selected & set(kernels.KERNEL_STAGES) else None]
+                compiling = [kernels.start_background_compile(home=scene.files.get("panoramas") is not None)
+                             if selected & set(kernels.KERNEL_STAGES) else None]
                 report.compile_process = compiling[0]
             waited = kernels.wait_for_stage(compiling[0], name) if execute is None else 0.0
             if echo and waited >= 1.0:
