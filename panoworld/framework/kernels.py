@@ -96,6 +96,11 @@ def kernel_specs() -> list[tuple[str, str, str, tuple]]:
     ]
 
 
+def specs_to_compile(home: bool) -> list[tuple[str, str, str, tuple]]:
+    """kernel_specs(), without home the HOME_ONLY groups left out."""
+    return [spec for spec in kernel_specs() if home or spec[0] not in HOME_ONLY]
+
+
 def compile_kernels(progress=None, *, home: bool = True) -> list[dict]:
     """Compile every kernel of kernel_specs() (or load it from numba's cache; without home, not the HOME_ONLY groups)
     -> rows {stage, kernel, seconds (CPU), cached (True: loaded from the on-disk cache, nothing compiled), error (None,
@@ -103,9 +108,7 @@ def compile_kernels(progress=None, *, home: bool = True) -> list[dict]:
     import importlib
 
     rows = []
-    for stage, module, name, sig in kernel_specs():
-        if not home and stage in HOME_ONLY:
-            continue
+    for stage, module, name, sig in specs_to_compile(home):
         c0 = time.process_time()
         hits, error = 0, None
         try:
@@ -229,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
     a = ap.parse_args(argv)
     if a.locked:
-        specs = [spec for spec in kernel_specs() if a.home or spec[0] not in HOME_ONLY]
+        specs = specs_to_compile(a.home)
         last = {stage: i for i, (stage, *_rest) in enumerate(specs)}
         done = iter(range(len(specs)))
 
