@@ -119,6 +119,49 @@ def test_masked_operator_is_the_render_on_the_pixels_it_keeps(supersample, tile)
     assert float(empty(colors).abs().max()) == 0.0 and empty.adjoint(img.float()).shape == (len(g), 3)
 
 
+def test_pruned_weights_are_each_rows_smallest_within_its_share():
+    import scipy.sparse
+
+    from panoworld.render.erp_operator import prune_weights
+
+    rng = np.random.default_rng(3)
+    m = scipy.sparse.random(300, 200, density=0.2, format="csr", dtype=np.float32, random_state=4)
+    m.data[:] = (rng.random(m.nnz) ** 6).astype(np.float32)  # many tiny weights, as a pixel's tail of Gaussians
+    m.data[: m.indptr[2]] = 0.25  # two rows of ties
+    for share in (0.0, 0.01, 0.1):
+        p = prune_weights(m, share)
+        full, kept = m.toarray(), p.toarray()
+        dropped = full - kept
+        assert ((kept == 0) | (kept == full)).all()  # entries are kept whole or dropped
+        np.testing.assert_array_less(dropped.sum(1), share * full.sum(1) + 1e-7)
+        for i in range(m.shape[0]):  # nothing dropped outweighs what the row keeps
+            assert dropped[i].max(initial=0) <= kept[i][kept[i] > 0].min(initial=np.inf)
+        if share == 0:
+            assert p.nnz == m.nnz
+    assert prune_weights(m, 0.1).nnz < 0.8 * m.nnz
+    ties = prune_weights(scipy.sparse.csr_matrix(np.array([[0.25, 0.25, 0, 0.25, 0.25], [0, 0, 0, 0, 0]],
+                                                            np.float32)), 0.6)
+    np.testing.assert_array_equal(ties.toarray(), [[0, 0, 0, 0.25, 0.25], [0, 0, 0, 0, 0]])  # the earlier ties go
+
+
+def test_a_pruned_operators_render_is_off_by_at_most_its_share():
+    from panoworld.render.erp_operator import ErpColorOperator
+
+    g = shell_and_clutter()
+    pose = np.eye(4)
+    pose[:3, 3] = [0.2, -0.1, 0.3]
+    H, W = 24, 48
+    colors = torch.rand(len(g), 3)
+    full = ErpColorOperator(g, pose, H, W, supersample=2, tile=8)
+    for share in (0.002, 0.02):
+        pruned = ErpColorOperator(g, pose, H, W, supersample=2, tile=8, prune=share)
+        assert sum(f[2].nnz for f in pruned.faces) < sum(f[2].nnz for f in full.faces)
+        gap = (full(colors) - pruned(colors)).abs().max()
+        assert 0 < float(gap) <= share * float(colors.max()) + 1e-6
+    with pytest.raises(ValueError, match="prune"):
+        ErpColorOperator(g, pose, H, W, prune=1.0)
+
+
 SHELL_H, SHELL_W = 24, 48
 """The size of view_dependent_shell's views."""
 

@@ -60,6 +60,24 @@ def test_listed_signatures_are_the_ones_the_culled_rasterizer_calls():
         assert {tuple(s) for s in fn.signatures} == _listed(fn.py_func.__name__), fn.py_func.__name__
 
 
+def test_listed_signatures_are_the_ones_the_capture_fits_operator_calls():
+    """The home's capture fit builds pruned render operators and multiplies through them with the listed signatures."""
+    import torch
+
+    from panoworld.io.gaussian_set import Gaussians
+    from panoworld.render import erp_operator as eo
+
+    rng = np.random.default_rng(1)
+    n = 200
+    g = Gaussians(means=rng.uniform(-2, 2, (n, 3)).astype(np.float32), scales=np.full((n, 3), 0.3, np.float32),
+                  quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)), opacities=np.full(n, 0.5, np.float32),
+                  sh_dc=np.zeros((n, 3), np.float32))
+    op = eo.ErpColorOperator(g, np.eye(4), 16, 32, prune=0.01)
+    op.adjoint(op(torch.rand(n, 3)))
+    for fn in (eo._prune_rows, eo._csr_times, eo._csr_times_t):
+        assert {tuple(s) for s in fn.signatures} == _listed(fn.py_func.__name__), fn.py_func.__name__
+
+
 def test_every_listed_kernel_exists_with_numba_cache():
     import importlib
 

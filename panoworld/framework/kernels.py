@@ -79,6 +79,7 @@ def kernel_specs() -> list[tuple[str, str, str, tuple]]:
         ("gaussians", "panoworld.render.erp_operator", "_csr_times", (a(i4, 1), a(i4, 1), a(f4, 1), a(f4, 2), a(f4, 2))),
         ("gaussians", "panoworld.render.erp_operator", "_csr_times_t", (a(i4, 1), a(i4, 1), a(f4, 1), a(f4, 2),
                                                                         a(f4, 2))),
+        ("gaussians", "panoworld.render.erp_operator", "_prune_rows", (a(i4, 1), a(f4, 1), f8, a(b1, 1), a(i4, 1))),
         # "culling": ErpRasterizer's occlusion culling, for meshes of CULL_MIN_FACES (6 M) faces and more (a home of
         # about ten panoramas and more, in its conditions stage); compiled last, no stage waits for them
         ("culling", cull, "_morton_keys", (a(f4, 2), a(f8, 1), f8)),

@@ -29,7 +29,8 @@ def sh1_basis(means: np.ndarray, centre: np.ndarray) -> torch.Tensor:
 
 def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]], *, height: int = 256,
                        supersample: int = 2, iters: int = 20, damping: float = 0.01, sh_degree: int = 1,
-                       sh_damping: float = 0.001, max_bytes: float = float("inf")) -> tuple[Gaussians, dict]:
+                       sh_damping: float = 0.001, max_bytes: float = float("inf"), prune: float = 0.0
+                       ) -> tuple[Gaussians, dict]:
     """Gaussians g whose colours are refitted so their ERP render (height rows, supersample: render_erp's sampling)
     at each view's world_from_cam (4, 4) reproduces its target (H, W, 3) uint8 or [0, 1], area-resized to height rows.
 
@@ -41,10 +42,11 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     coefficients, B_k their basis in the direction from view k (sh1_basis) and B its mean over the views weighted by
     what each sees of the Gaussian, so c is the colour from that mean direction and s only tells the views apart: a
     surface two capture points see differently shows each its own colour, one that a single view sees keeps s. Only
-    the Gaussians some view sees are fitted. Returns the Gaussians (SH degree max(sh_degree, g's)) and {"views",
-    "height", "iters", "sh_degree", "fitted", "operators_gb" (what the render operators held), "rmse_before",
-    "rmse_after" (per view)}; g itself and {"views", "skipped": why} when the operators built so far say all of them
-    would hold more than max_bytes."""
+    the Gaussians some view sees are fitted; prune: the share of each pixel's weight its render operator may drop
+    (ErpColorOperator). Returns the Gaussians (SH degree max(sh_degree, g's)) and {"views", "height", "iters",
+    "sh_degree", "fitted", "operators_gb" (what the render operators held), "rmse_before", "rmse_after" (per view)};
+    g itself and {"views", "skipped": why} when the operators built so far say all of them would hold more than
+    max_bytes."""
     import cv2
 
     from panoworld.render.erp_operator import ErpColorOperator
@@ -66,7 +68,7 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     seen_any = np.zeros(len(g), bool)
     held = 0
     for _, pose in views:
-        op = ErpColorOperator(g, pose, height, 2 * height, supersample=supersample, cov=cov, tile=FIT_TILE)
+        op = ErpColorOperator(g, pose, height, 2 * height, supersample=supersample, cov=cov, tile=FIT_TILE, prune=prune)
         seen = np.zeros(len(g), bool)
         for f in op.faces:
             seen[f[2].indices] = True

@@ -272,7 +272,7 @@ def fit_at_capture_points(g, names: list[str], sources: dict, poses: dict, param
             g, views, height=height, supersample=params.capture_fit_supersample,
             iters=params.capture_fit_iters, damping=params.capture_fit_damping,
             sh_degree=params.capture_fit_sh_degree, sh_damping=params.fit_sh_damping,
-            max_bytes=params.capture_fit_max_gb * 1e9)
+            max_bytes=params.capture_fit_max_gb * 1e9, prune=params.capture_fit_prune)
         if "skipped" not in fit or height // 2 < CAPTURE_FIT_MIN_HEIGHT:
             break
         refused.append({"height": height, "why": fit["skipped"]})

@@ -46,12 +46,19 @@ class ErpColorOperator:
     mask (H, W) bool: only those ERP pixels are rendered (0 elsewhere): the face pixels their samples read are the
     only ones composited, and each face projects only the Gaussians whose box can meet it (erp_render.face_cull), so a view
     that counts only part of its pixels costs that part. On the kept pixels it equals the operator without a mask.
-    tile: the weights kernel's tile size (face_weights); cov: the Gaussians' covariance_3d when already at hand."""
+    tile: the weights kernel's tile size (face_weights); cov: the Gaussians' covariance_3d when already at hand.
+    prune in [0, 1): each face pixel drops its smallest weights while their sum stays within this share of the
+    pixel's total weight (prune_weights), so a render through the operator is off by at most that share of the
+    brightest colour; 0 keeps every weight."""
 
     def __init__(self, gaussians: Gaussians, world_from_cam: np.ndarray, H: int, W: int, *,
                  supersample: int = ERP_SUPERSAMPLE, near: float = 0.01, pole_scale: float | None = None,
-                 mask: np.ndarray | None = None, tile: int = TILE, cov: torch.Tensor | None = None):
+                 mask: np.ndarray | None = None, tile: int = TILE, cov: torch.Tensor | None = None,
+                 prune: float = 0.0):
         import scipy.sparse
+
+        if not 0.0 <= prune < 1.0:
+            raise ValueError(f"prune={prune!r} but expected a share in [0, 1)")
 
         faces = erp_faces(world_from_cam, H, W, supersample=supersample, pole_scale=pole_scale)
         s = self.s = int(supersample)
@@ -82,6 +89,8 @@ class ErpColorOperator:
             # scipy: COO -> CSR is a counting sort, 32-bit indices, and the transpose a free CSC view
             A = scipy.sparse.csr_matrix((w, (pix, cand.numpy().astype(np.int32)[proj.index.numpy()[gid]])),
                                         shape=(fc.n * fc.n, self.N))
+            if prune > 0:
+                A = prune_weights(A, prune)
             return index[rows], S, A
 
         # The faces on torch's threads (the kernel releases the GIL), the largest (the pole faces) first.
@@ -148,6 +157,36 @@ class ErpColorOperator:
         products release the GIL)."""
         with ThreadPoolExecutor(max(1, torch.get_num_threads())) as pool:
             return list(pool.map(fn, self.faces))
+
+
+def prune_weights(m, share: float):
+    """The CSR matrix m (rows, cols) float32 without, in each row, its smallest entries whose sum stays within share
+    of the row's sum (ties: the earlier entry first); the others keep their order."""
+    import scipy.sparse
+
+    keep = np.ones(len(m.data), bool)
+    indptr = np.zeros_like(m.indptr)
+    _prune_rows(m.indptr, m.data, np.float64(share), keep, indptr)
+    return scipy.sparse.csr_matrix((m.data[keep], m.indices[keep], indptr), shape=m.shape)
+
+
+@njit(cache=True, nogil=True)
+def _prune_rows(indptr, data, share, keep, out_indptr):
+    """keep[p] = False for prune_weights' dropped entries; out_indptr: the kept entries' row pointers."""
+    for i in range(indptr.shape[0] - 1):
+        a, b = indptr[i], indptr[i + 1]
+        kept = b - a
+        if kept > 1:
+            row = data[a:b].astype(np.float64)
+            budget = share * row.sum()
+            dropped = 0.0
+            for k in np.argsort(row, kind="mergesort"):
+                dropped += row[k]
+                if dropped > budget:
+                    break
+                keep[a + k] = False
+                kept -= 1
+        out_indptr[i + 1] = out_indptr[i] + kept
 
 
 def _times(m, x: np.ndarray) -> np.ndarray:
