@@ -32,7 +32,7 @@ KERNEL_STAGES = ("conditions", "video", "gaussians")
 """The pipeline stages that wait for the background compilation of their kernels, in the order they are compiled (the
 register stage's one kernel compiles in under a second and only a home calls it, so a one-panorama scene's register
 stage does not wait for it)."""
-HOME_ONLY = ("culling",)
+HOME_ONLY = ("capture_fit", "culling")
 """kernel_specs() groups only a home's run calls (a mesh of millions of faces): the runner's background compilation
 of a one-panorama scene leaves them out."""
 DISABLE_ENV = "PANOWORLD_PRECOMPILE"
@@ -79,9 +79,10 @@ def kernel_specs() -> list[tuple[str, str, str, tuple]]:
         ("gaussians", "panoworld.render.erp_operator", "_csr_times", (a(i4, 1), a(i4, 1), a(f4, 1), a(f4, 2), a(f4, 2))),
         ("gaussians", "panoworld.render.erp_operator", "_csr_times_t", (a(i4, 1), a(i4, 1), a(f4, 1), a(f4, 2),
                                                                         a(f4, 2))),
-        ("gaussians", "panoworld.render.erp_operator", "_prune_rows", (a(i4, 1), a(f4, 1), f8, a(b1, 1), a(i4, 1))),
-        # "culling": ErpRasterizer's occlusion culling, for meshes of CULL_MIN_FACES (6 M) faces and more (a home of
-        # about ten panoramas and more, in its conditions stage); compiled last, no stage waits for them
+        # HOME_ONLY groups, compiled last, no stage waits for them. "capture_fit": the pruning of the home's capture-fit
+        # operators (its gaussians stage); "culling": ErpRasterizer's occlusion culling, for meshes of CULL_MIN_FACES
+        # (6 M) faces and more (a home of about ten panoramas and more, in its conditions stage)
+        ("capture_fit", "panoworld.render.erp_operator", "_prune_rows", (a(i4, 1), a(f4, 1), f8, a(b1, 1), a(i4, 1))),
         ("culling", cull, "_morton_keys", (a(f4, 2), a(f8, 1), f8)),
         ("culling", cull, "_cluster_vertices", (a(i4, 2), a(i8, 1), a(i8, 1), i8)),
         ("culling", cull, "_cluster_spheres", (a(f4, 2), a(i8, 1), a(i4, 1), a(f8, 2), a(f8, 1))),
