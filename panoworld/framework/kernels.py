@@ -33,8 +33,8 @@ KERNEL_STAGES = ("conditions", "video", "gaussians")
 register stage's one kernel compiles in under a second and only a home calls it, so a one-panorama scene's register
 stage does not wait for it)."""
 HOME_ONLY = ("capture_fit", "culling")
-"""kernel_specs() groups only a home's run calls (a mesh of millions of faces): the runner's background compilation
-of a one-panorama scene leaves them out."""
+"""kernel_specs() groups only a home's run calls (the pruning of its capture fit's operators, the occlusion culling of
+a mesh of millions of faces): the runner's background compilation of a one-panorama scene leaves them out."""
 DISABLE_ENV = "PANOWORLD_PRECOMPILE"
 """Set to 0: the runner starts no background compilation (the stages compile what they call, as numba does)."""
 
