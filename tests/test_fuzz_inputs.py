@@ -174,6 +174,6 @@ def test_depth_arrays_never_traceback_or_corrupt_the_artifact(tmp_path_factory, 
     depth = np.load(out / "depth.npy")
     valid = cv2.imread(str(out / "valid.png"), cv2.IMREAD_GRAYSCALE) > 127
     assert depth.shape == (16, 32) and np.isfinite(depth).all() and (depth[valid] > 0).all() and (depth[~valid] == 0).all()
-    rec = manifest["info"]["outliers"]  # what is left is within FAR_FACTOR of the median (before the rescale)
+    rec = manifest["info"]["outliers"]  # what is left is within the far threshold it applied (before the rescale)
     assert rec["max_depth_after"] is None or rec["max_depth_after"] <= rec["far_threshold"]
     shutil.rmtree(out)

@@ -9,7 +9,15 @@ import cv2
 import numpy as np
 import pytest
 
-from panoworld.depth.outliers import SPIKE_RATIO, mask_depth_outliers, spike_mask
+from panoworld.core.conventions import erp_dirs64
+from panoworld.depth.outliers import (
+    BROKEN_FACTOR,
+    BROKEN_SHARE,
+    FAR_FACTOR,
+    SPIKE_RATIO,
+    mask_depth_outliers,
+    spike_mask,
+)
 from panoworld.navmesh.no_room import MIN_ROOM_M2
 from panoworld.tools.synth.failure_cases import FailureCase, failure_scene, write_failure_scene
 from panoworld.trajectory.common import MAX_APPROACH_SHARE
@@ -92,6 +100,50 @@ def test_spikes_are_found_and_depth_edges_are_not_spikes():
     assert found[spikes].mean() > 0.95 and not found[~spikes].any()
     kept, rec = mask_depth_outliers(d, valid)
     assert rec["far_px"] == 0 and rec["spike_px"] == found.sum() and not kept[found].any()
+
+
+def _box_depth(dirs, x, z, y, open_x1_beyond_z=None):
+    """Ray distance (H, W) to a box room (x, z, y: (low, high) metres about the camera, y down) seen from inside: its
+    four walls, an endless floor and ceiling; open_x1_beyond_z: the wall x = x[1] has no segment beyond that z (the rays
+    through the gap reach the floor or ceiling planes far away, as a layout seen from outside its polygon gives them)."""
+    t = np.full(dirs.shape[:2], np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for axis, (lo, hi) in ((0, x), (2, z), (1, y)):
+            d = dirs[..., axis]
+            hit = np.where(d > 0, hi / d, np.where(d < 0, lo / d, np.inf))
+            if axis != 1:  # a wall ends where the other walls meet it
+                other, (olo, ohi) = (2, z) if axis == 0 else (0, x)
+                at = hit * dirs[..., other]
+                hit = np.where((at >= olo - 1e-9) & (at <= ohi + 1e-9), hit, np.inf)
+            if axis == 0 and open_x1_beyond_z is not None:
+                hit = np.where((d > 0) & (hit * dirs[..., 2] > open_x1_beyond_z), np.inf, hit)
+            t = np.minimum(t, hit)
+    return t.astype(np.float32)
+
+
+def test_a_long_hallway_seen_from_its_end_is_kept_and_a_broken_layout_is_still_masked():
+    dirs = erp_dirs64(256, 512)
+    # A hallway 1 m wide and 12 m long, the camera 0.5 m from its end: its median depth is that of the near walls, and
+    # the far end lies 15x beyond it, farther than FAR_FACTOR but within any room (BROKEN_FACTOR): all of it is kept.
+    hall = _box_depth(dirs, (-0.5, 0.5), (-0.5, 11.5), (-1.0, 1.5))
+    kept, rec = mask_depth_outliers(hall, np.ones(hall.shape, bool))
+    assert hall.max() > 1.5 * FAR_FACTOR * rec["median_depth"]  # what a median rule of FAR_FACTOR alone would cut
+    assert kept.all() and rec["far_px"] == 0 and rec["far_factor"] == BROKEN_FACTOR and rec["broken_share"] == 0
+    assert rec["max_depth_after"] == pytest.approx(float(hall.max()))
+    # The same hallway with one wall missing beyond 3 m: the floor and ceiling there run on for hundreds of metres, so
+    # the depth is broken, and everything beyond FAR_FACTOR x its median goes (the hallway's far end with it).
+    broken = _box_depth(dirs, (-0.5, 0.5), (-0.5, 11.5), (-1.0, 1.5), open_x1_beyond_z=3.0)
+    kept, rec = mask_depth_outliers(broken, np.ones(broken.shape, bool))
+    assert broken.max() > 100 * rec["median_depth"] and rec["broken_share"] > BROKEN_SHARE
+    assert rec["far_factor"] == FAR_FACTOR
+    np.testing.assert_array_equal(kept, broken <= FAR_FACTOR * rec["median_depth"])
+    assert rec["max_depth_after"] <= rec["far_threshold"] == pytest.approx(FAR_FACTOR * rec["median_depth"])
+    # A few lone far values (less than BROKEN_SHARE of the sphere) do not make a depth broken; they go all the same.
+    spiky = hall.copy()
+    spiky[100, 200:203] = 500.0
+    kept, rec = mask_depth_outliers(spiky, np.ones(spiky.shape, bool))
+    assert rec["far_factor"] == BROKEN_FACTOR and rec["far_px"] == 3 and not kept[100, 200:203].any()
+    assert kept.sum() == kept.size - 3
 
 
 def test_start_off_the_navmesh_costs_at_most_a_tenth_of_the_poses(tmp_path):

@@ -9,7 +9,15 @@ from panoworld.core.conventions import erp_pixel_solid_angle
 SPIKE_RATIO = 3.0
 """A pixel is a spike when its depth exceeds this multiple of all but at most one of its valid 8-neighbours."""
 FAR_FACTOR = 8.0
-"""Depth beyond this multiple of the median depth over the sphere (solid-angle weighted) is beyond the room."""
+"""In a broken depth (BROKEN_FACTOR), depth beyond this multiple of the median depth over the sphere (solid-angle
+weighted) is beyond the room."""
+BROKEN_FACTOR = 30.0
+"""Depth beyond this multiple of the median is beyond any room; where it covers more than BROKEN_SHARE of the sphere
+the depth is broken (a layout seen from outside its polygon, whose floor rays run hundreds of metres; a sky) and
+FAR_FACTOR applies, else only this: a narrow hallway seen from its end reaches 10-20x its median."""
+BROKEN_SHARE = 1e-4
+"""Share of the sphere's solid angle beyond BROKEN_FACTOR x the median that makes a depth broken (a gap in one wall of
+a 1 m hallway's layout sends 0.1 % of the sphere there; fewer such pixels are lone values, masked all the same)."""
 
 
 def weighted_median(depth: np.ndarray, valid: np.ndarray) -> float:
@@ -43,8 +51,9 @@ def mask_depth_outliers(depth: np.ndarray, valid: np.ndarray) -> tuple[np.ndarra
     """Valid mask with implausible far depth removed, and a record for the depth manifest.
 
     Spikes: depth > SPIKE_RATIO x all but one of its valid 8-neighbours (a lone far value among near ones).
-    Beyond the room: depth > FAR_FACTOR x the sphere's solid-angle weighted median depth. The camera's room
-    dominates the sphere, so its median is a robust room size even when a whole wall is wrong. Both tests are
+    Beyond the room: depth > FAR_FACTOR x the sphere's solid-angle weighted median depth where the depth is broken
+    (more than BROKEN_SHARE of the sphere beyond BROKEN_FACTOR x that median), else > BROKEN_FACTOR x it. The
+    camera's room dominates the sphere, so its median is a robust room size even when a whole wall is wrong. Both tests are
     relative: depth (H, W) may be in any unit (they run before the floor-based metric rescale, whose floor fit
     outliers would spoil). valid (H, W) bool.
     """
@@ -52,12 +61,17 @@ def mask_depth_outliers(depth: np.ndarray, valid: np.ndarray) -> tuple[np.ndarra
     if not valid.any():
         return valid, {"spike_px": 0, "far_px": 0}
     med = weighted_median(depth, valid)
-    far_at = FAR_FACTOR * med
+    omega = np.broadcast_to(erp_pixel_solid_angle(depth.shape[0], depth.shape[1]), depth.shape)
+    broken_share = float(omega[valid & (depth > BROKEN_FACTOR * med)].sum() / omega.sum())
+    factor = FAR_FACTOR if broken_share > BROKEN_SHARE else BROKEN_FACTOR
+    far_at = factor * med
     far = valid & (depth > far_at)
     spikes = spike_mask(depth, valid & ~far)
     out = valid & ~far & ~spikes
     record = {
         "median_depth": med,
+        "broken_share": broken_share,
+        "far_factor": factor,
         "far_threshold": float(far_at),
         "far_px": int(far.sum()),
         "spike_px": int(spikes.sum()),
@@ -84,7 +98,7 @@ def describe(record: dict, unit: str = "units") -> str | None:
     if not (record.get("far_px") or record.get("spike_px")):
         return None
     return (f"depth outliers masked: {record['far_px']} px beyond the room (> {record['far_threshold']:.1f} {unit}, "
-            f"{FAR_FACTOR:g}x the median depth {record['median_depth']:.2f} {unit}; max was "
+            f"{record['far_factor']:g}x the median depth {record['median_depth']:.2f} {unit}; max was "
             f"{record['max_depth_before']:.0f} {unit}) and {record['spike_px']} isolated spikes "
             f"(> {SPIKE_RATIO:g}x their neighbours)")
 
