@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import torch
-from numba import njit, prange
+from numba import njit
 
 from panoworld.core.shapes import check_shape
 
@@ -45,9 +45,11 @@ def _rotate(a, v, p, q):
         v[k, q] = s * vkp + c * vkq
 
 
-@njit(parallel=True, cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def _eig3(cov, evals, axes):
-    for i in prange(cov.shape[0]):
+    # Serial (0.4 us a matrix): with prange, about one run in ten of the same gaussians stage gave one Gaussian's scale
+    # a few float32 ulps apart, and a rerun must give the same bytes.
+    for i in range(cov.shape[0]):
         a = np.empty((3, 3))
         v = np.zeros((3, 3))
         finite = True
