@@ -150,14 +150,39 @@ def test_the_capture_fit_falls_back_to_a_lower_height_when_its_operators_exceed_
     assert "reduced_from" not in low and high["height"] == 2 * H and high["operators_gb"] > 2 * low["operators_gb"]
     cap = (low["operators_gb"] + high["operators_gb"]) / 2
     fell = home_anchored_fusion(None, sources, SourcePixelParams(**params, capture_fit_height=2 * H,
-                                                                 capture_fit_max_gb=cap))
+                                                                 capture_fit_max_gb=cap, capture_fit_prune_fallback=0))
     assert fell.color_fit["height"] == H and fell.color_fit["rmse_after"] == low["rmse_after"]
     (refused,) = fell.color_fit["reduced_from"]
-    assert refused["height"] == 2 * H and "more than" in refused["why"]
+    assert refused["height"] == 2 * H and refused["prune"] == high["prune"] == 0.002 and "more than" in refused["why"]
     none = home_anchored_fusion(None, sources, SourcePixelParams(**params, capture_fit_height=2 * H,
                                                                  capture_fit_max_gb=low["operators_gb"] / 4))
-    assert "skipped" in none.color_fit and [r["height"] for r in none.color_fit["reduced_from"]] == [2 * H]
-    assert none.gaussians.sh_degree == 0
+    assert "skipped" in none.color_fit and none.gaussians.sh_degree == 0
+    assert [(r["height"], r["prune"]) for r in none.color_fit["reduced_from"]] == [(2 * H, 0.002), (2 * H, 0.01),
+                                                                                 (H, 0.002)]
+
+
+def test_the_capture_fit_prunes_harder_before_it_halves_its_height():
+    # With a cap between the 128-row operators at capture_fit_prune and at capture_fit_prune_fallback, the fit keeps
+    # its 128 rows with the fallback's pruning, as a fit asked for that pruning does, and says what it refused.
+    from panoworld.gaussians.fusion_params import SourcePixelParams
+    from panoworld.gaussians.home import home_anchored_fusion
+
+    poses = {"a": _pose(0, 0, 0), "b": _pose(0.9, 0.2, -1.1)}
+    H = 128
+    depths = _box_depths(poses, H=H)
+    rng = np.random.default_rng(1)
+    rgbs = {n: rng.integers(0, 255, (H, 2 * H, 3), dtype=np.uint8) for n in poses}
+    sources = {n: (rgbs[n], depths[n], poses[n]) for n in poses}
+    params = dict(voxel_size=0.05, unseen_voxel_size=0.05, source_height=0, capture_fit_iters=5, capture_fit_height=H)
+    light = home_anchored_fusion(None, sources, SourcePixelParams(**params)).color_fit
+    hard = home_anchored_fusion(None, sources, SourcePixelParams(**params, capture_fit_prune=0.05)).color_fit
+    assert hard["operators_gb"] < 0.9 * light["operators_gb"] and light["prune"] == 0.002
+    cap = (light["operators_gb"] + hard["operators_gb"]) / 2
+    fell = home_anchored_fusion(None, sources, SourcePixelParams(**params, capture_fit_max_gb=cap,
+                                                                 capture_fit_prune_fallback=0.05)).color_fit
+    assert fell["height"] == H and fell["prune"] == 0.05 and fell["rmse_after"] == hard["rmse_after"]
+    (refused,) = fell["reduced_from"]
+    assert (refused["height"], refused["prune"]) == (H, 0.002) and "more than" in refused["why"]
 
 
 def test_nearest_source_equals_its_every_pair_reference():

@@ -44,7 +44,7 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     surface two capture points see differently shows each its own colour, one that a single view sees keeps s. Only
     the Gaussians some view sees are fitted; prune: the share of each pixel's weight its render operator may drop
     (ErpColorOperator). Returns the Gaussians (SH degree max(sh_degree, g's)) and {"views", "height", "iters",
-    "sh_degree", "fitted", "operators_gb" (what the render operators held), "rmse_before", "rmse_after" (per view)};
+    "prune", "sh_degree", "fitted", "operators_gb" (what the render operators held), "rmse_before", "rmse_after" (per view)};
     g itself and {"views", "skipped": why} when the operators built so far say all of them would hold more than
     max_bytes."""
     import cv2
@@ -191,7 +191,7 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     if sh_degree:
         rest[fit, :3] = coef.numpy()
     out = Gaussians(g.means, g.scales, g.quats, g.opacities, dc, rest)
-    return out, {"views": views_n, "height": height, "iters": iters, "sh_degree": sh_degree, "fitted": n,
+    return out, {"views": views_n, "height": height, "prune": prune, "iters": iters, "sh_degree": sh_degree, "fitted": n,
                  "operators_gb": held / 1e9, "rmse_before": rmse0, "rmse_after": rmse1}
 
 

@@ -150,16 +150,22 @@ class SourcePixelParams(FusionParams):
     capture poses than 256 rows, leave-one-out novel views within 0.01 dB (docs/multi.md)."""
     capture_fit_max_gb: float = param(6.0, gt=0)
     """The fit holds one render operator per capture pose at once: when the ones built so far say all of them would
-    take more than this (GB), the fit runs at half the height (down to 64 rows), else it is skipped (colours as
-    fused); the manifest's color_fit says which heights were refused and why. 6: with capture_fit_prune 0.002 an
-    operator holds 0.16-0.17 GB per pose at 512 rows (real and synthetic homes), so about 36 capture poses fit at 512
-    rows: a 32-panorama tour's fit holds 5.3 GB and its gaussians stage peaks at about 13 GB (docs/multi.md)."""
+    take more than this (GB), the fit prunes harder (capture_fit_prune_fallback), then runs at half the height (down
+    to 64 rows), else it is skipped (colours as fused); the manifest's color_fit says what was refused and why. 6: with
+    capture_fit_prune 0.002 an operator holds 0.16-0.17 GB per pose at 512 rows (real and synthetic homes), so about 36
+    capture poses fit at 512 rows (about 48 with the fallback's 0.01): a 32-panorama tour's fit holds 5.3 GB and its
+    gaussians stage peaks at about 13 GB (docs/multi.md)."""
     capture_fit_prune: float = param(0.002, ge=0, lt=1)
     """Each face pixel of that fit's render operators drops its smallest compositing weights while their sum stays
     within this share of the pixel's total (render.erp_operator.prune_weights): a render through an operator is off by
     at most this share of the brightest colour. 0.002 drops a third of the weights (the far tails of Gaussians and
     those nearly hidden) and moves real east's capture poses by -0.12 to +0.07 dB; 0.005 and 0.01 drop 41 % and 47 %
     and cost up to 0.5 and 1.5 dB. 0 keeps them all."""
+    capture_fit_prune_fallback: float = param(0.01, ge=0, lt=1)
+    """Where the operators at capture_fit_prune would exceed capture_fit_max_gb, the fit tries this share at the same
+    height before it halves the height (not when it is no larger than capture_fit_prune). 0.01 drops 47 % of the
+    weights and moves real east's capture poses by -1.5 to +0.1 dB, where 256 rows instead of 512 cost them 1.2-8.8 dB
+    (docs/multi.md)."""
     capture_fit_supersample: int = param(1, ge=1, le=4)
     """Supersampling of those renders (render.erp.ERP_SUPERSAMPLE's meaning; 1: pixel centres only)."""
     capture_fit_sh_degree: int = param(1, ge=0, le=1)

@@ -263,20 +263,26 @@ CAPTURE_FIT_MIN_HEIGHT = 64
 
 def fit_at_capture_points(g, names: list[str], sources: dict, poses: dict, params: SourcePixelParams):
     """g with its colours fitted at every capture pose (capture_fit.fit_capture_colors at params.capture_fit_height
-    rows, halved down to CAPTURE_FIT_MIN_HEIGHT while its operators would exceed params.capture_fit_max_gb) and the
-    fit's figures, per panorama, with "reduced_from" (the heights refused, and why) when it fell back."""
+    rows) and the fit's figures, per panorama. While its operators would exceed params.capture_fit_max_gb the fit
+    tries, at each height, capture_fit_prune and then capture_fit_prune_fallback where larger, and halves the height
+    down to CAPTURE_FIT_MIN_HEIGHT; "reduced_from" lists what was refused (height, prune, why)."""
     views = [(sources[n][0], poses[n]) for n in names]
-    height, refused = params.capture_fit_height, []
-    while True:
+    prunes = sorted({params.capture_fit_prune, max(params.capture_fit_prune, params.capture_fit_prune_fallback)})
+    tries, height = [], params.capture_fit_height
+    while not tries or height >= CAPTURE_FIT_MIN_HEIGHT:
+        tries += [(height, p) for p in prunes]
+        height //= 2
+    refused = []
+    for height, prune in tries:
         out, fit = fit_capture_colors(
             g, views, height=height, supersample=params.capture_fit_supersample,
             iters=params.capture_fit_iters, damping=params.capture_fit_damping,
             sh_degree=params.capture_fit_sh_degree, sh_damping=params.fit_sh_damping,
-            max_bytes=params.capture_fit_max_gb * 1e9, prune=params.capture_fit_prune)
-        if "skipped" not in fit or height // 2 < CAPTURE_FIT_MIN_HEIGHT:
+            max_bytes=params.capture_fit_max_gb * 1e9, prune=prune)
+        if "skipped" not in fit:
             break
-        refused.append({"height": height, "why": fit["skipped"]})
-        height //= 2
+        refused.append({"height": height, "prune": prune, "why": fit["skipped"]})
+    refused = refused[:-1] if "skipped" in fit else refused  # the last try's refusal is the fit's "skipped"
     if refused:
         fit["reduced_from"] = refused
     if "skipped" in fit:
