@@ -273,16 +273,15 @@ def fit_at_capture_points(g, names: list[str], sources: dict, poses: dict, param
         tries += [(height, p) for p in prunes]
         height //= 2
     refused = []
-    for height, prune in tries:
+    for k, (height, prune) in enumerate(tries):
         out, fit = fit_capture_colors(
             g, views, height=height, supersample=params.capture_fit_supersample,
             iters=params.capture_fit_iters, damping=params.capture_fit_damping,
             sh_degree=params.capture_fit_sh_degree, sh_damping=params.fit_sh_damping,
             max_bytes=params.capture_fit_max_gb * 1e9, prune=prune)
-        if "skipped" not in fit:
+        if "skipped" not in fit or k == len(tries) - 1:  # the last try's refusal is the fit's "skipped"
             break
         refused.append({"height": height, "prune": prune, "why": fit["skipped"]})
-    refused = refused[:-1] if "skipped" in fit else refused  # the last try's refusal is the fit's "skipped"
     if refused:
         fit["reduced_from"] = refused
     if "skipped" in fit:
