@@ -4,6 +4,7 @@ the trajectory visiting them, and the Gaussian scene reproducing each panorama a
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import cv2
@@ -173,3 +174,65 @@ def test_home_report_marks_every_capture_point(home_run, tmp_path):
     for n in ("pano_00", "pano_01", "pano_02"):
         assert f"capture point {n}" in page
     assert "3 capture points" in page
+
+
+def _home_section(page: str) -> str:
+    start = page.index('<section id="home"')
+    return page[start:page.index("</section>", start)]
+
+
+@pytest.mark.slow
+def test_home_report_shows_how_each_panorama_was_placed(home_run, tmp_path):
+    from panoworld.tools.report.browser import browser_page
+    from panoworld.tools.report.cli import build_scene_report
+
+    scene, _ = home_run
+    arts = scene / "artifacts"
+    reg = json.loads((arts / "register" / "registration.json").read_text())["panoramas"]
+    fit = art.read_manifest(arts / "gaussians")["info"]["color_fit"]
+    out = build_scene_report(scene, tmp_path / "report.html")
+    page = out.read_text()
+    home = _home_section(page)
+    assert 'class="present"' in home and "could not draw" not in page
+    assert "3 of 3 panoramas registered (0 given in poses.json)" in home and "Not placed" not in home
+    for n, p in reg.items():
+        assert f"<td>{n}</td>" in home and f">{n}</text>" in home  # a table row and a label on the plan
+        if p["parent"] is not None:  # the edge that placed it, drawn and named
+            assert f"<td>{p['parent']} ({p['edge']}, {p['inliers']} inliers)</td>" in home
+        assert f"{20 * np.log10(1 / fit['rmse_after'][n]):.2f}" in home  # its capture pose's colour-fit PSNR
+    assert home.count("<polyline") == sum(p["parent"] is not None for p in reg.values())
+    data = json.loads(re.search(r'id="report-data">(.*?)</script>', page, re.S).group(1))["home"]
+    assert [t.split(":")[0] for t in data["text"]["label"]] == list(reg)
+    assert all(u.startswith("data:image/jpeg;base64,") for c in ("panorama", "depth") for u in data["images"][c])
+    with browser_page(1280, 900) as (tab, console):
+        tab.goto(out.resolve().as_uri())
+        tab.wait_for_load_state("load")
+        assert tab.locator("section#home").is_visible()
+        pano = tab.locator('img[data-slot="home:panorama"]')
+        assert pano.get_attribute("src") == data["images"]["panorama"][0]
+        tab.locator('input[data-slider="home"]').fill("2")
+        assert pano.get_attribute("src") == data["images"]["panorama"][2]
+        assert tab.locator('[data-text="home:label"]').text_content() == data["text"]["label"][2]
+        assert console.errors == []
+
+
+@pytest.mark.slow
+def test_home_report_names_a_panorama_left_unregistered_and_why(home_run, tmp_path):
+    from panoworld.tools.report.cli import build_scene_report
+
+    scene = tmp_path / "scene"
+    shutil.copytree(home_run[0], scene, ignore=shutil.ignore_patterns("conditions", "video", "poses", "asset"))
+    reg_dir = scene / "artifacts" / "register"
+    doc = json.loads((reg_dir / "registration.json").read_text())
+    why = "no pair with the registered panoramas (group: pano_01, pano_02; 2 pair(s) tried)"
+    for n in ("pano_01", "pano_02"):
+        doc["panoramas"][n] = {"registered": False, "source": None, "parent": None, "reason": why,
+                               "group": ["pano_01", "pano_02"]}
+    (reg_dir / "registration.json").write_text(json.dumps(doc))
+    poses = json.loads((reg_dir / "panoramas.json").read_text())
+    (reg_dir / "panoramas.json").write_text(json.dumps({"pano_00": poses["pano_00"]}))
+    home = _home_section(build_scene_report(scene, tmp_path / "report.html").read_text())
+    assert "1 of 3 panoramas registered" in home
+    assert home.count('<span class="bad">not registered</span>') == 2 and home.count(why) >= 2
+    assert "Not placed, by group (panoramas joined to each other but to no registered one): pano_01, pano_02." in home
+    assert ">pano_00</text>" in home and ">pano_01</text>" not in home and "<polyline" not in home

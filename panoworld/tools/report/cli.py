@@ -35,6 +35,7 @@ def build_scene_report(scene_dir: Path, out: Path | None = None, params=None, *,
     without them the stage table shows each stage's current state (up to date / stale) instead.
     """
     from panoworld.tools.report import scene as sc
+    from panoworld.tools.report.home import is_home, section_home
     from panoworld.tools.report.roam import section_roam
     from panoworld.tools.report.scene_data import ReportParams, SceneData
     from panoworld.tools.report.splats import section_gaussians
@@ -49,6 +50,8 @@ def build_scene_report(scene_dir: Path, out: Path | None = None, params=None, *,
     builders = [
         ("stages", "Stages", sc.section_stages, (data, out.parent, params, run_results)),
         ("depth", "Panorama and depth", sc.section_depth, (data, params)),
+        *([("home", "Home: capture points and registration", section_home, (data, page, params))]
+          if is_home(data) else []),
         ("plan", "Top-down: mesh, NavMesh and trajectory", sc.section_plan, (data, params)),
         ("frames", "Conditions, masks and video frames", sc.section_frames, (data, page, params)),
         ("poses", "Poses: recovered vs planned", sc.section_poses, (data, params)),
@@ -64,9 +67,10 @@ def build_scene_report(scene_dir: Path, out: Path | None = None, params=None, *,
         return section
 
     # The Gaussian renders (torch) overlap with the image work of the other sections (OpenCV, no GIL).
+    k = next(i for i, b in enumerate(builders) if b[0] == "gaussians")
     with ThreadPoolExecutor(1) as pool:
-        splats = pool.submit(timed, *builders[5])
-        sections = [timed(*b) for b in builders[:5]] + [splats.result()] + [timed(*b) for b in builders[6:]]
+        splats = pool.submit(timed, *builders[k])
+        sections = [timed(*b) for b in builders[:k]] + [splats.result()] + [timed(*b) for b in builders[k + 1:]]
     for section in sections:
         page.add(section)
     write_text_atomic(out, page.render())

@@ -64,6 +64,17 @@ def colormap(values: np.ndarray, lo: float, hi: float, valid: np.ndarray | None 
     return rgb
 
 
+def depth_image(path: Path, max_width: int) -> tuple[np.ndarray, float, float]:
+    """A depth.npy (H, W) ray distance read every k-th pixel to at most max_width wide and turbo-mapped over its
+    2nd-98th percentile -> (RGB (h, w, 3), lo, hi); invalid (0, inf, NaN) black. OSError / ValueError when unreadable."""
+    depth = np.load(path, mmap_mode="r")
+    step = max(1, int(np.ceil(depth.shape[1] / max_width)))
+    depth = np.asarray(depth[::step, ::step], np.float32)
+    valid = np.isfinite(depth) & (depth > 0)
+    lo, hi = (np.percentile(depth[valid], [2, 98]) if valid.any() else (0.0, 1.0))
+    return colormap(depth, float(lo), float(hi), valid), float(lo), float(hi)
+
+
 def colormap_css(n: int = 9) -> str:
     """A CSS linear-gradient of the turbo colour map (left = low), for scale bars."""
     lut = cv2.applyColorMap(np.linspace(0, 255, n).astype(np.uint8)[None], TURBO)[0, :, ::-1]

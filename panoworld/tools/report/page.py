@@ -113,8 +113,8 @@ def svg_figure(svg: str, caption: str, extra: str = "") -> str:
     return f'<figure class="plot">{svg}<figcaption>{html.escape(caption)}</figcaption>{extra}</figure>'
 
 
-def slider(key: str, n: int, label_col: str, start: int = 0) -> str:
-    return (f'<div class="slider"><label for="slider-{key}">frame</label>'
+def slider(key: str, n: int, label_col: str, start: int = 0, what: str = "frame") -> str:
+    return (f'<div class="slider"><label for="slider-{key}">{html.escape(what)}</label>'
             f'<input type="range" id="slider-{key}" data-slider="{key}" min="0" max="{max(n - 1, 0)}" value="{start}" step="1">'
             f'<span data-text="{key}:{label_col}"></span></div>')
 

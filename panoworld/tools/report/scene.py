@@ -122,12 +122,7 @@ def section_depth(scene: SceneData, params: ReportParams) -> Section:
         figs.append(figure(enc.data_uri(pano), "panorama (as used by the pipeline)"))
     info = scene.info("depth")
     try:
-        depth = np.load(d / "depth.npy", mmap_mode="r")
-        step = max(1, int(np.ceil(depth.shape[1] / w)))
-        depth = np.asarray(depth[::step, ::step], np.float32)
-        valid = np.isfinite(depth) & (depth > 0)
-        lo, hi = (np.percentile(depth[valid], [2, 98]) if valid.any() else (0.0, 1.0))
-        img = enc.colormap(depth, float(lo), float(hi), valid)
+        img, lo, hi = enc.depth_image(d / "depth.npy", w)
         figs.append(figure(enc.data_uri(img), "depth (ray distance; black = invalid)", extra=enc.scale_bar(lo, hi, "m")))
     except (OSError, ValueError) as e:
         figs.append(f'<p class="note">depth.npy unreadable: {html.escape(str(e))}</p>')

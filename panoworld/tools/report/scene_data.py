@@ -11,11 +11,12 @@ from panoworld.asset import read_asset_doc
 from panoworld.core.errors import PanoWorldError
 from panoworld.geometry.navmesh import load_navmesh
 from panoworld.io.conditions import load_conditions
-from panoworld.io.home import capture_poses
+from panoworld.io.home import capture_poses, home_depth_dirs
 from panoworld.io.manifest import read_manifest
 from panoworld.io.trajectory import load_clips, load_trajectory, read_trajectory_doc
 from panoworld.io.video import read_video_doc
 from panoworld.poses.estimate import load_poses
+from panoworld.register.artifact import read_registration
 
 ARTIFACTS = "artifacts"
 ROAM_IMAGES = "report/roam"
@@ -90,6 +91,15 @@ class SceneData:
     def capture_points(self) -> dict[str, np.ndarray]:
         """{NAME: world_from_cam} of the register artifact (a home's capture points; one for a single panorama)."""
         return self._load("register", capture_poses) or {}
+
+    def registration(self) -> dict | None:
+        """registration.json of the register artifact (per-panorama status and every pair tried) or None."""
+        doc = self._load("register", lambda d: read_registration(d)[1], "registration")
+        return doc if isinstance(doc, dict) else None
+
+    def home_depth_dirs(self) -> dict[str, Path] | None:
+        """{NAME: folder of its cleaned panorama.png, depth.npy, valid.png} of a home's depth artifact, else None."""
+        return self._load("depth", home_depth_dirs, "home_depth_dirs")
 
     def dir(self, stage: str) -> Path:
         return self.art / stage

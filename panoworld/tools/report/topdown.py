@@ -90,6 +90,12 @@ class PlanView:
         self.items.append(f'<polygon points="{" ".join(pts)}" fill="{fill}" stroke="#000" stroke-width="1">'
                           f"<title>{html.escape(title)}</title></polygon>")
 
+    def label(self, xz: np.ndarray, text: str, fill: str = "#ffffff", dy: float = -12.0) -> None:
+        """text centred dy pixels above the point xz (2,), outlined so it reads on any background."""
+        (x, y), = self.px(xz)
+        self.items.append(f'<text x="{x:.1f}" y="{y + dy:.1f}" font-size="12" fill="{fill}" stroke="#000" '
+                          f'stroke-width="0.35" text-anchor="middle">{html.escape(text)}</text>')
+
     def headings(self, poses: np.ndarray, length_m: float, stroke: str) -> None:
         """Short lines along each camera's forward axis (world_from_cam column z) projected on the floor."""
         poses = np.asarray(poses, np.float64)
