@@ -36,6 +36,7 @@ from panoworld.mesh.fuse import fuse_meshes
 from panoworld.navmesh.home import home_navmesh
 from panoworld.room.doorways import open_doorways
 from panoworld.room.plausible import drop_near_captures
+from panoworld.tools.eval.home import MISPLACED_CM, MISPLACED_DEG, pose_errors
 from panoworld.tools.synth.home import DEPTH_KINDS, floor_plan, generate_home, home_params, tour_rooms, write_home
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -43,26 +44,11 @@ VALIDATION_SEEDS = (1, 2, 3)
 """Seeds looked at while developing and tuning the registration."""
 TEST_SEEDS = (100, 101, 102)
 """Held-out seeds: reported, never tuned on."""
-MISPLACED_CM, MISPLACED_DEG = 20.0, 5.0
-"""A registered panorama farther than this from its true pose counts as misplaced (a wrong registration)."""
 NOVEL_AWAY_M = 0.5
 """--novel: the trajectory frames scored as novel views stand at least this far from every capture point."""
 DOORWAY_M = 0.2
 """An opened wall pixel is at a true doorway when its wall point (at the true pose) lies within this of a doorway
 cell of the floor plan."""
-
-
-def pose_errors(est: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> dict[str, tuple[float, float]]:
-    """{NAME: (translation cm, rotation deg)} of est (first panorama's frame) against gt (world frame) brought into
-    the frame of the first panorama of est."""
-    anchor = sorted(est)[0]
-    cam0_from_world = invert_pose(gt[anchor])
-    out = {}
-    for n, E in est.items():
-        G = cam0_from_world @ gt[n]
-        cos = np.clip((np.trace(G[:3, :3].T @ E[:3, :3]) - 1) / 2, -1, 1)
-        out[n] = (float(np.linalg.norm(G[:3, 3] - E[:3, 3]) * 100), float(np.degrees(np.arccos(cos))))
-    return out
 
 
 def perturb_depths(scene: Path, seed: int, scale_error: float, noise: float) -> None:

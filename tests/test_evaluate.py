@@ -292,7 +292,7 @@ def test_scene_without_gt_or_artifacts_exits_2(tmp_path, capsys):
 
 def test_json_structure_and_unavailable_never_zero(report, scene, capsys):
     assert set(report) >= {"scene", "stages", "targets"}
-    assert list(report["stages"]) == ["depth", "mesh", "navmesh", "trajectory", "conditions", "video", "loop",
+    assert list(report["stages"]) == ["depth", "register", "mesh", "navmesh", "trajectory", "conditions", "video", "loop",
                                       "poses", "gaussians", "roam"]
     assert report["reference"] == "synthetic"
     assert is_unavailable(report["stages"]["navmesh"]) and is_unavailable(report["stages"]["gaussians"])

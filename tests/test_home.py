@@ -236,3 +236,26 @@ def test_home_report_names_a_panorama_left_unregistered_and_why(home_run, tmp_pa
     assert home.count('<span class="bad">not registered</span>') == 2 and home.count(why) >= 2
     assert "Not placed, by group (panoramas joined to each other but to no registered one): pano_01, pano_02." in home
     assert ">pano_00</text>" in home and ">pano_01</text>" not in home and "<polyline" not in home
+
+
+@pytest.mark.slow
+def test_eval_scores_a_home_registration_and_names_a_misplaced_panorama(home_run, tmp_path):
+    from panoworld.tools.eval.cli import evaluate
+
+    scene, _ = home_run
+    report, errors = evaluate(scene, stages=["register", "mesh"], progress=False)
+    reg, mesh = report["stages"]["register"], report["stages"]["mesh"]
+    assert errors == [] and reg["registered"] == 3 and reg["registered_fraction"] == 1.0 and reg["anchor"] == "pano_00"
+    assert reg["trans_cm_max"] < 5.0 and reg["rot_deg_max"] < 1.0 and reg["misplaced"] == 0
+    assert all(report["targets"]["register"][k]["met"] for k in ("registered_fraction", "trans_cm_max", "misplaced"))
+    assert mesh["pose0_at"] == "pano_00" and mesh["coverage_pose0"] > 0.9 and mesh["surface_error_median_m"] < 0.02
+
+    copy = tmp_path / "scene"  # pano_02 placed 0.5 m off, pano_01 left out: the errors follow
+    shutil.copytree(scene, copy, ignore=shutil.ignore_patterns("conditions", "video", "poses", "gaussians", "asset"))
+    doc = json.loads((copy / "artifacts" / "register" / "panoramas.json").read_text())
+    doc["pano_02"][0][3] += 0.5
+    del doc["pano_01"]
+    (copy / "artifacts" / "register" / "panoramas.json").write_text(json.dumps(doc))
+    reg = evaluate(copy, stages=["register"], progress=False)[0]["stages"]["register"]
+    assert reg["registered"] == 2 and reg["unregistered"] == ["pano_01"] and reg["worst"] == "pano_02"
+    assert reg["misplaced"] == 1 and 45.0 < reg["trans_cm_max"] < 55.0

@@ -113,6 +113,8 @@ class Target:
 
 
 TARGETS: dict[str, dict[str, Target]] = {
+    "register": {"registered_fraction": Target(">=", 1.0), "misplaced": Target("<=", 0),
+                 "trans_cm_max": Target("<=", 5.0, " cm"), "rot_deg_max": Target("<=", 1.0, " deg")},
     "trajectory": {"clear_fraction": Target(">=", 1.0), "path_collisions": Target("<=", 0)},
     "conditions": {"psnr_valid": Target(">=", 28.0, " dB"), "mask_iou": Target(">=", 0.75)},
     "poses": {"ate_over_path": Target("<=", 0.005)},

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -46,17 +47,43 @@ class Evaluation(SceneInputs):
         return {**depth_errors(pred, gt, valid), "valid_fraction": float(valid.mean()),
                 "resolution": f"{pred.shape[0]}x{pred.shape[1]}"}
 
+    def register(self) -> dict:
+        from panoworld.register.inputs import is_multi_scene
+        from panoworld.tools.eval.home import registration_metrics
+
+        if not is_multi_scene(self.scene_dir):
+            raise NoReference("one panorama: nothing to register")
+        return registration_metrics(self._need("register"), self.scene_dir)
+
+    def _first_capture(self) -> tuple[Path, np.ndarray, str]:
+        """(input panorama, world_from_cam, name) of the scene's panorama at the identity, or of a home's first
+        registered panorama (by name) at its registered pose."""
+        from panoworld.io.home import capture_poses
+        from panoworld.register.inputs import PANORAMAS_DIR, find_multi_scene, is_multi_scene
+
+        if not is_multi_scene(self.scene_dir):
+            for e in ("png", "jpg", "jpeg"):
+                if (self.scene_dir / f"panorama.{e}").is_file():
+                    return self.scene_dir / f"panorama.{e}", np.eye(4), "panorama"
+            raise NoReference(f"{self.scene_dir}: no panorama.png|jpg to score the mesh against")
+        captures = capture_poses(self._need("register"))
+        name = sorted(captures)[0]
+        path = find_multi_scene(self.scene_dir).panoramas.get(name)
+        if path is None:
+            raise NoReference(f"{self.scene_dir / PANORAMAS_DIR}: no panorama of the capture point {name}")
+        return path, captures[name], name
+
     def mesh(self) -> dict:
         from panoworld.geometry.erp_mesh import load_erp_mesh
         from panoworld.geometry.raycast import Raycaster
         from panoworld.io.video import load_frames
 
         mesh = load_erp_mesh(self._need("mesh"))
-        pano = load_frames([next(p for p in (self.scene_dir / f"panorama.{e}" for e in ("png", "jpg", "jpeg"))
-                                 if p.is_file())])[0]
+        path, world_from_cam, name = self._first_capture()
+        pano = load_frames([path])[0]
         H, W = pano.shape[:2]
         rc = Raycaster(mesh.vertices, mesh.faces)
-        hits = rc.render_erp(np.eye(4), H, W)
+        hits = rc.render_erp(world_from_cam, H, W)
         seen = hits.face >= 0
         valid = seen & mesh.face_valid[np.where(seen, hits.face, 0)]
         rgb = np.clip(np.rint(rc.interpolate(hits, mesh.colors.astype(np.float64))), 0, 255).astype(np.uint8)
@@ -69,7 +96,7 @@ class Evaluation(SceneInputs):
             out.update(surface_error_median_m=float(np.median(surf)), surface_error_p90_m=float(np.percentile(surf, 90)))
         except NoReference as e:
             out.update(surface_error_median_m=unavailable(str(e)), surface_error_p90_m=unavailable(str(e)))
-        return {**out, "num_faces": int(len(mesh.faces))}
+        return {**out, "num_faces": int(len(mesh.faces)), **({"pose0_at": name} if name != "panorama" else {})}
 
     def navmesh(self) -> dict:
         from panoworld.geometry.navmesh import load_navmesh
@@ -377,7 +404,7 @@ class Evaluation(SceneInputs):
         return out
 
     STAGES: dict[str, str] = {
-        "depth": "depth", "mesh": "mesh", "navmesh": "navmesh", "trajectory": "trajectory",
+        "depth": "depth", "register": "register", "mesh": "mesh", "navmesh": "navmesh", "trajectory": "trajectory",
         "conditions": "conditions_stage", "video": "video_stage", "loop": "loop", "poses": "poses",
         "gaussians": "gaussians", "roam": "roam",
     }
