@@ -259,3 +259,29 @@ def test_eval_scores_a_home_registration_and_names_a_misplaced_panorama(home_run
     reg = evaluate(copy, stages=["register"], progress=False)[0]["stages"]["register"]
     assert reg["registered"] == 2 and reg["unregistered"] == ["pano_01"] and reg["worst"] == "pano_02"
     assert reg["misplaced"] == 1 and 45.0 < reg["trans_cm_max"] < 55.0
+
+
+@pytest.mark.slow
+def test_eval_takes_the_home_frame_when_the_first_panorama_is_not_registered(home_dir, tmp_path):
+    from panoworld.tools.eval.cli import evaluate
+    from panoworld.tools.synth import generate_scene
+
+    scene = tmp_path / "scene"
+    shutil.copytree(home_dir, scene, ignore=shutil.ignore_patterns("artifacts"))
+    h = read_panorama(scene / "panoramas" / "pano_00.png").shape[0]
+    other = generate_scene(3, "ci-tiny")  # pano_00 becomes a room of another home: the world is pano_01's camera
+    # (pano_01 and pano_02 given their true poses, which join them)
+    rgb, depth = other.render(other.world_from_canonical, h, 2 * h)
+    cv2.imwrite(str(scene / "panoramas" / "pano_00.png"), rgb[..., ::-1])
+    np.save(scene / "depths" / "pano_00.npy", depth)
+    truth = json.loads((scene / "gt" / "poses.json").read_text())
+    (scene / "poses.json").write_text(json.dumps({n: truth[n] for n in ("pano_01", "pano_02")}))
+    assert pl.run(scene, preset="ci-tiny", sets=SMALL, until="navmesh").ok
+    assert sorted(capture_poses(scene / "artifacts" / "register")) == ["pano_01", "pano_02"]
+    report, errors = evaluate(scene, stages=["register", "mesh", "navmesh"], progress=False)
+    reg, mesh, nav = (report["stages"][k] for k in ("register", "mesh", "navmesh"))
+    assert errors == [] and reg["anchor"] == "pano_01" and reg["unregistered"] == ["pano_00"]
+    assert reg["trans_cm_max"] < 5.0 and reg["misplaced"] == 0
+    # geometry is scored in the home's frame: pano_01's camera stands metres from pano_00's
+    assert mesh["pose0_at"] == "pano_01" and mesh["surface_error_median_m"] < 0.02
+    assert nav["floor_height_error_m"] < 0.02 and nav["free_fraction"] > 0.9

@@ -66,6 +66,17 @@ class GroundTruth:
         self.aa_supersample, self.aa_max_rows = int(supersample), int(max_rows)
         self._renders = RenderCache(int(cache_mb * 2**20))
 
+    def reframe(self, world_from_canonical: np.ndarray) -> None:
+        """Take another canonical frame (world_from_canonical (4, 4) rigid, upright like the first): a home whose
+        first registered panorama is not camera 0 of track 0. The floor height and the cached vertices and renders
+        follow."""
+        old_from_new = invert_pose(self.world_from_canonical) @ np.asarray(world_from_canonical, np.float64)
+        floor = np.array([0.0, float(self.index["floor_y_canonical"]), 0.0])
+        self.index = {**self.index, "floor_y_canonical": float(transform_points(invert_pose(old_from_new), floor[None])[0, 1])}
+        self.world_from_canonical = np.asarray(world_from_canonical, np.float64)
+        self.__dict__.pop("vertices", None)
+        self._renders = RenderCache(self._renders.max_bytes)
+
     def factor(self, height: int) -> int:
         """The supersampling factor of the reference at this height."""
         return max(self.pano_supersample, aa_factor(height, self.aa_supersample, self.aa_max_rows))

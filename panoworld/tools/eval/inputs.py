@@ -29,6 +29,8 @@ class SceneInputs:
         self.progress = progress
         self.gt = open_ground_truth(self.scene_dir, self.params.pose_tol_m, supersample=self.params.reference_supersample,
                                     max_rows=self.params.reference_max_rows, cache_mb=self.params.reference_cache_mb)
+        self.pose0 = self._home_frame()
+        """Canonical world_from_cam of the depth artifact's top-level panorama (a home's first by name)."""
         self.lpips = Lpips(self.params)
         self.variant = variant
         self.tail: set[str] = set()
@@ -36,6 +38,28 @@ class SceneInputs:
             from panoworld.tools.batch.variants import read_variant
 
             self.tail = set(read_variant(self.scene_dir, variant)["tail"])
+
+    def _home_frame(self) -> np.ndarray:
+        """A home's world frame is its first registered panorama's camera; the ground truth's canonical frame that
+        of its first panorama. Where they differ (that panorama left unregistered) the reference takes the home's
+        frame, through the anchor's true pose (gt/poses.json) -> the top-level panorama's pose in it (else identity)."""
+        from panoworld.core.conventions import invert_pose
+        from panoworld.io.home import capture_poses
+        from panoworld.tools.eval.home import GT_POSES
+
+        reg = self.scene_dir / ARTIFACTS_DIRNAME / "register"
+        gt_path = self.scene_dir / GT_POSES
+        if not hasattr(self.gt, "reframe") or not gt_path.is_file() or not (reg / MANIFEST).is_file():
+            return np.eye(4)
+        truth = {n: np.asarray(T, np.float64).reshape(4, 4) for n, T in json.loads(gt_path.read_text()).items()}
+        est = {n: T for n, T in capture_poses(reg).items() if n in truth}
+        if not est:
+            return np.eye(4)
+        anchor = sorted(est)[0]
+        world_from_home = truth[anchor] @ invert_pose(est[anchor])
+        if not np.allclose(world_from_home, self.gt.world_from_canonical, atol=1e-6):
+            self.gt.reframe(world_from_home)
+        return invert_pose(world_from_home) @ truth[sorted(truth)[0]]
 
     # -- helpers
 

@@ -43,7 +43,7 @@ class Evaluation(SceneInputs):
         if pred.ndim != 2:
             raise ValueError(f"{d / 'depth.npy'}: {pred.shape=} but expected (H, W)")
         valid = _read_gray(d / "valid.png") > 0
-        gt = self.gt.depth(np.eye(4), *pred.shape)
+        gt = self.gt.depth(self.pose0, *pred.shape)
         return {**depth_errors(pred, gt, valid), "valid_fraction": float(valid.mean()),
                 "resolution": f"{pred.shape[0]}x{pred.shape[1]}"}
 
