@@ -8,8 +8,9 @@ SCENE is a home (docs/multi.md: panoramas/, depths/); it is copied to --work (de
 poses.json. Reported: registered count and each unregistered panorama's reason; pairwise capture-point distance
 error and relative yaw error against the survey (compare_to_survey); the NavMesh (area, which capture points stand
 on it, its connected components and the capture points of each; the trajectory's cuts between them), the nearest mesh vertex to
-each capture point; the Gaussian scene rendered at each capture pose against that panorama (PSNR, SSIM, coverage =
-share of pixels with alpha > 0.5, at --height rows); per-stage wall seconds and peak memory from the runner's report.
+each capture point; the Gaussian scene rendered at each capture pose against that panorama as the pipeline cleaned it
+(PSNR, SSIM, coverage = share of pixels with alpha > 0.5, at --height rows), and the PSNR against the input panorama,
+whole and outside the removed rig (its mask grown by 2 px); per-stage wall seconds and peak memory from the runner's report.
 
 --survey-poses [--set STAGE.PARAM=VALUE ...] writes a poses.json built from the survey into the copy (survey_poses), so the stages after
 registration can be measured while registration cannot join the rooms: its rows are labelled "survey poses", and
@@ -131,6 +132,16 @@ def home_sources(scene: Path, poses: dict[str, np.ndarray]) -> tuple[dict, dict]
     return rgbs, depths
 
 
+def outside_rig(rig_mask: Path, height: int, grow_px: int = 2) -> np.ndarray | None:
+    """(height, 2 height) bool: the pixels no part of the removed rig (its mask at height rows, grown by grow_px)
+    touches; None where no rig was removed."""
+    if not rig_mask.is_file():
+        return None
+    m = cv2.imread(str(rig_mask), cv2.IMREAD_GRAYSCALE)
+    m = cv2.resize((m > 127).astype(np.float32), (2 * height, height), interpolation=cv2.INTER_AREA) > 0
+    return ~cv2.dilate(m.astype(np.uint8), np.ones((2 * grow_px + 1, 2 * grow_px + 1), np.uint8)).astype(bool)
+
+
 def render_scores(g, pose: np.ndarray, rgb: np.ndarray, height: int, seen: np.ndarray | None = None,
                   surfaces: dict[str, np.ndarray] | None = None) -> dict:
     """PSNR, SSIM and coverage of the Gaussians g rendered at pose against rgb (area-downsampled to height rows),
@@ -207,7 +218,7 @@ def nearest_vertex_m(scene: Path, poses: dict[str, np.ndarray]) -> dict[str, flo
 
 
 def measure_home(scene: Path, survey: dict, height: int, sets: list[str] = ()) -> dict:
-    from panoworld.io.home import capture_poses
+    from panoworld.io.home import RIG_MASK_PNG, capture_poses, home_depth_dirs
     from panoworld.io.splat_ply import read_gaussians_ply
 
     run = run_home(scene, sets)
@@ -249,11 +260,15 @@ def measure_home(scene: Path, survey: dict, height: int, sets: list[str] = ()) -
         from panoworld.io.depth import read_panorama
 
         row["capture"] = {}
+        dirs = home_depth_dirs(arts / "depth")
         for n in poses:
             src = next((scene / "panoramas").glob(f"{n}.*"))
             raw = read_panorama(src)
             row["capture"][n] = {"cleaned": render_scores(g, poses[n], rgbs[n], height),
                                  "input": render_scores(g, poses[n], raw, height)}
+            rig = outside_rig(dirs[n] / RIG_MASK_PNG, height)
+            if rig is not None:
+                row["capture"][n]["input_outside_rig"] = render_scores(g, poses[n], raw, height, seen=rig)["seen"]
         row["num_gaussians"] = manifest_info(scene, "gaussians").get("num_gaussians")
     return row
 
@@ -348,15 +363,16 @@ def print_report(res: dict) -> None:
     if tr.get("frames") is not None:
         print(f"trajectory {tr['frames']} frames, {tr['invalid_poses']} invalid poses; cuts between floors: "
               f"{', '.join(' -> '.join(c) for c in tr.get('cuts') or []) or 'none'}")
-    print("\n| panorama | PSNR dB (cleaned) | SSIM | coverage | PSNR dB (input) | nearest mesh vertex m | masked "
-          "implausible | room floor m^2 (walls) |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    print("\n| panorama | PSNR dB (cleaned) | SSIM | coverage | PSNR dB (input) | PSNR dB (input, outside the removed "
+          "rig) | nearest mesh vertex m | masked implausible | room floor m^2 (walls) |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for n in sorted(set(r.get("capture", {})) | set(r.get("plausibility", {}))):
         c = r.get("capture", {}).get(n, {})
         p = r.get("plausibility", {}).get(n, {})
         cl, ip = c.get("cleaned", {}), c.get("input", {})
         print(f"| {n} | {fmt(cl.get('psnr'))} | {fmt(cl.get('ssim'), '.3f')} | {fmt(cl.get('coverage'), '.3f')} | "
-              f"{fmt(ip.get('psnr'))} | {fmt((r.get('nearest_vertex_m') or {}).get(n), '.3f')} | "
+              f"{fmt(ip.get('psnr'))} | {fmt(c.get('input_outside_rig', {}).get('psnr'))} | "
+              f"{fmt((r.get('nearest_vertex_m') or {}).get(n), '.3f')} | "
               f"{fmt(p.get('masked_fraction'), '.1%')} | {fmt(p.get('room_floor_area_m2'), '.1f')} |")
     print("\n| stage | action | wall s | CPU s | peak MB |")
     print("| --- | --- | --- | --- | --- |")
