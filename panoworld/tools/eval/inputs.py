@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from panoworld.core.errors import PanoWorldError
 from panoworld.core.params import flatten
 from panoworld.io.manifest import ARTIFACTS_DIRNAME, MANIFEST, VARIANTS_DIRNAME
 from panoworld.tools.eval.common import EvalParams, Lpips
@@ -29,8 +30,6 @@ class SceneInputs:
         self.progress = progress
         self.gt = open_ground_truth(self.scene_dir, self.params.pose_tol_m, supersample=self.params.reference_supersample,
                                     max_rows=self.params.reference_max_rows, cache_mb=self.params.reference_cache_mb)
-        self.pose0 = self._home_frame()
-        """Canonical world_from_cam of the depth artifact's top-level panorama (a home's first by name)."""
         self.lpips = Lpips(self.params)
         self.variant = variant
         self.tail: set[str] = set()
@@ -38,6 +37,8 @@ class SceneInputs:
             from panoworld.tools.batch.variants import read_variant
 
             self.tail = set(read_variant(self.scene_dir, variant)["tail"])
+        self.pose0 = self._home_frame()
+        """Canonical world_from_cam of the depth artifact's top-level panorama (a home's first by name)."""
 
     def _home_frame(self) -> np.ndarray:
         """A home's world frame is its first registered panorama's camera; the ground truth's canonical frame that
@@ -47,12 +48,15 @@ class SceneInputs:
         from panoworld.io.home import capture_poses
         from panoworld.tools.eval.home import GT_POSES
 
-        reg = self.scene_dir / ARTIFACTS_DIRNAME / "register"
+        reg = self.artifact("register")
         gt_path = self.scene_dir / GT_POSES
-        if not hasattr(self.gt, "reframe") or not gt_path.is_file() or not (reg / MANIFEST).is_file():
+        if not hasattr(self.gt, "reframe") or not gt_path.is_file() or reg is None:
             return np.eye(4)
-        truth = {n: np.asarray(T, np.float64).reshape(4, 4) for n, T in json.loads(gt_path.read_text()).items()}
-        est = {n: T for n, T in capture_poses(reg).items() if n in truth}
+        try:
+            truth = {n: np.asarray(T, np.float64).reshape(4, 4) for n, T in json.loads(gt_path.read_text()).items()}
+            est = {n: T for n, T in capture_poses(reg).items() if n in truth}
+        except (PanoWorldError, OSError, ValueError, TypeError, AttributeError):  # the register stage's eval says why
+            return np.eye(4)
         if not est:
             return np.eye(4)
         anchor = sorted(est)[0]
