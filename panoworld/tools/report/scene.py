@@ -477,7 +477,7 @@ def section_eval(scene: SceneData, params: ReportParams) -> Section:
 
 
 def _stage_names() -> list[str]:
-    return ["depth", "mesh", "navmesh", "trajectory", "conditions", "video", "poses", "gaussians"]
+    return ["depth", "register", "mesh", "navmesh", "trajectory", "conditions", "video", "poses", "gaussians"]
 
 
 def run_eval(scene_root: Path) -> Path:
