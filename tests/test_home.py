@@ -195,12 +195,17 @@ def test_home_report_shows_how_each_panorama_was_placed(home_run, tmp_path):
     home = _home_section(page)
     assert 'class="present"' in home and "could not draw" not in page
     assert "3 of 3 panoramas registered (0 given in poses.json)" in home and "Not placed" not in home
+    plan = re.search(r"<svg.*?</svg>", home, re.S).group(0)
     for n, p in reg.items():
-        assert f"<td>{n}</td>" in home and f">{n}</text>" in home  # a table row and a label on the plan
+        assert f"<td>{n}</td>" in home and f">{n}</text>" in plan  # a table row and a label on the plan
         if p["parent"] is not None:  # the edge that placed it, drawn and named
             assert f"<td>{p['parent']} ({p['edge']}, {p['inliers']} inliers)</td>" in home
         assert f"{20 * np.log10(1 / fit['rmse_after'][n]):.2f}" in home  # its capture pose's colour-fit PSNR
     assert home.count("<polyline") == sum(p["parent"] is not None for p in reg.values())
+    pairs = json.loads((arts / "register" / "registration.json").read_text())["pairs"]  # the matrix: a cell each way
+    assert home.count('stroke="#000" stroke-width="2"><title>') == 2 * sum(p["parent"] is not None for p in reg.values())
+    for r in pairs:
+        assert home.count(f"<title>{r['a']} - {r['b']}: ") == 2 and f"floor {r['floor_inliers']} inliers" in home
     data = json.loads(re.search(r'id="report-data">(.*?)</script>', page, re.S).group(1))["home"]
     assert [t.split(":")[0] for t in data["text"]["label"]] == list(reg)
     assert all(u.startswith("data:image/jpeg;base64,") for c in ("panorama", "depth") for u in data["images"][c])
@@ -235,7 +240,8 @@ def test_home_report_names_a_panorama_left_unregistered_and_why(home_run, tmp_pa
     assert "1 of 3 panoramas registered" in home
     assert home.count('<span class="bad">not registered</span>') == 2 and home.count(why) >= 2
     assert "Not placed, by group (panoramas joined to each other but to no registered one): pano_01, pano_02." in home
-    assert ">pano_00</text>" in home and ">pano_01</text>" not in home and "<polyline" not in home
+    plan = re.search(r"<svg.*?</svg>", home, re.S).group(0)  # the capture points from above: the registered one alone
+    assert ">pano_00</text>" in plan and ">pano_01</text>" not in plan and "<polyline" not in plan
 
 
 @pytest.mark.slow

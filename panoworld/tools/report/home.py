@@ -81,6 +81,46 @@ def _plan(scene: SceneData, reg: dict, poses: dict[str, np.ndarray]) -> tuple[st
                       "placed them"), "".join(legend)
 
 
+def _pair_matrix(reg: dict, names: list[str], max_px: int = 640) -> str:
+    """An SVG figure of every pair tried: a cell per pair coloured by the edge it gave (EDGE_COLORS), grey by its floor
+    inliers where it gave none, the registration tree's edges outlined; each cell's title holds the pair's figures."""
+    at = {n: i for i, n in enumerate(names)}
+    k = len(names)
+    c = max(6, min(22, (max_px - 90) // max(k, 1)))
+    m = 90  # room for the names
+    tree = {frozenset((n, p["parent"])) for n, p in (reg.get("panoramas") or {}).items() if p.get("parent")}
+    items = []
+    for r in reg.get("pairs") or []:
+        if r.get("a") not in at or r.get("b") not in at:
+            continue
+        i, j = sorted((at[r["a"]], at[r["b"]]))
+        fl = int(r.get("floor_inliers") or 0)
+        fill = EDGE_COLORS.get(r.get("edge") or "", "")
+        if not fill:
+            g = int(235 - 150 * min(fl, 12) / 12)  # chance floor fits keep up to about 8 inliers
+            fill = f"rgb({g},{g},{g})"
+        why = r.get("floor_refused") or r.get("depth_refused") or ""
+        title = (f"{r['a']} - {r['b']}: {'edge ' + r['edge'] if r.get('edge') else 'no edge'}; depth-backed "
+                 f"{r.get('inliers')} inliers at {fmt(r.get('consistency'))} consistency, floor {fl} inliers, bearing "
+                 f"{r.get('bearing_inliers')} inliers" + (f"; refused: {why}" if why else ""))
+        stroke = ' stroke="#000" stroke-width="2"' if frozenset((r["a"], r["b"])) in tree else ""
+        for x, y in ((j, i), (i, j)):
+            items.append(f'<rect x="{m + x * c}" y="{m + y * c}" width="{c - 1}" height="{c - 1}" fill="{fill}"{stroke}>'
+                         f"<title>{html.escape(title)}</title></rect>")
+            if c >= 16:
+                items.append(f'<text x="{m + x * c + c / 2 - 0.5:.1f}" y="{m + y * c + c * 0.68:.1f}" font-size="9" '
+                             f'text-anchor="middle" fill="#000">{fl}</text>')
+    for n, i in at.items():
+        items.append(f'<text x="{m - 4}" y="{m + i * c + c * 0.7:.1f}" font-size="11" text-anchor="end">{html.escape(n)}</text>')
+        items.append(f'<text transform="translate({m + i * c + c * 0.7:.1f},{m - 4}) rotate(-60)" font-size="11">'
+                     f"{html.escape(n)}</text>")
+    size, wide = m + k * c + 2, m + k * c + 50  # the last column's slanted name runs past the grid
+    svg = (f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {wide} {size}" width="{wide}" height="{size}">'
+           f'<rect x="0" y="0" width="{wide}" height="{size}" fill="#fff"/>' + "".join(items) + "</svg>")
+    return svg_figure(svg, "every pair tried: coloured by the edge it gave, else grey by its floor inliers (the number; "
+                      "darker = more), the edges that placed a panorama outlined; hover a cell for its figures")
+
+
 def _close_groups(xz: dict[str, np.ndarray], radius_m: float) -> list[list[str]]:
     """The names of capture points within radius_m of the first of their group (one label for points that stand
     together), in name order."""
@@ -176,5 +216,6 @@ def section_home(scene: SceneData, page: Page, params: ReportParams) -> Section:
     plan, legend = _plan(scene, reg, poses) if poses else ("", "")
     body = ("".join(f'<p class="note">{html.escape(x)}</p>' for x in notes)
             + (f'<div class="legend">{legend}</div><div class="row">{plan}</div>' if plan else "")
-            + table(header, rows, {6}, {1, 7}) + _slider(scene, page, params, names, status))
+            + table(header, rows, {6}, {1, 7}) + f'<div class="row">{_pair_matrix(reg, names)}</div>'
+            + _slider(scene, page, params, names, status))
     return Section("home", TITLE, body)
