@@ -578,6 +578,9 @@ def test_a_partial_registration_is_said_on_stderr_and_in_the_table(tmp_path):
     assert f"note: {line}" in out.stderr and f"note: {line}" in out.stdout
     js = cli("run", str(d), "--until", "register", "--json")
     assert line in json.loads(js.stdout)["notes"] and line in js.stderr
+    st = cli("status", str(d))  # status says it as long as the registration is up to date
+    assert st.returncode == 0 and f"note: {line}" in st.stdout, st.stdout
+    assert json.loads(cli("status", str(d), "--json").stdout)["notes"] == [line]
     # The remedy the note names: each panorama here is a group of its own; those given a pose are placed, and the note
     # names the rest until every group has one.
     poses = {n: np.eye(4).tolist() for n in ("a", "b", "c")}
