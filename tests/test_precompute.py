@@ -154,3 +154,13 @@ def test_local_pool_survives_a_busy_opencv_thread_pool_in_the_parent():
     for _ in range(3):
         cv2.GaussianBlur(img, (31, 31), 5)
     assert sorted(LocalExecutor(2).imap_unordered(abs, [-1, -2, -3])) == [1, 2, 3]
+
+
+def test_a_home_in_a_dataset_is_a_failure_naming_what_precompute_takes(home_dir, tmp_path):
+    data = tmp_path / "data"
+    shutil.copytree(home_dir, data / "home", ignore=shutil.ignore_patterns("artifacts"))
+    summary = precompute(data, tmp_path / "out", PrecomputeParams(clips_per_scene=1, frames=4, height=32),
+                         progress=False)
+    failures = [json.loads(x) for x in (tmp_path / "out" / "failures.jsonl").read_text().splitlines()]
+    assert summary["failed"] == 1 and summary["clips"] == 0 and [f["scene"] for f in failures] == ["home"]
+    assert "a home of several panoramas" in failures[0]["error"] and "--scenes K --frames N" in failures[0]["error"]
