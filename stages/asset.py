@@ -1,4 +1,4 @@
-"""Simulation-ready asset: scene.usdc (3DGS particles, collider, NavMesh, spawn, cameras), collider.obj, asset.json."""
+"""Simulation-ready asset: scene.usdc (3DGS particles, collider, NavMesh, spawns, cameras), collider.obj, asset.json."""
 
 from __future__ import annotations
 
@@ -19,6 +19,7 @@ INPUTS = {
     "mesh": Input("mesh", help="mesh artifact (mesh.ply): its valid faces become the collider"),
     "navmesh": Input("navmesh", help="navmesh artifact (navmesh.json): floor height, agent, guide mesh"),
     "trajectory": Input("trajectory", help="trajectory artifact (trajectory.json): the animated camera(s)"),
+    "register": Input("register", optional=True, help="register artifact: a home's capture points become spawn points"),
 }
 
 
@@ -41,6 +42,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     from panoworld.asset import build_asset
     from panoworld.geometry.erp_mesh import load_erp_mesh
     from panoworld.geometry.navmesh import load_navmesh
+    from panoworld.io.home import capture_poses
     from panoworld.io.splat_ply import read_gaussians_ply
 
     if params.collider_max_triangles < 0:
@@ -59,9 +61,10 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
         gaussians = read_gaussians_ply(Path(inputs["gaussians"]) / "gaussians.ply")
     except ValueError as e:
         raise StageInputError(f"{e}; rerun the gaussians stage") from None
+    captures = capture_poses(inputs.get("register"))  # InputError naming panoramas.json when unreadable
     t0 = time.perf_counter()
     info = build_asset(out_dir, mesh=mesh, nav=nav, trajectory_dir=Path(inputs["trajectory"]), gaussians=gaussians,
-                       max_triangles=params.collider_max_triangles)
+                       max_triangles=params.collider_max_triangles, captures=captures)
     info["read_s"] = t0 - t_read
     if info["compliance_errors"]:
         raise ArtifactError(f"{out_dir}/scene.usdc fails usd-core validation: {'; '.join(info['compliance_errors'])}")

@@ -291,3 +291,37 @@ def test_eval_takes_the_home_frame_when_the_first_panorama_is_not_registered(hom
     # geometry is scored in the home's frame: pano_01's camera stands metres from pano_00's
     assert mesh["pose0_at"] == "pano_01" and mesh["surface_error_median_m"] < 0.02
     assert nav["floor_height_error_m"] < 0.02 and nav["free_fraction"] > 0.9
+
+
+@pytest.mark.slow
+def test_home_asset_spawns_at_every_capture_point_in_usd_and_physics(home_run):
+    from pxr import Usd, UsdGeom
+
+    from panoworld.asset import read_asset_doc
+    from panoworld.asset.physics import Agent, BulletScene, drop_test
+    from panoworld.core.conventions import transform_points
+
+    scene, _ = home_run
+    arts = scene / "artifacts"
+    doc = read_asset_doc(arts / "asset")
+    captures = capture_poses(arts / "register")
+    a_from_c = np.asarray(doc["asset_from_canonical"])
+    assert sorted(doc["capture_points"]) == sorted(captures)
+    assert art.read_manifest(arts / "asset")["info"]["capture_points"] == len(captures)
+    stage = Usd.Stage.Open(str(arts / "asset" / "scene.usdc"))
+    ag = doc["agent"]
+    with BulletScene(arts / "asset" / "collider.obj", Agent(radius=ag["agent_radius_m"], height=ag["agent_height_m"],
+                                                            step_height=ag["step_height_m"])) as sim:
+        for n, T in captures.items():
+            cp = doc["capture_points"][n]
+            cam = transform_points(a_from_c, T[:3, 3][None])[0]
+            np.testing.assert_allclose(cp["camera"], cam, atol=1e-5)
+            assert np.allclose(cp["floor"][:2], cam[:2], atol=1e-5) and abs(cp["floor"][2]) < 0.03  # on the floor below
+            fwd = a_from_c[:3, :3] @ T[:3, 2]  # the panorama's centre, seen from above
+            assert abs(np.degrees(np.arctan2(fwd[1], fwd[0])) - cp["yaw_deg"]) < 1e-3
+            prim = stage.GetPrimAtPath(f"/World/CapturePoints/{n}")
+            assert prim.IsValid() and prim.GetCustomDataByKey("panorama") == n
+            xf = UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+            np.testing.assert_allclose(np.array(xf.ExtractTranslation()), cp["floor"], atol=1e-5)
+            r = drop_test(sim, np.array(cp["floor"]), drop_m=0.5)  # the agent stands there
+            assert r["speed_m_s"] < 0.01 and abs(r["rest_height_m"]) < 0.02 and r["drift_m"] < 0.02, (n, r)

@@ -69,19 +69,45 @@ def with_walkable_floor(col: Collider, nav: NavMesh) -> Collider:
 def spawn_point(collider_canonical: Collider, floor_y: float) -> tuple[np.ndarray, str]:
     """The floor below the capture point (canonical frame): where a ray straight down from the camera meets the
     collider, or the NavMesh floor height when it meets nothing within 1 m of that floor (a hole under the rig)."""
+    return floors_below(collider_canonical, floor_y, np.zeros((1, 3)))[0]
+
+
+def floors_below(collider_canonical: Collider, floor_y: float, cameras: np.ndarray) -> list[tuple[np.ndarray, str]]:
+    """spawn_point for each camera centre (K, 3) (canonical frame): the collider straight below it, or the NavMesh
+    floor height (y = floor_y) where the collider is not within 1 m of it there."""
     from panoworld.geometry.raycast import Raycaster
 
+    cameras = np.asarray(cameras, np.float64).reshape(-1, 3)
     hits = Raycaster(collider_canonical.vertices, collider_canonical.faces).cast(
-        np.zeros((1, 3), np.float32), np.array([[0.0, 1.0, 0.0]], np.float32))
-    d = float(hits.distance[0])
-    if np.isfinite(d) and abs(d - floor_y) < 1.0:
-        return np.array([0.0, d, 0.0]), "collider"
-    return np.array([0.0, float(floor_y), 0.0]), "navmesh floor"
+        cameras.astype(np.float32), np.tile(np.array([[0.0, 1.0, 0.0]], np.float32), (len(cameras), 1)))
+    out = []
+    for c, d in zip(cameras, np.asarray(hits.distance, np.float64)):
+        if np.isfinite(d) and abs(c[1] + d - floor_y) < 1.0:
+            out.append((np.array([c[0], c[1] + d, c[2]]), "collider"))
+        else:
+            out.append((np.array([c[0], float(floor_y), c[2]]), "navmesh floor"))
+    return out
+
+
+def capture_spawns(col: Collider, floor_y: float, captures: dict[str, np.ndarray], a_from_c: np.ndarray) -> dict:
+    """A home's capture points in the asset frame: {NAME: {"floor": the floor below the camera (the agent's spawn
+    there), "camera": the camera centre, "yaw_deg": where the panorama's centre looks (about +z, from +x), "floor_source":
+    collider | navmesh floor}} (captures: {NAME: world_from_cam (4, 4) canonical})."""
+    names = list(captures)
+    cams = np.array([np.asarray(captures[n], np.float64)[:3, 3] for n in names]).reshape(-1, 3)
+    out = {}
+    for n, c, (floor, source) in zip(names, cams, floors_below(col, floor_y, cams)):
+        fwd = a_from_c[:3, :3] @ np.asarray(captures[n], np.float64)[:3, 2]
+        out[n] = {"floor": [round(float(x), 6) for x in transform_points(a_from_c, floor[None])[0]],
+                  "camera": [round(float(x), 6) for x in transform_points(a_from_c, c[None])[0]],
+                  "yaw_deg": round(float(np.degrees(np.arctan2(fwd[1], fwd[0]))), 4), "floor_source": source}
+    return out
 
 
 def build_asset(out_dir: Path, *, mesh: ErpMesh, nav: NavMesh, trajectory_dir: Path, gaussians: Gaussians,
-                max_triangles: int) -> dict:
-    """Write scene.usdc, collider.obj and asset.json into out_dir; returns the manifest facts."""
+                max_triangles: int, captures: dict[str, np.ndarray] | None = None) -> dict:
+    """Write scene.usdc, collider.obj and asset.json into out_dir; returns the manifest facts. captures: a home's
+    capture points {NAME: world_from_cam (4, 4) canonical}, each given a spawn on the floor below it (two or more)."""
     from panoworld.asset.usd import UP_AXIS, SceneParts, compliance_errors, write_scene_usd
 
     out_dir = Path(out_dir)
@@ -93,6 +119,7 @@ def build_asset(out_dir: Path, *, mesh: ErpMesh, nav: NavMesh, trajectory_dir: P
     spawn_c, spawn_source = spawn_point(col, nav.floor_y)
     a_from_c = asset_from_canonical(nav.floor_y)
     spawn = transform_points(a_from_c, spawn_c[None])[0]
+    points = capture_spawns(col, nav.floor_y, captures, a_from_c) if captures and len(captures) >= 2 else {}
     col_v = transform_points(a_from_c, col.vertices)
     write_obj(out_dir / COLLIDER_OBJ, col_v, col.faces,
               "PanoWorld collider: asset frame (z up, x forward, y left, floor below the capture at z = 0), metres")
@@ -101,7 +128,8 @@ def build_asset(out_dir: Path, *, mesh: ErpMesh, nav: NavMesh, trajectory_dir: P
     timings["collider_io"] = time.perf_counter() - t
     t = time.perf_counter()
     parts = SceneParts(asset_from_canonical=a_from_c, gaussians=gaussians, collider=(col_v, col.faces),
-                       navmesh=(transform_points(a_from_c, nav_v), nav_f), spawn=spawn, camera_paths=paths, fps=fps)
+                       navmesh=(transform_points(a_from_c, nav_v), nav_f), spawn=spawn, camera_paths=paths, fps=fps,
+                       capture_points=points)
     counts = write_scene_usd(out_dir / SCENE_USD, parts)
     timings["write_usd"] = time.perf_counter() - t
     t = time.perf_counter()
@@ -117,6 +145,7 @@ def build_asset(out_dir: Path, *, mesh: ErpMesh, nav: NavMesh, trajectory_dir: P
         "frame": "x forward (the panorama's centre column), y left, z up (REP 103); origin on the floor below the "
                  "capture point; gravity -9.81 m/s^2 along -z",
         "agent": dict(nav.agent),
+        **({"capture_points": points} if points else {}),
         "counts": {"particles": counts["particles"], "collider_triangles": counts["collider_triangles"],
                    "collider_vertices": int(len(col_v)), "navmesh_triangles": counts["navmesh_triangles"],
                    "cameras": counts["cameras"], "frames": counts["frames"]},
@@ -128,6 +157,7 @@ def build_asset(out_dir: Path, *, mesh: ErpMesh, nav: NavMesh, trajectory_dir: P
         "sh_degree": counts["sh_degree"],
         "spawn": doc["spawn"],
         "spawn_source": spawn_source,
+        "capture_points": len(points),
         "up_axis": UP_AXIS,
         "collider": col.info,
         "compliance_errors": problems,

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +34,8 @@ class SceneParts:
     camera_paths: list[np.ndarray]
     """Per path (N, 4, 4) world_from_cam poses in the canonical frame (OpenCV camera axes)."""
     fps: float
+    capture_points: dict = field(default_factory=dict)
+    """A home's capture points (build.capture_spawns: floor point and yaw in the asset frame), empty for one panorama."""
 
 
 def _matrix(t: np.ndarray):
@@ -105,7 +107,7 @@ def _camera(stage, path: str, poses_asset_gl: np.ndarray):
 def write_scene_usd(path: Path, parts: SceneParts) -> dict:
     """Write the stage (the extension picks the format: .usdc binary crate, .usda text, .usdz package);
     returns counts. Stage metadata: metersPerUnit 1, kilogramsPerUnit 1, upAxis Z, defaultPrim /World."""
-    from pxr import Gf, Kind, Usd, UsdGeom, UsdPhysics
+    from pxr import Gf, Kind, Tf, Usd, UsdGeom, UsdPhysics
 
     path = Path(path)
     stage = Usd.Stage.CreateNew(str(path))
@@ -129,6 +131,15 @@ def write_scene_usd(path: Path, parts: SceneParts) -> dict:
 
     spawn = UsdGeom.Xform.Define(stage, f"{WORLD}/Spawn")
     spawn.AddTranslateOp().Set(Gf.Vec3d(*map(float, parts.spawn)))
+    if parts.capture_points:
+        UsdGeom.Scope.Define(stage, f"{WORLD}/CapturePoints")
+        used: set[str] = set()
+        for name, cp in parts.capture_points.items():
+            prim = _unique(Tf.MakeValidIdentifier(name), used)
+            x = UsdGeom.Xform.Define(stage, f"{WORLD}/CapturePoints/{prim}")
+            x.AddTranslateOp().Set(Gf.Vec3d(*map(float, cp["floor"])))
+            x.AddRotateZOp().Set(float(cp["yaw_deg"]))
+            x.GetPrim().SetCustomDataByKey("panorama", name)
 
     UsdGeom.Scope.Define(stage, f"{WORLD}/Trajectory")
     frames = 0
@@ -144,6 +155,16 @@ def write_scene_usd(path: Path, parts: SceneParts) -> dict:
     info.update(collider_triangles=int(len(parts.collider[1])), navmesh_triangles=int(len(parts.navmesh[1])),
                 cameras=len(parts.camera_paths), frames=frames)
     return info
+
+
+def _unique(name: str, used: set[str]) -> str:
+    """name, or name_2, name_3, ... where two panoramas' names map to one USD identifier."""
+    out, k = name, 1
+    while out in used:
+        k += 1
+        out = f"{name}_{k}"
+    used.add(out)
+    return out
 
 
 def compliance_errors(path: Path) -> list[str]:
