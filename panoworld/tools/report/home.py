@@ -44,8 +44,11 @@ def _status(p: dict) -> tuple[str, str]:
 
 
 def _joined_by(p: dict) -> str:
-    if not p.get("registered") or p.get("parent") is None:
-        return "-" if not p.get("registered") else "world frame" if p.get("source") != "given" else "poses.json"
+    """What placed one panorama: its parent in the registration tree by which edge, poses.json, or the world frame."""
+    if not p.get("registered"):
+        return "-"
+    if p.get("parent") is None:
+        return "poses.json" if p.get("source") == "given" else "world frame"
     return f"{p['parent']} ({p.get('edge', '?')}, {p.get('inliers', '?')} inliers)"
 
 
@@ -185,15 +188,15 @@ def section_home(scene: SceneData, page: Page, params: ReportParams) -> Section:
         masked = (d.get("plausibility") or {}).get("masked_sphere_fraction")
         reason = str(p.get("reason") or "")
         short = reason if len(reason) <= 240 else reason[:237] + "..."
-        nav = "-" if n not in on_nav else (f"yes (component {comp.get(n)})" if on_nav[n]
-                                           else f"snapped (component {comp.get(n)})")
+        where = f" (component {comp[n]})" if comp.get(n) is not None else ""
+        nav = "-" if n not in on_nav else ("yes" if on_nav[n] else "off it, snapped") + where
         rows.append([n, _status(p)[0], _joined_by(p),
                      f"{rig.get('kind')} ({100 * (rig.get('mask') or {}).get('sphere_fraction', 0):.2f} % of the sphere)"
                      if rig.get("found") else "none found",
                      "-" if masked is None else f"{100 * masked:.1f} %", nav,
                      f"{psnr[n]:.2f}" if n in psnr else "-",
                      f'<span title="{html.escape(reason)}">{html.escape(short)}</span>' if reason else ""])
-    header = ["panorama", "placed", "joined to (edge, inliers)", "capture rig removed", "layout masked as implausible",
+    header = ["panorama", "placed", "joined to (edge, inliers)", "capture rig removed", "layout masked as implausible (of the sphere)",
               "on NavMesh", f"capture pose PSNR dB ({fit_height} rows)" if fit_height else "capture pose PSNR dB",
               "why not registered"]
     n_reg = sum(bool(p.get("registered")) for p in pans.values())
