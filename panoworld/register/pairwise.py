@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from panoworld.core.conventions import erp_dirs, erp_dirs64, erp_pixel_from_dir, invert_pose
 from panoworld.geometry.cube_views import cube_views, render_view
+from panoworld.geometry.floor_view import nearest_both_ways, squared_distances
 from panoworld.geometry.panoramas import erp_pixel_index
 from panoworld.models.pose_refine import depth_edges, sample_range
 
@@ -116,15 +117,16 @@ def erp_features(rgb: np.ndarray, depth: np.ndarray, *, max_features: int, max_e
 
 
 def match(a: Features, b: Features, *, ratio: float = 0.8) -> np.ndarray:
-    """(M, 2) indices (into a, into b) of mutual nearest neighbours passing Lowe's ratio test."""
+    """(M, 2) indices (into a, into b) of mutual nearest neighbours passing Lowe's ratio test, in a's order: one
+    distance matrix (a matrix product) gives both directions' nearest neighbours and a's second nearest."""
     if len(a.descriptors) < 2 or len(b.descriptors) < 2:
         return np.zeros((0, 2), np.int64)
-    bf = cv2.BFMatcher(cv2.NORM_L2)
-    ab = bf.knnMatch(a.descriptors, b.descriptors, k=2)
-    ba = {m[0].queryIdx: m[0].trainIdx for m in bf.knnMatch(b.descriptors, a.descriptors, k=1) if m}
-    out = [(m[0].queryIdx, m[0].trainIdx) for m in ab
-           if len(m) == 2 and m[0].distance < ratio * m[1].distance and ba.get(m[0].trainIdx) == m[0].queryIdx]
-    return np.array(out, np.int64).reshape(-1, 2)
+    d2 = squared_distances(a.descriptors.astype(np.float32), b.descriptors.astype(np.float32))
+    ab, ba = nearest_both_ways(d2)
+    rows = np.arange(len(ab))
+    second = np.partition(d2, 1, axis=1)[:, 1]
+    keep = (d2[rows, ab] < ratio**2 * second) & (ba[ab] == rows)
+    return np.stack([rows[keep], ab[keep]], 1).astype(np.int64)
 
 
 def _small(depth: np.ndarray, height: int) -> np.ndarray:
