@@ -10,7 +10,6 @@ import numpy as np
 
 from panoworld.core.errors import DataError, InputError
 from panoworld.io.images import read_image
-from panoworld.register.inputs import is_multi_scene
 
 
 class DatasetError(DataError):
@@ -36,10 +35,6 @@ class DatasetScene:
             raise DatasetError(f"{path}: unreadable ({e})") from None
         if not self.index.get("tracks"):
             raise DatasetError(f"{path}: lists no tracks")
-        if is_multi_scene(self.root):
-            raise DatasetError(f"{self.root}: a home of several panoramas, whose ground-truth track holds only its "
-                               "capture poses; training clips come from single-panorama scenes with trajectory tracks "
-                               "(runner.py synth OUT --scenes K --frames N)")
         self.name = self.root.name
 
     @classmethod

@@ -284,6 +284,7 @@ def precompute(
     """Sample and render every clip of every scene; write index.jsonl, failures.jsonl and summary.json."""
     from tqdm import tqdm
 
+    from panoworld.register.inputs import is_multi_scene
     from panoworld.tools.dataset import DatasetError, DatasetScene
 
     dataset_dir, out_dir = Path(dataset_dir), Path(out_dir)
@@ -296,6 +297,10 @@ def precompute(
     tasks: list[ClipTask] = []
     for sd in scene_dirs:
         try:
+            if is_multi_scene(sd):
+                raise DatasetError(f"{sd}: a home of several panoramas, whose ground-truth track holds only its capture "
+                                   "poses; training clips come from single-panorama scenes with trajectory tracks "
+                                   "(runner.py synth OUT --scenes K --frames N)")
             ds = DatasetScene(sd)
             specs = sample_clips(sd.name, [ds.n_frames(t) for t in range(ds.n_tracks)], params)
         except (DatasetError, KeyError, TypeError, ValueError) as e:
