@@ -247,10 +247,18 @@ def test_home_report_names_a_panorama_left_unregistered_and_why(home_run, tmp_pa
 @pytest.mark.slow
 def test_eval_scores_a_home_registration_and_names_a_misplaced_panorama(home_run, tmp_path):
     from panoworld.tools.eval.cli import evaluate
+    from panoworld.tools.eval.common import EvalParams
 
     scene, _ = home_run
-    report, errors = evaluate(scene, stages=["register", "mesh"], progress=False)
-    reg, mesh = report["stages"]["register"], report["stages"]["mesh"]
+    report, errors = evaluate(scene, EvalParams(gs_height=64, views=1), stages=["register", "mesh", "gaussians"],
+                              progress=False)
+    reg, mesh, gs = (report["stages"][k] for k in ("register", "mesh", "gaussians"))
+    captures = capture_poses(scene / "artifacts" / "register")  # every capture pose against its input panorama
+    scores = capture_psnr(scene / "artifacts" / "gaussians" / "gaussians.ply", captures,
+                          {n: read_panorama(scene / "panoramas" / f"{n}.png") for n in captures}, height=64)
+    assert gs["capture_psnr_min"] == min(scores.values()) > 27.0 and scores[gs["capture_worst"]] == min(scores.values())
+    assert gs["capture_psnr_median"] == float(np.median(list(scores.values())))
+    assert report["targets"]["gaussians"]["capture_psnr_min"]["met"]
     assert errors == [] and reg["registered"] == 3 and reg["registered_fraction"] == 1.0 and reg["anchor"] == "pano_00"
     assert reg["trans_cm_max"] < 5.0 and reg["rot_deg_max"] < 1.0 and reg["misplaced"] == 0
     assert all(report["targets"]["register"][k]["met"] for k in ("registered_fraction", "trans_cm_max", "misplaced"))

@@ -332,7 +332,27 @@ class Evaluation(SceneInputs):
             for k in ("psnr", "ssim", "ws_psnr", "coverage"):
                 out[f"{name}_{k}"] = _mean(acc[k])
             out[f"{name}_lpips"] = _mean(acc["lpips"]) if self.lpips.enabled else self.lpips.reason()
-        return out
+        return {**out, **self._capture_scores(d / "gaussians.ply", H)}
+
+    def _capture_scores(self, ply: Path, height: int) -> dict:
+        """A home: the Gaussians at every registered capture pose against that input panorama (capture_psnr, at
+        height rows): the lowest, its panorama and the median; {} for one panorama."""
+        from panoworld.gaussians.quality import capture_psnr
+        from panoworld.io.depth import read_panorama
+        from panoworld.io.home import capture_poses
+        from panoworld.register.inputs import find_multi_scene, is_multi_scene
+
+        if not is_multi_scene(self.scene_dir) or self.artifact("register") is None:
+            return {}
+        captures = capture_poses(self.artifact("register"))
+        files = find_multi_scene(self.scene_dir).panoramas
+        captures = {n: T for n, T in captures.items() if n in files}
+        if not captures:
+            return {}
+        scores = capture_psnr(ply, captures, {n: read_panorama(files[n]) for n in captures}, height=height)
+        worst = min(scores, key=scores.get)
+        return {"capture_psnr_min": scores[worst], "capture_worst": worst,
+                "capture_psnr_median": float(np.median(list(scores.values())))}
 
     def _track_novel_views(self, midpoints: list[np.ndarray], used: list[np.ndarray]) -> tuple[list[np.ndarray], str]:
         """Frames + poses scenes: for each midpoint the nearest ground-truth track frame that no fused frame sits on."""
