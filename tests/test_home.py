@@ -17,7 +17,7 @@ from panoworld.framework import pipeline as pl
 from panoworld.gaussians.quality import capture_psnr
 from panoworld.io import manifest as art
 from panoworld.io.depth import read_panorama
-from panoworld.io.home import capture_poses
+from panoworld.io.home import capture_poses, home_depth_dirs
 
 torch.set_num_threads(1)
 
@@ -253,9 +253,10 @@ def test_eval_scores_a_home_registration_and_names_a_misplaced_panorama(home_run
     report, errors = evaluate(scene, EvalParams(gs_height=64, views=1), stages=["register", "mesh", "gaussians"],
                               progress=False)
     reg, mesh, gs = (report["stages"][k] for k in ("register", "mesh", "gaussians"))
-    captures = capture_poses(scene / "artifacts" / "register")  # every capture pose against its input panorama
+    captures = capture_poses(scene / "artifacts" / "register")  # every capture pose against its cleaned panorama
+    dirs = home_depth_dirs(scene / "artifacts" / "depth")
     scores = capture_psnr(scene / "artifacts" / "gaussians" / "gaussians.ply", captures,
-                          {n: read_panorama(scene / "panoramas" / f"{n}.png") for n in captures}, height=64)
+                          {n: read_panorama(dirs[n] / "panorama.png") for n in captures}, height=64)
     assert gs["capture_psnr_min"] == min(scores.values()) > 27.0 and scores[gs["capture_worst"]] == min(scores.values())
     assert gs["capture_psnr_median"] == float(np.median(list(scores.values())))
     assert report["targets"]["gaussians"]["capture_psnr_min"]["met"]

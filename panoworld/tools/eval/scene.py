@@ -335,21 +335,21 @@ class Evaluation(SceneInputs):
         return {**out, **self._capture_scores(d / "gaussians.ply", H)}
 
     def _capture_scores(self, ply: Path, height: int) -> dict:
-        """A home: the Gaussians at every registered capture pose against that input panorama (capture_psnr, at
-        height rows): the lowest, its panorama and the median; {} for one panorama."""
+        """A home: the Gaussians at every registered capture pose against that panorama as the depth stage cleaned
+        it (the capture rig removed, as the scene holds it; capture_psnr, at height rows): the lowest, its panorama
+        and the median; {} for one panorama."""
         from panoworld.gaussians.quality import capture_psnr
         from panoworld.io.depth import read_panorama
-        from panoworld.io.home import capture_poses
-        from panoworld.register.inputs import find_multi_scene, is_multi_scene
+        from panoworld.io.home import capture_poses, home_depth_dirs
 
-        if not is_multi_scene(self.scene_dir) or self.artifact("register") is None:
+        if self.artifact("register") is None or self.artifact("depth") is None:
             return {}
-        captures = capture_poses(self.artifact("register"))
-        files = find_multi_scene(self.scene_dir).panoramas
-        captures = {n: T for n, T in captures.items() if n in files}
-        if not captures:
+        dirs = home_depth_dirs(self.artifact("depth")) or {}
+        captures = {n: T for n, T in capture_poses(self.artifact("register")).items() if n in dirs}
+        if len(captures) < 2:
             return {}
-        scores = capture_psnr(ply, captures, {n: read_panorama(files[n]) for n in captures}, height=height)
+        scores = capture_psnr(ply, captures, {n: read_panorama(dirs[n] / "panorama.png") for n in captures},
+                              height=height)
         worst = min(scores, key=scores.get)
         return {"capture_psnr_min": scores[worst], "capture_worst": worst,
                 "capture_psnr_median": float(np.median(list(scores.values())))}
