@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
@@ -60,6 +60,8 @@ param_names = st.sampled_from(sorted({f"{s}.{f}" for s, n in PIPE.stages.items()
                                                                       st.dictionaries(st.text(max_size=12), numbers,
                                                                                       max_size=3), max_size=3)})),
        raw=st.one_of(st.none(), st.text(max_size=200)))
+@example(doc={"params": {"asset": {"\n": None}}}, raw=None)  # a key that is a newline: one line, the key repr'd
+@example(doc={"params": {"\n": {"x": 1}}}, raw=None)
 def test_scene_yaml_never_tracebacks(scene_dir, doc, raw):
     cfg = scene_dir / pl.SCENE_CONFIG
     try:

@@ -138,13 +138,14 @@ def check_scene_config(config: Any, path: Path, pipeline: Pipeline) -> None:
     params = config.get("params")
     if params is None:
         return
-    from panoworld.framework.stage_params import normalize
+    from panoworld.framework.stage_params import normalize, shown_name
 
     if not isinstance(params, dict):
         raise PipelineError(f"{path}: params: expected a mapping of stage: {{param: value}}, got {_short(params)}")
     for stage, values in params.items():
         if stage not in pipeline.stages:
-            raise PipelineError(f"{path}: params.{stage}: unknown stage{suggest(str(stage), pipeline.order)}")
+            raise PipelineError(f"{path}: params.{shown_name(str(stage))}: unknown stage"
+                                f"{suggest(str(stage), pipeline.order)}")
         if values is None:
             continue
         try:

@@ -102,6 +102,12 @@ def _fields(cls: type) -> dict[str, dataclasses.Field]:
     return {f.name: f for f in dataclasses.fields(cls)}
 
 
+def shown_name(name: str) -> str:
+    """A user's key as an error message shows it: as typed when it is a name, else its repr (a newline or a control
+    character in a key never breaks the message's one line)."""
+    return name if name.isidentifier() else repr(name)
+
+
 def normalize(cls: type, values: Any, where: str) -> dict[str, Any]:
     """A nested {param: value} dict from a layer of values (dotted keys and old names resolved, options nested);
     ValueError naming the param (with a "did you mean") for unknown names and wrong shapes."""
@@ -116,7 +122,7 @@ def normalize(cls: type, values: Any, where: str) -> dict[str, Any]:
         head, dot, rest = key.partition(".")
         f = fields.get(head)
         if f is None:
-            raise ValueError(f"{where}.{head}: unknown param{P.suggest(head, list(fields) + list(old))}")
+            raise ValueError(f"{where}.{shown_name(head)}: unknown param{P.suggest(head, list(fields) + list(old))}")
         if P.is_options(f):
             if dot:
                 v = {rest: v}
