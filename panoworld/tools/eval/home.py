@@ -30,19 +30,26 @@ def pose_errors(est: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> dict[s
     return out
 
 
-def registration_metrics(register_dir: Path, scene_dir: Path) -> dict:
-    """Registered count and the pose errors of the register artifact against SCENE/gt/poses.json: translation (cm)
-    and rotation (degrees) of every registered panorama but the anchor (the first registered by name) relative to
-    it, mean and max, and how many are misplaced (MISPLACED_CM, MISPLACED_DEG). NoReference without true poses."""
+def registered_and_true(register_dir: Path, scene_dir: Path) -> tuple[dict, dict, str]:
+    """(true poses {NAME: world_from_cam (4, 4)} of SCENE/gt/poses.json, the registered ones of them (the register
+    artifact's panoramas.json, its frame), the anchor: the first registered by name, the home's world frame).
+    NoReference without true poses or when none of them is registered."""
     gt_path = Path(scene_dir) / GT_POSES
     if not gt_path.is_file():
         raise NoReference(f"no {GT_POSES.as_posix()}: registration is scored against the true capture poses of a "
                           "synthetic home (runner.py synth OUT --panoramas K)")
     gt = {n: np.asarray(T, np.float64).reshape(4, 4) for n, T in read_json(gt_path).items()}
-    est = {n: T for n, T in capture_poses(register_dir).items() if n in gt}  # panoramas.json: the registered ones
+    est = {n: T for n, T in capture_poses(register_dir).items() if n in gt}
     if not est:
         raise NoReference(f"none of the registered panoramas is in {GT_POSES.as_posix()}")
-    anchor = sorted(est)[0]
+    return gt, est, sorted(est)[0]
+
+
+def registration_metrics(register_dir: Path, scene_dir: Path) -> dict:
+    """Registered count and the pose errors of the register artifact against SCENE/gt/poses.json: translation (cm)
+    and rotation (degrees) of every registered panorama but the anchor (the first registered by name) relative to
+    it, mean and max, and how many are misplaced (MISPLACED_CM, MISPLACED_DEG). NoReference without true poses."""
+    gt, est, anchor = registered_and_true(register_dir, scene_dir)
     others = {n: e for n, e in pose_errors(est, gt).items() if n != anchor}
     out = {"num_panoramas": len(gt), "registered": len(est), "registered_fraction": len(est) / len(gt),
            "unregistered": sorted(set(gt) - set(est)), "anchor": anchor}

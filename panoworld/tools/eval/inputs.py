@@ -15,7 +15,7 @@ from panoworld.core.errors import PanoWorldError
 from panoworld.core.params import flatten
 from panoworld.io.manifest import ARTIFACTS_DIRNAME, MANIFEST, VARIANTS_DIRNAME
 from panoworld.tools.eval.common import EvalParams, Lpips
-from panoworld.tools.eval.groundtruth import open_ground_truth
+from panoworld.tools.eval.groundtruth import NoReference, open_ground_truth
 
 
 class SceneInputs:
@@ -45,21 +45,15 @@ class SceneInputs:
         of its first panorama. Where they differ (that panorama left unregistered) the reference takes the home's
         frame, through the anchor's true pose (gt/poses.json) -> the top-level panorama's pose in it (else identity)."""
         from panoworld.core.conventions import invert_pose
-        from panoworld.io.home import capture_poses
-        from panoworld.tools.eval.home import GT_POSES
+        from panoworld.tools.eval.home import registered_and_true
 
         reg = self.artifact("register")
-        gt_path = self.scene_dir / GT_POSES
-        if not hasattr(self.gt, "reframe") or not gt_path.is_file() or reg is None:
+        if not hasattr(self.gt, "reframe") or reg is None:
             return np.eye(4)
         try:
-            truth = {n: np.asarray(T, np.float64).reshape(4, 4) for n, T in json.loads(gt_path.read_text()).items()}
-            est = {n: T for n, T in capture_poses(reg).items() if n in truth}
-        except (PanoWorldError, OSError, ValueError, TypeError, AttributeError):  # the register stage's eval says why
+            truth, est, anchor = registered_and_true(reg, self.scene_dir)
+        except (NoReference, PanoWorldError, OSError, ValueError, TypeError, AttributeError):  # the register row says why
             return np.eye(4)
-        if not est:
-            return np.eye(4)
-        anchor = sorted(est)[0]
         world_from_home = truth[anchor] @ invert_pose(est[anchor])
         if not np.allclose(world_from_home, self.gt.world_from_canonical, atol=1e-6):
             self.gt.reframe(world_from_home)
