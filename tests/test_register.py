@@ -273,7 +273,7 @@ def test_runner_opens_a_home_and_refuses_a_mixed_layout(home_dir, tmp_path):
     assert e.value.exit_code == 2 and not (mixed / "artifacts").exists()
 
 
-def test_pairs_on_several_threads_register_as_one_at_a_time(home_dir, monkeypatch):
+def test_panoramas_and_pairs_on_several_threads_register_as_one_at_a_time(home_dir, monkeypatch):
     import panoworld.register.solve as solve
 
     names = ["pano_00", "pano_01", "pano_02"]

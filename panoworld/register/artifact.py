@@ -50,17 +50,21 @@ def register_depth_dirs(dirs: dict[str, Path] | None, poses_file: Path | None, o
         write_registration(out_dir, reg)
         return {"num_panoramas": 1, "num_registered": 1, "num_given": 0, "unregistered": [], "pairs_accepted": 0,
                 "pairs_tried": 0}
-    from panoworld.register.solve import register_panoramas  # cv2, torch, pycolmap: not for one panorama
+    from panoworld.core.parallel import map_ahead
+    from panoworld.register.solve import pair_threads, register_panoramas  # cv2, torch, pycolmap: not for one panorama
+
+    def load(d: Path):
+        depth, valid, rgb = load_depth_artifact(d)
+        rig = Path(d) / RIG_MASK_PNG
+        return rgb, np.where(valid, depth, 0.0).astype(np.float32), _read_rig_mask(rig) if rig.is_file() else None
 
     names = list(dirs)
     given = read_poses(poses_file, names) if poses_file is not None else {}
     rgbs, depths, rigs = {}, {}, {}
-    if len(given) < len(names):
-        for n, d in dirs.items():
-            depth, valid, rgb = load_depth_artifact(d)
-            depths[n], rgbs[n] = np.where(valid, depth, 0.0).astype(np.float32), rgb
-            if (Path(d) / RIG_MASK_PNG).is_file():
-                rigs[n] = _read_rig_mask(Path(d) / RIG_MASK_PNG)
+    if len(given) < len(names):  # decoding releases the GIL: the panoramas on the pairs' threads
+        for n, (rgbs[n], depths[n], rig) in zip(names, map_ahead(load, [dirs[n] for n in names], workers=pair_threads())):
+            if rig is not None:
+                rigs[n] = rig
     from tqdm import tqdm
 
     from panoworld.register.pair_select import candidate_pairs

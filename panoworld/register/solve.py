@@ -47,11 +47,11 @@ from panoworld.register.registration import Registration
 from panoworld.register.upright import UprightPose, max_baseline, metric_scale, upright_relative_pose
 
 MAX_PAIR_THREADS = 8
-"""Pairs registered at once at most (threads)."""
+"""Panoramas prepared and pairs registered at once at most (threads)."""
 
 
 def pair_threads() -> int:
-    """Pairs registered at once: core.parallel.cpu_threads (the CPUs, or OMP_NUM_THREADS where set), at most
+    """Panoramas prepared (features, floor view) and pairs registered at once: core.parallel.cpu_threads (the CPUs, or OMP_NUM_THREADS where set), at most
     MAX_PAIR_THREADS."""
     return cpu_threads(MAX_PAIR_THREADS)
 
@@ -94,13 +94,20 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     views: dict[str, FloorView | None] = {}
     k = len(names)
     if need:
-        small = {n: rgbd_at_height(rgbs[n], depths[n], o.height) for n in names}
-        rig = {n: grow_exclusion((rig_masks or {}).get(n)) for n in names}
-        feats = {n: erp_features(*small[n], max_features=o.max_features, exclude=rig[n]) for n in names}
-        walls = {n: manhattan_frame(small[n][1]) if o.manhattan or o.floor_along_walls else None for n in names}
-        views = {n: panorama_floor_view(rgbs[n], small[n][1], rig[n], walls[n], o) if o.floor else None for n in names}
+        def one_panorama(n: str):
+            rgbd = rgbd_at_height(rgbs[n], depths[n], o.height)
+            rig = grow_exclusion((rig_masks or {}).get(n))
+            walls = manhattan_frame(rgbd[1]) if o.manhattan or o.floor_along_walls else None
+            view = panorama_floor_view(rgbs[n], rgbd[1], rig, walls, o) if o.floor else None
+            return (rgbd, erp_features(*rgbd, max_features=o.max_features, exclude=rig), walls, view,
+                    appearance_descriptor(rgbd[0]) if k > o.all_pairs_up_to else None)
+
+        # Each panorama on its own, on pair_threads() threads (SIFT, the floor view's sampling and resizing release
+        # the GIL), results taken in name order: the same as one at a time.
+        small, feats, walls, views, looks = (dict(zip(names, x)) for x in zip(
+            *map_ahead(one_panorama, names, workers=pair_threads())))
         frames = walls if o.manhattan else dict.fromkeys(names)
-        looks = {n: appearance_descriptor(small[n][0]) for n in names} if k > o.all_pairs_up_to else None
+        looks = looks if k > o.all_pairs_up_to else None
         heights = {n: v.height_m if (v := views[n]) is not None else camera_height(small[n][1]) for n in names}
 
         def one_pair(ab: tuple[int, int]):
