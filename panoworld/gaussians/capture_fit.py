@@ -29,8 +29,8 @@ def sh1_basis(means: np.ndarray, centre: np.ndarray) -> torch.Tensor:
 
 def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]], *, height: int = 256,
                        supersample: int = 2, iters: int = 20, damping: float = 0.01, sh_degree: int = 1,
-                       sh_damping: float = 0.001, max_bytes: float = float("inf"), prune: float = 0.0
-                       ) -> tuple[Gaussians, dict]:
+                       sh_damping: float = 0.001, max_bytes: float = float("inf"), prune: float = 0.0,
+                       smooth: bool = False) -> tuple[Gaussians, dict]:
     """Gaussians g whose colours are refitted so their ERP render (height rows, supersample: render_erp's sampling)
     at each view's world_from_cam (4, 4) reproduces its target (H, W, 3) uint8 or [0, 1], area-resized to height rows.
 
@@ -43,7 +43,8 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     what each sees of the Gaussian, so c is the colour from that mean direction and s only tells the views apart: a
     surface two capture points see differently shows each its own colour, one that a single view sees keeps s. Only
     the Gaussians some view sees are fitted; prune: the share of each pixel's weight its render operator may drop
-    (ErpColorOperator). Returns the Gaussians (SH degree max(sh_degree, g's)) and {"views", "height", "iters",
+    (ErpColorOperator). smooth: the colours' change is then made one the views' renders hold (smooth_change). Returns
+    the Gaussians (SH degree max(sh_degree, g's)) and {"views", "height", "iters",
     "prune", "sh_degree", "fitted", "operators_gb" (what the render operators held), "rmse_before", "rmse_after" (per view)};
     g itself and {"views", "skipped": why} when the operators built so far say all of them would hold more than
     max_bytes."""
@@ -131,7 +132,7 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     dsc = seen.rsqrt()
     x0 = x0 / dsc
     lam = [lam_i * dsc.square() for lam_i in lam]
-    del total, seen, c0
+    del total, seen
     means = None
     cols = cols_t
 
@@ -176,8 +177,10 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         p.mul_(gamma_new / max(gamma, 1e-20)).add_(s)
         gamma = gamma_new
     x.mul_(dsc)
+    if smooth:
+        x[:, :3] = c0 + smooth_change(x[:, :3] - c0, ops, cols)
     x[:, :3] = x[:, :3].clamp(0.0, 1.0)
-    del s, p, tmp, x0
+    del s, p, tmp, x0, c0
     lam.clear()
     rmse1 = [float((targets[k] - ops[k](colors(k, x))).square().mean().sqrt()) for k in range(views_n)]
     for held_list in (ops, basis, targets):
@@ -193,6 +196,20 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     out = Gaussians(g.means, g.scales, g.quats, g.opacities, dc, rest)
     return out, {"views": views_n, "height": height, "prune": prune, "iters": iters, "sh_degree": sh_degree, "fitted": n,
                  "operators_gb": held / 1e9, "rmse_before": rmse0, "rmse_after": rmse1}
+
+
+def smooth_change(change: torch.Tensor, ops: list, cols: list[torch.Tensor]) -> torch.Tensor:
+    """The colour change (n, 3) of the fitted Gaussians as the views hold it: rendered through each view's operator
+    ops[k] (over the Gaussians cols[k] it sees), divided by that view's coverage, and read back, each Gaussian the
+    weighted mean of the pixels it covers over the views that see it (unchanged where none does). The least-squares
+    change also varies from Gaussian to Gaussian finer than the views' pixels (the solution picks it by where each
+    Gaussian's centre falls between them), which renders as moire rings on plain walls from anywhere else."""
+    num, den = torch.zeros_like(change), torch.zeros_like(change)
+    for op, c in zip(ops, cols):
+        image = op(change[c].contiguous()) / op(torch.ones(len(c), 3)).clamp(min=1e-3)
+        num.index_add_(0, c, op.adjoint(image))
+        den.index_add_(0, c, op.adjoint(torch.ones_like(image)))
+    return torch.where(den > 1e-6, num / den.clamp(min=1e-6), change)
 
 
 @njit(cache=True, nogil=True)

@@ -278,7 +278,7 @@ def fit_at_capture_points(g, names: list[str], sources: dict, poses: dict, param
             g, views, height=height, supersample=params.capture_fit_supersample,
             iters=params.capture_fit_iters, damping=params.capture_fit_damping,
             sh_degree=params.capture_fit_sh_degree, sh_damping=params.fit_sh_damping,
-            max_bytes=params.capture_fit_max_gb * 1e9, prune=prune)
+            max_bytes=params.capture_fit_max_gb * 1e9, prune=prune, smooth=params.capture_fit_smooth)
         if "skipped" not in fit or k == len(tries) - 1:  # the last try's refusal is the fit's "skipped"
             break
         refused.append({"height": height, "prune": prune, "why": fit["skipped"]})
