@@ -149,7 +149,7 @@ class SourcePixelParams(FusionParams):
     rendered at each capture pose and read back, each Gaussian the mean of the pixels it covers). The least-squares
     change varies from Gaussian to Gaussian finer than the capture poses' pixels, which shows as moire rings on plain
     walls in every other view: on real east and west the leave-one-out novel views' SSIM is higher for all 9
-    panoramas (+0.004 to +0.019, PSNR within 0.16 dB) and the capture poses 1.6-3.5 dB lower at 256 rows
+    panoramas (+0.004 to +0.019, PSNR within 0.16 dB) and the capture poses 2.3-5.9 dB lower at 256 rows
     (docs/multi.md)."""
     capture_fit_height: int = param(512, ge=8)
     """ERP height of that fit's renders and targets (the panoramas area-downsampled). 512: the cube faces of a
