@@ -411,7 +411,7 @@ def test_capture_fit_smoothed_change_keeps_a_plain_wall_plain_from_elsewhere():
     # spacing, as per-pixel Gaussians of a finer panorama are) photographed with a little noise: the least-squares
     # change chases each pixel's noise with Gaussian-to-Gaussian swings that a view from elsewhere shows as a pattern
     # (0.033 rms there against the photos' 0.03); made one the capture poses' renders hold, the wall stays plain from
-    # there (0.015) and as bright, while each capture pose still lands within a tenth of where it started.
+    # there (0.015) and as bright, while each capture pose's error still falls below 0.15 of where it started.
     from panoworld.gaussians.capture_fit import fit_capture_colors
 
     g, n = shell_and_clutter(3), 2500

@@ -51,8 +51,8 @@ MAX_PAIR_THREADS = 8
 
 
 def pair_threads() -> int:
-    """Panoramas prepared (features, floor view) and pairs registered at once: core.parallel.cpu_threads (the CPUs, or OMP_NUM_THREADS where set), at most
-    MAX_PAIR_THREADS."""
+    """Panoramas prepared (features, floor view) and pairs registered at once: core.parallel.cpu_threads (the CPUs,
+    or OMP_NUM_THREADS where set), at most MAX_PAIR_THREADS."""
     return cpu_threads(MAX_PAIR_THREADS)
 
 
