@@ -45,8 +45,8 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     the Gaussians some view sees are fitted; prune: the share of each pixel's weight its render operator may drop
     (ErpColorOperator). smooth: the colours' change is then made one the views' renders hold (smooth_change). Returns
     the Gaussians (SH degree max(sh_degree, g's)) and {"views", "height", "iters", "prune", "sh_degree", "fitted",
-    "operators_gb" (what the render operators held), "rmse_before", "rmse_after" (per view)}; g itself and {"views", "skipped": why} when the operators built so far say all of them would hold more than
-    max_bytes."""
+    "operators_gb" (what the render operators held), "rmse_before", "rmse_after" (per view)}; g itself and {"views",
+    "skipped": why} when the operators built so far say all of them would hold more than max_bytes."""
     import cv2
 
     from panoworld.render.erp_operator import ErpColorOperator
@@ -98,6 +98,7 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         return out
 
     total = scatter(lambda k: seen_k[k][:, None], 1)
+    weight = total if smooth else None  # each Gaussian's compositing weight over the views, smooth_change's divisor
     seen = total.clamp(min=1e-3)
     total = torch.where(total > 0, total, 1.0)  # the weighted means below, exact where the weights are small
     s0 = np.zeros((n, 3, 3), np.float32)
@@ -177,9 +178,9 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         gamma = gamma_new
     x.mul_(dsc)
     if smooth:
-        x[:, :3] = c0 + smooth_change(x[:, :3] - c0, ops, cols)
+        x[:, :3] = c0 + smooth_change(x[:, :3] - c0, ops, cols, weight)
     x[:, :3] = x[:, :3].clamp(0.0, 1.0)
-    del s, p, tmp, x0, c0
+    del s, p, tmp, x0, c0, weight
     lam.clear()
     rmse1 = [float((targets[k] - ops[k](colors(k, x))).square().mean().sqrt()) for k in range(views_n)]
     for held_list in (ops, basis, targets):
@@ -197,18 +198,17 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
                  "operators_gb": held / 1e9, "rmse_before": rmse0, "rmse_after": rmse1}
 
 
-def smooth_change(change: torch.Tensor, ops: list, cols: list[torch.Tensor]) -> torch.Tensor:
+def smooth_change(change: torch.Tensor, ops: list, cols: list[torch.Tensor], weight: torch.Tensor) -> torch.Tensor:
     """The colour change (n, 3) of the fitted Gaussians as the views hold it: rendered through each view's operator
     ops[k] (over the Gaussians cols[k] it sees), divided by that view's coverage, and read back, each Gaussian the
-    weighted mean of the pixels it covers over the views that see it (unchanged where none does). The least-squares
+    weighted mean of the pixels it covers over the views that see it (weight (n, 1): its compositing weight summed over
+    the views, the adjoint of a white image; unchanged where it is 0). The least-squares
     change also varies from Gaussian to Gaussian finer than the views' pixels (the solution picks it by where each
     Gaussian's centre falls between them), which renders as moire rings on plain walls from anywhere else."""
-    num, den = torch.zeros_like(change), torch.zeros_like(change)
+    num = torch.zeros_like(change)
     for op, c in zip(ops, cols):
-        image = op(change[c].contiguous()) / op(torch.ones(len(c), 3)).clamp(min=1e-3)
-        num.index_add_(0, c, op.adjoint(image))
-        den.index_add_(0, c, op.adjoint(torch.ones_like(image)))
-    return torch.where(den > 1e-6, num / den.clamp(min=1e-6), change)
+        num.index_add_(0, c, op.adjoint(op(change[c].contiguous()) / op(torch.ones(len(c), 3)).clamp(min=1e-3)))
+    return torch.where(weight > 1e-6, num / weight.clamp(min=1e-6), change)
 
 
 @njit(cache=True, nogil=True)
