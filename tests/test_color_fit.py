@@ -435,3 +435,37 @@ def test_capture_fit_smoothed_change_keeps_a_plain_wall_plain_from_elsewhere():
         out[smooth] = (float(elsewhere.std()), float(elsewhere.mean()))
     assert out[True][0] < 0.6 * out[False][0], out
     assert out[True][1] == pytest.approx(out[False][1], abs=0.005)
+
+
+def test_capture_fit_smoothed_change_keeps_the_degree_1_terms_smooth_too():
+    # Two capture poses 2 m apart photograph a plain wall at two exposures (0.6 and 0.75, 3 % noise): the degree-1
+    # terms let each see its own brightness, and their least-squares change swings from Gaussian to Gaussian as the
+    # colours' does (shown as rings on the wall from anywhere between). Made one the capture poses' renders hold, they
+    # vary a third as much between neighbouring Gaussians, and each capture pose still sees its own exposure.
+    from scipy.spatial import cKDTree
+
+    from panoworld.gaussians.capture_fit import fit_capture_colors
+
+    g, n = shell_and_clutter(3), 2500
+    pitch = 3.0 * np.sqrt(4 * np.pi / n)
+    wall = Gaussians(g.means[:n], np.full((n, 3), 0.6 * pitch, np.float32), g.quats[:n], np.full(n, 0.98, np.float32),
+                     rgb_to_sh_dc(np.full((n, 3), 0.5, np.float32)))
+
+    def pose(x):
+        p = np.eye(4)
+        p[0, 3] = x
+        return p
+
+    rng = np.random.default_rng(0)
+    views = [(np.clip(v + 0.03 * rng.standard_normal((SHELL_H, SHELL_W, 3)), 0, 1).astype(np.float32), pose(x))
+             for v, x in ((0.6, -1.0), (0.75, 1.0))]
+    _, nn = cKDTree(wall.means).query(wall.means, k=2)
+    rough = {}
+    for smooth in (False, True):
+        fitted, info = fit_capture_colors(wall, views, height=SHELL_H, supersample=1, iters=5, smooth=smooth)
+        assert fitted.sh_rest.shape[1] == 3
+        rough[smooth] = float(np.sqrt(((fitted.sh_rest - fitted.sh_rest[nn[:, 1]]) ** 2).mean()))
+        assert max(info["rmse_after"]) < 0.3 * min(info["rmse_before"]), (smooth, info)
+        for (img, p) in views:
+            assert float(render_erp(fitted, p, SHELL_H, SHELL_W).rgb.mean()) == pytest.approx(float(img.mean()), abs=0.02)
+    assert rough[True] < 0.4 * rough[False], rough

@@ -43,7 +43,8 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     what each sees of the Gaussian, so c is the colour from that mean direction and s only tells the views apart: a
     surface two capture points see differently shows each its own colour, one that a single view sees keeps s. Only
     the Gaussians some view sees are fitted; prune: the share of each pixel's weight its render operator may drop
-    (ErpColorOperator). smooth: the colours' change is then made one the views' renders hold (smooth_change). Returns
+    (ErpColorOperator). smooth: the change to the colours and to the degree-1 terms is then made one the views' renders
+    hold (smooth_change). Returns
     the Gaussians (SH degree max(sh_degree, g's)) and {"views", "height", "iters", "prune", "sh_degree", "fitted",
     "operators_gb" (what the render operators held), "rmse_before", "rmse_after" (per view)}; g itself and {"views",
     "skipped": why} when the operators built so far say all of them would hold more than max_bytes."""
@@ -178,7 +179,12 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         gamma = gamma_new
     x.mul_(dsc)
     if smooth:
-        x[:, :3] = c0 + smooth_change(x[:, :3] - c0, ops, cols, weight)
+        covers = coverages(ops, cols)
+        x[:, :3] = c0 + smooth_change(x[:, :3] - c0, ops, cols, weight, covers)
+        for j in range(3, x.shape[1], 3):  # each degree-1 term's change, as coefficients (x holds them times rho)
+            start = x0[:, j:j + 3] * dsc
+            x[:, j:j + 3] = start + smooth_change((x[:, j:j + 3] - start) / rho, ops, cols, weight, covers) * rho
+        del covers
     x[:, :3] = x[:, :3].clamp(0.0, 1.0)
     del s, p, tmp, x0, c0, weight
     lam.clear()
@@ -198,17 +204,26 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
                  "operators_gb": held / 1e9, "rmse_before": rmse0, "rmse_after": rmse1}
 
 
-def smooth_change(change: torch.Tensor, ops: list, cols: list[torch.Tensor], weight: torch.Tensor) -> torch.Tensor:
-    """The colour change (n, 3) of the fitted Gaussians as the views hold it: rendered through each view's operator
-    ops[k] (over the Gaussians cols[k] it sees), divided by that view's coverage, and read back, each Gaussian the
-    weighted mean of the pixels it covers over the views that see it (weight (n, 1): its compositing weight summed over
-    the views, the adjoint of a white image; unchanged where it is 0). The least-squares
-    change also varies from Gaussian to Gaussian finer than the views' pixels (the solution picks it by where each
-    Gaussian's centre falls between them), which renders as moire rings on plain walls from anywhere else."""
+def smooth_change(change: torch.Tensor, ops: list, cols: list[torch.Tensor], weight: torch.Tensor,
+                  covers: list[torch.Tensor] | None = None) -> torch.Tensor:
+    """The change (n, 3) of the fitted Gaussians' colours (or of one of their degree-1 terms) as the views hold it:
+    rendered through each view's operator ops[k] (over the Gaussians cols[k] it sees), divided by that view's coverage
+    (covers[k], its render of white, at least 1e-3; computed when None), and read back, each Gaussian the weighted mean
+    of the pixels it covers over the views that see it (weight (n, 1): its compositing weight summed over the views, the
+    adjoint of a white image; unchanged where it is 0). The least-squares change also varies from Gaussian to Gaussian
+    finer than the views' pixels (the solution picks it by where each Gaussian's centre falls between them), which
+    renders as moire rings on plain walls from anywhere else."""
+    if covers is None:
+        covers = coverages(ops, cols)
     num = torch.zeros_like(change)
-    for op, c in zip(ops, cols):
-        num.index_add_(0, c, op.adjoint(op(change[c].contiguous()) / op(torch.ones(len(c), 3)).clamp(min=1e-3)))
+    for op, c, cover in zip(ops, cols, covers):
+        num.index_add_(0, c, op.adjoint(op(change[c].contiguous()) / cover))
     return torch.where(weight > 1e-6, num / weight.clamp(min=1e-6), change)
+
+
+def coverages(ops: list, cols: list[torch.Tensor]) -> list[torch.Tensor]:
+    """Each view's render of white Gaussians (H, W, 3), at least 1e-3: smooth_change's divisors."""
+    return [op(torch.ones(len(c), 3)).clamp(min=1e-3) for op, c in zip(ops, cols)]
 
 
 @njit(cache=True, nogil=True)

@@ -145,12 +145,13 @@ class SourcePixelParams(FusionParams):
     0.01 with the capture poses as close to their panoramas (with 80 plain steps); 0.1 and 0.2 cost the capture poses
     1.0 and 2.7 dB on average without buying the novel views back (the converged preconditioned fit; docs/multi.md)."""
     capture_fit_smooth: bool = True
-    """That fit's change to the colours is made one the capture poses' renders hold (capture_fit.smooth_change:
-    rendered at each capture pose and read back, each Gaussian the mean of the pixels it covers). The least-squares
-    change varies from Gaussian to Gaussian finer than the capture poses' pixels, which shows as moire rings on plain
-    walls in every other view: on real east and west the leave-one-out novel views' SSIM is higher for all 9
-    panoramas (+0.004 to +0.019, PSNR within 0.16 dB) and the capture poses 2.3-5.9 dB lower at 256 rows
-    (docs/multi.md)."""
+    """That fit's change to the colours and to their degree-1 terms is made one the capture poses' renders hold
+    (capture_fit.smooth_change: rendered at each capture pose and read back, each Gaussian the mean of the pixels it
+    covers). The least-squares change varies from Gaussian to Gaussian finer than the capture poses' pixels (most where
+    two capture poses see a surface differently: each Gaussian leans towards either by how each pose's pixels happen to
+    sample it), which shows as moire rings on plain walls in every other view: on real east and west the leave-one-out
+    novel views' SSIM is higher for all 9 panoramas (+0.005 to +0.034, PSNR -0.03 to +0.30 dB) and the capture poses
+    3.4-8.4 dB lower at 256 rows, every one >= 30.1 dB (docs/multi.md)."""
     capture_fit_height: int = param(512, ge=8)
     """ERP height of that fit's renders and targets (the panoramas area-downsampled). 512: the cube faces of a
     256-row render supersampled 2x, so the fit resolves what a 256-row render shows; on real homes 1.3-9.2 dB more at the
