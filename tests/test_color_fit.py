@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from panoworld.core.conventions import pose_from_rt
 from panoworld.io.gaussian_set import Gaussians, rgb_to_sh_dc
 from panoworld.render.erp import render_erp
 
@@ -163,6 +164,20 @@ def test_a_pruned_operators_render_is_off_by_at_most_its_share():
 
 
 SHELL_H, SHELL_W = 24, 48
+
+
+def shifted(x: float, y: float = 0.0) -> np.ndarray:
+    """world_from_cam of a camera moved by (x, y, 0) from the origin, unrotated."""
+    return pose_from_rt(np.eye(3), [x, y, 0.0])
+
+
+def plain_wall() -> Gaussians:
+    """The shell of shell_and_clutter(3) in one grey, its Gaussians denser than the capture poses' pixels and narrower
+    than their spacing (as per-pixel Gaussians of a finer panorama are)."""
+    g, n = shell_and_clutter(3), 2500
+    pitch = 3.0 * np.sqrt(4 * np.pi / n)
+    return Gaussians(g.means[:n], np.full((n, 3), 0.6 * pitch, np.float32), g.quats[:n], np.full(n, 0.98, np.float32),
+                     rgb_to_sh_dc(np.full((n, 3), 0.5, np.float32)))
 """The size of view_dependent_shell's views."""
 
 
@@ -180,15 +195,10 @@ def view_dependent_shell(seed: int):
     truth = Gaussians(g.means, g.scales, g.quats, g.opacities,
                       rgb_to_sh_dc(rng.uniform(0.3, 0.7, (n, 3))).astype(np.float32), rest)
 
-    def pose_at(x):
-        p = np.eye(4)
-        p[0, 3] = x
-        return p
-
     def view(x, gs=truth):
-        return render_erp(gs, pose_at(x), SHELL_H, SHELL_W, supersample=1).rgb.numpy()
+        return render_erp(gs, shifted(x), SHELL_H, SHELL_W, supersample=1).rgb.numpy()
 
-    return g, truth, rest, pose_at, view
+    return g, truth, rest, shifted, view
 
 
 def test_degree_one_fit_recovers_a_view_dependent_colour_between_its_views():
@@ -377,11 +387,7 @@ def test_capture_fit_reaches_the_damped_least_squares_optimum():
     g = Gaussians(g.means, g.scales, g.quats, g.opacities, rgb_to_sh_dc(np.full((len(g), 3), 0.5, np.float32)))
     truth = Gaussians(g.means, g.scales, g.quats, g.opacities,
                       rgb_to_sh_dc(np.random.default_rng(9).uniform(0.2, 0.8, (len(g), 3))).astype(np.float32))
-    poses = []
-    for x in (-0.5, 0.5):
-        p = np.eye(4)
-        p[0, 3] = x
-        poses.append(p)
+    poses = [shifted(x) for x in (-0.5, 0.5)]
     views = [(render_erp(truth, p, SHELL_H, SHELL_W, supersample=1).rgb.numpy(), p) for p in poses]
     damping = 0.05
     fitted, info = fit_capture_colors(g, views, height=SHELL_H, supersample=1, iters=20, damping=damping,
@@ -414,24 +420,15 @@ def test_capture_fit_smoothed_change_keeps_a_plain_wall_plain_from_elsewhere():
     # there (0.015) and as bright, while each capture pose's error still falls below 0.15 of where it started.
     from panoworld.gaussians.capture_fit import fit_capture_colors
 
-    g, n = shell_and_clutter(3), 2500
-    pitch = 3.0 * np.sqrt(4 * np.pi / n)
-    wall = Gaussians(g.means[:n], np.full((n, 3), 0.6 * pitch, np.float32), g.quats[:n], np.full(n, 0.98, np.float32),
-                     rgb_to_sh_dc(np.full((n, 3), 0.5, np.float32)))
-
-    def pose(x, y=0.0):
-        p = np.eye(4)
-        p[:2, 3] = x, y
-        return p
-
+    wall = plain_wall()
     rng = np.random.default_rng(0)
-    views = [(np.clip(0.7 + 0.03 * rng.standard_normal((SHELL_H, SHELL_W, 3)), 0, 1).astype(np.float32), pose(x))
+    views = [(np.clip(0.7 + 0.03 * rng.standard_normal((SHELL_H, SHELL_W, 3)), 0, 1).astype(np.float32), shifted(x))
              for x in (-0.5, 0.5)]
     out = {}
     for smooth in (False, True):
         fitted, info = fit_capture_colors(wall, views, height=SHELL_H, supersample=1, iters=5, smooth=smooth)
         assert max(info["rmse_after"]) < 0.15 * min(info["rmse_before"]), (smooth, info)
-        elsewhere = render_erp(fitted, pose(0.0, 0.6), 4 * SHELL_H, 4 * SHELL_W).rgb.numpy()[16:-16]
+        elsewhere = render_erp(fitted, shifted(0.0, 0.6), 4 * SHELL_H, 4 * SHELL_W).rgb.numpy()[16:-16]
         out[smooth] = (float(elsewhere.std()), float(elsewhere.mean()))
     assert out[True][0] < 0.6 * out[False][0], out
     assert out[True][1] == pytest.approx(out[False][1], abs=0.005)
@@ -446,18 +443,9 @@ def test_capture_fit_smoothed_change_keeps_the_degree_1_terms_smooth_too():
 
     from panoworld.gaussians.capture_fit import fit_capture_colors
 
-    g, n = shell_and_clutter(3), 2500
-    pitch = 3.0 * np.sqrt(4 * np.pi / n)
-    wall = Gaussians(g.means[:n], np.full((n, 3), 0.6 * pitch, np.float32), g.quats[:n], np.full(n, 0.98, np.float32),
-                     rgb_to_sh_dc(np.full((n, 3), 0.5, np.float32)))
-
-    def pose(x):
-        p = np.eye(4)
-        p[0, 3] = x
-        return p
-
+    wall = plain_wall()
     rng = np.random.default_rng(0)
-    views = [(np.clip(v + 0.03 * rng.standard_normal((SHELL_H, SHELL_W, 3)), 0, 1).astype(np.float32), pose(x))
+    views = [(np.clip(v + 0.03 * rng.standard_normal((SHELL_H, SHELL_W, 3)), 0, 1).astype(np.float32), shifted(x))
              for v, x in ((0.6, -1.0), (0.75, 1.0))]
     _, nn = cKDTree(wall.means).query(wall.means, k=2)
     rough = {}

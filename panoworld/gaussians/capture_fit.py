@@ -205,16 +205,14 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
 
 
 def smooth_change(change: torch.Tensor, ops: list, cols: list[torch.Tensor], weight: torch.Tensor,
-                  covers: list[torch.Tensor] | None = None) -> torch.Tensor:
+                  covers: list[torch.Tensor]) -> torch.Tensor:
     """The change (n, 3) of the fitted Gaussians' colours (or of one of their degree-1 terms) as the views hold it:
     rendered through each view's operator ops[k] (over the Gaussians cols[k] it sees), divided by that view's coverage
-    (covers[k], its render of white, at least 1e-3; computed when None), and read back, each Gaussian the weighted mean
+    (covers[k]: coverages), and read back, each Gaussian the weighted mean
     of the pixels it covers over the views that see it (weight (n, 1): its compositing weight summed over the views, the
     adjoint of a white image; unchanged where it is 0). The least-squares change also varies from Gaussian to Gaussian
     finer than the views' pixels (the solution picks it by where each Gaussian's centre falls between them), which
     renders as moire rings on plain walls from anywhere else."""
-    if covers is None:
-        covers = coverages(ops, cols)
     num = torch.zeros_like(change)
     for op, c, cover in zip(ops, cols, covers):
         num.index_add_(0, c, op.adjoint(op(change[c].contiguous()) / cover))
