@@ -97,8 +97,10 @@ class SourcePixelParams(FusionParams):
     panorama's fill seen from its capture point; the frames' voxel Gaussians in front of them are dropped. Which
     panorama keeps a surface stays decided by the measured depths alone; the capture fit then colours the
     panorama's own pixels where the frames' coarser Gaussians or another panorama's stood in (docs/multi.md)."""
-    source_fill_height: int = param(320, ge=8)
-    """ERP height of that fill (its render and per-pixel Gaussians; at most source_height)."""
+    source_fill_height: int = param(640, ge=8)
+    """ERP height of that fill (its render and per-pixel Gaussians; at most source_height). 640, source_height's: the
+    fill is as sharp as the panorama's measured pixels beside it; on real homes the capture poses of panoramas whose
+    layout is masked gain most (0.5-2.2 dB against 320 rows), for 7-15 % more Gaussians (docs/multi.md)."""
     fit_iters: int = param(10, ge=0)
     """With source_pixels: conjugate-gradient steps of a colour fit at the capture point (0 = none): for the fixed
     geometry the ERP render there is linear in the Gaussians' colours, which are refitted (least squares, damped
