@@ -100,7 +100,7 @@ class SourcePixelParams(FusionParams):
     source_fill_height: int = param(640, ge=8)
     """ERP height of that fill (its render and per-pixel Gaussians; at most source_height). 640, source_height's: the
     fill is as sharp as the panorama's measured pixels beside it; on real homes the capture poses of panoramas whose
-    layout is masked gain most (0.5-2.2 dB against 320 rows), for 7-15 % more Gaussians (docs/multi.md)."""
+    layout is masked gain most (0.3-2.2 dB against 320 rows), for 7-15 % more Gaussians (docs/multi.md)."""
     fit_iters: int = param(10, ge=0)
     """With source_pixels: conjugate-gradient steps of a colour fit at the capture point (0 = none): for the fixed
     geometry the ERP render there is linear in the Gaussians' colours, which are refitted (least squares, damped
@@ -154,8 +154,8 @@ class SourcePixelParams(FusionParams):
     covers). The least-squares change varies from Gaussian to Gaussian finer than the capture poses' pixels (most where
     two capture poses see a surface differently: each Gaussian leans towards either by how each pose's pixels happen to
     sample it), which shows as moire rings on plain walls in every other view: on real east and west the leave-one-out
-    novel views' SSIM is higher for all 9 panoramas (+0.005 to +0.034, PSNR -0.03 to +0.30 dB) and the capture poses
-    3.4-8.4 dB lower at 256 rows, every one >= 30.1 dB (docs/multi.md)."""
+    novel views' SSIM is higher for all 9 panoramas (+0.005 to +0.035, PSNR -0.05 to +0.33 dB) and the capture poses
+    3.1-8.5 dB lower at 256 rows, every one >= 30.6 dB (docs/multi.md)."""
     capture_fit_height: int = param(512, ge=8)
     """ERP height of that fit's renders and targets (the panoramas area-downsampled). 512: the cube faces of a
     256-row render supersampled 2x, so the fit resolves what a 256-row render shows; on real homes 1.3-9.2 dB more at the
