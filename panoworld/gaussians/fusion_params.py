@@ -100,7 +100,7 @@ class SourcePixelParams(FusionParams):
     source_fill_height: int = param(640, ge=8)
     """ERP height of that fill (its render and per-pixel Gaussians; at most source_height). 640, source_height's: the
     fill is as sharp as the panorama's measured pixels beside it; on real homes the capture poses of panoramas whose
-    layout is masked gain most (0.3-2.2 dB against 320 rows), for 7-15 % more Gaussians (docs/multi.md)."""
+    layout is masked gain most (0.3-2.2 dB against 320 rows), for 7-26 % more Gaussians (docs/multi.md)."""
     fit_iters: int = param(10, ge=0)
     """With source_pixels: conjugate-gradient steps of a colour fit at the capture point (0 = none): for the fixed
     geometry the ERP render there is linear in the Gaussians' colours, which are refitted (least squares, damped
@@ -129,7 +129,7 @@ class SourcePixelParams(FusionParams):
     """Damping of those degree-1 coefficients towards 0 per unit of compositing weight (the colours' is 0.01): a
     Gaussian seen from few directions keeps about one colour. A home's capture fit damps its own the same: more trades
     its capture poses for its novel views (real east at 0.01: leave-one-out seen SSIM 0.635 against 0.629, two capture
-    poses at 26.3-26.4 dB; docs/multi.md)."""
+    poses at 26.6 dB; docs/multi.md)."""
     fit_views_sh_only: bool = False
     """With fit_sh_degree 1: the views fit the degree-1 coefficients only; the colours seen from the capture point
     are its own fit's (fit_views 0's), so the capture point renders exactly as without the views."""
