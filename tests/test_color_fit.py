@@ -164,6 +164,7 @@ def test_a_pruned_operators_render_is_off_by_at_most_its_share():
 
 
 SHELL_H, SHELL_W = 24, 48
+"""The size of view_dependent_shell's views."""
 
 
 def shifted(x: float, y: float = 0.0) -> np.ndarray:
@@ -178,7 +179,6 @@ def plain_wall() -> Gaussians:
     pitch = 3.0 * np.sqrt(4 * np.pi / n)
     return Gaussians(g.means[:n], np.full((n, 3), 0.6 * pitch, np.float32), g.quats[:n], np.full(n, 0.98, np.float32),
                      rgb_to_sh_dc(np.full((n, 3), 0.5, np.float32)))
-"""The size of view_dependent_shell's views."""
 
 
 def view_dependent_shell(seed: int):
