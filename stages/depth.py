@@ -93,13 +93,20 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     home = find_home_files(inputs["panoramas"], inputs.get("depths"), inputs.get("rig_masks"))
     names = home.names
     depth_dir = inputs.get("depths") or inputs["panoramas"].parent / DEPTHS_DIR
+    hints = {name: f"give its metric depth as {depth_dir / name}.npy|exr|png" for name in names}
+    for name in names:  # a panorama the depth cannot come from fails the home at once, not after the others' work
+        given = {"panorama": home.panoramas[name], "depth": home.depths.get(name)}
+        backend = backends.pick(NAME, params.backend, given)
+        if backend.traits.get("preflight") is not None:
+            backend.traits["preflight"](Job(rgb=None, depth_file=given["depth"], panorama_file=given["panorama"],
+                                            options=_with_weights_on_disk(backend, backend.options_of(params), [])[0],
+                                            depth_hint=hints[name]))
     infos, dirs = {}, {}
     for k, name in enumerate(names):  # the first panorama's files at the top level: the world frame's panorama
         sub = out_dir if k == 0 else inside(out_dir / HOME_DIR, name)
         sub.mkdir(parents=True, exist_ok=True)
-        hint = f"give its metric depth as {depth_dir / name}.npy|exr|png"
         infos[name] = depth_of_panorama({"panorama": home.panoramas[name], "depth": home.depths.get(name),
-                                         "rig_mask": home.rig_masks.get(name)}, params, sub, depth_hint=hint)
+                                         "rig_mask": home.rig_masks.get(name)}, params, sub, depth_hint=hints[name])
         dirs[name] = sub.relative_to(out_dir).as_posix()
     return {**infos[names[0]], HOME_INFO: {"names": names, "dirs": dirs, "panoramas": infos}}
 

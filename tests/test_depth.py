@@ -283,6 +283,39 @@ def test_depth_stage_depth_anything(tmp_path, room, monkeypatch):
     assert "\n" not in str(e.value)
 
 
+def test_a_home_with_one_panorama_lacking_depth_is_refused_before_any_panorama_is_worked_on(tmp_path, room,
+                                                                                           monkeypatch):
+    """A home whose last panorama has no depth file (and no depth model on disk) fails at once, naming that panorama
+    and where its depth goes, before the panoramas that have depth are cleaned (minutes on a real tour)."""
+    import stages.depth as depth_stage
+
+    _, rgb, depth = room
+    home = tmp_path / "home"
+    (home / "panoramas").mkdir(parents=True)
+    (home / "depths").mkdir()
+    for name in ("hall", "kitchen", "study"):
+        write_png(home / "panoramas" / f"{name}.png", rgb)
+    for name in ("hall", "kitchen"):
+        np.save(home / "depths" / f"{name}.npy", depth)
+    monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path / "empty-hf-cache"))
+    worked = []
+    real = depth_stage.depth_of_panorama
+    monkeypatch.setattr(depth_stage, "depth_of_panorama", lambda inputs, *a, **k: worked.append(inputs) or real(
+        inputs, *a, **k))
+    spec = load_stage("depth")
+    with pytest.raises(StageInputError, match=r"study.png: no depth file in the scene and no depth model on disk") as e:
+        execute_stage(spec, {"panoramas": home / "panoramas", "depths": home / "depths"},
+                      params_from_dict(spec.params_cls, {}), tmp_path / "out")
+    assert worked == []
+    assert f"give its metric depth as {home / 'depths' / 'study'}.npy|exr|png" in str(e.value)
+    assert "\n" not in str(e.value) and not (tmp_path / "out").exists()
+    with pytest.raises(StageInputError, match=r"study.png: backend provided needs its depth file; give its metric "
+                                              r"depth as .*study.npy\|exr\|png"):
+        execute_stage(spec, {"panoramas": home / "panoramas", "depths": home / "depths"},
+                      params_from_dict(spec.params_cls, {"backend": "provided"}), tmp_path / "out")
+    assert worked == [] and not (tmp_path / "out").exists()
+
+
 # ---------------------------------------------------------------- provided depth through the stage
 
 
@@ -333,7 +366,7 @@ def test_depth_stage_bad_input(tmp_path, room, what):
         np.save(tmp_path / "depth.npy", depth[:, :100])
         match = "different aspect"
     else:
-        match = "needs --depth FILE"
+        match = r"panorama.png: backend provided needs its depth file; put a metric depth.npy\|exr\|png next to the panorama"
     with pytest.raises(StageInputError, match=match):
         run_depth_stage(tmp_path, pano, tmp_path / "depth.npy" if what != "no_depth" else None,
                         backend="provided")

@@ -1,7 +1,8 @@
 """Depth backends: each gives ERP depth and validity for the (working-size) panorama.
 
 A backend's impl is `impl(job: Job) -> Result`; trait `needs_inputs` names the stage inputs it requires (backend auto
-takes the first registered backend whose inputs are all given)."""
+takes the first registered backend whose inputs are all given); trait `preflight(job)` (job.rgb None)
+raises the refusal the impl would, without working (a home's panoramas are all checked before any is worked on)."""
 
 from __future__ import annotations
 
@@ -16,8 +17,8 @@ import numpy as np
 class Job:
     """What a depth backend works from."""
 
-    rgb: np.ndarray
-    """(H, W, 3) uint8 panorama at the working size."""
+    rgb: np.ndarray | None
+    """(H, W, 3) uint8 panorama at the working size (None in a backend's preflight)."""
     depth_file: Path | None
     """The scene's depth file (None when not given)."""
     panorama_file: Path

@@ -24,6 +24,16 @@ class DepthAnythingOptions:
     """Torch device."""
 
 
+def has_weights(job) -> None:
+    """Raise the one-line refusal when no weights are given or found on disk (the depth stage checks every panorama of
+    a home with it before working on any)."""
+    if job.options.weights is None:  # the depth stage puts weights found on disk here (trait finds_weights)
+        raise InputError(
+            f"{job.panorama_file}: no depth file in the scene and no depth model on disk; run "
+            f"`python runner.py weights fetch depth-anything-v2-small` (or {job.depth_hint})"
+        )
+
+
 def predict(job):
     from panoworld.depth.backends import Result
     from panoworld.geometry.cube_views import erp_depth_from_model
@@ -31,11 +41,7 @@ def predict(job):
     from panoworld.models.depth_anything import DepthAnything
 
     o: DepthAnythingOptions = job.options
-    if o.weights is None:  # the depth stage puts weights found on disk here (trait finds_weights)
-        raise InputError(
-            f"{job.panorama_file}: no depth file in the scene and no depth model on disk; run "
-            f"`python runner.py weights fetch depth-anything-v2-small` (or {job.depth_hint})"
-        )
+    has_weights(job)
     model = DepthAnything.from_pretrained(o.weights, input_size=o.view_size, device=o.device)
     res = erp_depth_from_model(job.rgb, model, model.kind, fov_deg=o.fov_deg, view_size=o.view_size)
     if not res.valid.any():
@@ -47,4 +53,4 @@ def predict(job):
 
 
 register("depth", "depth-anything", predict, options=DepthAnythingOptions, key="depth_anything", needs_inputs=(),
-         finds_weights=True)
+         finds_weights=True, preflight=has_weights)

@@ -22,15 +22,21 @@ class ProvidedOptions:
     invalid pixels lie in such short runs (sparse LiDAR), else off (panoworld.depth.depth_map.auto_gap_px)."""
 
 
+def has_depth_file(job) -> None:
+    """Raise the one-line refusal when the panorama has no depth file (the depth stage checks every panorama of a home
+    with it before working on any)."""
+    if job.depth_file is None:
+        raise InputError(f"{job.panorama_file}: backend provided needs its depth file; {job.depth_hint}")
+
+
 def read(job):
     from panoworld.depth import depth_map as dep
     from panoworld.depth.backends import Result
     from panoworld.io.depth import read_depth
 
     o: ProvidedOptions = job.options
+    has_depth_file(job)
     path = job.depth_file
-    if path is None:
-        raise InputError("backend provided needs --depth FILE (depth.npy, depth.exr or a 16-bit depth.png)")
     H, W = job.rgb.shape[:2]
     info: dict = {}
     raw = read_depth(path, png_scale=o.png_scale)
@@ -59,4 +65,5 @@ def read(job):
     return Result(depth, valid, relative=False, info=info)
 
 
-register("depth", "provided", read, options=ProvidedOptions, key="provided", needs_inputs=("depth",))
+register("depth", "provided", read, options=ProvidedOptions, key="provided", needs_inputs=("depth",),
+         preflight=has_depth_file)
