@@ -42,7 +42,8 @@ class Params:
     else the Depth Anything V2 weights found in the local Hugging Face cache) (panoworld/depth/backends/)."""
     rescale: Rescale = Rescale.AUTO
     """When to rescale depth so the floor lies camera_height below the camera: auto = relative depth, and provided
-    depth whose floor is no plausible capture height (0.9-2.4 m: unknown units); always: e.g. raw sensor units."""
+    depth whose floor is no plausible capture height (0.9-2.4 m: millimetres or centimetres converted to metres, else
+    unknown units); always: e.g. raw sensor units."""
     camera_height: float = param(1.6, gt=0)
     """Camera height above the floor in metres, used when rescaling."""
     max_height: int = param(1024, ge=0)

@@ -165,6 +165,25 @@ def test_floor_recovers_camera_height():
     assert np.array_equal(kept, depth) and info["camera_height_estimated_after"] == pytest.approx(CAMERA_HEIGHT, 1e-3)
 
 
+@pytest.mark.parametrize("unit,per_metre", [("millimetres", 1000), ("centimetres", 100), (None, 450), (None, 3.7)])
+def test_provided_depth_in_millimetres_or_centimetres_keeps_the_captures_own_camera_height(unit, per_metre):
+    """rescale auto converts depth in millimetres or centimetres to metres (the floor stays at the capture's own 1.45 m,
+    not camera_height's 1.6); other units (raw sensor values) still put the floor at camera_height."""
+    _, depth = BoxRoom().render(np.eye(4), 96, 192)
+    scaled, info = dep.metric_rescale(depth * per_metre, np.ones_like(depth, bool), relative=False,
+                                      rescale=Rescale.AUTO, camera_height=1.6)
+    assert info["rescaled"] and info.get("units") == unit
+    if unit is None:
+        assert info["camera_height_estimated_after"] == pytest.approx(1.6, rel=1e-6)
+        assert "unknown units, floor put at camera_height" in info["scale_note"]
+    else:
+        assert info["scale_factor"] == 1 / per_metre
+        assert info["camera_height_estimated_after"] == pytest.approx(CAMERA_HEIGHT, rel=1e-3)
+        np.testing.assert_allclose(scaled, depth, rtol=1e-6)
+        assert info["scale_note"].startswith(f"floor {CAMERA_HEIGHT * per_metre:.4g} units below the camera: depth "
+                                             f"in {unit}, converted to metres (floor 1.450 m)")
+
+
 def test_floor_on_synth_scene(synth_scene, tmp_path):
     gt = json.loads((synth_scene / "gt" / "gt.json").read_text())
     manifest, _ = run_depth_stage(tmp_path, synth_scene / "panorama.png", synth_scene / "depth.npy")

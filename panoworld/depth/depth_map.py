@@ -186,7 +186,11 @@ PLAUSIBLE_CAMERA_HEIGHT = (0.2, 5.0)
 """Floor distances (m) accepted for depth taken as metric (rescale relative-only): outside it is an error."""
 CAPTURE_CAMERA_HEIGHT = (0.9, 2.4)
 """Floor distances (m) of handheld and tripod indoor captures: rescale auto takes provided depth whose floor lies
-outside this range as being in unknown units (raw sensor values, a wrong PNG scale) and rescales it."""
+outside this range as being in other units (DECIMAL_UNITS, else unknown: raw sensor values, a wrong PNG scale) and
+rescales it."""
+DECIMAL_UNITS = (("millimetres", 1e-3), ("centimetres", 1e-2))
+"""Units rescale auto recognises in provided depth whose floor lies outside CAPTURE_CAMERA_HEIGHT: the one that puts
+the floor inside it (at most one can) is converted to metres, so the capture keeps its own camera height."""
 
 
 def metric_rescale(
@@ -194,8 +198,9 @@ def metric_rescale(
 ) -> tuple[np.ndarray, dict]:
     """Rescale depth (H, W) by camera_height / estimated floor distance when the policy asks for it.
 
-    auto: relative depth always; provided or metric depth when its floor lies outside CAPTURE_CAMERA_HEIGHT
-    (unknown units); depth without a visible floor is kept as given (relative depth then has an arbitrary scale,
+    auto: relative depth always; provided or metric depth when its floor lies outside CAPTURE_CAMERA_HEIGHT: by the
+    one of DECIMAL_UNITS that puts it inside (depth in millimetres or centimetres), else to camera_height (unknown
+    units); depth without a visible floor is kept as given (relative depth then has an arbitrary scale,
     said in info["scale_note"]). Returns (depth, info) with the estimated camera height before and after (None
     when no floor is found), the factor applied and why. InputError if a rescale is required (always,
     relative-only on relative depth) but no floor is visible, or if relative-only takes depth as metric whose
@@ -204,7 +209,7 @@ def metric_rescale(
     fit = estimate_floor(depth, valid)
     if not camera_height > 0:
         raise InputError(f"--camera-height {camera_height} must be > 0 metres")
-    note = None
+    note, unit = None, None
     if rescale == Rescale.AUTO:
         if fit is None:
             do = False
@@ -213,9 +218,15 @@ def metric_rescale(
             do, note = True, "relative depth: floor put at camera_height"
         else:
             lo, hi = CAPTURE_CAMERA_HEIGHT
-            do = not lo <= fit.camera_height <= hi
-            note = (f"floor {fit.camera_height:.4g} units below the camera, outside {lo}-{hi} m: unknown units, "
-                    "floor put at camera_height" if do else f"floor {fit.camera_height:.3f} m below the camera: metric")
+            h = fit.camera_height
+            do = not lo <= h <= hi
+            unit = next(((name, f) for name, f in DECIMAL_UNITS if lo <= h * f <= hi), None) if do else None
+            if not do:
+                note = f"floor {h:.3f} m below the camera: metric"
+            elif unit is not None:
+                note = f"floor {h:.4g} units below the camera: depth in {unit[0]}, converted to metres (floor {h * unit[1]:.3f} m)"
+            else:
+                note = f"floor {h:.4g} units below the camera, outside {lo}-{hi} m: unknown units, floor put at camera_height"
     else:
         do = rescale == Rescale.ALWAYS or (rescale == Rescale.RELATIVE_ONLY and relative)
     factor = 1.0
@@ -225,7 +236,7 @@ def metric_rescale(
                 "no horizontal floor found below the camera, so depth cannot be put to metric scale; "
                 "pass --rescale never (and metric depth) or a panorama that shows the floor"
             )
-        factor = camera_height / fit.camera_height
+        factor = unit[1] if unit is not None else camera_height / fit.camera_height
     elif rescale == Rescale.RELATIVE_ONLY and fit is not None and not PLAUSIBLE_CAMERA_HEIGHT[0] <= fit.camera_height <= PLAUSIBLE_CAMERA_HEIGHT[1]:
         raise InputError(
             f"depth units look wrong: the floor is {fit.camera_height:.4g} units below the camera, not "
@@ -238,6 +249,7 @@ def metric_rescale(
         "floor_support": fit.support if fit else None,
         "rescaled": do,
         "scale_factor": factor,
+        **({"units": unit[0]} if unit is not None else {}),
     }
     if note:
         info["scale_note"] = note
