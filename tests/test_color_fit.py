@@ -351,6 +351,35 @@ def test_capture_fit_over_its_memory_budget_is_skipped_and_says_why():
     assert "skipped" not in info and fitted is not g
 
 
+def test_capture_fit_shows_its_progress_on_a_terminal_and_fits_the_same(monkeypatch):
+    """A home's capture fit runs minutes at tour size: on a terminal it shows a bar through its operators, its steps
+    and its smoothing (nothing where stderr is no terminal, nothing with progress off); the fit is the same bytes."""
+    import io
+    import sys
+
+    from panoworld.gaussians.capture_fit import fit_capture_colors
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    g, _, _, pose_at, view = view_dependent_shell(8)
+    views = [(view(x), pose_at(x)) for x in (-0.6, 0.6)]
+    runs = {}
+    for progress, stream in ((True, Terminal()), (False, Terminal()), (True, io.StringIO())):
+        monkeypatch.setattr(sys, "stderr", stream)
+        out, _ = fit_capture_colors(g, views, height=SHELL_H, supersample=1, iters=3, smooth=True, progress=progress)
+        runs[progress, type(stream).__name__] = (stream.getvalue(), out)
+    shown = runs[True, "Terminal"][0]
+    for phase in ("operators", "steps", "smoothing"):
+        assert f"capture fit at {SHELL_H} rows: {phase}" in shown
+    assert "0/6 " in shown  # 2 operators, 3 steps, the smoothing
+    assert runs[False, "Terminal"][0] == "" and runs[True, "StringIO"][0] == ""
+    for _, out in runs.values():
+        np.testing.assert_array_equal(out.sh_dc, runs[True, "Terminal"][1].sh_dc)
+        np.testing.assert_array_equal(out.sh_rest, runs[True, "Terminal"][1].sh_rest)
+
+
 def test_capture_fit_view_kernels_match_torch_and_are_each_others_adjoint():
     """capture_fit's numba kernels against their torch reference (the colours a view sees of the (n, 12) unknowns:
     colour plus degree-1 terms weighted by the view's basis), and the gradient kernel as that map's exact adjoint."""

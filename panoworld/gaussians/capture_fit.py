@@ -30,7 +30,7 @@ def sh1_basis(means: np.ndarray, centre: np.ndarray) -> torch.Tensor:
 def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]], *, height: int = 256,
                        supersample: int = 2, iters: int = 20, damping: float = 0.01, sh_degree: int = 1,
                        sh_damping: float = 0.001, max_bytes: float = float("inf"), prune: float = 0.0,
-                       smooth: bool = False) -> tuple[Gaussians, dict]:
+                       smooth: bool = False, progress: bool = False) -> tuple[Gaussians, dict]:
     """Gaussians g whose colours are refitted so their ERP render (height rows, supersample: render_erp's sampling)
     at each view's world_from_cam (4, 4) reproduces its target (H, W, 3) uint8 or [0, 1], area-resized to height rows.
 
@@ -44,11 +44,13 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     surface two capture points see differently shows each its own colour, one that a single view sees keeps s. Only
     the Gaussians some view sees are fitted; prune: the share of each pixel's weight its render operator may drop
     (ErpColorOperator). smooth: the change to the colours and to the degree-1 terms is then made one the views' renders
-    hold (smooth_change). Returns the Gaussians (SH degree max(sh_degree, g's)) and {"views", "height", "iters",
+    hold (smooth_change). progress: a bar on a terminal (each operator built, each step, the smoothing). Returns the
+    Gaussians (SH degree max(sh_degree, g's)) and {"views", "height", "iters",
     "prune", "sh_degree", "fitted", "operators_gb" (what the render operators held), "rmse_before", "rmse_after" (per
     view)}; g itself and {"views", "skipped": why} when the operators built so far say all of them would hold more
     than max_bytes."""
     import cv2
+    from tqdm import tqdm
 
     from panoworld.render.erp_operator import ErpColorOperator
     from panoworld.render.splats import covariance_3d
@@ -68,6 +70,8 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     ops, seen_k, mine = [], [], []
     seen_any = np.zeros(len(g), bool)
     held = 0
+    bar = tqdm(total=len(views) + iters + int(smooth), desc=f"capture fit at {height} rows: operators", unit="step",
+               disable=None if progress else True, leave=False)  # on a terminal only
     for _, pose in views:
         op = ErpColorOperator(g, pose, height, 2 * height, supersample=supersample, cov=cov, tile=FIT_TILE, prune=prune)
         seen = np.zeros(len(g), bool)
@@ -80,9 +84,11 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         release_free_memory()  # the build's temporaries, so what the fit holds is what stays resident
         held += operator_nbytes(ops[-1])
         if held / len(ops) * len(views) > max_bytes:
+            bar.close()
             return g, {"views": len(views), "skipped": f"the render operators of the {len(views)} capture poses would "
                        f"hold about {held / len(ops) * len(views) / 1e9:.1f} GB, more than {max_bytes / 1e9:.1f} GB"}
         seen_k.append(ops[-1].adjoint(torch.ones(height, 2 * height, 3))[:, 0].clone())
+        bar.update()
     del cov
     # The unknowns are those of the Gaussians some view sees (the others' gradient is 0: they keep their colours),
     # and each view's products run over the Gaussians it sees alone (cols[k], positions among the seen).
@@ -167,6 +173,7 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     rmse0 = [float(rk.square().mean().sqrt()) for rk in r]
     grad(r, s)
     p, gamma = s.clone(), float(torch.mul(s, s, out=tmp).sum())
+    bar.set_description(f"capture fit at {height} rows: steps")
     for _ in range(iters):
         q = [lin(k, torch.mul(p, dsc, out=tmp)) for k in range(views_n)]
         damped = damp(torch.mul(p, p, out=tmp)).sum()
@@ -177,14 +184,18 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         gamma_new = float(torch.mul(s, s, out=tmp).sum())
         p.mul_(gamma_new / max(gamma, 1e-20)).add_(s)
         gamma = gamma_new
+        bar.update()
     x.mul_(dsc)
     if smooth:
+        bar.set_description(f"capture fit at {height} rows: smoothing")
         covers = coverages(ops, cols)
         x[:, :3] = c0 + smooth_change(x[:, :3] - c0, ops, cols, weight, covers)
         for j in range(3, x.shape[1], 3):  # each degree-1 term's change, as coefficients (x holds them times rho)
             start = x0[:, j:j + 3] * dsc
             x[:, j:j + 3] = start + smooth_change((x[:, j:j + 3] - start) / rho, ops, cols, weight, covers) * rho
         del covers
+        bar.update()
+    bar.close()
     x[:, :3] = x[:, :3].clamp(0.0, 1.0)
     del s, p, tmp, x0, c0, weight
     lam.clear()

@@ -159,7 +159,7 @@ def own_fill(k: int, names: list[str], depths: dict[str, np.ndarray], world_from
 
 
 def add_own_fill(result: FusionResult, names: list[str], rgbs: dict[str, np.ndarray], depths: dict[str, np.ndarray],
-                 world_from_cam: dict[str, np.ndarray], params: SourcePixelParams):
+                 world_from_cam: dict[str, np.ndarray], params: SourcePixelParams, *, progress: bool = False):
     """(result.gaussians (the sources' per-pixel Gaussians first, result.num_source of them, then the frames' voxel
     ones) with every source's own fill of its pixels without depth (rgbs, depths (0 = none), each pair at one size):
     per-pixel Gaussians at params.source_fill_height rows where own_fill places them, a surface two fills share kept
@@ -167,12 +167,15 @@ def add_own_fill(result: FusionResult, names: list[str], rgbs: dict[str, np.ndar
     source's capture point (by more than params.source_tol), less those whose splat reaches through a surface another
     source saw (SourcesVisibility.poking_through); the voxel Gaussians a fill stands for (on it or in front of it from
     its capture point, params.source_tol) dropped. Second: {NAME: {"filled": its fill's Gaussians, "stood_for": the
-    voxel Gaussians it dropped}} of the sources with pixels without depth.)"""
+    voxel Gaussians it dropped}} of the sources with pixels without depth.) progress: a bar on a terminal, per source."""
+    from tqdm import tqdm
+
     g = result.gaussians
     height = min(params.source_fill_height, min(d.shape[0] for d in depths.values()))
     vis = {n: SourceVisibility(depths[n], world_from_cam[n], params.source_tol, NEAR_PLANE_M) for n in names}
     others = {n: SourcesVisibility([vis[m] for m in names if m != n]) for n in names}
-    fills = {n: f for k, n in enumerate(names) if (f := own_fill(k, names, depths, world_from_cam, g, others[n],
+    bar = tqdm(names, desc="own fill", unit="panorama", disable=None if progress else True, leave=False)
+    fills = {n: f for k, n in enumerate(bar) if (f := own_fill(k, names, depths, world_from_cam, g, others[n],
                                                                  height=height, tol=params.source_tol)) is not None}
     if not fills:
         return g, {}
@@ -251,9 +254,10 @@ def home_anchored_fusion(frames: ContextSource | None, sources: dict[str, tuple[
     release_free_memory()
     if params.source_fill:
         result.gaussians, result.own_fill = add_own_fill(result, names, {n: small[n][0] for n in names}, observed,
-                                                         poses, params)
+                                                         poses, params, progress=progress)
     if params.capture_fit_iters > 0:
-        result.gaussians, result.color_fit = fit_at_capture_points(result.gaussians, names, sources, poses, params)
+        result.gaussians, result.color_fit = fit_at_capture_points(result.gaussians, names, sources, poses, params,
+                                                                   progress=progress)
     return result
 
 
@@ -261,7 +265,8 @@ CAPTURE_FIT_MIN_HEIGHT = 64
 """The lowest ERP height the capture fit falls back to when its render operators exceed capture_fit_max_gb."""
 
 
-def fit_at_capture_points(g, names: list[str], sources: dict, poses: dict, params: SourcePixelParams):
+def fit_at_capture_points(g, names: list[str], sources: dict, poses: dict, params: SourcePixelParams, *,
+                          progress: bool = False):
     """g with its colours fitted at every capture pose (capture_fit.fit_capture_colors at params.capture_fit_height
     rows) and the fit's figures, per panorama. While its operators would exceed params.capture_fit_max_gb the fit
     tries, at each height, capture_fit_prune and then capture_fit_prune_fallback where larger, and halves the height
@@ -278,7 +283,7 @@ def fit_at_capture_points(g, names: list[str], sources: dict, poses: dict, param
             g, views, height=height, supersample=params.capture_fit_supersample,
             iters=params.capture_fit_iters, damping=params.capture_fit_damping,
             sh_degree=params.capture_fit_sh_degree, sh_damping=params.fit_sh_damping,
-            max_bytes=params.capture_fit_max_gb * 1e9, prune=prune, smooth=params.capture_fit_smooth)
+            max_bytes=params.capture_fit_max_gb * 1e9, prune=prune, smooth=params.capture_fit_smooth, progress=progress)
         if "skipped" not in fit or k == len(tries) - 1:  # the last try's refusal is the fit's "skipped"
             break
         refused.append({"height": height, "prune": prune, "why": fit["skipped"]})
