@@ -97,8 +97,7 @@ def _device(name: str) -> str:
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
-    from tqdm import tqdm
-
+    from panoworld.core.progress import bar
     from panoworld.io.conditions import load_conditions
     from panoworld.io.trajectory import load_clips, load_trajectory, read_trajectory_doc
     from panoworld.io.video_writer import VideoWriter
@@ -150,7 +149,7 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     holes = filled_3d = filled_2d = 0
     t_fill = t_up = t_write = 0.0
     t1 = time.perf_counter()
-    for k, (rgb, depth, filled) in enumerate(tqdm(produce, total=len(cond), desc="video", unit="frame", disable=None)):
+    for k, (rgb, depth, filled) in enumerate(bar(produce, total=len(cond), desc="video", unit="frame")):
         t2 = time.perf_counter()
         t_fill += t2 - t1
         if filled is not None:

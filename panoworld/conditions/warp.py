@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 import enum
 import json
-import sys
 import time
 from collections import deque
 from collections.abc import Iterable, Iterator
@@ -137,9 +136,9 @@ def iter_conditions(
 
 
 def _iter_frames(renderer, poses, height, width, progress) -> Iterator[WarpedFrame]:
-    from tqdm import tqdm
+    from panoworld.core.progress import bar
 
-    for pose in tqdm(poses, desc="conditions", unit="frame", disable=not progress or not sys.stderr.isatty()):
+    for pose in bar(poses, desc="conditions", unit="frame", on=progress):
         yield renderer.render(pose, height, width)
 
 

@@ -33,15 +33,20 @@ def run_logged(cmd: list[str], log: Path, echo: bool = False, env_extra: dict[st
     """Run cmd from the repository root with its output in `log`; returns (exit code, seconds, peak RSS MB).
 
     On exit code 2 (bad input) the output stays in pending_log(log), for the runner to read and delete: a refused
-    input leaves no log behind, and the previous run's log stays."""
+    input leaves no log behind, and the previous run's log stays. With echo on a terminal, cmd draws its progress bars
+    into its output (core.progress.PROGRESS_ENV), so they show there."""
     import subprocess
     import threading
+
+    from panoworld.core.progress import PROGRESS_ENV
 
     log = Path(log)
     log.parent.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(art.REPO_ROOT)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
     env.update(env_extra or {})
+    if echo and sys.stderr.isatty():
+        env[PROGRESS_ENV] = "1"
     t0 = time.perf_counter()
     part = pending_log(log)
     with open(part, "wb") as logf:

@@ -50,8 +50,8 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     view)}; g itself and {"views", "skipped": why} when the operators built so far say all of them would hold more
     than max_bytes."""
     import cv2
-    from tqdm import tqdm
 
+    from panoworld.core.progress import bar as progress_bar
     from panoworld.render.erp_operator import ErpColorOperator
     from panoworld.render.splats import covariance_3d
 
@@ -70,8 +70,8 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     ops, seen_k, mine = [], [], []
     seen_any = np.zeros(len(g), bool)
     held = 0
-    bar = tqdm(total=len(views) + iters + int(smooth), desc=f"capture fit at {height} rows: operators", unit="step",
-               disable=None if progress else True, leave=False)  # on a terminal only
+    bar = progress_bar(total=len(views) + iters + int(smooth), desc=f"capture fit at {height} rows: operators",
+                       unit="step", on=progress, leave=False)
     for _, pose in views:
         op = ErpColorOperator(g, pose, height, 2 * height, supersample=supersample, cov=cov, tile=FIT_TILE, prune=prune)
         seen = np.zeros(len(g), bool)

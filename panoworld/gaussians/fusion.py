@@ -175,8 +175,7 @@ def voxel_fusion(
     (no pixel kept, or every voxel pruned) gives an empty result instead of a ValueError (what is left once the
     sources explain everything).
     """
-    from tqdm import tqdm
-
+    from panoworld.core.progress import bar as progress_bar
     from panoworld.gaussians.fusion_kernels import frame_moment_sums, merge_sums
 
     params.check()
@@ -188,7 +187,7 @@ def voxel_fusion(
     def observations(fn=lambda obs: obs):
         """fn(each frame's non-empty observations), in frame order, two frames at once on worker threads (numpy and
         the numba kernels release the GIL)."""
-        bar = tqdm(frames, total=total, desc="voxel fusion", disable=None if progress else True, leave=False)
+        bar = progress_bar(frames, total=total, desc="voxel fusion", on=progress, leave=False)
         for out in map_ahead(lambda f: _nonempty(frame_observations(*f, params, keep_points=keep_points), fn), bar,
                              workers=cpu_threads(2)):
             if out is not None:

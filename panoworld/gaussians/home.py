@@ -168,13 +168,13 @@ def add_own_fill(result: FusionResult, names: list[str], rgbs: dict[str, np.ndar
     source saw (SourcesVisibility.poking_through); the voxel Gaussians a fill stands for (on it or in front of it from
     its capture point, params.source_tol) dropped. Second: {NAME: {"filled": its fill's Gaussians, "stood_for": the
     voxel Gaussians it dropped}} of the sources with pixels without depth.) progress: a bar on a terminal, per source."""
-    from tqdm import tqdm
+    from panoworld.core.progress import bar as progress_bar
 
     g = result.gaussians
     height = min(params.source_fill_height, min(d.shape[0] for d in depths.values()))
     vis = {n: SourceVisibility(depths[n], world_from_cam[n], params.source_tol, NEAR_PLANE_M) for n in names}
     others = {n: SourcesVisibility([vis[m] for m in names if m != n]) for n in names}
-    bar = tqdm(names, desc="own fill", unit="panorama", disable=None if progress else True, leave=False)
+    bar = progress_bar(names, desc="own fill", unit="panorama", on=progress, leave=False)
     fills = {n: f for k, n in enumerate(bar) if (f := own_fill(k, names, depths, world_from_cam, g, others[n],
                                                                  height=height, tol=params.source_tol)) is not None}
     if not fills:

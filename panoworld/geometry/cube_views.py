@@ -215,12 +215,12 @@ def erp_depth_from_model(
 ) -> MergeResult:
     """Run a perspective depth model `predict(image (s, s, 3) uint8) -> (h, w)` on the six cube views of rgb
     (H, W, 3) and merge the results into an ERP depth (see merge_view_predictions)."""
-    from tqdm import tqdm
+    from panoworld.core.progress import bar
 
     H, W = rgb.shape[:2]
     views = cube_views(fov_deg, view_size)
     preds = [np.asarray(predict(render_view(rgb, v)), np.float32)
-             for v in tqdm(views, desc="depth views", disable=not progress)]
+             for v in bar(views, desc="depth views", on=progress)]
     return merge_view_predictions(preds, views, H, W, kind)
 
 

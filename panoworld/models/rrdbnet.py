@@ -9,8 +9,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
-from tqdm import tqdm
 
+from panoworld.core.progress import bar
 from panoworld.core.shapes import check_shape
 from panoworld.models.weights import read_state_file, require_weights_file
 
@@ -165,7 +165,7 @@ def upscale_frames(
     model = model.to(device=device, dtype=getattr(torch, dtype))
     t, h, w, _ = frames.shape
     out = np.empty((t, model.scale * h, model.scale * w, 3), np.uint8)
-    for i in tqdm(range(t), desc="realesrgan", leave=False, disable=None):
+    for i in bar(range(t), desc="realesrgan", leave=False):
         x = torch.from_numpy(frames[i]).to(device).permute(2, 0, 1)[None].to(model.conv_first.weight.dtype) / 255
         y = upscale_tensor(model, x, tile=tile, pad=pad)[0].float()
         out[i] = (y * 255).round_().to(torch.uint8).permute(1, 2, 0).cpu().numpy()

@@ -10,8 +10,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-from tqdm import tqdm
 
+from panoworld.core.progress import bar
 from panoworld.core.shapes import check_shape
 from panoworld.models import wan_layers as wl
 from panoworld.models.wan_config import (  # noqa: F401  (re-exported)
@@ -66,7 +66,7 @@ def euler_sample(
     guidance != 1 mixes both (classifier-free guidance) at two forwards per step.
     """
     x, nfe = noise, 0
-    for i in tqdm(range(len(step_sizes)), desc="denoise", leave=False, disable=None if progress else True):
+    for i in bar(range(len(step_sizes)), desc="denoise", leave=False, on=progress):
         sigma, dt = sigmas[i], step_sizes[i]
         v = velocity_fn(x, sigma, dt, True)
         nfe += 1

@@ -65,13 +65,12 @@ def register_depth_dirs(dirs: dict[str, Path] | None, poses_file: Path | None, o
         for n, (rgbs[n], depths[n], rig) in zip(names, map_ahead(load, [dirs[n] for n in names], workers=pair_threads())):
             if rig is not None:
                 rigs[n] = rig
-    from tqdm import tqdm
-
+    from panoworld.core.progress import bar as progress_bar
     from panoworld.register.pair_select import candidate_pairs
 
     total = len(candidate_pairs(names, given=given, all_up_to=options.all_pairs_up_to)) \
         if len(names) <= options.all_pairs_up_to else None  # beyond: the pairs tried depend on what the first ones join
-    with tqdm(total=total, desc="register pairs", unit="pair", disable=None, leave=False) as bar:  # on a terminal only
+    with progress_bar(total=total, desc="register pairs", unit="pair", leave=False) as bar:
         reg = register_panoramas(names, rgbs, depths, given=given, options=options, rig_masks=rigs,
                                  progress=lambda a, b, pair: bar.update(1))
     write_registration(out_dir, reg)

@@ -6,7 +6,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from tqdm import tqdm
 
 from panoworld.core.conventions import (
     check_pose,
@@ -16,6 +15,7 @@ from panoworld.core.conventions import (
     erp_pixel_from_dir,
     invert_pose,
 )
+from panoworld.core.progress import bar
 from panoworld.core.shapes import check_shape
 from panoworld.geometry.erp_mesh import ErpMesh
 from panoworld.geometry.raycast import Hits
@@ -283,6 +283,6 @@ def warp_inpaint_video(
     filler = WarpInpainter(layer, inpaint_radius=inpaint_radius)
     frames = [
         filler.fill(rgb[t], mask[t], None if depth is None else depth[t], poses[t])
-        for t in tqdm(range(len(rgb)), desc="warp-inpaint", leave=False, disable=None if progress else True)
+        for t in bar(range(len(rgb)), desc="warp-inpaint", leave=False, on=progress)
     ]
     return frames, layer
