@@ -11,6 +11,7 @@ import numpy as np
 from panoworld.core.conventions import erp_dirs64, invert_pose, transform_points
 from panoworld.core.memory import release_free_memory
 from panoworld.core.parallel import cpu_threads, map_ahead
+from panoworld.core.progress import bar as progress_bar
 from panoworld.gaussians.capture_fit import fit_capture_colors
 from panoworld.gaussians.fusion import ContextSource
 from panoworld.gaussians.fusion_params import SourcePixelParams
@@ -168,8 +169,6 @@ def add_own_fill(result: FusionResult, names: list[str], rgbs: dict[str, np.ndar
     source saw (SourcesVisibility.poking_through); the voxel Gaussians a fill stands for (on it or in front of it from
     its capture point, params.source_tol) dropped. Second: {NAME: {"filled": its fill's Gaussians, "stood_for": the
     voxel Gaussians it dropped}} of the sources with pixels without depth.) progress: a bar on a terminal, per source."""
-    from panoworld.core.progress import bar as progress_bar
-
     g = result.gaussians
     height = min(params.source_fill_height, min(d.shape[0] for d in depths.values()))
     vis = {n: SourceVisibility(depths[n], world_from_cam[n], params.source_tol, NEAR_PLANE_M) for n in names}
@@ -243,7 +242,8 @@ def home_anchored_fusion(frames: ContextSource | None, sources: dict[str, tuple[
         keep = keep.reshape(h, w)
         return pixel_gaussians(rgb, np.where(keep & (depth > 0), depth, 0.0).astype(np.float32), poses[n], pix_params)
 
-    parts = list(map_ahead(source_part, range(len(names)), workers=cpu_threads(2)))
+    parts = list(progress_bar(map_ahead(source_part, range(len(names)), workers=cpu_threads(2)), total=len(names),
+                              desc="panorama pixels", unit="panorama", on=progress, leave=False))
     pix = merge_gaussians(parts)
     if frames is None:
         result = fuse_unseen(pix, [], None, params)
