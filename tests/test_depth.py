@@ -184,6 +184,15 @@ def test_provided_depth_in_millimetres_or_centimetres_keeps_the_captures_own_cam
                                              f"in {unit}, converted to metres (floor 1.450 m)")
 
 
+def test_depth_stage_says_which_unit_it_converted_in_its_validated_manifest(tmp_path, room):
+    _, rgb, depth = room
+    np.save(tmp_path / "depth_mm.npy", depth * 1000)
+    manifest, out = run_depth_stage(tmp_path, write_png(tmp_path / "panorama.png", rgb), tmp_path / "depth_mm.npy")
+    info = manifest["info"]  # the manifest passed artifacts_schema/depth.schema.json when written
+    assert info["units"] == "millimetres" and info["camera_height_estimated_after"] == pytest.approx(CAMERA_HEIGHT, 1e-3)
+    assert any("depth in millimetres, converted to metres" in d for d in info["decisions"])
+
+
 def test_floor_on_synth_scene(synth_scene, tmp_path):
     gt = json.loads((synth_scene / "gt" / "gt.json").read_text())
     manifest, _ = run_depth_stage(tmp_path, synth_scene / "panorama.png", synth_scene / "depth.npy")
