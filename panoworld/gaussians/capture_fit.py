@@ -44,11 +44,10 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     surface two capture points see differently shows each its own colour, one that a single view sees keeps s. Only
     the Gaussians some view sees are fitted; prune: the share of each pixel's weight its render operator may drop
     (ErpColorOperator). smooth: the change to the colours and to the degree-1 terms is then made one the views' renders
-    hold (smooth_change). progress: a bar on a terminal (each operator built, each step, the smoothing). Returns the
-    Gaussians (SH degree max(sh_degree, g's)) and {"views", "height", "iters",
-    "prune", "sh_degree", "fitted", "operators_gb" (what the render operators held), "rmse_before", "rmse_after" (per
-    view)}; g itself and {"views", "skipped": why} when the operators built so far say all of them would hold more
-    than max_bytes."""
+    hold (smooth_change). progress: a bar (core.progress.bar) through each operator built, each step, the smoothing.
+    Returns the Gaussians (SH degree max(sh_degree, g's)) and {"views", "height", "iters", "prune", "sh_degree",
+    "fitted", "operators_gb" (what the render operators held), "rmse_before", "rmse_after" (per view)}; g itself and
+    {"views", "skipped": why} when the operators built so far say all of them would hold more than max_bytes."""
     import cv2
 
     from panoworld.core.progress import bar as progress_bar

@@ -168,7 +168,7 @@ def add_own_fill(result: FusionResult, names: list[str], rgbs: dict[str, np.ndar
     source's capture point (by more than params.source_tol), less those whose splat reaches through a surface another
     source saw (SourcesVisibility.poking_through); the voxel Gaussians a fill stands for (on it or in front of it from
     its capture point, params.source_tol) dropped. Second: {NAME: {"filled": its fill's Gaussians, "stood_for": the
-    voxel Gaussians it dropped}} of the sources with pixels without depth.) progress: a bar on a terminal, per source."""
+    voxel Gaussians it dropped}} of the sources with pixels without depth.) progress: a bar per source (core.progress.bar)."""
     g = result.gaussians
     height = min(params.source_fill_height, min(d.shape[0] for d in depths.values()))
     vis = {n: SourceVisibility(depths[n], world_from_cam[n], params.source_tol, NEAR_PLANE_M) for n in names}
