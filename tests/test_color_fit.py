@@ -357,7 +357,10 @@ def test_capture_fit_shows_its_progress_on_a_terminal_and_fits_the_same(monkeypa
     import io
     import sys
 
+    from panoworld.core.progress import PROGRESS_ENV
     from panoworld.gaussians.capture_fit import fit_capture_colors
+
+    monkeypatch.delenv(PROGRESS_ENV, raising=False)  # as a stage not started by a runner on a terminal
 
     class Terminal(io.StringIO):
         def isatty(self):
