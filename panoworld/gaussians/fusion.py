@@ -187,7 +187,7 @@ def voxel_fusion(
     def observations(fn=lambda obs: obs):
         """fn(each frame's non-empty observations), in frame order, two frames at once on worker threads (numpy and
         the numba kernels release the GIL)."""
-        bar = progress_bar(frames, total=total, desc="voxel fusion", on=progress, leave=False)
+        bar = progress_bar(frames, total=total, desc="voxel fusion", unit="frame", on=progress, leave=False)
         for out in map_ahead(lambda f: _nonempty(frame_observations(*f, params, keep_points=keep_points), fn), bar,
                              workers=cpu_threads(2)):
             if out is not None:
