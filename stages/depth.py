@@ -97,11 +97,10 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     hints = {name: f"give its metric depth as {depth_dir / name}.npy|exr|png" for name in names}
     for name in names:  # a panorama the depth cannot come from fails the home at once, not after the others' work
         given = {"panorama": home.panoramas[name], "depth": home.depths.get(name)}
-        backend = backends.pick(NAME, params.backend, given)
+        backend, opts, _ = _backend(params, given, [])
         if backend.traits.get("preflight") is not None:
             backend.traits["preflight"](Job(rgb=None, depth_file=given["depth"], panorama_file=given["panorama"],
-                                            options=_with_weights_on_disk(backend, backend.options_of(params), [])[0],
-                                            depth_hint=hints[name]))
+                                            options=opts, depth_hint=hints[name]))
     infos, dirs = {}, {}
     for k, name in enumerate(names):  # the first panorama's files at the top level: the world frame's panorama
         sub = out_dir if k == 0 else inside(out_dir / HOME_DIR, name)
@@ -126,11 +125,10 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
     H0, W0 = rgb.shape[:2]
     H, W = dep.working_size(H0, params.max_height)
     rgb = dep.resize_panorama(rgb, H)
-    backend = backends.pick(NAME, params.backend, inputs)
-    info: dict = {"backend": backend.name, "height": H, "width": W, "input_size": [W0, H0]}
     if (H, W) != (H0, W0):
         notes.append(f"panorama {W0}x{H0} is taller than max_height {params.max_height}: working at {W}x{H}")
-    opts, found = _with_weights_on_disk(backend, backend.options_of(params), notes)
+    backend, opts, found = _backend(params, inputs, notes)
+    info: dict = {"backend": backend.name, "height": H, "width": W, "input_size": [W0, H0]}
     res = backend.impl(Job(rgb=rgb, depth_file=inputs.get("depth"), panorama_file=inputs["panorama"],
                            options=opts, notes=notes, depth_hint=depth_hint or Job.depth_hint))
     info.update(res.info)
@@ -156,6 +154,13 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
     cv2.imwrite(str(out_dir / "valid.png"), valid.astype(np.uint8) * 255)
     cv2.imwrite(str(out_dir / "panorama.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     return info
+
+
+def _backend(params: Params, inputs: dict[str, Path | None], notes: list[str]) -> tuple:
+    """The depth backend of a panorama's inputs (params.backend, auto: the one using the most of them) with its options,
+    weights found on disk filled in (_with_weights_on_disk): (backend, options, what was found or None)."""
+    backend = backends.pick(NAME, params.backend, inputs)
+    return (backend, *_with_weights_on_disk(backend, backend.options_of(params), notes))
 
 
 def _with_weights_on_disk(backend, opts, notes: list[str]) -> tuple:
