@@ -160,6 +160,7 @@ DELEGATED = {
     "weights": ("panoworld.framework.hub.cli:main", "list, fetch and resolve the learned backends' weights (weights list|fetch|resolve)"),
     "report": ("panoworld.tools.report.cli:main", "write a scene's (or a precompute dataset's) self-contained HTML report"),
     "view": ("panoworld.tools.viewer.app:main", "interactive 3D viewer of a scene in the browser (viser)"),
+    "split": ("panoworld.tools.split_home:main", "each group of a home's panoramas that registration left unplaced as a home of its own"),
     "warmup": ("panoworld.tools.warmup:main", "compile every numba kernel once per install (a first run then pays none)"),
 }
 

@@ -574,7 +574,7 @@ def test_a_partial_registration_is_said_on_stderr_and_in_the_table(tmp_path):
     out = cli("run", str(d), "--until", "register")
     assert out.returncode == 0, out.stderr
     line = ("home: 1 of 3 panoramas registered (not placed: b, c; see artifacts/register/registration.json; a pose in "
-            "poses.json for one panorama of each group places it)")
+            "poses.json for one panorama of each group places it, `runner.py split` builds each group on its own)")
     assert f"note: {line}" in out.stderr and f"note: {line}" in out.stdout
     js = cli("run", str(d), "--until", "register", "--json")
     assert line in json.loads(js.stdout)["notes"] and line in js.stderr
@@ -594,6 +594,39 @@ def test_a_partial_registration_is_said_on_stderr_and_in_the_table(tmp_path):
     placed = json.loads((d / "artifacts" / "register" / "panoramas.json").read_text())
     assert sorted(placed) == ["a", "b", "c"]
     assert np.isclose(np.linalg.norm(np.subtract(placed["c"], placed["b"])[:3, 3]), 0.5)
+
+
+def test_split_makes_each_unplaced_group_a_home_that_runs(tmp_path):
+    """`runner.py split HOME`: the groups registration left unplaced (c with its copy d: a group of two; b alone) become
+    HOME-group2 (a home) and HOME-group3 (one panorama's scene) beside HOME, which the runner takes as they are; HOME is
+    unchanged. Before registration, or into a directory that exists: exit 2, one line, nothing written."""
+    d = make_home(tmp_path / "h", poses=False)  # random textures and flat depths: no pair registers
+    for n in ("c", "e"):  # d: a copy of c, e: a copy of a; the first largest group by name (a, e) is registered
+        src = {"c": "c", "e": "a"}[n]
+        target = {"c": "d", "e": "e"}[n]
+        shutil.copy(d / "panoramas" / f"{src}.png", d / "panoramas" / f"{target}.png")
+        shutil.copy(d / "depths" / f"{src}.npy", d / "depths" / f"{target}.npy")
+    refused(cli("split", str(d)), "no registration of this home; run `python runner.py run")
+    assert not list(tmp_path.glob("h-group*"))
+    assert cli("run", str(d), "--until", "register").returncode == 0
+    placed = json.loads((d / "artifacts" / "register" / "panoramas.json").read_text())
+    assert sorted(placed) == ["a", "e"]
+    before = listing(d)
+    out = cli("split", str(d))
+    assert out.returncode == 0, out.stderr
+    one, two = tmp_path / "h-group2", tmp_path / "h-group3"  # the groups in name order: b, then c and d
+    assert f"python runner.py run {two}" in out.stdout and f"python runner.py run {one}" in out.stdout
+    src = listing(d)
+    assert listing(two) == {"depths": -1, "panoramas": -1, **{f"{k}/{n}.{x}": src[f"{k}/{n}.{x}"] for n in "cd"
+                                                              for k, x in (("depths", "npy"), ("panoramas", "png"))}}
+    assert listing(one) == {"depth.npy": src["depths/b.npy"], "panorama.png": src["panoramas/b.png"]}
+    assert listing(d) == before
+    assert cli("run", str(two), "--until", "register").returncode == 0  # c and d register with each other
+    assert sorted(json.loads((two / "artifacts" / "register" / "panoramas.json").read_text())) == ["c", "d"]
+    assert cli("run", str(one), "--until", "depth").returncode == 0
+    refused(cli("split", str(d)), f"{one}: already exists; remove it or give --out DIR")
+    shutil.copy(d / "panoramas" / "b.png", d / "panoramas" / "f.png")  # the home changed since its registration
+    refused(cli("split", str(d), "--out", str(tmp_path / "elsewhere")), "registered other panoramas than")
 
 
 def test_200_panoramas_are_planned_without_trying_all_pairs():

@@ -110,9 +110,9 @@ def read_registration(artifact_dir: Path) -> tuple[dict, dict]:
 
 def registration_note(artifact_dir: Path, root: Path | None = None) -> str | None:
     """"home: 1 of 3 panoramas registered (not placed: ...; see artifacts/register/registration.json; ...)" when a
-    register artifact placed fewer than all its panoramas, with the remedy (a pose in the scene's poses.json for one
-    panorama of each group that no pair joins places that group); None when it placed all (or there is no readable
-    artifact)."""
+    register artifact placed fewer than all its panoramas, with the remedies (a pose in the scene's poses.json for one
+    panorama of each group that no pair joins places that group; `runner.py split` makes each group a home of its
+    own); None when it placed all (or there is no readable artifact)."""
     info = read_json(Path(artifact_dir) / "manifest.json", default={})
     info = info.get("info") if isinstance(info, dict) else None
     if not isinstance(info, dict) or info.get("num_registered") == info.get("num_panoramas"):
@@ -122,4 +122,5 @@ def registration_note(artifact_dir: Path, root: Path | None = None) -> str | Non
     shown = shown.relative_to(root) if root is not None and shown.is_relative_to(root) else shown
     more = f" +{len(left) - 5} more" if len(left) > 5 else ""
     return (f"home: {info.get('num_registered')} of {info.get('num_panoramas')} panoramas registered (not placed: "
-            f"{', '.join(left[:5])}{more}; see {shown}; a pose in poses.json for one panorama of each group places it)")
+            f"{', '.join(left[:5])}{more}; see {shown}; a pose in poses.json for one panorama of each group places it, "
+            "`runner.py split` builds each group on its own)")

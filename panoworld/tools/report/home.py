@@ -212,7 +212,8 @@ def section_home(scene: SceneData, page: Page, params: ReportParams) -> Section:
     if groups:
         notes.append("Not placed, by group (panoramas joined to each other but to no registered one): "
                      + "; ".join(", ".join(g) for g in groups) + ". A pose in SCENE/poses.json for one panorama of "
-                     "each group places that group (docs/multi.md).")
+                     "each group places that group; `runner.py split SCENE` makes each group a home of its own "
+                     "(docs/multi.md).")
     if psnr:
         notes.append("Capture pose PSNR: the gaussians stage's colour-fit render at each capture pose against that "
                      "panorama (cleaned), from its manifest's color_fit.")

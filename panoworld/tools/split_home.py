@@ -1,0 +1,112 @@
+"""`runner.py split HOME`: each group of panoramas its registration left unplaced becomes a home (or scene) of its own."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+from pathlib import Path
+
+from panoworld.core.errors import InputError, PanoWorldError
+from panoworld.register.artifact import read_registration
+from panoworld.register.inputs import (
+    DEPTHS_DIR,
+    PANORAMAS_DIR,
+    REGISTRATION_JSON,
+    RIG_MASKS_DIR,
+    check_home,
+    is_multi_scene,
+)
+
+REGISTER_DIR = Path("artifacts") / "register"
+
+
+def unplaced_groups(scene: Path) -> list[list[str]]:
+    """The groups of panoramas (each sorted, the groups by their first name) that the home's register artifact left
+    unplaced: panoramas joined to each other but to no registered one; a panorama no pair joins is a group of one.
+    InputError when the home has no register artifact or one of other panoramas (registered before the home changed)."""
+    scene = Path(scene)
+    run = f"run `python runner.py run {scene} --until register` first"
+    try:
+        _, reg = read_registration(scene / REGISTER_DIR)
+    except (OSError, ValueError):
+        reg = None
+    if not isinstance(reg, dict) or not isinstance(reg.get("panoramas"), dict):
+        raise InputError(f"{scene / REGISTER_DIR / REGISTRATION_JSON}: no registration of this home; {run}")
+    names = check_home(scene).names
+    pans = reg["panoramas"]
+    if sorted(pans) != names:
+        raise InputError(f"{scene / REGISTER_DIR / REGISTRATION_JSON}: registered other panoramas than "
+                         f"{scene / PANORAMAS_DIR} holds now; {run}")
+    groups: list[list[str]] = []
+    for n in names:
+        p = pans[n]
+        if p.get("registered") or any(n in g for g in groups):
+            continue
+        group = p.get("group") or [n]
+        groups.append(sorted(m for m in group if m in pans and not pans[m].get("registered")))
+    return sorted(groups)
+
+
+def _link(src: Path, dst: Path) -> None:
+    """dst as a hard link to src where the file system allows it, else a copy."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def write_group(scene: Path, group: list[str], out: Path) -> None:
+    """The group's panoramas, depths and rig masks as a home under out (two or more panoramas: panoramas/, depths/,
+    rig_masks/) or as one panorama's scene (panorama.EXT, depth.EXT, rig_mask.png); files hard-linked where possible.
+    poses.json is not carried: no panorama of an unplaced group has a given pose."""
+    home = check_home(scene)
+    out.mkdir(parents=True)
+    for n in group:
+        files = [(home.panoramas[n], PANORAMAS_DIR, "panorama"), (home.depths.get(n), DEPTHS_DIR, "depth"),
+                 (home.rig_masks.get(n), RIG_MASKS_DIR, "rig_mask")]
+        for src, folder, single in files:
+            if src is None:
+                continue
+            dst = out / folder / src.name if len(group) > 1 else out / f"{single}{src.suffix.lower()}"
+            _link(src, dst)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="python runner.py split",
+        description="Each group of a home's panoramas that registration left unplaced (joined to each other but to no "
+                    "registered panorama, docs/multi.md) becomes a home of its own, HOME-group2, HOME-group3, ... beside "
+                    "HOME (a group of one panorama: a one-panorama scene), so `runner.py run` builds it. The files are "
+                    "hard-linked where the file system allows (else copied); HOME is not changed. A pose in "
+                    "HOME/poses.json for one panorama of a group places it in HOME instead.")
+    ap.add_argument("home", type=Path, help="a home (panoramas/) whose register stage has run")
+    ap.add_argument("--out", type=Path, help="directory for the new homes (default: HOME's parent)")
+    args = ap.parse_args(argv)
+    try:
+        home = args.home.resolve()
+        if not is_multi_scene(home):
+            raise InputError(f"{args.home}: not a home (no {PANORAMAS_DIR}/); split applies to a home of several "
+                             "panoramas (docs/multi.md)")
+        groups = unplaced_groups(home)
+        out_dir = (args.out or home.parent).resolve()
+        targets = [out_dir / f"{home.name}-group{k}" for k in range(2, len(groups) + 2)]
+        for t in targets:
+            if t.exists():
+                raise InputError(f"{t}: already exists; remove it or give --out DIR")
+        for group, t in zip(groups, targets):
+            write_group(home, group, t)
+    except PanoWorldError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return e.exit_code
+    if not groups:
+        print(f"{args.home}: every panorama is registered; nothing to split")
+        return 0
+    rows = [("group", "panoramas", "directory", "build it with")]
+    rows += [(str(k), ", ".join(g), str(t), f"python runner.py run {t}") for k, (g, t) in enumerate(zip(groups, targets), 2)]
+    widths = [max(len(r[i]) for r in rows) for i in range(4)]
+    for r in rows:
+        print("  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip())
+    return 0
