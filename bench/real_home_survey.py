@@ -9,10 +9,11 @@ RegisterOptions), each against the survey: a subset whose registered panoramas b
 error or 2 deg of yaw error is misplaced (a home without the panoramas that join or check its rooms, as a user's
 capture may be); and with --rolls N --home HOME, the home registered again N times from its inputs with every panorama
 turned by its own random azimuth (where its seam falls), each draw against the survey (with --rows R, from its
-panoramas resized to R rows; --rows alone: once, as given).
+panoramas resized to R rows; with --exposure G, each panorama's exposure scaled by its own random gain within G
+times; --rows or --exposure alone: once, as given).
 
 `python bench/real_home_survey.py REGISTER_ARTIFACT SURVEY_JSON [--json] [--floor-fits] [--floor-evidence] [--subsets N]
-[--rolls N] [--rows R] [--home HOME] [--seed S]` prints them;
+[--rolls N] [--rows R] [--exposure G] [--home HOME] [--seed S]` prints them;
 `compare_to_survey` is the function the real-home benchmark imports."""
 
 from __future__ import annotations
@@ -214,14 +215,24 @@ def subset_registrations(depth_artifact: Path, survey: dict, sets: int, seed: in
     return rows
 
 
+def expose(rgb: np.ndarray, gain: float, balance: np.ndarray) -> np.ndarray:
+    """rgb (H, W, 3) uint8 as if captured with its exposure times gain and its white balance times balance (3,): on
+    linear light (a 2.2 gamma), clipped as a camera clips."""
+    lin = (rgb.astype(np.float32) / 255.0) ** 2.2 * (gain * np.asarray(balance, np.float32))
+    return np.clip(np.clip(lin, 0.0, 1.0) ** (1 / 2.2) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
 def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0, size: int | None = None,
-                       turn: bool = True) -> list[dict]:
+                       turn: bool = True, exposure: float = 1.0) -> list[dict]:
     """The home (panoramas/, depths/) registered again `draws` times with each panorama and its depth turned about
     gravity by its own random azimuth (a whole number of depth columns, so both move exactly; not with turn=False),
     and resized to `size` rows first (area; the depth by the same factor, nearest), through the depth and
     register stages at default settings (`runner.py run COPY --until register`); the survey's yaws turned with
-    them. Per draw: the registered panoramas, the errors and whether it is misplaced. Where a panorama's seam falls
-    and the capture's size are arbitrary; the registration should not depend on them."""
+    them. exposure > 1: each panorama's exposure also scaled by its own gain, log-uniform in [1 / exposure,
+    exposure], and its white balance by its own factor per channel in [0.95, 1.05] (expose), as a tour's auto
+    exposure differs from room to room. Per draw: the registered panoramas, the errors and whether it is misplaced.
+    Where a panorama's seam falls, the capture's size and its exposure are arbitrary; the registration should not
+    depend on them."""
     import subprocess
     import tempfile
 
@@ -243,6 +254,8 @@ def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0, size
                 src = next(p for p in (home / "panoramas").iterdir() if p.stem == n)
                 rgb, depth, k = vary(read_panorama(src), read_depth(home / "depths" / f"{n}.npy"),
                                      rng if turn else None, size, src)
+                if exposure > 1:
+                    rgb = expose(rgb, float(np.exp(rng.uniform(-1, 1) * np.log(exposure))), rng.uniform(0.95, 1.05, 3))
                 cv2.imwrite(str(copy / "panoramas" / f"{n}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
                 np.save(copy / "depths" / f"{n}.npy", depth)
                 if n in survey["panos"]:
@@ -282,6 +295,9 @@ def main() -> int:
     ap.add_argument("--rows", type=int, default=None, metavar="R",
                     help="with --home: register the home from its panoramas resized to R rows (each --rolls draw, or "
                          "once as given)")
+    ap.add_argument("--exposure", type=float, default=1.0, metavar="G",
+                    help="with --home: each panorama's exposure scaled by its own random gain in [1/G, G] and its "
+                         "white balance by up to 5 %% per channel (each --rolls draw, or once)")
     ap.add_argument("--seed", type=int, default=0, help="the subsets' and the draws' random seed")
     args = ap.parse_args()
     poses = {n: np.asarray(T) for n, T in json.loads((args.register / "panoramas.json").read_text()).items()}
@@ -296,10 +312,11 @@ def main() -> int:
         r["floor_evidence"] = floor_evidence(args.register.parent / "depth", survey, set(poses), rows)
     if args.subsets:
         r["subsets"] = subset_registrations(args.register.parent / "depth", survey, args.subsets, args.seed)
-    if args.rolls or args.rows:
+    if args.rolls or args.rows or args.exposure > 1:
         if args.home is None:
-            ap.error("--rolls and --rows need --home (the home's panoramas/ and depths/)")
-        r["rolls"] = roll_registrations(args.home, survey, args.rolls or 1, args.seed, args.rows, turn=bool(args.rolls))
+            ap.error("--rolls, --rows and --exposure need --home (the home's panoramas/ and depths/)")
+        r["rolls"] = roll_registrations(args.home, survey, args.rolls or 1, args.seed, args.rows, turn=bool(args.rolls),
+                                        exposure=args.exposure)
     if args.json:
         print(json.dumps(r, indent=1))
         return 0
@@ -358,6 +375,7 @@ def main() -> int:
     if "rolls" in r:
         rows = r["rolls"]
         what = f"draws of random azimuths (seed {args.seed})" if args.rolls else "registration from the inputs"
+        what += f", exposures within {args.exposure:g}x" if args.exposure > 1 else ""
         print(f"\n{len(rows)} {what}{f' at {args.rows} rows' if args.rows else ''}: "
               f"{sum(len(x['registered']) for x in rows)} of {len(rows) * r['panoramas']} surveyed panoramas "
               f"registered, {sum(x['misplaced'] for x in rows)} draws misplaced")
