@@ -574,7 +574,7 @@ def test_a_partial_registration_is_said_on_stderr_and_in_the_table(tmp_path):
     out = cli("run", str(d), "--until", "register")
     assert out.returncode == 0, out.stderr
     line = ("home: 1 of 3 panoramas registered (not placed: b, c; see artifacts/register/registration.json; a pose in "
-            "poses.json for one panorama of each group places it, `runner.py split` builds each group on its own)")
+            "poses.json for one panorama of each group places it, `runner.py split` makes each group a home of its own)")
     assert f"note: {line}" in out.stderr and f"note: {line}" in out.stdout
     js = cli("run", str(d), "--until", "register", "--json")
     assert line in json.loads(js.stdout)["notes"] and line in js.stderr

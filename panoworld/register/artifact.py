@@ -123,4 +123,4 @@ def registration_note(artifact_dir: Path, root: Path | None = None) -> str | Non
     more = f" +{len(left) - 5} more" if len(left) > 5 else ""
     return (f"home: {info.get('num_registered')} of {info.get('num_panoramas')} panoramas registered (not placed: "
             f"{', '.join(left[:5])}{more}; see {shown}; a pose in poses.json for one panorama of each group places it, "
-            "`runner.py split` builds each group on its own)")
+            "`runner.py split` makes each group a home of its own)")
