@@ -1,6 +1,6 @@
 """A real home captured as several panoramas, run as a user would (no flags), measured against its survey.
 
-    python bench/bench_real_home.py SCENE --survey survey.json [--json F] [--work DIR] [--survey-poses]
+    python bench/bench_real_home.py SCENE --survey survey.json [--json F] [--work DIR] [--survey-poses | --split]
                                     [--loo | --loo-only NAME ...] [--loo-build captures|full] [--height 256]
 
 SCENE is a home (docs/multi.md: panoramas/, depths/); it is copied to --work (default
@@ -11,6 +11,10 @@ on it, its connected components and the capture points of each; the trajectory's
 each capture point; the Gaussian scene rendered at each capture pose against that panorama as the pipeline cleaned it
 (PSNR, SSIM, coverage = share of pixels with alpha > 0.5, at --height rows), and the PSNR against the input panorama,
 whole and outside the removed rig (its mask grown by 2 px); per-stage wall seconds and peak memory from the runner's report.
+
+--split (the user mode): where registration leaves groups unplaced, `runner.py split` makes each a home of its own
+(into --work/user/split), each is built with no flags and measured as the home is (its registration against the survey
+within the group, its capture poses), so every panorama is in some scene.
 
 --survey-poses [--set STAGE.PARAM=VALUE ...] writes a poses.json built from the survey into the copy (survey_poses), so the stages after
 registration can be measured while registration cannot join the rooms: its rows are labelled "survey poses", and
@@ -336,6 +340,45 @@ def fmt(v, spec=".2f"):
     return "-" if v is None else format(v, spec)
 
 
+def measure_groups(full: Path, work: Path, survey: dict, height: int) -> list[dict]:
+    """`runner.py split` on the full run's home (into work/split, made afresh), then each group built and measured: a
+    home as measure_home does (registration against the survey, capture poses, stages); one panorama's scene run
+    alone (exit code, wall seconds)."""
+    out = work / "split"
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    proc = subprocess.run([sys.executable, "runner.py", "split", str(full), "--out", str(out)], cwd=REPO,
+                          capture_output=True, text=True)
+    if proc.returncode:
+        raise SystemExit(f"runner.py split failed: {proc.stderr.strip()}")
+    rows = []
+    for d in sorted(out.iterdir()):
+        if (d / "panoramas").is_dir():
+            rows.append({"group": d.name, **measure_home(d, survey, height)})
+        else:
+            run = run_home(d)
+            rows.append({"group": d.name, "scene": str(d), "rc": run["rc"], "wall_s": run["wall_s"],
+                         "registered": [next(d.glob("panorama.*")).name], "unregistered": {}})
+        print(f"split: {d.name} built (rc {rows[-1]['rc']}, {rows[-1]['wall_s']:.0f} s)", file=sys.stderr, flush=True)
+    return rows
+
+
+def print_groups(groups: list[dict]) -> None:
+    print("\nthe unplaced groups as homes of their own (`runner.py split`), each built with no flags:\n")
+    print("| home | panoramas | registered | distance error m median / max | yaw error deg median / max | "
+          "capture poses PSNR dB / SSIM | runner rc | wall s |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    for g in groups:
+        sv = g.get("survey") or {}
+        names = sorted(set(g["registered"]) | set(g["unregistered"]))
+        err = (f"{sv['dist_err_m_median']:.3f} / {sv['dist_err_m_max']:.3f} | {sv['yaw_err_deg_median']:.2f} / "
+               f"{sv['yaw_err_deg_max']:.2f}") if sv.get("pairs") else "- | -"
+        cap = ", ".join(f"{n[-2:]} {c['cleaned']['psnr']:.2f} / {c['cleaned']['ssim']:.3f}"
+                        for n, c in sorted((g.get("capture") or {}).items())) or "-"
+        print(f"| {g['group']} | {', '.join(names)} | {len(g['registered'])} of {len(names)} | {err} | {cap} | "
+              f"{g['rc']} | {g['wall_s']:.0f} |")
+
+
 def print_report(res: dict) -> None:
     r = res["home"]
     label = "SURVEY POSES (poses.json from survey.json: downstream only)" if res["survey_poses"] else \
@@ -380,6 +423,8 @@ def print_report(res: dict) -> None:
     for st, s in r["stages"].items():
         print(f"| {st} | {s['action']} | {fmt(s['seconds'], '.1f')} | {fmt(s.get('cpu_s'), '.1f')} | "
               f"{fmt(s['peak_rss_mb'], '.0f')} |")
+    if res.get("groups"):
+        print_groups(res["groups"])
     if res.get("loo"):
         how = {"captures": "the other panoramas' Gaussians alone, no generated frames (--loo-build captures)",
                "full": "the whole home built again without it (--loo-build full)"}[res["loo_build"]]
@@ -423,6 +468,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--loo-only", nargs="+", metavar="NAME", help="leave-one-out for these panoramas only")
     ap.add_argument("--loo-build", choices=("captures", "full"), default="captures",
                     help="captures: the other panoramas' Gaussians alone (seconds); full: a whole home build each")
+    ap.add_argument("--split", action="store_true", help="after the run as a user runs it, each group registration "
+                    "left unplaced made a home of its own (`runner.py split`), built and measured")
     ap.add_argument("--skip-full", action="store_true", help="reuse the full run already in --work (no rerun)")
     ap.add_argument("--height", type=int, default=256, help="ERP rows of the renders and references")
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="STAGE.PARAM=VALUE",
@@ -430,6 +477,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.sets and not args.survey_poses:
         ap.error("--set is for the --survey-poses development mode; the user mode runs with no flags")
+    if args.split and args.survey_poses:
+        ap.error("--split is for the user mode: with --survey-poses every panorama is placed")
     survey = json.loads(args.survey.read_text())
     src = args.scene.resolve()
     mode = "survey" if args.survey_poses else "user"
@@ -442,6 +491,8 @@ def main(argv: list[str] | None = None) -> int:
     home = measure_home(full, survey, args.height, args.sets)
     res = {"scene": src.name, "survey_poses": bool(args.survey_poses), "sets": args.sets, "home": home, "loo": [],
            "loo_build": args.loo_build}
+    if args.split and home["unregistered"]:
+        res["groups"] = measure_groups(full, work, survey, args.height)
     names = sorted(home["registered"]) if args.loo else (args.loo_only or [])
     for n in names:
         res["loo"].append(leave_one_out_captures(full, n, args.height) if args.loo_build == "captures" else
