@@ -45,6 +45,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import shutil
 import subprocess
 import sys
@@ -351,14 +352,15 @@ def measure_groups(full: Path, work: Path, survey: dict, height: int) -> list[di
                           capture_output=True, text=True)
     if proc.returncode:
         raise SystemExit(f"runner.py split failed: {proc.stderr.strip()}")
+    listed = dict(re.split(r"\s{2,}", line.strip())[2:0:-1] for line in proc.stdout.splitlines()[1:] if line.strip())
     rows = []
     for d in sorted(out.iterdir()):
         if (d / "panoramas").is_dir():
             rows.append({"group": d.name, **measure_home(d, survey, height)})
-        else:
+        else:  # one panorama's scene: its name from split's table
             run = run_home(d)
             rows.append({"group": d.name, "scene": str(d), "rc": run["rc"], "wall_s": run["wall_s"],
-                         "registered": [next(d.glob("panorama.*")).name], "unregistered": {}})
+                         "registered": [listed.get(str(d), "?")], "unregistered": {}})
         print(f"split: {d.name} built (rc {rows[-1]['rc']}, {rows[-1]['wall_s']:.0f} s)", file=sys.stderr, flush=True)
     return rows
 
