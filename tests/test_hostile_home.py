@@ -623,6 +623,8 @@ def test_split_makes_each_unplaced_group_a_home_that_runs(tmp_path):
     assert listing(d) == before
     assert cli("run", str(two), "--until", "register").returncode == 0  # c and d register with each other
     assert sorted(json.loads((two / "artifacts" / "register" / "panoramas.json").read_text())) == ["c", "d"]
+    done = cli("split", str(two))  # every panorama registered: nothing to write
+    assert done.returncode == 0 and "nothing to split" in done.stdout and not list(tmp_path.glob("h-group3-*"))
     assert cli("run", str(one), "--until", "depth").returncode == 0
     refused(cli("split", str(d)), f"{one}: already exists; remove it or give --out DIR")
     shutil.copy(d / "panoramas" / "b.png", d / "panoramas" / "f.png")  # the home changed since its registration
