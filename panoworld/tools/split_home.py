@@ -15,6 +15,7 @@ from panoworld.register.inputs import (
     PANORAMAS_DIR,
     REGISTRATION_JSON,
     RIG_MASKS_DIR,
+    MultiScene,
     check_home,
     is_multi_scene,
 )
@@ -58,20 +59,24 @@ def _link(src: Path, dst: Path) -> None:
         shutil.copy2(src, dst)
 
 
-def write_group(scene: Path, group: list[str], out: Path) -> None:
-    """The group's panoramas, depths and rig masks as a home under out (two or more panoramas: panoramas/, depths/,
-    rig_masks/) or as one panorama's scene (panorama.EXT, depth.EXT, rig_mask.png); files hard-linked where possible.
-    poses.json is not carried: no panorama of an unplaced group has a given pose."""
-    home = check_home(scene)
-    out.mkdir(parents=True)
-    for n in group:
-        files = [(home.panoramas[n], PANORAMAS_DIR, "panorama"), (home.depths.get(n), DEPTHS_DIR, "depth"),
-                 (home.rig_masks.get(n), RIG_MASKS_DIR, "rig_mask")]
-        for src, folder, single in files:
-            if src is None:
-                continue
-            dst = out / folder / src.name if len(group) > 1 else out / f"{single}{src.suffix.lower()}"
-            _link(src, dst)
+def write_group(home: MultiScene, group: list[str], out: Path) -> None:
+    """The group's panoramas, depths and rig masks as a home at out (two or more panoramas: panoramas/, depths/,
+    rig_masks/) or as one panorama's scene (panorama.EXT, depth.EXT, rig_mask.png); files hard-linked where possible,
+    written beside out and renamed to it when complete. poses.json is not carried: no panorama of an unplaced group has
+    a given pose."""
+    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+    tmp.mkdir(parents=True)
+    try:
+        for n in group:
+            files = [(home.panoramas[n], PANORAMAS_DIR, "panorama"), (home.depths.get(n), DEPTHS_DIR, "depth"),
+                     (home.rig_masks.get(n), RIG_MASKS_DIR, "rig_mask")]
+            for src, folder, single in files:
+                if src is not None:
+                    _link(src, tmp / folder / src.name if len(group) > 1 else tmp / f"{single}{src.suffix.lower()}")
+        tmp.rename(out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -96,8 +101,9 @@ def main(argv: list[str] | None = None) -> int:
         for t in targets:
             if t.exists():
                 raise InputError(f"{t}: already exists; remove it or give --out DIR")
+        files = check_home(home)
         for group, t in zip(groups, targets):
-            write_group(home, group, t)
+            write_group(files, group, t)
     except PanoWorldError as e:
         print(f"error: {e}", file=sys.stderr)
         return e.exit_code
