@@ -357,10 +357,18 @@ def measure_groups(full: Path, work: Path, survey: dict, height: int) -> list[di
     for d in sorted(out.iterdir()):
         if (d / "panoramas").is_dir():
             rows.append({"group": d.name, **measure_home(d, survey, height)})
-        else:  # one panorama's scene: its name from split's table
+        else:  # one panorama's scene (its name from split's table), scored at its capture point (the identity)
             run = run_home(d)
+            name = listed.get(str(d), "?")
             rows.append({"group": d.name, "scene": str(d), "rc": run["rc"], "wall_s": run["wall_s"],
-                         "registered": [listed.get(str(d), "?")], "unregistered": {}})
+                         "registered": [name], "unregistered": {}})
+            ply = d / "artifacts" / "gaussians" / "gaussians.ply"
+            if ply.is_file():
+                from panoworld.io.depth import load_depth_artifact
+                from panoworld.io.splat_ply import read_gaussians_ply
+
+                rgb = load_depth_artifact(d / "artifacts" / "depth")[2]
+                rows[-1]["capture"] = {name: {"cleaned": render_scores(read_gaussians_ply(ply), np.eye(4), rgb, height)}}
         print(f"split: {d.name} built (rc {rows[-1]['rc']}, {rows[-1]['wall_s']:.0f} s)", file=sys.stderr, flush=True)
     return rows
 
