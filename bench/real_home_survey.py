@@ -10,10 +10,10 @@ error or 2 deg of yaw error is misplaced (a home without the panoramas that join
 capture may be); and with --rolls N --home HOME, the home registered again N times from its inputs with every panorama
 turned by its own random azimuth (where its seam falls), each draw against the survey (with --rows R, from its
 panoramas resized to R rows; with --exposure G, each panorama's exposure scaled by its own random gain within G
-times; --rows or --exposure alone: once, as given).
+times; with --rename, the panoramas renamed in a random order; --rows, --exposure or --rename alone: once).
 
 `python bench/real_home_survey.py REGISTER_ARTIFACT SURVEY_JSON [--json] [--floor-fits] [--floor-evidence] [--subsets N]
-[--rolls N] [--rows R] [--exposure G] [--home HOME] [--seed S]` prints them;
+[--rolls N] [--rows R] [--exposure G] [--rename] [--home HOME] [--seed S]` prints them;
 `compare_to_survey` is the function the real-home benchmark imports."""
 
 from __future__ import annotations
@@ -223,16 +223,18 @@ def expose(rgb: np.ndarray, gain: float, balance: np.ndarray) -> np.ndarray:
 
 
 def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0, size: int | None = None,
-                       turn: bool = True, exposure: float = 1.0) -> list[dict]:
+                       turn: bool = True, exposure: float = 1.0, rename: bool = False) -> list[dict]:
     """The home (panoramas/, depths/) registered again `draws` times with each panorama and its depth turned about
     gravity by its own random azimuth (a whole number of depth columns, so both move exactly; not with turn=False),
     and resized to `size` rows first (area; the depth by the same factor, nearest), through the depth and
     register stages at default settings (`runner.py run COPY --until register`); the survey's yaws turned with
     them. exposure > 1: each panorama's exposure also scaled by its own gain, log-uniform in [1 / exposure,
     exposure], and its white balance by its own factor per channel in [0.95, 1.05] (expose), as a tour's auto
-    exposure differs from room to room. Per draw: the registered panoramas, the errors and whether it is misplaced.
-    Where a panorama's seam falls, the capture's size and its exposure are arbitrary; the registration should not
-    depend on them."""
+    exposure differs from room to room. rename: the panoramas named capture_000, capture_001, ... in a random order
+    (the capture order and the first name, which sets the world frame and breaks ties between groups), the result
+    read back under their own names. Per draw: the registered panoramas, the errors and whether it is misplaced.
+    Where a panorama's seam falls, the capture's size, its exposure and its name are arbitrary; the registration
+    should not depend on them (beyond which of two equally large groups is registered)."""
     import subprocess
     import tempfile
 
@@ -250,14 +252,16 @@ def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0, size
             (copy / "panoramas").mkdir(parents=True)
             (copy / "depths").mkdir()
             turned = {"panos": {}}
+            order = rng.permutation(len(names)) if rename else np.arange(len(names))
+            alias = {n: f"capture_{order[j]:03d}" if rename else n for j, n in enumerate(names)}
             for n in names:
                 src = next(p for p in (home / "panoramas").iterdir() if p.stem == n)
                 rgb, depth, k = vary(read_panorama(src), read_depth(home / "depths" / f"{n}.npy"),
                                      rng if turn else None, size, src)
                 if exposure > 1:
                     rgb = expose(rgb, float(np.exp(rng.uniform(-1, 1) * np.log(exposure))), rng.uniform(0.95, 1.05, 3))
-                cv2.imwrite(str(copy / "panoramas" / f"{n}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-                np.save(copy / "depths" / f"{n}.npy", depth)
+                cv2.imwrite(str(copy / "panoramas" / f"{alias[n]}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+                np.save(copy / "depths" / f"{alias[n]}.npy", depth)
                 if n in survey["panos"]:
                     turned["panos"][n] = dict(survey["panos"][n],
                                               yaw_deg=survey["panos"][n]["yaw_deg"] - 360.0 * k / depth.shape[1])
@@ -266,7 +270,8 @@ def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0, size
             if proc.returncode:
                 raise SystemExit(f"draw {i + 1}: runner.py run failed:\n{proc.stderr[-2000:]}")
             out = copy / "artifacts" / "register"
-            world = {n: np.asarray(T) for n, T in json.loads((out / "panoramas.json").read_text()).items()}
+            named = {a: n for n, a in alias.items()}
+            world = {named[a]: np.asarray(T) for a, T in json.loads((out / "panoramas.json").read_text()).items()}
         r = compare_to_survey(world, turned)
         d, y = r["dist_err_m_max"], r["yaw_err_deg_max"]
         rows.append({"registered": sorted(world), "unregistered": r["unregistered"], "dist_err_m_max": d,
@@ -298,6 +303,8 @@ def main() -> int:
     ap.add_argument("--exposure", type=float, default=1.0, metavar="G",
                     help="with --home: each panorama's exposure scaled by its own random gain in [1/G, G] and its "
                          "white balance by up to 5 %% per channel (each --rolls draw, or once)")
+    ap.add_argument("--rename", action="store_true",
+                    help="with --home: the panoramas renamed in a random order in each draw (capture order, first name)")
     ap.add_argument("--seed", type=int, default=0, help="the subsets' and the draws' random seed")
     args = ap.parse_args()
     poses = {n: np.asarray(T) for n, T in json.loads((args.register / "panoramas.json").read_text()).items()}
@@ -312,11 +319,11 @@ def main() -> int:
         r["floor_evidence"] = floor_evidence(args.register.parent / "depth", survey, set(poses), rows)
     if args.subsets:
         r["subsets"] = subset_registrations(args.register.parent / "depth", survey, args.subsets, args.seed)
-    if args.rolls or args.rows or args.exposure > 1:
+    if args.rolls or args.rows or args.exposure > 1 or args.rename:
         if args.home is None:
-            ap.error("--rolls, --rows and --exposure need --home (the home's panoramas/ and depths/)")
+            ap.error("--rolls, --rows, --exposure and --rename need --home (the home's panoramas/ and depths/)")
         r["rolls"] = roll_registrations(args.home, survey, args.rolls or 1, args.seed, args.rows, turn=bool(args.rolls),
-                                        exposure=args.exposure)
+                                        exposure=args.exposure, rename=args.rename)
     if args.json:
         print(json.dumps(r, indent=1))
         return 0
@@ -376,6 +383,7 @@ def main() -> int:
         rows = r["rolls"]
         what = f"draws of random azimuths (seed {args.seed})" if args.rolls else "registration from the inputs"
         what += f", exposures within {args.exposure:g}x" if args.exposure > 1 else ""
+        what += ", renamed in a random order" if args.rename else ""
         print(f"\n{len(rows)} {what}{f' at {args.rows} rows' if args.rows else ''}: "
               f"{sum(len(x['registered']) for x in rows)} of {len(rows) * r['panoramas']} surveyed panoramas "
               f"registered, {sum(x['misplaced'] for x in rows)} draws misplaced")
