@@ -344,7 +344,7 @@ def fmt(v, spec=".2f"):
 def measure_groups(full: Path, work: Path, survey: dict, height: int) -> list[dict]:
     """`runner.py split` on the full run's home (into work/split, made afresh), then each group built and measured: a
     home as measure_home does (registration against the survey, capture poses, stages); one panorama's scene run
-    alone (exit code, wall seconds)."""
+    alone (exit code, wall seconds) and scored at its capture point."""
     out = work / "split"
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
