@@ -606,6 +606,7 @@ def test_split_makes_each_unplaced_group_a_home_that_runs(tmp_path):
         target = {"c": "d", "e": "e"}[n]
         shutil.copy(d / "panoramas" / f"{src}.png", d / "panoramas" / f"{target}.png")
         shutil.copy(d / "depths" / f"{src}.npy", d / "depths" / f"{target}.npy")
+    (d / "scene.yaml").write_text("params:\n  register:\n    height: 256\n")  # the home's settings go with each group
     refused(cli("split", str(d)), "no registration of this home; run `python runner.py run")
     assert not list(tmp_path.glob("h-group*"))
     assert cli("run", str(d), "--until", "register").returncode == 0
@@ -617,12 +618,15 @@ def test_split_makes_each_unplaced_group_a_home_that_runs(tmp_path):
     one, two = tmp_path / "h-group2", tmp_path / "h-group3"  # the groups in name order: b, then c and d
     assert f"python runner.py run {two}" in out.stdout and f"python runner.py run {one}" in out.stdout
     src = listing(d)
-    assert listing(two) == {"depths": -1, "panoramas": -1, **{f"{k}/{n}.{x}": src[f"{k}/{n}.{x}"] for n in "cd"
-                                                              for k, x in (("depths", "npy"), ("panoramas", "png"))}}
-    assert listing(one) == {"depth.npy": src["depths/b.npy"], "panorama.png": src["panoramas/b.png"]}
+    assert listing(two) == {"depths": -1, "panoramas": -1, "scene.yaml": src["scene.yaml"],
+                            **{f"{k}/{n}.{x}": src[f"{k}/{n}.{x}"] for n in "cd"
+                               for k, x in (("depths", "npy"), ("panoramas", "png"))}}
+    assert listing(one) == {"depth.npy": src["depths/b.npy"], "panorama.png": src["panoramas/b.png"],
+                            "scene.yaml": src["scene.yaml"]}
     assert listing(d) == before
     assert cli("run", str(two), "--until", "register").returncode == 0  # c and d register with each other
     assert sorted(json.loads((two / "artifacts" / "register" / "panoramas.json").read_text())) == ["c", "d"]
+    assert art.read_manifest(two / "artifacts" / "register")["params"]["height"] == 256
     done = cli("split", str(two))  # every panorama registered: nothing to write
     assert done.returncode == 0 and "nothing to split" in done.stdout and not list(tmp_path.glob("h-group3-*"))
     assert cli("run", str(one), "--until", "depth").returncode == 0

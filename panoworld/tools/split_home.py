@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from panoworld.core.errors import InputError, PanoWorldError
+from panoworld.io.manifest import SCENE_CONFIG
 from panoworld.register.artifact import read_registration
 from panoworld.register.inputs import (
     DEPTHS_DIR,
@@ -59,14 +60,16 @@ def _link(src: Path, dst: Path) -> None:
         shutil.copy2(src, dst)
 
 
-def write_group(home: MultiScene, group: list[str], out: Path) -> None:
+def write_group(home: MultiScene, group: list[str], out: Path, config: Path | None = None) -> None:
     """The group's panoramas, depths and rig masks as a home at out (two or more panoramas: panoramas/, depths/,
-    rig_masks/) or as one panorama's scene (panorama.EXT, depth.EXT, rig_mask.png); files hard-linked where possible,
-    written beside out and renamed to it when complete. poses.json is not carried: no panorama of an unplaced group has
-    a given pose."""
+    rig_masks/) or as one panorama's scene (panorama.EXT, depth.EXT, rig_mask.png), with config (the home's
+    scene.yaml: its preset and params) where given; files hard-linked where possible, written beside out and renamed to
+    it when complete. poses.json is not carried: no panorama of an unplaced group has a given pose."""
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
     tmp.mkdir(parents=True)
     try:
+        if config is not None:
+            _link(config, tmp / SCENE_CONFIG)
         for n in group:
             files = [(home.panoramas[n], PANORAMAS_DIR, "panorama"), (home.depths.get(n), DEPTHS_DIR, "depth"),
                      (home.rig_masks.get(n), RIG_MASKS_DIR, "rig_mask")]
@@ -84,8 +87,8 @@ def main(argv: list[str] | None = None) -> int:
         prog="python runner.py split",
         description="Each group of a home's panoramas that registration left unplaced (joined to each other but to no "
                     "registered panorama, docs/multi.md) becomes a home of its own, HOME-group2, HOME-group3, ... beside "
-                    "HOME (a group of one panorama: a one-panorama scene), so `runner.py run` builds it. The files are "
-                    "hard-linked where the file system allows (else copied); HOME is not changed. A pose in "
+                    "HOME (a group of one panorama: a one-panorama scene) with HOME's scene.yaml, so `runner.py run` builds "
+                    "it as HOME's settings say. The files are hard-linked where the file system allows (else copied); HOME is not changed. A pose in "
                     "HOME/poses.json for one panorama of a group places it in HOME instead.")
     ap.add_argument("home", type=Path, help="a home (panoramas/) whose register stage has run")
     ap.add_argument("--out", type=Path, help="directory for the new homes (default: HOME's parent)")
@@ -102,8 +105,9 @@ def main(argv: list[str] | None = None) -> int:
             if t.exists():
                 raise InputError(f"{t}: already exists; remove it or give --out DIR")
         files = check_home(home)
+        config = home / SCENE_CONFIG if (home / SCENE_CONFIG).is_file() else None
         for group, t in zip(groups, targets):
-            write_group(files, group, t)
+            write_group(files, group, t, config)
     except PanoWorldError as e:
         print(f"error: {e}", file=sys.stderr)
         return e.exit_code
