@@ -597,15 +597,14 @@ def test_a_partial_registration_is_said_on_stderr_and_in_the_table(tmp_path):
 
 
 def test_split_makes_each_unplaced_group_a_home_that_runs(tmp_path):
-    """`runner.py split HOME`: the groups registration left unplaced (c with its copy d: a group of two; b alone) become
-    HOME-group2 (a home) and HOME-group3 (one panorama's scene) beside HOME, which the runner takes as they are; HOME is
-    unchanged. Before registration, or into a directory that exists: exit 2, one line, nothing written."""
+    """`runner.py split HOME`: the groups registration left unplaced (b alone; c with its copy d) become HOME-group2 (one
+    panorama's scene) and HOME-group3 (a home) beside HOME, with HOME's scene.yaml, which the runner takes as they are;
+    HOME is unchanged. Before registration, onto a directory that exists or after the home changed: exit 2, one line,
+    nothing written."""
     d = make_home(tmp_path / "h", poses=False)  # random textures and flat depths: no pair registers
-    for n in ("c", "e"):  # d: a copy of c, e: a copy of a; the first largest group by name (a, e) is registered
-        src = {"c": "c", "e": "a"}[n]
-        target = {"c": "d", "e": "e"}[n]
-        shutil.copy(d / "panoramas" / f"{src}.png", d / "panoramas" / f"{target}.png")
-        shutil.copy(d / "depths" / f"{src}.npy", d / "depths" / f"{target}.npy")
+    for src, copy in (("c", "d"), ("a", "e")):  # copies register with their originals; of the two groups of two, the
+        shutil.copy(d / "panoramas" / f"{src}.png", d / "panoramas" / f"{copy}.png")  # first by name (a, e) is placed
+        shutil.copy(d / "depths" / f"{src}.npy", d / "depths" / f"{copy}.npy")
     (d / "scene.yaml").write_text("params:\n  register:\n    height: 256\n")  # the home's settings go with each group
     refused(cli("split", str(d)), "no registration of this home; run `python runner.py run")
     assert not list(tmp_path.glob("h-group*"))
@@ -633,6 +632,7 @@ def test_split_makes_each_unplaced_group_a_home_that_runs(tmp_path):
     refused(cli("split", str(d)), f"{one}: already exists; remove it or give --out DIR")
     shutil.copy(d / "panoramas" / "b.png", d / "panoramas" / "f.png")  # the home changed since its registration
     refused(cli("split", str(d), "--out", str(tmp_path / "elsewhere")), "registered other panoramas than")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["h", "h-group2", "h-group3"]
 
 
 def test_200_panoramas_are_planned_without_trying_all_pairs():
