@@ -108,6 +108,17 @@ def read_registration(artifact_dir: Path) -> tuple[dict, dict]:
     return read_json(Path(artifact_dir) / PANORAMAS_JSON), read_json(Path(artifact_dir) / REGISTRATION_JSON)
 
 
+def unplaced_groups(panoramas: dict) -> list[list[str]]:
+    """The groups of the panoramas a registration left unplaced (registration.json's "panoramas": each unplaced one's
+    "group", itself and the panoramas joined to it), each once, in the order they first appear."""
+    groups: list[list[str]] = []
+    for n, p in panoramas.items():
+        group = p.get("group") or [n]
+        if not p.get("registered") and group not in groups:
+            groups.append(group)
+    return groups
+
+
 def registration_note(artifact_dir: Path, root: Path | None = None) -> str | None:
     """"home: 1 of 3 panoramas registered (not placed: ...; see artifacts/register/registration.json; ...)" when a
     register artifact placed fewer than all its panoramas, with the remedies (a pose in the scene's poses.json for one

@@ -9,8 +9,8 @@ import sys
 from pathlib import Path
 
 from panoworld.core.errors import InputError, PanoWorldError
-from panoworld.io.manifest import SCENE_CONFIG
-from panoworld.register.artifact import read_registration
+from panoworld.io.manifest import ARTIFACTS_DIRNAME, SCENE_CONFIG
+from panoworld.register.artifact import read_registration, unplaced_groups
 from panoworld.register.inputs import (
     DEPTHS_DIR,
     PANORAMAS_DIR,
@@ -21,14 +21,13 @@ from panoworld.register.inputs import (
     is_multi_scene,
 )
 
-REGISTER_DIR = Path("artifacts") / "register"
+REGISTER_DIR = Path(ARTIFACTS_DIRNAME) / "register"
 
 
-def unplaced_groups(scene: Path) -> list[list[str]]:
-    """The groups of panoramas (each sorted, the groups by their first name) that the home's register artifact left
-    unplaced: panoramas joined to each other but to no registered one; a panorama no pair joins is a group of one.
-    InputError when the home has no register artifact or one of other panoramas (registered before the home changed)."""
-    scene = Path(scene)
+def home_groups(scene: Path, names: list[str]) -> list[list[str]]:
+    """The groups of panoramas (each sorted, the groups by their first name) that the register artifact of the home
+    at scene, whose panoramas are names, left unplaced (register.artifact.unplaced_groups). InputError when the home
+    has no register artifact or one of other panoramas (registered before the home changed)."""
     run = f"run `python runner.py run {scene} --until register` first"
     try:
         _, reg = read_registration(scene / REGISTER_DIR)
@@ -36,19 +35,10 @@ def unplaced_groups(scene: Path) -> list[list[str]]:
         reg = None
     if not isinstance(reg, dict) or not isinstance(reg.get("panoramas"), dict):
         raise InputError(f"{scene / REGISTER_DIR / REGISTRATION_JSON}: no registration of this home; {run}")
-    names = check_home(scene).names
-    pans = reg["panoramas"]
-    if sorted(pans) != names:
+    if sorted(reg["panoramas"]) != names:
         raise InputError(f"{scene / REGISTER_DIR / REGISTRATION_JSON}: registered other panoramas than "
                          f"{scene / PANORAMAS_DIR} holds now; {run}")
-    groups: list[list[str]] = []
-    for n in names:
-        p = pans[n]
-        if p.get("registered") or any(n in g for g in groups):
-            continue
-        group = p.get("group") or [n]
-        groups.append(sorted(m for m in group if m in pans and not pans[m].get("registered")))
-    return sorted(groups)
+    return sorted(unplaced_groups(reg["panoramas"]))
 
 
 def _link(src: Path, dst: Path) -> None:
@@ -98,13 +88,13 @@ def main(argv: list[str] | None = None) -> int:
         if not is_multi_scene(home):
             raise InputError(f"{args.home}: not a home (no {PANORAMAS_DIR}/); split applies to a home of several "
                              "panoramas (docs/multi.md)")
-        groups = unplaced_groups(home)
+        files = check_home(home)
+        groups = home_groups(home, files.names)
         out_dir = (args.out or home.parent).resolve()
         targets = [out_dir / f"{home.name}-group{k}" for k in range(2, len(groups) + 2)]
         for t in targets:
             if t.exists():
                 raise InputError(f"{t}: already exists; remove it or give --out DIR")
-        files = check_home(home)
         config = home / SCENE_CONFIG if (home / SCENE_CONFIG).is_file() else None
         for group, t in zip(groups, targets):
             write_group(files, group, t, config)

@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 
+from panoworld.register.artifact import unplaced_groups
 from panoworld.tools.report import encode as enc
 from panoworld.tools.report.page import Page, Section, figure, fmt, missing, slider, svg_figure, table
 from panoworld.tools.report.scene_data import ReportParams, SceneData, subsample
@@ -203,11 +204,7 @@ def section_home(scene: SceneData, page: Page, params: ReportParams) -> Section:
     summary = (f"{n_reg} of {len(names)} panoramas registered ({sum(p.get('source') == 'given' for p in pans.values())} "
                f"given in poses.json); {fmt(info.get('pairs_accepted'))} of {fmt(info.get('pairs_tried'))} pairs tried "
                "were accepted as edges.")
-    groups = []
-    for p in pans.values():
-        g = p.get("group")
-        if not p.get("registered") and g and g not in groups:
-            groups.append(g)
+    groups = unplaced_groups(pans)
     notes = [summary]
     if groups:
         notes.append("Not placed, by group (panoramas joined to each other but to no registered one): "
