@@ -352,6 +352,51 @@ def test_exr_header_gives_the_size_of_a_real_exr(tmp_path):
     assert exr_header(tmp_path / "c.exr") == (64, 32)
 
 
+def test_a_truncated_exr_depth_is_refused_before_any_panorama_is_worked_on(tmp_path, monkeypatch):
+    """The last panorama's EXR depth cut short: `runner.py run` refuses the home in one line naming the file, before
+    anything is written (its header alone is intact). A file that passed is not decoded again."""
+    OpenEXR = pytest.importorskip("OpenEXR")
+    from panoworld.io import images
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    d = make_home(tmp_path / "h")
+    exr = d / "depths" / "c.exr"
+    (d / "depths" / "c.npy").unlink()
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                      {"Z": np.random.default_rng(0).uniform(1, 3, (32, 64)).astype(np.float32)}) as f:
+        f.write(str(exr))
+    whole = exr.read_bytes()
+    assert images.check_depth_file(exr) == (64, 32)
+    decoded = []
+    monkeypatch.setattr(images, "read_exr", lambda p: decoded.append(p))
+    assert images.check_depth_file(exr) == (64, 32) and not decoded  # remembered by path, size, mtime and inode
+    monkeypatch.undo()
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    exr.write_bytes(whole[:len(whole) * 3 // 4])
+    before = listing(d)
+    refused(cli("run", str(d)), "c.exr: cannot read the EXR depth, corrupt or truncated")
+    assert listing(d) == before
+    open_within_2s(d)
+
+
+def test_a_home_of_one_panorama_builds_the_scene_of_that_panorama(tmp_path):
+    """panoramas/ with a single panorama (a converted dataset's home of one capture) runs like SCENE/panorama.png with
+    its depth: the same Gaussians, byte for byte."""
+    d = make_home(tmp_path / "h", names=("a",), poses=False)
+    s = tmp_path / "s"
+    s.mkdir()
+    shutil.copy(d / "panoramas" / "a.png", s / "panorama.png")
+    shutil.copy(d / "depths" / "a.npy", s / "depth.npy")
+    for scene in (d, s):
+        out = cli("run", str(scene), "--preset", "ci-tiny")
+        assert out.returncode == 0, out.stderr[-2000:]
+    placed = json.loads((d / "artifacts" / "register" / "registration.json").read_text())["panoramas"]
+    assert placed == {"a": {"registered": True, "source": "estimated", "parent": None}}
+    ply = [(x / "artifacts" / "gaussians" / "gaussians.ply").read_bytes() for x in (d, s)]
+    assert ply[0] == ply[1]
+    refused(cli("run", str(make_home(tmp_path / "empty", names=()))), "found no panorama")
+
+
 # ---------------------------------------------------------------- 6: poses.json
 
 

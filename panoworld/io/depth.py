@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import enum
-import os
 from pathlib import Path
 
 import cv2
@@ -11,7 +10,7 @@ import numpy as np
 
 from panoworld.core.errors import InputError
 from panoworld.core.limits import check_image_size, depth_plane, exr_header, load_npy
-from panoworld.io.images import read_image
+from panoworld.io.images import read_exr, read_image
 
 
 class DepthKind(enum.StrEnum):
@@ -77,7 +76,7 @@ def read_depth(path: Path, *, png_scale: float = 0.001) -> np.ndarray:
         depth = load_npy(path, "depth array", kinds="fiu")
     elif suffix == ".exr":
         exr_header(path)
-        depth = _read_exr(path)
+        depth = read_exr(path)
     elif suffix == ".png":
         depth = read_image(path, cv2.IMREAD_UNCHANGED, what="depth PNG")
         if depth.dtype != np.uint16:
@@ -90,32 +89,6 @@ def read_depth(path: Path, *, png_scale: float = 0.001) -> np.ndarray:
     depth = depth_plane(depth, path)
     check_image_size(path, depth.shape[1], depth.shape[0], "depth")
     return np.asarray(depth, dtype=np.float32)
-
-
-def _read_exr(path: Path) -> np.ndarray:
-    os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
-    try:
-        depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
-    except cv2.error:
-        depth = None
-    if depth is not None:
-        return depth
-    try:
-        import OpenEXR
-    except ImportError:
-        raise InputError(
-            f"{path}: cannot read EXR (this OpenCV has no OpenEXR and the OpenEXR package is missing); "
-            "pip install OpenEXR, or save depth.npy"
-        ) from None
-    try:
-        with OpenEXR.File(str(path)) as f:
-            channels = f.channels()
-            name = next(c for c in ("Z", "Y", "R", "depth") if c in channels) if channels else None
-            if name is None:
-                name = next(iter(channels))
-            return np.asarray(channels[name].pixels, dtype=np.float32)
-    except Exception as e:  # OpenEXR raises plain exceptions for corrupt files
-        raise InputError(f"{path}: cannot read the EXR depth ({e})") from None
 
 
 def load_depth_artifact(artifact_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 import warnings
+from collections.abc import Callable
 from dataclasses import astuple, dataclass
 from pathlib import Path
 
@@ -56,6 +59,20 @@ def _remember_checked(path: Path, info: ImageInfo) -> None:
     write_user_cache(_CHECKED_FILE, dict(list(doc.items())[-_CHECKED_MAX:]))
 
 
+def _check_remembered(path: Path, check: Callable[[], ImageInfo]) -> ImageInfo:
+    """check() once per version of the file (path, size, mtime, inode, device) that passed it."""
+    key, stat = _checked_key(path)
+    hit = read_user_cache(_CHECKED_FILE).get(key)
+    if isinstance(hit, list) and len(hit) == 2 and hit[0] == stat:
+        try:
+            return ImageInfo(*hit[1])
+        except TypeError:
+            pass
+    info = check()
+    _remember_checked(path, info)
+    return info
+
+
 def check_image(path: Path | str, what: str = "image", *, remember: bool = False) -> ImageInfo:
     """Check a user image without trusting it: exists, a known format, at most MAX_PIXELS, and fully decodable with no
     decoder warning (truncated or corrupt data is refused). ImageInputError (one line: the file and the fix) otherwise.
@@ -67,16 +84,7 @@ def check_image(path: Path | str, what: str = "image", *, remember: bool = False
     if not path.is_file():
         raise ImageInputError(f"{path}: {what} not found (or not a regular file)")
     if remember:
-        key, stat = _checked_key(path)
-        hit = read_user_cache(_CHECKED_FILE).get(key)
-        if isinstance(hit, list) and len(hit) == 2 and hit[0] == stat:
-            try:
-                return ImageInfo(*hit[1])
-            except TypeError:
-                pass
-        info = check_image(path, what)
-        _remember_checked(path, info)
-        return info
+        return _check_remembered(path, lambda: check_image(path, what))
     from PIL import Image
 
     old = Image.MAX_IMAGE_PIXELS
@@ -132,8 +140,9 @@ def read_image(path: Path | str, flags: int = -1, what: str = "image") -> np.nda
 
 
 def check_depth_file(path: Path | str) -> tuple[int, int]:
-    """(width, height) of a user depth file (.npy, .exr or .png) from its header (a PNG is decoded, as every image),
-    within MAX_PIXELS and MIN_HEIGHT; InputError (one line naming the file) otherwise. Nothing large is read."""
+    """(width, height) of a user depth file (.npy, .exr or .png) within MAX_PIXELS and MIN_HEIGHT; InputError (one line
+    naming the file) otherwise. A .npy is checked from its header and size, a PNG or EXR is decoded (once per file
+    version, as check_image(remember=True)), so a truncated one is refused before any panorama is worked on."""
     path = Path(path)
     suffix = path.suffix.lower()
     if not path.is_file():
@@ -142,9 +151,11 @@ def check_depth_file(path: Path | str) -> tuple[int, int]:
         shape, _ = npy_header(path, "depth array", kinds="fiu")
         h, w = depth_plane(np.broadcast_to(np.float32(0), shape), path).shape
     elif suffix == ".exr":
-        w, h = exr_header(path)
+        exr_header(path)  # the size from the header first: nothing is decoded beyond the limits
+        info = _check_remembered(path, lambda: _decoded_exr_info(path))
+        w, h = info.width, info.height
     else:
-        info = check_image(path, "depth PNG")
+        info = check_image(path, "depth PNG", remember=True)
         w, h = info.width, info.height
     check_image_size(path, w, h, "depth")
     return w, h
@@ -157,3 +168,56 @@ def check_mask_file(path: Path | str, what: str = "rig mask") -> tuple[int, int]
     if w != 2 * h:
         raise InputError(f"{path}: {what} is {w}x{h} but must be 2:1 like the panorama")
     return w, h
+
+
+def read_exr(path: Path | str) -> np.ndarray:
+    """The depth plane of an OpenEXR file (the Z, Y, R or depth channel, else the first) as float32 (H, W) (OpenCV with
+    OpenEXR, else the `OpenEXR` package); InputError (one line) for a corrupt or truncated file."""
+    import cv2
+
+    os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
+    try:
+        depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_ANYDEPTH)
+    except cv2.error:
+        depth = None
+    if depth is not None:
+        return depth
+    try:
+        import OpenEXR
+    except ImportError:
+        raise InputError(
+            f"{path}: cannot read EXR (this OpenCV has no OpenEXR and the OpenEXR package is missing); "
+            "pip install OpenEXR, or save depth.npy"
+        ) from None
+    try:
+        with _c_output_silenced(), OpenEXR.File(str(path)) as f:
+            channels = f.channels()
+            name = next(c for c in ("Z", "Y", "R", "depth") if c in channels) if channels else None
+            if name is None:
+                name = next(iter(channels))
+            return np.asarray(channels[name].pixels, dtype=np.float32)
+    except Exception as e:  # OpenEXR raises plain exceptions for corrupt files
+        raise InputError(f"{path}: cannot read the EXR depth, corrupt or truncated ({e}); save it again") from None
+
+
+@contextlib.contextmanager
+def _c_output_silenced():
+    """File descriptors 1 and 2 on /dev/null: OpenEXR prints its own lines about a corrupt file, which is refused in one."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, 1)
+        os.dup2(null, 2)
+        yield
+    finally:
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        for fd in (*saved, null):
+            os.close(fd)
+
+
+def _decoded_exr_info(path: Path) -> ImageInfo:
+    depth = depth_plane(read_exr(path), path)
+    return ImageInfo(depth.shape[1], depth.shape[0], "EXR", 1)

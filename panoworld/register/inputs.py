@@ -97,13 +97,13 @@ def check_home(scene: Path) -> MultiScene:
 
 
 def find_home_files(pano_dir: Path, depth_dir: Path | None = None, mask_dir: Path | None = None) -> MultiScene:
-    """The panoramas, depths and rig masks of a home; InputError (naming the file and the fix) for fewer than 2
-    panoramas, more than MAX_HOME_PANORAMAS, an unsafe or repeated name, a depth or mask of no panorama."""
+    """The panoramas, depths and rig masks of a home; InputError (naming the file and the fix) for no
+    panorama, more than MAX_HOME_PANORAMAS, an unsafe or repeated name, a depth or mask of no panorama."""
     pano_dir = Path(pano_dir)
     panos, ignored = list_named(pano_dir, PANORAMA_SUFFIXES, "panorama")
-    if len(panos) < 2:
-        raise InputError(f"{pano_dir}: found {len(panos)} panoramas; put two or more NAME.png/.jpg there "
-                         "(a single panorama goes in SCENE/panorama.png)")
+    if not panos:
+        raise InputError(f"{pano_dir}: found no panorama; put NAME.png/.jpg there "
+                         "(a single panorama may also go in SCENE/panorama.png)")
     if len(panos) > MAX_HOME_PANORAMAS:
         raise InputError(f"{pano_dir}: {len(panos)} panoramas, over the limit of {MAX_HOME_PANORAMAS}; split the home "
                          "(docs/real_inputs.md#limits)")

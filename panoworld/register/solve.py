@@ -93,7 +93,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     small: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     views: dict[str, FloorView | None] = {}
     k = len(names)
-    if need:
+    if need and k > 1:  # one panorama has no pair: nothing to prepare
         def one_panorama(n: str):
             rgbd = rgbd_at_height(rgbs[n], depths[n], o.height)
             rig = grow_exclusion((rig_masks or {}).get(n))
