@@ -394,7 +394,11 @@ def test_a_home_of_one_panorama_builds_the_scene_of_that_panorama(tmp_path):
     assert placed == {"a": {"registered": True, "source": "estimated", "parent": None}}
     ply = [(x / "artifacts" / "gaussians" / "gaussians.ply").read_bytes() for x in (d, s)]
     assert ply[0] == ply[1]
-    refused(cli("run", str(make_home(tmp_path / "empty", names=()))), "found no panorama")
+    empty = make_home(tmp_path / "empty", names=())
+    refused(cli("run", str(empty)), "found no panorama; put NAME.png/.jpg there")
+    (empty / "panoramas" / "floor1").mkdir()
+    cv2.imwrite(str(empty / "panoramas" / "a.webp"), pano())
+    refused(cli("run", str(empty)), "found no panorama among a.webp, floor1/; put NAME.png/.jpg there, at its top level")
 
 
 # ---------------------------------------------------------------- 6: poses.json

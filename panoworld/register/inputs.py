@@ -102,7 +102,9 @@ def find_home_files(pano_dir: Path, depth_dir: Path | None = None, mask_dir: Pat
     pano_dir = Path(pano_dir)
     panos, ignored = list_named(pano_dir, PANORAMA_SUFFIXES, "panorama")
     if not panos:
-        raise InputError(f"{pano_dir}: found no panorama; put NAME.png/.jpg there "
+        held = [p.name + "/" * p.is_dir() for p in ignored]
+        what = f" among {', '.join(held[:3])}{' ...' if len(held) > 3 else ''}" if held else ""
+        raise InputError(f"{pano_dir}: found no panorama{what}; put NAME.png/.jpg there, at its top level "
                          "(a single panorama may also go in SCENE/panorama.png)")
     if len(panos) > MAX_HOME_PANORAMAS:
         raise InputError(f"{pano_dir}: {len(panos)} panoramas, over the limit of {MAX_HOME_PANORAMAS}; split the home "
