@@ -10,10 +10,11 @@ error or 2 deg of yaw error is misplaced (a home without the panoramas that join
 capture may be); and with --rolls N --home HOME, the home registered again N times from its inputs with every panorama
 turned by its own random azimuth (where its seam falls), each draw against the survey (with --rows R, from its
 panoramas resized to R rows; with --exposure G, each panorama's exposure scaled by its own random gain within G
-times; with --rename, the panoramas renamed in a random order; --rows, --exposure or --rename alone: once).
+times; with --tilt D, each panorama and its depth tilted by D degrees about its own random horizontal axis; with
+--rename, the panoramas renamed in a random order; --rows, --exposure, --tilt or --rename alone: once).
 
 `python bench/real_home_survey.py REGISTER_ARTIFACT SURVEY_JSON [--json] [--floor-fits] [--floor-evidence] [--subsets N]
-[--rolls N] [--rows R] [--exposure G] [--rename] [--home HOME] [--seed S]` prints them;
+[--rolls N] [--rows R] [--exposure G] [--tilt D] [--rename] [--home HOME] [--seed S]` prints them;
 `compare_to_survey` is the function the real-home benchmark imports."""
 
 from __future__ import annotations
@@ -222,15 +223,38 @@ def expose(rgb: np.ndarray, gain: float, balance: np.ndarray) -> np.ndarray:
     return np.clip(np.clip(lin, 0.0, 1.0) ** (1 / 2.2) * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 
+def tilt(rgb: np.ndarray, depth: np.ndarray, deg: float, azimuth: float) -> tuple[np.ndarray, np.ndarray]:
+    """rgb (H, W, 3) and its ray depth (h, w) as captured by the same camera tilted by deg about the horizontal axis
+    at azimuth (radians, from the camera's z towards x): rgb resampled bicubic, the depth nearest (a ray's
+    distance is the same from a camera turned about its centre)."""
+    import cv2
+
+    from panoworld.core.conventions import erp_dirs, erp_pixel_from_dir
+
+    axis = np.array([np.sin(azimuth), 0.0, np.cos(azimuth)])
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    a = np.radians(deg)
+    tilted_from_level = np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+    out = []
+    for img, interp in ((rgb, cv2.INTER_CUBIC), (depth, cv2.INTER_NEAREST)):
+        h, w = img.shape[:2]
+        u, v = erp_pixel_from_dir(erp_dirs(h, w).reshape(-1, 3).astype(np.float64) @ tilted_from_level, h, w)
+        out.append(cv2.remap(img, ((u - 0.5) % w).reshape(h, w).astype(np.float32),
+                             (v - 0.5).reshape(h, w).astype(np.float32), interp, borderMode=cv2.BORDER_WRAP))
+    return out[0], out[1]
+
+
 def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0, size: int | None = None,
-                       turn: bool = True, exposure: float = 1.0, rename: bool = False) -> list[dict]:
+                       turn: bool = True, exposure: float = 1.0, rename: bool = False,
+                       tilt_deg: float = 0.0) -> list[dict]:
     """The home (panoramas/, depths/) registered again `draws` times with each panorama and its depth turned about
     gravity by its own random azimuth (a whole number of depth columns, so both move exactly; not with turn=False),
     and resized to `size` rows first (area; the depth by the same factor, nearest), through the depth and
     register stages at default settings (`runner.py run COPY --until register`); the survey's yaws turned with
     them. exposure > 1: each panorama's exposure also scaled by its own gain, log-uniform in [1 / exposure,
     exposure], and its white balance by its own factor per channel in [0.95, 1.05] (expose), as a tour's auto
-    exposure differs from room to room. rename: the panoramas named capture_000, capture_001, ... in a random order
+    exposure differs from room to room. tilt_deg: each panorama and its depth tilted by it about its own random
+    horizontal axis (tilt), as an unlevelled camera captures. rename: the panoramas named capture_000, capture_001, ... in a random order
     (the capture order and the first name, which sets the world frame and breaks ties between groups), the result
     read back under their own names. Per draw: the registered panoramas, the errors and whether it is misplaced.
     Where a panorama's seam falls, the capture's size, its exposure and its name are arbitrary; the registration
@@ -258,6 +282,8 @@ def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0, size
                 src = next(p for p in (home / "panoramas").iterdir() if p.stem == n)
                 rgb, depth, k = vary(read_panorama(src), read_depth(home / "depths" / f"{n}.npy"),
                                      rng if turn else None, size, src)
+                if tilt_deg:
+                    rgb, depth = tilt(rgb, depth, tilt_deg, float(rng.uniform(0, 2 * np.pi)))
                 if exposure > 1:
                     rgb = expose(rgb, float(np.exp(rng.uniform(-1, 1) * np.log(exposure))), rng.uniform(0.95, 1.05, 3))
                 cv2.imwrite(str(copy / "panoramas" / f"{alias[n]}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
@@ -303,6 +329,9 @@ def main() -> int:
     ap.add_argument("--exposure", type=float, default=1.0, metavar="G",
                     help="with --home: each panorama's exposure scaled by its own random gain in [1/G, G] and its "
                          "white balance by up to 5 %% per channel (each --rolls draw, or once)")
+    ap.add_argument("--tilt", type=float, default=0.0, metavar="D",
+                    help="with --home: each panorama and its depth tilted by D degrees about its own random horizontal "
+                         "axis (each --rolls draw, or once)")
     ap.add_argument("--rename", action="store_true",
                     help="with --home: the panoramas renamed in a random order in each draw (capture order, first name)")
     ap.add_argument("--seed", type=int, default=0, help="the subsets' and the draws' random seed")
@@ -319,11 +348,11 @@ def main() -> int:
         r["floor_evidence"] = floor_evidence(args.register.parent / "depth", survey, set(poses), rows)
     if args.subsets:
         r["subsets"] = subset_registrations(args.register.parent / "depth", survey, args.subsets, args.seed)
-    if args.rolls or args.rows or args.exposure > 1 or args.rename:
+    if args.rolls or args.rows or args.exposure > 1 or args.rename or args.tilt:
         if args.home is None:
-            ap.error("--rolls, --rows, --exposure and --rename need --home (the home's panoramas/ and depths/)")
+            ap.error("--rolls, --rows, --exposure, --tilt and --rename need --home (the home's panoramas/ and depths/)")
         r["rolls"] = roll_registrations(args.home, survey, args.rolls or 1, args.seed, args.rows, turn=bool(args.rolls),
-                                        exposure=args.exposure, rename=args.rename)
+                                        exposure=args.exposure, rename=args.rename, tilt_deg=args.tilt)
     if args.json:
         print(json.dumps(r, indent=1))
         return 0
@@ -383,6 +412,7 @@ def main() -> int:
         rows = r["rolls"]
         what = f"draws of random azimuths (seed {args.seed})" if args.rolls else "registration from the inputs"
         what += f", exposures within {args.exposure:g}x" if args.exposure > 1 else ""
+        what += f", tilted {args.tilt:g} deg" if args.tilt else ""
         what += ", renamed in a random order" if args.rename else ""
         print(f"\n{len(rows)} {what}{f' at {args.rows} rows' if args.rows else ''}: "
               f"{sum(len(x['registered']) for x in rows)} of {len(rows) * r['panoramas']} surveyed panoramas "

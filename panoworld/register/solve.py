@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from panoworld.core.conventions import invert_pose
+from panoworld.core.conventions import invert_pose, pose_from_rt
 from panoworld.core.parallel import cpu_threads, map_ahead
 from panoworld.geometry.floor_view import FloorView, camera_height
 from panoworld.geometry.resize import rgbd_at_height
@@ -29,6 +29,7 @@ from panoworld.register.graph import (
     tree_path,
 )
 from panoworld.register.layout import LayoutPose, layout_pair, manhattan_frame, room
+from panoworld.register.level import level_from_cam, levelled, tilt_deg
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pair_select import appearance_descriptor, bridge_pairs, candidate_pairs
 from panoworld.register.pairwise import (
@@ -84,7 +85,13 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     otherwise a bearing edge when upright two-view geometry keeps >= min_bearing_inliers
     (metric when >= min_scale_support matched points' depths agree on its scale, a direction edge when not)."""
     o = options or RegisterOptions()
-    given = dict(given or {})
+    # A tilted panorama (its floor not level) is registered levelled, its pose composed with the levelling after.
+    level = {n: R for n in names if (R := level_from_cam(depths[n])) is not None}
+    lift = {n: pose_from_rt(level[n], np.zeros(3)) for n in level}
+    rgbs = {n: levelled(rgbs[n], level[n]) if n in level else rgbs[n] for n in names}
+    depths = {n: levelled(depths[n], level[n], nearest=True) if n in level else depths[n] for n in names}
+    rig_masks = {n: levelled(m, level[n], nearest=True) if n in level else m for n, m in (rig_masks or {}).items()}
+    given = {n: T @ invert_pose(lift[n]) if n in lift else T for n, T in (given or {}).items()}
     need = [n for n in names if n not in given]
     pairs: dict[tuple[int, int], PairResult] = {}
     bearing: dict[tuple[int, int], tuple[UprightPose | None, float, int]] = {}
@@ -167,6 +174,9 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     if outvoted:
         overlaps |= outvoted | refuse_overlapping_rooms(names, edges, given, room_depths, o)
     poses, info = solve_graph(names, edges, given)
+    poses = {n: T @ lift[n] if n in lift else T for n, T in poses.items()}
+    for n in level:
+        info[n]["levelled_tilt_deg"] = round(tilt_deg(level[n]), 3)
     for n, theta in frames.items():
         if theta is not None:
             info[n]["walls_deg"] = round(float(np.degrees(theta)), 3)

@@ -1,0 +1,72 @@
+"""A tilted panorama's levelling rotation from the floor its depth shows, and its images levelled for registration."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from panoworld.core.conventions import erp_dirs64, erp_pixel_from_dir
+from panoworld.core.shapes import check_shape
+from panoworld.geometry.floor_view import camera_height
+
+MIN_TILT_DEG = 0.25
+"""A floor tilted less than this is taken as level (nothing is resampled): 1 cm at 2.3 m."""
+MAX_TILT_DEG = 10.0
+"""A plane tilted more than this below the camera is not taken for its floor (a ramp, stairs, a bed)."""
+MIN_FLOOR_POINTS = 500
+"""Depth pixels on the floor plane needed to trust its normal."""
+_MAX_POINTS = 200_000
+
+
+def level_from_cam(depth: np.ndarray) -> np.ndarray | None:
+    """(3, 3) rotation taking the camera frame (docs/conventions.md) to the levelled one whose +y is the floor's
+    normal (down), turned about the axis in the floor level with the camera (so its yaw stays), from the ray depth
+    (H, W); None where the floor is level within MIN_TILT_DEG, not seen, or tilted beyond MAX_TILT_DEG.
+
+    The floor: the depth pixels 25 to 60 deg below the horizon (not the cap under the camera, where a rig was removed
+    and the poles completed level) within 10 % of the camera height
+    (geometry.floor_view.camera_height, robust to walls), a least-squares plane refitted to the points near it, the
+    band narrowed from 10 % of the height to 2 cm (or 1 %)."""
+    check_shape("depth", depth, "H W")
+    h = camera_height(depth)
+    if h is None or not h > 0:
+        return None
+    dirs = erp_dirs64(*depth.shape)
+    down = dirs[..., 1]  # the sine of the depression; the cap under the camera (rig, completed poles) left out
+    sel = np.isfinite(depth) & (depth > 0) & (down > np.sin(np.radians(25.0))) & (down < np.sin(np.radians(60.0)))
+    pts = dirs[sel] * depth[sel][:, None].astype(np.float64)
+    if len(pts) > _MAX_POINTS:
+        pts = pts[:: len(pts) // _MAX_POINTS + 1]
+    n, c = np.array([0.0, 1.0, 0.0]), np.array([0.0, h, 0.0])
+    for band in (0.1, 0.1, 0.05, 0.05, 0.02, 0.01, 0.01):  # the plane turns towards the floor as the band narrows
+        inl = np.abs((pts - c) @ n) < max(0.02, band * h)
+        if inl.sum() < MIN_FLOOR_POINTS:
+            return None
+        c = pts[inl].mean(0)
+        n = np.linalg.svd(pts[inl] - c, full_matrices=False)[2][2]
+        n = n if n[1] > 0 else -n
+    tilt = float(np.degrees(np.arccos(np.clip(n[1], -1.0, 1.0))))
+    if not MIN_TILT_DEG <= tilt <= MAX_TILT_DEG:
+        return None
+    axis = np.cross(n, [0.0, 1.0, 0.0])
+    axis /= np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    a = np.radians(tilt)
+    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+
+
+def tilt_deg(level_from_cam_: np.ndarray) -> float:
+    """The tilt a levelling rotation (3, 3) undoes, in degrees."""
+    return float(np.degrees(np.arccos(np.clip(level_from_cam_[1, 1], -1.0, 1.0))))
+
+
+def levelled(image: np.ndarray, level_from_cam_: np.ndarray, *, nearest: bool = False) -> np.ndarray:
+    """An ERP image (H, W[, C]) as the levelled camera sees it: each pixel of the levelled frame sampled along its
+    ray in the camera frame (bilinear; nearest for depth and masks, whose values must not blend)."""
+    h, w = image.shape[:2]
+    u, v = erp_pixel_from_dir(erp_dirs64(h, w).reshape(-1, 3) @ level_from_cam_, h, w)
+    mx = ((u - 0.5) % w).reshape(h, w).astype(np.float32)
+    my = np.clip(v - 0.5, 0, h - 1).reshape(h, w).astype(np.float32)
+    src = image.astype(np.uint8) if image.dtype == bool else image
+    out = cv2.remap(src, mx, my, cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    return out.astype(bool) if image.dtype == bool else out
