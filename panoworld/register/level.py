@@ -48,11 +48,8 @@ def level_from_cam(depth: np.ndarray) -> np.ndarray | None:
     tilt = float(np.degrees(np.arccos(np.clip(n[1], -1.0, 1.0))))
     if not MIN_TILT_DEG <= tilt <= MAX_TILT_DEG:
         return None
-    axis = np.cross(n, [0.0, 1.0, 0.0])
-    axis /= np.linalg.norm(axis)
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    a = np.radians(tilt)
-    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+    axis = np.cross(n, [0.0, 1.0, 0.0])  # turning n onto +y about it
+    return cv2.Rodrigues(axis / np.linalg.norm(axis) * np.radians(tilt))[0]
 
 
 def tilt_deg(level_from_cam_: np.ndarray) -> float:

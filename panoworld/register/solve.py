@@ -86,10 +86,10 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     (metric when >= min_scale_support matched points' depths agree on its scale, a direction edge when not)."""
     o = options or RegisterOptions()
     # A tilted panorama (its floor not level) is registered levelled, its pose composed with the levelling after.
-    level = {n: R for n in names if (R := level_from_cam(depths[n])) is not None}
+    level = {n: R for n in names if n in depths and (R := level_from_cam(depths[n])) is not None}
     lift = {n: pose_from_rt(level[n], np.zeros(3)) for n in level}
-    rgbs = {n: levelled(rgbs[n], level[n]) if n in level else rgbs[n] for n in names}
-    depths = {n: levelled(depths[n], level[n], nearest=True) if n in level else depths[n] for n in names}
+    rgbs = {n: levelled(x, level[n]) if n in level else x for n, x in rgbs.items()}
+    depths = {n: levelled(x, level[n], nearest=True) if n in level else x for n, x in depths.items()}
     rig_masks = {n: levelled(m, level[n], nearest=True) if n in level else m for n, m in (rig_masks or {}).items()}
     given = {n: T @ invert_pose(lift[n]) if n in lift else T for n, T in (given or {}).items()}
     need = [n for n in names if n not in given]
