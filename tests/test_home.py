@@ -240,6 +240,11 @@ def test_home_report_names_a_panorama_left_unregistered_and_why(home_run, tmp_pa
     assert "1 of 3 panoramas registered" in home
     assert home.count('<span class="bad">not registered</span>') == 2 and home.count(why) >= 2
     assert "Not placed, by group (panoramas joined to each other but to no registered one): pano_01, pano_02." in home
+    assert "levelled for registration" not in home
+    doc["panoramas"]["pano_00"]["levelled_tilt_deg"] = 1.962  # as register writes it for a camera that was not level
+    (reg_dir / "registration.json").write_text(json.dumps(doc))
+    home = _home_section(build_scene_report(scene, tmp_path / "report.html").read_text())
+    assert "Taken with the camera not level, levelled for registration" in home and "pano_00 2.0°" in home
     plan = re.search(r"<svg.*?</svg>", home, re.S).group(0)  # the capture points from above: the registered one alone
     assert ">pano_00</text>" in plan and ">pano_01</text>" not in plan and "<polyline" not in plan
 

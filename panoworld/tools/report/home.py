@@ -211,6 +211,11 @@ def section_home(scene: SceneData, page: Page, params: ReportParams) -> Section:
                      + "; ".join(", ".join(g) for g in groups) + ". A pose in SCENE/poses.json for one panorama of "
                      "each group places that group; `runner.py split SCENE` makes each group a home of its own "
                      "(docs/multi.md).")
+    tilted = {n: p["levelled_tilt_deg"] for n, p in pans.items() if p.get("levelled_tilt_deg") is not None}
+    if tilted:
+        notes.append("Taken with the camera not level, levelled for registration (the tilt its floor shows; its pose "
+                     "holds it, the scene is built as taken): " + ", ".join(f"{n} {d:.1f}°" for n, d in tilted.items())
+                     + " (docs/multi.md).")
     if psnr:
         notes.append("Capture pose PSNR: the gaussians stage's colour-fit render at each capture pose against that "
                      "panorama (cleaned), from its manifest's color_fit.")
