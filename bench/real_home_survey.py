@@ -240,7 +240,8 @@ def tilt(rgb: np.ndarray, depth: np.ndarray, deg: float, azimuth: float) -> tupl
         h, w = img.shape[:2]
         u, v = erp_pixel_from_dir(erp_dirs(h, w).reshape(-1, 3).astype(np.float64) @ tilted_from_level, h, w)
         out.append(cv2.remap(img, ((u - 0.5) % w).reshape(h, w).astype(np.float32),
-                             (v - 0.5).reshape(h, w).astype(np.float32), interp, borderMode=cv2.BORDER_WRAP))
+                             np.clip(v - 0.5, 0, h - 1).reshape(h, w).astype(np.float32), interp,
+                             borderMode=cv2.BORDER_WRAP))
     return out[0], out[1]
 
 

@@ -79,13 +79,13 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     """Register panoramas (RGB uint8 and metric ray depth (H, W) each; rig_masks: an ERP mask (H', 2H') bool per
     panorama that has a detected capture rig, where no keypoint is taken, on the panorama or its floor image); given
     poses are kept as they are (and anchor the others), otherwise the largest set joined together is registered in
-    its first panorama's frame. A pair is a
+    its first panorama's frame. A panorama whose depth shows its floor tilted is registered levelled and its pose
+    composed with the levelling (register.level; registration.json's levelled_tilt_deg). A pair is a
     depth edge when RANSAC keeps >= min_inliers, the refined pose has >= min_consistency free-space consistency and
     >= min_overlap overlap, and the bearing-only estimate of the same matches does not contradict it (_contradiction);
     otherwise a bearing edge when upright two-view geometry keeps >= min_bearing_inliers
     (metric when >= min_scale_support matched points' depths agree on its scale, a direction edge when not)."""
     o = options or RegisterOptions()
-    # A tilted panorama (its floor not level) is registered levelled, its pose composed with the levelling after.
     level = {n: R for n in names if n in depths and (R := level_from_cam(depths[n])) is not None}
     lift = {n: pose_from_rt(level[n], np.zeros(3)) for n in level}
     rgbs = {n: levelled(x, level[n]) if n in level else x for n, x in rgbs.items()}
