@@ -89,9 +89,11 @@ def _read_rig_mask(path: Path) -> np.ndarray:
 
 def _summary(names: list[str], given: dict, reg: Registration) -> dict:
     n_reg = sum(p["registered"] for p in reg.panoramas.values())
+    levelled = {n: p["levelled_tilt_deg"] for n, p in reg.panoramas.items() if "levelled_tilt_deg" in p}
     return {"num_panoramas": len(names), "num_registered": n_reg, "num_given": len(given),
             "unregistered": [n for n, p in reg.panoramas.items() if not p["registered"]],
-            "pairs_accepted": sum(p.get("edge") is not None for p in reg.pairs), "pairs_tried": len(reg.pairs)}
+            "pairs_accepted": sum(p.get("edge") is not None for p in reg.pairs), "pairs_tried": len(reg.pairs),
+            **({"levelled_tilt_deg": levelled} if levelled else {})}
 
 
 def write_registration(out_dir: Path, reg: Registration) -> None:
@@ -123,15 +125,25 @@ def registration_note(artifact_dir: Path, root: Path | None = None) -> str | Non
     """"home: 1 of 3 panoramas registered (not placed: ...; see artifacts/register/registration.json; ...)" when a
     register artifact placed fewer than all its panoramas, with the remedies (a pose in the scene's poses.json for one
     panorama of each group that no pair joins places that group; `runner.py split` makes each group a home of its
-    own); None when it placed all (or there is no readable artifact)."""
+    own), and the panoramas registration levelled (taken with the camera not level); None when it placed all, level
+    (or there is no readable artifact)."""
     info = read_json(Path(artifact_dir) / "manifest.json", default={})
     info = info.get("info") if isinstance(info, dict) else None
-    if not isinstance(info, dict) or info.get("num_registered") == info.get("num_panoramas"):
+    if not isinstance(info, dict):
         return None
-    left = [str(n) for n in info.get("unregistered") or []]
-    shown = Path(artifact_dir) / REGISTRATION_JSON
-    shown = shown.relative_to(root) if root is not None and shown.is_relative_to(root) else shown
-    more = f" +{len(left) - 5} more" if len(left) > 5 else ""
-    return (f"home: {info.get('num_registered')} of {info.get('num_panoramas')} panoramas registered (not placed: "
-            f"{', '.join(left[:5])}{more}; see {shown}; a pose in poses.json for one panorama of each group places it, "
-            "`runner.py split` makes each group a home of its own)")
+    parts = []
+    if info.get("num_registered") != info.get("num_panoramas"):
+        left = [str(n) for n in info.get("unregistered") or []]
+        shown = Path(artifact_dir) / REGISTRATION_JSON
+        shown = shown.relative_to(root) if root is not None and shown.is_relative_to(root) else shown
+        more = f" +{len(left) - 5} more" if len(left) > 5 else ""
+        parts.append(f"{info.get('num_registered')} of {info.get('num_panoramas')} panoramas registered (not placed: "
+                     f"{', '.join(left[:5])}{more}; see {shown}; a pose in poses.json for one panorama of each group "
+                     "places it, `runner.py split` makes each group a home of its own)")
+    tilted = info.get("levelled_tilt_deg")
+    if isinstance(tilted, dict) and tilted:
+        listed = ", ".join(f"{n} {float(d):.1f}°" for n, d in list(tilted.items())[:5])
+        more = f" +{len(tilted) - 5} more" if len(tilted) > 5 else ""
+        parts.append(f"taken with the camera not level: {listed}{more}; levelled for registration, the scene is built "
+                     "as taken (docs/multi.md)")
+    return "home: " + "; ".join(parts) if parts else None
