@@ -71,7 +71,7 @@ def cmd_status(args) -> int:
 
     rows = pl.status(args.scene, preset=args.preset, sets=args.sets, pipeline=pl.Pipeline.load(args.pipeline))
     reg = next((r for r in rows if r["stage"] == "register" and r["state"] == "up-to-date"), None)
-    note = registration_note(Path(reg["artifact"]), Path(args.scene)) if reg else None  # a home left partly unplaced
+    note = registration_note(Path(reg["artifact"]), Path(args.scene)) if reg else None  # a home left partly unplaced, or taken tilted
     if args.json:
         print(json.dumps({"scene": str(args.scene), "stages": rows, "notes": [note] if note else []}, indent=2))
         return 0
