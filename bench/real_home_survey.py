@@ -231,10 +231,7 @@ def tilt(rgb: np.ndarray, depth: np.ndarray, deg: float, azimuth: float) -> tupl
 
     from panoworld.core.conventions import erp_dirs, erp_pixel_from_dir
 
-    axis = np.array([np.sin(azimuth), 0.0, np.cos(azimuth)])
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    a = np.radians(deg)
-    tilted_from_level = np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+    tilted_from_level = cv2.Rodrigues(np.array([np.sin(azimuth), 0.0, np.cos(azimuth)]) * np.radians(deg))[0]
     out = []
     for img, interp in ((rgb, cv2.INTER_CUBIC), (depth, cv2.INTER_NEAREST)):
         h, w = img.shape[:2]
