@@ -67,18 +67,20 @@ def cmd_run(args) -> int:
 
 
 def cmd_status(args) -> int:
+    from panoworld.io.home import level_note
     from panoworld.register.artifact import registration_note
 
     rows = pl.status(args.scene, preset=args.preset, sets=args.sets, pipeline=pl.Pipeline.load(args.pipeline))
-    reg = next((r for r in rows if r["stage"] == "register" and r["state"] == "up-to-date"), None)
-    note = registration_note(Path(reg["artifact"]), Path(args.scene)) if reg else None  # a home left partly unplaced, or taken tilted
+    fresh = {r["stage"]: Path(r["artifact"]) for r in rows if r["state"] == "up-to-date"}
+    notes = [n for n in (level_note(fresh["depth"]) if "depth" in fresh else None,  # panoramas taken off level
+                         registration_note(fresh["register"], Path(args.scene)) if "register" in fresh else None) if n]
     if args.json:
-        print(json.dumps({"scene": str(args.scene), "stages": rows, "notes": [note] if note else []}, indent=2))
+        print(json.dumps({"scene": str(args.scene), "stages": rows, "notes": notes}, indent=2))
         return 0
     for r in rows:
         sv = r["schema_version"] if r["schema_version"] is not None else "-"
         print(f"{r['stage']:<11} {r['state']:<10} {r['reason']}\n{'':<11} {r['artifact']} (schema {r['schema']} v{sv})")
-    if note:
+    for note in notes:
         print(f"note: {note}")
     return 0
 

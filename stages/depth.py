@@ -61,6 +61,10 @@ class Params:
     """Directory with the rig U-Net's config.json + model.safetensors (rig_detector=learned)."""
     rig_device: str = "cpu"
     """Torch device of the learned rig detector."""
+    level: bool = True
+    """A panorama taken 1-45 deg off level (its vertical lines, checked by its depth's floor where it shows one) is
+    levelled before anything else: the scene is built in the levelled camera's frame, the manifest's info.level
+    gives the rotation (panoworld/depth/level.py, docs/conventions.md); false = build it as taken."""
     complete_poles: bool = True
     """Depth missing at the poles or in bands (LiDAR blind zones) is completed from the fitted floor and ceiling
     planes, within the room's extent (panoworld.depth.complete)."""
@@ -118,6 +122,9 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
     import cv2
 
     from panoworld.depth import depth_map as dep
+    from panoworld.depth.level import level_panorama
+    from panoworld.depth.rig.remove import read_user_mask
+    from panoworld.geometry.level import levelled
     from panoworld.io.depth import read_panorama
 
     notes: list[str] = []
@@ -134,11 +141,20 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
     info.update(res.info)
     if found is not None:
         info["weights_found"] = found
+    depth, valid, rig_mask = res.depth, res.valid, inputs.get("rig_mask")
+    if params.level:
+        lev = level_panorama(rgb, depth, valid)
+        info["level"] = lev.info
+        notes.extend([lev.note] if lev.note else [])
+        if (R := lev.level_from_cam) is not None:
+            rgb, depth, valid = levelled(rgb, R), levelled(depth, R, nearest=True), levelled(valid, R, nearest=True)
+            if rig_mask is not None:
+                rig_mask = levelled(read_user_mask(rig_mask, H, W), R, nearest=True)
     rig_backend = None if params.rig == RigMode.KEEP else backends.get("rig", params.rig_detector).impl
-    c = clean_depth(rgb, res.depth, res.valid, relative=res.relative, rescale=params.rescale,
+    c = clean_depth(rgb, depth, valid, relative=res.relative, rescale=params.rescale,
                     camera_height=params.camera_height, min_depth_m=params.min_depth_m,
                     detect_rig=None if rig_backend is None else (lambda *a: rig_backend(*a, params)),
-                    rig_mask=inputs.get("rig_mask"), complete_poles=params.complete_poles,
+                    rig_mask=rig_mask, complete_poles=params.complete_poles,
                     complete_dropouts=params.complete_dropouts, source=inputs.get("depth") or inputs["panorama"])
     info.update(c.info)
     info["decisions"] = notes + c.notes

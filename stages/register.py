@@ -35,10 +35,11 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
 
         info = register_scene(inputs["scene"], params, out_dir)
     elif inputs.get("depth") is not None:
-        from panoworld.io.home import home_depth_dirs
+        from panoworld.io.home import home_depth_dirs, levelled_panoramas
         from panoworld.register.artifact import register_depth_dirs
 
-        info = register_depth_dirs(home_depth_dirs(inputs["depth"]), inputs.get("poses"), params, out_dir)
+        info = register_depth_dirs(home_depth_dirs(inputs["depth"]), inputs.get("poses"), params, out_dir,
+                                   levelled=levelled_panoramas(inputs["depth"]))
     else:
         raise StageInputError("give --depth DIR (a depth artifact) or --scene DIR (a scene with panoramas/)")
     return {**info, "register_s": time.perf_counter() - t0}

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from panoworld.core.conventions import invert_pose, pose_from_rt
+from panoworld.geometry.level import level_from_cam, levelled, tilt_deg
 from panoworld.register import solve
-from panoworld.register.level import level_from_cam, levelled, tilt_deg
 from panoworld.register.solve import register_panoramas
 from tests.test_register import TOL_CM, TOL_DEG, _errors, _home_sources
 
@@ -74,28 +74,3 @@ def test_tilted_panoramas_register_with_their_tilt_in_the_pose(monkeypatch):
     monkeypatch.setattr(solve, "level_from_cam", lambda depth: None)
     unlevelled = register_panoramas(names, rgbs, depths).world_from_cam
     assert max(_errors(unlevelled[n], truth[n])[1] for n in names[1:] if n in unlevelled) > 1.5
-
-
-def test_the_runner_says_which_panoramas_were_taken_tilted(home_dir, tmp_path):
-    """A home whose pano_01 was taken 2 deg off level, through `runner.py run --until register` and `status`: every
-    panorama registered, the note under the table names pano_01 and its tilt, the manifest (schema-checked) holds it."""
-    import json
-    import shutil
-
-    import cv2
-
-    from tests.test_runner import cli
-
-    scene = tmp_path / "home"
-    shutil.copytree(home_dir, scene, ignore=shutil.ignore_patterns("gt"))
-    X = tilt_from_level(2.0, 0.7)
-    rgb = cv2.imread(str(scene / "panoramas" / "pano_01.png"))
-    cv2.imwrite(str(scene / "panoramas" / "pano_01.png"), levelled(rgb, X))
-    depth = np.load(scene / "depths" / "pano_01.npy")
-    np.save(scene / "depths" / "pano_01.npy", levelled(depth, X, nearest=True))
-    out = cli("run", str(scene), "--until", "register")
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert "note: home: taken with the camera not level: pano_01 2.0°; levelled for registration" in out.stdout
-    info = json.loads((scene / "artifacts" / "register" / "manifest.json").read_text())["info"]
-    assert info["num_registered"] == 3 and list(info["levelled_tilt_deg"]) == ["pano_01"]
-    assert "taken with the camera not level: pano_01" in cli("status", str(scene)).stdout

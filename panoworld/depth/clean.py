@@ -30,12 +30,12 @@ class Cleaned:
 
 
 def clean_depth(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, *, relative: bool, rescale: Rescale,
-                camera_height: float, min_depth_m: float, detect_rig: Callable | None, rig_mask: Path | None,
+                camera_height: float, min_depth_m: float, detect_rig: Callable | None, rig_mask: Path | np.ndarray | None,
                 complete_poles: bool, complete_dropouts: bool, source: Path) -> Cleaned:
     """rgb (H, W, 3), depth and valid (H, W) from a depth backend -> metric, rig-free, completed depth.
 
     detect_rig None keeps the rig; else it is called as the rig backends are (panoworld/depth/rig/backends/) and rig_mask, a
-    user mask file, overrides it. source names the file in the one-line error when no depth is left."""
+    user mask (its file, or (H, W) bool), overrides it. source names the file in the one-line error when no depth is left."""
     from panoworld.depth import depth_map as dep
 
     dims = check_shape("rgb", rgb, "H W 3")

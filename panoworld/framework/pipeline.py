@@ -297,6 +297,13 @@ def run(
                 emit(StageResult(name, "skipped", "not run: an earlier stage failed (use --keep-going)"))
         if fresh and not any(r.action == "ran" for r in report.results):
             lock.remove_bookkeeping()  # nothing committed into a new artifacts/: leave the scene as it was
+        if "depth" in pipeline.stages and any(r.stage == "depth" and r.action in ("ran", "cached")
+                                               for r in report.results):
+            from panoworld.io.home import level_note
+
+            note = level_note(scene.artifact_dir("depth"))
+            if note:
+                report.notes.append(note)
         if "register" in pipeline.stages and any(r.stage == "register" and r.action in ("ran", "cached")
                                                   for r in report.results):
             from panoworld.register.artifact import registration_note

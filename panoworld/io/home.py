@@ -38,6 +38,28 @@ def home_depth_dirs(depth_artifact: Path) -> dict[str, Path] | None:
     return {n: depth_artifact / info["dirs"][n] for n in info["names"]}
 
 
+def levelled_panoramas(depth_artifact: Path) -> dict[str, np.ndarray]:
+    """{NAME: (3, 3) level_from_cam} of the panoramas the depth stage levelled (taken off level; the depth manifest's
+    info.level, per panorama of a home), a single panorama's as "panorama"; {} when none was (or no manifest)."""
+    info = read_json(Path(depth_artifact) / "manifest.json", default={}).get("info", {})
+    home = info.get(HOME_INFO)
+    each = home.get("panoramas", {}) if isinstance(home, dict) else {"panorama": info}
+    return {n: np.asarray(lev["level_from_cam"], np.float64) for n, i in each.items()
+            if isinstance(i, dict) and isinstance(lev := i.get("level"), dict) and lev.get("level_from_cam")}
+
+
+def level_note(depth_artifact: Path) -> str | None:
+    """"taken off level: pano_01 2.0°, ...; levelled, the scene is built level (docs/conventions.md)" when the depth
+    stage levelled any panorama; None otherwise."""
+    tilts = {n: float(np.degrees(np.arccos(np.clip(R[1, 1], -1.0, 1.0)))) for n, R in
+             levelled_panoramas(depth_artifact).items()}
+    if not tilts:
+        return None
+    listed = ", ".join(f"{n} {d:.1f}°" for n, d in list(tilts.items())[:5])
+    more = f" +{len(tilts) - 5} more" if len(tilts) > 5 else ""
+    return f"taken off level: {listed}{more}; levelled, the scene is built level (docs/conventions.md)"
+
+
 def capture_poses(register_artifact: Path | None) -> dict[str, np.ndarray]:
     """{NAME: world_from_cam (4, 4)} of the registered panoramas (register artifact's panoramas.json); {} without
     one. A single-panorama scene has one capture point, the identity."""

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from panoworld.core.conventions import pose_from_rt
 from panoworld.core.errors import InputError
 from panoworld.io.home import PANORAMAS_JSON, RIG_MASK_PNG
 from panoworld.io.jsonio import read_json, write_json
@@ -36,9 +37,11 @@ def register_scene(scene: Path, options: RegisterOptions, out_dir: Path) -> dict
 
 
 def register_depth_dirs(dirs: dict[str, Path] | None, poses_file: Path | None, options: RegisterOptions,
-                        out_dir: Path) -> dict:
+                        out_dir: Path, *, levelled: dict[str, np.ndarray] | None = None) -> dict:
     """Register the cleaned panoramas and depths of a home's depth artifact ({NAME: dir of depth.npy, valid.png,
-    panorama.png}; the pipeline's path); None (a single panorama) is one capture point at the identity. -> info."""
+    panorama.png}; the pipeline's path); None (a single panorama) is one capture point at the identity. levelled:
+    {NAME: (3, 3) level_from_cam} of the panoramas the depth stage levelled, whose given poses (of the camera as
+    taken) are turned into the levelled camera's. -> info."""
     from panoworld.io.depth import load_depth_artifact
 
     if dirs is None:
@@ -60,6 +63,9 @@ def register_depth_dirs(dirs: dict[str, Path] | None, poses_file: Path | None, o
 
     names = list(dirs)
     given = read_poses(poses_file, names) if poses_file is not None else {}
+    for n, R in (levelled or {}).items():
+        if n in given:  # world_from_levelled = world_from_cam @ cam_from_levelled
+            given[n] = given[n] @ pose_from_rt(R.T, np.zeros(3))
     rgbs, depths, rigs = {}, {}, {}
     if len(given) < len(names):  # decoding releases the GIL: the panoramas on the pairs' threads
         for n, (rgbs[n], depths[n], rig) in zip(names, map_ahead(load, [dirs[n] for n in names], workers=pair_threads())):

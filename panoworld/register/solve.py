@@ -11,6 +11,7 @@ import numpy as np
 from panoworld.core.conventions import invert_pose, pose_from_rt
 from panoworld.core.parallel import cpu_threads, map_ahead
 from panoworld.geometry.floor_view import FloorView, camera_height
+from panoworld.geometry.level import level_from_cam, levelled, tilt_deg
 from panoworld.geometry.resize import rgbd_at_height
 from panoworld.geometry.upright import wrap_angle, yaw_of
 from panoworld.register.cuts import refuse_outvoted_cuts, weak_floor
@@ -29,7 +30,6 @@ from panoworld.register.graph import (
     tree_path,
 )
 from panoworld.register.layout import LayoutPose, layout_pair, manhattan_frame, room
-from panoworld.register.level import level_from_cam, levelled, tilt_deg
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pair_select import appearance_descriptor, bridge_pairs, candidate_pairs
 from panoworld.register.pairwise import (
@@ -80,7 +80,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     panorama that has a detected capture rig, where no keypoint is taken, on the panorama or its floor image); given
     poses are kept as they are (and anchor the others), otherwise the largest set joined together is registered in
     its first panorama's frame. A panorama whose depth shows its floor tilted is registered levelled and its pose
-    composed with the levelling (register.level; registration.json's levelled_tilt_deg). A pair is a
+    composed with the levelling (geometry.level; registration.json's levelled_tilt_deg). A pair is a
     depth edge when RANSAC keeps >= min_inliers, the refined pose has >= min_consistency free-space consistency and
     >= min_overlap overlap, and the bearing-only estimate of the same matches does not contradict it (_contradiction);
     otherwise a bearing edge when upright two-view geometry keeps >= min_bearing_inliers

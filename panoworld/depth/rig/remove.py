@@ -93,15 +93,16 @@ def area_stats(mask: np.ndarray) -> dict:
 
 
 def rig_step(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, floor_m: float | None, *,
-             user_mask: Path | None = None, detect=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, RigDetection]:
+             user_mask: Path | np.ndarray | None = None, detect=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, RigDetection]:
     """Detect with detect(rgb, depth, valid, floor_m) (default detect_rig), or take the user's mask, and remove the
     rig: (rgb, depth, valid, info, detection). Inside the rig mask depth comes from the floor plane floor_m below the
     camera, never past its column's wall (floor_within_walls; invalid when no floor was found); outside the masks
     nothing changes (no rig: the very same arrays)."""
     H, W = rgb.shape[:2]
     if user_mask is not None:
-        m = read_user_mask(user_mask, H, W)
-        det = RigDetection(bool(m.any()), f"user mask {Path(user_mask).name}", "user", m, np.zeros_like(m))
+        m = user_mask if isinstance(user_mask, np.ndarray) else read_user_mask(user_mask, H, W)
+        det = RigDetection(bool(m.any()), "user mask" if isinstance(user_mask, np.ndarray) else
+                           f"user mask {Path(user_mask).name}", "user", m, np.zeros_like(m))
     else:
         det = (detect or detect_rig)(rgb, depth, valid, floor_m)
     info = {"found": det.found, "reason": det.reason, "kind": det.kind,

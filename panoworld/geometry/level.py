@@ -18,10 +18,9 @@ MIN_FLOOR_POINTS = 500
 _MAX_POINTS = 200_000
 
 
-def level_from_cam(depth: np.ndarray) -> np.ndarray | None:
-    """(3, 3) rotation taking the camera frame (docs/conventions.md) to the levelled one whose +y is the floor's
-    normal (down), turned about the axis in the floor level with the camera (so its yaw stays), from the ray depth
-    (H, W); None where the floor is level within MIN_TILT_DEG, not seen, or tilted beyond MAX_TILT_DEG.
+def floor_down(depth: np.ndarray) -> np.ndarray | None:
+    """(3,) unit normal of the floor a ray depth (H, W) shows, pointing down (camera frame, docs/conventions.md); None
+    where no floor is seen or it is tilted beyond MAX_TILT_DEG.
 
     The floor: the depth pixels 25 to 60 deg below the horizon (not the cap under the camera, where a rig was removed
     and the poles completed level) within 10 % of the camera height
@@ -45,11 +44,32 @@ def level_from_cam(depth: np.ndarray) -> np.ndarray | None:
         c = pts[inl].mean(0)
         n = np.linalg.svd(pts[inl] - c, full_matrices=False)[2][2]
         n = n if n[1] > 0 else -n
-    tilt = float(np.degrees(np.arccos(np.clip(n[1], -1.0, 1.0))))
-    if not MIN_TILT_DEG <= tilt <= MAX_TILT_DEG:
+    return n if angle_deg(n, np.array([0.0, 1.0, 0.0])) <= MAX_TILT_DEG else None
+
+
+def level_from_down(down: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation taking the camera frame to the levelled one whose +y is `down` (3,) (gravity in the camera
+    frame), turned about the axis in the floor level with the camera (so its yaw stays)."""
+    axis = np.cross(down, [0.0, 1.0, 0.0])  # turning down onto +y about it
+    norm = np.linalg.norm(axis)
+    if norm < 1e-12:
+        return np.eye(3)
+    return cv2.Rodrigues(axis / norm * np.radians(angle_deg(down, np.array([0.0, 1.0, 0.0]))))[0]
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """The angle between two directions (3,), in degrees."""
+    return float(np.degrees(np.arccos(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)), -1.0, 1.0))))
+
+
+def level_from_cam(depth: np.ndarray) -> np.ndarray | None:
+    """(3, 3) rotation taking the camera frame to the levelled one whose +y is the floor's normal (floor_down) from
+    the ray depth (H, W); None where the floor is level within MIN_TILT_DEG, not seen, or tilted beyond
+    MAX_TILT_DEG."""
+    n = floor_down(depth)
+    if n is None or angle_deg(n, np.array([0.0, 1.0, 0.0])) < MIN_TILT_DEG:
         return None
-    axis = np.cross(n, [0.0, 1.0, 0.0])  # turning n onto +y about it
-    return cv2.Rodrigues(axis / np.linalg.norm(axis) * np.radians(tilt))[0]
+    return level_from_down(n)
 
 
 def tilt_deg(level_from_cam_: np.ndarray) -> float:
