@@ -263,13 +263,11 @@ def measure_home(scene: Path, survey: dict, height: int, sets: list[str] = ()) -
     if (arts / "gaussians" / "gaussians.ply").is_file() and poses:
         g = read_gaussians_ply(arts / "gaussians" / "gaussians.ply")
         rgbs, _ = home_sources(scene, poses)
-        from panoworld.io.depth import read_panorama
 
         row["capture"] = {}
         dirs = home_depth_dirs(arts / "depth")
         for n in poses:
-            src = next((scene / "panoramas").glob(f"{n}.*"))
-            raw = read_panorama(src)
+            raw = input_as_built(scene, n)
             row["capture"][n] = {"cleaned": render_scores(g, poses[n], rgbs[n], height),
                                  "input": render_scores(g, poses[n], raw, height)}
             rig = outside_rig(dirs[n] / RIG_MASK_PNG, height)
@@ -277,6 +275,18 @@ def measure_home(scene: Path, survey: dict, height: int, sets: list[str] = ()) -
                 row["capture"][n]["input_outside_rig"] = render_scores(g, poses[n], raw, height, seen=rig)["seen"]
         row["num_gaussians"] = manifest_info(scene, "gaussians").get("num_gaussians")
     return row
+
+
+def input_as_built(scene: Path, name: str) -> np.ndarray:
+    """The input panorama `name` of a home that ran, levelled as the depth stage levelled it (a camera taken off
+    level: the scene is built in the levelled camera's frame, docs/conventions.md)."""
+    from panoworld.geometry.level import levelled
+    from panoworld.io.depth import read_panorama
+    from panoworld.io.home import levelled_panoramas
+
+    raw = read_panorama(next((scene / "panoramas").glob(f"{name}.*")))
+    R = levelled_panoramas(scene / "artifacts" / "depth").get(name)
+    return raw if R is None else levelled(raw, R)
 
 
 def leave_one_out_captures(full: Path, name: str, height: int) -> dict:
@@ -304,7 +314,6 @@ def leave_one_out(src: Path, work: Path, full: Path, name: str, survey_mode: dic
                   sets: list[str] = ()) -> dict:
     """The home built without `name` (--loo-build full), rendered at its pose registered with all of them (the full
     run's)."""
-    from panoworld.io.depth import read_panorama
     from panoworld.io.home import capture_poses
     from panoworld.io.splat_ply import read_gaussians_ply
 
@@ -328,7 +337,7 @@ def leave_one_out(src: Path, work: Path, full: Path, name: str, survey_mode: dic
     _, depths = home_sources(full, full_poses)
     seen = seen_by_others(name, full_poses, depths, height)
     g = read_gaussians_ply(scene / "artifacts" / "gaussians" / "gaussians.ply")
-    raw = read_panorama(next((src / "panoramas").glob(f"{name}.*")))
+    raw = input_as_built(full, name)
     out.update(aligned_through=ref, registered=len(loo_poses),
                **render_scores(g, pose, raw, height, seen, surface_masks(depths[name], height)))
     return out
