@@ -38,7 +38,8 @@ def level_panorama(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray) -> Lev
 
     Gravity comes from the panorama's vertical lines (geometry.verticals); a tilt of MIN_TILT_DEG to MAX_TILT_DEG is
     levelled when the depth, levelled by it, shows its floor level within AGREE_DEG (the floor's own normal then
-    finishes the levelling, so the floor lies level), or shows no floor at all (the lines alone)."""
+    finishes the levelling, so the floor lies level), or shows no floor there nor, as taken, one off the lines' gravity
+    by more than AGREE_DEG (the lines alone)."""
     dims = check_shape("rgb", rgb, "H W 3")
     check_shape("depth", depth, "H W", dims=dims)
     check_shape("valid", valid, "H W", dims=dims)
@@ -52,15 +53,22 @@ def level_panorama(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray) -> Lev
     by_lines = level_from_down(g.down_cam)
     d = np.where(valid & np.isfinite(depth), depth, 0.0).astype(np.float32)
     h = camera_height(d)
-    floor = None if h is None or not h > 0 else floor_down(levelled(d * np.float32(1.6 / h), by_lines, nearest=True))
-    if floor is None:
-        R, how = by_lines, "its vertical lines (the depth shows no floor to check them)"
-    else:
-        residual = angle_deg(floor, _UP)
+    floor = residual = None
+    if h is not None and h > 0:
+        d *= np.float32(1.6 / h)  # floor_down's bands are metric
+        floor = floor_down(levelled(d, by_lines, nearest=True))
+        if floor is not None:
+            residual = angle_deg(floor, _UP)
+        elif (as_taken := floor_down(d)) is not None:  # a floor near level as taken: the lines' levelling tilts it
+            residual = angle_deg(as_taken, g.down_cam)
+    if residual is not None:
         info["floor_residual_deg"] = round(residual, 3)
         if residual > AGREE_DEG:
             return Levelling(None, info, f"the panorama's vertical lines read {tilt:.1f}° from level but its depth's "
                              f"floor is {residual:.1f}° off from that: left as taken (docs/conventions.md)")
+    if floor is None:
+        R, how = by_lines, "its vertical lines (the depth shows no floor near that level to check them)"
+    else:
         R, how = level_from_down(floor) @ by_lines, (f"its vertical lines; the depth's floor agrees within "
                                                      f"{residual:.1f}° and levels it exactly")
     info.update(tilt_deg=round(angle_deg(R.T @ _UP, _UP), 3), level_from_cam=R.round(9).tolist())
