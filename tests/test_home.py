@@ -223,6 +223,7 @@ def test_home_report_shows_how_each_panorama_was_placed(home_run, tmp_path):
 
 @pytest.mark.slow
 def test_home_report_names_a_panorama_left_unregistered_and_why(home_run, tmp_path):
+    from panoworld.io.manifest import manifest_checksum
     from panoworld.tools.report.cli import build_scene_report
 
     scene = tmp_path / "scene"
@@ -245,6 +246,15 @@ def test_home_report_names_a_panorama_left_unregistered_and_why(home_run, tmp_pa
     (reg_dir / "registration.json").write_text(json.dumps(doc))
     home = _home_section(build_scene_report(scene, tmp_path / "report.html").read_text())
     assert "Taken with the camera not level, levelled for registration" in home and "pano_00 2.0°" in home
+    assert "levelled by the depth stage" not in home
+    manifest = scene / "artifacts" / "depth" / "manifest.json"
+    doc = json.loads(manifest.read_text())  # as the depth stage writes it for pano_01 taken 2 deg off level
+    doc["info"]["home"]["panoramas"]["pano_01"]["level"] = {"image_tilt_deg": 2.1, "verticals": 80, "tilt_deg": 2.04,
+                                                            "floor_residual_deg": 0.2, "level_from_cam": np.eye(3).tolist()}
+    doc["checksum"] = manifest_checksum(doc)
+    manifest.write_text(json.dumps(doc))
+    home = _home_section(build_scene_report(scene, tmp_path / "report.html").read_text())
+    assert "Taken off level, levelled by the depth stage" in home and "pano_01 2.0°" in home
     plan = re.search(r"<svg.*?</svg>", home, re.S).group(0)  # the capture points from above: the registered one alone
     assert ">pano_00</text>" in plan and ">pano_01</text>" not in plan and "<polyline" not in plan
 

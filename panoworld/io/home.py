@@ -38,21 +38,26 @@ def home_depth_dirs(depth_artifact: Path) -> dict[str, Path] | None:
     return {n: depth_artifact / info["dirs"][n] for n in info["names"]}
 
 
-def levelled_panoramas(depth_artifact: Path) -> dict[str, np.ndarray]:
-    """{NAME: (3, 3) level_from_cam} of the panoramas the depth stage levelled (taken off level; the depth manifest's
-    info.level, per panorama of a home), a single panorama's as "panorama"; {} when none was (or no manifest)."""
+def _levels(depth_artifact: Path) -> dict[str, dict]:
+    """{NAME: the depth manifest's info.level} of the panoramas the depth stage levelled (a single panorama's as
+    "panorama")."""
     info = read_json(Path(depth_artifact) / "manifest.json", default={}).get("info", {})
     home = info.get(HOME_INFO)
     each = home.get("panoramas", {}) if isinstance(home, dict) else {"panorama": info}
-    return {n: np.asarray(lev["level_from_cam"], np.float64) for n, i in each.items()
+    return {n: lev for n, i in each.items()
             if isinstance(i, dict) and isinstance(lev := i.get("level"), dict) and lev.get("level_from_cam")}
+
+
+def levelled_panoramas(depth_artifact: Path) -> dict[str, np.ndarray]:
+    """{NAME: (3, 3) level_from_cam} of the panoramas the depth stage levelled (taken off level; the depth manifest's
+    info.level, per panorama of a home), a single panorama's as "panorama"; {} when none was (or no manifest)."""
+    return {n: np.asarray(lev["level_from_cam"], np.float64) for n, lev in _levels(depth_artifact).items()}
 
 
 def level_note(depth_artifact: Path) -> str | None:
     """"taken off level: pano_01 2.0°, ...; levelled, the scene is built level (docs/conventions.md)" when the depth
     stage levelled any panorama; None otherwise."""
-    tilts = {n: float(np.degrees(np.arccos(np.clip(R[1, 1], -1.0, 1.0)))) for n, R in
-             levelled_panoramas(depth_artifact).items()}
+    tilts = {n: float(lev.get("tilt_deg", 0.0)) for n, lev in _levels(depth_artifact).items()}
     if not tilts:
         return None
     listed = ", ".join(f"{n} {d:.1f}°" for n, d in list(tilts.items())[:5])

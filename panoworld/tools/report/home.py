@@ -216,6 +216,13 @@ def section_home(scene: SceneData, page: Page, params: ReportParams) -> Section:
         notes.append("Taken with the camera not level, levelled for registration (the tilt its floor shows; its pose "
                      "holds it, the scene is built as taken): " + ", ".join(f"{n} {d:.1f}°" for n, d in tilted.items())
                      + " (docs/multi.md).")
+    built_level = {n: (d.get("level") or {}).get("tilt_deg") for n, d in depth_info.items()
+                   if isinstance(d, dict) and (d.get("level") or {}).get("level_from_cam")}
+    if built_level:
+        notes.append("Taken off level, levelled by the depth stage (the tilt its vertical lines read, its floor "
+                     "agreeing; the scene is built level): " + ", ".join(f"{n} {float(d):.1f}°" for n, d in
+                                                                         built_level.items())
+                     + " (docs/conventions.md).")
     if psnr:
         notes.append("Capture pose PSNR: the gaussians stage's colour-fit render at each capture pose against that "
                      "panorama (cleaned), from its manifest's color_fit.")
