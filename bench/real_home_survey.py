@@ -225,21 +225,21 @@ def expose(rgb: np.ndarray, gain: float, balance: np.ndarray) -> np.ndarray:
 
 def tilt(rgb: np.ndarray, depth: np.ndarray, deg: float, azimuth: float) -> tuple[np.ndarray, np.ndarray]:
     """rgb (H, W, 3) and its ray depth (h, w) as captured by the same camera tilted by deg about the horizontal axis
-    at azimuth (radians, from the camera's z towards x): rgb resampled bicubic, the depth nearest (a ray's
-    distance is the same from a camera turned about its centre)."""
+    at azimuth (radians, from the camera's z towards x): rgb resampled bicubic, the depth as the library levels one
+    (geometry.level.levelled_depth: bilinear on smooth surfaces, nearest at edges; a ray's distance is the same from
+    a camera turned about its centre)."""
     import cv2
 
     from panoworld.core.conventions import erp_dirs, erp_pixel_from_dir
+    from panoworld.geometry.level import levelled_depth
 
     tilted_from_level = cv2.Rodrigues(np.array([np.sin(azimuth), 0.0, np.cos(azimuth)]) * np.radians(deg))[0]
-    out = []
-    for img, interp in ((rgb, cv2.INTER_CUBIC), (depth, cv2.INTER_NEAREST)):
-        h, w = img.shape[:2]
-        u, v = erp_pixel_from_dir(erp_dirs(h, w).reshape(-1, 3).astype(np.float64) @ tilted_from_level, h, w)
-        out.append(cv2.remap(img, ((u - 0.5) % w).reshape(h, w).astype(np.float32),
-                             np.clip(v - 0.5, 0, h - 1).reshape(h, w).astype(np.float32), interp,
-                             borderMode=cv2.BORDER_WRAP))
-    return out[0], out[1]
+    h, w = rgb.shape[:2]
+    u, v = erp_pixel_from_dir(erp_dirs(h, w).reshape(-1, 3).astype(np.float64) @ tilted_from_level, h, w)
+    out = cv2.remap(rgb, ((u - 0.5) % w).reshape(h, w).astype(np.float32),
+                    np.clip(v - 0.5, 0, h - 1).reshape(h, w).astype(np.float32), cv2.INTER_CUBIC,
+                    borderMode=cv2.BORDER_WRAP)
+    return out, levelled_depth(depth, tilted_from_level)
 
 
 def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0, size: int | None = None,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from panoworld.core.conventions import invert_pose, pose_from_rt
-from panoworld.geometry.level import level_from_cam, levelled, tilt_deg
+from panoworld.geometry.level import level_from_cam, levelled, levelled_depth, tilt_deg
 from panoworld.register import solve
 from panoworld.register.solve import register_panoramas
 from tests.test_register import TOL_CM, TOL_DEG, _errors, _home_sources
@@ -25,7 +25,7 @@ def test_the_tilt_is_found_from_the_floor_and_levelling_keeps_the_yaw(home_dir):
     assert level_from_cam(depth) is None  # a level capture is left as it is
     for deg, az in ((2.0, 0.3), (1.0, 2.5), (5.0, 4.0)):
         X = tilt_from_level(deg, az)
-        R = level_from_cam(levelled(depth, X, nearest=True))
+        R = level_from_cam(levelled_depth(depth, X))
         assert R is not None and abs(tilt_deg(R) - deg) < 0.15, (deg, None if R is None else tilt_deg(R))
         undone = R @ X  # levelled again: at most a turn about the vertical, here none
         assert np.degrees(np.arccos(np.clip((np.trace(undone) - 1) / 2, -1, 1))) < 0.15
@@ -62,7 +62,7 @@ def test_tilted_panoramas_register_with_their_tilt_in_the_pose(monkeypatch):
     truth = dict(poses)
     for k, n in enumerate(names[1:]):
         X = tilt_from_level(2.0, 1.0 + 2.0 * k)
-        rgbs[n], depths[n] = levelled(rgbs[n], X), levelled(depths[n], X, nearest=True)
+        rgbs[n], depths[n] = levelled(rgbs[n], X), levelled_depth(depths[n], X)
         truth[n] = poses[n] @ invert_pose(pose_from_rt(X, np.zeros(3)))  # world_from_level @ level_from_tilted
     reg = register_panoramas(names, rgbs, depths)
     assert sorted(reg.world_from_cam) == names

@@ -9,7 +9,7 @@ import numpy as np
 
 from panoworld.core.shapes import check_shape
 from panoworld.geometry.floor_view import camera_height
-from panoworld.geometry.level import angle_deg, floor_down, level_from_down, levelled
+from panoworld.geometry.level import angle_deg, floor_down, level_from_down, levelled_depth
 from panoworld.geometry.verticals import gravity_from_image
 
 MIN_TILT_DEG = 1.0
@@ -56,7 +56,7 @@ def level_panorama(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray) -> Lev
     floor = residual = None
     if h is not None and h > 0:
         d *= np.float32(1.6 / h)  # floor_down's bands are metric
-        floor = floor_down(levelled(d, by_lines, nearest=True))
+        floor = floor_down(levelled_depth(d, by_lines))
         if floor is not None:
             residual = angle_deg(floor, _UP)
         elif (as_taken := floor_down(d)) is not None:  # a floor near level as taken: the lines' levelling tilts it

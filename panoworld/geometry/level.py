@@ -8,6 +8,7 @@ import numpy as np
 from panoworld.core.conventions import erp_dirs64, erp_pixel_from_dir
 from panoworld.core.shapes import check_shape
 from panoworld.geometry.floor_view import camera_height
+from panoworld.geometry.resize import DEPTH_EDGE_REL
 
 MIN_TILT_DEG = 0.25
 """A floor tilted less than this is taken as level (nothing is resampled): 1 cm at 2.3 m."""
@@ -87,3 +88,19 @@ def levelled(image: np.ndarray, level_from_cam_: np.ndarray, *, nearest: bool = 
     src = image.astype(np.uint8) if image.dtype == bool else image
     out = cv2.remap(src, mx, my, cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
     return out.astype(bool) if image.dtype == bool else out
+
+
+def levelled_depth(depth: np.ndarray, level_from_cam_: np.ndarray, edge_rel: float = DEPTH_EDGE_REL) -> np.ndarray:
+    """A ray depth (H, W) (0 or not finite = none) as the levelled camera sees it, sampled as geometry.resize does:
+    bilinear on smooth surfaces (the 3x3 source pixels around the sample all valid, their depths within edge_rel of
+    each other), nearest at depth edges and next to invalid pixels (no depth between two surfaces). Nearest
+    everywhere would put a plane's pixels on a terraced grid, one step each time the tilt crosses a row."""
+    check_shape("depth", depth, "H W")
+    d = np.asarray(depth, np.float32)
+    ok = np.isfinite(d) & (d > 0)
+    d = np.where(ok, d, 0.0).astype(np.float32)
+    kernel = np.ones((3, 3), np.uint8)
+    hi = levelled(cv2.dilate(d, kernel), level_from_cam_, nearest=True)
+    lo = levelled(cv2.erode(d, kernel), level_from_cam_, nearest=True)  # 0 next to an invalid pixel
+    smooth = (lo > 0) & (hi <= lo * (1.0 + edge_rel))
+    return np.where(smooth, levelled(d, level_from_cam_), levelled(d, level_from_cam_, nearest=True)).astype(np.float32)

@@ -11,7 +11,7 @@ import numpy as np
 from panoworld.core.conventions import invert_pose, pose_from_rt
 from panoworld.core.parallel import cpu_threads, map_ahead
 from panoworld.geometry.floor_view import FloorView, camera_height
-from panoworld.geometry.level import level_from_cam, levelled, tilt_deg
+from panoworld.geometry.level import level_from_cam, levelled, levelled_depth, tilt_deg
 from panoworld.geometry.resize import rgbd_at_height
 from panoworld.geometry.upright import wrap_angle, yaw_of
 from panoworld.register.cuts import refuse_outvoted_cuts, weak_floor
@@ -89,7 +89,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     level = {n: R for n in names if n in depths and (R := level_from_cam(depths[n])) is not None}
     lift = {n: pose_from_rt(level[n], np.zeros(3)) for n in level}
     rgbs = {n: levelled(x, level[n]) if n in level else x for n, x in rgbs.items()}
-    depths = {n: levelled(x, level[n], nearest=True) if n in level else x for n, x in depths.items()}
+    depths = {n: levelled_depth(x, level[n]) if n in level else x for n, x in depths.items()}
     rig_masks = {n: levelled(m, level[n], nearest=True) if n in level else m for n, m in (rig_masks or {}).items()}
     given = {n: T @ invert_pose(lift[n]) if n in lift else T for n, T in (given or {}).items()}
     need = [n for n in names if n not in given]
