@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import cv2
 import numpy as np
 
@@ -81,13 +83,21 @@ def tilt_deg(level_from_cam_: np.ndarray) -> float:
 def levelled(image: np.ndarray, level_from_cam_: np.ndarray, *, nearest: bool = False) -> np.ndarray:
     """An ERP image (H, W[, C]) as the levelled camera sees it: each pixel of the levelled frame sampled along its
     ray in the camera frame (bilinear; nearest for depth and masks, whose values must not blend)."""
-    h, w = image.shape[:2]
-    u, v = erp_pixel_from_dir(erp_dirs64(h, w).reshape(-1, 3) @ level_from_cam_, h, w)
-    mx = ((u - 0.5) % w).reshape(h, w).astype(np.float32)
-    my = np.clip(v - 0.5, 0, h - 1).reshape(h, w).astype(np.float32)
+    mx, my = _sampling_grid(*image.shape[:2], np.asarray(level_from_cam_, np.float64).tobytes())
     src = image.astype(np.uint8) if image.dtype == bool else image
     out = cv2.remap(src, mx, my, cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
     return out.astype(bool) if image.dtype == bool else out
+
+
+@lru_cache(maxsize=2)
+def _sampling_grid(h: int, w: int, rotation: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """levelled's remap grids (h, w) float32 for a levelling rotation (its float64 bytes): the panorama, its depth and
+    masks of one levelling share them."""
+    u, v = erp_pixel_from_dir(erp_dirs64(h, w).reshape(-1, 3) @ np.frombuffer(rotation).reshape(3, 3), h, w)
+    mx = ((u - 0.5) % w).reshape(h, w).astype(np.float32)
+    my = np.clip(v - 0.5, 0, h - 1).reshape(h, w).astype(np.float32)
+    mx.flags.writeable = my.flags.writeable = False
+    return mx, my
 
 
 def levelled_depth(depth: np.ndarray, level_from_cam_: np.ndarray, edge_rel: float = DEPTH_EDGE_REL) -> np.ndarray:
