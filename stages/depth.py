@@ -147,7 +147,8 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
         info["level"] = lev.info
         notes.extend([lev.note] if lev.note else [])
         if (R := lev.level_from_cam) is not None:
-            rgb, depth, valid = levelled(rgb, R), levelled_depth(np.where(valid, depth, 0), R), levelled(valid, R, nearest=True)
+            rgb, depth = levelled(rgb, R), levelled_depth(np.where(valid, depth, 0), R)
+            valid = levelled(valid, R, nearest=True)
             if rig_mask is not None:
                 rig_mask = levelled(read_user_mask(rig_mask, H, W), R, nearest=True)
     rig_backend = None if params.rig == RigMode.KEEP else backends.get("rig", params.rig_detector).impl

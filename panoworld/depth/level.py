@@ -21,6 +21,9 @@ AGREE_DEG = 1.0
 """The depth's floor, once the panorama is levelled by its lines, must be level within this; else both are left as
 taken (the depth and the photo disagree about the camera: a layout drawn level under a tilted photo)."""
 _UP = np.array([0.0, 1.0, 0.0])
+_NOMINAL_HEIGHT_M = 1.6
+"""The depth, in any units, is scaled to put its floor this far below the camera for the floor fit (its bands are
+metric)."""
 
 
 @dataclass
@@ -55,7 +58,7 @@ def level_panorama(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray) -> Lev
     h = camera_height(d)
     floor = residual = None
     if h is not None and h > 0:
-        d *= np.float32(1.6 / h)  # floor_down's bands are metric
+        d *= np.float32(_NOMINAL_HEIGHT_M / h)
         floor = floor_down(levelled_depth(d, by_lines))
         if floor is not None:
             residual = angle_deg(floor, _UP)

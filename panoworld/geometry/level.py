@@ -1,4 +1,5 @@
-"""A tilted panorama's levelling rotation from the floor its depth shows, and its images levelled for registration."""
+"""A tilted panorama's levelling: the rotation from the floor its depth shows, and its images and depth resampled
+as the levelled camera sees them."""
 
 from __future__ import annotations
 

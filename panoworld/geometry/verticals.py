@@ -56,7 +56,8 @@ class Gravity:
 
 @lru_cache(maxsize=4)
 def _views(h: int, w: int) -> tuple:
-    """The views' remap grids into an (h, w) ERP and their (size, size, 3) camera-frame rays."""
+    """Per view: its remap grids (VIEW_SIZE, VIEW_SIZE) into an (h, w) ERP and its (3, 3) basis, a pixel's
+    camera-frame ray being (x, y, 1) @ basis."""
     size = VIEW_SIZE
     f = size / 2.0  # 90 deg
     c = (size - 1) / 2.0
@@ -74,7 +75,7 @@ def _views(h: int, w: int) -> tuple:
     return tuple(out)
 
 
-def vertical_candidates(gray: np.ndarray, max_slant_deg: float = 30.0) -> tuple[np.ndarray, np.ndarray]:
+def vertical_candidates(gray: np.ndarray, max_slant_deg: float = MAX_SLANT_DEG) -> tuple[np.ndarray, np.ndarray]:
     """The great-circle normals (N, 3) (camera frame, unit) and lengths (N,) (view pixels) of the line segments within
     max_slant_deg of the vertical in views around the horizon of an ERP grayscale image (H, W) uint8."""
     check_shape("gray", gray, "H W")
@@ -103,8 +104,8 @@ def gravity_from_image(rgb: np.ndarray, *, tries: int = 1000, seed: int = 0) -> 
     """Gravity in the camera frame from an ERP panorama (H, W, 3) uint8: the direction the most vertical lines meet
     in (every vertical line's great circle passes through it). Near the camera's own down first (MAX_TILT_DEG); where
     that finds no direction most lines agree on, among steeper lines up to WIDE_TILT_DEG; a direction beyond
-    REFINE_DEG is found again on the panorama levelled by it (its verticals then upright in the views). None when fewer than MIN_VERTICALS or MIN_SHARE agree, or the panorama
-    has fewer than MIN_ROWS rows."""
+    REFINE_DEG is found again on the panorama levelled by it (its verticals then upright in the views). None when
+    fewer than MIN_VERTICALS or MIN_SHARE agree, or the panorama has fewer than MIN_ROWS rows."""
     h, w = check_shape("rgb", rgb, "H W 3").values()
     if h < MIN_ROWS:
         return None
