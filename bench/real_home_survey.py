@@ -24,6 +24,9 @@ import json
 import sys
 from pathlib import Path
 
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
 import numpy as np
 
 from panoworld.geometry.upright import yaw_of
