@@ -220,7 +220,7 @@ def section_home(scene: SceneData, page: Page, params: ReportParams) -> Section:
                    if isinstance(d, dict) and (d.get("level") or {}).get("level_from_cam")}
     if built_level:
         notes.append("Taken off level, levelled by the depth stage (the tilt its vertical lines read, its floor "
-                     "agreeing; the scene is built level): " + ", ".join(f"{n} {float(d):.1f}°" for n, d in
+                     "agreeing where it shows one; the scene is built level): " + ", ".join(f"{n} {float(d):.1f}°" for n, d in
                                                                          built_level.items())
                      + " (docs/conventions.md).")
     if psnr:
