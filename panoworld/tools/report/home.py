@@ -219,10 +219,9 @@ def section_home(scene: SceneData, page: Page, params: ReportParams) -> Section:
     built_level = {n: (d.get("level") or {}).get("tilt_deg") for n, d in depth_info.items()
                    if isinstance(d, dict) and (d.get("level") or {}).get("level_from_cam")}
     if built_level:
-        notes.append("Taken off level, levelled by the depth stage (the tilt its vertical lines read, its floor "
-                     "agreeing where it shows one; the scene is built level): " + ", ".join(f"{n} {float(d):.1f}°" for n, d in
-                                                                         built_level.items())
-                     + " (docs/conventions.md).")
+        listed = ", ".join(f"{n} {float(d):.1f}°" for n, d in built_level.items())
+        notes.append("Taken off level, levelled by the depth stage (the tilt its vertical lines read, its floor agreeing "
+                     f"where it shows one; the scene is built level): {listed} (docs/conventions.md).")
     if psnr:
         notes.append("Capture pose PSNR: the gaussians stage's colour-fit render at each capture pose against that "
                      "panorama (cleaned), from its manifest's color_fit.")
