@@ -23,8 +23,8 @@ def layout():
 
 def test_gravity_is_read_from_the_vertical_lines(layout):
     """Each panorama of a synthetic home, level and turned by 2, 5 and 20 deg about a horizontal axis: the gravity
-    its lines give is within 0.25 deg of the truth (20 deg: beyond the first search, found by the wider one);
-    a panorama under MIN_ROWS rows is not read."""
+    its lines give is within 0.25 deg of the truth (beyond REFINE_DEG found again on the panorama levelled by the
+    first reading); a panorama under MIN_ROWS rows is not read."""
     import cv2
 
     _, _, rgbs, _ = layout
@@ -57,10 +57,13 @@ def _depth_stage(scene, out, **params):
 
 
 def test_the_depth_stage_levels_a_panorama_taken_off_level(layout, tmp_path):
-    """One panorama and its depth taken 3 deg off level: the depth stage levels both (its floor then level within
-    0.1 deg, the panorama back within 0.3 deg of the level capture), records the rotation and says so; the level
-    capture is left as taken (the same bytes as with level=false); a tilted photo over a depth drawn level is left
-    as taken, with a note saying why."""
+    """One panorama and its depth taken 3 deg off level: the depth stage levels both (gravity within 0.1 deg, its
+    floor then level within 0.1 deg, panorama and depth as the level capture's: PSNR > 30 dB away from the poles,
+    depth within 0.1 % at the median), records the rotation and says so; the level capture is left as taken (the
+    same bytes as with level=false); a tilted photo over a depth drawn level is left as taken, with a note saying
+    why."""
+    import cv2
+
     _, _, rgbs, depths = layout
     rgb, depth = rgbs["pano_01"], depths["pano_01"]
     X = tilt_from_level(3.0, 1.3)
@@ -73,10 +76,15 @@ def test_the_depth_stage_levels_a_panorama_taken_off_level(layout, tmp_path):
     assert angle_deg(floor_down(out), UP) < 0.1
     assert any(f"taken {lev['tilt_deg']:.1f}° from level" in d and "levelled" in d for d in info["decisions"])
 
-    info, out = _depth_stage(_scene(tmp_path, rgb, depth, "level"), tmp_path / "out_level")
+    info, level_out = _depth_stage(_scene(tmp_path, rgb, depth, "level"), tmp_path / "out_level")
     assert "level_from_cam" not in info["level"] and info["level"]["image_tilt_deg"] < 0.3
+    a, b = (cv2.imread(str(tmp_path / d / "panorama.png")).astype(np.float64) for d in ("out_tilted", "out_level"))
+    rows = slice(a.shape[0] // 8, a.shape[0] - a.shape[0] // 8)
+    assert 10 * np.log10(255.0**2 / np.mean((a[rows] - b[rows]) ** 2)) > 30.0
+    both = (out > 0) & (level_out > 0)
+    assert np.median(np.abs(out[both] - level_out[both]) / level_out[both]) < 1e-3
     _, out_as_taken = _depth_stage(tmp_path / "level", tmp_path / "out_level_off", level=False)
-    assert np.array_equal(out, out_as_taken)
+    assert np.array_equal(level_out, out_as_taken)
     for f in ("panorama.png", "valid.png"):
         assert (tmp_path / "out_level" / f).read_bytes() == (tmp_path / "out_level_off" / f).read_bytes()
 
