@@ -99,12 +99,14 @@ def test_a_home_taken_off_level_is_built_level_and_its_given_poses_follow(home_d
     """A home whose pano_01 was taken 2 deg off level, through `runner.py run --until register`: the depth stage
     levels it, registration then has nothing to level, the note under the table and `status` name it; with a
     poses.json of the cameras as taken, pano_01's registered pose is its levelled camera's (the level truth within
-    0.2 deg); with depth.level=false the registration levels it for itself and says so."""
+    0.2 deg), and `runner.py eval`'s registration scores against true poses of the cameras as taken compare it as
+    levelled; with depth.level=false the registration levels it for itself and says so."""
     import shutil
 
     import cv2
 
     from panoworld.core.conventions import invert_pose, pose_from_rt
+    from panoworld.tools.eval.home import registration_metrics
     from tests.test_runner import cli
 
     scene = tmp_path / "home"
@@ -127,6 +129,10 @@ def test_a_home_taken_off_level_is_built_level_and_its_given_poses_follow(home_d
     truth = json.loads((home_dir / "gt" / "poses.json").read_text())
     truth = {n: np.asarray(T, np.float64) for n, T in truth.items()}
     as_taken = dict(truth, pano_01=truth["pano_01"] @ invert_pose(pose_from_rt(X, np.zeros(3))))
+    (scene / "gt").mkdir()  # the true poses of the cameras as taken: the eval scores the levelled one against its own
+    (scene / "gt" / "poses.json").write_text(json.dumps({n: T.tolist() for n, T in as_taken.items()}))
+    scores = registration_metrics(scene / "artifacts" / "register", scene)
+    assert scores["registered"] == 3 and scores["misplaced"] == 0 and scores["rot_deg_max"] < 0.5, scores
     (scene / "poses.json").write_text(json.dumps({n: T.tolist() for n, T in as_taken.items()}))
     out = cli("run", str(scene), "--until", "register")
     assert out.returncode == 0, out.stderr[-2000:]

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.core.conventions import invert_pose
-from panoworld.io.home import capture_poses
+from panoworld.core.conventions import invert_pose, pose_from_rt
+from panoworld.io.home import capture_poses, levelled_panoramas
 from panoworld.io.jsonio import read_json
 from panoworld.tools.eval.common import unavailable
 from panoworld.tools.eval.groundtruth import NoReference
@@ -33,12 +33,19 @@ def pose_errors(est: dict[str, np.ndarray], gt: dict[str, np.ndarray]) -> dict[s
 def registered_and_true(register_dir: Path, scene_dir: Path) -> tuple[dict, dict, str]:
     """(true poses {NAME: world_from_cam (4, 4)} of SCENE/gt/poses.json, the registered ones of them (the register
     artifact's panoramas.json, its frame), the anchor: the first registered by name, the home's world frame).
-    NoReference without true poses or when none of them is registered."""
+    The true pose of a panorama the depth stage levelled (the depth artifact beside the register artifact) is its
+    levelled camera's, as registration places it. NoReference without true poses or when none of them is
+    registered."""
     gt_path = Path(scene_dir) / GT_POSES
     if not gt_path.is_file():
         raise NoReference(f"no {GT_POSES.as_posix()}: registration is scored against the true capture poses of a "
                           "synthetic home (runner.py synth OUT --panoramas K)")
     gt = {n: np.asarray(T, np.float64).reshape(4, 4) for n, T in read_json(gt_path).items()}
+    depth_dir = Path(register_dir).parent / "depth"  # a variant's register may sit beside no depth artifact
+    depth_dir = depth_dir if (depth_dir / "manifest.json").is_file() else Path(scene_dir) / "artifacts" / "depth"
+    for n, R in levelled_panoramas(depth_dir).items():
+        if n in gt:  # world_from_levelled = world_from_cam @ cam_from_levelled
+            gt[n] = gt[n] @ pose_from_rt(R.T, np.zeros(3))
     est = {n: T for n, T in capture_poses(register_dir).items() if n in gt}
     if not est:
         raise NoReference(f"none of the registered panoramas is in {GT_POSES.as_posix()}")
