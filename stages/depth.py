@@ -149,7 +149,7 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
         if (R := lev.level_from_cam) is not None:
             rgb, depth = levelled(rgb, R), levelled_depth(np.where(valid, depth, 0), R)
             valid = levelled(valid, R, nearest=True)
-            if rig_mask is not None:
+            if rig_mask is not None and params.rig != RigMode.KEEP:
                 rig_mask = levelled(read_user_mask(rig_mask, H, W), R, nearest=True)
     rig_backend = None if params.rig == RigMode.KEEP else backends.get("rig", params.rig_detector).impl
     c = clean_depth(rgb, depth, valid, relative=res.relative, rescale=params.rescale,
