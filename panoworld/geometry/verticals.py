@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 
 import cv2
 import numpy as np
 
-from panoworld.core.conventions import erp_pixel_from_dir
 from panoworld.core.shapes import check_shape
+from panoworld.geometry.cube_views import PerspectiveView, render_view
 from panoworld.geometry.level import level_from_down, levelled
+from panoworld.geometry.upright import yaw_matrix
 
 VIEWS = 8
 """Perspective views around the horizon the lines are found in (90 deg wide, 45 deg apart)."""
@@ -54,25 +54,15 @@ class Gravity:
         return float(np.degrees(np.arccos(np.clip(self.down_cam[1], -1.0, 1.0))))
 
 
-@lru_cache(maxsize=4)
-def _views(h: int, w: int) -> tuple:
-    """Per view: its remap grids (VIEW_SIZE, VIEW_SIZE) into an (h, w) ERP and its (3, 3) basis, a pixel's
-    camera-frame ray being (x, y, 1) @ basis."""
-    size = VIEW_SIZE
-    f = size / 2.0  # 90 deg
-    c = (size - 1) / 2.0
-    px, py = np.meshgrid(np.arange(size, dtype=np.float64), np.arange(size, dtype=np.float64))
-    out = []
-    for k in range(VIEWS):
-        t = 2.0 * np.pi * k / VIEWS
-        fwd, right, down = np.array([np.sin(t), 0.0, np.cos(t)]), np.array([np.cos(t), 0.0, -np.sin(t)]), np.array(
-            [0.0, 1.0, 0.0])
-        basis = np.stack([right / f, down / f, fwd - c / f * (right + down)])  # ray = (px, py, 1) @ basis
-        rays = np.stack([px, py, np.ones_like(px)], -1) @ basis
-        u, v = erp_pixel_from_dir((rays / np.linalg.norm(rays, axis=-1, keepdims=True)).reshape(-1, 3), h, w)
-        out.append((((u - 0.5) % w).reshape(size, size).astype(np.float32),
-                    np.clip(v - 0.5, 0, h - 1).reshape(size, size).astype(np.float32), basis))
-    return tuple(out)
+VIEWS_AROUND = tuple(PerspectiveView(yaw_matrix(2.0 * np.pi * k / VIEWS), 90.0, VIEW_SIZE) for k in range(VIEWS))
+"""The views around the horizon the lines are found in."""
+
+
+def _rays(view: PerspectiveView, pts: np.ndarray) -> np.ndarray:
+    """Camera-frame rays (N, 3) (not unit) through the view's continuous pixel coordinates pts (N, 2) (the centre of
+    pixel (r, c) at (c, r), as PerspectiveView.rays)."""
+    xy = (pts + 0.5 - 0.5 * view.size) / view.focal
+    return np.hstack([xy, np.ones((len(pts), 1))]) @ view.cam_from_view.T
 
 
 def vertical_candidates(gray: np.ndarray, max_slant_deg: float = MAX_SLANT_DEG) -> tuple[np.ndarray, np.ndarray]:
@@ -81,8 +71,8 @@ def vertical_candidates(gray: np.ndarray, max_slant_deg: float = MAX_SLANT_DEG) 
     check_shape("gray", gray, "H W")
     lsd = cv2.createLineSegmentDetector()
     normals, lengths = [], []
-    for mx, my, basis in _views(*gray.shape):
-        segs = lsd.detect(cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP))[0]
+    for view in VIEWS_AROUND:
+        segs = lsd.detect(render_view(gray, view))[0]
         if segs is None:
             continue
         segs = segs.reshape(-1, 4).astype(np.float64)
@@ -91,8 +81,7 @@ def vertical_candidates(gray: np.ndarray, max_slant_deg: float = MAX_SLANT_DEG) 
         keep = (length >= MIN_LENGTH_PX) & (np.degrees(np.arctan2(np.abs(dx), np.abs(dy))) < max_slant_deg)
         if not keep.any():
             continue
-        one = np.ones((int(keep.sum()), 1))
-        n = np.cross(np.hstack([segs[keep, :2], one]) @ basis, np.hstack([segs[keep, 2:], one]) @ basis)
+        n = np.cross(_rays(view, segs[keep, :2]), _rays(view, segs[keep, 2:]))
         normals.append(n / np.linalg.norm(n, axis=1, keepdims=True))
         lengths.append(length[keep])
     if not normals:
