@@ -9,7 +9,7 @@ import numpy as np
 
 from panoworld.core.shapes import check_shape
 from panoworld.geometry.floor_view import camera_height
-from panoworld.geometry.level import angle_deg, floor_down, level_from_down, levelled_depth
+from panoworld.geometry.level import angle_deg, floor_down, level_from_down, levelled_depth, tilt_deg
 from panoworld.geometry.verticals import gravity_from_image
 
 MIN_TILT_DEG = 1.0
@@ -74,7 +74,8 @@ def level_panorama(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray) -> Lev
     else:
         R, how = level_from_down(floor) @ by_lines, (f"its vertical lines; the depth's floor agrees within "
                                                      f"{residual:.1f}° and levels it exactly")
-    if angle_deg(R.T @ _UP, _UP) < MIN_TILT_DEG:  # the floor puts it back near level: nothing worth resampling
+    undone = tilt_deg(R)
+    if undone < MIN_TILT_DEG:  # the floor puts it back near level: nothing worth resampling
         return Levelling(None, info)
-    info.update(tilt_deg=round(angle_deg(R.T @ _UP, _UP), 3), level_from_cam=R.round(9).tolist())
+    info.update(tilt_deg=round(undone, 3), level_from_cam=R.round(9).tolist())
     return Levelling(R, info, f"taken {info['tilt_deg']:.1f}° from level ({how}): levelled, the scene is built level")
