@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from panoworld.core.conventions import pose_from_rt
 from panoworld.core.errors import InputError
 from panoworld.io.jsonio import read_json, write_json
 
@@ -52,6 +53,13 @@ def levelled_panoramas(depth_artifact: Path) -> dict[str, np.ndarray]:
     """{NAME: (3, 3) level_from_cam} of the panoramas the depth stage levelled (taken off level; the depth manifest's
     info.level, per panorama of a home), a single panorama's as "panorama"; {} when none was (or no manifest)."""
     return {n: np.asarray(lev["level_from_cam"], np.float64) for n, lev in _levels(depth_artifact).items()}
+
+
+def to_levelled(world_from_cam: dict[str, np.ndarray], level_from_cam: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """{NAME: (4, 4)} poses of the cameras as taken turned to their levelled cameras' where a levelling (3, 3) is
+    given (world_from_levelled = world_from_cam @ cam_from_levelled); the others as they are."""
+    return {n: T @ pose_from_rt(level_from_cam[n].T, np.zeros(3)) if n in level_from_cam else T
+            for n, T in world_from_cam.items()}
 
 
 def level_note(depth_artifact: Path) -> str | None:

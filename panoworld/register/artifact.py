@@ -7,9 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.core.conventions import pose_from_rt
 from panoworld.core.errors import InputError
-from panoworld.io.home import PANORAMAS_JSON, RIG_MASK_PNG
+from panoworld.io.home import PANORAMAS_JSON, RIG_MASK_PNG, to_levelled
 from panoworld.io.jsonio import read_json, write_json
 from panoworld.register.inputs import REGISTRATION_JSON, find_multi_scene, read_poses
 from panoworld.register.options import RegisterOptions
@@ -62,10 +61,7 @@ def register_depth_dirs(dirs: dict[str, Path] | None, poses_file: Path | None, o
         return rgb, np.where(valid, depth, 0.0).astype(np.float32), _read_rig_mask(rig) if rig.is_file() else None
 
     names = list(dirs)
-    given = read_poses(poses_file, names) if poses_file is not None else {}
-    for n, R in (levelled or {}).items():
-        if n in given:  # world_from_levelled = world_from_cam @ cam_from_levelled
-            given[n] = given[n] @ pose_from_rt(R.T, np.zeros(3))
+    given = to_levelled(read_poses(poses_file, names) if poses_file is not None else {}, levelled or {})
     rgbs, depths, rigs = {}, {}, {}
     if len(given) < len(names):  # decoding releases the GIL: the panoramas on the pairs' threads
         for n, (rgbs[n], depths[n], rig) in zip(names, map_ahead(load, [dirs[n] for n in names], workers=pair_threads())):

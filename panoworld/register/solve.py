@@ -14,6 +14,7 @@ from panoworld.geometry.floor_view import FloorView, camera_height
 from panoworld.geometry.level import level_from_cam, levelled, levelled_depth, tilt_deg
 from panoworld.geometry.resize import rgbd_at_height
 from panoworld.geometry.upright import wrap_angle, yaw_of
+from panoworld.io.home import to_levelled
 from panoworld.register.cuts import refuse_outvoted_cuts, weak_floor
 from panoworld.register.floor import FloorPose, floor_pair, floor_rooms_refusal, panorama_floor_view
 from panoworld.register.graph import (
@@ -91,7 +92,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     rgbs = {n: levelled(x, level[n]) if n in level else x for n, x in rgbs.items()}
     depths = {n: levelled_depth(x, level[n]) if n in level else x for n, x in depths.items()}
     rig_masks = {n: levelled(m, level[n], nearest=True) if n in level else m for n, m in (rig_masks or {}).items()}
-    given = {n: T @ invert_pose(lift[n]) if n in lift else T for n, T in (given or {}).items()}
+    given = to_levelled(given or {}, level)
     need = [n for n in names if n not in given]
     pairs: dict[tuple[int, int], PairResult] = {}
     bearing: dict[tuple[int, int], tuple[UprightPose | None, float, int]] = {}

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from panoworld.core.conventions import invert_pose, pose_from_rt
-from panoworld.io.home import capture_poses, levelled_panoramas
+from panoworld.core.conventions import invert_pose
+from panoworld.io.home import capture_poses, levelled_panoramas, to_levelled
 from panoworld.io.jsonio import read_json
 from panoworld.tools.eval.common import unavailable
 from panoworld.tools.eval.groundtruth import NoReference
@@ -43,9 +43,7 @@ def registered_and_true(register_dir: Path, scene_dir: Path) -> tuple[dict, dict
     gt = {n: np.asarray(T, np.float64).reshape(4, 4) for n, T in read_json(gt_path).items()}
     depth_dir = Path(register_dir).parent / "depth"  # a variant's register may sit beside no depth artifact
     depth_dir = depth_dir if (depth_dir / "manifest.json").is_file() else Path(scene_dir) / "artifacts" / "depth"
-    for n, R in levelled_panoramas(depth_dir).items():
-        if n in gt:  # world_from_levelled = world_from_cam @ cam_from_levelled
-            gt[n] = gt[n] @ pose_from_rt(R.T, np.zeros(3))
+    gt = to_levelled(gt, levelled_panoramas(depth_dir))
     est = {n: T for n, T in capture_poses(register_dir).items() if n in gt}
     if not est:
         raise NoReference(f"none of the registered panoramas is in {GT_POSES.as_posix()}")
