@@ -67,13 +67,9 @@ def cmd_run(args) -> int:
 
 
 def cmd_status(args) -> int:
-    from panoworld.io.home import level_note
-    from panoworld.register.artifact import registration_note
-
     rows = pl.status(args.scene, preset=args.preset, sets=args.sets, pipeline=pl.Pipeline.load(args.pipeline))
-    fresh = {r["stage"]: Path(r["artifact"]) for r in rows if r["state"] == "up-to-date"}
-    notes = [n for n in (level_note(fresh["depth"]) if "depth" in fresh else None,  # panoramas taken off level
-                         registration_note(fresh["register"], Path(args.scene)) if "register" in fresh else None) if n]
+    notes = pl.scene_notes({r["stage"]: Path(r["artifact"]) for r in rows if r["state"] == "up-to-date"},
+                           Path(args.scene))
     if args.json:
         print(json.dumps({"scene": str(args.scene), "stages": rows, "notes": notes}, indent=2))
         return 0

@@ -297,23 +297,23 @@ def run(
                 emit(StageResult(name, "skipped", "not run: an earlier stage failed (use --keep-going)"))
         if fresh and not any(r.action == "ran" for r in report.results):
             lock.remove_bookkeeping()  # nothing committed into a new artifacts/: leave the scene as it was
-        if "depth" in pipeline.stages and any(r.stage == "depth" and r.action in ("ran", "cached")
-                                               for r in report.results):
-            from panoworld.io.home import level_note
-
-            note = level_note(scene.artifact_dir("depth"))
-            if note:
-                report.notes.append(note)
-        if "register" in pipeline.stages and any(r.stage == "register" and r.action in ("ran", "cached")
-                                                  for r in report.results):
-            from panoworld.register.artifact import registration_note
-
-            note = registration_note(scene.artifact_dir("register"), scene.root)
-            if note:
-                report.notes.append(note)
+        report.notes.extend(scene_notes({r.stage: scene.artifact_dir(r.stage) for r in report.results
+                                         if r.action in ("ran", "cached")}, scene.root))
         if key is not None:
             _record(key, pipeline, scene, params, report, watch)
     return report
+
+
+def scene_notes(artifacts: dict[str, Path], root: Path) -> list[str]:
+    """The notes a scene's artifacts ({STAGE: artifact dir} of the stages that are up to date) call for under the run
+    table and in `status`: the panoramas the depth stage levelled, and a home that registration left partly unplaced
+    or levelled for itself."""
+    from panoworld.io.home import level_note
+    from panoworld.register.artifact import registration_note
+
+    notes = [level_note(artifacts["depth"]) if "depth" in artifacts else None,
+             registration_note(artifacts["register"], root) if "register" in artifacts else None]
+    return [n for n in notes if n]
 
 
 def _record_key(pipeline: Pipeline, root: Path, config_digest: str | None, preset: str | None, sets) -> str:
