@@ -65,12 +65,15 @@ def to_levelled(world_from_cam: dict[str, np.ndarray], level_from_cam: dict[str,
 def level_note(depth_artifact: Path) -> str | None:
     """"taken off level: pano_01 2.0°, ...; levelled, the scene is built level (docs/conventions.md)" when the depth
     stage levelled any panorama; None otherwise."""
-    tilts = {n: float(lev.get("tilt_deg", 0.0)) for n, lev in _levels(depth_artifact).items()}
+    tilts = [f"{n} {float(lev.get('tilt_deg', 0.0)):.1f}°" for n, lev in _levels(depth_artifact).items()]
     if not tilts:
         return None
-    listed = ", ".join(f"{n} {d:.1f}°" for n, d in list(tilts.items())[:5])
-    more = f" +{len(tilts) - 5} more" if len(tilts) > 5 else ""
-    return f"taken off level: {listed}{more}; levelled, the scene is built level (docs/conventions.md)"
+    return f"taken off level: {first_few(tilts)}; levelled, the scene is built level (docs/conventions.md)"
+
+
+def first_few(items: list[str], k: int = 5) -> str:
+    """The first k items joined by commas, "+N more" after them when there are more (a note's list of panoramas)."""
+    return ", ".join(items[:k]) + (f" +{len(items) - k} more" if len(items) > k else "")
 
 
 def capture_poses(register_artifact: Path | None) -> dict[str, np.ndarray]:

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.core.errors import InputError
-from panoworld.io.home import PANORAMAS_JSON, RIG_MASK_PNG, to_levelled
+from panoworld.io.home import PANORAMAS_JSON, RIG_MASK_PNG, first_few, to_levelled
 from panoworld.io.jsonio import read_json, write_json
 from panoworld.register.inputs import REGISTRATION_JSON, find_multi_scene, read_poses
 from panoworld.register.options import RegisterOptions
@@ -138,14 +138,12 @@ def registration_note(artifact_dir: Path, root: Path | None = None) -> str | Non
         left = [str(n) for n in info.get("unregistered") or []]
         shown = Path(artifact_dir) / REGISTRATION_JSON
         shown = shown.relative_to(root) if root is not None and shown.is_relative_to(root) else shown
-        more = f" +{len(left) - 5} more" if len(left) > 5 else ""
         parts.append(f"{info.get('num_registered')} of {info.get('num_panoramas')} panoramas registered (not placed: "
-                     f"{', '.join(left[:5])}{more}; see {shown}; a pose in poses.json for one panorama of each group "
+                     f"{first_few(left)}; see {shown}; a pose in poses.json for one panorama of each group "
                      "places it, `runner.py split` makes each group a home of its own)")
     tilted = info.get("levelled_tilt_deg")
     if isinstance(tilted, dict) and tilted:
-        listed = ", ".join(f"{n} {float(d):.1f}°" for n, d in list(tilted.items())[:5])
-        more = f" +{len(tilted) - 5} more" if len(tilted) > 5 else ""
-        parts.append(f"taken with the camera not level: {listed}{more}; levelled for registration, the scene is built "
+        listed = first_few([f"{n} {float(d):.1f}°" for n, d in tilted.items()])
+        parts.append(f"taken with the camera not level: {listed}; levelled for registration, the scene is built "
                      "as taken (docs/multi.md)")
     return "home: " + "; ".join(parts) if parts else None

@@ -7,6 +7,7 @@ import numpy as np
 from panoworld.core.conventions import invert_pose
 from panoworld.geometry.floor_view import FloorView
 from panoworld.geometry.upright import wrap_angle, yaw_of
+from panoworld.io.home import first_few
 from panoworld.register.floor import FloorPose, floor_support
 from panoworld.register.graph import DIRECTION, FLOOR, LAYOUT, Edge, ancestry, solve_graph, tree_path
 
@@ -122,5 +123,4 @@ def _same(X: np.ndarray, Y: np.ndarray, centre: np.ndarray) -> bool:
 
 def _names(items: list, most: int = 6) -> str:
     """A short list of names or pairs (at most `most`, then how many more) for a message."""
-    shown = ", ".join(x if isinstance(x, str) else "-".join(x) for x in items[:most])
-    return shown + (f" +{len(items) - most} more" if len(items) > most else "")
+    return first_few([x if isinstance(x, str) else "-".join(x) for x in items], most)
