@@ -10,6 +10,8 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
 from panoworld.tools.precompute.run import PrecomputeParams, precompute
 from panoworld.tools.synth import generate_scene, write_scene
 from panoworld.tools.synth.generate import derive_seed

@@ -26,11 +26,14 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from panoworld.geometry.align import trajectory_metrics
 from panoworld.models.panovggt import PanoVGGT

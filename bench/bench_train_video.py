@@ -24,11 +24,15 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
 from training_tables import targets  # bench/ is on sys.path when this file runs as a script
 
 MODES = {  # steps: the shortcut model's stage steps (FM-only gets equal compute); sc_split: see ToyConfig
