@@ -18,7 +18,7 @@ from panoworld.framework.stage_params import params_from_dict
 from panoworld.io.depth import read_panorama
 from panoworld.register.options import RegisterOptions
 from panoworld.register.pairwise import PairResult, consistency
-from panoworld.register.solve import register_panoramas
+from panoworld.register.solve import FEW_KEYPOINTS, register_panoramas
 from panoworld.tools.synth.generate import generate_scene
 from stages.register import main as register_main
 from tests.conftest import HOME_HEIGHT as HEIGHT
@@ -142,6 +142,19 @@ def test_unrelated_panorama_is_reported_not_placed(home_dir):
     t_cm, r_deg = _errors(reg.world_from_cam["pano_01"], invert_pose(gt["pano_00"]) @ gt["pano_01"])
     assert t_cm <= TOL_CM and r_deg <= TOL_DEG
     assert not any(p["accepted"] for p in reg.pairs if "other" in (p["a"], p["b"]))
+
+
+def test_a_blank_panorama_is_reported_as_featureless(home_dir):
+    names = ["pano_00", "pano_01"]
+    rgbs = {n: read_panorama(home_dir / "panoramas" / f"{n}.png") for n in names}
+    depths = {n: np.load(home_dir / "depths" / f"{n}.npy") for n in names}
+    rgbs["blank"], depths["blank"] = np.full_like(rgbs["pano_00"], 12), depths["pano_00"]  # a lens cap: dark grey
+    reg = register_panoramas(["blank", *names], rgbs, depths, options=RegisterOptions(height=HEIGHT))
+    assert sorted(reg.world_from_cam) == names  # the largest group, though "blank" comes first by name
+    assert reg.panoramas["blank"]["keypoints"] == 0
+    assert min(reg.panoramas[n]["keypoints"] for n in names) >= FEW_KEYPOINTS
+    assert reg.panoramas["blank"]["reason"].endswith(
+        "; 0 keypoints on the panorama: a blank, dark or blurred image has nothing to match")
 
 
 def test_texture_on_a_wall_through_the_camera_backs_no_depth_fit(home_dir):

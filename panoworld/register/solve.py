@@ -51,6 +51,10 @@ from panoworld.register.upright import UprightPose, max_baseline, metric_scale, 
 MAX_PAIR_THREADS = 8
 """Panoramas prepared and pairs registered at once at most (threads)."""
 
+FEW_KEYPOINTS = 100
+"""An unregistered panorama with fewer SIFT keypoints than this is named as featureless in its reason (a blank,
+dark or blurred image: nothing to match); a real 2048 x 1024 room keeps thousands."""
+
 
 def pair_threads() -> int:
     """Panoramas prepared (features, floor view) and pairs registered at once: core.parallel.cpu_threads (the CPUs,
@@ -100,6 +104,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     frames: dict[str, float | None] = {}
     small: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     views: dict[str, FloorView | None] = {}
+    keypoints: dict[str, int] = {}
     k = len(names)
     if need and k > 1:  # one panorama has no pair: nothing to prepare
         def one_panorama(n: str):
@@ -115,6 +120,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
         small, feats, walls, views, looks = (dict(zip(names, x)) for x in zip(
             *map_ahead(one_panorama, names, workers=pair_threads())))
         frames = walls if o.manhattan else dict.fromkeys(names)
+        keypoints = {n: len(f.bearings) for n, f in feats.items()}
         looks = looks if k > o.all_pairs_up_to else None
         heights = {n: v.height_m if (v := views[n]) is not None else camera_height(small[n][1]) for n in names}
 
@@ -181,6 +187,8 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     for n, theta in frames.items():
         if theta is not None:
             info[n]["walls_deg"] = round(float(np.degrees(theta)), 3)
+    for n, count in keypoints.items():
+        info[n]["keypoints"] = count
     anchor = next(n for n in names if n in poses)
     cam_from_world = invert_pose(poses[anchor])
     out = {n: cam_from_world @ poses[n] for n in names if n in poses}
@@ -223,6 +231,9 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     for n in names:
         if not info[n]["registered"]:
             info[n]["reason"] += _evidence_across(set(info[n].get("group") or [n]), set(poses), rows, o)
+            if keypoints.get(n, FEW_KEYPOINTS) < FEW_KEYPOINTS:
+                info[n]["reason"] += (f"; {keypoints[n]} keypoints on the panorama: a blank, dark or blurred image has "
+                                      "nothing to match")
     return Registration(world_from_cam=out, panoramas={n: info[n] for n in names}, pairs=rows)
 
 
