@@ -476,3 +476,28 @@ def test_a_weak_floor_edge_no_other_pair_across_its_cut_supports_is_refused():
     lone = refuse_outvoted_cuts(names, edges(), {}, floors(apart, ((0, 1), (0, 2))), apart, 8, 12)
     assert list(lone) == [("a", "c")] and "no other pair across it" in lone["a", "c"][1]
     assert refuse_outvoted_cuts(names, edges(), {}, floors(apart, ((0, 1), (0, 2))), apart, 8, 10) == {}
+
+
+def test_a_panorama_taken_again_at_the_same_spot_lends_a_weak_floor_edge_no_support():
+    """A weak floor edge a-c whose only agreeing pair across the cut is b-c, b taken where a stands (a retake or an
+    exposure bracket, turned 60 deg): b's floor image repeats a's from the same place, so a chance fit of a-c would
+    repeat too. Refused as a lone fit; kept where b stands 1.5 m away."""
+    from panoworld.register.cuts import SAME_SPOT_M, refuse_outvoted_cuts
+    from panoworld.register.floor import floor_pair
+
+    tex = _texture(7)
+    names = ["a", "b", "c"]
+
+    def case(b_x: float) -> dict:
+        world = {"a": _pose(0.0, 0.0, 0.0), "b": _pose(60.0, b_x, 0.0), "c": _pose(-20.0, 0.4, 2.0)}
+        views = {n: floor_view(*_render(world[n], tex), radius_m=4.0) for n in names}
+        rel = lambda x, y: invert_pose(world[x]) @ world[y]
+        edges = [Edge(a="a", b="b", a_from_b=rel("a", "b"), kind="depth", inliers=300, info={}),
+                 Edge(a="a", b="c", a_from_b=rel("a", "c"), kind=FLOOR, inliers=10, info={}, confirmed=False)]
+        floors = {(i, j): floor_pair(views[names[i]], views[names[j]]) for i, j in ((0, 1), (0, 2), (1, 2))}
+        return refuse_outvoted_cuts(names, edges, {}, floors, views, 8, 12)
+
+    twin = case(0.6 * SAME_SPOT_M)
+    assert list(twin) == [("a", "c")]
+    assert "only those from its own capture spots (a-c, b-c)" in twin["a", "c"][1]
+    assert case(1.5) == {}  # b-c from another spot agrees: kept

@@ -18,6 +18,10 @@ MIN_SUPPORT = 4
 """A pair's floor images support a placement when at least this many of their matches agree with the relative pose it
 gives (floor_support's tests, counted once per keypoint spot); between floors that share nothing, a given pose keeps
 0-2."""
+SAME_SPOT_M = 0.25
+"""Panoramas on one side of a cut whose capture points lie within this of each other on the floor are one capture spot
+(a retake, an exposure bracket): they see the same floor from the same place, so a chance fit of one repeats with the
+other, and their pairs across the cut count once in the vote."""
 
 
 def refuse_outvoted_cuts(names: list[str], edges: list[Edge], given: dict[str, np.ndarray],
@@ -26,7 +30,8 @@ def refuse_outvoted_cuts(names: list[str], edges: list[Edge], given: dict[str, n
     """Remove from `edges` each floor or layout edge the images do not confirm that the solved registration joins two
     sides by, where the floor images of the pairs across that cut (floors: each tried pair's fit, keyed by name indices)
     outvote it: another placement of the side, given by a metric edge or a floor fit of >= min_floor_inliers across
-    the cut, is supported (MIN_SUPPORT) by at least two pairs and by more pairs than the tree's placement ->
+    the cut, is supported (MIN_SUPPORT) by at least two pairs and by more pairs than the tree's placement (pairs
+    counted once per two capture spots, SAME_SPOT_M) ->
     {(a, b): (edge kind, reason)}. Two rooms with one flooring can give a single floor fit of many inliers metres off,
     which the pair alone cannot tell from the truth; independent pairs agreeing on one placement are not chance. A floor
     edge of fewer than lone_inliers inliers is also refused where its own pair is the only one across its cut whose
@@ -53,18 +58,22 @@ def refuse_outvoted_cuts(names: list[str], edges: list[Edge], given: dict[str, n
                       if f is not None and f.matched is not None and names[i] in poses and names[j] in poses
                       and (names[i] in side) != (names[j] in side)
                       and views.get(names[i]) is not None and views.get(names[j]) is not None]
+            spot = _spots(poses, side)
             here = _supporters(np.eye(4), across, poses, side, views)
-            if weak and len(here) < 2:
+            if weak and _count(here, spot) < 2:
                 others = (f"no other of the {len(across)} pairs across it has floor images that agree with it"
                           if len(across) > 1 else "no other pair across it to agree with it")
+                if len(here) > 1:  # a retake or an exposure bracket repeats the fit from the same place
+                    others = (f"of the {len(across)} pairs across it only those from its own capture spots "
+                              f"({_names(here)}) have floor images that agree with it")
                 found = (path[0], f"{path[0].inliers} floor inliers, and {others}: a chance fit between floors that "
                                   "share nothing cannot be told from it")
                 break
             if not alts:
                 continue
             best = max(((_supporters(X, across, poses, side, views), k) for k, X in enumerate(alts)),
-                       key=lambda sk: len(sk[0]))
-            if len(best[0]) >= 2 and len(best[0]) > len(here):
+                       key=lambda sk: _count(sk[0], spot))
+            if _count(best[0], spot) >= 2 and _count(best[0], spot) > _count(here, spot):
                 X, there = alts[best[1]], best[0]
                 moved = float(np.linalg.norm(X[:3, :3] @ centre + X[:3, 3] - centre))
                 found = (path[0], f"the floor images of {len(there)} pairs across it ({_names(there)}) place "
@@ -113,6 +122,21 @@ def _supporters(X: np.ndarray, across: list[tuple[str, str, np.ndarray]], poses:
         if floor_support(views[a], views[b], invert_pose(pa) @ pb, matches=m) >= MIN_SUPPORT:
             out.append((a, b))
     return out
+
+
+def _spots(poses: dict[str, np.ndarray], side: set[str]) -> dict[str, str]:
+    """Each registered panorama's capture spot: the first (by name) on its side of the cut whose capture point lies
+    within SAME_SPOT_M of its own on the floor (x, z), else itself."""
+    spot: dict[str, str] = {}
+    for n in sorted(poses):
+        spot[n] = next((m for m in spot if spot[m] == m and (m in side) == (n in side)
+                        and np.linalg.norm(poses[m][[0, 2], 3] - poses[n][[0, 2], 3]) <= SAME_SPOT_M), n)
+    return spot
+
+
+def _count(pairs: list[tuple[str, str]], spot: dict[str, str]) -> int:
+    """How many pairs of distinct capture spots (_spots) the pairs are."""
+    return len({frozenset((spot[a], spot[b])) for a, b in pairs})
 
 
 def _same(X: np.ndarray, Y: np.ndarray, centre: np.ndarray) -> bool:
