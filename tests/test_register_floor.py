@@ -336,6 +336,28 @@ def test_a_floor_fit_whose_inliers_lie_inside_both_rooms_of_two_cameras_is_refus
     assert floor_rooms_refusal(f, a, b, depth, depth, threshold_m=0.05) == ""
 
 
+def test_floor_inliers_beyond_both_rooms_are_counted():
+    """Two round rooms of 1.5 m radius, the cameras 4.5 m apart: floor matched midway lies beyond both walls (a hallway
+    both see through their doors); floor of a's room lies beyond b's wall only; cameras in one room count none."""
+    from panoworld.register.floor import FloorPose, beyond_both_rooms
+
+    depth = np.full((64, 128), 1.5, np.float32)
+    T = np.eye(4)
+    T[[0, 2], 3] = [4.5, 0.0]
+    rng = np.random.default_rng(2)
+    hallway = np.stack([rng.uniform(2.1, 2.4, 10), rng.uniform(-0.3, 0.3, 10)], 1)  # 2.1-2.4 m from each camera
+    a_room = np.stack([rng.uniform(-1.0, -0.5, 10), rng.uniform(-0.5, 0.5, 10)], 1)
+    m = np.stack([np.arange(10), np.arange(10)], 1).astype(np.int32)
+    for pts, beyond in ((hallway, 10), (a_room, 0)):
+        a, b = _views_of(pts, (4.5, 0.0, 0.0))
+        f = FloorPose(a_from_b=T, inliers=10, matches=10, residual_m=0.0, matched=m)
+        assert beyond_both_rooms(f, a, b, depth, depth, threshold_m=0.05) == (beyond, 10)
+    wide = np.full((64, 128), 6.0, np.float32)  # rooms of 6 m: the cameras stand in each other's free space
+    a, b = _views_of(hallway, (4.5, 0.0, 0.0))
+    f = FloorPose(a_from_b=T, inliers=10, matches=10, residual_m=0.0, matched=m)
+    assert beyond_both_rooms(f, a, b, wide, wide, threshold_m=0.05) == (0, 0)
+
+
 def test_floor_edge_joins_groups_in_the_pose_graph():
     ab, cd, bc = _pose(30.0, 1.0, 0.0), _pose(-60.0, 0.0, 2.0), _pose(90.0, 3.0, 1.0)
     edges = [Edge(a="a", b="b", a_from_b=ab, kind="depth", inliers=100, info={}),
@@ -501,3 +523,56 @@ def test_a_panorama_taken_again_at_the_same_spot_lends_a_weak_floor_edge_no_supp
     assert list(twin) == [("a", "c")]
     assert "only those from its own capture spots (a-c, b-c)" in twin["a", "c"][1]
     assert case(1.5) == {}  # b-c from another spot agrees: kept
+
+
+def test_a_weak_floor_edge_whose_inliers_lie_beyond_both_rooms_is_kept_alone():
+    """The lone weak floor edge a-c of test_a_weak_floor_edge_no_other_pair_across_its_cut_supports_is_refused, its
+    inlier matches beyond both rooms' walls (a hallway both see): kept from floor_beyond_rooms of them on, and where
+    BEYOND_SHARE of them are; refused below either, and with the rule off (0)."""
+    from panoworld.register.cuts import refuse_outvoted_cuts
+    from panoworld.register.floor import floor_pair
+
+    tex = _texture(7)
+    names = ["a", "b", "c"]
+    world = {"a": _pose(0.0, 0.0, 0.0), "b": _pose(60.0, 1.5, 0.2), "c": _pose(-20.0, 0.4, 2.0)}
+    views = {n: floor_view(*_render(world[n], tex), radius_m=4.0) for n in names}
+    views["b"] = floor_view(*_render(world["b"], _texture(8)), radius_m=4.0)  # b on another floor
+    rel = lambda x, y: invert_pose(world[x]) @ world[y]
+    floors = {(i, j): floor_pair(views[names[i]], views[names[j]]) for i, j in ((0, 1), (0, 2), (1, 2))}
+
+    def refused(beyond: int, of: int, beyond_rooms: int = RegisterOptions().floor_beyond_rooms) -> bool:
+        edges = [Edge(a="a", b="b", a_from_b=rel("a", "b"), kind="depth", inliers=300, info={}),
+                 Edge(a="a", b="c", a_from_b=rel("a", "c"), kind=FLOOR, inliers=10, confirmed=False,
+                      info={"beyond_rooms": beyond, "inlier_matches": of})]
+        return bool(refuse_outvoted_cuts(names, edges, {}, floors, views, 8, 12, beyond_rooms))
+
+    k = RegisterOptions().floor_beyond_rooms
+    assert not refused(k + 1, k + 1) and not refused(k, k + 1)
+    assert refused(k - 1, k - 1) and refused(k, k + 2) and refused(k + 1, k + 1, beyond_rooms=0)
+
+
+def test_a_floor_fit_its_own_pair_refuses_proposes_no_placement_in_the_cut_vote():
+    """The wrong 40-inlier floor edge b-c of test_a_floor_edge_the_floors_across_its_cut_outvote_is_refused with no
+    right edge beside it: the pairs' floor fits across the cut place the truth and outvote it, unless their own pairs
+    refused those fits (refused_fits: their images or rooms), which then propose nothing."""
+    from panoworld.register.cuts import refuse_outvoted_cuts
+    from panoworld.register.floor import floor_pair
+
+    tex = _texture(6)
+    names = ["a", "b", "c", "d"]
+    world = {"a": _pose(0.0, 0.0, 0.0), "b": _pose(40.0, 1.6, 0.0), "c": _pose(-70.0, 1.6, 1.9),
+             "d": _pose(150.0, 0.0, 1.9)}
+    o = RegisterOptions()
+    views = {n: floor_view(*_render(world[n], tex), radius_m=o.floor_radius_m, cell_m=o.floor_cell_m) for n in names}
+    rel = lambda x, y: invert_pose(world[x]) @ world[y]
+    wrong = rel("b", "c").copy()
+    wrong[:3, 3] *= 1 + 3.0 / np.linalg.norm(wrong[:3, 3])
+    floors = {(i, j): floor_pair(views[names[i]], views[names[j]]) for i, j in [(0, 2), (0, 3), (1, 2), (1, 3)]}
+
+    def edges() -> list[Edge]:
+        return [Edge(a="a", b="b", a_from_b=rel("a", "b"), kind="depth", inliers=300, info={}),
+                Edge(a="c", b="d", a_from_b=rel("c", "d"), kind="depth", inliers=300, info={}),
+                Edge(a="b", b="c", a_from_b=wrong, kind=FLOOR, inliers=40, info={}, confirmed=False)]
+
+    assert list(refuse_outvoted_cuts(names, edges(), {}, floors, views, o.min_floor_inliers)) == [("b", "c")]
+    assert refuse_outvoted_cuts(names, edges(), {}, floors, views, o.min_floor_inliers, refused_fits=set(floors)) == {}

@@ -18,6 +18,9 @@ MIN_SUPPORT = 4
 """A pair's floor images support a placement when at least this many of their matches agree with the relative pose it
 gives (floor_support's tests, counted once per keypoint spot); between floors that share nothing, a given pose keeps
 0-2."""
+BEYOND_SHARE = 0.9
+"""A weak floor edge lies between its rooms when at least this share of its inlier matches (and RegisterOptions'
+floor_beyond_rooms of them) lie beyond both rooms' walls."""
 SAME_SPOT_M = 0.25
 """Panoramas on one side of a cut whose capture points lie within this of each other on the floor are one capture spot
 (a retake, an exposure bracket): they see the same floor from the same place, so a chance fit of one repeats with the
@@ -26,17 +29,21 @@ other, and their pairs across the cut count once in the vote."""
 
 def refuse_outvoted_cuts(names: list[str], edges: list[Edge], given: dict[str, np.ndarray],
                          floors: dict[tuple[int, int], FloorPose | None], views: dict[str, FloorView | None],
-                         min_floor_inliers: int, lone_inliers: int = 0) -> dict[tuple[str, str], tuple[str, str]]:
+                         min_floor_inliers: int, lone_inliers: int = 0, beyond_rooms: int = 0,
+                         refused_fits: set[tuple[int, int]] | frozenset = frozenset()
+                         ) -> dict[tuple[str, str], tuple[str, str]]:
     """Remove from `edges` each floor or layout edge the images do not confirm that the solved registration joins two
     sides by, where the floor images of the pairs across that cut (floors: each tried pair's fit, keyed by name indices)
     outvote it: another placement of the side, given by a metric edge or a floor fit of >= min_floor_inliers across
-    the cut, is supported (MIN_SUPPORT) by at least two pairs and by more pairs than the tree's placement (pairs
-    counted once per two capture spots, SAME_SPOT_M) ->
-    {(a, b): (edge kind, reason)}. Two rooms with one flooring can give a single floor fit of many inliers metres off,
-    which the pair alone cannot tell from the truth; independent pairs agreeing on one placement are not chance. A floor
-    edge of fewer than lone_inliers inliers is also refused where its own pair is the only one across its cut whose
-    floor images support it, or the only pair across it (a chance fit between floors that share nothing reaches that
-    many)."""
+    the cut (not one of refused_fits: fits their own pair's images or rooms refuse, keyed as floors are), is
+    supported (MIN_SUPPORT) by at least two pairs and by more pairs than the tree's placement (pairs counted once per
+    two capture spots, SAME_SPOT_M) -> {(a, b): (edge kind, reason)}. Two rooms with one flooring can give a single
+    floor fit of many inliers metres off, which the pair alone cannot tell from the truth; independent pairs agreeing
+    on one placement are not chance. A floor edge of fewer than lone_inliers inliers is also refused where its own pair
+    is the only one across its cut whose floor images support it, or the only pair across it (a chance fit between
+    floors that share nothing reaches that many), unless at least beyond_rooms (> 0) of its inlier matches, and BEYOND_SHARE of them, lie beyond both rooms'
+    walls (the edge's info["beyond_rooms"] of info["inlier_matches"]: floor both see through openings, a space between
+    their rooms)."""
     at = {n: i for i, n in enumerate(names)}
     out: dict[tuple[str, str], tuple[str, str]] = {}
     for _ in range(len(edges)):
@@ -49,9 +56,9 @@ def refuse_outvoted_cuts(names: list[str], edges: list[Edge], given: dict[str, n
                 continue
             side = {m for m in poses if n in ancestry(m, info)}
             centre = np.mean([poses[m][:3, 3] for m in side], axis=0)
-            alts = [X for X in _placements(names, poses, side, edges, floors, min_floor_inliers)
+            alts = [X for X in _placements(names, poses, side, edges, floors, min_floor_inliers, refused_fits)
                     if not _same(X, np.eye(4), centre)]
-            weak = weak_floor(path[0], lone_inliers)
+            weak = weak_floor(path[0], lone_inliers) and not _between_rooms(path[0], beyond_rooms)
             if not alts and not weak:
                 continue
             across = [(names[i], names[j], f.matched) for (i, j), f in floors.items()
@@ -94,13 +101,14 @@ def weak_floor(e: Edge, lone_inliers: int) -> bool:
 
 
 def _placements(names: list[str], poses: dict[str, np.ndarray], side: set[str], edges: list[Edge],
-                floors: dict[tuple[int, int], FloorPose | None], min_floor_inliers: int) -> list[np.ndarray]:
-    """Where each metric edge and each floor fit (of >= min_floor_inliers) across the cut would put the side: the
-    transform (4, 4) that moves the side's poses there."""
+                floors: dict[tuple[int, int], FloorPose | None], min_floor_inliers: int,
+                refused_fits: set[tuple[int, int]] | frozenset = frozenset()) -> list[np.ndarray]:
+    """Where each metric edge and each floor fit (of >= min_floor_inliers, not in refused_fits) across the cut would put
+    the side: the transform (4, 4) that moves the side's poses there."""
     out = []
     rels = [(e.a, e.b, e.a_from_b) for e in edges if e.kind != DIRECTION]
     rels += [(names[i], names[j], f.a_from_b) for (i, j), f in floors.items()
-             if f is not None and f.inliers >= min_floor_inliers]
+             if f is not None and f.inliers >= min_floor_inliers and (i, j) not in refused_fits]
     for a, b, a_from_b in rels:
         if a not in poses or b not in poses or (a in side) == (b in side):
             continue
@@ -109,6 +117,13 @@ def _placements(names: list[str], poses: dict[str, np.ndarray], side: set[str], 
         else:
             out.append(poses[a] @ a_from_b @ invert_pose(poses[b]))
     return out
+
+
+def _between_rooms(e: Edge, beyond_rooms: int) -> bool:
+    """Whether a floor edge's inliers lie beyond both rooms' walls (at least beyond_rooms > 0 of its inlier matches,
+    and BEYOND_SHARE of them): floor both panoramas see only through openings, a hallway between their rooms."""
+    beyond = e.info.get("beyond_rooms", 0)
+    return beyond_rooms > 0 and beyond >= beyond_rooms and beyond >= BEYOND_SHARE * e.info.get("inlier_matches", 0)
 
 
 def _supporters(X: np.ndarray, across: list[tuple[str, str, np.ndarray]], poses: dict[str, np.ndarray],

@@ -229,23 +229,21 @@ def floor_support(a: FloorView, b: FloorView, a_from_b: np.ndarray, *, threshold
                                                      scale_tol=scale_tol)])
 
 
-def floor_rooms_refusal(f: FloorPose, a: FloorView, b: FloorView, depth_a: np.ndarray, depth_b: np.ndarray, *,
-                        threshold_m: float, max_share: float = 0.5, margin_m: float = 0.15, margin_frac: float = 0.15
-                        ) -> str:
-    """Why a floor pose f of two panoramas in two rooms cannot hold ('' when it can): more than max_share of its
-    inliers' floor points lie inside both rooms (nearer to each camera than its depth (H, W) in that direction, by
-    margin_m plus margin_frac of that depth). Floor that two rooms both see through a doorway lies in one of them,
-    behind the other's wall; a chance fit between the floors of two rooms that share no view matches each room's own
-    floor. Not judged where the cameras stand in each other's free space (one room: same_room_refusal) or where fewer
-    than 3 inliers, or than half of them, have a depth in both views (a masked layout)."""
+def room_sides(f: FloorPose, a: FloorView, b: FloorView, depth_a: np.ndarray, depth_b: np.ndarray, *,
+               threshold_m: float, margin_m: float = 0.15, margin_frac: float = 0.15
+               ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Where the inlier matches (M,) of a floor pose f of two panoramas in two rooms lie, for a and for b: 1 inside
+    that camera's room (nearer to it than its depth (H, W) in that direction, by margin_m plus margin_frac of that
+    depth), 0 beyond its walls, -1 unknown (no depth there). None where the cameras stand in each other's free space
+    (one room) or f keeps no matches."""
     from panoworld.register.pairwise import cameras_in_one_room, depth_toward
 
     T = f.a_from_b
     if f.matched is None or cameras_in_one_room(T, depth_a, depth_b, margin_m=margin_m, margin_frac=margin_frac):
-        return ""
+        return None
     m = f.matched[agrees_with_pose(a, b, T, f.matched, threshold_m=threshold_m)]
 
-    def inside(view: FloorView, depth: np.ndarray, idx: np.ndarray) -> np.ndarray:  # 1 inside, 0 beyond, -1 unknown
+    def inside(view: FloorView, depth: np.ndarray, idx: np.ndarray) -> np.ndarray:
         out = np.full(len(idx), -1)
         for k, i in enumerate(idx):
             p = np.array([view.xz[i, 0], view.height_m, view.xz[i, 1]])
@@ -254,10 +252,32 @@ def floor_rooms_refusal(f: FloorPose, a: FloorView, b: FloorView, depth_a: np.nd
                 out[k] = int(np.linalg.norm(p) <= d * (1 + margin_frac) + margin_m)
         return out
 
-    ia, ib = inside(a, depth_a, m[:, 0]), inside(b, depth_b, m[:, 1])
+    return inside(a, depth_a, m[:, 0]), inside(b, depth_b, m[:, 1])
+
+
+def floor_rooms_refusal(f: FloorPose, a: FloorView, b: FloorView, depth_a: np.ndarray, depth_b: np.ndarray, *,
+                        threshold_m: float, max_share: float = 0.5) -> str:
+    """Why a floor pose f of two panoramas in two rooms cannot hold ('' when it can): more than max_share of its
+    inliers' floor points lie inside both rooms (room_sides). Floor that two rooms both see through a doorway lies in
+    one of them, behind the other's wall; a chance fit between the floors of two rooms that share no view matches each
+    room's own floor. Not judged where the cameras stand in each other's free space (one room: same_room_refusal) or
+    where fewer than 3 inliers, or than half of them, have a depth in both views (a masked layout)."""
+    sides = room_sides(f, a, b, depth_a, depth_b, threshold_m=threshold_m)
+    if sides is None:
+        return ""
+    ia, ib = sides
     known = (ia >= 0) & (ib >= 0)
     both = int(((ia == 1) & (ib == 1)).sum())
-    if known.sum() < max(3, 0.5 * len(m)) or both <= max_share * known.sum():
+    if known.sum() < max(3, 0.5 * len(ia)) or both <= max_share * known.sum():
         return ""
     return (f"{both} of its {int(known.sum())} floor inliers lie inside both rooms, and the cameras stand in two: "
             "each room's own floor matched by chance")
+
+
+def beyond_both_rooms(f: FloorPose, a: FloorView, b: FloorView, depth_a: np.ndarray, depth_b: np.ndarray, *,
+                      threshold_m: float) -> tuple[int, int]:
+    """How many inlier matches of a floor pose f of two panoramas in two rooms lie beyond both rooms' walls
+    (room_sides), of how many: floor that both see only through openings their depths close, such as a hallway between
+    two bedrooms that no panorama stands in; (0, 0) for cameras in one room."""
+    sides = room_sides(f, a, b, depth_a, depth_b, threshold_m=threshold_m)
+    return (0, 0) if sides is None else (int(((sides[0] == 0) & (sides[1] == 0)).sum()), len(sides[0]))

@@ -16,7 +16,13 @@ from panoworld.geometry.resize import rgbd_at_height
 from panoworld.geometry.upright import wrap_angle, yaw_of
 from panoworld.io.home import to_levelled
 from panoworld.register.cuts import refuse_outvoted_cuts, weak_floor
-from panoworld.register.floor import FloorPose, floor_pair, floor_rooms_refusal, panorama_floor_view
+from panoworld.register.floor import (
+    FloorPose,
+    beyond_both_rooms,
+    floor_pair,
+    floor_rooms_refusal,
+    panorama_floor_view,
+)
 from panoworld.register.graph import (
     BEARING,
     DEPTH,
@@ -174,9 +180,15 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                 edges.append(Edge(a=names[a], b=names[b], a_from_b=lp.a_from_b, kind=LAYOUT, inliers=int(lp.score),
                                   confirmed=_confirmed(bearing[a, b], o),
                                   info={"layout_score": round(lp.score, 1), "layout_second": round(lp.second, 1)}))
+    all_edges = list(edges)  # before the refusals below remove any
     room_depths = {n: small[n][1] for n in small}
     overlaps = refuse_overlapping_rooms(names, edges, given, room_depths, o) if need else {}
-    outvoted = (refuse_outvoted_cuts(names, edges, given, floors, views, o.min_floor_inliers, o.floor_lone_inliers)
+    # a floor fit refused by its own images or rooms (not merely ambiguous) proposes no placement in the cut vote
+    impossible = {ab for ab, why in floor_refused.items()
+                  if why and (_contradiction(floors[ab].a_from_b, bearing[ab], o)
+                              or not _ambiguous_floor(floors[ab], bearing[ab], o))}
+    outvoted = (refuse_outvoted_cuts(names, edges, given, floors, views, o.min_floor_inliers, o.floor_lone_inliers,
+                                     o.floor_beyond_rooms, impossible)
                 if need else {})
     if outvoted:
         overlaps |= outvoted | refuse_overlapping_rooms(names, edges, given, room_depths, o)
@@ -193,6 +205,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     cam_from_world = invert_pose(poses[anchor])
     out = {n: cam_from_world @ poses[n] for n in names if n in poses}
     used = {(e.a, e.b): e.kind for e in edges}
+    beyond = {(e.a, e.b): e.info["beyond_rooms"] for e in all_edges if "beyond_rooms" in e.info}
     rows = []
     for (a, b), p in sorted(pairs.items()):
         row = {"a": names[a], "b": names[b], "matches": p.matches, "inliers": p.inliers,
@@ -209,6 +222,8 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
             row.update(floor_inliers=f.inliers, floor_matches=f.matches, floor_residual_m=round(f.residual_m, 4),
                        floor_second=f.second, floor_yaw_deg=round(float(np.degrees(yaw_of(f.a_from_b[:3, :3]))), 2),
                        floor_xz_m=[round(float(f.a_from_b[0, 3]), 3), round(float(f.a_from_b[2, 3]), 3)])
+            if (names[a], names[b]) in beyond:
+                row["floor_beyond_rooms"] = beyond[names[a], names[b]]
             if floor_refused.get((a, b)):
                 row["floor_refused"] = floor_refused[a, b]
         if layouts.get((a, b)) is not None:
@@ -278,9 +293,12 @@ def _edges(names, pairs, bearing, floors, frames, small, views, o: RegisterOptio
                               info={"inliers": p.inliers, "overlap": round(p.overlap, 4),
                                     "consistency": round(p.consistency, 4), "residual": round(p.residual, 5)}))
         elif f is not None and (a, b) in floor_refused and not floor_refused[a, b]:
+            beyond, of = beyond_both_rooms(f, views[names[a]], views[names[b]], small[names[a]][1], small[names[b]][1],
+                                       threshold_m=o.floor_threshold_m)
             edges.append(Edge(a=names[a], b=names[b], a_from_b=f.a_from_b, kind=FLOOR, inliers=f.inliers,
                               confirmed=_confirmed(bearing[a, b], o),
-                              info={"inliers": f.inliers, "matches": f.matches, "residual": round(f.residual_m, 4)}))
+                              info={"inliers": f.inliers, "matches": f.matches, "residual": round(f.residual_m, 4),
+                                    "beyond_rooms": beyond, "inlier_matches": of}))
         elif (a, b) in bearing and bearing[a, b][0] is not None and not off_frames(
                 (a, b), bearing[a, b][0].i_from_j()):
             pose, scale, support = bearing[a, b]
