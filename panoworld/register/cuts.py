@@ -41,9 +41,9 @@ def refuse_outvoted_cuts(names: list[str], edges: list[Edge], given: dict[str, n
     floor fit of many inliers metres off, which the pair alone cannot tell from the truth; independent pairs agreeing
     on one placement are not chance. A floor edge of fewer than lone_inliers inliers is also refused where its own pair
     is the only one across its cut whose floor images support it, or the only pair across it (a chance fit between
-    floors that share nothing reaches that many), unless at least beyond_rooms (> 0) of its inlier matches, and BEYOND_SHARE of them, lie beyond both rooms'
-    walls (the edge's info["beyond_rooms"] of info["inlier_matches"]: floor both see through openings, a space between
-    their rooms)."""
+    floors that share nothing reaches that many), unless at least beyond_rooms (> 0) of its inlier matches, and
+    BEYOND_SHARE of them, lie beyond both rooms' walls (the edge's info["beyond_rooms"] of info["inlier_matches"]: floor
+    both see through openings, a space between their rooms)."""
     at = {n: i for i, n in enumerate(names)}
     out: dict[tuple[str, str], tuple[str, str]] = {}
     for _ in range(len(edges)):
