@@ -114,14 +114,17 @@ def floor_fit_figures(pairs: list[dict], gt: dict[str, np.ndarray]) -> dict:
     and MISPLACED_DEG of the true relative pose) or wrong, and how many of each pass the repeated-pattern margin
     (floor_min_margin times the runner-up, or a runner-up below min_floor_inliers): {right, wrong, right_pass,
     wrong_pass, right_by_minimum, wrong_by_minimum (those that pass only because the runner-up is below
-    min_floor_inliers), right_second_share_max (the right fits' largest runner-up over inliers)}."""
+    min_floor_inliers), right_second_share_max (the right fits' largest runner-up over inliers), wrong_weak_beyond_max
+    and right_weak_beyond_max (the most inlier matches beyond both rooms' walls, floor_beyond_rooms, of a wrong and of
+    a right fit below floor_lone_inliers, the fits the lone-fit rule judges: what RegisterOptions.floor_beyond_rooms
+    must lie between)}."""
     from real_home_survey import row_pose_error  # bench/, beside this script
 
     from panoworld.register.options import RegisterOptions
 
     o = RegisterOptions()
     out = dict.fromkeys(("right", "wrong", "right_pass", "wrong_pass", "right_by_minimum", "wrong_by_minimum"), 0)
-    shares = []
+    shares, beyond = [], {"wrong": [0], "right": [0]}
     for r in pairs:
         if r.get("floor_inliers", 0) < o.min_floor_inliers or "floor_xz_m" not in r:
             continue
@@ -134,7 +137,10 @@ def floor_fit_figures(pairs: list[dict], gt: dict[str, np.ndarray]) -> dict:
             out[f"{kind}_by_minimum"] += int(inl < o.floor_min_margin * second)
         if kind == "right":
             shares.append(second / inl)
+        if inl < o.floor_lone_inliers:
+            beyond[kind].append(r.get("floor_beyond_rooms", 0))
     out["right_second_share_max"] = max(shares, default=0.0)
+    out["wrong_weak_beyond_max"], out["right_weak_beyond_max"] = max(beyond["wrong"]), max(beyond["right"])
     return out
 
 
@@ -399,12 +405,13 @@ def main() -> int:
     print("\nfloor fits of min_floor_inliers or more (right: within the misplaced bounds of the true pose), and those "
           "the repeated-pattern margin passes (of them, by the runner-up's minimum alone):\n")
     print("| panoramas | right | right passed (by minimum) | wrong | wrong passed (by minimum) | right fits' runner-up "
-          "/ inliers max |")
-    print("| --- | --- | --- | --- | --- | --- |")
+          "/ inliers max | weak fits' matches beyond both rooms, max: wrong / right |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
     for s in summary:
         f = s["floor_fits"]
         print(f"| {s['panoramas']} | {f['right']} | {f['right_pass']} ({f['right_by_minimum']}) | {f['wrong']} | "
-              f"{f['wrong_pass']} ({f['wrong_by_minimum']}) | {f['right_second_share_max']:.2f} |")
+              f"{f['wrong_pass']} ({f['wrong_by_minimum']}) | {f['right_second_share_max']:.2f} | "
+              f"{f['wrong_weak_beyond_max']} / {f['right_weak_beyond_max']} |")
     return 0
 
 

@@ -383,6 +383,7 @@ def test_register_panoramas_joins_a_pair_by_its_floor():
     # the row carries the floor fit's own pose (what bench_multi scores the floor fits by)
     assert abs(row["floor_yaw_deg"] - np.degrees(yaw_of(truth[:3, :3]))) < 0.5
     assert np.hypot(row["floor_xz_m"][0] - truth[0, 3], row["floor_xz_m"][1] - truth[2, 3]) < 0.03
+    assert row["floor_beyond_rooms"] == 0  # one floor around both cameras: none of it beyond a wall
 
 
 def test_no_keypoint_on_the_excluded_rig():

@@ -92,8 +92,8 @@ class RegisterOptions:
     floor_beyond_rooms: int = param(9, ge=0)
     """A floor pose below floor_lone_inliers that no other pair across its cut supports is kept where at least this
     many of its inlier matches, and 90 % of them, lie beyond both rooms' walls: floor both panoramas see only through
-    openings their depths close (a hallway between two rooms that no panorama stands in). Chance fits between the
-    rooms of six 24-panorama validation tours (layout depth) keep up to 8 such matches. 0: never."""
+    openings their depths close (a hallway between two rooms that no panorama stands in). The wrong floor fits below
+    floor_lone_inliers of six 24-panorama validation tours (layout depth; bench_multi.py) keep up to 8. 0: never."""
     max_free_space_violation: float = param(0.05, ge=0, le=1)
     """A floor or layout pose is refused where both panoramas' depths hold their whole room (98 % of the pixels valid)
     and it puts more than this share of either view's surfaces inside the other's free space (0.15 m and 5 % nearer

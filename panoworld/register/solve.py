@@ -157,7 +157,8 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
         if k > o.all_pairs_up_to:
             group = bridging_groups(names, _edges(names, pairs, bearing, floors, frames, small, views, o)[0], given)
             try_pairs(bridge_pairs(names, group, set(pairs)))
-    edges, refused, depth_ok, floor_refused, off_frames = _edges(names, pairs, bearing, floors, frames, small, views, o)
+    edges, refused, depth_ok, floor_refused, off_frames, beyond = _edges(names, pairs, bearing, floors, frames, small,
+                                                                         views, o)
     layouts: dict[tuple[int, int], LayoutPose | None] = {}
     layout_refused: dict[tuple[int, int], str] = {}
     if o.layout and need:  # tried across weak floor edges too: the cut vote may refuse them (refuse_outvoted_cuts)
@@ -180,7 +181,6 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                 edges.append(Edge(a=names[a], b=names[b], a_from_b=lp.a_from_b, kind=LAYOUT, inliers=int(lp.score),
                                   confirmed=_confirmed(bearing[a, b], o),
                                   info={"layout_score": round(lp.score, 1), "layout_second": round(lp.second, 1)}))
-    all_edges = list(edges)  # before the refusals below remove any
     room_depths = {n: small[n][1] for n in small}
     overlaps = refuse_overlapping_rooms(names, edges, given, room_depths, o) if need else {}
     # a floor fit refused by its own images or rooms (not merely ambiguous) proposes no placement in the cut vote
@@ -205,7 +205,6 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
     cam_from_world = invert_pose(poses[anchor])
     out = {n: cam_from_world @ poses[n] for n in names if n in poses}
     used = {(e.a, e.b): e.kind for e in edges}
-    beyond = {(e.a, e.b): e.info["beyond_rooms"] for e in all_edges if "beyond_rooms" in e.info}
     rows = []
     for (a, b), p in sorted(pairs.items()):
         row = {"a": names[a], "b": names[b], "matches": p.matches, "inliers": p.inliers,
@@ -222,8 +221,8 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
             row.update(floor_inliers=f.inliers, floor_matches=f.matches, floor_residual_m=round(f.residual_m, 4),
                        floor_second=f.second, floor_yaw_deg=round(float(np.degrees(yaw_of(f.a_from_b[:3, :3]))), 2),
                        floor_xz_m=[round(float(f.a_from_b[0, 3]), 3), round(float(f.a_from_b[2, 3]), 3)])
-            if (names[a], names[b]) in beyond:
-                row["floor_beyond_rooms"] = beyond[names[a], names[b]]
+            if (a, b) in beyond:
+                row["floor_beyond_rooms"] = beyond[a, b][0]
             if floor_refused.get((a, b)):
                 row["floor_refused"] = floor_refused[a, b]
         if layouts.get((a, b)) is not None:
@@ -272,7 +271,8 @@ def _evidence_across(group: set[str], registered: set[str], rows: list[dict], o:
 
 def _edges(names, pairs, bearing, floors, frames, small, views, o: RegisterOptions):
     """The pose graph's edges of the pairs tried so far (each pair's best trusted estimate: depth-backed, floor, then
-    bearing-only), with why depth-backed and floor poses were refused and the Manhattan yaw test they used."""
+    bearing-only), with why depth-backed and floor poses were refused, the Manhattan yaw test they used and, per floor
+    fit of min_floor_inliers, (its inlier matches beyond both rooms' walls, its inlier matches) (beyond_both_rooms)."""
     def off_frames(ab: tuple[int, int], a_from_b: np.ndarray) -> str:
         return _off_manhattan(a_from_b, manhattan_yaws(frames.get(names[ab[0]]), frames.get(names[ab[1]])), o)
 
@@ -284,6 +284,8 @@ def _edges(names, pairs, bearing, floors, frames, small, views, o: RegisterOptio
                      or floor_rooms_refusal(f, views[names[ab[0]]], views[names[ab[1]]], small[names[ab[0]]][1],
                                             small[names[ab[1]]][1], threshold_m=o.floor_threshold_m)
                      for ab, f in floors.items() if f is not None and f.inliers >= o.min_floor_inliers}
+    beyond = {ab: beyond_both_rooms(floors[ab], views[names[ab[0]]], views[names[ab[1]]], small[names[ab[0]]][1],
+                                    small[names[ab[1]]][1], threshold_m=o.floor_threshold_m) for ab in floor_refused}
     edges = []
     for (a, b), p in pairs.items():
         f = floors.get((a, b))
@@ -293,12 +295,10 @@ def _edges(names, pairs, bearing, floors, frames, small, views, o: RegisterOptio
                               info={"inliers": p.inliers, "overlap": round(p.overlap, 4),
                                     "consistency": round(p.consistency, 4), "residual": round(p.residual, 5)}))
         elif f is not None and (a, b) in floor_refused and not floor_refused[a, b]:
-            beyond, of = beyond_both_rooms(f, views[names[a]], views[names[b]], small[names[a]][1], small[names[b]][1],
-                                       threshold_m=o.floor_threshold_m)
             edges.append(Edge(a=names[a], b=names[b], a_from_b=f.a_from_b, kind=FLOOR, inliers=f.inliers,
                               confirmed=_confirmed(bearing[a, b], o),
                               info={"inliers": f.inliers, "matches": f.matches, "residual": round(f.residual_m, 4),
-                                    "beyond_rooms": beyond, "inlier_matches": of}))
+                                    "beyond_rooms": beyond[a, b][0], "inlier_matches": beyond[a, b][1]}))
         elif (a, b) in bearing and bearing[a, b][0] is not None and not off_frames(
                 (a, b), bearing[a, b][0].i_from_j()):
             pose, scale, support = bearing[a, b]
@@ -306,7 +306,7 @@ def _edges(names, pairs, bearing, floors, frames, small, views, o: RegisterOptio
             edges.append(Edge(a=names[a], b=names[b], a_from_b=pose.i_from_j(scale if metric else 1.0),
                               kind=BEARING if metric else DIRECTION, inliers=int(pose.inliers.sum()),
                               info={"inliers": int(pose.inliers.sum()), "scale_support": support}))
-    return edges, refused, depth_ok, floor_refused, off_frames
+    return edges, refused, depth_ok, floor_refused, off_frames, beyond
 
 
 def refuse_overlapping_rooms(names: list[str], edges: list[Edge], given: dict[str, np.ndarray],
