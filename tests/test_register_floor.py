@@ -426,12 +426,10 @@ def test_a_floor_fit_the_images_cannot_check_is_refused_when_another_translation
     assert "another translation" in _ambiguous_floor(replace(weak, second=o.min_floor_inliers), no_images, o)
 
 
-def test_a_floor_edge_the_floors_across_its_cut_outvote_is_refused():
-    """Two rooms of two panoramas each (depth edges), joined by a floor edge of 40 inliers the images do not confirm,
-    3 m off along its baseline (as two rooms with one flooring give), and a right one of 10: the tree takes the 40 and
-    the loop gate drops the 10. The floor images of the pairs across that cut agree on the truth: the 40 is refused and
-    the truth registered. One supporting pair is not enough, and a confirmed edge is never refused."""
-    from panoworld.register.cuts import refuse_outvoted_cuts
+def _two_rooms_one_floor():
+    """Four panoramas on one floor, a-b and c-d in two rooms: (names, their floor views, rel(x, y): the true x_from_y,
+    a floor pose of b-c 3 m too far along its baseline (as two rooms with one flooring give), each pair's floor fit
+    across the cut a|b - c|d, RegisterOptions())."""
     from panoworld.register.floor import floor_pair
 
     tex = _texture(6)
@@ -443,11 +441,22 @@ def test_a_floor_edge_the_floors_across_its_cut_outvote_is_refused():
     rel = lambda x, y: invert_pose(world[x]) @ world[y]
     wrong = rel("b", "c").copy()
     wrong[:3, 3] *= 1 + 3.0 / np.linalg.norm(wrong[:3, 3])
+    floors = {(i, j): floor_pair(views[names[i]], views[names[j]]) for i, j in [(0, 2), (0, 3), (1, 2), (1, 3)]}
+    return names, views, rel, wrong, floors, o
+
+
+def test_a_floor_edge_the_floors_across_its_cut_outvote_is_refused():
+    """Two rooms of two panoramas each (depth edges), joined by a floor edge of 40 inliers the images do not confirm,
+    3 m off along its baseline (as two rooms with one flooring give), and a right one of 10: the tree takes the 40 and
+    the loop gate drops the 10. The floor images of the pairs across that cut agree on the truth: the 40 is refused and
+    the truth registered. One supporting pair is not enough, and a confirmed edge is never refused."""
+    from panoworld.register.cuts import refuse_outvoted_cuts
+
+    names, views, rel, wrong, floors, o = _two_rooms_one_floor()
     depth = [Edge(a="a", b="b", a_from_b=rel("a", "b"), kind="depth", inliers=300, info={}),
              Edge(a="c", b="d", a_from_b=rel("c", "d"), kind="depth", inliers=300, info={})]
     cross = [Edge(a="b", b="c", a_from_b=wrong, kind=FLOOR, inliers=40, info={}, confirmed=False),
              Edge(a="a", b="d", a_from_b=rel("a", "d"), kind=FLOOR, inliers=10, info={}, confirmed=False)]
-    floors = {(i, j): floor_pair(views[names[i]], views[names[j]]) for i, j in [(0, 2), (0, 3), (1, 2), (1, 3)]}
     assert all(f.inliers >= 50 for f in floors.values())  # one floor: every pair across the cut sees it
 
     def error_m(edges: list[Edge]) -> float:
@@ -557,18 +566,8 @@ def test_a_floor_fit_its_own_pair_refuses_proposes_no_placement_in_the_cut_vote(
     right edge beside it: the pairs' floor fits across the cut place the truth and outvote it, unless their own pairs
     refused those fits (refused_fits: their images or rooms), which then propose nothing."""
     from panoworld.register.cuts import refuse_outvoted_cuts
-    from panoworld.register.floor import floor_pair
 
-    tex = _texture(6)
-    names = ["a", "b", "c", "d"]
-    world = {"a": _pose(0.0, 0.0, 0.0), "b": _pose(40.0, 1.6, 0.0), "c": _pose(-70.0, 1.6, 1.9),
-             "d": _pose(150.0, 0.0, 1.9)}
-    o = RegisterOptions()
-    views = {n: floor_view(*_render(world[n], tex), radius_m=o.floor_radius_m, cell_m=o.floor_cell_m) for n in names}
-    rel = lambda x, y: invert_pose(world[x]) @ world[y]
-    wrong = rel("b", "c").copy()
-    wrong[:3, 3] *= 1 + 3.0 / np.linalg.norm(wrong[:3, 3])
-    floors = {(i, j): floor_pair(views[names[i]], views[names[j]]) for i, j in [(0, 2), (0, 3), (1, 2), (1, 3)]}
+    names, views, rel, wrong, floors, o = _two_rooms_one_floor()
 
     def edges() -> list[Edge]:
         return [Edge(a="a", b="b", a_from_b=rel("a", "b"), kind="depth", inliers=300, info={}),

@@ -157,8 +157,8 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
         if k > o.all_pairs_up_to:
             group = bridging_groups(names, _edges(names, pairs, bearing, floors, frames, small, views, o)[0], given)
             try_pairs(bridge_pairs(names, group, set(pairs)))
-    edges, refused, depth_ok, floor_refused, off_frames, beyond = _edges(names, pairs, bearing, floors, frames, small,
-                                                                         views, o)
+    edges, refused, depth_ok, floor_refused, off_frames, beyond, impossible = _edges(
+        names, pairs, bearing, floors, frames, small, views, o)
     layouts: dict[tuple[int, int], LayoutPose | None] = {}
     layout_refused: dict[tuple[int, int], str] = {}
     if o.layout and need:  # tried across weak floor edges too: the cut vote may refuse them (refuse_outvoted_cuts)
@@ -183,10 +183,7 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                                   info={"layout_score": round(lp.score, 1), "layout_second": round(lp.second, 1)}))
     room_depths = {n: small[n][1] for n in small}
     overlaps = refuse_overlapping_rooms(names, edges, given, room_depths, o) if need else {}
-    # a floor fit refused by its own images or rooms (not merely ambiguous) proposes no placement in the cut vote
-    impossible = {ab for ab, why in floor_refused.items()
-                  if why and (_contradiction(floors[ab].a_from_b, bearing[ab], o)
-                              or not _ambiguous_floor(floors[ab], bearing[ab], o))}
+    # a floor fit refused by its own images or rooms (impossible) proposes no placement in the cut vote
     outvoted = (refuse_outvoted_cuts(names, edges, given, floors, views, o.min_floor_inliers, o.floor_lone_inliers,
                                      o.floor_beyond_rooms, impossible)
                 if need else {})
@@ -271,19 +268,27 @@ def _evidence_across(group: set[str], registered: set[str], rows: list[dict], o:
 
 def _edges(names, pairs, bearing, floors, frames, small, views, o: RegisterOptions):
     """The pose graph's edges of the pairs tried so far (each pair's best trusted estimate: depth-backed, floor, then
-    bearing-only), with why depth-backed and floor poses were refused, the Manhattan yaw test they used and, per floor
-    fit of min_floor_inliers, (its inlier matches beyond both rooms' walls, its inlier matches) (beyond_both_rooms)."""
+    bearing-only), with why depth-backed and floor poses were refused, the Manhattan yaw test they used, per floor
+    fit of min_floor_inliers (its inlier matches beyond both rooms' walls, its inlier matches) (beyond_both_rooms),
+    and the floor fits refused by their own images or rooms (not as ambiguous alone)."""
     def off_frames(ab: tuple[int, int], a_from_b: np.ndarray) -> str:
         return _off_manhattan(a_from_b, manhattan_yaws(frames.get(names[ab[0]]), frames.get(names[ab[1]])), o)
 
     refused = {ab: off_frames(ab, p.i_from_j) or _contradiction(p.i_from_j, bearing[ab], o)
                for ab, p in pairs.items() if accepted(p, o)}
     depth_ok = {ab: accepted(p, o) and not refused[ab] for ab, p in pairs.items()}
-    floor_refused = {ab: _contradiction(f.a_from_b, bearing[ab], o) or _ambiguous_floor(f, bearing[ab], o)
-                     or _placement_refusal(f.a_from_b, small[names[ab[0]]][1], small[names[ab[1]]][1], o)
-                     or floor_rooms_refusal(f, views[names[ab[0]]], views[names[ab[1]]], small[names[ab[0]]][1],
-                                            small[names[ab[1]]][1], threshold_m=o.floor_threshold_m)
-                     for ab, f in floors.items() if f is not None and f.inliers >= o.min_floor_inliers}
+    floor_refused: dict[tuple[int, int], str] = {}
+    impossible: set[tuple[int, int]] = set()  # refused by the pair's own images or rooms, not as ambiguous alone
+    for ab, f in floors.items():
+        if f is None or f.inliers < o.min_floor_inliers:
+            continue
+        da, db = small[names[ab[0]]][1], small[names[ab[1]]][1]
+        contradiction = _contradiction(f.a_from_b, bearing[ab], o)
+        ambiguous = "" if contradiction else _ambiguous_floor(f, bearing[ab], o)
+        floor_refused[ab] = contradiction or ambiguous or _placement_refusal(f.a_from_b, da, db, o) or \
+            floor_rooms_refusal(f, views[names[ab[0]]], views[names[ab[1]]], da, db, threshold_m=o.floor_threshold_m)
+        if floor_refused[ab] and not ambiguous:
+            impossible.add(ab)
     beyond = {ab: beyond_both_rooms(floors[ab], views[names[ab[0]]], views[names[ab[1]]], small[names[ab[0]]][1],
                                     small[names[ab[1]]][1], threshold_m=o.floor_threshold_m) for ab in floor_refused}
     edges = []
@@ -306,7 +311,7 @@ def _edges(names, pairs, bearing, floors, frames, small, views, o: RegisterOptio
             edges.append(Edge(a=names[a], b=names[b], a_from_b=pose.i_from_j(scale if metric else 1.0),
                               kind=BEARING if metric else DIRECTION, inliers=int(pose.inliers.sum()),
                               info={"inliers": int(pose.inliers.sum()), "scale_support": support}))
-    return edges, refused, depth_ok, floor_refused, off_frames, beyond
+    return edges, refused, depth_ok, floor_refused, off_frames, beyond, impossible
 
 
 def refuse_overlapping_rooms(names: list[str], edges: list[Edge], given: dict[str, np.ndarray],
