@@ -155,6 +155,10 @@ def test_a_blank_panorama_is_reported_as_featureless(home_dir):
     assert min(reg.panoramas[n]["keypoints"] for n in names) >= FEW_KEYPOINTS
     assert reg.panoramas["blank"]["reason"].endswith(
         "; 0 keypoints on the panorama: a blank, dark or blurred image has nothing to match")
+    # nothing joins: of the single panoramas, the first by name that has keypoints makes the home, not the blank
+    reg = register_panoramas(["blank", "pano_00"], {n: rgbs[n] for n in ("blank", "pano_00")},
+                             {n: depths[n] for n in ("blank", "pano_00")}, options=RegisterOptions(height=HEIGHT))
+    assert list(reg.world_from_cam) == ["pano_00"] and reg.panoramas["blank"]["registered"] is False
 
 
 def test_texture_on_a_wall_through_the_camera_backs_no_depth_fit(home_dir):

@@ -291,14 +291,17 @@ def tree_path(x: str, y: str, info: dict[str, dict], edges: list[Edge]) -> list[
 
 
 def solve_graph(names: list[str], edges: list[Edge], given: dict[str, np.ndarray] | None = None,
-                options: GraphOptions | None = None) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
+                options: GraphOptions | None = None, featureless: set[str] | frozenset = frozenset()
+                ) -> tuple[dict[str, np.ndarray], dict[str, dict]]:
     """world_from_cam of the panoramas that one connected, determined set holds (the group of the given poses, else
-    the largest), in that group's frame, and per-panorama info (reason for those left out)."""
+    the largest; of equal ones, one not made of featureless panoramas alone, then the first by name), in that group's
+    frame, and per-panorama info (reason for those left out)."""
     o = options or GraphOptions()
     given = dict(given or {})
     edges = _without_contradicted(names, list(edges), given, o)
     groups = [(_refine(g, edges, set(given)), ginfo) for g, ginfo in _groups(names, edges, given)]
     order = sorted(range(len(groups)), key=lambda k: (not (given and k == 0), -len(groups[k][0]),
+                                                      set(groups[k][0]) <= featureless,
                                                       min(names.index(n) for n in groups[k][0])))
     poses, info = dict(groups[order[0]][0]), dict(groups[order[0]][1])
     waiting = [groups[k] for k in order[1:]]

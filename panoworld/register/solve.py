@@ -189,7 +189,8 @@ def register_panoramas(names: list[str], rgbs: dict[str, np.ndarray], depths: di
                 if need else {})
     if outvoted:
         overlaps |= outvoted | refuse_overlapping_rooms(names, edges, given, room_depths, o)
-    poses, info = solve_graph(names, edges, given)
+    poses, info = solve_graph(names, edges, given,
+                              featureless={n for n, c in keypoints.items() if c < FEW_KEYPOINTS})
     poses = {n: T @ lift[n] if n in lift else T for n, T in poses.items()}
     for n in level:
         info[n]["levelled_tilt_deg"] = round(tilt_deg(level[n]), 3)
