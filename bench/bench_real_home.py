@@ -251,6 +251,10 @@ def measure_home(scene: Path, survey: dict, height: int, sets: list[str] = ()) -
     nav = manifest_info(scene, "navmesh")
     row["navmesh"] = {"area_m2": nav.get("area_m2"), "on": nav.get("capture_points_on_navmesh"),
                       "components": nav.get("components")}
+    if len(poses) == 1 and "camera_on_navmesh" in nav:  # one registered panorama: built as a single-panorama scene
+        (only,) = poses
+        row["navmesh"].update(on={only: bool(nav["camera_on_navmesh"])},
+                              components=[{"area_m2": nav.get("area_m2"), "capture_points": [only]}])
     traj = manifest_info(scene, "trajectory")
     plan = traj.get("plan") or {}
     row["trajectory"] = {"frames": traj.get("frames"), "invalid_poses": len(traj.get("invalid_poses") or []),
@@ -298,6 +302,8 @@ def leave_one_out_captures(full: Path, name: str, height: int) -> dict:
     full_poses = capture_poses(full / "artifacts" / "register")
     if name not in full_poses:
         return {"name": name, "skipped": "not registered in the full run"}
+    if len(full_poses) < 2:
+        return {"name": name, "skipped": "the only registered panorama: no other to build the home from"}
     t0, c0 = time.perf_counter(), time.process_time()
     others = {n: T for n, T in full_poses.items() if n != name}
     _, depths = home_sources(full, others)
@@ -320,6 +326,8 @@ def leave_one_out(src: Path, work: Path, full: Path, name: str, survey_mode: dic
     full_poses = capture_poses(full / "artifacts" / "register")
     if name not in full_poses:
         return {"name": name, "skipped": "not registered in the full run"}
+    if len(full_poses) < 2:
+        return {"name": name, "skipped": "the only registered panorama: no other to build the home from"}
     scene = copy_home(src, work / f"loo_{name}", leave_out=name, poses=survey_mode)
     run = run_home(scene, sets)
     out: dict = {"name": name, "build": "full", "rc": run["rc"], "wall_s": run["wall_s"]}
@@ -453,7 +461,8 @@ def print_report(res: dict) -> None:
         print("| --- | --- | --- | --- | --- | --- | --- | --- |")
         for o in res["loo"]:
             if "psnr" not in o:
-                print(f"| {o['name']} | failed: {o.get('skipped') or o.get('stderr_tail', '')[-120:]!r} |")
+                why = f"skipped: {o['skipped']}" if "skipped" in o else f"failed: {o.get('stderr_tail', '')[-120:]!r}"
+                print(f"| {o['name']} | {why} |")
                 continue
             s, u = o.get("seen", {}), o.get("unseen", {})
             print(f"| {o['name']} | {o['psnr']:.2f} | {o['ssim']:.3f} | {o['coverage']:.3f} | "
