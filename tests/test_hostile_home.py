@@ -275,11 +275,14 @@ def test_stray_files_are_ignored_by_the_digest_and_reported(tmp_path):
     (d / "panoramas" / "notes.txt").write_text("taken on a Sunday")
     (d / "depths" / "README").write_text("metres")
     (d / "panoramas" / ".DS_Store").write_bytes(b"\0" * 10)
+    (d / "panoramas" / "._a.png").write_bytes(b"\0\5\26\7" + b"\0" * 80)  # a Mac's AppleDouble file beside a.png
+    (d / "depths" / "._a.npy").write_bytes(b"\0\5\26\7" + b"\0" * 80)
     again = cli("run", str(d), "--until", "depth")
     assert again.returncode == 0, again.stderr
     assert re.search(r"^depth +cached +up to date", again.stdout, re.M), again.stdout
     assert "note: ignored panoramas/notes.txt: not a panorama" in again.stderr
     assert "note: ignored depths/README" in again.stderr and "note: ignored panoramas/notes.txt" in again.stdout
+    assert "note: ignored panoramas/._a.png" in again.stderr and "note: ignored depths/._a.npy" in again.stderr
 
 
 def test_a_depth_or_mask_of_no_panorama_is_refused(tmp_path):

@@ -206,3 +206,7 @@ def check_image_size(path: Path | str, w: int, h: int, what: str) -> None:
     if h < MIN_HEIGHT or w < MIN_HEIGHT:
         raise LimitError(f"{path}: {what} is {w}x{h}, below the minimum of {2 * MIN_HEIGHT}x{MIN_HEIGHT}; give a "
                          "larger one (docs/real_inputs.md#limits)")
+
+APPLEDOUBLE = "._"
+"""The prefix of the metadata files macOS writes beside each file on disks without its attributes (`._pano.jpg`, never
+an image): a home's folders and a stage's input folders leave them out."""

@@ -28,13 +28,14 @@ MAX_HOME_PANORAMAS = 1000
 
 
 def list_named(folder: Path, suffixes: tuple[str, ...], what: str) -> tuple[dict[str, Path], list[Path]]:
-    """({NAME: file} of folder's files with one of suffixes, other entries ignored); InputError (one line naming the
-    file) for a name outside SAFE_NAME or two files of one name (a.png and A.jpg)."""
+    """({NAME: file} of folder's files with one of suffixes, other entries ignored, as are macOS's AppleDouble files
+    `._NAME` that some disks hold beside each file); InputError (one line naming the file) for a name outside SAFE_NAME
+    or two files of one name (a.png and A.jpg)."""
     named: dict[str, Path] = {}
     seen: dict[str, Path] = {}
     other: list[Path] = []
     for p in sorted(Path(folder).iterdir()):
-        if p.suffix.lower() not in suffixes:
+        if p.suffix.lower() not in suffixes or p.name.startswith(limits.APPLEDOUBLE):
             other.append(p)
             continue
         stem = p.name[: -len(p.suffix)]
