@@ -13,6 +13,10 @@ from panoworld.core.errors import InputError
 
 MAX_PIXELS = 16384 * 8192
 """Largest image or depth map (width x height): a 16K panorama; larger ones are refused before decoding."""
+
+APPLEDOUBLE = "._"
+"""The prefix of the metadata files macOS writes beside each file on disks without its attributes (`._pano.jpg`, never
+an image): a home's folders and a stage's input folders leave them out."""
 MAX_POSES = 10_000
 """Most poses in a user trajectory (the paper's clips are 81; 10 000 frames render for days on a GPU)."""
 MAX_TRANSLATION_M = 1000.0
@@ -206,7 +210,3 @@ def check_image_size(path: Path | str, w: int, h: int, what: str) -> None:
     if h < MIN_HEIGHT or w < MIN_HEIGHT:
         raise LimitError(f"{path}: {what} is {w}x{h}, below the minimum of {2 * MIN_HEIGHT}x{MIN_HEIGHT}; give a "
                          "larger one (docs/real_inputs.md#limits)")
-
-APPLEDOUBLE = "._"
-"""The prefix of the metadata files macOS writes beside each file on disks without its attributes (`._pano.jpg`, never
-an image): a home's folders and a stage's input folders leave them out."""
