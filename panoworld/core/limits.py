@@ -13,7 +13,6 @@ from panoworld.core.errors import InputError
 
 MAX_PIXELS = 16384 * 8192
 """Largest image or depth map (width x height): a 16K panorama; larger ones are refused before decoding."""
-
 APPLEDOUBLE = "._"
 """The prefix of the metadata files macOS writes beside each file on disks without its attributes (`._pano.jpg`, never
 an image): a home's folders and a stage's input folders leave them out."""
