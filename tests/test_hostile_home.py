@@ -282,7 +282,8 @@ def test_stray_files_are_ignored_by_the_digest_and_reported(tmp_path):
     assert re.search(r"^depth +cached +up to date", again.stdout, re.M), again.stdout
     assert "note: ignored panoramas/notes.txt: not a panorama" in again.stderr
     assert "note: ignored depths/README" in again.stderr and "note: ignored panoramas/notes.txt" in again.stdout
-    assert "note: ignored panoramas/._a.png" in again.stderr and "note: ignored depths/._a.npy" in again.stderr
+    assert "note: ignored panoramas/._a.png: a Mac's metadata file (AppleDouble)" in again.stderr
+    assert "note: ignored depths/._a.npy: a Mac's metadata file" in again.stderr
 
 
 def test_a_depth_or_mask_of_no_panorama_is_refused(tmp_path):

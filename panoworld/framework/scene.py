@@ -67,7 +67,9 @@ def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
         except InputError as e:
             raise PipelineError(str(e)) from None
         panos = list(home.panoramas.values())
-        notes += [f"ignored {p.relative_to(root)}: not a panorama, depth or rig mask of this home" for p in home.ignored]
+        notes += [f"ignored {p.relative_to(root)}: "
+                  + ("a Mac's metadata file (AppleDouble)" if p.name.startswith(limits.APPLEDOUBLE)
+                     else "not a panorama, depth or rig mask of this home") for p in home.ignored]
     elif pano is None:
         names = pipeline.scene_files.get("panorama", [])
         raise PipelineError(f"{root}: no panorama; expected one of {', '.join(names)}, or panoramas/ (docs/multi.md)")

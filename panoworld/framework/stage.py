@@ -15,7 +15,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from panoworld.core import limits, registry
+from panoworld.core import registry
 from panoworld.core.errors import InputError, PipelineError
 from panoworld.framework import code_digest
 from panoworld.framework.hub import resolve as hub
@@ -152,8 +152,10 @@ def input_digest(name: str, spec: Input, path: Path | None) -> str | None:
         if not path.is_dir():
             raise StageInputError(f"input {name}: directory not found: {path}")
         if spec.suffixes:
+            from panoworld.core.limits import APPLEDOUBLE  # numpy with it: a replayed run digests nothing
+
             files = sorted(p for p in path.iterdir() if p.suffix.lower() in spec.suffixes and p.is_file()
-                           and not p.name.startswith(limits.APPLEDOUBLE))
+                           and not p.name.startswith(APPLEDOUBLE))
         else:
             files = sorted(p for p in path.rglob("*") if p.is_file() and art.ARTIFACTS_DIRNAME not in p.relative_to(path).parts)
         return art.json_digest([[p.relative_to(path).as_posix(), art.file_digest(p)] for p in files])
