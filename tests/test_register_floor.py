@@ -310,7 +310,7 @@ def test_a_floor_fit_whose_inliers_lie_inside_both_rooms_of_two_cameras_is_refus
     """Two round rooms of 3 m radius, the cameras 4.5 m apart (each beyond the other's wall). Floor matched between
     them where both rooms claim it (the rooms would overlap there): refused; floor of a's room seen by b beyond its
     wall (through a doorway): kept; a's floor alone unknown to b (masked depth): not judged."""
-    from panoworld.register.floor import FloorPose, floor_rooms_refusal
+    from panoworld.register.floor import FloorPose, floor_rooms_refusal, room_sides
 
     depth = np.full((64, 128), 3.0, np.float32)
     T = np.eye(4)
@@ -322,24 +322,24 @@ def test_a_floor_fit_whose_inliers_lie_inside_both_rooms_of_two_cameras_is_refus
     for pts, refused in ((both, True), (a_only, False)):
         a, b = _views_of(pts, (4.5, 0.0, 0.0))
         f = FloorPose(a_from_b=T, inliers=10, matches=10, residual_m=0.0, matched=m.astype(np.int32))
-        why = floor_rooms_refusal(f, a, b, depth, depth, threshold_m=0.05)
+        why = floor_rooms_refusal(room_sides(f, a, b, depth, depth, threshold_m=0.05))
         assert bool(why) == refused, why
         if refused:
             assert "10 of its 10 floor inliers lie inside both rooms" in why
     a, b = _views_of(both, (4.5, 0.0, 0.0))
     f = FloorPose(a_from_b=T, inliers=10, matches=10, residual_m=0.0, matched=m.astype(np.int32))
-    assert floor_rooms_refusal(f, a, b, depth, np.zeros_like(depth), threshold_m=0.05) == ""
+    assert floor_rooms_refusal(room_sides(f, a, b, depth, np.zeros_like(depth), threshold_m=0.05)) == ""
     near = T.copy()
     near[[0, 2], 3] = [1.0, 0.0]  # the cameras in each other's free space: one room, same_room_refusal's to judge
     a, b = _views_of(both, (1.0, 0.0, 0.0))
     f = FloorPose(a_from_b=near, inliers=10, matches=10, residual_m=0.0, matched=m.astype(np.int32))
-    assert floor_rooms_refusal(f, a, b, depth, depth, threshold_m=0.05) == ""
+    assert floor_rooms_refusal(room_sides(f, a, b, depth, depth, threshold_m=0.05)) == ""
 
 
 def test_floor_inliers_beyond_both_rooms_are_counted():
     """Two round rooms of 1.5 m radius, the cameras 4.5 m apart: floor matched midway lies beyond both walls (a hallway
     both see through their doors); floor of a's room lies beyond b's wall only; cameras in one room count none."""
-    from panoworld.register.floor import FloorPose, beyond_both_rooms
+    from panoworld.register.floor import FloorPose, beyond_both_rooms, room_sides
 
     depth = np.full((64, 128), 1.5, np.float32)
     T = np.eye(4)
@@ -351,11 +351,11 @@ def test_floor_inliers_beyond_both_rooms_are_counted():
     for pts, beyond in ((hallway, 10), (a_room, 0)):
         a, b = _views_of(pts, (4.5, 0.0, 0.0))
         f = FloorPose(a_from_b=T, inliers=10, matches=10, residual_m=0.0, matched=m)
-        assert beyond_both_rooms(f, a, b, depth, depth, threshold_m=0.05) == (beyond, 10)
+        assert beyond_both_rooms(room_sides(f, a, b, depth, depth, threshold_m=0.05)) == (beyond, 10)
     wide = np.full((64, 128), 6.0, np.float32)  # rooms of 6 m: the cameras stand in each other's free space
     a, b = _views_of(hallway, (4.5, 0.0, 0.0))
     f = FloorPose(a_from_b=T, inliers=10, matches=10, residual_m=0.0, matched=m)
-    assert beyond_both_rooms(f, a, b, wide, wide, threshold_m=0.05) == (0, 0)
+    assert beyond_both_rooms(room_sides(f, a, b, wide, wide, threshold_m=0.05)) == (0, 0)
 
 
 def test_floor_edge_joins_groups_in_the_pose_graph():

@@ -255,14 +255,13 @@ def room_sides(f: FloorPose, a: FloorView, b: FloorView, depth_a: np.ndarray, de
     return inside(a, depth_a, m[:, 0]), inside(b, depth_b, m[:, 1])
 
 
-def floor_rooms_refusal(f: FloorPose, a: FloorView, b: FloorView, depth_a: np.ndarray, depth_b: np.ndarray, *,
-                        threshold_m: float, max_share: float = 0.5) -> str:
-    """Why a floor pose f of two panoramas in two rooms cannot hold ('' when it can): more than max_share of its
-    inliers' floor points lie inside both rooms (room_sides). Floor that two rooms both see through a doorway lies in
-    one of them, behind the other's wall; a chance fit between the floors of two rooms that share no view matches each
-    room's own floor. Not judged where the cameras stand in each other's free space (one room: same_room_refusal) or
-    where fewer than 3 inliers, or than half of them, have a depth in both views (a masked layout)."""
-    sides = room_sides(f, a, b, depth_a, depth_b, threshold_m=threshold_m)
+def floor_rooms_refusal(sides: tuple[np.ndarray, np.ndarray] | None, *, max_share: float = 0.5) -> str:
+    """Why a floor pose of two panoramas in two rooms cannot hold ('' when it can), from where its inlier matches lie
+    (room_sides' result): more than max_share of them inside both rooms. Floor that two rooms both see through a doorway
+    lies in one of them, behind the other's wall; a chance fit between the floors of two rooms that share no view
+    matches each room's own floor. Not judged where the cameras stand in each other's free space (sides None: one
+    room, same_room_refusal) or where fewer than 3 inliers, or than half of them, have a depth in both views (a masked
+    layout)."""
     if sides is None:
         return ""
     ia, ib = sides
@@ -274,10 +273,8 @@ def floor_rooms_refusal(f: FloorPose, a: FloorView, b: FloorView, depth_a: np.nd
             "each room's own floor matched by chance")
 
 
-def beyond_both_rooms(f: FloorPose, a: FloorView, b: FloorView, depth_a: np.ndarray, depth_b: np.ndarray, *,
-                      threshold_m: float) -> tuple[int, int]:
-    """How many inlier matches of a floor pose f of two panoramas in two rooms lie beyond both rooms' walls
-    (room_sides), of how many: floor that both see only through openings their depths close, such as a hallway between
-    two bedrooms that no panorama stands in; (0, 0) for cameras in one room."""
-    sides = room_sides(f, a, b, depth_a, depth_b, threshold_m=threshold_m)
+def beyond_both_rooms(sides: tuple[np.ndarray, np.ndarray] | None) -> tuple[int, int]:
+    """How many inlier matches of a floor pose of two panoramas in two rooms lie beyond both rooms' walls, of how many,
+    from room_sides' result: floor that both see only through openings their depths close, such as a hallway between
+    two bedrooms that no panorama stands in; (0, 0) for cameras in one room (sides None)."""
     return (0, 0) if sides is None else (int(((sides[0] == 0) & (sides[1] == 0)).sum()), len(sides[0]))

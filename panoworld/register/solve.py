@@ -22,6 +22,7 @@ from panoworld.register.floor import (
     floor_pair,
     floor_rooms_refusal,
     panorama_floor_view,
+    room_sides,
 )
 from panoworld.register.graph import (
     BEARING,
@@ -279,19 +280,20 @@ def _edges(names, pairs, bearing, floors, frames, small, views, o: RegisterOptio
                for ab, p in pairs.items() if accepted(p, o)}
     depth_ok = {ab: accepted(p, o) and not refused[ab] for ab, p in pairs.items()}
     floor_refused: dict[tuple[int, int], str] = {}
+    beyond: dict[tuple[int, int], tuple[int, int]] = {}
     impossible: set[tuple[int, int]] = set()  # refused by the pair's own images or rooms, not as ambiguous alone
     for ab, f in floors.items():
         if f is None or f.inliers < o.min_floor_inliers:
             continue
         da, db = small[names[ab[0]]][1], small[names[ab[1]]][1]
+        sides = room_sides(f, views[names[ab[0]]], views[names[ab[1]]], da, db, threshold_m=o.floor_threshold_m)
+        beyond[ab] = beyond_both_rooms(sides)
         contradiction = _contradiction(f.a_from_b, bearing[ab], o)
         ambiguous = "" if contradiction else _ambiguous_floor(f, bearing[ab], o)
-        floor_refused[ab] = contradiction or ambiguous or _placement_refusal(f.a_from_b, da, db, o) or \
-            floor_rooms_refusal(f, views[names[ab[0]]], views[names[ab[1]]], da, db, threshold_m=o.floor_threshold_m)
+        floor_refused[ab] = (contradiction or ambiguous or _placement_refusal(f.a_from_b, da, db, o)
+                             or floor_rooms_refusal(sides))
         if floor_refused[ab] and not ambiguous:
             impossible.add(ab)
-    beyond = {ab: beyond_both_rooms(floors[ab], views[names[ab[0]]], views[names[ab[1]]], small[names[ab[0]]][1],
-                                    small[names[ab[1]]][1], threshold_m=o.floor_threshold_m) for ab in floor_refused}
     edges = []
     for (a, b), p in pairs.items():
         f = floors.get((a, b))
