@@ -299,9 +299,10 @@ def test_ring_fill_leaves_out_a_darker_surface_of_another_colour_but_keeps_a_sun
 
 def test_ring_fill_carries_a_sun_band_straight_across_the_hole():
     """A sun band (twice the light) 0.6 of the hole's radius wide crosses a 15 deg hole in a carpet at 1024 rows, at
-    three angles: the fill's light along the band's middle stays within 15 % of the band's (the membrane alone lets
-    the shade on either side darken it by a quarter) and its light over the hole (blurred 8 px) is within 25 levels
-    of the truth's on average (the membrane alone: 34-36)."""
+    three angles: the fill's light along the band's middle stays within 8 % of the band's (the membrane alone lets
+    the shade on either side darken it by a quarter; lines through the ring's light smoothed over 3 % of the face
+    instead of 1 %: by a tenth) and its light over the hole (blurred 8 px) is within 13 levels of the truth's on
+    average (the membrane alone: 34-36; those smoother lines: 18-19)."""
     from panoworld.depth.rig.inpaint import RING_WIDTH_DEG, ring_fill
 
     view = nadir_view(1024)
@@ -321,9 +322,9 @@ def test_ring_fill_carries_a_sun_band_straight_across_the_hole():
         lum = ring_fill(observed, hole, np.ones_like(hole), view.focal * np.deg2rad(RING_WIDTH_DEG)).mean(-1)
         true_lum = truth.mean(-1)
         mid = hole & (np.abs(across) < 0.4 * r_hole)
-        assert lum[mid].mean() >= 0.85 * true_lum[mid].mean(), ang
+        assert abs(lum[mid].mean() / true_lum[mid].mean() - 1.0) <= 0.08, ang
         light = np.abs(cv2.GaussianBlur(lum, (0, 0), 8) - cv2.GaussianBlur(true_lum, (0, 0), 8))[hole].mean()
-        assert light <= 25.0, (ang, light)
+        assert light <= 13.0, (ang, light)
 
 def test_floor_coloured_base_outlined_all_round_is_found(room):
     """A base whose body shows the floor's own texture a third lighter (half of it in colours the floor shows too, as

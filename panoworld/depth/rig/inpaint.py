@@ -229,8 +229,8 @@ def ring_fill(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, width_
     local = _spread(face, ring, (tex_sig,))
     blurs: dict = {}
     mean = _spread(face, ring, (3 * sig,), blurs)
-    low = _along_band(mean, ring, hole, _membrane(mean, ring, hole, _spread(face, ring, (24 * sig, 12 * sig, 3 * sig),
-                                                                            blurs)), 2 * sig)
+    membrane = _membrane(mean, ring, hole, _spread(face, ring, (24 * sig, 12 * sig, 3 * sig), blurs))
+    low = _along_band(mean, _spread(face, ring, (sig,), blurs), ring, hole, membrane, sig)
     resid = (face - local) * ring[..., None]
     out = face.copy()
     out[hole] = (low + _quilt(resid, ring, hole, max(8, int(S / 24)) // 2 * 2, seed))[hole]
@@ -297,11 +297,13 @@ straight sun band; a carpet's grain or a room's light: less) from which the fill
 and where it follows it wholly."""
 
 
-def _along_band(val: np.ndarray, known: np.ndarray, hole: np.ndarray, membrane: np.ndarray,
+def _along_band(val: np.ndarray, line_val: np.ndarray, known: np.ndarray, hole: np.ndarray, membrane: np.ndarray,
                 smooth: float) -> np.ndarray:
-    """membrane over the free pixels, blended towards the linear interpolation between the two known pixels met along
-    the ring's isophote direction (a sun band across the hole goes on straight, where the membrane lets the shade on
-    either side darken its middle) as far as the ring's light gradients share one direction (BAND_COHERENCE)."""
+    """membrane over the free pixels, blended towards the linear interpolation of line_val between the two known
+    pixels met along val's isophote direction (a sun band across the hole goes on straight, where the membrane lets
+    the shade on either side darken its middle) as far as val's light gradients share one direction
+    (BAND_COHERENCE), smoothed across those lines by smooth pixels. val: the ring's light, smooth enough that a
+    carpet's grain does not turn the direction; line_val: the same at a finer scale, so a band's edges stay sharp."""
     (dx, dy), coherence = _isophote_direction(val, known)
     share = float(np.clip((coherence - BAND_COHERENCE[0]) / (BAND_COHERENCE[1] - BAND_COHERENCE[0]), 0.0, 1.0))
     free = hole & ~known
@@ -317,7 +319,7 @@ def _along_band(val: np.ndarray, known: np.ndarray, hole: np.ndarray, membrane: 
 
     kv = rot(known.astype(np.uint8), cv2.INTER_NEAREST) > 0
     fr = rot(free.astype(np.uint8), cv2.INTER_NEAREST) > 0
-    v = rot(val.astype(np.float32), cv2.INTER_LINEAR)
+    v = rot(line_val.astype(np.float32), cv2.INTER_LINEAR)
     line, ok = _rowwise_line(v, kv, fr)
     wsum = cv2.GaussianBlur(ok.astype(np.float32), (0, 0), smooth)  # each row's ends carry the ring's texture
     line = cv2.GaussianBlur(line * ok[..., None], (0, 0), smooth) / np.maximum(wsum, 1e-6)[..., None]
