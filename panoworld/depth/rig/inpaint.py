@@ -216,9 +216,10 @@ def ring_fill(face: np.ndarray, hole: np.ndarray, floor_area: np.ndarray, width_
               seed: int = 0) -> np.ndarray:
     """Fill hole (size, size) of face (float RGB 0-255) from the floor ring around it alone (floor_ring): its low
     frequencies a membrane (harmonic) interpolation of the ring's local mean across the hole (a light gradient or a
-    sun band on both sides carries across; _membrane), its texture (face less the ring's local mean) laid by
-    overlap-added random ring blocks. Nothing beyond the ring (a wall, the next room, a sun band far away) is read;
-    with no ring the hole is left as it is."""
+    sun band on both sides carries across; _membrane), blended towards straight lines through the ring's light at a
+    finer scale where that light runs one way (a sun band's edges stay sharp; _along_band), its texture (face less
+    the ring's local mean) laid by overlap-added random ring blocks. Nothing beyond the ring (a wall, the next room, a
+    sun band far away) is read; with no ring the hole is left as it is."""
     ring = floor_ring(hole, floor_area, width_px)
     if ring.sum() < 16:
         return face
