@@ -293,6 +293,13 @@ def input_as_built(scene: Path, name: str) -> np.ndarray:
     return raw if R is None else levelled(raw, R)
 
 
+def loo_skip(full_poses: dict, name: str) -> str:
+    """Why `name` gets no leave-one-out view ('' when it does): not registered in the full run, or registered alone."""
+    if name not in full_poses:
+        return "not registered in the full run"
+    return "the only registered panorama: no other to build the home from" if len(full_poses) < 2 else ""
+
+
 def leave_one_out_captures(full: Path, name: str, height: int) -> dict:
     """The other panoramas' Gaussians (--loo-build captures), rendered at `name`'s pose registered with all of them."""
     from panoworld.gaussians.backends.voxel_fusion import VoxelFusionOptions
@@ -300,10 +307,8 @@ def leave_one_out_captures(full: Path, name: str, height: int) -> dict:
     from panoworld.io.home import capture_poses
 
     full_poses = capture_poses(full / "artifacts" / "register")
-    if name not in full_poses:
-        return {"name": name, "skipped": "not registered in the full run"}
-    if len(full_poses) < 2:
-        return {"name": name, "skipped": "the only registered panorama: no other to build the home from"}
+    if (why := loo_skip(full_poses, name)):
+        return {"name": name, "skipped": why}
     t0, c0 = time.perf_counter(), time.process_time()
     others = {n: T for n, T in full_poses.items() if n != name}
     _, depths = home_sources(full, others)
@@ -324,10 +329,8 @@ def leave_one_out(src: Path, work: Path, full: Path, name: str, survey_mode: dic
     from panoworld.io.splat_ply import read_gaussians_ply
 
     full_poses = capture_poses(full / "artifacts" / "register")
-    if name not in full_poses:
-        return {"name": name, "skipped": "not registered in the full run"}
-    if len(full_poses) < 2:
-        return {"name": name, "skipped": "the only registered panorama: no other to build the home from"}
+    if (why := loo_skip(full_poses, name)):
+        return {"name": name, "skipped": why}
     scene = copy_home(src, work / f"loo_{name}", leave_out=name, poses=survey_mode)
     run = run_home(scene, sets)
     out: dict = {"name": name, "build": "full", "rc": run["rc"], "wall_s": run["wall_s"]}

@@ -15,7 +15,13 @@ MAX_PIXELS = 16384 * 8192
 """Largest image or depth map (width x height): a 16K panorama; larger ones are refused before decoding."""
 APPLEDOUBLE = "._"
 """The prefix of the metadata files macOS writes beside each file on disks without its attributes (`._pano.jpg`, never
-an image): a home's folders and a stage's input folders leave them out."""
+an image): a home's folders and a stage's input folders leave them out (is_appledouble)."""
+
+
+def is_appledouble(path: Path) -> bool:
+    """Whether path is a macOS AppleDouble metadata file (APPLEDOUBLE), not the image or array its suffix names."""
+    return path.name.startswith(APPLEDOUBLE)
+
 MAX_POSES = 10_000
 """Most poses in a user trajectory (the paper's clips are 81; 10 000 frames render for days on a GPU)."""
 MAX_TRANSLATION_M = 1000.0

@@ -68,7 +68,7 @@ def open_scene(scene_dir: Path | str, pipeline: Pipeline) -> Scene:
             raise PipelineError(str(e)) from None
         panos = list(home.panoramas.values())
         notes += [f"ignored {p.relative_to(root)}: "
-                  + ("a Mac's metadata file (AppleDouble)" if p.name.startswith(limits.APPLEDOUBLE)
+                  + ("a Mac's metadata file (AppleDouble)" if limits.is_appledouble(p)
                      else "not a panorama, depth or rig mask of this home") for p in home.ignored]
     elif pano is None:
         names = pipeline.scene_files.get("panorama", [])

@@ -152,10 +152,10 @@ def input_digest(name: str, spec: Input, path: Path | None) -> str | None:
         if not path.is_dir():
             raise StageInputError(f"input {name}: directory not found: {path}")
         if spec.suffixes:
-            from panoworld.core.limits import APPLEDOUBLE  # numpy with it: a replayed run digests nothing
+            from panoworld.core.limits import is_appledouble  # here: limits brings numpy, which a replayed run skips
 
             files = sorted(p for p in path.iterdir() if p.suffix.lower() in spec.suffixes and p.is_file()
-                           and not p.name.startswith(APPLEDOUBLE))
+                           and not is_appledouble(p))
         else:
             files = sorted(p for p in path.rglob("*") if p.is_file() and art.ARTIFACTS_DIRNAME not in p.relative_to(path).parts)
         return art.json_digest([[p.relative_to(path).as_posix(), art.file_digest(p)] for p in files])

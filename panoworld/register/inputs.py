@@ -35,7 +35,7 @@ def list_named(folder: Path, suffixes: tuple[str, ...], what: str) -> tuple[dict
     seen: dict[str, Path] = {}
     other: list[Path] = []
     for p in sorted(Path(folder).iterdir()):
-        if p.suffix.lower() not in suffixes or p.name.startswith(limits.APPLEDOUBLE):
+        if p.suffix.lower() not in suffixes or limits.is_appledouble(p):
             other.append(p)
             continue
         stem = p.name[: -len(p.suffix)]
