@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import trimesh
 
 from panoworld.gaussians.home import depth_from_others
@@ -50,6 +51,15 @@ def test_a_home_without_frames_is_its_panoramas_gaussians():
     assert len(res.gaussians) == res.num_source > 500 and res.num_voxels == 0
     # b's Gaussians stand only where a does not see the same wall from nearer: fewer than one per pixel of each
     assert res.num_source < 2 * 32 * 64
+
+
+def test_a_home_without_panoramas_is_refused_in_one_line():
+    from panoworld.core.errors import InputError
+    from panoworld.gaussians.fusion_params import SourcePixelParams
+    from panoworld.gaussians.home import home_anchored_fusion
+
+    with pytest.raises(InputError, match="no panorama to build from"):
+        home_anchored_fusion(None, {}, SourcePixelParams())
 
 
 def test_the_panoramas_gaussians_on_several_threads_are_those_of_one_thread(monkeypatch):

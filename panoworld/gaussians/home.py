@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from panoworld.core.conventions import erp_dirs64, invert_pose, transform_points
+from panoworld.core.errors import InputError
 from panoworld.core.memory import release_free_memory
 from panoworld.core.parallel import cpu_threads, map_ahead
 from panoworld.core.progress import bar as progress_bar
@@ -222,6 +223,8 @@ def home_anchored_fusion(frames: ContextSource | None, sources: dict[str, tuple[
     params.capture_fit_iters > 0: the colours are then fitted at every capture pose to its panorama
     (fit_at_capture_points; result.color_fit: its figures, RMSE per panorama before and after)."""
     names = list(sources)
+    if not names:
+        raise InputError("home fusion: no panorama to build from; give at least one panorama with its depth and pose")
     tol = params.source_tol
     small = {n: rgbd_at_height(sources[n][0], sources[n][1], params.source_height) for n in names}
     depths = {n: small[n][1] for n in names}
