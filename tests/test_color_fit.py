@@ -489,3 +489,36 @@ def test_capture_fit_smoothed_change_keeps_the_degree_1_terms_smooth_too():
         for (img, p) in views:
             assert float(render_erp(fitted, p, SHELL_H, SHELL_W).rgb.mean()) == pytest.approx(float(img.mean()), abs=0.02)
     assert rough[True] < 0.4 * rough[False], rough
+
+
+def test_capture_fit_goes_on_for_the_capture_poses_left_below_its_floor_alone():
+    # Two rooms 20 m apart (two plain walls), one capture pose in each: the first photographs a noisy wall, the second
+    # a plain one. After the smoothed fit the first still reads below the floor, so further rounds are run for it
+    # alone: its error falls and the second room's Gaussians keep the one-round fit's colours to the bit. With no
+    # floor (0 dB) the fit is the one-round fit to the bit; an unreachable floor stops at max_rounds.
+    from panoworld.gaussians.capture_fit import fit_capture_colors
+
+    a, b = plain_wall(), plain_wall()
+    b.means[:, 0] += 20.0
+    two = Gaussians(*(np.concatenate([getattr(a, f), getattr(b, f)]) for f in ("means", "scales", "quats",
+                                                                               "opacities", "sh_dc")))
+    rng = np.random.default_rng(1)
+    views = [(np.clip(0.6 + 0.15 * rng.standard_normal((SHELL_H, SHELL_W, 3)), 0, 1).astype(np.float32), shifted(0.0)),
+             (np.full((SHELL_H, SHELL_W, 3), 0.7, np.float32), shifted(20.0))]
+    kw = dict(height=SHELL_H, supersample=1, iters=3, smooth=True)
+    one, info1 = fit_capture_colors(two, views, **kw)
+    psnr1 = [-20 * np.log10(r) for r in info1["rmse_after"]]
+    assert info1["rounds"] == [] and psnr1[0] < psnr1[1] - 10, psnr1
+    same, info0 = fit_capture_colors(two, views, min_psnr=0.0, max_rounds=3, **kw)
+    assert info0["rounds"] == []
+    np.testing.assert_array_equal(same.sh_dc, one.sh_dc)
+    np.testing.assert_array_equal(same.sh_rest, one.sh_rest)
+    floor = 0.5 * (psnr1[0] + psnr1[1])
+    more, info = fit_capture_colors(two, views, min_psnr=floor, max_rounds=3, **kw)
+    assert info["rounds"] and all(r == [0] for r in info["rounds"]) and len(info["rounds"]) <= 2, info["rounds"]
+    assert info["rmse_after"][0] < 0.97 * info1["rmse_after"][0], (info["rmse_after"], info1["rmse_after"])
+    n = len(a)
+    np.testing.assert_array_equal(more.sh_dc[n:], one.sh_dc[n:])
+    np.testing.assert_array_equal(more.sh_rest[n:], one.sh_rest[n:])
+    _, info_max = fit_capture_colors(two, views, min_psnr=200.0, max_rounds=3, **kw)
+    assert info_max["rounds"] == [[0, 1], [0, 1]]

@@ -30,7 +30,8 @@ def sh1_basis(means: np.ndarray, centre: np.ndarray) -> torch.Tensor:
 def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]], *, height: int = 256,
                        supersample: int = 2, iters: int = 20, damping: float = 0.01, sh_degree: int = 1,
                        sh_damping: float = 0.001, max_bytes: float = float("inf"), prune: float = 0.0,
-                       smooth: bool = False, progress: bool = False) -> tuple[Gaussians, dict]:
+                       smooth: bool = False, min_psnr: float = 0.0, max_rounds: int = 1, progress: bool = False
+                       ) -> tuple[Gaussians, dict]:
     """Gaussians g whose colours are refitted so their ERP render (height rows, supersample: render_erp's sampling)
     at each view's world_from_cam (4, 4) reproduces its target (H, W, 3) uint8 or [0, 1], area-resized to height rows.
 
@@ -44,9 +45,12 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     surface two capture points see differently shows each its own colour, one that a single view sees keeps s. Only
     the Gaussians some view sees are fitted; prune: the share of each pixel's weight its render operator may drop
     (ErpColorOperator). smooth: the change to the colours and to the degree-1 terms is then made one the views' renders
-    hold (smooth_change). progress: a bar (core.progress.bar) through each operator built, each step, the smoothing.
-    Returns the Gaussians (SH degree max(sh_degree, g's)) and {"views", "height", "iters", "prune", "sh_degree",
-    "fitted", "operators_gb" (what the render operators held), "rmse_before", "rmse_after" (per view)}; g itself and
+    hold (smooth_change); then, while a view's render reads below min_psnr (dB, against its target at height rows),
+    another round (up to max_rounds in all): `iters` more steps over the Gaussians those views see alone, from the
+    smoothed colours, the change smoothed again. progress: a bar (core.progress.bar) through each operator built, each
+    step, the smoothing. Returns the Gaussians (SH degree max(sh_degree, g's)) and {"views", "height", "iters",
+    "prune", "sh_degree", "fitted", "operators_gb" (what the render operators held), "rmse_before", "rmse_after" (per
+    view), "rounds" (one list per further round: the views it was for)}; g itself and
     {"views", "skipped": why} when the operators built so far say all of them would hold more than max_bytes."""
     import cv2
 
@@ -167,41 +171,73 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         return out.mul_(dsc)
 
     # Conjugate gradients on the normal equations, the (n, 12) vectors updated in place (tmp: scratch)
-    x, s, tmp = x0.clone(), torch.empty_like(x0), torch.empty_like(x0)
-    r = [targets[k] - lin(k, x0 * dsc) for k in range(views_n)]
-    rmse0 = [float(rk.square().mean().sqrt()) for rk in r]
-    grad(r, s)
-    p, gamma = s.clone(), float(torch.mul(s, s, out=tmp).sum())
-    bar.set_description(f"capture fit at {height} rows: steps")
-    for _ in range(iters):
-        q = [lin(k, torch.mul(p, dsc, out=tmp)) for k in range(views_n)]
-        damped = damp(torch.mul(p, p, out=tmp)).sum()
-        alpha = gamma / max(float(sum(qk.square().sum() for qk in q) + damped), 1e-20)
-        x.add_(torch.mul(p, alpha, out=tmp))
-        r = [r[k] - alpha * q[k] for k in range(views_n)]
+    s, tmp = torch.empty_like(x0), torch.empty_like(x0)
+    rmse0 = None
+
+    def steps(start: torch.Tensor, only: torch.Tensor | None = None) -> torch.Tensor:
+        """`iters` CG steps from the unknowns start, damped towards x0; only (n, 1): the unknowns that may change."""
+        nonlocal rmse0
+        x = start.clone()
+        r = [targets[k] - lin(k, x * dsc) for k in range(views_n)]
+        if rmse0 is None:
+            rmse0 = [float(rk.square().mean().sqrt()) for rk in r]
         grad(r, s).sub_(damp(torch.sub(x, x0, out=tmp)))
-        gamma_new = float(torch.mul(s, s, out=tmp).sum())
-        p.mul_(gamma_new / max(gamma, 1e-20)).add_(s)
-        gamma = gamma_new
-        bar.update()
-    x.mul_(dsc)
+        if only is not None:
+            s.mul_(only)
+        p, gamma = s.clone(), float(torch.mul(s, s, out=tmp).sum())
+        bar.set_description(f"capture fit at {height} rows: steps")
+        for _ in range(iters):
+            q = [lin(k, torch.mul(p, dsc, out=tmp)) for k in range(views_n)]
+            damped = damp(torch.mul(p, p, out=tmp)).sum()
+            alpha = gamma / max(float(sum(qk.square().sum() for qk in q) + damped), 1e-20)
+            x.add_(torch.mul(p, alpha, out=tmp))
+            r = [r[k] - alpha * q[k] for k in range(views_n)]
+            grad(r, s).sub_(damp(torch.sub(x, x0, out=tmp)))
+            if only is not None:
+                s.mul_(only)
+            gamma_new = float(torch.mul(s, s, out=tmp).sum())
+            p.mul_(gamma_new / max(gamma, 1e-20)).add_(s)
+            gamma = gamma_new
+            bar.update()
+        return x.mul_(dsc)
+
+    def smoothed(x: torch.Tensor, start: torch.Tensor) -> torch.Tensor:  # x's change from start as the renders hold it
+        x[:, :3] = start[:, :3] + smooth_change(x[:, :3] - start[:, :3], ops, cols, weight, covers)
+        for j in range(3, x.shape[1], 3):  # each degree-1 term's change, as coefficients (x holds them times rho)
+            x[:, j:j + 3] = start[:, j:j + 3] + smooth_change((x[:, j:j + 3] - start[:, j:j + 3]) / rho, ops, cols,
+                                                              weight, covers) * rho
+        return x
+
+    x = steps(x0)
+    rounds: list[list[int]] = []
     if smooth:
         bar.set_description(f"capture fit at {height} rows: smoothing")
         covers = coverages(ops, cols)
-        x[:, :3] = c0 + smooth_change(x[:, :3] - c0, ops, cols, weight, covers)
-        for j in range(3, x.shape[1], 3):  # each degree-1 term's change, as coefficients (x holds them times rho)
-            start = x0[:, j:j + 3] * dsc
-            x[:, j:j + 3] = start + smooth_change((x[:, j:j + 3] - start) / rho, ops, cols, weight, covers) * rho
-        del covers
+        start = x0 * dsc
+        start[:, :3] = c0
+        x = smoothed(x, start)
         bar.update()
+        while len(rounds) + 1 < max_rounds:
+            low = [k for k in range(views_n) if _psnr(targets[k], ops[k](colors(k, x))) < min_psnr]
+            if not low:
+                break
+            rounds.append(low)
+            only = torch.zeros(n, 1)
+            for k in low:
+                only[cols_t[k]] = 1.0
+            bar.total += iters + 1
+            start = x
+            x = smoothed(torch.where(only > 0, steps(start / dsc, only), start), start)  # the rest exactly as was
+            bar.update()
+        covers = start = None
     bar.close()
     x[:, :3] = x[:, :3].clamp(0.0, 1.0)
-    del s, p, tmp, x0, c0, weight
+    s = tmp = x0 = None  # steps' scratch and anchor, freed before the final renders
+    c0 = weight = None
     lam.clear()
     rmse1 = [float((targets[k] - ops[k](colors(k, x))).square().mean().sqrt()) for k in range(views_n)]
     for held_list in (ops, basis, targets):
         held_list.clear()
-    del r
     coef = x[:, 3:].reshape(n, 3, 3) / rho[:, :, None] if sh_degree else s0
     dc = np.array(g.sh_dc, np.float32)  # only the Gaussians some view sees change
     dc[fit] = rgb_to_sh_dc((x[:, :3] - torch.einsum("nj,njc->nc", b_mean, coef)).numpy())
@@ -211,7 +247,13 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         rest[fit, :3] = coef.numpy()
     out = Gaussians(g.means, g.scales, g.quats, g.opacities, dc, rest)
     return out, {"views": views_n, "height": height, "prune": prune, "iters": iters, "sh_degree": sh_degree, "fitted": n,
-                 "operators_gb": held / 1e9, "rmse_before": rmse0, "rmse_after": rmse1}
+                 "operators_gb": held / 1e9, "rmse_before": rmse0, "rmse_after": rmse1, "rounds": rounds}
+
+
+def _psnr(target: torch.Tensor, render: torch.Tensor) -> float:
+    """PSNR (dB, values in [0, 1]) of a render (H, W, 3) against its target, the render clamped to [0, 1]."""
+    mse = float((target - render.clamp(0.0, 1.0)).square().mean())
+    return float("inf") if mse <= 0 else -10.0 * float(np.log10(mse))
 
 
 def smooth_change(change: torch.Tensor, ops: list, cols: list[torch.Tensor], weight: torch.Tensor,

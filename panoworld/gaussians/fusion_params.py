@@ -156,6 +156,12 @@ class SourcePixelParams(FusionParams):
     sample it), which shows as moire rings on plain walls in every other view: on real east and west the leave-one-out
     novel views' SSIM is higher for all 9 panoramas (+0.005 to +0.035, PSNR -0.05 to +0.33 dB) and the capture poses
     3.1-8.5 dB lower at 256 rows, every one >= 30.6 dB (docs/multi.md)."""
+    capture_fit_min_psnr: float = param(29.0, ge=0)
+    """With capture_fit_smooth: while a capture pose's render reads below this (dB, at capture_fit_height rows against
+    its panorama) after the smoothing, the fit goes on for the Gaussians those poses see (capture_fit_iters more steps
+    from the smoothed colours, the change smoothed again), up to capture_fit_max_rounds rounds in all; 0 = never."""
+    capture_fit_max_rounds: int = param(3, ge=1, le=8)
+    """The most rounds of that fit and its smoothing (1 = one)."""
     capture_fit_height: int = param(512, ge=8)
     """ERP height of that fit's renders and targets (the panoramas area-downsampled). 512: the cube faces of a
     256-row render supersampled 2x, so the fit resolves what a 256-row render shows; on real homes 1.3-9.2 dB more at the

@@ -286,7 +286,8 @@ def fit_at_capture_points(g, names: list[str], sources: dict, poses: dict, param
             g, views, height=height, supersample=params.capture_fit_supersample,
             iters=params.capture_fit_iters, damping=params.capture_fit_damping,
             sh_degree=params.capture_fit_sh_degree, sh_damping=params.fit_sh_damping,
-            max_bytes=params.capture_fit_max_gb * 1e9, prune=prune, smooth=params.capture_fit_smooth, progress=progress)
+            max_bytes=params.capture_fit_max_gb * 1e9, prune=prune, smooth=params.capture_fit_smooth,
+            min_psnr=params.capture_fit_min_psnr, max_rounds=params.capture_fit_max_rounds, progress=progress)
         if "skipped" not in fit or k == len(tries) - 1:  # the last try's refusal is the fit's "skipped"
             break
         refused.append({"height": height, "prune": prune, "why": fit["skipped"]})
@@ -295,4 +296,5 @@ def fit_at_capture_points(g, names: list[str], sources: dict, poses: dict, param
     if "skipped" in fit:
         return out, fit
     return out, {**fit, "rmse_before": dict(zip(names, fit["rmse_before"])),
-                 "rmse_after": dict(zip(names, fit["rmse_after"]))}
+                 "rmse_after": dict(zip(names, fit["rmse_after"])),
+                 "rounds": [[names[k] for k in low] for low in fit["rounds"]]}
