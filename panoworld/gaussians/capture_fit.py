@@ -177,7 +177,7 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     def steps(start: torch.Tensor, only: torch.Tensor | None = None) -> torch.Tensor:
         """`iters` CG steps from the unknowns start, damped towards x0; only (n, 1): the unknowns that may change."""
         nonlocal rmse0
-        x = start.clone()
+        x = start.clone() if start is x0 else start  # a further round's start is a temporary of its own
         r = [targets[k] - lin(k, x * dsc) for k in range(views_n)]
         if rmse0 is None:
             rmse0 = [float(rk.square().mean().sqrt()) for rk in r]
