@@ -8,6 +8,7 @@ from numba import njit
 
 from panoworld.core.memory import release_free_memory
 from panoworld.io.gaussian_set import Gaussians, rgb_to_sh_dc
+from panoworld.render.metrics import psnr
 
 FIT_TILE = 8
 """The operators' weights-kernel tile (render.splats.face_weights): fewer Gaussians scanned per pixel than the
@@ -218,7 +219,8 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
         x = smoothed(x, start)
         bar.update()
         while len(rounds) + 1 < max_rounds:
-            low = [k for k in range(views_n) if _psnr(targets[k], ops[k](colors(k, x))) < min_psnr]
+            low = [k for k in range(views_n)
+                   if psnr(ops[k](colors(k, x)).clamp(0.0, 1.0).numpy(), targets[k].numpy(), data_range=1.0) < min_psnr]
             if not low:
                 break
             rounds.append(low)
@@ -249,11 +251,6 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
     return out, {"views": views_n, "height": height, "prune": prune, "iters": iters, "sh_degree": sh_degree, "fitted": n,
                  "operators_gb": held / 1e9, "rmse_before": rmse0, "rmse_after": rmse1, "rounds": rounds}
 
-
-def _psnr(target: torch.Tensor, render: torch.Tensor) -> float:
-    """PSNR (dB, values in [0, 1]) of a render (H, W, 3) against its target, the render clamped to [0, 1]."""
-    mse = float((target - render.clamp(0.0, 1.0)).square().mean())
-    return float("inf") if mse <= 0 else -10.0 * float(np.log10(mse))
 
 
 def smooth_change(change: torch.Tensor, ops: list, cols: list[torch.Tensor], weight: torch.Tensor,
