@@ -21,11 +21,11 @@ def home_sources(scene: Path, poses: dict[str, np.ndarray]) -> tuple[dict, dict]
 def outside_rig(rig_mask: Path, height: int, grow_px: int = 2) -> np.ndarray | None:
     """(height, 2 height) bool: the pixels no part of the removed rig (its mask at height rows, grown by grow_px)
     touches; None where no rig was removed."""
-    from panoworld.register.artifact import _read_rig_mask
+    from panoworld.io.home import read_rig_mask
 
     if not rig_mask.is_file():
         return None
-    m = cv2.resize(_read_rig_mask(rig_mask).astype(np.float32), (2 * height, height), interpolation=cv2.INTER_AREA) > 0
+    m = cv2.resize(read_rig_mask(rig_mask).astype(np.float32), (2 * height, height), interpolation=cv2.INTER_AREA) > 0
     return ~cv2.dilate(m.astype(np.uint8), np.ones((2 * grow_px + 1, 2 * grow_px + 1), np.uint8)).astype(bool)
 
 

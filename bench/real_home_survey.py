@@ -141,8 +141,7 @@ def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str], pai
 
     from panoworld.geometry.floor_view import floor_matches
     from panoworld.geometry.resize import rgbd_at_height
-    from panoworld.io.home import RIG_MASK_PNG, home_depth_dirs, load_sources
-    from panoworld.register.artifact import _read_rig_mask
+    from panoworld.io.home import RIG_MASK_PNG, home_depth_dirs, load_sources, read_rig_mask
     from panoworld.register.floor import floor_support, panorama_floor_view
     from panoworld.register.layout import manhattan_frame
     from panoworld.register.options import RegisterOptions
@@ -156,7 +155,7 @@ def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str], pai
     for n in names:
         rig = dirs[n] / RIG_MASK_PNG
         small = rgbd_at_height(rgbs[n], depths[n], o.height)[1]
-        views[n] = panorama_floor_view(rgbs[n], small, grow_exclusion(_read_rig_mask(rig) if rig.is_file() else None),
+        views[n] = panorama_floor_view(rgbs[n], small, grow_exclusion(read_rig_mask(rig) if rig.is_file() else None),
                                        manhattan_frame(small), o)
     fits = {(r["a"], r["b"]): r for r in pairs if "floor_xz_m" in r}
     rows = []

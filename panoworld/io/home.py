@@ -29,6 +29,17 @@ HOME_INFO = "home"
 """The depth manifest's info key listing the home's panoramas: {"names": [...], "dirs": {NAME: relative dir}}."""
 
 
+def read_rig_mask(path: Path) -> np.ndarray:
+    """A rig mask (2:1 grayscale, white = rig; the depth artifact's RIG_MASK_PNG) -> (H, W) bool; InputError (one line)
+    when it is not one."""
+    import cv2
+
+    from panoworld.io.images import check_mask_file, read_image
+
+    check_mask_file(path)
+    return read_image(path, cv2.IMREAD_GRAYSCALE, what="rig mask") > 127
+
+
 def home_depth_dirs(depth_artifact: Path) -> dict[str, Path] | None:
     """{NAME: directory holding depth.npy, valid.png, panorama.png} of a home's depth artifact, in name order; None
     for a single-panorama depth artifact."""

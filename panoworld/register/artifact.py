@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.core.errors import InputError
-from panoworld.io.home import PANORAMAS_JSON, RIG_MASK_PNG, first_few, to_levelled
+from panoworld.io.home import PANORAMAS_JSON, RIG_MASK_PNG, first_few, read_rig_mask, to_levelled
 from panoworld.io.jsonio import read_json, write_json
 from panoworld.register.inputs import REGISTRATION_JSON, find_multi_scene, read_poses
 from panoworld.register.options import RegisterOptions
@@ -29,7 +29,7 @@ def register_scene(scene: Path, options: RegisterOptions, out_dir: Path) -> dict
     need_pixels = len(given) < len(ms.names)
     rgbs = {n: read_panorama(ms.panoramas[n]) for n in ms.names} if need_pixels else {}
     depths = {n: read_depth(ms.depths[n]) for n in ms.names if n in ms.depths} if need_pixels else {}
-    rigs = {n: _read_rig_mask(p) for n, p in ms.rig_masks.items()} if need_pixels else {}
+    rigs = {n: read_rig_mask(p) for n, p in ms.rig_masks.items()} if need_pixels else {}
     reg = register_panoramas(ms.names, rgbs, depths, given=given, options=options, rig_masks=rigs)
     write_registration(out_dir, reg)
     return _summary(ms.names, given, reg)
@@ -58,7 +58,7 @@ def register_depth_dirs(dirs: dict[str, Path] | None, poses_file: Path | None, o
     def load(d: Path):
         depth, valid, rgb = load_depth_artifact(d)
         rig = Path(d) / RIG_MASK_PNG
-        return rgb, np.where(valid, depth, 0.0).astype(np.float32), _read_rig_mask(rig) if rig.is_file() else None
+        return rgb, np.where(valid, depth, 0.0).astype(np.float32), read_rig_mask(rig) if rig.is_file() else None
 
     names = list(dirs)
     given = to_levelled(read_poses(poses_file, names) if poses_file is not None else {}, levelled or {})
@@ -77,16 +77,6 @@ def register_depth_dirs(dirs: dict[str, Path] | None, poses_file: Path | None, o
                                  progress=lambda a, b, pair: bar.update(1))
     write_registration(out_dir, reg)
     return _summary(names, given, reg)
-
-
-def _read_rig_mask(path: Path) -> np.ndarray:
-    """A rig mask (2:1 grayscale, white = rig) -> (H, W) bool; InputError (one line) when it is not one."""
-    import cv2
-
-    from panoworld.io.images import check_mask_file, read_image
-
-    check_mask_file(path)
-    return read_image(path, cv2.IMREAD_GRAYSCALE, what="rig mask") > 127
 
 
 def _summary(names: list[str], given: dict, reg: Registration) -> dict:
