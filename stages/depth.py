@@ -123,9 +123,9 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
 
     from panoworld.depth import depth_map as dep
     from panoworld.depth.level import level_panorama
-    from panoworld.depth.rig.remove import read_user_mask
     from panoworld.geometry.level import levelled, levelled_depth
     from panoworld.io.depth import read_panorama
+    from panoworld.io.home import read_rig_mask
 
     notes: list[str] = []
     rgb = read_panorama(inputs["panorama"], notes)
@@ -150,7 +150,7 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
             rgb, depth = levelled(rgb, R), levelled_depth(np.where(valid, depth, 0), R)
             valid = levelled(valid, R, nearest=True)
             if rig_mask is not None and params.rig != RigMode.KEEP:
-                rig_mask = levelled(read_user_mask(rig_mask, H, W), R, nearest=True)
+                rig_mask = levelled(read_rig_mask(rig_mask, (H, W)), R, nearest=True)
     rig_backend = None if params.rig == RigMode.KEEP else backends.get("rig", params.rig_detector).impl
     c = clean_depth(rgb, depth, valid, relative=res.relative, rescale=params.rescale,
                     camera_height=params.camera_height, min_depth_m=params.min_depth_m,

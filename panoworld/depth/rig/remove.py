@@ -8,7 +8,6 @@ import cv2
 import numpy as np
 
 from panoworld.core.conventions import erp_dirs64, erp_pixel_solid_angle
-from panoworld.core.errors import InputError
 from panoworld.depth.rig.detect import detect_rig
 from panoworld.depth.rig.face import (
     erp_mask_to_face,
@@ -21,18 +20,9 @@ from panoworld.depth.rig.nadir import (
     RigDetection,
 )
 from panoworld.geometry.cube_views import render_view
-from panoworld.io.images import check_mask_file, read_image
+from panoworld.io.home import read_rig_mask
 from panoworld.room.floor import column_reach
 from panoworld.room.light import apply_gain
-
-
-def read_user_mask(path: Path, H: int, W: int) -> np.ndarray:
-    """A user rig mask (a 2:1 grayscale image, white = rig) -> (H, W) bool; InputError when not a 2:1 image."""
-    check_mask_file(path)
-    m = read_image(path, cv2.IMREAD_GRAYSCALE, what="rig mask")
-    if m.shape[1] != 2 * m.shape[0]:
-        raise InputError(f"{path}: rig mask is {m.shape[1]}x{m.shape[0]} but must be 2:1 like the panorama")
-    return cv2.resize(m, (W, H), interpolation=cv2.INTER_NEAREST) > 127
 
 
 def remove_rig(rgb: np.ndarray, det: RigDetection) -> np.ndarray:
@@ -100,7 +90,7 @@ def rig_step(rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, floor_m: flo
     nothing changes (no rig: the very same arrays)."""
     H, W = rgb.shape[:2]
     if user_mask is not None:
-        m = user_mask if isinstance(user_mask, np.ndarray) else read_user_mask(user_mask, H, W)
+        m = user_mask if isinstance(user_mask, np.ndarray) else read_rig_mask(user_mask, (H, W))
         det = RigDetection(bool(m.any()), "user mask" if isinstance(user_mask, np.ndarray) else
                            f"user mask {Path(user_mask).name}", "user", m, np.zeros_like(m))
     else:
