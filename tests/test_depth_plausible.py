@@ -7,30 +7,14 @@ import pytest
 
 from panoworld.core.conventions import erp_dirs
 from panoworld.room.plausible import NEAR_PLANE_M, STAND_RADIUS_M, mask_implausible, wall_bounds
+from panoworld.tools.synth.annotation import polygon_layout_depth
 
 CAM_H, CEIL_H = 1.4, 1.0  # floor below, ceiling above the camera (m)
 
 
 def layout_depth(polygon, cam_xz, H=128, W=256):
-    """ERP ray depth (H, W) of a room-layout annotation as ZInD renders it: the polygon's wall segments (both faces),
-    a floor CAM_H below and a ceiling CEIL_H above the camera; rays that miss every wall reach the planes, however far."""
-    d = erp_dirs(H, W, np.float64)
-    ux, uz = d[H // 2, :, 0] / np.hypot(d[H // 2, :, 0], d[H // 2, :, 2]), d[H // 2, :, 2] / np.hypot(
-        d[H // 2, :, 0], d[H // 2, :, 2])
-    p = np.asarray(polygon, np.float64) - cam_xz
-    t_wall = np.full(W, np.inf)
-    for a, b in zip(p, np.roll(p, -1, 0)):
-        e = b - a
-        den = ux * e[1] - uz * e[0]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = (a[0] * e[1] - a[1] * e[0]) / den
-            s = (a[0] * uz - a[1] * ux) / den
-        hit = np.isfinite(t) & (t > 0) & (s >= 0) & (s <= 1)
-        t_wall = np.where(hit, np.minimum(t_wall, t), t_wall)
-    horiz = np.hypot(d[..., 0], d[..., 2])
-    down = d[..., 1]  # +Y is down
-    plane = np.where(down > 0, CAM_H / np.maximum(down, 1e-9), CEIL_H / np.maximum(-down, 1e-9))
-    return np.minimum(t_wall[None, :] / np.maximum(horiz, 1e-9), plane).astype(np.float32)
+    """The layout depth of polygon seen from cam_xz, CAM_H above its floor and CEIL_H under its ceiling."""
+    return polygon_layout_depth(polygon, cam_xz, CAM_H, CEIL_H, H, W)
 
 
 def points(depth, valid):
