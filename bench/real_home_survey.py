@@ -11,10 +11,12 @@ capture may be); and with --rolls N --home HOME, the home registered again N tim
 turned by its own random azimuth (where its seam falls), each draw against the survey (with --rows R, from its
 panoramas resized to R rows; with --exposure G, each panorama's exposure scaled by its own random gain within G
 times; with --tilt D, each panorama and its depth tilted by D degrees about its own random horizontal axis; with
---rename, the panoramas renamed in a random order; --rows, --exposure, --tilt or --rename alone: once).
+--rename, the panoramas renamed in a random order; with --mirror, each panorama and its depth flipped left to right,
+a mirror-image home with the same geometry and other keypoints; --rows, --exposure, --tilt, --rename or --mirror alone:
+once).
 
 `python bench/real_home_survey.py REGISTER_ARTIFACT SURVEY_JSON [--json] [--floor-fits] [--floor-evidence] [--subsets N]
-[--rolls N] [--rows R] [--exposure G] [--tilt D] [--rename] [--home HOME] [--seed S]` prints them;
+[--rolls N] [--rows R] [--exposure G] [--tilt D] [--rename] [--mirror] [--home HOME] [--seed S]` prints them;
 `compare_to_survey` is the function the real-home benchmark imports."""
 
 from __future__ import annotations
@@ -246,7 +248,7 @@ def tilt(rgb: np.ndarray, depth: np.ndarray, deg: float, azimuth: float) -> tupl
 
 def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0, size: int | None = None,
                        turn: bool = True, exposure: float = 1.0, rename: bool = False,
-                       tilt_deg: float = 0.0) -> list[dict]:
+                       tilt_deg: float = 0.0, mirror: bool = False) -> list[dict]:
     """The home (panoramas/, depths/) registered again `draws` times with each panorama and its depth turned about
     gravity by its own random azimuth (a whole number of depth columns, so both move exactly; not with turn=False),
     and resized to `size` rows first (area; the depth by the same factor, nearest), through the depth and
@@ -254,10 +256,13 @@ def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0, size
     them. exposure > 1: each panorama's exposure also scaled by its own gain, log-uniform in [1 / exposure,
     exposure], and its white balance by its own factor per channel in [0.95, 1.05] (expose), as a tour's auto
     exposure differs from room to room. tilt_deg: each panorama and its depth tilted by it about its own random
-    horizontal axis (tilt), as an unlevelled camera captures. rename: the panoramas named capture_000, capture_001, ... in a random order
-    (the capture order and the first name, which sets the world frame and breaks ties between groups), the result
-    read back under their own names. Per draw: the registered panoramas, the errors and whether it is misplaced.
-    Where a panorama's seam falls, the capture's size, its exposure and its name are arbitrary; the registration
+    horizontal axis (tilt), as an unlevelled camera captures. rename: the panoramas named capture_000, capture_001,
+    ... in a random order (the capture order and the first name, which sets the world frame and breaks ties between
+    groups), the result read back under their own names. mirror: each panorama and its depth flipped left to right
+    (azimuth a -> -a): the mirror image of the home, its survey mirrored with it (x -> -x, yaw -> -yaw), whose
+    distances and relative yaws (negated) are the home's while its keypoints differ. Per draw: the registered
+    panoramas, the errors and whether it is misplaced. Where a panorama's seam falls, the capture's size, its
+    exposure, its name and its handedness are arbitrary; the registration
     should not depend on them (beyond which of two equally large groups is registered)."""
     import subprocess
     import tempfile
@@ -286,11 +291,16 @@ def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0, size
                     rgb, depth = tilt(rgb, depth, tilt_deg, float(rng.uniform(0, 2 * np.pi)))
                 if exposure > 1:
                     rgb = expose(rgb, float(np.exp(rng.uniform(-1, 1) * np.log(exposure))), rng.uniform(0.95, 1.05, 3))
+                if mirror:
+                    rgb, depth = np.ascontiguousarray(rgb[:, ::-1]), np.ascontiguousarray(depth[:, ::-1])
                 cv2.imwrite(str(copy / "panoramas" / f"{alias[n]}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
                 np.save(copy / "depths" / f"{alias[n]}.npy", depth)
                 if n in survey["panos"]:
-                    turned["panos"][n] = dict(survey["panos"][n],
-                                              yaw_deg=survey["panos"][n]["yaw_deg"] - 360.0 * k / depth.shape[1])
+                    v = survey["panos"][n]
+                    yaw = v["yaw_deg"] - 360.0 * k / depth.shape[1]
+                    turned["panos"][n] = dict(v, yaw_deg=-yaw, position_m_xy=[-v["position_m_xy"][0],
+                                                                             v["position_m_xy"][1]]) if mirror else \
+                        dict(v, yaw_deg=yaw)
             proc = subprocess.run([sys.executable, str(Path(__file__).resolve().parents[1] / "runner.py"), "run",
                                    str(copy), "--until", "register"], capture_output=True, text=True)
             if proc.returncode:
@@ -334,6 +344,8 @@ def main() -> int:
                          "axis (each --rolls draw, or once)")
     ap.add_argument("--rename", action="store_true",
                     help="with --home: the panoramas renamed in a random order in each draw (capture order, first name)")
+    ap.add_argument("--mirror", action="store_true",
+                    help="with --home: each panorama and its depth flipped left to right (a mirror-image home)")
     ap.add_argument("--seed", type=int, default=0, help="the subsets' and the draws' random seed")
     args = ap.parse_args()
     poses = {n: np.asarray(T) for n, T in json.loads((args.register / "panoramas.json").read_text()).items()}
@@ -348,11 +360,13 @@ def main() -> int:
         r["floor_evidence"] = floor_evidence(args.register.parent / "depth", survey, set(poses), rows)
     if args.subsets:
         r["subsets"] = subset_registrations(args.register.parent / "depth", survey, args.subsets, args.seed)
-    if args.rolls or args.rows or args.exposure > 1 or args.rename or args.tilt:
+    if args.rolls or args.rows or args.exposure > 1 or args.rename or args.tilt or args.mirror:
         if args.home is None:
-            ap.error("--rolls, --rows, --exposure, --tilt and --rename need --home (the home's panoramas/ and depths/)")
+            ap.error("--rolls, --rows, --exposure, --tilt, --rename and --mirror need --home (the home's panoramas/ and "
+                     "depths/)")
         r["rolls"] = roll_registrations(args.home, survey, args.rolls or 1, args.seed, args.rows, turn=bool(args.rolls),
-                                        exposure=args.exposure, rename=args.rename, tilt_deg=args.tilt)
+                                        exposure=args.exposure, rename=args.rename, tilt_deg=args.tilt,
+                                        mirror=args.mirror)
     if args.json:
         print(json.dumps(r, indent=1))
         return 0
@@ -414,6 +428,7 @@ def main() -> int:
         what += f", exposures within {args.exposure:g}x" if args.exposure > 1 else ""
         what += f", tilted {args.tilt:g} deg" if args.tilt else ""
         what += ", renamed in a random order" if args.rename else ""
+        what += ", mirrored" if args.mirror else ""
         print(f"\n{len(rows)} {what}{f' at {args.rows} rows' if args.rows else ''}: "
               f"{sum(len(x['registered']) for x in rows)} of {len(rows) * r['panoramas']} surveyed panoramas "
               f"registered, {sum(x['misplaced'] for x in rows)} draws misplaced")
