@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -29,15 +30,26 @@ def _add_pipeline_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pipeline", type=Path, default=None, help="pipeline file (default: the repository's pipeline.yaml)")
 
 
+def _same_destination(a, b) -> bool:
+    """Whether the streams a and b write to one file, pipe or terminal (`2>&1`)."""
+    try:
+        sa, sb = os.fstat(a.fileno()), os.fstat(b.fileno())
+    except (OSError, ValueError, AttributeError):
+        return False
+    return (sa.st_dev, sa.st_ino) == (sb.st_dev, sb.st_ino)
+
+
 def _print_report(report: pl.Report, as_json: bool) -> int:
     if as_json:
         print(json.dumps(report.as_dict(), indent=2))
     else:
         print(report.table())
+    sys.stdout.flush()
     # The table ends with the notes; where stdout is not the terminal (--json, a pipe, a file) the terminal hears them
-    # on stderr too: a partial result is never silent, and never said twice on one screen.
-    for note in report.notes if as_json or not sys.stdout.isatty() else ():
-        print(f"note: {note}", file=sys.stderr)
+    # on stderr too: a partial result is never silent, and never said twice on one screen or in one log (`2>&1`).
+    if (as_json or not sys.stdout.isatty()) and not _same_destination(sys.stdout, sys.stderr):
+        for note in report.notes:
+            print(f"note: {note}", file=sys.stderr)
     failed = [r for r in report.results if r.action == "failed"]
     for r in failed:
         print(f"error: stage {r.stage} failed: {r.reason}", file=sys.stderr)

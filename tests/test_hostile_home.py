@@ -631,6 +631,11 @@ def test_a_partial_registration_is_said_on_stderr_and_in_the_table(tmp_path):
     assert f"note: {line}" in out.stderr and f"note: {line}" in out.stdout
     js = cli("run", str(d), "--until", "register", "--json")
     assert line in json.loads(js.stdout)["notes"] and line in js.stderr
+    with open(tmp_path / "run.log", "w+") as log:  # `> run.log 2>&1`: one log hears each note once
+        subprocess.run([sys.executable, str(REPO / "runner.py"), "run", str(d), "--until", "register"], stdout=log,
+                       stderr=subprocess.STDOUT, cwd=REPO, env=dict(os.environ, PANOWORLD_SCHEMA_PATH=str(TOY / "schemas")))
+        log.seek(0)
+        assert log.read().count(f"note: {line}") == 1
     st = cli("status", str(d))  # status says it as long as the registration is up to date
     assert st.returncode == 0 and f"note: {line}" in st.stdout, st.stdout
     assert json.loads(cli("status", str(d), "--json").stdout)["notes"] == [line]
