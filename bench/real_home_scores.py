@@ -21,7 +21,7 @@ def home_sources(scene: Path, poses: dict[str, np.ndarray]) -> tuple[dict, dict]
 def outside_rig(rig_mask: Path, height: int, grow_px: int = 2) -> np.ndarray | None:
     """(height, 2 height) bool: the pixels no part of the removed rig (its mask at height rows, grown by grow_px)
     touches; None where no rig was removed."""
-    from panoworld.io.home import read_rig_mask
+    from panoworld.io.images import read_rig_mask
 
     if not rig_mask.is_file():
         return None

@@ -143,7 +143,8 @@ def floor_evidence(depth_artifact: Path, survey: dict, registered: set[str], pai
 
     from panoworld.geometry.floor_view import floor_matches
     from panoworld.geometry.resize import rgbd_at_height
-    from panoworld.io.home import RIG_MASK_PNG, home_depth_dirs, load_sources, read_rig_mask
+    from panoworld.io.home import RIG_MASK_PNG, home_depth_dirs, load_sources
+    from panoworld.io.images import read_rig_mask
     from panoworld.register.floor import floor_support, panorama_floor_view
     from panoworld.register.layout import manhattan_frame
     from panoworld.register.options import RegisterOptions

@@ -125,7 +125,7 @@ def depth_of_panorama(inputs: dict[str, Path | None], params: Params, out_dir: P
     from panoworld.depth.level import level_panorama
     from panoworld.geometry.level import levelled, levelled_depth
     from panoworld.io.depth import read_panorama
-    from panoworld.io.home import read_rig_mask
+    from panoworld.io.images import read_rig_mask
 
     notes: list[str] = []
     rgb = read_panorama(inputs["panorama"], notes)

@@ -29,22 +29,6 @@ HOME_INFO = "home"
 """The depth manifest's info key listing the home's panoramas: {"names": [...], "dirs": {NAME: relative dir}}."""
 
 
-def read_rig_mask(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:
-    """A rig mask (a 2:1 grayscale image, white = rig: the depth artifact's RIG_MASK_PNG or a user's) -> (H, W) bool,
-    resized (nearest) to size (H, W) where given; InputError (one line) when it is not one."""
-    import cv2
-
-    from panoworld.io.images import check_mask_file, read_image
-
-    check_mask_file(path)
-    m = read_image(path, cv2.IMREAD_GRAYSCALE, what="rig mask")
-    if m.shape[1] != 2 * m.shape[0]:
-        raise InputError(f"{path}: rig mask is {m.shape[1]}x{m.shape[0]} but must be 2:1 like the panorama")
-    if size is not None and m.shape != tuple(size):
-        m = cv2.resize(m, (size[1], size[0]), interpolation=cv2.INTER_NEAREST)
-    return m > 127
-
-
 def home_depth_dirs(depth_artifact: Path) -> dict[str, Path] | None:
     """{NAME: directory holding depth.npy, valid.png, panorama.png} of a home's depth artifact, in name order; None
     for a single-panorama depth artifact."""

@@ -170,6 +170,18 @@ def check_mask_file(path: Path | str, what: str = "rig mask") -> tuple[int, int]
     return w, h
 
 
+def read_rig_mask(path: Path, size: tuple[int, int] | None = None) -> np.ndarray:
+    """A rig mask (a 2:1 grayscale image, white = rig: a user's, or a depth artifact's io.home.RIG_MASK_PNG) -> (H, W)
+    bool, resized (nearest) to size (H, W) where given; InputError (one line) when it is not one (check_mask_file)."""
+    import cv2
+
+    check_mask_file(path)
+    m = read_image(path, cv2.IMREAD_GRAYSCALE, what="rig mask")
+    if size is not None and m.shape != tuple(size):
+        m = cv2.resize(m, (size[1], size[0]), interpolation=cv2.INTER_NEAREST)
+    return m > 127
+
+
 def read_exr(path: Path | str) -> np.ndarray:
     """The depth plane of an OpenEXR file (the Z, Y, R or depth channel, else the first) as float32 (H, W) (OpenCV with
     OpenEXR, else the `OpenEXR` package); InputError (one line) for a corrupt or truncated file."""

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from panoworld.core.errors import InputError
-from panoworld.io.home import PANORAMAS_JSON, RIG_MASK_PNG, first_few, read_rig_mask, to_levelled
+from panoworld.io.home import PANORAMAS_JSON, RIG_MASK_PNG, first_few, to_levelled
+from panoworld.io.images import read_rig_mask
 from panoworld.io.jsonio import read_json, write_json
 from panoworld.register.inputs import REGISTRATION_JSON, find_multi_scene, read_poses
 from panoworld.register.options import RegisterOptions

@@ -20,7 +20,7 @@ from panoworld.depth.rig.nadir import (
     RigDetection,
 )
 from panoworld.geometry.cube_views import render_view
-from panoworld.io.home import read_rig_mask
+from panoworld.io.images import read_rig_mask
 from panoworld.room.floor import column_reach
 from panoworld.room.light import apply_gain
 
