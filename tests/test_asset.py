@@ -265,3 +265,55 @@ def test_unreadable_gaussians_is_one_line_exit_2_nothing_written(pipeline_scene,
     with pytest.raises(InputError, match="gaussians.ply.*rerun the gaussians stage"):
         stage.run(inputs, stage.Params(), out)
     assert list(out.iterdir()) == []
+
+
+def _box_room(size: float, floor_y: float):
+    """A size x size m room (canonical frame: y down, the floor at floor_y, walls 2.5 m high) as a Collider, and its
+    NavMesh: the floor kept 0.35 m (an agent's 0.25 m radius and a cell) from every wall."""
+    from panoworld.asset.collider import Collider
+    from panoworld.geometry.navmesh import NavMesh
+
+    top = floor_y - 2.5
+    c = [(0.0, 0.0), (size, 0.0), (size, size), (0.0, size)]
+    v = [(x, floor_y, z) for x, z in c] + [(x, top, z) for x, z in c]
+    f = [(0, 1, 2), (0, 2, 3)]
+    for k in range(4):  # each wall a quad between floor and top
+        a, b = k, (k + 1) % 4
+        f += [(a, b, b + 4), (a, b + 4, a + 4)]
+    m = 0.35
+    ring = np.array([(m, m), (size - m, m), (size - m, size - m), (m, size - m)])
+    nav = NavMesh(ring, [[0, 1, 2], [0, 2, 3]], [[-1, 1, -1], [-1, -1, 0]], [ring], floor_y=floor_y,
+                  agent={"agent_radius_m": 0.25, "agent_height_m": 1.5, "step_height_m": 0.2})
+    return Collider(np.array(v, np.float64), np.array(f, np.int64), {}), nav
+
+
+def test_a_camera_nearer_a_wall_than_the_agent_spawns_it_on_the_navmesh(tmp_path):
+    # A camera 0.15 m from a wall (a closet door, a hallway): the floor below it lies inside the agent's radius of the
+    # wall, so the spawn moves to the nearest NavMesh floor, where PyBullet's capsule stands clear of the wall; a camera
+    # over the NavMesh keeps the floor below it, and one beyond reach of any NavMesh (1 m) does too.
+    from panoworld.asset.build import agent_spawns, capture_spawns
+    from panoworld.asset.collider import write_obj
+    from panoworld.asset.physics import Agent, BulletScene
+    from panoworld.core.conventions import asset_from_canonical
+
+    floor_y = 1.4
+    col, nav = _box_room(4.0, floor_y)
+    cams = np.array([[0.15, 0.0, 2.0], [2.0, 0.0, 1.0], [-1.5, 0.0, 2.0]])
+    (near, src_near, moved_near), (inside, _, moved_inside), (far, _, moved_far) = agent_spawns(col, nav, cams)
+    assert src_near == "collider" and abs(moved_near - 0.20) < 0.005, moved_near
+    np.testing.assert_allclose(near, [0.35, floor_y, 2.0], atol=0.005)
+    assert moved_inside == 0.0 and np.allclose(inside, [2.0, floor_y, 1.0])
+    assert moved_far == 0.0 and np.allclose(far[[0, 2]], [-1.5, 2.0])
+    a_from_c = asset_from_canonical(floor_y)
+    points = capture_spawns(col, nav, {"door": np.array([[1, 0, 0, 0.15], [0, 1, 0, 0], [0, 0, 1, 2.0], [0, 0, 0, 1]])},
+                            a_from_c)
+    assert points["door"]["spawn_from_floor_m"] == pytest.approx(0.20, abs=0.005)
+    np.testing.assert_allclose(points["door"]["spawn"], transform_points(a_from_c, near[None])[0], atol=1e-5)
+    write_obj(tmp_path / "room.obj", transform_points(a_from_c, col.vertices), col.faces, "box room")
+    with BulletScene(tmp_path / "room.obj", Agent(radius=0.25, height=1.5)) as sim:
+        clear = {}
+        for k, p in {"below the camera": np.array(points["door"]["floor"]),
+                     "spawn": np.array(points["door"]["spawn"])}.items():
+            sim.place(p + [0.0, 0.0, 0.05])  # feet just above the floor: what it touches is a wall
+            clear[k] = sim.clearance()
+    assert clear["below the camera"] < -0.05 and clear["spawn"] > 0.05, clear

@@ -346,6 +346,7 @@ def test_home_asset_spawns_at_every_capture_point_in_usd_and_physics(home_run):
             prim = stage.GetPrimAtPath(f"/World/CapturePoints/{n}")
             assert prim.IsValid() and prim.GetCustomDataByKey("panorama") == n
             xf = UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
-            np.testing.assert_allclose(np.array(xf.ExtractTranslation()), cp["floor"], atol=1e-5)
-            r = drop_test(sim, np.array(cp["floor"]), drop_m=0.5)  # the agent stands there
+            assert cp["spawn_from_floor_m"] == 0.0 and cp["spawn"] == cp["floor"]  # each camera stood on the NavMesh
+            np.testing.assert_allclose(np.array(xf.ExtractTranslation()), cp["spawn"], atol=1e-5)
+            r = drop_test(sim, np.array(cp["spawn"]), drop_m=0.5)  # the agent stands there
             assert r["speed_m_s"] < 0.01 and abs(r["rest_height_m"]) < 0.02 and r["drift_m"] < 0.02, (n, r)

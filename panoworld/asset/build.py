@@ -11,7 +11,7 @@ from panoworld.asset.collider import Collider, collision_mesh, write_obj
 from panoworld.core.conventions import asset_from_canonical, transform_points
 from panoworld.core.errors import ArtifactError
 from panoworld.geometry.erp_mesh import ErpMesh
-from panoworld.geometry.navmesh import NavMesh
+from panoworld.geometry.navmesh import HOME_SNAP_M, NavMesh
 from panoworld.io.gaussian_set import Gaussians
 from panoworld.io.jsonio import read_json, write_json
 from panoworld.io.trajectory import load_trajectory, path_indices, read_trajectory_doc
@@ -66,10 +66,26 @@ def with_walkable_floor(col: Collider, nav: NavMesh) -> Collider:
     return Collider(v, f, info)
 
 
-def spawn_point(collider_canonical: Collider, floor_y: float) -> tuple[np.ndarray, str]:
-    """The floor below the capture point (canonical frame): where a ray straight down from the camera meets the
-    collider, or the NavMesh floor height when it meets nothing within 1 m of that floor (a hole under the rig)."""
-    return floors_below(collider_canonical, floor_y, np.zeros((1, 3)))[0]
+def spawn_point(collider_canonical: Collider, nav: NavMesh) -> tuple[np.ndarray, str, float]:
+    """The agent's spawn for the capture point at the origin (canonical frame): agent_spawns of the camera centre."""
+    return agent_spawns(collider_canonical, nav, np.zeros((1, 3)))[0]
+
+
+def agent_spawns(collider_canonical: Collider, nav: NavMesh, cameras: np.ndarray) -> list[tuple[np.ndarray, str, float]]:
+    """Where an agent of the NavMesh's radius stands for each camera centre (K, 3) (canonical frame): the floor below
+    the camera (floors_below) where the camera stands over the NavMesh, else the floor below the NavMesh's nearest
+    point within HOME_SNAP_M (a camera nearer a wall than the agent's radius: an agent below it would stand in the
+    wall); farther than that, the floor below the camera. Each as (point (3,), its floor's source, how far it lies from
+    the floor below the camera, m)."""
+    cameras = np.asarray(cameras, np.float64).reshape(-1, 3)
+    xz = cameras[:, [0, 2]]
+    near = nav.closest_point(xz) if len(nav.triangles) else xz
+    moved = np.linalg.norm(near - xz, axis=1)
+    onto = (moved > 0) & (moved <= HOME_SNAP_M)
+    at = cameras.copy()
+    at[onto, 0], at[onto, 2] = near[onto, 0], near[onto, 1]
+    return [(p, source, float(m) if o else 0.0)
+            for (p, source), m, o in zip(floors_below(collider_canonical, nav.floor_y, at), moved, onto)]
 
 
 def floors_below(collider_canonical: Collider, floor_y: float, cameras: np.ndarray) -> list[tuple[np.ndarray, str]]:
@@ -89,18 +105,25 @@ def floors_below(collider_canonical: Collider, floor_y: float, cameras: np.ndarr
     return out
 
 
-def capture_spawns(col: Collider, floor_y: float, captures: dict[str, np.ndarray], a_from_c: np.ndarray) -> dict:
-    """A home's capture points in the asset frame: {NAME: {"floor": the floor below the camera (the agent's spawn
-    there), "camera": the camera centre, "yaw_deg": where the panorama's centre looks (about +z, from +x), "floor_source":
-    collider | navmesh floor}} (captures: {NAME: world_from_cam (4, 4) canonical})."""
+def capture_spawns(col: Collider, nav: NavMesh, captures: dict[str, np.ndarray], a_from_c: np.ndarray) -> dict:
+    """A home's capture points in the asset frame: {NAME: {"floor": the floor below the camera, "spawn": where the agent
+    stands (agent_spawns: that floor, or the nearest NavMesh floor where the camera stood nearer a wall than the
+    agent's radius), "spawn_from_floor_m": how far apart they are, "camera": the camera centre, "yaw_deg": where the
+    panorama's centre looks (about +z, from +x), "floor_source": collider | navmesh floor}} (captures: {NAME:
+    world_from_cam (4, 4) canonical})."""
     names = list(captures)
     cams = np.array([np.asarray(captures[n], np.float64)[:3, 3] for n in names]).reshape(-1, 3)
+
+    def asset(p):
+        return [round(float(x), 6) for x in transform_points(a_from_c, np.asarray(p)[None])[0]]
+
     out = {}
-    for n, c, (floor, source) in zip(names, cams, floors_below(col, floor_y, cams)):
+    for n, c, (floor, source), (spawn, _, moved) in zip(names, cams, floors_below(col, nav.floor_y, cams),
+                                                        agent_spawns(col, nav, cams)):
         fwd = a_from_c[:3, :3] @ np.asarray(captures[n], np.float64)[:3, 2]
-        out[n] = {"floor": [round(float(x), 6) for x in transform_points(a_from_c, floor[None])[0]],
-                  "camera": [round(float(x), 6) for x in transform_points(a_from_c, c[None])[0]],
-                  "yaw_deg": round(float(np.degrees(np.arctan2(fwd[1], fwd[0]))), 4), "floor_source": source}
+        out[n] = {"floor": asset(floor), "spawn": asset(spawn), "spawn_from_floor_m": round(moved, 4),
+                  "camera": asset(c), "yaw_deg": round(float(np.degrees(np.arctan2(fwd[1], fwd[0]))), 4),
+                  "floor_source": source}
     return out
 
 
@@ -116,10 +139,10 @@ def build_asset(out_dir: Path, *, mesh: ErpMesh, nav: NavMesh, trajectory_dir: P
     col = with_walkable_floor(collision_mesh(mesh, max_triangles), nav)
     timings["collider"] = time.perf_counter() - t0
     t = time.perf_counter()
-    spawn_c, spawn_source = spawn_point(col, nav.floor_y)
+    spawn_c, spawn_source, spawn_moved = spawn_point(col, nav)
     a_from_c = asset_from_canonical(nav.floor_y)
     spawn = transform_points(a_from_c, spawn_c[None])[0]
-    points = capture_spawns(col, nav.floor_y, captures, a_from_c) if captures and len(captures) >= 2 else {}
+    points = capture_spawns(col, nav, captures, a_from_c) if captures and len(captures) >= 2 else {}
     col_v = transform_points(a_from_c, col.vertices)
     write_obj(out_dir / COLLIDER_OBJ, col_v, col.faces,
               "PanoWorld collider: asset frame (z up, x forward, y left, floor below the capture at z = 0), metres")
@@ -140,6 +163,7 @@ def build_asset(out_dir: Path, *, mesh: ErpMesh, nav: NavMesh, trajectory_dir: P
         "meters_per_unit": 1.0,
         "asset_from_canonical": a_from_c.tolist(),
         "spawn": [float(x) for x in spawn],
+        "spawn_from_capture_m": round(spawn_moved, 4),
         "collider": COLLIDER_OBJ,
         "scene": SCENE_USD,
         "frame": "x forward (the panorama's centre column), y left, z up (REP 103); origin on the floor below the "
@@ -157,6 +181,7 @@ def build_asset(out_dir: Path, *, mesh: ErpMesh, nav: NavMesh, trajectory_dir: P
         "sh_degree": counts["sh_degree"],
         "spawn": doc["spawn"],
         "spawn_source": spawn_source,
+        "spawn_from_capture_m": doc["spawn_from_capture_m"],
         "capture_points": len(points),
         "up_axis": UP_AXIS,
         "collider": col.info,

@@ -35,7 +35,8 @@ class SceneParts:
     """Per path (N, 4, 4) world_from_cam poses in the canonical frame (OpenCV camera axes)."""
     fps: float
     capture_points: dict = field(default_factory=dict)
-    """A home's capture points (build.capture_spawns: floor point and yaw in the asset frame), empty for one panorama."""
+    """A home's capture points (build.capture_spawns: the agent's spawn and yaw in the asset frame), empty for one
+    panorama."""
 
 
 def _matrix(t: np.ndarray):
@@ -137,7 +138,7 @@ def write_scene_usd(path: Path, parts: SceneParts) -> dict:
         for name, cp in parts.capture_points.items():
             prim = _unique(Tf.MakeValidIdentifier(name), used)
             x = UsdGeom.Xform.Define(stage, f"{WORLD}/CapturePoints/{prim}")
-            x.AddTranslateOp().Set(Gf.Vec3d(*map(float, cp["floor"])))
+            x.AddTranslateOp().Set(Gf.Vec3d(*map(float, cp["spawn"])))
             x.AddRotateZOp().Set(float(cp["yaw_deg"]))
             x.GetPrim().SetCustomDataByKey("panorama", name)
 
