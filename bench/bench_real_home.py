@@ -168,6 +168,12 @@ def measure_home(scene: Path, survey: dict, height: int, sets: list[str] = ()) -
         (only,) = poses
         row["navmesh"].update(on={only: bool(nav["camera_on_navmesh"])},
                               components=[{"area_m2": nav.get("area_m2"), "capture_points": [only]}])
+    off = [n for n, ok in (row["navmesh"]["on"] or {}).items() if not ok and n in poses]
+    if off and (arts / "navmesh").is_dir():  # how far beside it: within the agent's radius of a wall, or elsewhere
+        from panoworld.geometry.navmesh import load_navmesh
+
+        clearance = load_navmesh(arts / "navmesh").clearance(np.array([poses[n][[0, 2], 3] for n in off]))
+        row["navmesh"]["off_by_m"] = {n: round(float(-c), 3) for n, c in zip(off, clearance)}
     traj = manifest_info(scene, "trajectory")
     plan = traj.get("plan") or {}
     row["trajectory"] = {"frames": traj.get("frames"), "invalid_poses": len(traj.get("invalid_poses") or []),
@@ -258,6 +264,12 @@ def leave_one_out(src: Path, work: Path, full: Path, name: str, survey_mode: dic
 # ---------------------------------------------------------------- report
 
 
+def _off(name: str, nav: dict) -> str:
+    """A capture point off the NavMesh, with how far beside it it stands where measured."""
+    d = (nav.get("off_by_m") or {}).get(name)
+    return name if d is None else f"{name} {d:.2f} m beside it"
+
+
 def fmt(v, spec=".2f"):
     return "-" if v is None else format(v, spec)
 
@@ -330,8 +342,8 @@ def print_report(res: dict) -> None:
     on = nav.get("on") or {}
     comps = nav.get("components") or []
     print(f"NavMesh {fmt(nav.get('area_m2'), '.1f')} m^2 in {len(comps)} component(s); capture points on it: "
-          f"{sum(bool(v) for v in on.values())} of {len(on)}" + (f" (off: {', '.join(n for n, v in on.items() if not v)})"
-                                                                 if on and not all(on.values()) else ""))
+          f"{sum(bool(v) for v in on.values())} of {len(on)}"
+          + (f" (off: {', '.join(_off(n, nav) for n, v in on.items() if not v)})" if on and not all(on.values()) else ""))
     for k, c in enumerate(comps):
         print(f"  component {k}: {fmt(c.get('area_m2'), '.1f')} m^2, capture points {', '.join(c['capture_points']) or '-'}")
     tr = r.get("trajectory") or {}
