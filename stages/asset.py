@@ -30,8 +30,8 @@ class Params:
     floor triangles, added so that the assumed-walkable blind spot under the rig is solid, come on top). 100k
     triangles keep a 720x1440 ERP mesh's walls and furniture within about a centimetre and load in PhysX / Bullet /
     MuJoCo in well under a second; a mesh of millions of faces (a home's fused mesh, a 1024-row real capture) decimated
-    to 100k cuts corners through its rooms: give it about 100k per panorama, or 0 (README, Using the scene in a
-    simulator)."""
+    to 100k cuts corners through its rooms: give a home about 100k per panorama, a real capture 0 (README, Using the
+    scene in a simulator)."""
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
