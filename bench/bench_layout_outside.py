@@ -77,7 +77,7 @@ def run_case(k: int, rng: np.random.Generator, rows: int, root: Path) -> dict:
     cam, signed = camera_beside_a_wall(p, rng)
     ceiling = rng.uniform(0.85, 1.2)
     scene = root / f"case_{k:03d}"
-    scene.mkdir(parents=True)
+    scene.mkdir(parents=True, exist_ok=True)  # --keep DIR again: the runner reruns what the new inputs change
     np.save(scene / "depth.npy", polygon_layout_depth(p, cam, CAMERA_HEIGHT_M, ceiling, rows, 2 * rows))
     texture = np.random.default_rng(k).uniform(90, 170, (rows // 8, rows // 4, 3)).astype(np.float32)
     cv2.imwrite(str(scene / "panorama.png"), cv2.resize(texture, (2 * rows, rows)).astype(np.uint8))
