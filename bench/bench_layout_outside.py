@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 from real_home_scores import nearest_vertex_m  # bench/, beside this script
 
+from panoworld.geometry.polygons import ring_area
 from panoworld.io.jsonio import read_json
 from panoworld.tools.synth.annotation import polygon_layout_depth
 
@@ -53,10 +54,6 @@ def outline(kind: str, rng: np.random.Generator) -> np.ndarray:
         t = rng.uniform(0.0, np.pi / 2)
         p = p @ np.array([[np.cos(t), np.sin(t)], [-np.sin(t), np.cos(t)]])
     return p
-
-
-def polygon_area(p: np.ndarray) -> float:
-    return 0.5 * abs(float(np.dot(p[:, 0], np.roll(p[:, 1], -1)) - np.dot(p[:, 1], np.roll(p[:, 0], -1))))
 
 
 def camera_beside_a_wall(p: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, float]:
@@ -84,7 +81,7 @@ def run_case(k: int, rng: np.random.Generator, rows: int, root: Path) -> dict:
     t0 = time.time()
     r = subprocess.run([sys.executable, str(REPO / "runner.py"), "run", str(scene), "--until", "navmesh"],
                        capture_output=True, text=True)
-    row = {"case": k, "kind": kind, "room_m2": round(polygon_area(p), 2), "camera_from_outline_m": round(signed, 3),
+    row = {"case": k, "kind": kind, "room_m2": round(abs(ring_area(p)), 2), "camera_from_outline_m": round(signed, 3),
            "inside": signed < 0, "exit": r.returncode, "s": round(time.time() - t0, 1)}
     if r.returncode:
         return {**row, "error": (r.stderr.strip().splitlines() or [""])[-1]}
