@@ -297,11 +297,10 @@ def roll_registrations(home: Path, survey: dict, draws: int, seed: int = 0, size
                 cv2.imwrite(str(copy / "panoramas" / f"{alias[n]}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
                 np.save(copy / "depths" / f"{alias[n]}.npy", depth)
                 if n in survey["panos"]:
-                    v = survey["panos"][n]
-                    yaw = v["yaw_deg"] - 360.0 * k / depth.shape[1]
-                    turned["panos"][n] = dict(v, yaw_deg=-yaw, position_m_xy=[-v["position_m_xy"][0],
-                                                                             v["position_m_xy"][1]]) if mirror else \
-                        dict(v, yaw_deg=yaw)
+                    v = turned["panos"][n] = dict(survey["panos"][n])
+                    v["yaw_deg"] -= 360.0 * k / depth.shape[1]
+                    if mirror:
+                        v.update(yaw_deg=-v["yaw_deg"], position_m_xy=[-v["position_m_xy"][0], v["position_m_xy"][1]])
             proc = subprocess.run([sys.executable, str(Path(__file__).resolve().parents[1] / "runner.py"), "run",
                                    str(copy), "--until", "register"], capture_output=True, text=True)
             if proc.returncode:
