@@ -252,7 +252,6 @@ def fit_capture_colors(g: Gaussians, views: list[tuple[np.ndarray, np.ndarray]],
                  "operators_gb": held / 1e9, "rmse_before": rmse0, "rmse_after": rmse1, "rounds": rounds}
 
 
-
 def smooth_change(change: torch.Tensor, ops: list, cols: list[torch.Tensor], weight: torch.Tensor,
                   covers: list[torch.Tensor]) -> torch.Tensor:
     """The change (n, 3) of the fitted Gaussians' colours (or of one of their degree-1 terms) as the views hold it:
