@@ -71,26 +71,30 @@ def spawn_point(collider_canonical: Collider, nav: NavMesh) -> tuple[np.ndarray,
     return agent_spawns(collider_canonical, nav, np.zeros((1, 3)))[0]
 
 
-def agent_spawns(collider_canonical: Collider, nav: NavMesh, cameras: np.ndarray) -> list[tuple[np.ndarray, str, float]]:
+def agent_spawns(collider_canonical: Collider, nav: NavMesh, cameras: np.ndarray,
+                 below: list[tuple[np.ndarray, str]] | None = None) -> list[tuple[np.ndarray, str, float]]:
     """Where an agent of the NavMesh's radius stands for each camera centre (K, 3) (canonical frame): the floor below
-    the camera (floors_below) where the camera stands over the NavMesh, else the floor below the NavMesh's nearest
-    point within HOME_SNAP_M (a camera nearer a wall than the agent's radius: an agent below it would stand in the
-    wall); farther than that, the floor below the camera. Each as (point (3,), its floor's source, how far it lies from
-    the floor below the camera, m)."""
+    the camera (floors_below; below: those already at hand) where the camera stands over the NavMesh, else the floor
+    below the NavMesh's nearest point within HOME_SNAP_M (a camera nearer a wall than the agent's radius: an agent
+    below it would stand in the wall); farther than that, the floor below the camera. Each as (point (3,), its floor's
+    source, how far it lies from the floor below the camera, m)."""
     cameras = np.asarray(cameras, np.float64).reshape(-1, 3)
     xz = cameras[:, [0, 2]]
     near = nav.closest_point(xz) if len(nav.triangles) else xz
     moved = np.linalg.norm(near - xz, axis=1)
     onto = (moved > 0) & (moved <= HOME_SNAP_M)
-    at = cameras.copy()
-    at[onto, 0], at[onto, 2] = near[onto, 0], near[onto, 1]
-    return [(p, source, float(m) if o else 0.0)
-            for (p, source), m, o in zip(floors_below(collider_canonical, nav.floor_y, at), moved, onto)]
+    out = [(p, source, 0.0) for p, source in (below or floors_below(collider_canonical, nav.floor_y, cameras))]
+    if onto.any():
+        at = cameras[onto].copy()
+        at[:, 0], at[:, 2] = near[onto, 0], near[onto, 1]
+        for k, (p, source) in zip(np.flatnonzero(onto), floors_below(collider_canonical, nav.floor_y, at)):
+            out[k] = (p, source, float(moved[k]))
+    return out
 
 
 def floors_below(collider_canonical: Collider, floor_y: float, cameras: np.ndarray) -> list[tuple[np.ndarray, str]]:
-    """spawn_point for each camera centre (K, 3) (canonical frame): the collider straight below it, or the NavMesh
-    floor height (y = floor_y) where the collider is not within 1 m of it there."""
+    """The floor below each camera centre (K, 3) (canonical frame): the collider straight below it, or the NavMesh
+    floor height (y = floor_y) where the collider is not within 1 m of it there; with its source."""
     from panoworld.geometry.raycast import Raycaster
 
     cameras = np.asarray(cameras, np.float64).reshape(-1, 3)
@@ -117,9 +121,9 @@ def capture_spawns(col: Collider, nav: NavMesh, captures: dict[str, np.ndarray],
     def asset(p):
         return [round(float(x), 6) for x in transform_points(a_from_c, np.asarray(p)[None])[0]]
 
+    below = floors_below(col, nav.floor_y, cams)
     out = {}
-    for n, c, (floor, source), (spawn, _, moved) in zip(names, cams, floors_below(col, nav.floor_y, cams),
-                                                        agent_spawns(col, nav, cams)):
+    for n, c, (floor, source), (spawn, _, moved) in zip(names, cams, below, agent_spawns(col, nav, cams, below)):
         fwd = a_from_c[:3, :3] @ np.asarray(captures[n], np.float64)[:3, 2]
         out[n] = {"floor": asset(floor), "spawn": asset(spawn), "spawn_from_floor_m": round(moved, 4),
                   "camera": asset(c), "yaw_deg": round(float(np.degrees(np.arctan2(fwd[1], fwd[0]))), 4),
