@@ -5,9 +5,10 @@
 Without --scene: the demo scene (`runner.py demo` into --work) and the Realsee3D real LiDAR pair under --real (the
 panorama + depth_image.png copied into a scene directory under --work). Each scene runs the pipeline up to `asset`
 (cached stages are reused), then the asset stage alone again, timed (wall and CPU of the stage process). Prints per
-scene: particles, collider triangles, file sizes (MB), export wall/CPU seconds (target <= 15 s at the default preset),
-usd-core validation errors, and the PyBullet checks: capsule drop at the spawn (rest height, speed), walk along the
-plan (least clearance of the swept capsule), push into the nearest wall (stop gap).
+scene: particles, collider triangles and how far they stray from the mesh (asset.collider.surface_error, beside the
+mesh's own), file sizes (MB), export wall/CPU seconds (target <= 15 s at the default preset), usd-core validation
+errors, and the PyBullet checks: capsule drop at the spawn (rest height, speed), walk along the plan (least clearance
+of the swept capsule), push into the nearest wall (stop gap, deepest penetration on the way).
 """
 
 from __future__ import annotations
@@ -93,7 +94,7 @@ def measure(name: str, scene: Path, preset: str | None, as_is: bool = False) -> 
         "scene": name, "particles": info["particles"], "sh_degree": info["sh_degree"],
         "collider_triangles": info["collider_triangles"], "mesh_faces_valid": info["collider"]["faces_valid"],
         "sizes_mb": info["sizes_mb"], "export_wall_s": wall_s, "export_cpu_s": cpu, "stage_export_s": info["export_s"],
-        "timings_s": info["timings_s"], "compliance_errors": len(problems), "spawn_source": info["spawn_source"],
+        "collider": info["collider"], "timings_s": info["timings_s"], "compliance_errors": len(problems), "spawn_source": info["spawn_source"],
         "drop": drop, "drop_ok": drop["speed_m_s"] < 0.01 and abs(drop["rest_height_m"]) < 0.02,
         "walk": walks, "walk_ok": all(w["min_clearance_m"] > 0 for w in walks),
         "wall": wall, "wall_ok": "gap_m" in wall and wall_ok(wall),
@@ -108,8 +109,12 @@ def print_rows(rows: list[dict]) -> None:
         d, w = r["drop"], r["wall"]
         walk = min(x["min_clearance_m"] for x in r["walk"])
         wall = (f"stopped {w['gap_m'] * 100:+.1f} cm before the centre-line wall, contact "
-                f"{w['obstacle_contact_m'] * 100:.1f} cm" if "gap_m" in w else w.get("error", "?"))
-        cells = [r["scene"], f"{r['particles']:,}", f"{r['collider_triangles']:,} (of {r['mesh_faces_valid']:,})",
+                f"{w['obstacle_contact_m'] * 100:.1f} cm, deepest {w['deepest_m'] * 100:.1f} cm" if "gap_m" in w
+                else w.get("error", "?"))
+        c = r["collider"]
+        err = (f"; off the mesh {c['error_m'][-1] * 100:.1f} cm, its own {c['own_error_m'] * 100:.1f}"
+               if c.get("error_m") else "")
+        cells = [r["scene"], f"{r['particles']:,}", f"{r['collider_triangles']:,} (of {r['mesh_faces_valid']:,}{err})",
                  f"{r['sizes_mb']['scene.usdc']:.1f}", f"{r['sizes_mb']['collider.obj']:.1f}",
                  f"{r['export_wall_s']:.1f}", f"{r['export_cpu_s']:.1f}", str(r["compliance_errors"]),
                  f"{'pass' if r['drop_ok'] else 'FAIL'} (rest {d['rest_height_m'] * 100:+.1f} cm)",

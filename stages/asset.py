@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from panoworld.core.errors import ArtifactError
+from panoworld.core.params import param
 from panoworld.framework.stage import Input, StageInputError
 from panoworld.framework.stage_cli import stage_main
 
@@ -25,13 +26,17 @@ INPUTS = {
 
 @dataclass(kw_only=True)
 class Params:
-    collider_max_triangles: int = 100_000
+    collider_max_triangles: int = param(100_000, ge=0)
     """Triangle budget of the collision mesh (quadric decimation of the mesh's valid faces; 0 = keep all; the NavMesh's
-    floor triangles, added so that the assumed-walkable blind spot under the rig is solid, come on top). 100k
-    triangles keep a 720x1440 ERP mesh's walls and furniture within about a centimetre and load in PhysX / Bullet /
-    MuJoCo in well under a second; a mesh of millions of faces (a home's fused mesh, a 1024-row real capture) decimated
-    to 100k cuts corners through its rooms: give a home about 100k per panorama, a real capture 0 (README, Using the
-    scene in a simulator)."""
+    floor triangles, added so that the assumed-walkable blind spot under the rig is solid, come on top). The budget
+    grows while the decimated surface strays farther than collider_max_error_m: 100k suits one synthetic panorama of
+    up to 1024 rows; a real capture's noisier mesh, or a home's fused one, keeps more (README, Using the scene in a
+    simulator)."""
+    collider_max_error_m: float = param(0.05, ge=0)
+    """Where the decimated collider lies farther than this (m) from the mesh's vertices, beyond the mesh's own vertex
+    spacing (99th percentiles over the surfaces, asset.collider.surface_error), the budget doubles and the mesh is
+    decimated again, up to keeping every face: decimation that stalls short of its budget collapses whole corners of
+    a room into the free space agents walk. 0 = the budget alone."""
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
@@ -47,8 +52,6 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     from panoworld.io.home import capture_poses
     from panoworld.io.splat_ply import read_gaussians_ply
 
-    if params.collider_max_triangles < 0:
-        raise StageInputError(f"--collider-max-triangles {params.collider_max_triangles}: must be >= 0 (0 = keep all)")
     t_read = time.perf_counter()
     mesh_path = Path(inputs["mesh"]) / "mesh.ply"
     try:
@@ -66,7 +69,8 @@ def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:
     captures = capture_poses(inputs.get("register"))  # InputError naming panoramas.json when unreadable
     t0 = time.perf_counter()
     info = build_asset(out_dir, mesh=mesh, nav=nav, trajectory_dir=Path(inputs["trajectory"]), gaussians=gaussians,
-                       max_triangles=params.collider_max_triangles, captures=captures)
+                       max_triangles=params.collider_max_triangles, max_error_m=params.collider_max_error_m,
+                       captures=captures)
     info["read_s"] = t0 - t_read
     if info["compliance_errors"]:
         raise ArtifactError(f"{out_dir}/scene.usdc fails usd-core validation: {'; '.join(info['compliance_errors'])}")

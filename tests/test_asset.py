@@ -179,6 +179,95 @@ def test_asset_frame_and_spawn_match_ground_truth(asset, pipeline_scene):  # noq
     assert np.percentile(dist, 95) < 0.03 and np.median(dist) < 0.01, np.percentile(dist, [50, 95, 100])
 
 
+def _box_room_erp_mesh(lo: np.ndarray, hi: np.ndarray, rows: int = 128):
+    """The ERP mesh of an empty box room [lo, hi] (canonical frame, camera at the origin), exact ray distances."""
+    from panoworld.core.conventions import erp_dirs
+    from panoworld.geometry.erp_mesh import erp_mesh_from_depth
+
+    d = erp_dirs(rows, 2 * rows).astype(np.float64)
+    with np.errstate(divide="ignore"):
+        depth = np.where(d > 0, hi / d, lo / d).min(-1).astype(np.float32)
+    return erp_mesh_from_depth(depth, np.zeros((rows, 2 * rows, 3), np.uint8))
+
+
+def _off_box(col, lo: np.ndarray, hi: np.ndarray) -> float:
+    """99th percentile of the distance from points spread over the collider to the box's walls (its ground truth)."""
+    import trimesh
+
+    pts, _ = trimesh.sample.sample_surface(trimesh.Trimesh(col.vertices, col.faces, process=False), 20000, seed=0)
+    inside = np.minimum(pts - lo, hi - pts).min(axis=1)
+    outside = np.linalg.norm(np.maximum(np.maximum(lo - pts, pts - hi), 0.0), axis=1)
+    return float(np.percentile(np.where(inside > 0, inside, outside), 99))
+
+
+def test_collider_decimation_stays_on_the_walls_it_decimates():
+    # Quadric decimation asked for fewer faces than it can reach stalls, then collapses edges whatever their error:
+    # triangles metres long cut the room's corners (a real home's fused mesh does it at 100k faces). The error bound
+    # doubles the budget until the collider lies on the walls again; a budget the mesh meets is left as it was.
+    from panoworld.asset.collider import collision_mesh
+
+    lo, hi = np.array([-2.0, -1.1, -1.5]), np.array([2.5, 1.5, 2.0])
+    mesh = _box_room_erp_mesh(lo, hi)
+    cut = collision_mesh(mesh, 1000)
+    assert _off_box(cut, lo, hi) > 0.3, cut.info
+    kept = collision_mesh(mesh, 1000, max_error_m=0.02)
+    info = kept.info
+    assert _off_box(kept, lo, hi) < 0.03, info
+    assert info["budgets"][:2] == [1000, 2000] and info["error_m"][-1] <= info["own_error_m"] + 0.02, info
+    assert info["decimated"] and len(kept.faces) <= len(mesh.faces) / 4, info
+    met = collision_mesh(mesh, info["budgets"][-1], max_error_m=0.02)
+    plain = collision_mesh(mesh, info["budgets"][-1])
+    assert met.info["budgets"] == info["budgets"][-1:]
+    assert np.array_equal(met.vertices, plain.vertices) and np.array_equal(met.faces, plain.faces)
+
+
+def _grid(p0, u, v, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """A parallelogram p0 + s u + t v (s, t in [0, 1]) as an n x n grid of triangle pairs."""
+    s = np.linspace(0.0, 1.0, n + 1)
+    a, b = np.meshgrid(s, s)
+    verts = np.asarray(p0, np.float64) + a.ravel()[:, None] * np.asarray(u) + b.ravel()[:, None] * np.asarray(v)
+    i = np.arange(n * (n + 1)).reshape(n, n + 1)[:, :n].ravel()
+    return verts, np.concatenate([np.stack([i, i + 1, i + n + 2], 1), np.stack([i, i + n + 2, i + n + 1], 1)])
+
+
+def test_pushed_capsule_stops_at_a_steep_slope_a_forced_velocity_climbs(tmp_path):
+    # A real capture's furniture seen from one side is a sheet leaning away from the camera: a capsule whose velocity
+    # is forced every step climbs it and passes over (as it passed through a real sofa); the 300 N push stops at it.
+    from panoworld.asset.collider import write_obj
+    from panoworld.asset.physics import HZ, Agent, BulletScene, drop_test
+
+    fv, ff = _grid([-3.0, -3.0, 0.0], [6.0, 0.0, 0.0], [0.0, 6.0, 0.0], 20)
+    sv, sf = _grid([1.0, -0.5, 0.0], [0.0, 1.0, 0.0], [0.6 / np.tan(np.radians(80)), 0.0, 0.6], 20)
+    write_obj(tmp_path / "slope.obj", np.concatenate([fv, sv]), np.concatenate([ff, sf + len(fv)]), "floor + slope")
+    reached = {}
+    for name in ("forced", "push"):
+        with BulletScene(tmp_path / "slope.obj", Agent(radius=0.25, height=1.8)) as sim:
+            drop_test(sim, np.zeros(3), drop_m=0.05, seconds=0.5)
+            for _ in range(int(6 * HZ)):
+                sim.step(np.array([0.5, 0.0])) if name == "forced" else sim.push(np.array([0.5, 0.0]))
+            reached[name] = sim.feet()[0]
+    assert reached["forced"] > 2.0 and abs(reached["push"] - 0.75) < 0.06, reached
+
+
+def test_clearance_over_a_dense_mesh_is_the_distance(tmp_path):
+    # 80k triangles within a metre of the capsule: one PyBullet query that far returns zero-filled points (or crashes)
+    from panoworld.asset.collider import write_obj
+    from panoworld.asset.physics import Agent, BulletScene
+
+    write_obj(tmp_path / "floor.obj", *_grid([-1.0, -1.0, 0.0], [2.0, 0.0, 0.0], [0.0, 2.0, 0.0], 200), "dense floor")
+    write_obj(tmp_path / "speck.obj", *_grid([-0.01, -0.01, 0.0], [0.02, 0.0, 0.0], [0.0, 0.02, 0.0], 200), "speck")
+    with BulletScene(tmp_path / "floor.obj", Agent(radius=0.25, height=1.8)) as sim:
+        for h in (0.1, 0.5, 0.0005):
+            sim.place(np.array([0.0, 0.0, h]))
+            assert abs(sim.clearance() - h) < 1e-3, h
+        sim.place(np.array([0.0, 0.0, 1.5]))
+        assert sim.clearance() == 1.0
+    with BulletScene(tmp_path / "speck.obj", Agent(radius=0.25, height=1.8)) as sim:
+        sim.place(np.zeros(3))
+        with pytest.raises(ValueError, match="within a millimetre of the capsule: decimate the collider"):
+            sim.clearance()
+
+
 def test_capsule_dropped_at_spawn_rests_on_the_floor(asset):
     from panoworld.asset.physics import drop_test
 

@@ -132,15 +132,16 @@ def capture_spawns(col: Collider, nav: NavMesh, captures: dict[str, np.ndarray],
 
 
 def build_asset(out_dir: Path, *, mesh: ErpMesh, nav: NavMesh, trajectory_dir: Path, gaussians: Gaussians,
-                max_triangles: int, captures: dict[str, np.ndarray] | None = None) -> dict:
-    """Write scene.usdc, collider.obj and asset.json into out_dir; returns the manifest facts. captures: a home's
-    capture points {NAME: world_from_cam (4, 4) canonical}, each given a spawn on the floor below it (two or more)."""
+                max_triangles: int, max_error_m: float = 0.0, captures: dict[str, np.ndarray] | None = None) -> dict:
+    """Write scene.usdc, collider.obj and asset.json into out_dir; returns the manifest facts. The collider:
+    collision_mesh(mesh, max_triangles, max_error_m) and the NavMesh's floor. captures: a home's capture points
+    {NAME: world_from_cam (4, 4) canonical}, each given a spawn on the floor below it (two or more)."""
     from panoworld.asset.usd import UP_AXIS, SceneParts, compliance_errors, write_scene_usd
 
     out_dir = Path(out_dir)
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
-    col = with_walkable_floor(collision_mesh(mesh, max_triangles), nav)
+    col = with_walkable_floor(collision_mesh(mesh, max_triangles, max_error_m), nav)
     timings["collider"] = time.perf_counter() - t0
     t = time.perf_counter()
     spawn_c, spawn_source, spawn_moved = spawn_point(col, nav)

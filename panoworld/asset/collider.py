@@ -11,6 +11,8 @@ from panoworld.geometry.erp_mesh import ErpMesh, compact_faces
 
 MAX_PASSES = 3
 """Decimation passes at most (each stops when no edge collapse keeps the quadric error low enough)."""
+SURFACE_SAMPLES = 200_000
+"""Points surface_error spreads over a decimated collider."""
 MORE_PASSES_ABOVE = 1.5
 """Another pass runs only while more than this many times the budget remains: a pass that ends near the budget has
 stalled on the borders it keeps, and the next one removes little for much time (on a real capture's mesh of millions
@@ -48,34 +50,84 @@ def _drop_degenerate(vertices: np.ndarray, faces: np.ndarray, min_area_m2: float
     return faces[distinct & (area2 > 2 * min_area_m2)]
 
 
-def collision_mesh(mesh: ErpMesh, max_triangles: int) -> Collider:
+def collision_mesh(mesh: ErpMesh, max_triangles: int, max_error_m: float = 0.0) -> Collider:
     """Valid faces only (the stretched faces across depth edges are no real surface), unreferenced vertices and
     degenerate faces removed, then decimated with fast-simplification's quadric edge collapse to at most
     `max_triangles` (open borders kept in place, so holes at depth edges do not grow). The budget is a target: a
-    mesh with many borders may keep more faces (info["faces_out"])."""
+    mesh with many borders may keep more faces (info["faces_out"]). max_error_m > 0: while the decimated surface lies
+    farther from the mesh's vertices (surface_error, its 99th percentile) than the mesh's own surface does (its vertex
+    spacing, info["own_error_m"]) by more than max_error_m, the budget doubles and the mesh is decimated again from
+    the start, up to keeping every face (info["budgets"]: each budget tried, info["error_m"]: each one's error)."""
     import time
 
-    import fast_simplification
-
-    v, f = _compact(mesh.vertices, mesh.faces[mesh.face_valid])
-    f = _drop_degenerate(v, f)
-    v, f = _compact(v, f)
+    v0, f0 = _compact(mesh.vertices, mesh.faces[mesh.face_valid])
+    f0 = _drop_degenerate(v0, f0)
+    v0, f0 = _compact(v0, f0)
     info = {"faces_in": int(len(mesh.faces)), "faces_valid": int(mesh.face_valid.sum()), "decimated": False}
     t0 = time.perf_counter()
-    if max_triangles > 0 and len(f) > max_triangles:
-        for _ in range(MAX_PASSES):  # one pass stalls short of large reductions; a second one gets most of the rest
-            n = len(f)
-            v, f = fast_simplification.simplify(v, f.astype(np.int32), target_count=int(max_triangles),
-                                                preserve_border=True)
-            f = _drop_degenerate(np.asarray(v, np.float64), np.asarray(f, np.int64))
-            v, f = _compact(v, f)
-            info["passes"] = info.get("passes", 0) + 1
-            if len(f) <= MORE_PASSES_ABOVE * max_triangles or len(f) > 0.95 * n:
-                break
-        info["decimated"] = True
+    v, f, budget, tree = v0, f0, int(max_triangles), None
+    while max_triangles > 0 and len(f0) > budget:
+        v, f, passes = _decimate(v0, f0, budget, 1 if max_error_m > 0 else MAX_PASSES)
+        info.update(decimated=True, passes=passes)
+        if max_error_m <= 0:
+            break
+        if tree is None:
+            from scipy.spatial import cKDTree
+
+            tree, normals = cKDTree(v0), vertex_normals(v0, f0)
+            info["own_error_m"] = round(surface_error(v0, f0, tree, normals), 4)  # its noise and curvature
+        err = surface_error(v, f, tree, normals)
+        info.setdefault("budgets", []).append(budget)
+        info.setdefault("error_m", []).append(round(err, 4))
+        if err <= info["own_error_m"] + max_error_m:
+            break
+        budget *= 2
+        if len(f0) <= budget:  # the whole mesh is within its own error
+            v, f = v0, f0
+            info.update(decimated=False, passes=0)
     info["simplify_s"] = time.perf_counter() - t0
     info["faces_out"] = int(len(f))
     return Collider(np.asarray(v, np.float64), np.asarray(f, np.int64), info)
+
+
+def _decimate(v: np.ndarray, f: np.ndarray, budget: int, max_passes: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """(vertices, faces, passes) of the quadric edge collapse of (v, f) towards `budget` faces (collision_mesh)."""
+    import fast_simplification
+
+    passes = 0
+    for _ in range(max_passes):  # one pass stalls short of large reductions; a second one gets most of the rest
+        n = len(f)
+        v, f = fast_simplification.simplify(v, f.astype(np.int32), target_count=int(budget), preserve_border=True)
+        f = _drop_degenerate(np.asarray(v, np.float64), np.asarray(f, np.int64))
+        v, f = _compact(v, f)
+        passes += 1
+        if len(f) <= MORE_PASSES_ABOVE * budget or len(f) > 0.95 * n:
+            break
+    return v, f, passes
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V, 3) unit normals, the area-weighted sum of the normals of the faces around each vertex (zero where none)."""
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    fn = np.cross(b - a, c - a)
+    n = np.stack([sum(np.bincount(faces[:, k], fn[:, j], len(vertices)) for k in range(3)) for j in range(3)], 1)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+
+
+def surface_error(vertices: np.ndarray, faces: np.ndarray, tree, normals: np.ndarray,
+                  samples: int = SURFACE_SAMPLES) -> float:
+    """How far (m) a decimated surface (vertices (V, 3), faces (F, 3)) strays from the mesh it was decimated from:
+    the 99th percentile, over points spread over it by area (a fixed seed), of the distance along the normal to the
+    plane of the original's nearest vertex (tree: scipy cKDTree of those vertices, normals: theirs, vertex_normals)."""
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    rng = np.random.default_rng(0)
+    pick = rng.choice(len(faces), size=samples, p=area / area.sum())
+    r1, r2 = np.sqrt(rng.random(samples)), rng.random(samples)
+    pts = (1 - r1)[:, None] * a[pick] + (r1 * (1 - r2))[:, None] * b[pick] + (r1 * r2)[:, None] * c[pick]
+    _, k = tree.query(pts, workers=2)
+    off = np.abs(np.einsum("ij,ij->i", pts - tree.data[k], normals[k]))
+    return float(np.percentile(off, 99))
 
 
 def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray, header: str) -> None:

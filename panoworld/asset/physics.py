@@ -10,6 +10,10 @@ import numpy as np
 
 HZ = 240.0
 """Simulation steps per second."""
+PUSH_FORCE_N = 300.0
+"""The most horizontal force BulletScene.push drives the capsule with (half its weight at 60 kg)."""
+MAX_CLOSEST_POINTS = 30_000
+"""Most closest points BulletScene.clearance trusts from one PyBullet query."""
 
 
 @dataclass
@@ -28,7 +32,7 @@ class BulletScene:
     def __init__(self, collider_obj: Path, agent: Agent, mass_kg: float = 60.0):
         import pybullet as pb
 
-        self.pb, self.agent = pb, agent
+        self.pb, self.agent, self.mass = pb, agent, mass_kg
         self.cid = pb.connect(pb.DIRECT)
         pb.setGravity(0, 0, -9.81, physicsClientId=self.cid)
         pb.setTimeStep(1.0 / HZ, physicsClientId=self.cid)
@@ -78,10 +82,44 @@ class BulletScene:
         self.place(feet, v)
         self.pb.stepSimulation(physicsClientId=self.cid)
 
+    def push(self, horizontal: np.ndarray, max_force_n: float = PUSH_FORCE_N) -> None:
+        """One step driven towards this horizontal velocity by a force of at most max_force_n, upright: a motor, which
+        an obstacle stops (a velocity forced every step instead pushes it through a real mesh's thin furniture)."""
+        v = self.velocity()
+        force = self.mass * HZ * (np.asarray(horizontal, np.float64) - v[:2])
+        force *= min(1.0, max_force_n / max(float(np.linalg.norm(force)), 1e-12))
+        feet = self.feet()
+        self.place(feet, v)
+        self.pb.applyExternalForce(self.body, -1, [float(force[0]), float(force[1]), 0.0],
+                                   (feet + [0, 0, self.agent.height / 2]).tolist(), self.pb.WORLD_FRAME,
+                                   physicsClientId=self.cid)
+        self.pb.stepSimulation(physicsClientId=self.cid)
+
     def clearance(self, max_m: float = 1.0) -> float:
-        """Signed distance from the capsule to the collider (< 0: penetration), capped at max_m."""
-        pts = self.pb.getClosestPoints(self.body, self.static, max_m, physicsClientId=self.cid)
-        return min((p[8] for p in pts), default=max_m)
+        """Signed distance from the capsule to the collider (< 0: penetration), capped at max_m, to a millimetre.
+        PyBullet returns zero-filled points, or crashes, when more than some tens of thousands of triangles lie within
+        the distance asked (a dense real mesh near its nadir): the distance asked starts at 1 mm, doubles while
+        nothing answers and is bisected while too many do."""
+        empty, full, r = None, None, min(0.001, max_m)
+        while True:
+            pts = self.pb.getClosestPoints(self.body, self.static, r, physicsClientId=self.cid)
+            if len(pts) > MAX_CLOSEST_POINTS:
+                full = r
+            elif pts:
+                return min(p[8] for p in pts)
+            elif r >= max_m:
+                return max_m
+            else:
+                empty = r
+            if full is None:
+                r = min(2 * r, max_m)
+            elif full - (empty or 0.0) < 1e-3:
+                if empty is None:
+                    raise ValueError(f"more than {MAX_CLOSEST_POINTS} collider triangles within a millimetre of the "
+                                     "capsule: decimate the collider")
+                return empty
+            else:
+                r = 0.5 * (full + (empty or 0.0))
 
     def cast(self, origins: np.ndarray, ends: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Ray fractions (1 = no hit) and hit normals against the collider, PyBullet's own ray test."""
@@ -130,6 +168,7 @@ def nearest_wall(scene: BulletScene, spawn: np.ndarray, directions: int = 36, re
     (feet to head); None when no direction is blocked at every height within reach_m (no wall around)."""
     a = scene.agent
     heights = np.linspace(0.05, a.height - 0.05, 8)
+    scene.place(np.array([0.0, 0.0, 1e4]))  # out of the rays' way: a ray from inside the capsule stops at it
     best = None
     for k in range(directions):
         ang = 2 * np.pi * k / directions
@@ -144,9 +183,9 @@ def nearest_wall(scene: BulletScene, spawn: np.ndarray, directions: int = 36, re
 
 
 def wall_test(scene: BulletScene, spawn: np.ndarray, speed_m_s: float = 0.5, extra_s: float = 2.0) -> dict:
-    """Rest the capsule at the spawn, then drive it horizontally at speed_m_s towards the nearest wall for longer
-    than it needs to get there: it must stop at the wall (or at an obstacle beside the way there), not pass through
-    it (see wall_ok)."""
+    """Rest the capsule at the spawn, then push it (BulletScene.push) horizontally at speed_m_s towards the nearest
+    wall for longer than it needs to get there: it must stop at the wall (or at an obstacle beside the way there), not
+    pass through it; deepest_m: its least clearance on the way, every 20th of a second (see wall_ok)."""
     spawn = np.asarray(spawn, np.float64)
     wall = nearest_wall(scene, spawn)
     if wall is None:
@@ -155,8 +194,11 @@ def wall_test(scene: BulletScene, spawn: np.ndarray, speed_m_s: float = 0.5, ext
     drop_test(scene, spawn, drop_m=0.05, seconds=0.5)
     start = scene.feet()
     steps = int(((dist + 1.0) / speed_m_s + extra_s) * HZ)
-    for _ in range(steps):
-        scene.step(speed_m_s * d[:2])
+    deepest = np.inf
+    for i in range(steps):
+        scene.push(speed_m_s * d[:2])
+        if i % int(HZ / 20) == 0:
+            deepest = min(deepest, scene.clearance())
     end = scene.feet()
     travel = float(np.dot(end - start, d))
     stop_at = dist - scene.agent.radius
@@ -164,10 +206,12 @@ def wall_test(scene: BulletScene, spawn: np.ndarray, speed_m_s: float = 0.5, ext
     contact = scene.clearance()
     return {"wall_distance_m": dist, "expected_travel_m": stop_at, "travel_m": travel,
             "gap_m": stop_at - travel, "fell_m": float(start[2] - end[2]), "obstacle_contact_m": contact,
-            "direction": d.tolist()}
+            "deepest_m": float(deepest), "direction": d.tolist()}
 
 
 def wall_ok(r: dict, tol_m: float = 0.05) -> bool:
     """Stopped by an obstacle (in contact with something other than the floor), never beyond the wall the centre line
-    meets (an obstacle beside that line may stop the capsule's body earlier), not sunk into the floor."""
-    return r["obstacle_contact_m"] < 0.02 and r["gap_m"] > -tol_m and r["fell_m"] < tol_m
+    meets (an obstacle beside that line may stop the capsule's body earlier), never deeper than tol_m into anything on
+    the way, not sunk into the floor."""
+    return (r["obstacle_contact_m"] < 0.02 and r["gap_m"] > -tol_m and r["deepest_m"] > -tol_m
+            and r["fell_m"] < tol_m)
