@@ -213,7 +213,9 @@ def test_collider_decimation_stays_on_the_walls_it_decimates():
     kept = collision_mesh(mesh, 1000, max_error_m=0.02)
     info = kept.info
     assert _off_box(kept, lo, hi) < 0.03, info
-    assert info["budgets"][:2] == [1000, 2000] and info["error_m"][-1] <= info["own_error_m"] + 0.02, info
+    stalled = info["faces"][0]  # the first decimation could not reach 1000 faces: the next starts a quarter above
+    assert stalled > 2000 and info["budgets"][:2] == [1000, int(1.25 * stalled)], info
+    assert info["error_m"][-1] <= info["own_error_m"] + 0.02, info
     assert info["decimated"] and len(kept.faces) <= len(mesh.faces) / 4, info
     met = collision_mesh(mesh, info["budgets"][-1], max_error_m=0.02)
     plain = collision_mesh(mesh, info["budgets"][-1])

@@ -321,8 +321,8 @@ def test_eval_takes_the_home_frame_when_the_first_panorama_is_not_registered(hom
 def test_home_asset_spawns_at_every_capture_point_in_usd_and_physics(home_run):
     from pxr import Usd, UsdGeom
 
-    from panoworld.asset import read_asset_doc
-    from panoworld.asset.physics import Agent, BulletScene, drop_test
+    from panoworld.asset import read_asset_doc, trajectory_paths
+    from panoworld.asset.physics import Agent, BulletScene, drop_test, walk_test
     from panoworld.core.conventions import transform_points
 
     scene, _ = home_run
@@ -350,3 +350,7 @@ def test_home_asset_spawns_at_every_capture_point_in_usd_and_physics(home_run):
             np.testing.assert_allclose(np.array(xf.ExtractTranslation()), cp["spawn"], atol=1e-5)
             r = drop_test(sim, np.array(cp["spawn"]), drop_m=0.5)  # the agent stands there
             assert r["speed_m_s"] < 0.01 and abs(r["rest_height_m"]) < 0.02 and r["drift_m"] < 0.02, (n, r)
+        paths, _ = trajectory_paths(arts / "trajectory")
+        for path in paths:  # and walks every planned path through the rooms without touching the decimated collider
+            r = walk_test(sim, transform_points(a_from_c, path[:, :3, 3])[:, :2], floor_z=0.0)
+            assert r["min_clearance_m"] > 0.0, r

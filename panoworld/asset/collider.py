@@ -11,6 +11,9 @@ from panoworld.geometry.erp_mesh import ErpMesh, compact_faces
 
 MAX_PASSES = 3
 """Decimation passes at most (each stops when no edge collapse keeps the quadric error low enough)."""
+STALL_MARGIN = 1.25
+"""A decimation that strayed while it stalled above its budget (at F faces) tries again with at least this times F:
+it could not get below F without collapsing whole corners, and a budget just above F it reaches with small errors."""
 SURFACE_SAMPLES = 200_000
 """Points surface_error spreads over a decimated collider."""
 MORE_PASSES_ABOVE = 1.5
@@ -54,10 +57,11 @@ def collision_mesh(mesh: ErpMesh, max_triangles: int, max_error_m: float = 0.0) 
     """Valid faces only (the stretched faces across depth edges are no real surface), unreferenced vertices and
     degenerate faces removed, then decimated with fast-simplification's quadric edge collapse to at most
     `max_triangles` (open borders kept in place, so holes at depth edges do not grow). The budget is a target: a
-    mesh with many borders may keep more faces (info["faces_out"]). max_error_m > 0: while the decimated surface lies
-    farther from the mesh's vertices (surface_error, its 99th percentile) than the mesh's own surface does (its vertex
-    spacing, info["own_error_m"]) by more than max_error_m, the budget doubles and the mesh is decimated again from
-    the start, up to keeping every face (info["budgets"]: each budget tried, info["error_m"]: each one's error)."""
+    mesh with many borders may keep more faces (info["faces_out"]). max_error_m > 0: while the decimated surface strays
+    from the mesh (surface_error) by more than the mesh's own surface does (its noise and curvature,
+    info["own_error_m"]) plus max_error_m, the mesh is decimated again from the start with twice the budget (or
+    STALL_MARGIN times the faces a stalled decimation kept, if more), up to keeping every face (info["budgets"],
+    info["faces"], info["error_m"]: each budget tried, the faces it kept, their error)."""
     import time
 
     v0, f0 = _compact(mesh.vertices, mesh.faces[mesh.face_valid])
@@ -79,9 +83,10 @@ def collision_mesh(mesh: ErpMesh, max_triangles: int, max_error_m: float = 0.0) 
         err = surface_error(v, f, tree, normals)
         info.setdefault("budgets", []).append(budget)
         info.setdefault("error_m", []).append(round(err, 4))
+        info.setdefault("faces", []).append(int(len(f)))
         if err <= info["own_error_m"] + max_error_m:
             break
-        budget *= 2
+        budget = max(2 * budget, int(STALL_MARGIN * len(f)))
         if len(f0) <= budget:  # the whole mesh is within its own error
             v, f = v0, f0
             info.update(decimated=False, passes=0)
