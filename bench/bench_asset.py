@@ -7,8 +7,9 @@ panorama + depth_image.png copied into a scene directory under --work). Each sce
 (cached stages are reused), then the asset stage alone again, timed (wall and CPU of the stage process). Prints per
 scene: particles, collider triangles and how far they stray from the mesh (asset.collider.surface_error, beside the
 mesh's own), file sizes (MB), export wall/CPU seconds (target <= 15 s at the default preset), usd-core validation
-errors, and the PyBullet checks: capsule drop at the spawn (rest height, speed), walk along the plan (least clearance
-of the swept capsule), push into the nearest wall (stop gap, deepest penetration on the way).
+errors, and the PyBullet checks: capsule drop at the spawn (rest height, speed; a home's at every capture point too),
+walk along the plan (least clearance of the swept capsule), push into the nearest wall (stop gap, deepest penetration
+on the way).
 """
 
 from __future__ import annotations
@@ -84,6 +85,7 @@ def measure(name: str, scene: Path, preset: str | None, as_is: bool = False) -> 
     paths, _ = trajectory_paths(scene / "artifacts" / "trajectory")
     with BulletScene(a / "collider.obj", agent) as sim:
         drop = drop_test(sim, spawn, drop_m=0.5)
+        points = {n: drop_test(sim, np.array(cp["spawn"]), drop_m=0.5) for n, cp in doc.get("capture_points", {}).items()}
         walks = [walk_test(sim, transform_points(np.array(doc["asset_from_canonical"]), p[:, :3, 3])[:, :2], 0.0)
                  for p in paths]
         try:
@@ -95,10 +97,15 @@ def measure(name: str, scene: Path, preset: str | None, as_is: bool = False) -> 
         "collider_triangles": info["collider_triangles"], "mesh_faces_valid": info["collider"]["faces_valid"],
         "sizes_mb": info["sizes_mb"], "export_wall_s": wall_s, "export_cpu_s": cpu, "stage_export_s": info["export_s"],
         "collider": info["collider"], "timings_s": info["timings_s"], "compliance_errors": len(problems), "spawn_source": info["spawn_source"],
-        "drop": drop, "drop_ok": drop["speed_m_s"] < 0.01 and abs(drop["rest_height_m"]) < 0.02,
+        "drop": drop, "drop_ok": _rests(drop), "capture_drops": points,
+        "capture_drops_ok": sum(_rests(d) for d in points.values()),
         "walk": walks, "walk_ok": all(w["min_clearance_m"] > 0 for w in walks),
         "wall": wall, "wall_ok": "gap_m" in wall and wall_ok(wall),
     }
+
+
+def _rests(drop: dict) -> bool:
+    return drop["speed_m_s"] < 0.01 and abs(drop["rest_height_m"]) < 0.02
 
 
 def print_rows(rows: list[dict]) -> None:
@@ -117,7 +124,9 @@ def print_rows(rows: list[dict]) -> None:
         cells = [r["scene"], f"{r['particles']:,}", f"{r['collider_triangles']:,} (of {r['mesh_faces_valid']:,}{err})",
                  f"{r['sizes_mb']['scene.usdc']:.1f}", f"{r['sizes_mb']['collider.obj']:.1f}",
                  f"{r['export_wall_s']:.1f}", f"{r['export_cpu_s']:.1f}", str(r["compliance_errors"]),
-                 f"{'pass' if r['drop_ok'] else 'FAIL'} (rest {d['rest_height_m'] * 100:+.1f} cm)",
+                 f"{'pass' if r['drop_ok'] else 'FAIL'} (rest {d['rest_height_m'] * 100:+.1f} cm"
+                 + (f"; rests at {r['capture_drops_ok']} of {len(r['capture_drops'])} capture points"
+                    if r["capture_drops"] else "") + ")",
                  f"{'pass' if r['walk_ok'] else 'FAIL'} (min clearance {walk * 100:.1f} cm)",
                  f"{'pass' if r['wall_ok'] else 'FAIL'} ({wall})"]
         print("| " + " | ".join(cells) + " |")

@@ -14,7 +14,7 @@ MAX_PASSES = 3
 STALL_MARGIN = 1.25
 """A decimation that strayed while it stalled above its budget (at F faces) tries again with at least this times F:
 it could not get below F without collapsing whole corners, and a budget just above F it reaches with small errors."""
-SURFACE_SAMPLES = 200_000
+SURFACE_SAMPLES = 50_000
 """Points surface_error spreads over a decimated collider."""
 MORE_PASSES_ABOVE = 1.5
 """Another pass runs only while more than this many times the budget remains: a pass that ends near the budget has
@@ -40,14 +40,18 @@ def _compact(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.nd
     return np.asarray(vertices, np.float64)[used], new_faces.astype(np.int64, copy=False)
 
 
-def _drop_degenerate(vertices: np.ndarray, faces: np.ndarray, min_area_m2: float = 1e-12) -> np.ndarray:
+def _face_cross(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F, 3) (b - a) x (c - a) of each face (a, b, c), twice its area along its normal: np.cross written out, to the
+    bit, in a twentieth of the time."""
     a, b, c = (np.take(vertices, faces[:, k], axis=0) for k in range(3))
     b -= a
     c -= a
-    # |(b - a) x (c - a)| written out: np.linalg.norm(np.cross(...)) to the bit, in a third of the time
-    x = b[:, 1] * c[:, 2] - b[:, 2] * c[:, 1]
-    y = b[:, 2] * c[:, 0] - b[:, 0] * c[:, 2]
-    z = b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0]
+    return np.stack([b[:, 1] * c[:, 2] - b[:, 2] * c[:, 1], b[:, 2] * c[:, 0] - b[:, 0] * c[:, 2],
+                     b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0]], axis=1)
+
+
+def _drop_degenerate(vertices: np.ndarray, faces: np.ndarray, min_area_m2: float = 1e-12) -> np.ndarray:
+    x, y, z = _face_cross(vertices, faces).T
     area2 = np.sqrt(x * x + y * y + z * z)
     distinct = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
     return faces[distinct & (area2 > 2 * min_area_m2)]
@@ -78,7 +82,8 @@ def collision_mesh(mesh: ErpMesh, max_triangles: int, max_error_m: float = 0.0) 
         if tree is None:
             from scipy.spatial import cKDTree
 
-            tree, normals = cKDTree(v0), vertex_normals(v0, f0)
+            tree = cKDTree(v0, balanced_tree=False, compact_nodes=False)  # built 3x faster, queried as fast
+            normals = vertex_normals(v0, f0)
             info["own_error_m"] = round(surface_error(v0, f0, tree, normals), 4)  # its noise and curvature
         err = surface_error(v, f, tree, normals)
         info.setdefault("budgets", []).append(budget)
@@ -113,8 +118,7 @@ def _decimate(v: np.ndarray, f: np.ndarray, budget: int, max_passes: int) -> tup
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(V, 3) unit normals, the area-weighted sum of the normals of the faces around each vertex (zero where none)."""
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
-    fn = np.cross(b - a, c - a)
+    fn = _face_cross(vertices, faces)
     n = np.stack([sum(np.bincount(faces[:, k], fn[:, j], len(vertices)) for k in range(3)) for j in range(3)], 1)
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
 
@@ -124,12 +128,12 @@ def surface_error(vertices: np.ndarray, faces: np.ndarray, tree, normals: np.nda
     """How far (m) a decimated surface (vertices (V, 3), faces (F, 3)) strays from the mesh it was decimated from:
     the 99th percentile, over points spread over it by area (a fixed seed), of the distance along the normal to the
     plane of the original's nearest vertex (tree: scipy cKDTree of those vertices, normals: theirs, vertex_normals)."""
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    area = np.linalg.norm(_face_cross(vertices, faces), axis=1)
     rng = np.random.default_rng(0)
-    pick = rng.choice(len(faces), size=samples, p=area / area.sum())
+    pick = faces[rng.choice(len(faces), size=samples, p=area / area.sum())]
+    a, b, c = (vertices[pick[:, k]] for k in range(3))
     r1, r2 = np.sqrt(rng.random(samples)), rng.random(samples)
-    pts = (1 - r1)[:, None] * a[pick] + (r1 * (1 - r2))[:, None] * b[pick] + (r1 * r2)[:, None] * c[pick]
+    pts = (1 - r1)[:, None] * a + (r1 * (1 - r2))[:, None] * b + (r1 * r2)[:, None] * c
     _, k = tree.query(pts, workers=2)
     off = np.abs(np.einsum("ij,ij->i", pts - tree.data[k], normals[k]))
     return float(np.percentile(off, 99))
