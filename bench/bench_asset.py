@@ -63,7 +63,8 @@ def measure(name: str, scene: Path, preset: str | None, as_is: bool = False) -> 
     arts = scene / "artifacts"
     if as_is:  # the stage alone on the artifacts as they are (no cache check: upstream code may have changed since)
         cmd = [sys.executable, "-m", "stages.asset", "--out", str(arts / "asset")]
-        cmd += [a for k in ("gaussians", "mesh", "navmesh", "trajectory") for a in (f"--{k}", str(arts / k))]
+        cmd += [a for k in ("gaussians", "mesh", "navmesh", "trajectory", "register") if (arts / k).is_dir()
+                for a in (f"--{k}", str(arts / k))]
     else:
         rep = pl.run(scene, preset=preset, until="asset", echo=False)
         if not rep.ok:
