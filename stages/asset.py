@@ -33,10 +33,11 @@ class Params:
     up to 1024 rows; a real capture's noisier mesh, or a home's fused one, keeps more (README, Using the scene in a
     simulator)."""
     collider_max_error_m: float = param(0.05, ge=0)
-    """Where the decimated collider lies farther than this (m) from the mesh's vertices, beyond the mesh's own vertex
-    spacing (99th percentiles over the surfaces, asset.collider.surface_error), the budget doubles and the mesh is
-    decimated again, up to keeping every face: decimation that stalls short of its budget collapses whole corners of
-    a room into the free space agents walk. 0 = the budget alone."""
+    """How far (m) the decimated collider may stray from the mesh beyond the mesh's own noise (99th percentiles of the
+    distance to the plane of the mesh's nearest vertex, asset.collider.surface_error): farther, and the mesh is
+    decimated again with twice the budget (a quarter more than a stalled decimation kept, if more), up to keeping every
+    face. A decimation asked for fewer faces than it can reach stalls and collapses whole corners of a room into the
+    free space agents walk. 0 = the budget alone."""
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:

@@ -1,4 +1,5 @@
-"""The collision mesh: the scene mesh's valid (non-stretched) faces, compacted, quadric-decimated to a budget."""
+"""The collision mesh: the scene mesh's valid (non-stretched) faces, quadric-decimated to a budget that grows while the
+result strays from the mesh."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import numpy as np
 from panoworld.geometry.erp_mesh import ErpMesh, compact_faces
 
 MAX_PASSES = 3
-"""Decimation passes at most (each stops when no edge collapse keeps the quadric error low enough)."""
+"""Decimation passes at most for the budget alone (max_error_m 0; with the error bound one pass per budget)."""
 STALL_MARGIN = 1.25
 """A decimation that strayed while it stalled above its budget (at F faces) tries again with at least this times F:
 it could not get below F without collapsing whole corners, and a budget just above F it reaches with small errors."""
@@ -92,7 +93,7 @@ def collision_mesh(mesh: ErpMesh, max_triangles: int, max_error_m: float = 0.0) 
         if err <= info["own_error_m"] + max_error_m:
             break
         budget = max(2 * budget, int(STALL_MARGIN * len(f)))
-        if len(f0) <= budget:  # the whole mesh is within its own error
+        if len(f0) <= budget:  # no decimation left to try: the mesh itself
             v, f = v0, f0
             info.update(decimated=False, passes=0)
     info["simplify_s"] = time.perf_counter() - t0
