@@ -1,5 +1,4 @@
-"""The collision mesh: the scene mesh's valid (non-stretched) faces, quadric-decimated to a budget that grows while the
-result strays from the mesh."""
+"""The collision mesh: the scene mesh's valid faces, quadric-decimated to a budget that grows while it strays."""
 
 from __future__ import annotations
 
