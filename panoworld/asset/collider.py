@@ -60,8 +60,8 @@ def _drop_degenerate(vertices: np.ndarray, faces: np.ndarray, min_area_m2: float
 
 
 def collision_mesh(mesh: ErpMesh, max_triangles: int, max_error_m: float = 0.0) -> Collider:
-    """Valid faces only (the stretched faces across depth edges are no real surface), unreferenced vertices and
-    degenerate faces removed, then decimated with fast-simplification's quadric edge collapse to at most
+    """Valid faces only (the stretched faces across depth edges are no real surface), welded (_weld, WELD_M),
+    unreferenced vertices and degenerate faces removed, then decimated with fast-simplification's quadric edge collapse to at most
     `max_triangles` (open borders kept in place, so holes at depth edges do not grow). The budget is a target: a
     mesh with many borders may keep more faces (info["faces_out"]). max_error_m > 0: while the decimated surface strays
     from the mesh (surface_error) by more than the mesh's own surface does (its noise and curvature,
@@ -115,7 +115,11 @@ def _weld(v: np.ndarray, f: np.ndarray, cell_m: float) -> tuple[np.ndarray, np.n
     q = np.floor(v / cell_m).astype(np.int64)
     q -= q.min(axis=0)
     dims = q.max(axis=0) + 1
-    _, cell = np.unique((q[:, 0] * dims[1] + q[:, 1]) * dims[2] + q[:, 2], return_inverse=True)
+    if float(np.prod(dims.astype(np.float64))) < 2.0**62:  # one int64 key per cell
+        _, cell = np.unique((q[:, 0] * dims[1] + q[:, 1]) * dims[2] + q[:, 2], return_inverse=True)
+    else:  # a mesh kilometres across
+        _, cell = np.unique(q, axis=0, return_inverse=True)
+    cell = cell.reshape(-1)
     count = np.bincount(cell)
     if count.max() == 1:
         return v, f
