@@ -29,9 +29,9 @@ class Params:
     collider_max_triangles: int = param(100_000, ge=0)
     """Triangle budget of the collision mesh (quadric decimation of the mesh's valid faces, welded; 0 = keep them all;
     the NavMesh's floor triangles, added so that the assumed-walkable blind spot under the rig is solid, come on top).
-    The budget
-    grows while the decimated surface strays farther than collider_max_error_m: 100k suits one panorama and a home's
-    fused mesh alike; a real LiDAR capture's noisy, holed mesh keeps more (README, Using the scene in a simulator)."""
+    The budget grows while the decimated surface strays farther than collider_max_error_m: 100k suits one panorama and
+    a home's fused mesh alike; a real LiDAR capture's noisy, holed mesh keeps more (README, Using the scene in a
+    simulator)."""
     collider_max_error_m: float = param(0.05, ge=0)
     """How far (m) the decimated collider may stray from the mesh beyond the mesh's own noise (99th percentiles of the
     distance to the plane of the mesh's nearest vertex, asset.collider.surface_error): farther, and the mesh is
