@@ -35,8 +35,8 @@ class Params:
     collider_max_error_m: float = param(0.05, ge=0)
     """How far (m) the decimated collider may stray from the mesh beyond the mesh's own noise (99th percentiles of the
     distance to the plane of the mesh's nearest vertex, asset.collider.surface_error): farther, and the mesh is
-    decimated again with twice the budget (a quarter more than a stalled decimation kept, if more), up to keeping every
-    face. A decimation asked for fewer faces than it can reach stalls and collapses whole corners of a room into the
+    decimated again with a quarter more faces than a stalled decimation kept (else twice the budget), up to keeping
+    every face. A decimation asked for fewer faces than it can reach stalls and collapses whole corners of a room into the
     free space agents walk. 0 = the budget alone."""
 
 

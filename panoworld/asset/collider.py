@@ -12,8 +12,9 @@ from panoworld.geometry.erp_mesh import ErpMesh, compact_faces
 MAX_PASSES = 3
 """Decimation passes at most for the budget alone (max_error_m 0; with the error bound one pass per budget)."""
 STALL_MARGIN = 1.25
-"""A decimation that strayed while it stalled above its budget (at F faces) tries again with at least this times F:
-it could not get below F without collapsing whole corners, and a budget just above F it reaches with small errors."""
+"""A decimation that strayed while it stalled above its budget (at F faces) tries again with this times F: it could
+not get below F without collapsing whole corners, and a budget a little above F it reaches with small errors (one
+that reached its budget and strayed tries twice the budget)."""
 WELD_M = 0.01
 """Vertices in one cell of this grid (m) are welded before decimation (_weld; 0: none)."""
 SURFACE_SAMPLES = 50_000
@@ -65,8 +66,8 @@ def collision_mesh(mesh: ErpMesh, max_triangles: int, max_error_m: float = 0.0) 
     `max_triangles` (open borders kept in place, so holes at depth edges do not grow). The budget is a target: a
     mesh with many borders may keep more faces (info["faces_out"]). max_error_m > 0: while the decimated surface strays
     from the mesh (surface_error) by more than the mesh's own surface does (its noise and curvature,
-    info["own_error_m"]) plus max_error_m, the mesh is decimated again from the start with twice the budget (or
-    STALL_MARGIN times the faces a stalled decimation kept, if more), up to keeping every face (info["budgets"],
+    info["own_error_m"]) plus max_error_m, the mesh is decimated again from the start with STALL_MARGIN times the
+    faces a stalled decimation kept (else twice the budget), up to keeping every face (info["budgets"],
     info["faces"], info["error_m"]: each budget tried, the faces it kept, their error)."""
     import time
 
@@ -95,7 +96,7 @@ def collision_mesh(mesh: ErpMesh, max_triangles: int, max_error_m: float = 0.0) 
         info.setdefault("faces", []).append(int(len(f)))
         if err <= info["own_error_m"] + max_error_m:
             break
-        budget = max(2 * budget, int(STALL_MARGIN * len(f)))
+        budget = int(STALL_MARGIN * len(f)) if len(f) > budget else 2 * budget
         if len(f0) <= budget:  # no decimation left to try: the mesh itself
             v, f = v0, f0
             info.update(decimated=False, passes=0)
