@@ -163,23 +163,26 @@ def walk_test(scene: BulletScene, path_xy: np.ndarray, floor_z: float, max_step_
             "length_m": float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())}
 
 
-def nearest_wall(scene: BulletScene, spawn: np.ndarray, directions: int = 36, reach_m: float = 8.0) -> dict | None:
+def nearest_wall(scene: BulletScene, spawn: np.ndarray, directions: int = 36, reach_m: float = 8.0,
+                 flat_m: float = 0.1) -> dict | None:
     """The horizontal direction from the spawn whose obstacle is nearest, over rays at several heights of the capsule
-    (feet to head); None when no direction is blocked at every height within reach_m (no wall around)."""
+    (feet to head), among those whose rays all stop within flat_m of one another (a wall; "flat": True), else among
+    all that are blocked at every height (furniture may be nearest; "flat": False); None when no direction is blocked
+    at every height within reach_m (no wall around). A frictionless capsule pushed into furniture may slide round it."""
     a = scene.agent
     heights = np.linspace(0.05, a.height - 0.05, 8)
     scene.place(np.array([0.0, 0.0, 1e4]))  # out of the rays' way: a ray from inside the capsule stops at it
-    best = None
+    best: dict[bool, dict] = {}
     for k in range(directions):
         ang = 2 * np.pi * k / directions
         d = np.array([np.cos(ang), np.sin(ang), 0.0])
         o = np.asarray(spawn, np.float64)[None] + heights[:, None] * [0, 0, 1]
         frac, normal = scene.cast(o, o + reach_m * d)
         if np.all(frac < 1.0):
-            dist = float(frac.min() * reach_m)
-            if best is None or dist < best["distance_m"]:
-                best = {"direction": d, "distance_m": dist, "normal": normal[int(frac.argmin())]}
-    return best
+            dist, flat = float(frac.min() * reach_m), bool(np.ptp(frac) * reach_m <= flat_m)
+            if flat not in best or dist < best[flat]["distance_m"]:
+                best[flat] = {"direction": d, "distance_m": dist, "normal": normal[int(frac.argmin())], "flat": flat}
+    return best.get(True, best.get(False))
 
 
 def wall_test(scene: BulletScene, spawn: np.ndarray, speed_m_s: float = 0.5, extra_s: float = 2.0) -> dict:
@@ -206,7 +209,7 @@ def wall_test(scene: BulletScene, spawn: np.ndarray, speed_m_s: float = 0.5, ext
     contact = scene.clearance()
     return {"wall_distance_m": dist, "expected_travel_m": stop_at, "travel_m": travel,
             "gap_m": stop_at - travel, "fell_m": float(start[2] - end[2]), "obstacle_contact_m": contact,
-            "deepest_m": float(deepest), "direction": d.tolist()}
+            "deepest_m": float(deepest), "direction": d.tolist(), "flat": wall["flat"]}
 
 
 def wall_ok(r: dict, tol_m: float = 0.05) -> bool:
