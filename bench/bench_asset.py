@@ -116,7 +116,8 @@ def print_rows(rows: list[dict]) -> None:
     for r in rows:
         d, w = r["drop"], r["wall"]
         walk = min(x["min_clearance_m"] for x in r["walk"])
-        wall = (f"stopped {w['gap_m'] * 100:+.1f} cm before the centre-line wall, contact "
+        wall = (f"stopped {w['gap_m'] * 100:+.1f} cm before the centre-line "
+                f"{'wall' if w.get('flat') else 'obstacle (no flat wall around)'}, contact "
                 f"{w['obstacle_contact_m'] * 100:.1f} cm, deepest {w['deepest_m'] * 100:.1f} cm" if "gap_m" in w
                 else w.get("error", "?"))
         c = r["collider"]
