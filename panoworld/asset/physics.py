@@ -164,11 +164,12 @@ def walk_test(scene: BulletScene, path_xy: np.ndarray, floor_z: float, max_step_
 
 
 def nearest_wall(scene: BulletScene, spawn: np.ndarray, directions: int = 36, reach_m: float = 8.0,
-                 flat_m: float = 0.1) -> dict | None:
+                 flat_m: float = 0.1, max_incidence_deg: float = 20.0) -> dict | None:
     """The horizontal direction from the spawn whose obstacle is nearest, over rays at several heights of the capsule
-    (feet to head), among those whose rays all stop within flat_m of one another (a wall; "flat": True), else among
-    all that are blocked at every height (furniture may be nearest; "flat": False); None when no direction is blocked
-    at every height within reach_m (no wall around). A frictionless capsule pushed into furniture may slide round it."""
+    (feet to head), among those whose rays all stop within flat_m of one another on surfaces facing the spawn within
+    max_incidence_deg (a wall, met nearly head-on; "flat": True), else among all that are blocked at every height
+    ("flat": False); None when no direction is blocked at every height within reach_m (no wall around). A frictionless
+    capsule pushed into furniture or at a slant slides along it."""
     a = scene.agent
     heights = np.linspace(0.05, a.height - 0.05, 8)
     scene.place(np.array([0.0, 0.0, 1e4]))  # out of the rays' way: a ray from inside the capsule stops at it
@@ -179,7 +180,10 @@ def nearest_wall(scene: BulletScene, spawn: np.ndarray, directions: int = 36, re
         o = np.asarray(spawn, np.float64)[None] + heights[:, None] * [0, 0, 1]
         frac, normal = scene.cast(o, o + reach_m * d)
         if np.all(frac < 1.0):
-            dist, flat = float(frac.min() * reach_m), bool(np.ptp(frac) * reach_m <= flat_m)
+            n = normal[:, :2].mean(axis=0)  # a real mesh's triangles are noisy: their mean faces where the wall does
+            facing = -float(n @ d[:2]) / max(float(np.linalg.norm(n)), 1e-12)
+            dist = float(frac.min() * reach_m)
+            flat = bool(np.ptp(frac) * reach_m <= flat_m and facing >= np.cos(np.radians(max_incidence_deg)))
             if flat not in best or dist < best[flat]["distance_m"]:
                 best[flat] = {"direction": d, "distance_m": dist, "normal": normal[int(frac.argmin())], "flat": flat}
     return best.get(True, best.get(False))
