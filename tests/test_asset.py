@@ -266,6 +266,32 @@ def test_pushed_capsule_stops_at_a_steep_slope_a_forced_velocity_climbs(tmp_path
     assert reached["forced"] > 2.0 and abs(reached["push"] - 0.75) < 0.06, reached
 
 
+def test_wall_push_picks_a_wall_met_head_on_not_nearer_furniture(tmp_path):
+    # A leaning sheet 0.6 m in front of the spawn blocks every ray of the capsule's height, at distances 0.3 m apart:
+    # furniture, which a frictionless capsule may slide along. The push goes into a wall of the room instead.
+    from panoworld.asset.collider import write_obj
+    from panoworld.asset.physics import Agent, BulletScene, nearest_wall, wall_ok, wall_test
+
+    parts = [_grid([-2.0, -3.0, 0.0], [6.0, 0.0, 0.0], [0.0, 6.0, 0.0], 12),  # floor, x -2..4, y -3..3
+             _grid([-2.0, -3.0, 0.0], [0.0, 6.0, 0.0], [0.0, 0.0, 2.5], 12),  # walls at x = -2, 4, y = -3, 3
+             _grid([4.0, -3.0, 0.0], [0.0, 6.0, 0.0], [0.0, 0.0, 2.5], 12),
+             _grid([-2.0, -3.0, 0.0], [6.0, 0.0, 0.0], [0.0, 0.0, 2.5], 12),
+             _grid([-2.0, 3.0, 0.0], [6.0, 0.0, 0.0], [0.0, 0.0, 2.5], 12),
+             _grid([0.6, -0.6, 0.0], [0.0, 1.2, 0.0], [0.32, 0.0, 1.9], 12)]  # the leaning sheet, x 0.6..0.92
+    verts, faces, n = [], [], 0
+    for v, f in parts:
+        verts.append(v)
+        faces.append(f + n)
+        n += len(v)
+    write_obj(tmp_path / "room.obj", np.concatenate(verts), np.concatenate(faces), "room with a leaning sheet")
+    with BulletScene(tmp_path / "room.obj", Agent(radius=0.25, height=1.8)) as sim:
+        wall = nearest_wall(sim, np.zeros(3))
+        assert wall["flat"] and abs(wall["distance_m"] - 2.0) < 0.01, wall  # the wall at x = -2, behind the spawn
+        np.testing.assert_allclose(wall["direction"], [-1.0, 0.0, 0.0], atol=1e-9)
+        r = wall_test(sim, np.zeros(3))
+    assert wall_ok(r) and abs(r["gap_m"]) < 0.05 and r["flat"], r
+
+
 def test_clearance_over_a_dense_mesh_is_the_distance(tmp_path):
     # 80k triangles within a metre of the capsule: one PyBullet query that far returns zero-filled points (or crashes)
     from panoworld.asset.collider import write_obj
