@@ -86,7 +86,8 @@ def measure(name: str, scene: Path, preset: str | None, as_is: bool = False) -> 
     paths, _ = trajectory_paths(scene / "artifacts" / "trajectory")
     with BulletScene(a / "collider.obj", agent) as sim:
         drop = drop_test(sim, spawn, drop_m=0.5)
-        points = {n: drop_test(sim, np.array(cp["spawn"]), drop_m=0.5) for n, cp in doc.get("capture_points", {}).items()}
+        points = {n: drop_test(sim, np.array(cp["spawn"]), drop_m=0.5)
+                  for n, cp in doc.get("capture_points", {}).items()}
         walks = [walk_test(sim, transform_points(np.array(doc["asset_from_canonical"]), p[:, :3, 3])[:, :2], 0.0)
                  for p in paths]
         try:
@@ -97,7 +98,8 @@ def measure(name: str, scene: Path, preset: str | None, as_is: bool = False) -> 
         "scene": name, "particles": info["particles"], "sh_degree": info["sh_degree"],
         "collider_triangles": info["collider_triangles"], "mesh_faces_valid": info["collider"]["faces_valid"],
         "sizes_mb": info["sizes_mb"], "export_wall_s": wall_s, "export_cpu_s": cpu, "stage_export_s": info["export_s"],
-        "collider": info["collider"], "timings_s": info["timings_s"], "compliance_errors": len(problems), "spawn_source": info["spawn_source"],
+        "collider": info["collider"], "timings_s": info["timings_s"], "compliance_errors": len(problems),
+        "spawn_source": info["spawn_source"],
         "drop": drop, "drop_ok": _rests(drop), "capture_drops": points,
         "capture_drops_ok": sum(_rests(d) for d in points.values()),
         "walk": walks, "walk_ok": all(w["min_clearance_m"] > 0 for w in walks),
