@@ -36,8 +36,8 @@ class Params:
     """How far (m) the decimated collider may stray from the mesh beyond the mesh's own noise (99th percentiles of the
     distance to the plane of the mesh's nearest vertex, asset.collider.surface_error): farther, and the mesh is
     decimated again with a quarter more faces than a stalled decimation kept (else twice the budget), up to keeping
-    every face. A decimation asked for fewer faces than it can reach stalls and collapses whole corners of a room into the
-    free space agents walk. 0 = the budget alone."""
+    every face. A decimation asked for fewer faces than it can reach stalls and collapses whole corners of a room
+    into the free space agents walk. 0 = the budget alone."""
 
 
 def run(inputs: dict[str, Path | None], params: Params, out_dir: Path) -> dict:

@@ -62,12 +62,12 @@ def _drop_degenerate(vertices: np.ndarray, faces: np.ndarray, min_area_m2: float
 
 def collision_mesh(mesh: ErpMesh, max_triangles: int, max_error_m: float = 0.0) -> Collider:
     """Valid faces only (the stretched faces across depth edges are no real surface), welded (_weld, WELD_M),
-    unreferenced vertices and degenerate faces removed, then decimated with fast-simplification's quadric edge collapse to at most
-    `max_triangles` (open borders kept in place, so holes at depth edges do not grow). The budget is a target: a
-    mesh with many borders may keep more faces (info["faces_out"]). max_error_m > 0: while the decimated surface strays
-    from the mesh (surface_error) by more than the mesh's own surface does (its noise and curvature,
-    info["own_error_m"]) plus max_error_m, the mesh is decimated again from the start with STALL_MARGIN times the
-    faces a stalled decimation kept (else twice the budget), up to keeping every face (info["budgets"],
+    unreferenced vertices and degenerate faces removed, then decimated with fast-simplification's quadric edge
+    collapse to at most `max_triangles` (open borders kept in place, so holes at depth edges do not grow). The budget
+    is a target: a mesh with many borders may keep more faces (info["faces_out"]). max_error_m > 0: while the
+    decimated surface strays from the mesh (surface_error) by more than the mesh's own surface does (its noise and
+    curvature, info["own_error_m"]) plus max_error_m, the mesh is decimated again from the start with STALL_MARGIN
+    times the faces a stalled decimation kept (else twice the budget), up to keeping every face (info["budgets"],
     info["faces"], info["error_m"]: each budget tried, the faces it kept, their error)."""
     import time
 
