@@ -1,4 +1,4 @@
-"""The collision mesh: the scene mesh's valid faces, quadric-decimated to a budget that grows while it strays."""
+"""The collision mesh: the scene mesh's valid faces, welded, quadric-decimated to a budget grown while it strays."""
 
 from __future__ import annotations
 
