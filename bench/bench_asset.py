@@ -29,7 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from panoworld.asset import trajectory_paths
-from panoworld.asset.physics import Agent, BulletScene, drop_test, walk_test, wall_ok, wall_test
+from panoworld.asset.physics import Agent, BulletScene, drop_ok, drop_test, walk_test, wall_ok, wall_test
 from panoworld.asset.usd import compliance_errors
 from panoworld.core.conventions import transform_points
 from panoworld.framework import pipeline as pl
@@ -100,15 +100,11 @@ def measure(name: str, scene: Path, preset: str | None, as_is: bool = False) -> 
         "sizes_mb": info["sizes_mb"], "export_wall_s": wall_s, "export_cpu_s": cpu, "stage_export_s": info["export_s"],
         "collider": info["collider"], "timings_s": info["timings_s"], "compliance_errors": len(problems),
         "spawn_source": info["spawn_source"],
-        "drop": drop, "drop_ok": _rests(drop), "capture_drops": points,
-        "capture_drops_ok": sum(_rests(d) for d in points.values()),
+        "drop": drop, "drop_ok": drop_ok(drop), "capture_drops": points,
+        "capture_drops_ok": sum(drop_ok(d) for d in points.values()),
         "walk": walks, "walk_ok": all(w["min_clearance_m"] > 0 for w in walks),
         "wall": wall, "wall_ok": "gap_m" in wall and wall_ok(wall),
     }
-
-
-def _rests(drop: dict) -> bool:
-    return drop["speed_m_s"] < 0.01 and abs(drop["rest_height_m"]) < 0.02
 
 
 def print_rows(rows: list[dict]) -> None:

@@ -34,7 +34,8 @@ class Collider:
     faces: np.ndarray
     """(F, 3) int64."""
     info: dict
-    """faces_in, faces_valid, faces_out, decimated, simplify_s."""
+    """faces_in, faces_valid, faces_welded, faces_out, decimated, passes, simplify_s; with the error bound budgets,
+    faces, error_m (one each per decimation tried) and own_error_m."""
 
 
 def _compact(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

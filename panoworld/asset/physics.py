@@ -163,6 +163,11 @@ def walk_test(scene: BulletScene, path_xy: np.ndarray, floor_z: float, max_step_
             "length_m": float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())}
 
 
+def drop_ok(r: dict, rest_tol_m: float = 0.02, speed_tol_m_s: float = 0.01) -> bool:
+    """A drop_test result at rest: still (speed below speed_tol_m_s) with its feet within rest_tol_m of the spawn."""
+    return r["speed_m_s"] < speed_tol_m_s and abs(r["rest_height_m"]) < rest_tol_m
+
+
 def nearest_wall(scene: BulletScene, spawn: np.ndarray, directions: int = 36, reach_m: float = 8.0,
                  flat_m: float = 0.1, max_incidence_deg: float = 20.0) -> dict | None:
     """The horizontal direction from the spawn whose obstacle is nearest, over rays at several heights of the capsule
