@@ -82,13 +82,13 @@ class SourcePixelParams(FusionParams):
     """A home: a panorama's pixels without depth (implausible layout masked, a doorway line through another capture
     point dropped) take the depth of the nearest surface the other panoramas see along their ray
     (gaussians.home.complete_from_others), so the panorama's own colours stand there where it sees that surface
-    nearest; without it the generated frames fill them. Off by default: on real layout-only depth the nearest surface
-    the others see along such a ray often lies behind a wall the panorama's own depth lacks (docs/multi.md)."""
+    nearest; without it the generated frames fill them. Off: with layout-only depth the nearest surface the others
+    see along such a ray can lie behind a wall the panorama's own depth lacks (measured in docs/multi.md)."""
     source_carve_tol: float = param(0.0, ge=0)
     """A home: a panorama's pixel whose surface lies nearer than another panorama's depth along that panorama's ray by
     more than this (log range; the nearest of its 3 x 3 depths) is dropped: the other saw through it (a layout
-    annotation's wall across a doorway, seen from the next room). 0 = not checked (the default: on real layout-only
-    depth the rooms' polygons disagree and it drops real walls; docs/multi.md)."""
+    annotation's wall across a doorway, seen from the next room). 0 = not checked (the default: where two rooms'
+    layout polygons disagree by a wall's thickness it drops real walls; measured in docs/multi.md)."""
     source_fill: bool = True
     """A home: a panorama's pixels without depth (implausible layout masked, a doorway line through another capture
     point dropped) get its own per-pixel Gaussians (gaussians.home.add_own_fill), placed in front of whatever else
@@ -99,8 +99,8 @@ class SourcePixelParams(FusionParams):
     panorama's own pixels where the frames' coarser Gaussians or another panorama's stood in (docs/multi.md)."""
     source_fill_height: int = param(640, ge=8)
     """ERP height of that fill (its render and per-pixel Gaussians; at most source_height). 640, source_height's: the
-    fill is as sharp as the panorama's measured pixels beside it; on real homes the capture poses of panoramas whose
-    layout is masked gain most (0.3-2.2 dB against 320 rows), for 7-26 % more Gaussians (docs/multi.md)."""
+    fill is as sharp as the panorama's measured pixels beside it; halving it trades the capture views of panoramas
+    with much depth missing for fewer Gaussians (measured in docs/multi.md)."""
     fit_iters: int = param(10, ge=0)
     """With source_pixels: conjugate-gradient steps of a colour fit at the capture point (0 = none): for the fixed
     geometry the ERP render there is linear in the Gaussians' colours, which are refitted (least squares, damped
@@ -128,8 +128,7 @@ class SourcePixelParams(FusionParams):
     fit_sh_damping: float = param(0.001, ge=0)
     """Damping of those degree-1 coefficients towards 0 per unit of compositing weight (the colours' is 0.01): a
     Gaussian seen from few directions keeps about one colour. A home's capture fit damps its own the same: more trades
-    its capture poses for its novel views (real east at 0.01: leave-one-out seen SSIM 0.635 against 0.629, two capture
-    poses at 26.6 dB; docs/multi.md)."""
+    its capture poses for its novel views (measured in docs/multi.md)."""
     fit_views_sh_only: bool = False
     """With fit_sh_degree 1: the views fit the degree-1 coefficients only; the colours seen from the capture point
     are its own fit's (fit_views 0's), so the capture point renders exactly as without the views."""
@@ -140,22 +139,20 @@ class SourcePixelParams(FusionParams):
     panorama: where several panoramas see a surface, a panorama's Gaussians seen from another capture point show
     the texture where its own layout depth put it, and where a panorama has no depth the frames' coarser Gaussians
     stand in. The manifest's color_fit holds each panorama's RMSE before and after. The steps are preconditioned
-    (Jacobi): on real homes 5 give the capture poses of 80 unpreconditioned steps (-1.9 to +0.9 dB per pose, the
-    lowest -0.1 / +0.4 dB) in a sixteenth of the steps; the converged fit (20) gains up to 1.5 dB more there and
-    loses 0.1 dB and 0.01 SSIM on east's leave-one-out novel views (docs/multi.md)."""
+    (Jacobi), so a few reach what plain steps reach in many; more fit the capture poses closer and the views between
+    them no better (measured in docs/multi.md)."""
     capture_fit_damping: float = param(0.05, ge=0)
     """Damping of that fit's colours towards their fused values, per unit of each Gaussian's compositing weight. More
-    keeps the colours nearer the fused ones: on real homes 0.05 gives higher SSIM on leave-one-out novel views than
-    0.01 with the capture poses as close to their panoramas (with 80 plain steps); 0.1 and 0.2 cost the capture poses
-    1.0 and 2.7 dB on average without buying the novel views back (the converged preconditioned fit; docs/multi.md)."""
+    keeps the colours nearer the fused ones, further from each capture pose's panorama (measured in
+    docs/multi.md)."""
     capture_fit_smooth: bool = True
     """That fit's change to the colours and to their degree-1 terms is made one the capture poses' renders hold
     (capture_fit.smooth_change: rendered at each capture pose and read back, each Gaussian the mean of the pixels it
     covers). The least-squares change varies from Gaussian to Gaussian finer than the capture poses' pixels (most where
     two capture poses see a surface differently: each Gaussian leans towards either by how each pose's pixels happen to
-    sample it), which shows as moire rings on plain walls in every other view: on real east and west the leave-one-out
-    novel views' SSIM is higher for all 9 panoramas (+0.005 to +0.035, PSNR -0.05 to +0.33 dB) and the capture poses
-    3.1-8.5 dB lower at 256 rows, every one >= 30.6 dB (docs/multi.md)."""
+    sample it), which shows as moire rings on plain walls in every other view. Smoothed, the views between the capture
+    poses are sharper and the capture poses further from their panoramas (capture_fit_min_psnr bounds that; measured
+    in docs/multi.md)."""
     capture_fit_min_psnr: float = param(29.0, ge=0)
     """With capture_fit_smooth: while a capture pose's render reads below this (dB, at capture_fit_height rows against
     its panorama) after the smoothing, the fit goes on for the Gaussians those poses see (capture_fit_iters more steps
@@ -164,26 +161,22 @@ class SourcePixelParams(FusionParams):
     """The most rounds of that fit and its smoothing (1 = one)."""
     capture_fit_height: int = param(512, ge=8)
     """ERP height of that fit's renders and targets (the panoramas area-downsampled). 512: the cube faces of a
-    256-row render supersampled 2x, so the fit resolves what a 256-row render shows; on real homes 1.3-9.2 dB more at the
-    capture poses than 256 rows, leave-one-out novel views within 0.01 dB (docs/multi.md)."""
+    256-row render supersampled 2x, so the fit resolves what a 256-row render shows (memory: capture_fit_max_gb)."""
     capture_fit_max_gb: float = param(6.0, gt=0)
     """The fit holds one render operator per capture pose at once: when the ones built so far say all of them would
     take more than this (GB), the fit prunes harder (capture_fit_prune_fallback), then runs at half the height (down
-    to 64 rows), else it is skipped (colours as fused); the manifest's color_fit says what was refused and why. 6: with
-    capture_fit_prune 0.002 an operator holds 0.16-0.17 GB per pose at 512 rows (real and synthetic homes), so about 36
-    capture poses fit at 512 rows (about 48 with the fallback's 0.01): a 32-panorama tour's fit holds 5.3 GB and its
-    gaussians stage peaks at about 13 GB (docs/multi.md)."""
+    to 64 rows), else it is skipped (colours as fused); the manifest's color_fit says what was refused and why. An
+    operator at 512 rows with capture_fit_prune 0.002 holds about 0.17 GB per capture pose, so 6 GB holds about 36
+    capture poses at 512 rows (about 48 at the fallback's pruning; docs/multi.md, Scale)."""
     capture_fit_prune: float = param(0.002, ge=0, lt=1)
     """Each face pixel of that fit's render operators drops its smallest compositing weights while their sum stays
     within this share of the pixel's total (render.erp_operator.prune_weights): a render through an operator is off by
-    at most this share of the brightest colour. 0.002 drops a third of the weights (the far tails of Gaussians and
-    those nearly hidden) and moves real east's capture poses by -0.12 to +0.07 dB; 0.005 and 0.01 drop 41 % and 47 %
-    and cost up to 0.5 and 1.5 dB. 0 keeps them all."""
+    at most this share of the brightest colour. 0.002 drops about a third of the weights (the far tails of Gaussians
+    and those nearly hidden); 0 keeps them all (measured in docs/multi.md)."""
     capture_fit_prune_fallback: float = param(0.01, ge=0, lt=1)
     """Where the operators at capture_fit_prune would exceed capture_fit_max_gb, the fit tries this share at the same
-    height before it halves the height (not when it is no larger than capture_fit_prune). 0.01 drops 47 % of the
-    weights and moves real east's capture poses by -1.5 to +0.1 dB, where 256 rows instead of 512 cost them 1.2-8.8 dB
-    (docs/multi.md)."""
+    height before it halves the height (not when it is no larger than capture_fit_prune): pruning harder costs the
+    capture poses less than half the rows (measured in docs/multi.md)."""
     capture_fit_supersample: int = param(1, ge=1, le=4)
     """Supersampling of those renders (render.erp.ERP_SUPERSAMPLE's meaning; 1: pixel centres only)."""
     capture_fit_sh_degree: int = param(1, ge=0, le=1)

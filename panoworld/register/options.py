@@ -77,8 +77,8 @@ class RegisterOptions:
     min_floor_inliers: int = param(6, ge=3)
     """A floor pair needs at least this many inliers, counted once per keypoint spot (and no contradiction from its
     bearing-only estimate, checked as for a depth-backed pose; with fewer than floor_lone_inliers, another pair across
-    its cut must agree). Chance fits between real rooms that share no floor reach 6-8 and are refused by the checks of
-    their two rooms (docs/multi.md)."""
+    its cut must agree). A chance fit between rooms that share no floor can reach this; the checks of its two rooms
+    and its cut refuse it (docs/multi.md)."""
     floor_min_margin: float = param(2.0, ge=1)
     """A floor pose that the pair's images do not confirm (no bearing-only estimate of min_bearing_inliers) needs at
     least this many times the inliers of the best other translation at its yaw (FloorPose.second), where that one
@@ -92,14 +92,14 @@ class RegisterOptions:
     floor_beyond_rooms: int = param(9, ge=0)
     """A floor pose below floor_lone_inliers that no other pair across its cut supports is kept where at least this
     many of its inlier matches, and 90 % of them, lie beyond both rooms' walls: floor both panoramas see only through
-    openings their depths close (a hallway between two rooms that no panorama stands in). The wrong floor fits below
-    floor_lone_inliers of six 24-panorama validation tours (layout depth; bench_multi.py) keep up to 8. 0: never."""
+    openings their depths close (a hallway between two rooms that no panorama stands in); a chance fit matches each
+    room's own floor instead (chosen on synthetic layout tours, docs/multi.md). 0: never."""
     max_free_space_violation: float = param(0.05, ge=0, le=1)
     """A floor or layout pose is refused where both panoramas' depths hold their whole room (98 % of the pixels valid)
     and it puts more than this share of either view's surfaces inside the other's free space (0.15 m and 5 % nearer
-    than that view's depth): two rooms that overlap. On the real east and west parts the right floor poses of such
-    pairs put none there, chance fits 14-44 %. The same test between any two registered panoramas removes the floor,
-    layout or bearing-only edge the overlap rests on (solve.refuse_overlapping_rooms)."""
+    than that view's depth): two rooms that overlap (a right pose puts next to none there). The same test between any
+    two registered panoramas removes the floor, layout or bearing-only edge the overlap rests on
+    (solve.refuse_overlapping_rooms)."""
     manhattan: bool = True
     """Use each panorama's wall directions (panoworld/register/layout.py: manhattan_frame, from the depth's room
     outline; none where the outline is incomplete or not at right angles) where both panoramas of a pair have them:
@@ -111,8 +111,8 @@ class RegisterOptions:
     layout: bool = False
     """Also try pairs that no depth, floor or bearing edge joins into one group with their layouts
     (panoworld/register/layout.py): a wall of one room against an opposed wall of the other, judged by where the
-    images agree (the other room seen through a doorway). Off by default: on a real home of 15 panoramas it placed
-    two rooms wrongly (docs/multi.md, failure modes), and it costs 3-5 CPU s per pair tried."""
+    images agree (the other room seen through a doorway). Off by default: rooms alike in shape and finish can be
+    placed wrongly (docs/multi.md, Limits), and it costs 3-5 CPU s per pair tried."""
     layout_min_margin: float = param(1.5, gt=1)
     """A layout pair is trusted only when its best hypothesis' agreeing image area is at least this multiple of the
     best hypothesis distinct from it (farther than 0.3 m or 5 degrees)."""
