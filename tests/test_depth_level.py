@@ -171,7 +171,7 @@ def test_a_levelled_depth_keeps_its_planes_flat_and_its_edges_sharp():
     def floor_rms(d):
         sel = (dirs[..., 1] > np.sin(np.radians(30))) & (dirs[..., 1] < np.sin(np.radians(60))) & (d > 0)
         pts = dirs[sel] * d[sel][:, None]
-        return float(np.sqrt(np.mean(((pts - pts.mean(0)) @ np.linalg.svd(pts - pts.mean(0))[2][2]) ** 2)))
+        return float(np.sqrt(np.mean(((pts - pts.mean(0)) @ np.linalg.svd(pts - pts.mean(0), full_matrices=False)[2][2]) ** 2)))
 
     out, nearest = levelled_depth(depth, R), levelled(depth, R, nearest=True)
     assert floor_rms(out) < 1e-4 < 1e-3 < floor_rms(nearest)
