@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from panoworld.core.conventions import erp_dirs
+from panoworld.geometry.polygons import ring_area
 from panoworld.room.plausible import NEAR_PLANE_M, STAND_RADIUS_M, mask_implausible, wall_bounds
 from panoworld.tools.synth.annotation import polygon_layout_depth
 
@@ -20,11 +21,6 @@ def layout_depth(polygon, cam_xz, H=128, W=256):
 def points(depth, valid):
     H, W = depth.shape
     return (erp_dirs(H, W, np.float64) * depth[..., None])[valid]
-
-
-def polygon_area(p):
-    p = np.asarray(p, float)
-    return 0.5 * abs(np.dot(p[:, 0], np.roll(p[:, 1], -1)) - np.dot(p[:, 1], np.roll(p[:, 0], -1)))
 
 
 def hull_area(xz):
@@ -42,7 +38,7 @@ def test_a_room_seen_from_inside_is_left_alone():
     d2, v2, _, rec = mask_implausible(depth, valid, CAM_H, CEIL_H)
     assert d2 is depth and v2 is valid
     assert rec["near_surface_px"] == rec["far_floor_px"] == rec["far_ceiling_px"] == 0 and rec["masked_fraction"] == 0
-    assert rec["room_floor_area_m2"] == pytest.approx(polygon_area(ROOM), rel=0.03)  # the walls outline the room
+    assert rec["room_floor_area_m2"] == pytest.approx(abs(ring_area(np.asarray(ROOM, float))), rel=0.03)  # the walls outline the room
 
 
 def test_a_camera_outside_its_room_keeps_its_floor_in_the_room():
@@ -60,7 +56,7 @@ def test_a_camera_outside_its_room_keeps_its_floor_in_the_room():
     r = np.hypot(pts[:, 0], pts[:, 2])
     bound = wall_bounds(depth, valid, CAM_H, CEIL_H)[0]
     assert r.max() <= max(STAND_RADIUS_M, bound.max()) * 1.05 + 0.1  # nothing recedes past the walls
-    assert hull_area(pts[on_floor][:, [0, 2]]) <= 1.5 * polygon_area(ROOM)
+    assert hull_area(pts[on_floor][:, [0, 2]]) <= 1.5 * abs(ring_area(np.asarray(ROOM, float)))
     assert not (d2[~v2]).any() and np.array_equal(d2[v2], depth[v2])  # masked, never moved
     assert 0 < rec["masked_fraction"] < 1 and rec["max_depth_after"] < 10 < rec["max_depth_before"]
 
