@@ -126,3 +126,33 @@ def test_home_trajectory_walks_within_a_component_and_cuts_between(closed_home, 
     assert validate_poses(poses_, nav, clearance, agent_radius=0.25, skip=tuple(plan.exempt)) == []
     write_trajectory(tmp_path, poses_, clearance, fps=16.0, paths=info["paths"])
     assert sorted({i for c in load_clips(tmp_path, len(xz)) for i in c}) == list(range(len(xz)))
+
+
+def test_the_run_says_why_the_floors_do_not_connect_and_what_joins_them(closed_home, tmp_path):
+    """Under the run table (framework.pipeline.scene_notes): a home whose NavMesh holds its capture points on two
+    pieces is named with its pieces and, for each registration edge across them, what joined the two panoramas: floor
+    both see beyond their own rooms' walls (a hallway no depth holds) or a pose without an open doorway; one piece
+    says nothing."""
+    from panoworld.framework.pipeline import scene_notes
+    from panoworld.io.jsonio import write_json
+
+    _, _, nav, _ = closed_home
+    arts = {"navmesh": tmp_path / "navmesh", "register": tmp_path / "register"}
+    for d in arts.values():
+        d.mkdir()
+    write_json(arts["navmesh"] / "manifest.json", {"info": {"components": nav.info["home"]["components"]}})
+    write_json(arts["register"] / "registration.json", {"panoramas": {
+        "a": {"registered": True, "parent": None},
+        "b": {"registered": True, "parent": "a", "edge": "floor", "beyond_rooms": 10, "inlier_matches": 11},
+        "c": {"registered": True, "parent": "b", "edge": "depth"}}})
+    (note,) = [n for n in scene_notes(arts, tmp_path) if "NavMesh pieces" in n]
+    assert note.startswith("home: the floor is 2 NavMesh pieces that do not connect (a | b, c), so the trajectory "
+                           "cuts between them: a and b see one floor beyond both rooms' walls (10 of 11 floor matches)")
+    assert "b and c" not in note and note.endswith("a panorama taken where their floors meet joins them (docs/multi.md)")
+    doc = {"panoramas": {"a": {"parent": None}, "b": {"parent": "a", "edge": "floor", "beyond_rooms": 2,
+                                                     "inlier_matches": 30}, "c": {"parent": "b", "edge": "depth"}}}
+    write_json(arts["register"] / "registration.json", doc)
+    (note,) = scene_notes(arts, tmp_path)
+    assert "a and b are joined by a floor pose, but no doorway between their floors was seen open" in note
+    write_json(arts["navmesh"] / "manifest.json", {"info": {"components": nav.info["home"]["components"][:1]}})
+    assert scene_notes(arts, tmp_path) == []

@@ -306,13 +306,15 @@ def run(
 
 def scene_notes(artifacts: dict[str, Path], root: Path) -> list[str]:
     """The notes a scene's artifacts ({STAGE: artifact dir} of the stages that are up to date) call for under the run
-    table and in `status`: the panoramas the depth stage levelled, and a home that registration left partly unplaced
-    or levelled for itself."""
+    table and in `status`: the panoramas the depth stage levelled, a home that registration left partly unplaced
+    or levelled for itself, and a home whose floor is NavMesh pieces that do not connect."""
+    from panoworld.framework.notes import floor_pieces_note
     from panoworld.io.home import level_note
     from panoworld.register.artifact import registration_note
 
     notes = [level_note(artifacts["depth"]) if "depth" in artifacts else None,
-             registration_note(artifacts["register"], root) if "register" in artifacts else None]
+             registration_note(artifacts["register"], root) if "register" in artifacts else None,
+             floor_pieces_note(artifacts["navmesh"], artifacts.get("register")) if "navmesh" in artifacts else None]
     return [n for n in notes if n]
 
 

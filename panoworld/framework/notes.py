@@ -1,0 +1,42 @@
+"""Notes under the run table that read several stages' artifacts: a home whose floor is NavMesh pieces that do not connect."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from panoworld.io.jsonio import read_json
+from panoworld.register.inputs import REGISTRATION_JSON
+
+HALLWAY_SHARE = 0.9
+"""A floor edge with at least this share of its inlier matches beyond both rooms' walls joined two panoramas through
+floor they see only through their doors (register.floor.beyond_both_rooms)."""
+
+
+def floor_pieces_note(navmesh_artifact: Path, register_artifact: Path | None = None) -> str | None:
+    """"home: the floor is 2 NavMesh pieces that do not connect (a, b | c), so the trajectory cuts between them: ..."
+    when a home's NavMesh holds its capture points on more than one piece (the navmesh manifest's info.components),
+    saying for each registration edge across two pieces (registration.json's parent and edge) what joined the two
+    panoramas without joining their floors, and what joins them; None otherwise."""
+    comps = read_json(Path(navmesh_artifact) / "manifest.json", default={}).get("info", {}).get("components") or []
+    if len(comps) < 2:
+        return None
+    piece = {n: k for k, c in enumerate(comps) for n in c.get("capture_points", [])}
+    rows = {}
+    if register_artifact is not None:
+        rows = read_json(Path(register_artifact) / REGISTRATION_JSON, default={}).get("panoramas", {})
+    why = []
+    for n, row in rows.items():
+        parent = row.get("parent") if isinstance(row, dict) else None
+        if parent is None or n not in piece or parent not in piece or piece[n] == piece[parent]:
+            continue
+        beyond, matched = int(row.get("beyond_rooms", 0)), int(row.get("inlier_matches", 0))
+        if row.get("edge") == "floor" and matched and beyond >= HALLWAY_SHARE * matched:
+            why.append(f"{parent} and {n} see one floor beyond both rooms' walls ({beyond} of {matched} floor matches), "
+                       "which no panorama's depth holds (a hallway)")
+        else:
+            why.append(f"{parent} and {n} are joined by a {row.get('edge', 'given')} pose, but no doorway between their "
+                       "floors was seen open")
+    groups = " | ".join(", ".join(c.get("capture_points", [])) for c in comps)
+    return (f"home: the floor is {len(comps)} NavMesh pieces that do not connect ({groups}), so the trajectory cuts "
+            f"between them{': ' + '; '.join(why) if why else ''}; a panorama taken where their floors meet joins them "
+            "(docs/multi.md)")
