@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from panoworld.io.jsonio import read_json
+from panoworld.register.artifact import read_registration
 from panoworld.register.inputs import REGISTRATION_JSON
 
 HALLWAY_SHARE = 0.9
@@ -15,15 +16,27 @@ floor they see only through their doors (register.floor.beyond_both_rooms)."""
 def floor_pieces_note(navmesh_artifact: Path, register_artifact: Path | None = None) -> str | None:
     """"home: the floor is 2 NavMesh pieces that do not connect (a, b | c), so the trajectory cuts between them: ..."
     when a home's NavMesh holds its capture points on more than one piece (the navmesh manifest's info.components),
-    saying for each registration edge across two pieces (registration.json's parent and edge) what joined the two
-    panoramas without joining their floors, and what joins them; None otherwise."""
+    with floor_joins and what joins the pieces; None otherwise."""
     comps = read_json(Path(navmesh_artifact) / "manifest.json", default={}).get("info", {}).get("components") or []
     if len(comps) < 2:
         return None
-    piece = {n: k for k, c in enumerate(comps) for n in c.get("capture_points", [])}
-    rows = {}
-    if register_artifact is not None:
-        rows = read_json(Path(register_artifact) / REGISTRATION_JSON, default={}).get("panoramas", {})
+    registration = None
+    if register_artifact is not None and (Path(register_artifact) / REGISTRATION_JSON).is_file():
+        registration = read_registration(register_artifact)[1]
+    why = floor_joins(comps, registration)
+    groups = " | ".join(", ".join(c.get("capture_points", [])) for c in comps)
+    return (f"home: the floor is {len(comps)} NavMesh pieces that do not connect ({groups}), so the trajectory cuts "
+            f"between them{': ' + '; '.join(why) if why else ''}; a panorama taken where their floors meet joins them "
+            "(docs/multi.md)")
+
+
+def floor_joins(components: list[dict], registration: dict | None) -> list[str]:
+    """For each registration edge (registration.json's parent and edge of a panorama) between capture points on two
+    of a home's NavMesh pieces (the navmesh info's components): what joined the two panoramas without joining their
+    floors, floor both see beyond their own rooms' walls (a hallway no depth holds) or a pose through no open
+    doorway."""
+    piece = {n: k for k, c in enumerate(components) for n in c.get("capture_points", [])}
+    rows = (registration or {}).get("panoramas", {})
     why = []
     for n, row in rows.items():
         parent = row.get("parent") if isinstance(row, dict) else None
@@ -36,7 +49,4 @@ def floor_pieces_note(navmesh_artifact: Path, register_artifact: Path | None = N
         else:
             why.append(f"{parent} and {n} are joined by a {row.get('edge', 'given')} pose, but no doorway between their "
                        "floors was seen open")
-    groups = " | ".join(", ".join(c.get("capture_points", [])) for c in comps)
-    return (f"home: the floor is {len(comps)} NavMesh pieces that do not connect ({groups}), so the trajectory cuts "
-            f"between them{': ' + '; '.join(why) if why else ''}; a panorama taken where their floors meet joins them "
-            "(docs/multi.md)")
+    return why

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from panoworld.framework.notes import floor_joins
 from panoworld.io.jsonio import read_json
 from panoworld.tools.report import encode as enc
 from panoworld.tools.report.page import Page, Section, figure, fmt, missing, slider, svg_figure, table
@@ -301,8 +302,10 @@ def section_plan(scene: SceneData, params: ReportParams) -> Section:
         groups = "; ".join(f"{', '.join(c.get('capture_points') or []) or 'no capture point'} "
                            f"({fmt(c.get('area_m2'))} m²)" for c in comps)
         cuts = (tinfo.get("plan") or {}).get("cuts") or []
+        joins = floor_joins(comps, scene.registration())
         notes.append(f"the home's floor is {len(comps)} NavMesh components that do not connect: {groups}"
-                     + (f"; the trajectory cuts (no walk) {', '.join(' → '.join(c) for c in cuts)}" if cuts else ""))
+                     + (f"; the trajectory cuts (no walk) {', '.join(' → '.join(c) for c in cuts)}" if cuts else "")
+                     + (f"; {'; '.join(joins)}" if joins else ""))
     nfacts = table(["navmesh", "value"], [[k, fmt(ninfo.get(k))] for k in
                                           ("area_m2", "num_triangles", "num_holes", "floor_y", "camera_on_navmesh") if k in ninfo]
                    + ([["components", str(len(comps))]] if comps else []))
