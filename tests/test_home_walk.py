@@ -140,6 +140,7 @@ def test_the_run_says_why_the_floors_do_not_connect_and_what_joins_them(closed_h
     arts = {"navmesh": tmp_path / "navmesh", "register": tmp_path / "register"}
     for d in arts.values():
         d.mkdir()
+    write_json(arts["register"] / "panoramas.json", {n: T.tolist() for n, T in closed_home[1].items()})
     write_json(arts["navmesh"] / "manifest.json", {"info": {"components": nav.info["home"]["components"]}})
     write_json(arts["register"] / "registration.json", {"panoramas": {
         "a": {"registered": True, "parent": None},
