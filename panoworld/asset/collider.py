@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from panoworld.core.parallel import cpu_threads
 from panoworld.geometry.erp_mesh import ErpMesh, compact_faces
 
 MAX_PASSES = 3
@@ -169,7 +170,7 @@ def surface_error(vertices: np.ndarray, faces: np.ndarray, tree, normals: np.nda
     a, b, c = (vertices[pick[:, k]] for k in range(3))
     r1, r2 = np.sqrt(rng.random(samples)), rng.random(samples)
     pts = (1 - r1)[:, None] * a + (r1 * (1 - r2))[:, None] * b + (r1 * r2)[:, None] * c
-    _, k = tree.query(pts, workers=2)
+    _, k = tree.query(pts, workers=cpu_threads(2))
     off = np.abs(np.einsum("ij,ij->i", pts - tree.data[k], normals[k]))
     return float(np.percentile(off, 99))
 

@@ -7,10 +7,7 @@ from pathlib import Path
 from panoworld.io.jsonio import read_json
 from panoworld.register.artifact import read_registration
 from panoworld.register.inputs import REGISTRATION_JSON
-
-HALLWAY_SHARE = 0.9
-"""A floor edge with at least this share of its inlier matches beyond both rooms' walls joined two panoramas through
-floor they see only through their doors (register.floor.beyond_both_rooms)."""
+from panoworld.register.options import BEYOND_SHARE
 
 
 def floor_pieces_note(navmesh_artifact: Path, register_artifact: Path | None = None) -> str | None:
@@ -43,7 +40,7 @@ def floor_joins(components: list[dict], registration: dict | None) -> list[str]:
         if parent is None or n not in piece or parent not in piece or piece[n] == piece[parent]:
             continue
         beyond, matched = int(row.get("beyond_rooms", 0)), int(row.get("inlier_matches", 0))
-        if row.get("edge") == "floor" and matched and beyond >= HALLWAY_SHARE * matched:
+        if row.get("edge") == "floor" and matched and beyond >= BEYOND_SHARE * matched:
             why.append(f"{parent} and {n} see one floor beyond both rooms' walls ({beyond} of {matched} floor matches), "
                        "which no panorama's depth holds (a hallway)")
         else:

@@ -10,6 +10,7 @@ from panoworld.geometry.upright import wrap_angle, yaw_of
 from panoworld.io.home import first_few
 from panoworld.register.floor import FloorPose, floor_support
 from panoworld.register.graph import DIRECTION, FLOOR, LAYOUT, Edge, ancestry, solve_graph, tree_path
+from panoworld.register.options import BEYOND_SHARE
 
 AGREE_M, AGREE_DEG = 0.25, 2.0
 """Two placements of one side are the same when they put its cameras' mean position within AGREE_M of each other and
@@ -18,9 +19,6 @@ MIN_SUPPORT = 4
 """A pair's floor images support a placement when at least this many of their matches agree with the relative pose it
 gives (floor_support's tests, counted once per keypoint spot); between floors that share nothing, a given pose keeps
 0-2."""
-BEYOND_SHARE = 0.9
-"""A weak floor edge lies between its rooms when at least this share of its inlier matches (and RegisterOptions'
-floor_beyond_rooms of them) lie beyond both rooms' walls."""
 SAME_SPOT_M = 0.25
 """Panoramas on one side of a cut whose capture points lie within this of each other on the floor are one capture spot
 (a retake, an exposure bracket): they see the same floor from the same place, so a chance fit of one repeats with the

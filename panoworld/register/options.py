@@ -7,6 +7,10 @@ from dataclasses import dataclass
 from panoworld.core.params import param
 from panoworld.register.pair_select import ALL_PAIRS_UP_TO
 
+BEYOND_SHARE = 0.9
+"""A weak floor edge lies between its rooms when at least this share of its inlier matches (and RegisterOptions'
+floor_beyond_rooms of them) lie beyond both rooms' walls: floor both panoramas see only through openings."""
+
 
 @dataclass(kw_only=True)
 class RegisterOptions:
